@@ -1,0 +1,32 @@
+import math
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+import torchblur as tb  # noqa: E402
+
+
+@pytest.fixture
+def gen():
+    return torch.Generator().manual_seed(1234)
+
+
+def make_case(dtype=torch.float64, tilted=True, batch=()):
+    """A tilted PSF on a 2-D Lissajous motion over more than a period."""
+    g = torch.Generator().manual_seed(7)
+    center = torch.tensor([20.3, 18.7], dtype=dtype) + torch.rand(batch + (2,), generator=g, dtype=dtype)
+    if tilted:
+        psf = tb.GaussianPSF.from_axes(center, torch.tensor(2.2, dtype=dtype), torch.tensor(1.4, dtype=dtype),
+                                       torch.tensor(0.5, dtype=dtype), amplitude=torch.tensor(3.0, dtype=dtype))
+    else:
+        psf = tb.GaussianPSF.isotropic(center, torch.tensor(1.8, dtype=dtype), amplitude=torch.tensor(3.0, dtype=dtype))
+    amp = torch.tensor([9.0, 5.0], dtype=dtype) + torch.rand(batch + (2,), generator=g, dtype=dtype)
+    phase = torch.tensor([0.4, 1.3], dtype=dtype) + torch.rand(batch + (2,), generator=g, dtype=dtype)
+    f = 100.0
+    traj = tb.Sinusoid(amp, phase, torch.tensor(2 * math.pi * f, dtype=dtype))
+    win = tb.ExposureWindow(torch.tensor(0.13 / f, dtype=dtype), torch.tensor(1.4 / f, dtype=dtype))
+    return traj, psf, win

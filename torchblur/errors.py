@@ -1,0 +1,137 @@
+"""Exceptions and the input checks used at public entry points.
+
+Every check raises an exception whose message names the argument, says what was
+expected and what came. ``ShapeError`` and ``ParameterError`` subclass ``ValueError``;
+``InputTypeError`` subclasses ``TypeError``, so callers may catch the builtin classes.
+"""
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import torch
+
+__all__ = [
+    "TorchblurError",
+    "ShapeError",
+    "ParameterError",
+    "InputTypeError",
+    "ConfigError",
+    "as_tensor",
+    "check_finite",
+    "check_positive",
+    "check_trailing_shape",
+    "broadcast_batch",
+]
+
+
+class TorchblurError(Exception):
+    """Base class of every error torchblur raises on purpose."""
+
+
+class ShapeError(TorchblurError, ValueError):
+    """A tensor has the wrong number of dimensions, trailing shape, or batch shape."""
+
+
+class ParameterError(TorchblurError, ValueError):
+    """A value is impossible: NaN/Inf, non-positive where positive is required, etc."""
+
+
+class InputTypeError(TorchblurError, TypeError):
+    """An argument has the wrong Python or tensor type."""
+
+
+class ConfigError(TorchblurError, ValueError):
+    """A configuration key is unknown or its value is invalid (the message names the key)."""
+
+
+def as_tensor(
+    value,
+    name: str,
+    *,
+    like: torch.Tensor | None = None,
+    dtype: torch.dtype | None = None,
+    device: torch.device | None = None,
+) -> torch.Tensor:
+    """Convert ``value`` to a floating tensor, keeping a tensor's dtype/device and autograd.
+
+    Python numbers and sequences take the dtype/device of ``like`` when given, else the
+    default dtype. Integer and boolean tensors are promoted to the default float dtype.
+    Complex tensors, strings and other objects raise :class:`InputTypeError`.
+    """
+    if isinstance(value, torch.Tensor):
+        t = value
+        if t.is_complex():
+            raise InputTypeError(f"{name}: expected a real floating tensor, got dtype {t.dtype}")
+        if not t.is_floating_point():
+            t = t.to(dtype or (like.dtype if like is not None else torch.get_default_dtype()))
+        if dtype is not None and t.dtype != dtype:
+            t = t.to(dtype)
+        if device is not None:
+            t = t.to(device)
+        return t
+    if isinstance(value, (bool, str, bytes)) or value is None:
+        raise InputTypeError(
+            f"{name}: expected a number, sequence of numbers or tensor, got {type(value).__name__}"
+        )
+    if dtype is None:
+        dtype = like.dtype if like is not None else torch.get_default_dtype()
+    if device is None and like is not None:
+        device = like.device
+    try:
+        return torch.as_tensor(value, dtype=dtype, device=device)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise InputTypeError(
+            f"{name}: expected a number, sequence of numbers or tensor, got {type(value).__name__}"
+        ) from exc
+
+
+def check_finite(t: torch.Tensor, name: str) -> torch.Tensor:
+    """Raise :class:`ParameterError` if ``t`` holds NaN or Inf."""
+    if not bool(torch.isfinite(t.detach()).all()):
+        n_bad = int((~torch.isfinite(t.detach())).sum())
+        raise ParameterError(f"{name}: expected finite values, got {n_bad} NaN/Inf entries")
+    return t
+
+
+def check_positive(t: torch.Tensor, name: str, *, strict: bool = True) -> torch.Tensor:
+    """Raise :class:`ParameterError` unless every entry is finite and > 0 (>= 0 if not strict)."""
+    check_finite(t, name)
+    d = t.detach()
+    bad = d <= 0 if strict else d < 0
+    if bool(bad.any()):
+        worst = float(d.min())
+        rel = "> 0" if strict else ">= 0"
+        raise ParameterError(f"{name}: expected every value {rel}, got minimum {worst:g}")
+    return t
+
+
+def check_trailing_shape(t: torch.Tensor, name: str, tail: Sequence[int], tail_desc: str) -> torch.Tensor:
+    """Raise :class:`ShapeError` unless ``t.shape`` ends with ``tail``."""
+    tail = tuple(tail)
+    if t.dim() < len(tail) or tuple(t.shape[t.dim() - len(tail):]) != tail:
+        raise ShapeError(f"{name}: expected shape {tail_desc}, got {tuple(t.shape)}")
+    return t
+
+
+def broadcast_batch(shapes: dict[str, torch.Size | tuple]) -> torch.Size:
+    """Broadcast named batch shapes; raise :class:`ShapeError` naming them if incompatible."""
+    try:
+        return torch.broadcast_shapes(*shapes.values())
+    except RuntimeError:
+        desc = ", ".join(f"{k} {tuple(v)}" for k, v in shapes.items())
+        raise ShapeError(f"batch shapes do not broadcast: {desc}") from None
+
+
+def check_real_scalar(value, name: str, *, positive: bool = False, nonnegative: bool = False) -> float:
+    """Validate a Python real scalar (used by frozen settings); return it as ``float``."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise InputTypeError(f"{name}: expected a real number, got {type(value).__name__}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise ParameterError(f"{name}: expected a finite number, got {v}")
+    if positive and v <= 0:
+        raise ParameterError(f"{name}: expected a value > 0, got {v:g}")
+    if nonnegative and v < 0:
+        raise ParameterError(f"{name}: expected a value >= 0, got {v:g}")
+    return v
