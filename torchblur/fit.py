@@ -1,0 +1,502 @@
+"""Batched sinusoid fitting: amplitude and phase of a spot's motion from blurred images.
+
+Every problem (a frequency, a spot) of a batch is fitted at once. Starts come from the
+closed-form moments (every root, the alias pair included), all refined together; with two
+or more exposures of the same motion the fit is joint and the alias is gone. The result
+carries the Fisher-information uncertainty of each estimate and a status per item, so a
+dark frame or a spot out of frame is flagged and never stops or poisons the batch.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+
+from .alias import alias_phase as _alias_phase
+from .alias import wrap_phase
+from .errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_finite, check_positive
+from .losses import LOSSES, image_loss, irls_weights
+from .moments import image_moments, sinusoid_from_moments
+from .optim import levenberg_marquardt, model_jacobian
+from .psf import GaussianPSF, KernelPSF
+from .render import RenderSettings, choose_node_count, render_blur
+from .timing import ExposureWindow
+from .trajectory import Sinusoid
+
+__all__ = ["SinusoidFit", "fit_sinusoid", "STATUS"]
+
+#: Status codes of :class:`SinusoidFit` (``status[...]``).
+STATUS = {0: "ok", 1: "no signal (dark frame)", 2: "not converged", 3: "spot mostly outside the frame", 4: "unidentifiable (singular Fisher information)"}
+OPTIMIZERS = ("lm", "adam", "lbfgs")
+AXES = ("x", "y", "xy")
+
+
+@dataclass
+class SinusoidFit:
+    """Result of :func:`fit_sinusoid`; batch ``[...]`` is the images' leading dims.
+
+    Attributes:
+        amplitude: M (px), ``[...]`` (axes "x"/"y") or ``[..., 2]`` (axes "xy"), >= 0.
+        phase: phi (rad, wrapped to (-pi, pi]), same shape.
+        amplitude_std, phase_std: one standard deviation from the Fisher information at the
+            solution (noise level given, or estimated from the residuals).
+        alias_phase: the other branch for the first exposure (renders the same image as
+            ``phase`` in that exposure), same shape as ``phase``.
+        alias_cost: the loss at ``(amplitude, alias_phase)`` over all exposures, ``[...]``:
+            equal to ``cost`` with one exposure, larger when the exposures resolve the alias.
+        cost: the loss at the solution, ``[...]``.
+        converged: ``[...]`` bool, ``status == 0``.
+        status: ``[...]`` int, see :data:`STATUS`.
+        covariance: ``[..., P, P]`` over every fitted parameter, in ``param_names`` order.
+        param_names: names of the P parameters.
+        noise_std: the pixel noise std used for the uncertainty, ``[...]``.
+        scale, background, center: fitted nuisance parameters (None if not fitted).
+        n_iter: optimiser iterations, ``[...]``.
+    """
+
+    amplitude: torch.Tensor
+    phase: torch.Tensor
+    amplitude_std: torch.Tensor
+    phase_std: torch.Tensor
+    alias_phase: torch.Tensor
+    alias_cost: torch.Tensor
+    cost: torch.Tensor
+    converged: torch.Tensor
+    status: torch.Tensor
+    covariance: torch.Tensor
+    param_names: tuple
+    noise_std: torch.Tensor
+    n_iter: torch.Tensor
+    scale: torch.Tensor | None = None
+    background: torch.Tensor | None = None
+    center: torch.Tensor | None = None
+    extras: dict = field(default_factory=dict)
+
+
+def _flatten_psf(psf, batch, N):
+    if isinstance(psf, GaussianPSF):
+        return GaussianPSF(psf.center.expand(batch + (2,)).reshape(N, 2), psf.cov.expand(batch + (2, 2)).reshape(N, 2, 2),
+                           psf.amplitude.expand(batch).reshape(N))
+    H, W = psf.frame_shape
+    return KernelPSF(psf.kernel.expand(batch + (H, W)).reshape(N, H, W))
+
+
+def _validate(images, psf, window, omega, axes, optimizer, loss):
+    if not isinstance(images, torch.Tensor):
+        raise InputTypeError(f"images: expected a tensor [..., E, H, W], got {type(images).__name__}")
+    if not images.is_floating_point():
+        images = images.to(torch.get_default_dtype())
+    if images.dim() < 3:
+        raise ShapeError(f"images: expected shape [..., E, H, W], got {tuple(images.shape)}")
+    if images.numel() == 0:
+        raise ShapeError(f"images: expected a non-empty batch, got shape {tuple(images.shape)}")
+    check_finite(images, "images")
+    if not isinstance(psf, (GaussianPSF, KernelPSF)):
+        raise InputTypeError(f"psf: expected GaussianPSF or KernelPSF, got {type(psf).__name__}")
+    if not isinstance(window, ExposureWindow):
+        raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
+    if axes not in AXES:
+        raise ParameterError(f"axes: expected one of {AXES}, got {axes!r}")
+    if optimizer not in OPTIMIZERS:
+        raise ParameterError(f"optimizer: expected one of {OPTIMIZERS}, got {optimizer!r}")
+    if loss not in LOSSES:
+        raise ParameterError(f"loss: expected one of {LOSSES}, got {loss!r}")
+    if optimizer == "lm" and loss == "linf":
+        raise ParameterError("loss: 'linf' is not a sum of squares; use optimizer='adam' or 'lbfgs' with it")
+    batch_e = images.shape[:-2]
+    E = batch_e[-1]
+    if window.shape and window.shape[-1] not in (1, E):
+        raise ShapeError(f"window: expected a last dim of 1 or E={E} (one window per exposure), got shape {tuple(window.shape)}")
+    try:
+        torch.broadcast_shapes(window.shape, batch_e)
+    except RuntimeError:
+        raise ShapeError(f"window: batch shape {tuple(window.shape)} does not broadcast to images' [..., E] = {tuple(batch_e)}") from None
+    omega = check_positive(as_tensor(omega, "omega", like=images), "omega")
+    batch = images.shape[:-3]
+    try:
+        torch.broadcast_shapes(omega.shape, batch)
+    except RuntimeError:
+        raise ShapeError(f"omega: shape {tuple(omega.shape)} does not broadcast to the images' batch {tuple(batch)}") from None
+    try:
+        torch.broadcast_shapes(psf.shape, batch)
+    except RuntimeError:
+        raise ShapeError(f"psf: batch shape {tuple(psf.shape)} does not broadcast to the images' batch {tuple(batch)}") from None
+    if isinstance(psf, KernelPSF) and psf.frame_shape != tuple(images.shape[-2:]):
+        raise ShapeError(f"psf: expected a kernel of frame shape {tuple(images.shape[-2:])}, got {psf.frame_shape}")
+    return images, omega
+
+
+def fit_sinusoid(
+    images,
+    psf,
+    window: ExposureWindow,
+    omega,
+    *,
+    axes: str = "x",
+    optimizer: str = "lm",
+    loss: str = "l2",
+    noise_std=None,
+    mask=None,
+    fit_scale: bool = False,
+    fit_background: bool = False,
+    fit_center: bool = False,
+    normalize: bool = False,
+    max_iter: int | None = None,
+    tol: float = 1e-10,
+    render_settings: RenderSettings | None = None,
+) -> SinusoidFit:
+    """Fit ``y(t) = M sin(omega t + phi)`` to blurred images of a moving spot.
+
+    Args:
+        images: ``[..., E, H, W]``: E exposures of the same motion (E = 1, 2 or more), dark
+            level subtracted, in the units of the PSF times seconds.
+        psf: ``GaussianPSF`` or ``KernelPSF``, batch ``[...]`` (shared by the E exposures).
+        window: exposure windows, batch broadcastable to ``[..., E]``.
+        omega: rad/s, ``[...]``.
+        axes: ``"x"`` or ``"y"``: a motion along that axis (amplitude, phase ``[...]``);
+            ``"xy"``: a 2-D Lissajous motion (amplitude, phase ``[..., 2]``).
+        optimizer: ``"lm"`` (batched Levenberg-Marquardt, default), ``"adam"``, ``"lbfgs"``.
+        loss: ``"l2"`` (default), ``"l1"``, ``"linf"`` (adam/lbfgs only), ``"poisson"``.
+        noise_std: pixel noise std: a number, ``[...]`` or ``[..., E, H, W]``; None: the l2
+            fit is unweighted and the noise is estimated from the residuals.
+        mask: bool ``[..., E, H, W]``, False excludes a pixel (saturated, hot).
+        fit_scale, fit_background, fit_center: fit an intensity scale, a background offset,
+            the rest position jointly (nuisance parameters).
+        normalize: the paper's eq. 8: compare images divided by their Frobenius norms (an
+            option; it weights the exposures unequally and loses precision).
+        max_iter: optimiser iterations (default 60 for lm, 400 for adam, 100 for lbfgs).
+        tol: relative cost decrease that counts as converged (lm).
+        render_settings: renderer settings; the node count is fixed for the whole fit.
+
+    Returns:
+        :class:`SinusoidFit`.
+    """
+    images, omega = _validate(images, psf, window, omega, axes, optimizer, loss)
+    dtype, device = images.dtype, images.device
+    batch = images.shape[:-3]
+    E, H, W = images.shape[-3:]
+    N = max(1, math.prod(batch))
+    data = images.reshape(N, E, H, W)
+    win = window.to(dtype).expand(batch + (E,))
+    start = win.start.reshape(N, E)
+    dur = win.duration.reshape(N, E)
+    om = omega.expand(batch).reshape(N)
+    p_flat = _flatten_psf(psf.to(dtype) if isinstance(psf, GaussianPSF) else psf, batch, N)
+    if isinstance(p_flat, GaussianPSF):
+        rest, cov_psf = p_flat.center, p_flat.cov
+    else:
+        rest, cov_psf = p_flat.moments()
+
+    # Weights and the noise level.
+    weight = torch.ones_like(data)
+    sigma_given = None
+    if noise_std is not None:
+        s = check_positive(as_tensor(noise_std, "noise_std", like=data), "noise_std")
+        if s.dim() >= 3 and s.shape[-3:] == (E, H, W):
+            s = s.expand(batch + (E, H, W)).reshape(N, E, H, W)
+        else:
+            try:
+                s = s.expand(batch).reshape(N, 1, 1, 1)
+            except RuntimeError:
+                raise ShapeError(f"noise_std: expected a number, [...] or [..., E, H, W], got {tuple(s.shape)}") from None
+        sigma_level = s.reshape(N, -1).contiguous().median(-1).values
+        sigma_given = s.expand(N, E, H, W)
+        weight = 1 / sigma_given**2
+    if mask is not None:
+        if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool:
+            raise InputTypeError("mask: expected a bool tensor [..., E, H, W] (True = use the pixel)")
+        try:
+            m = mask.expand(batch + (E, H, W)).reshape(N, E, H, W)
+        except RuntimeError:
+            raise ShapeError(f"mask: expected shape [..., E, H, W] = {tuple(images.shape)}, got {tuple(mask.shape)}") from None
+        weight = weight * m.to(dtype)
+
+    # Degenerate items: no signal above the noise.
+    flat = data.reshape(N, -1)
+    med = flat.median(-1).values
+    mad = (flat - med[:, None]).abs().median(-1).values * 1.4826
+    noise_level = sigma_level if sigma_given is not None else mad
+    peak = (flat - med[:, None]).amax(-1)
+    dark = ~(peak > 8 * noise_level.clamp_min(torch.finfo(dtype).tiny)) | (peak <= 0)
+
+    # Closed-form starts from the moments of every exposure (both roots).
+    thr = med[:, None] + 3 * noise_level[:, None]
+    _, centroid, icov = image_moments(data, threshold=thr)  # [N, E, 2], [N, E, 2, 2]
+    axis_ids = {"x": [0], "y": [1], "xy": [0, 1]}[axes]
+    n_axes = len(axis_ids)
+    M_c, phi_c = [], []
+    for a in axis_ids:
+        mu1 = centroid[..., a] - rest[:, None, a]
+        vex = icov[..., a, a] - cov_psf[:, None, a, a]
+        M, phi = sinusoid_from_moments(mu1, vex, om[:, None], start, dur)  # [N, E], [N, E, 2]
+        M_c.append(M)
+        phi_c.append(torch.nan_to_num(phi, nan=0.0))
+    # A motion larger than the frame cannot be measured: cap the starts (keeps the node count sane).
+    diag = math.hypot(H, W)
+    M_c = [m.clamp(max=diag) for m in M_c]
+    # The rest position must be in the frame (3 sigma margin): otherwise flag, do not fit.
+    sd = torch.diagonal(cov_psf, dim1=-2, dim2=-1).clamp_min(0).sqrt()
+    outside = ((rest < -3 * sd) | (rest > torch.tensor([W - 1, H - 1], dtype=dtype, device=device) + 3 * sd)).any(-1)
+    E_use = min(E, 2)
+    cands = []
+    for e in range(E_use):
+        roots = [(r,) for r in range(2)] if n_axes == 1 else [(r0, r1) for r0 in range(2) for r1 in range(2)]
+        for rs in roots:
+            cands.append(torch.stack([M_c[k][:, e] for k in range(n_axes)] + [phi_c[k][:, e, rs[k]] for k in range(n_axes)], -1))
+    K = len(cands)
+    theta_core = torch.stack(cands, 1)  # [N, K, 2 n_axes]
+    theta_core[..., :n_axes] = theta_core[..., :n_axes].clamp_min(1e-3)
+
+    names = [f"amplitude_{'xy'[a]}" for a in axis_ids] + [f"phase_{'xy'[a]}" for a in axis_ids]
+    extra = []
+    if fit_scale:
+        names.append("scale")
+        if isinstance(p_flat, GaussianPSF):
+            expected = (p_flat.total_light()[:, None] * dur).sum(-1)
+        else:
+            expected = (p_flat.kernel.sum((-1, -2))[:, None] * dur).sum(-1)
+        extra.append((data.sum((-1, -2, -3)) / expected.clamp_min(1e-30)).clamp_min(1e-3))
+    if fit_background:
+        names.append("background")
+        extra.append(med)
+    if fit_center:
+        names += ["center_x", "center_y"]
+        extra += [rest[:, 0], rest[:, 1]]
+    P = len(names)
+    if extra:
+        ex = torch.stack(extra, -1)[:, None, :].expand(N, K, len(extra))
+        theta0 = torch.cat([theta_core, ex], -1)
+    else:
+        theta0 = theta_core
+    theta0 = theta0.reshape(N * K, P).detach()
+
+    # Node count fixed for the whole fit, from a generous motion bound.
+    settings = render_settings or RenderSettings()
+    if settings.nodes is None:
+        amp_bound = (theta_core[..., :n_axes].amax(1) * 1.5 + 1.0)  # [N, n_axes]
+        amp_xy = torch.zeros(N, 2, dtype=dtype, device=device)
+        amp_xy[:, axis_ids] = amp_bound
+        path = Sinusoid(amp_xy[:, None, :], torch.zeros(N, 1, 2, dtype=dtype, device=device), om[:, None]).path_length(
+            ExposureWindow(torch.zeros_like(dur), dur))
+        smin = p_flat.sigma_min()[:, None]
+        S = choose_node_count(path, smin, settings)
+        settings = RenderSettings(pixel_integration=settings.pixel_integration, nodes_per_panel=settings.nodes_per_panel,
+                                  panel_path_sigmas=settings.panel_path_sigmas, max_nodes=settings.max_nodes, nodes=S)
+
+    prob_of = lambda idx: torch.div(idx, K, rounding_mode="floor")  # noqa: E731
+
+    def model_fn(theta, idx, k_of=prob_of):
+        n = k_of(idx)
+        amp = theta[:, :n_axes]
+        ph = theta[:, n_axes:2 * n_axes]
+        zeros = torch.zeros_like(theta[:, :1])
+        if axes == "x":
+            amp_xy, ph_xy = torch.cat([amp, zeros], -1), torch.cat([ph, ph], -1)
+        elif axes == "y":
+            amp_xy, ph_xy = torch.cat([zeros, amp], -1), torch.cat([ph, ph], -1)
+        else:
+            amp_xy, ph_xy = amp, ph
+        j = 2 * n_axes
+        scale = theta[:, j] if fit_scale else None
+        j += int(fit_scale)
+        bg = theta[:, j] if fit_background else None
+        j += int(fit_background)
+        if isinstance(p_flat, GaussianPSF):
+            c = theta[:, j:j + 2] if fit_center else p_flat.center[n]
+            psf_n = GaussianPSF(c[:, None, :], p_flat.cov[n][:, None], p_flat.amplitude[n][:, None])
+        else:
+            psf_n = KernelPSF(p_flat.kernel[n][:, None])
+        traj = Sinusoid(amp_xy[:, None, :], ph_xy[:, None, :], om[n][:, None])
+        img = render_blur(traj, psf_n, ExposureWindow(start[n], dur[n]), height=H, width=W, settings=settings)
+        if scale is not None:
+            img = img * scale[:, None, None, None]
+        if bg is not None:
+            img = img + bg[:, None, None, None]
+        if normalize:
+            img = img / img.square().sum((-1, -2), keepdim=True).sqrt().clamp_min(1e-30)
+        return img.reshape(img.shape[0], -1)
+
+    target = data
+    if normalize:
+        target = data / data.square().sum((-1, -2), keepdim=True).sqrt().clamp_min(1e-30)
+    target_k = target.reshape(N, 1, -1).expand(N, K, E * H * W).reshape(N * K, -1)
+    weight_k = weight.reshape(N, 1, -1).expand(N, K, E * H * W).reshape(N * K, -1)
+
+    def project(theta):
+        return theta
+
+    live = (~dark & ~outside).repeat_interleave(K)
+    live_idx = torch.arange(N * K, device=device)[live]
+    theta = theta0.clone()
+    cost = torch.full((N * K,), float("inf"), dtype=dtype, device=device)
+    conv = torch.zeros(N * K, dtype=torch.bool, device=device)
+    iters = torch.zeros(N * K, dtype=torch.long, device=device)
+    if live_idx.numel():
+        sub_model = lambda th, i: model_fn(th, live_idx[i])  # noqa: E731
+        res = _optimise(sub_model, theta0[live_idx], target_k[live_idx], weight_k[live_idx], loss, optimizer, max_iter, tol, project,
+                        groups=K if E >= 2 else None)
+        theta[live_idx], cost[live_idx], conv[live_idx], iters[live_idx] = res.theta, res.cost, res.converged, res.n_iter
+
+    # Canonical form: M >= 0, phases wrapped.
+    th = theta.reshape(N, K, P).clone()
+    neg = th[..., :n_axes] < 0
+    th[..., :n_axes] = th[..., :n_axes].abs()
+    th[..., n_axes:2 * n_axes] = wrap_phase(th[..., n_axes:2 * n_axes] + math.pi * neg)
+    cost = cost.reshape(N, K)
+    best = torch.nan_to_num(cost, nan=float("inf")).argmin(1)
+    ar = torch.arange(N, device=device)
+    theta_best = th[ar, best]  # [N, P]
+    cost_best = cost[ar, best]
+    conv_best = conv.reshape(N, K)[ar, best]
+    iters_best = iters.reshape(N, K)[ar, best]
+
+    # Uncertainty: the Fisher information at the solution.
+    idx_best = ar * K + best
+    model, J = model_jacobian(lambda t, i: model_fn(t, i), theta_best, idx_best)
+    resid = target.reshape(N, -1) - model
+    w = weight.reshape(N, -1)
+    n_used = (w > 0).sum(-1).to(dtype)
+    if loss == "poisson":
+        fisher_w = irls_weights(model, target.reshape(N, -1), loss="poisson", weight=(w > 0).to(dtype))
+        sigma_used = torch.full((N,), float("nan"), dtype=dtype, device=device)
+    elif sigma_given is not None:
+        fisher_w = w
+        sigma_used = noise_level
+    else:
+        sig2 = ((resid * resid) * (w > 0)).sum(-1) / (n_used - P).clamp_min(1)
+        fisher_w = (w > 0).to(dtype) / sig2[:, None].clamp_min(torch.finfo(dtype).tiny)
+        sigma_used = sig2.sqrt()
+    JW = J * fisher_w[..., None]
+    F = JW.transpose(-1, -2) @ J
+    cov, info = torch.linalg.inv_ex(F)
+    singular = (info != 0) | ~torch.isfinite(cov).all(-1).all(-1)
+    diag = torch.diagonal(cov, dim1=-2, dim2=-1)
+    singular = singular | (diag <= 0).any(-1)
+    std = diag.clamp_min(0).sqrt()
+
+    # The other branch (alias of the first exposure) and its cost over all exposures.
+    amp_b = theta_best[:, :n_axes]
+    ph_b = theta_best[:, n_axes:2 * n_axes]
+    alias = _alias_phase(ph_b, om[:, None], ExposureWindow(start[:, :1], dur[:, :1]))
+    theta_alias = theta_best.clone()
+    theta_alias[:, n_axes:2 * n_axes] = alias
+    with torch.no_grad():
+        alias_cost = image_loss(model_fn(theta_alias, idx_best), target.reshape(N, -1), loss=loss, weight=weight.reshape(N, -1))
+
+    # Status per item.
+    status = torch.zeros(N, dtype=torch.long, device=device)
+    status[~conv_best] = 2
+    status[singular] = 4
+    if isinstance(p_flat, GaussianPSF):
+        with torch.no_grad():
+            scale_b = theta_best[:, 2 * n_axes] if fit_scale else torch.ones(N, dtype=dtype, device=device)
+            bg_b = theta_best[:, 2 * n_axes + int(fit_scale)] if fit_background else 0.0
+            inside = (model - (bg_b[:, None] if fit_background else 0.0)).sum(-1)
+            if normalize:
+                inside = torch.full_like(inside, float("inf"))
+            total = scale_b * (p_flat.total_light()[:, None] * dur).sum(-1)
+            status[inside < 0.5 * total] = 3
+    status[outside] = 3
+    status[dark] = 1
+    bad = (status == 1) | outside
+    nan = torch.tensor(float("nan"), dtype=dtype, device=device)
+
+    def out(x, tail=()):
+        return x.reshape(batch + tail)
+
+    def core(v):
+        v = torch.where(bad[:, None], nan, v)
+        return out(v, (2,)) if n_axes == 2 else out(v[:, 0])
+
+    res = SinusoidFit(
+        amplitude=core(amp_b),
+        phase=core(ph_b),
+        amplitude_std=core(std[:, :n_axes]),
+        phase_std=core(std[:, n_axes:2 * n_axes]),
+        alias_phase=core(alias),
+        alias_cost=out(torch.where(bad, nan, alias_cost)),
+        cost=out(torch.where(bad, nan, cost_best)),
+        converged=out(status == 0),
+        status=out(status),
+        covariance=out(torch.where(bad[:, None, None], nan, cov), (P, P)),
+        param_names=tuple(names),
+        noise_std=out(sigma_used),
+        n_iter=out(iters_best),
+    )
+    j = 2 * n_axes
+    if fit_scale:
+        res.scale = out(theta_best[:, j])
+        j += 1
+    if fit_background:
+        res.background = out(theta_best[:, j])
+        j += 1
+    if fit_center:
+        res.center = out(theta_best[:, j:j + 2], (2,))
+    res.extras["nodes"] = settings.nodes
+    res.extras["candidates"] = K
+    return res
+
+
+def _optimise(model_fn, theta0, data, weight, loss, optimizer, max_iter, tol, project, groups=None):
+    """Run the chosen optimiser on ``[n, P]`` problems (see :func:`fit_sinusoid`)."""
+    from .optim import LMResult
+
+    if optimizer == "lm":
+        it = max_iter or 60
+        if groups is not None and groups > 2 and theta0.shape[0] % groups == 0 and it > 4:
+            # Warm up every candidate, then keep the two best per problem (the alias start
+            # of a joint multi-exposure fit falls behind within a few iterations).
+            warm = levenberg_marquardt(model_fn, theta0, data, loss=loss, weight=weight, max_iter=3, tol=tol, project=project)
+            n = theta0.shape[0] // groups
+            c = torch.nan_to_num(warm.cost, nan=float("inf")).reshape(n, groups)
+            keep = c.argsort(1)[:, :2] + torch.arange(n, device=c.device)[:, None] * groups
+            keep = keep.reshape(-1)
+            sub = levenberg_marquardt(lambda th, i: model_fn(th, keep[i]), warm.theta[keep], data[keep], loss=loss,
+                                      weight=weight[keep], max_iter=it - 3, tol=tol, project=project)
+            cost = torch.full_like(warm.cost, float("inf"))
+            theta = warm.theta.clone()
+            conv = torch.zeros_like(warm.converged)
+            n_iter = warm.n_iter.clone()
+            theta[keep], cost[keep], conv[keep], n_iter[keep] = sub.theta, sub.cost, sub.converged, sub.n_iter + 3
+            return LMResult(theta, cost, conv, n_iter)
+        return levenberg_marquardt(model_fn, theta0, data, loss=loss, weight=weight, max_iter=it, tol=tol, project=project)
+    n = theta0.shape[0]
+    idx = torch.arange(n, device=theta0.device)
+    theta = theta0.clone().requires_grad_(True)
+    scale = theta0.detach().abs().clamp_min(1.0)
+    if optimizer == "adam":
+        it = max_iter or 400
+        u = torch.zeros_like(theta0, requires_grad=True)
+        opt = torch.optim.Adam([u], lr=0.02)
+        history = []
+        for _ in range(it):
+            opt.zero_grad()
+            c = image_loss(model_fn(theta0 + u * scale, idx), data, loss=loss, weight=weight)
+            c.sum().backward()
+            opt.step()
+            history.append(c.detach())
+        with torch.no_grad():
+            final = theta0 + u * scale
+            cost = image_loss(model_fn(final, idx), data, loss=loss, weight=weight)
+        prev = history[-20] if len(history) >= 20 else history[0]
+        conv = (prev - cost).abs() <= 1e-4 * cost.abs().clamp_min(1e-30)
+        return LMResult(final.detach(), cost, conv, torch.full((n,), it, dtype=torch.long, device=theta0.device))
+    it = max_iter or 100
+    u = torch.zeros_like(theta0, requires_grad=True)
+    opt = torch.optim.LBFGS([u], lr=1.0, max_iter=it, line_search_fn="strong_wolfe", tolerance_grad=1e-12, tolerance_change=1e-14)
+
+    def closure():
+        opt.zero_grad()
+        c = image_loss(model_fn(theta0 + u * scale, idx), data, loss=loss, weight=weight).sum()
+        c.backward()
+        return c
+
+    opt.step(closure)
+    with torch.no_grad():
+        final = theta0 + u * scale
+        cost = image_loss(model_fn(final, idx), data, loss=loss, weight=weight)
+    state = opt.state[opt._params[0]]
+    n_it = int(state.get("n_iter", it))
+    conv = torch.full((n,), n_it < it, dtype=torch.bool, device=theta0.device)
+    return LMResult(final.detach(), cost, conv, torch.full((n,), n_it, dtype=torch.long, device=theta0.device))

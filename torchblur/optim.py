@@ -1,0 +1,124 @@
+"""Batched optimisers for many small, independent problems.
+
+:func:`levenberg_marquardt` fits ``N`` problems of ``P`` parameters each at once, with a
+damping per problem, exact Jacobians by forward-mode automatic differentiation (``P``
+forward passes) and an active set: a problem that has converged (or cannot improve) drops
+out of the batch, so one bad problem never stalls or poisons the others.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+import torch.autograd.forward_ad as fwAD
+
+from .losses import image_loss, irls_weights
+
+__all__ = ["LMResult", "levenberg_marquardt", "model_jacobian"]
+
+
+@dataclass
+class LMResult:
+    """``theta [N, P]``, ``cost [N]``, ``converged [N]`` (bool), ``n_iter [N]``."""
+
+    theta: torch.Tensor
+    cost: torch.Tensor
+    converged: torch.Tensor
+    n_iter: torch.Tensor
+
+
+def model_jacobian(model_fn: Callable, theta: torch.Tensor, idx: torch.Tensor):
+    """``model_fn(theta, idx) -> [n, R]`` and its Jacobian ``[n, R, P]`` by forward AD."""
+    P = theta.shape[-1]
+    cols = []
+    primal = None
+    with fwAD.dual_level():
+        for k in range(P):
+            tangent = torch.zeros_like(theta)
+            tangent[:, k] = 1
+            out = model_fn(fwAD.make_dual(theta, tangent), idx)
+            unpacked = fwAD.unpack_dual(out)
+            if primal is None:
+                primal = unpacked.primal.detach()
+            cols.append(unpacked.tangent if unpacked.tangent is not None else torch.zeros_like(unpacked.primal))
+    return primal, torch.stack(cols, -1)
+
+
+def levenberg_marquardt(
+    model_fn: Callable,
+    theta0: torch.Tensor,
+    data: torch.Tensor,
+    *,
+    loss: str = "l2",
+    weight: torch.Tensor | None = None,
+    max_iter: int = 50,
+    tol: float = 1e-10,
+    lambda0: float = 1e-3,
+    project: Callable | None = None,
+) -> LMResult:
+    """Minimise ``image_loss(model_fn(theta), data)`` for each of ``N`` problems.
+
+    Args:
+        model_fn: ``(theta [n, P], idx [n] long) -> model [n, R]``; ``idx`` says which of the
+            ``N`` problems the rows are (so the caller can index its own per-problem data).
+        theta0: starts ``[N, P]``.
+        data: ``[N, R]``.
+        loss: ``"l2"``, ``"poisson"`` or ``"l1"`` (by iteratively reweighted least squares).
+        weight: per-pixel weights ``[N, R]`` (``1/sigma^2``; 0 masks a pixel) or None.
+        max_iter: iterations at most; tol: relative cost decrease that counts as converged.
+        project: optional ``theta -> theta`` applied after each step (e.g. keep bounds).
+
+    Returns:
+        :class:`LMResult`. ``converged`` is False where ``max_iter`` ran out.
+    """
+    N, P = theta0.shape
+    theta = theta0.detach().clone()
+    all_idx = torch.arange(N, device=theta.device)
+    w_of = (lambda i: None) if weight is None else (lambda i: weight[i])
+    with torch.no_grad():
+        cost = image_loss(model_fn(theta, all_idx), data, loss=loss, weight=weight)
+        # A cost this small is round-off: converged (noise-free data).
+        floor = (10 * torch.finfo(theta.dtype).eps) ** 2 * image_loss(torch.zeros_like(data), data, loss="l2", weight=weight)
+    lam = torch.full((N,), lambda0, dtype=theta.dtype, device=theta.device)
+    converged = torch.zeros(N, dtype=torch.bool, device=theta.device)
+    n_iter = torch.zeros(N, dtype=torch.long, device=theta.device)
+    need_jac = torch.ones(N, dtype=torch.bool, device=theta.device)
+    JTJ = torch.zeros(N, P, P, dtype=theta.dtype, device=theta.device)
+    g = torch.zeros(N, P, dtype=theta.dtype, device=theta.device)
+    eye = torch.eye(P, dtype=theta.dtype, device=theta.device)
+    for _ in range(max_iter):
+        active = ~converged
+        if not bool(active.any()):
+            break
+        jac_idx = all_idx[active & need_jac]
+        if jac_idx.numel():
+            model, J = model_jacobian(model_fn, theta[jac_idx], jac_idx)
+            W = irls_weights(model, data[jac_idx], loss=loss, weight=w_of(jac_idx))
+            JW = J * W[..., None]
+            JTJ[jac_idx] = JW.transpose(-1, -2) @ J
+            g[jac_idx] = (JW * (data[jac_idx] - model)[..., None]).sum(-2)
+            need_jac[jac_idx] = False
+        idx = all_idx[active]
+        n_iter[idx] += 1
+        A = JTJ[idx]
+        diag = torch.diagonal(A, dim1=-2, dim2=-1).clamp_min(1e-30)
+        damped = A + lam[idx, None, None] * torch.diag_embed(diag) + 1e-12 * diag.amax(-1)[:, None, None] * eye
+        step = torch.linalg.solve(damped, g[idx][..., None])[..., 0]
+        step = torch.nan_to_num(step, nan=0.0, posinf=0.0, neginf=0.0)
+        trial = theta[idx] + step
+        if project is not None:
+            trial = project(trial)
+        with torch.no_grad():
+            new_cost = image_loss(model_fn(trial, idx), data[idx], loss=loss, weight=w_of(idx))
+        ok = torch.isfinite(new_cost) & (new_cost <= cost[idx])
+        rel = (cost[idx] - new_cost) / cost[idx].abs().clamp_min(1e-300)
+        small_step = (step.abs() <= 1e-12 * (theta[idx].abs() + 1e-8)).all(-1)
+        acc = idx[ok]
+        theta[acc] = trial[ok]
+        cost[acc] = new_cost[ok]
+        need_jac[acc] = True
+        lam[idx] = torch.where(ok, (lam[idx] / 3).clamp_min(1e-12), lam[idx] * 4)
+        done = (ok & (rel < tol)) | small_step | (lam[idx] > 1e12) | (cost[idx] <= floor[idx])
+        converged[idx[done]] = True
+    return LMResult(theta=theta, cost=cost, converged=converged, n_iter=n_iter)
