@@ -1,0 +1,124 @@
+"""The interface an identification pipeline uses to take frames, and its result type.
+
+A rig is a laser spot on a fast steering mirror (the plant) seen by a slow camera, with a
+controller that makes the sine command and fires the camera trigger on the same clock
+(PHYSICS.md sections 2 and 4). Times are in seconds, frequencies in Hz at this interface
+(``freq_hz``), amplitudes in command units, frames in ADU.
+
+Glossary of shapes: E exposures, R repeats, H, W pixels; ``[...]`` the batch of frames.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Protocol, Sequence, runtime_checkable
+
+import torch
+
+__all__ = ["Capture", "Rig"]
+
+
+@dataclass
+class Capture:
+    """The frames of one rig call and when they were taken.
+
+    Args:
+        frames: frames in ADU, float, ``[..., H, W]``; ``frames[..., i, j]`` is the value of
+            row i, column j (x = j, y = i).
+        exposure_s: exposure time Te of each frame (s), ``[...]``.
+        trigger_offset_s: commanded trigger time of each frame (s) relative to the reference
+            event of the period the trigger falls in: for ``sine`` the upward zero crossing
+            of the command in that period, in ``[0, period)``; for ``pulse`` the reference
+            event the laser pulse is timed from; 0 for ``dark`` and ``still``. ``[...]``.
+        trigger_time_s: absolute command-clock time of each trigger (s), ``[...]``; for
+            ``sine`` t = 0 is the start of the sine.
+        frame_counter: the camera's frame counter, ``[...]`` long; +1 per frame, across
+            calls.
+        meta: anything else (the call's arguments, the settle time, ...).
+    """
+
+    frames: torch.Tensor
+    exposure_s: torch.Tensor
+    trigger_offset_s: torch.Tensor
+    trigger_time_s: torch.Tensor
+    frame_counter: torch.Tensor
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def shape(self) -> torch.Size:
+        """Batch shape ``[...]`` of the frames."""
+        return self.frames.shape[:-2]
+
+    @property
+    def frame_shape(self) -> tuple[int, int]:
+        """``(H, W)``."""
+        return tuple(self.frames.shape[-2:])
+
+
+@runtime_checkable
+class Rig(Protocol):
+    """What an identification pipeline needs from a rig (simulated or real).
+
+    Every method returns a :class:`Capture`. Exposures longer than :attr:`max_exposure_s`
+    raise :class:`~torchblur.errors.ParameterError` naming ``exposure_s``.
+    """
+
+    @property
+    def frame_shape(self) -> tuple[int, int]:
+        """``(H, W)`` of a frame in pixels."""
+        ...
+
+    @property
+    def frame_rate_hz(self) -> float:
+        """Highest frame rate of the camera (Hz)."""
+        ...
+
+    @property
+    def max_exposure_s(self) -> float:
+        """Longest exposure the camera accepts (s)."""
+        ...
+
+    @property
+    def readout_s(self) -> float:
+        """Readout time Tr (s) after each exposure."""
+        ...
+
+    def dark(self, n: int, exposure_s: float) -> Capture:
+        """``n`` frames with the laser off: frames ``[n, H, W]``."""
+        ...
+
+    def still(self, n: int, exposure_s: float, power: float = 1.0) -> Capture:
+        """``n`` frames of the spot at rest (mirror still, laser at ``power``): ``[n, H, W]``."""
+        ...
+
+    def sine(
+        self,
+        freq_hz: float,
+        amplitude: float,
+        exposures_s: Sequence[float],
+        trigger_offset_s: float | Sequence[float],
+        n_repeats: int,
+        settle_s: float | None = None,
+        power: float = 1.0,
+    ) -> Capture:
+        """Drive ``amplitude sin(2 pi freq_hz t)`` from rest at t = 0, wait ``settle_s``
+        (default: the plant's settling time rounded up to whole periods), then take
+        ``n_repeats`` frames per exposure, each triggered ``trigger_offset_s`` (one value,
+        or one per exposure) after an upward zero crossing of the command: frames
+        ``[E, R, H, W]``."""
+        ...
+
+    def pulse(
+        self,
+        exposure_s: float,
+        trigger_offset_s: float | Sequence[float],
+        pulse_time_s: float,
+        pulse_width_s: float,
+        n: int,
+        power: float = 1.0,
+    ) -> Capture:
+        """Mirror still; per frame the controller fires the trigger ``trigger_offset_s``
+        after a reference event of its clock and switches the laser on during
+        ``[pulse_time_s, pulse_time_s + pulse_width_s]`` after the same event. Frame
+        brightness vs trigger offset is a trapezoid whose edges give the trigger-to-exposure
+        latency. Frames ``[..., n, H, W]`` with ``[...]`` the shape of ``trigger_offset_s``."""
+        ...

@@ -1,0 +1,479 @@
+"""A simulated laboratory rig: an LTI mirror, a Gaussian laser spot and a noisy camera.
+
+Time model (all in seconds on the controller's clock):
+
+- ``sine``: the command ``amplitude sin(2 pi f t)`` starts at t = 0 from rest. The controller
+  waits ``settle_s``, then takes the frames one after another (exposure-major: all repeats of
+  the first exposure, then of the second, ...). A frame's trigger is at an upward zero
+  crossing of the command plus ``trigger_offset_s``, the first such time at or after the
+  camera is ready; the camera is ready again ``max(1 / frame_rate_hz, Td + Te + Tr)`` after
+  the previous trigger.
+- The exposure starts ``Td + latency_s + jitter`` after the trigger (``jitter ~ N(0,
+  jitter_s^2)`` per frame, then the camera model's own ``jitter_s`` if any) and lasts Te.
+  ``latency_s`` is unknown to a pipeline: it calibrates it with :meth:`SimulatedRig.pulse`.
+- The expected image is the exact plant output (:class:`~torchblur.lti.LTISineTrajectory`,
+  transient included) rendered over the actual window with pixel-area integration in
+  float64, in electrons (the spot's peak is ``power * peak_e_per_s`` electrons per second),
+  then :meth:`~torchblur.camera.CameraModel.expose` adds noise, saturation and rounding.
+
+Random draws come from one ``torch.Generator`` seeded with ``seed``: the same seed and the
+same sequence of calls give identical captures.
+"""
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from ..camera import CameraModel
+from ..errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_finite, check_real_scalar
+from ..lti import LTISineTrajectory, Plant
+from ..psf import GaussianPSF
+from ..render import RenderSettings, choose_node_count, render_blur
+from ..timing import ExposureWindow
+from ..trajectory import Sinusoid, Trajectory
+from .base import Capture
+
+__all__ = ["SimulatedRig"]
+
+_F64 = torch.float64
+_MAX_NODES_PER_RENDER = 4096  # longer windows are split into sub-windows (the integral adds up)
+_RENDER_BUDGET = 1 << 24  # elements of a splat factor per render call (memory bound)
+
+
+def _check_count(value, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise ParameterError(f"{name}: expected an integer >= 1, got {value!r}")
+    return int(value)
+
+
+def _as_float_list(value, name: str) -> list[float]:
+    """A number or a 1-D sequence/array/tensor of numbers as a non-empty list of floats."""
+    if isinstance(value, (bool, str, bytes)) or value is None:
+        raise InputTypeError(f"{name}: expected a number or a list of numbers, got {type(value).__name__}")
+    if isinstance(value, torch.Tensor):
+        value = value.detach().cpu().numpy()
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputTypeError(f"{name}: expected a number or a list of numbers, got {value!r}") from exc
+    if arr.ndim > 1:
+        raise ShapeError(f"{name}: expected a number or a 1-D list, got shape {arr.shape}")
+    arr = arr.reshape(-1)
+    if arr.size == 0:
+        raise ParameterError(f"{name}: expected at least one value, got an empty list")
+    return [float(v) for v in arr]
+
+
+class SimulatedRig:
+    """A simulated rig implementing :class:`~torchblur.rig.base.Rig`.
+
+    Args (keyword-only):
+        plant: the mirror, a :class:`~torchblur.lti.Plant` (output in px per command unit
+            along ``direction``).
+        camera: the sensor, a :class:`~torchblur.camera.CameraModel`.
+        frame_shape: ``(H, W)`` in pixels.
+        psf_sigma_px: standard deviation of the round spot (px); ignored when ``psf_cov``
+            is given.
+        psf_cov: ``[2, 2]`` covariance of a tilted spot (px^2), or None.
+        rest_px: rest position (x, y) of the spot (px); default the frame centre
+            ``((W - 1) / 2, (H - 1) / 2)``.
+        direction: image motion per plant output unit along (x, y) (px per px).
+        frame_rate_hz: highest frame rate (Hz).
+        trigger_delay_s: Td, the nominal trigger-to-exposure delay (known to the pipeline).
+        readout_s: Tr.
+        max_exposure_s: the longest exposure accepted.
+        latency_s: extra trigger-to-exposure latency (the truth; a pipeline must calibrate it).
+        jitter_s: rms jitter of the exposure start, per frame.
+        peak_e_per_s: peak electrons per second of the still spot at power 1.
+        seed: seed of the generator behind every random draw.
+    """
+
+    def __init__(
+        self,
+        *,
+        plant: Plant,
+        camera: CameraModel,
+        frame_shape: Sequence[int] = (64, 64),
+        psf_sigma_px: float = 2.0,
+        psf_cov=None,
+        rest_px=None,
+        direction=(1.0, 0.0),
+        frame_rate_hz: float = 30.0,
+        trigger_delay_s: float = 0.0,
+        readout_s: float = 1e-3,
+        max_exposure_s: float = 1.0,
+        latency_s: float = 12e-6,
+        jitter_s: float = 0.2e-6,
+        peak_e_per_s: float = 1e6,
+        seed: int = 0,
+    ):
+        if not isinstance(plant, Plant):
+            raise InputTypeError(f"plant: expected a torchblur.lti.Plant, got {type(plant).__name__}")
+        if not isinstance(camera, CameraModel):
+            raise InputTypeError(f"camera: expected a torchblur.camera.CameraModel, got {type(camera).__name__}")
+        if (
+            isinstance(frame_shape, (str, bytes))
+            or not hasattr(frame_shape, "__len__")
+            or len(frame_shape) != 2
+        ):
+            raise ShapeError(f"frame_shape: expected (H, W), got {frame_shape!r}")
+        H, W = (_check_count(v, "frame_shape") for v in frame_shape)
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise ParameterError(f"seed: expected an integer >= 0, got {seed!r}")
+        self._plant = plant
+        self._camera = camera
+        self._frame_shape = (H, W)
+        self._frame_rate_hz = check_real_scalar(frame_rate_hz, "frame_rate_hz", positive=True)
+        self._trigger_delay_s = check_real_scalar(trigger_delay_s, "trigger_delay_s", nonnegative=True)
+        self._readout_s = check_real_scalar(readout_s, "readout_s", nonnegative=True)
+        self._max_exposure_s = check_real_scalar(max_exposure_s, "max_exposure_s", positive=True)
+        self._latency_s = check_real_scalar(latency_s, "latency_s", nonnegative=True)
+        self._jitter_s = check_real_scalar(jitter_s, "jitter_s", nonnegative=True)
+        self._peak_e_per_s = check_real_scalar(peak_e_per_s, "peak_e_per_s", nonnegative=True)
+        self._seed = int(seed)
+
+        if rest_px is None:
+            rest = torch.tensor([(W - 1) / 2, (H - 1) / 2], dtype=_F64)
+        else:
+            rest = check_finite(as_tensor(rest_px, "rest_px", dtype=_F64), "rest_px")
+            if rest.shape != (2,):
+                raise ShapeError(f"rest_px: expected shape [2] (x, y px), got {tuple(rest.shape)}")
+        d = check_finite(as_tensor(direction, "direction", dtype=_F64), "direction")
+        if d.shape != (2,):
+            raise ShapeError(f"direction: expected shape [2] (x, y), got {tuple(d.shape)}")
+        self._direction = d
+        if psf_cov is None:
+            sigma = check_real_scalar(psf_sigma_px, "psf_sigma_px", positive=True)
+            self._psf = GaussianPSF.isotropic(rest, torch.tensor(sigma, dtype=_F64), amplitude=self._peak_e_per_s)
+        else:
+            self._psf = GaussianPSF(rest, as_tensor(psf_cov, "psf_cov", dtype=_F64), amplitude=self._peak_e_per_s)
+            if self._psf.shape != ():
+                raise ShapeError(f"psf_cov: expected shape [2, 2], got {tuple(self._psf.cov.shape)}")
+        self._settings = RenderSettings(pixel_integration=True, max_nodes=1 << 30)
+        self._generator = torch.Generator().manual_seed(self._seed)
+        self._next_counter = 0
+        self._still_rate: torch.Tensor | None = None
+
+    # ------------------------------------------------------------------ properties
+
+    @property
+    def frame_shape(self) -> tuple[int, int]:
+        return self._frame_shape
+
+    @property
+    def frame_rate_hz(self) -> float:
+        return self._frame_rate_hz
+
+    @property
+    def max_exposure_s(self) -> float:
+        return self._max_exposure_s
+
+    @property
+    def readout_s(self) -> float:
+        return self._readout_s
+
+    @property
+    def trigger_delay_s(self) -> float:
+        """Td, the nominal trigger-to-exposure delay (s)."""
+        return self._trigger_delay_s
+
+    @property
+    def latency_s(self) -> float:
+        """The true extra latency (s). For tests only: a pipeline must calibrate it."""
+        return self._latency_s
+
+    @property
+    def jitter_s(self) -> float:
+        return self._jitter_s
+
+    @property
+    def plant(self) -> Plant:
+        return self._plant
+
+    @property
+    def camera(self) -> CameraModel:
+        return self._camera
+
+    @property
+    def psf(self) -> GaussianPSF:
+        """The spot at power 1 (amplitude ``peak_e_per_s``, electrons per second), float64."""
+        return self._psf
+
+    @property
+    def direction(self) -> torch.Tensor:
+        """``[2]`` image motion (x, y) per plant output unit."""
+        return self._direction
+
+    @property
+    def frames_taken(self) -> int:
+        """Frames taken so far (the next frame counter)."""
+        return self._next_counter
+
+    def truth(self, freq_hz):
+        """``H(j 2 pi freq_hz)`` of the plant, delay included (not the ``direction`` scale):
+        a complex for a number, a complex numpy array for an array."""
+        f = np.asarray(freq_hz, dtype=np.float64)
+        h = self._plant.frequency_response(2 * np.pi * f)
+        return complex(h) if h.ndim == 0 else h
+
+    # ------------------------------------------------------------------ helpers
+
+    def _check_exposure(self, value, name: str = "exposure_s") -> float:
+        te = check_real_scalar(value, name, positive=True)
+        if te > self._max_exposure_s:
+            raise ParameterError(f"{name}: expected at most max_exposure_s = {self._max_exposure_s:g} s, got {te:g} s")
+        return te
+
+    def _cycle_s(self, exposure_s: float) -> float:
+        """Shortest time from one trigger to the next."""
+        return max(1.0 / self._frame_rate_hz, self._trigger_delay_s + exposure_s + self._readout_s)
+
+    def _counters(self, shape) -> torch.Tensor:
+        n = int(np.prod(shape)) if len(shape) else 1
+        c = torch.arange(self._next_counter, self._next_counter + n, dtype=torch.long).reshape(shape)
+        self._next_counter += n
+        return c
+
+    def _actual_starts(self, trigger_time_s: torch.Tensor, exposure_s: torch.Tensor) -> ExposureWindow:
+        """Windows of the exposures: trigger + Td + latency + jitter, duration Te."""
+        start = trigger_time_s + (self._trigger_delay_s + self._latency_s)
+        if self._jitter_s > 0:
+            start = start + self._jitter_s * torch.randn(start.shape, generator=self._generator, dtype=_F64)
+        window = ExposureWindow(start, exposure_s)
+        return self._camera.jitter_window(window, generator=self._generator)
+
+    def _render(self, trajectory: Trajectory, psf: GaussianPSF, window: ExposureWindow) -> torch.Tensor:
+        """``render_blur`` over windows ``[N]`` -> ``[N, H, W]`` electrons, float64. Windows that
+        need many time nodes are split into sub-windows (the integral over a window is the
+        sum over its parts) and the batch is cut into chunks that bound the memory."""
+        H, W = self._frame_shape
+        N = window.shape[0]
+        S = choose_node_count(trajectory.path_length(window), psf.sigma_min(), self._settings)
+        K = max(1, math.ceil(S / _MAX_NODES_PER_RENDER))
+        frac = torch.arange(K, dtype=_F64) / K
+        start = (window.start[:, None] + window.duration[:, None] * frac).reshape(-1)
+        dur = (window.duration[:, None] / K).expand(N, K).reshape(-1)
+        per_item = max(1, min(S, _MAX_NODES_PER_RENDER)) * (H + W) * 16
+        chunk = max(1, _RENDER_BUDGET // per_item)
+        parts = []
+        for i in range(0, N * K, chunk):
+            win = ExposureWindow(start[i:i + chunk], dur[i:i + chunk])
+            parts.append(render_blur(trajectory, psf, win, height=H, width=W, settings=self._settings))
+        img = torch.cat(parts, 0).reshape(N, K, H, W).sum(1)
+        return img.clamp_min(0.0)
+
+    def _still_image_per_s(self) -> torch.Tensor:
+        """Electrons per second of the still spot at power 1, ``[H, W]`` (cached)."""
+        if self._still_rate is None:
+            still = Sinusoid(torch.zeros(2, dtype=_F64), torch.zeros(2, dtype=_F64), torch.tensor(1.0, dtype=_F64))
+            self._still_rate = self._render(still, self._psf, ExposureWindow(torch.zeros(1, dtype=_F64), 1.0))[0]
+        return self._still_rate
+
+    def _expose(self, expected_e: torch.Tensor) -> torch.Tensor:
+        return self._camera.expose(expected_e, generator=self._generator)
+
+    def _check_power(self, power) -> float:
+        return check_real_scalar(power, "power", nonnegative=True)
+
+    # ------------------------------------------------------------------ captures
+
+    def dark(self, n: int, exposure_s: float) -> Capture:
+        """``n`` frames with the laser off, ``[n, H, W]``."""
+        n = _check_count(n, "n")
+        te = self._check_exposure(exposure_s)
+        H, W = self._frame_shape
+        trig = torch.arange(n, dtype=_F64) * self._cycle_s(te)
+        window = self._actual_starts(trig, torch.full((n,), te, dtype=_F64))
+        frames = self._expose(torch.zeros(n, H, W, dtype=_F64))
+        return Capture(
+            frames=frames,
+            exposure_s=torch.full((n,), te, dtype=_F64),
+            trigger_offset_s=torch.zeros(n, dtype=_F64),
+            trigger_time_s=trig,
+            frame_counter=self._counters((n,)),
+            meta={"kind": "dark", "actual_start_s": window.start},
+        )
+
+    def still(self, n: int, exposure_s: float, power: float = 1.0) -> Capture:
+        """``n`` frames of the spot at rest, ``[n, H, W]``."""
+        n = _check_count(n, "n")
+        te = self._check_exposure(exposure_s)
+        power = self._check_power(power)
+        trig = torch.arange(n, dtype=_F64) * self._cycle_s(te)
+        window = self._actual_starts(trig, torch.full((n,), te, dtype=_F64))
+        expected = (self._still_image_per_s() * (power * te)).expand((n,) + self._frame_shape)
+        frames = self._expose(expected.contiguous())
+        return Capture(
+            frames=frames,
+            exposure_s=torch.full((n,), te, dtype=_F64),
+            trigger_offset_s=torch.zeros(n, dtype=_F64),
+            trigger_time_s=trig,
+            frame_counter=self._counters((n,)),
+            meta={"kind": "still", "power": power, "actual_start_s": window.start},
+        )
+
+    def sine(
+        self,
+        freq_hz: float,
+        amplitude: float,
+        exposures_s: Sequence[float],
+        trigger_offset_s: float | Sequence[float],
+        n_repeats: int,
+        settle_s: float | None = None,
+        power: float = 1.0,
+    ) -> Capture:
+        """Frames of the sine response, ``[E, R, H, W]`` (E exposures, R = ``n_repeats``).
+
+        Args:
+            freq_hz: command frequency (Hz), > 0.
+            amplitude: command amplitude (command units).
+            exposures_s: E exposure times (s); a number means E = 1.
+            trigger_offset_s: trigger time after an upward zero crossing of the command (s),
+                one number or E numbers.
+            n_repeats: frames per exposure.
+            settle_s: wait (s) from the start of the sine before the first trigger; default
+                ``plant.settling_time_s()`` rounded up to whole periods.
+            power: laser power (1 = ``peak_e_per_s``).
+
+        ``meta`` holds ``freq_hz``, ``omega``, ``period_s``, ``amplitude``, ``settle_s``,
+        ``power``, ``trigger_delay_s`` and, for tests only, ``actual_start_s`` ``[E, R]``.
+        """
+        freq = check_real_scalar(freq_hz, "freq_hz", positive=True)
+        amp = check_real_scalar(amplitude, "amplitude")
+        power = self._check_power(power)
+        R = _check_count(n_repeats, "n_repeats")
+        te = [self._check_exposure(v, "exposures_s") for v in _as_float_list(exposures_s, "exposures_s")]
+        E = len(te)
+        offsets = _as_float_list(trigger_offset_s, "trigger_offset_s")
+        if len(offsets) == 1:
+            offsets = offsets * E
+        if len(offsets) != E:
+            raise ShapeError(f"trigger_offset_s: expected 1 or {E} values (one per exposure), got {len(offsets)}")
+        offsets = [check_real_scalar(v, "trigger_offset_s") for v in offsets]
+        period = 1.0 / freq
+        if settle_s is None:
+            ts = self._plant.settling_time_s()
+            settle = math.ceil(ts / period - 1e-9) * period
+        else:
+            settle = check_real_scalar(settle_s, "settle_s", nonnegative=True)
+
+        trig = np.empty((E, R))
+        ready = settle
+        for e in range(E):
+            for r in range(R):
+                k = math.ceil((ready - offsets[e]) / period - 1e-9)
+                trig[e, r] = k * period + offsets[e]
+                ready = trig[e, r] + self._cycle_s(te[e])
+        trig_t = torch.as_tensor(trig, dtype=_F64)
+        exp_t = torch.as_tensor(te, dtype=_F64)[:, None].expand(E, R).contiguous()
+        off_mod = []
+        for o in offsets:
+            m = o - math.floor(o / period) * period
+            off_mod.append(0.0 if m >= period else m)
+        off_t = torch.as_tensor(off_mod, dtype=_F64)[:, None].expand(E, R).contiguous()
+
+        window = self._actual_starts(trig_t, exp_t)
+        omega = 2 * math.pi * freq
+        traj = LTISineTrajectory(self._plant, torch.tensor(amp, dtype=_F64), torch.tensor(omega, dtype=_F64), direction=self._direction)
+        psf = self._psf if power == 1.0 else GaussianPSF(self._psf.center, self._psf.cov, self._psf.amplitude * power)
+        flat = ExposureWindow(window.start.reshape(-1), window.duration.reshape(-1))
+        expected = self._render(traj, psf, flat).reshape((E, R) + self._frame_shape)
+        frames = self._expose(expected)
+        return Capture(
+            frames=frames,
+            exposure_s=exp_t,
+            trigger_offset_s=off_t,
+            trigger_time_s=trig_t,
+            frame_counter=self._counters((E, R)),
+            meta={
+                "kind": "sine",
+                "freq_hz": freq,
+                "omega": omega,
+                "period_s": period,
+                "amplitude": amp,
+                "settle_s": settle,
+                "power": power,
+                "trigger_delay_s": self._trigger_delay_s,
+                "actual_start_s": window.start,
+            },
+        )
+
+    def pulse(
+        self,
+        exposure_s: float,
+        trigger_offset_s: float | Sequence[float],
+        pulse_time_s: float,
+        pulse_width_s: float,
+        n: int,
+        power: float = 1.0,
+    ) -> Capture:
+        """Latency calibration: the mirror is still; per frame the controller fires the
+        trigger ``trigger_offset_s`` after a reference event of its clock and the laser is on
+        during ``[pulse_time_s, pulse_time_s + pulse_width_s]`` after the same event.
+
+        The light collected is the still spot times the overlap of the exposure
+        ``[trigger + Td + latency, ... + Te]`` with the pulse, so brightness vs
+        ``trigger_offset_s`` is a trapezoid: it falls to zero at
+        ``trigger_offset_s = pulse_time_s + pulse_width_s - Td - latency`` and rises from
+        zero at ``pulse_time_s - Td - latency - Te``.
+
+        Args:
+            exposure_s: Te (s).
+            trigger_offset_s: trigger time after the reference event (s), a number or a
+                sequence/tensor of shape ``[...]``.
+            pulse_time_s, pulse_width_s: the laser pulse (s) after the reference event;
+                the width > 0.
+            n: frames per offset.
+            power: laser power during the pulse.
+
+        Returns frames ``[..., n, H, W]``; ``meta`` holds the pulse, ``reference_time_s``
+        and, for tests only, ``actual_start_s``.
+        """
+        te = self._check_exposure(exposure_s)
+        n = _check_count(n, "n")
+        power = self._check_power(power)
+        p0 = check_real_scalar(pulse_time_s, "pulse_time_s")
+        width = check_real_scalar(pulse_width_s, "pulse_width_s", positive=True)
+        offs = check_finite(as_tensor(trigger_offset_s, "trigger_offset_s", dtype=_F64), "trigger_offset_s")
+        shape = tuple(offs.shape) + (n,)
+        off_flat = offs[..., None].expand(shape).reshape(-1).tolist()
+        ref = np.empty(len(off_flat))
+        ready = 0.0
+        for i, o in enumerate(off_flat):
+            ref[i] = ready - min(o, p0, 0.0)
+            trig_i = ref[i] + o
+            ready = max(trig_i + self._cycle_s(te), ref[i] + p0 + width)
+        ref_t = torch.as_tensor(ref, dtype=_F64).reshape(shape)
+        off_t = torch.as_tensor(off_flat, dtype=_F64).reshape(shape)
+        trig_t = ref_t + off_t
+        exp_t = torch.full(shape, te, dtype=_F64)
+        window = self._actual_starts(trig_t, exp_t)
+        on0 = ref_t + p0
+        overlap = (torch.minimum(window.end, on0 + width) - torch.maximum(window.start, on0)).clamp_min(0.0)
+        expected = self._still_image_per_s() * (power * overlap)[..., None, None]
+        frames = self._expose(expected)
+        return Capture(
+            frames=frames,
+            exposure_s=exp_t,
+            trigger_offset_s=off_t,
+            trigger_time_s=trig_t,
+            frame_counter=self._counters(shape),
+            meta={
+                "kind": "pulse",
+                "pulse_time_s": p0,
+                "pulse_width_s": width,
+                "power": power,
+                "trigger_delay_s": self._trigger_delay_s,
+                "reference_time_s": ref_t,
+                "actual_start_s": window.start,
+            },
+        )
+
+    def __repr__(self) -> str:
+        return (
+            f"SimulatedRig(frame_shape={self._frame_shape}, plant order {self._plant.order}, "
+            f"delay {self._plant.delay_s:g} s, frame_rate_hz={self._frame_rate_hz:g}, seed={self._seed})"
+        )
