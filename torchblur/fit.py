@@ -20,7 +20,7 @@ from .losses import LOSSES, image_loss, irls_weights
 from .moments import image_moments, sinusoid_from_moments
 from .optim import levenberg_marquardt, model_jacobian
 from .psf import GaussianPSF, KernelPSF
-from .render import RenderSettings, choose_node_count, render_blur
+from .render import RenderSettings, choose_node_count, quadrature_nodes, render_blur
 from .timing import ExposureWindow
 from .trajectory import Sinusoid
 
@@ -238,12 +238,35 @@ def fit_sinusoid(
     # The rest position must be in the frame (3 sigma margin): otherwise flag, do not fit.
     sd = torch.diagonal(cov_psf, dim1=-2, dim2=-1).clamp_min(0).sqrt()
     outside = ((rest < -3 * sd) | (rest > torch.tensor([W - 1, H - 1], dtype=dtype, device=device) + 3 * sd)).any(-1)
-    E_use = min(E, 2)
-    cands = []
-    for e in range(E_use):
-        roots = [(r,) for r in range(2)] if n_axes == 1 else [(r0, r1) for r0 in range(2) for r1 in range(2)]
-        for rs in roots:
-            cands.append(torch.stack([M_c[k][:, e] for k in range(n_axes)] + [phi_c[k][:, e, rs[k]] for k in range(n_axes)], -1))
+    # Candidates: the roots of the first exposure (the alias pair; four combinations for a
+    # Lissajous motion). With two or more exposures the true root is the one the exposures
+    # share (the aliases move with the window centre), so the single consensus root is
+    # refined; items whose alias then fits better are refitted from it below.
+    roots = [(r,) for r in range(2)] if n_axes == 1 else [(r0, r1) for r0 in range(2) for r1 in range(2)]
+
+    def root_phases(e, rs):
+        return torch.stack([phi_c[k][:, e, rs[k]] for k in range(n_axes)], -1)  # [N, n_axes]
+
+    cands = [torch.cat([torch.stack([M_c[k][:, 0] for k in range(n_axes)], -1), root_phases(0, rs)], -1) for rs in roots]
+    if E >= 2:
+        # Compare with the exposure whose window centre best separates the alias (repeats of
+        # the same window share the alias and would tell nothing).
+        centre = om[:, None] * (start + dur / 2)
+        sep = (centre - centre[:, :1]).sin().abs()  # [N, E]
+        other = sep.argmax(-1)  # [N]
+        phi_other = [p[torch.arange(N, device=device), other] for p in phi_c]  # [N, 2] per axis
+
+        def other_phases(rs):
+            return torch.stack([phi_other[k][:, rs[k]] for k in range(n_axes)], -1)
+
+        dist = torch.stack([
+            torch.stack([wrap_phase(root_phases(0, rs) - other_phases(r2)).abs().sum(-1) for r2 in roots], -1).amin(-1)
+            for rs in roots], -1)  # [N, n_roots]
+        pick = dist.argmin(-1)
+        stacked = torch.stack(cands, 1)
+        cands = [stacked[torch.arange(N, device=device), pick]]
+        M_mean = torch.stack([M_c[k].mean(-1) for k in range(n_axes)], -1)
+        cands[0][:, :n_axes] = M_mean
     K = len(cands)
     theta_core = torch.stack(cands, 1)  # [N, K, 2 n_axes]
     theta_core[..., :n_axes] = theta_core[..., :n_axes].clamp_min(1e-3)
@@ -317,6 +340,59 @@ def fit_sinusoid(
             img = img / img.square().sum((-1, -2), keepdim=True).sqrt().clamp_min(1e-30)
         return img.reshape(img.shape[0], -1)
 
+    analytic = isinstance(p_flat, GaussianPSF) and not normalize and not settings.pixel_integration
+    if analytic:
+        S_nodes = settings.nodes
+        m_nodes = settings.nodes_per_panel if S_nodes % settings.nodes_per_panel == 0 else S_nodes
+        tau, wq = quadrature_nodes(S_nodes // m_nodes, m_nodes, dtype=dtype, device=device)
+        A_all, B_all, C_all = p_flat.precision()
+
+    def jac_fn(theta, idx, k_of=prob_of):
+        """Model ``[n, R]`` and its Jacobian ``[n, R, P]`` from one splat (Gaussian PSF)."""
+        from .splat_jacobian import gaussian_splat_with_jacobian
+
+        n = k_of(idx)
+        rows = theta.shape[0]
+        t = start[n][..., None] + dur[n][..., None] * tau  # [n, E, S]
+        w = dur[n][..., None] * wq * p_flat.amplitude[n][:, None, None]
+        j = 2 * n_axes
+        scale = theta[:, j] if fit_scale else None
+        j += int(fit_scale)
+        bg = theta[:, j] if fit_background else None
+        j += int(fit_background)
+        c = theta[:, j:j + 2] if fit_center else p_flat.center[n]
+        arg = om[n][:, None, None, None] * t[..., None] + theta[:, None, None, n_axes:2 * n_axes]  # [n, E, S, n_axes]
+        sn, cs = torch.sin(arg), torch.cos(arg)
+        amp = theta[:, None, None, :n_axes]
+        disp = amp * sn
+        dpx = torch.zeros(t.shape + (P,), dtype=dtype, device=device)
+        dpy = torch.zeros_like(dpx)
+        px = c[:, 0, None, None].expand(t.shape)
+        py = c[:, 1, None, None].expand(t.shape)
+        for k, a in enumerate(axis_ids):
+            target_d = dpx if a == 0 else dpy
+            target_d[..., k] = sn[..., k]
+            target_d[..., n_axes + k] = (amp * cs)[..., k]
+            if a == 0:
+                px = px + disp[..., k]
+            else:
+                py = py + disp[..., k]
+        if fit_center:
+            dpx[..., j] = 1
+            dpy[..., j + 1] = 1
+        img, dimg = gaussian_splat_with_jacobian(px, py, dpx, dpy, w, A_all[n][:, None], B_all[n][:, None], C_all[n][:, None], H, W)
+        # dimg: [n, E, P, H, W] -> [n, R, P]
+        J = dimg.movedim(2, -1).reshape(rows, E * H * W, P)
+        model = img
+        if scale is not None:
+            J = J * scale[:, None, None]
+            J[..., 2 * n_axes] = img.reshape(rows, -1)
+            model = model * scale[:, None, None, None]
+        if bg is not None:
+            model = model + bg[:, None, None, None]
+            J[..., 2 * n_axes + int(fit_scale)] = 1
+        return model.reshape(rows, -1), J
+
     target = data
     if normalize:
         target = data / data.square().sum((-1, -2), keepdim=True).sqrt().clamp_min(1e-30)
@@ -334,15 +410,20 @@ def fit_sinusoid(
     iters = torch.zeros(N * K, dtype=torch.long, device=device)
     if live_idx.numel():
         sub_model = lambda th, i: model_fn(th, live_idx[i])  # noqa: E731
+        sub_jac = (lambda th, i: jac_fn(th, live_idx[i])) if analytic else None  # noqa: E731
         res = _optimise(sub_model, theta0[live_idx], target_k[live_idx], weight_k[live_idx], loss, optimizer, max_iter, tol, project,
-                        groups=K if E >= 2 else None)
+                        jacobian_fn=sub_jac)
         theta[live_idx], cost[live_idx], conv[live_idx], iters[live_idx] = res.theta, res.cost, res.converged, res.n_iter
 
     # Canonical form: M >= 0, phases wrapped.
-    th = theta.reshape(N, K, P).clone()
-    neg = th[..., :n_axes] < 0
-    th[..., :n_axes] = th[..., :n_axes].abs()
-    th[..., n_axes:2 * n_axes] = wrap_phase(th[..., n_axes:2 * n_axes] + math.pi * neg)
+    def canonical(t):
+        t = t.clone()
+        neg = t[..., :n_axes] < 0
+        t[..., :n_axes] = t[..., :n_axes].abs()
+        t[..., n_axes:2 * n_axes] = wrap_phase(t[..., n_axes:2 * n_axes] + math.pi * neg)
+        return t
+
+    th = canonical(theta.reshape(N, K, P))
     cost = cost.reshape(N, K)
     best = torch.nan_to_num(cost, nan=float("inf")).argmin(1)
     ar = torch.arange(N, device=device)
@@ -350,10 +431,41 @@ def fit_sinusoid(
     cost_best = cost[ar, best]
     conv_best = conv.reshape(N, K)[ar, best]
     iters_best = iters.reshape(N, K)[ar, best]
+    rows = ar * K  # model_fn rows that address problem n
+
+    # The other branch (alias of the first exposure) and its cost over all exposures.
+    first = ExposureWindow(start[:, :1], dur[:, :1])
+
+    def alias_of(t, n=None):
+        n = ar if n is None else n
+        ta = t.clone()
+        ta[:, n_axes:2 * n_axes] = _alias_phase(t[:, n_axes:2 * n_axes], om[n][:, None], first[n])
+        return ta
+
+    flat_target = target.reshape(N, -1)
+    flat_weight = weight.reshape(N, -1)
+    theta_alias = alias_of(theta_best)
+    with torch.no_grad():
+        alias_cost = image_loss(model_fn(theta_alias, rows), flat_target, loss=loss, weight=flat_weight)
+    live_n = ~dark & ~outside
+    if E >= 2:
+        # Safety net: where the alias fits better than the consensus start, refit from it.
+        r = ar[live_n & (alias_cost < cost_best)]
+        if r.numel():
+            res2 = _optimise(lambda t, i: model_fn(t, rows[r[i]]), theta_alias[r], flat_target[r], flat_weight[r], loss, optimizer,
+                             max_iter, tol, project, jacobian_fn=(lambda t, i: jac_fn(t, rows[r[i]])) if analytic else None)
+            better = res2.cost < cost_best[r]
+            rb = r[better]
+            theta_best[rb] = canonical(res2.theta[better])
+            cost_best[rb] = res2.cost[better]
+            conv_best[rb] = res2.converged[better]
+            iters_best[rb] += res2.n_iter[better]
+            theta_alias[rb] = alias_of(theta_best[rb], rb)
+            with torch.no_grad():
+                alias_cost[rb] = image_loss(model_fn(theta_alias[rb], rows[rb]), flat_target[rb], loss=loss, weight=flat_weight[rb])
 
     # Uncertainty: the Fisher information at the solution.
-    idx_best = ar * K + best
-    model, J = model_jacobian(lambda t, i: model_fn(t, i), theta_best, idx_best)
+    model, J = jac_fn(theta_best, rows) if analytic else model_jacobian(lambda t, i: model_fn(t, i), theta_best, rows)
     resid = target.reshape(N, -1) - model
     w = weight.reshape(N, -1)
     n_used = (w > 0).sum(-1).to(dtype)
@@ -375,14 +487,9 @@ def fit_sinusoid(
     singular = singular | (diag <= 0).any(-1)
     std = diag.clamp_min(0).sqrt()
 
-    # The other branch (alias of the first exposure) and its cost over all exposures.
     amp_b = theta_best[:, :n_axes]
     ph_b = theta_best[:, n_axes:2 * n_axes]
-    alias = _alias_phase(ph_b, om[:, None], ExposureWindow(start[:, :1], dur[:, :1]))
-    theta_alias = theta_best.clone()
-    theta_alias[:, n_axes:2 * n_axes] = alias
-    with torch.no_grad():
-        alias_cost = image_loss(model_fn(theta_alias, idx_best), target.reshape(N, -1), loss=loss, weight=weight.reshape(N, -1))
+    alias = theta_alias[:, n_axes:2 * n_axes]
 
     # Status per item.
     status = torch.zeros(N, dtype=torch.long, device=device)
@@ -438,29 +545,14 @@ def fit_sinusoid(
     return res
 
 
-def _optimise(model_fn, theta0, data, weight, loss, optimizer, max_iter, tol, project, groups=None):
+def _optimise(model_fn, theta0, data, weight, loss, optimizer, max_iter, tol, project, jacobian_fn=None):
     """Run the chosen optimiser on ``[n, P]`` problems (see :func:`fit_sinusoid`)."""
     from .optim import LMResult
 
     if optimizer == "lm":
         it = max_iter or 60
-        if groups is not None and groups > 2 and theta0.shape[0] % groups == 0 and it > 4:
-            # Warm up every candidate, then keep the two best per problem (the alias start
-            # of a joint multi-exposure fit falls behind within a few iterations).
-            warm = levenberg_marquardt(model_fn, theta0, data, loss=loss, weight=weight, max_iter=3, tol=tol, project=project)
-            n = theta0.shape[0] // groups
-            c = torch.nan_to_num(warm.cost, nan=float("inf")).reshape(n, groups)
-            keep = c.argsort(1)[:, :2] + torch.arange(n, device=c.device)[:, None] * groups
-            keep = keep.reshape(-1)
-            sub = levenberg_marquardt(lambda th, i: model_fn(th, keep[i]), warm.theta[keep], data[keep], loss=loss,
-                                      weight=weight[keep], max_iter=it - 3, tol=tol, project=project)
-            cost = torch.full_like(warm.cost, float("inf"))
-            theta = warm.theta.clone()
-            conv = torch.zeros_like(warm.converged)
-            n_iter = warm.n_iter.clone()
-            theta[keep], cost[keep], conv[keep], n_iter[keep] = sub.theta, sub.cost, sub.converged, sub.n_iter + 3
-            return LMResult(theta, cost, conv, n_iter)
-        return levenberg_marquardt(model_fn, theta0, data, loss=loss, weight=weight, max_iter=it, tol=tol, project=project)
+        return levenberg_marquardt(model_fn, theta0, data, loss=loss, weight=weight, max_iter=it, tol=tol, project=project,
+                                   jacobian_fn=jacobian_fn)
     n = theta0.shape[0]
     idx = torch.arange(n, device=theta0.device)
     theta = theta0.clone().requires_grad_(True)

@@ -56,6 +56,7 @@ def levenberg_marquardt(
     tol: float = 1e-10,
     lambda0: float = 1e-3,
     project: Callable | None = None,
+    jacobian_fn: Callable | None = None,
 ) -> LMResult:
     """Minimise ``image_loss(model_fn(theta), data)`` for each of ``N`` problems.
 
@@ -68,6 +69,8 @@ def levenberg_marquardt(
         weight: per-pixel weights ``[N, R]`` (``1/sigma^2``; 0 masks a pixel) or None.
         max_iter: iterations at most; tol: relative cost decrease that counts as converged.
         project: optional ``theta -> theta`` applied after each step (e.g. keep bounds).
+        jacobian_fn: optional ``(theta [n, P], idx) -> (model [n, R], J [n, R, P])`` (an
+            analytic Jacobian); default: forward-mode AD through ``model_fn``.
 
     Returns:
         :class:`LMResult`. ``converged`` is False where ``max_iter`` ran out.
@@ -86,14 +89,13 @@ def levenberg_marquardt(
     need_jac = torch.ones(N, dtype=torch.bool, device=theta.device)
     JTJ = torch.zeros(N, P, P, dtype=theta.dtype, device=theta.device)
     g = torch.zeros(N, P, dtype=theta.dtype, device=theta.device)
-    eye = torch.eye(P, dtype=theta.dtype, device=theta.device)
     for _ in range(max_iter):
         active = ~converged
         if not bool(active.any()):
             break
         jac_idx = all_idx[active & need_jac]
         if jac_idx.numel():
-            model, J = model_jacobian(model_fn, theta[jac_idx], jac_idx)
+            model, J = (jacobian_fn or (lambda t, i: model_jacobian(model_fn, t, i)))(theta[jac_idx], jac_idx)
             W = irls_weights(model, data[jac_idx], loss=loss, weight=w_of(jac_idx))
             JW = J * W[..., None]
             JTJ[jac_idx] = JW.transpose(-1, -2) @ J
@@ -102,8 +104,11 @@ def levenberg_marquardt(
         idx = all_idx[active]
         n_iter[idx] += 1
         A = JTJ[idx]
-        diag = torch.diagonal(A, dim1=-2, dim2=-1).clamp_min(1e-30)
-        damped = A + lam[idx, None, None] * torch.diag_embed(diag) + 1e-12 * diag.amax(-1)[:, None, None] * eye
+        # Marquardt's scaling (damping proportional to each diagonal) is invariant to the
+        # parameters' units; the tiny relative term keeps a flat direction solvable.
+        diag = torch.diagonal(A, dim1=-2, dim2=-1)
+        diag = torch.where(diag > 0, diag, torch.ones_like(diag))
+        damped = A + (lam[idx, None, None] + 1e-12) * torch.diag_embed(diag)
         step = torch.linalg.solve(damped, g[idx][..., None])[..., 0]
         step = torch.nan_to_num(step, nan=0.0, posinf=0.0, neginf=0.0)
         trial = theta[idx] + step

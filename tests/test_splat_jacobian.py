@@ -1,0 +1,167 @@
+"""Analytic splat Jacobian: image against the renderer's splats, Jacobian against forward AD."""
+import math
+
+import pytest
+import torch
+import torch.autograd.forward_ad as fwAD
+
+from torchblur.render import _exp_budget, _gaussian_separable, _gaussian_tiled, quadrature_nodes
+from torchblur import splat_jacobian
+from torchblur.splat_jacobian import gaussian_splat_with_jacobian
+
+F64 = torch.float64
+
+
+def precision(sx, sy, rho, dtype=F64):
+    """``cov^-1 = [[A, B], [B, C]]`` of a Gaussian with standard deviations sx, sy and correlation rho."""
+    det = (sx * sy) ** 2 * (1 - rho ** 2)
+    A, B, C = sy ** 2 / det, -rho * sx * sy / det, sx ** 2 / det
+    return tuple(torch.tensor(v, dtype=dtype) for v in (A, B, C))
+
+
+def make_nodes(batch, H, W, motion, n_panels, seed=0, dtype=F64):
+    """A sinusoid along a direction per batch element: ``p = c + M (cos d, sin d) sin(omega t + phi)``.
+
+    Returns theta [..., 4] = (M, phi, cx, cy), the node map theta -> (px, py), the analytic
+    derivatives (dpx, dpy) [..., S, 4] at theta, and the node weights w [..., S]."""
+    g = torch.Generator().manual_seed(seed)
+    rnd = lambda: torch.rand(batch, generator=g, dtype=F64)  # noqa: E731
+    theta = torch.stack(
+        (motion * (0.8 + 0.4 * rnd()), 2 * math.pi * rnd(), W / 2 + 3 * (rnd() - 0.5), H / 2 + 3 * (rnd() - 0.5)), -1
+    )
+    d = (math.pi * rnd())[..., None]  # motion direction
+    omega, t0, dur = 2 * math.pi * 100.0, 1.3e-3, 7e-3  # 0.7 period
+    tau, wq = quadrature_nodes(n_panels, 8, dtype=F64)
+    t = t0 + dur * tau  # [S]
+    amp = 2.0 + rnd()[..., None]
+    w = dur * wq * amp  # [..., S]
+
+    def node_map(th):
+        M, phi, cx, cy = (th[..., i, None] for i in range(4))
+        s = torch.sin(omega * t + phi)
+        return cx + M * torch.cos(d) * s, cy + M * torch.sin(d) * s
+
+    M, phi = theta[..., 0, None], theta[..., 1, None]
+    s, c = torch.sin(omega * t + phi), torch.cos(omega * t + phi)
+    one, zero = torch.ones_like(s), torch.zeros_like(s)
+    dpx = torch.stack((torch.cos(d) * s, M * torch.cos(d) * c, one, zero), -1)
+    dpy = torch.stack((torch.sin(d) * s, M * torch.sin(d) * c, zero, one), -1)
+    cast = lambda v: v.to(dtype)  # noqa: E731
+    return theta, node_map, cast(dpx), cast(dpy), cast(w)
+
+
+def forward_ad_jacobian(node_map, theta, w, A, B, C, H, W):
+    """``d _gaussian_tiled / d theta`` by forward AD, one pass per parameter: [..., Q, H, W]."""
+    cols = []
+    with fwAD.dual_level():
+        for k in range(theta.shape[-1]):
+            tangent = torch.zeros_like(theta)
+            tangent[..., k] = 1
+            px, py = node_map(fwAD.make_dual(theta, tangent))
+            cols.append(fwAD.unpack_dual(_gaussian_tiled(px, py, w, A, B, C, H, W, None)).tangent)
+    return torch.stack(cols, -3)
+
+
+def rel(x, ref):
+    return float((x - ref).abs().max() / ref.abs().max())
+
+
+@pytest.mark.parametrize("tilted", [True, False])
+@pytest.mark.parametrize("H, W", [(40, 56), (56, 40)])  # tiles wider than tall (transposed internally), and not
+def test_image_and_jacobian_match_renderer_and_forward_ad(tilted, H, W):
+    batch = (3, 2)
+    A, B, C = precision(2.4, 1.6, 0.6 if tilted else 0.0)
+    A, B, C = (v.expand(batch) for v in (A, B, C))
+    theta, node_map, dpx, dpy, w = make_nodes(batch, H, W, motion=10.0, n_panels=6)
+    px, py = node_map(theta)
+    img, jac = gaussian_splat_with_jacobian(px, py, dpx, dpy, w, A, B, C, H, W)
+    assert img.shape == batch + (H, W) and jac.shape == batch + (4, H, W)
+    assert img.dtype == jac.dtype == F64
+    assert rel(img, _gaussian_tiled(px, py, w, A, B, C, H, W, None)) <= 1e-12
+    if not tilted:
+        assert float(B.abs().max()) == 0.0
+        assert rel(img, _gaussian_separable(px, py, w, A, C, H, W, None)) <= 1e-12
+    ref = forward_ad_jacobian(node_map, theta, w, A, B, C, H, W)
+    assert rel(jac, ref) <= 1e-10
+    for k in range(4):  # every column is non-trivial, and each matches on its own scale
+        assert float(ref[..., k, :, :].abs().max()) > 1e-3 * float(ref.abs().max())
+        assert rel(jac[..., k, :, :], ref[..., k, :, :]) <= 1e-10
+
+
+def test_float32_inputs_give_float32_outputs():
+    H, W, batch = 40, 56, (3, 2)
+    A, B, C = precision(2.4, 1.6, 0.6)
+    theta, node_map, dpx, dpy, w = make_nodes(batch, H, W, motion=10.0, n_panels=6)
+    px, py = node_map(theta)
+    img64, jac64 = gaussian_splat_with_jacobian(px, py, dpx, dpy, w, A, B, C, H, W)
+    f32 = [v.float() for v in (px, py, dpx, dpy, w, A, B, C)]
+    img32, jac32 = gaussian_splat_with_jacobian(*f32, H, W)
+    assert img32.dtype == jac32.dtype == torch.float32
+    assert rel(img32.double(), img64) <= 1e-5
+    assert rel(jac32.double(), jac64) <= 1e-5
+
+
+def test_large_frame_needs_several_tiles():
+    H = W = 200
+    A, B, C = precision(1.2, 1.2, 0.6)
+    kappa = float(max(A, C) + B.abs())
+    t_max = int(2 * math.sqrt(_exp_budget(F64) / kappa)) - 1
+    assert -(-H // t_max) >= 4  # the tiling is exercised in both directions
+    batch = (2,)
+    theta, node_map, dpx, dpy, w = make_nodes(batch, H, W, motion=70.0, n_panels=24, seed=3)
+    px, py = node_map(theta)
+    assert float(px.max() - px.min()) > 2 * t_max  # the path crosses several tiles
+    img, jac = gaussian_splat_with_jacobian(px, py, dpx, dpy, w, A, B, C, H, W)
+    assert rel(img, _gaussian_tiled(px, py, w, A.expand(batch), B.expand(batch), C.expand(batch), H, W, None)) <= 1e-12
+    ref = forward_ad_jacobian(node_map, theta, w, A.expand(batch), B.expand(batch), C.expand(batch), H, W)
+    assert rel(jac, ref) <= 1e-10
+
+
+def test_batch_shapes_broadcast_and_direct_node_derivatives():
+    # Scalar precision against [2, 3] nodes; dpx = e_k per node checks the formula directly:
+    # jac = sum_s w_s exp(-q/2) ((A u + B v) dpx + (B u + C v) dpy).
+    g = torch.Generator().manual_seed(5)
+    H, W, S = 12, 15, 5
+    px = 2 + 11 * torch.rand(2, 3, S, generator=g, dtype=F64)
+    py = 2 + 8 * torch.rand(2, 3, S, generator=g, dtype=F64)
+    w = torch.rand(2, 3, S, generator=g, dtype=F64)
+    dpx = torch.randn(2, 1, S, 2, generator=g, dtype=F64)
+    dpy = torch.randn(S, 2, generator=g, dtype=F64)
+    A, B, C = precision(1.7, 1.1, -0.4)
+    img, jac = gaussian_splat_with_jacobian(px, py, dpx, dpy, w, A, B, C, H, W)
+    assert img.shape == (2, 3, H, W) and jac.shape == (2, 3, 2, H, W)
+    u = torch.arange(W, dtype=F64) - px[..., None, None]  # [2, 3, S, 1, W]
+    v = torch.arange(H, dtype=F64)[:, None] - py[..., None, None]  # [2, 3, S, H, 1]
+    e = w[..., None, None] * torch.exp(-0.5 * (A * u * u + 2 * B * u * v + C * v * v))  # [2, 3, S, H, W]
+    ref_img = e.sum(-3)
+    gx, gy = A * u + B * v, B * u + C * v
+    ref_jac = torch.stack(
+        [(e * (gx * dpx[..., k, None, None] + gy * dpy[..., k, None, None])).sum(-3) for k in range(2)], -3
+    )
+    assert rel(img, ref_img) <= 1e-12
+    assert rel(jac, ref_jac) <= 1e-12
+
+
+def test_chunks_of_frames_agree(monkeypatch):
+    H, W, batch = 40, 56, (3, 2)
+    A, B, C = precision(2.4, 1.6, 0.6)
+    theta, node_map, dpx, dpy, w = make_nodes(batch, H, W, motion=10.0, n_panels=6)
+    px, py = node_map(theta)
+    img, jac = gaussian_splat_with_jacobian(px, py, dpx, dpy, w, A, B, C, H, W)
+    monkeypatch.setattr(splat_jacobian, "_CHUNK_BYTES", 1.0)  # one frame per chunk
+    img1, jac1 = gaussian_splat_with_jacobian(px, py, dpx, dpy, w, A, B, C, H, W)
+    assert rel(img1, img) <= 1e-14 and rel(jac1, jac) <= 1e-14
+
+
+@pytest.mark.parametrize("H, W", [(5, 6), (6, 5)])
+def test_differentiable_by_autograd(H, W):
+    g = torch.Generator().manual_seed(9)
+    S = 3
+    px = (1 + 4 * torch.rand(S, generator=g, dtype=F64)).requires_grad_()
+    py = (1 + 3 * torch.rand(S, generator=g, dtype=F64)).requires_grad_()
+    dpx = torch.randn(S, 2, generator=g, dtype=F64).requires_grad_()
+    dpy = torch.randn(S, 2, generator=g, dtype=F64).requires_grad_()
+    w = torch.rand(S, generator=g, dtype=F64).requires_grad_()
+    A, B, C = (v.requires_grad_() for v in precision(1.5, 1.2, 0.3))
+    fn = lambda *a: gaussian_splat_with_jacobian(*a, H, W)  # noqa: E731
+    assert torch.autograd.gradcheck(fn, (px, py, dpx, dpy, w, A, B, C), fast_mode=True)
