@@ -1,6 +1,10 @@
 """Command line: ``torchblur <command> ...``.
 
 Commands:
+    identify [--config FILE] --out DIR [key=value ...]
+                        identify the frequency response and a model of the (simulated) rig;
+                        writes frf.csv, frf.json, model.json, bode.png, residuals.png,
+                        config.yaml and report.txt into DIR.
     demo --out DIR      render a blurred laser spot (the paper's "peanut"), its motion and
                         its alias, and save DIR/demo.png and DIR/demo.json.
 """
@@ -72,9 +76,153 @@ def _demo(args) -> int:
     return 0
 
 
+def _identify(args) -> int:
+    import time
+
+    import numpy as np
+
+    import torchblur as tb
+    from torchblur.config import config_to_yaml, load_config
+
+    cfg = load_config(args.config, args.overrides)  # ConfigError (named key) before any work
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    stamp = f"torchblur {tb.__version__}, seed {cfg.seed}"
+    (out / "config.yaml").write_text(f"# {stamp}\n" + config_to_yaml(cfg))
+    import torch
+
+    torch.manual_seed(cfg.seed)
+    from torchblur.identify import identify
+    from torchblur.plots import bode_figure, residual_figure
+
+    t0 = time.perf_counter()
+    res = identify(cfg, progress=not args.quiet)
+    elapsed = time.perf_counter() - t0
+    frf = res.frf
+    frf.meta.update({"torchblur_version": tb.__version__, "seed": int(cfg.seed)})
+    _write_frf_csv(frf, out / "frf.csv", stamp_version=tb.__version__, seed=cfg.seed)
+    frf.to_json(out / "frf.json")
+    model = {"torchblur_version": tb.__version__, "seed": int(cfg.seed)}
+    if res.model is not None:
+        model.update(res.model.to_dict())
+    else:
+        model["error"] = "the model fit failed; see report.txt"
+    (out / "model.json").write_text(json.dumps(model, indent=2))
+    truth_fn = None
+    if res.truth is not None:
+        from torchblur.lti import Plant
+
+        plant = Plant(tuple(float(v) for v in cfg.plant.num), tuple(float(v) for v in cfg.plant.den), float(cfg.plant.delay_s))
+        truth_fn = plant.frequency_response
+    fig = bode_figure(frf, model=res.model, truth=truth_fn, stamp=stamp)
+    fig.savefig(out / "bode.png", dpi=110, metadata={"Description": stamp})
+    worst = np.argsort(np.nan_to_num(res.fit.cost.numpy() / np.maximum(1, res.images[0].numel()), nan=np.inf))[-3:][::-1].copy()
+    models = _fitted_images(res, worst)
+    labels = [f"{frf.freq_hz[k]:.4g} Hz" for k in worst]
+    fig = residual_figure(res.images[worst, 0].numpy(), models, labels, stamp=stamp)
+    fig.savefig(out / "residuals.png", dpi=90, metadata={"Description": stamp})
+    report = _report(cfg, res, elapsed, stamp)
+    (out / "report.txt").write_text(report)
+    print(report)
+    print(f"wrote {', '.join(sorted(p.name for p in out.iterdir()))} in {out}")
+    return 0
+
+
+def _write_frf_csv(frf, path, *, stamp_version, seed):
+    """frf.csv: freq_hz,magnitude,phase_deg,magnitude_std,phase_std_deg (+ stamp columns)."""
+    import csv
+
+    import numpy as np
+
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        mimo = not frf.is_siso
+        head = (["output", "input"] if mimo else []) + ["freq_hz", "magnitude", "phase_deg", "magnitude_std", "phase_std_deg",
+                                                          "torchblur_version", "seed"]
+        w.writerow(head)
+        for o in range(frf.n_outputs):
+            for i in range(frf.n_inputs):
+                for k in range(len(frf.omega)):
+                    deg = float(np.degrees(frf.phase[o, i, k]))
+                    row = ([frf.output_labels[o], frf.input_labels[i]] if mimo else []) + [
+                        repr(float(frf.freq_hz[k])), repr(float(frf.magnitude[o, i, k])), repr(deg),
+                        repr(float(frf.magnitude_std[o, i, k])), repr(float(np.degrees(frf.phase_std[o, i, k]))), stamp_version, seed]
+                    w.writerow(row)
+
+
+def _fitted_images(res, idx):
+    """The first fitted frame of points ``idx`` (for the residual figure)."""
+    import torch
+
+    import torchblur as tb
+
+    out = []
+    for k in idx:
+        k = int(k)
+        if not bool(res.fit.converged[k]):
+            out.append(torch.zeros_like(res.images[k, 0]).numpy())
+            continue
+        amp = torch.stack([res.fit.amplitude[k], torch.zeros_like(res.fit.amplitude[k])])
+        ph = res.fit.phase[k].expand(2)
+        psf = tb.GaussianPSF(res.psf.center, res.psf.cov, res.psf.amplitude * res.power[k] * (res.fit.scale[k] if res.fit.scale is not None else 1.0))
+        w = res.windows[k, 0]
+        om = 2 * math.pi * float(res.frf.freq_hz[k])
+        img = tb.render_blur(tb.Sinusoid(amp, ph, om), psf, w, height=res.images.shape[-2], width=res.images.shape[-1])
+        if res.fit.background is not None:
+            img = img + res.fit.background[k]
+        out.append(img.detach().numpy())
+    import numpy as np
+
+    return np.stack(out)
+
+
+def _report(cfg, res, elapsed, stamp) -> str:
+    import numpy as np
+
+    frf = res.frf
+    lines = [f"torchblur identify report ({stamp})", ""]
+    lines += res.log
+    lines += ["", f"{'freq_hz':>10} {'|H|':>10} {'+-':>9} {'phase_deg':>10} {'+-':>7}"
+              + (f" {'|H| err %':>9} {'ph err deg':>10} {'err/std':>8}" if res.truth is not None else "")]
+    for k in range(len(frf.omega)):
+        m, ms = frf.magnitude[0, 0, k], frf.magnitude_std[0, 0, k]
+        p, ps = np.degrees(frf.phase[0, 0, k]), np.degrees(frf.phase_std[0, 0, k])
+        line = f"{frf.freq_hz[k]:10.4g} {m:10.5g} {ms:9.2g} {p:10.3f} {ps:7.3f}"
+        if res.truth is not None:
+            t = res.truth[k]
+            em = (m - abs(t)) / abs(t) * 100
+            ep = math.degrees(math.remainder(frf.phase[0, 0, k] - np.angle(t), 2 * math.pi))
+            z = max(abs(m - abs(t)) / ms, abs(math.radians(ep)) / frf.phase_std[0, 0, k])
+            line += f" {em:9.3f} {ep:10.3f} {z:8.2f}"
+        lines.append(line)
+    if res.truth is not None:
+        t = res.truth
+        em = np.abs(frf.magnitude[0, 0] - np.abs(t)) / np.abs(t)
+        ep = np.degrees(np.abs(np.remainder(frf.phase[0, 0] - np.angle(t) + np.pi, 2 * np.pi) - np.pi))
+        z = np.maximum(np.abs(frf.magnitude[0, 0] - np.abs(t)) / frf.magnitude_std[0, 0],
+                       np.radians(ep) / frf.phase_std[0, 0])
+        lines += ["", f"against the truth: max |H| error {np.nanmax(em) * 100:.3f}% (goal 1%), max phase error "
+                      f"{np.nanmax(ep):.3f} deg (goal 1 deg), max error/std {np.nanmax(z):.2f} (goal 5)"]
+    if res.model is not None:
+        m = res.model
+        lines += ["", f"model: {m.n_poles} poles, {m.n_zeros} zeros, delay {m.delay_s * 1e6:.3f} us, reduced chi2 "
+                      f"{m.reduced_chi2:.3f} (dof {m.dof}), rms relative error {m.rms_relative_error:.2e}",
+                  f"  num = {list(map(float, m.num))}", f"  den = {list(map(float, m.den))}"]
+        for mode in m.modal_parameters():
+            lines.append(f"  mode: {mode['freq_hz']:.3f} Hz, damping {mode['zeta']:.4f}")
+    lines += ["", f"elapsed {elapsed:.1f} s (simulated acquisition and fitting)"]
+    return "\n".join(lines) + "\n"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="torchblur", description="Identify fast actuator dynamics from camera motion blur.")
     sub = parser.add_subparsers(dest="command", required=True)
+    ident = sub.add_parser("identify", help="identify the frequency response and a model (default: the built-in simulated mirror)")
+    ident.add_argument("--config", default=None, help="YAML config (see configs/); default: built-in")
+    ident.add_argument("--out", required=True, help="output directory")
+    ident.add_argument("--quiet", action="store_true", help="no progress bar")
+    ident.add_argument("overrides", nargs="*", help="dotted key=value overrides, e.g. sweep.n=20 plant.delay_s=5e-5")
+    ident.set_defaults(func=_identify)
     demo = sub.add_parser("demo", help="render a blurred spot and its alias; save a figure")
     demo.add_argument("--out", required=True, help="output directory")
     demo.add_argument("--seed", type=int, default=0)

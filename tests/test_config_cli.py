@@ -1,0 +1,65 @@
+"""identify's configuration and command line: defaults, overrides, errors that name the key."""
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from torchblur.config import IdentifyConfig, load_config
+from torchblur.errors import ConfigError
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_defaults_and_overrides():
+    cfg = load_config(None, ["sweep.n=5", "plant.num=[1,2]", "plant.den=[1,3,2]", "camera.jitter_s=1e-6"])
+    assert cfg.sweep.n == 5 and cfg.plant.num == [1, 2] and cfg.camera.jitter_s == 1e-6
+    f = cfg.frequencies_hz()
+    assert f[0] == pytest.approx(1.0) and f[-1] == pytest.approx(1000.0) and len(f) == 5
+    assert load_config(None, ["sweep.freq_hz=[300,10,50]"]).frequencies_hz() == [10.0, 50.0, 300.0]
+    assert isinstance(load_config(), IdentifyConfig)
+
+
+@pytest.mark.parametrize("path", sorted((ROOT / "configs").glob("identify_*.yaml")), ids=lambda p: p.name)
+def test_shipped_configs_load(path):
+    load_config(str(path))
+
+
+BAD = [
+    (["sweep.nn=3"], "sweep.nn"),
+    (["foo=1"], "foo"),
+    (["sweep.f_min_hz=-1"], "sweep.f_min_hz"),
+    (["sweep.freq_hz=[10,-5]"], "sweep.freq_hz[1]"),
+    (["sweep.exposures=[0.5,2.0]"], "sweep.exposures"),
+    (["plant.den=[1,-1]"], "plant.den"),
+    (["plant.num=[1,2,3]", "plant.den=[1,1]"], "plant.num"),
+    (["plant.num=[]"], "plant.num"),
+    (["camera.bit_depth=abc"], "camera.bit_depth"),
+    (["camera.peak_fraction=1.5"], "camera.peak_fraction"),
+    (["fit.optimizer=newton"], "fit.optimizer"),
+    (["excitation.target_px=0"], "excitation.target_px"),
+    (["sweep.images_per_point=0"], "sweep.images_per_point"),
+    (["rig.kind=bench"], "rig.kind"),
+    (["sweep"], "sweep"),
+]
+
+
+@pytest.mark.parametrize("overrides,key", BAD, ids=[b[1] for b in BAD])
+def test_bad_config_names_the_key(overrides, key):
+    with pytest.raises(ConfigError) as info:
+        load_config(None, overrides)
+    assert str(info.value).startswith(key)
+
+
+def test_cli_bad_config_is_one_clear_line_without_traceback(tmp_path):
+    out = subprocess.run([sys.executable, "-m", "torchblur.cli", "identify", "--out", str(tmp_path / "o"), "sweep.f_min_hz=-3"],
+                         capture_output=True, text=True)
+    assert out.returncode == 2
+    assert "sweep.f_min_hz" in out.stderr and "Traceback" not in out.stderr
+    assert not (tmp_path / "o").exists()  # nothing started
+
+
+def test_cli_missing_config_file(tmp_path):
+    out = subprocess.run([sys.executable, "-m", "torchblur.cli", "identify", "--config", str(tmp_path / "nope.yaml"), "--out", str(tmp_path)],
+                         capture_output=True, text=True)
+    assert out.returncode == 2 and "--config" in out.stderr and "Traceback" not in out.stderr
