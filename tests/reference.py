@@ -17,14 +17,17 @@ def quad_render(traj, psf: tb.GaussianPSF, window: tb.ExposureWindow, height: in
                 epsabs: float = 1e-13, epsrel: float = 1e-11) -> np.ndarray:
     """Adaptive quadrature (scipy quad_vec) of one item's blur integral, float64 numpy [H, W]."""
     assert psf.shape == () and window.shape == () and traj.shape == ()
-    x = torch.arange(width, dtype=torch.float64)
-    y = torch.arange(height, dtype=torch.float64)
-    psf64 = tb.GaussianPSF(psf.center.double().detach(), psf.cov.double().detach(), psf.amplitude.double().detach())
+    x = np.arange(width, dtype=np.float64)[None, :]
+    y = np.arange(height, dtype=np.float64)[:, None]
+    A, B, C = (float(v) for v in psf.to(torch.float64).precision())
+    cx, cy = (float(v) for v in psf.center.detach().double())
+    amp = float(psf.amplitude.detach())
 
     def integrand(t):
-        d = traj.position(torch.tensor([t], dtype=torch.float64))[0].detach().double()
-        p = tb.GaussianPSF(psf64.center + d, psf64.cov, psf64.amplitude)
-        return p.evaluate(x[None, :], y[:, None]).numpy().ravel()
+        d = traj.position(torch.tensor([t], dtype=torch.float64))[0].detach().double().numpy()
+        dx = x - cx - d[0]
+        dy = y - cy - d[1]
+        return (amp * np.exp(-0.5 * (A * dx * dx + 2 * B * dx * dy + C * dy * dy))).ravel()
 
     t0 = float(window.start)
     t1 = float(window.end)

@@ -196,7 +196,7 @@ def identify(cfg: IdentifyConfig, rig=None, *, progress: bool = True) -> Identif
             start0 = torch.tensor(offset + c.trigger_delay_s + latency, dtype=dtype)
             M_est, _ = sinusoid_from_moments(mu1, vex, torch.tensor(om, dtype=dtype), start0, torch.tensor(te[0], dtype=dtype))
             M_est = float(M_est)
-            ok = 0.5 * target <= M_est <= 2.0 * target or (amax is not None and A >= amax and M_est < 2 * target)
+            ok = 0.75 * target <= M_est <= 1.33 * target or (amax is not None and A >= amax and M_est < 1.33 * target)
             gain_new = max(M_est, 1e-3) / A
             if ok or attempt == 2:
                 break

@@ -1,0 +1,79 @@
+"""identify end to end on the simulated rig (shortened sweeps; the full one is benchmarks/bench_identify.py)."""
+import csv
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from torchblur.config import load_config
+from torchblur.identify import identify
+
+
+def errors(res):
+    t = res.truth
+    f = res.frf
+    em = np.abs(f.magnitude[0, 0] - np.abs(t)) / np.abs(t)
+    ep = np.abs(np.remainder(f.phase[0, 0] - np.angle(t) + np.pi, 2 * np.pi) - np.pi)
+    z = np.maximum(np.abs(f.magnitude[0, 0] - np.abs(t)) / f.magnitude_std[0, 0], ep / f.phase_std[0, 0])
+    return em, np.degrees(ep), z
+
+
+@pytest.fixture(scope="module")
+def short_run():
+    cfg = load_config(None, ["sweep.freq_hz=[1.5,40,330,420,900]", "camera.height=48", "camera.width=48", "seed=3"])
+    return cfg, identify(cfg, progress=False)
+
+
+def test_short_sweep_matches_the_truth_within_its_uncertainty(short_run):
+    cfg, res = short_run
+    em, ep, z = errors(res)
+    assert res.fit.converged.all()
+    assert em.max() < 0.01 and ep.max() < 1.0  # 1 % and 1 degree
+    assert z.max() < 5
+    assert abs(res.latency_s - cfg.camera.latency_s) < 5 * res.latency_std_s + 0.2e-6
+    # the PSF was identified (round, sigma 2 px)
+    np.testing.assert_allclose(res.psf.cov.numpy(), 4.0 * np.eye(2), atol=0.05)
+
+
+def test_excitation_follows_the_response(short_run):
+    _, res = short_run
+    moved = res.fit.amplitude.numpy()  # px actually moved
+    assert np.all(np.abs(moved / 8.0 - 1) < 0.35)  # target_px = 8 within the adaptation's band
+    assert res.amplitude[3] < res.amplitude[0]  # less input at the resonance (420 Hz)
+    assert res.amplitude[4] > res.amplitude[3]  # more input in the roll-off
+
+
+def test_cli_identify_writes_every_output(tmp_path):
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "torchblur.cli", "identify", "--out", str(out), "--quiet", "sweep.freq_hz=[3,100,450]",
+           "camera.height=40", "camera.width=40", "model.max_order=3", "seed=1"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    names = {p.name for p in out.iterdir()}
+    assert {"frf.csv", "frf.json", "bode.png", "model.json", "config.yaml", "report.txt", "residuals.png"} <= names
+    with open(out / "frf.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert list(rows[0])[:5] == ["freq_hz", "magnitude", "phase_deg", "magnitude_std", "phase_std_deg"]
+    assert len(rows) == 3 and all(-180 < float(r["phase_deg"]) <= 180 for r in rows)
+    assert rows[0]["seed"] == "1" and rows[0]["torchblur_version"]
+    model = json.loads((out / "model.json").read_text())
+    assert {"num", "den", "delay_s", "torchblur_version", "seed"} <= set(model)
+    assert "seed: 1" in (out / "config.yaml").read_text()
+    assert "torchblur" in (out / "report.txt").read_text()
+    from torchblur.frequency_response import FrequencyResponse
+
+    frf = FrequencyResponse.from_json(out / "frf.json")
+    np.testing.assert_allclose(frf.freq_hz, [float(r["freq_hz"]) for r in rows])
+
+
+def test_model_fit_matches_the_data(short_run):
+    _, res = short_run
+    m = res.model
+    assert m is not None
+    pred = m.frequency_response(res.frf.omega)
+    meas = res.frf.response[0, 0]
+    sig = np.sqrt(res.frf.magnitude_std[0, 0] ** 2 + (np.abs(meas) * res.frf.phase_std[0, 0]) ** 2)
+    assert np.max(np.abs(pred - meas) / sig) < 5
