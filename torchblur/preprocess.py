@@ -30,7 +30,7 @@ import kornia
 import torch
 import torch.autograd.forward_ad as fwAD
 
-from .errors import InputTypeError, ParameterError, ShapeError, as_tensor, broadcast_batch, check_finite, check_positive
+from .errors import InputTypeError, ParameterError, ShapeError, as_tensor, broadcast_batch, check_finite, check_positive, check_real_scalar
 from .moments import image_moments
 from .optim import levenberg_marquardt
 from .psf import GaussianPSF
@@ -81,19 +81,6 @@ def _check_int(value, name: str, low: int) -> int:
     if value < low:
         raise ParameterError(f"{name}: expected an integer >= {low}, got {value}")
     return value
-
-
-def _check_scalar(value, name: str, *, positive: bool = False, nonnegative: bool = False) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise InputTypeError(f"{name}: expected a real number, got {type(value).__name__}")
-    v = float(value)
-    if not math.isfinite(v):
-        raise ParameterError(f"{name}: expected a finite number, got {v}")
-    if positive and v <= 0:
-        raise ParameterError(f"{name}: expected a value > 0, got {v:g}")
-    if nonnegative and v < 0:
-        raise ParameterError(f"{name}: expected a value >= 0, got {v:g}")
-    return v
 
 
 def _batch_std(noise_std, name: str, like: torch.Tensor) -> torch.Tensor:
@@ -152,7 +139,7 @@ def dark_frame(frames, *, k: float = 8.0) -> DarkFrame:
     """
     frames = _image(frames, "frames", min_dim=3, desc="[..., N, H, W]")
     check_finite(frames, "frames")
-    k = _check_scalar(k, "k", positive=True)
+    k = check_real_scalar(k, "k", positive=True)
     N = frames.shape[-3]
     if N < 2:
         raise ShapeError(f"frames: expected at least 2 frames in [..., N, H, W], got N = {N} (shape {tuple(frames.shape)})")
@@ -229,8 +216,8 @@ def threshold_mask(image, noise_std, k: float = 3.0, *, sigma_px: float = 1.0) -
     """
     image = _image(image, "image")
     check_finite(image, "image")
-    k = _check_scalar(k, "k", positive=True)
-    sigma_px = _check_scalar(sigma_px, "sigma_px", positive=True)
+    k = check_real_scalar(k, "k", positive=True)
+    sigma_px = check_real_scalar(sigma_px, "sigma_px", positive=True)
     s = _batch_std(noise_std, "noise_std", image)
     smooth, gain = _smooth(image, sigma_px)
     return smooth > (k * gain * s)[..., None, None]
@@ -711,7 +698,7 @@ class SaturationCurve:
             span = self.saturation_adu - self.offset_adu
             margin = torch.where(torch.isfinite(span), 0.01 * span, torch.zeros_like(span))
         else:
-            margin = torch.tensor(_check_scalar(margin_adu, "margin_adu", nonnegative=True), dtype=frames.dtype)
+            margin = torch.tensor(check_real_scalar(margin_adu, "margin_adu", nonnegative=True), dtype=frames.dtype)
         level = (self.saturation_adu - margin).to(device=frames.device, dtype=frames.dtype)
         return frames < level
 
@@ -767,7 +754,7 @@ def saturation_curve(peak_adu, exposures_s, *, full_scale_adu: float | None = No
     check_positive(t, "exposures_s", strict=False)
     m = _check_int(samples_per_interval, "samples_per_interval", 2)
     if full_scale_adu is not None:
-        full_scale_adu = _check_scalar(full_scale_adu, "full_scale_adu", positive=True)
+        full_scale_adu = check_real_scalar(full_scale_adu, "full_scale_adu", positive=True)
     t, order = t.detach().sort()
     y = y.detach()[order]
     tu = torch.unique(t)
