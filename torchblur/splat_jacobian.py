@@ -23,13 +23,13 @@ the column factor:
                             + sum_s exp(g_s) (w (X alpha_k - gamma_k))_s exp(f_s) ].
 
 That is ``1 + 2 Q`` GEMMs (instead of ``1 + 4 Q`` with the px and py terms kept apart) that
-share the row factor ``exp(g)``: ONE batched matmul ``exp(g)^T @ R`` per tile, the
-column-factor variants ``R = exp(f) * [w, w beta_k, w (X alpha_k - gamma_k)]`` stacked along a
-dimension in front of the tile's columns (``[S, (1 + 2Q) * Tw]``). The variants go on the
+share the row factor ``exp(g)``: one matmul ``exp(g)^T @ R``, batched over frames and tiles,
+with the column-factor variants ``R = exp(f) * [w, w beta_k, w (X alpha_k - gamma_k)]`` stacked
+along a dimension in front of the tile's columns (``[S, (1 + 2Q) * Tw]``). The variants go on the
 narrower of the two tile sides (the problem is transposed when tiles are wider than tall).
 
-The work is done in chunks of frames that fit in the CPU's cache: the splat is limited by
-memory traffic, not arithmetic, everywhere but the matmul.
+The work is done in chunks of frames (tens of MB of temporaries each): outside the matmul the
+splat is limited by memory traffic, and chunks keep it near the cache and the memory bounded.
 """
 from __future__ import annotations
 
@@ -43,7 +43,9 @@ from .render import _exp_budget, _exp_floor, _tile_grid
 
 __all__ = ["gaussian_splat_with_jacobian"]
 
-_CHUNK_BYTES = 8e6  # working set of one chunk of frames (about a last-level cache)
+# Temporaries of one chunk of frames. Cache-sized chunks (~8 MB) were no faster than this on an
+# idle 2-core machine, and many small ops are far slower when the cores are shared.
+_CHUNK_BYTES = 32e6
 
 
 def gaussian_splat_with_jacobian(px, py, dpx, dpy, w, A, B, C, height, width):
@@ -122,6 +124,8 @@ def _splat_jacobian(px, py, dpx, dpy, w, A, B, C, H, W):
     lo = _exp_floor(dtype)
     # Tile size: the rule of _gaussian_tiled.
     kappa = float((torch.maximum(A, C) + B.abs()).detach().max()) if A.numel() else 1.0
+    if not (math.isfinite(kappa) and kappa > 0):
+        raise ParameterError(f"A, B, C: expected a finite positive definite precision, got max(A, C) + |B| = {kappa}")
     t_max = max(1, int(2 * math.sqrt(_exp_budget(dtype) / kappa)) - 1)
     nh, nw = -(-H // t_max), -(-W // t_max)
     if -(-H // nh) < -(-W // nw):  # tiles wider than tall: transpose, the variants go on the short side
