@@ -454,6 +454,13 @@ def fit_sinusoid(
         res = _optimise(sub_model, theta0[live_idx], target_k[live_idx], weight_k[live_idx], loss, optimizer, max_iter, tol, project,
                         jacobian_fn=sub_jac)
         theta[live_idx], cost[live_idx], conv[live_idx], iters[live_idx] = res.theta, res.cost, res.converged, res.n_iter
+    # The optimiser's final J^T W J and model are the Fisher information's (l2 and Poisson).
+    reuse = analytic and optimizer == "lm" and loss in ("l2", "poisson") and live_idx.numel() > 0
+    if reuse:
+        R_pix = target_k.shape[-1]
+        jtj_all = torch.eye(P, dtype=dtype, device=device).repeat(N * K, 1, 1)
+        model_all = torch.zeros(N * K, R_pix, dtype=dtype, device=device)
+        jtj_all[live_idx], model_all[live_idx] = res.jtj, res.model
 
     # Canonical form: M >= 0, phases wrapped.
     def canonical(t):
@@ -463,6 +470,7 @@ def fit_sinusoid(
         t[..., n_axes:2 * n_axes] = wrap_phase(t[..., n_axes:2 * n_axes] + math.pi * neg)
         return t
 
+    flipped = theta.reshape(N, K, P)[..., :n_axes] < 0  # (-M, phi) -> (M, phi + pi) flips J's M columns
     th = canonical(theta.reshape(N, K, P))
     cost = cost.reshape(N, K)
     best = torch.nan_to_num(cost, nan=float("inf")).argmin(1)
@@ -471,7 +479,11 @@ def fit_sinusoid(
     cost_best = cost[ar, best]
     conv_best = conv.reshape(N, K)[ar, best]
     iters_best = iters.reshape(N, K)[ar, best]
+    flip_best = flipped[ar, best]
     rows = ar * K  # model_fn rows that address problem n
+    if reuse:
+        jtj_best = jtj_all.reshape(N, K, P, P)[ar, best]
+        model_best = model_all.reshape(N, K, -1)[ar, best]
 
     # The other branch (alias of the first exposure) and its cost over all exposures.
     first = ExposureWindow(start[:, :1], dur[:, :1])
@@ -497,6 +509,9 @@ def fit_sinusoid(
             better = res2.cost < cost_best[r]
             rb = r[better]
             theta_best[rb] = canonical(res2.theta[better])
+            flip_best[rb] = res2.theta[better][:, :n_axes] < 0
+            if reuse:
+                jtj_best[rb], model_best[rb] = res2.jtj[better], res2.model[better]
             cost_best[rb] = res2.cost[better]
             conv_best[rb] = res2.converged[better]
             iters_best[rb] += res2.n_iter[better]
@@ -505,22 +520,34 @@ def fit_sinusoid(
                 alias_cost[rb] = image_loss(model_fn(theta_alias[rb], rows[rb]), flat_target[rb], loss=loss, weight=flat_weight[rb])
 
     # Uncertainty: the Fisher information at the solution.
-    model, J = jac_fn(theta_best, rows) if analytic else model_jacobian(lambda t, i: model_fn(t, i), theta_best, rows)
-    resid = target.reshape(N, -1) - model
     w = weight.reshape(N, -1)
     n_used = (w > 0).sum(-1).to(dtype) + outside_n
+    if reuse:
+        model = model_best
+        sign = torch.ones(N, P, dtype=dtype, device=device)
+        sign[:, :n_axes] = torch.where(flip_best, -1.0, 1.0)
+        F = jtj_best * sign[:, :, None] * sign[:, None, :]
+    else:
+        model, J = jac_fn(theta_best, rows) if analytic else model_jacobian(lambda t, i: model_fn(t, i), theta_best, rows)
+    resid = target.reshape(N, -1) - model
     if loss == "poisson":
         fisher_w = irls_weights(model, target.reshape(N, -1), loss="poisson", weight=(w > 0).to(dtype))
         sigma_used = torch.full((N,), float("nan"), dtype=dtype, device=device)
+        scale2 = torch.ones(N, dtype=dtype, device=device)
     elif sigma_given is not None:
         fisher_w = w
         sigma_used = noise_level
+        scale2 = torch.ones(N, dtype=dtype, device=device)
     else:
         sig2 = (((resid * resid) * (w > 0)).sum(-1) + outside_sq) / (n_used - P).clamp_min(1)
         fisher_w = (w > 0).to(dtype) / sig2[:, None].clamp_min(torch.finfo(dtype).tiny)
         sigma_used = sig2.sqrt()
-    JW = J * fisher_w[..., None]
-    F = JW.transpose(-1, -2) @ J
+        scale2 = 1 / sig2.clamp_min(torch.finfo(dtype).tiny)
+    if reuse:
+        F = F * scale2[:, None, None]
+    else:
+        JW = J * fisher_w[..., None]
+        F = JW.transpose(-1, -2) @ J
     cov, info = torch.linalg.inv_ex(F)
     singular = (info != 0) | ~torch.isfinite(cov).all(-1).all(-1)
     diag = torch.diagonal(cov, dim1=-2, dim2=-1)

@@ -20,12 +20,16 @@ __all__ = ["LMResult", "levenberg_marquardt", "model_jacobian"]
 
 @dataclass
 class LMResult:
-    """``theta [N, P]``, ``cost [N]``, ``converged [N]`` (bool), ``n_iter [N]``."""
+    """``theta [N, P]``, ``cost [N]``, ``converged [N]`` (bool), ``n_iter [N]``; with an
+    analytic ``jacobian_fn`` also ``jtj [N, P, P]`` (``J^T W J`` with the loss's
+    Gauss-Newton weights) and ``model [N, R]`` at the final ``theta``."""
 
     theta: torch.Tensor
     cost: torch.Tensor
     converged: torch.Tensor
     n_iter: torch.Tensor
+    jtj: torch.Tensor | None = None
+    model: torch.Tensor | None = None
 
 
 def model_jacobian(model_fn: Callable, theta: torch.Tensor, idx: torch.Tensor):
@@ -79,27 +83,42 @@ def levenberg_marquardt(
     theta = theta0.detach().clone()
     all_idx = torch.arange(N, device=theta.device)
     w_of = (lambda i: None) if weight is None else (lambda i: weight[i])
+    # Lazy mode (an analytic Jacobian that also returns the model): each trial point is
+    # evaluated with its Jacobian in one call, kept if the step is accepted (the usual case
+    # from a good start), so an iteration costs one call and the final J^T W J is exact.
+    lazy = jacobian_fn is not None
+    jac = jacobian_fn or (lambda t, i: model_jacobian(model_fn, t, i))
+    JTJ = torch.zeros(N, P, P, dtype=theta.dtype, device=theta.device)
+    g = torch.zeros(N, P, dtype=theta.dtype, device=theta.device)
+    model_store = None
+
+    def normal_equations(model, J, idx):
+        W = irls_weights(model, data[idx], loss=loss, weight=w_of(idx))
+        JW = J * W[..., None]
+        return JW.transpose(-1, -2) @ J, (JW * (data[idx] - model)[..., None]).sum(-2)
+
     with torch.no_grad():
-        cost = image_loss(model_fn(theta, all_idx), data, loss=loss, weight=weight)
+        if lazy:
+            model0, J0 = jac(theta, all_idx)
+            cost = image_loss(model0, data, loss=loss, weight=weight)
+            JTJ, g = normal_equations(model0, J0, all_idx)
+            model_store = model0.clone()
+        else:
+            cost = image_loss(model_fn(theta, all_idx), data, loss=loss, weight=weight)
         # A cost this small is round-off: converged (noise-free data).
         floor = (10 * torch.finfo(theta.dtype).eps) ** 2 * image_loss(torch.zeros_like(data), data, loss="l2", weight=weight)
     lam = torch.full((N,), lambda0, dtype=theta.dtype, device=theta.device)
     converged = torch.zeros(N, dtype=torch.bool, device=theta.device)
     n_iter = torch.zeros(N, dtype=torch.long, device=theta.device)
-    need_jac = torch.ones(N, dtype=torch.bool, device=theta.device)
-    JTJ = torch.zeros(N, P, P, dtype=theta.dtype, device=theta.device)
-    g = torch.zeros(N, P, dtype=theta.dtype, device=theta.device)
+    need_jac = torch.full((N,), not lazy, dtype=torch.bool, device=theta.device)
     for _ in range(max_iter):
         active = ~converged
         if not bool(active.any()):
             break
         jac_idx = all_idx[active & need_jac]
         if jac_idx.numel():
-            model, J = (jacobian_fn or (lambda t, i: model_jacobian(model_fn, t, i)))(theta[jac_idx], jac_idx)
-            W = irls_weights(model, data[jac_idx], loss=loss, weight=w_of(jac_idx))
-            JW = J * W[..., None]
-            JTJ[jac_idx] = JW.transpose(-1, -2) @ J
-            g[jac_idx] = (JW * (data[jac_idx] - model)[..., None]).sum(-2)
+            model, J = jac(theta[jac_idx], jac_idx)
+            JTJ[jac_idx], g[jac_idx] = normal_equations(model, J, jac_idx)
             need_jac[jac_idx] = False
         idx = all_idx[active]
         n_iter[idx] += 1
@@ -115,15 +134,24 @@ def levenberg_marquardt(
         if project is not None:
             trial = project(trial)
         with torch.no_grad():
-            new_cost = image_loss(model_fn(trial, idx), data[idx], loss=loss, weight=w_of(idx))
+            if lazy:
+                m_t, J_t = jac(trial, idx)
+                new_cost = image_loss(m_t, data[idx], loss=loss, weight=w_of(idx))
+            else:
+                new_cost = image_loss(model_fn(trial, idx), data[idx], loss=loss, weight=w_of(idx))
         ok = torch.isfinite(new_cost) & (new_cost <= cost[idx])
         rel = (cost[idx] - new_cost) / cost[idx].abs().clamp_min(1e-300)
         small_step = (step.abs() <= 1e-12 * (theta[idx].abs() + 1e-8)).all(-1)
         acc = idx[ok]
         theta[acc] = trial[ok]
         cost[acc] = new_cost[ok]
-        need_jac[acc] = True
+        if lazy:
+            if acc.numel():
+                JTJ[acc], g[acc] = normal_equations(m_t[ok], J_t[ok], acc)
+                model_store[acc] = m_t[ok]
+        else:
+            need_jac[acc] = True
         lam[idx] = torch.where(ok, (lam[idx] / 3).clamp_min(1e-12), lam[idx] * 4)
         done = (ok & (rel < tol)) | small_step | (lam[idx] > 1e12) | (cost[idx] <= floor[idx])
         converged[idx[done]] = True
-    return LMResult(theta=theta, cost=cost, converged=converged, n_iter=n_iter)
+    return LMResult(theta=theta, cost=cost, converged=converged, n_iter=n_iter, jtj=JTJ if lazy else None, model=model_store)
