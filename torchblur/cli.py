@@ -2,11 +2,23 @@
 
 Commands:
     identify [--config FILE] --out DIR [key=value ...]
-                        identify the frequency response and a model of the (simulated) rig;
-                        writes frf.csv, frf.json, model.json, bode.png, residuals.png,
-                        config.yaml and report.txt into DIR.
+                        identify the frequency response and a model of the rig (simulated, or
+                        rig.kind=serial rig.port=... rig.frames=...); writes frf.csv, frf.json,
+                        model.json, bode.png, residuals.png, config.yaml and report.txt into
+                        DIR, and records the raw frames as it goes in DIR/experiment/.
+    identify --resume DIR [key=value ...]
+                        continue an interrupted run from DIR/experiment/ (rig.*, fit.* and
+                        model.* may be given anew, e.g. the new rig.port).
+    fit DIR --out NEW [fit.*=... model.*=...]
+                        re-fit a recorded run offline; DIR is never written.
+    emulator [--config FILE] [key=value ...]
+                        a bench emulator on a pseudo-terminal; prints one JSON line with
+                        'serial' (for rig.port) and 'frames' (for rig.frames), then serves.
     demo --out DIR      render a blurred laser spot (the paper's "peanut"), its motion and
                         its alias, and save DIR/demo.png and DIR/demo.json.
+
+Exit codes: 0 done, 2 bad input (config, recording), 3 the rig stopped the run (its recording
+is saved; resume it), 130 interrupted (Ctrl-C; resume it).
 """
 from __future__ import annotations
 
@@ -76,28 +88,138 @@ def _demo(args) -> int:
     return 0
 
 
+EXIT_STOPPED = 3
+EXIT_INTERRUPTED = 130
+
+
+def _resume_hint(root: Path, cfg) -> str:
+    rig = " rig.port=<controller port> rig.frames=<camera>" if cfg.rig.kind == "serial" else ""
+    return f"torchblur identify --resume {root}{rig}"
+
+
 def _identify(args) -> int:
+    from torchblur.config import load_config
+
+    if args.resume is not None:
+        return _resume(args)
+    if args.out is None:
+        print("torchblur identify: error: --out DIR is required (or --resume DIR)", file=sys.stderr)
+        return 2
+    cfg = load_config(args.config, args.overrides)  # ConfigError (named key) before any work
+    out = Path(args.out)
+    if (out / "experiment" / "manifest.jsonl").exists():
+        print(f"torchblur identify: error: {out} already holds a recorded run; continue it with "
+              f"'torchblur identify --resume {out}' or choose another --out", file=sys.stderr)
+        return 2
+    out.mkdir(parents=True, exist_ok=True)
+    return _run_identify(cfg, out, out / "experiment", args.quiet)
+
+
+def _resume(args) -> int:
+    from torchblur.config import load_config
+    from torchblur.hardware.recording import Experiment
+
+    root = Path(args.resume)
+    exp = Experiment.open(root)  # RecordingError if none; repairs a torn last group
+    if exp.path == root:  # given the experiment folder itself
+        root = root.parent
+    out = Path(args.out) if args.out is not None else root
+    cfg = load_config(str(exp.path / "config.yaml"), args.overrides)
+    from torchblur.config import load_dataclass
+    from torchblur.identify import check_resume_config
+
+    check_resume_config(load_dataclass(type(cfg), str(exp.path / "config.yaml")), cfg)  # before connecting
+    rep = exp.repaired
+    if rep["dropped_groups"] or rep["removed_files"]:
+        print(f"torchblur identify: resume: dropped incomplete group(s) {rep['dropped_groups']}, removed "
+              f"{len(rep['removed_files'])} leftover file(s)", file=sys.stderr)
+    out.mkdir(parents=True, exist_ok=True)
+    return _run_identify(cfg, out, exp, args.quiet, root=root)
+
+
+def _run_identify(cfg, out: Path, record, quiet: bool, root: Path | None = None) -> int:
     import time
 
+    import torch
+
+    import torchblur as tb
+    from torchblur.config import config_to_yaml
+    from torchblur.hardware.errors import HardwareError
+    from torchblur.identify import identify
+
+    root = out if root is None else root
+    stamp = f"torchblur {tb.__version__}, seed {cfg.seed}"
+    (out / "config.yaml").write_text(f"# {stamp}\n" + config_to_yaml(cfg))
+    torch.manual_seed(cfg.seed)
+    exp_dir = record.path if hasattr(record, "path") else Path(record)
+    t0 = time.perf_counter()
+    try:
+        res = identify(cfg, progress=not quiet, record=record)
+    except KeyboardInterrupt:
+        print(f"\ntorchblur identify: interrupted. The recording so far is saved in {exp_dir}.\n"
+              f"Resume with:\n  {_resume_hint(root, cfg)}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except HardwareError as exc:
+        if (exp_dir / "manifest.jsonl").exists():
+            print(f"torchblur identify: stopped: {exc}\nThe recording so far is saved in {exp_dir}.\n"
+                  f"Resume with:\n  {_resume_hint(root, cfg)}", file=sys.stderr)
+        else:
+            print(f"torchblur identify: stopped before anything was recorded: {exc}", file=sys.stderr)
+        return EXIT_STOPPED
+    elapsed = time.perf_counter() - t0
+    _write_outputs(cfg, res, out, elapsed, stamp)
+    return 0
+
+
+def _fit(args) -> int:
+    import time
+
+    import torchblur as tb
+    from torchblur.config import config_to_yaml, load_config, load_dataclass
+    from torchblur.hardware.recording import Experiment, ReplayRig
+    from torchblur.identify import check_resume_config, identify
+
+    exp = Experiment.open(args.dir, writable=False)
+    root = exp.path.parent if exp.path.name == "experiment" else exp.path
+    out = Path(args.out)
+    r_root, r_out, r_exp = root.resolve(), out.resolve(), exp.path.resolve()
+    for protected in {r_root, r_exp}:
+        if r_out == protected or protected in r_out.parents:
+            print(f"torchblur fit: error: --out {out} is inside the recorded run {root}; the original is never written, "
+                  f"choose another folder", file=sys.stderr)
+            return 2
+    recorded = load_dataclass(type(load_config()), str(exp.path / "config.yaml"))
+    cfg = load_config(str(exp.path / "config.yaml"), args.overrides)
+    check_resume_config(recorded, cfg, allowed=("fit", "model"))
+    out.mkdir(parents=True, exist_ok=True)
+    stamp = f"torchblur {tb.__version__}, seed {cfg.seed}, re-fit of {exp.path}"
+    (out / "config.yaml").write_text(f"# {stamp}\n" + config_to_yaml(cfg))
+    t0 = time.perf_counter()
+    res = identify(cfg, rig=ReplayRig(exp), record=exp, progress=not args.quiet)
+    elapsed = time.perf_counter() - t0
+    (out / "source.json").write_text(json.dumps({"recording": str(exp.path), "status": exp.meta.get("status"),
+                                                 "frames": len(exp.lines), "overrides": list(args.overrides),
+                                                 "torchblur_version": tb.__version__}, indent=2))
+    _write_outputs(cfg, res, out, elapsed, stamp)
+    return 0
+
+
+def _emulator(args) -> int:
+    from torchblur.hardware.emulator import main as emulator_main
+
+    try:
+        return emulator_main(args.overrides, config_path=args.config)
+    except KeyboardInterrupt:
+        return EXIT_INTERRUPTED
+
+
+def _write_outputs(cfg, res, out: Path, elapsed: float, stamp: str) -> None:
+    """frf.csv, frf.json, model.json, bode.png, residuals.png, report.txt."""
     import numpy as np
 
     import torchblur as tb
-    from torchblur.config import config_to_yaml, load_config
-
-    cfg = load_config(args.config, args.overrides)  # ConfigError (named key) before any work
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    stamp = f"torchblur {tb.__version__}, seed {cfg.seed}"
-    (out / "config.yaml").write_text(f"# {stamp}\n" + config_to_yaml(cfg))
-    import torch
-
-    torch.manual_seed(cfg.seed)
-    from torchblur.identify import identify
     from torchblur.plots import bode_figure, residual_figure
 
-    t0 = time.perf_counter()
-    res = identify(cfg, progress=not args.quiet)
-    elapsed = time.perf_counter() - t0
     frf = res.frf
     frf.meta.update({"torchblur_version": tb.__version__, "seed": int(cfg.seed)})
     _write_frf_csv(frf, out / "frf.csv", stamp_version=tb.__version__, seed=cfg.seed)
@@ -125,7 +247,6 @@ def _identify(args) -> int:
     (out / "report.txt").write_text(report)
     print(report)
     print(f"wrote {', '.join(sorted(p.name for p in out.iterdir()))} in {out}")
-    return 0
 
 
 def _write_frf_csv(frf, path, *, stamp_version, seed):
@@ -210,7 +331,13 @@ def _report(cfg, res, elapsed, stamp) -> str:
                   f"  num = {list(map(float, m.num))}", f"  den = {list(map(float, m.den))}"]
         for mode in m.modal_parameters():
             lines.append(f"  mode: {mode['freq_hz']:.3f} Hz, damping {mode['zeta']:.4f}")
-    lines += ["", f"elapsed {elapsed:.1f} s (simulated acquisition and fitting)"]
+    what = "simulated acquisition" if cfg.rig.kind == "simulated" else "acquisition"
+    t = getattr(res, "timing", {}) or {}
+    lines += ["", f"elapsed {elapsed:.1f} s ({what} and fitting)"]
+    if t:
+        lines.append(f"  calibration {t['calibration_s']:.2f} s, sweep {t['sweep_s']:.2f} s, fitting {t['fit_s']:.2f} s in "
+                     f"{t['fit_chunks']} chunk(s) of which {t['fit_overlapped_s']:.2f} s during the sweep, "
+                     f"{t['after_sweep_s']:.2f} s after the last frame")
     return "\n".join(lines) + "\n"
 
 
@@ -219,10 +346,22 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     ident = sub.add_parser("identify", help="identify the frequency response and a model (default: the built-in simulated mirror)")
     ident.add_argument("--config", default=None, help="YAML config (see configs/); default: built-in")
-    ident.add_argument("--out", required=True, help="output directory")
+    ident.add_argument("--out", default=None, help="output directory (the recording goes to OUT/experiment/)")
+    ident.add_argument("--resume", default=None, metavar="DIR",
+                       help="continue the interrupted run recorded in DIR (its --out folder or DIR/experiment)")
     ident.add_argument("--quiet", action="store_true", help="no progress bar")
     ident.add_argument("overrides", nargs="*", help="dotted key=value overrides, e.g. sweep.n=20 plant.delay_s=5e-5")
     ident.set_defaults(func=_identify)
+    fit = sub.add_parser("fit", help="re-fit a recorded run offline with other fit.* / model.* settings")
+    fit.add_argument("dir", help="the recorded run (its --out folder, or its experiment/ folder)")
+    fit.add_argument("--out", required=True, help="a new output directory (never inside DIR)")
+    fit.add_argument("--quiet", action="store_true", help="no progress bar")
+    fit.add_argument("overrides", nargs="*", help="fit.* and model.* overrides, e.g. fit.loss=poisson model.max_order=4")
+    fit.set_defaults(func=_fit)
+    emu = sub.add_parser("emulator", help="emulate the bench (controller on a pseudo-terminal, camera on loopback TCP)")
+    emu.add_argument("--config", default=None, help="YAML config (plant.*, camera.*, seed; identify-only sections are ignored)")
+    emu.add_argument("overrides", nargs="*", help="plant.*, camera.*, seed, transport=pty|socket, fault.*=N, ...")
+    emu.set_defaults(func=_emulator)
     demo = sub.add_parser("demo", help="render a blurred spot and its alias; save a figure")
     demo.add_argument("--out", required=True, help="output directory")
     demo.add_argument("--seed", type=int, default=0)
@@ -234,7 +373,12 @@ def main(argv: list[str] | None = None) -> int:
     from .errors import TorchblurError
 
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:  # key=value overrides after an option (argparse stops filling a '*' positional there)
+        if hasattr(args, "overrides") and all("=" in e and not e.startswith("-") for e in extra):
+            args.overrides = list(args.overrides) + extra
+        else:
+            parser.error(f"unrecognized arguments: {' '.join(extra)}")
     try:
         return args.func(args)
     except TorchblurError as exc:

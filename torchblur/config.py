@@ -14,7 +14,10 @@ from typing import Optional
 
 from .errors import ConfigError
 
-__all__ = ["IdentifyConfig", "load_config", "config_to_yaml", "validate", "DEFAULT_PLANT"]
+__all__ = ["IdentifyConfig", "load_config", "load_dataclass", "config_to_yaml", "validate", "validate_plant", "validate_camera",
+           "DEFAULT_PLANT", "RIG_KINDS"]
+
+RIG_KINDS = ("simulated", "serial")
 
 
 def _default_plant() -> tuple[list, list]:
@@ -79,6 +82,9 @@ class FitConfig:
     loss: str = "l2"
     fit_scale: bool = True
     fit_background: bool = False
+    # Points per batched fit. The sweep hands every completed chunk to a background fit, so
+    # fitting overlaps the acquisition; 0 fits all points in one batch after the sweep.
+    chunk_points: int = 8
 
 
 @dataclass(frozen=True)
@@ -91,9 +97,11 @@ class ModelConfig:
 
 @dataclass(frozen=True)
 class RigConfig:
-    kind: str = "simulated"
-    port: Optional[str] = None
-    frames: Optional[str] = None
+    kind: str = "simulated"  # "simulated" (built-in) or "serial" (a controller on rig.port, a camera on rig.frames)
+    port: Optional[str] = None  # serial: device path or pyserial URL (socket://HOST:PORT, spy://PATH?file=LOG)
+    frames: Optional[str] = None  # serial: tcp://HOST:PORT (emulator) or package.module:ClassName (SDKCamera)
+    timeout_s: float = 2.0  # serial: reply timeout
+    retries: int = 2  # serial: how many times a failed point is redone
 
 
 @dataclass(frozen=True)
@@ -140,10 +148,22 @@ def load_config(path: str | None = None, overrides: list[str] | None = None) -> 
     Raises:
         ConfigError: naming the key, for unknown keys, unparsable values or invalid values.
     """
+    cfg = load_dataclass(IdentifyConfig, path, overrides)
+    validate(cfg)
+    return cfg
+
+
+def load_dataclass(cls, path: str | None = None, overrides: list[str] | None = None, *, ignore_file_sections=()):
+    """Defaults of the frozen dataclass ``cls``, then the YAML file (its top-level sections in
+    ``ignore_file_sections`` skipped), then ``key=value`` overrides; not validated.
+
+    Raises:
+        ConfigError: naming the key, for unknown keys and unparsable values.
+    """
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 
-    merged = OmegaConf.create(asdict(IdentifyConfig()))
+    merged = OmegaConf.create(asdict(cls()))
     OmegaConf.set_struct(merged, True)
     try:
         if path is not None:
@@ -151,6 +171,9 @@ def load_config(path: str | None = None, overrides: list[str] | None = None) -> 
                 file_cfg = OmegaConf.load(path)
             except FileNotFoundError:
                 raise ConfigError(f"--config: file not found: {path}") from None
+            for k in ignore_file_sections:
+                if k in file_cfg:
+                    file_cfg.pop(k)
             merged = OmegaConf.merge(merged, file_cfg)
         if overrides:
             for item in overrides:
@@ -161,9 +184,7 @@ def load_config(path: str | None = None, overrides: list[str] | None = None) -> 
         key = getattr(exc, "full_key", None) or getattr(exc, "key", None) or "config"
         raise ConfigError(f"{key}: {str(exc).splitlines()[0]}") from None
     data = OmegaConf.to_container(merged, resolve=True)
-    cfg = _from_dict(IdentifyConfig, data)
-    validate(cfg)
-    return cfg
+    return _from_dict(cls, data)
 
 
 def config_to_yaml(cfg: IdentifyConfig) -> str:
@@ -197,12 +218,12 @@ def _coeffs(value, key) -> list[float]:
     return [_num(v, f"{key}[{i}]") for i, v in enumerate(value)]
 
 
-def validate(cfg: IdentifyConfig) -> None:
-    """Check every value; raise :class:`ConfigError` naming the key."""
+def validate_plant(plant: PlantConfig) -> None:
+    """Check the ``plant`` section; raise :class:`ConfigError` naming the key."""
     import numpy as np
 
-    num = _coeffs(cfg.plant.num, "plant.num")
-    den = _coeffs(cfg.plant.den, "plant.den")
+    num = _coeffs(plant.num, "plant.num")
+    den = _coeffs(plant.den, "plant.den")
     while len(num) > 1 and num[0] == 0:
         num = num[1:]
     if den[0] == 0:
@@ -212,7 +233,60 @@ def validate(cfg: IdentifyConfig) -> None:
     poles = np.roots(den)
     if len(poles) and (poles.real >= 0).any():
         raise ConfigError(f"plant.den: the plant must be stable; poles with real part >= 0: {poles[poles.real >= 0]}")
-    _num(cfg.plant.delay_s, "plant.delay_s", nonnegative=True)
+    _num(plant.delay_s, "plant.delay_s", nonnegative=True)
+
+
+def validate_camera(c: CameraConfig) -> None:
+    """Check the ``camera`` section; raise :class:`ConfigError` naming the key."""
+    for k in ("frame_rate_hz", "max_exposure_s", "gain", "full_well", "psf_sigma_px", "peak_fraction"):
+        _num(getattr(c, k), f"camera.{k}", positive=True)
+    for k in ("readout_s", "trigger_delay_s", "latency_s", "jitter_s", "read_noise", "dark_level"):
+        _num(getattr(c, k), f"camera.{k}", nonnegative=True)
+    _num(c.bit_depth, "camera.bit_depth", integer=True, low=1, high=32)
+    _num(c.height, "camera.height", integer=True, low=8)
+    _num(c.width, "camera.width", integer=True, low=8)
+    if c.peak_fraction > 1:
+        raise ConfigError(f"camera.peak_fraction: expected a value in (0, 1], got {c.peak_fraction}")
+
+
+def validate_rig(r: RigConfig) -> None:
+    """Check the ``rig`` section; raise :class:`ConfigError` naming the key."""
+    if r.kind not in RIG_KINDS:
+        raise ConfigError(f"rig.kind: expected one of {RIG_KINDS}, got {r.kind!r}")
+    for k in ("port", "frames"):
+        v = getattr(r, k)
+        if v is not None and (not isinstance(v, str) or not v.strip()):
+            raise ConfigError(f"rig.{k}: expected a non-empty string, got {v!r}")
+    if r.kind == "serial":
+        if r.port is None:
+            raise ConfigError("rig.port: required when rig.kind=serial (a device path such as /dev/ttyACM0 or a pyserial "
+                              "URL such as socket://127.0.0.1:5000; the emulator prints it as 'serial')")
+        if r.frames is None:
+            raise ConfigError("rig.frames: required when rig.kind=serial (tcp://HOST:PORT of the emulator's camera, "
+                              "or package.module:ClassName of an SDKCamera)")
+    if r.frames is not None:
+        f = r.frames
+        ok = False
+        if f.startswith("tcp://"):
+            from urllib.parse import urlparse
+
+            try:
+                u = urlparse(f)
+                ok = bool(u.hostname) and u.port is not None
+            except ValueError:
+                ok = False
+        else:
+            mod, sep, name = f.partition(":")
+            ok = bool(sep and mod and name and "/" not in f)
+        if not ok:
+            raise ConfigError(f"rig.frames: expected tcp://HOST:PORT or package.module:ClassName, got {f!r}")
+    _num(r.timeout_s, "rig.timeout_s", positive=True)
+    _num(r.retries, "rig.retries", integer=True, low=0, high=100)
+
+
+def validate(cfg: IdentifyConfig) -> None:
+    """Check every value; raise :class:`ConfigError` naming the key."""
+    validate_plant(cfg.plant)
     s = cfg.sweep
     if s.freq_hz is not None:
         if not isinstance(s.freq_hz, (list, tuple)) or not s.freq_hz:
@@ -237,15 +311,7 @@ def validate(cfg: IdentifyConfig) -> None:
     if cfg.excitation.max_amplitude is not None:
         _num(cfg.excitation.max_amplitude, "excitation.max_amplitude", positive=True)
     c = cfg.camera
-    for k in ("frame_rate_hz", "max_exposure_s", "gain", "full_well", "psf_sigma_px", "peak_fraction"):
-        _num(getattr(c, k), f"camera.{k}", positive=True)
-    for k in ("readout_s", "trigger_delay_s", "latency_s", "jitter_s", "read_noise", "dark_level"):
-        _num(getattr(c, k), f"camera.{k}", nonnegative=True)
-    _num(c.bit_depth, "camera.bit_depth", integer=True, low=1, high=32)
-    _num(c.height, "camera.height", integer=True, low=8)
-    _num(c.width, "camera.width", integer=True, low=8)
-    if c.peak_fraction > 1:
-        raise ConfigError(f"camera.peak_fraction: expected a value in (0, 1], got {c.peak_fraction}")
+    validate_camera(c)
     f_min = min(cfg.frequencies_hz())
     longest = max(s.exposures) / f_min
     if longest > c.max_exposure_s:
@@ -262,8 +328,8 @@ def validate(cfg: IdentifyConfig) -> None:
         v = getattr(cfg.model, k)
         if v is not None:
             _num(v, f"model.{k}", integer=True, low=0)
+    _num(cfg.fit.chunk_points, "fit.chunk_points", integer=True, low=0)
     _num(cfg.model.max_order, "model.max_order", integer=True, low=1, high=16)
-    if cfg.rig.kind not in ("simulated",):
-        raise ConfigError(f"rig.kind: expected one of ('simulated',), got {cfg.rig.kind!r}")
+    validate_rig(cfg.rig)
     _num(cfg.seed, "seed", integer=True, low=0)
 

@@ -1,0 +1,55 @@
+"""The hardware adapter: a controller on a serial line, a camera, and the experiment record.
+
+- :class:`Controller`: pyserial client of the line protocol (docs/protocol.md).
+- :class:`FrameSource`: where frames come from (:class:`Frame`: a tensor with its counter,
+  timestamp, exposure); :class:`EmulatorFrames` (the emulator's TCP camera channel),
+  :class:`ReplayFrames` (a recorded experiment directory), :class:`SDKCamera` (the base a
+  real camera's SDK plugs into).
+- :class:`SerialRig`: the :class:`~torchblur.rig.base.Rig` protocol on a controller and a
+  camera, so ``identify(cfg, rig=SerialRig.open(port, frames))`` runs unchanged.
+- :class:`Experiment`: the experiment directory written as a run goes (TIFF frames,
+  ``manifest.jsonl``, the resolved config), read back to resume or re-fit.
+- ``torchblur emulator``: :mod:`torchblur.hardware.emulator`, a process that behaves like
+  the bench on a pseudo-terminal.
+
+Not imported by ``import torchblur``; import ``torchblur.hardware`` on use.
+"""
+from __future__ import annotations
+
+from .camera_sdk import SDKCamera
+from .controller import Controller
+from .errors import (AcquisitionStopped, ConnectionLost, DeviceError, DeviceReset, FrameError, FrameGap, FrameMismatch,
+                     FrameTimeout, GarbageReply, HardwareError, RecordingError, ReplyTimeout, StaleFrame)
+from .frames import CameraInfo, EmulatorFrames, Frame, FrameSource
+from .protocol import ERROR_CODES, PROTOCOL_VERSION
+from .recording import SCHEMA_VERSION, Experiment, ReplayFrames
+from .serial_rig import SerialRig, open_frame_source
+
+__all__ = [
+    "AcquisitionStopped",
+    "CameraInfo",
+    "ConnectionLost",
+    "Controller",
+    "DeviceError",
+    "DeviceReset",
+    "ERROR_CODES",
+    "EmulatorFrames",
+    "Experiment",
+    "Frame",
+    "FrameError",
+    "FrameGap",
+    "FrameMismatch",
+    "FrameSource",
+    "FrameTimeout",
+    "GarbageReply",
+    "HardwareError",
+    "PROTOCOL_VERSION",
+    "RecordingError",
+    "ReplayFrames",
+    "ReplyTimeout",
+    "SCHEMA_VERSION",
+    "SDKCamera",
+    "SerialRig",
+    "StaleFrame",
+    "open_frame_source",
+]

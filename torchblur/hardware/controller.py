@@ -1,0 +1,326 @@
+"""A pyserial client of the controller's line protocol (docs/protocol.md).
+
+:class:`Controller` sends one command, reads exactly one reply line with a timeout and turns
+every failure into a :mod:`torchblur.hardware.errors` exception:
+
+- no complete line in time: :class:`~torchblur.hardware.errors.ReplyTimeout`;
+- a line that is not ``OK <word> ...``/``ERR ...`` for the command sent (line noise, a stale
+  reply): :class:`~torchblur.hardware.errors.GarbageReply`;
+- ``ERR <code> ...``: :class:`~torchblur.hardware.errors.DeviceError`;
+- the port fails or closes: :class:`~torchblur.hardware.errors.ConnectionLost`.
+
+After a timeout or garbage the link is out of step; :meth:`Controller.resync` drains the
+input and exchanges a ``PING`` with a fresh token, discarding everything before its reply.
+
+``port`` is a device path (``/dev/ttyACM0``, a pseudo-terminal ``/dev/pts/N``) or any
+pyserial URL (``socket://127.0.0.1:5000``, ``spy:///dev/pts/3?file=traffic.log`` to log the
+traffic, ``loop://``).
+"""
+from __future__ import annotations
+
+import secrets
+import time
+
+from .errors import ConnectionLost, DeviceError, GarbageReply, ReplyTimeout
+from .protocol import MAX_LINE, PROTOCOL_VERSION, Reply, format_command, parse_reply
+
+__all__ = ["Controller", "import_serial"]
+
+
+def _io_errors(serial) -> tuple:
+    """Exceptions of a failing port: pyserial's, the OS's and, on POSIX, termios's (raised when
+    a pseudo-terminal's other side is gone and the port is reconfigured)."""
+    errs = (serial.SerialException, OSError)
+    try:
+        import termios
+
+        errs += (termios.error,)
+    except ImportError:  # pragma: no cover - Windows
+        pass
+    return errs
+
+
+def import_serial():
+    """``import serial`` with an error that says what to install."""
+    try:
+        import serial
+    except ImportError as exc:  # pragma: no cover - pyserial is a dependency
+        raise ImportError("torchblur.hardware needs pyserial: pip install 'pyserial>=3.5' (or pip install torchblur)") from exc
+    return serial
+
+
+class Controller:
+    """Request/response client of the controller.
+
+    Args:
+        port: device path or pyserial URL.
+        timeout_s: default time to wait for a reply line (s).
+        write_timeout_s: time to wait for the port to accept a command (s).
+        baudrate: passed to pyserial (ignored by pseudo-terminals and sockets).
+        open: open the port now.
+
+    Attributes:
+        traffic: the last 200 ``(direction, bytes)`` exchanged, for error reports.
+    """
+
+    def __init__(self, port: str, *, timeout_s: float = 2.0, write_timeout_s: float = 1.0, baudrate: int = 115200,
+                 open: bool = True):
+        if not isinstance(port, str) or not port:
+            raise ValueError(f"port: expected a device path or pyserial URL, got {port!r}")
+        if not timeout_s > 0:
+            raise ValueError(f"timeout_s: expected a value > 0, got {timeout_s!r}")
+        self.port = port
+        self.timeout_s = float(timeout_s)
+        self.write_timeout_s = float(write_timeout_s)
+        self.baudrate = int(baudrate)
+        self._ser = None
+        self._cur_timeout = None
+        self._rx = bytearray()  # bytes read past the last line
+        self.traffic: list[tuple[str, bytes]] = []
+        if open:
+            self.open()
+
+    # ------------------------------------------------------------------ connection
+
+    def open(self) -> None:
+        """Open the port. Raises :class:`ConnectionLost` if it cannot be opened."""
+        serial = import_serial()
+        try:
+            self._ser = serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=self.timeout_s,
+                                              write_timeout=self.write_timeout_s)
+        except _io_errors(serial) + (ValueError,) as exc:
+            self._ser = None
+            raise ConnectionLost(f"cannot open the controller port {self.port!r}: {exc}") from exc
+        self._cur_timeout = self.timeout_s
+        self._rx = bytearray()
+
+    @property
+    def is_open(self) -> bool:
+        return self._ser is not None and self._ser.is_open
+
+    def close(self) -> None:
+        if self._ser is not None:
+            try:
+                self._ser.close()
+            except Exception:  # closing a dead port may fail; it is closed either way
+                pass
+        self._ser = None
+
+    def reopen(self) -> None:
+        self.close()
+        self.open()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    # ------------------------------------------------------------------ raw I/O
+
+    def _note(self, direction: str, data: bytes) -> None:
+        self.traffic.append((direction, data))
+        if len(self.traffic) > 200:
+            del self.traffic[:100]
+
+    def _port(self):
+        if self._ser is None:
+            raise ConnectionLost(f"the controller port {self.port!r} is not open")
+        return self._ser
+
+    def write_line(self, line: str) -> None:
+        """Send one line (``\\n`` included)."""
+        serial = import_serial()
+        ser = self._port()
+        data = line.encode("ascii")
+        self._note(">", data)
+        try:
+            ser.write(data)
+            ser.flush()
+        except serial.SerialTimeoutException as exc:
+            raise ReplyTimeout(f"the controller did not accept {line.strip()!r} within {self.write_timeout_s:g} s") from exc
+        except _io_errors(serial) as exc:
+            raise ConnectionLost(f"writing to the controller port {self.port!r} failed: {exc}") from exc
+
+    def read_line(self, timeout_s: float | None = None) -> bytes:
+        """Read one line (with its ``\\n``). Raises :class:`ReplyTimeout` when no complete line
+        comes within ``timeout_s``, :class:`GarbageReply` for a line longer than the protocol
+        allows, :class:`ConnectionLost` when the port fails.
+
+        Reads what is waiting in one call (``in_waiting``) rather than byte by byte, which
+        makes a round trip on a pseudo-terminal about 5x faster than ``read_until``."""
+        serial = import_serial()
+        ser = self._port()
+        t = self.timeout_s if timeout_s is None else float(timeout_s)
+        t_end = time.monotonic() + t
+        rx = self._rx
+        while True:
+            i = rx.find(b"\n")
+            if i >= 0:
+                line = bytes(rx[: i + 1])
+                del rx[: i + 1]
+                self._note("<", line)
+                if len(line) > MAX_LINE + 2:
+                    raise GarbageReply(f"a reply line longer than {MAX_LINE} bytes: {line[:40]!r}...")
+                return line
+            if len(rx) > MAX_LINE + 2:
+                junk = bytes(rx)
+                rx.clear()
+                self._note("<", junk)
+                raise GarbageReply(f"a reply line longer than {MAX_LINE} bytes: {junk[:40]!r}...")
+            left = t_end - time.monotonic()
+            if left <= 0:
+                partial = bytes(rx)
+                raise ReplyTimeout(f"no reply line within {t:g} s" + (f" (partial: {partial[:40]!r})" if partial else ""))
+            try:  # only pyserial's own failures are a lost connection (TimeoutError is an OSError too)
+                if self._cur_timeout is None or abs(self._cur_timeout - left) > 0.05 * t + 1e-3:
+                    ser.timeout = left
+                    self._cur_timeout = left
+                chunk = ser.read(1)
+                if chunk:
+                    rx += chunk
+                    n = ser.in_waiting
+                    if n:
+                        rx += ser.read(n)
+            except _io_errors(serial) as exc:
+                raise ConnectionLost(f"reading from the controller port {self.port!r} failed: {exc}") from exc
+
+    def drain(self, quiet_s: float = 0.05, max_s: float = 1.0) -> bytes:
+        """Read and discard input until the line is quiet for ``quiet_s`` (at most ``max_s``)."""
+        serial = import_serial()
+        ser = self._port()
+        junk = bytes(self._rx)
+        self._rx.clear()
+        t_end = time.monotonic() + max_s
+        try:
+            ser.timeout = quiet_s
+            self._cur_timeout = quiet_s
+            while time.monotonic() < t_end:
+                chunk = ser.read(4096)
+                if not chunk:
+                    break
+                junk += chunk
+        except _io_errors(serial) as exc:
+            raise ConnectionLost(f"reading from the controller port {self.port!r} failed: {exc}") from exc
+        if junk:
+            self._note("<drained", junk)
+        return junk
+
+    # ------------------------------------------------------------------ request / response
+
+    def command(self, word: str, *args, timeout_s: float | None = None) -> Reply:
+        """Send ``word args...`` and return its ``OK`` reply.
+
+        Raises:
+            ReplyTimeout, GarbageReply, DeviceError, ConnectionLost.
+        """
+        line = format_command(word, *args)
+        self.write_line(line)
+        raw = self.read_line(timeout_s)
+        try:
+            reply = parse_reply(raw)
+        except ValueError as exc:
+            raise GarbageReply(f"reply to {line.strip()!r} is not a protocol line: {raw[:60]!r}") from exc
+        if not reply.ok:
+            raise DeviceError(reply.code, reply.name, reply.detail, line.strip())
+        if reply.word != word.rstrip("?"):
+            raise GarbageReply(f"reply to {line.strip()!r} is for another command: {raw.strip()[:60]!r}")
+        return reply
+
+    def resync(self, timeout_s: float | None = None, attempts: int = 2) -> None:
+        """Bring the link back in step: drain, send ``PING <token>``, discard every line before
+        ``OK PING token=<token>``. Raises :class:`ReplyTimeout` if no matching reply comes."""
+        t = self.timeout_s if timeout_s is None else float(timeout_s)
+        last: Exception | None = None
+        for _ in range(attempts):
+            self.drain()
+            token = secrets.token_hex(6)
+            self.write_line(format_command("PING", token))
+            t_end = time.monotonic() + t
+            while True:
+                left = t_end - time.monotonic()
+                if left <= 0:
+                    last = ReplyTimeout(f"no PING reply within {t:g} s while resynchronising")
+                    break
+                try:
+                    raw = self.read_line(left)
+                except ReplyTimeout as exc:
+                    last = exc
+                    break
+                except GarbageReply as exc:
+                    last = exc
+                    continue
+                if raw.strip() == f"OK PING token={token}".encode():
+                    return
+        raise last if isinstance(last, ReplyTimeout) else ReplyTimeout(f"resynchronisation failed: {last}")
+
+    # ------------------------------------------------------------------ commands
+
+    def identify(self) -> dict:
+        """``ID?`` -> ``{"name", "firmware", "protocol" (int), "axes" (list)}``; raises
+        :class:`GarbageReply` for a protocol version this client does not speak."""
+        r = self.command("ID?")
+        info = dict(r.fields)
+        try:
+            info["protocol"] = int(info.get("protocol", "-1"))
+        except ValueError:
+            info["protocol"] = -1
+        if info["protocol"] != PROTOCOL_VERSION:
+            raise GarbageReply(f"the controller speaks protocol {info['protocol']}, this client {PROTOCOL_VERSION}")
+        info["axes"] = info.get("axes", "").split(",") if info.get("axes") else []
+        return info
+
+    def status(self, timeout_s: float | None = None) -> dict:
+        """``STATUS?`` -> ``{"state", "frames" (next frame counter), "pending", "clock" (s),
+        "boot"}``."""
+        r = self.command("STATUS?", timeout_s=timeout_s)
+        f = r.fields
+        try:
+            return {"state": f["state"], "frames": int(f["frames"]), "pending": int(f.get("pending", "0")),
+                    "clock": float(f["clock"]), "boot": f["boot"]}
+        except (KeyError, ValueError) as exc:
+            raise GarbageReply(f"malformed STATUS reply: {f}") from exc
+
+    def ping(self, token: str = "p") -> None:
+        r = self.command("PING", token)
+        if r.fields.get("token") != token:
+            raise GarbageReply(f"PING {token} answered with {r.fields}")
+
+    def stop(self) -> None:
+        self.command("STOP")
+
+    def reset(self) -> str:
+        """``RESET``; returns the new boot id."""
+        return self.command("RESET").fields.get("boot", "")
+
+    def power(self, p: float) -> None:
+        self.command("POWER", float(p))
+
+    def settle(self, settle_s: float | None) -> None:
+        """``SETTLE <s>``, or ``SETTLE AUTO`` for None (the controller's default)."""
+        self.command("SETTLE", "AUTO" if settle_s is None else float(settle_s))
+
+    def wave_sine(self, axis: str, freq_hz: float, amplitude: float) -> float:
+        """Start ``amplitude sin(2 pi freq_hz t)`` on ``axis``; returns its start on the clock (s)."""
+        return self.command("WAVE", axis, "SINE", float(freq_hz), float(amplitude)).get_float("start")
+
+    def wave_multi(self, axis: str, tones) -> float:
+        """Start ``sum_k a_k sin(2 pi f_k t + p_k)``; ``tones`` = [(f_hz, a, p_rad), ...]."""
+        from .protocol import format_number
+
+        spec = ",".join(f"{format_number(f)}:{format_number(a)}:{format_number(p)}" for f, a, p in tones)
+        return self.command("WAVE", axis, "MULTI", spec).get_float("start")
+
+    def arm(self, trigger_offset_s: float, exposure_s: float, count: int) -> tuple[int, int]:
+        """``ARM``; returns ``(first frame counter, count)``."""
+        r = self.command("ARM", float(trigger_offset_s), float(exposure_s), int(count))
+        return r.get_int("first"), r.get_int("count")
+
+    def pulse(self, trigger_offset_s: float, pulse_time_s: float, pulse_width_s: float, exposure_s: float,
+              count: int) -> tuple[int, int]:
+        """``PULSE``; returns ``(first frame counter, count)``."""
+        r = self.command("PULSE", float(trigger_offset_s), float(pulse_time_s), float(pulse_width_s), float(exposure_s), int(count))
+        return r.get_int("first"), r.get_int("count")
+
+    def __repr__(self) -> str:
+        return f"Controller({self.port!r}, timeout_s={self.timeout_s:g}, {'open' if self.is_open else 'closed'})"

@@ -1,0 +1,681 @@
+"""``torchblur emulator``: a separate process that behaves like the bench.
+
+It speaks the controller protocol (docs/protocol.md) on a pseudo-terminal (or, with
+``transport=socket``, on a loopback TCP port for pyserial's ``socket://``), simulates the
+mirror and the camera with :class:`~torchblur.rig.simulated.SimulatedRig` (the same config
+keys as the simulated rig: ``plant.*``, ``camera.*``, ``seed``), and serves the frames on a
+loopback TCP channel (:mod:`torchblur.hardware.frames` wire format). On start it prints one
+line of JSON, e.g.::
+
+    {"serial": "/dev/pts/4", "frames": "tcp://127.0.0.1:40123", "pid": 812, "protocol": 1, ...}
+
+then serves until killed.
+
+Time is simulated: the controller clock advances by the acquisitions' schedule, not by wall
+time, so a 1 Hz sweep runs as fast as the frames render. The waveform and the trigger
+share that clock: ``WAVE`` starts the command at the current clock time (from rest), each
+``ARM`` trigger falls at ``start + k / f + trigger_offset_s``, the first such time after the
+settling wait and once the camera is ready, exactly as :meth:`SimulatedRig.sine` schedules
+them. ``STOP`` puts the mirror back to rest at once (no decay is modelled).
+
+Fault injection (``fault.*``, counted in frames the camera has finished with, from the boot
+or, with ``fault.start=wave``, from the first ``WAVE`` command (the sweep); -1 = off):
+
+- ``fault.timeout_after=N``: the first ``fault.repeat`` commands received once N frames were
+  served get no reply (and are not executed);
+- ``fault.garbage_after=N``: the reply to the next ``fault.repeat`` commands is preceded by
+  garbage bytes (including a newline);
+- ``fault.reset_after=N``: after frame N the controller reboots (new boot id, frame counter
+  back to 0, waveform and laser off, the rest of the acquisition lost, STATUS says RESET);
+  with ``fault.repeat`` > 1 it reboots again after each of the next frames;
+- ``fault.drop_frame=N``: frames N .. N + repeat - 1 are never sent (their counters are used);
+- ``fault.stale_frame=N``: frames N .. N + repeat - 1 are replaced by a copy of the frame
+  sent before them;
+- ``fault.exit_after=N``: the process exits (code 3) right after frame N (a lost connection);
+- ``fault.hang_after=N``: after frame N the controller and the camera go silent (no replies,
+  no frames) until killed;
+- ``fault.disconnect_after=N``: after frame N the emulator closes the camera channel's
+  connection and, with ``transport=socket``, the serial connection (a cable pulled and put
+  back: the client may reconnect).
+
+Every fault is reported on stderr as ``emulator: fault: ...``.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import queue
+import secrets
+import select
+import socket
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..config import CameraConfig, PlantConfig
+from ..errors import ConfigError
+from .frames import CameraInfo, encode_message, frame_message
+from .protocol import (E_AXIS, E_BUSY, E_INTERNAL, E_LINE, E_RANGE, MAX_LINE, PROTOCOL_VERSION, ProtocolViolation, format_err,
+                       format_ok, parse_command)
+
+__all__ = ["FaultConfig", "EmulatorConfig", "load_emulator_config", "EmulatedDevice", "main"]
+
+GARBAGE = b"\xff\x00\x1b[7m\x8f garbage \x07\n\xfe\x81\x00"
+
+
+@dataclass(frozen=True)
+class FaultConfig:
+    timeout_after: int = -1
+    garbage_after: int = -1
+    reset_after: int = -1
+    drop_frame: int = -1
+    stale_frame: int = -1
+    exit_after: int = -1
+    hang_after: int = -1
+    disconnect_after: int = -1
+    repeat: int = 1
+    start: str = "boot"  # the fault clock counts frames from "boot", or from the first WAVE ("wave": the sweep)
+
+
+@dataclass(frozen=True)
+class EmulatorConfig:
+    plant: PlantConfig = field(default_factory=PlantConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    seed: int = 0
+    transport: str = "pty"  # "pty" (a pseudo-terminal) or "socket" (pyserial socket://)
+    serial_port: int = 0  # transport=socket: TCP port of the serial line (0 = any free port)
+    frames_port: int = 0  # TCP port of the camera channel (0 = any free port)
+    threads: int = 1  # torch threads for rendering
+    exit_with_parent: bool = False  # exit when the process that started the emulator ends (tests)
+    fault: FaultConfig = field(default_factory=FaultConfig)
+
+
+def load_emulator_config(path: str | None = None, overrides: list[str] | None = None) -> EmulatorConfig:
+    """Defaults, the YAML file (its identify-only sections ``sweep``, ``excitation``, ``fit``,
+    ``model``, ``rig`` are skipped, so one file serves both commands), then overrides.
+
+    Raises:
+        ConfigError: naming the key.
+    """
+    from ..config import _num, load_dataclass, validate_camera, validate_plant
+
+    cfg = load_dataclass(EmulatorConfig, path, overrides, ignore_file_sections=("sweep", "excitation", "fit", "model", "rig"))
+    validate_plant(cfg.plant)
+    validate_camera(cfg.camera)
+    _num(cfg.seed, "seed", integer=True, low=0)
+    if cfg.transport not in ("pty", "socket"):
+        raise ConfigError(f"transport: expected one of ('pty', 'socket'), got {cfg.transport!r}")
+    for k in ("serial_port", "frames_port"):
+        _num(getattr(cfg, k), k, integer=True, low=0, high=65535)
+    _num(cfg.threads, "threads", integer=True, low=1)
+    if not isinstance(cfg.exit_with_parent, bool):
+        raise ConfigError(f"exit_with_parent: expected true or false, got {cfg.exit_with_parent!r}")
+    for k in ("timeout_after", "garbage_after", "reset_after", "drop_frame", "stale_frame", "exit_after", "hang_after",
+              "disconnect_after"):
+        _num(getattr(cfg.fault, k), f"fault.{k}", integer=True, low=-1)
+    _num(cfg.fault.repeat, "fault.repeat", integer=True, low=1)
+    if cfg.fault.start not in ("boot", "wave"):
+        raise ConfigError(f"fault.start: expected one of ('boot', 'wave'), got {cfg.fault.start!r}")
+    return cfg
+
+
+def _log(msg: str) -> None:
+    print(f"emulator: {msg}", file=sys.stderr, flush=True)
+
+
+def _as_wire_array(frame: np.ndarray) -> np.ndarray:
+    """uint16 when the frame holds integers in range (a real camera's raw frame), else float64."""
+    if frame.size and np.all(frame >= 0) and np.all(frame <= 65535) and np.all(frame == np.round(frame)):
+        return frame.astype(np.uint16)
+    return frame.astype(np.float64)
+
+
+@dataclass
+class _Job:
+    epoch: int
+    kind: str  # dark | still | sine | multi | pulse
+    first: int
+    count: int
+    exposure_s: float
+    base_s: float  # clock time the schedule is relative to
+    rel_trig: list  # trigger times relative to base_s
+    args: dict
+
+
+class FrameServer:
+    """The camera channel: one client at a time on a loopback TCP port (a new client replaces
+    the old one); a hello message on connect, then frame messages."""
+
+    def __init__(self, info: CameraInfo, port: int = 0):
+        self.info = info
+        self._srv = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self._srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self._srv.bind(("127.0.0.1", port))
+        self._srv.listen(4)
+        self.port = self._srv.getsockname()[1]
+        self._conn: socket.socket | None = None
+        self._lock = threading.Lock()
+        threading.Thread(target=self._accept_loop, name="frames-accept", daemon=True).start()
+
+    @property
+    def url(self) -> str:
+        return f"tcp://127.0.0.1:{self.port}"
+
+    def _accept_loop(self) -> None:
+        while True:
+            try:
+                conn, _ = self._srv.accept()
+            except OSError:
+                return
+            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            with self._lock:
+                if self._conn is not None:
+                    try:
+                        self._conn.close()
+                    except OSError:
+                        pass
+                self._conn = conn
+                try:
+                    conn.sendall(encode_message({"type": "hello", "camera": self.info.to_dict(), "protocol": PROTOCOL_VERSION}))
+                except OSError:
+                    self._conn = None
+
+    def disconnect(self) -> None:
+        """Close the current client's connection (it may connect again)."""
+        with self._lock:
+            if self._conn is not None:
+                try:
+                    self._conn.shutdown(socket.SHUT_RDWR)
+                    self._conn.close()
+                except OSError:
+                    pass
+                self._conn = None
+
+    def send(self, message: bytes) -> bool:
+        with self._lock:
+            if self._conn is None:
+                return False
+            try:
+                self._conn.sendall(message)
+                return True
+            except OSError:
+                try:
+                    self._conn.close()
+                except OSError:
+                    pass
+                self._conn = None
+                return False
+
+
+class EmulatedDevice:
+    """The controller + camera state machine (transport independent).
+
+    :meth:`handle` takes one command line and returns the reply bytes (None: no reply, a
+    timeout fault). Acquisitions are scheduled on the simulated clock at once (``ARM``
+    replies with the first frame counter) and rendered by a camera thread that sends the
+    frames through ``send(message_bytes)``.
+    """
+
+    def __init__(self, cfg: EmulatorConfig, send, *, firmware: str = "0.1.0", name: str = "torchblur-emulator"):
+        from ..config import IdentifyConfig
+        from ..identify import build_simulated_rig
+
+        self.cfg = cfg
+        self.rig = build_simulated_rig(IdentifyConfig(plant=cfg.plant, camera=cfg.camera, seed=cfg.seed))
+        self._settling_s = self.rig.plant.settling_time_s()
+        self._send = send
+        self.firmware, self.name = firmware, name
+        self.lock = threading.RLock()
+        self.jobs: queue.Queue = queue.Queue()
+        f = cfg.fault
+        self._timeouts_left = f.repeat
+        self._garbage_left = f.repeat
+        self._resets_left = f.repeat
+        self._reset_at = f.reset_after
+        self._disconnects_left = f.repeat
+        self.on_disconnect = None  # set by the transport: close the client connections
+        self.hung = False
+        self.served = 0  # frames the camera finished with (sent or dropped)
+        self._fault_base = 0 if f.start == "boot" else None  # the fault clock is served - base
+        self._last_msg: bytes | None = None
+        self.epoch = 0
+        self._boot_state()
+        threading.Thread(target=self._camera_loop, name="camera", daemon=True).start()
+
+    # ------------------------------------------------------------------ state
+
+    def _boot_state(self) -> None:
+        self.boot = secrets.token_hex(4)
+        self.counter = 0
+        self.clock = 0.0
+        self.cam_ready = 0.0
+        self.wave: dict | None = None
+        self.power = 0.0
+        self.settle: float | None = None
+        self.pending = 0
+        self.reset_flag = False
+
+    def _reboot(self, why: str) -> None:
+        with self.lock:
+            self.epoch += 1
+            self._boot_state()
+            self.reset_flag = True
+        _log(f"fault: controller reset ({why}); new boot {self.boot}")
+
+    def fault_clock(self, served: int | None = None) -> float:
+        """Frames served since the fault clock started (-inf before it starts)."""
+        if self._fault_base is None:
+            return -math.inf
+        return (self.served if served is None else served) - self._fault_base
+
+    @property
+    def camera_info(self) -> CameraInfo:
+        r = self.rig
+        return CameraInfo(frame_shape=tuple(r.frame_shape), frame_rate_hz=r.frame_rate_hz, max_exposure_s=r.max_exposure_s,
+                          readout_s=r.readout_s, name=self.name)
+
+    def _state(self) -> str:
+        if self.reset_flag:
+            return "RESET"
+        if self.pending > 0:
+            return "ARMED"
+        return "RUNNING" if self.wave is not None else "IDLE"
+
+    # ------------------------------------------------------------------ commands
+
+    def handle(self, raw: bytes) -> bytes | None:
+        """The reply to one line (None: no reply)."""
+        if self.hung:
+            return None
+        f = self.cfg.fault
+        if f.timeout_after >= 0 and self.fault_clock() >= f.timeout_after and self._timeouts_left > 0:
+            self._timeouts_left -= 1
+            _log(f"fault: no reply to {raw.strip()[:40]!r} (timeout_after={f.timeout_after}, served {self.served})")
+            return None
+        try:
+            cmd = parse_command(raw)
+            reply = self._execute(cmd)
+        except ProtocolViolation as v:
+            reply = v.reply
+        except Exception as exc:  # a bug must not kill the device; say so on the line
+            _log(f"internal error on {raw!r}: {exc!r}")
+            reply = format_err(E_INTERNAL, f"{type(exc).__name__}: {exc}")
+        out = reply.encode("ascii")
+        if f.garbage_after >= 0 and self.fault_clock() >= f.garbage_after and self._garbage_left > 0:
+            self._garbage_left -= 1
+            _log(f"fault: garbage before the reply to {raw.strip()[:40]!r} (served {self.served})")
+            out = GARBAGE + out
+        return out
+
+    def _execute(self, cmd) -> str:
+        w, a = cmd.word, cmd.args
+        with self.lock:
+            if w == "ID?":
+                return format_ok("ID", name=self.name, firmware=self.firmware, protocol=PROTOCOL_VERSION, axes="x")
+            if w == "STATUS?":
+                return format_ok("STATUS", state=self._state(), frames=self.counter, pending=self.pending, clock=float(self.clock),
+                                 boot=self.boot)
+            if w == "PING":
+                return format_ok("PING", token=a[0])
+            if w == "RESET":
+                self.epoch += 1
+                self._boot_state()
+                return format_ok("RESET", boot=self.boot)
+            if w == "STOP":
+                self.epoch += 1  # aborts frames not yet sent
+                self.pending = 0
+                self.wave = None
+                self.reset_flag = False
+                return format_ok("STOP")
+            if w == "POWER":
+                self.power = a[0]
+                return format_ok("POWER", p=a[0])
+            if w == "SETTLE":
+                self.settle = a[0]
+                return format_ok("SETTLE", s="AUTO" if a[0] is None else a[0])
+            if w == "WAVE":
+                return self._wave(a)
+            if w == "ARM":
+                return self._arm(*a)
+            if w == "PULSE":
+                return self._pulse(*a)
+        raise ProtocolViolation(E_INTERNAL, f"no handler for {w}")  # pragma: no cover - parse_command knows the words
+
+    def _check_exposure(self, te: float) -> None:
+        if te > self.rig.max_exposure_s:
+            raise ProtocolViolation(E_RANGE, f"exposure_s: at most {self.rig.max_exposure_s!r} s on this camera, got {te!r}")
+
+    def _wave(self, a) -> str:
+        axis, mode = a[0], a[1]
+        if axis != "x":
+            raise ProtocolViolation(E_AXIS, f"this device drives axis x only, got {axis}")
+        if self.pending:
+            raise ProtocolViolation(E_BUSY, f"{self.pending} frame(s) pending; STOP first")
+        self.reset_flag = False
+        if self._fault_base is None:
+            self._fault_base = self.served
+        if mode == "SINE":
+            self.wave = {"mode": "SINE", "freq_hz": a[2], "amplitude": a[3], "start": self.clock, "period": 1.0 / a[2]}
+            return format_ok("WAVE", axis=axis, mode=mode, start=float(self.clock))
+        tones = a[2]
+        self.wave = {"mode": "MULTI", "tones": tones, "start": self.clock, "period": 1.0 / tones[0][0]}
+        return format_ok("WAVE", axis=axis, mode=mode, tones=len(tones), start=float(self.clock))
+
+    def _arm(self, off: float, te: float, n: int) -> str:
+        self._check_exposure(te)
+        if self.pending:
+            raise ProtocolViolation(E_BUSY, f"{self.pending} frame(s) of the last acquisition pending")
+        cycle = self.rig._cycle_s(te)
+        self.reset_flag = False
+        if self.wave is None:
+            if off < 0:
+                raise ProtocolViolation(E_RANGE, "trigger_offset_s: must be >= 0 without a waveform")
+            base = max(self.clock, self.cam_ready) + off
+            rel = [i * cycle for i in range(n)]
+            kind = "dark" if self.power == 0 else "still"
+            args = {"power": self.power}
+        else:
+            wv = self.wave
+            period = wv["period"]
+            settle = self.settle if self.settle is not None else math.ceil(self._settling_s / period - 1e-9) * period
+            ready = max(settle, self.cam_ready - wv["start"])
+            ready0 = ready
+            rel = []
+            for _ in range(n):  # SimulatedRig.sine's schedule, step for step
+                k = math.ceil((ready - off) / period - 1e-9)
+                t = k * period + off
+                rel.append(t)
+                ready = t + cycle
+            base = wv["start"]
+            kind = "sine" if wv["mode"] == "SINE" else "multi"
+            args = {"wave": dict(wv), "settle_s": ready0, "offset": off, "power": self.power}
+        return self._schedule(kind, te, n, base, rel, cycle, args, "ARM")
+
+    def _pulse(self, off: float, p0: float, width: float, te: float, n: int) -> str:
+        self._check_exposure(te)
+        if self.pending:
+            raise ProtocolViolation(E_BUSY, f"{self.pending} frame(s) of the last acquisition pending")
+        if self.wave is not None:
+            raise ProtocolViolation(E_BUSY, "PULSE needs the mirror still: STOP the waveform first")
+        self.reset_flag = False
+        cycle = self.rig._cycle_s(te)
+        base = max(self.clock, self.cam_ready)
+        rel, ready = [], 0.0
+        for _ in range(n):  # SimulatedRig.pulse's schedule
+            ref = ready - min(off, p0, 0.0)
+            rel.append(ref + off)
+            ready = max(ref + off + cycle, ref + p0 + width)
+        args = {"offset": off, "pulse_time_s": p0, "pulse_width_s": width, "power": self.power, "end": ready}
+        return self._schedule("pulse", te, n, base, rel, cycle, args, "PULSE")
+
+    def _schedule(self, kind, te, n, base, rel, cycle, args, word) -> str:
+        first = self.counter
+        self.counter += n
+        self.pending = n
+        end = base + (args["end"] if kind == "pulse" else rel[-1] + cycle)
+        self.cam_ready = end
+        self.clock = max(self.clock, end)
+        self.jobs.put(_Job(self.epoch, kind, first, n, te, base, rel, args))
+        return format_ok(word, first=first, count=n)
+
+    # ------------------------------------------------------------------ camera
+
+    def _render(self, job: _Job):
+        """Frames ``[n, H, W]`` (ADU) and their trigger times relative to the job's base."""
+        r = self.rig
+        te, n, a = job.exposure_s, job.count, job.args
+        if job.kind == "dark":
+            cap = r.dark(n=n, exposure_s=te)
+        elif job.kind == "still":
+            cap = r.still(n=n, exposure_s=te, power=a["power"])
+        elif job.kind == "pulse":
+            cap = r.pulse(exposure_s=te, trigger_offset_s=a["offset"], pulse_time_s=a["pulse_time_s"],
+                          pulse_width_s=a["pulse_width_s"], n=n, power=a["power"])
+        elif job.kind == "sine":
+            wv = a["wave"]
+            cap = r.sine(freq_hz=wv["freq_hz"], amplitude=wv["amplitude"], exposures_s=[te], trigger_offset_s=a["offset"],
+                         n_repeats=n, settle_s=a["settle_s"], power=a["power"])
+        else:
+            return self._render_multi(job), job.rel_trig
+        trig = cap.trigger_time_s.reshape(-1).tolist()
+        if not np.allclose(trig, job.rel_trig, rtol=0, atol=1e-9):
+            _log(f"warning: schedule mismatch for {job.kind}: {trig[:3]} vs {job.rel_trig[:3]}")
+        return cap.frames.reshape((n,) + tuple(r.frame_shape)).numpy(), trig
+
+    def _render_multi(self, job: _Job) -> np.ndarray:
+        """A MULTI waveform in steady state (the settle wait is assumed to cover transients):
+        each tone through the plant's frequency response, rendered by the rig's renderer."""
+        import torch
+
+        from ..psf import GaussianPSF
+        from ..timing import ExposureWindow
+        from ..trajectory import Multisine
+
+        r = self.rig
+        tones = job.args["wave"]["tones"]
+        f = np.array([t[0] for t in tones])
+        h = np.atleast_1d(r.plant.frequency_response(2 * np.pi * f))
+        amp = torch.tensor([t[1] for t in tones], dtype=torch.float64) * torch.as_tensor(np.abs(h))
+        ph = torch.tensor([t[2] for t in tones], dtype=torch.float64) + torch.as_tensor(np.angle(h))
+        d = r.direction
+        traj = Multisine(amp[:, None] * d, ph[:, None].expand(-1, 2), torch.as_tensor(2 * np.pi * f))
+        trig = torch.tensor(job.rel_trig, dtype=torch.float64)
+        win = r._actual_starts(trig, torch.full_like(trig, job.exposure_s))
+        p = job.args["power"]
+        psf = GaussianPSF(r.psf.center, r.psf.cov, r.psf.amplitude * p)
+        expected = r._render(traj, psf, ExposureWindow(win.start, win.duration))
+        return r._expose(expected).numpy()
+
+    def _camera_loop(self) -> None:
+        while True:
+            job = self.jobs.get()
+            if job.epoch != self.epoch or self.hung:
+                continue
+            try:
+                frames, trig = self._render(job)
+            except Exception as exc:
+                _log(f"internal error rendering {job.kind}: {exc!r}")
+                with self.lock:
+                    if job.epoch == self.epoch:
+                        self.pending = 0
+                continue
+            off = job.args.get("offset", 0.0)
+            if job.kind in ("sine", "multi"):
+                period = job.args["wave"]["period"]
+                off = off - math.floor(off / period) * period
+            for i in range(job.count):
+                if not self._serve(job, i, frames[i], trig[i], off):
+                    break
+
+    def _serve(self, job: _Job, i: int, frame: np.ndarray, trig: float, off: float) -> bool:
+        f = self.cfg.fault
+        with self.lock:
+            if job.epoch != self.epoch or self.hung:
+                return False
+            idx = self.fault_clock()
+            self.served += 1
+            self.pending -= 1
+            counter = job.first + i
+            msg = frame_message(_as_wire_array(frame), counter=counter, timestamp_s=job.base_s + trig, trigger_time_s=trig,
+                                trigger_offset_s=off, exposure_s=job.exposure_s, boot=self.boot, kind=job.kind)
+        send = msg
+        if f.drop_frame >= 0 and f.drop_frame <= idx < f.drop_frame + f.repeat:
+            _log(f"fault: dropped frame {counter} (fault clock {idx})")
+            send = None
+        elif f.stale_frame >= 0 and f.stale_frame <= idx < f.stale_frame + f.repeat:
+            _log(f"fault: stale frame instead of frame {counter} (fault clock {idx})")
+            send = self._last_msg
+        if send is not None:
+            self._send(send)
+        self._last_msg = msg
+        n_served = idx + 1  # on the fault clock
+        if f.exit_after >= 0 and n_served >= f.exit_after:
+            _log(f"fault: exiting after {n_served} frames (exit_after={f.exit_after})")
+            os._exit(3)
+        if f.hang_after >= 0 and n_served >= f.hang_after:
+            self.hung = True
+            _log(f"fault: hanging after {n_served} frames (hang_after={f.hang_after})")
+            return False
+        if f.disconnect_after >= 0 and n_served >= f.disconnect_after and self._disconnects_left > 0:
+            self._disconnects_left -= 1
+            _log(f"fault: closing the client connections after {n_served} frames (disconnect_after={f.disconnect_after})")
+            if self.on_disconnect is not None:
+                self.on_disconnect()
+        if self._reset_at >= 0 and n_served >= self._reset_at and self._resets_left > 0:
+            self._resets_left -= 1
+            self._reset_at = n_served + 1
+            self._reboot(f"reset_after={f.reset_after}, after {n_served} frames")
+            return False
+        return True
+
+
+# ---------------------------------------------------------------------- transports
+
+
+class _LineBuffer:
+    """Splits a byte stream into lines; an over-long line becomes one ERR 7 reply."""
+
+    def __init__(self):
+        self.buf = b""
+        self.overflow = False
+
+    def feed(self, data: bytes):
+        self.buf += data
+        out = []
+        while True:
+            i = self.buf.find(b"\n")
+            if i < 0:
+                if len(self.buf) > MAX_LINE + 1:
+                    self.overflow = True
+                    self.buf = b""
+                return out
+            line, self.buf = self.buf[: i + 1], self.buf[i + 1:]
+            if self.overflow:
+                self.overflow = False
+                out.append(None)  # the tail of an over-long line
+            else:
+                out.append(line)
+
+
+def _reply(device: EmulatedDevice, line: bytes | None) -> bytes | None:
+    if line is None:
+        return None if device.hung else format_err(E_LINE, f"line longer than {MAX_LINE} bytes").encode()
+    return device.handle(line)
+
+
+def serve_pty(device: EmulatedDevice, master: int) -> None:
+    """Serve the protocol on a pseudo-terminal master until killed."""
+    lines = _LineBuffer()
+    os.set_blocking(master, False)
+    while True:
+        r, _, _ = select.select([master], [], [], 1.0)
+        if not r:
+            continue
+        try:
+            data = os.read(master, 4096)
+        except BlockingIOError:
+            continue
+        except OSError:  # no client has the slave open right now
+            time.sleep(0.05)
+            continue
+        for line in lines.feed(data):
+            out = _reply(device, line)
+            if out:
+                _write_all(master, out)
+
+
+def _write_all(fd: int, data: bytes) -> None:
+    t_end = time.monotonic() + 1.0
+    while data and time.monotonic() < t_end:
+        try:
+            n = os.write(fd, data)
+            data = data[n:]
+        except BlockingIOError:
+            select.select([], [fd], [], 0.05)
+        except OSError:
+            return  # nobody reading: the bytes are lost, as on a real line
+
+
+def serve_socket(device: EmulatedDevice, srv: socket.socket, current: dict | None = None) -> None:
+    """Serve the protocol on a TCP listening socket (pyserial ``socket://``), one client at a time;
+    ``current["conn"]`` is the client's connection (for the disconnect fault)."""
+    current = {} if current is None else current
+    while True:
+        conn, _ = srv.accept()
+        current["conn"] = conn
+        lines = _LineBuffer()
+        with conn:
+            while True:
+                try:
+                    data = conn.recv(4096)
+                except OSError:
+                    break
+                if not data:
+                    break
+                for line in lines.feed(data):
+                    out = _reply(device, line)
+                    if out:
+                        try:
+                            conn.sendall(out)
+                        except OSError:
+                            break
+
+
+def main(argv: list[str] | None = None, *, config_path: str | None = None) -> int:
+    """Run the emulator with ``key=value`` overrides; prints the JSON start line."""
+    import tty
+
+    import torch
+
+    from .. import __version__
+
+    cfg = load_emulator_config(config_path, list(argv or []))
+    torch.set_num_threads(int(cfg.threads))
+    if cfg.exit_with_parent:
+        parent = os.getppid()
+
+        def watch():
+            while os.getppid() == parent:
+                time.sleep(0.5)
+            os._exit(0)
+
+        threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+    holder: dict = {}
+    device = EmulatedDevice(cfg, lambda msg: holder["frames"].send(msg), firmware=__version__)
+    holder["frames"] = FrameServer(device.camera_info, cfg.frames_port)
+    serial_conn: dict = {}
+
+    def disconnect():
+        holder["frames"].disconnect()
+        conn = serial_conn.get("conn")
+        if conn is not None:
+            try:
+                conn.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+
+    device.on_disconnect = disconnect
+    info = {"frames": holder["frames"].url, "pid": os.getpid(), "protocol": PROTOCOL_VERSION, "transport": cfg.transport,
+            "name": device.name, "firmware": __version__, "boot": device.boot, "seed": int(cfg.seed)}
+    if cfg.transport == "pty":
+        master, slave = os.openpty()
+        tty.setraw(slave)  # no echo, no CRLF translation
+        info["serial"] = os.ttyname(slave)
+        print(json.dumps(info), flush=True)
+        try:
+            serve_pty(device, master)  # keeps `slave` open so the master never sees EIO
+        finally:
+            os.close(slave)
+    else:
+        srv = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        srv.bind(("127.0.0.1", int(cfg.serial_port)))
+        srv.listen(1)
+        info["serial"] = f"socket://127.0.0.1:{srv.getsockname()[1]}"
+        print(json.dumps(info), flush=True)
+        serve_socket(device, srv, serial_conn)
+    return 0

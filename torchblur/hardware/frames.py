@@ -1,0 +1,304 @@
+"""Where frames come from: the :class:`FrameSource` interface, its wire format, and the
+emulator's camera channel (:class:`EmulatorFrames`).
+
+A frame source delivers :class:`Frame` objects: a ``[H, W]`` tensor in ADU with the camera's
+metadata (frame counter, timestamp, exposure). The rig (:class:`~torchblur.hardware.
+serial_rig.SerialRig`) checks every frame against what the controller said it triggered.
+
+Wire format of the emulator's camera channel (TCP, loopback): a stream of messages, each
+
+    b"TBF1" | u32 header_len | u32 payload_len | header (UTF-8 JSON) | payload
+
+(unsigned 32-bit big-endian lengths). The first message after connecting is
+``{"type": "hello", "camera": {...}, "protocol": 1}`` with no payload; then one
+``{"type": "frame", "counter", "timestamp_s", "trigger_time_s", "trigger_offset_s",
+"exposure_s", "shape": [H, W], "dtype", "boot", "kind"}`` message per frame, its payload the
+pixels in C order, little-endian.
+"""
+from __future__ import annotations
+
+import json
+import socket
+import struct
+import time
+from abc import ABC, abstractmethod
+from dataclasses import asdict, dataclass, field
+from urllib.parse import urlparse
+
+import numpy as np
+import torch
+
+from .errors import ConnectionLost, FrameTimeout, GarbageReply
+
+__all__ = ["CameraInfo", "Frame", "FrameSource", "EmulatorFrames", "encode_message", "WireDecoder", "DTYPES"]
+
+MAGIC = b"TBF1"
+_HEAD = struct.Struct(">4sII")
+MAX_HEADER = 1 << 16
+MAX_PAYLOAD = 1 << 28
+DTYPES = {"uint8": "<u1", "uint16": "<u2", "uint32": "<u4", "float32": "<f4", "float64": "<f8"}
+
+
+@dataclass(frozen=True)
+class CameraInfo:
+    """What the pipeline needs to know about the camera: ``frame_shape`` (H, W) px,
+    ``frame_rate_hz`` (highest), ``max_exposure_s``, ``readout_s`` (Tr), ``name``."""
+
+    frame_shape: tuple
+    frame_rate_hz: float
+    max_exposure_s: float
+    readout_s: float
+    name: str = ""
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["frame_shape"] = list(self.frame_shape)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "CameraInfo":
+        return cls(frame_shape=tuple(int(v) for v in d["frame_shape"]), frame_rate_hz=float(d["frame_rate_hz"]),
+                   max_exposure_s=float(d["max_exposure_s"]), readout_s=float(d["readout_s"]), name=str(d.get("name", "")))
+
+
+@dataclass
+class Frame:
+    """One camera frame.
+
+    Attributes:
+        data: ``[H, W]`` float64 tensor in ADU; ``data[i, j]`` = row i, column j (x = j, y = i).
+        counter: frame counter (+1 per trigger since the controller's boot).
+        timestamp_s: the controller clock at the frame's trigger (s since its boot).
+        exposure_s: exposure time the camera used (s).
+        trigger_time_s: trigger time on the command's own time base (s): since the waveform
+            start for a sine, since the acquisition start otherwise; NaN if unknown.
+        trigger_offset_s: trigger delay after its reference event (s); NaN if unknown.
+        dtype: the pixel type delivered (``"uint16"``, ...); recordings keep it.
+        boot: the controller boot id the frame belongs to (None if the source cannot tell).
+        meta: anything else the source reports.
+    """
+
+    data: torch.Tensor
+    counter: int
+    timestamp_s: float
+    exposure_s: float
+    trigger_time_s: float = float("nan")
+    trigger_offset_s: float = float("nan")
+    dtype: str = "float64"
+    boot: str | None = None
+    meta: dict = field(default_factory=dict)
+
+
+class FrameSource(ABC):
+    """A camera as the rig sees it. Implement :attr:`info`, :meth:`read` and, if needed,
+    :meth:`prepare`, :meth:`bind`, :meth:`drain`, :meth:`reopen`, :meth:`close`.
+
+    The rig calls, per acquisition: ``prepare(exposure_s, count)`` (before the controller
+    fires the triggers), then the controller's ``ARM``/``PULSE`` (which returns the first
+    frame counter), ``bind(first, count)``, then ``read(timeout_s)`` once per frame. A frame's
+    ``counter`` must be the controller's trigger count (see
+    :class:`~torchblur.hardware.camera_sdk.SDKCamera` for a camera whose counter differs).
+    """
+
+    @property
+    @abstractmethod
+    def info(self) -> CameraInfo:
+        """The camera's :class:`CameraInfo`."""
+
+    def prepare(self, exposure_s: float, count: int) -> None:
+        """Get ready for ``count`` externally triggered frames of ``exposure_s``."""
+
+    def bind(self, first_counter: int, count: int) -> None:
+        """The controller will trigger frames ``first_counter .. first_counter + count - 1``."""
+
+    @abstractmethod
+    def read(self, timeout_s: float) -> Frame:
+        """The next frame. Raises :class:`~torchblur.hardware.errors.FrameTimeout` if none comes
+        within ``timeout_s``, :class:`~torchblur.hardware.errors.ConnectionLost` if the camera
+        is gone."""
+
+    def drain(self, quiet_s: float = 0.05) -> int:
+        """Discard frames already delivered; returns how many."""
+        n = 0
+        while True:
+            try:
+                self.read(quiet_s)
+            except FrameTimeout:
+                return n
+            n += 1
+
+    def reopen(self) -> None:
+        """Reconnect after :class:`~torchblur.hardware.errors.ConnectionLost` (default: cannot)."""
+        raise ConnectionLost(f"{type(self).__name__} cannot reconnect")
+
+    def close(self) -> None:
+        """Release the camera."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+# ---------------------------------------------------------------------- wire format
+
+
+def encode_message(header: dict, payload: bytes = b"") -> bytes:
+    """One message of the camera channel's wire format."""
+    h = json.dumps(header, separators=(",", ":")).encode()
+    return _HEAD.pack(MAGIC, len(h), len(payload)) + h + payload
+
+
+def frame_message(frame_np: np.ndarray, **header) -> bytes:
+    """A ``frame`` message for a 2-D array (its dtype one of :data:`DTYPES`)."""
+    kind = np.dtype(frame_np.dtype).name
+    if kind not in DTYPES:
+        raise ValueError(f"frame dtype {kind} is not one of {sorted(DTYPES)}")
+    arr = np.ascontiguousarray(frame_np, dtype=DTYPES[kind])
+    hdr = {"type": "frame", **header, "shape": list(arr.shape), "dtype": kind}
+    return encode_message(hdr, arr.tobytes())
+
+
+class WireDecoder:
+    """Incremental decoder: :meth:`feed` bytes, :meth:`next` returns ``(header, payload)`` or
+    None. A bad magic or an impossible length raises :class:`GarbageReply`."""
+
+    def __init__(self):
+        self._buf = bytearray()
+
+    def feed(self, data: bytes) -> None:
+        self._buf += data
+
+    def next(self):
+        if len(self._buf) < _HEAD.size:
+            return None
+        magic, hl, pl = _HEAD.unpack_from(self._buf)
+        if magic != MAGIC or hl > MAX_HEADER or pl > MAX_PAYLOAD:
+            raise GarbageReply(f"camera channel out of step: bad message head {bytes(self._buf[:12])!r}")
+        end = _HEAD.size + hl + pl
+        if len(self._buf) < end:
+            return None
+        try:
+            header = json.loads(bytes(self._buf[_HEAD.size:_HEAD.size + hl]))
+        except ValueError as exc:
+            raise GarbageReply("camera channel: a message header is not JSON") from exc
+        payload = bytes(self._buf[_HEAD.size + hl:end])
+        del self._buf[:end]
+        return header, payload
+
+
+def decode_frame(header: dict, payload: bytes) -> Frame:
+    """A :class:`Frame` from a ``frame`` message; raises :class:`GarbageReply` if the payload
+    does not match the header's shape and dtype."""
+    try:
+        dtype = DTYPES[header["dtype"]]
+        shape = tuple(int(v) for v in header["shape"])
+        arr = np.frombuffer(payload, dtype=dtype)
+        arr = arr.reshape(shape)
+    except (KeyError, ValueError, TypeError) as exc:
+        raise GarbageReply(f"camera channel: a frame payload does not match its header {header}") from exc
+    return Frame(data=torch.from_numpy(arr.astype(np.float64)), counter=int(header["counter"]),
+                 timestamp_s=float(header.get("timestamp_s", float("nan"))), exposure_s=float(header["exposure_s"]),
+                 trigger_time_s=float(header.get("trigger_time_s", float("nan"))),
+                 trigger_offset_s=float(header.get("trigger_offset_s", float("nan"))), dtype=header["dtype"],
+                 boot=header.get("boot"), meta={k: v for k, v in header.items() if k in ("kind",)})
+
+
+# ---------------------------------------------------------------------- emulator channel
+
+
+def parse_tcp_url(url: str) -> tuple[str, int]:
+    """``tcp://host:port`` -> ``(host, port)``; ValueError otherwise."""
+    u = urlparse(url)
+    if u.scheme != "tcp" or not u.hostname or u.port is None:
+        raise ValueError(f"expected tcp://HOST:PORT, got {url!r}")
+    return u.hostname, int(u.port)
+
+
+class EmulatorFrames(FrameSource):
+    """The emulator's camera: frames read from its loopback TCP channel.
+
+    Args:
+        url: ``tcp://127.0.0.1:PORT`` (the ``frames`` field of the emulator's start line).
+        connect_timeout_s: time to connect and receive the hello message.
+    """
+
+    def __init__(self, url: str, *, connect_timeout_s: float = 5.0):
+        self.url = url
+        self._addr = parse_tcp_url(url)
+        self.connect_timeout_s = float(connect_timeout_s)
+        self._sock: socket.socket | None = None
+        self._dec = WireDecoder()
+        self._info: CameraInfo | None = None
+        self.open()
+
+    def open(self) -> None:
+        self._dec = WireDecoder()
+        try:
+            self._sock = socket.create_connection(self._addr, timeout=self.connect_timeout_s)
+        except OSError as exc:
+            self._sock = None
+            raise ConnectionLost(f"cannot connect to the camera channel {self.url}: {exc}") from exc
+        self._sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        hello = self._message(self.connect_timeout_s)
+        if hello is None or hello[0].get("type") != "hello":
+            raise GarbageReply(f"the camera channel {self.url} did not greet with a hello message")
+        self._info = CameraInfo.from_dict(hello[0]["camera"])
+
+    @property
+    def info(self) -> CameraInfo:
+        return self._info
+
+    def _message(self, timeout_s: float):
+        if self._sock is None:
+            raise ConnectionLost(f"the camera channel {self.url} is closed")
+        t_end = time.monotonic() + max(0.0, timeout_s)
+        while True:
+            msg = self._dec.next()
+            if msg is not None:
+                return msg
+            left = t_end - time.monotonic()
+            if left <= 0:
+                return None
+            self._sock.settimeout(left)
+            try:
+                data = self._sock.recv(1 << 16)
+            except socket.timeout:
+                return None
+            except OSError as exc:
+                raise ConnectionLost(f"the camera channel {self.url} failed: {exc}") from exc
+            if not data:
+                raise ConnectionLost(f"the camera channel {self.url} was closed by the camera")
+            self._dec.feed(data)
+
+    def read(self, timeout_s: float) -> Frame:
+        while True:
+            msg = self._message(timeout_s)
+            if msg is None:
+                raise FrameTimeout(f"no frame within {timeout_s:g} s on {self.url}")
+            header, payload = msg
+            if header.get("type") == "frame":
+                return decode_frame(header, payload)
+            # other message types (future extensions) are skipped
+
+    def drain(self, quiet_s: float = 0.05) -> int:
+        n = 0
+        while self._message(quiet_s) is not None:
+            n += 1
+        return n
+
+    def reopen(self) -> None:
+        self.close()
+        self.open()
+
+    def close(self) -> None:
+        if self._sock is not None:
+            try:
+                self._sock.close()
+            except OSError:
+                pass
+        self._sock = None
+
+    def __repr__(self) -> str:
+        return f"EmulatorFrames({self.url!r})"

@@ -1,0 +1,442 @@
+"""A :class:`~torchblur.rig.base.Rig` on a real (or emulated) bench: a controller on a serial
+line (:class:`~torchblur.hardware.controller.Controller`) and a camera
+(:class:`~torchblur.hardware.frames.FrameSource`).
+
+Every rig call is one transaction: configure the controller (``STOP``, ``POWER``,
+``SETTLE``, ``WAVE``), fire the triggers (``ARM``/``PULSE``, whose reply says the frame counter
+of the first frame), read exactly those frames, ``STOP``. Each frame is checked: its counter
+must be the next one expected (a jump forward is a dropped frame, a repeat a stale frame),
+its exposure and shape what was asked, its boot id the controller's. While waiting for
+frames the rig polls ``STATUS?`` so a controller reset is seen at once.
+
+A fault (reply timeout, garbage bytes, reset, dropped/stale frame, ``ERR 6 BUSY``) makes the
+rig resynchronise the link (drain, ``PING`` with a fresh token, ``STOP``, drain the camera)
+and redo the whole call, at most ``retries`` more times; a lost connection is reopened at
+most ``reconnects`` times. When that is not enough it raises
+:class:`~torchblur.hardware.errors.AcquisitionStopped`: nothing half-taken is ever returned.
+"""
+from __future__ import annotations
+
+import math
+import time
+from typing import Callable, Sequence
+
+import numpy as np
+import torch
+
+from ..errors import ParameterError, check_real_scalar
+from .controller import Controller
+from .errors import (AcquisitionStopped, ConnectionLost, DeviceError, DeviceReset, FrameGap, FrameMismatch, FrameTimeout,
+                     GarbageReply, HardwareError, StaleFrame)
+from .frames import CameraInfo, Frame, FrameSource
+
+__all__ = ["SerialRig", "open_frame_source"]
+
+_F64 = torch.float64
+
+
+def open_frame_source(spec: str) -> FrameSource:
+    """A frame source from its config string: ``tcp://HOST:PORT`` (the emulator's camera
+    channel) or ``package.module:ClassName`` (a :class:`~torchblur.hardware.camera_sdk.SDKCamera`
+    subclass, constructed without arguments)."""
+    from .frames import EmulatorFrames
+
+    if spec.startswith("tcp://"):
+        return EmulatorFrames(spec)
+    mod, sep, name = spec.partition(":")
+    if sep and mod and name and "/" not in spec:
+        import importlib
+
+        cls = getattr(importlib.import_module(mod), name)
+        return cls()
+    raise ValueError(f"rig.frames: expected tcp://HOST:PORT or package.module:ClassName, got {spec!r}")
+
+
+def _floats(value, name: str) -> list[float]:
+    if isinstance(value, torch.Tensor):
+        value = value.detach().cpu().numpy()
+    arr = np.asarray(value, dtype=np.float64).reshape(-1)
+    if arr.size == 0 or not np.isfinite(arr).all():
+        raise ParameterError(f"{name}: expected finite numbers, got {value!r}")
+    return [float(v) for v in arr]
+
+
+class SerialRig:
+    """The :class:`~torchblur.rig.base.Rig` protocol over a controller and a camera.
+
+    Args:
+        controller: an open :class:`Controller`.
+        frames: the camera, a :class:`FrameSource`.
+        axis: the controller axis the sine drives (``"x"`` or ``"y"``).
+        retries: how many times a failed call is redone (faults of the link or the frames).
+        reconnects: how many times a lost connection is reopened during the run.
+        poll_s: silence on the camera channel after which ``STATUS?`` is polled (s).
+        max_wait_s: the longest wait for one acquisition's frames while the controller says
+            they are still pending (s).
+        log: callable taking one message string (faults, retries); default: kept in
+            :attr:`events` only.
+    """
+
+    def __init__(self, controller: Controller, frames: FrameSource, *, axis: str = "x", retries: int = 2, reconnects: int = 1,
+                 poll_s: float = 0.25, max_wait_s: float = 60.0, log: Callable[[str], None] | None = None):
+        if axis not in ("x", "y"):
+            raise ParameterError(f"axis: expected 'x' or 'y', got {axis!r}")
+        if isinstance(retries, bool) or not isinstance(retries, int) or retries < 0:
+            raise ParameterError(f"retries: expected an integer >= 0, got {retries!r}")
+        self.controller = controller
+        self.frames = frames
+        self.axis = axis
+        self.retries = retries
+        self.reconnects = int(reconnects)
+        self.poll_s = check_real_scalar(poll_s, "poll_s", positive=True)
+        self.max_wait_s = check_real_scalar(max_wait_s, "max_wait_s", positive=True)
+        self.events: list[str] = []
+        self._log = log
+        self._boot: str | None = None
+        self._next: int = 0
+        self._dirty = False
+        self.device: dict = {}
+        self.stats = {"calls": 0, "retries": 0, "stale_discarded": 0, "resets": 0, "reconnects": 0}
+        try:
+            self._connect()
+        except HardwareError as exc:
+            raise AcquisitionStopped(f"cannot talk to the controller on {controller.port}: {exc}", exc) from exc
+
+    @classmethod
+    def open(cls, port: str, frames: str | FrameSource, *, timeout_s: float = 2.0, **kwargs) -> "SerialRig":
+        """Open the controller on ``port`` (device path or pyserial URL) and the camera
+        ``frames`` (a :class:`FrameSource` or its config string, see :func:`open_frame_source`)."""
+        try:
+            ctl = Controller(port, timeout_s=timeout_s)
+        except ConnectionLost as exc:
+            raise AcquisitionStopped(str(exc), exc) from exc
+        try:
+            src = open_frame_source(frames) if isinstance(frames, str) else frames
+        except HardwareError as exc:
+            ctl.close()
+            raise AcquisitionStopped(str(exc), exc) from exc
+        except BaseException:
+            ctl.close()
+            raise
+        try:
+            return cls(ctl, src, **kwargs)
+        except BaseException:
+            ctl.close()
+            src.close()
+            raise
+
+    # ------------------------------------------------------------------ Rig properties
+
+    @property
+    def info(self) -> CameraInfo:
+        return self.frames.info
+
+    @property
+    def frame_shape(self) -> tuple[int, int]:
+        return tuple(self.frames.info.frame_shape)
+
+    @property
+    def frame_rate_hz(self) -> float:
+        return self.frames.info.frame_rate_hz
+
+    @property
+    def max_exposure_s(self) -> float:
+        return self.frames.info.max_exposure_s
+
+    @property
+    def readout_s(self) -> float:
+        return self.frames.info.readout_s
+
+    def set_logger(self, log: Callable[[str], None] | None) -> None:
+        self._log = log
+
+    def close(self) -> None:
+        try:
+            if self.controller.is_open:
+                self.controller.stop()
+        except HardwareError:
+            pass
+        self.controller.close()
+        self.frames.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    # ------------------------------------------------------------------ link management
+
+    def _note(self, msg: str) -> None:
+        self.events.append(msg)
+        if self._log is not None:
+            self._log(msg)
+
+    def _connect(self) -> None:
+        c = self.controller
+        c.resync()
+        self.device = c.identify()
+        if self.axis not in self.device["axes"]:
+            raise DeviceError(5, "AXIS", f"the controller has axes {self.device['axes']}, not {self.axis}", "ID?")
+        c.stop()
+        st = c.status()
+        self._boot, self._next = st["boot"], st["frames"]
+        self.frames.drain()
+
+    def _recover(self) -> None:
+        """Back in step after a fault: resync, STOP, learn the counter and boot, drain frames."""
+        c = self.controller
+        c.resync()
+        c.stop()
+        st = c.status()
+        if st["boot"] != self._boot:
+            self.stats["resets"] += 1
+            self._note(f"controller reset detected (boot {self._boot} -> {st['boot']}, frame counter now {st['frames']})")
+            self._boot = st["boot"]
+        self._next = st["frames"]
+        n = self.frames.drain()
+        if n:
+            self.stats["stale_discarded"] += n
+            self._note(f"discarded {n} frame(s) left over from the failed attempt")
+
+    def _reconnect(self) -> None:
+        self.stats["reconnects"] += 1
+        self.controller.close()
+        self.frames.close()
+        time.sleep(0.2)
+        self.controller.reopen()
+        self.frames.reopen()
+        self._connect()
+
+    def _call(self, what: str, fn):
+        """Run one transaction with bounded retries; raise AcquisitionStopped when they fail."""
+        self.stats["calls"] += 1
+        reconnects_left = self.reconnects
+        last: BaseException | None = None
+        attempt = 0
+        while attempt <= self.retries:
+            try:
+                if self._dirty:
+                    self._recover()
+                self._dirty = True
+                out = fn()
+                self._dirty = False
+                return out
+            except ConnectionLost as exc:
+                self._note(f"{what}: connection lost: {exc}")
+                if reconnects_left <= 0:
+                    raise AcquisitionStopped(f"{what}: the connection was lost ({exc}) and may not be reopened again", exc) from exc
+                reconnects_left -= 1
+                try:
+                    self._reconnect()
+                    self._dirty = False
+                    self._note(f"{what}: reconnected to {self.controller.port}; redoing the call")
+                except HardwareError as exc2:
+                    raise AcquisitionStopped(f"{what}: the connection was lost ({exc}) and reopening it failed ({exc2})",
+                                             exc2) from exc
+                last = exc
+            except DeviceError as exc:
+                last = exc
+                if not exc.recoverable:
+                    raise AcquisitionStopped(f"{what}: the controller refused a command: {exc}", exc) from exc
+                self._note(f"{what}: attempt {attempt + 1} failed: {exc}")
+            except HardwareError as exc:
+                last = exc
+                self._note(f"{what}: attempt {attempt + 1} failed: {type(exc).__name__}: {exc}")
+            attempt += 1
+            if attempt <= self.retries:
+                self.stats["retries"] += 1
+                self._note(f"{what}: retrying ({attempt} of {self.retries})")
+        raise AcquisitionStopped(f"{what}: gave up after {attempt} attempt(s); last fault: {type(last).__name__}: {last}", last)
+
+    def _begin(self) -> None:
+        """Each transaction starts by checking the controller did not reset since the last one."""
+        st = self.controller.status()
+        if st["boot"] != self._boot:
+            self.stats["resets"] += 1
+            self._note(f"controller reset between calls detected (boot {self._boot} -> {st['boot']}); "
+                       f"earlier frames were complete and checked")
+            self._boot = st["boot"]
+            self._next = st["frames"]
+        if st["frames"] < self._next:
+            raise DeviceReset(f"frame counter went back from {self._next} to {st['frames']}")
+        self._next = st["frames"]
+
+    def _read_frames(self, first: int, n: int, exposure_s: float) -> list[Frame]:
+        """Frames ``first .. first + n - 1``, each checked."""
+        c, src = self.controller, self.frames
+        got: list[Frame] = []
+        expected = first
+        t_end = time.monotonic() + self.max_wait_s
+        idle_polls = 0
+        H, W = self.frame_shape
+        while len(got) < n:
+            try:
+                fr = src.read(self.poll_s)
+            except FrameTimeout:
+                if time.monotonic() > t_end:
+                    raise FrameTimeout(f"frame {expected} did not arrive within {self.max_wait_s:g} s") from None
+                st = c.status()
+                if st["boot"] != self._boot or st["state"] == "RESET":
+                    raise DeviceReset(f"the controller reset while frames {expected}..{first + n - 1} were pending "
+                                      f"(boot {self._boot} -> {st['boot']}, state {st['state']})") from None
+                if st["frames"] < expected:
+                    raise DeviceReset(f"frame counter went back from {expected} to {st['frames']}") from None
+                if st["pending"] == 0:
+                    idle_polls += 1
+                    if idle_polls >= 2:
+                        raise FrameTimeout(f"frame {expected} was triggered but never arrived (controller idle, "
+                                           f"counter {st['frames']})") from None
+                continue
+            if fr.boot is not None and self._boot is not None and fr.boot != self._boot:
+                self.stats["stale_discarded"] += 1
+                continue  # from before a reset: never ours
+            if fr.counter < first:
+                self.stats["stale_discarded"] += 1
+                continue  # left over from an earlier, abandoned acquisition
+            if fr.counter < expected:
+                raise StaleFrame(f"frame {fr.counter} arrived again while frame {expected} was expected")
+            if fr.counter > expected:
+                raise FrameGap(f"frame counter jumped from {expected} to {fr.counter}: {fr.counter - expected} frame(s) dropped")
+            if tuple(fr.data.shape) != (H, W):
+                raise FrameMismatch(f"frame {fr.counter} has shape {tuple(fr.data.shape)}, expected {(H, W)}")
+            if not math.isclose(fr.exposure_s, exposure_s, rel_tol=1e-9, abs_tol=1e-12):
+                raise FrameMismatch(f"frame {fr.counter} has exposure {fr.exposure_s!r} s, expected {exposure_s!r} s")
+            got.append(fr)
+            expected += 1
+        return got
+
+    def _acquire(self, exposure_s: float, n: int, fire) -> list[Frame]:
+        """prepare the camera, fire the triggers (``fire()`` -> (first, count)), read the frames."""
+        self.frames.prepare(exposure_s, n)
+        first, count = fire()
+        if count != n:
+            raise GarbageReply(f"the controller armed {count} frames, {n} were asked")
+        if first < self._next:
+            raise DeviceReset(f"frame counter went back from {self._next} to {first}")
+        self.frames.bind(first, n)
+        frames = self._read_frames(first, n, exposure_s)
+        self._next = first + n
+        return frames
+
+    # ------------------------------------------------------------------ captures
+
+    def _check_exposure(self, te, name="exposure_s") -> float:
+        te = check_real_scalar(te, name, positive=True)
+        if te > self.max_exposure_s:
+            raise ParameterError(f"{name}: expected at most max_exposure_s = {self.max_exposure_s:g} s, got {te:g} s")
+        return te
+
+    @staticmethod
+    def _check_count(n, name):
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+            raise ParameterError(f"{name}: expected an integer >= 1, got {n!r}")
+        return int(n)
+
+    def _capture(self, frames: list[Frame], shape: tuple, offsets, meta: dict):
+        from ..rig.base import Capture
+
+        H, W = self.frame_shape
+        data = torch.stack([f.data for f in frames]).reshape(shape + (H, W))
+        t = lambda attr: torch.tensor([getattr(f, attr) for f in frames], dtype=_F64).reshape(shape)  # noqa: E731
+        meta = dict(meta)
+        meta.update({"boot": self._boot, "timestamp_s": t("timestamp_s"), "dtype": frames[0].dtype})
+        return Capture(frames=data, exposure_s=t("exposure_s"), trigger_offset_s=torch.as_tensor(offsets, dtype=_F64).reshape(shape),
+                       trigger_time_s=t("trigger_time_s"),
+                       frame_counter=torch.tensor([f.counter for f in frames], dtype=torch.long).reshape(shape), meta=meta)
+
+    def _still_frames(self, n: int, te: float, power: float):
+        c = self.controller
+
+        def once():
+            self._begin()
+            c.stop()
+            c.power(power)
+            frames = self._acquire(te, n, lambda: c.arm(0.0, te, n))
+            return frames
+
+        return once
+
+    def dark(self, n: int, exposure_s: float):
+        """``n`` frames with the laser off (``POWER 0``, no waveform), ``[n, H, W]``."""
+        n = self._check_count(n, "n")
+        te = self._check_exposure(exposure_s)
+        frames = self._call(f"dark ({n} x {te:g} s)", self._still_frames(n, te, 0.0))
+        return self._capture(frames, (n,), [0.0] * n, {"kind": "dark"})
+
+    def still(self, n: int, exposure_s: float, power: float = 1.0):
+        """``n`` frames of the spot at rest at ``power``, ``[n, H, W]``."""
+        n = self._check_count(n, "n")
+        te = self._check_exposure(exposure_s)
+        power = check_real_scalar(power, "power", nonnegative=True)
+        frames = self._call(f"still ({n} x {te:g} s)", self._still_frames(n, te, power))
+        return self._capture(frames, (n,), [0.0] * n, {"kind": "still", "power": power})
+
+    def sine(self, freq_hz: float, amplitude: float, exposures_s: Sequence[float], trigger_offset_s, n_repeats: int,
+             settle_s: float | None = None, power: float = 1.0):
+        """``WAVE <axis> SINE f A`` (from rest), then per exposure ``ARM offset Te R``:
+        frames ``[E, R, H, W]``. ``settle_s`` None sends ``SETTLE AUTO`` (the controller's
+        default settling wait)."""
+        freq = check_real_scalar(freq_hz, "freq_hz", positive=True)
+        amp = check_real_scalar(amplitude, "amplitude")
+        power = check_real_scalar(power, "power", nonnegative=True)
+        R = self._check_count(n_repeats, "n_repeats")
+        te = [self._check_exposure(v, "exposures_s") for v in _floats(exposures_s, "exposures_s")]
+        E = len(te)
+        offs = _floats(trigger_offset_s, "trigger_offset_s")
+        if len(offs) == 1:
+            offs = offs * E
+        if len(offs) != E:
+            raise ParameterError(f"trigger_offset_s: expected 1 or {E} values (one per exposure), got {len(offs)}")
+        settle = None if settle_s is None else check_real_scalar(settle_s, "settle_s", nonnegative=True)
+        c = self.controller
+
+        def once():
+            self._begin()
+            c.stop()
+            c.power(power)
+            c.settle(settle)
+            c.wave_sine(self.axis, freq, amp)
+            out = []
+            for e in range(E):
+                out += self._acquire(te[e], R, lambda e=e: c.arm(offs[e], te[e], R))
+            c.stop()
+            return out
+
+        frames = self._call(f"sine {freq:g} Hz", once)
+        period = 1.0 / freq
+        off_mod = [[o - math.floor(o / period) * period] * R for o in offs]
+        return self._capture(frames, (E, R), off_mod, {"kind": "sine", "freq_hz": freq, "omega": 2 * math.pi * freq,
+                                                        "period_s": period, "amplitude": amp, "settle_s": settle,
+                                                        "power": power, "axis": self.axis})
+
+    def pulse(self, exposure_s: float, trigger_offset_s, pulse_time_s: float, pulse_width_s: float, n: int, power: float = 1.0):
+        """Mirror still; per offset ``PULSE offset pulse_time width Te n``: frames
+        ``[..., n, H, W]`` with ``[...]`` the shape of ``trigger_offset_s``."""
+        te = self._check_exposure(exposure_s)
+        n = self._check_count(n, "n")
+        power = check_real_scalar(power, "power", nonnegative=True)
+        p0 = check_real_scalar(pulse_time_s, "pulse_time_s")
+        width = check_real_scalar(pulse_width_s, "pulse_width_s", positive=True)
+        offs_t = torch.as_tensor(trigger_offset_s, dtype=_F64) if not isinstance(trigger_offset_s, torch.Tensor) \
+            else trigger_offset_s.detach().to(_F64)
+        offs = _floats(offs_t, "trigger_offset_s")
+        c = self.controller
+
+        def once():
+            self._begin()
+            c.stop()
+            c.power(power)
+            out = []
+            for o in offs:
+                out += self._acquire(te, n, lambda o=o: c.pulse(o, p0, width, te, n))
+            return out
+
+        frames = self._call(f"pulse at {p0 * 1e6:.3g} us", once)
+        shape = tuple(offs_t.shape) + (n,)
+        return self._capture(frames, shape, [[o] * n for o in offs],
+                             {"kind": "pulse", "pulse_time_s": p0, "pulse_width_s": width, "power": power})
+
+    def __repr__(self) -> str:
+        return (f"SerialRig(port={self.controller.port!r}, frames={self.frames!r}, device={self.device.get('name', '?')}, "
+                f"boot={self._boot})")
