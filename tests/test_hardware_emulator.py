@@ -274,7 +274,7 @@ def test_ctrl_c_saves_and_exits_130(fleet, tmp_path):
         emu.wait_stderr("hanging", timeout_s=90)  # the controller went silent mid-sweep; the client waits
         time.sleep(0.2)
         proc.send_signal(signal.SIGINT)
-        _, err = proc.communicate(timeout=30)
+        _, err = proc.communicate(timeout=180)  # saving state and stopping the fitter thread: slow on a loaded machine
     finally:
         if proc.poll() is None:
             proc.kill()
