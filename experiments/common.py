@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
 from pathlib import Path
 
@@ -64,3 +65,20 @@ def plt():
     import matplotlib.pyplot as plt
 
     return plt
+
+
+def periodic_minima(phase, cost) -> list[tuple[float, float]]:
+    """Local minima of a cost on a uniform periodic phase grid (rad), refined by a parabola
+    through each minimum and its neighbours: ``[(phase, cost)]``, deepest first."""
+    import numpy as np
+
+    left, right = np.roll(cost, 1), np.roll(cost, -1)
+    idx = np.nonzero((cost < left) & (cost <= right))[0]
+    step = phase[1] - phase[0]
+    out = []
+    for i in idx:
+        cm, c0, cp = left[i], cost[i], right[i]
+        den = cm - 2 * c0 + cp
+        d = float(np.clip(0.5 * (cm - cp) / den, -0.5, 0.5)) if den > 0 else 0.0
+        out.append((float(math.remainder(phase[i] + d * step, 2 * math.pi)), float(c0 - 0.25 * (cm - cp) * d)))
+    return sorted(out, key=lambda m: m[1])

@@ -20,31 +20,12 @@ import time
 import numpy as np
 import torch
 
-from common import parse, plt, save_figure, write_metrics
+from common import parse, periodic_minima, plt, save_figure, write_metrics
 
 import torchblur as tb
 from torchblur.losses import image_loss
 
 F64 = torch.float64
-
-
-def periodic_minima(phase: np.ndarray, cost: np.ndarray) -> list[tuple[float, float]]:
-    """Local minima of a cost sampled on a uniform periodic phase grid ``[P]`` (rad),
-    refined by a parabola through each minimum and its neighbours: ``[(phase, cost)]``
-    sorted by cost (deepest first), phases wrapped to (-pi, pi]."""
-    c = cost
-    left, right = np.roll(c, 1), np.roll(c, -1)
-    idx = np.nonzero((c < left) & (c <= right))[0]
-    step = phase[1] - phase[0]
-    out = []
-    for i in idx:
-        cm, c0, cp = left[i], c[i], right[i]
-        den = cm - 2 * c0 + cp
-        d = 0.5 * (cm - cp) / den if den > 0 else 0.0
-        d = float(np.clip(d, -0.5, 0.5))
-        val = c0 - 0.25 * (cm - cp) * d
-        out.append((float(tb.wrap_phase(torch.tensor(phase[i] + d * step))), float(val)))
-    return sorted(out, key=lambda m: m[1])
 
 
 def wrapped_distance(a: float, b: float) -> float:

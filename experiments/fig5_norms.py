@@ -21,7 +21,7 @@ import time
 import numpy as np
 import torch
 
-from common import parse, plt, save_figure, write_metrics
+from common import parse, periodic_minima, plt, save_figure, write_metrics
 
 import torchblur as tb
 from torchblur.camera import CameraModel
@@ -29,21 +29,6 @@ from torchblur.losses import image_loss
 
 F64 = torch.float64
 LABEL = {"l1": "1-norm", "l2": "2-norm (Frobenius)", "linf": "inf-norm"}
-
-
-def periodic_minima(phase: np.ndarray, cost: np.ndarray) -> list[tuple[float, float]]:
-    """Local minima of a cost on a uniform periodic phase grid (rad), refined by a parabola
-    through each minimum and its neighbours: ``[(phase, cost)]``, deepest first."""
-    left, right = np.roll(cost, 1), np.roll(cost, -1)
-    idx = np.nonzero((cost < left) & (cost <= right))[0]
-    step = phase[1] - phase[0]
-    out = []
-    for i in idx:
-        cm, c0, cp = left[i], cost[i], right[i]
-        den = cm - 2 * c0 + cp
-        d = float(np.clip(0.5 * (cm - cp) / den, -0.5, 0.5)) if den > 0 else 0.0
-        out.append((float(tb.wrap_phase(torch.tensor(phase[i] + d * step))), float(c0 - 0.25 * (cm - cp) * d)))
-    return sorted(out, key=lambda m: m[1])
 
 
 def wrapped(x):
