@@ -25,7 +25,6 @@ import torch
 
 from common import parse, plt, save_figure, write_metrics
 
-import torchblur as tb
 from torchblur.config import load_config
 from torchblur.design import resolve_branches
 from torchblur.identify import build_simulated_rig, identify
@@ -167,7 +166,7 @@ def push_setting(cfg, section, key, values):
     return {"setting": key, "freq_hz": freqs.tolist(), "rows": rows, "first_value_over_tol": breaks[0] if breaks else None}
 
 
-def bode_panel(ax_m, ax_p, d, title, tol_deg):
+def bode_panel(ax_m, ax_p, d, title):
     res, freqs = d["res"], d["freqs"]
     rig = build_simulated_rig(d["icfg"])
     fd = np.geomspace(freqs.min(), freqs.max(), 600)
@@ -247,8 +246,7 @@ def main():
     fig, axes = P.subplots(2, ncol, figsize=(6.2 * ncol, 6.4), sharex="col", squeeze=False)
     for j, sp in enumerate(spacings):
         bode_panel(axes[0, j], axes[1, j], paper[sp],
-                   f"one exposure (p = T/2, w tcam = pi/2), 4 images/pt, {len(paper[sp]['freqs'])} {sp} points",
-                   float(cfg.tolerance.phase_deg))
+                   f"one exposure (p = T/2, w tcam = pi/2), 4 images/pt, {len(paper[sp]['freqs'])} {sp} points")
     fig.suptitle("Fig. 11: identified frequency response vs truth (30 Hz camera)", fontsize=11)
     fig.tight_layout()
     save_figure(fig, out, "fig11_frequency_response.png")
@@ -280,7 +278,7 @@ def main():
         ax.set_xticks(v, [f"{x:g}" for x in v])
         ax.minorticks_off()
         ax.set_xlabel({"motion": "spot motion target (px)", "noise": "read noise (e-)"}[name]
-                      + ("; ^ = off scale (fit failed)" if any((r["max_abs_mag_err_pct"] or np.inf) > cap for r in pm["rows"]) else ""))
+                      + ("; ^ = off scale (run failed)" if any((r["max_abs_mag_err_pct"] or np.inf) > cap for r in pm["rows"]) else ""))
         ax.set_title(f"dual exposure, 1-500 Hz, {len(pm['freq_hz'])} points", fontsize=9)
         ax.legend(fontsize=7)
     fig.tight_layout()

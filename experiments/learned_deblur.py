@@ -83,16 +83,11 @@ class SpotNet(nn.Module):
     """A few conv layers (with coordinate channels) and an MLP head.
 
     ``forward(images [B, E, H, W]) -> (M [B], phi [B])``, M in ``(m_lo, m_hi)`` px, phi in
-    (-pi, pi] from a predicted (cos phi, sin phi). With ``symmetric``, the raw outputs are
-    averaged over the image and its mirror about the rest row (y -> H - 1 - y): a motion along
-    x with a round PSF makes y-symmetric images, so the prediction should not change (the
-    network is made invariant by construction).
+    (-pi, pi] from a predicted (cos phi, sin phi).
     """
 
-    def __init__(self, channels: int, frame: int, width: int, hidden: int, m_lo: float, m_hi: float, scale: torch.Tensor,
-                 symmetric: bool = False):
+    def __init__(self, channels: int, frame: int, width: int, hidden: int, m_lo: float, m_hi: float, scale: torch.Tensor):
         super().__init__()
-        self.symmetric = symmetric
         self.register_buffer("scale", scale.reshape(1, channels, 1, 1).to(F32))
         yy, xx = torch.meshgrid(torch.linspace(-1, 1, frame), torch.linspace(-1, 1, frame), indexing="ij")
         self.register_buffer("coords", torch.stack([xx, yy])[None])
@@ -107,12 +102,8 @@ class SpotNet(nn.Module):
 
     def forward(self, images):
         x = images / self.scale
-        if self.symmetric:
-            x = torch.cat([x, x.flip(-2)])
         x = torch.cat([x, self.coords.expand(x.shape[0], -1, -1, -1)], 1)
         o = self.head(self.features(x))
-        if self.symmetric:
-            o = 0.5 * (o[: len(o) // 2] + o[len(o) // 2:])
         M = self.m_lo + (self.m_hi - self.m_lo) * torch.sigmoid(o[:, 0])
         phi = torch.atan2(o[:, 2], o[:, 1])
         return M, phi
@@ -127,7 +118,7 @@ def train(name, design, cfg, images, sigma, gen, evaluate=None, bar_position=0):
     t = cfg.train
     m_lo, m_hi = 0.25, 1.5 * float(cfg.amplitude_px[1])
     peak = sigma.reshape(-1) / float(cfg.noise_frac)
-    model = SpotNet(design.E, design.H, int(t.width), int(t.hidden), m_lo, m_hi, peak, symmetric=bool(t.symmetric))
+    model = SpotNet(design.E, design.H, int(t.width), int(t.hidden), m_lo, m_hi, peak)
     crit = BlurConsistencyLoss(design.renderer, design.psf, design.window, omega=design.omega,
                                noise_std=sigma.to(F32), reduction="mean")
     n_pix = design.E * design.H * design.W
@@ -218,6 +209,7 @@ def main():
         t0 = time.time()
         model, hist, evals = train(name, d32, cfg, train_img, sigma, gen, evaluate=evaluate, bar_position=0)
         train_s = time.time() - t0
+        torch.save(model.state_dict(), out / f"model_{name}.pt")
         model.eval()
         with torch.no_grad():
             pM, pphi = model(test_img.to(F32))

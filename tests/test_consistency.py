@@ -175,3 +175,18 @@ def test_bad_input():
         BlurConsistencyLoss(object(), psf, window)
     with pytest.raises(InputTypeError, match="observed"):
         blur_consistency(params, observed.numpy(), **kw)
+
+
+def test_measured_kernel_psf_and_batched_psf():
+    renderer, psf, window, params, observed = setup(B=2)
+    # a measured kernel: the still spot's image (per second), shared by the exposures
+    still = renderer(tb.Sinusoid(torch.zeros(2, dtype=F64), torch.zeros(2, dtype=F64), OMEGA), psf,
+                     tb.ExposureWindow(torch.tensor(0.0, dtype=F64), torch.tensor(1.0, dtype=F64)))
+    kpsf = tb.KernelPSF(still)
+    obs_k = renderer(tb.Sinusoid(**params)[:, None], kpsf, window)
+    v = blur_consistency(params, obs_k, renderer=renderer, psf=kpsf, window=window)
+    assert v.shape == (2,) and float(v.max()) < 1e-16 * float(obs_k.square().sum())
+    # a PSF batch [B] (one spot per sample) broadcasts against the exposures
+    psf_b = tb.GaussianPSF(psf.center.expand(2, 2), psf.cov.expand(2, 2, 2), psf.amplitude.expand(2))
+    torch.testing.assert_close(blur_consistency(params, observed, renderer=renderer, psf=psf_b, window=window),
+                               blur_consistency(params, observed, renderer=renderer, psf=psf, window=window))

@@ -6,6 +6,7 @@ Fitting, identification, hardware and plotting live in submodules imported on us
 from __future__ import annotations
 
 from .alias import alias_phase, wrap_phase
+from .consistency import BlurConsistencyLoss, blur_consistency
 from .errors import ConfigError, InputTypeError, ParameterError, ShapeError, TorchblurError
 from .psf import GaussianPSF, KernelPSF
 from .render import BlurRenderer, RenderSettings, render_blur
@@ -15,6 +16,7 @@ from .trajectory import Multisine, Sinusoid, SplineTrajectory, Trajectory
 __version__ = "0.1.0"
 
 __all__ = [
+    "BlurConsistencyLoss",
     "BlurRenderer",
     "ConfigError",
     "ExposureWindow",
@@ -31,6 +33,7 @@ __all__ = [
     "TorchblurError",
     "Trajectory",
     "alias_phase",
+    "blur_consistency",
     "render_blur",
     "wrap_phase",
 ]
