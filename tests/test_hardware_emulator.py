@@ -269,7 +269,7 @@ def test_ctrl_c_saves_and_exits_130(fleet, tmp_path):
     emu = fleet["sigint"]
     out = tmp_path / "run"
     proc = subprocess.Popen([sys.executable, "-m", "torchblur.cli", "identify", "--out", str(out), "--quiet", *BASE, *SWEEP,
-                             *emu.rig_keys(timeout_s=5.0)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                             *emu.rig_keys(timeout_s=60.0)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         emu.wait_stderr("hanging", timeout_s=90)  # the controller went silent mid-sweep; the client waits
         time.sleep(0.2)
