@@ -17,7 +17,7 @@ from typing import Mapping
 import torch
 from torch import nn
 
-from .errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_finite
+from .errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_choice, check_finite
 from .losses import LOSSES, image_loss
 from .psf import GaussianPSF, KernelPSF
 from .render import BlurRenderer
@@ -172,10 +172,8 @@ def blur_consistency(
         raise InputTypeError(f"observed: expected a tensor [..., E, H, W], got {type(observed).__name__}")
     if not isinstance(window, ExposureWindow):
         raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
-    if loss not in LOSSES:
-        raise ParameterError(f"loss: expected one of {LOSSES}, got {loss!r}")
-    if reduction not in REDUCTIONS:
-        raise ParameterError(f"reduction: expected one of {REDUCTIONS}, got {reduction!r}")
+    check_choice(loss, "loss", LOSSES)
+    check_choice(reduction, "reduction", REDUCTIONS)
     if not isinstance(normalize, bool):
         raise InputTypeError(f"normalize: expected True or False, got {type(normalize).__name__}")
     if not observed.is_floating_point():
@@ -275,10 +273,8 @@ class BlurConsistencyLoss(nn.Module):
             raise InputTypeError(f"psf: expected GaussianPSF or KernelPSF, got {type(psf).__name__}")
         if not isinstance(window, ExposureWindow):
             raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
-        if loss not in LOSSES:
-            raise ParameterError(f"loss: expected one of {LOSSES}, got {loss!r}")
-        if reduction not in REDUCTIONS:
-            raise ParameterError(f"reduction: expected one of {REDUCTIONS}, got {reduction!r}")
+        check_choice(loss, "loss", LOSSES)
+        check_choice(reduction, "reduction", REDUCTIONS)
         self.renderer = renderer
         self.psf = psf
         self.window = window

@@ -21,6 +21,7 @@ __all__ = [
     "check_finite",
     "check_positive",
     "check_trailing_shape",
+    "check_choice",
     "broadcast_batch",
 ]
 
@@ -135,3 +136,10 @@ def check_real_scalar(value, name: str, *, positive: bool = False, nonnegative: 
     if nonnegative and v < 0:
         raise ParameterError(f"{name}: expected a value >= 0, got {v:g}")
     return v
+
+
+def check_choice(value, name: str, options) -> str:
+    """Raise :class:`ParameterError` unless ``value`` is one of ``options`` (a registry choice)."""
+    if value not in options:
+        raise ParameterError(f"{name}: expected one of {tuple(options)}, got {value!r}")
+    return value

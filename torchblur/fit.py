@@ -15,7 +15,7 @@ import torch
 
 from .alias import alias_phase as _alias_phase
 from .alias import wrap_phase
-from .errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_finite, check_positive
+from .errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_choice, check_finite, check_positive
 from .losses import LOSSES, image_loss, irls_weights
 from .moments import image_moments, sinusoid_from_moments
 from .optim import levenberg_marquardt, model_jacobian
@@ -96,12 +96,9 @@ def _validate(images, psf, window, omega, axes, optimizer, loss):
         raise InputTypeError(f"psf: expected GaussianPSF or KernelPSF, got {type(psf).__name__}")
     if not isinstance(window, ExposureWindow):
         raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
-    if axes not in AXES:
-        raise ParameterError(f"axes: expected one of {AXES}, got {axes!r}")
-    if optimizer not in OPTIMIZERS:
-        raise ParameterError(f"optimizer: expected one of {OPTIMIZERS}, got {optimizer!r}")
-    if loss not in LOSSES:
-        raise ParameterError(f"loss: expected one of {LOSSES}, got {loss!r}")
+    check_choice(axes, "axes", AXES)
+    check_choice(optimizer, "optimizer", OPTIMIZERS)
+    check_choice(loss, "loss", LOSSES)
     if optimizer == "lm" and loss == "linf":
         raise ParameterError("loss: 'linf' is not a sum of squares; use optimizer='adam' or 'lbfgs' with it")
     batch_e = images.shape[:-2]
