@@ -21,7 +21,7 @@ import torch
 
 from .config import IdentifyConfig
 
-__all__ = ["IdentificationResult", "identify", "build_simulated_rig", "build_rig", "calibrate_latency", "check_resume_config"]
+__all__ = ["IdentificationResult", "Calibration", "identify", "calibrate", "fit_model", "build_simulated_rig", "build_rig", "calibrate_latency", "check_resume_config"]
 
 
 @dataclass
@@ -322,31 +322,36 @@ def _stage(exp, key, kind, rig, fn):
     return exp.stage(key, kind, rig, fn)[0]
 
 
-def _identify(cfg, rig, exp, log, progress) -> IdentificationResult:
-    import time
+@dataclass
+class Calibration:
+    """What the calibration stages (1-4 of :func:`identify`) measured: ``dark``
+    (:class:`~torchblur.preprocess.DarkFrame`), ``read_noise_e``, ``saturation``
+    (SaturationCurve), ``full_adu`` (usable range above the dark level, ADU), ``psf``
+    (GaussianPSF in electrons per second at power 1), ``peak_rate`` (its peak, e-/s),
+    ``latency_s`` and ``latency_std_s``, ``gain`` (e-/ADU)."""
 
-    from tqdm.auto import tqdm
+    dark: object
+    read_noise_e: float
+    saturation: object
+    full_adu: float
+    psf: object
+    peak_rate: float
+    latency_s: float
+    latency_std_s: float
+    gain: float
 
-    from .design import check_design
-    from .fit import fit_sinusoid
-    from .frequency_response import FrequencyResponse
-    from .model_fit import fit_transfer_function
-    from .moments import image_moments, sinusoid_from_moments
+
+def calibrate(cfg, rig, exp=None, log=None, progress: bool = False) -> Calibration:
+    """Stages 1-4 of :func:`identify`: dark frame, saturation curve, PSF and latency (each
+    taken from the recording ``exp`` when it holds it)."""
     from .preprocess import dark_frame, fit_gaussian_psf, saturation_curve, subtract_dark
-    from .psf import GaussianPSF
-    from .timing import ExposureWindow
 
+    log = [] if log is None else log
     c = cfg.camera
     gain = float(c.gain)
     dtype = torch.float64
-    H, W = rig.frame_shape
-    freqs = np.asarray(cfg.frequencies_hz())
-    fracs = [float(e) for e in cfg.sweep.exposures]
-    E, R = len(fracs), int(cfg.sweep.images_per_point)
-    b = float(cfg.sweep.trigger_phase_rad)
 
     # 1. Dark frame.
-    t_start = time.perf_counter()
     dark = dark_frame(_stage(exp, "dark", "dark", rig, lambda r: r.dark(n=16, exposure_s=min(0.01, c.max_exposure_s))).frames.to(dtype))
     read_noise_e = float(dark.read_noise) * gain
     _log(log, f"dark: level {float(dark.mean.mean()):.2f} ADU, read noise {read_noise_e:.2f} e-, "
@@ -376,6 +381,52 @@ def _identify(cfg, rig, exp, log, progress) -> IdentificationResult:
         r, dark=dark, gain=gain, trigger_delay_s=c.trigger_delay_s, pulse_width_s=pulse_w,
         power=c.peak_fraction * full_adu * gain / (peak_rate * pulse_w)))
     _log(log, f"latency: {latency * 1e6:.3f} +- {latency_std * 1e6:.3f} us", progress)
+    return Calibration(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=full_adu, psf=psf, peak_rate=peak_rate,
+                       latency_s=latency, latency_std_s=latency_std, gain=gain)
+
+
+def fit_model(cfg, frf, log=None, progress: bool = False):
+    """Stage 7 of :func:`identify`: the transfer-function model of ``frf`` under
+    ``cfg.model`` (None, with the reason logged, when the fit fails)."""
+    from .model_fit import fit_transfer_function
+
+    log = [] if log is None else log
+    try:
+        model = fit_transfer_function(frf, n_poles=cfg.model.n_poles, n_zeros=cfg.model.n_zeros,
+                                      delay_s=None if cfg.model.fit_delay else 0.0, max_order=int(cfg.model.max_order))
+    except Exception as exc:  # the FRF is still a result; say why the model failed
+        _log(log, f"model: fit failed: {exc}", progress)
+        return None
+    _log(log, f"model: {model.n_poles} poles, {model.n_zeros} zeros, delay {model.delay_s * 1e6:.2f} us, "
+              f"reduced chi2 {model.reduced_chi2:.3f}", progress)
+    return model
+
+
+def _identify(cfg, rig, exp, log, progress) -> IdentificationResult:
+    import time
+
+    from tqdm.auto import tqdm
+
+    from .design import check_design
+    from .fit import fit_sinusoid
+    from .frequency_response import FrequencyResponse
+    from .moments import image_moments, sinusoid_from_moments
+    from .preprocess import subtract_dark
+    from .psf import GaussianPSF
+    from .timing import ExposureWindow
+
+    c = cfg.camera
+    dtype = torch.float64
+    H, W = rig.frame_shape
+    freqs = np.asarray(cfg.frequencies_hz())
+    fracs = [float(e) for e in cfg.sweep.exposures]
+    E, R = len(fracs), int(cfg.sweep.images_per_point)
+    b = float(cfg.sweep.trigger_phase_rad)
+
+    t_start = time.perf_counter()
+    cal = calibrate(cfg, rig, exp, log, progress)
+    dark, read_noise_e, sat, full_adu = cal.dark, cal.read_noise_e, cal.saturation, cal.full_adu
+    psf, peak_rate, latency, latency_std, gain = cal.psf, cal.peak_rate, cal.latency_s, cal.latency_std_s, cal.gain
 
     # 5. Sweep. Every completed point goes to the chunked background fit (6.) at once.
     target = float(cfg.excitation.target_px)
@@ -516,14 +567,7 @@ def _identify(cfg, rig, exp, log, progress) -> IdentificationResult:
     _log(log, f"fit: {len(freqs) - n_bad} of {len(freqs)} points converged", progress)
 
     # 7. Parametric model.
-    model = None
-    try:
-        model = fit_transfer_function(frf, n_poles=cfg.model.n_poles, n_zeros=cfg.model.n_zeros,
-                                      delay_s=None if cfg.model.fit_delay else 0.0, max_order=int(cfg.model.max_order))
-        _log(log, f"model: {model.n_poles} poles, {model.n_zeros} zeros, delay {model.delay_s * 1e6:.2f} us, "
-                  f"reduced chi2 {model.reduced_chi2:.3f}", progress)
-    except Exception as exc:  # the FRF is still a result; say why the model failed
-        _log(log, f"model: fit failed: {exc}", progress)
+    model = fit_model(cfg, frf, log, progress)
     truth = None
     if hasattr(rig, "truth"):
         truth = np.asarray([rig.truth(float(f)) for f in freqs])
