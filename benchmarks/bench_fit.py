@@ -8,7 +8,7 @@ problem's peak, 48x64 frames) and prints, measured in one run:
   (Levenberg-Marquardt on a numpy render with the same nodes) with 8 phase starts, and
   started at the truth (scipy timed on a subset; the ratio is per problem).
 
-    python benchmarks/bench_fit.py [--n 300] [--scipy-n 20] [--threads 2] [--dtype float64]
+    python benchmarks/bench_fit.py [--n 300] [--scipy-n 20] [--threads 2] [--dtype float64] [--repeats 3]
 """
 from __future__ import annotations
 
@@ -103,14 +103,19 @@ def main():
     ap.add_argument("--scipy-n", type=int, default=20)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--dtype", default="float64", choices=["float32", "float64"])
+    ap.add_argument("--repeats", type=int, default=3, help="timing repeats (the fastest counts)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     dtype = getattr(torch, args.dtype)
     d = make_problems(args.n, dtype)
     fit_sinusoid(d["images"][:4], d["psf"][:4], d["win"][:4], d["om"][:4], noise_std=d["sigma"][:4])  # warm-up
-    t0 = time.perf_counter()
-    res = fit_sinusoid(d["images"], d["psf"], d["win"], d["om"], noise_std=d["sigma"])
-    t_ours = (time.perf_counter() - t0) / args.n
+    # Timing on a shared machine: the batched fit and the scipy fits alternate, --repeats
+    # times, and each keeps its fastest repeat (load from other processes only adds time).
+    t_ours = float("inf")
+    for _ in range(args.repeats):
+        t0 = time.perf_counter()
+        res = fit_sinusoid(d["images"], d["psf"], d["win"], d["om"], noise_std=d["sigma"])
+        t_ours = min(t_ours, (time.perf_counter() - t0) / args.n)
     nodes = res.extras["nodes"]
     bound = crlb(d, nodes)
     eM = res.amplitude.double() - d["M"]
@@ -122,22 +127,26 @@ def main():
     zM = float((eM[ok] / res.amplitude_std[ok].double()).square().mean().sqrt())
     zP = float((ephi[ok] / res.phase_std[ok].double()).square().mean().sqrt())
 
-    # scipy, per problem, on a subset.
+    # scipy, per problem, on a subset; each problem's fastest of --repeats runs.
     ks = range(min(args.scipy_n, args.n))
     t_truth, t_multi = 0.0, 0.0
     multi_alias = 0
     for k in ks:
         fun = numpy_residual_factory(d, k, nodes)
-        t0 = time.perf_counter()
-        least_squares(fun, [float(d["M"][k]), float(d["phi"][k])], method="lm")
-        t_truth += time.perf_counter() - t0
-        t0 = time.perf_counter()
-        best = None
-        for j in range(8):
-            r = least_squares(fun, [float(res.amplitude[k]) * 0 + 5.0, -math.pi + 2 * math.pi * j / 8], method="lm")
-            if best is None or r.cost < best.cost:
-                best = r
-        t_multi += time.perf_counter() - t0
+        tt, tm = float("inf"), float("inf")
+        for _ in range(args.repeats):
+            t0 = time.perf_counter()
+            least_squares(fun, [float(d["M"][k]), float(d["phi"][k])], method="lm")
+            tt = min(tt, time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            best = None
+            for j in range(8):
+                r = least_squares(fun, [5.0, -math.pi + 2 * math.pi * j / 8], method="lm")
+                if best is None or r.cost < best.cost:
+                    best = r
+            tm = min(tm, time.perf_counter() - t0)
+        t_truth += tt
+        t_multi += tm
         multi_alias += int(abs(math.remainder(best.x[1] - float(d["phi"][k]), 2 * math.pi)) > 0.5)
     n_sc = len(ks)
     t_truth /= n_sc

@@ -212,8 +212,11 @@ def fit_sinusoid(
 
     # Degenerate items: no signal above the noise.
     flat = data.reshape(N, -1)
-    med = flat.median(-1).values
-    mad = (flat - med[:, None]).abs().median(-1).values * 1.4826
+    # Background and noise level from ~2048-4096 pixels per item (a strided subsample: robust
+    # statistics need no more, and a median costs a selection per item).
+    sub = flat[:, ::max(1, flat.shape[-1] // 2048)]
+    med = sub.median(-1).values
+    mad = (sub - med[:, None]).abs().median(-1).values * 1.4826
     noise_level = sigma_level if sigma_given is not None else mad
     peak = (flat - med[:, None]).amax(-1)
     dark = ~(peak > 8 * noise_level.clamp_min(torch.finfo(dtype).tiny)) | (peak <= 0)
@@ -292,8 +295,9 @@ def fit_sinusoid(
         theta0 = theta_core
     theta0 = theta0.reshape(N * K, P).detach()
 
-    # Crop to the region the model can reach (l2): outside it the model and its Jacobian are
-    # below e^-18 of the peak, so those pixels change nothing in the normal equations; their
+    # Crop to the region the model can reach (l2): outside it (5.5 PSF sigmas beyond the
+    # largest motion) the model and its Jacobian are below 3e-7 of the peak, far below any
+    # camera's noise, so those pixels change nothing in the normal equations; their
     # constant contribution to the cost (and the noise estimate) is added back at the end.
     x0 = y0 = 0
     outside_cost = torch.zeros(N, dtype=dtype, device=device)
@@ -304,8 +308,8 @@ def fit_sinusoid(
         reach = torch.zeros(N, 2, dtype=dtype, device=device)
         reach[:, axis_ids] = theta_core[..., :n_axes].amax(1) * 1.25 + 0.5
         sdv = torch.diagonal(cov_psf, dim1=-2, dim2=-1).clamp_min(0).sqrt()
-        lo = (rest - reach - 7 * sdv - (2.0 if fit_center else 0.0))[live_items].amin(0)
-        hi = (rest + reach + 7 * sdv + (2.0 if fit_center else 0.0))[live_items].amax(0)
+        lo = (rest - reach - 5.5 * sdv - (2.0 if fit_center else 0.0))[live_items].amin(0)
+        hi = (rest + reach + 5.5 * sdv + (2.0 if fit_center else 0.0))[live_items].amax(0)
         cx0, cy0 = max(0, int(math.floor(float(lo[0])))), max(0, int(math.floor(float(lo[1]))))
         cx1, cy1 = min(W, int(math.ceil(float(hi[0]))) + 1), min(H, int(math.ceil(float(hi[1]))) + 1)
         if cx1 - cx0 >= 4 and cy1 - cy0 >= 4 and (cx1 - cx0) * (cy1 - cy0) < 0.9 * H * W:
@@ -329,10 +333,14 @@ def fit_sinusoid(
                 theta0 = theta0.clone()
                 theta0[:, j_c:j_c + 2] -= shift
 
-    # Node count fixed for the whole fit, from a generous motion bound.
+    # Node counts fixed for the whole fit, from a generous motion bound: one count for the
+    # rendered model (``settings.nodes``) and, for the analytic Jacobian path, one per frame
+    # (``panels [N, E]``): a short exposure or a small motion needs far fewer nodes than the
+    # batch's longest streak, and the splat's cost is proportional to them.
     # A fit needs the model far below the noise, not to round-off: panels of 3.5 PSF widths
     # (quadrature error < 1e-6 of the peak; estimates move < 2e-7 of their std vs 2.5).
     settings = render_settings or RenderSettings(panel_path_sigmas=3.5)
+    panels = None
     if settings.nodes is None:
         amp_bound = (theta_core[..., :n_axes].amax(1) * 1.2 + 0.5)  # [N, n_axes]
         amp_xy = torch.zeros(N, 2, dtype=dtype, device=device)
@@ -343,6 +351,7 @@ def fit_sinusoid(
         S = choose_node_count(path, smin, settings)
         settings = RenderSettings(pixel_integration=settings.pixel_integration, nodes_per_panel=settings.nodes_per_panel,
                                   panel_path_sigmas=settings.panel_path_sigmas, max_nodes=settings.max_nodes, nodes=S)
+        panels = (path / (settings.panel_path_sigmas * smin)).ceil().clamp(1, S // settings.nodes_per_panel).long()
 
     prob_of = lambda idx: torch.div(idx, K, rounding_mode="floor")  # noqa: E731
 
@@ -379,33 +388,35 @@ def fit_sinusoid(
 
     analytic = isinstance(p_flat, GaussianPSF) and not normalize and not settings.pixel_integration
     if analytic:
-        S_nodes = settings.nodes
-        m_nodes = settings.nodes_per_panel if S_nodes % settings.nodes_per_panel == 0 else S_nodes
-        tau, wq = quadrature_nodes(S_nodes // m_nodes, m_nodes, dtype=dtype, device=device)
+        m_nodes = settings.nodes_per_panel
+        if panels is None or settings.nodes % m_nodes:  # nodes given by the caller: one rule for every frame
+            m_nodes = settings.nodes if settings.nodes % m_nodes else m_nodes
+            panels = torch.full((N, E), settings.nodes // m_nodes, dtype=torch.long, device=device)
+        rules = {}  # panel count -> (tau [S], weights [S])
         A_all, B_all, C_all = p_flat.precision()
 
-    def jac_fn(theta, idx, k_of=prob_of):
-        """Model ``[n, R]`` and its Jacobian ``[n, R, P]`` from one splat (Gaussian PSF)."""
+    def splat_frames(theta_f, n_f, e_f, n_panels, with_jac=True):
+        """Image ``[m, H, W]`` and Jacobian ``[m, P, H, W]`` (``[m, 0, H, W]`` without
+        ``with_jac``) of ``m`` frames (problem ``n_f``, exposure ``e_f``, parameters
+        ``theta_f [m, P]``) on a rule of ``n_panels`` panels."""
         from .splat_jacobian import gaussian_splat_with_jacobian
 
-        n = k_of(idx)
-        rows = theta.shape[0]
-        t = start[n][..., None] + dur[n][..., None] * tau  # [n, E, S]
-        w = dur[n][..., None] * wq * p_flat.amplitude[n][:, None, None]
-        j = 2 * n_axes
-        scale = theta[:, j] if fit_scale else None
-        j += int(fit_scale)
-        bg = theta[:, j] if fit_background else None
-        j += int(fit_background)
-        c = theta[:, j:j + 2] if fit_center else p_flat.center[n]
-        arg = om[n][:, None, None, None] * t[..., None] + theta[:, None, None, n_axes:2 * n_axes]  # [n, E, S, n_axes]
+        if n_panels not in rules:
+            rules[n_panels] = quadrature_nodes(n_panels, m_nodes, dtype=dtype, device=device)
+        tau, wq = rules[n_panels]
+        t0, d0 = start[n_f, e_f], dur[n_f, e_f]
+        t = t0[:, None] + d0[:, None] * tau  # [m, S]
+        w = d0[:, None] * wq * p_flat.amplitude[n_f][:, None]
+        j = 2 * n_axes + int(fit_scale) + int(fit_background)
+        c = theta_f[:, j:j + 2] if fit_center else p_flat.center[n_f]
+        arg = om[n_f][:, None, None] * t[..., None] + theta_f[:, None, n_axes:2 * n_axes]  # [m, S, n_axes]
         sn, cs = torch.sin(arg), torch.cos(arg)
-        amp = theta[:, None, None, :n_axes]
+        amp = theta_f[:, None, :n_axes]
         disp = amp * sn
         dpx = torch.zeros(t.shape + (P,), dtype=dtype, device=device)
         dpy = torch.zeros_like(dpx)
-        px = c[:, 0, None, None].expand(t.shape)
-        py = c[:, 1, None, None].expand(t.shape)
+        px = c[:, 0, None].expand(t.shape)
+        py = c[:, 1, None].expand(t.shape)
         for k, a in enumerate(axis_ids):
             target_d = dpx if a == 0 else dpy
             target_d[..., k] = sn[..., k]
@@ -417,17 +428,54 @@ def fit_sinusoid(
         if fit_center:
             dpx[..., j] = 1
             dpy[..., j + 1] = 1
-        img, dimg = gaussian_splat_with_jacobian(px, py, dpx, dpy, w, A_all[n][:, None], B_all[n][:, None], C_all[n][:, None], H, W)
-        # dimg: [n, E, P, H, W] -> [n, R, P]
-        J = dimg.movedim(2, -1).reshape(rows, E * H * W, P)
+        if not with_jac:
+            dpx, dpy = dpx[..., :0], dpy[..., :0]
+        return gaussian_splat_with_jacobian(px, py, dpx, dpy, w, A_all[n_f], B_all[n_f], C_all[n_f], H, W)
+
+    def image_fn(theta, idx, k_of=prob_of):
+        """Model ``[n, R]`` alone from the same splat as :func:`jac_fn`."""
+        n = k_of(idx)
+        rows = theta.shape[0]
+        pc = panels[n]  # [rows, E]
+        img = theta.new_empty(rows, E, H, W)
+        for u in torch.unique(pc).tolist():
+            r_f, e_f = (pc == u).nonzero(as_tuple=True)
+            img[r_f, e_f] = splat_frames(theta[r_f], n[r_f], e_f, u, with_jac=False)[0]
+        if fit_scale:
+            img = img * theta[:, 2 * n_axes, None, None, None]
+        if fit_background:
+            img = img + theta[:, 2 * n_axes + int(fit_scale), None, None, None]
+        return img.reshape(rows, -1)
+
+    def jac_fn(theta, idx, k_of=prob_of):
+        """Model ``[n, R]`` and its Jacobian ``[n, R, P]`` from the splat (Gaussian PSF),
+        frames grouped by their node count."""
+        n = k_of(idx)
+        rows = theta.shape[0]
+        pc = panels[n]  # [rows, E]
+        counts = torch.unique(pc).tolist()
+        J = theta.new_empty(rows, P, E, H, W)  # parameter-major: the normal equations are then plain GEMMs
+        if len(counts) == 1:
+            r_f = torch.arange(rows, device=device).repeat_interleave(E)
+            e_f = torch.arange(E, device=device).repeat(rows)
+            img, dimg = splat_frames(theta[r_f], n[r_f], e_f, counts[0])
+            img = img.reshape(rows, E, H, W)
+            J.copy_(dimg.reshape(rows, E, P, H, W).transpose(1, 2))
+        else:
+            img = theta.new_empty(rows, E, H, W)
+            for u in counts:
+                r_f, e_f = (pc == u).nonzero(as_tuple=True)
+                img[r_f, e_f], J[r_f, :, e_f] = splat_frames(theta[r_f], n[r_f], e_f, u)
         model = img
-        if scale is not None:
-            J = J * scale[:, None, None]
-            J[..., 2 * n_axes] = img.reshape(rows, -1)
-            model = model * scale[:, None, None, None]
-        if bg is not None:
-            model = model + bg[:, None, None, None]
-            J[..., 2 * n_axes + int(fit_scale)] = 1
+        if fit_scale:
+            j = 2 * n_axes
+            J.mul_(theta[:, j, None, None, None, None])
+            J[:, j] = img
+            model = model * theta[:, j, None, None, None]
+        if fit_background:
+            model = model + theta[:, 2 * n_axes + int(fit_scale), None, None, None]
+            J[:, 2 * n_axes + int(fit_scale)] = 1
+        J = J.reshape(rows, P, E * H * W).transpose(1, 2)
         return model.reshape(rows, -1), J
 
     target = data
@@ -493,9 +541,10 @@ def fit_sinusoid(
 
     flat_target = target.reshape(N, -1)
     flat_weight = weight.reshape(N, -1)
+    cheap_model = image_fn if analytic else model_fn  # the same model; the splat's per-frame node counts are cheaper
     theta_alias = alias_of(theta_best)
     with torch.no_grad():
-        alias_cost = image_loss(model_fn(theta_alias, rows), flat_target, loss=loss, weight=flat_weight)
+        alias_cost = image_loss(cheap_model(theta_alias, rows), flat_target, loss=loss, weight=flat_weight)
     live_n = ~dark & ~outside
     if E >= 2:
         # Safety net: where the alias fits better than the consensus start, refit from it.
@@ -514,7 +563,7 @@ def fit_sinusoid(
             iters_best[rb] += res2.n_iter[better]
             theta_alias[rb] = alias_of(theta_best[rb], rb)
             with torch.no_grad():
-                alias_cost[rb] = image_loss(model_fn(theta_alias[rb], rows[rb]), flat_target[rb], loss=loss, weight=flat_weight[rb])
+                alias_cost[rb] = image_loss(cheap_model(theta_alias[rb], rows[rb]), flat_target[rb], loss=loss, weight=flat_weight[rb])
 
     # Uncertainty: the Fisher information at the solution.
     w = weight.reshape(N, -1)
@@ -605,8 +654,13 @@ def fit_sinusoid(
     if fit_center:
         res.center = out(theta_best[:, j:j + 2] + torch.tensor([x0, y0], dtype=dtype, device=device), (2,))
     res.extras["nodes"] = settings.nodes
+    if analytic:
+        res.extras["nodes_per_frame"] = out(panels * m_nodes, (E,))
     res.extras["candidates"] = K
     return res
+
+
+GN_TOL = 1e-2  # squared Mahalanobis length (in std^2) of a final Gauss-Newton step taken unevaluated
 
 
 def _optimise(model_fn, theta0, data, weight, loss, optimizer, max_iter, tol, project, jacobian_fn=None):
@@ -615,8 +669,10 @@ def _optimise(model_fn, theta0, data, weight, loss, optimizer, max_iter, tol, pr
 
     if optimizer == "lm":
         it = max_iter or 60
+        # Converged once the next Gauss-Newton step is below 0.1 standard deviation (that
+        # step is then taken unevaluated; the result is within ~0.01 std of the optimum).
         return levenberg_marquardt(model_fn, theta0, data, loss=loss, weight=weight, max_iter=it, tol=tol, project=project,
-                                   jacobian_fn=jacobian_fn)
+                                   jacobian_fn=jacobian_fn, gn_tol=GN_TOL if loss in ("l2", "poisson") else None)
     n = theta0.shape[0]
     idx = torch.arange(n, device=theta0.device)
     theta = theta0.clone().requires_grad_(True)

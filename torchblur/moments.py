@@ -32,24 +32,32 @@ def image_moments(images: torch.Tensor, *, threshold: torch.Tensor | float | Non
         ``(total [...], centroid [..., 2] (x, y px), cov [..., 2, 2] (px^2))``.
     """
     img = images
+    zero = torch.zeros((), dtype=img.dtype, device=img.device)
     if threshold is not None:
-        thr = torch.as_tensor(threshold, dtype=img.dtype, device=img.device)
+        thr = torch.as_tensor(threshold, dtype=img.dtype, device=img.device).clamp_min(0)
         while thr.dim() < img.dim():
             thr = thr[..., None]
-        img = torch.where(img > thr, img, torch.zeros_like(img))
-    img = img.clamp_min(0)
+        img = torch.where(img > thr, img, zero)
+    else:
+        img = img.clamp_min(0)
     H, W = img.shape[-2:]
-    y = torch.arange(H, dtype=img.dtype, device=img.device)[:, None]
-    x = torch.arange(W, dtype=img.dtype, device=img.device)
-    m0 = img.sum((-1, -2))
+    # Coordinates about the frame centre (less cancellation in the second moments); every
+    # moment from the row sums and two matrix-vector products (no [..., H, W] temporaries).
+    oy, ox = (H - 1) / 2, (W - 1) / 2
+    y = torch.arange(H, dtype=img.dtype, device=img.device) - oy
+    x = torch.arange(W, dtype=img.dtype, device=img.device) - ox
+    sx = img @ torch.stack([torch.ones_like(x), x, x * x], -1)  # [..., H, 3]: row sums of img, img x, img x^2
+    yy = torch.stack([torch.ones_like(y), y, y * y], -1)  # [H, 3]
+    r0, r1 = sx[..., 0], sx[..., 1]
+    m0 = r0.sum(-1)
     safe = m0.clamp_min(torch.finfo(img.dtype).tiny)
-    cx = (img * x).sum((-1, -2)) / safe
-    cy = (img * y).sum((-1, -2)) / safe
-    dx = x - cx[..., None, None]
-    dy = y - cy[..., None, None]
-    sxx = (img * dx * dx).sum((-1, -2)) / safe
-    syy = (img * dy * dy).sum((-1, -2)) / safe
-    sxy = (img * dx * dy).sum((-1, -2)) / safe
+    ey = (r0[..., None, :] @ yy)[..., 0, :] / safe[..., None]  # E[1], E[y], E[y^2]
+    cx = r1.sum(-1) / safe
+    cy = ey[..., 1]
+    sxx = (sx[..., 2].sum(-1) / safe - cx * cx).clamp_min(0)
+    syy = (ey[..., 2] - cy * cy).clamp_min(0)
+    sxy = (r1 * y).sum(-1) / safe - cx * cy
+    cx, cy = cx + ox, cy + oy
     cov = torch.stack([torch.stack([sxx, sxy], -1), torch.stack([sxy, syy], -1)], -2)
     return m0, torch.stack([cx, cy], -1), cov
 
