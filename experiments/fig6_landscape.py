@@ -23,6 +23,7 @@ import torch
 from common import parse, plt, save_figure, write_metrics
 
 import torchblur as tb
+from torchblur.landscape import cost_landscape
 from torchblur.losses import image_loss
 
 F64 = torch.float64
@@ -91,15 +92,9 @@ def main():
     data = renderer(sinusoid(M, phi0), psf, window).flatten()  # [H*W]
     amps = torch.linspace(float(cfg.amplitude_range_px[0]), float(cfg.amplitude_range_px[1]), NA, dtype=F64)
     phases = torch.linspace(-math.pi, math.pi, NP + 1, dtype=F64)[:-1]
-    A_, P_ = torch.meshgrid(amps, phases, indexing="ij")  # [NA, NP]
-    flat_a, flat_p = A_.reshape(-1), P_.reshape(-1)
-    costs = {nm: torch.empty(NA * NP, dtype=F64) for nm in norms}
-    step = int(cfg.batch)
-    for s in range(0, NA * NP, step):
-        model = renderer(sinusoid(flat_a[s:s + step], flat_p[s:s + step]), psf, window).flatten(-2)  # [B, H*W]
-        for nm in norms:
-            c = image_loss(model, data[None], loss=nm)
-            costs[nm][s:s + step] = c.sqrt() if nm == "l2" else c
+    land = cost_landscape(data.reshape(1, H, W), psf, window[None], om, amps, phases, losses=norms,
+                          chunk=int(cfg.batch))  # {norm: [NA, NP, 1]}
+    costs = {nm: (land[nm][..., 0].sqrt() if nm == "l2" else land[nm][..., 0]).reshape(-1) for nm in norms}
     ref = {nm: float(image_loss(torch.zeros_like(data)[None], data[None], loss=nm)[0]) for nm in norms}
     rel = {nm: (costs[nm] / (math.sqrt(ref[nm]) if nm == "l2" else ref[nm])).reshape(NA, NP).numpy() for nm in norms}
     alias = float(tb.alias_phase(torch.tensor(phi0, dtype=F64), om, window))

@@ -25,7 +25,7 @@ from common import parse, periodic_minima, plt, save_figure, write_metrics
 
 import torchblur as tb
 from torchblur.design import alias_separation, dual_exposure_windows
-from torchblur.losses import image_loss
+from torchblur.landscape import cost_landscape
 
 F64 = torch.float64
 
@@ -73,11 +73,11 @@ def main():
     energy = data.square().sum(-1)                                 # [E] = ||Y_e||^2
     aliases = tb.alias_phase(torch.tensor(phi0, dtype=F64), om, window)  # [E]
 
-    # 1-D: amplitude known, phase scanned; [P, E] models in one call.
+    # 1-D: amplitude known, phase scanned; the loss of each exposure [P, E].
     P = int(cfg.n_phase)
     grid = torch.linspace(-math.pi, math.pi, P + 1, dtype=F64)[:-1]
-    model = renderer(sinusoid(M, grid[:, None]), psf, window).flatten(-2)    # [P, E, H*W]
-    c = image_loss(model, data, loss="l2")                                  # [P, E]
+    images = data.reshape(E, H, W)
+    c = cost_landscape(images, psf, window, om, torch.tensor([M], dtype=F64), grid, chunk=int(cfg.batch))["l2"][0]  # [P, E]
     single = (c / energy).T.numpy()                                         # [E, P] relative
     joint = (c.sum(-1) / energy.sum()).numpy()                              # [P] maximum likelihood
     eq8 = (c.sqrt() / energy.sqrt()).sum(-1).numpy() / E                    # [P] the paper's eq. 8
@@ -94,14 +94,7 @@ def main():
     NA, NP = int(cfg.n_amplitude), int(cfg.n_phase_2d)
     amps = torch.linspace(float(cfg.amplitude_range_px[0]), float(cfg.amplitude_range_px[1]), NA, dtype=F64)
     ph2 = torch.linspace(-math.pi, math.pi, NP + 1, dtype=F64)[:-1]
-    A_, P_ = torch.meshgrid(amps, ph2, indexing="ij")
-    fa, fp = A_.reshape(-1), P_.reshape(-1)
-    land = torch.empty(NA * NP, dtype=F64)
-    step = int(cfg.batch)
-    for s in range(0, NA * NP, step):
-        mod = renderer(sinusoid(fa[s:s + step, None], fp[s:s + step, None]), psf, window).flatten(-2)  # [B, E, H*W]
-        land[s:s + step] = image_loss(mod, data, loss="l2").sum(-1) / energy.sum()
-    land = land.reshape(NA, NP).numpy()
+    land = (cost_landscape(images, psf, window, om, amps, ph2, chunk=int(cfg.batch))["l2"].sum(-1) / energy.sum()).numpy()
     mins2d = grid_minima(land)
     a_np, p2 = amps.numpy(), ph2.numpy()
 
