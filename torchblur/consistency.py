@@ -52,6 +52,10 @@ class _ExposureAxis(Trajectory):
         E = window.shape[-1]
         return torch.stack([self.base.path_length(window[..., e]) for e in range(E)], -1)
 
+    def phase_span(self, window: ExposureWindow) -> torch.Tensor:
+        E = window.shape[-1]
+        return torch.stack([self.base.phase_span(window[..., e]) for e in range(E)], -1)
+
 
 def _as_trajectory(pred, omega, like: torch.Tensor) -> Trajectory:
     """Normalise ``pred`` (see :func:`blur_consistency`) to a :class:`Trajectory`."""

@@ -8,6 +8,7 @@ dark frame or a spot out of frame is flagged and never stops or poisons the batc
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -20,7 +21,7 @@ from .losses import LOSSES, image_loss, irls_weights
 from .moments import image_moments, sinusoid_from_moments
 from .optim import levenberg_marquardt, model_jacobian
 from .psf import GaussianPSF, KernelPSF
-from .render import RenderSettings, choose_node_count, quadrature_nodes, render_blur
+from .render import RenderSettings, choose_node_count, panel_count, quadrature_nodes, render_blur
 from .timing import ExposureWindow
 from .trajectory import Sinusoid
 
@@ -348,10 +349,10 @@ def fit_sinusoid(
         path = Sinusoid(amp_xy[:, None, :], torch.zeros(N, 1, 2, dtype=dtype, device=device), om[:, None]).path_length(
             ExposureWindow(torch.zeros_like(dur), dur))
         smin = p_flat.sigma_min()[:, None]
-        S = choose_node_count(path, smin, settings)
-        settings = RenderSettings(pixel_integration=settings.pixel_integration, nodes_per_panel=settings.nodes_per_panel,
-                                  panel_path_sigmas=settings.panel_path_sigmas, max_nodes=settings.max_nodes, nodes=S)
-        panels = (path / (settings.panel_path_sigmas * smin)).ceil().clamp(1, S // settings.nodes_per_panel).long()
+        span = om[:, None] * dur  # [N, E]
+        S = choose_node_count(path, smin, settings, span)
+        panels = panel_count(path, smin, settings, span)
+        settings = dataclasses.replace(settings, nodes=S)
 
     prob_of = lambda idx: torch.div(idx, K, rounding_mode="floor")  # noqa: E731
 

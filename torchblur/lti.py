@@ -410,5 +410,10 @@ class LTISineTrajectory(Trajectory):
                 tv = tv + 1.1 * ytr.diff(dim=-1).abs().sum(-1)
             return tv * torch.linalg.vector_norm(self.direction.to(dev), dim=-1)
 
+    def phase_span(self, window: ExposureWindow) -> torch.Tensor:
+        """``omega * duration`` of the steady state; the transients' share of the nodes comes
+        from their path (:meth:`path_length`)."""
+        return self.omega.detach().abs().to(window.duration.device) * window.duration.detach()
+
     def __repr__(self) -> str:
         return f"LTISineTrajectory(shape={tuple(self.shape)}, order={self.plant.order}, method={self.method!r})"

@@ -33,6 +33,14 @@ class Trajectory:
         without gradient. The renderer chooses its time nodes from it."""
         raise NotImplementedError
 
+    def phase_span(self, window: ExposureWindow) -> torch.Tensor:
+        """The phase (rad) the motion's fastest oscillation advances during ``window``,
+        ``[...]``, without gradient. The renderer gives every panel of time nodes at most
+        ``RenderSettings.panel_phase_rad`` of it, so a short path over a long time (a small
+        motion over most of a period) is still integrated exactly. Default 0: the path
+        length alone sets the nodes."""
+        return torch.zeros(torch.broadcast_shapes(self.shape, window.shape), dtype=torch.float64)
+
 
 def _abs_cos_integral(theta: torch.Tensor) -> torch.Tensor:
     """``G(theta) = integral_0^theta |cos u| du = 2k + (-1)^k sin(theta)``, ``k = floor((theta + pi/2) / pi)``."""
@@ -89,6 +97,9 @@ class Sinusoid(Trajectory):
     def path_length(self, window: ExposureWindow) -> torch.Tensor:
         s, d = window.start.detach()[..., None], window.duration.detach()[..., None]
         return _sine_path_bound(self.amplitude.detach(), self.omega.detach(), self.phase.detach(), s, d).sum(-1)
+
+    def phase_span(self, window: ExposureWindow) -> torch.Tensor:
+        return self.omega.detach().abs().amax(-1) * window.duration.detach()
 
     def __getitem__(self, idx) -> "Sinusoid":
         return Sinusoid(self.amplitude[idx], self.phase[idx], self.omega[idx])
@@ -149,6 +160,9 @@ class Multisine(Trajectory):
     def path_length(self, window: ExposureWindow) -> torch.Tensor:
         s, d = window.start.detach()[..., None, None], window.duration.detach()[..., None, None]
         return _sine_path_bound(self.amplitude.detach(), self.omega.detach(), self.phase.detach(), s, d).sum((-1, -2))
+
+    def phase_span(self, window: ExposureWindow) -> torch.Tensor:
+        return self.omega.detach().abs().amax((-1, -2)) * window.duration.detach()
 
     def to(self, *args, **kwargs) -> "Multisine":
         return Multisine(*(v.to(*args, **kwargs) for v in (self.amplitude, self.phase, self.omega)))

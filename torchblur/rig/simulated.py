@@ -251,7 +251,7 @@ class SimulatedRig:
         sum over its parts) and the batch is cut into chunks that bound the memory."""
         H, W = self._frame_shape
         N = window.shape[0]
-        S = choose_node_count(trajectory.path_length(window), psf.sigma_min(), self._settings)
+        S = choose_node_count(trajectory.path_length(window), psf.sigma_min(), self._settings, trajectory.phase_span(window))
         K = max(1, math.ceil(S / _MAX_NODES_PER_RENDER))
         frac = torch.arange(K, dtype=_F64) / K
         start = (window.start[:, None] + window.duration[:, None] * frac).reshape(-1)
