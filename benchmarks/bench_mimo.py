@@ -55,7 +55,17 @@ def main():
               f"images_per_point={cfg.sweep.images_per_point}, {f.n_outputs}x{f.n_inputs} channels, time {dt:.1f} s")
         n_bad = int((~f.valid).sum())
         print(f"  converged channel points: {f.valid.size - n_bad} of {f.valid.size}")
-        for o in range(f.n_outputs):
+        if res.spots is not None:  # one line per spot: its direct channels (x from x, y from y) and its cross channels
+            t = np.abs(res.truth)
+            for k in range(len(res.spots)):
+                d, c = [(2 * k, 0), (2 * k + 1, 1)], [(2 * k, 1), (2 * k + 1, 0)]
+                pick = lambda a, idx: max(a[o, i] for o, i in idx)  # noqa: E731
+                ratio = [np.min(t[o, i] / t[2 * k + i, i]) for o, i in c] + [np.max(t[o, i] / t[2 * k + i, i]) for o, i in c]
+                cx, cy = res.spots.psf.center[k].tolist()
+                print(f"  s{k} at ({cx:5.1f}, {cy:5.1f}) px: direct |H| err max {pick(em, d) * 100:6.3f}%  phase {pick(ep, d):6.3f} deg; "
+                      f"cross ({min(ratio) * 100:.0f}-{max(ratio) * 100:.0f}% of direct) |H| err max {pick(em, c) * 100:6.3f}%  "
+                      f"phase {pick(ep, c):6.3f} deg; err/std max {max(pick(z, d), pick(z, c)):4.2f}")
+        for o in range(f.n_outputs if res.spots is None else 0):
             for i in range(f.n_inputs):
                 ratio = ""
                 if name == "mimo" and o != i:
