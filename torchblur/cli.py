@@ -367,7 +367,11 @@ def _report(cfg, res, elapsed, stamp) -> str:
                           f"{ep:.3f} deg (goal 1 deg), max error/std {z:.2f} (goal 5)"]
         else:
             lines += ["", "against the truth, per channel (goal 2% and 2 deg):"]
-            for out_l, in_l, em, ep, z in summary:
+            for (out_l, in_l, em, ep, z), (o, i) in zip(summary, [(o, i) for o in range(frf.n_outputs) for i in range(frf.n_inputs)]):
+                if np.all(np.abs(truth[o, i]) == 0):  # no true motion on this channel: say how small the estimate is
+                    lines.append(f"  {out_l:>6} from {in_l}: true response 0, max |H| {np.nanmax(frf.magnitude[o, i]):.3g} "
+                                 f"(max |H| / std {np.nanmax(frf.magnitude[o, i] / frf.magnitude_std[o, i]):.2f})")
+                    continue
                 lines.append(f"  {out_l:>6} from {in_l}: max |H| error {em * 100:.3f}%, max phase error {ep:.3f} deg, "
                              f"max error/std {z:.2f}")
     if res.model is not None and res.model.is_siso:

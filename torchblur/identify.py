@@ -390,7 +390,8 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False) -> Calibrati
     if getattr(cfg, "spots", None) is not None and cfg.spots.enabled:
         spots = _locate_spots(cfg, still, te_psf, read_noise_e, log, progress)
         psf = spots.psf  # [K], full-frame coordinates
-        peak_rate = float(psf.amplitude.max())  # the brightest spot's peak, electrons per second at power 1
+        whole = spots.inside_fraction >= _MIN_INSIDE  # an edge spot's peak is an extrapolation: not trusted here
+        peak_rate = float(psf.amplitude[whole].max() if bool(whole.any()) else psf.amplitude.max())  # e-/s at power 1
     else:
         psf_fit = fit_gaussian_psf(still, exposure_s=te_psf, noise_std=math.sqrt(read_noise_e**2 + float(still.max())) / 4)
         psf = psf_fit.psf
