@@ -230,18 +230,21 @@ def _write_outputs(cfg, res, out: Path, elapsed: float, stamp: str) -> None:
     else:
         model["error"] = "the model fit failed; see report.txt"
     (out / "model.json").write_text(json.dumps(model, indent=2))
-    truth_fn = None
+    truth = None
     if res.truth is not None:
-        from torchblur.lti import Plant
+        if getattr(res, "spots", None) is not None:
+            truth = res.truth  # [O, I, F] at the measured points
+        else:
+            from torchblur.identify import plant_of
 
-        plant = Plant(tuple(float(v) for v in cfg.plant.num), tuple(float(v) for v in cfg.plant.den), float(cfg.plant.delay_s))
-        truth_fn = plant.frequency_response
-    fig = bode_figure(frf, model=res.model, truth=truth_fn, stamp=stamp)
-    fig.savefig(out / "bode.png", dpi=110, metadata={"Description": stamp})
-    worst = np.argsort(np.nan_to_num(res.fit.cost.numpy() / np.maximum(1, res.images[0].numel()), nan=np.inf))[-3:][::-1].copy()
-    models = _fitted_images(res, worst)
-    labels = [f"{frf.freq_hz[k]:.4g} Hz" for k in worst]
-    fig = residual_figure(res.images[worst, 0].numpy(), models, labels, stamp=stamp)
+            truth = plant_of(cfg).frequency_response
+    fig = bode_figure(frf, model=res.model, truth=truth, stamp=stamp)
+    fig.savefig(out / "bode.png", dpi=110 if frf.n_outputs <= 2 else 80, metadata={"Description": stamp})
+    cost = res.fit.cost.reshape(-1).numpy()
+    n_pix = res.images.shape[-3] * res.images.shape[-2] * res.images.shape[-1]
+    worst = np.argsort(np.nan_to_num(cost / max(1, n_pix), nan=-np.inf))[-3:][::-1].copy()
+    data, models, labels = _fitted_images(res, worst)
+    fig = residual_figure(data, models, labels, stamp=stamp)
     fig.savefig(out / "residuals.png", dpi=90, metadata={"Description": stamp})
     report = _report(cfg, res, elapsed, stamp)
     (out / "report.txt").write_text(report)
@@ -272,29 +275,53 @@ def _write_frf_csv(frf, path, *, stamp_version, seed):
 
 
 def _fitted_images(res, idx):
-    """The first fitted frame of points ``idx`` (for the residual figure)."""
+    """The first frame of problems ``idx`` (flat indices of ``res.fit``), its fitted model and
+    a label each (for the residual figure): ``(data [n, h, w], models [n, h, w], labels)``."""
+    import numpy as np
     import torch
 
     import torchblur as tb
 
-    out = []
-    for k in idx:
-        k = int(k)
-        if not bool(res.fit.converged[k]):
-            out.append(torch.zeros_like(res.images[k, 0]).numpy())
+    frf = res.frf
+    single = res.fit.amplitude.dim() == 1
+    F = len(frf.omega)
+    P = 1 if single else res.fit.amplitude.shape[1]
+    data, out, labels = [], [], []
+    for q in idx:
+        q = int(q)
+        j, p = divmod(q, P)
+        k = j % F
+        if single:
+            img_d = res.images[j, 0]
+            w = res.windows[j, 0]
+            label = f"{frf.freq_hz[k]:.4g} Hz"
+        else:
+            ii = j // F
+            img_d = res.images[ii, k, p, 0]
+            w = res.windows[ii, k, 0]
+            label = f"{frf.freq_hz[k]:.4g} Hz, input {res.inputs[ii]}" + (f", spot s{p}" if res.spots is not None else "")
+        data.append(img_d.numpy())
+        labels.append(label)
+        fit = res.fit
+        at = (j,) if single else (j, p)
+        if not bool(fit.converged[at]):
+            out.append(np.zeros_like(img_d.numpy()))
             continue
-        amp = torch.stack([res.fit.amplitude[k], torch.zeros_like(res.fit.amplitude[k])])
-        ph = res.fit.phase[k].expand(2)
-        psf = tb.GaussianPSF(res.psf.center, res.psf.cov, res.psf.amplitude * res.power[k] * (res.fit.scale[k] if res.fit.scale is not None else 1.0))
-        w = res.windows[k, 0]
-        om = 2 * math.pi * float(res.frf.freq_hz[k])
-        img = tb.render_blur(tb.Sinusoid(amp, ph, om), psf, w, height=res.images.shape[-2], width=res.images.shape[-1])
-        if res.fit.background is not None:
-            img = img + res.fit.background[k]
+        if single:
+            amp = torch.stack([fit.amplitude[j], torch.zeros_like(fit.amplitude[j])])
+            ph = fit.phase[j].expand(2)
+            psf = res.psf
+        else:
+            amp, ph = fit.amplitude[j, p], fit.phase[j, p]
+            psf = res.spots.psf_in_crops()[p] if res.spots is not None else res.psf
+        scale = res.power[j] * (fit.scale[at] if fit.scale is not None else 1.0)
+        psf = tb.GaussianPSF(psf.center, psf.cov, psf.amplitude * scale)
+        om = 2 * math.pi * float(frf.freq_hz[k])
+        img = tb.render_blur(tb.Sinusoid(amp, ph, om), psf, w, height=img_d.shape[-2], width=img_d.shape[-1])
+        if fit.background is not None:
+            img = img + fit.background[at]
         out.append(img.detach().numpy())
-    import numpy as np
-
-    return np.stack(out)
+    return np.stack(data), np.stack(out), labels
 
 
 def _report(cfg, res, elapsed, stamp) -> str:
@@ -303,34 +330,68 @@ def _report(cfg, res, elapsed, stamp) -> str:
     frf = res.frf
     lines = [f"torchblur identify report ({stamp})", ""]
     lines += res.log
-    lines += ["", f"{'freq_hz':>10} {'|H|':>10} {'+-':>9} {'phase_deg':>10} {'+-':>7}"
-              + (f" {'|H| err %':>9} {'ph err deg':>10} {'err/std':>8}" if res.truth is not None else "")]
-    for k in range(len(frf.omega)):
-        m, ms = frf.magnitude[0, 0, k], frf.magnitude_std[0, 0, k]
-        p, ps = np.degrees(frf.phase[0, 0, k]), np.degrees(frf.phase_std[0, 0, k])
-        line = f"{frf.freq_hz[k]:10.4g} {m:10.5g} {ms:9.2g} {p:10.3f} {ps:7.3f}"
-        if res.truth is not None:
-            t = res.truth[k]
-            em = (m - abs(t)) / abs(t) * 100
-            ep = math.degrees(math.remainder(frf.phase[0, 0, k] - np.angle(t), 2 * math.pi))
-            z = max(abs(m - abs(t)) / ms, abs(math.radians(ep)) / frf.phase_std[0, 0, k])
-            line += f" {em:9.3f} {ep:10.3f} {z:8.2f}"
-        lines.append(line)
+    truth = None
     if res.truth is not None:
-        t = res.truth
-        em = np.abs(frf.magnitude[0, 0] - np.abs(t)) / np.abs(t)
-        ep = np.degrees(np.abs(np.remainder(frf.phase[0, 0] - np.angle(t) + np.pi, 2 * np.pi) - np.pi))
-        z = np.maximum(np.abs(frf.magnitude[0, 0] - np.abs(t)) / frf.magnitude_std[0, 0],
-                       np.radians(ep) / frf.phase_std[0, 0])
-        lines += ["", f"against the truth: max |H| error {np.nanmax(em) * 100:.3f}% (goal 1%), max phase error "
-                      f"{np.nanmax(ep):.3f} deg (goal 1 deg), max error/std {np.nanmax(z):.2f} (goal 5)"]
-    if res.model is not None:
+        truth = res.truth if res.truth.ndim == 3 else res.truth[None, None]
+    head = (f"{'freq_hz':>10} {'|H|':>10} {'+-':>9} {'phase_deg':>10} {'+-':>7}"
+            + (f" {'|H| err %':>9} {'ph err deg':>10} {'err/std':>8}" if truth is not None else ""))
+    summary = []
+    for o in range(frf.n_outputs):
+        for i in range(frf.n_inputs):
+            if not frf.is_siso:
+                lines += ["", f"output {frf.output_labels[o]} from input {frf.input_labels[i]}:"]
+            lines += ["", head] if frf.is_siso else [head]
+            for k in range(len(frf.omega)):
+                m, ms = frf.magnitude[o, i, k], frf.magnitude_std[o, i, k]
+                p, ps = np.degrees(frf.phase[o, i, k]), np.degrees(frf.phase_std[o, i, k])
+                line = f"{frf.freq_hz[k]:10.4g} {m:10.5g} {ms:9.2g} {p:10.3f} {ps:7.3f}"
+                if truth is not None:
+                    t = truth[o, i, k]
+                    em = (m - abs(t)) / abs(t) * 100
+                    ep = math.degrees(math.remainder(frf.phase[o, i, k] - np.angle(t), 2 * math.pi))
+                    z = max(abs(m - abs(t)) / ms, abs(math.radians(ep)) / frf.phase_std[o, i, k])
+                    line += f" {em:9.3f} {ep:10.3f} {z:8.2f}"
+                lines.append(line)
+            if truth is not None:
+                t = truth[o, i]
+                em = np.abs(frf.magnitude[o, i] - np.abs(t)) / np.abs(t)
+                ep = np.degrees(np.abs(np.remainder(frf.phase[o, i] - np.angle(t) + np.pi, 2 * np.pi) - np.pi))
+                z = np.maximum(np.abs(frf.magnitude[o, i] - np.abs(t)) / frf.magnitude_std[o, i], np.radians(ep) / frf.phase_std[o, i])
+                with np.errstate(invalid="ignore"):
+                    summary.append((frf.output_labels[o], frf.input_labels[i], np.nanmax(em) if np.isfinite(em).any() else np.nan,
+                                    np.nanmax(ep) if np.isfinite(ep).any() else np.nan, np.nanmax(z) if np.isfinite(z).any() else np.nan))
+    if summary:
+        if frf.is_siso:
+            _, _, em, ep, z = summary[0]
+            lines += ["", f"against the truth: max |H| error {em * 100:.3f}% (goal 1%), max phase error "
+                          f"{ep:.3f} deg (goal 1 deg), max error/std {z:.2f} (goal 5)"]
+        else:
+            lines += ["", "against the truth, per channel (goal 2% and 2 deg):"]
+            for (out_l, in_l, em, ep, z), (o, i) in zip(summary, [(o, i) for o in range(frf.n_outputs) for i in range(frf.n_inputs)]):
+                if np.all(np.abs(truth[o, i]) == 0):  # no true motion on this channel: say how small the estimate is
+                    lines.append(f"  {out_l:>6} from {in_l}: true response 0, max |H| {np.nanmax(frf.magnitude[o, i]):.3g} "
+                                 f"(max |H| / std {np.nanmax(frf.magnitude[o, i] / frf.magnitude_std[o, i]):.2f})")
+                    continue
+                lines.append(f"  {out_l:>6} from {in_l}: max |H| error {em * 100:.3f}%, max phase error {ep:.3f} deg, "
+                             f"max error/std {z:.2f}")
+    if res.model is not None and res.model.is_siso:
         m = res.model
         lines += ["", f"model: {m.n_poles} poles, {m.n_zeros} zeros, delay {m.delay_s * 1e6:.3f} us, reduced chi2 "
                       f"{m.reduced_chi2:.3f} (dof {m.dof}), rms relative error {m.rms_relative_error:.2e}",
                   f"  num = {list(map(float, m.num))}", f"  den = {list(map(float, m.den))}"]
         for mode in m.modal_parameters():
             lines.append(f"  mode: {mode['freq_hz']:.3f} Hz, damping {mode['zeta']:.4f}")
+    elif res.model is not None:
+        m = res.model
+        modes = m.modal_parameters()
+        for o, out_l in enumerate(m.output_labels):
+            for i, in_l in enumerate(m.input_labels):
+                lines += ["", f"model {out_l} from {in_l}: {m.n_poles[o][i]} poles, {m.n_zeros[o][i]} zeros, delay "
+                              f"{m.delay_s[o][i] * 1e6:.3f} us, reduced chi2 {m.reduced_chi2[o][i]:.3f} (dof {m.dof[o][i]}), "
+                              f"rms relative error {m.rms_relative_error[o][i]:.2e}",
+                          f"  num = {list(map(float, m.num[o][i]))}", f"  den = {list(map(float, m.den[o][i]))}"]
+                for mode in modes[o][i]:
+                    lines.append(f"  mode: {mode['freq_hz']:.3f} Hz, damping {mode['zeta']:.4f}")
     what = "simulated acquisition" if cfg.rig.kind == "simulated" else "acquisition"
     t = getattr(res, "timing", {}) or {}
     lines += ["", f"elapsed {elapsed:.1f} s ({what} and fitting)"]

@@ -15,6 +15,7 @@ from typing import Optional
 from .errors import ConfigError
 
 __all__ = ["IdentifyConfig", "load_config", "load_dataclass", "config_to_yaml", "validate", "validate_plant", "validate_camera",
+           "validate_spots", "SpotsConfig", "PlantConfig",
            "DEFAULT_PLANT", "RIG_KINDS"]
 
 RIG_KINDS = ("simulated", "serial")
@@ -34,9 +35,59 @@ DEFAULT_PLANT = _default_plant()
 
 @dataclass(frozen=True)
 class PlantConfig:
+    """The simulated mirror. SISO: ``num``/``den`` flat coefficient lists (highest power
+    first), ``delay_s`` a number. A two-axis tip-tilt mirror (MIMO): ``num``/``den`` 2x2
+    nested lists, ``num[i][j]`` the channel from input j to output i (i, j in x, y), and
+    ``delay_s`` one number (shared) or a 2x2 nested list; the run then excites each input in
+    turn and identifies the 2x2 response."""
+
     num: list = field(default_factory=lambda: list(DEFAULT_PLANT[0]))
     den: list = field(default_factory=lambda: list(DEFAULT_PLANT[1]))
-    delay_s: float = 30e-6
+    delay_s: object = 30e-6
+
+    @property
+    def is_mimo(self) -> bool:
+        """True when ``num`` is nested (a 2x2 plant)."""
+        return _nested(self.num)
+
+
+@dataclass(frozen=True)
+class SpotsConfig:
+    """Many spots (a Shack-Hartmann sensor, see :mod:`torchblur.spots`). ``rows`` = 0 (the
+    default): one spot, as without this section."""
+
+    rows: int = 0
+    cols: int = 0
+    pitch_px: float = 32.0
+    center_px: Optional[list] = None  # grid centre (x, y) px; null: the frame centre
+    sigma_px: Optional[float] = None  # PSF std at the grid centre; null: camera.psf_sigma_px
+    sigma_variation: float = 0.0
+    elongation: float = 0.0
+    gain_variation: float = 0.0
+    rotation_rad: float = 0.0
+    missing: list = field(default_factory=list)  # row-major indices of absent spots (simulation)
+    crop_px: Optional[int] = None  # side of each spot's crop; null: floor(pitch_px)
+
+    @property
+    def enabled(self) -> bool:
+        return int(self.rows) > 0
+
+    def grid(self, camera=None):
+        """The :class:`~torchblur.spots.SpotGrid` of this section (None when disabled)."""
+        if not self.enabled:
+            return None
+        from .spots import SpotGrid
+
+        sigma = self.sigma_px if self.sigma_px is not None else (camera.psf_sigma_px if camera is not None else 2.0)
+        return SpotGrid(rows=int(self.rows), cols=int(self.cols), pitch_px=float(self.pitch_px),
+                        center_px=None if self.center_px is None else tuple(float(v) for v in self.center_px),
+                        sigma_px=float(sigma), sigma_variation=float(self.sigma_variation), elongation=float(self.elongation),
+                        gain_variation=float(self.gain_variation), rotation_rad=float(self.rotation_rad),
+                        missing=tuple(int(m) for m in self.missing))
+
+    def crop_side(self) -> int:
+        """Side (px) of each spot's crop."""
+        return int(self.crop_px) if self.crop_px is not None else int(math.floor(float(self.pitch_px)))
 
 
 @dataclass(frozen=True)
@@ -113,6 +164,7 @@ class IdentifyConfig:
     fit: FitConfig = field(default_factory=FitConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
     rig: RigConfig = field(default_factory=RigConfig)
+    spots: SpotsConfig = field(default_factory=SpotsConfig)
     seed: int = 0
 
     def frequencies_hz(self) -> list[float]:
@@ -218,22 +270,99 @@ def _coeffs(value, key) -> list[float]:
     return [_num(v, f"{key}[{i}]") for i, v in enumerate(value)]
 
 
-def validate_plant(plant: PlantConfig) -> None:
-    """Check the ``plant`` section; raise :class:`ConfigError` naming the key."""
+def _nested(value) -> bool:
+    return isinstance(value, (list, tuple)) and len(value) > 0 and isinstance(value[0], (list, tuple))
+
+
+def _check_channel(num, den, key_num: str, key_den: str) -> None:
     import numpy as np
 
-    num = _coeffs(plant.num, "plant.num")
-    den = _coeffs(plant.den, "plant.den")
+    num = _coeffs(num, key_num)
+    den = _coeffs(den, key_den)
     while len(num) > 1 and num[0] == 0:
         num = num[1:]
     if den[0] == 0:
-        raise ConfigError("plant.den: the leading coefficient must be non-zero")
+        raise ConfigError(f"{key_den}: the leading coefficient must be non-zero")
     if len(num) > len(den):
-        raise ConfigError(f"plant.num: the plant must be proper (degree of num {len(num) - 1} > degree of den {len(den) - 1})")
+        raise ConfigError(f"{key_num}: the plant must be proper (degree of num {len(num) - 1} > degree of den {len(den) - 1})")
     poles = np.roots(den)
     if len(poles) and (poles.real >= 0).any():
-        raise ConfigError(f"plant.den: the plant must be stable; poles with real part >= 0: {poles[poles.real >= 0]}")
-    _num(plant.delay_s, "plant.delay_s", nonnegative=True)
+        raise ConfigError(f"{key_den}: the plant must be stable; poles with real part >= 0: {poles[poles.real >= 0]}")
+
+
+def _check_2x2(value, key: str) -> None:
+    """``value`` must be 2 rows of 2 non-empty coefficient lists."""
+    shape = [len(r) if isinstance(r, (list, tuple)) else type(r).__name__ for r in value] if isinstance(value, (list, tuple)) else value
+    if not isinstance(value, (list, tuple)) or len(value) != 2 or any(not isinstance(r, (list, tuple)) or len(r) != 2 for r in value):
+        raise ConfigError(f"{key}: expected 2x2 nested lists ({key}[i][j]: output i from input j, i, j in x, y), got rows {shape}")
+    for i in range(2):
+        for j in range(2):
+            if not isinstance(value[i][j], (list, tuple)):
+                raise ConfigError(f"{key}[{i}][{j}]: expected a list of coefficients (highest power first), got {value[i][j]!r}")
+
+
+def validate_plant(plant: PlantConfig) -> None:
+    """Check the ``plant`` section; raise :class:`ConfigError` naming the key. ``num``/``den``
+    are flat lists (SISO) or both 2x2 nested lists (a tip-tilt mirror, ``num[i][j]``: output i
+    from input j); ``delay_s`` is a number, or for a 2x2 plant a number or 2x2 nested list."""
+    mimo_num, mimo_den = _nested(plant.num), _nested(plant.den)
+    if not mimo_num and not mimo_den:
+        _check_channel(plant.num, plant.den, "plant.num", "plant.den")
+        _num(plant.delay_s, "plant.delay_s", nonnegative=True)
+        return
+    if not mimo_num:
+        raise ConfigError(f"plant.num: expected 2x2 nested lists like plant.den (a MIMO plant), got {plant.num!r}")
+    if not mimo_den:
+        raise ConfigError(f"plant.den: expected 2x2 nested lists like plant.num (a MIMO plant), got {plant.den!r}")
+    _check_2x2(plant.num, "plant.num")
+    _check_2x2(plant.den, "plant.den")
+    for i in range(2):
+        for j in range(2):
+            _check_channel(plant.num[i][j], plant.den[i][j], f"plant.num[{i}][{j}]", f"plant.den[{i}][{j}]")
+    d = plant.delay_s
+    if isinstance(d, (list, tuple)):
+        if len(d) != 2 or any(not isinstance(r, (list, tuple)) or len(r) != 2 for r in d):
+            raise ConfigError(f"plant.delay_s: expected a number or 2x2 nested lists, got {d!r}")
+        for i in range(2):
+            for j in range(2):
+                _num(d[i][j], f"plant.delay_s[{i}][{j}]", nonnegative=True)
+    else:
+        _num(d, "plant.delay_s", nonnegative=True)
+
+
+def validate_spots(sp: SpotsConfig, camera: CameraConfig | None = None) -> None:
+    """Check the ``spots`` section; raise :class:`ConfigError` naming the key."""
+    _num(sp.rows, "spots.rows", integer=True, low=0)
+    if not sp.enabled:
+        return
+    _num(sp.cols, "spots.cols", integer=True, low=1)
+    _num(sp.pitch_px, "spots.pitch_px", positive=True)
+    if sp.center_px is not None:
+        if not isinstance(sp.center_px, (list, tuple)) or len(sp.center_px) != 2:
+            raise ConfigError(f"spots.center_px: expected null or [x, y] (px), got {sp.center_px!r}")
+        for i, v in enumerate(sp.center_px):
+            _num(v, f"spots.center_px[{i}]")
+    if sp.sigma_px is not None:
+        _num(sp.sigma_px, "spots.sigma_px", positive=True)
+    for k in ("sigma_variation", "elongation"):
+        _num(getattr(sp, k), f"spots.{k}", nonnegative=True)
+    _num(sp.gain_variation, "spots.gain_variation", low=-0.99, high=0.99)
+    _num(sp.rotation_rad, "spots.rotation_rad")
+    if not isinstance(sp.missing, (list, tuple)):
+        raise ConfigError(f"spots.missing: expected a list of grid indices, got {sp.missing!r}")
+    n = int(sp.rows) * int(sp.cols)
+    for i, m in enumerate(sp.missing):
+        _num(m, f"spots.missing[{i}]", integer=True, low=0, high=n - 1)
+    if len(set(int(m) for m in sp.missing)) >= n:
+        raise ConfigError("spots.missing: every spot of the grid is missing")
+    if sp.crop_px is not None:
+        _num(sp.crop_px, "spots.crop_px", integer=True, low=8)
+    if camera is not None:
+        side = sp.crop_side()
+        if side < 8:
+            raise ConfigError(f"spots.pitch_px: a crop of floor(pitch_px) = {side} px is too small (at least 8; or set spots.crop_px)")
+        if side > min(camera.height, camera.width):
+            raise ConfigError(f"spots.crop_px: a crop of {side} px does not fit a {camera.height}x{camera.width} frame")
 
 
 def validate_camera(c: CameraConfig) -> None:
@@ -308,6 +437,14 @@ def validate(cfg: IdentifyConfig) -> None:
     if s.settle_s is not None:
         _num(s.settle_s, "sweep.settle_s", nonnegative=True)
     _num(cfg.excitation.target_px, "excitation.target_px", positive=True)
+    validate_spots(cfg.spots, cfg.camera)
+    if cfg.spots.enabled:
+        sigma = cfg.spots.sigma_px if cfg.spots.sigma_px is not None else cfg.camera.psf_sigma_px
+        room = cfg.spots.crop_side() / 2 - 3 * float(sigma) * (1 + float(cfg.spots.sigma_variation)) * (1 + float(cfg.spots.elongation))
+        if 1.33 * float(cfg.excitation.target_px) > room:
+            raise ConfigError(f"excitation.target_px: a motion of up to 1.33 x {cfg.excitation.target_px} px does not stay in a "
+                              f"{cfg.spots.crop_side()} px spot crop (room {room:.3g} px from the centre, 3 PSF sigmas kept); "
+                              f"lower excitation.target_px or raise spots.pitch_px / spots.crop_px")
     if cfg.excitation.max_amplitude is not None:
         _num(cfg.excitation.max_amplitude, "excitation.max_amplitude", positive=True)
     c = cfg.camera

@@ -17,7 +17,8 @@ File formats:
   ``repr`` (shortest string that reads back to the same float64). SISO columns are
   ``freq_hz,magnitude,phase_deg,magnitude_std,phase_std_deg``; MIMO adds two leading columns
   ``output,input`` holding the labels, rows ordered by output, input, then frequency.
-  Phase is wrapped to (-180, 180]. CSV keeps the standard deviations but **loses the
+  Phase is wrapped to (-180, 180]. ``from_csv`` ignores extra columns after these (the
+  CLI's frf.csv adds ``torchblur_version,seed``). CSV keeps the standard deviations but **loses the
   magnitude-phase correlation**: ``from_csv`` returns a diagonal covariance (correlation 0).
   A SISO CSV also drops the labels, and no CSV keeps ``meta``.
 * JSON (``to_json``/``from_json``): everything, bit-exact, under a versioned schema
@@ -439,16 +440,18 @@ class FrequencyResponse:
         if not rows:
             raise ParameterError(f"path: {os.fspath(path)!r} is empty, expected a header row")
         header = [c.strip() for c in rows[0]]
-        if header == _CSV_SISO_HEADER:
-            mimo = False
-        elif header == _CSV_MIMO_HEADER:
+        # Extra columns after the known ones (e.g. the CLI's torchblur_version, seed) are ignored.
+        if header[: len(_CSV_MIMO_HEADER)] == _CSV_MIMO_HEADER:
             mimo = True
+        elif header[: len(_CSV_SISO_HEADER)] == _CSV_SISO_HEADER:
+            mimo = False
         else:
             raise ParameterError(
                 f"path: {os.fspath(path)!r} has header {header}; expected {_CSV_SISO_HEADER} "
-                f"(SISO) or {_CSV_MIMO_HEADER} (MIMO)"
+                f"(SISO) or {_CSV_MIMO_HEADER} (MIMO), optionally followed by extra columns"
             )
         ncol = len(header)
+        n_known = len(_CSV_MIMO_HEADER) if mimo else len(_CSV_SISO_HEADER)
         channels: dict[tuple[str, str], list[list[float]]] = {}
         outs: list[str] = []
         ins: list[str] = []
@@ -459,10 +462,10 @@ class FrequencyResponse:
                 raise ParameterError(f"path: line {lineno}: expected {ncol} columns, got {len(row)}")
             if mimo:
                 key = (row[0].strip(), row[1].strip())
-                nums = row[2:]
+                nums = row[2:n_known]
             else:
                 key = ("y0", "u0")
-                nums = row
+                nums = row[:n_known]
             try:
                 vals = [float(x) for x in nums]
             except ValueError as exc:

@@ -21,18 +21,26 @@ import torch
 
 from .config import IdentifyConfig
 
-__all__ = ["IdentificationResult", "Calibration", "identify", "calibrate", "fit_model", "build_simulated_rig", "build_rig", "calibrate_latency", "check_resume_config"]
+__all__ = ["IdentificationResult", "Calibration", "identify", "calibrate", "fit_model", "build_simulated_rig", "build_rig", "plant_of", "calibrate_latency", "check_resume_config"]
 
 
 @dataclass
 class IdentificationResult:
     """What :func:`identify` measured. ``frf`` (FrequencyResponse), ``model``
-    (TransferFunctionFit or None), ``psf`` (GaussianPSF per second at power 1), ``fit``
-    (SinusoidFit of all points), ``amplitude`` (input amplitude per point), ``latency_s``
-    and its std, ``saturation`` (SaturationCurve), ``images`` [F, E*R, H, W] (dark
-    subtracted, electrons), ``windows`` (ExposureWindow [F, E*R]), ``truth`` (complex [F] or
-    None), ``log`` (list of messages), ``timing`` (acquisition and fit seconds, and how much
-    of the fit overlapped the acquisition)."""
+    (TransferFunctionFit or None), ``psf`` (GaussianPSF per second at power 1; ``[K]`` with
+    many spots), ``fit`` (SinusoidFit of all points), ``amplitude`` (input amplitude per
+    point), ``latency_s`` and its std, ``saturation`` (SaturationCurve), ``images`` (dark
+    subtracted, electrons), ``windows``, ``truth`` (the true response or None), ``log``
+    (list of messages), ``timing`` (acquisition and fit seconds, and how much of the fit
+    overlapped the acquisition), ``inputs`` (the excited inputs), ``spots`` (SpotPSFs or
+    None).
+
+    One axis, one spot (SISO): ``fit`` batch ``[F]``, ``images`` ``[F, E*R, H, W]``,
+    ``windows`` ``[F, E*R]``, ``amplitude`` ``[F]``, ``truth`` complex ``[F]``.
+    Otherwise (a 2x2 plant and/or K spots; P = K problems per point, or 1): ``fit`` batch
+    ``[I*F, P]`` (input-major) with ``axes="xy"``, ``images`` ``[I, F, P, E*R, h, w]``
+    (crops of ``h x w`` at ``spots.offset``, or the frame), ``windows`` ``[I, F, E*R]``,
+    ``amplitude`` ``[I*F]``, ``truth`` complex ``[O, I, F]`` like ``frf.response``."""
 
     frf: object
     model: object
@@ -48,21 +56,30 @@ class IdentificationResult:
     truth: np.ndarray | None = None
     log: list = field(default_factory=list)
     timing: dict = field(default_factory=dict)
+    inputs: tuple = ("x",)
+    spots: object = None
 
 
 def build_simulated_rig(cfg: IdentifyConfig):
     """The simulated rig of a config (plant, camera, timing, noise)."""
     from .camera import CameraModel
-    from .lti import Plant
     from .rig.simulated import SimulatedRig
 
     c = cfg.camera
     camera = CameraModel(dark_level_adu=c.dark_level, read_noise_e=c.read_noise, gain_e_per_adu=c.gain, full_well_e=c.full_well,
                          bit_depth=int(c.bit_depth))
-    plant = Plant(tuple(float(v) for v in cfg.plant.num), tuple(float(v) for v in cfg.plant.den), float(cfg.plant.delay_s))
-    return SimulatedRig(plant=plant, camera=camera, frame_shape=(int(c.height), int(c.width)), psf_sigma_px=c.psf_sigma_px,
+    spots = cfg.spots.grid(c) if getattr(cfg, "spots", None) is not None else None
+    return SimulatedRig(plant=plant_of(cfg), camera=camera, frame_shape=(int(c.height), int(c.width)), psf_sigma_px=c.psf_sigma_px,
                         frame_rate_hz=c.frame_rate_hz, trigger_delay_s=c.trigger_delay_s, readout_s=c.readout_s,
-                        max_exposure_s=c.max_exposure_s, latency_s=c.latency_s, jitter_s=c.jitter_s, seed=int(cfg.seed))
+                        max_exposure_s=c.max_exposure_s, latency_s=c.latency_s, jitter_s=c.jitter_s, seed=int(cfg.seed), spots=spots)
+
+
+def plant_of(cfg):
+    """The plant of ``cfg.plant``: a :class:`~torchblur.lti.Plant`, or a
+    :class:`~torchblur.mimo.PlantMatrix` for 2x2 nested ``num``/``den``."""
+    from .mimo import plant_from_coefficients
+
+    return plant_from_coefficients(cfg.plant.num, cfg.plant.den, cfg.plant.delay_s)
 
 
 def calibrate_latency(rig, *, dark, gain: float, exposure_s: float = 200e-6, pulse_width_s: float = 20e-6,
@@ -339,6 +356,7 @@ class Calibration:
     latency_s: float
     latency_std_s: float
     gain: float
+    spots: object = None  # many spots: SpotPSFs (psf [K] per spot, crop offsets), else None
 
 
 def calibrate(cfg, rig, exp=None, log=None, progress: bool = False) -> Calibration:
@@ -368,12 +386,19 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False) -> Calibrati
     # 2. PSF: still frames at an exposure that fills peak_fraction of the range.
     te_psf = float(min(c.max_exposure_s, c.peak_fraction * float(sat.linear_limit_s)))
     still = subtract_dark(_stage(exp, "psf", "psf", rig, lambda r: r.still(n=16, exposure_s=te_psf)).frames.to(dtype), dark).mean(0) * gain
-    psf_fit = fit_gaussian_psf(still, exposure_s=te_psf, noise_std=math.sqrt(read_noise_e**2 + float(still.max())) / 4)
-    psf = psf_fit.psf
-    _log(log, f"psf: centre ({float(psf.center[0]):.2f}, {float(psf.center[1]):.2f}) px, cov "
-              f"[[{float(psf.cov[0, 0]):.3f}, {float(psf.cov[0, 1]):.3f}], [., {float(psf.cov[1, 1]):.3f}]] px^2, "
-              f"relative residual {float(psf_fit.relative_residual):.2e}", progress)
-    peak_rate = float(psf.amplitude)  # electrons per second at power 1
+    spots = None
+    if getattr(cfg, "spots", None) is not None and cfg.spots.enabled:
+        spots = _locate_spots(cfg, still, te_psf, read_noise_e, log, progress)
+        psf = spots.psf  # [K], full-frame coordinates
+        whole = spots.inside_fraction >= _MIN_INSIDE  # an edge spot's peak is an extrapolation: not trusted here
+        peak_rate = float(psf.amplitude[whole].max() if bool(whole.any()) else psf.amplitude.max())  # e-/s at power 1
+    else:
+        psf_fit = fit_gaussian_psf(still, exposure_s=te_psf, noise_std=math.sqrt(read_noise_e**2 + float(still.max())) / 4)
+        psf = psf_fit.psf
+        _log(log, f"psf: centre ({float(psf.center[0]):.2f}, {float(psf.center[1]):.2f}) px, cov "
+                  f"[[{float(psf.cov[0, 0]):.3f}, {float(psf.cov[0, 1]):.3f}], [., {float(psf.cov[1, 1]):.3f}]] px^2, "
+                  f"relative residual {float(psf_fit.relative_residual):.2e}", progress)
+        peak_rate = float(psf.amplitude)  # electrons per second at power 1
 
     # 4. Latency.
     pulse_w = 20e-6
@@ -382,7 +407,35 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False) -> Calibrati
         power=c.peak_fraction * full_adu * gain / (peak_rate * pulse_w)))
     _log(log, f"latency: {latency * 1e6:.3f} +- {latency_std * 1e6:.3f} us", progress)
     return Calibration(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=full_adu, psf=psf, peak_rate=peak_rate,
-                       latency_s=latency, latency_std_s=latency_std, gain=gain)
+                       latency_s=latency, latency_std_s=latency_std, gain=gain, spots=spots)
+
+
+def _locate_spots(cfg, still, exposure_s, read_noise_e, log, progress):
+    """Stage 2 with many spots: find them in the still image and fit a PSF per spot (one
+    batch, on crops); log how many of the expected grid were found."""
+    from .spots import locate_spots
+
+    sp = cfg.spots
+    spots = locate_spots(still, exposure_s=exposure_s, noise_std=math.sqrt(read_noise_e**2 + float(still.max())) / 4,
+                         pitch_px=float(sp.pitch_px), crop_px=None if sp.crop_px is None else int(sp.crop_px))
+    K, expected = len(spots), int(sp.rows) * int(sp.cols)
+    sd = torch.linalg.eigvalsh(spots.psf.cov).clamp_min(0).sqrt()
+    _log(log, f"spots: {K} found (grid {sp.rows}x{sp.cols} = {expected}), crops {spots.size[0]}x{spots.size[1]} px, PSF sigma "
+              f"{float(sd.min()):.2f}..{float(sd.max()):.2f} px, worst relative residual "
+              f"{float(spots.fit.relative_residual.max()):.2e}", progress)
+    if K < expected:
+        _log(log, f"spots: {expected - K} of the {expected} expected spot(s) not found (missing or too dim); the others are fitted",
+             progress)
+    for k in torch.nonzero(spots.clipped).reshape(-1).tolist():
+        c = spots.psf.center[k]
+        frac = float(spots.inside_fraction[k])
+        what = "flagged: not fitted" if frac < _MIN_INSIDE else "fitted on the pixels in the frame"
+        _log(log, f"spots: s{k} at ({float(c[0]):.1f}, {float(c[1]):.1f}) px is at the frame edge, {frac * 100:.0f}% of its light "
+                  f"in the frame ({what})", progress)
+    return spots
+
+
+_MIN_INSIDE = 0.5  # a spot with less of its still light in the frame is flagged, not fitted
 
 
 def fit_model(cfg, frf, log=None, progress: bool = False):
@@ -397,8 +450,14 @@ def fit_model(cfg, frf, log=None, progress: bool = False):
     except Exception as exc:  # the FRF is still a result; say why the model failed
         _log(log, f"model: fit failed: {exc}", progress)
         return None
-    _log(log, f"model: {model.n_poles} poles, {model.n_zeros} zeros, delay {model.delay_s * 1e6:.2f} us, "
-              f"reduced chi2 {model.reduced_chi2:.3f}", progress)
+    if model.is_siso:
+        _log(log, f"model: {model.n_poles} poles, {model.n_zeros} zeros, delay {model.delay_s * 1e6:.2f} us, "
+                  f"reduced chi2 {model.reduced_chi2:.3f}", progress)
+    else:  # one model per channel (output o from input i)
+        for o, out in enumerate(model.output_labels):
+            for i, inp in enumerate(model.input_labels):
+                _log(log, f"model {out} from {inp}: {model.n_poles[o][i]} poles, {model.n_zeros[o][i]} zeros, delay "
+                          f"{model.delay_s[o][i] * 1e6:.2f} us, reduced chi2 {model.reduced_chi2[o][i]:.3f}", progress)
     return model
 
 
@@ -419,110 +478,161 @@ def _identify(cfg, rig, exp, log, progress) -> IdentificationResult:
     dtype = torch.float64
     H, W = rig.frame_shape
     freqs = np.asarray(cfg.frequencies_hz())
+    F = len(freqs)
     fracs = [float(e) for e in cfg.sweep.exposures]
     E, R = len(fracs), int(cfg.sweep.images_per_point)
     b = float(cfg.sweep.trigger_phase_rad)
+    mimo = bool(cfg.plant.is_mimo)
+    inputs = ["x", "y"] if mimo else ["x"]
+    I = len(inputs)
 
     t_start = time.perf_counter()
     cal = calibrate(cfg, rig, exp, log, progress)
     dark, read_noise_e, sat, full_adu = cal.dark, cal.read_noise_e, cal.saturation, cal.full_adu
     psf, peak_rate, latency, latency_std, gain = cal.psf, cal.peak_rate, cal.latency_s, cal.latency_std_s, cal.gain
 
-    # 5. Sweep. Every completed point goes to the chunked background fit (6.) at once.
+    # Problems per sweep point: one (the spot, full frame) or K (one crop per spot).
+    spots = cal.spots
+    single = not mimo and spots is None  # the one-axis, one-spot identification: axes "x", shapes [F]
+    axes = "x" if single else "xy"
+    if spots is not None:
+        P, (h, w) = len(spots), spots.size
+        psf_p = spots.psf_in_crops()  # [K] in crop coordinates
+        # the dominant motion is measured on spots whose crop is whole (an edge spot's moments are biased)
+        use_p = ~spots.clipped if bool((~spots.clipped).any()) else torch.ones(P, dtype=torch.bool)
+    else:
+        P, (h, w) = 1, (H, W)
+        psf_p = GaussianPSF(psf.center[None], psf.cov[None], psf.amplitude[None])
+        use_p = torch.ones(1, dtype=torch.bool)
+    moment_axes = [0] if single else [0, 1]
+
+    def pieces_of(frames):
+        """``[E, R, H, W]`` -> ``[E, R, P, h, w]`` (the spots' crops, or the frame)."""
+        if spots is None:
+            return frames[:, :, None]
+        from .spots import crop_spots
+
+        return crop_spots(frames, spots.offset, spots.size)
+
+    if spots is not None:
+        from .spots import crop_valid
+
+        in_frame = crop_valid((H, W), spots.offset, spots.size)  # [P, h, w] pixels of each crop in the frame
+        flagged = spots.inside_fraction < _MIN_INSIDE  # [P] spots mostly outside the frame: not fitted
+        use_p = use_p & ~flagged if bool((use_p & ~flagged).any()) else use_p
+
+    # 5. Sweep: each input in turn, every frequency. Every completed point goes to the chunked
+    # background fit (6.) at once; job j = input index * F + point index.
     target = float(cfg.excitation.target_px)
     amax = cfg.excitation.max_amplitude
-    frames_all, masks_all, windows_start, windows_dur, amps, powers = [], [], [], [], [], []
-    omega_all = torch.tensor(2 * math.pi * freqs, dtype=dtype)
+    frames_all, masks_all, windows_start, windows_dur, amps, powers, n_saturated = [], [], [], [], [], [], []
+    omega_job = torch.tensor(np.tile(2 * math.pi * freqs, I), dtype=dtype)
 
     def fit_points(idx):
-        imgs = torch.stack([frames_all[k] for k in idx])  # [n, E*R, H, W]
-        pw = torch.tensor([powers[k] for k in idx], dtype=dtype)
+        imgs = torch.stack([frames_all[j] for j in idx])  # [n, P, E*R, h, w]
+        pw = torch.tensor([powers[j] for j in idx], dtype=dtype)
         n = len(idx)
-        psf_b = GaussianPSF(psf.center.expand(n, 2), psf.cov.expand(n, 2, 2), psf.amplitude * pw)
-        win = ExposureWindow(torch.stack([windows_start[k] for k in idx]), torch.stack([windows_dur[k] for k in idx]))
+        psf_b = GaussianPSF(psf_p.center.expand(n, P, 2), psf_p.cov.expand(n, P, 2, 2), psf_p.amplitude[None, :] * pw[:, None])
+        win = ExposureWindow(torch.stack([windows_start[j] for j in idx])[:, None], torch.stack([windows_dur[j] for j in idx])[:, None])
         noise = torch.sqrt(read_noise_e**2 + imgs.clamp_min(0))  # shot + read noise (e-), per pixel
-        return fit_sinusoid(imgs, psf_b, win, omega_all[list(idx)], axes="x", optimizer=cfg.fit.optimizer, loss=cfg.fit.loss,
-                            noise_std=noise, mask=torch.stack([masks_all[k] for k in idx]), fit_scale=cfg.fit.fit_scale,
-                            fit_background=cfg.fit.fit_background)
+        fit = fit_sinusoid(imgs, psf_b, win, omega_job[list(idx)][:, None], axes=axes, optimizer=cfg.fit.optimizer,
+                           loss=cfg.fit.loss, noise_std=noise, mask=torch.stack([masks_all[j] for j in idx]),
+                           fit_scale=cfg.fit.fit_scale, fit_background=cfg.fit.fit_background)
+        return _squeeze_problems(fit) if single else fit
 
     fitter = _ChunkFitter(int(cfg.fit.chunk_points), fit_points)
     t_sweep = time.perf_counter()
-    gain_est = None  # |H| estimate (px per input unit) from the previous point
-    bar = tqdm(total=len(freqs), desc="sweep", unit="pt", disable=not progress)
+    bar = tqdm(total=I * F, desc="sweep", unit="pt", disable=not progress)
     try:
-        for k, f in enumerate(freqs):
-            om = 2 * math.pi * f
-            period = 1 / f
-            te = [fr * period for fr in fracs]
-            A = target / gain_est if gain_est else target / 10.0
-            if amax is not None:
-                A = min(A, float(amax))
-            # Laser power: a still spot over the longest exposure would reach peak_fraction of the range.
-            power = c.peak_fraction * full_adu * gain / (peak_rate * max(te))
-            offset = (b / om - c.trigger_delay_s - latency) % period
-            start0 = torch.tensor(offset + c.trigger_delay_s + latency, dtype=dtype)
+        for ii, inp in enumerate(inputs):
+            gain_est = None  # |H| estimate of the dominant motion (px per input unit) from the previous point
+            for k, f in enumerate(freqs):
+                om = 2 * math.pi * f
+                period = 1 / f
+                te = [fr * period for fr in fracs]
+                A = target / gain_est if gain_est else target / 10.0
+                if amax is not None:
+                    A = min(A, float(amax))
+                # Laser power: a still spot over the longest exposure would reach peak_fraction of the range.
+                power = c.peak_fraction * full_adu * gain / (peak_rate * max(te))
+                offset = (b / om - c.trigger_delay_s - latency) % period
+                start0 = torch.tensor(offset + c.trigger_delay_s + latency, dtype=dtype)
 
-            def moved_px(cap_frames):
-                """Dark-subtracted electrons [E, R, H, W] and the closed-form amplitude (px) of
-                the first exposure: how far did the spot move?"""
-                img_ = subtract_dark(cap_frames.to(dtype), dark) * gain
-                _, cen, cov_ = image_moments(img_.mean(1), threshold=3 * read_noise_e)
-                mu1 = cen[0, 0] - psf.center[0]
-                vex = cov_[0, 0, 0] - psf.cov[0, 0]
-                M, _ = sinusoid_from_moments(mu1, vex, torch.tensor(om, dtype=dtype), start0, torch.tensor(te[0], dtype=dtype))
-                return img_, float(M)
+                def moved_px(cap_frames):
+                    """Dark-subtracted electrons ``[E, R, P, h, w]`` and the closed-form amplitude
+                    (px) of the first exposure: how far did the spot (the farthest spot, on the
+                    axis that moves most) move?"""
+                    img_ = pieces_of(subtract_dark(cap_frames.to(dtype), dark) * gain)
+                    _, cen, cov_ = image_moments(img_[0].mean(0), threshold=3 * read_noise_e)  # [P, 2], [P, 2, 2]
+                    Ms = []
+                    for a in moment_axes:
+                        mu1 = cen[:, a] - psf_p.center[:, a]
+                        vex = cov_[:, a, a] - psf_p.cov[:, a, a]
+                        M, _ = sinusoid_from_moments(mu1, vex, torch.tensor(om, dtype=dtype), start0, torch.tensor(te[0], dtype=dtype))
+                        Ms.append(M)
+                    M = torch.stack(Ms, -1)[use_p]
+                    M = M[torch.isfinite(M)]
+                    return img_, float(M.max()) if M.numel() else 0.0
 
-            key = f"sweep/x/{k:03d}"
-            if exp is not None and exp.has(key):
-                rec = exp.groups[key][0]
-                if not (math.isclose(rec["freq_hz"], f, rel_tol=1e-12) and math.isclose(rec["power"], power, rel_tol=1e-9)):
-                    from .hardware.errors import RecordingError
+                key = f"sweep/{inp}/{k:03d}"
+                if exp is not None and exp.has(key):
+                    rec = exp.groups[key][0]
+                    if not (math.isclose(rec["freq_hz"], f, rel_tol=1e-12) and math.isclose(rec["power"], power, rel_tol=1e-9)):
+                        from .hardware.errors import RecordingError
 
-                    raise RecordingError(f"{key}: recorded at {rec['freq_hz']} Hz, power {rec['power']}; this run asks "
-                                         f"{f} Hz, power {power}")
-                (_, _, cap), = exp.load_calls(key)
-                A = float(rec["amplitude"])
-                img, M_est = moved_px(cap.frames)
-                gain_new = max(M_est, 1e-3) / A
-            else:
-                for attempt in range(3):
-                    kw = dict(freq_hz=float(f), amplitude=float(A), exposures_s=te, trigger_offset_s=float(offset), n_repeats=R,
-                              settle_s=cfg.sweep.settle_s, power=float(power))
-                    cap = rig.sine(**kw)
-                    img, M_est = moved_px(cap.frames)  # [E, R, H, W] electrons
-                    ok = 0.75 * target <= M_est <= 1.33 * target or (amax is not None and A >= amax and M_est < 1.33 * target)
+                        raise RecordingError(f"{key}: recorded at {rec['freq_hz']} Hz, power {rec['power']}; this run asks "
+                                             f"{f} Hz, power {power}")
+                    (_, _, cap), = exp.load_calls(key)
+                    A = float(rec["amplitude"])
+                    img, M_est = moved_px(cap.frames)
                     gain_new = max(M_est, 1e-3) / A
-                    if ok or attempt == 2:
-                        break
-                    A = target / gain_new
-                    if amax is not None:
-                        A = min(A, float(amax))
-                if exp is not None and exp.writable:
-                    from .hardware.recording import _bind
+                else:
+                    for attempt in range(3):
+                        kw = dict(freq_hz=float(f), amplitude=float(A), exposures_s=te, trigger_offset_s=float(offset), n_repeats=R,
+                                  settle_s=cfg.sweep.settle_s, power=float(power))
+                        if mimo:
+                            kw["input"] = inp
+                        cap = rig.sine(**kw)
+                        img, M_est = moved_px(cap.frames)  # [E, R, P, h, w] electrons
+                        ok = 0.75 * target <= M_est <= 1.33 * target or (amax is not None and A >= amax and M_est < 1.33 * target)
+                        gain_new = max(M_est, 1e-3) / A
+                        if ok or attempt == 2:
+                            break
+                        A = target / gain_new
+                        if amax is not None:
+                            A = min(A, float(amax))
+                    if exp is not None and exp.writable:
+                        from .hardware.recording import _bind
 
-                    exp.record(key, "sweep", [("sine", _bind("sine", (), kw), cap)],
-                               labels={"input": "x", "freq_hz": float(f), "amplitude": float(A), "power": float(power),
-                                       "point": k, "attempts": attempt + 1})
-            gain_est = gain_new
-            frames_all.append(img.reshape(E * R, H, W))
-            masks_all.append(sat.mask(cap.frames.to(dtype)).reshape(E * R, H, W))
-            windows_start.append(torch.tensor([offset + c.trigger_delay_s + latency] * (E * R), dtype=dtype))
-            windows_dur.append(torch.tensor([t for t in te for _ in range(R)], dtype=dtype))
-            amps.append(A)
-            powers.append(power)
-            fitter.add(k)
-            bar.update(1)
-            bar.set_postfix(f_hz=f"{f:.4g}", amplitude=f"{A:.3g}")
+                        exp.record(key, "sweep", [("sine", _bind("sine", (), kw), cap)],
+                                   labels={"input": inp, "freq_hz": float(f), "amplitude": float(A), "power": float(power),
+                                           "point": k, "attempts": attempt + 1})
+                gain_est = gain_new
+                if spots is not None and bool(flagged.any()):
+                    img = img * ~flagged[:, None, None]  # a flagged spot is left dark: the fit marks it "no signal"
+                frames_all.append(img.permute(2, 0, 1, 3, 4).reshape(P, E * R, h, w))
+                usable = pieces_of(sat.mask(cap.frames.to(dtype)))  # [E, R, P, h, w]
+                if spots is not None:
+                    n_saturated.append(int((~usable & in_frame).sum()))
+                    usable = usable & in_frame & ~flagged[:, None, None]
+                else:
+                    n_saturated.append(int((~usable).sum()))
+                masks_all.append(usable.permute(2, 0, 1, 3, 4).reshape(P, E * R, h, w))
+                windows_start.append(torch.tensor([offset + c.trigger_delay_s + latency] * (E * R), dtype=dtype))
+                windows_dur.append(torch.tensor([t for t in te for _ in range(R)], dtype=dtype))
+                amps.append(A)
+                powers.append(power)
+                fitter.add(ii * F + k)
+                bar.update(1)
+                bar.set_postfix(input=inp, f_hz=f"{f:.4g}", amplitude=f"{A:.3g}")
         bar.close()
         t_acq_end = time.perf_counter()
 
-        images = torch.stack(frames_all)  # [F, E*R, H, W]
-        windows = ExposureWindow(torch.stack(windows_start), torch.stack(windows_dur))
-        omega = omega_all
+        images = torch.stack(frames_all)  # [J, P, E*R, h, w]
+        windows = ExposureWindow(torch.stack(windows_start), torch.stack(windows_dur))  # [J, E*R]
         power_t = torch.tensor(powers, dtype=dtype)
-        check_design(omega, windows[:, ::R] if R > 1 else windows, warn=progress)
-        mask = torch.stack(masks_all)  # usable (unsaturated) pixels
-        n_sat = int((~mask).sum())
+        check_design(omega_job, windows[:, ::R] if R > 1 else windows, warn=progress)
+        n_sat = sum(n_saturated)
         if n_sat:
             _log(log, f"saturation: {n_sat} saturated pixels masked out of the fit", progress)
 
@@ -543,17 +653,68 @@ def _identify(cfg, rig, exp, log, progress) -> IdentificationResult:
                   f"{exp.stats['groups_reused']} reused, in {exp.path}", progress)
     _log(log, f"fit: {len(parts)} chunk(s), {fitter.busy_s:.2f} s of fitting, {overlapped:.2f} s of it during the sweep; "
               f"{t_fit_end - t_acq_end:.2f} s from the last frame to the last fit", progress)
-    A_t = torch.tensor(amps, dtype=dtype)
+    meta = {"seed": int(cfg.seed)}
+    if single:
+        images = images[:, 0]  # [F, E*R, H, W]
+        frf = _assemble_siso(fit, amps, omega_job, c, latency_std, E * R, meta)
+    else:
+        images = images.reshape((I, F) + tuple(images.shape[1:]))  # [I, F, P, E*R, h, w]
+        windows = ExposureWindow(windows.start.reshape(I, F, E * R), windows.duration.reshape(I, F, E * R))
+        if spots is not None:
+            meta["spot_centers_px"] = spots.psf.center.tolist()
+        frf = _assemble_mimo(fit, amps, omega_job, c, latency_std, E * R, inputs, P, spots is not None, meta)
+    n_bad = int((~np.isfinite(frf.response)).sum())
+    n_all = frf.response.size
+    _log(log, f"fit: {n_all - n_bad} of {n_all} {'points' if single else 'channel points'} converged", progress)
+    if spots is not None:
+        bad_spots = [k for k in range(P) if not np.isfinite(frf.response[2 * k:2 * k + 2]).any()]
+        for k in bad_spots:
+            st = fit.status.reshape(I * F, P)[:, k]
+            from .fit import STATUS
+
+            why = "mostly outside the frame" if bool(flagged[k]) else STATUS.get(int(st.mode().values), "?")
+            _log(log, f"spots: s{k} flagged at every point ({why}); its channels are NaN, the other spots are fitted", progress)
+
+    # 7. Parametric model.
+    model = fit_model(cfg, frf, log, progress)
+    truth = _truth_of(rig, freqs, frf, spots, single)
+    return IdentificationResult(frf=frf, model=model, psf=psf, fit=fit, amplitude=np.asarray(amps), latency_s=latency,
+                                latency_std_s=latency_std, saturation=sat, images=images, windows=windows, power=power_t,
+                                truth=truth, log=log, timing=timing, inputs=tuple(inputs), spots=spots)
+
+
+def _squeeze_problems(fit):
+    """A SinusoidFit of batch ``[n, 1]`` as batch ``[n]`` (one problem per point)."""
+    from dataclasses import fields as dc_fields
+
+    from .fit import SinusoidFit
+
+    kw = {}
+    for f in dc_fields(SinusoidFit):
+        v = getattr(fit, f.name)
+        kw[f.name] = v.squeeze(1) if isinstance(v, torch.Tensor) and v.dim() >= 2 and v.shape[1] == 1 else v
+    return SinusoidFit(**kw)
+
+
+def _phase_std(fit_phase_std, omega, camera, latency_std, n_frames):
+    """Phase std (rad): the fit, the trigger jitter (per frame, averaged) and the latency calibration."""
+    return np.sqrt(fit_phase_std ** 2 + (omega * camera.jitter_s) ** 2 / n_frames + (omega * latency_std) ** 2)
+
+
+def _assemble_siso(fit, amps, omega, camera, latency_std, n_frames, meta):
+    """The 1x1 FrequencyResponse of a one-axis, one-spot sweep (fit batch ``[F]``)."""
+    from .frequency_response import FrequencyResponse
+
+    A_t = torch.tensor(amps, dtype=torch.float64)
     mag = (fit.amplitude / A_t).numpy()
     phase = fit.phase.numpy()
     mag_std = (fit.amplitude_std / A_t).numpy()
-    n_frames = E * R
-    # Phase std: the fit, the trigger jitter (per frame, averaged) and the latency calibration.
-    ph_std = np.sqrt(fit.phase_std.numpy() ** 2 + (omega.numpy() * c.jitter_s) ** 2 / n_frames + (omega.numpy() * latency_std) ** 2)
+    ph_std = _phase_std(fit.phase_std.numpy(), omega.numpy(), camera, latency_std, n_frames)
     i_m = fit.param_names.index("amplitude_x")
     i_p = fit.param_names.index("phase_x")
     corr = (fit.covariance[:, i_m, i_p] / (fit.amplitude_std * fit.phase_std).clamp_min(1e-300)).numpy()
-    cov = np.zeros((len(freqs), 2, 2))
+    F = mag.shape[0]
+    cov = np.zeros((F, 2, 2))
     cov[:, 0, 0] = mag_std**2
     cov[:, 1, 1] = ph_std**2
     cov[:, 0, 1] = cov[:, 1, 0] = corr * mag_std * fit.phase_std.numpy()
@@ -561,16 +722,67 @@ def _identify(cfg, rig, exp, log, progress) -> IdentificationResult:
     bad = ~fit.converged.numpy()
     response[bad] = np.nan
     cov[bad] = np.nan
-    frf = FrequencyResponse(omega.numpy(), response, cov=cov, input_labels=["x"], output_labels=["x"],
-                            meta={"seed": int(cfg.seed)})
-    n_bad = int(bad.sum())
-    _log(log, f"fit: {len(freqs) - n_bad} of {len(freqs)} points converged", progress)
+    return FrequencyResponse(omega.numpy(), response, cov=cov, input_labels=["x"], output_labels=["x"], meta=meta)
 
-    # 7. Parametric model.
-    model = fit_model(cfg, frf, log, progress)
-    truth = None
-    if hasattr(rig, "truth"):
-        truth = np.asarray([rig.truth(float(f)) for f in freqs])
-    return IdentificationResult(frf=frf, model=model, psf=psf, fit=fit, amplitude=np.asarray(amps), latency_s=latency,
-                                latency_std_s=latency_std, saturation=sat, images=images, windows=windows, power=power_t,
-                                truth=truth, log=log, timing=timing)
+
+def _assemble_mimo(fit, amps, omega_job, camera, latency_std, n_frames, inputs, P, many_spots, meta):
+    """The ``[O, I, F]`` FrequencyResponse from a fit of batch ``[I*F, P]`` with ``axes="xy"``:
+    outputs x, y (one spot) or ``s{k}.x``, ``s{k}.y`` (K = P spots), with the (magnitude,
+    phase) covariance of every channel point."""
+    from .frequency_response import FrequencyResponse
+    from .spots import spot_labels
+
+    I = len(inputs)
+    J = fit.amplitude.shape[0]
+    F = J // I
+    A_t = torch.tensor(amps, dtype=torch.float64)[:, None, None]  # [J, 1, 1]
+    mag = (fit.amplitude / A_t).numpy()  # [J, P, 2]
+    phase = fit.phase.numpy()
+    mag_std = (fit.amplitude_std / A_t).numpy()
+    fit_ph_std = fit.phase_std.numpy()
+    om = omega_job.numpy()[:, None, None]
+    ph_std = _phase_std(fit_ph_std, om, camera, latency_std, n_frames)
+    names = fit.param_names
+    corr = np.zeros_like(mag)
+    for a, ax in enumerate("xy"):
+        i_m, i_p = names.index(f"amplitude_{ax}"), names.index(f"phase_{ax}")
+        corr[..., a] = (fit.covariance[..., i_m, i_p] / (fit.amplitude_std[..., a] * fit.phase_std[..., a]).clamp_min(1e-300)).numpy()
+    cov = np.zeros(mag.shape + (2, 2))
+    cov[..., 0, 0] = mag_std**2
+    cov[..., 1, 1] = ph_std**2
+    cov[..., 0, 1] = cov[..., 1, 0] = corr * mag_std * fit_ph_std
+    response = mag * np.exp(1j * phase)
+    bad = ~fit.converged.numpy()  # [J, P]
+    response[bad] = np.nan
+    cov[bad] = np.nan
+
+    def arrange(x):  # [I*F, P, 2, ...] -> [P*2, I, F, ...]
+        x = x.reshape((I, F, P, 2) + x.shape[3:])
+        x = np.moveaxis(np.moveaxis(x, 2, 0), 3, 1)  # [P, 2, I, F, ...]
+        return x.reshape((P * 2, I, F) + x.shape[4:])
+
+    outputs = spot_labels(P) if many_spots else ["x", "y"]
+    return FrequencyResponse(omega_job.numpy()[:F], arrange(response), cov=arrange(cov), input_labels=list(inputs),
+                             output_labels=outputs, meta=meta)
+
+
+def _truth_of(rig, freqs, frf, spots, single):
+    """The true response where the rig knows it (simulated rigs): ``[F]`` for a one-spot SISO
+    run, else ``[O, I, F]`` in the FRF's channel order (spots matched to the rig's layout by
+    their rest position; NaN where none is within 3 px)."""
+    if not hasattr(rig, "truth"):
+        return None
+    if single:
+        return np.asarray([rig.truth(float(f)) for f in freqs])
+    if spots is None:
+        return np.asarray(rig.truth(np.asarray(freqs, dtype=np.float64)))
+    if not hasattr(rig, "spot_truth") or getattr(rig, "spots", None) is None:
+        return None
+    t = np.asarray(rig.spot_truth(np.asarray(freqs, dtype=np.float64)))  # [Kt, 2, I, F]
+    rest = rig.spots.rest_px.numpy()
+    out = np.full((len(spots), 2) + t.shape[2:], np.nan + 0j)
+    for k, cxy in enumerate(spots.psf.center.numpy()):
+        d = np.hypot(*(rest - cxy).T)
+        if d.min() < 3.0:
+            out[k] = t[int(d.argmin())]
+    return out.reshape((-1,) + t.shape[2:])

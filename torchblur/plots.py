@@ -24,11 +24,14 @@ def _plt():
 
 def bode_figure(frf, *, model=None, truth=None, title: str | None = None, stamp: str | None = None):
     """Bode plot of a measured :class:`~torchblur.frequency_response.FrequencyResponse`
-    with 1-sigma error bars (SISO, or one column per input for MIMO), the fitted model
+    with 1-sigma error bars (SISO, or one column per input for MIMO; more than 4 outputs,
+    e.g. the spots of a wavefront sensor, are overlaid in one panel per input), the fitted model
     (``model.frequency_response(omega)``) and the truth (callable ``omega -> complex`` or an
     array ``[O, I, F]``/``[F]``) when known. Returns the figure."""
     plt = _plt()
     O, I = frf.n_outputs, frf.n_inputs
+    if O > 4:
+        return _bode_overlay(frf, truth=truth, title=title, stamp=stamp)
     fig, axes = plt.subplots(2 * O, I, figsize=(7 * I, 3.2 * 2 * O), squeeze=False, sharex=True)
     f = frf.freq_hz
     fine_f = np.geomspace(f.min(), f.max(), 400)
@@ -74,6 +77,46 @@ def bode_figure(frf, *, model=None, truth=None, title: str | None = None, stamp:
             ap.grid(True, which="both", alpha=0.3)
     axes[0, 0].legend(fontsize=8)
     fig.suptitle(title or "Frequency response identified from camera motion blur")
+    if stamp:
+        fig.text(0.99, 0.005, stamp, ha="right", va="bottom", fontsize=7, color="0.4")
+    fig.tight_layout()
+    return fig
+
+
+def _bode_overlay(frf, *, truth=None, title=None, stamp=None):
+    """Many outputs (the spots of a wavefront sensor): one magnitude and one phase panel per
+    input, every output a line (its label in the legend); the truth dashed when known."""
+    plt = _plt()
+    O, I = frf.n_outputs, frf.n_inputs
+    fig, axes = plt.subplots(2, I, figsize=(8 * I, 9), squeeze=False, sharex=True)
+    f = frf.freq_hz
+    fine_f = np.geomspace(f.min(), f.max(), 400)
+    tru = None
+    if truth is not None:
+        tru = np.asarray(truth(2 * np.pi * fine_f) if callable(truth) else truth)
+    cmap = plt.get_cmap("tab20")
+    uph = np.degrees(frf.unwrapped_phase())
+    for i in range(I):
+        am, ap = axes[0, i], axes[1, i]
+        for o in range(O):
+            col = cmap(o % 20)
+            am.errorbar(f, frf.magnitude[o, i], yerr=frf.magnitude_std[o, i], fmt="o-", ms=2.5, lw=0.8, color=col, capsize=1.5,
+                        label=frf.output_labels[o])
+            ap.errorbar(f, uph[o, i], yerr=np.degrees(frf.phase_std[o, i]), fmt="o-", ms=2.5, lw=0.8, color=col, capsize=1.5)
+            if tru is not None:
+                tf_ = fine_f if tru.shape[-1] == fine_f.size else f
+                am.loglog(tf_, np.abs(tru[o, i]), "--", color=col, lw=0.8, alpha=0.7)
+        am.set_xscale("log")
+        am.set_yscale("log")
+        ap.set_xscale("log")
+        am.set_title(f"every output from input {frf.input_labels[i]}" + (" (dashed: truth)" if tru is not None else ""))
+        am.set_ylabel("magnitude (out/in)")
+        ap.set_ylabel("phase (deg)")
+        ap.set_xlabel("frequency (Hz)")
+        am.grid(True, which="both", alpha=0.3)
+        ap.grid(True, which="both", alpha=0.3)
+        am.legend(fontsize=6, ncol=max(1, O // 9), loc="lower left")
+    fig.suptitle(title or f"Frequency response of {O} outputs identified from camera motion blur")
     if stamp:
         fig.text(0.99, 0.005, stamp, ha="right", va="bottom", fontsize=7, color="0.4")
     fig.tight_layout()

@@ -56,7 +56,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..config import CameraConfig, PlantConfig
+from ..config import CameraConfig, PlantConfig, SpotsConfig
 from ..errors import ConfigError
 from .frames import CameraInfo, encode_message, frame_message
 from .protocol import (E_AXIS, E_BUSY, E_INTERNAL, E_LINE, E_RANGE, MAX_LINE, PROTOCOL_VERSION, ProtocolViolation, format_err,
@@ -85,6 +85,7 @@ class FaultConfig:
 class EmulatorConfig:
     plant: PlantConfig = field(default_factory=PlantConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
+    spots: SpotsConfig = field(default_factory=SpotsConfig)  # many spots (rows > 0), as in identify
     seed: int = 0
     transport: str = "pty"  # "pty" (a pseudo-terminal) or "socket" (pyserial socket://)
     serial_port: int = 0  # transport=socket: TCP port of the serial line (0 = any free port)
@@ -101,11 +102,12 @@ def load_emulator_config(path: str | None = None, overrides: list[str] | None = 
     Raises:
         ConfigError: naming the key.
     """
-    from ..config import _num, load_dataclass, validate_camera, validate_plant
+    from ..config import _num, load_dataclass, validate_camera, validate_plant, validate_spots
 
     cfg = load_dataclass(EmulatorConfig, path, overrides, ignore_file_sections=("sweep", "excitation", "fit", "model", "rig"))
     validate_plant(cfg.plant)
     validate_camera(cfg.camera)
+    validate_spots(cfg.spots, cfg.camera)
     _num(cfg.seed, "seed", integer=True, low=0)
     if cfg.transport not in ("pty", "socket"):
         raise ConfigError(f"transport: expected one of ('pty', 'socket'), got {cfg.transport!r}")
@@ -225,7 +227,8 @@ class EmulatedDevice:
         from ..identify import build_simulated_rig
 
         self.cfg = cfg
-        self.rig = build_simulated_rig(IdentifyConfig(plant=cfg.plant, camera=cfg.camera, seed=cfg.seed))
+        self.rig = build_simulated_rig(IdentifyConfig(plant=cfg.plant, camera=cfg.camera, spots=cfg.spots, seed=cfg.seed))
+        self.axes = tuple(self.rig.inputs)  # "x", or "x", "y" for a 2x2 plant
         self._settling_s = self.rig.plant.settling_time_s()
         self._send = send
         self.firmware, self.name = firmware, name
@@ -315,7 +318,7 @@ class EmulatedDevice:
         w, a = cmd.word, cmd.args
         with self.lock:
             if w == "ID?":
-                return format_ok("ID", name=self.name, firmware=self.firmware, protocol=PROTOCOL_VERSION, axes="x")
+                return format_ok("ID", name=self.name, firmware=self.firmware, protocol=PROTOCOL_VERSION, axes=",".join(self.axes))
             if w == "STATUS?":
                 return format_ok("STATUS", state=self._state(), frames=self.counter, pending=self.pending, clock=float(self.clock),
                                  boot=self.boot)
@@ -351,15 +354,17 @@ class EmulatedDevice:
 
     def _wave(self, a) -> str:
         axis, mode = a[0], a[1]
-        if axis != "x":
-            raise ProtocolViolation(E_AXIS, f"this device drives axis x only, got {axis}")
+        if axis not in self.axes:
+            raise ProtocolViolation(E_AXIS, f"this device drives axis {' and '.join(self.axes)} only, got {axis}")
+        if mode != "SINE" and axis != "x":
+            raise ProtocolViolation(E_AXIS, f"MULTI drives axis x only, got {axis}")
         if self.pending:
             raise ProtocolViolation(E_BUSY, f"{self.pending} frame(s) pending; STOP first")
         self.reset_flag = False
         if self._fault_base is None:
             self._fault_base = self.served
         if mode == "SINE":
-            self.wave = {"mode": "SINE", "freq_hz": a[2], "amplitude": a[3], "start": self.clock, "period": 1.0 / a[2]}
+            self.wave = {"mode": "SINE", "freq_hz": a[2], "amplitude": a[3], "start": self.clock, "period": 1.0 / a[2], "axis": axis}
             return format_ok("WAVE", axis=axis, mode=mode, start=float(self.clock))
         tones = a[2]
         self.wave = {"mode": "MULTI", "tones": tones, "start": self.clock, "period": 1.0 / tones[0][0]}
@@ -438,7 +443,7 @@ class EmulatedDevice:
         elif job.kind == "sine":
             wv = a["wave"]
             cap = r.sine(freq_hz=wv["freq_hz"], amplitude=wv["amplitude"], exposures_s=[te], trigger_offset_s=a["offset"],
-                         n_repeats=n, settle_s=a["settle_s"], power=a["power"])
+                         n_repeats=n, settle_s=a["settle_s"], power=a["power"], input=wv.get("axis", "x"))
         else:
             return self._render_multi(job), job.rel_trig
         trig = cap.trigger_time_s.reshape(-1).tolist()
@@ -458,16 +463,20 @@ class EmulatedDevice:
         r = self.rig
         tones = job.args["wave"]["tones"]
         f = np.array([t[0] for t in tones])
-        h = np.atleast_1d(r.plant.frequency_response(2 * np.pi * f))
-        amp = torch.tensor([t[1] for t in tones], dtype=torch.float64) * torch.as_tensor(np.abs(h))
-        ph = torch.tensor([t[2] for t in tones], dtype=torch.float64) + torch.as_tensor(np.angle(h))
-        d = r.direction
-        traj = Multisine(amp[:, None] * d, ph[:, None].expand(-1, 2), torch.as_tensor(2 * np.pi * f))
+        # each spot's image motion per tone: G_k H(j w) of input x, [K, 2, F]
+        h = torch.as_tensor(np.asarray(r.spot_truth(f)).reshape(-1, 2, r.spot_truth(f[0]).shape[-1], f.size)[:, :, 0])
+        a = torch.tensor([t[1] for t in tones], dtype=torch.float64)
+        p0 = torch.tensor([t[2] for t in tones], dtype=torch.float64)
         trig = torch.tensor(job.rel_trig, dtype=torch.float64)
         win = r._actual_starts(trig, torch.full_like(trig, job.exposure_s))
         p = job.args["power"]
         psf = GaussianPSF(r.psf.center, r.psf.cov, r.psf.amplitude * p)
-        expected = r._render(traj, psf, ExposureWindow(win.start, win.duration))
+        expected = 0
+        for k in range(h.shape[0]):
+            amp = (a * h[k].abs()).T  # [F, 2]
+            ph = (p0 + h[k].angle()).T
+            traj = Multisine(amp, ph, torch.as_tensor(2 * np.pi * f))
+            expected = expected + r._render(traj, psf if psf.shape == () else psf[k], ExposureWindow(win.start, win.duration))
         return r._expose(expected).numpy()
 
     def _camera_loop(self) -> None:

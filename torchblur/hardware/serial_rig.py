@@ -373,10 +373,16 @@ class SerialRig:
         return self._capture(frames, (n,), [0.0] * n, {"kind": "still", "power": power})
 
     def sine(self, freq_hz: float, amplitude: float, exposures_s: Sequence[float], trigger_offset_s, n_repeats: int,
-             settle_s: float | None = None, power: float = 1.0):
-        """``WAVE <axis> SINE f A`` (from rest), then per exposure ``ARM offset Te R``:
+             settle_s: float | None = None, power: float = 1.0, input: str | None = None):
+        """``WAVE <input> SINE f A`` (from rest), then per exposure ``ARM offset Te R``:
         frames ``[E, R, H, W]``. ``settle_s`` None sends ``SETTLE AUTO`` (the controller's
-        default settling wait)."""
+        default settling wait). ``input``: the driven axis, ``"x"`` or ``"y"`` (one the
+        controller reported in ``ID?``); None: the rig's ``axis``."""
+        axis = self.axis if input is None else input
+        if axis not in ("x", "y"):
+            raise ParameterError(f"input: expected 'x' or 'y', got {input!r}")
+        if self.device.get("axes") and axis not in self.device["axes"]:
+            raise ParameterError(f"input: the controller drives axes {self.device['axes']}, got {input!r}")
         freq = check_real_scalar(freq_hz, "freq_hz", positive=True)
         amp = check_real_scalar(amplitude, "amplitude")
         power = check_real_scalar(power, "power", nonnegative=True)
@@ -396,7 +402,7 @@ class SerialRig:
             c.stop()
             c.power(power)
             c.settle(settle)
-            c.wave_sine(self.axis, freq, amp)
+            c.wave_sine(axis, freq, amp)
             out = []
             for e in range(E):
                 out += self._acquire(te[e], R, lambda e=e: c.arm(offs[e], te[e], R))
@@ -408,7 +414,7 @@ class SerialRig:
         off_mod = [[o - math.floor(o / period) * period] * R for o in offs]
         return self._capture(frames, (E, R), off_mod, {"kind": "sine", "freq_hz": freq, "omega": 2 * math.pi * freq,
                                                         "period_s": period, "amplitude": amp, "settle_s": settle,
-                                                        "power": power, "axis": self.axis})
+                                                        "power": power, "axis": axis, "input": axis})
 
     def pulse(self, exposure_s: float, trigger_offset_s, pulse_time_s: float, pulse_width_s: float, n: int, power: float = 1.0):
         """Mirror still; per offset ``PULSE offset pulse_time width Te n``: frames

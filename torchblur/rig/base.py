@@ -99,8 +99,10 @@ class Rig(Protocol):
         n_repeats: int,
         settle_s: float | None = None,
         power: float = 1.0,
+        input: str = "x",
     ) -> Capture:
-        """Drive ``amplitude sin(2 pi freq_hz t)`` from rest at t = 0, wait ``settle_s``
+        """Drive ``amplitude sin(2 pi freq_hz t)`` on ``input`` (``"x"``, or ``"y"`` on a
+        two-axis mirror; the other axis held at rest) from rest at t = 0, wait ``settle_s``
         (default: the plant's settling time rounded up to whole periods), then take
         ``n_repeats`` frames per exposure, each triggered ``trigger_offset_s`` (one value,
         or one per exposure) after an upward zero crossing of the command: frames

@@ -30,6 +30,7 @@ import torch
 from ..camera import CameraModel
 from ..errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_finite, check_real_scalar
 from ..lti import LTISineTrajectory, Plant
+from ..mimo import MIMOSineTrajectory, PlantMatrix
 from ..psf import GaussianPSF
 from ..render import RenderSettings, choose_node_count, render_blur
 from ..timing import ExposureWindow
@@ -72,7 +73,8 @@ class SimulatedRig:
 
     Args (keyword-only):
         plant: the mirror, a :class:`~torchblur.lti.Plant` (output in px per command unit
-            along ``direction``).
+            along ``direction``) or a :class:`~torchblur.mimo.PlantMatrix` (a tip-tilt
+            mirror: outputs x and y move the spot along x and y; inputs ``"x"``, ``"y"``).
         camera: the sensor, a :class:`~torchblur.camera.CameraModel`.
         frame_shape: ``(H, W)`` in pixels.
         psf_sigma_px: standard deviation of the round spot (px); ignored when ``psf_cov``
@@ -89,6 +91,11 @@ class SimulatedRig:
         jitter_s: rms jitter of the exposure start, per frame.
         peak_e_per_s: peak electrons per second of the still spot at power 1.
         seed: seed of the generator behind every random draw.
+        spots: None (one spot), or a :class:`~torchblur.spots.SpotGrid` /
+            :class:`~torchblur.spots.SpotLayout`: K spots in the frame (a Shack-Hartmann
+            sensor), each with its own PSF and its own motion ``G_k @ y(t)`` (see
+            :mod:`torchblur.spots`); ``psf_sigma_px``, ``psf_cov``, ``rest_px`` and
+            ``direction`` are then not used. Every spot's peak is ``peak_e_per_s``.
     """
 
     def __init__(
@@ -109,9 +116,10 @@ class SimulatedRig:
         jitter_s: float = 0.2e-6,
         peak_e_per_s: float = 1e6,
         seed: int = 0,
+        spots=None,
     ):
-        if not isinstance(plant, Plant):
-            raise InputTypeError(f"plant: expected a torchblur.lti.Plant, got {type(plant).__name__}")
+        if not isinstance(plant, (Plant, PlantMatrix)):
+            raise InputTypeError(f"plant: expected a torchblur.lti.Plant or torchblur.mimo.PlantMatrix, got {type(plant).__name__}")
         if not isinstance(camera, CameraModel):
             raise InputTypeError(f"camera: expected a torchblur.camera.CameraModel, got {type(camera).__name__}")
         if (
@@ -152,6 +160,20 @@ class SimulatedRig:
             self._psf = GaussianPSF(rest, as_tensor(psf_cov, "psf_cov", dtype=_F64), amplitude=self._peak_e_per_s)
             if self._psf.shape != ():
                 raise ShapeError(f"psf_cov: expected shape [2, 2], got {tuple(self._psf.cov.shape)}")
+        self._layout = None
+        if spots is not None:
+            from ..spots import SpotGrid, SpotLayout
+
+            if isinstance(spots, SpotGrid):
+                spots = spots.layout((H, W), plant.n_outputs if isinstance(plant, PlantMatrix) else 1)
+            if not isinstance(spots, SpotLayout):
+                raise InputTypeError(f"spots: expected None, a SpotGrid or a SpotLayout, got {type(spots).__name__}")
+            n_out = plant.n_outputs if isinstance(plant, PlantMatrix) else 1
+            if tuple(spots.response.shape[1:]) != (2, n_out):
+                raise ShapeError(f"spots: expected responses [K, 2, {n_out}] for a plant with {n_out} output(s), "
+                                 f"got {tuple(spots.response.shape)}")
+            self._layout = spots
+            self._psf = GaussianPSF(spots.rest_px.to(_F64), spots.cov.to(_F64), torch.full((len(spots),), self._peak_e_per_s, dtype=_F64))
         self._settings = RenderSettings(pixel_integration=True, max_nodes=1 << 30)
         self._generator = torch.Generator().manual_seed(self._seed)
         self._next_counter = 0
@@ -190,8 +212,18 @@ class SimulatedRig:
         return self._jitter_s
 
     @property
-    def plant(self) -> Plant:
+    def plant(self) -> Plant | PlantMatrix:
         return self._plant
+
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        """The inputs :meth:`sine` can drive: ``("x",)`` for a Plant, the PlantMatrix's labels."""
+        return self._plant.input_labels if isinstance(self._plant, PlantMatrix) else ("x",)
+
+    @property
+    def spots(self):
+        """The :class:`~torchblur.spots.SpotLayout` of a many-spot rig, or None."""
+        return self._layout
 
     @property
     def camera(self) -> CameraModel:
@@ -214,10 +246,36 @@ class SimulatedRig:
 
     def truth(self, freq_hz):
         """``H(j 2 pi freq_hz)`` of the plant, delay included (not the ``direction`` scale):
-        a complex for a number, a complex numpy array for an array."""
+        for a Plant a complex for a number, a complex numpy array ``[F]`` for an array; for a
+        PlantMatrix a complex array ``[O, I]`` (``[O, I, F]`` for an array)."""
         f = np.asarray(freq_hz, dtype=np.float64)
         h = self._plant.frequency_response(2 * np.pi * f)
+        if isinstance(self._plant, PlantMatrix):
+            return h
         return complex(h) if h.ndim == 0 else h
+
+    def spot_truth(self, freq_hz) -> np.ndarray:
+        """The image motion response of every spot, ``G_k @ H``: complex ``[K, 2, I]``
+        (``[K, 2, I, F]`` for an array of frequencies); K = 1 with ``G = direction`` for a
+        one-spot rig with a Plant, ``G`` = identity for a PlantMatrix."""
+        f = np.asarray(freq_hz, dtype=np.float64)
+        h = np.asarray(self._plant.frequency_response(2 * np.pi * f))
+        if not isinstance(self._plant, PlantMatrix):
+            h = h[None, None]  # [1, 1, ...]
+        G = self._image_matrices().numpy()  # [K, 2, O]
+        return np.einsum("kao,oi...->kai...", G, h)
+
+    def _image_matrices(self) -> torch.Tensor:
+        """``[K, 2, O]`` image motion per plant output of each spot."""
+        if self._layout is not None:
+            return self._layout.response.to(_F64)
+        if isinstance(self._plant, PlantMatrix):
+            g = torch.zeros(1, 2, self._plant.n_outputs, dtype=_F64)
+            g[0, 0, 0] = 1.0
+            if self._plant.n_outputs > 1:
+                g[0, 1, 1] = 1.0
+            return g
+        return self._direction[None, :, None]
 
     # ------------------------------------------------------------------ helpers
 
@@ -245,11 +303,12 @@ class SimulatedRig:
         window = ExposureWindow(start, exposure_s)
         return self._camera.jitter_window(window, generator=self._generator)
 
-    def _render(self, trajectory: Trajectory, psf: GaussianPSF, window: ExposureWindow) -> torch.Tensor:
-        """``render_blur`` over windows ``[N]`` -> ``[N, H, W]`` electrons, float64. Windows that
-        need many time nodes are split into sub-windows (the integral over a window is the
-        sum over its parts) and the batch is cut into chunks that bound the memory."""
-        H, W = self._frame_shape
+    def _render(self, trajectory: Trajectory, psf: GaussianPSF, window: ExposureWindow, shape=None) -> torch.Tensor:
+        """``render_blur`` over windows ``[N]`` -> ``[N, H, W]`` electrons, float64 (``shape``:
+        another ``(H, W)``). Windows that need many time nodes are split into sub-windows (the
+        integral over a window is the sum over its parts) and the batch is cut into chunks that
+        bound the memory."""
+        H, W = self._frame_shape if shape is None else shape
         N = window.shape[0]
         S = choose_node_count(trajectory.path_length(window), psf.sigma_min(), self._settings, trajectory.phase_span(window))
         K = max(1, math.ceil(S / _MAX_NODES_PER_RENDER))
@@ -265,11 +324,39 @@ class SimulatedRig:
         img = torch.cat(parts, 0).reshape(N, K, H, W).sum(1)
         return img.clamp_min(0.0)
 
+    def _render_near(self, trajectory: Trajectory, psf: GaussianPSF, window: ExposureWindow) -> torch.Tensor:
+        """:meth:`_render` of one spot, computed only over the part of the frame it can reach:
+        its rest position +- (displacement at the window start + the path bound over the
+        window + 9 PSF sigmas, beyond which the Gaussian is below 1e-17 of its peak); zero
+        elsewhere. ``[N, H, W]``."""
+        H, W = self._frame_shape
+        with torch.no_grad():
+            d0 = trajectory.position(window.start[:, None])[:, 0, :].norm(dim=-1)
+            reach = float((d0 + trajectory.path_length(window)).max())
+            sd = float(psf.cov.detach().diagonal(dim1=-2, dim2=-1).max().sqrt())
+        m = reach + 9 * sd + 1
+        cx, cy = (float(v) for v in psf.center.detach())
+        x0, x1 = max(0, math.floor(cx - m)), min(W, math.ceil(cx + m) + 1)
+        y0, y1 = max(0, math.floor(cy - m)), min(H, math.ceil(cy + m) + 1)
+        if x1 <= x0 or y1 <= y0:
+            return torch.zeros((window.shape[0], H, W), dtype=_F64)
+        if (x1 - x0) * (y1 - y0) >= 0.8 * H * W:
+            return self._render(trajectory, psf, window)
+        shift = torch.tensor([x0, y0], dtype=_F64)
+        part = self._render(trajectory, GaussianPSF(psf.center - shift, psf.cov, psf.amplitude), window, shape=(y1 - y0, x1 - x0))
+        out = torch.zeros((window.shape[0], H, W), dtype=_F64)
+        out[:, y0:y1, x0:x1] = part
+        return out
+
     def _still_image_per_s(self) -> torch.Tensor:
         """Electrons per second of the still spot at power 1, ``[H, W]`` (cached)."""
         if self._still_rate is None:
             still = Sinusoid(torch.zeros(2, dtype=_F64), torch.zeros(2, dtype=_F64), torch.tensor(1.0, dtype=_F64))
-            self._still_rate = self._render(still, self._psf, ExposureWindow(torch.zeros(1, dtype=_F64), 1.0))[0]
+            if self._layout is None:
+                self._still_rate = self._render(still, self._psf, ExposureWindow(torch.zeros(1, dtype=_F64), 1.0))[0]
+            else:
+                self._still_rate = sum(self._render(still, self._psf[k], ExposureWindow(torch.zeros(1, dtype=_F64), 1.0))[0]
+                                       for k in range(len(self._layout)))
         return self._still_rate
 
     def _expose(self, expected_e: torch.Tensor) -> torch.Tensor:
@@ -324,6 +411,7 @@ class SimulatedRig:
         n_repeats: int,
         settle_s: float | None = None,
         power: float = 1.0,
+        input: str = "x",
     ) -> Capture:
         """Frames of the sine response, ``[E, R, H, W]`` (E exposures, R = ``n_repeats``).
 
@@ -337,10 +425,15 @@ class SimulatedRig:
             settle_s: wait (s) from the start of the sine before the first trigger; default
                 ``plant.settling_time_s()`` rounded up to whole periods.
             power: laser power (1 = ``peak_e_per_s``).
+            input: the driven input, one of :attr:`inputs` (``"x"``; ``"y"`` for a 2 x 2
+                plant); the other input is held at 0.
 
         ``meta`` holds ``freq_hz``, ``omega``, ``period_s``, ``amplitude``, ``settle_s``,
-        ``power``, ``trigger_delay_s`` and, for tests only, ``actual_start_s`` ``[E, R]``.
+        ``power``, ``trigger_delay_s``, ``input`` and, for tests only, ``actual_start_s``
+        ``[E, R]``.
         """
+        if input not in self.inputs:
+            raise ParameterError(f"input: expected one of {self.inputs}, got {input!r}")
         freq = check_real_scalar(freq_hz, "freq_hz", positive=True)
         amp = check_real_scalar(amplitude, "amplitude")
         power = self._check_power(power)
@@ -377,10 +470,17 @@ class SimulatedRig:
 
         window = self._actual_starts(trig_t, exp_t)
         omega = 2 * math.pi * freq
-        traj = LTISineTrajectory(self._plant, torch.tensor(amp, dtype=_F64), torch.tensor(omega, dtype=_F64), direction=self._direction)
         psf = self._psf if power == 1.0 else GaussianPSF(self._psf.center, self._psf.cov, self._psf.amplitude * power)
         flat = ExposureWindow(window.start.reshape(-1), window.duration.reshape(-1))
-        expected = self._render(traj, psf, flat).reshape((E, R) + self._frame_shape)
+        amp_t, om_t = torch.tensor(amp, dtype=_F64), torch.tensor(omega, dtype=_F64)
+        if isinstance(self._plant, Plant) and self._layout is None:
+            traj = LTISineTrajectory(self._plant, amp_t, om_t, direction=self._direction)
+            expected = self._render(traj, psf, flat)
+        else:  # each spot's own motion G_k @ y(t), rendered spot by spot (in the region it can reach) and added
+            G = self._image_matrices()
+            expected = sum(self._render_near(MIMOSineTrajectory(self._plant, amp_t, om_t, input=input, image_matrix=G[k]),
+                                             psf if psf.shape == () else psf[k], flat) for k in range(G.shape[0]))
+        expected = expected.reshape((E, R) + self._frame_shape)
         frames = self._expose(expected)
         return Capture(
             frames=frames,
@@ -397,6 +497,7 @@ class SimulatedRig:
                 "settle_s": settle,
                 "power": power,
                 "trigger_delay_s": self._trigger_delay_s,
+                "input": input,
                 "actual_start_s": window.start,
             },
         )
@@ -473,7 +574,9 @@ class SimulatedRig:
         )
 
     def __repr__(self) -> str:
+        kind = f"{self._plant.n_outputs}x{self._plant.n_inputs} plant" if isinstance(self._plant, PlantMatrix) else "plant"
+        spots = "" if self._layout is None else f", {len(self._layout)} spots"
         return (
-            f"SimulatedRig(frame_shape={self._frame_shape}, plant order {self._plant.order}, "
-            f"delay {self._plant.delay_s:g} s, frame_rate_hz={self._frame_rate_hz:g}, seed={self._seed})"
+            f"SimulatedRig(frame_shape={self._frame_shape}, {kind} order {self._plant.order}, "
+            f"delay {self._plant.delay_s:g} s, frame_rate_hz={self._frame_rate_hz:g}, seed={self._seed}{spots})"
         )
