@@ -271,5 +271,9 @@ class MIMOSineTrajectory(Trajectory):
             out = out + p.path_length(window)
         return out
 
+    def phase_span(self, window: ExposureWindow) -> torch.Tensor:
+        """``omega * duration`` (every channel oscillates at the command's frequency)."""
+        return self.parts[0].phase_span(window)
+
     def __repr__(self) -> str:
         return f"MIMOSineTrajectory(shape={tuple(self.shape)}, input={self.input!r}, outputs={self.plant.n_outputs})"
