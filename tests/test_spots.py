@@ -121,3 +121,12 @@ def test_short_spots_identification_with_missing_and_edge_spots(edge_run):
         assert np.all(frf.magnitude[o + 1, 0] < 0.02 * frf.magnitude[o, 0])
     np.testing.assert_allclose(np.abs(t[2, 0]) / np.abs(t[0, 0]), 1.1 / 0.7)  # spots move by their own gains
     assert res.images.shape[:4] == (1, 2, 3, 4) and res.images.shape[-2:] == (22, 22)
+
+
+def test_a_flagged_spot_is_left_out_of_the_model_not_the_others(edge_run):
+    """The edge spot has no valid point; the other spots still get their models."""
+    res = edge_run
+    log = "\n".join(res.log)
+    assert "output(s) s2.x, s2.y have a channel with no valid point and are left out of the model" in log
+    assert res.model is not None
+    assert res.model.output_labels == ("s0.x", "s0.y", "s1.x", "s1.y")

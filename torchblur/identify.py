@@ -444,6 +444,19 @@ def fit_model(cfg, frf, log=None, progress: bool = False):
     from .model_fit import fit_transfer_function
 
     log = [] if log is None else log
+    # Outputs with a channel that has no valid point at all (a spot flagged at every
+    # frequency) are left out, so they do not take the other outputs' models with them.
+    keep = frf.valid.any(-1).all(-1)  # [O]
+    if not keep.any():
+        _log(log, "model: fit failed: no output has a valid point in every channel", progress)
+        return None
+    if not keep.all():
+        from .frequency_response import FrequencyResponse
+
+        dropped = [lab for lab, k in zip(frf.output_labels, keep) if not k]
+        _log(log, f"model: output(s) {', '.join(dropped)} have a channel with no valid point and are left out of the model", progress)
+        frf = FrequencyResponse(frf.omega, frf.response[keep], cov=frf.cov[keep], input_labels=frf.input_labels,
+                                output_labels=[lab for lab, k in zip(frf.output_labels, keep) if k], meta=frf.meta)
     try:
         model = fit_transfer_function(frf, n_poles=cfg.model.n_poles, n_zeros=cfg.model.n_zeros,
                                       delay_s=None if cfg.model.fit_delay else 0.0, max_order=int(cfg.model.max_order))
