@@ -27,7 +27,8 @@ __all__ = ["IdentificationResult", "Calibration", "identify", "calibrate", "fit_
 @dataclass
 class IdentificationResult:
     """What :func:`identify` measured. ``frf`` (FrequencyResponse), ``model``
-    (TransferFunctionFit or None), ``psf`` (GaussianPSF per second at power 1), ``fit``
+    (TransferFunctionFit or None), ``direct_model`` (DirectModelFit with model.direct=true, else
+    None), ``psf`` (GaussianPSF per second at power 1), ``fit``
     (SinusoidFit of all points), ``amplitude`` (input amplitude per point), ``latency_s``
     and its std, ``saturation`` (SaturationCurve), ``images`` [F, E*R, H, W] (dark
     subtracted, electrons), ``windows`` (ExposureWindow [F, E*R]), ``truth`` (complex [F] or
@@ -48,6 +49,7 @@ class IdentificationResult:
     truth: np.ndarray | None = None
     log: list = field(default_factory=list)
     timing: dict = field(default_factory=dict)
+    direct_model: object = None  # DirectModelFit (model.direct=true) or None
 
 
 def build_simulated_rig(cfg: IdentifyConfig):
@@ -568,9 +570,30 @@ def _identify(cfg, rig, exp, log, progress) -> IdentificationResult:
 
     # 7. Parametric model.
     model = fit_model(cfg, frf, log, progress)
+    direct_model = None
+    if cfg.model.direct and model is None:
+        _log(log, "direct: skipped (no two-step model to start from)", progress)
+    elif cfg.model.direct:
+        from .direct import fit_direct
+
+        # Every image at once, with the sweep's noise model and mask; dark or out-of-frame points are left out.
+        t_direct = time.perf_counter()
+        psf_pts = GaussianPSF(psf.center.expand(len(freqs), 2), psf.cov.expand(len(freqs), 2, 2), psf.amplitude * power_t)
+        try:
+            direct_model = fit_direct(images, psf_pts, windows, omega, A_t, model, form=cfg.model.direct_form,
+                                      fit_delay=bool(cfg.model.fit_delay), noise_std=torch.sqrt(read_noise_e**2 + images.clamp_min(0)),
+                                      mask=mask, valid=(fit.status != 1) & (fit.status != 3), fit_scale=cfg.fit.fit_scale,
+                                      fit_background=cfg.fit.fit_background, max_iter=int(cfg.model.direct_max_iter))
+            modes = ", ".join(f"{m['freq_hz']:.3f} +- {m['freq_hz_std']:.3f} Hz (zeta {m['zeta']:.4f} +- {m['zeta_std']:.4f})"
+                              for m in direct_model.modal_parameters())
+            _log(log, f"direct: {direct_model.form} model from {int(direct_model.used.sum())} points ({direct_model.n_excluded} "
+                      f"excluded), {direct_model.n_iter} iterations, converged {direct_model.converged}, reduced chi2 "
+                      f"{direct_model.reduced_chi2:.3f}, {time.perf_counter() - t_direct:.2f} s; modes: {modes or 'none'}", progress)
+        except Exception as exc:  # the two-step model is still a result; say why the direct fit failed
+            _log(log, f"direct: fit failed: {exc}", progress)
     truth = None
     if hasattr(rig, "truth"):
         truth = np.asarray([rig.truth(float(f)) for f in freqs])
     return IdentificationResult(frf=frf, model=model, psf=psf, fit=fit, amplitude=np.asarray(amps), latency_s=latency,
                                 latency_std_s=latency_std, saturation=sat, images=images, windows=windows, power=power_t,
-                                truth=truth, log=log, timing=timing)
+                                truth=truth, log=log, timing=timing, direct_model=direct_model)
