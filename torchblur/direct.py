@@ -21,11 +21,12 @@ Model forms (``form``), both with a pure delay ``exp(-s delay_s)``:
   negative), ``n0`` roots at the origin kept fixed. ``gain`` is the low-frequency gain of
   the non-origin part (the DC gain when n0 = 0). Well conditioned, unlike polynomial
   coefficients.
-* ``"modal"``: ``H(s) = sum_pairs (g omega_n^2 + h omega_n s) / (s^2 + 2 zeta omega_n s +
-  omega_n^2) + sum_real g rate / (s + rate) + D``: per resonant mode its static gain g, a
-  dimensionless s-residue h, omega_n and zeta; per real mode g and rate; D a feedthrough
-  (only when the start has as many zeros as poles). The same model family as ``"tf"`` with
-  n_zeros = n_poles - 1 (or n_poles with D).
+* ``"modal"``: ``H(s) = sum_pairs g omega_n^2 / (s^2 + 2 zeta omega_n s + omega_n^2) +
+  sum_real g rate / (s + rate) + D``: per resonant mode its static gain g (a real modal
+  residue, as a structure with proportional damping and a collocated sensor has), omega_n
+  and zeta; per real mode g and rate; D a feedthrough (only when the start has as many
+  zeros as poles). The start's pairs keep their real residue part (the s-part of a general
+  partial fraction is dropped): a plant outside this family is only approximated.
 
 Efficiency: no dense Jacobian over all pixels x all parameters is formed. Per point the image
 and its derivatives with respect to (M, phi) come from one splat
@@ -56,7 +57,7 @@ from .render import RenderSettings, choose_node_count, quadrature_nodes
 from .timing import ExposureWindow
 from .trajectory import Sinusoid
 
-__all__ = ["DirectModelFit", "fit_direct", "FORMS"]
+__all__ = ["DirectModelFit", "fit_direct", "resolve_alias_with_model", "FORMS"]
 
 #: Model forms of :func:`fit_direct`.
 FORMS = ("tf", "modal")
@@ -93,8 +94,7 @@ class _Structure:
                 out.append((f"pole{i + 1}_rate", "log"))
         else:
             for i in range(self.n_pole_pairs):
-                out += [(f"mode{i + 1}_gain", "lin"), (f"mode{i + 1}_gain_s", "lin"), (f"mode{i + 1}_omega_n", "log"),
-                        (f"mode{i + 1}_zeta", "log")]
+                out += [(f"mode{i + 1}_gain", "lin"), (f"mode{i + 1}_omega_n", "log"), (f"mode{i + 1}_zeta", "log")]
             for i in range(self.n_pole_real):
                 out += [(f"real_mode{i + 1}_gain", "lin"), (f"real_mode{i + 1}_rate", "log")]
             if self.feedthrough:
@@ -130,9 +130,9 @@ def _response(struct: _Structure, p: torch.Tensor, s: torch.Tensor, delay_s: flo
     else:
         h = torch.zeros_like(s)
         for _ in range(struct.n_pole_pairs):
-            g, hs, wn, z = p[i], p[i + 1], p[i + 2], p[i + 3]
-            h = h + (g * wn * wn + hs * wn * s) / (s * s + 2 * z * wn * s + wn * wn)
-            i += 4
+            g, wn, z = p[i], p[i + 1], p[i + 2]
+            h = h + g * wn * wn / (s * s + 2 * z * wn * s + wn * wn)
+            i += 3
         for _ in range(struct.n_pole_real):
             g, a = p[i], p[i + 1]
             h = h + g * a / (s + a)
@@ -186,9 +186,9 @@ def _modal_polys(struct: _Structure, p: np.ndarray):
     """num, den polynomial coefficients (highest power first) of the modal form."""
     terms, i = [], 0
     for _ in range(struct.n_pole_pairs):
-        g, hs, wn, z = p[i:i + 4]
-        terms.append((np.array([hs * wn, g * wn * wn]), np.array([1.0, 2 * z * wn, wn * wn])))
-        i += 4
+        g, wn, z = p[i:i + 3]
+        terms.append((np.array([g * wn * wn]), np.array([1.0, 2 * z * wn, wn * wn])))
+        i += 3
     for _ in range(struct.n_pole_real):
         g, a = p[i:i + 2]
         terms.append((np.array([g * a]), np.array([1.0, a])))
@@ -261,11 +261,10 @@ def _structure_from_tf(tf_fit, form: str, fit_delay: bool):
             return K * np.prod(pk - zeros) / np.prod(pk - others)
 
         vals = []
-        for r in pu:
+        for r in pu:  # the pair's numerator b1 s + b0; the modal form keeps b0 (a real modal residue)
             res = residue(r)
             wn = abs(r)
-            b1, b0 = 2 * res.real, -2 * (res * np.conj(r)).real
-            vals += [b0 / wn**2, b1 / wn, wn, -r.real / wn]
+            vals += [-2 * (res * np.conj(r)).real / wn**2, wn, -r.real / wn]
         for r in pr:
             res = residue(complex(r)).real
             vals += [res / -r, -r]
@@ -384,7 +383,7 @@ class DirectModelFit:
             out = []
             if struct.form == "modal":
                 for k in range(struct.n_pole_pairs):
-                    g, _, wn, z = p[4 * k:4 * k + 4]
+                    g, wn, z = p[3 * k:3 * k + 3]
                     out += [wn, z, g]
                 return torch.stack(out) if out else p[:0]
             # tf: pole pairs and the residue of each.
@@ -551,8 +550,9 @@ def fit_direct(
         valid: bool ``[F]``, False excludes a whole point (dark, out of frame); counted in
             ``n_excluded``.
         fit_scale, fit_background: per-point nuisance parameters (intensity scale, offset).
-        max_iter: Levenberg-Marquardt iterations at most; tol: relative cost decrease that
-            counts as converged.
+        max_iter: Levenberg-Marquardt iterations at most; tol: a cost decrease below ``tol``
+            times the cost (or, with ``noise_std`` given, times the number of used pixels:
+            the cost is then a chi2) counts as converged.
         render_settings: renderer settings (default: panels of 3.5 PSF widths, as the
             sinusoid fitter).
 
@@ -765,6 +765,8 @@ def fit_direct(
     converged = False
     it = 0
     floor = (10 * torch.finfo(dtype).eps) ** 2 * float((wts * data * data).sum())
+    # With the noise known the cost is a chi2: a decrease far below 1 per pixel means nothing.
+    abs_tol = tol * float((wts > 0).sum()) if noise_std is not None else 0.0
     for it in range(1, max_iter + 1):
         du, dnu, _ = solve(blocks, lam)
         u_t = u + du.to(torch.float64)
@@ -780,11 +782,12 @@ def fit_direct(
             cost, blocks = evaluate(u, nuis)  # same point, new nodes: a fair comparison
         c_t, b_t = evaluate(u_t, nu_t)
         if bool(torch.isfinite(c_t)) and float(c_t) <= float(cost):
-            rel = (float(cost) - float(c_t)) / max(float(cost), 1e-300)
+            drop = float(cost) - float(c_t)
+            rel = drop / max(float(cost), 1e-300)
             u, nuis, cost, blocks = u_t, nu_t, c_t, b_t
             lam = max(lam / 3, 1e-12)
             small = bool((du.abs() <= 1e-12 * (u.abs() + 1e-8)).all())
-            if rel < tol or small or float(cost) <= floor:
+            if rel < tol or drop < abs_tol or small or float(cost) <= floor:
                 converged = True
                 break
         else:
@@ -822,3 +825,95 @@ def fit_direct(
         start_params=np.asarray(p0), delay_s=delay_hat, cost=total_cost, dof=int(dof), reduced_chi2=float(red),
         noise_estimated=noise_std is None, converged=bool(converged), n_iter=int(it), used=use.cpu().numpy(), n_excluded=n_excluded,
         scale=scale_full, background=bg_full, _struct=struct)
+
+
+# ------------------------------------------------------------- single-exposure start
+def resolve_alias_with_model(frf, alias_phase, *, n_poles: int | None = None, n_zeros: int | None = None,
+                             delay_s: float | None = None, max_order: int = 8, max_rounds: int = 20):
+    """Pick each point's phase branch (measured or alias) with a model: a single-exposure start.
+
+    With one exposure window per point (Proposition 3) every phase has an alias that renders
+    the same image, so a per-point fit picks its branch by chance under noise. A model over
+    all points tells them apart. From each of three initial choices (as measured; continuity
+    from the lowest frequency, each point taking the branch nearest the previous point's
+    phase; all aliases) the model is fitted, every point then takes the branch nearer the
+    model (in units of its std), and so on until no point changes; the choice with the
+    smallest chi2 wins.
+
+    Args:
+        frf: SISO :class:`~torchblur.frequency_response.FrequencyResponse` of the per-point fits
+            (its covariance weights the fits).
+        alias_phase: [F] the other branch of each point (``SinusoidFit.alias_phase``), rad.
+        n_poles, n_zeros, delay_s, max_order: passed to
+            :func:`~torchblur.model_fit.fit_transfer_function` (fixed orders are much faster).
+        max_rounds: rounds of re-assignment at most per initial choice.
+
+    Returns:
+        ``(frf_resolved, model, flipped)``: the response with the chosen branches (the alias
+        point's magnitude-phase correlation changes sign: the alias moves opposite to the
+        phase), the TransferFunctionFit on it, and bool [F] where the alias was taken.
+    """
+    from .frequency_response import FrequencyResponse
+    from .model_fit import fit_transfer_function
+
+    if not isinstance(frf, FrequencyResponse) or not frf.is_siso:
+        raise InputTypeError(f"frf: expected a SISO FrequencyResponse, got {type(frf).__name__}")
+    alias = np.asarray(alias_phase.detach().cpu().numpy() if isinstance(alias_phase, torch.Tensor) else alias_phase, dtype=np.float64)
+    F = frf.omega.size
+    if alias.shape != (F,):
+        raise ShapeError(f"alias_phase: expected shape [F] = [{F}], got {alias.shape}")
+    h = frf.response[0, 0]
+    ok = np.isfinite(h) & np.isfinite(alias)
+    mag = np.abs(h)
+    branches = np.stack([h, mag * np.exp(1j * alias)])  # [2, F]
+    cov = np.array(frf.cov[0, 0])
+    cov_alias = cov.copy()
+    cov_alias[:, 0, 1] *= -1
+    cov_alias[:, 1, 0] *= -1
+
+    def frf_of(choice):
+        resp = np.where(choice, branches[1], branches[0])
+        c = np.where(choice[:, None, None], cov_alias, cov)
+        return FrequencyResponse(frf.omega, resp, cov=c, input_labels=frf.input_labels, output_labels=frf.output_labels,
+                                 meta=dict(frf.meta))
+
+    # Initial choices.
+    inits = [np.zeros(F, dtype=bool), np.ones(F, dtype=bool) & ok]
+    cont = np.zeros(F, dtype=bool)
+    prev = None
+    for k in range(F):
+        if not ok[k]:
+            continue
+        ph = np.angle(branches[:, k])
+        if prev is not None:
+            d = np.abs(np.angle(np.exp(1j * (ph - prev))))
+            cont[k] = bool(d[1] < d[0])
+        prev = ph[int(cont[k])]
+    inits.insert(1, cont)
+    sig = np.sqrt(np.nan_to_num(cov[:, 0, 0]) + mag**2 * np.nan_to_num(cov[:, 1, 1]))
+    sig = np.where(sig > 0, sig, np.maximum(mag, 1e-300))
+    best = None
+    seen = set()
+    for choice in inits:
+        for _ in range(max_rounds):
+            key = choice.tobytes()
+            if key in seen:
+                break
+            seen.add(key)
+            try:
+                model = fit_transfer_function(frf_of(choice), n_poles=n_poles, n_zeros=n_zeros, delay_s=delay_s,
+                                              max_order=max_order)
+            except (ValueError, np.linalg.LinAlgError):
+                break
+            if best is None or model.chi2 < best[1].chi2:
+                best = (choice.copy(), model)
+            pred = model.frequency_response(frf.omega)
+            dist = np.abs(branches - pred[None]) / sig[None]
+            new = (dist[1] < dist[0]) & ok
+            if np.array_equal(new, choice):
+                break
+            choice = new
+    if best is None:
+        raise ParameterError("frf: no model could be fitted to any branch choice")
+    choice, model = best
+    return frf_of(choice), model, choice
