@@ -170,9 +170,9 @@ def test_single_exposure_direct_beats_the_two_step_route():
     freqs = np.geomspace(100.0, 1200.0, 12)
     d = sweep(freqs, fracs=(0.3,), size=40, target=6.0, peak=2000.0, seed=0)
     fit, frf = two_step(d)
-    frf2, tf, flipped = resolve_alias_with_model(frf, fit.alias_phase, n_poles=4, n_zeros=0)
-    assert flipped.dtype == bool and flipped.shape == (12,)
-    r = fit_direct(d["images"], d["psf"], d["window"], d["omega"], d["amplitude"], tf, noise_std=d["noise"])
+    frf2, tf, flipped, candidates = resolve_alias_with_model(frf, fit.alias_phase, n_poles=4, n_zeros=0)
+    assert flipped.dtype == bool and flipped.shape == (12,) and candidates[0] is tf
+    r = fit_direct(d["images"], d["psf"], d["window"], d["omega"], d["amplitude"], candidates, noise_std=d["noise"])
     two = tf.modal_parameters()[0]
     (ef, sf, ez, sz), _ = mode_errors(r)
     assert abs(ef) < 3 * sf and abs(ez) < 3 * sz

@@ -46,7 +46,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -57,7 +57,7 @@ from .render import RenderSettings, choose_node_count, quadrature_nodes
 from .timing import ExposureWindow
 from .trajectory import Sinusoid
 
-__all__ = ["DirectModelFit", "fit_direct", "resolve_alias_with_model", "FORMS"]
+__all__ = ["AliasResolution", "DirectModelFit", "fit_direct", "resolve_alias_with_model", "FORMS"]
 
 #: Model forms of :func:`fit_direct`.
 FORMS = ("tf", "modal")
@@ -540,7 +540,8 @@ def fit_direct(
         omega: ``[F]`` rad/s.
         input_amplitude: ``[F]`` (or a number) command amplitude A_k (input units).
         start: a SISO :class:`~torchblur.model_fit.TransferFunctionFit` (the two-step model:
-            its orders and values are the start) or a :class:`DirectModelFit`.
+            its orders and values are the start) or a :class:`DirectModelFit`; or a list of
+            them: each is fitted and the lowest cost wins (multi-start).
         form: "tf" (normalised poles/zeros) or "modal" (sum of modes); see the module docstring.
         fit_delay: estimate the delay (else it stays at the start's).
         axis: "x" or "y": the motion direction in the image.
@@ -562,6 +563,13 @@ def fit_direct(
     Raises:
         InputTypeError, ShapeError, ParameterError naming the argument.
     """
+    if isinstance(start, (list, tuple)):
+        if not start:
+            raise ParameterError("start: expected a model or a non-empty list of models, got an empty list")
+        kw = dict(form=form, fit_delay=fit_delay, axis=axis, noise_std=noise_std, mask=mask, valid=valid, fit_scale=fit_scale,
+                  fit_background=fit_background, max_iter=max_iter, tol=tol, render_settings=render_settings)
+        fits = [fit_direct(images, psf, window, omega, input_amplitude, s, **kw) for s in start]
+        return min(fits, key=lambda f: f.cost if math.isfinite(f.cost) else math.inf)
     images, window, omega, amp, valid = _validate(images, psf, window, omega, input_amplitude, start, form, axis, valid)
     for name, val in (("fit_delay", fit_delay), ("fit_scale", fit_scale), ("fit_background", fit_background)):
         if not isinstance(val, bool):
@@ -828,8 +836,18 @@ def fit_direct(
 
 
 # ------------------------------------------------------------- single-exposure start
+class AliasResolution(NamedTuple):
+    """Result of :func:`resolve_alias_with_model`."""
+
+    frf: Any
+    model: Any
+    flipped: np.ndarray
+    candidates: list
+
+
 def resolve_alias_with_model(frf, alias_phase, *, n_poles: int | None = None, n_zeros: int | None = None,
-                             delay_s: float | None = None, max_order: int = 8, max_rounds: int = 20):
+                             delay_s: float | None = None, max_order: int = 8, max_rounds: int = 20,
+                             n_candidates: int = 4) -> AliasResolution:
     """Pick each point's phase branch (measured or alias) with a model: a single-exposure start.
 
     With one exposure window per point (Proposition 3) every phase has an alias that renders
@@ -847,11 +865,14 @@ def resolve_alias_with_model(frf, alias_phase, *, n_poles: int | None = None, n_
         n_poles, n_zeros, delay_s, max_order: passed to
             :func:`~torchblur.model_fit.fit_transfer_function` (fixed orders are much faster).
         max_rounds: rounds of re-assignment at most per initial choice.
+        n_candidates: how many of the best branch choices' models to return as ``candidates``.
 
     Returns:
-        ``(frf_resolved, model, flipped)``: the response with the chosen branches (the alias
-        point's magnitude-phase correlation changes sign: the alias moves opposite to the
-        phase), the TransferFunctionFit on it, and bool [F] where the alias was taken.
+        :class:`AliasResolution` ``(frf, model, flipped, candidates)``: the response with the
+        chosen branches (an alias point's magnitude-phase correlation changes sign: the alias
+        moves opposite to the phase), the TransferFunctionFit on it, bool [F] where the alias
+        was taken, and the models of the best branch choices (lowest chi2 first; pass them
+        all as ``start`` to :func:`fit_direct`, which keeps the one that fits the images best).
     """
     from .frequency_response import FrequencyResponse
     from .model_fit import fit_transfer_function
@@ -892,7 +913,7 @@ def resolve_alias_with_model(frf, alias_phase, *, n_poles: int | None = None, n_
     inits.insert(1, cont)
     sig = np.sqrt(np.nan_to_num(cov[:, 0, 0]) + mag**2 * np.nan_to_num(cov[:, 1, 1]))
     sig = np.where(sig > 0, sig, np.maximum(mag, 1e-300))
-    best = None
+    tried = []
     seen = set()
     for choice in inits:
         for _ in range(max_rounds):
@@ -905,15 +926,15 @@ def resolve_alias_with_model(frf, alias_phase, *, n_poles: int | None = None, n_
                                               max_order=max_order)
             except (ValueError, np.linalg.LinAlgError):
                 break
-            if best is None or model.chi2 < best[1].chi2:
-                best = (choice.copy(), model)
+            tried.append((model.chi2, choice.copy(), model))
             pred = model.frequency_response(frf.omega)
             dist = np.abs(branches - pred[None]) / sig[None]
             new = (dist[1] < dist[0]) & ok
             if np.array_equal(new, choice):
                 break
             choice = new
-    if best is None:
+    if not tried:
         raise ParameterError("frf: no model could be fitted to any branch choice")
-    choice, model = best
-    return frf_of(choice), model, choice
+    tried.sort(key=lambda t: t[0])
+    _, choice, model = tried[0]
+    return AliasResolution(frf_of(choice), model, choice, [t[2] for t in tried[:n_candidates]])
