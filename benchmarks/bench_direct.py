@@ -172,15 +172,16 @@ def part_b(seeds, peak_fraction, motion_px):
             print(f"  seed {seed}, {name:29s}: two-step f {e2[0] * 100:+8.3f}% zeta {e2[1] * 100:+8.2f}% | direct f {ed[0] * 100:+8.3f}% "
                   f"zeta {ed[1] * 100:+8.2f}% (err/std {zs[name][-1][0]:+.2f}, {zs[name][-1][1]:+.2f}; {d.n_iter} it, "
                   f"reduced chi2 {d.reduced_chi2:.3f}, {dt:.1f} s)")
-    print("\n  summary (RMS / worst over seeds, % of the truth):")
+    print("\n  summary (median / RMS / worst over seeds, % of the truth):")
     for name in designs:
         for route in ("two-step", "direct"):
             e = np.abs(np.array(errs[name][route]))
             if e.size == 0:
                 continue
             rms = np.sqrt(np.nanmean(e**2, 0)) * 100
-            print(f"    {name:29s} {route:9s}: frequency {rms[0]:8.3f} / {np.nanmax(e[:, 0]) * 100:8.3f}   "
-                  f"damping {rms[1]:8.2f} / {np.nanmax(e[:, 1]) * 100:8.2f}")
+            med = np.nanmedian(e, 0) * 100
+            print(f"    {name:29s} {route:9s}: frequency {med[0]:7.3f} / {rms[0]:7.3f} / {np.nanmax(e[:, 0]) * 100:7.3f}   "
+                  f"damping {med[1]:6.2f} / {rms[1]:6.2f} / {np.nanmax(e[:, 1]) * 100:6.2f}")
         z = np.abs(np.array(zs[name]))
         if z.size:
             print(f"    {name:29s} direct error / reported std: worst {z.max():.2f}")

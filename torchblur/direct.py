@@ -594,8 +594,8 @@ def fit_direct(
     else:
         struct, p0, delay = _structure_from_tf(start, form, fit_delay)
     names, transforms = zip(*struct.names_transforms())
-    is_log = torch.tensor([t == "log" for t in transforms])
-    if np.any(p0[is_log.numpy()] <= 0) or not np.all(np.isfinite(p0)):
+    is_log = torch.tensor([t == "log" for t in transforms], device=device)
+    if np.any(p0[is_log.cpu().numpy()] <= 0) or not np.all(np.isfinite(p0)):
         raise ParameterError(f"start: the start gives invalid parameters {dict(zip(names, p0.tolist()))}")
 
     # Weights.
@@ -630,7 +630,7 @@ def fit_direct(
                         psf.amplitude.to(dtype).expand(F)[idx])
     center = psf_b.center
     Ap, Bp, Cp = psf_b.precision()
-    s_c = (1j * om).to(torch.complex128)
+    s_c = 1j * om.to(torch.float64)  # complex128: H needs the precision whatever the images
 
     def motion(u: torch.Tensor):
         """(M [n], phi [n]) from internal parameters u [P]."""
@@ -641,7 +641,8 @@ def fit_direct(
     def natural(u):
         return torch.where(is_log, torch.exp(u), u)
 
-    u = torch.where(is_log, torch.log(torch.as_tensor(p0)), torch.as_tensor(p0)).to(torch.float64)
+    p0_t = torch.as_tensor(p0, dtype=torch.float64, device=device)
+    u = torch.where(is_log, torch.log(p0_t), p0_t)
 
     # Crop to the region the model can reach (as the sinusoid fitter does): outside it the
     # model is below e^-18 of its peak; the constant cost of those pixels is added back.
@@ -816,8 +817,8 @@ def fit_direct(
         cov_u = cov_u * red
     p_hat = natural(u)
     jac_nat = torch.where(is_log, p_hat, torch.ones_like(p_hat))
-    cov = (jac_nat[:, None] * cov_u * jac_nat[None, :]).numpy()
-    params = p_hat.detach().numpy()
+    cov = (jac_nat[:, None] * cov_u * jac_nat[None, :]).detach().cpu().numpy()
+    params = p_hat.detach().cpu().numpy()
     scale_full = np.full(F, np.nan)
     bg_full = np.full(F, np.nan) if fit_background else None
     idx_np = idx.cpu().numpy()
@@ -855,8 +856,9 @@ def resolve_alias_with_model(frf, alias_phase, *, n_poles: int | None = None, n_
     all points tells them apart. From each of three initial choices (as measured; continuity
     from the lowest frequency, each point taking the branch nearest the previous point's
     phase; all aliases) the model is fitted, every point then takes the branch nearer the
-    model (in units of its std), and so on until no point changes; the choice with the
-    smallest chi2 wins.
+    model (in units of its std), and so on until no point changes; then single points and
+    pairs of neighbours of the best choice are flipped and the descent repeated while that
+    lowers the chi2. The choice with the smallest chi2 wins.
 
     Args:
         frf: SISO :class:`~torchblur.frequency_response.FrequencyResponse` of the per-point fits
@@ -915,26 +917,44 @@ def resolve_alias_with_model(frf, alias_phase, *, n_poles: int | None = None, n_
     sig = np.where(sig > 0, sig, np.maximum(mag, 1e-300))
     tried = []
     seen = set()
-    for choice in inits:
+
+    def descend(choice):
+        """Fit, re-assign every point to the nearer branch, repeat until nothing changes."""
         for _ in range(max_rounds):
             key = choice.tobytes()
             if key in seen:
-                break
+                return
             seen.add(key)
             try:
                 model = fit_transfer_function(frf_of(choice), n_poles=n_poles, n_zeros=n_zeros, delay_s=delay_s,
                                               max_order=max_order)
             except (ValueError, np.linalg.LinAlgError):
-                break
+                return
             tried.append((model.chi2, choice.copy(), model))
             pred = model.frequency_response(frf.omega)
             dist = np.abs(branches - pred[None]) / sig[None]
             new = (dist[1] < dist[0]) & ok
             if np.array_equal(new, choice):
-                break
+                return
             choice = new
+
+    for choice in inits:
+        descend(choice)
     if not tried:
         raise ParameterError("frf: no model could be fitted to any branch choice")
+    # Local search: flip one point, or two neighbours, of the best choice, and descend again,
+    # until no such move finds a smaller chi2 (a wrong branch at a few points can trap the
+    # re-assignment: the model bends toward them).
+    for _ in range(max_rounds):
+        best_chi2 = min(t[0] for t in tried)
+        base = min(tried, key=lambda t: t[0])[1]
+        moves = [[k] for k in range(F)] + [[k, k + 1] for k in range(F - 1)]
+        for mv in moves:
+            c = base.copy()
+            c[mv] = ~c[mv]
+            descend(c & ok)
+        if min(t[0] for t in tried) >= best_chi2:
+            break
     tried.sort(key=lambda t: t[0])
     _, choice, model = tried[0]
     return AliasResolution(frf_of(choice), model, choice, [t[2] for t in tried[:n_candidates]])
