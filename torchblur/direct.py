@@ -645,7 +645,8 @@ def fit_direct(
     u = torch.where(is_log, torch.log(p0_t), p0_t)
 
     # Crop to the region the model can reach (as the sinusoid fitter does): outside it the
-    # model is below e^-18 of its peak; the constant cost of those pixels is added back.
+    # model is below e^-24 of its peak; the constant cost of those pixels is added back.
+    # Steps that would move the spot past the crop are refused (a shorter step is tried).
     with torch.no_grad():
         M0 = motion(u)[0]
     sd = torch.diagonal(psf_b.cov, dim1=-2, dim2=-1).sqrt()
@@ -653,7 +654,7 @@ def fit_direct(
     reach[:, 0 if axis == "x" else 1] = M0 * 1.5 + 1.0
     out_cost = torch.zeros((), dtype=dtype, device=device)
     out_n = 0
-    x0 = y0 = 0
+    m_limit = math.inf
     if not fit_background:
         lo = (center - reach - 7 * sd).amin(0)
         hi = (center + reach + 7 * sd).amax(0)
@@ -666,9 +667,9 @@ def fit_direct(
             out_cost = (ow * data * data).sum()
             out_n = int(((ow > 0)).sum())
             data, wts = data[..., cy0:cy1, cx0:cx1], wts[..., cy0:cy1, cx0:cx1]
-            x0, y0 = cx0, cy0
             H, W = cy1 - cy0, cx1 - cx0
-            center = center - torch.tensor([x0, y0], dtype=dtype, device=device)
+            center = center - torch.tensor([cx0, cy0], dtype=dtype, device=device)
+            m_limit = reach[:, 0 if axis == "x" else 1]
 
     # Time nodes, fixed for a motion bound (recomputed if the motion grows past it).
     settings = render_settings or RenderSettings(panel_path_sigmas=3.5)
@@ -782,8 +783,10 @@ def fit_direct(
         nu_t = nuis + dnu
         with torch.no_grad():
             M_t = motion(u_t)[0]
-        if not bool(torch.isfinite(M_t).all()) or not bool(torch.isfinite(u_t).all()):
+        if not bool(torch.isfinite(M_t).all()) or not bool(torch.isfinite(u_t).all()) or bool((M_t > m_limit).any()):
             lam *= 4
+            if lam > 1e12:
+                break
             continue
         if bool((M_t > m_bound).any()):
             m_bound = M_t * 1.3 + 0.5
