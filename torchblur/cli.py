@@ -6,6 +6,8 @@ Commands:
                         rig.kind=serial rig.port=... rig.frames=...); writes frf.csv, frf.json,
                         model.json, bode.png, residuals.png, config.yaml and report.txt into
                         DIR, and records the raw frames as it goes in DIR/experiment/.
+                        With model.direct=true model.json holds the model fitted directly
+                        to every image and model_two_step.json the two-step model.
     identify --resume DIR [key=value ...]
                         continue an interrupted run from DIR/experiment/ (rig.*, fit.* and
                         model.* may be given anew, e.g. the new rig.port).
@@ -229,6 +231,15 @@ def _write_outputs(cfg, res, out: Path, elapsed: float, stamp: str) -> None:
         model.update(res.model.to_dict())
     else:
         model["error"] = "the model fit failed; see report.txt"
+    direct = getattr(res, "direct_model", None)
+    if cfg.model.direct:
+        # model.json holds the direct model; the two-step one it started from is kept beside it.
+        (out / "model_two_step.json").write_text(json.dumps(model, indent=2))
+        model = {"torchblur_version": tb.__version__, "seed": int(cfg.seed)}
+        if direct is not None:
+            model.update(direct.to_dict())
+        else:
+            model["error"] = "the direct fit failed or was skipped; see report.txt (the two-step model is in model_two_step.json)"
     (out / "model.json").write_text(json.dumps(model, indent=2))
     truth = None
     if res.truth is not None:
@@ -381,6 +392,8 @@ def _report(cfg, res, elapsed, stamp) -> str:
                   f"  num = {list(map(float, m.num))}", f"  den = {list(map(float, m.den))}"]
         for mode in m.modal_parameters():
             lines.append(f"  mode: {mode['freq_hz']:.3f} Hz, damping {mode['zeta']:.4f}")
+        if cfg.model.direct:
+            lines.append("  (the two-step model: model_two_step.json)")
     elif res.model is not None:
         m = res.model
         modes = m.modal_parameters()
@@ -392,6 +405,17 @@ def _report(cfg, res, elapsed, stamp) -> str:
                           f"  num = {list(map(float, m.num[o][i]))}", f"  den = {list(map(float, m.den[o][i]))}"]
                 for mode in modes[o][i]:
                     lines.append(f"  mode: {mode['freq_hz']:.3f} Hz, damping {mode['zeta']:.4f}")
+    d = getattr(res, "direct_model", None)
+    if d is not None:
+        lines += ["", f"direct model ({d.form}, fitted to every image; model.json): delay {d.delay_s * 1e6:.3f} us, reduced chi2 "
+                      f"{d.reduced_chi2:.3f} (dof {d.dof}), {d.n_iter} iterations, converged {d.converged}, "
+                      f"{int(d.used.sum())} points used, {d.n_excluded} excluded",
+                  f"  num = {d.num}", f"  den = {d.den}"]
+        for mode in d.modal_parameters():
+            lines.append(f"  mode: {mode['freq_hz']:.3f} +- {mode['freq_hz_std']:.3f} Hz, damping {mode['zeta']:.4f} +- "
+                         f"{mode['zeta_std']:.4f}, gain {mode['gain']:.4g} +- {mode['gain_std']:.2g}")
+    elif cfg.model.direct:
+        lines += ["", "direct model: none (see the log above); model.json holds the error, model_two_step.json the two-step model"]
     what = "simulated acquisition" if cfg.rig.kind == "simulated" else "acquisition"
     t = getattr(res, "timing", {}) or {}
     lines += ["", f"elapsed {elapsed:.1f} s ({what} and fitting)"]

@@ -144,6 +144,11 @@ class ModelConfig:
     n_zeros: Optional[int] = None
     max_order: int = 6
     fit_delay: bool = True
+    # Direct identification (torchblur.direct): after the two-step model, fit its parameters
+    # to every image at once; model.json then holds the direct model, model_two_step.json the other.
+    direct: bool = False
+    direct_form: str = "tf"  # "tf" (normalised poles/zeros) or "modal" (sum of modes)
+    direct_max_iter: int = 100
 
 
 @dataclass(frozen=True)
@@ -467,6 +472,17 @@ def validate(cfg: IdentifyConfig) -> None:
             _num(v, f"model.{k}", integer=True, low=0)
     _num(cfg.fit.chunk_points, "fit.chunk_points", integer=True, low=0)
     _num(cfg.model.max_order, "model.max_order", integer=True, low=1, high=16)
+    for k in ("direct",):
+        if not isinstance(getattr(cfg.model, k), bool):
+            raise ConfigError(f"model.{k}: expected true or false, got {getattr(cfg.model, k)!r}")
+    from .direct import FORMS
+
+    if cfg.model.direct_form not in FORMS:
+        raise ConfigError(f"model.direct_form: expected one of {FORMS}, got {cfg.model.direct_form!r}")
+    _num(cfg.model.direct_max_iter, "model.direct_max_iter", integer=True, low=1, high=10000)
+    if cfg.model.direct and (cfg.plant.is_mimo or cfg.spots.enabled):
+        raise ConfigError("model.direct: the direct fit handles one axis and one spot; this run has "
+                          f"{'a 2x2 plant' if cfg.plant.is_mimo else 'many spots (spots.rows > 0)'}: set model.direct=false")
     validate_rig(cfg.rig)
     _num(cfg.seed, "seed", integer=True, low=0)
 

@@ -27,7 +27,8 @@ __all__ = ["IdentificationResult", "Calibration", "identify", "calibrate", "fit_
 @dataclass
 class IdentificationResult:
     """What :func:`identify` measured. ``frf`` (FrequencyResponse), ``model``
-    (TransferFunctionFit or None), ``psf`` (GaussianPSF per second at power 1; ``[K]`` with
+    (TransferFunctionFit or None), ``direct_model`` (DirectModelFit with ``model.direct=true``,
+    else None), ``psf`` (GaussianPSF per second at power 1; ``[K]`` with
     many spots), ``fit`` (SinusoidFit of all points), ``amplitude`` (input amplitude per
     point), ``latency_s`` and its std, ``saturation`` (SaturationCurve), ``images`` (dark
     subtracted, electrons), ``windows``, ``truth`` (the true response or None), ``log``
@@ -58,6 +59,7 @@ class IdentificationResult:
     timing: dict = field(default_factory=dict)
     inputs: tuple = ("x",)
     spots: object = None
+    direct_model: object = None  # DirectModelFit (model.direct=true) or None
 
 
 def build_simulated_rig(cfg: IdentifyConfig):
@@ -688,12 +690,46 @@ def _identify(cfg, rig, exp, log, progress) -> IdentificationResult:
             why = "mostly outside the frame" if bool(flagged[k]) else STATUS.get(int(st.mode().values), "?")
             _log(log, f"spots: s{k} flagged at every point ({why}); its channels are NaN, the other spots are fitted", progress)
 
-    # 7. Parametric model.
+    # 7. Parametric model; with model.direct, the model fitted to every image at once from it.
     model = fit_model(cfg, frf, log, progress)
+    direct_model = None
+    if cfg.model.direct and model is None:
+        _log(log, "direct: skipped (no two-step model to start from)", progress)
+    elif cfg.model.direct:
+        direct_model = _fit_direct_model(cfg, model, images, windows, omega_job, amps, psf, power_t, read_noise_e,
+                                         torch.stack(masks_all)[:, 0], fit, log, progress)
     truth = _truth_of(rig, freqs, frf, spots, single)
     return IdentificationResult(frf=frf, model=model, psf=psf, fit=fit, amplitude=np.asarray(amps), latency_s=latency,
                                 latency_std_s=latency_std, saturation=sat, images=images, windows=windows, power=power_t,
-                                truth=truth, log=log, timing=timing, inputs=tuple(inputs), spots=spots)
+                                truth=truth, log=log, timing=timing, inputs=tuple(inputs), spots=spots, direct_model=direct_model)
+
+
+def _fit_direct_model(cfg, model, images, windows, omega, amps, psf, power_t, read_noise_e, mask, fit, log, progress):
+    """The direct model (one axis, one spot): every image at once, with the sweep's noise
+    model and mask; dark or out-of-frame points are left out. None, logged, if it fails."""
+    import time
+
+    from .direct import fit_direct
+    from .psf import GaussianPSF
+
+    F = images.shape[0]
+    t_direct = time.perf_counter()
+    psf_pts = GaussianPSF(psf.center.expand(F, 2), psf.cov.expand(F, 2, 2), psf.amplitude * power_t)
+    A_t = torch.tensor(amps, dtype=torch.float64)
+    try:
+        d = fit_direct(images, psf_pts, windows, omega, A_t, model, form=cfg.model.direct_form, fit_delay=bool(cfg.model.fit_delay),
+                       noise_std=torch.sqrt(read_noise_e**2 + images.clamp_min(0)), mask=mask,
+                       valid=(fit.status != 1) & (fit.status != 3), fit_scale=cfg.fit.fit_scale,
+                       fit_background=cfg.fit.fit_background, max_iter=int(cfg.model.direct_max_iter))
+    except Exception as exc:  # the two-step model is still a result; say why the direct fit failed
+        _log(log, f"direct: fit failed: {exc}", progress)
+        return None
+    modes = ", ".join(f"{m['freq_hz']:.3f} +- {m['freq_hz_std']:.3f} Hz (zeta {m['zeta']:.4f} +- {m['zeta_std']:.4f})"
+                      for m in d.modal_parameters())
+    _log(log, f"direct: {d.form} model from {int(d.used.sum())} points ({d.n_excluded} excluded), {d.n_iter} iterations, "
+              f"converged {d.converged}, reduced chi2 {d.reduced_chi2:.3f}, {time.perf_counter() - t_direct:.2f} s; "
+              f"modes: {modes or 'none'}", progress)
+    return d
 
 
 def _squeeze_problems(fit):

@@ -1,0 +1,303 @@
+"""Direct identification (torchblur.direct): a parametric model fitted to every image at once.
+
+Synthetic sweeps are rendered with the fitter's own forward model (point-sampled Gaussian
+PSF) so that noise-free data are fitted exactly; the end-to-end run goes through the
+simulated rig (pixel integration, transients, camera noise).
+"""
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+import torchblur as tb
+from torchblur.config import load_config
+from torchblur.direct import DirectModelFit, fit_direct, resolve_alias_with_model
+from torchblur.errors import ConfigError, InputTypeError, ParameterError, ShapeError
+from torchblur.fit import fit_sinusoid
+from torchblur.frequency_response import FrequencyResponse
+from torchblur.model_fit import fit_transfer_function
+
+F64 = torch.float64
+# Truth: a 650 Hz resonance (zeta 0.03) and a second mode at 1.5 kHz (zeta 0.05), 40 us delay.
+MODES = ((650.0, 0.03), (1500.0, 0.05))
+GAIN, DELAY = 10.0, 40e-6
+
+
+MODAL_GAINS = (8.0, 2.0)  # the modal truth: 8 x (650 Hz mode) + 2 x (1.5 kHz mode)
+
+
+def plant(omega, modes=MODES, gain=GAIN, delay=DELAY, kind="tf"):
+    """kind "tf": gain x the product of the modes; "modal": sum of the modes, gains MODAL_GAINS (times gain / GAIN)."""
+    s = 1j * np.asarray(omega)
+    h = gain * np.ones_like(s) if kind == "tf" else np.zeros_like(s)
+    for (f, z), g in zip(modes, MODAL_GAINS):
+        w = 2 * math.pi * f
+        mode = w * w / (s * s + 2 * z * w * s + w * w)
+        h = h * mode if kind == "tf" else h + g * gain / GAIN * mode
+    return h * np.exp(-s * delay)
+
+
+def sweep(freqs, *, fracs=(0.3, 0.8), size=32, target=5.0, peak=3000.0, read=5.0, seed=None, kind="tf", b=math.pi / 2):
+    """Images [F, E, H, W] of a sine sweep of ``plant`` (noise: sqrt(read^2 + signal), Gaussian)."""
+    om = 2 * math.pi * np.asarray(freqs, dtype=np.float64)
+    h = plant(om, kind=kind)
+    A = target / np.abs(h)
+    F, E = len(freqs), len(fracs)
+    start = torch.tensor([[b / w] * E for w in om], dtype=F64)
+    dur = torch.tensor([[fr * 2 * math.pi / w for fr in fracs] for w in om], dtype=F64)
+    win = tb.ExposureWindow(start, dur)
+    c = torch.full((F, 2), (size - 1) / 2, dtype=F64)
+    psf = tb.GaussianPSF(c, (4.0 * torch.eye(2, dtype=F64)).expand(F, 2, 2), peak / dur.amax(-1))
+    M = torch.tensor(np.abs(h) * A, dtype=F64)
+    ph = torch.tensor(np.angle(h), dtype=F64)
+    traj = tb.Sinusoid(torch.stack([M, torch.zeros_like(M)], -1)[:, None], ph[:, None, None].expand(F, 1, 2),
+                       torch.tensor(om, dtype=F64)[:, None])
+    img = tb.render_blur(traj, tb.GaussianPSF(psf.center[:, None], psf.cov[:, None], psf.amplitude[:, None]), win,
+                         height=size, width=size)
+    if seed is not None:
+        img = img + torch.sqrt(read**2 + img) * torch.randn(img.shape, generator=torch.Generator().manual_seed(seed), dtype=F64)
+    noise = torch.sqrt(read**2 + img.clamp_min(0))
+    return dict(images=img, psf=psf, window=win, omega=torch.tensor(om, dtype=F64), amplitude=torch.tensor(A, dtype=F64),
+                noise=noise)
+
+
+def two_step(d):
+    """The two-step route: per-point fits -> FrequencyResponse -> fixed-order model."""
+    fit = fit_sinusoid(d["images"], d["psf"], d["window"], d["omega"], noise_std=d["noise"], fit_scale=True)
+    A = d["amplitude"].numpy()
+    i_m, i_p = fit.param_names.index("amplitude_x"), fit.param_names.index("phase_x")
+    cov = fit.covariance[:, [i_m, i_p]][:, :, [i_m, i_p]].numpy().copy()
+    cov[:, 0, :] /= A[:, None]
+    cov[:, :, 0] /= A[:, None]
+    frf = FrequencyResponse(d["omega"].numpy(), fit.amplitude.numpy() / A * np.exp(1j * fit.phase.numpy()), cov=cov)
+    return fit, frf
+
+
+def start_model(modes, gain, delay, omega, kind="tf"):
+    """A TransferFunctionFit of an exactly known plant (noise-free, uniform weights)."""
+    frf = FrequencyResponse(omega, plant(omega, modes, gain, delay, kind))
+    return fit_transfer_function(frf, n_poles=4, n_zeros=0 if kind == "tf" else 2, delay_s=None, weights="uniform")
+
+
+def mode_errors(fit):
+    m = fit.modal_parameters()
+    return [(m[k]["freq_hz"] - f, m[k]["freq_hz_std"], m[k]["zeta"] - z, m[k]["zeta_std"]) for k, (f, z) in enumerate(MODES)]
+
+
+FREQS = np.geomspace(150.0, 1800.0, 10)
+
+
+@pytest.mark.parametrize("form", ["tf", "modal"])
+def test_noise_free_recovers_the_parameters_from_a_perturbed_start(form):
+    d = sweep(FREQS, kind=form)
+    off = start_model(((660.0, 0.036), (1460.0, 0.045)), 9.6, 47e-6, d["omega"].numpy(), kind=form)
+    r = fit_direct(d["images"], d["psf"], d["window"], d["omega"], d["amplitude"], off, form=form, noise_std=d["noise"])
+    assert r.converged and r.form == form
+    assert r.reduced_chi2 < 1e-12
+    modes = r.modal_parameters()
+    for m, (f, z) in zip(modes, MODES):
+        assert m["freq_hz"] == pytest.approx(f, rel=1e-7)
+        assert m["zeta"] == pytest.approx(z, rel=1e-6)
+    assert r.delay_s == pytest.approx(DELAY, rel=1e-6)
+    w = d["omega"].numpy()
+    np.testing.assert_allclose(r.frequency_response(w), plant(w, kind=form), rtol=1e-7)
+    if form == "modal":
+        np.testing.assert_allclose([m["gain"] for m in modes], MODAL_GAINS, rtol=1e-6)
+    np.testing.assert_allclose(r.scale, 1.0, rtol=1e-7)
+    # the start really was off
+    assert abs(r.start_params - r.params).max() > 0
+
+
+def test_noisy_errors_are_within_the_reported_std():
+    for seed in range(3):
+        d = sweep(FREQS, seed=seed)
+        _, frf = two_step(d)
+        tf = fit_transfer_function(frf, n_poles=4, n_zeros=0)
+        r = fit_direct(d["images"], d["psf"], d["window"], d["omega"], d["amplitude"], tf, noise_std=d["noise"])
+        assert r.converged
+        assert 0.8 < r.reduced_chi2 < 1.2
+        for ef, sf, ez, sz in mode_errors(r):
+            assert abs(ef) < 4 * sf and abs(ez) < 4 * sz
+        i = r.param_names.index("delay_s")
+        assert abs(r.params[i] - DELAY) < 4 * r.std[i]
+
+
+def test_covariance_is_the_inverse_fisher_information_of_a_dense_reference():
+    """The blockwise (Schur) Fisher information equals J^T W J of the dense Jacobian over all
+    pixels and all parameters (model and per-point scales), by autograd through render_blur."""
+    freqs = np.array([300.0, 640.0, 700.0, 1400.0])
+    d = sweep(freqs, size=24, seed=5)
+    tf = start_model(MODES, GAIN, DELAY, d["omega"].numpy())
+    r = fit_direct(d["images"], d["psf"], d["window"], d["omega"], d["amplitude"], tf, noise_std=d["noise"])
+    from torchblur.direct import _response
+
+    struct = r._struct
+    P, F = r.params.size, len(freqs)
+    s = torch.tensor(1j * d["omega"].numpy())
+    settings = tb.RenderSettings(nodes=64)
+
+    def model(theta):
+        h = _response(struct, theta[:P], s, r.delay_s)
+        M, ph = d["amplitude"] * h.abs(), torch.angle(h)
+        traj = tb.Sinusoid(torch.stack([M, torch.zeros_like(M)], -1)[:, None], ph[:, None, None].expand(F, 1, 2),
+                           d["omega"][:, None])
+        p = d["psf"]
+        img = tb.render_blur(traj, tb.GaussianPSF(p.center[:, None], p.cov[:, None], p.amplitude[:, None]), d["window"],
+                             height=24, width=24, settings=settings)
+        return (img * theta[P:, None, None, None]).reshape(-1)
+
+    theta = torch.cat([torch.tensor(r.params), torch.tensor(r.scale)])
+    from torchblur.optim import model_jacobian
+
+    _, J = model_jacobian(lambda t, i: model(t[0])[None], theta[None], torch.zeros(1, dtype=torch.long))
+    J = J[0]
+    w = (1 / d["noise"] ** 2).reshape(-1)
+    fisher = (J * w[:, None]).T @ J
+    cov = torch.linalg.inv(fisher)[:P, :P].numpy()
+    np.testing.assert_allclose(r.covariance, cov, rtol=2e-3, atol=0)
+
+
+def test_single_exposure_direct_does_at_least_as_well_as_the_two_step_route():
+    """One exposure window (30% of the period) per point, timed so that the two alias branches
+    cross at -90 deg, the phase of the resonance (Proposition 3): the per-point phases near
+    the resonance are the least determined. Both routes pick the branches with the model
+    (resolve_alias_with_model); the direct fit, started from the best candidates, does at
+    least as well and lands within its reported std."""
+    freqs = np.unique(np.concatenate([np.geomspace(200.0, 2000.0, 8), np.linspace(620.0, 680.0, 4)]))
+    d = sweep(freqs, fracs=(0.3,), size=40, target=6.0, peak=2000.0, seed=0, b=0.7 * math.pi)
+    fit, frf = two_step(d)
+    res = resolve_alias_with_model(frf, fit.alias_phase, n_poles=4, n_zeros=0)
+    assert res.flipped.dtype == bool and res.flipped.shape == (freqs.size,) and res.candidates[0] is res.model
+    truth = plant(frf.omega)
+    err_deg = np.degrees(np.abs(np.angle(res.frf.response[0, 0] / truth)))
+    assert err_deg.max() < 20  # every point on its right branch (the alias is > 20 deg away or the same image)
+    r = fit_direct(d["images"], d["psf"], d["window"], d["omega"], d["amplitude"], res.candidates[:2], noise_std=d["noise"])
+    two = res.model.modal_parameters()[0]
+    (ef, sf, ez, sz), _ = mode_errors(r)
+    assert abs(ef) < 3 * sf and abs(ez) < 3 * sz
+    assert abs(ef) <= abs(two["freq_hz"] - 650.0) + 0.1 * sf
+    assert abs(ez) <= abs(two["zeta"] - 0.03) + 0.1 * sz
+
+
+def test_excluded_points_are_counted_and_ignored():
+    d = sweep(FREQS, seed=1)
+    tf = start_model(MODES, GAIN, DELAY, d["omega"].numpy())
+    valid = torch.ones(len(FREQS), dtype=torch.bool)
+    valid[2] = False
+    bad = d["images"].clone()
+    bad[2] = 0.0  # a dark point
+    r = fit_direct(bad, d["psf"], d["window"], d["omega"], d["amplitude"], tf, noise_std=d["noise"], valid=valid)
+    keep = valid.numpy()
+    psf_kept = tb.GaussianPSF(d["psf"].center[valid], d["psf"].cov[valid], d["psf"].amplitude[valid])
+    sub = fit_direct(d["images"][valid], psf_kept, d["window"][valid], d["omega"][valid], d["amplitude"][valid], tf,
+                     noise_std=d["noise"][valid])
+    assert r.n_excluded == 1 and r.used.tolist() == keep.tolist()
+    assert np.isnan(r.scale[2])
+    np.testing.assert_allclose(r.params, sub.params, rtol=1e-9)
+    with pytest.raises(ParameterError, match="valid"):
+        fit_direct(bad, d["psf"], d["window"], d["omega"], d["amplitude"], tf, valid=torch.zeros(len(FREQS), dtype=torch.bool))
+
+
+def test_result_api_is_consistent():
+    control = pytest.importorskip("control")
+    d = sweep(FREQS, seed=2, kind="modal")
+    tf = start_model(MODES, GAIN, DELAY, d["omega"].numpy(), kind="modal")
+    r = fit_direct(d["images"], d["psf"], d["window"], d["omega"], d["amplitude"], tf, noise_std=d["noise"], form="modal")
+    w = np.geomspace(100, 3000, 7) * 2 * math.pi
+    sys_ = r.to_control()
+    h_ct = np.asarray(control.frequency_response(sys_, w).complex).reshape(-1)
+    np.testing.assert_allclose(h_ct * np.exp(-1j * w * r.delay_s), r.frequency_response(w), rtol=1e-9)
+    doc = json.loads(json.dumps(r.to_dict()))
+    assert doc["schema"] == "torchblur.direct_model_fit" and doc["form"] == "modal"
+    assert len(doc["params"]) == len(doc["std"]) == len(doc["param_names"]) == r.params.size
+    assert len(doc["modes"]) == 2 and doc["n_points_used"] == len(FREQS)
+    # modal form: a mode's omega_n std is its parameter's std
+    i = min((r.param_names.index(f"mode{k}_omega_n") for k in (1, 2)), key=lambda j: r.params[j])
+    assert r.modal_parameters()[0]["omega_n_std"] == pytest.approx(r.std[i], rel=1e-9)
+    assert isinstance(r, DirectModelFit) and "modal" in repr(r)
+    # a DirectModelFit as the start: its own form is a fixed point; the tf form (2 zeros, 4 poles)
+    # holds the modal model, so it fits at least as well
+    args = (d["images"], d["psf"], d["window"], d["omega"], d["amplitude"], r)
+    r2 = fit_direct(*args, noise_std=d["noise"], form="modal")
+    np.testing.assert_allclose(r2.params, r.params, rtol=1e-6)
+    r3 = fit_direct(*args, noise_std=d["noise"], form="tf")
+    assert r3.converged and r3.zeros.size == 2 and r3.cost <= r.cost * (1 + 1e-9)
+
+
+def test_bad_inputs_name_the_argument():
+    d = sweep(FREQS[:4])
+    tf = start_model(MODES, GAIN, DELAY, d["omega"].numpy())
+    args = [d["images"], d["psf"], d["window"], d["omega"], d["amplitude"], tf]
+
+    def call(i, value, exc, name, **kw):
+        a = list(args)
+        if i is not None:
+            a[i] = value
+        with pytest.raises(exc) as info:
+            fit_direct(*a, **kw)
+        assert name in str(info.value)
+
+    nan = d["images"].clone()
+    nan[0, 0, 3, 3] = float("nan")
+    call(0, nan, ParameterError, "images")
+    call(0, d["images"][0], ShapeError, "images")
+    call(0, d["images"].numpy(), InputTypeError, "images")
+    call(3, d["omega"][:3], ShapeError, "omega")
+    call(3, -d["omega"], ParameterError, "omega")
+    call(4, d["amplitude"][:2], ShapeError, "input_amplitude")
+    call(2, tb.ExposureWindow(torch.ones(3, 2, dtype=F64), 0.1), ShapeError, "window")
+    call(5, "model", InputTypeError, "start")
+    call(None, None, ParameterError, "form", form="state_space")
+    call(None, None, ShapeError, "noise_std", noise_std=torch.ones(2, 2))
+    call(None, None, ShapeError, "mask", mask=torch.ones(3, dtype=torch.bool))
+    call(None, None, ShapeError, "valid", valid=torch.ones(2, dtype=torch.bool))
+    call(None, None, ParameterError, "max_iter", max_iter=0)
+    with pytest.raises(ShapeError, match="alias_phase"):
+        resolve_alias_with_model(FrequencyResponse(d["omega"].numpy(), plant(d["omega"].numpy())), torch.zeros(2))
+
+
+@pytest.mark.parametrize("overrides,key", [(["model.direct=maybe"], "model.direct"), (["model.direct_form=ss"], "model.direct_form"),
+                                           (["model.direct_max_iter=0"], "model.direct_max_iter")])
+def test_config_validates_the_direct_keys(overrides, key):
+    with pytest.raises(ConfigError) as info:
+        load_config(None, overrides)
+    assert str(info.value).startswith(key)
+    assert load_config().model.direct is False  # the default keeps the two-step model alone
+    assert load_config(None, ["model.direct=true", "model.direct_form=modal"]).model.direct_form == "modal"
+
+
+def test_cli_identify_with_direct_writes_both_models(tmp_path):
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "torchblur.cli", "identify", "--out", str(out), "--quiet", "sweep.freq_hz=[3,100,300,420,450,900]",
+           "camera.height=40", "camera.width=40", "model.max_order=3", "seed=1", "model.direct=true"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    direct = json.loads((out / "model.json").read_text())
+    two = json.loads((out / "model_two_step.json").read_text())
+    assert direct["schema"] == "torchblur.direct_model_fit" and direct["converged"]
+    assert two["schema"] == "torchblur.transfer_function_fit"
+    assert direct["seed"] == 1 and direct["torchblur_version"]
+    mode = direct["modes"][0]  # the default plant: 420 Hz, zeta 0.12
+    assert abs(mode["freq_hz"] - 420.0) < 5 * mode["freq_hz_std"] + 0.5
+    assert abs(mode["zeta"] - 0.12) < 5 * mode["zeta_std"] + 0.002
+    report = (out / "report.txt").read_text()
+    assert "direct model" in report and "model_two_step.json" in report
+
+
+def test_direct_is_refused_for_mimo_and_spots_runs():
+    """The direct fit handles one axis and one spot: a 2x2 plant or a spot grid is a config error."""
+    from pathlib import Path
+
+    from torchblur.config import load_config
+    from torchblur.errors import ConfigError
+
+    mimo_cfg = str(Path(__file__).resolve().parents[1] / "configs" / "identify_mimo.yaml")
+    for path, over in ((mimo_cfg, ["model.direct=true"]), (None, ["model.direct=true", "spots.rows=2", "spots.cols=2", "excitation.target_px=4"])):
+        with pytest.raises(ConfigError, match="^model.direct:"):
+            load_config(path, over)
