@@ -284,6 +284,12 @@ def identify(cfg: IdentifyConfig, rig=None, *, progress: bool = True, record=Non
         HardwareError: the rig failed (the recording so far is kept; resume it);
         KeyboardInterrupt: likewise.
     """
+    from .errors import InputTypeError
+
+    if not isinstance(cfg, IdentifyConfig):
+        raise InputTypeError(f"cfg: expected an IdentifyConfig (see torchblur.config.load_config), got {type(cfg).__name__}")
+    if rig is not None and not all(hasattr(rig, a) for a in ("frame_shape", "dark", "still", "sine")):
+        raise InputTypeError(f"rig: expected a torchblur Rig (frame_shape, dark, still, sine, ...) or None, got {type(rig).__name__}")
     log: list[str] = []
     own_rig = rig is None
     if own_rig:
