@@ -130,17 +130,17 @@ def _validate(images, psf, window, omega, axes, optimizer, loss):
     try:
         torch.broadcast_shapes(window.shape, batch_e)
     except RuntimeError:
-        raise ShapeError(f"window: batch shape {tuple(window.shape)} does not broadcast to images' [..., E] = {tuple(batch_e)}") from None
+        raise ShapeError(f"window: expected a batch shape that broadcasts to the images' [..., E] = {tuple(batch_e)}, got {tuple(window.shape)}") from None
     omega = check_positive(as_tensor(omega, "omega", like=images), "omega")
     batch = images.shape[:-3]
     try:
         torch.broadcast_shapes(omega.shape, batch)
     except RuntimeError:
-        raise ShapeError(f"omega: shape {tuple(omega.shape)} does not broadcast to the images' batch {tuple(batch)}") from None
+        raise ShapeError(f"omega: expected a shape that broadcasts to the images' batch {tuple(batch)}, got {tuple(omega.shape)}") from None
     try:
         torch.broadcast_shapes(psf.shape, batch)
     except RuntimeError:
-        raise ShapeError(f"psf: batch shape {tuple(psf.shape)} does not broadcast to the images' batch {tuple(batch)}") from None
+        raise ShapeError(f"psf: expected a batch shape that broadcasts to the images' batch {tuple(batch)}, got {tuple(psf.shape)}") from None
     if isinstance(psf, KernelPSF) and psf.frame_shape != tuple(images.shape[-2:]):
         raise ShapeError(f"psf: expected a kernel of frame shape {tuple(images.shape[-2:])}, got {psf.frame_shape}")
     return images, omega
@@ -855,7 +855,8 @@ def fit_sinusoid(
     check_choice(outliers, "outliers", OUTLIERS)
     outlier_sigma = check_real_scalar(outlier_sigma, "outlier_sigma", positive=True)
     if outliers == "reject" and normalize:
-        raise ParameterError("outliers: 'reject' compares the data with the model in image units; use normalize=False with it")
+        raise ParameterError("outliers: expected 'none' with normalize=True (the robust pass compares data and model in image units), "
+                             "got 'reject'")
     if max_iter is not None and (isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 1):
         raise ParameterError(f"max_iter: expected None or an integer >= 1, got {max_iter!r}")
     tol = check_real_scalar(tol, "tol", nonnegative=True)
@@ -883,7 +884,8 @@ def fit_sinusoid(
     user_masked = torch.zeros(N, dtype=torch.bool, device=device)
     if mask is not None:
         if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool:
-            raise InputTypeError("mask: expected a bool tensor [..., E, H, W] (True = use the pixel)")
+            raise InputTypeError(f"mask: expected a bool tensor [..., E, H, W] (True = use the pixel), got "
+                                 f"{mask.dtype if isinstance(mask, torch.Tensor) else type(mask).__name__}")
         try:
             m = mask.to(device).expand(batch + (E, H, W)).reshape(N, E, H, W)
         except RuntimeError:
