@@ -176,3 +176,18 @@ def test_spot_partly_out_of_frame_fitted_on_what_is_visible(seed):
     e = make(seed)  # the same designs, spot in the middle: no flag
     inside = fit_sinusoid(e["images"], e["psf"], e["win"], e["om"], noise_std=e["sigma"])
     assert (inside.flags == 0).all()
+
+
+@pytest.mark.parametrize("seed", [12, 13])
+def test_stray_light_gradient_removed(seed):
+    """A tilted stray-light plane biases a fit with a constant background by hundreds of std
+    (see benchmarks/bench_robust.py); fit_gradient removes it."""
+    d = make(seed)
+    y = torch.arange(H, dtype=F64)[:, None]
+    x = torch.arange(W, dtype=F64)[None, :]
+    plane = d["peak"][:, None, None, None] * (0.1 + 0.01 * (x - 10) + 0.004 * (y - 5))
+    res = fit_sinusoid(d["images"] + plane, d["psf"], d["win"], d["om"], noise_std=d["sigma"], fit_gradient=True)
+    assert (res.status == 0).all()
+    assert float(zmax(res, d).max()) < 4
+    want = torch.tensor([0.1 + 0.01 * ((W - 1) / 2 - 10) + 0.004 * ((H - 1) / 2 - 5), 0.01, 0.004], dtype=F64)
+    torch.testing.assert_close(res.background_plane / d["peak"][:, None, None], want.expand(N, 2, 3), rtol=0, atol=2e-3)

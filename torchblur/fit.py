@@ -72,6 +72,9 @@ class SinusoidFit:
             :data:`NO_MOTION`); test a bit with ``(fit.flags & PARTLY_OUT_OF_FRAME) != 0``.
         n_masked: pixels excluded from the fit (every cause), ``[...]`` int.
         n_outliers: of which excluded by the robust pass (``outliers="reject"``), ``[...]`` int.
+        background_plane: with ``fit_gradient``: the stray-light plane removed from each
+            exposure, ``[..., E, 3]`` = (level at the frame centre, slope along x per px,
+            slope along y per px), in image units; None otherwise.
     """
 
     amplitude: torch.Tensor
@@ -94,6 +97,7 @@ class SinusoidFit:
     flags: torch.Tensor | None = None
     n_masked: torch.Tensor | None = None
     n_outliers: torch.Tensor | None = None
+    background_plane: torch.Tensor | None = None
 
 
 def _flatten_psf(psf, batch, N):
@@ -766,6 +770,27 @@ def _impulses(data: torch.Tensor, psf: GaussianPSF, noise: torch.Tensor, k: floa
     return out
 
 
+def _plane_fit(data: torch.Tensor, use: torch.Tensor) -> torch.Tensor:
+    """Least-squares plane ``a + b (x - xc) + c (y - yc)`` of each ``data [n, E, H, W]`` over
+    the pixels ``use``; ``[n, E, 3]`` (centre level, x slope, y slope per px)."""
+    n, E, H, W = data.shape
+    y = torch.arange(H, dtype=data.dtype, device=data.device)[:, None].expand(H, W) - (H - 1) / 2
+    x = torch.arange(W, dtype=data.dtype, device=data.device)[None, :].expand(H, W) - (W - 1) / 2
+    basis = torch.stack([torch.ones_like(x), x, y], -1).reshape(H * W, 3)  # [HW, 3]
+    w = use.reshape(n, E, H * W).to(data.dtype)
+    A = torch.einsum("nep,pi,pj->neij", w, basis, basis)
+    rhs = torch.einsum("nep,pi,nep->nei", w, basis, data.reshape(n, E, H * W))
+    A = A + 1e-12 * A.diagonal(dim1=-2, dim2=-1).amax(-1)[..., None, None].clamp_min(1) * torch.eye(3, dtype=data.dtype, device=data.device)
+    return torch.linalg.solve(A, rhs[..., None])[..., 0]
+
+
+def _plane_image(coef: torch.Tensor, H: int, W: int) -> torch.Tensor:
+    """``[n, E, H, W]`` image of planes ``coef [n, E, 3]`` (see :func:`_plane_fit`)."""
+    y = torch.arange(H, dtype=coef.dtype, device=coef.device)[:, None] - (H - 1) / 2
+    x = torch.arange(W, dtype=coef.dtype, device=coef.device)[None, :] - (W - 1) / 2
+    return coef[..., 0, None, None] + coef[..., 1, None, None] * x + coef[..., 2, None, None] * y
+
+
 def _put(res: SinusoidFit, idx: torch.Tensor, sub: SinusoidFit) -> None:
     """Overwrite items ``idx`` of a flat-batch ``res`` with those of ``sub``."""
     for f in fields(SinusoidFit):
@@ -791,6 +816,7 @@ def fit_sinusoid(
     fit_scale: bool = False,
     fit_background: bool = False,
     fit_center: bool = False,
+    fit_gradient: bool = False,
     normalize: bool = False,
     max_iter: int | None = None,
     tol: float = 1e-9,
@@ -827,6 +853,11 @@ def fit_sinusoid(
             6e-7 of clean Gaussian pixels are rejected).
         fit_scale, fit_background, fit_center: fit an intensity scale, a constant background
             (stray light), the rest position jointly (nuisance parameters).
+        fit_gradient: remove a stray-light plane (level and slopes) from each exposure,
+            fitted to the pixels the spot does not reach: first the frame's 2-px border,
+            then every pixel where the fitted spot is below 1e-4 of its peak; the spot is
+            refitted after each. Reported in ``background_plane``; its uncertainty (from
+            many pixels) is not added to the estimates'.
         normalize: the paper's eq. 8: compare images divided by their Frobenius norms (an
             option; it weights the exposures unequally and loses precision).
         max_iter: optimiser iterations, an int >= 1 (default 60 for lm, 400 for adam, 100
@@ -850,10 +881,13 @@ def fit_sinusoid(
         raise InputTypeError(f"images: expected a real floating tensor [..., E, H, W] with the dark level subtracted "
                              f"(preprocess.subtract_dark), got dtype {images.dtype}")
     images, omega = _validate(images, psf, window, omega, axes, optimizer, loss)
-    for name, v in (("fit_scale", fit_scale), ("fit_background", fit_background), ("fit_center", fit_center), ("normalize", normalize)):
+    for name, v in (("fit_scale", fit_scale), ("fit_background", fit_background), ("fit_center", fit_center), ("fit_gradient", fit_gradient),
+                    ("normalize", normalize)):
         _check_flag(v, name)
     check_choice(outliers, "outliers", OUTLIERS)
     outlier_sigma = check_real_scalar(outlier_sigma, "outlier_sigma", positive=True)
+    if fit_gradient and normalize:
+        raise ParameterError("fit_gradient: expected False with normalize=True (the plane is in image units), got True")
     if outliers == "reject" and normalize:
         raise ParameterError("outliers: expected 'none' with normalize=True (the robust pass compares data and model in image units), "
                              "got 'reject'")
@@ -918,7 +952,21 @@ def fit_sinusoid(
         else:
             noise0 = _robust_scale(data, keep)
         rejected = _impulses(data, psf_n, noise0, outlier_sigma) & keep
+    plane = None
+    if fit_gradient:
+        border = torch.ones(H, W, dtype=torch.bool, device=device)
+        border[2:-2, 2:-2] = False
+        plane = _plane_fit(data, keep & ~rejected & border)
+        data_raw, data = data, data - _plane_image(plane, H, W)
     res = run(everything, keep & ~rejected)
+    if fit_gradient:
+        live = everything[torch.isfinite(res.cost)]
+        if live.numel():
+            spot = _model_images(res, live, psf_n, win, om, axes, H, W, fit_scale, fit_center, False, render_settings)
+            far = spot < 1e-4 * spot.amax((-1, -2), keepdim=True)
+            plane[live] = _plane_fit(data_raw[live], keep[live] & ~rejected[live] & far)
+            data = data_raw - _plane_image(plane, H, W)
+            _put(res, live, run(live, keep[live] & ~rejected[live]))
     passes = 0
     if outliers == "reject":
         for passes in range(1, 4):
@@ -965,6 +1013,7 @@ def fit_sinusoid(
     res.n_masked = E * H * W - n_used
     res.n_outliers = n_out
     res.extras["outlier_passes"] = passes
+    res.background_plane = plane
 
     for f in fields(SinusoidFit):
         v = getattr(res, f.name)
