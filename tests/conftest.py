@@ -39,7 +39,7 @@ try:
 
     from hypothesis import HealthCheck, settings
 
-    settings.register_profile("ci", max_examples=12, derandomize=True, deadline=None, print_blob=True,
+    settings.register_profile("ci", max_examples=25, derandomize=True, deadline=None, print_blob=True,
                               suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
     settings.register_profile("thorough", max_examples=200, derandomize=False, deadline=None,
                               suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])

@@ -264,3 +264,15 @@ def test_degenerate_item_is_flagged_and_does_not_touch_the_batch(case, spoil, op
     if status == 0:
         ok = ((res.amplitude[0] - M[0]).abs() < 4 * res.amplitude_std[0]) | bool(flag == NO_MOTION)
         assert ok
+
+
+def test_robust_fit_config_keys_default_to_todays_behaviour():
+    cfg = load_config()
+    assert (cfg.fit.outliers, cfg.fit.outlier_sigma, cfg.fit.fit_gradient) == ("none", 5.0, False)
+    cfg = load_config(None, ["fit.outliers=reject", "fit.outlier_sigma=6", "fit.fit_gradient=true"])
+    assert (cfg.fit.outliers, cfg.fit.outlier_sigma, cfg.fit.fit_gradient) == ("reject", 6, True)
+    for bad, key in ((["fit.outliers=clip"], "fit.outliers"), (["fit.outlier_sigma=0"], "fit.outlier_sigma"),
+                     (["fit.fit_gradient=sometimes"], "fit.fit_gradient")):
+        with pytest.raises(ConfigError) as info:
+            load_config(None, bad)
+        assert str(info.value).startswith(key)

@@ -82,6 +82,9 @@ class FitConfig:
     loss: str = "l2"
     fit_scale: bool = True
     fit_background: bool = False
+    fit_gradient: bool = False  # remove a stray-light plane per exposure (fit_sinusoid's fit_gradient)
+    outliers: str = "none"  # "reject": mask pixels whose residual exceeds outlier_sigma std (hot pixels, cosmic rays) and refit
+    outlier_sigma: float = 5.0
     # Points per batched fit. The sweep hands every completed chunk to a background fit, so
     # fitting overlaps the acquisition; 0 fits all points in one batch after the sweep.
     chunk_points: int = 8
@@ -335,8 +338,13 @@ def validate(cfg: IdentifyConfig) -> None:
         raise ConfigError(f"fit.loss: expected one of {LOSSES}, got {cfg.fit.loss!r}")
     if cfg.fit.loss == "linf" and cfg.fit.optimizer == "lm":
         raise ConfigError("fit.loss: 'linf' is not a sum of squares; set fit.optimizer=adam or lbfgs with it")
-    for k in ("fit_scale", "fit_background"):
+    for k in ("fit_scale", "fit_background", "fit_gradient"):
         _flag(getattr(cfg.fit, k), f"fit.{k}")
+    from .fit import OUTLIERS
+
+    if cfg.fit.outliers not in OUTLIERS:
+        raise ConfigError(f"fit.outliers: expected one of {OUTLIERS}, got {cfg.fit.outliers!r}")
+    _num(cfg.fit.outlier_sigma, "fit.outlier_sigma", positive=True)
     _flag(cfg.model.fit_delay, "model.fit_delay")
     for k in ("n_poles", "n_zeros"):
         v = getattr(cfg.model, k)

@@ -449,7 +449,8 @@ def _identify(cfg, rig, exp, log, progress) -> IdentificationResult:
         noise = torch.sqrt(read_noise_e**2 + imgs.clamp_min(0))  # shot + read noise (e-), per pixel
         return fit_sinusoid(imgs, psf_b, win, omega_all[list(idx)], axes="x", optimizer=cfg.fit.optimizer, loss=cfg.fit.loss,
                             noise_std=noise, mask=torch.stack([masks_all[k] for k in idx]), fit_scale=cfg.fit.fit_scale,
-                            fit_background=cfg.fit.fit_background)
+                            fit_background=cfg.fit.fit_background, fit_gradient=cfg.fit.fit_gradient, outliers=cfg.fit.outliers,
+                            outlier_sigma=float(cfg.fit.outlier_sigma))
 
     fitter = _ChunkFitter(int(cfg.fit.chunk_points), fit_points)
     t_sweep = time.perf_counter()
