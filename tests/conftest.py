@@ -30,3 +30,19 @@ def make_case(dtype=torch.float64, tilted=True, batch=()):
     traj = tb.Sinusoid(amp, phase, torch.tensor(2 * math.pi * f, dtype=dtype))
     win = tb.ExposureWindow(torch.tensor(0.13 / f, dtype=dtype), torch.tensor(1.4 / f, dtype=dtype))
     return traj, psf, win
+
+
+# Hypothesis: a bounded, reproducible profile for CI (property tests in tests/test_properties.py).
+# HYPOTHESIS_PROFILE=thorough runs more examples locally.
+try:
+    import os
+
+    from hypothesis import HealthCheck, settings
+
+    settings.register_profile("ci", max_examples=25, derandomize=True, deadline=None, print_blob=True,
+                              suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+    settings.register_profile("thorough", max_examples=200, derandomize=False, deadline=None,
+                              suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+    settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
+except ImportError:  # hypothesis is a test extra; without it tests/test_properties.py is skipped
+    pass

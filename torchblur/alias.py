@@ -10,19 +10,25 @@ import math
 
 import torch
 
-from .errors import as_tensor, check_finite, check_positive
+from .errors import InputTypeError, as_tensor, check_finite, check_positive
 from .timing import ExposureWindow
 
 __all__ = ["alias_phase", "wrap_phase", "window_center_phase"]
 
 
 def wrap_phase(phase: torch.Tensor) -> torch.Tensor:
-    """Wrap radians to ``(-pi, pi]``, any shape."""
+    """Wrap radians to ``(-pi, pi]``, any shape (a tensor or a number; NaN stays NaN)."""
+    if not isinstance(phase, torch.Tensor):
+        phase = as_tensor(phase, "phase", dtype=torch.float64)
+    elif phase.is_complex() or phase.dtype == torch.bool:
+        raise InputTypeError(f"phase: expected a real tensor, got dtype {phase.dtype}")
     return math.pi - torch.remainder(math.pi - phase, 2 * math.pi)
 
 
 def window_center_phase(omega, window: ExposureWindow) -> torch.Tensor:
     """``c = omega (tcam + Te / 2)`` (rad), broadcast of ``omega [...]`` and the window's ``[...]``."""
+    if not isinstance(window, ExposureWindow):
+        raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
     omega = check_positive(as_tensor(omega, "omega", like=window.start), "omega")
     return omega * window.center
 
@@ -43,5 +49,7 @@ def alias_phase(phase, omega, window: ExposureWindow) -> torch.Tensor:
         >>> alias_phase(torch.tensor(0.3), 2 * math.pi * 100, w)   # p = pi, b = pi/2: phi2 = -pi - phi
         tensor(2.8416)
     """
+    if not isinstance(window, ExposureWindow):
+        raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
     phase = check_finite(as_tensor(phase, "phase", like=window.start), "phase")
     return wrap_phase(math.pi - 2 * window_center_phase(omega, window) - phase)

@@ -129,6 +129,10 @@ class CameraModel:
             raise ParameterError(
                 f"hot_pixel_fraction: expected a value in [0, 1], got {checked['hot_pixel_fraction']:g}"
             )
+        if checked["dark_level_adu"] >= 2 ** checked["bit_depth"] - 1:
+            raise ParameterError(
+                f"dark_level_adu: expected a value below the ADC's maximum 2**bit_depth - 1 = {2 ** checked['bit_depth'] - 1} ADU "
+                f"(else every pixel is saturated), got {checked['dark_level_adu']:g}")
         for name, value in checked.items():
             object.__setattr__(self, name, value)
 
@@ -243,7 +247,7 @@ class CameraModel:
             Boolean tensor, same shape and device; True where
             ``frames_adu >= saturation_adu - 0.5`` (the half ADU allows for rounding).
         """
-        frames = as_tensor(frames_adu, "frames_adu")
+        frames = check_finite(as_tensor(frames_adu, "frames_adu"), "frames_adu")
         return frames >= self.saturation_adu - 0.5
 
     def to_electrons(self, frames_adu) -> torch.Tensor:
@@ -255,7 +259,7 @@ class CameraModel:
         Returns:
             Charge in electrons, same shape, dtype and device; differentiable.
         """
-        frames = as_tensor(frames_adu, "frames_adu")
+        frames = check_finite(as_tensor(frames_adu, "frames_adu"), "frames_adu")
         return (frames - self.dark_level_adu) * self.gain_e_per_adu
 
     def noise_std_e(self, expected_e) -> torch.Tensor:

@@ -133,6 +133,9 @@ class FitConfig:
     loss: str = "l2"
     fit_scale: bool = True
     fit_background: bool = False
+    fit_gradient: bool = False  # remove a stray-light plane per exposure (fit_sinusoid's fit_gradient)
+    outliers: str = "none"  # "reject": mask pixels whose residual exceeds outlier_sigma std (hot pixels, cosmic rays) and refit
+    outlier_sigma: float = 5.0
     # Points per batched fit. The sweep hands every completed chunk to a background fit, so
     # fitting overlaps the acquisition; 0 fits all points in one batch after the sweep.
     chunk_points: int = 8
@@ -269,6 +272,12 @@ def _num(value, key, *, positive=False, nonnegative=False, integer=False, low=No
     return v
 
 
+def _flag(value, key) -> bool:
+    if not isinstance(value, bool):
+        raise ConfigError(f"{key}: expected true or false, got {value!r}")
+    return value
+
+
 def _coeffs(value, key) -> list[float]:
     if not isinstance(value, (list, tuple)) or not value:
         raise ConfigError(f"{key}: expected a non-empty list of coefficients (highest power first), got {value!r}")
@@ -381,6 +390,9 @@ def validate_camera(c: CameraConfig) -> None:
     _num(c.width, "camera.width", integer=True, low=8)
     if c.peak_fraction > 1:
         raise ConfigError(f"camera.peak_fraction: expected a value in (0, 1], got {c.peak_fraction}")
+    if c.dark_level >= 2 ** int(c.bit_depth) - 1:
+        raise ConfigError(f"camera.dark_level: expected a value below the ADC's maximum 2**camera.bit_depth - 1 = "
+                          f"{2 ** int(c.bit_depth) - 1} ADU (else every pixel is saturated), got {c.dark_level}")
 
 
 def validate_rig(r: RigConfig) -> None:
@@ -466,10 +478,22 @@ def validate(cfg: IdentifyConfig) -> None:
         raise ConfigError(f"fit.optimizer: expected one of {OPTIMIZERS}, got {cfg.fit.optimizer!r}")
     if cfg.fit.loss not in LOSSES:
         raise ConfigError(f"fit.loss: expected one of {LOSSES}, got {cfg.fit.loss!r}")
+    if cfg.fit.loss == "linf" and cfg.fit.optimizer == "lm":
+        raise ConfigError("fit.loss: 'linf' is not a sum of squares; set fit.optimizer=adam or lbfgs with it")
+    for k in ("fit_scale", "fit_background", "fit_gradient"):
+        _flag(getattr(cfg.fit, k), f"fit.{k}")
+    from .fit import OUTLIERS
+
+    if cfg.fit.outliers not in OUTLIERS:
+        raise ConfigError(f"fit.outliers: expected one of {OUTLIERS}, got {cfg.fit.outliers!r}")
+    _num(cfg.fit.outlier_sigma, "fit.outlier_sigma", positive=True)
+    _flag(cfg.model.fit_delay, "model.fit_delay")
     for k in ("n_poles", "n_zeros"):
         v = getattr(cfg.model, k)
         if v is not None:
             _num(v, f"model.{k}", integer=True, low=0)
+    if cfg.model.n_zeros is not None and cfg.model.n_poles is not None and cfg.model.n_zeros > cfg.model.n_poles:
+        raise ConfigError(f"model.n_zeros: expected at most model.n_poles = {cfg.model.n_poles} (a proper model), got {cfg.model.n_zeros}")
     _num(cfg.fit.chunk_points, "fit.chunk_points", integer=True, low=0)
     _num(cfg.model.max_order, "model.max_order", integer=True, low=1, high=16)
     for k in ("direct",):

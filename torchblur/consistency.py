@@ -180,6 +180,8 @@ def blur_consistency(
     check_choice(reduction, "reduction", REDUCTIONS)
     if not isinstance(normalize, bool):
         raise InputTypeError(f"normalize: expected True or False, got {type(normalize).__name__}")
+    if observed.is_complex() or observed.dtype == torch.bool:
+        raise InputTypeError(f"observed: expected a real tensor [..., E, H, W], got dtype {observed.dtype}")
     if not observed.is_floating_point():
         observed = observed.to(torch.get_default_dtype())
     H, W = renderer.height, renderer.width
@@ -279,6 +281,8 @@ class BlurConsistencyLoss(nn.Module):
             raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
         check_choice(loss, "loss", LOSSES)
         check_choice(reduction, "reduction", REDUCTIONS)
+        if not isinstance(normalize, bool):
+            raise InputTypeError(f"normalize: expected True or False, got {type(normalize).__name__}")
         self.renderer = renderer
         self.psf = psf
         self.window = window

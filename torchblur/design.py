@@ -15,7 +15,7 @@ import warnings
 import torch
 
 from .alias import wrap_phase
-from .errors import ParameterError, as_tensor, check_finite, check_positive
+from .errors import InputTypeError, ParameterError, as_tensor, check_finite, check_positive
 from .timing import ExposureWindow
 
 __all__ = ["DesignWarning", "dual_exposure_windows", "alias_separation", "check_design", "trigger_phase_for", "resolve_branches"]
@@ -53,6 +53,8 @@ def alias_separation(omega, window: ExposureWindow) -> torch.Tensor:
     centres that coincide mod half a period, which resolve nothing). Also 0 where an
     exposure is a whole number of periods (that image carries no phase).
     """
+    if not isinstance(window, ExposureWindow):
+        raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
     omega = check_positive(as_tensor(omega, "omega", like=window.start), "omega")
     c = omega[..., None] * window.center
     p = omega[..., None] * window.duration
@@ -69,6 +71,8 @@ def check_design(omega, window: ExposureWindow, *, min_separation: float = 0.2, 
     :class:`DesignWarning` if ``warn``. Detects exposures of a whole number of periods
     (phase unidentifiable) and exposures whose centres coincide mod half a period (the
     alias is not resolved)."""
+    if not isinstance(window, ExposureWindow):
+        raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
     omega = check_positive(as_tensor(omega, "omega", like=window.start), "omega")
     msgs = []
     p = omega[..., None] * window.duration

@@ -57,12 +57,13 @@ def as_tensor(
     """Convert ``value`` to a floating tensor, keeping a tensor's dtype/device and autograd.
 
     Python numbers and sequences take the dtype/device of ``like`` when given, else the
-    default dtype. Integer and boolean tensors are promoted to the default float dtype.
-    Complex tensors, strings and other objects raise :class:`InputTypeError`.
+    default dtype. Integer tensors are promoted to the default float dtype. Boolean and
+    complex tensors, strings and other objects raise :class:`InputTypeError` (a bool is a
+    mask, not a number; a complex value would lose its imaginary part).
     """
     if isinstance(value, torch.Tensor):
         t = value
-        if t.is_complex():
+        if t.is_complex() or t.dtype == torch.bool:
             raise InputTypeError(f"{name}: expected a real floating tensor, got dtype {t.dtype}")
         if not t.is_floating_point():
             t = t.to(dtype or (like.dtype if like is not None else torch.get_default_dtype()))
@@ -71,7 +72,7 @@ def as_tensor(
         if device is not None:
             t = t.to(device)
         return t
-    if isinstance(value, (bool, str, bytes)) or value is None:
+    if isinstance(value, (bool, str, bytes)) or value is None or str(getattr(value, "dtype", "")) == "bool":
         raise InputTypeError(
             f"{name}: expected a number, sequence of numbers or tensor, got {type(value).__name__}"
         )

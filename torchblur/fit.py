@@ -10,13 +10,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import torch
 
 from .alias import alias_phase as _alias_phase
 from .alias import wrap_phase
-from .errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_choice, check_finite, check_positive
+from .errors import (InputTypeError, ParameterError, ShapeError, as_tensor, check_choice, check_finite, check_positive,
+                     check_real_scalar)
 from .losses import LOSSES, image_loss, irls_weights
 from .moments import image_moments, sinusoid_from_moments
 from .optim import levenberg_marquardt, model_jacobian
@@ -25,12 +26,25 @@ from .render import RenderSettings, choose_node_count, panel_count, quadrature_n
 from .timing import ExposureWindow
 from .trajectory import Sinusoid
 
-__all__ = ["SinusoidFit", "fit_sinusoid", "STATUS"]
+__all__ = ["SinusoidFit", "fit_sinusoid", "STATUS", "FLAGS", "MASKED", "SATURATED_MASKED", "OUTLIERS_MASKED", "PARTLY_OUT_OF_FRAME",
+           "NO_MOTION"]
 
 #: Status codes of :class:`SinusoidFit` (``status[...]``).
-STATUS = {0: "ok", 1: "no signal (dark frame)", 2: "not converged", 3: "spot mostly outside the frame", 4: "unidentifiable (singular Fisher information)"}
+STATUS = {0: "ok", 1: "no signal (dark frame)", 2: "not converged", 3: "spot mostly outside the frame", 4: "unidentifiable (singular Fisher information)",
+          5: "no usable pixels (every pixel masked or saturated)"}
 OPTIMIZERS = ("lm", "adam", "lbfgs")
 AXES = ("x", "y", "xy")
+OUTLIERS = ("none", "reject")
+
+#: Bits of :attr:`SinusoidFit.flags` (OR-ed per item). ``status`` says whether an estimate is
+#: usable; ``flags`` say what was done to the data or noticed about it.
+MASKED = 1  #: the caller's ``mask`` excluded pixels of this item
+SATURATED_MASKED = 2  #: pixels at or above ``saturation_level`` were excluded
+OUTLIERS_MASKED = 4  #: the robust pass excluded pixels (hot pixels, cosmic rays): ``n_outliers``
+PARTLY_OUT_OF_FRAME = 8  #: more than 0.1% of the fitted spot's light falls outside the frame
+NO_MOTION = 16  #: the amplitude is below 3 standard deviations: no motion detected, the phase means nothing
+FLAGS = {MASKED: "pixels masked by the caller", SATURATED_MASKED: "saturated pixels masked", OUTLIERS_MASKED: "outlier pixels masked",
+         PARTLY_OUT_OF_FRAME: "spot partly out of frame", NO_MOTION: "no significant motion"}
 
 
 @dataclass
@@ -54,6 +68,14 @@ class SinusoidFit:
         noise_std: the pixel noise std used for the uncertainty, ``[...]``.
         scale, background, center: fitted nuisance parameters (None if not fitted).
         n_iter: optimiser iterations, ``[...]``.
+        flags: ``[...]`` int, a bit field of :data:`FLAGS` (:data:`MASKED`,
+            :data:`SATURATED_MASKED`, :data:`OUTLIERS_MASKED`, :data:`PARTLY_OUT_OF_FRAME`,
+            :data:`NO_MOTION`); test a bit with ``(fit.flags & PARTLY_OUT_OF_FRAME) != 0``.
+        n_masked: pixels excluded from the fit (every cause), ``[...]`` int.
+        n_outliers: of which excluded by the robust pass (``outliers="reject"``), ``[...]`` int.
+        background_plane: with ``fit_gradient``: the stray-light plane removed from each
+            exposure, ``[..., E, 3]`` = (level at the frame centre, slope along x per px,
+            slope along y per px), in image units; None otherwise.
     """
 
     amplitude: torch.Tensor
@@ -73,6 +95,10 @@ class SinusoidFit:
     background: torch.Tensor | None = None
     center: torch.Tensor | None = None
     extras: dict = field(default_factory=dict)
+    flags: torch.Tensor | None = None
+    n_masked: torch.Tensor | None = None
+    n_outliers: torch.Tensor | None = None
+    background_plane: torch.Tensor | None = None
 
 
 def _flatten_psf(psf, batch, N):
@@ -109,23 +135,23 @@ def _validate(images, psf, window, omega, axes, optimizer, loss):
     try:
         torch.broadcast_shapes(window.shape, batch_e)
     except RuntimeError:
-        raise ShapeError(f"window: batch shape {tuple(window.shape)} does not broadcast to images' [..., E] = {tuple(batch_e)}") from None
+        raise ShapeError(f"window: expected a batch shape that broadcasts to the images' [..., E] = {tuple(batch_e)}, got {tuple(window.shape)}") from None
     omega = check_positive(as_tensor(omega, "omega", like=images), "omega")
     batch = images.shape[:-3]
     try:
         torch.broadcast_shapes(omega.shape, batch)
     except RuntimeError:
-        raise ShapeError(f"omega: shape {tuple(omega.shape)} does not broadcast to the images' batch {tuple(batch)}") from None
+        raise ShapeError(f"omega: expected a shape that broadcasts to the images' batch {tuple(batch)}, got {tuple(omega.shape)}") from None
     try:
         torch.broadcast_shapes(psf.shape, batch)
     except RuntimeError:
-        raise ShapeError(f"psf: batch shape {tuple(psf.shape)} does not broadcast to the images' batch {tuple(batch)}") from None
+        raise ShapeError(f"psf: expected a batch shape that broadcasts to the images' batch {tuple(batch)}, got {tuple(psf.shape)}") from None
     if isinstance(psf, KernelPSF) and psf.frame_shape != tuple(images.shape[-2:]):
         raise ShapeError(f"psf: expected a kernel of frame shape {tuple(images.shape[-2:])}, got {psf.frame_shape}")
     return images, omega
 
 
-def fit_sinusoid(
+def _fit_core(
     images,
     psf,
     window: ExposureWindow,
@@ -144,33 +170,7 @@ def fit_sinusoid(
     tol: float = 1e-9,
     render_settings: RenderSettings | None = None,
 ) -> SinusoidFit:
-    """Fit ``y(t) = M sin(omega t + phi)`` to blurred images of a moving spot.
-
-    Args:
-        images: ``[..., E, H, W]``: E exposures of the same motion (E = 1, 2 or more), dark
-            level subtracted, in the units of the PSF times seconds.
-        psf: ``GaussianPSF`` or ``KernelPSF``, batch ``[...]`` (shared by the E exposures).
-        window: exposure windows, batch broadcastable to ``[..., E]``.
-        omega: rad/s, ``[...]``.
-        axes: ``"x"`` or ``"y"``: a motion along that axis (amplitude, phase ``[...]``);
-            ``"xy"``: a 2-D Lissajous motion (amplitude, phase ``[..., 2]``).
-        optimizer: ``"lm"`` (batched Levenberg-Marquardt, default), ``"adam"``, ``"lbfgs"``.
-        loss: ``"l2"`` (default), ``"l1"``, ``"linf"`` (adam/lbfgs only), ``"poisson"``.
-        noise_std: pixel noise std: a number, ``[...]`` or ``[..., E, H, W]``; None: the l2
-            fit is unweighted and the noise is estimated from the residuals.
-        mask: bool ``[..., E, H, W]``, False excludes a pixel (saturated, hot).
-        fit_scale, fit_background, fit_center: fit an intensity scale, a background offset,
-            the rest position jointly (nuisance parameters).
-        normalize: the paper's eq. 8: compare images divided by their Frobenius norms (an
-            option; it weights the exposures unequally and loses precision).
-        max_iter: optimiser iterations (default 60 for lm, 400 for adam, 100 for lbfgs).
-        tol: relative cost decrease that counts as converged (lm).
-        render_settings: renderer settings; the node count is fixed for the whole fit
-            (default: panels of 3.5 PSF widths, model error < 1e-6 of the peak).
-
-    Returns:
-        :class:`SinusoidFit`.
-    """
+    """One pass of :func:`fit_sinusoid` (its arguments, less the robust options); flags are set there."""
     images, omega = _validate(images, psf, window, omega, axes, optimizer, loss)
     dtype, device = images.dtype, images.device
     batch = images.shape[:-3]
@@ -713,3 +713,367 @@ def _optimise(model_fn, theta0, data, weight, loss, optimizer, max_iter, tol, pr
     n_it = int(state.get("n_iter", it))
     conv = torch.full((n,), n_it < it, dtype=torch.bool, device=theta0.device)
     return LMResult(final.detach(), cost, conv, torch.full((n,), n_it, dtype=torch.long, device=theta0.device))
+
+
+# --------------------------------------------------------------------------- public entry: checks, masks, robust pass, flags
+
+
+def _check_flag(value, name: str) -> bool:
+    if not isinstance(value, bool):
+        raise InputTypeError(f"{name}: expected True or False, got {type(value).__name__}")
+    return value
+
+
+def _take_psf(psf, idx):
+    return psf[idx] if isinstance(psf, GaussianPSF) else KernelPSF(psf.kernel[idx])
+
+
+def _inpaint(data: torch.Tensor, keep: torch.Tensor) -> torch.Tensor:
+    """Masked pixels of ``data [n, E, H, W]`` replaced by the 3x3 median of their neighbourhood
+    (kornia), so that the closed-form starts and the dark-frame test do not see them. Their
+    fit weight is 0, so the cost does not change."""
+    if bool(keep.all()):
+        return data
+    import kornia
+
+    n, E, H, W = data.shape
+    med = kornia.filters.median_blur(data.reshape(n * E, 1, H, W), 3, border_type="replicate").reshape(n, E, H, W)
+    return torch.where(keep, data, med)
+
+
+def _axes_xy(amplitude: torch.Tensor, phase: torch.Tensor, axes: str):
+    """Per-axis ``(amplitude [n, 2], phase [n, 2])`` of a fit along ``axes``."""
+    if axes == "xy":
+        return amplitude, phase
+    zero = torch.zeros_like(amplitude)
+    amp = torch.stack([amplitude, zero] if axes == "x" else [zero, amplitude], -1)
+    return amp, torch.stack([phase, phase], -1)
+
+
+def _fitted_psf(res: SinusoidFit, psf, idx, fit_scale: bool, fit_center: bool):
+    """The PSF of items ``idx`` with the fitted scale and rest position, batch ``[n, 1]``."""
+    scale = res.scale[idx] if fit_scale else None
+    if isinstance(psf, GaussianPSF):
+        c = res.center[idx] if fit_center else psf.center[idx]
+        a = psf.amplitude[idx] * (scale if scale is not None else 1.0)
+        return GaussianPSF(c[:, None], psf.cov[idx][:, None], a[:, None])
+    k = psf.kernel[idx]
+    return KernelPSF((k * scale[:, None, None] if scale is not None else k)[:, None])
+
+
+def _model_images(res, idx, psf, win, om, axes, H, W, fit_scale, fit_center, fit_background, settings):
+    """The fitted model ``[n, E, H, W]`` of items ``idx``."""
+    amp, ph = _axes_xy(res.amplitude[idx], res.phase[idx], axes)
+    traj = Sinusoid(amp[:, None, :], ph[:, None, :], om[idx][:, None])
+    with torch.no_grad():
+        img = render_blur(traj, _fitted_psf(res, psf, idx, fit_scale, fit_center), win[idx], height=H, width=W, settings=settings)
+    if fit_background:
+        img = img + res.background[idx][:, None, None, None]
+    return img
+
+
+def _light_in_frame(res, psf, win, om, axes, H, W, fit_center, n_t: int = 64) -> torch.Tensor:
+    """Fraction ``[N]`` of the fitted spot's light that falls inside the frame
+    ``[-0.5, W - 0.5] x [-0.5, H - 0.5]`` (worst exposure), from the Gaussian marginals of the
+    PSF along the fitted path (NaN where the fit has no estimate)."""
+    amp, ph = _axes_xy(res.amplitude, res.phase, axes)
+    if isinstance(psf, GaussianPSF):
+        centre, cov = psf.center, psf.cov
+    else:
+        centre, cov = psf.moments()
+    if fit_center and res.center is not None:
+        centre = res.center
+    dtype, device = amp.dtype, amp.device
+    tau = (torch.arange(n_t, dtype=dtype, device=device) + 0.5) / n_t
+    t = win.start[..., None] + win.duration[..., None] * tau  # [N, E, T]
+    pos = centre[:, None, None, :] + amp[:, None, None, :] * torch.sin(om[:, None, None, None] * t[..., None] + ph[:, None, None, :])
+    sd = torch.diagonal(cov, dim1=-2, dim2=-1).clamp_min(1e-12).sqrt()[:, None, None, :]
+    hi = torch.tensor([W - 0.5, H - 0.5], dtype=dtype, device=device)
+    inside = torch.special.ndtr((hi - pos) / sd) - torch.special.ndtr((-0.5 - pos) / sd)  # [N, E, T, 2]
+    return inside.prod(-1).mean(-1).amin(-1)
+
+
+def _robust_scale(r: torch.Tensor, used: torch.Tensor) -> torch.Tensor:
+    """``1.4826 MAD`` of the residuals ``r [n, E, H, W]`` over the used pixels, ``[n, 1, 1, 1]``."""
+    x = torch.where(used, r, torch.full_like(r, float("nan"))).flatten(1)
+    med = x.nanmedian(-1, keepdim=True).values
+    mad = (x - med).abs().nanmedian(-1).values * 1.482602218505602
+    return torch.nan_to_num(mad, nan=0.0).clamp_min(torch.finfo(r.dtype).tiny)[:, None, None, None]
+
+
+def _impulses(data: torch.Tensor, psf: GaussianPSF, noise: torch.Tensor, k: float) -> torch.Tensor:
+    """Pixels ``[n, E, H, W]`` brighter than any blurred Gaussian spot allows: hot pixels and
+    cosmic-ray hits, found before the fit so they cannot spoil its start.
+
+    A positive sum of Gaussians of precision ``[[A, B], [B, C]]`` obeys
+    ``f(x) <= exp(A / 2) (f(x - 1) + f(x + 1)) / 2`` along x (and likewise with C along y),
+    since ``g(x + d) + g(x - d) >= 2 g(x) exp(-d^2 A / 2)`` for each of its terms. A pixel that
+    exceeds either bound by ``k`` noise standard deviations cannot come from the spot.
+    Interior pixels only. ``noise``: ``[n, 1, 1, 1]`` or ``[n, E, H, W]``.
+    """
+    A, _, C = psf.precision()
+    out = torch.zeros_like(data, dtype=torch.bool)
+    if data.shape[-1] < 3 and data.shape[-2] < 3:
+        return out
+    s = noise.expand_as(data)
+    for dim, prec in ((-1, A), (-2, C)):
+        if data.shape[dim] < 3:
+            continue
+        c = torch.exp(prec / 2)[:, None, None, None]
+        mid = data.narrow(dim, 1, data.shape[dim] - 2)
+        nb = 0.5 * (data.narrow(dim, 0, data.shape[dim] - 2) + data.narrow(dim, 2, data.shape[dim] - 2))
+        sd = s.narrow(dim, 1, data.shape[dim] - 2) * torch.sqrt(1 + c * c / 2)
+        out.narrow(dim, 1, data.shape[dim] - 2).logical_or_(mid - c * nb > k * sd)
+    return out
+
+
+def _plane_fit(data: torch.Tensor, use: torch.Tensor) -> torch.Tensor:
+    """Least-squares plane ``a + b (x - xc) + c (y - yc)`` of each ``data [n, E, H, W]`` over
+    the pixels ``use``; ``[n, E, 3]`` (centre level, x slope, y slope per px)."""
+    n, E, H, W = data.shape
+    y = torch.arange(H, dtype=data.dtype, device=data.device)[:, None].expand(H, W) - (H - 1) / 2
+    x = torch.arange(W, dtype=data.dtype, device=data.device)[None, :].expand(H, W) - (W - 1) / 2
+    basis = torch.stack([torch.ones_like(x), x, y], -1).reshape(H * W, 3)  # [HW, 3]
+    w = use.reshape(n, E, H * W).to(data.dtype)
+    A = torch.einsum("nep,pi,pj->neij", w, basis, basis)
+    rhs = torch.einsum("nep,pi,nep->nei", w, basis, data.reshape(n, E, H * W))
+    A = A + 1e-12 * A.diagonal(dim1=-2, dim2=-1).amax(-1)[..., None, None].clamp_min(1) * torch.eye(3, dtype=data.dtype, device=data.device)
+    return torch.linalg.solve(A, rhs[..., None])[..., 0]
+
+
+def _plane_image(coef: torch.Tensor, H: int, W: int) -> torch.Tensor:
+    """``[n, E, H, W]`` image of planes ``coef [n, E, 3]`` (see :func:`_plane_fit`)."""
+    y = torch.arange(H, dtype=coef.dtype, device=coef.device)[:, None] - (H - 1) / 2
+    x = torch.arange(W, dtype=coef.dtype, device=coef.device)[None, :] - (W - 1) / 2
+    return coef[..., 0, None, None] + coef[..., 1, None, None] * x + coef[..., 2, None, None] * y
+
+
+def _put(res: SinusoidFit, idx: torch.Tensor, sub: SinusoidFit) -> None:
+    """Overwrite items ``idx`` of a flat-batch ``res`` with those of ``sub``."""
+    for f in fields(SinusoidFit):
+        v = getattr(res, f.name)
+        if isinstance(v, torch.Tensor):
+            v[idx] = getattr(sub, f.name)
+
+
+def fit_sinusoid(
+    images,
+    psf,
+    window: ExposureWindow,
+    omega,
+    *,
+    axes: str = "x",
+    optimizer: str = "lm",
+    loss: str = "l2",
+    noise_std=None,
+    mask=None,
+    saturation_level=None,
+    outliers: str = "none",
+    outlier_sigma: float = 5.0,
+    fit_scale: bool = False,
+    fit_background: bool = False,
+    fit_center: bool = False,
+    fit_gradient: bool = False,
+    normalize: bool = False,
+    max_iter: int | None = None,
+    tol: float = 1e-9,
+    render_settings: RenderSettings | None = None,
+) -> SinusoidFit:
+    """Fit ``y(t) = M sin(omega t + phi)`` to blurred images of a moving spot.
+
+    Args:
+        images: ``[..., E, H, W]``: E exposures of the same motion (E = 1, 2 or more), dark
+            level subtracted, in the units of the PSF times seconds; a real floating tensor
+            (integer frames still hold the dark level: use ``preprocess.subtract_dark``).
+        psf: ``GaussianPSF`` or ``KernelPSF``, batch ``[...]`` (shared by the E exposures).
+        window: exposure windows, batch broadcastable to ``[..., E]``.
+        omega: rad/s, ``[...]``.
+        axes: ``"x"`` or ``"y"``: a motion along that axis (amplitude, phase ``[...]``);
+            ``"xy"``: a 2-D Lissajous motion (amplitude, phase ``[..., 2]``).
+        optimizer: ``"lm"`` (batched Levenberg-Marquardt, default), ``"adam"``, ``"lbfgs"``.
+        loss: ``"l2"`` (default), ``"l1"``, ``"linf"`` (adam/lbfgs only), ``"poisson"``.
+        noise_std: pixel noise std: a number, ``[...]`` or ``[..., E, H, W]``; None: the l2
+            fit is unweighted and the noise is estimated from the residuals.
+        mask: bool ``[..., E, H, W]``, False excludes a pixel (hot pixels from
+            ``preprocess.dark_frame(...).hot_pixels``, saturated pixels from
+            ``SaturationCurve.mask`` or ``CameraModel.saturated_mask`` of the raw frames).
+            Sets :data:`MASKED`.
+        saturation_level: pixels of ``images`` at or above it are excluded (the clipping level
+            in the units of ``images``, i.e. less the dark level): a number or ``[...]``.
+            Sets :data:`SATURATED_MASKED`. None (default): nothing is clipped.
+        outliers: ``"none"`` (default) or ``"reject"``: after the fit, pixels whose residual
+            exceeds ``outlier_sigma`` noise standard deviations (``noise_std``, else a robust
+            MAD estimate from the residuals, which assumes the noise does not grow with the
+            signal) are excluded and the item refitted, up to 3 passes; for hot pixels
+            without a map and cosmic-ray hits. Sets :data:`OUTLIERS_MASKED` and ``n_outliers``.
+        outlier_sigma: the rejection threshold in standard deviations (> 0, default 5: about
+            6e-7 of clean Gaussian pixels are rejected).
+        fit_scale, fit_background, fit_center: fit an intensity scale, a constant background
+            (stray light), the rest position jointly (nuisance parameters).
+        fit_gradient: remove a stray-light plane (level and slopes) from each exposure,
+            fitted to the pixels the spot does not reach: first the frame's 2-px border,
+            then every pixel where the fitted spot is below 1e-4 of its peak; the spot is
+            refitted after each. Reported in ``background_plane``; its uncertainty (from
+            many pixels) is not added to the estimates'.
+        normalize: the paper's eq. 8: compare images divided by their Frobenius norms (an
+            option; it weights the exposures unequally and loses precision).
+        max_iter: optimiser iterations, an int >= 1 (default 60 for lm, 400 for adam, 100
+            for lbfgs).
+        tol: relative cost decrease that counts as converged (lm), >= 0.
+        render_settings: renderer settings; the node count is fixed for the whole fit
+            (default: panels of 3.5 PSF widths, model error < 1e-6 of the peak).
+
+    Returns:
+        :class:`SinusoidFit`. Degenerate items are flagged, never raised, and do not change
+        the other items: ``status`` 1 (no signal), 3 (spot mostly outside the frame), 5 (no
+        usable pixel) give NaN estimates; ``flags`` mark masked, saturated and outlier
+        pixels, a spot partly out of the frame (fitted on what is visible) and a motion too
+        small to measure.
+
+    Example:
+        >>> fit = fit_sinusoid(images, psf, window, omega, mask=~dark.hot_pixels, outliers="reject")
+        >>> bad = (fit.flags & PARTLY_OUT_OF_FRAME) != 0
+    """
+    if isinstance(images, torch.Tensor) and not images.is_floating_point():
+        raise InputTypeError(f"images: expected a real floating tensor [..., E, H, W] with the dark level subtracted "
+                             f"(preprocess.subtract_dark), got dtype {images.dtype}")
+    images, omega = _validate(images, psf, window, omega, axes, optimizer, loss)
+    for name, v in (("fit_scale", fit_scale), ("fit_background", fit_background), ("fit_center", fit_center), ("fit_gradient", fit_gradient),
+                    ("normalize", normalize)):
+        _check_flag(v, name)
+    check_choice(outliers, "outliers", OUTLIERS)
+    outlier_sigma = check_real_scalar(outlier_sigma, "outlier_sigma", positive=True)
+    if fit_gradient and normalize:
+        raise ParameterError("fit_gradient: expected False with normalize=True (the plane is in image units), got True")
+    if outliers == "reject" and normalize:
+        raise ParameterError("outliers: expected 'none' with normalize=True (the robust pass compares data and model in image units), "
+                             "got 'reject'")
+    if max_iter is not None and (isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 1):
+        raise ParameterError(f"max_iter: expected None or an integer >= 1, got {max_iter!r}")
+    tol = check_real_scalar(tol, "tol", nonnegative=True)
+    if render_settings is not None and not isinstance(render_settings, RenderSettings):
+        raise InputTypeError(f"render_settings: expected a RenderSettings or None, got {type(render_settings).__name__}")
+
+    dtype, device = images.dtype, images.device
+    batch = images.shape[:-3]
+    E, H, W = images.shape[-3:]
+    N = max(1, math.prod(batch))
+    data = images.reshape(N, E, H, W)
+    w_full = window.to(dtype).expand(batch + (E,))
+    win = ExposureWindow(w_full.start.reshape(N, E), w_full.duration.reshape(N, E))
+    om = omega.expand(batch).reshape(N)
+    psf_n = _flatten_psf(psf.to(dtype) if isinstance(psf, GaussianPSF) else psf, batch, N)
+    sig = None
+    if noise_std is not None:
+        s = check_positive(as_tensor(noise_std, "noise_std", like=data), "noise_std")
+        try:
+            sig = s.expand(batch + (E, H, W)).reshape(N, E, H, W) if s.dim() >= 3 and s.shape[-3:] == (E, H, W) else s.expand(batch).reshape(N)
+        except RuntimeError:
+            raise ShapeError(f"noise_std: expected a number, [...] or [..., E, H, W], got {tuple(s.shape)}") from None
+
+    keep = torch.ones(N, E, H, W, dtype=torch.bool, device=device)
+    user_masked = torch.zeros(N, dtype=torch.bool, device=device)
+    if mask is not None:
+        if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool:
+            raise InputTypeError(f"mask: expected a bool tensor [..., E, H, W] (True = use the pixel), got "
+                                 f"{mask.dtype if isinstance(mask, torch.Tensor) else type(mask).__name__}")
+        try:
+            m = mask.to(device).expand(batch + (E, H, W)).reshape(N, E, H, W)
+        except RuntimeError:
+            raise ShapeError(f"mask: expected shape [..., E, H, W] = {tuple(images.shape)}, got {tuple(mask.shape)}") from None
+        keep = keep & m
+        user_masked = (~m).flatten(1).any(1)
+    sat_masked = torch.zeros(N, dtype=torch.bool, device=device)
+    if saturation_level is not None:
+        lvl = check_finite(as_tensor(saturation_level, "saturation_level", like=data), "saturation_level")
+        try:
+            lvl = lvl.expand(batch).reshape(N)
+        except RuntimeError:
+            raise ShapeError(f"saturation_level: expected a number or the images' batch {tuple(batch)}, got {tuple(lvl.shape)}") from None
+        sat = data >= lvl[:, None, None, None]
+        sat_masked = (sat & keep).flatten(1).any(1)
+        keep = keep & ~sat
+
+    opts = dict(axes=axes, optimizer=optimizer, loss=loss, fit_scale=fit_scale, fit_background=fit_background, fit_center=fit_center,
+                normalize=normalize, max_iter=max_iter, tol=tol, render_settings=render_settings)
+
+    def run(idx, use):
+        return _fit_core(_inpaint(data[idx], use), _take_psf(psf_n, idx), win[idx], om[idx],
+                         noise_std=None if sig is None else sig[idx], mask=None if bool(use.all()) else use, **opts)
+
+    everything = torch.arange(N, device=device)
+    rejected = torch.zeros_like(keep)
+    if outliers == "reject" and isinstance(psf_n, GaussianPSF):
+        if sig is not None:
+            noise0 = sig if sig.dim() == 4 else sig[:, None, None, None]
+        else:
+            noise0 = _robust_scale(data, keep)
+        rejected = _impulses(data, psf_n, noise0, outlier_sigma) & keep
+    plane = None
+    if fit_gradient:
+        border = torch.ones(H, W, dtype=torch.bool, device=device)
+        border[2:-2, 2:-2] = False
+        plane = _plane_fit(data, keep & ~rejected & border)
+        data_raw, data = data, data - _plane_image(plane, H, W)
+    res = run(everything, keep & ~rejected)
+    if fit_gradient:
+        live = everything[torch.isfinite(res.cost)]
+        if live.numel():
+            spot = _model_images(res, live, psf_n, win, om, axes, H, W, fit_scale, fit_center, False, render_settings)
+            far = spot < 1e-4 * spot.amax((-1, -2), keepdim=True)
+            plane[live] = _plane_fit(data_raw[live], keep[live] & ~rejected[live] & far)
+            data = data_raw - _plane_image(plane, H, W)
+            _put(res, live, run(live, keep[live] & ~rejected[live]))
+    passes = 0
+    if outliers == "reject":
+        for passes in range(1, 4):
+            idx = everything[torch.isfinite(res.cost) & ((res.status == 0) | (res.status == 2) | (res.status == 4))]
+            if idx.numel() == 0:
+                break
+            model = _model_images(res, idx, psf_n, win, om, axes, H, W, fit_scale, fit_center, fit_background, render_settings)
+            r = data[idx] - model
+            used = keep[idx]
+            scale = sig[idx] if sig is not None and sig.dim() == 4 else (
+                sig[idx][:, None, None, None] if sig is not None else _robust_scale(r, used))
+            new = (r.abs() > outlier_sigma * scale) & used
+            changed = (new != rejected[idx]).flatten(1).any(1)
+            if not bool(changed.any()):
+                break
+            ci = idx[changed]
+            rejected[ci] = new[changed]
+            _put(res, ci, run(ci, keep[ci] & ~rejected[ci]))
+
+    # Items with nothing left to fit.
+    used_all = keep & ~rejected
+    n_used = used_all.flatten(1).sum(1)
+    P = len(res.param_names)
+    empty = n_used <= P
+    if bool(empty.any()):
+        nan = float("nan")
+        for name in ("amplitude", "phase", "amplitude_std", "phase_std", "alias_phase", "alias_cost", "cost", "covariance"):
+            getattr(res, name)[empty] = nan
+        res.status[empty] = 5
+        res.converged[empty] = False
+
+    n_out = rejected.flatten(1).sum(1)
+    flags = torch.zeros(N, dtype=torch.long, device=device)
+    flags |= MASKED * user_masked.long()
+    flags |= SATURATED_MASKED * sat_masked.long()
+    flags |= OUTLIERS_MASKED * (n_out > 0).long()
+    with torch.no_grad():
+        frac = _light_in_frame(res, psf_n, win, om, axes, H, W, fit_center)
+    flags |= PARTLY_OUT_OF_FRAME * ((frac < 0.999) & (res.status != 3)).long()
+    amp_z = res.amplitude / res.amplitude_std
+    weak = (amp_z < 3) if axes != "xy" else (amp_z < 3).any(-1)
+    flags |= NO_MOTION * (weak & ~torch.isnan(res.amplitude) if axes != "xy" else weak & ~torch.isnan(res.amplitude).any(-1)).long()
+    res.flags = flags
+    res.n_masked = E * H * W - n_used
+    res.n_outliers = n_out
+    res.extras["outlier_passes"] = passes
+    res.background_plane = plane
+
+    for f in fields(SinusoidFit):
+        v = getattr(res, f.name)
+        if isinstance(v, torch.Tensor):
+            setattr(res, f.name, v.reshape(batch + v.shape[1:]))
+    return res

@@ -303,6 +303,12 @@ def identify(cfg: IdentifyConfig, rig=None, *, progress: bool = True, record=Non
         HardwareError: the rig failed (the recording so far is kept; resume it);
         KeyboardInterrupt: likewise.
     """
+    from .errors import InputTypeError
+
+    if not isinstance(cfg, IdentifyConfig):
+        raise InputTypeError(f"cfg: expected an IdentifyConfig (see torchblur.config.load_config), got {type(cfg).__name__}")
+    if rig is not None and not all(hasattr(rig, a) for a in ("frame_shape", "dark", "still", "sine")):
+        raise InputTypeError(f"rig: expected a torchblur Rig (frame_shape, dark, still, sine, ...) or None, got {type(rig).__name__}")
     log: list[str] = []
     own_rig = rig is None
     if own_rig:
@@ -552,7 +558,8 @@ def _identify(cfg, rig, exp, log, progress) -> IdentificationResult:
         noise = torch.sqrt(read_noise_e**2 + imgs.clamp_min(0))  # shot + read noise (e-), per pixel
         fit = fit_sinusoid(imgs, psf_b, win, omega_job[list(idx)][:, None], axes=axes, optimizer=cfg.fit.optimizer,
                            loss=cfg.fit.loss, noise_std=noise, mask=torch.stack([masks_all[j] for j in idx]),
-                           fit_scale=cfg.fit.fit_scale, fit_background=cfg.fit.fit_background)
+                           fit_scale=cfg.fit.fit_scale, fit_background=cfg.fit.fit_background, fit_gradient=cfg.fit.fit_gradient,
+                           outliers=cfg.fit.outliers, outlier_sigma=float(cfg.fit.outlier_sigma))
         return _squeeze_problems(fit) if single else fit
 
     fitter = _ChunkFitter(int(cfg.fit.chunk_points), fit_points)

@@ -16,6 +16,7 @@ import math
 import torch
 
 from .alias import wrap_phase
+from .errors import InputTypeError, ShapeError
 
 __all__ = ["image_moments", "sinusoid_from_moments"]
 
@@ -31,6 +32,11 @@ def image_moments(images: torch.Tensor, *, threshold: torch.Tensor | float | Non
     Returns:
         ``(total [...], centroid [..., 2] (x, y px), cov [..., 2, 2] (px^2))``.
     """
+    if not isinstance(images, torch.Tensor) or not images.is_floating_point():
+        got = f"dtype {images.dtype}" if isinstance(images, torch.Tensor) else type(images).__name__
+        raise InputTypeError(f"images: expected a real floating tensor [..., H, W], got {got}")
+    if images.dim() < 2:
+        raise ShapeError(f"images: expected shape [..., H, W], got {tuple(images.shape)}")
     img = images
     zero = torch.zeros((), dtype=img.dtype, device=img.device)
     if threshold is not None:

@@ -23,7 +23,7 @@ class GaussianPSF:
     Args:
         center: rest position (x, y) in px, shape ``[..., 2]``.
         cov: covariance in px^2, shape ``[..., 2, 2]``, symmetric positive definite.
-        amplitude: peak intensity per second of exposure, shape ``[...]`` (default 1).
+        amplitude: peak intensity per second of exposure, shape ``[...]``, >= 0 (default 1).
 
     The three broadcast to one batch shape ``[...]``; any may require grad.
 
@@ -43,7 +43,7 @@ class GaussianPSF:
         check_trailing_shape(cov, "cov", (2, 2), "[..., 2, 2] (px^2)")
         check_finite(center, "center")
         check_finite(cov, "cov")
-        check_finite(amplitude, "amplitude")
+        check_positive(amplitude, "amplitude", strict=False)
         c = cov.detach()
         asym = (c[..., 0, 1] - c[..., 1, 0]).abs()
         scale = c[..., 0, 0].abs() + c[..., 1, 1].abs()
@@ -137,9 +137,13 @@ class KernelPSF:
 
     def __init__(self, image, exposure_s=1.0):
         image = as_tensor(image, "image")
-        if image.dim() < 2:
-            raise ShapeError(f"image: expected shape [..., H, W], got {tuple(image.shape)}")
+        if image.dim() < 2 or image.shape[-1] < 1 or image.shape[-2] < 1:
+            raise ShapeError(f"image: expected shape [..., H, W] with H, W >= 1, got {tuple(image.shape)}")
         check_finite(image, "image")
+        total = image.detach().sum((-1, -2))
+        if image.numel() and bool((total <= 0).any()):
+            raise ParameterError(f"image: expected a still spot with positive total light (dark level subtracted), "
+                                 f"got a total of {float(total.min()):g}")
         exposure = check_positive(as_tensor(exposure_s, "exposure_s", like=image), "exposure_s")
         broadcast_batch({"image": image.shape[:-2], "exposure_s": exposure.shape})
         self.kernel = image / exposure[..., None, None]

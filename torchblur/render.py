@@ -266,6 +266,8 @@ def render_blur(
         >>> render_blur(traj, psf, ExposureWindow(0.0, 5e-3), height=32, width=32).shape
         torch.Size([32, 32])
     """
+    if settings is not None and not isinstance(settings, RenderSettings):
+        raise InputTypeError(f"settings: expected a RenderSettings or None, got {type(settings).__name__}")
     settings = settings or RenderSettings()
     for name, val in (("height", height), ("width", width)):
         if isinstance(val, bool) or not isinstance(val, int) or val < 1:
@@ -285,6 +287,9 @@ def render_blur(
     else:
         raise InputTypeError(f"psf: expected GaussianPSF or KernelPSF, got {type(psf).__name__}")
     batch = broadcast_batch({"trajectory": trajectory.shape, "psf": psf.shape, "window": window.shape})
+    if math.prod(batch) == 0:
+        raise ShapeError(f"trajectory, psf, window: expected a non-empty batch, got batch shapes trajectory {tuple(trajectory.shape)}, "
+                         f"psf {tuple(psf.shape)}, window {tuple(window.shape)}")
     dtype, device = ref.dtype, ref.device
 
     S = choose_node_count(trajectory.path_length(window), sigma_min, settings, trajectory.phase_span(window))

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .errors import ParameterError
+from .errors import ParameterError, ShapeError, check_real_scalar
 
 __all__ = ["TrackingResult", "track_sine", "sine_from_centroids", "AxisCalibration", "calibrate_axes"]
 
@@ -48,13 +48,22 @@ def sine_from_centroids(offset_px, omega: float, start_s, duration_s) -> Trackin
         :class:`TrackingResult` (uncertainty from the residual scatter).
     """
     y = np.asarray(offset_px, dtype=float)
+    if y.ndim not in (1, 2):
+        raise ShapeError(f"offset_px: expected shape [K] or [K, 2], got {y.shape}")
     one_axis = y.ndim == 1
     y = y[:, None] if one_axis else y
     t0 = np.asarray(start_s, dtype=float)
     te = np.asarray(duration_s, dtype=float)
     K = y.shape[0]
-    if K < 3 or t0.shape != (K,) or te.shape != (K,):
-        raise ParameterError(f"offset_px: expected at least 3 frames with matching start_s/duration_s, got {K}")
+    if y.ndim != 2 or K < 3 or y.shape[1] not in (1, 2):
+        raise ShapeError(f"offset_px: expected shape [K] or [K, 2] with K >= 3 frames, got {np.shape(offset_px)}")
+    for name, v in (("start_s", t0), ("duration_s", te)):
+        if v.shape != (K,):
+            raise ShapeError(f"{name}: expected shape [K] = ({K},) like offset_px, got {v.shape}")
+    for name, v in (("offset_px", y), ("start_s", t0), ("duration_s", te)):
+        if not np.all(np.isfinite(v)):
+            raise ParameterError(f"{name}: expected finite values, got {int(np.sum(~np.isfinite(v)))} NaN/Inf entries")
+    omega = check_real_scalar(float(omega) if isinstance(omega, np.floating) else omega, "omega", positive=True)
     p = omega * te
     alpha = np.where(np.abs(p) > 1e-12, 2 * np.sin(p / 2) / np.where(p == 0, 1, p), 1.0)
     c = omega * (t0 + te / 2)
