@@ -238,10 +238,14 @@ def _write_outputs(cfg, res, out: Path, elapsed: float, stamp: str) -> None:
         truth_fn = plant.frequency_response
     fig = bode_figure(frf, model=res.model, truth=truth_fn, stamp=stamp)
     fig.savefig(out / "bode.png", dpi=110, metadata={"Description": stamp})
-    worst = np.argsort(np.nan_to_num(res.fit.cost.numpy() / np.maximum(1, res.images[0].numel()), nan=np.inf))[-3:][::-1].copy()
-    models = _fitted_images(res, worst)
-    labels = [f"{frf.freq_hz[k]:.4g} Hz" for k in worst]
-    fig = residual_figure(res.images[worst, 0].numpy(), models, labels, stamp=stamp)
+    if hasattr(res, "residual_panels"):  # multisine: one panel per image set
+        data, models, labels = res.residual_panels(3)
+    else:
+        worst = np.argsort(np.nan_to_num(res.fit.cost.numpy() / np.maximum(1, res.images[0].numel()), nan=np.inf))[-3:][::-1].copy()
+        models = _fitted_images(res, worst)
+        labels = [f"{frf.freq_hz[k]:.4g} Hz" for k in worst]
+        data = res.images[worst, 0].numpy()
+    fig = residual_figure(data, models, labels, stamp=stamp)
     fig.savefig(out / "residuals.png", dpi=90, metadata={"Description": stamp})
     report = _report(cfg, res, elapsed, stamp)
     (out / "report.txt").write_text(report)

@@ -427,6 +427,10 @@ def _identify(cfg, rig, exp, log, progress) -> IdentificationResult:
     cal = calibrate(cfg, rig, exp, log, progress)
     dark, read_noise_e, sat, full_adu = cal.dark, cal.read_noise_e, cal.saturation, cal.full_adu
     psf, peak_rate, latency, latency_std, gain = cal.psf, cal.peak_rate, cal.latency_s, cal.latency_std_s, cal.gain
+    if cfg.excitation.kind == "multisine":
+        from .identify_multisine import identify_multisine
+
+        return identify_multisine(cfg, rig, exp, log, progress, cal, t_start)
 
     # 5. Sweep. Every completed point goes to the chunked background fit (6.) at once.
     target = float(cfg.excitation.target_px)
