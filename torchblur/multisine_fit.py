@@ -36,7 +36,8 @@ from .trajectory import Multisine
 __all__ = ["MultisineFit", "render_multisine", "render_multisine_with_jacobian", "fit_multisine", "multisine_param_names"]
 
 #: Status codes of :class:`MultisineFit` (as :data:`torchblur.fit.STATUS`).
-STATUS = {0: "ok", 1: "no signal (dark frames)", 2: "not converged", 4: "unidentifiable (singular Fisher information)"}
+STATUS = {0: "ok", 1: "no signal (dark frames)", 2: "not converged", 4: "unidentifiable (singular Fisher information)",
+          5: "poor fit (reduced chi2 > 3 with the given noise, after a wider search)"}
 
 
 def multisine_param_names(n_tones: int, fit_scale: bool) -> tuple:
@@ -366,35 +367,57 @@ def fit_multisine(
     wflat = weight_c.reshape(B, -1)
     live = torch.arange(B, device=device)[~dark]
 
-    # Coarse stage: the cost of every start, in chunks of one render each.
-    flat_th = theta_c[live].reshape(-1, P)
-    item_of = live.repeat_interleave(K)
-    costs = []
-    chunk = max(1, int(2e7 // max(1, E * settings.nodes * (Hc + Wc))))
-    with torch.no_grad():
-        for i in range(0, flat_th.shape[0], chunk):
-            it = item_of[i:i + chunk]
-            costs.append(image_loss(model_fn(flat_th[i:i + chunk], it), target[it], loss="l2", weight=wflat[it]))
-    cost0 = torch.cat(costs).reshape(live.numel(), K) if costs else torch.zeros(0, K, dtype=dtype, device=device)
-    R_ = min(n_refine, K)
-    best_k = torch.nan_to_num(cost0, nan=float("inf")).argsort(-1)[:, :R_]  # [L, R_]
-    theta0 = theta_c[live[:, None], best_k].reshape(-1, P)
-    items = live.repeat_interleave(R_)
+    def search(cands, items_l, n_ref):
+        """Coarse cost of every start ``cands [L, K, P]`` of the items ``items_l [L]`` (one render per
+        chunk), then batched LM from the ``n_ref`` best of each; the best result per item."""
+        L, Kc = cands.shape[:2]
+        flat_th = cands.reshape(-1, P)
+        item_of = items_l.repeat_interleave(Kc)
+        costs = []
+        chunk = max(1, int(2e7 // max(1, E * settings.nodes * (Hc + Wc))))
+        with torch.no_grad():
+            for i in range(0, flat_th.shape[0], chunk):
+                it = item_of[i:i + chunk]
+                costs.append(image_loss(model_fn(flat_th[i:i + chunk], it), target[it], loss="l2", weight=wflat[it]))
+        cost0 = torch.cat(costs).reshape(L, Kc)
+        R_ = min(n_ref, Kc)
+        best_k = torch.nan_to_num(cost0, nan=float("inf")).argsort(-1)[:, :R_]
+        th0 = cands[torch.arange(L, device=device)[:, None], best_k].reshape(-1, P)
+        items = items_l.repeat_interleave(R_)
+        res = levenberg_marquardt(lambda th, i: model_fn(th, items[i]), th0, target[items], loss="l2", weight=wflat[items],
+                                  max_iter=max_iter, tol=tol, jacobian_fn=(lambda th, i: jac_fn(th, items[i])) if analytic else None)
+        c = torch.nan_to_num(res.cost, nan=float("inf")).reshape(L, R_)
+        pick = c.argmin(-1)
+        ar = torch.arange(L, device=device)
+        return (res.theta.reshape(L, R_, P)[ar, pick], c[ar, pick], res.converged.reshape(L, R_)[ar, pick],
+                res.n_iter.reshape(L, R_)[ar, pick], R_)
 
     theta_best = theta_c[:, 0].clone()
     cost_best = torch.full((B,), float("nan"), dtype=dtype, device=device)
     conv_best = torch.zeros(B, dtype=torch.bool, device=device)
     iters_best = torch.zeros(B, dtype=torch.long, device=device)
+    R_ = 0
+    n_used = (wflat > 0).sum(-1).to(dtype) + outside_n
+    retried = torch.zeros(B, dtype=torch.bool, device=device)
     if live.numel():
-        res = levenberg_marquardt(lambda th, i: model_fn(th, items[i]), theta0, target[items], loss="l2", weight=wflat[items],
-                                  max_iter=max_iter, tol=tol, jacobian_fn=(lambda th, i: jac_fn(th, items[i])) if analytic else None)
-        c = torch.nan_to_num(res.cost, nan=float("inf")).reshape(live.numel(), R_)
-        pick = c.argmin(-1)
-        ar = torch.arange(live.numel(), device=device)
-        theta_best[live] = res.theta.reshape(live.numel(), R_, P)[ar, pick]
-        cost_best[live] = c[ar, pick]
-        conv_best[live] = res.converged.reshape(live.numel(), R_)[ar, pick]
-        iters_best[live] = res.n_iter.reshape(live.numel(), R_)[ar, pick]
+        th, cst, cv, itr, R_ = search(theta_c[live], live, n_refine)
+        theta_best[live], cost_best[live], conv_best[live], iters_best[live] = th, cst, cv, itr
+        if sigma_given:
+            # A fit far above the noise (reduced chi2 > 1.5) sits in a local minimum: search again from a wider set of
+            # starts (phases and amplitudes), keep the better.
+            poor = live[((cost_best[live] + outside_cost[live]) / n_used[live].clamp_min(1)) > 1.5]
+            if poor.numel():
+                K2 = 4 * max(n_starts, 8)
+                rnd2 = (torch.rand(K2, N, generator=g, dtype=dtype) * 2 - 1).to(device) * math.pi
+                fac = torch.tensor([0.6, 1.0, 1.6], dtype=dtype, device=device).repeat(K2 // 3 + 1)[:K2]
+                c2 = torch.cat([M0[poor][:, None, :] * fac[None, :, None], rnd2.expand(poor.numel(), K2, N)], -1)
+                if fit_scale:
+                    c2 = torch.cat([c2, theta_c[poor][:, :1, 2 * N:].expand(poor.numel(), K2, 1)], -1)
+                th, cst, cv, itr, _ = search(c2, poor, 2 * n_refine)
+                better = cst < cost_best[poor]
+                pb = poor[better]
+                theta_best[pb], cost_best[pb], conv_best[pb], iters_best[pb] = th[better], cst[better], cv[better], itr[better]
+                retried[poor] = True
 
     # Canonical form: M >= 0, phases wrapped.
     neg = theta_best[:, :N] < 0
@@ -428,6 +451,9 @@ def fit_multisine(
     std = torch.diagonal(cov_out, dim1=-2, dim2=-1).clamp_min(0).sqrt()
     status = torch.zeros(B, dtype=torch.long, device=device)
     status[~conv_best] = 2
+    if sigma_given:
+        # still far above the noise after the wider search: the model does not explain the images
+        status[((cost_best + outside_cost) / n_used.clamp_min(1)) > 3.0] = 5
     status[singular] = 4
     status[dark] = 1
     nan = torch.tensor(float("nan"), dtype=dtype, device=device)
@@ -450,5 +476,6 @@ def fit_multisine(
         n_iter=out(iters_best),
         scale=out(torch.where(dark, nan, theta_best[:, 2 * N])) if fit_scale else None,
     )
-    res.extras.update({"nodes": settings.nodes, "starts": K, "refined": R_, "crop": (lo_y, hi_y, lo_x, hi_x)})
+    res.extras.update({"nodes": settings.nodes, "starts": K, "refined": R_, "crop": (lo_y, hi_y, lo_x, hi_x),
+                       "retried": out(retried), "reduced_chi2": out((cost_best + outside_cost) / n_used.clamp_min(1))})
     return res
