@@ -301,3 +301,18 @@ def test_direct_is_refused_for_mimo_and_spots_runs():
     for path, over in ((mimo_cfg, ["model.direct=true"]), (None, ["model.direct=true", "spots.rows=2", "spots.cols=2", "excitation.target_px=4"])):
         with pytest.raises(ConfigError, match="^model.direct:"):
             load_config(path, over)
+
+
+def test_multisine_refuses_mimo_spots_and_direct():
+    """A multisine drives one axis and fits one spot, and the direct fit works on sine sweeps."""
+    from pathlib import Path
+
+    from torchblur.errors import ConfigError
+
+    mimo_cfg = str(Path(__file__).resolve().parents[1] / "configs" / "identify_mimo.yaml")
+    cases = ((mimo_cfg, ["excitation.kind=multisine"], "excitation.kind"),
+             (None, ["excitation.kind=multisine", "spots.rows=2", "spots.cols=2", "excitation.target_px=4"], "excitation.kind"),
+             (None, ["excitation.kind=multisine", "model.direct=true"], "model.direct"))
+    for path, over, key in cases:
+        with pytest.raises(ConfigError, match=f"^{key}:"):
+            load_config(path, over)

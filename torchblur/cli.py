@@ -251,10 +251,13 @@ def _write_outputs(cfg, res, out: Path, elapsed: float, stamp: str) -> None:
             truth = plant_of(cfg).frequency_response
     fig = bode_figure(frf, model=res.model, truth=truth, stamp=stamp)
     fig.savefig(out / "bode.png", dpi=110 if frf.n_outputs <= 2 else 80, metadata={"Description": stamp})
-    cost = res.fit.cost.reshape(-1).numpy()
-    n_pix = res.images.shape[-3] * res.images.shape[-2] * res.images.shape[-1]
-    worst = np.argsort(np.nan_to_num(cost / max(1, n_pix), nan=-np.inf))[-3:][::-1].copy()
-    data, models, labels = _fitted_images(res, worst)
+    if hasattr(res, "residual_panels"):  # multisine: one panel per image set
+        data, models, labels = res.residual_panels(3)
+    else:
+        cost = res.fit.cost.reshape(-1).numpy()
+        n_pix = res.images.shape[-3] * res.images.shape[-2] * res.images.shape[-1]
+        worst = np.argsort(np.nan_to_num(cost / max(1, n_pix), nan=-np.inf))[-3:][::-1].copy()
+        data, models, labels = _fitted_images(res, worst)
     fig = residual_figure(data, models, labels, stamp=stamp)
     fig.savefig(out / "residuals.png", dpi=90, metadata={"Description": stamp})
     report = _report(cfg, res, elapsed, stamp)

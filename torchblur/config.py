@@ -15,8 +15,8 @@ from typing import Optional
 from .errors import ConfigError
 
 __all__ = ["IdentifyConfig", "load_config", "load_dataclass", "config_to_yaml", "validate", "validate_plant", "validate_camera",
-           "validate_spots", "SpotsConfig", "PlantConfig",
-           "DEFAULT_PLANT", "RIG_KINDS"]
+           "validate_spots", "validate_excitation", "SpotsConfig", "PlantConfig",
+           "DEFAULT_PLANT", "RIG_KINDS", "EXCITATION_KINDS"]
 
 RIG_KINDS = ("simulated", "serial")
 
@@ -102,10 +102,22 @@ class SweepConfig:
     settle_s: Optional[float] = None
 
 
+EXCITATION_KINDS = ("sine", "multisine")
+
+
 @dataclass(frozen=True)
 class ExcitationConfig:
     target_px: float = 8.0
     max_amplitude: Optional[float] = None
+    # "sine": one frequency per point (the sweep); "multisine": the sweep's frequencies in groups of `tones`, each group
+    # one multisine on a common grid with one designed image set (torchblur.identify_multisine).
+    kind: str = "sine"
+    tones: int = 3
+    tone_px: Optional[float] = None  # multisine: output amplitude of each tone (px); default 0.75 target_px
+    images: Optional[int] = None  # multisine: images per group; None: the design's size for target_std
+    max_images: int = 12  # multisine: most images per group when `images` is None
+    target_std: float = 2e-3  # multisine: predicted std of every |H| (relative) and phase (rad) the design aims at
+    snap_tol: float = 0.05  # multisine: largest relative move of a frequency onto the group's common grid
 
 
 @dataclass(frozen=True)
@@ -430,6 +442,22 @@ def validate_rig(r: RigConfig) -> None:
     _num(r.retries, "rig.retries", integer=True, low=0, high=100)
 
 
+def validate_excitation(x: ExcitationConfig) -> None:
+    """Check the multisine keys of the ``excitation`` section; raise :class:`ConfigError` naming the key."""
+    if x.kind not in EXCITATION_KINDS:
+        raise ConfigError(f"excitation.kind: expected one of {EXCITATION_KINDS}, got {x.kind!r}")
+    _num(x.tones, "excitation.tones", integer=True, low=1, high=15)  # 15 + the base tone = the protocol's 16
+    if x.tone_px is not None:
+        _num(x.tone_px, "excitation.tone_px", positive=True)
+    _num(x.max_images, "excitation.max_images", integer=True, low=2, high=1000)
+    if x.images is not None:
+        _num(x.images, "excitation.images", integer=True, low=2, high=1000)
+    _num(x.target_std, "excitation.target_std", positive=True)
+    _num(x.snap_tol, "excitation.snap_tol", positive=True)
+    if x.snap_tol >= 0.5:
+        raise ConfigError(f"excitation.snap_tol: expected a value in (0, 0.5), got {x.snap_tol}")
+
+
 def validate(cfg: IdentifyConfig) -> None:
     """Check every value; raise :class:`ConfigError` naming the key."""
     validate_plant(cfg.plant)
@@ -464,6 +492,7 @@ def validate(cfg: IdentifyConfig) -> None:
                               f"lower excitation.target_px or raise spots.pitch_px / spots.crop_px")
     if cfg.excitation.max_amplitude is not None:
         _num(cfg.excitation.max_amplitude, "excitation.max_amplitude", positive=True)
+    validate_excitation(cfg.excitation)
     c = cfg.camera
     validate_camera(c)
     f_min = min(cfg.frequencies_hz())
@@ -504,6 +533,11 @@ def validate(cfg: IdentifyConfig) -> None:
     if cfg.model.direct_form not in FORMS:
         raise ConfigError(f"model.direct_form: expected one of {FORMS}, got {cfg.model.direct_form!r}")
     _num(cfg.model.direct_max_iter, "model.direct_max_iter", integer=True, low=1, high=10000)
+    if cfg.excitation.kind == "multisine" and (cfg.plant.is_mimo or cfg.spots.enabled):
+        raise ConfigError("excitation.kind: a multisine excitation drives one axis and fits one spot; this run has "
+                          f"{'a 2x2 plant' if cfg.plant.is_mimo else 'many spots (spots.rows > 0)'}: use excitation.kind=sine")
+    if cfg.model.direct and cfg.excitation.kind == "multisine":
+        raise ConfigError("model.direct: the direct fit works on a sine sweep's images; set excitation.kind=sine or model.direct=false")
     if cfg.model.direct and (cfg.plant.is_mimo or cfg.spots.enabled):
         raise ConfigError("model.direct: the direct fit handles one axis and one spot; this run has "
                           f"{'a 2x2 plant' if cfg.plant.is_mimo else 'many spots (spots.rows > 0)'}: set model.direct=false")

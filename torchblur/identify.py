@@ -511,6 +511,10 @@ def _identify(cfg, rig, exp, log, progress) -> IdentificationResult:
     cal = calibrate(cfg, rig, exp, log, progress)
     dark, read_noise_e, sat, full_adu = cal.dark, cal.read_noise_e, cal.saturation, cal.full_adu
     psf, peak_rate, latency, latency_std, gain = cal.psf, cal.peak_rate, cal.latency_s, cal.latency_std_s, cal.gain
+    if cfg.excitation.kind == "multisine":
+        from .identify_multisine import identify_multisine
+
+        return identify_multisine(cfg, rig, exp, log, progress, cal, t_start)
 
     # Problems per sweep point: one (the spot, full frame) or K (one crop per spot).
     spots = cal.spots

@@ -226,6 +226,28 @@ class Plant:
         return LTISineTrajectory(self, amplitude, omega, direction=direction, method=method)
 
 
+def transient_path_bound(traj, t0: torch.Tensor, t1: torch.Tensor) -> torch.Tensor:
+    """Bound of the total variation of ``traj.transient`` over ``[t0, t1]`` (times after the
+    delay, float64 ``[...]``): ``sum_k |c_k| |lambda_k| integral e^{Re lambda_k t'} dt'``
+    (modal, well-conditioned eigenvectors), or estimated from 2049 samples with a 10 % margin
+    (nearly repeated poles, where the modal terms cancel and their bound is far too loose).
+    ``traj`` is an LTI response with ``method``, ``_cond``, ``_lam``, ``_c``, ``delay_s`` and
+    ``transient(t)``."""
+    dev = t0.device
+    if traj.method == "modal" and traj._cond <= _EIG_COND_BOUND:
+        lam = traj._lam.to(dev)
+        if not lam.shape[0]:
+            return torch.zeros_like(t0)
+        sigma = lam[:, 0]  # < 0
+        mag = torch.linalg.vector_norm(lam, dim=-1)
+        cabs = torch.linalg.vector_norm(traj._c.to(dev), dim=-1)  # [..., n]
+        integral = torch.exp(sigma * t0[..., None]) * (-torch.expm1(sigma * (t1 - t0)[..., None])) / (-sigma)
+        return (cabs * mag * integral).sum(-1)
+    u = torch.linspace(0.0, 1.0, 2049, dtype=torch.float64, device=dev)
+    ts = (t0[..., None] + (t1 - t0)[..., None] * u) + traj.delay_s
+    return 1.1 * traj.transient(ts).diff(dim=-1).abs().sum(-1)
+
+
 class LTISineTrajectory(Trajectory):
     """The exact response of a :class:`Plant` to ``u(t) = amplitude sin(omega t)`` applied
     from rest at t = 0, transient and delay included, mapped to the image as
@@ -394,20 +416,7 @@ class LTISineTrajectory(Trajectory):
             amp_ss = self.steady_state_amplitude().to(dev)
             h = self._h0.to(dev)
             phase0 = torch.atan2(h[..., 1], h[..., 0]) + math.pi * (self.amplitude.to(dev) < 0)
-            tv = _sine_path_bound(amp_ss, self.omega.to(dev), phase0, t0, t1 - t0)
-            if self.method == "modal" and self._cond <= _EIG_COND_BOUND:
-                lam = self._lam.to(dev)
-                if lam.shape[0]:
-                    sigma = lam[:, 0]  # < 0
-                    mag = torch.linalg.vector_norm(lam, dim=-1)
-                    cabs = torch.linalg.vector_norm(self._c.to(dev), dim=-1)  # [..., n]
-                    integral = torch.exp(sigma * t0[..., None]) * (-torch.expm1(sigma * (t1 - t0)[..., None])) / (-sigma)
-                    tv = tv + (cabs * mag * integral).sum(-1)
-            else:
-                u = torch.linspace(0.0, 1.0, 2049, dtype=torch.float64, device=dev)
-                ts = (t0[..., None] + (t1 - t0)[..., None] * u) + self.delay_s
-                ytr = self.transient(ts)
-                tv = tv + 1.1 * ytr.diff(dim=-1).abs().sum(-1)
+            tv = _sine_path_bound(amp_ss, self.omega.to(dev), phase0, t0, t1 - t0) + transient_path_bound(self, t0, t1)
             return tv * torch.linalg.vector_norm(self.direction.to(dev), dim=-1)
 
     def phase_span(self, window: ExposureWindow) -> torch.Tensor:

@@ -445,7 +445,15 @@ class EmulatedDevice:
             cap = r.sine(freq_hz=wv["freq_hz"], amplitude=wv["amplitude"], exposures_s=[te], trigger_offset_s=a["offset"],
                          n_repeats=n, settle_s=a["settle_s"], power=a["power"], input=wv.get("axis", "x"))
         else:
-            return self._render_multi(job), job.rel_trig
+            tones = a["wave"]["tones"]
+            f1 = tones[0][0]
+            ratio = np.array([t[0] for t in tones]) / f1
+            if np.any(np.abs(ratio - np.round(ratio)) > 1e-6 * ratio):
+                return self._render_multi(job), job.rel_trig  # not periodic in the trigger period: steady state only
+            # Tones on the grid of the first: SimulatedRig.multisine's schedule and exact response (transients included).
+            cap = r.multisine(freq_hz=[t[0] for t in tones], amplitude=[t[1] for t in tones], phase_rad=[t[2] for t in tones],
+                              exposures_s=[te], trigger_offset_s=a["offset"], n_repeats=n, base_freq_hz=f1,
+                              settle_s=a["settle_s"], power=a["power"])
         trig = cap.trigger_time_s.reshape(-1).tolist()
         if not np.allclose(trig, job.rel_trig, rtol=0, atol=1e-9):
             _log(f"warning: schedule mismatch for {job.kind}: {trig[:3]} vs {job.rel_trig[:3]}")

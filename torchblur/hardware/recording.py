@@ -175,6 +175,9 @@ class _RecordingRig:
     def pulse(self, *a, **k):
         return self._call("pulse", a, k)
 
+    def multisine(self, *a, **k):
+        return self._call("multisine", a, k)
+
 
 class _ReplayCalls(_RigProperties):
     """Serves recorded calls in order; a call that differs from the recording is an error."""
@@ -208,6 +211,9 @@ class _ReplayCalls(_RigProperties):
     def pulse(self, *a, **k):
         return self._next("pulse", a, k)
 
+    def multisine(self, *a, **k):
+        return self._next("multisine", a, k)
+
 
 class ReplayRig(_RigProperties):
     """A rig that only knows the recording: every live call raises :class:`RecordingError`
@@ -222,7 +228,7 @@ class ReplayRig(_RigProperties):
                              f"resume it first: torchblur identify --resume {self._dir.parent if self._dir.name == 'experiment' else self._dir} "
                              f"rig.port=... rig.frames=...")
 
-    dark = still = sine = pulse = _missing
+    dark = still = sine = pulse = multisine = _missing
 
 
 # ---------------------------------------------------------------------- the directory

@@ -416,6 +416,76 @@ class SerialRig:
                                                         "period_s": period, "amplitude": amp, "settle_s": settle,
                                                         "power": power, "axis": axis, "input": axis})
 
+    def multisine(self, freq_hz, amplitude, phase_rad, exposures_s: Sequence[float], trigger_offset_s, n_repeats: int,
+                  base_freq_hz: float | None = None, settle_s: float | None = None, power: float = 1.0):
+        """``WAVE <axis> MULTI f0:0:0,f1:a1:p1,...`` (from rest), then per exposure ``ARM offset
+        Te R``: frames ``[E, R, H, W]``. The controller times triggers from the periods of the
+        first tone, so the base ``f0`` (default the lowest tone) goes first, with amplitude 0
+        when it is not one of the tones; ``trigger_offset_s`` is then the delay after the start
+        of a common period ``1 / f0``. ``power`` (one value or one per exposure) is sent
+        before each ``ARM`` whose power differs from the last."""
+        freqs = _floats(freq_hz, "freq_hz")
+        amps = _floats(amplitude, "amplitude")
+        phases = _floats(phase_rad, "phase_rad")
+        N = len(freqs)
+        for name, v in (("amplitude", amps), ("phase_rad", phases)):
+            if len(v) != N:
+                raise ParameterError(f"{name}: expected {N} values (one per tone of freq_hz), got {len(v)}")
+        freqs = [check_real_scalar(f, "freq_hz", positive=True) for f in freqs]
+        f0 = min(freqs) if base_freq_hz is None else check_real_scalar(base_freq_hz, "base_freq_hz", positive=True)
+        ratio = np.asarray(freqs) / f0
+        if np.any(np.abs(ratio - np.round(ratio)) > 1e-6 * ratio) or np.any(np.round(ratio) < 1):
+            raise ParameterError(f"freq_hz: every tone must be a whole multiple of base_freq_hz = {f0:g} Hz, got {freqs}")
+        tones = sorted(zip(freqs, amps, phases))
+        if not math.isclose(tones[0][0], f0, rel_tol=1e-12):
+            tones = [(f0, 0.0, 0.0)] + tones
+        # 10 significant digits keep the line short (phase errors ~1e-10 rad) and within MAX_LINE.
+        tones = [tuple(float(f"{v:.10g}") for v in t) for t in tones]
+        from .protocol import MAX_LINE, MAX_TONES, format_number
+
+        line = f"WAVE {self.axis} MULTI " + ",".join(":".join(format_number(v) for v in t) for t in tones)
+        if len(tones) > MAX_TONES or len(line) > MAX_LINE:
+            raise ParameterError(f"freq_hz: {len(tones)} tones (base included) make a WAVE line of {len(line)} bytes; the "
+                                 f"protocol allows {MAX_TONES} tones and {MAX_LINE} bytes: use fewer tones")
+        R = self._check_count(n_repeats, "n_repeats")
+        te = [self._check_exposure(v, "exposures_s") for v in _floats(exposures_s, "exposures_s")]
+        E = len(te)
+        offs = _floats(trigger_offset_s, "trigger_offset_s")
+        if len(offs) == 1:
+            offs = offs * E
+        if len(offs) != E:
+            raise ParameterError(f"trigger_offset_s: expected 1 or {E} values (one per exposure), got {len(offs)}")
+        powers = [check_real_scalar(p, "power", nonnegative=True) for p in _floats(power, "power")]
+        if len(powers) == 1:
+            powers = powers * E
+        if len(powers) != E:
+            raise ParameterError(f"power: expected 1 or {E} values (one per exposure), got {len(powers)}")
+        settle = None if settle_s is None else check_real_scalar(settle_s, "settle_s", nonnegative=True)
+        c = self.controller
+
+        def once():
+            self._begin()
+            c.stop()
+            c.power(powers[0])
+            c.settle(settle)
+            c.wave_multi(self.axis, tones)
+            out = []
+            for e in range(E):
+                if e and powers[e] != powers[e - 1]:
+                    c.power(powers[e])  # the laser follows the exposure; the waveform keeps running
+                out += self._acquire(te[e], R, lambda e=e: c.arm(offs[e], te[e], R))
+            c.stop()
+            return out
+
+        frames = self._call(f"multisine {N} tones from {min(freqs):g} Hz", once)
+        period = 1.0 / f0
+        off_mod = [[o - math.floor(o / period) * period] * R for o in offs]
+        return self._capture(frames, (E, R), off_mod, {"kind": "multisine", "freq_hz": freqs, "amplitude": amps,
+                                                        "phase_rad": phases, "base_freq_hz": f0, "period_s": period,
+                                                        "settle_s": settle,
+                                                        "power": powers if len(set(powers)) > 1 else powers[0],
+                                                        "axis": self.axis})
+
     def pulse(self, exposure_s: float, trigger_offset_s, pulse_time_s: float, pulse_width_s: float, n: int, power: float = 1.0):
         """Mirror still; per offset ``PULSE offset pulse_time width Te n``: frames
         ``[..., n, H, W]`` with ``[...]`` the shape of ``trigger_offset_s``."""

@@ -124,3 +124,24 @@ class Rig(Protocol):
         brightness vs trigger offset is a trapezoid whose edges give the trigger-to-exposure
         latency. Frames ``[..., n, H, W]`` with ``[...]`` the shape of ``trigger_offset_s``."""
         ...
+
+    def multisine(
+        self,
+        freq_hz: Sequence[float],
+        amplitude: Sequence[float],
+        phase_rad: Sequence[float],
+        exposures_s: Sequence[float],
+        trigger_offset_s: float | Sequence[float],
+        n_repeats: int,
+        base_freq_hz: float | None = None,
+        settle_s: float | None = None,
+        power: float | Sequence[float] = 1.0,
+    ) -> Capture:
+        """Drive ``sum_k amplitude_k sin(2 pi freq_hz_k t + phase_rad_k)`` from rest at t = 0
+        (every tone a whole multiple of ``base_freq_hz``, default the lowest tone, so the
+        command repeats every ``T0 = 1 / base_freq_hz``), wait ``settle_s`` (default: the
+        plant's settling time rounded up to whole ``T0``), then take ``n_repeats`` frames per
+        exposure, each triggered ``trigger_offset_s`` (one value, or one per exposure) after
+        the start of a common period, with the laser at ``power`` (one value, or one per
+        exposure): frames ``[E, R, H, W]``."""
+        ...

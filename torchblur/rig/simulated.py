@@ -573,6 +573,114 @@ class SimulatedRig:
             },
         )
 
+    def multisine(
+        self,
+        freq_hz: Sequence[float],
+        amplitude: Sequence[float],
+        phase_rad: Sequence[float],
+        exposures_s: Sequence[float],
+        trigger_offset_s: float | Sequence[float],
+        n_repeats: int,
+        base_freq_hz: float | None = None,
+        settle_s: float | None = None,
+        power: float | Sequence[float] = 1.0,
+    ) -> Capture:
+        """Frames of the multisine response, ``[E, R, H, W]`` (E exposures, R = ``n_repeats``).
+
+        The command ``sum_k amplitude_k sin(2 pi freq_hz_k t + phase_rad_k)`` starts at t = 0
+        from rest; every tone is a whole multiple of ``base_freq_hz`` (default: the lowest
+        tone), so the command repeats every ``T0 = 1 / base_freq_hz`` and a frame's trigger is
+        at ``k T0 + trigger_offset_s`` (the first such time at or after the camera is ready,
+        as :meth:`sine` with ``T0`` for the period). The image is the exact plant output
+        (:class:`~torchblur.multisine.LTIMultisineTrajectory`, transients included).
+
+        Args:
+            freq_hz, amplitude, phase_rad: the N tones (Hz, command units, rad).
+            exposures_s: E exposure times (s).
+            trigger_offset_s: trigger time after the start of a common period (s), one
+                number or E numbers.
+            n_repeats: frames per exposure.
+            base_freq_hz: f0 (Hz); default ``min(freq_hz)``.
+            settle_s: wait (s) from the start before the first trigger; default the plant's
+                settling time rounded up to whole common periods.
+            power: laser power (1 = ``peak_e_per_s``), one number or E numbers (one per
+                exposure: the laser follows the exposure).
+
+        ``meta`` holds the tones, ``base_freq_hz``, ``period_s``, ``settle_s``, ``power``,
+        ``trigger_delay_s`` and, for tests only, ``actual_start_s`` ``[E, R]``.
+        """
+        from ..multisine import LTIMultisineTrajectory
+
+        freqs = _as_float_list(freq_hz, "freq_hz")
+        N = len(freqs)
+        amps = _as_float_list(amplitude, "amplitude")
+        phases = _as_float_list(phase_rad, "phase_rad")
+        for name, v in (("amplitude", amps), ("phase_rad", phases)):
+            if len(v) != N:
+                raise ShapeError(f"{name}: expected {N} values (one per tone of freq_hz), got {len(v)}")
+        freqs = [check_real_scalar(v, "freq_hz", positive=True) for v in freqs]
+        amps = [check_real_scalar(v, "amplitude") for v in amps]
+        phases = [check_real_scalar(v, "phase_rad") for v in phases]
+        f0 = min(freqs) if base_freq_hz is None else check_real_scalar(base_freq_hz, "base_freq_hz", positive=True)
+        ratio = np.asarray(freqs) / f0
+        if np.any(np.abs(ratio - np.round(ratio)) > 1e-6 * ratio) or np.any(np.round(ratio) < 1):
+            raise ParameterError(f"freq_hz: every tone must be a whole multiple of base_freq_hz = {f0:g} Hz, got {freqs}")
+        R = _check_count(n_repeats, "n_repeats")
+        te = [self._check_exposure(v, "exposures_s") for v in _as_float_list(exposures_s, "exposures_s")]
+        E = len(te)
+        offsets = _as_float_list(trigger_offset_s, "trigger_offset_s")
+        if len(offsets) == 1:
+            offsets = offsets * E
+        if len(offsets) != E:
+            raise ShapeError(f"trigger_offset_s: expected 1 or {E} values (one per exposure), got {len(offsets)}")
+        powers = [self._check_power(v) for v in _as_float_list(power, "power")]
+        if len(powers) == 1:
+            powers = powers * E
+        if len(powers) != E:
+            raise ShapeError(f"power: expected 1 or {E} values (one per exposure), got {len(powers)}")
+        period = 1.0 / f0
+        if settle_s is None:
+            settle = math.ceil(self._plant.settling_time_s() / period - 1e-9) * period
+        else:
+            settle = check_real_scalar(settle_s, "settle_s", nonnegative=True)
+        trig = np.empty((E, R))
+        ready = settle
+        for e in range(E):
+            for r in range(R):
+                k = math.ceil((ready - offsets[e]) / period - 1e-9)
+                trig[e, r] = k * period + offsets[e]
+                ready = trig[e, r] + self._cycle_s(te[e])
+        trig_t = torch.as_tensor(trig, dtype=_F64)
+        exp_t = torch.as_tensor(te, dtype=_F64)[:, None].expand(E, R).contiguous()
+        off_t = torch.as_tensor([o - math.floor(o / period) * period for o in offsets], dtype=_F64)[:, None].expand(E, R).contiguous()
+        window = self._actual_starts(trig_t, exp_t)
+        omega = [2 * math.pi * f for f in freqs]
+        traj = LTIMultisineTrajectory(self._plant, torch.tensor(amps, dtype=_F64), torch.tensor(omega, dtype=_F64),
+                                      torch.tensor(phases, dtype=_F64), direction=self._direction)
+        flat = ExposureWindow(window.start.reshape(-1), window.duration.reshape(-1))
+        expected = self._render(traj, self._psf, flat).reshape((E, R) + self._frame_shape)
+        expected = expected * torch.as_tensor(powers, dtype=_F64)[:, None, None, None]  # the image is linear in the power
+        frames = self._expose(expected)
+        return Capture(
+            frames=frames,
+            exposure_s=exp_t,
+            trigger_offset_s=off_t,
+            trigger_time_s=trig_t,
+            frame_counter=self._counters((E, R)),
+            meta={
+                "kind": "multisine",
+                "freq_hz": freqs,
+                "amplitude": amps,
+                "phase_rad": phases,
+                "base_freq_hz": f0,
+                "period_s": period,
+                "settle_s": settle,
+                "power": powers if len(set(powers)) > 1 else powers[0],
+                "trigger_delay_s": self._trigger_delay_s,
+                "actual_start_s": window.start,
+            },
+        )
+
     def __repr__(self) -> str:
         kind = f"{self._plant.n_outputs}x{self._plant.n_inputs} plant" if isinstance(self._plant, PlantMatrix) else "plant"
         spots = "" if self._layout is None else f", {len(self._layout)} spots"

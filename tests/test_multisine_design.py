@@ -1,0 +1,117 @@
+"""Multisine identifiability (Fisher information), the image-set design and the fit of the tones."""
+import math
+
+import numpy as np
+import pytest
+import torch
+import torch.autograd.forward_ad as fwAD
+
+from torchblur.errors import ShapeError
+from torchblur.excitation_design import candidate_windows, design_acquisition, image_fisher, predicted_std
+from torchblur.multisine_fit import fit_multisine, render_multisine, render_multisine_with_jacobian
+from torchblur.psf import GaussianPSF
+from torchblur.timing import ExposureWindow
+
+F64 = torch.float64
+F0 = 100 / 3
+T0 = 1 / F0
+OM = 2 * math.pi * F0 * torch.tensor([3.0, 4.0, 5.0], dtype=F64)
+THETA = torch.tensor([3.0, 2.0, 2.5, 0.4, -2.0, 1.3, 1.0], dtype=F64)  # M (px), phi (rad), scale
+H, W = 24, 40
+PSF = GaussianPSF(torch.tensor([19.5, 11.5], dtype=F64), 4 * torch.eye(2, dtype=F64), torch.tensor(2000 / 3e-3, dtype=F64))
+
+
+def windows(fracs_start, fracs_dur):
+    return ExposureWindow(torch.tensor(fracs_start, dtype=F64) * T0, torch.tensor(fracs_dur, dtype=F64) * T0)
+
+
+def test_jacobian_from_one_splat_equals_forward_ad_of_the_renderer():
+    win = windows([[0.1, 0.55]], [[0.3, 0.2]])
+    th = THETA[None]
+    psf = GaussianPSF(PSF.center[None], PSF.cov[None], PSF.amplitude[None])
+    img, J = render_multisine_with_jacobian(th, OM[None], psf, win, height=H, width=W, nodes=96)
+    from torchblur.render import RenderSettings
+
+    settings = RenderSettings(nodes=96)
+    ref = render_multisine(th, OM[None], psf, win, height=H, width=W, settings=settings)
+    np.testing.assert_allclose(img.numpy(), ref.numpy(), atol=1e-9 * float(ref.max()))
+    for k in range(7):
+        with fwAD.dual_level():
+            tangent = torch.zeros_like(th)
+            tangent[0, k] = 1
+            out = render_multisine(fwAD.make_dual(th, tangent), OM[None], psf, win, height=H, width=W, settings=settings)
+            dk = fwAD.unpack_dual(out).tangent
+        np.testing.assert_allclose(J[..., k].numpy(), dk.numpy(), atol=1e-8 * float(dk.abs().max()))
+
+
+def test_fisher_is_singular_for_whole_period_windows_and_regular_for_the_design():
+    amp = THETA[:3]
+    # exposures of a whole common period cannot see a time shift: singular
+    full = windows([0.0, 0.3, 0.7], [1.0, 1.0, 1.0])
+    F_full = image_fisher(THETA[None], OM, PSF, full, frame_shape=(H, W), read_noise_e=5.0).sum(1)
+    rel, ph = predicted_std(F_full, amp)
+    assert torch.isinf(rel).all() and torch.isinf(ph).all()
+    ev = torch.linalg.eigvalsh(F_full[0] / torch.outer(F_full[0].diagonal().sqrt(), F_full[0].diagonal().sqrt()))
+    assert float(ev[0] / ev[-1]) < 1e-10
+    # a single image: regular only in name (stds of 10-40 %), and it keeps the time-reversal alias
+    kw = dict(period_s=T0, max_exposure_s=1.0, frame_shape=(H, W), read_noise_e=5.0, peak_e=2000.0, n_hypotheses=2,
+              candidates=candidate_windows(T0, max_exposure_s=1.0, n_offsets=8, exposure_fractions=(0.05, 0.1, 0.3, 0.6, 1.0)))
+    one = design_acquisition(amp, OM, PSF, n_images=1, phase=THETA[3:6], **kw)
+    des = design_acquisition(amp, OM, PSF, n_images=6, phase=THETA[3:6], **kw)
+    assert des.n_images == 6 and len(set(des.window_start_s)) >= 2
+    assert np.all(np.isfinite(des.amplitude_rel_std)) and np.all(des.amplitude_rel_std < 0.01) and np.all(des.phase_std < 0.01)
+    assert np.all(one.amplitude_rel_std > 10 * des.amplitude_rel_std)
+    assert np.all(np.diff(des.log_det) > 0)  # every image adds information
+    # auto size: grows until the predicted stds reach the target
+    auto = design_acquisition(amp, OM, PSF, target_std=5e-3, max_images=12, **kw)
+    assert auto.met_target and np.all(auto.amplitude_rel_std <= 5e-3) and np.all(auto.phase_std <= 5e-3)
+    assert 2 <= auto.n_images < 12
+    c = candidate_windows(T0, max_exposure_s=0.5 * T0, n_offsets=4, exposure_fractions=(0.1, 0.5, 1.0))
+    assert c.shape == (8,) and float(c.duration.max()) == pytest.approx(0.5 * T0)  # capped and deduplicated
+
+
+def test_noise_free_fit_recovers_the_tones():
+    win = windows([0.0, 0.13, 0.37, 0.55, 0.71, 0.86], [0.3, 0.5, 0.2, 0.7, 0.4, 0.25])
+    img = render_multisine(THETA, OM, PSF, win, height=H, width=W)
+    fit = fit_multisine(img, PSF, win, OM, n_starts=8, n_refine=2)
+    assert bool(fit.converged)
+    np.testing.assert_allclose(fit.amplitude.numpy(), THETA[:3].numpy(), rtol=1e-6)
+    np.testing.assert_allclose(np.exp(1j * fit.phase.numpy()), np.exp(1j * THETA[3:6].numpy()), atol=1e-6)
+    assert float(fit.scale) == pytest.approx(1.0, rel=1e-6)
+    with pytest.raises(ShapeError, match="theta"):
+        render_multisine(THETA[:5], OM, PSF, win, height=H, width=W)
+
+
+def test_noisy_fit_is_within_its_stds_and_the_batch_equals_single_items():
+    # 6 images = 2N: the centroids alone give a start (linear in M e^{j phi})
+    win = windows([0.0, 0.2, 0.45, 0.6, 0.8, 0.9], [1.0, 0.05, 0.1, 0.05, 0.05, 0.1])
+    th2 = torch.stack([THETA, torch.tensor([2.0, 3.0, 1.5, -1.0, 0.5, 2.5, 1.0], dtype=F64)])
+    img = render_multisine(th2, OM, PSF, win, height=H, width=W)
+    noise = torch.sqrt(25 + img) / 1.0
+    g = torch.Generator().manual_seed(5)
+    noisy = img + noise * torch.randn(img.shape, generator=g, dtype=F64)
+    fit = fit_multisine(noisy, PSF, win, OM, noise_std=noise, n_starts=6, n_refine=2, amplitude_guess=th2[:, :3])
+    assert fit.converged.all() and fit.amplitude.shape == (2, 3)
+    z_m = (fit.amplitude - th2[:, :3]).abs() / fit.amplitude_std
+    z_p = torch.remainder(fit.phase - th2[:, 3:6] + math.pi, 2 * math.pi).sub(math.pi).abs() / fit.phase_std
+    assert float(z_m.max()) < 5 and float(z_p.max()) < 5
+    single = fit_multisine(noisy[1], PSF, win, OM, noise_std=noise[1], n_starts=6, n_refine=2, amplitude_guess=th2[1, :3])
+    np.testing.assert_allclose(single.amplitude.numpy(), fit.amplitude[1].numpy(), rtol=1e-7)
+    np.testing.assert_allclose(single.phase_std.numpy(), fit.phase_std[1].numpy(), rtol=1e-6)
+
+
+def test_a_fit_far_above_the_noise_is_searched_again_then_flagged():
+    """Images the model cannot explain (tones at other frequencies than fitted): the fit searches
+    again from wider starts, and a reduced chi2 still above 3 is status 5, not 'ok'."""
+    win = windows([0.0, 0.13, 0.37, 0.55, 0.71, 0.86], [0.3, 0.5, 0.2, 0.7, 0.4, 0.25])
+    img = render_multisine(THETA, OM * torch.tensor([1.0, 1.5, 2.2], dtype=F64), PSF, win, height=H, width=W)
+    noise = torch.sqrt(25 + img)
+    g = torch.Generator().manual_seed(2)
+    noisy = img + noise * torch.randn(img.shape, generator=g, dtype=F64)
+    fit = fit_multisine(noisy, PSF, win, OM, noise_std=noise, n_starts=4, n_refine=1)
+    assert bool(fit.extras["retried"]) and float(fit.extras["reduced_chi2"]) > 3
+    assert int(fit.status) == 5 and not bool(fit.converged)
+    good = fit_multisine(render_multisine(THETA, OM, PSF, win, height=H, width=W) + noise * torch.randn(img.shape, generator=g,
+                                                                                                       dtype=F64),
+                         PSF, win, OM, noise_std=noise, n_starts=4, n_refine=1)
+    assert bool(good.converged) and float(good.extras["reduced_chi2"]) < 1.5 and not bool(good.extras["retried"])
