@@ -316,3 +316,11 @@ def test_multisine_refuses_mimo_spots_and_direct():
     for path, over, key in cases:
         with pytest.raises(ConfigError, match=f"^{key}:"):
             load_config(path, over)
+
+
+def test_modes_far_outside_the_swept_band_are_named():
+    from torchblur.identify import modes_outside_band
+
+    modes = [{"freq_hz": 650.0}, {"freq_hz": 1e30}, {"freq_hz": 2.0}, {"freq_hz": 0.5}, {"freq_hz": 2900.0}]
+    assert [m["freq_hz"] for m in modes_outside_band(modes, 5.0, 1000.0)] == [1e30, 0.5]
+    assert [m["freq_hz"] for m in modes_outside_band(modes, 5.0, 1000.0, factor=2.0)] == [1e30, 2.0, 0.5, 2900.0]

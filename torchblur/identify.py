@@ -715,6 +715,13 @@ def _identify(cfg, rig, exp, log, progress) -> IdentificationResult:
                                 truth=truth, log=log, timing=timing, inputs=tuple(inputs), spots=spots, direct_model=direct_model)
 
 
+def modes_outside_band(modes, f_lo_hz: float, f_hi_hz: float, factor: float = 3.0) -> list:
+    """The modes (dicts with ``freq_hz``, as ``modal_parameters()`` gives) more than ``factor``
+    beyond the swept band ``[f_lo_hz, f_hi_hz]``: the images cannot constrain them (a fitted
+    mode there may run away while the fit reports convergence)."""
+    return [m for m in modes if not (f_lo_hz / factor <= m["freq_hz"] <= factor * f_hi_hz)]
+
+
 def _fit_direct_model(cfg, model, images, windows, omega, amps, psf, power_t, read_noise_e, mask, fit, log, progress):
     """The direct model (one axis, one spot): every image at once, with the sweep's noise
     model and mask; dark or out-of-frame points are left out. None, logged, if it fails."""
@@ -735,8 +742,13 @@ def _fit_direct_model(cfg, model, images, windows, omega, amps, psf, power_t, re
     except Exception as exc:  # the two-step model is still a result; say why the direct fit failed
         _log(log, f"direct: fit failed: {exc}", progress)
         return None
+    modal = d.modal_parameters()
     modes = ", ".join(f"{m['freq_hz']:.3f} +- {m['freq_hz_std']:.3f} Hz (zeta {m['zeta']:.4f} +- {m['zeta_std']:.4f})"
-                      for m in d.modal_parameters())
+                      for m in modal)
+    f_lo, f_hi = float(omega.min()) / (2 * math.pi), float(omega.max()) / (2 * math.pi)
+    for m in modes_outside_band(modal, f_lo, f_hi):
+        _log(log, f"direct: warning: a mode at {m['freq_hz']:.4g} Hz lies far outside the swept band "
+                  f"({f_lo:.4g}-{f_hi:.4g} Hz); the images do not constrain it (std {m['freq_hz_std']:.3g} Hz)", progress)
     _log(log, f"direct: {d.form} model from {int(d.used.sum())} points ({d.n_excluded} excluded), {d.n_iter} iterations, "
               f"converged {d.converged}, reduced chi2 {d.reduced_chi2:.3f}, {time.perf_counter() - t_direct:.2f} s; "
               f"modes: {modes or 'none'}", progress)
