@@ -68,6 +68,16 @@ def _as_float_list(value, name: str) -> list[float]:
     return [float(v) for v in arr]
 
 
+def _per_exposure(value, E: int, name: str) -> list[float]:
+    """One number, or E numbers (one per exposure), as a list of E floats."""
+    values = _as_float_list(value, name)
+    if len(values) == 1:
+        values = values * E
+    if len(values) != E:
+        raise ShapeError(f"{name}: expected 1 or {E} values (one per exposure), got {len(values)}")
+    return values
+
+
 class SimulatedRig:
     """A simulated rig implementing :class:`~torchblur.rig.base.Rig`.
 
@@ -362,6 +372,32 @@ class SimulatedRig:
     def _expose(self, expected_e: torch.Tensor) -> torch.Tensor:
         return self._camera.expose(expected_e, generator=self._generator)
 
+    def _schedule(self, period: float, te: list, offsets: list, R: int, settle_s):
+        """The triggers of a periodic command: ``R`` frames per exposure ``te[e]``, each fired
+        ``offsets[e]`` after a period start, the first after the settling wait and each once
+        the camera is ready. Returns ``(settle_s, trigger times [E, R], exposures [E, R],
+        offsets within the period [E, R])``."""
+        if settle_s is None:
+            settle = math.ceil(self._plant.settling_time_s() / period - 1e-9) * period
+        else:
+            settle = check_real_scalar(settle_s, "settle_s", nonnegative=True)
+        E = len(te)
+        trig = np.empty((E, R))
+        ready = settle
+        for e in range(E):
+            for r in range(R):
+                k = math.ceil((ready - offsets[e]) / period - 1e-9)
+                trig[e, r] = k * period + offsets[e]
+                ready = trig[e, r] + self._cycle_s(te[e])
+        off_mod = []
+        for o in offsets:
+            m = o - math.floor(o / period) * period
+            off_mod.append(0.0 if m >= period else m)
+        trig_t = torch.as_tensor(trig, dtype=_F64)
+        exp_t = torch.as_tensor(te, dtype=_F64)[:, None].expand(E, R).contiguous()
+        off_t = torch.as_tensor(off_mod, dtype=_F64)[:, None].expand(E, R).contiguous()
+        return settle, trig_t, exp_t, off_t
+
     def _check_power(self, power) -> float:
         return check_real_scalar(power, "power", nonnegative=True)
 
@@ -440,33 +476,9 @@ class SimulatedRig:
         R = _check_count(n_repeats, "n_repeats")
         te = [self._check_exposure(v, "exposures_s") for v in _as_float_list(exposures_s, "exposures_s")]
         E = len(te)
-        offsets = _as_float_list(trigger_offset_s, "trigger_offset_s")
-        if len(offsets) == 1:
-            offsets = offsets * E
-        if len(offsets) != E:
-            raise ShapeError(f"trigger_offset_s: expected 1 or {E} values (one per exposure), got {len(offsets)}")
-        offsets = [check_real_scalar(v, "trigger_offset_s") for v in offsets]
+        offsets = [check_real_scalar(v, "trigger_offset_s") for v in _per_exposure(trigger_offset_s, E, "trigger_offset_s")]
         period = 1.0 / freq
-        if settle_s is None:
-            ts = self._plant.settling_time_s()
-            settle = math.ceil(ts / period - 1e-9) * period
-        else:
-            settle = check_real_scalar(settle_s, "settle_s", nonnegative=True)
-
-        trig = np.empty((E, R))
-        ready = settle
-        for e in range(E):
-            for r in range(R):
-                k = math.ceil((ready - offsets[e]) / period - 1e-9)
-                trig[e, r] = k * period + offsets[e]
-                ready = trig[e, r] + self._cycle_s(te[e])
-        trig_t = torch.as_tensor(trig, dtype=_F64)
-        exp_t = torch.as_tensor(te, dtype=_F64)[:, None].expand(E, R).contiguous()
-        off_mod = []
-        for o in offsets:
-            m = o - math.floor(o / period) * period
-            off_mod.append(0.0 if m >= period else m)
-        off_t = torch.as_tensor(off_mod, dtype=_F64)[:, None].expand(E, R).contiguous()
+        settle, trig_t, exp_t, off_t = self._schedule(period, te, offsets, R, settle_s)
 
         window = self._actual_starts(trig_t, exp_t)
         omega = 2 * math.pi * freq
@@ -628,31 +640,10 @@ class SimulatedRig:
         R = _check_count(n_repeats, "n_repeats")
         te = [self._check_exposure(v, "exposures_s") for v in _as_float_list(exposures_s, "exposures_s")]
         E = len(te)
-        offsets = _as_float_list(trigger_offset_s, "trigger_offset_s")
-        if len(offsets) == 1:
-            offsets = offsets * E
-        if len(offsets) != E:
-            raise ShapeError(f"trigger_offset_s: expected 1 or {E} values (one per exposure), got {len(offsets)}")
-        powers = [self._check_power(v) for v in _as_float_list(power, "power")]
-        if len(powers) == 1:
-            powers = powers * E
-        if len(powers) != E:
-            raise ShapeError(f"power: expected 1 or {E} values (one per exposure), got {len(powers)}")
+        offsets = [check_real_scalar(v, "trigger_offset_s") for v in _per_exposure(trigger_offset_s, E, "trigger_offset_s")]
+        powers = [self._check_power(v) for v in _per_exposure(power, E, "power")]
         period = 1.0 / f0
-        if settle_s is None:
-            settle = math.ceil(self._plant.settling_time_s() / period - 1e-9) * period
-        else:
-            settle = check_real_scalar(settle_s, "settle_s", nonnegative=True)
-        trig = np.empty((E, R))
-        ready = settle
-        for e in range(E):
-            for r in range(R):
-                k = math.ceil((ready - offsets[e]) / period - 1e-9)
-                trig[e, r] = k * period + offsets[e]
-                ready = trig[e, r] + self._cycle_s(te[e])
-        trig_t = torch.as_tensor(trig, dtype=_F64)
-        exp_t = torch.as_tensor(te, dtype=_F64)[:, None].expand(E, R).contiguous()
-        off_t = torch.as_tensor([o - math.floor(o / period) * period for o in offsets], dtype=_F64)[:, None].expand(E, R).contiguous()
+        settle, trig_t, exp_t, off_t = self._schedule(period, te, offsets, R, settle_s)
         window = self._actual_starts(trig_t, exp_t)
         omega = [2 * math.pi * f for f in freqs]
         traj = LTIMultisineTrajectory(self._plant, torch.tensor(amps, dtype=_F64), torch.tensor(omega, dtype=_F64),
