@@ -29,6 +29,7 @@ from .controller import Controller
 from .errors import (AcquisitionStopped, ConnectionLost, DeviceError, DeviceReset, FrameGap, FrameMismatch, FrameTimeout,
                      GarbageReply, HardwareError, StaleFrame)
 from .frames import CameraInfo, Frame, FrameSource
+from ..rig.base import check_tone_grid, float_list, per_exposure
 
 __all__ = ["SerialRig", "open_frame_source"]
 
@@ -50,15 +51,6 @@ def open_frame_source(spec: str) -> FrameSource:
         cls = getattr(importlib.import_module(mod), name)
         return cls()
     raise ValueError(f"rig.frames: expected tcp://HOST:PORT or package.module:ClassName, got {spec!r}")
-
-
-def _floats(value, name: str) -> list[float]:
-    if isinstance(value, torch.Tensor):
-        value = value.detach().cpu().numpy()
-    arr = np.asarray(value, dtype=np.float64).reshape(-1)
-    if arr.size == 0 or not np.isfinite(arr).all():
-        raise ParameterError(f"{name}: expected finite numbers, got {value!r}")
-    return [float(v) for v in arr]
 
 
 class SerialRig:
@@ -387,13 +379,9 @@ class SerialRig:
         amp = check_real_scalar(amplitude, "amplitude")
         power = check_real_scalar(power, "power", nonnegative=True)
         R = self._check_count(n_repeats, "n_repeats")
-        te = [self._check_exposure(v, "exposures_s") for v in _floats(exposures_s, "exposures_s")]
+        te = [self._check_exposure(v, "exposures_s") for v in float_list(exposures_s, "exposures_s")]
         E = len(te)
-        offs = _floats(trigger_offset_s, "trigger_offset_s")
-        if len(offs) == 1:
-            offs = offs * E
-        if len(offs) != E:
-            raise ParameterError(f"trigger_offset_s: expected 1 or {E} values (one per exposure), got {len(offs)}")
+        offs = per_exposure(trigger_offset_s, E, "trigger_offset_s")
         settle = None if settle_s is None else check_real_scalar(settle_s, "settle_s", nonnegative=True)
         c = self.controller
 
@@ -424,18 +412,16 @@ class SerialRig:
         when it is not one of the tones; ``trigger_offset_s`` is then the delay after the start
         of a common period ``1 / f0``. ``power`` (one value or one per exposure) is sent
         before each ``ARM`` whose power differs from the last."""
-        freqs = _floats(freq_hz, "freq_hz")
-        amps = _floats(amplitude, "amplitude")
-        phases = _floats(phase_rad, "phase_rad")
+        freqs = float_list(freq_hz, "freq_hz")
+        amps = float_list(amplitude, "amplitude")
+        phases = float_list(phase_rad, "phase_rad")
         N = len(freqs)
         for name, v in (("amplitude", amps), ("phase_rad", phases)):
             if len(v) != N:
                 raise ParameterError(f"{name}: expected {N} values (one per tone of freq_hz), got {len(v)}")
         freqs = [check_real_scalar(f, "freq_hz", positive=True) for f in freqs]
         f0 = min(freqs) if base_freq_hz is None else check_real_scalar(base_freq_hz, "base_freq_hz", positive=True)
-        ratio = np.asarray(freqs) / f0
-        if np.any(np.abs(ratio - np.round(ratio)) > 1e-6 * ratio) or np.any(np.round(ratio) < 1):
-            raise ParameterError(f"freq_hz: every tone must be a whole multiple of base_freq_hz = {f0:g} Hz, got {freqs}")
+        check_tone_grid(freqs, f0)
         tones = sorted(zip(freqs, amps, phases))
         if not math.isclose(tones[0][0], f0, rel_tol=1e-12):
             tones = [(f0, 0.0, 0.0)] + tones
@@ -448,18 +434,10 @@ class SerialRig:
             raise ParameterError(f"freq_hz: {len(tones)} tones (base included) make a WAVE line of {len(line)} bytes; the "
                                  f"protocol allows {MAX_TONES} tones and {MAX_LINE} bytes: use fewer tones")
         R = self._check_count(n_repeats, "n_repeats")
-        te = [self._check_exposure(v, "exposures_s") for v in _floats(exposures_s, "exposures_s")]
+        te = [self._check_exposure(v, "exposures_s") for v in float_list(exposures_s, "exposures_s")]
         E = len(te)
-        offs = _floats(trigger_offset_s, "trigger_offset_s")
-        if len(offs) == 1:
-            offs = offs * E
-        if len(offs) != E:
-            raise ParameterError(f"trigger_offset_s: expected 1 or {E} values (one per exposure), got {len(offs)}")
-        powers = [check_real_scalar(p, "power", nonnegative=True) for p in _floats(power, "power")]
-        if len(powers) == 1:
-            powers = powers * E
-        if len(powers) != E:
-            raise ParameterError(f"power: expected 1 or {E} values (one per exposure), got {len(powers)}")
+        offs = per_exposure(trigger_offset_s, E, "trigger_offset_s")
+        powers = [check_real_scalar(p, "power", nonnegative=True) for p in per_exposure(power, E, "power")]
         settle = None if settle_s is None else check_real_scalar(settle_s, "settle_s", nonnegative=True)
         c = self.controller
 
@@ -496,7 +474,7 @@ class SerialRig:
         width = check_real_scalar(pulse_width_s, "pulse_width_s", positive=True)
         offs_t = torch.as_tensor(trigger_offset_s, dtype=_F64) if not isinstance(trigger_offset_s, torch.Tensor) \
             else trigger_offset_s.detach().to(_F64)
-        offs = _floats(offs_t, "trigger_offset_s")
+        offs = float_list(offs_t, "trigger_offset_s")
         c = self.controller
 
         def once():

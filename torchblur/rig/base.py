@@ -12,7 +12,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Protocol, Sequence, runtime_checkable
 
+import numpy as np
 import torch
+
+from ..errors import InputTypeError, ParameterError, ShapeError
 
 __all__ = ["Capture", "Rig"]
 
@@ -145,3 +148,51 @@ class Rig(Protocol):
         the start of a common period, with the laser at ``power`` (one value, or one per
         exposure): frames ``[E, R, H, W]``."""
         ...
+
+
+# ---------------------------------------------------------------- argument checks shared by the rigs
+
+
+def check_count(value, name: str) -> int:
+    """An integer >= 1 (frames, repeats), else :class:`ParameterError` naming ``name``."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise ParameterError(f"{name}: expected an integer >= 1, got {value!r}")
+    return int(value)
+
+
+def float_list(value, name: str) -> list[float]:
+    """A number or a 1-D sequence/array/tensor of finite numbers as a non-empty list of floats."""
+    if isinstance(value, (bool, str, bytes)) or value is None:
+        raise InputTypeError(f"{name}: expected a number or a list of numbers, got {type(value).__name__}")
+    if isinstance(value, torch.Tensor):
+        value = value.detach().cpu().numpy()
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputTypeError(f"{name}: expected a number or a list of numbers, got {value!r}") from exc
+    if arr.ndim > 1:
+        raise ShapeError(f"{name}: expected a number or a 1-D list, got shape {arr.shape}")
+    arr = arr.reshape(-1)
+    if arr.size == 0:
+        raise ParameterError(f"{name}: expected at least one value, got an empty list")
+    if not np.isfinite(arr).all():
+        raise ParameterError(f"{name}: expected finite numbers, got {value!r}")
+    return [float(v) for v in arr]
+
+
+def per_exposure(value, E: int, name: str) -> list[float]:
+    """One number, or E numbers (one per exposure), as a list of E floats."""
+    values = float_list(value, name)
+    if len(values) == 1:
+        values = values * E
+    if len(values) != E:
+        raise ShapeError(f"{name}: expected 1 or {E} values (one per exposure), got {len(values)}")
+    return values
+
+
+def check_tone_grid(freqs: Sequence[float], base_hz: float) -> None:
+    """Every tone a whole multiple (>= 1) of ``base_hz``, else :class:`ParameterError` naming ``freq_hz``."""
+    ratio = np.asarray(freqs) / base_hz
+    if np.any(np.abs(ratio - np.round(ratio)) > 1e-6 * ratio) or np.any(np.round(ratio) < 1):
+        raise ParameterError(f"freq_hz: every tone must be a whole multiple of base_freq_hz = {base_hz:g} Hz, got {list(freqs)}")
+

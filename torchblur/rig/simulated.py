@@ -35,47 +35,13 @@ from ..psf import GaussianPSF
 from ..render import RenderSettings, choose_node_count, render_blur
 from ..timing import ExposureWindow
 from ..trajectory import Sinusoid, Trajectory
-from .base import Capture
+from .base import Capture, check_count, check_tone_grid, float_list, per_exposure
 
 __all__ = ["SimulatedRig"]
 
 _F64 = torch.float64
 _MAX_NODES_PER_RENDER = 4096  # longer windows are split into sub-windows (the integral adds up)
 _RENDER_BUDGET = 1 << 24  # elements of a splat factor per render call (memory bound)
-
-
-def _check_count(value, name: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-        raise ParameterError(f"{name}: expected an integer >= 1, got {value!r}")
-    return int(value)
-
-
-def _as_float_list(value, name: str) -> list[float]:
-    """A number or a 1-D sequence/array/tensor of numbers as a non-empty list of floats."""
-    if isinstance(value, (bool, str, bytes)) or value is None:
-        raise InputTypeError(f"{name}: expected a number or a list of numbers, got {type(value).__name__}")
-    if isinstance(value, torch.Tensor):
-        value = value.detach().cpu().numpy()
-    try:
-        arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise InputTypeError(f"{name}: expected a number or a list of numbers, got {value!r}") from exc
-    if arr.ndim > 1:
-        raise ShapeError(f"{name}: expected a number or a 1-D list, got shape {arr.shape}")
-    arr = arr.reshape(-1)
-    if arr.size == 0:
-        raise ParameterError(f"{name}: expected at least one value, got an empty list")
-    return [float(v) for v in arr]
-
-
-def _per_exposure(value, E: int, name: str) -> list[float]:
-    """One number, or E numbers (one per exposure), as a list of E floats."""
-    values = _as_float_list(value, name)
-    if len(values) == 1:
-        values = values * E
-    if len(values) != E:
-        raise ShapeError(f"{name}: expected 1 or {E} values (one per exposure), got {len(values)}")
-    return values
 
 
 class SimulatedRig:
@@ -138,7 +104,7 @@ class SimulatedRig:
             or len(frame_shape) != 2
         ):
             raise ShapeError(f"frame_shape: expected (H, W), got {frame_shape!r}")
-        H, W = (_check_count(v, "frame_shape") for v in frame_shape)
+        H, W = (check_count(v, "frame_shape") for v in frame_shape)
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ParameterError(f"seed: expected an integer >= 0, got {seed!r}")
         self._plant = plant
@@ -405,7 +371,7 @@ class SimulatedRig:
 
     def dark(self, n: int, exposure_s: float) -> Capture:
         """``n`` frames with the laser off, ``[n, H, W]``."""
-        n = _check_count(n, "n")
+        n = check_count(n, "n")
         te = self._check_exposure(exposure_s)
         H, W = self._frame_shape
         trig = torch.arange(n, dtype=_F64) * self._cycle_s(te)
@@ -422,7 +388,7 @@ class SimulatedRig:
 
     def still(self, n: int, exposure_s: float, power: float = 1.0) -> Capture:
         """``n`` frames of the spot at rest, ``[n, H, W]``."""
-        n = _check_count(n, "n")
+        n = check_count(n, "n")
         te = self._check_exposure(exposure_s)
         power = self._check_power(power)
         trig = torch.arange(n, dtype=_F64) * self._cycle_s(te)
@@ -473,10 +439,10 @@ class SimulatedRig:
         freq = check_real_scalar(freq_hz, "freq_hz", positive=True)
         amp = check_real_scalar(amplitude, "amplitude")
         power = self._check_power(power)
-        R = _check_count(n_repeats, "n_repeats")
-        te = [self._check_exposure(v, "exposures_s") for v in _as_float_list(exposures_s, "exposures_s")]
+        R = check_count(n_repeats, "n_repeats")
+        te = [self._check_exposure(v, "exposures_s") for v in float_list(exposures_s, "exposures_s")]
         E = len(te)
-        offsets = [check_real_scalar(v, "trigger_offset_s") for v in _per_exposure(trigger_offset_s, E, "trigger_offset_s")]
+        offsets = [check_real_scalar(v, "trigger_offset_s") for v in per_exposure(trigger_offset_s, E, "trigger_offset_s")]
         period = 1.0 / freq
         settle, trig_t, exp_t, off_t = self._schedule(period, te, offsets, R, settle_s)
 
@@ -546,7 +512,7 @@ class SimulatedRig:
         and, for tests only, ``actual_start_s``.
         """
         te = self._check_exposure(exposure_s)
-        n = _check_count(n, "n")
+        n = check_count(n, "n")
         power = self._check_power(power)
         p0 = check_real_scalar(pulse_time_s, "pulse_time_s")
         width = check_real_scalar(pulse_width_s, "pulse_width_s", positive=True)
@@ -623,10 +589,10 @@ class SimulatedRig:
         """
         from ..multisine import LTIMultisineTrajectory
 
-        freqs = _as_float_list(freq_hz, "freq_hz")
+        freqs = float_list(freq_hz, "freq_hz")
         N = len(freqs)
-        amps = _as_float_list(amplitude, "amplitude")
-        phases = _as_float_list(phase_rad, "phase_rad")
+        amps = float_list(amplitude, "amplitude")
+        phases = float_list(phase_rad, "phase_rad")
         for name, v in (("amplitude", amps), ("phase_rad", phases)):
             if len(v) != N:
                 raise ShapeError(f"{name}: expected {N} values (one per tone of freq_hz), got {len(v)}")
@@ -634,14 +600,12 @@ class SimulatedRig:
         amps = [check_real_scalar(v, "amplitude") for v in amps]
         phases = [check_real_scalar(v, "phase_rad") for v in phases]
         f0 = min(freqs) if base_freq_hz is None else check_real_scalar(base_freq_hz, "base_freq_hz", positive=True)
-        ratio = np.asarray(freqs) / f0
-        if np.any(np.abs(ratio - np.round(ratio)) > 1e-6 * ratio) or np.any(np.round(ratio) < 1):
-            raise ParameterError(f"freq_hz: every tone must be a whole multiple of base_freq_hz = {f0:g} Hz, got {freqs}")
-        R = _check_count(n_repeats, "n_repeats")
-        te = [self._check_exposure(v, "exposures_s") for v in _as_float_list(exposures_s, "exposures_s")]
+        check_tone_grid(freqs, f0)
+        R = check_count(n_repeats, "n_repeats")
+        te = [self._check_exposure(v, "exposures_s") for v in float_list(exposures_s, "exposures_s")]
         E = len(te)
-        offsets = [check_real_scalar(v, "trigger_offset_s") for v in _per_exposure(trigger_offset_s, E, "trigger_offset_s")]
-        powers = [self._check_power(v) for v in _per_exposure(power, E, "power")]
+        offsets = [check_real_scalar(v, "trigger_offset_s") for v in per_exposure(trigger_offset_s, E, "trigger_offset_s")]
+        powers = [self._check_power(v) for v in per_exposure(power, E, "power")]
         period = 1.0 / f0
         settle, trig_t, exp_t, off_t = self._schedule(period, te, offsets, R, settle_s)
         window = self._actual_starts(trig_t, exp_t)
