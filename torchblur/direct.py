@@ -51,7 +51,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from .errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_choice, check_finite, check_positive
+from .errors import InputTypeError, ParameterError, ShapeError, as_frequency_grid, as_tensor, check_choice, check_finite, check_positive
 from .psf import GaussianPSF
 from .render import RenderSettings, choose_node_count, quadrature_nodes
 from .timing import ExposureWindow
@@ -330,14 +330,7 @@ class DirectModelFit:
         Returns:
             complex [F].
         """
-        try:
-            w = np.asarray(omega, dtype=np.float64)
-        except (TypeError, ValueError) as exc:
-            raise InputTypeError(f"omega: expected an array of real numbers, got {type(omega).__name__}") from exc
-        if w.ndim != 1:
-            raise ShapeError(f"omega: expected shape [F], got {w.shape}")
-        if not np.all(np.isfinite(w)):
-            raise ParameterError("omega: expected finite values")
+        w = as_frequency_grid(omega, "omega")
         s = torch.as_tensor(1j * w, dtype=torch.complex128)
         with torch.no_grad():
             h = _response(self._struct, torch.as_tensor(self.params, dtype=torch.float64), s, self.delay_s)

@@ -144,3 +144,19 @@ def check_choice(value, name: str, options) -> str:
     if value not in options:
         raise ParameterError(f"{name}: expected one of {tuple(options)}, got {value!r}")
     return value
+
+
+def as_frequency_grid(value, name: str):
+    """A 1-D array of finite real numbers (angular frequencies, rad/s) as float64 numpy ``[F]``."""
+    import numpy as np
+
+    try:
+        w = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputTypeError(f"{name}: expected an array of real numbers, got {type(value).__name__}") from exc
+    if w.ndim != 1:
+        raise ShapeError(f"{name}: expected shape [F], got {w.shape}")
+    if not np.all(np.isfinite(w)):
+        raise ParameterError(f"{name}: expected finite values")
+    return w
+

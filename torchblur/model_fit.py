@@ -67,7 +67,7 @@ import numpy as np
 import scipy.linalg
 import scipy.optimize
 
-from torchblur.errors import InputTypeError, ParameterError, ShapeError
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_frequency_grid
 from torchblur.frequency_response import FrequencyResponse
 
 __all__ = ["fit_transfer_function", "TransferFunctionFit"]
@@ -159,14 +159,7 @@ class TransferFunctionFit:
         Returns:
             complex [F] (SISO) or [O, I, F]: ``K prod(s - z) / prod(s - p) exp(-s delay_s)``.
         """
-        try:
-            w = np.asarray(omega, dtype=np.float64)
-        except (TypeError, ValueError) as exc:
-            raise InputTypeError(f"omega: expected an array of real numbers, got {type(omega).__name__}") from exc
-        if w.ndim != 1:
-            raise ShapeError(f"omega: expected shape [F], got {w.shape}")
-        if not np.all(np.isfinite(w)):
-            raise ParameterError("omega: expected finite values")
+        w = as_frequency_grid(omega, "omega")
         s = 1j * w
         num, den, z, p, tau = (self._channels(f) for f in ("num", "den", "zeros", "poles", "delay_s"))
         out = np.empty((len(self.output_labels), len(self.input_labels), w.size), dtype=np.complex128)
