@@ -226,6 +226,40 @@ class Plant:
         return LTISineTrajectory(self, amplitude, omega, direction=direction, method=method)
 
 
+def lti_output(traj, t, *, transient: bool, steady: bool) -> torch.Tensor:
+    """The output of an LTI response ``traj`` from rest (its steady state ``traj._steady(tp)``
+    and its transient, modal or by the matrix exponential), 0 before its delay, at absolute
+    times ``t`` (s) ``[..., S]`` -> ``[..., S]`` (float64 inside, returned in ``t``'s dtype).
+    ``traj`` has ``delay_s``, ``method``, ``_lam``, ``_c`` (modal) or ``_a``, ``_cvec``,
+    ``_x0`` (matrix exponential) and ``_steady``."""
+    if not isinstance(t, torch.Tensor):
+        t = as_tensor(t, "t", dtype=torch.float64)
+    out_dtype = t.dtype
+    tt = t.detach().to(torch.float64)
+    dev = tt.device
+    tp = tt - traj.delay_s
+    started = tp >= 0
+    tp = tp.clamp_min(0.0)
+    y = torch.zeros((), dtype=torch.float64, device=dev)
+    if steady:
+        y = y + traj._steady(tp)
+    if transient:
+        if traj.method == "modal":
+            lam = traj._lam.to(dev)
+            if lam.shape[0]:
+                c = traj._c.to(dev)[..., None, :, :]  # [..., 1, n, 2]
+                x = tp[..., None]  # [..., S, 1]
+                decay = torch.exp(lam[:, 0] * x)
+                arg = lam[:, 1] * x
+                y = y + (decay * (c[..., 0] * torch.cos(arg) - c[..., 1] * torch.sin(arg))).sum(-1)
+        else:
+            a, cvec, x0 = traj._a.to(dev), traj._cvec.to(dev), traj._x0.to(dev)
+            phi = torch.linalg.matrix_exp(a * tp[..., None, None])  # [..., S, n, n]
+            y = y + ((phi @ x0[..., None, :, None])[..., 0] * cvec).sum(-1)
+    y = torch.where(started, y, torch.zeros((), dtype=torch.float64, device=dev))
+    return y.to(out_dtype)
+
+
 def transient_path_bound(traj, t0: torch.Tensor, t1: torch.Tensor) -> torch.Tensor:
     """Bound of the total variation of ``traj.transient`` over ``[t0, t1]`` (times after the
     delay, float64 ``[...]``): ``sum_k |c_k| |lambda_k| integral e^{Re lambda_k t'} dt'``
@@ -363,36 +397,15 @@ class LTISineTrajectory(Trajectory):
         return self._output(t, transient=False, steady=True)
 
     def _output(self, t: torch.Tensor, *, transient: bool, steady: bool) -> torch.Tensor:
-        if not isinstance(t, torch.Tensor):
-            t = as_tensor(t, "t", dtype=torch.float64)
-        out_dtype = t.dtype
-        tt = t.detach().to(torch.float64)
-        dev = tt.device
-        tp = tt - self.delay_s
-        started = tp >= 0
-        tp = tp.clamp_min(0.0)
-        y = torch.zeros((), dtype=torch.float64, device=dev)
-        if steady:
-            amp = self.amplitude.to(dev)[..., None]
-            w = self.omega.to(dev)[..., None]
-            h = self._h0.to(dev)
-            ph = w * tp
-            y = y + amp * (h[..., 0, None] * torch.sin(ph) + h[..., 1, None] * torch.cos(ph))
-        if transient:
-            if self.method == "modal":
-                lam = self._lam.to(dev)
-                if lam.shape[0]:
-                    c = self._c.to(dev)[..., None, :, :]  # [..., 1, n, 2]
-                    x = tp[..., None]  # [..., S, 1]
-                    decay = torch.exp(lam[:, 0] * x)
-                    arg = lam[:, 1] * x
-                    y = y + (decay * (c[..., 0] * torch.cos(arg) - c[..., 1] * torch.sin(arg))).sum(-1)
-            else:
-                a, cvec, x0 = self._a.to(dev), self._cvec.to(dev), self._x0.to(dev)
-                phi = torch.linalg.matrix_exp(a * tp[..., None, None])  # [..., S, n, n]
-                y = y + ((phi @ x0[..., None, :, None])[..., 0] * cvec).sum(-1)
-        y = torch.where(started, y, torch.zeros((), dtype=torch.float64, device=dev))
-        return y.to(out_dtype)
+        return lti_output(self, t, transient=transient, steady=steady)
+
+    def _steady(self, tp: torch.Tensor) -> torch.Tensor:
+        """The steady-state output at times ``tp`` after the delay (float64 ``[..., S]``)."""
+        dev = tp.device
+        amp = self.amplitude.to(dev)[..., None]
+        ph = self.omega.to(dev)[..., None] * tp
+        h = self._h0.to(dev)
+        return amp * (h[..., 0, None] * torch.sin(ph) + h[..., 1, None] * torch.cos(ph))
 
     def position(self, t: torch.Tensor) -> torch.Tensor:
         """Displacement (px) ``[..., S, 2]`` at absolute command times ``t`` (s) ``[..., S]``."""

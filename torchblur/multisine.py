@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from .errors import InputTypeError, ParameterError, ShapeError, as_tensor, broadcast_batch, check_finite, check_positive
-from .lti import _EIG_COND_MAX, Plant, transient_path_bound
+from .lti import _EIG_COND_MAX, Plant, lti_output, transient_path_bound
 from .timing import ExposureWindow
 from .trajectory import Trajectory, _sine_path_bound
 
@@ -380,35 +380,16 @@ class LTIMultisineTrajectory(Trajectory):
         return self._output(t, transient=False, steady=True)
 
     def _output(self, t, *, transient: bool, steady: bool) -> torch.Tensor:
-        if not isinstance(t, torch.Tensor):
-            t = as_tensor(t, "t", dtype=torch.float64)
-        out_dtype = t.dtype
-        tt = t.detach().to(torch.float64)
-        dev = tt.device
-        tp = tt - self.delay_s
-        started = tp >= 0
-        tp = tp.clamp_min(0.0)
-        y = torch.zeros((), dtype=torch.float64, device=dev)
-        if steady:
-            amp = self.amplitude.to(dev)[..., None, :]  # [..., 1, N]
-            arg = self.omega.to(dev)[..., None, :] * tp[..., None] + self.phase.to(dev)[..., None, :]  # [..., S, N]
-            h = self._h0.to(dev)[..., None, :, :]
-            y = y + (amp * (h[..., 0] * torch.sin(arg) + h[..., 1] * torch.cos(arg))).sum(-1)
-        if transient:
-            if self.method == "modal":
-                lam = self._lam.to(dev)
-                if lam.shape[0]:
-                    c = self._c.to(dev)[..., None, :, :]
-                    x = tp[..., None]
-                    decay = torch.exp(lam[:, 0] * x)
-                    arg = lam[:, 1] * x
-                    y = y + (decay * (c[..., 0] * torch.cos(arg) - c[..., 1] * torch.sin(arg))).sum(-1)
-            else:
-                a, cvec, x0 = self._a.to(dev), self._cvec.to(dev), self._x0.to(dev)
-                phi = torch.linalg.matrix_exp(a * tp[..., None, None])
-                y = y + ((phi @ x0[..., None, :, None])[..., 0] * cvec).sum(-1)
-        y = torch.where(started, y, torch.zeros((), dtype=torch.float64, device=dev))
-        return y.to(out_dtype)
+        return lti_output(self, t, transient=transient, steady=steady)
+
+    def _steady(self, tp: torch.Tensor) -> torch.Tensor:
+        """The steady-state output at times ``tp`` after the delay (float64 ``[..., S]``): the
+        sum of the tones' sine responses."""
+        dev = tp.device
+        amp = self.amplitude.to(dev)[..., None, :]  # [..., 1, N]
+        arg = self.omega.to(dev)[..., None, :] * tp[..., None] + self.phase.to(dev)[..., None, :]  # [..., S, N]
+        h = self._h0.to(dev)[..., None, :, :]
+        return (amp * (h[..., 0] * torch.sin(arg) + h[..., 1] * torch.cos(arg))).sum(-1)
 
     def position(self, t: torch.Tensor) -> torch.Tensor:
         """Displacement (px) ``[..., S, 2]`` at absolute command times ``t`` (s) ``[..., S]``."""
