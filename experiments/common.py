@@ -82,3 +82,31 @@ def periodic_minima(phase, cost) -> list[tuple[float, float]]:
         d = float(np.clip(0.5 * (cm - cp) / den, -0.5, 0.5)) if den > 0 else 0.0
         out.append((float(math.remainder(phase[i] + d * step, 2 * math.pi)), float(c0 - 0.25 * (cm - cp) * d)))
     return sorted(out, key=lambda m: m[1])
+
+
+def x_sinusoid(amplitude, phase, omega):
+    """``amplitude sin(omega t + phase)`` along x (px, rad; broadcast), as a
+    :class:`torchblur.Sinusoid` in float64."""
+    import torch
+
+    import torchblur as tb
+
+    amplitude, phase = torch.broadcast_tensors(torch.as_tensor(amplitude, dtype=torch.float64),
+                                               torch.as_tensor(phase, dtype=torch.float64))
+    zero = torch.zeros_like(amplitude)
+    return tb.Sinusoid(torch.stack([amplitude, zero], -1), torch.stack([phase, zero], -1), omega)
+
+
+def wrapped(x):
+    """Phase(s) ``x`` (rad) wrapped to (-pi, pi], as numpy."""
+    import torch
+
+    import torchblur as tb
+
+    return tb.wrap_phase(torch.as_tensor(x, dtype=torch.float64)).numpy()
+
+
+def wrapped_distance(a: float, b: float) -> float:
+    """``|wrap(a - b)|`` (rad)."""
+    return abs(float(wrapped(a - b)))
+

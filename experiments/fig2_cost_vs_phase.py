@@ -20,16 +20,12 @@ import time
 import numpy as np
 import torch
 
-from common import parse, periodic_minima, plt, save_figure, write_metrics
+from common import parse, periodic_minima, plt, save_figure, wrapped_distance, write_metrics, x_sinusoid
 
 import torchblur as tb
 from torchblur.losses import image_loss
 
 F64 = torch.float64
-
-
-def wrapped_distance(a: float, b: float) -> float:
-    return abs(float(tb.wrap_phase(torch.tensor(a - b, dtype=F64))))
 
 
 def main():
@@ -51,14 +47,10 @@ def main():
     renderer = tb.BlurRenderer(height=H, width=W)
     om = torch.tensor(omega, dtype=F64)
 
-    def sinusoid(amplitude, phase):
-        amplitude, phase = torch.broadcast_tensors(torch.as_tensor(amplitude, dtype=F64), torch.as_tensor(phase, dtype=F64))
-        zero = torch.zeros_like(amplitude)
-        return tb.Sinusoid(torch.stack([amplitude, zero], -1), torch.stack([phase, zero], -1), om)
 
-    data = renderer(sinusoid(M, phi0), psf, window)                    # [E, 1, H, W]
+    data = renderer(x_sinusoid(M, phi0, om), psf, window)                    # [E, 1, H, W]
     grid = torch.linspace(-math.pi, math.pi, P + 1, dtype=F64)[:-1]     # [P]
-    model = renderer(sinusoid(M, grid), psf, window)                    # [E, P, H, W]
+    model = renderer(x_sinusoid(M, grid, om), psf, window)                    # [E, P, H, W]
     cost = image_loss(model.flatten(-2), data.flatten(-2), loss="l2")   # [E, P]
     rel = (cost / data.flatten(-2).square().sum(-1)).numpy()            # relative to ||Y||^2
     alias = tb.alias_phase(torch.tensor(phi0, dtype=F64), om, window[:, 0])  # [E]

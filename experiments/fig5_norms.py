@@ -21,7 +21,7 @@ import time
 import numpy as np
 import torch
 
-from common import parse, periodic_minima, plt, save_figure, write_metrics
+from common import parse, periodic_minima, plt, save_figure, wrapped, write_metrics, x_sinusoid
 
 import torchblur as tb
 from torchblur.camera import CameraModel
@@ -29,10 +29,6 @@ from torchblur.losses import image_loss
 
 F64 = torch.float64
 LABEL = {"l1": "1-norm", "l2": "2-norm (Frobenius)", "linf": "inf-norm"}
-
-
-def wrapped(x):
-    return tb.wrap_phase(torch.as_tensor(x, dtype=F64)).numpy()
 
 
 def sharpness(phase: np.ndarray, cost: np.ndarray, at: float, halfwidth: float) -> tuple[float, float]:
@@ -64,12 +60,8 @@ def main():
     renderer = tb.BlurRenderer(height=H, width=W)
     om = torch.tensor(omega, dtype=F64)
 
-    def sinusoid(amplitude, phase):
-        amplitude, phase = torch.broadcast_tensors(torch.as_tensor(amplitude, dtype=F64), torch.as_tensor(phase, dtype=F64))
-        zero = torch.zeros_like(amplitude)
-        return tb.Sinusoid(torch.stack([amplitude, zero], -1), torch.stack([phase, zero], -1), om)
 
-    clean = renderer(sinusoid(M, phi0), psf, window)  # [H, W] electrons
+    clean = renderer(x_sinusoid(M, phi0, om), psf, window)  # [H, W] electrons
     c = cfg.camera
     camera = CameraModel(dark_level_adu=float(c.dark_level_adu), read_noise_e=float(c.read_noise_e),
                          gain_e_per_adu=float(c.gain_e_per_adu), full_well_e=float(c.full_well_e), bit_depth=int(c.bit_depth))
@@ -80,7 +72,7 @@ def main():
     alias = float(tb.alias_phase(torch.tensor(phi0, dtype=F64), om, window))
 
     grid = torch.linspace(-math.pi, math.pi, P + 1, dtype=F64)[:-1]
-    model = renderer(sinusoid(M, grid), psf, window).flatten(-2)  # [P, H*W]
+    model = renderer(x_sinusoid(M, grid, om), psf, window).flatten(-2)  # [P, H*W]
     g = grid.numpy()
 
     def cost_curve(data, nm):

@@ -20,7 +20,7 @@ import time
 import numpy as np
 import torch
 
-from common import parse, plt, save_figure, write_metrics
+from common import parse, plt, save_figure, write_metrics, x_sinusoid
 
 import torchblur as tb
 from torchblur.landscape import cost_landscape
@@ -84,12 +84,8 @@ def main():
     renderer = tb.BlurRenderer(height=H, width=W)
     om = torch.tensor(omega, dtype=F64)
 
-    def sinusoid(amplitude, phase):
-        amplitude, phase = torch.broadcast_tensors(torch.as_tensor(amplitude, dtype=F64), torch.as_tensor(phase, dtype=F64))
-        zero = torch.zeros_like(amplitude)
-        return tb.Sinusoid(torch.stack([amplitude, zero], -1), torch.stack([phase, zero], -1), om)
 
-    data = renderer(sinusoid(M, phi0), psf, window).flatten()  # [H*W]
+    data = renderer(x_sinusoid(M, phi0, om), psf, window).flatten()  # [H*W]
     amps = torch.linspace(float(cfg.amplitude_range_px[0]), float(cfg.amplitude_range_px[1]), NA, dtype=F64)
     phases = torch.linspace(-math.pi, math.pi, NP + 1, dtype=F64)[:-1]
     land = cost_landscape(data.reshape(1, H, W), psf, window[None], om, amps, phases, losses=norms,

@@ -21,7 +21,7 @@ import time
 import numpy as np
 import torch
 
-from common import parse, periodic_minima, plt, save_figure, write_metrics
+from common import parse, periodic_minima, plt, save_figure, wrapped_distance, write_metrics, x_sinusoid
 
 import torchblur as tb
 from torchblur.design import alias_separation, dual_exposure_windows
@@ -43,10 +43,6 @@ def grid_minima(cost: np.ndarray) -> list[tuple[int, int]]:
     return sorted(map(tuple, np.argwhere(is_min)), key=lambda ij: cost[ij])
 
 
-def wrapped_distance(a: float, b: float) -> float:
-    return abs(float(tb.wrap_phase(torch.tensor(a - b, dtype=F64))))
-
-
 def main():
     started = time.time()
     args, cfg, out = parse(__doc__.splitlines()[0], "fig7_dual_exposure.yaml")
@@ -64,12 +60,8 @@ def main():
     psf = tb.GaussianPSF.isotropic(rest, torch.tensor(float(cfg.psf_sigma_px), dtype=F64))
     renderer = tb.BlurRenderer(height=H, width=W)
 
-    def sinusoid(amplitude, phase):
-        amplitude, phase = torch.broadcast_tensors(torch.as_tensor(amplitude, dtype=F64), torch.as_tensor(phase, dtype=F64))
-        zero = torch.zeros_like(amplitude)
-        return tb.Sinusoid(torch.stack([amplitude, zero], -1), torch.stack([phase, zero], -1), om)
 
-    data = renderer(sinusoid(M, phi0), psf, window).flatten(-2)   # [E, H*W]
+    data = renderer(x_sinusoid(M, phi0, om), psf, window).flatten(-2)   # [E, H*W]
     energy = data.square().sum(-1)                                 # [E] = ||Y_e||^2
     aliases = tb.alias_phase(torch.tensor(phi0, dtype=F64), om, window)  # [E]
 

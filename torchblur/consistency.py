@@ -96,6 +96,20 @@ def _as_trajectory(pred, omega, like: torch.Tensor) -> Trajectory:
     )
 
 
+def _check_settings(renderer, psf, window, loss, reduction, normalize) -> None:
+    """The settings :func:`blur_consistency` and :class:`BlurConsistencyLoss` share."""
+    if not isinstance(renderer, BlurRenderer):
+        raise InputTypeError(f"renderer: expected a torchblur BlurRenderer, got {type(renderer).__name__}")
+    if not isinstance(psf, (GaussianPSF, KernelPSF)):
+        raise InputTypeError(f"psf: expected GaussianPSF or KernelPSF, got {type(psf).__name__}")
+    if not isinstance(window, ExposureWindow):
+        raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
+    check_choice(loss, "loss", LOSSES)
+    check_choice(reduction, "reduction", REDUCTIONS)
+    if not isinstance(normalize, bool):
+        raise InputTypeError(f"normalize: expected True or False, got {type(normalize).__name__}")
+
+
 def _psf_with_exposure_axis(psf):
     """A PSF of batch ``[...]`` with a trailing singleton axis, shared by the E exposures."""
     if isinstance(psf, GaussianPSF):
@@ -170,16 +184,9 @@ def blur_consistency(
         >>> blur_consistency(truth, observed, renderer=renderer, psf=psf, window=window).shape
         torch.Size([1])
     """
-    if not isinstance(renderer, BlurRenderer):
-        raise InputTypeError(f"renderer: expected a torchblur BlurRenderer, got {type(renderer).__name__}")
+    _check_settings(renderer, psf, window, loss, reduction, normalize)
     if not isinstance(observed, torch.Tensor):
         raise InputTypeError(f"observed: expected a tensor [..., E, H, W], got {type(observed).__name__}")
-    if not isinstance(window, ExposureWindow):
-        raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
-    check_choice(loss, "loss", LOSSES)
-    check_choice(reduction, "reduction", REDUCTIONS)
-    if not isinstance(normalize, bool):
-        raise InputTypeError(f"normalize: expected True or False, got {type(normalize).__name__}")
     if observed.is_complex() or observed.dtype == torch.bool:
         raise InputTypeError(f"observed: expected a real tensor [..., E, H, W], got dtype {observed.dtype}")
     if not observed.is_floating_point():
@@ -273,16 +280,7 @@ class BlurConsistencyLoss(nn.Module):
         omega=None,
     ):
         super().__init__()
-        if not isinstance(renderer, BlurRenderer):
-            raise InputTypeError(f"renderer: expected a torchblur BlurRenderer, got {type(renderer).__name__}")
-        if not isinstance(psf, (GaussianPSF, KernelPSF)):
-            raise InputTypeError(f"psf: expected GaussianPSF or KernelPSF, got {type(psf).__name__}")
-        if not isinstance(window, ExposureWindow):
-            raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
-        check_choice(loss, "loss", LOSSES)
-        check_choice(reduction, "reduction", REDUCTIONS)
-        if not isinstance(normalize, bool):
-            raise InputTypeError(f"normalize: expected True or False, got {type(normalize).__name__}")
+        _check_settings(renderer, psf, window, loss, reduction, normalize)  # at construction, not at the first batch
         self.renderer = renderer
         self.psf = psf
         self.window = window

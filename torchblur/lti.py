@@ -30,7 +30,7 @@ from .errors import InputTypeError, ParameterError, ShapeError, as_tensor, broad
 from .timing import ExposureWindow
 from .trajectory import Trajectory, _sine_path_bound
 
-__all__ = ["Plant", "LTISineTrajectory"]
+__all__ = ["Plant", "LTIResponse", "LTISineTrajectory"]
 
 _EIG_COND_MAX = 1e10  # above: matrix-exponential evaluation
 _EIG_COND_BOUND = 1e4  # above: the modal coefficients cancel, path bound from sampling
@@ -226,63 +226,84 @@ class Plant:
         return LTISineTrajectory(self, amplitude, omega, direction=direction, method=method)
 
 
-def lti_output(traj, t, *, transient: bool, steady: bool) -> torch.Tensor:
-    """The output of an LTI response ``traj`` from rest (its steady state ``traj._steady(tp)``
-    and its transient, modal or by the matrix exponential), 0 before its delay, at absolute
-    times ``t`` (s) ``[..., S]`` -> ``[..., S]`` (float64 inside, returned in ``t``'s dtype).
-    ``traj`` has ``delay_s``, ``method``, ``_lam``, ``_c`` (modal) or ``_a``, ``_cvec``,
-    ``_x0`` (matrix exponential) and ``_steady``."""
-    if not isinstance(t, torch.Tensor):
-        t = as_tensor(t, "t", dtype=torch.float64)
-    out_dtype = t.dtype
-    tt = t.detach().to(torch.float64)
-    dev = tt.device
-    tp = tt - traj.delay_s
-    started = tp >= 0
-    tp = tp.clamp_min(0.0)
-    y = torch.zeros((), dtype=torch.float64, device=dev)
-    if steady:
-        y = y + traj._steady(tp)
-    if transient:
-        if traj.method == "modal":
-            lam = traj._lam.to(dev)
-            if lam.shape[0]:
-                c = traj._c.to(dev)[..., None, :, :]  # [..., 1, n, 2]
-                x = tp[..., None]  # [..., S, 1]
-                decay = torch.exp(lam[:, 0] * x)
-                arg = lam[:, 1] * x
-                y = y + (decay * (c[..., 0] * torch.cos(arg) - c[..., 1] * torch.sin(arg))).sum(-1)
-        else:
-            a, cvec, x0 = traj._a.to(dev), traj._cvec.to(dev), traj._x0.to(dev)
-            phi = torch.linalg.matrix_exp(a * tp[..., None, None])  # [..., S, n, n]
-            y = y + ((phi @ x0[..., None, :, None])[..., 0] * cvec).sum(-1)
-    y = torch.where(started, y, torch.zeros((), dtype=torch.float64, device=dev))
-    return y.to(out_dtype)
+class LTIResponse(Trajectory):
+    """The response of a plant to a command applied from rest at t = 0: the steady state
+    (:meth:`_steady`, defined by each subclass) plus the transient (modal, or by the matrix
+    exponential), 0 before the delay; the spot moves along ``direction`` (px per output
+    unit). Subclasses hold ``delay_s``, ``direction``, ``method`` and ``_lam``, ``_c``
+    (modal) or ``_a``, ``_cvec``, ``_x0`` (matrix exponential)."""
+
+    def _steady(self, tp: torch.Tensor) -> torch.Tensor:  # pragma: no cover - interface
+        """The steady-state output at times ``tp`` after the delay (float64 ``[..., S]``)."""
+        raise NotImplementedError
+
+    def output(self, t: torch.Tensor) -> torch.Tensor:
+        """The plant output y (output units) at absolute times ``t`` (s), ``[..., S]`` ->
+        ``[..., S]``, computed in float64 and returned in ``t``'s dtype."""
+        return self._output(t, transient=True, steady=True)
+
+    def transient(self, t: torch.Tensor) -> torch.Tensor:
+        """The transient part ``y_tr`` (0 before the delay), ``[..., S]`` -> ``[..., S]``."""
+        return self._output(t, transient=True, steady=False)
+
+    def steady_state(self, t: torch.Tensor) -> torch.Tensor:
+        """The steady-state part ``y_ss`` (0 before the delay), ``[..., S]`` -> ``[..., S]``."""
+        return self._output(t, transient=False, steady=True)
+
+    def position(self, t: torch.Tensor) -> torch.Tensor:
+        """Displacement (px) ``[..., S, 2]`` at absolute command times ``t`` (s) ``[..., S]``."""
+        y = self.output(t)
+        return y[..., None] * self.direction.to(device=y.device, dtype=y.dtype)[..., None, :]
+
+    def _transient_path_bound(self, t0: torch.Tensor, t1: torch.Tensor) -> torch.Tensor:
+        """Bound of the total variation of ``self.transient`` over ``[t0, t1]`` (times after the
+        delay, float64 ``[...]``): ``sum_k |c_k| |lambda_k| integral e^{Re lambda_k t'} dt'``
+        (modal, well-conditioned eigenvectors), or estimated from 2049 samples with a 10 % margin
+        (nearly repeated poles, where the modal terms cancel and their bound is far too loose)."""
+        dev = t0.device
+        if self.method == "modal" and self._cond <= _EIG_COND_BOUND:
+            lam = self._lam.to(dev)
+            if not lam.shape[0]:
+                return torch.zeros_like(t0)
+            sigma = lam[:, 0]  # < 0
+            mag = torch.linalg.vector_norm(lam, dim=-1)
+            cabs = torch.linalg.vector_norm(self._c.to(dev), dim=-1)  # [..., n]
+            integral = torch.exp(sigma * t0[..., None]) * (-torch.expm1(sigma * (t1 - t0)[..., None])) / (-sigma)
+            return (cabs * mag * integral).sum(-1)
+        u = torch.linspace(0.0, 1.0, 2049, dtype=torch.float64, device=dev)
+        ts = (t0[..., None] + (t1 - t0)[..., None] * u) + self.delay_s
+        return 1.1 * self.transient(ts).diff(dim=-1).abs().sum(-1)
+
+    def _output(self, t, *, transient: bool, steady: bool) -> torch.Tensor:
+        if not isinstance(t, torch.Tensor):
+            t = as_tensor(t, "t", dtype=torch.float64)
+        out_dtype = t.dtype
+        tt = t.detach().to(torch.float64)
+        dev = tt.device
+        tp = tt - self.delay_s
+        started = tp >= 0
+        tp = tp.clamp_min(0.0)
+        y = torch.zeros((), dtype=torch.float64, device=dev)
+        if steady:
+            y = y + self._steady(tp)
+        if transient:
+            if self.method == "modal":
+                lam = self._lam.to(dev)
+                if lam.shape[0]:
+                    c = self._c.to(dev)[..., None, :, :]  # [..., 1, n, 2]
+                    x = tp[..., None]  # [..., S, 1]
+                    decay = torch.exp(lam[:, 0] * x)
+                    arg = lam[:, 1] * x
+                    y = y + (decay * (c[..., 0] * torch.cos(arg) - c[..., 1] * torch.sin(arg))).sum(-1)
+            else:
+                a, cvec, x0 = self._a.to(dev), self._cvec.to(dev), self._x0.to(dev)
+                phi = torch.linalg.matrix_exp(a * tp[..., None, None])  # [..., S, n, n]
+                y = y + ((phi @ x0[..., None, :, None])[..., 0] * cvec).sum(-1)
+        y = torch.where(started, y, torch.zeros((), dtype=torch.float64, device=dev))
+        return y.to(out_dtype)
 
 
-def transient_path_bound(traj, t0: torch.Tensor, t1: torch.Tensor) -> torch.Tensor:
-    """Bound of the total variation of ``traj.transient`` over ``[t0, t1]`` (times after the
-    delay, float64 ``[...]``): ``sum_k |c_k| |lambda_k| integral e^{Re lambda_k t'} dt'``
-    (modal, well-conditioned eigenvectors), or estimated from 2049 samples with a 10 % margin
-    (nearly repeated poles, where the modal terms cancel and their bound is far too loose).
-    ``traj`` is an LTI response with ``method``, ``_cond``, ``_lam``, ``_c``, ``delay_s`` and
-    ``transient(t)``."""
-    dev = t0.device
-    if traj.method == "modal" and traj._cond <= _EIG_COND_BOUND:
-        lam = traj._lam.to(dev)
-        if not lam.shape[0]:
-            return torch.zeros_like(t0)
-        sigma = lam[:, 0]  # < 0
-        mag = torch.linalg.vector_norm(lam, dim=-1)
-        cabs = torch.linalg.vector_norm(traj._c.to(dev), dim=-1)  # [..., n]
-        integral = torch.exp(sigma * t0[..., None]) * (-torch.expm1(sigma * (t1 - t0)[..., None])) / (-sigma)
-        return (cabs * mag * integral).sum(-1)
-    u = torch.linspace(0.0, 1.0, 2049, dtype=torch.float64, device=dev)
-    ts = (t0[..., None] + (t1 - t0)[..., None] * u) + traj.delay_s
-    return 1.1 * traj.transient(ts).diff(dim=-1).abs().sum(-1)
-
-
-class LTISineTrajectory(Trajectory):
+class LTISineTrajectory(LTIResponse):
     """The exact response of a :class:`Plant` to ``u(t) = amplitude sin(omega t)`` applied
     from rest at t = 0, transient and delay included, mapped to the image as
     ``direction * y(t)``.
@@ -383,22 +404,6 @@ class LTISineTrajectory(Trajectory):
         ph = ph + math.pi * (self.amplitude < 0)
         return torch.atan2(torch.sin(ph), torch.cos(ph))
 
-    def output(self, t: torch.Tensor) -> torch.Tensor:
-        """The plant output y (output units) at absolute times ``t`` (s), ``[..., S]`` ->
-        ``[..., S]``, computed in float64 and returned in ``t``'s dtype."""
-        return self._output(t, transient=True, steady=True)
-
-    def transient(self, t: torch.Tensor) -> torch.Tensor:
-        """The transient part ``y_tr`` (0 before the delay), ``[..., S]`` -> ``[..., S]``."""
-        return self._output(t, transient=True, steady=False)
-
-    def steady_state(self, t: torch.Tensor) -> torch.Tensor:
-        """The steady-state part ``y_ss`` (0 before the delay), ``[..., S]`` -> ``[..., S]``."""
-        return self._output(t, transient=False, steady=True)
-
-    def _output(self, t: torch.Tensor, *, transient: bool, steady: bool) -> torch.Tensor:
-        return lti_output(self, t, transient=transient, steady=steady)
-
     def _steady(self, tp: torch.Tensor) -> torch.Tensor:
         """The steady-state output at times ``tp`` after the delay (float64 ``[..., S]``)."""
         dev = tp.device
@@ -406,11 +411,6 @@ class LTISineTrajectory(Trajectory):
         ph = self.omega.to(dev)[..., None] * tp
         h = self._h0.to(dev)
         return amp * (h[..., 0, None] * torch.sin(ph) + h[..., 1, None] * torch.cos(ph))
-
-    def position(self, t: torch.Tensor) -> torch.Tensor:
-        """Displacement (px) ``[..., S, 2]`` at absolute command times ``t`` (s) ``[..., S]``."""
-        y = self.output(t)
-        return y[..., None] * self.direction.to(device=y.device, dtype=y.dtype)[..., None, :]
 
     def path_length(self, window: ExposureWindow) -> torch.Tensor:
         """Upper bound of the path (px) during ``window``, ``[...]``, no gradient.
@@ -429,7 +429,7 @@ class LTISineTrajectory(Trajectory):
             amp_ss = self.steady_state_amplitude().to(dev)
             h = self._h0.to(dev)
             phase0 = torch.atan2(h[..., 1], h[..., 0]) + math.pi * (self.amplitude.to(dev) < 0)
-            tv = _sine_path_bound(amp_ss, self.omega.to(dev), phase0, t0, t1 - t0) + transient_path_bound(self, t0, t1)
+            tv = _sine_path_bound(amp_ss, self.omega.to(dev), phase0, t0, t1 - t0) + self._transient_path_bound(t0, t1)
             return tv * torch.linalg.vector_norm(self.direction.to(dev), dim=-1)
 
     def phase_span(self, window: ExposureWindow) -> torch.Tensor:

@@ -32,9 +32,9 @@ import numpy as np
 import torch
 
 from .errors import InputTypeError, ParameterError, ShapeError, as_tensor, broadcast_batch, check_finite, check_positive
-from .lti import _EIG_COND_MAX, Plant, lti_output, transient_path_bound
+from .lti import _EIG_COND_MAX, LTIResponse, Plant
 from .timing import ExposureWindow
-from .trajectory import Trajectory, _sine_path_bound
+from .trajectory import _sine_path_bound
 
 __all__ = ["MultisineDesign", "crest_factor", "multisine_signal", "schroeder_phases", "optimise_crest_factor", "common_grid",
            "design_multisine", "LTIMultisineTrajectory"]
@@ -260,7 +260,7 @@ def design_multisine(freq_hz, amplitudes=None, *, snap_tol: float = 0.05, max_ha
     return MultisineDesign(f0, tuple(int(v) for v in n), tuple(float(v) for v in a), tuple(float(v) for v in p), float(c))
 
 
-class LTIMultisineTrajectory(Trajectory):
+class LTIMultisineTrajectory(LTIResponse):
     """The exact response of a :class:`~torchblur.lti.Plant` to the multisine command
     ``u(t) = sum_k amplitude_k sin(omega_k t + phase_k)`` applied from rest at t = 0,
     transients and delay included, mapped to the image as ``direction * y(t)``.
@@ -366,22 +366,6 @@ class LTIMultisineTrajectory(Trajectory):
         ph = ph + math.pi * (self.amplitude < 0)
         return torch.atan2(torch.sin(ph), torch.cos(ph))
 
-    def output(self, t: torch.Tensor) -> torch.Tensor:
-        """Plant output y (output units) at absolute times ``t`` (s) ``[..., S]`` -> ``[..., S]``
-        (float64 inside, returned in ``t``'s dtype)."""
-        return self._output(t, transient=True, steady=True)
-
-    def transient(self, t: torch.Tensor) -> torch.Tensor:
-        """The transient part (0 before the delay), ``[..., S]`` -> ``[..., S]``."""
-        return self._output(t, transient=True, steady=False)
-
-    def steady_state(self, t: torch.Tensor) -> torch.Tensor:
-        """The steady-state part (0 before the delay), ``[..., S]`` -> ``[..., S]``."""
-        return self._output(t, transient=False, steady=True)
-
-    def _output(self, t, *, transient: bool, steady: bool) -> torch.Tensor:
-        return lti_output(self, t, transient=transient, steady=steady)
-
     def _steady(self, tp: torch.Tensor) -> torch.Tensor:
         """The steady-state output at times ``tp`` after the delay (float64 ``[..., S]``): the
         sum of the tones' sine responses."""
@@ -390,11 +374,6 @@ class LTIMultisineTrajectory(Trajectory):
         arg = self.omega.to(dev)[..., None, :] * tp[..., None] + self.phase.to(dev)[..., None, :]  # [..., S, N]
         h = self._h0.to(dev)[..., None, :, :]
         return (amp * (h[..., 0] * torch.sin(arg) + h[..., 1] * torch.cos(arg))).sum(-1)
-
-    def position(self, t: torch.Tensor) -> torch.Tensor:
-        """Displacement (px) ``[..., S, 2]`` at absolute command times ``t`` (s) ``[..., S]``."""
-        y = self.output(t)
-        return y[..., None] * self.direction.to(device=y.device, dtype=y.dtype)[..., None, :]
 
     def path_length(self, window: ExposureWindow) -> torch.Tensor:
         """Upper bound of the path (px) during ``window``, ``[...]``, no gradient: the sum of
@@ -410,7 +389,7 @@ class LTIMultisineTrajectory(Trajectory):
             phase0 = torch.atan2(h[..., 1], h[..., 0]) + self.phase.to(dev) + math.pi * (self.amplitude.to(dev) < 0)
             tv = _sine_path_bound(self.steady_state_amplitude().to(dev), self.omega.to(dev), phase0, t0[..., None],
                                   (t1 - t0)[..., None]).sum(-1)
-            tv = tv + transient_path_bound(self, t0, t1)
+            tv = tv + self._transient_path_bound(t0, t1)
             return tv * torch.linalg.vector_norm(self.direction.to(dev), dim=-1)
 
     def phase_span(self, window: ExposureWindow) -> torch.Tensor:

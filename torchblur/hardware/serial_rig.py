@@ -383,23 +383,9 @@ class SerialRig:
         E = len(te)
         offs = per_exposure(trigger_offset_s, E, "trigger_offset_s")
         settle = None if settle_s is None else check_real_scalar(settle_s, "settle_s", nonnegative=True)
-        c = self.controller
-
-        def once():
-            self._begin()
-            c.stop()
-            c.power(power)
-            c.settle(settle)
-            c.wave_sine(axis, freq, amp)
-            out = []
-            for e in range(E):
-                out += self._acquire(te[e], R, lambda e=e: c.arm(offs[e], te[e], R))
-            c.stop()
-            return out
-
-        frames = self._call(f"sine {freq:g} Hz", once)
         period = 1.0 / freq
-        off_mod = [[o - math.floor(o / period) * period] * R for o in offs]
+        frames, off_mod = self._periodic(f"sine {freq:g} Hz", lambda c: c.wave_sine(axis, freq, amp), period, te, offs, R,
+                                         [power] * E, settle)
         return self._capture(frames, (E, R), off_mod, {"kind": "sine", "freq_hz": freq, "omega": 2 * math.pi * freq,
                                                         "period_s": period, "amplitude": amp, "settle_s": settle,
                                                         "power": power, "axis": axis, "input": axis})
@@ -439,6 +425,20 @@ class SerialRig:
         offs = per_exposure(trigger_offset_s, E, "trigger_offset_s")
         powers = [check_real_scalar(p, "power", nonnegative=True) for p in per_exposure(power, E, "power")]
         settle = None if settle_s is None else check_real_scalar(settle_s, "settle_s", nonnegative=True)
+        period = 1.0 / f0
+        frames, off_mod = self._periodic(f"multisine {N} tones from {min(freqs):g} Hz", lambda c: c.wave_multi(self.axis, tones),
+                                         period, te, offs, R, powers, settle)
+        return self._capture(frames, (E, R), off_mod, {"kind": "multisine", "freq_hz": freqs, "amplitude": amps,
+                                                        "phase_rad": phases, "base_freq_hz": f0, "period_s": period,
+                                                        "settle_s": settle,
+                                                        "power": powers if len(set(powers)) > 1 else powers[0],
+                                                        "axis": self.axis})
+
+    def _periodic(self, what: str, start_wave, period: float, te: list, offs: list, R: int, powers: list, settle):
+        """Stop, set the laser and the settling wait, start the waveform (``start_wave(controller)``),
+        then ``ARM offs[e] te[e] R`` for each exposure (the laser follows ``powers[e]``; the
+        waveform keeps running), and stop. Returns the frames and the offsets within the period
+        ``[E][R]``."""
         c = self.controller
 
         def once():
@@ -446,23 +446,17 @@ class SerialRig:
             c.stop()
             c.power(powers[0])
             c.settle(settle)
-            c.wave_multi(self.axis, tones)
+            start_wave(c)
             out = []
-            for e in range(E):
+            for e in range(len(te)):
                 if e and powers[e] != powers[e - 1]:
-                    c.power(powers[e])  # the laser follows the exposure; the waveform keeps running
+                    c.power(powers[e])
                 out += self._acquire(te[e], R, lambda e=e: c.arm(offs[e], te[e], R))
             c.stop()
             return out
 
-        frames = self._call(f"multisine {N} tones from {min(freqs):g} Hz", once)
-        period = 1.0 / f0
-        off_mod = [[o - math.floor(o / period) * period] * R for o in offs]
-        return self._capture(frames, (E, R), off_mod, {"kind": "multisine", "freq_hz": freqs, "amplitude": amps,
-                                                        "phase_rad": phases, "base_freq_hz": f0, "period_s": period,
-                                                        "settle_s": settle,
-                                                        "power": powers if len(set(powers)) > 1 else powers[0],
-                                                        "axis": self.axis})
+        frames = self._call(what, once)
+        return frames, [[o - math.floor(o / period) * period] * R for o in offs]
 
     def pulse(self, exposure_s: float, trigger_offset_s, pulse_time_s: float, pulse_width_s: float, n: int, power: float = 1.0):
         """Mirror still; per offset ``PULSE offset pulse_time width Te n``: frames

@@ -364,6 +364,12 @@ class SimulatedRig:
         off_t = torch.as_tensor(off_mod, dtype=_F64)[:, None].expand(E, R).contiguous()
         return settle, trig_t, exp_t, off_t
 
+    def _capture(self, expected_e: torch.Tensor, exposure_s, trigger_offset_s, trigger_time_s, *, meta: dict) -> Capture:
+        """Expose ``expected_e`` (electrons ``[..., H, W]``) and wrap the frames with their
+        timing ``[...]`` and the next frame counters."""
+        return Capture(frames=self._expose(expected_e), exposure_s=exposure_s, trigger_offset_s=trigger_offset_s,
+                       trigger_time_s=trigger_time_s, frame_counter=self._counters(tuple(exposure_s.shape)), meta=meta)
+
     def _check_power(self, power) -> float:
         return check_real_scalar(power, "power", nonnegative=True)
 
@@ -376,15 +382,8 @@ class SimulatedRig:
         H, W = self._frame_shape
         trig = torch.arange(n, dtype=_F64) * self._cycle_s(te)
         window = self._actual_starts(trig, torch.full((n,), te, dtype=_F64))
-        frames = self._expose(torch.zeros(n, H, W, dtype=_F64))
-        return Capture(
-            frames=frames,
-            exposure_s=torch.full((n,), te, dtype=_F64),
-            trigger_offset_s=torch.zeros(n, dtype=_F64),
-            trigger_time_s=trig,
-            frame_counter=self._counters((n,)),
-            meta={"kind": "dark", "actual_start_s": window.start},
-        )
+        return self._capture(torch.zeros(n, H, W, dtype=_F64), torch.full((n,), te, dtype=_F64), torch.zeros(n, dtype=_F64), trig,
+                             meta={"kind": "dark", "actual_start_s": window.start})
 
     def still(self, n: int, exposure_s: float, power: float = 1.0) -> Capture:
         """``n`` frames of the spot at rest, ``[n, H, W]``."""
@@ -394,15 +393,8 @@ class SimulatedRig:
         trig = torch.arange(n, dtype=_F64) * self._cycle_s(te)
         window = self._actual_starts(trig, torch.full((n,), te, dtype=_F64))
         expected = (self._still_image_per_s() * (power * te)).expand((n,) + self._frame_shape)
-        frames = self._expose(expected.contiguous())
-        return Capture(
-            frames=frames,
-            exposure_s=torch.full((n,), te, dtype=_F64),
-            trigger_offset_s=torch.zeros(n, dtype=_F64),
-            trigger_time_s=trig,
-            frame_counter=self._counters((n,)),
-            meta={"kind": "still", "power": power, "actual_start_s": window.start},
-        )
+        return self._capture(expected.contiguous(), torch.full((n,), te, dtype=_F64), torch.zeros(n, dtype=_F64), trig,
+                             meta={"kind": "still", "power": power, "actual_start_s": window.start})
 
     def sine(
         self,
@@ -459,26 +451,19 @@ class SimulatedRig:
             expected = sum(self._render_near(MIMOSineTrajectory(self._plant, amp_t, om_t, input=input, image_matrix=G[k]),
                                              psf if psf.shape == () else psf[k], flat) for k in range(G.shape[0]))
         expected = expected.reshape((E, R) + self._frame_shape)
-        frames = self._expose(expected)
-        return Capture(
-            frames=frames,
-            exposure_s=exp_t,
-            trigger_offset_s=off_t,
-            trigger_time_s=trig_t,
-            frame_counter=self._counters((E, R)),
-            meta={
-                "kind": "sine",
-                "freq_hz": freq,
-                "omega": omega,
-                "period_s": period,
-                "amplitude": amp,
-                "settle_s": settle,
-                "power": power,
-                "trigger_delay_s": self._trigger_delay_s,
-                "input": input,
-                "actual_start_s": window.start,
-            },
-        )
+        meta = {
+            "kind": "sine",
+            "freq_hz": freq,
+            "omega": omega,
+            "period_s": period,
+            "amplitude": amp,
+            "settle_s": settle,
+            "power": power,
+            "trigger_delay_s": self._trigger_delay_s,
+            "input": input,
+            "actual_start_s": window.start,
+        }
+        return self._capture(expected, exp_t, off_t, trig_t, meta=meta)
 
     def pulse(
         self,
@@ -533,23 +518,16 @@ class SimulatedRig:
         on0 = ref_t + p0
         overlap = (torch.minimum(window.end, on0 + width) - torch.maximum(window.start, on0)).clamp_min(0.0)
         expected = self._still_image_per_s() * (power * overlap)[..., None, None]
-        frames = self._expose(expected)
-        return Capture(
-            frames=frames,
-            exposure_s=exp_t,
-            trigger_offset_s=off_t,
-            trigger_time_s=trig_t,
-            frame_counter=self._counters(shape),
-            meta={
-                "kind": "pulse",
-                "pulse_time_s": p0,
-                "pulse_width_s": width,
-                "power": power,
-                "trigger_delay_s": self._trigger_delay_s,
-                "reference_time_s": ref_t,
-                "actual_start_s": window.start,
-            },
-        )
+        meta = {
+            "kind": "pulse",
+            "pulse_time_s": p0,
+            "pulse_width_s": width,
+            "power": power,
+            "trigger_delay_s": self._trigger_delay_s,
+            "reference_time_s": ref_t,
+            "actual_start_s": window.start,
+        }
+        return self._capture(expected, exp_t, off_t, trig_t, meta=meta)
 
     def multisine(
         self,
@@ -615,26 +593,19 @@ class SimulatedRig:
         flat = ExposureWindow(window.start.reshape(-1), window.duration.reshape(-1))
         expected = self._render(traj, self._psf, flat).reshape((E, R) + self._frame_shape)
         expected = expected * torch.as_tensor(powers, dtype=_F64)[:, None, None, None]  # the image is linear in the power
-        frames = self._expose(expected)
-        return Capture(
-            frames=frames,
-            exposure_s=exp_t,
-            trigger_offset_s=off_t,
-            trigger_time_s=trig_t,
-            frame_counter=self._counters((E, R)),
-            meta={
-                "kind": "multisine",
-                "freq_hz": freqs,
-                "amplitude": amps,
-                "phase_rad": phases,
-                "base_freq_hz": f0,
-                "period_s": period,
-                "settle_s": settle,
-                "power": powers if len(set(powers)) > 1 else powers[0],
-                "trigger_delay_s": self._trigger_delay_s,
-                "actual_start_s": window.start,
-            },
-        )
+        meta = {
+            "kind": "multisine",
+            "freq_hz": freqs,
+            "amplitude": amps,
+            "phase_rad": phases,
+            "base_freq_hz": f0,
+            "period_s": period,
+            "settle_s": settle,
+            "power": powers if len(set(powers)) > 1 else powers[0],
+            "trigger_delay_s": self._trigger_delay_s,
+            "actual_start_s": window.start,
+        }
+        return self._capture(expected, exp_t, off_t, trig_t, meta=meta)
 
     def __repr__(self) -> str:
         kind = f"{self._plant.n_outputs}x{self._plant.n_inputs} plant" if isinstance(self._plant, PlantMatrix) else "plant"
