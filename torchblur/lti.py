@@ -233,6 +233,30 @@ class LTIResponse(Trajectory):
     unit). Subclasses hold ``delay_s``, ``direction``, ``method`` and ``_lam``, ``_c``
     (modal) or ``_a``, ``_cvec``, ``_x0`` (matrix exponential)."""
 
+    def _init_transient(self, A, C, x0, shape, device, method: str = "auto") -> None:
+        """The free response from the state ``x0`` ``[b, n]`` (b = prod(shape)) of
+        ``x' = A x, y = C x``: modal (eigen-decomposition, when its eigenvectors are
+        well conditioned or ``method="modal"``) or by the matrix exponential."""
+        n = A.shape[0]
+        self._cond = 1.0
+        if n:
+            lam, V = np.linalg.eig(A)
+            self._cond = float(np.linalg.cond(V))
+        use_modal = method == "modal" or (method == "auto" and self._cond <= _EIG_COND_MAX)
+        self.method = "modal" if (use_modal or n == 0) else "expm"
+        self._lam = self._c = self._a = self._cvec = self._x0 = None
+        if self.method == "modal":
+            if n:
+                c = (C @ V) * np.linalg.solve(V, x0.T.astype(complex)).T  # [b, n]
+            else:
+                lam, c = np.zeros(0, complex), np.zeros((x0.shape[0], 0), complex)
+            self._lam = torch.as_tensor(np.stack([lam.real, lam.imag], -1), device=device)  # [n, 2]
+            self._c = torch.as_tensor(np.stack([c.real, c.imag], -1).reshape(tuple(shape) + (n, 2)), device=device)
+        else:
+            self._a = torch.as_tensor(A, device=device)
+            self._cvec = torch.as_tensor(C, device=device)
+            self._x0 = torch.as_tensor(x0.reshape(tuple(shape) + (n,)), device=device)
+
     def _steady(self, tp: torch.Tensor) -> torch.Tensor:  # pragma: no cover - interface
         """The steady-state output at times ``tp`` after the delay (float64 ``[..., S]``)."""
         raise NotImplementedError
@@ -365,27 +389,7 @@ class LTISineTrajectory(LTIResponse):
             x0 = np.zeros((w.size, 0))
         self._h0 = torch.as_tensor(np.stack([h0.real, h0.imag], -1).reshape(tuple(shape) + (2,)), device=device)
 
-        self._cond = 1.0
-        if n:
-            _, V = np.linalg.eig(A)
-            self._cond = float(np.linalg.cond(V))
-        use_modal = method == "modal" or (method == "auto" and self._cond <= _EIG_COND_MAX)
-        self.method = "modal" if (use_modal or n == 0) else "expm"
-        self._lam = self._c = self._a = self._cvec = self._x0 = None
-        if self.method == "modal":
-            if n:
-                lam, V = np.linalg.eig(A)
-                cv = C @ V  # [n]
-                z = np.linalg.solve(V, x0.T.astype(complex)).T  # [N, n]
-                c = cv * z
-            else:
-                lam, c = np.zeros(0, complex), np.zeros((w.size, 0), complex)
-            self._lam = torch.as_tensor(np.stack([lam.real, lam.imag], -1), device=device)  # [n, 2]
-            self._c = torch.as_tensor(np.stack([c.real, c.imag], -1).reshape(tuple(shape) + (n, 2)), device=device)
-        else:
-            self._a = torch.as_tensor(A, device=device)
-            self._cvec = torch.as_tensor(C, device=device)
-            self._x0 = torch.as_tensor(x0.reshape(tuple(shape) + (n,)), device=device)
+        self._init_transient(A, C, x0, shape, device, method)
 
     # ------------------------------------------------------------------ interface
 

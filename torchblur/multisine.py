@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from .errors import InputTypeError, ParameterError, ShapeError, as_tensor, broadcast_batch, check_finite, check_positive
-from .lti import _EIG_COND_MAX, LTIResponse, Plant
+from .lti import LTIResponse, Plant
 from .timing import ExposureWindow
 from .trajectory import _sine_path_bound
 
@@ -329,23 +329,7 @@ class LTIMultisineTrajectory(LTIResponse):
             h0 = np.full(w.shape, complex(D))
             x0 = np.zeros((w.shape[0], 0))
         self._h0 = torch.as_tensor(np.stack([h0.real, h0.imag], -1).reshape(tuple(shape) + (N, 2)), device=device)
-        self._cond = 1.0
-        if n:
-            lam, V = np.linalg.eig(A)
-            self._cond = float(np.linalg.cond(V))
-        self.method = "modal" if (n == 0 or self._cond <= _EIG_COND_MAX) else "expm"
-        self._lam = self._c = self._a = self._cvec = self._x0 = None
-        if self.method == "modal":
-            if n:
-                c = (C @ V) * np.linalg.solve(V, x0.T.astype(complex)).T  # [b, n]
-            else:
-                lam, c = np.zeros(0, complex), np.zeros((x0.shape[0], 0), complex)
-            self._lam = torch.as_tensor(np.stack([lam.real, lam.imag], -1), device=device)
-            self._c = torch.as_tensor(np.stack([c.real, c.imag], -1).reshape(tuple(shape) + (n, 2)), device=device)
-        else:
-            self._a = torch.as_tensor(A, device=device)
-            self._cvec = torch.as_tensor(C, device=device)
-            self._x0 = torch.as_tensor(x0.reshape(tuple(shape) + (n,)), device=device)
+        self._init_transient(A, C, x0, shape, device)
 
     @property
     def shape(self) -> torch.Size:
