@@ -170,8 +170,8 @@ def _fit_core(
     tol: float = 1e-9,
     render_settings: RenderSettings | None = None,
 ) -> SinusoidFit:
-    """One pass of :func:`fit_sinusoid` (its arguments, less the robust options); flags are set there."""
-    images, omega = _validate(images, psf, window, omega, axes, optimizer, loss)
+    """One pass of :func:`fit_sinusoid` (its arguments, already checked there, less the robust
+    options); flags are set there."""
     dtype, device = images.dtype, images.device
     batch = images.shape[:-3]
     E, H, W = images.shape[-3:]
@@ -217,8 +217,7 @@ def _fit_core(
     # statistics need no more, and a median costs a selection per item).
     sub = flat[:, ::max(1, flat.shape[-1] // 2048)]
     med = sub.median(-1).values
-    mad = (sub - med[:, None]).abs().median(-1).values * 1.4826
-    noise_level = sigma_level if sigma_given is not None else mad
+    noise_level = sigma_level if sigma_given is not None else (sub - med[:, None]).abs().median(-1).values * 1.4826
     peak = (flat - med[:, None]).amax(-1)
     dark = ~(peak > 8 * noise_level.clamp_min(torch.finfo(dtype).tiny)) | (peak <= 0)
 
@@ -998,6 +997,8 @@ def fit_sinusoid(
                 normalize=normalize, max_iter=max_iter, tol=tol, render_settings=render_settings)
 
     def run(idx, use):
+        if idx.numel() == N:  # everything: no copies
+            return _fit_core(_inpaint(data, use), psf_n, win, om, noise_std=sig, mask=None if bool(use.all()) else use, **opts)
         return _fit_core(_inpaint(data[idx], use), _take_psf(psf_n, idx), win[idx], om[idx],
                          noise_std=None if sig is None else sig[idx], mask=None if bool(use.all()) else use, **opts)
 

@@ -77,12 +77,19 @@ def levenberg_marquardt(
         jacobian_fn: optional ``(theta [n, P], idx) -> (model [n, R], J [n, R, P])`` (an
             analytic Jacobian); default: forward-mode AD through ``model_fn``.
         gn_tol: optional (``l2`` and ``poisson``, weights ``1/sigma^2``): a problem has also
-            converged when the full Gauss-Newton step from its current point would lower the
-            cost by less than ``gn_tol`` times the cost per degree of freedom, i.e. when that
-            step is shorter than ``sqrt(gn_tol)`` standard deviations (Mahalanobis); the
-            step is then taken without the evaluation that would confirm it (``cost`` is
-            lowered by the predicted decrease; ``jtj`` and ``model`` stay those of the point
-            before it, which differ from the final point's by that fraction of a std).
+            converged when the full Gauss-Newton step from its current point is predicted to
+            land within ``sqrt(gn_tol)`` standard deviations of the optimum; that step is
+            then taken without the evaluation that would confirm it (``cost`` is lowered by
+            the predicted decrease; ``jtj`` and ``model`` stay those of the point before it).
+            Lengths are Mahalanobis, in units of the standard deviation
+            (``s^2 = step^T J^T W J step`` over the cost per degree of freedom). The landing
+            error is bounded by the step's length ``s`` itself, or, once a step of length
+            ``s_prev`` has been accepted, by ``s^2 / s_prev``: the convergence rate just
+            observed (the previous step left a remainder ``s``, a fraction ``s / s_prev`` of
+            itself) applied once more. Gauss-Newton converges at least that fast near a
+            well-posed optimum (quadratically when the residuals are small), so the bound is
+            conservative; far from the optimum or on a strongly curved cost the remainder
+            shrinks slowly and the bound keeps the step evaluated.
 
     Returns:
         :class:`LMResult`. ``converged`` is False where ``max_iter`` ran out.
@@ -90,7 +97,6 @@ def levenberg_marquardt(
     N, P = theta0.shape
     theta = theta0.detach().clone()
     all_idx = torch.arange(N, device=theta.device)
-    w_of = (lambda i: None) if weight is None else (lambda i: weight[i])
     # Lazy mode (an analytic Jacobian that also returns the model): each trial point is
     # evaluated with its Jacobian in one call, kept if the step is accepted (the usual case
     # from a good start), so an iteration costs one call and the final J^T W J is exact.
@@ -100,24 +106,33 @@ def levenberg_marquardt(
     g = torch.zeros(N, P, dtype=theta.dtype, device=theta.device)
     model_store = None
 
+    def rows(t, idx):
+        """``t[idx]``, without the copy when ``idx`` is every row (in order)."""
+        return t if t is None or idx.numel() == N else t[idx]
+
     def normal_equations(model, J, idx):
-        W = irls_weights(model, data[idx], loss=loss, weight=w_of(idx))
+        """``(J^T W J [n, P, P], J^T W r [n, P], cost [n])`` at ``model`` (``W``: the loss's
+        Gauss-Newton weights; for l2 the cost comes from the same residuals)."""
+        d, w = rows(data, idx), rows(weight, idx)
+        r = d - model
+        W = irls_weights(model, d, loss=loss, weight=w)
         JW = J.transpose(-1, -2) * W[:, None, :]  # [n, P, R]: GEMMs below (fast when J is a view of [n, P, R])
-        return JW @ J, (JW @ (data[idx] - model)[..., None])[..., 0]
+        c = (W * r * r).sum(-1) if loss == "l2" else image_loss(model, d, loss=loss, weight=w)
+        return JW @ J, (JW @ r[..., None])[..., 0], c
 
     with torch.no_grad():
         if lazy:
             model0, J0 = jac(theta, all_idx)
-            cost = image_loss(model0, data, loss=loss, weight=weight)
-            JTJ, g = normal_equations(model0, J0, all_idx)
+            JTJ, g, cost = normal_equations(model0, J0, all_idx)
             model_store = model0.clone()
         else:
             cost = image_loss(model_fn(theta, all_idx), data, loss=loss, weight=weight)
         # A cost this small is round-off: converged (noise-free data).
-        floor = (10 * torch.finfo(theta.dtype).eps) ** 2 * image_loss(torch.zeros_like(data), data, loss="l2", weight=weight)
+        floor = (10 * torch.finfo(theta.dtype).eps) ** 2 * ((data * data).sum(-1) if weight is None else (weight * data * data).sum(-1))
         if gn_tol is not None:
             used = torch.full((N,), data.shape[-1], dtype=theta.dtype, device=theta.device) if weight is None else (weight > 0).sum(-1)
             dof = (used - P).clamp_min(1).to(theta.dtype)
+            s_prev = torch.full((N,), float("nan"), dtype=theta.dtype, device=theta.device)  # last accepted step, in std
     lam = torch.full((N,), lambda0, dtype=theta.dtype, device=theta.device)
     converged = torch.zeros(N, dtype=torch.bool, device=theta.device)
     n_iter = torch.zeros(N, dtype=torch.long, device=theta.device)
@@ -129,7 +144,7 @@ def levenberg_marquardt(
         jac_idx = all_idx[active & need_jac]
         if jac_idx.numel():
             model, J = jac(theta[jac_idx], jac_idx)
-            JTJ[jac_idx], g[jac_idx] = normal_equations(model, J, jac_idx)
+            JTJ[jac_idx], g[jac_idx], _ = normal_equations(model, J, jac_idx)
             need_jac[jac_idx] = False
         idx = all_idx[active]
         if gn_tol is not None:
@@ -137,7 +152,10 @@ def levenberg_marquardt(
             ridge = 1e-12 * torch.diag_embed(torch.diagonal(A, dim1=-2, dim2=-1).abs() + 1e-300)
             gn, info = torch.linalg.solve_ex(A + ridge, g[idx][..., None])
             pred = (g[idx] * gn[..., 0]).sum(-1)
-            tiny = (info == 0) & torch.isfinite(pred) & (pred <= gn_tol * cost[idx] / dof[idx])
+            s2 = pred / (cost[idx] / dof[idx]).clamp_min(1e-300)  # the step's squared length in std^2
+            # Predicted landing error: the step itself, or s^2 / s_prev with the observed rate.
+            land2 = torch.where(torch.isnan(s_prev[idx]), s2, s2 * s2 / s_prev[idx].square())
+            tiny = (info == 0) & torch.isfinite(pred) & (torch.minimum(s2, land2) <= gn_tol)
             if bool(tiny.any()):
                 # The last Gauss-Newton step is taken unevaluated: from a point this close,
                 # the quadratic model is exact to a small fraction of the step.
@@ -164,19 +182,22 @@ def levenberg_marquardt(
         with torch.no_grad():
             if lazy:
                 m_t, J_t = jac(trial, idx)
-                new_cost = image_loss(m_t, data[idx], loss=loss, weight=w_of(idx))
+                jtj_t, g_t, new_cost = normal_equations(m_t, J_t, idx)
             else:
-                new_cost = image_loss(model_fn(trial, idx), data[idx], loss=loss, weight=w_of(idx))
+                new_cost = image_loss(model_fn(trial, idx), rows(data, idx), loss=loss, weight=rows(weight, idx))
         ok = torch.isfinite(new_cost) & (new_cost <= cost[idx])
         rel = (cost[idx] - new_cost) / cost[idx].abs().clamp_min(1e-300)
         small_step = (step.abs() <= 1e-12 * (theta[idx].abs() + 1e-8)).all(-1)
         acc = idx[ok]
+        if gn_tol is not None:
+            # The accepted step's length in std (the quadratic model's decrease along it).
+            st = step[ok]
+            s_prev[acc] = ((st[:, None, :] @ A[ok] @ st[..., None])[:, 0, 0] / (cost[acc] / dof[acc]).clamp_min(1e-300)).clamp_min(0).sqrt()
         theta[acc] = trial[ok]
         cost[acc] = new_cost[ok]
         if lazy:
             if acc.numel():
-                JTJ[acc], g[acc] = normal_equations(m_t[ok], J_t[ok], acc)
-                model_store[acc] = m_t[ok]
+                JTJ[acc], g[acc], model_store[acc] = jtj_t[ok], g_t[ok], m_t[ok]
         else:
             need_jac[acc] = True
         lam[idx] = torch.where(ok, (lam[idx] / 3).clamp_min(1e-12), lam[idx] * 4)

@@ -158,6 +158,9 @@ def _splat_jacobian(px, py, dpx, dpy, w, A, B, C, H, W):
     z1, z2 = z1[..., None], z2[..., None]
     neg_b = -B[:, None, None, None, None]
     lyx = ly[:, None] * lx  # [Th, Tw]
+    # The cross term exp(-B X Y) [Th, Tw]: once for the batch when every frame has the same B
+    # (one PSF for all frames, the usual case), else per frame.
+    eb_shared = torch.exp(neg_b[:1] * lyx) if N and bool((B == B[0]).all()) else None
     ly_q = ly[:, None, None]  # [Th, 1, 1]
 
     image = px.new_empty(N, P, Th, R, Tw)
@@ -174,7 +177,7 @@ def _splat_jacobian(px, py, dpx, dpy, w, A, B, C, H, W):
         rp = gx[..., None, :] * coef[sl]
         rp[..., 1 + nq:, :].addcmul_((gx * lx)[..., None, :], alpha[sl])
         r = (gy.transpose(-1, -2) @ rp.view(n, P, R, S, V * Tw)).view(n, P, R, Th, V, Tw)
-        eb = torch.exp(neg_b[sl] * lyx)  # [n, 1, 1, Th, Tw]
+        eb = eb_shared if eb_shared is not None else torch.exp(neg_b[sl] * lyx)  # [n or 1, 1, 1, Th, Tw]
         image[sl].transpose(2, 3).copy_(r[..., 0, :]).mul_(eb)
         jv = jac[sl].permute(0, 2, 4, 3, 1, 5)  # [n, P, R, Th, Q, Tw]
         jv.copy_(r[..., 1 + nq:, :]).addcmul_(r[..., 1:1 + nq, :], ly_q).mul_(eb[..., None, :])
