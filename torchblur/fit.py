@@ -187,8 +187,10 @@ def _fit_core(
     else:
         rest, cov_psf = p_flat.moments()
 
-    # Weights and the noise level.
-    weight = torch.ones_like(data)
+    # Weights and the noise level. ``row_weight [N]``: one weight per item (the same noise on
+    # every pixel, nothing masked), then ``weight`` is a broadcast view of it, not a copy.
+    row_weight = torch.ones(N, dtype=dtype, device=device)
+    weight = row_weight[:, None, None, None].expand(N, E, H, W)
     sigma_given = None
     if noise_std is not None:
         s = check_positive(as_tensor(noise_std, "noise_std", like=data), "noise_std")
@@ -201,7 +203,11 @@ def _fit_core(
                 raise ShapeError(f"noise_std: expected a number, [...] or [..., E, H, W], got {tuple(s.shape)}") from None
         sigma_level = s.reshape(N, -1).contiguous().median(-1).values
         sigma_given = s.expand(N, E, H, W)
-        weight = 1 / sigma_given**2
+        if s.shape[-3:] == (1, 1, 1):
+            row_weight = 1 / s.reshape(N) ** 2
+            weight = row_weight[:, None, None, None].expand(N, E, H, W)
+        else:
+            row_weight, weight = None, 1 / sigma_given**2
     if mask is not None:
         if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool:
             raise InputTypeError("mask: expected a bool tensor [..., E, H, W] (True = use the pixel)")
@@ -210,6 +216,7 @@ def _fit_core(
         except RuntimeError:
             raise ShapeError(f"mask: expected shape [..., E, H, W] = {tuple(images.shape)}, got {tuple(mask.shape)}") from None
         weight = weight * m.to(dtype)
+        row_weight = None
 
     # Degenerate items: no signal above the noise.
     flat = data.reshape(N, -1)
@@ -313,12 +320,20 @@ def _fit_core(
         cx0, cy0 = max(0, int(math.floor(float(lo[0])))), max(0, int(math.floor(float(lo[1]))))
         cx1, cy1 = min(W, int(math.ceil(float(hi[0]))) + 1), min(H, int(math.ceil(float(hi[1]))) + 1)
         if cx1 - cx0 >= 4 and cy1 - cy0 >= 4 and (cx1 - cx0) * (cy1 - cy0) < 0.9 * H * W:
-            inside = torch.zeros(H, W, dtype=torch.bool, device=device)
-            inside[cy0:cy1, cx0:cx1] = True
-            out_w = weight * ~inside
-            outside_cost = (out_w * data * data).sum((-1, -2, -3))
-            outside_sq = ((out_w > 0) * data * data).sum((-1, -2, -3))
-            outside_n = (out_w > 0).sum((-1, -2, -3)).to(dtype)
+            def out_sum(t):  # [N, E, H, W] -> [N]: the sum over the pixels outside the crop
+                return (t[..., :cy0, :].sum((-1, -2, -3)) + t[..., cy1:, :].sum((-1, -2, -3))
+                        + t[..., cy0:cy1, :cx0].sum((-1, -2, -3)) + t[..., cy0:cy1, cx1:].sum((-1, -2, -3)))
+
+            sq = data * data
+            if row_weight is not None:
+                outside_sq = out_sum(sq)
+                outside_cost = row_weight * outside_sq
+                outside_n.fill_(E * (H * W - (cy1 - cy0) * (cx1 - cx0)))
+            else:
+                used = weight > 0
+                outside_cost = out_sum(weight * sq)
+                outside_sq = out_sum(used * sq)
+                outside_n = out_sum(used.to(dtype))
             x0, y0 = cx0, cy0
             data = data[..., cy0:cy1, cx0:cx1]
             weight = weight[..., cy0:cy1, cx0:cx1]
@@ -567,7 +582,8 @@ def _fit_core(
 
     # Uncertainty: the Fisher information at the solution.
     w = weight.reshape(N, -1)
-    n_used = (w > 0).sum(-1).to(dtype) + outside_n
+    n_used = (torch.full((N,), float(w.shape[-1]), dtype=dtype, device=device) if row_weight is not None
+              else (w > 0).sum(-1).to(dtype)) + outside_n
     if reuse:
         model = model_best
         sign = torch.ones(N, P, dtype=dtype, device=device)

@@ -110,11 +110,24 @@ def levenberg_marquardt(
         """``t[idx]``, without the copy when ``idx`` is every row (in order)."""
         return t if t is None or idx.numel() == N else t[idx]
 
+    # l2 with one weight per problem (the same noise level on every pixel, nothing masked):
+    # the weight multiplies the small products instead of every pixel.
+    row_w = None
+    if loss == "l2":
+        if weight is None:
+            row_w = torch.ones(N, dtype=theta.dtype, device=theta.device)
+        elif weight.shape[-1] and bool((weight == weight[:, :1]).all()):
+            row_w = weight[:, 0].to(theta.dtype)
+
     def normal_equations(model, J, idx):
         """``(J^T W J [n, P, P], J^T W r [n, P], cost [n])`` at ``model`` (``W``: the loss's
         Gauss-Newton weights; for l2 the cost comes from the same residuals)."""
         d, w = rows(data, idx), rows(weight, idx)
         r = d - model
+        if row_w is not None:
+            wr = rows(row_w, idx)
+            Jt = J.transpose(-1, -2)
+            return (Jt @ J) * wr[:, None, None], (Jt @ r[..., None])[..., 0] * wr[:, None], (r[:, None, :] @ r[..., None])[:, 0, 0] * wr
         W = irls_weights(model, d, loss=loss, weight=w)
         JW = J.transpose(-1, -2) * W[:, None, :]  # [n, P, R]: GEMMs below (fast when J is a view of [n, P, R])
         c = (W * r * r).sum(-1) if loss == "l2" else image_loss(model, d, loss=loss, weight=w)
