@@ -230,20 +230,59 @@ def test_continuity_resolver_through_a_resonance():
 
 def test_per_frame_node_counts_follow_each_streak():
     """The analytic path gives each frame the nodes its own streak needs (the short exposure
-    fewer); one rule of the batch's largest count for every frame gives the same estimates."""
+    fewer), merging counts only where a separate splat call would cost more than the extra
+    nodes; one rule of the batch's largest count for every frame gives the same estimates."""
     from torchblur.render import RenderSettings
 
-    d = make(N=6, sigma_frac=0.01, seed=7)
+    d = make(N=160, sigma_frac=0.01, seed=7)
     res = fit_sinusoid(d["images"], d["psf"], d["win"], d["om"], noise_std=d["sigma"])
     npf = res.extras["nodes_per_frame"]
-    assert npf.shape == (6, 2)
+    assert npf.shape == (160, 2)
     assert bool((npf[:, 0] <= npf[:, 1]).all()) and bool((npf[:, 0] < npf[:, 1]).any())
+    assert len(torch.unique(npf)) >= 2
     assert int(npf.max()) == res.extras["nodes"]
     ref = fit_sinusoid(d["images"], d["psf"], d["win"], d["om"], noise_std=d["sigma"],
                        render_settings=RenderSettings(nodes=res.extras["nodes"]))
     assert bool((ref.extras["nodes_per_frame"] == res.extras["nodes"]).all())
     assert float(((res.amplitude - ref.amplitude) / res.amplitude_std).abs().max()) < 1e-2
     assert float((wrap(res.phase - ref.phase) / res.phase_std).abs().max()) < 1e-2
+    # a small batch: one call (merged to the largest count) is cheaper than several
+    small = fit_sinusoid(d["images"][:6], d["psf"][:6], d["win"][:6], d["om"][:6], noise_std=d["sigma"][:6])
+    assert len(torch.unique(small.extras["nodes_per_frame"])) == 1
+
+
+def test_merged_panel_groups_are_the_cheapest_partition():
+    """The dynamic programme over panel counts matches a brute force over every split of the
+    sorted distinct counts into consecutive groups, and never gives a frame fewer panels."""
+    import itertools
+
+    from torchblur.fit import _merge_panel_groups
+
+    g = torch.Generator().manual_seed(3)
+    for trial in range(40):
+        K = 1 + trial % 6
+        vals = torch.randperm(12, generator=g)[:K].sort().values + 1
+        panels = vals[torch.randint(0, K, (int(torch.randint(1, 60, (1,), generator=g)), 2), generator=g)]
+        call = float(torch.rand(1, generator=g)) * 400
+        out = _merge_panel_groups(panels, 8, call)
+        assert bool((out >= panels).all())
+
+        def cost(p):
+            v, m = torch.unique(p, return_counts=True)
+            return len(v) * call + float((v * m).sum()) * 8
+
+        v = torch.unique(panels).tolist()
+        best = math.inf
+        for cuts in itertools.product([0, 1], repeat=len(v) - 1):  # 1: a group ends after count k
+            q = panels.clone()
+            start = 0
+            for k in range(len(v)):
+                if k == len(v) - 1 or cuts[k]:
+                    for j in range(start, k + 1):
+                        q[panels == v[j]] = v[k]
+                    start = k + 1
+            best = min(best, cost(q))
+        assert cost(out) <= best + 1e-9
 
 
 def test_lm_final_gauss_newton_step_lands_on_the_optimum():

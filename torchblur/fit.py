@@ -407,6 +407,8 @@ def _fit_core(
         if panels is None or settings.nodes % m_nodes:  # nodes given by the caller: one rule for every frame
             m_nodes = settings.nodes if settings.nodes % m_nodes else m_nodes
             panels = torch.full((N, E), settings.nodes // m_nodes, dtype=torch.long, device=device)
+        else:
+            panels = _merge_panel_groups(panels, m_nodes, _CALL_NODE_PIXELS / (H * W))
         rules = {}  # panel count -> (tau [S], weights [S])
         A_all, B_all, C_all = p_flat.precision()
 
@@ -731,6 +733,39 @@ def _optimise(model_fn, theta0, data, weight, loss, optimizer, max_iter, tol, pr
 
 
 # --------------------------------------------------------------------------- public entry: checks, masks, robust pass, flags
+
+
+# One splat call's fixed cost (Python and per-operation overheads) in nodes x pixels of frame
+# work: measured on a 2-core CPU, 1.8 ms per call against 0.84 us per node of a 22x54 frame.
+_CALL_NODE_PIXELS = 2.5e6
+
+
+def _merge_panel_groups(panels: torch.Tensor, m_nodes: int, call_nodes: float) -> torch.Tensor:
+    """Panel counts ``[N, E]`` with groups of adjacent counts merged (their frames rounded up to
+    the group's largest count) so as to minimise the splat's cost: frames of equal count are
+    rendered by one call, which costs ``call_nodes`` node-frames of overhead, and a frame costs
+    its nodes. An exact dynamic programme over the distinct counts (a handful)."""
+    vals, counts = torch.unique(panels, return_counts=True)
+    v, m = vals.tolist(), counts.tolist()
+    K = len(v)
+    if K <= 1:
+        return panels
+    best, cut = [0.0] + [math.inf] * K, [0] * (K + 1)
+    for j in range(1, K + 1):  # best[j]: the cheapest grouping of the j smallest counts
+        frames = 0
+        for i in range(j, 0, -1):  # the last group: counts i..j, all at count j
+            frames += m[i - 1]
+            c = best[i - 1] + call_nodes + frames * v[j - 1] * m_nodes
+            if c < best[j]:
+                best[j], cut[j] = c, i
+    out = panels.clone()
+    j = K
+    while j > 0:
+        i = cut[j]
+        for k in range(i, j):
+            out[panels == v[k - 1]] = v[j - 1]
+        j = i - 1
+    return out
 
 
 def _check_flag(value, name: str) -> bool:
