@@ -220,9 +220,10 @@ def _fit_core(
 
     # Degenerate items: no signal above the noise.
     flat = data.reshape(N, -1)
-    # Background and noise level from ~2048-4096 pixels per item (a strided subsample: robust
-    # statistics need no more, and a median costs a selection per item).
-    sub = flat[:, ::max(1, flat.shape[-1] // 2048)]
+    # Background and noise level from ~1024-2048 pixels per item (a strided subsample: the
+    # median of 1024 noise samples is within 0.04 std of the level, and a median costs a
+    # selection per item).
+    sub = flat[:, ::max(1, flat.shape[-1] // 1024)]
     med = sub.median(-1).values
     noise_level = sigma_level if sigma_given is not None else (sub - med[:, None]).abs().median(-1).values * 1.4826
     peak = (flat - med[:, None]).amax(-1)
@@ -320,20 +321,24 @@ def _fit_core(
         cx0, cy0 = max(0, int(math.floor(float(lo[0])))), max(0, int(math.floor(float(lo[1]))))
         cx1, cy1 = min(W, int(math.ceil(float(hi[0]))) + 1), min(H, int(math.ceil(float(hi[1]))) + 1)
         if cx1 - cx0 >= 4 and cy1 - cy0 >= 4 and (cx1 - cx0) * (cy1 - cy0) < 0.9 * H * W:
-            def out_sum(t):  # [N, E, H, W] -> [N]: the sum over the pixels outside the crop
-                return (t[..., :cy0, :].sum((-1, -2, -3)) + t[..., cy1:, :].sum((-1, -2, -3))
-                        + t[..., cy0:cy1, :cx0].sum((-1, -2, -3)) + t[..., cy0:cy1, cx1:].sum((-1, -2, -3)))
+            bands = ((slice(None, cy0), slice(None)), (slice(cy1, None), slice(None)),
+                     (slice(cy0, cy1), slice(None, cx0)), (slice(cy0, cy1), slice(cx1, None)))
 
-            sq = data * data
+            def out_sum(f):  # f(band index) -> [N, E, h, w]: summed over the pixels outside the crop -> [N]
+                return sum(f(b).sum((-1, -2, -3)) for b in bands)
+
+            def sq(b):
+                d = data[(..., *b)]
+                return d * d
+
             if row_weight is not None:
                 outside_sq = out_sum(sq)
                 outside_cost = row_weight * outside_sq
                 outside_n.fill_(E * (H * W - (cy1 - cy0) * (cx1 - cx0)))
             else:
-                used = weight > 0
-                outside_cost = out_sum(weight * sq)
-                outside_sq = out_sum(used * sq)
-                outside_n = out_sum(used.to(dtype))
+                outside_cost = out_sum(lambda b: weight[(..., *b)] * sq(b))
+                outside_sq = out_sum(lambda b: (weight[(..., *b)] > 0) * sq(b))
+                outside_n = out_sum(lambda b: (weight[(..., *b)] > 0).to(dtype))
             x0, y0 = cx0, cy0
             data = data[..., cy0:cy1, cx0:cx1]
             weight = weight[..., cy0:cy1, cx0:cx1]

@@ -141,7 +141,8 @@ def levenberg_marquardt(
         else:
             cost = image_loss(model_fn(theta, all_idx), data, loss=loss, weight=weight)
         # A cost this small is round-off: converged (noise-free data).
-        floor = (10 * torch.finfo(theta.dtype).eps) ** 2 * ((data * data).sum(-1) if weight is None else (weight * data * data).sum(-1))
+        d2 = (data[:, None, :] @ data[..., None])[:, 0, 0] if weight is None or row_w is not None else (weight * data * data).sum(-1)
+        floor = (10 * torch.finfo(theta.dtype).eps) ** 2 * (d2 if row_w is None else d2 * row_w)
         if gn_tol is not None:
             used = torch.full((N,), data.shape[-1], dtype=theta.dtype, device=theta.device) if weight is None else (weight > 0).sum(-1)
             dof = (used - P).clamp_min(1).to(theta.dtype)
