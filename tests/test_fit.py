@@ -312,3 +312,21 @@ def test_lm_final_gauss_newton_step_lands_on_the_optimum():
     assert float(((fast.theta - ref.theta) / std).abs().max()) < 0.02
     # the reported cost is the optimum's to the same order (the predicted decrease was subtracted)
     assert float(((fast.cost - ref.cost) / ref.cost).abs().max()) < 1e-4
+
+
+def test_final_step_from_the_observed_rate_lands_on_the_optimum(monkeypatch):
+    """The fitter stops once the convergence rate it observed says the next Gauss-Newton step
+    lands within 0.1 std (gn_tol 1e-2); that step, taken unevaluated, lands within a small
+    fraction of a std of the fully converged optimum, in fewer iterations."""
+    import torchblur.fit as fit_mod
+
+    d = make(N=60, sigma_frac=0.01, seed=11)
+    res = fit_sinusoid(d["images"], d["psf"], d["win"], d["om"], noise_std=d["sigma"])
+    monkeypatch.setattr(fit_mod, "GN_TOL", 1e-14)
+    ref = fit_sinusoid(d["images"], d["psf"], d["win"], d["om"], noise_std=d["sigma"], tol=1e-15)
+    assert bool(res.converged.all()) and bool(ref.converged.all())
+    assert int(res.n_iter.sum()) < int(ref.n_iter.sum())
+    assert float(((res.amplitude - ref.amplitude) / ref.amplitude_std).abs().max()) < 0.05
+    assert float((wrap(res.phase - ref.phase) / ref.phase_std).abs().max()) < 0.05
+    # the reported cost is the optimum's to well under one unit of chi^2
+    assert float((res.cost - ref.cost).abs().max()) < 0.05

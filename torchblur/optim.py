@@ -83,13 +83,16 @@ def levenberg_marquardt(
             the predicted decrease; ``jtj`` and ``model`` stay those of the point before it).
             Lengths are Mahalanobis, in units of the standard deviation
             (``s^2 = step^T J^T W J step`` over the cost per degree of freedom). The landing
-            error is bounded by the step's length ``s`` itself, or, once a step of length
-            ``s_prev`` has been accepted, by ``s^2 / s_prev``: the convergence rate just
+            error is estimated as the step's length ``s`` itself or, once a step of length
+            ``s_prev`` has been accepted, as ``s^2 / s_prev``: the convergence rate just
             observed (the previous step left a remainder ``s``, a fraction ``s / s_prev`` of
-            itself) applied once more. Gauss-Newton converges at least that fast near a
-            well-posed optimum (quadratically when the residuals are small), so the bound is
-            conservative; far from the optimum or on a strongly curved cost the remainder
-            shrinks slowly and the bound keeps the step evaluated.
+            itself) applied once more, whichever is smaller. With noisy data Gauss-Newton
+            converges linearly near the optimum, at about that rate; far from it, or on a
+            strongly curved cost, the remainder shrinks slowly and the estimate keeps the
+            step evaluated. It is an estimate, not a bound: on 1200 problems of
+            ``benchmarks/bench_fit.py`` the actual remainder after the steps in the
+            0.05-5 std range was 0.2x the estimate at the median, at most 3.6x, and the steps
+            taken unevaluated with ``gn_tol=1e-2`` landed within 0.026 std.
 
     Returns:
         :class:`LMResult`. ``converged`` is False where ``max_iter`` ran out.
