@@ -8,7 +8,7 @@ problem's peak, 48x64 frames) and prints, measured in one run:
   (Levenberg-Marquardt on a numpy render with the same nodes) with 8 phase starts, and
   started at the truth (scipy timed on a subset; the ratio is per problem).
 
-    python benchmarks/bench_fit.py [--n 300] [--scipy-n 20] [--threads 2] [--dtype float64] [--repeats 3]
+    python benchmarks/bench_fit.py [--n 300] [--scipy-n 20] [--threads 2] [--dtype float64] [--repeats 3] [--seed 0]
 """
 from __future__ import annotations
 
@@ -104,10 +104,11 @@ def main():
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--dtype", default="float64", choices=["float32", "float64"])
     ap.add_argument("--repeats", type=int, default=3, help="timing repeats (the fastest counts)")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the simulated problems")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     dtype = getattr(torch, args.dtype)
-    d = make_problems(args.n, dtype)
+    d = make_problems(args.n, dtype, seed=args.seed)
     fit_sinusoid(d["images"][:4], d["psf"][:4], d["win"][:4], d["om"][:4], noise_std=d["sigma"][:4])  # warm-up
     # Timing on a shared machine: the batched fit and the scipy fits alternate, --repeats
     # times, and each keeps its fastest repeat (load from other processes only adds time).
