@@ -330,3 +330,46 @@ def test_final_step_from_the_observed_rate_lands_on_the_optimum(monkeypatch):
     assert float((wrap(res.phase - ref.phase) / ref.phase_std).abs().max()) < 0.05
     # the reported cost is the optimum's to well under one unit of chi^2
     assert float((res.cost - ref.cost).abs().max()) < 0.05
+
+
+def test_fit_along_a_rotated_image_direction():
+    """An actuator axis rotated in the camera's image (25 deg): fitted along that direction
+    the estimates are honest (errors match the reported stds); fitted along x they are not.
+    axes="x" is exactly axes=(1, 0); bad directions are refused naming ``axes``."""
+    from torchblur.errors import ParameterError, ShapeError
+
+    g = torch.Generator().manual_seed(5)
+    N, ang = 40, math.radians(25.0)
+    u = torch.tensor([math.cos(ang), math.sin(ang)], dtype=F64)
+    om = 2 * math.pi * (20 + 780 * torch.rand(N, generator=g, dtype=F64))
+    M = 3 + 4 * torch.rand(N, generator=g, dtype=F64)
+    phi = (2 * torch.rand(N, generator=g, dtype=F64) - 1) * math.pi
+    win = dual_exposure_windows(om, fractions=(0.3, 0.8), trigger_phase=2 * math.pi * torch.rand(N, generator=g, dtype=F64))
+    cen = torch.tensor([19.5, 15.5], dtype=F64).expand(N, 2)
+    psf = tb.GaussianPSF.from_axes(cen, torch.full((N,), 2.2, dtype=F64), torch.full((N,), 1.5, dtype=F64), torch.full((N,), 0.5, dtype=F64))
+    traj = tb.Sinusoid((M[:, None] * u)[:, None], torch.stack([phi, phi], -1)[:, None], om[:, None])
+    clean = tb.render_blur(traj, tb.GaussianPSF(psf.center[:, None], psf.cov[:, None]), win, height=H, width=W)
+    sigma = 0.01 * clean.amax((-1, -2, -3))
+    images = clean + sigma[:, None, None, None] * torch.randn(clean.shape, generator=g, dtype=F64)
+
+    res = fit_sinusoid(images, psf, win, om, axes=(float(u[0]) * 3, float(u[1]) * 3), noise_std=sigma)  # normalised
+    assert res.param_names[:2] == ("amplitude_u", "phase_u")
+    assert bool(res.converged.all())
+    zM = (res.amplitude - M) / res.amplitude_std
+    zP = wrap(res.phase - phi) / res.phase_std
+    assert float(zM.abs().max()) < 4.5 and float(zP.abs().max()) < 4.5
+    assert 0.6 < float(zM.square().mean().sqrt()) < 1.5 and 0.6 < float(zP.square().mean().sqrt()) < 1.5
+    per_item = fit_sinusoid(images, psf, win, om, axes=u.expand(N, 2), noise_std=sigma)
+    assert torch.allclose(per_item.amplitude, res.amplitude, rtol=0, atol=1e-12)
+    # along x the model cannot explain the image: a far larger cost, amplitudes off by many std
+    along_x = fit_sinusoid(images, psf, win, om, noise_std=sigma)
+    assert float((along_x.cost / res.cost).median()) > 10
+    assert float(((along_x.amplitude - M) / along_x.amplitude_std).abs().median()) > 10
+    # "x" is the direction (1, 0), bit for bit
+    x_named = fit_sinusoid(images[:6], psf[:6], win[:6], om[:6], noise_std=sigma[:6])
+    x_dir = fit_sinusoid(images[:6], psf[:6], win[:6], om[:6], axes=(1.0, 0.0), noise_std=sigma[:6])
+    assert torch.equal(x_named.amplitude, x_dir.amplitude) and torch.equal(x_named.phase, x_dir.phase)
+    for bad, err in (((0.0, 0.0), ParameterError), ((1.0, 2.0, 3.0), ShapeError), ((float("nan"), 1.0), ParameterError),
+                     (torch.ones(3, 2, dtype=F64), ShapeError)):
+        with pytest.raises(err, match="axes"):
+            fit_sinusoid(images[:2], psf[:2], win[:2], om[:2], axes=bad)

@@ -123,7 +123,8 @@ def _validate(images, psf, window, omega, axes, optimizer, loss):
         raise InputTypeError(f"psf: expected GaussianPSF or KernelPSF, got {type(psf).__name__}")
     if not isinstance(window, ExposureWindow):
         raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
-    check_choice(axes, "axes", AXES)
+    if isinstance(axes, str):
+        check_choice(axes, "axes", AXES)
     check_choice(optimizer, "optimizer", OPTIMIZERS)
     check_choice(loss, "loss", LOSSES)
     if optimizer == "lm" and loss == "linf":
@@ -157,7 +158,7 @@ def _fit_core(
     window: ExposureWindow,
     omega,
     *,
-    axes: str = "x",
+    axes="x",
     optimizer: str = "lm",
     loss: str = "l2",
     noise_std=None,
@@ -171,7 +172,7 @@ def _fit_core(
     render_settings: RenderSettings | None = None,
 ) -> SinusoidFit:
     """One pass of :func:`fit_sinusoid` (its arguments, already checked there, less the robust
-    options); flags are set there."""
+    options; ``axes`` a name or unit directions ``[N, 2]``); flags are set there."""
     dtype, device = images.dtype, images.device
     batch = images.shape[:-3]
     E, H, W = images.shape[-3:]
@@ -232,12 +233,14 @@ def _fit_core(
     # Closed-form starts from the moments of every exposure (both roots).
     thr = med[:, None] + 3 * noise_level[:, None]
     _, centroid, icov = image_moments(data, threshold=thr)  # [N, E, 2], [N, E, 2, 2]
-    axis_ids = {"x": [0], "y": [1], "xy": [0, 1]}[axes]
-    n_axes = len(axis_ids)
+    # The image direction of each fitted axis: D [N, n_axes, 2] (unit vectors).
+    D = _axis_directions(axes, N, dtype, device)
+    n_axes = D.shape[1]
     M_c, phi_c = [], []
-    for a in axis_ids:
-        mu1 = centroid[..., a] - rest[:, None, a]
-        vex = icov[..., a, a] - cov_psf[:, None, a, a]
+    for k in range(n_axes):
+        d = D[:, None, k]  # [N, 1, 2]
+        mu1 = ((centroid - rest[:, None]) * d).sum(-1)
+        vex = (d[..., None, :] @ (icov - cov_psf[:, None]) @ d[..., None])[..., 0, 0]
         M, phi = sinusoid_from_moments(mu1, vex, om[:, None], start, dur)  # [N, E], [N, E, 2]
         M_c.append(M)
         phi_c.append(torch.nan_to_num(phi, nan=0.0))
@@ -280,7 +283,8 @@ def _fit_core(
     theta_core = torch.stack(cands, 1)  # [N, K, 2 n_axes]
     theta_core[..., :n_axes] = theta_core[..., :n_axes].clamp_min(1e-3)
 
-    names = [f"amplitude_{'xy'[a]}" for a in axis_ids] + [f"phase_{'xy'[a]}" for a in axis_ids]
+    labels = ["u"] if isinstance(axes, torch.Tensor) else list(axes)
+    names = [f"amplitude_{a}" for a in labels] + [f"phase_{a}" for a in labels]
     extra = []
     if fit_scale:
         names.append("scale")
@@ -313,8 +317,7 @@ def _fit_core(
     outside_n = torch.zeros(N, dtype=dtype, device=device)
     live_items = ~dark & ~outside
     if loss == "l2" and not normalize and not fit_background and bool(live_items.any()):
-        reach = torch.zeros(N, 2, dtype=dtype, device=device)
-        reach[:, axis_ids] = theta_core[..., :n_axes].amax(1) * 1.25 + 0.5
+        reach = (D.abs() * (theta_core[..., :n_axes].amax(1) * 1.25 + 0.5)[..., None]).sum(1)  # [N, 2] px
         sdv = torch.diagonal(cov_psf, dim1=-2, dim2=-1).clamp_min(0).sqrt()
         lo = (rest - reach - 5.5 * sdv - (2.0 if fit_center else 0.0))[live_items].amin(0)
         hi = (rest + reach + 5.5 * sdv + (2.0 if fit_center else 0.0))[live_items].amax(0)
@@ -363,8 +366,7 @@ def _fit_core(
     panels = None
     if settings.nodes is None:
         amp_bound = (theta_core[..., :n_axes].amax(1) * 1.2 + 0.5)  # [N, n_axes]
-        amp_xy = torch.zeros(N, 2, dtype=dtype, device=device)
-        amp_xy[:, axis_ids] = amp_bound
+        amp_xy = (D.abs() * amp_bound[..., None]).sum(1)
         path = Sinusoid(amp_xy[:, None, :], torch.zeros(N, 1, 2, dtype=dtype, device=device), om[:, None]).path_length(
             ExposureWindow(torch.zeros_like(dur), dur))
         smin = p_flat.sigma_min()[:, None]
@@ -379,13 +381,10 @@ def _fit_core(
         n = k_of(idx)
         amp = theta[:, :n_axes]
         ph = theta[:, n_axes:2 * n_axes]
-        zeros = torch.zeros_like(theta[:, :1])
-        if axes == "x":
-            amp_xy, ph_xy = torch.cat([amp, zeros], -1), torch.cat([ph, ph], -1)
-        elif axes == "y":
-            amp_xy, ph_xy = torch.cat([zeros, amp], -1), torch.cat([ph, ph], -1)
-        else:
+        if n_axes == 2:
             amp_xy, ph_xy = amp, ph
+        else:  # a motion along the direction D[n, 0]
+            amp_xy, ph_xy = amp * D[n, 0], torch.cat([ph, ph], -1)
         j = 2 * n_axes
         scale = theta[:, j] if fit_scale else None
         j += int(fit_scale)
@@ -439,14 +438,12 @@ def _fit_core(
         dpy = torch.zeros_like(dpx)
         px = c[:, 0, None].expand(t.shape)
         py = c[:, 1, None].expand(t.shape)
-        for k, a in enumerate(axis_ids):
-            target_d = dpx if a == 0 else dpy
-            target_d[..., k] = sn[..., k]
-            target_d[..., n_axes + k] = (amp * cs)[..., k]
-            if a == 0:
-                px = px + disp[..., k]
-            else:
-                py = py + disp[..., k]
+        for k in range(n_axes):  # each fitted axis moves the spot along its direction
+            ux, uy = D[n_f, k, 0, None], D[n_f, k, 1, None]  # [m, 1]
+            dpx[..., k], dpy[..., k] = ux * sn[..., k], uy * sn[..., k]
+            dpx[..., n_axes + k], dpy[..., n_axes + k] = ux * (amp * cs)[..., k], uy * (amp * cs)[..., k]
+            px = px + ux * disp[..., k]
+            py = py + uy * disp[..., k]
         if fit_center:
             dpx[..., j] = 1
             dpy[..., j + 1] = 1
@@ -796,13 +793,38 @@ def _inpaint(data: torch.Tensor, keep: torch.Tensor) -> torch.Tensor:
     return torch.where(keep, data, med)
 
 
-def _axes_xy(amplitude: torch.Tensor, phase: torch.Tensor, axes: str):
-    """Per-axis ``(amplitude [n, 2], phase [n, 2])`` of a fit along ``axes``."""
-    if axes == "xy":
+def _axis_directions(axes, N: int, dtype, device) -> torch.Tensor:
+    """The image directions ``[N, n_axes, 2]`` of the fitted axes: ``"x"``, ``"y"``, ``"xy"``,
+    or a direction per item ``[N, 2]`` (unit vectors, see :func:`_as_direction`)."""
+    if isinstance(axes, torch.Tensor):
+        return axes.to(dtype=dtype, device=device).expand(N, 2)[:, None, :]
+    eye = torch.eye(2, dtype=dtype, device=device)
+    rows = {"x": eye[:1], "y": eye[1:], "xy": eye}[axes]
+    return rows[None].expand(N, len(rows), 2)
+
+
+def _as_direction(axes, batch, N: int, like: torch.Tensor) -> torch.Tensor:
+    """``axes`` given as an image direction (a pair (x, y), or a tensor ``[2]`` or ``[..., 2]``
+    broadcastable to the images' batch) -> unit vectors ``[N, 2]``."""
+    d = check_finite(as_tensor(axes, "axes", like=like), "axes")
+    if d.dim() == 0 or d.shape[-1] != 2:
+        raise ShapeError(f"axes: expected 'x', 'y', 'xy' or a direction (x, y) of shape [2] or [..., 2], got shape {tuple(d.shape)}")
+    try:
+        d = d.expand(batch + (2,)).reshape(N, 2)
+    except RuntimeError:
+        raise ShapeError(f"axes: a direction [..., 2] must broadcast to the images' batch {tuple(batch)}, got {tuple(d.shape)}") from None
+    norm = d.norm(dim=-1, keepdim=True)
+    if bool((norm <= 0).any()):
+        raise ParameterError("axes: expected a nonzero direction (x, y), got (0, 0)")
+    return d / norm
+
+
+def _axes_xy(amplitude: torch.Tensor, phase: torch.Tensor, direction: torch.Tensor | None):
+    """Per-axis ``(amplitude [n, 2], phase [n, 2])`` of a fit: ``direction [n, 2]`` the unit
+    image direction of a one-axis fit, None for a Lissajous (``"xy"``) fit."""
+    if direction is None:
         return amplitude, phase
-    zero = torch.zeros_like(amplitude)
-    amp = torch.stack([amplitude, zero] if axes == "x" else [zero, amplitude], -1)
-    return amp, torch.stack([phase, phase], -1)
+    return amplitude[:, None] * direction, torch.stack([phase, phase], -1)
 
 
 def _fitted_psf(res: SinusoidFit, psf, idx, fit_scale: bool, fit_center: bool):
@@ -816,9 +838,9 @@ def _fitted_psf(res: SinusoidFit, psf, idx, fit_scale: bool, fit_center: bool):
     return KernelPSF((k * scale[:, None, None] if scale is not None else k)[:, None])
 
 
-def _model_images(res, idx, psf, win, om, axes, H, W, fit_scale, fit_center, fit_background, settings):
-    """The fitted model ``[n, E, H, W]`` of items ``idx``."""
-    amp, ph = _axes_xy(res.amplitude[idx], res.phase[idx], axes)
+def _model_images(res, idx, psf, win, om, direction, H, W, fit_scale, fit_center, fit_background, settings):
+    """The fitted model ``[n, E, H, W]`` of items ``idx`` (``direction [N, 2]`` or None, see :func:`_axes_xy`)."""
+    amp, ph = _axes_xy(res.amplitude[idx], res.phase[idx], None if direction is None else direction[idx])
     traj = Sinusoid(amp[:, None, :], ph[:, None, :], om[idx][:, None])
     with torch.no_grad():
         img = render_blur(traj, _fitted_psf(res, psf, idx, fit_scale, fit_center), win[idx], height=H, width=W, settings=settings)
@@ -827,11 +849,11 @@ def _model_images(res, idx, psf, win, om, axes, H, W, fit_scale, fit_center, fit
     return img
 
 
-def _light_in_frame(res, psf, win, om, axes, H, W, fit_center, n_t: int = 64) -> torch.Tensor:
+def _light_in_frame(res, psf, win, om, direction, H, W, fit_center, n_t: int = 64) -> torch.Tensor:
     """Fraction ``[N]`` of the fitted spot's light that falls inside the frame
     ``[-0.5, W - 0.5] x [-0.5, H - 0.5]`` (worst exposure), from the Gaussian marginals of the
     PSF along the fitted path (NaN where the fit has no estimate)."""
-    amp, ph = _axes_xy(res.amplitude, res.phase, axes)
+    amp, ph = _axes_xy(res.amplitude, res.phase, direction)
     if isinstance(psf, GaussianPSF):
         centre, cov = psf.center, psf.cov
     else:
@@ -917,7 +939,7 @@ def fit_sinusoid(
     window: ExposureWindow,
     omega,
     *,
-    axes: str = "x",
+    axes="x",
     optimizer: str = "lm",
     loss: str = "l2",
     noise_std=None,
@@ -944,7 +966,12 @@ def fit_sinusoid(
         window: exposure windows, batch broadcastable to ``[..., E]``.
         omega: rad/s, ``[...]``.
         axes: ``"x"`` or ``"y"``: a motion along that axis (amplitude, phase ``[...]``);
-            ``"xy"``: a 2-D Lissajous motion (amplitude, phase ``[..., 2]``).
+            ``"xy"``: a 2-D Lissajous motion (amplitude, phase ``[..., 2]``); or an image
+            direction ``(x, y)`` (a pair, or a tensor ``[2]`` or ``[..., 2]``, normalised): a
+            motion along it, e.g. an actuator axis rotated in the camera's image
+            (:func:`torchblur.tracking.calibrate_axes` measures it); the amplitude is then
+            along that direction (``[...]``) and the parameters are named ``amplitude_u``,
+            ``phase_u``.
         optimizer: ``"lm"`` (batched Levenberg-Marquardt, default), ``"adam"``, ``"lbfgs"``.
         loss: ``"l2"`` (default), ``"l1"``, ``"linf"`` (adam/lbfgs only), ``"poisson"``.
         noise_std: pixel noise std: a number, ``[...]`` or ``[..., E, H, W]``; None: the l2
@@ -1014,6 +1041,9 @@ def fit_sinusoid(
     E, H, W = images.shape[-3:]
     N = max(1, math.prod(batch))
     data = images.reshape(N, E, H, W)
+    # One-axis fits: the unit image direction of the motion per item [N, 2] (None: Lissajous).
+    direction = None if isinstance(axes, str) and axes == "xy" else (_axis_directions(axes, N, dtype, device)[:, 0] if isinstance(axes, str)
+                                          else _as_direction(axes, batch, N, data))
     w_full = window.to(dtype).expand(batch + (E,))
     win = ExposureWindow(w_full.start.reshape(N, E), w_full.duration.reshape(N, E))
     om = omega.expand(batch).reshape(N)
@@ -1049,13 +1079,16 @@ def fit_sinusoid(
         sat_masked = (sat & keep).flatten(1).any(1)
         keep = keep & ~sat
 
-    opts = dict(axes=axes, optimizer=optimizer, loss=loss, fit_scale=fit_scale, fit_background=fit_background, fit_center=fit_center,
+    core_axes = direction if not isinstance(axes, str) else axes
+    opts = dict(optimizer=optimizer, loss=loss, fit_scale=fit_scale, fit_background=fit_background, fit_center=fit_center,
                 normalize=normalize, max_iter=max_iter, tol=tol, render_settings=render_settings)
 
     def run(idx, use):
         if idx.numel() == N:  # everything: no copies
-            return _fit_core(_inpaint(data, use), psf_n, win, om, noise_std=sig, mask=None if bool(use.all()) else use, **opts)
+            return _fit_core(_inpaint(data, use), psf_n, win, om, axes=core_axes, noise_std=sig, mask=None if bool(use.all()) else use,
+                             **opts)
         return _fit_core(_inpaint(data[idx], use), _take_psf(psf_n, idx), win[idx], om[idx],
+                         axes=core_axes if isinstance(core_axes, str) else core_axes[idx],
                          noise_std=None if sig is None else sig[idx], mask=None if bool(use.all()) else use, **opts)
 
     everything = torch.arange(N, device=device)
@@ -1076,7 +1109,7 @@ def fit_sinusoid(
     if fit_gradient:
         live = everything[torch.isfinite(res.cost)]
         if live.numel():
-            spot = _model_images(res, live, psf_n, win, om, axes, H, W, fit_scale, fit_center, False, render_settings)
+            spot = _model_images(res, live, psf_n, win, om, direction, H, W, fit_scale, fit_center, False, render_settings)
             far = spot < 1e-4 * spot.amax((-1, -2), keepdim=True)
             plane[live] = _plane_fit(data_raw[live], keep[live] & ~rejected[live] & far)
             data = data_raw - _plane_image(plane, H, W)
@@ -1087,7 +1120,7 @@ def fit_sinusoid(
             idx = everything[torch.isfinite(res.cost) & ((res.status == 0) | (res.status == 2) | (res.status == 4))]
             if idx.numel() == 0:
                 break
-            model = _model_images(res, idx, psf_n, win, om, axes, H, W, fit_scale, fit_center, fit_background, render_settings)
+            model = _model_images(res, idx, psf_n, win, om, direction, H, W, fit_scale, fit_center, fit_background, render_settings)
             r = data[idx] - model
             used = keep[idx]
             scale = sig[idx] if sig is not None and sig.dim() == 4 else (
@@ -1118,11 +1151,12 @@ def fit_sinusoid(
     flags |= SATURATED_MASKED * sat_masked.long()
     flags |= OUTLIERS_MASKED * (n_out > 0).long()
     with torch.no_grad():
-        frac = _light_in_frame(res, psf_n, win, om, axes, H, W, fit_center)
+        frac = _light_in_frame(res, psf_n, win, om, direction, H, W, fit_center)
     flags |= PARTLY_OUT_OF_FRAME * ((frac < 0.999) & (res.status != 3)).long()
     amp_z = res.amplitude / res.amplitude_std
-    weak = (amp_z < 3) if axes != "xy" else (amp_z < 3).any(-1)
-    flags |= NO_MOTION * (weak & ~torch.isnan(res.amplitude) if axes != "xy" else weak & ~torch.isnan(res.amplitude).any(-1)).long()
+    lissajous = direction is None
+    weak = (amp_z < 3) if not lissajous else (amp_z < 3).any(-1)
+    flags |= NO_MOTION * (weak & ~torch.isnan(res.amplitude) if not lissajous else weak & ~torch.isnan(res.amplitude).any(-1)).long()
     res.flags = flags
     res.n_masked = E * H * W - n_used
     res.n_outliers = n_out
