@@ -453,6 +453,19 @@ class DirectModelFit:
 
 
 # ------------------------------------------------------------------------ the fit
+def _unit_axis(axis, like: torch.Tensor) -> torch.Tensor:
+    """``"x"``, ``"y"`` or a direction (x, y) -> the unit image direction ``[2]``."""
+    if isinstance(axis, str):
+        return torch.tensor([1.0, 0.0] if axis == "x" else [0.0, 1.0], dtype=like.dtype, device=like.device)
+    d = check_finite(as_tensor(axis, "axis", like=like), "axis")
+    if d.shape != (2,):
+        raise ShapeError(f"axis: expected 'x', 'y' or a direction (x, y) of shape [2], got shape {tuple(d.shape)}")
+    norm = d.norm()
+    if not bool(norm > 0):
+        raise ParameterError("axis: expected a nonzero direction (x, y), got (0, 0)")
+    return d / norm
+
+
 def _validate(images, psf, window, omega, input_amplitude, start, form, axis, valid):
     from .model_fit import TransferFunctionFit
 
@@ -489,7 +502,8 @@ def _validate(images, psf, window, omega, input_amplitude, start, form, axis, va
     if isinstance(start, TransferFunctionFit) and not start.is_siso:
         raise ParameterError("start: expected a SISO TransferFunctionFit, got a MIMO one")
     check_choice(form, "form", FORMS)
-    check_choice(axis, "axis", _AXES)
+    if isinstance(axis, str):
+        check_choice(axis, "axis", _AXES)
     if valid is None:
         v = torch.ones(F, dtype=torch.bool, device=images.device)
     else:
@@ -511,7 +525,7 @@ def fit_direct(
     *,
     form: str = "tf",
     fit_delay: bool = True,
-    axis: str = "x",
+    axis="x",
     noise_std=None,
     mask=None,
     valid=None,
@@ -537,7 +551,9 @@ def fit_direct(
             them: each is fitted and the lowest cost wins (multi-start).
         form: "tf" (normalised poles/zeros) or "modal" (sum of modes); see the module docstring.
         fit_delay: estimate the delay (else it stays at the start's).
-        axis: "x" or "y": the motion direction in the image.
+        axis: "x" or "y", or an image direction (x, y) (a pair or a tensor ``[2]``,
+            normalised; an actuator axis rotated in the camera's image): the motion's
+            direction in the image.
         noise_std: pixel noise std: a number, ``[F]`` or ``[F, E, H, W]``; None: unweighted,
             the noise is estimated from the residuals.
         mask: bool ``[F, E, H, W]``, False excludes a pixel (saturated, hot).
@@ -571,6 +587,7 @@ def fit_direct(
         raise ParameterError(f"max_iter: expected an integer >= 1, got {max_iter!r}")
     dtype, device = images.dtype, images.device
     F, E, H, W = images.shape
+    ud = _unit_axis(axis, images)  # [2] the motion's unit image direction
 
     # Start values.
     if isinstance(start, DirectModelFit):
@@ -643,8 +660,7 @@ def fit_direct(
     with torch.no_grad():
         M0 = motion(u)[0]
     sd = torch.diagonal(psf_b.cov, dim1=-2, dim2=-1).sqrt()
-    reach = torch.zeros(n, 2, dtype=dtype, device=device)
-    reach[:, 0 if axis == "x" else 1] = M0 * 1.5 + 1.0
+    reach = (M0 * 1.5 + 1.0)[:, None] * ud.abs()  # [n, 2] (x, y) px
     out_cost = torch.zeros((), dtype=dtype, device=device)
     out_n = 0
     m_limit = math.inf
@@ -662,7 +678,7 @@ def fit_direct(
             data, wts = data[..., cy0:cy1, cx0:cx1], wts[..., cy0:cy1, cx0:cx1]
             H, W = cy1 - cy0, cx1 - cx0
             center = center - torch.tensor([cx0, cy0], dtype=dtype, device=device)
-            m_limit = reach[:, 0 if axis == "x" else 1]
+            m_limit = M0 * 1.5 + 1.0  # along the axis
 
     # Time nodes, fixed for a motion bound (recomputed if the motion grows past it).
     settings = render_settings or RenderSettings(panel_path_sigmas=3.5)
@@ -690,13 +706,9 @@ def fit_direct(
         sn, cs = torch.sin(arg), torch.cos(arg)
         disp = M[:, None, None] * sn
         d = torch.stack([sn, M[:, None, None] * cs], -1)  # [n, E, S, 2]
-        zero = torch.zeros_like(d)
         cx = center[:, 0, None, None].expand(t.shape)
         cy = center[:, 1, None, None].expand(t.shape)
-        if axis == "x":
-            px, py, dpx, dpy = cx + disp, cy, d, zero
-        else:
-            px, py, dpx, dpy = cx, cy + disp, zero, d
+        px, py, dpx, dpy = cx + ud[0] * disp, cy + ud[1] * disp, ud[0] * d, ud[1] * d
         return gaussian_splat_with_jacobian(px, py, dpx, dpy, wq, Ap[:, None], Bp[:, None], Cp[:, None], H, W)
 
     q = int(fit_scale) + int(fit_background)  # nuisance parameters per point

@@ -46,16 +46,30 @@ def multisine_param_names(n_tones: int, fit_scale: bool) -> tuple:
                  + (["scale"] if fit_scale else []))
 
 
-def _motion(theta: torch.Tensor, n_tones: int):
+def _unit_direction(direction, like: torch.Tensor) -> torch.Tensor:
+    """The image direction of the motion as a unit vector ``[..., 2]`` (None: +x)."""
+    if direction is None:
+        return torch.tensor([1.0, 0.0], dtype=like.dtype, device=like.device)
+    d = check_finite(as_tensor(direction, "direction", like=like), "direction")
+    if d.dim() == 0 or d.shape[-1] != 2:
+        raise ShapeError(f"direction: expected an image direction (x, y) of shape [2] or [..., 2], got {tuple(d.shape)}")
+    norm = d.norm(dim=-1, keepdim=True)
+    if bool((norm <= 0).any()):
+        raise ParameterError("direction: expected a nonzero direction (x, y), got (0, 0)")
+    return d / norm
+
+
+def _motion(theta: torch.Tensor, n_tones: int, u: torch.Tensor):
+    """Per-tone ``(amplitude [..., N, 2], phase [..., N, 2])`` of a motion along the unit ``u [..., 2]``."""
     M = theta[..., :n_tones]
     ph = theta[..., n_tones:2 * n_tones]
-    amp = torch.stack([M, torch.zeros_like(M)], -1)  # [..., N, 2]: motion along x
+    amp = M[..., None] * u[..., None, :]  # [..., N, 2]
     return amp, torch.stack([ph, ph], -1)
 
 
 def render_multisine(theta, omega, psf: GaussianPSF, window: ExposureWindow, *, height: int, width: int,
-                     settings: RenderSettings | None = None) -> torch.Tensor:
-    """Images of a spot moving along x as ``sum_k M_k sin(omega_k t + phi_k)``.
+                     settings: RenderSettings | None = None, direction=None) -> torch.Tensor:
+    """Images of a spot moving along ``direction`` (default x) as ``sum_k M_k sin(omega_k t + phi_k)``.
 
     Args:
         theta: ``[..., 2N]`` ``(M_1..M_N px, phi_1..phi_N rad)`` or ``[..., 2N + 1]`` with an
@@ -65,6 +79,8 @@ def render_multisine(theta, omega, psf: GaussianPSF, window: ExposureWindow, *, 
         window: exposure windows (s), batch ``[..., E]`` (E images of the same motion).
         height, width: frame size H, W.
         settings: renderer settings.
+        direction: the image direction (x, y) of the motion, ``[2]`` or ``[..., 2]``
+            (normalised); None: +x.
 
     Returns:
         ``image[..., e, i, j]``, ``[..., E, H, W]``. Differentiable in ``theta``.
@@ -73,7 +89,7 @@ def render_multisine(theta, omega, psf: GaussianPSF, window: ExposureWindow, *, 
     N = omega.shape[-1]
     if theta.shape[-1] not in (2 * N, 2 * N + 1):
         raise ShapeError(f"theta: expected a last dim of 2N = {2 * N} or 2N + 1 (with the scale), got {tuple(theta.shape)}")
-    amp, ph = _motion(theta, N)
+    amp, ph = _motion(theta, N, _unit_direction(direction, theta))
     traj = Multisine(amp[..., None, :, :], ph[..., None, :, :], omega[..., None, :])
     p = GaussianPSF(psf.center[..., None, :], psf.cov[..., None, :, :], psf.amplitude[..., None])
     img = render_blur(traj, p, window, height=height, width=width, settings=settings)
@@ -83,16 +99,17 @@ def render_multisine(theta, omega, psf: GaussianPSF, window: ExposureWindow, *, 
 
 
 def render_multisine_with_jacobian(theta, omega, psf: GaussianPSF, window: ExposureWindow, *, height: int, width: int,
-                                   nodes: int, nodes_per_panel: int = 8) -> tuple[torch.Tensor, torch.Tensor]:
+                                   nodes: int, nodes_per_panel: int = 8, direction=None) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`render_multisine` (point-sampled pixels, ``nodes`` time nodes) and its Jacobian
     from one splat (:func:`~torchblur.splat_jacobian.gaussian_splat_with_jacobian`): the node
-    positions are ``x_s = cx + sum_k M_k sin(omega_k t_s + phi_k)``, so
-    ``dx_s/dM_k = sin(omega_k t_s + phi_k)``, ``dx_s/dphi_k = M_k cos(omega_k t_s + phi_k)``.
+    positions are ``c + u sum_k M_k sin(omega_k t_s + phi_k)`` (``u`` the unit ``direction``,
+    default +x), so ``d/dM_k = u sin(omega_k t_s + phi_k)``, ``d/dphi_k = u M_k cos(omega_k t_s + phi_k)``.
 
     Args:
         theta: ``[n, 2N]`` or ``[n, 2N + 1]`` (scale last).
         omega: ``[n, N]`` rad/s; psf: batch ``[n]``; window: ``[n, E]``.
         height, width: frame size; nodes: time nodes (a multiple of ``nodes_per_panel``).
+        direction: ``[2]`` or ``[n, 2]``, as in :func:`render_multisine`.
 
     Returns:
         ``(image [n, E, H, W], jac [n, E, H, W, P])``, ``jac[..., p] = d image / d theta_p``.
@@ -111,11 +128,14 @@ def render_multisine_with_jacobian(theta, omega, psf: GaussianPSF, window: Expos
     arg = omega[:, None, None, :] * t[..., None] + theta[:, None, None, N:2 * N]  # [n, E, S, N]
     sn, cs = torch.sin(arg), torch.cos(arg)
     Mk = theta[:, None, None, :N]
-    px = psf.center[:, 0, None, None] + (Mk * sn).sum(-1)
-    py = psf.center[:, 1, None, None].expand(px.shape)
-    dpx = torch.cat([sn, Mk * cs], -1)  # [n, E, S, 2N]
+    u = _unit_direction(direction, theta).expand(n, 2)
+    ux, uy = u[:, 0, None, None], u[:, 1, None, None]  # [n, 1, 1]
+    disp = (Mk * sn).sum(-1)  # [n, E, S]
+    px = psf.center[:, 0, None, None] + ux * disp
+    py = psf.center[:, 1, None, None] + uy * disp
+    d = torch.cat([sn, Mk * cs], -1)  # [n, E, S, 2N]: d disp / d theta
     A, B, C = psf.precision()
-    img, dimg = gaussian_splat_with_jacobian(px, py, dpx, torch.zeros_like(dpx), w, A[:, None], B[:, None], C[:, None],
+    img, dimg = gaussian_splat_with_jacobian(px, py, ux[..., None] * d, uy[..., None] * d, w, A[:, None], B[:, None], C[:, None],
                                              height, width)
     J = dimg.movedim(2, -1)  # [n, E, H, W, 2N]
     if P == 2 * N + 1:
@@ -159,12 +179,13 @@ class MultisineFit:
     extras: dict = field(default_factory=dict)
 
 
-def _centroid_start(data, rest_x, start, dur, omega, thr):
-    """``z_k = M_k e^{j phi_k}`` from the image centroids, least squares. The window mean of
-    ``Im(z e^{j w t})`` is ``Im(z G) / Te`` with ``G = (e^{j w t1} - e^{j w t0}) / (j w)``, linear in
-    (Re z, Im z). data [n, E, H, W] -> (M [n, N], phi [n, N], rank-ok [n])."""
+def _centroid_start(data, rest, u, start, dur, omega, thr):
+    """``z_k = M_k e^{j phi_k}`` from the image centroids along the unit direction ``u [n, 2]``
+    (``rest [n, 2]``), least squares. The window mean of ``Im(z e^{j w t})`` is
+    ``Im(z G) / Te`` with ``G = (e^{j w t1} - e^{j w t0}) / (j w)``, linear in (Re z, Im z).
+    data [n, E, H, W] -> (M [n, N], phi [n, N], rank-ok [n])."""
     _, cen, _ = image_moments(data, threshold=thr)
-    mu = cen[..., 0] - rest_x[:, None]  # [n, E]
+    mu = ((cen - rest[:, None]) * u[:, None]).sum(-1)  # [n, E]
     w = omega[:, None, :]  # [n, 1, N]
     t0, t1 = start[..., None], (start + dur)[..., None]
     # G / Te = (e^{j w t1} - e^{j w t0}) / (j w Te): real and imaginary parts
@@ -196,8 +217,10 @@ def fit_multisine(
     tol: float = 1e-9,
     seed: int = 0,
     render_settings: RenderSettings | None = None,
+    direction=None,
 ) -> MultisineFit:
-    """Fit the N tones ``(M_k, phi_k)`` of a multisine motion along x to an image set.
+    """Fit the N tones ``(M_k, phi_k)`` of a multisine motion along ``direction`` (default x)
+    to an image set.
 
     Args:
         images: ``[..., E, H, W]``: E images of the same periodic motion (dark subtracted, in
@@ -218,6 +241,9 @@ def fit_multisine(
         seed: seed of the random starts.
         render_settings: renderer settings (default: panels of 3.5 PSF widths, node count
             fixed for the whole fit).
+        direction: the image direction (x, y) of the motion, ``[2]`` or ``[..., 2]``
+            (normalised): an actuator axis rotated in the camera's image
+            (:func:`torchblur.tracking.calibrate_axes`); None: +x.
 
     Returns:
         :class:`MultisineFit`.
@@ -257,6 +283,12 @@ def fit_multisine(
     center = p.center.expand(batch + (2,)).reshape(B, 2)
     cov = p.cov.expand(batch + (2, 2)).reshape(B, 2, 2)
     amp_psf = p.amplitude.expand(batch).reshape(B)
+    u = _unit_direction(direction, data)
+    try:
+        u = u.expand(batch + (2,)).reshape(B, 2)
+    except RuntimeError:
+        raise ShapeError(f"direction: expected [2] or a shape that broadcasts to the images' batch {tuple(batch)} + (2,), "
+                         f"got {tuple(u.shape)}") from None
 
     weight = torch.ones_like(data)
     sigma_given = noise_std is not None
@@ -291,7 +323,10 @@ def fit_multisine(
     # Amplitude guess: mean square of the motion from the second moments (equal tones).
     if amplitude_guess is None:
         _, cen, icov = image_moments(data, threshold=thr)
-        ms = (icov[..., 0, 0] - cov[:, None, 0, 0] + (cen[..., 0] - center[:, None, 0]) ** 2).mean(-1).clamp_min(0.25)
+        uu = u[:, None]  # [B, 1, 2]
+        along = ((cen - center[:, None]) * uu).sum(-1)
+        vex = (uu[..., None, :] @ (icov - cov[:, None]) @ uu[..., None])[..., 0, 0]
+        ms = (vex + along**2).mean(-1).clamp_min(0.25)
         M0 = (2 * ms / N).sqrt()[:, None].expand(B, N)
     else:
         M0 = check_finite(as_tensor(amplitude_guess, "amplitude_guess", like=data), "amplitude_guess").abs()
@@ -300,7 +335,7 @@ def fit_multisine(
     # Starts: centroid LS, the phase guess, random phase vectors.
     cands = []
     if E >= 2 * N:
-        Mc, pc, ok = _centroid_start(data, center[:, 0], start, dur, om, thr)
+        Mc, pc, ok = _centroid_start(data, center, u, start, dur, om, thr)
         Mc = torch.where(ok[:, None] & torch.isfinite(Mc), Mc, M0)
         cands.append(torch.cat([Mc.clamp(min=1e-3, max=math.hypot(H, W)), torch.nan_to_num(pc)], -1))
     if phase_guess is not None:
@@ -322,12 +357,12 @@ def fit_multisine(
     P = theta_c.shape[-1]
 
     # Crop to where the model reaches (the pixels outside add a constant to the cost).
-    reach = theta_c[..., :N].abs().sum(-1).amax(1) * 1.3 + 0.5  # [B]
+    reach = (theta_c[..., :N].abs().sum(-1).amax(1) * 1.3 + 0.5)[:, None] * u.abs()  # [B, 2] (x, y) px
     sd = torch.diagonal(cov, dim1=-2, dim2=-1).sqrt()
-    lo_x = int(max(0, math.floor(float((center[:, 0] - reach - 7 * sd[:, 0]).min()))))
-    hi_x = int(min(W, math.ceil(float((center[:, 0] + reach + 7 * sd[:, 0]).max())) + 1))
-    lo_y = int(max(0, math.floor(float((center[:, 1] - 7 * sd[:, 1]).min()))))
-    hi_y = int(min(H, math.ceil(float((center[:, 1] + 7 * sd[:, 1]).max())) + 1))
+    lo_x = int(max(0, math.floor(float((center[:, 0] - reach[:, 0] - 7 * sd[:, 0]).min()))))
+    hi_x = int(min(W, math.ceil(float((center[:, 0] + reach[:, 0] + 7 * sd[:, 0]).max())) + 1))
+    lo_y = int(max(0, math.floor(float((center[:, 1] - reach[:, 1] - 7 * sd[:, 1]).min()))))
+    hi_y = int(min(H, math.ceil(float((center[:, 1] + reach[:, 1] + 7 * sd[:, 1]).max())) + 1))
     if hi_x - lo_x < 4 or hi_y - lo_y < 4:
         lo_x, hi_x, lo_y, hi_y = 0, W, 0, H
     out_w = weight.clone()
@@ -343,8 +378,8 @@ def fit_multisine(
 
     settings = render_settings or RenderSettings(panel_path_sigmas=3.5)
     if settings.nodes is None:
-        bound = Multisine(torch.stack([theta_c[..., :N].abs().amax(1) * 1.3 + 0.5, torch.zeros(B, N, dtype=dtype, device=device)],
-                                      -1)[:, None], torch.zeros(B, 1, N, 2, dtype=dtype, device=device), om[:, None])
+        bound = Multisine(((theta_c[..., :N].abs().amax(1) * 1.3 + 0.5)[..., None] * u[:, None, :])[:, None],
+                          torch.zeros(B, 1, N, 2, dtype=dtype, device=device), om[:, None])
         S = choose_node_count(bound.path_length(ExposureWindow(torch.zeros_like(dur), dur)), psf_c.sigma_min()[:, None], settings)
         settings = RenderSettings(pixel_integration=settings.pixel_integration, nodes_per_panel=settings.nodes_per_panel,
                                   panel_path_sigmas=settings.panel_path_sigmas, max_nodes=settings.max_nodes, nodes=S)
@@ -352,7 +387,7 @@ def fit_multisine(
     def model_fn(theta, item):
         psf_i = GaussianPSF(psf_c.center[item], psf_c.cov[item], psf_c.amplitude[item])
         img = render_multisine(theta, om[item], psf_i, ExposureWindow(start[item], dur[item]), height=Hc, width=Wc,
-                               settings=settings)
+                               settings=settings, direction=u[item])
         return img.reshape(theta.shape[0], -1)
 
     analytic = not settings.pixel_integration
@@ -360,7 +395,8 @@ def fit_multisine(
     def jac_fn(theta, item):
         psf_i = GaussianPSF(psf_c.center[item], psf_c.cov[item], psf_c.amplitude[item])
         img, J = render_multisine_with_jacobian(theta, om[item], psf_i, ExposureWindow(start[item], dur[item]), height=Hc,
-                                                width=Wc, nodes=settings.nodes, nodes_per_panel=settings.nodes_per_panel)
+                                                width=Wc, nodes=settings.nodes, nodes_per_panel=settings.nodes_per_panel,
+                                                direction=u[item])
         return img.reshape(theta.shape[0], -1), J.reshape(theta.shape[0], -1, theta.shape[-1])
 
     target = data_c.reshape(B, -1)
