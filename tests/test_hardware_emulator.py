@@ -3,6 +3,7 @@ agreement with the simulated rig, kill and resume, every fault, Ctrl-C, and re-f
 recording offline. Short sweeps (3 points, 40x40 frames)."""
 import hashlib
 import json
+import math
 import signal
 import subprocess
 import sys
@@ -32,6 +33,10 @@ MID = 9
 # (14-15, then 2 frames of the rebooted device, 16-17, discarded; redone as 18-21); the probe
 # of point 2 drops its first frame (22, a gap at 23; redone as 26-29); point 2 repeats frame 30
 # in place of 31 (a stale frame; redone as 34-37).
+# The fault runs fit along x (fit.axis=x): the axis calibration's tracking would otherwise
+# send the first WAVE and move the fault clock off the sweep. The reference run measures the
+# axis over the serial link.
+ALONG_X = ["fit.axis=x"]
 FAULTS = ("fault.start=wave", "fault.timeout_after=1", "fault.garbage_after=9", "fault.reset_after=16", "fault.drop_frame=22",
           "fault.stale_frame=31")
 
@@ -163,6 +168,8 @@ def test_emulator_matches_the_simulated_rig(ref):
     # the calibration frames went through the same SimulatedRig calls with the same seed: equal
     assert res.latency_s == sim.latency_s
     np.testing.assert_array_equal(res.psf.cov.numpy(), sim.psf.cov.numpy())
+    # the axis was tracked over the serial link too (the simulated mirror moves along +x)
+    assert res.axis is not None and abs(math.atan2(res.direction[1], res.direction[0])) < 5 * res.axis.angle_std_rad + 1e-3
     t = sim.truth
     em = np.abs(res.frf.magnitude[0, 0] - np.abs(t)) / res.frf.magnitude_std[0, 0]
     ep = np.abs(np.angle(np.exp(1j * (res.frf.phase[0, 0] - np.angle(t))))) / res.frf.phase_std[0, 0]
@@ -175,7 +182,7 @@ def test_emulator_matches_the_simulated_rig(ref):
 
 def test_kill_mid_sweep_then_resume(fleet, ref, tmp_path, capsys):
     out = tmp_path / "run"
-    rc = cli.main(["identify", "--out", str(out), "--quiet", *BASE, *SWEEP, *fleet["kill"].rig_keys()])
+    rc = cli.main(["identify", "--out", str(out), "--quiet", *BASE, *SWEEP, *ALONG_X, *fleet["kill"].rig_keys()])
     err = capsys.readouterr().err
     assert rc == cli.EXIT_STOPPED, err
     assert f"torchblur identify --resume {out}" in err and "connection was lost" in err
@@ -210,7 +217,7 @@ def test_kill_mid_sweep_then_resume(fleet, ref, tmp_path, capsys):
 def faulty_run(fleet, tmp_path_factory):
     emu = fleet["faults"]
     d = tmp_path_factory.mktemp("faults") / "experiment"
-    res = identify(load_config(None, BASE + SWEEP + emu.rig_keys()), progress=False, record=d)
+    res = identify(load_config(None, BASE + SWEEP + ALONG_X + emu.rig_keys()), progress=False, record=d)
     return emu, res, d
 
 
@@ -254,7 +261,7 @@ def test_lost_connection_is_reopened_and_the_call_redone(fleet):
 
 def test_persistent_fault_stops_cleanly_with_state_saved(fleet, tmp_path):
     emu = fleet["persistent"]
-    cfg = load_config(None, BASE + SWEEP + emu.rig_keys())
+    cfg = load_config(None, BASE + SWEEP + ALONG_X + emu.rig_keys())
     with pytest.raises(AcquisitionStopped, match="gave up after 3 attempt"):
         identify(cfg, progress=False, record=tmp_path / "experiment")
     lines = check_recording(tmp_path / "experiment", complete=False)
@@ -268,7 +275,7 @@ def test_persistent_fault_stops_cleanly_with_state_saved(fleet, tmp_path):
 def test_ctrl_c_saves_and_exits_130(fleet, tmp_path):
     emu = fleet["sigint"]
     out = tmp_path / "run"
-    proc = subprocess.Popen([sys.executable, "-m", "torchblur.cli", "identify", "--out", str(out), "--quiet", *BASE, *SWEEP,
+    proc = subprocess.Popen([sys.executable, "-m", "torchblur.cli", "identify", "--out", str(out), "--quiet", *BASE, *SWEEP, *ALONG_X,
                              *emu.rig_keys(timeout_s=60.0)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         emu.wait_stderr("hanging", timeout_s=90)  # the controller went silent mid-sweep; the client waits

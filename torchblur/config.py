@@ -39,11 +39,14 @@ class PlantConfig:
     first), ``delay_s`` a number. A two-axis tip-tilt mirror (MIMO): ``num``/``den`` 2x2
     nested lists, ``num[i][j]`` the channel from input j to output i (i, j in x, y), and
     ``delay_s`` one number (shared) or a 2x2 nested list; the run then excites each input in
-    turn and identifies the 2x2 response."""
+    turn and identifies the 2x2 response. ``direction`` (SISO): the simulated spot's image
+    motion (x, y) px per plant output unit, e.g. ``[0.985, 0.174]`` for an actuator axis
+    rotated 10 degrees in the camera's image."""
 
     num: list = field(default_factory=lambda: list(DEFAULT_PLANT[0]))
     den: list = field(default_factory=lambda: list(DEFAULT_PLANT[1]))
     delay_s: object = 30e-6
+    direction: list = field(default_factory=lambda: [1.0, 0.0])
 
     @property
     def is_mimo(self) -> bool:
@@ -139,8 +142,15 @@ class CameraConfig:
     peak_fraction: float = 0.5
 
 
+AXIS_MODES = ("measure", "x", "y")
+
+
 @dataclass(frozen=True)
 class FitConfig:
+    # One-axis, one-spot runs: the image direction of the actuator's motion. "measure" (default): tracked
+    # during the calibration (torchblur.tracking.calibrate_axes at the sweep's first frequency); "x", "y",
+    # or [x, y]. The response is the motion along that direction (the sign that points toward +x, or +y).
+    axis: object = "measure"
     optimizer: str = "lm"
     loss: str = "l2"
     fit_scale: bool = True
@@ -296,6 +306,16 @@ def _coeffs(value, key) -> list[float]:
     return [_num(v, f"{key}[{i}]") for i, v in enumerate(value)]
 
 
+def _pair(value, key: str, what: str) -> list[float]:
+    """A nonzero pair of finite numbers (a direction)."""
+    if not isinstance(value, (list, tuple)) or len(value) != 2:
+        raise ConfigError(f"{key}: expected {what}, got {value!r}")
+    v = [_num(x, f"{key}[{i}]") for i, x in enumerate(value)]
+    if v == [0.0, 0.0]:
+        raise ConfigError(f"{key}: expected a nonzero direction, got {value!r}")
+    return v
+
+
 def _nested(value) -> bool:
     return isinstance(value, (list, tuple)) and len(value) > 0 and isinstance(value[0], (list, tuple))
 
@@ -332,10 +352,14 @@ def validate_plant(plant: PlantConfig) -> None:
     are flat lists (SISO) or both 2x2 nested lists (a tip-tilt mirror, ``num[i][j]``: output i
     from input j); ``delay_s`` is a number, or for a 2x2 plant a number or 2x2 nested list."""
     mimo_num, mimo_den = _nested(plant.num), _nested(plant.den)
+    direction = _pair(plant.direction, "plant.direction", "[x, y] px per output unit")
     if not mimo_num and not mimo_den:
         _check_channel(plant.num, plant.den, "plant.num", "plant.den")
         _num(plant.delay_s, "plant.delay_s", nonnegative=True)
         return
+    if direction != [1.0, 0.0]:
+        raise ConfigError(f"plant.direction: applies to a one-axis plant (a 2x2 plant's channels hold its directions), "
+                          f"got {plant.direction!r}")
     if not mimo_num:
         raise ConfigError(f"plant.num: expected 2x2 nested lists like plant.den (a MIMO plant), got {plant.num!r}")
     if not mimo_den:
@@ -503,6 +527,14 @@ def validate(cfg: IdentifyConfig) -> None:
     from .fit import OPTIMIZERS
     from .losses import LOSSES
 
+    if isinstance(cfg.fit.axis, str):
+        if cfg.fit.axis not in AXIS_MODES:
+            raise ConfigError(f"fit.axis: expected one of {AXIS_MODES} or a direction [x, y], got {cfg.fit.axis!r}")
+    else:
+        _pair(cfg.fit.axis, "fit.axis", f"one of {AXIS_MODES} or a direction [x, y]")
+    if cfg.fit.axis != "measure" and (cfg.plant.is_mimo or cfg.spots.enabled):
+        raise ConfigError("fit.axis: applies to one-axis, one-spot runs; this run has "
+                          f"{'a 2x2 plant' if cfg.plant.is_mimo else 'many spots (spots.rows > 0)'}, which fits both image axes")
     if cfg.fit.optimizer not in OPTIMIZERS:
         raise ConfigError(f"fit.optimizer: expected one of {OPTIMIZERS}, got {cfg.fit.optimizer!r}")
     if cfg.fit.loss not in LOSSES:

@@ -3,7 +3,9 @@
 1. dark frame (mean of frames with no light);
 2. PSF identification (averaged still-spot frames, 2-D Gaussian with full covariance);
 3. saturation curve (peak intensity vs exposure) and a mask of unusable pixels;
-4. trigger-to-exposure latency from laser pulses (measured, not assumed);
+4. trigger-to-exposure latency from laser pulses (measured, not assumed) and, for one axis
+   and one spot, the actuator's direction in the image (``fit.axis=measure``: tracked frame
+   by frame at the sweep's first frequency, :func:`torchblur.tracking.calibrate_axes`);
 5. the sweep: for each frequency, drive ``A sin(w t)``, wait out the transients, capture
    every exposure (several images per point); the amplitude follows the response so the
    spot moves ``target_px`` (from the closed-form moments of the previous point);
@@ -34,7 +36,9 @@ class IdentificationResult:
     subtracted, electrons), ``windows``, ``truth`` (the true response or None), ``log``
     (list of messages), ``timing`` (acquisition and fit seconds, and how much of the fit
     overlapped the acquisition), ``inputs`` (the excited inputs), ``spots`` (SpotPSFs or
-    None).
+    None), ``direction`` (one axis, one spot: the unit image direction (x, y) along which the
+    motion was fitted; the response is the motion along it) and ``axis`` (the
+    :class:`~torchblur.tracking.AxisCalibration` that measured it, with ``fit.axis=measure``).
 
     One axis, one spot (SISO): ``fit`` batch ``[F]``, ``images`` ``[F, E*R, H, W]``,
     ``windows`` ``[F, E*R]``, ``amplitude`` ``[F]``, ``truth`` complex ``[F]``.
@@ -60,6 +64,8 @@ class IdentificationResult:
     inputs: tuple = ("x",)
     spots: object = None
     direct_model: object = None  # DirectModelFit (model.direct=true) or None
+    direction: tuple | None = None
+    axis: object = None
 
 
 def build_simulated_rig(cfg: IdentifyConfig):
@@ -71,9 +77,11 @@ def build_simulated_rig(cfg: IdentifyConfig):
     camera = CameraModel(dark_level_adu=c.dark_level, read_noise_e=c.read_noise, gain_e_per_adu=c.gain, full_well_e=c.full_well,
                          bit_depth=int(c.bit_depth))
     spots = cfg.spots.grid(c) if getattr(cfg, "spots", None) is not None else None
+    direction = tuple(float(v) for v in cfg.plant.direction) if not cfg.plant.is_mimo else (1.0, 0.0)
     return SimulatedRig(plant=plant_of(cfg), camera=camera, frame_shape=(int(c.height), int(c.width)), psf_sigma_px=c.psf_sigma_px,
                         frame_rate_hz=c.frame_rate_hz, trigger_delay_s=c.trigger_delay_s, readout_s=c.readout_s,
-                        max_exposure_s=c.max_exposure_s, latency_s=c.latency_s, jitter_s=c.jitter_s, seed=int(cfg.seed), spots=spots)
+                        max_exposure_s=c.max_exposure_s, latency_s=c.latency_s, jitter_s=c.jitter_s, seed=int(cfg.seed), spots=spots,
+                        direction=direction)
 
 
 def plant_of(cfg):
@@ -353,7 +361,8 @@ class Calibration:
     (:class:`~torchblur.preprocess.DarkFrame`), ``read_noise_e``, ``saturation``
     (SaturationCurve), ``full_adu`` (usable range above the dark level, ADU), ``psf``
     (GaussianPSF in electrons per second at power 1), ``peak_rate`` (its peak, e-/s),
-    ``latency_s`` and ``latency_std_s``, ``gain`` (e-/ADU)."""
+    ``latency_s`` and ``latency_std_s``, ``gain`` (e-/ADU), and for one-axis runs the
+    actuator's image ``direction``."""
 
     dark: object
     read_noise_e: float
@@ -365,11 +374,18 @@ class Calibration:
     latency_std_s: float
     gain: float
     spots: object = None  # many spots: SpotPSFs (psf [K] per spot, crop offsets), else None
+    # One-axis, one-spot runs: the unit image direction (x, y) of the motion that is fitted, the
+    # AxisCalibration it was measured by (fit.axis=measure), and |H| (px per input unit) at the
+    # calibration frequency (seeds the sweep's first amplitude); else None.
+    direction: tuple | None = None
+    axis: object = None
+    axis_gain: float | None = None
 
 
 def calibrate(cfg, rig, exp=None, log=None, progress: bool = False) -> Calibration:
-    """Stages 1-4 of :func:`identify`: dark frame, saturation curve, PSF and latency (each
-    taken from the recording ``exp`` when it holds it)."""
+    """Stages 1-4 of :func:`identify`: dark frame, saturation curve, PSF, latency and, for a
+    one-axis, one-spot run, the actuator's direction in the image (each taken from the
+    recording ``exp`` when it holds it)."""
     from .preprocess import dark_frame, fit_gaussian_psf, saturation_curve, subtract_dark
 
     log = [] if log is None else log
@@ -414,8 +430,57 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False) -> Calibrati
         r, dark=dark, gain=gain, trigger_delay_s=c.trigger_delay_s, pulse_width_s=pulse_w,
         power=c.peak_fraction * full_adu * gain / (peak_rate * pulse_w)))
     _log(log, f"latency: {latency * 1e6:.3f} +- {latency_std * 1e6:.3f} us", progress)
-    return Calibration(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=full_adu, psf=psf, peak_rate=peak_rate,
-                       latency_s=latency, latency_std_s=latency_std, gain=gain, spots=spots)
+    cal = Calibration(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=full_adu, psf=psf, peak_rate=peak_rate,
+                      latency_s=latency, latency_std_s=latency_std, gain=gain, spots=spots)
+
+    # 4b. The actuator's direction in the image (one axis, one spot; a 2x2 plant or many spots
+    # fit both image axes).
+    if not cfg.plant.is_mimo and spots is None:
+        mode = cfg.fit.axis
+        if mode == "measure" and exp is not None and not exp.writable and "axis" not in exp.groups:
+            cal.direction = (1.0, 0.0)
+            _log(log, "axis: not in the recording (made before the axis calibration): the motion is fitted along x", progress)
+        elif mode == "measure":
+            axis, axis_gain = _stage(exp, "axis", "axis", rig, lambda r: _measure_axis(cfg, r, cal))
+            u = np.asarray(axis.direction, dtype=float)
+            if u[0] < 0 or (u[0] == 0 and u[1] < 0):  # the sign that points toward +x: the FRF keeps the x convention
+                u = -u
+            cal.direction, cal.axis, cal.axis_gain = (float(u[0]), float(u[1])), axis, axis_gain
+            _log(log, f"axis: {math.degrees(math.atan2(u[1], u[0])):.3f} +- {math.degrees(axis.angle_std_rad):.3f} deg from +x "
+                      f"(tracked at {cfg.frequencies_hz()[0]:.4g} Hz, {axis.px_per_unit:.4g} px per input unit)", progress)
+        else:
+            u = np.asarray({"x": (1.0, 0.0), "y": (0.0, 1.0)}[mode] if isinstance(mode, str) else mode, dtype=float)
+            u = u / np.hypot(u[0], u[1])
+            cal.direction = (float(u[0]), float(u[1]))
+    return cal
+
+
+_AXIS_FRAMES = 24  # short exposures of the axis calibration, at phases spread over a period
+
+
+def _measure_axis(cfg, rig, cal: Calibration):
+    """Stage 4b: track the spot frame by frame (:func:`torchblur.tracking.calibrate_axes`) at the
+    sweep's first frequency, the amplitude adapted (up to three tries, as the sweep does) so
+    the spot moves about ``excitation.target_px``. Returns ``(AxisCalibration, px per input
+    unit)``."""
+    from .tracking import calibrate_axes
+
+    c, x = cfg.camera, cfg.excitation
+    f = cfg.frequencies_hz()[0]
+    target = float(x.target_px)
+    te = 0.05 / f  # tracking exposures: 5 % of the period
+    power = c.peak_fraction * cal.full_adu * cal.gain / (cal.peak_rate * te)
+    A = target / 10.0
+    for attempt in range(3):
+        if x.max_amplitude is not None:
+            A = min(A, float(x.max_amplitude))
+        axis = calibrate_axes(rig, freq_hz=f, amplitude=A, rest_px=cal.psf.center, dark=cal.dark, gain=cal.gain, n_frames=_AXIS_FRAMES,
+                              latency_s=cal.latency_s, trigger_delay_s=c.trigger_delay_s, power=power, noise_e=cal.read_noise_e)
+        moved = axis.px_per_unit * A
+        if 0.5 * target <= moved <= 2 * target or (x.max_amplitude is not None and A >= x.max_amplitude and moved < 2 * target):
+            break
+        A = target / max(axis.px_per_unit, 1e-12)
+    return axis, axis.px_per_unit
 
 
 def _locate_spots(cfg, still, exposure_s, read_noise_e, log, progress):
@@ -518,8 +583,8 @@ def _identify(cfg, rig, exp, log, progress) -> IdentificationResult:
 
     # Problems per sweep point: one (the spot, full frame) or K (one crop per spot).
     spots = cal.spots
-    single = not mimo and spots is None  # the one-axis, one-spot identification: axes "x", shapes [F]
-    axes = "x" if single else "xy"
+    single = not mimo and spots is None  # the one-axis, one-spot identification: along cal.direction, shapes [F]
+    axes = cal.direction if single else "xy"
     if spots is not None:
         P, (h, w) = len(spots), spots.size
         psf_p = spots.psf_in_crops()  # [K] in crop coordinates
@@ -529,7 +594,9 @@ def _identify(cfg, rig, exp, log, progress) -> IdentificationResult:
         P, (h, w) = 1, (H, W)
         psf_p = GaussianPSF(psf.center[None], psf.cov[None], psf.amplitude[None])
         use_p = torch.ones(1, dtype=torch.bool)
-    moment_axes = [0] if single else [0, 1]
+    # Directions along which the sweep's amplitude adaptation measures the motion.
+    moment_dirs = [torch.tensor(cal.direction, dtype=dtype)] if single else [torch.tensor([1.0, 0.0], dtype=dtype),
+                                                                             torch.tensor([0.0, 1.0], dtype=dtype)]
 
     def pieces_of(frames):
         """``[E, R, H, W]`` -> ``[E, R, P, h, w]`` (the spots' crops, or the frame)."""
@@ -571,7 +638,7 @@ def _identify(cfg, rig, exp, log, progress) -> IdentificationResult:
     bar = tqdm(total=I * F, desc="sweep", unit="pt", disable=not progress)
     try:
         for ii, inp in enumerate(inputs):
-            gain_est = None  # |H| estimate of the dominant motion (px per input unit) from the previous point
+            gain_est = cal.axis_gain  # |H| estimate of the dominant motion (px per input unit) from the previous point
             for k, f in enumerate(freqs):
                 om = 2 * math.pi * f
                 period = 1 / f
@@ -591,9 +658,9 @@ def _identify(cfg, rig, exp, log, progress) -> IdentificationResult:
                     img_ = pieces_of(subtract_dark(cap_frames.to(dtype), dark) * gain)
                     _, cen, cov_ = image_moments(img_[0].mean(0), threshold=3 * read_noise_e)  # [P, 2], [P, 2, 2]
                     Ms = []
-                    for a in moment_axes:
-                        mu1 = cen[:, a] - psf_p.center[:, a]
-                        vex = cov_[:, a, a] - psf_p.cov[:, a, a]
+                    for u in moment_dirs:
+                        mu1 = (cen - psf_p.center) @ u
+                        vex = u @ (cov_ - psf_p.cov) @ u
                         M, _ = sinusoid_from_moments(mu1, vex, torch.tensor(om, dtype=dtype), start0, torch.tensor(te[0], dtype=dtype))
                         Ms.append(M)
                     M = torch.stack(Ms, -1)[use_p]
@@ -681,6 +748,7 @@ def _identify(cfg, rig, exp, log, progress) -> IdentificationResult:
               f"{t_fit_end - t_acq_end:.2f} s from the last frame to the last fit", progress)
     meta = {"seed": int(cfg.seed)}
     if single:
+        meta["direction"] = list(cal.direction)  # the image direction of the fitted motion (x, y)
         images = images[:, 0]  # [F, E*R, H, W]
         frf = _assemble_siso(fit, amps, omega_job, c, latency_std, E * R, meta)
     else:
@@ -708,11 +776,12 @@ def _identify(cfg, rig, exp, log, progress) -> IdentificationResult:
         _log(log, "direct: skipped (no two-step model to start from)", progress)
     elif cfg.model.direct:
         direct_model = _fit_direct_model(cfg, model, images, windows, omega_job, amps, psf, power_t, read_noise_e,
-                                         torch.stack(masks_all)[:, 0], fit, log, progress)
+                                         torch.stack(masks_all)[:, 0], fit, log, progress, cal.direction)
     truth = _truth_of(rig, freqs, frf, spots, single)
     return IdentificationResult(frf=frf, model=model, psf=psf, fit=fit, amplitude=np.asarray(amps), latency_s=latency,
                                 latency_std_s=latency_std, saturation=sat, images=images, windows=windows, power=power_t,
-                                truth=truth, log=log, timing=timing, inputs=tuple(inputs), spots=spots, direct_model=direct_model)
+                                truth=truth, log=log, timing=timing, inputs=tuple(inputs), spots=spots, direct_model=direct_model,
+                                direction=cal.direction, axis=cal.axis)
 
 
 def modes_outside_band(modes, f_lo_hz: float, f_hi_hz: float, factor: float = 3.0) -> list:
@@ -722,7 +791,7 @@ def modes_outside_band(modes, f_lo_hz: float, f_hi_hz: float, factor: float = 3.
     return [m for m in modes if not (f_lo_hz / factor <= m["freq_hz"] <= factor * f_hi_hz)]
 
 
-def _fit_direct_model(cfg, model, images, windows, omega, amps, psf, power_t, read_noise_e, mask, fit, log, progress):
+def _fit_direct_model(cfg, model, images, windows, omega, amps, psf, power_t, read_noise_e, mask, fit, log, progress, direction):
     """The direct model (one axis, one spot): every image at once, with the sweep's noise
     model and mask; dark or out-of-frame points are left out. None, logged, if it fails."""
     import time
@@ -736,6 +805,7 @@ def _fit_direct_model(cfg, model, images, windows, omega, amps, psf, power_t, re
     A_t = torch.tensor(amps, dtype=torch.float64)
     try:
         d = fit_direct(images, psf_pts, windows, omega, A_t, model, form=cfg.model.direct_form, fit_delay=bool(cfg.model.fit_delay),
+                       axis=direction,
                        noise_std=torch.sqrt(read_noise_e**2 + images.clamp_min(0)), mask=mask,
                        valid=(fit.status != 1) & (fit.status != 3), fit_scale=cfg.fit.fit_scale,
                        fit_background=cfg.fit.fit_background, max_iter=int(cfg.model.direct_max_iter))
@@ -782,8 +852,7 @@ def _assemble_siso(fit, amps, omega, camera, latency_std, n_frames, meta):
     phase = fit.phase.numpy()
     mag_std = (fit.amplitude_std / A_t).numpy()
     ph_std = _phase_std(fit.phase_std.numpy(), omega.numpy(), camera, latency_std, n_frames)
-    i_m = fit.param_names.index("amplitude_x")
-    i_p = fit.param_names.index("phase_x")
+    i_m, i_p = 0, 1  # (amplitude, phase) of the one fitted axis
     corr = (fit.covariance[:, i_m, i_p] / (fit.amplitude_std * fit.phase_std).clamp_min(1e-300)).numpy()
     F = mag.shape[0]
     cov = np.zeros((F, 2, 2))

@@ -78,7 +78,7 @@ class MultisineIdentificationResult(IdentificationResult):
                 theta = torch.cat([f.amplitude, f.phase] + ([f.scale.reshape(1)] if f.scale is not None else []))
                 om = torch.as_tensor(2 * np.pi * np.asarray(g["freq_hz"]), dtype=theta.dtype)
                 w = ExposureWindow(self.windows.start[i:i + 1], self.windows.duration[i:i + 1])
-                img = render_multisine(theta, om, self.psf, w, height=H, width=W)[0]
+                img = render_multisine(theta, om, self.psf, w, height=H, width=W, direction=self.direction)[0]
                 models.append(img.detach().numpy())
             labels.append(f"{', '.join(f'{v:.4g}' for v in g['freq_hz'])} Hz")
         return np.stack(data), np.stack(models), labels
@@ -121,6 +121,7 @@ def identify_multisine(cfg, rig, exp, log, progress, cal, t_start: float) -> Mul
     dark, read_noise_e, sat, full_adu = cal.dark, cal.read_noise_e, cal.saturation, cal.full_adu
     psf, peak_rate, latency, latency_std, gain = cal.psf, cal.peak_rate, cal.latency_s, cal.latency_std_s, cal.gain
     peak_e = c.peak_fraction * full_adu * gain  # electrons at the still spot's peak in every frame
+    u = torch.tensor(cal.direction if cal.direction is not None else (1.0, 0.0), dtype=dtype)  # the motion's image direction
     tone_px = float(x.tone_px) if x.tone_px is not None else 0.75 * float(x.target_px)
     amax = x.max_amplitude
     tmax = min(float(c.max_exposure_s), float(rig.max_exposure_s))
@@ -164,7 +165,7 @@ def identify_multisine(cfg, rig, exp, log, progress, cal, t_start: float) -> Mul
                 pilots.append(cap)
                 img = subtract_dark(cap.frames.to(dtype), dark)[0, 0] * gain
                 _, cen, cv = image_moments(img, threshold=3 * read_noise_e)
-                ms = float(cv[0, 0] - psf.cov[0, 0] + (cen[0] - psf.center[0]) ** 2)
+                ms = float(u @ (cv - psf.cov) @ u + ((cen - psf.center) @ u) ** 2)  # mean square motion along the axis
                 rms = math.sqrt(max(ms, 1e-4))
                 ok = 0.75 * rms_target <= rms <= 1.33 * rms_target
                 at_limit = amax is not None and rms < rms_target and np.allclose(limit(a * 1.01, phases), a, rtol=1e-9)
@@ -206,7 +207,8 @@ def identify_multisine(cfg, rig, exp, log, progress, cal, t_start: float) -> Mul
         win = ExposureWindow(start, dur)
         t0 = time.perf_counter()
         fit = fit_multisine(img, psf, win, torch.tensor(om, dtype=dtype), noise_std=noise, mask=mask,
-                            amplitude_guess=torch.tensor(M_exp, dtype=dtype), fit_scale=bool(cfg.fit.fit_scale), seed=int(cfg.seed))
+                            amplitude_guess=torch.tensor(M_exp, dtype=dtype), fit_scale=bool(cfg.fit.fit_scale), seed=int(cfg.seed),
+                            direction=u)
         fit_s += time.perf_counter() - t0
         a_t = np.asarray(a, dtype=np.float64)
         M, ph = fit.amplitude.numpy(), fit.phase.numpy()
@@ -257,7 +259,7 @@ def identify_multisine(cfg, rig, exp, log, progress, cal, t_start: float) -> Mul
         info["order"] = rank[pos:pos + n].tolist()
         pos += n
     frf = FrequencyResponse(2 * np.pi * freq, response, cov=cov, input_labels=["x"], output_labels=["x"],
-                            meta={"seed": int(cfg.seed), "excitation": "multisine"})
+                            meta={"seed": int(cfg.seed), "excitation": "multisine", "direction": [float(v) for v in u]})
     n_bad = int(np.isnan(response).sum())
     _log(log, f"fit: {len(freq) - n_bad} of {len(freq)} points converged ({len(groups)} multisine group(s))", progress)
     model = fit_model(cfg, frf, log, progress)
@@ -269,4 +271,5 @@ def identify_multisine(cfg, rig, exp, log, progress, cal, t_start: float) -> Mul
     windows = ExposureWindow(torch.tensor(all_start, dtype=dtype), torch.tensor(all_dur, dtype=dtype))
     return MultisineIdentificationResult(frf=frf, model=model, psf=psf, fit=fits, amplitude=np.asarray(out_amp)[idx], latency_s=latency,
                                          latency_std_s=latency_std, saturation=sat, images=images, windows=windows,
-                                         power=torch.tensor(all_pow, dtype=dtype), truth=truth, log=log, timing=timing, groups=infos)
+                                         power=torch.tensor(all_pow, dtype=dtype), truth=truth, log=log, timing=timing, groups=infos,
+                                         direction=cal.direction, axis=cal.axis)
