@@ -112,3 +112,26 @@ def test_axis_config_is_checked():
         load_config("configs/identify_mimo.yaml", ["fit.axis=x"])
     cfg = load_config(None, ["fit.axis=[3,4]"])
     assert list(cfg.fit.axis) == [3, 4]
+
+
+def test_recording_without_the_axis_group_replays_along_x(tmp_path):
+    """A recording made without the axis calibration (fit.axis=x, or before it existed) is
+    re-fitted offline with fit.axis=measure along x, said so in the log, with the same
+    response; a recording with it replays the tracked direction exactly."""
+    from torchblur.hardware.recording import Experiment, ReplayRig
+
+    base = ["sweep.freq_hz=[2,400]", "camera.height=40", "camera.width=40", "seed=2"]
+    cfg_x = load_config(None, base + ["fit.axis=x"])
+    first = identify(cfg_x, progress=False, record=tmp_path / "x")
+    exp = Experiment.open(tmp_path / "x", writable=False)
+    assert not exp.has("axis")
+    again = identify(load_config(None, base), rig=ReplayRig(exp), record=exp, progress=False)
+    assert again.direction == (1.0, 0.0) and again.axis is None
+    assert any("not in the recording" in m for m in again.log)
+    np.testing.assert_allclose(again.frf.response, first.frf.response, rtol=1e-9)
+    measured = identify(load_config(None, base), progress=False, record=tmp_path / "m")
+    exp_m = Experiment.open(tmp_path / "m", writable=False)
+    assert exp_m.has("axis")
+    replay = identify(load_config(None, base), rig=ReplayRig(exp_m), record=exp_m, progress=False)
+    assert replay.direction == measured.direction
+    np.testing.assert_allclose(replay.frf.response, measured.frf.response, rtol=1e-9)
