@@ -51,7 +51,8 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from .errors import InputTypeError, ParameterError, ShapeError, as_frequency_grid, as_tensor, check_choice, check_finite, check_positive
+from .errors import (InputTypeError, ParameterError, ShapeError, as_frequency_grid, as_tensor, as_unit_direction, check_choice,
+                     check_finite, check_positive)
 from .psf import GaussianPSF
 from .render import RenderSettings, choose_node_count, quadrature_nodes
 from .timing import ExposureWindow
@@ -457,13 +458,10 @@ def _unit_axis(axis, like: torch.Tensor) -> torch.Tensor:
     """``"x"``, ``"y"`` or a direction (x, y) -> the unit image direction ``[2]``."""
     if isinstance(axis, str):
         return torch.tensor([1.0, 0.0] if axis == "x" else [0.0, 1.0], dtype=like.dtype, device=like.device)
-    d = check_finite(as_tensor(axis, "axis", like=like), "axis")
+    d = as_unit_direction(axis, "axis", like=like)
     if d.shape != (2,):
-        raise ShapeError(f"axis: expected 'x', 'y' or a direction (x, y) of shape [2], got shape {tuple(d.shape)}")
-    norm = d.norm()
-    if not bool(norm > 0):
-        raise ParameterError("axis: expected a nonzero direction (x, y), got (0, 0)")
-    return d / norm
+        raise ShapeError(f"axis: expected 'x', 'y' or one direction (x, y) of shape [2], got shape {tuple(d.shape)}")
+    return d
 
 
 def _validate(images, psf, window, omega, input_amplitude, start, form, axis, valid):

@@ -23,6 +23,7 @@ __all__ = [
     "check_trailing_shape",
     "check_choice",
     "broadcast_batch",
+    "as_unit_direction",
 ]
 
 
@@ -165,3 +166,16 @@ def as_frequency_grid(value, name: str):
         raise ParameterError(f"{name}: expected finite values")
     return w
 
+
+
+def as_unit_direction(value, name: str, *, like: torch.Tensor) -> torch.Tensor:
+    """An image direction ``(x, y)`` (a pair, or a tensor ``[2]`` or ``[..., 2]``) -> unit
+    vectors ``[..., 2]`` in ``like``'s dtype and device; raises naming ``name`` for a wrong
+    shape, NaN/Inf or a zero vector."""
+    d = check_finite(as_tensor(value, name, like=like), name)
+    if d.dim() == 0 or d.shape[-1] != 2:
+        raise ShapeError(f"{name}: expected an image direction (x, y) of shape [2] or [..., 2], got shape {tuple(d.shape)}")
+    norm = d.norm(dim=-1, keepdim=True)
+    if bool((norm <= 0).any()):
+        raise ParameterError(f"{name}: expected a nonzero direction (x, y), got (0, 0)")
+    return d / norm

@@ -16,7 +16,7 @@ import torch
 
 from .alias import alias_phase as _alias_phase
 from .alias import wrap_phase
-from .errors import (InputTypeError, ParameterError, ShapeError, as_tensor, check_choice, check_finite, check_positive,
+from .errors import (InputTypeError, ParameterError, ShapeError, as_tensor, as_unit_direction, check_choice, check_finite, check_positive,
                      check_real_scalar)
 from .losses import LOSSES, image_loss, irls_weights
 from .moments import image_moments, sinusoid_from_moments
@@ -806,17 +806,11 @@ def _axis_directions(axes, N: int, dtype, device) -> torch.Tensor:
 def _as_direction(axes, batch, N: int, like: torch.Tensor) -> torch.Tensor:
     """``axes`` given as an image direction (a pair (x, y), or a tensor ``[2]`` or ``[..., 2]``
     broadcastable to the images' batch) -> unit vectors ``[N, 2]``."""
-    d = check_finite(as_tensor(axes, "axes", like=like), "axes")
-    if d.dim() == 0 or d.shape[-1] != 2:
-        raise ShapeError(f"axes: expected 'x', 'y', 'xy' or a direction (x, y) of shape [2] or [..., 2], got shape {tuple(d.shape)}")
+    d = as_unit_direction(axes, "axes", like=like)
     try:
-        d = d.expand(batch + (2,)).reshape(N, 2)
+        return d.expand(batch + (2,)).reshape(N, 2)
     except RuntimeError:
         raise ShapeError(f"axes: a direction [..., 2] must broadcast to the images' batch {tuple(batch)}, got {tuple(d.shape)}") from None
-    norm = d.norm(dim=-1, keepdim=True)
-    if bool((norm <= 0).any()):
-        raise ParameterError("axes: expected a nonzero direction (x, y), got (0, 0)")
-    return d / norm
 
 
 def _axes_xy(amplitude: torch.Tensor, phase: torch.Tensor, direction: torch.Tensor | None):

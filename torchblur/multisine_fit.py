@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import torch
 
 from .alias import wrap_phase
-from .errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_finite, check_positive
+from .errors import InputTypeError, ParameterError, ShapeError, as_tensor, as_unit_direction, check_finite, check_positive
 from .losses import image_loss
 from .moments import image_moments
 from .optim import levenberg_marquardt, model_jacobian
@@ -50,13 +50,7 @@ def _unit_direction(direction, like: torch.Tensor) -> torch.Tensor:
     """The image direction of the motion as a unit vector ``[..., 2]`` (None: +x)."""
     if direction is None:
         return torch.tensor([1.0, 0.0], dtype=like.dtype, device=like.device)
-    d = check_finite(as_tensor(direction, "direction", like=like), "direction")
-    if d.dim() == 0 or d.shape[-1] != 2:
-        raise ShapeError(f"direction: expected an image direction (x, y) of shape [2] or [..., 2], got {tuple(d.shape)}")
-    norm = d.norm(dim=-1, keepdim=True)
-    if bool((norm <= 0).any()):
-        raise ParameterError("direction: expected a nonzero direction (x, y), got (0, 0)")
-    return d / norm
+    return as_unit_direction(direction, "direction", like=like)
 
 
 def _motion(theta: torch.Tensor, n_tones: int, u: torch.Tensor):
