@@ -135,3 +135,12 @@ def test_recording_without_the_axis_group_replays_along_x(tmp_path):
     replay = identify(load_config(None, base), rig=ReplayRig(exp_m), record=exp_m, progress=False)
     assert replay.direction == measured.direction
     np.testing.assert_allclose(replay.frf.response, measured.frf.response, rtol=1e-9)
+
+
+def test_axis_tracking_without_clear_motion_falls_back_to_x():
+    """An excitation too small to move the spot (max_amplitude) gives the tracking no direction:
+    the run goes on along x and the log says why, never a direction drawn from noise."""
+    res = identify(load_config(None, ["sweep.freq_hz=[2,400]", "excitation.max_amplitude=1e-5", "camera.height=40",
+                                      "camera.width=40"]), progress=False)
+    assert res.direction == (1.0, 0.0) and res.axis is None
+    assert any(m.startswith("axis: no clear motion") for m in res.log)

@@ -445,9 +445,14 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False) -> Calibrati
             u = np.asarray(axis.direction, dtype=float)
             if u[0] < 0 or (u[0] == 0 and u[1] < 0):  # the sign that points toward +x: the FRF keeps the x convention
                 u = -u
-            cal.direction, cal.axis, cal.axis_gain = (float(u[0]), float(u[1])), axis, axis_gain
-            _log(log, f"axis: {math.degrees(math.atan2(u[1], u[0])):.3f} +- {math.degrees(axis.angle_std_rad):.3f} deg from +x "
-                      f"(tracked at {cfg.frequencies_hz()[0]:.4g} Hz, {axis.px_per_unit:.4g} px per input unit)", progress)
+            if not (np.isfinite(u).all() and axis.px_per_unit > 5 * axis.px_per_unit_std):
+                cal.direction = (1.0, 0.0)  # no clear motion to take a direction from
+                _log(log, f"axis: no clear motion in the tracking ({axis.px_per_unit:.3g} +- {axis.px_per_unit_std:.2g} px per "
+                          f"input unit at {cfg.frequencies_hz()[0]:.4g} Hz): the motion is fitted along x", progress)
+            else:
+                cal.direction, cal.axis, cal.axis_gain = (float(u[0]), float(u[1])), axis, axis_gain
+                _log(log, f"axis: {math.degrees(math.atan2(u[1], u[0])):.3f} +- {math.degrees(axis.angle_std_rad):.3f} deg from "
+                          f"+x (tracked at {cfg.frequencies_hz()[0]:.4g} Hz, {axis.px_per_unit:.4g} px per input unit)", progress)
         else:
             u = np.asarray({"x": (1.0, 0.0), "y": (0.0, 1.0)}[mode] if isinstance(mode, str) else mode, dtype=float)
             u = u / np.hypot(u[0], u[1])
@@ -468,14 +473,17 @@ def _measure_axis(cfg, rig, cal: Calibration):
     c, x = cfg.camera, cfg.excitation
     f = cfg.frequencies_hz()[0]
     target = float(x.target_px)
-    te = 0.05 / f  # tracking exposures: 5 % of the period
+    # Tracking exposures: 5 % of the period (shorter when the camera's longest exposure is).
+    frac = min(0.05, 0.9 * min(float(c.max_exposure_s), float(getattr(rig, "max_exposure_s", c.max_exposure_s))) * f)
+    te = frac / f
     power = c.peak_fraction * cal.full_adu * cal.gain / (cal.peak_rate * te)
     A = target / 10.0
     for attempt in range(3):
         if x.max_amplitude is not None:
             A = min(A, float(x.max_amplitude))
         axis = calibrate_axes(rig, freq_hz=f, amplitude=A, rest_px=cal.psf.center, dark=cal.dark, gain=cal.gain, n_frames=_AXIS_FRAMES,
-                              latency_s=cal.latency_s, trigger_delay_s=c.trigger_delay_s, power=power, noise_e=cal.read_noise_e)
+                              latency_s=cal.latency_s, trigger_delay_s=c.trigger_delay_s, power=power, noise_e=cal.read_noise_e,
+                              exposure_fraction=frac)
         moved = axis.px_per_unit * A
         if 0.5 * target <= moved <= 2 * target or (x.max_amplitude is not None and A >= x.max_amplitude and moved < 2 * target):
             break

@@ -146,12 +146,15 @@ class AxisCalibration:
 
 
 def calibrate_axes(rig, *, freq_hz: float, amplitude: float, rest_px, dark, gain: float = 1.0, n_frames: int = 24,
-                   latency_s: float = 0.0, trigger_delay_s: float = 0.0, power: float = 1.0, noise_e=None) -> AxisCalibration:
+                   latency_s: float = 0.0, trigger_delay_s: float = 0.0, power: float = 1.0, noise_e=None,
+                   exposure_fraction: float = 0.05) -> AxisCalibration:
     """Drive one input axis at a low frequency (well inside the actuator's flat band and
-    below the camera's Nyquist rate), track the spot on both image axes, and return the
-    direction, sign and scale of that actuator axis in the image."""
+    below the camera's Nyquist rate), track the spot on both image axes (short exposures of
+    ``exposure_fraction`` of the period, see :func:`track_sine`), and return the direction,
+    sign and scale of that actuator axis in the image."""
     tr = track_sine(rig, freq_hz=freq_hz, amplitude=amplitude, rest_px=rest_px, dark=dark, gain=gain, n_frames=n_frames,
-                    latency_s=latency_s, trigger_delay_s=trigger_delay_s, power=power, axes="xy", noise_e=noise_e)
+                    latency_s=latency_s, trigger_delay_s=trigger_delay_s, power=power, axes="xy", noise_e=noise_e,
+                    exposure_fraction=exposure_fraction)
     # Both image axes move in phase (or in anti-phase): signed amplitudes along a common phase.
     ref = int(np.argmax(tr.amplitude))
     phi0 = tr.phase[ref]
