@@ -146,3 +146,19 @@ def test_fit_along_a_rotated_direction_recovers_the_tones():
     np.testing.assert_allclose(J[..., 4].numpy(), ref.numpy(), atol=1e-8 * float(ref.abs().max()))
     with pytest.raises(ParameterError, match="direction"):
         fit_multisine(img, PSF, win, OM, direction=(0.0, 0.0))
+
+
+def test_fisher_information_of_a_round_spot_does_not_depend_on_the_direction():
+    """With a round PSF the images of a motion along any direction are rotations of each
+    other: the design's Fisher information is the same (to the pixel grid's 1e-5), and "x"
+    is the default, bit for bit."""
+    psf = GaussianPSF(torch.tensor([31.5, 31.5], dtype=F64), 4 * torch.eye(2, dtype=F64), torch.tensor(1e6, dtype=F64))
+    th = torch.tensor([[3.0, 2.0, 0.3, -1.0]], dtype=F64)
+    om = 2 * math.pi * torch.tensor([60.0, 120.0], dtype=F64)
+    win = ExposureWindow(torch.tensor([0.0, 0.003], dtype=F64), torch.tensor([0.01, 0.004], dtype=F64))
+    kw = dict(frame_shape=(64, 64), read_noise_e=5.0)
+    default = image_fisher(th, om, psf, win, **kw)
+    assert torch.equal(default, image_fisher(th, om, psf, win, direction=(1.0, 0.0), **kw))
+    for ang in (0.6, 2.0):
+        rotated = image_fisher(th, om, psf, win, direction=(math.cos(ang), math.sin(ang)), **kw)
+        assert float((rotated - default).abs().max() / default.abs().max()) < 1e-5

@@ -52,18 +52,20 @@ def candidate_windows(period_s: float, *, max_exposure_s: float, n_offsets: int 
     return ExposureWindow(torch.as_tensor(s.reshape(-1), dtype=dtype), torch.as_tensor(t.reshape(-1), dtype=dtype))
 
 
-def _crop(amplitude_bound: float, psf: GaussianPSF, H: int, W: int):
+def _crop(amplitude_bound: float, psf: GaussianPSF, H: int, W: int, u: torch.Tensor):
+    """The pixels a motion of up to ``amplitude_bound`` px along the unit ``u`` reaches."""
     sd = torch.diagonal(psf.cov, dim1=-2, dim2=-1).sqrt()
     c = psf.center
-    x0 = max(0, int(math.floor(float(c[0] - amplitude_bound - 7 * sd[0]))))
-    x1 = min(W, int(math.ceil(float(c[0] + amplitude_bound + 7 * sd[0]))) + 1)
-    y0 = max(0, int(math.floor(float(c[1] - 7 * sd[1]))))
-    y1 = min(H, int(math.ceil(float(c[1] + 7 * sd[1]))) + 1)
+    rx, ry = amplitude_bound * float(u[0].abs()), amplitude_bound * float(u[1].abs())
+    x0 = max(0, int(math.floor(float(c[0] - rx - 7 * sd[0]))))
+    x1 = min(W, int(math.ceil(float(c[0] + rx + 7 * sd[0]))) + 1)
+    y0 = max(0, int(math.floor(float(c[1] - ry - 7 * sd[1]))))
+    y1 = min(H, int(math.ceil(float(c[1] + ry + 7 * sd[1]))) + 1)
     return y0, y1, x0, x1
 
 
 def image_fisher(theta, omega, psf: GaussianPSF, window: ExposureWindow, *, frame_shape, read_noise_e: float,
-                 peak_e: float | None = None, settings: RenderSettings | None = None) -> torch.Tensor:
+                 peak_e: float | None = None, settings: RenderSettings | None = None, direction=None) -> torch.Tensor:
     """Fisher information of each image of a multisine motion, ``[n, C, P, P]``.
 
     Args:
@@ -78,12 +80,13 @@ def image_fisher(theta, omega, psf: GaussianPSF, window: ExposureWindow, *, fram
             the exposure so that a still spot would collect ``peak_e`` electrons at its peak in
             every image (PSF amplitude ``peak_e / exposure``).
         settings: renderer settings (nodes from the motion, panels of 3.5 PSF widths).
+        direction: the motion's image direction (x, y) (normalised); None: +x.
 
     ``F[h, c] = J_hc^T diag(1 / (read_noise^2 + image_hc)) J_hc`` over the pixels of image c
     under hypothesis h (pixels beyond 7 PSF stds of the motion are left out: their
     derivatives are below e^-24 of the peak).
     """
-    from .multisine_fit import render_multisine_with_jacobian
+    from .multisine_fit import _unit_direction, render_multisine_with_jacobian
 
     theta = check_finite(as_tensor(theta, "theta", dtype=torch.float64), "theta")
     if theta.dim() == 1:
@@ -99,8 +102,9 @@ def image_fisher(theta, omega, psf: GaussianPSF, window: ExposureWindow, *, fram
     dtype = theta.dtype
     psf = psf.to(dtype)
     C = window.shape[0]
+    u = _unit_direction(direction, theta).reshape(2)
     bound = float(theta[:, :N].abs().sum(-1).max()) * 1.2 + 0.5
-    y0, y1, x0, x1 = _crop(bound, psf, H, W)
+    y0, y1, x0, x1 = _crop(bound, psf, H, W, u)
     center = psf.center - torch.tensor([x0, y0], dtype=dtype)
     settings = settings or RenderSettings(panel_path_sigmas=3.5)
     M_b = theta[:, :N].abs().amax(0) * 1.2 + 0.5
@@ -119,7 +123,7 @@ def image_fisher(theta, omega, psf: GaussianPSF, window: ExposureWindow, *, fram
             p = GaussianPSF(center.expand(c, 2), psf.cov.expand(c, 2, 2), amp)
             win = ExposureWindow(window.start[i:i + c, None].to(dtype), window.duration[i:i + c, None].to(dtype))
             img, J = render_multisine_with_jacobian(th, omega.expand(c, N), p, win, height=y1 - y0, width=x1 - x0, nodes=S,
-                                                    nodes_per_panel=settings.nodes_per_panel)
+                                                    nodes_per_panel=settings.nodes_per_panel, direction=u)
             var = read_noise_e**2 + img.clamp_min(0)
             J = J.reshape(c, -1, P)
             Fh.append((J / var.reshape(c, -1, 1)).transpose(-1, -2) @ J)
@@ -183,7 +187,7 @@ def design_acquisition(amplitude, omega, psf: GaussianPSF, *, period_s: float, m
                        read_noise_e: float, phase=None, n_images: int | None = None, max_images: int = 16,
                        min_images: int = 2, target_std: float = 2e-3, n_hypotheses: int = 4, fit_scale: bool = True,
                        candidates: ExposureWindow | None = None, peak_e: float | None = None,
-                       taken: ExposureWindow | None = None, seed: int = 0) -> AcquisitionDesign:
+                       taken: ExposureWindow | None = None, seed: int = 0, direction=None) -> AcquisitionDesign:
     """Greedy D-optimal image set for N tones of expected output amplitudes ``amplitude``.
 
     Args:
@@ -208,6 +212,7 @@ def design_acquisition(amplitude, omega, psf: GaussianPSF, *, period_s: float, m
             exposure (see :func:`image_fisher`).
         taken: windows ``[T]`` of frames already taken of the same motion (a pilot): their
             information is counted, the design adds to them (they are not in the result).
+        direction: the motion's image direction (x, y) (normalised); None: +x.
 
     Returns:
         :class:`AcquisitionDesign`.
@@ -232,7 +237,8 @@ def design_acquisition(amplitude, omega, psf: GaussianPSF, *, period_s: float, m
     theta = torch.cat([amplitude.expand(n_hypotheses, N), hyp] + ([torch.ones(n_hypotheses, 1, dtype=torch.float64)]
                                                                   if fit_scale else []), -1)
     P = theta.shape[-1]
-    F = image_fisher(theta, omega, psf, cand, frame_shape=frame_shape, read_noise_e=read_noise_e, peak_e=peak_e)  # [Hh, C, P, P]
+    F = image_fisher(theta, omega, psf, cand, frame_shape=frame_shape, read_noise_e=read_noise_e, peak_e=peak_e,
+                     direction=direction)  # [Hh, C, P, P]
     D = torch.diagonal(F, dim1=-2, dim2=-1).mean((0, 1)).clamp_min(1e-300).sqrt()  # parameter scales
     Fn = F / (D[:, None] * D[None, :])
     eye = torch.eye(P, dtype=torch.float64) * 1e-8
@@ -243,7 +249,8 @@ def design_acquisition(amplitude, omega, psf: GaussianPSF, *, period_s: float, m
     c_ref = None
     n_taken = 0
     if taken is not None and taken.shape[0]:
-        Ft = image_fisher(theta, omega, psf, taken, frame_shape=frame_shape, read_noise_e=read_noise_e, peak_e=peak_e)
+        Ft = image_fisher(theta, omega, psf, taken, frame_shape=frame_shape, read_noise_e=read_noise_e, peak_e=peak_e,
+                          direction=direction)
         F_sel = Ft.sum(1) / (D[:, None] * D[None, :])
         n_taken = taken.shape[0]
         tc = torch.remainder(taken.start + taken.duration / 2, T0 / 2)

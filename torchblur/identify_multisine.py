@@ -181,7 +181,7 @@ def identify_multisine(cfg, rig, exp, log, progress, cal, t_start: float) -> Mul
             design = design_acquisition(M_exp, om, psf, period_s=T0, max_exposure_s=tmax, frame_shape=(H, W),
                                         read_noise_e=read_noise_e, n_images=n_more, max_images=int(x.max_images) - 1,
                                         target_std=float(x.target_std), peak_e=peak_e, taken=pilot_win,
-                                        fit_scale=bool(cfg.fit.fit_scale), seed=int(cfg.seed) + g)
+                                        fit_scale=bool(cfg.fit.fit_scale), seed=int(cfg.seed) + g, direction=u)
             te = list(design.exposure_s)
             offsets = [(s - c.trigger_delay_s - latency) % T0 for s in design.window_start_s]
             powers = [float(peak_e / (peak_rate * t)) for t in te]
