@@ -19,7 +19,7 @@ from .alias import wrap_phase
 from .errors import (InputTypeError, ParameterError, ShapeError, as_tensor, as_unit_direction, check_choice, check_finite, check_positive,
                      check_real_scalar)
 from .losses import LOSSES, image_loss, irls_weights
-from .moments import image_moments, sinusoid_from_moments
+from .moments import image_moments, moments_along, sinusoid_from_moments
 from .optim import levenberg_marquardt, model_jacobian
 from .psf import GaussianPSF, KernelPSF
 from .render import RenderSettings, choose_node_count, panel_count, quadrature_nodes, render_blur
@@ -239,8 +239,7 @@ def _fit_core(
     M_c, phi_c = [], []
     for k in range(n_axes):
         d = D[:, None, k]  # [N, 1, 2]
-        mu1 = ((centroid - rest[:, None]) * d).sum(-1)
-        vex = (d[..., None, :] @ (icov - cov_psf[:, None]) @ d[..., None])[..., 0, 0]
+        mu1, vex = moments_along(centroid - rest[:, None], icov - cov_psf[:, None], d)
         M, phi = sinusoid_from_moments(mu1, vex, om[:, None], start, dur)  # [N, E], [N, E, 2]
         M_c.append(M)
         phi_c.append(torch.nan_to_num(phi, nan=0.0))

@@ -454,8 +454,10 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False) -> Calibrati
                 _log(log, f"axis: {math.degrees(math.atan2(u[1], u[0])):.3f} +- {math.degrees(axis.angle_std_rad):.3f} deg from "
                           f"+x (tracked at {cfg.frequencies_hz()[0]:.4g} Hz, {axis.px_per_unit:.4g} px per input unit)", progress)
         else:
-            u = np.asarray({"x": (1.0, 0.0), "y": (0.0, 1.0)}[mode] if isinstance(mode, str) else mode, dtype=float)
-            u = u / np.hypot(u[0], u[1])
+            from .errors import as_unit_direction
+
+            u = as_unit_direction({"x": (1.0, 0.0), "y": (0.0, 1.0)}[mode] if isinstance(mode, str) else mode, "fit.axis",
+                                  like=torch.zeros((), dtype=torch.float64))
             cal.direction = (float(u[0]), float(u[1]))
     return cal
 
@@ -563,7 +565,7 @@ def _identify(cfg, rig, exp, log, progress) -> IdentificationResult:
     from .design import check_design
     from .fit import fit_sinusoid
     from .frequency_response import FrequencyResponse
-    from .moments import image_moments, sinusoid_from_moments
+    from .moments import image_moments, moments_along, sinusoid_from_moments
     from .preprocess import subtract_dark
     from .psf import GaussianPSF
     from .timing import ExposureWindow
@@ -667,8 +669,7 @@ def _identify(cfg, rig, exp, log, progress) -> IdentificationResult:
                     _, cen, cov_ = image_moments(img_[0].mean(0), threshold=3 * read_noise_e)  # [P, 2], [P, 2, 2]
                     Ms = []
                     for u in moment_dirs:
-                        mu1 = (cen - psf_p.center) @ u
-                        vex = u @ (cov_ - psf_p.cov) @ u
+                        mu1, vex = moments_along(cen - psf_p.center, cov_ - psf_p.cov, u)
                         M, _ = sinusoid_from_moments(mu1, vex, torch.tensor(om, dtype=dtype), start0, torch.tensor(te[0], dtype=dtype))
                         Ms.append(M)
                     M = torch.stack(Ms, -1)[use_p]

@@ -109,7 +109,7 @@ def identify_multisine(cfg, rig, exp, log, progress, cal, t_start: float) -> Mul
 
     from .excitation_design import design_acquisition
     from .frequency_response import FrequencyResponse
-    from .moments import image_moments
+    from .moments import image_moments, moments_along
     from .multisine import common_grid, optimise_crest_factor
     from .multisine_fit import fit_multisine
     from .preprocess import subtract_dark
@@ -165,7 +165,8 @@ def identify_multisine(cfg, rig, exp, log, progress, cal, t_start: float) -> Mul
                 pilots.append(cap)
                 img = subtract_dark(cap.frames.to(dtype), dark)[0, 0] * gain
                 _, cen, cv = image_moments(img, threshold=3 * read_noise_e)
-                ms = float(u @ (cv - psf.cov) @ u + ((cen - psf.center) @ u) ** 2)  # mean square motion along the axis
+                along, vex = moments_along(cen - psf.center, cv - psf.cov, u)
+                ms = float(vex + along**2)  # mean square motion along the axis
                 rms = math.sqrt(max(ms, 1e-4))
                 ok = 0.75 * rms_target <= rms <= 1.33 * rms_target
                 at_limit = amax is not None and rms < rms_target and np.allclose(limit(a * 1.01, phases), a, rtol=1e-9)

@@ -279,6 +279,13 @@ class LTIResponse(Trajectory):
         y = self.output(t)
         return y[..., None] * self.direction.to(device=y.device, dtype=y.dtype)[..., None, :]
 
+    def _span_after_delay(self, window: ExposureWindow):
+        """``(t0, t1)`` float64 ``[...]``: the window in the response's own time ``t - delay_s``,
+        clamped at 0 (the output is zero before the delay), detached."""
+        start = window.start.detach().to(torch.float64)
+        end = start + window.duration.detach().to(torch.float64)
+        return (start - self.delay_s).clamp_min(0.0), (end - self.delay_s).clamp_min(0.0)
+
     def _transient_path_bound(self, t0: torch.Tensor, t1: torch.Tensor) -> torch.Tensor:
         """Bound of the total variation of ``self.transient`` over ``[t0, t1]`` (times after the
         delay, float64 ``[...]``): ``sum_k |c_k| |lambda_k| integral e^{Re lambda_k t'} dt'``
@@ -425,11 +432,8 @@ class LTISineTrajectory(LTIResponse):
         eigenvectors), or estimated from 2049 samples per window with a 10 % margin (nearly
         repeated poles, where the modal terms cancel and their bound is far too loose)."""
         with torch.no_grad():
-            start = window.start.detach().to(torch.float64)
-            end = start + window.duration.detach().to(torch.float64)
-            dev = start.device
-            t0 = (start - self.delay_s).clamp_min(0.0)
-            t1 = (end - self.delay_s).clamp_min(0.0)
+            t0, t1 = self._span_after_delay(window)
+            dev = t0.device
             amp_ss = self.steady_state_amplitude().to(dev)
             h = self._h0.to(dev)
             phase0 = torch.atan2(h[..., 1], h[..., 0]) + math.pi * (self.amplitude.to(dev) < 0)

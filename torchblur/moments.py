@@ -18,7 +18,7 @@ import torch
 from .alias import wrap_phase
 from .errors import InputTypeError, ShapeError
 
-__all__ = ["image_moments", "sinusoid_from_moments"]
+__all__ = ["image_moments", "moments_along", "sinusoid_from_moments"]
 
 
 def image_moments(images: torch.Tensor, *, threshold: torch.Tensor | float | None = None):
@@ -66,6 +66,16 @@ def image_moments(images: torch.Tensor, *, threshold: torch.Tensor | float | Non
     cx, cy = cx + ox, cy + oy
     cov = torch.stack([torch.stack([sxx, sxy], -1), torch.stack([sxy, syy], -1)], -2)
     return m0, torch.stack([cx, cy], -1), cov
+
+
+def moments_along(offset: torch.Tensor, excess_cov: torch.Tensor, direction: torch.Tensor):
+    """The image moments of a spot moving along the unit ``direction`` (x, y), projected on it:
+    ``offset [..., 2]`` (centroid less the rest position) and ``excess_cov [..., 2, 2]`` (image
+    covariance less the PSF's) give the mean displacement ``u . offset`` and its variance
+    ``u^T excess_cov u`` along it, ``[...]`` (px, px^2): the ``mu1`` and ``var_excess`` of
+    :func:`sinusoid_from_moments`. ``direction`` broadcasts as ``[..., 2]``."""
+    u = direction
+    return (offset * u).sum(-1), (u[..., None, :] @ excess_cov @ u[..., None])[..., 0, 0]
 
 
 def sinusoid_from_moments(mu1: torch.Tensor, var_excess: torch.Tensor, omega: torch.Tensor, start: torch.Tensor, duration: torch.Tensor):

@@ -364,11 +364,8 @@ class LTIMultisineTrajectory(LTIResponse):
         the tones' exact steady-state total variations plus the transient's bound (as
         :meth:`LTISineTrajectory.path_length`)."""
         with torch.no_grad():
-            start = window.start.detach().to(torch.float64)
-            end = start + window.duration.detach().to(torch.float64)
-            dev = start.device
-            t0 = (start - self.delay_s).clamp_min(0.0)
-            t1 = (end - self.delay_s).clamp_min(0.0)
+            t0, t1 = self._span_after_delay(window)
+            dev = t0.device
             h = self._h0.to(dev)
             phase0 = torch.atan2(h[..., 1], h[..., 0]) + self.phase.to(dev) + math.pi * (self.amplitude.to(dev) < 0)
             tv = _sine_path_bound(self.steady_state_amplitude().to(dev), self.omega.to(dev), phase0, t0[..., None],

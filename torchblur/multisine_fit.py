@@ -26,7 +26,7 @@ import torch
 from .alias import wrap_phase
 from .errors import InputTypeError, ParameterError, ShapeError, as_tensor, as_unit_direction, check_finite, check_positive
 from .losses import image_loss
-from .moments import image_moments
+from .moments import image_moments, moments_along
 from .optim import levenberg_marquardt, model_jacobian
 from .psf import GaussianPSF
 from .render import RenderSettings, choose_node_count, render_blur
@@ -317,9 +317,7 @@ def fit_multisine(
     # Amplitude guess: mean square of the motion from the second moments (equal tones).
     if amplitude_guess is None:
         _, cen, icov = image_moments(data, threshold=thr)
-        uu = u[:, None]  # [B, 1, 2]
-        along = ((cen - center[:, None]) * uu).sum(-1)
-        vex = (uu[..., None, :] @ (icov - cov[:, None]) @ uu[..., None])[..., 0, 0]
+        along, vex = moments_along(cen - center[:, None], icov - cov[:, None], u[:, None])
         ms = (vex + along**2).mean(-1).clamp_min(0.25)
         M0 = (2 * ms / N).sqrt()[:, None].expand(B, N)
     else:
