@@ -14,8 +14,8 @@ import math
 
 import numpy as np
 
-from torchblur.config import load_config
-from torchblur.identify import identify
+from torchblur.identify.config import load_config
+from torchblur.identify.run import identify
 
 
 def errors(res):

@@ -31,8 +31,8 @@ import time
 import numpy as np
 import torch
 
-from torchblur.config import load_config
-from torchblur.identify import build_simulated_rig, calibrate, identify
+from torchblur.identify.config import load_config
+from torchblur.identify.run import build_simulated_rig, calibrate, identify
 
 TRUTH = ((650.0, 0.03), (1600.0, 0.05))
 
@@ -76,9 +76,9 @@ def part_a(seeds):
 
 def acquire(rig, cal, cfg, freqs, fracs, repeats, b):
     """Images [F, E*R, H, W] (electrons, dark subtracted), windows, psf per point, amplitudes, noise, mask."""
-    from torchblur.preprocess import subtract_dark
-    from torchblur.psf import GaussianPSF
-    from torchblur.timing import ExposureWindow
+    from torchblur.image.preprocess import subtract_dark
+    from torchblur.render.psf import GaussianPSF
+    from torchblur.render.window import ExposureWindow
 
     c = cfg.camera
     dtype = torch.float64
@@ -108,10 +108,10 @@ def acquire(rig, cal, cfg, freqs, fracs, repeats, b):
 
 def routes(images, window, psf, omega, amps, noise, mask, single):
     """(two-step modes, direct modes, seconds of the direct fit) for one data set."""
-    from torchblur.direct import fit_direct, resolve_alias_with_model
-    from torchblur.fit import fit_sinusoid
-    from torchblur.frequency_response import FrequencyResponse
-    from torchblur.model_fit import fit_transfer_function
+    from torchblur.sysid.direct import fit_direct, resolve_alias_with_model
+    from torchblur.fit.sinusoid import fit_sinusoid
+    from torchblur.sysid.frequency_response import FrequencyResponse
+    from torchblur.sysid.tf_fit import fit_transfer_function
 
     fit = fit_sinusoid(images, psf, window, omega, noise_std=noise, mask=mask, fit_scale=True)
     A = amps.numpy()

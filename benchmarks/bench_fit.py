@@ -21,10 +21,10 @@ import torch
 from scipy.optimize import least_squares
 
 import torchblur as tb
-from torchblur.design import dual_exposure_windows
-from torchblur.fit import fit_sinusoid
-from torchblur.optim import model_jacobian
-from torchblur.render import RenderSettings, quadrature_nodes
+from torchblur.design.windows import dual_exposure_windows
+from torchblur.fit.sinusoid import fit_sinusoid
+from torchblur.fit.optim import model_jacobian
+from torchblur.render.blur import RenderSettings, quadrature_nodes
 
 H, W = 48, 64
 

@@ -18,8 +18,8 @@ import time
 import numpy as np
 import torch
 
-from torchblur.config import load_config
-from torchblur.identify import identify
+from torchblur.identify.config import load_config
+from torchblur.identify.run import identify
 
 CONFIGS = {"mimo": "configs/identify_mimo.yaml", "spots": "configs/identify_spots.yaml"}
 

@@ -31,8 +31,8 @@ import time
 import numpy as np
 import torch
 
-from torchblur.config import load_config
-from torchblur.identify import build_simulated_rig, identify
+from torchblur.identify.config import load_config
+from torchblur.identify.run import build_simulated_rig, identify
 
 CASES = {
     "150/200/250 Hz (below the resonance)": [150.0, 200.0, 250.0],
@@ -124,13 +124,13 @@ def main():
 def coded_alias(trials: int):
     import math
 
-    from torchblur.camera import CameraModel
-    from torchblur.coded_exposure import fit_sinusoid_coded, render_coded
-    from torchblur.fit import fit_sinusoid
-    from torchblur.psf import GaussianPSF
-    from torchblur.render import render_blur
-    from torchblur.timing import ExposureWindow
-    from torchblur.trajectory import Sinusoid
+    from torchblur.render.camera import CameraModel
+    from torchblur.fit.coded import fit_sinusoid_coded, render_coded
+    from torchblur.fit.sinusoid import fit_sinusoid
+    from torchblur.render.psf import GaussianPSF
+    from torchblur.render.blur import render_blur
+    from torchblur.render.window import ExposureWindow
+    from torchblur.render.trajectory import Sinusoid
 
     d = torch.float64
     f = 200.0

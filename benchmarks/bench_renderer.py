@@ -15,7 +15,7 @@ import time
 import torch
 
 import torchblur as tb
-from torchblur.render import RenderSettings, choose_node_count
+from torchblur.render.blur import RenderSettings, choose_node_count
 
 
 def best_time(fn, repeats: int) -> float:

@@ -31,7 +31,7 @@ from torch.func import jvp
 from common import parse, plt, save_figure, write_metrics
 
 import torchblur as tb
-from torchblur.fit import fit_sinusoid
+from torchblur.fit.sinusoid import fit_sinusoid
 
 F64 = torch.float64
 

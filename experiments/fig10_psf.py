@@ -1,9 +1,9 @@
 """Fig. 10 of Tani, Mishra, Wen (CDC 2012): PSF identification.
 
 The paper's steps 1-2 on the simulated rig: dark frames give the dark level
-(``torchblur.preprocess.dark_frame``); still frames of a tilted elliptical spot, dark
+(``torchblur.image.preprocess.dark_frame``); still frames of a tilted elliptical spot, dark
 subtracted and averaged, are fitted with a 2-D Gaussian of full covariance
-(``torchblur.preprocess.fit_gaussian_psf``, pixel-area integration like the rig's camera),
+(``torchblur.image.preprocess.fit_gaussian_psf``, pixel-area integration like the rig's camera),
 weighted by the measured per-pixel noise of the average. The residual is at the noise level.
 
 Panels: (a) the averaged still spot; (b) the fitted Gaussian with the 1- and 2-sigma
@@ -22,9 +22,9 @@ import torch
 
 from common import parse, plt, save_figure, write_metrics
 
-from torchblur.camera import CameraModel
-from torchblur.lti import Plant
-from torchblur.preprocess import dark_frame, fit_gaussian_psf, subtract_dark
+from torchblur.render.camera import CameraModel
+from torchblur.systems.lti import Plant
+from torchblur.image.preprocess import dark_frame, fit_gaussian_psf, subtract_dark
 from torchblur.rig.simulated import SimulatedRig
 
 F64 = torch.float64

@@ -1,11 +1,11 @@
 """Fig. 11 of Tani, Mishra, Wen (CDC 2012): the identified frequency response against the truth.
 
-1. The paper's settings with ``torchblur.identify.identify`` on the built-in simulated fast
+1. The paper's settings with ``torchblur.identify.run.identify`` on the built-in simulated fast
    steering mirror (420 Hz resonance): a 30 Hz camera, 1-500 Hz, 20 frequencies, one
    exposure of half a period, ``w tcam = pi/2``, 4 images per point. With one exposure the
    fitter returns both branches of the phase (``fit.phase``, ``fit.alias_phase``); they cross
    at -90 degrees, right at the resonance. Plain nearest-neighbour continuity picks the wrong
-   branch after the crossing; ``torchblur.design.resolve_branches`` (anchored at low
+   branch after the crossing; ``torchblur.design.windows.resolve_branches`` (anchored at low
    frequency, extrapolating the phase's slope) follows it. With 20 log-spaced points the step
    across the resonance is too coarse for any continuity rule (shown when ``compare_spacing``).
 2. The default dual-exposure design (30% / 80% of the period), which needs no continuity,
@@ -25,9 +25,9 @@ import torch
 
 from common import parse, plt, save_figure, write_metrics
 
-from torchblur.config import load_config
-from torchblur.design import resolve_branches
-from torchblur.identify import build_simulated_rig, identify
+from torchblur.identify.config import load_config
+from torchblur.design.windows import resolve_branches
+from torchblur.identify.run import build_simulated_rig, identify
 
 
 def wrap(x):

@@ -23,8 +23,8 @@ import torch
 from common import parse, plt, save_figure, write_metrics
 
 import torchblur as tb
-from torchblur.camera import CameraModel
-from torchblur.lti import Plant
+from torchblur.render.camera import CameraModel
+from torchblur.systems.lti import Plant
 from torchblur.rig.simulated import SimulatedRig
 
 F64 = torch.float64

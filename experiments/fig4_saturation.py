@@ -2,7 +2,7 @@
 
 The simulated rig's camera looks at the still spot (mirror at rest) for a range of exposure
 times; the peak pixel of the averaged frames grows linearly with the exposure until the
-pixel's well is full, then stays flat. ``torchblur.preprocess.saturation_curve`` fits
+pixel's well is full, then stays flat. ``torchblur.image.preprocess.saturation_curve`` fits
 ``min(offset + slope t, plateau)``; the camera model's truth is overlaid. Saturated pixels
 carry no information, which is why a fitter masks them (``SaturationCurve.mask``).
 
@@ -21,9 +21,9 @@ import torch
 from common import parse, plt, save_figure, write_metrics
 
 import torchblur as tb
-from torchblur.camera import CameraModel
-from torchblur.lti import Plant
-from torchblur.preprocess import saturation_curve
+from torchblur.render.camera import CameraModel
+from torchblur.systems.lti import Plant
+from torchblur.image.preprocess import saturation_curve
 from torchblur.rig.simulated import SimulatedRig
 
 F64 = torch.float64

@@ -23,8 +23,8 @@ import torch
 from common import parse, plt, save_figure, write_metrics, x_sinusoid
 
 import torchblur as tb
-from torchblur.landscape import cost_landscape
-from torchblur.losses import image_loss
+from torchblur.fit.landscape import cost_landscape
+from torchblur.fit.losses import image_loss
 
 F64 = torch.float64
 LABEL = {"l1": "1-norm", "l2": "2-norm (Frobenius)", "linf": "inf-norm"}

@@ -1,7 +1,7 @@
 """Fig. 7 of Tani, Mishra, Wen (CDC 2012): two exposures remove the alias.
 
 Two images of the same motion, exposed for 30% and 80% of the period from a shared start
-(``torchblur.design.dual_exposure_windows``, w tcam = pi/2), perfect predictor. Each single
+(``torchblur.design.windows.dual_exposure_windows``, w tcam = pi/2), perfect predictor. Each single
 exposure's cost has two minima, the true phase and its alias ``pi - 2c - phi``; the aliases
 differ because the window centres c differ (by a quarter period here, the best case,
 ``alias_separation = 1``). The joint cost, the sum of both l2 costs (maximum likelihood under
@@ -24,8 +24,8 @@ import torch
 from common import parse, periodic_minima, plt, save_figure, wrapped_distance, write_metrics, x_sinusoid
 
 import torchblur as tb
-from torchblur.design import alias_separation, dual_exposure_windows
-from torchblur.landscape import cost_landscape
+from torchblur.design.windows import alias_separation, dual_exposure_windows
+from torchblur.fit.landscape import cost_landscape
 
 F64 = torch.float64
 

@@ -28,8 +28,8 @@ from torch import nn
 from common import parse, plt, save_figure, write_metrics
 
 import torchblur as tb
-from torchblur.consistency import BlurConsistencyLoss
-from torchblur.fit import fit_sinusoid
+from torchblur.fit.consistency import BlurConsistencyLoss
+from torchblur.fit.sinusoid import fit_sinusoid
 
 F32, F64 = torch.float32, torch.float64
 

@@ -38,7 +38,7 @@ def quad_render(traj, psf: tb.GaussianPSF, window: tb.ExposureWindow, height: in
 def dense_render(traj, psf: tb.GaussianPSF, window: tb.ExposureWindow, height: int, width: int, n_nodes: int) -> torch.Tensor:
     """Dense [..., S, H, W] broadcasting with a composite Gauss-Legendre rule: the reference the
     fast path's values and gradients are checked against."""
-    from torchblur.render import quadrature_nodes
+    from torchblur.render.blur import quadrature_nodes
 
     m = 8
     tau, wq = quadrature_nodes(n_nodes // m, m, dtype=psf.center.dtype)

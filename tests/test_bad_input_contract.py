@@ -24,16 +24,16 @@ import pytest
 import torch
 
 import torchblur as tb
-from torchblur import preprocess as pp
-from torchblur.camera import CameraModel
-from torchblur.config import load_config
-from torchblur.design import check_design, dual_exposure_windows
+from torchblur.image import preprocess as pp
+from torchblur.render.camera import CameraModel
+from torchblur.identify.config import load_config
+from torchblur.design.windows import check_design, dual_exposure_windows
 from torchblur.errors import ConfigError, InputTypeError, ParameterError, ShapeError
-from torchblur.fit import (MASKED, NO_MOTION, OUTLIERS_MASKED, PARTLY_OUT_OF_FRAME, SATURATED_MASKED, fit_sinusoid)
-from torchblur.frequency_response import FrequencyResponse
-from torchblur.model_fit import fit_transfer_function
-from torchblur.moments import image_moments
-from torchblur.tracking import sine_from_centroids
+from torchblur.fit.sinusoid import (MASKED, NO_MOTION, OUTLIERS_MASKED, PARTLY_OUT_OF_FRAME, SATURATED_MASKED, fit_sinusoid)
+from torchblur.sysid.frequency_response import FrequencyResponse
+from torchblur.sysid.tf_fit import fit_transfer_function
+from torchblur.image.moments import image_moments
+from torchblur.image.tracking import sine_from_centroids
 
 ROOT = Path(__file__).resolve().parents[1]
 F64 = torch.float64
@@ -145,9 +145,9 @@ BAD = [
     ("sine_from_centroids NaN offsets", lambda: sine_from_centroids(np.full(5, NAN), 1.0, np.arange(5.0), np.full(5, 0.1)), ParameterError,
      "offset_px"),
     # --- pipeline entry and configuration
-    ("identify with a path instead of a config", lambda: __import__("torchblur.identify", fromlist=["identify"]).identify("cfg.yaml"),
+    ("identify with a path instead of a config", lambda: __import__("torchblur.identify.run", fromlist=["identify"]).identify("cfg.yaml"),
      InputTypeError, "cfg"),
-    ("identify with a rig of wrong type", lambda: __import__("torchblur.identify", fromlist=["identify"]).identify(
+    ("identify with a rig of wrong type", lambda: __import__("torchblur.identify.run", fromlist=["identify"]).identify(
         load_config(None, ["sweep.n=2"]), rig="bench", progress=False), InputTypeError, "rig"),
     ("config boolean that is not", lambda: load_config(None, ["fit.fit_scale=maybe"]), ConfigError, "fit.fit_scale"),
     ("config model.fit_delay number", lambda: load_config(None, ["model.fit_delay=3"]), ConfigError, "model.fit_delay"),
@@ -180,7 +180,7 @@ def test_the_contract_is_large_and_its_cases_distinct():
 
 
 def test_cli_bad_key_is_one_line_exit_2(tmp_path):
-    out = subprocess.run([sys.executable, "-m", "torchblur.cli", "identify", "--out", str(tmp_path / "o"), "fit.fit_background=perhaps"],
+    out = subprocess.run([sys.executable, "-m", "torchblur.identify.cli", "identify", "--out", str(tmp_path / "o"), "fit.fit_background=perhaps"],
                          capture_output=True, text=True, cwd=ROOT)
     assert out.returncode == 2
     lines = [ln for ln in out.stderr.splitlines() if ln.strip()]

@@ -1,4 +1,4 @@
-"""Tests of torchblur.camera: noise statistics, clipping, reproducibility, hot pixels, jitter."""
+"""Tests of torchblur.render.camera: noise statistics, clipping, reproducibility, hot pixels, jitter."""
 from __future__ import annotations
 
 import math
@@ -6,9 +6,9 @@ import math
 import pytest
 import torch
 
-from torchblur.camera import CameraModel
+from torchblur.render.camera import CameraModel
 from torchblur.errors import InputTypeError, ParameterError, ShapeError
-from torchblur.timing import ExposureWindow
+from torchblur.render.window import ExposureWindow
 
 N_SIGMA = 5.0  # tolerance of statistical checks, in standard errors
 SIDE = 200  # flat frames are SIDE x SIDE pixels

@@ -5,8 +5,8 @@ import pytest
 import torch
 
 import torchblur as tb
-from torchblur.consistency import BlurConsistencyLoss, blur_consistency
-from torchblur.design import dual_exposure_windows
+from torchblur.fit.consistency import BlurConsistencyLoss, blur_consistency
+from torchblur.design.windows import dual_exposure_windows
 from torchblur.errors import InputTypeError, ParameterError, ShapeError
 
 F64 = torch.float64

@@ -1,4 +1,4 @@
-"""Direct identification (torchblur.direct): a parametric model fitted to every image at once.
+"""Direct identification (torchblur.sysid.direct): a parametric model fitted to every image at once.
 
 Synthetic sweeps are rendered with the fitter's own forward model (point-sampled Gaussian
 PSF) so that noise-free data are fitted exactly; the end-to-end run goes through the
@@ -16,12 +16,12 @@ import pytest
 import torch
 
 import torchblur as tb
-from torchblur.config import load_config
-from torchblur.direct import DirectModelFit, fit_direct, resolve_alias_with_model
+from torchblur.identify.config import load_config
+from torchblur.sysid.direct import DirectModelFit, fit_direct, resolve_alias_with_model
 from torchblur.errors import ConfigError, InputTypeError, ParameterError, ShapeError
-from torchblur.fit import fit_sinusoid
-from torchblur.frequency_response import FrequencyResponse
-from torchblur.model_fit import fit_transfer_function
+from torchblur.fit.sinusoid import fit_sinusoid
+from torchblur.sysid.frequency_response import FrequencyResponse
+from torchblur.sysid.tf_fit import fit_transfer_function
 
 F64 = torch.float64
 # Truth: a 650 Hz resonance (zeta 0.03) and a second mode at 1.5 kHz (zeta 0.05), 40 us delay.
@@ -154,7 +154,7 @@ def test_covariance_is_the_inverse_fisher_information_of_a_dense_reference():
     d = sweep(freqs, size=24, seed=5)
     tf = start_model(MODES, GAIN, DELAY, d["omega"].numpy())
     r = fit_direct(d["images"], d["psf"], d["window"], d["omega"], d["amplitude"], tf, noise_std=d["noise"])
-    from torchblur.direct import _response
+    from torchblur.sysid.direct import _response
 
     struct = r._struct
     P, F = r.params.size, len(freqs)
@@ -172,7 +172,7 @@ def test_covariance_is_the_inverse_fisher_information_of_a_dense_reference():
         return (img * theta[P:, None, None, None]).reshape(-1)
 
     theta = torch.cat([torch.tensor(r.params), torch.tensor(r.scale)])
-    from torchblur.optim import model_jacobian
+    from torchblur.fit.optim import model_jacobian
 
     _, J = model_jacobian(lambda t, i: model(t[0])[None], theta[None], torch.zeros(1, dtype=torch.long))
     J = J[0]
@@ -293,7 +293,7 @@ def test_config_validates_the_direct_keys(overrides, key):
 
 def test_cli_identify_with_direct_writes_both_models(tmp_path):
     out = tmp_path / "run"
-    cmd = [sys.executable, "-m", "torchblur.cli", "identify", "--out", str(out), "--quiet", "sweep.freq_hz=[3,100,300,420,450,900]",
+    cmd = [sys.executable, "-m", "torchblur.identify.cli", "identify", "--out", str(out), "--quiet", "sweep.freq_hz=[3,100,300,420,450,900]",
            "camera.height=40", "camera.width=40", "model.max_order=3", "seed=1", "model.direct=true"]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
@@ -313,7 +313,7 @@ def test_direct_is_refused_for_mimo_and_spots_runs():
     """The direct fit handles one axis and one spot: a 2x2 plant or a spot grid is a config error."""
     from pathlib import Path
 
-    from torchblur.config import load_config
+    from torchblur.identify.config import load_config
     from torchblur.errors import ConfigError
 
     mimo_cfg = str(Path(__file__).resolve().parents[1] / "configs" / "identify_mimo.yaml")
@@ -338,7 +338,7 @@ def test_multisine_refuses_mimo_spots_and_direct():
 
 
 def test_modes_far_outside_the_swept_band_are_named():
-    from torchblur.identify import modes_outside_band
+    from torchblur.identify.run import modes_outside_band
 
     modes = [{"freq_hz": 650.0}, {"freq_hz": 1e30}, {"freq_hz": 2.0}, {"freq_hz": 0.5}, {"freq_hz": 2900.0}]
     assert [m["freq_hz"] for m in modes_outside_band(modes, 5.0, 1000.0)] == [1e30, 0.5]

@@ -6,11 +6,11 @@ import pytest
 import torch
 
 import torchblur as tb
-from torchblur.design import (DesignWarning, alias_separation, check_design, dual_exposure_windows, resolve_branches,
+from torchblur.design.windows import (DesignWarning, alias_separation, check_design, dual_exposure_windows, resolve_branches,
                               trigger_phase_for)
 from torchblur.errors import InputTypeError, ParameterError, ShapeError
-from torchblur.fit import fit_sinusoid
-from torchblur.moments import image_moments, sinusoid_from_moments
+from torchblur.fit.sinusoid import fit_sinusoid
+from torchblur.image.moments import image_moments, sinusoid_from_moments
 
 F64 = torch.float64
 H, W = 32, 40
@@ -232,7 +232,7 @@ def test_per_frame_node_counts_follow_each_streak():
     """The analytic path gives each frame the nodes its own streak needs (the short exposure
     fewer), merging counts only where a separate splat call would cost more than the extra
     nodes; one rule of the batch's largest count for every frame gives the same estimates."""
-    from torchblur.render import RenderSettings
+    from torchblur.render.blur import RenderSettings
 
     d = make(N=160, sigma_frac=0.01, seed=7)
     res = fit_sinusoid(d["images"], d["psf"], d["win"], d["om"], noise_std=d["sigma"])
@@ -256,7 +256,7 @@ def test_merged_panel_groups_are_the_cheapest_partition():
     sorted distinct counts into consecutive groups, and never gives a frame fewer panels."""
     import itertools
 
-    from torchblur.fit import _merge_panel_groups
+    from torchblur.fit.sinusoid import _merge_panel_groups
 
     g = torch.Generator().manual_seed(3)
     for trial in range(40):
@@ -288,7 +288,7 @@ def test_merged_panel_groups_are_the_cheapest_partition():
 def test_lm_final_gauss_newton_step_lands_on_the_optimum():
     """With gn_tol the last Gauss-Newton step (shorter than 0.1 std) is taken unevaluated:
     fewer iterations, the same optimum to a small fraction of a standard deviation."""
-    from torchblur.optim import levenberg_marquardt, model_jacobian
+    from torchblur.fit.optim import levenberg_marquardt, model_jacobian
 
     g = torch.Generator().manual_seed(0)
     t = torch.linspace(0, 3, 60, dtype=F64)
@@ -318,7 +318,7 @@ def test_final_step_from_the_observed_rate_lands_on_the_optimum(monkeypatch):
     """The fitter stops once the convergence rate it observed says the next Gauss-Newton step
     lands within 0.1 std (gn_tol 1e-2); that step, taken unevaluated, lands within a small
     fraction of a std of the fully converged optimum, in fewer iterations."""
-    import torchblur.fit as fit_mod
+    import torchblur.fit.sinusoid as fit_mod
 
     d = make(N=60, sigma_frac=0.01, seed=11)
     res = fit_sinusoid(d["images"], d["psf"], d["win"], d["om"], noise_std=d["sigma"])

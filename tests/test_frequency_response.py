@@ -1,4 +1,4 @@
-"""Tests of torchblur.frequency_response.FrequencyResponse (pure numpy / python-control)."""
+"""Tests of torchblur.sysid.frequency_response.FrequencyResponse (pure numpy / python-control)."""
 from __future__ import annotations
 
 import csv
@@ -10,7 +10,7 @@ import pytest
 control = pytest.importorskip("control")
 
 from torchblur.errors import InputTypeError, ParameterError, ShapeError
-from torchblur.frequency_response import FrequencyResponse
+from torchblur.sysid.frequency_response import FrequencyResponse
 
 
 @pytest.fixture
@@ -139,7 +139,7 @@ def test_json_round_trip_is_bit_exact(siso, tmp_path):
     path = tmp_path / "frf.json"
     siso.to_json(path)
     doc = json.loads(path.read_text())
-    assert doc["schema"] == "torchblur.frequency_response" and doc["schema_version"] == 1
+    assert doc["schema"] == "torchblur.sysid.frequency_response" and doc["schema_version"] == 1
     back = FrequencyResponse.from_json(path)
     _assert_bit_identical(back.omega, siso.omega)
     _assert_bit_identical(back.response.real, siso.response.real)

@@ -15,10 +15,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from torchblur import cli
-from torchblur.config import load_config
+from torchblur.identify import cli
+from torchblur.identify.config import load_config
 from torchblur.hardware import AcquisitionStopped, Experiment
-from torchblur.identify import identify
+from torchblur.identify.run import identify
 
 BASE = ["camera.height=40", "camera.width=40", "seed=1"]
 SWEEP = ["sweep.freq_hz=[5,200,600]"]
@@ -46,7 +46,7 @@ class Emu:
 
     def __init__(self, *keys):
         self.keys = keys
-        self.proc = subprocess.Popen([sys.executable, "-m", "torchblur.cli", "emulator", "exit_with_parent=true", *BASE, *keys],
+        self.proc = subprocess.Popen([sys.executable, "-m", "torchblur.identify.cli", "emulator", "exit_with_parent=true", *BASE, *keys],
                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         self.stderr: list[str] = []
         self._info = None
@@ -205,7 +205,7 @@ def test_kill_mid_sweep_then_resume(fleet, ref, tmp_path, capsys):
     meta = json.loads((out / "experiment" / "experiment.json").read_text())
     assert meta["status"] == "complete" and [s["status"] for s in meta["sessions"]] == ["stopped", "complete"]
     assert meta["sessions"][1]["rig"]["port"] == fleet["ref"].info["serial"]
-    from torchblur.frequency_response import FrequencyResponse
+    from torchblur.sysid.frequency_response import FrequencyResponse
 
     frf = FrequencyResponse.from_json(out / "frf.json")
     assert np.isfinite(frf.magnitude).all()
@@ -275,7 +275,7 @@ def test_persistent_fault_stops_cleanly_with_state_saved(fleet, tmp_path):
 def test_ctrl_c_saves_and_exits_130(fleet, tmp_path):
     emu = fleet["sigint"]
     out = tmp_path / "run"
-    proc = subprocess.Popen([sys.executable, "-m", "torchblur.cli", "identify", "--out", str(out), "--quiet", *BASE, *SWEEP, *ALONG_X,
+    proc = subprocess.Popen([sys.executable, "-m", "torchblur.identify.cli", "identify", "--out", str(out), "--quiet", *BASE, *SWEEP, *ALONG_X,
                              *emu.rig_keys(timeout_s=60.0)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         emu.wait_stderr("hanging", timeout_s=90)  # the controller went silent mid-sweep; the client waits
@@ -301,7 +301,7 @@ def test_fit_reproduces_the_recording_and_leaves_it_untouched(ref, tmp_path, cap
     before = tree_hash(root)
     new = tmp_path / "refit"
     assert cli.main(["fit", str(root), "--out", str(new), "--quiet"]) == 0
-    from torchblur.frequency_response import FrequencyResponse
+    from torchblur.sysid.frequency_response import FrequencyResponse
 
     frf = FrequencyResponse.from_json(new / "frf.json")
     np.testing.assert_allclose(frf.response, res.frf.response, rtol=1e-9)

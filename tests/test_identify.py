@@ -8,8 +8,8 @@ import sys
 import numpy as np
 import pytest
 
-from torchblur.config import load_config
-from torchblur.identify import identify
+from torchblur.identify.config import load_config
+from torchblur.identify.run import identify
 
 
 def errors(res):
@@ -48,7 +48,7 @@ def test_excitation_follows_the_response(short_run):
 
 def test_cli_identify_writes_every_output(tmp_path):
     out = tmp_path / "run"
-    cmd = [sys.executable, "-m", "torchblur.cli", "identify", "--out", str(out), "--quiet", "sweep.freq_hz=[3,100,450]",
+    cmd = [sys.executable, "-m", "torchblur.identify.cli", "identify", "--out", str(out), "--quiet", "sweep.freq_hz=[3,100,450]",
            "camera.height=40", "camera.width=40", "model.max_order=3", "seed=1"]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
@@ -63,7 +63,7 @@ def test_cli_identify_writes_every_output(tmp_path):
     assert {"num", "den", "delay_s", "torchblur_version", "seed"} <= set(model)
     assert "seed: 1" in (out / "config.yaml").read_text()
     assert "torchblur" in (out / "report.txt").read_text()
-    from torchblur.frequency_response import FrequencyResponse
+    from torchblur.sysid.frequency_response import FrequencyResponse
 
     frf = FrequencyResponse.from_json(out / "frf.json")
     np.testing.assert_allclose(frf.freq_hz, [float(r["freq_hz"]) for r in rows])
@@ -100,7 +100,7 @@ def test_rotated_actuator_axis_is_measured_and_fitted_along():
 
 
 def test_axis_config_is_checked():
-    from torchblur.config import ConfigError
+    from torchblur.identify.config import ConfigError
 
     with pytest.raises(ConfigError, match="fit.axis"):
         load_config(None, ["fit.axis=diagonal"])

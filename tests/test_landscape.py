@@ -6,7 +6,7 @@ import torch
 
 import torchblur as tb
 from torchblur.errors import InputTypeError, ParameterError, ShapeError
-from torchblur.landscape import cost_landscape
+from torchblur.fit.landscape import cost_landscape
 
 F64 = torch.float64
 H, W = 24, 32

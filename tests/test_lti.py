@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from torchblur.errors import InputTypeError, ParameterError
-from torchblur.lti import LTISineTrajectory, Plant
-from torchblur.timing import ExposureWindow
+from torchblur.systems.lti import LTISineTrajectory, Plant
+from torchblur.render.window import ExposureWindow
 
 
 def _quad(w, zeta):

@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 import torch
 
-from torchblur.camera import CameraModel
-from torchblur.config import load_config
+from torchblur.render.camera import CameraModel
+from torchblur.identify.config import load_config
 from torchblur.errors import ConfigError, InputTypeError, ParameterError, ShapeError
-from torchblur.lti import LTISineTrajectory, Plant
-from torchblur.mimo import MIMOSineTrajectory, PlantMatrix, plant_from_coefficients
+from torchblur.systems.lti import LTISineTrajectory, Plant
+from torchblur.systems.mimo import MIMOSineTrajectory, PlantMatrix, plant_from_coefficients
 from torchblur.rig.simulated import SimulatedRig
-from torchblur.timing import ExposureWindow
+from torchblur.render.window import ExposureWindow
 
 ROOT = Path(__file__).resolve().parents[1]
 MIMO_CFG = str(ROOT / "configs" / "identify_mimo.yaml")
@@ -120,7 +120,7 @@ def test_mimo_config_errors_name_the_key(overrides, key):
 def test_mimo_config_loads():
     cfg = load_config(MIMO_CFG)
     assert cfg.plant.is_mimo and not load_config().plant.is_mimo
-    from torchblur.identify import plant_of
+    from torchblur.identify.run import plant_of
 
     p = plant_of(cfg)
     assert isinstance(p, PlantMatrix) and p.channel("x", "y").delay_s == 3.5e-5
@@ -137,7 +137,7 @@ SHORT = ["sweep.freq_hz=[3,150,430]", "camera.height=32", "camera.width=32", "ex
 @pytest.fixture(scope="module")
 def cli_run(tmp_path_factory):
     """A short 2x2 identification through the command line (recorded), then its offline refit."""
-    from torchblur import cli
+    from torchblur.identify import cli
 
     root = tmp_path_factory.mktemp("mimo")
     out = root / "run"
@@ -148,8 +148,8 @@ def cli_run(tmp_path_factory):
 
 
 def test_short_mimo_sweep_matches_the_truth(cli_run):
-    from torchblur.frequency_response import FrequencyResponse
-    from torchblur.identify import plant_of
+    from torchblur.sysid.frequency_response import FrequencyResponse
+    from torchblur.identify.run import plant_of
 
     out, _ = cli_run
     frf = FrequencyResponse.from_json(out / "frf.json")
@@ -169,7 +169,7 @@ def test_short_mimo_sweep_matches_the_truth(cli_run):
 
 
 def test_mimo_frf_csv_columns_round_trip(cli_run):
-    from torchblur.frequency_response import FrequencyResponse
+    from torchblur.sysid.frequency_response import FrequencyResponse
 
     out, _ = cli_run
     with open(out / "frf.csv") as fh:
@@ -185,7 +185,7 @@ def test_mimo_frf_csv_columns_round_trip(cli_run):
 
 
 def test_mimo_recording_refits_offline(cli_run):
-    from torchblur.frequency_response import FrequencyResponse
+    from torchblur.sysid.frequency_response import FrequencyResponse
 
     out, refit = cli_run
     a = FrequencyResponse.from_json(out / "frf.json")
@@ -204,7 +204,7 @@ def test_emulator_drives_axis_y(tmp_path):
     from test_hardware_emulator import Emu
 
     from torchblur.hardware import SerialRig
-    from torchblur.identify import build_simulated_rig
+    from torchblur.identify.run import build_simulated_rig
 
     cfg_file = tmp_path / "emu.yaml"
     cfg_file.write_text(Path(MIMO_CFG).read_text())

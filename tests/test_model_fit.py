@@ -1,4 +1,4 @@
-"""Tests of torchblur.model_fit: transfer-function fits of known plants (noise-free and noisy)."""
+"""Tests of torchblur.sysid.tf_fit: transfer-function fits of known plants (noise-free and noisy)."""
 from __future__ import annotations
 
 import json
@@ -9,8 +9,8 @@ import pytest
 control = pytest.importorskip("control")
 
 from torchblur.errors import InputTypeError, ParameterError, ShapeError
-from torchblur.frequency_response import FrequencyResponse
-from torchblur.model_fit import TransferFunctionFit, fit_transfer_function
+from torchblur.sysid.frequency_response import FrequencyResponse
+from torchblur.sysid.tf_fit import TransferFunctionFit, fit_transfer_function
 
 TWO_PI = 2.0 * np.pi
 

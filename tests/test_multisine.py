@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 import torch
 
-from torchblur.camera import CameraModel
-from torchblur.config import DEFAULT_PLANT
+from torchblur.render.camera import CameraModel
+from torchblur.identify.config import DEFAULT_PLANT
 from torchblur.errors import ParameterError, ShapeError
-from torchblur.lti import LTISineTrajectory, Plant
-from torchblur.multisine import (LTIMultisineTrajectory, common_grid, crest_factor, design_multisine, multisine_signal,
+from torchblur.systems.lti import LTISineTrajectory, Plant
+from torchblur.design.multisine import (LTIMultisineTrajectory, common_grid, crest_factor, design_multisine, multisine_signal,
                                  optimise_crest_factor, schroeder_phases)
 from torchblur.rig.simulated import SimulatedRig
 
@@ -101,7 +101,7 @@ def test_simulated_rig_multisine_timing_power_and_errors():
     assert torch.allclose(k, k.round(), atol=1e-9) and float(cap.trigger_time_s.min()) >= cap.meta["settle_s"]
     # the frames are the exact response (transients included) rendered over the windows
     traj = LTIMultisineTrajectory(PLANT, [0.05, 0.02], [2 * math.pi * 150, 2 * math.pi * 250], [0.0, 1.0])
-    from torchblur.timing import ExposureWindow
+    from torchblur.render.window import ExposureWindow
 
     win = ExposureWindow(cap.meta["actual_start_s"].reshape(-1), cap.exposure_s.reshape(-1))
     expected = rig._render(traj, rig.psf, win).reshape(2, 2, 24, 48) * torch.tensor([2.0, 1.0], dtype=F64)[:, None, None, None]

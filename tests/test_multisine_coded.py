@@ -5,12 +5,12 @@ import numpy as np
 import pytest
 import torch
 
-from torchblur.coded_exposure import check_code, coded_windows, fit_sinusoid_coded, mirror_code, render_coded
+from torchblur.fit.coded import check_code, coded_windows, fit_sinusoid_coded, mirror_code, render_coded
 from torchblur.errors import ParameterError
-from torchblur.psf import GaussianPSF
-from torchblur.render import render_blur
-from torchblur.timing import ExposureWindow
-from torchblur.trajectory import Sinusoid
+from torchblur.render.psf import GaussianPSF
+from torchblur.render.blur import render_blur
+from torchblur.render.window import ExposureWindow
+from torchblur.render.trajectory import Sinusoid
 
 F64 = torch.float64
 OM = 2 * math.pi * 200.0
@@ -61,7 +61,7 @@ def test_coded_fit_recovers_the_truth_with_the_stds_of_forward_ad():
     intervals) equal the Cramer-Rao bound from forward AD through render_coded."""
     import torch.autograd.forward_ad as fwAD
 
-    from torchblur.render import RenderSettings
+    from torchblur.render.blur import RenderSettings
 
     img = render_coded(sine(6.0, 0.7), PSF, WIN, CODE, height=24, width=48)
     fit = fit_sinusoid_coded(img, PSF, WIN, CODE, OM, noise_std=1.0, amplitude_guess=6.0, n_phases=3)

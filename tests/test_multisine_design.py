@@ -7,10 +7,10 @@ import torch
 import torch.autograd.forward_ad as fwAD
 
 from torchblur.errors import ShapeError
-from torchblur.excitation_design import candidate_windows, design_acquisition, image_fisher, predicted_std
-from torchblur.multisine_fit import fit_multisine, render_multisine, render_multisine_with_jacobian
-from torchblur.psf import GaussianPSF
-from torchblur.timing import ExposureWindow
+from torchblur.design.fisher import candidate_windows, design_acquisition, image_fisher, predicted_std
+from torchblur.fit.multisine import fit_multisine, render_multisine, render_multisine_with_jacobian
+from torchblur.render.psf import GaussianPSF
+from torchblur.render.window import ExposureWindow
 
 F64 = torch.float64
 F0 = 100 / 3
@@ -30,7 +30,7 @@ def test_jacobian_from_one_splat_equals_forward_ad_of_the_renderer():
     th = THETA[None]
     psf = GaussianPSF(PSF.center[None], PSF.cov[None], PSF.amplitude[None])
     img, J = render_multisine_with_jacobian(th, OM[None], psf, win, height=H, width=W, nodes=96)
-    from torchblur.render import RenderSettings
+    from torchblur.render.blur import RenderSettings
 
     settings = RenderSettings(nodes=96)
     ref = render_multisine(th, OM[None], psf, win, height=H, width=W, settings=settings)
@@ -122,7 +122,7 @@ def test_fit_along_a_rotated_direction_recovers_the_tones():
     that direction, the tones come back exactly (noise-free); the one-splat Jacobian still
     equals forward AD of the renderer; a zero direction is refused naming it."""
     from torchblur.errors import ParameterError
-    from torchblur.render import RenderSettings
+    from torchblur.render.blur import RenderSettings
 
     u = torch.tensor([math.cos(math.radians(30)), math.sin(math.radians(30))], dtype=F64)
     win = windows([0.0, 0.13, 0.37, 0.55, 0.71, 0.86], [0.3, 0.5, 0.2, 0.7, 0.4, 0.25])

@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from torchblur.config import load_config
+from torchblur.identify.config import load_config
 from torchblur.errors import ConfigError
-from torchblur.identify import identify
+from torchblur.identify.run import identify
 
 KEYS = ["excitation.kind=multisine", "excitation.tones=3", "sweep.freq_hz=[150,200,250]", "camera.height=32", "camera.width=64",
         "model.max_order=2", "seed=4"]
@@ -47,7 +47,7 @@ def test_three_tones_from_one_designed_image_set(run):
 
 
 def test_cli_outputs_and_replay_of_the_recording(run, tmp_path):
-    from torchblur import cli
+    from torchblur.identify import cli
     from torchblur.hardware.recording import Experiment, ReplayRig
 
     cfg, res, rec = run
@@ -82,7 +82,7 @@ def test_serial_rig_multisine_matches_the_simulated_rig():
     from test_hardware_emulator import Emu
 
     from torchblur.hardware.serial_rig import SerialRig
-    from torchblur.identify import build_simulated_rig
+    from torchblur.identify.run import build_simulated_rig
 
     emu = Emu()
     try:

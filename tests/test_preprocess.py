@@ -6,9 +6,9 @@ import pytest
 import torch
 
 import torchblur as tb
-from torchblur.camera import CameraModel
+from torchblur.render.camera import CameraModel
 from torchblur.errors import InputTypeError, ParameterError, ShapeError
-from torchblur.preprocess import (
+from torchblur.image.preprocess import (
     DarkFrame,
     crop,
     dark_frame,

@@ -13,7 +13,7 @@ from hypothesis import given  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
 import torchblur as tb  # noqa: E402
-from torchblur.fit import fit_sinusoid  # noqa: E402
+from torchblur.fit.sinusoid import fit_sinusoid  # noqa: E402
 
 F64 = torch.float64
 H, W = 24, 28
@@ -101,7 +101,7 @@ def designs(draw):
 
 
 def _render_design(design):
-    from torchblur.design import dual_exposure_windows
+    from torchblur.design.windows import dual_exposure_windows
 
     f, fractions, b, M, phi, angle, s1, s2 = design
     om = torch.tensor(2 * math.pi * f, dtype=F64)

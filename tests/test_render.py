@@ -9,7 +9,7 @@ from scipy.special import erf
 import torchblur as tb
 from conftest import make_case
 from reference import dense_render, quad_render
-from torchblur.render import RenderSettings, choose_node_count
+from torchblur.render.blur import RenderSettings, choose_node_count
 
 H = W = 40
 

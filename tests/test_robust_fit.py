@@ -6,10 +6,10 @@ import pytest
 import torch
 
 import torchblur as tb
-from torchblur import preprocess as pp
-from torchblur.camera import CameraModel
-from torchblur.design import dual_exposure_windows
-from torchblur.fit import MASKED, OUTLIERS_MASKED, PARTLY_OUT_OF_FRAME, SATURATED_MASKED, fit_sinusoid
+from torchblur.image import preprocess as pp
+from torchblur.render.camera import CameraModel
+from torchblur.design.windows import dual_exposure_windows
+from torchblur.fit.sinusoid import MASKED, OUTLIERS_MASKED, PARTLY_OUT_OF_FRAME, SATURATED_MASKED, fit_sinusoid
 
 F64 = torch.float64
 H, W = 28, 36

@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from torchblur import ExposureWindow, GaussianPSF, ParameterError, RenderSettings, Sinusoid, render_blur
-from torchblur.camera import CameraModel
-from torchblur.lti import LTISineTrajectory, Plant
+from torchblur.render.camera import CameraModel
+from torchblur.systems.lti import LTISineTrajectory, Plant
 from torchblur.rig import Capture, Rig, SimulatedRig
 
 F64 = torch.float64

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 import torch
 
-from torchblur.camera import CameraModel
-from torchblur.config import load_config
+from torchblur.render.camera import CameraModel
+from torchblur.identify.config import load_config
 from torchblur.errors import ConfigError, ParameterError
-from torchblur.lti import Plant
+from torchblur.systems.lti import Plant
 from torchblur.rig.simulated import SimulatedRig
-from torchblur.spots import SpotGrid, crop_spots, crop_valid, locate_spots, raster_order, spot_labels
+from torchblur.image.spots import SpotGrid, crop_spots, crop_valid, locate_spots, raster_order, spot_labels
 
 
 def test_grid_layout_follows_the_model():
@@ -99,7 +99,7 @@ EDGE = ["sweep.freq_hz=[3,450]", "camera.height=32", "camera.width=80", "spots.r
 def edge_run():
     """Four lenslets in a row, the second missing, the last centred 1.5 px beyond the frame's
     right edge (a quarter of its light in the frame)."""
-    from torchblur.identify import identify
+    from torchblur.identify.run import identify
 
     return identify(load_config(None, EDGE), progress=False)
 

@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 import torch
 
-from torchblur.camera import CameraModel
-from torchblur.lti import Plant
-from torchblur.preprocess import dark_frame
+from torchblur.render.camera import CameraModel
+from torchblur.systems.lti import Plant
+from torchblur.image.preprocess import dark_frame
 from torchblur.rig.simulated import SimulatedRig
-from torchblur.tracking import calibrate_axes, sine_from_centroids, track_sine
+from torchblur.image.tracking import calibrate_axes, sine_from_centroids, track_sine
 
 WN = 2 * math.pi * 420.0
 
@@ -42,10 +42,10 @@ def test_tracking_agrees_with_the_truth_and_the_blur_fit():
     assert abs(tr.amplitude / A - abs(H)) < 5 * tr.amplitude_std / A + 1e-3 * abs(H)
     assert abs(math.remainder(tr.phase - np.angle(H), 2 * math.pi)) < 5 * tr.phase_std + 1e-3
     # the blur fit on the same rig at the same frequency
-    from torchblur.fit import fit_sinusoid
-    from torchblur.preprocess import subtract_dark
-    from torchblur.psf import GaussianPSF
-    from torchblur.timing import ExposureWindow
+    from torchblur.fit.sinusoid import fit_sinusoid
+    from torchblur.image.preprocess import subtract_dark
+    from torchblur.render.psf import GaussianPSF
+    from torchblur.render.window import ExposureWindow
 
     te = [0.3 / f, 0.8 / f]
     cap = rig.sine(freq_hz=f, amplitude=A, exposures_s=te, trigger_offset_s=0.05 / f, n_repeats=1, power=0.03)  # below full well

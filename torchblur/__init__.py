@@ -1,25 +1,72 @@
 """torchblur: identify fast actuator dynamics from the motion blur seen by a slow camera.
 
-The core (renderer, PSFs, trajectories, windows, alias) imports only torch and numpy.
-Fitting, identification, hardware and plotting live in submodules imported on use.
+The names a user calls (each documented where it lives):
+
+- image formation: :class:`BlurRenderer`, :func:`render_blur`, :class:`RenderSettings`,
+  :class:`GaussianPSF`, :class:`KernelPSF`, :class:`Sinusoid`, :class:`Multisine`,
+  :class:`SplineTrajectory`, :class:`ExposureWindow`, :class:`SensorTiming`,
+  :func:`alias_phase`, :func:`wrap_phase`, :class:`CameraModel`;
+- fitting: :func:`fit_sinusoid`, :func:`dual_exposure_windows`, :class:`BlurConsistencyLoss`,
+  :func:`blur_consistency`;
+- identification: :class:`FrequencyResponse`, :func:`fit_transfer_function`,
+  :func:`identify` (the pipeline; also the package ``torchblur.identify``), :func:`load_config`;
+- errors: :class:`TorchblurError` and its subclasses.
+
+``import torchblur`` loads torch and numpy only: the image-formation names are imported at
+once, the others (and the subpackages ``fit``, ``sysid``, ``image``, ``design``, ``systems``,
+``identify``, ``rig``, ``hardware``) on first use.
 """
 from __future__ import annotations
 
-from .alias import alias_phase, wrap_phase
-from .consistency import BlurConsistencyLoss, blur_consistency
-from .errors import ConfigError, InputTypeError, ParameterError, ShapeError, TorchblurError
-from .psf import GaussianPSF, KernelPSF
-from .render import BlurRenderer, RenderSettings, render_blur
-from .timing import ExposureWindow, SensorTiming
-from .trajectory import Multisine, Sinusoid, SplineTrajectory, Trajectory
+import importlib as _importlib
+
+from torchblur import _legacy
+from torchblur.errors import ConfigError, InputTypeError, ParameterError, ShapeError, TorchblurError
+from torchblur.render.alias import alias_phase, wrap_phase
+from torchblur.render.blur import BlurRenderer, RenderSettings, render_blur
+from torchblur.render.camera import CameraModel
+from torchblur.render.psf import GaussianPSF, KernelPSF
+from torchblur.render.trajectory import Multisine, Sinusoid, SplineTrajectory, Trajectory
+from torchblur.render.window import ExposureWindow, SensorTiming
 
 __version__ = "0.1.0"
+
+_legacy.install()
+
+#: name -> module that defines it, imported on first access
+_LAZY = {
+    "fit_sinusoid": "torchblur.fit.sinusoid",
+    "SinusoidFit": "torchblur.fit.sinusoid",
+    "BlurConsistencyLoss": "torchblur.fit.consistency",
+    "blur_consistency": "torchblur.fit.consistency",
+    "dual_exposure_windows": "torchblur.design.windows",
+    "FrequencyResponse": "torchblur.sysid.frequency_response",
+    "fit_transfer_function": "torchblur.sysid.tf_fit",
+    "load_config": "torchblur.identify.config",
+}
+
+
+def __getattr__(name: str):
+    if name == "identify":  # the callable package (torchblur.identify(cfg, rig) runs the pipeline)
+        return _importlib.import_module("torchblur.identify")
+    if name in _LAZY:
+        value = getattr(_importlib.import_module(_LAZY[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'torchblur' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))
+
 
 __all__ = [
     "BlurConsistencyLoss",
     "BlurRenderer",
+    "CameraModel",
     "ConfigError",
     "ExposureWindow",
+    "FrequencyResponse",
     "GaussianPSF",
     "InputTypeError",
     "KernelPSF",
@@ -29,11 +76,17 @@ __all__ = [
     "SensorTiming",
     "ShapeError",
     "Sinusoid",
+    "SinusoidFit",
     "SplineTrajectory",
     "TorchblurError",
     "Trajectory",
     "alias_phase",
     "blur_consistency",
+    "dual_exposure_windows",
+    "fit_sinusoid",
+    "fit_transfer_function",
+    "identify",
+    "load_config",
     "render_blur",
     "wrap_phase",
 ]

@@ -16,14 +16,14 @@ Not imported by ``import torchblur``; import ``torchblur.hardware`` on use.
 """
 from __future__ import annotations
 
-from .camera_sdk import SDKCamera
-from .controller import Controller
-from .errors import (AcquisitionStopped, ConnectionLost, DeviceError, DeviceReset, FrameError, FrameGap, FrameMismatch,
+from torchblur.hardware.camera_sdk import SDKCamera
+from torchblur.hardware.controller import Controller
+from torchblur.hardware.errors import (AcquisitionStopped, ConnectionLost, DeviceError, DeviceReset, FrameError, FrameGap, FrameMismatch,
                      FrameTimeout, GarbageReply, HardwareError, RecordingError, ReplyTimeout, StaleFrame)
-from .frames import CameraInfo, EmulatorFrames, Frame, FrameSource
-from .protocol import ERROR_CODES, PROTOCOL_VERSION
-from .recording import SCHEMA_VERSION, Experiment, ReplayFrames
-from .serial_rig import SerialRig, open_frame_source
+from torchblur.hardware.frames import CameraInfo, EmulatorFrames, Frame, FrameSource
+from torchblur.hardware.protocol import ERROR_CODES, PROTOCOL_VERSION
+from torchblur.hardware.recording import SCHEMA_VERSION, Experiment, ReplayFrames
+from torchblur.hardware.serial_rig import SerialRig, open_frame_source
 
 __all__ = [
     "AcquisitionStopped",

@@ -47,8 +47,8 @@ from abc import abstractmethod
 import numpy as np
 import torch
 
-from .errors import FrameTimeout
-from .frames import CameraInfo, Frame, FrameSource
+from torchblur.hardware.errors import FrameTimeout
+from torchblur.hardware.frames import CameraInfo, Frame, FrameSource
 
 __all__ = ["SDKCamera"]
 

@@ -21,8 +21,8 @@ from __future__ import annotations
 import secrets
 import time
 
-from .errors import ConnectionLost, DeviceError, GarbageReply, ReplyTimeout
-from .protocol import MAX_LINE, PROTOCOL_VERSION, Reply, format_command, parse_reply
+from torchblur.hardware.errors import ConnectionLost, DeviceError, GarbageReply, ReplyTimeout
+from torchblur.hardware.protocol import MAX_LINE, PROTOCOL_VERSION, Reply, format_command, parse_reply
 
 __all__ = ["Controller", "import_serial"]
 
@@ -306,7 +306,7 @@ class Controller:
 
     def wave_multi(self, axis: str, tones) -> float:
         """Start ``sum_k a_k sin(2 pi f_k t + p_k)``; ``tones`` = [(f_hz, a, p_rad), ...]."""
-        from .protocol import format_number
+        from torchblur.hardware.protocol import format_number
 
         spec = ",".join(f"{format_number(f)}:{format_number(a)}:{format_number(p)}" for f, a, p in tones)
         return self.command("WAVE", axis, "MULTI", spec).get_float("start")

@@ -56,10 +56,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..config import CameraConfig, PlantConfig, SpotsConfig
-from ..errors import ConfigError
-from .frames import CameraInfo, encode_message, frame_message
-from .protocol import (E_AXIS, E_BUSY, E_INTERNAL, E_LINE, E_RANGE, MAX_LINE, PROTOCOL_VERSION, ProtocolViolation, format_err,
+from torchblur.identify.config import CameraConfig, PlantConfig, SpotsConfig
+from torchblur.errors import ConfigError
+from torchblur.hardware.frames import CameraInfo, encode_message, frame_message
+from torchblur.hardware.protocol import (E_AXIS, E_BUSY, E_INTERNAL, E_LINE, E_RANGE, MAX_LINE, PROTOCOL_VERSION, ProtocolViolation, format_err,
                        format_ok, parse_command)
 
 __all__ = ["FaultConfig", "EmulatorConfig", "load_emulator_config", "EmulatedDevice", "main"]
@@ -102,7 +102,7 @@ def load_emulator_config(path: str | None = None, overrides: list[str] | None = 
     Raises:
         ConfigError: naming the key.
     """
-    from ..config import _num, load_dataclass, validate_camera, validate_plant, validate_spots
+    from torchblur.identify.config import _num, load_dataclass, validate_camera, validate_plant, validate_spots
 
     cfg = load_dataclass(EmulatorConfig, path, overrides, ignore_file_sections=("sweep", "excitation", "fit", "model", "rig"))
     validate_plant(cfg.plant)
@@ -223,8 +223,8 @@ class EmulatedDevice:
     """
 
     def __init__(self, cfg: EmulatorConfig, send, *, firmware: str = "0.1.0", name: str = "torchblur-emulator"):
-        from ..config import IdentifyConfig
-        from ..identify import build_simulated_rig
+        from torchblur.identify.config import IdentifyConfig
+        from torchblur.identify.run import build_simulated_rig
 
         self.cfg = cfg
         self.rig = build_simulated_rig(IdentifyConfig(plant=cfg.plant, camera=cfg.camera, spots=cfg.spots, seed=cfg.seed))
@@ -464,9 +464,9 @@ class EmulatedDevice:
         each tone through the plant's frequency response, rendered by the rig's renderer."""
         import torch
 
-        from ..psf import GaussianPSF
-        from ..timing import ExposureWindow
-        from ..trajectory import Multisine
+        from torchblur.render.psf import GaussianPSF
+        from torchblur.render.window import ExposureWindow
+        from torchblur.render.trajectory import Multisine
 
         r = self.rig
         tones = job.args["wave"]["tones"]
@@ -648,7 +648,7 @@ def main(argv: list[str] | None = None, *, config_path: str | None = None) -> in
 
     import torch
 
-    from .. import __version__
+    from torchblur import __version__
 
     cfg = load_emulator_config(config_path, list(argv or []))
     torch.set_num_threads(int(cfg.threads))

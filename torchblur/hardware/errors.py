@@ -7,7 +7,7 @@ ERR reply to a malformed command, a lost connection that cannot be reopened).
 """
 from __future__ import annotations
 
-from ..errors import TorchblurError
+from torchblur.errors import TorchblurError
 
 __all__ = [
     "HardwareError",

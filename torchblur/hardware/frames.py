@@ -28,7 +28,7 @@ from urllib.parse import urlparse
 import numpy as np
 import torch
 
-from .errors import ConnectionLost, FrameTimeout, GarbageReply
+from torchblur.hardware.errors import ConnectionLost, FrameTimeout, GarbageReply
 
 __all__ = ["CameraInfo", "Frame", "FrameSource", "EmulatorFrames", "encode_message", "WireDecoder", "DTYPES"]
 

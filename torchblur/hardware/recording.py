@@ -30,8 +30,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .errors import FrameTimeout, RecordingError
-from .frames import CameraInfo, Frame, FrameSource
+from torchblur.hardware.errors import FrameTimeout, RecordingError
+from torchblur.hardware.frames import CameraInfo, Frame, FrameSource
 
 __all__ = ["SCHEMA_VERSION", "Experiment", "ReplayFrames", "ReplayRig", "atomic_write_bytes", "camera_info_of"]
 
@@ -116,7 +116,7 @@ def _same(a, b) -> bool:
 
 
 def _bind(method: str, args: tuple, kwargs: dict) -> dict:
-    from ..rig.base import Rig
+    from torchblur.rig.base import Rig
 
     sig = inspect.signature(getattr(Rig, method))
     bound = sig.bind(None, *args, **kwargs)
@@ -388,7 +388,7 @@ class Experiment:
 
     def load_calls(self, key: str) -> list:
         """The recorded rig calls of a group: ``[(method, args, Capture), ...]``."""
-        from ..rig.base import Capture
+        from torchblur.rig.base import Capture
         import tifffile
 
         gl = self.groups[key]
@@ -497,7 +497,7 @@ def _finite_or_none(v):
 
 
 def _version() -> str:
-    from .. import __version__
+    from torchblur import __version__
 
     return __version__
 

@@ -24,12 +24,12 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 
-from ..errors import ParameterError, check_real_scalar
-from .controller import Controller
-from .errors import (AcquisitionStopped, ConnectionLost, DeviceError, DeviceReset, FrameGap, FrameMismatch, FrameTimeout,
+from torchblur.errors import ParameterError, check_real_scalar
+from torchblur.hardware.controller import Controller
+from torchblur.hardware.errors import (AcquisitionStopped, ConnectionLost, DeviceError, DeviceReset, FrameGap, FrameMismatch, FrameTimeout,
                      GarbageReply, HardwareError, StaleFrame)
-from .frames import CameraInfo, Frame, FrameSource
-from ..rig.base import check_tone_grid, float_list, per_exposure
+from torchblur.hardware.frames import CameraInfo, Frame, FrameSource
+from torchblur.rig.base import check_tone_grid, float_list, per_exposure
 
 __all__ = ["SerialRig", "open_frame_source"]
 
@@ -40,7 +40,7 @@ def open_frame_source(spec: str) -> FrameSource:
     """A frame source from its config string: ``tcp://HOST:PORT`` (the emulator's camera
     channel) or ``package.module:ClassName`` (a :class:`~torchblur.hardware.camera_sdk.SDKCamera`
     subclass, constructed without arguments)."""
-    from .frames import EmulatorFrames
+    from torchblur.hardware.frames import EmulatorFrames
 
     if spec.startswith("tcp://"):
         return EmulatorFrames(spec)
@@ -326,7 +326,7 @@ class SerialRig:
         return int(n)
 
     def _capture(self, frames: list[Frame], shape: tuple, offsets, meta: dict):
-        from ..rig.base import Capture
+        from torchblur.rig.base import Capture
 
         H, W = self.frame_shape
         data = torch.stack([f.data for f in frames]).reshape(shape + (H, W))
@@ -413,7 +413,7 @@ class SerialRig:
             tones = [(f0, 0.0, 0.0)] + tones
         # 10 significant digits keep the line short (phase errors ~1e-10 rad) and within MAX_LINE.
         tones = [tuple(float(f"{v:.10g}") for v in t) for t in tones]
-        from .protocol import MAX_LINE, MAX_TONES, format_number
+        from torchblur.hardware.protocol import MAX_LINE, MAX_TONES, format_number
 
         line = f"WAVE {self.axis} MULTI " + ",".join(":".join(format_number(v) for v in t) for t in tones)
         if len(tones) > MAX_TONES or len(line) > MAX_LINE:

@@ -5,7 +5,7 @@ Not imported by ``import torchblur``; import ``torchblur.rig`` on use.
 """
 from __future__ import annotations
 
-from .base import Capture, Rig
-from .simulated import SimulatedRig
+from torchblur.rig.base import Capture, Rig
+from torchblur.rig.simulated import SimulatedRig
 
 __all__ = ["Capture", "Rig", "SimulatedRig"]

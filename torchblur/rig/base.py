@@ -15,7 +15,7 @@ from typing import Any, Protocol, Sequence, runtime_checkable
 import numpy as np
 import torch
 
-from ..errors import InputTypeError, ParameterError, ShapeError
+from torchblur.errors import InputTypeError, ParameterError, ShapeError
 
 __all__ = ["Capture", "Rig"]
 

@@ -11,10 +11,10 @@ Time model (all in seconds on the controller's clock):
 - The exposure starts ``Td + latency_s + jitter`` after the trigger (``jitter ~ N(0,
   jitter_s^2)`` per frame, then the camera model's own ``jitter_s`` if any) and lasts Te.
   ``latency_s`` is unknown to a pipeline: it calibrates it with :meth:`SimulatedRig.pulse`.
-- The expected image is the exact plant output (:class:`~torchblur.lti.LTISineTrajectory`,
+- The expected image is the exact plant output (:class:`~torchblur.systems.lti.LTISineTrajectory`,
   transient included) rendered over the actual window with pixel-area integration in
   float64, in electrons (the spot's peak is ``power * peak_e_per_s`` electrons per second),
-  then :meth:`~torchblur.camera.CameraModel.expose` adds noise, saturation and rounding.
+  then :meth:`~torchblur.render.camera.CameraModel.expose` adds noise, saturation and rounding.
 
 Random draws come from one ``torch.Generator`` seeded with ``seed``: the same seed and the
 same sequence of calls give identical captures.
@@ -27,15 +27,15 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from ..camera import CameraModel
-from ..errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_finite, check_real_scalar
-from ..lti import LTISineTrajectory, Plant
-from ..mimo import MIMOSineTrajectory, PlantMatrix
-from ..psf import GaussianPSF
-from ..render import RenderSettings, choose_node_count, render_blur
-from ..timing import ExposureWindow
-from ..trajectory import Sinusoid, Trajectory
-from .base import Capture, check_count, check_tone_grid, float_list, per_exposure
+from torchblur.render.camera import CameraModel
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_finite, check_real_scalar
+from torchblur.systems.lti import LTISineTrajectory, Plant
+from torchblur.systems.mimo import MIMOSineTrajectory, PlantMatrix
+from torchblur.render.psf import GaussianPSF
+from torchblur.render.blur import RenderSettings, choose_node_count, render_blur
+from torchblur.render.window import ExposureWindow
+from torchblur.render.trajectory import Sinusoid, Trajectory
+from torchblur.rig.base import Capture, check_count, check_tone_grid, float_list, per_exposure
 
 __all__ = ["SimulatedRig"]
 
@@ -48,10 +48,10 @@ class SimulatedRig:
     """A simulated rig implementing :class:`~torchblur.rig.base.Rig`.
 
     Args (keyword-only):
-        plant: the mirror, a :class:`~torchblur.lti.Plant` (output in px per command unit
-            along ``direction``) or a :class:`~torchblur.mimo.PlantMatrix` (a tip-tilt
+        plant: the mirror, a :class:`~torchblur.systems.lti.Plant` (output in px per command unit
+            along ``direction``) or a :class:`~torchblur.systems.mimo.PlantMatrix` (a tip-tilt
             mirror: outputs x and y move the spot along x and y; inputs ``"x"``, ``"y"``).
-        camera: the sensor, a :class:`~torchblur.camera.CameraModel`.
+        camera: the sensor, a :class:`~torchblur.render.camera.CameraModel`.
         frame_shape: ``(H, W)`` in pixels.
         psf_sigma_px: standard deviation of the round spot (px); ignored when ``psf_cov``
             is given.
@@ -67,10 +67,10 @@ class SimulatedRig:
         jitter_s: rms jitter of the exposure start, per frame.
         peak_e_per_s: peak electrons per second of the still spot at power 1.
         seed: seed of the generator behind every random draw.
-        spots: None (one spot), or a :class:`~torchblur.spots.SpotGrid` /
-            :class:`~torchblur.spots.SpotLayout`: K spots in the frame (a Shack-Hartmann
+        spots: None (one spot), or a :class:`~torchblur.image.spots.SpotGrid` /
+            :class:`~torchblur.image.spots.SpotLayout`: K spots in the frame (a Shack-Hartmann
             sensor), each with its own PSF and its own motion ``G_k @ y(t)`` (see
-            :mod:`torchblur.spots`); ``psf_sigma_px``, ``psf_cov``, ``rest_px`` and
+            :mod:`torchblur.image.spots`); ``psf_sigma_px``, ``psf_cov``, ``rest_px`` and
             ``direction`` are then not used. Every spot's peak is ``peak_e_per_s``.
     """
 
@@ -95,9 +95,9 @@ class SimulatedRig:
         spots=None,
     ):
         if not isinstance(plant, (Plant, PlantMatrix)):
-            raise InputTypeError(f"plant: expected a torchblur.lti.Plant or torchblur.mimo.PlantMatrix, got {type(plant).__name__}")
+            raise InputTypeError(f"plant: expected a torchblur.systems.lti.Plant or torchblur.systems.mimo.PlantMatrix, got {type(plant).__name__}")
         if not isinstance(camera, CameraModel):
-            raise InputTypeError(f"camera: expected a torchblur.camera.CameraModel, got {type(camera).__name__}")
+            raise InputTypeError(f"camera: expected a torchblur.render.camera.CameraModel, got {type(camera).__name__}")
         if (
             isinstance(frame_shape, (str, bytes))
             or not hasattr(frame_shape, "__len__")
@@ -138,7 +138,7 @@ class SimulatedRig:
                 raise ShapeError(f"psf_cov: expected shape [2, 2], got {tuple(self._psf.cov.shape)}")
         self._layout = None
         if spots is not None:
-            from ..spots import SpotGrid, SpotLayout
+            from torchblur.image.spots import SpotGrid, SpotLayout
 
             if isinstance(spots, SpotGrid):
                 spots = spots.layout((H, W), plant.n_outputs if isinstance(plant, PlantMatrix) else 1)
@@ -198,7 +198,7 @@ class SimulatedRig:
 
     @property
     def spots(self):
-        """The :class:`~torchblur.spots.SpotLayout` of a many-spot rig, or None."""
+        """The :class:`~torchblur.image.spots.SpotLayout` of a many-spot rig, or None."""
         return self._layout
 
     @property
@@ -548,7 +548,7 @@ class SimulatedRig:
         tone), so the command repeats every ``T0 = 1 / base_freq_hz`` and a frame's trigger is
         at ``k T0 + trigger_offset_s`` (the first such time at or after the camera is ready,
         as :meth:`sine` with ``T0`` for the period). The image is the exact plant output
-        (:class:`~torchblur.multisine.LTIMultisineTrajectory`, transients included).
+        (:class:`~torchblur.design.multisine.LTIMultisineTrajectory`, transients included).
 
         Args:
             freq_hz, amplitude, phase_rad: the N tones (Hz, command units, rad).
@@ -565,7 +565,7 @@ class SimulatedRig:
         ``meta`` holds the tones, ``base_freq_hz``, ``period_s``, ``settle_s``, ``power``,
         ``trigger_delay_s`` and, for tests only, ``actual_start_s`` ``[E, R]``.
         """
-        from ..multisine import LTIMultisineTrajectory
+        from torchblur.design.multisine import LTIMultisineTrajectory
 
         freqs = float_list(freq_hz, "freq_hz")
         N = len(freqs)

@@ -1,0 +1,22 @@
+"""Fitting rendered blur to images: every frequency, exposure and spot in one batch.
+
+``sinusoid`` (:func:`fit_sinusoid`, :class:`SinusoidFit`, the status codes and flags),
+``multisine``, ``coded`` (a coded exposure), ``consistency`` (:class:`BlurConsistencyLoss`,
+the renderer as a loss inside learned models), ``landscape`` (the loss over a parameter grid),
+``optim`` (the batched Levenberg-Marquardt), ``losses`` (image losses and IRLS weights).
+"""
+from torchblur.fit.coded import CodedFit, fit_sinusoid_coded
+from torchblur.fit.consistency import BlurConsistencyLoss, blur_consistency
+from torchblur.fit.landscape import cost_landscape
+from torchblur.fit.losses import LOSSES, image_loss
+from torchblur.fit.multisine import MultisineFit, fit_multisine
+from torchblur.fit.optim import LMResult, levenberg_marquardt
+from torchblur.fit.sinusoid import (
+    FLAGS, MASKED, NO_MOTION, OUTLIERS_MASKED, PARTLY_OUT_OF_FRAME, SATURATED_MASKED, STATUS, SinusoidFit, fit_sinusoid,
+)
+
+__all__ = [
+    "FLAGS", "LOSSES", "MASKED", "NO_MOTION", "OUTLIERS_MASKED", "PARTLY_OUT_OF_FRAME", "SATURATED_MASKED", "STATUS",
+    "BlurConsistencyLoss", "CodedFit", "LMResult", "MultisineFit", "SinusoidFit", "blur_consistency", "cost_landscape",
+    "fit_multisine", "fit_sinusoid", "fit_sinusoid_coded", "image_loss", "levenberg_marquardt",
+]

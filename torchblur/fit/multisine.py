@@ -1,0 +1,509 @@
+"""The blurred image of a multisine motion and the fit of its tones from an image set.
+
+A spot driven by N tones in steady state moves along x as
+``y(t) = sum_k M_k sin(omega_k t + phi_k)``. One image records where the spot spent its time
+during its window, not in what order, so one image leaves ambiguities (the time reversal about
+the window centre maps every ``phi_k`` to ``pi - 2 omega_k c - phi_k`` at once; an exposure of
+whole common periods is blind to any time shift); a set of images at different window
+positions and exposures removes them (see :mod:`torchblur.design.fisher`).
+
+The parameter vector of one image set is ``theta = (M_1..M_N, phi_1..phi_N[, scale])``.
+:func:`render_multisine` is the image model (the differentiable renderer,
+:func:`~torchblur.render.blur.render_blur`, on a :class:`~torchblur.render.trajectory.Multisine`);
+:func:`fit_multisine` fits every unknown of an image set at once: starts from the image
+centroids (linear in ``M_k e^{j phi_k}``: exact with 2N or more images) and from a batch of
+phase vectors whose cost is evaluated in one render, the best few refined together by
+batched Levenberg-Marquardt (:func:`~torchblur.fit.optim.levenberg_marquardt`, Jacobians by
+forward AD); uncertainties from the Fisher information at the solution.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+
+from torchblur.render.alias import wrap_phase
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, as_unit_direction, check_finite, check_positive
+from torchblur.fit.losses import image_loss
+from torchblur.image.moments import image_moments, moments_along
+from torchblur.fit.optim import levenberg_marquardt, model_jacobian
+from torchblur.render.psf import GaussianPSF
+from torchblur.render.blur import RenderSettings, choose_node_count, render_blur
+from torchblur.render.window import ExposureWindow
+from torchblur.render.trajectory import Multisine
+
+__all__ = ["MultisineFit", "render_multisine", "render_multisine_with_jacobian", "fit_multisine", "multisine_param_names"]
+
+#: Status codes of :class:`MultisineFit` (as :data:`torchblur.fit.sinusoid.STATUS`).
+STATUS = {0: "ok", 1: "no signal (dark frames)", 2: "not converged", 4: "unidentifiable (singular Fisher information)",
+          5: "poor fit (reduced chi2 > 3 with the given noise, after a wider search)"}
+
+
+def multisine_param_names(n_tones: int, fit_scale: bool) -> tuple:
+    """``("amplitude_0", ..., "phase_0", ..., ["scale"])``."""
+    return tuple([f"amplitude_{k}" for k in range(n_tones)] + [f"phase_{k}" for k in range(n_tones)]
+                 + (["scale"] if fit_scale else []))
+
+
+def _unit_direction(direction, like: torch.Tensor) -> torch.Tensor:
+    """The image direction of the motion as a unit vector ``[..., 2]`` (None: +x)."""
+    if direction is None:
+        return torch.tensor([1.0, 0.0], dtype=like.dtype, device=like.device)
+    return as_unit_direction(direction, "direction", like=like)
+
+
+def _motion(theta: torch.Tensor, n_tones: int, u: torch.Tensor):
+    """Per-tone ``(amplitude [..., N, 2], phase [..., N, 2])`` of a motion along the unit ``u [..., 2]``."""
+    M = theta[..., :n_tones]
+    ph = theta[..., n_tones:2 * n_tones]
+    amp = M[..., None] * u[..., None, :]  # [..., N, 2]
+    return amp, torch.stack([ph, ph], -1)
+
+
+def render_multisine(theta, omega, psf: GaussianPSF, window: ExposureWindow, *, height: int, width: int,
+                     settings: RenderSettings | None = None, direction=None) -> torch.Tensor:
+    """Images of a spot moving along ``direction`` (default x) as ``sum_k M_k sin(omega_k t + phi_k)``.
+
+    Args:
+        theta: ``[..., 2N]`` ``(M_1..M_N px, phi_1..phi_N rad)`` or ``[..., 2N + 1]`` with an
+            intensity scale last.
+        omega: rad/s, ``[..., N]``.
+        psf: the spot at rest, batch ``[...]``.
+        window: exposure windows (s), batch ``[..., E]`` (E images of the same motion).
+        height, width: frame size H, W.
+        settings: renderer settings.
+        direction: the image direction (x, y) of the motion, ``[2]`` or ``[..., 2]``
+            (normalised); None: +x.
+
+    Returns:
+        ``image[..., e, i, j]``, ``[..., E, H, W]``. Differentiable in ``theta``.
+    """
+    omega = as_tensor(omega, "omega", like=theta)
+    N = omega.shape[-1]
+    if theta.shape[-1] not in (2 * N, 2 * N + 1):
+        raise ShapeError(f"theta: expected a last dim of 2N = {2 * N} or 2N + 1 (with the scale), got {tuple(theta.shape)}")
+    amp, ph = _motion(theta, N, _unit_direction(direction, theta))
+    traj = Multisine(amp[..., None, :, :], ph[..., None, :, :], omega[..., None, :])
+    p = GaussianPSF(psf.center[..., None, :], psf.cov[..., None, :, :], psf.amplitude[..., None])
+    img = render_blur(traj, p, window, height=height, width=width, settings=settings)
+    if theta.shape[-1] == 2 * N + 1:
+        img = img * theta[..., 2 * N, None, None, None]
+    return img
+
+
+def render_multisine_with_jacobian(theta, omega, psf: GaussianPSF, window: ExposureWindow, *, height: int, width: int,
+                                   nodes: int, nodes_per_panel: int = 8, direction=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`render_multisine` (point-sampled pixels, ``nodes`` time nodes) and its Jacobian
+    from one splat (:func:`~torchblur.render.splat.gaussian_splat_with_jacobian`): the node
+    positions are ``c + u sum_k M_k sin(omega_k t_s + phi_k)`` (``u`` the unit ``direction``,
+    default +x), so ``d/dM_k = u sin(omega_k t_s + phi_k)``, ``d/dphi_k = u M_k cos(omega_k t_s + phi_k)``.
+
+    Args:
+        theta: ``[n, 2N]`` or ``[n, 2N + 1]`` (scale last).
+        omega: ``[n, N]`` rad/s; psf: batch ``[n]``; window: ``[n, E]``.
+        height, width: frame size; nodes: time nodes (a multiple of ``nodes_per_panel``).
+        direction: ``[2]`` or ``[n, 2]``, as in :func:`render_multisine`.
+
+    Returns:
+        ``(image [n, E, H, W], jac [n, E, H, W, P])``, ``jac[..., p] = d image / d theta_p``.
+    """
+    from torchblur.render.blur import quadrature_nodes
+    from torchblur.render.splat import gaussian_splat_with_jacobian
+
+    n, P = theta.shape
+    N = omega.shape[-1]
+    E = window.shape[-1]
+    m = nodes_per_panel if nodes % nodes_per_panel == 0 else nodes
+    tau, wq = quadrature_nodes(nodes // m, m, dtype=theta.dtype, device=theta.device)
+    start, dur = window.start.to(theta.dtype), window.duration.to(theta.dtype)
+    t = start[..., None] + dur[..., None] * tau  # [n, E, S]
+    w = dur[..., None] * wq * psf.amplitude[:, None, None]
+    arg = omega[:, None, None, :] * t[..., None] + theta[:, None, None, N:2 * N]  # [n, E, S, N]
+    sn, cs = torch.sin(arg), torch.cos(arg)
+    Mk = theta[:, None, None, :N]
+    u = _unit_direction(direction, theta).expand(n, 2)
+    ux, uy = u[:, 0, None, None], u[:, 1, None, None]  # [n, 1, 1]
+    disp = (Mk * sn).sum(-1)  # [n, E, S]
+    px = psf.center[:, 0, None, None] + ux * disp
+    py = psf.center[:, 1, None, None] + uy * disp
+    d = torch.cat([sn, Mk * cs], -1)  # [n, E, S, 2N]: d disp / d theta
+    A, B, C = psf.precision()
+    img, dimg = gaussian_splat_with_jacobian(px, py, ux[..., None] * d, uy[..., None] * d, w, A[:, None], B[:, None], C[:, None],
+                                             height, width)
+    J = dimg.movedim(2, -1)  # [n, E, H, W, 2N]
+    if P == 2 * N + 1:
+        sc = theta[:, 2 * N, None, None, None]
+        J = torch.cat([J * sc[..., None], img[..., None]], -1)
+        img = img * sc
+    return img, J
+
+
+@dataclass
+class MultisineFit:
+    """Result of :func:`fit_multisine`; batch ``[...]`` = the images' leading dims.
+
+    Attributes:
+        amplitude: ``M_k`` (px, >= 0), ``[..., N]``.
+        phase: ``phi_k`` (rad, wrapped), ``[..., N]``.
+        amplitude_std, phase_std: one standard deviation (Fisher information), ``[..., N]``.
+        covariance: ``[..., P, P]`` in ``param_names`` order.
+        param_names: ``amplitude_k``, ``phase_k`` (and ``scale``).
+        cost: weighted sum of squared residuals at the solution, ``[...]``.
+        converged: ``status == 0``, ``[...]``.
+        status: see :data:`STATUS`, ``[...]``.
+        scale: fitted intensity scale ``[...]`` (None if not fitted).
+        noise_std: pixel noise std used (median), ``[...]``.
+        n_iter: LM iterations of the best start, ``[...]``.
+        extras: ``nodes``, ``starts``, ``refined``, ``crop``.
+    """
+
+    amplitude: torch.Tensor
+    phase: torch.Tensor
+    amplitude_std: torch.Tensor
+    phase_std: torch.Tensor
+    covariance: torch.Tensor
+    param_names: tuple
+    cost: torch.Tensor
+    converged: torch.Tensor
+    status: torch.Tensor
+    noise_std: torch.Tensor
+    n_iter: torch.Tensor
+    scale: torch.Tensor | None = None
+    extras: dict = field(default_factory=dict)
+
+
+def _centroid_start(data, rest, u, start, dur, omega, thr):
+    """``z_k = M_k e^{j phi_k}`` from the image centroids along the unit direction ``u [n, 2]``
+    (``rest [n, 2]``), least squares. The window mean of ``Im(z e^{j w t})`` is
+    ``Im(z G) / Te`` with ``G = (e^{j w t1} - e^{j w t0}) / (j w)``, linear in (Re z, Im z).
+    data [n, E, H, W] -> (M [n, N], phi [n, N], rank-ok [n])."""
+    _, cen, _ = image_moments(data, threshold=thr)
+    mu = ((cen - rest[:, None]) * u[:, None]).sum(-1)  # [n, E]
+    w = omega[:, None, :]  # [n, 1, N]
+    t0, t1 = start[..., None], (start + dur)[..., None]
+    # G / Te = (e^{j w t1} - e^{j w t0}) / (j w Te): real and imaginary parts
+    re = (torch.sin(w * t1) - torch.sin(w * t0)) / (w * dur[..., None])
+    im = -(torch.cos(w * t1) - torch.cos(w * t0)) / (w * dur[..., None])
+    Amat = torch.cat([im, re], -1)  # [n, E, 2N]: mu = x Im G + y Re G
+    sol = torch.linalg.lstsq(Amat, mu[..., None]).solution[..., 0]
+    sv = torch.linalg.svdvals(Amat)
+    ok = sv[..., -1] > 1e-3 * sv[..., 0]
+    N = omega.shape[-1]
+    x, y = sol[..., :N], sol[..., N:]
+    return torch.hypot(x, y), torch.atan2(y, x), ok
+
+
+def fit_multisine(
+    images,
+    psf: GaussianPSF,
+    window: ExposureWindow,
+    omega,
+    *,
+    noise_std=None,
+    mask=None,
+    amplitude_guess=None,
+    phase_guess=None,
+    fit_scale: bool = True,
+    n_starts: int = 48,
+    n_refine: int = 3,
+    max_iter: int = 60,
+    tol: float = 1e-9,
+    seed: int = 0,
+    render_settings: RenderSettings | None = None,
+    direction=None,
+) -> MultisineFit:
+    """Fit the N tones ``(M_k, phi_k)`` of a multisine motion along ``direction`` (default x)
+    to an image set.
+
+    Args:
+        images: ``[..., E, H, W]``: E images of the same periodic motion (dark subtracted, in
+            the PSF's units times seconds), each over its own window.
+        psf: :class:`GaussianPSF`, batch ``[...]`` (its amplitude includes the laser power).
+        window: exposure windows (s) on the command clock, batch ``[..., E]``.
+        omega: tone frequencies (rad/s), ``[..., N]``.
+        noise_std: pixel noise std: a number, ``[...]`` or ``[..., E, H, W]``; None: unweighted,
+            the noise level estimated from the residuals.
+        mask: bool ``[..., E, H, W]``, False excludes a pixel (saturated).
+        amplitude_guess: expected ``M_k`` (px), ``[..., N]`` or a number; default from the
+            images' second moments (equal tones).
+        phase_guess: an extra start for the phases (rad), ``[..., N]``.
+        fit_scale: fit an intensity scale too.
+        n_starts: random phase vectors whose cost is evaluated (plus the centroid start and
+            ``phase_guess``); ``n_refine`` of the best are refined by LM.
+        max_iter, tol: LM settings.
+        seed: seed of the random starts.
+        render_settings: renderer settings (default: panels of 3.5 PSF widths, node count
+            fixed for the whole fit).
+        direction: the image direction (x, y) of the motion, ``[2]`` or ``[..., 2]``
+            (normalised): an actuator axis rotated in the camera's image
+            (:func:`torchblur.image.tracking.calibrate_axes`); None: +x.
+
+    Returns:
+        :class:`MultisineFit`.
+    """
+    if not isinstance(images, torch.Tensor):
+        raise InputTypeError(f"images: expected a tensor [..., E, H, W], got {type(images).__name__}")
+    if images.dim() < 3 or images.numel() == 0:
+        raise ShapeError(f"images: expected a non-empty tensor [..., E, H, W], got shape {tuple(images.shape)}")
+    if not images.is_floating_point():
+        images = images.to(torch.get_default_dtype())
+    check_finite(images, "images")
+    if not isinstance(psf, GaussianPSF):
+        raise InputTypeError(f"psf: expected a GaussianPSF, got {type(psf).__name__}")
+    if not isinstance(window, ExposureWindow):
+        raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
+    for name, v in (("n_starts", n_starts), ("n_refine", n_refine), ("max_iter", max_iter)):
+        if isinstance(v, bool) or not isinstance(v, int) or v < (0 if name == "n_starts" else 1):
+            raise ParameterError(f"{name}: expected an integer >= {0 if name == 'n_starts' else 1}, got {v!r}")
+    dtype, device = images.dtype, images.device
+    batch = images.shape[:-3]
+    E, H, W = images.shape[-3:]
+    omega = check_positive(as_tensor(omega, "omega", like=images), "omega")
+    if omega.dim() == 0:
+        raise ShapeError("omega: expected shape [..., N] (one value per tone), got a scalar")
+    N = omega.shape[-1]
+    try:
+        om = omega.expand(batch + (N,))
+        win = window.to(dtype).expand(batch + (E,))
+    except RuntimeError:
+        raise ShapeError(f"omega {tuple(omega.shape)} / window {tuple(window.shape)}: expected [..., N] and [..., E] with "
+                         f"[...] = {tuple(batch)}, E = {E}") from None
+    B = max(1, math.prod(batch))
+    om = om.reshape(B, N)
+    start, dur = win.start.reshape(B, E), win.duration.reshape(B, E)
+    data = images.reshape(B, E, H, W)
+    p = psf.to(dtype)
+    center = p.center.expand(batch + (2,)).reshape(B, 2)
+    cov = p.cov.expand(batch + (2, 2)).reshape(B, 2, 2)
+    amp_psf = p.amplitude.expand(batch).reshape(B)
+    u = _unit_direction(direction, data)
+    try:
+        u = u.expand(batch + (2,)).reshape(B, 2)
+    except RuntimeError:
+        raise ShapeError(f"direction: expected [2] or a shape that broadcasts to the images' batch {tuple(batch)} + (2,), "
+                         f"got {tuple(u.shape)}") from None
+
+    weight = torch.ones_like(data)
+    sigma_given = noise_std is not None
+    if sigma_given:
+        s = check_positive(as_tensor(noise_std, "noise_std", like=data), "noise_std")
+        if s.dim() >= 3 and tuple(s.shape[-3:]) == (E, H, W):
+            s = s.expand(batch + (E, H, W)).reshape(B, E, H, W)
+        else:
+            try:
+                s = s.expand(batch).reshape(B, 1, 1, 1).expand(B, E, H, W)
+            except RuntimeError:
+                raise ShapeError(f"noise_std: expected a number, [...] or [..., E, H, W], got {tuple(s.shape)}") from None
+        weight = 1 / s**2
+        noise_level = s.reshape(B, -1).median(-1).values
+    if mask is not None:
+        if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool:
+            raise InputTypeError("mask: expected a bool tensor [..., E, H, W] (True = use the pixel)")
+        try:
+            weight = weight * mask.expand(batch + (E, H, W)).reshape(B, E, H, W).to(dtype)
+        except RuntimeError:
+            raise ShapeError(f"mask: expected shape {tuple(images.shape)}, got {tuple(mask.shape)}") from None
+
+    flat = data.reshape(B, -1)
+    med = flat.median(-1).values
+    mad = (flat - med[:, None]).abs().median(-1).values * 1.4826
+    if not sigma_given:
+        noise_level = mad
+    peak = (flat - med[:, None]).amax(-1)
+    dark = ~(peak > 8 * noise_level.clamp_min(torch.finfo(dtype).tiny))
+    thr = med[:, None] + 3 * noise_level[:, None]
+
+    # Amplitude guess: mean square of the motion from the second moments (equal tones).
+    if amplitude_guess is None:
+        _, cen, icov = image_moments(data, threshold=thr)
+        along, vex = moments_along(cen - center[:, None], icov - cov[:, None], u[:, None])
+        ms = (vex + along**2).mean(-1).clamp_min(0.25)
+        M0 = (2 * ms / N).sqrt()[:, None].expand(B, N)
+    else:
+        M0 = check_finite(as_tensor(amplitude_guess, "amplitude_guess", like=data), "amplitude_guess").abs()
+        M0 = M0.expand(batch + (N,)).reshape(B, N).clamp_min(1e-3)
+
+    # Starts: centroid LS, the phase guess, random phase vectors.
+    cands = []
+    if E >= 2 * N:
+        Mc, pc, ok = _centroid_start(data, center, u, start, dur, om, thr)
+        Mc = torch.where(ok[:, None] & torch.isfinite(Mc), Mc, M0)
+        cands.append(torch.cat([Mc.clamp(min=1e-3, max=math.hypot(H, W)), torch.nan_to_num(pc)], -1))
+    if phase_guess is not None:
+        pg = check_finite(as_tensor(phase_guess, "phase_guess", like=data), "phase_guess").expand(batch + (N,)).reshape(B, N)
+        cands.append(torch.cat([M0, pg], -1))
+    g = torch.Generator(device="cpu").manual_seed(int(seed))
+    if n_starts:
+        rnd = (torch.rand(n_starts, N, generator=g, dtype=dtype) * 2 * math.pi - math.pi).to(device)
+        for r in range(n_starts):
+            cands.append(torch.cat([M0, rnd[r].expand(B, N)], -1))
+    if not cands:
+        cands.append(torch.cat([M0, torch.zeros_like(M0)], -1))
+    K = len(cands)
+    theta_c = torch.stack(cands, 1)  # [B, K, 2N]
+    if fit_scale:
+        expected = (p.total_light().expand(batch).reshape(B)[:, None] * dur).sum(-1)
+        sc = (data.sum((-1, -2, -3)) / expected.clamp_min(1e-30)).clamp_min(1e-3)
+        theta_c = torch.cat([theta_c, sc[:, None, None].expand(B, K, 1)], -1)
+    P = theta_c.shape[-1]
+
+    # Crop to where the model reaches (the pixels outside add a constant to the cost).
+    reach = (theta_c[..., :N].abs().sum(-1).amax(1) * 1.3 + 0.5)[:, None] * u.abs()  # [B, 2] (x, y) px
+    sd = torch.diagonal(cov, dim1=-2, dim2=-1).sqrt()
+    lo_x = int(max(0, math.floor(float((center[:, 0] - reach[:, 0] - 7 * sd[:, 0]).min()))))
+    hi_x = int(min(W, math.ceil(float((center[:, 0] + reach[:, 0] + 7 * sd[:, 0]).max())) + 1))
+    lo_y = int(max(0, math.floor(float((center[:, 1] - reach[:, 1] - 7 * sd[:, 1]).min()))))
+    hi_y = int(min(H, math.ceil(float((center[:, 1] + reach[:, 1] + 7 * sd[:, 1]).max())) + 1))
+    if hi_x - lo_x < 4 or hi_y - lo_y < 4:
+        lo_x, hi_x, lo_y, hi_y = 0, W, 0, H
+    out_w = weight.clone()
+    out_w[..., lo_y:hi_y, lo_x:hi_x] = 0
+    outside_cost = (out_w * data * data).sum((-1, -2, -3))
+    outside_sq = ((out_w > 0) * data * data).sum((-1, -2, -3))
+    outside_n = (out_w > 0).sum((-1, -2, -3)).to(dtype)
+    data_c = data[..., lo_y:hi_y, lo_x:hi_x]
+    weight_c = weight[..., lo_y:hi_y, lo_x:hi_x]
+    Hc, Wc = hi_y - lo_y, hi_x - lo_x
+    center_c = center - torch.tensor([lo_x, lo_y], dtype=dtype, device=device)
+    psf_c = GaussianPSF(center_c, cov, amp_psf)
+
+    settings = render_settings or RenderSettings(panel_path_sigmas=3.5)
+    if settings.nodes is None:
+        bound = Multisine(((theta_c[..., :N].abs().amax(1) * 1.3 + 0.5)[..., None] * u[:, None, :])[:, None],
+                          torch.zeros(B, 1, N, 2, dtype=dtype, device=device), om[:, None])
+        S = choose_node_count(bound.path_length(ExposureWindow(torch.zeros_like(dur), dur)), psf_c.sigma_min()[:, None], settings)
+        settings = RenderSettings(pixel_integration=settings.pixel_integration, nodes_per_panel=settings.nodes_per_panel,
+                                  panel_path_sigmas=settings.panel_path_sigmas, max_nodes=settings.max_nodes, nodes=S)
+
+    def model_fn(theta, item):
+        psf_i = GaussianPSF(psf_c.center[item], psf_c.cov[item], psf_c.amplitude[item])
+        img = render_multisine(theta, om[item], psf_i, ExposureWindow(start[item], dur[item]), height=Hc, width=Wc,
+                               settings=settings, direction=u[item])
+        return img.reshape(theta.shape[0], -1)
+
+    analytic = not settings.pixel_integration
+
+    def jac_fn(theta, item):
+        psf_i = GaussianPSF(psf_c.center[item], psf_c.cov[item], psf_c.amplitude[item])
+        img, J = render_multisine_with_jacobian(theta, om[item], psf_i, ExposureWindow(start[item], dur[item]), height=Hc,
+                                                width=Wc, nodes=settings.nodes, nodes_per_panel=settings.nodes_per_panel,
+                                                direction=u[item])
+        return img.reshape(theta.shape[0], -1), J.reshape(theta.shape[0], -1, theta.shape[-1])
+
+    target = data_c.reshape(B, -1)
+    wflat = weight_c.reshape(B, -1)
+    live = torch.arange(B, device=device)[~dark]
+
+    def search(cands, items_l, n_ref):
+        """Coarse cost of every start ``cands [L, K, P]`` of the items ``items_l [L]`` (one render per
+        chunk), then batched LM from the ``n_ref`` best of each; the best result per item."""
+        L, Kc = cands.shape[:2]
+        flat_th = cands.reshape(-1, P)
+        item_of = items_l.repeat_interleave(Kc)
+        costs = []
+        chunk = max(1, int(2e7 // max(1, E * settings.nodes * (Hc + Wc))))
+        with torch.no_grad():
+            for i in range(0, flat_th.shape[0], chunk):
+                it = item_of[i:i + chunk]
+                costs.append(image_loss(model_fn(flat_th[i:i + chunk], it), target[it], loss="l2", weight=wflat[it]))
+        cost0 = torch.cat(costs).reshape(L, Kc)
+        R_ = min(n_ref, Kc)
+        best_k = torch.nan_to_num(cost0, nan=float("inf")).argsort(-1)[:, :R_]
+        th0 = cands[torch.arange(L, device=device)[:, None], best_k].reshape(-1, P)
+        items = items_l.repeat_interleave(R_)
+        res = levenberg_marquardt(lambda th, i: model_fn(th, items[i]), th0, target[items], loss="l2", weight=wflat[items],
+                                  max_iter=max_iter, tol=tol, jacobian_fn=(lambda th, i: jac_fn(th, items[i])) if analytic else None)
+        c = torch.nan_to_num(res.cost, nan=float("inf")).reshape(L, R_)
+        pick = c.argmin(-1)
+        ar = torch.arange(L, device=device)
+        return (res.theta.reshape(L, R_, P)[ar, pick], c[ar, pick], res.converged.reshape(L, R_)[ar, pick],
+                res.n_iter.reshape(L, R_)[ar, pick], R_)
+
+    theta_best = theta_c[:, 0].clone()
+    cost_best = torch.full((B,), float("nan"), dtype=dtype, device=device)
+    conv_best = torch.zeros(B, dtype=torch.bool, device=device)
+    iters_best = torch.zeros(B, dtype=torch.long, device=device)
+    R_ = 0
+    n_used = (wflat > 0).sum(-1).to(dtype) + outside_n
+    retried = torch.zeros(B, dtype=torch.bool, device=device)
+    if live.numel():
+        th, cst, cv, itr, R_ = search(theta_c[live], live, n_refine)
+        theta_best[live], cost_best[live], conv_best[live], iters_best[live] = th, cst, cv, itr
+        if sigma_given:
+            # A fit far above the noise (reduced chi2 > 1.5) sits in a local minimum: search again from a wider set of
+            # starts (phases and amplitudes), keep the better.
+            poor = live[((cost_best[live] + outside_cost[live]) / n_used[live].clamp_min(1)) > 1.5]
+            if poor.numel():
+                K2 = 4 * max(n_starts, 8)
+                rnd2 = (torch.rand(K2, N, generator=g, dtype=dtype) * 2 - 1).to(device) * math.pi
+                fac = torch.tensor([0.6, 1.0, 1.6], dtype=dtype, device=device).repeat(K2 // 3 + 1)[:K2]
+                c2 = torch.cat([M0[poor][:, None, :] * fac[None, :, None], rnd2.expand(poor.numel(), K2, N)], -1)
+                if fit_scale:
+                    c2 = torch.cat([c2, theta_c[poor][:, :1, 2 * N:].expand(poor.numel(), K2, 1)], -1)
+                th, cst, cv, itr, _ = search(c2, poor, 2 * n_refine)
+                better = cst < cost_best[poor]
+                pb = poor[better]
+                theta_best[pb], cost_best[pb], conv_best[pb], iters_best[pb] = th[better], cst[better], cv[better], itr[better]
+                retried[poor] = True
+
+    # Canonical form: M >= 0, phases wrapped.
+    neg = theta_best[:, :N] < 0
+    theta_best[:, :N] = theta_best[:, :N].abs()
+    theta_best[:, N:2 * N] = wrap_phase(theta_best[:, N:2 * N] + math.pi * neg)
+
+    # Fisher information at the solution.
+    cov_out = torch.full((B, P, P), float("nan"), dtype=dtype, device=device)
+    sigma_used = torch.full((B,), float("nan"), dtype=dtype, device=device)
+    singular = torch.zeros(B, dtype=torch.bool, device=device)
+    if live.numel():
+        if analytic:
+            model, J = jac_fn(theta_best[live], live)
+        else:
+            model, J = model_jacobian(lambda th, i: model_fn(th, live[i]), theta_best[live], torch.arange(live.numel(), device=device))
+        wl = wflat[live]
+        if sigma_given:
+            fw = wl
+            sigma_used[live] = noise_level[live]
+        else:
+            resid = target[live] - model
+            n_used = (wl > 0).sum(-1).to(dtype) + outside_n[live]
+            sig2 = (((resid * resid) * (wl > 0)).sum(-1) + outside_sq[live]) / (n_used - P).clamp_min(1)
+            fw = (wl > 0).to(dtype) / sig2[:, None].clamp_min(torch.finfo(dtype).tiny)
+            sigma_used[live] = sig2.sqrt()
+        F = (J * fw[..., None]).transpose(-1, -2) @ J
+        c_l, info = torch.linalg.inv_ex(F)
+        diag = torch.diagonal(c_l, dim1=-2, dim2=-1)
+        singular[live] = (info != 0) | ~torch.isfinite(c_l).all(-1).all(-1) | (diag <= 0).any(-1)
+        cov_out[live] = c_l
+    std = torch.diagonal(cov_out, dim1=-2, dim2=-1).clamp_min(0).sqrt()
+    status = torch.zeros(B, dtype=torch.long, device=device)
+    status[~conv_best] = 2
+    if sigma_given:
+        # still far above the noise after the wider search: the model does not explain the images
+        status[((cost_best + outside_cost) / n_used.clamp_min(1)) > 3.0] = 5
+    status[singular] = 4
+    status[dark] = 1
+    nan = torch.tensor(float("nan"), dtype=dtype, device=device)
+
+    def out(x, tail=()):
+        return x.reshape(batch + tail)
+
+    bad = dark[:, None]
+    res = MultisineFit(
+        amplitude=out(torch.where(bad, nan, theta_best[:, :N]), (N,)),
+        phase=out(torch.where(bad, nan, theta_best[:, N:2 * N]), (N,)),
+        amplitude_std=out(torch.where(bad, nan, std[:, :N]), (N,)),
+        phase_std=out(torch.where(bad, nan, std[:, N:2 * N]), (N,)),
+        covariance=out(cov_out, (P, P)),
+        param_names=multisine_param_names(N, fit_scale),
+        cost=out(cost_best + outside_cost),
+        converged=out(status == 0),
+        status=out(status),
+        noise_std=out(sigma_used),
+        n_iter=out(iters_best),
+        scale=out(torch.where(dark, nan, theta_best[:, 2 * N])) if fit_scale else None,
+    )
+    res.extras.update({"nodes": settings.nodes, "starts": K, "refined": R_, "crop": (lo_y, hi_y, lo_x, hi_x),
+                       "retried": out(retried), "reduced_chi2": out((cost_best + outside_cost) / n_used.clamp_min(1))})
+    return res

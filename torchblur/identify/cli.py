@@ -1,0 +1,478 @@
+"""Command line: ``torchblur <command> ...``.
+
+Commands:
+    identify [--config FILE] --out DIR [key=value ...]
+                        identify the frequency response and a model of the rig (simulated, or
+                        rig.kind=serial rig.port=... rig.frames=...); writes frf.csv, frf.json,
+                        model.json, bode.png, residuals.png, config.yaml and report.txt into
+                        DIR, and records the raw frames as it goes in DIR/experiment/.
+                        With model.direct=true model.json holds the model fitted directly
+                        to every image and model_two_step.json the two-step model.
+    identify --resume DIR [key=value ...]
+                        continue an interrupted run from DIR/experiment/ (rig.*, fit.* and
+                        model.* may be given anew, e.g. the new rig.port).
+    fit DIR --out NEW [fit.*=... model.*=...]
+                        re-fit a recorded run offline; DIR is never written.
+    emulator [--config FILE] [key=value ...]
+                        a bench emulator on a pseudo-terminal; prints one JSON line with
+                        'serial' (for rig.port) and 'frames' (for rig.frames), then serves.
+    demo --out DIR      render a blurred laser spot (the paper's "peanut"), its motion and
+                        its alias, and save DIR/demo.png and DIR/demo.json.
+
+Exit codes: 0 done, 2 bad input (config, recording), 3 the rig stopped the run (its recording
+is saved; resume it), 130 interrupted (Ctrl-C; resume it).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+
+def _demo(args) -> int:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import torch
+
+    import torchblur as tb
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    f_hz, te_frac, b = 300.0, 0.5, math.pi / 2  # the paper's settings: p = half a period, w tcam = pi/2
+    omega = 2 * math.pi * f_hz
+    window = tb.ExposureWindow(b / omega, te_frac / f_hz)
+    psf = tb.GaussianPSF.from_axes(torch.tensor([48.0, 40.0], dtype=torch.float64), 2.6, 1.8, 0.4, amplitude=1.0)
+    phase = torch.tensor(-0.6, dtype=torch.float64)
+    direction = torch.tensor([0.9, 0.45], dtype=torch.float64)
+    amp = 14.0 * direction
+    alias = tb.alias_phase(phase, omega, window)
+    renderer = tb.BlurRenderer(height=80, width=96)
+    imgs = [renderer(tb.Sinusoid(amp, p.expand(2), omega), psf, window) for p in (phase, alias)]
+    still = renderer(tb.Sinusoid(torch.zeros(2, dtype=torch.float64), torch.zeros(2, dtype=torch.float64), omega), psf, window)
+    from torchblur.render.camera import CameraModel
+
+    camera = CameraModel(read_noise_e=8.0, full_well_e=60000.0, bit_depth=16)
+    scale = 40000.0 / float(imgs[0].max())
+    noisy = camera.expose(imgs[0] * scale, generator=torch.Generator().manual_seed(args.seed))
+
+    t = torch.linspace(0, 2 / f_hz, 400, dtype=torch.float64)
+    fig, ax = plt.subplots(1, 4, figsize=(16, 3.8))
+    for p, style in ((phase, "-"), (alias, "--")):
+        y = (amp.norm() * torch.sin(omega * t + p)).numpy()
+        ax[0].plot(t.numpy() * 1e3, y, style, label=f"phase {math.degrees(float(p)):.1f} deg")
+    ax[0].axvspan(float(window.start) * 1e3, float(window.end) * 1e3, color="0.85", label="exposure")
+    ax[0].set(xlabel="time (ms)", ylabel="displacement (px)", title=f"{f_hz:.0f} Hz motion")
+    ax[0].legend(fontsize=8)
+    for a, im, title in ((ax[1], still, "still spot (PSF x Te)"), (ax[2], imgs[0], "blurred: true phase"), (ax[3], noisy, "camera frame (ADU)")):
+        a.imshow(im.detach().numpy(), cmap="inferno")
+        a.set_title(title)
+        a.set_axis_off()
+    fig.suptitle("torchblur demo: a fast steering mirror seen by a slow camera; the alias phase gives the same image")
+    fig.tight_layout()
+    fig.savefig(out / "demo.png", dpi=110)
+    summary = {
+        "torchblur_version": tb.__version__,
+        "seed": args.seed,
+        "freq_hz": f_hz,
+        "phase_rad": float(phase),
+        "alias_phase_rad": float(alias),
+        "max_abs_difference_true_vs_alias_image": float((imgs[0] - imgs[1]).abs().max()),
+        "image_peak": float(imgs[0].max()),
+    }
+    (out / "demo.json").write_text(json.dumps(summary, indent=2))
+    print(f"wrote {out / 'demo.png'} and {out / 'demo.json'}")
+    print(f"true phase {math.degrees(float(phase)):.2f} deg and alias {math.degrees(float(alias)):.2f} deg render the same image "
+          f"(max difference {summary['max_abs_difference_true_vs_alias_image']:.1e} of peak {summary['image_peak']:.3g})")
+    return 0
+
+
+EXIT_STOPPED = 3
+EXIT_INTERRUPTED = 130
+
+
+def _resume_hint(root: Path, cfg) -> str:
+    rig = " rig.port=<controller port> rig.frames=<camera>" if cfg.rig.kind == "serial" else ""
+    return f"torchblur identify --resume {root}{rig}"
+
+
+def _identify(args) -> int:
+    from torchblur.identify.config import load_config
+
+    if args.resume is not None:
+        return _resume(args)
+    if args.out is None:
+        print("torchblur identify: error: --out DIR is required (or --resume DIR)", file=sys.stderr)
+        return 2
+    cfg = load_config(args.config, args.overrides)  # ConfigError (named key) before any work
+    out = Path(args.out)
+    if (out / "experiment" / "manifest.jsonl").exists():
+        print(f"torchblur identify: error: {out} already holds a recorded run; continue it with "
+              f"'torchblur identify --resume {out}' or choose another --out", file=sys.stderr)
+        return 2
+    out.mkdir(parents=True, exist_ok=True)
+    return _run_identify(cfg, out, out / "experiment", args.quiet)
+
+
+def _resume(args) -> int:
+    from torchblur.identify.config import load_config
+    from torchblur.hardware.recording import Experiment
+
+    root = Path(args.resume)
+    exp = Experiment.open(root)  # RecordingError if none; repairs a torn last group
+    if exp.path == root:  # given the experiment folder itself
+        root = root.parent
+    out = Path(args.out) if args.out is not None else root
+    cfg = load_config(str(exp.path / "config.yaml"), args.overrides)
+    from torchblur.identify.config import load_dataclass
+    from torchblur.identify.run import check_resume_config
+
+    check_resume_config(load_dataclass(type(cfg), str(exp.path / "config.yaml")), cfg)  # before connecting
+    rep = exp.repaired
+    if rep["dropped_groups"] or rep["removed_files"]:
+        print(f"torchblur identify: resume: dropped incomplete group(s) {rep['dropped_groups']}, removed "
+              f"{len(rep['removed_files'])} leftover file(s)", file=sys.stderr)
+    out.mkdir(parents=True, exist_ok=True)
+    return _run_identify(cfg, out, exp, args.quiet, root=root)
+
+
+def _run_identify(cfg, out: Path, record, quiet: bool, root: Path | None = None) -> int:
+    import time
+
+    import torch
+
+    import torchblur as tb
+    from torchblur.identify.config import config_to_yaml
+    from torchblur.hardware.errors import HardwareError
+    from torchblur.identify.run import identify
+
+    root = out if root is None else root
+    stamp = f"torchblur {tb.__version__}, seed {cfg.seed}"
+    (out / "config.yaml").write_text(f"# {stamp}\n" + config_to_yaml(cfg))
+    torch.manual_seed(cfg.seed)
+    exp_dir = record.path if hasattr(record, "path") else Path(record)
+    t0 = time.perf_counter()
+    try:
+        res = identify(cfg, progress=not quiet, record=record)
+    except KeyboardInterrupt:
+        print(f"\ntorchblur identify: interrupted. The recording so far is saved in {exp_dir}.\n"
+              f"Resume with:\n  {_resume_hint(root, cfg)}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except HardwareError as exc:
+        if (exp_dir / "manifest.jsonl").exists():
+            print(f"torchblur identify: stopped: {exc}\nThe recording so far is saved in {exp_dir}.\n"
+                  f"Resume with:\n  {_resume_hint(root, cfg)}", file=sys.stderr)
+        else:
+            print(f"torchblur identify: stopped before anything was recorded: {exc}", file=sys.stderr)
+        return EXIT_STOPPED
+    elapsed = time.perf_counter() - t0
+    _write_outputs(cfg, res, out, elapsed, stamp)
+    return 0
+
+
+def _fit(args) -> int:
+    import time
+
+    import torchblur as tb
+    from torchblur.identify.config import config_to_yaml, load_config, load_dataclass
+    from torchblur.hardware.recording import Experiment, ReplayRig
+    from torchblur.identify.run import check_resume_config, identify
+
+    exp = Experiment.open(args.dir, writable=False)
+    root = exp.path.parent if exp.path.name == "experiment" else exp.path
+    out = Path(args.out)
+    r_root, r_out, r_exp = root.resolve(), out.resolve(), exp.path.resolve()
+    for protected in {r_root, r_exp}:
+        if r_out == protected or protected in r_out.parents:
+            print(f"torchblur fit: error: --out {out} is inside the recorded run {root}; the original is never written, "
+                  f"choose another folder", file=sys.stderr)
+            return 2
+    recorded = load_dataclass(type(load_config()), str(exp.path / "config.yaml"))
+    cfg = load_config(str(exp.path / "config.yaml"), args.overrides)
+    check_resume_config(recorded, cfg, allowed=("fit", "model"))
+    out.mkdir(parents=True, exist_ok=True)
+    stamp = f"torchblur {tb.__version__}, seed {cfg.seed}, re-fit of {exp.path}"
+    (out / "config.yaml").write_text(f"# {stamp}\n" + config_to_yaml(cfg))
+    t0 = time.perf_counter()
+    res = identify(cfg, rig=ReplayRig(exp), record=exp, progress=not args.quiet)
+    elapsed = time.perf_counter() - t0
+    (out / "source.json").write_text(json.dumps({"recording": str(exp.path), "status": exp.meta.get("status"),
+                                                 "frames": len(exp.lines), "overrides": list(args.overrides),
+                                                 "torchblur_version": tb.__version__}, indent=2))
+    _write_outputs(cfg, res, out, elapsed, stamp)
+    return 0
+
+
+def _emulator(args) -> int:
+    from torchblur.hardware.emulator import main as emulator_main
+
+    try:
+        return emulator_main(args.overrides, config_path=args.config)
+    except KeyboardInterrupt:
+        return EXIT_INTERRUPTED
+
+
+def _write_outputs(cfg, res, out: Path, elapsed: float, stamp: str) -> None:
+    """frf.csv, frf.json, model.json, bode.png, residuals.png, report.txt."""
+    import numpy as np
+
+    import torchblur as tb
+    from torchblur.sysid.plots import bode_figure, residual_figure
+
+    frf = res.frf
+    frf.meta.update({"torchblur_version": tb.__version__, "seed": int(cfg.seed)})
+    _write_frf_csv(frf, out / "frf.csv", stamp_version=tb.__version__, seed=cfg.seed)
+    frf.to_json(out / "frf.json")
+    model = {"torchblur_version": tb.__version__, "seed": int(cfg.seed)}
+    if res.model is not None:
+        model.update(res.model.to_dict())
+    else:
+        model["error"] = "the model fit failed; see report.txt"
+    direct = getattr(res, "direct_model", None)
+    if cfg.model.direct:
+        # model.json holds the direct model; the two-step one it started from is kept beside it.
+        (out / "model_two_step.json").write_text(json.dumps(model, indent=2))
+        model = {"torchblur_version": tb.__version__, "seed": int(cfg.seed)}
+        if direct is not None:
+            model.update(direct.to_dict())
+        else:
+            model["error"] = "the direct fit failed or was skipped; see report.txt (the two-step model is in model_two_step.json)"
+    (out / "model.json").write_text(json.dumps(model, indent=2))
+    truth = None
+    if res.truth is not None:
+        if getattr(res, "spots", None) is not None:
+            truth = res.truth  # [O, I, F] at the measured points
+        else:
+            from torchblur.identify.run import plant_of
+
+            truth = plant_of(cfg).frequency_response
+    fig = bode_figure(frf, model=res.model, truth=truth, stamp=stamp)
+    fig.savefig(out / "bode.png", dpi=110 if frf.n_outputs <= 2 else 80, metadata={"Description": stamp})
+    if hasattr(res, "residual_panels"):  # multisine: one panel per image set
+        data, models, labels = res.residual_panels(3)
+    else:
+        cost = res.fit.cost.reshape(-1).numpy()
+        n_pix = res.images.shape[-3] * res.images.shape[-2] * res.images.shape[-1]
+        worst = np.argsort(np.nan_to_num(cost / max(1, n_pix), nan=-np.inf))[-3:][::-1].copy()
+        data, models, labels = _fitted_images(res, worst)
+    fig = residual_figure(data, models, labels, stamp=stamp)
+    fig.savefig(out / "residuals.png", dpi=90, metadata={"Description": stamp})
+    report = _report(cfg, res, elapsed, stamp)
+    (out / "report.txt").write_text(report)
+    print(report)
+    print(f"wrote {', '.join(sorted(p.name for p in out.iterdir()))} in {out}")
+
+
+def _write_frf_csv(frf, path, *, stamp_version, seed):
+    """frf.csv: freq_hz,magnitude,phase_deg,magnitude_std,phase_std_deg (+ stamp columns)."""
+    import csv
+
+    import numpy as np
+
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        mimo = not frf.is_siso
+        head = (["output", "input"] if mimo else []) + ["freq_hz", "magnitude", "phase_deg", "magnitude_std", "phase_std_deg",
+                                                          "torchblur_version", "seed"]
+        w.writerow(head)
+        for o in range(frf.n_outputs):
+            for i in range(frf.n_inputs):
+                for k in range(len(frf.omega)):
+                    deg = float(np.degrees(frf.phase[o, i, k]))
+                    row = ([frf.output_labels[o], frf.input_labels[i]] if mimo else []) + [
+                        repr(float(frf.freq_hz[k])), repr(float(frf.magnitude[o, i, k])), repr(deg),
+                        repr(float(frf.magnitude_std[o, i, k])), repr(float(np.degrees(frf.phase_std[o, i, k]))), stamp_version, seed]
+                    w.writerow(row)
+
+
+def _fitted_images(res, idx):
+    """The first frame of problems ``idx`` (flat indices of ``res.fit``), its fitted model and
+    a label each (for the residual figure): ``(data [n, h, w], models [n, h, w], labels)``."""
+    import numpy as np
+    import torch
+
+    import torchblur as tb
+
+    frf = res.frf
+    single = res.fit.amplitude.dim() == 1
+    F = len(frf.omega)
+    P = 1 if single else res.fit.amplitude.shape[1]
+    data, out, labels = [], [], []
+    for q in idx:
+        q = int(q)
+        j, p = divmod(q, P)
+        k = j % F
+        if single:
+            img_d = res.images[j, 0]
+            w = res.windows[j, 0]
+            label = f"{frf.freq_hz[k]:.4g} Hz"
+        else:
+            ii = j // F
+            img_d = res.images[ii, k, p, 0]
+            w = res.windows[ii, k, 0]
+            label = f"{frf.freq_hz[k]:.4g} Hz, input {res.inputs[ii]}" + (f", spot s{p}" if res.spots is not None else "")
+        data.append(img_d.numpy())
+        labels.append(label)
+        fit = res.fit
+        at = (j,) if single else (j, p)
+        if not bool(fit.converged[at]):
+            out.append(np.zeros_like(img_d.numpy()))
+            continue
+        if single:
+            amp = torch.stack([fit.amplitude[j], torch.zeros_like(fit.amplitude[j])])
+            ph = fit.phase[j].expand(2)
+            psf = res.psf
+        else:
+            amp, ph = fit.amplitude[j, p], fit.phase[j, p]
+            psf = res.spots.psf_in_crops()[p] if res.spots is not None else res.psf
+        scale = res.power[j] * (fit.scale[at] if fit.scale is not None else 1.0)
+        psf = tb.GaussianPSF(psf.center, psf.cov, psf.amplitude * scale)
+        om = 2 * math.pi * float(frf.freq_hz[k])
+        img = tb.render_blur(tb.Sinusoid(amp, ph, om), psf, w, height=img_d.shape[-2], width=img_d.shape[-1])
+        if fit.background is not None:
+            img = img + fit.background[at]
+        out.append(img.detach().numpy())
+    return np.stack(data), np.stack(out), labels
+
+
+def _report(cfg, res, elapsed, stamp) -> str:
+    import numpy as np
+
+    frf = res.frf
+    lines = [f"torchblur identify report ({stamp})", ""]
+    lines += res.log
+    truth = None
+    if res.truth is not None:
+        truth = res.truth if res.truth.ndim == 3 else res.truth[None, None]
+    head = (f"{'freq_hz':>10} {'|H|':>10} {'+-':>9} {'phase_deg':>10} {'+-':>7}"
+            + (f" {'|H| err %':>9} {'ph err deg':>10} {'err/std':>8}" if truth is not None else ""))
+    summary = []
+    for o in range(frf.n_outputs):
+        for i in range(frf.n_inputs):
+            if not frf.is_siso:
+                lines += ["", f"output {frf.output_labels[o]} from input {frf.input_labels[i]}:"]
+            lines += ["", head] if frf.is_siso else [head]
+            for k in range(len(frf.omega)):
+                m, ms = frf.magnitude[o, i, k], frf.magnitude_std[o, i, k]
+                p, ps = np.degrees(frf.phase[o, i, k]), np.degrees(frf.phase_std[o, i, k])
+                line = f"{frf.freq_hz[k]:10.4g} {m:10.5g} {ms:9.2g} {p:10.3f} {ps:7.3f}"
+                if truth is not None:
+                    t = truth[o, i, k]
+                    em = (m - abs(t)) / abs(t) * 100
+                    ep = math.degrees(math.remainder(frf.phase[o, i, k] - np.angle(t), 2 * math.pi))
+                    z = max(abs(m - abs(t)) / ms, abs(math.radians(ep)) / frf.phase_std[o, i, k])
+                    line += f" {em:9.3f} {ep:10.3f} {z:8.2f}"
+                lines.append(line)
+            if truth is not None:
+                t = truth[o, i]
+                em = np.abs(frf.magnitude[o, i] - np.abs(t)) / np.abs(t)
+                ep = np.degrees(np.abs(np.remainder(frf.phase[o, i] - np.angle(t) + np.pi, 2 * np.pi) - np.pi))
+                z = np.maximum(np.abs(frf.magnitude[o, i] - np.abs(t)) / frf.magnitude_std[o, i], np.radians(ep) / frf.phase_std[o, i])
+                with np.errstate(invalid="ignore"):
+                    summary.append((frf.output_labels[o], frf.input_labels[i], np.nanmax(em) if np.isfinite(em).any() else np.nan,
+                                    np.nanmax(ep) if np.isfinite(ep).any() else np.nan, np.nanmax(z) if np.isfinite(z).any() else np.nan))
+    if summary:
+        if frf.is_siso:
+            _, _, em, ep, z = summary[0]
+            lines += ["", f"against the truth: max |H| error {em * 100:.3f}% (goal 1%), max phase error "
+                          f"{ep:.3f} deg (goal 1 deg), max error/std {z:.2f} (goal 5)"]
+        else:
+            lines += ["", "against the truth, per channel (goal 2% and 2 deg):"]
+            for (out_l, in_l, em, ep, z), (o, i) in zip(summary, [(o, i) for o in range(frf.n_outputs) for i in range(frf.n_inputs)]):
+                if np.all(np.abs(truth[o, i]) == 0):  # no true motion on this channel: say how small the estimate is
+                    lines.append(f"  {out_l:>6} from {in_l}: true response 0, max |H| {np.nanmax(frf.magnitude[o, i]):.3g} "
+                                 f"(max |H| / std {np.nanmax(frf.magnitude[o, i] / frf.magnitude_std[o, i]):.2f})")
+                    continue
+                lines.append(f"  {out_l:>6} from {in_l}: max |H| error {em * 100:.3f}%, max phase error {ep:.3f} deg, "
+                             f"max error/std {z:.2f}")
+    if res.model is not None and res.model.is_siso:
+        m = res.model
+        lines += ["", f"model: {m.n_poles} poles, {m.n_zeros} zeros, delay {m.delay_s * 1e6:.3f} us, reduced chi2 "
+                      f"{m.reduced_chi2:.3f} (dof {m.dof}), rms relative error {m.rms_relative_error:.2e}",
+                  f"  num = {list(map(float, m.num))}", f"  den = {list(map(float, m.den))}"]
+        for mode in m.modal_parameters():
+            lines.append(f"  mode: {mode['freq_hz']:.3f} Hz, damping {mode['zeta']:.4f}")
+        if cfg.model.direct:
+            lines.append("  (the two-step model: model_two_step.json)")
+    elif res.model is not None:
+        m = res.model
+        modes = m.modal_parameters()
+        for o, out_l in enumerate(m.output_labels):
+            for i, in_l in enumerate(m.input_labels):
+                lines += ["", f"model {out_l} from {in_l}: {m.n_poles[o][i]} poles, {m.n_zeros[o][i]} zeros, delay "
+                              f"{m.delay_s[o][i] * 1e6:.3f} us, reduced chi2 {m.reduced_chi2[o][i]:.3f} (dof {m.dof[o][i]}), "
+                              f"rms relative error {m.rms_relative_error[o][i]:.2e}",
+                          f"  num = {list(map(float, m.num[o][i]))}", f"  den = {list(map(float, m.den[o][i]))}"]
+                for mode in modes[o][i]:
+                    lines.append(f"  mode: {mode['freq_hz']:.3f} Hz, damping {mode['zeta']:.4f}")
+    d = getattr(res, "direct_model", None)
+    if d is not None:
+        lines += ["", f"direct model ({d.form}, fitted to every image; model.json): delay {d.delay_s * 1e6:.3f} us, reduced chi2 "
+                      f"{d.reduced_chi2:.3f} (dof {d.dof}), {d.n_iter} iterations, converged {d.converged}, "
+                      f"{int(d.used.sum())} points used, {d.n_excluded} excluded",
+                  f"  num = {d.num}", f"  den = {d.den}"]
+        for mode in d.modal_parameters():
+            lines.append(f"  mode: {mode['freq_hz']:.3f} +- {mode['freq_hz_std']:.3f} Hz, damping {mode['zeta']:.4f} +- "
+                         f"{mode['zeta_std']:.4f}, gain {mode['gain']:.4g} +- {mode['gain_std']:.2g}")
+    elif cfg.model.direct:
+        lines += ["", "direct model: none (see the log above); model.json holds the error, model_two_step.json the two-step model"]
+    what = "simulated acquisition" if cfg.rig.kind == "simulated" else "acquisition"
+    t = getattr(res, "timing", {}) or {}
+    lines += ["", f"elapsed {elapsed:.1f} s ({what} and fitting)"]
+    if t:
+        lines.append(f"  calibration {t['calibration_s']:.2f} s, sweep {t['sweep_s']:.2f} s, fitting {t['fit_s']:.2f} s in "
+                     f"{t['fit_chunks']} chunk(s) of which {t['fit_overlapped_s']:.2f} s during the sweep, "
+                     f"{t['after_sweep_s']:.2f} s after the last frame")
+    return "\n".join(lines) + "\n"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="torchblur", description="Identify fast actuator dynamics from camera motion blur.")
+    sub = parser.add_subparsers(dest="command", required=True)
+    ident = sub.add_parser("identify", help="identify the frequency response and a model (default: the built-in simulated mirror)")
+    ident.add_argument("--config", default=None, help="YAML config (see configs/); default: built-in")
+    ident.add_argument("--out", default=None, help="output directory (the recording goes to OUT/experiment/)")
+    ident.add_argument("--resume", default=None, metavar="DIR",
+                       help="continue the interrupted run recorded in DIR (its --out folder or DIR/experiment)")
+    ident.add_argument("--quiet", action="store_true", help="no progress bar")
+    ident.add_argument("overrides", nargs="*", help="dotted key=value overrides, e.g. sweep.n=20 plant.delay_s=5e-5")
+    ident.set_defaults(func=_identify)
+    fit = sub.add_parser("fit", help="re-fit a recorded run offline with other fit.* / model.* settings")
+    fit.add_argument("dir", help="the recorded run (its --out folder, or its experiment/ folder)")
+    fit.add_argument("--out", required=True, help="a new output directory (never inside DIR)")
+    fit.add_argument("--quiet", action="store_true", help="no progress bar")
+    fit.add_argument("overrides", nargs="*", help="fit.* and model.* overrides, e.g. fit.loss=poisson model.max_order=4")
+    fit.set_defaults(func=_fit)
+    emu = sub.add_parser("emulator", help="emulate the bench (controller on a pseudo-terminal, camera on loopback TCP)")
+    emu.add_argument("--config", default=None, help="YAML config (plant.*, camera.*, seed; identify-only sections are ignored)")
+    emu.add_argument("overrides", nargs="*", help="plant.*, camera.*, seed, transport=pty|socket, fault.*=N, ...")
+    emu.set_defaults(func=_emulator)
+    demo = sub.add_parser("demo", help="render a blurred spot and its alias; save a figure")
+    demo.add_argument("--out", required=True, help="output directory")
+    demo.add_argument("--seed", type=int, default=0)
+    demo.set_defaults(func=_demo)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    from torchblur.errors import TorchblurError
+
+    parser = build_parser()
+    args, extra = parser.parse_known_args(argv)
+    if extra:  # key=value overrides after an option (argparse stops filling a '*' positional there)
+        if hasattr(args, "overrides") and all("=" in e and not e.startswith("-") for e in extra):
+            args.overrides = list(args.overrides) + extra
+        else:
+            parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    try:
+        return args.func(args)
+    except TorchblurError as exc:
+        print(f"torchblur {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

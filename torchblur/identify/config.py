@@ -1,0 +1,578 @@
+"""Configuration of ``torchblur identify``: frozen dataclasses loaded with OmegaConf.
+
+A YAML file (``--config FILE``) and dotted overrides (``plant.num=[1,2]``) are merged onto
+the built-in defaults; unknown keys and invalid values raise :class:`ConfigError` naming
+the key, before any work starts. Units: Hz and seconds as the names say; the plant's
+``num``/``den`` are continuous-time coefficients (highest power first) with the output in
+pixels per input unit.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, fields, is_dataclass
+from typing import Optional
+
+from torchblur.errors import ConfigError
+
+__all__ = ["IdentifyConfig", "load_config", "load_dataclass", "config_to_yaml", "validate", "validate_plant", "validate_camera",
+           "validate_spots", "validate_excitation", "SpotsConfig", "PlantConfig",
+           "DEFAULT_PLANT", "RIG_KINDS", "EXCITATION_KINDS"]
+
+RIG_KINDS = ("simulated", "serial")
+
+
+def _default_plant() -> tuple[list, list]:
+    """One axis of a tip-tilt fast steering mirror under closed-loop control: a lightly
+    damped resonance at 420 Hz, a current-loop pole at 2.5 kHz, 20 px per input unit."""
+    wn, zeta, wp, gain = 2 * math.pi * 420.0, 0.12, 2 * math.pi * 2500.0, 20.0
+    num = [gain * wn * wn * wp]
+    den = [1.0, 2 * zeta * wn + wp, wn * wn + 2 * zeta * wn * wp, wn * wn * wp]
+    return num, den
+
+
+DEFAULT_PLANT = _default_plant()
+
+
+@dataclass(frozen=True)
+class PlantConfig:
+    """The simulated mirror. SISO: ``num``/``den`` flat coefficient lists (highest power
+    first), ``delay_s`` a number. A two-axis tip-tilt mirror (MIMO): ``num``/``den`` 2x2
+    nested lists, ``num[i][j]`` the channel from input j to output i (i, j in x, y), and
+    ``delay_s`` one number (shared) or a 2x2 nested list; the run then excites each input in
+    turn and identifies the 2x2 response. ``direction`` (SISO): the simulated spot's image
+    motion (x, y) px per plant output unit, e.g. ``[0.985, 0.174]`` for an actuator axis
+    rotated 10 degrees in the camera's image."""
+
+    num: list = field(default_factory=lambda: list(DEFAULT_PLANT[0]))
+    den: list = field(default_factory=lambda: list(DEFAULT_PLANT[1]))
+    delay_s: object = 30e-6
+    direction: list = field(default_factory=lambda: [1.0, 0.0])
+
+    @property
+    def is_mimo(self) -> bool:
+        """True when ``num`` is nested (a 2x2 plant)."""
+        return _nested(self.num)
+
+
+@dataclass(frozen=True)
+class SpotsConfig:
+    """Many spots (a Shack-Hartmann sensor, see :mod:`torchblur.image.spots`). ``rows`` = 0 (the
+    default): one spot, as without this section."""
+
+    rows: int = 0
+    cols: int = 0
+    pitch_px: float = 32.0
+    center_px: Optional[list] = None  # grid centre (x, y) px; null: the frame centre
+    sigma_px: Optional[float] = None  # PSF std at the grid centre; null: camera.psf_sigma_px
+    sigma_variation: float = 0.0
+    elongation: float = 0.0
+    gain_variation: float = 0.0
+    rotation_rad: float = 0.0
+    missing: list = field(default_factory=list)  # row-major indices of absent spots (simulation)
+    crop_px: Optional[int] = None  # side of each spot's crop; null: floor(pitch_px)
+
+    @property
+    def enabled(self) -> bool:
+        return int(self.rows) > 0
+
+    def grid(self, camera=None):
+        """The :class:`~torchblur.image.spots.SpotGrid` of this section (None when disabled)."""
+        if not self.enabled:
+            return None
+        from torchblur.image.spots import SpotGrid
+
+        sigma = self.sigma_px if self.sigma_px is not None else (camera.psf_sigma_px if camera is not None else 2.0)
+        return SpotGrid(rows=int(self.rows), cols=int(self.cols), pitch_px=float(self.pitch_px),
+                        center_px=None if self.center_px is None else tuple(float(v) for v in self.center_px),
+                        sigma_px=float(sigma), sigma_variation=float(self.sigma_variation), elongation=float(self.elongation),
+                        gain_variation=float(self.gain_variation), rotation_rad=float(self.rotation_rad),
+                        missing=tuple(int(m) for m in self.missing))
+
+    def crop_side(self) -> int:
+        """Side (px) of each spot's crop."""
+        return int(self.crop_px) if self.crop_px is not None else int(math.floor(float(self.pitch_px)))
+
+
+@dataclass(frozen=True)
+class SweepConfig:
+    f_min_hz: float = 1.0
+    f_max_hz: float = 1000.0
+    n: int = 30
+    freq_hz: Optional[list] = None
+    exposures: list = field(default_factory=lambda: [0.3, 0.8])
+    trigger_phase_rad: float = math.pi / 2
+    images_per_point: int = 2
+    settle_s: Optional[float] = None
+
+
+EXCITATION_KINDS = ("sine", "multisine")
+
+
+@dataclass(frozen=True)
+class ExcitationConfig:
+    target_px: float = 8.0
+    max_amplitude: Optional[float] = None
+    # "sine": one frequency per point (the sweep); "multisine": the sweep's frequencies in groups of `tones`, each group
+    # one multisine on a common grid with one designed image set (torchblur.identify.multisine).
+    kind: str = "sine"
+    tones: int = 3
+    tone_px: Optional[float] = None  # multisine: output amplitude of each tone (px); default 0.75 target_px
+    images: Optional[int] = None  # multisine: images per group; None: the design's size for target_std
+    max_images: int = 12  # multisine: most images per group when `images` is None
+    target_std: float = 2e-3  # multisine: predicted std of every |H| (relative) and phase (rad) the design aims at
+    snap_tol: float = 0.05  # multisine: largest relative move of a frequency onto the group's common grid
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    frame_rate_hz: float = 30.0
+    max_exposure_s: float = 1.0
+    readout_s: float = 1e-3
+    trigger_delay_s: float = 0.0
+    latency_s: float = 12e-6
+    jitter_s: float = 0.2e-6
+    read_noise: float = 5.0
+    gain: float = 1.0
+    full_well: float = 20000.0
+    bit_depth: int = 12
+    dark_level: float = 100.0
+    psf_sigma_px: float = 2.0
+    height: int = 64
+    width: int = 64
+    peak_fraction: float = 0.5
+
+
+AXIS_MODES = ("measure", "x", "y")
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    # One-axis, one-spot runs: the image direction of the actuator's motion. "measure" (default): tracked
+    # during the calibration (torchblur.image.tracking.calibrate_axes at the sweep's first frequency); "x", "y",
+    # or [x, y]. The response is the motion along that direction (the sign that points toward +x, or +y).
+    axis: object = "measure"
+    optimizer: str = "lm"
+    loss: str = "l2"
+    fit_scale: bool = True
+    fit_background: bool = False
+    fit_gradient: bool = False  # remove a stray-light plane per exposure (fit_sinusoid's fit_gradient)
+    outliers: str = "none"  # "reject": mask pixels whose residual exceeds outlier_sigma std (hot pixels, cosmic rays) and refit
+    outlier_sigma: float = 5.0
+    # Points per batched fit. The sweep hands every completed chunk to a background fit, so
+    # fitting overlaps the acquisition; 0 fits all points in one batch after the sweep.
+    chunk_points: int = 8
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    n_poles: Optional[int] = None
+    n_zeros: Optional[int] = None
+    max_order: int = 6
+    fit_delay: bool = True
+    # Direct identification (torchblur.sysid.direct): after the two-step model, fit its parameters
+    # to every image at once; model.json then holds the direct model, model_two_step.json the other.
+    direct: bool = False
+    direct_form: str = "tf"  # "tf" (normalised poles/zeros) or "modal" (sum of modes)
+    direct_max_iter: int = 100
+
+
+@dataclass(frozen=True)
+class RigConfig:
+    kind: str = "simulated"  # "simulated" (built-in) or "serial" (a controller on rig.port, a camera on rig.frames)
+    port: Optional[str] = None  # serial: device path or pyserial URL (socket://HOST:PORT, spy://PATH?file=LOG)
+    frames: Optional[str] = None  # serial: tcp://HOST:PORT (emulator) or package.module:ClassName (SDKCamera)
+    timeout_s: float = 2.0  # serial: reply timeout
+    retries: int = 2  # serial: how many times a failed point is redone
+
+
+@dataclass(frozen=True)
+class IdentifyConfig:
+    plant: PlantConfig = field(default_factory=PlantConfig)
+    sweep: SweepConfig = field(default_factory=SweepConfig)
+    excitation: ExcitationConfig = field(default_factory=ExcitationConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    fit: FitConfig = field(default_factory=FitConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    rig: RigConfig = field(default_factory=RigConfig)
+    spots: SpotsConfig = field(default_factory=SpotsConfig)
+    seed: int = 0
+
+    def frequencies_hz(self) -> list[float]:
+        """The sweep's frequencies (Hz), increasing."""
+        s = self.sweep
+        if s.freq_hz is not None:
+            return sorted(float(f) for f in s.freq_hz)
+        if s.n == 1:
+            return [float(s.f_min_hz)]
+        r = (s.f_max_hz / s.f_min_hz) ** (1 / (s.n - 1))
+        return [float(s.f_min_hz * r**k) for k in range(s.n)]
+
+
+def _from_dict(cls, data: dict, prefix: str = ""):
+    kwargs = {}
+    names = {f.name: f for f in fields(cls)}
+    for k, v in data.items():
+        if k not in names:
+            raise ConfigError(f"{prefix}{k}: unknown config key (known: {', '.join(prefix + n for n in names)})")
+        default = names[k].default_factory() if names[k].default_factory is not field().default_factory else None  # type: ignore[misc]
+        if is_dataclass(default):
+            if not isinstance(v, dict):
+                raise ConfigError(f"{prefix}{k}: expected a section (mapping), got {v!r}")
+            kwargs[k] = _from_dict(type(default), v, prefix + k + ".")
+        else:
+            kwargs[k] = v
+    return cls(**kwargs)
+
+
+def load_config(path: str | None = None, overrides: list[str] | None = None) -> IdentifyConfig:
+    """Defaults, then the YAML file, then ``key=value`` overrides; validated.
+
+    Raises:
+        ConfigError: naming the key, for unknown keys, unparsable values or invalid values.
+    """
+    cfg = load_dataclass(IdentifyConfig, path, overrides)
+    validate(cfg)
+    return cfg
+
+
+def load_dataclass(cls, path: str | None = None, overrides: list[str] | None = None, *, ignore_file_sections=()):
+    """Defaults of the frozen dataclass ``cls``, then the YAML file (its top-level sections in
+    ``ignore_file_sections`` skipped), then ``key=value`` overrides; not validated.
+
+    Raises:
+        ConfigError: naming the key, for unknown keys and unparsable values.
+    """
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    merged = OmegaConf.create(asdict(cls()))
+    OmegaConf.set_struct(merged, True)
+    try:
+        if path is not None:
+            try:
+                file_cfg = OmegaConf.load(path)
+            except FileNotFoundError:
+                raise ConfigError(f"--config: file not found: {path}") from None
+            for k in ignore_file_sections:
+                if k in file_cfg:
+                    file_cfg.pop(k)
+            merged = OmegaConf.merge(merged, file_cfg)
+        if overrides:
+            for item in overrides:
+                if "=" not in item:
+                    raise ConfigError(f"{item}: expected key=value")
+            merged = OmegaConf.merge(merged, OmegaConf.from_dotlist(list(overrides)))
+    except OmegaConfBaseException as exc:
+        key = getattr(exc, "full_key", None) or getattr(exc, "key", None) or "config"
+        raise ConfigError(f"{key}: {str(exc).splitlines()[0]}") from None
+    data = OmegaConf.to_container(merged, resolve=True)
+    return _from_dict(cls, data)
+
+
+def config_to_yaml(cfg: IdentifyConfig) -> str:
+    from omegaconf import OmegaConf
+
+    return OmegaConf.to_yaml(OmegaConf.create(asdict(cfg)))
+
+
+def _num(value, key, *, positive=False, nonnegative=False, integer=False, low=None, high=None):
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigError(f"{key}: expected a number, got {value!r}")
+    if integer and int(value) != value:
+        raise ConfigError(f"{key}: expected an integer, got {value!r}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise ConfigError(f"{key}: expected a finite number, got {value!r}")
+    if positive and v <= 0:
+        raise ConfigError(f"{key}: expected a value > 0, got {value!r}")
+    if nonnegative and v < 0:
+        raise ConfigError(f"{key}: expected a value >= 0, got {value!r}")
+    if low is not None and v < low:
+        raise ConfigError(f"{key}: expected a value >= {low}, got {value!r}")
+    if high is not None and v > high:
+        raise ConfigError(f"{key}: expected a value <= {high}, got {value!r}")
+    return v
+
+
+def _flag(value, key) -> bool:
+    if not isinstance(value, bool):
+        raise ConfigError(f"{key}: expected true or false, got {value!r}")
+    return value
+
+
+def _coeffs(value, key) -> list[float]:
+    if not isinstance(value, (list, tuple)) or not value:
+        raise ConfigError(f"{key}: expected a non-empty list of coefficients (highest power first), got {value!r}")
+    return [_num(v, f"{key}[{i}]") for i, v in enumerate(value)]
+
+
+def _pair(value, key: str, what: str) -> list[float]:
+    """A nonzero pair of finite numbers (a direction)."""
+    if not isinstance(value, (list, tuple)) or len(value) != 2:
+        raise ConfigError(f"{key}: expected {what}, got {value!r}")
+    v = [_num(x, f"{key}[{i}]") for i, x in enumerate(value)]
+    if v == [0.0, 0.0]:
+        raise ConfigError(f"{key}: expected a nonzero direction, got {value!r}")
+    return v
+
+
+def _nested(value) -> bool:
+    return isinstance(value, (list, tuple)) and len(value) > 0 and isinstance(value[0], (list, tuple))
+
+
+def _check_channel(num, den, key_num: str, key_den: str) -> None:
+    import numpy as np
+
+    num = _coeffs(num, key_num)
+    den = _coeffs(den, key_den)
+    while len(num) > 1 and num[0] == 0:
+        num = num[1:]
+    if den[0] == 0:
+        raise ConfigError(f"{key_den}: the leading coefficient must be non-zero")
+    if len(num) > len(den):
+        raise ConfigError(f"{key_num}: the plant must be proper (degree of num {len(num) - 1} > degree of den {len(den) - 1})")
+    poles = np.roots(den)
+    if len(poles) and (poles.real >= 0).any():
+        raise ConfigError(f"{key_den}: the plant must be stable; poles with real part >= 0: {poles[poles.real >= 0]}")
+
+
+def _check_2x2(value, key: str) -> None:
+    """``value`` must be 2 rows of 2 non-empty coefficient lists."""
+    shape = [len(r) if isinstance(r, (list, tuple)) else type(r).__name__ for r in value] if isinstance(value, (list, tuple)) else value
+    if not isinstance(value, (list, tuple)) or len(value) != 2 or any(not isinstance(r, (list, tuple)) or len(r) != 2 for r in value):
+        raise ConfigError(f"{key}: expected 2x2 nested lists ({key}[i][j]: output i from input j, i, j in x, y), got rows {shape}")
+    for i in range(2):
+        for j in range(2):
+            if not isinstance(value[i][j], (list, tuple)):
+                raise ConfigError(f"{key}[{i}][{j}]: expected a list of coefficients (highest power first), got {value[i][j]!r}")
+
+
+def validate_plant(plant: PlantConfig) -> None:
+    """Check the ``plant`` section; raise :class:`ConfigError` naming the key. ``num``/``den``
+    are flat lists (SISO) or both 2x2 nested lists (a tip-tilt mirror, ``num[i][j]``: output i
+    from input j); ``delay_s`` is a number, or for a 2x2 plant a number or 2x2 nested list."""
+    mimo_num, mimo_den = _nested(plant.num), _nested(plant.den)
+    direction = _pair(plant.direction, "plant.direction", "[x, y] px per output unit")
+    if not mimo_num and not mimo_den:
+        _check_channel(plant.num, plant.den, "plant.num", "plant.den")
+        _num(plant.delay_s, "plant.delay_s", nonnegative=True)
+        return
+    if direction != [1.0, 0.0]:
+        raise ConfigError(f"plant.direction: applies to a one-axis plant (a 2x2 plant's channels hold its directions), "
+                          f"got {plant.direction!r}")
+    if not mimo_num:
+        raise ConfigError(f"plant.num: expected 2x2 nested lists like plant.den (a MIMO plant), got {plant.num!r}")
+    if not mimo_den:
+        raise ConfigError(f"plant.den: expected 2x2 nested lists like plant.num (a MIMO plant), got {plant.den!r}")
+    _check_2x2(plant.num, "plant.num")
+    _check_2x2(plant.den, "plant.den")
+    for i in range(2):
+        for j in range(2):
+            _check_channel(plant.num[i][j], plant.den[i][j], f"plant.num[{i}][{j}]", f"plant.den[{i}][{j}]")
+    d = plant.delay_s
+    if isinstance(d, (list, tuple)):
+        if len(d) != 2 or any(not isinstance(r, (list, tuple)) or len(r) != 2 for r in d):
+            raise ConfigError(f"plant.delay_s: expected a number or 2x2 nested lists, got {d!r}")
+        for i in range(2):
+            for j in range(2):
+                _num(d[i][j], f"plant.delay_s[{i}][{j}]", nonnegative=True)
+    else:
+        _num(d, "plant.delay_s", nonnegative=True)
+
+
+def validate_spots(sp: SpotsConfig, camera: CameraConfig | None = None) -> None:
+    """Check the ``spots`` section; raise :class:`ConfigError` naming the key."""
+    _num(sp.rows, "spots.rows", integer=True, low=0)
+    if not sp.enabled:
+        return
+    _num(sp.cols, "spots.cols", integer=True, low=1)
+    _num(sp.pitch_px, "spots.pitch_px", positive=True)
+    if sp.center_px is not None:
+        if not isinstance(sp.center_px, (list, tuple)) or len(sp.center_px) != 2:
+            raise ConfigError(f"spots.center_px: expected null or [x, y] (px), got {sp.center_px!r}")
+        for i, v in enumerate(sp.center_px):
+            _num(v, f"spots.center_px[{i}]")
+    if sp.sigma_px is not None:
+        _num(sp.sigma_px, "spots.sigma_px", positive=True)
+    for k in ("sigma_variation", "elongation"):
+        _num(getattr(sp, k), f"spots.{k}", nonnegative=True)
+    _num(sp.gain_variation, "spots.gain_variation", low=-0.99, high=0.99)
+    _num(sp.rotation_rad, "spots.rotation_rad")
+    if not isinstance(sp.missing, (list, tuple)):
+        raise ConfigError(f"spots.missing: expected a list of grid indices, got {sp.missing!r}")
+    n = int(sp.rows) * int(sp.cols)
+    for i, m in enumerate(sp.missing):
+        _num(m, f"spots.missing[{i}]", integer=True, low=0, high=n - 1)
+    if len(set(int(m) for m in sp.missing)) >= n:
+        raise ConfigError("spots.missing: every spot of the grid is missing")
+    if sp.crop_px is not None:
+        _num(sp.crop_px, "spots.crop_px", integer=True, low=8)
+    if camera is not None:
+        side = sp.crop_side()
+        if side < 8:
+            raise ConfigError(f"spots.pitch_px: a crop of floor(pitch_px) = {side} px is too small (at least 8; or set spots.crop_px)")
+        if side > min(camera.height, camera.width):
+            raise ConfigError(f"spots.crop_px: a crop of {side} px does not fit a {camera.height}x{camera.width} frame")
+
+
+def validate_camera(c: CameraConfig) -> None:
+    """Check the ``camera`` section; raise :class:`ConfigError` naming the key."""
+    for k in ("frame_rate_hz", "max_exposure_s", "gain", "full_well", "psf_sigma_px", "peak_fraction"):
+        _num(getattr(c, k), f"camera.{k}", positive=True)
+    for k in ("readout_s", "trigger_delay_s", "latency_s", "jitter_s", "read_noise", "dark_level"):
+        _num(getattr(c, k), f"camera.{k}", nonnegative=True)
+    _num(c.bit_depth, "camera.bit_depth", integer=True, low=1, high=32)
+    _num(c.height, "camera.height", integer=True, low=8)
+    _num(c.width, "camera.width", integer=True, low=8)
+    if c.peak_fraction > 1:
+        raise ConfigError(f"camera.peak_fraction: expected a value in (0, 1], got {c.peak_fraction}")
+    if c.dark_level >= 2 ** int(c.bit_depth) - 1:
+        raise ConfigError(f"camera.dark_level: expected a value below the ADC's maximum 2**camera.bit_depth - 1 = "
+                          f"{2 ** int(c.bit_depth) - 1} ADU (else every pixel is saturated), got {c.dark_level}")
+
+
+def validate_rig(r: RigConfig) -> None:
+    """Check the ``rig`` section; raise :class:`ConfigError` naming the key."""
+    if r.kind not in RIG_KINDS:
+        raise ConfigError(f"rig.kind: expected one of {RIG_KINDS}, got {r.kind!r}")
+    for k in ("port", "frames"):
+        v = getattr(r, k)
+        if v is not None and (not isinstance(v, str) or not v.strip()):
+            raise ConfigError(f"rig.{k}: expected a non-empty string, got {v!r}")
+    if r.kind == "serial":
+        if r.port is None:
+            raise ConfigError("rig.port: required when rig.kind=serial (a device path such as /dev/ttyACM0 or a pyserial "
+                              "URL such as socket://127.0.0.1:5000; the emulator prints it as 'serial')")
+        if r.frames is None:
+            raise ConfigError("rig.frames: required when rig.kind=serial (tcp://HOST:PORT of the emulator's camera, "
+                              "or package.module:ClassName of an SDKCamera)")
+    if r.frames is not None:
+        f = r.frames
+        ok = False
+        if f.startswith("tcp://"):
+            from urllib.parse import urlparse
+
+            try:
+                u = urlparse(f)
+                ok = bool(u.hostname) and u.port is not None
+            except ValueError:
+                ok = False
+        else:
+            mod, sep, name = f.partition(":")
+            ok = bool(sep and mod and name and "/" not in f)
+        if not ok:
+            raise ConfigError(f"rig.frames: expected tcp://HOST:PORT or package.module:ClassName, got {f!r}")
+    _num(r.timeout_s, "rig.timeout_s", positive=True)
+    _num(r.retries, "rig.retries", integer=True, low=0, high=100)
+
+
+def validate_excitation(x: ExcitationConfig) -> None:
+    """Check the multisine keys of the ``excitation`` section; raise :class:`ConfigError` naming the key."""
+    if x.kind not in EXCITATION_KINDS:
+        raise ConfigError(f"excitation.kind: expected one of {EXCITATION_KINDS}, got {x.kind!r}")
+    _num(x.tones, "excitation.tones", integer=True, low=1, high=15)  # 15 + the base tone = the protocol's 16
+    if x.tone_px is not None:
+        _num(x.tone_px, "excitation.tone_px", positive=True)
+    _num(x.max_images, "excitation.max_images", integer=True, low=2, high=1000)
+    if x.images is not None:
+        _num(x.images, "excitation.images", integer=True, low=2, high=1000)
+    _num(x.target_std, "excitation.target_std", positive=True)
+    _num(x.snap_tol, "excitation.snap_tol", positive=True)
+    if x.snap_tol >= 0.5:
+        raise ConfigError(f"excitation.snap_tol: expected a value in (0, 0.5), got {x.snap_tol}")
+
+
+def validate(cfg: IdentifyConfig) -> None:
+    """Check every value; raise :class:`ConfigError` naming the key."""
+    validate_plant(cfg.plant)
+    s = cfg.sweep
+    if s.freq_hz is not None:
+        if not isinstance(s.freq_hz, (list, tuple)) or not s.freq_hz:
+            raise ConfigError(f"sweep.freq_hz: expected a non-empty list of frequencies, got {s.freq_hz!r}")
+        for i, f in enumerate(s.freq_hz):
+            _num(f, f"sweep.freq_hz[{i}]", positive=True)
+    else:
+        _num(s.f_min_hz, "sweep.f_min_hz", positive=True)
+        _num(s.f_max_hz, "sweep.f_max_hz", positive=True)
+        _num(s.n, "sweep.n", integer=True, low=1)
+        if s.f_max_hz < s.f_min_hz:
+            raise ConfigError(f"sweep.f_max_hz: expected >= sweep.f_min_hz ({s.f_min_hz}), got {s.f_max_hz}")
+    if not isinstance(s.exposures, (list, tuple)) or not s.exposures:
+        raise ConfigError(f"sweep.exposures: expected a non-empty list of fractions of the period, got {s.exposures!r}")
+    for i, e in enumerate(s.exposures):
+        _num(e, f"sweep.exposures[{i}]", positive=True)
+    _num(s.trigger_phase_rad, "sweep.trigger_phase_rad")
+    _num(s.images_per_point, "sweep.images_per_point", integer=True, low=1)
+    if s.settle_s is not None:
+        _num(s.settle_s, "sweep.settle_s", nonnegative=True)
+    _num(cfg.excitation.target_px, "excitation.target_px", positive=True)
+    validate_spots(cfg.spots, cfg.camera)
+    if cfg.spots.enabled:
+        sigma = cfg.spots.sigma_px if cfg.spots.sigma_px is not None else cfg.camera.psf_sigma_px
+        room = cfg.spots.crop_side() / 2 - 3 * float(sigma) * (1 + float(cfg.spots.sigma_variation)) * (1 + float(cfg.spots.elongation))
+        if 1.33 * float(cfg.excitation.target_px) > room:
+            raise ConfigError(f"excitation.target_px: a motion of up to 1.33 x {cfg.excitation.target_px} px does not stay in a "
+                              f"{cfg.spots.crop_side()} px spot crop (room {room:.3g} px from the centre, 3 PSF sigmas kept); "
+                              f"lower excitation.target_px or raise spots.pitch_px / spots.crop_px")
+    if cfg.excitation.max_amplitude is not None:
+        _num(cfg.excitation.max_amplitude, "excitation.max_amplitude", positive=True)
+    validate_excitation(cfg.excitation)
+    c = cfg.camera
+    validate_camera(c)
+    f_min = min(cfg.frequencies_hz())
+    longest = max(s.exposures) / f_min
+    if longest > c.max_exposure_s:
+        raise ConfigError(f"sweep.exposures: the longest exposure ({max(s.exposures)} of the period at {f_min:g} Hz = "
+                          f"{longest:g} s) exceeds camera.max_exposure_s = {c.max_exposure_s:g} s")
+    from torchblur.fit.sinusoid import OPTIMIZERS
+    from torchblur.fit.losses import LOSSES
+
+    if isinstance(cfg.fit.axis, str):
+        if cfg.fit.axis not in AXIS_MODES:
+            raise ConfigError(f"fit.axis: expected one of {AXIS_MODES} or a direction [x, y], got {cfg.fit.axis!r}")
+    else:
+        _pair(cfg.fit.axis, "fit.axis", f"one of {AXIS_MODES} or a direction [x, y]")
+    if cfg.fit.axis != "measure" and (cfg.plant.is_mimo or cfg.spots.enabled):
+        raise ConfigError("fit.axis: applies to one-axis, one-spot runs; this run has "
+                          f"{'a 2x2 plant' if cfg.plant.is_mimo else 'many spots (spots.rows > 0)'}, which fits both image axes")
+    if cfg.fit.optimizer not in OPTIMIZERS:
+        raise ConfigError(f"fit.optimizer: expected one of {OPTIMIZERS}, got {cfg.fit.optimizer!r}")
+    if cfg.fit.loss not in LOSSES:
+        raise ConfigError(f"fit.loss: expected one of {LOSSES}, got {cfg.fit.loss!r}")
+    if cfg.fit.loss == "linf" and cfg.fit.optimizer == "lm":
+        raise ConfigError("fit.loss: 'linf' is not a sum of squares; set fit.optimizer=adam or lbfgs with it")
+    for k in ("fit_scale", "fit_background", "fit_gradient"):
+        _flag(getattr(cfg.fit, k), f"fit.{k}")
+    from torchblur.fit.sinusoid import OUTLIERS
+
+    if cfg.fit.outliers not in OUTLIERS:
+        raise ConfigError(f"fit.outliers: expected one of {OUTLIERS}, got {cfg.fit.outliers!r}")
+    _num(cfg.fit.outlier_sigma, "fit.outlier_sigma", positive=True)
+    _flag(cfg.model.fit_delay, "model.fit_delay")
+    for k in ("n_poles", "n_zeros"):
+        v = getattr(cfg.model, k)
+        if v is not None:
+            _num(v, f"model.{k}", integer=True, low=0)
+    if cfg.model.n_zeros is not None and cfg.model.n_poles is not None and cfg.model.n_zeros > cfg.model.n_poles:
+        raise ConfigError(f"model.n_zeros: expected at most model.n_poles = {cfg.model.n_poles} (a proper model), got {cfg.model.n_zeros}")
+    _num(cfg.fit.chunk_points, "fit.chunk_points", integer=True, low=0)
+    _num(cfg.model.max_order, "model.max_order", integer=True, low=1, high=16)
+    for k in ("direct",):
+        if not isinstance(getattr(cfg.model, k), bool):
+            raise ConfigError(f"model.{k}: expected true or false, got {getattr(cfg.model, k)!r}")
+    from torchblur.sysid.direct import FORMS
+
+    if cfg.model.direct_form not in FORMS:
+        raise ConfigError(f"model.direct_form: expected one of {FORMS}, got {cfg.model.direct_form!r}")
+    _num(cfg.model.direct_max_iter, "model.direct_max_iter", integer=True, low=1, high=10000)
+    if cfg.excitation.kind == "multisine" and (cfg.plant.is_mimo or cfg.spots.enabled):
+        raise ConfigError("excitation.kind: a multisine excitation drives one axis and fits one spot; this run has "
+                          f"{'a 2x2 plant' if cfg.plant.is_mimo else 'many spots (spots.rows > 0)'}: use excitation.kind=sine")
+    if cfg.model.direct and cfg.excitation.kind == "multisine":
+        raise ConfigError("model.direct: the direct fit works on a sine sweep's images; set excitation.kind=sine or model.direct=false")
+    if cfg.model.direct and (cfg.plant.is_mimo or cfg.spots.enabled):
+        raise ConfigError("model.direct: the direct fit handles one axis and one spot; this run has "
+                          f"{'a 2x2 plant' if cfg.plant.is_mimo else 'many spots (spots.rows > 0)'}: set model.direct=false")
+    validate_rig(cfg.rig)
+    _num(cfg.seed, "seed", integer=True, low=0)
+

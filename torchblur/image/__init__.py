@@ -1,0 +1,17 @@
+"""Image processing on real frames: dark frames, spot finding and crops, PSF fits, saturation
+curves (``preprocess``), spot grids (``spots``), image moments (``moments``) and frame-by-frame
+tracking below the frame rate (``tracking``). kornia is imported on use."""
+from torchblur.image.moments import image_moments, moments_along, sinusoid_from_moments
+from torchblur.image.preprocess import (
+    DarkFrame, PSFFit, SaturationCurve, Spots, crop, dark_frame, find_spots, fit_gaussian_psf, saturation_curve,
+    subtract_dark, threshold_mask,
+)
+from torchblur.image.spots import SpotGrid, SpotLayout, SpotPSFs, crop_spots, locate_spots
+from torchblur.image.tracking import AxisCalibration, TrackingResult, calibrate_axes, track_sine
+
+__all__ = [
+    "AxisCalibration", "DarkFrame", "PSFFit", "SaturationCurve", "SpotGrid", "SpotLayout", "SpotPSFs", "Spots",
+    "TrackingResult", "calibrate_axes", "crop", "crop_spots", "dark_frame", "find_spots", "fit_gaussian_psf",
+    "image_moments", "locate_spots", "moments_along", "saturation_curve", "sinusoid_from_moments", "subtract_dark",
+    "threshold_mask", "track_sine",
+]

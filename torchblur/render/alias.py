@@ -1,0 +1,55 @@
+"""The alias of a sinusoid's phase (Proposition 3, with the sign of PHYSICS.md section 2).
+
+Time reversal about the window centre maps ``M sin(w t + phi)`` to ``M sin(w t + phi2)``
+with ``phi2 = pi - w (Te + 2 tcam) - phi = pi - 2 c - phi`` (mod 2 pi), where ``c`` is the
+phase at the window centre. Both render exactly the same image; M has no alias.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+from torchblur.errors import InputTypeError, as_tensor, check_finite, check_positive
+from torchblur.render.window import ExposureWindow
+
+__all__ = ["alias_phase", "wrap_phase", "window_center_phase"]
+
+
+def wrap_phase(phase: torch.Tensor) -> torch.Tensor:
+    """Wrap radians to ``(-pi, pi]``, any shape (a tensor or a number; NaN stays NaN)."""
+    if not isinstance(phase, torch.Tensor):
+        phase = as_tensor(phase, "phase", dtype=torch.float64)
+    elif phase.is_complex() or phase.dtype == torch.bool:
+        raise InputTypeError(f"phase: expected a real tensor, got dtype {phase.dtype}")
+    return math.pi - torch.remainder(math.pi - phase, 2 * math.pi)
+
+
+def window_center_phase(omega, window: ExposureWindow) -> torch.Tensor:
+    """``c = omega (tcam + Te / 2)`` (rad), broadcast of ``omega [...]`` and the window's ``[...]``."""
+    if not isinstance(window, ExposureWindow):
+        raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
+    omega = check_positive(as_tensor(omega, "omega", like=window.start), "omega")
+    return omega * window.center
+
+
+def alias_phase(phase, omega, window: ExposureWindow) -> torch.Tensor:
+    """The other phase that renders the same single-exposure image.
+
+    Args:
+        phase: ``phi`` (rad), shape ``[...]`` (or ``[..., 2]`` per axis with ``omega [..., 1]``).
+        omega: rad/s, ``[...]``, > 0.
+        window: the exposure, batch ``[...]``.
+
+    Returns:
+        ``phi2 = pi - omega (Te + 2 tcam) - phi``, wrapped to ``(-pi, pi]``, broadcast shape.
+
+    Example:
+        >>> w = ExposureWindow(start=torch.tensor(0.25e-2), duration=0.5e-2)
+        >>> alias_phase(torch.tensor(0.3), 2 * math.pi * 100, w)   # p = pi, b = pi/2: phi2 = -pi - phi
+        tensor(2.8416)
+    """
+    if not isinstance(window, ExposureWindow):
+        raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
+    phase = check_finite(as_tensor(phase, "phase", like=window.start), "phase")
+    return wrap_phase(math.pi - 2 * window_center_phase(omega, window) - phase)

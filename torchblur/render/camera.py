@@ -1,0 +1,312 @@
+"""Camera model: turns expected photo-electrons into noisy, clipped, quantized frames.
+
+A slow CCD/CMOS camera looking at a laser spot. The renderer gives the noise-free
+expected number of photo-electrons per pixel; :class:`CameraModel` adds what the sensor
+does to it (hot pixels, shot noise, full well, read noise, gain, dark level, quantization,
+ADC range) and gives the tools a fitter needs to undo it (:meth:`CameraModel.to_electrons`,
+:meth:`CameraModel.noise_std_e`, :meth:`CameraModel.saturated_mask`).
+
+Glossary: ``...`` batch dims, ``H, W`` pixels; ``image[..., i, j]`` is the pixel at row
+``i``, column ``j`` (x = j, y = i). Charge is in electrons (``_e``), digital values in
+ADU (analogue-to-digital units), time in seconds (``_s``).
+
+Every method is pure: tensors in, tensors out, with dtype and device taken from the
+input. Every random draw uses the ``generator`` passed in (a ``torch.Generator`` on the
+input's device; ``None`` uses PyTorch's global RNG), so a seeded generator gives
+bit-identical frames. The hot-pixel pattern is a property of the sensor, not of a frame:
+it comes from its own generator seeded with ``hot_pixel_seed``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_finite, check_real_scalar
+from torchblur.render.window import ExposureWindow
+
+__all__ = ["CameraModel"]
+
+
+def _check_int(value, name: str, low: int, high: int) -> int:
+    """Validate a Python integer in ``[low, high]``; raise naming ``name``."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise InputTypeError(f"{name}: expected an integer, got {type(value).__name__}")
+    if not low <= value <= high:
+        raise ParameterError(f"{name}: expected an integer in [{low}, {high}], got {value}")
+    return value
+
+
+def _check_bool(value, name: str) -> bool:
+    if not isinstance(value, bool):
+        raise InputTypeError(f"{name}: expected True or False, got {type(value).__name__}")
+    return value
+
+
+def _check_generator(generator, device: torch.device) -> None:
+    """Raise unless ``generator`` is ``None`` or a ``torch.Generator`` on ``device``."""
+    if generator is None:
+        return
+    if not isinstance(generator, torch.Generator):
+        raise InputTypeError(f"generator: expected a torch.Generator or None, got {type(generator).__name__}")
+    if generator.device.type != device.type:
+        raise ParameterError(
+            f"generator: expected a generator on the input's device ({device.type}), "
+            f"got one on {generator.device.type}"
+        )
+
+
+def _check_electrons(expected_e, name: str) -> torch.Tensor:
+    """Convert to a floating tensor; raise unless every value is finite and >= 0."""
+    t = as_tensor(expected_e, name)
+    check_finite(t, name)
+    d = t.detach()
+    if d.numel() and bool((d < 0).any()):
+        raise ParameterError(f"{name}: expected every value >= 0 electrons, got minimum {float(d.min()):g}")
+    return t
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """Frozen settings of a camera sensor, with the methods that simulate and invert it.
+
+    Args:
+        dark_level_adu: offset added to every pixel, in ADU (>= 0).
+        read_noise_e: standard deviation of the Gaussian read noise, in electrons (>= 0).
+        gain_e_per_adu: conversion gain, electrons per ADU (> 0).
+        full_well_e: charge at which a pixel saturates, in electrons (> 0).
+        bit_depth: ADC resolution in bits (1..32); output values lie in
+            ``[0, 2**bit_depth - 1]`` ADU.
+        shot_noise: draw the photo-electron count from a Poisson distribution.
+        hot_pixel_fraction: fraction of pixels that are hot (0..1), a fixed pattern.
+        hot_pixel_e: extra electrons a hot pixel collects per frame (>= 0); Poisson
+            distributed like the signal when ``shot_noise`` is on.
+        hot_pixel_seed: seed of the hot-pixel pattern (an integer in ``[0, 2**64 - 1]``);
+            the pattern is the same for every frame, call and device.
+        jitter_s: rms trigger jitter in seconds (>= 0), see :meth:`jitter_window`.
+        quantize: round the output to integer ADU.
+
+    Numbers are stored as ``float`` (``bit_depth`` and ``hot_pixel_seed`` as ``int``).
+    Every bad value raises :class:`~torchblur.errors.ParameterError` (impossible value) or
+    :class:`~torchblur.errors.InputTypeError` (wrong type) naming the field.
+
+    Example:
+        >>> cam = CameraModel(read_noise_e=0.0, shot_noise=False)
+        >>> frame = cam.expose(torch.full((2, 4, 5), 1000.0))
+        >>> frame.shape
+        torch.Size([2, 4, 5])
+        >>> float(frame[0, 0, 0])
+        1100.0
+    """
+
+    dark_level_adu: float = 100.0
+    read_noise_e: float = 5.0
+    gain_e_per_adu: float = 1.0
+    full_well_e: float = 20000.0
+    bit_depth: int = 12
+    shot_noise: bool = True
+    hot_pixel_fraction: float = 0.0
+    hot_pixel_e: float = 5000.0
+    hot_pixel_seed: int = 0
+    jitter_s: float = 0.0
+    quantize: bool = True
+
+    def __post_init__(self):
+        checked = {
+            "dark_level_adu": check_real_scalar(self.dark_level_adu, "dark_level_adu", nonnegative=True),
+            "read_noise_e": check_real_scalar(self.read_noise_e, "read_noise_e", nonnegative=True),
+            "gain_e_per_adu": check_real_scalar(self.gain_e_per_adu, "gain_e_per_adu", positive=True),
+            "full_well_e": check_real_scalar(self.full_well_e, "full_well_e", positive=True),
+            "bit_depth": _check_int(self.bit_depth, "bit_depth", 1, 32),
+            "shot_noise": _check_bool(self.shot_noise, "shot_noise"),
+            "hot_pixel_fraction": check_real_scalar(self.hot_pixel_fraction, "hot_pixel_fraction", nonnegative=True),
+            "hot_pixel_e": check_real_scalar(self.hot_pixel_e, "hot_pixel_e", nonnegative=True),
+            "hot_pixel_seed": _check_int(self.hot_pixel_seed, "hot_pixel_seed", 0, 2**64 - 1),
+            "jitter_s": check_real_scalar(self.jitter_s, "jitter_s", nonnegative=True),
+            "quantize": _check_bool(self.quantize, "quantize"),
+        }
+        if checked["hot_pixel_fraction"] > 1:
+            raise ParameterError(
+                f"hot_pixel_fraction: expected a value in [0, 1], got {checked['hot_pixel_fraction']:g}"
+            )
+        if checked["dark_level_adu"] >= 2 ** checked["bit_depth"] - 1:
+            raise ParameterError(
+                f"dark_level_adu: expected a value below the ADC's maximum 2**bit_depth - 1 = {2 ** checked['bit_depth'] - 1} ADU "
+                f"(else every pixel is saturated), got {checked['dark_level_adu']:g}")
+        for name, value in checked.items():
+            object.__setattr__(self, name, value)
+
+    # ------------------------------------------------------------------ levels
+
+    @property
+    def max_adu(self) -> float:
+        """Largest value the ADC can output, ``2**bit_depth - 1`` ADU."""
+        return float(2**self.bit_depth - 1)
+
+    @property
+    def saturation_adu(self) -> float:
+        """ADU value of a saturated pixel:
+        ``min(2**bit_depth - 1, full_well_e / gain_e_per_adu + dark_level_adu)``.
+
+        A pixel reading at or above this value (less half an ADU of rounding, see
+        :meth:`saturated_mask`) has been clipped, by the full well or by the ADC range.
+        """
+        return min(self.max_adu, self.full_well_e / self.gain_e_per_adu + self.dark_level_adu)
+
+    # ------------------------------------------------------------------ forward model
+
+    def expose(self, expected_e, *, generator: torch.Generator | None = None) -> torch.Tensor:
+        """Simulate frames from the expected photo-electrons.
+
+        Args:
+            expected_e: noise-free expected number of photo-electrons per pixel, shape
+                ``[..., H, W]``; every value finite and >= 0. ``expected_e[..., i, j]``
+                is the mean charge of row ``i``, column ``j``.
+            generator: ``torch.Generator`` on ``expected_e``'s device used for every random
+                draw; ``None`` uses the global RNG.
+
+        Returns:
+            Frames in ADU, shape ``[..., H, W]``, same dtype and device as ``expected_e``;
+            ``frames[..., i, j]`` is the digital value of row ``i``, column ``j``.
+
+        Steps, per pixel with charge ``q`` in electrons:
+
+        1. ``q = expected_e + hot_pixel_e * hot`` (``hot`` from :meth:`hot_pixel_mask`,
+           the same for every batch element);
+        2. ``q ~ Poisson(q)`` if ``shot_noise``;
+        3. ``q = min(q, full_well_e)``; a pixel whose well is full is saturated;
+        4. ``q = q + read_noise_e * N(0, 1)`` for pixels that are not saturated, and
+           ``q = min(q, full_well_e)``; a saturated pixel reads exactly ``full_well_e``,
+           as the analogue chain clips after the read noise;
+        5. ``adu = q / gain_e_per_adu + dark_level_adu``;
+        6. ``adu = round(adu)`` if ``quantize``;
+        7. ``adu = clip(adu, 0, 2**bit_depth - 1)``.
+
+        Without noise and clipping, ``mean(adu) = expected_e / gain + dark`` and
+        ``var(adu) = (expected_e + read_noise_e**2) / gain**2 + 1/12`` (the ``1/12`` from
+        rounding); see :meth:`noise_std_e`.
+
+        Not differentiable (Poisson sampling and rounding); use it to make data.
+        """
+        q = _check_electrons(expected_e, "expected_e")
+        if q.dim() < 2:
+            raise ShapeError(f"expected_e: expected shape [..., H, W] (at least 2 dims), got {tuple(q.shape)}")
+        _check_generator(generator, q.device)
+        q = q.detach()
+        height, width = q.shape[-2], q.shape[-1]
+
+        if self.hot_pixel_fraction > 0 and self.hot_pixel_e > 0:
+            hot = self.hot_pixel_mask(height, width, device=q.device)
+            q = q + self.hot_pixel_e * hot.to(q.dtype)
+        if self.shot_noise:
+            q = torch.poisson(q, generator=generator)
+        full = q >= self.full_well_e
+        q = q.clamp(max=self.full_well_e)
+        if self.read_noise_e > 0:
+            noise = torch.randn(q.shape, generator=generator, dtype=q.dtype, device=q.device)
+            q = torch.where(full, q, (q + self.read_noise_e * noise).clamp(max=self.full_well_e))
+        adu = q / self.gain_e_per_adu + self.dark_level_adu
+        if self.quantize:
+            adu = torch.round(adu)
+        return adu.clamp(0.0, self.max_adu)
+
+    def hot_pixel_mask(self, height: int, width: int, *, device=None) -> torch.Tensor:
+        """The fixed hot-pixel pattern of an ``H x W`` sensor.
+
+        Args:
+            height: ``H``, number of pixel rows (integer >= 1).
+            width: ``W``, number of pixel columns (integer >= 1).
+            device: device of the returned mask (default CPU).
+
+        Returns:
+            Boolean mask, shape ``[H, W]``; ``mask[i, j]`` is True if the pixel at row
+            ``i``, column ``j`` is hot. Exactly ``round(hot_pixel_fraction * H * W)``
+            pixels are hot, chosen by a CPU ``torch.Generator`` seeded with
+            ``hot_pixel_seed``, so the pattern is the same on every call and device.
+        """
+        height = _check_int(height, "height", 1, 2**62)
+        width = _check_int(width, "width", 1, 2**62)
+        n_pixels = height * width
+        n_hot = round(self.hot_pixel_fraction * n_pixels)
+        mask = torch.zeros(n_pixels, dtype=torch.bool)
+        if n_hot > 0:
+            rng = torch.Generator(device="cpu")
+            rng.manual_seed(self.hot_pixel_seed)
+            mask[torch.randperm(n_pixels, generator=rng)[:n_hot]] = True
+        return mask.reshape(height, width).to(device)
+
+    # ------------------------------------------------------------------ inverse model
+
+    def saturated_mask(self, frames_adu) -> torch.Tensor:
+        """Where frames are clipped.
+
+        Args:
+            frames_adu: frames in ADU, shape ``[..., H, W]`` (any shape works).
+
+        Returns:
+            Boolean tensor, same shape and device; True where
+            ``frames_adu >= saturation_adu - 0.5`` (the half ADU allows for rounding).
+        """
+        frames = check_finite(as_tensor(frames_adu, "frames_adu"), "frames_adu")
+        return frames >= self.saturation_adu - 0.5
+
+    def to_electrons(self, frames_adu) -> torch.Tensor:
+        """Map ADU back to electrons: ``(frames_adu - dark_level_adu) * gain_e_per_adu``.
+
+        Args:
+            frames_adu: frames in ADU, shape ``[..., H, W]`` (any shape works).
+
+        Returns:
+            Charge in electrons, same shape, dtype and device; differentiable.
+        """
+        frames = check_finite(as_tensor(frames_adu, "frames_adu"), "frames_adu")
+        return (frames - self.dark_level_adu) * self.gain_e_per_adu
+
+    def noise_std_e(self, expected_e) -> torch.Tensor:
+        """Per-pixel standard deviation of the measured charge, in electrons.
+
+        ``sqrt(read_noise_e**2 + expected_e [if shot_noise] + gain_e_per_adu**2 / 12
+        [if quantize])``: read noise, shot noise and rounding to whole ADU, expressed in
+        electrons. Ignores hot pixels and clipping (mask those out); a fitter uses it to
+        weight residuals of :meth:`to_electrons` of the frames.
+
+        Args:
+            expected_e: expected photo-electrons per pixel, shape ``[..., H, W]`` (any
+                shape works); finite and >= 0.
+
+        Returns:
+            Standard deviation in electrons, same shape, dtype and device; differentiable
+            in ``expected_e``.
+        """
+        e = _check_electrons(expected_e, "expected_e")
+        var = torch.full_like(e, self.read_noise_e**2)
+        if self.shot_noise:
+            var = var + e
+        if self.quantize:
+            var = var + self.gain_e_per_adu**2 / 12.0
+        return torch.sqrt(var)
+
+    # ------------------------------------------------------------------ timing
+
+    def jitter_window(self, window: ExposureWindow, *, generator: torch.Generator | None = None) -> ExposureWindow:
+        """Shift the exposure starts by the trigger jitter.
+
+        Args:
+            window: exposure windows, batch shape ``[...]``, times in seconds.
+            generator: ``torch.Generator`` on the window's device; ``None`` uses the
+                global RNG.
+
+        Returns:
+            A new :class:`~torchblur.render.window.ExposureWindow` with
+            ``start[...] + jitter_s * N(0, 1)``, one independent draw per batch element,
+            and the same ``duration``; ``window`` itself when ``jitter_s == 0``.
+            Differentiable in ``window.start``.
+        """
+        if not isinstance(window, ExposureWindow):
+            raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
+        if self.jitter_s == 0:
+            return window
+        start = window.start
+        _check_generator(generator, start.device)
+        noise = torch.randn(start.shape, generator=generator, dtype=start.dtype, device=start.device)
+        return ExposureWindow(start + self.jitter_s * noise, window.duration)

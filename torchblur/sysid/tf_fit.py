@@ -1,0 +1,830 @@
+"""Fit a rational transfer function with a pure delay to a measured frequency response.
+
+python-control cannot fit a model to FRD data; this module can. Per channel (output o,
+input i) the model is
+
+    H(s) = K * prod_k (s - z_k) / prod_k (s - p_k) * exp(-s * delay_s),   s = j omega,
+
+with ``n_zeros <= n_poles`` (proper), omega in rad/s and H in the FRF's absolute units.
+
+Method (per channel, per candidate order):
+
+1. **Frequency scaling.** s is replaced by s' = s / omega_s with omega_s the geometric mean
+   of the lowest and highest valid omega, so |s'| spans [1/sqrt(r), sqrt(r)] for a band ratio r
+   (1 Hz..2 kHz: 0.022..45) and the polynomial columns stay representable.
+2. **Sanathanan-Koerner iteration** (``n_iter`` steps at most): linear least squares on
+   ``w (N(s') - H D(s')) / |D_prev(s')|`` with D monic in its highest power (finite for any
+   pole position, including an integrator), real and imaginary parts stacked, columns
+   equilibrated, until |D| changes by less than 1e-10 relative. With ``stable=True`` unstable
+   poles of the final denominator are reflected into the left half plane (reflecting inside
+   the loop would change nothing: |j w - p| = |j w + conj(p)|, so the SK weights of a pole and
+   of its mirror image are equal). The numerator is then refit with the final denominator
+   fixed, which is the exact weighted linear problem.
+3. **Delay.** ``delay_s`` fixed: the SK step fits ``H exp(+j omega delay_s)``. ``delay_s=None``:
+   a few SK steps are run on a grid of delays from 0 to max(one period of the highest
+   frequency, 1.5 x the phase slope of the top eighth of the band), a step of pi/4 rad at the
+   highest frequency; the best grid delay is refined by a bounded scalar search between its
+   neighbours, and the SK fit at that delay starts step 4, where the delay is a free
+   parameter (>= 0).
+4. **Nonlinear polish** (``scipy.optimize.least_squares``, Levenberg-Marquardt, analytic
+   Jacobian) of the exact weighted complex error ``sum_f e_f^T e_f``,
+   ``e_f = W_f [Re, Im](H_model - H)``, over a factored parametrisation: the gain K, quadratic
+   factors ``s'^2 + a1 s' + a0`` (one per pair of poles or zeros, real or complex) and one
+   linear factor ``s' + c`` for an odd degree. With ``stable=True`` the pole coefficients are
+   optimised as squares (a1, a0, c >= 0 is exactly the closed left half plane), as is the
+   estimated delay. The better of the SK and polished models (by chi2) is kept. Poles and
+   zeros come from the factors (quadratic formula), not from the expanded polynomials.
+
+Weights: ``W_f`` whitens the (Re H, Im H) covariance that
+:meth:`~torchblur.sysid.frequency_response.FrequencyResponse.response_std` derives from the FRF's
+(magnitude, phase) covariance (``weights="uncertainty"``), so ``chi2`` is a true chi-square
+with ``dof = 2 * n_points - n_parameters`` when the covariance is right. ``"uniform"`` is
+W = I, and an array ``w`` is W = w I (w = 1 / std of the real and of the imaginary part).
+
+Order selection (``n_poles=None`` and/or ``n_zeros=None``): proper candidates
+(1 <= n_poles <= max_order, 0 <= n_zeros <= n_poles, fewer parameters than real
+observations) are fit in order of their number of parameters P (a short polish each), and the
+one with the smallest Bayesian information criterion is chosen, then polished to convergence:
+
+* weights from the FRF's uncertainty (noise scale known): ``BIC = chi2 + P ln(n_obs)``;
+* uniform or user weights (noise scale unknown):
+  ``BIC = n_obs ln(max(chi2, n_obs floor) / n_obs) + P ln(n_obs)``, with
+  ``floor = (1e-9)^2 x`` the mean weighted squared response, so noise-free data choose the
+  smallest exact model rather than one fitting round-off.
+
+``n_obs = 2 x`` the number of fitted points; ties go to fewer parameters. The scan stops
+early when no remaining candidate can beat the best score even with chi2 = 0 (exact), or once
+candidates have 6 parameters more than the best one without beating it (a heuristic that
+saves time on noisy data; resonances come in pairs, so this allows three more pairs).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, Sequence
+
+import numpy as np
+import scipy.linalg
+import scipy.optimize
+
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_frequency_grid
+from torchblur.sysid.frequency_response import FrequencyResponse
+
+__all__ = ["fit_transfer_function", "TransferFunctionFit"]
+
+_WEIGHT_MODES = ("uncertainty", "uniform")
+_MODAL_KINDS = ("poles", "zeros")
+_FLOOR_RTOL = 1e-9
+_GRID_SK_ITER = 6
+_PATIENCE = 6
+_SCAN_NFEV = 8  # polish budget per parameter while comparing orders
+_FINAL_NFEV = 100  # and for the chosen order
+
+
+# ----------------------------------------------------------------------------- result
+@dataclasses.dataclass(frozen=True, eq=False)
+class TransferFunctionFit:
+    """Result of :func:`fit_transfer_function`.
+
+    Per-channel fields are plain values for a SISO FRF and nested lists ``[O][I]`` for MIMO
+    (``field[o][i]`` = the value for output o, input i).
+
+    Attributes:
+        num: numerator coefficients of s (rad/s), highest power first, FRF units.
+        den: denominator coefficients, highest power first, monic (den[0] == 1).
+        delay_s: pure delay in seconds (not part of ``num``/``den``).
+        n_poles, n_zeros: model orders.
+        chi2: weighted sum of squares ``sum_f e_f^T e_f`` (see the module docstring).
+        dof: degrees of freedom, ``2 * n_points - n_parameters`` (real observations minus
+            real parameters: K, the n_zeros + n_poles factor coefficients, and the delay if
+            it was estimated).
+        reduced_chi2: ``chi2 / dof`` (about 1 for a right model and right covariance).
+        rms_relative_error: ``sqrt(mean_f |H_model - H|^2 / |H|^2)`` over the fitted points.
+        poles, zeros: complex arrays in rad/s.
+        dc_gain: H(0) (the delay does not change it); +-inf for a pole at 0.
+        weighting: "uncertainty", "uniform" or "array" (the weighting actually used).
+        delay_estimated: whether the delay was a free parameter.
+        input_labels, output_labels: channel names from the FRF.
+    """
+
+    num: list
+    den: list
+    delay_s: Any
+    n_poles: Any
+    n_zeros: Any
+    chi2: Any
+    dof: Any
+    reduced_chi2: Any
+    rms_relative_error: Any
+    poles: Any
+    zeros: Any
+    dc_gain: Any
+    weighting: str
+    delay_estimated: bool
+    input_labels: tuple[str, ...]
+    output_labels: tuple[str, ...]
+
+    @property
+    def is_siso(self) -> bool:
+        return len(self.input_labels) == 1 and len(self.output_labels) == 1
+
+    def _channels(self, field):
+        """Field as nested [O][I] (wrapping the SISO value)."""
+        v = getattr(self, field)
+        return [[v]] if self.is_siso else v
+
+    def to_control(self):
+        """The rational part as a ``control.TransferFunction`` (SISO, or OxI MIMO).
+
+        The delay is NOT included (python-control has no pure-delay TF); multiply a frequency
+        response by ``exp(-1j * omega * delay_s)``, or use :meth:`frequency_response`.
+        """
+        import control
+
+        if self.is_siso:
+            return control.tf(list(self.num), list(self.den))
+        return control.tf(
+            [[list(n) for n in row] for row in self.num],
+            [[list(d) for d in row] for row in self.den],
+            inputs=list(self.input_labels),
+            outputs=list(self.output_labels),
+        )
+
+    def frequency_response(self, omega) -> np.ndarray:
+        """Evaluate the fitted model, delay included, at ``s = j omega``.
+
+        Args:
+            omega: [F] angular frequencies, rad/s (finite).
+
+        Returns:
+            complex [F] (SISO) or [O, I, F]: ``K prod(s - z) / prod(s - p) exp(-s delay_s)``.
+        """
+        w = as_frequency_grid(omega, "omega")
+        s = 1j * w
+        num, den, z, p, tau = (self._channels(f) for f in ("num", "den", "zeros", "poles", "delay_s"))
+        out = np.empty((len(self.output_labels), len(self.input_labels), w.size), dtype=np.complex128)
+        for o in range(out.shape[0]):
+            for i in range(out.shape[1]):
+                gain = num[o][i][0] / den[o][i][0]
+                h = np.full(w.size, gain, dtype=np.complex128)
+                for zk in z[o][i]:
+                    h *= s - zk
+                for pk in p[o][i]:
+                    h /= s - pk
+                out[o, i] = h * np.exp(-s * tau[o][i])
+        return out[0, 0] if self.is_siso else out
+
+    def modal_parameters(self, kind: str = "poles"):
+        """Natural frequency and damping ratio of each complex pair of poles (or zeros).
+
+        Args:
+            kind: "poles" (resonances) or "zeros" (anti-resonances).
+
+        Returns:
+            SISO: a list, sorted by frequency, of dicts ``{"omega_n": rad/s, "freq_hz": Hz,
+            "zeta": damping ratio}`` with omega_n = |p| and zeta = -Re(p) / |p|, one per pair
+            p, conj(p) with Im p > 0 (real roots are left out). MIMO: nested lists [O][I].
+        """
+        if kind not in _MODAL_KINDS:
+            raise ParameterError(f"kind: must be one of {set(_MODAL_KINDS)}, got {kind!r}")
+        roots = self._channels(kind)
+        out = [[_modes(roots[o][i]) for i in range(len(self.input_labels))] for o in range(len(self.output_labels))]
+        return out[0][0] if self.is_siso else out
+
+    def to_dict(self) -> dict[str, Any]:
+        """A JSON-serialisable dict: coefficients, delay, orders, fit statistics, roots.
+
+        Roots are ``{"real": [...], "imag": [...]}``; non-finite numbers become ``None``.
+        Per-channel values are nested [O][I] for MIMO as in the attributes.
+        """
+
+        def conv(v):
+            if isinstance(v, np.ndarray) and np.iscomplexobj(v):
+                return {"real": [_jf(x) for x in v.real], "imag": [_jf(x) for x in v.imag]}
+            if isinstance(v, (list, tuple, np.ndarray)):
+                return [conv(x) for x in v]
+            if isinstance(v, (bool, np.bool_)):
+                return bool(v)
+            if isinstance(v, (int, np.integer)):
+                return int(v)
+            return _jf(v)
+
+        doc: dict[str, Any] = {"schema": "torchblur.transfer_function_fit", "schema_version": 1}
+        for f in (
+            "num", "den", "delay_s", "n_poles", "n_zeros", "chi2", "dof", "reduced_chi2",
+            "rms_relative_error", "dc_gain", "poles", "zeros",
+        ):
+            doc[f] = conv(getattr(self, f))
+        doc["weighting"] = self.weighting
+        doc["delay_estimated"] = bool(self.delay_estimated)
+        doc["input_labels"] = list(self.input_labels)
+        doc["output_labels"] = list(self.output_labels)
+        return doc
+
+    def __repr__(self) -> str:
+        if self.is_siso:
+            return (
+                f"TransferFunctionFit(n_poles={self.n_poles}, n_zeros={self.n_zeros}, "
+                f"delay_s={self.delay_s:.4g}, reduced_chi2={self.reduced_chi2:.4g})"
+            )
+        return f"TransferFunctionFit({len(self.output_labels)}x{len(self.input_labels)} channels)"
+
+
+def _jf(x):
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _modes(roots: np.ndarray) -> list[dict[str, float]]:
+    modes = []
+    for r in np.asarray(roots, dtype=np.complex128):
+        if r.imag > 0:
+            wn = float(abs(r))
+            modes.append({"omega_n": wn, "freq_hz": wn / (2.0 * np.pi), "zeta": float(-r.real / wn)})
+    return sorted(modes, key=lambda m: m["omega_n"])
+
+
+# ----------------------------------------------------------------------- channel data
+@dataclasses.dataclass
+class _Data:
+    """Valid points of one channel with their whitening, and the frequency scale."""
+
+    omega: np.ndarray  # [N] rad/s
+    h: np.ndarray  # [N] complex
+    w00: np.ndarray  # [N] whitening W = [[w00, 0], [w10, w11]] applied to (Re r, Im r)
+    w10: np.ndarray
+    w11: np.ndarray
+    wsc: np.ndarray  # [N] scalar weight for the linear SK steps
+    scale: float  # omega_s, rad/s
+
+    @property
+    def sp(self) -> np.ndarray:
+        return 1j * self.omega / self.scale
+
+    @property
+    def wp(self) -> np.ndarray:
+        return self.omega / self.scale
+
+    @property
+    def n_obs(self) -> int:
+        return 2 * self.omega.size
+
+
+@dataclasses.dataclass
+class _Cand:
+    n_zeros: int
+    n_poles: int
+    theta: np.ndarray
+    est_tau: bool
+    tau_fixed: float  # seconds, used when not est_tau
+    chi2: float
+
+    @property
+    def n_params(self) -> int:
+        return self.theta.size
+
+
+# --------------------------------------------------------------------- model algebra
+def _split(theta, nz, npo):
+    i = 1
+    zq = theta[i:i + 2 * (nz // 2)].reshape(-1, 2)
+    i += 2 * (nz // 2)
+    zl = theta[i:i + nz % 2]
+    i += nz % 2
+    pq = theta[i:i + 2 * (npo // 2)].reshape(-1, 2)
+    i += 2 * (npo // 2)
+    pl = theta[i:i + npo % 2]
+    i += npo % 2
+    return theta[0], zq, zl, pq, pl, theta[i:]
+
+
+def _model(theta, nz, npo, est_tau, tau_fixed, data: _Data, jac: bool):
+    """H_model at the data points [N] (and dH/dtheta [N, P] if jac)."""
+    sp = data.sp[:, None]
+    k, zq, zl, pq, pl, rest = _split(theta, nz, npo)
+    qz = sp * (sp + zq[:, 0]) + zq[:, 1]  # [N, nz // 2]
+    lz = sp + zl  # [N, nz % 2]
+    qp = sp * (sp + pq[:, 0]) + pq[:, 1]
+    lp = sp + pl
+    g = np.prod(qz, axis=1) * np.prod(lz, axis=1) / (np.prod(qp, axis=1) * np.prod(lp, axis=1))
+    taup = rest[0] if est_tau else tau_fixed * data.scale
+    ge = g * np.exp(-1j * data.wp * taup)
+    hm = k * ge
+    if not jac:
+        return hm, None
+    n = sp.shape[0]
+    iqz, iqp = 1.0 / qz, 1.0 / qp
+    dlog = np.concatenate(
+        [
+            np.stack([sp * iqz, iqz], axis=2).reshape(n, -1),
+            1.0 / lz,
+            -np.stack([sp * iqp, iqp], axis=2).reshape(n, -1),
+            -1.0 / lp,
+        ],
+        axis=1,
+    )
+    cols = [ge[:, None], hm[:, None] * dlog]
+    if est_tau:
+        cols.append((-1j * data.wp * hm)[:, None])
+    return hm, np.concatenate(cols, axis=1)
+
+
+def _whiten(r: np.ndarray, data: _Data) -> np.ndarray:
+    """[N] complex (or [N, P]) -> stacked real [2N] (or [2N, P]) whitened residuals."""
+    if r.ndim == 1:
+        return np.concatenate([data.w00 * r.real, data.w10 * r.real + data.w11 * r.imag])
+    w00, w10, w11 = data.w00[:, None], data.w10[:, None], data.w11[:, None]
+    return np.concatenate([w00 * r.real, w10 * r.real + w11 * r.imag], axis=0)
+
+
+def _chi2(c: _Cand, data: _Data) -> float:
+    with np.errstate(all="ignore"):
+        hm, _ = _model(c.theta, c.n_zeros, c.n_poles, c.est_tau, c.tau_fixed, data, False)
+        e = _whiten(hm - data.h, data)
+    v = float(e @ e)
+    return v if math.isfinite(v) else math.inf
+
+
+def _quad_roots(b: float, c: float) -> np.ndarray:
+    """Roots of x^2 + b x + c, computed without cancellation."""
+    disc = b * b - 4.0 * c
+    if disc < 0:
+        re, im = -0.5 * b, 0.5 * math.sqrt(-disc)
+        return np.array([complex(re, im), complex(re, -im)])
+    q = -0.5 * (b + math.copysign(math.sqrt(disc), b))
+    if q == 0.0:
+        return np.array([0j, 0j])
+    return np.array([complex(q, 0.0), complex(c / q, 0.0)])
+
+
+def _factors_from_roots(roots: np.ndarray, n: int):
+    """Real factor coefficients (quadratics [n//2, 2], linear [n%2]) of prod(x - roots)."""
+    roots = np.asarray(roots, dtype=np.complex128)
+    if roots.size != n:
+        return None
+    tol = 1e-12 * np.maximum(np.abs(roots), 1e-300)
+    upper = roots[roots.imag > tol]
+    reals = np.sort(roots[np.abs(roots.imag) <= tol].real)
+    if 2 * upper.size + reals.size != n:
+        return None
+    quads = [(-2.0 * p.real, abs(p) ** 2) for p in upper]
+    lin = []
+    if n % 2:
+        lin = [-reals[-1]]
+        reals = reals[:-1]
+    for r1, r2 in zip(reals[0::2], reals[1::2]):
+        quads.append((-(r1 + r2), r1 * r2))
+    return np.array(quads, dtype=np.float64).reshape(-1, 2), np.array(lin, dtype=np.float64)
+
+
+def _roots_of(quads, lins, scale) -> np.ndarray:
+    r = [_quad_roots(b, c) for b, c in quads] + [np.array([complex(-c, 0.0)]) for c in lins]
+    if not r:
+        return np.zeros(0, dtype=np.complex128)
+    return np.concatenate(r) * scale
+
+
+def _reflect(p: np.ndarray) -> np.ndarray:
+    return np.where(p.real > 0, -p.real + 1j * p.imag, p)
+
+
+# ------------------------------------------------------------------- linear SK stage
+def _lstsq(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Least squares on stacked real/imaginary parts, columns equilibrated (QR, full rank)."""
+    ar = np.concatenate([a.real, a.imag], axis=0)
+    br = np.concatenate([b.real, b.imag])
+    colscale = np.sqrt(np.einsum("ij,ij->j", ar, ar))
+    colscale[~(colscale > 0)] = 1.0
+    ar = ar / colscale
+    q, r = np.linalg.qr(ar)
+    d = np.abs(np.diag(r))
+    if not np.all(d > 1e-14 * d.max()):
+        x = np.linalg.lstsq(ar, br, rcond=None)[0]
+    else:
+        x = scipy.linalg.solve_triangular(r, q.T @ br, check_finite=False)
+    return x / colscale
+
+
+def _sk(data: _Data, target: np.ndarray, nz: int, npo: int, n_iter: int, stable: bool):
+    """SK fit of N(s')/D(s') to target; returns (gain, zeros, poles) in scaled units.
+
+    The weights 1/|D_prev(j w')| do not change when poles are reflected across the imaginary
+    axis (|j w - p| = |j w + conj(p)|), so the reflection is applied once, to the final
+    denominator, before the numerator is refit.
+    """
+    sp, wsc = data.sp, data.wsc
+    vn = sp[:, None] ** np.arange(nz + 1)
+    dprev = np.ones_like(sp)
+    poles = np.zeros(0, dtype=np.complex128)
+    if npo > 0:
+        vd = sp[:, None] ** np.arange(npo)
+        rhs = target * sp ** npo
+        den = None
+        for _ in range(n_iter):
+            wk = wsc / np.maximum(np.abs(dprev), 1e-300)
+            a = np.concatenate([vn * wk[:, None], -(target * wk)[:, None] * vd], axis=1)
+            x = _lstsq(a, rhs * wk)
+            den = np.concatenate([[1.0], x[nz + 1:][::-1]])
+            if not np.all(np.isfinite(den)):
+                return None
+            dnew = np.polyval(den, sp)
+            step = np.max(np.abs(np.abs(dnew) - np.abs(dprev)) / np.maximum(np.abs(dnew), 1e-300))
+            dprev = dnew
+            if step < 1e-10:
+                break
+        poles = np.roots(den)
+        if stable and np.any(poles.real > 0):
+            poles = _reflect(poles)
+            dprev = np.polyval(np.real(np.poly(poles)), sp)
+    # the exact weighted problem for the numerator with D fixed: sum |wsc (N / D - target)|^2
+    num = _lstsq(vn * (wsc / dprev)[:, None], target * wsc)[::-1]
+    nz_eff = np.flatnonzero(num)
+    if nz_eff.size == 0:
+        return 0.0, np.full(nz, -1.0 + 0j), poles
+    num = num[nz_eff[0]:]
+    zeros = np.roots(num)
+    gain = num[0]
+    # a vanishing leading coefficient: put the missing zeros far away, keeping the gain
+    for _ in range(nz - zeros.size):
+        zeros = np.append(zeros, -1e3 + 0j)
+        gain = gain / 1e3
+    return float(gain), zeros, poles
+
+
+def _theta(gain, zeros, poles, nz, npo):
+    fz = _factors_from_roots(zeros, nz)
+    fp = _factors_from_roots(poles, npo)
+    if fz is None or fp is None:
+        return None
+    return np.concatenate([[gain], fz[0].ravel(), fz[1], fp[0].ravel(), fp[1]])
+
+
+def _sk_candidate(data, nz, npo, tau, est_tau, n_iter, stable):
+    with np.errstate(all="ignore"):
+        target = data.h * np.exp(1j * data.omega * tau)
+        sk = _sk(data, target, nz, npo, n_iter, stable)
+    if sk is None:
+        return None
+    theta = _theta(*sk, nz, npo)
+    if theta is None or not np.all(np.isfinite(theta)):
+        return None
+    if est_tau:
+        theta = np.append(theta, tau * data.scale)
+    c = _Cand(nz, npo, theta, est_tau, 0.0 if est_tau else tau, math.inf)
+    c.chi2 = _chi2(c, data)
+    return c
+
+
+# ----------------------------------------------------------------- nonlinear polish
+def _polish(c: _Cand, data: _Data, stable: bool, max_nfev: int) -> _Cand:
+    """Levenberg-Marquardt on the exact weighted error.
+
+    Parameters that must stay >= 0 (the pole factor coefficients when ``stable``, the delay
+    when estimated) are optimised as u with theta = u^2, which keeps them in range without
+    bounds, so MINPACK's fast unconstrained LM can be used.
+    """
+    nz, npo = c.n_zeros, c.n_poles
+    sq = np.zeros(c.theta.size, dtype=bool)
+    if stable:
+        sq[1 + nz:1 + nz + npo] = True
+    if c.est_tau:
+        sq[-1] = True
+    u0 = np.where(sq, np.sqrt(np.maximum(c.theta, 0.0)), c.theta)
+    cache: dict[str, Any] = {}
+
+    def theta_of(u):
+        return np.where(sq, u * u, u)
+
+    def evaluate(u):
+        key = u.tobytes()
+        if cache.get("key") != key:
+            with np.errstate(all="ignore"):
+                hm, j = _model(theta_of(u), nz, npo, c.est_tau, c.tau_fixed, data, True)
+                j = j * np.where(sq, 2.0 * u, 1.0)
+                e, jw = _whiten(hm - data.h, data), _whiten(j, data)
+            ok = np.all(np.isfinite(e)) and np.all(np.isfinite(jw))
+            cache.update(key=key, e=e if ok else np.full(e.shape, 1e150), j=jw if ok else np.zeros(jw.shape))
+        return cache
+
+    try:
+        res = scipy.optimize.least_squares(
+            lambda u: evaluate(u)["e"],
+            u0,
+            jac=lambda u: evaluate(u)["j"],
+            method="lm",
+            x_scale="jac",
+            ftol=1e-10,
+            xtol=1e-10,
+            gtol=1e-10,
+            max_nfev=max_nfev,
+        )
+    except (ValueError, np.linalg.LinAlgError):
+        return c
+    out = _Cand(nz, npo, theta_of(res.x), c.est_tau, c.tau_fixed, math.inf)
+    out.chi2 = _chi2(out, data)
+    return out if out.chi2 <= c.chi2 else c
+
+
+# ----------------------------------------------------------------- one channel
+def _delay_grid(data: _Data) -> np.ndarray:
+    w = data.omega
+    wmax = float(w.max())
+    m = max(3, w.size // 8)
+    slope = 0.0
+    if w.size >= 3:
+        top = slice(w.size - min(m, w.size), None)
+        ph = np.unwrap(np.angle(data.h[top]))
+        with np.errstate(all="ignore"):
+            fit = np.polyfit(w[top], ph, 1)[0]
+        if np.isfinite(fit):
+            slope = max(0.0, -float(fit))
+    tau_hi = max(2.0 * np.pi / wmax, 1.5 * slope)
+    step = 0.25 * np.pi / wmax
+    n = int(min(64, math.ceil(tau_hi / step))) + 1
+    grid = np.linspace(0.0, tau_hi, n)
+    if slope > 0:
+        grid = np.sort(np.append(grid, slope))
+    return grid
+
+
+def _fit_order(data, nz, npo, delay_s, n_iter, stable, grid, nfev) -> _Cand | None:
+    """SK (over the delay grid if the delay is estimated), then the polish."""
+    est_tau = delay_s is None
+    if est_tau:
+        n_sk = min(n_iter, _GRID_SK_ITER)
+        scores = []
+        for tau in grid:  # a few SK steps per delay are enough to rank them
+            c = _sk_candidate(data, nz, npo, float(tau), True, n_sk, stable)
+            scores.append(c.chi2 if c is not None else math.inf)
+        k = int(np.argmin(scores))
+        if not math.isfinite(scores[k]):
+            return None
+        lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
+
+        def score(tau):
+            c = _sk_candidate(data, nz, npo, float(tau), True, n_sk, stable)
+            return c.chi2 if c is not None else math.inf
+
+        tau0 = float(grid[k])
+        if hi > lo:
+            r = scipy.optimize.minimize_scalar(score, bounds=(lo, hi), method="bounded",
+                                               options={"xatol": 1e-3 * (hi - lo)})
+            if r.fun < scores[k]:
+                tau0 = float(r.x)
+        best = _sk_candidate(data, nz, npo, tau0, True, n_iter, stable)
+        if best is None:
+            return None
+    else:
+        best = _sk_candidate(data, nz, npo, delay_s, False, n_iter, stable)
+        if best is None:
+            return None
+    return _polish(best, data, stable, nfev * (best.n_params + 1))
+
+
+def _criterion(chi2: float, n_params: int, data: _Data, sigma2_known: bool, floor: float) -> float:
+    """BIC; the known-variance form when the weights are the FRF's uncertainty."""
+    log_n = math.log(data.n_obs)
+    if sigma2_known:
+        return chi2 + n_params * log_n
+    return data.n_obs * math.log(max(chi2, data.n_obs * floor) / data.n_obs) + n_params * log_n
+
+
+def _fit_channel(data: _Data, orders, delay_s, n_iter, stable, sigma2_known: bool):
+    """Fit every candidate order (fewest parameters first) and return the BIC-best.
+
+    A candidate with P parameters cannot score below its penalty term (chi2 >= 0, or chi2 at
+    the floor), so once that bound exceeds the best score so far the remaining, larger
+    candidates are skipped: an exact shortcut, it never changes the choice. The scan also
+    stops once candidates have ``_PATIENCE`` parameters more than the best (a heuristic).
+    """
+    grid = _delay_grid(data) if delay_s is None else None
+    extra = 1 if delay_s is None else 0
+    wh = _whiten(data.h, data)
+    floor = _FLOOR_RTOL ** 2 * float(wh @ wh) / data.n_obs
+    todo = sorted(
+        ((1 + nz + npo + extra, npo, nz) for npo, nz in orders if 1 + nz + npo + extra < data.n_obs)
+    )
+    best, best_crit = None, math.inf
+    for n_params, npo, nz in todo:
+        if _criterion(0.0, n_params, data, sigma2_known, floor) >= best_crit:
+            break  # exact: no candidate with this many parameters can win
+        if best is not None and n_params > best.n_params + _PATIENCE:
+            break  # heuristic: _PATIENCE more parameters have not helped
+        nfev = _FINAL_NFEV if len(todo) == 1 else _SCAN_NFEV
+        c = _fit_order(data, nz, npo, delay_s, n_iter, stable, grid, nfev)
+        if c is None or not math.isfinite(c.chi2):
+            continue
+        crit = _criterion(c.chi2, n_params, data, sigma2_known, floor)
+        if crit < best_crit:
+            best, best_crit = c, crit
+    if best is not None and len(todo) > 1:
+        best = _polish(best, data, stable, _FINAL_NFEV * (best.n_params + 1))
+    return best
+
+
+def _physical(c: _Cand, data: _Data) -> dict[str, Any]:
+    s = data.scale
+    k, zq, zl, pq, pl, rest = _split(c.theta, c.n_zeros, c.n_poles)
+    den = np.array([1.0])
+    for a1, a0 in pq:
+        den = np.polymul(den, [1.0, a1 * s, a0 * s * s])
+    for cc in pl:
+        den = np.polymul(den, [1.0, cc * s])
+    num = np.array([k * s ** (c.n_poles - c.n_zeros)])
+    for b1, b0 in zq:
+        num = np.polymul(num, [1.0, b1 * s, b0 * s * s])
+    for cc in zl:
+        num = np.polymul(num, [1.0, cc * s])
+    tau = float(rest[0] / s) if c.est_tau else float(c.tau_fixed)
+    with np.errstate(all="ignore"):
+        hm, _ = _model(c.theta, c.n_zeros, c.n_poles, c.est_tau, c.tau_fixed, data, False)
+        rel = float(np.sqrt(np.mean(np.abs(hm - data.h) ** 2 / np.abs(data.h) ** 2)))
+        dc = float(num[-1] / den[-1]) if den[-1] != 0 else math.copysign(math.inf, num[-1]) if num[-1] else math.nan
+    dof = data.n_obs - c.n_params
+    return {
+        "num": [float(x) for x in num],
+        "den": [float(x) for x in den],
+        "delay_s": tau,
+        "n_poles": c.n_poles,
+        "n_zeros": c.n_zeros,
+        "chi2": c.chi2,
+        "dof": dof,
+        "reduced_chi2": c.chi2 / dof,
+        "rms_relative_error": rel,
+        "poles": _roots_of(pq, pl, s),
+        "zeros": _roots_of(zq, zl, s),
+        "dc_gain": dc,
+    }
+
+
+# ---------------------------------------------------------------------- entry point
+def _check_int(value, name, lo, hi=None):
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise InputTypeError(f"{name}: expected an int, got {type(value).__name__}")
+    v = int(value)
+    if v < lo or (hi is not None and v > hi):
+        rng = f">= {lo}" if hi is None else f"in [{lo}, {hi}]"
+        raise ParameterError(f"{name}: expected an int {rng}, got {v}")
+    return v
+
+
+def _weights(frf: FrequencyResponse, weights, use: np.ndarray):
+    """Whitening arrays [O, I, F] (w00, w10, w11), scalar weights [O, I, F] and a label."""
+    shape = frf.response.shape
+    if isinstance(weights, str):
+        if weights not in _WEIGHT_MODES:
+            raise ParameterError(f"weights: must be one of {set(_WEIGHT_MODES)} or an array, got {weights!r}")
+        if weights == "uncertainty":
+            sr, si, corr = frf.response_std()
+            known = np.isfinite(sr) & np.isfinite(si)
+            if np.any(known[use]):
+                if not np.all(known[use]):
+                    raise ParameterError(
+                        "weights: 'uncertainty' needs frf.cov at every valid point, but it is known at "
+                        f"{int(np.sum(known[use]))} of {int(np.sum(use))}; pass weights='uniform' or an array"
+                    )
+                corr = np.where(np.isfinite(corr), corr, 0.0)
+                l00 = sr
+                l11 = si * np.sqrt(np.maximum(1.0 - corr * corr, 0.0))
+                if np.any(~((l00 > 0) & (l11 > 0))[use]):
+                    raise ParameterError(
+                        "weights: frf.cov gives a singular (Re, Im) covariance at some valid points "
+                        "(a zero std or |correlation| = 1); pass weights='uniform' or an array"
+                    )
+                with np.errstate(all="ignore"):
+                    w00 = 1.0 / l00
+                    w11 = 1.0 / l11
+                    w10 = -(corr * si) / (l00 * l11)
+                    wsc = np.sqrt(2.0 / (sr * sr + si * si))
+                return w00, w10, w11, wsc, "uncertainty"
+        ones = np.ones(shape)
+        return ones, np.zeros(shape), ones, ones, "uniform"
+    try:
+        w = np.asarray(weights, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputTypeError(f"weights: expected a string or an array of real numbers, got {type(weights).__name__}") from exc
+    if w.shape == shape[-1:]:
+        w = np.broadcast_to(w, shape)
+    if w.shape != shape:
+        raise ShapeError(f"weights: expected shape [F] = {shape[-1:]} or [O, I, F] = {shape}, got {w.shape}")
+    if not np.all(np.isfinite(w)) or np.any(w < 0):
+        raise ParameterError("weights: expected finite values >= 0")
+    return w, np.zeros(shape), w, w, "array"
+
+
+def fit_transfer_function(
+    frf: FrequencyResponse,
+    *,
+    n_poles: int | None = None,
+    n_zeros: int | None = None,
+    delay_s: float | None = None,
+    weights: str | Sequence[float] | np.ndarray = "uncertainty",
+    max_order: int = 8,
+    n_iter: int = 30,
+    stable: bool = True,
+) -> TransferFunctionFit:
+    """Fit ``K prod(s - z) / prod(s - p) exp(-s delay_s)`` to each channel of ``frf``.
+
+    Method, weighting and the order-selection rule are described in the module docstring.
+    Failed points (``frf.valid`` False) and points of weight 0 are skipped. MIMO FRFs are
+    fit channel by channel (own orders, own delay).
+
+    Args:
+        frf: the measured response ([O, I, F], omega in rad/s).
+        n_poles: number of poles (>= 0); None selects it among 1..max_order.
+        n_zeros: number of zeros (0..n_poles); None selects it among 0..n_poles.
+        delay_s: pure delay in s: None estimates it (>= 0), a float >= 0 fixes it, 0 = none.
+        weights: "uncertainty" (whiten with the covariance from ``frf.response_std()``;
+            uniform if ``frf.cov`` is unknown everywhere), "uniform", or real weights [F] or
+            [O, I, F] (1 / std of the real and of the imaginary part of each point).
+        max_order: largest n_poles tried when selecting (1..30).
+        n_iter: maximum number of Sanathanan-Koerner iterations (>= 1).
+        stable: keep every pole in the closed left half plane.
+
+    Returns:
+        :class:`TransferFunctionFit` (per-channel values nested [O][I] for MIMO).
+
+    Raises:
+        InputTypeError, ParameterError, ShapeError naming the argument; ParameterError when a
+        channel has too few valid points for the requested order.
+    """
+    if not isinstance(frf, FrequencyResponse):
+        raise InputTypeError(f"frf: expected a FrequencyResponse, got {type(frf).__name__}")
+    max_order = _check_int(max_order, "max_order", 1, 30)
+    n_iter = _check_int(n_iter, "n_iter", 1)
+    if n_poles is not None:
+        n_poles = _check_int(n_poles, "n_poles", 0, 30)
+    if n_zeros is not None:
+        n_zeros = _check_int(n_zeros, "n_zeros", 0, 30)
+        if n_poles is not None and n_zeros > n_poles:
+            raise ParameterError(f"n_zeros: expected <= n_poles = {n_poles} (a proper model), got {n_zeros}")
+        if n_poles is None and n_zeros > max_order:
+            raise ParameterError(f"n_zeros: expected <= max_order = {max_order}, got {n_zeros}")
+    if delay_s is not None:
+        if isinstance(delay_s, bool) or not isinstance(delay_s, (int, float, np.floating, np.integer)):
+            raise InputTypeError(f"delay_s: expected None or a real number, got {type(delay_s).__name__}")
+        delay_s = float(delay_s)
+        if not math.isfinite(delay_s) or delay_s < 0:
+            raise ParameterError(f"delay_s: expected a finite value >= 0 seconds, got {delay_s:g}")
+    if not isinstance(stable, (bool, np.bool_)):
+        raise InputTypeError(f"stable: expected a bool, got {type(stable).__name__}")
+
+    if n_poles is not None:
+        pole_range = [n_poles]
+    else:
+        pole_range = list(range(max(1, n_zeros or 0), max_order + 1))
+    orders = [(p, z) for p in pole_range for z in ([n_zeros] if n_zeros is not None else range(p + 1))]
+
+    valid = frf.valid
+    w00, w10, w11, wsc, label = _weights(frf, weights, valid)
+    use = valid & (wsc > 0) & (w00 > 0)
+    results = []
+    for o in range(frf.n_outputs):
+        row = []
+        for i in range(frf.n_inputs):
+            m = use[o, i]
+            if np.sum(m) == 0:
+                raise ParameterError(f"frf: output {frf.output_labels[o]!r}, input {frf.input_labels[i]!r} has no valid point")
+            omega = frf.omega[m]
+            data = _Data(
+                omega=omega,
+                h=frf.response[o, i, m],
+                w00=w00[o, i, m],
+                w10=w10[o, i, m],
+                w11=w11[o, i, m],
+                wsc=wsc[o, i, m],
+                scale=float(np.sqrt(omega[0] * omega[-1])),
+            )
+            best = _fit_channel(data, orders, delay_s, n_iter, bool(stable), label == "uncertainty")
+            if best is None:
+                raise ParameterError(
+                    f"n_poles: no model of the requested order fits output {frf.output_labels[o]!r}, "
+                    f"input {frf.input_labels[i]!r}: {int(np.sum(m))} valid points give {data.n_obs} real "
+                    f"observations, fewer than the parameters plus one"
+                )
+            row.append(_physical(best, data))
+        results.append(row)
+
+    def field(name):
+        if frf.is_siso:
+            return results[0][0][name]
+        return [[results[o][i][name] for i in range(frf.n_inputs)] for o in range(frf.n_outputs)]
+
+    return TransferFunctionFit(
+        num=field("num"),
+        den=field("den"),
+        delay_s=field("delay_s"),
+        n_poles=field("n_poles"),
+        n_zeros=field("n_zeros"),
+        chi2=field("chi2"),
+        dof=field("dof"),
+        reduced_chi2=field("reduced_chi2"),
+        rms_relative_error=field("rms_relative_error"),
+        poles=field("poles"),
+        zeros=field("zeros"),
+        dc_gain=field("dc_gain"),
+        weighting=label,
+        delay_estimated=delay_s is None,
+        input_labels=tuple(frf.input_labels),
+        output_labels=tuple(frf.output_labels),
+    )
