@@ -6,6 +6,7 @@ import pytest
 import torch
 import torch.autograd.forward_ad as fwAD
 
+from torchblur.fit.status import POOR_FIT
 from torchblur.errors import ShapeError
 from torchblur.design.fisher import candidate_windows, design_acquisition, image_fisher, predicted_std
 from torchblur.fit.multisine import fit_multisine, render_multisine, render_multisine_with_jacobian
@@ -102,7 +103,7 @@ def test_noisy_fit_is_within_its_stds_and_the_batch_equals_single_items():
 
 def test_a_fit_far_above_the_noise_is_searched_again_then_flagged():
     """Images the model cannot explain (tones at other frequencies than fitted): the fit searches
-    again from wider starts, and a reduced chi2 still above 3 is status 5, not 'ok'."""
+    again from wider starts, and a reduced chi2 still above 3 is status POOR_FIT (6), not 'ok'."""
     win = windows([0.0, 0.13, 0.37, 0.55, 0.71, 0.86], [0.3, 0.5, 0.2, 0.7, 0.4, 0.25])
     img = render_multisine(THETA, OM * torch.tensor([1.0, 1.5, 2.2], dtype=F64), PSF, win, height=H, width=W)
     noise = torch.sqrt(25 + img)
@@ -110,7 +111,7 @@ def test_a_fit_far_above_the_noise_is_searched_again_then_flagged():
     noisy = img + noise * torch.randn(img.shape, generator=g, dtype=F64)
     fit = fit_multisine(noisy, PSF, win, OM, noise_std=noise, n_starts=4, n_refine=1)
     assert bool(fit.extras["retried"]) and float(fit.extras["reduced_chi2"]) > 3
-    assert int(fit.status) == 5 and not bool(fit.converged)
+    assert int(fit.status) == POOR_FIT and not bool(fit.converged)
     good = fit_multisine(render_multisine(THETA, OM, PSF, win, height=H, width=W) + noise * torch.randn(img.shape, generator=g,
                                                                                                        dtype=F64),
                          PSF, win, OM, noise_std=noise, n_starts=4, n_refine=1)

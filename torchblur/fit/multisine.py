@@ -35,9 +35,7 @@ from torchblur.render.trajectory import Multisine
 
 __all__ = ["MultisineFit", "render_multisine", "render_multisine_with_jacobian", "fit_multisine", "multisine_param_names"]
 
-#: Status codes of :class:`MultisineFit` (as :data:`torchblur.fit.sinusoid.STATUS`).
-STATUS = {0: "ok", 1: "no signal (dark frames)", 2: "not converged", 4: "unidentifiable (singular Fisher information)",
-          5: "poor fit (reduced chi2 > 3 with the given noise, after a wider search)"}
+from torchblur.fit.status import POOR_FIT, STATUS  # noqa: F401  (torchblur.fit.multisine.STATUS is the one table)
 
 
 def multisine_param_names(n_tones: int, fit_scale: bool) -> tuple:
@@ -481,7 +479,7 @@ def fit_multisine(
     status[~conv_best] = 2
     if sigma_given:
         # still far above the noise after the wider search: the model does not explain the images
-        status[((cost_best + outside_cost) / n_used.clamp_min(1)) > 3.0] = 5
+        status[((cost_best + outside_cost) / n_used.clamp_min(1)) > 3.0] = POOR_FIT
     status[singular] = 4
     status[dark] = 1
     nan = torch.tensor(float("nan"), dtype=dtype, device=device)

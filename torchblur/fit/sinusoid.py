@@ -26,25 +26,16 @@ from torchblur.render.blur import RenderSettings, choose_node_count, panel_count
 from torchblur.render.window import ExposureWindow
 from torchblur.render.trajectory import Sinusoid
 
+from torchblur.fit.status import (  # noqa: F401  (re-exported: torchblur.fit.sinusoid.STATUS, ...)
+    FLAGS, MASKED, NO_MOTION, NO_PIXELS, OUT_OF_FRAME, OUTLIERS_MASKED, PARTLY_OUT_OF_FRAME, SATURATED_MASKED, STATUS,
+)
+
 __all__ = ["SinusoidFit", "fit_sinusoid", "STATUS", "FLAGS", "MASKED", "SATURATED_MASKED", "OUTLIERS_MASKED", "PARTLY_OUT_OF_FRAME",
            "NO_MOTION"]
 
-#: Status codes of :class:`SinusoidFit` (``status[...]``).
-STATUS = {0: "ok", 1: "no signal (dark frame)", 2: "not converged", 3: "spot mostly outside the frame", 4: "unidentifiable (singular Fisher information)",
-          5: "no usable pixels (every pixel masked or saturated)"}
 OPTIMIZERS = ("lm", "adam", "lbfgs")
 AXES = ("x", "y", "xy")
 OUTLIERS = ("none", "reject")
-
-#: Bits of :attr:`SinusoidFit.flags` (OR-ed per item). ``status`` says whether an estimate is
-#: usable; ``flags`` say what was done to the data or noticed about it.
-MASKED = 1  #: the caller's ``mask`` excluded pixels of this item
-SATURATED_MASKED = 2  #: pixels at or above ``saturation_level`` were excluded
-OUTLIERS_MASKED = 4  #: the robust pass excluded pixels (hot pixels, cosmic rays): ``n_outliers``
-PARTLY_OUT_OF_FRAME = 8  #: more than 0.1% of the fitted spot's light falls outside the frame
-NO_MOTION = 16  #: the amplitude is below 3 standard deviations: no motion detected, the phase means nothing
-FLAGS = {MASKED: "pixels masked by the caller", SATURATED_MASKED: "saturated pixels masked", OUTLIERS_MASKED: "outlier pixels masked",
-         PARTLY_OUT_OF_FRAME: "spot partly out of frame", NO_MOTION: "no significant motion"}
 
 
 @dataclass
@@ -635,7 +626,7 @@ def _fit_core(
             if normalize:
                 inside = torch.full_like(inside, float("inf"))
             total = scale_b * (p_flat.total_light()[:, None] * dur).sum(-1)
-            status[inside < 0.5 * total] = 3
+            status[inside < 0.5 * total] = OUT_OF_FRAME
     status[outside] = 3
     status[dark] = 1
     bad = (status == 1) | outside
@@ -1135,7 +1126,7 @@ def fit_sinusoid(
         nan = float("nan")
         for name in ("amplitude", "phase", "amplitude_std", "phase_std", "alias_phase", "alias_cost", "cost", "covariance"):
             getattr(res, name)[empty] = nan
-        res.status[empty] = 5
+        res.status[empty] = NO_PIXELS
         res.converged[empty] = False
 
     n_out = rejected.flatten(1).sum(1)
