@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from typing import Sequence
 
+import numpy as np
 import torch
 
 __all__ = [
@@ -179,3 +180,42 @@ def as_unit_direction(value, name: str, *, like: torch.Tensor) -> torch.Tensor:
     if bool((norm <= 0).any()):
         raise ParameterError(f"{name}: expected a nonzero direction (x, y), got (0, 0)")
     return d / norm
+
+
+def check_int(value, name: str, *, low: int | None = None, high: int | None = None) -> int:
+    """A Python or numpy integer (not a bool) in ``[low, high]`` as an ``int``.
+
+    Raises :class:`InputTypeError` for anything that is not an integer (``2.5``, ``"3"``,
+    ``True``) and :class:`ParameterError` for an integer out of range; both name ``name``.
+    """
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise InputTypeError(f"{name}: expected an integer, got {type(value).__name__} {value!r}")
+    v = int(value)
+    if (low is not None and v < low) or (high is not None and v > high):
+        rng = f">= {low}" if high is None else (f"<= {high}" if low is None else f"in [{low}, {high}]")
+        raise ParameterError(f"{name}: expected an integer {rng}, got {v}")
+    return v
+
+
+def check_bool(value, name: str) -> bool:
+    """``True`` or ``False`` (not 0/1, not a string), else :class:`InputTypeError` naming ``name``."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise InputTypeError(f"{name}: expected True or False, got {type(value).__name__}")
+    return bool(value)
+
+
+def as_image(value, name: str, *, min_dim: int = 2, desc: str = "[..., H, W]") -> torch.Tensor:
+    """A floating tensor of at least ``min_dim`` dims with non-empty H and W (errors name ``name``)."""
+    t = as_tensor(value, name)
+    if t.dim() < min_dim:
+        raise ShapeError(f"{name}: expected shape {desc}, got {tuple(t.shape)}")
+    if t.shape[-1] < 1 or t.shape[-2] < 1:
+        raise ShapeError(f"{name}: expected non-empty H and W in {desc}, got {tuple(t.shape)}")
+    return t
+
+
+def as_noise_std(noise_std, name: str, like: torch.Tensor) -> torch.Tensor:
+    """A per-item noise std ``[...]`` (> 0) broadcastable against the images ``like`` ``[..., H, W]``."""
+    s = check_positive(as_tensor(noise_std, name, like=like), name)
+    broadcast_batch({"image": like.shape[:-2], name: s.shape})
+    return s

@@ -1,6 +1,8 @@
-"""Image processing on real frames: dark frames, spot finding and crops, PSF fits, saturation
-curves (``preprocess``), spot grids (``spots``), image moments (``moments``) and frame-by-frame
-tracking below the frame rate (``tracking``). kornia is imported on use."""
+"""Image processing on real frames: dark frames (``dark``), spot detection and crops
+(``detection``, kornia), the still spot's PSF fit (``psf_fit``), the saturation curve
+(``saturation``), spot grids of a Shack-Hartmann sensor (``spots``), image moments
+(``moments``) and frame-by-frame tracking below the frame rate (``tracking``).
+``preprocess`` gathers the steps before a fit in one namespace (``torchblur.preprocess``)."""
 from torchblur.image.moments import image_moments, moments_along, sinusoid_from_moments
 from torchblur.image.preprocess import (
     DarkFrame, PSFFit, SaturationCurve, Spots, crop, dark_frame, find_spots, fit_gaussian_psf, saturation_curve,

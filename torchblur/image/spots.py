@@ -23,12 +23,12 @@ hypot(u, v) / sqrt(2)`` (0 at the centre, 1 at a corner of a square grid)):
 
 The identification pipeline (:func:`torchblur.identify.run.identify` with a ``spots`` config)
 finds the spots in the still frame (:func:`locate_spots`, kornia connected components via
-:func:`torchblur.image.preprocess.find_spots`), fits a PSF per spot on a crop (one batched
-:func:`~torchblur.image.preprocess.fit_gaussian_psf`), crops every sweep frame per spot
+:func:`torchblur.image.detection.find_spots`), fits a PSF per spot on a crop (one batched
+:func:`~torchblur.image.psf_fit.fit_gaussian_psf`), crops every sweep frame per spot
 (:func:`crop_spots`) and fits all (point x spot) problems in one batch with ``axes="xy"``.
 
 Conventions as everywhere: x = column, y = row, px and px^2, ``K`` spots. Not imported by
-``import torchblur`` (it needs kornia through :mod:`torchblur.image.preprocess`).
+``import torchblur`` (it needs kornia through :mod:`torchblur.image.detection`).
 """
 from __future__ import annotations
 
@@ -37,16 +37,10 @@ from dataclasses import dataclass, field
 
 import torch
 
-from torchblur.errors import ParameterError, ShapeError, as_tensor, check_finite, check_real_scalar
+from torchblur.errors import ParameterError, ShapeError, as_tensor, check_finite, check_int, check_real_scalar
 from torchblur.render.psf import GaussianPSF
 
 __all__ = ["SpotGrid", "SpotLayout", "SpotPSFs", "locate_spots", "crop_spots", "crop_valid", "raster_order", "spot_labels"]
-
-
-def _count(value, name: str, low: int = 1) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < low:
-        raise ParameterError(f"{name}: expected an integer >= {low}, got {value!r}")
-    return int(value)
 
 
 @dataclass
@@ -101,8 +95,8 @@ class SpotGrid:
     missing: tuple = field(default_factory=tuple)
 
     def __post_init__(self):
-        _count(self.rows, "rows")
-        _count(self.cols, "cols")
+        check_int(self.rows, "rows", low=1)
+        check_int(self.cols, "cols", low=1)
         check_real_scalar(self.pitch_px, "pitch_px", positive=True)
         check_real_scalar(self.sigma_px, "sigma_px", positive=True)
         check_real_scalar(self.sigma_variation, "sigma_variation", nonnegative=True)
@@ -191,7 +185,7 @@ class SpotPSFs:
             pixel (y0 + i, x0 + j). Crops are centred on their spot; a spot at the edge gets
             a crop that extends beyond the frame (those pixels are zero and masked out).
         size: ``(h, w)`` of the crops (px).
-        fit: the batched :class:`~torchblur.image.preprocess.PSFFit` (crop coordinates).
+        fit: the batched :class:`~torchblur.image.psf_fit.PSFFit` (crop coordinates).
         clipped: ``[K]`` bool: the crop extends beyond the frame.
         inside_fraction: ``[K]`` the fraction of the spot's (fitted) light that falls in the
             frame (1 for a spot well inside).
@@ -216,10 +210,10 @@ def locate_spots(still, *, exposure_s: float, noise_std, pitch_px: float, crop_p
                  max_spots: int | None = None, mask=None) -> SpotPSFs:
     """Find the spots of a still frame and fit a Gaussian PSF to each (one batch).
 
-    Spots are found with :func:`torchblur.image.preprocess.find_spots` (kornia connected
+    Spots are found with :func:`torchblur.image.detection.find_spots` (kornia connected
     components), put in raster order, cropped (``crop_px`` square, centred on each spot's
     centroid; pixels beyond the frame are masked out) and fitted with one batched
-    :func:`torchblur.image.preprocess.fit_gaussian_psf`.
+    :func:`torchblur.image.psf_fit.fit_gaussian_psf`.
 
     Args:
         still: dark-subtracted still image ``[H, W]`` (the mean of still frames).
@@ -237,7 +231,8 @@ def locate_spots(still, *, exposure_s: float, noise_std, pitch_px: float, crop_p
     Raises:
         ParameterError: no spot found.
     """
-    from torchblur.image.preprocess import find_spots, fit_gaussian_psf
+    from torchblur.image.detection import find_spots
+    from torchblur.image.psf_fit import fit_gaussian_psf
 
     still = as_tensor(still, "still")
     if still.dim() != 2:
@@ -245,7 +240,7 @@ def locate_spots(still, *, exposure_s: float, noise_std, pitch_px: float, crop_p
     check_finite(still, "still")
     pitch_px = check_real_scalar(pitch_px, "pitch_px", positive=True)
     H, W = still.shape
-    side = int(math.floor(pitch_px)) if crop_px is None else _count(crop_px, "crop_px", 8)
+    side = int(math.floor(pitch_px)) if crop_px is None else check_int(crop_px, "crop_px", low=8)
     size = (min(side, H), min(side, W))
     found = find_spots(still, noise_std=noise_std, max_spots=max_spots)[0]
     if len(found) == 0:
@@ -284,7 +279,7 @@ def crop_spots(frames, offset, size) -> torch.Tensor:
         offset: ``[K, 2]`` long crop corners (x0, y0) (from :func:`locate_spots`).
         size: ``(h, w)``.
     """
-    from torchblur.image.preprocess import crop
+    from torchblur.image.detection import crop
 
     if not isinstance(offset, torch.Tensor) or offset.dim() != 2 or offset.shape[-1] != 2:
         raise ShapeError(f"offset: expected a tensor [K, 2] (x0, y0), got {getattr(offset, 'shape', offset)!r}")

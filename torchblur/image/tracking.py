@@ -102,7 +102,7 @@ def track_sine(rig, *, freq_hz: float, amplitude: float, rest_px, dark, gain: fl
     Args:
         rig: a :class:`torchblur.rig.base.Rig`.
         rest_px: the spot's rest position (x, y) px (the PSF centre).
-        dark: a :class:`torchblur.image.preprocess.DarkFrame`.
+        dark: a :class:`torchblur.image.dark.DarkFrame`.
         gain: electrons per ADU; noise_e: threshold scale for the centroids (default: 5 e-).
         latency_s, trigger_delay_s: the calibrated trigger-to-exposure delays (s).
         axes: ``"x"``, ``"y"`` or ``"xy"``.
@@ -111,7 +111,7 @@ def track_sine(rig, *, freq_hz: float, amplitude: float, rest_px, dark, gain: fl
         :class:`TrackingResult` of the spot's motion in px (divide by ``amplitude`` for |H|).
     """
     from torchblur.image.moments import image_moments
-    from torchblur.image.preprocess import subtract_dark
+    from torchblur.image.dark import subtract_dark
 
     period = 1.0 / freq_hz
     te = exposure_fraction * period
