@@ -97,127 +97,184 @@ def levenberg_marquardt(
     Returns:
         :class:`LMResult`. ``converged`` is False where ``max_iter`` ran out.
     """
-    N, P = theta0.shape
-    theta = theta0.detach().clone()
-    all_idx = torch.arange(N, device=theta.device)
-    # Lazy mode (an analytic Jacobian that also returns the model): each trial point is
-    # evaluated with its Jacobian in one call, kept if the step is accepted (the usual case
-    # from a good start), so an iteration costs one call and the final J^T W J is exact.
-    lazy = jacobian_fn is not None
-    jac = jacobian_fn or (lambda t, i: model_jacobian(model_fn, t, i))
-    JTJ = torch.zeros(N, P, P, dtype=theta.dtype, device=theta.device)
-    g = torch.zeros(N, P, dtype=theta.dtype, device=theta.device)
-    model_store = None
-
-    def rows(t, idx):
-        """``t[idx]``, without the copy when ``idx`` is every row (in order)."""
-        return t if t is None or idx.numel() == N else t[idx]
-
-    # l2 with one weight per problem (the same noise level on every pixel, nothing masked):
-    # the weight multiplies the small products instead of every pixel.
-    row_w = None
-    if loss == "l2":
-        if weight is None:
-            row_w = torch.ones(N, dtype=theta.dtype, device=theta.device)
-        elif weight.shape[-1] and bool((weight == weight[:, :1]).all()):
-            row_w = weight[:, 0].to(theta.dtype)
-
-    def normal_equations(model, J, idx):
-        """``(J^T W J [n, P, P], J^T W r [n, P], cost [n])`` at ``model`` (``W``: the loss's
-        Gauss-Newton weights; for l2 the cost comes from the same residuals)."""
-        d, w = rows(data, idx), rows(weight, idx)
-        r = d - model
-        if row_w is not None:
-            wr = rows(row_w, idx)
-            Jt = J.transpose(-1, -2)
-            return (Jt @ J) * wr[:, None, None], (Jt @ r[..., None])[..., 0] * wr[:, None], (r[:, None, :] @ r[..., None])[:, 0, 0] * wr
-        W = irls_weights(model, d, loss=loss, weight=w)
-        JW = J.transpose(-1, -2) * W[:, None, :]  # [n, P, R]: GEMMs below (fast when J is a view of [n, P, R])
-        c = (W * r * r).sum(-1) if loss == "l2" else image_loss(model, d, loss=loss, weight=w)
-        return JW @ J, (JW @ r[..., None])[..., 0], c
-
-    with torch.no_grad():
-        if lazy:
-            model0, J0 = jac(theta, all_idx)
-            JTJ, g, cost = normal_equations(model0, J0, all_idx)
-            model_store = model0.clone()
-        else:
-            cost = image_loss(model_fn(theta, all_idx), data, loss=loss, weight=weight)
-        # A cost this small is round-off: converged (noise-free data).
-        d2 = (data[:, None, :] @ data[..., None])[:, 0, 0] if weight is None or row_w is not None else (weight * data * data).sum(-1)
-        floor = (10 * torch.finfo(theta.dtype).eps) ** 2 * (d2 if row_w is None else d2 * row_w)
-        if gn_tol is not None:
-            used = torch.full((N,), data.shape[-1], dtype=theta.dtype, device=theta.device) if weight is None else (weight > 0).sum(-1)
-            dof = (used - P).clamp_min(1).to(theta.dtype)
-            s_prev = torch.full((N,), float("nan"), dtype=theta.dtype, device=theta.device)  # last accepted step, in std
-    lam = torch.full((N,), lambda0, dtype=theta.dtype, device=theta.device)
-    converged = torch.zeros(N, dtype=torch.bool, device=theta.device)
-    n_iter = torch.zeros(N, dtype=torch.long, device=theta.device)
-    need_jac = torch.full((N,), not lazy, dtype=torch.bool, device=theta.device)
+    ne = _NormalEquations(data, weight, loss)
+    st = _LMState.start(model_fn, theta0, ne, jacobian_fn, lambda0, gn_tol is not None)
     for _ in range(max_iter):
-        active = ~converged
+        active = ~st.converged
         if not bool(active.any()):
             break
-        jac_idx = all_idx[active & need_jac]
+        jac_idx = st.all_idx[active & st.need_jac]
         if jac_idx.numel():
-            model, J = jac(theta[jac_idx], jac_idx)
-            JTJ[jac_idx], g[jac_idx], _ = normal_equations(model, J, jac_idx)
-            need_jac[jac_idx] = False
-        idx = all_idx[active]
+            model, J = st.jac(st.theta[jac_idx], jac_idx)
+            st.JTJ[jac_idx], st.g[jac_idx], _ = ne(model, J, jac_idx)
+            st.need_jac[jac_idx] = False
+        idx = st.all_idx[active]
         if gn_tol is not None:
-            A = JTJ[idx]
-            ridge = 1e-12 * torch.diag_embed(torch.diagonal(A, dim1=-2, dim2=-1).abs() + 1e-300)
-            gn, info = torch.linalg.solve_ex(A + ridge, g[idx][..., None])
-            pred = (g[idx] * gn[..., 0]).sum(-1)
-            s2 = pred / (cost[idx] / dof[idx]).clamp_min(1e-300)  # the step's squared length in std^2
-            # Predicted landing error: the step itself, or s^2 / s_prev with the observed rate.
-            land2 = torch.where(torch.isnan(s_prev[idx]), s2, s2 * s2 / s_prev[idx].square())
-            tiny = (info == 0) & torch.isfinite(pred) & (torch.minimum(s2, land2) <= gn_tol)
-            if bool(tiny.any()):
-                # The last Gauss-Newton step is taken unevaluated: from a point this close,
-                # the quadratic model is exact to a small fraction of the step.
-                done_idx = idx[tiny]
-                fin = theta[done_idx] + gn[tiny, :, 0]
-                theta[done_idx] = fin if project is None else project(fin)
-                cost[done_idx] = cost[done_idx] - pred[tiny]
-                converged[done_idx] = True
-            idx = idx[~tiny]
+            idx = _gauss_newton_finish(st, idx, gn_tol, project)
             if not idx.numel():
                 break
-        n_iter[idx] += 1
-        A = JTJ[idx]
-        # Marquardt's scaling (damping proportional to each diagonal) is invariant to the
-        # parameters' units; the tiny relative term keeps a flat direction solvable.
-        diag = torch.diagonal(A, dim1=-2, dim2=-1)
-        diag = torch.where(diag > 0, diag, torch.ones_like(diag))
-        damped = A + (lam[idx, None, None] + 1e-12) * torch.diag_embed(diag)
-        step = torch.linalg.solve(damped, g[idx][..., None])[..., 0]
-        step = torch.nan_to_num(step, nan=0.0, posinf=0.0, neginf=0.0)
-        trial = theta[idx] + step
-        if project is not None:
-            trial = project(trial)
+        _damped_step(st, idx, model_fn, ne, project, tol)
+    return LMResult(theta=st.theta, cost=st.cost, converged=st.converged, n_iter=st.n_iter,
+                    jtj=st.JTJ if st.lazy else None, model=st.model_store)
+
+
+class _NormalEquations:
+    """``(model [n, R], J [n, R, P], idx [n]) -> (J^T W J [n, P, P], J^T W r [n, P], cost [n])``
+    with ``W`` the loss's Gauss-Newton weights (for l2 the cost comes from the same residuals).
+
+    l2 with one weight per problem (the same noise level on every pixel, nothing masked):
+    the weight multiplies the small products instead of every pixel (``row_w [N]``)."""
+
+    def __init__(self, data, weight, loss):
+        self.data, self.weight, self.loss = data, weight, loss
+        self.N = data.shape[0]
+        self.row_w = None
+        if loss == "l2":
+            if weight is None:
+                self.row_w = torch.ones(self.N, dtype=data.dtype, device=data.device)
+            elif weight.shape[-1] and bool((weight == weight[:, :1]).all()):
+                self.row_w = weight[:, 0].to(data.dtype)
+
+    def rows(self, t, idx):
+        """``t[idx]``, without the copy when ``idx`` is every row (in order)."""
+        return t if t is None or idx.numel() == self.N else t[idx]
+
+    def cost(self, model, idx):
+        """The loss of ``model [n, R]`` against the rows ``idx`` of the data ``[n]``."""
+        return image_loss(model, self.rows(self.data, idx), loss=self.loss, weight=self.rows(self.weight, idx))
+
+    def __call__(self, model, J, idx):
+        d, w = self.rows(self.data, idx), self.rows(self.weight, idx)
+        r = d - model
+        if self.row_w is not None:
+            wr = self.rows(self.row_w, idx)
+            Jt = J.transpose(-1, -2)
+            return (Jt @ J) * wr[:, None, None], (Jt @ r[..., None])[..., 0] * wr[:, None], (r[:, None, :] @ r[..., None])[:, 0, 0] * wr
+        W = irls_weights(model, d, loss=self.loss, weight=w)
+        JW = J.transpose(-1, -2) * W[:, None, :]  # [n, P, R]: GEMMs below (fast when J is a view of [n, P, R])
+        c = (W * r * r).sum(-1) if self.loss == "l2" else image_loss(model, d, loss=self.loss, weight=w)
+        return JW @ J, (JW @ r[..., None])[..., 0], c
+
+    def round_off_floor(self, dtype):
+        """``[N]``: a cost this small is round-off (noise-free data), so it counts as converged."""
+        data, weight, row_w = self.data, self.weight, self.row_w
+        d2 = (data[:, None, :] @ data[..., None])[:, 0, 0] if weight is None or row_w is not None else (weight * data * data).sum(-1)
+        return (10 * torch.finfo(dtype).eps) ** 2 * (d2 if row_w is None else d2 * row_w)
+
+
+@dataclass
+class _LMState:
+    """The iteration's per-problem state (``N`` problems, ``P`` parameters), updated in place."""
+
+    theta: torch.Tensor  # [N, P]
+    cost: torch.Tensor  # [N]
+    JTJ: torch.Tensor  # [N, P, P] at theta
+    g: torch.Tensor  # [N, P]: J^T W r at theta
+    lam: torch.Tensor  # [N] damping
+    converged: torch.Tensor  # [N] bool
+    n_iter: torch.Tensor  # [N] long
+    need_jac: torch.Tensor  # [N] bool: JTJ and g are stale (not lazy: after an accepted step)
+    floor: torch.Tensor  # [N] round-off cost
+    all_idx: torch.Tensor  # [N] arange
+    jac: Callable
+    lazy: bool
+    model_store: torch.Tensor | None
+    dof: torch.Tensor | None  # [N] degrees of freedom (gn_tol)
+    s_prev: torch.Tensor | None  # [N] the last accepted step's length in std (gn_tol)
+
+    @classmethod
+    def start(cls, model_fn, theta0, ne: _NormalEquations, jacobian_fn, lambda0, track_steps: bool) -> "_LMState":
+        """The state at ``theta0``. Lazy mode (an analytic Jacobian that also returns the model):
+        each trial point is evaluated with its Jacobian in one call, kept if the step is accepted
+        (the usual case from a good start), so an iteration costs one call and the final
+        ``J^T W J`` is exact."""
+        N, P = theta0.shape
+        theta = theta0.detach().clone()
+        dtype, device = theta.dtype, theta.device
+        all_idx = torch.arange(N, device=device)
+        lazy = jacobian_fn is not None
+        jac = jacobian_fn or (lambda t, i: model_jacobian(model_fn, t, i))
+        JTJ = torch.zeros(N, P, P, dtype=dtype, device=device)
+        g = torch.zeros(N, P, dtype=dtype, device=device)
+        model_store = dof = s_prev = None
         with torch.no_grad():
             if lazy:
-                m_t, J_t = jac(trial, idx)
-                jtj_t, g_t, new_cost = normal_equations(m_t, J_t, idx)
+                model0, J0 = jac(theta, all_idx)
+                JTJ, g, cost = ne(model0, J0, all_idx)
+                model_store = model0.clone()
             else:
-                new_cost = image_loss(model_fn(trial, idx), rows(data, idx), loss=loss, weight=rows(weight, idx))
-        ok = torch.isfinite(new_cost) & (new_cost <= cost[idx])
-        rel = (cost[idx] - new_cost) / cost[idx].abs().clamp_min(1e-300)
-        small_step = (step.abs() <= 1e-12 * (theta[idx].abs() + 1e-8)).all(-1)
-        acc = idx[ok]
-        if gn_tol is not None:
-            # The accepted step's length in std (the quadratic model's decrease along it).
-            st = step[ok]
-            s_prev[acc] = ((st[:, None, :] @ A[ok] @ st[..., None])[:, 0, 0] / (cost[acc] / dof[acc]).clamp_min(1e-300)).clamp_min(0).sqrt()
-        theta[acc] = trial[ok]
-        cost[acc] = new_cost[ok]
-        if lazy:
-            if acc.numel():
-                JTJ[acc], g[acc], model_store[acc] = jtj_t[ok], g_t[ok], m_t[ok]
+                cost = ne.cost(model_fn(theta, all_idx), all_idx)
+            floor = ne.round_off_floor(dtype)
+            if track_steps:
+                weight = ne.weight
+                used = torch.full((N,), ne.data.shape[-1], dtype=dtype, device=device) if weight is None else (weight > 0).sum(-1)
+                dof = (used - P).clamp_min(1).to(dtype)
+                s_prev = torch.full((N,), float("nan"), dtype=dtype, device=device)
+        return cls(theta=theta, cost=cost, JTJ=JTJ, g=g, lam=torch.full((N,), lambda0, dtype=dtype, device=device),
+                   converged=torch.zeros(N, dtype=torch.bool, device=device), n_iter=torch.zeros(N, dtype=torch.long, device=device),
+                   need_jac=torch.full((N,), not lazy, dtype=torch.bool, device=device), floor=floor, all_idx=all_idx, jac=jac,
+                   lazy=lazy, model_store=model_store, dof=dof, s_prev=s_prev)
+
+
+def _gauss_newton_finish(st: _LMState, idx, gn_tol, project):
+    """Finish the problems ``idx`` whose full Gauss-Newton step is predicted to land within
+    ``sqrt(gn_tol)`` std (see :func:`levenberg_marquardt`); returns the problems left."""
+    A = st.JTJ[idx]
+    ridge = 1e-12 * torch.diag_embed(torch.diagonal(A, dim1=-2, dim2=-1).abs() + 1e-300)
+    gn, info = torch.linalg.solve_ex(A + ridge, st.g[idx][..., None])
+    pred = (st.g[idx] * gn[..., 0]).sum(-1)
+    s2 = pred / (st.cost[idx] / st.dof[idx]).clamp_min(1e-300)  # the step's squared length in std^2
+    # Predicted landing error: the step itself, or s^2 / s_prev with the observed rate.
+    land2 = torch.where(torch.isnan(st.s_prev[idx]), s2, s2 * s2 / st.s_prev[idx].square())
+    tiny = (info == 0) & torch.isfinite(pred) & (torch.minimum(s2, land2) <= gn_tol)
+    if bool(tiny.any()):
+        # The last Gauss-Newton step is taken unevaluated: from a point this close,
+        # the quadratic model is exact to a small fraction of the step.
+        done_idx = idx[tiny]
+        fin = st.theta[done_idx] + gn[tiny, :, 0]
+        st.theta[done_idx] = fin if project is None else project(fin)
+        st.cost[done_idx] = st.cost[done_idx] - pred[tiny]
+        st.converged[done_idx] = True
+    return idx[~tiny]
+
+
+def _damped_step(st: _LMState, idx, model_fn, ne: _NormalEquations, project, tol) -> None:
+    """One damped (Levenberg-Marquardt) step for the problems ``idx``: accepted where the cost
+    does not rise, the damping adapted, convergence decided."""
+    st.n_iter[idx] += 1
+    A = st.JTJ[idx]
+    # Marquardt's scaling (damping proportional to each diagonal) is invariant to the
+    # parameters' units; the tiny relative term keeps a flat direction solvable.
+    diag = torch.diagonal(A, dim1=-2, dim2=-1)
+    diag = torch.where(diag > 0, diag, torch.ones_like(diag))
+    damped = A + (st.lam[idx, None, None] + 1e-12) * torch.diag_embed(diag)
+    step = torch.linalg.solve(damped, st.g[idx][..., None])[..., 0]
+    step = torch.nan_to_num(step, nan=0.0, posinf=0.0, neginf=0.0)
+    trial = st.theta[idx] + step
+    if project is not None:
+        trial = project(trial)
+    with torch.no_grad():
+        if st.lazy:
+            m_t, J_t = st.jac(trial, idx)
+            jtj_t, g_t, new_cost = ne(m_t, J_t, idx)
         else:
-            need_jac[acc] = True
-        lam[idx] = torch.where(ok, (lam[idx] / 3).clamp_min(1e-12), lam[idx] * 4)
-        done = (ok & (rel < tol)) | small_step | (lam[idx] > 1e12) | (cost[idx] <= floor[idx])
-        converged[idx[done]] = True
-    return LMResult(theta=theta, cost=cost, converged=converged, n_iter=n_iter, jtj=JTJ if lazy else None, model=model_store)
+            new_cost = ne.cost(model_fn(trial, idx), idx)
+    cost = st.cost[idx]
+    ok = torch.isfinite(new_cost) & (new_cost <= cost)
+    rel = (cost - new_cost) / cost.abs().clamp_min(1e-300)
+    small_step = (step.abs() <= 1e-12 * (st.theta[idx].abs() + 1e-8)).all(-1)
+    acc = idx[ok]
+    if st.s_prev is not None:
+        # The accepted step's length in std (the quadratic model's decrease along it).
+        sa = step[ok]
+        st.s_prev[acc] = ((sa[:, None, :] @ A[ok] @ sa[..., None])[:, 0, 0] / (st.cost[acc] / st.dof[acc]).clamp_min(1e-300)).clamp_min(0).sqrt()
+    st.theta[acc] = trial[ok]
+    st.cost[acc] = new_cost[ok]
+    if st.lazy:
+        if acc.numel():
+            st.JTJ[acc], st.g[acc], st.model_store[acc] = jtj_t[ok], g_t[ok], m_t[ok]
+    else:
+        st.need_jac[acc] = True
+    st.lam[idx] = torch.where(ok, (st.lam[idx] / 3).clamp_min(1e-12), st.lam[idx] * 4)
+    done = (ok & (rel < tol)) | small_step | (st.lam[idx] > 1e12) | (st.cost[idx] <= st.floor[idx])
+    st.converged[idx[done]] = True
