@@ -30,7 +30,7 @@ from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tens
 from torchblur.render.window import ExposureWindow
 from torchblur.render.trajectory import Trajectory, _sine_path_bound
 
-__all__ = ["Plant", "LTIResponse", "LTISineTrajectory"]
+__all__ = ["Plant", "LTIResponse", "LTISineTrajectory", "LTIMultisineTrajectory"]
 
 _EIG_COND_MAX = 1e10  # above: matrix-exponential evaluation
 _EIG_COND_BOUND = 1e4  # above: the modal coefficients cancel, path bound from sampling
@@ -447,3 +447,125 @@ class LTISineTrajectory(LTIResponse):
 
     def __repr__(self) -> str:
         return f"LTISineTrajectory(shape={tuple(self.shape)}, order={self.plant.order}, method={self.method!r})"
+
+
+class LTIMultisineTrajectory(LTIResponse):
+    """The exact response of a :class:`~torchblur.systems.lti.Plant` to the multisine command
+    ``u(t) = sum_k amplitude_k sin(omega_k t + phase_k)`` applied from rest at t = 0,
+    transients and delay included, mapped to the image as ``direction * y(t)``.
+
+    Args:
+        plant: the :class:`~torchblur.systems.lti.Plant`.
+        amplitude: command amplitudes (command units), ``[..., N]``.
+        omega: tone frequencies (rad/s), ``[..., N]``, > 0.
+        phase: command phases (rad), ``[..., N]``; default 0.
+        direction: px per output unit along (x, y), ``[2]`` or ``[..., 2]``.
+
+    Batch ``[...]``: the broadcast of the leading dims. Coefficients are computed once in
+    float64 (numpy) at construction; not differentiable in the plant or the tones. With
+    every phase 0 it equals the sum of :class:`~torchblur.systems.lti.LTISineTrajectory` responses.
+
+    ``position(t)[..., s, :]`` = displacement (px) at the absolute command time ``t[..., s]``.
+
+    Example:
+        >>> p = Plant(num=(1.0,), den=(1e-3, 1.0))
+        >>> traj = LTIMultisineTrajectory(p, [1.0, 0.5], [2 * math.pi * 50, 2 * math.pi * 150], [0.0, 1.0])
+        >>> traj.position(torch.zeros(5, dtype=torch.float64)).shape
+        torch.Size([5, 2])
+    """
+
+    __slots__ = ("plant", "amplitude", "omega", "phase", "direction", "delay_s", "method", "_h0", "_lam", "_c", "_a", "_cvec",
+                 "_x0", "_cond")
+
+    def __init__(self, plant: Plant, amplitude, omega, phase=None, *, direction=(1.0, 0.0)):
+        if not isinstance(plant, Plant):
+            raise InputTypeError(f"plant: expected a torchblur.systems.lti.Plant, got {type(plant).__name__}")
+        f64 = torch.float64
+        amplitude = check_finite(as_tensor(amplitude, "amplitude", dtype=f64), "amplitude")
+        omega = check_positive(as_tensor(omega, "omega", dtype=f64), "omega")
+        phase = torch.zeros_like(amplitude) if phase is None else check_finite(as_tensor(phase, "phase", dtype=f64), "phase")
+        direction = check_finite(as_tensor(direction, "direction", dtype=f64), "direction")
+        for name, v in (("amplitude", amplitude), ("omega", omega), ("phase", phase)):
+            if v.dim() == 0:
+                raise ShapeError(f"{name}: expected shape [..., N] (one value per tone), got a scalar")
+        if direction.dim() == 0 or direction.shape[-1] != 2:
+            raise ShapeError(f"direction: expected shape [2] or [..., 2], got {tuple(direction.shape)}")
+        N = max(amplitude.shape[-1], omega.shape[-1], phase.shape[-1])
+        for name, v in (("amplitude", amplitude), ("omega", omega), ("phase", phase)):
+            if v.shape[-1] not in (1, N):
+                raise ShapeError(f"{name}: expected a last dim of {N} (tones), got shape {tuple(v.shape)}")
+        shape = broadcast_batch({"amplitude": amplitude.shape[:-1], "omega": omega.shape[:-1], "phase": phase.shape[:-1],
+                                 "direction": direction.shape[:-1]})
+        device = amplitude.device
+        self.plant = plant
+        self.delay_s = plant.delay_s
+        self.amplitude = amplitude.detach().expand(shape + (N,))
+        self.omega = omega.detach().to(device).expand(shape + (N,))
+        self.phase = phase.detach().to(device).expand(shape + (N,))
+        self.direction = direction.detach().to(device).expand(shape + (2,))
+
+        A, B, C, D = plant.state_space()
+        n = A.shape[0]
+        amp = self.amplitude.cpu().numpy().reshape(-1, N)
+        w = self.omega.cpu().numpy().reshape(-1, N)
+        ph = np.exp(1j * self.phase.cpu().numpy().reshape(-1, N))
+        if n:
+            M = 1j * w[..., None, None] * np.eye(n) - A  # [b, N, n, n]
+            v = np.linalg.solve(M, np.broadcast_to(B.astype(complex), w.shape + (n,))[..., None])[..., 0]  # [b, N, n]
+            h0 = v @ C + D
+            x0 = -(amp[..., None] * (v * ph[..., None]).imag).sum(-2)  # [b, n]
+        else:
+            h0 = np.full(w.shape, complex(D))
+            x0 = np.zeros((w.shape[0], 0))
+        self._h0 = torch.as_tensor(np.stack([h0.real, h0.imag], -1).reshape(tuple(shape) + (N, 2)), device=device)
+        self._init_transient(A, C, x0, shape, device)
+
+    @property
+    def shape(self) -> torch.Size:
+        return self.amplitude.shape[:-1]
+
+    @property
+    def n_tones(self) -> int:
+        return self.amplitude.shape[-1]
+
+    def steady_state_amplitude(self) -> torch.Tensor:
+        """Output amplitude of each tone ``|a_k| |H(j omega_k)|`` (output units), ``[..., N]``."""
+        return self.amplitude.abs() * torch.linalg.vector_norm(self._h0, dim=-1)
+
+    def steady_state_phase(self) -> torch.Tensor:
+        """Output phase of each tone (rad, in (-pi, pi]): ``p_k + angle H(j omega_k)`` (delay
+        included, plus pi for a negative amplitude), ``[..., N]``."""
+        ph = torch.atan2(self._h0[..., 1], self._h0[..., 0]) - self.omega * self.delay_s + self.phase
+        ph = ph + math.pi * (self.amplitude < 0)
+        return torch.atan2(torch.sin(ph), torch.cos(ph))
+
+    def _steady(self, tp: torch.Tensor) -> torch.Tensor:
+        """The steady-state output at times ``tp`` after the delay (float64 ``[..., S]``): the
+        sum of the tones' sine responses."""
+        dev = tp.device
+        amp = self.amplitude.to(dev)[..., None, :]  # [..., 1, N]
+        arg = self.omega.to(dev)[..., None, :] * tp[..., None] + self.phase.to(dev)[..., None, :]  # [..., S, N]
+        h = self._h0.to(dev)[..., None, :, :]
+        return (amp * (h[..., 0] * torch.sin(arg) + h[..., 1] * torch.cos(arg))).sum(-1)
+
+    def path_length(self, window: ExposureWindow) -> torch.Tensor:
+        """Upper bound of the path (px) during ``window``, ``[...]``, no gradient: the sum of
+        the tones' exact steady-state total variations plus the transient's bound (as
+        :meth:`LTISineTrajectory.path_length`)."""
+        with torch.no_grad():
+            t0, t1 = self._span_after_delay(window)
+            dev = t0.device
+            h = self._h0.to(dev)
+            phase0 = torch.atan2(h[..., 1], h[..., 0]) + self.phase.to(dev) + math.pi * (self.amplitude.to(dev) < 0)
+            tv = _sine_path_bound(self.steady_state_amplitude().to(dev), self.omega.to(dev), phase0, t0[..., None],
+                                  (t1 - t0)[..., None]).sum(-1)
+            tv = tv + self._transient_path_bound(t0, t1)
+            return tv * torch.linalg.vector_norm(self.direction.to(dev), dim=-1)
+
+    def phase_span(self, window: ExposureWindow) -> torch.Tensor:
+        """``max_k omega_k * duration`` (the fastest tone); the transients' share of the nodes
+        comes from their path (:meth:`path_length`)."""
+        return self.omega.detach().abs().amax(-1).to(window.duration.device) * window.duration.detach()
+
+    def __repr__(self) -> str:
+        return f"LTIMultisineTrajectory(shape={tuple(self.shape)}, tones={self.n_tones}, order={self.plant.order}, method={self.method!r})"
