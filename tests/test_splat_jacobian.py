@@ -238,3 +238,85 @@ def test_sine_forward_model_jacobian_gradcheck():
     # auto[k]: [2, H, W, 2, K or 2] -> per item, parameter-first
     ref = torch.cat([torch.stack([auto[k][b, :, :, b] for b in range(2)]).movedim(-1, 1) for k in range(3)], 1)
     assert torch.allclose(jac.detach(), ref, rtol=1e-9, atol=1e-12 * ref.abs().max())
+
+
+def _fitter_frames(axes, fit_center, seed=0):
+    """Frames of fit_sinusoid's analytic path: problems with a tilted PSF, two exposures each,
+    parameters theta = (amplitudes, phases, scale, background[, center]) with the fitted axes'
+    unit directions D [N, n_axes, 2]."""
+    g = torch.Generator().manual_seed(seed)
+    N, E = 3, 2
+    rnd = lambda *s: torch.rand(*s, generator=g, dtype=F64)  # noqa: E731
+    if axes == "rotated":
+        a = 0.4 + rnd(N)
+        D = torch.stack((a.cos(), a.sin()), -1)[:, None]
+    else:
+        eye = torch.eye(2, dtype=F64)
+        D = {"x": eye[:1], "y": eye[1:], "xy": eye}[axes][None].expand(N, -1, 2)
+    n_axes = D.shape[1]
+    cov = torch.tensor([[4.0, 1.1], [1.1, 2.5]], dtype=F64).expand(N, 2, 2)
+    from torchblur.render.psf import GaussianPSF
+
+    psf = GaussianPSF(torch.stack((14 + rnd(N), 11 + rnd(N)), -1), cov, 1 + rnd(N))
+    om = 2 * math.pi * (50 + 100 * rnd(N))
+    start, dur = 1e-3 * rnd(N, E), 2e-3 + 4e-3 * rnd(N, E)
+    cols = [2 + 3 * rnd(N, n_axes), 6 * rnd(N, n_axes) - 3, 1 + rnd(N, 1), rnd(N, 1)]
+    if fit_center:
+        cols.append(psf.center + rnd(N, 2) - 0.5)
+    theta = torch.cat(cols, -1)
+    return dict(D=D, psf=psf, om=om, start=start, dur=dur, theta=theta, n_axes=n_axes, H=24, W=30)
+
+
+def _old_splat_frames(f, fit_center, tau, wq, n_f, e_f):
+    """fit_sinusoid's hand-written node positions and derivatives (before it called
+    sine_blur_with_jacobian), kept here as the reference it was replaced against."""
+    D, psf, theta_f, n_axes = f["D"], f["psf"], f["theta"][n_f], f["n_axes"]
+    P = theta_f.shape[-1]
+    t0, d0 = f["start"][n_f, e_f], f["dur"][n_f, e_f]
+    t = t0[:, None] + d0[:, None] * tau
+    w = d0[:, None] * wq * psf.amplitude[n_f][:, None]
+    j = 2 * n_axes + 2
+    c = theta_f[:, j:j + 2] if fit_center else psf.center[n_f]
+    arg = f["om"][n_f][:, None, None] * t[..., None] + theta_f[:, None, n_axes:2 * n_axes]
+    sn, cs = torch.sin(arg), torch.cos(arg)
+    amp = theta_f[:, None, :n_axes]
+    disp = amp * sn
+    dpx = torch.zeros(t.shape + (P,), dtype=F64)
+    dpy = torch.zeros_like(dpx)
+    px, py = c[:, 0, None].expand(t.shape), c[:, 1, None].expand(t.shape)
+    for k in range(n_axes):
+        ux, uy = D[n_f, k, 0, None], D[n_f, k, 1, None]
+        dpx[..., k], dpy[..., k] = ux * sn[..., k], uy * sn[..., k]
+        dpx[..., n_axes + k], dpy[..., n_axes + k] = ux * (amp * cs)[..., k], uy * (amp * cs)[..., k]
+        px = px + ux * disp[..., k]
+        py = py + uy * disp[..., k]
+    if fit_center:
+        dpx[..., j] = 1
+        dpy[..., j + 1] = 1
+    A, B, C = (v[n_f] for v in psf.precision())
+    return gaussian_splat_with_jacobian(px, py, dpx, dpy, w, A, B, C, f["H"], f["W"])
+
+
+@pytest.mark.parametrize("fit_center", [False, True])
+@pytest.mark.parametrize("axes", ["x", "y", "xy", "rotated"])
+def test_fitter_frames_on_the_sine_forward_model(axes, fit_center):
+    """fit_sinusoid's frames through window_nodes + sine_blur_with_jacobian equal its former
+    hand-written splat (values and the amplitude, phase and centre columns) to round-off."""
+    from torchblur.render.splat import sine_blur_with_jacobian, window_nodes
+
+    f = _fitter_frames(axes, fit_center)
+    tau, wq = quadrature_nodes(3, 8, dtype=F64)
+    n_f, e_f = torch.tensor([0, 0, 1, 1, 2, 2]), torch.tensor([0, 1, 0, 1, 0, 1])
+    ref_img, ref_jac = _old_splat_frames(f, fit_center, tau, wq, n_f, e_f)
+    n_axes, th = f["n_axes"], f["theta"][n_f]
+    t, w = window_nodes(f["start"][n_f, e_f], f["dur"][n_f, e_f], tau, wq, f["psf"].amplitude[n_f])
+    centre = th[:, 2 * n_axes + 2:] if fit_center else f["psf"].center[n_f]
+    img, jac = sine_blur_with_jacobian(t, w, th[:, :n_axes], th[:, n_axes:2 * n_axes], f["om"][n_f, None].expand(-1, n_axes),
+                                       f["D"][n_f], centre, tuple(v[n_f] for v in f["psf"].precision()), f["H"], f["W"],
+                                       center_jacobian=fit_center)
+    scale = img.abs().amax()
+    assert float((img - ref_img).abs().max()) < 1e-12 * float(scale)
+    cols = list(range(2 * n_axes)) + ([2 * n_axes + 2, 2 * n_axes + 3] if fit_center else [])
+    assert jac.shape[-3] == len(cols)
+    assert float((jac - ref_jac[:, cols]).abs().max()) < 1e-12 * float(ref_jac.abs().amax())
+    assert float(ref_jac[:, 2 * n_axes:2 * n_axes + 2].abs().max()) == 0  # scale, background: set around the splat
