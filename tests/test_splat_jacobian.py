@@ -267,56 +267,36 @@ def _fitter_frames(axes, fit_center, seed=0):
     return dict(D=D, psf=psf, om=om, start=start, dur=dur, theta=theta, n_axes=n_axes, H=24, W=30)
 
 
-def _old_splat_frames(f, fit_center, tau, wq, n_f, e_f):
-    """fit_sinusoid's hand-written node positions and derivatives (before it called
-    sine_blur_with_jacobian), kept here as the reference it was replaced against."""
-    D, psf, theta_f, n_axes = f["D"], f["psf"], f["theta"][n_f], f["n_axes"]
-    P = theta_f.shape[-1]
-    t0, d0 = f["start"][n_f, e_f], f["dur"][n_f, e_f]
-    t = t0[:, None] + d0[:, None] * tau
-    w = d0[:, None] * wq * psf.amplitude[n_f][:, None]
-    j = 2 * n_axes + 2
-    c = theta_f[:, j:j + 2] if fit_center else psf.center[n_f]
-    arg = f["om"][n_f][:, None, None] * t[..., None] + theta_f[:, None, n_axes:2 * n_axes]
-    sn, cs = torch.sin(arg), torch.cos(arg)
-    amp = theta_f[:, None, :n_axes]
-    disp = amp * sn
-    dpx = torch.zeros(t.shape + (P,), dtype=F64)
-    dpy = torch.zeros_like(dpx)
-    px, py = c[:, 0, None].expand(t.shape), c[:, 1, None].expand(t.shape)
-    for k in range(n_axes):
-        ux, uy = D[n_f, k, 0, None], D[n_f, k, 1, None]
-        dpx[..., k], dpy[..., k] = ux * sn[..., k], uy * sn[..., k]
-        dpx[..., n_axes + k], dpy[..., n_axes + k] = ux * (amp * cs)[..., k], uy * (amp * cs)[..., k]
-        px = px + ux * disp[..., k]
-        py = py + uy * disp[..., k]
-    if fit_center:
-        dpx[..., j] = 1
-        dpy[..., j + 1] = 1
-    A, B, C = (v[n_f] for v in psf.precision())
-    return gaussian_splat_with_jacobian(px, py, dpx, dpy, w, A, B, C, f["H"], f["W"])
-
-
 @pytest.mark.parametrize("fit_center", [False, True])
 @pytest.mark.parametrize("axes", ["x", "y", "xy", "rotated"])
-def test_fitter_frames_on_the_sine_forward_model(axes, fit_center):
-    """fit_sinusoid's frames through window_nodes + sine_blur_with_jacobian equal its former
-    hand-written splat (values and the amplitude, phase and centre columns) to round-off."""
-    from torchblur.render.splat import sine_blur_with_jacobian, window_nodes
+def test_fitter_model_splat_matches_renderer_and_forward_ad(axes, fit_center):
+    """fit_sinusoid's model on the one forward model (window_nodes + sine_blur_with_jacobian,
+    frames on rules of different panel counts, scale and background columns assembled around
+    the splat) equals render_blur's image and its forward-AD Jacobian (the generic path)."""
+    import dataclasses
+
+    from torchblur.fit.sine_model import ParamLayout, sine_model
+    from torchblur.render.blur import RenderSettings
 
     f = _fitter_frames(axes, fit_center)
-    tau, wq = quadrature_nodes(3, 8, dtype=F64)
-    n_f, e_f = torch.tensor([0, 0, 1, 1, 2, 2]), torch.tensor([0, 1, 0, 1, 0, 1])
-    ref_img, ref_jac = _old_splat_frames(f, fit_center, tau, wq, n_f, e_f)
-    n_axes, th = f["n_axes"], f["theta"][n_f]
-    t, w = window_nodes(f["start"][n_f, e_f], f["dur"][n_f, e_f], tau, wq, f["psf"].amplitude[n_f])
-    centre = th[:, 2 * n_axes + 2:] if fit_center else f["psf"].center[n_f]
-    img, jac = sine_blur_with_jacobian(t, w, th[:, :n_axes], th[:, n_axes:2 * n_axes], f["om"][n_f, None].expand(-1, n_axes),
-                                       f["D"][n_f], centre, tuple(v[n_f] for v in f["psf"].precision()), f["H"], f["W"],
-                                       center_jacobian=fit_center)
-    scale = img.abs().amax()
-    assert float((img - ref_img).abs().max()) < 1e-12 * float(scale)
-    cols = list(range(2 * n_axes)) + ([2 * n_axes + 2, 2 * n_axes + 3] if fit_center else [])
-    assert jac.shape[-3] == len(cols)
-    assert float((jac - ref_jac[:, cols]).abs().max()) < 1e-12 * float(ref_jac.abs().amax())
-    assert float(ref_jac[:, 2 * n_axes:2 * n_axes + 2].abs().max()) == 0  # scale, background: set around the splat
+    n_axes, psf = f["n_axes"], f["psf"]
+    labels = ("x", "y") if axes == "xy" else ("u",)
+    layout = ParamLayout(labels, fit_scale=True, fit_background=True, fit_center=fit_center)
+    model = sine_model(layout, psf, f["start"], f["dur"], f["om"], f["D"], f["H"], f["W"],
+                       amplitude_bound=f["theta"][:, :n_axes] + 1, settings=RenderSettings(nodes=48))
+    assert model.analytic
+    generic = dataclasses.replace(model, panels=None)
+    assert not generic.analytic
+    n = torch.tensor([0, 1, 2, 1])
+    theta = f["theta"][n]
+    img, jac = model.image_and_jacobian(theta, n)
+    ref_img, ref_jac = generic.image_and_jacobian(theta, n)
+    assert jac.shape == ref_jac.shape == (4, 2 * f["H"] * f["W"], layout.size)
+    assert float((img - ref_img).abs().max()) < 1e-11 * float(ref_img.abs().max())
+    assert float((jac - ref_jac).abs().max()) < 1e-11 * float(ref_jac.abs().max())
+    assert torch.equal(model.image(theta, n), img)
+    # frames of one problem on different rules (panel counts) give the same model
+    mixed = dataclasses.replace(model, panels=torch.tensor([[6, 3], [3, 6], [6, 6]]), nodes_per_panel=16, _rules={})
+    img2, jac2 = mixed.image_and_jacobian(theta, n)
+    assert float((img2 - ref_img).abs().max()) < 1e-6 * float(ref_img.abs().max())
+    assert float((jac2 - ref_jac).abs().max()) < 1e-5 * float(ref_jac.abs().max())
