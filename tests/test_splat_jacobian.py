@@ -295,8 +295,12 @@ def test_fitter_model_splat_matches_renderer_and_forward_ad(axes, fit_center):
     assert float((img - ref_img).abs().max()) < 1e-11 * float(ref_img.abs().max())
     assert float((jac - ref_jac).abs().max()) < 1e-11 * float(ref_jac.abs().max())
     assert torch.equal(model.image(theta, n), img)
+    for r in range(4):  # the batch equals the rows one at a time
+        one_img, one_jac = model.image_and_jacobian(theta[r:r + 1], n[r:r + 1])
+        assert float((one_img - img[r:r + 1]).abs().max()) < 1e-12 * float(ref_img.abs().max())
+        assert float((one_jac - jac[r:r + 1]).abs().max()) < 1e-12 * float(ref_jac.abs().max())
     # frames of one problem on different rules (panel counts) give the same model
-    mixed = dataclasses.replace(model, panels=torch.tensor([[6, 3], [3, 6], [6, 6]]), nodes_per_panel=16, _rules={})
+    mixed = dataclasses.replace(model, panels=torch.tensor([[6, 3], [3, 6], [6, 6]]), nodes_per_panel=16)
     img2, jac2 = mixed.image_and_jacobian(theta, n)
     assert float((img2 - ref_img).abs().max()) < 1e-6 * float(ref_img.abs().max())
     assert float((jac2 - ref_jac).abs().max()) < 1e-5 * float(ref_jac.abs().max())

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 
@@ -124,7 +124,6 @@ class SineModel:
     panels: torch.Tensor | None = None
     nodes_per_panel: int = 0
     precision: tuple | None = None
-    _rules: dict = field(default_factory=dict, repr=False)  # panel count -> (tau [S], weights [S])
 
     @property
     def analytic(self) -> bool:
@@ -207,9 +206,7 @@ class SineModel:
         amplitude, phase (and rest position) columns; ``Q = 0`` without ``jacobian``) of ``m``
         frames: problem ``n_f [m]``, exposure ``e_f [m]``, parameters ``theta_f [m, P]``, on a
         rule of ``n_panels`` panels. Analytic path only."""
-        if n_panels not in self._rules:
-            self._rules[n_panels] = quadrature_nodes(n_panels, self.nodes_per_panel, dtype=theta_f.dtype, device=theta_f.device)
-        tau, wq = self._rules[n_panels]
+        tau, wq = quadrature_nodes(n_panels, self.nodes_per_panel, dtype=theta_f.dtype, device=theta_f.device)  # a few us
         L = self.layout
         t, w = window_nodes(self.start[n_f, e_f], self.duration[n_f, e_f], tau, wq, self.psf.amplitude[n_f])
         centre = theta_f[:, L.center:L.center + 2] if L.fit_center else self.psf.center[n_f]
