@@ -239,3 +239,69 @@ def test_sine_forward_model_jacobian_gradcheck():
     # auto[k]: [2, H, W, 2, K or 2] -> per item, parameter-first
     ref = torch.cat([torch.stack([auto[k][b, :, :, b] for b in range(2)]).movedim(-1, 1) for k in range(3)], 1)
     assert torch.allclose(jac.detach(), ref, rtol=1e-9, atol=1e-12 * ref.abs().max())
+
+
+def _fitter_frames(axes, fit_center, seed=0):
+    """Frames of fit_sinusoid's analytic path: problems with a tilted PSF, two exposures each,
+    parameters theta = (amplitudes, phases, scale, background[, center]) with the fitted axes'
+    unit directions D [N, n_axes, 2]."""
+    g = torch.Generator().manual_seed(seed)
+    N, E = 3, 2
+    rnd = lambda *s: torch.rand(*s, generator=g, dtype=F64)  # noqa: E731
+    if axes == "rotated":
+        a = 0.4 + rnd(N)
+        D = torch.stack((a.cos(), a.sin()), -1)[:, None]
+    else:
+        eye = torch.eye(2, dtype=F64)
+        D = {"x": eye[:1], "y": eye[1:], "xy": eye}[axes][None].expand(N, -1, 2)
+    n_axes = D.shape[1]
+    cov = torch.tensor([[4.0, 1.1], [1.1, 2.5]], dtype=F64).expand(N, 2, 2)
+    from torchblur.render.psf import GaussianPSF
+
+    psf = GaussianPSF(torch.stack((14 + rnd(N), 11 + rnd(N)), -1), cov, 1 + rnd(N))
+    om = 2 * math.pi * (50 + 100 * rnd(N))
+    start, dur = 1e-3 * rnd(N, E), 2e-3 + 4e-3 * rnd(N, E)
+    cols = [2 + 3 * rnd(N, n_axes), 6 * rnd(N, n_axes) - 3, 1 + rnd(N, 1), rnd(N, 1)]
+    if fit_center:
+        cols.append(psf.center + rnd(N, 2) - 0.5)
+    theta = torch.cat(cols, -1)
+    return dict(D=D, psf=psf, om=om, start=start, dur=dur, theta=theta, n_axes=n_axes, H=24, W=30)
+
+
+@pytest.mark.parametrize("fit_center", [False, True])
+@pytest.mark.parametrize("axes", ["x", "y", "xy", "rotated"])
+def test_fitter_model_splat_matches_renderer_and_forward_ad(axes, fit_center):
+    """fit_sinusoid's model on the one forward model (window_nodes + sine_blur_with_jacobian,
+    frames on rules of different panel counts, scale and background columns assembled around
+    the splat) equals render_blur's image and its forward-AD Jacobian (the generic path)."""
+    import dataclasses
+
+    from torchblur.fit.sine_model import ParamLayout, sine_model
+    from torchblur.render.blur import RenderSettings
+
+    f = _fitter_frames(axes, fit_center)
+    n_axes, psf = f["n_axes"], f["psf"]
+    labels = ("x", "y") if axes == "xy" else ("u",)
+    layout = ParamLayout(labels, fit_scale=True, fit_background=True, fit_center=fit_center)
+    model = sine_model(layout, psf, f["start"], f["dur"], f["om"], f["D"], f["H"], f["W"],
+                       amplitude_bound=f["theta"][:, :n_axes] + 1, settings=RenderSettings(nodes=48))
+    assert model.analytic
+    generic = dataclasses.replace(model, panels=None)
+    assert not generic.analytic
+    n = torch.tensor([0, 1, 2, 1])
+    theta = f["theta"][n]
+    img, jac = model.image_and_jacobian(theta, n)
+    ref_img, ref_jac = generic.image_and_jacobian(theta, n)
+    assert jac.shape == ref_jac.shape == (4, 2 * f["H"] * f["W"], layout.size)
+    assert float((img - ref_img).abs().max()) < 1e-11 * float(ref_img.abs().max())
+    assert float((jac - ref_jac).abs().max()) < 1e-11 * float(ref_jac.abs().max())
+    assert torch.equal(model.image(theta, n), img)
+    for r in range(4):  # the batch equals the rows one at a time
+        one_img, one_jac = model.image_and_jacobian(theta[r:r + 1], n[r:r + 1])
+        assert float((one_img - img[r:r + 1]).abs().max()) < 1e-12 * float(ref_img.abs().max())
+        assert float((one_jac - jac[r:r + 1]).abs().max()) < 1e-12 * float(ref_jac.abs().max())
+    # frames of one problem on different rules (panel counts) give the same model
+    mixed = dataclasses.replace(model, panels=torch.tensor([[6, 3], [3, 6], [6, 6]]), nodes_per_panel=16)
+    img2, jac2 = mixed.image_and_jacobian(theta, n)
+    assert float((img2 - ref_img).abs().max()) < 1e-6 * float(ref_img.abs().max())
+    assert float((jac2 - ref_jac).abs().max()) < 1e-5 * float(ref_jac.abs().max())

@@ -5,29 +5,39 @@ closed-form moments (every root, the alias pair included), all refined together;
 or more exposures of the same motion the fit is joint and the alias is gone. The result
 carries the Fisher-information uncertainty of each estimate and a status per item, so a
 dark frame or a spot out of frame is flagged and never stops or poisons the batch.
+
+The pieces: :mod:`torchblur.fit.problem` (pixels, weights, starts, crop),
+:mod:`torchblur.fit.sine_model` (the model image and its Jacobian, on the one forward model
+:func:`torchblur.render.splat.sine_blur_with_jacobian`), :mod:`torchblur.fit.results`
+(:class:`SinusoidFit`), :mod:`torchblur.fit.robust` (the robust options' pixel helpers). Here:
+the public entry :func:`fit_sinusoid` (checks once, robust passes, flags) and one pass of the
+fit in named steps (:func:`_fit_core`).
 """
 from __future__ import annotations
 
-import dataclasses
 import math
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 
 import torch
 
+from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_tensor, as_unit_direction, check_choice, check_finite,
+                              check_positive, check_real_scalar)
+from torchblur.fit.losses import LOSSES, image_loss, irls_weights
+from torchblur.fit.optim import levenberg_marquardt
+from torchblur.fit.problem import SineProblem, crop_to_reach, sine_problem, starting_points
+from torchblur.fit.results import SinusoidFit, put_items
+from torchblur.fit.robust import impulses, inpaint, plane_fit, plane_image, robust_scale
+from torchblur.fit.sine_model import _CALL_NODE_PIXELS, ParamLayout, SineModel, _merge_panel_groups, sine_model  # noqa: F401
 from torchblur.render.alias import alias_phase as _alias_phase
 from torchblur.render.alias import wrap_phase
-from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_tensor, as_unit_direction, check_choice, check_finite, check_positive,
-                     check_real_scalar)
-from torchblur.fit.losses import LOSSES, image_loss, irls_weights
-from torchblur.image.moments import image_moments, moments_along, sinusoid_from_moments
-from torchblur.fit.optim import levenberg_marquardt, model_jacobian
+from torchblur.render.blur import RenderSettings, render_blur
 from torchblur.render.psf import GaussianPSF, KernelPSF
-from torchblur.render.blur import RenderSettings, choose_node_count, panel_count, quadrature_nodes, render_blur
-from torchblur.render.window import ExposureWindow
 from torchblur.render.trajectory import Sinusoid
+from torchblur.render.window import ExposureWindow
 
 from torchblur.fit.status import (  # noqa: F401  (re-exported: torchblur.fit.sinusoid.STATUS, ...)
-    FLAGS, MASKED, NO_MOTION, NO_PIXELS, OUT_OF_FRAME, OUTLIERS_MASKED, PARTLY_OUT_OF_FRAME, SATURATED_MASKED, STATUS,
+    DARK, FLAGS, MASKED, NO_MOTION, NO_PIXELS, NOT_CONVERGED, OUT_OF_FRAME, OUTLIERS_MASKED, PARTLY_OUT_OF_FRAME, SATURATED_MASKED,
+    SINGULAR, STATUS,
 )
 
 __all__ = ["SinusoidFit", "fit_sinusoid", "STATUS", "FLAGS", "MASKED", "SATURATED_MASKED", "OUTLIERS_MASKED", "PARTLY_OUT_OF_FRAME",
@@ -37,74 +47,19 @@ OPTIMIZERS = ("lm", "adam", "lbfgs")
 AXES = ("x", "y", "xy")
 OUTLIERS = ("none", "reject")
 
-
-@dataclass
-class SinusoidFit:
-    """Result of :func:`fit_sinusoid`; batch ``[...]`` is the images' leading dims.
-
-    Attributes:
-        amplitude: M (px), ``[...]`` (axes "x"/"y") or ``[..., 2]`` (axes "xy"), >= 0.
-        phase: phi (rad, wrapped to (-pi, pi]), same shape.
-        amplitude_std, phase_std: one standard deviation from the Fisher information at the
-            solution (noise level given, or estimated from the residuals).
-        alias_phase: the other branch for the first exposure (renders the same image as
-            ``phase`` in that exposure), same shape as ``phase``.
-        alias_cost: the loss at ``(amplitude, alias_phase)`` over all exposures, ``[...]``:
-            equal to ``cost`` with one exposure, larger when the exposures resolve the alias.
-        cost: the loss at the solution, ``[...]``.
-        converged: ``[...]`` bool, ``status == 0``.
-        status: ``[...]`` int, see :data:`STATUS`.
-        covariance: ``[..., P, P]`` over every fitted parameter, in ``param_names`` order.
-        param_names: names of the P parameters.
-        noise_std: the pixel noise std used for the uncertainty, ``[...]``.
-        scale, background, center: fitted nuisance parameters (None if not fitted).
-        n_iter: optimiser iterations, ``[...]``.
-        flags: ``[...]`` int, a bit field of :data:`FLAGS` (:data:`MASKED`,
-            :data:`SATURATED_MASKED`, :data:`OUTLIERS_MASKED`, :data:`PARTLY_OUT_OF_FRAME`,
-            :data:`NO_MOTION`); test a bit with ``(fit.flags & PARTLY_OUT_OF_FRAME) != 0``.
-        n_masked: pixels excluded from the fit (every cause), ``[...]`` int.
-        n_outliers: of which excluded by the robust pass (``outliers="reject"``), ``[...]`` int.
-        background_plane: with ``fit_gradient``: the stray-light plane removed from each
-            exposure, ``[..., E, 3]`` = (level at the frame centre, slope along x per px,
-            slope along y per px), in image units; None otherwise.
-    """
-
-    amplitude: torch.Tensor
-    phase: torch.Tensor
-    amplitude_std: torch.Tensor
-    phase_std: torch.Tensor
-    alias_phase: torch.Tensor
-    alias_cost: torch.Tensor
-    cost: torch.Tensor
-    converged: torch.Tensor
-    status: torch.Tensor
-    covariance: torch.Tensor
-    param_names: tuple
-    noise_std: torch.Tensor
-    n_iter: torch.Tensor
-    scale: torch.Tensor | None = None
-    background: torch.Tensor | None = None
-    center: torch.Tensor | None = None
-    extras: dict = field(default_factory=dict)
-    flags: torch.Tensor | None = None
-    n_masked: torch.Tensor | None = None
-    n_outliers: torch.Tensor | None = None
-    background_plane: torch.Tensor | None = None
-
-
-def _flatten_psf(psf, batch, N):
-    if isinstance(psf, GaussianPSF):
-        return GaussianPSF(psf.center.expand(batch + (2,)).reshape(N, 2), psf.cov.expand(batch + (2, 2)).reshape(N, 2, 2),
-                           psf.amplitude.expand(batch).reshape(N))
-    H, W = psf.frame_shape
-    return KernelPSF(psf.kernel.expand(batch + (H, W)).reshape(N, H, W))
+# Old private names, kept importable from here.
+_put = put_items
+_inpaint, _robust_scale, _impulses, _plane_fit, _plane_image = inpaint, robust_scale, impulses, plane_fit, plane_image
 
 
 def _validate(images, psf, window, omega, axes, optimizer, loss):
+    """Check :func:`fit_sinusoid`'s data arguments, ``axes`` (a name), ``optimizer`` and ``loss``;
+    ``(images, omega)`` with ``omega`` a tensor of the images' dtype and device."""
     if not isinstance(images, torch.Tensor):
         raise InputTypeError(f"images: expected a tensor [..., E, H, W], got {type(images).__name__}")
     if not images.is_floating_point():
-        images = images.to(torch.get_default_dtype())
+        raise InputTypeError(f"images: expected a real floating tensor [..., E, H, W] with the dark level subtracted "
+                             f"(preprocess.subtract_dark), got dtype {images.dtype}")
     if images.dim() < 3:
         raise ShapeError(f"images: expected shape [..., E, H, W], got {tuple(images.shape)}")
     if images.numel() == 0:
@@ -143,529 +98,277 @@ def _validate(images, psf, window, omega, axes, optimizer, loss):
     return images, omega
 
 
-def _fit_core(
-    images,
-    psf,
-    window: ExposureWindow,
-    omega,
-    *,
-    axes="x",
-    optimizer: str = "lm",
-    loss: str = "l2",
-    noise_std=None,
-    mask=None,
-    fit_scale: bool = False,
-    fit_background: bool = False,
-    fit_center: bool = False,
-    normalize: bool = False,
-    max_iter: int | None = None,
-    tol: float = 1e-9,
-    render_settings: RenderSettings | None = None,
-) -> SinusoidFit:
-    """One pass of :func:`fit_sinusoid` (its arguments, already checked there, less the robust
-    options; ``axes`` a name or unit directions ``[N, 2]``); flags are set there."""
-    dtype, device = images.dtype, images.device
-    batch = images.shape[:-3]
-    E, H, W = images.shape[-3:]
-    N = max(1, math.prod(batch))
-    data = images.reshape(N, E, H, W)
-    win = window.to(dtype).expand(batch + (E,))
-    start = win.start.reshape(N, E)
-    dur = win.duration.reshape(N, E)
-    om = omega.expand(batch).reshape(N)
-    p_flat = _flatten_psf(psf.to(dtype) if isinstance(psf, GaussianPSF) else psf, batch, N)
-    if isinstance(p_flat, GaussianPSF):
-        rest, cov_psf = p_flat.center, p_flat.cov
-    else:
-        rest, cov_psf = p_flat.moments()
+@dataclass(frozen=True)
+class _FitOptions:
+    """The settings of one pass of :func:`fit_sinusoid` (checked there; see its arguments)."""
 
-    # Weights and the noise level. ``row_weight [N]``: one weight per item (the same noise on
-    # every pixel, nothing masked), then ``weight`` is a broadcast view of it, not a copy.
-    row_weight = torch.ones(N, dtype=dtype, device=device)
-    weight = row_weight[:, None, None, None].expand(N, E, H, W)
-    sigma_given = None
-    if noise_std is not None:
-        s = check_positive(as_tensor(noise_std, "noise_std", like=data), "noise_std")
-        if s.dim() >= 3 and s.shape[-3:] == (E, H, W):
-            s = s.expand(batch + (E, H, W)).reshape(N, E, H, W)
-        else:
-            try:
-                s = s.expand(batch).reshape(N, 1, 1, 1)
-            except RuntimeError:
-                raise ShapeError(f"noise_std: expected a number, [...] or [..., E, H, W], got {tuple(s.shape)}") from None
-        sigma_level = s.reshape(N, -1).contiguous().median(-1).values
-        sigma_given = s.expand(N, E, H, W)
-        if s.shape[-3:] == (1, 1, 1):
-            row_weight = 1 / s.reshape(N) ** 2
-            weight = row_weight[:, None, None, None].expand(N, E, H, W)
-        else:
-            row_weight, weight = None, 1 / sigma_given**2
-    if mask is not None:
-        if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool:
-            raise InputTypeError("mask: expected a bool tensor [..., E, H, W] (True = use the pixel)")
-        try:
-            m = mask.expand(batch + (E, H, W)).reshape(N, E, H, W)
-        except RuntimeError:
-            raise ShapeError(f"mask: expected shape [..., E, H, W] = {tuple(images.shape)}, got {tuple(mask.shape)}") from None
-        weight = weight * m.to(dtype)
-        row_weight = None
+    optimizer: str = "lm"
+    loss: str = "l2"
+    fit_scale: bool = False
+    fit_background: bool = False
+    fit_center: bool = False
+    normalize: bool = False
+    max_iter: int | None = None
+    tol: float = 1e-9
+    render_settings: RenderSettings | None = None
 
-    # Degenerate items: no signal above the noise.
-    flat = data.reshape(N, -1)
-    # Background and noise level from ~1024-2048 pixels per item (a strided subsample: the
-    # median of 1024 noise samples is within 0.04 std of the level, and a median costs a
-    # selection per item).
-    sub = flat[:, ::max(1, flat.shape[-1] // 1024)]
-    med = sub.median(-1).values
-    noise_level = sigma_level if sigma_given is not None else (sub - med[:, None]).abs().median(-1).values * 1.4826
-    peak = (flat - med[:, None]).amax(-1)
-    dark = ~(peak > 8 * noise_level.clamp_min(torch.finfo(dtype).tiny)) | (peak <= 0)
 
-    # Closed-form starts from the moments of every exposure (both roots).
-    thr = med[:, None] + 3 * noise_level[:, None]
-    _, centroid, icov = image_moments(data, threshold=thr)  # [N, E, 2], [N, E, 2, 2]
-    # The image direction of each fitted axis: D [N, n_axes, 2] (unit vectors).
-    D = _axis_directions(axes, N, dtype, device)
-    n_axes = D.shape[1]
-    M_c, phi_c = [], []
-    for k in range(n_axes):
-        d = D[:, None, k]  # [N, 1, 2]
-        mu1, vex = moments_along(centroid - rest[:, None], icov - cov_psf[:, None], d)
-        M, phi = sinusoid_from_moments(mu1, vex, om[:, None], start, dur)  # [N, E], [N, E, 2]
-        M_c.append(M)
-        phi_c.append(torch.nan_to_num(phi, nan=0.0))
-    # A motion larger than the frame cannot be measured: cap the starts (keeps the node count sane).
-    diag = math.hypot(H, W)
-    M_c = [m.clamp(max=diag) for m in M_c]
-    # The rest position must be in the frame (3 sigma margin): otherwise flag, do not fit.
-    sd = torch.diagonal(cov_psf, dim1=-2, dim2=-1).clamp_min(0).sqrt()
-    outside = ((rest < -3 * sd) | (rest > torch.tensor([W - 1, H - 1], dtype=dtype, device=device) + 3 * sd)).any(-1)
-    # Candidates: the roots of the first exposure (the alias pair; four combinations for a
-    # Lissajous motion). With two or more exposures the true root is the one the exposures
-    # share (the aliases move with the window centre), so the single consensus root is
-    # refined; items whose alias then fits better are refitted from it below.
-    roots = [(r,) for r in range(2)] if n_axes == 1 else [(r0, r1) for r0 in range(2) for r1 in range(2)]
+@dataclass
+class _Solution:
+    """The chosen solution of each of ``N`` items, and its alias branch.
 
-    def root_phases(e, rs):
-        return torch.stack([phi_c[k][:, e, rs[k]] for k in range(n_axes)], -1)  # [N, n_axes]
+    ``theta [N, P]`` (canonical: amplitudes >= 0, phases wrapped), ``cost [N]``, ``converged
+    [N]``, ``n_iter [N]``, ``flipped [N, n_axes]`` (the optimiser ended at ``-M``: the Jacobian's
+    amplitude columns change sign); ``alias [N, P]`` and its cost ``alias_cost [N]``; with the
+    optimiser's final normal equations reused, ``jtj [N, P, P]`` and ``model [N, R]``.
+    """
 
-    cands = [torch.cat([torch.stack([M_c[k][:, 0] for k in range(n_axes)], -1), root_phases(0, rs)], -1) for rs in roots]
-    if E >= 2:
-        # Compare with the exposure whose window centre best separates the alias (repeats of
-        # the same window share the alias and would tell nothing).
-        centre = om[:, None] * (start + dur / 2)
-        sep = (centre - centre[:, :1]).sin().abs()  # [N, E]
-        other = sep.argmax(-1)  # [N]
-        phi_other = [p[torch.arange(N, device=device), other] for p in phi_c]  # [N, 2] per axis
+    theta: torch.Tensor
+    cost: torch.Tensor
+    converged: torch.Tensor
+    n_iter: torch.Tensor
+    flipped: torch.Tensor
+    alias: torch.Tensor | None = None
+    alias_cost: torch.Tensor | None = None
+    jtj: torch.Tensor | None = None
+    model: torch.Tensor | None = None
 
-        def other_phases(rs):
-            return torch.stack([phi_other[k][:, rs[k]] for k in range(n_axes)], -1)
 
-        dist = torch.stack([
-            torch.stack([wrap_phase(root_phases(0, rs) - other_phases(r2)).abs().sum(-1) for r2 in roots], -1).amin(-1)
-            for rs in roots], -1)  # [N, n_roots]
-        pick = dist.argmin(-1)
-        stacked = torch.stack(cands, 1)
-        cands = [stacked[torch.arange(N, device=device), pick]]
-        M_mean = torch.stack([M_c[k].mean(-1) for k in range(n_axes)], -1)
-        cands[0][:, :n_axes] = M_mean
-    K = len(cands)
-    theta_core = torch.stack(cands, 1)  # [N, K, 2 n_axes]
-    theta_core[..., :n_axes] = theta_core[..., :n_axes].clamp_min(1e-3)
+def _fit_core(data, psf, window: ExposureWindow, omega, direction, *, labels, options: _FitOptions, noise_std=None,
+              use=None) -> SinusoidFit:
+    """One pass of :func:`fit_sinusoid` on flat inputs it has checked (no robust options, no flags).
 
-    labels = ["u"] if isinstance(axes, torch.Tensor) else list(axes)
-    names = [f"amplitude_{a}" for a in labels] + [f"phase_{a}" for a in labels]
-    extra = []
-    if fit_scale:
-        names.append("scale")
-        if isinstance(p_flat, GaussianPSF):
-            expected = (p_flat.total_light()[:, None] * dur).sum(-1)
-        else:
-            expected = (p_flat.kernel.sum((-1, -2))[:, None] * dur).sum(-1)
-        extra.append((data.sum((-1, -2, -3)) / expected.clamp_min(1e-30)).clamp_min(1e-3))
-    if fit_background:
-        names.append("background")
-        extra.append(med)
-    if fit_center:
-        names += ["center_x", "center_y"]
-        extra += [rest[:, 0], rest[:, 1]]
-    P = len(names)
-    if extra:
-        ex = torch.stack(extra, -1)[:, None, :].expand(N, K, len(extra))
-        theta0 = torch.cat([theta_core, ex], -1)
-    else:
-        theta0 = theta_core
-    theta0 = theta0.reshape(N * K, P).detach()
+    Args:
+        data: ``[N, E, H, W]``; psf: ``[N]``; window: ``[N, E]``; omega: ``[N]`` rad/s.
+        direction: ``[N, n_axes, 2]`` unit image directions of the fitted axes, named ``labels``.
+        options: the fit's settings. noise_std: None, ``[N]`` or ``[N, E, H, W]``.
+        use: None or bool ``[N, E, H, W]`` (False excludes a pixel).
 
-    # Crop to the region the model can reach (l2): outside it (5.5 PSF sigmas beyond the
-    # largest motion) the model and its Jacobian are below 3e-7 of the peak, far below any
-    # camera's noise, so those pixels change nothing in the normal equations; their
-    # constant contribution to the cost (and the noise estimate) is added back at the end.
-    x0 = y0 = 0
-    outside_cost = torch.zeros(N, dtype=dtype, device=device)
-    outside_sq = torch.zeros(N, dtype=dtype, device=device)
-    outside_n = torch.zeros(N, dtype=dtype, device=device)
-    live_items = ~dark & ~outside
-    if loss == "l2" and not normalize and not fit_background and bool(live_items.any()):
-        reach = (D.abs() * (theta_core[..., :n_axes].amax(1) * 1.25 + 0.5)[..., None]).sum(1)  # [N, 2] px
-        sdv = torch.diagonal(cov_psf, dim1=-2, dim2=-1).clamp_min(0).sqrt()
-        lo = (rest - reach - 5.5 * sdv - (2.0 if fit_center else 0.0))[live_items].amin(0)
-        hi = (rest + reach + 5.5 * sdv + (2.0 if fit_center else 0.0))[live_items].amax(0)
-        cx0, cy0 = max(0, int(math.floor(float(lo[0])))), max(0, int(math.floor(float(lo[1]))))
-        cx1, cy1 = min(W, int(math.ceil(float(hi[0]))) + 1), min(H, int(math.ceil(float(hi[1]))) + 1)
-        if cx1 - cx0 >= 4 and cy1 - cy0 >= 4 and (cx1 - cx0) * (cy1 - cy0) < 0.9 * H * W:
-            bands = ((slice(None, cy0), slice(None)), (slice(cy1, None), slice(None)),
-                     (slice(cy0, cy1), slice(None, cx0)), (slice(cy0, cy1), slice(cx1, None)))
-
-            def out_sum(f):  # f(band index) -> [N, E, h, w]: summed over the pixels outside the crop -> [N]
-                return sum(f(b).sum((-1, -2, -3)) for b in bands)
-
-            def sq(b):
-                d = data[(..., *b)]
-                return d * d
-
-            if row_weight is not None:
-                outside_sq = out_sum(sq)
-                outside_cost = row_weight * outside_sq
-                outside_n.fill_(E * (H * W - (cy1 - cy0) * (cx1 - cx0)))
-            else:
-                outside_cost = out_sum(lambda b: weight[(..., *b)] * sq(b))
-                outside_sq = out_sum(lambda b: (weight[(..., *b)] > 0) * sq(b))
-                outside_n = out_sum(lambda b: (weight[(..., *b)] > 0).to(dtype))
-            x0, y0 = cx0, cy0
-            data = data[..., cy0:cy1, cx0:cx1]
-            weight = weight[..., cy0:cy1, cx0:cx1]
-            H, W = cy1 - cy0, cx1 - cx0
-            shift = torch.tensor([x0, y0], dtype=dtype, device=device)
-            if isinstance(p_flat, GaussianPSF):
-                p_flat = GaussianPSF(p_flat.center - shift, p_flat.cov, p_flat.amplitude)
-            else:
-                p_flat = KernelPSF(p_flat.kernel[..., cy0:cy1, cx0:cx1])
-            if fit_center:
-                j_c = names.index("center_x")
-                theta0 = theta0.clone()
-                theta0[:, j_c:j_c + 2] -= shift
-
-    # Node counts fixed for the whole fit, from a generous motion bound: one count for the
-    # rendered model (``settings.nodes``) and, for the analytic Jacobian path, one per frame
-    # (``panels [N, E]``): a short exposure or a small motion needs far fewer nodes than the
-    # batch's longest streak, and the splat's cost is proportional to them.
-    # A fit needs the model far below the noise, not to round-off: panels of 3.5 PSF widths
-    # (quadrature error < 1e-6 of the peak; estimates move < 2e-7 of their std vs 2.5).
-    settings = render_settings or RenderSettings(panel_path_sigmas=3.5)
-    panels = None
-    if settings.nodes is None:
-        amp_bound = (theta_core[..., :n_axes].amax(1) * 1.2 + 0.5)  # [N, n_axes]
-        amp_xy = (D.abs() * amp_bound[..., None]).sum(1)
-        path = Sinusoid(amp_xy[:, None, :], torch.zeros(N, 1, 2, dtype=dtype, device=device), om[:, None]).path_length(
-            ExposureWindow(torch.zeros_like(dur), dur))
-        smin = p_flat.sigma_min()[:, None]
-        span = om[:, None] * dur  # [N, E]
-        S = choose_node_count(path, smin, settings, span)
-        panels = panel_count(path, smin, settings, span)
-        settings = dataclasses.replace(settings, nodes=S)
-
-    prob_of = lambda idx: torch.div(idx, K, rounding_mode="floor")  # noqa: E731
-
-    def model_fn(theta, idx, k_of=prob_of):
-        n = k_of(idx)
-        amp = theta[:, :n_axes]
-        ph = theta[:, n_axes:2 * n_axes]
-        if n_axes == 2:
-            amp_xy, ph_xy = amp, ph
-        else:  # a motion along the direction D[n, 0]
-            amp_xy, ph_xy = amp * D[n, 0], torch.cat([ph, ph], -1)
-        j = 2 * n_axes
-        scale = theta[:, j] if fit_scale else None
-        j += int(fit_scale)
-        bg = theta[:, j] if fit_background else None
-        j += int(fit_background)
-        if isinstance(p_flat, GaussianPSF):
-            c = theta[:, j:j + 2] if fit_center else p_flat.center[n]
-            psf_n = GaussianPSF(c[:, None, :], p_flat.cov[n][:, None], p_flat.amplitude[n][:, None])
-        else:
-            psf_n = KernelPSF(p_flat.kernel[n][:, None])
-        traj = Sinusoid(amp_xy[:, None, :], ph_xy[:, None, :], om[n][:, None])
-        img = render_blur(traj, psf_n, ExposureWindow(start[n], dur[n]), height=H, width=W, settings=settings)
-        if scale is not None:
-            img = img * scale[:, None, None, None]
-        if bg is not None:
-            img = img + bg[:, None, None, None]
-        if normalize:
-            img = img / img.square().sum((-1, -2), keepdim=True).sqrt().clamp_min(1e-30)
-        return img.reshape(img.shape[0], -1)
-
-    analytic = isinstance(p_flat, GaussianPSF) and not normalize and not settings.pixel_integration
-    if analytic:
-        m_nodes = settings.nodes_per_panel
-        if panels is None or settings.nodes % m_nodes:  # nodes given by the caller: one rule for every frame
-            m_nodes = settings.nodes if settings.nodes % m_nodes else m_nodes
-            panels = torch.full((N, E), settings.nodes // m_nodes, dtype=torch.long, device=device)
-        else:
-            panels = _merge_panel_groups(panels, m_nodes, _CALL_NODE_PIXELS / (H * W))
-        rules = {}  # panel count -> (tau [S], weights [S])
-        A_all, B_all, C_all = p_flat.precision()
-
-    def splat_frames(theta_f, n_f, e_f, n_panels, with_jac=True):
-        """Image ``[m, H, W]`` and Jacobian ``[m, P, H, W]`` (``[m, 0, H, W]`` without
-        ``with_jac``) of ``m`` frames (problem ``n_f``, exposure ``e_f``, parameters
-        ``theta_f [m, P]``) on a rule of ``n_panels`` panels."""
-        from torchblur.render.splat import gaussian_splat_with_jacobian
-
-        if n_panels not in rules:
-            rules[n_panels] = quadrature_nodes(n_panels, m_nodes, dtype=dtype, device=device)
-        tau, wq = rules[n_panels]
-        t0, d0 = start[n_f, e_f], dur[n_f, e_f]
-        t = t0[:, None] + d0[:, None] * tau  # [m, S]
-        w = d0[:, None] * wq * p_flat.amplitude[n_f][:, None]
-        j = 2 * n_axes + int(fit_scale) + int(fit_background)
-        c = theta_f[:, j:j + 2] if fit_center else p_flat.center[n_f]
-        arg = om[n_f][:, None, None] * t[..., None] + theta_f[:, None, n_axes:2 * n_axes]  # [m, S, n_axes]
-        sn, cs = torch.sin(arg), torch.cos(arg)
-        amp = theta_f[:, None, :n_axes]
-        disp = amp * sn
-        dpx = torch.zeros(t.shape + (P,), dtype=dtype, device=device)
-        dpy = torch.zeros_like(dpx)
-        px = c[:, 0, None].expand(t.shape)
-        py = c[:, 1, None].expand(t.shape)
-        for k in range(n_axes):  # each fitted axis moves the spot along its direction
-            ux, uy = D[n_f, k, 0, None], D[n_f, k, 1, None]  # [m, 1]
-            dpx[..., k], dpy[..., k] = ux * sn[..., k], uy * sn[..., k]
-            dpx[..., n_axes + k], dpy[..., n_axes + k] = ux * (amp * cs)[..., k], uy * (amp * cs)[..., k]
-            px = px + ux * disp[..., k]
-            py = py + uy * disp[..., k]
-        if fit_center:
-            dpx[..., j] = 1
-            dpy[..., j + 1] = 1
-        if not with_jac:
-            dpx, dpy = dpx[..., :0], dpy[..., :0]
-        return gaussian_splat_with_jacobian(px, py, dpx, dpy, w, A_all[n_f], B_all[n_f], C_all[n_f], H, W)
-
-    def image_fn(theta, idx, k_of=prob_of):
-        """Model ``[n, R]`` alone from the same splat as :func:`jac_fn`."""
-        n = k_of(idx)
-        rows = theta.shape[0]
-        pc = panels[n]  # [rows, E]
-        img = theta.new_empty(rows, E, H, W)
-        for u in torch.unique(pc).tolist():
-            r_f, e_f = (pc == u).nonzero(as_tuple=True)
-            img[r_f, e_f] = splat_frames(theta[r_f], n[r_f], e_f, u, with_jac=False)[0]
-        if fit_scale:
-            img = img * theta[:, 2 * n_axes, None, None, None]
-        if fit_background:
-            img = img + theta[:, 2 * n_axes + int(fit_scale), None, None, None]
-        return img.reshape(rows, -1)
-
-    def jac_fn(theta, idx, k_of=prob_of):
-        """Model ``[n, R]`` and its Jacobian ``[n, R, P]`` from the splat (Gaussian PSF),
-        frames grouped by their node count."""
-        n = k_of(idx)
-        rows = theta.shape[0]
-        pc = panels[n]  # [rows, E]
-        counts = torch.unique(pc).tolist()
-        J = theta.new_empty(rows, P, E, H, W)  # parameter-major: the normal equations are then plain GEMMs
-        if len(counts) == 1:
-            r_f = torch.arange(rows, device=device).repeat_interleave(E)
-            e_f = torch.arange(E, device=device).repeat(rows)
-            img, dimg = splat_frames(theta[r_f], n[r_f], e_f, counts[0])
-            img = img.reshape(rows, E, H, W)
-            J.copy_(dimg.reshape(rows, E, P, H, W).transpose(1, 2))
-        else:
-            img = theta.new_empty(rows, E, H, W)
-            for u in counts:
-                r_f, e_f = (pc == u).nonzero(as_tuple=True)
-                img[r_f, e_f], J[r_f, :, e_f] = splat_frames(theta[r_f], n[r_f], e_f, u)
-        model = img
-        if fit_scale:
-            j = 2 * n_axes
-            J.mul_(theta[:, j, None, None, None, None])
-            J[:, j] = img
-            model = model * theta[:, j, None, None, None]
-        if fit_background:
-            model = model + theta[:, 2 * n_axes + int(fit_scale), None, None, None]
-            J[:, 2 * n_axes + int(fit_scale)] = 1
-        J = J.reshape(rows, P, E * H * W).transpose(1, 2)
-        return model.reshape(rows, -1), J
-
-    target = data
-    if normalize:
-        target = data / data.square().sum((-1, -2), keepdim=True).sqrt().clamp_min(1e-30)
-    target_k = target.reshape(N, 1, -1).expand(N, K, E * H * W).reshape(N * K, -1)
-    weight_k = weight.reshape(N, 1, -1).expand(N, K, E * H * W).reshape(N * K, -1)
-
-    def project(theta):
-        return theta
-
-    live = (~dark & ~outside).repeat_interleave(K)
-    live_idx = torch.arange(N * K, device=device)[live]
-    theta = theta0.clone()
-    cost = torch.full((N * K,), float("inf"), dtype=dtype, device=device)
-    conv = torch.zeros(N * K, dtype=torch.bool, device=device)
-    iters = torch.zeros(N * K, dtype=torch.long, device=device)
-    if live_idx.numel():
-        sub_model = lambda th, i: model_fn(th, live_idx[i])  # noqa: E731
-        sub_jac = (lambda th, i: jac_fn(th, live_idx[i])) if analytic else None  # noqa: E731
-        res = _optimise(sub_model, theta0[live_idx], target_k[live_idx], weight_k[live_idx], loss, optimizer, max_iter, tol, project,
-                        jacobian_fn=sub_jac)
-        theta[live_idx], cost[live_idx], conv[live_idx], iters[live_idx] = res.theta, res.cost, res.converged, res.n_iter
+    Steps: the problem (weights, levels, degenerate items) -> the starts -> the crop -> the model
+    -> optimise every candidate and keep the best, resolving the alias -> the uncertainty ->
+    the result (flat batch ``[N]``).
+    """
+    o = options
+    layout = ParamLayout(tuple(labels), o.fit_scale, o.fit_background, o.fit_center)
+    problem = sine_problem(data, psf, window, omega, direction, noise_std=noise_std, use=use)
+    theta0, amp0 = starting_points(problem, layout)
+    K = amp0.shape[1]
+    if o.loss == "l2" and not o.normalize and not o.fit_background:
+        problem = crop_to_reach(problem, amp0.amax(1), fit_center=o.fit_center)
+        if o.fit_center and problem.origin != (0, 0):
+            theta0 = theta0.clone()
+            theta0[:, layout.center:layout.center + 2] -= torch.tensor(problem.origin, dtype=data.dtype, device=data.device)
+    p = problem
+    H, W = p.data.shape[-2:]
+    model = sine_model(layout, p.psf, p.start, p.duration, p.omega, p.direction, H, W, amplitude_bound=amp0.amax(1) * 1.2 + 0.5,
+                       settings=o.render_settings, normalize=o.normalize)
+    target = p.data
+    if o.normalize:
+        target = p.data / p.data.square().sum((-1, -2), keepdim=True).sqrt().clamp_min(1e-30)
+    target = target.reshape(target.shape[0], -1)
     # The optimiser's final J^T W J and model are the Fisher information's (l2 and Poisson).
-    reuse = analytic and optimizer == "lm" and loss in ("l2", "poisson") and live_idx.numel() > 0
+    reuse = model.analytic and o.optimizer == "lm" and o.loss in ("l2", "poisson") and bool(p.live.any())
+    sol = _best_candidates(_refine_candidates(model, p, theta0, K, target, o, reuse), layout, K)
+    _resolve_alias(model, p, layout, sol, target, o, reuse)
+    cov, singular, sigma_used, fitted = _uncertainty(model, p, sol, target, o.loss, reuse)
+    status = _item_status(model, p, sol, fitted, singular)
+    return _result(model, p, sol, status, cov, sigma_used, K)
+
+
+def _refine_candidates(model: SineModel, problem: SineProblem, theta0, K: int, target, o: _FitOptions, reuse: bool) -> dict:
+    """Optimise the ``K`` candidate starts ``theta0 [N * K, P]`` of every live item (candidate
+    row ``r`` is item ``r // K``): ``theta``, ``cost`` (inf where not fitted), ``converged``,
+    ``n_iter`` ``[N * K]``, and with ``reuse`` the final ``jtj [N * K, P, P]`` and ``model [N * K, R]``."""
+    N, P = problem.data.shape[0], theta0.shape[-1]
+    dtype, device = theta0.dtype, theta0.device
+    R = target.shape[-1]
+    item = torch.div(torch.arange(N * K, device=device), K, rounding_mode="floor")
+    live_idx = torch.arange(N * K, device=device)[problem.live.repeat_interleave(K)]
+    out = dict(theta=theta0.clone(), cost=torch.full((N * K,), float("inf"), dtype=dtype, device=device),
+               converged=torch.zeros(N * K, dtype=torch.bool, device=device), n_iter=torch.zeros(N * K, dtype=torch.long, device=device))
+    if not live_idx.numel():
+        return out
+    target_k = target[:, None].expand(N, K, R).reshape(N * K, R)[live_idx]
+    weight_k = problem.weight.reshape(N, 1, R).expand(N, K, R).reshape(N * K, R)[live_idx]
+    res = _optimise(model, item[live_idx], theta0[live_idx], target_k, weight_k, o)
+    for name in ("theta", "cost", "converged", "n_iter"):
+        out[name][live_idx] = getattr(res, name)
     if reuse:
-        R_pix = target_k.shape[-1]
-        jtj_all = torch.eye(P, dtype=dtype, device=device).repeat(N * K, 1, 1)
-        model_all = torch.zeros(N * K, R_pix, dtype=dtype, device=device)
-        jtj_all[live_idx], model_all[live_idx] = res.jtj, res.model
+        out["jtj"] = torch.eye(P, dtype=dtype, device=device).repeat(N * K, 1, 1)
+        out["model"] = torch.zeros(N * K, R, dtype=dtype, device=device)
+        out["jtj"][live_idx], out["model"][live_idx] = res.jtj, res.model
+    return out
 
-    # Canonical form: M >= 0, phases wrapped.
-    def canonical(t):
-        t = t.clone()
-        neg = t[..., :n_axes] < 0
-        t[..., :n_axes] = t[..., :n_axes].abs()
-        t[..., n_axes:2 * n_axes] = wrap_phase(t[..., n_axes:2 * n_axes] + math.pi * neg)
-        return t
 
-    flipped = theta.reshape(N, K, P)[..., :n_axes] < 0  # (-M, phi) -> (M, phi + pi) flips J's M columns
-    th = canonical(theta.reshape(N, K, P))
-    cost = cost.reshape(N, K)
-    best = torch.nan_to_num(cost, nan=float("inf")).argmin(1)
-    ar = torch.arange(N, device=device)
-    theta_best = th[ar, best]  # [N, P]
-    cost_best = cost[ar, best]
-    conv_best = conv.reshape(N, K)[ar, best]
-    iters_best = iters.reshape(N, K)[ar, best]
-    flip_best = flipped[ar, best]
-    rows = ar * K  # model_fn rows that address problem n
-    if reuse:
-        jtj_best = jtj_all.reshape(N, K, P, P)[ar, best]
-        model_best = model_all.reshape(N, K, -1)[ar, best]
+def _canonical(theta: torch.Tensor, layout: ParamLayout) -> torch.Tensor:
+    """``theta [..., P]`` in canonical form: ``(-M, phi)`` -> ``(M, phi + pi)``, phases wrapped."""
+    t = theta.clone()
+    n = layout.n_axes
+    neg = t[..., :n] < 0
+    t[..., :n] = t[..., :n].abs()
+    t[..., n:2 * n] = wrap_phase(t[..., n:2 * n] + math.pi * neg)
+    return t
 
-    # The other branch (alias of the first exposure) and its cost over all exposures.
-    first = ExposureWindow(start[:, :1], dur[:, :1])
 
-    def alias_of(t, n=None):
-        n = ar if n is None else n
+def _best_candidates(fits: dict, layout: ParamLayout, K: int) -> _Solution:
+    """The candidate of least cost of each item, from :func:`_refine_candidates`' output."""
+    P = layout.size
+    N = fits["theta"].shape[0] // K
+    th = fits["theta"].reshape(N, K, P)
+    best = torch.nan_to_num(fits["cost"].reshape(N, K), nan=float("inf")).argmin(1)
+    ar = torch.arange(N, device=best.device)
+
+    def pick(name, tail=()):
+        return fits[name].reshape((N, K) + tail)[ar, best] if name in fits else None
+
+    return _Solution(theta=_canonical(th, layout)[ar, best], cost=pick("cost"), converged=pick("converged"), n_iter=pick("n_iter"),
+                     flipped=(th[..., :layout.n_axes] < 0)[ar, best], jtj=pick("jtj", (P, P)), model=pick("model", (-1,)))
+
+
+def _resolve_alias(model: SineModel, problem: SineProblem, layout: ParamLayout, sol: _Solution, target, o: _FitOptions,
+                   reuse: bool) -> None:
+    """Set ``sol.alias`` (the other branch of the first exposure) and its cost over every
+    exposure; with two or more exposures, where the alias fits better than the consensus
+    start, refit from it (a safety net) and keep the better. Updates ``sol`` in place."""
+    N = sol.theta.shape[0]
+    ar = torch.arange(N, device=sol.theta.device)
+    first = ExposureWindow(problem.start[:, :1], problem.duration[:, :1])
+    n = layout.n_axes
+    weight = problem.weight.reshape(N, -1)
+
+    def alias_of(t, items):
         ta = t.clone()
-        ta[:, n_axes:2 * n_axes] = _alias_phase(t[:, n_axes:2 * n_axes], om[n][:, None], first[n])
+        ta[:, n:2 * n] = _alias_phase(t[:, n:2 * n], problem.omega[items][:, None], first[items])
         return ta
 
-    flat_target = target.reshape(N, -1)
-    flat_weight = weight.reshape(N, -1)
-    cheap_model = image_fn if analytic else model_fn  # the same model; the splat's per-frame node counts are cheaper
-    theta_alias = alias_of(theta_best)
-    with torch.no_grad():
-        alias_cost = image_loss(cheap_model(theta_alias, rows), flat_target, loss=loss, weight=flat_weight)
-    live_n = ~dark & ~outside
-    if E >= 2:
-        # Safety net: where the alias fits better than the consensus start, refit from it.
-        r = ar[live_n & (alias_cost < cost_best)]
-        if r.numel():
-            res2 = _optimise(lambda t, i: model_fn(t, rows[r[i]]), theta_alias[r], flat_target[r], flat_weight[r], loss, optimizer,
-                             max_iter, tol, project, jacobian_fn=(lambda t, i: jac_fn(t, rows[r[i]])) if analytic else None)
-            better = res2.cost < cost_best[r]
-            rb = r[better]
-            theta_best[rb] = canonical(res2.theta[better])
-            flip_best[rb] = res2.theta[better][:, :n_axes] < 0
-            if reuse:
-                jtj_best[rb], model_best[rb] = res2.jtj[better], res2.model[better]
-            cost_best[rb] = res2.cost[better]
-            conv_best[rb] = res2.converged[better]
-            iters_best[rb] += res2.n_iter[better]
-            theta_alias[rb] = alias_of(theta_best[rb], rb)
-            with torch.no_grad():
-                alias_cost[rb] = image_loss(cheap_model(theta_alias[rb], rows[rb]), flat_target[rb], loss=loss, weight=flat_weight[rb])
+    def alias_cost(items):
+        with torch.no_grad():
+            return image_loss(model.image(sol.alias[items], items), target[items], loss=o.loss, weight=weight[items])
 
-    # Uncertainty: the Fisher information at the solution.
-    w = weight.reshape(N, -1)
-    n_used = (torch.full((N,), float(w.shape[-1]), dtype=dtype, device=device) if row_weight is not None
-              else (w > 0).sum(-1).to(dtype)) + outside_n
+    sol.alias = alias_of(sol.theta, ar)
+    sol.alias_cost = alias_cost(ar)
+    if problem.start.shape[-1] < 2:
+        return
+    r = ar[problem.live & (sol.alias_cost < sol.cost)]
+    if not r.numel():
+        return
+    res = _optimise(model, r, sol.alias[r], target[r], weight[r], o)
+    better = res.cost < sol.cost[r]
+    rb = r[better]
+    if not rb.numel():  # the consensus start was right everywhere
+        return
+    sol.theta[rb] = _canonical(res.theta[better], layout)
+    sol.flipped[rb] = res.theta[better][:, :n] < 0
     if reuse:
-        model = model_best
+        sol.jtj[rb], sol.model[rb] = res.jtj[better], res.model[better]
+    sol.cost[rb] = res.cost[better]
+    sol.converged[rb] = res.converged[better]
+    sol.n_iter[rb] += res.n_iter[better]
+    sol.alias[rb] = alias_of(sol.theta[rb], rb)
+    sol.alias_cost[rb] = alias_cost(rb)
+
+
+def _uncertainty(model: SineModel, problem: SineProblem, sol: _Solution, target, loss: str, reuse: bool):
+    """The Fisher information at the solution: ``(covariance [N, P, P], singular [N],
+    noise std used [N], model [N, R])``. The noise is the given one, else estimated from the
+    residuals (the pixels the crop cut off included); Poisson: the model is the variance."""
+    p = problem
+    N, P = sol.theta.shape
+    dtype, device = sol.theta.dtype, sol.theta.device
+    w = p.weight.reshape(N, -1)
+    n_used = (torch.full((N,), float(w.shape[-1]), dtype=dtype, device=device) if p.row_weight is not None
+              else (w > 0).sum(-1).to(dtype)) + p.cut_n
+    if reuse:
+        fitted = sol.model
         sign = torch.ones(N, P, dtype=dtype, device=device)
-        sign[:, :n_axes] = torch.where(flip_best, -1.0, 1.0)
-        F = jtj_best * sign[:, :, None] * sign[:, None, :]
+        sign[:, :model.layout.n_axes] = torch.where(sol.flipped, -1.0, 1.0)
+        F = sol.jtj * sign[:, :, None] * sign[:, None, :]
     else:
-        model, J = jac_fn(theta_best, rows) if analytic else model_jacobian(lambda t, i: model_fn(t, i), theta_best, rows)
-    resid = target.reshape(N, -1) - model
+        fitted, J = model.image_and_jacobian(sol.theta, torch.arange(N, device=device))
+    resid = target - fitted
+    ones = torch.ones(N, dtype=dtype, device=device)
     if loss == "poisson":
-        fisher_w = irls_weights(model, target.reshape(N, -1), loss="poisson", weight=(w > 0).to(dtype))
-        sigma_used = torch.full((N,), float("nan"), dtype=dtype, device=device)
-        scale2 = torch.ones(N, dtype=dtype, device=device)
-    elif sigma_given is not None:
-        fisher_w = w
-        sigma_used = noise_level
-        scale2 = torch.ones(N, dtype=dtype, device=device)
+        fisher_w = irls_weights(fitted, target, loss="poisson", weight=(w > 0).to(dtype))
+        sigma_used, scale2 = torch.full((N,), float("nan"), dtype=dtype, device=device), ones
+    elif p.noise_given:
+        fisher_w, sigma_used, scale2 = w, p.noise_level, ones
     else:
-        sig2 = (((resid * resid) * (w > 0)).sum(-1) + outside_sq) / (n_used - P).clamp_min(1)
+        sig2 = (((resid * resid) * (w > 0)).sum(-1) + p.cut_sq) / (n_used - P).clamp_min(1)
         fisher_w = (w > 0).to(dtype) / sig2[:, None].clamp_min(torch.finfo(dtype).tiny)
         sigma_used = sig2.sqrt()
         scale2 = 1 / sig2.clamp_min(torch.finfo(dtype).tiny)
     if reuse:
         F = F * scale2[:, None, None]
     else:
-        JW = J * fisher_w[..., None]
-        F = JW.transpose(-1, -2) @ J
+        F = (J * fisher_w[..., None]).transpose(-1, -2) @ J
     cov, info = torch.linalg.inv_ex(F)
     singular = (info != 0) | ~torch.isfinite(cov).all(-1).all(-1)
-    diag = torch.diagonal(cov, dim1=-2, dim2=-1)
-    singular = singular | (diag <= 0).any(-1)
-    std = diag.clamp_min(0).sqrt()
+    singular = singular | (torch.diagonal(cov, dim1=-2, dim2=-1) <= 0).any(-1)
+    return cov, singular, sigma_used, fitted
 
-    amp_b = theta_best[:, :n_axes]
-    ph_b = theta_best[:, n_axes:2 * n_axes]
-    alias = theta_alias[:, n_axes:2 * n_axes]
 
-    # Status per item.
+def _item_status(model: SineModel, problem: SineProblem, sol: _Solution, fitted, singular) -> torch.Tensor:
+    """Status ``[N]`` (see :data:`STATUS`): not converged, singular, most of the spot's light
+    outside the frame (Gaussian PSF: the fitted model's light against the spot's total), out of
+    frame, dark; later codes win."""
+    p, L = problem, model.layout
+    N = sol.theta.shape[0]
+    dtype, device = sol.theta.dtype, sol.theta.device
     status = torch.zeros(N, dtype=torch.long, device=device)
-    status[~conv_best] = 2
-    status[singular] = 4
-    if isinstance(p_flat, GaussianPSF):
+    status[~sol.converged] = NOT_CONVERGED
+    status[singular] = SINGULAR
+    if isinstance(p.psf, GaussianPSF):
         with torch.no_grad():
-            scale_b = theta_best[:, 2 * n_axes] if fit_scale else torch.ones(N, dtype=dtype, device=device)
-            bg_b = theta_best[:, 2 * n_axes + int(fit_scale)] if fit_background else 0.0
-            inside = (model - (bg_b[:, None] if fit_background else 0.0)).sum(-1)
-            if normalize:
+            scale = sol.theta[:, L.scale] if L.fit_scale else torch.ones(N, dtype=dtype, device=device)
+            inside = (fitted - (sol.theta[:, L.background, None] if L.fit_background else 0.0)).sum(-1)
+            if model.normalize:
                 inside = torch.full_like(inside, float("inf"))
-            total = scale_b * (p_flat.total_light()[:, None] * dur).sum(-1)
+            total = scale * (p.psf.total_light()[:, None] * p.duration).sum(-1)
             status[inside < 0.5 * total] = OUT_OF_FRAME
-    status[outside] = 3
-    status[dark] = 1
-    bad = (status == 1) | outside
+    status[p.outside] = OUT_OF_FRAME
+    status[p.dark] = DARK
+    return status
+
+
+def _result(model: SineModel, problem: SineProblem, sol: _Solution, status, cov, sigma_used, K: int) -> SinusoidFit:
+    """The :class:`SinusoidFit` of a pass, batch ``[N]``: NaN estimates for dark and
+    out-of-frame items, the rest position back in full-frame coordinates."""
+    p, L = problem, model.layout
+    N, P = sol.theta.shape
+    dtype, device = sol.theta.dtype, sol.theta.device
+    n = L.n_axes
+    bad = (status == DARK) | p.outside
     nan = torch.tensor(float("nan"), dtype=dtype, device=device)
+    std = torch.diagonal(cov, dim1=-2, dim2=-1).clamp_min(0).sqrt()
 
-    def out(x, tail=()):
-        return x.reshape(batch + tail)
-
-    def core(v):
+    def per_axis(v):
         v = torch.where(bad[:, None], nan, v)
-        return out(v, (2,)) if n_axes == 2 else out(v[:, 0])
+        return v if n == 2 else v[:, 0]
 
     res = SinusoidFit(
-        amplitude=core(amp_b),
-        phase=core(ph_b),
-        amplitude_std=core(std[:, :n_axes]),
-        phase_std=core(std[:, n_axes:2 * n_axes]),
-        alias_phase=core(alias),
-        alias_cost=out(torch.where(bad, nan, alias_cost + outside_cost)),
-        cost=out(torch.where(bad, nan, cost_best + outside_cost)),
-        converged=out(status == 0),
-        status=out(status),
-        covariance=out(torch.where(bad[:, None, None], nan, cov), (P, P)),
-        param_names=tuple(names),
-        noise_std=out(sigma_used),
-        n_iter=out(iters_best),
+        amplitude=per_axis(L.amplitudes(sol.theta)),
+        phase=per_axis(L.phases(sol.theta)),
+        amplitude_std=per_axis(L.amplitudes(std)),
+        phase_std=per_axis(L.phases(std)),
+        alias_phase=per_axis(L.phases(sol.alias)),
+        alias_cost=torch.where(bad, nan, sol.alias_cost + p.cut_cost),
+        cost=torch.where(bad, nan, sol.cost + p.cut_cost),
+        converged=status == 0,
+        status=status,
+        covariance=torch.where(bad[:, None, None], nan, cov),
+        param_names=L.names,
+        noise_std=sigma_used,
+        n_iter=sol.n_iter,
     )
-    j = 2 * n_axes
-    if fit_scale:
-        res.scale = out(theta_best[:, j])
-        j += 1
-    if fit_background:
-        res.background = out(theta_best[:, j])
-        j += 1
-    if fit_center:
-        res.center = out(theta_best[:, j:j + 2] + torch.tensor([x0, y0], dtype=dtype, device=device), (2,))
-    res.extras["nodes"] = settings.nodes
-    if analytic:
-        res.extras["nodes_per_frame"] = out(panels * m_nodes, (E,))
+    if L.fit_scale:
+        res.scale = sol.theta[:, L.scale]
+    if L.fit_background:
+        res.background = sol.theta[:, L.background]
+    if L.fit_center:
+        res.center = sol.theta[:, L.center:L.center + 2] + torch.tensor(p.origin, dtype=dtype, device=device)
+    res.extras["nodes"] = model.settings.nodes
+    if model.analytic:
+        res.extras["nodes_per_frame"] = model.panels * model.nodes_per_panel
     res.extras["candidates"] = K
     return res
 
@@ -673,21 +376,29 @@ def _fit_core(
 GN_TOL = 1e-2  # squared Mahalanobis length (in std^2) of a final Gauss-Newton step taken unevaluated
 
 
-def _optimise(model_fn, theta0, data, weight, loss, optimizer, max_iter, tol, project, jacobian_fn=None):
-    """Run the chosen optimiser on ``[n, P]`` problems (see :func:`fit_sinusoid`)."""
+def _optimise(model: SineModel, items, theta0, data, weight, o: _FitOptions):
+    """Run the chosen optimiser on rows ``theta0 [n, P]`` of items ``items [n]`` against
+    ``data [n, R]`` with pixel weights ``weight [n, R]``: Levenberg-Marquardt on the model's
+    image and Jacobian (on the analytic path the Jacobian is cheap and comes with every
+    trial point), Adam or L-BFGS on the rendered model by autograd."""
     from torchblur.fit.optim import LMResult
 
-    if optimizer == "lm":
+    loss, max_iter = o.loss, o.max_iter
+
+    def model_fn(theta, i):
+        return model.rendered(theta, items[i])
+
+    if o.optimizer == "lm":
         it = max_iter or 60
+        jacobian_fn = (lambda theta, i: model.image_and_jacobian(theta, items[i])) if model.analytic else None  # noqa: E731
         # Converged once the next Gauss-Newton step is below 0.1 standard deviation (that
         # step is then taken unevaluated; the result is within ~0.01 std of the optimum).
-        return levenberg_marquardt(model_fn, theta0, data, loss=loss, weight=weight, max_iter=it, tol=tol, project=project,
+        return levenberg_marquardt(model_fn, theta0, data, loss=loss, weight=weight, max_iter=it, tol=o.tol,
                                    jacobian_fn=jacobian_fn, gn_tol=GN_TOL if loss in ("l2", "poisson") else None)
     n = theta0.shape[0]
     idx = torch.arange(n, device=theta0.device)
-    theta = theta0.clone().requires_grad_(True)
     scale = theta0.detach().abs().clamp_min(1.0)
-    if optimizer == "adam":
+    if o.optimizer == "adam":
         it = max_iter or 400
         u = torch.zeros_like(theta0, requires_grad=True)
         opt = torch.optim.Adam([u], lr=0.02)
@@ -727,37 +438,28 @@ def _optimise(model_fn, theta0, data, weight, loss, optimizer, max_iter, tol, pr
 # --------------------------------------------------------------------------- public entry: checks, masks, robust pass, flags
 
 
-# One splat call's fixed cost (Python and per-operation overheads) in nodes x pixels of frame
-# work: measured on a 2-core CPU, 1.8 ms per call against 0.84 us per node of a 22x54 frame.
-_CALL_NODE_PIXELS = 2.5e6
+@dataclass(frozen=True, eq=False)
+class _FlatInputs:
+    """:func:`fit_sinusoid`'s inputs, checked and flattened to ``N`` items.
 
+    ``data [N, E, H, W]``, ``psf [N]``, ``window [N, E]``, ``omega [N]``; ``axis_dirs [N, n_axes, 2]``
+    the fitted axes' unit image directions, named ``labels``; ``direction [N, 2]`` the one
+    direction of a one-axis fit (None: Lissajous, see :func:`_axes_xy`); ``noise`` None, ``[N]``
+    or ``[N, E, H, W]``; ``keep [N, E, H, W]`` the pixels neither masked nor saturated;
+    ``user_masked``, ``sat_masked [N]`` whether the mask, the saturation level excluded pixels.
+    """
 
-def _merge_panel_groups(panels: torch.Tensor, m_nodes: int, call_nodes: float) -> torch.Tensor:
-    """Panel counts ``[N, E]`` with groups of adjacent counts merged (their frames rounded up to
-    the group's largest count) so as to minimise the splat's cost: frames of equal count are
-    rendered by one call, which costs ``call_nodes`` node-frames of overhead, and a frame costs
-    its nodes. An exact dynamic programme over the distinct counts (a handful)."""
-    vals, counts = torch.unique(panels, return_counts=True)
-    v, m = vals.tolist(), counts.tolist()
-    K = len(v)
-    if K <= 1:
-        return panels
-    best, cut = [0.0] + [math.inf] * K, [0] * (K + 1)
-    for j in range(1, K + 1):  # best[j]: the cheapest grouping of the j smallest counts
-        frames = 0
-        for i in range(j, 0, -1):  # the last group: counts i..j, all at count j
-            frames += m[i - 1]
-            c = best[i - 1] + call_nodes + frames * v[j - 1] * m_nodes
-            if c < best[j]:
-                best[j], cut[j] = c, i
-    out = panels.clone()
-    j = K
-    while j > 0:
-        i = cut[j]
-        for k in range(i, j):
-            out[panels == v[k - 1]] = v[j - 1]
-        j = i - 1
-    return out
+    data: torch.Tensor
+    psf: GaussianPSF | KernelPSF
+    window: ExposureWindow
+    omega: torch.Tensor
+    axis_dirs: torch.Tensor
+    labels: tuple
+    direction: torch.Tensor | None
+    noise: torch.Tensor | None
+    keep: torch.Tensor
+    user_masked: torch.Tensor
+    sat_masked: torch.Tensor
 
 
 def _check_flag(value, name: str) -> bool:
@@ -766,28 +468,196 @@ def _check_flag(value, name: str) -> bool:
     return value
 
 
+def _check_options(*, fit_scale, fit_background, fit_center, fit_gradient, normalize, outliers, outlier_sigma, max_iter, tol,
+                   render_settings):
+    """Check :func:`fit_sinusoid`'s options; ``(outlier_sigma, tol)`` as floats."""
+    for name, v in (("fit_scale", fit_scale), ("fit_background", fit_background), ("fit_center", fit_center), ("fit_gradient", fit_gradient),
+                    ("normalize", normalize)):
+        _check_flag(v, name)
+    check_choice(outliers, "outliers", OUTLIERS)
+    outlier_sigma = check_real_scalar(outlier_sigma, "outlier_sigma", positive=True)
+    if fit_gradient and normalize:
+        raise ParameterError("fit_gradient: expected False with normalize=True (the plane is in image units), got True")
+    if outliers == "reject" and normalize:
+        raise ParameterError("outliers: expected 'none' with normalize=True (the robust pass compares data and model in image units), "
+                             "got 'reject'")
+    if max_iter is not None and (isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 1):
+        raise ParameterError(f"max_iter: expected None or an integer >= 1, got {max_iter!r}")
+    tol = check_real_scalar(tol, "tol", nonnegative=True)
+    if render_settings is not None and not isinstance(render_settings, RenderSettings):
+        raise InputTypeError(f"render_settings: expected a RenderSettings or None, got {type(render_settings).__name__}")
+    return outlier_sigma, tol
+
+
+def _flat_inputs(images, psf, window, omega, axes, noise_std, mask, saturation_level) -> _FlatInputs:
+    """The checked ``images [..., E, H, W]`` and the rest, flattened (checks ``axes``,
+    ``noise_std``, ``mask``, ``saturation_level``)."""
+    dtype, device = images.dtype, images.device
+    batch = images.shape[:-3]
+    E, H, W = images.shape[-3:]
+    N = max(1, math.prod(batch))
+    data = images.reshape(N, E, H, W)
+    if isinstance(axes, str):
+        axis_dirs, labels = _axis_directions(axes, N, dtype, device), tuple(axes)
+    else:
+        axis_dirs, labels = _as_direction(axes, batch, N, data)[:, None, :], ("u",)
+    w_full = window.to(dtype).expand(batch + (E,))
+    sig = None
+    if noise_std is not None:
+        s = check_positive(as_tensor(noise_std, "noise_std", like=data), "noise_std")
+        try:
+            sig = s.expand(batch + (E, H, W)).reshape(N, E, H, W) if s.dim() >= 3 and s.shape[-3:] == (E, H, W) else s.expand(batch).reshape(N)
+        except RuntimeError:
+            raise ShapeError(f"noise_std: expected a number, [...] or [..., E, H, W], got {tuple(s.shape)}") from None
+    keep = torch.ones(N, E, H, W, dtype=torch.bool, device=device)
+    user_masked = torch.zeros(N, dtype=torch.bool, device=device)
+    if mask is not None:
+        if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool:
+            raise InputTypeError(f"mask: expected a bool tensor [..., E, H, W] (True = use the pixel), got "
+                                 f"{mask.dtype if isinstance(mask, torch.Tensor) else type(mask).__name__}")
+        try:
+            m = mask.to(device).expand(batch + (E, H, W)).reshape(N, E, H, W)
+        except RuntimeError:
+            raise ShapeError(f"mask: expected shape [..., E, H, W] = {tuple(images.shape)}, got {tuple(mask.shape)}") from None
+        keep = keep & m
+        user_masked = (~m).flatten(1).any(1)
+    sat_masked = torch.zeros(N, dtype=torch.bool, device=device)
+    if saturation_level is not None:
+        lvl = check_finite(as_tensor(saturation_level, "saturation_level", like=data), "saturation_level")
+        try:
+            lvl = lvl.expand(batch).reshape(N)
+        except RuntimeError:
+            raise ShapeError(f"saturation_level: expected a number or the images' batch {tuple(batch)}, got {tuple(lvl.shape)}") from None
+        sat = data >= lvl[:, None, None, None]
+        sat_masked = (sat & keep).flatten(1).any(1)
+        keep = keep & ~sat
+    return _FlatInputs(data=data, psf=_flatten_psf(psf.to(dtype) if isinstance(psf, GaussianPSF) else psf, batch, N),
+                       window=ExposureWindow(w_full.start.reshape(N, E), w_full.duration.reshape(N, E)), omega=omega.expand(batch).reshape(N),
+                       axis_dirs=axis_dirs, labels=labels, direction=None if isinstance(axes, str) and axes == "xy" else axis_dirs[:, 0], noise=sig, keep=keep,
+                       user_masked=user_masked, sat_masked=sat_masked)
+
+
+def _fit_items(inp: _FlatInputs, o: _FitOptions, data: torch.Tensor, idx: torch.Tensor, use: torch.Tensor) -> SinusoidFit:
+    """One pass of :func:`_fit_core` over items ``idx`` of ``data [N, E, H, W]`` with the pixels
+    ``use [n, E, H, W]`` (all items: no copies)."""
+    mask = None if bool(use.all()) else use
+    if idx.numel() == data.shape[0]:
+        return _fit_core(inpaint(data, use), inp.psf, inp.window, inp.omega, inp.axis_dirs, labels=inp.labels, options=o,
+                         noise_std=inp.noise, use=mask)
+    return _fit_core(inpaint(data[idx], use), _take_psf(inp.psf, idx), inp.window[idx], inp.omega[idx], inp.axis_dirs[idx],
+                     labels=inp.labels, options=o, noise_std=None if inp.noise is None else inp.noise[idx], use=mask)
+
+
+def _robust_fit(inp: _FlatInputs, o: _FitOptions, outliers: str, outlier_sigma: float, fit_gradient: bool):
+    """The fit with the robust options: ``(result [N], rejected [N, E, H, W], plane [N, E, 3] or
+    None, outlier passes)``. Impulses are rejected before the first pass (Gaussian PSF); with
+    ``fit_gradient`` a stray-light plane is fitted to the border, then to the pixels the spot
+    does not reach, and the spot refitted; with ``outliers="reject"``, up to 3 passes."""
+    data, keep = inp.data, inp.keep
+    N, E, H, W = data.shape
+    everything = torch.arange(N, device=data.device)
+    rejected = torch.zeros_like(keep)
+    if outliers == "reject" and isinstance(inp.psf, GaussianPSF):
+        if inp.noise is not None:
+            noise0 = inp.noise if inp.noise.dim() == 4 else inp.noise[:, None, None, None]
+        else:
+            noise0 = robust_scale(data, keep)
+        rejected = impulses(data, inp.psf, noise0, outlier_sigma) & keep
+    plane = None
+    if fit_gradient:
+        border = torch.ones(H, W, dtype=torch.bool, device=data.device)
+        border[2:-2, 2:-2] = False
+        plane = plane_fit(data, keep & ~rejected & border)
+        data = data - plane_image(plane, H, W)
+    res = _fit_items(inp, o, data, everything, keep & ~rejected)
+    if fit_gradient:
+        live = everything[torch.isfinite(res.cost)]
+        if live.numel():
+            spot = _model_images(res, live, inp, o, with_background=False)
+            far = spot < 1e-4 * spot.amax((-1, -2), keepdim=True)
+            plane[live] = plane_fit(inp.data[live], keep[live] & ~rejected[live] & far)
+            data = inp.data - plane_image(plane, H, W)
+            put_items(res, live, _fit_items(inp, o, data, live, keep[live] & ~rejected[live]))
+    passes = _outlier_passes(inp, o, data, res, rejected, outlier_sigma) if outliers == "reject" else 0
+    return res, rejected, plane, passes
+
+
+def _outlier_passes(inp: _FlatInputs, o: _FitOptions, data, res: SinusoidFit, rejected, outlier_sigma: float) -> int:
+    """Up to 3 passes: exclude the pixels whose residual exceeds ``outlier_sigma`` noise stds
+    and refit the items whose excluded set changed. Updates ``res`` and ``rejected [N, E, H, W]``
+    in place; returns the number of passes."""
+    everything = torch.arange(data.shape[0], device=data.device)
+    sig = inp.noise
+    passes = 0
+    for passes in range(1, 4):
+        idx = everything[torch.isfinite(res.cost) & ((res.status == 0) | (res.status == 2) | (res.status == 4))]
+        if idx.numel() == 0:
+            break
+        model = _model_images(res, idx, inp, o, with_background=o.fit_background)
+        r = data[idx] - model
+        used = inp.keep[idx]
+        scale = sig[idx] if sig is not None and sig.dim() == 4 else (
+            sig[idx][:, None, None, None] if sig is not None else robust_scale(r, used))
+        new = (r.abs() > outlier_sigma * scale) & used
+        changed = (new != rejected[idx]).flatten(1).any(1)
+        if not bool(changed.any()):
+            break
+        ci = idx[changed]
+        rejected[ci] = new[changed]
+        put_items(res, ci, _fit_items(inp, o, data, ci, inp.keep[ci] & ~rejected[ci]))
+    return passes
+
+
+def _finish(res: SinusoidFit, inp: _FlatInputs, o: _FitOptions, rejected, plane, passes: int, *, batch) -> SinusoidFit:
+    """Status :data:`NO_PIXELS` where nothing is left to fit, the :data:`FLAGS`, the pixel
+    counts and the plane, set on the flat result ``[N]``; then every field reshaped to ``batch``."""
+    N, E, H, W = inp.data.shape
+    n_used = (inp.keep & ~rejected).flatten(1).sum(1)
+    empty = n_used <= len(res.param_names)
+    if bool(empty.any()):
+        for name in ("amplitude", "phase", "amplitude_std", "phase_std", "alias_phase", "alias_cost", "cost", "covariance"):
+            getattr(res, name)[empty] = float("nan")
+        res.status[empty] = NO_PIXELS
+        res.converged[empty] = False
+    n_out = rejected.flatten(1).sum(1)
+    flags = torch.zeros(N, dtype=torch.long, device=inp.data.device)
+    flags |= MASKED * inp.user_masked.long()
+    flags |= SATURATED_MASKED * inp.sat_masked.long()
+    flags |= OUTLIERS_MASKED * (n_out > 0).long()
+    with torch.no_grad():
+        frac = _light_in_frame(res, inp, o.fit_center)
+    flags |= PARTLY_OUT_OF_FRAME * ((frac < 0.999) & (res.status != 3)).long()
+    amp_z = res.amplitude / res.amplitude_std
+    if inp.direction is not None:
+        flags |= NO_MOTION * ((amp_z < 3) & ~torch.isnan(res.amplitude)).long()
+    else:
+        flags |= NO_MOTION * ((amp_z < 3).any(-1) & ~torch.isnan(res.amplitude).any(-1)).long()
+    res.flags = flags
+    res.n_masked = E * H * W - n_used
+    res.n_outliers = n_out
+    res.extras["outlier_passes"] = passes
+    res.background_plane = plane
+    for f in fields(SinusoidFit):
+        v = getattr(res, f.name)
+        if isinstance(v, torch.Tensor):
+            setattr(res, f.name, v.reshape(batch + v.shape[1:]))
+    return res
+
+
+def _flatten_psf(psf, batch, N):
+    if isinstance(psf, GaussianPSF):
+        return GaussianPSF(psf.center.expand(batch + (2,)).reshape(N, 2), psf.cov.expand(batch + (2, 2)).reshape(N, 2, 2),
+                           psf.amplitude.expand(batch).reshape(N))
+    H, W = psf.frame_shape
+    return KernelPSF(psf.kernel.expand(batch + (H, W)).reshape(N, H, W))
+
+
 def _take_psf(psf, idx):
     return psf[idx] if isinstance(psf, GaussianPSF) else KernelPSF(psf.kernel[idx])
 
 
-def _inpaint(data: torch.Tensor, keep: torch.Tensor) -> torch.Tensor:
-    """Masked pixels of ``data [n, E, H, W]`` replaced by the 3x3 median of their neighbourhood
-    (kornia), so that the closed-form starts and the dark-frame test do not see them. Their
-    fit weight is 0, so the cost does not change."""
-    if bool(keep.all()):
-        return data
-    import kornia
-
-    n, E, H, W = data.shape
-    med = kornia.filters.median_blur(data.reshape(n * E, 1, H, W), 3, border_type="replicate").reshape(n, E, H, W)
-    return torch.where(keep, data, med)
-
-
 def _axis_directions(axes, N: int, dtype, device) -> torch.Tensor:
-    """The image directions ``[N, n_axes, 2]`` of the fitted axes: ``"x"``, ``"y"``, ``"xy"``,
-    or a direction per item ``[N, 2]`` (unit vectors, see :func:`_as_direction`)."""
-    if isinstance(axes, torch.Tensor):
-        return axes.to(dtype=dtype, device=device).expand(N, 2)[:, None, :]
+    """The image directions ``[N, n_axes, 2]`` of the fitted axes ``"x"``, ``"y"``, ``"xy"``."""
     eye = torch.eye(2, dtype=dtype, device=device)
     rows = {"x": eye[:1], "y": eye[1:], "xy": eye}[axes]
     return rows[None].expand(N, len(rows), 2)
@@ -822,22 +692,27 @@ def _fitted_psf(res: SinusoidFit, psf, idx, fit_scale: bool, fit_center: bool):
     return KernelPSF((k * scale[:, None, None] if scale is not None else k)[:, None])
 
 
-def _model_images(res, idx, psf, win, om, direction, H, W, fit_scale, fit_center, fit_background, settings):
-    """The fitted model ``[n, E, H, W]`` of items ``idx`` (``direction [N, 2]`` or None, see :func:`_axes_xy`)."""
-    amp, ph = _axes_xy(res.amplitude[idx], res.phase[idx], None if direction is None else direction[idx])
-    traj = Sinusoid(amp[:, None, :], ph[:, None, :], om[idx][:, None])
+def _model_images(res: SinusoidFit, idx, inp: _FlatInputs, o: _FitOptions, *, with_background: bool) -> torch.Tensor:
+    """The fitted model ``[n, E, H, W]`` of items ``idx`` of a flat result, rendered in the full
+    frame (with the fitted background where ``with_background``)."""
+    H, W = inp.data.shape[-2:]
+    amp, ph = _axes_xy(res.amplitude[idx], res.phase[idx], None if inp.direction is None else inp.direction[idx])
+    traj = Sinusoid(amp[:, None, :], ph[:, None, :], inp.omega[idx][:, None])
     with torch.no_grad():
-        img = render_blur(traj, _fitted_psf(res, psf, idx, fit_scale, fit_center), win[idx], height=H, width=W, settings=settings)
-    if fit_background:
+        img = render_blur(traj, _fitted_psf(res, inp.psf, idx, o.fit_scale, o.fit_center), inp.window[idx], height=H, width=W,
+                          settings=o.render_settings)
+    if with_background:
         img = img + res.background[idx][:, None, None, None]
     return img
 
 
-def _light_in_frame(res, psf, win, om, direction, H, W, fit_center, n_t: int = 64) -> torch.Tensor:
+def _light_in_frame(res: SinusoidFit, inp: _FlatInputs, fit_center: bool, n_t: int = 64) -> torch.Tensor:
     """Fraction ``[N]`` of the fitted spot's light that falls inside the frame
     ``[-0.5, W - 0.5] x [-0.5, H - 0.5]`` (worst exposure), from the Gaussian marginals of the
     PSF along the fitted path (NaN where the fit has no estimate)."""
-    amp, ph = _axes_xy(res.amplitude, res.phase, direction)
+    H, W = inp.data.shape[-2:]
+    psf, win, om = inp.psf, inp.window, inp.omega
+    amp, ph = _axes_xy(res.amplitude, res.phase, inp.direction)
     if isinstance(psf, GaussianPSF):
         centre, cov = psf.center, psf.cov
     else:
@@ -852,69 +727,6 @@ def _light_in_frame(res, psf, win, om, direction, H, W, fit_center, n_t: int = 6
     hi = torch.tensor([W - 0.5, H - 0.5], dtype=dtype, device=device)
     inside = torch.special.ndtr((hi - pos) / sd) - torch.special.ndtr((-0.5 - pos) / sd)  # [N, E, T, 2]
     return inside.prod(-1).mean(-1).amin(-1)
-
-
-def _robust_scale(r: torch.Tensor, used: torch.Tensor) -> torch.Tensor:
-    """``1.4826 MAD`` of the residuals ``r [n, E, H, W]`` over the used pixels, ``[n, 1, 1, 1]``."""
-    x = torch.where(used, r, torch.full_like(r, float("nan"))).flatten(1)
-    med = x.nanmedian(-1, keepdim=True).values
-    mad = (x - med).abs().nanmedian(-1).values * 1.482602218505602
-    return torch.nan_to_num(mad, nan=0.0).clamp_min(torch.finfo(r.dtype).tiny)[:, None, None, None]
-
-
-def _impulses(data: torch.Tensor, psf: GaussianPSF, noise: torch.Tensor, k: float) -> torch.Tensor:
-    """Pixels ``[n, E, H, W]`` brighter than any blurred Gaussian spot allows: hot pixels and
-    cosmic-ray hits, found before the fit so they cannot spoil its start.
-
-    A positive sum of Gaussians of precision ``[[A, B], [B, C]]`` obeys
-    ``f(x) <= exp(A / 2) (f(x - 1) + f(x + 1)) / 2`` along x (and likewise with C along y),
-    since ``g(x + d) + g(x - d) >= 2 g(x) exp(-d^2 A / 2)`` for each of its terms. A pixel that
-    exceeds either bound by ``k`` noise standard deviations cannot come from the spot.
-    Interior pixels only. ``noise``: ``[n, 1, 1, 1]`` or ``[n, E, H, W]``.
-    """
-    A, _, C = psf.precision()
-    out = torch.zeros_like(data, dtype=torch.bool)
-    if data.shape[-1] < 3 and data.shape[-2] < 3:
-        return out
-    s = noise.expand_as(data)
-    for dim, prec in ((-1, A), (-2, C)):
-        if data.shape[dim] < 3:
-            continue
-        c = torch.exp(prec / 2)[:, None, None, None]
-        mid = data.narrow(dim, 1, data.shape[dim] - 2)
-        nb = 0.5 * (data.narrow(dim, 0, data.shape[dim] - 2) + data.narrow(dim, 2, data.shape[dim] - 2))
-        sd = s.narrow(dim, 1, data.shape[dim] - 2) * torch.sqrt(1 + c * c / 2)
-        out.narrow(dim, 1, data.shape[dim] - 2).logical_or_(mid - c * nb > k * sd)
-    return out
-
-
-def _plane_fit(data: torch.Tensor, use: torch.Tensor) -> torch.Tensor:
-    """Least-squares plane ``a + b (x - xc) + c (y - yc)`` of each ``data [n, E, H, W]`` over
-    the pixels ``use``; ``[n, E, 3]`` (centre level, x slope, y slope per px)."""
-    n, E, H, W = data.shape
-    y = torch.arange(H, dtype=data.dtype, device=data.device)[:, None].expand(H, W) - (H - 1) / 2
-    x = torch.arange(W, dtype=data.dtype, device=data.device)[None, :].expand(H, W) - (W - 1) / 2
-    basis = torch.stack([torch.ones_like(x), x, y], -1).reshape(H * W, 3)  # [HW, 3]
-    w = use.reshape(n, E, H * W).to(data.dtype)
-    A = torch.einsum("nep,pi,pj->neij", w, basis, basis)
-    rhs = torch.einsum("nep,pi,nep->nei", w, basis, data.reshape(n, E, H * W))
-    A = A + 1e-12 * A.diagonal(dim1=-2, dim2=-1).amax(-1)[..., None, None].clamp_min(1) * torch.eye(3, dtype=data.dtype, device=data.device)
-    return torch.linalg.solve(A, rhs[..., None])[..., 0]
-
-
-def _plane_image(coef: torch.Tensor, H: int, W: int) -> torch.Tensor:
-    """``[n, E, H, W]`` image of planes ``coef [n, E, 3]`` (see :func:`_plane_fit`)."""
-    y = torch.arange(H, dtype=coef.dtype, device=coef.device)[:, None] - (H - 1) / 2
-    x = torch.arange(W, dtype=coef.dtype, device=coef.device)[None, :] - (W - 1) / 2
-    return coef[..., 0, None, None] + coef[..., 1, None, None] * x + coef[..., 2, None, None] * y
-
-
-def _put(res: SinusoidFit, idx: torch.Tensor, sub: SinusoidFit) -> None:
-    """Overwrite items ``idx`` of a flat-batch ``res`` with those of ``sub``."""
-    for f in fields(SinusoidFit):
-        v = getattr(res, f.name)
-        if isinstance(v, torch.Tensor):
-            v[idx] = getattr(sub, f.name)
 
 
 def fit_sinusoid(
@@ -1000,155 +812,12 @@ def fit_sinusoid(
         >>> fit = fit_sinusoid(images, psf, window, omega, mask=~dark.hot_pixels, outliers="reject")
         >>> bad = (fit.flags & PARTLY_OUT_OF_FRAME) != 0
     """
-    if isinstance(images, torch.Tensor) and not images.is_floating_point():
-        raise InputTypeError(f"images: expected a real floating tensor [..., E, H, W] with the dark level subtracted "
-                             f"(preprocess.subtract_dark), got dtype {images.dtype}")
     images, omega = _validate(images, psf, window, omega, axes, optimizer, loss)
-    for name, v in (("fit_scale", fit_scale), ("fit_background", fit_background), ("fit_center", fit_center), ("fit_gradient", fit_gradient),
-                    ("normalize", normalize)):
-        _check_flag(v, name)
-    check_choice(outliers, "outliers", OUTLIERS)
-    outlier_sigma = check_real_scalar(outlier_sigma, "outlier_sigma", positive=True)
-    if fit_gradient and normalize:
-        raise ParameterError("fit_gradient: expected False with normalize=True (the plane is in image units), got True")
-    if outliers == "reject" and normalize:
-        raise ParameterError("outliers: expected 'none' with normalize=True (the robust pass compares data and model in image units), "
-                             "got 'reject'")
-    if max_iter is not None and (isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 1):
-        raise ParameterError(f"max_iter: expected None or an integer >= 1, got {max_iter!r}")
-    tol = check_real_scalar(tol, "tol", nonnegative=True)
-    if render_settings is not None and not isinstance(render_settings, RenderSettings):
-        raise InputTypeError(f"render_settings: expected a RenderSettings or None, got {type(render_settings).__name__}")
-
-    dtype, device = images.dtype, images.device
-    batch = images.shape[:-3]
-    E, H, W = images.shape[-3:]
-    N = max(1, math.prod(batch))
-    data = images.reshape(N, E, H, W)
-    # One-axis fits: the unit image direction of the motion per item [N, 2] (None: Lissajous).
-    direction = None if isinstance(axes, str) and axes == "xy" else (_axis_directions(axes, N, dtype, device)[:, 0] if isinstance(axes, str)
-                                          else _as_direction(axes, batch, N, data))
-    w_full = window.to(dtype).expand(batch + (E,))
-    win = ExposureWindow(w_full.start.reshape(N, E), w_full.duration.reshape(N, E))
-    om = omega.expand(batch).reshape(N)
-    psf_n = _flatten_psf(psf.to(dtype) if isinstance(psf, GaussianPSF) else psf, batch, N)
-    sig = None
-    if noise_std is not None:
-        s = check_positive(as_tensor(noise_std, "noise_std", like=data), "noise_std")
-        try:
-            sig = s.expand(batch + (E, H, W)).reshape(N, E, H, W) if s.dim() >= 3 and s.shape[-3:] == (E, H, W) else s.expand(batch).reshape(N)
-        except RuntimeError:
-            raise ShapeError(f"noise_std: expected a number, [...] or [..., E, H, W], got {tuple(s.shape)}") from None
-
-    keep = torch.ones(N, E, H, W, dtype=torch.bool, device=device)
-    user_masked = torch.zeros(N, dtype=torch.bool, device=device)
-    if mask is not None:
-        if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool:
-            raise InputTypeError(f"mask: expected a bool tensor [..., E, H, W] (True = use the pixel), got "
-                                 f"{mask.dtype if isinstance(mask, torch.Tensor) else type(mask).__name__}")
-        try:
-            m = mask.to(device).expand(batch + (E, H, W)).reshape(N, E, H, W)
-        except RuntimeError:
-            raise ShapeError(f"mask: expected shape [..., E, H, W] = {tuple(images.shape)}, got {tuple(mask.shape)}") from None
-        keep = keep & m
-        user_masked = (~m).flatten(1).any(1)
-    sat_masked = torch.zeros(N, dtype=torch.bool, device=device)
-    if saturation_level is not None:
-        lvl = check_finite(as_tensor(saturation_level, "saturation_level", like=data), "saturation_level")
-        try:
-            lvl = lvl.expand(batch).reshape(N)
-        except RuntimeError:
-            raise ShapeError(f"saturation_level: expected a number or the images' batch {tuple(batch)}, got {tuple(lvl.shape)}") from None
-        sat = data >= lvl[:, None, None, None]
-        sat_masked = (sat & keep).flatten(1).any(1)
-        keep = keep & ~sat
-
-    core_axes = direction if not isinstance(axes, str) else axes
-    opts = dict(optimizer=optimizer, loss=loss, fit_scale=fit_scale, fit_background=fit_background, fit_center=fit_center,
-                normalize=normalize, max_iter=max_iter, tol=tol, render_settings=render_settings)
-
-    def run(idx, use):
-        if idx.numel() == N:  # everything: no copies
-            return _fit_core(_inpaint(data, use), psf_n, win, om, axes=core_axes, noise_std=sig, mask=None if bool(use.all()) else use,
-                             **opts)
-        return _fit_core(_inpaint(data[idx], use), _take_psf(psf_n, idx), win[idx], om[idx],
-                         axes=core_axes if isinstance(core_axes, str) else core_axes[idx],
-                         noise_std=None if sig is None else sig[idx], mask=None if bool(use.all()) else use, **opts)
-
-    everything = torch.arange(N, device=device)
-    rejected = torch.zeros_like(keep)
-    if outliers == "reject" and isinstance(psf_n, GaussianPSF):
-        if sig is not None:
-            noise0 = sig if sig.dim() == 4 else sig[:, None, None, None]
-        else:
-            noise0 = _robust_scale(data, keep)
-        rejected = _impulses(data, psf_n, noise0, outlier_sigma) & keep
-    plane = None
-    if fit_gradient:
-        border = torch.ones(H, W, dtype=torch.bool, device=device)
-        border[2:-2, 2:-2] = False
-        plane = _plane_fit(data, keep & ~rejected & border)
-        data_raw, data = data, data - _plane_image(plane, H, W)
-    res = run(everything, keep & ~rejected)
-    if fit_gradient:
-        live = everything[torch.isfinite(res.cost)]
-        if live.numel():
-            spot = _model_images(res, live, psf_n, win, om, direction, H, W, fit_scale, fit_center, False, render_settings)
-            far = spot < 1e-4 * spot.amax((-1, -2), keepdim=True)
-            plane[live] = _plane_fit(data_raw[live], keep[live] & ~rejected[live] & far)
-            data = data_raw - _plane_image(plane, H, W)
-            _put(res, live, run(live, keep[live] & ~rejected[live]))
-    passes = 0
-    if outliers == "reject":
-        for passes in range(1, 4):
-            idx = everything[torch.isfinite(res.cost) & ((res.status == 0) | (res.status == 2) | (res.status == 4))]
-            if idx.numel() == 0:
-                break
-            model = _model_images(res, idx, psf_n, win, om, direction, H, W, fit_scale, fit_center, fit_background, render_settings)
-            r = data[idx] - model
-            used = keep[idx]
-            scale = sig[idx] if sig is not None and sig.dim() == 4 else (
-                sig[idx][:, None, None, None] if sig is not None else _robust_scale(r, used))
-            new = (r.abs() > outlier_sigma * scale) & used
-            changed = (new != rejected[idx]).flatten(1).any(1)
-            if not bool(changed.any()):
-                break
-            ci = idx[changed]
-            rejected[ci] = new[changed]
-            _put(res, ci, run(ci, keep[ci] & ~rejected[ci]))
-
-    # Items with nothing left to fit.
-    used_all = keep & ~rejected
-    n_used = used_all.flatten(1).sum(1)
-    P = len(res.param_names)
-    empty = n_used <= P
-    if bool(empty.any()):
-        nan = float("nan")
-        for name in ("amplitude", "phase", "amplitude_std", "phase_std", "alias_phase", "alias_cost", "cost", "covariance"):
-            getattr(res, name)[empty] = nan
-        res.status[empty] = NO_PIXELS
-        res.converged[empty] = False
-
-    n_out = rejected.flatten(1).sum(1)
-    flags = torch.zeros(N, dtype=torch.long, device=device)
-    flags |= MASKED * user_masked.long()
-    flags |= SATURATED_MASKED * sat_masked.long()
-    flags |= OUTLIERS_MASKED * (n_out > 0).long()
-    with torch.no_grad():
-        frac = _light_in_frame(res, psf_n, win, om, direction, H, W, fit_center)
-    flags |= PARTLY_OUT_OF_FRAME * ((frac < 0.999) & (res.status != 3)).long()
-    amp_z = res.amplitude / res.amplitude_std
-    lissajous = direction is None
-    weak = (amp_z < 3) if not lissajous else (amp_z < 3).any(-1)
-    flags |= NO_MOTION * (weak & ~torch.isnan(res.amplitude) if not lissajous else weak & ~torch.isnan(res.amplitude).any(-1)).long()
-    res.flags = flags
-    res.n_masked = E * H * W - n_used
-    res.n_outliers = n_out
-    res.extras["outlier_passes"] = passes
-    res.background_plane = plane
-
-    for f in fields(SinusoidFit):
-        v = getattr(res, f.name)
-        if isinstance(v, torch.Tensor):
-            setattr(res, f.name, v.reshape(batch + v.shape[1:]))
-    return res
+    outlier_sigma, tol = _check_options(fit_scale=fit_scale, fit_background=fit_background, fit_center=fit_center,
+                                        fit_gradient=fit_gradient, normalize=normalize, outliers=outliers, outlier_sigma=outlier_sigma,
+                                        max_iter=max_iter, tol=tol, render_settings=render_settings)
+    inp = _flat_inputs(images, psf, window, omega, axes, noise_std, mask, saturation_level)
+    options = _FitOptions(optimizer=optimizer, loss=loss, fit_scale=fit_scale, fit_background=fit_background, fit_center=fit_center,
+                          normalize=normalize, max_iter=max_iter, tol=tol, render_settings=render_settings)
+    res, rejected, plane, passes = _robust_fit(inp, options, outliers, outlier_sigma, fit_gradient)
+    return _finish(res, inp, options, rejected, plane, passes, batch=images.shape[:-3])

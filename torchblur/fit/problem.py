@@ -1,0 +1,256 @@
+"""The problems of a sinusoid fit as its steps see them: pixels and weights, starts, and the crop.
+
+:func:`sine_problem` turns checked, flat inputs (``N`` problems of ``E`` exposures) into a
+:class:`SineProblem`: the fit weight of each pixel, the noise and background levels, and which
+items cannot be fitted (a dark frame, a spot out of frame). :func:`starting_points` gives the
+closed-form starts from the image moments (every root of the first exposure, or the consensus
+root of two or more), with the nuisance parameters' starts. :func:`crop_to_reach` cuts the
+frames to the region the model can reach and keeps the constant contribution of the rest.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import torch
+
+from torchblur.fit.sine_model import ParamLayout
+from torchblur.image.moments import image_moments, moments_along, sinusoid_from_moments
+from torchblur.render.alias import wrap_phase
+from torchblur.render.psf import GaussianPSF, KernelPSF
+from torchblur.render.window import ExposureWindow
+
+__all__ = ["SineProblem", "sine_problem", "starting_points", "crop_to_reach"]
+
+
+@dataclass(frozen=True)
+class SineProblem:
+    """``N`` sinusoid-fit problems of ``E`` exposures (a flat batch), checked.
+
+    Attributes:
+        data: images ``[N, E, H, W]`` (dark level subtracted); after :func:`crop_to_reach`, the crop's.
+        weight: fit weight of each pixel ``[N, E, H, W]`` (``1 / sigma^2``; 0 excludes the pixel;
+            a broadcast view of ``row_weight`` where that is set).
+        row_weight: ``[N]``: the one weight of every pixel of an item (the same noise on every
+            pixel, nothing masked), else None.
+        noise_given: whether the caller gave the pixel noise std.
+        noise_level: pixel noise std per item ``[N]`` (given: its median over the pixels;
+            else ``1.4826`` MAD of a strided subsample).
+        level: the median pixel (the background level) per item ``[N]``.
+        start, duration: exposure windows (s) ``[N, E]``; omega: rad/s ``[N]``.
+        psf: ``[N]``, in the coordinates of ``data``.
+        rest: the rest position ``[N, 2]`` (px, the PSF's centre or centroid, full frame);
+            psf_cov: its covariance ``[N, 2, 2]`` (px^2).
+        direction: unit image directions of the fitted axes ``[N, n_axes, 2]``.
+        dark: ``[N]`` bool, no signal above the noise; outside: ``[N]`` bool, the rest
+            position is out of the frame (3 PSF sigmas margin).
+        origin: ``(x0, y0)``, the crop's corner in the full frame (px).
+        cut_cost, cut_sq, cut_n: ``[N]``, over the pixels the crop cut off: the weighted sum of
+            squares, the plain sum of squares over the used pixels, the number of used pixels
+            (the model is zero there, so they add a constant to the cost and to the residuals).
+    """
+
+    data: torch.Tensor
+    weight: torch.Tensor
+    row_weight: torch.Tensor | None
+    noise_given: bool
+    noise_level: torch.Tensor
+    level: torch.Tensor
+    start: torch.Tensor
+    duration: torch.Tensor
+    omega: torch.Tensor
+    psf: GaussianPSF | KernelPSF
+    rest: torch.Tensor
+    psf_cov: torch.Tensor
+    direction: torch.Tensor
+    dark: torch.Tensor
+    outside: torch.Tensor
+    origin: tuple = (0, 0)
+    cut_cost: torch.Tensor | None = None
+    cut_sq: torch.Tensor | None = None
+    cut_n: torch.Tensor | None = None
+
+    @property
+    def live(self) -> torch.Tensor:
+        """``[N]`` bool: the items to fit (neither dark nor out of frame)."""
+        return ~self.dark & ~self.outside
+
+
+def sine_problem(data, psf, window: ExposureWindow, omega, direction, *, noise_std=None, use=None) -> SineProblem:
+    """A :class:`SineProblem` from checked, flat inputs.
+
+    Args:
+        data: ``[N, E, H, W]`` floating images; psf: ``[N]``; window: ``[N, E]``; omega: ``[N]`` rad/s.
+        direction: ``[N, n_axes, 2]`` unit image directions of the fitted axes.
+        noise_std: None, ``[N]`` or ``[N, E, H, W]`` (positive, data's dtype).
+        use: None or bool ``[N, E, H, W]``: False excludes a pixel.
+    """
+    dtype, device = data.dtype, data.device
+    N, E, H, W = data.shape
+    win = window.to(dtype).expand((N, E))
+    if isinstance(psf, GaussianPSF):
+        psf = psf.to(dtype)
+        rest, cov_psf = psf.center, psf.cov
+    else:
+        rest, cov_psf = psf.moments()
+    weight, row_weight, sigma_level = _pixel_weights(data, noise_std, use)
+    # Background and noise level from ~1024-2048 pixels per item (a strided subsample: the
+    # median of 1024 noise samples is within 0.04 std of the level, and a median costs a
+    # selection per item).
+    flat = data.reshape(N, -1)
+    sub = flat[:, ::max(1, flat.shape[-1] // 1024)]
+    med = sub.median(-1).values
+    noise_level = sigma_level if sigma_level is not None else (sub - med[:, None]).abs().median(-1).values * 1.4826
+    # Degenerate items: no signal above the noise.
+    peak = (flat - med[:, None]).amax(-1)
+    dark = ~(peak > 8 * noise_level.clamp_min(torch.finfo(dtype).tiny)) | (peak <= 0)
+    # The rest position must be in the frame (3 sigma margin): otherwise flag, do not fit.
+    sd = torch.diagonal(cov_psf, dim1=-2, dim2=-1).clamp_min(0).sqrt()
+    outside = ((rest < -3 * sd) | (rest > torch.tensor([W - 1, H - 1], dtype=dtype, device=device) + 3 * sd)).any(-1)
+    zero = torch.zeros(N, dtype=dtype, device=device)
+    return SineProblem(data=data, weight=weight, row_weight=row_weight, noise_given=noise_std is not None, noise_level=noise_level,
+                       level=med, start=win.start.reshape(N, E), duration=win.duration.reshape(N, E), omega=omega, psf=psf,
+                       rest=rest, psf_cov=cov_psf, direction=direction, dark=dark, outside=outside, cut_cost=zero, cut_sq=zero,
+                       cut_n=zero.clone())
+
+
+def _pixel_weights(data, noise_std, use):
+    """``(weight [N, E, H, W], row_weight [N] or None, noise level [N] or None)`` (see
+    :class:`SineProblem`). With one weight per item and nothing masked, ``weight`` is a
+    broadcast view of ``row_weight``, not a copy."""
+    N, E, H, W = data.shape
+    row_weight = torch.ones(N, dtype=data.dtype, device=data.device)
+    weight = row_weight[:, None, None, None].expand(N, E, H, W)
+    sigma_level = None
+    if noise_std is not None:
+        s = noise_std.reshape(N, 1, 1, 1) if noise_std.dim() == 1 else noise_std
+        sigma_level = s.reshape(N, -1).contiguous().median(-1).values
+        if s.shape[-3:] == (1, 1, 1):
+            row_weight = 1 / s.reshape(N) ** 2
+            weight = row_weight[:, None, None, None].expand(N, E, H, W)
+        else:
+            row_weight, weight = None, 1 / s.expand(N, E, H, W) ** 2
+    if use is not None:
+        weight = weight * use.to(data.dtype)
+        row_weight = None
+    return weight, row_weight, sigma_level
+
+
+def starting_points(problem: SineProblem, layout: ParamLayout):
+    """Starts ``(theta0 [N * K, P], amplitude0 [N, K, n_axes])``, ``K`` candidates per item.
+
+    The closed-form starts come from the moments of every exposure (both roots). Candidates:
+    the roots of the first exposure (the alias pair; four combinations for a Lissajous motion).
+    With two or more exposures the true root is the one the exposures share (the aliases move
+    with the window centre), so the single consensus root is the start (amplitude: the mean
+    over the exposures). Nuisance starts: the scale from the total light, the background from
+    the median pixel, the rest position from the PSF. Amplitudes are capped at the frame
+    diagonal (a larger motion cannot be measured) and floored at 1e-3 px.
+    """
+    p = problem
+    N, E, H, W = p.data.shape
+    n_axes = layout.n_axes
+    thr = p.level[:, None] + 3 * p.noise_level[:, None]
+    _, centroid, icov = image_moments(p.data, threshold=thr)  # [N, E, 2], [N, E, 2, 2]
+    M_c, phi_c = [], []
+    for k in range(n_axes):
+        mu1, vex = moments_along(centroid - p.rest[:, None], icov - p.psf_cov[:, None], p.direction[:, None, k])
+        M, phi = sinusoid_from_moments(mu1, vex, p.omega[:, None], p.start, p.duration)  # [N, E], [N, E, 2]
+        M_c.append(M.clamp(max=math.hypot(H, W)))
+        phi_c.append(torch.nan_to_num(phi, nan=0.0))
+    roots = [(r,) for r in range(2)] if n_axes == 1 else [(r0, r1) for r0 in range(2) for r1 in range(2)]
+
+    def root_phases(phi, rs):  # phi: per axis [N, 2] -> [N, n_axes]
+        return torch.stack([phi[k][:, rs[k]] for k in range(n_axes)], -1)
+
+    first = [c[:, 0] for c in phi_c]
+    cands = [torch.cat([torch.stack([M_c[k][:, 0] for k in range(n_axes)], -1), root_phases(first, rs)], -1) for rs in roots]
+    if E >= 2:
+        # Compare with the exposure whose window centre best separates the alias (repeats of
+        # the same window share the alias and would tell nothing).
+        centre = p.omega[:, None] * (p.start + p.duration / 2)
+        other = (centre - centre[:, :1]).sin().abs().argmax(-1)  # [N]
+        ar = torch.arange(N, device=p.data.device)
+        phi_other = [c[ar, other] for c in phi_c]  # [N, 2] per axis
+        dist = torch.stack([
+            torch.stack([wrap_phase(root_phases(first, rs) - root_phases(phi_other, r2)).abs().sum(-1) for r2 in roots], -1).amin(-1)
+            for rs in roots], -1)  # [N, n_roots]
+        cands = [torch.stack(cands, 1)[ar, dist.argmin(-1)]]
+        cands[0][:, :n_axes] = torch.stack([M_c[k].mean(-1) for k in range(n_axes)], -1)
+    K = len(cands)
+    theta_core = torch.stack(cands, 1)  # [N, K, 2 n_axes]
+    theta_core[..., :n_axes] = theta_core[..., :n_axes].clamp_min(1e-3)
+    extra = _nuisance_starts(problem, layout)
+    theta0 = theta_core
+    if extra:
+        theta0 = torch.cat([theta_core, torch.stack(extra, -1)[:, None, :].expand(N, K, len(extra))], -1)
+    return theta0.reshape(N * K, layout.size).detach(), theta_core[..., :n_axes]
+
+
+def _nuisance_starts(problem: SineProblem, layout: ParamLayout) -> list:
+    """The starts ``[N]`` of the fitted nuisance parameters, in ``theta`` order."""
+    p = problem
+    extra = []
+    if layout.fit_scale:
+        if isinstance(p.psf, GaussianPSF):
+            expected = (p.psf.total_light()[:, None] * p.duration).sum(-1)
+        else:
+            expected = (p.psf.kernel.sum((-1, -2))[:, None] * p.duration).sum(-1)
+        extra.append((p.data.sum((-1, -2, -3)) / expected.clamp_min(1e-30)).clamp_min(1e-3))
+    if layout.fit_background:
+        extra.append(p.level)
+    if layout.fit_center:
+        extra += [p.rest[:, 0], p.rest[:, 1]]
+    return extra
+
+
+def crop_to_reach(problem: SineProblem, amplitude_bound: torch.Tensor, *, fit_center: bool) -> SineProblem:
+    """The problem cut to the region the model can reach (an l2 fit), or the problem itself.
+
+    Outside it (5.5 PSF sigmas beyond the largest motion, ``amplitude_bound [N, n_axes]`` px
+    times 1.25 plus 0.5 px, and 2 px more with ``fit_center``) the model and its Jacobian are
+    below 3e-7 of the peak, far below any camera's noise, so those pixels change nothing in
+    the normal equations; their constant contribution to the cost and to the noise estimate is
+    kept in ``cut_cost``, ``cut_sq``, ``cut_n``. The crop is shared by the batch (the union over
+    the live items), and skipped unless it is at least 4x4 and under 90% of the frame.
+    """
+    p = problem
+    N, E, H, W = p.data.shape
+    live = p.live
+    if not bool(live.any()):
+        return p
+    reach = (p.direction.abs() * (amplitude_bound * 1.25 + 0.5)[..., None]).sum(1)  # [N, 2] px
+    sdv = torch.diagonal(p.psf_cov, dim1=-2, dim2=-1).clamp_min(0).sqrt()
+    margin = 2.0 if fit_center else 0.0
+    lo = (p.rest - reach - 5.5 * sdv - margin)[live].amin(0)
+    hi = (p.rest + reach + 5.5 * sdv + margin)[live].amax(0)
+    cx0, cy0 = max(0, int(math.floor(float(lo[0])))), max(0, int(math.floor(float(lo[1]))))
+    cx1, cy1 = min(W, int(math.ceil(float(hi[0]))) + 1), min(H, int(math.ceil(float(hi[1]))) + 1)
+    if not (cx1 - cx0 >= 4 and cy1 - cy0 >= 4 and (cx1 - cx0) * (cy1 - cy0) < 0.9 * H * W):
+        return p
+    bands = ((slice(None, cy0), slice(None)), (slice(cy1, None), slice(None)),
+             (slice(cy0, cy1), slice(None, cx0)), (slice(cy0, cy1), slice(cx1, None)))
+
+    def cut_sum(f):  # f(band) -> [N, E, h, w]: summed over the pixels the crop cuts off -> [N]
+        return sum(f(b).sum((-1, -2, -3)) for b in bands)
+
+    def sq(b):
+        d = p.data[(..., *b)]
+        return d * d
+
+    if p.row_weight is not None:
+        cut_sq = cut_sum(sq)
+        cut_cost = p.row_weight * cut_sq
+        cut_n = torch.full_like(cut_sq, float(E * (H * W - (cy1 - cy0) * (cx1 - cx0))))
+    else:
+        cut_cost = cut_sum(lambda b: p.weight[(..., *b)] * sq(b))
+        cut_sq = cut_sum(lambda b: (p.weight[(..., *b)] > 0) * sq(b))
+        cut_n = cut_sum(lambda b: (p.weight[(..., *b)] > 0).to(p.data.dtype))
+    shift = torch.tensor([cx0, cy0], dtype=p.data.dtype, device=p.data.device)
+    if isinstance(p.psf, GaussianPSF):
+        psf = GaussianPSF(p.psf.center - shift, p.psf.cov, p.psf.amplitude)
+    else:
+        psf = KernelPSF(p.psf.kernel[..., cy0:cy1, cx0:cx1])
+    return dataclasses.replace(p, data=p.data[..., cy0:cy1, cx0:cx1], weight=p.weight[..., cy0:cy1, cx0:cx1], psf=psf,
+                               origin=(cx0, cy0), cut_cost=cut_cost, cut_sq=cut_sq, cut_n=cut_n)
