@@ -1,9 +1,13 @@
 """Fitting rendered blur to images: every frequency, exposure and spot in one batch.
 
-``sinusoid`` (:func:`fit_sinusoid`, :class:`SinusoidFit`, the status codes and flags),
-``multisine``, ``coded`` (a coded exposure), ``consistency`` (:class:`BlurConsistencyLoss`,
-the renderer as a loss inside learned models), ``landscape`` (the loss over a parameter grid),
-``optim`` (the batched Levenberg-Marquardt), ``losses`` (image losses and IRLS weights).
+``sinusoid`` (:func:`fit_sinusoid`, its steps), ``results`` (:class:`SinusoidFit`), ``status``
+(the one table of status codes and flags), ``problem`` (a fit's inputs flattened, its starts and
+crop), ``sine_model`` (the image and Jacobian of the parameters, on the one forward model
+:func:`torchblur.render.splat.sine_blur_with_jacobian`), ``robust`` (outliers, stray-light
+planes), ``multisine``, ``coded`` (a coded exposure), ``consistency``
+(:class:`BlurConsistencyLoss`, the renderer as a loss inside learned models), ``landscape`` (the
+loss over a parameter grid), ``optim`` (the batched Levenberg-Marquardt), ``losses`` (image
+losses and IRLS weights).
 """
 from torchblur.fit.coded import CodedFit, fit_sinusoid_coded
 from torchblur.fit.consistency import BlurConsistencyLoss, blur_consistency
