@@ -14,8 +14,9 @@ Routes, each with the noise model (``var = c0 + c1 * value``) the still frames m
 fitted twice (weights from the first fit's model): ``kind="auto"`` (the PSF psf_from_still
 chooses: the kernel on these spots), and ``kind="gaussian"`` (a 2-D Gaussian fitted to the
 same still, point-sampled pixels) for contrast. Prints worst |M| error (%), worst |phase|
-error (deg), rms(error / std) of M and phi, gross errors (|error| > 5 std, a status other
-than 0, or |phase error| > 30 deg) and the PSF choice.
+error (deg), rms(error / std) of M and phi (also with the std times
+``StillPSF.kernel_noise_factor``, the rule for the kernel's own noise), gross errors
+(|error| > 5 std, a status other than 0, or |phase error| > 30 deg) and the PSF choice.
 
     python benchmarks/bench_hcipy.py [--n 40] [--n-still 32] [--n-time 2000] [--threads 1]
 """
@@ -42,6 +43,8 @@ def summary(out: dict) -> str:
         f"  worst |M| error      {np.abs(out['err_M_pct']).max():.3f} %   (rms {np.sqrt(np.mean(out['err_M_pct'] ** 2)):.3f} %)",
         f"  worst |phase| error  {np.abs(out['err_phi_deg']).max():.3f} deg (rms {np.sqrt(np.mean(out['err_phi_deg'] ** 2)):.3f} deg)",
         f"  rms(error/std)       M {np.sqrt(np.mean(out['z_M'] ** 2)):.3f}   phi {np.sqrt(np.mean(out['z_phi'] ** 2)):.3f}",
+        f"  with the kernel-noise factor (median {np.median(out['factor']):.3f}): rms(error/std) "
+        f"M {np.sqrt(np.mean((out['z_M'] / out['factor']) ** 2)):.3f}   phi {np.sqrt(np.mean((out['z_phi'] / out['factor']) ** 2)):.3f}",
         f"  gross errors         {int(gross.sum())} of {gross.size}",
         f"  PSF chosen           {kinds}; reduced chi2 of the still: Gaussian median {np.median(out['chi2_gaussian']):.3g}, "
         f"kernel (light left out) median {np.median(out['chi2_kernel']):.3g}",

@@ -253,7 +253,7 @@ def fit_problems(problems: list, kind: str, *, passes: int = 2) -> dict:
     frames gave (``StillPSF.frame_noise_std``): first of the raw frames, then (``passes`` = 2)
     of the first fit's model plus the background, which removes the bias of weights taken from
     noisy data. Returns numpy arrays: errors (M in %, phase in deg), error / std, status,
-    chosen kinds and the chi2 of each PSF."""
+    chosen kinds, the chi2 of each PSF and ``StillPSF.kernel_noise_factor``."""
     import torch
 
     from torchblur.image.psf_from_still import psf_from_still
@@ -269,8 +269,9 @@ def fit_problems(problems: list, kind: str, *, passes: int = 2) -> dict:
             amp_std[idx], ph_std[idx], status[idx] = fit.amplitude_std.numpy(), fit.phase_std.numpy(), fit.status.numpy()
     M = np.array([p["M"] for p in problems])
     dphi = np.angle(np.exp(1j * (ph - np.array([p["phi"] for p in problems]))))
+    factor = np.array([float(r.kernel_noise_factor(p["window"].duration)) for r, p in zip(res, problems)])
     return dict(
-        err_M_pct=100 * (amp - M) / M, err_phi_deg=np.degrees(dphi), z_M=(amp - M) / amp_std, z_phi=dphi / ph_std, status=status,
+        factor=factor, err_M_pct=100 * (amp - M) / M, err_phi_deg=np.degrees(dphi), z_M=(amp - M) / amp_std, z_phi=dphi / ph_std, status=status,
         kinds=[r.kind for r in res], chi2_gaussian=np.array([float(r.chi2_gaussian) for r in res]),
         chi2_kernel=np.array([float(r.chi2_kernel) for r in res]), freq_hz=np.array([p["freq_hz"] for p in problems]),
     )

@@ -114,6 +114,20 @@ def test_forced_kinds_and_given_noise(gaussian_case):
     assert given.frame_noise_std(frames[:2]).shape == (2, H, W)
 
 
+def test_kernel_noise_factor(gaussian_case):
+    """sqrt(1 + sum_e T_e / (N T_still)) for the kernel, 1 for a Gaussian, one per item."""
+    _, _, frames = gaussian_case
+    k = psf_from_still(frames, EXPOSURE, kind="kernel")
+    f = k.kernel_noise_factor(torch.tensor([[1e-3, 3e-3], [16e-3, 16e-3]]))
+    assert f.shape == (2,)
+    assert torch.allclose(f, torch.tensor([math.sqrt(1 + 4e-3 / (16 * EXPOSURE)), math.sqrt(2.0)], dtype=f.dtype))
+    assert float(k.kernel_noise_factor(EXPOSURE)) == pytest.approx(math.sqrt(1 + 1 / 16))
+    g = psf_from_still(frames, EXPOSURE, kind="gaussian")
+    assert float(g.kernel_noise_factor([1e-3, 3e-3])) == 1.0
+    with pytest.raises(ParameterError, match="exposures_s"):
+        k.kernel_noise_factor(-1.0)
+
+
 def test_one_frame_and_dtype(gaussian_case):
     _, _, frames = gaussian_case
     one = psf_from_still(frames[0].float(), EXPOSURE)

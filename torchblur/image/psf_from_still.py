@@ -73,6 +73,7 @@ class StillPSF:
         taper: ``[H, W]`` in [0, 1], the kernel's weight per pixel.
         touches_edge: the support reaches the frame's border (the kernel is cut there).
         n_frames: N.
+        exposure_s: the still frames' exposure (s).
     """
 
     psf: KernelPSF | GaussianPSF
@@ -91,6 +92,23 @@ class StillPSF:
     taper: torch.Tensor
     touches_edge: bool
     n_frames: int
+    exposure_s: float
+
+    def kernel_noise_factor(self, exposures_s) -> torch.Tensor:
+        """The factor by which a fit's std grows from the measured kernel's own noise, for
+        blurred frames of exposures ``exposures_s`` (s, ``[..., E]``: the exposures fitted
+        together): ``sqrt(1 + sum_e T_e / (N T_still))``, ``[...]``; 1 for a Gaussian.
+
+        The rule of a template match where shot noise dominates: the data's light
+        ``sum_e T_e`` and the template's ``N T_still`` each give the estimate a variance
+        inversely proportional to it. Multiply ``amplitude_std`` and ``phase_std`` by it
+        (``benchmarks/bench_hcipy.py`` checks it: rms(error/std) 1.21 -> 1.00 with 4 still
+        frames). Average enough still frames and it is near 1 (32 frames there: 1.03)."""
+        t = check_positive(as_tensor(exposures_s, "exposures_s", dtype=torch.float64), "exposures_s")
+        if t.dim() == 0:
+            t = t[None]
+        ratio = t.sum(-1) / (self.n_frames * self.exposure_s)
+        return torch.ones_like(ratio) if self.kind == "gaussian" else (1 + ratio).sqrt()
 
     def frame_noise_std(self, frames) -> torch.Tensor:
         """Per-pixel noise std of other frames of the same camera (e.g. the blurred ones),
@@ -283,4 +301,5 @@ def psf_from_still(
         psf=gauss.psf if chosen == "gaussian" else kernel, kind=chosen, reason=reason, kernel=kernel, gaussian=gauss,
         chi2_gaussian=chi2_g, chi2_kernel=chi2_k, chi2_threshold=threshold, background=background, noise_std=sigma,
         noise_model=model, frame_noise=frame_noise, support=support, taper=taper, touches_edge=edge, n_frames=N,
+        exposure_s=exposure,
     )
