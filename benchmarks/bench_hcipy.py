@@ -18,7 +18,7 @@ error (deg), rms(error / std) of M and phi (also with the std times
 ``StillPSF.kernel_noise_factor``, the rule for the kernel's own noise), gross errors
 (|error| > 5 std, a status other than 0, or |phase error| > 30 deg) and the PSF choice.
 
-    python benchmarks/bench_hcipy.py [--n 40] [--n-still 32] [--n-time 2000] [--threads 1]
+    python benchmarks/bench_hcipy.py [--n 40] [--n-still 32] [--n-time 2000] [--light 1] [--threads 1]
 """
 from __future__ import annotations
 
@@ -58,15 +58,17 @@ def main() -> None:
     ap.add_argument("--n-time", type=int, default=2000)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--light", type=float, default=1.0, help="scale both peaks (3000 e- still, 4000 e- blurred): the model's floor")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
-    problems = [hf.make_problem(args.seed + k, rotated=bool(k % 2), n_still=args.n_still, n_time=args.n_time) for k in range(args.n)]
+    problems = [hf.make_problem(args.seed + k, rotated=bool(k % 2), n_still=args.n_still, n_time=args.n_time,
+                                still_peak=3000.0 * args.light, blur_peak=4000.0 * args.light) for k in range(args.n)]
     t1 = time.perf_counter()
     freqs = np.array([p["freq_hz"] for p in problems])
     amps = np.array([p["M"] for p in problems])
     print(f"{args.n} HCIPy problems ({freqs.min():.0f}-{freqs.max():.0f} Hz, M {amps.min():.2f}-{amps.max():.2f} px, half along x, "
-          f"half along 0.5 rad), {args.n_still} still frames each, {args.n_time} time samples per exposure; "
+          f"half along 0.5 rad), light x{args.light:g}, {args.n_still} still frames each, {args.n_time} time samples per exposure; "
           f"rendered in {t1 - t0:.0f} s; torch threads {args.threads}")
     for kind, label in (("auto", "psf_from_still (kind='auto')"), ("gaussian", "Gaussian route (kind='gaussian')")):
         t = time.perf_counter()
