@@ -27,18 +27,30 @@ import ctypes
 import math
 from dataclasses import dataclass
 
-import numpy as np
-
 import hcipy
+import numpy as np
+import torch
 
-__all__ = ["SpotOptics", "HcipySpot", "camera_noise", "one_blas_thread"]
+from torchblur.design.windows import dual_exposure_windows
+from torchblur.fit.sinusoid import fit_sinusoid
+from torchblur.image.psf_from_still import psf_from_still
+from torchblur.render.blur import render_blur
+from torchblur.render.psf import GaussianPSF, KernelPSF
+from torchblur.render.trajectory import Sinusoid
+from torchblur.render.window import ExposureWindow
+
+__all__ = ["SpotOptics", "HcipySpot", "camera_noise", "one_blas_thread", "make_problem", "fit_problems"]
 
 
 @contextlib.contextmanager
 def one_blas_thread():
-    """Run numpy's OpenBLAS on one thread inside the block (HCIPy's products of a few
-    hundred kB run several times slower on two threads of a busy machine); a no-op where the library is not found."""
-    libs = {line.split()[-1] for line in open("/proc/self/maps") if "openblas" in line.lower()} if hasattr(ctypes, "CDLL") else set()
+    """Run numpy's OpenBLAS on one thread inside the block (the batched DFT's small products
+    run several times slower on two threads of a busy machine); a no-op where it is not found."""
+    try:
+        with open("/proc/self/maps") as maps:  # the loaded OpenBLAS (Linux)
+            libs = {line.split()[-1] for line in maps if "openblas" in line.lower()}
+    except OSError:
+        libs = set()
     funcs = []
     for path in libs:
         try:
@@ -191,8 +203,6 @@ def make_problem(seed: int, *, optics: SpotOptics = SpotOptics(), n_still: int =
     ``n_still`` still frames of peak ``still_peak`` e- (exposure chosen for it). Frames in
     electrons with the background and the noise of :func:`camera_noise`.
     """
-    from torchblur.design.windows import dual_exposure_windows  # the windows identify uses
-
     rng = np.random.default_rng(seed)
     f = 20 + 780 * rng.random()
     omega = 2 * math.pi * f
@@ -217,14 +227,6 @@ def make_problem(seed: int, *, optics: SpotOptics = SpotOptics(), n_still: int =
 
 def _fit_group(problems: list, res: list, passes: int):
     """One batched two-pass ``fit_sinusoid`` of problems whose PSFs are of one kind."""
-    import torch
-
-    from torchblur.fit.sinusoid import fit_sinusoid
-    from torchblur.render.blur import render_blur
-    from torchblur.render.psf import GaussianPSF, KernelPSF
-    from torchblur.render.trajectory import Sinusoid
-    from torchblur.render.window import ExposureWindow
-
     raw = torch.stack([torch.as_tensor(p["frames"]) for p in problems])
     images = raw - torch.stack([r.background for r in res])[:, None, None, None]
     if res[0].kind == "gaussian":
@@ -247,18 +249,15 @@ def _fit_group(problems: list, res: list, passes: int):
     return fit
 
 
-def fit_problems(problems: list, kind: str, *, passes: int = 2) -> dict:
+def fit_problems(problems: list, kind: str, *, passes: int = 2, background: float | None = None) -> dict:
     """``psf_from_still(kind=...)`` per problem, then batched ``fit_sinusoid`` (one batch per
     PSF kind) along each problem's direction, weighted by the camera noise model the still
     frames gave (``StillPSF.frame_noise_std``): first of the raw frames, then (``passes`` = 2)
     of the first fit's model plus the background, which removes the bias of weights taken from
-    noisy data. Returns numpy arrays: errors (M in %, phase in deg), error / std, status,
+    noisy data. ``background``: the frames' level, if known (else psf_from_still estimates
+    it). Returns numpy arrays: errors (M in %, phase in deg), error / std, status,
     chosen kinds, the chi2 of each PSF and ``StillPSF.kernel_noise_factor``."""
-    import torch
-
-    from torchblur.image.psf_from_still import psf_from_still
-
-    res = [psf_from_still(torch.as_tensor(p["still"]), p["still_exposure"], kind=kind) for p in problems]
+    res = [psf_from_still(torch.as_tensor(p["still"]), p["still_exposure"], kind=kind, background=background) for p in problems]
     n = len(problems)
     amp, ph, amp_std, ph_std, status = (np.full(n, np.nan) for _ in range(5))
     for k in ("gaussian", "kernel"):

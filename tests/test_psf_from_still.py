@@ -128,6 +128,35 @@ def test_kernel_noise_factor(gaussian_case):
         k.kernel_noise_factor(-1.0)
 
 
+def test_given_background_and_a_spot_that_fills_the_frame(gaussian_case):
+    _, truth, frames = gaussian_case
+    given = psf_from_still(frames, EXPOSURE, background=BG)
+    assert float(given.background) == BG and given.kind == "gaussian"
+    wide = GaussianPSF.isotropic(torch.tensor([23.0, 19.0], dtype=torch.float64), torch.tensor(7.0, dtype=torch.float64), 5e6)
+    zero = torch.zeros(2, dtype=torch.float64)
+    clean = render_blur(Sinusoid(zero, zero, 1.0), wide, ExposureWindow(0.0, EXPOSURE), height=H, width=W).numpy()
+    full = _camera(clean, 8, seed=9)
+    with pytest.raises(ParameterError, match="background"):
+        psf_from_still(full, EXPOSURE)
+    res = psf_from_still(full, EXPOSURE, background=BG)
+    assert res.touches_edge and res.kind == "gaussian"
+    assert abs(float(res.gaussian.psf.cov[0, 0]) - 49.0) < 4 * float(res.gaussian.cov_std[0, 0])
+
+
+def test_no_gaussian_fits_a_spot_wider_than_the_frame():
+    wide = GaussianPSF.isotropic(torch.tensor([23.0, 19.0], dtype=torch.float64), torch.tensor(12.0, dtype=torch.float64), 5e5)
+    zero = torch.zeros(2, dtype=torch.float64)
+    clean = render_blur(Sinusoid(zero, zero, 1.0), wide, ExposureWindow(0.0, EXPOSURE), height=H, width=W).numpy()
+    full = _camera(clean, 8, seed=9)
+    res = psf_from_still(full, EXPOSURE, background=BG)
+    if res.gaussian is None:  # the fit failed: the kernel, and the reason says so
+        assert res.kind == "kernel" and math.isinf(float(res.chi2_gaussian)) and "Gaussian fit failed" in res.reason
+        with pytest.raises(ParameterError, match="kind"):
+            psf_from_still(full, EXPOSURE, background=BG, kind="gaussian")
+    else:
+        assert res.kind == "gaussian"
+
+
 def test_one_frame_and_dtype(gaussian_case):
     _, _, frames = gaussian_case
     one = psf_from_still(frames[0].float(), EXPOSURE)
@@ -161,10 +190,12 @@ def test_kernel_fits_a_blur_like_the_truth(gaussian_case):
     (lambda f: psf_from_still(f, EXPOSURE, margin_px=-1), ParameterError),
     (lambda f: psf_from_still(f, EXPOSURE, taper_px=1.5), ParameterError),
     (lambda f: psf_from_still(f, EXPOSURE, support_sigma=0.0), ParameterError),
+    (lambda f: psf_from_still(f, EXPOSURE, background=float("nan")), ParameterError),
+    (lambda f: psf_from_still(f, EXPOSURE, background="dark"), InputTypeError),
     (lambda f: psf_from_still(torch.where(f > 1e9, f, f.new_tensor(float("nan"))), EXPOSURE), ParameterError),
 ])
 def test_bad_input_is_named(gaussian_case, call, exc):
     with pytest.raises(exc) as info:
         call(gaussian_case[2])
     msg = str(info.value)
-    assert any(name in msg for name in ("still", "exposure_s", "kind", "noise_std", "margin_px", "taper_px", "support_sigma"))
+    assert any(name in msg for name in ("still", "exposure_s", "kind", "noise_std", "margin_px", "taper_px", "support_sigma", "background"))

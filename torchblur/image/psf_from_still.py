@@ -18,7 +18,8 @@ What is done, in order (every step a pure function of the frames):
    with a 1 px Gaussian, above ``support_sigma`` smoothed-noise stds:
    :func:`~torchblur.image.preprocess.threshold_mask`), grown by ``margin_px`` and kept where
    connected to the brightest pixel (Airy rings join the core). The background is the median of
-   the mean outside the support (first guess: the median of the border); two passes.
+   the mean outside the support (first guess: the median of the border); two passes; or the
+   ``background`` given.
 4. The kernel: ``(mean - background) * taper``, the taper 1 on the support and a raised cosine
    falling to 0 over ``taper_px`` pixels beyond it, so the noise far from the spot is not
    splatted along the motion and the kernel has no step where it ends (its Fourier shift does
@@ -59,8 +60,9 @@ class StillPSF:
         kind: ``"kernel"`` or ``"gaussian"``: which one ``psf`` is.
         reason: one line: what was asked and the two reduced chi2 against the threshold.
         kernel: the measured :class:`KernelPSF` (frame ``[H, W]``, intensity per second).
-        gaussian: the :class:`PSFFit` of the Gaussian (point-sampled pixel centres).
-        chi2_gaussian: 0-d, the Gaussian's reduced chi2 over the support.
+        gaussian: the :class:`PSFFit` of the Gaussian (point-sampled pixel centres); None
+            where no Gaussian could be fitted (``reason`` says why).
+        chi2_gaussian: 0-d, the Gaussian's reduced chi2 over the support (inf: no fit).
         chi2_kernel: 0-d, the reduced chi2 of the light the kernel leaves out, outside the support.
         chi2_threshold: the largest ``chi2_gaussian`` that passes, ``1 + CHI2_Z sqrt(2 / dof)``.
         background: 0-d, the level removed from every frame (frame units).
@@ -80,7 +82,7 @@ class StillPSF:
     kind: str
     reason: str
     kernel: KernelPSF
-    gaussian: PSFFit
+    gaussian: PSFFit | None
     chi2_gaussian: torch.Tensor
     chi2_kernel: torch.Tensor
     chi2_threshold: float
@@ -218,22 +220,26 @@ def _taper(support: torch.Tensor, taper_px: int, dtype) -> torch.Tensor:
     return w
 
 
-def _measure(f, noise_std, support_sigma, margin_px, taper_px):
-    """Mean, noise, background, support and the tapered kernel image of the frames."""
+def _measure(f, noise_std, background, support_sigma, margin_px, taper_px):
+    """Mean, noise, background, support and taper of the frames (``background`` None: estimated)."""
     N, H, W = f.shape
     mean = f.mean(0)
     frame_noise, model = _frame_noise(f, mean, noise_std)
     sigma = frame_noise / math.sqrt(N)
-    background = mean[_border(H, W, f.device)].median()
+    if background is not None:
+        level = torch.as_tensor(background, dtype=mean.dtype, device=mean.device)
+        support = _support(mean, sigma, level, support_sigma, margin_px)
+        return mean, frame_noise, model, sigma, level, support, _taper(support, taper_px, mean.dtype)
+    level = mean[_border(H, W, f.device)].median()
     for _ in range(2):
-        support = _support(mean, sigma, background, support_sigma, margin_px)
+        support = _support(mean, sigma, level, support_sigma, margin_px)
         outside = ~_grow(support, taper_px)
         if int(outside.sum()) < 16:
-            raise ParameterError(f"still: expected a spot that leaves background around it, got {int(outside.sum())} pixels "
-                                 f"outside its support of {int(support.sum())} (a larger frame, or smaller margin_px/taper_px)")
-        background = mean[outside].median()
-    taper = _taper(support, taper_px, mean.dtype)
-    return mean, frame_noise, model, sigma, background, support, taper
+            raise ParameterError(f"background: the spot fills the frame ({int(outside.sum())} pixels outside its support of "
+                                 f"{int(support.sum())}), so its level cannot be estimated from the still; give background= "
+                                 f"(e.g. from frames with the source off), or a larger frame")
+        level = mean[outside].median()
+    return mean, frame_noise, model, sigma, level, support, _taper(support, taper_px, mean.dtype)
 
 
 def psf_from_still(
@@ -242,6 +248,7 @@ def psf_from_still(
     noise_std=None,
     *,
     kind: str = "auto",
+    background=None,
     support_sigma: float = 3.0,
     margin_px: int = 2,
     taper_px: int = 3,
@@ -257,6 +264,9 @@ def psf_from_still(
             frames (module docstring, step 2).
         kind: ``"auto"`` (the Gaussian where it passes the chi2 test, else the kernel),
             ``"kernel"`` or ``"gaussian"`` (forced; both chi2 are still reported).
+        background: the constant level in the frames (frame units: dark level plus stray
+            light, e.g. from frames with the source off); None: estimated, the median outside
+            the spot's support (a spot whose wings fill the frame needs it given).
         support_sigma: significance (smoothed-noise stds) of a pixel of the spot (> 0).
         margin_px: pixels added around the significant ones (int >= 0).
         taper_px: width of the kernel's fall to 0 beyond the support (int >= 0).
@@ -280,22 +290,31 @@ def psf_from_still(
     for name, v in (("margin_px", margin_px), ("taper_px", taper_px)):
         if isinstance(v, bool) or not isinstance(v, int) or v < 0:
             raise ParameterError(f"{name}: expected an integer >= 0, got {v!r}")
-    mean, frame_noise, model, sigma, background, support, taper = _measure(f, noise_std, support_sigma, margin_px, taper_px)
+    if background is not None:
+        background = check_real_scalar(background, "background")
+    mean, frame_noise, model, sigma, background, support, taper = _measure(f, noise_std, background, support_sigma, margin_px, taper_px)
     signal = mean - background
     kernel = KernelPSF((signal * taper).to(in_dtype), exposure)
     out_px = taper < 1
     chi2_k = (((1 - taper) * signal / sigma).square()[out_px].sum() / out_px.sum().clamp_min(1))
 
-    gauss = fit_gaussian_psf(signal.to(in_dtype), exposure_s=exposure, noise_std=sigma.to(in_dtype), fit_background=False, pixel_integration=False)
     dof = max(int(support.sum()) - 6, 1)
-    chi2_g = ((signal - gauss.model.to(signal)) / sigma).square()[support].sum() / dof
     threshold = 1 + CHI2_Z * math.sqrt(2 / dof)
+    try:
+        gauss = fit_gaussian_psf(signal.to(in_dtype), exposure_s=exposure, noise_std=sigma.to(in_dtype), fit_background=False,
+                                 pixel_integration=False)
+        chi2_g = ((signal - gauss.model.to(signal)) / sigma).square()[support].sum() / dof
+        failed = ""
+    except ParameterError as exc:  # no Gaussian fits (e.g. a spot wider than the frame): the kernel it is
+        gauss, chi2_g, failed = None, torch.tensor(math.inf, dtype=signal.dtype), f"; the Gaussian fit failed: {exc}"
+    if kind == "gaussian" and gauss is None:
+        raise ParameterError(f"kind: 'gaussian' asked for, but no Gaussian fits the still{failed}")
     passes = bool(chi2_g <= threshold)
     chosen = kind if kind != "auto" else ("gaussian" if passes else "kernel")
     why = f"asked for {kind}" if kind != "auto" else ("the Gaussian explains the still to its noise" if passes
                                                        else "the Gaussian does not explain the still")
     reason = (f"{chosen}: {why} (reduced chi2 Gaussian {float(chi2_g):.3g} over {int(support.sum())} px, threshold "
-              f"{threshold:.3g}; kernel {float(chi2_k):.3g} for the light it leaves out; {N} frames)")
+              f"{threshold:.3g}; kernel {float(chi2_k):.3g} for the light it leaves out; {N} frames{failed})")
     edge = bool((support & _border(H, W, support.device)).any())
     return StillPSF(
         psf=gauss.psf if chosen == "gaussian" else kernel, kind=chosen, reason=reason, kernel=kernel, gaussian=gauss,
