@@ -191,6 +191,8 @@ def test_kernel_fits_a_blur_like_the_truth(gaussian_case):
     (lambda f: psf_from_still(f, EXPOSURE, taper_px=1.5), ParameterError),
     (lambda f: psf_from_still(f, EXPOSURE, support_sigma=0.0), ParameterError),
     (lambda f: psf_from_still(f, EXPOSURE, background=float("nan")), ParameterError),
+    (lambda f: psf_from_still(BG + READ * torch.randn(4, H, W, generator=torch.Generator().manual_seed(0), dtype=torch.float64),
+                              EXPOSURE), ParameterError),
     (lambda f: psf_from_still(f, EXPOSURE, background="dark"), InputTypeError),
     (lambda f: psf_from_still(torch.where(f > 1e9, f, f.new_tensor(float("nan"))), EXPOSURE), ParameterError),
 ])

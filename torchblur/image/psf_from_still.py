@@ -49,6 +49,7 @@ __all__ = ["StillPSF", "psf_from_still", "KINDS", "CHI2_Z"]
 KINDS = ("auto", "kernel", "gaussian")
 CHI2_Z = 4.0  #: a Gaussian passes when its reduced chi2 <= 1 + CHI2_Z sqrt(2 / dof)
 _MAD_TO_STD = 1.482602218505602
+_DETECT_SIGMA = 5.0  # a spot exists where the smoothed, whitened still exceeds this (as find_spots)
 
 
 @dataclass(frozen=True)
@@ -203,6 +204,9 @@ def _connected_to(seed: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 def _support(mean, sigma, background, support_sigma, margin_px):
     """Pixels of the spot ``[H, W]``: significant, grown by the margin, connected to the peak."""
     white = (mean - background) / sigma
+    if not bool(threshold_mask(white, 1.0, _DETECT_SIGMA).any()):  # find_spots' rule: pure noise gives no spot
+        raise ParameterError(f"still: expected a spot above the noise, got no pixel above {_DETECT_SIGMA:g} smoothed-noise std "
+                             f"(a dark frame, or too few still frames)")
     sig = threshold_mask(white, 1.0, support_sigma)
     peak = torch.zeros_like(sig)
     peak.view(-1)[int(torch.argmax(torch.where(sig, white, torch.full_like(white, -math.inf))))] = True
