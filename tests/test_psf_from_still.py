@@ -157,6 +157,16 @@ def test_no_gaussian_fits_a_spot_wider_than_the_frame():
         assert res.kind == "gaussian"
 
 
+def test_a_hot_pixel_is_not_part_of_the_kernel(gaussian_case):
+    """A hot pixel away from the spot is significant but not connected to it: weight 0."""
+    _, _, frames = gaussian_case
+    hot = frames.clone()
+    hot[:, 4, 5] += 500.0
+    res = psf_from_still(hot, EXPOSURE)
+    assert not bool(res.support[4, 5]) and float(res.taper[4, 5]) == 0.0 and float(res.kernel.kernel[4, 5]) == 0.0
+    assert res.kind == "gaussian"
+
+
 def test_one_frame_and_dtype(gaussian_case):
     _, _, frames = gaussian_case
     one = psf_from_still(frames[0].float(), EXPOSURE)
