@@ -22,14 +22,13 @@ HCIPy (PyPI ``hcipy``) is imported here only; tests that use this module skip wi
 """
 from __future__ import annotations
 
-import contextlib
-import ctypes
 import math
 from dataclasses import dataclass
 
 import hcipy
 import numpy as np
 import torch
+from threadpoolctl import threadpool_limits
 
 from torchblur.design.windows import dual_exposure_windows
 from torchblur.fit.sinusoid import fit_sinusoid
@@ -42,32 +41,10 @@ from torchblur.render.window import ExposureWindow
 __all__ = ["SpotOptics", "HcipySpot", "camera_noise", "one_blas_thread", "make_problem", "fit_problems"]
 
 
-@contextlib.contextmanager
 def one_blas_thread():
-    """Run numpy's OpenBLAS on one thread inside the block (the batched DFT's small products
-    run several times slower on two threads of a busy machine); a no-op where it is not found."""
-    try:
-        with open("/proc/self/maps") as maps:  # the loaded OpenBLAS (Linux)
-            libs = {line.split()[-1] for line in maps if "openblas" in line.lower()}
-    except OSError:
-        libs = set()
-    funcs = []
-    for path in libs:
-        try:
-            lib = ctypes.CDLL(path)
-        except OSError:
-            continue
-        for get, put in (("scipy_openblas_get_num_threads64_", "scipy_openblas_set_num_threads64_"),
-                         ("openblas_get_num_threads", "openblas_set_num_threads")):
-            if hasattr(lib, get) and hasattr(lib, put):
-                funcs.append((getattr(lib, put), int(getattr(lib, get)())))
-    for put, _ in funcs:
-        put(1)
-    try:
-        yield
-    finally:
-        for put, n in funcs:
-            put(n)
+    """numpy's BLAS on one thread inside the block (the batched DFT's small products run several
+    times slower on two threads of a busy machine)."""
+    return threadpool_limits(limits=1, user_api="blas")
 
 
 @dataclass(frozen=True)

@@ -1,6 +1,6 @@
 """Image preprocessing, the steps before a fit, in one namespace: dark frames (:mod:`~torchblur.image.dark`),
 thresholds, spot finding and crops (:mod:`~torchblur.image.detection`), the still-spot PSF fit
-(:mod:`~torchblur.image.psf_fit`) and the saturation curve, paper Fig. 4 (:mod:`~torchblur.image.saturation`).
+(:mod:`~torchblur.image.psf_fit`), the PSF a fit should use (:mod:`~torchblur.image.psf_from_still`) and the saturation curve, paper Fig. 4 (:mod:`~torchblur.image.saturation`).
 
 Conventions (as everywhere in torchblur): ``image[..., i, j]`` is the pixel at row ``i``,
 column ``j``, whose centre is at ``x = j``, ``y = i``; positions in pixels (px), covariances
@@ -27,6 +27,7 @@ from __future__ import annotations
 from torchblur.image.dark import DarkFrame, dark_frame, subtract_dark
 from torchblur.image.detection import Spots, crop, find_spots, threshold_mask
 from torchblur.image.psf_fit import PSFFit, fit_gaussian_psf
+from torchblur.image.psf_from_still import StillPSF, psf_from_still
 from torchblur.image.saturation import SaturationCurve, saturation_curve
 
 __all__ = [
@@ -39,6 +40,8 @@ __all__ = [
     "crop",
     "PSFFit",
     "fit_gaussian_psf",
+    "StillPSF",
+    "psf_from_still",
     "SaturationCurve",
     "saturation_curve",
 ]

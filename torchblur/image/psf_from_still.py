@@ -41,7 +41,8 @@ from dataclasses import dataclass
 import torch
 
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_choice, check_finite, check_positive, check_real_scalar
-from torchblur.image.preprocess import PSFFit, fit_gaussian_psf, threshold_mask
+from torchblur.image.detection import threshold_mask
+from torchblur.image.psf_fit import PSFFit, fit_gaussian_psf
 from torchblur.render.psf import GaussianPSF, KernelPSF
 
 __all__ = ["StillPSF", "psf_from_still", "KINDS", "CHI2_Z"]
