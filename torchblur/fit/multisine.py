@@ -29,7 +29,8 @@ from torchblur.fit.losses import image_loss
 from torchblur.image.moments import image_moments, moments_along
 from torchblur.fit.optim import levenberg_marquardt, model_jacobian
 from torchblur.render.psf import GaussianPSF
-from torchblur.render.blur import RenderSettings, choose_node_count, render_blur
+from torchblur.render.blur import RenderSettings, choose_node_count, quadrature_nodes, render_blur
+from torchblur.render.splat import sine_blur_with_jacobian, window_nodes
 from torchblur.render.window import ExposureWindow
 from torchblur.render.trajectory import Multisine
 
@@ -93,9 +94,9 @@ def render_multisine(theta, omega, psf: GaussianPSF, window: ExposureWindow, *, 
 def render_multisine_with_jacobian(theta, omega, psf: GaussianPSF, window: ExposureWindow, *, height: int, width: int,
                                    nodes: int, nodes_per_panel: int = 8, direction=None) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`render_multisine` (point-sampled pixels, ``nodes`` time nodes) and its Jacobian
-    from one splat (:func:`~torchblur.render.splat.gaussian_splat_with_jacobian`): the node
-    positions are ``c + u sum_k M_k sin(omega_k t_s + phi_k)`` (``u`` the unit ``direction``,
-    default +x), so ``d/dM_k = u sin(omega_k t_s + phi_k)``, ``d/dphi_k = u M_k cos(omega_k t_s + phi_k)``.
+    from one splat: the forward model :func:`~torchblur.render.splat.sine_blur_with_jacobian`
+    with N components along the unit ``direction`` ``u`` (default +x), node positions
+    ``c + u sum_k M_k sin(omega_k t_s + phi_k)``.
 
     Args:
         theta: ``[n, 2N]`` or ``[n, 2N + 1]`` (scale last).
@@ -106,29 +107,15 @@ def render_multisine_with_jacobian(theta, omega, psf: GaussianPSF, window: Expos
     Returns:
         ``(image [n, E, H, W], jac [n, E, H, W, P])``, ``jac[..., p] = d image / d theta_p``.
     """
-    from torchblur.render.blur import quadrature_nodes
-    from torchblur.render.splat import gaussian_splat_with_jacobian
-
     n, P = theta.shape
     N = omega.shape[-1]
-    E = window.shape[-1]
     m = nodes_per_panel if nodes % nodes_per_panel == 0 else nodes
     tau, wq = quadrature_nodes(nodes // m, m, dtype=theta.dtype, device=theta.device)
-    start, dur = window.start.to(theta.dtype), window.duration.to(theta.dtype)
-    t = start[..., None] + dur[..., None] * tau  # [n, E, S]
-    w = dur[..., None] * wq * psf.amplitude[:, None, None]
-    arg = omega[:, None, None, :] * t[..., None] + theta[:, None, None, N:2 * N]  # [n, E, S, N]
-    sn, cs = torch.sin(arg), torch.cos(arg)
-    Mk = theta[:, None, None, :N]
+    t, w = window_nodes(window.start.to(theta.dtype), window.duration.to(theta.dtype), tau, wq, psf.amplitude[:, None])  # [n, E, S]
     u = _unit_direction(direction, theta).expand(n, 2)
-    ux, uy = u[:, 0, None, None], u[:, 1, None, None]  # [n, 1, 1]
-    disp = (Mk * sn).sum(-1)  # [n, E, S]
-    px = psf.center[:, 0, None, None] + ux * disp
-    py = psf.center[:, 1, None, None] + uy * disp
-    d = torch.cat([sn, Mk * cs], -1)  # [n, E, S, 2N]: d disp / d theta
-    A, B, C = psf.precision()
-    img, dimg = gaussian_splat_with_jacobian(px, py, ux[..., None] * d, uy[..., None] * d, w, A[:, None], B[:, None], C[:, None],
-                                             height, width)
+    img, dimg = sine_blur_with_jacobian(t, w, theta[:, None, :N], theta[:, None, N:2 * N], omega[:, None, :],
+                                        u[:, None, None, :], psf.center[:, None, :], tuple(v[:, None] for v in psf.precision()),
+                                        height, width)
     J = dimg.movedim(2, -1)  # [n, E, H, W, 2N]
     if P == 2 * N + 1:
         sc = theta[:, 2 * N, None, None, None]
