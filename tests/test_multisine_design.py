@@ -213,3 +213,21 @@ def test_fisher_information_of_a_round_spot_does_not_depend_on_the_direction():
     for ang in (0.6, 2.0):
         rotated = image_fisher(th, om, psf, win, direction=(math.cos(ang), math.sin(ang)), **kw)
         assert float((rotated - default).abs().max() / default.abs().max()) < 1e-5
+
+
+def test_unweighted_fit_with_a_dark_set_in_the_batch():
+    """noise_std=None with a dark image set among live ones (it used to fail on the reduced chi2 of
+    the live sets only): the dark set gets status 1 and NaN, each live one the fit it gets alone."""
+    win = windows([0.0, 0.13, 0.37, 0.55, 0.71, 0.86], [0.3, 0.5, 0.2, 0.7, 0.4, 0.25])
+    img = render_multisine(THETA, OM, PSF, win, height=H, width=W)
+    g = torch.Generator().manual_seed(4)
+    noisy = img + 5.0 * torch.randn((2,) + img.shape, generator=g, dtype=F64)
+    sets = torch.stack([noisy[0], torch.zeros_like(img), noisy[1]])
+    fit = fit_multisine(sets, PSF, win, OM, n_starts=4)
+    assert int(fit.status[1]) == 1 and torch.isnan(fit.amplitude[1]).all() and fit.extras["reduced_chi2"].shape == (3,)
+    for b, k in ((0, 0), (2, 1)):
+        one = fit_multisine(noisy[k], PSF, win, OM, n_starts=4)
+        assert int(fit.status[b]) == int(one.status)
+        np.testing.assert_allclose(fit.amplitude[b].numpy(), one.amplitude.numpy(), rtol=1e-6)
+        np.testing.assert_allclose(fit.noise_std[b].numpy(), one.noise_std.numpy(), rtol=1e-6)
+        assert float(fit.extras["reduced_chi2"][b]) == pytest.approx(float(one.extras["reduced_chi2"]), rel=1e-6)
