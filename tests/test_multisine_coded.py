@@ -127,3 +127,24 @@ def test_coded_jacobian_on_the_one_forward_model_equals_the_old_hand_written_one
     ref, Jr = _old_coded_model_and_jacobian(theta, om, center, cov, amp, start, dur, CODE, S, H, W, fit_scale)
     np.testing.assert_allclose(model.numpy(), ref.numpy(), rtol=0, atol=1e-12 * float(ref.abs().max()))
     np.testing.assert_allclose(J.numpy(), Jr.numpy(), rtol=0, atol=1e-12 * float(Jr.abs().max()))
+    # the rendered model (LM's cost) is the same image: a batch of exactly two items with two omegas
+    # (omega [2] alone would read as one omega per axis)
+    np.testing.assert_allclose(prob.model(theta, torch.arange(n)).numpy(), model.numpy(), rtol=0, atol=1e-9 * float(ref.abs().max()))
+
+
+def test_coded_fit_of_two_images_at_two_frequencies():
+    """Two coded images at different frequencies in one batch: each fit lands on its truth."""
+    om = torch.tensor([OM, 1.3 * OM], dtype=F64)
+    M, phi = torch.tensor([6.0, 4.0], dtype=F64), torch.tensor([0.7, -2.2], dtype=F64)
+    traj = Sinusoid(torch.stack([M, torch.zeros_like(M)], -1), torch.stack([phi, phi], -1), om[:, None].expand(2, 2))
+    win = WIN.expand((2,))
+    img = render_coded(traj, PSF, win, CODE, height=24, width=48)
+    fit = fit_sinusoid_coded(img, PSF, win, CODE, om, noise_std=1.0, amplitude_guess=M, n_phases=3)
+    np.testing.assert_allclose(fit.amplitude.numpy(), M.numpy(), atol=1e-6)
+    np.testing.assert_allclose(fit.phase.numpy(), phi.numpy(), atol=1e-6)
+    # the alias cost of each: its own image at the plain window's alias phase, rendered alone
+    for b in range(2):
+        alias = math.pi - 2 * float(om[b]) * float(WIN.center) - float(phi[b])
+        one = Sinusoid(torch.stack([M[b], torch.tensor(0.0, dtype=F64)]), torch.tensor([alias, alias], dtype=F64), om[b])
+        expected = float(((render_coded(one, PSF, WIN, CODE, height=24, width=48) - img[b]) ** 2).sum())
+        assert float(fit.alias_cost[b]) == pytest.approx(expected, rel=1e-6)

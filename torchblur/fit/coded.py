@@ -76,7 +76,8 @@ class _CodedProblem:
     def model(self, theta: torch.Tensor, it: torch.Tensor) -> torch.Tensor:
         """The rendered coded images of the items ``it [n]`` at ``theta [n, P]`` -> ``[n, H W]``."""
         M, ph = theta[:, 0], theta[:, 1]
-        traj = Sinusoid(torch.stack([M, torch.zeros_like(M)], -1), torch.stack([ph, ph], -1), self.om[it])
+        # omega [n, 2] (x, y): a plain [n] with n == 2 would read as one omega per axis
+        traj = Sinusoid(torch.stack([M, torch.zeros_like(M)], -1), torch.stack([ph, ph], -1), self.om[it][:, None].expand(-1, 2))
         img = render_coded(traj, GaussianPSF(self.center[it], self.cov[it], self.amp[it]), ExposureWindow(self.start[it], self.dur[it]),
                            self.code, height=self.height, width=self.width, settings=self.settings)
         if self.fit_scale:
@@ -154,7 +155,7 @@ def _problem(images, psf: GaussianPSF, window: ExposureWindow, code, omega, fit_
 
 def _with_nodes(prob: _CodedProblem, M0: torch.Tensor) -> _CodedProblem:
     """``prob`` with the node count fixed for motions up to ``1.5 M0 + 0.5`` px (``M0 [B]``)."""
-    bound = Sinusoid(torch.stack([M0 * 1.5 + 0.5, torch.zeros_like(M0)], -1), torch.zeros_like(prob.center), prob.om)
+    bound = Sinusoid(torch.stack([M0 * 1.5 + 0.5, torch.zeros_like(M0)], -1), torch.zeros_like(prob.center), prob.om[:, None].expand(-1, 2))
     smin = GaussianPSF(prob.center, prob.cov, prob.amp).sigma_min()
     S = choose_node_count(bound.path_length(ExposureWindow(torch.zeros_like(prob.dur), prob.dur)), smin, prob.settings)
     return dataclasses.replace(prob, settings=RenderSettings(panel_path_sigmas=3.5, nodes=S))
