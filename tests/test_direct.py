@@ -182,6 +182,46 @@ def test_covariance_is_the_inverse_fisher_information_of_a_dense_reference():
     np.testing.assert_allclose(r.covariance, cov, rtol=2e-3, atol=0)
 
 
+def _old_point_images(M, phi, om, ud, center, precision, t, wq, H, W):
+    """The hand-written node positions and derivatives of fit_direct's render before it called the
+    one forward model (render.splat.sine_blur_with_jacobian): kept as a reference."""
+    from torchblur.render.splat import gaussian_splat_with_jacobian
+
+    Ap, Bp, Cp = precision
+    arg = om[:, None, None] * t + phi[:, None, None]
+    sn, cs = torch.sin(arg), torch.cos(arg)
+    disp = M[:, None, None] * sn
+    d = torch.stack([sn, M[:, None, None] * cs], -1)  # [n, E, S, 2]
+    cx = center[:, 0, None, None].expand(t.shape)
+    cy = center[:, 1, None, None].expand(t.shape)
+    px, py, dpx, dpy = cx + ud[0] * disp, cy + ud[1] * disp, ud[0] * d, ud[1] * d
+    return gaussian_splat_with_jacobian(px, py, dpx, dpy, wq, Ap[:, None], Bp[:, None], Cp[:, None], H, W)
+
+
+@pytest.mark.parametrize("direction", [(1.0, 0.0), (0.6, -0.8)])
+def test_point_images_on_the_one_forward_model_equal_the_old_hand_written_ones(direction):
+    """fit_direct's images and d/d(M, phi) (sine_blur_with_jacobian) equal the hand-written ones
+    they replaced, to round-off."""
+    from torchblur.render.blur import quadrature_nodes
+    from torchblur.render.splat import window_nodes
+    from torchblur.sysid.direct import _point_images
+
+    d = sweep(np.array([300.0, 640.0, 1400.0]), size=24)
+    n = 3
+    psf = d["psf"]
+    win = d["window"]
+    M = torch.tensor([4.0, 6.5, 2.0], dtype=F64)
+    phi = torch.tensor([0.3, -1.2, 2.8], dtype=F64)
+    ud = torch.tensor(direction, dtype=F64)
+    tau, w = quadrature_nodes(6, 8, dtype=F64)
+    t, wq = window_nodes(win.start, win.duration, tau, w, psf.amplitude[:, None])
+    img, dimg = _point_images(M, phi, d["omega"], ud, psf.center, psf.precision(), t, wq, 24, 24)
+    ref, dref = _old_point_images(M, phi, d["omega"], ud, psf.center, psf.precision(), t, wq, 24, 24)
+    assert img.shape == (n, 2, 24, 24) and dimg.shape == (n, 2, 2, 24, 24)
+    np.testing.assert_allclose(img.numpy(), ref.numpy(), rtol=0, atol=1e-12 * float(ref.abs().max()))
+    np.testing.assert_allclose(dimg.numpy(), dref.numpy(), rtol=0, atol=1e-12 * float(dref.abs().max()))
+
+
 def test_single_exposure_direct_does_at_least_as_well_as_the_two_step_route():
     """One exposure window (30% of the period) per point, timed so that the two alias branches
     cross at -90 deg, the phase of the resonance (Proposition 3): the per-point phases near

@@ -78,3 +78,73 @@ def test_coded_fit_recovers_the_truth_with_the_stds_of_forward_ad():
     J = torch.stack(cols, -1)
     crb = torch.linalg.inv(J.T @ J).diagonal().sqrt()
     np.testing.assert_allclose([float(fit.amplitude_std), float(fit.phase_std)], crb.numpy(), rtol=1e-4)
+
+
+def _old_coded_model_and_jacobian(theta, om, center, cov, amp, start, dur, code, S, H, W, fit_scale, m=8):
+    """The hand-written node positions and derivatives of fit_sinusoid_coded before it called the
+    one forward model (render.splat.sine_blur_with_jacobian): kept as a reference."""
+    from torchblur.render.blur import quadrature_nodes
+    from torchblur.render.splat import gaussian_splat_with_jacobian
+
+    tau, wq = quadrature_nodes(S // m, m, dtype=theta.dtype)
+    frac0, width = code[:, 0], code[:, 1] - code[:, 0]
+    A_p, B_p, C_p = GaussianPSF(center, cov, amp).precision()
+    n = theta.shape[0]
+    te = dur[:, None, None]
+    t = (start[:, None, None] + te * (frac0[:, None] + width[:, None] * tau)).reshape(n, -1)
+    w = (te * width[:, None] * wq).reshape(n, -1) * amp[:, None]
+    arg = om[:, None] * t + theta[:, 1, None]
+    sn, cs = torch.sin(arg), torch.cos(arg)
+    px = center[:, 0, None] + theta[:, 0, None] * sn
+    py = center[:, 1, None].expand(px.shape)
+    dpx = torch.stack([sn, theta[:, 0, None] * cs], -1)
+    img, dimg = gaussian_splat_with_jacobian(px, py, dpx, torch.zeros_like(dpx), w, A_p, B_p, C_p, H, W)
+    J = dimg.movedim(1, -1).reshape(n, H * W, 2)
+    model = img.reshape(n, -1)
+    if fit_scale:
+        J = torch.cat([J * theta[:, 2, None, None], model[..., None]], -1)
+        model = model * theta[:, 2, None]
+    return model, J
+
+
+@pytest.mark.parametrize("fit_scale", [False, True])
+def test_coded_jacobian_on_the_one_forward_model_equals_the_old_hand_written_one(fit_scale):
+    """The coded fit's image and Jacobian (sine_blur_with_jacobian over the nodes of every open
+    interval) equal the hand-written ones they replaced, to round-off."""
+    from torchblur.fit.coded import _CodedProblem
+    from torchblur.render.blur import RenderSettings
+
+    n, S, H, W = 2, 64, 24, 48
+    center = torch.tensor([[23.5, 11.5], [20.0, 12.5]], dtype=F64)
+    cov = torch.tensor([[[4.0, 0.0], [0.0, 4.0]], [[3.0, 0.7], [0.7, 5.0]]], dtype=F64)
+    amp = torch.tensor([2000 / (0.5 * T), 1500 / (0.5 * T)], dtype=F64)
+    start, dur = torch.tensor([0.25 * T, 0.1 * T], dtype=F64), torch.tensor([0.5 * T, 0.4 * T], dtype=F64)
+    om = torch.tensor([OM, 1.3 * OM], dtype=F64)
+    theta = torch.tensor([[6.0, 0.7, 1.1], [4.0, -2.2, 0.9]], dtype=F64)[:, :3 if fit_scale else 2]
+    prob = _CodedProblem(center=center, cov=cov, amp=amp, start=start, dur=dur, om=om, code=CODE, height=H, width=W,
+                         settings=RenderSettings(panel_path_sigmas=3.5, nodes=S), fit_scale=fit_scale)
+    model, J = prob.model_and_jacobian(theta, torch.arange(n))
+    ref, Jr = _old_coded_model_and_jacobian(theta, om, center, cov, amp, start, dur, CODE, S, H, W, fit_scale)
+    np.testing.assert_allclose(model.numpy(), ref.numpy(), rtol=0, atol=1e-12 * float(ref.abs().max()))
+    np.testing.assert_allclose(J.numpy(), Jr.numpy(), rtol=0, atol=1e-12 * float(Jr.abs().max()))
+    # the rendered model (LM's cost) is the same image: a batch of exactly two items with two omegas
+    # (omega [2] alone would read as one omega per axis)
+    np.testing.assert_allclose(prob.model(theta, torch.arange(n)).numpy(), model.numpy(), rtol=0, atol=1e-9 * float(ref.abs().max()))
+
+
+def test_coded_fit_of_two_images_at_two_frequencies():
+    """Two coded images at different frequencies in one batch: each fit lands on its truth."""
+    om = torch.tensor([OM, 1.3 * OM], dtype=F64)
+    M, phi = torch.tensor([6.0, 4.0], dtype=F64), torch.tensor([0.7, -2.2], dtype=F64)
+    traj = Sinusoid(torch.stack([M, torch.zeros_like(M)], -1), torch.stack([phi, phi], -1), om[:, None].expand(2, 2))
+    win = WIN.expand((2,))
+    img = render_coded(traj, PSF, win, CODE, height=24, width=48)
+    fit = fit_sinusoid_coded(img, PSF, win, CODE, om, noise_std=1.0, amplitude_guess=M, n_phases=3)
+    np.testing.assert_allclose(fit.amplitude.numpy(), M.numpy(), atol=1e-6)
+    np.testing.assert_allclose(fit.phase.numpy(), phi.numpy(), atol=1e-6)
+    # the alias cost of each: its own image at the plain window's alias phase, rendered alone
+    for b in range(2):
+        alias = math.pi - 2 * float(om[b]) * float(WIN.center) - float(phi[b])
+        one = Sinusoid(torch.stack([M[b], torch.tensor(0.0, dtype=F64)]), torch.tensor([alias, alias], dtype=F64), om[b])
+        expected = float(((render_coded(one, PSF, WIN, CODE, height=24, width=48) - img[b]) ** 2).sum())
+        assert float(fit.alias_cost[b]) == pytest.approx(expected, rel=1e-6)

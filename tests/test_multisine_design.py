@@ -45,6 +45,56 @@ def test_jacobian_from_one_splat_equals_forward_ad_of_the_renderer():
         np.testing.assert_allclose(J[..., k].numpy(), dk.numpy(), atol=1e-8 * float(dk.abs().max()))
 
 
+def _old_render_multisine_with_jacobian(theta, omega, psf, window, *, height, width, nodes, nodes_per_panel=8, direction=None):
+    """The hand-written node positions and derivatives render_multisine_with_jacobian had before it
+    called the one forward model (render.splat.sine_blur_with_jacobian): kept as a reference."""
+    from torchblur.render.blur import quadrature_nodes
+    from torchblur.render.splat import gaussian_splat_with_jacobian
+
+    n, P = theta.shape
+    N = omega.shape[-1]
+    m = nodes_per_panel if nodes % nodes_per_panel == 0 else nodes
+    tau, wq = quadrature_nodes(nodes // m, m, dtype=theta.dtype, device=theta.device)
+    start, dur = window.start.to(theta.dtype), window.duration.to(theta.dtype)
+    t = start[..., None] + dur[..., None] * tau  # [n, E, S]
+    w = dur[..., None] * wq * psf.amplitude[:, None, None]
+    arg = omega[:, None, None, :] * t[..., None] + theta[:, None, None, N:2 * N]  # [n, E, S, N]
+    sn, cs = torch.sin(arg), torch.cos(arg)
+    Mk = theta[:, None, None, :N]
+    u = (torch.tensor([1.0, 0.0], dtype=theta.dtype) if direction is None else torch.as_tensor(direction, dtype=theta.dtype))
+    u = (u / u.norm(dim=-1, keepdim=True)).expand(n, 2)
+    ux, uy = u[:, 0, None, None], u[:, 1, None, None]
+    disp = (Mk * sn).sum(-1)
+    px = psf.center[:, 0, None, None] + ux * disp
+    py = psf.center[:, 1, None, None] + uy * disp
+    d = torch.cat([sn, Mk * cs], -1)
+    A, B, C = psf.precision()
+    img, dimg = gaussian_splat_with_jacobian(px, py, ux[..., None] * d, uy[..., None] * d, w, A[:, None], B[:, None], C[:, None],
+                                             height, width)
+    J = dimg.movedim(2, -1)
+    if P == 2 * N + 1:
+        sc = theta[:, 2 * N, None, None, None]
+        J = torch.cat([J * sc[..., None], img[..., None]], -1)
+        img = img * sc
+    return img, J
+
+
+@pytest.mark.parametrize("direction", [None, (0.6, -0.8)])
+def test_jacobian_on_the_one_forward_model_equals_the_old_hand_written_one(direction):
+    """render_multisine_with_jacobian on sine_blur_with_jacobian: the same image and Jacobian as the
+    hand-written node derivatives it replaced, to round-off (two items, scale and no scale)."""
+    win = windows([[0.1, 0.55], [0.2, 0.7]], [[0.3, 0.2], [0.45, 0.1]])
+    psf = GaussianPSF(PSF.center.expand(2, 2), torch.tensor([[4.0, 0.8], [0.8, 3.0]], dtype=F64).expand(2, 2, 2),
+                      PSF.amplitude.expand(2))
+    th = torch.stack([THETA, THETA + 0.3])
+    for P in (6, 7):
+        kw = dict(height=H, width=W, nodes=64, direction=direction)
+        img, J = render_multisine_with_jacobian(th[:, :P], OM.expand(2, 3), psf, win, **kw)
+        ref, Jr = _old_render_multisine_with_jacobian(th[:, :P], OM.expand(2, 3), psf, win, **kw)
+        np.testing.assert_allclose(img.numpy(), ref.numpy(), rtol=0, atol=1e-12 * float(ref.abs().max()))
+        np.testing.assert_allclose(J.numpy(), Jr.numpy(), rtol=0, atol=1e-12 * float(Jr.abs().max()))
+
+
 def test_fisher_is_singular_for_whole_period_windows_and_regular_for_the_design():
     amp = THETA[:3]
     # exposures of a whole common period cannot see a time shift: singular
@@ -163,3 +213,21 @@ def test_fisher_information_of_a_round_spot_does_not_depend_on_the_direction():
     for ang in (0.6, 2.0):
         rotated = image_fisher(th, om, psf, win, direction=(math.cos(ang), math.sin(ang)), **kw)
         assert float((rotated - default).abs().max() / default.abs().max()) < 1e-5
+
+
+def test_unweighted_fit_with_a_dark_set_in_the_batch():
+    """noise_std=None with a dark image set among live ones (it used to fail on the reduced chi2 of
+    the live sets only): the dark set gets status 1 and NaN, each live one the fit it gets alone."""
+    win = windows([0.0, 0.13, 0.37, 0.55, 0.71, 0.86], [0.3, 0.5, 0.2, 0.7, 0.4, 0.25])
+    img = render_multisine(THETA, OM, PSF, win, height=H, width=W)
+    g = torch.Generator().manual_seed(4)
+    noisy = img + 5.0 * torch.randn((2,) + img.shape, generator=g, dtype=F64)
+    sets = torch.stack([noisy[0], torch.zeros_like(img), noisy[1]])
+    fit = fit_multisine(sets, PSF, win, OM, n_starts=4)
+    assert int(fit.status[1]) == 1 and torch.isnan(fit.amplitude[1]).all() and fit.extras["reduced_chi2"].shape == (3,)
+    for b, k in ((0, 0), (2, 1)):
+        one = fit_multisine(noisy[k], PSF, win, OM, n_starts=4)
+        assert int(fit.status[b]) == int(one.status)
+        np.testing.assert_allclose(fit.amplitude[b].numpy(), one.amplitude.numpy(), rtol=1e-6)
+        np.testing.assert_allclose(fit.noise_std[b].numpy(), one.noise_std.numpy(), rtol=1e-6)
+        assert float(fit.extras["reduced_chi2"][b]) == pytest.approx(float(one.extras["reduced_chi2"]), rel=1e-6)

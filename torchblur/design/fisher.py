@@ -183,6 +183,51 @@ class AcquisitionDesign:
         return ExposureWindow(torch.tensor(self.window_start_s, dtype=dtype), torch.tensor(self.exposure_s, dtype=dtype))
 
 
+def _check_design_inputs(amplitude, omega, period_s, counts: dict, n_images, target_std):
+    """The public entry's checks -> ``(amplitude [N], omega [N], T0, target)`` (float64)."""
+    amplitude = check_finite(as_tensor(amplitude, "amplitude", dtype=torch.float64), "amplitude").reshape(-1).abs()
+    omega = check_positive(as_tensor(omega, "omega", dtype=torch.float64), "omega").reshape(-1)
+    N = amplitude.numel()
+    if omega.numel() != N:
+        raise ShapeError(f"omega: expected {N} values (one per amplitude), got {omega.numel()}")
+    T0 = check_real_scalar(period_s, "period_s", positive=True)
+    for name, v in counts.items():
+        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+            raise ParameterError(f"{name}: expected an integer >= 1, got {v!r}")
+    if n_images is not None and (isinstance(n_images, bool) or not isinstance(n_images, int) or n_images < 1):
+        raise ParameterError(f"n_images: expected None or an integer >= 1, got {n_images!r}")
+    return amplitude, omega, T0, check_real_scalar(target_std, "target_std", positive=True)
+
+
+def _hypotheses(amplitude, phase, n_hypotheses: int, seed: int, fit_scale: bool) -> torch.Tensor:
+    """Parameter hypotheses ``[Hh, P]``: the amplitudes with random phases (seeded; ``phase``,
+    if given, the first), and a unit scale."""
+    N = amplitude.numel()
+    g = torch.Generator().manual_seed(int(seed))
+    hyp = (torch.rand(n_hypotheses, N, generator=g, dtype=torch.float64) * 2 - 1) * math.pi
+    if phase is not None:
+        hyp[0] = check_finite(as_tensor(phase, "phase", dtype=torch.float64), "phase").reshape(-1)
+    return torch.cat([amplitude.expand(n_hypotheses, N), hyp] + ([torch.ones(n_hypotheses, 1, dtype=torch.float64)]
+                                                                 if fit_scale else []), -1)
+
+
+def _whole_periods(window: ExposureWindow, T0: float) -> torch.Tensor:
+    """bool ``[C]``: exposures of whole periods have no centre (they see every time shift)."""
+    return (torch.remainder(window.duration / T0 + 0.5, 1.0) - 0.5).abs() < 1e-6
+
+
+def _new_centre_only(crit, centre, cand_whole, real: list, T0: float) -> torch.Tensor:
+    """The criterion ``[C]`` with every candidate at the one window centre so far (mod ``T0 / 2``)
+    ruled out: only a new centre resolves the time-reversal alias. ``real``: the centres so far."""
+    if not real:
+        return crit
+    d = (torch.remainder(centre - real[0] + T0 / 4, T0 / 2) - T0 / 4).abs()  # [C] centre distance mod T0/2
+    d = torch.where(cand_whole, torch.zeros_like(d), d)
+    if all(float((torch.remainder(r - real[0] + T0 / 4, T0 / 2) - T0 / 4).abs()) < 0.02 * T0 for r in real):
+        crit = torch.where(d >= 0.02 * T0, crit, torch.full_like(crit, -float("inf")))
+    return crit
+
+
 def design_acquisition(amplitude, omega, psf: GaussianPSF, *, period_s: float, max_exposure_s: float, frame_shape,
                        read_noise_e: float, phase=None, n_images: int | None = None, max_images: int = 16,
                        min_images: int = 2, target_std: float = 2e-3, n_hypotheses: int = 4, fit_scale: bool = True,
@@ -217,73 +262,49 @@ def design_acquisition(amplitude, omega, psf: GaussianPSF, *, period_s: float, m
     Returns:
         :class:`AcquisitionDesign`.
     """
-    amplitude = check_finite(as_tensor(amplitude, "amplitude", dtype=torch.float64), "amplitude").reshape(-1).abs()
-    omega = check_positive(as_tensor(omega, "omega", dtype=torch.float64), "omega").reshape(-1)
+    amplitude, omega, T0, target = _check_design_inputs(
+        amplitude, omega, period_s, {"max_images": max_images, "min_images": min_images, "n_hypotheses": n_hypotheses}, n_images,
+        target_std)
     N = amplitude.numel()
-    if omega.numel() != N:
-        raise ShapeError(f"omega: expected {N} values (one per amplitude), got {omega.numel()}")
-    T0 = check_real_scalar(period_s, "period_s", positive=True)
-    for name, v, low in (("max_images", max_images, 1), ("min_images", min_images, 1), ("n_hypotheses", n_hypotheses, 1)):
-        if isinstance(v, bool) or not isinstance(v, int) or v < low:
-            raise ParameterError(f"{name}: expected an integer >= {low}, got {v!r}")
-    if n_images is not None and (isinstance(n_images, bool) or not isinstance(n_images, int) or n_images < 1):
-        raise ParameterError(f"n_images: expected None or an integer >= 1, got {n_images!r}")
-    target = check_real_scalar(target_std, "target_std", positive=True)
     cand = candidates if candidates is not None else candidate_windows(T0, max_exposure_s=max_exposure_s)
-    g = torch.Generator().manual_seed(int(seed))
-    hyp = (torch.rand(n_hypotheses, N, generator=g, dtype=torch.float64) * 2 - 1) * math.pi
-    if phase is not None:
-        hyp[0] = check_finite(as_tensor(phase, "phase", dtype=torch.float64), "phase").reshape(-1)
-    theta = torch.cat([amplitude.expand(n_hypotheses, N), hyp] + ([torch.ones(n_hypotheses, 1, dtype=torch.float64)]
-                                                                  if fit_scale else []), -1)
+    theta = _hypotheses(amplitude, phase, n_hypotheses, seed, fit_scale)
     P = theta.shape[-1]
-    F = image_fisher(theta, omega, psf, cand, frame_shape=frame_shape, read_noise_e=read_noise_e, peak_e=peak_e,
-                     direction=direction)  # [Hh, C, P, P]
+    fisher_kw = dict(frame_shape=frame_shape, read_noise_e=read_noise_e, peak_e=peak_e, direction=direction)
+    F = image_fisher(theta, omega, psf, cand, **fisher_kw)  # [Hh, C, P, P]
     D = torch.diagonal(F, dim1=-2, dim2=-1).mean((0, 1)).clamp_min(1e-300).sqrt()  # parameter scales
-    Fn = F / (D[:, None] * D[None, :])
+    DD = D[:, None] * D[None, :]
+    Fn = F / DD
     eye = torch.eye(P, dtype=torch.float64) * 1e-8
     centre = torch.remainder(cand.start + cand.duration / 2, T0 / 2)
-    cand_whole = (torch.remainder(cand.duration / T0 + 0.5, 1.0) - 0.5).abs() < 1e-6  # no centre: blind to time shifts
+    cand_whole = _whole_periods(cand, T0)
     sel: list[int] = []
     F_sel = torch.zeros(n_hypotheses, P, P, dtype=torch.float64)
     c_ref = None
     n_taken = 0
     if taken is not None and taken.shape[0]:
-        Ft = image_fisher(theta, omega, psf, taken, frame_shape=frame_shape, read_noise_e=read_noise_e, peak_e=peak_e,
-                          direction=direction)
-        F_sel = Ft.sum(1) / (D[:, None] * D[None, :])
+        F_sel = image_fisher(theta, omega, psf, taken, **fisher_kw).sum(1) / DD
         n_taken = taken.shape[0]
-        tc = torch.remainder(taken.start + taken.duration / 2, T0 / 2)
-        # a window of whole periods has no centre (it sees every time shift): only the others count
-        whole = (torch.remainder(taken.duration / T0 + 0.5, 1.0) - 0.5).abs() < 1e-6
+        whole = _whole_periods(taken, T0)  # only the others have a centre
         if bool((~whole).any()):
-            c_ref = tc[~whole][0]
+            c_ref = torch.remainder(taken.start + taken.duration / 2, T0 / 2)[~whole][0]
     history: list[float] = []
     rel = ph = torch.full((N,), float("inf"), dtype=torch.float64)
     limit = n_images if n_images is not None else max_images
     met = False
     while len(sel) < limit:
         crit = torch.linalg.slogdet(F_sel[:, None] + Fn + eye)[1].mean(0)  # [C]
-        real = [c_ref] if c_ref is not None else []
-        real += [centre[k] for k in sel if not bool(cand_whole[k])]
-        if real:
-            d = (torch.remainder(centre - real[0] + T0 / 4, T0 / 2) - T0 / 4).abs()  # [C] centre distance mod T0/2
-            d = torch.where(cand_whole, torch.zeros_like(d), d)
-            if all(float((torch.remainder(r - real[0] + T0 / 4, T0 / 2) - T0 / 4).abs()) < 0.02 * T0 for r in real):
-                # a single window centre so far: only a new centre resolves the time-reversal alias
-                crit = torch.where(d >= 0.02 * T0, crit, torch.full_like(crit, -float("inf")))
+        real = ([c_ref] if c_ref is not None else []) + [centre[k] for k in sel if not bool(cand_whole[k])]
+        crit = _new_centre_only(crit, centre, cand_whole, real, T0)
         c = int(crit.argmax())
         sel.append(c)
         F_sel = F_sel + Fn[:, c]
         history.append(float(crit[c]))
-        Fu = F_sel * (D[:, None] * D[None, :])
-        r, p = predicted_std(Fu, amplitude)
+        r, p = predicted_std(F_sel * DD, amplitude)
         rel, ph = r.amax(0), p.amax(0)
         met = bool((rel <= target).all() and (ph <= target).all())
         if n_images is None and met and len(sel) + n_taken >= min_images:
             break
-    Fu = F_sel * (D[:, None] * D[None, :])
     return AcquisitionDesign(window_start_s=tuple(float(cand.start[c]) for c in sel),
-                             exposure_s=tuple(float(cand.duration[c]) for c in sel), period_s=T0, fisher=Fu,
+                             exposure_s=tuple(float(cand.duration[c]) for c in sel), period_s=T0, fisher=F_sel * DD,
                              amplitude_rel_std=rel.numpy(), phase_std=ph.numpy(), met_target=met, log_det=history,
                              n_candidates=cand.shape[0])

@@ -29,7 +29,8 @@ from torchblur.fit.losses import image_loss
 from torchblur.image.moments import image_moments, moments_along
 from torchblur.fit.optim import levenberg_marquardt, model_jacobian
 from torchblur.render.psf import GaussianPSF
-from torchblur.render.blur import RenderSettings, choose_node_count, render_blur
+from torchblur.render.blur import RenderSettings, choose_node_count, quadrature_nodes, render_blur
+from torchblur.render.splat import sine_blur_with_jacobian, window_nodes
 from torchblur.render.window import ExposureWindow
 from torchblur.render.trajectory import Multisine
 
@@ -93,9 +94,9 @@ def render_multisine(theta, omega, psf: GaussianPSF, window: ExposureWindow, *, 
 def render_multisine_with_jacobian(theta, omega, psf: GaussianPSF, window: ExposureWindow, *, height: int, width: int,
                                    nodes: int, nodes_per_panel: int = 8, direction=None) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`render_multisine` (point-sampled pixels, ``nodes`` time nodes) and its Jacobian
-    from one splat (:func:`~torchblur.render.splat.gaussian_splat_with_jacobian`): the node
-    positions are ``c + u sum_k M_k sin(omega_k t_s + phi_k)`` (``u`` the unit ``direction``,
-    default +x), so ``d/dM_k = u sin(omega_k t_s + phi_k)``, ``d/dphi_k = u M_k cos(omega_k t_s + phi_k)``.
+    from one splat: the forward model :func:`~torchblur.render.splat.sine_blur_with_jacobian`
+    with N components along the unit ``direction`` ``u`` (default +x), node positions
+    ``c + u sum_k M_k sin(omega_k t_s + phi_k)``.
 
     Args:
         theta: ``[n, 2N]`` or ``[n, 2N + 1]`` (scale last).
@@ -106,29 +107,15 @@ def render_multisine_with_jacobian(theta, omega, psf: GaussianPSF, window: Expos
     Returns:
         ``(image [n, E, H, W], jac [n, E, H, W, P])``, ``jac[..., p] = d image / d theta_p``.
     """
-    from torchblur.render.blur import quadrature_nodes
-    from torchblur.render.splat import gaussian_splat_with_jacobian
-
     n, P = theta.shape
     N = omega.shape[-1]
-    E = window.shape[-1]
     m = nodes_per_panel if nodes % nodes_per_panel == 0 else nodes
     tau, wq = quadrature_nodes(nodes // m, m, dtype=theta.dtype, device=theta.device)
-    start, dur = window.start.to(theta.dtype), window.duration.to(theta.dtype)
-    t = start[..., None] + dur[..., None] * tau  # [n, E, S]
-    w = dur[..., None] * wq * psf.amplitude[:, None, None]
-    arg = omega[:, None, None, :] * t[..., None] + theta[:, None, None, N:2 * N]  # [n, E, S, N]
-    sn, cs = torch.sin(arg), torch.cos(arg)
-    Mk = theta[:, None, None, :N]
+    t, w = window_nodes(window.start.to(theta.dtype), window.duration.to(theta.dtype), tau, wq, psf.amplitude[:, None])  # [n, E, S]
     u = _unit_direction(direction, theta).expand(n, 2)
-    ux, uy = u[:, 0, None, None], u[:, 1, None, None]  # [n, 1, 1]
-    disp = (Mk * sn).sum(-1)  # [n, E, S]
-    px = psf.center[:, 0, None, None] + ux * disp
-    py = psf.center[:, 1, None, None] + uy * disp
-    d = torch.cat([sn, Mk * cs], -1)  # [n, E, S, 2N]: d disp / d theta
-    A, B, C = psf.precision()
-    img, dimg = gaussian_splat_with_jacobian(px, py, ux[..., None] * d, uy[..., None] * d, w, A[:, None], B[:, None], C[:, None],
-                                             height, width)
+    img, dimg = sine_blur_with_jacobian(t, w, theta[:, None, :N], theta[:, None, N:2 * N], omega[:, None, :],
+                                        u[:, None, None, :], psf.center[:, None, :], tuple(v[:, None] for v in psf.precision()),
+                                        height, width)
     J = dimg.movedim(2, -1)  # [n, E, H, W, 2N]
     if P == 2 * N + 1:
         sc = theta[:, 2 * N, None, None, None]
@@ -192,6 +179,370 @@ def _centroid_start(data, rest, u, start, dur, omega, thr):
     return torch.hypot(x, y), torch.atan2(y, x), ok
 
 
+@dataclass(frozen=True)
+class _Flat:
+    """The inputs of :func:`fit_multisine` checked and flattened to ``B`` image sets.
+
+    ``data [B, E, H, W]``; ``om [B, N]`` rad/s; ``start, dur [B, E]`` s; ``center [B, 2]``,
+    ``cov [B, 2, 2]``, ``amp_psf [B]`` (the PSF); ``u [B, 2]`` the unit direction; ``batch``
+    the images' leading dims; ``psf`` the PSF in the images' dtype (batch ``[...]``).
+    """
+
+    data: torch.Tensor
+    om: torch.Tensor
+    start: torch.Tensor
+    dur: torch.Tensor
+    center: torch.Tensor
+    cov: torch.Tensor
+    amp_psf: torch.Tensor
+    u: torch.Tensor
+    batch: tuple
+    psf: GaussianPSF
+
+
+def _check_and_flatten(images, psf, window, omega, direction, counts: dict) -> _Flat:
+    """The public entry's checks, and the inputs flattened to ``B`` image sets."""
+    if not isinstance(images, torch.Tensor):
+        raise InputTypeError(f"images: expected a tensor [..., E, H, W], got {type(images).__name__}")
+    if images.dim() < 3 or images.numel() == 0:
+        raise ShapeError(f"images: expected a non-empty tensor [..., E, H, W], got shape {tuple(images.shape)}")
+    if not images.is_floating_point():
+        images = images.to(torch.get_default_dtype())
+    check_finite(images, "images")
+    if not isinstance(psf, GaussianPSF):
+        raise InputTypeError(f"psf: expected a GaussianPSF, got {type(psf).__name__}")
+    if not isinstance(window, ExposureWindow):
+        raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
+    for name, v in counts.items():
+        if isinstance(v, bool) or not isinstance(v, int) or v < (0 if name == "n_starts" else 1):
+            raise ParameterError(f"{name}: expected an integer >= {0 if name == 'n_starts' else 1}, got {v!r}")
+    dtype = images.dtype
+    batch = images.shape[:-3]
+    E, H, W = images.shape[-3:]
+    omega = check_positive(as_tensor(omega, "omega", like=images), "omega")
+    if omega.dim() == 0:
+        raise ShapeError("omega: expected shape [..., N] (one value per tone), got a scalar")
+    N = omega.shape[-1]
+    try:
+        om = omega.expand(batch + (N,))
+        win = window.to(dtype).expand(batch + (E,))
+    except RuntimeError:
+        raise ShapeError(f"omega {tuple(omega.shape)} / window {tuple(window.shape)}: expected [..., N] and [..., E] with "
+                         f"[...] = {tuple(batch)}, E = {E}") from None
+    B = max(1, math.prod(batch))
+    data = images.reshape(B, E, H, W)
+    p = psf.to(dtype)
+    u = _unit_direction(direction, data)
+    try:
+        u = u.expand(batch + (2,)).reshape(B, 2)
+    except RuntimeError:
+        raise ShapeError(f"direction: expected [2] or a shape that broadcasts to the images' batch {tuple(batch)} + (2,), "
+                         f"got {tuple(u.shape)}") from None
+    return _Flat(data=data, om=om.reshape(B, N), start=win.start.reshape(B, E), dur=win.duration.reshape(B, E),
+                 center=p.center.expand(batch + (2,)).reshape(B, 2), cov=p.cov.expand(batch + (2, 2)).reshape(B, 2, 2),
+                 amp_psf=p.amplitude.expand(batch).reshape(B), u=u, batch=batch, psf=p)
+
+
+def _pixel_weight(noise_std, mask, flat: _Flat):
+    """``(weight [B, E, H, W], noise_level [B] or None)``: ``1 / noise_std^2`` (ones when not
+    given), 0 where ``mask`` is False; the median given noise std per image set."""
+    data, batch = flat.data, flat.batch
+    B, E, H, W = data.shape
+    weight = torch.ones_like(data)
+    noise_level = None
+    if noise_std is not None:
+        s = check_positive(as_tensor(noise_std, "noise_std", like=data), "noise_std")
+        if s.dim() >= 3 and tuple(s.shape[-3:]) == (E, H, W):
+            s = s.expand(batch + (E, H, W)).reshape(B, E, H, W)
+        else:
+            try:
+                s = s.expand(batch).reshape(B, 1, 1, 1).expand(B, E, H, W)
+            except RuntimeError:
+                raise ShapeError(f"noise_std: expected a number, [...] or [..., E, H, W], got {tuple(s.shape)}") from None
+        weight = 1 / s**2
+        noise_level = s.reshape(B, -1).median(-1).values
+    if mask is not None:
+        if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool:
+            raise InputTypeError("mask: expected a bool tensor [..., E, H, W] (True = use the pixel)")
+        try:
+            weight = weight * mask.expand(batch + (E, H, W)).reshape(B, E, H, W).to(data.dtype)
+        except RuntimeError:
+            raise ShapeError(f"mask: expected shape {tuple(batch + (E, H, W))}, got {tuple(mask.shape)}") from None
+    return weight, noise_level
+
+
+def _levels(data: torch.Tensor, noise_level):
+    """``(noise_level [B], dark [B], threshold [B, 1])`` from the pixel statistics: the noise
+    (the given one, else the MAD), dark sets (peak below 8 noise stds), the moments' threshold."""
+    B = data.shape[0]
+    flat = data.reshape(B, -1)
+    med = flat.median(-1).values
+    mad = (flat - med[:, None]).abs().median(-1).values * 1.4826
+    if noise_level is None:
+        noise_level = mad
+    peak = (flat - med[:, None]).amax(-1)
+    dark = ~(peak > 8 * noise_level.clamp_min(torch.finfo(data.dtype).tiny))
+    return noise_level, dark, med[:, None] + 3 * noise_level[:, None]
+
+
+def _amplitude_start(flat: _Flat, amplitude_guess, thr) -> torch.Tensor:
+    """``M0 [B, N]``: ``amplitude_guess``, else equal tones with the mean square of the motion
+    from the images' second moments."""
+    B, N = flat.om.shape
+    if amplitude_guess is None:
+        _, cen, icov = image_moments(flat.data, threshold=thr)
+        along, vex = moments_along(cen - flat.center[:, None], icov - flat.cov[:, None], flat.u[:, None])
+        ms = (vex + along**2).mean(-1).clamp_min(0.25)
+        return (2 * ms / N).sqrt()[:, None].expand(B, N)
+    M0 = check_finite(as_tensor(amplitude_guess, "amplitude_guess", like=flat.data), "amplitude_guess").abs()
+    return M0.expand(flat.batch + (N,)).reshape(B, N).clamp_min(1e-3)
+
+
+def _starts(flat: _Flat, M0, thr, phase_guess, n_starts: int, g: torch.Generator, fit_scale: bool) -> torch.Tensor:
+    """Starts ``[B, K, P]``: the centroid least squares (with ``E >= 2N`` images), the phase
+    guess, ``n_starts`` random phase vectors (from ``g``); the scale from the total light."""
+    B, E, H, W = flat.data.shape
+    N = flat.om.shape[-1]
+    dtype, device = flat.data.dtype, flat.data.device
+    cands = []
+    if E >= 2 * N:
+        Mc, pc, ok = _centroid_start(flat.data, flat.center, flat.u, flat.start, flat.dur, flat.om, thr)
+        Mc = torch.where(ok[:, None] & torch.isfinite(Mc), Mc, M0)
+        cands.append(torch.cat([Mc.clamp(min=1e-3, max=math.hypot(H, W)), torch.nan_to_num(pc)], -1))
+    if phase_guess is not None:
+        pg = check_finite(as_tensor(phase_guess, "phase_guess", like=flat.data), "phase_guess").expand(flat.batch + (N,)).reshape(B, N)
+        cands.append(torch.cat([M0, pg], -1))
+    if n_starts:
+        rnd = (torch.rand(n_starts, N, generator=g, dtype=dtype) * 2 * math.pi - math.pi).to(device)
+        for r in range(n_starts):
+            cands.append(torch.cat([M0, rnd[r].expand(B, N)], -1))
+    if not cands:
+        cands.append(torch.cat([M0, torch.zeros_like(M0)], -1))
+    theta_c = torch.stack(cands, 1)  # [B, K, 2N]
+    if fit_scale:
+        K = theta_c.shape[1]
+        expected = (flat.psf.total_light().expand(flat.batch).reshape(B)[:, None] * flat.dur).sum(-1)
+        sc = (flat.data.sum((-1, -2, -3)) / expected.clamp_min(1e-30)).clamp_min(1e-3)
+        theta_c = torch.cat([theta_c, sc[:, None, None].expand(B, K, 1)], -1)
+    return theta_c
+
+
+def _crop_box(flat: _Flat, theta_c) -> tuple[int, int, int, int]:
+    """``(lo_y, hi_y, lo_x, hi_x)``: where the model of any start reaches (the whole frame if that is under 4 px)."""
+    H, W = flat.data.shape[-2:]
+    N = flat.om.shape[-1]
+    center = flat.center
+    reach = (theta_c[..., :N].abs().sum(-1).amax(1) * 1.3 + 0.5)[:, None] * flat.u.abs()  # [B, 2] (x, y) px
+    sd = torch.diagonal(flat.cov, dim1=-2, dim2=-1).sqrt()
+    lo_x = int(max(0, math.floor(float((center[:, 0] - reach[:, 0] - 7 * sd[:, 0]).min()))))
+    hi_x = int(min(W, math.ceil(float((center[:, 0] + reach[:, 0] + 7 * sd[:, 0]).max())) + 1))
+    lo_y = int(max(0, math.floor(float((center[:, 1] - reach[:, 1] - 7 * sd[:, 1]).min()))))
+    hi_y = int(min(H, math.ceil(float((center[:, 1] + reach[:, 1] + 7 * sd[:, 1]).max())) + 1))
+    if hi_x - lo_x < 4 or hi_y - lo_y < 4:
+        return 0, H, 0, W
+    return lo_y, hi_y, lo_x, hi_x
+
+
+@dataclass(frozen=True)
+class _Problem:
+    """The cropped problem every search step evaluates.
+
+    ``target, wflat [B, R]`` (R = E Hc Wc pixels in the crop); ``om [B, N]``; ``start, dur
+    [B, E]``; ``psf`` (batch ``[B]``, centre in crop coordinates); ``u [B, 2]``; ``height,
+    width`` of the crop; ``settings`` (node count fixed); ``outside_cost, outside_sq,
+    outside_n [B]``: the weighted and plain sums of squares and the count of the used pixels
+    outside the crop (a constant of the cost).
+    """
+
+    target: torch.Tensor
+    wflat: torch.Tensor
+    om: torch.Tensor
+    start: torch.Tensor
+    dur: torch.Tensor
+    psf: GaussianPSF
+    u: torch.Tensor
+    height: int
+    width: int
+    settings: RenderSettings
+    outside_cost: torch.Tensor
+    outside_sq: torch.Tensor
+    outside_n: torch.Tensor
+
+    @property
+    def analytic(self) -> bool:
+        """Whether the Jacobian comes from the splat (point-sampled pixels)."""
+        return not self.settings.pixel_integration
+
+    def _items(self, item):
+        p = self.psf
+        return GaussianPSF(p.center[item], p.cov[item], p.amplitude[item]), ExposureWindow(self.start[item], self.dur[item])
+
+    def model(self, theta, item) -> torch.Tensor:
+        """Rendered images of the sets ``item [n]`` at ``theta [n, P]`` -> ``[n, R]``."""
+        psf_i, win_i = self._items(item)
+        img = render_multisine(theta, self.om[item], psf_i, win_i, height=self.height, width=self.width, settings=self.settings,
+                               direction=self.u[item])
+        return img.reshape(theta.shape[0], -1)
+
+    def model_and_jacobian(self, theta, item):
+        """``(model [n, R], J [n, R, P])`` from one splat (:func:`render_multisine_with_jacobian`)."""
+        psf_i, win_i = self._items(item)
+        img, J = render_multisine_with_jacobian(theta, self.om[item], psf_i, win_i, height=self.height, width=self.width,
+                                                nodes=self.settings.nodes, nodes_per_panel=self.settings.nodes_per_panel,
+                                                direction=self.u[item])
+        return img.reshape(theta.shape[0], -1), J.reshape(theta.shape[0], -1, theta.shape[-1])
+
+
+def _problem(flat: _Flat, weight, theta_c, render_settings) -> tuple[_Problem, tuple]:
+    """The problem cropped to where the starts reach, its node count fixed for them -> ``(problem, crop box)``."""
+    B, N = flat.om.shape
+    dtype, device = flat.data.dtype, flat.data.device
+    data = flat.data
+    lo_y, hi_y, lo_x, hi_x = box = _crop_box(flat, theta_c)
+    out_w = weight.clone()
+    out_w[..., lo_y:hi_y, lo_x:hi_x] = 0
+    center_c = flat.center - torch.tensor([lo_x, lo_y], dtype=dtype, device=device)
+    psf_c = GaussianPSF(center_c, flat.cov, flat.amp_psf)
+    settings = render_settings or RenderSettings(panel_path_sigmas=3.5)
+    if settings.nodes is None:
+        bound = Multisine(((theta_c[..., :N].abs().amax(1) * 1.3 + 0.5)[..., None] * flat.u[:, None, :])[:, None],
+                          torch.zeros(B, 1, N, 2, dtype=dtype, device=device), flat.om[:, None])
+        S = choose_node_count(bound.path_length(ExposureWindow(torch.zeros_like(flat.dur), flat.dur)), psf_c.sigma_min()[:, None],
+                              settings)
+        settings = RenderSettings(pixel_integration=settings.pixel_integration, nodes_per_panel=settings.nodes_per_panel,
+                                  panel_path_sigmas=settings.panel_path_sigmas, max_nodes=settings.max_nodes, nodes=S)
+    prob = _Problem(target=data[..., lo_y:hi_y, lo_x:hi_x].reshape(B, -1), wflat=weight[..., lo_y:hi_y, lo_x:hi_x].reshape(B, -1),
+                    om=flat.om, start=flat.start, dur=flat.dur, psf=psf_c, u=flat.u, height=hi_y - lo_y, width=hi_x - lo_x,
+                    settings=settings, outside_cost=(out_w * data * data).sum((-1, -2, -3)),
+                    outside_sq=((out_w > 0) * data * data).sum((-1, -2, -3)), outside_n=(out_w > 0).sum((-1, -2, -3)).to(dtype))
+    return prob, box
+
+
+def _search(prob: _Problem, cands, items_l, n_ref: int, max_iter: int, tol: float):
+    """Coarse cost of every start ``cands [L, K, P]`` of the items ``items_l [L]`` (one render per
+    chunk), then batched LM from the ``n_ref`` best of each -> the best result per item
+    ``(theta [L, P], cost [L], converged [L], n_iter [L], refined)``."""
+    L, Kc, P = cands.shape
+    device = cands.device
+    E = prob.start.shape[-1]
+    flat_th = cands.reshape(-1, P)
+    item_of = items_l.repeat_interleave(Kc)
+    costs = []
+    chunk = max(1, int(2e7 // max(1, E * prob.settings.nodes * (prob.height + prob.width))))
+    with torch.no_grad():
+        for i in range(0, flat_th.shape[0], chunk):
+            it = item_of[i:i + chunk]
+            costs.append(image_loss(prob.model(flat_th[i:i + chunk], it), prob.target[it], loss="l2", weight=prob.wflat[it]))
+    cost0 = torch.cat(costs).reshape(L, Kc)
+    R_ = min(n_ref, Kc)
+    best_k = torch.nan_to_num(cost0, nan=float("inf")).argsort(-1)[:, :R_]
+    th0 = cands[torch.arange(L, device=device)[:, None], best_k].reshape(-1, P)
+    items = items_l.repeat_interleave(R_)
+    jac = (lambda th, i: prob.model_and_jacobian(th, items[i])) if prob.analytic else None
+    res = levenberg_marquardt(lambda th, i: prob.model(th, items[i]), th0, prob.target[items], loss="l2", weight=prob.wflat[items],
+                              max_iter=max_iter, tol=tol, jacobian_fn=jac)
+    c = torch.nan_to_num(res.cost, nan=float("inf")).reshape(L, R_)
+    pick = c.argmin(-1)
+    ar = torch.arange(L, device=device)
+    return (res.theta.reshape(L, R_, P)[ar, pick], c[ar, pick], res.converged.reshape(L, R_)[ar, pick],
+            res.n_iter.reshape(L, R_)[ar, pick], R_)
+
+
+def _reduced_chi2(prob: _Problem, cost) -> torch.Tensor:
+    """Cost (inside plus outside the crop) per used pixel ``[B]``."""
+    n_used = (prob.wflat > 0).sum(-1).to(cost.dtype) + prob.outside_n
+    return (cost + prob.outside_cost) / n_used.clamp_min(1)
+
+
+def _search_all(prob: _Problem, theta_c, live, M0, *, sigma_given: bool, n_starts: int, n_refine: int, fit_scale: bool,
+                g: torch.Generator, max_iter: int, tol: float):
+    """The search for every live set ``live [L]``; with the noise given, sets left far above it
+    (reduced chi2 > 1.5: a local minimum) are searched again from a wider set of starts (phases
+    and amplitudes), the better kept -> ``(theta [B, P], cost [B], converged [B], n_iter [B],
+    refined, retried [B])``."""
+    B = theta_c.shape[0]
+    N = prob.om.shape[-1]
+    dtype, device = theta_c.dtype, theta_c.device
+    theta_best = theta_c[:, 0].clone()
+    cost_best = torch.full((B,), float("nan"), dtype=dtype, device=device)
+    conv_best = torch.zeros(B, dtype=torch.bool, device=device)
+    iters_best = torch.zeros(B, dtype=torch.long, device=device)
+    retried = torch.zeros(B, dtype=torch.bool, device=device)
+    R_ = 0
+    if not live.numel():
+        return theta_best, cost_best, conv_best, iters_best, R_, retried
+    th, cst, cv, itr, R_ = _search(prob, theta_c[live], live, n_refine, max_iter, tol)
+    theta_best[live], cost_best[live], conv_best[live], iters_best[live] = th, cst, cv, itr
+    if sigma_given:
+        poor = live[_reduced_chi2(prob, cost_best)[live] > 1.5]
+        if poor.numel():
+            K2 = 4 * max(n_starts, 8)
+            rnd2 = (torch.rand(K2, N, generator=g, dtype=dtype) * 2 - 1).to(device) * math.pi
+            fac = torch.tensor([0.6, 1.0, 1.6], dtype=dtype, device=device).repeat(K2 // 3 + 1)[:K2]
+            c2 = torch.cat([M0[poor][:, None, :] * fac[None, :, None], rnd2.expand(poor.numel(), K2, N)], -1)
+            if fit_scale:
+                c2 = torch.cat([c2, theta_c[poor][:, :1, 2 * N:].expand(poor.numel(), K2, 1)], -1)
+            th, cst, cv, itr, _ = _search(prob, c2, poor, 2 * n_refine, max_iter, tol)
+            better = cst < cost_best[poor]
+            pb = poor[better]
+            theta_best[pb], cost_best[pb], conv_best[pb], iters_best[pb] = th[better], cst[better], cv[better], itr[better]
+            retried[poor] = True
+    return theta_best, cost_best, conv_best, iters_best, R_, retried
+
+
+def _canonical(theta: torch.Tensor, N: int) -> torch.Tensor:
+    """``theta [B, P]`` in place with ``M >= 0`` (a negative M is a phase shift of pi) and the phases wrapped."""
+    neg = theta[:, :N] < 0
+    theta[:, :N] = theta[:, :N].abs()
+    theta[:, N:2 * N] = wrap_phase(theta[:, N:2 * N] + math.pi * neg)
+    return theta
+
+
+def _fisher(prob: _Problem, theta, live, noise_level):
+    """Inverse Fisher information at the solution -> ``(covariance [B, P, P], noise std used [B],
+    singular [B])`` (NaN for sets not live). With ``noise_level`` None the noise is estimated
+    from the residuals (inside and outside the crop)."""
+    B, P = theta.shape
+    dtype, device = theta.dtype, theta.device
+    cov_out = torch.full((B, P, P), float("nan"), dtype=dtype, device=device)
+    sigma_used = torch.full((B,), float("nan"), dtype=dtype, device=device)
+    singular = torch.zeros(B, dtype=torch.bool, device=device)
+    if not live.numel():
+        return cov_out, sigma_used, singular
+    if prob.analytic:
+        model, J = prob.model_and_jacobian(theta[live], live)
+    else:
+        model, J = model_jacobian(lambda th, i: prob.model(th, live[i]), theta[live], torch.arange(live.numel(), device=device))
+    wl = prob.wflat[live]
+    if noise_level is not None:
+        fw = wl
+        sigma_used[live] = noise_level[live]
+    else:
+        resid = prob.target[live] - model
+        n_used = (wl > 0).sum(-1).to(dtype) + prob.outside_n[live]
+        sig2 = (((resid * resid) * (wl > 0)).sum(-1) + prob.outside_sq[live]) / (n_used - P).clamp_min(1)
+        fw = (wl > 0).to(dtype) / sig2[:, None].clamp_min(torch.finfo(dtype).tiny)
+        sigma_used[live] = sig2.sqrt()
+    F = (J * fw[..., None]).transpose(-1, -2) @ J
+    c_l, info = torch.linalg.inv_ex(F)
+    diag = torch.diagonal(c_l, dim1=-2, dim2=-1)
+    singular[live] = (info != 0) | ~torch.isfinite(c_l).all(-1).all(-1) | (diag <= 0).any(-1)
+    cov_out[live] = c_l
+    return cov_out, sigma_used, singular
+
+
+def _status(converged, red_chi2, singular, dark, sigma_given: bool) -> torch.Tensor:
+    """Status codes ``[B]`` (:data:`STATUS`): 2 not converged; POOR_FIT still far above the
+    given noise (reduced chi2 > 3) after the wider search; 4 singular; 1 dark."""
+    status = torch.zeros(converged.shape, dtype=torch.long, device=converged.device)
+    status[~converged] = 2
+    if sigma_given:
+        status[red_chi2 > 3.0] = POOR_FIT
+    status[singular] = 4
+    status[dark] = 1
+    return status
+
+
 def fit_multisine(
     images,
     psf: GaussianPSF,
@@ -240,249 +591,26 @@ def fit_multisine(
     Returns:
         :class:`MultisineFit`.
     """
-    if not isinstance(images, torch.Tensor):
-        raise InputTypeError(f"images: expected a tensor [..., E, H, W], got {type(images).__name__}")
-    if images.dim() < 3 or images.numel() == 0:
-        raise ShapeError(f"images: expected a non-empty tensor [..., E, H, W], got shape {tuple(images.shape)}")
-    if not images.is_floating_point():
-        images = images.to(torch.get_default_dtype())
-    check_finite(images, "images")
-    if not isinstance(psf, GaussianPSF):
-        raise InputTypeError(f"psf: expected a GaussianPSF, got {type(psf).__name__}")
-    if not isinstance(window, ExposureWindow):
-        raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
-    for name, v in (("n_starts", n_starts), ("n_refine", n_refine), ("max_iter", max_iter)):
-        if isinstance(v, bool) or not isinstance(v, int) or v < (0 if name == "n_starts" else 1):
-            raise ParameterError(f"{name}: expected an integer >= {0 if name == 'n_starts' else 1}, got {v!r}")
-    dtype, device = images.dtype, images.device
-    batch = images.shape[:-3]
-    E, H, W = images.shape[-3:]
-    omega = check_positive(as_tensor(omega, "omega", like=images), "omega")
-    if omega.dim() == 0:
-        raise ShapeError("omega: expected shape [..., N] (one value per tone), got a scalar")
-    N = omega.shape[-1]
-    try:
-        om = omega.expand(batch + (N,))
-        win = window.to(dtype).expand(batch + (E,))
-    except RuntimeError:
-        raise ShapeError(f"omega {tuple(omega.shape)} / window {tuple(window.shape)}: expected [..., N] and [..., E] with "
-                         f"[...] = {tuple(batch)}, E = {E}") from None
-    B = max(1, math.prod(batch))
-    om = om.reshape(B, N)
-    start, dur = win.start.reshape(B, E), win.duration.reshape(B, E)
-    data = images.reshape(B, E, H, W)
-    p = psf.to(dtype)
-    center = p.center.expand(batch + (2,)).reshape(B, 2)
-    cov = p.cov.expand(batch + (2, 2)).reshape(B, 2, 2)
-    amp_psf = p.amplitude.expand(batch).reshape(B)
-    u = _unit_direction(direction, data)
-    try:
-        u = u.expand(batch + (2,)).reshape(B, 2)
-    except RuntimeError:
-        raise ShapeError(f"direction: expected [2] or a shape that broadcasts to the images' batch {tuple(batch)} + (2,), "
-                         f"got {tuple(u.shape)}") from None
-
-    weight = torch.ones_like(data)
-    sigma_given = noise_std is not None
-    if sigma_given:
-        s = check_positive(as_tensor(noise_std, "noise_std", like=data), "noise_std")
-        if s.dim() >= 3 and tuple(s.shape[-3:]) == (E, H, W):
-            s = s.expand(batch + (E, H, W)).reshape(B, E, H, W)
-        else:
-            try:
-                s = s.expand(batch).reshape(B, 1, 1, 1).expand(B, E, H, W)
-            except RuntimeError:
-                raise ShapeError(f"noise_std: expected a number, [...] or [..., E, H, W], got {tuple(s.shape)}") from None
-        weight = 1 / s**2
-        noise_level = s.reshape(B, -1).median(-1).values
-    if mask is not None:
-        if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool:
-            raise InputTypeError("mask: expected a bool tensor [..., E, H, W] (True = use the pixel)")
-        try:
-            weight = weight * mask.expand(batch + (E, H, W)).reshape(B, E, H, W).to(dtype)
-        except RuntimeError:
-            raise ShapeError(f"mask: expected shape {tuple(images.shape)}, got {tuple(mask.shape)}") from None
-
-    flat = data.reshape(B, -1)
-    med = flat.median(-1).values
-    mad = (flat - med[:, None]).abs().median(-1).values * 1.4826
-    if not sigma_given:
-        noise_level = mad
-    peak = (flat - med[:, None]).amax(-1)
-    dark = ~(peak > 8 * noise_level.clamp_min(torch.finfo(dtype).tiny))
-    thr = med[:, None] + 3 * noise_level[:, None]
-
-    # Amplitude guess: mean square of the motion from the second moments (equal tones).
-    if amplitude_guess is None:
-        _, cen, icov = image_moments(data, threshold=thr)
-        along, vex = moments_along(cen - center[:, None], icov - cov[:, None], u[:, None])
-        ms = (vex + along**2).mean(-1).clamp_min(0.25)
-        M0 = (2 * ms / N).sqrt()[:, None].expand(B, N)
-    else:
-        M0 = check_finite(as_tensor(amplitude_guess, "amplitude_guess", like=data), "amplitude_guess").abs()
-        M0 = M0.expand(batch + (N,)).reshape(B, N).clamp_min(1e-3)
-
-    # Starts: centroid LS, the phase guess, random phase vectors.
-    cands = []
-    if E >= 2 * N:
-        Mc, pc, ok = _centroid_start(data, center, u, start, dur, om, thr)
-        Mc = torch.where(ok[:, None] & torch.isfinite(Mc), Mc, M0)
-        cands.append(torch.cat([Mc.clamp(min=1e-3, max=math.hypot(H, W)), torch.nan_to_num(pc)], -1))
-    if phase_guess is not None:
-        pg = check_finite(as_tensor(phase_guess, "phase_guess", like=data), "phase_guess").expand(batch + (N,)).reshape(B, N)
-        cands.append(torch.cat([M0, pg], -1))
+    flat = _check_and_flatten(images, psf, window, omega, direction, {"n_starts": n_starts, "n_refine": n_refine, "max_iter": max_iter})
+    batch, (B, N) = flat.batch, flat.om.shape
+    weight, given_level = _pixel_weight(noise_std, mask, flat)
+    sigma_given = given_level is not None
+    noise_level, dark, thr = _levels(flat.data, given_level)
+    M0 = _amplitude_start(flat, amplitude_guess, thr)
     g = torch.Generator(device="cpu").manual_seed(int(seed))
-    if n_starts:
-        rnd = (torch.rand(n_starts, N, generator=g, dtype=dtype) * 2 * math.pi - math.pi).to(device)
-        for r in range(n_starts):
-            cands.append(torch.cat([M0, rnd[r].expand(B, N)], -1))
-    if not cands:
-        cands.append(torch.cat([M0, torch.zeros_like(M0)], -1))
-    K = len(cands)
-    theta_c = torch.stack(cands, 1)  # [B, K, 2N]
-    if fit_scale:
-        expected = (p.total_light().expand(batch).reshape(B)[:, None] * dur).sum(-1)
-        sc = (data.sum((-1, -2, -3)) / expected.clamp_min(1e-30)).clamp_min(1e-3)
-        theta_c = torch.cat([theta_c, sc[:, None, None].expand(B, K, 1)], -1)
-    P = theta_c.shape[-1]
-
-    # Crop to where the model reaches (the pixels outside add a constant to the cost).
-    reach = (theta_c[..., :N].abs().sum(-1).amax(1) * 1.3 + 0.5)[:, None] * u.abs()  # [B, 2] (x, y) px
-    sd = torch.diagonal(cov, dim1=-2, dim2=-1).sqrt()
-    lo_x = int(max(0, math.floor(float((center[:, 0] - reach[:, 0] - 7 * sd[:, 0]).min()))))
-    hi_x = int(min(W, math.ceil(float((center[:, 0] + reach[:, 0] + 7 * sd[:, 0]).max())) + 1))
-    lo_y = int(max(0, math.floor(float((center[:, 1] - reach[:, 1] - 7 * sd[:, 1]).min()))))
-    hi_y = int(min(H, math.ceil(float((center[:, 1] + reach[:, 1] + 7 * sd[:, 1]).max())) + 1))
-    if hi_x - lo_x < 4 or hi_y - lo_y < 4:
-        lo_x, hi_x, lo_y, hi_y = 0, W, 0, H
-    out_w = weight.clone()
-    out_w[..., lo_y:hi_y, lo_x:hi_x] = 0
-    outside_cost = (out_w * data * data).sum((-1, -2, -3))
-    outside_sq = ((out_w > 0) * data * data).sum((-1, -2, -3))
-    outside_n = (out_w > 0).sum((-1, -2, -3)).to(dtype)
-    data_c = data[..., lo_y:hi_y, lo_x:hi_x]
-    weight_c = weight[..., lo_y:hi_y, lo_x:hi_x]
-    Hc, Wc = hi_y - lo_y, hi_x - lo_x
-    center_c = center - torch.tensor([lo_x, lo_y], dtype=dtype, device=device)
-    psf_c = GaussianPSF(center_c, cov, amp_psf)
-
-    settings = render_settings or RenderSettings(panel_path_sigmas=3.5)
-    if settings.nodes is None:
-        bound = Multisine(((theta_c[..., :N].abs().amax(1) * 1.3 + 0.5)[..., None] * u[:, None, :])[:, None],
-                          torch.zeros(B, 1, N, 2, dtype=dtype, device=device), om[:, None])
-        S = choose_node_count(bound.path_length(ExposureWindow(torch.zeros_like(dur), dur)), psf_c.sigma_min()[:, None], settings)
-        settings = RenderSettings(pixel_integration=settings.pixel_integration, nodes_per_panel=settings.nodes_per_panel,
-                                  panel_path_sigmas=settings.panel_path_sigmas, max_nodes=settings.max_nodes, nodes=S)
-
-    def model_fn(theta, item):
-        psf_i = GaussianPSF(psf_c.center[item], psf_c.cov[item], psf_c.amplitude[item])
-        img = render_multisine(theta, om[item], psf_i, ExposureWindow(start[item], dur[item]), height=Hc, width=Wc,
-                               settings=settings, direction=u[item])
-        return img.reshape(theta.shape[0], -1)
-
-    analytic = not settings.pixel_integration
-
-    def jac_fn(theta, item):
-        psf_i = GaussianPSF(psf_c.center[item], psf_c.cov[item], psf_c.amplitude[item])
-        img, J = render_multisine_with_jacobian(theta, om[item], psf_i, ExposureWindow(start[item], dur[item]), height=Hc,
-                                                width=Wc, nodes=settings.nodes, nodes_per_panel=settings.nodes_per_panel,
-                                                direction=u[item])
-        return img.reshape(theta.shape[0], -1), J.reshape(theta.shape[0], -1, theta.shape[-1])
-
-    target = data_c.reshape(B, -1)
-    wflat = weight_c.reshape(B, -1)
-    live = torch.arange(B, device=device)[~dark]
-
-    def search(cands, items_l, n_ref):
-        """Coarse cost of every start ``cands [L, K, P]`` of the items ``items_l [L]`` (one render per
-        chunk), then batched LM from the ``n_ref`` best of each; the best result per item."""
-        L, Kc = cands.shape[:2]
-        flat_th = cands.reshape(-1, P)
-        item_of = items_l.repeat_interleave(Kc)
-        costs = []
-        chunk = max(1, int(2e7 // max(1, E * settings.nodes * (Hc + Wc))))
-        with torch.no_grad():
-            for i in range(0, flat_th.shape[0], chunk):
-                it = item_of[i:i + chunk]
-                costs.append(image_loss(model_fn(flat_th[i:i + chunk], it), target[it], loss="l2", weight=wflat[it]))
-        cost0 = torch.cat(costs).reshape(L, Kc)
-        R_ = min(n_ref, Kc)
-        best_k = torch.nan_to_num(cost0, nan=float("inf")).argsort(-1)[:, :R_]
-        th0 = cands[torch.arange(L, device=device)[:, None], best_k].reshape(-1, P)
-        items = items_l.repeat_interleave(R_)
-        res = levenberg_marquardt(lambda th, i: model_fn(th, items[i]), th0, target[items], loss="l2", weight=wflat[items],
-                                  max_iter=max_iter, tol=tol, jacobian_fn=(lambda th, i: jac_fn(th, items[i])) if analytic else None)
-        c = torch.nan_to_num(res.cost, nan=float("inf")).reshape(L, R_)
-        pick = c.argmin(-1)
-        ar = torch.arange(L, device=device)
-        return (res.theta.reshape(L, R_, P)[ar, pick], c[ar, pick], res.converged.reshape(L, R_)[ar, pick],
-                res.n_iter.reshape(L, R_)[ar, pick], R_)
-
-    theta_best = theta_c[:, 0].clone()
-    cost_best = torch.full((B,), float("nan"), dtype=dtype, device=device)
-    conv_best = torch.zeros(B, dtype=torch.bool, device=device)
-    iters_best = torch.zeros(B, dtype=torch.long, device=device)
-    R_ = 0
-    n_used = (wflat > 0).sum(-1).to(dtype) + outside_n
-    retried = torch.zeros(B, dtype=torch.bool, device=device)
-    if live.numel():
-        th, cst, cv, itr, R_ = search(theta_c[live], live, n_refine)
-        theta_best[live], cost_best[live], conv_best[live], iters_best[live] = th, cst, cv, itr
-        if sigma_given:
-            # A fit far above the noise (reduced chi2 > 1.5) sits in a local minimum: search again from a wider set of
-            # starts (phases and amplitudes), keep the better.
-            poor = live[((cost_best[live] + outside_cost[live]) / n_used[live].clamp_min(1)) > 1.5]
-            if poor.numel():
-                K2 = 4 * max(n_starts, 8)
-                rnd2 = (torch.rand(K2, N, generator=g, dtype=dtype) * 2 - 1).to(device) * math.pi
-                fac = torch.tensor([0.6, 1.0, 1.6], dtype=dtype, device=device).repeat(K2 // 3 + 1)[:K2]
-                c2 = torch.cat([M0[poor][:, None, :] * fac[None, :, None], rnd2.expand(poor.numel(), K2, N)], -1)
-                if fit_scale:
-                    c2 = torch.cat([c2, theta_c[poor][:, :1, 2 * N:].expand(poor.numel(), K2, 1)], -1)
-                th, cst, cv, itr, _ = search(c2, poor, 2 * n_refine)
-                better = cst < cost_best[poor]
-                pb = poor[better]
-                theta_best[pb], cost_best[pb], conv_best[pb], iters_best[pb] = th[better], cst[better], cv[better], itr[better]
-                retried[poor] = True
-
-    # Canonical form: M >= 0, phases wrapped.
-    neg = theta_best[:, :N] < 0
-    theta_best[:, :N] = theta_best[:, :N].abs()
-    theta_best[:, N:2 * N] = wrap_phase(theta_best[:, N:2 * N] + math.pi * neg)
-
-    # Fisher information at the solution.
-    cov_out = torch.full((B, P, P), float("nan"), dtype=dtype, device=device)
-    sigma_used = torch.full((B,), float("nan"), dtype=dtype, device=device)
-    singular = torch.zeros(B, dtype=torch.bool, device=device)
-    if live.numel():
-        if analytic:
-            model, J = jac_fn(theta_best[live], live)
-        else:
-            model, J = model_jacobian(lambda th, i: model_fn(th, live[i]), theta_best[live], torch.arange(live.numel(), device=device))
-        wl = wflat[live]
-        if sigma_given:
-            fw = wl
-            sigma_used[live] = noise_level[live]
-        else:
-            resid = target[live] - model
-            n_used = (wl > 0).sum(-1).to(dtype) + outside_n[live]
-            sig2 = (((resid * resid) * (wl > 0)).sum(-1) + outside_sq[live]) / (n_used - P).clamp_min(1)
-            fw = (wl > 0).to(dtype) / sig2[:, None].clamp_min(torch.finfo(dtype).tiny)
-            sigma_used[live] = sig2.sqrt()
-        F = (J * fw[..., None]).transpose(-1, -2) @ J
-        c_l, info = torch.linalg.inv_ex(F)
-        diag = torch.diagonal(c_l, dim1=-2, dim2=-1)
-        singular[live] = (info != 0) | ~torch.isfinite(c_l).all(-1).all(-1) | (diag <= 0).any(-1)
-        cov_out[live] = c_l
+    theta_c = _starts(flat, M0, thr, phase_guess, n_starts, g, fit_scale)
+    K, P = theta_c.shape[1:]
+    prob, crop = _problem(flat, weight, theta_c, render_settings)
+    live = torch.arange(B, device=flat.data.device)[~dark]
+    theta_best, cost_best, conv_best, iters_best, R_, retried = _search_all(
+        prob, theta_c, live, M0, sigma_given=sigma_given, n_starts=n_starts, n_refine=n_refine, fit_scale=fit_scale, g=g,
+        max_iter=max_iter, tol=tol)
+    theta_best = _canonical(theta_best, N)
+    cov_out, sigma_used, singular = _fisher(prob, theta_best, live, noise_level if sigma_given else None)
     std = torch.diagonal(cov_out, dim1=-2, dim2=-1).clamp_min(0).sqrt()
-    status = torch.zeros(B, dtype=torch.long, device=device)
-    status[~conv_best] = 2
-    if sigma_given:
-        # still far above the noise after the wider search: the model does not explain the images
-        status[((cost_best + outside_cost) / n_used.clamp_min(1)) > 3.0] = POOR_FIT
-    status[singular] = 4
-    status[dark] = 1
-    nan = torch.tensor(float("nan"), dtype=dtype, device=device)
+    red_chi2 = _reduced_chi2(prob, cost_best)
+    status = _status(conv_best, red_chi2, singular, dark, sigma_given)
+    nan = torch.tensor(float("nan"), dtype=theta_best.dtype, device=theta_best.device)
 
     def out(x, tail=()):
         return x.reshape(batch + tail)
@@ -495,13 +623,13 @@ def fit_multisine(
         phase_std=out(torch.where(bad, nan, std[:, N:2 * N]), (N,)),
         covariance=out(cov_out, (P, P)),
         param_names=multisine_param_names(N, fit_scale),
-        cost=out(cost_best + outside_cost),
+        cost=out(cost_best + prob.outside_cost),
         converged=out(status == 0),
         status=out(status),
         noise_std=out(sigma_used),
         n_iter=out(iters_best),
         scale=out(torch.where(dark, nan, theta_best[:, 2 * N])) if fit_scale else None,
     )
-    res.extras.update({"nodes": settings.nodes, "starts": K, "refined": R_, "crop": (lo_y, hi_y, lo_x, hi_x),
-                       "retried": out(retried), "reduced_chi2": out((cost_best + outside_cost) / n_used.clamp_min(1))})
+    res.extras.update({"nodes": prob.settings.nodes, "starts": K, "refined": R_, "crop": crop, "retried": out(retried),
+                       "reduced_chi2": out(red_chi2)})
     return res

@@ -29,8 +29,8 @@ Model forms (``form``), both with a pure delay ``exp(-s delay_s)``:
   partial fraction is dropped): a plant outside this family is only approximated.
 
 Efficiency: no dense Jacobian over all pixels x all parameters is formed. Per point the image
-and its derivatives with respect to (M, phi) come from one splat
-(:func:`torchblur.render.splat.gaussian_splat_with_jacobian`), the scale and background
+and its derivatives with respect to (M, phi) come from one splat, the one forward model
+(:func:`torchblur.render.splat.sine_blur_with_jacobian`), the scale and background
 derivatives are the image and 1, and ``d(M_k, phi_k) / d theta`` comes from autograd of
 ``H(j omega; theta)``. The normal equations are assembled blockwise (theta block plus one
 small nuisance block per point) and every Levenberg-Marquardt step eliminates the nuisance
@@ -41,239 +41,36 @@ Uncertainty: the inverse Fisher information at the solution (the Schur complemen
 nuisance parameters profiled out); with ``noise_std=None`` the fit is unweighted and the
 covariance is scaled by the reduced chi2 (the noise estimated from the residuals).
 Natural-unit covariances follow from the internal (log-) parameters by the delta method.
+
+The model forms' parametrisation is in :mod:`torchblur.sysid.parametric`; the single-exposure
+start (:func:`resolve_alias_with_model`, :class:`AliasResolution`) is in
+:mod:`torchblur.sysid.alias_resolution` and re-exported here.
 """
 from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 import torch
 
 from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_frequency_grid, as_tensor, as_unit_direction, check_choice,
                      check_finite, check_positive)
-from torchblur.render.psf import GaussianPSF
 from torchblur.render.blur import RenderSettings, choose_node_count, quadrature_nodes
-from torchblur.render.window import ExposureWindow
+from torchblur.render.psf import GaussianPSF
+from torchblur.render.splat import sine_blur_with_jacobian, window_nodes
 from torchblur.render.trajectory import Sinusoid
+from torchblur.render.window import ExposureWindow
+from torchblur.sysid.alias_resolution import AliasResolution, resolve_alias_with_model
+from torchblur.sysid.parametric import _poles_zeros, _response, _Structure, _structure_from_tf
+from torchblur.sysid.tf_fit import TransferFunctionFit
 
 __all__ = ["AliasResolution", "DirectModelFit", "fit_direct", "resolve_alias_with_model", "FORMS"]
 
 #: Model forms of :func:`fit_direct`.
 FORMS = ("tf", "modal")
 _AXES = ("x", "y")
-
-
-# ------------------------------------------------------------------------ structure
-@dataclasses.dataclass(frozen=True)
-class _Structure:
-    """Which parameters a model has. ``kinds`` lists, in parameter order, one entry per
-    natural parameter: (name, transform) with transform "log" (optimised as its log, > 0)
-    or "lin"."""
-
-    form: str
-    n_zero_pairs: int = 0
-    n_zero_real: int = 0
-    n_pole_pairs: int = 0
-    n_pole_real: int = 0
-    n_origin: int = 0  # tf: power of s (zeros at 0 minus poles at 0)
-    feedthrough: bool = False  # modal: D
-    fit_delay: bool = True
-
-    def names_transforms(self) -> list[tuple[str, str]]:
-        out: list[tuple[str, str]] = []
-        if self.form == "tf":
-            out.append(("gain", "lin"))
-            for i in range(self.n_zero_pairs):
-                out += [(f"zero_pair{i + 1}_omega_n", "log"), (f"zero_pair{i + 1}_zeta", "lin")]
-            for i in range(self.n_zero_real):
-                out.append((f"zero{i + 1}_rate", "lin"))
-            for i in range(self.n_pole_pairs):
-                out += [(f"pole_pair{i + 1}_omega_n", "log"), (f"pole_pair{i + 1}_zeta", "log")]
-            for i in range(self.n_pole_real):
-                out.append((f"pole{i + 1}_rate", "log"))
-        else:
-            for i in range(self.n_pole_pairs):
-                out += [(f"mode{i + 1}_gain", "lin"), (f"mode{i + 1}_omega_n", "log"), (f"mode{i + 1}_zeta", "log")]
-            for i in range(self.n_pole_real):
-                out += [(f"real_mode{i + 1}_gain", "lin"), (f"real_mode{i + 1}_rate", "log")]
-            if self.feedthrough:
-                out.append(("feedthrough", "lin"))
-        if self.fit_delay:
-            out.append(("delay_s", "lin"))
-        return out
-
-
-def _response(struct: _Structure, p: torch.Tensor, s: torch.Tensor, delay_s: float) -> torch.Tensor:
-    """H(s) [F] (complex) from natural parameters ``p`` [P] (real) at ``s`` [F] (complex)."""
-    i = 0
-    one = torch.ones_like(s)
-    if struct.form == "tf":
-        h = p[0] * one
-        i = 1
-        for _ in range(struct.n_zero_pairs):
-            x = s / p[i]
-            h = h * (x * x + 2 * p[i + 1] * x + 1)
-            i += 2
-        for _ in range(struct.n_zero_real):
-            h = h * (1 + s / p[i])
-            i += 1
-        for _ in range(struct.n_pole_pairs):
-            x = s / p[i]
-            h = h / (x * x + 2 * p[i + 1] * x + 1)
-            i += 2
-        for _ in range(struct.n_pole_real):
-            h = h / (1 + s / p[i])
-            i += 1
-        if struct.n_origin:
-            h = h * s ** struct.n_origin
-    else:
-        h = torch.zeros_like(s)
-        for _ in range(struct.n_pole_pairs):
-            g, wn, z = p[i], p[i + 1], p[i + 2]
-            h = h + g * wn * wn / (s * s + 2 * z * wn * s + wn * wn)
-            i += 3
-        for _ in range(struct.n_pole_real):
-            g, a = p[i], p[i + 1]
-            h = h + g * a / (s + a)
-            i += 2
-        if struct.feedthrough:
-            h = h + p[i]
-            i += 1
-    tau = p[i] if struct.fit_delay else delay_s
-    return h * torch.exp(-s * tau)
-
-
-def _poles_zeros(struct: _Structure, p: np.ndarray):
-    """(poles, zeros, high-frequency gain K) with H = K prod(s - z) / prod(s - p) (rad/s)."""
-    p = np.asarray(p, dtype=np.float64)
-
-    def pair(wn, z):
-        r = -z * wn + 1j * wn * np.sqrt(complex(1 - z * z))
-        return [r, np.conj(r)] if abs(1 - z * z) > 0 and z * z < 1 else [complex(-z * wn + wn * np.sqrt(z * z - 1)),
-                                                                           complex(-z * wn - wn * np.sqrt(z * z - 1))]
-
-    if struct.form == "tf":
-        i, K = 1, p[0]
-        zeros, poles = [], []
-        for _ in range(struct.n_zero_pairs):
-            zeros += pair(p[i], p[i + 1])
-            K = K / p[i] ** 2
-            i += 2
-        for _ in range(struct.n_zero_real):
-            zeros.append(complex(-p[i]))
-            K = K / p[i]
-            i += 1
-        for _ in range(struct.n_pole_pairs):
-            poles += pair(p[i], p[i + 1])
-            K = K * p[i] ** 2
-            i += 2
-        for _ in range(struct.n_pole_real):
-            poles.append(complex(-p[i]))
-            K = K * p[i]
-            i += 1
-        if struct.n_origin > 0:
-            zeros += [0j] * struct.n_origin
-        elif struct.n_origin < 0:
-            poles += [0j] * (-struct.n_origin)
-        return np.array(poles, dtype=np.complex128), np.array(zeros, dtype=np.complex128), float(K)
-    num, den = _modal_polys(struct, p)
-    nz = np.trim_zeros(num, "f")
-    return np.roots(den).astype(np.complex128), np.roots(nz).astype(np.complex128), float(nz[0] / den[0]) if nz.size else 0.0
-
-
-def _modal_polys(struct: _Structure, p: np.ndarray):
-    """num, den polynomial coefficients (highest power first) of the modal form."""
-    terms, i = [], 0
-    for _ in range(struct.n_pole_pairs):
-        g, wn, z = p[i:i + 3]
-        terms.append((np.array([g * wn * wn]), np.array([1.0, 2 * z * wn, wn * wn])))
-        i += 3
-    for _ in range(struct.n_pole_real):
-        g, a = p[i:i + 2]
-        terms.append((np.array([g * a]), np.array([1.0, a])))
-        i += 2
-    den = np.array([1.0])
-    for _, d in terms:
-        den = np.polymul(den, d)
-    num = np.zeros(1)
-    for k, (n, _) in enumerate(terms):
-        other = np.array([1.0])
-        for j, (_, d) in enumerate(terms):
-            if j != k:
-                other = np.polymul(other, d)
-        num = np.polyadd(num, np.polymul(n, other))
-    if struct.feedthrough:
-        num = np.polyadd(num, p[i] * den)
-    return num, den
-
-
-# ---------------------------------------------------------------------- start values
-def _structure_from_tf(tf_fit, form: str, fit_delay: bool):
-    """(structure, natural parameters [P], delay_s) from a SISO TransferFunctionFit."""
-    poles = np.asarray(tf_fit.poles, dtype=np.complex128)
-    zeros = np.asarray(tf_fit.zeros, dtype=np.complex128)
-    K = float(tf_fit.num[0] / tf_fit.den[0])
-    delay = float(tf_fit.delay_s)
-    scale = max(1.0, float(np.max(np.abs(np.concatenate([poles, zeros])))) if poles.size + zeros.size else 1.0)
-    tol = 1e-9 * scale
-
-    def split(roots):
-        origin = int(np.sum(np.abs(roots) <= tol))
-        rest = roots[np.abs(roots) > tol]
-        upper = rest[rest.imag > 1e-9 * np.abs(rest)]
-        real = rest[np.abs(rest.imag) <= 1e-9 * np.abs(rest)].real
-        return origin, upper, np.sort(real)
-
-    zo, zu, zr = split(zeros)
-    po, pu, pr = split(poles)
-    if np.any(pu.real >= 0) or np.any(pr >= 0):
-        raise ParameterError("start: the two-step model has an unstable pole; the direct fit needs a stable start")
-    if form == "tf":
-        struct = _Structure("tf", len(zu), len(zr), len(pu), len(pr), zo - po, False, fit_delay)
-        # H = K prod(s - z)/prod(s - p): normalised factor (s - r) = -r (1 - s/r), pair |r|^2 (...).
-        gain = K
-        vals = [0.0]
-        for r in zu:
-            vals += [abs(r), -r.real / abs(r)]
-            gain *= abs(r) ** 2
-        for r in zr:
-            vals.append(-r)
-            gain *= -r
-        for r in pu:
-            vals += [abs(r), -r.real / abs(r)]
-            gain /= abs(r) ** 2
-        for r in pr:
-            vals.append(-r)
-            gain /= -r
-        vals[0] = gain
-    else:
-        if po:
-            raise ParameterError("start: the modal form cannot hold a pole at the origin; use form='tf'")
-        allp = np.concatenate([pu, pr.astype(np.complex128)])
-        if allp.size and np.min(np.abs(allp[:, None] - allp[None, :]) + np.eye(allp.size) * 1e300) < 1e-9 * scale:
-            raise ParameterError("start: the two-step model has repeated poles; the modal form needs distinct poles, use form='tf'")
-        n_p, n_z = poles.size, zeros.size
-        struct = _Structure("modal", 0, 0, len(pu), len(pr), 0, n_z == n_p, fit_delay)
-
-        def residue(pk):
-            others = poles[np.abs(poles - pk) > 0]
-            return K * np.prod(pk - zeros) / np.prod(pk - others)
-
-        vals = []
-        for r in pu:  # the pair's numerator b1 s + b0; the modal form keeps b0 (a real modal residue)
-            res = residue(r)
-            wn = abs(r)
-            vals += [-2 * (res * np.conj(r)).real / wn**2, wn, -r.real / wn]
-        for r in pr:
-            res = residue(complex(r)).real
-            vals += [res / -r, -r]
-        if struct.feedthrough:
-            vals.append(K)
-    if fit_delay:
-        vals.append(delay)
-    return struct, np.asarray(vals, dtype=np.float64), delay
 
 
 # ------------------------------------------------------------------------ result
@@ -464,9 +261,8 @@ def _unit_axis(axis, like: torch.Tensor) -> torch.Tensor:
     return d
 
 
-def _validate(images, psf, window, omega, input_amplitude, start, form, axis, valid):
-    from torchblur.sysid.tf_fit import TransferFunctionFit
-
+def _validate(images, psf, window, omega, input_amplitude, start, form, axis, valid, flags, max_iter):
+    """The public entry's checks -> ``(images, window [F, E], omega [F], input amplitude [F], valid [F])``."""
     if not isinstance(images, torch.Tensor):
         raise InputTypeError(f"images: expected a tensor [F, E, H, W], got {type(images).__name__}")
     if not images.is_floating_point():
@@ -510,7 +306,339 @@ def _validate(images, psf, window, omega, input_amplitude, start, form, axis, va
             raise InputTypeError(f"valid: expected a bool tensor [F], got dtype {v.dtype}")
         if v.shape != (F,):
             raise ShapeError(f"valid: expected shape [F] = [{F}], got {tuple(v.shape)}")
+    for name, val in flags.items():
+        if not isinstance(val, bool):
+            raise InputTypeError(f"{name}: expected a bool, got {type(val).__name__}")
+    if isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 1:
+        raise ParameterError(f"max_iter: expected an integer >= 1, got {max_iter!r}")
     return images, window, omega, amp, v
+
+
+def _start_values(start, form: str, fit_delay: bool):
+    """``(structure, natural parameters p0 [P], delay_s)`` from a two-step model or a previous direct fit."""
+    if isinstance(start, DirectModelFit):
+        if start.form == form and start._struct.fit_delay == fit_delay:
+            return start._struct, np.array(start.params, dtype=np.float64), float(start.delay_s)
+        tf_like = TransferFunctionFit(num=start.num, den=start.den, delay_s=start.delay_s, n_poles=start.poles.size,
+                                      n_zeros=start.zeros.size, chi2=math.nan, dof=0, reduced_chi2=math.nan,
+                                      rms_relative_error=math.nan, poles=start.poles, zeros=start.zeros, dc_gain=math.nan,
+                                      weighting="uniform", delay_estimated=True, input_labels=("x",), output_labels=("x",))
+        return _structure_from_tf(tf_like, form, fit_delay)
+    return _structure_from_tf(start, form, fit_delay)
+
+
+def _pixel_weights(images, noise_std, mask) -> torch.Tensor:
+    """``1 / noise_std^2`` per pixel, 0 where ``mask`` is False, ``[F, E, H, W]``."""
+    F = images.shape[0]
+    weight = torch.ones_like(images)
+    if noise_std is not None:
+        s = check_positive(as_tensor(noise_std, "noise_std", like=images), "noise_std")
+        if s.dim() == 4:
+            if s.shape != images.shape:
+                raise ShapeError(f"noise_std: expected a number, [F] or [F, E, H, W] = {tuple(images.shape)}, got {tuple(s.shape)}")
+        elif s.dim() == 1 and s.shape == (F,):
+            s = s[:, None, None, None]
+        elif s.dim() != 0:
+            raise ShapeError(f"noise_std: expected a number, [F] or [F, E, H, W] = {tuple(images.shape)}, got {tuple(s.shape)}")
+        weight = (1 / s**2).expand(images.shape)
+    if mask is not None:
+        if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool:
+            raise InputTypeError("mask: expected a bool tensor [F, E, H, W] (True = use the pixel)")
+        if mask.shape != images.shape:
+            raise ShapeError(f"mask: expected shape [F, E, H, W] = {tuple(images.shape)}, got {tuple(mask.shape)}")
+        weight = weight * mask.to(images.dtype)
+    return weight
+
+
+@dataclasses.dataclass(frozen=True)
+class _Motion:
+    """The parametric model as the motion of each used point: internal parameters ``u [P]``
+    (float64; the log of the "log" parameters) -> ``(M [n], phi [n])``."""
+
+    struct: _Structure
+    is_log: torch.Tensor  # [P] bool
+    s: torch.Tensor  # [n] complex128, j omega
+    delay_s: float
+    input_amplitude: torch.Tensor  # [n]
+    dtype: torch.dtype
+
+    def natural(self, u: torch.Tensor) -> torch.Tensor:
+        """Natural parameters ``[P]`` from internal ones."""
+        return torch.where(self.is_log, torch.exp(u), u)
+
+    def __call__(self, u: torch.Tensor) -> torch.Tensor:
+        """``[2, n]``: ``M = A |H(j omega)|`` (px) and ``phi = angle H(j omega)`` (rad)."""
+        h = _response(self.struct, self.natural(u), self.s, self.delay_s)
+        return torch.stack([self.input_amplitude * h.abs().to(self.dtype), torch.angle(h).to(self.dtype)])
+
+
+def _point_images(M, phi, omega, direction, center, precision, t, w, height: int, width: int):
+    """Unit-scale images of the used points and their derivatives with respect to ``(M, phi)``:
+    the one forward model (:func:`~torchblur.render.splat.sine_blur_with_jacobian`), one sine
+    ``M sin(omega t + phi)`` along the unit ``direction [2]``.
+
+    Args:
+        M, phi, omega: ``[n]`` (px, rad, rad/s); center ``[n, 2]`` px; precision ``(A, B, C)`` each ``[n]``.
+        t, w: time nodes (s) and splat weights ``[n, E, S]`` (:func:`~torchblur.render.splat.window_nodes`).
+        height, width: frame size.
+
+    Returns:
+        ``(image [n, E, H, W], jac [n, E, 2, H, W])``.
+    """
+    col = (slice(None), None, None)  # [n] -> [n, 1, K = 1]
+    return sine_blur_with_jacobian(t, w, M[col], phi[col], omega[col], direction[None], center[:, None, :],
+                                   tuple(v[:, None] for v in precision), height, width)
+
+
+@dataclasses.dataclass
+class _Problem:
+    """The used points' data (cropped), everything their images need, and the time nodes.
+
+    ``data, wts [n, E, H, W]``; ``omega [n]``; ``window [n, E]``; ``psf`` (batch ``[n]``, its
+    centre moved with the crop); ``direction [2]``; ``out_cost``, ``out_n``: the cost and the
+    count of the used pixels outside the crop; ``m_limit``: the motion (px) the crop allows;
+    ``tau, wq``: the quadrature rule on [0, 1] (renewed when the motion grows past ``m_bound``).
+    """
+
+    data: torch.Tensor
+    wts: torch.Tensor
+    omega: torch.Tensor
+    window: ExposureWindow
+    psf: GaussianPSF
+    direction: torch.Tensor
+    settings: RenderSettings
+    fit_scale: bool
+    fit_background: bool
+    out_cost: torch.Tensor
+    out_n: int = 0
+    m_limit: Any = math.inf
+    m_bound: Any = None
+    tau: torch.Tensor | None = None
+    wq: torch.Tensor | None = None
+
+    @property
+    def q(self) -> int:
+        """Nuisance parameters per point."""
+        return int(self.fit_scale) + int(self.fit_background)
+
+    def set_nodes(self, m_bound: torch.Tensor) -> None:
+        """The quadrature rule for motions up to ``m_bound [n]`` px (the renderer's node count rule)."""
+        self.m_bound = m_bound
+        n, dtype, device = m_bound.shape[0], m_bound.dtype, m_bound.device
+        amp_xy = torch.zeros(n, 1, 2, dtype=dtype, device=device)
+        amp_xy[:, 0, 0] = m_bound
+        win = self.window
+        path = Sinusoid(amp_xy, torch.zeros_like(amp_xy), self.omega[:, None]).path_length(
+            ExposureWindow(torch.zeros_like(win.duration), win.duration))
+        S = choose_node_count(path, self.psf.sigma_min()[:, None], self.settings)
+        m = self.settings.nodes_per_panel if S % self.settings.nodes_per_panel == 0 else S
+        self.tau, self.wq = quadrature_nodes(S // m, m, dtype=dtype, device=device)
+
+    def render(self, M, phi):
+        """Unit-scale images ``[n, E, H, W]`` and d/d(M, phi) ``[n, E, 2, H, W]``."""
+        t, w = window_nodes(self.window.start, self.window.duration, self.tau, self.wq, self.psf.amplitude[:, None])
+        H, W = self.data.shape[-2:]
+        return _point_images(M, phi, self.omega, self.direction, self.psf.center, self.psf.precision(), t, w, H, W)
+
+    def nuisance(self, img, nuis):
+        """``(scale [n], background [n])`` from the nuisance parameters ``nuis [n, q]``."""
+        n = img.shape[0]
+        sc = nuis[:, 0] if self.fit_scale else img.new_ones(n)
+        bg = nuis[:, int(self.fit_scale)] if self.fit_background else img.new_zeros(n)
+        return sc, bg
+
+
+def _used_points(images, weight, window, omega, psf, use, direction, settings, fit_scale, fit_background) -> _Problem:
+    """The points ``use [F]`` selects, as a :class:`_Problem` (no crop, no nodes yet)."""
+    F = images.shape[0]
+    dtype = images.dtype
+    idx = torch.nonzero(use)[:, 0]
+    psf_b = GaussianPSF(psf.center.to(dtype).expand(F, 2)[idx], psf.cov.to(dtype).expand(F, 2, 2)[idx],
+                        psf.amplitude.to(dtype).expand(F)[idx])
+    return _Problem(data=images[idx], wts=weight[idx], omega=omega[idx], window=window[idx], psf=psf_b, direction=direction,
+                    settings=settings, fit_scale=fit_scale, fit_background=fit_background,
+                    out_cost=torch.zeros((), dtype=dtype, device=images.device))
+
+
+def _crop(prob: _Problem, M0: torch.Tensor) -> None:
+    """Crop ``prob`` to the region the model can reach (as the sinusoid fitter does): outside it
+    the model is below e^-24 of its peak; the constant cost of those pixels is kept in
+    ``out_cost``. Steps that would move the spot past the crop are refused (``m_limit``).
+    Nothing is cropped with a fitted background, or when the crop would keep 90% of the frame."""
+    if prob.fit_background:
+        return
+    H, W = prob.data.shape[-2:]
+    dtype, device = prob.data.dtype, prob.data.device
+    center = prob.psf.center
+    sd = torch.diagonal(prob.psf.cov, dim1=-2, dim2=-1).sqrt()
+    reach = (M0 * 1.5 + 1.0)[:, None] * prob.direction.abs()  # [n, 2] (x, y) px
+    lo = (center - reach - 7 * sd).amin(0)
+    hi = (center + reach + 7 * sd).amax(0)
+    cx0, cy0 = max(0, int(math.floor(float(lo[0])))), max(0, int(math.floor(float(lo[1]))))
+    cx1, cy1 = min(W, int(math.ceil(float(hi[0]))) + 1), min(H, int(math.ceil(float(hi[1]))) + 1)
+    if not (cx1 - cx0 >= 4 and cy1 - cy0 >= 4 and (cx1 - cx0) * (cy1 - cy0) < 0.9 * H * W):
+        return
+    inside = torch.zeros(H, W, dtype=torch.bool, device=device)
+    inside[cy0:cy1, cx0:cx1] = True
+    ow = prob.wts * ~inside
+    prob.out_cost = (ow * prob.data * prob.data).sum()
+    prob.out_n = int(((ow > 0)).sum())
+    prob.data, prob.wts = prob.data[..., cy0:cy1, cx0:cx1], prob.wts[..., cy0:cy1, cx0:cx1]
+    prob.psf = GaussianPSF(center - torch.tensor([cx0, cy0], dtype=dtype, device=device), prob.psf.cov, prob.psf.amplitude)
+    prob.m_limit = M0 * 1.5 + 1.0  # along the axis
+
+
+def _nuisance_start(prob: _Problem, motion: _Motion, u: torch.Tensor) -> torch.Tensor:
+    """The linear least-squares scale (and background) ``[n, q]`` for the model at ``u``."""
+    n, q = prob.data.shape[0], prob.q
+    dtype, device = prob.data.dtype, prob.data.device
+    if not q:
+        return torch.zeros(n, 0, dtype=dtype, device=device)
+    with torch.no_grad():
+        mp = motion(u)
+        img0, _ = prob.render(mp[0], mp[1])
+        cols = ([img0] if prob.fit_scale else []) + ([torch.ones_like(img0)] if prob.fit_background else [])
+        X = torch.stack(cols, -1).reshape(n, -1, q)
+        XW = X * prob.wts.reshape(n, -1, 1)
+        return torch.linalg.solve(XW.transpose(1, 2) @ X + 1e-30 * torch.eye(q, dtype=dtype, device=device),
+                                  (XW * prob.data.reshape(n, -1, 1)).sum(1)[..., None])[..., 0]
+
+
+def _evaluate(prob: _Problem, motion: _Motion, u, nuis, need_jac: bool = True):
+    """Cost at ``(u, nuis)``, and the blocks of the normal equations ``(G [n, 2+q, 2+q],
+    g [n, 2+q], D [n, 2, P], M [n])``: per point the local Gauss-Newton matrix and gradient in
+    ``(M, phi, scale, background)``, and ``D = d(M, phi) / du`` by autograd."""
+    n, q = prob.data.shape[0], prob.q
+    with torch.no_grad():
+        M, phi = motion(u)
+    img, dimg = prob.render(M, phi)
+    sc, bg = prob.nuisance(img, nuis)
+    model = img * sc[:, None, None, None] + bg[:, None, None, None]
+    r = prob.data - model
+    wts = prob.wts
+    cost = (wts * r * r).sum()
+    if not need_jac:
+        return cost, None
+    # Local Jacobian columns per point: M, phi, (scale), (background)  -> [n, R, 2 + q]
+    cols = [dimg[:, :, 0] * sc[:, None, None, None], dimg[:, :, 1] * sc[:, None, None, None]]
+    if prob.fit_scale:
+        cols.append(img)
+    if prob.fit_background:
+        cols.append(torch.ones_like(img))
+    J = torch.stack(cols, -1).reshape(n, -1, 2 + q)
+    wr = (wts * r).reshape(n, -1)
+    JW = J * wts.reshape(n, -1, 1)
+    G = JW.transpose(1, 2) @ J  # [n, 2+q, 2+q]
+    g = (J * wr[..., None]).sum(1)  # [n, 2+q]
+    D = torch.autograd.functional.jacobian(motion, u.detach()).permute(1, 0, 2).to(prob.data.dtype)  # [n, 2, P]
+    return cost, (G, g, D, M)
+
+
+def _solve(blocks, lam: float):
+    """The damped Gauss-Newton step ``(du [P], dnu [n, q], S [P, P])`` with the nuisance blocks
+    eliminated (Schur complement ``S``, the model parameters' normal matrix)."""
+    G, g, D, _ = blocks
+    n, q = G.shape[0], G.shape[-1] - 2
+    Gmm, Gmn, Gnn = G[:, :2, :2], G[:, :2, 2:], G[:, 2:, 2:]
+    A_tt = torch.einsum("kai,kab,kbj->ij", D, Gmm, D)
+    A_tn = torch.einsum("kai,kab->kib", D, Gmn)  # [n, P, q]
+    g_t = torch.einsum("kai,ka->i", D, g[:, :2])
+    g_n = g[:, 2:]
+    P = A_tt.shape[0]
+    dt = torch.diagonal(A_tt).clamp_min(1e-300)
+    S = A_tt + lam * torch.diag(dt) + 1e-14 * torch.diag(dt)
+    rhs = g_t
+    if q:
+        dn = torch.diagonal(Gnn, dim1=1, dim2=2).clamp_min(1e-300)
+        Bk = Gnn + (lam + 1e-14) * torch.diag_embed(dn)
+        Binv_At = torch.linalg.solve(Bk, A_tn.transpose(1, 2))  # [n, q, P]
+        Binv_g = torch.linalg.solve(Bk, g_n[..., None])[..., 0]  # [n, q]
+        S = S - torch.einsum("kiq,kqj->ij", A_tn, Binv_At)
+        rhs = rhs - torch.einsum("kiq,kq->i", A_tn, Binv_g)
+    du = torch.linalg.solve(S, rhs) if P else rhs
+    dnu = (Binv_g - torch.einsum("kqi,i->kq", Binv_At, du)) if q else torch.zeros(n, 0, dtype=G.dtype, device=G.device)
+    return du, dnu, S
+
+
+def _levenberg_marquardt(prob: _Problem, motion: _Motion, u, nuis, *, max_iter: int, tol: float, noise_known: bool):
+    """Levenberg-Marquardt on ``u`` with the nuisance blocks eliminated at every step.
+
+    A step that makes the motion non-finite or moves it past the crop (``m_limit``) is
+    refused (a shorter one is tried); one past the node bound renews the nodes first (the
+    cost is re-evaluated at the current point for a fair comparison).
+
+    Returns:
+        ``(u, nuis, cost, blocks, converged, n_iter)``.
+    """
+    cost, blocks = _evaluate(prob, motion, u, nuis)
+    lam = 1e-3
+    converged = False
+    it = 0
+    floor = (10 * torch.finfo(prob.data.dtype).eps) ** 2 * float((prob.wts * prob.data * prob.data).sum())
+    # With the noise known the cost is a chi2: a decrease far below 1 per pixel means nothing.
+    abs_tol = tol * float((prob.wts > 0).sum()) if noise_known else 0.0
+    for it in range(1, max_iter + 1):
+        du, dnu, _ = _solve(blocks, lam)
+        u_t = u + du.to(torch.float64)
+        nu_t = nuis + dnu
+        with torch.no_grad():
+            M_t = motion(u_t)[0]
+        if not bool(torch.isfinite(M_t).all()) or not bool(torch.isfinite(u_t).all()) or bool((M_t > prob.m_limit).any()):
+            lam *= 4
+            if lam > 1e12:
+                break
+            continue
+        if bool((M_t > prob.m_bound).any()):
+            prob.set_nodes(torch.maximum(M_t * 1.3 + 0.5, M_t))
+            cost, blocks = _evaluate(prob, motion, u, nuis)  # same point, new nodes: a fair comparison
+        c_t, b_t = _evaluate(prob, motion, u_t, nu_t)
+        if bool(torch.isfinite(c_t)) and float(c_t) <= float(cost):
+            drop = float(cost) - float(c_t)
+            rel = drop / max(float(cost), 1e-300)
+            u, nuis, cost, blocks = u_t, nu_t, c_t, b_t
+            lam = max(lam / 3, 1e-12)
+            small = bool((du.abs() <= 1e-12 * (u.abs() + 1e-8)).all())
+            if rel < tol or drop < abs_tol or small or float(cost) <= floor:
+                converged = True
+                break
+        else:
+            lam *= 4
+            if lam > 1e12:  # no step, however short, lowers the cost: a minimum to working precision
+                converged = True
+                break
+    return u, nuis, cost, blocks, converged, it
+
+
+def _covariance(prob: _Problem, motion: _Motion, u, blocks, cost, noise_estimated: bool):
+    """Fisher information of ``u`` (nuisance profiled out) and the covariance in natural units
+    (delta method on the log parameters) -> ``(params [P], cov [P, P], total cost, dof, reduced chi2)``;
+    with the noise estimated the covariance is scaled by the reduced chi2."""
+    _, _, S = _solve(blocks, 0.0)
+    n = prob.data.shape[0]
+    n_pix = int((prob.wts > 0).sum()) + prob.out_n
+    P = u.numel()
+    total_cost = float(cost) + float(prob.out_cost)
+    dof = n_pix - P - prob.q * n
+    red = total_cost / max(dof, 1)
+    cov_u = torch.linalg.pinv(S.to(torch.float64), hermitian=True)
+    if noise_estimated:
+        cov_u = cov_u * red
+    p_hat = motion.natural(u)
+    jac_nat = torch.where(motion.is_log, p_hat, torch.ones_like(p_hat))
+    cov = (jac_nat[:, None] * cov_u * jac_nat[None, :]).detach().cpu().numpy()
+    return p_hat.detach().cpu().numpy(), cov, total_cost, dof, red
+
+
+def _per_point(nuis, use, fit_scale: bool, fit_background: bool):
+    """The per-point scale and background ``[F]`` (NaN where excluded; background None when not fitted)."""
+    F = use.shape[0]
+    idx_np = torch.nonzero(use)[:, 0].cpu().numpy()
+    scale_full = np.full(F, np.nan)
+    bg_full = np.full(F, np.nan) if fit_background else None
+    scale_full[idx_np] = nuis[:, 0].detach().cpu().numpy() if fit_scale else 1.0
+    if fit_background:
+        bg_full[idx_np] = nuis[:, int(fit_scale)].detach().cpu().numpy()
+    return scale_full, bg_full
 
 
 def fit_direct(
@@ -577,390 +705,37 @@ def fit_direct(
                   fit_background=fit_background, max_iter=max_iter, tol=tol, render_settings=render_settings)
         fits = [fit_direct(images, psf, window, omega, input_amplitude, s, **kw) for s in start]
         return min(fits, key=lambda f: f.cost if math.isfinite(f.cost) else math.inf)
-    images, window, omega, amp, valid = _validate(images, psf, window, omega, input_amplitude, start, form, axis, valid)
-    for name, val in (("fit_delay", fit_delay), ("fit_scale", fit_scale), ("fit_background", fit_background)):
-        if not isinstance(val, bool):
-            raise InputTypeError(f"{name}: expected a bool, got {type(val).__name__}")
-    if isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 1:
-        raise ParameterError(f"max_iter: expected an integer >= 1, got {max_iter!r}")
-    dtype, device = images.dtype, images.device
-    F, E, H, W = images.shape
-    ud = _unit_axis(axis, images)  # [2] the motion's unit image direction
-
-    # Start values.
-    if isinstance(start, DirectModelFit):
-        if start.form == form and start._struct.fit_delay == fit_delay:
-            struct, p0, delay = start._struct, np.array(start.params, dtype=np.float64), float(start.delay_s)
-        else:
-            from torchblur.sysid.tf_fit import TransferFunctionFit
-
-            tf_like = TransferFunctionFit(num=start.num, den=start.den, delay_s=start.delay_s, n_poles=start.poles.size,
-                                          n_zeros=start.zeros.size, chi2=math.nan, dof=0, reduced_chi2=math.nan,
-                                          rms_relative_error=math.nan, poles=start.poles, zeros=start.zeros, dc_gain=math.nan,
-                                          weighting="uniform", delay_estimated=True, input_labels=("x",), output_labels=("x",))
-            struct, p0, delay = _structure_from_tf(tf_like, form, fit_delay)
-    else:
-        struct, p0, delay = _structure_from_tf(start, form, fit_delay)
+    flags = {"fit_delay": fit_delay, "fit_scale": fit_scale, "fit_background": fit_background}
+    images, window, omega, amp, use = _validate(images, psf, window, omega, input_amplitude, start, form, axis, valid, flags,
+                                                max_iter)
+    struct, p0, delay = _start_values(start, form, fit_delay)
     names, transforms = zip(*struct.names_transforms())
-    is_log = torch.tensor([t == "log" for t in transforms], device=device)
+    is_log = torch.tensor([t == "log" for t in transforms], device=images.device)
     if np.any(p0[is_log.cpu().numpy()] <= 0) or not np.all(np.isfinite(p0)):
         raise ParameterError(f"start: the start gives invalid parameters {dict(zip(names, p0.tolist()))}")
-
-    # Weights.
-    weight = torch.ones_like(images)
-    if noise_std is not None:
-        s = check_positive(as_tensor(noise_std, "noise_std", like=images), "noise_std")
-        if s.dim() == 4:
-            if s.shape != images.shape:
-                raise ShapeError(f"noise_std: expected a number, [F] or [F, E, H, W] = {tuple(images.shape)}, got {tuple(s.shape)}")
-        elif s.dim() == 1 and s.shape == (F,):
-            s = s[:, None, None, None]
-        elif s.dim() != 0:
-            raise ShapeError(f"noise_std: expected a number, [F] or [F, E, H, W] = {tuple(images.shape)}, got {tuple(s.shape)}")
-        weight = (1 / s**2).expand(images.shape)
-    if mask is not None:
-        if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool:
-            raise InputTypeError("mask: expected a bool tensor [F, E, H, W] (True = use the pixel)")
-        if mask.shape != images.shape:
-            raise ShapeError(f"mask: expected shape [F, E, H, W] = {tuple(images.shape)}, got {tuple(mask.shape)}")
-        weight = weight * mask.to(dtype)
-
-    use = valid.clone()
+    weight = _pixel_weights(images, noise_std, mask)
     n_excluded = int((~use).sum())
     if not bool(use.any()):
         raise ParameterError("valid: every point is excluded; nothing to fit")
-    idx = torch.nonzero(use)[:, 0]
-    n = idx.numel()
-    data, wts = images[idx], weight[idx]
-    om, A_in = omega[idx], amp[idx]
-    win = window[idx]
-    psf_b = GaussianPSF(psf.center.to(dtype).expand(F, 2)[idx], psf.cov.to(dtype).expand(F, 2, 2)[idx],
-                        psf.amplitude.to(dtype).expand(F)[idx])
-    center = psf_b.center
-    Ap, Bp, Cp = psf_b.precision()
-    s_c = 1j * om.to(torch.float64)  # complex128: H needs the precision whatever the images
 
-    def motion(u: torch.Tensor):
-        """(M [n], phi [n]) from internal parameters u [P]."""
-        p = torch.where(is_log, torch.exp(u), u)
-        h = _response(struct, p, s_c, delay)
-        return torch.stack([A_in * h.abs().to(dtype), torch.angle(h).to(dtype)])
-
-    def natural(u):
-        return torch.where(is_log, torch.exp(u), u)
-
-    p0_t = torch.as_tensor(p0, dtype=torch.float64, device=device)
+    prob = _used_points(images, weight, window, omega, psf, use, _unit_axis(axis, images),
+                        render_settings or RenderSettings(panel_path_sigmas=3.5), fit_scale, fit_background)
+    # complex128: H needs the precision whatever the images
+    motion = _Motion(struct, is_log, 1j * prob.omega.to(torch.float64), delay, amp[use], images.dtype)
+    p0_t = torch.as_tensor(p0, dtype=torch.float64, device=images.device)
     u = torch.where(is_log, torch.log(p0_t), p0_t)
-
-    # Crop to the region the model can reach (as the sinusoid fitter does): outside it the
-    # model is below e^-24 of its peak; the constant cost of those pixels is added back.
-    # Steps that would move the spot past the crop are refused (a shorter step is tried).
     with torch.no_grad():
         M0 = motion(u)[0]
-    sd = torch.diagonal(psf_b.cov, dim1=-2, dim2=-1).sqrt()
-    reach = (M0 * 1.5 + 1.0)[:, None] * ud.abs()  # [n, 2] (x, y) px
-    out_cost = torch.zeros((), dtype=dtype, device=device)
-    out_n = 0
-    m_limit = math.inf
-    if not fit_background:
-        lo = (center - reach - 7 * sd).amin(0)
-        hi = (center + reach + 7 * sd).amax(0)
-        cx0, cy0 = max(0, int(math.floor(float(lo[0])))), max(0, int(math.floor(float(lo[1]))))
-        cx1, cy1 = min(W, int(math.ceil(float(hi[0]))) + 1), min(H, int(math.ceil(float(hi[1]))) + 1)
-        if cx1 - cx0 >= 4 and cy1 - cy0 >= 4 and (cx1 - cx0) * (cy1 - cy0) < 0.9 * H * W:
-            inside = torch.zeros(H, W, dtype=torch.bool, device=device)
-            inside[cy0:cy1, cx0:cx1] = True
-            ow = wts * ~inside
-            out_cost = (ow * data * data).sum()
-            out_n = int(((ow > 0)).sum())
-            data, wts = data[..., cy0:cy1, cx0:cx1], wts[..., cy0:cy1, cx0:cx1]
-            H, W = cy1 - cy0, cx1 - cx0
-            center = center - torch.tensor([cx0, cy0], dtype=dtype, device=device)
-            m_limit = M0 * 1.5 + 1.0  # along the axis
-
-    # Time nodes, fixed for a motion bound (recomputed if the motion grows past it).
-    settings = render_settings or RenderSettings(panel_path_sigmas=3.5)
-    smin = psf_b.sigma_min()
-
-    def nodes_for(m_bound):
-        amp_xy = torch.zeros(n, 1, 2, dtype=dtype, device=device)
-        amp_xy[:, 0, 0] = m_bound
-        path = Sinusoid(amp_xy, torch.zeros_like(amp_xy), om[:, None]).path_length(ExposureWindow(torch.zeros_like(win.duration),
-                                                                                               win.duration))
-        S = choose_node_count(path, smin[:, None], settings)
-        m = settings.nodes_per_panel if S % settings.nodes_per_panel == 0 else S
-        return S // m, m
-
-    m_bound = M0 * 1.3 + 0.5
-    tau_q, w_q = quadrature_nodes(*nodes_for(m_bound), dtype=dtype, device=device)
-
-    from torchblur.render.splat import gaussian_splat_with_jacobian
-
-    def render(M, phi):
-        """Unit-scale images [n, E, H, W] and d/d(M, phi) [n, E, 2, H, W]."""
-        t = win.start[..., None] + win.duration[..., None] * tau_q  # [n, E, S]
-        wq = win.duration[..., None] * w_q * psf_b.amplitude[:, None, None]
-        arg = om[:, None, None] * t + phi[:, None, None]
-        sn, cs = torch.sin(arg), torch.cos(arg)
-        disp = M[:, None, None] * sn
-        d = torch.stack([sn, M[:, None, None] * cs], -1)  # [n, E, S, 2]
-        cx = center[:, 0, None, None].expand(t.shape)
-        cy = center[:, 1, None, None].expand(t.shape)
-        px, py, dpx, dpy = cx + ud[0] * disp, cy + ud[1] * disp, ud[0] * d, ud[1] * d
-        return gaussian_splat_with_jacobian(px, py, dpx, dpy, wq, Ap[:, None], Bp[:, None], Cp[:, None], H, W)
-
-    q = int(fit_scale) + int(fit_background)  # nuisance parameters per point
-
-    def evaluate(u, nuis, need_jac=True):
-        """Cost, and the blocks of the normal equations."""
-        with torch.no_grad():
-            M, phi = motion(u)
-        img, dimg = render(M, phi)
-        sc = nuis[:, 0] if fit_scale else torch.ones(n, dtype=dtype, device=device)
-        bg = nuis[:, int(fit_scale)] if fit_background else torch.zeros(n, dtype=dtype, device=device)
-        model = img * sc[:, None, None, None] + bg[:, None, None, None]
-        r = data - model
-        cost = (wts * r * r).sum()
-        if not need_jac:
-            return cost, None
-        # Local Jacobian columns per point: M, phi, (scale), (background)  -> [n, R, 2 + q]
-        cols = [dimg[:, :, 0] * sc[:, None, None, None], dimg[:, :, 1] * sc[:, None, None, None]]
-        if fit_scale:
-            cols.append(img)
-        if fit_background:
-            cols.append(torch.ones_like(img))
-        J = torch.stack(cols, -1).reshape(n, -1, 2 + q)
-        wr = (wts * r).reshape(n, -1)
-        JW = J * wts.reshape(n, -1, 1)
-        G = JW.transpose(1, 2) @ J  # [n, 2+q, 2+q]
-        g = (J * wr[..., None]).sum(1)  # [n, 2+q]
-        # d(M, phi)/du by autograd: [n, 2, P]
-        D = torch.autograd.functional.jacobian(motion, u.detach()).permute(1, 0, 2).to(dtype)
-        return cost, (G, g, D, M)
-
-    def solve(blocks, lam):
-        G, g, D, _ = blocks
-        Gmm, Gmn, Gnn = G[:, :2, :2], G[:, :2, 2:], G[:, 2:, 2:]
-        A_tt = torch.einsum("kai,kab,kbj->ij", D, Gmm, D)
-        A_tn = torch.einsum("kai,kab->kib", D, Gmn)  # [n, P, q]
-        g_t = torch.einsum("kai,ka->i", D, g[:, :2])
-        g_n = g[:, 2:]
-        P = A_tt.shape[0]
-        dt = torch.diagonal(A_tt).clamp_min(1e-300)
-        S = A_tt + lam * torch.diag(dt) + 1e-14 * torch.diag(dt)
-        rhs = g_t
-        if q:
-            dn = torch.diagonal(Gnn, dim1=1, dim2=2).clamp_min(1e-300)
-            Bk = Gnn + (lam + 1e-14) * torch.diag_embed(dn)
-            Binv_At = torch.linalg.solve(Bk, A_tn.transpose(1, 2))  # [n, q, P]
-            Binv_g = torch.linalg.solve(Bk, g_n[..., None])[..., 0]  # [n, q]
-            S = S - torch.einsum("kiq,kqj->ij", A_tn, Binv_At)
-            rhs = rhs - torch.einsum("kiq,kq->i", A_tn, Binv_g)
-        du = torch.linalg.solve(S, rhs) if P else rhs
-        dnu = (Binv_g - torch.einsum("kqi,i->kq", Binv_At, du)) if q else torch.zeros(n, 0, dtype=dtype, device=device)
-        return du, dnu, S
-
-    # Nuisance start: the linear least-squares scale (and background) for the start model.
-    with torch.no_grad():
-        mp = motion(u)
-        img0, _ = render(mp[0], mp[1])
-        cols = ([img0] if fit_scale else []) + ([torch.ones_like(img0)] if fit_background else [])
-        if q:
-            X = torch.stack(cols, -1).reshape(n, -1, q)
-            XW = X * wts.reshape(n, -1, 1)
-            nuis = torch.linalg.solve(XW.transpose(1, 2) @ X + 1e-30 * torch.eye(q, dtype=dtype, device=device),
-                                      (XW * data.reshape(n, -1, 1)).sum(1)[..., None])[..., 0]
-        else:
-            nuis = torch.zeros(n, 0, dtype=dtype, device=device)
-
-    cost, blocks = evaluate(u, nuis)
-    lam = 1e-3
-    converged = False
-    it = 0
-    floor = (10 * torch.finfo(dtype).eps) ** 2 * float((wts * data * data).sum())
-    # With the noise known the cost is a chi2: a decrease far below 1 per pixel means nothing.
-    abs_tol = tol * float((wts > 0).sum()) if noise_std is not None else 0.0
-    for it in range(1, max_iter + 1):
-        du, dnu, _ = solve(blocks, lam)
-        u_t = u + du.to(torch.float64)
-        nu_t = nuis + dnu
-        with torch.no_grad():
-            M_t = motion(u_t)[0]
-        if not bool(torch.isfinite(M_t).all()) or not bool(torch.isfinite(u_t).all()) or bool((M_t > m_limit).any()):
-            lam *= 4
-            if lam > 1e12:
-                break
-            continue
-        if bool((M_t > m_bound).any()):
-            m_bound = M_t * 1.3 + 0.5
-            tau_q, w_q = quadrature_nodes(*nodes_for(torch.maximum(m_bound, M_t)), dtype=dtype, device=device)
-            cost, blocks = evaluate(u, nuis)  # same point, new nodes: a fair comparison
-        c_t, b_t = evaluate(u_t, nu_t)
-        if bool(torch.isfinite(c_t)) and float(c_t) <= float(cost):
-            drop = float(cost) - float(c_t)
-            rel = drop / max(float(cost), 1e-300)
-            u, nuis, cost, blocks = u_t, nu_t, c_t, b_t
-            lam = max(lam / 3, 1e-12)
-            small = bool((du.abs() <= 1e-12 * (u.abs() + 1e-8)).all())
-            if rel < tol or drop < abs_tol or small or float(cost) <= floor:
-                converged = True
-                break
-        else:
-            lam *= 4
-            if lam > 1e12:  # no step, however short, lowers the cost: a minimum to working precision
-                converged = True
-                break
-
-    # Fisher information of u (nuisance profiled out) and the covariance in natural units.
-    _, _, S = solve(blocks, 0.0)
-    n_pix = int((wts > 0).sum()) + out_n
-    P = u.numel()
-    total_cost = float(cost) + float(out_cost)
-    dof = n_pix - P - q * n
-    red = total_cost / max(dof, 1)
-    cov_u = torch.linalg.pinv(S.to(torch.float64), hermitian=True)
-    if noise_std is None:
-        cov_u = cov_u * red
-    p_hat = natural(u)
-    jac_nat = torch.where(is_log, p_hat, torch.ones_like(p_hat))
-    cov = (jac_nat[:, None] * cov_u * jac_nat[None, :]).detach().cpu().numpy()
-    params = p_hat.detach().cpu().numpy()
-    scale_full = np.full(F, np.nan)
-    bg_full = np.full(F, np.nan) if fit_background else None
-    idx_np = idx.cpu().numpy()
-    if fit_scale:
-        scale_full[idx_np] = nuis[:, 0].detach().cpu().numpy()
-    else:
-        scale_full[idx_np] = 1.0
-    if fit_background:
-        bg_full[idx_np] = nuis[:, int(fit_scale)].detach().cpu().numpy()
+    _crop(prob, M0)
+    prob.set_nodes(M0 * 1.3 + 0.5)  # time nodes fixed for a motion bound (renewed if the motion grows past it)
+    nuis = _nuisance_start(prob, motion, u)
+    u, nuis, cost, blocks, converged, it = _levenberg_marquardt(prob, motion, u, nuis, max_iter=max_iter, tol=tol,
+                                                               noise_known=noise_std is not None)
+    params, cov, total_cost, dof, red = _covariance(prob, motion, u, blocks, cost, noise_std is None)
+    scale_full, bg_full = _per_point(nuis, use, fit_scale, fit_background)
     delay_hat = float(params[list(names).index("delay_s")]) if struct.fit_delay else float(delay)
     return DirectModelFit(
         form=struct.form, param_names=tuple(names), params=params, covariance=cov, std=np.sqrt(np.clip(np.diag(cov), 0, None)),
         start_params=np.asarray(p0), delay_s=delay_hat, cost=total_cost, dof=int(dof), reduced_chi2=float(red),
         noise_estimated=noise_std is None, converged=bool(converged), n_iter=int(it), used=use.cpu().numpy(), n_excluded=n_excluded,
         scale=scale_full, background=bg_full, _struct=struct)
-
-
-# ------------------------------------------------------------- single-exposure start
-class AliasResolution(NamedTuple):
-    """Result of :func:`resolve_alias_with_model`."""
-
-    frf: Any
-    model: Any
-    flipped: np.ndarray
-    candidates: list
-
-
-def resolve_alias_with_model(frf, alias_phase, *, n_poles: int | None = None, n_zeros: int | None = None,
-                             delay_s: float | None = None, max_order: int = 8, max_rounds: int = 20,
-                             n_candidates: int = 4) -> AliasResolution:
-    """Pick each point's phase branch (measured or alias) with a model: a single-exposure start.
-
-    With one exposure window per point (Proposition 3) every phase has an alias that renders
-    the same image, so a per-point fit picks its branch by chance under noise. A model over
-    all points tells them apart. From each of three initial choices (as measured; continuity
-    from the lowest frequency, each point taking the branch nearest the previous point's
-    phase; all aliases) the model is fitted, every point then takes the branch nearer the
-    model (in units of its std), and so on until no point changes; then single points and
-    pairs of neighbours of the best choice are flipped and the descent repeated while that
-    lowers the chi2. The choice with the smallest chi2 wins.
-
-    Args:
-        frf: SISO :class:`~torchblur.sysid.frequency_response.FrequencyResponse` of the per-point fits
-            (its covariance weights the fits).
-        alias_phase: [F] the other branch of each point (``SinusoidFit.alias_phase``), rad.
-        n_poles, n_zeros, delay_s, max_order: passed to
-            :func:`~torchblur.sysid.tf_fit.fit_transfer_function` (fixed orders are much faster).
-        max_rounds: rounds of re-assignment at most per initial choice.
-        n_candidates: how many of the best branch choices' models to return as ``candidates``.
-
-    Returns:
-        :class:`AliasResolution` ``(frf, model, flipped, candidates)``: the response with the
-        chosen branches (an alias point's magnitude-phase correlation changes sign: the alias
-        moves opposite to the phase), the TransferFunctionFit on it, bool [F] where the alias
-        was taken, and the models of the best branch choices (lowest chi2 first; pass them
-        all as ``start`` to :func:`fit_direct`, which keeps the one that fits the images best).
-    """
-    from torchblur.sysid.frequency_response import FrequencyResponse
-    from torchblur.sysid.tf_fit import fit_transfer_function
-
-    if not isinstance(frf, FrequencyResponse) or not frf.is_siso:
-        raise InputTypeError(f"frf: expected a SISO FrequencyResponse, got {type(frf).__name__}")
-    alias = np.asarray(alias_phase.detach().cpu().numpy() if isinstance(alias_phase, torch.Tensor) else alias_phase, dtype=np.float64)
-    F = frf.omega.size
-    if alias.shape != (F,):
-        raise ShapeError(f"alias_phase: expected shape [F] = [{F}], got {alias.shape}")
-    h = frf.response[0, 0]
-    ok = np.isfinite(h) & np.isfinite(alias)
-    mag = np.abs(h)
-    branches = np.stack([h, mag * np.exp(1j * alias)])  # [2, F]
-    cov = np.array(frf.cov[0, 0])
-    cov_alias = cov.copy()
-    cov_alias[:, 0, 1] *= -1
-    cov_alias[:, 1, 0] *= -1
-
-    def frf_of(choice):
-        resp = np.where(choice, branches[1], branches[0])
-        c = np.where(choice[:, None, None], cov_alias, cov)
-        return FrequencyResponse(frf.omega, resp, cov=c, input_labels=frf.input_labels, output_labels=frf.output_labels,
-                                 meta=dict(frf.meta))
-
-    # Initial choices.
-    inits = [np.zeros(F, dtype=bool), np.ones(F, dtype=bool) & ok]
-    cont = np.zeros(F, dtype=bool)
-    prev = None
-    for k in range(F):
-        if not ok[k]:
-            continue
-        ph = np.angle(branches[:, k])
-        if prev is not None:
-            d = np.abs(np.angle(np.exp(1j * (ph - prev))))
-            cont[k] = bool(d[1] < d[0])
-        prev = ph[int(cont[k])]
-    inits.insert(1, cont)
-    sig = np.sqrt(np.nan_to_num(cov[:, 0, 0]) + mag**2 * np.nan_to_num(cov[:, 1, 1]))
-    sig = np.where(sig > 0, sig, np.maximum(mag, 1e-300))
-    tried = []
-    seen = set()
-
-    def descend(choice):
-        """Fit, re-assign every point to the nearer branch, repeat until nothing changes."""
-        for _ in range(max_rounds):
-            key = choice.tobytes()
-            if key in seen:
-                return
-            seen.add(key)
-            try:
-                model = fit_transfer_function(frf_of(choice), n_poles=n_poles, n_zeros=n_zeros, delay_s=delay_s,
-                                              max_order=max_order)
-            except (ValueError, np.linalg.LinAlgError):
-                return
-            tried.append((model.chi2, choice.copy(), model))
-            pred = model.frequency_response(frf.omega)
-            dist = np.abs(branches - pred[None]) / sig[None]
-            new = (dist[1] < dist[0]) & ok
-            if np.array_equal(new, choice):
-                return
-            choice = new
-
-    for choice in inits:
-        descend(choice)
-    if not tried:
-        raise ParameterError("frf: no model could be fitted to any branch choice")
-    # Local search: flip one point, or two neighbours, of the best choice, and descend again,
-    # until no such move finds a smaller chi2 (a wrong branch at a few points can trap the
-    # re-assignment: the model bends toward them).
-    for _ in range(max_rounds):
-        best_chi2 = min(t[0] for t in tried)
-        base = min(tried, key=lambda t: t[0])[1]
-        moves = [[k] for k in range(F)] + [[k, k + 1] for k in range(F - 1)]
-        for mv in moves:
-            c = base.copy()
-            c[mv] = ~c[mv]
-            descend(c & ok)
-        if min(t[0] for t in tried) >= best_chi2:
-            break
-    tried.sort(key=lambda t: t[0])
-    _, choice, model = tried[0]
-    return AliasResolution(frf_of(choice), model, choice, [t[2] for t in tried[:n_candidates]])
