@@ -165,3 +165,19 @@ def test_residual_figure_pixels_units_and_titles():
         residual_figure(data, model, ["a"])
     with pytest.raises(ShapeError, match="images"):
         residual_figure(data, model[:, :5], ["a", "b"])
+
+
+def test_degenerate_responses_still_draw():
+    """NaN points, unknown covariance, an exact model (zero error) and a model with a zero: no crash."""
+    h = _plant(OMEGA)
+    h[3] = np.nan
+    frf = FrequencyResponse(OMEGA, h)  # cov unknown
+    exact = fit_transfer_function(FrequencyResponse(OMEGA, _plant(OMEGA)), n_poles=2, n_zeros=0)
+    fig = bode_figure(frf, model=exact, truth=_plant)
+    assert _png(fig).startswith(b"\x89PNG")
+
+    class Notch:
+        def frequency_response(self, w):
+            return np.where(np.isclose(w, OMEGA[5]), 0.0, 1.0) + 0j
+
+    assert _png(bode_figure(frf, model=Notch())).startswith(b"\x89PNG")

@@ -114,8 +114,10 @@ def _error_panels(a_mag, a_ph, frf, o, i, ref, ref_name):
             ax.fill_between(f, -sig, sig, label="±1σ of the measurement", **_BAND_STYLE)
         ax.plot(f, err, "o", ms=3.5, color="C0", zorder=4, label=f"measured − {ref_name}")
         ax.set_xscale("log")
-        lim = np.nanmax(np.abs(np.concatenate([err, sig]))) if np.isfinite(err).any() else 1.0
-        ax.set_ylim(-1.15 * lim, 1.15 * lim)
+        vals = np.abs(np.concatenate([err, sig]))
+        vals = vals[np.isfinite(vals)]
+        lim = float(vals.max()) if vals.size else 0.0
+        ax.set_ylim(-1.15 * (lim or 1.0), 1.15 * (lim or 1.0))
         ax.grid(True, which="both", alpha=0.3)
     a_mag.set_ylabel(f"|H| error\n(% of {ref_name})")
     a_ph.set_ylabel("phase error\n(deg)")
