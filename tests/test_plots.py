@@ -131,6 +131,11 @@ def test_mimo_and_overlay_layouts():
     assert len(fig.axes) == 16  # 4 rows per output x 2 outputs, one column per input
     assert fig.axes[0].get_title() == "output s0 from input u0"
     assert fig._suptitle.get_text() == "two axes"
+    fig = bode_figure(frf, model=model, truth=_plant)  # one [F] truth serves every channel
+    truth_lines = [ln for ax in fig.axes for ln in ax.get_lines() if ln.get_label() == "truth (simulation)"]
+    assert len(truth_lines) == 8  # magnitude and phase of 4 channels
+    with pytest.raises(ShapeError, match="truth"):
+        bode_figure(frf, truth=np.ones((3, 2, OMEGA.size)))
     many = _measured(6, 2)
     fig = bode_figure(many, truth=np.broadcast_to(_plant(OMEGA), (6, 2, OMEGA.size)))
     assert len(fig.axes) == 4 and fig.axes[0].get_ylabel() == "|H| (px per input unit)"

@@ -76,25 +76,30 @@ def _plain_log_ticks(ax) -> None:
     ax.yaxis.set_minor_formatter(NullFormatter())
 
 
-def _as_oif(h) -> np.ndarray:
+def _as_oif(h, frf) -> np.ndarray:
+    """A response [F] or [O, I, F] as [O, I, F] (one [F] curve serves every channel)."""
     h = np.asarray(h)
-    return h[None, None] if h.ndim == 1 else h
+    if h.ndim == 1:
+        return np.broadcast_to(h, (frf.n_outputs, frf.n_inputs, h.size))
+    if h.ndim != 3 or h.shape[:2] != (frf.n_outputs, frf.n_inputs):
+        raise ShapeError(f"truth, model: expected a response [F] or [O, I, F] = [{frf.n_outputs}, {frf.n_inputs}, F], got {h.shape}")
+    return h
 
 
 def _curves(frf, model, truth, fine_w):
     """Model and truth on the fine grid and the reference (model, else truth) at the measured
     frequencies, each complex [O, I, *] or None; the truth's own grid and the reference's name."""
-    mod = None if model is None else _as_oif(model.frequency_response(fine_w))
+    mod = None if model is None else _as_oif(model.frequency_response(fine_w), frf)
     tru, tru_f = None, None
     f = frf.freq_hz
     if truth is not None:
-        tru = _as_oif(truth(fine_w) if callable(truth) else truth)
+        tru = _as_oif(truth(fine_w) if callable(truth) else truth, frf)
         tru_f = fine_w / (2 * np.pi) if tru.shape[-1] == fine_w.size else f
     ref, ref_name = None, None
     if model is not None:
-        ref, ref_name = _as_oif(model.frequency_response(frf.omega)), "model"
+        ref, ref_name = _as_oif(model.frequency_response(frf.omega), frf), "model"
     elif truth is not None and (callable(truth) or tru.shape[-1] == f.size):
-        ref, ref_name = _as_oif(truth(frf.omega) if callable(truth) else truth), "truth"
+        ref, ref_name = _as_oif(truth(frf.omega) if callable(truth) else truth, frf), "truth"
     return mod, tru, tru_f, ref, ref_name
 
 
@@ -235,7 +240,7 @@ def _bode_overlay(frf, *, truth, title, stamp, axes, mag_label):
         fig = grid[0, 0].figure
     f = frf.freq_hz
     fine_f = np.geomspace(f.min(), f.max(), 400)
-    tru = None if truth is None else _as_oif(truth(2 * np.pi * fine_f) if callable(truth) else truth)
+    tru = None if truth is None else _as_oif(truth(2 * np.pi * fine_f) if callable(truth) else truth, frf)
     cmap = colormaps["tab20"]
     uph = np.degrees(frf.unwrapped_phase())
     for i in range(I):
