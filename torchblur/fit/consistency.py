@@ -119,6 +119,20 @@ def _psf_with_exposure_axis(psf):
     raise InputTypeError(f"psf: expected GaussianPSF or KernelPSF, got {type(psf).__name__}")
 
 
+def _unit_frobenius(x: torch.Tensor) -> torch.Tensor:
+    """``x / ||x||_F`` over the last two axes ``[..., H, W]``; an all-zero image stays 0.
+
+    ``x`` is first divided by its detached largest ``|x|``: the ratio is scale invariant, so
+    this changes neither the value nor the gradient, but ``x^2`` no longer underflows (a spot
+    far off the frame in float32 left tiny nonzero pixels with a zero norm: NaN gradients).
+    An all-zero (or all-subnormal) image is divided by 1, so its gradient stays finite.
+    """
+    peak = x.detach().abs().amax((-1, -2), keepdim=True)
+    y = x / torch.where(peak >= torch.finfo(x.dtype).tiny, peak, torch.ones_like(peak))
+    n2 = y.square().sum((-1, -2), keepdim=True)
+    return y / torch.where(n2 > 0, n2, torch.ones_like(n2)).sqrt()
+
+
 def blur_consistency(
     pred,
     observed: torch.Tensor,
@@ -231,9 +245,7 @@ def blur_consistency(
             )
         weight = (1 / s**2 if loss == "l2" else 1 / s).expand(data.shape)
     if normalize:
-        tiny = torch.finfo(model.dtype).tiny
-        model = model / model.square().sum((-1, -2), keepdim=True).sqrt().clamp_min(tiny)
-        data = data / data.square().sum((-1, -2), keepdim=True).sqrt().clamp_min(tiny)
+        model, data = _unit_frobenius(model), _unit_frobenius(data)
     value = image_loss(model.flatten(-3), data.flatten(-3), loss=loss, weight=None if weight is None else weight.flatten(-3))
     if reduction == "mean":
         return value.mean()
@@ -249,7 +261,21 @@ class BlurConsistencyLoss(nn.Module):
         renderer: the :class:`~torchblur.render.blur.BlurRenderer` of the measurement.
         psf: the PSF (``GaussianPSF`` or ``KernelPSF``), batch broadcastable to ``[...]``.
         window: the exposure windows, batch broadcastable to ``[..., E]``.
-        loss, reduction, noise_std, normalize, omega: see :func:`blur_consistency`.
+        loss: ``"l2"`` | ``"l1"`` | ``"linf"`` | ``"poisson"``, see :func:`blur_consistency`.
+        reduction (str, optional): the reduction applied to the output, as in torch's
+            losses: ``"none"`` | ``"mean"`` | ``"sum"``. ``"none"``: no reduction, one value
+            per sample ``[...]`` (each summed over its E exposures and pixels); ``"mean"``: the
+            sum of the output divided by the number of samples (not by the number of pixels,
+            unlike ``nn.MSELoss``); ``"sum"``: the output summed. Default: ``"none"``.
+        noise_std, normalize, omega: see :func:`blur_consistency`.
+
+    State: the PSF's tensors (``psf_center``, ``psf_cov``, ``psf_amplitude`` of a
+    ``GaussianPSF``, or ``psf_kernel`` of a ``KernelPSF``), the window's (``window_start``,
+    ``window_duration``) and ``noise_std`` / ``omega`` when given as tensors are buffers
+    (detached copies): they follow ``.to(dtype)`` / ``.to(device)`` and live in the
+    ``state_dict``, so a fresh module built with the same kinds and shapes loads them back.
+    Numbers given for ``noise_std`` / ``omega`` stay plain attributes. :attr:`psf` and
+    :attr:`window` rebuild the objects from the buffers.
 
     ``forward(pred, observed) -> [...]`` (or a scalar with ``reduction`` "mean"/"sum"),
     with ``pred`` a Trajectory, a dict of sinusoid parameters or a parameter tensor and
@@ -265,6 +291,8 @@ class BlurConsistencyLoss(nn.Module):
         >>> pred = torch.tensor([[5.0, 0.0, 0.4, 0.4], [4.0, 0.0, 0.1, 0.1]], requires_grad=True)   # [B=2, 4]
         >>> crit(pred, torch.zeros(2, 2, 24, 24)).shape
         torch.Size([2])
+        >>> sorted(crit.state_dict())
+        ['psf_amplitude', 'psf_center', 'psf_cov', 'window_duration', 'window_start']
     """
 
     def __init__(
@@ -282,13 +310,39 @@ class BlurConsistencyLoss(nn.Module):
         super().__init__()
         _check_settings(renderer, psf, window, loss, reduction, normalize)  # at construction, not at the first batch
         self.renderer = renderer
-        self.psf = psf
-        self.window = window
+        self._psf_kind = type(psf)
+        if isinstance(psf, GaussianPSF):
+            self._keep("psf_center", psf.center)
+            self._keep("psf_cov", psf.cov)
+            self._keep("psf_amplitude", psf.amplitude)
+        else:
+            self._keep("psf_kernel", psf.kernel)
+        self._keep("window_start", window.start)
+        self._keep("window_duration", window.duration)
+        self._keep("noise_std", noise_std)
+        self._keep("omega", omega)
         self.loss = loss
         self.reduction = reduction
-        self.noise_std = noise_std
         self.normalize = normalize
-        self.omega = omega
+
+    def _keep(self, name: str, value) -> None:
+        """A tensor becomes a buffer (a detached, contiguous copy); anything else an attribute."""
+        if isinstance(value, torch.Tensor):
+            self.register_buffer(name, value.detach().clone(memory_format=torch.contiguous_format))
+        else:
+            setattr(self, name, value)
+
+    @property
+    def psf(self) -> GaussianPSF | KernelPSF:
+        """The PSF, rebuilt from the buffers (dtype and device follow the module)."""
+        if self._psf_kind is GaussianPSF:
+            return GaussianPSF(self.psf_center, self.psf_cov, self.psf_amplitude)
+        return KernelPSF(self.psf_kernel)
+
+    @property
+    def window(self) -> ExposureWindow:
+        """The exposure windows, rebuilt from the buffers."""
+        return ExposureWindow(self.window_start, self.window_duration)
 
     def forward(self, pred, observed: torch.Tensor) -> torch.Tensor:
         return blur_consistency(
@@ -305,4 +359,5 @@ class BlurConsistencyLoss(nn.Module):
         )
 
     def extra_repr(self) -> str:
-        return f"loss={self.loss!r}, reduction={self.reduction!r}, normalize={self.normalize}, noise_std={'set' if self.noise_std is not None else None}"
+        return (f"psf={self._psf_kind.__name__}, loss={self.loss!r}, reduction={self.reduction!r}, "
+                f"normalize={self.normalize}, noise_std={'set' if self.noise_std is not None else None}")

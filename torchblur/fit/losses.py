@@ -22,7 +22,10 @@ LOSSES = ("l2", "l1", "linf", "poisson")
 
 
 def _poisson_floor(model: torch.Tensor) -> torch.Tensor:
-    return model.clamp_min(1e-9 * float(model.detach().abs().max().clamp_min(1e-30)))
+    # At least sqrt(tiny) (1e-19 in float32, 1.5e-154 in float64): below it 1 / model
+    # overflows float32 and a finite deviance gets NaN gradients (an empty model, spot off frame).
+    floor = max(1e-9 * float(model.detach().abs().max().clamp_min(1e-30)), torch.finfo(model.dtype).tiny ** 0.5)
+    return model.clamp_min(floor)
 
 
 def image_loss(model: torch.Tensor, data: torch.Tensor, *, loss: str = "l2", weight: torch.Tensor | None = None) -> torch.Tensor:
@@ -39,7 +42,11 @@ def image_loss(model: torch.Tensor, data: torch.Tensor, *, loss: str = "l2", wei
         return (w * r.abs()).amax(-1)
     lam = _poisson_floor(model)
     d = data.clamp_min(0)
-    term = torch.where(d > 0, d * torch.log(d / lam), torch.zeros_like(d)) - (d - lam)
+    pos = d > 0
+    # d log(d / lam) as d (log d - log lam), with log 1 where d = 0: the masked branch must not
+    # be 0 * log(0) or 0 / lam^2 (NaN gradients for an all-zero observation).
+    log_d = torch.log(torch.where(pos, d, torch.ones_like(d)))
+    term = torch.where(pos, d * (log_d - torch.log(lam)), torch.zeros_like(d)) - (d - lam)
     return 2 * (w * term).sum(-1)
 
 

@@ -21,6 +21,7 @@ File formats:
   CLI's frf.csv adds ``torchblur_version,seed``). CSV keeps the standard deviations but **loses the
   magnitude-phase correlation**: ``from_csv`` returns a diagonal covariance (correlation 0).
   A SISO CSV also drops the labels, and no CSV keeps ``meta``.
+* MAT (``to_mat``, write only): MATLAB variables for ``idfrd``/``tfest`` (see :meth:`to_mat`).
 * JSON (``to_json``/``from_json``): everything, bit-exact, under a versioned schema
   ``{"schema": "torchblur.sysid.frequency_response", "schema_version": 1, ...}``. Non-finite
   numbers (failed points, unknown covariance) are written as ``null`` so the file is strict
@@ -372,17 +373,25 @@ class FrequencyResponse:
         )
 
     # --------------------------------------------------------- python-control
-    def to_control(self, smooth: bool = False):
-        """Return a ``control.FrequencyResponseData`` (1x1 for SISO, OxI for MIMO).
+    def to_control(self, smooth: bool = False, *, name: str = "frf"):
+        """Return a named ``control.FrequencyResponseData`` (1x1 for SISO, OxI for MIMO).
+
+        The FRD carries ``name``, ``inputs=input_labels`` and ``outputs=output_labels``, so
+        ``control.bode_plot``, ``control.stability_margins`` and ``control.feedback`` accept
+        it (python-control 0.10.2 leaves an FRD built with labels but no name unnamed, and
+        ``bode_plot`` then raises TypeError).
 
         Args:
             smooth: passed to ``control.frd``: True builds a spline so the object can be
                 evaluated between the measured frequencies (refused if any point is NaN).
+            name: the system's name (``bode_plot`` legends use it).
         """
         import control
 
         if smooth and not np.all(self.valid):
             raise ParameterError("smooth: cannot interpolate a response that has NaN (failed) points")
+        if not isinstance(name, str):
+            raise InputTypeError(f"name: expected a string, got {type(name).__name__}")
         data = self._response[0, 0] if self.is_siso else self._response
         return control.frd(
             np.array(data),
@@ -390,6 +399,7 @@ class FrequencyResponse:
             smooth=bool(smooth),
             inputs=list(self._input_labels),
             outputs=list(self._output_labels),
+            name=name,
         )
 
     @classmethod
@@ -407,6 +417,44 @@ class FrequencyResponse:
             np.array(data, dtype=np.complex128).reshape(frd.noutputs, frd.ninputs, -1),
             input_labels=list(frd.input_labels),
             output_labels=list(frd.output_labels),
+        )
+
+    # -------------------------------------------------------------------- MAT
+    def to_mat(self, path: str | os.PathLike) -> None:
+        """Write a MATLAB ``.mat`` file (``scipy.io.savemat``, format 5) for MATLAB users.
+
+        Variables (F frequencies, O outputs, I inputs; MATLAB sees the same shapes):
+
+        * ``freq_hz`` [1, F], ``omega`` [1, F] rad/s;
+        * ``H`` complex [O, I, F] (``H(o, i, f)`` = gain from input i to output o, absolute
+          units; NaN = failed point), the layout of ``idfrd(H, omega, 0)`` for ``tfest``;
+        * ``magnitude_std``, ``phase_std`` (rad), ``correlation`` [O, I, F] (NaN = unknown);
+        * ``input_labels`` [1, I], ``output_labels`` [1, O]: cell arrays of strings;
+        * ``meta``: the JSON text of :attr:`meta` (a string).
+
+        A SISO response keeps the [1, 1, F] shape, as in MATLAB's ``idfrd``.
+        """
+        import scipy.io
+
+        def cell(labels):
+            c = np.empty((1, len(labels)), dtype=object)
+            c[0, :] = list(labels)
+            return c
+
+        scipy.io.savemat(
+            path,
+            {
+                "freq_hz": self.freq_hz[None, :],
+                "omega": np.array(self._omega)[None, :],
+                "H": np.array(self._response),
+                "magnitude_std": self.magnitude_std,
+                "phase_std": self.phase_std,
+                "correlation": self.correlation,
+                "input_labels": cell(self._input_labels),
+                "output_labels": cell(self._output_labels),
+                "meta": json.dumps(self._meta),
+            },
+            do_compression=True,
         )
 
     # -------------------------------------------------------------------- CSV

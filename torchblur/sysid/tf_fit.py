@@ -60,7 +60,9 @@ saves time on noisy data; resonances come in pairs, so this allows three more pa
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
+import os
 from typing import Any, Sequence
 
 import numpy as np
@@ -74,6 +76,9 @@ __all__ = ["fit_transfer_function", "TransferFunctionFit"]
 
 _WEIGHT_MODES = ("uncertainty", "uniform")
 _MODAL_KINDS = ("poles", "zeros")
+_DELAY_FORMS = (None, "pade", "frd")
+_SCHEMA = "torchblur.transfer_function_fit"
+_STAMP_KEYS = ("torchblur_version", "seed")  # written beside the fit into model.json by the CLI
 _FLOOR_RTOL = 1e-9
 _GRID_SK_ITER = 6
 _PATIENCE = 6
@@ -133,22 +138,60 @@ class TransferFunctionFit:
         v = getattr(self, field)
         return [[v]] if self.is_siso else v
 
-    def to_control(self):
-        """The rational part as a ``control.TransferFunction`` (SISO, or OxI MIMO).
+    def to_control(self, *, delay: str | None = None, pade_order: int = 5, omega=None, name: str = "model"):
+        """The fitted model as a python-control system, named, with the FRF's channel labels.
 
-        The delay is NOT included (python-control has no pure-delay TF); multiply a frequency
-        response by ``exp(-1j * omega * delay_s)``, or use :meth:`frequency_response`.
+        Args:
+            delay: how the pure delay enters (python-control has no pure-delay transfer
+                function):
+
+                - ``None`` (default): left out; a ``control.TransferFunction`` of the
+                  rational part ``num / den`` (multiply its response by
+                  ``exp(-1j * omega * delay_s)``, or use :meth:`frequency_response`);
+                - ``"pade"``: a ``control.TransferFunction`` of the rational part times
+                  ``control.pade(delay_s, pade_order)`` (per channel for MIMO);
+                - ``"frd"``: a ``control.FrequencyResponseData`` of the exact model, delay
+                  included, on the grid ``omega`` (required).
+            pade_order: order of the Pade approximation (an int >= 1), used with
+                ``delay="pade"``.
+            omega: [F] rad/s, strictly increasing, > 0: the grid of ``delay="frd"``.
+            name: the system's name (python-control's ``bode_plot`` legends use it).
+
+        Returns:
+            ``control.TransferFunction`` or ``control.FrequencyResponseData`` with
+            ``inputs=input_labels``, ``outputs=output_labels``; 1x1 for SISO, OxI for MIMO.
+
+        Raises:
+            ParameterError: ``delay`` not one of ``{None, "pade", "frd"}``; ``pade_order``
+                < 1; ``delay="frd"`` without ``omega``.
+            InputTypeError: ``pade_order`` not an int, ``name`` not a string.
         """
         import control
 
+        if delay not in _DELAY_FORMS:
+            raise ParameterError(f"delay: must be one of {set(_DELAY_FORMS)}, got {delay!r}")
+        if not isinstance(name, str):
+            raise InputTypeError(f"name: expected a string, got {type(name).__name__}")
+        pade_order = _check_int(pade_order, "pade_order", 1)
+        labels = dict(inputs=list(self.input_labels), outputs=list(self.output_labels), name=name)
+        if delay == "frd":
+            if omega is None:
+                raise ParameterError("omega: delay='frd' needs the frequency grid omega [F] (rad/s)")
+            w = as_frequency_grid(omega, "omega")
+            return control.frd(self.frequency_response(w), w, **labels)
+        num, den, tau = (self._channels(f) for f in ("num", "den", "delay_s"))
+        nums = [[list(n) for n in row] for row in num]
+        dens = [[list(d) for d in row] for row in den]
+        if delay == "pade":
+            for o, row in enumerate(tau):
+                for i, t in enumerate(row):
+                    if t > 0:
+                        pn, pd = control.pade(float(t), pade_order)
+                        nums[o][i] = list(np.polymul(nums[o][i], pn))
+                        dens[o][i] = list(np.polymul(dens[o][i], pd))
         if self.is_siso:
-            return control.tf(list(self.num), list(self.den))
-        return control.tf(
-            [[list(n) for n in row] for row in self.num],
-            [[list(d) for d in row] for row in self.den],
-            inputs=list(self.input_labels),
-            outputs=list(self.output_labels),
-        )
+            return control.tf(nums[0][0], dens[0][0], **labels)
+        return control.tf(nums, dens, **labels)
 
     def frequency_response(self, omega) -> np.ndarray:
         """Evaluate the fitted model, delay included, at ``s = j omega``.
@@ -209,7 +252,7 @@ class TransferFunctionFit:
                 return int(v)
             return _jf(v)
 
-        doc: dict[str, Any] = {"schema": "torchblur.transfer_function_fit", "schema_version": 1}
+        doc: dict[str, Any] = {"schema": _SCHEMA, "schema_version": 1}
         for f in (
             "num", "den", "delay_s", "n_poles", "n_zeros", "chi2", "dof", "reduced_chi2",
             "rms_relative_error", "dc_gain", "poles", "zeros",
@@ -221,6 +264,71 @@ class TransferFunctionFit:
         doc["output_labels"] = list(self.output_labels)
         return doc
 
+    @classmethod
+    def from_dict(cls, doc: dict) -> "TransferFunctionFit":
+        """Inverse of :meth:`to_dict` (checks ``schema`` and ``schema_version``).
+
+        Also reads the CLI's model.json, which adds ``torchblur_version`` and ``seed`` beside
+        the fit (ignored). ``None`` reads back as NaN, except ``dc_gain``, recomputed from
+        ``num`` and ``den`` (a pole at 0 gives +-inf, which JSON cannot hold).
+
+        Raises:
+            InputTypeError: ``doc`` is not a dict.
+            ParameterError: another schema (a direct fit, or a failed fit's ``error``), an
+                unsupported version, unknown or missing keys, malformed values.
+        """
+        if not isinstance(doc, dict):
+            raise InputTypeError(f"doc: expected a JSON object, got {type(doc).__name__}")
+        if doc.get("schema") != _SCHEMA:
+            why = f" (the file says: {doc['error']})" if "error" in doc else ""
+            raise ParameterError(f"schema: expected {_SCHEMA!r}, got {doc.get('schema')!r}{why}")
+        if isinstance(doc.get("schema_version"), bool) or doc.get("schema_version") != 1:
+            raise ParameterError(f"schema_version: unsupported version {doc.get('schema_version')!r}; supported versions: [1]")
+        kinds = {"num": "coeffs", "den": "coeffs", "delay_s": "float", "n_poles": "int", "n_zeros": "int",
+                 "chi2": "float", "dof": "int", "reduced_chi2": "float", "rms_relative_error": "float",
+                 "poles": "roots", "zeros": "roots"}
+        known = set(kinds) | {"schema", "schema_version", "dc_gain", "weighting", "delay_estimated", "input_labels", "output_labels"}
+        unknown = set(doc) - known - set(_STAMP_KEYS)
+        if unknown:
+            raise ParameterError(f"doc: unknown keys {sorted(unknown)}; expected keys {sorted(known)}")
+        missing = known - set(doc)
+        if missing:
+            raise ParameterError(f"doc: missing keys {sorted(missing)}")
+        labels = {k: tuple(doc[k]) for k in ("input_labels", "output_labels")}
+        for k, v in labels.items():
+            if not v or not all(isinstance(x, str) for x in v):
+                raise ParameterError(f"{k}: expected a non-empty list of strings, got {doc[k]!r}")
+        n_o, n_i = len(labels["output_labels"]), len(labels["input_labels"])
+        siso = n_o == n_i == 1
+
+        def channels(key):
+            v = doc[key]
+            if siso:
+                return _from_json_value(v, key, kinds[key])
+            if not isinstance(v, list) or len(v) != n_o or any(not isinstance(r, list) or len(r) != n_i for r in v):
+                raise ParameterError(f"{key}: expected nested lists [O][I] = [{n_o}][{n_i}] for a MIMO fit")
+            return [[_from_json_value(x, key, kinds[key]) for x in row] for row in v]
+
+        fields = {k: channels(k) for k in kinds}
+        if siso:
+            dc = _dc_gain(fields["num"], fields["den"])
+        else:
+            dc = [[_dc_gain(n, d) for n, d in zip(nr, dr)] for nr, dr in zip(fields["num"], fields["den"])]
+        return cls(**fields, dc_gain=dc, weighting=str(doc["weighting"]), delay_estimated=bool(doc["delay_estimated"]), **labels)
+
+    def to_json(self, path: str | os.PathLike) -> None:
+        """Write :meth:`to_dict` to a strict JSON file (read it back with :meth:`from_json`)."""
+        with open(path, "w") as fh:
+            json.dump(self.to_dict(), fh, allow_nan=False, indent=2)
+            fh.write("\n")
+
+    @classmethod
+    def from_json(cls, path: str | os.PathLike) -> "TransferFunctionFit":
+        """Read a file written by :meth:`to_json`, or the CLI's model.json (two-step fit;
+        with ``model.direct`` it is model_two_step.json)."""
+        with open(path) as fh:
+            return cls.from_dict(json.load(fh))
+
     def __repr__(self) -> str:
         if self.is_siso:
             return (
@@ -228,6 +336,34 @@ class TransferFunctionFit:
                 f"delay_s={self.delay_s:.4g}, reduced_chi2={self.reduced_chi2:.4g})"
             )
         return f"TransferFunctionFit({len(self.output_labels)}x{len(self.input_labels)} channels)"
+
+
+def _dc_gain(num, den) -> float:
+    """H(0) = num[-1] / den[-1]; +-inf for a pole at 0 (sign of num[-1]), NaN for 0/0."""
+    if den[-1] != 0:
+        return float(num[-1] / den[-1])
+    return math.copysign(math.inf, num[-1]) if num[-1] else math.nan
+
+
+def _from_json_value(v, key: str, kind: str):
+    """One channel's value of :meth:`TransferFunctionFit.to_dict` read back: ``kind`` "float"
+    (None = NaN), "int", "coeffs" (a list of floats) or "roots" (``{"real", "imag"}``)."""
+    try:
+        if kind == "int":
+            if isinstance(v, bool) or not isinstance(v, int):
+                raise TypeError(type(v).__name__)
+            return v
+        if kind == "float":
+            return math.nan if v is None else float(v)
+        if kind == "coeffs":
+            return [float(x) for x in v]
+        re = np.array([math.nan if x is None else x for x in v["real"]], dtype=np.float64)
+        im = np.array([math.nan if x is None else x for x in v["imag"]], dtype=np.float64)
+        if re.shape != im.shape:
+            raise ValueError("real and imag differ in length")
+        return re + 1j * im
+    except (TypeError, ValueError, KeyError) as exc:
+        raise ParameterError(f"{key}: expected a {kind} value as to_dict writes it, got {v!r} ({exc})") from None
 
 
 def _jf(x):
@@ -639,7 +775,6 @@ def _physical(c: _Cand, data: _Data) -> dict[str, Any]:
     with np.errstate(all="ignore"):
         hm, _ = _model(c.theta, c.n_zeros, c.n_poles, c.est_tau, c.tau_fixed, data, False)
         rel = float(np.sqrt(np.mean(np.abs(hm - data.h) ** 2 / np.abs(data.h) ** 2)))
-        dc = float(num[-1] / den[-1]) if den[-1] != 0 else math.copysign(math.inf, num[-1]) if num[-1] else math.nan
     dof = data.n_obs - c.n_params
     return {
         "num": [float(x) for x in num],
@@ -653,7 +788,7 @@ def _physical(c: _Cand, data: _Data) -> dict[str, Any]:
         "rms_relative_error": rel,
         "poles": _roots_of(pq, pl, s),
         "zeros": _roots_of(zq, zl, s),
-        "dc_gain": dc,
+        "dc_gain": _dc_gain(num, den),
     }
 
 
