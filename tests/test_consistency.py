@@ -55,6 +55,19 @@ def test_pred_forms_agree():
         torch.testing.assert_close(other, a, rtol=1e-12, atol=0)
 
 
+def test_a_batch_of_two_samples_keeps_one_frequency_per_sample():
+    """omega [2] of two samples is per sample, not (x, y): each sample is zero at its own truth."""
+    renderer, psf, window, params, _ = setup(B=2)
+    om = torch.tensor([OMEGA, 1.7 * OMEGA], dtype=F64)
+    truth = dict(params, omega=om)
+    observed = torch.stack([renderer(tb.Sinusoid(truth["amplitude"][b], truth["phase"][b], om[b]), psf, window)
+                            for b in range(2)])  # [2, E, H, W], each sample rendered alone
+    t5 = torch.cat([truth["amplitude"], truth["phase"], om[:, None]], -1)
+    for pred, extra in ((truth, {}), (t5, {}), (t5[:, :4], {"omega": om})):
+        value = blur_consistency(pred, observed, renderer=renderer, psf=psf, window=window, **extra)
+        assert float(value.abs().max()) < 1e-20
+
+
 def test_spline_trajectory_prediction():
     renderer, psf, window, params, observed = setup(B=2)
     # A spline through the true sinusoid's samples is (almost) consistent; a flat one is not.

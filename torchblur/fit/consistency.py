@@ -76,7 +76,7 @@ def _as_trajectory(pred, omega, like: torch.Tensor) -> Trajectory:
         for name, t in (("pred['amplitude']", amp), ("pred['phase']", phase)):
             if t.dim() < 1 or t.shape[-1] != 2:
                 raise ShapeError(f"{name}: expected shape [..., 2] (x, y), got {tuple(t.shape)}")
-        return Sinusoid(amp, phase, as_tensor(om, "omega", like=amp))
+        return Sinusoid(amp, phase, _both_axes(as_tensor(om, "omega", like=amp)))
     if isinstance(pred, torch.Tensor):
         p = as_tensor(pred, "pred", like=like)
         if p.dim() < 1 or p.shape[-1] not in (4, 5):
@@ -90,10 +90,16 @@ def _as_trajectory(pred, omega, like: torch.Tensor) -> Trajectory:
             raise ParameterError("pred: a [..., 4] parameter tensor needs the omega argument (rad/s)")
         else:
             om = as_tensor(omega, "omega", like=p)
-        return Sinusoid(p[..., 0:2], p[..., 2:4], om)
+        return Sinusoid(p[..., 0:2], p[..., 2:4], _both_axes(om))
     raise InputTypeError(
         f"pred: expected a Trajectory, a dict of sinusoid parameters or a parameter tensor, got {type(pred).__name__}"
     )
+
+
+def _both_axes(omega: torch.Tensor) -> torch.Tensor:
+    """``omega [...]`` (one per sample) as ``[..., 2]``, the same for both axes: a batch of two
+    samples' ``[2]`` must not be read as one frequency per axis."""
+    return omega[..., None].expand(omega.shape + (2,))
 
 
 def _check_settings(renderer, psf, window, loss, reduction, normalize) -> None:
