@@ -63,7 +63,10 @@ class Sinusoid(Trajectory):
     Args:
         amplitude: px, ``[..., 2]`` (x, y). Use 0 on an axis that does not move.
         phase: rad, ``[..., 2]``.
-        omega: rad/s, ``[...]`` (both axes) or ``[..., 2]`` (one per axis), > 0.
+        omega: rad/s, ``[...]`` (both axes) or ``[..., 2]`` (one per axis), > 0. A last dim
+            of 2 is always read as one frequency per axis: for a batch of two items with one
+            frequency each, pass ``omega[..., None].expand(..., 2)`` (or ``omega[:, None]``
+            with ``amplitude`` ``[2, 1, 2]``).
 
     A tip-tilt mirror driven on both axes draws a Lissajous figure.
     """
