@@ -205,22 +205,10 @@ def blur_consistency(
         torch.Size([1])
     """
     _check_settings(renderer, psf, window, loss, reduction, normalize)
-    if not isinstance(observed, torch.Tensor):
-        raise InputTypeError(f"observed: expected a tensor [..., E, H, W], got {type(observed).__name__}")
-    if observed.is_complex() or observed.dtype == torch.bool:
-        raise InputTypeError(f"observed: expected a real tensor [..., E, H, W], got dtype {observed.dtype}")
-    if not observed.is_floating_point():
-        observed = observed.to(torch.get_default_dtype())
-    H, W = renderer.height, renderer.width
-    if observed.dim() < 3 or tuple(observed.shape[-2:]) != (H, W):
-        raise ShapeError(f"observed: expected shape [..., E, {H}, {W}] (the renderer's frame), got {tuple(observed.shape)}")
-    check_finite(observed, "observed")
-    batch_e = observed.shape[:-2]  # [..., E]
-    E = batch_e[-1]
-    if window.shape and window.shape[-1] not in (1, E):
-        raise ShapeError(f"window: expected a last dim of 1 or E={E} (one window per exposure), got shape {tuple(window.shape)}")
-
+    observed = _as_observed(observed, renderer, window)
     traj = _as_trajectory(pred, omega, observed)
+    batch_e = observed.shape[:-2]  # [..., E]
+    E, H, W = batch_e[-1], renderer.height, renderer.width
     try:
         out_batch = torch.broadcast_shapes(traj.shape, psf.shape, window.shape[:-1] if window.shape else (), batch_e[:-1])
     except RuntimeError:
@@ -231,25 +219,7 @@ def blur_consistency(
     model = renderer(_ExposureAxis(traj), _psf_with_exposure_axis(psf), window if window.shape else window.expand((1,)))
     model = model.expand(out_batch + (E, H, W))
     data = observed.to(model.dtype).expand(out_batch + (E, H, W))
-
-    weight = None
-    if noise_std is not None:
-        if loss == "poisson":
-            raise ParameterError("noise_std: not used with loss='poisson' (the deviance carries its own variance)")
-        s = as_tensor(noise_std, "noise_std", like=model)
-        bad = torch.isnan(s.detach()) | (s.detach() <= 0)
-        if bool(bad.any()):
-            raise ParameterError(f"noise_std: expected every value > 0 (inf drops a pixel), got {int(bad.sum())} NaN or non-positive")
-        try:
-            fits = torch.broadcast_shapes(s.shape, data.shape) == data.shape
-        except RuntimeError:
-            fits = False
-        if not fits:
-            raise ShapeError(
-                f"noise_std: expected a number or a shape broadcastable to [..., E, H, W] = {tuple(data.shape)}, "
-                f"got {tuple(s.shape)}"
-            )
-        weight = (1 / s**2 if loss == "l2" else 1 / s).expand(data.shape)
+    weight = _pixel_weight(noise_std, loss, model, data)
     if normalize:
         model, data = _unit_frobenius(model), _unit_frobenius(data)
     value = image_loss(model.flatten(-3), data.flatten(-3), loss=loss, weight=None if weight is None else weight.flatten(-3))
@@ -258,6 +228,48 @@ def blur_consistency(
     if reduction == "sum":
         return value.sum()
     return value
+
+
+def _as_observed(observed, renderer: BlurRenderer, window: ExposureWindow) -> torch.Tensor:
+    """``observed`` checked as ``[..., E, H, W]`` floating, finite, of the renderer's frame size,
+    with a window of 1 or E exposures."""
+    if not isinstance(observed, torch.Tensor):
+        raise InputTypeError(f"observed: expected a tensor [..., E, H, W], got {type(observed).__name__}")
+    if observed.is_complex() or observed.dtype == torch.bool:
+        raise InputTypeError(f"observed: expected a real tensor [..., E, H, W], got dtype {observed.dtype}")
+    if not observed.is_floating_point():
+        observed = observed.to(torch.get_default_dtype())
+    H, W = renderer.height, renderer.width
+    if observed.dim() < 3 or tuple(observed.shape[-2:]) != (H, W):
+        raise ShapeError(f"observed: expected shape [..., E, {H}, {W}] (the renderer's frame), got {tuple(observed.shape)}")
+    check_finite(observed, "observed")
+    E = observed.shape[-3]
+    if window.shape and window.shape[-1] not in (1, E):
+        raise ShapeError(f"window: expected a last dim of 1 or E={E} (one window per exposure), got shape {tuple(window.shape)}")
+    return observed
+
+
+def _pixel_weight(noise_std, loss: str, model: torch.Tensor, data: torch.Tensor):
+    """Per-pixel weights ``[..., E, H, W]`` from ``noise_std`` (``1/s^2`` for l2, ``1/s`` for l1
+    and linf), or None without a noise; refused with the Poisson deviance."""
+    if noise_std is None:
+        return None
+    if loss == "poisson":
+        raise ParameterError("noise_std: not used with loss='poisson' (the deviance carries its own variance)")
+    s = as_tensor(noise_std, "noise_std", like=model)
+    bad = torch.isnan(s.detach()) | (s.detach() <= 0)
+    if bool(bad.any()):
+        raise ParameterError(f"noise_std: expected every value > 0 (inf drops a pixel), got {int(bad.sum())} NaN or non-positive")
+    try:
+        fits = torch.broadcast_shapes(s.shape, data.shape) == data.shape
+    except RuntimeError:
+        fits = False
+    if not fits:
+        raise ShapeError(
+            f"noise_std: expected a number or a shape broadcastable to [..., E, H, W] = {tuple(data.shape)}, "
+            f"got {tuple(s.shape)}"
+        )
+    return (1 / s**2 if loss == "l2" else 1 / s).expand(data.shape)
 
 
 class BlurConsistencyLoss(nn.Module):
