@@ -69,7 +69,7 @@ import numpy as np
 import scipy.linalg
 import scipy.optimize
 
-from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_frequency_grid
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_frequency_grid, check_bool, check_int
 from torchblur.sysid.frequency_response import FrequencyResponse
 
 __all__ = ["fit_transfer_function", "TransferFunctionFit"]
@@ -172,7 +172,7 @@ class TransferFunctionFit:
             raise ParameterError(f"delay: must be one of {set(_DELAY_FORMS)}, got {delay!r}")
         if not isinstance(name, str):
             raise InputTypeError(f"name: expected a string, got {type(name).__name__}")
-        pade_order = _check_int(pade_order, "pade_order", 1)
+        pade_order = check_int(pade_order, "pade_order", low=1)
         labels = dict(inputs=list(self.input_labels), outputs=list(self.output_labels), name=name)
         if delay == "frd":
             if omega is None:
@@ -793,16 +793,6 @@ def _physical(c: _Cand, data: _Data) -> dict[str, Any]:
 
 
 # ---------------------------------------------------------------------- entry point
-def _check_int(value, name, lo, hi=None):
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise InputTypeError(f"{name}: expected an int, got {type(value).__name__}")
-    v = int(value)
-    if v < lo or (hi is not None and v > hi):
-        rng = f">= {lo}" if hi is None else f"in [{lo}, {hi}]"
-        raise ParameterError(f"{name}: expected an int {rng}, got {v}")
-    return v
-
-
 def _weights(frf: FrequencyResponse, weights, use: np.ndarray):
     """Whitening arrays [O, I, F] (w00, w10, w11), scalar weights [O, I, F] and a label."""
     shape = frf.response.shape
@@ -885,12 +875,48 @@ def fit_transfer_function(
     """
     if not isinstance(frf, FrequencyResponse):
         raise InputTypeError(f"frf: expected a FrequencyResponse, got {type(frf).__name__}")
-    max_order = _check_int(max_order, "max_order", 1, 30)
-    n_iter = _check_int(n_iter, "n_iter", 1)
+    orders, delay_s = _candidate_orders(n_poles, n_zeros, max_order, delay_s)
+    n_iter = check_int(n_iter, "n_iter", low=1)
+    stable = check_bool(stable, "stable")
+    valid = frf.valid
+    w00, w10, w11, wsc, label = _weights(frf, weights, valid)
+    use = valid & (wsc > 0) & (w00 > 0)
+    results = [[None] * frf.n_inputs for _ in range(frf.n_outputs)]
+    for o in range(frf.n_outputs):
+        for i in range(frf.n_inputs):
+            m = use[o, i]
+            if np.sum(m) == 0:
+                raise ParameterError(f"frf: output {frf.output_labels[o]!r}, input {frf.input_labels[i]!r} has no valid point")
+            omega = frf.omega[m]
+            data = _Data(omega=omega, h=frf.response[o, i, m], w00=w00[o, i, m], w10=w10[o, i, m], w11=w11[o, i, m],
+                         wsc=wsc[o, i, m], scale=float(np.sqrt(omega[0] * omega[-1])))
+            best = _fit_channel(data, orders, delay_s, n_iter, stable, label == "uncertainty")
+            if best is None:
+                raise ParameterError(
+                    f"n_poles: no model of the requested order fits output {frf.output_labels[o]!r}, "
+                    f"input {frf.input_labels[i]!r}: {int(np.sum(m))} valid points give {data.n_obs} real "
+                    f"observations, fewer than the parameters plus one"
+                )
+            results[o][i] = _physical(best, data)
+
+    def field(name):
+        if frf.is_siso:
+            return results[0][0][name]
+        return [[results[o][i][name] for i in range(frf.n_inputs)] for o in range(frf.n_outputs)]
+
+    names = ("num", "den", "delay_s", "n_poles", "n_zeros", "chi2", "dof", "reduced_chi2", "rms_relative_error", "poles",
+             "zeros", "dc_gain")
+    return TransferFunctionFit(**{n: field(n) for n in names}, weighting=label, delay_estimated=delay_s is None,
+                               input_labels=tuple(frf.input_labels), output_labels=tuple(frf.output_labels))
+
+
+def _candidate_orders(n_poles, n_zeros, max_order, delay_s):
+    """The ``(n_poles, n_zeros)`` pairs to try (checked) and the checked fixed delay (s) or None."""
+    max_order = check_int(max_order, "max_order", low=1, high=30)
     if n_poles is not None:
-        n_poles = _check_int(n_poles, "n_poles", 0, 30)
+        n_poles = check_int(n_poles, "n_poles", low=0, high=30)
     if n_zeros is not None:
-        n_zeros = _check_int(n_zeros, "n_zeros", 0, 30)
+        n_zeros = check_int(n_zeros, "n_zeros", low=0, high=30)
         if n_poles is not None and n_zeros > n_poles:
             raise ParameterError(f"n_zeros: expected <= n_poles = {n_poles} (a proper model), got {n_zeros}")
         if n_poles is None and n_zeros > max_order:
@@ -901,65 +927,6 @@ def fit_transfer_function(
         delay_s = float(delay_s)
         if not math.isfinite(delay_s) or delay_s < 0:
             raise ParameterError(f"delay_s: expected a finite value >= 0 seconds, got {delay_s:g}")
-    if not isinstance(stable, (bool, np.bool_)):
-        raise InputTypeError(f"stable: expected a bool, got {type(stable).__name__}")
-
-    if n_poles is not None:
-        pole_range = [n_poles]
-    else:
-        pole_range = list(range(max(1, n_zeros or 0), max_order + 1))
+    pole_range = [n_poles] if n_poles is not None else list(range(max(1, n_zeros or 0), max_order + 1))
     orders = [(p, z) for p in pole_range for z in ([n_zeros] if n_zeros is not None else range(p + 1))]
-
-    valid = frf.valid
-    w00, w10, w11, wsc, label = _weights(frf, weights, valid)
-    use = valid & (wsc > 0) & (w00 > 0)
-    results = []
-    for o in range(frf.n_outputs):
-        row = []
-        for i in range(frf.n_inputs):
-            m = use[o, i]
-            if np.sum(m) == 0:
-                raise ParameterError(f"frf: output {frf.output_labels[o]!r}, input {frf.input_labels[i]!r} has no valid point")
-            omega = frf.omega[m]
-            data = _Data(
-                omega=omega,
-                h=frf.response[o, i, m],
-                w00=w00[o, i, m],
-                w10=w10[o, i, m],
-                w11=w11[o, i, m],
-                wsc=wsc[o, i, m],
-                scale=float(np.sqrt(omega[0] * omega[-1])),
-            )
-            best = _fit_channel(data, orders, delay_s, n_iter, bool(stable), label == "uncertainty")
-            if best is None:
-                raise ParameterError(
-                    f"n_poles: no model of the requested order fits output {frf.output_labels[o]!r}, "
-                    f"input {frf.input_labels[i]!r}: {int(np.sum(m))} valid points give {data.n_obs} real "
-                    f"observations, fewer than the parameters plus one"
-                )
-            row.append(_physical(best, data))
-        results.append(row)
-
-    def field(name):
-        if frf.is_siso:
-            return results[0][0][name]
-        return [[results[o][i][name] for i in range(frf.n_inputs)] for o in range(frf.n_outputs)]
-
-    return TransferFunctionFit(
-        num=field("num"),
-        den=field("den"),
-        delay_s=field("delay_s"),
-        n_poles=field("n_poles"),
-        n_zeros=field("n_zeros"),
-        chi2=field("chi2"),
-        dof=field("dof"),
-        reduced_chi2=field("reduced_chi2"),
-        rms_relative_error=field("rms_relative_error"),
-        poles=field("poles"),
-        zeros=field("zeros"),
-        dc_gain=field("dc_gain"),
-        weighting=label,
-        delay_estimated=delay_s is None,
-        input_labels=tuple(frf.input_labels),
-        output_labels=tuple(frf.output_labels),
-    )
+    return orders, delay_s
