@@ -25,6 +25,12 @@ __all__ = [
     "check_choice",
     "broadcast_batch",
     "as_unit_direction",
+    "as_frequency_grid",
+    "check_real_scalar",
+    "check_int",
+    "check_bool",
+    "as_image",
+    "as_noise_std",
 ]
 
 
