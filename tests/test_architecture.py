@@ -127,3 +127,24 @@ def test_old_identify_modules_keep_their_names(module):
 
     mod = importlib.import_module(module)
     assert all(hasattr(mod, n) for n in mod.__all__)
+
+
+def test_the_emulator_and_the_settings_do_not_load_the_pipeline():
+    import subprocess
+    import sys
+
+    code = ("import sys, torchblur.hardware.emulator, torchblur.identify.config; "
+            "print(sorted(m for m in sys.modules if m.startswith('torchblur.identify')))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "['torchblur.identify', 'torchblur.identify.config']"
+
+
+def test_identify_package_names_load_on_use():
+    import torchblur.identify as ident
+    from torchblur.identify.calibration import calibrate
+    from torchblur.identify.pipeline import identify
+
+    assert ident.identify is identify and ident.calibrate is calibrate  # the function, not the calibration module
+    with pytest.raises(AttributeError, match="no_such_name"):
+        ident.no_such_name  # noqa: B018

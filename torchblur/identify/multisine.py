@@ -1,7 +1,7 @@
 """The identification with multisine excitation (``excitation.kind=multisine``).
 
 The multisine plan (:class:`MultisinePlan`) of the identification's stages: calibrate and
-model are those of every run (:mod:`torchblur.identify.calibrate`,
+model are those of every run (:mod:`torchblur.identify.calibration`,
 :mod:`torchblur.identify.model`); the sweep, fit and assemble stages become, for each group
 of ``excitation.tones`` frequencies of the sweep:
 

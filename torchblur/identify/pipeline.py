@@ -1,7 +1,7 @@
 """The identification end to end (paper section IV), as stages over one run record
 (:class:`~torchblur.identify.record.RunRecord`):
 
-1. **calibrate** (:mod:`torchblur.identify.calibrate`): dark frame, saturation curve and
+1. **calibrate** (:mod:`torchblur.identify.calibration`): dark frame, saturation curve and
    mask, PSF (one spot, or a grid), trigger-to-exposure latency from laser pulses and, for
    one axis and one spot, the actuator's direction in the image (``fit.axis=measure``);
 2. **sweep**: the excitation plan's acquisition (``excitation.kind``: one sine per point,
@@ -21,7 +21,7 @@ import time
 
 from torchblur.errors import InputTypeError
 from torchblur.hardware.errors import HardwareError
-from torchblur.identify.calibrate import calibrate
+from torchblur.identify.calibration import calibrate
 from torchblur.identify.config import IdentifyConfig
 from torchblur.identify.multisine import MultisinePlan
 from torchblur.identify.record import RunRecord, log_message
@@ -98,5 +98,5 @@ def run_stages(run: RunRecord) -> IdentificationResult:
 
 
 def calibrate_stage(run: RunRecord) -> None:
-    """``run.cal``: :func:`~torchblur.identify.calibrate.calibrate` (from the recording where it holds it)."""
+    """``run.cal``: :func:`~torchblur.identify.calibration.calibrate` (from the recording where it holds it)."""
     run.cal = calibrate(run.cfg, run.rig, run.exp, run.log, run.progress)

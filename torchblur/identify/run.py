@@ -1,7 +1,7 @@
 """The identification's public names, where they have always been imported from.
 
 The pipeline itself lives in stages over one run record: :mod:`torchblur.identify.pipeline`
-(:func:`identify`), :mod:`~torchblur.identify.calibrate`, :mod:`~torchblur.identify.sweep`
+(:func:`identify`), :mod:`~torchblur.identify.calibration`, :mod:`~torchblur.identify.sweep`
 (the sine plan), :mod:`~torchblur.identify.multisine` (the multisine plan),
 :mod:`~torchblur.identify.fitting`, :mod:`~torchblur.identify.assemble`,
 :mod:`~torchblur.identify.model`, :mod:`~torchblur.identify.result`, and
@@ -10,7 +10,7 @@ The pipeline itself lives in stages over one run record: :mod:`torchblur.identif
 """
 from __future__ import annotations
 
-from torchblur.identify.calibrate import Calibration, calibrate, calibrate_latency
+from torchblur.identify.calibration import Calibration, calibrate, calibrate_latency
 from torchblur.identify.model import fit_model, modes_outside_band
 from torchblur.identify.pipeline import identify
 from torchblur.identify.result import IdentificationResult

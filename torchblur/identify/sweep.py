@@ -27,7 +27,7 @@ from torchblur.fit.sinusoid import STATUS, fit_sinusoid
 from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.recording import _bind
 from torchblur.identify.assemble import assemble_mimo, assemble_siso, truth_of
-from torchblur.identify.calibrate import MIN_INSIDE
+from torchblur.identify.calibration import MIN_INSIDE
 from torchblur.identify.fitting import ChunkFitter, concat_fits, squeeze_problems
 from torchblur.identify.model import fit_direct_model
 from torchblur.identify.result import IdentificationResult
@@ -256,7 +256,7 @@ class SinePlan:
     supports_direct = True
 
     def sweep(self, run) -> None:
-        """Stage 5: every input, every frequency; the chunked fits run while it goes on."""
+        """The sweep stage: every input, every frequency; the chunked fits run while it goes on."""
         lay = sweep_layout(run.cfg, run.cal, run.rig.frame_shape)
         F, I = len(lay.freqs), len(lay.inputs)
         acq = SineAcquisition(omega_job=torch.tensor(np.tile(2 * math.pi * lay.freqs, I), dtype=_F64), layout=lay)
@@ -289,7 +289,7 @@ class SinePlan:
         return ExposureWindow(torch.stack([w.start for w in acq.windows]), torch.stack([w.duration for w in acq.windows]))
 
     def fit(self, run) -> None:
-        """Stage 6: the fits of the chunks left, in point order (``run.fit``), and the timing."""
+        """The fit stage: the fits of the chunks left, in point order (``run.fit``), and the timing."""
         acq = run.acquisition
         try:
             parts = acq.fitter.finish()
@@ -311,7 +311,7 @@ class SinePlan:
                 f"{t_fit_end - t_acq_end:.2f} s from the last frame to the last fit")
 
     def assemble(self, run) -> None:
-        """Stage 7: the FrequencyResponse (``run.frf``), the images, windows and powers in the
+        """The assemble stage: the FrequencyResponse (``run.frf``), the images, windows and powers in the
         result's shapes (``run.images``, ``run.windows``, ``run.power``), and the truth where
         the rig knows it (``run.truth``)."""
         acq, cal, c = run.acquisition, run.cal, run.cfg.camera
@@ -351,7 +351,7 @@ class SinePlan:
                                 run.log, run.progress, cal.direction)
 
     def result(self, run) -> IdentificationResult:
-        """Stage 9 (report): the :class:`IdentificationResult`."""
+        """The report stage: the :class:`IdentificationResult`."""
         acq, cal = run.acquisition, run.cal
         return IdentificationResult(frf=run.frf, model=run.model, psf=cal.psf, fit=run.fit, amplitude=np.asarray(acq.amps),
                                     latency_s=cal.latency_s, latency_std_s=cal.latency_std_s, saturation=cal.saturation,
