@@ -223,11 +223,10 @@ class EmulatedDevice:
     """
 
     def __init__(self, cfg: EmulatorConfig, send, *, firmware: str = "0.1.0", name: str = "torchblur-emulator"):
-        from torchblur.identify.config import IdentifyConfig
-        from torchblur.identify.run import build_simulated_rig
+        from torchblur.rig.factory import build_simulated_rig
 
         self.cfg = cfg
-        self.rig = build_simulated_rig(IdentifyConfig(plant=cfg.plant, camera=cfg.camera, spots=cfg.spots, seed=cfg.seed))
+        self.rig = build_simulated_rig(cfg)  # its plant, camera, spots and seed sections
         self.axes = tuple(self.rig.inputs)  # "x", or "x", "y" for a 2x2 plant
         self._settling_s = self.rig.plant.settling_time_s()
         self._send = send
@@ -464,8 +463,6 @@ class EmulatedDevice:
         each tone through the plant's frequency response, rendered by the rig's renderer."""
         import torch
 
-        from torchblur.render.psf import GaussianPSF
-        from torchblur.render.window import ExposureWindow
         from torchblur.render.trajectory import Multisine
 
         r = self.rig
@@ -476,16 +473,9 @@ class EmulatedDevice:
         a = torch.tensor([t[1] for t in tones], dtype=torch.float64)
         p0 = torch.tensor([t[2] for t in tones], dtype=torch.float64)
         trig = torch.tensor(job.rel_trig, dtype=torch.float64)
-        win = r._actual_starts(trig, torch.full_like(trig, job.exposure_s))
-        p = job.args["power"]
-        psf = GaussianPSF(r.psf.center, r.psf.cov, r.psf.amplitude * p)
-        expected = 0
-        for k in range(h.shape[0]):
-            amp = (a * h[k].abs()).T  # [F, 2]
-            ph = (p0 + h[k].angle()).T
-            traj = Multisine(amp, ph, torch.as_tensor(2 * np.pi * f))
-            expected = expected + r._render(traj, psf if psf.shape == () else psf[k], ExposureWindow(win.start, win.duration))
-        return r._expose(expected).numpy()
+        trajs = [Multisine((a * h[k].abs()).T, (p0 + h[k].angle()).T, torch.as_tensor(2 * np.pi * f))  # amplitude, phase [F, 2]
+                 for k in range(h.shape[0])]
+        return r.render_frames(trajs, trig, job.exposure_s, power=job.args["power"]).numpy()
 
     def _camera_loop(self) -> None:
         while True:

@@ -1,17 +1,17 @@
-"""The identification pipeline: ``config`` (the run's settings), ``run`` (calibration, sweep,
-fits, frequency response and model), ``multisine`` (the multisine plan) and ``cli`` (the
-``torchblur`` command).
+"""The identification pipeline: ``config`` (the run's settings), ``pipeline`` (the stages
+over one run record: ``calibration``, ``sweep`` (the sine plan) or ``multisine`` (the
+multisine plan), ``fitting``, ``assemble``, ``model``, the ``result``), ``rigs`` (the rig
+and the recording), ``run`` (the public names, where they have always been imported from)
+and ``cli`` (the ``torchblur`` command).
 
-The package is itself callable: ``torchblur.identify.run(cfg, rig)`` is
-``torchblur.identify.identify(cfg, rig)``.
+The package is itself callable: ``torchblur.identify(cfg, rig)`` is
+``torchblur.identify.identify(cfg, rig)``. Its names load on first use, so importing
+``torchblur.identify.config`` (the settings, which the bench emulator shares) does not load
+the pipeline.
 """
+import importlib as _importlib
 import sys as _sys
 import types as _types
-
-from torchblur.identify.run import (
-    Calibration, IdentificationResult, build_rig, build_simulated_rig, calibrate, calibrate_latency, check_resume_config,
-    fit_model, identify, plant_of,
-)
 
 __all__ = [
     "Calibration", "IdentificationResult", "build_rig", "build_simulated_rig", "calibrate", "calibrate_latency",
@@ -19,11 +19,23 @@ __all__ = [
 ]
 
 
+def __getattr__(name: str):
+    if name in __all__:
+        value = getattr(_importlib.import_module("torchblur.identify.run"), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'torchblur.identify' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))
+
+
 class _CallableModule(_types.ModuleType):
-    """``torchblur.identify.run`` is both this package and the function it is named after."""
+    """``torchblur.identify`` is both this package and the function it is named after."""
 
     def __call__(self, *args, **kwargs):
-        return identify(*args, **kwargs)
+        return self.identify(*args, **kwargs)
 
 
 _sys.modules[__name__].__class__ = _CallableModule

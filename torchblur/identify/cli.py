@@ -224,7 +224,7 @@ def _write_outputs(cfg, res, out: Path, elapsed: float, stamp: str) -> None:
 
     frf = res.frf
     frf.meta.update({"torchblur_version": tb.__version__, "seed": int(cfg.seed)})
-    _write_frf_csv(frf, out / "frf.csv", stamp_version=tb.__version__, seed=cfg.seed)
+    frf.to_csv(out / "frf.csv", extra_columns={"torchblur_version": tb.__version__, "seed": cfg.seed})
     frf.to_json(out / "frf.json")
     model = {"torchblur_version": tb.__version__, "seed": int(cfg.seed)}
     if res.model is not None:
@@ -264,28 +264,6 @@ def _write_outputs(cfg, res, out: Path, elapsed: float, stamp: str) -> None:
     (out / "report.txt").write_text(report)
     print(report)
     print(f"wrote {', '.join(sorted(p.name for p in out.iterdir()))} in {out}")
-
-
-def _write_frf_csv(frf, path, *, stamp_version, seed):
-    """frf.csv: freq_hz,magnitude,phase_deg,magnitude_std,phase_std_deg (+ stamp columns)."""
-    import csv
-
-    import numpy as np
-
-    with open(path, "w", newline="") as fh:
-        w = csv.writer(fh)
-        mimo = not frf.is_siso
-        head = (["output", "input"] if mimo else []) + ["freq_hz", "magnitude", "phase_deg", "magnitude_std", "phase_std_deg",
-                                                          "torchblur_version", "seed"]
-        w.writerow(head)
-        for o in range(frf.n_outputs):
-            for i in range(frf.n_inputs):
-                for k in range(len(frf.omega)):
-                    deg = float(np.degrees(frf.phase[o, i, k]))
-                    row = ([frf.output_labels[o], frf.input_labels[i]] if mimo else []) + [
-                        repr(float(frf.freq_hz[k])), repr(float(frf.magnitude[o, i, k])), repr(deg),
-                        repr(float(frf.magnitude_std[o, i, k])), repr(float(np.degrees(frf.phase_std[o, i, k]))), stamp_version, seed]
-                    w.writerow(row)
 
 
 def _fitted_images(res, idx):

@@ -1,9 +1,9 @@
 """The identification with multisine excitation (``excitation.kind=multisine``).
 
-Stages 1-4 (dark frame, saturation, PSF, latency) and 7 (the model) are those of
-:func:`torchblur.identify.run.identify` (:func:`~torchblur.identify.run.calibrate`,
-:func:`~torchblur.identify.run.fit_model`). Stages 5-6 become, for each group of
-``excitation.tones`` frequencies of the sweep:
+The multisine plan (:class:`MultisinePlan`) of the identification's stages: calibrate and
+model are those of every run (:mod:`torchblur.identify.calibration`,
+:mod:`torchblur.identify.model`); the sweep, fit and assemble stages become, for each group
+of ``excitation.tones`` frequencies of the sweep:
 
 1. tones on a common grid ``n_k f0`` (:func:`~torchblur.design.multisine.common_grid`, each frequency
    moved by at most ``excitation.snap_tol``); command amplitudes so that every tone moves the
@@ -32,10 +32,24 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+from tqdm.auto import tqdm
 
-from torchblur.identify.run import IdentificationResult, _log, _stage, fit_model
+from torchblur.design.fisher import design_acquisition
+from torchblur.design.multisine import common_grid, multisine_signal, optimise_crest_factor
+from torchblur.fit.multisine import fit_multisine, render_multisine
+from torchblur.identify.record import RunRecord, run_stage
+from torchblur.identify.result import IdentificationResult
+from torchblur.identify.stages import run_plan
+from torchblur.image.moments import image_moments, moments_along
+from torchblur.image.preprocess import subtract_dark
+from torchblur.render.camera import camera_noise_std
+from torchblur.render.psf import GaussianPSF
+from torchblur.render.window import ExposureWindow
+from torchblur.sysid.frequency_response import FrequencyResponse
 
-__all__ = ["MultisineIdentificationResult", "identify_multisine", "group_frequencies"]
+__all__ = ["MultisineIdentificationResult", "MultisinePlan", "identify_multisine", "group_frequencies"]
+
+_F64 = torch.float64
 
 
 @dataclass
@@ -60,10 +74,6 @@ class MultisineIdentificationResult(IdentificationResult):
     def residual_panels(self, n: int = 3):
         """``(data [n, H, W], model [n, H, W], labels)``: the first frame of the ``n`` groups
         with the largest cost per pixel, and its fitted model (for the residual figure)."""
-        from torchblur.fit.multisine import render_multisine
-        from torchblur.render.psf import GaussianPSF
-        from torchblur.render.window import ExposureWindow
-
         H, W = self.images.shape[-2:]
         cost = np.array([float(f.cost) / max(1, (g["images"].stop - g["images"].start) * H * W) for f, g in zip(self.fit, self.groups)])
         worst = np.argsort(np.nan_to_num(cost, nan=np.inf))[-n:][::-1]
@@ -102,175 +112,259 @@ def _gain_guess(known: list, freq_hz: np.ndarray):
     return kg[idx]
 
 
-def identify_multisine(cfg, rig, exp, log, progress, cal, t_start: float) -> MultisineIdentificationResult:
-    """Stages 5-7 of the identification with multisine excitation (see the module
-    docstring), after the calibration ``cal`` (:func:`~torchblur.identify.run.calibrate`)."""
-    from tqdm.auto import tqdm
 
-    from torchblur.design.fisher import design_acquisition
-    from torchblur.sysid.frequency_response import FrequencyResponse
-    from torchblur.image.moments import image_moments, moments_along
-    from torchblur.design.multisine import common_grid, optimise_crest_factor
-    from torchblur.fit.multisine import fit_multisine
-    from torchblur.image.preprocess import subtract_dark
-    from torchblur.render.window import ExposureWindow
+@dataclass
+class _Group:
+    """The tones of one group: ``f0`` (Hz) and ``harm`` (sorted harmonics), ``f_t`` (Hz) and
+    ``om`` (rad/s) ``[N]``, ``T0`` (s), ``gains`` (|H| guesses or None), ``a0`` (first command
+    amplitudes), ``rms_target`` (px), ``te_p`` (pilot exposure, s)."""
 
+    f0: float
+    harm: np.ndarray
+    f_t: np.ndarray
+    om: np.ndarray
+    T0: float
+    gains: np.ndarray | None
+    a0: np.ndarray
+    rms_target: float
+    te_p: float
+
+
+@dataclass
+class _Settings:
+    """What every group shares: ``peak_e`` (electrons at the still spot's peak in every
+    frame), ``u`` (the motion's image direction ``[2]``), ``tone_px``, ``amax``, ``tmax`` (s)."""
+
+    peak_e: float
+    u: torch.Tensor
+    tone_px: float
+    amax: object
+    tmax: float
+
+
+@dataclass
+class MultisineAcquisition:
+    """What the multisine sweep collected: per tone ``freq_hz``, ``response``, ``cov``
+    ``[2, 2]``, ``amplitude``; per group ``fits`` and ``groups`` (info dicts); every fitted
+    frame's ``images`` (electrons at power 1), ``start``, ``duration`` and ``power``."""
+
+    freq_hz: list = field(default_factory=list)
+    response: list = field(default_factory=list)
+    cov: list = field(default_factory=list)
+    amplitude: list = field(default_factory=list)
+    fits: list = field(default_factory=list)
+    groups: list = field(default_factory=list)
+    images: list = field(default_factory=list)
+    start: list = field(default_factory=list)
+    duration: list = field(default_factory=list)
+    power: list = field(default_factory=list)
+    known: list = field(default_factory=list)
+    fit_s: float = 0.0
+    t_sweep: float = 0.0
+    t_acq_end: float = 0.0
+
+
+def _settings(cfg, rig, cal) -> _Settings:
     c, x = cfg.camera, cfg.excitation
-    dtype = torch.float64
-    H, W = rig.frame_shape
-    dark, read_noise_e, sat, full_adu = cal.dark, cal.read_noise_e, cal.saturation, cal.full_adu
-    psf, peak_rate, latency, latency_std, gain = cal.psf, cal.peak_rate, cal.latency_s, cal.latency_std_s, cal.gain
-    peak_e = c.peak_fraction * full_adu * gain  # electrons at the still spot's peak in every frame
-    u = torch.tensor(cal.direction if cal.direction is not None else (1.0, 0.0), dtype=dtype)  # the motion's image direction
-    tone_px = float(x.tone_px) if x.tone_px is not None else 0.75 * float(x.target_px)
-    amax = x.max_amplitude
-    tmax = min(float(c.max_exposure_s), float(rig.max_exposure_s))
-    groups = group_frequencies(cfg.frequencies_hz(), int(x.tones))
-    known: list = []
-    out_f, out_h, out_cov, out_amp, fits, infos = [], [], [], [], [], []
-    all_imgs, all_start, all_dur, all_pow = [], [], [], []
-    t_sweep = time.perf_counter()
-    fit_s = 0.0
-    bar = tqdm(total=len(groups), desc="multisine", unit="group", disable=not progress)
-    for g, fg in enumerate(groups):
-        f0, harm = common_grid(fg, snap_tol=float(x.snap_tol))
-        order = np.argsort(harm)
-        harm = harm[order]
-        f_t = f0 * harm.astype(np.float64)
-        om = 2 * np.pi * f_t
-        T0 = 1.0 / f0
-        N = len(f_t)
-        gains = _gain_guess(known, f_t)
-        a0 = tone_px / (gains if gains is not None else np.full(N, 10.0))
-        rms_target = tone_px * math.sqrt(N / 2)
-        settle = cfg.sweep.settle_s
-        te_p = min(T0, tmax)
+    return _Settings(peak_e=c.peak_fraction * cal.full_adu * cal.gain,
+                     u=torch.tensor(cal.direction if cal.direction is not None else (1.0, 0.0), dtype=_F64),
+                     tone_px=float(x.tone_px) if x.tone_px is not None else 0.75 * float(x.target_px), amax=x.max_amplitude,
+                     tmax=min(float(c.max_exposure_s), float(rig.max_exposure_s)))
 
-        def limit(a, phases):
-            if amax is None:
-                return a
-            from torchblur.design.multisine import multisine_signal
 
-            peak = np.abs(multisine_signal(harm, a, phases, max(1024, 32 * int(harm.max())))).max()
-            return a * min(1.0, float(amax) / peak)
+def _group(fg, snap_tol: float, known: list, st: _Settings) -> _Group:
+    """The tones of the frequencies ``fg`` on a common grid, and their first amplitudes."""
+    f0, harm = common_grid(fg, snap_tol=snap_tol)
+    harm = harm[np.argsort(harm)]
+    f_t = f0 * harm.astype(np.float64)
+    gains = _gain_guess(known, f_t)
+    N = len(f_t)
+    return _Group(f0=f0, harm=harm, f_t=f_t, om=2 * np.pi * f_t, T0=1.0 / f0, gains=gains,
+                  a0=st.tone_px / (gains if gains is not None else np.full(N, 10.0)), rms_target=st.tone_px * math.sqrt(N / 2),
+                  te_p=min(1.0 / f0, st.tmax))
 
-        def acquire(r, a=a0):
-            phases, _ = optimise_crest_factor(harm, a)
-            a = limit(a, phases)
-            pilots = []
-            for attempt in range(3):
-                cap = r.multisine(freq_hz=[float(v) for v in f_t], amplitude=[float(v) for v in a], phase_rad=[float(v) for v in phases],
-                                  exposures_s=[te_p], trigger_offset_s=[0.0], n_repeats=1, base_freq_hz=float(f0), settle_s=settle,
-                                  power=float(peak_e / (peak_rate * te_p)))
-                pilots.append(cap)
-                img = subtract_dark(cap.frames.to(dtype), dark)[0, 0] * gain
-                _, cen, cv = image_moments(img, threshold=3 * read_noise_e)
-                along, vex = moments_along(cen - psf.center, cv - psf.cov, u)
-                ms = float(vex + along**2)  # mean square motion along the axis
-                rms = math.sqrt(max(ms, 1e-4))
-                ok = 0.75 * rms_target <= rms <= 1.33 * rms_target
-                at_limit = amax is not None and rms < rms_target and np.allclose(limit(a * 1.01, phases), a, rtol=1e-9)
-                if ok or at_limit or attempt == 2:
-                    break
-                a = limit(a * rms_target / max(rms, 0.05 * rms_target), phases)
-            # Expected output amplitudes: the gains' shape (or equal tones) scaled to the measured rms.
-            shape = a * (gains if gains is not None else np.ones(N))
-            M_exp = shape * rms / math.sqrt(float(np.sum(shape**2)) / 2)
-            # The last pilot shows the final motion: it is one image of the set (window from offset 0).
-            pilot_win = ExposureWindow(torch.tensor([c.trigger_delay_s + latency], dtype=dtype), torch.tensor([te_p], dtype=dtype))
-            n_more = None if x.images is None else max(1, int(x.images) - 1)
-            design = design_acquisition(M_exp, om, psf, period_s=T0, max_exposure_s=tmax, frame_shape=(H, W),
-                                        read_noise_e=read_noise_e, n_images=n_more, max_images=int(x.max_images) - 1,
-                                        target_std=float(x.target_std), peak_e=peak_e, taken=pilot_win,
-                                        fit_scale=bool(cfg.fit.fit_scale), seed=int(cfg.seed) + g, direction=u)
-            te = list(design.exposure_s)
-            offsets = [(s - c.trigger_delay_s - latency) % T0 for s in design.window_start_s]
-            powers = [float(peak_e / (peak_rate * t)) for t in te]
-            cap = r.multisine(freq_hz=[float(v) for v in f_t], amplitude=[float(v) for v in a], phase_rad=[float(v) for v in phases],
-                              exposures_s=te, trigger_offset_s=offsets, n_repeats=1, base_freq_hz=float(f0), settle_s=settle,
-                              power=powers)
-            return a, phases, M_exp, design, pilots, cap, offsets, powers
 
-        a, phases, M_exp, design, pilot, cap, offsets, powers = _stage(exp, f"sweep/multisine/{g:03d}", "sweep", rig, acquire)
-        n_pilot = len(pilot)
-        offsets = [0.0] + offsets
-        powers = [float(peak_e / (peak_rate * te_p))] + powers
-        exposures = [te_p] + list(design.exposure_s)
-        frames = torch.cat([pilot[-1].frames.reshape(1, H, W), cap.frames.reshape(-1, H, W)]).to(dtype)
-        E = len(offsets)
-        img = subtract_dark(frames, dark) * gain  # electrons
-        mask = sat.mask(frames)
-        pw = torch.tensor(powers, dtype=dtype)[:, None, None]
-        noise = torch.sqrt(read_noise_e**2 + img.clamp_min(0)) / pw
-        img = img / pw  # electrons at power 1
-        start = torch.tensor([o + c.trigger_delay_s + latency for o in offsets], dtype=dtype)
-        dur = torch.tensor(exposures, dtype=dtype)
-        win = ExposureWindow(start, dur)
-        t0 = time.perf_counter()
-        fit = fit_multisine(img, psf, win, torch.tensor(om, dtype=dtype), noise_std=noise, mask=mask,
-                            amplitude_guess=torch.tensor(M_exp, dtype=dtype), fit_scale=bool(cfg.fit.fit_scale), seed=int(cfg.seed),
-                            direction=u)
-        fit_s += time.perf_counter() - t0
-        a_t = np.asarray(a, dtype=np.float64)
-        M, ph = fit.amplitude.numpy(), fit.phase.numpy()
-        Ms, phs = fit.amplitude_std.numpy(), fit.phase_std.numpy()
-        resp = M / a_t * np.exp(1j * (ph - np.asarray(phases)))
-        ph_std = np.sqrt(phs**2 + (om * c.jitter_s) ** 2 / E + (om * latency_std) ** 2)
-        cov = np.zeros((N, 2, 2))
-        cov[:, 0, 0] = (Ms / a_t) ** 2
-        cov[:, 1, 1] = ph_std**2
-        cm = fit.covariance.numpy()
-        cov[:, 0, 1] = cov[:, 1, 0] = cm[np.arange(N), N + np.arange(N)] / a_t
-        if not bool(fit.converged):
-            resp[:] = np.nan
-            cov[:] = np.nan
-        else:
-            known += [(float(f), float(abs(h))) for f, h in zip(f_t, resp)]
-        i0 = len(all_imgs)
-        all_imgs += list(img)
-        all_start += start.tolist()
-        all_dur += dur.tolist()
-        all_pow += powers
-        fits.append(fit)
-        infos.append({"freq_hz": f_t.tolist(), "base_freq_hz": float(f0), "harmonics": harm.tolist(), "amplitude": a_t.tolist(),
-                      "phase_rad": list(map(float, phases)), "design": design, "images": slice(i0, i0 + E),
-                      "pilot_images": n_pilot - 1, "trigger_offset_s": offsets})
-        out_f += f_t.tolist()
-        out_h += list(resp)
-        out_cov += list(cov)
-        out_amp += a_t.tolist()
-        _log(log, f"multisine group {g}: tones {', '.join(f'{v:.4g}' for v in f_t)} Hz (f0 {f0:.4g} Hz, harmonics "
-                  f"{harm.tolist()}), {n_pilot} pilot(s) + {E - 1} designed frames, {E} fitted (exposures "
-                  f"{', '.join(f'{t / T0:.2f}' for t in exposures)} T0), predicted std |H| "
-                  f"{100 * float(np.max(design.amplitude_rel_std)):.3f}% / phase "
-                  f"{math.degrees(float(np.max(design.phase_std))):.3f} deg; fit {'ok' if bool(fit.converged) else 'FAILED'}",
-             progress)
-        bar.update(1)
-    bar.close()
-    t_acq_end = time.perf_counter()
-    idx = np.argsort(out_f, kind="stable")
-    freq = np.asarray(out_f)[idx]
-    response = np.asarray(out_h)[idx]
-    cov = np.asarray(out_cov)[idx]
-    rank = np.empty_like(idx)
-    rank[idx] = np.arange(idx.size)
-    pos = 0
-    for info in infos:
-        n = len(info["freq_hz"])
-        info["order"] = rank[pos:pos + n].tolist()
-        pos += n
-    frf = FrequencyResponse(2 * np.pi * freq, response, cov=cov, input_labels=["x"], output_labels=["x"],
-                            meta={"seed": int(cfg.seed), "excitation": "multisine", "direction": [float(v) for v in u]})
-    n_bad = int(np.isnan(response).sum())
-    _log(log, f"fit: {len(freq) - n_bad} of {len(freq)} points converged ({len(groups)} multisine group(s))", progress)
-    model = fit_model(cfg, frf, log, progress)
-    truth = np.asarray([rig.truth(float(f)) for f in freq]) if hasattr(rig, "truth") else None
-    t_end = time.perf_counter()
-    timing = {"calibration_s": t_sweep - t_start, "sweep_s": t_acq_end - t_sweep - fit_s, "fit_s": fit_s, "fit_overlapped_s": 0.0,
-              "after_sweep_s": t_end - t_acq_end, "fit_chunks": len(groups), "total_s": t_end - t_start}
-    images = torch.stack(all_imgs) if all_imgs else torch.zeros(0, H, W, dtype=dtype)
-    windows = ExposureWindow(torch.tensor(all_start, dtype=dtype), torch.tensor(all_dur, dtype=dtype))
-    return MultisineIdentificationResult(frf=frf, model=model, psf=psf, fit=fits, amplitude=np.asarray(out_amp)[idx], latency_s=latency,
-                                         latency_std_s=latency_std, saturation=sat, images=images, windows=windows,
-                                         power=torch.tensor(all_pow, dtype=dtype), truth=truth, log=log, timing=timing, groups=infos,
-                                         direction=cal.direction, axis=cal.axis)
+def _limit(a, phases, grp: _Group, amax):
+    """``a`` scaled down so the command's peak stays within ``amax`` (None: no limit)."""
+    if amax is None:
+        return a
+    peak = np.abs(multisine_signal(grp.harm, a, phases, max(1024, 32 * int(grp.harm.max())))).max()
+    return a * min(1.0, float(amax) / peak)
+
+
+def _pilots(r, run, grp: _Group, st: _Settings):
+    """Pilot frames over one common period until the rms motion is within [0.75, 1.33] of the
+    target (at most 3). Returns ``(amplitudes, phases, pilot captures, rms px)``."""
+    cal, dark, gain = run.cal, run.cal.dark, run.cal.gain
+    phases, _ = optimise_crest_factor(grp.harm, grp.a0)
+    a = _limit(grp.a0, phases, grp, st.amax)
+    pilots = []
+    for attempt in range(3):
+        cap = r.multisine(freq_hz=[float(v) for v in grp.f_t], amplitude=[float(v) for v in a], phase_rad=[float(v) for v in phases],
+                          exposures_s=[grp.te_p], trigger_offset_s=[0.0], n_repeats=1, base_freq_hz=float(grp.f0),
+                          settle_s=run.cfg.sweep.settle_s, power=float(st.peak_e / (cal.peak_rate * grp.te_p)))
+        pilots.append(cap)
+        img = subtract_dark(cap.frames.to(_F64), dark)[0, 0] * gain
+        _, cen, cv = image_moments(img, threshold=3 * cal.read_noise_e)
+        along, vex = moments_along(cen - cal.psf.center, cv - cal.psf.cov, st.u)
+        rms = math.sqrt(max(float(vex + along**2), 1e-4))  # rms motion along the axis
+        ok = 0.75 * grp.rms_target <= rms <= 1.33 * grp.rms_target
+        at_limit = st.amax is not None and rms < grp.rms_target and np.allclose(_limit(a * 1.01, phases, grp, st.amax), a, rtol=1e-9)
+        if ok or at_limit or attempt == 2:
+            break
+        a = _limit(a * grp.rms_target / max(rms, 0.05 * grp.rms_target), phases, grp, st.amax)
+    return a, phases, pilots, rms
+
+
+def _acquire_group(r, run, grp: _Group, st: _Settings, g: int):
+    """Pilots, then the image set designed from the Fisher information, in one
+    ``rig.multisine`` call. Returns ``(a, phases, M_exp, design, pilots, capture, offsets, powers)``."""
+    cfg, cal = run.cfg, run.cal
+    c, x = cfg.camera, cfg.excitation
+    H, W = r.frame_shape
+    a, phases, pilots, rms = _pilots(r, run, grp, st)
+    N = len(grp.f_t)
+    # Expected output amplitudes: the gains' shape (or equal tones) scaled to the measured rms.
+    shape = a * (grp.gains if grp.gains is not None else np.ones(N))
+    M_exp = shape * rms / math.sqrt(float(np.sum(shape**2)) / 2)
+    # The last pilot shows the final motion: it is one image of the set (window from offset 0).
+    pilot_win = ExposureWindow(torch.tensor([c.trigger_delay_s + cal.latency_s], dtype=_F64), torch.tensor([grp.te_p], dtype=_F64))
+    design = design_acquisition(M_exp, grp.om, cal.psf, period_s=grp.T0, max_exposure_s=st.tmax, frame_shape=(H, W),
+                                read_noise_e=cal.read_noise_e, n_images=None if x.images is None else max(1, int(x.images) - 1),
+                                max_images=int(x.max_images) - 1, target_std=float(x.target_std), peak_e=st.peak_e, taken=pilot_win,
+                                fit_scale=bool(cfg.fit.fit_scale), seed=int(cfg.seed) + g, direction=st.u)
+    te = list(design.exposure_s)
+    offsets = [(s - c.trigger_delay_s - cal.latency_s) % grp.T0 for s in design.window_start_s]
+    powers = [float(st.peak_e / (cal.peak_rate * t)) for t in te]
+    cap = r.multisine(freq_hz=[float(v) for v in grp.f_t], amplitude=[float(v) for v in a], phase_rad=[float(v) for v in phases],
+                      exposures_s=te, trigger_offset_s=offsets, n_repeats=1, base_freq_hz=float(grp.f0),
+                      settle_s=cfg.sweep.settle_s, power=powers)
+    return a, phases, M_exp, design, pilots, cap, offsets, powers
+
+
+def _fit_group(run, acq: MultisineAcquisition, grp: _Group, st: _Settings, acquired) -> None:
+    """Fit every tone of one group from its image set (the last pilot first) and add the
+    points, images and info to ``acq``."""
+    c, cal = run.cfg.camera, run.cal
+    H, W = run.rig.frame_shape
+    a, phases, M_exp, design, pilot, cap, offsets, powers = acquired
+    offsets = [0.0] + offsets
+    powers = [float(st.peak_e / (cal.peak_rate * grp.te_p))] + powers
+    exposures = [grp.te_p] + list(design.exposure_s)
+    frames = torch.cat([pilot[-1].frames.reshape(1, H, W), cap.frames.reshape(-1, H, W)]).to(_F64)
+    E, N = len(offsets), len(grp.f_t)
+    img = subtract_dark(frames, cal.dark) * cal.gain  # electrons
+    pw = torch.tensor(powers, dtype=_F64)[:, None, None]
+    noise = camera_noise_std(img, cal.read_noise_e) / pw
+    img = img / pw  # electrons at power 1
+    start = torch.tensor([o + c.trigger_delay_s + cal.latency_s for o in offsets], dtype=_F64)
+    dur = torch.tensor(exposures, dtype=_F64)
+    t0 = time.perf_counter()
+    fit = fit_multisine(img, cal.psf, ExposureWindow(start, dur), torch.tensor(grp.om, dtype=_F64), noise_std=noise,
+                        mask=cal.saturation.mask(frames), amplitude_guess=torch.tensor(M_exp, dtype=_F64),
+                        fit_scale=bool(run.cfg.fit.fit_scale), seed=int(run.cfg.seed), direction=st.u)
+    acq.fit_s += time.perf_counter() - t0
+    a_t = np.asarray(a, dtype=np.float64)
+    resp = fit.amplitude.numpy() / a_t * np.exp(1j * (fit.phase.numpy() - np.asarray(phases)))
+    ph_std = np.sqrt(fit.phase_std.numpy()**2 + (grp.om * c.jitter_s) ** 2 / E + (grp.om * cal.latency_std_s) ** 2)
+    cov = np.zeros((N, 2, 2))
+    cov[:, 0, 0] = (fit.amplitude_std.numpy() / a_t) ** 2
+    cov[:, 1, 1] = ph_std**2
+    cov[:, 0, 1] = cov[:, 1, 0] = fit.covariance.numpy()[np.arange(N), N + np.arange(N)] / a_t
+    if not bool(fit.converged):
+        resp[:] = np.nan
+        cov[:] = np.nan
+    else:
+        acq.known += [(float(f), float(abs(h))) for f, h in zip(grp.f_t, resp)]
+    i0 = len(acq.images)
+    acq.images += list(img)
+    acq.start += start.tolist()
+    acq.duration += dur.tolist()
+    acq.power += powers
+    acq.fits.append(fit)
+    acq.groups.append({"freq_hz": grp.f_t.tolist(), "base_freq_hz": float(grp.f0), "harmonics": grp.harm.tolist(),
+                       "amplitude": a_t.tolist(), "phase_rad": list(map(float, phases)), "design": design, "images": slice(i0, i0 + E),
+                       "pilot_images": len(pilot) - 1, "trigger_offset_s": offsets})
+    acq.freq_hz += grp.f_t.tolist()
+    acq.response += list(resp)
+    acq.cov += list(cov)
+    acq.amplitude += a_t.tolist()
+    run.say(f"multisine group {len(acq.fits) - 1}: tones {', '.join(f'{v:.4g}' for v in grp.f_t)} Hz (f0 {grp.f0:.4g} Hz, harmonics "
+            f"{grp.harm.tolist()}), {len(pilot)} pilot(s) + {E - 1} designed frames, {E} fitted (exposures "
+            f"{', '.join(f'{t / grp.T0:.2f}' for t in exposures)} T0), predicted std |H| "
+            f"{100 * float(np.max(design.amplitude_rel_std)):.3f}% / phase "
+            f"{math.degrees(float(np.max(design.phase_std))):.3f} deg; fit {'ok' if bool(fit.converged) else 'FAILED'}")
+
+
+class MultisinePlan:
+    """Multisine groups: the sweep, fit, assemble and report stages of ``excitation.kind=multisine``
+    (see the module docstring). Each group is fitted as soon as its image set is taken."""
+
+    kind = "multisine"
+    supports_direct = False
+
+    def sweep(self, run) -> None:
+        """Every group in turn: pilots, the designed image set, its fit."""
+        cfg = run.cfg
+        st = _settings(cfg, run.rig, run.cal)
+        groups = group_frequencies(cfg.frequencies_hz(), int(cfg.excitation.tones))
+        acq = run.acquisition = MultisineAcquisition(t_sweep=time.perf_counter())
+        bar = tqdm(total=len(groups), desc="multisine", unit="group", disable=not run.progress)
+        for g, fg in enumerate(groups):
+            grp = _group(fg, float(cfg.excitation.snap_tol), acq.known, st)
+            acquired = run_stage(run.exp, f"sweep/multisine/{g:03d}", "sweep", run.rig, lambda r: _acquire_group(r, run, grp, st, g))
+            _fit_group(run, acq, grp, st, acquired)
+            bar.update(1)
+        bar.close()
+        acq.t_acq_end = time.perf_counter()
+
+    def fit(self, run) -> None:
+        """The groups' fits (taken during the sweep), one MultisineFit per group."""
+        run.fit = run.acquisition.fits
+
+    def assemble(self, run) -> None:
+        """One FrequencyResponse at the tones' (grid) frequencies, in frequency order; each
+        group's ``order`` (its tones' indices in it); the images, windows, powers; the truth."""
+        acq, cal = run.acquisition, run.cal
+        idx = np.argsort(acq.freq_hz, kind="stable")
+        freq = np.asarray(acq.freq_hz)[idx]
+        response = np.asarray(acq.response)[idx]
+        rank = np.empty_like(idx)
+        rank[idx] = np.arange(idx.size)
+        pos = 0
+        for info in acq.groups:
+            n = len(info["freq_hz"])
+            info["order"] = rank[pos:pos + n].tolist()
+            pos += n
+        u = cal.direction if cal.direction is not None else (1.0, 0.0)
+        run.frf = FrequencyResponse(2 * np.pi * freq, response, cov=np.asarray(acq.cov)[idx], input_labels=["x"], output_labels=["x"],
+                                    meta={"seed": int(run.cfg.seed), "excitation": "multisine", "direction": [float(v) for v in u]})
+        n_bad = int(np.isnan(response).sum())
+        run.say(f"fit: {len(freq) - n_bad} of {len(freq)} points converged ({len(acq.groups)} multisine group(s))")
+        H, W = run.rig.frame_shape
+        run.images = torch.stack(acq.images) if acq.images else torch.zeros(0, H, W, dtype=_F64)
+        run.windows = ExposureWindow(torch.tensor(acq.start, dtype=_F64), torch.tensor(acq.duration, dtype=_F64))
+        run.power = torch.tensor(acq.power, dtype=_F64)
+        run.truth = np.asarray([run.rig.truth(float(f)) for f in freq]) if hasattr(run.rig, "truth") else None
+
+    def result(self, run) -> MultisineIdentificationResult:
+        """The :class:`MultisineIdentificationResult` (timing up to now)."""
+        acq, cal = run.acquisition, run.cal
+        t_end = time.perf_counter()
+        run.timing = {"calibration_s": acq.t_sweep - run.t_start, "sweep_s": acq.t_acq_end - acq.t_sweep - acq.fit_s,
+                      "fit_s": acq.fit_s, "fit_overlapped_s": 0.0, "after_sweep_s": t_end - acq.t_acq_end,
+                      "fit_chunks": len(acq.groups), "total_s": t_end - run.t_start}
+        idx = np.argsort(acq.freq_hz, kind="stable")
+        return MultisineIdentificationResult(frf=run.frf, model=run.model, psf=cal.psf, fit=run.fit,
+                                             amplitude=np.asarray(acq.amplitude)[idx], latency_s=cal.latency_s,
+                                             latency_std_s=cal.latency_std_s, saturation=cal.saturation, images=run.images,
+                                             windows=run.windows, power=run.power, truth=run.truth, log=run.log, timing=run.timing,
+                                             groups=acq.groups, direction=cal.direction, axis=cal.axis)
+
+
+def identify_multisine(cfg, rig, exp, log, progress, cal, t_start: float) -> MultisineIdentificationResult:
+    """The stages after the calibration ``cal`` of a multisine run (sweep, fit, assemble,
+    model, report; :func:`~torchblur.identify.stages.run_plan` with :class:`MultisinePlan`),
+    appending to ``log``; ``t_start`` (perf_counter s) is when the calibration began."""
+    run = RunRecord(cfg=cfg, rig=rig, exp=exp, log=log, progress=progress, t_start=t_start, cal=cal, plan=MultisinePlan())
+    return run_plan(run)

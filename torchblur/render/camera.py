@@ -18,6 +18,7 @@ it comes from its own generator seeded with ``hot_pixel_seed``.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -25,7 +26,30 @@ import torch
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_finite, check_real_scalar
 from torchblur.render.window import ExposureWindow
 
-__all__ = ["CameraModel"]
+__all__ = ["CameraModel", "camera_noise_std"]
+
+
+def camera_noise_std(expected_e, read_noise_e: float):
+    """Standard deviation of a measured pixel, in electrons: ``sqrt(read_noise_e**2 +
+    max(expected_e, 0))`` (read noise and shot noise; the noise model every fit of the
+    identification weights its residuals with, the expected charge estimated by the
+    dark-subtracted image itself).
+
+    Args:
+        expected_e: expected (or measured) photo-electrons per pixel: a tensor ``[...]`` (any
+            shape; negative values count as 0) or a number.
+        read_noise_e: read noise (electrons, >= 0).
+
+    Returns:
+        A tensor of the same shape, dtype and device (a float for a number).
+
+    Example:
+        >>> camera_noise_std(torch.tensor([-2.0, 0.0, 16.0]), 3.0)
+        tensor([3., 3., 5.])
+    """
+    if isinstance(expected_e, torch.Tensor):
+        return torch.sqrt(read_noise_e**2 + expected_e.clamp_min(0))
+    return math.sqrt(read_noise_e**2 + max(float(expected_e), 0.0))
 
 
 def _check_int(value, name: str, low: int, high: int) -> int:

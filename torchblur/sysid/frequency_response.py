@@ -458,8 +458,12 @@ class FrequencyResponse:
         )
 
     # -------------------------------------------------------------------- CSV
-    def to_csv(self, path: str | os.PathLike) -> None:
-        """Write a CSV file (format in the module docstring; the correlation is lost)."""
+    def to_csv(self, path: str | os.PathLike, *, extra_columns: dict | None = None) -> None:
+        """Write a CSV file (format in the module docstring; the correlation is lost). Phase
+        in degrees in (-180, 180]. ``extra_columns``: ``{name: value}`` appended to the header
+        and to every row (e.g. the CLI's ``torchblur_version`` and ``seed``;
+        :meth:`from_csv` ignores them)."""
+        extra = dict(extra_columns or {})
         mag = self.magnitude
         phase_deg = np.degrees(self.phase)
         phase_deg[phase_deg <= -180.0] = 180.0  # -pi + 1 ulp may round to -180
@@ -468,13 +472,13 @@ class FrequencyResponse:
         f_hz = self.freq_hz
         with open(path, "w", newline="") as fh:
             writer = csv.writer(fh, lineterminator="\n")
-            writer.writerow(_CSV_SISO_HEADER if self.is_siso else _CSV_MIMO_HEADER)
+            writer.writerow((_CSV_SISO_HEADER if self.is_siso else _CSV_MIMO_HEADER) + list(extra))
             for o in range(self.n_outputs):
                 for i in range(self.n_inputs):
                     lead = [] if self.is_siso else [self._output_labels[o], self._input_labels[i]]
                     for k in range(f_hz.size):
                         vals = (f_hz[k], mag[o, i, k], phase_deg[o, i, k], mag_std[o, i, k], phase_std_deg[o, i, k])
-                        writer.writerow(lead + [repr(float(v)) for v in vals])
+                        writer.writerow(lead + [repr(float(v)) for v in vals] + list(extra.values()))
 
     @classmethod
     def from_csv(cls, path: str | os.PathLike) -> "FrequencyResponse":

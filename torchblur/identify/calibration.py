@@ -1,0 +1,217 @@
+"""The calibrate stage (stages 1-4 of the identification): dark frame, saturation curve,
+PSF (one spot, or a grid of spots), trigger-to-exposure latency and, for one axis and one
+spot, the actuator's direction in the image."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from torchblur.errors import as_unit_direction
+from torchblur.identify.record import log_message, run_stage
+from torchblur.image.preprocess import dark_frame, fit_gaussian_psf, saturation_curve, subtract_dark
+from torchblur.image.spots import locate_spots
+from torchblur.image.tracking import calibrate_axes
+from torchblur.render.camera import camera_noise_std
+
+__all__ = ["Calibration", "MIN_INSIDE", "calibrate", "calibrate_latency"]
+
+MIN_INSIDE = 0.5  # a spot with less of its still light in the frame is flagged, not fitted
+
+
+@dataclass
+class Calibration:
+    """What the calibration stages (1-4 of :func:`identify`) measured: ``dark``
+    (:class:`~torchblur.image.preprocess.DarkFrame`), ``read_noise_e``, ``saturation``
+    (SaturationCurve), ``full_adu`` (usable range above the dark level, ADU), ``psf``
+    (GaussianPSF in electrons per second at power 1), ``peak_rate`` (its peak, e-/s),
+    ``latency_s`` and ``latency_std_s``, ``gain`` (e-/ADU), and for one-axis runs the
+    actuator's image ``direction``."""
+
+    dark: object
+    read_noise_e: float
+    saturation: object
+    full_adu: float
+    psf: object
+    peak_rate: float
+    latency_s: float
+    latency_std_s: float
+    gain: float
+    spots: object = None  # many spots: SpotPSFs (psf [K] per spot, crop offsets), else None
+    # One-axis, one-spot runs: the unit image direction (x, y) of the motion that is fitted, the
+    # AxisCalibration it was measured by (fit.axis=measure), and |H| (px per input unit) at the
+    # calibration frequency (seeds the sweep's first amplitude); else None.
+    direction: tuple | None = None
+    axis: object = None
+    axis_gain: float | None = None
+
+
+def calibrate(cfg, rig, exp=None, log=None, progress: bool = False) -> Calibration:
+    """Stages 1-4 of :func:`identify`: dark frame, saturation curve, PSF, latency and, for a
+    one-axis, one-spot run, the actuator's direction in the image (each taken from the
+    recording ``exp`` when it holds it)."""
+    log = [] if log is None else log
+    c = cfg.camera
+    gain = float(c.gain)
+    dtype = torch.float64
+
+    # 1. Dark frame.
+    dark = dark_frame(run_stage(exp, "dark", "dark", rig, lambda r: r.dark(n=16, exposure_s=min(0.01, c.max_exposure_s))).frames.to(dtype))
+    read_noise_e = float(dark.read_noise) * gain
+    log_message(log, f"dark: level {float(dark.mean.mean()):.2f} ADU, read noise {read_noise_e:.2f} e-, "
+              f"{int(dark.hot_pixels.sum())} hot pixels", progress)
+
+    # 3 (before 2, to choose the PSF exposure). Saturation curve of the still spot.
+    ladder = np.geomspace(1e-4, c.max_exposure_s, 9)
+    peaks = run_stage(exp, "saturation", "saturation", rig,
+                   lambda r: [float(r.still(n=1, exposure_s=float(te)).frames.to(dtype).amax()) for te in ladder])
+    sat = saturation_curve(torch.tensor(peaks, dtype=dtype), torch.tensor(ladder, dtype=dtype))
+    full_adu = float(sat.saturation_adu) - float(dark.mean.mean())
+    log_message(log, f"saturation: {float(sat.saturation_adu):.0f} ADU plateau, linear up to {float(sat.linear_limit_s) * 1e3:.3g} ms of still exposure", progress)
+
+    # 2. PSF: still frames at an exposure that fills peak_fraction of the range.
+    te_psf = float(min(c.max_exposure_s, c.peak_fraction * float(sat.linear_limit_s)))
+    still = subtract_dark(run_stage(exp, "psf", "psf", rig, lambda r: r.still(n=16, exposure_s=te_psf)).frames.to(dtype), dark).mean(0) * gain
+    spots = None
+    if getattr(cfg, "spots", None) is not None and cfg.spots.enabled:
+        spots = _locate_spots(cfg, still, te_psf, read_noise_e, log, progress)
+        psf = spots.psf  # [K], full-frame coordinates
+        whole = spots.inside_fraction >= MIN_INSIDE  # an edge spot's peak is an extrapolation: not trusted here
+        peak_rate = float(psf.amplitude[whole].max() if bool(whole.any()) else psf.amplitude.max())  # e-/s at power 1
+    else:
+        psf_fit = fit_gaussian_psf(still, exposure_s=te_psf, noise_std=camera_noise_std(float(still.max()), read_noise_e) / 4)
+        psf = psf_fit.psf
+        log_message(log, f"psf: centre ({float(psf.center[0]):.2f}, {float(psf.center[1]):.2f}) px, cov "
+                  f"[[{float(psf.cov[0, 0]):.3f}, {float(psf.cov[0, 1]):.3f}], [., {float(psf.cov[1, 1]):.3f}]] px^2, "
+                  f"relative residual {float(psf_fit.relative_residual):.2e}", progress)
+        peak_rate = float(psf.amplitude)  # electrons per second at power 1
+
+    # 4. Latency.
+    pulse_w = 20e-6
+    latency, latency_std = run_stage(exp, "latency", "latency", rig, lambda r: calibrate_latency(
+        r, dark=dark, gain=gain, trigger_delay_s=c.trigger_delay_s, pulse_width_s=pulse_w,
+        power=c.peak_fraction * full_adu * gain / (peak_rate * pulse_w)))
+    log_message(log, f"latency: {latency * 1e6:.3f} +- {latency_std * 1e6:.3f} us", progress)
+    cal = Calibration(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=full_adu, psf=psf, peak_rate=peak_rate,
+                      latency_s=latency, latency_std_s=latency_std, gain=gain, spots=spots)
+
+    # 4b. The actuator's direction in the image (one axis, one spot; a 2x2 plant or many spots
+    # fit both image axes).
+    if not cfg.plant.is_mimo and spots is None:
+        mode = cfg.fit.axis
+        if mode == "measure" and exp is not None and not exp.writable and "axis" not in exp.groups:
+            cal.direction = (1.0, 0.0)
+            log_message(log, "axis: not in the recording (made before the axis calibration): the motion is fitted along x", progress)
+        elif mode == "measure":
+            axis, axis_gain = run_stage(exp, "axis", "axis", rig, lambda r: _measure_axis(cfg, r, cal))
+            u = np.asarray(axis.direction, dtype=float)
+            if u[0] < 0 or (u[0] == 0 and u[1] < 0):  # the sign that points toward +x: the FRF keeps the x convention
+                u = -u
+            if not (np.isfinite(u).all() and axis.px_per_unit > 5 * axis.px_per_unit_std):
+                cal.direction = (1.0, 0.0)  # no clear motion to take a direction from
+                log_message(log, f"axis: no clear motion in the tracking ({axis.px_per_unit:.3g} +- {axis.px_per_unit_std:.2g} px per "
+                          f"input unit at {cfg.frequencies_hz()[0]:.4g} Hz): the motion is fitted along x", progress)
+            else:
+                cal.direction, cal.axis, cal.axis_gain = (float(u[0]), float(u[1])), axis, axis_gain
+                log_message(log, f"axis: {math.degrees(math.atan2(u[1], u[0])):.3f} +- {math.degrees(axis.angle_std_rad):.3f} deg from "
+                          f"+x (tracked at {cfg.frequencies_hz()[0]:.4g} Hz, {axis.px_per_unit:.4g} px per input unit)", progress)
+        else:
+            u = as_unit_direction({"x": (1.0, 0.0), "y": (0.0, 1.0)}[mode] if isinstance(mode, str) else mode, "fit.axis",
+                                  like=torch.zeros((), dtype=torch.float64))
+            cal.direction = (float(u[0]), float(u[1]))
+    return cal
+
+
+_AXIS_FRAMES = 24  # short exposures of the axis calibration, at phases spread over a period
+
+
+def _measure_axis(cfg, rig, cal: Calibration):
+    """Stage 4b: track the spot frame by frame (:func:`torchblur.image.tracking.calibrate_axes`) at the
+    sweep's first frequency, the amplitude adapted (up to three tries, as the sweep does) so
+    the spot moves about ``excitation.target_px``. Returns ``(AxisCalibration, px per input
+    unit)``."""
+    c, x = cfg.camera, cfg.excitation
+    f = cfg.frequencies_hz()[0]
+    target = float(x.target_px)
+    # Tracking exposures: 5 % of the period (shorter when the camera's longest exposure is).
+    frac = min(0.05, 0.9 * min(float(c.max_exposure_s), float(getattr(rig, "max_exposure_s", c.max_exposure_s))) * f)
+    te = frac / f
+    power = c.peak_fraction * cal.full_adu * cal.gain / (cal.peak_rate * te)
+    A = target / 10.0
+    for attempt in range(3):
+        if x.max_amplitude is not None:
+            A = min(A, float(x.max_amplitude))
+        axis = calibrate_axes(rig, freq_hz=f, amplitude=A, rest_px=cal.psf.center, dark=cal.dark, gain=cal.gain, n_frames=_AXIS_FRAMES,
+                              latency_s=cal.latency_s, trigger_delay_s=c.trigger_delay_s, power=power, noise_e=cal.read_noise_e,
+                              exposure_fraction=frac)
+        moved = axis.px_per_unit * A
+        if 0.5 * target <= moved <= 2 * target or (x.max_amplitude is not None and A >= x.max_amplitude and moved < 2 * target):
+            break
+        A = target / max(axis.px_per_unit, 1e-12)
+    return axis, axis.px_per_unit
+
+
+def _locate_spots(cfg, still, exposure_s, read_noise_e, log, progress):
+    """Stage 2 with many spots: find them in the still image and fit a PSF per spot (one
+    batch, on crops); log how many of the expected grid were found."""
+    sp = cfg.spots
+    spots = locate_spots(still, exposure_s=exposure_s, noise_std=camera_noise_std(float(still.max()), read_noise_e) / 4,
+                         pitch_px=float(sp.pitch_px), crop_px=None if sp.crop_px is None else int(sp.crop_px))
+    K, expected = len(spots), int(sp.rows) * int(sp.cols)
+    sd = torch.linalg.eigvalsh(spots.psf.cov).clamp_min(0).sqrt()
+    log_message(log, f"spots: {K} found (grid {sp.rows}x{sp.cols} = {expected}), crops {spots.size[0]}x{spots.size[1]} px, PSF sigma "
+              f"{float(sd.min()):.2f}..{float(sd.max()):.2f} px, worst relative residual "
+              f"{float(spots.fit.relative_residual.max()):.2e}", progress)
+    if K < expected:
+        log_message(log, f"spots: {expected - K} of the {expected} expected spot(s) not found (missing or too dim); the others are fitted",
+             progress)
+    for k in torch.nonzero(spots.clipped).reshape(-1).tolist():
+        c = spots.psf.center[k]
+        frac = float(spots.inside_fraction[k])
+        what = "flagged: not fitted" if frac < MIN_INSIDE else "fitted on the pixels in the frame"
+        log_message(log, f"spots: s{k} at ({float(c[0]):.1f}, {float(c[1]):.1f}) px is at the frame edge, {frac * 100:.0f}% of its light "
+                  f"in the frame ({what})", progress)
+    return spots
+
+
+def calibrate_latency(rig, *, dark, gain: float, exposure_s: float = 200e-6, pulse_width_s: float = 20e-6,
+                      max_latency_s: float = 200e-6, step_s: float = 2e-6, repeats: int = 2, trigger_delay_s: float = 0.0,
+                      power: float = 1.0):
+    """Trigger-to-exposure latency from short laser pulses (mirror still).
+
+    The laser is on only during ``[p, p + pulse_width]`` after the trigger command; the frame's
+    light is the overlap of the pulse with ``[Td + latency, Td + latency + Te]``. Scanning ``p``
+    gives a trapezoid; its rising edge is linear and reaches half height at
+    ``p = Td + latency - pulse_width / 2``. Returns ``(latency_s, std_s)`` (std from the
+    residual scatter of the edge fit).
+    """
+    times = np.arange(-pulse_width_s, max_latency_s + trigger_delay_s + exposure_s / 2, step_s)
+    light = []
+    for p in times:
+        cap = rig.pulse(exposure_s=exposure_s, trigger_offset_s=0.0, pulse_time_s=float(p), pulse_width_s=pulse_width_s, n=repeats,
+                        power=power)
+        light.append(float(subtract_dark(cap.frames, dark).sum((-1, -2)).mean()) * gain)
+    light = np.asarray(light)
+    top = np.median(np.sort(light)[-max(3, len(light) // 10):])
+    # Points on the rising edge: strictly between 10% and 90% of the top.
+    idx = np.nonzero((light > 0.1 * top) & (light < 0.9 * top))[0]
+    first_top = np.nonzero(light >= 0.9 * top)[0]
+    if first_top.size:
+        idx = idx[idx < first_top[0]]
+    if idx.size < 2:
+        raise RuntimeError("latency calibration: the pulse scan found no rising edge; widen max_latency_s or the pulse")
+    A = np.stack([times[idx], np.ones(idx.size)], 1)
+    coef, res, *_ = np.linalg.lstsq(A, light[idx], rcond=None)
+    slope, intercept = coef
+    t_half = (0.5 * top - intercept) / slope
+    latency = t_half + pulse_width_s / 2 - trigger_delay_s
+    resid = light[idx] - A @ coef
+    dof = max(1, idx.size - 2)
+    s2 = float(resid @ resid) / dof
+    cov = s2 * np.linalg.inv(A.T @ A)
+    # std of t_half by linearisation (slope and intercept), plus the top level's scatter.
+    g = np.array([-(0.5 * top - intercept) / slope**2, -1 / slope])
+    std = math.sqrt(max(float(g @ cov @ g), 0.0) + (0.5 * math.sqrt(s2) / abs(slope)) ** 2 / max(1, len(light) // 10))
+    return float(latency), float(std)

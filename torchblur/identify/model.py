@@ -1,0 +1,86 @@
+"""The model stage's pieces: the transfer-function model of the frequency response
+(:func:`fit_model`) and, with ``model.direct``, the model fitted to every image at once
+(:func:`fit_direct_model`)."""
+from __future__ import annotations
+
+import math
+import time
+
+import torch
+
+from torchblur.identify.record import log_message
+from torchblur.render.camera import camera_noise_std
+from torchblur.render.psf import GaussianPSF
+from torchblur.sysid.direct import fit_direct
+from torchblur.sysid.frequency_response import FrequencyResponse
+from torchblur.sysid.tf_fit import fit_transfer_function
+
+__all__ = ["fit_direct_model", "fit_model", "modes_outside_band"]
+
+
+def fit_model(cfg, frf, log=None, progress: bool = False):
+    """Stage 7 of :func:`identify`: the transfer-function model of ``frf`` under
+    ``cfg.model`` (None, with the reason logged, when the fit fails)."""
+    log = [] if log is None else log
+    # Outputs with a channel that has no valid point at all (a spot flagged at every
+    # frequency) are left out, so they do not take the other outputs' models with them.
+    keep = frf.valid.any(-1).all(-1)  # [O]
+    if not keep.any():
+        log_message(log, "model: fit failed: no output has a valid point in every channel", progress)
+        return None
+    if not keep.all():
+        dropped = [lab for lab, k in zip(frf.output_labels, keep) if not k]
+        log_message(log, f"model: output(s) {', '.join(dropped)} have a channel with no valid point and are left out of the model", progress)
+        frf = FrequencyResponse(frf.omega, frf.response[keep], cov=frf.cov[keep], input_labels=frf.input_labels,
+                                output_labels=[lab for lab, k in zip(frf.output_labels, keep) if k], meta=frf.meta)
+    try:
+        model = fit_transfer_function(frf, n_poles=cfg.model.n_poles, n_zeros=cfg.model.n_zeros,
+                                      delay_s=None if cfg.model.fit_delay else 0.0, max_order=int(cfg.model.max_order))
+    except Exception as exc:  # the FRF is still a result; say why the model failed
+        log_message(log, f"model: fit failed: {exc}", progress)
+        return None
+    if model.is_siso:
+        log_message(log, f"model: {model.n_poles} poles, {model.n_zeros} zeros, delay {model.delay_s * 1e6:.2f} us, "
+                  f"reduced chi2 {model.reduced_chi2:.3f}", progress)
+    else:  # one model per channel (output o from input i)
+        for o, out in enumerate(model.output_labels):
+            for i, inp in enumerate(model.input_labels):
+                log_message(log, f"model {out} from {inp}: {model.n_poles[o][i]} poles, {model.n_zeros[o][i]} zeros, delay "
+                          f"{model.delay_s[o][i] * 1e6:.2f} us, reduced chi2 {model.reduced_chi2[o][i]:.3f}", progress)
+    return model
+
+
+def modes_outside_band(modes, f_lo_hz: float, f_hi_hz: float, factor: float = 3.0) -> list:
+    """The modes (dicts with ``freq_hz``, as ``modal_parameters()`` gives) more than ``factor``
+    beyond the swept band ``[f_lo_hz, f_hi_hz]``: the images cannot constrain them (a fitted
+    mode there may run away while the fit reports convergence)."""
+    return [m for m in modes if not (f_lo_hz / factor <= m["freq_hz"] <= factor * f_hi_hz)]
+
+
+def fit_direct_model(cfg, model, images, windows, omega, amps, psf, power_t, read_noise_e, mask, fit, log, progress, direction):
+    """The direct model (one axis, one spot): every image at once, with the sweep's noise
+    model and mask; dark or out-of-frame points are left out. None, logged, if it fails."""
+    F = images.shape[0]
+    t_direct = time.perf_counter()
+    psf_pts = GaussianPSF(psf.center.expand(F, 2), psf.cov.expand(F, 2, 2), psf.amplitude * power_t)
+    A_t = torch.tensor(amps, dtype=torch.float64)
+    try:
+        d = fit_direct(images, psf_pts, windows, omega, A_t, model, form=cfg.model.direct_form, fit_delay=bool(cfg.model.fit_delay),
+                       axis=direction,
+                       noise_std=camera_noise_std(images, read_noise_e), mask=mask,
+                       valid=(fit.status != 1) & (fit.status != 3), fit_scale=cfg.fit.fit_scale,
+                       fit_background=cfg.fit.fit_background, max_iter=int(cfg.model.direct_max_iter))
+    except Exception as exc:  # the two-step model is still a result; say why the direct fit failed
+        log_message(log, f"direct: fit failed: {exc}", progress)
+        return None
+    modal = d.modal_parameters()
+    modes = ", ".join(f"{m['freq_hz']:.3f} +- {m['freq_hz_std']:.3f} Hz (zeta {m['zeta']:.4f} +- {m['zeta_std']:.4f})"
+                      for m in modal)
+    f_lo, f_hi = float(omega.min()) / (2 * math.pi), float(omega.max()) / (2 * math.pi)
+    for m in modes_outside_band(modal, f_lo, f_hi):
+        log_message(log, f"direct: warning: a mode at {m['freq_hz']:.4g} Hz lies far outside the swept band "
+                  f"({f_lo:.4g}-{f_hi:.4g} Hz); the images do not constrain it (std {m['freq_hz_std']:.3g} Hz)", progress)
+    log_message(log, f"direct: {d.form} model from {int(d.used.sum())} points ({d.n_excluded} excluded), {d.n_iter} iterations, "
+              f"converged {d.converged}, reduced chi2 {d.reduced_chi2:.3f}, {time.perf_counter() - t_direct:.2f} s; "
+              f"modes: {modes or 'none'}", progress)
+    return d

@@ -1,0 +1,71 @@
+"""Where the run's frames come from: the rig of the config (:func:`build_rig`; the simulated
+rig itself is built by :mod:`torchblur.rig.factory`) and the recording it is written to or
+resumed from (:func:`open_experiment`, :func:`check_resume_config`)."""
+from __future__ import annotations
+
+from dataclasses import asdict
+from pathlib import Path
+
+from torchblur.errors import ConfigError
+from torchblur.hardware.errors import RecordingError
+from torchblur.hardware.recording import Experiment, camera_info_of
+from torchblur.hardware.serial_rig import SerialRig
+from torchblur.identify.config import IdentifyConfig, config_to_yaml, load_dataclass
+from torchblur.rig.factory import build_simulated_rig, plant_of
+
+__all__ = ["build_rig", "build_simulated_rig", "check_resume_config", "open_experiment", "plant_of"]
+
+
+def build_rig(cfg: IdentifyConfig, *, log=None):
+    """The rig of ``cfg.rig``: the simulated rig, or a :class:`~torchblur.hardware.SerialRig`
+    on ``rig.port`` (controller) and ``rig.frames`` (camera). A camera whose frame shape
+    differs from ``camera.height`` x ``camera.width`` is a :class:`ConfigError`."""
+    if cfg.rig.kind == "simulated":
+        return build_simulated_rig(cfg)
+    rig = SerialRig.open(cfg.rig.port, cfg.rig.frames, timeout_s=float(cfg.rig.timeout_s), retries=int(cfg.rig.retries), log=log)
+    shape = (int(cfg.camera.height), int(cfg.camera.width))
+    if tuple(rig.frame_shape) != shape:
+        rig.close()
+        raise ConfigError(f"camera.height: the camera on {cfg.rig.frames} delivers {rig.frame_shape[0]}x{rig.frame_shape[1]} "
+                          f"frames, the config says {shape[0]}x{shape[1]} (camera.height x camera.width)")
+    return rig
+
+
+_RESUMABLE_SECTIONS = ("rig", "fit", "model")
+
+
+def check_resume_config(recorded, cfg, *, allowed=_RESUMABLE_SECTIONS) -> None:
+    """Raise :class:`~torchblur.hardware.errors.RecordingError` naming the first key where
+    ``cfg`` differs from the ``recorded`` config outside the sections in ``allowed``."""
+    def walk(a, b, prefix=""):
+        for k in a:
+            if not prefix and k in allowed:
+                continue
+            if isinstance(a[k], dict):
+                walk(a[k], b[k], prefix + k + ".")
+            elif a[k] != b[k]:
+                raise RecordingError(f"{prefix}{k}: the recording was made with {a[k]!r}, got {b[k]!r}; only "
+                                     f"{', '.join(s + '.*' for s in allowed)} may change")
+
+    walk(asdict(recorded), asdict(cfg))
+
+
+def open_experiment(record, cfg, rig):
+    """An :class:`~torchblur.hardware.Experiment` from ``record`` (None, a path or one)."""
+    if record is None:
+        return None
+    if isinstance(record, Experiment):
+        exp = record
+    else:
+        path = Path(record)
+        if (path / "experiment.json").is_file():
+            exp = Experiment.open(path)
+        else:
+            return Experiment.create(path, config_yaml=config_to_yaml(cfg), camera=camera_info_of(rig))
+    recorded = load_dataclass(type(cfg), str(exp.path / "config.yaml"))
+    check_resume_config(recorded, cfg)
+    shape = tuple(exp.camera_info.frame_shape)
+    if tuple(rig.frame_shape) != shape:
+        raise RecordingError(f"{exp.path}: recorded with {shape[0]}x{shape[1]} frames, the rig delivers "
+                             f"{rig.frame_shape[0]}x{rig.frame_shape[1]}")
+    return exp

@@ -1,0 +1,31 @@
+"""The stages after the calibration, over one run record whose ``plan`` (the excitation's)
+does the sweep, fit, assemble and report parts: :func:`run_plan` is ``sweep -> fit ->
+assemble -> model -> report``; :func:`model_stage` is the one model stage of every plan."""
+from __future__ import annotations
+
+from torchblur.identify.model import fit_model
+from torchblur.identify.record import RunRecord
+
+__all__ = ["model_stage", "run_plan"]
+
+
+def run_plan(run: RunRecord):
+    """sweep -> fit -> assemble -> model -> report of ``run`` (calibrated: ``run.cal`` set)
+    by its ``run.plan``; returns the plan's result."""
+    run.plan.sweep(run)
+    run.plan.fit(run)
+    run.plan.assemble(run)
+    model_stage(run)
+    return run.plan.result(run)
+
+
+def model_stage(run: RunRecord) -> None:
+    """``run.model`` (:func:`~torchblur.identify.model.fit_model`) and, with ``model.direct``
+    and a plan that supports it, ``run.direct_model`` fitted to every image from it."""
+    run.model = fit_model(run.cfg, run.frf, run.log, run.progress)
+    if not (run.cfg.model.direct and run.plan.supports_direct):
+        return
+    if run.model is None:
+        run.say("direct: skipped (no two-step model to start from)")
+    else:
+        run.direct_model = run.plan.fit_direct(run)
