@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import torch
 
-from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_finite, check_real_scalar
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_bool, check_finite, check_int, check_real_scalar
 from torchblur.render.window import ExposureWindow
 
 __all__ = ["CameraModel", "camera_noise_std"]
@@ -50,21 +50,6 @@ def camera_noise_std(expected_e, read_noise_e: float):
     if isinstance(expected_e, torch.Tensor):
         return torch.sqrt(read_noise_e**2 + expected_e.clamp_min(0))
     return math.sqrt(read_noise_e**2 + max(float(expected_e), 0.0))
-
-
-def _check_int(value, name: str, low: int, high: int) -> int:
-    """Validate a Python integer in ``[low, high]``; raise naming ``name``."""
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise InputTypeError(f"{name}: expected an integer, got {type(value).__name__}")
-    if not low <= value <= high:
-        raise ParameterError(f"{name}: expected an integer in [{low}, {high}], got {value}")
-    return value
-
-
-def _check_bool(value, name: str) -> bool:
-    if not isinstance(value, bool):
-        raise InputTypeError(f"{name}: expected True or False, got {type(value).__name__}")
-    return value
 
 
 def _check_generator(generator, device: torch.device) -> None:
@@ -141,13 +126,13 @@ class CameraModel:
             "read_noise_e": check_real_scalar(self.read_noise_e, "read_noise_e", nonnegative=True),
             "gain_e_per_adu": check_real_scalar(self.gain_e_per_adu, "gain_e_per_adu", positive=True),
             "full_well_e": check_real_scalar(self.full_well_e, "full_well_e", positive=True),
-            "bit_depth": _check_int(self.bit_depth, "bit_depth", 1, 32),
-            "shot_noise": _check_bool(self.shot_noise, "shot_noise"),
+            "bit_depth": check_int(self.bit_depth, "bit_depth", low=1, high=32),
+            "shot_noise": check_bool(self.shot_noise, "shot_noise"),
             "hot_pixel_fraction": check_real_scalar(self.hot_pixel_fraction, "hot_pixel_fraction", nonnegative=True),
             "hot_pixel_e": check_real_scalar(self.hot_pixel_e, "hot_pixel_e", nonnegative=True),
-            "hot_pixel_seed": _check_int(self.hot_pixel_seed, "hot_pixel_seed", 0, 2**64 - 1),
+            "hot_pixel_seed": check_int(self.hot_pixel_seed, "hot_pixel_seed", low=0, high=2**64 - 1),
             "jitter_s": check_real_scalar(self.jitter_s, "jitter_s", nonnegative=True),
-            "quantize": _check_bool(self.quantize, "quantize"),
+            "quantize": check_bool(self.quantize, "quantize"),
         }
         if checked["hot_pixel_fraction"] > 1:
             raise ParameterError(
@@ -248,8 +233,8 @@ class CameraModel:
             pixels are hot, chosen by a CPU ``torch.Generator`` seeded with
             ``hot_pixel_seed``, so the pattern is the same on every call and device.
         """
-        height = _check_int(height, "height", 1, 2**62)
-        width = _check_int(width, "width", 1, 2**62)
+        height = check_int(height, "height", low=1, high=2**62)
+        width = check_int(width, "width", low=1, high=2**62)
         n_pixels = height * width
         n_hot = round(self.hot_pixel_fraction * n_pixels)
         mask = torch.zeros(n_pixels, dtype=torch.bool)

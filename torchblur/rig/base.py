@@ -15,7 +15,7 @@ from typing import Any, Protocol, Sequence, runtime_checkable
 import numpy as np
 import torch
 
-from torchblur.errors import InputTypeError, ParameterError, ShapeError
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, check_int
 
 __all__ = ["Capture", "Rig"]
 
@@ -154,10 +154,8 @@ class Rig(Protocol):
 
 
 def check_count(value, name: str) -> int:
-    """An integer >= 1 (frames, repeats), else :class:`ParameterError` naming ``name``."""
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-        raise ParameterError(f"{name}: expected an integer >= 1, got {value!r}")
-    return int(value)
+    """An integer >= 1 (frames, repeats): :func:`torchblur.errors.check_int` with ``low=1``."""
+    return check_int(value, name, low=1)
 
 
 def float_list(value, name: str) -> list[float]:
