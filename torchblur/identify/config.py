@@ -314,6 +314,7 @@ def load_dataclass(cls, path: str | None = None, overrides: list[str] | None = N
     Raises:
         ConfigError: naming the key, for unknown keys and unparsable values.
     """
+    import yaml
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 
@@ -326,11 +327,13 @@ def load_dataclass(cls, path: str | None = None, overrides: list[str] | None = N
                 if k in file_cfg:
                     file_cfg.pop(k)
             merged = OmegaConf.merge(merged, file_cfg)
-        if overrides:
-            for item in overrides:
-                if "=" not in item:
-                    raise ConfigError(f"{item}: expected key=value")
-            merged = OmegaConf.merge(merged, OmegaConf.from_dotlist(list(overrides)))
+        for item in overrides or ():
+            if "=" not in item:
+                raise ConfigError(f"{item}: expected key=value")
+            try:
+                merged = OmegaConf.merge(merged, OmegaConf.from_dotlist([item]))
+            except (yaml.YAMLError, RecursionError) as exc:
+                raise ConfigError(f"{item.partition('=')[0]}: the value cannot be read ({str(exc).splitlines()[0][:100]})") from None
         data = OmegaConf.to_container(merged, resolve=True)
     except OmegaConfBaseException as exc:
         key = getattr(exc, "full_key", None) or getattr(exc, "key", None) or "config"
