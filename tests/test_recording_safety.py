@@ -77,11 +77,12 @@ def read_everything(d: Path):
     for g in exp.groups:
         for m, args, c in exp.load_calls(g):
             h.update(m.encode() + json.dumps(args, sort_keys=True).encode() + c.frames.numpy().tobytes())
+            h.update(str(tuple(c.frames.shape)).encode())
             h.update(c.exposure_s.numpy().tobytes() + c.frame_counter.numpy().tobytes())
     rf = ReplayFrames(d)
     for _ in range(len(rf)):
         fr = rf.read()
-        h.update(fr.data.numpy().tobytes() + str(fr.counter).encode())
+        h.update(fr.data.numpy().tobytes() + str(fr.counter).encode() + str(tuple(fr.data.shape)).encode())
     h.update(json.dumps([{k: r[k] for k in ("group", "page", "amplitude", "freq_hz", "exposure_s") if k in r}
                          for r in rf.records], sort_keys=True).encode())
     cfg = load_dataclass(IdentifyConfig, str(exp.path / "config.yaml"), trusted=False)
@@ -481,3 +482,41 @@ def test_out_inside_another_run_is_refused(pristine, tmp_path):
     with pytest.raises(RecordingError, match="under the file"):
         check_out_folder(tmp_path / "afile" / "x", command="identify")
     assert check_out_folder(run, command="identify", own_run=run) == run.resolve()
+
+
+def test_replay_frames_checks_a_callers_record(pristine):
+    rf = ReplayFrames(pristine)
+    rec = dict(rf.records[4])
+    assert torch.equal(rf.frame(rec).data, rf.frame(rf.records[4]).data)
+    for bad in ({"page": -1}, {"page": 99}, {"file": "/etc/passwd"}, {"file": "frames/../../x.tif"}, {"sha256": "0" * 64}):
+        with pytest.raises(RecordingError):
+            rf.frame({**rec, **bad})
+
+
+def test_a_kill_during_the_repair_loses_nothing(pristine, tmp_path, monkeypatch):
+    """Killed after setting frames aside but before the manifest is rewritten: the next
+    open repairs again and every frame is still there."""
+    from torchblur.hardware import recording
+
+    before = _frame_hashes(pristine)
+    d = tmp_path / "e"
+    shutil.copytree(pristine, d)
+    raw = (d / "manifest.jsonl").read_bytes().split(b"\n")
+    raw[4] = raw[4][:20]
+    (d / "manifest.jsonl").write_bytes(b"\n".join(raw))
+    real = recording.atomic_write_bytes
+
+    def killed(path, data, **kw):
+        if Path(path).name == "manifest.jsonl" and "quarantine" not in str(path):
+            raise KeyboardInterrupt
+        return real(path, data, **kw)
+
+    monkeypatch.setattr(recording, "atomic_write_bytes", killed)
+    with pytest.raises(KeyboardInterrupt):
+        Experiment.open(d)
+    monkeypatch.undo()
+    assert _frame_hashes(d) == before
+    exp = Experiment.open(d)
+    exp.close()
+    assert exp.repaired["dropped_groups"] == ["sweep/x/000"] and _frame_hashes(d) == before
+    assert sorted(exp.groups) == ["dark", "sweep/x/001"]

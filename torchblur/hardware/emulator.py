@@ -225,7 +225,7 @@ class FrameServer:
 
 SEND_TIMEOUT_S = 2.0
 # The emulated device's ranges (ERR 4 RANGE beyond them).
-DEVICE_RANGES = {"settle_s": 3600.0, "power": 100.0, "freq_hz": 1e5, "amplitude": 1e6}
+DEVICE_RANGES = {"settle_s": 3600.0, "power": 1e6, "freq_hz": 1e5, "amplitude": 1e6}
 
 
 def _in_range(value: float, name: str) -> float:

@@ -21,7 +21,7 @@ from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.run_folder import inside
 
 __all__ = ["SCHEMA_VERSION", "MAX_LINE_BYTES", "MAX_JSON_DEPTH", "MAX_META_BYTES", "MAX_MANIFEST_BYTES", "MAX_FRAME_SIDE", "METHODS",
-           "ManifestScan", "check_line", "check_meta", "expected_file", "load_json", "read_bounded", "scan_manifest"]
+           "ManifestScan", "check_line", "check_meta", "check_record", "expected_file", "load_json", "read_bounded", "scan_manifest"]
 
 SCHEMA_VERSION = 1
 MAX_LINE_BYTES = 64 * 1024
@@ -171,6 +171,18 @@ def check_line(ln, root: Path) -> str:
         if ln.get("attempts") is not None:
             _int(ln["attempts"], "attempts", 1, 1000)
     return g
+
+
+def check_record(record, root: Path) -> str:
+    """:func:`check_line` for a caller's record; returns its group.
+
+    Raises:
+        RecordingError: naming the invalid field.
+    """
+    try:
+        return check_line(record, root)
+    except _Bad as exc:
+        raise RecordingError(f"record: {exc}") from None
 
 
 def _check_group(g: str, gl: list, root: Path, verify: bool) -> None:

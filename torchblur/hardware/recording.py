@@ -32,8 +32,8 @@ import torch
 
 from torchblur.hardware.errors import FrameTimeout, RecordingError
 from torchblur.hardware.frames import CameraInfo, Frame, FrameSource
-from torchblur.hardware.manifest import (MAX_MANIFEST_BYTES, MAX_META_BYTES, SCHEMA_VERSION, ManifestScan, check_meta, load_json,
-                                         read_bounded, scan_manifest)
+from torchblur.hardware.manifest import (MAX_MANIFEST_BYTES, MAX_META_BYTES, SCHEMA_VERSION, ManifestScan, check_meta, check_record,
+                                         load_json, read_bounded, scan_manifest)
 from torchblur.hardware.run_folder import RunLock, inside
 
 __all__ = ["SCHEMA_VERSION", "Experiment", "ReplayFrames", "ReplayRig", "atomic_write_bytes", "camera_info_of"]
@@ -499,7 +499,8 @@ def read_stack(root: Path, line: dict, frame_shape: tuple) -> np.ndarray:
     try:
         with tifffile.TiffFile(io.BytesIO(data)) as tf:
             series = tf.series[0]
-            if math.prod(series.shape) != n * H * W or np.dtype(series.dtype).name != line["dtype"]:
+            if (math.prod(series.shape) != n * H * W or tuple(series.shape[-2:]) != (H, W)
+                    or np.dtype(series.dtype).name != line["dtype"]):
                 raise RecordingError(f"{name}: holds {series.shape} {np.dtype(series.dtype).name} values, the manifest "
                                      f"{n} frames of {H}x{W} {line['dtype']}")
             stack = np.asarray(series.asarray()).reshape(n, H, W)
@@ -588,8 +589,7 @@ class ReplayFrames(FrameSource):
 
     def frame(self, record: dict) -> Frame:
         """The :class:`Frame` of one manifest line (its file's hash checked against the line's)."""
-        if record not in self.records:
-            raise RecordingError(f"record: not a line of {self.experiment.path / 'manifest.jsonl'}")
+        check_record(record, self.experiment.path)
         px = self._stack(record)[record["page"]]
         nan = float("nan")
         return Frame(data=torch.from_numpy(px.astype(np.float64)), counter=int(record["frame_counter"]),
