@@ -136,3 +136,12 @@ def test_emulator_range_checks_its_arguments(line):
     r = parse_reply(dev.handle(line.encode() + b"\n"))
     assert r.code == E_RANGE
     assert parse_reply(dev.handle(b"SETTLE 0.5\n")).word == "SETTLE"
+
+
+def test_junk_on_the_camera_channel_is_skipped_to_the_next_message():
+    dec = WireDecoder()
+    good = frame_message(np.ones((4, 3), np.uint16), counter=5, exposure_s=1e-3)
+    dec.feed(b"\x00junk TBF noise" + good)
+    with pytest.raises(GarbageReply):
+        dec.next()
+    assert decode_frame(*dec.next()).counter == 5

@@ -150,3 +150,17 @@ def test_cli_tampered_recording_is_one_line(tmp_path, capsys):
     (run / "experiment" / "experiment.json").write_bytes(b"\x00\xff")
     assert cli.main(["fit", str(run), "--out", str(tmp_path / "o2")]) == 2
     assert "experiment.json" in _one_line(capsys)
+
+
+def test_cli_resume_of_a_read_only_run_is_one_line(tmp_path, capsys, monkeypatch):
+    """(Checked through os.access: a test running as root cannot make a folder read-only.)"""
+    import os
+
+    from test_recording_safety import make_recording
+
+    run = tmp_path / "R"
+    make_recording(run / "experiment")
+    real = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode, **kw: False if str(p).endswith("experiment") else real(p, mode, **kw))
+    assert cli.main(["identify", "--resume", str(run)]) == 2
+    assert "not writable" in _one_line(capsys)

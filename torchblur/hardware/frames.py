@@ -176,7 +176,10 @@ class WireDecoder:
             return None
         magic, hl, pl = _HEAD.unpack_from(self._buf)
         if magic != MAGIC or hl > MAX_HEADER or pl > MAX_PAYLOAD:
-            raise GarbageReply(f"camera channel out of step: bad message head {bytes(self._buf[:12])!r}")
+            head = bytes(self._buf[:12])
+            nxt = self._buf.find(MAGIC, 1)  # skip to the next message head: back in step
+            del self._buf[:nxt if nxt > 0 else max(0, len(self._buf) - len(MAGIC) + 1)]
+            raise GarbageReply(f"camera channel out of step: bad message head {head!r}")
         end = _HEAD.size + hl + pl
         if len(self._buf) < end:
             return None

@@ -307,6 +307,9 @@ class Experiment:
             inside(path, name, name)  # none of them a symlink out of the folder
         meta = load_json(read_bounded(mp, MAX_META_BYTES, str(mp)), str(mp))
         check_meta(meta, str(mp))
+        if writable and not os.access(path, os.W_OK | os.X_OK):
+            raise RecordingError(f"{path}: not writable, and a resume writes the recording (copy the run elsewhere to "
+                                 f"resume it, or re-fit it with torchblur fit)")
         lock = RunLock(path) if writable else None
         mf = path / "manifest.jsonl"
         raw = read_bounded(mf, MAX_MANIFEST_BYTES, str(mf)) if mf.exists() or mf.is_symlink() else b""
