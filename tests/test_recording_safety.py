@@ -448,18 +448,45 @@ def test_two_processes_cannot_write_one_run(pristine, tmp_path):
     exp.close()
 
 
-def test_two_cli_runs_on_one_folder_one_refuses(tmp_path):
-    """Two `torchblur identify --out SAME` started together: one refuses with exit 2."""
+_TRY = textwrap.dedent("""
+    import sys
+    from torchblur.hardware.errors import RecordingError
+    from torchblur.hardware.run_folder import RunLock
+    try:
+        RunLock(sys.argv[1])
+        print("locked")
+    except RecordingError as exc:
+        print("refused:", exc)
+""")
+
+
+def test_identify_holds_the_run_lock_and_a_second_identify_refuses(tmp_path, monkeypatch, capsys):
+    """`torchblur identify --out SAME`: while one runs, another process cannot lock the
+    folder; a second identify on a folder another process holds exits 2 with one line."""
+    from torchblur.identify import cli
+
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    args = [sys.executable, "-m", "torchblur.identify.cli", "identify", "--out", str(tmp_path / "same"), "--quiet",
-            "sweep.freq_hz=[2,300]", "camera.height=32", "camera.width=32", "fit.axis=x"]
-    procs = [subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env, text=True) for _ in range(2)]
-    results = [(p.wait(timeout=300), p.stderr.read()) for p in procs]
-    codes = sorted(r[0] for r in results)
-    assert codes == [0, 2], results
-    refused = [e for c, e in results if c == 2][0]
-    assert "Traceback" not in refused and len(refused.strip().splitlines()) == 1 and str(tmp_path / "same") in refused
-    assert Experiment.open(tmp_path / "same", writable=False).groups  # the winner's record is whole
+    seen = []
+
+    def run(cfg, out, record, quiet, root=None):
+        seen.append(subprocess.run([sys.executable, "-c", _TRY, str(record)], capture_output=True, text=True, env=env).stdout)
+        return 0
+
+    monkeypatch.setattr(cli, "_run_identify", run)
+    assert cli.main(["identify", "--out", str(tmp_path / "same"), "--quiet", "sweep.freq_hz=[5]"]) == 0
+    assert seen and seen[0].startswith("refused:") and f"pid {os.getpid()}" in seen[0]
+    (tmp_path / "same2" / "experiment").mkdir(parents=True)
+    p = subprocess.Popen([sys.executable, "-c", _HOLD, str(tmp_path / "same2" / "experiment")], stdout=subprocess.PIPE,
+                         env=env, text=True)
+    try:
+        assert p.stdout.readline().strip() == "locked"
+        assert cli.main(["identify", "--out", str(tmp_path / "same2"), "--quiet", "sweep.freq_hz=[5]"]) == 2
+        err = capsys.readouterr().err
+        assert f"pid {p.pid}" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    finally:
+        p.kill()
+        p.wait()
+    assert len(seen) == 1  # the refused run never started
 
 
 def test_out_inside_another_run_is_refused(pristine, tmp_path):
