@@ -547,3 +547,16 @@ def test_a_kill_during_the_repair_loses_nothing(pristine, tmp_path, monkeypatch)
     exp.close()
     assert exp.repaired["dropped_groups"] == ["sweep/x/000"] and _frame_hashes(d) == before
     assert sorted(exp.groups) == ["dark", "sweep/x/001"]
+
+
+def test_a_quarantine_symlinked_out_of_the_run_is_refused(pristine, tmp_path):
+    d = tmp_path / "run" / "e"
+    shutil.copytree(pristine, d)
+    (tmp_path / "elsewhere").mkdir()
+    (d / "quarantine").symlink_to(tmp_path / "elsewhere")
+    raw = (d / "manifest.jsonl").read_bytes().split(b"\n")
+    raw[4] = raw[4][:20]
+    (d / "manifest.jsonl").write_bytes(b"\n".join(raw))
+    with pytest.raises(RecordingError, match="quarantine"):
+        Experiment.open(d)
+    assert list((tmp_path / "elsewhere").iterdir()) == [] and _frame_hashes(d) == _frame_hashes(pristine)

@@ -303,7 +303,7 @@ class Experiment:
         mp = path / "experiment.json"
         if not mp.is_file():
             raise RecordingError(f"{path}: no experiment.json here (not a torchblur experiment directory)")
-        for name in ("experiment.json", "manifest.jsonl", "config.yaml", "frames"):
+        for name in ("experiment.json", "manifest.jsonl", "config.yaml", "frames", "quarantine"):
             inside(path, name, name)  # none of them a symlink out of the folder
         meta = load_json(read_bounded(mp, MAX_META_BYTES, str(mp)), str(mp))
         check_meta(meta, str(mp))
@@ -539,7 +539,7 @@ def _repair(exp: "Experiment", scan: ManifestScan) -> None:
                 movable.append(f)
     if scan.bad_raw or movable:
         stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S%fZ")
-        q = path / "quarantine" / f"{stamp}-{os.getpid()}"
+        q = inside(path, f"quarantine/{stamp}-{os.getpid()}", "quarantine")  # a symlinked quarantine/ is refused
         (q / "frames").mkdir(parents=True)
         atomic_write_bytes(q / "manifest.jsonl", b"".join(r + b"\n" for r in scan.bad_raw))
         reasons = {"groups": scan.dropped, "problems": rep["problems"], "files": [f"frames/{f.name}" for f in movable]}
