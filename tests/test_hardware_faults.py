@@ -145,3 +145,27 @@ def test_junk_on_the_camera_channel_is_skipped_to_the_next_message():
     with pytest.raises(GarbageReply):
         dec.next()
     assert decode_frame(*dec.next()).counter == 5
+
+
+@pytest.mark.parametrize("hello", [
+    encode_message([1, 2]), encode_message({"type": "hello", "camera": {"frame_shape": "big"}}),
+    encode_message({"type": "hello"}), b"TBF1" + b"\xff" * 8,
+])
+def test_a_hostile_camera_greeting_is_a_hardware_error(hello):
+    from torchblur.hardware.errors import HardwareError
+    from torchblur.hardware.frames import EmulatorFrames
+
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(1)
+
+    def serve():
+        conn, _ = srv.accept()
+        conn.sendall(hello)
+        time.sleep(1.0)
+        conn.close()
+
+    threading.Thread(target=serve, daemon=True).start()
+    with pytest.raises(HardwareError):
+        EmulatorFrames(f"tcp://127.0.0.1:{srv.getsockname()[1]}", connect_timeout_s=0.5)
+    srv.close()
