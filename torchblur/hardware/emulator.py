@@ -174,17 +174,19 @@ class FrameServer:
             except OSError:
                 return
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            try:  # the hello before the client is published, outside the lock
+                conn.settimeout(SEND_TIMEOUT_S)
+                conn.sendall(encode_message({"type": "hello", "camera": self.info.to_dict(), "protocol": PROTOCOL_VERSION}))
+            except OSError:
+                conn.close()
+                continue
             with self._lock:
-                if self._conn is not None:
-                    try:
-                        self._conn.close()
-                    except OSError:
-                        pass
-                self._conn = conn
+                old, self._conn = self._conn, conn
+            if old is not None:
                 try:
-                    conn.sendall(encode_message({"type": "hello", "camera": self.info.to_dict(), "protocol": PROTOCOL_VERSION}))
+                    old.close()
                 except OSError:
-                    self._conn = None
+                    pass
 
     def disconnect(self) -> None:
         """Close the current client's connection (it may connect again)."""
@@ -198,19 +200,38 @@ class FrameServer:
                 self._conn = None
 
     def send(self, message: bytes) -> bool:
+        """Send one message to the current client. The lock is held only to look the client
+        up, never across ``sendall``; a client that does not take a message within
+        :data:`SEND_TIMEOUT_S` is dropped (it may connect again), so a client that never
+        reads cannot block the channel for the next one."""
         with self._lock:
-            if self._conn is None:
-                return False
+            conn = self._conn
+        if conn is None:
+            return False
+        try:
+            conn.settimeout(SEND_TIMEOUT_S)
+            conn.sendall(message)
+            return True
+        except OSError:  # socket.timeout included
+            with self._lock:
+                if self._conn is conn:
+                    self._conn = None
             try:
-                self._conn.sendall(message)
-                return True
+                conn.close()
             except OSError:
-                try:
-                    self._conn.close()
-                except OSError:
-                    pass
-                self._conn = None
-                return False
+                pass
+            return False
+
+
+SEND_TIMEOUT_S = 2.0
+# The emulated device's ranges (ERR 4 RANGE beyond them).
+DEVICE_RANGES = {"settle_s": 3600.0, "power": 1e6, "freq_hz": 1e5, "amplitude": 1e6}
+
+
+def _in_range(value: float, name: str) -> float:
+    if abs(value) > DEVICE_RANGES[name]:
+        raise ProtocolViolation(E_RANGE, f"{name}: at most {DEVICE_RANGES[name]:g} on this device, got {value!r}")
+    return value
 
 
 class EmulatedDevice:
@@ -334,10 +355,10 @@ class EmulatedDevice:
                 self.reset_flag = False
                 return format_ok("STOP")
             if w == "POWER":
-                self.power = a[0]
+                self.power = _in_range(a[0], "power")
                 return format_ok("POWER", p=a[0])
             if w == "SETTLE":
-                self.settle = a[0]
+                self.settle = a[0] if a[0] is None else _in_range(a[0], "settle_s")
                 return format_ok("SETTLE", s="AUTO" if a[0] is None else a[0])
             if w == "WAVE":
                 return self._wave(a)
@@ -363,6 +384,8 @@ class EmulatedDevice:
         if self._fault_base is None:
             self._fault_base = self.served
         if mode == "SINE":
+            _in_range(a[2], "freq_hz")
+            _in_range(a[3], "amplitude")
             self.wave = {"mode": "SINE", "freq_hz": a[2], "amplitude": a[3], "start": self.clock, "period": 1.0 / a[2], "axis": axis}
             return format_ok("WAVE", axis=axis, mode=mode, start=float(self.clock))
         tones = a[2]

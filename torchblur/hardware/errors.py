@@ -45,14 +45,16 @@ class DeviceError(HardwareError):
     """The controller answered ``ERR <code> <NAME> <message>``.
 
     Attributes: ``code`` (int), ``name`` (the code's name, e.g. ``RANGE``), ``detail``
-    (the free text), ``command`` (the line sent). Only ``BUSY`` (code 6) is recoverable; the
-    others mean the command itself was wrong.
+    (the free text), ``command`` (the line sent). ``BUSY`` (6, retried after ``STOP``),
+    ``LINE`` (7: line noise garbled the command; resynchronise and redo) and ``INTERNAL``
+    (8: retry) are recoverable (docs/protocol.md); codes 1-5 mean the command itself was
+    wrong.
     """
 
     def __init__(self, code: int, name: str, detail: str, command: str):
         self.code, self.name, self.detail, self.command = int(code), name, detail, command
         super().__init__(f"controller replied ERR {code} {name} {detail} (to {command!r})")
-        self.recoverable = self.code == 6
+        self.recoverable = self.code in (6, 7, 8)
 
 
 class ConnectionLost(HardwareError, ConnectionError):

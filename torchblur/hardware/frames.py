@@ -18,6 +18,7 @@ pixels in C order, little-endian.
 from __future__ import annotations
 
 import json
+import math
 import socket
 import struct
 import time
@@ -175,16 +176,22 @@ class WireDecoder:
             return None
         magic, hl, pl = _HEAD.unpack_from(self._buf)
         if magic != MAGIC or hl > MAX_HEADER or pl > MAX_PAYLOAD:
-            raise GarbageReply(f"camera channel out of step: bad message head {bytes(self._buf[:12])!r}")
+            head = bytes(self._buf[:12])
+            nxt = self._buf.find(MAGIC, 1)  # skip to the next message head: back in step
+            del self._buf[:nxt if nxt > 0 else max(0, len(self._buf) - len(MAGIC) + 1)]
+            raise GarbageReply(f"camera channel out of step: bad message head {head!r}")
         end = _HEAD.size + hl + pl
         if len(self._buf) < end:
             return None
-        try:
-            header = json.loads(bytes(self._buf[_HEAD.size:_HEAD.size + hl]))
-        except ValueError as exc:
-            raise GarbageReply("camera channel: a message header is not JSON") from exc
+        raw = bytes(self._buf[_HEAD.size:_HEAD.size + hl])
         payload = bytes(self._buf[_HEAD.size + hl:end])
-        del self._buf[:end]
+        del self._buf[:end]  # a bad header is skipped whole: the stream stays in step
+        try:
+            header = json.loads(raw)
+        except (ValueError, RecursionError) as exc:
+            raise GarbageReply("camera channel: a message header is not JSON") from exc
+        if not isinstance(header, dict):
+            raise GarbageReply(f"camera channel: a message header is not a JSON object ({type(header).__name__})")
         return header, payload
 
 
@@ -194,15 +201,26 @@ def decode_frame(header: dict, payload: bytes) -> Frame:
     try:
         dtype = DTYPES[header["dtype"]]
         shape = tuple(int(v) for v in header["shape"])
+        if len(shape) != 2 or min(shape) < 1:
+            raise ValueError(f"shape {shape}")
         arr = np.frombuffer(payload, dtype=dtype)
         arr = arr.reshape(shape)
-    except (KeyError, ValueError, TypeError) as exc:
-        raise GarbageReply(f"camera channel: a frame payload does not match its header {header}") from exc
-    return Frame(data=torch.from_numpy(arr.astype(np.float64)), counter=int(header["counter"]),
-                 timestamp_s=float(header.get("timestamp_s", float("nan"))), exposure_s=float(header["exposure_s"]),
-                 trigger_time_s=float(header.get("trigger_time_s", float("nan"))),
-                 trigger_offset_s=float(header.get("trigger_offset_s", float("nan"))), dtype=header["dtype"],
-                 boot=header.get("boot"), meta={k: v for k, v in header.items() if k in ("kind",)})
+        counter = header["counter"]
+        if isinstance(counter, bool) or not isinstance(counter, int):
+            raise ValueError(f"counter {counter!r}")
+        times = {k: float(header.get(k, float("nan")) if header.get(k) is not None else float("nan"))
+                 for k in ("timestamp_s", "trigger_time_s", "trigger_offset_s")}
+        exposure_s = float(header["exposure_s"])
+        if not (math.isfinite(exposure_s) and exposure_s > 0):
+            raise ValueError(f"exposure_s {exposure_s!r}")
+    except (KeyError, ValueError, TypeError, AttributeError) as exc:
+        raise GarbageReply(f"camera channel: a malformed frame message ({type(exc).__name__}: {exc}; header "
+                           f"{str(header)[:200]})") from exc
+    data = torch.from_numpy(arr.astype(np.float64))
+    if not torch.isfinite(data).all():
+        raise GarbageReply(f"camera channel: frame {counter} holds NaN or infinite pixels")
+    return Frame(data=data, counter=counter, exposure_s=exposure_s, dtype=header["dtype"], boot=header.get("boot"),
+                 meta={k: v for k, v in header.items() if k in ("kind",)}, **times)
 
 
 # ---------------------------------------------------------------------- emulator channel
@@ -244,7 +262,10 @@ class EmulatorFrames(FrameSource):
         hello = self._message(self.connect_timeout_s)
         if hello is None or hello[0].get("type") != "hello":
             raise GarbageReply(f"the camera channel {self.url} did not greet with a hello message")
-        self._info = CameraInfo.from_dict(hello[0]["camera"])
+        try:
+            self._info = CameraInfo.from_dict(hello[0]["camera"])
+        except (KeyError, ValueError, TypeError, AttributeError) as exc:
+            raise GarbageReply(f"the camera channel {self.url} greeted with a malformed camera ({exc})") from None
 
     @property
     def info(self) -> CameraInfo:

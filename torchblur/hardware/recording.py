@@ -32,10 +32,12 @@ import torch
 
 from torchblur.hardware.errors import FrameTimeout, RecordingError
 from torchblur.hardware.frames import CameraInfo, Frame, FrameSource
+from torchblur.hardware.manifest import (MAX_MANIFEST_BYTES, MAX_META_BYTES, SCHEMA_VERSION, ManifestScan, check_meta, check_record,
+                                         load_json, read_bounded, scan_manifest)
+from torchblur.hardware.run_folder import RunLock, inside
 
 __all__ = ["SCHEMA_VERSION", "Experiment", "ReplayFrames", "ReplayRig", "atomic_write_bytes", "camera_info_of"]
 
-SCHEMA_VERSION = 1
 _TMP = ".tmp"
 _F64 = torch.float64
 
@@ -255,6 +257,7 @@ class Experiment:
         for ln in lines:
             self.groups.setdefault(ln["group"], []).append(ln)
         self._session: int | None = None
+        self._lock = None
         self.stats = {"groups_written": 0, "groups_reused": 0, "write_s": 0.0}
 
     # ------------------------------------------------------------------ create / open
@@ -263,25 +266,36 @@ class Experiment:
     def create(cls, path: str | Path, *, config_yaml: str, camera: CameraInfo) -> "Experiment":
         """A new, empty experiment directory (it must not hold a manifest yet)."""
         path = Path(path)
-        if (path / "manifest.jsonl").exists():
+        (path / "frames").mkdir(parents=True, exist_ok=True)
+        lock = RunLock(path)
+        if (path / "manifest.jsonl").exists() or (path / "experiment.json").exists():
+            lock.release()
             raise RecordingError(f"{path}: already holds a recording; resume it with torchblur identify --resume, "
                                  f"or choose another --out")
-        (path / "frames").mkdir(parents=True, exist_ok=True)
         meta = {"schema_version": SCHEMA_VERSION, "torchblur_version": _version(), "created": _now(), "camera": camera.to_dict(),
                 "status": "running", "sessions": []}
         atomic_write_bytes(path / "config.yaml", config_yaml.encode())
         (path / "manifest.jsonl").touch()
         exp = cls(path, meta, [], writable=True)
+        exp._lock = lock
         exp._write_meta()
         return exp
 
     @classmethod
     def open(cls, path: str | Path, *, writable: bool = True, verify: bool = True) -> "Experiment":
-        """Open a recording. Writable: repair it first (drop a torn last group, temporary files
-        and unreferenced TIFFs). ``verify`` checks every group's file hash.
+        """Open a recording, treated as untrusted input (every field checked, every path kept
+        inside the folder, sizes bounded: :mod:`torchblur.hardware.manifest`).
+
+        Writable (a resume): take the run's lock, then repair: lines that cannot be read or
+        checked, and the groups they leave incomplete or inconsistent, are moved with their
+        frame files to ``quarantine/<stamp>/`` (never deleted; ``repaired`` names every
+        group), unreferenced TIFFs likewise; only temporary files are removed. Read-only: an
+        incomplete group at the end (a crash during an append) is left out; any other
+        problem raises. ``verify`` checks every group's file hash.
 
         Raises:
-            RecordingError: no recording there, or an unknown schema version.
+            RecordingError: no recording there, an unknown schema, a bad experiment.json, the
+                run locked by another process, or (read-only) a damaged manifest.
         """
         path = Path(path)
         if not (path / "experiment.json").is_file() and (path / "experiment" / "experiment.json").is_file():
@@ -289,58 +303,32 @@ class Experiment:
         mp = path / "experiment.json"
         if not mp.is_file():
             raise RecordingError(f"{path}: no experiment.json here (not a torchblur experiment directory)")
-        try:
-            meta = json.loads(mp.read_text())
-        except ValueError as exc:
-            raise RecordingError(f"{mp}: not JSON: {exc}") from None
-        if meta.get("schema_version") != SCHEMA_VERSION:
-            raise RecordingError(f"{mp}: schema_version {meta.get('schema_version')!r}; this torchblur reads {SCHEMA_VERSION}")
-        raw = (path / "manifest.jsonl").read_bytes() if (path / "manifest.jsonl").exists() else b""
-        parts = raw.split(b"\n")
-        torn = parts[-1] != b""  # the last line lacks its newline: a torn append
-        lines = []
-        for p in parts[:-1]:
-            if not p.strip():
-                continue
-            try:
-                lines.append(json.loads(p))
-            except ValueError:
-                torn = True
-                break
-        # keep complete groups only (all their lines, their file present and intact)
-        order, by = [], {}
-        for ln in lines:
-            g = ln.get("group")
-            if g not in by:
-                order.append(g)
-                by[g] = []
-            by[g].append(ln)
-        kept, dropped = [], []
-        for g in order:
-            gl = by[g]
-            ok = len(gl) == int(gl[0].get("group_frames", -1)) and all(ln.get("group") == g for ln in gl)
-            f = path / gl[0]["file"]
-            ok = ok and f.is_file()
-            if ok and verify:
-                ok = hashlib.sha256(f.read_bytes()).hexdigest() == gl[0].get("sha256")
-            (kept if ok else dropped).append(g)
-        keep_lines = [ln for g in kept for ln in by[g]]
-        exp = cls(path, meta, keep_lines, writable=writable)
-        exp.repaired = {"dropped_groups": dropped, "torn_line": torn, "removed_files": []}
+        for name in ("experiment.json", "manifest.jsonl", "config.yaml", "frames", "quarantine"):
+            inside(path, name, name)  # none of them a symlink out of the folder
+        meta = load_json(read_bounded(mp, MAX_META_BYTES, str(mp)), str(mp))
+        check_meta(meta, str(mp))
+        if writable and not os.access(path, os.W_OK | os.X_OK):
+            raise RecordingError(f"{path}: not writable, and a resume writes the recording (copy the run elsewhere to "
+                                 f"resume it, or re-fit it with torchblur fit)")
+        lock = RunLock(path) if writable else None
+        mf = path / "manifest.jsonl"
+        raw = read_bounded(mf, MAX_MANIFEST_BYTES, str(mf)) if mf.exists() or mf.is_symlink() else b""
+        scan = scan_manifest(raw, path, verify=verify)
+        if not writable and not scan.tail_only:
+            raise RecordingError(f"{mf}: damaged ({'; '.join(p[2] for p in scan.problems[:5])}"
+                                 f"{'; ...' if len(scan.problems) > 5 else ''}); torchblur identify --resume quarantines it")
+        exp = cls(path, meta, scan.lines, writable=writable)
+        exp._lock = lock
+        exp.repaired = {"dropped_groups": list(scan.dropped), "torn_line": scan.torn_line, "removed_files": [],
+                        "problems": [p[2] for p in scan.problems], "quarantine": None}
         if writable:
-            if dropped or torn:
-                data = b"".join(json.dumps(ln, separators=(",", ":")).encode() + b"\n" for ln in keep_lines)
-                atomic_write_bytes(path / "manifest.jsonl", data)
-            referenced = {ln["file"] for ln in keep_lines}
-            for folder in (path, path / "frames"):
-                if not folder.is_dir():
-                    continue
-                for f in folder.iterdir():
-                    rel = f.relative_to(path).as_posix()
-                    if f.name.endswith(_TMP) or (folder.name == "frames" and f.suffix == ".tif" and rel not in referenced):
-                        f.unlink()
-                        exp.repaired["removed_files"].append(rel)
+            _repair(exp, scan)
         return exp
+
+    def close(self) -> None:
+        """Give back the run's lock (a writable experiment holds it from create/open)."""
+        if getattr(self, "_lock", None) is not None:
+            self._lock.release()
 
     # ------------------------------------------------------------------ metadata
 
@@ -376,10 +364,13 @@ class Experiment:
             s["reason"] = reason
         self.meta["status"] = status
         self._write_meta()
+        self.close()
 
     def _need_writable(self):
         if not self.writable:
             raise RecordingError(f"{self.path}: opened read-only")
+        if self._lock is None or not self._lock.held:
+            self._lock = RunLock(self.path)  # released at the end of a session: written again, so owned again
 
     # ------------------------------------------------------------------ groups
 
@@ -389,14 +380,10 @@ class Experiment:
     def load_calls(self, key: str) -> list:
         """The recorded rig calls of a group: ``[(method, args, Capture), ...]``."""
         from torchblur.rig.base import Capture
-        import tifffile
 
         gl = self.groups[key]
-        stack = np.asarray(tifffile.imread(self.path / gl[0]["file"]))
         H, W = self.camera_info.frame_shape
-        stack = stack.reshape(-1, H, W)
-        if stack.shape[0] != len(gl):
-            raise RecordingError(f"{key}: {gl[0]['file']} holds {stack.shape[0]} frames, the manifest {len(gl)}")
+        stack = read_stack(self.path, gl[0], (H, W))
         calls = []
         by_call: dict[int, list] = {}
         for ln in gl:
@@ -496,6 +483,76 @@ def _finite_or_none(v):
     return v if v is not None and math.isfinite(v) else None
 
 
+def read_stack(root: Path, line: dict, frame_shape: tuple) -> np.ndarray:
+    """The frames ``[N, H, W]`` of the file of a group's manifest ``line`` (N its
+    ``group_frames``), after checking that the bytes read have the line's SHA-256 and decode
+    to N finite ``H x W`` frames of the line's dtype.
+
+    Raises:
+        RecordingError: naming the file.
+    """
+    import tifffile
+
+    n, (H, W) = int(line["group_frames"]), frame_shape
+    name = line["file"]
+    data = read_bounded(inside(root, name, "file"), n * H * W * 8 + (1 << 20), name)
+    if hashlib.sha256(data).hexdigest() != line["sha256"]:
+        raise RecordingError(f"{line['group']}: {name}: its SHA-256 is not the recorded one (the file changed after "
+                             f"it was recorded); refused")
+    try:
+        with tifffile.TiffFile(io.BytesIO(data)) as tf:
+            series = tf.series[0]
+            if (math.prod(series.shape) != n * H * W or tuple(series.shape[-2:]) != (H, W)
+                    or np.dtype(series.dtype).name != line["dtype"]):
+                raise RecordingError(f"{name}: holds {series.shape} {np.dtype(series.dtype).name} values, the manifest "
+                                     f"{n} frames of {H}x{W} {line['dtype']}")
+            stack = np.asarray(series.asarray()).reshape(n, H, W)
+    except RecordingError:
+        raise
+    except Exception as exc:  # a third-party decoder on untrusted bytes: any failure is a bad file
+        raise RecordingError(f"{name}: not a readable TIFF stack ({type(exc).__name__}: {str(exc)[:100]})") from None
+    if not np.isfinite(stack).all():
+        raise RecordingError(f"{name}: holds NaN or infinite pixels; refused")
+    return stack
+
+
+def _repair(exp: "Experiment", scan: ManifestScan) -> None:
+    """Set aside what ``scan`` could not keep and rewrite the manifest with the kept lines.
+
+    Nothing recorded is deleted: the lines not kept (their raw bytes), the frame files of
+    the dropped groups and any TIFF no kept line references go to ``quarantine/<stamp>/``
+    with ``reasons.json``. Only temporary files (``*.tmp``: never renamed, so provably
+    torn) are removed. The manifest is rewritten last (atomically), so a kill during the
+    repair leaves a state the next open repairs again, losing nothing."""
+    path, rep = exp.path, exp.repaired
+    referenced = {ln["file"] for ln in scan.lines}
+    movable = []
+    for folder in (path, path / "frames"):
+        if not folder.is_dir() or folder.is_symlink():
+            continue
+        for f in sorted(folder.iterdir()):
+            rel = f.relative_to(path).as_posix()
+            if f.name.endswith(_TMP) and f.is_file() and not f.is_symlink():
+                f.unlink()
+                rep["removed_files"].append(rel)
+            elif folder.name == "frames" and folder != path and rel not in referenced:
+                movable.append(f)
+    if scan.bad_raw or movable:
+        stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S%fZ")
+        q = inside(path, f"quarantine/{stamp}-{os.getpid()}", "quarantine")  # a symlinked quarantine/ is refused
+        (q / "frames").mkdir(parents=True)
+        atomic_write_bytes(q / "manifest.jsonl", b"".join(r + b"\n" for r in scan.bad_raw))
+        reasons = {"groups": scan.dropped, "problems": rep["problems"], "files": [f"frames/{f.name}" for f in movable]}
+        atomic_write_bytes(q / "reasons.json", (json.dumps(reasons, indent=2) + "\n").encode())
+        for f in movable:
+            os.replace(f, q / "frames" / f.name)
+        _fsync_dir(q / "frames")
+        rep["quarantine"] = str(q)
+        rep["quarantined_files"] = reasons["files"]
+    if scan.bad_raw or scan.torn_line:
+        atomic_write_bytes(path / "manifest.jsonl", b"".join(r + b"\n" for r in scan.raw))
+
+
 def _version() -> str:
     from torchblur import __version__
 
@@ -527,17 +584,16 @@ class ReplayFrames(FrameSource):
     def info(self) -> CameraInfo:
         return self.experiment.camera_info
 
-    def _stack(self, file: str) -> np.ndarray:
-        import tifffile
-
-        if file not in self._cache:
-            H, W = self.info.frame_shape
-            self._cache = {file: np.asarray(tifffile.imread(self.experiment.path / file)).reshape(-1, H, W)}
-        return self._cache[file]
+    def _stack(self, record: dict) -> np.ndarray:
+        key = (record.get("file"), record.get("sha256"))
+        if key not in self._cache:
+            self._cache = {key: read_stack(self.experiment.path, record, tuple(self.info.frame_shape))}
+        return self._cache[key]
 
     def frame(self, record: dict) -> Frame:
-        """The :class:`Frame` of one manifest line."""
-        px = self._stack(record["file"])[record["page"]]
+        """The :class:`Frame` of one manifest line (its file's hash checked against the line's)."""
+        check_record(record, self.experiment.path)
+        px = self._stack(record)[record["page"]]
         nan = float("nan")
         return Frame(data=torch.from_numpy(px.astype(np.float64)), counter=int(record["frame_counter"]),
                      timestamp_s=record["timestamp_s"] if record.get("timestamp_s") is not None else nan,

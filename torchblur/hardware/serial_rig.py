@@ -292,6 +292,8 @@ class SerialRig:
                 raise FrameGap(f"frame counter jumped from {expected} to {fr.counter}: {fr.counter - expected} frame(s) dropped")
             if tuple(fr.data.shape) != (H, W):
                 raise FrameMismatch(f"frame {fr.counter} has shape {tuple(fr.data.shape)}, expected {(H, W)}")
+            if not torch.isfinite(fr.data).all():
+                raise FrameMismatch(f"frame {fr.counter} holds NaN or infinite pixels")
             if not math.isclose(fr.exposure_s, exposure_s, rel_tol=1e-9, abs_tol=1e-12):
                 raise FrameMismatch(f"frame {fr.counter} has exposure {fr.exposure_s!r} s, expected {exposure_s!r} s")
             got.append(fr)

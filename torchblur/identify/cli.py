@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -100,6 +101,8 @@ def _resume_hint(root: Path, cfg) -> str:
 
 
 def _identify(args) -> int:
+    from torchblur.hardware.errors import RecordingError
+    from torchblur.hardware.run_folder import RunLock, check_out_folder
     from torchblur.identify.config import load_config
 
     if args.resume is not None:
@@ -107,36 +110,48 @@ def _identify(args) -> int:
     if args.out is None:
         print("torchblur identify: error: --out DIR is required (or --resume DIR)", file=sys.stderr)
         return 2
-    cfg = load_config(args.config, args.overrides)  # ConfigError (named key) before any work
+    cfg = load_config(args.config, args.overrides, force=args.force)  # ConfigError (named key) before any work
     out = Path(args.out)
+    check_out_folder(out, command="identify")
     if (out / "experiment" / "manifest.jsonl").exists():
         print(f"torchblur identify: error: {out} already holds a recorded run; continue it with "
               f"'torchblur identify --resume {out}' or choose another --out", file=sys.stderr)
         return 2
-    out.mkdir(parents=True, exist_ok=True)
-    return _run_identify(cfg, out, out / "experiment", args.quiet)
+    (out / "experiment").mkdir(parents=True, exist_ok=True)
+    lock = RunLock(out / "experiment")  # held for the run's life: a second run on this folder refuses
+    try:
+        if (out / "experiment" / "manifest.jsonl").exists():  # created while we waited for the lock
+            raise RecordingError(f"--out {out}: already holds a recorded run; resume it with torchblur identify --resume")
+        return _run_identify(cfg, out, out / "experiment", args.quiet)
+    finally:
+        lock.release()
 
 
 def _resume(args) -> int:
-    from torchblur.identify.config import load_config
     from torchblur.hardware.recording import Experiment
-
-    root = Path(args.resume)
-    exp = Experiment.open(root)  # RecordingError if none; repairs a torn last group
-    if exp.path == root:  # given the experiment folder itself
-        root = root.parent
-    out = Path(args.out) if args.out is not None else root
-    cfg = load_config(str(exp.path / "config.yaml"), args.overrides)
-    from torchblur.identify.config import load_dataclass
+    from torchblur.hardware.run_folder import check_out_folder
+    from torchblur.identify.config import load_config, load_dataclass
     from torchblur.identify.run import check_resume_config
 
-    check_resume_config(load_dataclass(type(cfg), str(exp.path / "config.yaml")), cfg)  # before connecting
-    rep = exp.repaired
-    if rep["dropped_groups"] or rep["removed_files"]:
-        print(f"torchblur identify: resume: dropped incomplete group(s) {rep['dropped_groups']}, removed "
-              f"{len(rep['removed_files'])} leftover file(s)", file=sys.stderr)
-    out.mkdir(parents=True, exist_ok=True)
-    return _run_identify(cfg, out, exp, args.quiet, root=root)
+    root = Path(args.resume)
+    exp = Experiment.open(root)  # RecordingError if none or locked; sets aside what it cannot keep
+    try:
+        if exp.path == root:  # given the experiment folder itself
+            root = root.parent
+        out = Path(args.out) if args.out is not None else root
+        check_out_folder(out, command="identify", own_run=root)
+        cfg = load_config(str(exp.path / "config.yaml"), args.overrides, trusted=False, force=args.force)
+        check_resume_config(load_dataclass(type(cfg), str(exp.path / "config.yaml"), trusted=False), cfg)  # before connecting
+        rep = exp.repaired
+        if rep["dropped_groups"] or rep["removed_files"] or rep.get("quarantine"):
+            where = f"; set aside (nothing deleted) in {rep['quarantine']}" if rep.get("quarantine") else ""
+            print(f"torchblur identify: resume: {len(rep['problems'])} manifest problem(s); group(s) to take again: "
+                  f"{', '.join(rep['dropped_groups']) or 'none'}; removed {len(rep['removed_files'])} temporary file(s){where}",
+                  file=sys.stderr)
+        out.mkdir(parents=True, exist_ok=True)
+        return _run_identify(cfg, out, exp, args.quiet, root=root)
+    finally:
+        exp.close()
 
 
 def _run_identify(cfg, out: Path, record, quiet: bool, root: Path | None = None) -> int:
@@ -179,19 +194,21 @@ def _fit(args) -> int:
     import torchblur as tb
     from torchblur.identify.config import config_to_yaml, load_config, load_dataclass
     from torchblur.hardware.recording import Experiment, ReplayRig
+    from torchblur.hardware.run_folder import check_out_folder
     from torchblur.identify.run import check_resume_config, identify
 
     exp = Experiment.open(args.dir, writable=False)
     root = exp.path.parent if exp.path.name == "experiment" else exp.path
     out = Path(args.out)
+    check_out_folder(out, command="fit", force=args.force)
     r_root, r_out, r_exp = root.resolve(), out.resolve(), exp.path.resolve()
     for protected in {r_root, r_exp}:
         if r_out == protected or protected in r_out.parents:
             print(f"torchblur fit: error: --out {out} is inside the recorded run {root}; the original is never written, "
                   f"choose another folder", file=sys.stderr)
             return 2
-    recorded = load_dataclass(type(load_config()), str(exp.path / "config.yaml"))
-    cfg = load_config(str(exp.path / "config.yaml"), args.overrides)
+    recorded = load_dataclass(type(load_config()), str(exp.path / "config.yaml"), trusted=False)
+    cfg = load_config(str(exp.path / "config.yaml"), args.overrides, trusted=False, force=True)  # the recording is made
     check_resume_config(recorded, cfg, allowed=("fit", "model"))
     out.mkdir(parents=True, exist_ok=True)
     stamp = f"torchblur {tb.__version__}, seed {cfg.seed}, re-fit of {exp.path}"
@@ -416,12 +433,14 @@ def build_parser() -> argparse.ArgumentParser:
     ident.add_argument("--resume", default=None, metavar="DIR",
                        help="continue the interrupted run recorded in DIR (its --out folder or DIR/experiment)")
     ident.add_argument("--quiet", action="store_true", help="no progress bar")
+    ident.add_argument("--force", action="store_true", help="run even beyond the size limits (docs/reliability.md)")
     ident.add_argument("overrides", nargs="*", help="dotted key=value overrides, e.g. sweep.n=20 plant.delay_s=5e-5")
     ident.set_defaults(func=_identify)
     fit = sub.add_parser("fit", help="re-fit a recorded run offline with other fit.* / model.* settings")
     fit.add_argument("dir", help="the recorded run (its --out folder, or its experiment/ folder)")
     fit.add_argument("--out", required=True, help="a new output directory (never inside DIR)")
     fit.add_argument("--quiet", action="store_true", help="no progress bar")
+    fit.add_argument("--force", action="store_true", help="overwrite the results a folder already holds")
     fit.add_argument("overrides", nargs="*", help="fit.* and model.* overrides, e.g. fit.loss=poisson model.max_order=4")
     fit.set_defaults(func=_fit)
     emu = sub.add_parser("emulator", help="emulate the bench (controller on a pseudo-terminal, camera on loopback TCP)")
@@ -450,6 +469,18 @@ def main(argv: list[str] | None = None) -> int:
     except TorchblurError as exc:
         print(f"torchblur {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # a path the user gave: missing, a file, read-only, full disk
+        where = f" {exc.filename}" if exc.filename else ""
+        print(f"torchblur {args.command}: error:{where}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except Exception as exc:  # a bug: one line for the user, the traceback on request
+        if os.environ.get("TORCHBLUR_DEBUG"):
+            raise
+        print(f"torchblur {args.command}: internal error: {type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''} "
+              f"(set TORCHBLUR_DEBUG=1 for the traceback; please report it)", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

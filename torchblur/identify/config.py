@@ -9,12 +9,13 @@ pixels per input unit.
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
 from typing import Optional
 
 from torchblur.errors import ConfigError
 
-__all__ = ["IdentifyConfig", "load_config", "load_dataclass", "config_to_yaml", "validate", "validate_plant", "validate_camera",
+__all__ = ["IdentifyConfig", "load_config", "estimate_run", "check_limits", "LIMITS", "load_dataclass", "config_to_yaml", "validate", "validate_plant", "validate_camera",
            "validate_spots", "validate_excitation", "SpotsConfig", "PlantConfig",
            "DEFAULT_PLANT", "RIG_KINDS", "EXCITATION_KINDS"]
 
@@ -219,29 +220,101 @@ def _from_dict(cls, data: dict, prefix: str = ""):
             if not isinstance(v, dict):
                 raise ConfigError(f"{prefix}{k}: expected a section (mapping), got {v!r}")
             kwargs[k] = _from_dict(type(default), v, prefix + k + ".")
+        elif names[k].type in ("int", "Optional[int]") and isinstance(v, float) and v.is_integer() and abs(v) < 2**53:
+            kwargs[k] = int(v)  # 1e3 written for an integer key: the integer it is
         else:
             kwargs[k] = v
     return cls(**kwargs)
 
 
-def load_config(path: str | None = None, overrides: list[str] | None = None) -> IdentifyConfig:
-    """Defaults, then the YAML file, then ``key=value`` overrides; validated.
+def load_config(path: str | None = None, overrides: list[str] | None = None, *, trusted: bool = True,
+                force: bool = False) -> IdentifyConfig:
+    """Defaults, then the YAML file, then ``key=value`` overrides; validated, and the run's
+    size checked against :data:`LIMITS` (:func:`estimate_run`) unless ``force``.
+
+    ``trusted=False`` for a file from a recording: no interpolation (``${...}``) is allowed
+    in it, so nothing outside the recording (an environment variable) is read.
 
     Raises:
-        ConfigError: naming the key, for unknown keys, unparsable values or invalid values.
+        ConfigError: naming the key, for unknown keys, unparsable values, invalid values, or
+            a run beyond the limits (with the estimate).
     """
-    cfg = load_dataclass(IdentifyConfig, path, overrides)
+    cfg = load_dataclass(IdentifyConfig, path, overrides, trusted=trusted)
     validate(cfg)
+    if not force:
+        check_limits(cfg)
     return cfg
 
 
-def load_dataclass(cls, path: str | None = None, overrides: list[str] | None = None, *, ignore_file_sections=()):
+MAX_CONFIG_BYTES = 1 << 20
+MAX_LIST_ENTRIES = 1000
+
+
+def _load_file(path: str, *, trusted: bool):
+    """The OmegaConf of a YAML file: at most :data:`MAX_CONFIG_BYTES`, aliases expanded to
+    at most OmegaConf's node limit (a YAML bomb or a recursive alias is refused), and, when
+    not ``trusted``, no interpolation anywhere.
+
+    Raises:
+        ConfigError: naming the file.
+    """
+    import yaml
+    from omegaconf import OmegaConf
+
+    try:
+        size = os.path.getsize(path)
+        if size > MAX_CONFIG_BYTES:
+            raise ConfigError(f"--config {path}: {size} bytes, more than the {MAX_CONFIG_BYTES} a config may hold")
+        file_cfg = OmegaConf.load(path)
+    except FileNotFoundError:
+        raise ConfigError(f"--config: file not found: {path}") from None
+    except OSError as exc:
+        raise ConfigError(f"--config {path}: cannot read it ({exc.strerror or exc})") from None
+    except (yaml.YAMLError, UnicodeDecodeError, RecursionError) as exc:
+        raise ConfigError(f"--config {path}: not a usable YAML file ({str(exc).splitlines()[0][:120]})") from None
+    if not OmegaConf.is_dict(file_cfg):
+        raise ConfigError(f"--config {path}: expected a mapping of sections, got a {type(file_cfg).__name__}")
+    if not trusted:
+        _refuse_interpolation(OmegaConf.to_container(file_cfg, resolve=False), path)
+    return file_cfg
+
+
+def _refuse_interpolation(value, path: str, key: str = "") -> None:
+    if isinstance(value, str) and "${" in value:
+        raise ConfigError(f"{key or 'config'}: an interpolation ({value[:60]!r}) in the recorded {path}; a recording's "
+                          f"config is read literally, refused")
+    if isinstance(value, dict):
+        for k, v in value.items():
+            _refuse_interpolation(v, path, f"{key}.{k}" if key else str(k))
+    elif isinstance(value, list):
+        for i, v in enumerate(value):
+            _refuse_interpolation(v, path, f"{key}[{i}]")
+
+
+def _check_sizes(value, key: str = "") -> None:
+    """Every list at most :data:`MAX_LIST_ENTRIES` long, nesting at most 8 deep."""
+    if key.count(".") + key.count("[") > 8:
+        raise ConfigError(f"{key}: nested more than 8 levels deep")
+    if isinstance(value, list):
+        if len(value) > MAX_LIST_ENTRIES:
+            raise ConfigError(f"{key}: {len(value)} entries, more than {MAX_LIST_ENTRIES}")
+        for i, v in enumerate(value):
+            _check_sizes(v, f"{key}[{i}]")
+    elif isinstance(value, dict):
+        for k, v in value.items():
+            _check_sizes(v, f"{key}.{k}" if key else str(k))
+
+
+def load_dataclass(cls, path: str | None = None, overrides: list[str] | None = None, *, ignore_file_sections=(),
+                   trusted: bool = True):
     """Defaults of the frozen dataclass ``cls``, then the YAML file (its top-level sections in
-    ``ignore_file_sections`` skipped), then ``key=value`` overrides; not validated.
+    ``ignore_file_sections`` skipped; ``trusted=False``: no interpolation in it), then
+    ``key=value`` overrides; not validated.
 
     Raises:
         ConfigError: naming the key, for unknown keys and unparsable values.
     """
+    import yaml
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 
@@ -249,23 +322,27 @@ def load_dataclass(cls, path: str | None = None, overrides: list[str] | None = N
     OmegaConf.set_struct(merged, True)
     try:
         if path is not None:
-            try:
-                file_cfg = OmegaConf.load(path)
-            except FileNotFoundError:
-                raise ConfigError(f"--config: file not found: {path}") from None
+            file_cfg = _load_file(path, trusted=trusted)
             for k in ignore_file_sections:
                 if k in file_cfg:
                     file_cfg.pop(k)
             merged = OmegaConf.merge(merged, file_cfg)
-        if overrides:
-            for item in overrides:
-                if "=" not in item:
-                    raise ConfigError(f"{item}: expected key=value")
-            merged = OmegaConf.merge(merged, OmegaConf.from_dotlist(list(overrides)))
+        for item in overrides or ():
+            if "=" not in item:
+                raise ConfigError(f"{item}: expected key=value")
+            try:
+                merged = OmegaConf.merge(merged, OmegaConf.from_dotlist([item]))
+            except (yaml.YAMLError, RecursionError) as exc:
+                raise ConfigError(f"{item.partition('=')[0]}: the value cannot be read ({str(exc).splitlines()[0][:100]})") from None
+        data = OmegaConf.to_container(merged, resolve=True)
     except OmegaConfBaseException as exc:
         key = getattr(exc, "full_key", None) or getattr(exc, "key", None) or "config"
         raise ConfigError(f"{key}: {str(exc).splitlines()[0]}") from None
-    data = OmegaConf.to_container(merged, resolve=True)
+    except (RecursionError, ValueError) as exc:
+        if isinstance(exc, ConfigError):
+            raise
+        raise ConfigError(f"config: cannot be read ({type(exc).__name__}: {str(exc).splitlines()[0][:100]})") from None
+    _check_sizes(data)
     return _from_dict(cls, data)
 
 
@@ -278,7 +355,7 @@ def config_to_yaml(cfg: IdentifyConfig) -> str:
 def _num(value, key, *, positive=False, nonnegative=False, integer=False, low=None, high=None):
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ConfigError(f"{key}: expected a number, got {value!r}")
-    if integer and int(value) != value:
+    if integer and not isinstance(value, int):
         raise ConfigError(f"{key}: expected an integer, got {value!r}")
     v = float(value)
     if not math.isfinite(v):
@@ -294,6 +371,11 @@ def _num(value, key, *, positive=False, nonnegative=False, integer=False, low=No
     return v
 
 
+def _short(value) -> str:
+    r = repr(value)
+    return r if len(r) <= 80 else f"{r[:60]}... ({len(value) if hasattr(value, '__len__') else '?'} entries)"
+
+
 def _flag(value, key) -> bool:
     if not isinstance(value, bool):
         raise ConfigError(f"{key}: expected true or false, got {value!r}")
@@ -301,8 +383,8 @@ def _flag(value, key) -> bool:
 
 
 def _coeffs(value, key) -> list[float]:
-    if not isinstance(value, (list, tuple)) or not value:
-        raise ConfigError(f"{key}: expected a non-empty list of coefficients (highest power first), got {value!r}")
+    if not isinstance(value, (list, tuple)) or not value or len(value) > 33:
+        raise ConfigError(f"{key}: expected a list of 1 to 33 coefficients (highest power first), got {_short(value)}")
     return [_num(v, f"{key}[{i}]") for i, v in enumerate(value)]
 
 
@@ -393,7 +475,7 @@ def validate_spots(sp: SpotsConfig, camera: CameraConfig | None = None) -> None:
         for i, v in enumerate(sp.center_px):
             _num(v, f"spots.center_px[{i}]")
     if sp.sigma_px is not None:
-        _num(sp.sigma_px, "spots.sigma_px", positive=True)
+        _num(sp.sigma_px, "spots.sigma_px", low=MIN_PSF_SIGMA_PX)
     for k in ("sigma_variation", "elongation"):
         _num(getattr(sp, k), f"spots.{k}", nonnegative=True)
     _num(sp.gain_variation, "spots.gain_variation", low=-0.99, high=0.99)
@@ -419,6 +501,9 @@ def validate_camera(c: CameraConfig) -> None:
     """Check the ``camera`` section; raise :class:`ConfigError` naming the key."""
     for k in ("frame_rate_hz", "max_exposure_s", "gain", "full_well", "psf_sigma_px", "peak_fraction"):
         _num(getattr(c, k), f"camera.{k}", positive=True)
+    if c.psf_sigma_px < MIN_PSF_SIGMA_PX:
+        raise ConfigError(f"camera.psf_sigma_px: a PSF of {c.psf_sigma_px} px std is not sampled by the pixels; expected at "
+                          f"least {MIN_PSF_SIGMA_PX} px")
     for k in ("readout_s", "trigger_delay_s", "latency_s", "jitter_s", "read_noise", "dark_level"):
         _num(getattr(c, k), f"camera.{k}", nonnegative=True)
     _num(c.bit_depth, "camera.bit_depth", integer=True, low=1, high=32)
@@ -497,8 +582,8 @@ def validate(cfg: IdentifyConfig) -> None:
         _num(s.n, "sweep.n", integer=True, low=1)
         if s.f_max_hz < s.f_min_hz:
             raise ConfigError(f"sweep.f_max_hz: expected >= sweep.f_min_hz ({s.f_min_hz}), got {s.f_max_hz}")
-    if not isinstance(s.exposures, (list, tuple)) or not s.exposures:
-        raise ConfigError(f"sweep.exposures: expected a non-empty list of fractions of the period, got {s.exposures!r}")
+    if not isinstance(s.exposures, (list, tuple)) or not s.exposures or len(s.exposures) > 16:
+        raise ConfigError(f"sweep.exposures: expected a list of 1 to 16 fractions of the period, got {_short(s.exposures)}")
     for i, e in enumerate(s.exposures):
         _num(e, f"sweep.exposures[{i}]", positive=True)
     _num(s.trigger_phase_rad, "sweep.trigger_phase_rad")
@@ -519,7 +604,7 @@ def validate(cfg: IdentifyConfig) -> None:
     validate_excitation(cfg.excitation)
     c = cfg.camera
     validate_camera(c)
-    f_min = min(cfg.frequencies_hz())
+    f_min = min(s.freq_hz) if s.freq_hz is not None else s.f_min_hz  # (not the whole list: sweep.n may be huge)
     longest = max(s.exposures) / f_min
     if longest > c.max_exposure_s:
         raise ConfigError(f"sweep.exposures: the longest exposure ({max(s.exposures)} of the period at {f_min:g} Hz = "
@@ -574,5 +659,73 @@ def validate(cfg: IdentifyConfig) -> None:
         raise ConfigError("model.direct: the direct fit handles one axis and one spot; this run has "
                           f"{'a 2x2 plant' if cfg.plant.is_mimo else 'many spots (spots.rows > 0)'}: set model.direct=false")
     validate_rig(cfg.rig)
-    _num(cfg.seed, "seed", integer=True, low=0)
+    _num(cfg.seed, "seed", integer=True, low=0, high=2**63 - 1)
+
+
+MIN_PSF_SIGMA_PX = 0.1
+
+# A run beyond any of these is refused at validation, with the estimate (--force to go on).
+LIMITS = {"frames": 100_000, "memory_bytes": 8 * 2**30, "disk_bytes": 20 * 2**30, "bench_s": 24 * 3600.0}
+_CALIBRATION_FRAMES = 100  # dark, saturation ladder, PSF, latency scan, axis (about)
+
+
+def estimate_run(cfg: IdentifyConfig) -> dict:
+    """What a run will take, estimated from its config alone (no work): ``frames`` (one
+    attempt per sweep point, calibration included), ``memory_bytes`` (the frames held as
+    float64, raw and in electrons, with a model per frame), ``disk_bytes`` (the recording,
+    16-bit pixels), ``bench_s`` (camera time: per point the settling and every frame at
+    least a camera cycle and a period apart; only when ``frames`` is within
+    :data:`LIMITS`, else NaN) and ``motion_px`` (the largest spot motion, 1.33 target_px)."""
+    s, c = cfg.sweep, cfg.camera
+    n_freq = len(s.freq_hz) if s.freq_hz is not None else int(s.n)
+    n_inputs = 2 if cfg.plant.is_mimo else 1
+    per_point = len(s.exposures) * int(s.images_per_point)
+    frames = n_inputs * n_freq * per_point + _CALIBRATION_FRAMES
+    pixels = int(c.height) * int(c.width)
+    bench = float("nan")
+    if frames <= LIMITS["frames"]:
+        import numpy as np
+
+        f = np.asarray(cfg.frequencies_hz(), dtype=float)
+        cycle = np.maximum(1.0 / c.frame_rate_hz, 1.0 / f)
+        frame_s = sum(np.maximum(cycle, e / f + c.readout_s) for e in s.exposures) * int(s.images_per_point)
+        bench = float(n_inputs * np.sum(frame_s + (s.settle_s or 0.0) + 2.0 / f))
+    return {"frames": frames, "memory_bytes": 3 * 8 * frames * pixels, "disk_bytes": 2 * frames * pixels,
+            "bench_s": bench, "motion_px": 1.33 * float(cfg.excitation.target_px), "frame_px": (int(c.height), int(c.width))}
+
+
+def _size(b: float) -> str:
+    return f"{b / 2**30:.3g} GiB" if b >= 2**30 else f"{b / 2**20:.3g} MiB"
+
+
+def check_limits(cfg: IdentifyConfig) -> dict:
+    """Refuse a run beyond :data:`LIMITS` (or whose spot motion exceeds the frame) with the
+    estimate of :func:`estimate_run`, which it returns.
+
+    Raises:
+        ConfigError: starting with the key that makes the run large, naming the estimate.
+    """
+    est = estimate_run(cfg)
+    s, c = cfg.sweep, cfg.camera
+    bench = f"{est['bench_s'] / 3600:.3g} h" if math.isfinite(est["bench_s"]) else "not estimated (too many frames)"
+    summary = (f"estimate: {est['frames']:,} frames, {_size(est['memory_bytes'])} of memory, {_size(est['disk_bytes'])} "
+               f"on disk, bench time {bench}")
+    over = [k for k in ("frames", "memory_bytes", "disk_bytes", "bench_s") if est[k] > LIMITS[k]]
+    if over:
+        n_freq = len(s.freq_hz) if s.freq_hz is not None else int(s.n)
+        drivers = {"camera.height": int(c.height), "camera.width": int(c.width)} if over == ["memory_bytes"] or \
+            int(c.height) * int(c.width) > 2**22 else {}
+        drivers = drivers or {"sweep.freq_hz" if s.freq_hz is not None else "sweep.n": n_freq,
+                              "sweep.images_per_point": int(s.images_per_point), "sweep.exposures": len(s.exposures)}
+        key = max(drivers, key=drivers.get)
+        shown = {"frames": f"{LIMITS['frames']:,} frames", "memory_bytes": f"memory {_size(LIMITS['memory_bytes'])}",
+                 "disk_bytes": f"disk {_size(LIMITS['disk_bytes'])}", "bench_s": f"bench time {LIMITS['bench_s'] / 3600:g} h"}
+        limits = ", ".join(shown[k] for k in over)
+        raise ConfigError(f"{key}: the run is too large ({summary}; limits: {limits}); refused before any work "
+                          f"(--force to go on)")
+    if est["motion_px"] > max(est["frame_px"]):
+        raise ConfigError(f"excitation.target_px: a spot motion of up to {est['motion_px']:.4g} px (1.33 x target_px) does not "
+                          f"fit a {est['frame_px'][0]}x{est['frame_px'][1]} frame ({summary}); refused before any work "
+                          f"(--force to go on)")
+    return est
 

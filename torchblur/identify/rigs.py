@@ -62,7 +62,7 @@ def open_experiment(record, cfg, rig):
             exp = Experiment.open(path)
         else:
             return Experiment.create(path, config_yaml=config_to_yaml(cfg), camera=camera_info_of(rig))
-    recorded = load_dataclass(type(cfg), str(exp.path / "config.yaml"))
+    recorded = load_dataclass(type(cfg), str(exp.path / "config.yaml"), trusted=False)
     check_resume_config(recorded, cfg)
     shape = tuple(exp.camera_info.frame_shape)
     if tuple(rig.frame_shape) != shape:

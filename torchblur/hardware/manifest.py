@@ -1,0 +1,336 @@
+"""A recording is untrusted input: the schema checks of ``experiment.json`` and
+``manifest.jsonl`` lines, and the scan that sorts a manifest into complete groups and
+problems (docs/protocol.md, "The experiment directory").
+
+Every field is type- and range-checked (a page within its group, an amplitude finite and
+> 0, a frame file named ``frames/<group>.tif`` inside the run folder, ...); a group is
+complete when its lines agree with each other, cover pages ``0 .. group_frames-1`` once,
+and its file's SHA-256 is the recorded one. Sizes are bounded before parsing (a line
+at most :data:`MAX_LINE_BYTES`, JSON nested at most :data:`MAX_JSON_DEPTH` deep).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from torchblur.hardware.errors import RecordingError
+from torchblur.hardware.run_folder import inside
+
+__all__ = ["SCHEMA_VERSION", "MAX_LINE_BYTES", "MAX_JSON_DEPTH", "MAX_META_BYTES", "MAX_MANIFEST_BYTES", "MAX_FRAME_SIDE", "METHODS",
+           "ManifestScan", "check_line", "check_meta", "check_record", "expected_file", "load_json", "read_bounded", "scan_manifest"]
+
+SCHEMA_VERSION = 1
+MAX_LINE_BYTES = 64 * 1024
+MAX_JSON_DEPTH = 16
+MAX_META_BYTES = 4 * 1024 * 1024
+MAX_MANIFEST_BYTES = 512 * 1024 * 1024
+MAX_FRAME_SIDE = 65536
+MAX_AMPLITUDE = 1e6  # command units: far beyond any DAC's range
+METHODS = ("dark", "still", "sine", "pulse", "multisine")
+_GROUP = re.compile(r"^[A-Za-z0-9_-]{1,40}(/[A-Za-z0-9_-]{1,40}){0,3}$")
+_SHA = re.compile(r"^[0-9a-f]{64}$")
+_SHARED = ("kind", "group_frames", "file", "sha256", "dtype", "input", "freq_hz", "amplitude", "power", "point")
+
+
+class _Bad(Exception):
+    """One field of one line is invalid (internal: becomes a problem or a RecordingError)."""
+
+
+def read_bounded(path: Path, limit: int, what: str) -> bytes:
+    """The bytes of ``path`` if it is a regular file of at most ``limit`` bytes.
+
+    Raises:
+        RecordingError: naming ``what``.
+    """
+    try:
+        size = path.stat().st_size
+        if size > limit:
+            raise RecordingError(f"{what}: {size} bytes, more than the {limit} a recording may hold; refused")
+        with open(path, "rb") as fh:
+            return fh.read(limit + 1)[:limit]
+    except OSError as exc:
+        raise RecordingError(f"{what}: cannot read it ({exc.strerror or exc})") from None
+
+
+def _depth(v, d=0) -> int:
+    if d > MAX_JSON_DEPTH:
+        return d
+    if isinstance(v, dict):
+        return max((_depth(x, d + 1) for x in v.values()), default=d + 1)
+    if isinstance(v, list):
+        return max((_depth(x, d + 1) for x in v), default=d + 1)
+    return d
+
+
+def load_json(data: bytes, what: str):
+    """Parse JSON from an untrusted source: UTF-8, nested at most :data:`MAX_JSON_DEPTH`.
+
+    Raises:
+        RecordingError: naming ``what``.
+    """
+    if data.count(b"[") + data.count(b"{") > 100_000 or re.search(rb"[\[{]{%d}" % (MAX_JSON_DEPTH + 1), data):
+        raise RecordingError(f"{what}: JSON nested deeper than {MAX_JSON_DEPTH} levels; refused")
+    try:
+        value = json.loads(data.decode("utf-8"))
+    except (ValueError, RecursionError) as exc:
+        raise RecordingError(f"{what}: not valid JSON ({str(exc).splitlines()[0][:120]})") from None
+    if _depth(value) > MAX_JSON_DEPTH:
+        raise RecordingError(f"{what}: JSON nested deeper than {MAX_JSON_DEPTH} levels; refused")
+    return value
+
+
+def _int(v, key, low=None, high=None):
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise _Bad(f"{key}: expected an integer, got {v!r:.60}")
+    if (low is not None and v < low) or (high is not None and v > high):
+        raise _Bad(f"{key}: expected an integer in [{low}, {high}], got {v!r}")
+    return v
+
+
+def _float(v, key, *, positive=False, nonnegative=False, optional=False):
+    if v is None and optional:
+        return None
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise _Bad(f"{key}: expected a finite number, got {v!r:.60}")
+    if (positive and v <= 0) or (nonnegative and v < 0):
+        raise _Bad(f"{key}: expected a number {'> 0' if positive else '>= 0'}, got {v!r}")
+    return float(v)
+
+
+def _str(v, key, *, optional=False, limit=200):
+    if v is None and optional:
+        return None
+    if not isinstance(v, str) or len(v) > limit:
+        raise _Bad(f"{key}: expected a string of at most {limit} characters, got {v!r:.60}")
+    return v
+
+
+def expected_file(group: str) -> str:
+    """The frame file of a group: ``frames/<group with / as _>.tif``."""
+    return "frames/" + group.replace("/", "_") + ".tif"
+
+
+def check_line(ln, root: Path) -> str:
+    """Check one manifest line; return its group.
+
+    Raises:
+        _Bad: the first invalid field, named.
+    """
+    if not isinstance(ln, dict):
+        raise _Bad(f"expected a JSON object, got {type(ln).__name__}")
+    g = ln.get("group")
+    if not isinstance(g, str) or not _GROUP.match(g):
+        raise _Bad(f"group: expected a group key like 'dark' or 'sweep/x/003', got {g!r:.60}")
+    n = _int(ln.get("group_frames"), "group_frames", 1, 1_000_000)
+    _str(ln.get("kind"), "kind", limit=32)
+    _int(ln.get("call"), "call", 0, n - 1)
+    shape = ln.get("call_shape")
+    if not isinstance(shape, list) or len(shape) > 4:
+        raise _Bad(f"call_shape: expected a list of at most 4 sizes, got {shape!r:.60}")
+    size = math.prod(_int(s, "call_shape", 1, n) for s in shape)
+    if size > n:
+        raise _Bad(f"call_shape: {shape} holds {size} frames, more than the group's {n}")
+    _int(ln.get("index"), "index", 0, size - 1)
+    if ln.get("method") not in METHODS:
+        raise _Bad(f"method: expected one of {METHODS}, got {ln.get('method')!r:.60}")
+    _int(ln.get("page"), "page", 0, n - 1)
+    if ln.get("file") != expected_file(g):
+        raise _Bad(f"file: expected {expected_file(g)!r} (the group's frame file), got {ln.get('file')!r:.80}")
+    inside(root, ln["file"], "file")
+    if ln.get("dtype") not in ("uint16", "float64"):
+        raise _Bad(f"dtype: expected 'uint16' or 'float64', got {ln.get('dtype')!r:.60}")
+    if not isinstance(ln.get("sha256"), str) or not _SHA.match(ln["sha256"]):
+        raise _Bad(f"sha256: expected 64 lowercase hex digits, got {ln.get('sha256')!r:.80}")
+    _int(ln.get("frame_counter"), "frame_counter", -(2**62), 2**62)
+    _float(ln.get("exposure_s"), "exposure_s", positive=True)
+    for k in ("timestamp_s", "trigger_time_s", "trigger_offset_s"):
+        _float(ln.get(k), k, optional=True)
+    for k in ("exposure_index", "session"):
+        if ln.get(k) is not None:
+            _int(ln[k], k, 0, 1_000_000)
+    _int(ln.get("repeat"), "repeat", 0, n - 1)
+    _str(ln.get("input"), "input", optional=True, limit=16)
+    _float(ln.get("freq_hz"), "freq_hz", positive=True, optional=True)
+    if not isinstance(ln.get("args"), dict) or not isinstance(ln.get("meta", {}), dict):
+        raise _Bad("args: expected an object (and meta an object)")
+    if ln.get("kind") == "sweep" and ln.get("method") == "sine":
+        _float(ln.get("freq_hz"), "freq_hz", positive=True)
+        if not 0 < _float(ln.get("amplitude"), "amplitude", positive=True) <= MAX_AMPLITUDE:
+            raise _Bad(f"amplitude: expected a value in (0, {MAX_AMPLITUDE:g}] command units, got {ln['amplitude']!r}")
+        _float(ln.get("power"), "power", nonnegative=True)
+        for k in ("amplitude", "freq_hz", "power"):  # the labels repeat the rig call's arguments
+            if k in ln["args"] and not (isinstance(ln["args"][k], (int, float)) and not isinstance(ln["args"][k], bool)
+                                        and math.isclose(ln["args"][k], ln[k], rel_tol=1e-12)):
+                raise _Bad(f"{k}: {ln[k]!r} differs from the rig call's args.{k} = {ln['args'][k]!r:.40}")
+        if ln.get("point") is not None:
+            _int(ln["point"], "point", 0, 1_000_000)
+        if ln.get("attempts") is not None:
+            _int(ln["attempts"], "attempts", 1, 1000)
+    return g
+
+
+def check_record(record, root: Path) -> str:
+    """:func:`check_line` for a caller's record; returns its group.
+
+    Raises:
+        RecordingError: naming the invalid field.
+    """
+    try:
+        return check_line(record, root)
+    except _Bad as exc:
+        raise RecordingError(f"record: {exc}") from None
+
+
+def _check_group(g: str, gl: list, root: Path, verify: bool) -> None:
+    """Raise :class:`_Bad` unless the lines ``gl`` of group ``g`` form one complete group."""
+    first = gl[0]
+    for k in _SHARED:
+        odd = [ln for ln in gl if ln.get(k) != first.get(k)]
+        if odd:
+            raise _Bad(f"{k}: the group's lines disagree ({first.get(k)!r:.40} and {odd[0].get(k)!r:.40})")
+    n = first["group_frames"]
+    if len(gl) != n:
+        raise _Bad(f"incomplete: {len(gl)} of its {n} lines")
+    if sorted(ln["page"] for ln in gl) != list(range(n)):
+        raise _Bad("page: two lines name the same page")
+    by_call: dict[int, list] = {}
+    for ln in gl:
+        by_call.setdefault(ln["call"], []).append(ln)
+    for ci, cl in by_call.items():
+        shape, size = cl[0]["call_shape"], math.prod(cl[0]["call_shape"])
+        if any(ln["call_shape"] != shape or ln["method"] != cl[0]["method"] or ln["args"] != cl[0]["args"] for ln in cl):
+            raise _Bad(f"call {ci}: its lines disagree on call_shape, method or args")
+        if sorted(ln["index"] for ln in cl) != list(range(size)):
+            raise _Bad(f"call {ci}: index: expected 0 .. {size - 1} once each")
+    f = inside(root, first["file"], "file")
+    if f.is_symlink() or not f.is_file():
+        raise _Bad(f"file: {first['file']} is missing (or not a regular file)")
+    if verify:
+        h = hashlib.sha256()
+        with open(f, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+        if h.hexdigest() != first["sha256"]:
+            raise _Bad(f"sha256: {first['file']} does not match its recorded hash (changed or corrupted)")
+
+
+@dataclass
+class ManifestScan:
+    """A manifest sorted out. ``lines``/``raw``: the kept lines (complete groups), parsed and
+    as their original bytes; ``problems``: ``(line number or None, group or None,
+    reason)``; ``bad_raw``: the bytes of every line not kept; ``dropped``: group -> reason;
+    ``torn_line``: the manifest ends without a newline; ``tail_only``: every problem lies
+    after the last kept line and is a torn last line or an incomplete group (what a crash
+    in the middle of an append leaves)."""
+
+    lines: list = field(default_factory=list)
+    raw: list = field(default_factory=list)
+    problems: list = field(default_factory=list)
+    bad_raw: list = field(default_factory=list)
+    dropped: dict = field(default_factory=dict)
+    torn_line: bool = False
+    tail_only: bool = True
+
+
+def _parse_lines(data: bytes, root: Path, scan: ManifestScan):
+    """Parse and check each line; returns ``[(line number, raw, line dict, group)]`` of the
+    valid ones, with the exact duplicates of a line left out (kept in ``scan.bad_raw``)."""
+    parts = data.split(b"\n")
+    scan.torn_line = parts[-1] != b""
+    good, seen = [], {}
+    for no, raw in enumerate(parts, start=1):
+        if not raw.strip():
+            continue
+        try:
+            if len(raw) > MAX_LINE_BYTES:
+                raise _Bad(f"{len(raw)} bytes, more than {MAX_LINE_BYTES}")
+            try:
+                ln = load_json(raw, "line")
+            except RecordingError as exc:
+                raise _Bad(str(exc)) from None
+            g = check_line(ln, root)
+        except (_Bad, RecordingError) as exc:
+            group = _group_hint(raw)  # a guess: the group is dropped only if incomplete without the line
+            scan.problems.append((no, group, f"line {no}{f' (group {group}?)' if group else ''}: {exc}"))
+            scan.bad_raw.append(raw)
+            continue
+        key = (g, ln["page"])
+        if key in seen:
+            if seen[key] == ln:  # an exact copy of an earlier line: harmless, kept aside
+                scan.problems.append((no, None, f"line {no}: a duplicate of an earlier line (set aside)"))
+                scan.bad_raw.append(raw)
+                continue
+            scan.dropped.setdefault(g, f"line {no}: a second, different line for page {ln['page']}")
+        seen[key] = ln
+        good.append((no, raw, ln, g))
+    return good
+
+
+def _group_hint(raw: bytes) -> str | None:
+    m = re.search(rb'"group"\s*:\s*"([A-Za-z0-9_/-]{1,160})"', raw)
+    g = m.group(1).decode() if m else None
+    return g if g is not None and _GROUP.match(g) else None
+
+
+def scan_manifest(data: bytes, root: Path, *, verify: bool = True) -> ManifestScan:
+    """Sort the manifest bytes ``data`` of the run folder ``root`` into kept lines and
+    problems (see :class:`ManifestScan`). Never raises for a bad line: it becomes a problem."""
+    scan = ManifestScan()
+    good = _parse_lines(data, root, scan)
+    order: dict[str, list] = {}
+    for item in good:
+        order.setdefault(item[3], []).append(item)
+    for g, items in order.items():
+        if g not in scan.dropped:
+            try:
+                _check_group(g, [it[2] for it in items], root, verify)
+            except (_Bad, RecordingError) as exc:
+                scan.dropped[g] = str(exc)
+        if g in scan.dropped:
+            scan.problems.append((items[0][0], g, f"group {g}: {scan.dropped[g]}"))
+            scan.bad_raw += [it[1] for it in items]
+        else:
+            scan.lines += [it[2] for it in items]
+            scan.raw += [it[1] for it in items]
+    kept = {ln["group"] for ln in scan.lines}
+    for _, g, reason in list(scan.problems):
+        if g is not None and g not in kept:
+            scan.dropped.setdefault(g, reason)
+    last_kept = max((it[0] for it in good if it[3] not in scan.dropped), default=0)
+    crash_like = scan.torn_line or all(r.startswith("incomplete") for r in scan.dropped.values())
+    scan.tail_only = crash_like and all(no is not None and no > last_kept for no, _, _ in scan.problems)
+    return scan
+
+
+def check_meta(meta, what: str) -> None:
+    """Check ``experiment.json``'s content: schema_version, camera, sessions, status.
+
+    Raises:
+        RecordingError: naming the field.
+    """
+    if not isinstance(meta, dict):
+        raise RecordingError(f"{what}: expected a JSON object, got {type(meta).__name__}")
+    if meta.get("schema_version") != SCHEMA_VERSION or isinstance(meta.get("schema_version"), bool):
+        raise RecordingError(f"{what}: schema_version {meta.get('schema_version')!r:.40}; this torchblur reads {SCHEMA_VERSION}")
+    cam = meta.get("camera")
+    try:
+        if not isinstance(cam, dict):
+            raise _Bad(f"expected an object, got {cam!r:.60}")
+        shape = cam.get("frame_shape")
+        if not isinstance(shape, list) or len(shape) != 2:
+            raise _Bad(f"frame_shape: expected [H, W], got {shape!r:.60}")
+        h, w = (_int(v, "frame_shape", 1, MAX_FRAME_SIDE) for v in shape)
+        if h * w > 2**28:
+            raise _Bad(f"frame_shape: {h}x{w} pixels is more than any camera delivers")
+        for k in ("frame_rate_hz", "max_exposure_s"):
+            _float(cam.get(k), k, positive=True)
+        _float(cam.get("readout_s"), "readout_s", nonnegative=True)
+        _str(cam.get("name", ""), "name")
+    except _Bad as exc:
+        raise RecordingError(f"{what}: camera.{exc}") from None
+    if not isinstance(meta.get("sessions", []), list) or not isinstance(meta.get("status", ""), str):
+        raise RecordingError(f"{what}: sessions: expected a list (and status a string)")

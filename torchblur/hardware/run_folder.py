@@ -1,0 +1,165 @@
+"""A run folder is owned: one process writes it, no other run writes into it.
+
+- :class:`RunLock`: an exclusive ``fcntl.flock`` on ``<experiment>/run.lock``, held for the run's
+  life. The kernel drops it when its holder exits (killed included), so a stale lock file
+  from a dead process is harmless by construction: the next run simply takes it. Within one
+  process the lock is re-entrant (a count per folder), so a run and its resume in one
+  Python session share it.
+- :func:`check_out_folder`: an ``--out`` folder that is a file, under a file, not writable,
+  inside another run's record, or (``torchblur fit``) holding a run's results is refused
+  with one line naming the path.
+- :func:`inside`: a path given by a recording resolves inside the run folder (no absolute
+  paths, no ``..``, no symlink out of it).
+"""
+from __future__ import annotations
+
+import fcntl
+import os
+import threading
+from pathlib import Path, PurePosixPath
+
+from torchblur.hardware.errors import RecordingError
+
+__all__ = ["LOCK_NAME", "RESULT_FILES", "RunLock", "check_out_folder", "inside", "run_root_of"]
+
+LOCK_NAME = "run.lock"
+RESULT_FILES = ("frf.json", "frf.csv", "model.json", "report.txt")
+
+_held: dict[str, list] = {}  # real path of the folder -> [fd, count]
+_guard = threading.Lock()
+
+
+class RunLock:
+    """An exclusive OS lock on the experiment folder ``path`` (``path/run.lock``).
+
+    Raises:
+        RecordingError: another process holds it (its pid is named), or the lock file cannot
+            be created (a read-only folder).
+    """
+
+    def __init__(self, path: str | Path):
+        self.key = os.path.realpath(path)
+        self._held = False
+        with _guard:
+            if self.key in _held:
+                _held[self.key][1] += 1
+                self._held = True
+                return
+            lock_path = os.path.join(self.key, LOCK_NAME)
+            try:
+                fd = os.open(lock_path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+            except OSError as exc:
+                raise RecordingError(f"{path}: cannot create the run's lock file {LOCK_NAME} ({exc.strerror}); "
+                                     f"is the folder read-only?") from None
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip() or "?"
+                os.close(fd)
+                raise RecordingError(f"{path}: another process (pid {holder}) is writing this run; wait for it to end "
+                                     f"or choose another --out") from None
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+            _held[self.key] = [fd, 1]
+            self._held = True
+
+    @property
+    def held(self) -> bool:
+        """Whether this object still holds the lock."""
+        return self._held
+
+    def release(self) -> None:
+        """Give the lock back (idempotent); the last holder in this process unlocks the file."""
+        with _guard:
+            if not self._held:
+                return
+            self._held = False
+            entry = _held.get(self.key)
+            if entry is None:
+                return
+            entry[1] -= 1
+            if entry[1] == 0:
+                del _held[self.key]
+                try:
+                    fcntl.flock(entry[0], fcntl.LOCK_UN)
+                finally:
+                    os.close(entry[0])
+
+    def __del__(self):
+        try:
+            self.release()
+        except Exception:  # interpreter shutdown
+            pass
+
+
+def inside(root: Path, rel, what: str) -> Path:
+    """``root / rel`` for a relative POSIX path ``rel`` from a recording, refused unless it
+    stays inside ``root`` after resolving every symlink.
+
+    Raises:
+        RecordingError: ``rel`` is not a string, is absolute, holds ``..`` or a backslash, or
+            resolves outside ``root``.
+    """
+    if not isinstance(rel, str) or not rel or len(rel) > 300 or "\\" in rel or "\x00" in rel:
+        raise RecordingError(f"{what}: expected a relative path inside the run folder, got {rel!r}")
+    p = PurePosixPath(rel)
+    if p.is_absolute() or ".." in p.parts:
+        raise RecordingError(f"{what}: {rel!r} leaves the run folder (absolute or '..'); refused")
+    full = root / rel
+    real_root = os.path.realpath(root)
+    real = os.path.realpath(full)
+    if os.path.commonpath([real_root, real]) != real_root:
+        raise RecordingError(f"{what}: {rel!r} resolves outside the run folder ({real}); refused")
+    return full
+
+
+def run_root_of(path: Path) -> Path | None:
+    """The folder of a run holding ``path`` (``path`` itself or an ancestor): one with an
+    ``experiment/experiment.json`` (a run's output folder) or an ``experiment.json`` (its
+    record), else None."""
+    for p in (path, *path.parents):
+        if (p / "experiment.json").is_file() or (p / "experiment" / "experiment.json").is_file():
+            return p
+    return None
+
+
+def check_out_folder(out: str | Path, *, command: str, force: bool = False, own_run: Path | None = None) -> Path:
+    """Check an ``--out`` folder before anything is written; return it resolved.
+
+    Refused: a path that is a file or lies under one; a folder that cannot be written; a
+    folder inside another run's record (``R/experiment/...``) or inside another run's
+    output folder; for ``command="fit"``, a run's own output folder or a folder that holds
+    results (``frf.json``, ...) unless ``force``. ``own_run``: the run being resumed (its
+    own folder is allowed).
+
+    Raises:
+        RecordingError: naming ``--out`` and the path.
+    """
+    out = Path(out)
+    resolved = Path(os.path.realpath(out))
+    for p in (resolved, *resolved.parents):
+        if p.exists():
+            if not p.is_dir():
+                where = "is a file" if p == resolved else f"lies under the file {p}"
+                raise RecordingError(f"--out {out}: {where}; give a folder")
+            if not os.access(p, os.W_OK | os.X_OK):
+                raise RecordingError(f"--out {out}: {p} is not writable")
+            break
+    own = Path(os.path.realpath(own_run)) if own_run is not None else None
+    for p in (resolved, *resolved.parents):
+        if own is not None and p == own:
+            break
+        if (p / "experiment.json").is_file():
+            raise RecordingError(f"--out {out}: inside the record of the run {p.parent} ({p}); a run's record is "
+                                 f"never written by another run, choose another folder")
+        if p != resolved and (p / "experiment" / "experiment.json").is_file():
+            raise RecordingError(f"--out {out}: inside the run folder {p}; choose a folder outside it")
+    if command == "fit" and not force:
+        if (resolved / "experiment" / "experiment.json").is_file():
+            raise RecordingError(f"--out {out}: the folder of a recorded run; its results would be overwritten "
+                                 f"(--force to overwrite them)")
+        held = [n for n in RESULT_FILES if (resolved / n).exists()]
+        if held:
+            raise RecordingError(f"--out {out}: already holds results ({', '.join(held)}); choose another folder "
+                                 f"or --force to overwrite them")
+    return resolved
