@@ -286,8 +286,9 @@ class Controller:
         if r.fields.get("token") != token:
             raise GarbageReply(f"PING {token} answered with {r.fields}")
 
-    def stop(self) -> None:
-        self.command("STOP")
+    def stop(self, timeout_s: float | None = None) -> None:
+        """``STOP``: the waveform stops; waits for the reply up to ``timeout_s`` (default the port's)."""
+        self.command("STOP", timeout_s=timeout_s)
 
     def reset(self) -> str:
         """``RESET``; returns the new boot id."""

@@ -142,10 +142,16 @@ class SerialRig:
     def set_logger(self, log: Callable[[str], None] | None) -> None:
         self._log = log
 
+    #: the longest a closing STOP waits for its reply (s): a healthy controller answers in
+    #: milliseconds, and Ctrl-C on a hung one must not wait for the port's full timeout
+    CLOSE_STOP_TIMEOUT_S = 1.0
+
     def close(self) -> None:
+        """Stop the waveform (best effort, :attr:`CLOSE_STOP_TIMEOUT_S` at most) and close the
+        controller and the frame source."""
         try:
             if self.controller.is_open:
-                self.controller.stop()
+                self.controller.stop(timeout_s=min(self.controller.timeout_s, self.CLOSE_STOP_TIMEOUT_S))
         except HardwareError:
             pass
         self.controller.close()
