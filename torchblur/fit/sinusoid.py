@@ -825,7 +825,9 @@ def fit_sinusoid(
 
     Returns:
         :class:`SinusoidFit`. Degenerate items are flagged, never raised, and do not change
-        the other items: ``status`` 1 (no signal), 3 (spot mostly outside the frame), 5 (no
+        the other items: ``status`` 1 (no signal: decided by a matched filter on the spot's
+        total light, :func:`torchblur.fit.problem.dark_items`, so a dim streak whose brightest
+        pixel is 2-3 noise stds is still fitted), 3 (spot mostly outside the frame), 5 (no
         usable pixel) give NaN estimates; ``flags`` mark masked, saturated and outlier
         pixels, a spot partly out of the frame (fitted on what is visible) and a motion too
         small to measure.
