@@ -6,7 +6,7 @@
 - dim streaks: "dark" is decided by a matched filter on the spot's total light, so a streak
   whose brightest pixel is 3 noise stds is fitted, with honest errors, and pure noise is dark.
 """
-import math
+import statistics
 import sys
 from pathlib import Path
 
@@ -15,7 +15,7 @@ import torch
 
 import torchblur as tb
 from torchblur.errors import InputTypeError, ParameterError
-from torchblur.fit.problem import DARK_FALSE_ALARM, dark_items, matched_filter_peak
+from torchblur.fit.problem import DARK_FALSE_ALARM, _correlate, _template, dark_items, matched_filter_peak
 from torchblur.fit.sinusoid import fit_dtype, fit_sinusoid
 from torchblur.fit.status import DARK
 
@@ -186,7 +186,6 @@ def test_matched_filter_is_a_unit_std_statistic_blind_to_the_level():
     g = torch.Generator().manual_seed(0)
     noise = 0.5 * torch.randn(64, 1, 48, 48, generator=g, dtype=F64)
     cov = torch.tensor([[3.0, 0.8], [0.8, 2.0]], dtype=F64).expand(64, 2, 2)
-    from torchblur.fit.problem import _correlate, _template
     t, _ = _template(cov, 48, 48, F64)
     t = t - t.mean((-1, -2), keepdim=True)
     filtered = _correlate(noise, t / t.square().sum((-1, -2), keepdim=True).sqrt())
@@ -200,11 +199,9 @@ def test_dark_rule_threshold_and_false_alarm_bound():
     assert DARK_FALSE_ALARM == 1e-3
     H = W = 32
     cov = torch.eye(2, dtype=F64)[None] * 2.0
-    from torchblur.fit.problem import _template
     spot, _ = _template(cov, H, W, F64)
     spot = torch.roll(spot, (16, 16), (-2, -1))[:, None]  # [1, 1, H, W], peak 1 at (16, 16)
     unit = float(matched_filter_peak(spot, cov))
-    import statistics
     t = statistics.NormalDist().inv_cdf(1 - 1e-3 / (H * W))
     level = torch.zeros(1, dtype=F64)
     for factor, expect_dark in ((1.02, False), (0.98, True)):

