@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import statistics
 from dataclasses import dataclass
 
 import torch
@@ -21,7 +22,7 @@ from torchblur.render.alias import wrap_phase
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.window import ExposureWindow
 
-__all__ = ["SineProblem", "sine_problem", "starting_points", "crop_to_reach"]
+__all__ = ["SineProblem", "sine_problem", "starting_points", "crop_to_reach", "dark_items", "matched_filter_peak", "DARK_FALSE_ALARM"]
 
 
 @dataclass(frozen=True)
@@ -43,8 +44,10 @@ class SineProblem:
         rest: the rest position ``[N, 2]`` (px, the PSF's centre or centroid, full frame);
             psf_cov: its covariance ``[N, 2, 2]`` (px^2).
         direction: unit image directions of the fitted axes ``[N, n_axes, 2]``.
-        dark: ``[N]`` bool, no signal above the noise; outside: ``[N]`` bool, the rest
+        dark: ``[N]`` bool, no signal above the noise (:func:`dark_items`: a matched filter); outside: ``[N]`` bool, the rest
             position is out of the frame (3 PSF sigmas margin).
+        dim: ``[N]`` bool or None: lit, but only the matched filter sees it (no pixel above 8
+            noise stds); its starts come from the smoothed images.
         origin: ``(x0, y0)``, the crop's corner in the full frame (px).
         cut_cost, cut_sq, cut_n: ``[N]``, over the pixels the crop cut off: the weighted sum of
             squares, the plain sum of squares over the used pixels, the number of used pixels
@@ -66,6 +69,7 @@ class SineProblem:
     direction: torch.Tensor
     dark: torch.Tensor
     outside: torch.Tensor
+    dim: torch.Tensor | None = None
     origin: tuple = (0, 0)
     cut_cost: torch.Tensor | None = None
     cut_sq: torch.Tensor | None = None
@@ -102,17 +106,111 @@ def sine_problem(data, psf, window: ExposureWindow, omega, direction, *, noise_s
     sub = flat[:, ::max(1, flat.shape[-1] // 1024)]
     med = sub.median(-1).values
     noise_level = sigma_level if sigma_level is not None else (sub - med[:, None]).abs().median(-1).values * 1.4826
-    # Degenerate items: no signal above the noise.
     peak = (flat - med[:, None]).amax(-1)
-    dark = ~(peak > 8 * noise_level.clamp_min(torch.finfo(dtype).tiny)) | (peak <= 0)
+    dark = dark_items(data, med, noise_level, cov_psf, noise_given=noise_std is not None, peak=peak)
+    dim = ~dark & ~(peak > 8 * noise_level.clamp_min(torch.finfo(dtype).tiny))
     # The rest position must be in the frame (3 sigma margin): otherwise flag, do not fit.
     sd = torch.diagonal(cov_psf, dim1=-2, dim2=-1).clamp_min(0).sqrt()
     outside = ((rest < -3 * sd) | (rest > torch.tensor([W - 1, H - 1], dtype=dtype, device=device) + 3 * sd)).any(-1)
     zero = torch.zeros(N, dtype=dtype, device=device)
     return SineProblem(data=data, weight=weight, row_weight=row_weight, noise_given=noise_std is not None, noise_level=noise_level,
                        level=med, start=win.start.reshape(N, E), duration=win.duration.reshape(N, E), omega=omega, psf=psf,
-                       rest=rest, psf_cov=cov_psf, direction=direction, dark=dark, outside=outside, cut_cost=zero, cut_sq=zero,
+                       rest=rest, psf_cov=cov_psf, direction=direction, dark=dark, outside=outside, dim=dim, cut_cost=zero, cut_sq=zero,
                        cut_n=zero.clone())
+
+
+DARK_FALSE_ALARM = 1e-3  # the matched filter's false-alarm rate per item on white Gaussian noise (a bound)
+
+
+def dark_items(data, level, noise_level, psf_cov, *, noise_given: bool = True, peak=None,
+               false_alarm: float = DARK_FALSE_ALARM) -> torch.Tensor:
+    """Which items ``[N]`` (bool) hold no signal above the noise: "dark", decided on the total
+    signal of the spot by a matched filter, not on the brightest pixel.
+
+    The rule: each exposure is correlated with the zero-mean, unit-norm template of the still
+    spot (a Gaussian of the PSF's covariance ``psf_cov``, so the background level drops out: a streak is a
+    sum of still spots along its path, so the filter gathers the light of a PSF's footprint
+    along it) and divided by the pixel noise std ``noise_level``; an item is dark when the
+    largest value over every pixel and exposure stays below ``t = Phi^-1(1 - false_alarm / n)``
+    (``n = E H W`` values, ``Phi`` the normal CDF: ``t`` = 4.9 for 2 x 32 x 40 pixels, 6.1
+    for 2 x 1000 x 1000). On white Gaussian noise of the given std every filtered value is a
+    standard normal, so a pure-noise item is called lit with probability at most
+    ``false_alarm`` (the union bound; the filtered values are correlated, so the rate is
+    lower). Where the noise std is estimated (``noise_given`` False) it is estimated again
+    for the candidates from every pixel (``1.4826`` MAD); its few-percent error raises the
+    rate somewhat. Measured on 4000 pure-noise items of two 32 x 40 exposures (PSF sigma
+    2.2 x 1.5 px): 2 called lit with the noise std given, 2 with it estimated (5e-4 each). An item whose brightest pixel is above 8 noise stds is lit without the filter,
+    and one whose brightest pixel is not above the level (an empty frame) is dark.
+
+    Compared with the brightest pixel alone, the filter's gain on a streak is about
+    ``sqrt(2 pi) sigma_psf`` (4.5 for a 1.8 px PSF): a streak with a per-pixel peak SNR of 3 is
+    at about 13 filtered stds.
+
+    Args:
+        data: ``[N, E, H, W]``; level, noise_level: ``[N]`` (background and pixel noise std);
+        noise_given: whether ``noise_level`` is the caller's (else estimated);
+        psf_cov: ``[N, 2, 2]`` px^2; peak: optional ``[N]``, the brightest pixel less the level.
+        false_alarm: the per-item false-alarm bound, in (0, 1).
+
+    Returns:
+        ``[N]`` bool, True for a dark item.
+    """
+    N, E, H, W = data.shape
+    tiny = torch.finfo(data.dtype).tiny
+    if peak is None:
+        peak = (data.reshape(N, -1) - level[:, None]).amax(-1)
+    dark = ~(peak > 8 * noise_level.clamp_min(tiny)) | (peak <= 0)
+    idx = torch.arange(N, device=data.device)[dark & (peak > 0)]
+    if idx.numel():
+        noise = noise_level[idx]
+        if not noise_given:  # the candidates' noise again, from every pixel (a finer estimate)
+            flat = data[idx].reshape(idx.numel(), -1)
+            noise = (flat - flat.median(-1, keepdim=True).values).abs().median(-1).values * 1.4826
+        snr = matched_filter_peak(data[idx], psf_cov[idx]) / noise.clamp_min(tiny)
+        t = statistics.NormalDist().inv_cdf(1 - false_alarm / (E * H * W))
+        dark[idx] = ~(snr > t)
+    return dark
+
+
+def matched_filter_peak(data, psf_cov) -> torch.Tensor:
+    """The largest value ``[N]`` over pixels and exposures of ``data [N, E, H, W]`` correlated
+    with the zero-mean, unit-norm template of a Gaussian spot of covariance ``psf_cov [N, 2, 2]``
+    (px^2; circular, by FFT). A constant background adds nothing; for white noise of std ``s``
+    each value has std ``s``."""
+    g, _ = _template(psf_cov, *data.shape[-2:], data.dtype)
+    g = g - g.mean((-1, -2), keepdim=True)  # zero mean: blind to the background level
+    return _correlate(data, g / g.square().sum((-1, -2), keepdim=True).sqrt()).flatten(1).amax(-1)
+
+
+def _template(psf_cov, H: int, W: int, dtype):
+    """The still spot's template ``g [N, H, W]`` (a Gaussian of covariance ``psf_cov [N, 2, 2]``
+    plus 0.05 px^2, peak 1, centred on pixel (0, 0), circular) and that covariance ``[N, 2, 2]``."""
+    device = psf_cov.device
+
+    def offsets(n):  # pixel offsets 0, 1, ..., -1 in FFT order
+        return (torch.arange(n, device=device, dtype=dtype) + n // 2) % n - n // 2
+
+    dy, dx = offsets(H)[:, None], offsets(W)[None, :]
+    cov = psf_cov.to(dtype) + 0.05 * torch.eye(2, dtype=dtype, device=device)  # a point PSF still spans a pixel
+    prec = torch.linalg.inv(cov)[:, None, None]  # [N, 1, 1, 2, 2]
+    q = prec[..., 0, 0] * dx * dx + 2 * prec[..., 0, 1] * dx * dy + prec[..., 1, 1] * dy * dy
+    return torch.exp(-0.5 * q), cov
+
+
+def _correlate(data, g):
+    """``data [N, E, H, W]`` correlated with the centred, symmetric ``g [N, H, W]`` (circular, by FFT)."""
+    H, W = data.shape[-2:]
+    return torch.fft.irfft2(torch.fft.rfft2(data) * torch.fft.rfft2(g)[:, None], s=(H, W))
+
+
+def smoothed_for_moments(data, level, noise_level, psf_cov):
+    """For the starts of a dim item: ``(smoothed [N, E, H, W], threshold [N], cov [N, 2, 2])``:
+    the background-subtracted images blurred by the spot's template (unit sum, so the light
+    is kept and its covariance ``cov`` adds to the image's), and 3 noise stds of the result."""
+    g, cov = _template(psf_cov, *data.shape[-2:], data.dtype)
+    g = g / g.sum((-1, -2), keepdim=True)
+    smooth = _correlate(data - level[:, None, None, None], g)
+    return smooth, 3 * noise_level * g.square().sum((-1, -2)).sqrt(), cov
 
 
 def _pixel_weights(data, noise_std, use):
@@ -153,9 +251,15 @@ def starting_points(problem: SineProblem, layout: ParamLayout):
     n_axes = layout.n_axes
     thr = p.level[:, None] + 3 * p.noise_level[:, None]
     _, centroid, icov = image_moments(p.data, threshold=thr)  # [N, E, 2], [N, E, 2, 2]
+    icov = icov - p.psf_cov[:, None]
+    if p.dim is not None and bool(p.dim.any()):
+        i = torch.arange(N, device=p.data.device)[p.dim]
+        smooth, s_thr, s_cov = smoothed_for_moments(p.data[i], p.level[i], p.noise_level[i], p.psf_cov[i])
+        _, centroid[i], s_icov = image_moments(smooth, threshold=s_thr[:, None])
+        icov[i] = s_icov - p.psf_cov[i][:, None] - s_cov[:, None]
     M_c, phi_c = [], []
     for k in range(n_axes):
-        mu1, vex = moments_along(centroid - p.rest[:, None], icov - p.psf_cov[:, None], p.direction[:, None, k])
+        mu1, vex = moments_along(centroid - p.rest[:, None], icov, p.direction[:, None, k])
         M, phi = sinusoid_from_moments(mu1, vex, p.omega[:, None], p.start, p.duration)  # [N, E], [N, E, 2]
         M_c.append(M.clamp(max=math.hypot(H, W)))
         phi_c.append(torch.nan_to_num(phi, nan=0.0))

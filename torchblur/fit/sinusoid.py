@@ -52,29 +52,45 @@ _put = put_items
 _inpaint, _robust_scale, _impulses, _plane_fit, _plane_image = inpaint, robust_scale, impulses, plane_fit, plane_image
 
 
+def fit_dtype(images: torch.Tensor, psf, window: ExposureWindow) -> torch.dtype:
+    """The dtype a fit computes in and returns: the widest floating dtype of ``images``, the
+    PSF and the window, at least float32 (integer images count as none; float16 and bfloat16
+    are promoted: the model's sums and the normal equations need float32's precision)."""
+    psf_t = psf.cov if isinstance(psf, GaussianPSF) else psf.kernel
+    dtype = torch.float32
+    for t in (images, psf_t, window.start, window.duration):
+        if t.is_floating_point():
+            dtype = torch.promote_types(dtype, t.dtype)
+    return dtype
+
+
 def _validate(images, psf, window, omega, axes, optimizer, loss):
     """Check :func:`fit_sinusoid`'s data arguments, ``axes`` (a name), ``optimizer`` and ``loss``;
-    ``(images, omega)`` with ``omega`` a tensor of the images' dtype and device."""
+    ``(images, psf, window, omega)`` in one floating dtype (:func:`fit_dtype`), ``omega`` a
+    tensor on the images' device."""
     if not isinstance(images, torch.Tensor):
         raise InputTypeError(f"images: expected a tensor [..., E, H, W], got {type(images).__name__}")
-    if not images.is_floating_point():
-        raise InputTypeError(f"images: expected a real floating tensor [..., E, H, W] with the dark level subtracted "
-                             f"(preprocess.subtract_dark), got dtype {images.dtype}")
+    if images.is_complex() or images.dtype == torch.bool:
+        raise InputTypeError(f"images: expected a real tensor [..., E, H, W] (floating or integer counts) with the dark level "
+                             f"subtracted (preprocess.subtract_dark), got dtype {images.dtype}")
     if images.dim() < 3:
         raise ShapeError(f"images: expected shape [..., E, H, W], got {tuple(images.shape)}")
     if images.numel() == 0:
         raise ShapeError(f"images: expected a non-empty batch, got shape {tuple(images.shape)}")
-    check_finite(images, "images")
     if not isinstance(psf, (GaussianPSF, KernelPSF)):
         raise InputTypeError(f"psf: expected GaussianPSF or KernelPSF, got {type(psf).__name__}")
     if not isinstance(window, ExposureWindow):
         raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
+    dtype = fit_dtype(images, psf, window)
+    images, psf, window = images.to(dtype), psf.to(dtype), window.to(dtype)
+    check_finite(images, "images")
     if isinstance(axes, str):
         check_choice(axes, "axes", AXES)
     check_choice(optimizer, "optimizer", OPTIMIZERS)
     check_choice(loss, "loss", LOSSES)
     if optimizer == "lm" and loss == "linf":
-        raise ParameterError("loss: 'linf' is not a sum of squares; use optimizer='adam' or 'lbfgs' with it")
+        raise ParameterError("loss: 'linf' is not a sum of squares, so optimizer='lm' cannot fit it; use optimizer='adam' or 'lbfgs' "
+                             "with it (the pairs that work: lm with l2, l1, poisson; adam and lbfgs with every loss)")
     batch_e = images.shape[:-2]
     E = batch_e[-1]
     if window.shape and window.shape[-1] not in (1, E):
@@ -83,7 +99,7 @@ def _validate(images, psf, window, omega, axes, optimizer, loss):
         torch.broadcast_shapes(window.shape, batch_e)
     except RuntimeError:
         raise ShapeError(f"window: expected a batch shape that broadcasts to the images' [..., E] = {tuple(batch_e)}, got {tuple(window.shape)}") from None
-    omega = check_positive(as_tensor(omega, "omega", like=images), "omega")
+    omega = check_positive(as_tensor(omega, "omega", dtype=images.dtype, device=images.device), "omega")
     batch = images.shape[:-3]
     try:
         torch.broadcast_shapes(omega.shape, batch)
@@ -95,7 +111,7 @@ def _validate(images, psf, window, omega, axes, optimizer, loss):
         raise ShapeError(f"psf: expected a batch shape that broadcasts to the images' batch {tuple(batch)}, got {tuple(psf.shape)}") from None
     if isinstance(psf, KernelPSF) and psf.frame_shape != tuple(images.shape[-2:]):
         raise ShapeError(f"psf: expected a kernel of frame shape {tuple(images.shape[-2:])}, got {psf.frame_shape}")
-    return images, omega
+    return images, psf, window, omega
 
 
 @dataclass(frozen=True)
@@ -756,8 +772,9 @@ def fit_sinusoid(
 
     Args:
         images: ``[..., E, H, W]``: E exposures of the same motion (E = 1, 2 or more), dark
-            level subtracted, in the units of the PSF times seconds; a real floating tensor
-            (integer frames still hold the dark level: use ``preprocess.subtract_dark``).
+            level subtracted, in the units of the PSF times seconds; a real tensor, floating
+            or integer (a camera's counts; subtract the dark level first, e.g.
+            ``preprocess.subtract_dark``); bool and complex images are refused.
         psf: ``GaussianPSF`` or ``KernelPSF``, batch ``[...]`` (shared by the E exposures).
         window: exposure windows, batch broadcastable to ``[..., E]``.
         omega: rad/s, ``[...]``.
@@ -801,9 +818,16 @@ def fit_sinusoid(
         render_settings: renderer settings; the node count is fixed for the whole fit
             (default: panels of 3.5 PSF widths, model error < 1e-6 of the peak).
 
+    dtype: the fit computes in, and returns, the widest floating dtype of ``images``, the PSF
+    and the window, at least float32 (:func:`fit_dtype`): float16/bfloat16 and integer images
+    are promoted, float32 images with a float64 PSF or window give a float64 fit; ``omega``,
+    ``noise_std`` and ``saturation_level`` are converted to it.
+
     Returns:
         :class:`SinusoidFit`. Degenerate items are flagged, never raised, and do not change
-        the other items: ``status`` 1 (no signal), 3 (spot mostly outside the frame), 5 (no
+        the other items: ``status`` 1 (no signal: decided by a matched filter on the spot's
+        total light, :func:`torchblur.fit.problem.dark_items`, so a dim streak whose brightest
+        pixel is 2-3 noise stds is still fitted), 3 (spot mostly outside the frame), 5 (no
         usable pixel) give NaN estimates; ``flags`` mark masked, saturated and outlier
         pixels, a spot partly out of the frame (fitted on what is visible) and a motion too
         small to measure.
@@ -812,7 +836,7 @@ def fit_sinusoid(
         >>> fit = fit_sinusoid(images, psf, window, omega, mask=~dark.hot_pixels, outliers="reject")
         >>> bad = (fit.flags & PARTLY_OUT_OF_FRAME) != 0
     """
-    images, omega = _validate(images, psf, window, omega, axes, optimizer, loss)
+    images, psf, window, omega = _validate(images, psf, window, omega, axes, optimizer, loss)
     outlier_sigma, tol = _check_options(fit_scale=fit_scale, fit_background=fit_background, fit_center=fit_center,
                                         fit_gradient=fit_gradient, normalize=normalize, outliers=outliers, outlier_sigma=outlier_sigma,
                                         max_iter=max_iter, tol=tol, render_settings=render_settings)
