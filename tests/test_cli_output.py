@@ -1,0 +1,140 @@
+"""What `torchblur identify` prints and writes (issue 18, items 6-8): log lines once each through
+the `torchblur` logger, no progress-bar junk off a terminal, `--version`, `--json` (one summary
+line, alone on stdout), frf.mat, units in the response's meta, residuals.png's exposures."""
+import json
+import logging
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from torchblur.identify import record
+from torchblur.identify.pipeline import calibration_stages
+from torchblur.identify.config import load_config
+from torchblur.sysid.frequency_response import FrequencyResponse
+
+ROOT = Path(__file__).resolve().parents[1]
+SMALL = ["sweep.freq_hz=[20,300]"]
+
+
+def _cli(*argv, cwd=None):
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.run([sys.executable, "-m", "torchblur.identify.cli", *argv], capture_output=True, text=True, env=env,
+                          cwd=cwd, timeout=600)
+
+
+@pytest.fixture(scope="module")
+def json_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("cli") / "run"
+    proc = _cli("identify", "--out", str(out), "--json", *SMALL)
+    assert proc.returncode == 0, proc.stderr
+    return out, proc
+
+
+def test_version():
+    import torchblur
+
+    proc = _cli("--version")
+    assert proc.returncode == 0 and proc.stdout == f"torchblur {torchblur.__version__}\n"
+
+
+def test_json_is_the_only_line_on_stdout(json_run):
+    out, proc = json_run
+    lines = proc.stdout.splitlines()
+    assert len(lines) == 1
+    doc = json.loads(lines[0])
+    assert doc["out"] == str(out) and doc["points"] == 2 and doc["valid_points"] == 2
+    assert doc["status"] == {"ok": 2} and isinstance(doc["flags"], dict)
+    assert 0 <= doc["max_magnitude_error_pct"] < 1 and 0 <= doc["max_phase_error_deg"] < 1  # the simulated truth is known
+    assert doc["elapsed_s"] > 0 and doc["torchblur_version"]
+    assert "against the truth" in proc.stderr and "wrote " in proc.stderr  # the human part went to stderr
+
+
+def test_each_log_line_is_printed_once_without_carriage_returns(json_run):
+    out, proc = json_run
+    report = (out / "report.txt").read_text()
+    for key in ("dark: level", "saturation:", "latency:", "recording:", "points converged"):
+        assert proc.stderr.count(key) == 1, key
+        assert key in report  # the report still holds the whole log
+    assert "\r" not in proc.stderr  # no tqdm bars off a terminal
+    assert "against the truth" in report and "elapsed" in report
+
+
+def test_frf_mat_and_units_beside_frf_csv(json_run):
+    import scipy.io
+
+    out, _ = json_run
+    frf = FrequencyResponse.from_json(out / "frf.json")
+    assert frf.meta["output_unit"] == "px" and frf.meta["input_unit"] == "input unit"
+    mat = scipy.io.loadmat(out / "frf.mat")
+    np.testing.assert_allclose(mat["freq_hz"].ravel(), frf.freq_hz)
+    np.testing.assert_allclose(np.asarray(mat["H"]).ravel(), frf.response.ravel())
+
+
+def test_plain_run_prints_the_table_on_stdout(tmp_path):
+    from torchblur.identify import cli
+
+    out = tmp_path / "run"
+    proc = _cli("identify", "--out", str(out), "--quiet", *SMALL)
+    assert proc.returncode == 0, proc.stderr
+    assert "against the truth" in proc.stdout and "dark: level" not in proc.stdout + proc.stderr  # --quiet: no log lines
+    assert "dark: level" in (out / "report.txt").read_text()
+    assert cli.main(["identify", "--out", str(tmp_path / "bad"), "sweep.f_min_hz=-3"]) == 2
+    assert not logging.getLogger("torchblur").handlers  # main's console handler is gone after each call
+
+
+def test_exposure_label():
+    from torchblur.identify.cli import _exposure_label
+    from torchblur.render.window import ExposureWindow
+    import torch
+
+    w = ExposureWindow(torch.tensor([0.5e-3, 2e-3]), torch.tensor([1e-3, 1e-3]))
+    assert _exposure_label(w, 2) == "exposure 1 of 2 (0.5-1.5 ms)"
+
+
+def test_log_message_goes_through_the_torchblur_logger(caplog):
+    log = []
+    with caplog.at_level(logging.INFO, logger="torchblur"):
+        record.log_message(log, "dark: level 1", True)
+    assert log == ["dark: level 1"]
+    assert [(r.name, r.getMessage()) for r in caplog.records] == [("torchblur.identify", "dark: level 1")]
+
+
+def test_console_logging_writes_one_line_per_message_to_stderr(capsys):
+    logger = logging.getLogger("torchblur.identify.test")
+    with record.console_logging(logging.INFO):
+        logger.info("one")
+        logger.warning("two")
+        logger.debug("hidden")
+    logger.info("after")  # handler removed
+    err = capsys.readouterr().err
+    assert err == "one\nwarning: two\n"
+    assert not logging.getLogger("torchblur").handlers
+
+
+def test_progress_bars_only_on_a_terminal():
+    assert record.progress_bar(False, total=3).disable
+    assert record.progress_bar(True, total=3, file=open(os.devnull, "w")).disable  # not a terminal
+
+
+def test_stage_bar_counts_run_stage_calls(monkeypatch):
+    import io
+
+    from tqdm.auto import tqdm
+
+    shown = io.StringIO()
+    monkeypatch.setattr(record, "progress_bar", lambda progress, **kw: tqdm(**kw, file=shown, disable=not progress))
+    with record.stage_bar(True, "calibration", 2) as bar:
+        assert record.run_stage(None, "dark", "dark", 5, lambda r: r + 1) == 6
+        record.run_stage(None, "psf", "psf", 5, lambda r: r)
+        assert bar.n == 2
+    assert "calibration" in shown.getvalue() and "psf" in shown.getvalue()
+    assert record.run_stage(None, "x", "x", 1, lambda r: r) == 1  # outside: no bar
+
+
+@pytest.mark.parametrize("overrides,n", [([], 5), (["fit.axis=x"], 4)])
+def test_calibration_stage_count(overrides, n):
+    assert calibration_stages(load_config(None, overrides)) == n
