@@ -138,3 +138,49 @@ def test_stage_bar_counts_run_stage_calls(monkeypatch):
 @pytest.mark.parametrize("overrides,n", [([], 5), (["fit.axis=x"], 4)])
 def test_calibration_stage_count(overrides, n):
     assert calibration_stages(load_config(None, overrides)) == n
+
+
+def test_out_folder_of_the_users_own_files_is_refused_unless_force(tmp_path, capsys):
+    from torchblur.hardware.errors import RecordingError
+    from torchblur.hardware.run_folder import check_out_folder
+    from torchblur.identify import cli
+
+    mine = tmp_path / "thesis"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("my notes")
+    assert cli.main(["identify", "--out", str(mine), *SMALL]) == 2
+    err = capsys.readouterr().err
+    assert "--out" in err and "notes.txt" in err and "--force" in err and len(err.strip().splitlines()) == 1
+    assert sorted(p.name for p in mine.iterdir()) == ["notes.txt"]  # nothing written
+    assert cli.main(["fit", str(tmp_path / "nowhere"), "--out", str(mine)]) == 2  # the recording is missing; still one line
+    for command in ("identify", "fit"):
+        with pytest.raises(RecordingError, match="notes.txt"):
+            check_out_folder(mine, command=command)
+        assert check_out_folder(mine, command=command, force=True) == mine.resolve()
+    run = tmp_path / "run"  # a torchblur run's own outputs are not the user's files
+    (run / "experiment").mkdir(parents=True)
+    (run / "config.yaml").write_text("seed: 0\n")
+    (run / "bode.png").write_bytes(b"")
+    assert check_out_folder(run, command="identify") == run.resolve()
+    assert check_out_folder(tmp_path / "new", command="identify") == (tmp_path / "new").resolve()
+
+
+def test_rig_frames_pylon_url_is_accepted_and_a_bad_one_is_one_clear_error(tmp_path, capsys):
+    from torchblur.errors import ConfigError
+    from torchblur.identify import cli
+
+    cfg = load_config(None, ["rig.kind=serial", "rig.port=/dev/null", "rig.frames=pylon://0815-0000?trigger=Line1"])
+    assert cfg.rig.frames == "pylon://0815-0000?trigger=Line1"
+    with pytest.raises(ConfigError, match=r"^rig.frames: expected tcp://HOST:PORT, pylon://"):
+        load_config(None, ["rig.kind=serial", "rig.port=/dev/null", "rig.frames=pylonx:/cam"])
+    pytest.importorskip("pypylon")
+    from torchblur.hardware.serial_rig import open_frame_source
+
+    for bad in ("pylon://?gain=3", "pylon://?readout_s=soon"):
+        with pytest.raises(ConfigError, match=r"^rig.frames: 'pylon://\?") as info:
+            open_frame_source(bad)
+        assert "\n" not in str(info.value)
+    rc = cli.main(["identify", "--out", str(tmp_path / "run"), "--quiet", "rig.kind=serial", "rig.port=/dev/null",
+                   "rig.frames=pylon://?gain=3", *SMALL])
+    err = capsys.readouterr().err
+    assert rc == 2 and "rig.frames" in err and "gain" in err and len(err.strip().splitlines()) == 1, err

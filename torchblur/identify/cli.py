@@ -113,7 +113,7 @@ def _identify(args) -> int:
         return 2
     cfg = load_config(args.config, args.overrides, force=args.force)  # ConfigError (named key) before any work
     out = Path(args.out)
-    check_out_folder(out, command="identify")
+    check_out_folder(out, command="identify", force=args.force)
     if (out / "experiment" / "manifest.jsonl").exists():
         print(f"torchblur identify: error: {out} already holds a recorded run; continue it with "
               f"'torchblur identify --resume {out}' or choose another --out", file=sys.stderr)
@@ -140,7 +140,7 @@ def _resume(args) -> int:
         if exp.path == root:  # given the experiment folder itself
             root = root.parent
         out = Path(args.out) if args.out is not None else root
-        check_out_folder(out, command="identify", own_run=root)
+        check_out_folder(out, command="identify", own_run=root, force=args.force)
         cfg = load_config(str(exp.path / "config.yaml"), args.overrides, trusted=False, force=args.force)
         check_resume_config(load_dataclass(type(cfg), str(exp.path / "config.yaml"), trusted=False), cfg)  # before connecting
         rep = exp.repaired
@@ -531,7 +531,7 @@ def build_parser() -> argparse.ArgumentParser:
     ident.add_argument("--json", action="store_true",
                        help="at the end print one JSON summary line on stdout (out, points, errors vs truth, status/flag counts, "
                             "elapsed_s, version) and nothing else there; everything else goes to stderr")
-    ident.add_argument("--force", action="store_true", help="run even beyond the size limits (docs/reliability.md)")
+    ident.add_argument("--force", action="store_true", help="run even beyond the size limits (docs/reliability.md), or into a folder that holds other files")
     ident.add_argument("overrides", nargs="*", help="dotted key=value overrides, e.g. sweep.n=20 plant.delay_s=5e-5")
     ident.set_defaults(func=_identify)
     fit = sub.add_parser("fit", help="re-fit a recorded run offline with other fit.* / model.* settings")
@@ -539,7 +539,7 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--out", required=True, help="a new output directory (never inside DIR)")
     fit.add_argument("--quiet", action="store_true", help="no progress bar and no log lines (warnings only; report.txt has the log)")
     fit.add_argument("--json", action="store_true", help="one JSON summary line on stdout at the end, as identify --json")
-    fit.add_argument("--force", action="store_true", help="overwrite the results a folder already holds")
+    fit.add_argument("--force", action="store_true", help="overwrite the results a folder already holds, or write beside other files")
     fit.add_argument("overrides", nargs="*", help="fit.* and model.* overrides, e.g. fit.loss=poisson model.max_order=4")
     fit.set_defaults(func=_fit)
     emu = sub.add_parser("emulator", help="emulate the bench (controller on a pseudo-terminal, camera on loopback TCP)")
