@@ -184,3 +184,13 @@ def test_rig_frames_pylon_url_is_accepted_and_a_bad_one_is_one_clear_error(tmp_p
                    "rig.frames=pylon://?gain=3", *SMALL])
     err = capsys.readouterr().err
     assert rc == 2 and "rig.frames" in err and "gain" in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_identify_from_python_shows_its_messages_where_logging_is_not_configured():
+    code = ("from torchblur.identify.config import load_config; from torchblur.identify.pipeline import identify; "
+            f"identify(load_config(None, {SMALL!r}), progress=True)")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)},
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr.count("dark: level") == 1 and proc.stderr.count("points converged") == 1
+    assert proc.stdout == "" and "\r" not in proc.stderr

@@ -490,15 +490,16 @@ class FrequencyResponse:
         """
         text = _read_text(path)
         try:
-            return cls._from_csv_rows(path, list(csv.reader(io.StringIO(text, newline=""))))
+            return cls._from_csv_rows(list(csv.reader(io.StringIO(text, newline=""))))
         except csv.Error as exc:
             raise ParameterError(f"path {os.fspath(path)!r}: not a CSV file ({exc})") from None
         except TorchblurError as exc:
             raise _naming_path(exc, path) from None
 
     @classmethod
-    def _from_csv_rows(cls, path, rows: list) -> "FrequencyResponse":
-        """:meth:`from_csv` from the file's parsed ``rows`` (lists of strings)."""
+    def _from_csv_rows(cls, rows: list) -> "FrequencyResponse":
+        """:meth:`from_csv` from the file's parsed ``rows`` (lists of strings); errors say
+        ``path: ...`` (the caller puts the file's path there)."""
         if not rows:
             raise ParameterError("path: the file is empty, expected a header row")
         header = [c.strip() for c in rows[0]]
