@@ -3,9 +3,11 @@
 Commands:
     identify [--config FILE] --out DIR [key=value ...]
                         identify the frequency response and a model of the rig (simulated, or
-                        rig.kind=serial rig.port=... rig.frames=...); writes frf.csv, frf.json,
-                        model.json, bode.png, residuals.png, config.yaml and report.txt into
-                        DIR, and records the raw frames as it goes in DIR/experiment/.
+                        rig.kind=serial rig.port=... rig.frames=...: tcp://, pylon://SERIAL?...
+                        or package.module:Class); writes frf.csv, frf.mat, frf.json, model.json,
+                        bode.png, residuals.png, config.yaml and report.txt into DIR, and
+                        records the raw frames as it goes in DIR/experiment/. DIR holding
+                        files of its own (not a torchblur run's) is refused unless --force.
                         With model.direct=true model.json holds the model fitted directly
                         to every image and model_two_step.json the two-step model.
     identify --resume DIR [key=value ...]
@@ -18,6 +20,14 @@ Commands:
                         'serial' (for rig.port) and 'frames' (for rig.frames), then serves.
     demo --out DIR      render a blurred laser spot (the paper's "peanut"), its motion and
                         its alias, and save DIR/demo.png and DIR/demo.json.
+
+Output: the run's messages go to the ``torchblur`` logger, shown on stderr one line each
+(``--quiet``: warnings only; progress bars only on a terminal); report.txt holds them all.
+The report's table then goes to stdout, or with ``--json`` to stderr while stdout gets exactly
+one JSON line: ``out``, ``points``, ``valid_points``, ``max_magnitude_error_pct``,
+``max_phase_error_deg``, ``max_error_over_std`` (null without a known truth), ``status`` and
+``flags`` (counts by name, :mod:`torchblur.fit.status`), ``elapsed_s``, ``torchblur_version``.
+``torchblur --version`` prints the version.
 
 Exit codes: 0 done, 2 bad input (config, recording), 3 the rig stopped the run (its recording
 is saved; resume it), 130 interrupted (Ctrl-C; resume it).
