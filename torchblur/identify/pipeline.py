@@ -18,6 +18,7 @@
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import time
 
@@ -70,7 +71,7 @@ def _identify(cfg: IdentifyConfig, rig, progress: bool, record) -> Identificatio
     """:func:`identify` after its checks: open the rig and the recording, run the stages."""
     log: list[str] = []
     own_rig = rig is None
-    hw_log = lambda m: log_message(log, m, progress, logger=HARDWARE_LOGGER)  # noqa: E731
+    hw_log = functools.partial(log_message, log, progress=progress, logger=HARDWARE_LOGGER)  # hw_log(message)
     if own_rig:
         rig = build_rig(cfg, log=hw_log)
     elif hasattr(rig, "set_logger"):

@@ -4,7 +4,7 @@ assemble -> model -> report``; :func:`model_stage` is the one model stage of eve
 from __future__ import annotations
 
 from torchblur.identify.model import fit_model
-from torchblur.identify.record import RunRecord, stage_bar
+from torchblur.identify.record import RunRecord, progress_bar
 
 __all__ = ["model_stage", "run_plan"]
 
@@ -13,11 +13,14 @@ def run_plan(run: RunRecord):
     """sweep -> fit -> assemble -> model -> report of ``run`` (calibrated: ``run.cal`` set)
     by its ``run.plan``; returns the plan's result."""
     run.plan.sweep(run)  # its own bar, per point or group
-    with stage_bar(run.progress, "fit and model", 3) as bar:
+    bar = progress_bar(run.progress, total=3, desc="fit and model", unit="stage", leave=False)
+    try:
         for stage in (run.plan.fit, run.plan.assemble, model_stage):
             bar.set_postfix_str(stage.__name__, refresh=True)
             stage(run)
             bar.update(1)
+    finally:
+        bar.close()
     return run.plan.result(run)
 
 
