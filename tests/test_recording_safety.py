@@ -468,7 +468,7 @@ def test_identify_holds_the_run_lock_and_a_second_identify_refuses(tmp_path, mon
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     seen = []
 
-    def run(cfg, out, record, quiet, root=None):
+    def run(cfg, out, record, quiet, root=None, **options):  # options: as_json
         seen.append(subprocess.run([sys.executable, "-c", _TRY, str(record)], capture_output=True, text=True, env=env).stdout)
         return 0
 

@@ -29,7 +29,7 @@ from torchblur.hardware.camera_sdk import SDKCamera
 from torchblur.hardware.errors import ConnectionLost, FrameError, HardwareError
 from torchblur.hardware.frames import CameraInfo
 
-__all__ = ["PylonCamera", "pylon_available"]
+__all__ = ["PylonCamera", "pylon_available", "pylon_url_options"]
 
 _GIGE_CLASS = "BaslerGigE"
 
@@ -139,20 +139,9 @@ class PylonCamera(SDKCamera):
     @classmethod
     def from_url(cls, url: str) -> "PylonCamera":
         """From ``pylon://[SERIAL][?trigger=Line1&pixel_format=Mono12&readout_s=1e-3]``
-        (no serial: the first camera)."""
-        u = urlparse(url)
-        if u.scheme != "pylon":
-            raise ParameterError(f"url: expected pylon://[SERIAL][?trigger=...&pixel_format=...], got {url!r}")
-        q = {k: v[-1] for k, v in parse_qs(u.query).items()}
-        unknown = set(q) - {"trigger", "pixel_format", "readout_s"}
-        if unknown:
-            raise ParameterError(f"url: unknown options {sorted(unknown)}; expected trigger, pixel_format, readout_s")
-        try:
-            readout = float(q.get("readout_s", 0.0))
-        except ValueError:
-            raise ParameterError(f"url: readout_s must be a number of seconds, got {q['readout_s']!r}") from None
-        return cls(u.netloc or None, trigger_source=q.get("trigger", "Line1"), pixel_format=q.get("pixel_format"),
-                   readout_s=readout)
+        (no serial: the first camera); the URL as :func:`pylon_url_options` reads it."""
+        opts = pylon_url_options(url)
+        return cls(opts.pop("serial"), **opts)
 
     # ----------------------------------------------------------------- SDKCamera
     def _connect(self) -> None:
@@ -259,3 +248,27 @@ class PylonCamera(SDKCamera):
                 max(1, int(timeout_s * 1e3)), pylon.TimeoutHandling_Return):
             raise HardwareError(f"camera: not ready for a frame trigger within {timeout_s:g} s")
         self.cam.ExecuteSoftwareTrigger()
+
+
+def pylon_url_options(url: str) -> dict:
+    """The camera a ``pylon://[SERIAL][?trigger=Line1&pixel_format=Mono12&readout_s=1e-3]`` URL
+    names, as :class:`PylonCamera`'s arguments (``serial``, ``trigger_source``,
+    ``pixel_format``, ``readout_s``); nothing is opened (the config check uses it).
+
+    Raises:
+        ParameterError: naming ``url``: another scheme, an unknown option, a readout_s that is
+            not a number.
+    """
+    u = urlparse(url)
+    if u.scheme != "pylon":
+        raise ParameterError(f"url: expected pylon://[SERIAL][?trigger=...&pixel_format=...], got {url!r}")
+    q = {k: v[-1] for k, v in parse_qs(u.query).items()}
+    unknown = set(q) - {"trigger", "pixel_format", "readout_s"}
+    if unknown:
+        raise ParameterError(f"url: unknown options {sorted(unknown)}; expected trigger, pixel_format, readout_s")
+    try:
+        readout = float(q.get("readout_s", 0.0))
+    except ValueError:
+        raise ParameterError(f"url: readout_s must be a number of seconds, got {q['readout_s']!r}") from None
+    return {"serial": u.netloc or None, "trigger_source": q.get("trigger", "Line1"), "pixel_format": q.get("pixel_format"),
+            "readout_s": readout}

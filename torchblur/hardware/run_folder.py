@@ -20,10 +20,13 @@ from pathlib import Path, PurePosixPath
 
 from torchblur.hardware.errors import RecordingError
 
-__all__ = ["LOCK_NAME", "RESULT_FILES", "RunLock", "check_out_folder", "inside", "run_root_of"]
+__all__ = ["LOCK_NAME", "OUTPUT_NAMES", "RESULT_FILES", "RunLock", "check_out_folder", "inside", "run_root_of"]
 
 LOCK_NAME = "run.lock"
 RESULT_FILES = ("frf.json", "frf.csv", "model.json", "report.txt")
+#: what torchblur writes into an ``--out`` folder; a folder holding anything else is the user's
+OUTPUT_NAMES = frozenset(RESULT_FILES) | {"frf.mat", "bode.png", "residuals.png", "config.yaml", "source.json",
+                                          "model_two_step.json", "experiment"}
 
 _held: dict[str, list] = {}  # real path of the folder -> [fd, count]
 _guard = threading.Lock()
@@ -128,7 +131,8 @@ def check_out_folder(out: str | Path, *, command: str, force: bool = False, own_
 
     Refused: a path that is a file or lies under one; a folder that cannot be written; a
     folder inside another run's record (``R/experiment/...``) or inside another run's
-    output folder; for ``command="fit"``, a run's own output folder or a folder that holds
+    output folder; unless ``force``, a folder holding anything torchblur does not write there
+    (:data:`OUTPUT_NAMES`: the user's own files); for ``command="fit"``, a run's own output folder or a folder that holds
     results (``frf.json``, ...) unless ``force``. ``own_run``: the run being resumed (its
     own folder is allowed).
 
@@ -154,6 +158,12 @@ def check_out_folder(out: str | Path, *, command: str, force: bool = False, own_
                                  f"never written by another run, choose another folder")
         if p != resolved and (p / "experiment" / "experiment.json").is_file():
             raise RecordingError(f"--out {out}: inside the run folder {p}; choose a folder outside it")
+    if not force and (own is None or resolved != own) and resolved.is_dir():
+        foreign = sorted(p.name for p in resolved.iterdir() if p.name not in OUTPUT_NAMES)
+        if foreign:
+            shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
+            raise RecordingError(f"--out {out}: holds files that are not a torchblur run's ({shown}); choose an empty "
+                                 f"or new folder, or --force to write beside them")
     if command == "fit" and not force:
         if (resolved / "experiment" / "experiment.json").is_file():
             raise RecordingError(f"--out {out}: the folder of a recorded run; its results would be overwritten "

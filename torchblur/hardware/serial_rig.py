@@ -24,7 +24,7 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 
-from torchblur.errors import ParameterError, check_real_scalar
+from torchblur.errors import ConfigError, ParameterError, check_real_scalar
 from torchblur.hardware.controller import Controller
 from torchblur.hardware.errors import (AcquisitionStopped, ConnectionLost, DeviceError, DeviceReset, FrameGap, FrameMismatch, FrameTimeout,
                      GarbageReply, HardwareError, StaleFrame)
@@ -38,19 +38,33 @@ _F64 = torch.float64
 
 def open_frame_source(spec: str) -> FrameSource:
     """A frame source from its config string: ``tcp://HOST:PORT`` (the emulator's camera
-    channel) or ``package.module:ClassName`` (a :class:`~torchblur.hardware.camera_sdk.SDKCamera`
-    subclass, constructed without arguments)."""
+    channel), ``pylon://[SERIAL][?trigger=Line1&pixel_format=Mono12&readout_s=1e-3]`` (a Basler
+    camera through pypylon, :class:`~torchblur.hardware.pylon.PylonCamera`; the ``pylon`` extra)
+    or ``package.module:ClassName`` (a :class:`~torchblur.hardware.camera_sdk.SDKCamera`
+    subclass, constructed without arguments).
+
+    Raises:
+        ConfigError: a malformed ``pylon://`` URL, naming ``rig.frames``.
+        HardwareError: the camera cannot be opened (none found, no such serial).
+    """
     from torchblur.hardware.frames import EmulatorFrames
 
     if spec.startswith("tcp://"):
         return EmulatorFrames(spec)
+    if spec.startswith("pylon://"):
+        from torchblur.hardware.pylon import PylonCamera  # the optional pylon extra
+
+        try:
+            return PylonCamera.from_url(spec)
+        except ParameterError as exc:
+            raise ConfigError(f"rig.frames: {spec!r}: {str(exc).removeprefix('url: ')}") from None
     mod, sep, name = spec.partition(":")
     if sep and mod and name and "/" not in spec:
         import importlib
 
         cls = getattr(importlib.import_module(mod), name)
         return cls()
-    raise ValueError(f"rig.frames: expected tcp://HOST:PORT or package.module:ClassName, got {spec!r}")
+    raise ValueError(f"rig.frames: expected tcp://HOST:PORT, pylon://[SERIAL][?...] or package.module:ClassName, got {spec!r}")
 
 
 class SerialRig:

@@ -3,9 +3,11 @@
 Commands:
     identify [--config FILE] --out DIR [key=value ...]
                         identify the frequency response and a model of the rig (simulated, or
-                        rig.kind=serial rig.port=... rig.frames=...); writes frf.csv, frf.json,
-                        model.json, bode.png, residuals.png, config.yaml and report.txt into
-                        DIR, and records the raw frames as it goes in DIR/experiment/.
+                        rig.kind=serial rig.port=... rig.frames=...: tcp://, pylon://SERIAL?...
+                        or package.module:Class); writes frf.csv, frf.mat, frf.json, model.json,
+                        bode.png, residuals.png, config.yaml and report.txt into DIR, and
+                        records the raw frames as it goes in DIR/experiment/. DIR holding
+                        files of its own (not a torchblur run's) is refused unless --force.
                         With model.direct=true model.json holds the model fitted directly
                         to every image and model_two_step.json the two-step model.
     identify --resume DIR [key=value ...]
@@ -19,6 +21,14 @@ Commands:
     demo --out DIR      render a blurred laser spot (the paper's "peanut"), its motion and
                         its alias, and save DIR/demo.png and DIR/demo.json.
 
+Output: the run's messages go to the ``torchblur`` logger, shown on stderr one line each
+(``--quiet``: warnings only; progress bars only on a terminal); report.txt holds them all.
+The report's table then goes to stdout, or with ``--json`` to stderr while stdout gets exactly
+one JSON line: ``out``, ``points``, ``valid_points``, ``max_magnitude_error_pct``,
+``max_phase_error_deg``, ``max_error_over_std`` (null without a known truth), ``status`` and
+``flags`` (counts by name, :mod:`torchblur.fit.status`), ``elapsed_s``, ``torchblur_version``.
+``torchblur --version`` prints the version.
+
 Exit codes: 0 done, 2 bad input (config, recording), 3 the rig stopped the run (its recording
 is saved; resume it), 130 interrupted (Ctrl-C; resume it).
 """
@@ -26,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import math
 import os
 import sys
@@ -112,7 +123,7 @@ def _identify(args) -> int:
         return 2
     cfg = load_config(args.config, args.overrides, force=args.force)  # ConfigError (named key) before any work
     out = Path(args.out)
-    check_out_folder(out, command="identify")
+    check_out_folder(out, command="identify", force=args.force)
     if (out / "experiment" / "manifest.jsonl").exists():
         print(f"torchblur identify: error: {out} already holds a recorded run; continue it with "
               f"'torchblur identify --resume {out}' or choose another --out", file=sys.stderr)
@@ -122,7 +133,7 @@ def _identify(args) -> int:
     try:
         if (out / "experiment" / "manifest.jsonl").exists():  # created while we waited for the lock
             raise RecordingError(f"--out {out}: already holds a recorded run; resume it with torchblur identify --resume")
-        return _run_identify(cfg, out, out / "experiment", args.quiet)
+        return _run_identify(cfg, out, out / "experiment", args.quiet, as_json=args.json)
     finally:
         lock.release()
 
@@ -139,7 +150,7 @@ def _resume(args) -> int:
         if exp.path == root:  # given the experiment folder itself
             root = root.parent
         out = Path(args.out) if args.out is not None else root
-        check_out_folder(out, command="identify", own_run=root)
+        check_out_folder(out, command="identify", own_run=root, force=args.force)
         cfg = load_config(str(exp.path / "config.yaml"), args.overrides, trusted=False, force=args.force)
         check_resume_config(load_dataclass(type(cfg), str(exp.path / "config.yaml"), trusted=False), cfg)  # before connecting
         rep = exp.repaired
@@ -149,12 +160,12 @@ def _resume(args) -> int:
                   f"{', '.join(rep['dropped_groups']) or 'none'}; removed {len(rep['removed_files'])} temporary file(s){where}",
                   file=sys.stderr)
         out.mkdir(parents=True, exist_ok=True)
-        return _run_identify(cfg, out, exp, args.quiet, root=root)
+        return _run_identify(cfg, out, exp, args.quiet, root=root, as_json=args.json)
     finally:
         exp.close()
 
 
-def _run_identify(cfg, out: Path, record, quiet: bool, root: Path | None = None) -> int:
+def _run_identify(cfg, out: Path, record, quiet: bool, root: Path | None = None, as_json: bool = False) -> int:
     import time
 
     import torch
@@ -184,7 +195,7 @@ def _run_identify(cfg, out: Path, record, quiet: bool, root: Path | None = None)
             print(f"torchblur identify: stopped before anything was recorded: {exc}", file=sys.stderr)
         return EXIT_STOPPED
     elapsed = time.perf_counter() - t0
-    _write_outputs(cfg, res, out, elapsed, stamp)
+    _write_outputs(cfg, res, out, elapsed, stamp, as_json=as_json)
     return 0
 
 
@@ -219,7 +230,7 @@ def _fit(args) -> int:
     (out / "source.json").write_text(json.dumps({"recording": str(exp.path), "status": exp.meta.get("status"),
                                                  "frames": len(exp.lines), "overrides": list(args.overrides),
                                                  "torchblur_version": tb.__version__}, indent=2))
-    _write_outputs(cfg, res, out, elapsed, stamp)
+    _write_outputs(cfg, res, out, elapsed, stamp, as_json=args.json)
     return 0
 
 
@@ -232,17 +243,36 @@ def _emulator(args) -> int:
         return EXIT_INTERRUPTED
 
 
-def _write_outputs(cfg, res, out: Path, elapsed: float, stamp: str) -> None:
-    """frf.csv, frf.json, model.json, bode.png, residuals.png, report.txt."""
-    import numpy as np
-
+def _write_outputs(cfg, res, out: Path, elapsed: float, stamp: str, as_json: bool = False) -> None:
+    """frf.csv, frf.mat, frf.json, model.json, bode.png, residuals.png, report.txt; then the
+    report's table (the log lines were shown as they came) and what was written, on stdout, or
+    with ``as_json`` on stderr and one JSON summary line (:func:`_summary`) on stdout."""
     import torchblur as tb
-    from torchblur.sysid.plots import bode_figure, residual_figure
 
-    frf = res.frf
-    frf.meta.update({"torchblur_version": tb.__version__, "seed": int(cfg.seed)})
+    from torchblur.sysid.frequency_response import FrequencyResponse
+
+    frf = res.frf  # immutable: a copy with the run's stamp and units (the Bode plot's axes) in its meta
+    meta = {"output_unit": "px", "input_unit": "input unit", **frf.meta, "torchblur_version": tb.__version__, "seed": int(cfg.seed)}
+    frf = res.frf = FrequencyResponse(frf.omega, frf.response, cov=frf.cov, output_labels=frf.output_labels,
+                                      input_labels=frf.input_labels, meta=meta)
     frf.to_csv(out / "frf.csv", extra_columns={"torchblur_version": tb.__version__, "seed": cfg.seed})
+    frf.to_mat(out / "frf.mat")
     frf.to_json(out / "frf.json")
+    _write_models(cfg, res, out)
+    _write_figures(cfg, res, out, stamp)
+    log, table = _report(cfg, res, elapsed, stamp)
+    (out / "report.txt").write_text(log + table)
+    human = sys.stderr if as_json else sys.stdout
+    print(table, end="", file=human)
+    print(f"wrote {', '.join(sorted(p.name for p in out.iterdir()))} in {out}", file=human)
+    if as_json:
+        print(json.dumps(_summary(res, out, elapsed)), flush=True)
+
+
+def _write_models(cfg, res, out: Path) -> None:
+    """model.json (and, with ``model.direct``, model_two_step.json)."""
+    import torchblur as tb
+
     model = {"torchblur_version": tb.__version__, "seed": int(cfg.seed)}
     if res.model is not None:
         model.update(res.model.to_dict())
@@ -258,6 +288,15 @@ def _write_outputs(cfg, res, out: Path, elapsed: float, stamp: str) -> None:
         else:
             model["error"] = "the direct fit failed or was skipped; see report.txt (the two-step model is in model_two_step.json)"
     (out / "model.json").write_text(json.dumps(model, indent=2))
+
+
+def _write_figures(cfg, res, out: Path, stamp: str) -> None:
+    """bode.png (with the truth where known) and residuals.png (the worst fits)."""
+    import numpy as np
+
+    from torchblur.sysid.plots import bode_figure, residual_figure
+
+    frf = res.frf
     truth = None
     if res.truth is not None:
         if getattr(res, "spots", None) is not None:
@@ -268,24 +307,66 @@ def _write_outputs(cfg, res, out: Path, elapsed: float, stamp: str) -> None:
             truth = plant_of(cfg).frequency_response
     fig = bode_figure(frf, model=res.model, truth=truth, stamp=stamp)
     fig.savefig(out / "bode.png", dpi=110 if frf.n_outputs <= 2 else 80, metadata={"Description": stamp})
+    exposures = None
     if hasattr(res, "residual_panels"):  # multisine: one panel per image set
         data, models, labels = res.residual_panels(3)
+        reason = f"the {len(labels)} groups with the largest fit cost per pixel"
     else:
         cost = res.fit.cost.reshape(-1).numpy()
         n_pix = res.images.shape[-3] * res.images.shape[-2] * res.images.shape[-1]
         worst = np.argsort(np.nan_to_num(cost / max(1, n_pix), nan=-np.inf))[-3:][::-1].copy()
-        data, models, labels = _fitted_images(res, worst)
-    fig = residual_figure(data, models, labels, stamp=stamp)
+        data, models, labels, exposures = _fitted_images(res, worst)
+        reason = f"the {len(labels)} points with the largest fit cost per pixel"
+    fig = residual_figure(data, models, labels, stamp=stamp, unit="e-", exposures=exposures, reason=reason)
     fig.savefig(out / "residuals.png", dpi=90, metadata={"Description": stamp})
-    report = _report(cfg, res, elapsed, stamp)
-    (out / "report.txt").write_text(report)
-    print(report)
-    print(f"wrote {', '.join(sorted(p.name for p in out.iterdir()))} in {out}")
+
+
+def _summary(res, out: Path, elapsed: float) -> dict:
+    """The ``--json`` line: out dir, points (valid of all), the largest errors against the
+    truth where it is known (else null), the fits' status and flag counts by name, elapsed s,
+    version."""
+    import numpy as np
+
+    import torchblur as tb
+    from torchblur.fit.status import FLAGS, STATUS
+
+    frf = res.frf
+    doc = {"out": str(out), "points": int(frf.valid.size), "valid_points": int(frf.valid.sum()),
+           "max_magnitude_error_pct": None, "max_phase_error_deg": None, "max_error_over_std": None}
+    if res.truth is not None:
+        t = res.truth if res.truth.ndim == 3 else res.truth[None, None]
+        moving = np.abs(t) > 0  # channels with no true motion have no relative error
+        with np.errstate(invalid="ignore", divide="ignore"):
+            em = np.abs(frf.magnitude - np.abs(t)) / np.abs(t) * 100
+            ep = np.degrees(np.abs(np.remainder(frf.phase - np.angle(t) + np.pi, 2 * np.pi) - np.pi))
+            z = np.maximum(np.abs(frf.magnitude - np.abs(t)) / frf.magnitude_std, np.radians(ep) / frf.phase_std)
+        for key, v in (("max_magnitude_error_pct", em), ("max_phase_error_deg", ep), ("max_error_over_std", z)):
+            v = v[moving & np.isfinite(v)]
+            doc[key] = float(v.max()) if v.size else None
+    doc["status"], doc["flags"] = _fit_counts(res.fit, STATUS, FLAGS)
+    doc.update({"elapsed_s": round(float(elapsed), 3), "torchblur_version": tb.__version__})
+    return doc
+
+
+def _fit_counts(fits, status_names: dict, flag_names: dict) -> tuple[dict, dict]:
+    """``({status name: count}, {flag name: count})`` over every fit of the run (a fit result
+    or a list of them, as the multisine plan has); zero counts left out."""
+    import numpy as np
+
+    fits = fits if isinstance(fits, (list, tuple)) else [fits]
+    codes = [np.asarray(f.status).reshape(-1) for f in fits if getattr(f, "status", None) is not None]
+    bits = [np.asarray(f.flags).reshape(-1) for f in fits if getattr(f, "flags", None) is not None]
+    codes = np.concatenate(codes) if codes else np.zeros(0, dtype=int)
+    bits = np.concatenate(bits) if bits else np.zeros(0, dtype=int)
+    status = {status_names.get(int(c), str(int(c))): int((codes == c).sum()) for c in np.unique(codes)}
+    flags = {name: int(((bits.astype(np.int64) & bit) != 0).sum()) for bit, name in flag_names.items()}
+    return status, {k: v for k, v in flags.items() if v}
 
 
 def _fitted_images(res, idx):
-    """The first frame of problems ``idx`` (flat indices of ``res.fit``), its fitted model and
-    a label each (for the residual figure): ``(data [n, h, w], models [n, h, w], labels)``."""
+    """The first frame of problems ``idx`` (flat indices of ``res.fit``), its fitted model, a
+    label and its exposure each (for the residual figure): ``(data [n, h, w], models [n, h, w],
+    labels, exposures)``, an exposure like ``"exposure 1 of 2 (0.5-3 ms)"``."""
     import numpy as np
     import torch
 
@@ -295,7 +376,7 @@ def _fitted_images(res, idx):
     single = res.fit.amplitude.dim() == 1
     F = len(frf.omega)
     P = 1 if single else res.fit.amplitude.shape[1]
-    data, out, labels = [], [], []
+    data, out, labels, exposures = [], [], [], []
     for q in idx:
         q = int(q)
         j, p = divmod(q, P)
@@ -311,6 +392,7 @@ def _fitted_images(res, idx):
             label = f"{frf.freq_hz[k]:.4g} Hz, input {res.inputs[ii]}" + (f", spot s{p}" if res.spots is not None else "")
         data.append(img_d.numpy())
         labels.append(label)
+        exposures.append(_exposure_label(w, res.windows.shape[-1]))
         fit = res.fit
         at = (j,) if single else (j, p)
         if not bool(fit.converged[at]):
@@ -330,15 +412,24 @@ def _fitted_images(res, idx):
         if fit.background is not None:
             img = img + fit.background[at]
         out.append(img.detach().numpy())
-    return np.stack(data), np.stack(out), labels
+    return np.stack(data), np.stack(out), labels, exposures
 
 
-def _report(cfg, res, elapsed, stamp) -> str:
+def _exposure_label(window, n: int) -> str:
+    """``"exposure 1 of n (start-end ms)"`` of the first exposure of one point's ``window``."""
+    start, end = float(window.start.reshape(-1)[0]) * 1e3, float(window.end.reshape(-1)[0]) * 1e3
+    return f"exposure 1 of {n} ({start:.3g}-{end:.3g} ms)"
+
+
+def _report(cfg, res, elapsed, stamp) -> tuple[str, str]:
+    """report.txt in two parts: ``(title, table)``: the title and the run's log (shown on the
+    terminal as it came), then the table of points, the errors against the truth, the models
+    and the timing."""
     import numpy as np
 
     frf = res.frf
-    lines = [f"torchblur identify report ({stamp})", ""]
-    lines += res.log
+    title = "\n".join([f"torchblur identify report ({stamp})", "", *res.log]) + "\n"
+    lines = []
     truth = None
     if res.truth is not None:
         truth = res.truth if res.truth.ndim == 3 else res.truth[None, None]
@@ -421,26 +512,44 @@ def _report(cfg, res, elapsed, stamp) -> str:
         lines.append(f"  calibration {t['calibration_s']:.2f} s, sweep {t['sweep_s']:.2f} s, fitting {t['fit_s']:.2f} s in "
                      f"{t['fit_chunks']} chunk(s) of which {t['fit_overlapped_s']:.2f} s during the sweep, "
                      f"{t['after_sweep_s']:.2f} s after the last frame")
-    return "\n".join(lines) + "\n"
+    return title, "\n".join(lines) + "\n"
+
+
+class _Version(argparse.Action):
+    """``--version``: print ``torchblur X.Y.Z`` on stdout and exit 0 (torchblur imported only then)."""
+
+    def __init__(self, option_strings, dest, **kwargs):
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        import torchblur
+
+        print(f"torchblur {torchblur.__version__}")
+        parser.exit(0)
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="torchblur", description="Identify fast actuator dynamics from camera motion blur.")
+    parser.add_argument("--version", action=_Version, help="print the version and exit")
     sub = parser.add_subparsers(dest="command", required=True)
     ident = sub.add_parser("identify", help="identify the frequency response and a model (default: the built-in simulated mirror)")
     ident.add_argument("--config", default=None, help="YAML config (see configs/); default: built-in")
     ident.add_argument("--out", default=None, help="output directory (the recording goes to OUT/experiment/)")
     ident.add_argument("--resume", default=None, metavar="DIR",
                        help="continue the interrupted run recorded in DIR (its --out folder or DIR/experiment)")
-    ident.add_argument("--quiet", action="store_true", help="no progress bar")
-    ident.add_argument("--force", action="store_true", help="run even beyond the size limits (docs/reliability.md)")
+    ident.add_argument("--quiet", action="store_true", help="no progress bar and no log lines (warnings only; report.txt has the log)")
+    ident.add_argument("--json", action="store_true",
+                       help="at the end print one JSON summary line on stdout (out, points, errors vs truth, status/flag counts, "
+                            "elapsed_s, version) and nothing else there; everything else goes to stderr")
+    ident.add_argument("--force", action="store_true", help="run even beyond the size limits (docs/reliability.md), or into a folder that holds other files")
     ident.add_argument("overrides", nargs="*", help="dotted key=value overrides, e.g. sweep.n=20 plant.delay_s=5e-5")
     ident.set_defaults(func=_identify)
     fit = sub.add_parser("fit", help="re-fit a recorded run offline with other fit.* / model.* settings")
     fit.add_argument("dir", help="the recorded run (its --out folder, or its experiment/ folder)")
     fit.add_argument("--out", required=True, help="a new output directory (never inside DIR)")
-    fit.add_argument("--quiet", action="store_true", help="no progress bar")
-    fit.add_argument("--force", action="store_true", help="overwrite the results a folder already holds")
+    fit.add_argument("--quiet", action="store_true", help="no progress bar and no log lines (warnings only; report.txt has the log)")
+    fit.add_argument("--json", action="store_true", help="one JSON summary line on stdout at the end, as identify --json")
+    fit.add_argument("--force", action="store_true", help="overwrite the results a folder already holds, or write beside other files")
     fit.add_argument("overrides", nargs="*", help="fit.* and model.* overrides, e.g. fit.loss=poisson model.max_order=4")
     fit.set_defaults(func=_fit)
     emu = sub.add_parser("emulator", help="emulate the bench (controller on a pseudo-terminal, camera on loopback TCP)")
@@ -456,6 +565,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     from torchblur.errors import TorchblurError
+    from torchblur.identify.record import console_logging
 
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
@@ -464,8 +574,10 @@ def main(argv: list[str] | None = None) -> int:
             args.overrides = list(args.overrides) + extra
         else:
             parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    level = logging.WARNING if getattr(args, "quiet", False) else logging.INFO
     try:
-        return args.func(args)
+        with console_logging(level):  # the run's messages on stderr, one line each, above the bars
+            return args.func(args)
     except TorchblurError as exc:
         print(f"torchblur {args.command}: error: {exc}", file=sys.stderr)
         return 2

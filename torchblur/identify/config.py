@@ -542,11 +542,21 @@ def validate_rig(r: RigConfig) -> None:
                 ok = bool(u.hostname) and u.port is not None
             except ValueError:
                 ok = False
+        elif f.startswith("pylon://"):  # a Basler camera (the pylon extra): its options checked here, opened later
+            from torchblur.errors import ParameterError
+            from torchblur.hardware.pylon import pylon_url_options
+
+            try:
+                pylon_url_options(f)
+            except ParameterError as exc:
+                raise ConfigError(f"rig.frames: {f!r}: {str(exc).removeprefix('url: ')}") from None
+            ok = True
         else:
             mod, sep, name = f.partition(":")
             ok = bool(sep and mod and name and "/" not in f)
         if not ok:
-            raise ConfigError(f"rig.frames: expected tcp://HOST:PORT or package.module:ClassName, got {f!r}")
+            raise ConfigError(f"rig.frames: expected tcp://HOST:PORT, pylon://[SERIAL][?trigger=...] or "
+                              f"package.module:ClassName, got {f!r}")
     _num(r.timeout_s, "rig.timeout_s", positive=True)
     _num(r.retries, "rig.retries", integer=True, low=0, high=100)
 

@@ -32,12 +32,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 
 from torchblur.design.fisher import design_acquisition
 from torchblur.design.multisine import common_grid, multisine_signal, optimise_crest_factor
 from torchblur.fit.multisine import fit_multisine, render_multisine
-from torchblur.identify.record import RunRecord, run_stage
+from torchblur.identify.record import RunRecord, progress_bar, run_stage
 from torchblur.identify.result import IdentificationResult
 from torchblur.identify.stages import run_plan
 from torchblur.image.moments import image_moments, moments_along
@@ -309,7 +308,7 @@ class MultisinePlan:
         st = _settings(cfg, run.rig, run.cal)
         groups = group_frequencies(cfg.frequencies_hz(), int(cfg.excitation.tones))
         acq = run.acquisition = MultisineAcquisition(t_sweep=time.perf_counter())
-        bar = tqdm(total=len(groups), desc="multisine", unit="group", disable=not run.progress)
+        bar = progress_bar(run.progress, total=len(groups), desc="multisine", unit="group")
         for g, fg in enumerate(groups):
             grp = _group(fg, float(cfg.excitation.snap_tol), acq.known, st)
             acquired = run_stage(run.exp, f"sweep/multisine/{g:03d}", "sweep", run.rig, lambda r: _acquire_group(r, run, grp, st, g))

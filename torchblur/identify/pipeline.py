@@ -17,6 +17,9 @@
 """
 from __future__ import annotations
 
+import contextlib
+import functools
+import logging
 import time
 
 from torchblur.errors import InputTypeError
@@ -24,7 +27,7 @@ from torchblur.hardware.errors import HardwareError
 from torchblur.identify.calibration import calibrate
 from torchblur.identify.config import IdentifyConfig
 from torchblur.identify.multisine import MultisinePlan
-from torchblur.identify.record import RunRecord, log_message
+from torchblur.identify.record import RunRecord, console_logging, log_message, stage_bar
 from torchblur.identify.result import IdentificationResult
 from torchblur.identify.rigs import build_rig, open_experiment
 from torchblur.identify.stages import run_plan
@@ -32,6 +35,7 @@ from torchblur.identify.sweep import SinePlan
 
 __all__ = ["PLANS", "calibrate_stage", "identify", "run_stages"]
 
+HARDWARE_LOGGER = logging.getLogger("torchblur.hardware")  # the rig's messages (faults, retries, reconnects)
 PLANS = {"sine": SinePlan, "multisine": MultisinePlan}  # excitation.kind -> its plan of the sweep, fit and assemble stages
 
 
@@ -42,7 +46,8 @@ def identify(cfg: IdentifyConfig, rig=None, *, progress: bool = True, record=Non
     Args:
         cfg: the configuration.
         rig: a :class:`~torchblur.rig.base.Rig`, or None.
-        progress: show a progress bar and log lines.
+        progress: show progress bars (on a terminal) and, where nothing handles the
+            ``torchblur`` logger, the run's messages on stderr (:func:`~torchblur.identify.record.console_logging`).
         record: None, a directory, or a :class:`~torchblur.hardware.Experiment`: the run is
             recorded there as it goes (TIFF frames, ``manifest.jsonl``). Groups already
             recorded (a resumed run) are taken from the recording instead of the rig; a
@@ -57,12 +62,20 @@ def identify(cfg: IdentifyConfig, rig=None, *, progress: bool = True, record=Non
         raise InputTypeError(f"cfg: expected an IdentifyConfig (see torchblur.identify.config.load_config), got {type(cfg).__name__}")
     if rig is not None and not all(hasattr(rig, a) for a in ("frame_shape", "dark", "still", "sine")):
         raise InputTypeError(f"rig: expected a torchblur Rig (frame_shape, dark, still, sine, ...) or None, got {type(rig).__name__}")
+    shown = progress and not logging.getLogger("torchblur").hasHandlers()
+    with console_logging() if shown else contextlib.nullcontext():
+        return _identify(cfg, rig, progress, record)
+
+
+def _identify(cfg: IdentifyConfig, rig, progress: bool, record) -> IdentificationResult:
+    """:func:`identify` after its checks: open the rig and the recording, run the stages."""
     log: list[str] = []
     own_rig = rig is None
+    hw_log = functools.partial(log_message, log, progress=progress, logger=HARDWARE_LOGGER)  # hw_log(message)
     if own_rig:
-        rig = build_rig(cfg, log=lambda m: log_message(log, m, progress))
+        rig = build_rig(cfg, log=hw_log)
     elif hasattr(rig, "set_logger"):
-        rig.set_logger(lambda m: log_message(log, m, progress))
+        rig.set_logger(hw_log)
     exp = None
     try:
         exp = open_experiment(record, cfg, rig)
@@ -99,4 +112,13 @@ def run_stages(run: RunRecord) -> IdentificationResult:
 
 def calibrate_stage(run: RunRecord) -> None:
     """``run.cal``: :func:`~torchblur.identify.calibration.calibrate` (from the recording where it holds it)."""
-    run.cal = calibrate(run.cfg, run.rig, run.exp, run.log, run.progress)
+    with stage_bar(run.progress, "calibration", calibration_stages(run.cfg)):
+        run.cal = calibrate(run.cfg, run.rig, run.exp, run.log, run.progress)
+
+
+def calibration_stages(cfg: IdentifyConfig) -> int:
+    """How many recorded stages :func:`~torchblur.identify.calibration.calibrate` takes:
+    dark, saturation, PSF, latency and, for one axis and one spot with ``fit.axis=measure``,
+    the axis."""
+    spots = getattr(cfg, "spots", None) is not None and cfg.spots.enabled
+    return 5 if (not cfg.plant.is_mimo and not spots and cfg.fit.axis == "measure") else 4

@@ -5,14 +5,27 @@ model -> report``; each stage is a function of a :class:`RunRecord` that adds it
 (``cal``, ``acquisition``, ``fit``, ``frf`` and ``truth``, ``model`` and ``direct_model``,
 the result). What differs between excitations (one sine per point, or multisine groups) is
 the record's ``plan`` (:mod:`torchblur.identify.sweep`, :mod:`torchblur.identify.multisine`).
+
+The run's messages go to the ``torchblur`` logger (``torchblur.identify`` and its children,
+``torchblur.hardware`` for the rig's) and to ``RunRecord.log`` (for the report); nothing here
+prints. :func:`console_logging` shows them on stderr above any progress bar (the CLI does,
+and :func:`~torchblur.identify.pipeline.identify` does with ``progress`` when nothing else
+handles the ``torchblur`` logger). Progress bars (:func:`progress_bar`) show only on a terminal.
 """
 from __future__ import annotations
 
+import contextlib
+import contextvars
+import logging
+import sys
 from dataclasses import dataclass, field
 
 from tqdm.auto import tqdm
 
-__all__ = ["RunRecord", "log_message", "run_stage"]
+__all__ = ["RunRecord", "console_logging", "log_message", "progress_bar", "run_stage", "stage_bar"]
+
+LOGGER = logging.getLogger("torchblur.identify")
+_STAGE_BAR: contextvars.ContextVar = contextvars.ContextVar("torchblur_stage_bar", default=None)
 
 
 @dataclass
@@ -47,20 +60,77 @@ class RunRecord:
     timing: dict = field(default_factory=dict)
 
     def say(self, msg: str) -> None:
-        """Log ``msg`` (and print it with ``progress``)."""
+        """Log ``msg`` (to ``log`` and the ``torchblur.identify`` logger)."""
         log_message(self.log, msg, self.progress)
 
 
-def log_message(log: list, msg: str, progress: bool) -> None:
-    """Append ``msg`` to ``log``; print it (above any progress bar) if ``progress``."""
+def log_message(log: list, msg: str, progress: bool = False, *, logger: logging.Logger = LOGGER) -> None:
+    """Append ``msg`` to ``log`` and send it to ``logger`` at INFO (shown where the
+    ``torchblur`` logger is handled, e.g. by :func:`console_logging`). ``progress`` is kept
+    for the callers' signature; what shows is the logging configuration's choice."""
     log.append(msg)
-    if progress:
-        tqdm.write(msg)
+    logger.info(msg)
+
+
+class _AboveBars(logging.Handler):
+    """Writes each record on one line of the current ``sys.stderr``, above any tqdm bar."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            tqdm.write(self.format(record), file=sys.stderr)
+        except Exception:  # noqa: BLE001 - logging's own contract: never raise from emit
+            self.handleError(record)
+
+
+@contextlib.contextmanager
+def console_logging(level: int = logging.INFO):
+    """Show the ``torchblur`` logger's records at ``level`` and above on stderr, one line
+    each (``warning: ...`` for warnings), for the ``with`` block's duration."""
+    root = logging.getLogger("torchblur")
+    handler = _AboveBars(level)
+    handler.setFormatter(_Formatter())
+    old = root.level
+    root.addHandler(handler)
+    root.setLevel(min(level, old) if old else level)
+    try:
+        yield handler
+    finally:
+        root.removeHandler(handler)
+        root.setLevel(old)
+
+
+class _Formatter(logging.Formatter):
+    def format(self, record: logging.LogRecord) -> str:
+        msg = record.getMessage()
+        return msg if record.levelno < logging.WARNING else f"{record.levelname.lower()}: {msg}"
+
+
+def progress_bar(progress: bool, **kwargs) -> tqdm:
+    """A tqdm bar (``kwargs`` as tqdm's) shown only with ``progress`` and on a terminal, so
+    that logs written to files get no carriage returns."""
+    return tqdm(**kwargs, disable=None if progress else True)
+
+
+@contextlib.contextmanager
+def stage_bar(progress: bool, desc: str, total: int):
+    """A :func:`progress_bar` over ``total`` stages that :func:`run_stage` advances (and
+    names) inside the ``with`` block; yields the bar (``bar.update()`` for other steps)."""
+    bar = progress_bar(progress, total=total, desc=desc, unit="stage", leave=False)
+    token = _STAGE_BAR.set(bar)
+    try:
+        yield bar
+    finally:
+        _STAGE_BAR.reset(token)
+        bar.close()
 
 
 def run_stage(exp, key: str, kind: str, rig, fn):
     """``fn(rig)``, or with a recording ``exp`` the recorded result of group ``key`` (taken
-    and recorded now if it is not there yet)."""
-    if exp is None:
-        return fn(rig)
-    return exp.stage(key, kind, rig, fn)[0]
+    and recorded now if it is not there yet); inside :func:`stage_bar`, one step of its bar."""
+    bar = _STAGE_BAR.get()
+    if bar is not None:
+        bar.set_postfix_str(key, refresh=True)
+    out = fn(rig) if exp is None else exp.stage(key, kind, rig, fn)[0]
+    if bar is not None:
+        bar.update(1)
+    return out

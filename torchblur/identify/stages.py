@@ -4,7 +4,7 @@ assemble -> model -> report``; :func:`model_stage` is the one model stage of eve
 from __future__ import annotations
 
 from torchblur.identify.model import fit_model
-from torchblur.identify.record import RunRecord
+from torchblur.identify.record import RunRecord, progress_bar
 
 __all__ = ["model_stage", "run_plan"]
 
@@ -12,10 +12,15 @@ __all__ = ["model_stage", "run_plan"]
 def run_plan(run: RunRecord):
     """sweep -> fit -> assemble -> model -> report of ``run`` (calibrated: ``run.cal`` set)
     by its ``run.plan``; returns the plan's result."""
-    run.plan.sweep(run)
-    run.plan.fit(run)
-    run.plan.assemble(run)
-    model_stage(run)
+    run.plan.sweep(run)  # its own bar, per point or group
+    bar = progress_bar(run.progress, total=3, desc="fit and model", unit="stage", leave=False)
+    try:
+        for stage in (run.plan.fit, run.plan.assemble, model_stage):
+            bar.set_postfix_str(stage.__name__, refresh=True)
+            stage(run)
+            bar.update(1)
+    finally:
+        bar.close()
     return run.plan.result(run)
 
 

@@ -20,7 +20,6 @@ from functools import partial
 
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 
 from torchblur.design.windows import check_design, dual_exposure_windows
 from torchblur.fit.sinusoid import STATUS, fit_sinusoid
@@ -30,6 +29,7 @@ from torchblur.identify.assemble import assemble_mimo, assemble_siso, truth_of
 from torchblur.identify.calibration import MIN_INSIDE
 from torchblur.identify.fitting import ChunkFitter, concat_fits, squeeze_problems
 from torchblur.identify.model import fit_direct_model
+from torchblur.identify.record import progress_bar
 from torchblur.identify.result import IdentificationResult
 from torchblur.image.moments import image_moments, moments_along, sinusoid_from_moments
 from torchblur.image.preprocess import subtract_dark
@@ -263,7 +263,7 @@ class SinePlan:
         acq.fitter = ChunkFitter(int(run.cfg.fit.chunk_points), partial(fit_points, acq, lay, run.cfg, run.cal.read_noise_e))
         run.acquisition = acq
         acq.t_sweep = time.perf_counter()
-        bar = tqdm(total=I * F, desc="sweep", unit="pt", disable=not run.progress)
+        bar = progress_bar(run.progress, total=I * F, desc="sweep", unit="pt")
         try:
             for ii, inp in enumerate(lay.inputs):
                 gain_est = run.cal.axis_gain  # |H| of the dominant motion (px per input unit) from the previous point

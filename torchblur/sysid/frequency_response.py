@@ -30,6 +30,7 @@ File formats:
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 import os
@@ -37,7 +38,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from torchblur.errors import InputTypeError, ParameterError, ShapeError
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, TorchblurError
 
 __all__ = ["FrequencyResponse"]
 
@@ -487,10 +488,20 @@ class FrequencyResponse:
         The covariance comes back diagonal: ``cov[..., 0, 1] = 0`` where both stds are known
         (CSV has no correlation column), NaN where either is unknown.
         """
-        with open(path, newline="") as fh:
-            rows = [r for r in csv.reader(fh)]
+        text = _read_text(path)
+        try:
+            return cls._from_csv_rows(list(csv.reader(io.StringIO(text, newline=""))))
+        except csv.Error as exc:
+            raise ParameterError(f"path {os.fspath(path)!r}: not a CSV file ({exc})") from None
+        except TorchblurError as exc:
+            raise _naming_path(exc, path) from None
+
+    @classmethod
+    def _from_csv_rows(cls, rows: list) -> "FrequencyResponse":
+        """:meth:`from_csv` from the file's parsed ``rows`` (lists of strings); errors say
+        ``path: ...`` (the caller puts the file's path there)."""
         if not rows:
-            raise ParameterError(f"path: {os.fspath(path)!r} is empty, expected a header row")
+            raise ParameterError("path: the file is empty, expected a header row")
         header = [c.strip() for c in rows[0]]
         # Extra columns after the known ones (e.g. the CLI's torchblur_version, seed) are ignored.
         if header[: len(_CSV_MIMO_HEADER)] == _CSV_MIMO_HEADER:
@@ -499,7 +510,7 @@ class FrequencyResponse:
             mimo = False
         else:
             raise ParameterError(
-                f"path: {os.fspath(path)!r} has header {header}; expected {_CSV_SISO_HEADER} "
+                f"path: header {header}; expected {_CSV_SISO_HEADER} "
                 f"(SISO) or {_CSV_MIMO_HEADER} (MIMO), optionally followed by extra columns"
             )
         ncol = len(header)
@@ -528,7 +539,7 @@ class FrequencyResponse:
                 ins.append(key[1])
             channels.setdefault(key, []).append(vals)
         if not channels:
-            raise ParameterError(f"path: {os.fspath(path)!r} has no data rows")
+            raise ParameterError("path: no data rows")
         ref = None
         n_f = None
         for o in outs:
@@ -626,7 +637,51 @@ class FrequencyResponse:
 
     @classmethod
     def from_json(cls, path: str | os.PathLike) -> "FrequencyResponse":
-        """Read a file written by :meth:`to_json` (bit-exact round trip)."""
-        with open(path) as fh:
-            doc = json.load(fh)
-        return cls.from_dict(doc)
+        """Read a file written by :meth:`to_json` (bit-exact round trip).
+
+        The file is untrusted input: one that is empty, not UTF-8, not JSON, nested deeper
+        than Python can parse, larger than ``MAX_FILE_BYTES`` or not of this schema raises
+        :class:`~torchblur.errors.ParameterError` (or ``InputTypeError``/``ShapeError``)
+        naming ``path``.
+        """
+        where = f"path {os.fspath(path)!r}"
+        text = _read_text(path)
+        if not text.strip():
+            raise ParameterError(f"{where}: the file is empty, expected a frf.json document")
+        try:
+            doc = json.loads(text)
+        except ValueError as exc:  # JSONDecodeError, or an integer of more digits than Python converts
+            raise ParameterError(f"{where}: not JSON ({exc})") from None
+        except RecursionError:
+            raise ParameterError(f"{where}: JSON nested too deeply to read; not a frf.json document") from None
+        try:
+            return cls.from_dict(doc)
+        except TorchblurError as exc:
+            raise _naming_path(exc, path) from None
+        except (KeyError, IndexError, TypeError, ValueError, AttributeError, OverflowError, RecursionError) as exc:
+            raise ParameterError(f"{where}: not a valid frf.json document ({type(exc).__name__}: {exc})") from None
+
+
+MAX_FILE_BYTES = 256 * 2**20  # the largest frf.csv / frf.json read (a 10,000-point 8x8 response is ~30 MB)
+
+
+def _naming_path(exc: Exception, path) -> Exception:
+    """``exc`` again (same class), its message led by the file's ``path``."""
+    msg = str(exc)
+    msg = msg[len("path: "):] if msg.startswith("path: ") else msg
+    return type(exc)(f"path {os.fspath(path)!r}: {msg}")
+
+
+def _read_text(path: str | os.PathLike) -> str:
+    """The UTF-8 text of the file ``path``; ParameterError naming it when it is larger than
+    :data:`MAX_FILE_BYTES` or not text."""
+    where = f"path {os.fspath(path)!r}"
+    size = os.stat(path).st_size
+    if size > MAX_FILE_BYTES:
+        raise ParameterError(f"{where}: {size} bytes, larger than the {MAX_FILE_BYTES} bytes a response file may have")
+    with open(path, "rb") as fh:
+        data = fh.read(MAX_FILE_BYTES + 1)
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ParameterError(f"{where}: not UTF-8 text (byte {exc.start}); a binary file?") from None

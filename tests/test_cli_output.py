@@ -1,0 +1,196 @@
+"""What `torchblur identify` prints and writes (issue 18, items 6-8): log lines once each through
+the `torchblur` logger, no progress-bar junk off a terminal, `--version`, `--json` (one summary
+line, alone on stdout), frf.mat, units in the response's meta, residuals.png's exposures."""
+import json
+import logging
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from torchblur.identify import record
+from torchblur.identify.pipeline import calibration_stages
+from torchblur.identify.config import load_config
+from torchblur.sysid.frequency_response import FrequencyResponse
+
+ROOT = Path(__file__).resolve().parents[1]
+SMALL = ["sweep.freq_hz=[20,300]"]
+
+
+def _cli(*argv, cwd=None):
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.run([sys.executable, "-m", "torchblur.identify.cli", *argv], capture_output=True, text=True, env=env,
+                          cwd=cwd, timeout=600)
+
+
+@pytest.fixture(scope="module")
+def json_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("cli") / "run"
+    proc = _cli("identify", "--out", str(out), "--json", *SMALL)
+    assert proc.returncode == 0, proc.stderr
+    return out, proc
+
+
+def test_version():
+    import torchblur
+
+    proc = _cli("--version")
+    assert proc.returncode == 0 and proc.stdout == f"torchblur {torchblur.__version__}\n"
+
+
+def test_json_is_the_only_line_on_stdout(json_run):
+    out, proc = json_run
+    lines = proc.stdout.splitlines()
+    assert len(lines) == 1
+    doc = json.loads(lines[0])
+    assert doc["out"] == str(out) and doc["points"] == 2 and doc["valid_points"] == 2
+    assert doc["status"] == {"ok": 2} and isinstance(doc["flags"], dict)
+    assert 0 <= doc["max_magnitude_error_pct"] < 1 and 0 <= doc["max_phase_error_deg"] < 1  # the simulated truth is known
+    assert doc["elapsed_s"] > 0 and doc["torchblur_version"]
+    assert "against the truth" in proc.stderr and "wrote " in proc.stderr  # the human part went to stderr
+
+
+def test_each_log_line_is_printed_once_without_carriage_returns(json_run):
+    out, proc = json_run
+    report = (out / "report.txt").read_text()
+    for key in ("dark: level", "saturation:", "latency:", "recording:", "points converged"):
+        assert proc.stderr.count(key) == 1, key
+        assert key in report  # the report still holds the whole log
+    assert "\r" not in proc.stderr  # no tqdm bars off a terminal
+    assert "against the truth" in report and "elapsed" in report
+
+
+def test_frf_mat_and_units_beside_frf_csv(json_run):
+    import scipy.io
+
+    out, _ = json_run
+    frf = FrequencyResponse.from_json(out / "frf.json")
+    assert frf.meta["output_unit"] == "px" and frf.meta["input_unit"] == "input unit"
+    mat = scipy.io.loadmat(out / "frf.mat")
+    np.testing.assert_allclose(mat["freq_hz"].ravel(), frf.freq_hz)
+    np.testing.assert_allclose(np.asarray(mat["H"]).ravel(), frf.response.ravel())
+
+
+def test_plain_run_prints_the_table_on_stdout(tmp_path):
+    from torchblur.identify import cli
+
+    out = tmp_path / "run"
+    proc = _cli("identify", "--out", str(out), "--quiet", *SMALL)
+    assert proc.returncode == 0, proc.stderr
+    assert "against the truth" in proc.stdout and "dark: level" not in proc.stdout + proc.stderr  # --quiet: no log lines
+    assert "dark: level" in (out / "report.txt").read_text()
+    assert cli.main(["identify", "--out", str(tmp_path / "bad"), "sweep.f_min_hz=-3"]) == 2
+    assert not logging.getLogger("torchblur").handlers  # main's console handler is gone after each call
+
+
+def test_exposure_label():
+    from torchblur.identify.cli import _exposure_label
+    from torchblur.render.window import ExposureWindow
+    import torch
+
+    w = ExposureWindow(torch.tensor([0.5e-3, 2e-3]), torch.tensor([1e-3, 1e-3]))
+    assert _exposure_label(w, 2) == "exposure 1 of 2 (0.5-1.5 ms)"
+
+
+def test_log_message_goes_through_the_torchblur_logger(caplog):
+    log = []
+    with caplog.at_level(logging.INFO, logger="torchblur"):
+        record.log_message(log, "dark: level 1", True)
+    assert log == ["dark: level 1"]
+    assert [(r.name, r.getMessage()) for r in caplog.records] == [("torchblur.identify", "dark: level 1")]
+
+
+def test_console_logging_writes_one_line_per_message_to_stderr(capsys):
+    logger = logging.getLogger("torchblur.identify.test")
+    with record.console_logging(logging.INFO):
+        logger.info("one")
+        logger.warning("two")
+        logger.debug("hidden")
+    logger.info("after")  # handler removed
+    err = capsys.readouterr().err
+    assert err == "one\nwarning: two\n"
+    assert not logging.getLogger("torchblur").handlers
+
+
+def test_progress_bars_only_on_a_terminal():
+    assert record.progress_bar(False, total=3).disable
+    assert record.progress_bar(True, total=3, file=open(os.devnull, "w")).disable  # not a terminal
+
+
+def test_stage_bar_counts_run_stage_calls(monkeypatch):
+    import io
+
+    from tqdm.auto import tqdm
+
+    shown = io.StringIO()
+    monkeypatch.setattr(record, "progress_bar", lambda progress, **kw: tqdm(**kw, file=shown, disable=not progress))
+    with record.stage_bar(True, "calibration", 2) as bar:
+        assert record.run_stage(None, "dark", "dark", 5, lambda r: r + 1) == 6
+        record.run_stage(None, "psf", "psf", 5, lambda r: r)
+        assert bar.n == 2
+    assert "calibration" in shown.getvalue() and "psf" in shown.getvalue()
+    assert record.run_stage(None, "x", "x", 1, lambda r: r) == 1  # outside: no bar
+
+
+@pytest.mark.parametrize("overrides,n", [([], 5), (["fit.axis=x"], 4)])
+def test_calibration_stage_count(overrides, n):
+    assert calibration_stages(load_config(None, overrides)) == n
+
+
+def test_out_folder_of_the_users_own_files_is_refused_unless_force(tmp_path, capsys):
+    from torchblur.hardware.errors import RecordingError
+    from torchblur.hardware.run_folder import check_out_folder
+    from torchblur.identify import cli
+
+    mine = tmp_path / "thesis"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("my notes")
+    assert cli.main(["identify", "--out", str(mine), *SMALL]) == 2
+    err = capsys.readouterr().err
+    assert "--out" in err and "notes.txt" in err and "--force" in err and len(err.strip().splitlines()) == 1
+    assert sorted(p.name for p in mine.iterdir()) == ["notes.txt"]  # nothing written
+    assert cli.main(["fit", str(tmp_path / "nowhere"), "--out", str(mine)]) == 2  # the recording is missing; still one line
+    for command in ("identify", "fit"):
+        with pytest.raises(RecordingError, match="notes.txt"):
+            check_out_folder(mine, command=command)
+        assert check_out_folder(mine, command=command, force=True) == mine.resolve()
+    run = tmp_path / "run"  # a torchblur run's own outputs are not the user's files
+    (run / "experiment").mkdir(parents=True)
+    (run / "config.yaml").write_text("seed: 0\n")
+    (run / "bode.png").write_bytes(b"")
+    assert check_out_folder(run, command="identify") == run.resolve()
+    assert check_out_folder(tmp_path / "new", command="identify") == (tmp_path / "new").resolve()
+
+
+def test_rig_frames_pylon_url_is_accepted_and_a_bad_one_is_one_clear_error(tmp_path, capsys):
+    from torchblur.errors import ConfigError
+    from torchblur.identify import cli
+
+    cfg = load_config(None, ["rig.kind=serial", "rig.port=/dev/null", "rig.frames=pylon://0815-0000?trigger=Line1"])
+    assert cfg.rig.frames == "pylon://0815-0000?trigger=Line1"
+    with pytest.raises(ConfigError, match=r"^rig.frames: expected tcp://HOST:PORT, pylon://"):
+        load_config(None, ["rig.kind=serial", "rig.port=/dev/null", "rig.frames=pylonx:/cam"])
+    pytest.importorskip("pypylon")
+    from torchblur.hardware.serial_rig import open_frame_source
+
+    for bad in ("pylon://?gain=3", "pylon://?readout_s=soon"):
+        with pytest.raises(ConfigError, match=r"^rig.frames: 'pylon://\?") as info:
+            open_frame_source(bad)
+        assert "\n" not in str(info.value)
+    rc = cli.main(["identify", "--out", str(tmp_path / "run"), "--quiet", "rig.kind=serial", "rig.port=/dev/null",
+                   "rig.frames=pylon://?gain=3", *SMALL])
+    err = capsys.readouterr().err
+    assert rc == 2 and "rig.frames" in err and "gain" in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_identify_from_python_shows_its_messages_where_logging_is_not_configured():
+    code = ("from torchblur.identify.config import load_config; from torchblur.identify.pipeline import identify; "
+            f"identify(load_config(None, {SMALL!r}), progress=True)")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)},
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr.count("dark: level") == 1 and proc.stderr.count("points converged") == 1
+    assert proc.stdout == "" and "\r" not in proc.stderr
