@@ -157,6 +157,11 @@ def _gaussian_separable(px, py, w, A, C, H, W, sub):
         dy = ys[:, None] + off - py[..., None, None]
         gx = (torch.exp((-0.5 * A[..., None, None, None] * dx * dx).clamp_min(lo)) * ow).sum(-1)
         gy = (torch.exp((-0.5 * C[..., None, None, None] * dy * dy).clamp_min(lo)) * ow).sum(-1)
+    # Tails below tiny^(1/4) become exact zeros: a product of two tail factors would be a
+    # subnormal number, and a GEMM full of them runs 10x slower in float32 (measured on
+    # AVX-512; 1.35x in float64). The dropped light is below 1e-9 of the peak per node.
+    cut = torch.finfo(dtype).tiny ** 0.25
+    gx, gy = torch.nn.functional.threshold(gx, cut, 0.0), torch.nn.functional.threshold(gy, cut, 0.0)
     return (gy * w[..., None]).transpose(-1, -2) @ gx
 
 
