@@ -123,6 +123,16 @@ def test_a_forced_gaussian_on_that_spot_is_worse(airy_runs):
     assert em_g.max() > 4 * em_k.max() and ep_g.max() > 2 * ep_k.max()
 
 
+def test_kernel_points_do_not_depend_on_the_chunking():
+    # each point is fitted alone with the kernel (a batch's kernel crop spans all its points):
+    # chunks of 8 points or of one give the same values
+    keys = ["sweep.freq_hz=[2,50,300,420,900]", "camera.height=40", "camera.width=40", "fit.axis=x", "fit.psf=kernel"]
+    runs = [identify(load_config(None, keys + [f"fit.chunk_points={n}"]), progress=False) for n in (8, 1)]
+    assert all(r.frf.meta["psf"] == "kernel" for r in runs)
+    np.testing.assert_allclose(runs[0].frf.response, runs[1].frf.response, rtol=1e-12)
+    np.testing.assert_allclose(runs[0].frf.magnitude_std, runs[1].frf.magnitude_std, rtol=1e-12)
+
+
 def test_gaussian_only_stages_say_when_the_kernel_was_chosen():
     cfg = load_config(None, SHORT + ["excitation.kind=multisine"])
     log = []
