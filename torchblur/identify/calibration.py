@@ -182,9 +182,9 @@ def _still_psf(cfg, still_e, exposure_s, read_noise_e, log, progress):
     gaussian_only = _gaussian_only_stages(cfg)
     if sp.kind == "kernel" and gaussian_only:
         log_message(log, f"psf: warning: {' and '.join(gaussian_only)} can only use the Gaussian, which does not explain the still "
-                         f"(reduced chi2 {float(sp.chi2_gaussian):.3g} > {sp.chi2_threshold:.3g}): its results carry that model "
-                         f"mismatch (biased values, too small std); set excitation.kind=sine and model.direct=false to fit "
-                         f"with the measured kernel only", progress)
+                         f"to its noise (reduced chi2 {float(sp.chi2_gaussian):.3g} > {sp.chi2_threshold:.3g}): its results may carry "
+                         f"that model mismatch (biased values, too small std; the more, the larger the chi2); set "
+                         f"excitation.kind=sine and model.direct=false to fit with the measured kernel only", progress)
     return sp
 
 
