@@ -9,9 +9,10 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from torchblur.errors import as_unit_direction
+from torchblur.errors import ParameterError, as_unit_direction
 from torchblur.identify.record import log_message, run_stage
-from torchblur.image.preprocess import dark_frame, fit_gaussian_psf, saturation_curve, subtract_dark
+from torchblur.image.preprocess import dark_frame, saturation_curve, subtract_dark
+from torchblur.image.psf_from_still import psf_from_still
 from torchblur.image.spots import locate_spots
 from torchblur.image.tracking import calibrate_axes
 from torchblur.render.camera import camera_noise_std
@@ -26,8 +27,12 @@ class Calibration:
     """What the calibration stages (1-4 of :func:`identify`) measured: ``dark``
     (:class:`~torchblur.image.preprocess.DarkFrame`), ``read_noise_e``, ``saturation``
     (SaturationCurve), ``full_adu`` (usable range above the dark level, ADU), ``psf``
-    (GaussianPSF in electrons per second at power 1), ``peak_rate`` (its peak, e-/s),
-    ``latency_s`` and ``latency_std_s``, ``gain`` (e-/ADU), and for one-axis runs the
+    (GaussianPSF in electrons per second at power 1: with one spot the point-sampled Gaussian
+    of :func:`~torchblur.image.psf_from_still.psf_from_still`, the pixel model of every fit;
+    with many spots one per spot), ``peak_rate`` (its peak, e-/s), ``latency_s`` and
+    ``latency_std_s``, ``gain`` (e-/ADU), with one spot ``still_psf`` (the
+    :class:`~torchblur.image.psf_from_still.StillPSF`: the PSF the sine sweep fits with,
+    ``still_psf.psf``, a KernelPSF or that Gaussian, and why), and for one-axis runs the
     actuator's image ``direction``."""
 
     dark: object
@@ -46,6 +51,7 @@ class Calibration:
     direction: tuple | None = None
     axis: object = None
     axis_gain: float | None = None
+    still_psf: object = None  # one spot: the StillPSF (fit.psf's choice and its evidence), else None
 
 
 def calibrate(cfg, rig, exp=None, log=None, progress: bool = False) -> Calibration:
@@ -73,19 +79,16 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False) -> Calibrati
 
     # 2. PSF: still frames at an exposure that fills peak_fraction of the range.
     te_psf = float(min(c.max_exposure_s, c.peak_fraction * float(sat.linear_limit_s)))
-    still = subtract_dark(run_stage(exp, "psf", "psf", rig, lambda r: r.still(n=16, exposure_s=te_psf)).frames.to(dtype), dark).mean(0) * gain
-    spots = None
+    still_e = subtract_dark(run_stage(exp, "psf", "psf", rig, lambda r: r.still(n=16, exposure_s=te_psf)).frames.to(dtype), dark) * gain
+    spots = still_psf = None
     if getattr(cfg, "spots", None) is not None and cfg.spots.enabled:
-        spots = _locate_spots(cfg, still, te_psf, read_noise_e, log, progress)
+        spots = _locate_spots(cfg, still_e.mean(0), te_psf, read_noise_e, log, progress)
         psf = spots.psf  # [K], full-frame coordinates
         whole = spots.inside_fraction >= MIN_INSIDE  # an edge spot's peak is an extrapolation: not trusted here
         peak_rate = float(psf.amplitude[whole].max() if bool(whole.any()) else psf.amplitude.max())  # e-/s at power 1
     else:
-        psf_fit = fit_gaussian_psf(still, exposure_s=te_psf, noise_std=camera_noise_std(float(still.max()), read_noise_e) / 4)
-        psf = psf_fit.psf
-        log_message(log, f"psf: centre ({float(psf.center[0]):.2f}, {float(psf.center[1]):.2f}) px, cov "
-                  f"[[{float(psf.cov[0, 0]):.3f}, {float(psf.cov[0, 1]):.3f}], [., {float(psf.cov[1, 1]):.3f}]] px^2, "
-                  f"relative residual {float(psf_fit.relative_residual):.2e}", progress)
+        still_psf = _still_psf(cfg, still_e, te_psf, read_noise_e, log, progress)
+        psf = still_psf.gaussian.psf
         peak_rate = float(psf.amplitude)  # electrons per second at power 1
 
     # 4. Latency.
@@ -95,7 +98,7 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False) -> Calibrati
         power=c.peak_fraction * full_adu * gain / (peak_rate * pulse_w)))
     log_message(log, f"latency: {latency * 1e6:.3f} +- {latency_std * 1e6:.3f} us", progress)
     cal = Calibration(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=full_adu, psf=psf, peak_rate=peak_rate,
-                      latency_s=latency, latency_std_s=latency_std, gain=gain, spots=spots)
+                      latency_s=latency, latency_std_s=latency_std, gain=gain, spots=spots, still_psf=still_psf)
 
     # 4b. The actuator's direction in the image (one axis, one spot; a 2x2 plant or many spots
     # fit both image axes).
@@ -151,6 +154,38 @@ def _measure_axis(cfg, rig, cal: Calibration):
             break
         A = target / max(axis.px_per_unit, 1e-12)
     return axis, axis.px_per_unit
+
+
+def _gaussian_only_stages(cfg) -> list:
+    """The stages of ``cfg`` that fit with a Gaussian PSF whatever ``fit.psf`` chose."""
+    return ((["the multisine fit"] if cfg.excitation.kind == "multisine" else [])
+            + (["the direct model"] if cfg.model.direct else []))
+
+
+def _still_psf(cfg, still_e, exposure_s, read_noise_e, log, progress):
+    """Stage 2 with one spot: :func:`~torchblur.image.psf_from_still.psf_from_still` of the
+    dark-subtracted still frames ``still_e`` ``[N, H, W]`` (electrons; one frame's noise from
+    the camera model; background 0 after the dark subtraction, unless ``fit.fit_background``
+    lets the sweep fit a level, when it is measured too) with ``kind = fit.psf``. Logs the
+    choice, its reason (both reduced chi2) and the Gaussian; where the kernel is chosen but a
+    stage can only fit a Gaussian, says that the stage's results carry the mismatch."""
+    noise = camera_noise_std(still_e.mean(0), read_noise_e)  # one frame's noise [H, W], e-
+    sp = psf_from_still(still_e, exposure_s, noise, kind=cfg.fit.psf, background=None if cfg.fit.fit_background else 0.0)
+    if sp.gaussian is None:
+        raise ParameterError(f"fit.psf: no Gaussian fits the still frame, and the centre, peak rate and axis calibration need "
+                             f"one ({sp.reason})")
+    g = sp.gaussian.psf
+    log_message(log, f"psf: {sp.reason}", progress)
+    log_message(log, f"psf: Gaussian (point-sampled) centre ({float(g.center[0]):.2f}, {float(g.center[1]):.2f}) px, cov "
+                     f"[[{float(g.cov[0, 0]):.3f}, {float(g.cov[0, 1]):.3f}], [., {float(g.cov[1, 1]):.3f}]] px^2, relative "
+                     f"residual {float(sp.gaussian.relative_residual):.2e}", progress)
+    gaussian_only = _gaussian_only_stages(cfg)
+    if sp.kind == "kernel" and gaussian_only:
+        log_message(log, f"psf: warning: {' and '.join(gaussian_only)} can only use the Gaussian, which does not explain the still "
+                         f"to its noise (reduced chi2 {float(sp.chi2_gaussian):.3g} > {sp.chi2_threshold:.3g}): its results may carry "
+                         f"that model mismatch (biased values, too small std; the more, the larger the chi2); set "
+                         f"excitation.kind=sine and model.direct=false to fit with the measured kernel only", progress)
+    return sp
 
 
 def _locate_spots(cfg, still, exposure_s, read_noise_e, log, progress):

@@ -152,6 +152,11 @@ class FitConfig:
     # during the calibration (torchblur.image.tracking.calibrate_axes at the sweep's first frequency); "x", "y",
     # or [x, y]. The response is the motion along that direction (the sign that points toward +x, or +y).
     axis: object = "measure"
+    # One-spot runs: the PSF the sine sweep fits with (torchblur.image.psf_from_still on the still frames).
+    # "auto" (default): the point-sampled Gaussian where it explains the averaged still to its noise, else
+    # the measured kernel; "kernel" or "gaussian" forces one. Many spots, the multisine and the direct fit
+    # use the Gaussian (fit.psf=kernel is refused there; with auto the log says when it does not fit).
+    psf: str = "auto"
     optimizer: str = "lm"
     loss: str = "l2"
     fit_scale: bool = True
@@ -630,6 +635,7 @@ def validate(cfg: IdentifyConfig) -> None:
     if cfg.fit.axis != "measure" and (cfg.plant.is_mimo or cfg.spots.enabled):
         raise ConfigError("fit.axis: applies to one-axis, one-spot runs; this run has "
                           f"{'a 2x2 plant' if cfg.plant.is_mimo else 'many spots (spots.rows > 0)'}, which fits both image axes")
+    validate_fit_psf(cfg)
     if cfg.fit.optimizer not in OPTIMIZERS:
         raise ConfigError(f"fit.optimizer: expected one of {OPTIMIZERS}, got {cfg.fit.optimizer!r}")
     if cfg.fit.loss not in LOSSES:
@@ -670,6 +676,23 @@ def validate(cfg: IdentifyConfig) -> None:
                           f"{'a 2x2 plant' if cfg.plant.is_mimo else 'many spots (spots.rows > 0)'}: set model.direct=false")
     validate_rig(cfg.rig)
     _num(cfg.seed, "seed", integer=True, low=0, high=2**63 - 1)
+
+
+def validate_fit_psf(cfg) -> None:
+    """``fit.psf``: one of :data:`torchblur.image.psf_from_still.KINDS`; ``kernel`` only where
+    every fit of the run can use a measured kernel (one spot, a sine sweep, no direct model)."""
+    from torchblur.image.psf_from_still import KINDS as PSF_KINDS
+
+    if not isinstance(cfg.fit.psf, str) or cfg.fit.psf not in PSF_KINDS:
+        raise ConfigError(f"fit.psf: expected one of {PSF_KINDS}, got {cfg.fit.psf!r}")
+    if cfg.fit.psf != "kernel":
+        return
+    gaussian_only = [why for cond, why in ((cfg.spots.enabled, "many spots (spots.rows > 0: a Gaussian per spot)"),
+                                            (cfg.excitation.kind == "multisine", "excitation.kind=multisine"),
+                                            (cfg.model.direct, "model.direct=true")) if cond]
+    if gaussian_only:
+        raise ConfigError(f"fit.psf: 'kernel' applies to one-spot sine sweeps without the direct model; this run has "
+                          f"{' and '.join(gaussian_only)}, which fit(s) a Gaussian PSF: set fit.psf=auto or gaussian")
 
 
 MIN_PSF_SIGMA_PX = 0.1

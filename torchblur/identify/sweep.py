@@ -14,8 +14,9 @@ Problems per point: one (the spot, the whole frame) or K (one crop per spot of a
 from __future__ import annotations
 
 import math
+import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 
 import numpy as np
@@ -35,12 +36,16 @@ from torchblur.image.moments import image_moments, moments_along, sinusoid_from_
 from torchblur.image.preprocess import subtract_dark
 from torchblur.image.spots import crop_spots, crop_valid
 from torchblur.render.camera import camera_noise_std
-from torchblur.render.psf import GaussianPSF
+from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.window import ExposureWindow
 
 __all__ = ["SinePlan", "SweepLayout", "point_windows", "sweep_layout"]
 
 _F64 = torch.float64
+# One fit at a time: the kernel model's Jacobian is by forward-mode AD, whose dual level is
+# global to the process, and ChunkFitter.finish fits the last chunk while the background
+# thread may still fit the one before.
+_FIT_LOCK = threading.Lock()
 
 
 @dataclass
@@ -51,7 +56,10 @@ class SweepLayout:
     direction, shapes ``[F]``), ``axes`` (that direction, or ``"xy"``), ``P`` problems per
     point of ``h x w`` pixels (``psf_p`` ``[P]`` in their coordinates), ``use_p`` ``[P]``
     (problems whose motion steers the amplitude), ``moment_dirs`` (directions it is measured
-    along), and with many spots ``spots``, ``in_frame`` ``[P, h, w]`` and ``flagged`` ``[P]``."""
+    along), with one spot ``still_psf`` (the calibration's
+    :class:`~torchblur.image.psf_from_still.StillPSF`: the points are fitted with
+    ``still_psf.psf``), and with many spots ``spots``, ``in_frame`` ``[P, h, w]`` and
+    ``flagged`` ``[P]``."""
 
     inputs: list
     freqs: np.ndarray
@@ -66,6 +74,7 @@ class SweepLayout:
     psf_p: GaussianPSF
     use_p: torch.Tensor
     moment_dirs: list
+    still_psf: object = None
     spots: object = None
     in_frame: torch.Tensor | None = None
     flagged: torch.Tensor | None = None
@@ -73,6 +82,11 @@ class SweepLayout:
     @property
     def E(self) -> int:
         return len(self.fracs)
+
+    @property
+    def uses_kernel(self) -> bool:
+        """The points are fitted with the measured kernel (``still_psf.psf`` is a KernelPSF)."""
+        return self.still_psf is not None and isinstance(self.still_psf.psf, KernelPSF)
 
     def pieces_of(self, frames: torch.Tensor) -> torch.Tensor:
         """``[E, R, H, W]`` -> ``[E, R, P, h, w]`` (the spots' crops, or the frame)."""
@@ -105,7 +119,7 @@ def sweep_layout(cfg, cal, frame_shape) -> SweepLayout:
     return SweepLayout(inputs=["x", "y"] if mimo else ["x"], freqs=np.asarray(cfg.frequencies_hz()),
                        fracs=[float(e) for e in cfg.sweep.exposures], R=int(cfg.sweep.images_per_point),
                        trigger_phase=float(cfg.sweep.trigger_phase_rad), single=single, axes=cal.direction if single else "xy",
-                       P=P, h=h, w=w, psf_p=psf_p, use_p=use_p, moment_dirs=dirs, **kw)
+                       P=P, h=h, w=w, psf_p=psf_p, use_p=use_p, moment_dirs=dirs, still_psf=cal.still_psf, **kw)
 
 
 def point_windows(freq_hz: float, fractions, trigger_phase: float, trigger_delay_s: float, latency_s: float):
@@ -145,20 +159,48 @@ class SineAcquisition:
     t_acq_end: float = 0.0
 
 
+def _point_psf(lay: SweepLayout, power: torch.Tensor):
+    """The PSF of points of laser powers ``power`` ``[n]``, batch ``[n, P]``: the measured
+    kernel where the calibration chose it (one spot), else the Gaussian(s) ``lay.psf_p``."""
+    n, P, psf_p = power.shape[0], lay.P, lay.psf_p
+    if lay.uses_kernel:
+        return KernelPSF(lay.still_psf.psf.kernel.to(_F64).expand(n, P, lay.h, lay.w) * power[:, None, None, None])
+    return GaussianPSF(psf_p.center.expand(n, P, 2), psf_p.cov.expand(n, P, 2, 2), psf_p.amplitude[None, :] * power[:, None])
+
+
+def inflate_std(fit, factor: torch.Tensor):
+    """``fit`` (a SinusoidFit of batch ``[...]``) with ``amplitude_std`` and ``phase_std``
+    times ``factor`` ``[...]`` and ``covariance`` times ``factor**2`` (correlations kept)."""
+    def per(v):
+        return factor.to(v).reshape(tuple(factor.shape) + (1,) * (v.dim() - factor.dim()))
+    return replace(fit, amplitude_std=fit.amplitude_std * per(fit.amplitude_std), phase_std=fit.phase_std * per(fit.phase_std),
+                   covariance=fit.covariance * per(fit.covariance) ** 2)
+
+
 def fit_points(acq: SineAcquisition, lay: SweepLayout, cfg, read_noise_e: float, idx: list):
     """One batched :func:`~torchblur.fit.sinusoid.fit_sinusoid` of the jobs ``idx`` (batch
-    ``[n]`` for a single-spot SISO run, else ``[n, P]``), weighted by the camera noise model."""
+    ``[n]`` for a single-spot SISO run, else ``[n, P]``), weighted by the camera noise model.
+    With the measured kernel the stds include its own noise: times
+    :meth:`~torchblur.image.psf_from_still.StillPSF.kernel_noise_factor` of the point's
+    exposures (all ``E*R`` of them, fitted together) times its laser power (the still frames
+    are taken at power 1), and the points are fitted one by one (the fit crops the kernel to
+    the reach of its whole batch, so a batch's values would depend on the chunking, by ~1e-5)."""
+    if lay.uses_kernel and len(idx) > 1:
+        return concat_fits([fit_points(acq, lay, cfg, read_noise_e, [j]) for j in idx])
     imgs = torch.stack([acq.frames[j] for j in idx])  # [n, P, E*R, h, w]
     pw = torch.tensor([acq.powers[j] for j in idx], dtype=_F64)
-    n, P, psf_p = len(idx), lay.P, lay.psf_p
-    psf_b = GaussianPSF(psf_p.center.expand(n, P, 2), psf_p.cov.expand(n, P, 2, 2), psf_p.amplitude[None, :] * pw[:, None])
+    psf_b = _point_psf(lay, pw)
     win = ExposureWindow(torch.stack([acq.windows[j].start for j in idx])[:, None],
                          torch.stack([acq.windows[j].duration for j in idx])[:, None])
     f = cfg.fit
-    fit = fit_sinusoid(imgs, psf_b, win, acq.omega_job[list(idx)][:, None], axes=lay.axes, optimizer=f.optimizer, loss=f.loss,
-                       noise_std=camera_noise_std(imgs, read_noise_e), mask=torch.stack([acq.masks[j] for j in idx]),
-                       fit_scale=f.fit_scale, fit_background=f.fit_background, fit_gradient=f.fit_gradient, outliers=f.outliers,
-                       outlier_sigma=float(f.outlier_sigma))
+    with _FIT_LOCK:
+        fit = fit_sinusoid(imgs, psf_b, win, acq.omega_job[list(idx)][:, None], axes=lay.axes, optimizer=f.optimizer, loss=f.loss,
+                           noise_std=camera_noise_std(imgs, read_noise_e), mask=torch.stack([acq.masks[j] for j in idx]),
+                           fit_scale=f.fit_scale, fit_background=f.fit_background, fit_gradient=f.fit_gradient,
+                           outliers=f.outliers, outlier_sigma=float(f.outlier_sigma))
+    if lay.uses_kernel:
+        # the rule counts the light: a point's exposures at laser power p hold the light of p times them at power 1
+        fit = inflate_std(fit, lay.still_psf.kernel_noise_factor(win.duration * pw[:, None, None]))  # [n, 1]
     return squeeze_problems(fit) if lay.single else fit
 
 
@@ -320,6 +362,8 @@ class SinePlan:
         images = torch.stack(acq.frames)  # [J, P, E*R, h, w]
         windows = self.windows(acq)
         meta = {"seed": int(run.cfg.seed)}
+        if lay.still_psf is not None:
+            meta["psf"] = lay.still_psf.kind  # the PSF the points were fitted with: "kernel" or "gaussian"
         if lay.single:
             meta["direction"] = list(cal.direction)  # the image direction of the fitted motion (x, y)
             run.images = images[:, 0]  # [F, E*R, H, W]

@@ -1,0 +1,142 @@
+"""identify's PSF from the still frames (fit.psf = auto | kernel | gaussian): the config key, the
+choice on a spot that is not a Gaussian, the kernel's std rule, the Gaussian-only stages."""
+import math
+import types
+
+import numpy as np
+import pytest
+import torch
+
+from torchblur.errors import ConfigError
+from torchblur.fit.sinusoid import fit_sinusoid
+from torchblur.identify.calibration import calibrate
+from torchblur.identify.config import load_config
+from torchblur.identify.run import identify
+from torchblur.identify.sweep import inflate_std
+from torchblur.render.psf import GaussianPSF, KernelPSF
+from torchblur.render.window import ExposureWindow
+from torchblur.rig.factory import build_simulated_rig
+from torchblur.rig.simulated import SimulatedRig
+
+SHORT = ["sweep.freq_hz=[20,200,600]", "camera.height=40", "camera.width=40", "fit.axis=x", "seed=5"]
+
+
+def errors(res):
+    t, f = res.truth, res.frf
+    em = np.abs(f.magnitude[0, 0] - np.abs(t)) / np.abs(t)
+    ep = np.abs(np.remainder(f.phase[0, 0] - np.angle(t) + np.pi, 2 * np.pi) - np.pi)
+    z = np.maximum(np.abs(f.magnitude[0, 0] - np.abs(t)) / f.magnitude_std[0, 0], ep / f.phase_std[0, 0])
+    return em, np.degrees(ep), z
+
+
+def airy_rig(cfg, lambda_over_d_px: float = 4.0):
+    """The simulated rig of ``cfg`` whose spot is an Airy pattern (a circular aperture, the
+    first dark ring at 1.22 ``lambda_over_d_px``; band-limited, so sampled exactly): every
+    image it renders (still, pulse, sweep) is that pattern, of the rig's peak rate, at the
+    rig's spot position, moved by the motion (a KernelPSF)."""
+    rig = build_simulated_rig(cfg)
+    H, W = rig.frame_shape
+
+    def render(self, trajectory, psf, window, shape=None):
+        y = torch.arange(H, dtype=torch.float64)[:, None] - psf.center[1]
+        x = torch.arange(W, dtype=torch.float64)[None, :] - psf.center[0]
+        v = math.pi * (x * x + y * y).sqrt().clamp_min(1e-12) / lambda_over_d_px
+        airy = (2 * torch.special.bessel_j1(v) / v) ** 2  # peak 1
+        return SimulatedRig._render(self, trajectory, KernelPSF(airy * psf.amplitude), window, shape)
+
+    rig._render = types.MethodType(render, rig)
+    return rig
+
+
+@pytest.mark.parametrize("value", ["auto", "kernel", "gaussian"])
+def test_fit_psf_accepts_its_kinds(value):
+    assert load_config(None, [f"fit.psf={value}"]).fit.psf == value
+
+
+def test_fit_psf_default_is_auto():
+    assert load_config(None, []).fit.psf == "auto"
+
+
+@pytest.mark.parametrize("overrides, words", [
+    (["fit.psf=airy"], "expected one of"),
+    (["fit.psf=kernel", "excitation.kind=multisine"], "excitation.kind=multisine"),
+    (["fit.psf=kernel", "model.direct=true"], "model.direct=true"),
+    (["fit.psf=kernel", "spots.rows=2", "spots.cols=2", "excitation.target_px=3"], "many spots"),
+])
+def test_fit_psf_is_checked_with_the_key_named(overrides, words):
+    with pytest.raises(ConfigError, match="fit.psf") as err:
+        load_config(None, overrides)
+    assert words in str(err.value)
+
+
+def test_inflate_std_scales_the_stds_and_keeps_the_correlations():
+    g = torch.Generator().manual_seed(0)
+    psf = GaussianPSF(torch.tensor([15.3, 14.7], dtype=torch.float64), 4.0 * torch.eye(2, dtype=torch.float64),
+                      torch.tensor(3e5, dtype=torch.float64))
+    from torchblur.render.blur import render_blur
+    from torchblur.render.trajectory import Sinusoid
+    om = torch.tensor([2 * math.pi * 50.0, 2 * math.pi * 80.0], dtype=torch.float64)
+    win = ExposureWindow(torch.tensor([[1e-3, 1e-3], [2e-3, 2e-3]], dtype=torch.float64),
+                         torch.tensor([[3e-3, 8e-3], [2e-3, 6e-3]], dtype=torch.float64))
+    img = torch.stack([render_blur(Sinusoid(torch.tensor([5.0, 0.0], dtype=torch.float64), torch.tensor([0.4, 0.0], dtype=torch.float64),
+                                            om[b]), psf, ExposureWindow(win.start[b], win.duration[b]), height=30, width=30)
+                       for b in range(2)])
+    img = img + 10 * torch.randn(img.shape, generator=g, dtype=torch.float64)
+    fit = fit_sinusoid(img, psf, win, om, axes="x", noise_std=10.0)
+    factor = torch.tensor([1.5, 2.0], dtype=torch.float64)
+    big = inflate_std(fit, factor)
+    torch.testing.assert_close(big.amplitude_std, fit.amplitude_std * factor)
+    torch.testing.assert_close(big.phase_std, fit.phase_std * factor)
+    torch.testing.assert_close(big.covariance, fit.covariance * factor[:, None, None] ** 2)
+    torch.testing.assert_close(big.amplitude, fit.amplitude)
+    # the correlation the FRF's covariance is built from does not change
+    i_m, i_p = 0, 1  # (amplitude, phase) of the one fitted axis, as assemble_siso reads them
+    corr = lambda f: f.covariance[:, i_m, i_p] / (f.amplitude_std * f.phase_std)  # noqa: E731
+    torch.testing.assert_close(corr(big), corr(fit))
+
+
+@pytest.fixture(scope="module")
+def airy_runs():
+    out = {}
+    for kind in ("auto", "gaussian"):
+        cfg = load_config(None, SHORT + ["excitation.target_px=3", f"fit.psf={kind}"])
+        out[kind] = identify(cfg, airy_rig(cfg), progress=False)
+    return out
+
+
+def test_identify_picks_the_kernel_on_a_spot_that_is_not_a_gaussian(airy_runs):
+    res = airy_runs["auto"]
+    assert res.frf.meta["psf"] == "kernel"
+    assert any(line.startswith("psf: kernel: the Gaussian does not explain the still") for line in res.log)
+    em, ep, z = errors(res)
+    assert res.fit.converged.all()
+    assert em.max() < 0.01 and ep.max() < 1.0
+    assert z.max() < 3  # honest: within its (kernel-noise inflated) std
+
+
+def test_a_forced_gaussian_on_that_spot_is_worse(airy_runs):
+    res = airy_runs["gaussian"]
+    assert res.frf.meta["psf"] == "gaussian"
+    em_k, ep_k, z_k = errors(airy_runs["auto"])
+    em_g, ep_g, z_g = errors(res)
+    assert z_g.min() > 3 * z_k.max()  # the model mismatch: every point many of its stds off
+    assert em_g.max() > 4 * em_k.max() and ep_g.max() > 2 * ep_k.max()
+
+
+def test_kernel_points_do_not_depend_on_the_chunking():
+    # each point is fitted alone with the kernel (a batch's kernel crop spans all its points):
+    # chunks of 8 points or of one give the same values
+    keys = ["sweep.freq_hz=[2,50,300,420,900]", "camera.height=40", "camera.width=40", "fit.axis=x", "fit.psf=kernel"]
+    runs = [identify(load_config(None, keys + [f"fit.chunk_points={n}"]), progress=False) for n in (8, 1)]
+    assert all(r.frf.meta["psf"] == "kernel" for r in runs)
+    np.testing.assert_allclose(runs[0].frf.response, runs[1].frf.response, rtol=1e-12)
+    np.testing.assert_allclose(runs[0].frf.magnitude_std, runs[1].frf.magnitude_std, rtol=1e-12)
+
+
+def test_gaussian_only_stages_say_when_the_kernel_was_chosen():
+    cfg = load_config(None, SHORT + ["excitation.kind=multisine"])
+    log = []
+    cal = calibrate(cfg, airy_rig(cfg), log=log)
+    assert cal.still_psf.kind == "kernel" and isinstance(cal.still_psf.psf, KernelPSF)
+    assert isinstance(cal.psf, GaussianPSF)
+    assert any("psf: warning: the multisine fit can only use the Gaussian" in line for line in log)
