@@ -255,7 +255,7 @@ def locate_spots(still, *, exposure_s: float, noise_std, pitch_px: float, crop_p
     m = valid
     if mask is not None:
         m = m & crop_spots(mask.to(still.dtype), offset, size).gt(0.5)
-    fit = fit_gaussian_psf(crops, exposure_s=exposure_s, noise_std=noise_std, mask=m)
+    fit = fit_gaussian_psf(crops, exposure_s=exposure_s, noise_std=noise_std, mask=m, pixel_integration=False)
     psf = GaussianPSF(fit.psf.center + offset.to(still.dtype), fit.psf.cov, fit.psf.amplitude)
     light = (fit.model - fit.background[:, None, None]).clamp_min(0)
     inside = (light * valid).sum((-1, -2)) / light.sum((-1, -2)).clamp_min(torch.finfo(light.dtype).tiny)
