@@ -55,3 +55,10 @@ def dense_render(traj, psf: tb.GaussianPSF, window: tb.ExposureWindow, height: i
     q = A[e] * dx * dx + 2 * B[e] * dx * dy + C[e] * dy * dy
     w = window.duration[..., None] * wq * psf.amplitude[..., None]
     return (torch.exp(-0.5 * q) * w[..., None, None]).sum(-3)
+
+
+def truth_errors(res):
+    """``(|relative magnitude error| [F], |phase error| deg [F], error/std [F])`` of an
+    identification result's SISO response against its simulation's truth."""
+    em, ep, z = res.frf.errors_against(res.truth)
+    return np.abs(em[0, 0]), np.degrees(np.abs(ep[0, 0])), z[0, 0]

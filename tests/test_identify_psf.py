@@ -17,16 +17,11 @@ from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.window import ExposureWindow
 from torchblur.rig.factory import build_simulated_rig
 from torchblur.rig.simulated import SimulatedRig
+from reference import truth_errors
 
 SHORT = ["sweep.freq_hz=[20,200,600]", "camera.height=40", "camera.width=40", "fit.axis=x", "seed=5"]
 
 
-def errors(res):
-    t, f = res.truth, res.frf
-    em = np.abs(f.magnitude[0, 0] - np.abs(t)) / np.abs(t)
-    ep = np.abs(np.remainder(f.phase[0, 0] - np.angle(t) + np.pi, 2 * np.pi) - np.pi)
-    z = np.maximum(np.abs(f.magnitude[0, 0] - np.abs(t)) / f.magnitude_std[0, 0], ep / f.phase_std[0, 0])
-    return em, np.degrees(ep), z
 
 
 def airy_rig(cfg, lambda_over_d_px: float = 4.0):
@@ -108,7 +103,7 @@ def test_identify_picks_the_kernel_on_a_spot_that_is_not_a_gaussian(airy_runs):
     res = airy_runs["auto"]
     assert res.frf.meta["psf"] == "kernel"
     assert any(line.startswith("psf: kernel: the Gaussian does not explain the still") for line in res.log)
-    em, ep, z = errors(res)
+    em, ep, z = truth_errors(res)
     assert res.fit.converged.all()
     assert em.max() < 0.01 and ep.max() < 1.0
     assert z.max() < 3  # honest: within its (kernel-noise inflated) std
@@ -117,8 +112,8 @@ def test_identify_picks_the_kernel_on_a_spot_that_is_not_a_gaussian(airy_runs):
 def test_a_forced_gaussian_on_that_spot_is_worse(airy_runs):
     res = airy_runs["gaussian"]
     assert res.frf.meta["psf"] == "gaussian"
-    em_k, ep_k, z_k = errors(airy_runs["auto"])
-    em_g, ep_g, z_g = errors(res)
+    em_k, ep_k, z_k = truth_errors(airy_runs["auto"])
+    em_g, ep_g, z_g = truth_errors(res)
     assert z_g.min() > 3 * z_k.max()  # the model mismatch: every point many of its stds off
     assert em_g.max() > 4 * em_k.max() and ep_g.max() > 2 * ep_k.max()
 

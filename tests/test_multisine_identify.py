@@ -10,17 +10,12 @@ import pytest
 from torchblur.identify.config import load_config
 from torchblur.errors import ConfigError
 from torchblur.identify.run import identify
+from reference import truth_errors
 
 KEYS = ["excitation.kind=multisine", "excitation.tones=3", "sweep.freq_hz=[150,200,250]", "camera.height=32", "camera.width=64",
         "model.max_order=2", "seed=4"]
 
 
-def errors(res):
-    t, f = res.truth, res.frf
-    em = np.abs(f.magnitude[0, 0] - np.abs(t)) / np.abs(t)
-    ep = np.abs(np.remainder(f.phase[0, 0] - np.angle(t) + np.pi, 2 * np.pi) - np.pi)
-    z = np.maximum(np.abs(f.magnitude[0, 0] - np.abs(t)) / f.magnitude_std[0, 0], ep / f.phase_std[0, 0])
-    return em, np.degrees(ep), z
 
 
 @pytest.fixture(scope="module")
@@ -32,7 +27,7 @@ def run(tmp_path_factory):
 
 def test_three_tones_from_one_designed_image_set(run):
     cfg, res, _ = run
-    em, ep, z = errors(res)
+    em, ep, z = truth_errors(res)
     np.testing.assert_allclose(res.frf.freq_hz, [150, 200, 250])
     assert em.max() < 0.01 and ep.max() < 1.0 and z.max() < 5  # 1 %, 1 degree, 5 stds: as the sine sweep
     assert len(res.groups) == 1 and len(res.fit) == 1 and bool(res.fit[0].converged)

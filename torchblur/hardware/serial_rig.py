@@ -21,10 +21,9 @@ import math
 import time
 from typing import Callable, Sequence
 
-import numpy as np
 import torch
 
-from torchblur.errors import ConfigError, ParameterError, check_real_scalar
+from torchblur.errors import ConfigError, ParameterError, check_int, check_real_scalar
 from torchblur.hardware.controller import Controller
 from torchblur.hardware.errors import (AcquisitionStopped, ConnectionLost, DeviceError, DeviceReset, FrameGap, FrameMismatch, FrameTimeout,
                      GarbageReply, HardwareError, StaleFrame)
@@ -341,12 +340,6 @@ class SerialRig:
             raise ParameterError(f"{name}: expected at most max_exposure_s = {self.max_exposure_s:g} s, got {te:g} s")
         return te
 
-    @staticmethod
-    def _check_count(n, name):
-        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
-            raise ParameterError(f"{name}: expected an integer >= 1, got {n!r}")
-        return int(n)
-
     def _capture(self, frames: list[Frame], shape: tuple, offsets, meta: dict):
         from torchblur.rig.base import Capture
 
@@ -373,14 +366,14 @@ class SerialRig:
 
     def dark(self, n: int, exposure_s: float):
         """``n`` frames with the laser off (``POWER 0``, no waveform), ``[n, H, W]``."""
-        n = self._check_count(n, "n")
+        n = check_int(n, "n", low=1)
         te = self._check_exposure(exposure_s)
         frames = self._call(f"dark ({n} x {te:g} s)", self._still_frames(n, te, 0.0))
         return self._capture(frames, (n,), [0.0] * n, {"kind": "dark"})
 
     def still(self, n: int, exposure_s: float, power: float = 1.0):
         """``n`` frames of the spot at rest at ``power``, ``[n, H, W]``."""
-        n = self._check_count(n, "n")
+        n = check_int(n, "n", low=1)
         te = self._check_exposure(exposure_s)
         power = check_real_scalar(power, "power", nonnegative=True)
         frames = self._call(f"still ({n} x {te:g} s)", self._still_frames(n, te, power))
@@ -400,7 +393,7 @@ class SerialRig:
         freq = check_real_scalar(freq_hz, "freq_hz", positive=True)
         amp = check_real_scalar(amplitude, "amplitude")
         power = check_real_scalar(power, "power", nonnegative=True)
-        R = self._check_count(n_repeats, "n_repeats")
+        R = check_int(n_repeats, "n_repeats", low=1)
         te = [self._check_exposure(v, "exposures_s") for v in float_list(exposures_s, "exposures_s")]
         E = len(te)
         offs = per_exposure(trigger_offset_s, E, "trigger_offset_s")
@@ -441,7 +434,7 @@ class SerialRig:
         if len(tones) > MAX_TONES or len(line) > MAX_LINE:
             raise ParameterError(f"freq_hz: {len(tones)} tones (base included) make a WAVE line of {len(line)} bytes; the "
                                  f"protocol allows {MAX_TONES} tones and {MAX_LINE} bytes: use fewer tones")
-        R = self._check_count(n_repeats, "n_repeats")
+        R = check_int(n_repeats, "n_repeats", low=1)
         te = [self._check_exposure(v, "exposures_s") for v in float_list(exposures_s, "exposures_s")]
         E = len(te)
         offs = per_exposure(trigger_offset_s, E, "trigger_offset_s")
@@ -484,7 +477,7 @@ class SerialRig:
         """Mirror still; per offset ``PULSE offset pulse_time width Te n``: frames
         ``[..., n, H, W]`` with ``[...]`` the shape of ``trigger_offset_s``."""
         te = self._check_exposure(exposure_s)
-        n = self._check_count(n, "n")
+        n = check_int(n, "n", low=1)
         power = check_real_scalar(power, "power", nonnegative=True)
         p0 = check_real_scalar(pulse_time_s, "pulse_time_s")
         width = check_real_scalar(pulse_width_s, "pulse_width_s", positive=True)

@@ -334,14 +334,10 @@ def _summary(res, out: Path, elapsed: float) -> dict:
     doc = {"out": str(out), "points": int(frf.valid.size), "valid_points": int(frf.valid.sum()),
            "max_magnitude_error_pct": None, "max_phase_error_deg": None, "max_error_over_std": None}
     if res.truth is not None:
-        t = res.truth if res.truth.ndim == 3 else res.truth[None, None]
-        moving = np.abs(t) > 0  # channels with no true motion have no relative error
-        with np.errstate(invalid="ignore", divide="ignore"):
-            em = np.abs(frf.magnitude - np.abs(t)) / np.abs(t) * 100
-            ep = np.degrees(np.abs(np.remainder(frf.phase - np.angle(t) + np.pi, 2 * np.pi) - np.pi))
-            z = np.maximum(np.abs(frf.magnitude - np.abs(t)) / frf.magnitude_std, np.radians(ep) / frf.phase_std)
-        for key, v in (("max_magnitude_error_pct", em), ("max_phase_error_deg", ep), ("max_error_over_std", z)):
-            v = v[moving & np.isfinite(v)]
+        em, ep, z = frf.errors_against(res.truth)  # NaN where there is no true motion
+        for key, v in (("max_magnitude_error_pct", np.abs(em) * 100), ("max_phase_error_deg", np.degrees(np.abs(ep))),
+                       ("max_error_over_std", z)):
+            v = v[np.isfinite(em) & np.isfinite(v)]
             doc[key] = float(v.max()) if v.size else None
     doc["status"], doc["flags"] = _fit_counts(res.fit, STATUS, FLAGS)
     doc.update({"elapsed_s": round(float(elapsed), 3), "torchblur_version": tb.__version__})
@@ -433,6 +429,7 @@ def _report(cfg, res, elapsed, stamp) -> tuple[str, str]:
     truth = None
     if res.truth is not None:
         truth = res.truth if res.truth.ndim == 3 else res.truth[None, None]
+        err_m, err_p, err_z = frf.errors_against(truth)  # [O, I, F]; NaN where the truth is 0
     head = (f"{'freq_hz':>10} {'|H|':>10} {'+-':>9} {'phase_deg':>10} {'+-':>7}"
             + (f" {'|H| err %':>9} {'ph err deg':>10} {'err/std':>8}" if truth is not None else ""))
     summary = []
@@ -446,17 +443,10 @@ def _report(cfg, res, elapsed, stamp) -> tuple[str, str]:
                 p, ps = np.degrees(frf.phase[o, i, k]), np.degrees(frf.phase_std[o, i, k])
                 line = f"{frf.freq_hz[k]:10.4g} {m:10.5g} {ms:9.2g} {p:10.3f} {ps:7.3f}"
                 if truth is not None:
-                    t = truth[o, i, k]
-                    em = (m - abs(t)) / abs(t) * 100
-                    ep = math.degrees(math.remainder(frf.phase[o, i, k] - np.angle(t), 2 * math.pi))
-                    z = max(abs(m - abs(t)) / ms, abs(math.radians(ep)) / frf.phase_std[o, i, k])
-                    line += f" {em:9.3f} {ep:10.3f} {z:8.2f}"
+                    line += f" {err_m[o, i, k] * 100:9.3f} {np.degrees(err_p[o, i, k]):10.3f} {err_z[o, i, k]:8.2f}"
                 lines.append(line)
             if truth is not None:
-                t = truth[o, i]
-                em = np.abs(frf.magnitude[o, i] - np.abs(t)) / np.abs(t)
-                ep = np.degrees(np.abs(np.remainder(frf.phase[o, i] - np.angle(t) + np.pi, 2 * np.pi) - np.pi))
-                z = np.maximum(np.abs(frf.magnitude[o, i] - np.abs(t)) / frf.magnitude_std[o, i], np.radians(ep) / frf.phase_std[o, i])
+                em, ep, z = np.abs(err_m[o, i]), np.degrees(np.abs(err_p[o, i])), err_z[o, i]
                 with np.errstate(invalid="ignore"):
                     summary.append((frf.output_labels[o], frf.input_labels[i], np.nanmax(em) if np.isfinite(em).any() else np.nan,
                                     np.nanmax(ep) if np.isfinite(ep).any() else np.nan, np.nanmax(z) if np.isfinite(z).any() else np.nan))

@@ -15,7 +15,7 @@ from typing import Any, Protocol, Sequence, runtime_checkable
 import numpy as np
 import torch
 
-from torchblur.errors import InputTypeError, ParameterError, ShapeError, check_int
+from torchblur.errors import InputTypeError, ParameterError, ShapeError
 
 __all__ = ["Capture", "Rig"]
 
@@ -151,11 +151,6 @@ class Rig(Protocol):
 
 
 # ---------------------------------------------------------------- argument checks shared by the rigs
-
-
-def check_count(value, name: str) -> int:
-    """An integer >= 1 (frames, repeats): :func:`torchblur.errors.check_int` with ``low=1``."""
-    return check_int(value, name, low=1)
 
 
 def float_list(value, name: str) -> list[float]:

@@ -28,14 +28,14 @@ import numpy as np
 import torch
 
 from torchblur.render.camera import CameraModel
-from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_finite, check_real_scalar
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_finite, check_int, check_real_scalar
 from torchblur.systems.lti import LTISineTrajectory, Plant
 from torchblur.systems.mimo import MIMOSineTrajectory, PlantMatrix
 from torchblur.render.psf import GaussianPSF
 from torchblur.render.blur import RenderSettings, choose_node_count, render_blur
 from torchblur.render.window import ExposureWindow
 from torchblur.render.trajectory import Sinusoid, Trajectory
-from torchblur.rig.base import Capture, check_count, check_tone_grid, float_list, per_exposure
+from torchblur.rig.base import Capture, check_tone_grid, float_list, per_exposure
 
 __all__ = ["SimulatedRig"]
 
@@ -104,7 +104,7 @@ class SimulatedRig:
             or len(frame_shape) != 2
         ):
             raise ShapeError(f"frame_shape: expected (H, W), got {frame_shape!r}")
-        H, W = (check_count(v, "frame_shape") for v in frame_shape)
+        H, W = (check_int(v, "frame_shape", low=1) for v in frame_shape)
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ParameterError(f"seed: expected an integer >= 0, got {seed!r}")
         self._plant = plant
@@ -396,7 +396,7 @@ class SimulatedRig:
 
     def dark(self, n: int, exposure_s: float) -> Capture:
         """``n`` frames with the laser off, ``[n, H, W]``."""
-        n = check_count(n, "n")
+        n = check_int(n, "n", low=1)
         te = self._check_exposure(exposure_s)
         H, W = self._frame_shape
         trig = torch.arange(n, dtype=_F64) * self._cycle_s(te)
@@ -406,7 +406,7 @@ class SimulatedRig:
 
     def still(self, n: int, exposure_s: float, power: float = 1.0) -> Capture:
         """``n`` frames of the spot at rest, ``[n, H, W]``."""
-        n = check_count(n, "n")
+        n = check_int(n, "n", low=1)
         te = self._check_exposure(exposure_s)
         power = self._check_power(power)
         trig = torch.arange(n, dtype=_F64) * self._cycle_s(te)
@@ -450,7 +450,7 @@ class SimulatedRig:
         freq = check_real_scalar(freq_hz, "freq_hz", positive=True)
         amp = check_real_scalar(amplitude, "amplitude")
         power = self._check_power(power)
-        R = check_count(n_repeats, "n_repeats")
+        R = check_int(n_repeats, "n_repeats", low=1)
         te = [self._check_exposure(v, "exposures_s") for v in float_list(exposures_s, "exposures_s")]
         E = len(te)
         offsets = [check_real_scalar(v, "trigger_offset_s") for v in per_exposure(trigger_offset_s, E, "trigger_offset_s")]
@@ -516,7 +516,7 @@ class SimulatedRig:
         and, for tests only, ``actual_start_s``.
         """
         te = self._check_exposure(exposure_s)
-        n = check_count(n, "n")
+        n = check_int(n, "n", low=1)
         power = self._check_power(power)
         p0 = check_real_scalar(pulse_time_s, "pulse_time_s")
         width = check_real_scalar(pulse_width_s, "pulse_width_s", positive=True)
@@ -598,7 +598,7 @@ class SimulatedRig:
         phases = [check_real_scalar(v, "phase_rad") for v in phases]
         f0 = min(freqs) if base_freq_hz is None else check_real_scalar(base_freq_hz, "base_freq_hz", positive=True)
         check_tone_grid(freqs, f0)
-        R = check_count(n_repeats, "n_repeats")
+        R = check_int(n_repeats, "n_repeats", low=1)
         te = [self._check_exposure(v, "exposures_s") for v in float_list(exposures_s, "exposures_s")]
         E = len(te)
         offsets = [check_real_scalar(v, "trigger_offset_s") for v in per_exposure(trigger_offset_s, E, "trigger_offset_s")]

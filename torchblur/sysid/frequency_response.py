@@ -317,6 +317,30 @@ class FrequencyResponse:
             r = self._cov[..., 0, 1] / np.sqrt(self._cov[..., 0, 0] * self._cov[..., 1, 1])
         return np.where(np.isfinite(r), r, np.nan)
 
+    def errors_against(self, truth) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Errors of this response against a known one (a simulation's truth).
+
+        Args:
+            truth: complex ``[O, I, F]`` (or ``[F]`` for a SISO response) at :attr:`omega`.
+
+        Returns:
+            ``(magnitude_rel [O, I, F], phase_rad [O, I, F], z [O, I, F])``: the signed relative
+            magnitude error ``(|H| - |T|) / |T|``, the signed phase error wrapped to
+            [-pi, pi), and the larger of ``|magnitude error| / magnitude_std`` and
+            ``|phase error| / phase_std``. NaN where the truth is 0 or a std unknown.
+        """
+        t = np.asarray(truth, dtype=complex)
+        if t.shape == self._response.shape[-1:]:
+            t = np.broadcast_to(t, self._response.shape)
+        if t.shape != self._response.shape:
+            raise ShapeError(f"truth: expected shape {self._response.shape} (or [F] for SISO), got {t.shape}")
+        with np.errstate(invalid="ignore", divide="ignore"):
+            dm = self.magnitude - np.abs(t)
+            em = dm / np.where(np.abs(t) > 0, np.abs(t), np.nan)
+            ep = np.remainder(self.phase - np.angle(t) + np.pi, 2 * np.pi) - np.pi
+            z = np.maximum(np.abs(dm) / self.magnitude_std, np.abs(ep) / self.phase_std)
+        return em, ep, z
+
     def unwrapped_phase(self) -> np.ndarray:
         """[O, I, F] phase in rad, unwrapped along frequency per channel.
 
