@@ -37,6 +37,10 @@ class SinusoidFit:
         background_plane: with ``fit_gradient``: the stray-light plane removed from each
             exposure, ``[..., E, 3]`` = (level at the frame centre, slope along x per px,
             slope along y per px), in image units; None otherwise.
+        reduced_chi2: ``[...]`` the cost per degree of freedom (pixels used minus
+            parameters) where the noise was given and the loss is l2: about 1 when the model
+            explains the images; well above 1, the model does not, and the stds understate the
+            error (a wrong PSF, stray light, a motion that is not a sine). NaN otherwise.
     """
 
     amplitude: torch.Tensor
@@ -60,6 +64,7 @@ class SinusoidFit:
     n_masked: torch.Tensor | None = None
     n_outliers: torch.Tensor | None = None
     background_plane: torch.Tensor | None = None
+    reduced_chi2: torch.Tensor | None = None
 
 
 def put_items(res: SinusoidFit, idx: torch.Tensor, sub: SinusoidFit) -> None:

@@ -652,6 +652,10 @@ def _finish(res: SinusoidFit, inp: _FlatInputs, o: _FitOptions, rejected, plane,
     res.n_masked = E * H * W - n_used
     res.n_outliers = n_out
     res.extras["outlier_passes"] = passes
+    # With the noise given, the l2 cost is a chi-square: per degree of freedom about 1 when the
+    # model explains the images, and the stds mean what they say only then.
+    dof = (n_used - len(res.param_names)).clamp_min(1).to(res.cost.dtype)
+    res.reduced_chi2 = res.cost / dof if (inp.noise is not None and o.loss == "l2") else torch.full_like(res.cost, float("nan"))
     res.background_plane = plane
     for f in fields(SinusoidFit):
         v = getattr(res, f.name)

@@ -340,6 +340,7 @@ def _summary(res, out: Path, elapsed: float) -> dict:
             v = v[np.isfinite(em) & np.isfinite(v)]
             doc[key] = float(v.max()) if v.size else None
     doc["status"], doc["flags"] = _fit_counts(res.fit, STATUS, FLAGS)
+    doc.update(_fit_quality(res.fit)[0])
     doc.update({"elapsed_s": round(float(elapsed), 3), "torchblur_version": tb.__version__})
     return doc
 
@@ -357,6 +358,45 @@ def _fit_counts(fits, status_names: dict, flag_names: dict) -> tuple[dict, dict]
     status = {status_names.get(int(c), str(int(c))): int((codes == c).sum()) for c in np.unique(codes)}
     flags = {name: int(((bits.astype(np.int64) & bit) != 0).sum()) for bit, name in flag_names.items()}
     return status, {k: v for k, v in flags.items() if v}
+
+
+#: a point whose fit has a reduced chi2 above this is reported as one the model does not explain
+POOR_FIT_CHI2 = 1.5
+
+
+def _reduced_chi2(fits):
+    """Every fitted problem's reduced chi2, flat (NaN where unknown: no noise given, not l2)."""
+    import numpy as np
+
+    fits = fits if isinstance(fits, (list, tuple)) else [fits]
+    vals = []
+    for f in fits:
+        r = getattr(f, "reduced_chi2", None)
+        if r is None:
+            r = getattr(f, "extras", {}).get("reduced_chi2")
+        if r is not None:
+            vals.append(np.asarray(r, dtype=float).reshape(-1))
+    return np.concatenate(vals) if vals else np.zeros(0)
+
+
+def _fit_quality(fits) -> tuple[dict, str | None]:
+    """``({max_reduced_chi2, poor_fit_problems}, one report line or None)``: whether the model
+    explains the images to their noise. The stds hold only where it does."""
+    import numpy as np
+
+    red = _reduced_chi2(fits)
+    red = red[np.isfinite(red)]
+    if not red.size:
+        return {"max_reduced_chi2": None, "poor_fit_problems": None}, None
+    poor = int((red > POOR_FIT_CHI2).sum())
+    doc = {"max_reduced_chi2": float(red.max()), "poor_fit_problems": poor}
+    if poor:
+        line = (f"warning: {poor} of {red.size} fitted problems have a reduced chi2 above {POOR_FIT_CHI2} (max "
+                f"{red.max():.2f}): the model does not explain their images, and their stds understate the error")
+    else:
+        line = (f"fit quality: reduced chi2 median {np.median(red):.2f}, max {red.max():.2f} over {red.size} fitted problems "
+                f"(all below {POOR_FIT_CHI2}: the model explains the images to their noise)")
+    return doc, line
 
 
 def _fitted_images(res, idx):
@@ -464,6 +504,9 @@ def _report(cfg, res, elapsed, stamp) -> tuple[str, str]:
                     continue
                 lines.append(f"  {out_l:>6} from {in_l}: max |H| error {em * 100:.3f}%, max phase error {ep:.3f} deg, "
                              f"max error/std {z:.2f}")
+    quality = _fit_quality(res.fit)[1]
+    if quality is not None:
+        lines += ["", quality]
     if res.model is not None and res.model.is_siso:
         m = res.model
         lines += ["", f"model: {m.n_poles} poles, {m.n_zeros} zeros, delay {m.delay_s * 1e6:.3f} us, reduced chi2 "
