@@ -255,3 +255,41 @@ def test_help_documents_the_exit_status():
     assert proc.returncode == 0
     assert "  4    done with points flagged poor_fit, timing or failed" in proc.stdout
     assert "docs/reliability.md" in _cli("fit", "--help").stdout
+
+
+# ---------------------------------------------------------------------------- which fit a point's chi2 comes from
+def test_point_chi2_of_a_mimo_sweep_and_of_multisine_groups():
+    import types
+
+    from torchblur.identify.assemble import frames_per_point, point_reduced_chi2
+
+    # sine, 2 inputs x 3 frequencies, 2 spots: fit batch [I*F, P]; outputs s0.x, s0.y, s1.x, s1.y
+    chi2 = torch.arange(12, dtype=torch.float64).reshape(6, 2)
+    frf = FrequencyResponse([1.0, 2.0, 3.0], np.ones((4, 2, 3)))
+    run = types.SimpleNamespace(frf=frf, fit=types.SimpleNamespace(reduced_chi2=chi2),
+                                windows=types.SimpleNamespace(start=torch.zeros(2, 3, 4)))
+    out = point_reduced_chi2(run)
+    for ii in range(2):
+        for k in range(3):
+            for p in range(2):
+                assert out[2 * p, ii, k] == out[2 * p + 1, ii, k] == float(chi2[ii * 3 + k, p])
+    assert frames_per_point(run).tolist() == [4, 4, 4]
+    # multisine: one fit per group, its tones at the group's positions in the response
+    frf = FrequencyResponse([1.0, 2.0, 3.0, 4.0], np.ones(4))
+    fits = [types.SimpleNamespace(extras={"reduced_chi2": torch.tensor([1.2], dtype=torch.float64)}), types.SimpleNamespace(extras={})]
+    groups = [{"order": [0, 2], "images": slice(0, 5)}, {"order": [1, 3], "images": slice(5, 8)}]
+    run = types.SimpleNamespace(frf=frf, fit=fits, acquisition=types.SimpleNamespace(groups=groups))
+    np.testing.assert_array_equal(point_reduced_chi2(run)[0, 0], [1.2, np.nan, 1.2, np.nan])
+    assert frames_per_point(run).tolist() == [5, 3, 5, 3]
+
+
+def test_the_report_fit_quality_uses_the_run_threshold():
+    import types
+
+    from torchblur.identify.cli import POOR_FIT_CHI2, _fit_quality
+
+    assert load_config(None, []).fit.poor_fit_chi2 == POOR_FIT_CHI2  # one default threshold
+    fits = types.SimpleNamespace(reduced_chi2=torch.tensor([1.1, 1.3], dtype=torch.float64))
+    assert _fit_quality(fits)[0]["poor_fit_problems"] == 0
+    doc, line = _fit_quality(fits, 1.2)
+    assert doc["poor_fit_problems"] == 1 and "above 1.2 " in line

@@ -11,9 +11,9 @@ Commands:
                         With model.direct=true model.json holds the model fitted directly
                         to every image and model_two_step.json the two-step model.
     identify --resume DIR [key=value ...]
-                        continue an interrupted run from DIR/experiment/ (rig.*, fit.* and
-                        model.* may be given anew, e.g. the new rig.port).
-    fit DIR --out NEW [fit.*=... model.*=...]
+                        continue an interrupted run from DIR/experiment/ (rig.*, fit.*,
+                        model.* and report.* may be given anew, e.g. the new rig.port).
+    fit DIR --out NEW [fit.*=... model.*=... report.*=...]
                         re-fit a recorded run offline; DIR is never written.
     emulator [--config FILE] [key=value ...]
                         a bench emulator on a pseudo-terminal; prints one JSON line with
@@ -287,7 +287,7 @@ def _write_outputs(cfg, res, out: Path, elapsed: float, stamp: str, as_json: boo
     print(f"wrote {', '.join(sorted(p.name for p in out.iterdir()))} in {out}", file=human)
     print(v.line, file=human, flush=True)
     if as_json:
-        print(json.dumps({**_summary(res, out, elapsed), **_verdict_summary(v)}), flush=True)
+        print(json.dumps({**_summary(res, out, elapsed, cfg.fit.poor_fit_chi2), **_verdict_summary(v)}), flush=True)
     return v
 
 
@@ -380,10 +380,10 @@ def _write_figures(cfg, res, out: Path, stamp: str) -> None:
     fig.savefig(out / "residuals.png", dpi=90, metadata={"Description": stamp})
 
 
-def _summary(res, out: Path, elapsed: float) -> dict:
+def _summary(res, out: Path, elapsed: float, threshold: float | None = None) -> dict:
     """The ``--json`` line: out dir, points (valid of all), the largest errors against the
-    truth where it is known (else null), the fits' status and flag counts by name, elapsed s,
-    version."""
+    truth where it is known (else null), the fits' status and flag counts by name, the fit
+    quality against ``threshold`` (``fit.poor_fit_chi2``), elapsed s, version."""
     import numpy as np
 
     import torchblur as tb
@@ -399,7 +399,7 @@ def _summary(res, out: Path, elapsed: float) -> dict:
             v = v[np.isfinite(em) & np.isfinite(v)]
             doc[key] = float(v.max()) if v.size else None
     doc["status"], doc["flags"] = _fit_counts(res.fit, STATUS, FLAGS)
-    doc.update(_fit_quality(res.fit)[0])
+    doc.update(_fit_quality(res.fit, threshold)[0])
     doc.update({"elapsed_s": round(float(elapsed), 3), "torchblur_version": tb.__version__})
     return doc
 
@@ -438,23 +438,25 @@ def _reduced_chi2(fits):
     return np.concatenate(vals) if vals else np.zeros(0)
 
 
-def _fit_quality(fits) -> tuple[dict, str | None]:
+def _fit_quality(fits, threshold: float | None = None) -> tuple[dict, str | None]:
     """``({max_reduced_chi2, poor_fit_problems}, one report line or None)``: whether the model
-    explains the images to their noise. The stds hold only where it does."""
+    explains the images to their noise (reduced chi2 at most ``threshold``, the run's
+    ``fit.poor_fit_chi2``; default :data:`POOR_FIT_CHI2`). The stds hold only where it does."""
     import numpy as np
 
     red = _reduced_chi2(fits)
     red = red[np.isfinite(red)]
     if not red.size:
         return {"max_reduced_chi2": None, "poor_fit_problems": None}, None
-    poor = int((red > POOR_FIT_CHI2).sum())
+    threshold = POOR_FIT_CHI2 if threshold is None else float(threshold)
+    poor = int((red > threshold).sum())
     doc = {"max_reduced_chi2": float(red.max()), "poor_fit_problems": poor}
     if poor:
-        line = (f"warning: {poor} of {red.size} fitted problems have a reduced chi2 above {POOR_FIT_CHI2} (max "
+        line = (f"warning: {poor} of {red.size} fitted problems have a reduced chi2 above {threshold:g} (max "
                 f"{red.max():.2f}): the model does not explain their images, and their stds understate the error")
     else:
         line = (f"fit quality: reduced chi2 median {np.median(red):.2f}, max {red.max():.2f} over {red.size} fitted problems "
-                f"(all below {POOR_FIT_CHI2}: the model explains the images to their noise)")
+                f"(all below {threshold:g}: the model explains the images to their noise)")
     return doc, line
 
 
@@ -563,7 +565,7 @@ def _report(cfg, res, elapsed, stamp) -> tuple[str, str]:
                     continue
                 lines.append(f"  {out_l:>6} from {in_l}: max |H| error {em * 100:.3f}%, max phase error {ep:.3f} deg, "
                              f"max error/std {z:.2f}")
-    quality = _fit_quality(res.fit)[1]
+    quality = _fit_quality(res.fit, cfg.fit.poor_fit_chi2)[1]
     if quality is not None:
         lines += ["", quality]
     from torchblur.identify.verdict import report_lines
