@@ -242,12 +242,19 @@ def test_cli_flagged_run_exits_4_and_writes_everything(tmp_path):
     assert "timing: above" in (out / "report.txt").read_text()
 
 
-def test_cli_default_run_is_trustworthy_with_exit_0(tmp_path):
+def test_cli_default_run_is_trustworthy_with_exit_0_and_a_refit_has_its_own_verdict(tmp_path):
     proc = _cli("identify", "--out", str(tmp_path / "run"), "--quiet", "sweep.freq_hz=[20,300]")
     assert proc.returncode == 0, proc.stderr
     last = proc.stdout.rstrip().splitlines()[-1]
     assert last.startswith("verdict: trustworthy: all 2 points within tolerance: reduced chi2 <= 1.5, timing within 1 deg up to")
     assert "timing: the whole band (to 300 Hz) is within the tolerance of 1 deg" in proc.stdout
+    # torchblur fit on the recording, with a tolerance the timing terms exceed at both points: exit 4, named
+    proc = _cli("fit", str(tmp_path / "run"), "--out", str(tmp_path / "refit"), "--quiet", "report.tolerance_deg=0.0002")
+    assert proc.returncode == EXIT_FLAGGED, proc.stderr
+    band = json.loads((tmp_path / "refit" / "frf.json").read_text())["meta"]["timing"]
+    f = timing_limit_hz(math.radians(0.0002), band["jitter_s"], band["latency_std_s"], band["frames_per_point"])
+    assert f < 20
+    assert proc.stdout.rstrip().splitlines()[-1] == f"verdict: 2 of 2 points flagged: 2 timing (above {f:.4g} Hz, beyond 0.0002 deg)"
 
 
 def test_help_documents_the_exit_status():
@@ -293,3 +300,18 @@ def test_the_report_fit_quality_uses_the_run_threshold():
     assert _fit_quality(fits)[0]["poor_fit_problems"] == 0
     doc, line = _fit_quality(fits, 1.2)
     assert doc["poor_fit_problems"] == 1 and "above 1.2 " in line
+
+
+def test_report_lines_name_each_flagged_point():
+    from torchblur.identify.verdict import report_lines
+
+    frf, _ = _frf(n=6, f_max=20000.0)
+    flags = np.array([0, POOR_FIT, 0, 0, 0, TIMING])
+    frf = frf.replace(flags=flags, reduced_chi2=np.array([1.0, 2.25, 1.0, 1.0, 1.0, 1.0]),
+                      meta={"timing": {"jitter_s": 1e-6, "latency_std_s": 0.0, "frames_per_point": 1}})
+    lines = report_lines(frf, load_config(None, []))
+    band = timing_limit_hz(math.radians(1.0), 1e-6, 0.0, 1)
+    assert lines[0].startswith(f"timing: above {band / 1e3:.3g} kHz the timing terms alone exceed the tolerance of 1 deg")
+    assert lines[1].startswith("precision: ")
+    assert lines[2] == f"  flagged {frf.freq_hz[1]:.4g} Hz: poor_fit, reduced chi2 2.25, stds x1.5, left out of the model fit"
+    assert lines[3] == f"  flagged {frf.freq_hz[5] / 1e3:.3g} kHz: timing, reduced chi2 1"

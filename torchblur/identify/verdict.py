@@ -16,6 +16,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from torchblur.identify.assemble import timing_limit_hz
+from torchblur.identify.model import model_exclusions
 from torchblur.sysid.flags import FAILED, LIMITED, POOR_FIT, TIMING, UNTRUSTED, flag_names
 
 __all__ = ["EXIT_FLAGGED", "Verdict", "report_lines", "timing_band_hz", "verdict"]
@@ -151,7 +152,8 @@ def report_lines(frf, cfg) -> list[str]:
     """The report's lines on the run's tolerance and its flagged points: the frequency above
     which the timing terms exceed ``report.tolerance_deg`` (or that the whole band is within
     it), how many points have stds within ``report.tolerance_rel`` and ``tolerance_deg``, and
-    one line per flagged point (frequency, channel, flags, reduced chi2)."""
+    one line per flagged point (frequency, channel, flags, reduced chi2; for a poor-fit
+    point its std factor and whether the model fit left it out)."""
     thr, tol_deg = _tolerances(frf, cfg)
     tol_rel = float(cfg.report.tolerance_rel) if cfg is not None else 0.01
     lines = []
@@ -173,11 +175,13 @@ def report_lines(frf, cfg) -> list[str]:
         ok = (rel <= tol_rel) & (np.degrees(frf.phase_std) <= tol_deg)
     lines.append(f"precision: {int(ok.sum())} of {ok.size} points have a 1-sigma within {tol_rel * 100:g}% of |H| and "
                  f"{tol_deg:g} deg (report.tolerance_rel, report.tolerance_deg)")
+    left_out = model_exclusions(frf, cfg)[0] if cfg is not None else np.zeros(frf.flags.shape, dtype=bool)
     for o, i, k in zip(*np.nonzero(frf.flags)):
         where = "" if frf.is_siso else f" ({frf.output_labels[o]} from {frf.input_labels[i]})"
         chi2 = frf.reduced_chi2[o, i, k]
         extra = f", reduced chi2 {chi2:.3g}" if np.isfinite(chi2) else ""
         if frf.flags[o, i, k] & POOR_FIT:
-            extra += f" (stds x{math.sqrt(chi2):.3g}, left out of the model fit unless the report says kept)"
+            extra += f", stds x{math.sqrt(chi2):.3g}, " + ("left out of the model fit" if left_out[o, i, k] else
+                                                         "kept in the model fit (too few points without it)")
         lines.append(f"  flagged {_hz(float(frf.freq_hz[k]))}{where}: {flag_names(frf.flags[o, i, k])}{extra}")
     return lines
