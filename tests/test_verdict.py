@@ -315,3 +315,19 @@ def test_report_lines_name_each_flagged_point():
     assert lines[1].startswith("precision: ")
     assert lines[2] == f"  flagged {frf.freq_hz[1]:.4g} Hz: poor_fit, reduced chi2 2.25, stds x1.5, left out of the model fit"
     assert lines[3] == f"  flagged {frf.freq_hz[5] / 1e3:.3g} kHz: timing, reduced chi2 1"
+
+
+@pytest.mark.parametrize("key", ["fit.poor_fit_chi2", "report.tolerance_deg", "report.tolerance_rel"])
+@pytest.mark.parametrize("value", ["0", "-1", "nan", "yes"])
+def test_the_thresholds_are_checked_with_the_key_named(key, value):
+    from torchblur.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        load_config(None, [f"{key}={value}"])
+
+
+def test_the_thresholds_load():
+    cfg = load_config(None, ["fit.poor_fit_chi2=2", "report.tolerance_deg=0.5", "report.tolerance_rel=0.02"])
+    assert (cfg.fit.poor_fit_chi2, cfg.report.tolerance_deg, cfg.report.tolerance_rel) == (2, 0.5, 0.02)
+    default = load_config(None, [])
+    assert (default.fit.poor_fit_chi2, default.report.tolerance_deg, default.report.tolerance_rel) == (1.5, 1.0, 0.01)

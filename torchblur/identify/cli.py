@@ -27,8 +27,8 @@ The report's table then goes to stdout, or with ``--json`` to stderr while stdou
 one JSON line: ``out``, ``points``, ``valid_points``, ``max_magnitude_error_pct``,
 ``max_phase_error_deg``, ``max_error_over_std`` (null without a known truth), ``status`` and
 ``flags`` (counts by name, :mod:`torchblur.fit.status`), ``elapsed_s``, ``torchblur_version``,
-``verdict`` (the verdict line), ``point_flags`` and ``timing_limit_hz``
-(:mod:`torchblur.identify.verdict`). ``torchblur --version`` prints the version.
+``verdict`` (the verdict line), ``point_flags``, ``flagged_points``, ``trustworthy`` and
+``timing_limit_hz`` (:mod:`torchblur.identify.verdict`). ``torchblur --version`` prints the version.
 
 Every identify and fit run ends with one verdict line (:func:`torchblur.identify.verdict.verdict`),
 the last line on stdout (on stderr with ``--json``) and in report.txt.
@@ -298,15 +298,17 @@ def _motion_px(res):
 
     frf = res.frf
     n_o, n_i, n_f = frf.response.shape
-    a = np.asarray(getattr(res, "amplitude", None), dtype=np.float64).reshape(-1)
-    if a.size != n_i * n_f:
+    a = getattr(res, "amplitude", None)
+    a = None if a is None else np.asarray(a, dtype=np.float64).reshape(-1)
+    if a is None or a.size != n_i * n_f:
         return None
     return frf.magnitude * a.reshape(1, n_i, n_f)
 
 
 def _verdict_summary(v) -> dict:
     """The --json summary's verdict keys: ``verdict`` (the line), ``point_flags`` (counts of
-    the response's points by flag) and ``timing_limit_hz`` (null: none, or unknown)."""
+    the response's points by flag), ``flagged_points``, ``trustworthy`` and ``timing_limit_hz``
+    (null: none, or unknown)."""
     d = v.to_dict()
     return {"verdict": v.line, "point_flags": {k: d[k] for k in ("poor_fit", "timing", "failed", "limited")},
             "flagged_points": v.flagged, "timing_limit_hz": d["timing_limit_hz"], "trustworthy": v.trustworthy}
