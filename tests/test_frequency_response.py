@@ -464,3 +464,26 @@ def test_replace_and_select_outputs_keep_the_flags(flagged):
         flagged.replace(colour="red")
     with pytest.raises(ShapeError, match="keep"):
         flagged.select_outputs([True])
+
+
+@pytest.mark.parametrize("flags, exc", [
+    ([[[1.0, 0, 0]]], InputTypeError),  # floats are not bit masks
+    ([[[None, 0, 0]]], InputTypeError),
+    ([[[2**70, 0, 0]]], InputTypeError),
+    ([[[-2, 0, 0]]], ParameterError),
+    ([[[1, 0]]], ShapeError),
+])
+def test_untrusted_flags_in_json_are_refused_with_the_path(tmp_path, flags, exc):
+    doc = FrequencyResponse([1.0, 2.0, 3.0], [1.0, 1.0, 1.0]).to_dict()
+    doc["flags"] = flags
+    path = tmp_path / "frf.json"
+    path.write_text(json.dumps(doc))
+    with pytest.raises(exc, match="frf.json.*flags"):
+        FrequencyResponse.from_json(path)
+
+
+def test_unknown_flag_names_in_csv_are_refused_with_the_path(tmp_path):
+    path = tmp_path / "frf.csv"
+    path.write_text("freq_hz,magnitude,phase_deg,magnitude_std,phase_std_deg,reduced_chi2,flags\n1,1,0,0.1,1,1.0,poor_fit|odd\n")
+    with pytest.raises(ParameterError, match="frf.csv.*unknown flag 'odd'"):
+        FrequencyResponse.from_csv(path)
