@@ -358,3 +358,132 @@ def test_errors_are_builtin_subclasses():
 def test_repr_is_short(siso):
     r = repr(siso)
     assert r.startswith("FrequencyResponse(1x1, 25 points") and "1 invalid" in r and len(r) < 100
+
+
+# ---------------------------------------------------------------------------- per-point flags
+from torchblur.sysid.flags import FAILED, LIMITED, POOR_FIT, TIMING, flag_names, parse_flags  # noqa: E402
+
+
+@pytest.fixture
+def flagged(rng):
+    """A 2x2 response with flags and reduced chi2 at some points (NaN chi2 at others)."""
+    omega = 2 * np.pi * np.logspace(0, 3, 6)
+    h = rng.standard_normal((2, 2, 6)) + 1j * rng.standard_normal((2, 2, 6))
+    h[0, 1, 2] = np.nan
+    flags = np.zeros((2, 2, 6), dtype=np.int64)
+    flags[0, 0, 1] = POOR_FIT
+    flags[1, 1, 5] = POOR_FIT | TIMING | LIMITED
+    flags[0, 1, 2] = FAILED
+    chi2 = rng.uniform(0.8, 3.0, (2, 2, 6))
+    chi2[0, 1, 2] = np.nan
+    return FrequencyResponse(omega, h, cov=_random_cov(rng, (2, 2, 6)), input_labels=["x", "y"], output_labels=["px", "py"],
+                             flags=flags, reduced_chi2=chi2)
+
+
+def test_flags_default_to_zero_and_chi2_to_nan(siso):
+    assert siso.flags.shape == (1, 1, 25) and siso.flags.dtype == np.int64 and not siso.flags.any()
+    assert np.isnan(siso.reduced_chi2).all() and not siso.has_adequacy
+    with pytest.raises(ValueError):
+        siso.flags[0, 0, 0] = 1  # read-only
+
+
+def test_flag_names_round_trip():
+    assert flag_names(0) == "" and parse_flags("") == 0
+    assert flag_names(POOR_FIT | TIMING) == "poor_fit|timing"
+    for mask in range(16):
+        assert parse_flags(flag_names(mask)) == mask
+    assert parse_flags(flag_names(64 | FAILED)) == 64 | FAILED  # an unknown bit survives as bit6
+    with pytest.raises(ParameterError, match="unknown flag 'bogus'"):
+        parse_flags("poor_fit|bogus")
+
+
+@pytest.mark.parametrize("kw, exc", [
+    ({"flags": np.zeros(5, dtype=int)}, ShapeError),
+    ({"flags": np.zeros(3)}, InputTypeError),  # floats are not bit masks
+    ({"flags": np.array([0, -1, 0])}, ParameterError),
+    ({"reduced_chi2": np.array([1.0, -1.0, 1.0])}, ParameterError),
+    ({"reduced_chi2": np.array([1.0, np.inf, 1.0])}, ParameterError),
+    ({"reduced_chi2": np.zeros((1, 1, 2))}, ShapeError),
+])
+def test_bad_flags_and_chi2_are_refused(kw, exc):
+    with pytest.raises(exc, match=next(iter(kw))):
+        FrequencyResponse([1.0, 2.0, 3.0], [1.0, 1.0, 1.0], **kw)
+
+
+def test_flags_round_trip_through_json(flagged, tmp_path):
+    flagged.to_json(tmp_path / "frf.json")
+    back = FrequencyResponse.from_json(tmp_path / "frf.json")
+    np.testing.assert_array_equal(back.flags, flagged.flags)
+    np.testing.assert_array_equal(back.reduced_chi2, flagged.reduced_chi2)  # NaN where unknown, bit-exact elsewhere
+
+
+def test_flags_round_trip_through_csv(flagged, tmp_path):
+    path = tmp_path / "frf.csv"
+    flagged.to_csv(path, extra_columns={"seed": 3})
+    rows = list(csv.reader(path.open()))
+    assert rows[0] == ["output", "input", "freq_hz", "magnitude", "phase_deg", "magnitude_std", "phase_std_deg",
+                       "reduced_chi2", "flags", "seed"]
+    by_freq = {(r[0], r[1], float(r[2])): r[8] for r in rows[1:]}
+    assert by_freq[("py", "y", float(flagged.freq_hz[5]))] == "poor_fit|timing|limited"
+    assert by_freq[("px", "x", float(flagged.freq_hz[0]))] == ""
+    back = FrequencyResponse.from_csv(path)
+    np.testing.assert_array_equal(back.flags, flagged.flags)
+    np.testing.assert_array_equal(back.reduced_chi2, flagged.reduced_chi2)
+
+
+def test_flags_in_the_mat_file(flagged, tmp_path):
+    import scipy.io
+
+    flagged.to_mat(tmp_path / "frf.mat")
+    mat = scipy.io.loadmat(tmp_path / "frf.mat")
+    np.testing.assert_array_equal(mat["flags"], flagged.flags)
+    np.testing.assert_array_equal(mat["reduced_chi2"], flagged.reduced_chi2)
+
+
+def test_old_files_load_with_no_flags(siso, tmp_path):
+    doc = siso.to_dict()
+    assert "flags" not in doc and "reduced_chi2" not in doc  # a response without them writes the old schema
+    back = FrequencyResponse.from_dict(doc)
+    assert not back.flags.any() and np.isnan(back.reduced_chi2).all()
+    siso.to_csv(tmp_path / "old.csv")
+    back = FrequencyResponse.from_csv(tmp_path / "old.csv")
+    assert not back.flags.any() and np.isnan(back.reduced_chi2).all()
+
+
+def test_replace_and_select_outputs_keep_the_flags(flagged):
+    meta = flagged.replace(meta={"a": 1})
+    assert meta.meta == {"a": 1}
+    np.testing.assert_array_equal(meta.flags, flagged.flags)
+    np.testing.assert_array_equal(meta.reduced_chi2, flagged.reduced_chi2)
+    one = flagged.select_outputs([False, True])
+    assert one.output_labels == ("py",) and one.response.shape == (1, 2, 6)
+    np.testing.assert_array_equal(one.flags, flagged.flags[1:])
+    np.testing.assert_array_equal(one.reduced_chi2, flagged.reduced_chi2[1:])
+    np.testing.assert_array_equal(one.cov, flagged.cov[1:])
+    with pytest.raises(ParameterError, match="changes"):
+        flagged.replace(colour="red")
+    with pytest.raises(ShapeError, match="keep"):
+        flagged.select_outputs([True])
+
+
+@pytest.mark.parametrize("flags, exc", [
+    ([[[1.0, 0, 0]]], InputTypeError),  # floats are not bit masks
+    ([[[None, 0, 0]]], InputTypeError),
+    ([[[2**70, 0, 0]]], InputTypeError),
+    ([[[-2, 0, 0]]], ParameterError),
+    ([[[1, 0]]], ShapeError),
+])
+def test_untrusted_flags_in_json_are_refused_with_the_path(tmp_path, flags, exc):
+    doc = FrequencyResponse([1.0, 2.0, 3.0], [1.0, 1.0, 1.0]).to_dict()
+    doc["flags"] = flags
+    path = tmp_path / "frf.json"
+    path.write_text(json.dumps(doc))
+    with pytest.raises(exc, match="frf.json.*flags"):
+        FrequencyResponse.from_json(path)
+
+
+def test_unknown_flag_names_in_csv_are_refused_with_the_path(tmp_path):
+    path = tmp_path / "frf.csv"
+    path.write_text("freq_hz,magnitude,phase_deg,magnitude_std,phase_std_deg,reduced_chi2,flags\n1,1,0,0.1,1,1.0,poor_fit|odd\n")
+    with pytest.raises(ParameterError, match="frf.csv.*unknown flag 'odd'"):
+        FrequencyResponse.from_csv(path)

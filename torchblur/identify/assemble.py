@@ -1,21 +1,56 @@
 """The assemble stage's pieces: a :class:`~torchblur.sysid.frequency_response.FrequencyResponse`
 with covariances from the fits of the sweep's points (:func:`assemble_siso`,
 :func:`assemble_mimo`; the phase std adds the trigger jitter and the latency calibration,
-:func:`phase_std`), and the true response where the rig knows it (:func:`truth_of`)."""
+:func:`phase_std`), the true response where the rig knows it (:func:`truth_of`), and each
+point's adequacy (:func:`adequacy`, the rule; :func:`adequacy_stage`, the stage after assemble
+that applies it to a run).
+
+The adequacy rule (docs/reliability.md, "Per-point flags"; bits in :mod:`torchblur.sysid.flags`):
+
+* ``FAILED``: the response is NaN (the fit failed).
+* ``POOR_FIT``: the image fit's reduced chi2 exceeds ``fit.poor_fit_chi2`` (default 1.5): the
+  model does not explain the images. The fit's part of the point's covariance is multiplied by
+  the reduced chi2 (its stds by sqrt(reduced chi2): the Birge ratio); the timing part is not.
+  The model stage leaves such points out (:func:`torchblur.identify.model.model_exclusions`).
+* ``TIMING``: the timing terms alone, :func:`timing_phase_std`, exceed ``report.tolerance_deg``.
+  Their std is honest (it holds the timing terms), just large: they stay in the model fit.
+* ``LIMITED``: the drive limit cut the point's motion (the run's per-point ``limited``).
+"""
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import torch
 
+from torchblur.errors import ShapeError
 from torchblur.image.spots import spot_labels
+from torchblur.sysid.flags import FAILED, LIMITED, POOR_FIT, TIMING
 from torchblur.sysid.frequency_response import FrequencyResponse
 
-__all__ = ["assemble_mimo", "assemble_siso", "phase_std", "truth_of"]
+__all__ = ["adequacy", "adequacy_stage", "assemble_mimo", "assemble_siso", "limited_mask", "mark_limited", "phase_std", "timing_limit_hz",
+           "timing_phase_std", "truth_of"]
+
+
+def timing_phase_std(omega, jitter_s, latency_std_s, n_frames):
+    """Phase std (rad) of the timing alone: ``|omega| sqrt(jitter_s^2 / n_frames + latency_std_s^2)``,
+    the trigger jitter per frame averaged over the point's ``n_frames`` and the latency
+    calibration's std (both s). Broadcasts ``omega`` (rad/s) against ``n_frames``."""
+    return np.abs(np.asarray(omega, dtype=np.float64)) * np.sqrt(jitter_s ** 2 / np.asarray(n_frames, dtype=np.float64)
+                                                                  + latency_std_s ** 2)
+
+
+def timing_limit_hz(tolerance_rad: float, jitter_s: float, latency_std_s: float, n_frames) -> float:
+    """The frequency (Hz) above which :func:`timing_phase_std` exceeds ``tolerance_rad``:
+    ``tolerance_rad / (2 pi sqrt(jitter_s^2 / n_frames + latency_std_s^2))``; inf when both
+    timing terms are 0."""
+    s = math.sqrt(jitter_s ** 2 / float(n_frames) + latency_std_s ** 2)
+    return math.inf if s == 0 else float(tolerance_rad) / (2 * math.pi * s)
 
 
 def phase_std(fit_phase_std, omega, camera, latency_std, n_frames):
     """Phase std (rad): the fit, the trigger jitter (per frame, averaged) and the latency calibration."""
-    return np.sqrt(fit_phase_std ** 2 + (omega * camera.jitter_s) ** 2 / n_frames + (omega * latency_std) ** 2)
+    return np.sqrt(fit_phase_std ** 2 + timing_phase_std(omega, camera.jitter_s, latency_std, n_frames) ** 2)
 
 
 def assemble_siso(fit, amps, omega, camera, latency_std, n_frames, meta):
@@ -97,3 +132,125 @@ def truth_of(rig, freqs, frf, spots, single):
         if d.min() < 3.0:
             out[k] = t[int(d.argmin())]
     return out.reshape((-1,) + t.shape[2:])
+
+
+def limited_mask(limited, shape) -> np.ndarray:
+    """A per-point ``limited`` (bool ``[F]``, per job ``[I*F]``, or ``[O, I, F]``; None = none)
+    as bool ``[O, I, F]`` = ``shape`` (a job's flag holds for every output it drives)."""
+    n_o, n_i, n_f = shape
+    if limited is None:
+        return np.zeros(shape, dtype=bool)
+    a = np.asarray(limited.numpy() if isinstance(limited, torch.Tensor) else limited).astype(bool)
+    if a.shape == (n_f,):
+        a = np.broadcast_to(a, shape)
+    elif a.shape == (n_i * n_f,):
+        a = np.broadcast_to(a.reshape(1, n_i, n_f), shape)
+    elif a.shape != tuple(shape):
+        raise ShapeError(f"limited: expected shape [F], [I*F] or [O, I, F] with O, I, F = {tuple(shape)}, got {a.shape}")
+    return np.array(a)
+
+
+def mark_limited(frf: FrequencyResponse, limited) -> FrequencyResponse:
+    """``frf`` with ``LIMITED`` OR-ed into the flags where ``limited`` (:func:`limited_mask`)."""
+    if limited is None:
+        return frf
+    return frf.replace(flags=frf.flags | np.where(limited_mask(limited, frf.response.shape), LIMITED, 0))
+
+
+def adequacy(frf: FrequencyResponse, *, reduced_chi2, poor_fit_chi2: float, timing_std, tolerance_rad: float,
+             limited=None) -> FrequencyResponse:
+    """``frf`` with each point's flags, its reduced chi2 and, where POOR_FIT, its covariance
+    inflated (the rule in the module docstring).
+
+    Args:
+        frf: the assembled response, [O, I, F]; its phase variance holds ``timing_std**2``.
+        reduced_chi2: [O, I, F] (or [F]) reduced chi2 of each point's image fit, NaN unknown
+            (an unknown one never flags).
+        poor_fit_chi2: the threshold (> 0; ``fit.poor_fit_chi2``).
+        timing_std: [F] or [O, I, F] phase std (rad) of the timing terms alone
+            (:func:`timing_phase_std`).
+        tolerance_rad: phase tolerance (rad; ``report.tolerance_deg``).
+        limited: see :func:`limited_mask`.
+
+    Returns:
+        A new FrequencyResponse; flags already set on ``frf`` are kept (OR-ed).
+    """
+    shape = frf.response.shape
+    chi2 = np.broadcast_to(np.asarray(reduced_chi2, dtype=np.float64), shape)
+    t_var = np.broadcast_to(np.asarray(timing_std, dtype=np.float64), shape) ** 2
+    with np.errstate(invalid="ignore"):
+        poor = np.isfinite(chi2) & (chi2 > poor_fit_chi2)
+    flags = np.array(frf.flags)
+    flags[~frf.valid] |= FAILED
+    flags[poor] |= POOR_FIT
+    flags[t_var > tolerance_rad ** 2] |= TIMING
+    cov = np.array(frf.cov)
+    inflate = poor & frf.valid
+    fit_part = cov[inflate]  # [n, 2, 2]; the timing terms add to the phase variance only
+    fit_part[:, 1, 1] = np.maximum(fit_part[:, 1, 1] - t_var[inflate], 0.0)
+    fit_part *= chi2[inflate][:, None, None]
+    fit_part[:, 1, 1] += t_var[inflate]
+    cov[inflate] = fit_part
+    return mark_limited(frf.replace(cov=cov, flags=flags, reduced_chi2=np.where(np.isfinite(chi2), chi2, np.nan)), limited)
+
+
+def point_reduced_chi2(run) -> np.ndarray:
+    """[O, I, F] reduced chi2 of the image fit behind each point of ``run.frf`` (NaN unknown):
+    a sine sweep's per-problem values (one spot's x and y outputs share their problem's), a
+    multisine group's value for each of its tones."""
+    frf = run.frf
+    n_o, n_i, n_f = frf.response.shape
+    out = np.full((n_o, n_i, n_f), np.nan)
+    fits = run.fit
+    if isinstance(fits, (list, tuple)):  # multisine: one fit per group, its tones at the group's "order"
+        for fit, info in zip(fits, run.acquisition.groups):
+            r = getattr(fit, "extras", {}).get("reduced_chi2")
+            if r is not None:
+                out[..., info["order"]] = float(np.asarray(r, dtype=np.float64).reshape(-1)[0])
+        return out
+    r = getattr(fits, "reduced_chi2", None)
+    if r is None:
+        return out
+    r = np.asarray(r, dtype=np.float64)
+    if r.ndim == 1:  # [F]: one axis, one spot
+        return np.broadcast_to(r, (n_o, n_i, n_f)).copy()
+    P = r.shape[1]  # [I*F, P] -> [P, I, F], each problem's chi2 on its spot's x and y outputs
+    per = np.moveaxis(r.reshape(n_i, n_f, P), 2, 0)
+    return np.repeat(per, n_o // P, axis=0)
+
+
+def frames_per_point(run) -> np.ndarray:
+    """[F] frames each point's phase averages the trigger jitter over: a sine point's
+    exposures x images, a multisine tone's group's images."""
+    n_f = len(run.frf.omega)
+    if isinstance(run.fit, (list, tuple)):
+        n = np.ones(n_f)
+        for info in run.acquisition.groups:
+            n[info["order"]] = info["images"].stop - info["images"].start
+        return n
+    return np.full(n_f, float(run.windows.start.shape[-1]))
+
+
+def adequacy_stage(run) -> None:
+    """The stage after assemble: ``run.frf`` with each point's flags, reduced chi2 and inflated
+    covariance (:func:`adequacy`, with ``fit.poor_fit_chi2``, ``report.tolerance_deg``, the
+    camera's jitter, the latency calibration's std and the run's ``limited`` where it has one),
+    its meta's ``timing`` entry (``jitter_s``, ``latency_std_s``, ``frames_per_point``: the
+    fewest) and ``adequacy`` entry (the two thresholds) for the verdict; a log line when points
+    are flagged."""
+    cfg, frf = run.cfg, run.frf
+    n = frames_per_point(run)
+    jitter, lat = float(cfg.camera.jitter_s), float(run.cal.latency_std_s)
+    limited = getattr(run, "limited", None)
+    if limited is None:
+        limited = getattr(getattr(run, "acquisition", None), "limited", None)
+    meta = {**frf.meta, "timing": {"jitter_s": jitter, "latency_std_s": lat, "frames_per_point": int(n.min())},
+            "adequacy": {"poor_fit_chi2": float(cfg.fit.poor_fit_chi2), "tolerance_deg": float(cfg.report.tolerance_deg),
+                         "tolerance_rel": float(cfg.report.tolerance_rel)}}
+    run.frf = adequacy(frf.replace(meta=meta), reduced_chi2=point_reduced_chi2(run), poor_fit_chi2=float(cfg.fit.poor_fit_chi2),
+                       timing_std=timing_phase_std(frf.omega, jitter, lat, n),
+                       tolerance_rad=math.radians(float(cfg.report.tolerance_deg)), limited=limited)
+    poor = int(((run.frf.flags & POOR_FIT) != 0).sum())
+    if poor:
+        run.say(f"adequacy: {poor} point(s) with a reduced chi2 above fit.poor_fit_chi2 = {cfg.fit.poor_fit_chi2}: flagged "
+                f"poor_fit, their stds multiplied by sqrt(reduced chi2)")

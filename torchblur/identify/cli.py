@@ -11,9 +11,9 @@ Commands:
                         With model.direct=true model.json holds the model fitted directly
                         to every image and model_two_step.json the two-step model.
     identify --resume DIR [key=value ...]
-                        continue an interrupted run from DIR/experiment/ (rig.*, fit.* and
-                        model.* may be given anew, e.g. the new rig.port).
-    fit DIR --out NEW [fit.*=... model.*=...]
+                        continue an interrupted run from DIR/experiment/ (rig.*, fit.*,
+                        model.* and report.* may be given anew, e.g. the new rig.port).
+    fit DIR --out NEW [fit.*=... model.*=... report.*=...]
                         re-fit a recorded run offline; DIR is never written.
     emulator [--config FILE] [key=value ...]
                         a bench emulator on a pseudo-terminal; prints one JSON line with
@@ -26,11 +26,17 @@ Output: the run's messages go to the ``torchblur`` logger, shown on stderr one l
 The report's table then goes to stdout, or with ``--json`` to stderr while stdout gets exactly
 one JSON line: ``out``, ``points``, ``valid_points``, ``max_magnitude_error_pct``,
 ``max_phase_error_deg``, ``max_error_over_std`` (null without a known truth), ``status`` and
-``flags`` (counts by name, :mod:`torchblur.fit.status`), ``elapsed_s``, ``torchblur_version``.
-``torchblur --version`` prints the version.
+``flags`` (counts by name, :mod:`torchblur.fit.status`), ``elapsed_s``, ``torchblur_version``,
+``verdict`` (the verdict line), ``point_flags``, ``flagged_points``, ``trustworthy`` and
+``timing_limit_hz`` (:mod:`torchblur.identify.verdict`). ``torchblur --version`` prints the version.
 
-Exit codes: 0 done, 2 bad input (config, recording), 3 the rig stopped the run (its recording
-is saved; resume it), 130 interrupted (Ctrl-C; resume it).
+Every identify and fit run ends with one verdict line (:func:`torchblur.identify.verdict.verdict`),
+the last line on stdout (on stderr with ``--json``) and in report.txt.
+
+Exit codes: 0 done and trustworthy (or only points limited by the drive), 2 bad input (config,
+recording), 3 the rig stopped the run (its recording is saved; resume it), 4 done with points
+flagged poor_fit, timing or failed (results written; the verdict names them), 130 interrupted
+(Ctrl-C; resume it).
 """
 from __future__ import annotations
 
@@ -104,6 +110,20 @@ def _demo(args) -> int:
 
 EXIT_STOPPED = 3
 EXIT_INTERRUPTED = 130
+
+EXIT_EPILOG = """\
+The run ends with one verdict line: 'verdict: trustworthy: ...', or 'verdict: K of N points
+flagged: ...' naming the points the model does not explain (poor fit: reduced chi2 above
+fit.poor_fit_chi2; stds inflated, left out of the model fit), those whose timing terms exceed
+report.tolerance_deg, the failed ones, and those the drive limit cut (limited; not by
+themselves untrustworthy). See docs/reliability.md, "Per-point flags and the verdict".
+
+exit status:
+  0    done; trustworthy (or only points limited by the drive)
+  2    bad input (config, recording)
+  3    the rig stopped the run (the recording is saved; resume it)
+  4    done with points flagged poor_fit, timing or failed (results written)
+  130  interrupted (Ctrl-C; resume it)"""
 
 
 def _resume_hint(root: Path, cfg) -> str:
@@ -195,8 +215,7 @@ def _run_identify(cfg, out: Path, record, quiet: bool, root: Path | None = None,
             print(f"torchblur identify: stopped before anything was recorded: {exc}", file=sys.stderr)
         return EXIT_STOPPED
     elapsed = time.perf_counter() - t0
-    _write_outputs(cfg, res, out, elapsed, stamp, as_json=as_json)
-    return 0
+    return _write_outputs(cfg, res, out, elapsed, stamp, as_json=as_json).exit_code
 
 
 def _fit(args) -> int:
@@ -220,7 +239,7 @@ def _fit(args) -> int:
             return 2
     recorded = load_dataclass(type(load_config()), str(exp.path / "config.yaml"), trusted=False)
     cfg = load_config(str(exp.path / "config.yaml"), args.overrides, trusted=False, force=True)  # the recording is made
-    check_resume_config(recorded, cfg, allowed=("fit", "model"))
+    check_resume_config(recorded, cfg, allowed=("fit", "model", "report"))
     out.mkdir(parents=True, exist_ok=True)
     stamp = f"torchblur {tb.__version__}, seed {cfg.seed}, re-fit of {exp.path}"
     (out / "config.yaml").write_text(f"# {stamp}\n" + config_to_yaml(cfg))
@@ -230,8 +249,7 @@ def _fit(args) -> int:
     (out / "source.json").write_text(json.dumps({"recording": str(exp.path), "status": exp.meta.get("status"),
                                                  "frames": len(exp.lines), "overrides": list(args.overrides),
                                                  "torchblur_version": tb.__version__}, indent=2))
-    _write_outputs(cfg, res, out, elapsed, stamp, as_json=args.json)
-    return 0
+    return _write_outputs(cfg, res, out, elapsed, stamp, as_json=args.json).exit_code
 
 
 def _emulator(args) -> int:
@@ -243,30 +261,57 @@ def _emulator(args) -> int:
         return EXIT_INTERRUPTED
 
 
-def _write_outputs(cfg, res, out: Path, elapsed: float, stamp: str, as_json: bool = False) -> None:
-    """frf.csv, frf.mat, frf.json, model.json, bode.png, residuals.png, report.txt; then the
-    report's table (the log lines were shown as they came) and what was written, on stdout, or
-    with ``as_json`` on stderr and one JSON summary line (:func:`_summary`) on stdout."""
+def _write_outputs(cfg, res, out: Path, elapsed: float, stamp: str, as_json: bool = False):
+    """frf.csv, frf.mat, frf.json, model.json, bode.png, residuals.png, report.txt (the verdict
+    its last line); then the report's table (the log lines were shown as they came), what was
+    written and the verdict line, on stdout, or with ``as_json`` on stderr and one JSON summary
+    line (:func:`_summary`) on stdout. Returns the :class:`~torchblur.identify.verdict.Verdict`."""
     import torchblur as tb
 
-    from torchblur.sysid.frequency_response import FrequencyResponse
+    from torchblur.identify.assemble import mark_limited
+    from torchblur.identify.verdict import verdict
 
     frf = res.frf  # immutable: a copy with the run's stamp and units (the Bode plot's axes) in its meta
     meta = {"output_unit": "px", "input_unit": "input unit", **frf.meta, "torchblur_version": tb.__version__, "seed": int(cfg.seed)}
-    frf = res.frf = FrequencyResponse(frf.omega, frf.response, cov=frf.cov, output_labels=frf.output_labels,
-                                      input_labels=frf.input_labels, meta=meta)
+    frf = res.frf = mark_limited(frf.replace(meta=meta), getattr(res, "limited", None))
+    v = verdict(frf, cfg, motion_px=_motion_px(res))
     frf.to_csv(out / "frf.csv", extra_columns={"torchblur_version": tb.__version__, "seed": cfg.seed})
     frf.to_mat(out / "frf.mat")
     frf.to_json(out / "frf.json")
     _write_models(cfg, res, out)
     _write_figures(cfg, res, out, stamp)
     log, table = _report(cfg, res, elapsed, stamp)
-    (out / "report.txt").write_text(log + table)
+    (out / "report.txt").write_text(log + table + "\n" + v.line + "\n")
     human = sys.stderr if as_json else sys.stdout
     print(table, end="", file=human)
     print(f"wrote {', '.join(sorted(p.name for p in out.iterdir()))} in {out}", file=human)
+    print(v.line, file=human, flush=True)
     if as_json:
-        print(json.dumps(_summary(res, out, elapsed)), flush=True)
+        print(json.dumps({**_summary(res, out, elapsed, cfg.fit.poor_fit_chi2), **_verdict_summary(v)}), flush=True)
+    return v
+
+
+def _motion_px(res):
+    """[O, I, F] motion each point reached (px): |H| times the point's input amplitude; None
+    where the amplitudes do not map onto the response's points."""
+    import numpy as np
+
+    frf = res.frf
+    n_o, n_i, n_f = frf.response.shape
+    a = getattr(res, "amplitude", None)
+    a = None if a is None else np.asarray(a, dtype=np.float64).reshape(-1)
+    if a is None or a.size != n_i * n_f:
+        return None
+    return frf.magnitude * a.reshape(1, n_i, n_f)
+
+
+def _verdict_summary(v) -> dict:
+    """The --json summary's verdict keys: ``verdict`` (the line), ``point_flags`` (counts of
+    the response's points by flag), ``flagged_points``, ``trustworthy`` and ``timing_limit_hz``
+    (null: none, or unknown)."""
+    d = v.to_dict()
+    return {"verdict": v.line, "point_flags": {k: d[k] for k in ("poor_fit", "timing", "failed", "limited")},
+            "flagged_points": v.flagged, "timing_limit_hz": d["timing_limit_hz"], "trustworthy": v.trustworthy}
 
 
 def _write_models(cfg, res, out: Path) -> None:
@@ -276,6 +321,7 @@ def _write_models(cfg, res, out: Path) -> None:
     model = {"torchblur_version": tb.__version__, "seed": int(cfg.seed)}
     if res.model is not None:
         model.update(res.model.to_dict())
+        model.update(_left_out_points(cfg, res.frf))
     else:
         model["error"] = "the model fit failed; see report.txt"
     direct = getattr(res, "direct_model", None)
@@ -288,6 +334,21 @@ def _write_models(cfg, res, out: Path) -> None:
         else:
             model["error"] = "the direct fit failed or was skipped; see report.txt (the two-step model is in model_two_step.json)"
     (out / "model.json").write_text(json.dumps(model, indent=2))
+
+
+def _left_out_points(cfg, frf) -> dict:
+    """model.json's ``left_out_points`` (the poor-fit points the model was not fitted to:
+    freq_hz, output, input, reduced_chi2) and ``poor_fit_points_kept`` (channels where too few
+    points would have remained: output, input, count) by
+    :func:`~torchblur.identify.model.model_exclusions`."""
+    import numpy as np
+
+    from torchblur.identify.model import model_exclusions
+
+    left_out, kept = model_exclusions(frf, cfg)
+    pts = [{"freq_hz": float(frf.freq_hz[k]), "output": frf.output_labels[o], "input": frf.input_labels[i],
+            "reduced_chi2": float(frf.reduced_chi2[o, i, k])} for o, i, k in zip(*np.nonzero(left_out))]
+    return {"left_out_points": pts, "poor_fit_points_kept": [{"output": o, "input": i, "count": n} for o, i, n in kept]}
 
 
 def _write_figures(cfg, res, out: Path, stamp: str) -> None:
@@ -321,10 +382,10 @@ def _write_figures(cfg, res, out: Path, stamp: str) -> None:
     fig.savefig(out / "residuals.png", dpi=90, metadata={"Description": stamp})
 
 
-def _summary(res, out: Path, elapsed: float) -> dict:
+def _summary(res, out: Path, elapsed: float, threshold: float | None = None) -> dict:
     """The ``--json`` line: out dir, points (valid of all), the largest errors against the
-    truth where it is known (else null), the fits' status and flag counts by name, elapsed s,
-    version."""
+    truth where it is known (else null), the fits' status and flag counts by name, the fit
+    quality against ``threshold`` (``fit.poor_fit_chi2``), elapsed s, version."""
     import numpy as np
 
     import torchblur as tb
@@ -340,7 +401,7 @@ def _summary(res, out: Path, elapsed: float) -> dict:
             v = v[np.isfinite(em) & np.isfinite(v)]
             doc[key] = float(v.max()) if v.size else None
     doc["status"], doc["flags"] = _fit_counts(res.fit, STATUS, FLAGS)
-    doc.update(_fit_quality(res.fit)[0])
+    doc.update(_fit_quality(res.fit, threshold)[0])
     doc.update({"elapsed_s": round(float(elapsed), 3), "torchblur_version": tb.__version__})
     return doc
 
@@ -379,23 +440,25 @@ def _reduced_chi2(fits):
     return np.concatenate(vals) if vals else np.zeros(0)
 
 
-def _fit_quality(fits) -> tuple[dict, str | None]:
+def _fit_quality(fits, threshold: float | None = None) -> tuple[dict, str | None]:
     """``({max_reduced_chi2, poor_fit_problems}, one report line or None)``: whether the model
-    explains the images to their noise. The stds hold only where it does."""
+    explains the images to their noise (reduced chi2 at most ``threshold``, the run's
+    ``fit.poor_fit_chi2``; default :data:`POOR_FIT_CHI2`). The stds hold only where it does."""
     import numpy as np
 
     red = _reduced_chi2(fits)
     red = red[np.isfinite(red)]
     if not red.size:
         return {"max_reduced_chi2": None, "poor_fit_problems": None}, None
-    poor = int((red > POOR_FIT_CHI2).sum())
+    threshold = POOR_FIT_CHI2 if threshold is None else float(threshold)
+    poor = int((red > threshold).sum())
     doc = {"max_reduced_chi2": float(red.max()), "poor_fit_problems": poor}
     if poor:
-        line = (f"warning: {poor} of {red.size} fitted problems have a reduced chi2 above {POOR_FIT_CHI2} (max "
+        line = (f"warning: {poor} of {red.size} fitted problems have a reduced chi2 above {threshold:g} (max "
                 f"{red.max():.2f}): the model does not explain their images, and their stds understate the error")
     else:
         line = (f"fit quality: reduced chi2 median {np.median(red):.2f}, max {red.max():.2f} over {red.size} fitted problems "
-                f"(all below {POOR_FIT_CHI2}: the model explains the images to their noise)")
+                f"(all below {threshold:g}: the model explains the images to their noise)")
     return doc, line
 
 
@@ -504,9 +567,12 @@ def _report(cfg, res, elapsed, stamp) -> tuple[str, str]:
                     continue
                 lines.append(f"  {out_l:>6} from {in_l}: max |H| error {em * 100:.3f}%, max phase error {ep:.3f} deg, "
                              f"max error/std {z:.2f}")
-    quality = _fit_quality(res.fit)[1]
+    quality = _fit_quality(res.fit, cfg.fit.poor_fit_chi2)[1]
     if quality is not None:
         lines += ["", quality]
+    from torchblur.identify.verdict import report_lines
+
+    lines += ["", *report_lines(frf, cfg)]
     if res.model is not None and res.model.is_siso:
         m = res.model
         lines += ["", f"model: {m.n_poles} poles, {m.n_zeros} zeros, delay {m.delay_s * 1e6:.3f} us, reduced chi2 "
@@ -565,7 +631,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="torchblur", description="Identify fast actuator dynamics from camera motion blur.")
     parser.add_argument("--version", action=_Version, help="print the version and exit")
     sub = parser.add_subparsers(dest="command", required=True)
-    ident = sub.add_parser("identify", help="identify the frequency response and a model (default: the built-in simulated mirror)")
+    ident = sub.add_parser("identify", help="identify the frequency response and a model (default: the built-in simulated mirror)",
+                           epilog=EXIT_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     ident.add_argument("--config", default=None, help="YAML config (see configs/); default: built-in")
     ident.add_argument("--out", default=None, help="output directory (the recording goes to OUT/experiment/)")
     ident.add_argument("--resume", default=None, metavar="DIR",
@@ -577,7 +644,8 @@ def build_parser() -> argparse.ArgumentParser:
     ident.add_argument("--force", action="store_true", help="run even beyond the size limits (docs/reliability.md), or into a folder that holds other files")
     ident.add_argument("overrides", nargs="*", help="dotted key=value overrides, e.g. sweep.n=20 plant.delay_s=5e-5")
     ident.set_defaults(func=_identify)
-    fit = sub.add_parser("fit", help="re-fit a recorded run offline with other fit.* / model.* settings")
+    fit = sub.add_parser("fit", help="re-fit a recorded run offline with other fit.* / model.* / report.* settings",
+                         epilog=EXIT_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     fit.add_argument("dir", help="the recorded run (its --out folder, or its experiment/ folder)")
     fit.add_argument("--out", required=True, help="a new output directory (never inside DIR)")
     fit.add_argument("--quiet", action="store_true", help="no progress bar and no log lines (warnings only; report.txt has the log)")

@@ -167,6 +167,9 @@ class FitConfig:
     # Points per batched fit. The sweep hands every completed chunk to a background fit, so
     # fitting overlaps the acquisition; 0 fits all points in one batch after the sweep.
     chunk_points: int = 8
+    # A point whose image fit has a reduced chi2 above this is flagged poor_fit: its stds are multiplied by
+    # sqrt(reduced chi2) and it is left out of the transfer-function fit (docs/reliability.md, "Per-point flags").
+    poor_fit_chi2: float = 1.5
 
 
 @dataclass(frozen=True)
@@ -180,6 +183,14 @@ class ModelConfig:
     direct: bool = False
     direct_form: str = "tf"  # "tf" (normalised poles/zeros) or "modal" (sum of modes)
     direct_max_iter: int = 100
+
+
+@dataclass(frozen=True)
+class ReportConfig:
+    # The run's tolerance: the report states the frequency above which the timing terms alone (trigger jitter
+    # per frame, averaged, and the latency's std) exceed tolerance_deg of phase, and flags those points timing.
+    tolerance_deg: float = 1.0
+    tolerance_rel: float = 0.01  # |H| relative: the report counts the points whose |H| std is within it
 
 
 @dataclass(frozen=True)
@@ -201,6 +212,7 @@ class IdentifyConfig:
     model: ModelConfig = field(default_factory=ModelConfig)
     rig: RigConfig = field(default_factory=RigConfig)
     spots: SpotsConfig = field(default_factory=SpotsConfig)
+    report: ReportConfig = field(default_factory=ReportConfig)
     seed: int = 0
 
     def frequencies_hz(self) -> list[float]:
@@ -675,7 +687,15 @@ def validate(cfg: IdentifyConfig) -> None:
         raise ConfigError("model.direct: the direct fit handles one axis and one spot; this run has "
                           f"{'a 2x2 plant' if cfg.plant.is_mimo else 'many spots (spots.rows > 0)'}: set model.direct=false")
     validate_rig(cfg.rig)
+    validate_report(cfg)
     _num(cfg.seed, "seed", integer=True, low=0, high=2**63 - 1)
+
+
+def validate_report(cfg: IdentifyConfig) -> None:
+    """``fit.poor_fit_chi2`` (> 0) and the ``report`` section's tolerances (> 0)."""
+    _num(cfg.fit.poor_fit_chi2, "fit.poor_fit_chi2", positive=True)
+    _num(cfg.report.tolerance_deg, "report.tolerance_deg", positive=True)
+    _num(cfg.report.tolerance_rel, "report.tolerance_rel", positive=True)
 
 
 def validate_fit_psf(cfg) -> None:

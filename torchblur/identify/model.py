@@ -1,27 +1,77 @@
 """The model stage's pieces: the transfer-function model of the frequency response
-(:func:`fit_model`) and, with ``model.direct``, the model fitted to every image at once
+(:func:`fit_model`, without the points the images' model does not explain:
+:func:`model_exclusions`) and, with ``model.direct``, the model fitted to every image at once
 (:func:`fit_direct_model`)."""
 from __future__ import annotations
 
 import math
 import time
 
+import numpy as np
 import torch
 
 from torchblur.identify.record import log_message
 from torchblur.render.camera import camera_noise_std
 from torchblur.render.psf import GaussianPSF
 from torchblur.sysid.direct import fit_direct
-from torchblur.sysid.frequency_response import FrequencyResponse
+from torchblur.sysid.flags import POOR_FIT
 from torchblur.sysid.tf_fit import fit_transfer_function
 
-__all__ = ["fit_direct_model", "fit_model", "modes_outside_band"]
+__all__ = ["fit_direct_model", "fit_model", "model_exclusions", "modes_outside_band", "points_needed"]
+
+
+def points_needed(model_cfg) -> int:
+    """The fewest valid points per channel the smallest model of ``model_cfg`` (``cfg.model``)
+    can be fitted to: its real parameters (``n_poles``, or 1 when the order is selected;
+    ``n_zeros`` or 0; the gain; the delay where fitted) plus one, two real observations a point."""
+    n_par = (1 if model_cfg.n_poles is None else int(model_cfg.n_poles)) + int(model_cfg.n_zeros or 0) + 1
+    n_par += 1 if model_cfg.fit_delay else 0
+    return math.ceil((n_par + 1) / 2)
+
+
+def model_exclusions(frf, cfg) -> tuple[np.ndarray, list]:
+    """Which points the transfer-function fit leaves out: ``(left_out, kept)``.
+
+    The rule: a valid point flagged ``POOR_FIT`` (its images' model does not explain them) gets
+    weight 0, unless its channel would keep fewer than :func:`points_needed` valid points; then
+    the channel's poor-fit points are all kept (at their inflated stds).
+
+    Returns:
+        ``left_out`` bool ``[O, I, F]``; ``kept``: ``(output label, input label, n poor-fit
+        points kept)`` for each channel where the rule kept them.
+    """
+    poor = ((frf.flags & POOR_FIT) != 0) & frf.valid
+    need = points_needed(cfg.model)
+    left_out = np.zeros(poor.shape, dtype=bool)
+    kept = []
+    for o in range(frf.n_outputs):
+        for i in range(frf.n_inputs):
+            if not poor[o, i].any():
+                continue
+            if int((frf.valid[o, i] & ~poor[o, i]).sum()) >= need:
+                left_out[o, i] = poor[o, i]
+            else:
+                kept.append((frf.output_labels[o], frf.input_labels[i], int(poor[o, i].sum())))
+    return left_out, kept
+
+
+def _without(frf, left_out, log, progress):
+    """``frf`` with the ``left_out`` points set to NaN (weight 0 in the fit), each logged."""
+    if left_out.any():
+        f = ", ".join(f"{v:.4g}" for v in frf.freq_hz[left_out.any(axis=(0, 1))])
+        log_message(log, f"model: {int(left_out.sum())} poor-fit point(s) left out of the fit ({f} Hz)", progress)
+    return frf.replace(response=np.where(left_out, np.nan, frf.response)) if left_out.any() else frf
 
 
 def fit_model(cfg, frf, log=None, progress: bool = False):
     """Stage 7 of :func:`identify`: the transfer-function model of ``frf`` under
     ``cfg.model`` (None, with the reason logged, when the fit fails)."""
     log = [] if log is None else log
+    left_out, kept = model_exclusions(frf, cfg)
+    for out, inp, n in kept:
+        log_message(log, f"model: warning: output {out} from input {inp}: leaving its {n} poor-fit point(s) out would leave fewer "
+                    f"than {points_needed(cfg.model)} points; they are kept, at their inflated stds", progress)
+    frf = _without(frf, left_out, log, progress)
     # Outputs with a channel that has no valid point at all (a spot flagged at every
     # frequency) are left out, so they do not take the other outputs' models with them.
     keep = frf.valid.any(-1).all(-1)  # [O]
@@ -31,8 +81,7 @@ def fit_model(cfg, frf, log=None, progress: bool = False):
     if not keep.all():
         dropped = [lab for lab, k in zip(frf.output_labels, keep) if not k]
         log_message(log, f"model: output(s) {', '.join(dropped)} have a channel with no valid point and are left out of the model", progress)
-        frf = FrequencyResponse(frf.omega, frf.response[keep], cov=frf.cov[keep], input_labels=frf.input_labels,
-                                output_labels=[lab for lab, k in zip(frf.output_labels, keep) if k], meta=frf.meta)
+        frf = frf.select_outputs(keep)
     try:
         model = fit_transfer_function(frf, n_poles=cfg.model.n_poles, n_zeros=cfg.model.n_zeros,
                                       delay_s=None if cfg.model.fit_delay else 0.0, max_order=int(cfg.model.max_order))

@@ -31,7 +31,7 @@ def build_rig(cfg: IdentifyConfig, *, log=None):
     return rig
 
 
-_RESUMABLE_SECTIONS = ("rig", "fit", "model")
+_RESUMABLE_SECTIONS = ("rig", "fit", "model", "report")
 
 
 def check_resume_config(recorded, cfg, *, allowed=_RESUMABLE_SECTIONS) -> None:

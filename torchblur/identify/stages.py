@@ -1,8 +1,10 @@
 """The stages after the calibration, over one run record whose ``plan`` (the excitation's)
 does the sweep, fit, assemble and report parts: :func:`run_plan` is ``sweep -> fit ->
-assemble -> model -> report``; :func:`model_stage` is the one model stage of every plan."""
+assemble -> adequacy -> model -> report`` (adequacy: each point's flags,
+:func:`~torchblur.identify.assemble.adequacy_stage`); :func:`model_stage` is the one model stage of every plan."""
 from __future__ import annotations
 
+from torchblur.identify.assemble import adequacy_stage
 from torchblur.identify.model import fit_model
 from torchblur.identify.record import RunRecord, progress_bar
 
@@ -13,9 +15,9 @@ def run_plan(run: RunRecord):
     """sweep -> fit -> assemble -> model -> report of ``run`` (calibrated: ``run.cal`` set)
     by its ``run.plan``; returns the plan's result."""
     run.plan.sweep(run)  # its own bar, per point or group
-    bar = progress_bar(run.progress, total=3, desc="fit and model", unit="stage", leave=False)
+    bar = progress_bar(run.progress, total=4, desc="fit and model", unit="stage", leave=False)
     try:
-        for stage in (run.plan.fit, run.plan.assemble, model_stage):
+        for stage in (run.plan.fit, run.plan.assemble, adequacy_stage, model_stage):
             bar.set_postfix_str(stage.__name__, refresh=True)
             stage(run)
             bar.update(1)

@@ -119,8 +119,7 @@ class _BranchSearch:
         frf = self.frf
         resp = np.where(choice, self.branches[1], self.branches[0])
         c = np.where(choice[:, None, None], self.cov_alias, self.cov)
-        return FrequencyResponse(frf.omega, resp, cov=c, input_labels=frf.input_labels, output_labels=frf.output_labels,
-                                 meta=dict(frf.meta))
+        return frf.replace(response=resp, cov=c)  # labels, meta, flags and reduced chi2 kept
 
     def descend(self, choice: np.ndarray) -> None:
         """Fit, re-assign every point to the nearer branch, repeat until nothing changes."""

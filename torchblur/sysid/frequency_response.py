@@ -26,6 +26,14 @@ File formats:
   ``{"schema": "torchblur.sysid.frequency_response", "schema_version": 1, ...}``. Non-finite
   numbers (failed points, unknown covariance) are written as ``null`` so the file is strict
   JSON.
+
+Per-point adequacy (:attr:`FrequencyResponse.flags`, :attr:`FrequencyResponse.reduced_chi2`,
+bits in :mod:`torchblur.sysid.flags`): where a response carries it (a flag set or a reduced
+chi2 known: :attr:`FrequencyResponse.has_adequacy`), the CSV gets two more columns
+``reduced_chi2,flags`` after the five (``flags`` as names, ``"poor_fit|timing"``, empty for
+none), the JSON the keys ``flags`` and ``reduced_chi2`` ([O, I, F] nested lists), the MAT file
+the variables ``flags`` (int32) and ``reduced_chi2`` (always). Files without them load with
+flags 0 and reduced chi2 NaN.
 """
 from __future__ import annotations
 
@@ -39,6 +47,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, TorchblurError
+from torchblur.sysid.flags import flag_names, parse_flags
 
 __all__ = ["FrequencyResponse"]
 
@@ -54,9 +63,12 @@ _JSON_KEYS = {
     "output_labels",
     "input_labels",
     "meta",
+    "flags",
+    "reduced_chi2",
 }
 _CSV_SISO_HEADER = ["freq_hz", "magnitude", "phase_deg", "magnitude_std", "phase_std_deg"]
 _CSV_MIMO_HEADER = ["output", "input"] + _CSV_SISO_HEADER
+_CSV_ADEQUACY = ["reduced_chi2", "flags"]  # written after the five where the response carries them
 
 
 def _readonly(a: np.ndarray) -> np.ndarray:
@@ -125,6 +137,27 @@ def _json_floats(a: np.ndarray):
     return [_json_floats(x) for x in a]
 
 
+def _per_point(value, name: str, shape: tuple, integer: bool) -> np.ndarray:
+    """``value`` ([F] for a 1x1 response, or [O, I, F] = ``shape``) as a read-only array of that
+    shape: int64 bit masks >= 0 (``integer``), else float64 >= 0 or NaN."""
+    if integer:
+        a = np.array(value)
+        if a.dtype == bool or not np.issubdtype(a.dtype, np.integer):
+            raise InputTypeError(f"{name}: expected an array of integer bit masks, got dtype {a.dtype}")
+        a = a.astype(np.int64)
+    else:
+        a = _as_real_array(value, name)
+    if a.shape == shape[-1:] and shape[:2] == (1, 1):
+        a = a.reshape(shape)
+    if a.shape != shape:
+        raise ShapeError(f"{name}: expected shape [O, I, F] = {shape} like the response, got {a.shape}")
+    if integer and np.any(a < 0):
+        raise ParameterError(f"{name}: expected bit masks >= 0, got minimum {a.min()}")
+    if not integer and (np.any(np.isinf(a)) or np.any(a < 0)):
+        raise ParameterError(f"{name}: expected values >= 0 or NaN (unknown), got {a[np.isinf(a) | (a < 0)][0]:g}")
+    return _readonly(a.copy())
+
+
 class FrequencyResponse:
     """A measured frequency response H(j omega), one complex estimate per frequency.
 
@@ -141,6 +174,11 @@ class FrequencyResponse:
         input_labels: I strings, default ``["u0", "u1", ...]`` (e.g. ``["x", "y"]``).
         output_labels: O strings, default ``["y0", "y1", ...]``.
         meta: dict of strict-JSON-serialisable extras (version, seed, ...); stored as a copy.
+        flags: optional int [F] (SISO) or [O, I, F] bit masks of :mod:`torchblur.sysid.flags`
+            (``POOR_FIT``, ``TIMING``, ``LIMITED``, ``FAILED``); ``None`` = 0 everywhere.
+        reduced_chi2: optional real [F] or [O, I, F]: the reduced chi2 of the image fit each
+            point comes from (about 1 when the model explains its images); ``None`` = NaN
+            (unknown) everywhere.
 
     Raises:
         ParameterError: omega not finite/positive/strictly increasing; Inf in response;
@@ -156,7 +194,7 @@ class FrequencyResponse:
         (1, 1, 3)
     """
 
-    __slots__ = ("_omega", "_response", "_cov", "_input_labels", "_output_labels", "_meta")
+    __slots__ = ("_omega", "_response", "_cov", "_input_labels", "_output_labels", "_meta", "_flags", "_reduced_chi2")
 
     def __init__(
         self,
@@ -167,6 +205,8 @@ class FrequencyResponse:
         input_labels: Sequence[str] | None = None,
         output_labels: Sequence[str] | None = None,
         meta: dict | None = None,
+        flags=None,
+        reduced_chi2=None,
     ) -> None:
         w = _as_real_array(omega, "omega")
         if w.ndim != 1 or w.size == 0:
@@ -228,6 +268,10 @@ class FrequencyResponse:
         self._omega = _readonly(w.copy())
         self._response = _readonly(h.copy())
         self._cov = _readonly(np.array(c, dtype=np.float64, copy=True))
+        shape = (n_o, n_i, n_f)
+        self._flags = _per_point(np.zeros(shape, np.int64) if flags is None else flags, "flags", shape, True)
+        self._reduced_chi2 = _per_point(np.full(shape, np.nan) if reduced_chi2 is None else reduced_chi2, "reduced_chi2",
+                                        shape, False)
         self._output_labels = _check_labels(output_labels, n_o, "output_labels", "y")
         self._input_labels = _check_labels(input_labels, n_i, "input_labels", "u")
         if meta is None:
@@ -267,6 +311,49 @@ class FrequencyResponse:
     def meta(self) -> dict:
         """A copy of the JSON-serialisable extras."""
         return json.loads(json.dumps(self._meta))
+
+    @property
+    def flags(self) -> np.ndarray:
+        """Int64 [O, I, F] bit masks of :mod:`torchblur.sysid.flags` (0 = none; read-only):
+        test a bit with ``(frf.flags & POOR_FIT) != 0``."""
+        return self._flags
+
+    @property
+    def reduced_chi2(self) -> np.ndarray:
+        """[O, I, F] reduced chi2 of the image fit behind each point; NaN = unknown (read-only)."""
+        return self._reduced_chi2
+
+    @property
+    def has_adequacy(self) -> bool:
+        """Whether any point carries a flag or a known reduced chi2 (then the CSV and JSON
+        files hold them)."""
+        return bool(np.any(self._flags != 0) or np.any(np.isfinite(self._reduced_chi2)))
+
+    def replace(self, **changes) -> "FrequencyResponse":
+        """A copy with the constructor's arguments in ``changes`` replaced (``response``,
+        ``cov``, ``flags``, ``reduced_chi2``, ``meta``, labels, ``omega``); everything else,
+        flags and reduced chi2 included, kept. The arguments are checked as by the constructor."""
+        args = {"omega": self._omega, "response": self._response, "cov": self._cov, "input_labels": self._input_labels,
+                "output_labels": self._output_labels, "meta": self._meta, "flags": self._flags,
+                "reduced_chi2": self._reduced_chi2}
+        unknown = set(changes) - set(args)
+        if unknown:
+            raise ParameterError(f"changes: unknown arguments {sorted(unknown)}; expected some of {sorted(args)}")
+        args.update(changes)
+        omega, response = args.pop("omega"), args.pop("response")
+        return FrequencyResponse(omega, response, **args)
+
+    def select_outputs(self, keep) -> "FrequencyResponse":
+        """The outputs where ``keep`` (bool [O]) is True, every per-point array (response,
+        cov, flags, reduced chi2) and the labels with them."""
+        k = np.asarray(keep, dtype=bool)
+        if k.shape != (self.n_outputs,):
+            raise ShapeError(f"keep: expected a bool array of shape [O] = ({self.n_outputs},), got {k.shape}")
+        if not k.any():
+            raise ParameterError("keep: expected at least one output kept, got none")
+        return self.replace(response=self._response[k], cov=self._cov[k], flags=self._flags[k],
+                            reduced_chi2=self._reduced_chi2[k],
+                            output_labels=[lab for lab, kk in zip(self._output_labels, k) if kk])
 
     @property
     def n_outputs(self) -> int:
@@ -455,7 +542,9 @@ class FrequencyResponse:
           units; NaN = failed point), the layout of ``idfrd(H, omega, 0)`` for ``tfest``;
         * ``magnitude_std``, ``phase_std`` (rad), ``correlation`` [O, I, F] (NaN = unknown);
         * ``input_labels`` [1, I], ``output_labels`` [1, O]: cell arrays of strings;
-        * ``meta``: the JSON text of :attr:`meta` (a string).
+        * ``meta``: the JSON text of :attr:`meta` (a string);
+        * ``flags`` int32 [O, I, F] (bits of :mod:`torchblur.sysid.flags`, 0 = none) and
+          ``reduced_chi2`` [O, I, F] (NaN = unknown).
 
         A SISO response keeps the [1, 1, F] shape, as in MATLAB's ``idfrd``.
         """
@@ -478,6 +567,8 @@ class FrequencyResponse:
                 "input_labels": cell(self._input_labels),
                 "output_labels": cell(self._output_labels),
                 "meta": json.dumps(self._meta),
+                "flags": self._flags.astype(np.int32),
+                "reduced_chi2": np.array(self._reduced_chi2),
             },
             do_compression=True,
         )
@@ -487,8 +578,10 @@ class FrequencyResponse:
         """Write a CSV file (format in the module docstring; the correlation is lost). Phase
         in degrees in (-180, 180]. ``extra_columns``: ``{name: value}`` appended to the header
         and to every row (e.g. the CLI's ``torchblur_version`` and ``seed``;
-        :meth:`from_csv` ignores them)."""
+        :meth:`from_csv` ignores them). With :attr:`has_adequacy`, the columns
+        ``reduced_chi2,flags`` come after the five (before ``extra_columns``)."""
         extra = dict(extra_columns or {})
+        adequacy = self.has_adequacy
         mag = self.magnitude
         phase_deg = np.degrees(self.phase)
         phase_deg[phase_deg <= -180.0] = 180.0  # -pi + 1 ulp may round to -180
@@ -497,20 +590,23 @@ class FrequencyResponse:
         f_hz = self.freq_hz
         with open(path, "w", newline="") as fh:
             writer = csv.writer(fh, lineterminator="\n")
-            writer.writerow((_CSV_SISO_HEADER if self.is_siso else _CSV_MIMO_HEADER) + list(extra))
+            writer.writerow((_CSV_SISO_HEADER if self.is_siso else _CSV_MIMO_HEADER) + (_CSV_ADEQUACY if adequacy else [])
+                            + list(extra))
             for o in range(self.n_outputs):
                 for i in range(self.n_inputs):
                     lead = [] if self.is_siso else [self._output_labels[o], self._input_labels[i]]
                     for k in range(f_hz.size):
                         vals = (f_hz[k], mag[o, i, k], phase_deg[o, i, k], mag_std[o, i, k], phase_std_deg[o, i, k])
-                        writer.writerow(lead + [repr(float(v)) for v in vals] + list(extra.values()))
+                        more = [repr(float(self._reduced_chi2[o, i, k])), flag_names(self._flags[o, i, k])] if adequacy else []
+                        writer.writerow(lead + [repr(float(v)) for v in vals] + more + list(extra.values()))
 
     @classmethod
     def from_csv(cls, path: str | os.PathLike) -> "FrequencyResponse":
         """Read a CSV written by :meth:`to_csv` (or by hand in the same format).
 
         The covariance comes back diagonal: ``cov[..., 0, 1] = 0`` where both stds are known
-        (CSV has no correlation column), NaN where either is unknown.
+        (CSV has no correlation column), NaN where either is unknown. The columns
+        ``reduced_chi2`` and ``flags``, where present among the extra ones, are read back.
         """
         text = _read_text(path)
         try:
@@ -539,6 +635,8 @@ class FrequencyResponse:
             )
         ncol = len(header)
         n_known = len(_CSV_MIMO_HEADER) if mimo else len(_CSV_SISO_HEADER)
+        col_chi2 = header.index("reduced_chi2") if "reduced_chi2" in header[n_known:] else None
+        col_flags = header.index("flags") if "flags" in header[n_known:] else None
         channels: dict[tuple[str, str], list[list[float]]] = {}
         outs: list[str] = []
         ins: list[str] = []
@@ -555,8 +653,10 @@ class FrequencyResponse:
                 nums = row[:n_known]
             try:
                 vals = [float(x) for x in nums]
+                vals.append(float(row[col_chi2]) if col_chi2 is not None else math.nan)
             except ValueError as exc:
                 raise ParameterError(f"path: line {lineno}: expected numbers, got {nums}") from exc
+            vals.append(parse_flags(row[col_flags]) if col_flags is not None else 0)
             if key[0] not in outs:
                 outs.append(key[0])
             if key[1] not in ins:
@@ -578,8 +678,11 @@ class FrequencyResponse:
                         f"path: output {o!r}, input {i!r} has frequencies that differ from "
                         f"those of the first channel"
                     )
-        data = np.array([[channels[(o, i)] for i in ins] for o in outs], dtype=np.float64)  # [O, I, F, 5]
+        data = np.array([[channels[(o, i)] for i in ins] for o in outs], dtype=np.float64)  # [O, I, F, 7]
         mag, ph_deg, mstd, pstd_deg = data[..., 1], data[..., 2], data[..., 3], data[..., 4]
+        if np.any(data[..., 5] < 0) or np.any(np.isinf(data[..., 5])):
+            raise ParameterError("path: column 'reduced_chi2' has negative or infinite values")
+        extra = {"reduced_chi2": data[..., 5], "flags": data[..., 6].astype(np.int64)}
         if np.any(mag < 0):
             raise ParameterError("path: column 'magnitude' has negative values")
         h = mag * np.exp(1j * np.radians(ph_deg))
@@ -593,13 +696,15 @@ class FrequencyResponse:
         cov[..., 1, 0] = cov[..., 0, 1]
         omega = ref * (2.0 * np.pi)
         if not mimo:
-            return cls(omega, h[0, 0], cov=cov[0, 0])
-        return cls(omega, h, cov=cov, output_labels=outs, input_labels=ins)
+            return cls(omega, h[0, 0], cov=cov[0, 0], **extra)
+        return cls(omega, h, cov=cov, output_labels=outs, input_labels=ins, **extra)
 
     # ------------------------------------------------------------------- JSON
     def to_dict(self) -> dict[str, Any]:
-        """The JSON document as a dict (schema in the module docstring)."""
+        """The JSON document as a dict (schema in the module docstring; ``flags`` and
+        ``reduced_chi2`` only where :attr:`has_adequacy`)."""
         cov = None if np.all(np.isnan(self._cov)) else _json_floats(self._cov)
+        adequacy = {"flags": self._flags.tolist(), "reduced_chi2": _json_floats(self._reduced_chi2)} if self.has_adequacy else {}
         return {
             "schema": _SCHEMA,
             "schema_version": 1,
@@ -610,6 +715,7 @@ class FrequencyResponse:
             "output_labels": list(self._output_labels),
             "input_labels": list(self._input_labels),
             "meta": self.meta,
+            **adequacy,
         }
 
     def to_json(self, path: str | os.PathLike) -> None:
@@ -650,6 +756,12 @@ class FrequencyResponse:
         h = re + 1j * im
         h[~(np.isfinite(re) & np.isfinite(im))] = np.nan
         cov = None if doc.get("cov") is None else arr("cov")
+        flags = None
+        if doc.get("flags") is not None:
+            try:
+                flags = np.array(doc["flags"])  # the constructor refuses anything but integers
+            except (TypeError, ValueError) as exc:
+                raise ParameterError("flags: expected nested lists of integers") from exc
         return cls(
             arr("omega"),
             h,
@@ -657,6 +769,8 @@ class FrequencyResponse:
             output_labels=doc.get("output_labels"),
             input_labels=doc.get("input_labels"),
             meta=doc.get("meta"),
+            flags=flags,
+            reduced_chi2=None if doc.get("reduced_chi2") is None else arr("reduced_chi2"),
         )
 
     @classmethod
