@@ -152,6 +152,20 @@ def test_sweep_beyond_the_range_never_commands_more_and_says_which_points():
     assert not no_motion[:2].any()
 
 
+def test_the_200khz_sweep_of_the_issue_keeps_within_the_default_range():
+    """sweep.f_max_hz=200000 (once 7e6 input units), reduced to 3 points: every command within
+    the default range, the 200 kHz point limited and flagged (2e-4 px of true motion)."""
+    cfg = load_config(None, SMALL + ["sweep.f_max_hz=200000", "sweep.n=3", "fit.axis=x"])
+    rig = LoggingRig(build_simulated_rig(cfg))
+    res = identify(cfg, rig=rig, progress=False)
+    assert max(rig.peaks) <= DEFAULT_INPUT_LIMIT
+    assert res.limited.tolist() == [False, False, True] and res.frf.meta["limited_hz"] == [pytest.approx(2e5)]
+    _, _, z = res.frf.errors_against(rig.truth(res.frf.omega / (2 * np.pi)))
+    no_motion = (res.fit.flags & NO_MOTION) != 0
+    assert (z[0, 0, :2] < 5).all() and (no_motion[2] or z[0, 0, 2] < 5)
+    assert any("2e+05 Hz" in m and m.startswith("drive: 1 of 3 points limited") for m in res.log)
+
+
 def test_max_amplitude_narrows_the_multisine_peak():
     """The multisine's PEAK (not each tone) stays within excitation.max_amplitude."""
     cfg = load_config(None, SMALL + ["sweep.freq_hz=[100,200,300]", "excitation.kind=multisine", "excitation.tones=3",
