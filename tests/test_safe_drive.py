@@ -166,6 +166,18 @@ def test_the_200khz_sweep_of_the_issue_keeps_within_the_default_range():
     assert any("2e+05 Hz" in m and m.startswith("drive: 1 of 3 points limited") for m in res.log)
 
 
+def test_the_default_range_leaves_the_5khz_run_its_accuracy():
+    """The default camera to 5 kHz (reduced to its top two points): about 126 units for 8 px at
+    5 kHz, within the default 200; no point limited, 1 % / 1 deg held."""
+    cfg = load_config(None, ["sweep.freq_hz=[2000,5000]", "fit.axis=x"])
+    rig = LoggingRig(build_simulated_rig(cfg))
+    res = identify(cfg, rig=rig, progress=False)
+    assert max(rig.peaks) <= DEFAULT_INPUT_LIMIT and 100 < res.amplitude[1] < DEFAULT_INPUT_LIMIT
+    assert not res.limited.any() and res.frf.meta["limited_hz"] == []
+    mag, ph, _ = res.frf.errors_against(rig.truth(np.array([2000.0, 5000.0])))
+    assert np.abs(mag).max() < 0.01 and np.degrees(np.abs(ph)).max() < 1.0
+
+
 def test_max_amplitude_narrows_the_multisine_peak():
     """The multisine's PEAK (not each tone) stays within excitation.max_amplitude."""
     cfg = load_config(None, SMALL + ["sweep.freq_hz=[100,200,300]", "excitation.kind=multisine", "excitation.tones=3",
