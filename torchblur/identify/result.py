@@ -25,8 +25,9 @@ class IdentificationResult:
     :class:`~torchblur.image.tracking.AxisCalibration` that measured it, with ``fit.axis=measure``),
     ``limited`` (np.bool_ per point: driven at the input range's limit, the target motion not
     reached, fitted at the smaller motion; see :mod:`torchblur.identify.drive`) and ``moved_px``
-    (float per point: the motion the point reached, px, from the closed-form moments of its
-    first exposure; a multisine: each tone's expected motion at the amplitudes used).
+    (float per point: the motion the point reached, px: the fitted amplitude, the largest over
+    the spots and image axes, NaN where nothing was fitted; a multisine: each tone's expected
+    motion at the amplitudes used, from its last pilot frame).
 
     One axis, one spot (SISO): ``fit`` batch ``[F]``, ``images`` ``[F, E*R, H, W]``,
     ``windows`` ``[F, E*R]``, ``amplitude`` ``[F]``, ``truth`` complex ``[F]``.
