@@ -22,7 +22,7 @@ import secrets
 import time
 
 from torchblur.hardware.errors import ConnectionLost, DeviceError, GarbageReply, ReplyTimeout
-from torchblur.hardware.protocol import MAX_LINE, PROTOCOL_VERSION, Reply, format_command, parse_reply
+from torchblur.hardware.protocol import E_UNKNOWN, MAX_LINE, PROTOCOL_VERSION, Reply, format_command, parse_reply
 
 __all__ = ["Controller", "import_serial"]
 
@@ -280,6 +280,25 @@ class Controller:
                     "clock": float(f["clock"]), "boot": f["boot"]}
         except (KeyError, ValueError) as exc:
             raise GarbageReply(f"malformed STATUS reply: {f}") from exc
+
+    def input_range(self) -> float | None:
+        """``RANGE?`` -> the device's input range: the largest |command| (input units) its
+        amplifier takes, the peak of any waveform on any axis; None for a controller that
+        does not know the query (``ERR 1 UNKNOWN``: an older firmware). Raises
+        :class:`GarbageReply` for a reply without a finite positive ``amplitude``."""
+        try:
+            r = self.command("RANGE?")
+        except DeviceError as exc:
+            if exc.code == E_UNKNOWN:
+                return None
+            raise
+        try:
+            a = float(r.fields["amplitude"])
+        except (KeyError, ValueError) as exc:
+            raise GarbageReply(f"malformed RANGE reply: {r.fields}") from exc
+        if not (a > 0 and a < float("inf")):
+            raise GarbageReply(f"RANGE reply with an amplitude that is not finite and > 0: {r.fields}")
+        return a
 
     def ping(self, token: str = "p") -> None:
         r = self.command("PING", token)

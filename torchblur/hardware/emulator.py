@@ -57,10 +57,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from torchblur.identify.config import CameraConfig, PlantConfig, SpotsConfig
-from torchblur.errors import ConfigError
+from torchblur.errors import ConfigError, ParameterError
 from torchblur.hardware.frames import CameraInfo, encode_message, frame_message
-from torchblur.hardware.protocol import (E_AXIS, E_BUSY, E_INTERNAL, E_LINE, E_RANGE, MAX_LINE, PROTOCOL_VERSION, ProtocolViolation, format_err,
-                       format_ok, parse_command)
+from torchblur.hardware.protocol import (E_AXIS, E_BUSY, E_INTERNAL, E_LINE, E_RANGE, E_UNKNOWN, MAX_LINE, PROTOCOL_VERSION,
+                                         ProtocolViolation, format_err, format_ok, parse_command)
+from torchblur.rig.base import check_drive, command_peak
 
 __all__ = ["FaultConfig", "EmulatorConfig", "load_emulator_config", "EmulatedDevice", "main"]
 
@@ -92,6 +93,7 @@ class EmulatorConfig:
     frames_port: int = 0  # TCP port of the camera channel (0 = any free port)
     threads: int = 1  # torch threads for rendering
     exit_with_parent: bool = False  # exit when the process that started the emulator ends (tests)
+    range_query: bool = True  # false: an older firmware that answers RANGE? with ERR 1 UNKNOWN (its range still holds)
     fault: FaultConfig = field(default_factory=FaultConfig)
 
 
@@ -114,8 +116,9 @@ def load_emulator_config(path: str | None = None, overrides: list[str] | None = 
     for k in ("serial_port", "frames_port"):
         _num(getattr(cfg, k), k, integer=True, low=0, high=65535)
     _num(cfg.threads, "threads", integer=True, low=1)
-    if not isinstance(cfg.exit_with_parent, bool):
-        raise ConfigError(f"exit_with_parent: expected true or false, got {cfg.exit_with_parent!r}")
+    for k in ("exit_with_parent", "range_query"):
+        if not isinstance(getattr(cfg, k), bool):
+            raise ConfigError(f"{k}: expected true or false, got {getattr(cfg, k)!r}")
     for k in ("timeout_after", "garbage_after", "reset_after", "drop_frame", "stale_frame", "exit_after", "hang_after",
               "disconnect_after"):
         _num(getattr(cfg.fault, k), f"fault.{k}", integer=True, low=-1)
@@ -224,8 +227,9 @@ class FrameServer:
 
 
 SEND_TIMEOUT_S = 2.0
-# The emulated device's ranges (ERR 4 RANGE beyond them).
-DEVICE_RANGES = {"settle_s": 3600.0, "power": 1e6, "freq_hz": 1e5, "amplitude": 1e6}
+# The emulated device's ranges (ERR 4 RANGE beyond them); the command's amplitude (the peak of
+# the waveform) is the simulated plant's input range, plant.input_limit (RANGE? reports it).
+DEVICE_RANGES = {"settle_s": 3600.0, "power": 1e6, "freq_hz": 1e5}
 
 
 def _in_range(value: float, name: str) -> float:
@@ -344,6 +348,10 @@ class EmulatedDevice:
                                  boot=self.boot)
             if w == "PING":
                 return format_ok("PING", token=a[0])
+            if w == "RANGE?":
+                if not self.cfg.range_query:
+                    raise ProtocolViolation(E_UNKNOWN, "unknown command 'RANGE?'")
+                return format_ok("RANGE", amplitude=float(self.rig.input_limit))
             if w == "RESET":
                 self.epoch += 1
                 self._boot_state()
@@ -372,6 +380,13 @@ class EmulatedDevice:
         if te > self.rig.max_exposure_s:
             raise ProtocolViolation(E_RANGE, f"exposure_s: at most {self.rig.max_exposure_s!r} s on this camera, got {te!r}")
 
+    def _check_drive(self, peak: float) -> None:
+        """ERR 4 RANGE for a waveform whose peak |command| exceeds the plant's input range."""
+        try:
+            check_drive(peak, self.rig.input_limit)
+        except ParameterError as exc:
+            raise ProtocolViolation(E_RANGE, str(exc)) from None
+
     def _wave(self, a) -> str:
         axis, mode = a[0], a[1]
         if axis not in self.axes:
@@ -385,10 +400,11 @@ class EmulatedDevice:
             self._fault_base = self.served
         if mode == "SINE":
             _in_range(a[2], "freq_hz")
-            _in_range(a[3], "amplitude")
+            self._check_drive(abs(a[3]))
             self.wave = {"mode": "SINE", "freq_hz": a[2], "amplitude": a[3], "start": self.clock, "period": 1.0 / a[2], "axis": axis}
             return format_ok("WAVE", axis=axis, mode=mode, start=float(self.clock))
         tones = a[2]
+        self._check_drive(command_peak(*zip(*tones), base_freq_hz=tones[0][0]))
         self.wave = {"mode": "MULTI", "tones": tones, "start": self.clock, "period": 1.0 / tones[0][0]}
         return format_ok("WAVE", axis=axis, mode=mode, tones=len(tones), start=float(self.clock))
 

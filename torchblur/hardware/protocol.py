@@ -82,7 +82,8 @@ class Command:
     ``args`` per word: ``PING`` (token,); ``POWER`` (p,); ``SETTLE`` (s or None for AUTO,);
     ``WAVE`` (axis, "SINE", freq_hz, amplitude) or (axis, "MULTI", ((f, a, p), ...));
     ``ARM`` (trigger_offset_s, exposure_s, count); ``PULSE`` (trigger_offset_s,
-    pulse_time_s, pulse_width_s, exposure_s, count); the others ().
+    pulse_time_s, pulse_width_s, exposure_s, count); the others (``ID?``, ``STATUS?``,
+    ``RANGE?``, ``RESET``, ``STOP``) ().
     """
 
     word: str
@@ -171,7 +172,7 @@ def parse_command(line: str | bytes) -> Command:
     word, args = tokens[0], tokens[1:]
     if word == "" or any(t == "" for t in args):
         raise ProtocolViolation(E_ARGS, "empty field: separate the fields by single spaces")
-    if word in ("ID?", "STATUS?", "RESET", "STOP"):
+    if word in ("ID?", "STATUS?", "RANGE?", "RESET", "STOP"):
         _nargs(word, args, 0, "none")
         return Command(word)
     if word == "PING":

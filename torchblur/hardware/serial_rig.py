@@ -28,7 +28,7 @@ from torchblur.hardware.controller import Controller
 from torchblur.hardware.errors import (AcquisitionStopped, ConnectionLost, DeviceError, DeviceReset, FrameGap, FrameMismatch, FrameTimeout,
                      GarbageReply, HardwareError, StaleFrame)
 from torchblur.hardware.frames import CameraInfo, Frame, FrameSource
-from torchblur.rig.base import check_tone_grid, float_list, per_exposure
+from torchblur.rig.base import check_drive, check_tone_grid, command_peak, float_list, per_exposure
 
 __all__ = ["SerialRig", "open_frame_source"]
 
@@ -152,6 +152,12 @@ class SerialRig:
     def readout_s(self) -> float:
         return self.frames.info.readout_s
 
+    @property
+    def input_limit(self) -> float | None:
+        """The controller's input range (``RANGE?``, read on connecting): the largest |command|
+        (input units) it takes; None for a controller that does not answer the query."""
+        return self.device.get("input_limit")
+
     def set_logger(self, log: Callable[[str], None] | None) -> None:
         self._log = log
 
@@ -189,6 +195,7 @@ class SerialRig:
         self.device = c.identify()
         if self.axis not in self.device["axes"]:
             raise DeviceError(5, "AXIS", f"the controller has axes {self.device['axes']}, not {self.axis}", "ID?")
+        self.device["input_limit"] = c.input_range()
         c.stop()
         st = c.status()
         self._boot, self._next = st["boot"], st["frames"]
@@ -392,6 +399,7 @@ class SerialRig:
             raise ParameterError(f"input: the controller drives axes {self.device['axes']}, got {input!r}")
         freq = check_real_scalar(freq_hz, "freq_hz", positive=True)
         amp = check_real_scalar(amplitude, "amplitude")
+        check_drive(amp, self.input_limit)
         power = check_real_scalar(power, "power", nonnegative=True)
         R = check_int(n_repeats, "n_repeats", low=1)
         te = [self._check_exposure(v, "exposures_s") for v in float_list(exposures_s, "exposures_s")]
@@ -428,6 +436,7 @@ class SerialRig:
             tones = [(f0, 0.0, 0.0)] + tones
         # 10 significant digits keep the line short (phase errors ~1e-10 rad) and within MAX_LINE.
         tones = [tuple(float(f"{v:.10g}") for v in t) for t in tones]
+        check_drive(command_peak(*zip(*tones), base_freq_hz=tones[0][0]), self.input_limit)
         from torchblur.hardware.protocol import MAX_LINE, MAX_TONES, format_number
 
         line = f"WAVE {self.axis} MULTI " + ",".join(":".join(format_number(v) for v in t) for t in tones)
@@ -502,4 +511,4 @@ class SerialRig:
 
     def __repr__(self) -> str:
         return (f"SerialRig(port={self.controller.port!r}, frames={self.frames!r}, device={self.device.get('name', '?')}, "
-                f"boot={self._boot})")
+                f"boot={self._boot}, input_limit={self.input_limit})")

@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from torchblur.errors import ParameterError, as_unit_direction
+from torchblur.identify.drive import DriveLimit, at_limit, check_recorded_drive, drive_limit
 from torchblur.identify.record import log_message, run_stage
 from torchblur.image.preprocess import dark_frame, saturation_curve, subtract_dark
 from torchblur.image.psf_from_still import psf_from_still
@@ -52,6 +53,12 @@ class Calibration:
     axis: object = None
     axis_gain: float | None = None
     still_psf: object = None  # one spot: the StillPSF (fit.psf's choice and its evidence), else None
+    drive: DriveLimit | None = None  # the run's input range (every command within drive.limit); None: no limit
+
+    @property
+    def input_limit(self) -> float:
+        """The largest |command| (input units) the run may ask for (inf without a ``drive``)."""
+        return math.inf if self.drive is None else float(self.drive.limit)
 
 
 def calibrate(cfg, rig, exp=None, log=None, progress: bool = False) -> Calibration:
@@ -62,6 +69,12 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False) -> Calibrati
     c = cfg.camera
     gain = float(c.gain)
     dtype = torch.float64
+
+    # 0. The input range, fixed before the first frame (a resumed recording must be within it).
+    drive = drive_limit(rig, cfg.excitation.max_amplitude, exp)
+    if exp is not None and exp.writable:
+        check_recorded_drive(exp, drive.limit)
+    log_message(log, drive.describe(), progress)
 
     # 1. Dark frame.
     dark = dark_frame(run_stage(exp, "dark", "dark", rig, lambda r: r.dark(n=16, exposure_s=min(0.01, c.max_exposure_s))).frames.to(dtype))
@@ -98,7 +111,7 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False) -> Calibrati
         power=c.peak_fraction * full_adu * gain / (peak_rate * pulse_w)))
     log_message(log, f"latency: {latency * 1e6:.3f} +- {latency_std * 1e6:.3f} us", progress)
     cal = Calibration(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=full_adu, psf=psf, peak_rate=peak_rate,
-                      latency_s=latency, latency_std_s=latency_std, gain=gain, spots=spots, still_psf=still_psf)
+                      latency_s=latency, latency_std_s=latency_std, gain=gain, spots=spots, still_psf=still_psf, drive=drive)
 
     # 4b. The actuator's direction in the image (one axis, one spot; a 2x2 plant or many spots
     # fit both image axes).
@@ -137,20 +150,19 @@ def _measure_axis(cfg, rig, cal: Calibration):
     unit)``."""
     c, x = cfg.camera, cfg.excitation
     f = cfg.frequencies_hz()[0]
-    target = float(x.target_px)
+    target, limit = float(x.target_px), cal.input_limit
     # Tracking exposures: 5 % of the period (shorter when the camera's longest exposure is).
     frac = min(0.05, 0.9 * min(float(c.max_exposure_s), float(getattr(rig, "max_exposure_s", c.max_exposure_s))) * f)
     te = frac / f
     power = c.peak_fraction * cal.full_adu * cal.gain / (cal.peak_rate * te)
     A = target / 10.0
     for attempt in range(3):
-        if x.max_amplitude is not None:
-            A = min(A, float(x.max_amplitude))
+        A = min(A, limit)
         axis = calibrate_axes(rig, freq_hz=f, amplitude=A, rest_px=cal.psf.center, dark=cal.dark, gain=cal.gain, n_frames=_AXIS_FRAMES,
                               latency_s=cal.latency_s, trigger_delay_s=c.trigger_delay_s, power=power, noise_e=cal.read_noise_e,
                               exposure_fraction=frac)
         moved = axis.px_per_unit * A
-        if 0.5 * target <= moved <= 2 * target or (x.max_amplitude is not None and A >= x.max_amplitude and moved < 2 * target):
+        if 0.5 * target <= moved <= 2 * target or (at_limit(A, limit) and moved < 2 * target):
             break
         A = target / max(axis.px_per_unit, 1e-12)
     return axis, axis.px_per_unit

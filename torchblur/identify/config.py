@@ -42,12 +42,15 @@ class PlantConfig:
     ``delay_s`` one number (shared) or a 2x2 nested list; the run then excites each input in
     turn and identifies the 2x2 response. ``direction`` (SISO): the simulated spot's image
     motion (x, y) px per plant output unit, e.g. ``[0.985, 0.174]`` for an actuator axis
-    rotated 10 degrees in the camera's image."""
+    rotated 10 degrees in the camera's image. ``input_limit``: the simulated amplifier's input
+    range, the largest |command| (input units, every input) it takes; a command beyond it is
+    refused, and every plan keeps within it (``excitation.max_amplitude`` may only narrow it)."""
 
     num: list = field(default_factory=lambda: list(DEFAULT_PLANT[0]))
     den: list = field(default_factory=lambda: list(DEFAULT_PLANT[1]))
     delay_s: object = 30e-6
     direction: list = field(default_factory=lambda: [1.0, 0.0])
+    input_limit: float = 200.0  # = torchblur.rig.simulated.DEFAULT_INPUT_LIMIT: 8 px at 5 kHz on the default mirror takes ~126
 
     @property
     def is_mimo(self) -> bool:
@@ -450,6 +453,7 @@ def validate_plant(plant: PlantConfig) -> None:
     """Check the ``plant`` section; raise :class:`ConfigError` naming the key. ``num``/``den``
     are flat lists (SISO) or both 2x2 nested lists (a tip-tilt mirror, ``num[i][j]``: output i
     from input j); ``delay_s`` is a number, or for a 2x2 plant a number or 2x2 nested list."""
+    _num(plant.input_limit, "plant.input_limit", positive=True)
     mimo_num, mimo_den = _nested(plant.num), _nested(plant.den)
     direction = _pair(plant.direction, "plant.direction", "[x, y] px per output unit")
     if not mimo_num and not mimo_den:
@@ -628,6 +632,9 @@ def validate(cfg: IdentifyConfig) -> None:
                               f"lower excitation.target_px or raise spots.pitch_px / spots.crop_px")
     if cfg.excitation.max_amplitude is not None:
         _num(cfg.excitation.max_amplitude, "excitation.max_amplitude", positive=True)
+        if cfg.rig.kind == "simulated" and float(cfg.excitation.max_amplitude) > float(cfg.plant.input_limit):
+            raise ConfigError(f"excitation.max_amplitude: {cfg.excitation.max_amplitude} is beyond the simulated plant's input "
+                              f"range plant.input_limit = {cfg.plant.input_limit}; it may only narrow the range, not widen it")
     validate_excitation(cfg.excitation)
     c = cfg.camera
     validate_camera(c)

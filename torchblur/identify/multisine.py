@@ -34,8 +34,9 @@ import numpy as np
 import torch
 
 from torchblur.design.fisher import design_acquisition
-from torchblur.design.multisine import common_grid, multisine_signal, optimise_crest_factor
+from torchblur.design.multisine import common_grid, optimise_crest_factor
 from torchblur.fit.multisine import fit_multisine, render_multisine
+from torchblur.identify.drive import is_limited, limited_summary
 from torchblur.identify.record import RunRecord, progress_bar, run_stage
 from torchblur.identify.result import IdentificationResult
 from torchblur.identify.stages import run_plan
@@ -44,6 +45,7 @@ from torchblur.image.preprocess import subtract_dark
 from torchblur.render.camera import camera_noise_std
 from torchblur.render.psf import GaussianPSF
 from torchblur.render.window import ExposureWindow
+from torchblur.rig.base import command_peak
 from torchblur.sysid.frequency_response import FrequencyResponse
 
 __all__ = ["MultisineIdentificationResult", "MultisinePlan", "identify_multisine", "group_frequencies"]
@@ -132,19 +134,22 @@ class _Group:
 @dataclass
 class _Settings:
     """What every group shares: ``peak_e`` (electrons at the still spot's peak in every
-    frame), ``u`` (the motion's image direction ``[2]``), ``tone_px``, ``amax``, ``tmax`` (s)."""
+    frame), ``u`` (the motion's image direction ``[2]``), ``tone_px``, ``amax`` (the run's input
+    range: the largest peak of the command, input units; inf: none), ``tmax`` (s)."""
 
     peak_e: float
     u: torch.Tensor
     tone_px: float
-    amax: object
+    amax: float
     tmax: float
 
 
 @dataclass
 class MultisineAcquisition:
     """What the multisine sweep collected: per tone ``freq_hz``, ``response``, ``cov``
-    ``[2, 2]``, ``amplitude``; per group ``fits`` and ``groups`` (info dicts); every fitted
+    ``[2, 2]``, ``amplitude``, ``limited`` (the group's peak at the input range's limit, its rms
+    motion short of the target) and ``moved_px`` (the expected motion, px); per group ``fits``
+    and ``groups`` (info dicts); every fitted
     frame's ``images`` (electrons at power 1), ``start``, ``duration`` and ``power``."""
 
     freq_hz: list = field(default_factory=list)
@@ -158,6 +163,8 @@ class MultisineAcquisition:
     duration: list = field(default_factory=list)
     power: list = field(default_factory=list)
     known: list = field(default_factory=list)
+    limited: list = field(default_factory=list)
+    moved_px: list = field(default_factory=list)
     fit_s: float = 0.0
     t_sweep: float = 0.0
     t_acq_end: float = 0.0
@@ -167,7 +174,7 @@ def _settings(cfg, rig, cal) -> _Settings:
     c, x = cfg.camera, cfg.excitation
     return _Settings(peak_e=c.peak_fraction * cal.full_adu * cal.gain,
                      u=torch.tensor(cal.direction if cal.direction is not None else (1.0, 0.0), dtype=_F64),
-                     tone_px=float(x.tone_px) if x.tone_px is not None else 0.75 * float(x.target_px), amax=x.max_amplitude,
+                     tone_px=float(x.tone_px) if x.tone_px is not None else 0.75 * float(x.target_px), amax=cal.input_limit,
                      tmax=min(float(c.max_exposure_s), float(rig.max_exposure_s)))
 
 
@@ -183,12 +190,16 @@ def _group(fg, snap_tol: float, known: list, st: _Settings) -> _Group:
                   te_p=min(1.0 / f0, st.tmax))
 
 
-def _limit(a, phases, grp: _Group, amax):
-    """``a`` scaled down so the command's peak stays within ``amax`` (None: no limit)."""
-    if amax is None:
+def _peak(a, phases, grp: _Group) -> float:
+    """The command's peak (:func:`~torchblur.rig.base.command_peak`, the bound every rig checks)."""
+    return command_peak(grp.f_t, a, phases, grp.f0)
+
+
+def _limit(a, phases, grp: _Group, amax: float):
+    """``a`` scaled down so the command's peak stays within ``amax`` (inf: no limit)."""
+    if amax is None or not math.isfinite(amax):
         return a
-    peak = np.abs(multisine_signal(grp.harm, a, phases, max(1024, 32 * int(grp.harm.max())))).max()
-    return a * min(1.0, float(amax) / peak)
+    return a * min(1.0, float(amax) / _peak(a, phases, grp))
 
 
 def _pilots(r, run, grp: _Group, st: _Settings):
@@ -208,7 +219,7 @@ def _pilots(r, run, grp: _Group, st: _Settings):
         along, vex = moments_along(cen - cal.psf.center, cv - cal.psf.cov, st.u)
         rms = math.sqrt(max(float(vex + along**2), 1e-4))  # rms motion along the axis
         ok = 0.75 * grp.rms_target <= rms <= 1.33 * grp.rms_target
-        at_limit = st.amax is not None and rms < grp.rms_target and np.allclose(_limit(a * 1.01, phases, grp, st.amax), a, rtol=1e-9)
+        at_limit = math.isfinite(st.amax) and rms < grp.rms_target and np.allclose(_limit(a * 1.01, phases, grp, st.amax), a, rtol=1e-9)
         if ok or at_limit or attempt == 2:
             break
         a = _limit(a * grp.rms_target / max(rms, 0.05 * grp.rms_target), phases, grp, st.amax)
@@ -288,6 +299,9 @@ def _fit_group(run, acq: MultisineAcquisition, grp: _Group, st: _Settings, acqui
     acq.response += list(resp)
     acq.cov += list(cov)
     acq.amplitude += a_t.tolist()
+    rms = math.sqrt(float(np.sum(np.asarray(M_exp) ** 2)) / 2)
+    acq.limited += [is_limited(_peak(a_t, phases, grp), rms, grp.rms_target, st.amax)] * N
+    acq.moved_px += [float(m) for m in np.abs(M_exp)]
     run.say(f"multisine group {len(acq.fits) - 1}: tones {', '.join(f'{v:.4g}' for v in grp.f_t)} Hz (f0 {grp.f0:.4g} Hz, harmonics "
             f"{grp.harm.tolist()}), {len(pilot)} pilot(s) + {E - 1} designed frames, {E} fitted (exposures "
             f"{', '.join(f'{t / grp.T0:.2f}' for t in exposures)} T0), predicted std |H| "
@@ -336,8 +350,16 @@ class MultisinePlan:
             info["order"] = rank[pos:pos + n].tolist()
             pos += n
         u = cal.direction if cal.direction is not None else (1.0, 0.0)
+        limited = np.asarray(acq.limited, dtype=bool)[idx]
+        limit = cal.input_limit
+        line = limited_summary(freq, limited, np.asarray(acq.moved_px)[idx], float(run.cfg.excitation.tone_px or
+                               0.75 * float(run.cfg.excitation.target_px)), limit)
+        if line is not None:
+            run.say(line)
         run.frf = FrequencyResponse(2 * np.pi * freq, response, cov=np.asarray(acq.cov)[idx], input_labels=["x"], output_labels=["x"],
-                                    meta={"seed": int(run.cfg.seed), "excitation": "multisine", "direction": [float(v) for v in u]})
+                                    meta={"seed": int(run.cfg.seed), "excitation": "multisine", "direction": [float(v) for v in u],
+                                          "input_limit": float(limit) if math.isfinite(limit) else None,
+                                          "limited_hz": [float(f) for f in freq[limited]]})
         n_bad = int(np.isnan(response).sum())
         run.say(f"fit: {len(freq) - n_bad} of {len(freq)} points converged ({len(acq.groups)} multisine group(s))")
         H, W = run.rig.frame_shape
@@ -358,7 +380,9 @@ class MultisinePlan:
                                              amplitude=np.asarray(acq.amplitude)[idx], latency_s=cal.latency_s,
                                              latency_std_s=cal.latency_std_s, saturation=cal.saturation, images=run.images,
                                              windows=run.windows, power=run.power, truth=run.truth, log=run.log, timing=run.timing,
-                                             groups=acq.groups, direction=cal.direction, axis=cal.axis)
+                                             groups=acq.groups, direction=cal.direction, axis=cal.axis,
+                                             limited=np.asarray(acq.limited, dtype=bool)[idx],
+                                             moved_px=np.asarray(acq.moved_px, dtype=np.float64)[idx])
 
 
 def identify_multisine(cfg, rig, exp, log, progress, cal, t_start: float) -> MultisineIdentificationResult:

@@ -22,14 +22,20 @@ class IdentificationResult:
     overlapped the acquisition), ``inputs`` (the excited inputs), ``spots`` (SpotPSFs or
     None), ``direction`` (one axis, one spot: the unit image direction (x, y) along which the
     motion was fitted; the response is the motion along it) and ``axis`` (the
-    :class:`~torchblur.image.tracking.AxisCalibration` that measured it, with ``fit.axis=measure``).
+    :class:`~torchblur.image.tracking.AxisCalibration` that measured it, with ``fit.axis=measure``),
+    ``limited`` (np.bool_ per point: driven at the input range's limit, the target motion not
+    reached, fitted at the smaller motion; see :mod:`torchblur.identify.drive`) and ``moved_px``
+    (float per point: the motion the point reached, px: the fitted amplitude, the largest over
+    the spots and image axes, NaN where nothing was fitted; a multisine: each tone's expected
+    motion at the amplitudes used, from its last pilot frame).
 
     One axis, one spot (SISO): ``fit`` batch ``[F]``, ``images`` ``[F, E*R, H, W]``,
     ``windows`` ``[F, E*R]``, ``amplitude`` ``[F]``, ``truth`` complex ``[F]``.
     Otherwise (a 2x2 plant and/or K spots; P = K problems per point, or 1): ``fit`` batch
     ``[I*F, P]`` (input-major) with ``axes="xy"``, ``images`` ``[I, F, P, E*R, h, w]``
     (crops of ``h x w`` at ``spots.offset``, or the frame), ``windows`` ``[I, F, E*R]``,
-    ``amplitude`` ``[I*F]``, ``truth`` complex ``[O, I, F]`` like ``frf.response``."""
+    ``amplitude``, ``limited`` and ``moved_px`` ``[I*F]``, ``truth`` complex ``[O, I, F]`` like
+    ``frf.response``. SISO: ``limited`` and ``moved_px`` ``[F]``."""
 
     frf: object
     model: object
@@ -50,3 +56,5 @@ class IdentificationResult:
     direct_model: object = None  # DirectModelFit (model.direct=true) or None
     direction: tuple | None = None
     axis: object = None
+    limited: np.ndarray | None = None  # [F] or [I*F] bool: the point was limited by the input range
+    moved_px: np.ndarray | None = None  # [F] or [I*F]: the motion the point reached (px)

@@ -24,10 +24,12 @@ import torch
 
 from torchblur.design.windows import check_design, dual_exposure_windows
 from torchblur.fit.sinusoid import STATUS, fit_sinusoid
+from torchblur.fit.status import NO_MOTION
 from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.recording import _bind
 from torchblur.identify.assemble import assemble_mimo, assemble_siso, truth_of
 from torchblur.identify.calibration import MIN_INSIDE
+from torchblur.identify.drive import at_limit, is_limited, limited_summary
 from torchblur.identify.fitting import ChunkFitter, concat_fits, squeeze_problems
 from torchblur.identify.model import fit_direct_model
 from torchblur.identify.record import progress_bar
@@ -142,7 +144,9 @@ def point_windows(freq_hz: float, fractions, trigger_phase: float, trigger_delay
 class SineAcquisition:
     """What the sweep collected, per job ``j = input index * F + point index``: ``frames``
     ``[P, E*R, h, w]`` electrons, ``masks`` (usable pixels, same shape), ``windows`` ``[E*R]``,
-    ``amps`` (command amplitude), ``powers`` (laser), ``n_saturated`` (pixels masked);
+    ``amps`` (command amplitude), ``powers`` (laser), ``n_saturated`` (pixels masked),
+    after the fit ``moved_px`` (the motion reached, px) and ``limited`` (at the input range's
+    limit and short of the target, :func:`~torchblur.identify.drive.is_limited`);
     ``omega_job`` ``[J]`` rad/s; ``layout`` the sweep's :class:`SweepLayout`; ``fitter`` fits
     completed jobs as they come."""
 
@@ -153,6 +157,8 @@ class SineAcquisition:
     amps: list = field(default_factory=list)
     powers: list = field(default_factory=list)
     n_saturated: list = field(default_factory=list)
+    moved_px: list = field(default_factory=list)
+    limited: list = field(default_factory=list)
     layout: SweepLayout | None = None
     fitter: ChunkFitter | None = None
     t_sweep: float = 0.0
@@ -244,24 +250,29 @@ def _recorded_point(run, key, f, A, power, moved):
     return cap, A, img, M_est
 
 
+_MAX_ATTEMPTS = 6  # amplitudes tried per point: three, and up to three more for a point still short of its target
+
+
 def _take_point(run, key, inp, k, f, A, power, offset, te, moved):
-    """Drive one point (up to three amplitudes until the spot moves about ``target_px``) and
-    record it. Returns ``(capture, amplitude, images, moved px)``."""
-    cfg, x = run.cfg, run.cfg.excitation
-    target, amax = float(x.target_px), x.max_amplitude
-    for attempt in range(3):
+    """Drive one point (up to three amplitudes, each within the run's input range, until the
+    spot moves about ``target_px``; a point still short of it goes on, up to
+    :data:`_MAX_ATTEMPTS`, until it is at the limit, where the motion it gives is kept) and record it.
+    Returns ``(capture, amplitude, images, moved px)``."""
+    cfg = run.cfg
+    target, limit = float(cfg.excitation.target_px), run.cal.input_limit
+    for attempt in range(_MAX_ATTEMPTS):
         kw = dict(freq_hz=float(f), amplitude=float(A), exposures_s=te, trigger_offset_s=float(offset),
                   n_repeats=int(cfg.sweep.images_per_point), settle_s=cfg.sweep.settle_s, power=float(power))
         if cfg.plant.is_mimo:
             kw["input"] = inp
         cap = run.rig.sine(**kw)
         img, M_est = moved(cap.frames)  # [E, R, P, h, w] electrons
-        ok = 0.75 * target <= M_est <= 1.33 * target or (amax is not None and A >= amax and M_est < 1.33 * target)
-        if ok or attempt == 2:
+        ok = 0.75 * target <= M_est <= 1.33 * target or (at_limit(A, limit) and M_est < 1.33 * target)
+        # past three tries only a point still short of its target goes on, toward the limit (a small
+        # motion's moment estimate has a floor of a few px, so each try gains only a few times)
+        if ok or attempt == _MAX_ATTEMPTS - 1 or (attempt >= 2 and M_est >= 0.75 * target):
             break
-        A = target / (max(M_est, 1e-3) / A)
-        if amax is not None:
-            A = min(A, float(amax))
+        A = min(target / (max(M_est, 1e-3) / A), limit)
     if run.exp is not None and run.exp.writable:
         run.exp.record(key, "sweep", [("sine", _bind("sine", (), kw), cap)],
                        labels={"input": inp, "freq_hz": float(f), "amplitude": float(A), "power": float(power), "point": k,
@@ -276,9 +287,7 @@ def _sweep_point(run, lay: SweepLayout, acq: SineAcquisition, inp: str, k: int, 
     om = 2 * math.pi * f
     offset, win = point_windows(f, lay.fracs, lay.trigger_phase, c.trigger_delay_s, cal.latency_s)
     te = win.duration.tolist()
-    A = float(x.target_px) / gain_est if gain_est else float(x.target_px) / 10.0
-    if x.max_amplitude is not None:
-        A = min(A, float(x.max_amplitude))
+    A = min(float(x.target_px) / gain_est if gain_est else float(x.target_px) / 10.0, cal.input_limit)
     # Laser power: a still spot over the longest exposure would reach peak_fraction of the range.
     power = c.peak_fraction * cal.full_adu * cal.gain / (cal.peak_rate * max(te))
     moved = partial(_moved_px, lay=lay, cal=cal, omega=om, window=win)
@@ -302,6 +311,27 @@ def _sweep_point(run, lay: SweepLayout, acq: SineAcquisition, inp: str, k: int, 
     acq.amps.append(A)
     acq.powers.append(power)
     return max(M_est, 1e-3) / A
+
+
+def _drive_meta(run, lay: SweepLayout) -> dict:
+    """Each point's reached motion (``acq.moved_px``: the fitted amplitude, px, the largest over
+    the spots and image axes; NaN without a fit) and whether the input range limited it
+    (``acq.limited``: at the limit and short of the target, or not fitted); the log line that
+    names those points; the frequency response's entries ``input_limit`` (input units, None:
+    none) and ``limited_hz`` (the frequencies of the limited points, on any input)."""
+    acq, limit, target = run.acquisition, run.cal.input_limit, float(run.cfg.excitation.target_px)
+    amp = run.fit.amplitude.detach().to(_F64).reshape(len(acq.amps), -1)
+    amp = torch.where(torch.isfinite(amp), amp, torch.full_like(amp, -1.0)).amax(1)
+    acq.moved_px = [float(m) if m >= 0 else float("nan") for m in amp.tolist()]
+    acq.limited = [is_limited(A, m, target, limit) for A, m in zip(acq.amps, acq.moved_px)]
+    flags = run.fit.flags
+    no_motion = None if flags is None else ((flags.reshape(len(acq.amps), -1) & NO_MOTION) != 0).any(1).tolist()
+    line = limited_summary(lay.freqs, acq.limited, acq.moved_px, target, limit, tuple(lay.inputs), no_motion)
+    if line is not None:
+        run.say(line)
+    freqs = np.tile(lay.freqs, len(lay.inputs))
+    return {"input_limit": float(limit) if math.isfinite(limit) else None,
+            "limited_hz": sorted({float(f) for f, lim in zip(freqs, acq.limited) if lim})}
 
 
 class SinePlan:
@@ -374,7 +404,7 @@ class SinePlan:
         I, F, ER = len(lay.inputs), len(lay.freqs), lay.E * lay.R
         images = torch.stack(acq.frames)  # [J, P, E*R, h, w]
         windows = self.windows(acq)
-        meta = {"seed": int(run.cfg.seed)}
+        meta = {"seed": int(run.cfg.seed), **_drive_meta(run, lay)}
         if lay.still_psf is not None:
             meta["psf"] = lay.still_psf.kind  # the PSF the points were fitted with: "kernel" or "gaussian"
         if lay.single:
@@ -414,4 +444,5 @@ class SinePlan:
                                     latency_s=cal.latency_s, latency_std_s=cal.latency_std_s, saturation=cal.saturation,
                                     images=run.images, windows=run.windows, power=run.power, truth=run.truth, log=run.log,
                                     timing=run.timing, inputs=tuple(acq.layout.inputs),
-                                    spots=cal.spots, direct_model=run.direct_model, direction=cal.direction, axis=cal.axis)
+                                    spots=cal.spots, direct_model=run.direct_model, direction=cal.direction, axis=cal.axis,
+                                    limited=np.asarray(acq.limited, dtype=bool), moved_px=np.asarray(acq.moved_px, dtype=np.float64))

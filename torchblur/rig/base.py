@@ -17,7 +17,11 @@ import torch
 
 from torchblur.errors import InputTypeError, ParameterError, ShapeError
 
-__all__ = ["Capture", "Rig"]
+__all__ = ["Capture", "Rig", "command_peak", "check_drive", "DRIVE_RTOL"]
+
+#: relative slack of a drive check: a command rounded on its way to the device (the serial
+#: protocol sends tones to 10 significant digits) still passes at the limit
+DRIVE_RTOL = 1e-9
 
 
 @dataclass
@@ -83,6 +87,15 @@ class Rig(Protocol):
     @property
     def readout_s(self) -> float:
         """Readout time Tr (s) after each exposure."""
+        ...
+
+    @property
+    def input_limit(self) -> float | None:
+        """The input range: the largest |command| (input units) the actuator's amplifier takes,
+        on every input (the peak of a multisine, :func:`command_peak`); None where the device
+        does not say (an old controller: the run then needs ``excitation.max_amplitude``).
+        A call that asks for more raises :class:`~torchblur.errors.ParameterError` naming
+        ``amplitude`` (:func:`check_drive`), as a real amplifier would clip."""
         ...
 
     def dark(self, n: int, exposure_s: float) -> Capture:
@@ -189,3 +202,51 @@ def check_tone_grid(freqs: Sequence[float], base_hz: float) -> None:
     if np.any(np.abs(ratio - np.round(ratio)) > 1e-6 * ratio) or np.any(np.round(ratio) < 1):
         raise ParameterError(f"freq_hz: every tone must be a whole multiple of base_freq_hz = {base_hz:g} Hz, got {list(freqs)}")
 
+
+
+# ---------------------------------------------------------------- the drive's range
+
+
+def command_peak(freq_hz, amplitude, phase_rad, base_freq_hz: float | None = None) -> float:
+    """An upper bound of ``max_t |sum_k a_k sin(2 pi f_k t + p_k)|`` (input units), the peak
+    a multisine commands.
+
+    With every tone a whole multiple ``n_k`` of ``base_freq_hz`` (default the lowest tone) the
+    command repeats every ``T0 = 1 / base_freq_hz``: it is sampled at ``S = max(1024, 64 max n_k)``
+    points of a period, and the bound is the sampled maximum plus the most a maximum between
+    samples can exceed it, ``sum_k |a_k| (2 pi n_k)^2 / (8 S^2)`` (Taylor's bound with the
+    largest second derivative), never more than ``sum_k |a_k|``. Off a common grid:
+    ``sum_k |a_k|``. One tone gives ``|a|``.
+
+    Args:
+        freq_hz, amplitude, phase_rad: the N tones (Hz, input units, rad), numbers or ``[N]``.
+        base_freq_hz: f0 (Hz), or None.
+    """
+    f = np.asarray(float_list(freq_hz, "freq_hz"))
+    a = np.abs(np.asarray(float_list(amplitude, "amplitude")))
+    p = np.asarray(float_list(phase_rad, "phase_rad"))
+    if not (f.size == a.size == p.size):
+        raise ShapeError(f"amplitude: expected one value per tone of freq_hz ({f.size}), got {a.size} amplitudes and "
+                         f"{p.size} phases")
+    total = float(a.sum())
+    if f.size == 1:
+        return total
+    base = float(f.min()) if base_freq_hz is None else float(base_freq_hz)
+    n = f / base
+    if base <= 0 or np.any(np.abs(n - np.round(n)) > 1e-6 * n) or np.any(np.round(n) < 1):
+        return total
+    n = np.round(n)
+    S = int(max(1024, 64 * n.max()))
+    s = np.arange(S) / S
+    x = (a[:, None] * np.sin(2 * np.pi * n[:, None] * s + p[:, None])).sum(0)
+    between = float(np.sum(a * (2 * np.pi * n) ** 2)) / (8 * S * S)
+    return min(total, float(np.abs(x).max()) + between)
+
+
+def check_drive(peak: float, limit: float | None, what: str = "amplitude") -> None:
+    """Refuse a command whose peak |command| ``peak`` exceeds ``limit`` (input units; None:
+    no range known) by more than :data:`DRIVE_RTOL`: :class:`~torchblur.errors.ParameterError`
+    naming ``what``."""
+    if limit is not None and not abs(float(peak)) <= float(limit) * (1 + DRIVE_RTOL):
+        raise ParameterError(f"{what}: a command of peak {float(peak):.6g} input units is beyond the input range "
+                             f"+-{float(limit):.6g} of this actuator (its amplifier would clip); refused")

@@ -35,9 +35,14 @@ from torchblur.render.psf import GaussianPSF
 from torchblur.render.blur import RenderSettings, choose_node_count, render_blur
 from torchblur.render.window import ExposureWindow
 from torchblur.render.trajectory import Sinusoid, Trajectory
-from torchblur.rig.base import Capture, check_tone_grid, float_list, per_exposure
+from torchblur.rig.base import Capture, check_drive, check_tone_grid, command_peak, float_list, per_exposure
 
-__all__ = ["SimulatedRig"]
+__all__ = ["SimulatedRig", "DEFAULT_INPUT_LIMIT"]
+
+#: The simulated amplifier's input range (input units): the default mirror (20 px per unit at
+#: DC, 0.064 px per unit at 5 kHz) moves 8 px with about 126 units at 5 kHz. The config's
+#: ``plant.input_limit`` default is the same number (tests/test_safe_drive.py checks).
+DEFAULT_INPUT_LIMIT = 200.0
 
 _F64 = torch.float64
 _MAX_NODES_PER_RENDER = 4096  # longer windows are split into sub-windows (the integral adds up)
@@ -67,6 +72,9 @@ class SimulatedRig:
         jitter_s: rms jitter of the exposure start, per frame.
         peak_e_per_s: peak electrons per second of the still spot at power 1.
         seed: seed of the generator behind every random draw.
+        input_limit: the amplifier's input range: the largest |command| (input units) a
+            :meth:`sine` or :meth:`multisine` may ask for (its peak, every input); a larger
+            one raises :class:`~torchblur.errors.ParameterError` naming ``amplitude``.
         spots: None (one spot), or a :class:`~torchblur.image.spots.SpotGrid` /
             :class:`~torchblur.image.spots.SpotLayout`: K spots in the frame (a Shack-Hartmann
             sensor), each with its own PSF and its own motion ``G_k @ y(t)`` (see
@@ -93,6 +101,7 @@ class SimulatedRig:
         peak_e_per_s: float = 1e6,
         seed: int = 0,
         spots=None,
+        input_limit: float = DEFAULT_INPUT_LIMIT,
     ):
         if not isinstance(plant, (Plant, PlantMatrix)):
             raise InputTypeError(f"plant: expected a torchblur.systems.lti.Plant or torchblur.systems.mimo.PlantMatrix, got {type(plant).__name__}")
@@ -118,6 +127,7 @@ class SimulatedRig:
         self._jitter_s = check_real_scalar(jitter_s, "jitter_s", nonnegative=True)
         self._peak_e_per_s = check_real_scalar(peak_e_per_s, "peak_e_per_s", nonnegative=True)
         self._seed = int(seed)
+        self._input_limit = check_real_scalar(input_limit, "input_limit", positive=True)
 
         if rest_px is None:
             rest = torch.tensor([(W - 1) / 2, (H - 1) / 2], dtype=_F64)
@@ -172,6 +182,11 @@ class SimulatedRig:
     @property
     def readout_s(self) -> float:
         return self._readout_s
+
+    @property
+    def input_limit(self) -> float:
+        """The largest |command| (input units) the simulated amplifier takes."""
+        return self._input_limit
 
     @property
     def trigger_delay_s(self) -> float:
@@ -449,6 +464,7 @@ class SimulatedRig:
             raise ParameterError(f"input: expected one of {self.inputs}, got {input!r}")
         freq = check_real_scalar(freq_hz, "freq_hz", positive=True)
         amp = check_real_scalar(amplitude, "amplitude")
+        check_drive(amp, self._input_limit)
         power = self._check_power(power)
         R = check_int(n_repeats, "n_repeats", low=1)
         te = [self._check_exposure(v, "exposures_s") for v in float_list(exposures_s, "exposures_s")]
@@ -598,6 +614,7 @@ class SimulatedRig:
         phases = [check_real_scalar(v, "phase_rad") for v in phases]
         f0 = min(freqs) if base_freq_hz is None else check_real_scalar(base_freq_hz, "base_freq_hz", positive=True)
         check_tone_grid(freqs, f0)
+        check_drive(command_peak(freqs, amps, phases, f0), self._input_limit)
         R = check_int(n_repeats, "n_repeats", low=1)
         te = [self._check_exposure(v, "exposures_s") for v in float_list(exposures_s, "exposures_s")]
         E = len(te)

@@ -1,0 +1,145 @@
+"""The safe drive: the input range every plan of a run keeps within.
+
+A rig reports its range (:attr:`~torchblur.rig.base.Rig.input_limit`: the largest |command|, in
+input units, its amplifier takes; the simulated plant's ``plant.input_limit``, a controller's
+``RANGE?`` reply); ``excitation.max_amplitude`` may narrow it, never widen it. The run's limit
+(:func:`drive_limit`) is fixed before the first frame; the sweep's amplitude adaptation, the
+axis calibration and the multisine's peak stay within it. A point that cannot reach its target
+motion is driven at the limit, fitted at the smaller motion and reported as ``limited``
+(:func:`limited_summary`). A recording whose commands exceed the limit of the rig it is
+resumed on is refused (:func:`check_recorded_drive`).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from torchblur.errors import ConfigError
+from torchblur.hardware.errors import RecordingError
+from torchblur.rig.base import DRIVE_RTOL, command_peak
+
+__all__ = ["DriveLimit", "drive_limit", "at_limit", "is_limited", "check_recorded_drive", "limited_summary", "SESSION_KEY"]
+
+#: the key of a recording session's rig details that holds the rig's range (replays read it back)
+SESSION_KEY = "input_limit"
+
+
+@dataclass(frozen=True)
+class DriveLimit:
+    """The run's input range: ``limit`` (the largest |command| the run may ask for, input
+    units; inf only when replaying a recording that holds none), ``device`` (the rig's own
+    range, or None where it does not say) and ``source`` (``"device"``,
+    ``"excitation.max_amplitude"`` or ``"recording"``)."""
+
+    limit: float
+    device: float | None
+    source: str
+
+    def describe(self) -> str:
+        """One line for the log."""
+        dev = "not reported" if self.device is None else f"+-{self.device:.6g}"
+        return f"drive: input range +-{self.limit:.6g} input units (device {dev}; from {self.source})"
+
+
+def _recorded_range(exp) -> float | None:
+    """The rig range a recording's last session noted (None: not noted)."""
+    for s in reversed(exp.meta.get("sessions", [])):
+        v = (s.get("rig") or {}).get(SESSION_KEY)
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0:
+            return float(v)
+    return None
+
+
+def drive_limit(rig, max_amplitude, exp=None) -> DriveLimit:
+    """The run's :class:`DriveLimit` from the rig's range and ``excitation.max_amplitude``.
+
+    A rig without the ``input_limit`` attribute replaying a recording ``exp``
+    (:class:`~torchblur.hardware.recording.ReplayRig`: nothing is commanded) has the range the
+    recording's sessions noted, else none (inf: the recording's own amplitudes stand).
+
+    Raises:
+        ConfigError: naming ``excitation.max_amplitude``: it is larger than the rig's range
+            (it may only narrow it), or the rig does not report a range and it is not given
+            (an old controller that does not answer ``RANGE?``).
+    """
+    device = getattr(rig, "input_limit", None)
+    replay = exp is not None and not hasattr(rig, "input_limit")
+    if replay:
+        device = _recorded_range(exp)
+    device = None if device is None else float(device)
+    amax = None if max_amplitude is None else float(max_amplitude)
+    if amax is not None and device is not None and amax > device * (1 + DRIVE_RTOL):
+        raise ConfigError(f"excitation.max_amplitude: {amax:g} is beyond the input range +-{device:g} the rig reports "
+                          f"({rig!r}); it may only narrow the range, not widen it")
+    if amax is not None:
+        return DriveLimit(amax, device, "excitation.max_amplitude")
+    if device is not None:
+        return DriveLimit(device, device, "recording" if replay else "device")
+    if replay:
+        return DriveLimit(math.inf, None, "recording")
+    raise ConfigError(f"excitation.max_amplitude: the rig ({rig!r}) does not report its input range (a controller "
+                      f"that does not answer RANGE?: an older firmware); give excitation.max_amplitude=..., the largest "
+                      f"|command| (input units) the actuator may take, to run on it")
+
+
+def at_limit(amplitude: float, limit: float) -> bool:
+    """Whether a command of peak ``amplitude`` is at the limit (within 1e-9)."""
+    return abs(float(amplitude)) >= float(limit) * (1 - 1e-9)
+
+
+def is_limited(amplitude: float, moved_px: float, target_px: float, limit: float, low: float = 0.75) -> bool:
+    """A point driven at the limit whose motion ``moved_px`` stays below ``low`` times its
+    target (or is NaN: nothing fitted): the range, not the plan, set its motion."""
+    return at_limit(amplitude, limit) and not float(moved_px) >= low * float(target_px)
+
+
+def check_recorded_drive(exp, limit: float) -> None:
+    """Refuse to resume a recording on a rig whose range it exceeds: every recorded ``sine``
+    amplitude and ``multisine`` peak (:func:`~torchblur.rig.base.command_peak`) must be within
+    ``limit``.
+
+    Raises:
+        RecordingError: naming the first group that exceeds it.
+    """
+    if exp is None or not math.isfinite(limit):
+        return
+    seen = set()
+    for ln in exp.lines:
+        key = (ln.get("group"), ln.get("call"))
+        if key in seen or ln.get("method") not in ("sine", "multisine"):
+            continue
+        seen.add(key)
+        a = ln.get("args") or {}
+        try:
+            if ln["method"] == "sine":
+                peak = abs(float(a["amplitude"]))
+            else:
+                peak = command_peak(a["freq_hz"], a["amplitude"], a["phase_rad"], a.get("base_freq_hz"))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise RecordingError(f"{ln.get('group')}: the recorded {ln['method']} call has no readable amplitude ({exc})") from None
+        if not peak <= limit * (1 + DRIVE_RTOL):
+            raise RecordingError(f"{ln.get('group')}: recorded with a command of peak {peak:.6g} input units, beyond the input "
+                                 f"range +-{limit:.6g} of this run's rig; refused (resume it on the rig it was recorded on, or "
+                                 f"record anew)")
+
+
+def limited_summary(freq_hz, limited, moved_px, target_px: float, limit: float, inputs=("x",), no_motion=None) -> str | None:
+    """The log line of the limited points (None when there are none): per point the frequency
+    (Hz), the input when there are several, the motion reached (px) of the target, and where
+    ``no_motion`` (bool per point, or None) says so, that the fit found no significant motion
+    (its value is not a measurement: flagged, see :data:`~torchblur.fit.status.NO_MOTION`)."""
+    lim = np.asarray(limited, dtype=bool).reshape(-1)
+    if not lim.any():
+        return None
+    f = np.asarray(freq_hz, dtype=float).reshape(-1)
+    moved = np.asarray(moved_px, dtype=float).reshape(-1)
+    none = np.zeros_like(lim) if no_motion is None else np.asarray(no_motion, dtype=bool).reshape(-1)
+    F = f.size
+    items = []
+    for j in np.nonzero(lim)[0]:
+        where = f"{f[j % F]:.4g} Hz" + (f" ({inputs[j // F]})" if len(inputs) > 1 else "")
+        items.append(f"{where}: {moved[j]:.3g} px" + (" (no significant motion: flagged, not a measurement)" if none[j] else ""))
+    return (f"drive: {int(lim.sum())} of {lim.size} points limited by the input range +-{limit:.6g} (the target "
+            f"{target_px:g} px not reached; fitted at the smaller motion): " + ", ".join(items))
