@@ -28,10 +28,11 @@ def write_outside(folder, *, dark, still, still_exposure_s: float, points: list,
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     cast = (lambda a: np.asarray(a)) if dtype is None else (lambda a: np.asarray(a).astype(dtype))
-    tifffile.imwrite(folder / "dark.tif", cast(dark))
-    tifffile.imwrite(folder / "still.tif", cast(still))
+    gray = dict(photometric="minisblack")  # a stack of 3 or 4 frames is not a colour image
+    tifffile.imwrite(folder / "dark.tif", cast(dark), **gray)
+    tifffile.imwrite(folder / "still.tif", cast(still), **gray)
     sweep = np.concatenate([np.asarray(p["frames"]) for p in points])
-    tifffile.imwrite(folder / "sweep.tif", cast(sweep))
+    tifffile.imwrite(folder / "sweep.tif", cast(sweep), **gray)
     delay = float(camera.get("trigger_delay_s", 0.0)) + float(camera.get("latency_s", 0.0))
     head = ["file", "page", "kind", "freq_hz", "exposure_s", "trigger_phase_rad" if trigger_phase else "window_start_s",
             "amplitude", "power", "repeat"]

@@ -20,7 +20,7 @@ from __future__ import annotations
 import csv
 import io
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Optional
 
@@ -151,7 +151,11 @@ def _read_camera(root: Path) -> OutsideCamera:
     try:
         cam = load_dataclass(OutsideCamera, str(where), trusted=False)
     except ConfigError as exc:
-        raise RecordingError(f"{YAML_NAME}: {exc}") from None
+        msg = str(exc)
+        if "is not in struct" in msg:  # OmegaConf's words for a key the dataclass does not have
+            known = ", ".join(f.name for f in fields(OutsideCamera))
+            msg = f"{msg.partition(':')[0]}: unknown key (known: {known})"
+        raise RecordingError(f"{YAML_NAME}: {msg}") from None
     if cam.gain_e_per_adu is None:
         raise RecordingError(f"{YAML_NAME}: gain_e_per_adu (electrons per ADU) is required")
     checks = (("gain_e_per_adu", True, False), ("read_noise_e", False, True), ("saturation_adu", False, True),
@@ -273,6 +277,9 @@ def _read_frames(root: Path, rows: list) -> tuple[dict, np.dtype]:
                 with tifffile.TiffFile(io.BytesIO(data)) as tf:
                     series = tf.series[0]
                     s = tuple(series.shape)
+                    if series.axes.endswith("S"):
+                        raise RecordingError(f"{r['file']}: colour frames ({series.axes} {s}); expected grayscale frames [N, H, W] "
+                                             f"or [H, W]")
                     if len(s) < 2 or max(s[-2:]) > MAX_FRAME_SIDE or min(s[-2:]) < 1:
                         raise RecordingError(f"{r['file']}: holds an array of shape {s}; expected frames [N, H, W] or [H, W]")
                     arr = np.asarray(series.asarray()).reshape((-1,) + s[-2:])
