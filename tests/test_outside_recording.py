@@ -20,7 +20,7 @@ from torchblur.hardware.outside import read_outside_recording
 from torchblur.hardware.recording import Experiment
 from torchblur.identify.cli import main
 from torchblur.identify.config import load_config
-from torchblur.identify.outside import identify_outside, moment_direction, outside_config
+from torchblur.identify.outside import fitted_direction, identify_outside, outside_config
 from torchblur.identify.run import identify
 from torchblur.identify.sweep import inflate_std
 from torchblur.image.preprocess import dark_frame, subtract_dark
@@ -99,9 +99,9 @@ def test_trigger_phase_and_delays_give_the_same_windows(sim):
 
 
 def test_measured_axis_agrees_with_the_true_direction(sim):
-    """fit.axis=measure (the default) on an outside recording: the direction from the sweep
-    frames' second moments is within 0.5 deg of the true one, and the response moves by a
-    small fraction of its std."""
+    """fit.axis=measure (the default) on an outside recording: the direction fitted on both
+    image axes is within 0.5 deg of the true one, and the response moves by a small fraction
+    of its std."""
     rec = read_outside_recording(sim["folder"])
     res = identify_outside(rec, outside_config(rec), progress=False)
     got = math.atan2(res.direction[1], res.direction[0])
@@ -110,21 +110,24 @@ def test_measured_axis_agrees_with_the_true_direction(sim):
     z_m = np.abs(res.frf.magnitude - ref.magnitude) / ref.magnitude_std
     z_p = np.abs(res.frf.phase - ref.phase) / ref.phase_std
     assert z_m.max() < 0.3 and z_p.max() < 0.3
-    assert any(line.startswith("axis: ") and "second moments" in line for line in res.log)
+    assert any(line.startswith("axis: ") and "both image axes" in line for line in res.log)
 
 
-def test_moment_direction_of_a_rendered_streak():
-    from torchblur.render.blur import render_blur
-    from torchblur.render.trajectory import Sinusoid
+def test_fitted_direction_of_line_motions():
+    """Points of one line motion (any phase, either sign of the amplitude) give its direction,
+    pointed toward +x; the std follows the amplitude stds; no converged point gives None."""
+    import types
 
-    psf = GaussianPSF.isotropic(torch.tensor([20.0, 18.0], dtype=torch.float64), torch.tensor(1.5, dtype=torch.float64), 1e5)
-    u = torch.tensor([math.cos(-2.0), math.sin(-2.0)], dtype=torch.float64)  # points toward -x: the answer is -u
-    om = 2 * math.pi * 100
-    win = ExposureWindow(torch.tensor([1e-3, 1e-3], dtype=torch.float64), torch.tensor([3e-3, 8e-3], dtype=torch.float64))
-    frames = render_blur(Sinusoid(6 * u, torch.tensor([0.4, 0.4], dtype=torch.float64), om), psf, win, height=40, width=40)
-    still = render_blur(Sinusoid(0 * u, torch.zeros(2, dtype=torch.float64), om), psf, ExposureWindow(0.0, 1e-3), height=40, width=40)
-    d, std, ratio = moment_direction(still, [frames], 1, 1.0)
-    assert d[0] > 0 and abs(d[0] * u[1] - d[1] * u[0]) < 1e-3 and ratio < 0.05
+    th = -2.0  # the motion along (cos, sin) of it: toward -x, so the answer is its opposite
+    M = torch.tensor([[3.0], [5.0], [2.0]], dtype=torch.float64) * torch.tensor([abs(math.cos(th)), abs(math.sin(th))], dtype=torch.float64)
+    # cos and sin < 0: both axes move in phase (the same sign), at any phase; the last point's amplitude is negative
+    phi = torch.tensor([[0.3, 0.3], [1.0, 1.0], [-2.0 + math.pi, -2.0 - math.pi]], dtype=torch.float64)
+    fit = types.SimpleNamespace(amplitude=M, phase=phi, amplitude_std=torch.full_like(M, 0.01), converged=torch.ones(3, dtype=torch.bool))
+    u, std, ratio = fitted_direction(fit)
+    assert u[0] > 0 and math.atan2(u[1], u[0]) == pytest.approx(th + math.pi, abs=1e-12) and ratio == pytest.approx(0, abs=1e-12)
+    assert 0 < std < 0.01 / 2
+    fit.converged = torch.zeros(3, dtype=torch.bool)
+    assert fitted_direction(fit)[0] is None
 
 
 # ------------------------------------------------------------------------------ HCIPy frames
@@ -321,3 +324,11 @@ def test_outside_config_refuses_other_sections(good):
         outside_config(rec, ["sweep.n=3"])
     cfg = outside_config(rec, ["fit.loss=poisson", "seed=3"])
     assert cfg.fit.loss == "poisson" and cfg.seed == 3 and cfg.camera.gain == 2.0 and cfg.sweep.freq_hz == [50.0, 100.0]
+
+
+def test_saturated_still_frames_are_refused(good):
+    """A clipped still spot would give a wrong PSF, and every fit with it a wrong answer: refused."""
+    (good / "recording.yaml").write_text("gain_e_per_adu: 2.0\nsaturation_adu: 105\n")
+    rec = read_outside_recording(good)
+    with pytest.raises(RecordingError, match=r"still frames have \d+ saturated pixel\(s\).*shorter exposure_s"):
+        identify_outside(rec, progress=False)

@@ -1,9 +1,10 @@
 """An outside recording (:mod:`torchblur.hardware.outside`) through the identification's own
 stages: the folder becomes the run record's calibration (:func:`outside_calibration`: the
 dark level and read noise from the dark frames, the PSF from the still frames by the same
-:func:`~torchblur.identify.calibration` code as ``identify``, the motion's image direction)
+:mod:`~torchblur.identify.calibration` code as ``identify``, the timing)
 and its sweep (:class:`OutsidePlan`: the sine plan whose sweep stage reads the recorded
-points instead of driving a rig). The fit, assemble, model and report stages are the sine
+points instead of driving a rig, and with ``fit.axis=measure`` fits them on both image axes
+for the motion's direction). The fit, assemble, model and report stages are the sine
 plan's (:func:`~torchblur.identify.stages.run_plan`): no fitting logic here.
 
 :func:`identify_outside` runs it; ``torchblur fit FOLDER`` calls it for a folder with a
@@ -18,11 +19,11 @@ import time
 from dataclasses import replace
 from functools import partial
 
-import numpy as np
 import torch
 
 from torchblur.design.windows import check_design
 from torchblur.errors import ConfigError, InputTypeError, as_unit_direction
+from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.outside import OutsideRecording
 from torchblur.identify.calibration import Calibration, _still_psf
 from torchblur.identify.config import IdentifyConfig, load_config
@@ -31,13 +32,12 @@ from torchblur.identify.record import RunRecord, console_logging, log_message
 from torchblur.identify.result import IdentificationResult
 from torchblur.identify.stages import run_plan
 from torchblur.identify.sweep import SineAcquisition, SinePlan, fit_points, sweep_layout
-from torchblur.image.moments import image_moments
 from torchblur.image.preprocess import dark_frame, subtract_dark
 from torchblur.image.saturation import SaturationCurve
 from torchblur.render.window import ExposureWindow
 from torchblur.sysid.frequency_response import FrequencyResponse
 
-__all__ = ["OutsidePlan", "identify_outside", "moment_direction", "outside_calibration", "outside_config"]
+__all__ = ["OutsidePlan", "fitted_direction", "identify_outside", "outside_calibration", "outside_config"]
 
 _F64 = torch.float64
 ALLOWED = ("fit.", "model.")  # what a user may set for an outside recording (the rest is the recording's)
@@ -65,53 +65,41 @@ def outside_config(rec: OutsideRecording, overrides=()) -> IdentifyConfig:
     return replace(cfg, camera=camera, sweep=sweep, rig=replace(cfg.rig, kind="outside"))
 
 
-def moment_direction(still_e: torch.Tensor, points_e: list, R: int, read_noise_e: float):
-    """The motion's image direction from the blur's second moments: each exposure's (its
-    repeats averaged) covariance minus the still spot's is ``var(s) u u^T`` for a motion
-    ``s(t) u``; ``u`` is the leading eigenvector of their sum, pointed toward +x (as
-    ``fit.axis=measure``: the FRF's phase carries the sign).
-
-    Args:
-        still_e: the mean still frame ``[H, W]`` (dark subtracted, electrons).
-        points_e: per point, frames ``[E*R, H, W]`` (dark subtracted, electrons, exposure-major).
-        R: images per exposure.
-        read_noise_e: the moments count pixels above 3 read-noise stds.
+def fitted_direction(fit):
+    """The motion's image direction from a fit of the points on both image axes (batch
+    ``[J]``, ``axes="xy"``): with ``c[j] = (M_x e^{i phi_x}, M_y e^{i phi_y})`` a line motion
+    has ``c[j]`` real up to one phase, and ``u`` is the leading eigenvector of
+    ``sum_j Re(c[j] c[j]^H)`` (the converged points), pointed toward +x (as ``fit.axis=measure``:
+    the FRF's phase carries the sign).
 
     Returns:
-        ``(u (x, y) or None, angle std rad, minor / major eigenvalue ratio)``; ``u`` is None
-        when the excess has no positive leading eigenvalue (no motion seen).
+        ``(u (x, y) or None, angle std rad, across / along ratio)``: the std combines each
+        point's ``hypot(M_x s_y, M_y s_x) / |M|^2`` (as :func:`~torchblur.image.tracking.calibrate_axes`);
+        the ratio is the eigenvalues' (0 for a straight line). ``u`` is None without a
+        converged point that moved.
     """
-    thr = 3 * float(read_noise_e)
-    _, _, cov0 = image_moments(still_e, threshold=thr)
-    per_point = []
-    for fr in points_e:
-        mean = fr.reshape(fr.shape[0] // R, R, *fr.shape[-2:]).mean(1)
-        _, _, cov = image_moments(mean, threshold=thr)  # [E, 2, 2]
-        per_point.append((cov - cov0).sum(0))
-    S = torch.stack(per_point).sum(0)
-    lam, vec = torch.linalg.eigh(S)
-    if not (torch.isfinite(lam).all() and float(lam[1]) > 0):
+    ok = fit.converged.reshape(-1)
+    amp, ph = fit.amplitude.reshape(-1, 2)[ok], fit.phase.reshape(-1, 2)[ok]
+    std = fit.amplitude_std.reshape(-1, 2)[ok]
+    c = torch.polar(amp, ph)  # [J, 2] complex
+    Z = (c[:, :, None] * c[:, None, :].conj()).real.sum(0)
+    if not bool(ok.any()) or not bool(torch.isfinite(Z).all()):
+        return None, math.nan, math.nan
+    lam, vec = torch.linalg.eigh(Z)
+    if float(lam[1]) <= 0:
         return None, math.nan, math.nan
     u = vec[:, 1]
     if float(u[0]) < 0 or (float(u[0]) == 0 and float(u[1]) < 0):
         u = -u
-    ang = math.atan2(float(u[1]), float(u[0]))
-    # scatter of the points' own directions (mod pi) about the common one
-    devs = []
-    for Sk in per_point:
-        lk, vk = torch.linalg.eigh(Sk)
-        if float(lk[1]) > 0:
-            d = math.atan2(float(vk[1, 1]), float(vk[0, 1])) - ang
-            devs.append((d + math.pi / 2) % math.pi - math.pi / 2)
-    std = float(np.std(devs, ddof=1) / math.sqrt(len(devs))) if len(devs) > 1 else math.nan
-    return (float(u[0]), float(u[1])), std, float(lam[0] / lam[1])
+    s_j = torch.hypot(amp[:, 0] * std[:, 1], amp[:, 1] * std[:, 0]) / (amp ** 2).sum(-1).clamp_min(1e-300)
+    return (float(u[0]), float(u[1])), float((1 / s_j ** 2).sum() ** -0.5), float(lam[0].clamp_min(0) / lam[1])
 
 
 def outside_calibration(rec: OutsideRecording, cfg: IdentifyConfig, log: list, progress: bool = False) -> Calibration:
     """The calibration of ``rec``: the dark frame and read noise (``recording.yaml``'s
     ``read_noise_e``, else measured), the saturation level, the PSF of the still frames
     (``fit.psf``, as ``identify``), the timing, and the motion's image direction
-    (``fit.axis``: given, or ``measure``: :func:`moment_direction` of the sweep frames)."""
+    (``fit.axis`` given; with ``measure`` it is left None for :class:`OutsidePlan`'s sweep)."""
     c = rec.camera
     gain = float(c.gain_e_per_adu)
     dark = dark_frame(torch.as_tensor(rec.dark, dtype=_F64))
@@ -126,7 +114,13 @@ def outside_calibration(rec: OutsideRecording, cfg: IdentifyConfig, log: list, p
                           residual_rms_adu=nan, saturated_in_data=False)
     log_message(log, f"saturation: {float(sat_adu):.0f} ADU " + ("(recording.yaml)" if c.saturation_adu is not None else
                                                                   "(none given for float frames: no pixel is masked)"), progress)
-    still_e = subtract_dark(torch.as_tensor(rec.still, dtype=_F64), dark) * gain
+    still_raw = torch.as_tensor(rec.still, dtype=_F64)
+    clipped = int((~sat.mask(still_raw) & ~dark.hot_pixels).sum())
+    if clipped:
+        raise RecordingError(f"{rec.path}: the still frames have {clipped} saturated pixel(s) (at or within 1% below saturation_adu "
+                             f"{float(sat_adu):.6g}, hot pixels aside); the PSF needs unsaturated still frames: take them with a shorter "
+                             f"exposure_s or less light")
+    still_e = subtract_dark(still_raw, dark) * gain
     still_psf = _still_psf(cfg, still_e, float(rec.still_exposure_s), read_noise_e, log, progress)
     psf = still_psf.gaussian.psf
     cal = Calibration(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=float(sat_adu - level), psf=psf,
@@ -135,17 +129,7 @@ def outside_calibration(rec: OutsideRecording, cfg: IdentifyConfig, log: list, p
     log_message(log, f"timing: latency {c.latency_s * 1e6:.3f} +- {c.latency_std_s * 1e6:.3f} us, jitter {c.jitter_s * 1e6:.3f} us "
                      f"(recording.yaml)", progress)
     mode = cfg.fit.axis
-    if mode == "measure":
-        pts = [subtract_dark(torch.as_tensor(p.frames, dtype=_F64), dark) * gain for p in rec.points]
-        u, std, ratio = moment_direction(still_e.mean(0), pts, rec.points[0].R, read_noise_e)
-        if u is None:
-            cal.direction = (1.0, 0.0)
-            log_message(log, "axis: no motion in the sweep frames' second moments: the motion is fitted along x", progress)
-        else:
-            cal.direction = u
-            log_message(log, f"axis: {math.degrees(math.atan2(u[1], u[0])):.3f} +- {math.degrees(std):.3f} deg from +x (the sweep "
-                             f"frames' second moments, {len(pts)} point(s); across / along {ratio:.2g})", progress)
-    else:
+    if mode != "measure":  # else the sweep stage measures it from the recorded points (fitted_direction)
         d = as_unit_direction({"x": (1.0, 0.0), "y": (0.0, 1.0)}[mode] if isinstance(mode, str) else mode, "fit.axis",
                               like=torch.zeros((), dtype=_F64))
         cal.direction = (float(d[0]), float(d[1]))
@@ -162,35 +146,57 @@ class OutsidePlan(SinePlan):
         self.rec = rec
 
     def sweep(self, run) -> None:
+        """The sweep stage: every recorded point into the acquisition (and, with
+        ``fit.axis=measure``, the direction measured from them: :meth:`measure_axis`)."""
         rec, cal, cfg = self.rec, run.cal, run.cfg
         R = rec.points[0].R
+        measure = cal.direction is None
+        if measure:
+            cal.direction = (1.0, 0.0)  # for the layout until it is measured
         lay = sweep_layout(cfg, cal, rec.frame_shape)
         lay = replace(lay, fracs=[float(d * rec.points[0].freq_hz) for d in rec.points[0].duration_s[::R]], R=R)
         acq = SineAcquisition(omega_job=torch.tensor([2 * math.pi * p.freq_hz for p in rec.points], dtype=_F64), layout=lay)
-        acq.fitter = ChunkFitter(int(cfg.fit.chunk_points), partial(fit_points, acq, lay, cfg, cal.read_noise_e))
         run.acquisition, acq.t_sweep = acq, time.perf_counter()
-        try:
-            for k, p in enumerate(rec.points):
-                raw = torch.as_tensor(p.frames, dtype=_F64)  # [E*R, H, W] ADU
-                acq.frames.append((subtract_dark(raw, cal.dark) * cal.gain)[None])  # [1, E*R, H, W] e-
-                usable = cal.saturation.mask(raw)
-                acq.n_saturated.append(int((~usable).sum()))
-                acq.masks.append(usable[None])
-                acq.windows.append(ExposureWindow(torch.as_tensor(p.start_s, dtype=_F64), torch.as_tensor(p.duration_s, dtype=_F64)))
-                acq.amps.append(p.amplitude)
-                acq.powers.append(p.power)
-                acq.fitter.add(k)
-            acq.t_acq_end = time.perf_counter()
-            win = self.windows(acq)
-            for msg in check_design(acq.omega_job, win[:, ::R] if R > 1 else win, warn=False):
-                run.say(f"design: warning: {msg}")
-            n_sat = sum(acq.n_saturated)
-            if n_sat:
-                run.say(f"saturation: {n_sat} saturated pixels masked out of the fit")
-            run.say(f"recording: {len(rec.points)} point(s) of {lay.E} exposure(s) x {R} image(s), {rec.n_frames} frames, from {rec.path}")
-        except BaseException:
-            acq.fitter.close()
-            raise
+        for p in rec.points:
+            raw = torch.as_tensor(p.frames, dtype=_F64)  # [E*R, H, W] ADU
+            acq.frames.append((subtract_dark(raw, cal.dark) * cal.gain)[None])  # [1, E*R, H, W] e-
+            usable = cal.saturation.mask(raw)
+            acq.n_saturated.append(int((~usable).sum()))
+            acq.masks.append(usable[None])
+            acq.windows.append(ExposureWindow(torch.as_tensor(p.start_s, dtype=_F64), torch.as_tensor(p.duration_s, dtype=_F64)))
+            acq.amps.append(p.amplitude)
+            acq.powers.append(p.power)
+        if measure:
+            lay = acq.layout = self.measure_axis(run, acq, lay)
+        acq.fitter = ChunkFitter(int(cfg.fit.chunk_points), partial(fit_points, acq, lay, cfg, cal.read_noise_e))
+        for k in range(len(rec.points)):
+            acq.fitter.add(k)
+        acq.t_acq_end = time.perf_counter()
+        win = self.windows(acq)
+        for msg in check_design(acq.omega_job, win[:, ::R] if R > 1 else win, warn=False):
+            run.say(f"design: warning: {msg}")
+        n_sat = sum(acq.n_saturated)
+        if n_sat:
+            run.say(f"saturation: {n_sat} saturated pixels masked out of the fit")
+        run.say(f"recording: {len(rec.points)} point(s) of {lay.E} exposure(s) x {R} image(s), {rec.n_frames} frames, from {rec.path}")
+
+    @staticmethod
+    def measure_axis(run, acq: SineAcquisition, lay):
+        """``fit.axis=measure``: fit every point on both image axes (the sweep's own fit,
+        ``axes="xy"``), take :func:`fitted_direction`, set ``run.cal.direction`` and return
+        the layout that fits along it (x, logged, where no motion is seen)."""
+        cal = run.cal
+        both = replace(lay, axes="xy", single=False)
+        fit = fit_points(acq, both, run.cfg, cal.read_noise_e, list(range(len(acq.frames))))
+        u, std, ratio = fitted_direction(fit)
+        if u is None:
+            run.say("axis: no converged point moved in the fit on both image axes: the motion is fitted along x")
+            u = (1.0, 0.0)
+        else:
+            run.say(f"axis: {math.degrees(math.atan2(u[1], u[0])):.3f} +- {math.degrees(std):.3f} deg from +x (fitted on both image "
+                    f"axes at {int(fit.converged.sum())} point(s); across / along {ratio:.2g})")
+        cal.direction = u
+        return replace(lay, axes=u, moment_dirs=[torch.tensor(u, dtype=_F64)])
 
     def assemble(self, run) -> None:
         """The sine plan's assemble stage; the FRF's meta says where the frames came from."""
