@@ -11,7 +11,8 @@ electrons). Two routes on the same frames:
   model from the still frames, two passes (``hcipy_frames.fit_problems``, bench_hcipy's route);
   its std times ``StillPSF.kernel_noise_factor``;
 - outside: each problem written as an outside recording (``tests/outside_folder.write_outside``:
-  float TIFF stacks, ``--n-dark`` dark frames of the same background and noise, gain 1 e-/ADU,
+  float TIFF stacks, ``--n-dark`` dark frames of the same background and noise (128 by default: 4
+  per still frame, as docs/outside_recordings.md asks; 16 shows the dark's own noise), gain 1 e-/ADU,
   amplitude 1 input unit so that |H| is M in px), then ``torchblur fit FOLDER --out OUT``
   in-process (``torchblur.identify.cli.main``) with the default settings: ``fit.psf=auto`` and
   ``fit.axis=measure`` (the direction from the sweep frames' second moments), or with
@@ -21,7 +22,7 @@ Prints, per route: worst |M| error (%), worst |phase| error (deg), rms(error / s
 phi, gross errors (|error| > 5 std, a status other than 0, or |phase error| > 30 deg); then the
 largest difference between the routes (%, deg, and in the direct route's std).
 
-    python benchmarks/bench_outside.py [--n 40] [--n-still 32] [--n-dark 16] [--n-time 2000] [--given-axis] [--threads 1]
+    python benchmarks/bench_outside.py [--n 40] [--n-still 32] [--n-dark 128] [--n-time 2000] [--given-axis] [--threads 1]
 """
 from __future__ import annotations
 
@@ -98,7 +99,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=40)
     ap.add_argument("--n-still", type=int, default=32)
-    ap.add_argument("--n-dark", type=int, default=16)
+    ap.add_argument("--n-dark", type=int, default=128)
     ap.add_argument("--n-time", type=int, default=2000)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)

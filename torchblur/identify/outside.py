@@ -40,6 +40,7 @@ from torchblur.sysid.frequency_response import FrequencyResponse
 __all__ = ["OutsidePlan", "fitted_direction", "identify_outside", "outside_calibration", "outside_config"]
 
 _F64 = torch.float64
+DARKS_PER_STILL = 4  # fewer dark frames than this many per still frame: the dark's own noise shows in the errors (logged)
 ALLOWED = ("fit.", "model.")  # what a user may set for an outside recording (the rest is the recording's)
 
 
@@ -108,6 +109,12 @@ def outside_calibration(rec: OutsideRecording, cfg: IdentifyConfig, log: list, p
     log_message(log, f"dark: level {float(level):.2f} ADU, read noise {read_noise_e:.2f} e- "
                      f"({'recording.yaml' if c.read_noise_e is not None else f'from {dark.n_frames} dark frames'}), "
                      f"{int(dark.hot_pixels.sum())} hot pixels", progress)
+    n_still = len(rec.still)
+    if dark.n_frames < DARKS_PER_STILL * n_still:
+        log_message(log, f"dark: warning: {dark.n_frames} dark frames for {n_still} still frames: the dark level's own noise "
+                         f"({read_noise_e / math.sqrt(dark.n_frames):.2g} e- per pixel) is subtracted from the PSF and from every frame "
+                         f"and is in no std (HCIPy benchmark, 32 still frames: phase rms(error/std) 1.29 with 16 dark frames, 0.98 with "
+                         f"128); take at least {DARKS_PER_STILL * n_still} dark frames", progress)
     sat_adu = torch.tensor(math.inf if c.saturation_adu is None else float(c.saturation_adu), dtype=_F64)
     nan = torch.tensor(math.nan, dtype=_F64)
     sat = SaturationCurve(slope_adu_per_s=nan, offset_adu=level, saturation_adu=sat_adu, linear_limit_s=torch.tensor(math.inf, dtype=_F64),
