@@ -60,8 +60,8 @@ def sim(tmp_path_factory):
     cfg = load_config(None, SIM)
     res = identify(cfg, progress=False, record=d / "run")
     exp = Experiment.open(d / "run", writable=False)
-    return dict(cfg=cfg, res=res, folder=export(exp, res, cfg, d / "outside"), phase_folder=export(exp, res, cfg, d / "phase", trigger_phase=True),
-                root=d)
+    return dict(cfg=cfg, res=res, folder=export(exp, res, cfg, d / "outside"),
+                phase_folder=export(exp, res, cfg, d / "phase", trigger_phase=True), root=d)
 
 
 def _listing(folder: Path) -> dict:
@@ -144,7 +144,8 @@ def hcipy_folders(tmp_path_factory):
         p = hf.make_problem(300 + k, rotated=bool(k % 2), n_time=1000, n_still=16)
         rng = np.random.default_rng(50 + k)
         dark = hf.camera_noise(np.zeros((16,) + p["frames"].shape[-2:]), rng)
-        folder = write_outside(d / f"p{k}", dark=dark, still=p["still"], still_exposure_s=p["still_exposure"], camera=dict(gain_e_per_adu=1.0),
+        folder = write_outside(d / f"p{k}", dark=dark, still=p["still"], still_exposure_s=p["still_exposure"],
+                               camera=dict(gain_e_per_adu=1.0),
                                points=[dict(freq_hz=p["freq_hz"], amplitude=1.0, frames=p["frames"], start_s=p["window"].start.numpy(),
                                             duration_s=p["window"].duration.numpy())])
         out.append((p, folder, dark))
@@ -217,6 +218,7 @@ def test_a_good_folder_reads(good):
     assert rec.frame_shape == (12, 16) and rec.dark.shape == (3, 12, 16) and rec.still.shape == (2, 12, 16)
     assert [p.freq_hz for p in rec.points] == [50.0, 100.0] and all(p.E == 2 and p.R == 2 for p in rec.points)
     assert rec.camera.saturation_adu == 65535.0  # uint16 frames, none given
+    assert "uint16 maximum" in rec.saturation_source
 
 
 # the data lines: 2-4 dark, 5-6 still, 7-10 the 50 Hz point, 11-14 the 100 Hz point
@@ -231,6 +233,7 @@ def test_a_good_folder_reads(good):
     (_set(10, "page", "1.5"), ["line 10", "column page", "integer"]),
     (_set(11, "file", "../sweep.tif"), ["line 11", "column file", "leaves"]),
     (_set(11, "file", "missing.tif"), ["line 11", "column file", "missing.tif"]),
+    (_set(8, "page", "0"), ["line 8", "file / page", "already line 7"]),
     (_set(12, "window_start_s", "2e-3"), ["lines", "100 Hz", "repeats"]),
     (_set(6, "exposure_s", "2e-3"), ["line", "exposure_s", "still"]),
     (lambda rows: [[c for i, c in enumerate(r) if i != rows[0].index("kind")] for r in rows], ["line 1", "'kind'", "missing"]),

@@ -20,6 +20,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import posixpath
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Optional
@@ -93,7 +94,8 @@ class OutsideRecording:
     """A checked outside recording: ``path``, ``camera`` (:class:`OutsideCamera`, saturation
     resolved), ``dark`` ``[Nd, H, W]`` and ``still`` ``[Ns, H, W]`` (ADU, float64),
     ``still_exposure_s``, ``points`` (:class:`OutsidePoint`, increasing frequency),
-    ``frame_shape`` (H, W) and ``n_frames`` (rows read)."""
+    ``frame_shape`` (H, W), ``n_frames`` (rows read) and ``saturation_source`` (where
+    ``camera.saturation_adu`` came from, in words)."""
 
     path: Path
     camera: OutsideCamera
@@ -103,6 +105,7 @@ class OutsideRecording:
     points: tuple
     frame_shape: tuple
     n_frames: int
+    saturation_source: str = ""
 
 
 def is_outside_recording(path) -> bool:
@@ -124,7 +127,15 @@ def read_outside_recording(path) -> OutsideRecording:
     camera = _read_camera(root)
     rows = _read_rows(root)
     frames, dtype = _read_frames(root, rows)
+    given = camera.saturation_adu is not None
     camera = _resolved_saturation(camera, dtype)
+    if given:
+        source = f"{camera.saturation_adu:.6g} ADU (recording.yaml)"
+    elif camera.saturation_adu is not None:
+        source = (f"{camera.saturation_adu:.6g} ADU (the {np.dtype(dtype).name} maximum; give saturation_adu in {YAML_NAME} if the "
+                  f"sensor clips lower)")
+    else:
+        source = f"none (float frames and no saturation_adu in {YAML_NAME}: no pixel is masked)"
     by_kind = {k: [r for r in rows if r["kind"] == k] for k in KINDS}
     for kind, least in (("dark", 2), ("still", 1), ("sweep", 1)):
         if len(by_kind[kind]) < least:
@@ -137,7 +148,7 @@ def read_outside_recording(path) -> OutsideRecording:
     points = _points(by_kind["sweep"], frames, camera)
     take = lambda kind: np.stack([frames[r["line"]] for r in by_kind[kind]])  # noqa: E731
     return OutsideRecording(path=root, camera=camera, dark=take("dark"), still=take("still"), still_exposure_s=te.pop(),
-                            points=points, frame_shape=tuple(frames[rows[0]["line"]].shape), n_frames=len(rows))
+                            points=points, frame_shape=tuple(frames[rows[0]["line"]].shape), n_frames=len(rows), saturation_source=source)
 
 
 def _read_camera(root: Path) -> OutsideCamera:
@@ -264,10 +275,14 @@ def _read_frames(root: Path, rows: list) -> tuple[dict, np.dtype]:
     once), and the files' dtype. All frames must share one shape and one dtype."""
     import tifffile
 
-    stacks, out = {}, {}
+    stacks, out, seen = {}, {}, {}
     shape = dtype = None
     for r in rows:
         where = f"{CSV_NAME} line {r['line']}, column file"
+        first = seen.setdefault((posixpath.normpath(r["file"]), r["page"]), r["line"])
+        if first != r["line"]:  # one frame counted twice would make its point's stds too small
+            raise RecordingError(f"{CSV_NAME} line {r['line']}, columns file / page: {r['file']} page {r['page']} is already line {first}; "
+                                 f"each frame may be listed once")
         if r["file"] not in stacks:
             path = inside(root, r["file"], where)
             if not path.is_file():

@@ -113,14 +113,13 @@ def outside_calibration(rec: OutsideRecording, cfg: IdentifyConfig, log: list, p
     if dark.n_frames < DARKS_PER_STILL * n_still:
         log_message(log, f"dark: warning: {dark.n_frames} dark frames for {n_still} still frames: the dark level's own noise "
                          f"({read_noise_e / math.sqrt(dark.n_frames):.2g} e- per pixel) is subtracted from the PSF and from every frame "
-                         f"and is in no std (HCIPy benchmark, 32 still frames: phase rms(error/std) 1.29 with 16 dark frames, 0.98 with "
-                         f"128); take at least {DARKS_PER_STILL * n_still} dark frames", progress)
+                         f"and is in no std, so the stds may understate the errors (docs/outside_recordings.md); take at least "
+                         f"{DARKS_PER_STILL * n_still} dark frames", progress)
     sat_adu = torch.tensor(math.inf if c.saturation_adu is None else float(c.saturation_adu), dtype=_F64)
     nan = torch.tensor(math.nan, dtype=_F64)
     sat = SaturationCurve(slope_adu_per_s=nan, offset_adu=level, saturation_adu=sat_adu, linear_limit_s=torch.tensor(math.inf, dtype=_F64),
                           residual_rms_adu=nan, saturated_in_data=False)
-    log_message(log, f"saturation: {float(sat_adu):.0f} ADU " + ("(recording.yaml)" if c.saturation_adu is not None else
-                                                                  "(none given for float frames: no pixel is masked)"), progress)
+    log_message(log, f"saturation: {rec.saturation_source}", progress)
     still_raw = torch.as_tensor(rec.still, dtype=_F64)
     clipped = int((~sat.mask(still_raw) & ~dark.hot_pixels).sum())
     if clipped:
