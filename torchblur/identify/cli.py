@@ -14,7 +14,9 @@ Commands:
                         continue an interrupted run from DIR/experiment/ (rig.*, fit.*,
                         model.* and report.* may be given anew, e.g. the new rig.port).
     fit DIR --out NEW [fit.*=... model.*=... report.*=...]
-                        re-fit a recorded run offline; DIR is never written.
+                        re-fit a recorded run offline; DIR is never written. DIR may
+                        also be an outside recording (a folder with frames.csv, TIFF
+                        frames and recording.yaml: docs/outside_recordings.md).
     emulator [--config FILE] [key=value ...]
                         a bench emulator on a pseudo-terminal; prints one JSON line with
                         'serial' (for rig.port) and 'frames' (for rig.frames), then serves.
@@ -227,6 +229,8 @@ def _fit(args) -> int:
     from torchblur.hardware.run_folder import check_out_folder
     from torchblur.identify.run import check_resume_config, identify
 
+    if _is_outside(args.dir):
+        return _fit_outside(args)
     exp = Experiment.open(args.dir, writable=False)
     root = exp.path.parent if exp.path.name == "experiment" else exp.path
     out = Path(args.out)
@@ -249,6 +253,52 @@ def _fit(args) -> int:
     (out / "source.json").write_text(json.dumps({"recording": str(exp.path), "status": exp.meta.get("status"),
                                                  "frames": len(exp.lines), "overrides": list(args.overrides),
                                                  "torchblur_version": tb.__version__}, indent=2))
+    return _write_outputs(cfg, res, out, elapsed, stamp, as_json=args.json).exit_code
+
+
+def _is_outside(path) -> bool:
+    """``path`` is an outside recording (a ``frames.csv``); RecordingError when it is neither
+    that nor a torchblur run."""
+    from torchblur.hardware.errors import RecordingError
+    from torchblur.hardware.outside import CSV_NAME, is_outside_recording
+
+    p = Path(path)
+    if is_outside_recording(p):
+        return True
+    if not any((q / "experiment.json").is_file() for q in (p, p / "experiment")):
+        raise RecordingError(f"{p}: neither a torchblur run (no experiment.json in it or in its experiment/) nor an outside "
+                             f"recording (no {CSV_NAME}; docs/outside_recordings.md)")
+    return False
+
+
+def _fit_outside(args) -> int:
+    """``torchblur fit FOLDER`` of an outside recording (docs/outside_recordings.md): read and
+    check it, run the identification's stages on it, write the same outputs as a re-fit."""
+    import time
+
+    import torchblur as tb
+    from torchblur.hardware.outside import read_outside_recording
+    from torchblur.hardware.run_folder import check_out_folder
+    from torchblur.identify.config import config_to_yaml
+    from torchblur.identify.outside import identify_outside, outside_config
+
+    src, out = Path(args.dir).resolve(), Path(args.out)
+    check_out_folder(out, command="fit", force=args.force)
+    r_out = out.resolve()
+    if r_out == src or src in r_out.parents:
+        print(f"torchblur fit: error: --out {out} is inside the recording {args.dir}; it is never written, choose another folder",
+              file=sys.stderr)
+        return 2
+    rec = read_outside_recording(src)  # RecordingError naming file, line and column
+    cfg = outside_config(rec, args.overrides)
+    out.mkdir(parents=True, exist_ok=True)
+    stamp = f"torchblur {tb.__version__}, seed {cfg.seed}, fit of the outside recording {src}"
+    (out / "config.yaml").write_text(f"# {stamp}\n" + config_to_yaml(cfg))
+    t0 = time.perf_counter()
+    res = identify_outside(rec, cfg, progress=not args.quiet)
+    elapsed = time.perf_counter() - t0
+    (out / "source.json").write_text(json.dumps({"outside_recording": str(src), "frames": rec.n_frames, "points": len(rec.points),
+                                                 "overrides": list(args.overrides), "torchblur_version": tb.__version__}, indent=2))
     return _write_outputs(cfg, res, out, elapsed, stamp, as_json=args.json).exit_code
 
 
@@ -646,7 +696,8 @@ def build_parser() -> argparse.ArgumentParser:
     ident.set_defaults(func=_identify)
     fit = sub.add_parser("fit", help="re-fit a recorded run offline with other fit.* / model.* / report.* settings",
                          epilog=EXIT_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    fit.add_argument("dir", help="the recorded run (its --out folder, or its experiment/ folder)")
+    fit.add_argument("dir", help="the recorded run (its --out folder, or its experiment/ folder), or an outside recording "
+                                 "(a folder with frames.csv: docs/outside_recordings.md)")
     fit.add_argument("--out", required=True, help="a new output directory (never inside DIR)")
     fit.add_argument("--quiet", action="store_true", help="no progress bar and no log lines (warnings only; report.txt has the log)")
     fit.add_argument("--json", action="store_true", help="one JSON summary line on stdout at the end, as identify --json")

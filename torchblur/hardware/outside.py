@@ -1,0 +1,382 @@
+"""Outside recordings: frames a lab took with its own camera and function generator, read
+into one checked object (the folder format: docs/outside_recordings.md).
+
+A folder holds ``frames.csv`` (one row per frame: its TIFF ``file`` and ``page``, its
+``kind``, and for the sweep its ``freq_hz``, ``exposure_s``, ``window_start_s`` or
+``trigger_phase_rad``, ``amplitude``, optional ``power`` and ``repeat``), the TIFF files it
+names, and ``recording.yaml`` (the camera's ``gain_e_per_adu`` and the timing). Everything in
+it is untrusted input: sizes are bounded before reading, every cell is type- and
+range-checked, and every error is a :class:`~torchblur.hardware.errors.RecordingError` that
+names the file, the line and the column. Nothing is written.
+
+:func:`read_outside_recording` gives an :class:`OutsideRecording`: the dark and still frames
+(ADU, ``[N, H, W]``) and the sweep points (:class:`OutsidePoint`, one per frequency, frames
+``[E*R, H, W]`` exposure-major: the ``R`` repeats of an exposure in a row), with the windows
+in seconds after the command's upward zero crossing. Only one-input recordings are read (an
+``axis`` column is refused: two-input rigs are out of scope).
+"""
+from __future__ import annotations
+
+import csv
+import io
+import math
+import posixpath
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from torchblur.errors import ConfigError
+from torchblur.hardware.errors import RecordingError
+from torchblur.hardware.manifest import MAX_FRAME_SIDE, MAX_AMPLITUDE, read_bounded
+from torchblur.hardware.run_folder import inside
+
+__all__ = ["CSV_NAME", "YAML_NAME", "OutsideCamera", "OutsidePoint", "OutsideRecording", "is_outside_recording",
+           "read_outside_recording"]
+
+CSV_NAME = "frames.csv"
+YAML_NAME = "recording.yaml"
+MAX_CSV_BYTES = 64 * 1024 * 1024
+MAX_ROWS = 200_000
+MAX_TIFF_BYTES = 4 * 1024 ** 3
+MAX_PIXELS = 2 ** 31  # all frames together: 16 GiB as float64
+MAX_FREQ_HZ = 1e7
+MAX_EXPOSURE_S = 1e3
+KINDS = ("dark", "still", "sweep")
+REQUIRED = ("file", "kind")
+OPTIONAL = ("page", "freq_hz", "exposure_s", "window_start_s", "trigger_phase_rad", "amplitude", "power", "repeat", "note")
+
+
+@dataclass(frozen=True)
+class OutsideCamera:
+    """``recording.yaml``: ``gain_e_per_adu`` (electrons per ADU, required), ``read_noise_e``
+    (electrons; None: measured from the dark frames), ``saturation_adu`` (raw value where the
+    sensor clips; None: the integer dtype's maximum, none for float frames),
+    ``trigger_delay_s`` and ``latency_s`` (the exposure begins ``trigger_delay_s +
+    latency_s`` after the trigger; used with ``trigger_phase_rad``), ``latency_std_s`` (std of
+    every exposure's start, common to the whole recording: enters the phase std),
+    ``jitter_s`` (frame-to-frame std of the start), ``input_unit`` (a label)."""
+
+    gain_e_per_adu: Optional[float] = None
+    read_noise_e: Optional[float] = None
+    saturation_adu: Optional[float] = None
+    trigger_delay_s: float = 0.0
+    latency_s: float = 0.0
+    latency_std_s: float = 0.0
+    jitter_s: float = 0.0
+    input_unit: str = "input unit"
+
+
+@dataclass(frozen=True)
+class OutsidePoint:
+    """One sweep point: ``freq_hz``, ``amplitude`` (input units), ``power`` (light relative to
+    the still frames), ``frames`` ``[E*R, H, W]`` (ADU, float64, exposure-major),
+    ``start_s`` and ``duration_s`` ``[E*R]`` (the window of each frame, s after the command's
+    upward zero crossing), ``R`` (images per exposure) and ``lines`` (their CSV lines)."""
+
+    freq_hz: float
+    amplitude: float
+    power: float
+    frames: np.ndarray
+    start_s: np.ndarray
+    duration_s: np.ndarray
+    R: int
+    lines: tuple
+
+    @property
+    def E(self) -> int:
+        return self.frames.shape[0] // self.R
+
+
+@dataclass(frozen=True)
+class OutsideRecording:
+    """A checked outside recording: ``path``, ``camera`` (:class:`OutsideCamera`, saturation
+    resolved), ``dark`` ``[Nd, H, W]`` and ``still`` ``[Ns, H, W]`` (ADU, float64),
+    ``still_exposure_s``, ``points`` (:class:`OutsidePoint`, increasing frequency),
+    ``frame_shape`` (H, W), ``n_frames`` (rows read) and ``saturation_source`` (where
+    ``camera.saturation_adu`` came from, in words)."""
+
+    path: Path
+    camera: OutsideCamera
+    dark: np.ndarray
+    still: np.ndarray
+    still_exposure_s: float
+    points: tuple
+    frame_shape: tuple
+    n_frames: int
+    saturation_source: str = ""
+
+
+def is_outside_recording(path) -> bool:
+    """Whether ``path`` is a folder with a ``frames.csv`` (an outside recording)."""
+    return (Path(path) / CSV_NAME).is_file()
+
+
+def read_outside_recording(path) -> OutsideRecording:
+    """Read and check the outside recording in folder ``path`` (docs/outside_recordings.md).
+
+    Raises:
+        RecordingError: naming the file, line and column of the first problem.
+    """
+    root = Path(path)
+    if not root.is_dir():
+        raise RecordingError(f"{root}: not a folder")
+    if not (root / CSV_NAME).is_file():
+        raise RecordingError(f"{root}: no {CSV_NAME}; not an outside recording (docs/outside_recordings.md)")
+    camera = _read_camera(root)
+    rows = _read_rows(root)
+    frames, dtype = _read_frames(root, rows)
+    given = camera.saturation_adu is not None
+    camera = _resolved_saturation(camera, dtype)
+    if given:
+        source = f"{camera.saturation_adu:.6g} ADU (recording.yaml)"
+    elif camera.saturation_adu is not None:
+        source = (f"{camera.saturation_adu:.6g} ADU (the {np.dtype(dtype).name} maximum; give saturation_adu in {YAML_NAME} if the "
+                  f"sensor clips lower)")
+    else:
+        source = f"none (float frames and no saturation_adu in {YAML_NAME}: no pixel is masked)"
+    by_kind = {k: [r for r in rows if r["kind"] == k] for k in KINDS}
+    for kind, least in (("dark", 2), ("still", 1), ("sweep", 1)):
+        if len(by_kind[kind]) < least:
+            raise RecordingError(f"{CSV_NAME}: {len(by_kind[kind])} row(s) of kind {kind!r}; at least {least} needed")
+    te = {r["exposure_s"] for r in by_kind["still"]}
+    if None in te or len(te) != 1:
+        line = next(r["line"] for r in by_kind["still"] if r["exposure_s"] is None or r["exposure_s"] != by_kind["still"][0]["exposure_s"])
+        raise RecordingError(f"{CSV_NAME} line {line}, column exposure_s: every still frame needs one and the same exposure_s "
+                             f"(the PSF's light per second), got {sorted(map(str, te))}")
+    points = _points(by_kind["sweep"], frames, camera)
+    take = lambda kind: np.stack([frames[r["line"]] for r in by_kind[kind]])  # noqa: E731
+    return OutsideRecording(path=root, camera=camera, dark=take("dark"), still=take("still"), still_exposure_s=te.pop(),
+                            points=points, frame_shape=tuple(frames[rows[0]["line"]].shape), n_frames=len(rows), saturation_source=source)
+
+
+def _read_camera(root: Path) -> OutsideCamera:
+    """``recording.yaml`` as an :class:`OutsideCamera`, every value checked."""
+    from torchblur.identify.config import load_dataclass
+
+    where = root / YAML_NAME
+    if not where.is_file():
+        raise RecordingError(f"{where}: missing; it must give at least gain_e_per_adu (docs/outside_recordings.md)")
+    inside(root, YAML_NAME, YAML_NAME)
+    try:
+        cam = load_dataclass(OutsideCamera, str(where), trusted=False)
+    except ConfigError as exc:
+        msg = str(exc)
+        if "is not in struct" in msg:  # OmegaConf's words for a key the dataclass does not have
+            known = ", ".join(f.name for f in fields(OutsideCamera))
+            msg = f"{msg.partition(':')[0]}: unknown key (known: {known})"
+        raise RecordingError(f"{YAML_NAME}: {msg}") from None
+    if cam.gain_e_per_adu is None:
+        raise RecordingError(f"{YAML_NAME}: gain_e_per_adu (electrons per ADU) is required")
+    checks = (("gain_e_per_adu", True, False), ("read_noise_e", False, True), ("saturation_adu", False, True),
+              ("trigger_delay_s", False, False), ("latency_s", False, False), ("latency_std_s", False, True), ("jitter_s", False, True))
+    for key, required, optional in checks:
+        v = getattr(cam, key)
+        if v is None and optional:
+            continue
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise RecordingError(f"{YAML_NAME}: {key}: expected a finite number, got {v!r:.60}")
+        if key in ("gain_e_per_adu",) and v <= 0 or key in ("read_noise_e", "latency_std_s", "jitter_s") and v < 0:
+            raise RecordingError(f"{YAML_NAME}: {key}: expected a number {'> 0' if key == 'gain_e_per_adu' else '>= 0'}, got {v!r}")
+    if not isinstance(cam.input_unit, str) or len(cam.input_unit) > 40:
+        raise RecordingError(f"{YAML_NAME}: input_unit: expected a string of at most 40 characters, got {cam.input_unit!r:.60}")
+    return cam
+
+
+def _read_rows(root: Path) -> list:
+    """The rows of ``frames.csv``, each a dict of checked values with its ``line``."""
+    data = read_bounded(root / CSV_NAME, MAX_CSV_BYTES, CSV_NAME)
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise RecordingError(f"{CSV_NAME}: not UTF-8 text (byte {exc.start})") from None
+    reader = csv.reader(io.StringIO(text, newline=""))
+    try:
+        header = [h.strip() for h in next(reader)]
+    except StopIteration:
+        raise RecordingError(f"{CSV_NAME}: empty") from None
+    except csv.Error as exc:
+        raise RecordingError(f"{CSV_NAME} line 1: {exc}") from None
+    _check_header(header)
+    rows = []
+    try:
+        for cells in reader:
+            line = reader.line_num
+            if not any(c.strip() for c in cells):
+                continue
+            if len(rows) >= MAX_ROWS:
+                raise RecordingError(f"{CSV_NAME}: more than {MAX_ROWS} rows; refused")
+            if len(cells) != len(header):
+                raise RecordingError(f"{CSV_NAME} line {line}: {len(cells)} cells, the header has {len(header)}")
+            rows.append(_row(dict(zip(header, (c.strip() for c in cells))), line))
+    except csv.Error as exc:
+        raise RecordingError(f"{CSV_NAME} line {reader.line_num}: {exc}") from None
+    if not rows:
+        raise RecordingError(f"{CSV_NAME}: no rows")
+    return rows
+
+
+def _check_header(header: list) -> None:
+    if "axis" in header:
+        raise RecordingError(f"{CSV_NAME} line 1, column axis: two-input recordings are not supported (one input per recording)")
+    for name in header:
+        if name not in REQUIRED + OPTIONAL:
+            raise RecordingError(f"{CSV_NAME} line 1, column {name!r}: unknown column (known: {', '.join(REQUIRED + OPTIONAL)})")
+    if len(set(header)) != len(header):
+        raise RecordingError(f"{CSV_NAME} line 1: a column is named twice ({header})")
+    for name in REQUIRED:
+        if name not in header:
+            raise RecordingError(f"{CSV_NAME} line 1: column {name!r} is missing (required: {', '.join(REQUIRED)})")
+
+
+def _number(cell: str, line: int, col: str, *, low=None, high=None, positive=False, integer=False):
+    """A CSV cell as a finite number (None where empty), range-checked, or an error naming it."""
+    if cell is None or cell == "":
+        return None
+    where = f"{CSV_NAME} line {line}, column {col}"
+    try:
+        v = int(cell) if integer else float(cell)
+    except ValueError:
+        raise RecordingError(f"{where}: expected {'an integer' if integer else 'a number'}, got {cell[:40]!r}") from None
+    if not math.isfinite(v):
+        raise RecordingError(f"{where}: expected a finite number, got {cell[:40]!r}")
+    if (positive and v <= 0) or (low is not None and v < low) or (high is not None and v > high):
+        lim = "> 0" if positive else f">= {low}"
+        raise RecordingError(f"{where}: expected a value {lim}{f' and <= {high}' if high is not None else ''}, got {cell[:40]!r}")
+    return v
+
+
+def _row(cells: dict, line: int) -> dict:
+    """One CSV row checked: what every kind needs, what a sweep row needs."""
+    kind = cells["kind"].lower()
+    if kind not in KINDS:
+        raise RecordingError(f"{CSV_NAME} line {line}, column kind: expected one of {KINDS}, got {cells['kind'][:40]!r}")
+    if not cells["file"]:
+        raise RecordingError(f"{CSV_NAME} line {line}, column file: empty")
+    n = lambda col, **kw: _number(cells.get(col), line, col, **kw)  # noqa: E731
+    row = dict(line=line, kind=kind, file=cells["file"], page=n("page", low=0, integer=True) or 0,
+               exposure_s=n("exposure_s", positive=True, high=MAX_EXPOSURE_S), freq_hz=n("freq_hz", positive=True, high=MAX_FREQ_HZ),
+               amplitude=n("amplitude", positive=True, high=MAX_AMPLITUDE), power=n("power", positive=True, high=1e12),
+               window_start_s=n("window_start_s", low=-MAX_EXPOSURE_S, high=MAX_EXPOSURE_S),
+               trigger_phase_rad=n("trigger_phase_rad", low=-100.0, high=100.0), repeat=n("repeat", low=0, integer=True))
+    if kind == "sweep":
+        for col in ("freq_hz", "exposure_s", "amplitude"):
+            if row[col] is None:
+                raise RecordingError(f"{CSV_NAME} line {line}, column {col}: required for a sweep frame")
+        if (row["window_start_s"] is None) == (row["trigger_phase_rad"] is None):
+            raise RecordingError(f"{CSV_NAME} line {line}, columns window_start_s / trigger_phase_rad: a sweep frame needs exactly one "
+                                 f"of them")
+    return row
+
+
+def _read_frames(root: Path, rows: list) -> tuple[dict, np.dtype]:
+    """``{line: frame [H, W] float64}`` of every row, from the TIFF files it names (each read
+    once), and the files' dtype. All frames must share one shape and one dtype."""
+    import tifffile
+
+    stacks, out, seen = {}, {}, {}
+    shape = dtype = None
+    for r in rows:
+        where = f"{CSV_NAME} line {r['line']}, column file"
+        first = seen.setdefault((posixpath.normpath(r["file"]), r["page"]), r["line"])
+        if first != r["line"]:  # one frame counted twice would make its point's stds too small
+            raise RecordingError(f"{CSV_NAME} line {r['line']}, columns file / page: {r['file']} page {r['page']} is already line {first}; "
+                                 f"each frame may be listed once")
+        if r["file"] not in stacks:
+            path = inside(root, r["file"], where)
+            if not path.is_file():
+                raise RecordingError(f"{where}: {r['file']!r} is not a file in {root}")
+            data = read_bounded(path, MAX_TIFF_BYTES, r["file"])
+            try:
+                with tifffile.TiffFile(io.BytesIO(data)) as tf:
+                    series = tf.series[0]
+                    s = tuple(series.shape)
+                    if series.axes.endswith("S"):
+                        raise RecordingError(f"{r['file']}: colour frames ({series.axes} {s}); expected grayscale frames [N, H, W] "
+                                             f"or [H, W]")
+                    if len(s) < 2 or max(s[-2:]) > MAX_FRAME_SIDE or min(s[-2:]) < 1:
+                        raise RecordingError(f"{r['file']}: holds an array of shape {s}; expected frames [N, H, W] or [H, W]")
+                    arr = np.asarray(series.asarray()).reshape((-1,) + s[-2:])
+            except RecordingError:
+                raise
+            except Exception as exc:  # a third-party decoder on untrusted bytes: any failure is a bad file
+                raise RecordingError(f"{r['file']}: not a readable TIFF ({type(exc).__name__}: {str(exc)[:100]})") from None
+            if arr.dtype.kind not in "uif":
+                raise RecordingError(f"{r['file']}: pixels of dtype {arr.dtype}; expected integers or floats")
+            if shape is not None and (arr.shape[1:] != shape or arr.dtype != dtype):
+                raise RecordingError(f"{where}: {r['file']} holds {arr.shape[1]}x{arr.shape[2]} {arr.dtype} frames, the recording's first "
+                                     f"file {shape[0]}x{shape[1]} {dtype}; every frame must have one shape and dtype")
+            shape, dtype = arr.shape[1:], arr.dtype
+            stacks[r["file"]] = arr
+            if sum(a.size for a in stacks.values()) > MAX_PIXELS:
+                raise RecordingError(f"{r['file']}: the recording holds more than {MAX_PIXELS} pixels; refused")
+        arr = stacks[r["file"]]
+        if r["page"] >= arr.shape[0]:
+            raise RecordingError(f"{CSV_NAME} line {r['line']}, column page: page {r['page']} of {r['file']}, which holds "
+                                 f"{arr.shape[0]} frame(s) (pages count from 0)")
+        frame = arr[r["page"]].astype(np.float64)
+        if not np.isfinite(frame).all():
+            raise RecordingError(f"{r['file']} page {r['page']} ({CSV_NAME} line {r['line']}): NaN or infinite pixels; refused")
+        out[r["line"]] = frame
+    return out, dtype
+
+
+def _resolved_saturation(camera: OutsideCamera, dtype: np.dtype) -> OutsideCamera:
+    """The camera with ``saturation_adu`` set: as given, else the integer dtype's maximum
+    (float frames: None, no pixel is masked)."""
+    from dataclasses import replace
+
+    if camera.saturation_adu is not None or np.dtype(dtype).kind == "f":
+        return camera
+    return replace(camera, saturation_adu=float(np.iinfo(dtype).max))
+
+
+def _window_start(row: dict, camera: OutsideCamera) -> float:
+    """A sweep frame's start (s after the command's upward zero crossing): ``window_start_s``,
+    or the trigger at ``trigger_phase_rad`` of the command plus the delays."""
+    if row["window_start_s"] is not None:
+        return float(row["window_start_s"])
+    return float(row["trigger_phase_rad"]) / (2 * math.pi * row["freq_hz"]) + camera.trigger_delay_s + camera.latency_s
+
+
+def _points(rows: list, frames: dict, camera: OutsideCamera) -> tuple:
+    """The sweep rows as :class:`OutsidePoint` (one per frequency): one amplitude and power
+    per point, each window repeated ``R`` times, and one ``E`` and ``R`` for every point."""
+    groups: dict = {}
+    for r in rows:
+        groups.setdefault(r["freq_hz"], []).append(r)
+    points = []
+    for f in sorted(groups):
+        g = groups[f]
+        for col in ("amplitude", "power"):
+            vals = {r[col] for r in g}
+            if len(vals) > 1:
+                bad = next(r for r in g if r[col] != g[0][col])
+                raise RecordingError(f"{CSV_NAME} line {bad['line']}, column {col}: {bad[col]}, the point at {f:g} Hz (line "
+                                     f"{g[0]['line']}) has {g[0][col]}; one {col} per frequency")
+        windows: dict = {}
+        for r in g:
+            windows.setdefault((round(_window_start(r, camera), 15), r["exposure_s"]), []).append(r)
+        reps = {len(v) for v in windows.values()}
+        if len(reps) != 1:
+            raise RecordingError(f"{CSV_NAME} lines {g[0]['line']}..{g[-1]['line']}: the point at {f:g} Hz has "
+                                 f"{sorted(len(v) for v in windows.values())} frames per exposure window; every window needs the "
+                                 f"same number of repeats")
+        for v in windows.values():
+            tags = [r["repeat"] for r in v if r["repeat"] is not None]
+            if len(set(tags)) != len(tags):
+                raise RecordingError(f"{CSV_NAME} line {v[-1]['line']}, column repeat: repeat {tags[-1]} is given twice for one window "
+                                     f"at {f:g} Hz")
+        ordered = [r for v in windows.values() for r in v]  # exposure-major
+        points.append(OutsidePoint(
+            freq_hz=float(f), amplitude=float(g[0]["amplitude"]), power=float(g[0]["power"] if g[0]["power"] is not None else 1.0),
+            frames=np.stack([frames[r["line"]] for r in ordered]),
+            start_s=np.array([_window_start(r, camera) for r in ordered]), duration_s=np.array([r["exposure_s"] for r in ordered]),
+            R=reps.pop(), lines=tuple(r["line"] for r in ordered)))
+    shapes = {(p.E, p.R) for p in points}
+    if len(shapes) > 1:
+        p = next(p for p in points if (p.E, p.R) != (points[0].E, points[0].R))
+        raise RecordingError(f"{CSV_NAME} line {p.lines[0]}: the point at {p.freq_hz:g} Hz has {p.E} exposure(s) x {p.R} repeat(s), "
+                             f"the one at {points[0].freq_hz:g} Hz {points[0].E} x {points[0].R}; every point needs the same")
+    return tuple(points)
