@@ -1,24 +1,69 @@
-"""Image losses, one value per batch item (a sum over the trailing pixel axes).
+"""Image losses, one value per batch item (a sum over the trailing pixel axes), and what each
+needs from the camera's noise model to be a likelihood.
 
 All take ``model`` and ``data`` of the same shape ``[..., R]`` (R: pixels, flattened over
-exposures), an optional per-pixel ``weight`` (``1 / sigma^2`` for l2; a 0/1 mask for the
-others) and return ``[...]``.
+exposures), an optional per-pixel ``weight`` ``[..., R]`` (0 excludes a pixel) and return ``[...]``.
 
-- ``l2``: ``sum w (data - model)^2`` (Frobenius; maximum likelihood under Gaussian noise).
-- ``l1``: ``sum w |data - model|``.
-- ``linf``: ``max w |data - model|``.
-- ``poisson``: the deviance ``2 sum w (data log(data / model) - (data - model))`` (maximum
-  likelihood under Poisson noise; data and model in counts).
+- ``l2``: ``sum w (data - model)^2`` (Frobenius; maximum likelihood under Gaussian noise with
+  ``w = 1 / sigma^2``).
+- ``l1``: ``sum w |data - model|`` (least absolute deviations; with ``w = 1 / sigma`` the
+  residuals are scaled by their noise).
+- ``linf``: ``max w |data - model|`` (no likelihood: no covariance).
+- ``poisson``: the deviance ``2 sum w (y log(y / lam) - (y - lam))`` with ``y = max(data + s, 0)``
+  and ``lam = model + s``, ``s`` the ``shift`` (default 0): maximum likelihood under Poisson
+  noise (data and model in counts), and with ``s = read_noise_e**2`` the shifted Poisson of
+  Poisson-plus-Gaussian read noise (:class:`~torchblur.render.camera.CameraNoise`); ``w`` a 0/1 mask.
+
+:func:`loss_weight` gives each loss its weight from the l2 weights ``1 / sigma^2`` (the one
+noise model), and :func:`covariance_factor` what its covariance is in units of the l2 Fisher
+inverse.
 """
 from __future__ import annotations
+
+import math
 
 import torch
 
 from torchblur.errors import ParameterError
 
-__all__ = ["LOSSES", "image_loss", "irls_weights"]
+__all__ = ["LOSSES", "LIKELIHOOD_LOSSES", "covariance_factor", "gauss_newton_terms", "image_loss", "irls_weights", "loss_weight"]
 
 LOSSES = ("l2", "l1", "linf", "poisson")
+# The losses whose estimates come with a covariance that holds (identify accepts these).
+LIKELIHOOD_LOSSES = ("l2", "l1", "poisson")
+
+
+def _check_loss(loss: str) -> None:
+    if loss not in LOSSES:
+        raise ParameterError(f"loss: expected one of {LOSSES}, got {loss!r}")
+
+
+def loss_weight(loss: str, inverse_variance: torch.Tensor) -> torch.Tensor:
+    """Each loss's per-pixel weight ``[...]`` from the l2 weights ``inverse_variance = 1 / sigma^2``
+    ``[...]`` (0 excludes a pixel): l2 ``1 / sigma^2``; l1 and linf ``1 / sigma`` (the residual
+    in noise stds); poisson the 0/1 mask (the deviance carries its own variance, ``lam``).
+
+    Example:
+        >>> loss_weight("l1", torch.tensor([0.25, 0.0]))
+        tensor([0.5000, 0.0000])
+    """
+    _check_loss(loss)
+    if loss == "l2":
+        return inverse_variance
+    if loss == "poisson":
+        return (inverse_variance > 0).to(inverse_variance.dtype)
+    return inverse_variance.clamp_min(0).sqrt()
+
+
+def covariance_factor(loss: str) -> float:
+    """The covariance of the loss's estimate in units of the l2 Fisher inverse
+    ``(J^T diag(1 / sigma^2) J)^-1``, under Gaussian noise of std ``sigma``: l2 and poisson 1
+    (maximum likelihood: poisson's own Fisher information ``J^T diag(1 / lam) J`` is the l2 one
+    with ``sigma^2 = lam``); l1 ``pi / 2`` (least absolute deviations on residuals scaled by
+    ``sigma``: ``1 / (4 f(0)^2)`` for the standard normal density ``f``, Koenker & Bassett
+    1978; a std ``sqrt(pi / 2) = 1.25`` times l2's); linf NaN (no likelihood)."""
+    _check_loss(loss)
+    return {"l2": 1.0, "poisson": 1.0, "l1": math.pi / 2, "linf": float("nan")}[loss]
 
 
 def _poisson_floor(model: torch.Tensor) -> torch.Tensor:
@@ -28,10 +73,11 @@ def _poisson_floor(model: torch.Tensor) -> torch.Tensor:
     return model.clamp_min(floor)
 
 
-def image_loss(model: torch.Tensor, data: torch.Tensor, *, loss: str = "l2", weight: torch.Tensor | None = None) -> torch.Tensor:
-    """Per-item loss ``[...]`` between ``model`` and ``data`` ``[..., R]`` (see module doc)."""
-    if loss not in LOSSES:
-        raise ParameterError(f"loss: expected one of {LOSSES}, got {loss!r}")
+def image_loss(model: torch.Tensor, data: torch.Tensor, *, loss: str = "l2", weight: torch.Tensor | None = None,
+               shift: float = 0.0) -> torch.Tensor:
+    """Per-item loss ``[...]`` between ``model`` and ``data`` ``[..., R]`` (see module doc);
+    ``shift`` (>= 0, counts) is poisson's read-noise shift, ignored by the others."""
+    _check_loss(loss)
     r = data - model
     w = torch.ones_like(r) if weight is None else weight
     if loss == "l2":
@@ -40,8 +86,8 @@ def image_loss(model: torch.Tensor, data: torch.Tensor, *, loss: str = "l2", wei
         return (w * r.abs()).sum(-1)
     if loss == "linf":
         return (w * r.abs()).amax(-1)
-    lam = _poisson_floor(model)
-    d = data.clamp_min(0)
+    lam = _poisson_floor(model + shift)
+    d = (data + shift).clamp_min(0)
     pos = d > 0
     # d log(d / lam) as d (log d - log lam), with log 1 where d = 0: the masked branch must not
     # be 0 * log(0) or 0 / lam^2 (NaN gradients for an all-zero observation).
@@ -50,17 +96,50 @@ def image_loss(model: torch.Tensor, data: torch.Tensor, *, loss: str = "l2", wei
     return 2 * (w * term).sum(-1)
 
 
-def irls_weights(model: torch.Tensor, data: torch.Tensor, *, loss: str, weight: torch.Tensor | None) -> torch.Tensor:
+def irls_weights(model: torch.Tensor, data: torch.Tensor, *, loss: str, weight: torch.Tensor | None, shift: float = 0.0) -> torch.Tensor:
     """Gauss-Newton weights whose weighted least-squares step is the loss's Newton/Fisher
-    step (iteratively reweighted least squares): l2: ``w``; poisson: ``w / model`` (Fisher
-    scoring); l1: ``w / max(|r|, eps)``."""
+    step (iteratively reweighted least squares): l2: ``w``; poisson: ``w / (model + shift)``
+    (Fisher scoring; the Fisher information's weights); l1: ``w / max(|r|, eps) / 2``."""
     w = torch.ones_like(model) if weight is None else weight
     if loss == "l2":
         return w
     if loss == "poisson":
-        return w / _poisson_floor(model.detach())
+        return w / _poisson_floor(model.detach() + shift)
     if loss == "l1":
         r = (data - model).detach().abs()
         eps = 1e-6 * float(data.detach().abs().max().clamp_min(1e-30))
         return w / r.clamp_min(eps) / 2
     raise ParameterError(f"loss: {loss!r} is not a sum of per-pixel terms; use optimizer='adam' or 'lbfgs'")
+
+
+def gauss_newton_terms(model: torch.Tensor, data: torch.Tensor, *, loss: str, weight: torch.Tensor | None, shift: float = 0.0):
+    """The terms of the loss's Gauss-Newton (Fisher scoring) step: ``(curvature [..., R],
+    gradient [..., R])``; the step is ``(J^T diag(curvature) J)^-1 J^T gradient`` (``J`` the
+    model's Jacobian ``[..., R, P]``), and ``g^T A^-1 g`` (``A = J^T diag(curvature) J``,
+    ``g = J^T gradient``) over the cost per degree of freedom is the step's squared length in
+    noise stds (what ``levenberg_marquardt``'s ``gn_tol`` measures).
+
+    l2 and poisson: ``curvature`` = :func:`irls_weights`, ``gradient = curvature * r`` (``r`` the
+    residual; ``A`` and ``g`` are half the cost's Hessian and minus half its gradient).
+    l1 (``w`` the weights ``1 / sigma``): the cost ``C = sum w |r|`` is not smooth, and
+    reweighting by ``1 / |r|`` converges slowly on noisy images (the pixels whose residual is
+    near 0 dominate), so its step is Newton's on the expected cost under Gaussian noise:
+    ``gradient = w sign(r)`` (minus the cost's gradient) and ``curvature = 2 n w^2 / (pi C)``
+    (the expected Hessian ``sqrt(2 / pi) J^T diag(w^2) J / s``, ``n`` the pixels used and the
+    scaled residuals' std ``s = sqrt(pi / 2) C / n`` estimated from the cost: 1 where ``w`` is
+    the true ``1 / sigma``). Its fixed point is the l1 optimum (``sum w sign(r) J = 0``).
+
+    Example:
+        >>> c, g = gauss_newton_terms(torch.zeros(4), torch.tensor([1.0, -1.0, 2.0, -2.0]), loss="l1", weight=None)
+        >>> g
+        tensor([ 1., -1.,  1., -1.])
+    """
+    if loss != "l1":
+        W = irls_weights(model, data, loss=loss, weight=weight, shift=shift)
+        return W, W * (data - model)
+    r = (data - model).detach()
+    w = torch.ones_like(r) if weight is None else weight
+    cost = (w * r.abs()).sum(-1, keepdim=True)
+    n = (w > 0).sum(-1, keepdim=True).to(r.dtype)
+    curvature = 2 * w * w * n / (math.pi * cost.clamp_min(torch.finfo(r.dtype).tiny))
+    return curvature, w * torch.sign(r)

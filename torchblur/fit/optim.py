@@ -13,7 +13,7 @@ from typing import Callable
 import torch
 import torch.autograd.forward_ad as fwAD
 
-from torchblur.fit.losses import image_loss, irls_weights
+from torchblur.fit.losses import gauss_newton_terms, image_loss
 
 __all__ = ["LMResult", "levenberg_marquardt", "model_jacobian"]
 
@@ -62,6 +62,7 @@ def levenberg_marquardt(
     project: Callable | None = None,
     jacobian_fn: Callable | None = None,
     gn_tol: float | None = None,
+    shift: float = 0.0,
 ) -> LMResult:
     """Minimise ``image_loss(model_fn(theta), data)`` for each of ``N`` problems.
 
@@ -71,7 +72,8 @@ def levenberg_marquardt(
         theta0: starts ``[N, P]``.
         data: ``[N, R]``.
         loss: ``"l2"``, ``"poisson"`` or ``"l1"`` (by iteratively reweighted least squares).
-        weight: per-pixel weights ``[N, R]`` (``1/sigma^2``; 0 masks a pixel) or None.
+        weight: per-pixel weights ``[N, R]`` (0 masks a pixel; the loss's own, see
+            :func:`~torchblur.fit.losses.loss_weight`) or None.
         max_iter: iterations at most; tol: relative cost decrease that counts as converged.
         project: optional ``theta -> theta`` applied after each step (e.g. keep bounds).
         jacobian_fn: optional ``(theta [n, P], idx) -> (model [n, R], J [n, R, P])`` (an
@@ -93,11 +95,12 @@ def levenberg_marquardt(
             ``benchmarks/bench_fit.py`` the actual remainder after the steps in the
             0.05-5 std range was 0.2x the estimate at the median, at most 3.6x, and the steps
             taken unevaluated with ``gn_tol=1e-2`` landed within 0.026 std.
+        shift: poisson's read-noise shift (counts, see :func:`~torchblur.fit.losses.image_loss`).
 
     Returns:
         :class:`LMResult`. ``converged`` is False where ``max_iter`` ran out.
     """
-    ne = _NormalEquations(data, weight, loss)
+    ne = _NormalEquations(data, weight, loss, shift)
     st = _LMState.start(model_fn, theta0, ne, jacobian_fn, lambda0, gn_tol is not None)
     for _ in range(max_iter):
         active = ~st.converged
@@ -125,8 +128,8 @@ class _NormalEquations:
     l2 with one weight per problem (the same noise level on every pixel, nothing masked):
     the weight multiplies the small products instead of every pixel (``row_w [N]``)."""
 
-    def __init__(self, data, weight, loss):
-        self.data, self.weight, self.loss = data, weight, loss
+    def __init__(self, data, weight, loss, shift=0.0):
+        self.data, self.weight, self.loss, self.shift = data, weight, loss, shift
         self.N = data.shape[0]
         self.row_w = None
         if loss == "l2":
@@ -141,7 +144,7 @@ class _NormalEquations:
 
     def cost(self, model, idx):
         """The loss of ``model [n, R]`` against the rows ``idx`` of the data ``[n]``."""
-        return image_loss(model, self.rows(self.data, idx), loss=self.loss, weight=self.rows(self.weight, idx))
+        return image_loss(model, self.rows(self.data, idx), loss=self.loss, weight=self.rows(self.weight, idx), shift=self.shift)
 
     def __call__(self, model, J, idx):
         d, w = self.rows(self.data, idx), self.rows(self.weight, idx)
@@ -150,10 +153,10 @@ class _NormalEquations:
             wr = self.rows(self.row_w, idx)
             Jt = J.transpose(-1, -2)
             return (Jt @ J) * wr[:, None, None], (Jt @ r[..., None])[..., 0] * wr[:, None], (r[:, None, :] @ r[..., None])[:, 0, 0] * wr
-        W = irls_weights(model, d, loss=self.loss, weight=w)
+        W, Wr = gauss_newton_terms(model, d, loss=self.loss, weight=w, shift=self.shift)
         JW = J.transpose(-1, -2) * W[:, None, :]  # [n, P, R]: GEMMs below (fast when J is a view of [n, P, R])
-        c = (W * r * r).sum(-1) if self.loss == "l2" else image_loss(model, d, loss=self.loss, weight=w)
-        return JW @ J, (JW @ r[..., None])[..., 0], c
+        c = (W * r * r).sum(-1) if self.loss == "l2" else image_loss(model, d, loss=self.loss, weight=w, shift=self.shift)
+        return JW @ J, (J.transpose(-1, -2) @ Wr[..., None])[..., 0], c
 
     def round_off_floor(self, dtype):
         """``[N]``: a cost this small is round-off (noise-free data), so it counts as converged."""

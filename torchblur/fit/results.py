@@ -38,7 +38,8 @@ class SinusoidFit:
             exposure, ``[..., E, 3]`` = (level at the frame centre, slope along x per px,
             slope along y per px), in image units; None otherwise.
         reduced_chi2: ``[...]`` the cost per degree of freedom (pixels used minus
-            parameters) where the noise was given and the loss is l2: about 1 when the model
+            parameters) where the noise was given and the loss is l2 (poisson, l1: the l2 cost
+            ``sum r^2 / sigma^2`` at their solution; linf: NaN): about 1 when the model
             explains the images; well above 1, the model does not, and the stds understate the
             error (a wrong PSF, stray light, a motion that is not a sine). NaN otherwise.
     """

@@ -22,7 +22,7 @@ import torch
 
 from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_tensor, as_unit_direction, check_choice, check_finite,
                               check_positive, check_real_scalar)
-from torchblur.fit.losses import LOSSES, image_loss, irls_weights
+from torchblur.fit.losses import LOSSES, covariance_factor, image_loss, irls_weights, loss_weight
 from torchblur.fit.optim import levenberg_marquardt
 from torchblur.fit.problem import SineProblem, crop_to_reach, sine_problem, starting_points
 from torchblur.fit.results import SinusoidFit, put_items
@@ -31,6 +31,7 @@ from torchblur.fit.sine_model import _CALL_NODE_PIXELS, ParamLayout, SineModel, 
 from torchblur.render.alias import alias_phase as _alias_phase
 from torchblur.render.alias import wrap_phase
 from torchblur.render.blur import RenderSettings, render_blur
+from torchblur.render.camera import CameraNoise
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.trajectory import Sinusoid
 from torchblur.render.window import ExposureWindow
@@ -127,6 +128,7 @@ class _FitOptions:
     max_iter: int | None = None
     tol: float = 1e-9
     render_settings: RenderSettings | None = None
+    shift: float = 0.0  # poisson's read-noise shift (electrons^2 = counts), CameraNoise.poisson_shift_e
 
 
 @dataclass
@@ -182,18 +184,22 @@ def _fit_core(data, psf, window: ExposureWindow, omega, direction, *, labels, op
     if o.normalize:
         target = p.data / p.data.square().sum((-1, -2), keepdim=True).sqrt().clamp_min(1e-30)
     target = target.reshape(target.shape[0], -1)
+    weight = loss_weight(o.loss, p.weight.reshape(target.shape))  # the loss's own weights [N, R] from 1 / sigma^2
     # The optimiser's final J^T W J and model are the Fisher information's (l2 and Poisson).
     reuse = model.analytic and o.optimizer == "lm" and o.loss in ("l2", "poisson") and bool(p.live.any())
-    sol = _best_candidates(_refine_candidates(model, p, theta0, K, target, o, reuse), layout, K)
-    _resolve_alias(model, p, layout, sol, target, o, reuse)
-    cov, singular, sigma_used, fitted = _uncertainty(model, p, sol, target, o.loss, reuse)
+    sol = _best_candidates(_refine_candidates(model, p, theta0, K, target, weight, o, reuse), layout, K)
+    _resolve_alias(model, p, layout, sol, target, weight, o, reuse)
+    cov, singular, sigma_used, fitted, chi2 = _uncertainty(model, p, sol, target, o, reuse)
     status = _item_status(model, p, sol, fitted, singular)
-    return _result(model, p, sol, status, cov, sigma_used, K)
+    res = _result(model, p, sol, status, cov, sigma_used, K)
+    res.reduced_chi2 = torch.where(torch.isnan(res.cost), res.cost, chi2)  # the chi2 for now; per degree of freedom in _finish
+    return res
 
 
-def _refine_candidates(model: SineModel, problem: SineProblem, theta0, K: int, target, o: _FitOptions, reuse: bool) -> dict:
+def _refine_candidates(model: SineModel, problem: SineProblem, theta0, K: int, target, weight, o: _FitOptions, reuse: bool) -> dict:
     """Optimise the ``K`` candidate starts ``theta0 [N * K, P]`` of every live item (candidate
-    row ``r`` is item ``r // K``): ``theta``, ``cost`` (inf where not fitted), ``converged``,
+    row ``r`` is item ``r // K``) against ``target [N, R]`` with the loss's pixel weights
+    ``weight [N, R]``: ``theta``, ``cost`` (inf where not fitted), ``converged``,
     ``n_iter`` ``[N * K]``, and with ``reuse`` the final ``jtj [N * K, P, P]`` and ``model [N * K, R]``."""
     N, P = problem.data.shape[0], theta0.shape[-1]
     dtype, device = theta0.dtype, theta0.device
@@ -205,7 +211,7 @@ def _refine_candidates(model: SineModel, problem: SineProblem, theta0, K: int, t
     if not live_idx.numel():
         return out
     target_k = target[:, None].expand(N, K, R).reshape(N * K, R)[live_idx]
-    weight_k = problem.weight.reshape(N, 1, R).expand(N, K, R).reshape(N * K, R)[live_idx]
+    weight_k = weight.reshape(N, 1, R).expand(N, K, R).reshape(N * K, R)[live_idx]
     res = _optimise(model, item[live_idx], theta0[live_idx], target_k, weight_k, o)
     for name in ("theta", "cost", "converged", "n_iter"):
         out[name][live_idx] = getattr(res, name)
@@ -241,7 +247,7 @@ def _best_candidates(fits: dict, layout: ParamLayout, K: int) -> _Solution:
                      flipped=(th[..., :layout.n_axes] < 0)[ar, best], jtj=pick("jtj", (P, P)), model=pick("model", (-1,)))
 
 
-def _resolve_alias(model: SineModel, problem: SineProblem, layout: ParamLayout, sol: _Solution, target, o: _FitOptions,
+def _resolve_alias(model: SineModel, problem: SineProblem, layout: ParamLayout, sol: _Solution, target, weight, o: _FitOptions,
                    reuse: bool) -> None:
     """Set ``sol.alias`` (the other branch of the first exposure) and its cost over every
     exposure; with two or more exposures, where the alias fits better than the consensus
@@ -250,7 +256,6 @@ def _resolve_alias(model: SineModel, problem: SineProblem, layout: ParamLayout, 
     ar = torch.arange(N, device=sol.theta.device)
     first = ExposureWindow(problem.start[:, :1], problem.duration[:, :1])
     n = layout.n_axes
-    weight = problem.weight.reshape(N, -1)
 
     def alias_of(t, items):
         ta = t.clone()
@@ -259,7 +264,7 @@ def _resolve_alias(model: SineModel, problem: SineProblem, layout: ParamLayout, 
 
     def alias_cost(items):
         with torch.no_grad():
-            return image_loss(model.image(sol.alias[items], items), target[items], loss=o.loss, weight=weight[items])
+            return image_loss(model.image(sol.alias[items], items), target[items], loss=o.loss, weight=weight[items], shift=o.shift)
 
     sol.alias = alias_of(sol.theta, ar)
     sol.alias_cost = alias_cost(ar)
@@ -284,11 +289,23 @@ def _resolve_alias(model: SineModel, problem: SineProblem, layout: ParamLayout, 
     sol.alias_cost[rb] = alias_cost(rb)
 
 
-def _uncertainty(model: SineModel, problem: SineProblem, sol: _Solution, target, loss: str, reuse: bool):
-    """The Fisher information at the solution: ``(covariance [N, P, P], singular [N],
-    noise std used [N], model [N, R])``. The noise is the given one, else estimated from the
-    residuals (the pixels the crop cut off included); Poisson: the model is the variance."""
-    p = problem
+def _uncertainty(model: SineModel, problem: SineProblem, sol: _Solution, target, o: _FitOptions, reuse: bool):
+    """The covariance of the estimates at the solution: ``(covariance [N, P, P], singular [N],
+    noise std used [N], model [N, R], chi2 [N])``, from the Fisher information ``F = J^T diag(1 / sigma^2) J``
+    of the loss's noise model, times :func:`~torchblur.fit.losses.covariance_factor`:
+
+    - l2: ``F^-1``, ``sigma`` the given noise, else one std per item estimated from the
+      residuals (the pixels the crop cut off included);
+    - poisson: ``F^-1`` with ``sigma^2 = model + shift`` (its own Fisher information; the shifted
+      Poisson's variance, shot plus read noise);
+    - l1: ``(pi / 2) F^-1`` (least absolute deviations of the residuals in noise stds, under
+      Gaussian noise), ``sigma`` as for l2;
+    - linf: the l2 formula, which is no covariance of its estimate (it has no likelihood).
+
+    ``chi2``: the residuals' ``sum r^2 / sigma^2`` with the given noise (l2's cost; for poisson and
+    l1 the same sum at their solution, about l2's: the fit-quality check of every loss).
+    """
+    p, loss = problem, o.loss
     N, P = sol.theta.shape
     dtype, device = sol.theta.dtype, sol.theta.device
     w = p.weight.reshape(N, -1)
@@ -304,7 +321,7 @@ def _uncertainty(model: SineModel, problem: SineProblem, sol: _Solution, target,
     resid = target - fitted
     ones = torch.ones(N, dtype=dtype, device=device)
     if loss == "poisson":
-        fisher_w = irls_weights(fitted, target, loss="poisson", weight=(w > 0).to(dtype))
+        fisher_w = irls_weights(fitted, target, loss="poisson", weight=(w > 0).to(dtype), shift=o.shift)
         sigma_used, scale2 = torch.full((N,), float("nan"), dtype=dtype, device=device), ones
     elif p.noise_given:
         fisher_w, sigma_used, scale2 = w, p.noise_level, ones
@@ -318,9 +335,12 @@ def _uncertainty(model: SineModel, problem: SineProblem, sol: _Solution, target,
     else:
         F = (J * fisher_w[..., None]).transpose(-1, -2) @ J
     cov, info = torch.linalg.inv_ex(F)
+    if loss != "linf":
+        cov = cov * covariance_factor(loss)
     singular = (info != 0) | ~torch.isfinite(cov).all(-1).all(-1)
     singular = singular | (torch.diagonal(cov, dim1=-2, dim2=-1) <= 0).any(-1)
-    return cov, singular, sigma_used, fitted
+    chi2 = (resid * resid * w).sum(-1) + p.cut_cost
+    return cov, singular, sigma_used, fitted, chi2
 
 
 def _item_status(model: SineModel, problem: SineProblem, sol: _Solution, fitted, singular) -> torch.Tensor:
@@ -390,6 +410,13 @@ def _result(model: SineModel, problem: SineProblem, sol: _Solution, status, cov,
 
 
 GN_TOL = 1e-2  # squared Mahalanobis length (in std^2) of a final Gauss-Newton step taken unevaluated
+# l1: its cost is piecewise linear, so near the optimum its steps stall at a few 0.01 std^2 (the
+# signs of the residuals change in jumps); a final step under 0.05 std^2 adds at most 3% to the
+# variance of its estimate (pi / 2 std^2). Likewise an accepted step that lowers the cost by
+# less than 0.02 (what a step of 0.2 std from the optimum gains: the expected cost rises by
+# sqrt(2 / pi) s^2 / 2 at s std), i.e. less than 0.025 / R of a cost of about 0.8 per pixel (R pixels),
+# ends the fit.
+GN_TOL_L1 = 5e-2
 
 
 def _optimise(model: SineModel, items, theta0, data, weight, o: _FitOptions):
@@ -409,8 +436,9 @@ def _optimise(model: SineModel, items, theta0, data, weight, o: _FitOptions):
         jacobian_fn = (lambda theta, i: model.image_and_jacobian(theta, items[i])) if model.analytic else None  # noqa: E731
         # Converged once the next Gauss-Newton step is below 0.1 standard deviation (that
         # step is then taken unevaluated; the result is within ~0.01 std of the optimum).
-        return levenberg_marquardt(model_fn, theta0, data, loss=loss, weight=weight, max_iter=it, tol=o.tol,
-                                   jacobian_fn=jacobian_fn, gn_tol=GN_TOL if loss in ("l2", "poisson") else None)
+        tol = max(o.tol, 0.025 / data.shape[-1]) if loss == "l1" else o.tol
+        return levenberg_marquardt(model_fn, theta0, data, loss=loss, weight=weight, max_iter=it, tol=tol,
+                                   jacobian_fn=jacobian_fn, gn_tol={"linf": None, "l1": GN_TOL_L1}.get(loss, GN_TOL), shift=o.shift)
     n = theta0.shape[0]
     idx = torch.arange(n, device=theta0.device)
     scale = theta0.detach().abs().clamp_min(1.0)
@@ -421,13 +449,13 @@ def _optimise(model: SineModel, items, theta0, data, weight, o: _FitOptions):
         history = []
         for _ in range(it):
             opt.zero_grad()
-            c = image_loss(model_fn(theta0 + u * scale, idx), data, loss=loss, weight=weight)
+            c = image_loss(model_fn(theta0 + u * scale, idx), data, loss=loss, weight=weight, shift=o.shift)
             c.sum().backward()
             opt.step()
             history.append(c.detach())
         with torch.no_grad():
             final = theta0 + u * scale
-            cost = image_loss(model_fn(final, idx), data, loss=loss, weight=weight)
+            cost = image_loss(model_fn(final, idx), data, loss=loss, weight=weight, shift=o.shift)
         prev = history[-20] if len(history) >= 20 else history[0]
         conv = (prev - cost).abs() <= 1e-4 * cost.abs().clamp_min(1e-30)
         return LMResult(final.detach(), cost, conv, torch.full((n,), it, dtype=torch.long, device=theta0.device))
@@ -437,14 +465,14 @@ def _optimise(model: SineModel, items, theta0, data, weight, o: _FitOptions):
 
     def closure():
         opt.zero_grad()
-        c = image_loss(model_fn(theta0 + u * scale, idx), data, loss=loss, weight=weight).sum()
+        c = image_loss(model_fn(theta0 + u * scale, idx), data, loss=loss, weight=weight, shift=o.shift).sum()
         c.backward()
         return c
 
     opt.step(closure)
     with torch.no_grad():
         final = theta0 + u * scale
-        cost = image_loss(model_fn(final, idx), data, loss=loss, weight=weight)
+        cost = image_loss(model_fn(final, idx), data, loss=loss, weight=weight, shift=o.shift)
     state = opt.state[opt._params[0]]
     n_it = int(state.get("n_iter", it))
     conv = torch.full((n,), n_it < it, dtype=torch.bool, device=theta0.device)
@@ -462,7 +490,8 @@ class _FlatInputs:
     the fitted axes' unit image directions, named ``labels``; ``direction [N, 2]`` the one
     direction of a one-axis fit (None: Lissajous, see :func:`_axes_xy`); ``noise`` None, ``[N]``
     or ``[N, E, H, W]``; ``keep [N, E, H, W]`` the pixels neither masked nor saturated;
-    ``user_masked``, ``sat_masked [N]`` whether the mask, the saturation level excluded pixels.
+    ``user_masked``, ``sat_masked [N]`` whether the mask, the saturation level excluded pixels;
+    ``shift`` poisson's read-noise shift (:func:`noise_terms`).
     """
 
     data: torch.Tensor
@@ -476,6 +505,7 @@ class _FlatInputs:
     keep: torch.Tensor
     user_masked: torch.Tensor
     sat_masked: torch.Tensor
+    shift: float = 0.0
 
 
 def _check_flag(value, name: str) -> bool:
@@ -505,9 +535,30 @@ def _check_options(*, fit_scale, fit_background, fit_center, fit_gradient, norma
     return outlier_sigma, tol
 
 
-def _flat_inputs(images, psf, window, omega, axes, noise_std, mask, saturation_level) -> _FlatInputs:
+def noise_terms(images: torch.Tensor, noise_std, noise: CameraNoise | None):
+    """What a fit takes from the camera's noise model ``noise`` (a
+    :class:`~torchblur.render.camera.CameraNoise` or None; ``images [..., E, H, W]`` in
+    dark-subtracted electrons): ``(noise_std, shift)``.
+
+    ``noise_std``: the caller's, else ``noise.std(images)`` (each pixel's own value as its expected
+    charge: that correlates the weights with the noise and biases an l2 or l1 amplitude low by a
+    fraction of a std; pass ``noise_std`` from a cleaner estimate, such as the mean of repeated
+    frames, where there is one), else None. ``shift``: poisson's read-noise shift,
+    ``noise.poisson_shift_e`` (0 without ``noise``: the images are pure counts).
+    Every loss weighs by it as :mod:`torchblur.fit.losses` says (l2 ``1 / sigma^2``, l1 and linf
+    ``1 / sigma``, poisson the shifted Poisson's own variance).
+    """
+    if noise is None:
+        return noise_std, 0.0
+    if not isinstance(noise, CameraNoise):
+        raise InputTypeError(f"noise: expected a CameraNoise or None, got {type(noise).__name__}")
+    return (noise.std(images) if noise_std is None else noise_std), noise.poisson_shift_e
+
+
+def _flat_inputs(images, psf, window, omega, axes, noise_std, mask, saturation_level, noise=None) -> _FlatInputs:
     """The checked ``images [..., E, H, W]`` and the rest, flattened (checks ``axes``,
-    ``noise_std``, ``mask``, ``saturation_level``)."""
+    ``noise_std``, ``mask``, ``saturation_level``, ``noise``: :func:`noise_terms`)."""
+    noise_std, shift = noise_terms(images, noise_std, noise)
     dtype, device = images.dtype, images.device
     batch = images.shape[:-3]
     E, H, W = images.shape[-3:]
@@ -550,7 +601,7 @@ def _flat_inputs(images, psf, window, omega, axes, noise_std, mask, saturation_l
     return _FlatInputs(data=data, psf=_flatten_psf(psf.to(dtype) if isinstance(psf, GaussianPSF) else psf, batch, N),
                        window=ExposureWindow(w_full.start.reshape(N, E), w_full.duration.reshape(N, E)), omega=omega.expand(batch).reshape(N),
                        axis_dirs=axis_dirs, labels=labels, direction=None if isinstance(axes, str) and axes == "xy" else axis_dirs[:, 0], noise=sig, keep=keep,
-                       user_masked=user_masked, sat_masked=sat_masked)
+                       user_masked=user_masked, sat_masked=sat_masked, shift=shift)
 
 
 def _fit_items(inp: _FlatInputs, o: _FitOptions, data: torch.Tensor, idx: torch.Tensor, use: torch.Tensor) -> SinusoidFit:
@@ -655,7 +706,8 @@ def _finish(res: SinusoidFit, inp: _FlatInputs, o: _FitOptions, rejected, plane,
     # With the noise given, the l2 cost is a chi-square: per degree of freedom about 1 when the
     # model explains the images, and the stds mean what they say only then.
     dof = (n_used - len(res.param_names)).clamp_min(1).to(res.cost.dtype)
-    res.reduced_chi2 = res.cost / dof if (inp.noise is not None and o.loss == "l2") else torch.full_like(res.cost, float("nan"))
+    chi2 = res.cost if o.loss == "l2" else torch.where(torch.isnan(res.cost), res.cost, res.reduced_chi2)
+    res.reduced_chi2 = chi2 / dof if (inp.noise is not None and o.loss != "linf") else torch.full_like(res.cost, float("nan"))
     res.background_plane = plane
     for f in fields(SinusoidFit):
         v = getattr(res, f.name)
@@ -759,6 +811,7 @@ def fit_sinusoid(
     optimizer: str = "lm",
     loss: str = "l2",
     noise_std=None,
+    noise: CameraNoise | None = None,
     mask=None,
     saturation_level=None,
     outliers: str = "none",
@@ -790,9 +843,10 @@ def fit_sinusoid(
             along that direction (``[...]``) and the parameters are named ``amplitude_u``,
             ``phase_u``.
         optimizer: ``"lm"`` (batched Levenberg-Marquardt, default), ``"adam"``, ``"lbfgs"``.
-        loss: ``"l2"`` (default), ``"l1"``, ``"linf"`` (adam/lbfgs only), ``"poisson"``.
-        noise_std: pixel noise std: a number, ``[...]`` or ``[..., E, H, W]``; None: the l2
-            fit is unweighted and the noise is estimated from the residuals.
+        loss: ``"l2"`` (default), ``"l1"``, ``"linf"`` (adam/lbfgs only), ``"poisson"``: see :mod:`torchblur.fit.losses`.
+        noise_std: pixel noise std: a number, ``[...]`` or ``[..., E, H, W]``; None: from ``noise``
+            (:func:`noise_terms`), else the l2 fit is unweighted and the noise is estimated from the residuals.
+        noise: the camera's :class:`~torchblur.render.camera.CameraNoise` (images in electrons), or None.
         mask: bool ``[..., E, H, W]``, False excludes a pixel (hot pixels from
             ``preprocess.dark_frame(...).hot_pixels``, saturated pixels from
             ``SaturationCurve.mask`` or ``CameraModel.saturated_mask`` of the raw frames).
@@ -816,16 +870,14 @@ def fit_sinusoid(
             many pixels) is not added to the estimates'.
         normalize: the paper's eq. 8: compare images divided by their Frobenius norms (an
             option; it weights the exposures unequally and loses precision).
-        max_iter: optimiser iterations, an int >= 1 (default 60 for lm, 400 for adam, 100
-            for lbfgs).
+        max_iter: optimiser iterations, an int >= 1 (default 60 for lm, 400 for adam, 100 for lbfgs).
         tol: relative cost decrease that counts as converged (lm), >= 0.
         render_settings: renderer settings; the node count is fixed for the whole fit
             (default: panels of 3.5 PSF widths, model error < 1e-6 of the peak).
 
-    dtype: the fit computes in, and returns, the widest floating dtype of ``images``, the PSF
-    and the window, at least float32 (:func:`fit_dtype`): float16/bfloat16 and integer images
-    are promoted, float32 images with a float64 PSF or window give a float64 fit; ``omega``,
-    ``noise_std`` and ``saturation_level`` are converted to it.
+    dtype: the fit computes in, and returns, the widest floating dtype of ``images``, the PSF and the window, at least
+    float32 (:func:`fit_dtype`): float16/bfloat16 and integer images are promoted, float32 images with a float64 PSF or
+    window give a float64 fit; ``omega``, ``noise_std`` and ``saturation_level`` are converted to it.
 
     Returns:
         :class:`SinusoidFit`. Degenerate items are flagged, never raised, and do not change
@@ -844,8 +896,8 @@ def fit_sinusoid(
     outlier_sigma, tol = _check_options(fit_scale=fit_scale, fit_background=fit_background, fit_center=fit_center,
                                         fit_gradient=fit_gradient, normalize=normalize, outliers=outliers, outlier_sigma=outlier_sigma,
                                         max_iter=max_iter, tol=tol, render_settings=render_settings)
-    inp = _flat_inputs(images, psf, window, omega, axes, noise_std, mask, saturation_level)
+    inp = _flat_inputs(images, psf, window, omega, axes, noise_std, mask, saturation_level, noise)
     options = _FitOptions(optimizer=optimizer, loss=loss, fit_scale=fit_scale, fit_background=fit_background, fit_center=fit_center,
-                          normalize=normalize, max_iter=max_iter, tol=tol, render_settings=render_settings)
+                          normalize=normalize, max_iter=max_iter, tol=tol, render_settings=render_settings, shift=inp.shift)
     res, rejected, plane, passes = _robust_fit(inp, options, outliers, outlier_sigma, fit_gradient)
     return _finish(res, inp, options, rejected, plane, passes, batch=images.shape[:-3])

@@ -16,7 +16,7 @@ from torchblur.image.preprocess import dark_frame, saturation_curve, subtract_da
 from torchblur.image.psf_from_still import psf_from_still
 from torchblur.image.spots import locate_spots
 from torchblur.image.tracking import calibrate_axes
-from torchblur.render.camera import camera_noise_std
+from torchblur.render.camera import CameraNoise, camera_noise_std
 
 __all__ = ["Calibration", "MIN_INSIDE", "calibrate", "calibrate_latency"]
 
@@ -34,7 +34,9 @@ class Calibration:
     ``latency_std_s``, ``gain`` (e-/ADU), with one spot ``still_psf`` (the
     :class:`~torchblur.image.psf_from_still.StillPSF`: the PSF the sine sweep fits with,
     ``still_psf.psf``, a KernelPSF or that Gaussian, and why), and for one-axis runs the
-    actuator's image ``direction``."""
+    actuator's image ``direction``; ``noise``, the camera's
+    :class:`~torchblur.render.camera.CameraNoise` (gain, mean dark level, read noise: the one noise
+    model every fit of the run weighs its residuals with), is built from them."""
 
     dark: object
     read_noise_e: float
@@ -54,6 +56,11 @@ class Calibration:
     axis_gain: float | None = None
     still_psf: object = None  # one spot: the StillPSF (fit.psf's choice and its evidence), else None
     drive: DriveLimit | None = None  # the run's input range (every command within drive.limit); None: no limit
+    noise: CameraNoise | None = None  # None: built from gain, dark and read_noise_e
+
+    def __post_init__(self):
+        if self.noise is None:
+            self.noise = CameraNoise(gain_e_per_adu=self.gain, offset_adu=float(self.dark.mean.mean()), read_noise_e=self.read_noise_e)
 
     @property
     def input_limit(self) -> float:

@@ -161,7 +161,7 @@ class FitConfig:
     # use the Gaussian (fit.psf=kernel is refused there; with auto the log says when it does not fit).
     psf: str = "auto"
     optimizer: str = "lm"
-    loss: str = "l2"
+    loss: str = "l2"  # "l2", "l1" or "poisson", each weighted by the calibrated camera noise (linf: refused, no likelihood)
     fit_scale: bool = True
     fit_background: bool = False
     fit_gradient: bool = False  # remove a stray-light plane per exposure (fit_sinusoid's fit_gradient)
@@ -644,7 +644,7 @@ def validate(cfg: IdentifyConfig) -> None:
         raise ConfigError(f"sweep.exposures: the longest exposure ({max(s.exposures)} of the period at {f_min:g} Hz = "
                           f"{longest:g} s) exceeds camera.max_exposure_s = {c.max_exposure_s:g} s")
     from torchblur.fit.sinusoid import OPTIMIZERS
-    from torchblur.fit.losses import LOSSES
+    from torchblur.fit.losses import LIKELIHOOD_LOSSES, LOSSES
 
     if isinstance(cfg.fit.axis, str):
         if cfg.fit.axis not in AXIS_MODES:
@@ -659,8 +659,11 @@ def validate(cfg: IdentifyConfig) -> None:
         raise ConfigError(f"fit.optimizer: expected one of {OPTIMIZERS}, got {cfg.fit.optimizer!r}")
     if cfg.fit.loss not in LOSSES:
         raise ConfigError(f"fit.loss: expected one of {LOSSES}, got {cfg.fit.loss!r}")
-    if cfg.fit.loss == "linf" and cfg.fit.optimizer == "lm":
-        raise ConfigError("fit.loss: 'linf' is not a sum of squares; set fit.optimizer=adam or lbfgs with it")
+    if cfg.fit.loss not in LIKELIHOOD_LOSSES:
+        raise ConfigError(f"fit.loss: {cfg.fit.loss!r} is refused for an identification: it is no likelihood of the camera's noise, so its "
+                          f"fit has no covariance and the response's stds would not hold; use one of {LIKELIHOOD_LOSSES} (l2, the default; "
+                          f"l1 to be robust to outlier pixels, at 1.25x the std; poisson, the camera's shot and read noise exactly). "
+                          f"fit_sinusoid(..., loss='linf', optimizer='adam' or 'lbfgs') still fits it outside a run")
     for k in ("fit_scale", "fit_background", "fit_gradient"):
         _flag(getattr(cfg.fit, k), f"fit.{k}")
     from torchblur.fit.sinusoid import OUTLIERS

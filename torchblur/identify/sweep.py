@@ -37,7 +37,7 @@ from torchblur.identify.result import IdentificationResult
 from torchblur.image.moments import image_moments, moments_along, sinusoid_from_moments
 from torchblur.image.preprocess import subtract_dark
 from torchblur.image.spots import crop_spots, crop_valid
-from torchblur.render.camera import camera_noise_std
+from torchblur.render.camera import CameraNoise
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.window import ExposureWindow
 
@@ -183,16 +183,17 @@ def inflate_std(fit, factor: torch.Tensor):
                    covariance=fit.covariance * per(fit.covariance) ** 2)
 
 
-def fit_points(acq: SineAcquisition, lay: SweepLayout, cfg, read_noise_e: float, idx: list):
+def fit_points(acq: SineAcquisition, lay: SweepLayout, cfg, noise: CameraNoise, idx: list):
     """One batched :func:`~torchblur.fit.sinusoid.fit_sinusoid` of the jobs ``idx`` (batch
-    ``[n]`` for a single-spot SISO run, else ``[n, P]``), weighted by the camera noise model.
+    ``[n]`` for a single-spot SISO run, else ``[n, P]``), weighted by the camera noise model
+    ``noise`` (the calibration's; every ``fit.loss`` uses it).
     With the measured kernel the stds include its own noise: times
     :meth:`~torchblur.image.psf_from_still.StillPSF.kernel_noise_factor` of the point's
     exposures (all ``E*R`` of them, fitted together) times its laser power (the still frames
     are taken at power 1), and the points are fitted one by one (the fit crops the kernel to
     the reach of its whole batch, so a batch's values would depend on the chunking, by ~1e-5)."""
     if lay.uses_kernel and len(idx) > 1:
-        return concat_fits([fit_points(acq, lay, cfg, read_noise_e, [j]) for j in idx])
+        return concat_fits([fit_points(acq, lay, cfg, noise, [j]) for j in idx])
     imgs = torch.stack([acq.frames[j] for j in idx])  # [n, P, E*R, h, w]
     pw = torch.tensor([acq.powers[j] for j in idx], dtype=_F64)
     psf_b = _point_psf(lay, pw)
@@ -201,7 +202,7 @@ def fit_points(acq: SineAcquisition, lay: SweepLayout, cfg, read_noise_e: float,
     f = cfg.fit
     with _FIT_LOCK:
         fit = fit_sinusoid(imgs, psf_b, win, acq.omega_job[list(idx)][:, None], axes=lay.axes, optimizer=f.optimizer, loss=f.loss,
-                           noise_std=camera_noise_std(_repeat_mean(imgs, lay.R), read_noise_e), mask=torch.stack([acq.masks[j] for j in idx]),
+                           noise_std=noise.std(_repeat_mean(imgs, lay.R)), noise=noise, mask=torch.stack([acq.masks[j] for j in idx]),
                            fit_scale=f.fit_scale, fit_background=f.fit_background, fit_gradient=f.fit_gradient,
                            outliers=f.outliers, outlier_sigma=float(f.outlier_sigma))
     if lay.uses_kernel:
@@ -345,7 +346,7 @@ class SinePlan:
         lay = sweep_layout(run.cfg, run.cal, run.rig.frame_shape)
         F, I = len(lay.freqs), len(lay.inputs)
         acq = SineAcquisition(omega_job=torch.tensor(np.tile(2 * math.pi * lay.freqs, I), dtype=_F64), layout=lay)
-        acq.fitter = ChunkFitter(int(run.cfg.fit.chunk_points), partial(fit_points, acq, lay, run.cfg, run.cal.read_noise_e))
+        acq.fitter = ChunkFitter(int(run.cfg.fit.chunk_points), partial(fit_points, acq, lay, run.cfg, run.cal.noise))
         run.acquisition = acq
         acq.t_sweep = time.perf_counter()
         bar = progress_bar(run.progress, total=I * F, desc="sweep", unit="pt")

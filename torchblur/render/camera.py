@@ -26,7 +26,7 @@ import torch
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_bool, check_finite, check_int, check_real_scalar
 from torchblur.render.window import ExposureWindow
 
-__all__ = ["CameraModel", "camera_noise_std"]
+__all__ = ["CameraModel", "CameraNoise", "camera_noise_std"]
 
 
 def camera_noise_std(expected_e, read_noise_e: float):
@@ -50,6 +50,59 @@ def camera_noise_std(expected_e, read_noise_e: float):
     if isinstance(expected_e, torch.Tensor):
         return torch.sqrt(read_noise_e**2 + expected_e.clamp_min(0))
     return math.sqrt(read_noise_e**2 + max(float(expected_e), 0.0))
+
+
+@dataclass(frozen=True)
+class CameraNoise:
+    """The noise of a camera's pixels, in electrons: the one noise model every loss of a fit
+    weighs its residuals with.
+
+    A pixel's dark-subtracted charge ``d = (adu - offset_adu) * gain_e_per_adu`` is the sum of
+    a Poisson count of mean ``m`` (the expected photo-electrons, shot noise) and Gaussian read
+    noise of std ``read_noise_e`` (the dark frames' std, rounding to whole ADU included):
+    ``E d = m``, ``var d = m + read_noise_e**2`` (:meth:`std`). For the Poisson likelihood,
+    ``d + read_noise_e**2`` is close to ``Poisson(m + read_noise_e**2)`` (same mean and
+    variance; the "shifted Poisson" of Snyder et al., 1993, for CCDs with read noise):
+    :attr:`poisson_shift_e` is that shift.
+
+    Args:
+        gain_e_per_adu: conversion gain, electrons per ADU (> 0).
+        offset_adu: the dark level, ADU (a number; the mean of a dark frame).
+        read_noise_e: read noise std, electrons (>= 0).
+
+    Example:
+        >>> noise = CameraNoise(gain_e_per_adu=2.0, offset_adu=100.0, read_noise_e=3.0)
+        >>> noise.std(torch.tensor([0.0, 16.0]))
+        tensor([3., 5.])
+        >>> noise.poisson_shift_e
+        9.0
+    """
+
+    gain_e_per_adu: float = 1.0
+    offset_adu: float = 0.0
+    read_noise_e: float = 0.0
+
+    def __post_init__(self):
+        object.__setattr__(self, "gain_e_per_adu", check_real_scalar(self.gain_e_per_adu, "gain_e_per_adu", positive=True))
+        object.__setattr__(self, "offset_adu", check_real_scalar(self.offset_adu, "offset_adu"))
+        object.__setattr__(self, "read_noise_e", check_real_scalar(self.read_noise_e, "read_noise_e", nonnegative=True))
+
+    def std(self, expected_e):
+        """Std of a pixel's dark-subtracted charge, electrons: :func:`camera_noise_std`
+        (``sqrt(read_noise_e**2 + max(expected_e, 0))``), ``expected_e`` a tensor ``[...]`` or a number."""
+        return camera_noise_std(expected_e, self.read_noise_e)
+
+    @property
+    def poisson_shift_e(self) -> float:
+        """``read_noise_e**2`` (electrons): the shift that makes ``d + shift`` a Poisson count of
+        mean ``m + shift`` to two moments (the Poisson loss adds it to data and model)."""
+        return self.read_noise_e**2
+
+    def to_electrons(self, frames_adu) -> torch.Tensor:
+        """``(frames_adu - offset_adu) * gain_e_per_adu``: dark-subtracted charge, electrons,
+        same shape, dtype and device as ``frames_adu`` ``[...]``."""
+        frames = check_finite(as_tensor(frames_adu, "frames_adu"), "frames_adu")
+        return (frames - self.offset_adu) * self.gain_e_per_adu
 
 
 def _check_generator(generator, device: torch.device) -> None:
@@ -268,8 +321,15 @@ class CameraModel:
         Returns:
             Charge in electrons, same shape, dtype and device; differentiable.
         """
-        frames = check_finite(as_tensor(frames_adu, "frames_adu"), "frames_adu")
-        return (frames - self.dark_level_adu) * self.gain_e_per_adu
+        return self.noise.to_electrons(frames_adu)
+
+    @property
+    def noise(self) -> CameraNoise:
+        """This sensor's :class:`CameraNoise`: its gain and dark level, and as read noise
+        ``sqrt(read_noise_e**2 + gain_e_per_adu**2 / 12 [if quantize])`` (rounding to whole ADU
+        adds ``1/12`` ADU^2, as a dark frame's std measures it). Assumes ``shot_noise``."""
+        q = self.gain_e_per_adu**2 / 12.0 if self.quantize else 0.0
+        return CameraNoise(gain_e_per_adu=self.gain_e_per_adu, offset_adu=self.dark_level_adu, read_noise_e=math.sqrt(self.read_noise_e**2 + q))
 
     def noise_std_e(self, expected_e) -> torch.Tensor:
         """Per-pixel standard deviation of the measured charge, in electrons.
