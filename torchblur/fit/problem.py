@@ -319,9 +319,9 @@ KERNEL_CROP_STEP = 8  #: px: a kernel item's own crop is rounded up to a multipl
 def crop_to_reach(problem: SineProblem, amplitude_bound: torch.Tensor, *, fit_center: bool) -> SineProblem:
     """The problem cut to the region the model can reach (an l2 fit), or the problem itself.
 
-    Outside it (5.5 PSF sigmas beyond the largest motion, ``amplitude_bound [N, n_axes]`` px
-    times 1.25 plus 0.5 px, and 2 px more with ``fit_center``) the model and its Jacobian are
-    below 3e-7 of the peak, far below any camera's noise, so those pixels change nothing in
+    Outside it (5.5 PSF sigmas, or a kernel's non-zero pixels, beyond the largest motion,
+    ``amplitude_bound [N, n_axes]`` px times 1.25 plus 0.5 px, and 2 px more with ``fit_center``)
+    the model and its Jacobian are below 3e-7 of the peak (a kernel: zero), so those pixels change nothing in
     the normal equations; their constant contribution to the cost and to the noise estimate is
     kept in ``cut_cost``, ``cut_sq``, ``cut_n``. A crop is skipped unless it is at least 4x4 and
     under 90% of the frame.
@@ -369,11 +369,29 @@ def crop_to_reach(problem: SineProblem, amplitude_bound: torch.Tensor, *, fit_ce
 
 
 def _reach_bounds(p: SineProblem, amplitude_bound: torch.Tensor, fit_center: bool):
-    """``(lo [N, 2], hi [N, 2])`` (x, y px): each item's reach (see :func:`crop_to_reach`)."""
+    """``(lo [N, 2], hi [N, 2])`` (x, y px): each item's reach (see :func:`crop_to_reach`): the
+    spot (a Gaussian: 5.5 sigmas about its centre; a kernel: wherever it is not zero, its
+    faint wings included) widened by the motion."""
     reach = (p.direction.abs() * (amplitude_bound * 1.25 + 0.5)[..., None]).sum(1)  # [N, 2] px
-    sdv = torch.diagonal(p.psf_cov, dim1=-2, dim2=-1).clamp_min(0).sqrt()
     margin = 2.0 if fit_center else 0.0
+    if isinstance(p.psf, KernelPSF):
+        lo, hi = _nonzero_box(p.psf.kernel)
+        return lo - reach - margin, hi + reach + margin
+    sdv = torch.diagonal(p.psf_cov, dim1=-2, dim2=-1).clamp_min(0).sqrt()
     return p.rest - reach - 5.5 * sdv - margin, p.rest + reach + 5.5 * sdv + margin
+
+
+def _nonzero_box(kernel: torch.Tensor):
+    """``(lo [N, 2], hi [N, 2])`` (x, y px): the first and last column and row where each kernel
+    ``[N, H, W]`` is not zero (0 and the last where it is zero everywhere)."""
+    nz = kernel.detach() != 0
+    out = []
+    for lines in (nz.any(-2), nz.any(-1)):  # [N, W] columns, [N, H] rows
+        idx = torch.arange(lines.shape[-1], device=kernel.device, dtype=kernel.dtype)
+        first = torch.where(lines, idx, torch.full_like(idx, math.inf)).amin(-1)
+        last = torch.where(lines, idx, torch.full_like(idx, -math.inf)).amax(-1)
+        out.append((torch.where(lines.any(-1), first, idx[0]), torch.where(lines.any(-1), last, idx[-1])))
+    return torch.stack([out[0][0], out[1][0]], -1), torch.stack([out[0][1], out[1][1]], -1)
 
 
 def _worth_cropping(w: int, h: int, H: int, W: int) -> bool:
