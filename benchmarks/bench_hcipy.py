@@ -45,6 +45,8 @@ def summary(out: dict) -> str:
         f"  rms(error/std)       M {np.sqrt(np.mean(out['z_M'] ** 2)):.3f}   phi {np.sqrt(np.mean(out['z_phi'] ** 2)):.3f}",
         f"  with the kernel-noise factor (median {np.median(out['factor']):.3f}): rms(error/std) "
         f"M {np.sqrt(np.mean((out['z_M'] / out['factor']) ** 2)):.3f}   phi {np.sqrt(np.mean((out['z_phi'] / out['factor']) ** 2)):.3f}",
+        f"  fit reduced chi2     median {np.median(out['reduced_chi2']):.3f}  (range {out['reduced_chi2'].min():.3f}-{out['reduced_chi2'].max():.3f}; "
+        f"{int((out['reduced_chi2'] > 1.5).sum())} above 1.5)",
         f"  gross errors         {int(gross.sum())} of {gross.size}",
         f"  PSF chosen           {kinds}; reduced chi2 of the still: Gaussian median {np.median(out['chi2_gaussian']):.3g}, "
         f"kernel (light left out) median {np.median(out['chi2_kernel']):.3g}",

@@ -236,18 +236,19 @@ def fit_problems(problems: list, kind: str, *, passes: int = 2, background: floa
     chosen kinds, the chi2 of each PSF and ``StillPSF.kernel_noise_factor``."""
     res = [psf_from_still(torch.as_tensor(p["still"]), p["still_exposure"], kind=kind, background=background) for p in problems]
     n = len(problems)
-    amp, ph, amp_std, ph_std, status = (np.full(n, np.nan) for _ in range(5))
+    amp, ph, amp_std, ph_std, status, chi2 = (np.full(n, np.nan) for _ in range(6))
     for k in ("gaussian", "kernel"):
         idx = [i for i, r in enumerate(res) if r.kind == k]
         if idx:
             fit = _fit_group([problems[i] for i in idx], [res[i] for i in idx], passes)
             amp[idx], ph[idx] = fit.amplitude.numpy(), fit.phase.numpy()
             amp_std[idx], ph_std[idx], status[idx] = fit.amplitude_std.numpy(), fit.phase_std.numpy(), fit.status.numpy()
+            chi2[idx] = fit.reduced_chi2.numpy()
     M = np.array([p["M"] for p in problems])
     dphi = np.angle(np.exp(1j * (ph - np.array([p["phi"] for p in problems]))))
     factor = np.array([float(r.kernel_noise_factor(p["window"].duration)) for r, p in zip(res, problems)])
     return dict(
         factor=factor, err_M_pct=100 * (amp - M) / M, err_phi_deg=np.degrees(dphi), z_M=(amp - M) / amp_std, z_phi=dphi / ph_std, status=status,
         kinds=[r.kind for r in res], chi2_gaussian=np.array([float(r.chi2_gaussian) for r in res]),
-        chi2_kernel=np.array([float(r.chi2_kernel) for r in res]), freq_hz=np.array([p["freq_hz"] for p in problems]),
+        chi2_kernel=np.array([float(r.chi2_kernel) for r in res]), reduced_chi2=chi2, freq_hz=np.array([p["freq_hz"] for p in problems]),
     )

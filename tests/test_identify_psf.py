@@ -119,7 +119,7 @@ def test_a_forced_gaussian_on_that_spot_is_worse(airy_runs):
 
 
 def test_kernel_points_do_not_depend_on_the_chunking():
-    # each point is fitted alone with the kernel (a batch's kernel crop spans all its points):
+    # a kernel fit gives each point its own crop, rules and FFT grid (tests/test_kernel_batch.py):
     # chunks of 8 points or of one give the same values
     keys = ["sweep.freq_hz=[2,50,300,420,900]", "camera.height=40", "camera.width=40", "fit.axis=x", "fit.psf=kernel"]
     runs = [identify(load_config(None, keys + [f"fit.chunk_points={n}"]), progress=False) for n in (8, 1)]

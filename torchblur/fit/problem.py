@@ -49,6 +49,9 @@ class SineProblem:
         dim: ``[N]`` bool or None: lit, but only the matched filter sees it (no pixel above 8
             noise stds); its starts come from the smoothed images.
         origin: ``(x0, y0)``, the crop's corner in the full frame (px).
+        region: ``[N, 4]`` long or None: a measured kernel's own crop per item (``x0, y0, w, h``
+            in the full frame, px; :func:`crop_to_reach`): item ``n``'s pixels are
+            ``data[n, :, :h, :w]``, the rest of the frame ``data`` is zero-weighted padding.
         cut_cost, cut_sq, cut_n: ``[N]``, over the pixels the crop cut off: the weighted sum of
             squares, the plain sum of squares over the used pixels, the number of used pixels
             (the model is zero there, so they add a constant to the cost and to the residuals).
@@ -74,6 +77,7 @@ class SineProblem:
     cut_cost: torch.Tensor | None = None
     cut_sq: torch.Tensor | None = None
     cut_n: torch.Tensor | None = None
+    region: torch.Tensor | None = None
 
     @property
     def live(self) -> torch.Tensor:
@@ -309,29 +313,36 @@ def _nuisance_starts(problem: SineProblem, layout: ParamLayout) -> list:
     return extra
 
 
+KERNEL_CROP_STEP = 8  #: px: a kernel item's own crop is rounded up to a multiple of this, so items of similar reach share a shape
+
+
 def crop_to_reach(problem: SineProblem, amplitude_bound: torch.Tensor, *, fit_center: bool) -> SineProblem:
     """The problem cut to the region the model can reach (an l2 fit), or the problem itself.
 
-    Outside it (5.5 PSF sigmas beyond the largest motion, ``amplitude_bound [N, n_axes]`` px
-    times 1.25 plus 0.5 px, and 2 px more with ``fit_center``) the model and its Jacobian are
-    below 3e-7 of the peak, far below any camera's noise, so those pixels change nothing in
+    Outside it (5.5 PSF sigmas, or a kernel's non-zero pixels, beyond the largest motion,
+    ``amplitude_bound [N, n_axes]`` px times 1.25 plus 0.5 px, and 2 px more with ``fit_center``)
+    the model and its Jacobian are below 3e-7 of the peak (a kernel: zero), so those pixels change nothing in
     the normal equations; their constant contribution to the cost and to the noise estimate is
-    kept in ``cut_cost``, ``cut_sq``, ``cut_n``. The crop is shared by the batch (the union over
-    the live items), and skipped unless it is at least 4x4 and under 90% of the frame.
+    kept in ``cut_cost``, ``cut_sq``, ``cut_n``. A crop is skipped unless it is at least 4x4 and
+    under 90% of the frame.
+
+    A Gaussian PSF's crop is shared by the batch (the union over the live items): the model
+    there is the Gaussian's, wherever the crop ends. A measured kernel is cut with the frame,
+    so each item gets its own crop (a function of that item alone, its size rounded up to
+    :data:`KERNEL_CROP_STEP` px): a batch gives each item what a fit of it alone gives.
     """
     p = problem
+    if not bool(p.live.any()):
+        return p
+    lo, hi = _reach_bounds(p, amplitude_bound, fit_center)
+    if isinstance(p.psf, KernelPSF):
+        return _crop_items(p, lo, hi)
     N, E, H, W = p.data.shape
     live = p.live
-    if not bool(live.any()):
-        return p
-    reach = (p.direction.abs() * (amplitude_bound * 1.25 + 0.5)[..., None]).sum(1)  # [N, 2] px
-    sdv = torch.diagonal(p.psf_cov, dim1=-2, dim2=-1).clamp_min(0).sqrt()
-    margin = 2.0 if fit_center else 0.0
-    lo = (p.rest - reach - 5.5 * sdv - margin)[live].amin(0)
-    hi = (p.rest + reach + 5.5 * sdv + margin)[live].amax(0)
+    lo, hi = lo[live].amin(0), hi[live].amax(0)
     cx0, cy0 = max(0, int(math.floor(float(lo[0])))), max(0, int(math.floor(float(lo[1]))))
     cx1, cy1 = min(W, int(math.ceil(float(hi[0]))) + 1), min(H, int(math.ceil(float(hi[1]))) + 1)
-    if not (cx1 - cx0 >= 4 and cy1 - cy0 >= 4 and (cx1 - cx0) * (cy1 - cy0) < 0.9 * H * W):
+    if not _worth_cropping(cx1 - cx0, cy1 - cy0, H, W):
         return p
     bands = ((slice(None, cy0), slice(None)), (slice(cy1, None), slice(None)),
              (slice(cy0, cy1), slice(None, cx0)), (slice(cy0, cy1), slice(cx1, None)))
@@ -352,9 +363,89 @@ def crop_to_reach(problem: SineProblem, amplitude_bound: torch.Tensor, *, fit_ce
         cut_sq = cut_sum(lambda b: (p.weight[(..., *b)] > 0) * sq(b))
         cut_n = cut_sum(lambda b: (p.weight[(..., *b)] > 0).to(p.data.dtype))
     shift = torch.tensor([cx0, cy0], dtype=p.data.dtype, device=p.data.device)
-    if isinstance(p.psf, GaussianPSF):
-        psf = GaussianPSF(p.psf.center - shift, p.psf.cov, p.psf.amplitude)
-    else:
-        psf = KernelPSF(p.psf.kernel[..., cy0:cy1, cx0:cx1])
+    psf = GaussianPSF(p.psf.center - shift, p.psf.cov, p.psf.amplitude)
     return dataclasses.replace(p, data=p.data[..., cy0:cy1, cx0:cx1], weight=p.weight[..., cy0:cy1, cx0:cx1], psf=psf,
                                origin=(cx0, cy0), cut_cost=cut_cost, cut_sq=cut_sq, cut_n=cut_n)
+
+
+def _reach_bounds(p: SineProblem, amplitude_bound: torch.Tensor, fit_center: bool):
+    """``(lo [N, 2], hi [N, 2])`` (x, y px): each item's reach (see :func:`crop_to_reach`): the
+    spot (a Gaussian: 5.5 sigmas about its centre; a kernel: wherever it is not zero, its
+    faint wings included) widened by the motion."""
+    reach = (p.direction.abs() * (amplitude_bound * 1.25 + 0.5)[..., None]).sum(1)  # [N, 2] px
+    margin = 2.0 if fit_center else 0.0
+    if isinstance(p.psf, KernelPSF):
+        lo, hi = _nonzero_box(p.psf.kernel)
+        return lo - reach - margin, hi + reach + margin
+    sdv = torch.diagonal(p.psf_cov, dim1=-2, dim2=-1).clamp_min(0).sqrt()
+    return p.rest - reach - 5.5 * sdv - margin, p.rest + reach + 5.5 * sdv + margin
+
+
+def _nonzero_box(kernel: torch.Tensor):
+    """``(lo [N, 2], hi [N, 2])`` (x, y px): the first and last column and row where each kernel
+    ``[N, H, W]`` is not zero (0 and the last where it is zero everywhere)."""
+    nz = kernel.detach() != 0
+    out = []
+    for lines in (nz.any(-2), nz.any(-1)):  # [N, W] columns, [N, H] rows
+        idx = torch.arange(lines.shape[-1], device=kernel.device, dtype=kernel.dtype)
+        first = torch.where(lines, idx, torch.full_like(idx, math.inf)).amin(-1)
+        last = torch.where(lines, idx, torch.full_like(idx, -math.inf)).amax(-1)
+        out.append((torch.where(lines.any(-1), first, idx[0]), torch.where(lines.any(-1), last, idx[-1])))
+    return torch.stack([out[0][0], out[1][0]], -1), torch.stack([out[0][1], out[1][1]], -1)
+
+
+def _worth_cropping(w: int, h: int, H: int, W: int) -> bool:
+    """A crop of ``w x h`` px of an ``H x W`` frame is worth it: at least 4x4, under 90%."""
+    return w >= 4 and h >= 4 and w * h < 0.9 * H * W
+
+
+def _item_span(lo: float, hi: float, n: int) -> tuple[int, int]:
+    """One item's crop ``(start, length)`` along an axis of ``n`` px: ``[lo, hi]`` (px, pixel
+    centres) in whole pixels, the length rounded up to :data:`KERNEL_CROP_STEP` (grown about
+    its middle, kept inside the frame)."""
+    lo = lo if math.isfinite(lo) else 0.0
+    hi = hi if math.isfinite(hi) else n - 1.0
+    a, b = max(0, int(math.floor(lo))), min(n, int(math.ceil(hi)) + 1)
+    length = min(n, max(b - a, 1))
+    rounded = min(n, -(-length // KERNEL_CROP_STEP) * KERNEL_CROP_STEP)
+    start = min(max(0, a - (rounded - length) // 2), n - rounded)
+    return start, rounded
+
+
+def _crop_items(p: SineProblem, lo: torch.Tensor, hi: torch.Tensor) -> SineProblem:
+    """The kernel problem cut to each item's own crop (:func:`crop_to_reach`): item ``n``'s
+    pixels at the top-left ``[:h_n, :w_n]`` of a frame of the largest crop's size, the rest of
+    it zero (data, weight and kernel), ``region [N, 4]`` saying where each crop was."""
+    N, E, H, W = p.data.shape
+    dev = p.data.device
+    spans = []
+    for n in range(N):
+        x0, w = _item_span(float(lo[n, 0]), float(hi[n, 0]), W)
+        y0, h = _item_span(float(lo[n, 1]), float(hi[n, 1]), H)
+        spans.append((x0, y0, w, h) if _worth_cropping(w, h, H, W) else (0, 0, W, H))
+    region = torch.tensor(spans, dtype=torch.long, device=dev)  # [N, 4]
+    wc, hc = int(region[:, 2].max()), int(region[:, 3].max())
+    if (wc, hc) == (W, H) and bool((region[:, 2:] == region.new_tensor([W, H])).all()):
+        return p
+    ys = (region[:, 1, None] + torch.arange(hc, device=dev)).clamp_max(H - 1)  # [N, hc]
+    xs = (region[:, 0, None] + torch.arange(wc, device=dev)).clamp_max(W - 1)  # [N, wc]
+    inside = (torch.arange(hc, device=dev) < region[:, 3, None])[:, :, None] & (torch.arange(wc, device=dev) < region[:, 2, None])[:, None, :]
+    n_i = torch.arange(N, device=dev)
+
+    def cut(t):  # [N, ..., H, W] -> [N, ..., hc, wc]: each item's crop at the top-left, zero beyond
+        c = t[n_i[:, None, None], ..., ys[:, :, None], xs[:, None, :]]  # [N, hc, wc, ...]
+        c = c.movedim((1, 2), (-2, -1))
+        return torch.where(inside.view((N,) + (1,) * (c.dim() - 3) + (hc, wc)), c, torch.zeros((), dtype=c.dtype, device=dev))
+
+    full = torch.zeros(N, H, W, dtype=torch.bool, device=dev)
+    for n, (x0, y0, w, h) in enumerate(spans):
+        full[n, y0:y0 + h, x0:x0 + w] = True
+    out = (~full)[:, None]  # [N, 1, H, W]: the pixels each item's crop cuts off
+    sq = p.data * p.data
+    used = (p.weight > 0).to(p.data.dtype)
+    cut_cost = (p.weight * sq * out).sum((-1, -2, -3))
+    cut_sq = (used * sq * out).sum((-1, -2, -3))
+    cut_n = (used * out).sum((-1, -2, -3))
+    same = bool((region[:, 2] == wc).all() and (region[:, 3] == hc).all())
+    return dataclasses.replace(p, data=cut(p.data), weight=cut(p.weight), row_weight=p.row_weight if same else None,
+                               psf=KernelPSF(cut(p.psf.kernel)), cut_cost=cut_cost, cut_sq=cut_sq, cut_n=cut_n, region=region)

@@ -13,8 +13,12 @@ Two paths stand behind them:
   axes' image directions), image and Jacobian from one splat; the frames of each exposure on
   their own quadrature rule (``panels [N, E]``), frames of equal node count splatted together.
   The scale and background columns are assembled around the splat.
-- generic (a :class:`~torchblur.render.psf.KernelPSF`, pixel integration, ``normalize``):
-  :func:`~torchblur.render.blur.render_blur` and a forward-mode AD Jacobian.
+- measured kernel (a :class:`~torchblur.render.psf.KernelPSF`): the kernel's exact Fourier
+  shift, each item on its own terms (its own crop, ``regions``; its own quadrature rule per
+  frame; its own FFT grid, from its own motion), so a batch gives each item what a fit of it
+  alone gives; a forward-mode AD Jacobian.
+- generic (pixel integration, ``normalize``): :func:`~torchblur.render.blur.render_blur` and
+  a forward-mode AD Jacobian.
 
 :meth:`SineModel.rendered` (the renderer, differentiable by autograd) serves the gradient
 optimisers on both paths.
@@ -28,7 +32,7 @@ from dataclasses import dataclass
 import torch
 
 from torchblur.fit.optim import model_jacobian
-from torchblur.render.blur import RenderSettings, choose_node_count, panel_count, quadrature_nodes, render_blur
+from torchblur.render.blur import RenderSettings, _kernel_fourier, choose_node_count, panel_count, quadrature_nodes, render_blur
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.splat import sine_blur_with_jacobian, window_nodes
 from torchblur.render.trajectory import Sinusoid
@@ -39,6 +43,9 @@ __all__ = ["ParamLayout", "SineModel", "sine_model"]
 # One splat call's fixed cost (Python and per-operation overheads) in nodes x pixels of frame
 # work: measured on a 2-core CPU, 1.8 ms per call against 0.84 us per node of a 22x54 frame.
 _CALL_NODE_PIXELS = 2.5e6
+# Kernel path: a row's FFT grid is padded by its largest displacement plus 2 px, rounded up to
+# a multiple of this (px), so rows of similar reach are rendered by one call.
+_PAD_STEP = 8
 
 
 @dataclass(frozen=True)
@@ -109,6 +116,10 @@ class SineModel:
         panels: analytic path: the panel count of each frame's rule ``[N, E]`` (long); None: generic.
         nodes_per_panel: Gauss-Legendre nodes per panel of those rules.
         precision: analytic path: the PSF's ``(A, B, C)``, each ``[N]`` (``cov^-1 = [[A, B], [B, C]]``).
+        kernel_rule: kernel path: each frame's quadrature rule on [0, 1], ``(tau, weights)`` each
+            ``[N, E, S]`` (a frame's ``S_f <= S`` nodes first, then weight 0); None otherwise.
+        regions: kernel path: ``[N, 2]`` long, ``(h, w)`` of each item's own crop, the frame's
+            top-left (the rest is zero-weighted padding); None: the whole frame.
     """
 
     layout: ParamLayout
@@ -124,6 +135,8 @@ class SineModel:
     panels: torch.Tensor | None = None
     nodes_per_panel: int = 0
     precision: tuple | None = None
+    kernel_rule: tuple | None = None
+    regions: torch.Tensor | None = None
 
     @property
     def analytic(self) -> bool:
@@ -139,18 +152,46 @@ class SineModel:
             amp_xy, ph_xy = amp, ph
         else:  # a motion along the direction D[n, 0]
             amp_xy, ph_xy = amp * self.direction[n, 0], torch.cat([ph, ph], -1)
-        if isinstance(self.psf, GaussianPSF):
+        if self.kernel_rule is not None:
+            img = self._kernel_images(amp, ph, n)
+        else:
             c = theta[:, L.center:L.center + 2] if L.fit_center else self.psf.center[n]
             psf_n = GaussianPSF(c[:, None, :], self.psf.cov[n][:, None], self.psf.amplitude[n][:, None])
-        else:
-            psf_n = KernelPSF(self.psf.kernel[n][:, None])
-        traj = Sinusoid(amp_xy[:, None, :], ph_xy[:, None, :], self.omega[n][:, None])
-        img = render_blur(traj, psf_n, ExposureWindow(self.start[n], self.duration[n]), height=self.height, width=self.width,
-                          settings=self.settings)
+            traj = Sinusoid(amp_xy[:, None, :], ph_xy[:, None, :], self.omega[n][:, None])
+            img = render_blur(traj, psf_n, ExposureWindow(self.start[n], self.duration[n]), height=self.height, width=self.width,
+                              settings=self.settings)
         img = self._nuisance(img, theta)
         if self.normalize:
             img = img / img.square().sum((-1, -2), keepdim=True).sqrt().clamp_min(1e-30)
         return img.reshape(img.shape[0], -1)
+
+    def _kernel_images(self, amp: torch.Tensor, ph: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
+        """Kernel path: images ``[m, E, H, W]`` of amplitudes and phases ``[m, n_axes]`` of problems
+        ``n [m]``; each row's frames from its item's own crop (kernel ``[:h, :w]``), its frames'
+        own rules, and an FFT grid padded by its own largest displacement (rows grouped by those)."""
+        tau, wq = (v[n] for v in self.kernel_rule)  # [m, E, S]
+        live = wq > 0
+        t = self.start[n][..., None] + self.duration[n][..., None] * tau
+        w = self.duration[n][..., None] * wq
+        s = torch.sin(self.omega[n][:, None, None, None] * t[..., None] + ph[:, None, None, :]) * amp[:, None, None, :]
+        disp = (s[..., None] * self.direction[n][:, None, None]).sum(-2)  # [m, E, S, 2]
+        disp = torch.where(live[..., None], disp, torch.zeros((), dtype=disp.dtype, device=disp.device))
+        m, H, W = n.shape[0], self.height, self.width
+        hw = self.regions[n] if self.regions is not None else torch.tensor([[H, W]], device=n.device).expand(m, 2)
+        reach = disp.detach().abs().flatten(1).amax(-1).ceil().long() + 2 if disp.numel() else torch.full((m,), 2, dtype=torch.long)
+        pad = -(-reach // _PAD_STEP) * _PAD_STEP  # [m]: rows of similar reach share a grid
+        keys = torch.stack([hw[:, 0].to(pad.device), hw[:, 1].to(pad.device), pad], -1)
+        uniq, group = torch.unique(keys, dim=0, return_inverse=True)
+        parts, order = [], []
+        for g, (h, wd, pd) in enumerate(uniq.tolist()):
+            rows = (group == g).nonzero(as_tuple=True)[0].to(n.device)
+            S = max(int(live[rows].sum(-1).max()), 1)
+            kern = self.psf.kernel[n[rows], :h, :wd][:, None].expand(-1, tau.shape[1], h, wd)
+            img = _kernel_fourier(kern, disp[rows, :, :S, 0], disp[rows, :, :S, 1], w[rows, :, :S], pad=pd)
+            parts.append(torch.nn.functional.pad(img, (0, W - wd, 0, H - h)))
+            order.append(rows)
+        img = torch.cat(parts) if len(parts) > 1 else parts[0]
+        return img if len(parts) == 1 else img.index_select(0, torch.argsort(torch.cat(order)))
 
     def image(self, theta: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
         """Model ``[m, E * H * W]`` of rows ``theta [m, P]`` of problems ``n [m]`` (the splat's
@@ -239,7 +280,7 @@ class SineModel:
 
 
 def sine_model(layout: ParamLayout, psf, start, duration, omega, direction, height: int, width: int, *, amplitude_bound,
-               settings: RenderSettings | None = None, normalize: bool = False) -> SineModel:
+               settings: RenderSettings | None = None, normalize: bool = False, region=None) -> SineModel:
     """The :class:`SineModel` of ``N`` problems, its node counts fixed for the whole fit.
 
     Args:
@@ -253,6 +294,9 @@ def sine_model(layout: ParamLayout, psf, start, duration, omega, direction, heig
             is proportional to them. A fit needs the model far below the noise, not to
             round-off: panels of 3.5 PSF widths (quadrature error < 1e-6 of the peak; estimates
             move < 2e-7 of their std vs 2.5).
+        region: a kernel's per-item crops ``[N, 4]`` long (``x0, y0, w, h``; the crop at the
+            frame's top-left: :attr:`~torchblur.fit.problem.SineProblem.region`), or None (the
+            whole frame).
     """
     settings = settings or RenderSettings(panel_path_sigmas=3.5)
     panels = None
@@ -268,7 +312,10 @@ def sine_model(layout: ParamLayout, psf, start, duration, omega, direction, heig
         settings = dataclasses.replace(settings, nodes=S)
     model = dict(layout=layout, psf=psf, start=start, duration=duration, omega=omega, direction=direction, height=height,
                  width=width, settings=settings, normalize=normalize)
-    if not isinstance(psf, GaussianPSF) or normalize or settings.pixel_integration:
+    if isinstance(psf, KernelPSF):
+        return SineModel(**model, kernel_rule=_frame_rules(panels, settings, N, E, duration),
+                         regions=None if region is None else region[:, [3, 2]])
+    if normalize or settings.pixel_integration:
         return SineModel(**model)
     m_nodes = settings.nodes_per_panel
     if panels is None or settings.nodes % m_nodes:  # nodes given by the caller: one rule for every frame
@@ -277,6 +324,26 @@ def sine_model(layout: ParamLayout, psf, start, duration, omega, direction, heig
     else:
         panels = _merge_panel_groups(panels, m_nodes, _CALL_NODE_PIXELS / (height * width))
     return SineModel(**model, panels=panels, nodes_per_panel=m_nodes, precision=psf.precision())
+
+
+def _frame_rules(panels, settings: RenderSettings, N: int, E: int, like: torch.Tensor):
+    """Each frame's own quadrature rule ``(tau, weights)``, each ``[N, E, S]`` (``S`` the most
+    nodes any frame has; a frame's nodes first, then zero weights): ``panels [N, E]`` panels of
+    ``settings.nodes_per_panel`` nodes, or (``panels`` None) ``settings.nodes`` nodes for every
+    frame, as :func:`~torchblur.render.blur.render_blur` lays them out."""
+    m = settings.nodes_per_panel
+    if panels is None:
+        S = settings.nodes
+        m = m if S % m == 0 else S
+        panels = torch.full((N, E), S // m, dtype=torch.long, device=like.device)
+    S = int(panels.max()) * m
+    tau = torch.zeros(N, E, S, dtype=like.dtype, device=like.device)
+    wq = torch.zeros_like(tau)
+    for u in torch.unique(panels).tolist():
+        r, e = (panels == u).nonzero(as_tuple=True)
+        t_u, w_u = quadrature_nodes(u, m, dtype=like.dtype, device=like.device)
+        tau[r, e, :u * m], wq[r, e, :u * m] = t_u, w_u
+    return tau, wq
 
 
 def _merge_panel_groups(panels: torch.Tensor, m_nodes: int, call_nodes: float) -> torch.Tensor:

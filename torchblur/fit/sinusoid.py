@@ -179,7 +179,7 @@ def _fit_core(data, psf, window: ExposureWindow, omega, direction, *, labels, op
     p = problem
     H, W = p.data.shape[-2:]
     model = sine_model(layout, p.psf, p.start, p.duration, p.omega, p.direction, H, W, amplitude_bound=amp0.amax(1) * 1.2 + 0.5,
-                       settings=o.render_settings, normalize=o.normalize)
+                       settings=o.render_settings, normalize=o.normalize, region=p.region)
     target = p.data
     if o.normalize:
         target = p.data / p.data.square().sum((-1, -2), keepdim=True).sqrt().clamp_min(1e-30)

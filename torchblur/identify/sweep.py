@@ -190,10 +190,8 @@ def fit_points(acq: SineAcquisition, lay: SweepLayout, cfg, noise: CameraNoise, 
     With the measured kernel the stds include its own noise: times
     :meth:`~torchblur.image.psf_from_still.StillPSF.kernel_noise_factor` of the point's
     exposures (all ``E*R`` of them, fitted together) times its laser power (the still frames
-    are taken at power 1), and the points are fitted one by one (the fit crops the kernel to
-    the reach of its whole batch, so a batch's values would depend on the chunking, by ~1e-5)."""
-    if lay.uses_kernel and len(idx) > 1:
-        return concat_fits([fit_points(acq, lay, cfg, noise, [j]) for j in idx])
+    are taken at power 1). A kernel fit gives each point its own crop and rules, so a point's
+    values do not depend on the chunking."""
     imgs = torch.stack([acq.frames[j] for j in idx])  # [n, P, E*R, h, w]
     pw = torch.tensor([acq.powers[j] for j in idx], dtype=_F64)
     psf_b = _point_psf(lay, pw)

@@ -13,7 +13,10 @@ What is done, in order (every step a pure function of the frames):
    the camera model ``var = c0 + c1 * value`` (read noise plus shot noise, in the frames' own
    units) fitted to the per-pixel frame-to-frame variance against the per-pixel mean; with one
    frame, a constant: the robust (MAD) scatter of the frame's 2-px border.
-   The averaged still's noise is that over ``sqrt(N)``.
+   The averaged still's noise is that over ``sqrt(N)``, and, where the frames had a measured
+   level subtracted (a dark frame's mean), that level's own noise ``dark_std`` in quadrature:
+   it is common to every frame, so neither the frame-to-frame scatter nor ``sqrt(N)`` sees it
+   (identify's still, 16 frames less a 16-frame dark: it doubles the variance far from the spot).
 3. The support: pixels significantly above the background (the noise-whitened mean, smoothed
    with a 1 px Gaussian, above ``support_sigma`` smoothed-noise stds:
    :func:`~torchblur.image.preprocess.threshold_mask`), grown by ``margin_px`` and kept where
@@ -68,7 +71,7 @@ class StillPSF:
         chi2_kernel: 0-d, the reduced chi2 of the light the kernel leaves out, outside the support.
         chi2_threshold: the largest ``chi2_gaussian`` that passes, ``1 + CHI2_Z sqrt(2 / dof)``.
         background: 0-d, the level removed from every frame (frame units).
-        noise_std: ``[H, W]``, the noise std of the averaged still (frame units).
+        noise_std: ``[H, W]``, the noise std of the averaged still (frame units; ``dark_std`` included).
         noise_model: ``(c0, c1)`` with one frame's variance ``c0 + c1 * value`` (value in the
             frames' units as given, background included); ``None`` when ``noise_std`` was
             given or only one frame came (then the noise is ``noise_std`` / a constant).
@@ -225,12 +228,22 @@ def _taper(support: torch.Tensor, taper_px: int, dtype) -> torch.Tensor:
     return w
 
 
-def _measure(f, noise_std, background, support_sigma, margin_px, taper_px):
+def _dark_std(dark_std, like: torch.Tensor) -> torch.Tensor:
+    """``dark_std`` checked: 0-d or ``[H, W]`` like ``like`` (0 where None)."""
+    if dark_std is None:
+        return torch.zeros((), dtype=like.dtype, device=like.device)
+    s = check_positive(as_tensor(dark_std, "dark_std", like=like), "dark_std", strict=False)
+    if s.dim() not in (0, 2) or (s.dim() == 2 and s.shape != like.shape):
+        raise ShapeError(f"dark_std: expected a number or a map [H, W] = {list(like.shape)}, got {tuple(s.shape)}")
+    return s
+
+
+def _measure(f, noise_std, dark_std, background, support_sigma, margin_px, taper_px):
     """Mean, noise, background, support and taper of the frames (``background`` None: estimated)."""
     N, H, W = f.shape
     mean = f.mean(0)
     frame_noise, model = _frame_noise(f, mean, noise_std)
-    sigma = frame_noise / math.sqrt(N)
+    sigma = (frame_noise.square() / N + _dark_std(dark_std, mean).square()).sqrt()
     if background is not None:
         level = torch.as_tensor(background, dtype=mean.dtype, device=mean.device)
         support = _support(mean, sigma, level, support_sigma, margin_px)
@@ -257,6 +270,7 @@ def psf_from_still(
     support_sigma: float = 3.0,
     margin_px: int = 2,
     taper_px: int = 3,
+    dark_std=None,
 ) -> StillPSF:
     """The PSF to fit blurred frames with, from frames of the still spot (module docstring).
 
@@ -275,6 +289,10 @@ def psf_from_still(
         support_sigma: significance (smoothed-noise stds) of a pixel of the spot (> 0).
         margin_px: pixels added around the significant ones (int >= 0).
         taper_px: width of the kernel's fall to 0 beyond the support (int >= 0).
+        dark_std: the noise std of a level already subtracted from every frame (frame units, a
+            number or ``[H, W]``), e.g. a dark frame's mean: its read noise over the square root
+            of its frame count; None: nothing measured was subtracted. Added in quadrature to
+            the averaged still's noise (module docstring, step 2).
 
     Returns:
         :class:`StillPSF`: ``psf`` (``KernelPSF`` with kernel ``[H, W]``, or ``GaussianPSF``
@@ -297,7 +315,7 @@ def psf_from_still(
             raise ParameterError(f"{name}: expected an integer >= 0, got {v!r}")
     if background is not None:
         background = check_real_scalar(background, "background")
-    mean, frame_noise, model, sigma, background, support, taper = _measure(f, noise_std, background, support_sigma, margin_px, taper_px)
+    mean, frame_noise, model, sigma, background, support, taper = _measure(f, noise_std, dark_std, background, support_sigma, margin_px, taper_px)
     signal = mean - background
     kernel = KernelPSF((signal * taper).to(in_dtype), exposure)
     out_px = taper < 1

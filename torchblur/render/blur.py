@@ -220,11 +220,12 @@ def _next_odd_fast(n: int) -> int:
         m += 2
 
 
-def _kernel_fourier(kernel, dx, dy, w):
-    """Measured-kernel splat in Fourier space. kernel [..., H, W]; dx, dy, w [..., S]."""
+def _kernel_fourier(kernel, dx, dy, w, pad: int = 0):
+    """Measured-kernel splat in Fourier space. kernel [..., H, W]; dx, dy, w [..., S]; the grid
+    padded by the largest displacement plus 2 px, or by ``pad`` px if more."""
     H, W = kernel.shape[-2:]
     reach = float(torch.maximum(dx.detach().abs().max(), dy.detach().abs().max())) if dx.numel() else 0.0
-    pad = int(math.ceil(reach)) + 2
+    pad = max(int(math.ceil(reach)) + 2, pad)
     Hp, Wp = _next_odd_fast(H + 2 * pad), _next_odd_fast(W + 2 * pad)
     ph, pw = (Hp - H) // 2, (Wp - W) // 2
     kp = torch.nn.functional.pad(kernel, (pw, Wp - W - pw, ph, Hp - H - ph))
