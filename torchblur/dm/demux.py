@@ -1,0 +1,157 @@
+"""Demultiplexing: the dynamic interaction matrix ``D(jw)`` from the responses measured under
+multiplexed excitation patterns.
+
+In pattern ``p`` actuator ``j`` is driven by ``amplitude * patterns[p, j] * sin(w t)``, so the
+complex response of slope ``s`` (per input unit, see :mod:`torchblur.dm.spot_fit`) is
+
+    ``Y[p, s, f] = sum_j patterns[p, j] * D[s, j, f] + noise``,
+
+with the noise of ``(Re, Im) Y[p, s, f]`` Gaussian, of covariance ``Y_cov[p, s, f]`` ``[2, 2]``,
+independent across patterns (each pattern is its own frames). :func:`demultiplex` solves this
+per slope row and frequency by weighted (generalised) least squares over the row's support,
+the actuators that row can see: the unknowns are ``(Re, Im) D[s, j, f]`` for ``j`` in the
+support, the weight of pattern ``p`` is ``inv(Y_cov[p, s, f])``, and the covariance of the
+estimate is the inverse of the normal matrix. Outside the support ``D`` is taken as exactly 0
+(``D_cov`` 0 there).
+
+Shapes: P patterns, N actuators, S = 2M slopes (``[x of all M, y of all M]``), F frequencies.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from torchblur.errors import ParameterError, ShapeError
+
+__all__ = ["demultiplex", "check_support"]
+
+#: eigenvalue ratio of a normal matrix below which the item's data do not determine its row (NaN)
+_RCOND = 1e-12
+#: bytes of normal matrices held at once
+_CHUNK_BYTES = 64 * 2**20
+
+
+def _as_arrays(Y, Y_cov, patterns, support):
+    Y = np.asarray(Y)
+    Y_cov = np.asarray(Y_cov, dtype=np.float64)
+    patterns = np.asarray(patterns, dtype=np.float64)
+    if Y.ndim != 3:
+        raise ShapeError(f"Y: expected [P, 2M, F] complex, got shape {Y.shape}")
+    P, S, F = Y.shape
+    if patterns.ndim != 2 or patterns.shape[0] != P:
+        raise ShapeError(f"patterns: expected [P={P}, N], got shape {patterns.shape}")
+    if not np.all(np.isfinite(patterns)):
+        raise ParameterError("patterns: expected finite values, got NaN or Inf")
+    if Y_cov.shape != (P, S, F, 2, 2):
+        raise ShapeError(f"Y_cov: expected [P, 2M, F, 2, 2] = {(P, S, F, 2, 2)}, got shape {Y_cov.shape}")
+    N = patterns.shape[1]
+    if support is None:
+        support = np.ones((S, N), dtype=bool)
+    support = np.asarray(support)
+    if support.shape != (S, N) or support.dtype != bool:
+        raise ShapeError(f"support: expected bool [2M={S}, N={N}], got {support.dtype} {support.shape}")
+    return Y.astype(np.complex128), Y_cov, patterns, support
+
+
+def check_support(patterns, support) -> None:
+    """Raise :class:`ParameterError` (naming ``support``) when a slope row's support is not
+    determined by the patterns: ``patterns[:, support[s]]`` ``[P, n_s]`` must have rank ``n_s``
+    (the first such row is named).
+
+    Args:
+        patterns: ``[P, N]`` real.
+        support: ``[2M, N]`` bool.
+    """
+    patterns = np.asarray(patterns, dtype=np.float64)
+    uniq, first = np.unique(np.asarray(support, dtype=bool), axis=0, return_index=True)
+    for sup, s in zip(uniq, first):
+        n = int(sup.sum())
+        if n and np.linalg.matrix_rank(patterns[:, sup]) < n:
+            raise ParameterError(f"support: slope row {int(s)} sees {n} actuators {np.flatnonzero(sup).tolist()[:8]}"
+                                 f"{'...' if n > 8 else ''} but the patterns restricted to them have rank "
+                                 f"{np.linalg.matrix_rank(patterns[:, sup])} < {n}: they are not determined")
+
+
+def _weights(Y, Y_cov):
+    """``(W [P, S, F, 2, 2], y [P, S, F, 2])``: the inverse covariances and the data, both 0 where
+    the response or its covariance is not finite (a failed fit: that pattern is left out)."""
+    y = np.stack([Y.real, Y.imag], -1)
+    ok = np.isfinite(y).all(-1) & np.isfinite(Y_cov).all((-1, -2))
+    det = Y_cov[..., 0, 0] * Y_cov[..., 1, 1] - Y_cov[..., 0, 1] * Y_cov[..., 1, 0]
+    ok &= (det > 0) & (Y_cov[..., 0, 0] > 0)
+    cov = np.where(ok[..., None, None], Y_cov, np.eye(2))
+    W = np.linalg.inv(cov) * ok[..., None, None]
+    return W, np.where(ok[..., None], y, 0.0)
+
+
+def _solve_group(A, W, y):
+    """Weighted least squares of one support group.
+
+    Args:
+        A: ``[P, n]`` the patterns on the group's support.
+        W: ``[P, B, F, 2, 2]`` weights, y: ``[P, B, F, 2]`` data (B rows of the group).
+
+    Returns ``(x [B, F, n, 2], cov [B, F, n, 2, 2])``, NaN where the data do not determine the item.
+    """
+    n = A.shape[1]
+    B, F = W.shape[1], W.shape[2]
+    normal = np.einsum("pj,pk,pbfac->bfjakc", A, A, W).reshape(B, F, 2 * n, 2 * n)
+    rhs = np.einsum("pj,pbfac,pbfc->bfja", A, W, y).reshape(B, F, 2 * n)
+    lam, V = np.linalg.eigh(normal)
+    good = lam[..., 0] > _RCOND * np.maximum(lam[..., -1], np.finfo(float).tiny)
+    inv_lam = np.where(good[..., None], 1.0 / np.where(lam > 0, lam, 1.0), np.nan)
+    cov = np.einsum("bfik,bfk,bfjk->bfij", V, inv_lam, V)
+    x = np.einsum("bfij,bfj->bfi", cov, rhs)
+    cov = cov.reshape(B, F, n, 2, n, 2)
+    diag = cov[:, :, np.arange(n), :, np.arange(n), :]  # [n, B, F, 2, 2]
+    return x.reshape(B, F, n, 2), np.moveaxis(diag, 0, 2)
+
+
+def demultiplex(Y, Y_cov, patterns, support=None):
+    """The dynamic interaction matrix ``D [2M, N, F]`` from the pattern responses (see the module).
+
+    Args:
+        Y: ``[P, 2M, F]`` complex: ``Y[p, s, f]`` = the response of slope ``s`` (px per input
+            unit) to pattern ``p`` at frequency ``f``; NaN where its fit failed (left out).
+        Y_cov: ``[P, 2M, F, 2, 2]`` the covariance of ``(Re, Im) Y[p, s, f]``.
+        patterns: ``[P, N]`` real: the plan's pattern matrix.
+        support: ``[2M, N]`` bool: ``support[s, j]`` = slope ``s`` sees actuator ``j`` (``D[s, j]``
+            is an unknown); None: every actuator (Hadamard, one at a time).
+
+    Returns:
+        ``(D, D_cov)``: ``D [2M, N, F]`` complex128, ``D[s, j, f]`` = the response of slope ``s``
+        to a unit sine on actuator ``j`` at frequency ``f`` (0 off the support; NaN where the
+        data left out by failed fits no longer determine the row), and ``D_cov
+        [2M, N, F, 2, 2]`` the covariance of ``(Re, Im) D[s, j, f]`` (the correlations between
+        the actuators of one row are dropped).
+
+    Raises:
+        ParameterError: a row's support is not determined by the patterns (names ``support``).
+        ShapeError: a shape does not match (names the argument).
+
+    Cost: one ``2n x 2n`` symmetric eigen-decomposition per (row, frequency), ``n`` the row's
+    support size; rows with the same support share their pattern matrix.
+    """
+    Y, Y_cov, patterns, support = _as_arrays(Y, Y_cov, patterns, support)
+    check_support(patterns, support)
+    P, S, F = Y.shape
+    N = patterns.shape[1]
+    W, y = _weights(Y, Y_cov)
+    D = np.zeros((S, N, F), dtype=np.complex128)
+    D_cov = np.zeros((S, N, F, 2, 2))
+    uniq, inverse = np.unique(support, axis=0, return_inverse=True)
+    for g, sup in enumerate(uniq):
+        cols = np.flatnonzero(sup)
+        if cols.size == 0:
+            continue
+        rows = np.flatnonzero(inverse.reshape(-1) == g)
+        A = patterns[:, cols]
+        used = np.flatnonzero(np.any(A != 0, axis=1))  # patterns that drive none of the support say nothing
+        A = A[used]
+        per_row = F * (2 * cols.size) ** 2 * 8 * 4
+        step = max(1, _CHUNK_BYTES // per_row)
+        for r0 in range(0, rows.size, step):
+            r = rows[r0:r0 + step]
+            x, cov = _solve_group(A, W[used][:, r], y[used][:, r])
+            D[np.ix_(r, cols)] = np.moveaxis(x[..., 0] + 1j * x[..., 1], 1, 2)
+            D_cov[np.ix_(r, cols)] = np.moveaxis(cov, 1, 2)
+    return D, D_cov
