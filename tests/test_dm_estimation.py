@@ -113,3 +113,59 @@ def test_demux_failed_pattern_left_out_and_shapes_checked():
         demultiplex(Y2, cov2[:, :, :1], H)
     with pytest.raises(ShapeError, match="patterns"):
         demultiplex(Y2, cov2, H[:3])
+
+
+# ---- per-actuator dynamics ---------------------------------------------------------------
+
+from torchblur.dm.actuator_fit import fit_actuators, second_order  # noqa: E402
+
+_TRUE = dict(dc_gain=np.array([1.0, 0.97, 1.04, 0.0, 0.3, 1.0]), mode_hz=np.array([900.0, 1100.0, 1300.0, 1000.0, 1000.0, 750.0]),
+             damping=np.array([0.08, 0.15, 0.05, 0.1, 0.1, 0.3]), delay_s=np.array([3e-5, 5e-5, 1e-5, 3e-5, 3e-5, 2e-5]))
+
+
+def _actuator_case(rng, sigma=0.02, S=24, F=24):
+    """G [S, N] random, D = G H_j with noise of a random known covariance (std ~ sigma px)."""
+    N = _TRUE["dc_gain"].size
+    f = np.geomspace(10.0, 2000.0, F)
+    G = rng.normal(size=(S, N))
+    H = second_order(f, **_TRUE)  # [N, F]
+    cov = _random_cov(rng, (S, N, F), sigma)
+    return f, G, G[:, :, None] * H[None], cov
+
+
+def test_actuator_fit_recovers_within_std_monte_carlo():
+    rng = np.random.default_rng(10)
+    f, G, D, cov = _actuator_case(rng)
+    z = {k: [] for k in _TRUE}
+    for _ in range(60):
+        t = fit_actuators(f, D + _noise(rng, cov), cov, G)
+        assert t.status == ("ok", "ok", "ok", "dead", "weak", "ok")
+        live = np.array([0, 1, 2, 4, 5])
+        for k in _TRUE:
+            z[k].append((getattr(t, k)[live] - _TRUE[k][live]) / getattr(t, k + "_std")[live])
+    for k in _TRUE:
+        rms = float(np.sqrt(np.mean(np.square(z[k]))))
+        assert 0.7 < rms < 1.4, (k, rms)
+
+
+def test_dead_and_weak_actuators_and_static_column():
+    rng = np.random.default_rng(11)
+    f, G, D, cov = _actuator_case(rng, sigma=0.005)
+    t = fit_actuators(f, D + _noise(rng, cov), cov, G, actuator_xy=np.zeros((6, 2)))
+    assert t.status[3] == "dead" and np.isnan(t.mode_hz[3]) and abs(t.dc_gain[3]) < 3 * t.dc_gain_std[3]
+    assert t.status[4] == "weak"
+    D0 = G * _TRUE["dc_gain"]
+    err = (t.static_column - D0) / t.static_column_std
+    assert 0.7 < float(np.sqrt(np.mean(err[:, [0, 1, 2, 5]] ** 2))) < 1.4
+    assert np.sqrt(np.mean((t.static_column - D0) ** 2)) < 0.01 * np.abs(D0).max()
+    np.testing.assert_allclose(t.mode_hz[[0, 1, 2, 5]], _TRUE["mode_hz"][[0, 1, 2, 5]], rtol=5e-3)
+
+
+def test_wrong_model_is_flagged_poor_fit():
+    rng = np.random.default_rng(12)
+    f, G, D, cov = _actuator_case(rng, sigma=0.002)
+    D = D.copy()
+    D[:, 0] *= (1 + 0.5 * (f / 2000.0) ** 2)[None]  # not a second-order response
+    t = fit_actuators(f, D + _noise(rng, cov), cov, G)
+    assert t.poor_fit[0] and t.reduced_chi2[0] > 3
+    assert not t.poor_fit[1]
