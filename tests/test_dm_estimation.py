@@ -169,3 +169,84 @@ def test_wrong_model_is_flagged_poor_fit():
     t = fit_actuators(f, D + _noise(rng, cov), cov, G)
     assert t.poor_fit[0] and t.reduced_chi2[0] > 3
     assert not t.poor_fit[1]
+
+
+# ---- batched spot fits --------------------------------------------------------------------
+
+import math  # noqa: E402
+
+import torch  # noqa: E402
+
+from torchblur.design.windows import dual_exposure_windows  # noqa: E402
+from torchblur.dm.spot_fit import chunk_size, crop_problems, fit_spot_problems, pattern_responses  # noqa: E402
+from torchblur.render.blur import render_blur  # noqa: E402
+from torchblur.render.psf import GaussianPSF  # noqa: E402
+from torchblur.render.trajectory import Sinusoid  # noqa: E402
+from torchblur.render.window import ExposureWindow  # noqa: E402
+
+_F64 = torch.float64
+
+
+def _sensor_case(seed=0, P=2, F=2, cell=16, n_side=2, read_noise=3.0, dark_spot=None):
+    """Whole frames [P, F, E, H, W] of an n_side x n_side grid of spots (one per cell), each
+    moving on the sinusoid of a known response Y (command amplitude 1, phase 0)."""
+    g = torch.Generator().manual_seed(seed)
+    M, H = n_side * n_side, n_side * cell
+    corner = torch.stack(torch.meshgrid(torch.arange(n_side), torch.arange(n_side), indexing="xy"), -1).reshape(M, 2) * cell
+    centre = corner.to(_F64) + (cell - 1) / 2 + torch.rand(M, 2, generator=g, dtype=_F64) - 0.5
+    amp = torch.full((M,), 4e5, dtype=_F64)
+    if dark_spot is not None:
+        amp[dark_spot] = 0.0
+    psf = GaussianPSF(centre, torch.eye(2, dtype=_F64) * 2.0, amp)
+    freqs = torch.tensor([40.0, 90.0][:F], dtype=_F64)
+    omega = 2 * math.pi * freqs
+    win = dual_exposure_windows(omega)  # [F, E]
+    mag = 0.5 + 1.5 * torch.rand(P, F, M, 2, generator=g, dtype=_F64)
+    ph = (torch.rand(P, F, M, 2, generator=g, dtype=_F64) - 0.5) * 2 * math.pi
+    traj = Sinusoid(mag[:, :, :, None], ph[:, :, :, None], omega[None, :, None, None, None].expand(P, F, M, 1, 2))
+    w_b = ExposureWindow(win.start[None, :, None], win.duration[None, :, None])  # [1, F, 1, E]
+    psf_e = GaussianPSF(centre[:, None], torch.eye(2, dtype=_F64) * 2.0, amp[:, None])  # batch [M, 1]: the E exposures share it
+    clean = render_blur(traj, psf_e, w_b, height=H, width=H).sum(2)  # [P, F, E, H, W]
+    frames = clean + read_noise * torch.randn(clean.shape, generator=g, dtype=_F64)
+    Ytrue = (mag * torch.exp(1j * ph)).permute(0, 3, 2, 1).reshape(P, 2 * M, F).numpy()
+    psf_crop = GaussianPSF(centre - corner.to(_F64), psf.cov, amp)
+    return frames, corner.long(), (cell, cell), psf_crop, win, omega, Ytrue, read_noise
+
+
+def test_spot_fit_recovers_responses_and_chunking_is_round_off():
+    frames, offset, size, psf, win, omega, Yt, rn = _sensor_case()
+    crops, in_frame = crop_problems(frames, offset, size)
+    assert crops.shape == (2, 2, 4, 2, 16, 16)
+    one = fit_spot_problems(crops, psf, win[None], omega, noise_std=rn, mask=in_frame[:, None])
+    many = fit_spot_problems(crops, psf, win[None], omega, noise_std=rn, mask=in_frame[:, None], chunk=3)
+    assert one.n_chunks == 1 and many.n_chunks == 6
+    torch.testing.assert_close(many.amplitude, one.amplitude, rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(many.covariance, one.covariance, rtol=1e-7, atol=1e-12)
+    Y, Yc = pattern_responses(one, 1.0)
+    assert Y.shape == Yt.shape and Yc.shape == Yt.shape + (2, 2)
+    e = np.stack([(Y - Yt).real, (Y - Yt).imag], -1)
+    z2 = np.einsum("...a,...ab,...b->...", e, np.linalg.inv(Yc), e)  # chi2 with 2 dof each
+    assert float(np.mean(z2)) < 4.0 and np.all(z2 < 30)
+
+
+def test_dark_or_out_of_frame_spot_is_flagged_and_does_not_poison_the_batch():
+    frames, offset, size, psf, win, omega, Yt, rn = _sensor_case(dark_spot=1)
+    offset = offset.clone()
+    offset[2] = torch.tensor([200, 200])  # spot 2's crop is wholly outside the frame
+    crops, in_frame = crop_problems(frames, offset, size)
+    fits = fit_spot_problems(crops, psf, win[None], omega, noise_std=rn, mask=in_frame[:, None], chunk=5)
+    assert bool((fits.status[:, :, 1] != 0).all()) and bool((fits.status[:, :, 2] != 0).all())
+    assert bool((fits.status[:, :, [0, 3]] == 0).all())
+    alone = fit_spot_problems(crops[:, :, [0, 3]], GaussianPSF(psf.center[[0, 3]], psf.cov[[0, 3]], psf.amplitude[[0, 3]]), win[None], omega,
+                              noise_std=rn, mask=in_frame[[0, 3], None])
+    torch.testing.assert_close(fits.amplitude[:, :, [0, 3]], alone.amplitude, rtol=1e-9, atol=1e-9)
+    Y, Yc = pattern_responses(fits, 1.0)
+    M = 4
+    assert np.all(np.isnan(Y[:, [1, 2, M + 1, M + 2]])) and np.all(np.isfinite(Y[:, [0, 3, M, M + 3]]))
+
+
+def test_chunk_size_from_free_memory():
+    assert chunk_size(4, 12, 12, free_bytes=10**9) == int(0.25 * 10**9 // (256 * 4 * 144))
+    assert chunk_size(4, 12, 12, free_bytes=10**9, dtype=torch.float32) == int(0.25 * 10**9 // (128 * 4 * 144))
+    assert chunk_size(4, 12, 12, free_bytes=1) == 1
+    assert chunk_size(4, 12, 12) >= 1
