@@ -250,3 +250,24 @@ def test_chunk_size_from_free_memory():
     assert chunk_size(4, 12, 12, free_bytes=10**9, dtype=torch.float32) == int(0.25 * 10**9 // (128 * 4 * 144))
     assert chunk_size(4, 12, 12, free_bytes=1) == 1
     assert chunk_size(4, 12, 12) >= 1
+
+
+def test_spot_fit_float32_follows_the_input_dtype():
+    frames, offset, size, psf, win, omega, _, rn = _sensor_case(P=1, F=1)
+    crops, in_frame = crop_problems(frames, offset, size)
+    f64 = fit_spot_problems(crops, psf, win[None, :1], omega[:1], noise_std=rn, mask=in_frame[:, None])
+    f32 = fit_spot_problems(crops.float(), psf, win[None, :1], omega[:1], noise_std=rn, mask=in_frame[:, None])
+    assert f32.amplitude.dtype == torch.float32 and f64.amplitude.dtype == torch.float64
+    torch.testing.assert_close(f32.amplitude.double(), f64.amplitude, rtol=0, atol=1e-3)
+
+
+def test_fit_actuators_names_bad_arguments():
+    f = np.geomspace(10.0, 2000.0, 5)
+    D = np.zeros((4, 2, 5), complex)
+    cov = np.broadcast_to(np.eye(2), (4, 2, 5, 2, 2))
+    with pytest.raises(ShapeError, match="G_nominal"):
+        fit_actuators(f, D, cov, np.ones((4, 3)))
+    with pytest.raises(ShapeError, match="D_cov"):
+        fit_actuators(f, D, cov[:, :1], np.ones((4, 2)))
+    with pytest.raises(ParameterError, match="freq_hz"):
+        fit_actuators(f[:2], D[..., :2], cov[:, :, :2], np.ones((4, 2)))
