@@ -50,7 +50,8 @@ def test_hadamard_equals_one_at_a_time_noise_free():
     np.testing.assert_allclose(Ch, np.broadcast_to(np.eye(2) * 1e-4 / H.shape[0], Ch.shape), rtol=1e-10)
 
 
-def test_demux_covariance_holds_monte_carlo():
+@pytest.mark.parametrize("method", ["wls", "ols"])
+def test_demux_covariance_holds_monte_carlo(method):
     rng = np.random.default_rng(1)
     N, F, T = 5, 2, 400  # T trials stacked as slope rows
     H = _hadamard(N)[:7]  # 7 of 8 rows: rank 5, unequal per-pattern covariances
@@ -58,13 +59,33 @@ def test_demux_covariance_holds_monte_carlo():
     Dt = np.broadcast_to(D, (T, N, F))
     cov = np.broadcast_to(_random_cov(rng, (H.shape[0], 1, F)), (H.shape[0], T, F, 2, 2))
     Y = np.einsum("pj,sjf->psf", H, Dt) + _noise(rng, np.array(cov))
-    De, Ce = demultiplex(Y, cov, H)
+    De, Ce = demultiplex(Y, cov, H, method=method)
     err = De - Dt
     e = np.stack([err.real, err.imag], -1)
     L = np.linalg.cholesky(Ce)
     z = np.linalg.solve(L, e[..., None])[..., 0]
     assert 0.9 < float(np.mean(z**2)) < 1.1
     assert abs(float(np.mean(z))) < 0.05
+
+
+def test_ols_equals_wls_for_equal_covariances_and_falls_back_on_a_failed_fit():
+    rng = np.random.default_rng(4)
+    N, S, F = 6, 5, 3
+    H = _hadamard(N)
+    D = rng.normal(size=(S, N, F)) + 1j * rng.normal(size=(S, N, F))
+    cov = np.broadcast_to(_random_cov(rng, (1, S, F)), (H.shape[0], S, F, 2, 2))
+    Y = np.einsum("pj,sjf->psf", H, D) + _noise(rng, np.array(cov))
+    Dw, Cw = demultiplex(Y, cov, H, method="wls")
+    Do, Co = demultiplex(Y, cov, H, method="ols")
+    np.testing.assert_allclose(Do, Dw, atol=1e-12)
+    np.testing.assert_allclose(Co, Cw, rtol=1e-9, atol=1e-15)
+    Y[3, 2, 1] = np.nan  # row 2 has a failed fit: weighted least squares over the patterns left
+    Do2, _ = demultiplex(Y, cov, H, method="ols")
+    Dw2, _ = demultiplex(Y, cov, H, method="wls")
+    np.testing.assert_allclose(Do2[2], Dw2[2], atol=1e-12)
+    np.testing.assert_allclose(Do2[[0, 1, 3, 4]], Do[[0, 1, 3, 4]], atol=1e-12)
+    with pytest.raises(ParameterError, match="method"):
+        demultiplex(Y, cov, H, method="svd")
 
 
 def _sparse_patterns(support):

@@ -12,22 +12,26 @@ per slope row and frequency by weighted (generalised) least squares over the row
 the actuators that row can see: the unknowns are ``(Re, Im) D[s, j, f]`` for ``j`` in the
 support, the weight of pattern ``p`` is ``inv(Y_cov[p, s, f])``, and the covariance of the
 estimate is the inverse of the normal matrix. Outside the support ``D`` is taken as exactly 0
-(``D_cov`` 0 there).
+(``D_cov`` 0 there). For large supports (a big mirror under Hadamard patterns) the ordinary
+least squares ``pinv(patterns) Y`` with its exact covariance is used instead (``method``).
 
 Shapes: P patterns, N actuators, S = 2M slopes (``[x of all M, y of all M]``), F frequencies.
 """
 from __future__ import annotations
 
 import numpy as np
+import scipy.linalg
 
-from torchblur.errors import ParameterError, ShapeError
+from torchblur.errors import ParameterError, ShapeError, check_choice
 
-__all__ = ["demultiplex", "check_support"]
+__all__ = ["demultiplex", "check_support", "OLS_ABOVE"]
 
 #: eigenvalue ratio of a normal matrix below which the item's data do not determine its row (NaN)
 _RCOND = 1e-12
 #: bytes of normal matrices held at once
 _CHUNK_BYTES = 64 * 2**20
+#: ``method="auto"`` solves supports of more actuators than this by ordinary least squares
+OLS_ABOVE = 128
 
 
 def _as_arrays(Y, Y_cov, patterns, support):
@@ -52,6 +56,12 @@ def _as_arrays(Y, Y_cov, patterns, support):
     return Y.astype(np.complex128), Y_cov, patterns, support
 
 
+def _rank_deficient(A) -> bool:
+    """``A [P, n]`` has rank < n (eigenvalues of ``A^T A``, cheaper than an SVD for big mirrors)."""
+    lam = np.linalg.eigvalsh(A.T @ A)
+    return not lam[0] > 1e-10 * max(lam[-1], np.finfo(float).tiny)
+
+
 def check_support(patterns, support) -> None:
     """Raise :class:`ParameterError` (naming ``support``) when a slope row's support is not
     determined by the patterns: ``patterns[:, support[s]]`` ``[P, n_s]`` must have rank ``n_s``
@@ -65,7 +75,7 @@ def check_support(patterns, support) -> None:
     uniq, first = np.unique(np.asarray(support, dtype=bool), axis=0, return_index=True)
     for sup, s in zip(uniq, first):
         n = int(sup.sum())
-        if n and np.linalg.matrix_rank(patterns[:, sup]) < n:
+        if n and _rank_deficient(patterns[:, sup]):
             raise ParameterError(f"support: slope row {int(s)} sees {n} actuators {np.flatnonzero(sup).tolist()[:8]}"
                                  f"{'...' if n > 8 else ''} but the patterns restricted to them have rank "
                                  f"{np.linalg.matrix_rank(patterns[:, sup])} < {n}: they are not determined")
@@ -78,8 +88,9 @@ def _weights(Y, Y_cov):
     ok = np.isfinite(y).all(-1) & np.isfinite(Y_cov).all((-1, -2))
     det = Y_cov[..., 0, 0] * Y_cov[..., 1, 1] - Y_cov[..., 0, 1] * Y_cov[..., 1, 0]
     ok &= (det > 0) & (Y_cov[..., 0, 0] > 0)
-    cov = np.where(ok[..., None, None], Y_cov, np.eye(2))
-    W = np.linalg.inv(cov) * ok[..., None, None]
+    inv_det = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    W = np.stack([np.stack([Y_cov[..., 1, 1], -Y_cov[..., 0, 1]], -1), np.stack([-Y_cov[..., 1, 0], Y_cov[..., 0, 0]], -1)], -2)
+    W = np.where(ok[..., None, None], W * inv_det[..., None, None], 0.0)
     return W, np.where(ok[..., None], y, 0.0)
 
 
@@ -106,7 +117,22 @@ def _solve_group(A, W, y):
     return x.reshape(B, F, n, 2), np.moveaxis(diag, 0, 2)
 
 
-def demultiplex(Y, Y_cov, patterns, support=None):
+def _ols_group(Ap, Y, C):
+    """Ordinary least squares of one support group with the exact (sandwich) covariance.
+
+    Args:
+        Ap: ``[n, P]`` the pseudo-inverse of the group's patterns ``A [P, n]`` (full column rank);
+        Y: ``[P, B, F]`` complex (finite); C: ``[P, B, F, 2, 2]``.
+
+    Returns ``(x [B, F, n] complex, cov [B, F, n, 2, 2])``: ``x = pinv(A) Y`` and
+    ``cov_j = sum_p pinv(A)[j, p]^2 C_p`` (patterns independent)."""
+    n, (P, B, F) = Ap.shape[0], Y.shape
+    x = (Ap @ Y.reshape(P, B * F)).reshape(n, B, F)
+    cov = ((Ap * Ap) @ C.reshape(P, B * F * 4)).reshape(n, B, F, 2, 2)
+    return np.moveaxis(x, 0, -1), np.moveaxis(cov, 0, 2)
+
+
+def demultiplex(Y, Y_cov, patterns, support=None, *, method: str = "auto"):
     """The dynamic interaction matrix ``D [2M, N, F]`` from the pattern responses (see the module).
 
     Args:
@@ -116,6 +142,12 @@ def demultiplex(Y, Y_cov, patterns, support=None):
         patterns: ``[P, N]`` real: the plan's pattern matrix.
         support: ``[2M, N]`` bool: ``support[s, j]`` = slope ``s`` sees actuator ``j`` (``D[s, j]``
             is an unknown); None: every actuator (Hadamard, one at a time).
+        method: ``"wls"``: the weighted least squares of the module; ``"ols"``: ordinary least
+            squares ``pinv(patterns) Y`` per row with its exact covariance ``sum_p pinv[j, p]^2
+            Y_cov[p]`` (unbiased, a little less precise where the covariances differ between
+            patterns, and ``n^2`` cheaper per row: for large mirrors; a row with a failed fit
+            falls back to ``"wls"``); ``"auto"`` (default): ``"ols"`` for supports of more than
+            :data:`OLS_ABOVE` actuators, else ``"wls"``.
 
     Returns:
         ``(D, D_cov)``: ``D [2M, N, F]`` complex128, ``D[s, j, f]`` = the response of slope ``s``
@@ -125,17 +157,19 @@ def demultiplex(Y, Y_cov, patterns, support=None):
         the actuators of one row are dropped).
 
     Raises:
-        ParameterError: a row's support is not determined by the patterns (names ``support``).
+        ParameterError: a row's support is not determined by the patterns (names ``support``),
+            or ``method`` is not one of the three (names ``method``).
         ShapeError: a shape does not match (names the argument).
 
-    Cost: one ``2n x 2n`` symmetric eigen-decomposition per (row, frequency), ``n`` the row's
-    support size; rows with the same support share their pattern matrix.
+    Cost: ``"wls"``, one ``2n x 2n`` symmetric eigen-decomposition per (row, frequency), ``n``
+    the row's support size; ``"ols"``, one ``n x P`` product per row; rows with the same support
+    share their pattern matrix.
     """
+    method = check_choice(method, "method", ("auto", "wls", "ols"))
     Y, Y_cov, patterns, support = _as_arrays(Y, Y_cov, patterns, support)
     check_support(patterns, support)
     P, S, F = Y.shape
     N = patterns.shape[1]
-    W, y = _weights(Y, Y_cov)
     D = np.zeros((S, N, F), dtype=np.complex128)
     D_cov = np.zeros((S, N, F, 2, 2))
     uniq, inverse = np.unique(support, axis=0, return_inverse=True)
@@ -147,11 +181,26 @@ def demultiplex(Y, Y_cov, patterns, support=None):
         A = patterns[:, cols]
         used = np.flatnonzero(np.any(A != 0, axis=1))  # patterns that drive none of the support say nothing
         A = A[used]
-        per_row = F * (2 * cols.size) ** 2 * 8 * 4
+        ols = method == "ols" or (method == "auto" and cols.size > OLS_ABOVE)
+        Ap = scipy.linalg.cho_solve(scipy.linalg.cho_factor(A.T @ A), A.T) if ols else None  # pinv(A): full column rank
+        per_row = F * (P * 4 + (cols.size * 4 if ols else (2 * cols.size) ** 2)) * 8 * 4
         step = max(1, _CHUNK_BYTES // per_row)
         for r0 in range(0, rows.size, step):
             r = rows[r0:r0 + step]
-            x, cov = _solve_group(A, W[used][:, r], y[used][:, r])
-            D[np.ix_(r, cols)] = np.moveaxis(x[..., 0] + 1j * x[..., 1], 1, 2)
+            Yr, Cr = Y[np.ix_(used, r)], Y_cov[np.ix_(used, r)]
+            W, y = _weights(Yr, Cr)
+            if ols:
+                complete = W.any((-1, -2)).all(0).all(-1)  # [b]: every pattern of the row fitted at every frequency
+                x = np.full((r.size, F, cols.size), np.nan + 0j)
+                cov = np.full((r.size, F, cols.size, 2, 2), np.nan)
+                if complete.any():
+                    x[complete], cov[complete] = _ols_group(Ap, Yr[:, complete], Cr[:, complete])
+                if not complete.all():
+                    xw, cov[~complete] = _solve_group(A, W[:, ~complete], y[:, ~complete])
+                    x[~complete] = xw[..., 0] + 1j * xw[..., 1]
+            else:
+                x, cov = _solve_group(A, W, y)
+                x = x[..., 0] + 1j * x[..., 1]
+            D[np.ix_(r, cols)] = np.moveaxis(x, 1, 2)
             D_cov[np.ix_(r, cols)] = np.moveaxis(cov, 1, 2)
     return D, D_cov
