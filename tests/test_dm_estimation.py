@@ -208,9 +208,10 @@ from torchblur.render.window import ExposureWindow  # noqa: E402
 _F64 = torch.float64
 
 
-def _sensor_case(seed=0, P=2, F=2, cell=16, n_side=2, read_noise=3.0, dark_spot=None):
+def _sensor_case(seed=0, P=2, F=2, cell=16, n_side=2, read_noise=3.0, dark_spot=None, Y=None, freqs=(40.0, 90.0)):
     """Whole frames [P, F, E, H, W] of an n_side x n_side grid of spots (one per cell), each
-    moving on the sinusoid of a known response Y (command amplitude 1, phase 0)."""
+    moving on the sinusoid of a known response Y (command amplitude 1, phase 0): random, or
+    ``Y [P, 2M, F]`` given."""
     g = torch.Generator().manual_seed(seed)
     M, H = n_side * n_side, n_side * cell
     corner = torch.stack(torch.meshgrid(torch.arange(n_side), torch.arange(n_side), indexing="xy"), -1).reshape(M, 2) * cell
@@ -219,11 +220,14 @@ def _sensor_case(seed=0, P=2, F=2, cell=16, n_side=2, read_noise=3.0, dark_spot=
     if dark_spot is not None:
         amp[dark_spot] = 0.0
     psf = GaussianPSF(centre, torch.eye(2, dtype=_F64) * 2.0, amp)
-    freqs = torch.tensor([40.0, 90.0][:F], dtype=_F64)
+    freqs = torch.tensor(list(freqs)[:F], dtype=_F64)
     omega = 2 * math.pi * freqs
     win = dual_exposure_windows(omega)  # [F, E]
     mag = 0.5 + 1.5 * torch.rand(P, F, M, 2, generator=g, dtype=_F64)
     ph = (torch.rand(P, F, M, 2, generator=g, dtype=_F64) - 0.5) * 2 * math.pi
+    if Y is not None:  # [P, (axis, m), F] -> [P, F, M, 2]
+        Yt = torch.as_tensor(np.moveaxis(np.asarray(Y).reshape(P, 2, M, F), (1, 3), (3, 1)))
+        mag, ph = Yt.abs().to(_F64), Yt.angle().to(_F64)
     traj = Sinusoid(mag[:, :, :, None], ph[:, :, :, None], omega[None, :, None, None, None].expand(P, F, M, 1, 2))
     w_b = ExposureWindow(win.start[None, :, None], win.duration[None, :, None])  # [1, F, 1, E]
     psf_e = GaussianPSF(centre[:, None], torch.eye(2, dtype=_F64) * 2.0, amp[:, None])  # batch [M, 1]: the E exposures share it
@@ -292,3 +296,42 @@ def test_fit_actuators_names_bad_arguments():
         fit_actuators(f, D, cov[:, :1], np.ones((4, 2)))
     with pytest.raises(ParameterError, match="freq_hz"):
         fit_actuators(f[:2], D[..., :2], cov[:, :, :2], np.ones((4, 2)))
+
+
+def test_frames_to_actuators_end_to_end():
+    """Rendered sensor frames under Hadamard patterns -> spot fits -> demultiplexing -> actuator
+    dynamics: D and every parameter within their stds of the truth."""
+    rng = np.random.default_rng(20)
+    N, M, f = 4, 4, np.array([60.0, 250.0, 420.0, 700.0])
+    G = rng.uniform(-0.5, 0.5, size=(2 * M, N))
+    truth = dict(dc_gain=np.array([1.0, 0.9, 1.1, 1.0]), mode_hz=np.array([400.0, 450.0, 500.0, 550.0]),
+                 damping=np.array([0.2, 0.25, 0.3, 0.2]), delay_s=np.array([1e-4, 2e-4, 1e-4, 1.5e-4]))
+    D = G[:, :, None] * second_order(f, **truth)[None]
+    H = _hadamard(N)
+    Y = np.einsum("pj,sjf->psf", H, D)
+    frames, offset, size, psf, win, omega, _, rn = _sensor_case(seed=5, P=N, F=f.size, Y=Y, freqs=f)
+    crops, in_frame = crop_problems(frames, offset, size)
+    fits = fit_spot_problems(crops, psf, win[None], omega, noise_std=rn, mask=in_frame[:, None])
+    assert bool((fits.status == 0).all())
+    Ym, Yc = pattern_responses(fits, 1.0)
+    De, Dc = demultiplex(Ym, Yc, H)
+    e = np.stack([(De - D).real, (De - D).imag], -1)
+    z2 = np.einsum("...a,...ab,...b->...", e, np.linalg.inv(Dc), e)
+    assert float(np.mean(z2)) < 4.0  # chi2 of 2 dof: mean 2
+    t = fit_actuators(f, De, Dc, G)
+    assert t.status == ("ok",) * N
+    for k, v in truth.items():
+        assert np.all(np.abs(getattr(t, k) - v) < 4 * getattr(t, k + "_std")), (k, getattr(t, k), v)
+
+
+def test_pattern_responses_phase_variance_and_command_phase():
+    frames, offset, size, psf, win, omega, _, rn = _sensor_case(P=1, F=1)
+    crops, in_frame = crop_problems(frames, offset, size)
+    fits = fit_spot_problems(crops, psf, win[None, :1], omega[:1], noise_std=rn, mask=in_frame[:, None])
+    Y0, C0 = pattern_responses(fits, 2.0)
+    Y1, C1 = pattern_responses(fits, 2.0, command_phase=0.3, phase_var=1e-2)
+    np.testing.assert_allclose(Y1, Y0 * np.exp(-0.3j), rtol=1e-12)
+    # the extra phase variance adds |Y|^2 var along the tangent (-Im, Re) of the rotated response
+    t = np.stack([-Y1.imag, Y1.real], -1)
+    R = np.array([[np.cos(0.3), np.sin(0.3)], [-np.sin(0.3), np.cos(0.3)]])
+    np.testing.assert_allclose(C1, R @ C0 @ R.T + 1e-2 * t[..., :, None] * t[..., None, :], rtol=1e-9, atol=1e-15)
