@@ -182,6 +182,19 @@ def test_dead_and_weak_actuators_and_static_column():
     np.testing.assert_allclose(t.mode_hz[[0, 1, 2, 5]], _TRUE["mode_hz"][[0, 1, 2, 5]], rtol=5e-3)
 
 
+def test_sparse_support_zeros_stay_zero_in_the_static_column():
+    rng = np.random.default_rng(13)
+    f, G, D, cov = _actuator_case(rng, sigma=0.005)
+    off = rng.random(G.shape) < 0.3
+    off[:, 3] = False
+    G = np.where(off, 0.0, G)
+    D = np.where(off[..., None], 0.0, D + _noise(rng, cov))
+    cov = np.where(off[..., None, None, None], 0.0, cov)
+    t = fit_actuators(f, D, cov, G)
+    assert np.all(t.static_column[off] == 0) and np.all(t.static_column_std[off] == 0)
+    assert np.all(np.isfinite(t.static_column)) and t.status == ("ok", "ok", "ok", "dead", "weak", "ok")
+
+
 def test_wrong_model_is_flagged_poor_fit():
     rng = np.random.default_rng(12)
     f, G, D, cov = _actuator_case(rng, sigma=0.002)

@@ -129,7 +129,8 @@ def project_columns(D, D_cov, G):
 def static_columns(D, D_cov, unit_shape):
     """``(D0 [S, N], D0_std [S, N])``: per slope and actuator the real least-squares scalar
     ``a`` of ``D[s, j, :] = a * unit_shape[j, :]`` (``unit_shape`` ``[N, F]`` complex, the fitted
-    response of unit DC gain), over the frequencies; NaN where ``unit_shape`` is NaN."""
+    response of unit DC gain), over the frequencies; NaN where ``unit_shape`` is NaN; exactly 0
+    (std 0) where ``D`` and ``D_cov`` are 0 at every frequency (off a sparse plan's support)."""
     W = _inv2(D_cov)
     u = _ri(unit_shape)  # [N, F, 2]
     good = np.isfinite(u).all(-1)
@@ -137,8 +138,9 @@ def static_columns(D, D_cov, unit_shape):
     d = np.nan_to_num(_ri(D)) * (W.any((-1, -2))[..., None])
     num = np.einsum("jfa,sjfab,sjfb->sj", u, W, d)
     den = np.einsum("jfa,sjfab,jfb->sj", u, W, u)
+    off = (den == 0) & np.all(D == 0, axis=-1) & np.all(D_cov == 0, axis=(-3, -2, -1))  # off a sparse plan's support: 0 exactly
     with np.errstate(divide="ignore", invalid="ignore"):
-        return num / den, 1.0 / np.sqrt(den)
+        return np.where(off, 0.0, num / den), np.where(off, 0.0, 1.0 / np.sqrt(den))
 
 
 def _whitener(cov):
