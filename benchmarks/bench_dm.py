@@ -1,0 +1,219 @@
+"""DM spot-fit throughput and peak memory, as ratios to the single-spot fitter, and the plan
+comparison (issue 17).
+
+1. Throughput: for mirrors of about 50, 241 and 820 actuators (8/10, 18/20, 32/34 actuators /
+   subapertures across), the spot problems of ``--points`` sweep points (every valid
+   subaperture's spot: a 16x16 px crop, sigma 1.2 px, 2 exposures x 2 repeats, a random 2-D
+   sinusoid of 0.5-3 px at 10 Hz-2 kHz, camera noise: shot + 3 e- read) are fitted by
+   :func:`torchblur.dm.spot_fit.fit_spot_problems` (batched, chunks from the free memory) and,
+   on the first ``--single`` problems, by ``fit_sinusoid`` one problem per call (the
+   single-spot fitter). Each fit runs in its own process so the peak memory is its own: the
+   rise of the peak RSS over the loaded crops (CPU) or ``torch.cuda.max_memory_allocated``
+   (CUDA). Printed: problems/s and peak MB of both, and their ratios.
+2. Plans (when d1's ``torchblur.dm.plans`` is present): for the ``configs/identify_dm.yaml``
+   mirror (8 across, 10x10 sensor), the frames one-at-a-time needs to reach the worst D std
+   the chosen plan reaches with its frames, from the demultiplexing covariance
+   (:func:`torchblur.dm.demux.demultiplex`, every response of std ``sigma_1 / a``, ``a`` the
+   plan's amplitude for a ``target_px`` motion), beside ``plan_cost``'s ratio.
+
+    python benchmarks/bench_dm.py [--device cuda] [--cases 8/10 18/20 32/34] [--points 2] [--single 24]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+import torch
+
+from torchblur.design.windows import dual_exposure_windows
+from torchblur.render.blur import render_blur
+from torchblur.render.camera import camera_noise_std
+from torchblur.render.psf import GaussianPSF
+from torchblur.render.trajectory import Sinusoid
+from torchblur.render.window import ExposureWindow
+
+CROP, SIGMA, PEAK_E, READ_E, FRACS, R = 16, 1.2, 2000.0, 3.0, (0.3, 0.8), 2
+
+
+def grid_count(n: int, radius: float) -> int:
+    """Cells of an n x n grid (pitch 1, centred) whose centre lies within ``radius``."""
+    c = np.arange(n) - (n - 1) / 2
+    x, y = np.meshgrid(c, c)
+    return int(np.sum(np.hypot(x, y) <= radius + 1e-9))
+
+
+def case_sizes(spec: str) -> tuple[int, int]:
+    """``"8/10"`` -> (actuators inside the pupil, valid subapertures): d1's mirror and sensor
+    where present, else the actuator rule ``|r| <= n/2 + 0.1`` pitches and subapertures whose
+    centre is within the pupil less a quarter cell."""
+    n_dm, n_wfs = (int(v) for v in spec.split("/"))
+    try:
+        from torchblur.dm.mirror import actuator_grid
+        from torchblur.dm.shack_hartmann import ShackHartmann
+    except ImportError:
+        return grid_count(n_dm, n_dm / 2 + 0.1), grid_count(n_wfs, n_wfs / 2 - 0.25)
+    return len(actuator_grid(n_dm)), ShackHartmann(n_across=n_wfs, pupil_diameter=float(n_dm)).n_valid
+
+
+def render_problems(n: int, seed: int = 0) -> dict:
+    """``n`` spot problems: crops ``[1, n, 1, E*R, h, w]`` (one spot per point: the fitter's
+    batch is flat), the PSF, windows, omega and noise std."""
+    g = torch.Generator().manual_seed(seed)
+    f64 = torch.float64
+    freq = torch.exp(torch.empty(n, dtype=f64).uniform_(math.log(10.0), math.log(2000.0), generator=g))
+    omega = 2 * math.pi * freq
+    win = dual_exposure_windows(omega, fractions=FRACS)  # [n, E]
+    win = ExposureWindow(win.start.repeat_interleave(R, -1), win.duration.repeat_interleave(R, -1))  # [n, E*R]
+    centre = (CROP - 1) / 2 + torch.rand(n, 2, generator=g, dtype=f64) - 0.5
+    amp_e = PEAK_E * 2 * math.pi * SIGMA**2 / win.duration.max(-1).values  # a still spot over the longest exposure peaks at PEAK_E
+    psf = GaussianPSF(centre, torch.eye(2, dtype=f64) * SIGMA**2, amp_e)
+    mag = 0.5 + 2.5 * torch.rand(n, 2, generator=g, dtype=f64)
+    ph = (torch.rand(n, 2, generator=g, dtype=f64) - 0.5) * 2 * math.pi
+    clean = torch.cat([render_blur(Sinusoid(mag[i:i + 256, None], ph[i:i + 256, None], omega[i:i + 256, None]),
+                                   GaussianPSF(centre[i:i + 256, None], psf.cov[i:i + 256, None], amp_e[i:i + 256, None]),
+                                   ExposureWindow(win.start[i:i + 256], win.duration[i:i + 256]), height=CROP, width=CROP)
+                       for i in range(0, n, 256)])  # [n, E*R, h, w]
+    noise = camera_noise_std(clean, READ_E)
+    noisy = clean + noise * torch.randn(clean.shape, generator=g, dtype=f64)
+    return dict(crops=noisy[None, :, None], noise=noise[None, :, None], center=centre, cov=psf.cov, amp=amp_e,
+                start=win.start[None], duration=win.duration[None], omega=omega, mag=mag)
+
+
+def _peak(device) -> float:
+    if device.type == "cuda":
+        return float(torch.cuda.max_memory_allocated(device))
+    return float(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024.0
+
+
+def child(path: str, method: str, device: str, n_single: int) -> dict:
+    """One measurement in this process: fit the problems saved at ``path``."""
+    from torchblur.dm.spot_fit import fit_spot_problems
+    from torchblur.fit.sinusoid import fit_sinusoid
+
+    dev = torch.device(device)
+    d = {k: v.to(dev) if isinstance(v, torch.Tensor) else v for k, v in torch.load(path).items()}
+    if dev.type == "cuda":
+        torch.cuda.synchronize(dev)
+        torch.cuda.reset_peak_memory_stats(dev)
+    base = _peak(dev)
+    t0 = time.perf_counter()
+    if method == "batched":
+        psf = GaussianPSF(d["center"][:, None], d["cov"][:, None], d["amp"][:, None])  # [F=n, M=1]
+        fits = fit_spot_problems(d["crops"], psf, ExposureWindow(d["start"], d["duration"]), d["omega"], noise_std=d["noise"])
+        n, amp_std = d["crops"].shape[1], fits.covariance[0, :, 0, 0, 0].sqrt()
+        ok = int((fits.status == 0).sum())
+        err = (fits.amplitude[0, :, 0] - d["mag"]).abs().max().item()
+        chunks = fits.n_chunks
+    else:
+        n = min(n_single, d["crops"].shape[1])
+        stds, ok, err = [], 0, 0.0
+        for i in range(n):
+            f = fit_sinusoid(d["crops"][0, i, 0], GaussianPSF(d["center"][i], d["cov"][i], d["amp"][i]),
+                             ExposureWindow(d["start"][0, i], d["duration"][0, i]), d["omega"][i], axes="xy",
+                             noise_std=d["noise"][0, i, 0])
+            ok += int(f.status == 0)
+            err = max(err, (f.amplitude - d["mag"][i]).abs().max().item())
+            stds.append(f.amplitude_std[0])
+        amp_std, chunks = torch.stack(stds), n
+    if dev.type == "cuda":
+        torch.cuda.synchronize(dev)
+    dt = time.perf_counter() - t0
+    peak = _peak(dev)
+    return {"problems": n, "seconds": dt, "per_s": n / dt, "peak_mb": max(0.0, peak - base) / 2**20, "process_mb": peak / 2**20, "ok": ok,
+            "max_err_px": err, "sigma1_px": float(amp_std.median()), "chunks": chunks}
+
+
+def run_child(path, method, device, n_single) -> dict:
+    cmd = [sys.executable, __file__, "--child", path, "--method", method, "--device", device, "--single", str(n_single)]
+    out = subprocess.run(cmd, capture_output=True, text=True, check=True, env=dict(os.environ))
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def throughput(cases, points: int, n_single: int, device: str) -> float:
+    print(f"spot-fit throughput and peak memory on {device} (16x16 px crops, 4 exposures, {points} points per case)")
+    print(f"{'case':>6} {'act':>4} {'subap':>5} {'problems':>8} | {'batched /s':>10} {'single /s':>9} {'ratio':>6} | "
+          f"{'batched MB':>10} {'single MB':>9} {'ratio':>8} {'per problem':>12} | {'process MB b/s':>14} {'ratio':>5} | "
+          f"{'chunks':>6} {'max err px':>10}")
+    sigma1 = math.nan
+    with tempfile.TemporaryDirectory() as tmp:
+        for spec in cases:
+            n_act, n_sub = case_sizes(spec)
+            path = os.path.join(tmp, f"case_{spec.replace('/', '_')}.pt")
+            torch.save(render_problems(points * n_sub), path)
+            b = run_child(path, "batched", device, n_single)
+            s = run_child(path, "single", device, n_single)
+            per_b = b["peak_mb"] / b["problems"]
+            s_mb = max(s["peak_mb"], 1 / 1024)  # ru_maxrss counts KB: a rise under 1 KB reads 0
+            m_ratio = f"{b['peak_mb'] / s_mb:>8.0f}" if s["peak_mb"] > 0 else f"{'>' + format(b['peak_mb'] * 1024, '.0f'):>8}"
+            print(f"{spec:>6} {n_act:>4} {n_sub:>5} {b['problems']:>8} | {b['per_s']:>10.1f} {s['per_s']:>9.2f} "
+                  f"{b['per_s'] / s['per_s']:>6.1f} | {b['peak_mb']:>10.1f} {s['peak_mb']:>9.3f} {m_ratio} "
+                  f"{1024 * per_b:>6.1f} KB/pb | {b['process_mb']:>6.0f}/{s['process_mb']:<7.0f} {b['process_mb'] / s['process_mb']:>5.2f} | "
+                  f"{b['chunks']:>6} {b['max_err_px']:>10.3g}")
+            sigma1 = b["sigma1_px"] if spec == cases[0] else sigma1
+    print("  ratio = batched problems/s over the single-spot fitter's (fit_sinusoid one problem per call, the same crops);"
+          " MB = the fit's own peak (RSS rise in its own process after its imports, or CUDA max allocated);"
+          " '>N': the single fitter's rise was under the 1 KB resolution; process MB: the whole process's peak"
+          " (imports and data included), batched / single")
+    return sigma1
+
+
+def plan_comparison(sigma1: float, target_px: float = 3.0, n_freq: int = 16, n_exp: int = 2, budget: int = 4096) -> None:
+    try:
+        from torchblur.dm.mirror import DeformableMirror
+        from torchblur.dm.plans import choose_plan, one_at_a_time_plan, plan_cost, static_motion_px
+        from torchblur.dm.shack_hartmann import ShackHartmann
+    except ImportError as e:
+        print(f"plans: skipped ({e}: d1's mirror model and plans are not in this tree)")
+        return
+    from torchblur.dm.demux import demultiplex
+
+    mirror = DeformableMirror.build(8)
+    G = ShackHartmann(n_across=10, pupil_diameter=8.0, pitch_px=16.0, sigma_px=1.2).geometry_matrix(mirror)
+    plan, reps, _ = choose_plan("auto", G, budget_frames=budget, n_freq=n_freq, n_exposures=n_exp)
+    one = one_at_a_time_plan(G)
+
+    def worst_std(p, repeats):
+        a = target_px / static_motion_px(p, G)
+        var = sigma1**2 / (a**2 * repeats * n_exp)  # one response from E*R frames
+        P = p.patterns.shape[0]
+        cov = np.broadcast_to(np.eye(2) * var, (P, G.shape[0], 1, 2, 2))
+        _, Dc = demultiplex(np.zeros((P, G.shape[0], 1), complex), cov, p.patterns, p.support)
+        return float(np.sqrt(Dc[..., 0, 0][p.support[:, :, None]].max()))
+
+    s_plan = worst_std(plan, reps)
+    r_one = math.ceil((worst_std(one, 1) / s_plan) ** 2)
+    f_plan, f_one = plan.n_frames(n_freq, n_exp, reps), one.n_frames(n_freq, n_exp, r_one)
+    print(f"plans (8 across, 10x10 sensor, {n_freq} frequencies x {n_exp} exposures, sigma_1 = {sigma1:.3g} px, "
+          f"target {target_px} px): chosen {plan.kind} P={plan.n_patterns} x {reps} repeats = {f_plan} frames, worst D std "
+          f"{s_plan:.3g} px/unit; one-at-a-time needs {r_one} repeats = {f_one} frames for it; ratio {f_plan / f_one:.3f} "
+          f"(plan_cost ratio {plan_cost(plan, G) / plan_cost(one, G):.3f})")
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--cases", nargs="+", default=["8/10", "18/20", "32/34"])
+    ap.add_argument("--points", type=int, default=2, help="sweep points (pattern, frequency) per case")
+    ap.add_argument("--single", type=int, default=24, help="problems fitted one by one")
+    ap.add_argument("--child", help=argparse.SUPPRESS)
+    ap.add_argument("--method", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        print(json.dumps(child(args.child, args.method, args.device, args.single)))
+        return
+    if args.device.startswith("cuda") and not torch.cuda.is_available():
+        raise SystemExit("--device cuda: no CUDA device here")
+    sigma1 = throughput(args.cases, args.points, args.single, args.device)
+    plan_comparison(sigma1)
+
+
+if __name__ == "__main__":
+    main()

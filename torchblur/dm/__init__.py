@@ -1,0 +1,1 @@
+"""Deformable mirrors seen by a Shack-Hartmann sensor (issue 17)."""

@@ -1,0 +1,207 @@
+"""A DM identification's outputs in ``OUT/dm/`` (issue 17), written from a :class:`DMEstimate`.
+
+Files (:func:`write_dm_outputs`):
+
+- ``actuators.csv``: ``actuator,x,y,dc_gain,dc_gain_std,mode_hz,mode_hz_std,damping,damping_std,
+  delay_s,delay_s_std,status`` (then ``reduced_chi2,poor_fit``), one row per actuator
+  (:class:`~torchblur.dm.actuator_fit.ActuatorTable`; x, y in actuator pitches).
+- ``interaction_matrix.npy`` ``[2M, N]``: the static interaction matrix D0 (px of spot
+  displacement per input unit; rows ``[x of all M, y of all M]``), and
+  ``interaction_matrix_std.npy``; ``interaction_matrix.fits`` the same (astropy, an optional
+  extra: skipped with a log line when astropy is missing).
+- ``command_matrix.npy`` ``[N, 2M]``: the regularised pseudo-inverse of D0
+  (:func:`command_matrix`: truncated SVD, singular values below ``rcond`` times the largest
+  dropped), ``unseen_modes.npy`` ``[K, N]``: the actuator-space modes it cannot see (the right
+  singular vectors dropped, and the null space when N > 2M), and ``command_matrix.json``: the
+  rule, the threshold, the singular values, the modes kept.
+- ``frf.json``: the dynamic interaction matrix D(jw) as a
+  :class:`~torchblur.sysid.frequency_response.FrequencyResponse` (2M outputs ``s{m}_x`` then
+  ``s{m}_y``: python-control refuses dots in signal names; N inputs ``a{j}``; the (magnitude,
+  phase) covariance of every element, NaN where ``D`` is exactly 0 off a sparse support;
+  ``FrequencyResponse.from_json(...).to_control()`` is a python-control FRD).
+- ``actuator_maps.png``: DC gain, mode frequency and damping over the actuator grid
+  (matplotlib Agg; skipped with a log line when matplotlib is missing).
+"""
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from torchblur.dm.actuator_fit import PARAMS, ActuatorTable
+from torchblur.errors import ParameterError, ShapeError
+from torchblur.sysid.frequency_response import FrequencyResponse
+
+__all__ = ["DMEstimate", "command_matrix", "magnitude_phase_cov", "dm_frequency_response", "write_dm_outputs", "CSV_COLUMNS",
+           "RCOND"]
+
+#: singular values of D0 below RCOND times the largest are dropped from the command matrix
+RCOND = 0.05
+CSV_COLUMNS = ("actuator", "x", "y", "dc_gain", "dc_gain_std", "mode_hz", "mode_hz_std", "damping", "damping_std", "delay_s",
+               "delay_s_std", "status", "reduced_chi2", "poor_fit")
+_log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class DMEstimate:
+    """What a DM identification estimated.
+
+    Attributes:
+        freq_hz: ``[F]``.
+        D: ``[2M, N, F]`` complex, the dynamic interaction matrix (px per input unit).
+        D_cov: ``[2M, N, F, 2, 2]`` covariance of ``(Re, Im) D``.
+        table: the :class:`ActuatorTable` (its ``static_column`` is D0 ``[2M, N]``).
+        meta: strict-JSON extras written into ``frf.json`` (plan, seed, ...).
+    """
+
+    freq_hz: np.ndarray
+    D: np.ndarray
+    D_cov: np.ndarray
+    table: ActuatorTable
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def D0(self) -> np.ndarray:
+        """``[2M, N]`` the static interaction matrix."""
+        return self.table.static_column
+
+
+def command_matrix(D0, *, rcond: float = RCOND):
+    """The truncated-SVD pseudo-inverse of the interaction matrix.
+
+    ``D0 = U diag(s) V^T``; the modes with ``s_k >= rcond * s_max`` are kept:
+    ``C = V_k diag(1 / s_k) U_k^T``.
+
+    Args:
+        D0: ``[2M, N]`` (NaN refused).
+        rcond: relative threshold in (0, 1).
+
+    Returns:
+        ``(C [N, 2M], unseen [K, N], info)``: ``unseen[k]`` a unit actuator-space mode the
+        sensor does not see (dropped singular vectors, and the null space where N > 2M);
+        ``info`` a dict: ``rule``, ``rcond``, ``singular_values``, ``n_kept``.
+    """
+    D0 = np.asarray(D0, dtype=np.float64)
+    if D0.ndim != 2:
+        raise ShapeError(f"D0: expected [2M, N], got shape {D0.shape}")
+    if not np.all(np.isfinite(D0)):
+        raise ParameterError("D0: expected finite values, got NaN or Inf")
+    if not 0 < rcond < 1:
+        raise ParameterError(f"rcond: expected a number in (0, 1), got {rcond!r}")
+    U, s, Vt = np.linalg.svd(D0, full_matrices=True)
+    k = int(np.sum(s >= rcond * s.max())) if s.size and s.max() > 0 else 0
+    C = (Vt[:k].T / s[:k]) @ U[:, :k].T
+    info = {"rule": "truncated SVD: singular values below rcond * max dropped", "rcond": float(rcond),
+            "singular_values": s.tolist(), "n_kept": k, "n_unseen": int(Vt.shape[0] - k)}
+    return C, Vt[k:], info
+
+
+def magnitude_phase_cov(z, cov_ri):
+    """``(Re, Im)`` covariances ``[..., 2, 2]`` of ``z`` ``[...]`` as (magnitude, phase)
+    covariances (first-order); NaN where ``|z| = 0`` (the phase is undefined there)."""
+    z = np.asarray(z)
+    r = np.abs(z)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        J = np.stack([np.stack([z.real / r, z.imag / r], -1), np.stack([-z.imag / r**2, z.real / r**2], -1)], -2)
+    out = J @ cov_ri @ np.swapaxes(J, -1, -2)
+    out[~(r > 0)] = np.nan
+    return 0.5 * (out + np.swapaxes(out, -1, -2))
+
+
+def dm_frequency_response(est: DMEstimate) -> FrequencyResponse:
+    """``D(jw)`` as a FrequencyResponse ``[2M, N, F]`` (labels in the module docstring)."""
+    S, N, _ = est.D.shape
+    M = S // 2
+    order = np.argsort(est.freq_hz)
+    outputs = [f"s{m}_x" for m in range(M)] + [f"s{m}_y" for m in range(M)]
+    return FrequencyResponse(2 * math.pi * np.asarray(est.freq_hz)[order], est.D[:, :, order],
+                             cov=magnitude_phase_cov(est.D, est.D_cov)[:, :, order], output_labels=outputs,
+                             input_labels=[f"a{j}" for j in range(N)], meta=dict(est.meta))
+
+
+def _csv_rows(t: ActuatorTable):
+    xy = t.actuator_xy if t.actuator_xy is not None else np.full((len(t), 2), np.nan)
+    for j in range(len(t)):
+        vals = [getattr(t, k)[j] for p in PARAMS for k in (p, p + "_std")]
+        yield [j, f"{xy[j, 0]:.6g}", f"{xy[j, 1]:.6g}", *(f"{v:.9g}" for v in vals), t.status[j], f"{t.reduced_chi2[j]:.4g}",
+               int(t.poor_fit[j])]
+
+
+def _write_fits(path: Path, D0: np.ndarray, say) -> bool:
+    try:
+        from astropy.io import fits
+    except ImportError:
+        say(f"dm: astropy is not installed: {path.name} skipped (pip install astropy)")
+        return False
+    hdu = fits.PrimaryHDU(D0)
+    hdu.header["BUNIT"] = "px/unit"
+    hdu.header["COMMENT"] = "torchblur static interaction matrix [2M, N]: rows x of all M subapertures, then y"
+    hdu.writeto(path, overwrite=True)
+    return True
+
+
+def _write_maps(path: Path, t: ActuatorTable, say) -> bool:
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        say(f"dm: matplotlib is not installed: {path.name} skipped (pip install matplotlib)")
+        return False
+    if t.actuator_xy is None:
+        say(f"dm: no actuator positions: {path.name} skipped")
+        return False
+    xy = t.actuator_xy
+    dead = np.array([s == "dead" for s in t.status])
+    fig, axes = plt.subplots(1, 3, figsize=(13, 4))
+    for ax, (name, vals, unit) in zip(axes, (("DC gain", t.dc_gain, ""), ("mode", t.mode_hz, "Hz"), ("damping", t.damping, ""))):
+        sc = ax.scatter(xy[~dead, 0], xy[~dead, 1], c=vals[~dead], s=120, marker="s", cmap="viridis")
+        ax.scatter(xy[dead, 0], xy[dead, 1], c="red", marker="x", s=80, label="dead")
+        fig.colorbar(sc, ax=ax, label=f"{name} {unit}".strip())
+        ax.set_title(name)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x (pitches)")
+        ax.set_ylabel("y (pitches)")
+    if dead.any():
+        axes[0].legend(loc="upper right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return True
+
+
+def write_dm_outputs(out_dir, est: DMEstimate, *, rcond: float = RCOND, say=None) -> dict:
+    """Write ``out_dir/dm/`` (see the module docstring). ``say``: a callable for log lines
+    (default: this module's logger). Returns ``{name: path}`` of the files written."""
+    say = say or _log.info
+    d = Path(out_dir) / "dm"
+    d.mkdir(parents=True, exist_ok=True)
+    t = est.table
+    paths = {}
+    with open(d / "actuators.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(CSV_COLUMNS)
+        w.writerows(_csv_rows(t))
+    paths["actuators.csv"] = d / "actuators.csv"
+    for name, arr in (("interaction_matrix.npy", est.D0), ("interaction_matrix_std.npy", t.static_column_std)):
+        np.save(d / name, arr)
+        paths[name] = d / name
+    if _write_fits(d / "interaction_matrix.fits", est.D0, say):
+        paths["interaction_matrix.fits"] = d / "interaction_matrix.fits"
+    C, unseen, info = command_matrix(np.nan_to_num(est.D0), rcond=rcond)
+    np.save(d / "command_matrix.npy", C)
+    np.save(d / "unseen_modes.npy", unseen)
+    (d / "command_matrix.json").write_text(json.dumps(info, indent=1) + "\n")
+    paths.update({k: d / k for k in ("command_matrix.npy", "unseen_modes.npy", "command_matrix.json")})
+    dm_frequency_response(est).to_json(d / "frf.json")
+    paths["frf.json"] = d / "frf.json"
+    if _write_maps(d / "actuator_maps.png", t, say):
+        paths["actuator_maps.png"] = d / "actuator_maps.png"
+    say(f"dm: {len(paths)} files in {d}; command matrix keeps {info['n_kept']} modes, {info['n_unseen']} unseen "
+        f"(rcond {rcond:g})")
+    return paths
