@@ -249,3 +249,79 @@ def test_plan_cost_and_choice():
         choose_plan("hadamard", G, budget_frames=100, n_freq=20, n_exposures=2)
     with pytest.raises(ParameterError, match="dm_plan.kind"):
         choose_plan("random", G, budget_frames=100, n_freq=2, n_exposures=2)
+
+
+# ------------------------------------------------------------------ the simulated DM rig
+
+
+def _quiet_camera():
+    from torchblur.render.camera import CameraModel
+
+    return CameraModel(dark_level_adu=0.0, read_noise_e=0.0, shot_noise=False, quantize=False, full_well_e=1e12, bit_depth=32)
+
+
+def _small_rig(small, **kw):
+    from torchblur.dm.rig import SimulatedDMRig
+
+    mirror, wfs, _ = small
+    kw = {"camera": _quiet_camera(), "peak_e_per_s": 1e5, "jitter_s": 1e-6, "seed": 5, **kw}
+    return SimulatedDMRig(mirror=mirror, wfs=wfs, **kw)
+
+
+def test_rig_frames_match_a_direct_render_of_the_truth(small):
+    """Every spot rendered over the whole frame (render_blur, pixel integration) with the
+    motion from G and each actuator's Plant (not the mirror's response formula)."""
+    import torch
+    from torchblur.render.blur import RenderSettings, render_blur
+    from torchblur.render.psf import GaussianPSF
+    from torchblur.render.trajectory import Sinusoid
+    from torchblur.render.window import ExposureWindow
+
+    mirror, wfs, G = small
+    rig = _small_rig(small, latency_s=20e-6)
+    pattern = np.array([1.0, -1.0, 0.0, 0.5, 1.0, 0.0, -0.5, 0.0, 1.0])
+    f, amp = 650.0, 1.0
+    cap = rig.pattern_sine(pattern, f, amp, [0.3 / f, 0.8 / f], 0.1 / f, 2)
+    assert cap.frames.shape == (2, 2, 64, 64)
+    h = np.array([complex(mirror.plant(j).frequency_response(2 * np.pi * f)) for j in range(9)])
+    Y = amp * (G * h) @ pattern
+    M = wfs.n_valid
+    start = cap.meta["actual_start_s"].reshape(-1)
+    win = ExposureWindow(start, cap.exposure_s.reshape(-1))
+    ref = 0
+    for m in range(M):
+        yx = np.array([Y[m], Y[M + m]])
+        traj = Sinusoid(torch.tensor(np.abs(yx)), torch.tensor(np.angle(yx)), torch.tensor(2 * np.pi * f, dtype=torch.float64))
+        psf = GaussianPSF(torch.tensor(wfs.rest_px[m]), wfs.sigma_px ** 2 * torch.eye(2, dtype=torch.float64), 1e5)
+        ref = ref + render_blur(traj, psf, win, height=64, width=64, settings=RenderSettings(pixel_integration=True, max_nodes=1 << 20))
+    np.testing.assert_allclose(cap.frames.reshape(-1, 64, 64).numpy(), ref.numpy(), rtol=0, atol=1e-7 * float(ref.max()))
+    # latency + trigger delay: the windows start at the trigger + 20 us (+- jitter)
+    d = (start - cap.trigger_time_s.reshape(-1)).numpy()
+    assert np.all(np.abs(d - 20e-6) < 6e-6)
+
+
+def test_rig_truth_inputs_and_limits(small):
+    mirror, wfs, G = small
+    rig = _small_rig(small)
+    f = np.array([100.0, 700.0])
+    D = rig.truth_D(f)
+    assert D.shape == (24, 9, 2)
+    np.testing.assert_allclose(D, G[:, :, None] * mirror.response(f)[None])
+    np.testing.assert_allclose(rig.truth_D(700.0), D[..., 1])
+    a = rig.sine(300.0, 1.5, [1e-3], 0.0, 1, input="a4")
+    b = _small_rig(small).pattern_sine(np.eye(9)[4], 300.0, 1.5, [1e-3], 0.0, 1)
+    np.testing.assert_array_equal(a.frames.numpy(), b.frames.numpy())
+    assert rig.still(1, 1e-3).frames.shape == (1, 64, 64)
+    with pytest.raises(ParameterError, match="input"):
+        rig.sine(300.0, 1.0, [1e-3], 0.0, 1, input="x")
+    with pytest.raises(ParameterError, match="multisine"):
+        rig.multisine([100.0], [1.0], [0.0], [1e-3], 0.0, 1)
+    with pytest.raises(ParameterError, match="amplitude.*crop"):
+        rig.pattern_sine(np.ones(9), 300.0, 50.0, [1e-3], 0.0, 1)
+    limited = _small_rig((DeformableMirror.build(3, input_limit=1.0), wfs, G))
+    with pytest.raises(ParameterError, match="amplitude.*input_limit"):
+        limited.pattern_sine(np.eye(9)[0], 300.0, 1.5, [1e-3], 0.0, 1)
+    from torchblur.errors import ShapeError
+
+    with pytest.raises(ShapeError, match="pattern"):
+        rig.pattern_sine(np.ones(8), 300.0, 1.0, [1e-3], 0.0, 1)
