@@ -273,3 +273,81 @@ def identify_dm(cfg, rig=None, *, progress: bool = False, base_dir: str | None =
     return DMResult(freq_hz=freqs, plan=plan, n_repeats=R, plan_info=info, amplitude=amps, power=powers, Y=Y, Y_cov=Y_cov, D=D,
                     D_cov=D_cov, actuators=table, G=G, actuator_xy=model_mirror.actuator_xy, n_frames=n_frames, n_failed=failed,
                     timing_s=t, truth_D=truth, mirror=rig.mirror if isinstance(rig, SimulatedDMRig) else None, log=log)
+
+
+def truth_errors(res: DMResult) -> dict | None:
+    """The run's errors against the simulated mirror (None on a real rig): the largest relative
+    error of every live actuator's ``mode_hz``, ``damping`` and ``dc_gain`` (and in stds,
+    ``*_z``), the rms error of the measured D0 over the largest |D0| element, and whether the
+    dead actuators (and only they) are reported dead."""
+    if res.mirror is None:
+        return None
+    m, a = res.mirror, res.actuators
+    live = ~m.dead
+    status = np.asarray(a.status)
+    out = {}
+    for name, est, std, true in (("mode_hz", a.mode_hz, a.mode_hz_std, m.mode_hz), ("damping", a.damping, a.damping_std, m.damping),
+                                 ("dc_gain", a.dc_gain, a.dc_gain_std, m.gain)):
+        out[f"{name}_max_rel_error"] = float(np.nanmax(np.abs(est[live] / true[live] - 1))) if np.isfinite(est[live]).all() else math.nan
+        out[f"{name}_max_z"] = float(np.nanmax(np.abs(est[live] - true[live]) / std[live]))
+    D0 = res.G * m.gain
+    out["D0_rms_error_over_max"] = float(np.sqrt(np.mean((a.static_column - D0) ** 2)) / np.abs(D0).max())
+    out["dead_reported_dead"] = bool(np.all(status[m.dead] == "dead"))
+    out["live_reported_dead"] = np.flatnonzero(live & (status == "dead")).tolist()
+    return out
+
+
+def _report(res: DMResult, elapsed: float) -> str:
+    """The run's summary lines."""
+    t = res.timing_s
+    lines = [f"dm run: {len(res.actuators)} actuators, {res.G.shape[0] // 2} spots, plan {res.plan.kind} ({res.plan.n_patterns} "
+             f"patterns x {len(res.freq_hz)} frequencies, {res.n_repeats} repeats): {res.n_frames} sweep frames, "
+             f"{res.plan_info['cost_ratio_to_one_at_a_time']:.3f} of the frames one at a time needs for the same accuracy",
+             f"time: {elapsed:.1f} s (calibration {t['calibration']:.1f} s, acquisition {t['acquisition']:.1f} s, waiting for the "
+             f"fits {t['fit_wait']:.1f} s, estimation {t['estimation']:.1f} s); failed spot fits: {res.n_failed}",
+             "status: " + ", ".join(f"{s} {list(res.actuators.status).count(s)}" for s in ("ok", "weak", "dead"))]
+    err = truth_errors(res)
+    if err is not None:
+        lines.append(f"against the simulated truth: mode {err['mode_hz_max_rel_error'] * 100:.3f} %, damping "
+                     f"{err['damping_max_rel_error'] * 100:.2f} %, DC gain {err['dc_gain_max_rel_error'] * 100:.3f} % (largest over live "
+                     f"actuators), D0 {err['D0_rms_error_over_max'] * 100:.3f} % rms of its largest element, dead reported dead: "
+                     f"{err['dead_reported_dead']}")
+    return "\n".join(lines) + "\n"
+
+
+def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False) -> int:
+    """``torchblur identify`` for a DM config: run, then write ``OUT/dm/`` (d2's outputs) and
+    ``OUT/report.txt``; with ``as_json`` one JSON summary line on stdout."""
+    import json
+    import sys
+    from pathlib import Path
+
+    from torchblur.identify.config import config_to_yaml
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "config.yaml").write_text(config_to_yaml(cfg))
+    torch.manual_seed(int(cfg.seed))
+    t0 = time.perf_counter()
+    res = identify_dm(cfg, progress=not quiet)
+    elapsed = time.perf_counter() - t0
+    _write_dm_outputs(res, out / "dm")
+    report = _report(res, elapsed)
+    (out / "report.txt").write_text("\n".join(res.log) + "\n" + report)
+    print(report, end="", file=sys.stderr if as_json else sys.stdout)
+    if as_json:
+        print(json.dumps({"elapsed_s": elapsed, "frames": res.n_frames, "plan": res.plan.kind, "timing_s": res.timing_s,
+                          "truth_errors": truth_errors(res)}), flush=True)
+    return 0
+
+
+def _write_dm_outputs(res: DMResult, folder) -> None:
+    """``OUT/dm/`` by :mod:`torchblur.dm.outputs` (d2's writer; until it is merged, a log line)."""
+    from torchblur.identify.record import log_message
+
+    try:
+        from torchblur.dm.outputs import write_outputs
+    except ImportError:  # stand-in until d2's outputs are merged
+        log_message(res.log, f"dm: {folder} not written (torchblur.dm.outputs is not in this tree)")
+        return
+    write_outputs(res, folder)
