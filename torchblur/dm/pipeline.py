@@ -144,11 +144,14 @@ def next_amplitude(*, target_px: float, motion_per_unit: float, input_limit: flo
 def _calibrate(cfg, rig, wfs, log, progress):
     """Stage 1 (module docstring): the calibration and the spots in valid-subaperture order."""
     from torchblur.identify.calibration import calibrate
+    from torchblur.identify.record import log_message
 
     n = int(cfg.wfs.n_across)
     spots_cfg = replace(cfg.spots, rows=n, cols=n, pitch_px=float(cfg.wfs.pitch_px), sigma_px=float(cfg.wfs.sigma_px))
     cal = calibrate(replace(cfg, spots=spots_cfg), rig, log=log, progress=progress)
     order = match_spots(cal.spots.psf.center.numpy(), wfs.rest_px, wfs.pitch_px)
+    log_message(log, f"dm spots: {len(cal.spots)} found, matched to the {wfs.n_valid} valid subapertures (the other "
+                     f"{n * n - wfs.n_valid} cells of the {n}x{n} grid are outside the pupil)", progress)
     psf = cal.spots.psf_in_crops()[torch.as_tensor(order)]
     return cal, psf, cal.spots.offset[torch.as_tensor(order)], cal.spots.size
 
@@ -344,7 +347,7 @@ def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False) -> int:
     t0 = time.perf_counter()
     res = identify_dm(cfg, progress=not quiet)
     elapsed = time.perf_counter() - t0
-    _write_dm_outputs(res, out / "dm")
+    _write_dm_outputs(res, out)
     report = _report(res, elapsed)
     (out / "report.txt").write_text("\n".join(res.log) + "\n" + report)
     print(report, end="", file=sys.stderr if as_json else sys.stdout)
@@ -354,13 +357,16 @@ def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False) -> int:
     return 0
 
 
-def _write_dm_outputs(res: DMResult, folder) -> None:
-    """``OUT/dm/`` by :mod:`torchblur.dm.outputs` (d2's writer; until it is merged, a log line)."""
+def _write_dm_outputs(res: DMResult, out) -> None:
+    """``OUT/dm/`` by :func:`torchblur.dm.outputs.write_dm_outputs` (d2's writer; until it is
+    merged, a log line)."""
     from torchblur.identify.record import log_message
 
     try:
-        from torchblur.dm.outputs import write_outputs
+        from torchblur.dm.outputs import DMEstimate, write_dm_outputs
     except ImportError:  # stand-in until d2's outputs are merged
-        log_message(res.log, f"dm: {folder} not written (torchblur.dm.outputs is not in this tree)")
+        log_message(res.log, f"dm: {out}/dm not written (torchblur.dm.outputs is not in this tree)")
         return
-    write_outputs(res, folder)
+    meta = {"plan": res.plan.kind, "n_patterns": res.plan.n_patterns, "n_repeats": res.n_repeats, "n_frames": res.n_frames}
+    write_dm_outputs(out, DMEstimate(freq_hz=res.freq_hz, D=res.D, D_cov=res.D_cov, table=res.actuators, meta=meta),
+                     say=lambda msg: log_message(res.log, msg))
