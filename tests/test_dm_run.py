@@ -23,7 +23,8 @@ def test_dm_config_sections_and_errors(tmp_path):
     assert not load_config().dm.enabled
     for bad, key in (("dm.coupling=1.5", "dm.coupling"), ("dm.mode_spread=0.5", "dm.mode_spread"), ("dm.dead=[-1]", r"dm.dead\[0\]"),
                      ("dm_plan.kind=random", "dm_plan.kind"), ("wfs.pitch_px=4", "wfs.pitch_px"),
-                     ("excitation.target_px=7", "excitation.target_px"), ("dm.nope=1", "dm.nope")):
+                     ("excitation.target_px=7", "excitation.target_px"), ("dm.nope=1", "dm.nope"),
+                     ("dm_plan.budget_frames=1000000", "dm_plan.budget_frames")):
         with pytest.raises(ConfigError, match=key):
             load_config(None, SMALL + [bad])
     full = load_config("configs/identify_dm.yaml")

@@ -607,7 +607,7 @@ def validate_dm(cfg: IdentifyConfig) -> None:
     if p.budget_frames is None and p.n_repeats is None:
         raise ConfigError("dm_plan.budget_frames: expected a frame budget, or set dm_plan.n_repeats")
     if p.budget_frames is not None:
-        _num(p.budget_frames, "dm_plan.budget_frames", integer=True, low=1)
+        _num(p.budget_frames, "dm_plan.budget_frames", integer=True, low=1, high=LIMITS["frames"])
     if p.n_repeats is not None:
         _num(p.n_repeats, "dm_plan.n_repeats", integer=True, low=1)
     _num(p.support_threshold, "dm_plan.support_threshold", nonnegative=True, high=1.0)
