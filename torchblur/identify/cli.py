@@ -146,6 +146,10 @@ def _identify(args) -> int:
     cfg = load_config(args.config, args.overrides, force=args.force)  # ConfigError (named key) before any work
     out = Path(args.out)
     check_out_folder(out, command="identify", force=args.force)
+    if cfg.dm.enabled:  # a deformable-mirror run (dm.n_across > 0): torchblur.dm.pipeline
+        from torchblur.dm.pipeline import run_cli as run_dm
+
+        return run_dm(cfg, out, quiet=args.quiet, as_json=args.json)
     if (out / "experiment" / "manifest.jsonl").exists():
         print(f"torchblur identify: error: {out} already holds a recorded run; continue it with "
               f"'torchblur identify --resume {out}' or choose another --out", file=sys.stderr)

@@ -16,7 +16,8 @@ from typing import Optional
 from torchblur.errors import ConfigError
 
 __all__ = ["IdentifyConfig", "load_config", "estimate_run", "check_limits", "LIMITS", "load_dataclass", "config_to_yaml", "validate", "validate_plant", "validate_camera",
-           "validate_spots", "validate_excitation", "SpotsConfig", "PlantConfig",
+           "validate_spots", "validate_excitation", "validate_dm", "SpotsConfig", "PlantConfig",
+           "DMConfig", "WFSConfig", "DMPlanConfig", "DM_PLAN_KINDS",
            "DEFAULT_PLANT", "RIG_KINDS", "EXCITATION_KINDS"]
 
 RIG_KINDS = ("simulated", "serial")
@@ -206,6 +207,68 @@ class RigConfig:
 
 
 @dataclass(frozen=True)
+class DMConfig:
+    """A deformable mirror (:mod:`torchblur.dm.mirror`); the run is a DM run when ``n_across`` > 0.
+    ``coupling``: an influence function's value one pitch away; ``mode_hz``, ``damping``,
+    ``gain``, ``delay_s``: the nominal actuator; ``*_spread``: relative std (``delay_spread_s``:
+    absolute, s) of the seeded spread; ``dead``/``weak``: actuator indices (weak: ``weak_gain``
+    times the gain); ``actuator_table``: a CSV ``actuator,mode_hz,damping,gain,delay_s`` (path
+    relative to the working directory) that sets those actuators; ``input_limit``: the largest
+    command (null: none)."""
+
+    n_across: int = 0
+    coupling: float = 0.15
+    mode_hz: float = 1000.0
+    damping: float = 0.1
+    gain: float = 1.0
+    delay_s: float = 20e-6
+    mode_spread: float = 0.0
+    damping_spread: float = 0.0
+    gain_spread: float = 0.0
+    delay_spread_s: float = 0.0
+    dead: list = field(default_factory=list)
+    weak: list = field(default_factory=list)
+    weak_gain: float = 0.3
+    actuator_table: Optional[str] = None
+    input_limit: Optional[float] = None
+
+    @property
+    def enabled(self) -> bool:
+        """True for a DM run (``n_across`` > 0)."""
+        return int(self.n_across) > 0
+
+
+@dataclass(frozen=True)
+class WFSConfig:
+    """The Shack-Hartmann sensor of a DM run (:mod:`torchblur.dm.shack_hartmann`): ``n_across``
+    subapertures across the pupil, ``pitch_px`` between spots, ``sigma_px`` PSF std (growing by
+    ``sigma_variation`` to the pupil edge), ``slope_px`` px per unit wavefront slope,
+    ``min_illumination`` of a valid subaperture, ``oversample`` integration points per side.
+    The camera frame is ``n_across * pitch_px`` square (camera.height/width are not used)."""
+
+    n_across: int = 10
+    pitch_px: float = 16.0
+    sigma_px: float = 1.5
+    sigma_variation: float = 0.0
+    slope_px: float = 1.0
+    min_illumination: float = 0.5
+    oversample: int = 32
+
+
+@dataclass(frozen=True)
+class DMPlanConfig:
+    """The excitation plan of a DM run (:mod:`torchblur.dm.plans`): ``kind`` one of auto,
+    one_at_a_time, sparse, hadamard; ``budget_frames`` the most sweep frames (the repeats per
+    exposure are the most that fit, unless ``n_repeats`` is set); ``support_threshold``: the
+    sparse plan's |G| threshold relative to the largest."""
+
+    kind: str = "auto"
+    budget_frames: Optional[int] = 20000
+    n_repeats: Optional[int] = None
+    support_threshold: float = 0.01
+
+
+@dataclass(frozen=True)
 class IdentifyConfig:
     plant: PlantConfig = field(default_factory=PlantConfig)
     sweep: SweepConfig = field(default_factory=SweepConfig)
@@ -216,6 +279,9 @@ class IdentifyConfig:
     rig: RigConfig = field(default_factory=RigConfig)
     spots: SpotsConfig = field(default_factory=SpotsConfig)
     report: ReportConfig = field(default_factory=ReportConfig)
+    dm: DMConfig = field(default_factory=DMConfig)
+    wfs: WFSConfig = field(default_factory=WFSConfig)
+    dm_plan: DMPlanConfig = field(default_factory=DMPlanConfig)
     seed: int = 0
 
     def frequencies_hz(self) -> list[float]:
@@ -518,6 +584,57 @@ def validate_spots(sp: SpotsConfig, camera: CameraConfig | None = None) -> None:
             raise ConfigError(f"spots.crop_px: a crop of {side} px does not fit a {camera.height}x{camera.width} frame")
 
 
+DM_PLAN_KINDS = ("auto", "one_at_a_time", "sparse", "hadamard")
+
+
+def validate_dm(cfg: IdentifyConfig) -> None:
+    """Check the ``dm``, ``wfs`` and ``dm_plan`` sections of a DM run; raise :class:`ConfigError`
+    naming the key (the actuator table itself is read, and checked, when the mirror is built)."""
+    d, w, p = cfg.dm, cfg.wfs, cfg.dm_plan
+    _num(d.n_across, "dm.n_across", integer=True, low=0, high=64)
+    if not d.enabled:
+        return
+    _num(d.coupling, "dm.coupling", positive=True, high=0.99)
+    for k in ("mode_hz", "damping"):
+        _num(getattr(d, k), f"dm.{k}", positive=True)
+    for k in ("gain", "delay_s", "delay_spread_s", "weak_gain"):
+        _num(getattr(d, k), f"dm.{k}", nonnegative=True)
+    for k in ("mode_spread", "damping_spread", "gain_spread"):
+        _num(getattr(d, k), f"dm.{k}", nonnegative=True, high=0.33)
+    for k in ("dead", "weak"):
+        v = getattr(d, k)
+        if not isinstance(v, (list, tuple)):
+            raise ConfigError(f"dm.{k}: expected a list of actuator indices, got {v!r}")
+        for i, j in enumerate(v):
+            _num(j, f"dm.{k}[{i}]", integer=True, low=0)
+    if d.actuator_table is not None and (not isinstance(d.actuator_table, str) or not d.actuator_table.strip()):
+        raise ConfigError(f"dm.actuator_table: expected a path to a CSV file or null, got {d.actuator_table!r}")
+    if d.input_limit is not None:
+        _num(d.input_limit, "dm.input_limit", positive=True)
+    _num(w.n_across, "wfs.n_across", integer=True, low=1, high=128)
+    _num(w.pitch_px, "wfs.pitch_px", low=8)
+    _num(w.sigma_px, "wfs.sigma_px", low=MIN_PSF_SIGMA_PX)
+    _num(w.sigma_variation, "wfs.sigma_variation", nonnegative=True)
+    _num(w.slope_px, "wfs.slope_px", positive=True)
+    _num(w.min_illumination, "wfs.min_illumination", positive=True, high=1.0)
+    _num(w.oversample, "wfs.oversample", integer=True, low=1, high=256)
+    if p.kind not in DM_PLAN_KINDS:
+        raise ConfigError(f"dm_plan.kind: expected one of {DM_PLAN_KINDS}, got {p.kind!r}")
+    if p.budget_frames is None and p.n_repeats is None:
+        raise ConfigError("dm_plan.budget_frames: expected a frame budget, or set dm_plan.n_repeats")
+    if p.budget_frames is not None:
+        _num(p.budget_frames, "dm_plan.budget_frames", integer=True, low=1, high=LIMITS["frames"])
+    if p.n_repeats is not None:
+        _num(p.n_repeats, "dm_plan.n_repeats", integer=True, low=1)
+    _num(p.support_threshold, "dm_plan.support_threshold", nonnegative=True, high=1.0)
+    if cfg.rig.kind != "simulated":
+        raise ConfigError(f"rig.kind: a DM run (dm.n_across > 0) runs on the simulated DM rig only, got {cfg.rig.kind!r}")
+    room = w.pitch_px / 2 - 3 * w.sigma_px * (1 + w.sigma_variation)
+    if cfg.excitation.target_px > room:
+        raise ConfigError(f"excitation.target_px: a DM spot motion of {cfg.excitation.target_px} px does not stay in its "
+                          f"subaperture (room {room:.3g} px: wfs.pitch_px / 2 less 3 PSF sigmas)")
+
+
 def validate_camera(c: CameraConfig) -> None:
     """Check the ``camera`` section; raise :class:`ConfigError` naming the key."""
     for k in ("frame_rate_hz", "max_exposure_s", "gain", "full_well", "psf_sigma_px", "peak_fraction"):
@@ -698,6 +815,7 @@ def validate(cfg: IdentifyConfig) -> None:
                           f"{'a 2x2 plant' if cfg.plant.is_mimo else 'many spots (spots.rows > 0)'}: set model.direct=false")
     validate_rig(cfg.rig)
     validate_report(cfg)
+    validate_dm(cfg)
     _num(cfg.seed, "seed", integer=True, low=0, high=2**63 - 1)
 
 

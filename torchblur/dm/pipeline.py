@@ -1,0 +1,372 @@
+"""The deformable-mirror identification run: :func:`identify_dm` (``torchblur identify`` with a
+config whose ``dm.n_across`` > 0 comes here).
+
+Stages:
+
+1. calibration: the one-spot/many-spot run's own stage (:func:`torchblur.identify.calibration.calibrate`
+   with the sensor's spot grid): dark frame, saturation, still frames (every spot found with
+   :func:`~torchblur.image.spots.locate_spots`, a Gaussian PSF fitted per spot), trigger
+   latency from the pulse scan; the found spots are matched to the sensor's valid subapertures
+   (nearest rest position within half a pitch; a valid subaperture without a spot stops the run).
+2. the plan (:func:`torchblur.dm.plans.choose_plan`: kind, frame budget, the nominal geometry G).
+3. the sweep, frequency by frequency (``sweep`` section: frequencies, exposures in periods,
+   trigger phase): every pattern is driven at one amplitude per frequency (:func:`next_amplitude`:
+   the largest spot motion predicted at ``excitation.target_px`` from the last fitted frequency
+   and the nominal resonance's growth, never above ``dm.input_limit``) and the laser power that
+   keeps a still spot at ``camera.peak_fraction`` of the range over the longest exposure; each
+   completed frequency goes to the batched spot fitter (:mod:`torchblur.dm.spot_fit`) on a
+   worker thread, so fitting overlaps the acquisition.
+4. the pattern responses ``Y [P, 2M, F]`` (phase variance of the trigger jitter and the latency
+   calibration added), the demultiplexing (:mod:`torchblur.dm.demux`) into ``D [2M, N, F]`` and
+   the per-actuator fit (:mod:`torchblur.dm.actuator_fit`).
+"""
+from __future__ import annotations
+
+import math
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import torch
+
+from torchblur.errors import ParameterError
+from torchblur.render.camera import CameraModel, camera_noise_std
+from torchblur.render.window import ExposureWindow
+from torchblur.dm.mirror import DeformableMirror
+from torchblur.dm.plans import choose_plan, static_motion_px
+from torchblur.dm.rig import SimulatedDMRig
+from torchblur.dm.shack_hartmann import ShackHartmann
+
+__all__ = ["DMResult", "build_dm", "identify_dm", "match_spots", "next_amplitude", "nominal_growth", "pixel_noise_std", "truth_errors"]
+
+_F64 = torch.float64
+
+
+@dataclass
+class DMResult:
+    """What a DM run measured.
+
+    Attributes:
+        freq_hz: ``[F]``.
+        plan: the :class:`~torchblur.dm.plans.Plan`; ``n_repeats`` frames per exposure and
+            pattern; ``plan_info`` (:func:`~torchblur.dm.plans.choose_plan`'s comparison).
+        amplitude: ``[F]`` command amplitude; ``power``: ``[F]`` laser power.
+        Y, Y_cov: ``[P, 2M, F]`` pattern responses and ``[P, 2M, F, 2, 2]`` their (Re, Im) covariance.
+        D, D_cov: ``[2M, N, F]`` and ``[2M, N, F, 2, 2]``.
+        actuators: the :class:`~torchblur.dm.actuator_fit.ActuatorTable`.
+        G: ``[2M, N]`` the nominal geometry (px per input unit).
+        actuator_xy: ``[N, 2]``.
+        n_frames: sweep frames taken; ``n_failed``: spot problems whose fit failed.
+        timing_s: seconds per stage (``calibration``, ``acquisition``, ``fit_wait``, ``estimation``).
+        truth_D: ``[2M, N, F]`` the simulated rig's D (None on a real rig); ``mirror``: the
+            simulated mirror (its true dynamics), or None.
+        log: the run's messages.
+    """
+
+    freq_hz: np.ndarray
+    plan: object
+    n_repeats: int
+    plan_info: dict
+    amplitude: np.ndarray
+    power: np.ndarray
+    Y: np.ndarray
+    Y_cov: np.ndarray
+    D: np.ndarray
+    D_cov: np.ndarray
+    actuators: object
+    G: np.ndarray
+    actuator_xy: np.ndarray
+    n_frames: int
+    n_failed: int
+    timing_s: dict
+    truth_D: np.ndarray | None = None
+    mirror: DeformableMirror | None = None
+    log: list = field(default_factory=list)
+
+
+def build_dm(cfg, *, base_dir: str | None = None):
+    """``(mirror, wfs, rig)`` of a DM config: the simulated mirror (``dm`` section, seeded by
+    ``seed``), the sensor (``wfs``) and the :class:`~torchblur.dm.rig.SimulatedDMRig` with the
+    ``camera`` section's sensor and timing."""
+    mirror = DeformableMirror.from_config(cfg.dm, base_dir=base_dir, seed=int(cfg.seed))
+    wfs = ShackHartmann.from_config(cfg.wfs, mirror)
+    c = cfg.camera
+    camera = CameraModel(dark_level_adu=c.dark_level, read_noise_e=c.read_noise, gain_e_per_adu=c.gain, full_well_e=c.full_well,
+                         bit_depth=int(c.bit_depth))
+    rig = SimulatedDMRig(mirror=mirror, wfs=wfs, camera=camera, frame_rate_hz=c.frame_rate_hz, trigger_delay_s=c.trigger_delay_s,
+                         readout_s=c.readout_s, max_exposure_s=c.max_exposure_s, latency_s=c.latency_s, jitter_s=c.jitter_s,
+                         seed=int(cfg.seed))
+    return mirror, wfs, rig
+
+
+def match_spots(found_xy: np.ndarray, rest_px: np.ndarray, pitch_px: float) -> np.ndarray:
+    """For each of the M valid subapertures (rest positions ``[M, 2]`` px) the index of the
+    found spot (``[K, 2]`` px) nearest its rest position; raises :class:`ParameterError`
+    naming ``spots`` when one has none within ``pitch_px / 2`` or two share one."""
+    d = np.hypot(*(np.asarray(found_xy)[None, :, :] - np.asarray(rest_px)[:, None, :]).transpose(2, 0, 1))  # [M, K]
+    idx = d.argmin(1)
+    far = np.flatnonzero(d[np.arange(len(idx)), idx] > pitch_px / 2)
+    if far.size:
+        raise ParameterError(f"spots: no spot found within half a pitch of valid subaperture(s) {far.tolist()} (found {len(found_xy)})")
+    if len(set(idx.tolist())) != len(idx):
+        raise ParameterError("spots: two valid subapertures share one found spot")
+    return idx
+
+
+def _second_order(f, mode_hz, damping):
+    r = np.asarray(f, dtype=np.float64) / mode_hz
+    return 1.0 / np.abs(1 - r * r + 2j * damping * r)
+
+
+def nominal_growth(dm, f_hz: float, f_ref_hz: float | None) -> float:
+    """The largest ratio ``|H(f)| / |H(f_ref)|`` (``|H(f)|`` itself when ``f_ref_hz`` is None)
+    over the nominal resonances the ``dm`` config allows: mode ``mode_hz (1 + 3 k mode_spread)``,
+    k in -1, 0, 1, damping ``damping (1 - 3 damping_spread)`` (the sharpest), gain ``gain (1 + 3
+    gain_spread)`` (the prediction of :func:`next_amplitude`)."""
+    zeta = dm.damping * max(0.05, 1 - 3 * dm.damping_spread)
+    best = 0.0
+    for k in (-1.0, 0.0, 1.0):
+        mode = dm.mode_hz * (1 + 3 * k * dm.mode_spread)
+        h = _second_order(f_hz, mode, zeta)
+        best = max(best, h if f_ref_hz is None else h / _second_order(f_ref_hz, mode, zeta))
+    return best * (dm.gain * (1 + 3 * dm.gain_spread) if f_ref_hz is None else 1.0)
+
+
+def next_amplitude(*, target_px: float, motion_per_unit: float, input_limit: float, max_pattern: float) -> float:
+    """The command amplitude that moves the largest spot ``target_px`` (``motion_per_unit``:
+    the predicted largest spot motion per unit amplitude, px), at most ``input_limit /
+    max_pattern``."""
+    amp = target_px / motion_per_unit if motion_per_unit > 0 else math.inf
+    return float(min(amp, input_limit / max_pattern))
+
+
+def _calibrate(cfg, rig, wfs, log, progress):
+    """Stage 1 (module docstring): the calibration and the spots in valid-subaperture order."""
+    from torchblur.identify.calibration import calibrate
+    from torchblur.identify.record import log_message
+
+    n = int(cfg.wfs.n_across)
+    spots_cfg = replace(cfg.spots, rows=n, cols=n, pitch_px=float(cfg.wfs.pitch_px), sigma_px=float(cfg.wfs.sigma_px))
+    cal = calibrate(replace(cfg, spots=spots_cfg), rig, log=log, progress=progress)
+    order = match_spots(cal.spots.psf.center.numpy(), wfs.rest_px, wfs.pitch_px)
+    log_message(log, f"dm spots: {len(cal.spots)} found, matched to the {wfs.n_valid} valid subapertures (the other "
+                     f"{n * n - wfs.n_valid} cells of the {n}x{n} grid are outside the pupil)", progress)
+    psf = cal.spots.psf_in_crops()[torch.as_tensor(order)]
+    return cal, psf, cal.spots.offset[torch.as_tensor(order)], cal.spots.size
+
+
+def _fit_frequency(frames, window, omega, amplitude, power, cal, psf, offset, size, jitter_s, fit_options):
+    """One frequency's pattern responses: frames ``[P, E*R, H, W]`` ADU -> ``(Y [P, 2M],
+    Y_cov [P, 2M, 2, 2], failed)``."""
+    from torchblur.dm.spot_fit import crop_problems, fit_spot_problems, pattern_responses
+    from torchblur.image.dark import subtract_dark
+    from torchblur.render.psf import GaussianPSF
+
+    e = subtract_dark(frames.to(_F64), cal.dark) * cal.gain
+    crops, in_frame = crop_problems(e[:, None], offset, size)  # [P, 1, M, ER, h, w]
+    hot = _crop_mask(cal.dark.hot_pixels, offset, size)
+    p = GaussianPSF(psf.center, psf.cov, psf.amplitude * power)
+    fits = fit_spot_problems(crops, p, window, torch.tensor([omega], dtype=_F64), noise_std=pixel_noise_std(crops, cal.read_noise_e),
+                             mask=(in_frame & ~hot)[:, None], **fit_options)
+    n = window.shape[-1]
+    phase_var = (omega * jitter_s) ** 2 / n + (omega * cal.latency_std_s) ** 2
+    Y, Yc = pattern_responses(fits, amplitude, phase_var=phase_var)
+    return Y[..., 0], Yc[:, :, 0], int((fits.status != 0).sum())
+
+
+def pixel_noise_std(crops: torch.Tensor, read_noise_e: float) -> torch.Tensor:
+    """Pixel noise std (electrons) of crops ``[..., h, w]``: ``camera_noise_std`` of the crops
+    smoothed by a 3 x 3 mean (the edges averaged over the pixels inside). The weights of a fit
+    must not follow each pixel's own noise: with the raw data a pixel that fluctuates up gets a
+    smaller weight, which pulled the fitted amplitudes down by 0.2 % (noise-free camera but 0.5 e-
+    read noise) to 0.6 % (the DM config's camera) on the 9-actuator run; the smoothed level
+    carries a ninth of a pixel's own noise."""
+    shape = crops.shape
+    x = crops.reshape((-1, 1) + tuple(shape[-2:]))
+    smooth = torch.nn.functional.avg_pool2d(x, 3, stride=1, padding=1, count_include_pad=False)
+    return camera_noise_std(smooth.reshape(shape), read_noise_e)
+
+
+def _crop_mask(mask, offset, size):
+    """A frame mask ``[H, W]`` bool cropped at every spot, ``[M, h, w]``."""
+    from torchblur.image.spots import crop_spots
+
+    return crop_spots(mask, offset, size)
+
+
+def _acquire_frequency(rig, plan, f, amp, te, offset_s, R, settle_s, power, latency_s):
+    """Every pattern at frequency ``f``: frames ``[P, E*R, H, W]`` and their windows ``[P, 1, E*R]``."""
+    frames, starts, durs = [], [], []
+    for row in plan.patterns:
+        cap = rig.pattern_sine(row, f, amp, te, offset_s, R, settle_s=settle_s, power=power)
+        frames.append(cap.frames.reshape((-1,) + tuple(cap.frames.shape[-2:])))
+        starts.append(cap.trigger_time_s.reshape(-1) + rig.trigger_delay_s + latency_s)
+        durs.append(cap.exposure_s.reshape(-1))
+    window = ExposureWindow(torch.stack(starts)[:, None], torch.stack(durs)[:, None])
+    return torch.stack(frames), window
+
+
+def _fit_options(cfg) -> dict:
+    return {"optimizer": cfg.fit.optimizer, "loss": cfg.fit.loss, "fit_scale": bool(cfg.fit.fit_scale),
+            "fit_background": bool(cfg.fit.fit_background)}
+
+
+def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, log, progress):
+    """Stage 3 (module docstring): ``(amplitude [F], power [F], Y [P, 2M, F], Y_cov, failed, frames, t_acq, t_wait)``."""
+    from torchblur.identify.record import log_message
+
+    freqs = cfg.frequencies_hz()
+    F, P, M2 = len(freqs), plan.n_patterns, G.shape[0]
+    c, s = cfg.camera, cfg.sweep
+    motion_static = static_motion_px(plan, G)
+    limit = math.inf if cfg.dm.input_limit is None else float(cfg.dm.input_limit)
+    amps, powers, futures = np.zeros(F), np.zeros(F), []
+    done_ref = None  # (index of the last fitted frequency, its largest |Y| per unit amplitude)
+    t_acq = 0.0
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        for k, f in enumerate(freqs):
+            for i in range(len(futures) - 1, -1, -1):
+                if futures[i].done() and (done_ref is None or i > done_ref[0]):
+                    Yk = futures[i].result()[0]
+                    M = M2 // 2
+                    done_ref = (i, float(np.nanmax(np.hypot(np.abs(Yk[:, :M]), np.abs(Yk[:, M:])))))
+                    break
+            if done_ref is None or not math.isfinite(done_ref[1]):
+                motion = motion_static * nominal_growth(cfg.dm, f, None)
+            else:
+                motion = done_ref[1] * nominal_growth(cfg.dm, f, freqs[done_ref[0]])
+            amps[k] = next_amplitude(target_px=float(cfg.excitation.target_px), motion_per_unit=motion, input_limit=limit,
+                                     max_pattern=float(np.abs(plan.patterns).max()))
+            te = [float(e) / f for e in s.exposures]
+            powers[k] = c.peak_fraction * cal.full_adu * cal.gain / (cal.peak_rate * max(te))
+            t0 = time.perf_counter()
+            frames, window = _acquire_frequency(rig, plan, f, float(amps[k]), te, float(s.trigger_phase_rad) / (2 * math.pi * f), R,
+                                                s.settle_s, float(powers[k]), cal.latency_s)
+            t_acq += time.perf_counter() - t0
+            futures.append(pool.submit(_fit_frequency, frames, window, 2 * math.pi * f, float(amps[k]), float(powers[k]), cal, psf,
+                                       offset, size, float(c.jitter_s), _fit_options(cfg)))
+            log_message(log, f"dm sweep: {f:.4g} Hz, amplitude {amps[k]:.4g}, power {powers[k]:.3g}, {P} patterns x "
+                             f"{len(te)} exposures x {R} repeats ({k + 1}/{F})", progress)
+        t0 = time.perf_counter()
+        results = [fu.result() for fu in futures]
+        t_wait = time.perf_counter() - t0
+    Y = np.stack([r[0] for r in results], -1)  # [P, 2M, F]
+    Y_cov = np.stack([r[1] for r in results], 2)  # [P, 2M, F, 2, 2]
+    failed = sum(r[2] for r in results)
+    return amps, powers, Y, Y_cov, failed, P * F * len(s.exposures) * R, t_acq, t_wait
+
+
+def identify_dm(cfg, rig=None, *, progress: bool = False, base_dir: str | None = None) -> DMResult:
+    """Run a DM identification (module docstring) on ``rig`` (default: the config's simulated
+    DM rig). Returns a :class:`DMResult`."""
+    from torchblur.dm.actuator_fit import fit_actuators
+    from torchblur.dm.demux import demultiplex
+    from torchblur.identify.record import log_message
+
+    log: list = []
+    model_mirror, wfs, sim = build_dm(cfg, base_dir=base_dir)
+    rig = sim if rig is None else rig
+    G = wfs.geometry_matrix(model_mirror)  # the geometry does not depend on the dynamics
+    t = {}
+    t0 = time.perf_counter()
+    cal, psf, offset, size = _calibrate(cfg, rig, wfs, log, progress)
+    t["calibration"] = time.perf_counter() - t0
+    freqs = np.asarray(cfg.frequencies_hz())
+    plan, R, info = choose_plan(cfg.dm_plan.kind, G, budget_frames=cfg.dm_plan.budget_frames, n_freq=len(freqs),
+                                n_exposures=len(cfg.sweep.exposures), threshold=float(cfg.dm_plan.support_threshold),
+                                n_repeats=cfg.dm_plan.n_repeats)
+    log_message(log, f"dm plan: {plan.kind}, {plan.n_patterns} patterns x {len(freqs)} frequencies x {len(cfg.sweep.exposures)} "
+                     f"exposures x {R} repeats = {plan.n_frames(len(freqs), len(cfg.sweep.exposures), R)} frames; frames for the same "
+                     f"accuracy vs one at a time: {info['cost_ratio_to_one_at_a_time']:.3f}", progress)
+    amps, powers, Y, Y_cov, failed, n_frames, t["acquisition"], t["fit_wait"] = _sweep(cfg, rig, plan, R, G, cal, psf, offset, size,
+                                                                                         log, progress)
+    t0 = time.perf_counter()
+    D, D_cov = demultiplex(Y, Y_cov, plan.patterns, plan.support)
+    table = fit_actuators(freqs, D, D_cov, G, actuator_xy=model_mirror.actuator_xy)
+    t["estimation"] = time.perf_counter() - t0
+    truth = rig.truth_D(freqs) if isinstance(rig, SimulatedDMRig) else None
+    return DMResult(freq_hz=freqs, plan=plan, n_repeats=R, plan_info=info, amplitude=amps, power=powers, Y=Y, Y_cov=Y_cov, D=D,
+                    D_cov=D_cov, actuators=table, G=G, actuator_xy=model_mirror.actuator_xy, n_frames=n_frames, n_failed=failed,
+                    timing_s=t, truth_D=truth, mirror=rig.mirror if isinstance(rig, SimulatedDMRig) else None, log=log)
+
+
+def truth_errors(res: DMResult) -> dict | None:
+    """The run's errors against the simulated mirror (None on a real rig): the largest relative
+    error of every live actuator's ``mode_hz``, ``damping`` and ``dc_gain`` (and in stds,
+    ``*_z``), the rms error of the measured D0 over the largest |D0| element, and whether the
+    dead actuators (and only they) are reported dead."""
+    if res.mirror is None:
+        return None
+    m, a = res.mirror, res.actuators
+    live = ~m.dead
+    status = np.asarray(a.status)
+    out = {}
+    for name, est, std, true in (("mode_hz", a.mode_hz, a.mode_hz_std, m.mode_hz), ("damping", a.damping, a.damping_std, m.damping),
+                                 ("dc_gain", a.dc_gain, a.dc_gain_std, m.gain)):
+        out[f"{name}_max_rel_error"] = float(np.nanmax(np.abs(est[live] / true[live] - 1))) if np.isfinite(est[live]).all() else math.nan
+        out[f"{name}_max_z"] = float(np.nanmax(np.abs(est[live] - true[live]) / std[live]))
+    D0 = res.G * m.gain
+    out["D0_rms_error_over_max"] = float(np.sqrt(np.mean((a.static_column - D0) ** 2)) / np.abs(D0).max())
+    out["dead_reported_dead"] = bool(np.all(status[m.dead] == "dead"))
+    out["live_reported_dead"] = np.flatnonzero(live & (status == "dead")).tolist()
+    return out
+
+
+def _report(res: DMResult, elapsed: float) -> str:
+    """The run's summary lines."""
+    t = res.timing_s
+    lines = [f"dm run: {len(res.actuators)} actuators, {res.G.shape[0] // 2} spots, plan {res.plan.kind} ({res.plan.n_patterns} "
+             f"patterns x {len(res.freq_hz)} frequencies, {res.n_repeats} repeats): {res.n_frames} sweep frames, "
+             f"{res.plan_info['cost_ratio_to_one_at_a_time']:.3f} of the frames one at a time needs for the same accuracy",
+             f"time: {elapsed:.1f} s (calibration {t['calibration']:.1f} s, acquisition {t['acquisition']:.1f} s, waiting for the "
+             f"fits {t['fit_wait']:.1f} s, estimation {t['estimation']:.1f} s); failed spot fits: {res.n_failed}",
+             "status: " + ", ".join(f"{s} {list(res.actuators.status).count(s)}" for s in ("ok", "weak", "dead"))]
+    err = truth_errors(res)
+    if err is not None:
+        lines.append(f"against the simulated truth: mode {err['mode_hz_max_rel_error'] * 100:.3f} %, damping "
+                     f"{err['damping_max_rel_error'] * 100:.2f} %, DC gain {err['dc_gain_max_rel_error'] * 100:.3f} % (largest over live "
+                     f"actuators), D0 {err['D0_rms_error_over_max'] * 100:.3f} % rms of its largest element, dead reported dead: "
+                     f"{err['dead_reported_dead']}")
+    return "\n".join(lines) + "\n"
+
+
+def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False) -> int:
+    """``torchblur identify`` for a DM config: run, then write ``OUT/dm/`` (d2's outputs) and
+    ``OUT/report.txt``; with ``as_json`` one JSON summary line on stdout."""
+    import json
+    import sys
+    from pathlib import Path
+
+    from torchblur.identify.config import config_to_yaml
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "config.yaml").write_text(config_to_yaml(cfg))
+    torch.manual_seed(int(cfg.seed))
+    t0 = time.perf_counter()
+    res = identify_dm(cfg, progress=not quiet)
+    elapsed = time.perf_counter() - t0
+    _write_dm_outputs(res, out)
+    report = _report(res, elapsed)
+    (out / "report.txt").write_text("\n".join(res.log) + "\n" + report)
+    print(report, end="", file=sys.stderr if as_json else sys.stdout)
+    if as_json:
+        print(json.dumps({"elapsed_s": elapsed, "frames": res.n_frames, "plan": res.plan.kind, "timing_s": res.timing_s,
+                          "truth_errors": truth_errors(res)}), flush=True)
+    return 0
+
+
+def _write_dm_outputs(res: DMResult, out) -> None:
+    """``OUT/dm/`` by :func:`torchblur.dm.outputs.write_dm_outputs` (d2's writer; until it is
+    merged, a log line)."""
+    from torchblur.identify.record import log_message
+
+    try:
+        from torchblur.dm.outputs import DMEstimate, write_dm_outputs
+    except ImportError:  # stand-in until d2's outputs are merged
+        log_message(res.log, f"dm: {out}/dm not written (torchblur.dm.outputs is not in this tree)")
+        return
+    meta = {"plan": res.plan.kind, "n_patterns": res.plan.n_patterns, "n_repeats": res.n_repeats, "n_frames": res.n_frames}
+    write_dm_outputs(out, DMEstimate(freq_hz=res.freq_hz, D=res.D, D_cov=res.D_cov, table=res.actuators, meta=meta),
+                     say=lambda msg: log_message(res.log, msg))

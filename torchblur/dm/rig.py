@@ -1,0 +1,242 @@
+"""A simulated deformable-mirror rig: a :class:`~torchblur.dm.mirror.DeformableMirror` read by a
+:class:`~torchblur.dm.shack_hartmann.ShackHartmann` sensor whose camera is slow.
+
+:class:`SimulatedDMRig` is a :class:`~torchblur.rig.simulated.SimulatedRig` whose spots are the
+sensor's M valid spots (``dark``, ``still`` and ``pulse`` are the base rig's, the same time
+model, jitter, latency and camera noise through :class:`~torchblur.render.camera.CameraModel`),
+with one more command, :meth:`SimulatedDMRig.pattern_sine`: actuator j is driven with
+``amplitude * pattern[j] * sin(omega t)`` from rest at t = 0; after the settling wait (the
+slowest actuator's settling time to 1e-7, rounded up to whole periods) every actuator's surface
+is in its steady state ``amplitude pattern[j] Im(H_j(j omega) e^{j omega t})`` and spot m moves
+on one sinusoid per axis,
+
+    s(t) = amplitude Im(D(j omega) pattern e^{j omega t})   (x: rows m, y: rows M + m),
+    D(j omega) = G diag(H_j(j omega))   [2M, N]  (:meth:`SimulatedDMRig.truth_D`),
+
+so the response of slope s is ``Y[s] = (D pattern)[s]``, magnitude in px per command unit and
+phase relative to the command's sine, as :mod:`torchblur.identify.assemble` reads a fit.
+
+Rendering: each spot is rendered with :func:`~torchblur.render.blur.render_blur` (pixel
+integration, float64) on a square crop of side ``ceil(pitch_px) + 2 ceil(6 sigma)`` px centred
+on its rest position, all spots and frames in one batch, and the crops added into the frame. A
+command that would carry any spot within 6 PSF sigmas of its crop's edge is refused
+(``ParameterError`` naming ``amplitude``): the Gaussian beyond 6 sigma is below 2e-8 of its peak.
+The base rig's ``sine`` drives one actuator (``input = "a{j}"``); ``multisine`` is refused.
+"""
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, check_int, check_real_scalar
+from torchblur.image.spots import SpotLayout
+from torchblur.render.blur import render_blur
+from torchblur.render.camera import CameraModel
+from torchblur.render.psf import GaussianPSF
+from torchblur.render.trajectory import Sinusoid
+from torchblur.render.window import ExposureWindow
+from torchblur.rig.base import Capture, float_list, per_exposure
+from torchblur.rig.simulated import SimulatedRig
+from torchblur.systems.lti import Plant
+from torchblur.dm.mirror import DeformableMirror
+from torchblur.dm.shack_hartmann import ShackHartmann
+
+__all__ = ["SimulatedDMRig", "spot_motion"]
+
+_F64 = torch.float64
+_EDGE_SIGMAS = 6.0
+_CHUNK_ELEMENTS = 1 << 22  # crop pixels x spots x frames per render call
+
+
+def spot_motion(D: np.ndarray, pattern: np.ndarray, amplitude: float) -> tuple[np.ndarray, np.ndarray]:
+    """The sinusoid of every spot for one pattern: ``(amplitude_px [M, 2], phase_rad [M, 2])``
+    with ``s_a(t) = amplitude_px[m, a] sin(omega t + phase_rad[m, a])`` and ``Y = D @ pattern``
+    (``D [2M, N]`` complex at omega, ``pattern [N]``, rows x of all M then y)."""
+    Y = amplitude * (np.asarray(D) @ np.asarray(pattern, dtype=np.float64))
+    M = Y.shape[0] // 2
+    Y = np.stack([Y[:M], Y[M:]], -1)
+    return np.abs(Y), np.angle(Y)
+
+
+class SimulatedDMRig(SimulatedRig):
+    """The simulated DM rig (module docstring).
+
+    Args (keyword-only):
+        mirror: the :class:`~torchblur.dm.mirror.DeformableMirror` (its ``input_limit`` bounds
+            every command).
+        wfs: the :class:`~torchblur.dm.shack_hartmann.ShackHartmann` sensor (frame shape, spot
+            positions and PSFs).
+        camera: the :class:`~torchblur.render.camera.CameraModel`.
+        frame_rate_hz, trigger_delay_s, readout_s, max_exposure_s, latency_s, jitter_s,
+        peak_e_per_s, seed: as :class:`~torchblur.rig.simulated.SimulatedRig`.
+    """
+
+    def __init__(self, *, mirror: DeformableMirror, wfs: ShackHartmann, camera: CameraModel, frame_rate_hz: float = 30.0,
+                 trigger_delay_s: float = 0.0, readout_s: float = 1e-3, max_exposure_s: float = 1.0, latency_s: float = 12e-6,
+                 jitter_s: float = 0.2e-6, peak_e_per_s: float = 1e6, seed: int = 0):
+        if not isinstance(mirror, DeformableMirror):
+            raise InputTypeError(f"mirror: expected a DeformableMirror, got {type(mirror).__name__}")
+        if not isinstance(wfs, ShackHartmann):
+            raise InputTypeError(f"wfs: expected a ShackHartmann, got {type(wfs).__name__}")
+        M = wfs.n_valid
+        rest = torch.as_tensor(wfs.rest_px, dtype=_F64)
+        sigma = torch.as_tensor(wfs.sigma_spots_px, dtype=_F64)
+        layout = SpotLayout(rest_px=rest, cov=sigma[:, None, None] ** 2 * torch.eye(2, dtype=_F64),
+                            response=torch.zeros(M, 2, 1, dtype=_F64), index=torch.as_tensor(wfs.grid_index))
+        super().__init__(plant=Plant(num=(1.0,), den=(1.0,)), camera=camera, frame_shape=wfs.frame_shape, frame_rate_hz=frame_rate_hz,
+                         trigger_delay_s=trigger_delay_s, readout_s=readout_s, max_exposure_s=max_exposure_s, latency_s=latency_s,
+                         jitter_s=jitter_s, peak_e_per_s=peak_e_per_s, seed=seed, spots=layout)
+        self._mirror = mirror
+        self._wfs = wfs
+        self._G = wfs.geometry_matrix(mirror)
+        pad = math.ceil(_EDGE_SIGMAS * float(sigma.max()))
+        self._crop = math.ceil(wfs.pitch_px) + 2 * pad
+        corner = torch.floor(rest - (self._crop - 1) / 2).long()  # [M, 2] (x0, y0) of each crop
+        self._corner = corner
+        self._margin = int(max(0, -int(corner.min()), int((corner + self._crop).max()) - min(wfs.frame_shape)))
+
+    # ------------------------------------------------------------------ the model
+
+    @property
+    def mirror(self) -> DeformableMirror:
+        return self._mirror
+
+    @property
+    def wfs(self) -> ShackHartmann:
+        return self._wfs
+
+    @property
+    def geometry(self) -> np.ndarray:
+        """G ``[2M, N]`` (px per input unit of the nominal actuator)."""
+        return self._G.copy()
+
+    @property
+    def input_limit(self) -> float:
+        """The largest command magnitude (input units) the mirror accepts."""
+        return self._mirror.input_limit
+
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        """``("a0", ..., "a{N-1}")``: :meth:`sine` drives one actuator."""
+        return tuple(f"a{j}" for j in range(self._mirror.n_actuators))
+
+    def truth_D(self, freq_hz) -> np.ndarray:
+        """The dynamic interaction matrix ``D = G diag(H_j)``: complex ``[2M, N, F]`` (``[2M, N]``
+        for a number). For tests and benchmarks only: a pipeline must measure it."""
+        h = self._mirror.response(freq_hz)
+        return self._G[:, :, None] * h[None] if h.ndim == 2 else self._G * h[None, :]
+
+    def truth(self, freq_hz):  # the base rig's single-plant truth has no meaning here
+        raise ParameterError("truth: a DM rig has no single plant; use truth_D(freq_hz)")
+
+    def spot_truth(self, freq_hz):
+        raise ParameterError("spot_truth: a DM rig has no single plant; use truth_D(freq_hz)")
+
+    # ------------------------------------------------------------------ rendering
+
+    def _render_spots(self, amplitude: torch.Tensor, phase: torch.Tensor, omega: float, window: ExposureWindow,
+                      power: float) -> torch.Tensor:
+        """Expected electrons ``[n, H, W]`` of every spot moving on its sinusoid
+        (``amplitude``, ``phase`` ``[M, 2]``) over the windows ``[n]`` (module docstring)."""
+        H, W = self._frame_shape
+        M, c, pad = amplitude.shape[0], self._crop, self._margin
+        centre = self._psf.center - self._corner.to(_F64)  # [M, 2] in crop coordinates
+        psf = GaussianPSF(centre, self._psf.cov, self._psf.amplitude * power)
+        traj = Sinusoid(amplitude, phase, torch.tensor(omega, dtype=_F64))
+        n = window.shape[0]
+        out = torch.zeros((n, H + 2 * pad, W + 2 * pad), dtype=_F64)
+        step = max(1, _CHUNK_ELEMENTS // (M * c * c))
+        x0 = (self._corner[:, 0] + pad).tolist()
+        y0 = (self._corner[:, 1] + pad).tolist()
+        for i in range(0, n, step):
+            win = ExposureWindow(window.start[i:i + step, None], window.duration[i:i + step, None])
+            crops = render_blur(traj, psf, win, height=c, width=c, settings=self._settings)  # [b, M, c, c]
+            for m in range(M):
+                out[i:i + step, y0[m]:y0[m] + c, x0[m]:x0[m] + c] += crops[:, m]
+        return out[:, pad:pad + H, pad:pad + W].clamp_min(0.0)
+
+    def _check_reach(self, amplitude_px: np.ndarray) -> None:
+        off = np.abs(self._wfs.rest_px - self._corner.numpy() - (self._crop - 1) / 2).max(-1)  # rest off the crop centre
+        room = (self._crop - 1) / 2 - off - _EDGE_SIGMAS * self._wfs.sigma_spots_px
+        reach = np.hypot(amplitude_px[:, 0], amplitude_px[:, 1])
+        worst = int(np.argmax(reach - room))
+        if reach[worst] > room[worst]:
+            raise ParameterError(f"amplitude: spot {worst} would move {reach[worst]:.3g} px, more than the {room[worst]:.3g} px its "
+                                 f"crop allows (rest to crop edge less {_EDGE_SIGMAS:g} PSF sigmas); lower the amplitude")
+
+    def _still_image_per_s(self) -> torch.Tensor:
+        """Electrons per second of the still spots at power 1, ``[H, W]`` (cached; the crops)."""
+        if self._still_rate is None:
+            M = self._wfs.n_valid
+            zero = torch.zeros(M, 2, dtype=_F64)
+            self._still_rate = self._render_spots(zero, zero, 1.0, ExposureWindow(torch.zeros(1, dtype=_F64), 1.0), 1.0)[0]
+        return self._still_rate
+
+    # ------------------------------------------------------------------ commands
+
+    def pattern_sine(self, pattern, freq_hz: float, amplitude: float, exposures_s: Sequence[float],
+                     trigger_offset_s: float | Sequence[float], n_repeats: int, settle_s: float | None = None,
+                     power: float = 1.0) -> Capture:
+        """Frames ``[E, R, H, W]`` of the mirror driven with ``amplitude * pattern * sin(2 pi
+        freq_hz t)`` (module docstring), triggered as :meth:`SimulatedRig.sine`.
+
+        Args:
+            pattern: ``[N]`` each actuator's command per unit amplitude.
+            freq_hz, amplitude, exposures_s, trigger_offset_s, n_repeats, power: as
+                :meth:`~torchblur.rig.simulated.SimulatedRig.sine`.
+            settle_s: wait (s) before the first trigger; default the slowest actuator's
+                settling time rounded up to whole periods.
+
+        Raises:
+            ParameterError: naming ``amplitude`` when a command exceeds the mirror's
+                ``input_limit`` or a spot would leave its crop; ``pattern`` when it is not [N].
+
+        ``meta`` holds ``pattern``, ``freq_hz``, ``omega``, ``period_s``, ``amplitude``,
+        ``settle_s``, ``power``, ``trigger_delay_s`` and, for tests only, ``actual_start_s``.
+        """
+        N = self._mirror.n_actuators
+        p = np.asarray(float_list(pattern, "pattern") if np.ndim(pattern) <= 1 else pattern, dtype=np.float64)
+        if p.shape != (N,):
+            raise ShapeError(f"pattern: expected [{N}] (one command per actuator), got shape {p.shape}")
+        freq = check_real_scalar(freq_hz, "freq_hz", positive=True)
+        amp = check_real_scalar(amplitude, "amplitude")
+        self._mirror.check_command(amp * p, "amplitude")
+        power = self._check_power(power)
+        R = check_int(n_repeats, "n_repeats", low=1)
+        te = [self._check_exposure(v, "exposures_s") for v in float_list(exposures_s, "exposures_s")]
+        offsets = [check_real_scalar(v, "trigger_offset_s") for v in per_exposure(trigger_offset_s, len(te), "trigger_offset_s")]
+        period = 1.0 / freq
+        if settle_s is None:
+            settle_s = math.ceil(self._mirror.settling_time_s() / period - 1e-9) * period
+        settle, trig_t, exp_t, off_t = self._schedule(period, te, offsets, R, settle_s)
+        a_px, ph = spot_motion(self.truth_D(freq), p, amp)
+        self._check_reach(a_px)
+        window = self._actual_starts(trig_t, exp_t)
+        flat = ExposureWindow(window.start.reshape(-1), window.duration.reshape(-1))
+        omega = 2 * math.pi * freq
+        expected = self._render_spots(torch.as_tensor(a_px), torch.as_tensor(ph), omega, flat, power)
+        expected = expected.reshape((len(te), R) + self._frame_shape)
+        meta = {"kind": "pattern_sine", "pattern": p, "freq_hz": freq, "omega": omega, "period_s": period, "amplitude": amp,
+                "settle_s": settle, "power": power, "trigger_delay_s": self._trigger_delay_s, "actual_start_s": window.start}
+        return self._capture(expected, exp_t, off_t, trig_t, meta=meta)
+
+    def sine(self, freq_hz: float, amplitude: float, exposures_s: Sequence[float], trigger_offset_s: float | Sequence[float],
+             n_repeats: int, settle_s: float | None = None, power: float = 1.0, input: str = "a0") -> Capture:
+        """:meth:`pattern_sine` of one actuator, ``input = "a{j}"`` (the others at rest)."""
+        if input not in self.inputs:
+            raise ParameterError(f"input: expected one of 'a0'..'a{self._mirror.n_actuators - 1}', got {input!r}")
+        pattern = np.zeros(self._mirror.n_actuators)
+        pattern[int(input[1:])] = 1.0
+        cap = self.pattern_sine(pattern, freq_hz, amplitude, exposures_s, trigger_offset_s, n_repeats, settle_s, power)
+        cap.meta["input"] = input
+        return cap
+
+    def multisine(self, *args, **kwargs):
+        raise ParameterError("multisine: the DM rig drives one sine per pattern (pattern_sine)")
+
+    def __repr__(self) -> str:
+        return (f"SimulatedDMRig({self._mirror.n_actuators} actuators, {self._wfs.n_valid} spots, frame {self._frame_shape}, "
+                f"frame_rate_hz={self._frame_rate_hz:g}, seed={self._seed})")
