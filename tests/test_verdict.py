@@ -195,7 +195,8 @@ def test_a_wrong_psf_gives_poor_fit_points_with_inflated_stds(airy_gaussian):
 @pytest.fixture(scope="module")
 def timing_run():
     """The issue's case: a sweep to 20 kHz with more trigger jitter than the 1 deg tolerance allows."""
-    cfg = load_config(None, ["camera.jitter_s=0.5e-6", "sweep.freq_hz=[1000,8000,20000]", "sweep.images_per_point=1"])
+    # plant.input_limit: room to drive 20 kHz to its target, so only the timing flags a point (the drive limit has its own tests)
+    cfg = load_config(None, ["camera.jitter_s=0.5e-6", "sweep.freq_hz=[1000,8000,20000]", "sweep.images_per_point=1", "plant.input_limit=1e5"])
     return cfg, identify(cfg, progress=False)
 
 
@@ -228,7 +229,9 @@ def test_cli_flagged_run_exits_4_and_writes_everything(tmp_path):
     assert proc.returncode == EXIT_FLAGGED, proc.stderr
     doc = json.loads(proc.stdout)  # still exactly one JSON line on stdout
     assert doc["verdict"].startswith("verdict: 1 of 2 points flagged: 1 timing (above")
-    assert doc["point_flags"] == {"poor_fit": 0, "timing": 1, "failed": 0, "limited": 0} and doc["trustworthy"] is False
+    # the default input range (200 units) cannot drive 20 kHz to its target: that point is also limited, and named
+    assert doc["point_flags"] == {"poor_fit": 0, "timing": 1, "failed": 0, "limited": 1} and doc["trustworthy"] is False
+    assert "1 limited by the drive (20 kHz:" in doc["verdict"]
     assert 1000 < doc["timing_limit_hz"] < 20000
     assert proc.stderr.rstrip().splitlines()[-1] == doc["verdict"]
     assert (out / "report.txt").read_text().rstrip().splitlines()[-1] == doc["verdict"]

@@ -174,7 +174,7 @@ class OutsidePlan(SinePlan):
             acq.powers.append(p.power)
         if measure:
             lay = acq.layout = self.measure_axis(run, acq, lay)
-        acq.fitter = ChunkFitter(int(cfg.fit.chunk_points), partial(fit_points, acq, lay, cfg, cal.read_noise_e))
+        acq.fitter = ChunkFitter(int(cfg.fit.chunk_points), partial(fit_points, acq, lay, cfg, cal.noise))
         for k in range(len(rec.points)):
             acq.fitter.add(k)
         acq.t_acq_end = time.perf_counter()
@@ -193,7 +193,7 @@ class OutsidePlan(SinePlan):
         the layout that fits along it (x, logged, where no motion is seen)."""
         cal = run.cal
         both = replace(lay, axes="xy", single=False)
-        fit = fit_points(acq, both, run.cfg, cal.read_noise_e, list(range(len(acq.frames))))
+        fit = fit_points(acq, both, run.cfg, cal.noise, list(range(len(acq.frames))))
         u, std, ratio = fitted_direction(fit)
         if u is None:
             run.say("axis: no converged point moved in the fit on both image axes: the motion is fitted along x")
