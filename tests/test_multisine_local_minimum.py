@@ -7,7 +7,10 @@ std, windows, the calibration's Gaussian PSF and the amplitude guess), as fit_mu
 with them. In that run the fit ended in a local minimum at reduced chi2 1.42 (amplitudes 5.14,
 4.11, 10.06 px, |H| 19-41 % off, reported as converged), below the old 1.5 that triggered the
 wider search; the right fit has reduced chi2 0.96. With few starts the first search lands there
-for most seeds, so the wider search (RETRY_CHI2, _wide_starts) must find its way out.
+for most seeds, so the wider search (RETRY_CHI2, _wide_starts) must find its way out. (Which
+seeds land in the trap depends on round-off: the same call gives LOCAL or RIGHT after other fits
+in the same process, so the old rule's failure is not asserted here; measured: seeds 0, 1, 3, 5
+of 6 with the old rule, none of 0-9 with the new.)
 """
 from pathlib import Path
 
@@ -32,22 +35,13 @@ def _fit(seed: int, **kw):
                          amplitude_guess=t("guess"), fit_scale=True, seed=seed, direction=t("direction"), **kw)
 
 
-@pytest.mark.parametrize("seed", [0, 1, 3])
+@pytest.mark.parametrize("seed", [1])
 def test_few_starts_still_find_the_global_minimum(seed):
-    # n_starts=2, n_refine=1: with the old rule (retry above 1.5) seeds 0, 1 and 3 all ended at LOCAL
+    # n_starts=2, n_refine=1: with the old rule (retry above 1.5) seeds 0, 1, 3 and 5 ended at LOCAL; with a wider search of
+    # 256 starts seed 1 still did (and 7): 1024 starts and 24 refinements find RIGHT for seeds 0-9 (measured; one kept here: ~20 s)
     fit = _fit(seed, n_starts=2, n_refine=1)
     np.testing.assert_allclose(fit.amplitude.numpy(), RIGHT, atol=0.02)
     chi2 = float(fit.extras["reduced_chi2"])
     assert 0.9 < chi2 < RETRY_CHI2
     assert int(fit.status) == 0
 
-
-def test_the_old_threshold_reports_the_local_minimum_as_converged(monkeypatch):
-    # the trap is in the data: with the wider search triggered only above 1.5 (the old rule), the
-    # same call ends at LOCAL with reduced chi2 1.42 and status 0: the silent failure this guards
-    import torchblur.fit.multisine as ms
-
-    monkeypatch.setattr(ms, "RETRY_CHI2", 1.5)
-    fit = _fit(0, n_starts=2, n_refine=1)
-    np.testing.assert_allclose(fit.amplitude.numpy(), LOCAL, atol=0.02)
-    assert 1.4 < float(fit.extras["reduced_chi2"]) < 1.5 and int(fit.status) == 0

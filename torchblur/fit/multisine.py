@@ -484,7 +484,7 @@ def _search_all(prob: _Problem, theta_c, live, M0, *, sigma_given: bool, n_start
         poor = live[_reduced_chi2(prob, cost_best)[live] > RETRY_CHI2]
         if poor.numel():
             c2 = _wide_starts(M0[poor], theta_best[poor], theta_c[poor], N, n_starts, g, fit_scale)
-            th, cst, cv, itr, _ = _search(prob, c2, poor, max(4 * n_refine, 12), max_iter, tol)
+            th, cst, cv, itr, _ = _search(prob, c2, poor, max(4 * n_refine, 24), max_iter, tol)
             better = cst < cost_best[poor]
             pb = poor[better]
             theta_best[pb], cost_best[pb], conv_best[pb], iters_best[pb] = th[better], cst[better], cv[better], itr[better]
@@ -495,14 +495,15 @@ def _search_all(prob: _Problem, theta_c, live, M0, *, sigma_given: bool, n_start
 def _wide_starts(M0, best, theta_c, N: int, n_starts: int, g: torch.Generator, fit_scale: bool) -> torch.Tensor:
     """The wider search's starts ``[L, K, P]`` for sets left above :data:`RETRY_CHI2`: random
     phase vectors (from ``g``) paired with amplitude vectors that a local minimum can hide: the
-    guess ``M0 [L, N]`` times 0.6, 1 and 1.6, and the amplitudes of the best fit so far
+    guess ``M0 [L, N]`` times 0.6, 1 and 1.6, the best fit's mean amplitude on every tone, and the amplitudes of the best fit so far
     ``best [L, P]`` in every order of the tones (a local minimum often trades amplitude between
     tones; at most 24 orders). ``theta_c [L, K0, P]`` gives the scale start."""
     L = M0.shape[0]
     dtype, device = M0.dtype, M0.device
     perms = list(itertools.islice(itertools.permutations(range(N)), 24))
-    amps = [M0 * f for f in (0.6, 1.0, 1.6)] + [best[:, list(q)].abs() for q in perms]  # each [L, N]
-    K2 = max(256, 4 * n_starts)
+    even = best[:, :N].abs().mean(-1, keepdim=True).expand_as(M0)  # the same motion on every tone
+    amps = [M0 * f for f in (0.6, 1.0, 1.6)] + [even] + [best[:, list(q)].abs() for q in perms]  # each [L, N]
+    K2 = max(1024, 4 * n_starts)
     rnd = (torch.rand(K2, N, generator=g, dtype=dtype) * 2 - 1).to(device) * math.pi
     A = torch.stack(amps, 1)  # [L, nA, N]
     pick = torch.arange(K2, device=device) % A.shape[1]
