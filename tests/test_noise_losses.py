@@ -196,7 +196,7 @@ def test_linf_is_refused_for_an_identification_with_a_message_naming_fit_loss(tm
 @pytest.fixture(scope="module")
 def small_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("noise") / "run"
-    assert cli.main(["identify", "--out", str(out), "--quiet", "sweep.freq_hz=[20,300]"]) == 0
+    assert cli.main(["identify", "--out", str(out), "--quiet", "sweep.freq_hz=[20,150,300,600]"]) == 0
     return out
 
 

@@ -16,8 +16,8 @@ from torchblur.identify.assemble import (adequacy, limited_mask, mark_limited, t
 from torchblur.identify.config import load_config
 from torchblur.identify.model import fit_model, model_exclusions, points_needed
 from torchblur.identify.run import identify
-from torchblur.identify.verdict import EXIT_FLAGGED, verdict
-from torchblur.sysid.flags import FAILED, LIMITED, POOR_FIT, TIMING
+from torchblur.identify.verdict import EXIT_FLAGGED, model_chi2_limit, verdict
+from torchblur.sysid.flags import FAILED, LIMITED, NO_MOTION, POOR_FIT, TIMING
 from torchblur.sysid.frequency_response import FrequencyResponse
 from test_identify_psf import SHORT, airy_rig
 
@@ -136,6 +136,47 @@ def test_a_nan_point_is_failed_even_unflagged():
 
 
 # ---------------------------------------------------------------------------- the model without poor-fit points
+def test_a_no_motion_point_is_named_and_untrusted():
+    # the image fit found no significant motion (e.g. a limited point far beyond the band): its value is not a measurement
+    frf, _ = _frf()
+    flags = np.zeros(8, dtype=np.int64)
+    flags[7] = NO_MOTION | LIMITED
+    v = verdict(frf.replace(flags=flags, reduced_chi2=np.ones(8)), load_config(None, []))
+    assert not v.trustworthy and v.exit_code == EXIT_FLAGGED and v.no_motion == 1 and v.limited == 1
+    assert f"1 no significant motion ({frf.freq_hz[7]:.4g} Hz: not a measurement)" in v.line
+
+
+def test_a_model_that_does_not_explain_the_response_makes_the_run_untrustworthy():
+    import types
+
+    frf, _ = _frf()
+    frf = frf.replace(reduced_chi2=np.ones(8))
+    cfg = load_config(None, [])
+    bad = types.SimpleNamespace(reduced_chi2=1.2e5, dof=3)  # a 2-point run fitted with too simple a model
+    v = verdict(frf, cfg, model=bad)
+    assert not v.trustworthy and v.exit_code == EXIT_FLAGGED and v.model_poor and v.flagged == 0
+    assert v.line.startswith("verdict: all 8 points within tolerance; the model does not explain the response (reduced chi2 1.2e+05")
+    good = types.SimpleNamespace(reduced_chi2=1.4, dof=51)
+    v = verdict(frf, cfg, model=good)
+    assert v.trustworthy and not v.model_poor and v.model_reduced_chi2 == 1.4
+    # the limit: a chi2 test at ~4 sigma, never below 2
+    assert model_chi2_limit(51) == 2.0 and model_chi2_limit(4) == pytest.approx(1 + 4 * math.sqrt(0.5))
+    assert verdict(frf, cfg, model=types.SimpleNamespace(reduced_chi2=float("nan"), dof=3)).trustworthy
+
+
+def test_a_sine_run_flags_the_points_its_fit_saw_no_motion_at():
+    import types
+
+    from torchblur.fit.status import NO_MOTION as FIT_NO_MOTION
+    from torchblur.identify.assemble import point_no_motion
+
+    frf, _ = _frf()
+    run = types.SimpleNamespace(frf=frf, fit=types.SimpleNamespace(flags=torch.tensor([0] * 7 + [FIT_NO_MOTION | 1])))
+    np.testing.assert_array_equal(point_no_motion(run)[0, 0], [False] * 7 + [True])
+    run = types.SimpleNamespace(frf=frf, fit=[types.SimpleNamespace(extras={})])  # multisine: no per-point fit flags
+    assert not point_no_motion(run).any()
+
+
 def test_the_model_fit_leaves_poor_fit_points_out():
     frf, h_true = _frf(n=12)
     cfg = load_config(None, ["model.n_poles=1", "model.n_zeros=0", "model.fit_delay=false"])
@@ -230,34 +271,35 @@ def test_cli_flagged_run_exits_4_and_writes_everything(tmp_path):
     doc = json.loads(proc.stdout)  # still exactly one JSON line on stdout
     assert doc["verdict"].startswith("verdict: 1 of 2 points flagged: 1 timing (above")
     # the default input range (200 units) cannot drive 20 kHz to its target: that point is also limited, and named
-    assert doc["point_flags"] == {"poor_fit": 0, "timing": 1, "failed": 0, "limited": 1} and doc["trustworthy"] is False
+    assert doc["point_flags"] == {"poor_fit": 0, "timing": 1, "failed": 0, "limited": 1, "no_motion": 0} and doc["trustworthy"] is False
     assert "1 limited by the drive (20 kHz:" in doc["verdict"]
     assert 1000 < doc["timing_limit_hz"] < 20000
     assert proc.stderr.rstrip().splitlines()[-1] == doc["verdict"]
     assert (out / "report.txt").read_text().rstrip().splitlines()[-1] == doc["verdict"]
     rows = (out / "frf.csv").read_text().splitlines()
     assert rows[0].startswith("freq_hz,magnitude,phase_deg,magnitude_std,phase_std_deg,reduced_chi2,flags,")
-    assert [r.split(",")[6] for r in rows[1:]] == ["", "timing"]
+    assert [r.split(",")[6] for r in rows[1:]] == ["", "timing|limited"]
     back = FrequencyResponse.from_json(out / "frf.json")
-    assert back.flags[0, 0].tolist() == [0, TIMING]
+    assert back.flags[0, 0].tolist() == [0, TIMING | LIMITED]
     model = json.loads((out / "model.json").read_text())
     assert model["left_out_points"] == [] and model["poor_fit_points_kept"] == []
     assert "timing: above" in (out / "report.txt").read_text()
 
 
 def test_cli_default_run_is_trustworthy_with_exit_0_and_a_refit_has_its_own_verdict(tmp_path):
-    proc = _cli("identify", "--out", str(tmp_path / "run"), "--quiet", "sweep.freq_hz=[20,300]")
+    # 4 points: enough for the model (with 2, a 1-pole model has reduced chi2 1e5 and the verdict says so)
+    proc = _cli("identify", "--out", str(tmp_path / "run"), "--quiet", "sweep.freq_hz=[20,150,300,600]")
     assert proc.returncode == 0, proc.stderr
     last = proc.stdout.rstrip().splitlines()[-1]
-    assert last.startswith("verdict: trustworthy: all 2 points within tolerance: reduced chi2 <= 1.5, timing within 1 deg up to")
-    assert "timing: the whole band (to 300 Hz) is within the tolerance of 1 deg" in proc.stdout
+    assert last.startswith("verdict: trustworthy: all 4 points within tolerance: reduced chi2 <= 1.5, timing within 1 deg up to")
+    assert "timing: the whole band (to 600 Hz) is within the tolerance of 1 deg" in proc.stdout
     # torchblur fit on the recording, with a tolerance the timing terms exceed at both points: exit 4, named
     proc = _cli("fit", str(tmp_path / "run"), "--out", str(tmp_path / "refit"), "--quiet", "report.tolerance_deg=0.0002")
     assert proc.returncode == EXIT_FLAGGED, proc.stderr
     band = json.loads((tmp_path / "refit" / "frf.json").read_text())["meta"]["timing"]
     f = timing_limit_hz(math.radians(0.0002), band["jitter_s"], band["latency_std_s"], band["frames_per_point"])
     assert f < 20
-    assert proc.stdout.rstrip().splitlines()[-1] == f"verdict: 2 of 2 points flagged: 2 timing (above {f:.4g} Hz, beyond 0.0002 deg)"
+    assert proc.stdout.rstrip().splitlines()[-1] == f"verdict: 4 of 4 points flagged: 4 timing (above {f:.4g} Hz, beyond 0.0002 deg)"
 
 
 def test_help_documents_the_exit_status():

@@ -25,7 +25,8 @@ import torch
 
 from torchblur.errors import ShapeError
 from torchblur.image.spots import spot_labels
-from torchblur.sysid.flags import FAILED, LIMITED, POOR_FIT, TIMING
+from torchblur.fit.status import NO_MOTION as FIT_NO_MOTION
+from torchblur.sysid.flags import FAILED, LIMITED, NO_MOTION, POOR_FIT, TIMING
 from torchblur.sysid.frequency_response import FrequencyResponse
 
 __all__ = ["adequacy", "adequacy_stage", "assemble_mimo", "assemble_siso", "limited_mask", "mark_limited", "phase_std", "timing_limit_hz",
@@ -194,13 +195,22 @@ def adequacy(frf: FrequencyResponse, *, reduced_chi2, poor_fit_chi2: float, timi
     return mark_limited(frf.replace(cov=cov, flags=flags, reduced_chi2=np.where(np.isfinite(chi2), chi2, np.nan)), limited)
 
 
+def _per_point(run, r) -> np.ndarray:
+    """A sine sweep's per-problem values ``r`` ([F], or [I*F, P]) on ``run.frf``'s points
+    [O, I, F] (one spot's x and y outputs share their problem's value)."""
+    n_o, n_i, n_f = run.frf.response.shape
+    if r.ndim == 1:  # [F]: one axis, one spot
+        return np.broadcast_to(r, (n_o, n_i, n_f)).copy()
+    P = r.shape[1]  # [I*F, P] -> [P, I, F]
+    per = np.moveaxis(r.reshape(n_i, n_f, P), 2, 0)
+    return np.repeat(per, n_o // P, axis=0)
+
+
 def point_reduced_chi2(run) -> np.ndarray:
     """[O, I, F] reduced chi2 of the image fit behind each point of ``run.frf`` (NaN unknown):
     a sine sweep's per-problem values (one spot's x and y outputs share their problem's), a
     multisine group's value for each of its tones."""
-    frf = run.frf
-    n_o, n_i, n_f = frf.response.shape
-    out = np.full((n_o, n_i, n_f), np.nan)
+    out = np.full(run.frf.response.shape, np.nan)
     fits = run.fit
     if isinstance(fits, (list, tuple)):  # multisine: one fit per group, its tones at the group's "order"
         for fit, info in zip(fits, run.acquisition.groups):
@@ -209,14 +219,17 @@ def point_reduced_chi2(run) -> np.ndarray:
                 out[..., info["order"]] = float(np.asarray(r, dtype=np.float64).reshape(-1)[0])
         return out
     r = getattr(fits, "reduced_chi2", None)
-    if r is None:
-        return out
-    r = np.asarray(r, dtype=np.float64)
-    if r.ndim == 1:  # [F]: one axis, one spot
-        return np.broadcast_to(r, (n_o, n_i, n_f)).copy()
-    P = r.shape[1]  # [I*F, P] -> [P, I, F], each problem's chi2 on its spot's x and y outputs
-    per = np.moveaxis(r.reshape(n_i, n_f, P), 2, 0)
-    return np.repeat(per, n_o // P, axis=0)
+    return out if r is None else _per_point(run, np.asarray(r, dtype=np.float64))
+
+
+def point_no_motion(run) -> np.ndarray:
+    """[O, I, F] bool: the sine sweep's image fit behind the point found no significant motion
+    (its :data:`~torchblur.fit.status.NO_MOTION` flag on any fitted axis); False where unknown."""
+    flags = getattr(run.fit, "flags", None) if not isinstance(run.fit, (list, tuple)) else None
+    if flags is None:
+        return np.zeros(run.frf.response.shape, dtype=bool)
+    hit = (np.asarray(flags) & FIT_NO_MOTION) != 0  # the fit batch: [F], or [I*F, P]
+    return _per_point(run, hit)
 
 
 def frames_per_point(run) -> np.ndarray:
@@ -250,6 +263,9 @@ def adequacy_stage(run) -> None:
     run.frf = adequacy(frf.replace(meta=meta), reduced_chi2=point_reduced_chi2(run), poor_fit_chi2=float(cfg.fit.poor_fit_chi2),
                        timing_std=timing_phase_std(frf.omega, jitter, lat, n),
                        tolerance_rad=math.radians(float(cfg.report.tolerance_deg)), limited=limited)
+    no_motion = point_no_motion(run)
+    if no_motion.any():
+        run.frf = run.frf.replace(flags=np.asarray(run.frf.flags) | np.where(no_motion, NO_MOTION, 0))
     poor = int(((run.frf.flags & POOR_FIT) != 0).sum())
     if poor:
         run.say(f"adequacy: {poor} point(s) with a reduced chi2 above fit.poor_fit_chi2 = {cfg.fit.poor_fit_chi2}: flagged "

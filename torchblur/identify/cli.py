@@ -328,7 +328,7 @@ def _write_outputs(cfg, res, out: Path, elapsed: float, stamp: str, as_json: boo
     frf = res.frf  # immutable: a copy with the run's stamp and units (the Bode plot's axes) in its meta
     meta = {"output_unit": "px", "input_unit": "input unit", **frf.meta, "torchblur_version": tb.__version__, "seed": int(cfg.seed)}
     frf = res.frf = mark_limited(frf.replace(meta=meta), getattr(res, "limited", None))
-    v = verdict(frf, cfg, motion_px=_motion_px(res))
+    v = verdict(frf, cfg, motion_px=_motion_px(res), model=getattr(res, "model", None))
     frf.to_csv(out / "frf.csv", extra_columns={"torchblur_version": tb.__version__, "seed": cfg.seed})
     frf.to_mat(out / "frf.mat")
     frf.to_json(out / "frf.json")
@@ -364,7 +364,7 @@ def _verdict_summary(v) -> dict:
     the response's points by flag), ``flagged_points``, ``trustworthy`` and ``timing_limit_hz``
     (null: none, or unknown)."""
     d = v.to_dict()
-    return {"verdict": v.line, "point_flags": {k: d[k] for k in ("poor_fit", "timing", "failed", "limited")},
+    return {"verdict": v.line, "point_flags": {k: d[k] for k in ("poor_fit", "timing", "failed", "limited", "no_motion")},
             "flagged_points": v.flagged, "timing_limit_hz": d["timing_limit_hz"], "trustworthy": v.trustworthy}
 
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from torchblur.identify.assemble import timing_limit_hz
 from torchblur.identify.model import model_exclusions
-from torchblur.sysid.flags import FAILED, LIMITED, POOR_FIT, TIMING, UNTRUSTED, flag_names
+from torchblur.sysid.flags import FAILED, LIMITED, NO_MOTION, POOR_FIT, TIMING, UNTRUSTED, flag_names
 
 __all__ = ["EXIT_FLAGGED", "Verdict", "report_lines", "timing_band_hz", "verdict"]
 
@@ -53,6 +53,9 @@ class Verdict:
     failed: int
     limited: int
     timing_limit_hz: float | None
+    no_motion: int = 0
+    model_reduced_chi2: float | None = None
+    model_poor: bool = False
 
     def to_dict(self) -> dict:
         """The fields as a strict-JSON dict (an infinite ``timing_limit_hz`` as null)."""
@@ -104,7 +107,7 @@ def _tolerances(frf, cfg) -> tuple[float, float]:
     return float(a.get("poor_fit_chi2", 1.5)), float(a.get("tolerance_deg", 1.0))
 
 
-def verdict(frf, cfg=None, *, motion_px=None) -> Verdict:
+def verdict(frf, cfg=None, *, motion_px=None, model=None) -> Verdict:
     """The verdict on ``frf`` (its :attr:`~torchblur.sysid.frequency_response.FrequencyResponse.flags`).
 
     Args:
@@ -112,21 +115,26 @@ def verdict(frf, cfg=None, *, motion_px=None) -> Verdict:
         cfg: the run's IdentifyConfig (``fit.poor_fit_chi2``, ``report.tolerance_deg``), or
             None (then ``frf.meta["adequacy"]``, else the defaults 1.5 and 1 deg).
         motion_px: optional [O, I, F] motion each point reached (px), named for limited points.
+        model: the run's fitted model (a TransferFunctionFit), or None: a model whose reduced
+            chi2 is above :func:`model_chi2_limit` makes the run untrustworthy (:func:`model_adequacy`).
 
     Returns:
         :class:`Verdict`.
     """
     thr, tol_deg = _tolerances(frf, cfg)
     flags = frf.flags | np.where(frf.valid, 0, FAILED)  # a NaN point is a failed one, flagged or not
-    has = {bit: (flags & bit) != 0 for bit in (POOR_FIT, TIMING, FAILED, LIMITED)}
+    has = {bit: (flags & bit) != 0 for bit in (POOR_FIT, TIMING, FAILED, LIMITED, NO_MOTION)}
     bad = (flags & UNTRUSTED) != 0
     n, k = int(flags.size), int(bad.sum())
+    m_chi2, m_poor = model_adequacy(model)
     band = timing_band_hz(frf, tol_deg)
     word = "points" if frf.is_siso else "channel points"
     limited = ""
     if has[LIMITED].any():
         limited = f"; {int(has[LIMITED].sum())} limited by the drive ({_freqs(frf, has[LIMITED], motion_px)})"
-    if not k:
+    model_part = (f"; the model does not explain the response (reduced chi2 {m_chi2:.3g} over {int(model.dof)} dof, above "
+                  f"{model_chi2_limit(model.dof):.3g}): do not use model.json" if m_poor else "")
+    if not k and not m_poor:
         unknown = int((~np.isfinite(frf.reduced_chi2) & frf.valid).sum())
         chi2 = f"reduced chi2 <= {thr:g}" + (f" ({unknown} unknown: not checked)" if unknown else "")
         timing = f"timing within {tol_deg:g} deg"
@@ -142,10 +150,39 @@ def verdict(frf, cfg=None, *, motion_px=None) -> Verdict:
             parts.append(f"{int(has[TIMING].sum())} timing ({where}, beyond {tol_deg:g} deg)")
         if has[FAILED].any():
             parts.append(f"{int(has[FAILED].sum())} failed ({_freqs(frf, has[FAILED])})")
-        line = f"verdict: {k} of {n} {word} flagged: {', '.join(parts)}{limited}"
-    return Verdict(line=line, trustworthy=not k, exit_code=0 if not k else EXIT_FLAGGED, points=n, flagged=k,
+        if has[NO_MOTION].any():
+            parts.append(f"{int(has[NO_MOTION].sum())} no significant motion ({_freqs(frf, has[NO_MOTION])}: not a measurement)")
+        head = f"verdict: {k} of {n} {word} flagged: {', '.join(parts)}" if k else f"verdict: all {n} {word} within tolerance"
+        line = f"{head}{limited}{model_part}"
+    ok = not k and not m_poor
+    return Verdict(line=line, trustworthy=ok, exit_code=0 if ok else EXIT_FLAGGED, points=n, flagged=k,
                    poor_fit=int(has[POOR_FIT].sum()), timing=int(has[TIMING].sum()), failed=int(has[FAILED].sum()),
-                   limited=int(has[LIMITED].sum()), timing_limit_hz=band)
+                   limited=int(has[LIMITED].sum()), timing_limit_hz=band, no_motion=int(has[NO_MOTION].sum()),
+                   model_reduced_chi2=m_chi2, model_poor=m_poor)
+
+
+#: a model whose reduced chi2 is above max(MODEL_CHI2_FLOOR, 1 + 4 sqrt(2 / dof)) does not explain the
+#: response it was fitted to (a chi2 test at about 4 sigma, and never below 2: the points' stds are
+#: estimates): the verdict says so and the run is not trustworthy.
+MODEL_CHI2_FLOOR = 2.0
+
+
+def model_chi2_limit(dof) -> float:
+    """The largest reduced chi2 a model with ``dof`` degrees of freedom may have (see :data:`MODEL_CHI2_FLOOR`)."""
+    return max(MODEL_CHI2_FLOOR, 1.0 + 4.0 * math.sqrt(2.0 / max(int(dof), 1)))
+
+
+def model_adequacy(model) -> tuple[float | None, bool]:
+    """``(reduced chi2, poor)`` of a fitted SISO model (a TransferFunctionFit: ``reduced_chi2``,
+    ``dof``); ``(None, False)`` for none, a MIMO model or one without a finite chi2."""
+    chi2, dof = getattr(model, "reduced_chi2", None), getattr(model, "dof", None)
+    try:
+        chi2, dof = float(chi2), int(dof)
+    except (TypeError, ValueError):
+        return None, False
+    if not math.isfinite(chi2) or dof < 1:
+        return None, False
+    return chi2, chi2 > model_chi2_limit(dof)
 
 
 def report_lines(frf, cfg) -> list[str]:
