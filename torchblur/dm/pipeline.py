@@ -141,6 +141,11 @@ def next_amplitude(*, target_px: float, motion_per_unit: float, input_limit: flo
     return float(min(amp, input_limit / max_pattern))
 
 
+# The DM run's stds are small (0.03 % on a DC gain): each spot's PSF, fitted from the still frames
+# and held fixed, and the dark mean subtracted from every frame must be known better than that.
+DM_DARK_FRAMES = 256
+DM_STILL_FRAMES = 128
+
 def _calibrate(cfg, rig, wfs, log, progress):
     """Stage 1 (module docstring): the calibration and the spots in valid-subaperture order."""
     from torchblur.identify.calibration import calibrate
@@ -148,7 +153,7 @@ def _calibrate(cfg, rig, wfs, log, progress):
 
     n = int(cfg.wfs.n_across)
     spots_cfg = replace(cfg.spots, rows=n, cols=n, pitch_px=float(cfg.wfs.pitch_px), sigma_px=float(cfg.wfs.sigma_px))
-    cal = calibrate(replace(cfg, spots=spots_cfg), rig, log=log, progress=progress)
+    cal = calibrate(replace(cfg, spots=spots_cfg), rig, log=log, progress=progress, n_dark=DM_DARK_FRAMES, n_still=DM_STILL_FRAMES)
     order = match_spots(cal.spots.psf.center.numpy(), wfs.rest_px, wfs.pitch_px)
     log_message(log, f"dm spots: {len(cal.spots)} found, matched to the {wfs.n_valid} valid subapertures (the other "
                      f"{n * n - wfs.n_valid} cells of the {n}x{n} grid are outside the pupil)", progress)

@@ -68,10 +68,12 @@ class Calibration:
         return math.inf if self.drive is None else float(self.drive.limit)
 
 
-def calibrate(cfg, rig, exp=None, log=None, progress: bool = False) -> Calibration:
+def calibrate(cfg, rig, exp=None, log=None, progress: bool = False, *, n_dark: int = 16, n_still: int = 16) -> Calibration:
     """Stages 1-4 of :func:`identify`: dark frame, saturation curve, PSF, latency and, for a
     one-axis, one-spot run, the actuator's direction in the image (each taken from the
-    recording ``exp`` when it holds it)."""
+    recording ``exp`` when it holds it). ``n_dark`` dark frames and ``n_still`` still frames:
+    the PSF's own error (and the dark mean's noise, common to every frame) is in no fitted
+    point's std, so a run whose stds are small takes more."""
     log = [] if log is None else log
     c = cfg.camera
     gain = float(c.gain)
@@ -84,7 +86,7 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False) -> Calibrati
     log_message(log, drive.describe(), progress)
 
     # 1. Dark frame.
-    dark = dark_frame(run_stage(exp, "dark", "dark", rig, lambda r: r.dark(n=16, exposure_s=min(0.01, c.max_exposure_s))).frames.to(dtype))
+    dark = dark_frame(run_stage(exp, "dark", "dark", rig, lambda r: r.dark(n=n_dark, exposure_s=min(0.01, c.max_exposure_s))).frames.to(dtype))
     read_noise_e = float(dark.read_noise) * gain
     log_message(log, f"dark: level {float(dark.mean.mean()):.2f} ADU, read noise {read_noise_e:.2f} e-, "
               f"{int(dark.hot_pixels.sum())} hot pixels", progress)
@@ -99,7 +101,7 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False) -> Calibrati
 
     # 2. PSF: still frames at an exposure that fills peak_fraction of the range.
     te_psf = float(min(c.max_exposure_s, c.peak_fraction * float(sat.linear_limit_s)))
-    still_e = subtract_dark(run_stage(exp, "psf", "psf", rig, lambda r: r.still(n=16, exposure_s=te_psf)).frames.to(dtype), dark) * gain
+    still_e = subtract_dark(run_stage(exp, "psf", "psf", rig, lambda r: r.still(n=n_still, exposure_s=te_psf)).frames.to(dtype), dark) * gain
     spots = still_psf = None
     if getattr(cfg, "spots", None) is not None and cfg.spots.enabled:
         spots = _locate_spots(cfg, still_e.mean(0), te_psf, read_noise_e, log, progress)
