@@ -715,10 +715,8 @@ def validate_excitation(x: ExcitationConfig) -> None:
         raise ConfigError(f"excitation.snap_tol: expected a value in (0, 0.5), got {x.snap_tol}")
 
 
-def validate(cfg: IdentifyConfig) -> None:
-    """Check every value; raise :class:`ConfigError` naming the key."""
-    validate_plant(cfg.plant)
-    s = cfg.sweep
+def validate_sweep(s: SweepConfig) -> None:
+    """Check the ``sweep`` section; raise :class:`ConfigError` naming the key."""
     if s.freq_hz is not None:
         if not isinstance(s.freq_hz, (list, tuple)) or not s.freq_hz:
             raise ConfigError(f"sweep.freq_hz: expected a non-empty list of frequencies, got {s.freq_hz!r}")
@@ -738,6 +736,13 @@ def validate(cfg: IdentifyConfig) -> None:
     _num(s.images_per_point, "sweep.images_per_point", integer=True, low=1)
     if s.settle_s is not None:
         _num(s.settle_s, "sweep.settle_s", nonnegative=True)
+
+
+def validate(cfg: IdentifyConfig) -> None:
+    """Check every value; raise :class:`ConfigError` naming the key."""
+    validate_plant(cfg.plant)
+    s = cfg.sweep
+    validate_sweep(s)
     _num(cfg.excitation.target_px, "excitation.target_px", positive=True)
     validate_spots(cfg.spots, cfg.camera)
     if cfg.spots.enabled:
