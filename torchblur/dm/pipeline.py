@@ -165,6 +165,7 @@ def _fit_frequency(frames, window, omega, amplitude, power, cal, psf, offset, si
     """One frequency's pattern responses: frames ``[P, E*R, H, W]`` ADU -> ``(Y [P, 2M],
     Y_cov [P, 2M, 2, 2], failed)``."""
     from torchblur.dm.spot_fit import crop_problems, fit_spot_problems, pattern_responses
+    from torchblur.identify.assemble import timing_phase_std
     from torchblur.image.dark import subtract_dark
     from torchblur.render.psf import GaussianPSF
 
@@ -175,7 +176,7 @@ def _fit_frequency(frames, window, omega, amplitude, power, cal, psf, offset, si
     fits = fit_spot_problems(crops, p, window, torch.tensor([omega], dtype=_F64), noise_std=pixel_noise_std(crops, cal.read_noise_e),
                              mask=(in_frame & ~hot)[:, None], **fit_options)
     n = window.shape[-1]
-    phase_var = (omega * jitter_s) ** 2 / n + (omega * cal.latency_std_s) ** 2
+    phase_var = float(timing_phase_std(omega, jitter_s, cal.latency_std_s, n)) ** 2
     Y, Yc = pattern_responses(fits, amplitude, phase_var=phase_var)
     return Y[..., 0], Yc[:, :, 0], int((fits.status != 0).sum())
 
@@ -318,6 +319,12 @@ def truth_errors(res: DMResult) -> dict | None:
     return out
 
 
+# What the run cannot check itself and must not let pass silently: on the simulated config the
+# DC gains' errors are 2.4 of their reported stds (rms over the live actuators; mode 1.2, damping
+# 1.1, delay 1.0), cause not yet found (docs/deformable_mirrors.md, "Open").
+DC_GAIN_STD_CAVEAT = ("caution: dc_gain_std understates the DC gain's error (rms error/std 2.4 on the simulated "
+                      "configs/identify_dm.yaml; cause open, docs/deformable_mirrors.md): read it as a lower bound")
+
 def _report(res: DMResult, elapsed: float) -> str:
     """The run's summary lines."""
     t = res.timing_s
@@ -326,7 +333,9 @@ def _report(res: DMResult, elapsed: float) -> str:
              f"{res.plan_info['cost_ratio_to_one_at_a_time']:.3f} of the frames one at a time needs for the same accuracy",
              f"time: {elapsed:.1f} s (calibration {t['calibration']:.1f} s, acquisition {t['acquisition']:.1f} s, waiting for the "
              f"fits {t['fit_wait']:.1f} s, estimation {t['estimation']:.1f} s); failed spot fits: {res.n_failed}",
-             "status: " + ", ".join(f"{s} {list(res.actuators.status).count(s)}" for s in ("ok", "weak", "dead"))]
+             "status: " + ", ".join(f"{s} {list(res.actuators.status).count(s)}" for s in ("ok", "weak", "dead"))
+             + f"; {int(np.sum(res.actuators.poor_fit))} poor_fit (stds inflated)",
+             DC_GAIN_STD_CAVEAT]
     err = truth_errors(res)
     if err is not None:
         lines.append(f"against the simulated truth: mode {err['mode_hz_max_rel_error'] * 100:.3f} %, damping "

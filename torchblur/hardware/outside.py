@@ -22,6 +22,7 @@ import io
 import math
 import posixpath
 from dataclasses import dataclass, fields
+from functools import partial
 from pathlib import Path
 from typing import Optional
 
@@ -30,6 +31,7 @@ import numpy as np
 from torchblur.errors import ConfigError
 from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.manifest import MAX_FRAME_SIDE, MAX_AMPLITUDE, read_bounded
+from torchblur.hardware.recording import decode_tiff
 from torchblur.hardware.run_folder import inside
 
 __all__ = ["CSV_NAME", "YAML_NAME", "OutsideCamera", "OutsidePoint", "OutsideRecording", "is_outside_recording",
@@ -270,10 +272,19 @@ def _row(cells: dict, line: int) -> dict:
     return row
 
 
+def _grayscale_frames(name: str, series) -> None:
+    """Refuse (RecordingError, naming the file ``name``) a TIFF series that is not grayscale frames ``[N, H, W]`` or ``[H, W]``."""
+    s = tuple(series.shape)
+    if series.axes.endswith("S"):
+        raise RecordingError(f"{name}: colour frames ({series.axes} {s}); expected grayscale frames "
+                             f"[N, H, W] or [H, W]")
+    if len(s) < 2 or max(s[-2:]) > MAX_FRAME_SIDE or min(s[-2:]) < 1:
+        raise RecordingError(f"{name}: holds an array of shape {s}; expected frames [N, H, W] or [H, W]")
+
+
 def _read_frames(root: Path, rows: list) -> tuple[dict, np.dtype]:
     """``{line: frame [H, W] float64}`` of every row, from the TIFF files it names (each read
     once), and the files' dtype. All frames must share one shape and one dtype."""
-    import tifffile
 
     stacks, out, seen = {}, {}, {}
     shape = dtype = None
@@ -288,20 +299,8 @@ def _read_frames(root: Path, rows: list) -> tuple[dict, np.dtype]:
             if not path.is_file():
                 raise RecordingError(f"{where}: {r['file']!r} is not a file in {root}")
             data = read_bounded(path, MAX_TIFF_BYTES, r["file"])
-            try:
-                with tifffile.TiffFile(io.BytesIO(data)) as tf:
-                    series = tf.series[0]
-                    s = tuple(series.shape)
-                    if series.axes.endswith("S"):
-                        raise RecordingError(f"{r['file']}: colour frames ({series.axes} {s}); expected grayscale frames [N, H, W] "
-                                             f"or [H, W]")
-                    if len(s) < 2 or max(s[-2:]) > MAX_FRAME_SIDE or min(s[-2:]) < 1:
-                        raise RecordingError(f"{r['file']}: holds an array of shape {s}; expected frames [N, H, W] or [H, W]")
-                    arr = np.asarray(series.asarray()).reshape((-1,) + s[-2:])
-            except RecordingError:
-                raise
-            except Exception as exc:  # a third-party decoder on untrusted bytes: any failure is a bad file
-                raise RecordingError(f"{r['file']}: not a readable TIFF ({type(exc).__name__}: {str(exc)[:100]})") from None
+            arr = decode_tiff(data, r["file"], partial(_grayscale_frames, r["file"]))
+            arr = arr.reshape((-1,) + arr.shape[-2:])
             if arr.dtype.kind not in "uif":
                 raise RecordingError(f"{r['file']}: pixels of dtype {arr.dtype}; expected integers or floats")
             if shape is not None and (arr.shape[1:] != shape or arr.dtype != dtype):

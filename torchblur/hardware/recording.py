@@ -483,6 +483,25 @@ def _finite_or_none(v):
     return v if v is not None and math.isfinite(v) else None
 
 
+def decode_tiff(data: bytes, name: str, check=None, *, what: str = "TIFF") -> np.ndarray:
+    """The first series of the TIFF bytes ``data`` (an untrusted file's) as an array.
+    ``check(series)`` (a tifffile ``TiffPageSeries``) may refuse it with a RecordingError before
+    its pixels are decoded; any other failure of the decoder is a RecordingError naming the file
+    (``name``: "not a readable ``what``")."""
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(io.BytesIO(data)) as tf:
+            series = tf.series[0]
+            if check is not None:
+                check(series)
+            return np.asarray(series.asarray())
+    except RecordingError:
+        raise
+    except Exception as exc:  # a third-party decoder on untrusted bytes: any failure is a bad file
+        raise RecordingError(f"{name}: not a readable {what} ({type(exc).__name__}: {str(exc)[:100]})") from None
+
+
 def read_stack(root: Path, line: dict, frame_shape: tuple) -> np.ndarray:
     """The frames ``[N, H, W]`` of the file of a group's manifest ``line`` (N its
     ``group_frames``), after checking that the bytes read have the line's SHA-256 and decode
@@ -491,7 +510,6 @@ def read_stack(root: Path, line: dict, frame_shape: tuple) -> np.ndarray:
     Raises:
         RecordingError: naming the file.
     """
-    import tifffile
 
     n, (H, W) = int(line["group_frames"]), frame_shape
     name = line["file"]
@@ -499,18 +517,13 @@ def read_stack(root: Path, line: dict, frame_shape: tuple) -> np.ndarray:
     if hashlib.sha256(data).hexdigest() != line["sha256"]:
         raise RecordingError(f"{line['group']}: {name}: its SHA-256 is not the recorded one (the file changed after "
                              f"it was recorded); refused")
-    try:
-        with tifffile.TiffFile(io.BytesIO(data)) as tf:
-            series = tf.series[0]
-            if (math.prod(series.shape) != n * H * W or tuple(series.shape[-2:]) != (H, W)
-                    or np.dtype(series.dtype).name != line["dtype"]):
-                raise RecordingError(f"{name}: holds {series.shape} {np.dtype(series.dtype).name} values, the manifest "
-                                     f"{n} frames of {H}x{W} {line['dtype']}")
-            stack = np.asarray(series.asarray()).reshape(n, H, W)
-    except RecordingError:
-        raise
-    except Exception as exc:  # a third-party decoder on untrusted bytes: any failure is a bad file
-        raise RecordingError(f"{name}: not a readable TIFF stack ({type(exc).__name__}: {str(exc)[:100]})") from None
+    def check(series):
+        if (math.prod(series.shape) != n * H * W or tuple(series.shape[-2:]) != (H, W)
+                or np.dtype(series.dtype).name != line["dtype"]):
+            raise RecordingError(f"{name}: holds {series.shape} {np.dtype(series.dtype).name} values, the manifest "
+                                 f"{n} frames of {H}x{W} {line['dtype']}")
+
+    stack = decode_tiff(data, name, check, what="TIFF stack").reshape(n, H, W)
     if not np.isfinite(stack).all():
         raise RecordingError(f"{name}: holds NaN or infinite pixels; refused")
     return stack

@@ -89,7 +89,8 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False, *, n_dark: i
     dark = dark_frame(run_stage(exp, "dark", "dark", rig, lambda r: r.dark(n=n_dark, exposure_s=min(0.01, c.max_exposure_s))).frames.to(dtype))
     read_noise_e = float(dark.read_noise) * gain
     log_message(log, f"dark: level {float(dark.mean.mean()):.2f} ADU, read noise {read_noise_e:.2f} e-, "
-              f"{int(dark.hot_pixels.sum())} hot pixels", progress)
+              f"{int(dark.hot_pixels.sum())} hot pixels; gain {gain:g} e-/ADU from camera.gain (given, not measured: every "
+              f"std and reduced chi2 scales with it)", progress)
 
     # 3 (before 2, to choose the PSF exposure). Saturation curve of the still spot.
     ladder = np.geomspace(1e-4, c.max_exposure_s, 9)

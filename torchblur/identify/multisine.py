@@ -36,6 +36,7 @@ import torch
 from torchblur.design.fisher import design_acquisition
 from torchblur.design.multisine import common_grid, optimise_crest_factor
 from torchblur.fit.multisine import fit_multisine, render_multisine
+from torchblur.identify.assemble import phase_std
 from torchblur.identify.drive import is_limited, limited_summary
 from torchblur.identify.record import RunRecord, progress_bar, run_stage
 from torchblur.identify.result import IdentificationResult
@@ -43,7 +44,6 @@ from torchblur.identify.stages import run_plan
 from torchblur.image.moments import image_moments, moments_along
 from torchblur.image.preprocess import subtract_dark
 from torchblur.render.camera import camera_noise_std
-from torchblur.render.psf import GaussianPSF
 from torchblur.render.window import ExposureWindow
 from torchblur.rig.base import command_peak
 from torchblur.sysid.frequency_response import FrequencyResponse
@@ -276,7 +276,7 @@ def _fit_group(run, acq: MultisineAcquisition, grp: _Group, st: _Settings, acqui
     acq.fit_s += time.perf_counter() - t0
     a_t = np.asarray(a, dtype=np.float64)
     resp = fit.amplitude.numpy() / a_t * np.exp(1j * (fit.phase.numpy() - np.asarray(phases)))
-    ph_std = np.sqrt(fit.phase_std.numpy()**2 + (grp.om * c.jitter_s) ** 2 / E + (grp.om * cal.latency_std_s) ** 2)
+    ph_std = phase_std(fit.phase_std.numpy(), grp.om, c, cal.latency_std_s, E)
     cov = np.zeros((N, 2, 2))
     cov[:, 0, 0] = (fit.amplitude_std.numpy() / a_t) ** 2
     cov[:, 1, 1] = ph_std**2
