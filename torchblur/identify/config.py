@@ -635,8 +635,6 @@ def validate_dm(cfg: IdentifyConfig) -> None:
     if p.n_repeats is not None:
         _num(p.n_repeats, "dm_plan.n_repeats", integer=True, low=1)
     _num(p.support_threshold, "dm_plan.support_threshold", nonnegative=True, high=1.0)
-    if cfg.rig.kind != "simulated":
-        raise ConfigError(f"rig.kind: a DM run (dm.n_across > 0) runs on the simulated DM rig only, got {cfg.rig.kind!r}")
     room = w.pitch_px / 2 - 3 * w.sigma_px * (1 + w.sigma_variation)
     if cfg.excitation.target_px > room:
         raise ConfigError(f"excitation.target_px: a DM spot motion of {cfg.excitation.target_px} px does not stay in its "
