@@ -3,6 +3,7 @@ process on a real pseudo-terminal, frames over TCP) renders whole Shack-Hartmann
 SimulatedDMRig's own renderer; protocol 2 loads a pattern in chunks (PAT, PAT?) and drives it
 (WAVE pat); SerialDMRig runs identify_dm over the link. Small mirror: 9 actuators (one dead),
 4 x 4 subapertures (12 valid), 4 frequencies."""
+import dataclasses
 import json
 import os
 import subprocess
@@ -312,7 +313,7 @@ def test_cli_runs_a_dm_config_over_the_link(emulators, config_path, runs, tmp_pa
     def fake_identify_dm(cfg, rig=None, **kw):
         seen["rig"] = rig
         assert isinstance(rig, SerialDMRig) and rig.n_actuators == 9 and rig.controller.is_open
-        return runs[0]
+        return dataclasses.replace(runs[0], log=list(runs[0].log))
 
     monkeypatch.setattr(pipeline, "identify_dm", fake_identify_dm)
     info = emulators["frames"].info
@@ -324,6 +325,7 @@ def test_cli_runs_a_dm_config_over_the_link(emulators, config_path, runs, tmp_pa
     assert summary["truth_errors"] is None and summary["plan"] == "hadamard"
     assert not seen["rig"].controller.is_open  # closed after the run
     assert "rig:\n  kind: serial" in (tmp_path / "run" / "config.yaml").read_text()
+    assert "serial link: SerialDMRig(" in (tmp_path / "run" / "report.txt").read_text()
 
 
 def test_a_device_without_a_mirror_has_no_pattern_drive():

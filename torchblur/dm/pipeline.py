@@ -388,9 +388,13 @@ def _identify_on_config_rig(cfg, quiet: bool) -> DMResult:
 
     rig = open_dm_rig(cfg, log=logging.getLogger("torchblur.hardware").info)
     try:
-        return identify_dm(cfg, rig=rig, progress=not quiet)
+        res = identify_dm(cfg, rig=rig, progress=not quiet)
     finally:
         rig.close()
+    st = rig.stats
+    res.log += [f"serial link: {rig!r}: {st['calls']} calls, {st['retries']} retried, {st['resets']} controller resets, "
+                f"{st['reconnects']} reconnects, {st['stale_discarded']} stale frames discarded", *rig.events]
+    return res
 
 
 def _write_dm_outputs(res: DMResult, out) -> None:
