@@ -34,9 +34,9 @@ excitation: {target_px: 3.0}
 class DMEmulator:
     """``torchblur emulator --config FILE`` (the identify config: DM mode) in a subprocess."""
 
-    def __init__(self, config_path):
+    def __init__(self, config_path, *keys):
         self.proc = subprocess.Popen([sys.executable, "-m", "torchblur.identify.cli", "emulator", "--config", str(config_path),
-                                      "exit_with_parent=true"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                                      "exit_with_parent=true", *keys], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         self._info = None
 
     @property
@@ -76,6 +76,21 @@ def emulators(config_path):
 
 def serial_cfg(config_path, emu, *extra):
     return load_config(str(config_path), emu.rig_keys() + list(extra))
+
+
+def device_on_a_pty(config_path, *keys):
+    """The emulator's device (DM mode) in this process, served on a real pseudo-terminal with its
+    frames on a loopback TCP channel: ``(device, port, frames_url)``. For the tests that change
+    the device (a cheaper start than a process)."""
+    from torchblur.hardware.emulator import EmulatedDevice, FrameServer, load_emulator_config, serve_pty
+
+    holder = {}
+    dev = EmulatedDevice(load_emulator_config(str(config_path), list(keys)), lambda msg: holder["frames"].send(msg))
+    holder["frames"] = FrameServer(dev.camera_info)
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    threading.Thread(target=serve_pty, args=(dev, master), daemon=True).start()
+    return dev, os.ttyname(slave), holder["frames"].url
 
 
 # ---------------------------------------------------------------------- the protocol
@@ -221,12 +236,9 @@ def test_a_pattern_the_device_holds_wrong_stops_the_run(config_path):
     """A device (the emulator's state machine on a real pty, frames over TCP) that stores one
     weight wrong: PAT? after the load tells, the call is redone, then the run stops with an
     error that names the pattern."""
-    from torchblur.hardware.emulator import EmulatedDevice, FrameServer, load_emulator_config, serve_pty
     from torchblur.hardware.serial_dm_rig import SerialDMRig
 
-    holder = {}
-    dev = EmulatedDevice(load_emulator_config(str(config_path)), lambda msg: holder["frames"].send(msg))
-    holder["frames"] = FrameServer(dev.camera_info)
+    dev, port, frames = device_on_a_pty(config_path)
     store = dev._pat
 
     def flip_sign_of_entry_0(start=None, values=()):
@@ -236,10 +248,7 @@ def test_a_pattern_the_device_holds_wrong_stops_the_run(config_path):
         return out
 
     dev._pat = flip_sign_of_entry_0
-    master, slave = os.openpty()
-    tty.setraw(slave)
-    threading.Thread(target=serve_pty, args=(dev, master), daemon=True).start()
-    rig = SerialDMRig.open(os.ttyname(slave), holder["frames"].url, timeout_s=2.0, retries=1)
+    rig = SerialDMRig.open(port, frames, timeout_s=2.0, retries=1)
     try:
         p = np.array([1.0, -1.0, 1.0, -1.0, 1.0, -1.0, 1.0, -1.0, 1.0])
         with pytest.raises(AcquisitionStopped, match=r"gave up after 2 attempt\(s\).*PatternMismatch: pattern \[1, -1, 1, -1, 1, -1, "
@@ -249,6 +258,31 @@ def test_a_pattern_the_device_holds_wrong_stops_the_run(config_path):
         assert not any(ln.startswith(b"WAVE") for d, ln in rig.controller.traffic if d == ">")  # never driven
     finally:
         rig.close()
+
+
+def test_a_controller_reset_loads_the_pattern_again(config_path):
+    """A controller that reboots in the middle of a pattern_sine forgets its pattern (zeros):
+    the redone call finds that with PAT?, loads the pattern again and takes the frames, which are
+    the SimulatedDMRig's second identical call (the first attempt rendered its frames too)."""
+    from torchblur.dm.pipeline import build_dm
+    from torchblur.dm.plans import hadamard_plan
+    from torchblur.hardware.serial_dm_rig import SerialDMRig
+
+    _, _, sim = build_dm(load_config(str(config_path)))
+    p = hadamard_plan(sim.geometry).patterns[6]
+    args = (p, 180.0, 0.4, [0.5 / 180], 2e-4, 2)
+    _, port, frames = device_on_a_pty(config_path, "fault.start=wave", "fault.reset_after=1")
+    rig = SerialDMRig.open(port, frames, timeout_s=2.0)
+    try:
+        cap = rig.pattern_sine(*args, power=1.5)
+        sent = [ln for d, ln in rig.controller.traffic if d == ">"]
+    finally:
+        rig.close()
+    assert rig.stats["resets"] == 1 and rig.stats["retries"] == 1
+    assert sum(ln.startswith(b"PAT 0 ") for ln in sent) == 2  # loaded, lost in the reboot, loaded again
+    sim.pattern_sine(*args, power=1.5)
+    again = sim.pattern_sine(*args, power=1.5)
+    assert torch.equal(cap.frames.to(torch.float64), again.frames.to(torch.float64))
 
 
 # ---------------------------------------------------------------------- the identification
