@@ -234,8 +234,9 @@ class FrameServer:
 
 
 SEND_TIMEOUT_S = 2.0
-# The emulated device's ranges (ERR 4 RANGE beyond them); the command's amplitude (the peak of
-# the waveform) is the simulated plant's input range, plant.input_limit (RANGE? reports it).
+# The emulated device's ranges (ERR 4 RANGE beyond them; "pattern": a PAT weight); the command's
+# amplitude (the peak of the waveform) is the simulated plant's input range, plant.input_limit
+# (the DM mode: dm.input_limit, else plant.input_limit; RANGE? reports it).
 DEVICE_RANGES = {"settle_s": 3600.0, "power": 1e6, "freq_hz": 1e5, "pattern": 1e6}
 
 

@@ -11,8 +11,8 @@ Commands:
                         With model.direct=true model.json holds the model fitted directly
                         to every image and model_two_step.json the two-step model.
                         --port PORT --frames URL: rig.kind=serial rig.port=PORT
-                        rig.frames=URL. A DM config (dm.n_across > 0) writes OUT/dm/ and
-                        runs on the simulated DM rig or, so, on a DM controller
+                        rig.frames=URL. A DM config (dm.n_across > 0) writes OUT/dm/, from
+                        the simulated DM rig or, with --port/--frames, a DM controller
                         (docs/deformable_mirrors.md, "Over the serial link").
     identify --resume DIR [key=value ...]
                         continue an interrupted run from DIR/experiment/ (rig.*, fit.*,
