@@ -31,6 +31,7 @@ import numpy as np
 import torch
 
 from torchblur.errors import ParameterError
+from torchblur.hardware.errors import HardwareError
 from torchblur.render.camera import CameraModel, camera_noise_std
 from torchblur.render.window import ExposureWindow
 from torchblur.dm.mirror import DeformableMirror
@@ -226,7 +227,7 @@ def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, log, progress):
     F, P, M2 = len(freqs), plan.n_patterns, G.shape[0]
     c, s = cfg.camera, cfg.sweep
     motion_static = static_motion_px(plan, G)
-    limit = math.inf if cfg.dm.input_limit is None else float(cfg.dm.input_limit)
+    limit = min(math.inf if cfg.dm.input_limit is None else float(cfg.dm.input_limit), cal.input_limit)  # and the rig's RANGE?
     amps, powers, futures = np.zeros(F), np.zeros(F), []
     done_ref = None  # (index of the last fitted frequency, its largest |Y| per unit amplitude)
     t_acq = 0.0
@@ -359,7 +360,11 @@ def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False) -> int:
     (out / "config.yaml").write_text(config_to_yaml(cfg))
     torch.manual_seed(int(cfg.seed))
     t0 = time.perf_counter()
-    res = identify_dm(cfg, progress=not quiet)
+    try:
+        res = _identify_on_config_rig(cfg, quiet)
+    except HardwareError as exc:  # the serial link stopped the run
+        print(f"torchblur identify: stopped: {exc}\nA DM run records no frames (nothing to resume): run it again.", file=sys.stderr)
+        return 3
     elapsed = time.perf_counter() - t0
     _write_dm_outputs(res, out)
     report = _report(res, elapsed)
@@ -369,6 +374,27 @@ def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False) -> int:
         print(json.dumps({"elapsed_s": elapsed, "frames": res.n_frames, "plan": res.plan.kind, "timing_s": res.timing_s,
                           "truth_errors": truth_errors(res)}), flush=True)
     return 0
+
+
+def _identify_on_config_rig(cfg, quiet: bool) -> DMResult:
+    """:func:`identify_dm` on the config's rig: the simulated DM rig, or with ``rig.kind=serial``
+    a :class:`~torchblur.hardware.serial_dm_rig.SerialDMRig` on ``rig.port`` and ``rig.frames``
+    (closed after the run)."""
+    if cfg.rig.kind != "serial":
+        return identify_dm(cfg, progress=not quiet)
+    import logging
+
+    from torchblur.hardware.serial_dm_rig import open_dm_rig
+
+    rig = open_dm_rig(cfg, log=logging.getLogger("torchblur.hardware").info)
+    try:
+        res = identify_dm(cfg, rig=rig, progress=not quiet)
+    finally:
+        rig.close()
+    st = rig.stats
+    res.log += [f"serial link: {rig!r}: {st['calls']} calls, {st['retries']} retried, {st['resets']} controller resets, "
+                f"{st['reconnects']} reconnects, {st['stale_discarded']} stale frames discarded", *rig.events]
+    return res
 
 
 def _write_dm_outputs(res: DMResult, out) -> None:

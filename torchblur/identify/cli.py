@@ -10,6 +10,10 @@ Commands:
                         files of its own (not a torchblur run's) is refused unless --force.
                         With model.direct=true model.json holds the model fitted directly
                         to every image and model_two_step.json the two-step model.
+                        --port PORT --frames URL: rig.kind=serial rig.port=PORT
+                        rig.frames=URL. A DM config (dm.n_across > 0) writes OUT/dm/, from
+                        the simulated DM rig or, with --port/--frames, a DM controller
+                        (docs/deformable_mirrors.md, "Over the serial link").
     identify --resume DIR [key=value ...]
                         continue an interrupted run from DIR/experiment/ (rig.*, fit.*,
                         model.* and report.* may be given anew, e.g. the new rig.port).
@@ -133,11 +137,19 @@ def _resume_hint(root: Path, cfg) -> str:
     return f"torchblur identify --resume {root}{rig}"
 
 
+def _rig_options(args) -> list[str]:
+    """``--port PORT`` / ``--frames URL`` as the overrides they stand for (rig.kind=serial
+    rig.port=PORT rig.frames=URL), placed before the user's own ``key=value`` overrides."""
+    keys = [f"rig.{k}={getattr(args, k)}" for k in ("port", "frames") if getattr(args, k, None) is not None]
+    return ["rig.kind=serial", *keys] if keys else []
+
+
 def _identify(args) -> int:
     from torchblur.hardware.errors import RecordingError
     from torchblur.hardware.run_folder import RunLock, check_out_folder
     from torchblur.identify.config import load_config
 
+    args.overrides = _rig_options(args) + list(args.overrides)
     if args.resume is not None:
         return _resume(args)
     if args.out is None:
@@ -696,6 +708,10 @@ def build_parser() -> argparse.ArgumentParser:
                        help="at the end print one JSON summary line on stdout (out, points, errors vs truth, status/flag counts, "
                             "elapsed_s, version) and nothing else there; everything else goes to stderr")
     ident.add_argument("--force", action="store_true", help="run even beyond the size limits (docs/reliability.md), or into a folder that holds other files")
+    ident.add_argument("--port", default=None, help="the controller's serial port or pyserial URL: the same as rig.kind=serial "
+                                                    "rig.port=PORT (with --frames)")
+    ident.add_argument("--frames", default=None, help="the camera (tcp://HOST:PORT of the emulator, pylon://..., or "
+                                                      "package.module:Class): the same as rig.frames=URL")
     ident.add_argument("overrides", nargs="*", help="dotted key=value overrides, e.g. sweep.n=20 plant.delay_s=5e-5")
     ident.set_defaults(func=_identify)
     fit = sub.add_parser("fit", help="re-fit a recorded run offline with other fit.* / model.* / report.* settings",
