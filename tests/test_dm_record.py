@@ -162,14 +162,24 @@ class _Crashing:
         return self._rig.pattern_sine(**kwargs)
 
 
-def test_crash_then_resume(live, reference, tmp_path, capsys):
-    from torchblur.dm.pipeline import build_dm, identify_dm
+def test_crash_then_resume(live, reference, tmp_path, capsys, monkeypatch):
+    from torchblur.dm import pipeline
+    from torchblur.dm.pipeline import identify_dm
 
     cfg = load_config(None, SMALL)
     root = tmp_path / "run"
-    rig = _Crashing(build_dm(cfg)[2], after=16 + 5)  # frequency 0 complete, frequency 1 cut after 5 of its 16 patterns
-    with pytest.raises(ConnectionLost):
-        identify_dm(cfg, rig, record=root / "experiment")
+    real = pipeline.build_dm
+
+    def crashing(cfg, **kw):  # frequency 0 complete, frequency 1 cut after 5 of its 16 patterns
+        mirror, wfs, rig = real(cfg, **kw)
+        return mirror, wfs, _Crashing(rig, after=16 + 5)
+
+    monkeypatch.setattr(pipeline, "build_dm", crashing)
+    assert cli.main(["identify", "--out", str(root), "--quiet", *SMALL]) == cli.EXIT_STOPPED
+    err = capsys.readouterr().err
+    assert "went away" in err and f"torchblur identify --resume {root}" in err
+    monkeypatch.undo()
+    assert not (root / "dm").exists()
     exp_dir = root / "experiment"
     meta = json.loads((exp_dir / "experiment.json").read_text())
     assert meta["status"] == "stopped" and "ConnectionLost" in meta["sessions"][0]["reason"]

@@ -12,6 +12,7 @@ imports it).
 """
 from __future__ import annotations
 
+import copy
 from dataclasses import replace
 
 import numpy as np
@@ -35,19 +36,50 @@ def _sensor(cfg) -> tuple[DeformableMirror, ShackHartmann]:
     return mirror, ShackHartmann.from_config(cfg.wfs, mirror)
 
 
+# G and the plan take minutes on a big mirror (700 actuators: 80 s and 23 s); estimate_run (at every
+# config load) and the run share them through these memos of pure functions, keyed by the config's
+# sections they depend on.
+_MEMO: dict = {}
+_MEMO_SIZE = 8
+
+
+def _memo(key, compute):
+    if key not in _MEMO:
+        while len(_MEMO) >= _MEMO_SIZE:
+            _MEMO.pop(next(iter(_MEMO)))
+        _MEMO[key] = compute()
+    return _MEMO[key]
+
+
+def _geometry_key(cfg) -> str:
+    return repr((replace(cfg.dm, actuator_table=None), cfg.wfs, int(cfg.seed)))
+
+
 def dm_geometry(cfg) -> np.ndarray:
     """The nominal geometry matrix G ``[2M, N]`` (px per input unit) of a DM config (``dm``
-    geometry and ``wfs``; the dynamics and the actuator table play no part)."""
-    mirror, wfs = _sensor(cfg)
-    return wfs.geometry_matrix(mirror)
+    geometry and ``wfs``; the dynamics and the actuator table play no part). A new array each call."""
+    def compute():
+        mirror, wfs = _sensor(cfg)
+        return wfs.geometry_matrix(mirror)
+
+    return _memo(("G", _geometry_key(cfg)), compute).copy()
 
 
-def dm_plan(cfg, G: np.ndarray):
-    """``(plan, n_repeats, info)`` of a DM config on the geometry ``G`` ``[2M, N]``
-    (:func:`~torchblur.dm.plans.choose_plan` with the ``dm_plan`` and ``sweep`` sections)."""
-    return choose_plan(cfg.dm_plan.kind, G, budget_frames=cfg.dm_plan.budget_frames, n_freq=len(cfg.frequencies_hz()),
-                       n_exposures=len(cfg.sweep.exposures), threshold=float(cfg.dm_plan.support_threshold),
-                       n_repeats=cfg.dm_plan.n_repeats)
+def dm_plan(cfg):
+    """``(plan, n_repeats, info)`` of a DM config on its geometry :func:`dm_geometry`
+    (:func:`~torchblur.dm.plans.choose_plan` with the ``dm_plan`` and ``sweep`` sections).
+
+    Raises:
+        ParameterError: naming ``dm_plan.budget_frames`` when one repeat of the plan needs more.
+    """
+    n_freq, n_exp = len(cfg.frequencies_hz()), len(cfg.sweep.exposures)
+
+    def compute():
+        return choose_plan(cfg.dm_plan.kind, dm_geometry(cfg), budget_frames=cfg.dm_plan.budget_frames, n_freq=n_freq,
+                           n_exposures=n_exp, threshold=float(cfg.dm_plan.support_threshold), n_repeats=cfg.dm_plan.n_repeats)
+
+    plan, R, info = _memo(("plan", _geometry_key(cfg), repr(cfg.dm_plan), n_freq, n_exp), compute)
+    return plan, R, copy.deepcopy(info)
 
 
 def dm_sweep_size(cfg) -> dict:
@@ -57,10 +89,10 @@ def dm_sweep_size(cfg) -> dict:
     Raises:
         ConfigError: naming ``dm_plan.budget_frames`` when one repeat of the plan needs more.
     """
-    mirror, wfs = _sensor(cfg)
     try:
-        plan, R, _ = dm_plan(cfg, wfs.geometry_matrix(mirror))
+        plan, R, _ = dm_plan(cfg)
     except ParameterError as exc:
         raise ConfigError(str(exc)) from None
     frames = plan.n_frames(len(cfg.frequencies_hz()), len(cfg.sweep.exposures), R)
-    return {"frames": frames, "patterns": plan.n_patterns, "repeats": R, "frame_shape": tuple(int(v) for v in wfs.frame_shape)}
+    shape = tuple(int(v) for v in _sensor(cfg)[1].frame_shape)
+    return {"frames": frames, "patterns": plan.n_patterns, "repeats": R, "frame_shape": shape}

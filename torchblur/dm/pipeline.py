@@ -33,7 +33,7 @@ import torch
 from torchblur.errors import ParameterError
 from torchblur.render.camera import CameraModel, camera_noise_std
 from torchblur.render.window import ExposureWindow
-from torchblur.dm.budget import DM_DARK_FRAMES, DM_STILL_FRAMES, dm_plan
+from torchblur.dm.budget import DM_DARK_FRAMES, DM_STILL_FRAMES, dm_geometry, dm_plan
 from torchblur.dm.mirror import DeformableMirror
 from torchblur.dm.plans import static_motion_px
 from torchblur.dm.rig import SimulatedDMRig
@@ -315,13 +315,13 @@ def _identify_dm(cfg, rig, exp, model_mirror, wfs, truth_rig, log, progress) -> 
     from torchblur.dm.record import check_recorded_commands, run_plan
     from torchblur.identify.record import log_message
 
-    G = wfs.geometry_matrix(model_mirror)  # the geometry does not depend on the dynamics
+    G = dm_geometry(cfg)  # the geometry does not depend on the dynamics (nor on dm.actuator_table)
     t = {}
     t0 = time.perf_counter()
     cal, psf, offset, size = _calibrate(cfg, rig, wfs, log, progress, exp)
     t["calibration"] = time.perf_counter() - t0
     freqs = np.asarray(cfg.frequencies_hz())
-    plan, R, info = dm_plan(cfg, G)
+    plan, R, info = dm_plan(cfg)
     plan, R = run_plan(exp, plan, R, G, float(cfg.dm_plan.support_threshold), lambda msg: log_message(log, msg, progress))
     if exp is not None and exp.writable:
         check_recorded_commands(exp, math.inf if cfg.dm.input_limit is None else float(cfg.dm.input_limit))
