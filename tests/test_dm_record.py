@@ -237,3 +237,22 @@ def test_a_pattern_line_that_disagrees_with_its_call_is_refused(live, tmp_path):
     (d / "manifest.jsonl").write_text("\n".join(raw) + "\n")
     with pytest.raises(RecordingError, match="amplitude"):
         Experiment.open(d, writable=False)
+
+
+def test_identify_into_a_recorded_dm_run_is_refused(live, capsys):
+    before = _sha(live / "experiment" / "manifest.jsonl")
+    assert cli.main(["identify", "--out", str(live), "--quiet", *SMALL]) == 2
+    assert "--resume" in capsys.readouterr().err
+    assert _sha(live / "experiment" / "manifest.jsonl") == before
+
+
+def test_set_meta_refuses_the_schemas_own_keys(tmp_path):
+    from torchblur.hardware.frames import CameraInfo
+
+    info = CameraInfo(frame_shape=(8, 8), frame_rate_hz=30.0, max_exposure_s=1.0, readout_s=1e-3, name="unit")
+    exp = Experiment.create(tmp_path / "e", config_yaml="seed: 0\n", camera=info)
+    with pytest.raises(RecordingError, match="status"):
+        exp.set_meta("status", "complete")
+    exp.set_meta("note", {"a": 1})
+    exp.close()
+    assert Experiment.open(tmp_path / "e", writable=False).meta["note"] == {"a": 1}

@@ -146,12 +146,12 @@ def _identify(args) -> int:
     cfg = load_config(args.config, args.overrides, force=args.force)  # ConfigError (named key) before any work
     out = Path(args.out)
     check_out_folder(out, command="identify", force=args.force)
-    if cfg.dm.enabled:  # a deformable-mirror run (dm.n_across > 0): torchblur.dm.pipeline, recorded in OUT/experiment
-        return _run_dm(cfg, out, args)
     if (out / "experiment" / "manifest.jsonl").exists():
         print(f"torchblur identify: error: {out} already holds a recorded run; continue it with "
               f"'torchblur identify --resume {out}' or choose another --out", file=sys.stderr)
         return 2
+    if cfg.dm.enabled:  # a deformable-mirror run (dm.n_across > 0): torchblur.dm.pipeline, recorded in OUT/experiment
+        return _run_dm(cfg, out, args)
     (out / "experiment").mkdir(parents=True, exist_ok=True)
     lock = RunLock(out / "experiment")  # held for the run's life: a second run on this folder refuses
     try:
