@@ -191,6 +191,8 @@ def test_crash_then_resume(live, reference, tmp_path, capsys, monkeypatch):
         assert _sha(exp_dir / "frames" / name) == _sha(live / "experiment" / "frames" / name), g
     stored = {g: _sha(exp_dir / "frames" / (g.replace("/", "_") + ".tif")) for g in kept}
 
+    assert cli.main(["fit", str(root), "--out", str(tmp_path / "early"), "--quiet"]) == 2  # incomplete: nothing to re-fit yet
+    assert "resume it first" in capsys.readouterr().err
     assert cli.main(["identify", "--resume", str(root), "dm.mode_hz=700"]) == 2  # not what was recorded
     assert "dm.mode_hz" in capsys.readouterr().err
     assert cli.main(["identify", "--resume", str(root), "--quiet"]) == 0
@@ -256,3 +258,18 @@ def test_set_meta_refuses_the_schemas_own_keys(tmp_path):
     exp.set_meta("note", {"a": 1})
     exp.close()
     assert Experiment.open(tmp_path / "e", writable=False).meta["note"] == {"a": 1}
+
+
+def test_ctrl_c_during_the_sweep_leaves_a_resumable_recording(tmp_path):
+    from torchblur.dm.pipeline import build_dm, identify_dm
+
+    class _Interrupted(_Crashing):
+        def pattern_sine(self, **kwargs):
+            raise KeyboardInterrupt
+
+    cfg = load_config(None, SMALL)
+    with pytest.raises(KeyboardInterrupt):
+        identify_dm(cfg, _Interrupted(build_dm(cfg)[2], after=0), record=tmp_path / "experiment")
+    meta = json.loads((tmp_path / "experiment" / "experiment.json").read_text())
+    assert meta["status"] == "interrupted" and meta["dm_plan"]["kind"] == "hadamard"
+    assert {ln["group"] for ln in _lines(tmp_path / "experiment")} == set(CALIBRATION)
