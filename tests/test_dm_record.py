@@ -273,3 +273,19 @@ def test_ctrl_c_during_the_sweep_leaves_a_resumable_recording(tmp_path):
     meta = json.loads((tmp_path / "experiment" / "experiment.json").read_text())
     assert meta["status"] == "interrupted" and meta["dm_plan"]["kind"] == "hadamard"
     assert {ln["group"] for ln in _lines(tmp_path / "experiment")} == set(CALIBRATION)
+
+
+def test_the_truth_only_where_every_frame_is_simulated():
+    from types import SimpleNamespace
+
+    from torchblur.dm.record import simulated_frames
+
+    sim = {"rig": {"rig": "SimulatedDMRig(9 actuators, ..., seed=0)"}}
+    other = {"rig": {"rig": "SerialDMRig(/dev/ttyUSB0)"}}
+    rec = lambda sessions, writable: SimpleNamespace(meta={"sessions": sessions}, writable=writable)  # noqa: E731
+    assert simulated_frames(True, None) and not simulated_frames(False, None)
+    assert simulated_frames(True, rec([], True)) and simulated_frames(True, rec([sim], True))
+    assert not simulated_frames(True, rec([other], True))  # resumed on the simulator, begun on hardware
+    assert not simulated_frames(False, rec([sim], True))  # begun on the simulator, resumed on hardware
+    assert simulated_frames(False, rec([sim, sim], False)) and not simulated_frames(False, rec([sim, other], False))
+    assert not simulated_frames(False, rec([], False))

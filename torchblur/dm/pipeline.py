@@ -290,7 +290,7 @@ def identify_dm(cfg, rig=None, *, progress: bool = False, base_dir: str | None =
     Raises:
         HardwareError: the rig failed (the recording so far is kept; resume it); KeyboardInterrupt: likewise.
     """
-    from torchblur.dm.record import open_recording, recorded_on_simulation, resume_seed, session, session_info
+    from torchblur.dm.record import open_recording, resume_seed, session, session_info, simulated_frames
     from torchblur.identify.record import log_message
 
     log: list = []
@@ -300,7 +300,7 @@ def identify_dm(cfg, rig=None, *, progress: bool = False, base_dir: str | None =
     if rig is None and resumed:
         sim = build_dm(cfg, base_dir=base_dir, rig_seed=resume_seed(int(cfg.seed), len(exp.meta["sessions"])))[2]
     rig = sim if rig is None else rig
-    truth_rig = rig if isinstance(rig, SimulatedDMRig) else sim if exp is not None and recorded_on_simulation(exp) else None
+    truth_rig = (rig if isinstance(rig, SimulatedDMRig) else sim) if simulated_frames(isinstance(rig, SimulatedDMRig), exp) else None
     with session(exp, session_info(cfg, rig)):
         if resumed:
             log_message(log, f"resume: {len(exp.groups)} recorded group(s) in {exp.path} are reused", progress)

@@ -38,9 +38,9 @@ from torchblur.dm.plans import Plan, seen_by
 from torchblur.hardware.errors import HardwareError, RecordingError
 from torchblur.rig.base import DRIVE_RTOL
 
-__all__ = ["PLAN_KEY", "SWEEP_KIND", "check_recorded_commands", "check_refit_config", "open_recording", "plan_document", "plan_from_document",
-           "plan_support", "recorded_labels", "recorded_on_simulation", "resume_seed", "run_plan", "session", "session_info",
-           "sweep_key", "take_group"]
+__all__ = ["PLAN_KEY", "SWEEP_KIND", "check_recorded_commands", "check_refit_config", "open_recording", "plan_document",
+           "plan_from_document", "plan_support", "recorded_labels", "recorded_on_simulation", "resume_seed", "run_plan", "session",
+           "session_info", "simulated_frames", "sweep_key", "take_group"]
 
 PLAN_KEY = "dm_plan"  # experiment.json: the plan of a DM run
 SWEEP_KIND = "dm_sweep"  # the kind of a swept frequency's group
@@ -219,8 +219,20 @@ def recorded_on_simulation(exp) -> bool:
     """Every session of the recording ``exp`` ran on the simulated DM rig (so the config's
     simulated mirror is the truth of its frames)."""
     sessions = exp.meta.get("sessions") or []
-    return bool(sessions) and all(str((s.get("rig") or {}).get("rig", "")).startswith("SimulatedDMRig(") for s in sessions
-                                  if isinstance(s, dict))
+    return bool(sessions) and all(isinstance(s, dict) and str((s.get("rig") or {}).get("rig", "")).startswith("SimulatedDMRig(")
+                                  for s in sessions)
+
+
+def simulated_frames(live_is_simulated: bool, exp) -> bool:
+    """Whether every frame of a run comes from the config's simulated DM rig (its truth is then
+    the config's simulated mirror): without a recording, the live rig is simulated; a re-fit
+    (read-only ``exp``), every recorded session was; a new or resumed recording, both (the
+    sessions before this one)."""
+    if exp is None:
+        return live_is_simulated
+    if not exp.writable:
+        return recorded_on_simulation(exp)
+    return live_is_simulated and (not exp.meta.get("sessions") or recorded_on_simulation(exp))
 
 
 def resume_seed(seed: int, session: int) -> int:
