@@ -289,3 +289,26 @@ def test_the_truth_only_where_every_frame_is_simulated():
     assert not simulated_frames(False, rec([sim], True))  # begun on the simulator, resumed on hardware
     assert simulated_frames(False, rec([sim, sim], False)) and not simulated_frames(False, rec([sim, other], False))
     assert not simulated_frames(False, rec([], False))
+
+
+def test_a_resume_on_the_simulator_needs_the_same_actuator_table(tmp_path, monkeypatch):
+    from torchblur.dm.pipeline import identify_dm
+    from torchblur.dm.rig import SimulatedDMRig
+
+    table = tmp_path / "act.csv"
+    table.write_text("actuator,mode_hz,damping,gain,delay_s\n4,650,0.07,1.0,2e-5\n")
+    cfg = load_config(None, SMALL + [f"dm.actuator_table={table}"])
+
+    def interrupted(self, **kwargs):
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as m:
+        m.setattr(SimulatedDMRig, "pattern_sine", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            identify_dm(cfg, record=tmp_path / "experiment")
+    meta = json.loads((tmp_path / "experiment" / "experiment.json").read_text())
+    assert meta["sessions"][0]["rig"]["dm_actuator_table_sha256"] == _sha(table)
+    table.write_text("actuator,mode_hz,damping,gain,delay_s\n4,700,0.07,1.0,2e-5\n")  # another mirror under the same name
+    with pytest.raises(RecordingError, match="dm.actuator_table"):
+        identify_dm(cfg, record=tmp_path / "experiment")
+    assert len(json.loads((tmp_path / "experiment" / "experiment.json").read_text())["sessions"]) == 1  # no session begun

@@ -290,7 +290,8 @@ def identify_dm(cfg, rig=None, *, progress: bool = False, base_dir: str | None =
     Raises:
         HardwareError: the rig failed (the recording so far is kept; resume it); KeyboardInterrupt: likewise.
     """
-    from torchblur.dm.record import open_recording, resume_seed, session, session_info, simulated_frames
+    from torchblur.dm.record import open_recording, resume_seed, same_table, session, session_info, simulated_frames, table_digest
+    from torchblur.hardware.errors import RecordingError
     from torchblur.identify.record import log_message
 
     log: list = []
@@ -300,8 +301,18 @@ def identify_dm(cfg, rig=None, *, progress: bool = False, base_dir: str | None =
     if rig is None and resumed:
         sim = build_dm(cfg, base_dir=base_dir, rig_seed=resume_seed(int(cfg.seed), len(exp.meta["sessions"])))[2]
     rig = sim if rig is None else rig
-    truth_rig = (rig if isinstance(rig, SimulatedDMRig) else sim) if simulated_frames(isinstance(rig, SimulatedDMRig), exp) else None
-    with session(exp, session_info(cfg, rig)):
+    digest = table_digest(cfg, base_dir)
+    simulated = simulated_frames(isinstance(rig, SimulatedDMRig), exp)
+    if simulated and exp is not None and not same_table(exp, digest):
+        if exp.writable:
+            exp.close()
+            raise RecordingError(f"dm.actuator_table: {cfg.dm.actuator_table} is not the file the recording {exp.path} was "
+                                 f"simulated with (its SHA-256 differs); resume with that file, or record anew")
+        simulated = False
+        log_message(log, f"dm: no simulated truth: {cfg.dm.actuator_table} is not the actuator table the recording was simulated "
+                         f"with (its SHA-256 differs)", progress)
+    truth_rig = (rig if isinstance(rig, SimulatedDMRig) else sim) if simulated else None
+    with session(exp, session_info(cfg, rig, digest)):
         if resumed:
             log_message(log, f"resume: {len(exp.groups)} recorded group(s) in {exp.path} are reused", progress)
         return _identify_dm(cfg, rig, exp, model_mirror, wfs, truth_rig, log, progress)

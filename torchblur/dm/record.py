@@ -40,7 +40,7 @@ from torchblur.rig.base import DRIVE_RTOL
 
 __all__ = ["PLAN_KEY", "SWEEP_KIND", "check_recorded_commands", "check_refit_config", "open_recording", "plan_document",
            "plan_from_document", "plan_support", "recorded_labels", "recorded_on_simulation", "resume_seed", "run_plan", "session",
-           "session_info", "simulated_frames", "sweep_key", "take_group"]
+           "same_table", "session_info", "simulated_frames", "sweep_key", "table_digest", "take_group"]
 
 PLAN_KEY = "dm_plan"  # experiment.json: the plan of a DM run
 SWEEP_KIND = "dm_sweep"  # the kind of a swept frequency's group
@@ -205,14 +205,40 @@ def check_refit_config(recorded, cfg, *, allowed=("fit", "model", "report")):
     return aligned
 
 
-def session_info(cfg, rig) -> dict:
-    """What a session notes of its rig: ``kind`` (``rig.kind``), ``rig`` (its repr) and its input
-    range (``input_limit``, None when it has none: a re-fit plans within the recorded one)."""
+TABLE_KEY = "dm_actuator_table_sha256"  # a session's note of the simulated mirror's actuator table
+
+
+def table_digest(cfg, base_dir: str | None = None) -> str | None:
+    """The SHA-256 of the file ``dm.actuator_table`` names (relative to ``base_dir`` as
+    :meth:`~torchblur.dm.mirror.DeformableMirror.from_config` reads it), or None without one:
+    the recorded config holds only the path, and the simulated mirror is built from the file."""
+    import hashlib
+    import os
+
+    path = cfg.dm.actuator_table
+    if not path:
+        return None
+    if base_dir is not None and not os.path.isabs(path):
+        path = os.path.join(base_dir, path)
+    with open(path, "rb") as fh:
+        return hashlib.sha256(fh.read(1 << 21)).hexdigest()
+
+
+def session_info(cfg, rig, table_sha256: str | None = None) -> dict:
+    """What a session notes of its rig: ``kind`` (``rig.kind``), ``rig`` (its repr), its input
+    range (``input_limit``, None when it has none: a re-fit plans within the recorded one) and
+    the actuator table's digest (:func:`table_digest`)."""
     from torchblur.identify.drive import SESSION_KEY
 
     limit = getattr(rig, "input_limit", None)
-    return {"kind": cfg.rig.kind, "rig": repr(rig),
+    return {"kind": cfg.rig.kind, "rig": repr(rig), TABLE_KEY: table_sha256,
             SESSION_KEY: float(limit) if limit is not None and math.isfinite(float(limit)) else None}
+
+
+def same_table(exp, table_sha256: str | None) -> bool:
+    """Every session of the recording ``exp`` simulated the mirror from the same actuator table
+    (digest ``table_sha256``, :func:`table_digest`)."""
+    return all((s.get("rig") or {}).get(TABLE_KEY) == table_sha256 for s in exp.meta.get("sessions") or [] if isinstance(s, dict))
 
 
 def recorded_on_simulation(exp) -> bool:
