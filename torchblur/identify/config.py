@@ -861,29 +861,78 @@ LIMITS = {"frames": 100_000, "memory_bytes": 8 * 2**30, "disk_bytes": 20 * 2**30
 _CALIBRATION_FRAMES = 100  # dark, saturation ladder, PSF, latency scan, axis (about)
 
 
-def estimate_run(cfg: IdentifyConfig) -> dict:
-    """What a run will take, estimated from its config alone (no work): ``frames`` (one
-    attempt per sweep point, calibration included), ``memory_bytes`` (the frames held as
-    float64, raw and in electrons, with a model per frame), ``disk_bytes`` (the recording,
-    16-bit pixels), ``bench_s`` (camera time: per point the settling and every frame at
-    least a camera cycle and a period apart; only when ``frames`` is within
-    :data:`LIMITS`, else NaN) and ``motion_px`` (the largest spot motion, 1.33 target_px)."""
+# What the calibration stage takes besides its dark and still frames (torchblur.identify.calibration
+# takes these from here, so that estimate_run counts what it takes).
+SATURATION_STEPS = 9  # one still frame per exposure of the saturation ladder
+LATENCY_SCAN = {"exposure_s": 200e-6, "pulse_width_s": 20e-6, "max_latency_s": 200e-6, "step_s": 2e-6, "repeats": 2}
+
+
+def latency_scan_times(trigger_delay_s: float, *, exposure_s: float, pulse_width_s: float, max_latency_s: float,
+                       step_s: float):
+    """The pulse times ``[n]`` (s after the trigger) of the latency calibration's scan: from
+    ``-pulse_width_s`` past ``max_latency_s + trigger_delay_s + exposure_s / 2`` in steps of
+    ``step_s`` (:func:`torchblur.identify.calibration.calibrate_latency`)."""
+    import numpy as np
+
+    return np.arange(-pulse_width_s, max_latency_s + trigger_delay_s + exposure_s / 2, step_s)
+
+
+def calibration_frames(cfg: IdentifyConfig, *, n_dark: int, n_still: int) -> int:
+    """Frames the calibration takes without the axis tracking (a run with spots, a DM run):
+    ``n_dark`` dark, the saturation ladder, ``n_still`` still and the latency scan (each pulse
+    time :data:`LATENCY_SCAN` ``repeats`` times)."""
+    scan = {k: v for k, v in LATENCY_SCAN.items() if k != "repeats"}
+    n_pulse = len(latency_scan_times(float(cfg.camera.trigger_delay_s), **scan)) * LATENCY_SCAN["repeats"]
+    return int(n_dark) + SATURATION_STEPS + int(n_still) + n_pulse
+
+
+def _estimate_dm(cfg: IdentifyConfig) -> dict:
+    """:func:`estimate_run` of a DM run (``dm.n_across`` > 0): the plan's sweep frames
+    (:func:`torchblur.dm.budget.dm_sweep_size`) and the DM calibration's, on the sensor's frame."""
+    from torchblur.dm.budget import DM_DARK_FRAMES, DM_STILL_FRAMES, dm_sweep_size
+
+    size = dm_sweep_size(cfg)
+    frames = size["frames"] + calibration_frames(cfg, n_dark=DM_DARK_FRAMES, n_still=DM_STILL_FRAMES)
+    est = _estimate(cfg, frames, size["frame_shape"], n_drives=size["patterns"], repeats=size["repeats"])
+    est["sweep_frames"] = size["frames"]
+    return est
+
+
+def _estimate(cfg: IdentifyConfig, frames: int, frame_px: tuple, *, n_drives: int, repeats: int) -> dict:
+    """:func:`estimate_run`'s dict for ``frames`` of ``frame_px`` ``(H, W)``, the sweep driving
+    ``n_drives`` inputs (or DM patterns) at every frequency, ``repeats`` frames per exposure."""
     s, c = cfg.sweep, cfg.camera
-    n_freq = len(s.freq_hz) if s.freq_hz is not None else int(s.n)
-    n_inputs = 2 if cfg.plant.is_mimo else 1
-    per_point = len(s.exposures) * int(s.images_per_point)
-    frames = n_inputs * n_freq * per_point + _CALIBRATION_FRAMES
-    pixels = int(c.height) * int(c.width)
+    pixels = int(frame_px[0]) * int(frame_px[1])
     bench = float("nan")
     if frames <= LIMITS["frames"]:
         import numpy as np
 
         f = np.asarray(cfg.frequencies_hz(), dtype=float)
         cycle = np.maximum(1.0 / c.frame_rate_hz, 1.0 / f)
-        frame_s = sum(np.maximum(cycle, e / f + c.readout_s) for e in s.exposures) * int(s.images_per_point)
-        bench = float(n_inputs * np.sum(frame_s + (s.settle_s or 0.0) + 2.0 / f))
+        frame_s = sum(np.maximum(cycle, e / f + c.readout_s) for e in s.exposures) * int(repeats)
+        bench = float(n_drives * np.sum(frame_s + (s.settle_s or 0.0) + 2.0 / f))
     return {"frames": frames, "memory_bytes": 3 * 8 * frames * pixels, "disk_bytes": 2 * frames * pixels,
-            "bench_s": bench, "motion_px": 1.33 * float(cfg.excitation.target_px), "frame_px": (int(c.height), int(c.width))}
+            "bench_s": bench, "motion_px": 1.33 * float(cfg.excitation.target_px), "frame_px": (int(frame_px[0]), int(frame_px[1]))}
+
+
+def estimate_run(cfg: IdentifyConfig) -> dict:
+    """What a run will take, estimated from its config alone (no work): ``frames`` (one
+    attempt per sweep point, calibration included), ``memory_bytes`` (the frames held as
+    float64, raw and in electrons, with a model per frame), ``disk_bytes`` (the recording,
+    16-bit pixels), ``bench_s`` (camera time: per point the settling and every frame at
+    least a camera cycle and a period apart; only when ``frames`` is within
+    :data:`LIMITS`, else NaN) and ``motion_px`` (the largest spot motion, 1.33 target_px).
+    A DM run (``dm.n_across`` > 0) counts its plan's sweep frames (patterns x frequencies x
+    exposures x repeats, also ``sweep_frames``) and its calibration's exactly, on the sensor's
+    frame (:func:`_estimate_dm`)."""
+    if cfg.dm.enabled:
+        return _estimate_dm(cfg)
+    s, c = cfg.sweep, cfg.camera
+    n_freq = len(s.freq_hz) if s.freq_hz is not None else int(s.n)
+    n_inputs = 2 if cfg.plant.is_mimo else 1
+    per_point = len(s.exposures) * int(s.images_per_point)
+    frames = n_inputs * n_freq * per_point + _CALIBRATION_FRAMES
+    return _estimate(cfg, frames, (c.height, c.width), n_drives=n_inputs, repeats=int(s.images_per_point))
 
 
 def _size(b: float) -> str:
