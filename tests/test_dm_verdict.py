@@ -54,7 +54,7 @@ def test_poor_fit_is_flagged_with_its_inflation():
     table, D = _table(poor_fit=np.array([False, True, False, False, False]), reduced_chi2=chi2)
     v = dm_verdict(table, D=D, n_failed_spot_fits=0, n_spot_problems=PROBLEMS)
     assert not v.trustworthy and v.exit_code == EXIT_FLAGGED == 4
-    assert v.line == f"verdict: 1 of 5 actuators flagged: 1 poor fit (1); 3 ok, 1 weak (3), 1 dead (4); 0 of {PROBLEMS} spot fits failed"
+    assert v.line == f"verdict: 1 of 5 actuators flagged: 1 poor fit (1); status 3 ok, 1 weak (3), 1 dead (4); 0 of {PROBLEMS} spot fits failed"
     assert v.details == ("  flagged actuator 1 (ok): poor fit (reduced chi2 3.24, stds x1.8)",)
 
 
@@ -64,7 +64,7 @@ def test_live_actuator_with_non_finite_estimates_failed_dead_one_not():
     table, D = _table(mode_hz=mode, dc_gain_std=std)
     v = dm_verdict(table, D=D, n_failed_spot_fits=0, n_spot_problems=PROBLEMS)
     assert v.failed == (1, 2) and v.poor_fit == () and v.exit_code == EXIT_FLAGGED
-    assert v.line.startswith("verdict: 2 of 5 actuators flagged: 2 failed (1, 2); 3 ok, 1 weak (3), 1 dead (4)")
+    assert v.line.startswith("verdict: 2 of 5 actuators flagged: 2 failed (1, 2); status 3 ok, 1 weak (3), 1 dead (4)")
     assert "mode_hz not finite" in v.details[0] and "dc_gain_std not finite" in v.details[1]
     # a dead actuator whose DC gain is not finite (its column had no data at all) is failed too
     table, D = _table(dc_gain=np.array([1.0, 1.0, 1.0, 0.3, np.nan]))
@@ -90,7 +90,7 @@ def test_failed_spot_fits_under_and_over_the_rule():
     over = _lose(D, 2, int(LOST_FRACTION * entries) + 1)  # 5 of 40
     v = dm_verdict(table, D=over, n_failed_spot_fits=9, n_spot_problems=PROBLEMS)
     assert v.failed == (2,) and v.exit_code == EXIT_FLAGGED
-    assert v.line == f"verdict: 1 of 5 actuators flagged: 1 failed (2); 3 ok, 1 weak (3), 1 dead (4); 9 of {PROBLEMS} spot fits failed"
+    assert v.line == f"verdict: 1 of 5 actuators flagged: 1 failed (2); status 3 ok, 1 weak (3), 1 dead (4); 9 of {PROBLEMS} spot fits failed"
     assert "12.5 % of its column lost to failed spot fits (more than 10 %)" in v.details[0]
     # a slope lost at every frequency leaves D0 without that entry: failed, whatever the fraction
     hole = np.array(table.static_column)
@@ -120,7 +120,7 @@ def test_many_flagged_are_listed_with_more():
                           poor_fit=np.ones(n, dtype=bool), reduced_chi2=one * 5.0, static_column=G, static_column_std=G * 0 + 1e-3,
                           shape=H, shape_cov=np.tile(np.eye(2), (n, FREQ.size, 1, 1)), freq_hz=FREQ)
     v = dm_verdict(table, D=G[:, :, None] * H[None], n_failed_spot_fits=0, n_spot_problems=1)
-    assert "9 of 9 actuators flagged: 9 poor fit (0, 1, 2, 3, 4, 5, ... 3 more); 9 ok" in v.line and len(v.details) == 9
+    assert "9 of 9 actuators flagged: 9 poor fit (0, 1, 2, 3, 4, 5, ... 3 more); status 9 ok" in v.line and len(v.details) == 9
 
 
 def test_bad_arguments_are_named():
@@ -197,7 +197,7 @@ def test_cli_flagged_exits_4_and_json_has_the_verdict(tmp_path, monkeypatch, cap
     rc, out = _run(tmp_path, monkeypatch, bad, small, "--json")
     captured = capsys.readouterr()
     summary = json.loads(captured.out.strip().splitlines()[-1])
-    line = "verdict: 2 of 9 actuators flagged: 1 poor fit (7), 1 failed (5); 8 ok, 1 dead (2); 40 of 1536 spot fits failed"
+    line = "verdict: 2 of 9 actuators flagged: 1 poor fit (7), 1 failed (5); status 8 ok, 1 dead (2); 40 of 1536 spot fits failed"
     assert rc == EXIT_FLAGGED and summary["verdict"] == line and summary["trustworthy"] is False
     assert summary["actuator_flags"] == {"poor_fit": [7], "failed": [5]} and summary["failed_spot_fits"] == 40
     assert captured.err.strip().splitlines()[-1] == line  # with --json the human lines (the verdict last) go to stderr

@@ -24,8 +24,8 @@ leaves a failed fit's pattern out, so the data left still give an unbiased ``D``
 
 Lines::
 
-    verdict: trustworthy: all 52 actuators within tolerance: 50 ok, 1 weak (33), 1 dead (20); model reduced chi2 <= 1.21 (chi2 test p >= 0.001); 0 of 81920 spot fits failed
-    verdict: 3 of 52 actuators flagged: 2 poor fit (12, 40), 1 failed (7); 1 weak (33), 1 dead (20); 96 of 81920 spot fits failed
+    verdict: trustworthy: all 52 actuators within tolerance: 50 ok, 1 weak (33), 1 dead (20); model reduced chi2 <= 1.48 (chi2 test p >= 0.001); 0 of 81920 spot fits failed
+    verdict: 3 of 52 actuators flagged: 2 poor fit (12, 40), 1 failed (7); status 50 ok, 1 weak (33), 1 dead (20); 96 of 81920 spot fits failed
 """
 from __future__ import annotations
 
@@ -191,7 +191,7 @@ def dm_verdict(table: ActuatorTable, *, D, n_failed_spot_fits: int, n_spot_probl
         line = f"verdict: trustworthy: all {n} actuators within tolerance: {statuses}; {model}; {fits}"
     else:
         kinds = [f"{len(ix)} {word} ({listed(ix)})" for word, ix in (("poor fit", poor), ("failed", failed)) if ix]
-        line = f"verdict: {len(flagged)} of {n} actuators flagged: {', '.join(kinds)}; {statuses}; {fits}"
+        line = f"verdict: {len(flagged)} of {n} actuators flagged: {', '.join(kinds)}; status {statuses}; {fits}"
     details = tuple(_detail(j, status[j], chi2[j] if j in poor else None, failed_why.get(j)) for j in flagged)
     return DMVerdict(line=line, trustworthy=not flagged, exit_code=EXIT_FLAGGED if flagged else 0, actuators=n,
                      flagged=len(flagged), poor_fit=poor, failed=failed, ok=ok, weak=weak, dead=dead, failed_spot_fits=n_failed,
