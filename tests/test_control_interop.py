@@ -59,6 +59,31 @@ def test_frd_is_named_and_labelled():
         frf.to_control(name=3)
 
 
+def test_a_spots_run_response_converts_in_order():
+    """A many-spot run's labels ("s0.x": python-control refuses dots) become "s0_x" in the
+    control object only, each name at its label's place; the torchblur labels are unchanged."""
+    from torchblur.image.spots import spot_labels
+    from torchblur.sysid.frequency_response import control_names
+
+    labels = spot_labels(2)  # s0.x, s0.y, s1.x, s1.y
+    h = np.stack([k * _plant(OMEGA) for k in (1.0, 2.0, 3.0, 4.0)])[:, None, :]  # output k: k H
+    frf = FrequencyResponse(OMEGA, h, input_labels=["u.1"], output_labels=labels)
+    sys_ = frf.to_control(name="spots.run")
+    assert list(sys_.output_labels) == ["s0_x", "s0_y", "s1_x", "s1_y"] and list(sys_.input_labels) == ["u_1"]
+    assert sys_.name == "spots_run" and list(frf.output_labels) == labels
+    for k in range(4):
+        np.testing.assert_allclose(np.asarray(sys_.frdata if hasattr(sys_, "frdata") else sys_.fresp)[k, 0], h[k, 0])
+    back = FrequencyResponse.from_control(sys_)
+    np.testing.assert_array_equal(back.response, frf.response)
+    # a mapped name never merges with a label that is already a name: "s0.x" and "s0_x" stay two signals
+    assert control_names(["s0.x", "s0_x", "s0.x_2"]) == ["s0_x_2", "s0_x", "s0_x_2_2"]
+    two = FrequencyResponse(OMEGA, h[:2], output_labels=["s0.x", "s0_x"]).to_control()
+    assert two.noutputs == 2 and list(two.output_labels) == ["s0_x_2", "s0_x"]
+    fit = fit_transfer_function(FrequencyResponse(OMEGA, _plant(OMEGA), input_labels=["u"], output_labels=["s0.x"]), n_poles=2,
+                                n_zeros=0)
+    assert list(fit.to_control().output_labels) == ["s0_x"]
+
+
 def test_bode_plot_accepts_the_frd_and_keeps_the_backend():
     import matplotlib.pyplot as plt
 

@@ -106,14 +106,15 @@ def test_cli_routes_a_dm_config(tmp_path, capsys, monkeypatch, small_run):
     out = capsys.readouterr()
     summary = json.loads(out.out.strip().splitlines()[-1])
     assert summary["plan"] == "hadamard" and summary["truth_errors"]["dead_reported_dead"]
+    # the verdict (tests/test_dm_verdict.py): the small run is trustworthy, its dead actuator named
+    assert summary["trustworthy"] and summary["verdict"].startswith("verdict: trustworthy: all 9 actuators within tolerance")
+    assert "1 dead (2)" in summary["verdict"] and out.err.strip().splitlines()[-1] == summary["verdict"]
+    assert (tmp_path / "run" / "report.txt").read_text().strip().splitlines()[-1] == summary["verdict"]
     assert (tmp_path / "run" / "report.txt").exists() and "dm run: 9 actuators" in out.err
-    import importlib.util
-
-    if importlib.util.find_spec("torchblur.dm.outputs") is not None:  # d2's writer, once merged
-        rows = (tmp_path / "run" / "dm" / "actuators.csv").read_text().splitlines()
-        header = rows[0].split(",")
-        assert len(rows) == 10 and rows[3].split(",")[header.index("status")] == "dead"
-        assert np.load(tmp_path / "run" / "dm" / "interaction_matrix.npy").shape == (24, 9)
+    rows = (tmp_path / "run" / "dm" / "actuators.csv").read_text().splitlines()
+    header = rows[0].split(",")
+    assert len(rows) == 10 and rows[3].split(",")[header.index("status")] == "dead"
+    assert np.load(tmp_path / "run" / "dm" / "interaction_matrix.npy").shape == (24, 9)
 
 
 def test_pixel_noise_std_does_not_follow_a_pixels_own_noise():

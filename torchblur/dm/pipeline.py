@@ -35,9 +35,11 @@ from torchblur.render.camera import CameraModel, camera_noise_std
 from torchblur.render.window import ExposureWindow
 from torchblur.dm.budget import DM_DARK_FRAMES, DM_STILL_FRAMES, dm_geometry, dm_plan
 from torchblur.dm.mirror import DeformableMirror
+from torchblur.dm.outputs import DMEstimate, write_dm_outputs
 from torchblur.dm.plans import static_motion_px
 from torchblur.dm.rig import SimulatedDMRig
 from torchblur.dm.shack_hartmann import ShackHartmann
+from torchblur.dm.verdict import run_verdict
 
 __all__ = ["DM_DARK_FRAMES", "DM_STILL_FRAMES", "DMResult", "build_dm", "identify_dm", "match_spots", "next_amplitude", "nominal_growth",
            "pixel_noise_std", "truth_errors"]
@@ -405,8 +407,11 @@ def _report(res: DMResult, elapsed: float) -> str:
 def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False, record=None, rig=None) -> int:
     """``torchblur identify`` for a DM config: run, recorded in ``OUT/experiment/`` (or in
     ``record``: an Experiment to resume, or a read-only one that ``rig``, its
-    :class:`~torchblur.hardware.recording.ReplayRig`, re-fits), then write ``OUT/dm/`` (d2's
-    outputs) and ``OUT/report.txt``; with ``as_json`` one JSON summary line on stdout."""
+    :class:`~torchblur.hardware.recording.ReplayRig`, re-fits), then write ``OUT/dm/`` and
+    ``OUT/report.txt``, the verdict line (:func:`torchblur.dm.verdict.dm_verdict`) last in both
+    and on stdout (stderr with ``as_json``, then one JSON summary line on stdout, with
+    ``verdict`` and ``trustworthy``). Returns the exit status: the verdict's (0 trustworthy, 4
+    actuators flagged); a stopped rig raises to the CLI, which names the recording."""
     import json
     import sys
     from pathlib import Path
@@ -421,13 +426,16 @@ def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False, record=None
     res = _identify_on_config_rig(cfg, rig, quiet, record=out / "experiment" if record is None else record)
     elapsed = time.perf_counter() - t0
     _write_dm_outputs(res, out)
-    report = _report(res, elapsed)
+    v = run_verdict(res)
+    report = _report(res, elapsed) + "".join(f"{line}\n" for line in (*v.details, v.line))  # the verdict line last
     (out / "report.txt").write_text("\n".join(res.log) + "\n" + report)
-    print(report, end="", file=sys.stderr if as_json else sys.stdout)
+    print(report, end="", file=sys.stderr if as_json else sys.stdout, flush=True)
     if as_json:
         print(json.dumps({"elapsed_s": elapsed, "frames": res.n_frames, "plan": res.plan.kind, "timing_s": res.timing_s,
-                          "truth_errors": truth_errors(res)}), flush=True)
-    return 0
+                          "truth_errors": truth_errors(res), "verdict": v.line, "trustworthy": v.trustworthy,
+                          "actuator_flags": {"poor_fit": list(v.poor_fit), "failed": list(v.failed)},
+                          "failed_spot_fits": v.failed_spot_fits, "spot_problems": v.spot_problems}), flush=True)
+    return v.exit_code
 
 
 def _identify_on_config_rig(cfg, rig, quiet: bool, *, record) -> DMResult:
@@ -454,15 +462,9 @@ def _identify_on_config_rig(cfg, rig, quiet: bool, *, record) -> DMResult:
 
 
 def _write_dm_outputs(res: DMResult, out) -> None:
-    """``OUT/dm/`` by :func:`torchblur.dm.outputs.write_dm_outputs` (d2's writer; until it is
-    merged, a log line)."""
+    """``OUT/dm/`` by :func:`torchblur.dm.outputs.write_dm_outputs`."""
     from torchblur.identify.record import log_message
 
-    try:
-        from torchblur.dm.outputs import DMEstimate, write_dm_outputs
-    except ImportError:  # stand-in until d2's outputs are merged
-        log_message(res.log, f"dm: {out}/dm not written (torchblur.dm.outputs is not in this tree)")
-        return
     meta = {"plan": res.plan.kind, "n_patterns": res.plan.n_patterns, "n_repeats": res.n_repeats, "n_frames": res.n_frames}
     write_dm_outputs(out, DMEstimate(freq_hz=res.freq_hz, D=res.D, D_cov=res.D_cov, table=res.actuators, meta=meta),
                      say=lambda msg: log_message(res.log, msg))

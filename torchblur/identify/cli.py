@@ -122,13 +122,16 @@ The run ends with one verdict line: 'verdict: trustworthy: ...', or 'verdict: K 
 flagged: ...' naming the points the model does not explain (poor fit: reduced chi2 above
 fit.poor_fit_chi2; stds inflated, left out of the model fit), those whose timing terms exceed
 report.tolerance_deg, the failed ones, and those the drive limit cut (limited; not by
-themselves untrustworthy). See docs/reliability.md, "Per-point flags and the verdict".
+themselves untrustworthy). See docs/reliability.md, "Per-point flags and the verdict". A DM
+run's verdict judges its actuators instead ('verdict: K of N actuators flagged: ...': poor fit,
+failed; dead and weak named, not flagged): docs/deformable_mirrors.md, "Verdict".
 
 exit status:
   0    done; trustworthy (or only points limited by the drive)
   2    bad input (config, recording)
   3    the rig stopped the run (the recording is saved; resume it)
-  4    done with points flagged poor_fit, timing or failed (results written)
+  4    done with points flagged poor_fit, timing or failed (results written); a DM run:
+       actuators flagged poor fit or failed
   130  interrupted (Ctrl-C; resume it)"""
 
 

@@ -19,7 +19,7 @@ from torchblur.identify.assemble import timing_limit_hz
 from torchblur.identify.model import model_exclusions
 from torchblur.sysid.flags import FAILED, LIMITED, NO_MOTION, POOR_FIT, TIMING, UNTRUSTED, flag_names
 
-__all__ = ["EXIT_FLAGGED", "Verdict", "report_lines", "timing_band_hz", "verdict"]
+__all__ = ["EXIT_FLAGGED", "Verdict", "listed", "report_lines", "timing_band_hz", "verdict"]
 
 #: exit status of a run that completed, results written, with points flagged poor_fit, timing or failed
 #: (3 is taken: the rig stopped the run)
@@ -82,9 +82,19 @@ def _freqs(frf, mask, motion_px=None) -> str:
             if m.size:
                 item += f": {m.max():.3g} px"
         items.append(item)
-    if ks.size > _LISTED:
-        items.append(f"... {ks.size - _LISTED} more")
-    return ", ".join(items)
+    return listed(items, len(ks))
+
+
+def listed(items, total: int | None = None) -> str:
+    """``items`` (strings, the first ``_LISTED`` of ``total``, default ``len(items)``) joined by
+    ``", "``, with ``"... K more"`` for the ones left out: ``"40 Hz, 12.6 kHz"``, ``"1, 2, 3, 4, 5,
+    6, ... 2 more"``."""
+    items = [str(x) for x in items]
+    total = len(items) if total is None else int(total)
+    shown = items[:_LISTED]
+    if total > len(shown):
+        shown.append(f"... {total - len(shown)} more")
+    return ", ".join(shown)
 
 
 def timing_band_hz(frf, tolerance_deg: float) -> float | None:

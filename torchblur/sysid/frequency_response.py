@@ -42,6 +42,7 @@ import io
 import json
 import math
 import os
+import re
 from typing import Any, Sequence
 
 import numpy as np
@@ -49,7 +50,35 @@ import numpy as np
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, TorchblurError
 from torchblur.sysid.flags import flag_names, parse_flags
 
-__all__ = ["FrequencyResponse"]
+__all__ = ["FrequencyResponse", "control_names"]
+
+#: characters python-control (0.10) refuses in a signal or system name: it reads ``"sys.signal"``
+_CONTROL_REFUSED = re.compile(r"\.")
+
+
+def control_names(labels: Sequence[str]) -> list[str]:
+    """The names python-control gets for ``labels`` (the labels themselves are unchanged).
+
+    Every character python-control refuses in a name (``"."``) becomes ``"_"``: ``"s0.x"`` ->
+    ``"s0_x"``. A name that would then repeat a label or an earlier name gets ``"_2"``,
+    ``"_3"``, ... (python-control would merge repeated names into one signal without a word).
+    Name ``k`` is label ``k``'s: the order is kept.
+
+    >>> control_names(["s0.x", "s0.y", "s0_x"])
+    ['s0_x_2', 's0_y', 's0_x']
+    """
+    labels = [str(lab) for lab in labels]
+    reserved = {lab for lab in labels if not _CONTROL_REFUSED.search(lab)}
+    names: list[str] = []
+    used: set[str] = set()
+    for lab in labels:
+        base = _CONTROL_REFUSED.sub("_", lab)
+        name, k = base, 2
+        while name in used or (name != lab and name in reserved):
+            name, k = f"{base}_{k}", k + 1
+        used.add(name)
+        names.append(name)
+    return names
 
 _SCHEMA = "torchblur.sysid.frequency_response"
 _SUPPORTED_SCHEMA_VERSIONS = (1,)
@@ -491,7 +520,9 @@ class FrequencyResponse:
         The FRD carries ``name``, ``inputs=input_labels`` and ``outputs=output_labels``, so
         ``control.bode_plot``, ``control.stability_margins`` and ``control.feedback`` accept
         it (python-control 0.10.2 leaves an FRD built with labels but no name unnamed, and
-        ``bode_plot`` then raises TypeError).
+        ``bode_plot`` then raises TypeError). Names python-control refuses are mapped by
+        :func:`control_names` (``"s0.x"`` of a many-spot run becomes ``"s0_x"``, in the control
+        object only; the order is kept).
 
         Args:
             smooth: passed to ``control.frd``: True builds a spline so the object can be
@@ -509,9 +540,9 @@ class FrequencyResponse:
             np.array(data),
             np.array(self._omega),
             smooth=bool(smooth),
-            inputs=list(self._input_labels),
-            outputs=list(self._output_labels),
-            name=name,
+            inputs=control_names(self._input_labels),
+            outputs=control_names(self._output_labels),
+            name=control_names([name])[0],
         )
 
     @classmethod

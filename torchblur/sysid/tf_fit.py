@@ -70,7 +70,7 @@ import scipy.linalg
 import scipy.optimize
 
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_frequency_grid, check_bool, check_int
-from torchblur.sysid.frequency_response import FrequencyResponse
+from torchblur.sysid.frequency_response import FrequencyResponse, control_names
 
 __all__ = ["fit_transfer_function", "TransferFunctionFit"]
 
@@ -159,7 +159,9 @@ class TransferFunctionFit:
 
         Returns:
             ``control.TransferFunction`` or ``control.FrequencyResponseData`` with
-            ``inputs=input_labels``, ``outputs=output_labels``; 1x1 for SISO, OxI for MIMO.
+            ``inputs=input_labels``, ``outputs=output_labels`` (names python-control refuses
+            mapped by :func:`~torchblur.sysid.frequency_response.control_names`); 1x1 for
+            SISO, OxI for MIMO.
 
         Raises:
             ParameterError: ``delay`` not one of ``{None, "pade", "frd"}``; ``pade_order``
@@ -173,7 +175,7 @@ class TransferFunctionFit:
         if not isinstance(name, str):
             raise InputTypeError(f"name: expected a string, got {type(name).__name__}")
         pade_order = check_int(pade_order, "pade_order", low=1)
-        labels = dict(inputs=list(self.input_labels), outputs=list(self.output_labels), name=name)
+        labels = dict(inputs=control_names(self.input_labels), outputs=control_names(self.output_labels), name=control_names([name])[0])
         if delay == "frd":
             if omega is None:
                 raise ParameterError("omega: delay='frd' needs the frequency grid omega [F] (rad/s)")
