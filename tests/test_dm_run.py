@@ -114,18 +114,3 @@ def test_cli_routes_a_dm_config(tmp_path, capsys, monkeypatch, small_run):
         header = rows[0].split(",")
         assert len(rows) == 10 and rows[3].split(",")[header.index("status")] == "dead"
         assert np.load(tmp_path / "run" / "dm" / "interaction_matrix.npy").shape == (24, 9)
-
-
-def test_pixel_noise_std_does_not_follow_a_pixels_own_noise():
-    import torch
-
-    from torchblur.dm.pipeline import pixel_noise_std
-    from torchblur.render.camera import camera_noise_std
-
-    flat = torch.full((2, 3, 8, 8), 900.0, dtype=torch.float64)
-    np.testing.assert_allclose(pixel_noise_std(flat, 5.0).numpy(), camera_noise_std(flat, 5.0).numpy())
-    bumped = flat.clone()
-    bumped[1, 2, 4, 4] += 90.0
-    var = pixel_noise_std(bumped, 5.0) ** 2 - pixel_noise_std(flat, 5.0) ** 2
-    assert float(var[1, 2, 4, 4]) == pytest.approx(10.0)  # a ninth of the bump
-    assert float(var[0].abs().max()) == 0.0 and float(var[1, 2, 4, 6]) == 0.0

@@ -31,14 +31,14 @@ import numpy as np
 import torch
 
 from torchblur.errors import ParameterError
-from torchblur.render.camera import CameraModel, camera_noise_std
+from torchblur.render.camera import CameraModel
 from torchblur.render.window import ExposureWindow
 from torchblur.dm.mirror import DeformableMirror
 from torchblur.dm.plans import choose_plan, static_motion_px
 from torchblur.dm.rig import SimulatedDMRig
 from torchblur.dm.shack_hartmann import ShackHartmann
 
-__all__ = ["DMResult", "build_dm", "identify_dm", "match_spots", "next_amplitude", "nominal_growth", "pixel_noise_std", "truth_errors"]
+__all__ = ["DMResult", "build_dm", "identify_dm", "match_spots", "next_amplitude", "nominal_growth", "truth_errors"]
 
 _F64 = torch.float64
 
@@ -173,25 +173,13 @@ def _fit_frequency(frames, window, omega, amplitude, power, cal, psf, offset, si
     crops, in_frame = crop_problems(e[:, None], offset, size)  # [P, 1, M, ER, h, w]
     hot = _crop_mask(cal.dark.hot_pixels, offset, size)
     p = GaussianPSF(psf.center, psf.cov, psf.amplitude * power)
-    fits = fit_spot_problems(crops, p, window, torch.tensor([omega], dtype=_F64), noise_std=pixel_noise_std(crops, cal.read_noise_e),
-                             mask=(in_frame & ~hot)[:, None], **fit_options)
+    # weights from the camera's noise model: the fitter refits with the first fit's expected signal
+    fits = fit_spot_problems(crops, p, window, torch.tensor([omega], dtype=_F64), noise=cal.noise, mask=(in_frame & ~hot)[:, None],
+                             **fit_options)
     n = window.shape[-1]
     phase_var = float(timing_phase_std(omega, jitter_s, cal.latency_std_s, n)) ** 2
     Y, Yc = pattern_responses(fits, amplitude, phase_var=phase_var)
     return Y[..., 0], Yc[:, :, 0], int((fits.status != 0).sum())
-
-
-def pixel_noise_std(crops: torch.Tensor, read_noise_e: float) -> torch.Tensor:
-    """Pixel noise std (electrons) of crops ``[..., h, w]``: ``camera_noise_std`` of the crops
-    smoothed by a 3 x 3 mean (the edges averaged over the pixels inside). The weights of a fit
-    must not follow each pixel's own noise: with the raw data a pixel that fluctuates up gets a
-    smaller weight, which pulled the fitted amplitudes down by 0.2 % (noise-free camera but 0.5 e-
-    read noise) to 0.6 % (the DM config's camera) on the 9-actuator run; the smoothed level
-    carries a ninth of a pixel's own noise."""
-    shape = crops.shape
-    x = crops.reshape((-1, 1) + tuple(shape[-2:]))
-    smooth = torch.nn.functional.avg_pool2d(x, 3, stride=1, padding=1, count_include_pad=False)
-    return camera_noise_std(smooth.reshape(shape), read_noise_e)
 
 
 def _crop_mask(mask, offset, size):
