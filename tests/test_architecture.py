@@ -9,7 +9,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1] / "torchblur"
 # May name torchblur.identify: the package's lazy table and the old flat paths.
 IDENTIFY_EXCEPTIONS = {"torchblur", "torchblur._legacy",
-                       "torchblur.dm.pipeline"}  # the DM run: a pipeline beside identify's, reusing its calibration stage
+                       "torchblur.dm.pipeline",  # the DM run: a pipeline beside identify's, reusing its calibration stage
+                       "torchblur.dm.record"}  # the DM run's recording: identify's experiment folder, resume and re-fit checks
 # The identification's settings: a leaf (it imports nothing of torchblur.identify) that the
 # bench emulator shares for its plant, camera and spots sections.
 IDENTIFY_DATA = "torchblur.identify.config"

@@ -33,12 +33,14 @@ import torch
 from torchblur.errors import ParameterError
 from torchblur.render.camera import CameraModel
 from torchblur.render.window import ExposureWindow
+from torchblur.dm.budget import DM_DARK_FRAMES, DM_STILL_FRAMES, dm_geometry, dm_plan
 from torchblur.dm.mirror import DeformableMirror
-from torchblur.dm.plans import choose_plan, static_motion_px
+from torchblur.dm.plans import static_motion_px
 from torchblur.dm.rig import SimulatedDMRig
 from torchblur.dm.shack_hartmann import ShackHartmann
 
-__all__ = ["DMResult", "build_dm", "identify_dm", "match_spots", "next_amplitude", "nominal_growth", "truth_errors"]
+__all__ = ["DM_DARK_FRAMES", "DM_STILL_FRAMES", "DMResult", "build_dm", "identify_dm", "match_spots", "next_amplitude", "nominal_growth",
+           "truth_errors"]
 
 _F64 = torch.float64
 
@@ -85,10 +87,10 @@ class DMResult:
     log: list = field(default_factory=list)
 
 
-def build_dm(cfg, *, base_dir: str | None = None):
+def build_dm(cfg, *, base_dir: str | None = None, rig_seed: int | None = None):
     """``(mirror, wfs, rig)`` of a DM config: the simulated mirror (``dm`` section, seeded by
     ``seed``), the sensor (``wfs``) and the :class:`~torchblur.dm.rig.SimulatedDMRig` with the
-    ``camera`` section's sensor and timing."""
+    ``camera`` section's sensor and timing (its noise seeded by ``rig_seed``, default ``seed``)."""
     mirror = DeformableMirror.from_config(cfg.dm, base_dir=base_dir, seed=int(cfg.seed))
     wfs = ShackHartmann.from_config(cfg.wfs, mirror)
     c = cfg.camera
@@ -96,7 +98,7 @@ def build_dm(cfg, *, base_dir: str | None = None):
                          bit_depth=int(c.bit_depth))
     rig = SimulatedDMRig(mirror=mirror, wfs=wfs, camera=camera, frame_rate_hz=c.frame_rate_hz, trigger_delay_s=c.trigger_delay_s,
                          readout_s=c.readout_s, max_exposure_s=c.max_exposure_s, latency_s=c.latency_s, jitter_s=c.jitter_s,
-                         seed=int(cfg.seed))
+                         seed=int(cfg.seed) if rig_seed is None else int(rig_seed))
     return mirror, wfs, rig
 
 
@@ -141,19 +143,17 @@ def next_amplitude(*, target_px: float, motion_per_unit: float, input_limit: flo
     return float(min(amp, input_limit / max_pattern))
 
 
-# The DM run's stds are small (0.03 % on a DC gain): each spot's PSF, fitted from the still frames
-# and held fixed, and the dark mean subtracted from every frame must be known better than that.
-DM_DARK_FRAMES = 256
-DM_STILL_FRAMES = 128
+# DM_DARK_FRAMES, DM_STILL_FRAMES (torchblur.dm.budget): the calibration's dark and still frames.
 
-def _calibrate(cfg, rig, wfs, log, progress):
-    """Stage 1 (module docstring): the calibration and the spots in valid-subaperture order."""
+def _calibrate(cfg, rig, wfs, log, progress, exp=None):
+    """Stage 1 (module docstring): the calibration (from the recording ``exp`` where it holds
+    it) and the spots in valid-subaperture order."""
     from torchblur.identify.calibration import calibrate
     from torchblur.identify.record import log_message
 
     n = int(cfg.wfs.n_across)
     spots_cfg = replace(cfg.spots, rows=n, cols=n, pitch_px=float(cfg.wfs.pitch_px), sigma_px=float(cfg.wfs.sigma_px))
-    cal = calibrate(replace(cfg, spots=spots_cfg), rig, log=log, progress=progress, n_dark=DM_DARK_FRAMES, n_still=DM_STILL_FRAMES)
+    cal = calibrate(replace(cfg, spots=spots_cfg), rig, exp, log=log, progress=progress, n_dark=DM_DARK_FRAMES, n_still=DM_STILL_FRAMES)
     order = match_spots(cal.spots.psf.center.numpy(), wfs.rest_px, wfs.pitch_px)
     log_message(log, f"dm spots: {len(cal.spots)} found, matched to the {wfs.n_valid} valid subapertures (the other "
                      f"{n * n - wfs.n_valid} cells of the {n}x{n} grid are outside the pupil)", progress)
@@ -189,13 +189,16 @@ def _crop_mask(mask, offset, size):
     return crop_spots(mask, offset, size)
 
 
-def _acquire_frequency(rig, plan, f, amp, te, offset_s, R, settle_s, power, latency_s):
-    """Every pattern at frequency ``f``: frames ``[P, E*R, H, W]`` and their windows ``[P, 1, E*R]``."""
+def _acquire_frequency(rig, plan, f, amp, te, offset_s, R, settle_s, power, latency_s, trigger_delay_s):
+    """Every pattern at frequency ``f``: frames ``[P, E*R, H, W]`` and their windows ``[P, 1, E*R]``
+    (a frame's exposure starts ``trigger_delay_s + latency_s`` after its trigger). The rig is
+    called by keyword (a recording stores the arguments by name)."""
     frames, starts, durs = [], [], []
     for row in plan.patterns:
-        cap = rig.pattern_sine(row, f, amp, te, offset_s, R, settle_s=settle_s, power=power)
+        cap = rig.pattern_sine(pattern=row, freq_hz=f, amplitude=amp, exposures_s=te, trigger_offset_s=offset_s, n_repeats=R,
+                               settle_s=settle_s, power=power)
         frames.append(cap.frames.reshape((-1,) + tuple(cap.frames.shape[-2:])))
-        starts.append(cap.trigger_time_s.reshape(-1) + rig.trigger_delay_s + latency_s)
+        starts.append(cap.trigger_time_s.reshape(-1) + trigger_delay_s + latency_s)
         durs.append(cap.exposure_s.reshape(-1))
     window = ExposureWindow(torch.stack(starts)[:, None], torch.stack(durs)[:, None])
     return torch.stack(frames), window
@@ -206,15 +209,18 @@ def _fit_options(cfg) -> dict:
             "fit_background": bool(cfg.fit.fit_background)}
 
 
-def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, log, progress):
-    """Stage 3 (module docstring): ``(amplitude [F], power [F], Y [P, 2M, F], Y_cov, failed, frames, t_acq, t_wait)``."""
+def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, log, progress, exp=None):
+    """Stage 3 (module docstring): ``(amplitude [F], power [F], Y [P, 2M, F], Y_cov, failed, frames, t_acq, t_wait)``.
+    With a recording ``exp`` each frequency is one group (:mod:`torchblur.dm.record`): taken from
+    it, at its recorded amplitude, where it holds it, else acquired and recorded."""
+    from torchblur.dm.record import recorded_labels, sweep_key, take_group
     from torchblur.identify.record import log_message
 
     freqs = cfg.frequencies_hz()
     F, P, M2 = len(freqs), plan.n_patterns, G.shape[0]
     c, s = cfg.camera, cfg.sweep
     motion_static = static_motion_px(plan, G)
-    limit = math.inf if cfg.dm.input_limit is None else float(cfg.dm.input_limit)
+    limit = min(math.inf if cfg.dm.input_limit is None else float(cfg.dm.input_limit), cal.input_limit)  # and the rig's RANGE?
     amps, powers, futures = np.zeros(F), np.zeros(F), []
     done_ref = None  # (index of the last fitted frequency, its largest |Y| per unit amplitude)
     t_acq = 0.0
@@ -226,22 +232,30 @@ def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, log, progress):
                     M = M2 // 2
                     done_ref = (i, float(np.nanmax(np.hypot(np.abs(Yk[:, :M]), np.abs(Yk[:, M:])))))
                     break
-            if done_ref is None or not math.isfinite(done_ref[1]):
-                motion = motion_static * nominal_growth(cfg.dm, f, None)
+            rec = recorded_labels(exp, sweep_key(k))
+            if rec is not None:
+                amps[k] = float(rec["amplitude"])
             else:
-                motion = done_ref[1] * nominal_growth(cfg.dm, f, freqs[done_ref[0]])
-            amps[k] = next_amplitude(target_px=float(cfg.excitation.target_px), motion_per_unit=motion, input_limit=limit,
-                                     max_pattern=float(np.abs(plan.patterns).max()))
+                if done_ref is None or not math.isfinite(done_ref[1]):
+                    motion = motion_static * nominal_growth(cfg.dm, f, None)
+                else:
+                    motion = done_ref[1] * nominal_growth(cfg.dm, f, freqs[done_ref[0]])
+                amps[k] = next_amplitude(target_px=float(cfg.excitation.target_px), motion_per_unit=motion, input_limit=limit,
+                                         max_pattern=float(np.abs(plan.patterns).max()))
             te = [float(e) / f for e in s.exposures]
             powers[k] = c.peak_fraction * cal.full_adu * cal.gain / (cal.peak_rate * max(te))
+            delay = float(rec["trigger_delay_s"]) if rec is not None else float(getattr(rig, "trigger_delay_s", c.trigger_delay_s))
+            labels = {"freq_hz": float(f), "amplitude": float(amps[k]), "power": float(powers[k]), "point": k,
+                      "trigger_delay_s": delay, "n_patterns": P, "n_repeats": R}
             t0 = time.perf_counter()
-            frames, window = _acquire_frequency(rig, plan, f, float(amps[k]), te, float(s.trigger_phase_rad) / (2 * math.pi * f), R,
-                                                s.settle_s, float(powers[k]), cal.latency_s)
+            frames, window = take_group(exp, sweep_key(k), rig, lambda r: _acquire_frequency(
+                r, plan, f, float(amps[k]), te, float(s.trigger_phase_rad) / (2 * math.pi * f), R, s.settle_s, float(powers[k]),
+                cal.latency_s, delay), labels)
             t_acq += time.perf_counter() - t0
             futures.append(pool.submit(_fit_frequency, frames, window, 2 * math.pi * f, float(amps[k]), float(powers[k]), cal, psf,
                                        offset, size, float(c.jitter_s), _fit_options(cfg)))
             log_message(log, f"dm sweep: {f:.4g} Hz, amplitude {amps[k]:.4g}, power {powers[k]:.3g}, {P} patterns x "
-                             f"{len(te)} exposures x {R} repeats ({k + 1}/{F})", progress)
+                             f"{len(te)} exposures x {R} repeats ({k + 1}/{F}{', recorded' if rec is not None else ''})", progress)
         t0 = time.perf_counter()
         results = [fu.result() for fu in futures]
         t_wait = time.perf_counter() - t0
@@ -251,38 +265,81 @@ def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, log, progress):
     return amps, powers, Y, Y_cov, failed, P * F * len(s.exposures) * R, t_acq, t_wait
 
 
-def identify_dm(cfg, rig=None, *, progress: bool = False, base_dir: str | None = None) -> DMResult:
+def identify_dm(cfg, rig=None, *, progress: bool = False, base_dir: str | None = None, record=None) -> DMResult:
     """Run a DM identification (module docstring) on ``rig`` (default: the config's simulated
-    DM rig). Returns a :class:`DMResult`."""
-    from torchblur.dm.actuator_fit import fit_actuators
-    from torchblur.dm.demux import demultiplex
+    DM rig). Returns a :class:`DMResult`.
+
+    ``record``: None, a directory or a :class:`~torchblur.hardware.recording.Experiment`: the run
+    is recorded there as it goes (:mod:`torchblur.dm.record`). Groups it holds already (a resumed
+    run) are taken from it instead of the rig (a resumed simulated rig draws its own noise stream,
+    :func:`~torchblur.dm.record.resume_seed`); a read-only one with a
+    :class:`~torchblur.hardware.recording.ReplayRig` re-fits the recording.
+
+    Raises:
+        HardwareError: the rig failed (the recording so far is kept; resume it); KeyboardInterrupt: likewise.
+    """
+    from torchblur.dm.record import open_recording, resume_seed, same_table, session, session_info, simulated_frames, table_digest
+    from torchblur.hardware.errors import RecordingError
     from torchblur.identify.record import log_message
 
     log: list = []
     model_mirror, wfs, sim = build_dm(cfg, base_dir=base_dir)
+    exp = open_recording(record, cfg, sim if rig is None else rig)
+    resumed = exp is not None and exp.writable and bool(exp.meta["sessions"])
+    if rig is None and resumed:
+        sim = build_dm(cfg, base_dir=base_dir, rig_seed=resume_seed(int(cfg.seed), len(exp.meta["sessions"])))[2]
     rig = sim if rig is None else rig
-    G = wfs.geometry_matrix(model_mirror)  # the geometry does not depend on the dynamics
+    digest = table_digest(cfg, base_dir)
+    simulated = simulated_frames(isinstance(rig, SimulatedDMRig), exp)
+    if simulated and exp is not None and not same_table(exp, digest):
+        if exp.writable:
+            exp.close()
+            raise RecordingError(f"dm.actuator_table: {cfg.dm.actuator_table} is not the file the recording {exp.path} was "
+                                 f"simulated with (its SHA-256 differs); resume with that file, or record anew")
+        simulated = False
+        log_message(log, f"dm: no simulated truth: {cfg.dm.actuator_table} is not the actuator table the recording was simulated "
+                         f"with (its SHA-256 differs)", progress)
+    truth_rig = (rig if isinstance(rig, SimulatedDMRig) else sim) if simulated else None
+    with session(exp, session_info(cfg, rig, digest)):
+        if resumed:
+            log_message(log, f"resume: {len(exp.groups)} recorded group(s) in {exp.path} are reused", progress)
+        return _identify_dm(cfg, rig, exp, model_mirror, wfs, truth_rig, log, progress)
+
+
+def _identify_dm(cfg, rig, exp, model_mirror, wfs, truth_rig, log, progress) -> DMResult:
+    """:func:`identify_dm` once the rig and the recording are open (``truth_rig``: the simulated
+    rig whose truth the result carries, or None)."""
+    from torchblur.dm.actuator_fit import fit_actuators
+    from torchblur.dm.demux import demultiplex
+    from torchblur.dm.record import check_recorded_commands, run_plan
+    from torchblur.identify.record import log_message
+
+    G = dm_geometry(cfg)  # the geometry does not depend on the dynamics (nor on dm.actuator_table)
     t = {}
     t0 = time.perf_counter()
-    cal, psf, offset, size = _calibrate(cfg, rig, wfs, log, progress)
+    cal, psf, offset, size = _calibrate(cfg, rig, wfs, log, progress, exp)
     t["calibration"] = time.perf_counter() - t0
     freqs = np.asarray(cfg.frequencies_hz())
-    plan, R, info = choose_plan(cfg.dm_plan.kind, G, budget_frames=cfg.dm_plan.budget_frames, n_freq=len(freqs),
-                                n_exposures=len(cfg.sweep.exposures), threshold=float(cfg.dm_plan.support_threshold),
-                                n_repeats=cfg.dm_plan.n_repeats)
+    plan, R, info = dm_plan(cfg)
+    plan, R = run_plan(exp, plan, R, G, float(cfg.dm_plan.support_threshold), lambda msg: log_message(log, msg, progress))
+    if exp is not None and exp.writable:
+        check_recorded_commands(exp, math.inf if cfg.dm.input_limit is None else float(cfg.dm.input_limit))
     log_message(log, f"dm plan: {plan.kind}, {plan.n_patterns} patterns x {len(freqs)} frequencies x {len(cfg.sweep.exposures)} "
                      f"exposures x {R} repeats = {plan.n_frames(len(freqs), len(cfg.sweep.exposures), R)} frames; frames for the same "
                      f"accuracy vs one at a time: {info['cost_ratio_to_one_at_a_time']:.3f}", progress)
     amps, powers, Y, Y_cov, failed, n_frames, t["acquisition"], t["fit_wait"] = _sweep(cfg, rig, plan, R, G, cal, psf, offset, size,
-                                                                                         log, progress)
+                                                                                         log, progress, exp)
     t0 = time.perf_counter()
     D, D_cov = demultiplex(Y, Y_cov, plan.patterns, plan.support)
     table = fit_actuators(freqs, D, D_cov, G, actuator_xy=model_mirror.actuator_xy)
     t["estimation"] = time.perf_counter() - t0
-    truth = rig.truth_D(freqs) if isinstance(rig, SimulatedDMRig) else None
+    if exp is not None:
+        log_message(log, f"recording: {exp.stats['groups_written']} group(s) written ({exp.stats['write_s']:.2f} s), "
+                         f"{exp.stats['groups_reused']} reused, in {exp.path}", progress)
+    truth = truth_rig.truth_D(freqs) if truth_rig is not None else None
     return DMResult(freq_hz=freqs, plan=plan, n_repeats=R, plan_info=info, amplitude=amps, power=powers, Y=Y, Y_cov=Y_cov, D=D,
                     D_cov=D_cov, actuators=table, G=G, actuator_xy=model_mirror.actuator_xy, n_frames=n_frames, n_failed=failed,
-                    timing_s=t, truth_D=truth, mirror=rig.mirror if isinstance(rig, SimulatedDMRig) else None, log=log)
+                    timing_s=t, truth_D=truth, mirror=truth_rig.mirror if truth_rig is not None else None, log=log)
 
 
 def truth_errors(res: DMResult) -> dict | None:
@@ -333,9 +390,11 @@ def _report(res: DMResult, elapsed: float) -> str:
     return "\n".join(lines) + "\n"
 
 
-def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False) -> int:
-    """``torchblur identify`` for a DM config: run, then write ``OUT/dm/`` (d2's outputs) and
-    ``OUT/report.txt``; with ``as_json`` one JSON summary line on stdout."""
+def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False, record=None, rig=None) -> int:
+    """``torchblur identify`` for a DM config: run, recorded in ``OUT/experiment/`` (or in
+    ``record``: an Experiment to resume, or a read-only one that ``rig``, its
+    :class:`~torchblur.hardware.recording.ReplayRig`, re-fits), then write ``OUT/dm/`` (d2's
+    outputs) and ``OUT/report.txt``; with ``as_json`` one JSON summary line on stdout."""
     import json
     import sys
     from pathlib import Path
@@ -347,7 +406,7 @@ def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False) -> int:
     (out / "config.yaml").write_text(config_to_yaml(cfg))
     torch.manual_seed(int(cfg.seed))
     t0 = time.perf_counter()
-    res = identify_dm(cfg, progress=not quiet)
+    res = _identify_on_config_rig(cfg, rig, quiet, record=out / "experiment" if record is None else record)
     elapsed = time.perf_counter() - t0
     _write_dm_outputs(res, out)
     report = _report(res, elapsed)
@@ -357,6 +416,29 @@ def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False) -> int:
         print(json.dumps({"elapsed_s": elapsed, "frames": res.n_frames, "plan": res.plan.kind, "timing_s": res.timing_s,
                           "truth_errors": truth_errors(res)}), flush=True)
     return 0
+
+
+def _identify_on_config_rig(cfg, rig, quiet: bool, *, record) -> DMResult:
+    """:func:`identify_dm` recorded in ``record`` on ``rig`` (a re-fit's ReplayRig) or else the
+    config's rig: the simulated DM rig, or with ``rig.kind=serial`` a
+    :class:`~torchblur.hardware.serial_dm_rig.SerialDMRig` on ``rig.port`` and ``rig.frames``
+    (closed after the run). A HardwareError goes to the caller (the CLI names the recording and
+    how to resume it)."""
+    if rig is not None or cfg.rig.kind != "serial":
+        return identify_dm(cfg, rig, progress=not quiet, record=record)
+    import logging
+
+    from torchblur.hardware.serial_dm_rig import open_dm_rig
+
+    rig = open_dm_rig(cfg, log=logging.getLogger("torchblur.hardware").info)
+    try:
+        res = identify_dm(cfg, rig, progress=not quiet, record=record)
+    finally:
+        rig.close()
+    st = rig.stats
+    res.log += [f"serial link: {rig!r}: {st['calls']} calls, {st['retries']} retried, {st['resets']} controller resets, "
+                f"{st['reconnects']} reconnects, {st['stale_discarded']} stale frames discarded", *rig.events]
+    return res
 
 
 def _write_dm_outputs(res: DMResult, out) -> None:

@@ -197,13 +197,7 @@ class SimulatedDMRig(SimulatedRig):
         ``meta`` holds ``pattern``, ``freq_hz``, ``omega``, ``period_s``, ``amplitude``,
         ``settle_s``, ``power``, ``trigger_delay_s`` and, for tests only, ``actual_start_s``.
         """
-        N = self._mirror.n_actuators
-        p = np.asarray(float_list(pattern, "pattern") if np.ndim(pattern) <= 1 else pattern, dtype=np.float64)
-        if p.shape != (N,):
-            raise ShapeError(f"pattern: expected [{N}] (one command per actuator), got shape {p.shape}")
-        freq = check_real_scalar(freq_hz, "freq_hz", positive=True)
-        amp = check_real_scalar(amplitude, "amplitude")
-        self._mirror.check_command(amp * p, "amplitude")
+        p, freq, amp, a_px, ph = self._pattern_motion(pattern, freq_hz, amplitude)
         power = self._check_power(power)
         R = check_int(n_repeats, "n_repeats", low=1)
         te = [self._check_exposure(v, "exposures_s") for v in float_list(exposures_s, "exposures_s")]
@@ -212,8 +206,6 @@ class SimulatedDMRig(SimulatedRig):
         if settle_s is None:
             settle_s = math.ceil(self._mirror.settling_time_s() / period - 1e-9) * period
         settle, trig_t, exp_t, off_t = self._schedule(period, te, offsets, R, settle_s)
-        a_px, ph = spot_motion(self.truth_D(freq), p, amp)
-        self._check_reach(a_px)
         window = self._actual_starts(trig_t, exp_t)
         flat = ExposureWindow(window.start.reshape(-1), window.duration.reshape(-1))
         omega = 2 * math.pi * freq
@@ -222,6 +214,26 @@ class SimulatedDMRig(SimulatedRig):
         meta = {"kind": "pattern_sine", "pattern": p, "freq_hz": freq, "omega": omega, "period_s": period, "amplitude": amp,
                 "settle_s": settle, "power": power, "trigger_delay_s": self._trigger_delay_s, "actual_start_s": window.start}
         return self._capture(expected, exp_t, off_t, trig_t, meta=meta)
+
+    def check_pattern(self, pattern, freq_hz: float, amplitude: float) -> None:
+        """Raise what :meth:`pattern_sine` raises for this command (``pattern`` not [N], a
+        command beyond ``input_limit`` or a spot leaving its crop), without rendering: the
+        bench emulator refuses such a waveform when it starts."""
+        self._pattern_motion(pattern, freq_hz, amplitude)
+
+    def _pattern_motion(self, pattern, freq_hz, amplitude):
+        """The checked command and every spot's sinusoid: ``(pattern [N], freq_hz, amplitude,
+        amplitude_px [M, 2], phase_rad [M, 2])``."""
+        N = self._mirror.n_actuators
+        p = np.asarray(float_list(pattern, "pattern") if np.ndim(pattern) <= 1 else pattern, dtype=np.float64)
+        if p.shape != (N,):
+            raise ShapeError(f"pattern: expected [{N}] (one command per actuator), got shape {p.shape}")
+        freq = check_real_scalar(freq_hz, "freq_hz", positive=True)
+        amp = check_real_scalar(amplitude, "amplitude")
+        self._mirror.check_command(amp * p, "amplitude")
+        a_px, ph = spot_motion(self.truth_D(freq), p, amp)
+        self._check_reach(a_px)
+        return p, freq, amp, a_px, ph
 
     def sine(self, freq_hz: float, amplitude: float, exposures_s: Sequence[float], trigger_offset_s: float | Sequence[float],
              n_repeats: int, settle_s: float | None = None, power: float = 1.0, input: str = "a0") -> Capture:

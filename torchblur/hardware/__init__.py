@@ -6,7 +6,9 @@
   :class:`ReplayFrames` (a recorded experiment directory), :class:`SDKCamera` (the base a
   real camera's SDK plugs into).
 - :class:`SerialRig`: the :class:`~torchblur.rig.base.Rig` protocol on a controller and a
-  camera, so ``identify(cfg, rig=SerialRig.open(port, frames))`` runs unchanged.
+  camera, so ``identify(cfg, rig=SerialRig.open(port, frames))`` runs unchanged;
+  :class:`SerialDMRig` the same for a deformable mirror (protocol 2), so
+  ``identify_dm(cfg, rig=SerialDMRig.open(port, frames))`` does.
 - :class:`Experiment`: the experiment directory written as a run goes (TIFF frames,
   ``manifest.jsonl``, the resolved config), read back to resume or re-fit.
 - ``torchblur emulator``: :mod:`torchblur.hardware.emulator`, a process that behaves like
@@ -19,11 +21,12 @@ from __future__ import annotations
 from torchblur.hardware.camera_sdk import SDKCamera
 from torchblur.hardware.controller import Controller
 from torchblur.hardware.errors import (AcquisitionStopped, ConnectionLost, DeviceError, DeviceReset, FrameError, FrameGap, FrameMismatch,
-                     FrameTimeout, GarbageReply, HardwareError, RecordingError, ReplyTimeout, StaleFrame)
+                     FrameTimeout, GarbageReply, HardwareError, PatternMismatch, RecordingError, ReplyTimeout, StaleFrame)
 from torchblur.hardware.frames import CameraInfo, EmulatorFrames, Frame, FrameSource
 from torchblur.hardware.protocol import ERROR_CODES, PROTOCOL_VERSION
 from torchblur.hardware.recording import SCHEMA_VERSION, Experiment, ReplayFrames
 from torchblur.hardware.serial_rig import SerialRig, open_frame_source
+from torchblur.hardware.serial_dm_rig import SerialDMRig
 
 __all__ = [
     "AcquisitionStopped",
@@ -44,11 +47,13 @@ __all__ = [
     "GarbageReply",
     "HardwareError",
     "PROTOCOL_VERSION",
+    "PatternMismatch",
     "RecordingError",
     "ReplayFrames",
     "ReplyTimeout",
     "SCHEMA_VERSION",
     "SDKCamera",
+    "SerialDMRig",
     "SerialRig",
     "StaleFrame",
     "open_frame_source",

@@ -22,7 +22,8 @@ import secrets
 import time
 
 from torchblur.hardware.errors import ConnectionLost, DeviceError, GarbageReply, ReplyTimeout
-from torchblur.hardware.protocol import E_UNKNOWN, MAX_LINE, PROTOCOL_VERSION, Reply, format_command, parse_reply
+from torchblur.hardware.protocol import (E_UNKNOWN, MAX_LINE, PROTOCOL_VERSIONS, Reply, format_command, parse_reply, pattern_checksum,
+                                         pattern_lines)
 
 __all__ = ["Controller", "import_serial"]
 
@@ -258,15 +259,17 @@ class Controller:
 
     def identify(self) -> dict:
         """``ID?`` -> ``{"name", "firmware", "protocol" (int), "axes" (list)}``; raises
-        :class:`GarbageReply` for a protocol version this client does not speak."""
+        :class:`GarbageReply` for a protocol version this client does not speak (it speaks
+        :data:`~torchblur.hardware.protocol.PROTOCOL_VERSIONS`)."""
         r = self.command("ID?")
         info = dict(r.fields)
         try:
             info["protocol"] = int(info.get("protocol", "-1"))
         except ValueError:
             info["protocol"] = -1
-        if info["protocol"] != PROTOCOL_VERSION:
-            raise GarbageReply(f"the controller speaks protocol {info['protocol']}, this client {PROTOCOL_VERSION}")
+        if info["protocol"] not in PROTOCOL_VERSIONS:
+            raise GarbageReply(f"the controller speaks protocol {info['protocol']}, this client "
+                               f"{' or '.join(str(v) for v in PROTOCOL_VERSIONS)}")
         info["axes"] = info.get("axes", "").split(",") if info.get("axes") else []
         return info
 
@@ -341,6 +344,54 @@ class Controller:
         """``PULSE``; returns ``(first frame counter, count)``."""
         r = self.command("PULSE", float(trigger_offset_s), float(pulse_time_s), float(pulse_width_s), float(exposure_s), int(count))
         return r.get_int("first"), r.get_int("count")
+
+    # ------------------------------------------------------------------ protocol 2: a DM's pattern
+
+    def actuators(self) -> int:
+        """``ACT?`` -> the number of actuators the pattern drives (0: a device without a
+        pattern drive; also 0 for a protocol-1 firmware, which answers ``ERR 1 UNKNOWN``)."""
+        try:
+            r = self.command("ACT?")
+        except DeviceError as exc:
+            if exc.code == E_UNKNOWN:
+                return 0
+            raise
+        try:
+            n = int(r.fields["n"])
+        except (KeyError, ValueError) as exc:
+            raise GarbageReply(f"malformed ACT reply: {r.fields}") from exc
+        if n < 0:
+            raise GarbageReply(f"ACT reply with a negative count: {r.fields}")
+        return n
+
+    def pattern(self) -> dict:
+        """``PAT?`` -> ``{"n" (entries), "crc" (8 hex digits, :func:`~torchblur.hardware.protocol.pattern_checksum`
+        of what the device holds)}``."""
+        f = self.command("PAT?").fields
+        try:
+            return {"n": int(f["n"]), "crc": str(f["crc"])}
+        except (KeyError, ValueError) as exc:
+            raise GarbageReply(f"malformed PAT reply: {f}") from exc
+
+    def load_pattern(self, values) -> str:
+        """Load the whole pattern ``values`` ``[N]`` (``PAT`` lines of at most MAX_LINE bytes,
+        :func:`~torchblur.hardware.protocol.pattern_lines`); every reply must acknowledge its
+        chunk (start and count). Returns the checksum the device should now report."""
+        vals = [float(v) for v in values]
+        for line in pattern_lines(vals):
+            word, start, *toks = line.split()
+            r = self.command(word, *(int(start),), *(float(t) for t in toks))
+            if r.fields.get("start") != start or r.fields.get("count") != str(len(toks)):
+                raise GarbageReply(f"PAT {start} ({len(toks)} values) acknowledged as {r.fields}")
+        return pattern_checksum(vals)
+
+    def wave_pattern(self, freq_hz: float, amplitude: float) -> tuple[float, str]:
+        """``WAVE pat SINE f a``: actuator j driven with ``a * pattern[j] * sin(2 pi f t)``;
+        returns (its start on the clock (s), the checksum of the pattern it drives)."""
+        r = self.command("WAVE", "pat", "SINE", float(freq_hz), float(amplitude))
+        if "crc" not in r.fields:
+            raise GarbageReply(f"WAVE pat reply without the pattern's crc: {r.fields}")
+        return r.get_float("start"), r.fields["crc"]
 
     def __repr__(self) -> str:
         return f"Controller({self.port!r}, timeout_s={self.timeout_s:g}, {'open' if self.is_open else 'closed'})"

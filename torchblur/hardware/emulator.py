@@ -56,11 +56,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from torchblur.identify.config import CameraConfig, PlantConfig, SpotsConfig
+from torchblur.identify.config import CameraConfig, DMConfig, PlantConfig, SpotsConfig, WFSConfig
 from torchblur.errors import ConfigError, ParameterError
 from torchblur.hardware.frames import CameraInfo, encode_message, frame_message
 from torchblur.hardware.protocol import (E_AXIS, E_BUSY, E_INTERNAL, E_LINE, E_RANGE, E_UNKNOWN, MAX_LINE, PROTOCOL_VERSION,
-                                         ProtocolViolation, format_err, format_ok, parse_command)
+                                         ProtocolViolation, format_err, format_ok, parse_command, pattern_checksum)
 from torchblur.rig.base import check_drive, command_peak
 
 __all__ = ["FaultConfig", "EmulatorConfig", "load_emulator_config", "EmulatedDevice", "main"]
@@ -87,6 +87,8 @@ class EmulatorConfig:
     plant: PlantConfig = field(default_factory=PlantConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
     spots: SpotsConfig = field(default_factory=SpotsConfig)  # many spots (rows > 0), as in identify
+    dm: DMConfig = field(default_factory=DMConfig)  # dm.n_across > 0: the DM mode (a mirror read by the wfs sensor)
+    wfs: WFSConfig = field(default_factory=WFSConfig)  # the DM mode's Shack-Hartmann sensor
     seed: int = 0
     transport: str = "pty"  # "pty" (a pseudo-terminal) or "socket" (pyserial socket://)
     serial_port: int = 0  # transport=socket: TCP port of the serial line (0 = any free port)
@@ -99,14 +101,19 @@ class EmulatorConfig:
 
 def load_emulator_config(path: str | None = None, overrides: list[str] | None = None) -> EmulatorConfig:
     """Defaults, the YAML file (its identify-only sections ``sweep``, ``excitation``, ``fit``,
-    ``model``, ``rig`` are skipped, so one file serves both commands), then overrides.
+    ``model``, ``rig``, ``dm_plan`` are skipped, so one file serves both commands), then
+    overrides. ``dm.n_across`` > 0 is the DM mode: the ``dm``, ``wfs``, ``camera`` and ``seed``
+    sections build the mirror, the sensor and the
+    :class:`~torchblur.dm.rig.SimulatedDMRig` as ``torchblur identify`` does
+    (:func:`torchblur.dm.pipeline.build_dm`).
 
     Raises:
         ConfigError: naming the key.
     """
-    from torchblur.identify.config import _num, load_dataclass, validate_camera, validate_plant, validate_spots
+    from torchblur.identify.config import _num, load_dataclass, validate_camera, validate_dm_model, validate_plant, validate_spots
 
-    cfg = load_dataclass(EmulatorConfig, path, overrides, ignore_file_sections=("sweep", "excitation", "fit", "model", "rig"))
+    cfg = load_dataclass(EmulatorConfig, path, overrides, ignore_file_sections=("sweep", "excitation", "fit", "model", "rig", "dm_plan"))
+    validate_dm_model(cfg.dm, cfg.wfs)
     validate_plant(cfg.plant)
     validate_camera(cfg.camera)
     validate_spots(cfg.spots, cfg.camera)
@@ -227,9 +234,10 @@ class FrameServer:
 
 
 SEND_TIMEOUT_S = 2.0
-# The emulated device's ranges (ERR 4 RANGE beyond them); the command's amplitude (the peak of
-# the waveform) is the simulated plant's input range, plant.input_limit (RANGE? reports it).
-DEVICE_RANGES = {"settle_s": 3600.0, "power": 1e6, "freq_hz": 1e5}
+# The emulated device's ranges (ERR 4 RANGE beyond them; "pattern": a PAT weight); the command's
+# amplitude (the peak of the waveform) is the simulated plant's input range, plant.input_limit
+# (the DM mode: dm.input_limit, else plant.input_limit; RANGE? reports it).
+DEVICE_RANGES = {"settle_s": 3600.0, "power": 1e6, "freq_hz": 1e5, "pattern": 1e6}
 
 
 def _in_range(value: float, name: str) -> float:
@@ -248,12 +256,22 @@ class EmulatedDevice:
     """
 
     def __init__(self, cfg: EmulatorConfig, send, *, firmware: str = "0.1.0", name: str = "torchblur-emulator"):
-        from torchblur.rig.factory import build_simulated_rig
-
         self.cfg = cfg
-        self.rig = build_simulated_rig(cfg)  # its plant, camera, spots and seed sections
-        self.axes = tuple(self.rig.inputs)  # "x", or "x", "y" for a 2x2 plant
-        self._settling_s = self.rig.plant.settling_time_s()
+        if cfg.dm.enabled:  # the DM mode: one axis, "pat", the loaded pattern on every actuator
+            from torchblur.dm.pipeline import build_dm
+
+            mirror, _, self.rig = build_dm(cfg)  # the mirror, the sensor and the SimulatedDMRig identify_dm builds
+            self.axes, self.n_actuators = ("pat",), mirror.n_actuators
+            self._settling_s = mirror.settling_time_s()
+            limit = cfg.dm.input_limit if cfg.dm.input_limit is not None else cfg.plant.input_limit
+        else:
+            from torchblur.rig.factory import build_simulated_rig
+
+            self.rig = build_simulated_rig(cfg)  # its plant, camera, spots and seed sections
+            self.axes, self.n_actuators = tuple(self.rig.inputs), 0  # "x", or "x", "y" for a 2x2 plant; no pattern drive
+            self._settling_s = self.rig.plant.settling_time_s()
+            limit = self.rig.input_limit
+        self.input_limit = float(limit)  # RANGE?: the largest |command| on any actuator (dm.input_limit, else plant.input_limit)
         self._send = send
         self.firmware, self.name = firmware, name
         self.lock = threading.RLock()
@@ -285,6 +303,7 @@ class EmulatedDevice:
         self.settle: float | None = None
         self.pending = 0
         self.reset_flag = False
+        self.pattern = np.zeros(self.n_actuators)  # PAT: every actuator's weight (0 after a boot)
 
     def _reboot(self, why: str) -> None:
         with self.lock:
@@ -351,7 +370,7 @@ class EmulatedDevice:
             if w == "RANGE?":
                 if not self.cfg.range_query:
                     raise ProtocolViolation(E_UNKNOWN, "unknown command 'RANGE?'")
-                return format_ok("RANGE", amplitude=float(self.rig.input_limit))
+                return format_ok("RANGE", amplitude=self.input_limit)
             if w == "RESET":
                 self.epoch += 1
                 self._boot_state()
@@ -374,6 +393,10 @@ class EmulatedDevice:
                 return self._arm(*a)
             if w == "PULSE":
                 return self._pulse(*a)
+            if w == "ACT?":
+                return format_ok("ACT", n=self.n_actuators)
+            if w in ("PAT", "PAT?"):
+                return self._pat(*a)
         raise ProtocolViolation(E_INTERNAL, f"no handler for {w}")  # pragma: no cover - parse_command knows the words
 
     def _check_exposure(self, te: float) -> None:
@@ -383,7 +406,7 @@ class EmulatedDevice:
     def _check_drive(self, peak: float) -> None:
         """ERR 4 RANGE for a waveform whose peak |command| exceeds the plant's input range."""
         try:
-            check_drive(peak, self.rig.input_limit)
+            check_drive(peak, self.input_limit)
         except ParameterError as exc:
             raise ProtocolViolation(E_RANGE, str(exc)) from None
 
@@ -398,6 +421,8 @@ class EmulatedDevice:
         self.reset_flag = False
         if self._fault_base is None:
             self._fault_base = self.served
+        if axis == "pat":
+            return self._wave_pattern(a[2], a[3])
         if mode == "SINE":
             _in_range(a[2], "freq_hz")
             self._check_drive(abs(a[3]))
@@ -407,6 +432,40 @@ class EmulatedDevice:
         self._check_drive(command_peak(*zip(*tones), base_freq_hz=tones[0][0]))
         self.wave = {"mode": "MULTI", "tones": tones, "start": self.clock, "period": 1.0 / tones[0][0]}
         return format_ok("WAVE", axis=axis, mode=mode, tones=len(tones), start=float(self.clock))
+
+    def _pat(self, start: int | None = None, values: tuple = ()) -> str:
+        """``PAT?`` (no arguments) or ``PAT <start> <v> ...``: the pattern's size and checksum, or
+        load ``values`` at ``start``. Refused while a waveform runs (it drives the pattern)."""
+        N = self.n_actuators
+        if N == 0:
+            raise ProtocolViolation(E_AXIS, "this device has no actuator pattern (ACT? n=0)")
+        if start is None:
+            return format_ok("PAT", n=N, crc=pattern_checksum(self.pattern))
+        if start + len(values) > N:
+            raise ProtocolViolation(E_RANGE, f"PAT: entries {start}..{start + len(values) - 1} beyond the {N} actuators")
+        if self.wave is not None or self.pending:
+            raise ProtocolViolation(E_BUSY, "PAT while a waveform runs or frames are pending; STOP first")
+        bad = [v for v in values if abs(v) > DEVICE_RANGES["pattern"]]
+        if bad:
+            raise ProtocolViolation(E_RANGE, f"pattern: a weight of at most {DEVICE_RANGES['pattern']:g} in magnitude, got {bad[0]!r}")
+        self.pattern[start:start + len(values)] = values
+        return format_ok("PAT", start=start, count=len(values))
+
+    def _wave_pattern(self, freq_hz: float, amplitude: float) -> str:
+        """``WAVE pat SINE f a``: ``a * pattern[j] * sin(2 pi f (t - start))`` on actuator j. The
+        peak command ``|a| max |pattern|`` must be within RANGE (ERR 4, the safe drive), and
+        the simulated rig's own checks of the command (its spots stay in their crops) must
+        pass (ERR 4); the reply names the checksum of the pattern it drives."""
+        _in_range(freq_hz, "freq_hz")
+        pattern = self.pattern.copy()
+        self._check_drive(abs(amplitude) * float(np.abs(pattern).max(initial=0.0)))
+        try:
+            self.rig.check_pattern(pattern, freq_hz, amplitude)
+        except ParameterError as exc:
+            raise ProtocolViolation(E_RANGE, str(exc)) from None
+        self.wave = {"mode": "SINE", "freq_hz": freq_hz, "amplitude": amplitude, "start": self.clock, "period": 1.0 / freq_hz,
+                     "axis": "pat", "pattern": pattern}
+        return format_ok("WAVE", axis="pat", mode="SINE", start=float(self.clock), crc=pattern_checksum(pattern))
 
     def _arm(self, off: float, te: float, n: int) -> str:
         self._check_exposure(te)
@@ -478,6 +537,10 @@ class EmulatedDevice:
         elif job.kind == "pulse":
             cap = r.pulse(exposure_s=te, trigger_offset_s=a["offset"], pulse_time_s=a["pulse_time_s"],
                           pulse_width_s=a["pulse_width_s"], n=n, power=a["power"])
+        elif job.kind == "sine" and a["wave"]["axis"] == "pat":  # the DM mode: SimulatedDMRig's own renderer
+            wv = a["wave"]
+            cap = r.pattern_sine(wv["pattern"], wv["freq_hz"], wv["amplitude"], [te], a["offset"], n, settle_s=a["settle_s"],
+                                 power=a["power"])
         elif job.kind == "sine":
             wv = a["wave"]
             cap = r.sine(freq_hz=wv["freq_hz"], amplitude=wv["amplitude"], exposures_s=[te], trigger_offset_s=a["offset"],

@@ -21,6 +21,7 @@ __all__ = [
     "FrameGap",
     "StaleFrame",
     "FrameMismatch",
+    "PatternMismatch",
     "AcquisitionStopped",
     "RecordingError",
 ]
@@ -84,6 +85,11 @@ class StaleFrame(FrameError):
 
 class FrameMismatch(FrameError):
     """A frame's metadata (exposure, shape, dtype) is not what was asked for."""
+
+
+class PatternMismatch(HardwareError):
+    """The DM controller does not hold (``PAT?``), or does not drive (``WAVE pat``), the pattern
+    that was loaded: the message names the pattern. Retried (the retry loads it again)."""
 
 
 class AcquisitionStopped(HardwareError):

@@ -30,7 +30,7 @@ MAX_META_BYTES = 4 * 1024 * 1024
 MAX_MANIFEST_BYTES = 512 * 1024 * 1024
 MAX_FRAME_SIDE = 65536
 MAX_AMPLITUDE = 1e6  # command units: far beyond any DAC's range
-METHODS = ("dark", "still", "sine", "pulse", "multisine")
+METHODS = ("dark", "still", "sine", "pulse", "multisine", "pattern_sine")  # pattern_sine: a DM rig's (torchblur.dm.record)
 _GROUP = re.compile(r"^[A-Za-z0-9_-]{1,40}(/[A-Za-z0-9_-]{1,40}){0,3}$")
 _SHA = re.compile(r"^[0-9a-f]{64}$")
 _SHARED = ("kind", "group_frames", "file", "sha256", "dtype", "input", "freq_hz", "amplitude", "power", "point")
@@ -157,7 +157,9 @@ def check_line(ln, root: Path) -> str:
     _float(ln.get("freq_hz"), "freq_hz", positive=True, optional=True)
     if not isinstance(ln.get("args"), dict) or not isinstance(ln.get("meta", {}), dict):
         raise _Bad("args: expected an object (and meta an object)")
-    if ln.get("kind") == "sweep" and ln.get("method") == "sine":
+    if ln.get("method") == "pattern_sine":
+        _check_pattern(ln["args"].get("pattern"))
+    if (ln.get("kind") == "sweep" and ln.get("method") == "sine") or ln.get("method") == "pattern_sine":
         _float(ln.get("freq_hz"), "freq_hz", positive=True)
         if not 0 < _float(ln.get("amplitude"), "amplitude", positive=True) <= MAX_AMPLITUDE:
             raise _Bad(f"amplitude: expected a value in (0, {MAX_AMPLITUDE:g}] command units, got {ln['amplitude']!r}")
@@ -171,6 +173,16 @@ def check_line(ln, root: Path) -> str:
         if ln.get("attempts") is not None:
             _int(ln["attempts"], "attempts", 1, 1000)
     return g
+
+
+def _check_pattern(p) -> None:
+    """A DM pattern (``args.pattern`` of a ``pattern_sine`` line): a list of finite numbers, each
+    actuator's command per unit amplitude."""
+    if not isinstance(p, list) or not 1 <= len(p) <= MAX_FRAME_SIDE:
+        raise _Bad(f"args.pattern: expected a list of 1 to {MAX_FRAME_SIDE} commands, got {p!r:.60}")
+    for v in p:
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or abs(v) > MAX_AMPLITUDE:
+            raise _Bad(f"args.pattern: expected finite commands within +-{MAX_AMPLITUDE:g}, got {v!r:.40}")
 
 
 def check_record(record, root: Path) -> str:

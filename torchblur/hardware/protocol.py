@@ -17,7 +17,9 @@ from dataclasses import dataclass
 
 __all__ = [
     "PROTOCOL_VERSION",
+    "PROTOCOL_VERSIONS",
     "MAX_LINE",
+    "MAX_ACTUATORS",
     "MAX_COUNT",
     "MAX_TONES",
     "ERROR_CODES",
@@ -38,10 +40,14 @@ __all__ = [
     "format_err",
     "Reply",
     "parse_reply",
+    "pattern_checksum",
+    "pattern_lines",
 ]
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2  # 2: ACT?, PAT, PAT? and the axis ``pat`` (a deformable mirror's pattern); 1's commands unchanged
+PROTOCOL_VERSIONS = (1, 2)  # the versions this client speaks (2 is 1 plus the pattern commands)
 MAX_LINE = 200  # bytes, without the newline
+MAX_ACTUATORS = 100_000  # entries of a pattern (PAT's start index is below it)
 MAX_COUNT = 1000  # frames per ARM/PULSE
 MAX_TONES = 16  # tones of a MULTI waveform
 
@@ -60,7 +66,7 @@ ERROR_CODES = {
 _FLOAT = re.compile(r"^[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?$")
 _INT = re.compile(r"^\d+$")
 _TOKEN = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
-_AXES = ("x", "y")
+_AXES = ("x", "y", "pat")  # pat: every actuator of a DM, amplitude * pattern[j] (protocol 2)
 
 
 class ProtocolViolation(Exception):
@@ -82,8 +88,8 @@ class Command:
     ``args`` per word: ``PING`` (token,); ``POWER`` (p,); ``SETTLE`` (s or None for AUTO,);
     ``WAVE`` (axis, "SINE", freq_hz, amplitude) or (axis, "MULTI", ((f, a, p), ...));
     ``ARM`` (trigger_offset_s, exposure_s, count); ``PULSE`` (trigger_offset_s,
-    pulse_time_s, pulse_width_s, exposure_s, count); the others (``ID?``, ``STATUS?``,
-    ``RANGE?``, ``RESET``, ``STOP``) ().
+    pulse_time_s, pulse_width_s, exposure_s, count); ``PAT`` (start, (v, ...)); the others
+    (``ID?``, ``STATUS?``, ``RANGE?``, ``RESET``, ``STOP``, ``ACT?``, ``PAT?``) ().
     """
 
     word: str
@@ -172,7 +178,7 @@ def parse_command(line: str | bytes) -> Command:
     word, args = tokens[0], tokens[1:]
     if word == "" or any(t == "" for t in args):
         raise ProtocolViolation(E_ARGS, "empty field: separate the fields by single spaces")
-    if word in ("ID?", "STATUS?", "RANGE?", "RESET", "STOP"):
+    if word in ("ID?", "STATUS?", "RANGE?", "RESET", "STOP", "ACT?", "PAT?"):
         _nargs(word, args, 0, "none")
         return Command(word)
     if word == "PING":
@@ -206,7 +212,50 @@ def parse_command(line: str | bytes) -> Command:
         return Command(word, (_float(args[0], "trigger_offset_s"), _float(args[1], "pulse_time_s"),
                               _float(args[2], "pulse_width_s", positive=True), _float(args[3], "exposure_s", positive=True),
                               _count(args[4])))
+    if word == "PAT":
+        return Command(word, _pattern_chunk(args))
     raise ProtocolViolation(E_UNKNOWN, f"unknown command {word!r}")
+
+
+def _pattern_chunk(args: list) -> tuple:
+    """``PAT <start> <v> [<v> ...]`` -> ``(start, (v, ...))``."""
+    if len(args) < 2:
+        raise ProtocolViolation(E_ARGS, f"PAT: expected 'PAT <start> <v> [<v> ...]' (a start index and at least one value), "
+                                        f"got {len(args)} argument(s)")
+    if not _INT.match(args[0]):
+        raise ProtocolViolation(E_NUMBER, f"start: not a non-negative integer: {args[0]!r}")
+    start = int(args[0])
+    if start >= MAX_ACTUATORS:
+        raise ProtocolViolation(E_RANGE, f"start: must be below {MAX_ACTUATORS}, got {start}")
+    return start, tuple(_float(t, f"pattern[{start + i}]") for i, t in enumerate(args[1:]))
+
+
+def pattern_checksum(values) -> str:
+    """The checksum ``PAT?`` and ``WAVE pat`` report: CRC-32 (zlib's, the IEEE 802.3
+    polynomial) of the pattern's values as IEEE-754 float64, little-endian, in order, as 8
+    lowercase hex digits. Exact: it tells every bit of every value (``-0.0`` from ``0.0`` too);
+    a firmware computes it from the doubles it holds, with no text formatting."""
+    import struct
+    import zlib
+
+    vals = [float(v) for v in values]
+    return f"{zlib.crc32(struct.pack(f'<{len(vals)}d', *vals)) & 0xFFFFFFFF:08x}"
+
+
+def pattern_lines(values) -> list[str]:
+    """The ``PAT <start> <v> ...`` lines (with ``\\n``) that load ``values`` (the whole
+    pattern, from entry 0), each at most :data:`MAX_LINE` bytes: as many values per line as
+    fit, in order; every value as :func:`format_number` writes it (the exact float)."""
+    toks = [format_number(v) for v in values]
+    lines, i = [], 0
+    while i < len(toks):
+        line, j = f"PAT {i}", i
+        while j < len(toks) and len(line) + 1 + len(toks[j]) <= MAX_LINE:
+            line += " " + toks[j]
+            j += 1
+        lines.append(line + "\n")
+        i = j
+    return lines
 
 
 def format_number(value) -> str:

@@ -120,6 +120,10 @@ def _same(a, b) -> bool:
 def _bind(method: str, args: tuple, kwargs: dict) -> dict:
     from torchblur.rig.base import Rig
 
+    if not hasattr(Rig, method):  # a command of one kind of rig (pattern_sine: a DM rig's): called by keyword only
+        if args:
+            raise RecordingError(f"{method}: a recorded {method} call passes its arguments by keyword, got {len(args)} positional")
+        return {k: _jsonable(v) for k, v in kwargs.items()}
     sig = inspect.signature(getattr(Rig, method))
     bound = sig.bind(None, *args, **kwargs)
     bound.apply_defaults()
@@ -180,6 +184,9 @@ class _RecordingRig:
     def multisine(self, *a, **k):
         return self._call("multisine", a, k)
 
+    def pattern_sine(self, *a, **k):
+        return self._call("pattern_sine", a, k)
+
 
 class _ReplayCalls(_RigProperties):
     """Serves recorded calls in order; a call that differs from the recording is an error."""
@@ -216,6 +223,9 @@ class _ReplayCalls(_RigProperties):
     def multisine(self, *a, **k):
         return self._next("multisine", a, k)
 
+    def pattern_sine(self, *a, **k):
+        return self._next("pattern_sine", a, k)
+
 
 class ReplayRig(_RigProperties):
     """A rig that only knows the recording: every live call raises :class:`RecordingError`
@@ -230,7 +240,7 @@ class ReplayRig(_RigProperties):
                              f"resume it first: torchblur identify --resume {self._dir.parent if self._dir.name == 'experiment' else self._dir} "
                              f"rig.port=... rig.frames=...")
 
-    dark = still = sine = pulse = multisine = _missing
+    dark = still = sine = pulse = multisine = pattern_sine = _missing
 
 
 # ---------------------------------------------------------------------- the directory
@@ -342,6 +352,15 @@ class Experiment:
 
     def _write_meta(self) -> None:
         atomic_write_bytes(self.path / "experiment.json", (json.dumps(self.meta, indent=2) + "\n").encode())
+
+    def set_meta(self, key: str, value) -> None:
+        """Store ``value`` (JSON-able) as ``key`` of ``experiment.json``, atomically (e.g. a DM
+        run's plan, ``dm_plan``); the schema's own keys are refused."""
+        self._need_writable()
+        if key in ("schema_version", "torchblur_version", "created", "camera", "status", "sessions"):
+            raise RecordingError(f"{key}: a key of the experiment's schema, not settable")
+        self.meta[key] = value
+        self._write_meta()
 
     def start_session(self, rig: dict) -> int:
         """Note a new session (a run or a resume) with its rig details."""

@@ -82,10 +82,13 @@ class SerialRig:
             :attr:`events` only.
     """
 
+    #: the controller axes this rig drives (a subclass for a deformable mirror drives ``"pat"``)
+    AXES = ("x", "y")
+
     def __init__(self, controller: Controller, frames: FrameSource, *, axis: str = "x", retries: int = 2, reconnects: int = 1,
                  poll_s: float = 0.25, max_wait_s: float = 60.0, log: Callable[[str], None] | None = None):
-        if axis not in ("x", "y"):
-            raise ParameterError(f"axis: expected 'x' or 'y', got {axis!r}")
+        if axis not in self.AXES:
+            raise ParameterError(f"axis: expected one of {', '.join(repr(a) for a in self.AXES)}, got {axis!r}")
         if isinstance(retries, bool) or not isinstance(retries, int) or retries < 0:
             raise ParameterError(f"retries: expected an integer >= 0, got {retries!r}")
         self.controller = controller

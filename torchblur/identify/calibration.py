@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from torchblur.errors import ParameterError, as_unit_direction
+from torchblur.identify.config import LATENCY_SCAN, SATURATION_STEPS, latency_scan_times
 from torchblur.identify.drive import DriveLimit, at_limit, check_recorded_drive, drive_limit
 from torchblur.identify.record import log_message, run_stage
 from torchblur.image.preprocess import dark_frame, saturation_curve, subtract_dark
@@ -93,7 +94,7 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False, *, n_dark: i
               f"std and reduced chi2 scales with it)", progress)
 
     # 3 (before 2, to choose the PSF exposure). Saturation curve of the still spot.
-    ladder = np.geomspace(1e-4, c.max_exposure_s, 9)
+    ladder = np.geomspace(1e-4, c.max_exposure_s, SATURATION_STEPS)
     peaks = run_stage(exp, "saturation", "saturation", rig,
                    lambda r: [float(r.still(n=1, exposure_s=float(te)).frames.to(dtype).amax()) for te in ladder])
     sat = saturation_curve(torch.tensor(peaks, dtype=dtype), torch.tensor(ladder, dtype=dtype))
@@ -115,7 +116,7 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False, *, n_dark: i
         peak_rate = float(psf.amplitude)  # electrons per second at power 1
 
     # 4. Latency.
-    pulse_w = 20e-6
+    pulse_w = LATENCY_SCAN["pulse_width_s"]
     latency, latency_std = run_stage(exp, "latency", "latency", rig, lambda r: calibrate_latency(
         r, dark=dark, gain=gain, trigger_delay_s=c.trigger_delay_s, pulse_width_s=pulse_w,
         power=c.peak_fraction * full_adu * gain / (peak_rate * pulse_w)))
@@ -233,8 +234,9 @@ def _locate_spots(cfg, still, exposure_s, read_noise_e, log, progress):
     return spots
 
 
-def calibrate_latency(rig, *, dark, gain: float, exposure_s: float = 200e-6, pulse_width_s: float = 20e-6,
-                      max_latency_s: float = 200e-6, step_s: float = 2e-6, repeats: int = 2, trigger_delay_s: float = 0.0,
+def calibrate_latency(rig, *, dark, gain: float, exposure_s: float = LATENCY_SCAN["exposure_s"],
+                      pulse_width_s: float = LATENCY_SCAN["pulse_width_s"], max_latency_s: float = LATENCY_SCAN["max_latency_s"],
+                      step_s: float = LATENCY_SCAN["step_s"], repeats: int = LATENCY_SCAN["repeats"], trigger_delay_s: float = 0.0,
                       power: float = 1.0):
     """Trigger-to-exposure latency from short laser pulses (mirror still).
 
@@ -244,7 +246,8 @@ def calibrate_latency(rig, *, dark, gain: float, exposure_s: float = 200e-6, pul
     ``p = Td + latency - pulse_width / 2``. Returns ``(latency_s, std_s)`` (std from the
     residual scatter of the edge fit).
     """
-    times = np.arange(-pulse_width_s, max_latency_s + trigger_delay_s + exposure_s / 2, step_s)
+    times = latency_scan_times(trigger_delay_s, exposure_s=exposure_s, pulse_width_s=pulse_width_s, max_latency_s=max_latency_s,
+                               step_s=step_s)
     light = []
     for p in times:
         cap = rig.pulse(exposure_s=exposure_s, trigger_offset_s=0.0, pulse_time_s=float(p), pulse_width_s=pulse_width_s, n=repeats,

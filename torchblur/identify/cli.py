@@ -10,6 +10,10 @@ Commands:
                         files of its own (not a torchblur run's) is refused unless --force.
                         With model.direct=true model.json holds the model fitted directly
                         to every image and model_two_step.json the two-step model.
+                        --port PORT --frames URL: rig.kind=serial rig.port=PORT
+                        rig.frames=URL. A DM config (dm.n_across > 0) writes OUT/dm/, from
+                        the simulated DM rig or, with --port/--frames, a DM controller
+                        (docs/deformable_mirrors.md, "Over the serial link").
     identify --resume DIR [key=value ...]
                         continue an interrupted run from DIR/experiment/ (rig.*, fit.*,
                         model.* and report.* may be given anew, e.g. the new rig.port).
@@ -133,11 +137,19 @@ def _resume_hint(root: Path, cfg) -> str:
     return f"torchblur identify --resume {root}{rig}"
 
 
+def _rig_options(args) -> list[str]:
+    """``--port PORT`` / ``--frames URL`` as the overrides they stand for (rig.kind=serial
+    rig.port=PORT rig.frames=URL), placed before the user's own ``key=value`` overrides."""
+    keys = [f"rig.{k}={getattr(args, k)}" for k in ("port", "frames") if getattr(args, k, None) is not None]
+    return ["rig.kind=serial", *keys] if keys else []
+
+
 def _identify(args) -> int:
     from torchblur.hardware.errors import RecordingError
     from torchblur.hardware.run_folder import RunLock, check_out_folder
     from torchblur.identify.config import load_config
 
+    args.overrides = _rig_options(args) + list(args.overrides)
     if args.resume is not None:
         return _resume(args)
     if args.out is None:
@@ -146,14 +158,12 @@ def _identify(args) -> int:
     cfg = load_config(args.config, args.overrides, force=args.force)  # ConfigError (named key) before any work
     out = Path(args.out)
     check_out_folder(out, command="identify", force=args.force)
-    if cfg.dm.enabled:  # a deformable-mirror run (dm.n_across > 0): torchblur.dm.pipeline
-        from torchblur.dm.pipeline import run_cli as run_dm
-
-        return run_dm(cfg, out, quiet=args.quiet, as_json=args.json)
     if (out / "experiment" / "manifest.jsonl").exists():
         print(f"torchblur identify: error: {out} already holds a recorded run; continue it with "
               f"'torchblur identify --resume {out}' or choose another --out", file=sys.stderr)
         return 2
+    if cfg.dm.enabled:  # a deformable-mirror run (dm.n_across > 0): torchblur.dm.pipeline, recorded in OUT/experiment
+        return _run_dm(cfg, out, args)
     (out / "experiment").mkdir(parents=True, exist_ok=True)
     lock = RunLock(out / "experiment")  # held for the run's life: a second run on this folder refuses
     try:
@@ -186,6 +196,8 @@ def _resume(args) -> int:
                   f"{', '.join(rep['dropped_groups']) or 'none'}; removed {len(rep['removed_files'])} temporary file(s){where}",
                   file=sys.stderr)
         out.mkdir(parents=True, exist_ok=True)
+        if cfg.dm.enabled:  # a DM recording: torchblur.dm resumes it
+            return _run_dm(cfg, out, args, record=exp, root=root)
         return _run_identify(cfg, out, exp, args.quiet, root=root, as_json=args.json)
     finally:
         exp.close()
@@ -209,19 +221,46 @@ def _run_identify(cfg, out: Path, record, quiet: bool, root: Path | None = None,
     t0 = time.perf_counter()
     try:
         res = identify(cfg, progress=not quiet, record=record)
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, HardwareError) as exc:
+        return _stopped(exc, exp_dir, root, cfg)
+    elapsed = time.perf_counter() - t0
+    return _write_outputs(cfg, res, out, elapsed, stamp, as_json=as_json).exit_code
+
+
+def _stopped(exc, exp_dir: Path, root: Path, cfg) -> int:
+    """A run the rig stopped (a HardwareError) or Ctrl-C interrupted: say where its recording
+    is and how to resume it; the exit code."""
+    if isinstance(exc, KeyboardInterrupt):
         print(f"\ntorchblur identify: interrupted. The recording so far is saved in {exp_dir}.\n"
               f"Resume with:\n  {_resume_hint(root, cfg)}", file=sys.stderr)
         return EXIT_INTERRUPTED
-    except HardwareError as exc:
-        if (exp_dir / "manifest.jsonl").exists():
-            print(f"torchblur identify: stopped: {exc}\nThe recording so far is saved in {exp_dir}.\n"
-                  f"Resume with:\n  {_resume_hint(root, cfg)}", file=sys.stderr)
-        else:
-            print(f"torchblur identify: stopped before anything was recorded: {exc}", file=sys.stderr)
-        return EXIT_STOPPED
-    elapsed = time.perf_counter() - t0
-    return _write_outputs(cfg, res, out, elapsed, stamp, as_json=as_json).exit_code
+    if (exp_dir / "manifest.jsonl").exists():
+        print(f"torchblur identify: stopped: {exc}\nThe recording so far is saved in {exp_dir}.\n"
+              f"Resume with:\n  {_resume_hint(root, cfg)}", file=sys.stderr)
+    else:
+        print(f"torchblur identify: stopped before anything was recorded: {exc}", file=sys.stderr)
+    return EXIT_STOPPED
+
+
+def _run_dm(cfg, out: Path, args, *, record=None, root: Path | None = None, rig=None) -> int:
+    """A DM run (:func:`torchblur.dm.pipeline.run_cli`): new (recorded in ``OUT/experiment``),
+    resumed (``record``, a writable Experiment) or re-fitted (``record`` read-only, ``rig`` its
+    ReplayRig); stopped by the rig or interrupted, as :func:`_run_identify`."""
+    from torchblur.dm.pipeline import run_cli as run_dm
+    from torchblur.hardware.errors import HardwareError
+
+    try:
+        return run_dm(cfg, out, quiet=args.quiet, as_json=args.json, record=record, rig=rig)
+    except (KeyboardInterrupt, HardwareError) as exc:
+        return _stopped(exc, out / "experiment" if record is None else record.path, out if root is None else root, cfg)
+
+
+def _source(exp, args) -> str:
+    """``source.json`` of a re-fit: the recording, its status and frames, the overrides."""
+    import torchblur as tb
+
+    return json.dumps({"recording": str(exp.path), "status": exp.meta.get("status"), "frames": len(exp.lines),
+                       "overrides": list(args.overrides), "torchblur_version": tb.__version__}, indent=2)
 
 
 def _fit(args) -> int:
@@ -247,6 +286,13 @@ def _fit(args) -> int:
             return 2
     recorded = load_dataclass(type(load_config()), str(exp.path / "config.yaml"), trusted=False)
     cfg = load_config(str(exp.path / "config.yaml"), args.overrides, trusted=False, force=True)  # the recording is made
+    if recorded.dm.enabled:  # a DM recording: torchblur.dm re-fits it (dm_plan.support_threshold may change too)
+        from torchblur.dm.record import check_refit_config
+
+        check_refit_config(recorded, cfg)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "source.json").write_text(_source(exp, args))
+        return _run_dm(cfg, out, args, record=exp, rig=ReplayRig(exp))
     check_resume_config(recorded, cfg, allowed=("fit", "model", "report"))
     out.mkdir(parents=True, exist_ok=True)
     stamp = f"torchblur {tb.__version__}, seed {cfg.seed}, re-fit of {exp.path}"
@@ -254,9 +300,7 @@ def _fit(args) -> int:
     t0 = time.perf_counter()
     res = identify(cfg, rig=ReplayRig(exp), record=exp, progress=not args.quiet)
     elapsed = time.perf_counter() - t0
-    (out / "source.json").write_text(json.dumps({"recording": str(exp.path), "status": exp.meta.get("status"),
-                                                 "frames": len(exp.lines), "overrides": list(args.overrides),
-                                                 "torchblur_version": tb.__version__}, indent=2))
+    (out / "source.json").write_text(_source(exp, args))
     return _write_outputs(cfg, res, out, elapsed, stamp, as_json=args.json).exit_code
 
 
@@ -696,6 +740,10 @@ def build_parser() -> argparse.ArgumentParser:
                        help="at the end print one JSON summary line on stdout (out, points, errors vs truth, status/flag counts, "
                             "elapsed_s, version) and nothing else there; everything else goes to stderr")
     ident.add_argument("--force", action="store_true", help="run even beyond the size limits (docs/reliability.md), or into a folder that holds other files")
+    ident.add_argument("--port", default=None, help="the controller's serial port or pyserial URL: the same as rig.kind=serial "
+                                                    "rig.port=PORT (with --frames)")
+    ident.add_argument("--frames", default=None, help="the camera (tcp://HOST:PORT of the emulator, pylon://..., or "
+                                                      "package.module:Class): the same as rig.frames=URL")
     ident.add_argument("overrides", nargs="*", help="dotted key=value overrides, e.g. sweep.n=20 plant.delay_s=5e-5")
     ident.set_defaults(func=_identify)
     fit = sub.add_parser("fit", help="re-fit a recorded run offline with other fit.* / model.* / report.* settings",

@@ -16,7 +16,7 @@ from typing import Optional
 from torchblur.errors import ConfigError
 
 __all__ = ["IdentifyConfig", "load_config", "estimate_run", "check_limits", "LIMITS", "load_dataclass", "config_to_yaml", "validate", "validate_plant", "validate_camera",
-           "validate_spots", "validate_excitation", "validate_dm", "SpotsConfig", "PlantConfig",
+           "validate_spots", "validate_excitation", "validate_dm", "validate_dm_model", "SpotsConfig", "PlantConfig",
            "DMConfig", "WFSConfig", "DMPlanConfig", "DM_PLAN_KINDS",
            "DEFAULT_PLANT", "RIG_KINDS", "EXCITATION_KINDS"]
 
@@ -587,10 +587,9 @@ def validate_spots(sp: SpotsConfig, camera: CameraConfig | None = None) -> None:
 DM_PLAN_KINDS = ("auto", "one_at_a_time", "sparse", "hadamard")
 
 
-def validate_dm(cfg: IdentifyConfig) -> None:
-    """Check the ``dm``, ``wfs`` and ``dm_plan`` sections of a DM run; raise :class:`ConfigError`
-    naming the key (the actuator table itself is read, and checked, when the mirror is built)."""
-    d, w, p = cfg.dm, cfg.wfs, cfg.dm_plan
+def validate_dm_model(d: DMConfig, w: WFSConfig) -> None:
+    """Check the ``dm`` and ``wfs`` sections (the mirror and its sensor: all the bench emulator's
+    DM mode reads); raise :class:`ConfigError` naming the key."""
     _num(d.n_across, "dm.n_across", integer=True, low=0, high=64)
     if not d.enabled:
         return
@@ -618,6 +617,15 @@ def validate_dm(cfg: IdentifyConfig) -> None:
     _num(w.slope_px, "wfs.slope_px", positive=True)
     _num(w.min_illumination, "wfs.min_illumination", positive=True, high=1.0)
     _num(w.oversample, "wfs.oversample", integer=True, low=1, high=256)
+
+
+def validate_dm(cfg: IdentifyConfig) -> None:
+    """Check the ``dm``, ``wfs`` and ``dm_plan`` sections of a DM run; raise :class:`ConfigError`
+    naming the key (the actuator table itself is read, and checked, when the mirror is built)."""
+    d, w, p = cfg.dm, cfg.wfs, cfg.dm_plan
+    validate_dm_model(d, w)
+    if not d.enabled:
+        return
     if p.kind not in DM_PLAN_KINDS:
         raise ConfigError(f"dm_plan.kind: expected one of {DM_PLAN_KINDS}, got {p.kind!r}")
     if p.budget_frames is None and p.n_repeats is None:
@@ -627,8 +635,6 @@ def validate_dm(cfg: IdentifyConfig) -> None:
     if p.n_repeats is not None:
         _num(p.n_repeats, "dm_plan.n_repeats", integer=True, low=1)
     _num(p.support_threshold, "dm_plan.support_threshold", nonnegative=True, high=1.0)
-    if cfg.rig.kind != "simulated":
-        raise ConfigError(f"rig.kind: a DM run (dm.n_across > 0) runs on the simulated DM rig only, got {cfg.rig.kind!r}")
     room = w.pitch_px / 2 - 3 * w.sigma_px * (1 + w.sigma_variation)
     if cfg.excitation.target_px > room:
         raise ConfigError(f"excitation.target_px: a DM spot motion of {cfg.excitation.target_px} px does not stay in its "
@@ -855,29 +861,78 @@ LIMITS = {"frames": 100_000, "memory_bytes": 8 * 2**30, "disk_bytes": 20 * 2**30
 _CALIBRATION_FRAMES = 100  # dark, saturation ladder, PSF, latency scan, axis (about)
 
 
-def estimate_run(cfg: IdentifyConfig) -> dict:
-    """What a run will take, estimated from its config alone (no work): ``frames`` (one
-    attempt per sweep point, calibration included), ``memory_bytes`` (the frames held as
-    float64, raw and in electrons, with a model per frame), ``disk_bytes`` (the recording,
-    16-bit pixels), ``bench_s`` (camera time: per point the settling and every frame at
-    least a camera cycle and a period apart; only when ``frames`` is within
-    :data:`LIMITS`, else NaN) and ``motion_px`` (the largest spot motion, 1.33 target_px)."""
+# What the calibration stage takes besides its dark and still frames (torchblur.identify.calibration
+# takes these from here, so that estimate_run counts what it takes).
+SATURATION_STEPS = 9  # one still frame per exposure of the saturation ladder
+LATENCY_SCAN = {"exposure_s": 200e-6, "pulse_width_s": 20e-6, "max_latency_s": 200e-6, "step_s": 2e-6, "repeats": 2}
+
+
+def latency_scan_times(trigger_delay_s: float, *, exposure_s: float, pulse_width_s: float, max_latency_s: float,
+                       step_s: float):
+    """The pulse times ``[n]`` (s after the trigger) of the latency calibration's scan: from
+    ``-pulse_width_s`` past ``max_latency_s + trigger_delay_s + exposure_s / 2`` in steps of
+    ``step_s`` (:func:`torchblur.identify.calibration.calibrate_latency`)."""
+    import numpy as np
+
+    return np.arange(-pulse_width_s, max_latency_s + trigger_delay_s + exposure_s / 2, step_s)
+
+
+def calibration_frames(cfg: IdentifyConfig, *, n_dark: int, n_still: int) -> int:
+    """Frames the calibration takes without the axis tracking (a run with spots, a DM run):
+    ``n_dark`` dark, the saturation ladder, ``n_still`` still and the latency scan (each pulse
+    time :data:`LATENCY_SCAN` ``repeats`` times)."""
+    scan = {k: v for k, v in LATENCY_SCAN.items() if k != "repeats"}
+    n_pulse = len(latency_scan_times(float(cfg.camera.trigger_delay_s), **scan)) * LATENCY_SCAN["repeats"]
+    return int(n_dark) + SATURATION_STEPS + int(n_still) + n_pulse
+
+
+def _estimate_dm(cfg: IdentifyConfig) -> dict:
+    """:func:`estimate_run` of a DM run (``dm.n_across`` > 0): the plan's sweep frames
+    (:func:`torchblur.dm.budget.dm_sweep_size`) and the DM calibration's, on the sensor's frame."""
+    from torchblur.dm.budget import DM_DARK_FRAMES, DM_STILL_FRAMES, dm_sweep_size
+
+    size = dm_sweep_size(cfg)
+    frames = size["frames"] + calibration_frames(cfg, n_dark=DM_DARK_FRAMES, n_still=DM_STILL_FRAMES)
+    est = _estimate(cfg, frames, size["frame_shape"], n_drives=size["patterns"], repeats=size["repeats"])
+    est["sweep_frames"] = size["frames"]
+    return est
+
+
+def _estimate(cfg: IdentifyConfig, frames: int, frame_px: tuple, *, n_drives: int, repeats: int) -> dict:
+    """:func:`estimate_run`'s dict for ``frames`` of ``frame_px`` ``(H, W)``, the sweep driving
+    ``n_drives`` inputs (or DM patterns) at every frequency, ``repeats`` frames per exposure."""
     s, c = cfg.sweep, cfg.camera
-    n_freq = len(s.freq_hz) if s.freq_hz is not None else int(s.n)
-    n_inputs = 2 if cfg.plant.is_mimo else 1
-    per_point = len(s.exposures) * int(s.images_per_point)
-    frames = n_inputs * n_freq * per_point + _CALIBRATION_FRAMES
-    pixels = int(c.height) * int(c.width)
+    pixels = int(frame_px[0]) * int(frame_px[1])
     bench = float("nan")
     if frames <= LIMITS["frames"]:
         import numpy as np
 
         f = np.asarray(cfg.frequencies_hz(), dtype=float)
         cycle = np.maximum(1.0 / c.frame_rate_hz, 1.0 / f)
-        frame_s = sum(np.maximum(cycle, e / f + c.readout_s) for e in s.exposures) * int(s.images_per_point)
-        bench = float(n_inputs * np.sum(frame_s + (s.settle_s or 0.0) + 2.0 / f))
+        frame_s = sum(np.maximum(cycle, e / f + c.readout_s) for e in s.exposures) * int(repeats)
+        bench = float(n_drives * np.sum(frame_s + (s.settle_s or 0.0) + 2.0 / f))
     return {"frames": frames, "memory_bytes": 3 * 8 * frames * pixels, "disk_bytes": 2 * frames * pixels,
-            "bench_s": bench, "motion_px": 1.33 * float(cfg.excitation.target_px), "frame_px": (int(c.height), int(c.width))}
+            "bench_s": bench, "motion_px": 1.33 * float(cfg.excitation.target_px), "frame_px": (int(frame_px[0]), int(frame_px[1]))}
+
+
+def estimate_run(cfg: IdentifyConfig) -> dict:
+    """What a run will take, estimated from its config alone (no work): ``frames`` (one
+    attempt per sweep point, calibration included), ``memory_bytes`` (the frames held as
+    float64, raw and in electrons, with a model per frame), ``disk_bytes`` (the recording,
+    16-bit pixels), ``bench_s`` (camera time: per point the settling and every frame at
+    least a camera cycle and a period apart; only when ``frames`` is within
+    :data:`LIMITS`, else NaN) and ``motion_px`` (the largest spot motion, 1.33 target_px).
+    A DM run (``dm.n_across`` > 0) counts its plan's sweep frames (patterns x frequencies x
+    exposures x repeats, also ``sweep_frames``) and its calibration's exactly, on the sensor's
+    frame (:func:`_estimate_dm`)."""
+    if cfg.dm.enabled:
+        return _estimate_dm(cfg)
+    s, c = cfg.sweep, cfg.camera
+    n_freq = len(s.freq_hz) if s.freq_hz is not None else int(s.n)
+    n_inputs = 2 if cfg.plant.is_mimo else 1
+    per_point = len(s.exposures) * int(s.images_per_point)
+    frames = n_inputs * n_freq * per_point + _CALIBRATION_FRAMES
+    return _estimate(cfg, frames, (c.height, c.width), n_drives=n_inputs, repeats=int(s.images_per_point))
 
 
 def _size(b: float) -> str:

@@ -1,0 +1,98 @@
+"""What a DM run takes, from its config alone: the plan (:func:`dm_plan`) and its frames
+(:func:`dm_sweep_size`), counted by :func:`torchblur.identify.config.estimate_run` before any
+work so that the size guard sees the real frame count.
+
+The plan depends only on the geometry: the mirror's actuator grid and influence functions
+(``dm.n_across``, ``dm.coupling``) and the sensor (``wfs``), through the nominal geometry
+matrix G, never on the dynamics (so ``dm.actuator_table`` is not read here). The run
+(:func:`torchblur.dm.pipeline.identify_dm`) chooses its plan with the same function.
+
+A leaf of the DM package: it imports nothing of ``torchblur.identify`` (the settings module
+imports it).
+"""
+from __future__ import annotations
+
+import copy
+from dataclasses import replace
+
+import numpy as np
+
+from torchblur.errors import ConfigError, ParameterError
+from torchblur.dm.mirror import DeformableMirror
+from torchblur.dm.plans import choose_plan
+from torchblur.dm.shack_hartmann import ShackHartmann
+
+__all__ = ["DM_DARK_FRAMES", "DM_STILL_FRAMES", "dm_geometry", "dm_plan", "dm_sweep_size"]
+
+# The DM run's stds are small (0.03 % on a DC gain): each spot's PSF, fitted from the still frames
+# and held fixed, and the dark mean subtracted from every frame must be known better than that.
+DM_DARK_FRAMES = 256
+DM_STILL_FRAMES = 128
+
+
+def _sensor(cfg) -> tuple[DeformableMirror, ShackHartmann]:
+    """The nominal mirror (geometry only: no actuator table) and the sensor of a DM config."""
+    mirror = DeformableMirror.from_config(replace(cfg.dm, actuator_table=None), seed=int(cfg.seed))
+    return mirror, ShackHartmann.from_config(cfg.wfs, mirror)
+
+
+# G and the plan take minutes on a big mirror (700 actuators: 80 s and 23 s); estimate_run (at every
+# config load) and the run share them through these memos of pure functions, keyed by the config's
+# sections they depend on.
+_MEMO: dict = {}
+_MEMO_SIZE = 8
+
+
+def _memo(key, compute):
+    if key not in _MEMO:
+        while len(_MEMO) >= _MEMO_SIZE:
+            _MEMO.pop(next(iter(_MEMO)))
+        _MEMO[key] = compute()
+    return _MEMO[key]
+
+
+def _geometry_key(cfg) -> str:
+    return repr((replace(cfg.dm, actuator_table=None), cfg.wfs, int(cfg.seed)))
+
+
+def dm_geometry(cfg) -> np.ndarray:
+    """The nominal geometry matrix G ``[2M, N]`` (px per input unit) of a DM config (``dm``
+    geometry and ``wfs``; the dynamics and the actuator table play no part). A new array each call."""
+    def compute():
+        mirror, wfs = _sensor(cfg)
+        return wfs.geometry_matrix(mirror)
+
+    return _memo(("G", _geometry_key(cfg)), compute).copy()
+
+
+def dm_plan(cfg):
+    """``(plan, n_repeats, info)`` of a DM config on its geometry :func:`dm_geometry`
+    (:func:`~torchblur.dm.plans.choose_plan` with the ``dm_plan`` and ``sweep`` sections).
+
+    Raises:
+        ParameterError: naming ``dm_plan.budget_frames`` when one repeat of the plan needs more.
+    """
+    n_freq, n_exp = len(cfg.frequencies_hz()), len(cfg.sweep.exposures)
+
+    def compute():
+        return choose_plan(cfg.dm_plan.kind, dm_geometry(cfg), budget_frames=cfg.dm_plan.budget_frames, n_freq=n_freq,
+                           n_exposures=n_exp, threshold=float(cfg.dm_plan.support_threshold), n_repeats=cfg.dm_plan.n_repeats)
+
+    plan, R, info = _memo(("plan", _geometry_key(cfg), repr(cfg.dm_plan), n_freq, n_exp), compute)
+    return plan, R, copy.deepcopy(info)
+
+
+def dm_sweep_size(cfg) -> dict:
+    """A DM config's sweep: ``frames`` (patterns x frequencies x exposures x repeats),
+    ``patterns``, ``repeats`` and the sensor camera's ``frame_shape`` ``(H, W)`` px.
+
+    Raises:
+        ConfigError: naming ``dm_plan.budget_frames`` when one repeat of the plan needs more.
+    """
+    try:
+        plan, R, _ = dm_plan(cfg)
+    except ParameterError as exc:
+        raise ConfigError(str(exc)) from None
+    frames = plan.n_frames(len(cfg.frequencies_hz()), len(cfg.sweep.exposures), R)
+    shape = tuple(int(v) for v in _sensor(cfg)[1].frame_shape)
+    return {"frames": frames, "patterns": plan.n_patterns, "repeats": R, "frame_shape": shape}

@@ -1,0 +1,291 @@
+"""A DM run recorded as it goes, resumed after a crash and re-fitted offline (docs/deformable_mirrors.md,
+"Recording, resume and re-fit").
+
+The run folder is the one-spot run's experiment directory (:class:`~torchblur.hardware.recording.Experiment`,
+docs/protocol.md "Experiment directory"; no second format), ``OUT/experiment/``:
+
+- the calibration groups ``dark``, ``saturation``, ``psf`` and ``latency``, recorded by the
+  calibration stage itself (:func:`torchblur.identify.calibration.calibrate` with the experiment);
+- one group per swept frequency, ``dm_sweep/NNN`` (kind ``dm_sweep``, k = NNN the frequency's
+  index): one ``pattern_sine`` call per pattern, in the plan's order, each with its frames ``[E, R]``
+  and every frame's trigger time, trigger offset and exposure; each call's arguments (pattern,
+  frequency, amplitude, exposures, trigger offset, repeats, settling wait, power) and, on every
+  line, the labels ``freq_hz``, ``amplitude``, ``power``, ``point`` (k), ``trigger_delay_s`` (the
+  exposure of a frame starts ``trigger_delay_s`` + the calibrated latency after its trigger: a
+  re-fit rebuilds the same :class:`~torchblur.render.window.ExposureWindow`), ``n_patterns`` and
+  ``n_repeats``;
+- in ``experiment.json`` the plan, ``dm_plan``: ``kind``, ``support_threshold``, ``n_repeats``,
+  ``patterns`` ``[P, N]`` and ``support`` (2M strings of N characters 0/1), stored before the first
+  sweep group, so a resume takes the same patterns whatever the code would choose now.
+
+A resume (``torchblur identify --resume OUT``) reuses every group the recording holds: the
+calibration through the stage's replay, each recorded frequency with its recorded amplitude
+(every call's arguments checked against the plan and the calibration's laser power); only the
+missing groups are taken. A re-fit (``torchblur fit OUT --out NEW``) reads the recording
+through a :class:`~torchblur.hardware.recording.ReplayRig` and may change ``fit.*``,
+``model.*``, ``report.*`` and ``dm_plan.support_threshold`` (the support of the recorded
+patterns; a sparse plan's support is then taken again from G, :func:`plan_support`).
+"""
+from __future__ import annotations
+
+import contextlib
+import math
+from dataclasses import replace
+
+import numpy as np
+
+from torchblur.dm.plans import Plan, seen_by
+from torchblur.hardware.errors import HardwareError, RecordingError
+from torchblur.rig.base import DRIVE_RTOL
+
+__all__ = ["PLAN_KEY", "SWEEP_KIND", "check_recorded_commands", "check_refit_config", "open_recording", "plan_document",
+           "plan_from_document", "plan_support", "recorded_labels", "recorded_on_simulation", "resume_seed", "run_plan", "session",
+           "same_table", "session_info", "simulated_frames", "sweep_key", "table_digest", "take_group"]
+
+PLAN_KEY = "dm_plan"  # experiment.json: the plan of a DM run
+SWEEP_KIND = "dm_sweep"  # the kind of a swept frequency's group
+_PLAN_KINDS = ("one_at_a_time", "sparse", "hadamard")
+
+
+def sweep_key(k: int) -> str:
+    """The group of the k-th swept frequency: ``dm_sweep/NNN``."""
+    return f"dm_sweep/{int(k):03d}"
+
+
+# ---------------------------------------------------------------------- the plan
+
+
+def plan_document(plan: Plan, n_repeats: int, threshold: float) -> dict:
+    """The plan as ``experiment.json`` holds it (module docstring)."""
+    return {"kind": plan.kind, "support_threshold": float(threshold), "n_repeats": int(n_repeats),
+            "patterns": plan.patterns.tolist(), "support": ["".join("1" if v else "0" for v in row) for row in plan.support]}
+
+
+def plan_from_document(doc, G: np.ndarray, where: str) -> tuple[Plan, int, float]:
+    """``(plan, n_repeats, support_threshold)`` of a recorded plan document (untrusted: every
+    field checked against the geometry ``G`` ``[2M, N]``).
+
+    Raises:
+        RecordingError: naming ``where`` and the field.
+    """
+    S, N = G.shape
+    try:
+        if not isinstance(doc, dict) or doc.get("kind") not in _PLAN_KINDS:
+            raise ValueError(f"kind: expected one of {_PLAN_KINDS}")
+        R, t = doc.get("n_repeats"), doc.get("support_threshold")
+        if isinstance(R, bool) or not isinstance(R, int) or R < 1:
+            raise ValueError(f"n_repeats: expected an integer >= 1, got {R!r:.40}")
+        if isinstance(t, bool) or not isinstance(t, (int, float)) or not 0 <= t <= 1:
+            raise ValueError(f"support_threshold: expected a number in [0, 1], got {t!r:.40}")
+        rows = doc.get("patterns")
+        if not isinstance(rows, list) or not rows or not all(isinstance(r, list) and len(r) == N for r in rows):
+            raise ValueError(f"patterns: expected [P, N={N}] numbers")
+        patterns = np.array(rows, dtype=np.float64) if all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                                            for r in rows for v in r) else None
+        if patterns is None or not np.isfinite(patterns).all():
+            raise ValueError("patterns: expected finite numbers")
+        sup = doc.get("support")
+        if not isinstance(sup, list) or len(sup) != S or not all(isinstance(r, str) and len(r) == N and set(r) <= {"0", "1"}
+                                                                 for r in sup):
+            raise ValueError(f"support: expected {S} strings of {N} characters 0/1")
+    except ValueError as exc:
+        raise RecordingError(f"{where}: {PLAN_KEY}.{exc} (the recording's plan does not fit this mirror)") from None
+    support = np.array([[c == "1" for c in r] for r in sup], dtype=bool)
+    return Plan(doc["kind"], patterns, support), R, float(t)
+
+
+def plan_support(kind: str, G: np.ndarray, threshold: float) -> np.ndarray:
+    """``[2M, N]`` bool, the unknowns a plan of ``kind`` measures at ``threshold``: the seen pairs
+    for a sparse plan (:func:`~torchblur.dm.plans.seen_by`, both slope rows), else all."""
+    if kind != "sparse":
+        return np.ones(np.shape(G), dtype=bool)
+    seen = seen_by(G, threshold)
+    return np.concatenate([seen, seen], 0)
+
+
+def run_plan(exp, plan: Plan, n_repeats: int, G: np.ndarray, threshold: float, say) -> tuple[Plan, int]:
+    """The plan a run uses: ``plan`` without a recording; with one, the recorded plan (a resume
+    or a re-fit; a re-fit at another ``threshold`` takes the support of the recorded patterns at
+    that threshold, :func:`plan_support`); a new recording stores ``plan`` now.
+
+    Raises:
+        RecordingError: a read-only recording (a re-fit) without a plan.
+    """
+    if exp is None:
+        return plan, n_repeats
+    doc = exp.meta.get(PLAN_KEY)
+    if doc is None:
+        if not exp.writable:
+            raise RecordingError(f"{exp.path}: holds no {PLAN_KEY} (the run stopped before its plan was chosen); resume it first")
+        exp.set_meta(PLAN_KEY, plan_document(plan, n_repeats, threshold))
+        return plan, n_repeats
+    recorded, R, t = plan_from_document(doc, G, str(exp.path / "experiment.json"))
+    if t != threshold and not exp.writable:
+        recorded = Plan(recorded.kind, recorded.patterns, plan_support(recorded.kind, G, threshold))
+        say(f"dm plan: the recorded {recorded.kind} patterns with the support at dm_plan.support_threshold={threshold:g} "
+            f"(recorded at {t:g}): {int(recorded.support.sum())} unknowns")
+    if (recorded.kind, recorded.n_patterns, R) != (plan.kind, plan.n_patterns, n_repeats):
+        say(f"dm plan: the recording's ({recorded.kind}, {recorded.n_patterns} patterns x {R} repeats) is used, not the "
+            f"config's choice now ({plan.kind}, {plan.n_patterns} x {n_repeats})")
+    return recorded, R
+
+
+# ---------------------------------------------------------------------- the sweep groups
+
+
+def recorded_labels(exp, key: str) -> dict | None:
+    """The first manifest line of group ``key`` (its labels: ``amplitude``, ``power``,
+    ``trigger_delay_s``, ...), or None when the recording does not hold it (or there is none)."""
+    if exp is None or not exp.has(key):
+        return None
+    line = exp.groups[key][0]
+    for k in ("amplitude", "trigger_delay_s"):
+        v = line.get(k)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise RecordingError(f"{key}: {k}: expected a finite number, got {v!r:.40}")
+    if line.get("kind") != SWEEP_KIND:
+        raise RecordingError(f"{key}: a {line.get('kind')!r} group, expected {SWEEP_KIND!r}")
+    return line
+
+
+def take_group(exp, key: str, rig, fn, labels: dict):
+    """``fn(rig)`` for group ``key``: directly without a recording; with one, from the recording
+    when it holds the group (every rig call replayed and checked against the recorded one), else
+    on ``rig`` with every call recorded as one group (:meth:`~torchblur.hardware.recording.Experiment.stage`)."""
+    if exp is None:
+        return fn(rig)
+    return exp.stage(key, SWEEP_KIND, rig, fn, labels=labels)[0]
+
+
+def check_recorded_commands(exp, limit: float) -> None:
+    """Refuse to resume a recording whose recorded DM commands exceed ``limit`` (input units):
+    every ``pattern_sine`` call's ``amplitude * max |pattern|``.
+
+    Raises:
+        RecordingError: naming the first group beyond it.
+    """
+    if exp is None or not math.isfinite(limit):
+        return
+    for ln in exp.lines:
+        if ln.get("method") != "pattern_sine" or ln.get("index") != 0:
+            continue
+        a = ln["args"]
+        peak = abs(float(a.get("amplitude", math.nan))) * max(abs(float(v)) for v in a["pattern"])
+        if not peak <= limit * (1 + DRIVE_RTOL):
+            raise RecordingError(f"{ln['group']}: recorded with a command of peak {peak:.6g} input units, beyond dm.input_limit "
+                                 f"{limit:.6g}; refused")
+
+
+# ---------------------------------------------------------------------- sessions
+
+
+def open_recording(record, cfg, rig):
+    """:func:`torchblur.identify.rigs.open_experiment` for a DM run: None, a directory (created,
+    or opened to resume) or an Experiment, checked against ``cfg`` (only ``rig.*``, ``fit.*``,
+    ``model.*`` and ``report.*`` may differ from the recorded config; a read-only recording, a
+    re-fit, may also take another ``dm_plan.support_threshold``) and ``rig``'s frame shape."""
+    from torchblur.identify.config import load_dataclass
+    from torchblur.identify.rigs import open_experiment
+
+    if record is not None and getattr(record, "writable", True) is False:
+        recorded = load_dataclass(type(cfg), str(record.path / "config.yaml"), trusted=False)
+        cfg = check_refit_config(recorded, cfg, allowed=("rig", "fit", "model", "report"))
+    return open_experiment(record, cfg, rig)
+
+
+def check_refit_config(recorded, cfg, *, allowed=("fit", "model", "report")):
+    """Raise :class:`~torchblur.hardware.errors.RecordingError` naming the first key where the
+    re-fit's ``cfg`` differs from the ``recorded`` config outside the sections in ``allowed``
+    and ``dm_plan.support_threshold`` (:func:`torchblur.identify.rigs.check_resume_config`).
+    Returns ``cfg`` with the recorded threshold (what the recording's checks compare)."""
+    from torchblur.identify.rigs import check_resume_config
+
+    aligned = replace(cfg, dm_plan=replace(cfg.dm_plan, support_threshold=recorded.dm_plan.support_threshold))
+    check_resume_config(recorded, aligned, allowed=allowed)
+    return aligned
+
+
+TABLE_KEY = "dm_actuator_table_sha256"  # a session's note of the simulated mirror's actuator table
+
+
+def table_digest(cfg, base_dir: str | None = None) -> str | None:
+    """The SHA-256 of the file ``dm.actuator_table`` names (relative to ``base_dir`` as
+    :meth:`~torchblur.dm.mirror.DeformableMirror.from_config` reads it), or None without one:
+    the recorded config holds only the path, and the simulated mirror is built from the file."""
+    import hashlib
+    import os
+
+    path = cfg.dm.actuator_table
+    if not path:
+        return None
+    if base_dir is not None and not os.path.isabs(path):
+        path = os.path.join(base_dir, path)
+    with open(path, "rb") as fh:
+        return hashlib.sha256(fh.read(1 << 21)).hexdigest()
+
+
+def session_info(cfg, rig, table_sha256: str | None = None) -> dict:
+    """What a session notes of its rig: ``kind`` (``rig.kind``), ``rig`` (its repr), its input
+    range (``input_limit``, None when it has none: a re-fit plans within the recorded one) and
+    the actuator table's digest (:func:`table_digest`)."""
+    from torchblur.identify.drive import SESSION_KEY
+
+    limit = getattr(rig, "input_limit", None)
+    return {"kind": cfg.rig.kind, "rig": repr(rig), TABLE_KEY: table_sha256,
+            SESSION_KEY: float(limit) if limit is not None and math.isfinite(float(limit)) else None}
+
+
+def same_table(exp, table_sha256: str | None) -> bool:
+    """Every session of the recording ``exp`` simulated the mirror from the same actuator table
+    (digest ``table_sha256``, :func:`table_digest`)."""
+    return all((s.get("rig") or {}).get(TABLE_KEY) == table_sha256 for s in exp.meta.get("sessions") or [] if isinstance(s, dict))
+
+
+def recorded_on_simulation(exp) -> bool:
+    """Every session of the recording ``exp`` ran on the simulated DM rig (so the config's
+    simulated mirror is the truth of its frames)."""
+    sessions = exp.meta.get("sessions") or []
+    return bool(sessions) and all(isinstance(s, dict) and str((s.get("rig") or {}).get("rig", "")).startswith("SimulatedDMRig(")
+                                  for s in sessions)
+
+
+def simulated_frames(live_is_simulated: bool, exp) -> bool:
+    """Whether every frame of a run comes from the config's simulated DM rig (its truth is then
+    the config's simulated mirror): without a recording, the live rig is simulated; a re-fit
+    (read-only ``exp``), every recorded session was; a new or resumed recording, both (the
+    sessions before this one)."""
+    if exp is None:
+        return live_is_simulated
+    if not exp.writable:
+        return recorded_on_simulation(exp)
+    return live_is_simulated and (not exp.meta.get("sessions") or recorded_on_simulation(exp))
+
+
+def resume_seed(seed: int, session: int) -> int:
+    """The simulated rig's seed in session ``session`` of a run of ``seed``: ``seed`` itself in
+    the first; a resumed session draws a stream of its own (from ``(seed, session)``), so its
+    frames do not repeat the noise the first session's calibration frames drew."""
+    if session == 0:
+        return int(seed)
+    return int(np.random.SeedSequence([int(seed), int(session)]).generate_state(1)[0])
+
+
+@contextlib.contextmanager
+def session(exp, rig_info: dict):
+    """A session of the recording ``exp`` (none: nothing) around the ``with`` block: started with
+    ``rig_info``, ended ``complete``, or ``interrupted`` (KeyboardInterrupt), ``stopped`` (the
+    rig's :class:`~torchblur.hardware.errors.HardwareError`) or ``failed``, then re-raised. A
+    read-only recording (a re-fit) gets no session."""
+    if exp is None or not exp.writable:
+        yield
+        return
+    exp.start_session(rig_info)
+    try:
+        yield
+    except KeyboardInterrupt:
+        exp.end_session("interrupted", "KeyboardInterrupt")
+        raise
+    except BaseException as exc:
+        exp.end_session("stopped" if isinstance(exc, HardwareError) else "failed", f"{type(exc).__name__}: {exc}")
+        raise
+    exp.end_session("complete")
