@@ -1,6 +1,7 @@
 """The DM run end to end on a small mirror (9 actuators, 4 x 4 subapertures, one dead): the
 pipeline's pieces, identify_dm against the simulated truth, and the CLI routing."""
 import json
+import math
 
 import numpy as np
 import pytest
@@ -114,3 +115,32 @@ def test_cli_routes_a_dm_config(tmp_path, capsys, monkeypatch, small_run):
         header = rows[0].split(",")
         assert len(rows) == 10 and rows[3].split(",")[header.index("status")] == "dead"
         assert np.load(tmp_path / "run" / "dm" / "interaction_matrix.npy").shape == (24, 9)
+
+
+def test_the_amplitude_reference_is_the_fit_two_frequencies_back_whatever_has_finished():
+    """The amplitude of frequency k comes from frequency k - 2's fit (waited for), never from
+    whichever fit happened to finish: the same seed gives the same run (it used to depend on the
+    worker thread's timing). A fit without a finite response is passed over for an earlier one."""
+    import threading
+    from concurrent.futures import Future
+
+    from torchblur.dm.pipeline import AMPLITUDE_LAG, _amplitude_reference
+
+    assert AMPLITUDE_LAG == 2
+    M = 2
+
+    def fut(scale, delay=None):
+        f = Future()
+        Y = np.full((3, 2 * M), scale, dtype=complex)
+        if delay is None:
+            f.set_result((Y, None, 0))
+        else:  # finishes later, on another thread: the reference waits for it
+            threading.Timer(delay, f.set_result, args=((Y, None, 0),)).start()
+        return f
+
+    assert _amplitude_reference([], 0, M) is None and _amplitude_reference([fut(1.0)], 1, M) is None
+    futures = [fut(1.0), fut(2.0, delay=0.2), fut(3.0)]  # frequency 2's fit is done, frequency 1's is not yet
+    i, ymax = _amplitude_reference(futures, 3, M)
+    assert i == 1 and ymax == pytest.approx(2.0 * math.sqrt(2))
+    futures[1] = fut(np.nan)  # no finite response: the one before
+    assert _amplitude_reference(futures, 3, M)[0] == 0

@@ -209,6 +209,23 @@ def _fit_options(cfg) -> dict:
             "fit_background": bool(cfg.fit.fit_background)}
 
 
+#: the amplitude at frequency k is predicted from the fit of frequency k - AMPLITUDE_LAG (waited
+#: for): one frequency's fit overlaps the next one's acquisition, and the run does not depend on
+#: which fits happen to have finished (the same seed gives the same run).
+AMPLITUDE_LAG = 2
+
+
+def _amplitude_reference(futures, k: int, M: int):
+    """``(i, largest |Y| per unit amplitude of frequency i)`` for the amplitude of frequency
+    ``k``: the latest frequency ``i <= k - AMPLITUDE_LAG`` whose fit has a finite response
+    (waiting for those fits), or None (then the nominal prediction)."""
+    for i in range(min(k - AMPLITUDE_LAG, len(futures) - 1), -1, -1):
+        Yi = futures[i].result()[0]
+        if np.isfinite(Yi).any():
+            return i, float(np.nanmax(np.hypot(np.abs(Yi[:, :M]), np.abs(Yi[:, M:]))))
+    return None
+
+
 def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, log, progress, exp=None):
     """Stage 3 (module docstring): ``(amplitude [F], power [F], Y [P, 2M, F], Y_cov, failed, frames, t_acq, t_wait)``.
     With a recording ``exp`` each frequency is one group (:mod:`torchblur.dm.record`): taken from
@@ -222,16 +239,10 @@ def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, log, progress, exp=None
     motion_static = static_motion_px(plan, G)
     limit = min(math.inf if cfg.dm.input_limit is None else float(cfg.dm.input_limit), cal.input_limit)  # and the rig's RANGE?
     amps, powers, futures = np.zeros(F), np.zeros(F), []
-    done_ref = None  # (index of the last fitted frequency, its largest |Y| per unit amplitude)
     t_acq = 0.0
     with ThreadPoolExecutor(max_workers=1) as pool:
         for k, f in enumerate(freqs):
-            for i in range(len(futures) - 1, -1, -1):
-                if futures[i].done() and (done_ref is None or i > done_ref[0]):
-                    Yk = futures[i].result()[0]
-                    M = M2 // 2
-                    done_ref = (i, float(np.nanmax(np.hypot(np.abs(Yk[:, :M]), np.abs(Yk[:, M:])))))
-                    break
+            done_ref = _amplitude_reference(futures, k, M2 // 2)
             rec = recorded_labels(exp, sweep_key(k))
             if rec is not None:
                 amps[k] = float(rec["amplitude"])
