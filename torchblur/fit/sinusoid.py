@@ -30,7 +30,7 @@ from torchblur.fit.robust import impulses, inpaint, plane_fit, plane_image, robu
 from torchblur.fit.sine_model import _CALL_NODE_PIXELS, ParamLayout, SineModel, _merge_panel_groups, sine_model  # noqa: F401
 from torchblur.render.alias import alias_phase as _alias_phase
 from torchblur.render.alias import wrap_phase
-from torchblur.render.blur import RenderSettings, render_blur
+from torchblur.render.blur import RenderSettings, panel_count, render_blur
 from torchblur.render.camera import CameraNoise
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.trajectory import Sinusoid
@@ -671,7 +671,7 @@ def _reweight_by_model(inp: _FlatInputs, o: _FitOptions, data, res: SinusoidFit,
     live = torch.arange(data.shape[0], device=data.device)[torch.isfinite(res.cost) & (res.status != 3)]
     if live.numel() == 0:
         return inp
-    model = _model_images(res, live, inp, o, with_background=o.fit_background)
+    model = _expected_images(res, live, inp, o)
     sig = inp.noise.clone() if inp.noise.dim() == 4 else inp.noise[:, None, None, None].expand(data.shape).clone()
     sig[live] = inp.noise_model.std(model)
     inp = replace(inp, noise=sig)
@@ -806,6 +806,37 @@ def _model_images(res: SinusoidFit, idx, inp: _FlatInputs, o: _FitOptions, *, wi
     if with_background:
         img = img + res.background[idx][:, None, None, None]
     return img
+
+
+def _expected_images(res: SinusoidFit, idx, inp: _FlatInputs, o: _FitOptions) -> torch.Tensor:
+    """The fitted model ``[n, E, H, W]`` of items ``idx`` (with the background where fitted), each
+    rendered with the quadrature its own motion needs: Gaussian items grouped by their panel count
+    and by whether the PSF is tilted, measured kernels one by one (the FFT grid follows the
+    batch's largest motion), so an item's image, and the weights made from it, do not depend on
+    which other items share its batch (a chunk of a sweep gives the values the whole sweep gives)."""
+    H, W = inp.data.shape[-2:]
+    amp, ph = _axes_xy(res.amplitude[idx], res.phase[idx], None if inp.direction is None else inp.direction[idx])
+    traj = Sinusoid(amp[:, None, :], ph[:, None, :], inp.omega[idx][:, None])
+    psf = _fitted_psf(res, inp.psf, idx, o.fit_scale, o.fit_center)
+    win = inp.window[idx]
+    settings = o.render_settings or RenderSettings()
+    panels = panel_count(traj.path_length(win), psf.sigma_min(), settings, traj.phase_span(win)).amax(-1).long()  # [n]
+    if isinstance(psf, GaussianPSF):
+        key = 2 * panels + (psf.cov[..., 0, 1] != 0).flatten(1).any(1).long()
+    else:  # a kernel's FFT grid is padded by the batch's largest displacement: each item alone
+        key = torch.arange(len(idx), device=panels.device)
+    out = torch.empty((len(idx),) + tuple(inp.data.shape[1:]), dtype=inp.data.dtype, device=inp.data.device)
+    with torch.no_grad():
+        for k in torch.unique(key).tolist():
+            sel = (key == k).nonzero().flatten()
+            n_panels = k // 2 if isinstance(psf, GaussianPSF) else int(panels[sel[0]])
+            rule = replace(settings, nodes=int(n_panels) * settings.nodes_per_panel)
+            sub = Sinusoid(amp[sel][:, None, :], ph[sel][:, None, :], inp.omega[idx][sel][:, None])
+            out[sel] = render_blur(sub, _take_psf(psf, sel), ExposureWindow(win.start[sel], win.duration[sel]), height=H, width=W,
+                                   settings=rule)
+    if o.fit_background:
+        out = out + res.background[idx][:, None, None, None]
+    return out
 
 
 def _light_in_frame(res: SinusoidFit, inp: _FlatInputs, fit_center: bool, n_t: int = 64) -> torch.Tensor:
