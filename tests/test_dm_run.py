@@ -144,3 +144,14 @@ def test_the_amplitude_reference_is_the_fit_two_frequencies_back_whatever_has_fi
     assert i == 1 and ymax == pytest.approx(2.0 * math.sqrt(2))
     futures[1] = fut(np.nan)  # no finite response: the one before
     assert _amplitude_reference(futures, 3, M)[0] == 0
+
+
+def test_the_still_frames_grow_with_the_sweep_within_a_memory_bound():
+    from torchblur.dm.budget import DM_STILL_FRAMES, STILL_BYTES, dm_still_frames
+
+    assert dm_still_frames(100, (160, 160)) == DM_STILL_FRAMES  # never fewer than the least
+    assert dm_still_frames(4096, (160, 160)) == 1024  # a quarter of configs/identify_dm.yaml's sweep
+    assert dm_still_frames(4097, (160, 160)) == 1025
+    big = dm_still_frames(10**6, (160, 160))
+    assert big == STILL_BYTES // (8 * 160 * 160) and big * 8 * 160 * 160 <= STILL_BYTES
+    assert dm_still_frames(10**6, (4000, 4000)) == DM_STILL_FRAMES  # the least even where the bound allows fewer

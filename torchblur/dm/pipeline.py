@@ -33,7 +33,7 @@ import torch
 from torchblur.errors import ParameterError
 from torchblur.render.camera import CameraModel
 from torchblur.render.window import ExposureWindow
-from torchblur.dm.budget import DM_DARK_FRAMES, DM_STILL_FRAMES, dm_geometry, dm_plan
+from torchblur.dm.budget import DM_DARK_FRAMES, DM_STILL_FRAMES, dm_geometry, dm_plan, dm_still_frames, dm_sweep_size
 from torchblur.dm.mirror import DeformableMirror
 from torchblur.dm.plans import static_motion_px
 from torchblur.dm.rig import SimulatedDMRig
@@ -143,7 +143,7 @@ def next_amplitude(*, target_px: float, motion_per_unit: float, input_limit: flo
     return float(min(amp, input_limit / max_pattern))
 
 
-# DM_DARK_FRAMES, DM_STILL_FRAMES (torchblur.dm.budget): the calibration's dark and still frames.
+# DM_DARK_FRAMES, dm_still_frames (torchblur.dm.budget): the calibration's dark and still frames.
 
 def _calibrate(cfg, rig, wfs, log, progress, exp=None):
     """Stage 1 (module docstring): the calibration (from the recording ``exp`` where it holds
@@ -153,7 +153,9 @@ def _calibrate(cfg, rig, wfs, log, progress, exp=None):
 
     n = int(cfg.wfs.n_across)
     spots_cfg = replace(cfg.spots, rows=n, cols=n, pitch_px=float(cfg.wfs.pitch_px), sigma_px=float(cfg.wfs.sigma_px))
-    cal = calibrate(replace(cfg, spots=spots_cfg), rig, exp, log=log, progress=progress, n_dark=DM_DARK_FRAMES, n_still=DM_STILL_FRAMES)
+    size = dm_sweep_size(cfg)
+    n_still = dm_still_frames(size["frames"], size["frame_shape"])
+    cal = calibrate(replace(cfg, spots=spots_cfg), rig, exp, log=log, progress=progress, n_dark=DM_DARK_FRAMES, n_still=n_still)
     order = match_spots(cal.spots.psf.center.numpy(), wfs.rest_px, wfs.pitch_px)
     log_message(log, f"dm spots: {len(cal.spots)} found, matched to the {wfs.n_valid} valid subapertures (the other "
                      f"{n * n - wfs.n_valid} cells of the {n}x{n} grid are outside the pupil)", progress)
