@@ -1,6 +1,7 @@
 """The DM run end to end on a small mirror (9 actuators, 4 x 4 subapertures, one dead): the
 pipeline's pieces, identify_dm against the simulated truth, and the CLI routing."""
 import json
+import math
 
 import numpy as np
 import pytest
@@ -117,16 +118,41 @@ def test_cli_routes_a_dm_config(tmp_path, capsys, monkeypatch, small_run):
     assert np.load(tmp_path / "run" / "dm" / "interaction_matrix.npy").shape == (24, 9)
 
 
-def test_pixel_noise_std_does_not_follow_a_pixels_own_noise():
-    import torch
+def test_the_amplitude_reference_is_the_fit_two_frequencies_back_whatever_has_finished():
+    """The amplitude of frequency k comes from frequency k - 2's fit (waited for), never from
+    whichever fit happened to finish: the same seed gives the same run (it used to depend on the
+    worker thread's timing). A fit without a finite response is passed over for an earlier one."""
+    import threading
+    from concurrent.futures import Future
 
-    from torchblur.dm.pipeline import pixel_noise_std
-    from torchblur.render.camera import camera_noise_std
+    from torchblur.dm.pipeline import AMPLITUDE_LAG, _amplitude_reference
 
-    flat = torch.full((2, 3, 8, 8), 900.0, dtype=torch.float64)
-    np.testing.assert_allclose(pixel_noise_std(flat, 5.0).numpy(), camera_noise_std(flat, 5.0).numpy())
-    bumped = flat.clone()
-    bumped[1, 2, 4, 4] += 90.0
-    var = pixel_noise_std(bumped, 5.0) ** 2 - pixel_noise_std(flat, 5.0) ** 2
-    assert float(var[1, 2, 4, 4]) == pytest.approx(10.0)  # a ninth of the bump
-    assert float(var[0].abs().max()) == 0.0 and float(var[1, 2, 4, 6]) == 0.0
+    assert AMPLITUDE_LAG == 2
+    M = 2
+
+    def fut(scale, delay=None):
+        f = Future()
+        Y = np.full((3, 2 * M), scale, dtype=complex)
+        if delay is None:
+            f.set_result((Y, None, 0))
+        else:  # finishes later, on another thread: the reference waits for it
+            threading.Timer(delay, f.set_result, args=((Y, None, 0),)).start()
+        return f
+
+    assert _amplitude_reference([], 0, M) is None and _amplitude_reference([fut(1.0)], 1, M) is None
+    futures = [fut(1.0), fut(2.0, delay=0.2), fut(3.0)]  # frequency 2's fit is done, frequency 1's is not yet
+    i, ymax = _amplitude_reference(futures, 3, M)
+    assert i == 1 and ymax == pytest.approx(2.0 * math.sqrt(2))
+    futures[1] = fut(np.nan)  # no finite response: the one before
+    assert _amplitude_reference(futures, 3, M)[0] == 0
+
+
+def test_the_still_frames_grow_with_the_sweep_within_a_memory_bound():
+    from torchblur.dm.budget import DM_STILL_FRAMES, STILL_BYTES, dm_still_frames
+
+    assert dm_still_frames(100, (160, 160)) == DM_STILL_FRAMES  # never fewer than the least
+    assert dm_still_frames(4096, (160, 160)) == 1024  # a quarter of configs/identify_dm.yaml's sweep
+    assert dm_still_frames(4097, (160, 160)) == 1025
+    big = dm_still_frames(10**6, (160, 160))
+    assert big == STILL_BYTES // (8 * 160 * 160) and big * 8 * 160 * 160 <= STILL_BYTES
+    assert dm_still_frames(10**6, (4000, 4000)) == DM_STILL_FRAMES  # the least even where the bound allows fewer

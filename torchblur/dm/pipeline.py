@@ -31,9 +31,9 @@ import numpy as np
 import torch
 
 from torchblur.errors import ParameterError
-from torchblur.render.camera import CameraModel, camera_noise_std
+from torchblur.render.camera import CameraModel
 from torchblur.render.window import ExposureWindow
-from torchblur.dm.budget import DM_DARK_FRAMES, DM_STILL_FRAMES, dm_geometry, dm_plan
+from torchblur.dm.budget import DM_DARK_FRAMES, DM_STILL_FRAMES, dm_geometry, dm_plan, dm_still_frames, dm_sweep_size
 from torchblur.dm.mirror import DeformableMirror
 from torchblur.dm.outputs import DMEstimate, write_dm_outputs
 from torchblur.dm.plans import static_motion_px
@@ -42,7 +42,7 @@ from torchblur.dm.shack_hartmann import ShackHartmann
 from torchblur.dm.verdict import run_verdict
 
 __all__ = ["DM_DARK_FRAMES", "DM_STILL_FRAMES", "DMResult", "build_dm", "identify_dm", "match_spots", "next_amplitude", "nominal_growth",
-           "pixel_noise_std", "truth_errors"]
+           "truth_errors"]
 
 _F64 = torch.float64
 
@@ -145,7 +145,7 @@ def next_amplitude(*, target_px: float, motion_per_unit: float, input_limit: flo
     return float(min(amp, input_limit / max_pattern))
 
 
-# DM_DARK_FRAMES, DM_STILL_FRAMES (torchblur.dm.budget): the calibration's dark and still frames.
+# DM_DARK_FRAMES, dm_still_frames (torchblur.dm.budget): the calibration's dark and still frames.
 
 def _calibrate(cfg, rig, wfs, log, progress, exp=None):
     """Stage 1 (module docstring): the calibration (from the recording ``exp`` where it holds
@@ -155,7 +155,9 @@ def _calibrate(cfg, rig, wfs, log, progress, exp=None):
 
     n = int(cfg.wfs.n_across)
     spots_cfg = replace(cfg.spots, rows=n, cols=n, pitch_px=float(cfg.wfs.pitch_px), sigma_px=float(cfg.wfs.sigma_px))
-    cal = calibrate(replace(cfg, spots=spots_cfg), rig, exp, log=log, progress=progress, n_dark=DM_DARK_FRAMES, n_still=DM_STILL_FRAMES)
+    size = dm_sweep_size(cfg)
+    n_still = dm_still_frames(size["frames"], size["frame_shape"])
+    cal = calibrate(replace(cfg, spots=spots_cfg), rig, exp, log=log, progress=progress, n_dark=DM_DARK_FRAMES, n_still=n_still)
     order = match_spots(cal.spots.psf.center.numpy(), wfs.rest_px, wfs.pitch_px)
     log_message(log, f"dm spots: {len(cal.spots)} found, matched to the {wfs.n_valid} valid subapertures (the other "
                      f"{n * n - wfs.n_valid} cells of the {n}x{n} grid are outside the pupil)", progress)
@@ -175,25 +177,13 @@ def _fit_frequency(frames, window, omega, amplitude, power, cal, psf, offset, si
     crops, in_frame = crop_problems(e[:, None], offset, size)  # [P, 1, M, ER, h, w]
     hot = _crop_mask(cal.dark.hot_pixels, offset, size)
     p = GaussianPSF(psf.center, psf.cov, psf.amplitude * power)
-    fits = fit_spot_problems(crops, p, window, torch.tensor([omega], dtype=_F64), noise_std=pixel_noise_std(crops, cal.read_noise_e),
-                             mask=(in_frame & ~hot)[:, None], **fit_options)
+    # weights from the camera's noise model: the fitter refits with the first fit's expected signal
+    fits = fit_spot_problems(crops, p, window, torch.tensor([omega], dtype=_F64), noise=cal.noise, mask=(in_frame & ~hot)[:, None],
+                             **fit_options)
     n = window.shape[-1]
     phase_var = float(timing_phase_std(omega, jitter_s, cal.latency_std_s, n)) ** 2
     Y, Yc = pattern_responses(fits, amplitude, phase_var=phase_var)
     return Y[..., 0], Yc[:, :, 0], int((fits.status != 0).sum())
-
-
-def pixel_noise_std(crops: torch.Tensor, read_noise_e: float) -> torch.Tensor:
-    """Pixel noise std (electrons) of crops ``[..., h, w]``: ``camera_noise_std`` of the crops
-    smoothed by a 3 x 3 mean (the edges averaged over the pixels inside). The weights of a fit
-    must not follow each pixel's own noise: with the raw data a pixel that fluctuates up gets a
-    smaller weight, which pulled the fitted amplitudes down by 0.2 % (noise-free camera but 0.5 e-
-    read noise) to 0.6 % (the DM config's camera) on the 9-actuator run; the smoothed level
-    carries a ninth of a pixel's own noise."""
-    shape = crops.shape
-    x = crops.reshape((-1, 1) + tuple(shape[-2:]))
-    smooth = torch.nn.functional.avg_pool2d(x, 3, stride=1, padding=1, count_include_pad=False)
-    return camera_noise_std(smooth.reshape(shape), read_noise_e)
 
 
 def _crop_mask(mask, offset, size):
@@ -223,6 +213,23 @@ def _fit_options(cfg) -> dict:
             "fit_background": bool(cfg.fit.fit_background)}
 
 
+#: the amplitude at frequency k is predicted from the fit of frequency k - AMPLITUDE_LAG (waited
+#: for): one frequency's fit overlaps the next one's acquisition, and the run does not depend on
+#: which fits happen to have finished (the same seed gives the same run).
+AMPLITUDE_LAG = 2
+
+
+def _amplitude_reference(futures, k: int, M: int):
+    """``(i, largest |Y| per unit amplitude of frequency i)`` for the amplitude of frequency
+    ``k``: the latest frequency ``i <= k - AMPLITUDE_LAG`` whose fit has a finite response
+    (waiting for those fits), or None (then the nominal prediction)."""
+    for i in range(min(k - AMPLITUDE_LAG, len(futures) - 1), -1, -1):
+        Yi = futures[i].result()[0]
+        if np.isfinite(Yi).any():
+            return i, float(np.nanmax(np.hypot(np.abs(Yi[:, :M]), np.abs(Yi[:, M:]))))
+    return None
+
+
 def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, log, progress, exp=None):
     """Stage 3 (module docstring): ``(amplitude [F], power [F], Y [P, 2M, F], Y_cov, failed, frames, t_acq, t_wait)``.
     With a recording ``exp`` each frequency is one group (:mod:`torchblur.dm.record`): taken from
@@ -236,16 +243,10 @@ def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, log, progress, exp=None
     motion_static = static_motion_px(plan, G)
     limit = min(math.inf if cfg.dm.input_limit is None else float(cfg.dm.input_limit), cal.input_limit)  # and the rig's RANGE?
     amps, powers, futures = np.zeros(F), np.zeros(F), []
-    done_ref = None  # (index of the last fitted frequency, its largest |Y| per unit amplitude)
     t_acq = 0.0
     with ThreadPoolExecutor(max_workers=1) as pool:
         for k, f in enumerate(freqs):
-            for i in range(len(futures) - 1, -1, -1):
-                if futures[i].done() and (done_ref is None or i > done_ref[0]):
-                    Yk = futures[i].result()[0]
-                    M = M2 // 2
-                    done_ref = (i, float(np.nanmax(np.hypot(np.abs(Yk[:, :M]), np.abs(Yk[:, M:])))))
-                    break
+            done_ref = _amplitude_reference(futures, k, M2 // 2)
             rec = recorded_labels(exp, sweep_key(k))
             if rec is not None:
                 amps[k] = float(rec["amplitude"])

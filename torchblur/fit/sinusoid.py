@@ -16,7 +16,7 @@ fit in named steps (:func:`_fit_core`).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import torch
 
@@ -30,7 +30,7 @@ from torchblur.fit.robust import impulses, inpaint, plane_fit, plane_image, robu
 from torchblur.fit.sine_model import _CALL_NODE_PIXELS, ParamLayout, SineModel, _merge_panel_groups, sine_model  # noqa: F401
 from torchblur.render.alias import alias_phase as _alias_phase
 from torchblur.render.alias import wrap_phase
-from torchblur.render.blur import RenderSettings, render_blur
+from torchblur.render.blur import RenderSettings, panel_count, render_blur
 from torchblur.render.camera import CameraNoise
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.trajectory import Sinusoid
@@ -491,7 +491,9 @@ class _FlatInputs:
     direction of a one-axis fit (None: Lissajous, see :func:`_axes_xy`); ``noise`` None, ``[N]``
     or ``[N, E, H, W]``; ``keep [N, E, H, W]`` the pixels neither masked nor saturated;
     ``user_masked``, ``sat_masked [N]`` whether the mask, the saturation level excluded pixels;
-    ``shift`` poisson's read-noise shift (:func:`noise_terms`).
+    ``shift`` poisson's read-noise shift (:func:`noise_terms`); ``noise_model`` the camera's noise
+    model where the weights are to come from the fitted model (``noise`` given, ``noise_std``
+    not: :func:`_reweight_by_model`), else None.
     """
 
     data: torch.Tensor
@@ -506,6 +508,7 @@ class _FlatInputs:
     user_masked: torch.Tensor
     sat_masked: torch.Tensor
     shift: float = 0.0
+    noise_model: CameraNoise | None = None
 
 
 def _check_flag(value, name: str) -> bool:
@@ -541,10 +544,10 @@ def noise_terms(images: torch.Tensor, noise_std, noise: CameraNoise | None):
     dark-subtracted electrons): ``(noise_std, shift)``.
 
     ``noise_std``: the caller's, else ``noise.std(images)`` (each pixel's own value as its expected
-    charge: that correlates the weights with the noise and biases an l2 or l1 amplitude low by a
-    fraction of a std; pass ``noise_std`` from a cleaner estimate, such as the mean of repeated
-    frames, where there is one), else None. ``shift``: poisson's read-noise shift,
-    ``noise.poisson_shift_e`` (0 without ``noise``: the images are pure counts).
+    charge: only the first pass's weights; :func:`fit_sinusoid` then refits with
+    ``noise.std`` of the first fit's model, :func:`_reweight_by_model`), else None. ``shift``:
+    poisson's read-noise shift, ``noise.poisson_shift_e`` (0 without ``noise``: the images are
+    pure counts).
     Every loss weighs by it as :mod:`torchblur.fit.losses` says (l2 ``1 / sigma^2``, l1 and linf
     ``1 / sigma``, poisson the shifted Poisson's own variance).
     """
@@ -558,6 +561,7 @@ def noise_terms(images: torch.Tensor, noise_std, noise: CameraNoise | None):
 def _flat_inputs(images, psf, window, omega, axes, noise_std, mask, saturation_level, noise=None) -> _FlatInputs:
     """The checked ``images [..., E, H, W]`` and the rest, flattened (checks ``axes``,
     ``noise_std``, ``mask``, ``saturation_level``, ``noise``: :func:`noise_terms`)."""
+    noise_model = noise if noise_std is None else None
     noise_std, shift = noise_terms(images, noise_std, noise)
     dtype, device = images.dtype, images.device
     batch = images.shape[:-3]
@@ -601,7 +605,7 @@ def _flat_inputs(images, psf, window, omega, axes, noise_std, mask, saturation_l
     return _FlatInputs(data=data, psf=_flatten_psf(psf.to(dtype) if isinstance(psf, GaussianPSF) else psf, batch, N),
                        window=ExposureWindow(w_full.start.reshape(N, E), w_full.duration.reshape(N, E)), omega=omega.expand(batch).reshape(N),
                        axis_dirs=axis_dirs, labels=labels, direction=None if isinstance(axes, str) and axes == "xy" else axis_dirs[:, 0], noise=sig, keep=keep,
-                       user_masked=user_masked, sat_masked=sat_masked, shift=shift)
+                       user_masked=user_masked, sat_masked=sat_masked, shift=shift, noise_model=noise_model)
 
 
 def _fit_items(inp: _FlatInputs, o: _FitOptions, data: torch.Tensor, idx: torch.Tensor, use: torch.Tensor) -> SinusoidFit:
@@ -616,10 +620,12 @@ def _fit_items(inp: _FlatInputs, o: _FitOptions, data: torch.Tensor, idx: torch.
 
 
 def _robust_fit(inp: _FlatInputs, o: _FitOptions, outliers: str, outlier_sigma: float, fit_gradient: bool):
-    """The fit with the robust options: ``(result [N], rejected [N, E, H, W], plane [N, E, 3] or
-    None, outlier passes)``. Impulses are rejected before the first pass (Gaussian PSF); with
+    """The fit with the robust options: ``(inputs, result [N], rejected [N, E, H, W], plane [N, E, 3]
+    or None, outlier passes)``. Impulses are rejected before the first pass (Gaussian PSF); with
     ``fit_gradient`` a stray-light plane is fitted to the border, then to the pixels the spot
-    does not reach, and the spot refitted; with ``outliers="reject"``, up to 3 passes."""
+    does not reach, and the spot refitted; with a noise model and no ``noise_std``, refitted
+    with the model's weights (:func:`_reweight_by_model`; the returned inputs carry them); with
+    ``outliers="reject"``, up to 3 passes."""
     data, keep = inp.data, inp.keep
     N, E, H, W = data.shape
     everything = torch.arange(N, device=data.device)
@@ -645,8 +651,32 @@ def _robust_fit(inp: _FlatInputs, o: _FitOptions, outliers: str, outlier_sigma: 
             plane[live] = plane_fit(inp.data[live], keep[live] & ~rejected[live] & far)
             data = inp.data - plane_image(plane, H, W)
             put_items(res, live, _fit_items(inp, o, data, live, keep[live] & ~rejected[live]))
+    if inp.noise_model is not None and o.loss != "poisson":
+        inp = _reweight_by_model(inp, o, data, res, keep & ~rejected)
     passes = _outlier_passes(inp, o, data, res, rejected, outlier_sigma) if outliers == "reject" else 0
-    return res, rejected, plane, passes
+    return inp, res, rejected, plane, passes
+
+
+def _reweight_by_model(inp: _FlatInputs, o: _FitOptions, data, res: SinusoidFit, use) -> _FlatInputs:
+    """The second pass of a fit weighted by the camera's noise model: every fitted item refitted
+    with ``inp.noise_model.std`` of its first-pass model image (with the background: stray light
+    is light), and ``inp`` returned with those stds.
+
+    Why: the first pass weighs each pixel by its own value, so a pixel that fluctuates up counts
+    less and the fitted spot comes out dimmer and less blurred: the amplitude is biased low by a
+    few hundredths of its std per fit. One fit cannot see that, but an estimate that averages
+    thousands of fits (a deformable mirror's DC gain from every slope, pattern and frequency) is
+    then off by several of its stds. The model's expected signal holds almost none of the noise
+    (it has a handful of parameters), so the second pass's weights do not correlate with it."""
+    live = torch.arange(data.shape[0], device=data.device)[torch.isfinite(res.cost) & (res.status != 3)]
+    if live.numel() == 0:
+        return inp
+    model = _expected_images(res, live, inp, o)
+    sig = inp.noise.clone() if inp.noise.dim() == 4 else inp.noise[:, None, None, None].expand(data.shape).clone()
+    sig[live] = inp.noise_model.std(model)
+    inp = replace(inp, noise=sig)
+    put_items(res, live, _fit_items(inp, o, data, live, use[live]))
+    return inp
 
 
 def _outlier_passes(inp: _FlatInputs, o: _FitOptions, data, res: SinusoidFit, rejected, outlier_sigma: float) -> int:
@@ -778,6 +808,37 @@ def _model_images(res: SinusoidFit, idx, inp: _FlatInputs, o: _FitOptions, *, wi
     return img
 
 
+def _expected_images(res: SinusoidFit, idx, inp: _FlatInputs, o: _FitOptions) -> torch.Tensor:
+    """The fitted model ``[n, E, H, W]`` of items ``idx`` (with the background where fitted), each
+    rendered with the quadrature its own motion needs: Gaussian items grouped by their panel count
+    and by whether the PSF is tilted, measured kernels one by one (the FFT grid follows the
+    batch's largest motion), so an item's image, and the weights made from it, do not depend on
+    which other items share its batch (a chunk of a sweep gives the values the whole sweep gives)."""
+    H, W = inp.data.shape[-2:]
+    amp, ph = _axes_xy(res.amplitude[idx], res.phase[idx], None if inp.direction is None else inp.direction[idx])
+    traj = Sinusoid(amp[:, None, :], ph[:, None, :], inp.omega[idx][:, None])
+    psf = _fitted_psf(res, inp.psf, idx, o.fit_scale, o.fit_center)
+    win = inp.window[idx]
+    settings = o.render_settings or RenderSettings()
+    panels = panel_count(traj.path_length(win), psf.sigma_min(), settings, traj.phase_span(win)).amax(-1).long()  # [n]
+    if isinstance(psf, GaussianPSF):
+        key = 2 * panels + (psf.cov[..., 0, 1] != 0).flatten(1).any(1).long()
+    else:  # a kernel's FFT grid is padded by the batch's largest displacement: each item alone
+        key = torch.arange(len(idx), device=panels.device)
+    out = torch.empty((len(idx),) + tuple(inp.data.shape[1:]), dtype=inp.data.dtype, device=inp.data.device)
+    with torch.no_grad():
+        for k in torch.unique(key).tolist():
+            sel = (key == k).nonzero().flatten()
+            n_panels = k // 2 if isinstance(psf, GaussianPSF) else int(panels[sel[0]])
+            rule = replace(settings, nodes=int(n_panels) * settings.nodes_per_panel)
+            sub = Sinusoid(amp[sel][:, None, :], ph[sel][:, None, :], inp.omega[idx][sel][:, None])
+            out[sel] = render_blur(sub, _take_psf(psf, sel), ExposureWindow(win.start[sel], win.duration[sel]), height=H, width=W,
+                                   settings=rule)
+    if o.fit_background:
+        out = out + res.background[idx][:, None, None, None]
+    return out
+
+
 def _light_in_frame(res: SinusoidFit, inp: _FlatInputs, fit_center: bool, n_t: int = 64) -> torch.Tensor:
     """Fraction ``[N]`` of the fitted spot's light that falls inside the frame
     ``[-0.5, W - 0.5] x [-0.5, H - 0.5]`` (worst exposure), from the Gaussian marginals of the
@@ -845,7 +906,10 @@ def fit_sinusoid(
         optimizer: ``"lm"`` (batched Levenberg-Marquardt, default), ``"adam"``, ``"lbfgs"``.
         loss: ``"l2"`` (default), ``"l1"``, ``"linf"`` (adam/lbfgs only), ``"poisson"``: see :mod:`torchblur.fit.losses`.
         noise_std: pixel noise std: a number, ``[...]`` or ``[..., E, H, W]``; None: from ``noise``
-            (:func:`noise_terms`), else the l2 fit is unweighted and the noise is estimated from the residuals.
+            (each pixel weighed by the noise of its expected signal: a first pass weighted by the
+            pixels' own values, then a refit weighted by ``noise.std`` of the first fit's model,
+            which keeps the amplitude unbiased; :func:`noise_terms`), else the l2 fit is
+            unweighted and the noise is estimated from the residuals.
         noise: the camera's :class:`~torchblur.render.camera.CameraNoise` (images in electrons), or None.
         mask: bool ``[..., E, H, W]``, False excludes a pixel (hot pixels from
             ``preprocess.dark_frame(...).hot_pixels``, saturated pixels from
@@ -899,5 +963,5 @@ def fit_sinusoid(
     inp = _flat_inputs(images, psf, window, omega, axes, noise_std, mask, saturation_level, noise)
     options = _FitOptions(optimizer=optimizer, loss=loss, fit_scale=fit_scale, fit_background=fit_background, fit_center=fit_center,
                           normalize=normalize, max_iter=max_iter, tol=tol, render_settings=render_settings, shift=inp.shift)
-    res, rejected, plane, passes = _robust_fit(inp, options, outliers, outlier_sigma, fit_gradient)
+    inp, res, rejected, plane, passes = _robust_fit(inp, options, outliers, outlier_sigma, fit_gradient)
     return _finish(res, inp, options, rejected, plane, passes, batch=images.shape[:-3])

@@ -889,10 +889,11 @@ def calibration_frames(cfg: IdentifyConfig, *, n_dark: int, n_still: int) -> int
 def _estimate_dm(cfg: IdentifyConfig) -> dict:
     """:func:`estimate_run` of a DM run (``dm.n_across`` > 0): the plan's sweep frames
     (:func:`torchblur.dm.budget.dm_sweep_size`) and the DM calibration's, on the sensor's frame."""
-    from torchblur.dm.budget import DM_DARK_FRAMES, DM_STILL_FRAMES, dm_sweep_size
+    from torchblur.dm.budget import DM_DARK_FRAMES, dm_still_frames, dm_sweep_size
 
     size = dm_sweep_size(cfg)
-    frames = size["frames"] + calibration_frames(cfg, n_dark=DM_DARK_FRAMES, n_still=DM_STILL_FRAMES)
+    n_still = dm_still_frames(size["frames"], size["frame_shape"])
+    frames = size["frames"] + calibration_frames(cfg, n_dark=DM_DARK_FRAMES, n_still=n_still)
     est = _estimate(cfg, frames, size["frame_shape"], n_drives=size["patterns"], repeats=size["repeats"])
     est["sweep_frames"] = size["frames"]
     return est

@@ -200,26 +200,13 @@ def fit_points(acq: SineAcquisition, lay: SweepLayout, cfg, noise: CameraNoise, 
     f = cfg.fit
     with _FIT_LOCK:
         fit = fit_sinusoid(imgs, psf_b, win, acq.omega_job[list(idx)][:, None], axes=lay.axes, optimizer=f.optimizer, loss=f.loss,
-                           noise_std=noise.std(_repeat_mean(imgs, lay.R)), noise=noise, mask=torch.stack([acq.masks[j] for j in idx]),
+                           noise=noise, mask=torch.stack([acq.masks[j] for j in idx]),
                            fit_scale=f.fit_scale, fit_background=f.fit_background, fit_gradient=f.fit_gradient,
                            outliers=f.outliers, outlier_sigma=float(f.outlier_sigma))
     if lay.uses_kernel:
         # the rule counts the light: a point's exposures at laser power p hold the light of p times them at power 1
         fit = inflate_std(fit, lay.still_psf.kernel_noise_factor(win.duration * pw[:, None, None]))  # [n, 1]
     return squeeze_problems(fit) if lay.single else fit
-
-
-def _repeat_mean(imgs: torch.Tensor, R: int) -> torch.Tensor:
-    """Frames ``[..., E*R, h, w]`` (exposure-major: the ``R`` repeats of an exposure in a row)
-    replaced by the mean of their exposure's repeats: the expected signal the camera noise model
-    weighs by. Weights from each pixel's own noisy value correlate with its noise and bias the
-    fitted amplitude low; the repeats' mean keeps 1/R of that correlation and, unlike a spatial
-    mean, does not blur the spot's profile."""
-    if R <= 1:
-        return imgs
-    shape = imgs.shape
-    grouped = imgs.reshape(*shape[:-3], shape[-3] // R, R, *shape[-2:])
-    return grouped.mean(-3, keepdim=True).expand_as(grouped).reshape(shape)
 
 
 def _moved_px(frames, lay: SweepLayout, cal, omega: float, window: ExposureWindow):

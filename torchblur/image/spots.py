@@ -213,7 +213,9 @@ def locate_spots(still, *, exposure_s: float, noise_std, pitch_px: float, crop_p
     Spots are found with :func:`torchblur.image.detection.find_spots` (kornia connected
     components), put in raster order, cropped (``crop_px`` square, centred on each spot's
     centroid; pixels beyond the frame are masked out) and fitted with one batched
-    :func:`torchblur.image.psf_fit.fit_gaussian_psf`.
+    :func:`torchblur.image.psf_fit.fit_gaussian_psf`, integrated over the pixels as a camera's
+    pixels integrate the light; the PSF returned is its point-sampled moment match
+    (:func:`~torchblur.image.psf_fit.point_sampled_equivalent`), the model the blur fits use.
 
     Args:
         still: dark-subtracted still image ``[H, W]`` (the mean of still frames).
@@ -232,7 +234,7 @@ def locate_spots(still, *, exposure_s: float, noise_std, pitch_px: float, crop_p
         ParameterError: no spot found.
     """
     from torchblur.image.detection import find_spots
-    from torchblur.image.psf_fit import fit_gaussian_psf
+    from torchblur.image.psf_fit import fit_gaussian_psf, point_sampled_equivalent
 
     still = as_tensor(still, "still")
     if still.dim() != 2:
@@ -255,8 +257,10 @@ def locate_spots(still, *, exposure_s: float, noise_std, pitch_px: float, crop_p
     m = valid
     if mask is not None:
         m = m & crop_spots(mask.to(still.dtype), offset, size).gt(0.5)
-    fit = fit_gaussian_psf(crops, exposure_s=exposure_s, noise_std=noise_std, mask=m, pixel_integration=False)
-    psf = GaussianPSF(fit.psf.center + offset.to(still.dtype), fit.psf.cov, fit.psf.amplitude)
+    # the pixels integrate the spot: fit that, then hand the point-sampled fitter the moment match
+    fit = fit_gaussian_psf(crops, exposure_s=exposure_s, noise_std=noise_std, mask=m, pixel_integration=True)
+    fitted = point_sampled_equivalent(fit.psf)
+    psf = GaussianPSF(fitted.center + offset.to(still.dtype), fitted.cov, fitted.amplitude)
     light = (fit.model - fit.background[:, None, None]).clamp_min(0)
     inside = (light * valid).sum((-1, -2)) / light.sum((-1, -2)).clamp_min(torch.finfo(light.dtype).tiny)
     return SpotPSFs(psf=psf, offset=offset, size=size, fit=fit, clipped=clipped, inside_fraction=inside)
