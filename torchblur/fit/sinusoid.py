@@ -905,11 +905,9 @@ def fit_sinusoid(
             ``phase_u``.
         optimizer: ``"lm"`` (batched Levenberg-Marquardt, default), ``"adam"``, ``"lbfgs"``.
         loss: ``"l2"`` (default), ``"l1"``, ``"linf"`` (adam/lbfgs only), ``"poisson"``: see :mod:`torchblur.fit.losses`.
-        noise_std: pixel noise std: a number, ``[...]`` or ``[..., E, H, W]``; None: from ``noise``
-            (each pixel weighed by the noise of its expected signal: a first pass weighted by the
-            pixels' own values, then a refit weighted by ``noise.std`` of the first fit's model,
-            which keeps the amplitude unbiased; :func:`noise_terms`), else the l2 fit is
-            unweighted and the noise is estimated from the residuals.
+        noise_std: pixel noise std: a number, ``[...]`` or ``[..., E, H, W]``; None: from ``noise`` (a refit
+            weighted by ``noise.std`` of a first fit's model: unbiased, :func:`_reweight_by_model`), else the
+            l2 fit is unweighted and the noise is estimated from the residuals.
         noise: the camera's :class:`~torchblur.render.camera.CameraNoise` (images in electrons), or None.
         mask: bool ``[..., E, H, W]``, False excludes a pixel (hot pixels from
             ``preprocess.dark_frame(...).hot_pixels``, saturated pixels from
