@@ -921,8 +921,7 @@ def fit_sinusoid(
             MAD estimate from the residuals, which assumes the noise does not grow with the
             signal) are excluded and the item refitted, up to 3 passes; for hot pixels
             without a map and cosmic-ray hits. Sets :data:`OUTLIERS_MASKED` and ``n_outliers``.
-        outlier_sigma: the rejection threshold in standard deviations (> 0, default 5: about
-            6e-7 of clean Gaussian pixels are rejected).
+        outlier_sigma: the rejection threshold in standard deviations (> 0, default 5: 6e-7 of clean pixels).
         fit_scale, fit_background, fit_center: fit an intensity scale, a constant background
             (stray light), the rest position jointly (nuisance parameters).
         fit_gradient: remove a stray-light plane (level and slopes) from each exposure,
