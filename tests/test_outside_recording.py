@@ -25,7 +25,7 @@ from torchblur.identify.run import identify
 from torchblur.identify.sweep import inflate_std
 from torchblur.image.preprocess import dark_frame, subtract_dark
 from torchblur.image.psf_from_still import psf_from_still
-from torchblur.render.camera import camera_noise_std
+from torchblur.render.camera import CameraNoise, camera_noise_std
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.window import ExposureWindow
 from torchblur.sysid.frequency_response import FrequencyResponse
@@ -155,7 +155,7 @@ def hcipy_folders(tmp_path_factory):
 def _direct(p, dark_frames, direction):
     """psf_from_still + fit_sinusoid called directly, as identify's steps do: dark frame and
     read noise from the darks, the PSF of the dark-subtracted still (background 0, camera noise),
-    the fit weighted by the camera noise of the frames, the kernel's own noise in the std."""
+    the fit weighted by the camera's noise model (fit_sinusoid's model-weighted refit), the kernel's own noise in the std."""
     dark = dark_frame(torch.as_tensor(dark_frames))
     rn = float(dark.read_noise)
     still = subtract_dark(torch.as_tensor(p["still"]), dark)
@@ -163,7 +163,7 @@ def _direct(p, dark_frames, direction):
     frames = subtract_dark(torch.as_tensor(p["frames"]), dark)
     psf = KernelPSF(sp.psf.kernel) if sp.kind == "kernel" else sp.psf
     fit = fit_sinusoid(frames, psf, p["window"], torch.tensor(p["omega"], dtype=torch.float64), axes=direction,
-                       noise_std=camera_noise_std(frames, rn), mask=torch.ones(frames.shape, dtype=torch.bool), fit_scale=True)
+                       noise=CameraNoise(read_noise_e=rn), mask=torch.ones(frames.shape, dtype=torch.bool), fit_scale=True)
     return inflate_std(fit, sp.kernel_noise_factor(p["window"].duration)), sp.kind
 
 
