@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import torch
 
@@ -30,6 +30,7 @@ from torchblur.fit.losses import image_loss
 from torchblur.image.moments import image_moments, moments_along
 from torchblur.fit.optim import levenberg_marquardt, model_jacobian
 from torchblur.render.psf import GaussianPSF
+from torchblur.render.camera import CameraNoise
 from torchblur.render.blur import RenderSettings, choose_node_count, quadrature_nodes, render_blur
 from torchblur.render.splat import sine_blur_with_jacobian, window_nodes
 from torchblur.render.window import ExposureWindow
@@ -146,7 +147,8 @@ class MultisineFit:
         status: see :data:`STATUS`, ``[...]``.
         scale: fitted intensity scale ``[...]`` (None if not fitted).
         noise_std: pixel noise std used (median), ``[...]``.
-        n_iter: LM iterations of the best start, ``[...]``.
+        n_iter: LM iterations of the best start (plus the refit's, weighted by the noise
+            model), ``[...]``.
         extras: ``nodes``, ``starts``, ``refined``, ``crop``.
     """
 
@@ -278,6 +280,75 @@ def _pixel_weight(noise_std, mask, flat: _Flat):
     return weight, noise_level
 
 
+def _noise_power(noise, power, noise_std, flat: _Flat) -> torch.Tensor | None:
+    """Check ``noise`` (a :class:`~torchblur.render.camera.CameraNoise` or None) and ``power``
+    (``[..., E]`` or a number, > 0; only with ``noise``) -> ``power [B, E]`` (ones when not given)
+    where the noise model sets the weights (``noise`` given, ``noise_std`` not), else None."""
+    if noise is not None and not isinstance(noise, CameraNoise):
+        raise InputTypeError(f"noise: expected a CameraNoise or None, got {type(noise).__name__}")
+    if noise is not None and noise_std is None and noise.read_noise_e == 0:
+        raise ParameterError("noise: read_noise_e is 0, so a pixel with no expected light would get zero std (infinite weight); "
+                             "pass noise_std")
+    if power is None:
+        pw = torch.ones_like(flat.start)
+    elif noise is None:
+        raise ParameterError("power: only the noise model uses it (the electrons the camera recorded are images * power); "
+                             "pass noise= too, or leave power out")
+    else:
+        p = check_positive(check_finite(as_tensor(power, "power", like=flat.data), "power"), "power")
+        try:
+            pw = p.expand(flat.batch + flat.start.shape[-1:]).reshape(flat.start.shape)
+        except RuntimeError:
+            raise ShapeError(f"power: expected a number or [..., E] = {tuple(flat.batch + flat.start.shape[-1:])}, "
+                             f"got {tuple(p.shape)}") from None
+    return pw if noise is not None and noise_std is None else None
+
+
+def _own_value_std(noise: CameraNoise, pw: torch.Tensor, flat: _Flat) -> torch.Tensor:
+    """The first pass's pixel noise std ``[..., E, H, W]`` (images' units): ``noise.std`` of each
+    pixel's own charge ``images * power`` (electrons), divided by the power."""
+    p = pw[:, :, None, None]
+    return (noise.std(flat.data * p) / p).reshape(flat.batch + flat.data.shape[1:])
+
+
+def _reweight_by_model(prob: _Problem, box, data, weight, theta, live, noise: CameraNoise, pw, stats, *, max_iter: int, tol: float):
+    """The second pass of a fit weighted by the camera's noise model: the live sets ``live [L]``
+    of ``data [B, E, H, W]`` (first-pass weights ``weight``, same shape) refitted by LM from the
+    first pass's ``theta [B, P]`` with weights ``1 / std^2``, ``std =
+    noise.std(model * power) / power`` of the first fit's model image (rendered by the problem's
+    own forward model; 0 outside the crop, where every model is 0), masked pixels still 0.
+
+    Why: the first pass weighs each pixel by its own value, so a pixel that fluctuates up counts
+    less and the fitted motion comes out smaller: the amplitudes are biased low by a fraction of
+    their std (as :func:`torchblur.fit.sinusoid.fit_sinusoid`'s second pass). The model's
+    expected signal holds almost none of the noise, so these weights do not correlate with it.
+
+    ``stats``: the fit's ``(cost, converged, n_iter, noise std) [B]``, set in place for the live
+    sets (the refit's cost and convergence, the iterations added, the median of the new pixel
+    stds). Returns ``(problem with the new weights, theta [B, P])``.
+    """
+    B, E, H, W = weight.shape
+    lo_y, hi_y, lo_x, hi_x = box
+    p = pw[live][:, :, None, None]
+    expected = torch.zeros((live.numel(), E, H, W), dtype=weight.dtype, device=weight.device)
+    with torch.no_grad():
+        expected[..., lo_y:hi_y, lo_x:hi_x] = prob.model(theta[live], live).reshape(live.numel(), E, hi_y - lo_y, hi_x - lo_x)
+    std = noise.std(expected * p) / p
+    w2 = weight.clone()
+    w2[live] = torch.where(weight[live] > 0, 1 / std**2, torch.zeros_like(std))
+    wflat, outside_cost = _weight_terms(w2, data, box)
+    prob = replace(prob, wflat=wflat, outside_cost=outside_cost)
+    jac = (lambda th, i: prob.model_and_jacobian(th, live[i])) if prob.analytic else None
+    res = levenberg_marquardt(lambda th, i: prob.model(th, live[i]), theta[live], prob.target[live], loss="l2", weight=prob.wflat[live],
+                              max_iter=max_iter, tol=tol, jacobian_fn=jac)
+    theta = theta.clone()
+    theta[live] = res.theta
+    cost, converged, n_iter, level = stats
+    cost[live], converged[live], level[live] = res.cost, res.converged, std.reshape(live.numel(), -1).median(-1).values
+    n_iter[live] += res.n_iter
+    return prob, theta
+
+
 def _levels(data: torch.Tensor, noise_level):
     """``(noise_level [B], dark [B], threshold [B, 1])`` from the pixel statistics: the noise
     (the given one, else the MAD), dark sets (peak below 8 noise stds), the moments' threshold."""
@@ -406,8 +477,7 @@ def _problem(flat: _Flat, weight, theta_c, render_settings) -> tuple[_Problem, t
     dtype, device = flat.data.dtype, flat.data.device
     data = flat.data
     lo_y, hi_y, lo_x, hi_x = box = _crop_box(flat, theta_c)
-    out_w = weight.clone()
-    out_w[..., lo_y:hi_y, lo_x:hi_x] = 0
+    wflat, outside_cost = _weight_terms(weight, data, box)
     center_c = flat.center - torch.tensor([lo_x, lo_y], dtype=dtype, device=device)
     psf_c = GaussianPSF(center_c, flat.cov, flat.amp_psf)
     settings = render_settings or RenderSettings(panel_path_sigmas=3.5)
@@ -418,11 +488,23 @@ def _problem(flat: _Flat, weight, theta_c, render_settings) -> tuple[_Problem, t
                               settings)
         settings = RenderSettings(pixel_integration=settings.pixel_integration, nodes_per_panel=settings.nodes_per_panel,
                                   panel_path_sigmas=settings.panel_path_sigmas, max_nodes=settings.max_nodes, nodes=S)
-    prob = _Problem(target=data[..., lo_y:hi_y, lo_x:hi_x].reshape(B, -1), wflat=weight[..., lo_y:hi_y, lo_x:hi_x].reshape(B, -1),
+    out_used = weight > 0
+    out_used[..., lo_y:hi_y, lo_x:hi_x] = False
+    prob = _Problem(target=data[..., lo_y:hi_y, lo_x:hi_x].reshape(B, -1), wflat=wflat,
                     om=flat.om, start=flat.start, dur=flat.dur, psf=psf_c, u=flat.u, height=hi_y - lo_y, width=hi_x - lo_x,
-                    settings=settings, outside_cost=(out_w * data * data).sum((-1, -2, -3)),
-                    outside_sq=((out_w > 0) * data * data).sum((-1, -2, -3)), outside_n=(out_w > 0).sum((-1, -2, -3)).to(dtype))
+                    settings=settings, outside_cost=outside_cost,
+                    outside_sq=(out_used * data * data).sum((-1, -2, -3)), outside_n=out_used.sum((-1, -2, -3)).to(dtype))
     return prob, box
+
+
+def _weight_terms(weight, data, box) -> tuple[torch.Tensor, torch.Tensor]:
+    """The weights ``weight [B, E, H, W]`` as the cropped problem takes them: ``(wflat [B, R]``
+    inside the crop ``box``, ``outside_cost [B]``, the weighted sum of squares of the data outside
+    it, where every model is 0)."""
+    lo_y, hi_y, lo_x, hi_x = box
+    out_w = weight.clone()
+    out_w[..., lo_y:hi_y, lo_x:hi_x] = 0
+    return weight[..., lo_y:hi_y, lo_x:hi_x].reshape(weight.shape[0], -1), (out_w * data * data).sum((-1, -2, -3))
 
 
 def _search(prob: _Problem, cands, items_l, n_ref: int, max_iter: int, tol: float):
@@ -573,6 +655,8 @@ def fit_multisine(
     omega,
     *,
     noise_std=None,
+    noise: CameraNoise | None = None,
+    power=None,
     mask=None,
     amplitude_guess=None,
     phase_guess=None,
@@ -594,8 +678,12 @@ def fit_multisine(
         psf: :class:`GaussianPSF`, batch ``[...]`` (its amplitude includes the laser power).
         window: exposure windows (s) on the command clock, batch ``[..., E]``.
         omega: tone frequencies (rad/s), ``[..., N]``.
-        noise_std: pixel noise std: a number, ``[...]`` or ``[..., E, H, W]``; None: unweighted,
-            the noise level estimated from the residuals.
+        noise_std: pixel noise std: a number, ``[...]`` or ``[..., E, H, W]``; None: from
+            ``noise`` (unbiased: :func:`_reweight_by_model`), else unweighted, the noise level
+            estimated from the residuals.
+        noise: the camera's :class:`~torchblur.render.camera.CameraNoise` (of ``images * power``), or None.
+        power: ``[..., E]`` or a number (default 1), only with ``noise``: the laser power each
+            image (and the PSF) was divided by, so that ``noise`` applies to ``images * power``.
         mask: bool ``[..., E, H, W]``, False excludes a pixel (saturated).
         amplitude_guess: expected ``M_k`` (px), ``[..., N]`` or a number; default from the
             images' second moments (equal tones).
@@ -616,7 +704,8 @@ def fit_multisine(
     """
     flat = _check_and_flatten(images, psf, window, omega, direction, {"n_starts": n_starts, "n_refine": n_refine, "max_iter": max_iter})
     batch, (B, N) = flat.batch, flat.om.shape
-    weight, given_level = _pixel_weight(noise_std, mask, flat)
+    pw = _noise_power(noise, power, noise_std, flat)
+    weight, given_level = _pixel_weight(noise_std if pw is None else _own_value_std(noise, pw, flat), mask, flat)
     sigma_given = given_level is not None
     noise_level, dark, thr = _levels(flat.data, given_level)
     M0 = _amplitude_start(flat, amplitude_guess, thr)
@@ -628,6 +717,9 @@ def fit_multisine(
     theta_best, cost_best, conv_best, iters_best, R_, retried = _search_all(
         prob, theta_c, live, M0, sigma_given=sigma_given, n_starts=n_starts, n_refine=n_refine, fit_scale=fit_scale, g=g,
         max_iter=max_iter, tol=tol)
+    if pw is not None and live.numel():
+        prob, theta_best = _reweight_by_model(prob, crop, flat.data, weight, _canonical(theta_best, N), live, noise, pw,
+                                              (cost_best, conv_best, iters_best, noise_level), max_iter=max_iter, tol=tol)
     theta_best = _canonical(theta_best, N)
     cov_out, sigma_used, singular = _fisher(prob, theta_best, live, noise_level if sigma_given else None)
     std = torch.diagonal(cov_out, dim1=-2, dim2=-1).clamp_min(0).sqrt()

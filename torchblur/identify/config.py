@@ -824,10 +824,21 @@ def validate(cfg: IdentifyConfig) -> None:
     if cfg.model.direct and (cfg.plant.is_mimo or cfg.spots.enabled):
         raise ConfigError("model.direct: the direct fit handles one axis and one spot; this run has "
                           f"{'a 2x2 plant' if cfg.plant.is_mimo else 'many spots (spots.rows > 0)'}: set model.direct=false")
+    validate_loss_for_plan(cfg)
     validate_rig(cfg.rig)
     validate_report(cfg)
     validate_dm(cfg)
     _num(cfg.seed, "seed", integer=True, low=0, high=2**63 - 1)
+
+
+def validate_loss_for_plan(cfg: IdentifyConfig) -> None:
+    """``fit.loss`` other than l2 with ``excitation.kind=multisine``: refused. The multisine fit
+    (and the direct model) is a weighted least squares only; nothing else of a multisine run
+    uses ``fit.loss``, so l1 or poisson would be ignored without a word."""
+    if cfg.excitation.kind == "multisine" and cfg.fit.loss != "l2":
+        raise ConfigError(f"fit.loss: {cfg.fit.loss!r} is not applied by the multisine plan (excitation.kind=multisine): its fit "
+                          f"is a least squares weighted by the camera's noise model (l2) only; set fit.loss=l2, or "
+                          f"excitation.kind=sine to fit with {cfg.fit.loss}")
 
 
 def validate_report(cfg: IdentifyConfig) -> None:

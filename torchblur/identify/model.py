@@ -11,7 +11,6 @@ import numpy as np
 import torch
 
 from torchblur.identify.record import log_message
-from torchblur.render.camera import camera_noise_std
 from torchblur.render.psf import GaussianPSF
 from torchblur.sysid.direct import fit_direct
 from torchblur.sysid.flags import POOR_FIT
@@ -106,17 +105,23 @@ def modes_outside_band(modes, f_lo_hz: float, f_hi_hz: float, factor: float = 3.
     return [m for m in modes if not (f_lo_hz / factor <= m["freq_hz"] <= factor * f_hi_hz)]
 
 
-def fit_direct_model(cfg, model, images, windows, omega, amps, psf, power_t, read_noise_e, mask, fit, log, progress, direction):
-    """The direct model (one axis, one spot): every image at once, with the sweep's noise
-    model and mask; dark or out-of-frame points are left out. None, logged, if it fails."""
+def fit_direct_model(cfg, model, images, windows, omega, amps, psf, power_t, noise, mask, fit, log, progress, direction):
+    """The direct model (one axis, one spot): every image at once, weighted by the camera's
+    noise model ``noise`` (:class:`~torchblur.render.camera.CameraNoise`; the fit's own rule:
+    :func:`~torchblur.sysid.direct.fit_direct` with ``noise``) and the sweep's mask; dark or
+    out-of-frame points are left out. None, logged, if it fails. The direct fit is a least
+    squares whatever ``fit.loss`` (the two-step points use it): a warning says so."""
     F = images.shape[0]
     t_direct = time.perf_counter()
+    if cfg.fit.loss != "l2":
+        log_message(log, f"direct: warning: fit.loss={cfg.fit.loss} applies to the two-step points only; the direct model "
+                    f"(model.direct) is fitted by least squares (l2) weighted by the camera's noise model", progress)
     psf_pts = GaussianPSF(psf.center.expand(F, 2), psf.cov.expand(F, 2, 2), psf.amplitude * power_t)
     A_t = torch.tensor(amps, dtype=torch.float64)
     try:
         d = fit_direct(images, psf_pts, windows, omega, A_t, model, form=cfg.model.direct_form, fit_delay=bool(cfg.model.fit_delay),
                        axis=direction,
-                       noise_std=camera_noise_std(images, read_noise_e), mask=mask,
+                       noise=noise, mask=mask,
                        valid=(fit.status != 1) & (fit.status != 3), fit_scale=cfg.fit.fit_scale,
                        fit_background=cfg.fit.fit_background, max_iter=int(cfg.model.direct_max_iter))
     except Exception as exc:  # the two-step model is still a result; say why the direct fit failed

@@ -43,7 +43,6 @@ from torchblur.identify.result import IdentificationResult
 from torchblur.identify.stages import run_plan
 from torchblur.image.moments import image_moments, moments_along
 from torchblur.image.preprocess import subtract_dark
-from torchblur.render.camera import camera_noise_std
 from torchblur.render.window import ExposureWindow
 from torchblur.rig.base import command_peak
 from torchblur.sysid.frequency_response import FrequencyResponse
@@ -264,13 +263,12 @@ def _fit_group(run, acq: MultisineAcquisition, grp: _Group, st: _Settings, acqui
     frames = torch.cat([pilot[-1].frames.reshape(1, H, W), cap.frames.reshape(-1, H, W)]).to(_F64)
     E, N = len(offsets), len(grp.f_t)
     img = subtract_dark(frames, cal.dark) * cal.gain  # electrons
-    pw = torch.tensor(powers, dtype=_F64)[:, None, None]
-    noise = camera_noise_std(img, cal.read_noise_e) / pw
-    img = img / pw  # electrons at power 1
+    pw = torch.tensor(powers, dtype=_F64)
+    img = img / pw[:, None, None]  # electrons at power 1 (the noise model applies to img * pw)
     start = torch.tensor([o + c.trigger_delay_s + cal.latency_s for o in offsets], dtype=_F64)
     dur = torch.tensor(exposures, dtype=_F64)
     t0 = time.perf_counter()
-    fit = fit_multisine(img, cal.psf, ExposureWindow(start, dur), torch.tensor(grp.om, dtype=_F64), noise_std=noise,
+    fit = fit_multisine(img, cal.psf, ExposureWindow(start, dur), torch.tensor(grp.om, dtype=_F64), noise=cal.noise, power=pw,
                         mask=cal.saturation.mask(frames), amplitude_guess=torch.tensor(M_exp, dtype=_F64),
                         fit_scale=bool(run.cfg.fit.fit_scale), seed=int(run.cfg.seed), direction=st.u)
     acq.fit_s += time.perf_counter() - t0

@@ -420,7 +420,7 @@ class SinePlan:
         :func:`~torchblur.identify.model.fit_direct_model`)."""
         acq, cal = run.acquisition, run.cal
         return fit_direct_model(run.cfg, run.model, run.images, run.windows, acq.omega_job, acq.amps, cal.psf, run.power,
-                                cal.read_noise_e, torch.stack(acq.masks)[:, 0], run.fit,
+                                cal.noise, torch.stack(acq.masks)[:, 0], run.fit,
                                 run.log, run.progress, cal.direction)
 
     def result(self, run) -> IdentificationResult:

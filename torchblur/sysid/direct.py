@@ -58,6 +58,7 @@ import torch
 from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_frequency_grid, as_tensor, as_unit_direction, check_choice,
                      check_finite, check_positive)
 from torchblur.render.blur import RenderSettings, choose_node_count, quadrature_nodes
+from torchblur.render.camera import CameraNoise
 from torchblur.render.psf import GaussianPSF
 from torchblur.render.splat import sine_blur_with_jacobian, window_nodes
 from torchblur.render.trajectory import Sinusoid
@@ -90,9 +91,10 @@ class DirectModelFit:
         cost: weighted sum of squared residuals over every used pixel.
         dof: used pixels minus all fitted parameters (model and nuisance).
         reduced_chi2: cost / dof (about 1 with the right noise model).
-        noise_estimated: True when noise_std was None (covariance scaled by reduced_chi2).
+        noise_estimated: True when neither noise_std nor noise was given (covariance scaled by
+            reduced_chi2).
         converged: whether Levenberg-Marquardt converged.
-        n_iter: its iterations.
+        n_iter: its iterations (both passes' with ``noise``).
         used: [F] bool, the points fitted (False: excluded by ``valid``).
         n_excluded: how many points were excluded.
         scale, background: [F] per-point nuisance estimates (NaN where excluded; background
@@ -396,7 +398,7 @@ class _Problem:
 
     ``data, wts [n, E, H, W]``; ``omega [n]``; ``window [n, E]``; ``psf`` (batch ``[n]``, its
     centre moved with the crop); ``direction [2]``; ``out_cost``, ``out_n``: the cost and the
-    count of the used pixels outside the crop; ``m_limit``: the motion (px) the crop allows;
+    count of the used pixels outside the crop, ``out_sq`` their plain sum of squares; ``m_limit``: the motion (px) the crop allows;
     ``tau, wq``: the quadrature rule on [0, 1] (renewed when the motion grows past ``m_bound``).
     """
 
@@ -411,6 +413,7 @@ class _Problem:
     fit_background: bool
     out_cost: torch.Tensor
     out_n: int = 0
+    out_sq: Any = 0.0
     m_limit: Any = math.inf
     m_bound: Any = None
     tau: torch.Tensor | None = None
@@ -483,6 +486,7 @@ def _crop(prob: _Problem, M0: torch.Tensor) -> None:
     ow = prob.wts * ~inside
     prob.out_cost = (ow * prob.data * prob.data).sum()
     prob.out_n = int(((ow > 0)).sum())
+    prob.out_sq = ((ow > 0) * prob.data * prob.data).sum()
     prob.data, prob.wts = prob.data[..., cy0:cy1, cx0:cx1], prob.wts[..., cy0:cy1, cx0:cx1]
     prob.psf = GaussianPSF(center - torch.tensor([cx0, cy0], dtype=dtype, device=device), prob.psf.cov, prob.psf.amplitude)
     prob.m_limit = M0 * 1.5 + 1.0  # along the axis
@@ -629,6 +633,51 @@ def _covariance(prob: _Problem, motion: _Motion, u, blocks, cost, noise_estimate
     return p_hat.detach().cpu().numpy(), cov, total_cost, dof, red
 
 
+def _model_weighted(noise, noise_std) -> bool:
+    """Check ``noise`` (a CameraNoise or None) -> whether the weights come from the noise model
+    (``noise`` given, ``noise_std`` not: :func:`_refit_by_model`)."""
+    if noise is None:
+        return False
+    if not isinstance(noise, CameraNoise):
+        raise InputTypeError(f"noise: expected a CameraNoise or None, got {type(noise).__name__}")
+    if noise_std is None and noise.read_noise_e == 0:
+        raise ParameterError("noise: read_noise_e is 0, so a pixel with no expected light would get zero std (infinite weight); "
+                             "pass noise_std")
+    return noise_std is None
+
+
+def _refit_by_model(prob: _Problem, motion: _Motion, u, nuis, noise: CameraNoise, *, max_iter: int, tol: float):
+    """The second pass of a fit weighted by the camera's noise model: ``prob``'s weights set in
+    place to ``1 / noise.std(model)^2`` of the first pass's model images at ``(u, nuis)`` (the
+    one forward model, :meth:`_Problem.render`; 0 outside the crop, so ``noise.std(0)`` there;
+    masked pixels stay 0), then Levenberg-Marquardt from there -> as :func:`_levenberg_marquardt`.
+
+    Why: the first pass weighs each pixel by its own value, so a pixel that fluctuates up counts
+    less and the fitted motion comes out smaller: every amplitude, hence the gain, is biased low
+    by a fraction of its std (as :func:`torchblur.fit.sinusoid.fit_sinusoid`'s second pass). The
+    model's expected signal holds almost none of the noise, so these weights do not correlate
+    with it."""
+    with torch.no_grad():
+        M, phi = motion(u)
+        img, _ = prob.render(M, phi)
+        sc, bg = prob.nuisance(img, nuis)
+        model = img * sc[:, None, None, None] + bg[:, None, None, None]
+    prob.wts = torch.where(prob.wts > 0, 1 / noise.std(model) ** 2, torch.zeros_like(model))
+    prob.out_cost = prob.out_sq / noise.std(0.0) ** 2
+    return _levenberg_marquardt(prob, motion, u, nuis, max_iter=max_iter, tol=tol, noise_known=True)
+
+
+def _passes(prob: _Problem, motion: _Motion, u, nuis, noise, noise_known: bool, *, max_iter: int, tol: float):
+    """Levenberg-Marquardt from ``(u, nuis)``, then with ``noise`` (weights from the noise model)
+    the refit :func:`_refit_by_model` from there -> as :func:`_levenberg_marquardt`, the
+    iterations of both passes."""
+    u, nuis, cost, blocks, converged, it = _levenberg_marquardt(prob, motion, u, nuis, max_iter=max_iter, tol=tol, noise_known=noise_known)
+    if noise is None:
+        return u, nuis, cost, blocks, converged, it
+    u, nuis, cost, blocks, converged, it2 = _refit_by_model(prob, motion, u, nuis, noise, max_iter=max_iter, tol=tol)
+    return u, nuis, cost, blocks, converged, it + it2
+
+
 def _per_point(nuis, use, fit_scale: bool, fit_background: bool):
     """The per-point scale and background ``[F]`` (NaN where excluded; background None when not fitted)."""
     F = use.shape[0]
@@ -653,6 +702,7 @@ def fit_direct(
     fit_delay: bool = True,
     axis="x",
     noise_std=None,
+    noise: CameraNoise | None = None,
     mask=None,
     valid=None,
     fit_scale: bool = True,
@@ -680,8 +730,9 @@ def fit_direct(
         axis: "x" or "y", or an image direction (x, y) (a pair or a tensor ``[2]``,
             normalised; an actuator axis rotated in the camera's image): the motion's
             direction in the image.
-        noise_std: pixel noise std: a number, ``[F]`` or ``[F, E, H, W]``; None: unweighted,
-            the noise is estimated from the residuals.
+        noise_std: pixel noise std: a number, ``[F]`` or ``[F, E, H, W]``; None: from ``noise``
+            (unbiased: :func:`_refit_by_model`), else unweighted, the noise from the residuals.
+        noise: the camera's :class:`~torchblur.render.camera.CameraNoise` (images in e-), or None.
         mask: bool ``[F, E, H, W]``, False excludes a pixel (saturated, hot).
         valid: bool ``[F]``, False excludes a whole point (dark, out of frame); counted in
             ``n_excluded``.
@@ -701,7 +752,7 @@ def fit_direct(
     if isinstance(start, (list, tuple)):
         if not start:
             raise ParameterError("start: expected a model or a non-empty list of models, got an empty list")
-        kw = dict(form=form, fit_delay=fit_delay, axis=axis, noise_std=noise_std, mask=mask, valid=valid, fit_scale=fit_scale,
+        kw = dict(form=form, fit_delay=fit_delay, axis=axis, noise_std=noise_std, noise=noise, mask=mask, valid=valid, fit_scale=fit_scale,
                   fit_background=fit_background, max_iter=max_iter, tol=tol, render_settings=render_settings)
         fits = [fit_direct(images, psf, window, omega, input_amplitude, s, **kw) for s in start]
         return min(fits, key=lambda f: f.cost if math.isfinite(f.cost) else math.inf)
@@ -713,8 +764,8 @@ def fit_direct(
     is_log = torch.tensor([t == "log" for t in transforms], device=images.device)
     if np.any(p0[is_log.cpu().numpy()] <= 0) or not np.all(np.isfinite(p0)):
         raise ParameterError(f"start: the start gives invalid parameters {dict(zip(names, p0.tolist()))}")
-    weight = _pixel_weights(images, noise_std, mask)
-    n_excluded = int((~use).sum())
+    by_model = _model_weighted(noise, noise_std)
+    weight = _pixel_weights(images, noise.std(images) if by_model else noise_std, mask)
     if not bool(use.any()):
         raise ParameterError("valid: every point is excluded; nothing to fit")
 
@@ -729,13 +780,13 @@ def fit_direct(
     _crop(prob, M0)
     prob.set_nodes(M0 * 1.3 + 0.5)  # time nodes fixed for a motion bound (renewed if the motion grows past it)
     nuis = _nuisance_start(prob, motion, u)
-    u, nuis, cost, blocks, converged, it = _levenberg_marquardt(prob, motion, u, nuis, max_iter=max_iter, tol=tol,
-                                                               noise_known=noise_std is not None)
-    params, cov, total_cost, dof, red = _covariance(prob, motion, u, blocks, cost, noise_std is None)
+    known = noise_std is not None or by_model
+    u, nuis, cost, blocks, converged, it = _passes(prob, motion, u, nuis, noise if by_model else None, known, max_iter=max_iter, tol=tol)
+    params, cov, total_cost, dof, red = _covariance(prob, motion, u, blocks, cost, not known)
     scale_full, bg_full = _per_point(nuis, use, fit_scale, fit_background)
     delay_hat = float(params[list(names).index("delay_s")]) if struct.fit_delay else float(delay)
     return DirectModelFit(
         form=struct.form, param_names=tuple(names), params=params, covariance=cov, std=np.sqrt(np.clip(np.diag(cov), 0, None)),
         start_params=np.asarray(p0), delay_s=delay_hat, cost=total_cost, dof=int(dof), reduced_chi2=float(red),
-        noise_estimated=noise_std is None, converged=bool(converged), n_iter=int(it), used=use.cpu().numpy(), n_excluded=n_excluded,
+        noise_estimated=not known, converged=bool(converged), n_iter=int(it), used=use.cpu().numpy(), n_excluded=int((~use).sum()),
         scale=scale_full, background=bg_full, _struct=struct)
