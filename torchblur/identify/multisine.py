@@ -304,7 +304,20 @@ def _fit_group(run, acq: MultisineAcquisition, grp: _Group, st: _Settings, acqui
             f"{grp.harm.tolist()}), {len(pilot)} pilot(s) + {E - 1} designed frames, {E} fitted (exposures "
             f"{', '.join(f'{t / grp.T0:.2f}' for t in exposures)} T0), predicted std |H| "
             f"{100 * float(np.max(design.amplitude_rel_std)):.3f}% / phase "
-            f"{math.degrees(float(np.max(design.phase_std))):.3f} deg; fit {'ok' if bool(fit.converged) else 'FAILED'}")
+            f"{math.degrees(float(np.max(design.phase_std))):.3f} deg; {_fit_word(fit, float(run.cfg.fit.poor_fit_chi2))}")
+
+
+def _fit_word(fit, poor_fit_chi2: float) -> str:
+    """The group line's verdict on its fit: ``fit FAILED`` (not converged), ``poor fit`` (reduced
+    chi2 above ``fit.poor_fit_chi2``: its points are flagged and left out of the model), or
+    ``fit ok``, with the reduced chi2 where the noise was known."""
+    chi2 = float(fit.extras.get("reduced_chi2", float("nan")))
+    tail = f" (reduced chi2 {chi2:.3g})" if math.isfinite(chi2) else ""
+    if not bool(fit.converged):
+        return "fit FAILED" + tail
+    if math.isfinite(chi2) and chi2 > poor_fit_chi2:
+        return f"poor fit{tail}: its points are flagged poor_fit"
+    return "fit ok" + tail
 
 
 class MultisinePlan:
