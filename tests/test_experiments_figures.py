@@ -2,18 +2,15 @@
 metrics back each figure's claim (Tani, Mishra, Wen, CDC 2012, Figs. 1-7 and 10)."""
 from __future__ import annotations
 
-import json
 import math
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
+
+from run_experiments import run_scripts
 
 pytest.importorskip("matplotlib")
 pytest.importorskip("omegaconf")
 
-ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = ("fig1_peanut", "fig2_cost_vs_phase", "fig4_saturation", "fig5_norms", "fig6_landscape", "fig7_dual_exposure",
            "fig10_psf")
 
@@ -21,31 +18,15 @@ SCRIPTS = ("fig1_peanut", "fig2_cost_vs_phase", "fig4_saturation", "fig5_norms",
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     """Every script of this module run with ``--quick``, one after another in one fresh process
-    (tests/run_experiments.py: the imports paid once, not once per script) -> ``(out, {name: (ok, error)})``."""
-    out = tmp_path_factory.mktemp("experiments")
-    proc = subprocess.run([sys.executable, str(ROOT / "tests" / "run_experiments.py"), str(out), *SCRIPTS],
-                          cwd=ROOT, capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr
-    status = {}
-    for line in proc.stdout.splitlines():
-        if line.startswith("run_experiments: "):  # the runner's lines; the scripts print their own too
-            doc = json.loads(line[len("run_experiments: "):])
-            status[doc["name"]] = (doc["ok"], doc["error"])
-    return out, status, proc
+    (tests/run_experiments.py: the imports paid once, not once per script)."""
+    return run_scripts(tmp_path_factory.mktemp("experiments"), SCRIPTS, timeout_s=600)
 
 
 def run_script(name: str, runs) -> dict:
-    """``experiments/<name>.py --quick --out OUT/<name>`` (run by the ``runs`` fixture); its metrics."""
-    out_root, status, proc = runs
-    assert name in status, f"{name} did not run:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
-    ok, error = status[name]
-    assert ok, f"{name} failed:\n{error}\n{proc.stderr[-3000:]}"
-    out = out_root / name
+    """``experiments/<name>.py --quick --out OUT/<name>`` (run by the ``runs`` fixture): it succeeded and drew its
+    figure; its metrics."""
+    out, metrics = runs.metrics(name)
     assert (out / f"{name}.png").is_file()
-    metrics_path = out / "metrics.json"
-    assert metrics_path.is_file()
-    metrics = json.loads(metrics_path.read_text())
-    assert metrics["quick"] is True
     return metrics
 
 
