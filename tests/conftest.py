@@ -15,6 +15,20 @@ def gen():
     return torch.Generator().manual_seed(1234)
 
 
+@pytest.fixture(scope="session")
+def small_quiet_run(tmp_path_factory):
+    """``torchblur identify --out OUT --quiet`` of the default simulated rig at 4 frequencies
+    (cli_run.SMALL), in a fresh process, once per session -> ``(OUT, finished process)``. Several
+    test files check this same run (its stdout, its verdict, refits of its recording); they only
+    read OUT and write elsewhere."""
+    from cli_run import SMALL, run_cli
+
+    out = tmp_path_factory.mktemp("small_quiet") / "run"
+    proc = run_cli("identify", "--out", str(out), "--quiet", *SMALL)
+    assert proc.returncode == 0, proc.stderr
+    return out, proc
+
+
 def make_case(dtype=torch.float64, tilted=True, batch=()):
     """A tilted PSF on a 2-D Lissajous motion over more than a period."""
     g = torch.Generator().manual_seed(7)

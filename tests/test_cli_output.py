@@ -6,7 +6,6 @@ import logging
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,15 +14,7 @@ from torchblur.identify import record
 from torchblur.identify.pipeline import calibration_stages
 from torchblur.identify.config import load_config
 from torchblur.sysid.frequency_response import FrequencyResponse
-
-ROOT = Path(__file__).resolve().parents[1]
-SMALL = ["sweep.freq_hz=[20,150,300,600]"]  # enough points for the model (with 2 the verdict says it does not explain them)
-
-
-def _cli(*argv, cwd=None):
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    return subprocess.run([sys.executable, "-m", "torchblur.identify.cli", *argv], capture_output=True, text=True, env=env,
-                          cwd=cwd, timeout=600)
+from cli_run import ROOT, SMALL, run_cli as _cli
 
 
 @pytest.fixture(scope="module")
@@ -74,12 +65,10 @@ def test_frf_mat_and_units_beside_frf_csv(json_run):
     np.testing.assert_allclose(np.asarray(mat["H"]).ravel(), frf.response.ravel())
 
 
-def test_plain_run_prints_the_table_on_stdout(tmp_path):
+def test_plain_run_prints_the_table_on_stdout(small_quiet_run, tmp_path):
     from torchblur.identify import cli
 
-    out = tmp_path / "run"
-    proc = _cli("identify", "--out", str(out), "--quiet", *SMALL)
-    assert proc.returncode == 0, proc.stderr
+    out, proc = small_quiet_run  # identify --out OUT --quiet SMALL, in a fresh process (tests/conftest.py)
     assert "against the truth" in proc.stdout and "dark: level" not in proc.stdout + proc.stderr  # --quiet: no log lines
     assert "dark: level" in (out / "report.txt").read_text()
     assert cli.main(["identify", "--out", str(tmp_path / "bad"), "sweep.f_min_hz=-3"]) == 2

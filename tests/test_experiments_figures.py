@@ -2,31 +2,31 @@
 metrics back each figure's claim (Tani, Mishra, Wen, CDC 2012, Figs. 1-7 and 10)."""
 from __future__ import annotations
 
-import json
 import math
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
+
+from run_experiments import run_scripts
 
 pytest.importorskip("matplotlib")
 pytest.importorskip("omegaconf")
 
-ROOT = Path(__file__).resolve().parents[1]
+SCRIPTS = ("fig1_peanut", "fig2_cost_vs_phase", "fig4_saturation", "fig5_norms", "fig6_landscape", "fig7_dual_exposure",
+           "fig10_psf")
 
 
-def run_script(name: str, tmp_path: Path) -> dict:
-    """Run ``experiments/<name>.py --quick --out tmp_path/<name>``; return its metrics."""
-    out = tmp_path / name
-    proc = subprocess.run([sys.executable, str(ROOT / "experiments" / f"{name}.py"), "--quick", "--out", str(out)],
-                          cwd=ROOT, capture_output=True, text=True, timeout=120)
-    assert proc.returncode == 0, f"{name} failed:\n{proc.stdout}\n{proc.stderr}"
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """Every script of this module run with ``--quick``, one after another in one fresh process
+    (tests/run_experiments.py: the imports paid once, not once per script)."""
+    return run_scripts(tmp_path_factory.mktemp("experiments"), SCRIPTS, timeout_s=600)
+
+
+def run_script(name: str, runs) -> dict:
+    """``experiments/<name>.py --quick --out OUT/<name>`` (run by the ``runs`` fixture): it succeeded and drew its
+    figure; its metrics."""
+    out, metrics = runs.metrics(name)
     assert (out / f"{name}.png").is_file()
-    metrics_path = out / "metrics.json"
-    assert metrics_path.is_file()
-    metrics = json.loads(metrics_path.read_text())
-    assert metrics["quick"] is True
     return metrics
 
 
@@ -34,8 +34,8 @@ def wrapped(x: float) -> float:
     return math.remainder(x, 2 * math.pi)
 
 
-def test_fig1_peanut(tmp_path):
-    m = run_script("fig1_peanut", tmp_path)
+def test_fig1_peanut(runs):
+    m = run_script("fig1_peanut", runs)
     # A half-period exposure of a sine: two bright ends, dimmer middle (the peanut).
     assert m["n_profile_peaks"] == 2
     assert m["ends_to_middle_ratio"] > 1.3
@@ -46,8 +46,8 @@ def test_fig1_peanut(tmp_path):
     assert m["total_light_e"] == pytest.approx(m["total_light_expected_e"], rel=1e-6)
 
 
-def test_fig2_true_phase_fixed_alias_moves(tmp_path):
-    m = run_script("fig2_cost_vs_phase", tmp_path)
+def test_fig2_true_phase_fixed_alias_moves(runs):
+    m = run_script("fig2_cost_vs_phase", runs)
     assert len(m["per_exposure"]) >= 3
     for e in m["per_exposure"]:
         assert len(e["minima_rad"]) == 2
@@ -59,8 +59,8 @@ def test_fig2_true_phase_fixed_alias_moves(tmp_path):
         assert abs(wrapped(found - formula)) < 0.05
 
 
-def test_fig4_saturation(tmp_path):
-    m = run_script("fig4_saturation", tmp_path)
+def test_fig4_saturation(runs):
+    m = run_script("fig4_saturation", runs)
     assert m["saturated_in_data"] is True
     assert abs(m["plateau_adu"] - m["camera_saturation_adu"]) <= 1.0  # quantised to whole ADU
     assert abs(m["slope_rel_error"]) < 0.02
@@ -68,8 +68,8 @@ def test_fig4_saturation(tmp_path):
     assert m["offset_adu"] == pytest.approx(m["dark_level_adu"], abs=20)
 
 
-def test_fig5_norms(tmp_path):
-    m = run_script("fig5_norms", tmp_path)
+def test_fig5_norms(runs):
+    m = run_script("fig5_norms", runs)
     for nm in ("l1", "l2", "linf"):
         clean = m["noise_free"][nm]
         assert abs(clean["error_rad"]) < 0.01          # every norm: minimum at the truth
@@ -81,8 +81,8 @@ def test_fig5_norms(tmp_path):
     assert m["noisy"]["l2"]["argmin_std_rad"] < m["noisy"]["linf"]["argmin_std_rad"]
 
 
-def test_fig6_landscape_two_phase_minima_one_amplitude(tmp_path):
-    m = run_script("fig6_landscape", tmp_path)
+def test_fig6_landscape_two_phase_minima_one_amplitude(runs):
+    m = run_script("fig6_landscape", runs)
     da, dp = m["grid"]["amplitude_step_px"], m["grid"]["phase_step_rad"]
     for nm in ("l2", "linf"):
         minima = m[nm]["minima"]
@@ -96,8 +96,8 @@ def test_fig6_landscape_two_phase_minima_one_amplitude(tmp_path):
         assert len(m[nm]["phase_profile_minima_rad"]) == 2
 
 
-def test_fig7_dual_exposure_removes_alias(tmp_path):
-    m = run_script("fig7_dual_exposure", tmp_path)
+def test_fig7_dual_exposure_removes_alias(runs):
+    m = run_script("fig7_dual_exposure", runs)
     assert m["alias_separation"] == pytest.approx(1.0, abs=1e-6)  # centres a quarter period apart
     for mins, alias in zip(m["single_minima_rad"], m["single_aliases_formula_rad"]):
         assert min(abs(wrapped(x - alias)) for x in mins) < 0.05  # each single exposure has its alias
@@ -111,8 +111,8 @@ def test_fig7_dual_exposure_removes_alias(tmp_path):
     assert abs(best["amplitude_px"] - m["config"]["amplitude_px"]) <= land["amplitude_step_px"]
 
 
-def test_fig10_psf_identification(tmp_path):
-    m = run_script("fig10_psf", tmp_path)
+def test_fig10_psf_identification(runs):
+    m = run_script("fig10_psf", runs)
     assert m["converged"] is True
     assert m["cov_max_entry_error_rel"] < 0.05
     true, fit = m["cov_true_px2"], m["cov_fit_px2"]

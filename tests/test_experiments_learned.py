@@ -1,27 +1,25 @@
 """The learned-model and frequency-response experiments run (--quick) and their claims hold (issue 7)."""
-import json
-import os
-import subprocess
-import sys
-from pathlib import Path
+import pytest
+
+from run_experiments import run_scripts
+
+# learned_deblur last: it sets torch.set_flush_denormal(True) for the process
+SCRIPTS = ("fig11_frequency_response", "beyond_precision", "learned_deblur")
 
 
-ROOT = Path(__file__).resolve().parents[1]
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """The three scripts run with ``--quick``, one after another in one fresh process
+    (tests/run_experiments.py: the imports paid once, not once per script)."""
+    return run_scripts(tmp_path_factory.mktemp("learned"), SCRIPTS, env={"MPLBACKEND": "Agg", "OMP_NUM_THREADS": "2"})
 
 
-def run_quick(name, tmp_path):
-    out = tmp_path / name
-    env = dict(os.environ, MPLBACKEND="Agg", OMP_NUM_THREADS="2")
-    proc = subprocess.run([sys.executable, str(ROOT / "experiments" / f"{name}.py"), "--quick", "--out", str(out)],
-                          capture_output=True, text=True, cwd=ROOT, env=env, timeout=300)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["quick"] is True
-    return out, metrics
+def run_quick(name, runs):
+    return runs.metrics(name)
 
 
-def test_learned_deblur(tmp_path):
-    out, m = run_quick("learned_deblur", tmp_path)
+def test_learned_deblur(runs):
+    out, m = run_quick("learned_deblur", runs)
     assert (out / "learned_deblur.png").exists() and (out / "loss_curve.png").exists()
     s = m["summary"]
     # two exposures: the phase is learned; one exposure: a branch of the alias, not the truth
@@ -34,8 +32,8 @@ def test_learned_deblur(tmp_path):
     assert m["variants"]["dual"]["fitter"]["phase_rmse_vs_truth_deg"] < 1.0
 
 
-def test_fig11_frequency_response(tmp_path):
-    out, m = run_quick("fig11_frequency_response", tmp_path)
+def test_fig11_frequency_response(runs):
+    out, m = run_quick("fig11_frequency_response", runs)
     assert (out / "fig11_frequency_response.png").exists() and (out / "fig11_breaking_point.png").exists()
     s = m["summary"]
     assert s["paper_branch_crossings_hz"], "the true phase crosses the branch line (-90 deg) in 1-500 Hz"
@@ -50,8 +48,8 @@ def test_fig11_frequency_response(tmp_path):
     assert f_break is not None and f_break > 500
 
 
-def test_beyond_precision(tmp_path):
-    out, m = run_quick("beyond_precision", tmp_path)
+def test_beyond_precision(runs):
+    out, m = run_quick("beyond_precision", runs)
     for name in ("beyond_precision.png", "beyond_psf_error.png", "beyond_bandwidth.png"):
         assert (out / name).exists()
     d = m["dual_exposure"]

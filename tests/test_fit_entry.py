@@ -111,9 +111,13 @@ OPTIMIZERS = ("lm", "adam", "lbfgs")
 REFUSED = {("lm", "linf")}
 
 
-@pytest.mark.parametrize("dtype", [F32, F64])
-@pytest.mark.parametrize("loss", LOSSES)
-@pytest.mark.parametrize("optimizer", OPTIMIZERS)
+# Float32 images are promoted to float64 at the entry (measured: every pair's result is bit-identical to that of the
+# float64 images of the same values), so a float32 case per pair repeats the float64 computation on images rounded
+# to float32: the promotion keeps its cases with lm and lbfgs (milliseconds each), Adam's ~0.7 s runs once per loss.
+DTYPE_CASES = [(o, lo, dt) for o in OPTIMIZERS for lo in LOSSES for dt in (F32, F64) if not (o == "adam" and dt == F32)]
+
+
+@pytest.mark.parametrize("optimizer,loss,dtype", DTYPE_CASES, ids=[f"{o}-{lo}-{str(dt)[6:]}" for o, lo, dt in DTYPE_CASES])
 def test_every_loss_with_every_optimizer_fits_or_is_refused_by_name(optimizer, loss, dtype):
     """On one small clean problem (images in ``dtype``, a float64 window as
     ``dual_exposure_windows`` gives): each pair reaches the truth or is refused with a

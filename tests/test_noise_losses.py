@@ -213,10 +213,9 @@ def test_linf_is_refused_for_an_identification_with_a_message_naming_fit_loss(tm
 
 
 @pytest.fixture(scope="module")
-def small_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("noise") / "run"
-    assert cli.main(["identify", "--out", str(out), "--quiet", "sweep.freq_hz=[20,150,300,600]"]) == 0
-    return out
+def small_run(small_quiet_run):
+    """identify --quiet sweep.freq_hz=[20,150,300,600], exit 0: the session's shared run (tests/conftest.py)."""
+    return small_quiet_run[0]
 
 
 @pytest.mark.parametrize("loss", ["l1", "poisson"])

@@ -2,10 +2,6 @@
 transfer-function fit without the poor-fit points, and the one-line verdict (issue 15)."""
 import json
 import math
-import os
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,8 +16,7 @@ from torchblur.identify.verdict import EXIT_FLAGGED, model_chi2_limit, verdict
 from torchblur.sysid.flags import FAILED, LIMITED, NO_MOTION, POOR_FIT, TIMING
 from torchblur.sysid.frequency_response import FrequencyResponse
 from test_identify_psf import SHORT, airy_rig
-
-ROOT = Path(__file__).resolve().parents[1]
+from cli_run import run_cli as _cli
 
 
 def _frf(n=8, seed=0, f_max=1000.0):
@@ -257,12 +252,6 @@ def test_the_verdict_names_the_timing_points_and_the_band(timing_run):
     assert not model_exclusions(frf, cfg)[0].any()
 
 
-def _cli(*argv):
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    return subprocess.run([sys.executable, "-m", "torchblur.identify.cli", *argv], capture_output=True, text=True, env=env,
-                          timeout=600)
-
-
 def test_cli_flagged_run_exits_4_and_writes_everything(tmp_path):
     out = tmp_path / "run"
     proc = _cli("identify", "--out", str(out), "--json", "camera.jitter_s=0.5e-6", "sweep.freq_hz=[1000,20000]",
@@ -286,15 +275,14 @@ def test_cli_flagged_run_exits_4_and_writes_everything(tmp_path):
     assert "timing: above" in (out / "report.txt").read_text()
 
 
-def test_cli_default_run_is_trustworthy_with_exit_0_and_a_refit_has_its_own_verdict(tmp_path):
+def test_cli_default_run_is_trustworthy_with_exit_0_and_a_refit_has_its_own_verdict(small_quiet_run, tmp_path):
     # 4 points: enough for the model (with 2, a 1-pole model has reduced chi2 1e5 and the verdict says so)
-    proc = _cli("identify", "--out", str(tmp_path / "run"), "--quiet", "sweep.freq_hz=[20,150,300,600]")
-    assert proc.returncode == 0, proc.stderr
+    run, proc = small_quiet_run  # identify --out RUN --quiet sweep.freq_hz=[20,150,300,600], exit 0 (tests/conftest.py)
     last = proc.stdout.rstrip().splitlines()[-1]
     assert last.startswith("verdict: trustworthy: all 4 points within tolerance: reduced chi2 <= 1.5, timing within 1 deg up to")
     assert "timing: the whole band (to 600 Hz) is within the tolerance of 1 deg" in proc.stdout
     # torchblur fit on the recording, with a tolerance the timing terms exceed at both points: exit 4, named
-    proc = _cli("fit", str(tmp_path / "run"), "--out", str(tmp_path / "refit"), "--quiet", "report.tolerance_deg=0.0002")
+    proc = _cli("fit", str(run), "--out", str(tmp_path / "refit"), "--quiet", "report.tolerance_deg=0.0002")
     assert proc.returncode == EXIT_FLAGGED, proc.stderr
     band = json.loads((tmp_path / "refit" / "frf.json").read_text())["meta"]["timing"]
     f = timing_limit_hz(math.radians(0.0002), band["jitter_s"], band["latency_std_s"], band["frames_per_point"])
@@ -302,11 +290,18 @@ def test_cli_default_run_is_trustworthy_with_exit_0_and_a_refit_has_its_own_verd
     assert proc.stdout.rstrip().splitlines()[-1] == f"verdict: 4 of 4 points flagged: 4 timing (above {f:.4g} Hz, beyond 0.0002 deg)"
 
 
-def test_help_documents_the_exit_status():
-    proc = _cli("identify", "--help")
-    assert proc.returncode == 0
-    assert "  4    done with points flagged poor_fit, timing or failed" in proc.stdout
-    assert "docs/reliability.md" in _cli("fit", "--help").stdout
+def test_help_documents_the_exit_status(capsys):
+    from torchblur.identify import cli
+
+    # in this process (two fresh ones cost ~2.5 s of imports): the exit-status table is a raw epilog, whatever the width
+    helps = {}
+    for command in ("identify", "fit"):
+        with pytest.raises(SystemExit) as done:
+            cli.main([command, "--help"])
+        assert done.value.code == 0
+        helps[command] = capsys.readouterr().out
+    assert "  4    done with points flagged poor_fit, timing or failed" in helps["identify"]
+    assert "docs/reliability.md" in helps["fit"]
 
 
 # ---------------------------------------------------------------------------- which fit a point's chi2 comes from
