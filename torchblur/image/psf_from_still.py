@@ -28,8 +28,9 @@ What is done, in order (every step a pure function of the frames):
    splatted along the motion and the kernel has no step where it ends (its Fourier shift does
    not ring); divided by the exposure: intensity per second (:class:`KernelPSF`).
 5. The Gaussian: :func:`~torchblur.image.preprocess.fit_gaussian_psf` of ``mean - background``
-   weighted by the noise, with point-sampled pixel centres (``pixel_integration=False``, the
-   pixel model :func:`~torchblur.fit.sinusoid.fit_sinusoid` uses).
+   weighted by the noise, integrated over the pixels (as a camera's pixels integrate the light);
+   its ``psf`` is then the point-sampled moment match the blur fits sample
+   (:func:`~torchblur.image.psf_fit.point_sampled_equivalent`: cov + I/12, the same light).
 6. The test: the reduced chi2 of the Gaussian over the support (``dof = pixels - 6``); the
    Gaussian explains the still when it is at most ``1 + chi2_z * sqrt(2 / dof)`` (``chi2_z = 4``:
    a correct Gaussian fails about 3e-5 of the time). The kernel's reduced chi2 is that of the
@@ -39,13 +40,13 @@ What is done, in order (every step a pure function of the frames):
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_choice, check_finite, check_positive, check_real_scalar
 from torchblur.image.detection import threshold_mask
-from torchblur.image.psf_fit import PSFFit, fit_gaussian_psf
+from torchblur.image.psf_fit import PSFFit, fit_gaussian_psf, point_sampled_equivalent
 from torchblur.render.psf import GaussianPSF, KernelPSF
 
 __all__ = ["StillPSF", "psf_from_still", "KINDS", "CHI2_Z"]
@@ -65,7 +66,8 @@ class StillPSF:
         kind: ``"kernel"`` or ``"gaussian"``: which one ``psf`` is.
         reason: one line: what was asked and the two reduced chi2 against the threshold.
         kernel: the measured :class:`KernelPSF` (frame ``[H, W]``, intensity per second).
-        gaussian: the :class:`PSFFit` of the Gaussian (point-sampled pixel centres); None
+        gaussian: the :class:`PSFFit` of the Gaussian (fitted pixel-integrated; its ``psf`` the
+            point-sampled moment match, its ``model`` the fitted still); None
             where no Gaussian could be fitted (``reason`` says why).
         chi2_gaussian: 0-d, the Gaussian's reduced chi2 over the support (inf: no fit).
         chi2_kernel: 0-d, the reduced chi2 of the light the kernel leaves out, outside the support.
@@ -325,8 +327,9 @@ def psf_from_still(
     threshold = 1 + CHI2_Z * math.sqrt(2 / dof)
     try:
         gauss = fit_gaussian_psf(signal.to(in_dtype), exposure_s=exposure, noise_std=sigma.to(in_dtype), fit_background=False,
-                                 pixel_integration=False)
+                                 pixel_integration=True)
         chi2_g = ((signal - gauss.model.to(signal)) / sigma).square()[support].sum() / dof
+        gauss = replace(gauss, psf=point_sampled_equivalent(gauss.psf))  # the pixel model the blur fits sample
         failed = ""
     except ParameterError as exc:  # no Gaussian fits (e.g. a spot wider than the frame): the kernel it is
         gauss, chi2_g, failed = None, torch.tensor(math.inf, dtype=signal.dtype), f"; the Gaussian fit failed: {exc}"
