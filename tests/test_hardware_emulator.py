@@ -18,6 +18,7 @@ import pytest
 from torchblur.identify import cli
 from torchblur.identify.config import load_config
 from torchblur.hardware import AcquisitionStopped, Experiment
+from torchblur.identify.calibration import N_DARK
 from torchblur.identify.run import identify
 
 BASE = ["camera.height=40", "camera.width=40", "seed=1"]
@@ -132,7 +133,7 @@ def check_recording(exp_dir: Path, *, complete: bool):
         assert c == list(range(c[0], c[0] + 4))
     if complete:
         assert len(counts) == F * 2 * 2 and {ln["point"] for ln in sweep} == set(range(F))
-        assert Counter(ln["kind"] for ln in lines)["dark"] == 16
+        assert Counter(ln["kind"] for ln in lines)["dark"] == N_DARK
     return lines
 
 
@@ -309,7 +310,10 @@ def test_fit_reproduces_the_recording_and_leaves_it_untouched(ref, tmp_path, cap
     assert json.loads((new / "source.json").read_text())["frames"] == len(check_recording(root / "experiment", complete=True))
     # other fit settings: one point per batch, a model of at most 2 poles
     new2 = tmp_path / "refit2"
-    assert cli.main(["fit", str(root / "experiment"), "--out", str(new2), "--quiet", "fit.chunk_points=1", "model.max_order=2"]) == 0
+    # a 2-pole model of the 3-pole mirror: the points are the same; the verdict may fail the model (exit 4), never the points
+    rc = cli.main(["fit", str(root / "experiment"), "--out", str(new2), "--quiet", "fit.chunk_points=1", "model.max_order=2"])
+    last = (new2 / "report.txt").read_text().strip().splitlines()[-1]
+    assert rc == 0 or (rc == 4 and last.startswith("verdict: all 3 points within tolerance; the model does not explain")), (rc, last)
     frf2 = FrequencyResponse.from_json(new2 / "frf.json")
     np.testing.assert_allclose(frf2.response, res.frf.response, rtol=1e-5)
     assert json.loads((new2 / "model.json").read_text())["den"].__len__() <= 3
