@@ -273,11 +273,19 @@ def test_persistent_fault_stops_cleanly_with_state_saved(fleet, tmp_path):
     assert not exp.repaired["dropped_groups"] and not exp.repaired["removed_files"]
 
 
+def _default_sigint():
+    """In the child: SIGINT back to its default, so Python turns it into KeyboardInterrupt. A test
+    run started in the background of a non-interactive shell (``pytest &``) inherits SIGINT ignored,
+    and a Python started with it ignored keeps ignoring it (as a user's ``nohup`` run should)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_ctrl_c_saves_and_exits_130(fleet, tmp_path):
     emu = fleet["sigint"]
     out = tmp_path / "run"
     proc = subprocess.Popen([sys.executable, "-m", "torchblur.identify.cli", "identify", "--out", str(out), "--quiet", *BASE, *SWEEP, *ALONG_X,
-                             *emu.rig_keys(timeout_s=60.0)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                             *emu.rig_keys(timeout_s=60.0)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=_default_sigint)
     try:
         emu.wait_stderr("hanging", timeout_s=90)  # the controller went silent mid-sweep; the client waits
         time.sleep(0.2)
