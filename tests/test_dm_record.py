@@ -12,13 +12,9 @@ from torchblur.hardware.recording import Experiment, ReplayRig
 from torchblur.identify import cli
 from torchblur.identify.config import estimate_run, load_config
 
-SMALL = [
-    "dm.n_across=3", "dm.mode_hz=600.0", "dm.damping=0.1", "dm.mode_spread=0.05", "dm.dead=[2]", "dm.input_limit=10.0",
-    "wfs.n_across=4", "wfs.pitch_px=16.0", "wfs.sigma_px=1.2",
-    "dm_plan.kind=hadamard", "dm_plan.budget_frames=null", "dm_plan.n_repeats=1",
-    "sweep.f_min_hz=50.0", "sweep.f_max_hz=1500.0", "sweep.n=3", "sweep.exposures=[0.3,0.8]",
-    "excitation.target_px=3.0",
-]
+from test_dm_run import SMALL as _RUN_SMALL
+
+SMALL = [*_RUN_SMALL, "sweep.n=3"]  # the small mirror of test_dm_run at 3 frequencies
 CALIBRATION = ("dark", "saturation", "psf", "latency")
 OUTPUTS = ("actuators.csv", "interaction_matrix.npy", "interaction_matrix_std.npy", "command_matrix.npy", "frf.json")
 

@@ -38,7 +38,7 @@ from torchblur.render.camera import CameraModel
 from torchblur.render.psf import GaussianPSF
 from torchblur.render.trajectory import Sinusoid
 from torchblur.render.window import ExposureWindow
-from torchblur.rig.base import Capture, float_list, per_exposure
+from torchblur.rig.base import Capture, PatternSines, float_list, per_exposure
 from torchblur.rig.simulated import SimulatedRig
 from torchblur.systems.lti import Plant
 from torchblur.dm.mirror import DeformableMirror
@@ -61,7 +61,7 @@ def spot_motion(D: np.ndarray, pattern: np.ndarray, amplitude: float) -> tuple[n
     return np.abs(Y), np.angle(Y)
 
 
-class SimulatedDMRig(SimulatedRig):
+class SimulatedDMRig(PatternSines, SimulatedRig):
     """The simulated DM rig (module docstring).
 
     Args (keyword-only):
@@ -118,10 +118,11 @@ class SimulatedDMRig(SimulatedRig):
         """The largest command magnitude (input units) the mirror accepts."""
         return self._mirror.input_limit
 
+
     @property
-    def inputs(self) -> tuple[str, ...]:
-        """``("a0", ..., "a{N-1}")``: :meth:`sine` drives one actuator."""
-        return tuple(f"a{j}" for j in range(self._mirror.n_actuators))
+    def n_actuators(self) -> int:
+        """N, the mirror's actuators."""
+        return self._mirror.n_actuators
 
     def truth_D(self, freq_hz) -> np.ndarray:
         """The dynamic interaction matrix ``D = G diag(H_j)``: complex ``[2M, N, F]`` (``[2M, N]``
@@ -234,20 +235,6 @@ class SimulatedDMRig(SimulatedRig):
         a_px, ph = spot_motion(self.truth_D(freq), p, amp)
         self._check_reach(a_px)
         return p, freq, amp, a_px, ph
-
-    def sine(self, freq_hz: float, amplitude: float, exposures_s: Sequence[float], trigger_offset_s: float | Sequence[float],
-             n_repeats: int, settle_s: float | None = None, power: float = 1.0, input: str = "a0") -> Capture:
-        """:meth:`pattern_sine` of one actuator, ``input = "a{j}"`` (the others at rest)."""
-        if input not in self.inputs:
-            raise ParameterError(f"input: expected one of 'a0'..'a{self._mirror.n_actuators - 1}', got {input!r}")
-        pattern = np.zeros(self._mirror.n_actuators)
-        pattern[int(input[1:])] = 1.0
-        cap = self.pattern_sine(pattern, freq_hz, amplitude, exposures_s, trigger_offset_s, n_repeats, settle_s, power)
-        cap.meta["input"] = input
-        return cap
-
-    def multisine(self, *args, **kwargs):
-        raise ParameterError("multisine: the DM rig drives one sine per pattern (pattern_sine)")
 
     def __repr__(self) -> str:
         return (f"SimulatedDMRig({self._mirror.n_actuators} actuators, {self._wfs.n_valid} spots, frame {self._frame_shape}, "

@@ -671,7 +671,7 @@ def _reweight_by_model(inp: _FlatInputs, o: _FitOptions, data, res: SinusoidFit,
     live = torch.arange(data.shape[0], device=data.device)[torch.isfinite(res.cost) & (res.status != 3)]
     if live.numel() == 0:
         return inp
-    model = _expected_images(res, live, inp, o)
+    model = _model_images(res, live, inp, o, with_background=o.fit_background)
     sig = inp.noise.clone() if inp.noise.dim() == 4 else inp.noise[:, None, None, None].expand(data.shape).clone()
     sig[live] = inp.noise_model.std(model)
     inp = replace(inp, noise=sig)
@@ -795,22 +795,9 @@ def _fitted_psf(res: SinusoidFit, psf, idx, fit_scale: bool, fit_center: bool):
 
 
 def _model_images(res: SinusoidFit, idx, inp: _FlatInputs, o: _FitOptions, *, with_background: bool) -> torch.Tensor:
-    """The fitted model ``[n, E, H, W]`` of items ``idx`` of a flat result, rendered in the full
-    frame (with the fitted background where ``with_background``)."""
-    H, W = inp.data.shape[-2:]
-    amp, ph = _axes_xy(res.amplitude[idx], res.phase[idx], None if inp.direction is None else inp.direction[idx])
-    traj = Sinusoid(amp[:, None, :], ph[:, None, :], inp.omega[idx][:, None])
-    with torch.no_grad():
-        img = render_blur(traj, _fitted_psf(res, inp.psf, idx, o.fit_scale, o.fit_center), inp.window[idx], height=H, width=W,
-                          settings=o.render_settings)
-    if with_background:
-        img = img + res.background[idx][:, None, None, None]
-    return img
-
-
-def _expected_images(res: SinusoidFit, idx, inp: _FlatInputs, o: _FitOptions) -> torch.Tensor:
-    """The fitted model ``[n, E, H, W]`` of items ``idx`` (with the background where fitted), each
-    rendered with the quadrature its own motion needs: Gaussian items grouped by their panel count
+    """The fitted model ``[n, E, H, W]`` of items ``idx`` of a flat result in the full frame (with
+    the fitted background where ``with_background``), each rendered with the quadrature its own
+    motion needs: Gaussian items grouped by their panel count
     and by whether the PSF is tilted, measured kernels one by one (the FFT grid follows the
     batch's largest motion), so an item's image, and the weights made from it, do not depend on
     which other items share its batch (a chunk of a sweep gives the values the whole sweep gives)."""
@@ -834,7 +821,7 @@ def _expected_images(res: SinusoidFit, idx, inp: _FlatInputs, o: _FitOptions) ->
             sub = Sinusoid(amp[sel][:, None, :], ph[sel][:, None, :], inp.omega[idx][sel][:, None])
             out[sel] = render_blur(sub, _take_psf(psf, sel), ExposureWindow(win.start[sel], win.duration[sel]), height=H, width=W,
                                    settings=rule)
-    if o.fit_background:
+    if with_background:
         out = out + res.background[idx][:, None, None, None]
     return out
 

@@ -26,11 +26,11 @@ from typing import Sequence
 
 import numpy as np
 
-from torchblur.errors import ConfigError, ParameterError, ShapeError, check_int, check_real_scalar
+from torchblur.errors import ConfigError, ParameterError, ShapeError, check_real_scalar
 from torchblur.hardware.errors import DeviceError, PatternMismatch
 from torchblur.hardware.protocol import pattern_checksum
 from torchblur.hardware.serial_rig import SerialRig
-from torchblur.rig.base import check_drive, float_list, per_exposure
+from torchblur.rig.base import PatternSines, check_drive, float_list
 
 __all__ = ["SerialDMRig", "describe_pattern", "open_dm_rig"]
 
@@ -42,7 +42,7 @@ def describe_pattern(pattern: np.ndarray) -> str:
     return f"pattern [{head}] ({p.size} weights, crc {pattern_checksum(p)})"
 
 
-class SerialDMRig(SerialRig):
+class SerialDMRig(PatternSines, SerialRig):
     """A DM's controller (protocol 2, axis ``pat``) and camera as the DM run's rig.
 
     Args:
@@ -80,10 +80,6 @@ class SerialDMRig(SerialRig):
     def n_actuators(self) -> int:
         return int(self._n_actuators)
 
-    @property
-    def inputs(self) -> tuple[str, ...]:
-        """``("a0", ..., "a{N-1}")``: :meth:`sine` drives one actuator."""
-        return tuple(f"a{j}" for j in range(self.n_actuators))
 
     def _check_pattern(self, pattern) -> np.ndarray:
         N = self.n_actuators
@@ -125,32 +121,10 @@ class SerialDMRig(SerialRig):
         freq = check_real_scalar(freq_hz, "freq_hz", positive=True)
         amp = check_real_scalar(amplitude, "amplitude")
         check_drive(abs(amp) * float(np.abs(p).max(initial=0.0)), self.input_limit)
-        power = check_real_scalar(power, "power", nonnegative=True)
-        R = check_int(n_repeats, "n_repeats", low=1)
-        te = [self._check_exposure(v, "exposures_s") for v in float_list(exposures_s, "exposures_s")]
-        E = len(te)
-        offs = per_exposure(trigger_offset_s, E, "trigger_offset_s")
-        settle = None if settle_s is None else check_real_scalar(settle_s, "settle_s", nonnegative=True)
-        period = 1.0 / freq
-        frames, off_mod = self._periodic(f"pattern_sine {describe_pattern(p)} at {freq:g} Hz",
-                                         lambda c: self._start_pattern_wave(p, freq, amp), period, te, offs, R, [power] * E, settle)
-        return self._capture(frames, (E, R), off_mod, {"kind": "pattern_sine", "pattern": p, "freq_hz": freq, "omega": 2 * math.pi * freq,
-                                                        "period_s": period, "amplitude": amp, "settle_s": settle, "power": power,
-                                                        "trigger_delay_s": self.trigger_delay_s})
-
-    def sine(self, freq_hz: float, amplitude: float, exposures_s: Sequence[float], trigger_offset_s, n_repeats: int,
-             settle_s: float | None = None, power: float = 1.0, input: str = "a0"):
-        """:meth:`pattern_sine` of one actuator, ``input = "a{j}"`` (the others at rest)."""
-        if input not in self.inputs:
-            raise ParameterError(f"input: expected one of 'a0'..'a{self.n_actuators - 1}', got {input!r}")
-        pattern = np.zeros(self.n_actuators)
-        pattern[int(input[1:])] = 1.0
-        cap = self.pattern_sine(pattern, freq_hz, amplitude, exposures_s, trigger_offset_s, n_repeats, settle_s, power)
-        cap.meta["input"] = input
-        return cap
-
-    def multisine(self, *args, **kwargs):
-        raise ParameterError("multisine: the DM rig drives one sine per pattern (pattern_sine)")
+        return self._periodic_capture(f"pattern_sine {describe_pattern(p)} at {freq:g} Hz", lambda c: self._start_pattern_wave(p, freq, amp),
+                                      1.0 / freq, exposures_s, trigger_offset_s, n_repeats, check_real_scalar(power, "power"), settle_s,
+                                      {"kind": "pattern_sine", "pattern": p, "freq_hz": freq, "omega": 2 * math.pi * freq, "period_s": None,
+                                       "amplitude": amp, "settle_s": None, "power": None, "trigger_delay_s": self.trigger_delay_s})
 
     def __repr__(self) -> str:
         return (f"SerialDMRig(port={self.controller.port!r}, frames={self.frames!r}, actuators={self.device.get('actuators')}, "

@@ -403,18 +403,10 @@ class SerialRig:
         freq = check_real_scalar(freq_hz, "freq_hz", positive=True)
         amp = check_real_scalar(amplitude, "amplitude")
         check_drive(amp, self.input_limit)
-        power = check_real_scalar(power, "power", nonnegative=True)
-        R = check_int(n_repeats, "n_repeats", low=1)
-        te = [self._check_exposure(v, "exposures_s") for v in float_list(exposures_s, "exposures_s")]
-        E = len(te)
-        offs = per_exposure(trigger_offset_s, E, "trigger_offset_s")
-        settle = None if settle_s is None else check_real_scalar(settle_s, "settle_s", nonnegative=True)
-        period = 1.0 / freq
-        frames, off_mod = self._periodic(f"sine {freq:g} Hz", lambda c: c.wave_sine(axis, freq, amp), period, te, offs, R,
-                                         [power] * E, settle)
-        return self._capture(frames, (E, R), off_mod, {"kind": "sine", "freq_hz": freq, "omega": 2 * math.pi * freq,
-                                                        "period_s": period, "amplitude": amp, "settle_s": settle,
-                                                        "power": power, "axis": axis, "input": axis})
+        return self._periodic_capture(f"sine {freq:g} Hz", lambda c: c.wave_sine(axis, freq, amp), 1.0 / freq, exposures_s,
+                                      trigger_offset_s, n_repeats, check_real_scalar(power, "power"), settle_s,
+                                      {"kind": "sine", "freq_hz": freq, "omega": 2 * math.pi * freq, "period_s": None, "amplitude": amp,
+                                       "settle_s": None, "power": None, "axis": axis, "input": axis})
 
     def multisine(self, freq_hz, amplitude, phase_rad, exposures_s: Sequence[float], trigger_offset_s, n_repeats: int,
                   base_freq_hz: float | None = None, settle_s: float | None = None, power: float = 1.0):
@@ -446,20 +438,26 @@ class SerialRig:
         if len(tones) > MAX_TONES or len(line) > MAX_LINE:
             raise ParameterError(f"freq_hz: {len(tones)} tones (base included) make a WAVE line of {len(line)} bytes; the "
                                  f"protocol allows {MAX_TONES} tones and {MAX_LINE} bytes: use fewer tones")
+        return self._periodic_capture(f"multisine {N} tones from {min(freqs):g} Hz", lambda c: c.wave_multi(self.axis, tones), 1.0 / f0,
+                                      exposures_s, trigger_offset_s, n_repeats, power, settle_s,
+                                      {"kind": "multisine", "freq_hz": freqs, "amplitude": amps, "phase_rad": phases, "base_freq_hz": f0,
+                                       "period_s": None, "settle_s": None, "power": None, "axis": self.axis})
+
+    def _periodic_capture(self, what: str, start_wave, period: float, exposures_s, trigger_offset_s, n_repeats, power, settle_s,
+                          meta: dict):
+        """What every periodic call shares once its waveform is checked: the repeats, exposures,
+        offsets, laser power (one, or one per exposure) and settling wait checked,
+        :meth:`_periodic`, and the capture ``[E, R, H, W]`` with ``meta``, whose ``period_s``,
+        ``settle_s`` and ``power`` entries are filled in (in the places ``meta`` gives them)."""
         R = check_int(n_repeats, "n_repeats", low=1)
         te = [self._check_exposure(v, "exposures_s") for v in float_list(exposures_s, "exposures_s")]
         E = len(te)
         offs = per_exposure(trigger_offset_s, E, "trigger_offset_s")
         powers = [check_real_scalar(p, "power", nonnegative=True) for p in per_exposure(power, E, "power")]
         settle = None if settle_s is None else check_real_scalar(settle_s, "settle_s", nonnegative=True)
-        period = 1.0 / f0
-        frames, off_mod = self._periodic(f"multisine {N} tones from {min(freqs):g} Hz", lambda c: c.wave_multi(self.axis, tones),
-                                         period, te, offs, R, powers, settle)
-        return self._capture(frames, (E, R), off_mod, {"kind": "multisine", "freq_hz": freqs, "amplitude": amps,
-                                                        "phase_rad": phases, "base_freq_hz": f0, "period_s": period,
-                                                        "settle_s": settle,
-                                                        "power": powers if len(set(powers)) > 1 else powers[0],
-                                                        "axis": self.axis})
+        frames, off_mod = self._periodic(what, start_wave, period, te, offs, R, powers, settle)
+        meta.update(period_s=period, settle_s=settle, power=powers if len(set(powers)) > 1 else powers[0])
+        return self._capture(frames, (E, R), off_mod, meta)
 
     def _periodic(self, what: str, start_wave, period: float, te: list, offs: list, R: int, powers: list, settle):
         """Stop, set the laser and the settling wait, start the waveform (``start_wave(controller)``),

@@ -17,7 +17,7 @@ import torch
 
 from torchblur.errors import InputTypeError, ParameterError, ShapeError
 
-__all__ = ["Capture", "Rig", "command_peak", "check_drive", "DRIVE_RTOL"]
+__all__ = ["Capture", "PatternSines", "Rig", "command_peak", "check_drive", "DRIVE_RTOL"]
 
 #: relative slack of a drive check: a command rounded on its way to the device (the serial
 #: protocol sends tones to 10 significant digits) still passes at the limit
@@ -164,6 +164,32 @@ class Rig(Protocol):
 
 
 # ---------------------------------------------------------------- argument checks shared by the rigs
+
+
+class PatternSines:
+    """What a rig that drives a deformable mirror's patterns (``pattern_sine(pattern, freq_hz,
+    amplitude, exposures_s, trigger_offset_s, n_repeats, settle_s, power)`` and ``n_actuators``)
+    offers for the :class:`Rig` calls: inputs ``"a0"..."a{N-1}"``, :meth:`sine` of one actuator,
+    no multisine. Mixed in before the rig's own base class (the simulated and the serial DM rig)."""
+
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        """``("a0", ..., "a{N-1}")``: :meth:`sine` drives one actuator."""
+        return tuple(f"a{j}" for j in range(self.n_actuators))
+
+    def sine(self, freq_hz: float, amplitude: float, exposures_s: Sequence[float], trigger_offset_s, n_repeats: int,
+             settle_s: float | None = None, power: float = 1.0, input: str = "a0"):
+        """``pattern_sine`` of one actuator, ``input = "a{j}"`` (the others at rest)."""
+        if input not in self.inputs:
+            raise ParameterError(f"input: expected one of 'a0'..'a{self.n_actuators - 1}', got {input!r}")
+        pattern = np.zeros(self.n_actuators)
+        pattern[int(input[1:])] = 1.0
+        cap = self.pattern_sine(pattern, freq_hz, amplitude, exposures_s, trigger_offset_s, n_repeats, settle_s, power)
+        cap.meta["input"] = input
+        return cap
+
+    def multisine(self, *args, **kwargs):
+        raise ParameterError("multisine: the DM rig drives one sine per pattern (pattern_sine)")
 
 
 def float_list(value, name: str) -> list[float]:
