@@ -95,6 +95,9 @@ def test_small_run_against_the_truth(small_run):
     sd = np.sqrt(np.stack([C[..., 0, 0], C[..., 1, 1]], -1))
     z = np.abs(np.stack([d.real, d.imag], -1)) / sd
     assert np.quantile(z, 0.99) < 5.0
+    # every spot fit explains its images (the Gaussian spots and the camera's noise are the model's): reduced chi2 about 1
+    chi2 = res.spot_reduced_chi2
+    assert chi2.shape == (16, 12, 8) and abs(float(np.median(chi2)) - 1) < 0.05 and float(np.mean(chi2 > 1.5)) < 0.01
 
 
 def test_cli_routes_a_dm_config(tmp_path, capsys, monkeypatch, small_run):

@@ -49,6 +49,27 @@ def test_trustworthy_names_dead_and_weak_without_flagging_them():
     assert d["dead"] == [4] and d["weak"] == [3] and d["line"] == v.line and d["exit_code"] == 0
 
 
+def test_spot_fits_that_do_not_explain_their_images_make_the_run_untrustworthy():
+    """Spots the Gaussian PSF or the noise model does not describe (a real lenslet's spot, another
+    camera): every actuator's numbers look fine and their stds are too small. Judged from the
+    spot fits' reduced chi2: a stray above fit.poor_fit_chi2 is named, more than 1 % of them fail
+    the run."""
+    from torchblur.dm.verdict import POOR_SPOT_FRACTION
+
+    table, D = _table()
+    rng = np.random.default_rng(0)
+    chi2 = 1 + 0.06 * rng.standard_normal(PROBLEMS)  # what a model that explains the images gives
+    chi2[:3] = 2.5  # strays: 3 of 320, under 1 %
+    v = dm_verdict(table, D=D, n_failed_spot_fits=0, n_spot_problems=PROBLEMS, spot_reduced_chi2=chi2)
+    assert v.trustworthy and v.exit_code == 0 and v.poor_spot_fits == 3 and not v.spot_model_fails
+    assert "0 of 320 spot fits failed, 3 above reduced chi2 1.5 (median 0.997)" in v.line
+    chi2[: int(2 * POOR_SPOT_FRACTION * PROBLEMS)] = 1.9  # 2 %: the model does not describe the spots
+    v = dm_verdict(table, D=D, n_failed_spot_fits=0, n_spot_problems=PROBLEMS, spot_reduced_chi2=chi2)
+    assert not v.trustworthy and v.exit_code == EXIT_FLAGGED and v.spot_model_fails and v.flagged == 0
+    assert v.line.startswith("verdict: untrustworthy: the spot model does not explain the images") and "every std is too small" in v.line
+    assert dm_verdict(table, D=D, n_failed_spot_fits=0, n_spot_problems=PROBLEMS).poor_spot_fits == 0  # not given: not judged
+
+
 def test_poor_fit_is_flagged_with_its_inflation():
     chi2 = np.array([1.1, 3.24, 1.2, 1.0, np.nan])
     table, D = _table(poor_fit=np.array([False, True, False, False, False]), reduced_chi2=chi2)

@@ -62,6 +62,8 @@ class DMResult:
         G: ``[2M, N]`` the nominal geometry (px per input unit).
         actuator_xy: ``[N, 2]``.
         n_frames: sweep frames taken; ``n_failed``: spot problems whose fit failed.
+        spot_reduced_chi2: ``[P, M, F]`` every spot fit's reduced chi2 (NaN where it failed): about
+            1 where the spots' Gaussian PSF and the camera's noise model explain the images.
         timing_s: seconds per stage (``calibration``, ``acquisition``, ``fit_wait``, ``estimation``).
         truth_D: ``[2M, N, F]`` the simulated rig's D (None on a real rig); ``mirror``: the
             simulated mirror (its true dynamics), or None.
@@ -84,6 +86,7 @@ class DMResult:
     n_frames: int
     n_failed: int
     timing_s: dict
+    spot_reduced_chi2: np.ndarray | None = None
     truth_D: np.ndarray | None = None
     mirror: DeformableMirror | None = None
     log: list = field(default_factory=list)
@@ -167,7 +170,7 @@ def _calibrate(cfg, rig, wfs, log, progress, exp=None):
 
 def _fit_frequency(frames, window, omega, amplitude, power, cal, psf, offset, size, jitter_s, fit_options):
     """One frequency's pattern responses: frames ``[P, E*R, H, W]`` ADU -> ``(Y [P, 2M],
-    Y_cov [P, 2M, 2, 2], failed)``."""
+    Y_cov [P, 2M, 2, 2], failed, reduced chi2 [P, M] of every spot fit)``."""
     from torchblur.dm.spot_fit import crop_problems, fit_spot_problems, pattern_responses
     from torchblur.identify.assemble import timing_phase_std
     from torchblur.image.dark import subtract_dark
@@ -183,7 +186,8 @@ def _fit_frequency(frames, window, omega, amplitude, power, cal, psf, offset, si
     n = window.shape[-1]
     phase_var = float(timing_phase_std(omega, jitter_s, cal.latency_std_s, n)) ** 2
     Y, Yc = pattern_responses(fits, amplitude, phase_var=phase_var)
-    return Y[..., 0], Yc[:, :, 0], int((fits.status != 0).sum())
+    chi2 = fits.reduced_chi2.reshape(fits.reduced_chi2.shape[0], -1).numpy()  # [P, M] (F = 1)
+    return Y[..., 0], Yc[:, :, 0], int((fits.status != 0).sum()), chi2
 
 
 def _crop_mask(mask, offset, size):
@@ -277,7 +281,8 @@ def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, log, progress, exp=None
     Y = np.stack([r[0] for r in results], -1)  # [P, 2M, F]
     Y_cov = np.stack([r[1] for r in results], 2)  # [P, 2M, F, 2, 2]
     failed = sum(r[2] for r in results)
-    return amps, powers, Y, Y_cov, failed, P * F * len(s.exposures) * R, t_acq, t_wait
+    chi2 = np.stack([r[3] for r in results], -1)  # [P, M, F]
+    return amps, powers, Y, Y_cov, failed, chi2, P * F * len(s.exposures) * R, t_acq, t_wait
 
 
 def identify_dm(cfg, rig=None, *, progress: bool = False, base_dir: str | None = None, record=None) -> DMResult:
@@ -342,7 +347,7 @@ def _identify_dm(cfg, rig, exp, model_mirror, wfs, truth_rig, log, progress) -> 
     log_message(log, f"dm plan: {plan.kind}, {plan.n_patterns} patterns x {len(freqs)} frequencies x {len(cfg.sweep.exposures)} "
                      f"exposures x {R} repeats = {plan.n_frames(len(freqs), len(cfg.sweep.exposures), R)} frames; frames for the same "
                      f"accuracy vs one at a time: {info['cost_ratio_to_one_at_a_time']:.3f}", progress)
-    amps, powers, Y, Y_cov, failed, n_frames, t["acquisition"], t["fit_wait"] = _sweep(cfg, rig, plan, R, G, cal, psf, offset, size,
+    amps, powers, Y, Y_cov, failed, chi2, n_frames, t["acquisition"], t["fit_wait"] = _sweep(cfg, rig, plan, R, G, cal, psf, offset, size,
                                                                                          log, progress, exp)
     t0 = time.perf_counter()
     D, D_cov = demultiplex(Y, Y_cov, plan.patterns, plan.support)
@@ -354,7 +359,7 @@ def _identify_dm(cfg, rig, exp, model_mirror, wfs, truth_rig, log, progress) -> 
     truth = truth_rig.truth_D(freqs) if truth_rig is not None else None
     return DMResult(freq_hz=freqs, plan=plan, n_repeats=R, plan_info=info, amplitude=amps, power=powers, Y=Y, Y_cov=Y_cov, D=D,
                     D_cov=D_cov, actuators=table, G=G, actuator_xy=model_mirror.actuator_xy, n_frames=n_frames, n_failed=failed,
-                    timing_s=t, truth_D=truth, mirror=truth_rig.mirror if truth_rig is not None else None, log=log)
+                    spot_reduced_chi2=chi2, timing_s=t, truth_D=truth, mirror=truth_rig.mirror if truth_rig is not None else None, log=log)
 
 
 def truth_errors(res: DMResult) -> dict | None:
@@ -423,7 +428,7 @@ def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False, record=None
     res = _identify_on_config_rig(cfg, rig, quiet, record=out / "experiment" if record is None else record)
     elapsed = time.perf_counter() - t0
     _write_dm_outputs(res, out)
-    v = run_verdict(res)
+    v = run_verdict(res, poor_fit_chi2=float(cfg.fit.poor_fit_chi2))
     report = _report(res, elapsed) + "".join(f"{line}\n" for line in (*v.details, v.line))  # the verdict line last
     (out / "report.txt").write_text("\n".join(res.log) + "\n" + report)
     print(report, end="", file=sys.stderr if as_json else sys.stdout, flush=True)
@@ -431,7 +436,8 @@ def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False, record=None
         print(json.dumps({"elapsed_s": elapsed, "frames": res.n_frames, "plan": res.plan.kind, "timing_s": res.timing_s,
                           "truth_errors": truth_errors(res), "verdict": v.line, "trustworthy": v.trustworthy,
                           "actuator_flags": {"poor_fit": list(v.poor_fit), "failed": list(v.failed)},
-                          "failed_spot_fits": v.failed_spot_fits, "spot_problems": v.spot_problems}), flush=True)
+                          "failed_spot_fits": v.failed_spot_fits, "spot_problems": v.spot_problems, "poor_spot_fits": v.poor_spot_fits,
+                          "spot_model_fails": v.spot_model_fails}), flush=True)
     return v.exit_code
 
 

@@ -22,6 +22,14 @@ and make the run untrustworthy only through the rule above: :func:`~torchblur.dm
 leaves a failed fit's pattern out, so the data left still give an unbiased ``D`` with honest
 (larger) stds, until the column loses so much that it is no longer measured as planned.
 
+The spot fits themselves (``spot_reduced_chi2``, when given): every spot is fitted with a
+Gaussian PSF from the still frames and the camera's noise model; a fit whose reduced chi2 is
+above ``poor_fit_chi2`` (``fit.poor_fit_chi2``, 1.5) does not explain its images. One such fit in
+a thousand is a stray (a cosmic ray, a hot pixel); more than :data:`POOR_SPOT_FRACTION` of them
+means the model does not describe these spots (a real lenslet's spot is not a Gaussian, a camera
+not in the noise model), every std of the run is too small and the figures may be biased: the
+run is untrustworthy and the line says so.
+
 Lines::
 
     verdict: trustworthy: all 52 actuators within tolerance: 50 ok, 1 weak (33), 1 dead (20); model reduced chi2 <= 1.48 (chi2 test p >= 0.001); 0 of 81920 spot fits failed
@@ -37,11 +45,13 @@ from torchblur.dm.actuator_fit import POOR_FIT_P, ActuatorTable
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, check_int
 from torchblur.identify.verdict import EXIT_FLAGGED, listed
 
-__all__ = ["DMVerdict", "dm_verdict", "failed_actuators", "lost_fraction", "run_verdict", "LOST_FRACTION"]
+__all__ = ["DMVerdict", "dm_verdict", "failed_actuators", "lost_fraction", "run_verdict", "LOST_FRACTION", "POOR_SPOT_FRACTION"]
 
 #: an actuator whose column ``D[:, j, :]`` has more than this fraction of its entries (on its
 #: support) lost to failed spot fits is flagged failed
 LOST_FRACTION = 0.1
+#: more than this fraction of the spot fits above ``poor_fit_chi2``: the spot model does not explain the images
+POOR_SPOT_FRACTION = 0.01
 
 _LIVE_PARAMS = ("dc_gain", "dc_gain_std", "mode_hz", "mode_hz_std", "damping", "damping_std", "delay_s", "delay_s_std")
 
@@ -60,6 +70,8 @@ class DMVerdict:
         ok, weak, dead: the actuators (indices) with each status.
         failed_spot_fits, spot_problems: failed spot fits, of how many.
         max_reduced_chi2: the largest finite model reduced chi2 (None: none).
+        poor_spot_fits: spot fits above ``poor_fit_chi2``; spot_model_fails: more than
+            :data:`POOR_SPOT_FRACTION` of them (the run is then untrustworthy).
         details: one line per flagged actuator (why), for the report.
     """
 
@@ -77,6 +89,8 @@ class DMVerdict:
     spot_problems: int
     max_reduced_chi2: float | None
     details: tuple = ()
+    poor_spot_fits: int = 0
+    spot_model_fails: bool = False
 
     def to_dict(self) -> dict:
         """The fields as a strict-JSON dict (index tuples as lists)."""
@@ -156,7 +170,8 @@ def _detail(j: int, status: str, poor_chi2: float | None, failed_why: str | None
     return f"  flagged actuator {j} ({status}): {'; '.join(why)}"
 
 
-def dm_verdict(table: ActuatorTable, *, D, n_failed_spot_fits: int, n_spot_problems: int) -> DMVerdict:
+def dm_verdict(table: ActuatorTable, *, D, n_failed_spot_fits: int, n_spot_problems: int, spot_reduced_chi2=None,
+               poor_fit_chi2: float = 1.5) -> DMVerdict:
     """The verdict on a DM run (module rules).
 
     Args:
@@ -165,6 +180,9 @@ def dm_verdict(table: ActuatorTable, *, D, n_failed_spot_fits: int, n_spot_probl
             failed spot fits left an entry undetermined).
         n_failed_spot_fits: spot problems whose fit failed.
         n_spot_problems: spot problems fitted in all (patterns x frequencies x spots).
+        spot_reduced_chi2: every spot fit's reduced chi2 (any shape; NaN for failed fits), or None
+            (not judged).
+        poor_fit_chi2: the reduced chi2 above which a spot fit does not explain its images.
 
     Returns:
         :class:`DMVerdict`.
@@ -185,20 +203,43 @@ def dm_verdict(table: ActuatorTable, *, D, n_failed_spot_fits: int, n_spot_probl
     n = len(table)
     statuses = _status_part(ok, weak, dead)
     fits = f"{n_failed} of {n_problems} spot fits failed"
-    if not flagged:
+    poor_spots, spots_fail, spots = _spot_fits(spot_reduced_chi2, poor_fit_chi2, n_problems)
+    fits += spots
+    if not flagged and not spots_fail:
         model = (f"model reduced chi2 <= {max_chi2:.3g} (chi2 test p >= {POOR_FIT_P:g})" if max_chi2 is not None
                  else "no actuator model to test")
         line = f"verdict: trustworthy: all {n} actuators within tolerance: {statuses}; {model}; {fits}"
-    else:
+    elif flagged:
         kinds = [f"{len(ix)} {word} ({listed(ix)})" for word, ix in (("poor fit", poor), ("failed", failed)) if ix]
         line = f"verdict: {len(flagged)} of {n} actuators flagged: {', '.join(kinds)}; status {statuses}; {fits}"
+    else:
+        line = f"verdict: untrustworthy: the spot model does not explain the images; status {statuses}; {fits}"
     details = tuple(_detail(j, status[j], chi2[j] if j in poor else None, failed_why.get(j)) for j in flagged)
-    return DMVerdict(line=line, trustworthy=not flagged, exit_code=EXIT_FLAGGED if flagged else 0, actuators=n,
+    good = not flagged and not spots_fail
+    return DMVerdict(line=line, trustworthy=good, exit_code=0 if good else EXIT_FLAGGED, actuators=n,
                      flagged=len(flagged), poor_fit=poor, failed=failed, ok=ok, weak=weak, dead=dead, failed_spot_fits=n_failed,
-                     spot_problems=n_problems, max_reduced_chi2=max_chi2, details=details)
+                     spot_problems=n_problems, max_reduced_chi2=max_chi2, details=details, poor_spot_fits=poor_spots,
+                     spot_model_fails=spots_fail)
 
 
-def run_verdict(res) -> DMVerdict:
-    """:func:`dm_verdict` of a :class:`~torchblur.dm.pipeline.DMResult` (``P * F * M`` spot problems)."""
+def _spot_fits(chi2, threshold: float, n_problems: int) -> tuple[int, bool, str]:
+    """``(poor spot fits, too many, the line's words)`` of the spot fits' reduced chi2 (module rule)."""
+    if chi2 is None:
+        return 0, False, ""
+    c = np.asarray(chi2, dtype=np.float64).ravel()
+    c = c[np.isfinite(c)]
+    k = int((c > threshold).sum())
+    fails = k > POOR_SPOT_FRACTION * max(n_problems, 1)
+    words = f", {k} above reduced chi2 {threshold:g} (median {float(np.median(c)) if c.size else float('nan'):.3g})"
+    if fails:
+        words += (f": more than {POOR_SPOT_FRACTION:.0%} of the spot fits do not explain their images (the spots' Gaussian PSF "
+                  f"or the camera's noise model does not fit them): every std is too small")
+    return k, fails, words
+
+
+def run_verdict(res, *, poor_fit_chi2: float = 1.5) -> DMVerdict:
+    """:func:`dm_verdict` of a :class:`~torchblur.dm.pipeline.DMResult` (``P * F * M`` spot problems,
+    their reduced chi2 judged against ``poor_fit_chi2``, the run's ``fit.poor_fit_chi2``)."""
     n_problems = int(res.plan.n_patterns) * len(res.freq_hz) * (int(np.shape(res.G)[0]) // 2)
-    return dm_verdict(res.actuators, D=res.D, n_failed_spot_fits=int(res.n_failed), n_spot_problems=n_problems)
+    return dm_verdict(res.actuators, D=res.D, n_failed_spot_fits=int(res.n_failed), n_spot_problems=n_problems,
+                      spot_reduced_chi2=getattr(res, "spot_reduced_chi2", None), poor_fit_chi2=poor_fit_chi2)
