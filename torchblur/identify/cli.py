@@ -56,11 +56,8 @@ from pathlib import Path
 
 
 def _demo(args) -> int:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     import torch
+    from matplotlib.figure import Figure  # not pyplot: the caller's backend stays as it was
 
     import torchblur as tb
 
@@ -84,7 +81,8 @@ def _demo(args) -> int:
     noisy = camera.expose(imgs[0] * scale, generator=torch.Generator().manual_seed(args.seed))
 
     t = torch.linspace(0, 2 / f_hz, 400, dtype=torch.float64)
-    fig, ax = plt.subplots(1, 4, figsize=(16, 3.8))
+    fig = Figure(figsize=(16, 3.8))
+    ax = fig.subplots(1, 4)
     for p, style in ((phase, "-"), (alias, "--")):
         y = (amp.norm() * torch.sin(omega * t + p)).numpy()
         ax[0].plot(t.numpy() * 1e3, y, style, label=f"phase {math.degrees(float(p)):.1f} deg")
@@ -343,7 +341,8 @@ def _fit_outside(args) -> int:
     rec = read_outside_recording(src)  # RecordingError naming file, line and column
     cfg = outside_config(rec, args.overrides)
     out.mkdir(parents=True, exist_ok=True)
-    stamp = f"torchblur {tb.__version__}, seed {cfg.seed}, fit of the outside recording {src}"
+    seeded = any(str(o).partition("=")[0] == "seed" for o in args.overrides)  # the recording itself has no seed
+    stamp = f"torchblur {tb.__version__}{f', seed {cfg.seed}' if seeded else ''}, fit of the outside recording {src}"
     (out / "config.yaml").write_text(f"# {stamp}\n" + config_to_yaml(cfg))
     t0 = time.perf_counter()
     res = identify_outside(rec, cfg, progress=not args.quiet)
