@@ -88,18 +88,23 @@ def _axes_grid(axes, rows: int, cols: int, what: str):
     return a.reshape(rows, cols)
 
 
+def _wrap(stamp, width_in: float, size: float = 6.5) -> str:
+    """``stamp`` wrapped to lines that fit ``width_in`` inches at ``size`` pt."""
+    import textwrap
+
+    chars = max(20, int(width_in * 72 / (0.6 * size)))
+    return "\n".join(textwrap.wrap(str(stamp), chars, break_long_words=True, break_on_hyphens=False))
+
+
 def _stamp(fig, stamp):
     """``stamp`` at the bottom right, wrapped to the figure's width, in a strip the constrained
     layout leaves free (so it never overlaps an axis label)."""
     if not stamp:
         return
-    import textwrap
-
     from matplotlib.layout_engine import ConstrainedLayoutEngine
 
     size = 6.5
-    chars = max(20, int(fig.get_figwidth() * 72 / (0.6 * size)))
-    text = "\n".join(textwrap.wrap(str(stamp), chars, break_long_words=True, break_on_hyphens=False))
+    text = _wrap(stamp, fig.get_figwidth(), size)
     engine = fig.get_layout_engine()
     if isinstance(engine, ConstrainedLayoutEngine):
         strip = (text.count("\n") + 1) * 1.3 * size / 72 / fig.get_figheight()
@@ -460,6 +465,9 @@ def bode_figure(
     for i in range(I):
         note = _camera_marks(list(grid[:, i]), opt["frame_rate_hz"], xs, xlim)
         grid[-1, i].set_xlabel(f"frequency ({'Hz' if opt['Hz'] else 'rad/s'}){note}")
+    if axes is None:  # the upper panels' x tick labels are hidden (shared axis): the layout need not measure them
+        for ax in grid[:-1].ravel():
+            ax.xaxis.set_in_layout(False)
     mains = [grid[per * o + r, i] for o in range(O) for i in range(I) for r in ((0, 2) if per == 4 else (0, 1))]
     _legend(grid[0, 0], mains, fontsize=7, loc="best")
     if per == 4:
@@ -496,8 +504,11 @@ def _bode_overlay(frf, *, truth, title, stamp, axes, opt):
         for o in range(O):
             col, good = cmap(o % 20), (frf.flags[o, i] == 0) & np.isfinite(frf.magnitude[o, i])
             my, merr = _mag_values(frf, o, i, opt["dB"])
-            am.errorbar(x, my, yerr=merr, fmt="o-", ms=2.5, lw=0.8, color=col, capsize=1.5, label=frf.output_labels[o])
-            ap.errorbar(x, uph[o, i], yerr=np.degrees(frf.phase_std[o, i]), fmt="o-", ms=2.5, lw=0.8, color=col, capsize=1.5)
+            for ax, y, err, lab in ((am, my, merr, frf.output_labels[o]), (ap, uph[o, i], np.degrees(frf.phase_std[o, i]), None)):
+                ax.errorbar(x, np.where(good, y, np.nan), yerr=err, fmt="o-", ms=2.5, lw=0.8, color=col, capsize=1.5, label=lab)
+                bad = ~good & np.isfinite(y)
+                if bad.any():  # flagged: faint bars, no line through them (their rings come below)
+                    ax.errorbar(x[bad], y[bad], yerr=np.asarray(err)[..., bad], fmt="none", ecolor=col, alpha=0.35, capsize=1.5)
             mags.append(my[good])
             phs.append(uph[o, i][good])
             if tru is not None:
@@ -512,6 +523,8 @@ def _bode_overlay(frf, *, truth, title, stamp, axes, opt):
             lim = _limits(vals, log)
             if lim is not None:
                 ax.set_ylim(*lim)
+        if not opt["dB"] and am.get_ylim()[0] > 0:
+            _log_ticks(am, *am.get_ylim())
         for o in range(O):
             _flag_marks(am, x, _mag_values(frf, o, i, opt["dB"])[0], frf.flags[o, i], log=not opt["dB"])
             _flag_marks(ap, x, uph[o, i], frf.flags[o, i], log=False)
@@ -590,18 +603,18 @@ def residual_figure(
     exposures = _per_panel(exposures, K, "exposures")
     org = np.zeros((K, 2)) if origins is None else np.asarray(origins, dtype=np.float64).reshape(K, 2)
     if axes is None:
-        fig = _new_figure((11.5, 3.1 * K + 0.6))
-        grid = fig.subplots(K, 3, squeeze=False)
+        fig, grid, cax = _residual_layout(K, H / W, _wrap(stamp, 11.7).count("\n") + 1 if stamp else 0)
     else:
         grid = _axes_grid(axes, K, 3, "data, model, residual per panel")
-        fig = grid[0, 0].figure
+        fig, cax = grid[0, 0].figure, [None] * K
     for k in range(K):
         where = labels[k] + (f"\n{exposures[k]}" if exposures[k] else "")
-        _residual_row(fig, grid[k], images[k], models[k], res[k], org[k], where, (unit, res_unit), share=axes is None)
+        _residual_row(fig, grid[k], images[k], models[k], res[k], org[k], where, (unit, res_unit), cax=cax[k])
     if axes is None or reason:
+        at = dict(y=1 - 0.1 / fig.get_figheight(), va="top") if axes is None else {}
         fig.suptitle("Recorded frame, fitted model and residual" + (f": {reason}" if reason else "")
                      + ("\nresidual in units of σ, the camera noise model's std of the fitted model" if sigma is not None else ""),
-                     fontsize=10)
+                     fontsize=10, **at)
     _stamp(fig, stamp)
     return fig
 
@@ -620,10 +633,40 @@ def _check_sigma(sigma, shape) -> np.ndarray:
     return sig
 
 
-def _residual_row(fig, axs, img, mod, res, org, where: str, units: tuple[str, str], share: bool) -> None:
+_RES_IN = dict(left=0.65, panel=3.0, gap=0.12, cb_pad=0.08, cb=0.15, cb_text=0.75, title=0.42, xlabel=0.45, top=0.75, line=0.12)
+
+
+def _residual_layout(K: int, aspect: float, stamp_lines: int):
+    """A figure of K rows [data, model, bar, residual, bar] placed in inches (no layout
+    engine: it costs more than the drawing), panels of the images' ``aspect`` (H / W).
+    Returns ``(fig, axes [K, 3], colour-bar axes [K] of pairs)``."""
+    from matplotlib.figure import Figure
+
+    d = _RES_IN
+    ph = float(np.clip(d["panel"] * aspect, 0.8, 4.5))
+    row = d["title"] + ph + d["xlabel"]
+    bottom = 0.1 + d["line"] * stamp_lines
+    fw = d["left"] + 3 * d["panel"] + d["gap"] + 2 * (d["cb_pad"] + d["cb"] + d["cb_text"])
+    fh = d["top"] + K * row + bottom
+    fig = Figure(figsize=(fw, fh))
+    xs = [d["left"], d["left"] + d["panel"] + d["gap"]]
+    xs.append(xs[1] + d["panel"] + d["cb_pad"] + d["cb"] + d["cb_text"])
+    cbx = [xs[1] + d["panel"] + d["cb_pad"], xs[2] + d["panel"] + d["cb_pad"]]
+    grid, cax = np.empty((K, 3), dtype=object), []
+    for k in range(K):
+        y = (fh - d["top"] - k * row - d["title"] - ph) / fh
+        for c in range(3):
+            grid[k, c] = fig.add_axes((xs[c] / fw, y, d["panel"] / fw, ph / fh), sharex=None if c == 0 else grid[k, 0],
+                                      sharey=None if c == 0 else grid[k, 0])
+        cax.append([fig.add_axes((x / fw, y, d["cb"] / fw, ph / fh), label="<colorbar>") for x in cbx])
+    return fig, grid, cax
+
+
+def _residual_row(fig, axs, img, mod, res, org, where: str, units: tuple[str, str], cax=None) -> None:
     """One row: data and model on one colour scale (one colour bar, ``units[0]``), the
-    residual on a symmetric one (``units[1]``); with ``share`` the three panels share their
-    axes (one set of y tick labels)."""
+    residual on a symmetric one (``units[1]``); with ``cax`` (the layout's two colour-bar
+    axes) the three panels share their axes (one set of y tick labels)."""
+    share = cax is not None
     unit, res_unit = units
     H, W = img.shape
     x0, y0 = org
@@ -642,12 +685,10 @@ def _residual_row(fig, axs, img, mod, res, org, where: str, units: tuple[str, st
         ax.set_xlabel("x (px)", fontsize=8)
         ax.tick_params(labelsize=7)
         if share and ax is not axs[0]:
-            ax.sharex(axs[0])
-            ax.sharey(axs[0])
             ax.tick_params(labelleft=False)
     for ax in axs[:1] if share else axs:
         ax.set_ylabel("y (px)", fontsize=8)
-    for h, on, lab in ((hs[0], [axs[0], axs[1]], unit), (hs[2], axs[2], res_unit)):
-        cb = fig.colorbar(h, ax=on, fraction=0.046, pad=0.02)
+    for n, (h, on, lab) in enumerate(((hs[0], [axs[0], axs[1]], unit), (hs[2], axs[2], res_unit))):
+        cb = fig.colorbar(h, cax=cax[n]) if share else fig.colorbar(h, ax=on, fraction=0.046, pad=0.02)
         cb.set_label(lab, fontsize=8)
         cb.ax.tick_params(labelsize=7)
