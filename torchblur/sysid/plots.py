@@ -8,14 +8,33 @@ The backend is never touched: without ``axes=`` each function builds a
 left open; save it with ``fig.savefig(...)``; in Jupyter, ``display(fig)`` or leave ``fig``
 last in a cell). With ``axes=`` it draws into the caller's axes (from ``plt.subplots`` or
 ``fig.subplots``) and returns their figure.
+
+What a Bode figure shows is what the numbers say:
+
+* The measured phase is drawn on the reference's branch (the model's, else the truth's): the
+  reference's unwrapped phase plus the wrapped difference, so a point sits where the error
+  panel puts it (the truth is put on the model's branch too).
+* Flagged points (:attr:`FrequencyResponse.flags`) carry one hollow ring per flag
+  (:data:`FLAG_STYLES`, a default style for any other flag), each kind in the legend; their
+  error bars are faint. The axes' limits come from the unflagged points and the curves only:
+  a flagged point off scale is drawn at the edge with an arrow, a point without a value
+  (failed) at the bottom.
+* The camera's frame rate and its Nyquist frequency (``frame_rate_hz``, else the response's
+  ``meta["frame_rate_hz"]``) as vertical lines, or named in the x label when they lie
+  outside the measured range.
+
+Residual figures give ``(data - model) / sigma`` with the noise model's sigma of the fitted
+model, so a fit the noise explains looks like noise of rms 1.
 """
 from __future__ import annotations
 
+import textwrap
 from typing import Sequence
 
 import numpy as np
 
-from torchblur.errors import InputTypeError, ShapeError
+from torchblur.errors import InputTypeError, ParameterError, ShapeError
+from torchblur.sysid.flags import POINT_FLAGS
 
 __all__ = ["bode_figure", "residual_figure", "response_units", "flag_style", "FLAG_STYLES"]
 
@@ -48,8 +67,6 @@ def flag_style(name: str) -> dict:
     default that no listed flag uses (picked from the flag's bit, so it is stable)."""
     if name in FLAG_STYLES:
         return dict(FLAG_STYLES[name])
-    from torchblur.sysid.flags import POINT_FLAGS
-
     bits = {v: k for k, v in POINT_FLAGS.items()}
     k = bits[name].bit_length() if name in bits else (int(name[3:]) + 1 if name[3:].isdigit() else len(name))
     return dict(marker=_SPARE_MARKERS[k % len(_SPARE_MARKERS)], color=_SPARE_COLORS[k % len(_SPARE_COLORS)], text=name)
@@ -57,8 +74,6 @@ def flag_style(name: str) -> dict:
 
 def _flag_names_of(mask: int) -> list[str]:
     """Names of the bits set in ``mask`` (unknown bits as ``bit<N>``), lowest bit first."""
-    from torchblur.sysid.flags import POINT_FLAGS
-
     return [POINT_FLAGS.get(1 << b, f"bit{b}") for b in range(63) if (int(mask) >> b) & 1]
 
 
@@ -90,8 +105,6 @@ def _axes_grid(axes, rows: int, cols: int, what: str):
 
 def _wrap(stamp, width_in: float, size: float = 6.5) -> str:
     """``stamp`` wrapped to lines that fit ``width_in`` inches at ``size`` pt."""
-    import textwrap
-
     chars = max(20, int(width_in * 72 / (0.6 * size)))
     return "\n".join(textwrap.wrap(str(stamp), chars, break_long_words=True, break_on_hyphens=False))
 
@@ -404,24 +417,10 @@ def bode_figure(
     at the measured or at 400 log-spaced frequencies; a dashed grey line). With a model (or
     else a truth) each block adds two error panels under magnitude and phase: measured minus
     model, in % of the model's magnitude and in deg, with the measurement's 1-sigma band
-    around zero, where sub-percent error bars are readable.
-
-    What it shows is what the numbers say:
-
-    * The measured phase is drawn on the reference's branch (the model's, else the truth's):
-      the reference's unwrapped phase plus the wrapped difference, so a point sits where the
-      error panel puts it (the truth is put on the model's branch too).
-    * Flagged points (:attr:`FrequencyResponse.flags`) carry one hollow ring per flag
-      (:data:`FLAG_STYLES`, a default style for any other flag), each kind in the legend;
-      their error bars are faint. The axes' limits come from the unflagged points and the
-      curves only: a flagged point off scale is drawn at the edge with an arrow, a point
-      without a value (failed) at the bottom.
-    * The camera's frame rate and its Nyquist frequency (``frame_rate_hz``, else the
-      response's ``meta["frame_rate_hz"]``) as vertical lines, or named in the x label
-      when they lie outside the measured range.
-
-    More than 4 outputs (the spots of a wavefront sensor) are overlaid, one magnitude and
-    one phase panel per input, the truth dashed (``model`` is not drawn there).
+    around zero, where sub-percent error bars are readable. Phase branch, flags, limits and
+    the camera's frame rate: the module docstring. More than 4 outputs (the spots of a
+    wavefront sensor) are overlaid, one magnitude and one phase panel per input, the truth
+    dashed (``model`` is not drawn there).
 
     Args:
         frf: the measured response ([O, I, F]).
@@ -621,8 +620,6 @@ def residual_figure(
 
 def _check_sigma(sigma, shape) -> np.ndarray:
     """``sigma`` broadcast to ``shape``; ShapeError / ParameterError naming ``sigma``."""
-    from torchblur.errors import ParameterError
-
     sig = np.asarray(sigma, dtype=np.float64)
     try:
         sig = np.broadcast_to(sig, shape)
