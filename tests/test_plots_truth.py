@@ -211,3 +211,18 @@ def test_dm_maps_mark_every_status_with_units_and_y_down():
             np.testing.assert_allclose(where[STATUS_STYLES[key]["text"]], t.actuator_xy[[j]])
         coloured = ax.collections[0].get_offsets()
         assert len(coloured) == 8 and not (np.asarray(coloured) == t.actuator_xy[4]).all(1).any()
+
+
+def test_no_module_switches_the_backend():
+    """No ``matplotlib.use(...)`` and no pyplot anywhere in the package: figures are
+    ``matplotlib.figure.Figure`` objects, so a notebook's backend is untouched."""
+    import re
+    from pathlib import Path
+
+    import torchblur
+
+    pattern = re.compile(r"^\s*(?:matplotlib\.use\(|import matplotlib\.pyplot|from matplotlib import pyplot|from matplotlib\.pyplot import)",
+                         re.M)
+    offenders = [f"{p.name}: {m.group(0).strip()}" for p in Path(torchblur.__file__).parent.rglob("*.py")
+                 for m in pattern.finditer(p.read_text())]
+    assert offenders == []
