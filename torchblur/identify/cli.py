@@ -496,7 +496,7 @@ def _write_residuals(res, out: Path, stamp: str) -> None:
         data, models, labels, exposures = _fitted_images(res, worst + extra)
         labels = [lab + (f" [{flag_names(masks[q])}]" if masks[q] else "") for lab, q in zip(labels, worst + extra)]
         reason = f"the {len(worst)} points with the largest fit cost per pixel" + (
-            f" and {len(extra)} showing the other flag kinds" if extra else "")
+            f", and {len(extra)} more so that each flag kind is shown" if extra else "")
     sigma = None
     if getattr(res, "noise", None) is not None:  # the residual in units of the noise the fit weighed each pixel by
         import torch
