@@ -502,6 +502,7 @@ def _write_residuals(res, out: Path, stamp: str) -> None:
         import torch
 
         sigma = res.noise.std(torch.as_tensor(models, dtype=torch.float64)).numpy()
+        sigma = sigma if np.all(sigma > 0) else None  # a noiseless camera model: the residual in e- instead
     fig = residual_figure(data, models, labels, stamp=stamp, unit="e-", exposures=exposures, reason=reason, sigma=sigma)
     fig.savefig(out / "residuals.png", dpi=90, metadata={"Description": stamp})
 
