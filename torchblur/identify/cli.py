@@ -479,9 +479,8 @@ def _write_residuals(res, out: Path, stamp: str) -> None:
     """residuals.png: the worst fits' data, model and residual."""
     import numpy as np
 
-    from torchblur.sysid.plots import residual_figure
-
     from torchblur.sysid.flags import flag_names
+    from torchblur.sysid.plots import residual_figure
 
     exposures = None
     if hasattr(res, "residual_panels"):  # multisine: one panel per image set
