@@ -81,7 +81,11 @@ def test_exposure_label():
     import torch
 
     w = ExposureWindow(torch.tensor([0.5e-3, 2e-3]), torch.tensor([1e-3, 1e-3]))
-    assert _exposure_label(w, 2) == "exposure 1 of 2 (0.5-1.5 ms)"
+    assert _exposure_label(w) == "exposure 1 of 2, 1 ms long (0.5-1.5 ms), image 1 of 1"
+    # the sweep's layout [E*R]: 2 exposures (30 % and 80 % of a 10 ms period) each repeated twice in a row
+    w = ExposureWindow(torch.tensor([1e-3, 1e-3, 1e-3, 1e-3]), torch.tensor([3e-3, 3e-3, 8e-3, 8e-3]))
+    assert _exposure_label(w, 0) == "exposure 1 of 2, 3 ms long (1-4 ms), image 1 of 2"
+    assert _exposure_label(w, 3) == "exposure 2 of 2, 8 ms long (1-9 ms), image 2 of 2"
 
 
 def test_log_message_goes_through_the_torchblur_logger(caplog):

@@ -33,9 +33,14 @@ def _estimate(seed=0):
 
 
 def test_write_outputs_read_back(tmp_path):
+    import matplotlib
+    import matplotlib.pyplot as plt
+
     est, G = _estimate()
     lines = []
+    backend, open_before = matplotlib.get_backend(), plt.get_fignums()
     paths = write_dm_outputs(tmp_path, est, say=lines.append)
+    assert matplotlib.get_backend() == backend and plt.get_fignums() == open_before  # actuator_maps.png: no backend switch
     d = tmp_path / "dm"
     for name in ("actuators.csv", "interaction_matrix.npy", "interaction_matrix.fits", "command_matrix.npy", "unseen_modes.npy",
                  "command_matrix.json", "frf.json", "actuator_maps.png"):

@@ -85,6 +85,7 @@ def test_fit_folder_equals_identify_on_the_same_frames(sim, capsys):
     assert "error" not in model and model["den"] == pytest.approx(sim["res"].model.to_dict()["den"], rel=1e-8)
     assert _listing(folder) == before  # the recording is never written
     assert "fit of the outside recording" in (out / "report.txt").read_text()
+    assert "seed" not in (out / "report.txt").read_text().splitlines()[0]  # frames from outside have no seed to stamp
 
 
 def test_trigger_phase_and_delays_give_the_same_windows(sim):

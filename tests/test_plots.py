@@ -152,8 +152,10 @@ def test_residual_figure_pixels_units_and_titles():
                           reason="the 2 fits with the largest cost per pixel", origins=[[100, 40], [0, 0]], stamp="v0")
     img_axes = [ax for ax in fig.axes if ax.get_label() != "<colorbar>"]
     cbars = [ax for ax in fig.axes if ax.get_label() == "<colorbar>"]
-    assert len(img_axes) == 6 and len(cbars) == 6
-    assert all(ax.get_xlabel() == "x (px)" and ax.get_ylabel() == "y (px)" for ax in img_axes)
+    assert len(img_axes) == 6 and len(cbars) == 4  # data and model share one colour scale and bar per row
+    assert all(ax.get_xlabel() == "x (px)" for ax in img_axes)
+    assert [ax.get_ylabel() for ax in img_axes] == ["y (px)", "", ""] * 2  # a row's panels share their axes
+    assert img_axes[1].get_shared_y_axes().joined(img_axes[0], img_axes[2])
     assert all(cb.get_ylabel() == "ADU" for cb in cbars)
     title = img_axes[0].get_title()
     assert "412 Hz" in title and "exposure 0 of 8" in title

@@ -19,8 +19,9 @@ Files (:func:`write_dm_outputs`):
   ``s{m}_y``: python-control refuses dots in signal names; N inputs ``a{j}``; the (magnitude,
   phase) covariance of every element, NaN where ``D`` is exactly 0 off a sparse support;
   ``FrequencyResponse.from_json(...).to_control()`` is a python-control FRD).
-- ``actuator_maps.png``: DC gain, mode frequency and damping over the actuator grid
-  (matplotlib Agg; skipped with a log line when matplotlib is missing).
+- ``actuator_maps.png``: DC gain (relative to the nominal actuator), mode frequency (Hz) and
+  damping over the actuator grid, every status and flag marked, y down as in the guide
+  (:func:`actuator_maps_figure`; skipped with a log line when matplotlib is missing).
 """
 from __future__ import annotations
 
@@ -34,11 +35,12 @@ from pathlib import Path
 import numpy as np
 
 from torchblur.dm.actuator_fit import PARAMS, ActuatorTable
+from torchblur.dm.verdict import failed_actuators
 from torchblur.errors import ParameterError, ShapeError
 from torchblur.sysid.frequency_response import FrequencyResponse
 
 __all__ = ["DMEstimate", "command_matrix", "magnitude_phase_cov", "dm_frequency_response", "write_dm_outputs", "CSV_COLUMNS",
-           "RCOND"]
+           "RCOND", "actuator_maps_figure", "STATUS_STYLES"]
 
 #: singular values of D0 below RCOND times the largest are dropped from the command matrix
 RCOND = 0.05
@@ -145,33 +147,71 @@ def _write_fits(path: Path, D0: np.ndarray, say) -> bool:
     return True
 
 
-def _write_maps(path: Path, t: ActuatorTable, say) -> bool:
+#: how each actuator status / flag is marked on the maps (over the colour squares)
+STATUS_STYLES = {
+    "dead": dict(marker="x", color="red", s=90, linewidths=2.0, text="dead (no response; not coloured)"),
+    "weak": dict(marker="o", color="orange", s=260, linewidths=1.8, facecolors="none", text="weak (DC gain < half the median)"),
+    "poor_fit": dict(marker="D", color="magenta", s=330, linewidths=1.5, facecolors="none", text="poor_fit (model fails chi2 test)"),
+    "failed": dict(marker="s", color="black", s=420, linewidths=1.8, facecolors="none", text="failed (see report.txt)"),
+}
+_MAPS = (("DC gain", "dc_gain", "× nominal (1 = nominal actuator)"), ("mode", "mode_hz", "Hz"), ("damping", "damping", "ratio ζ"))
+
+
+def actuator_maps_figure(t: ActuatorTable, *, failed=()):
+    """DC gain, mode frequency and damping over the actuator grid (a
+    ``matplotlib.figure.Figure``; the backend and pyplot are untouched).
+
+    Each live actuator is a square coloured by its value (dead ones are not: their dynamics
+    are NaN and their DC gain about 0); every status and flag is marked on all three maps
+    (:data:`STATUS_STYLES`: dead, weak, poor_fit, and ``failed``: the actuators the verdict
+    flags failed, e.g. ``failed_actuators(t, D)``), each kind present named in the legend. The
+    axes are the guide's (docs/deformable_mirrors.md): actuator pitches, 0 at the pupil
+    centre, x right, y down (image rows).
+
+    Args:
+        t: the actuator table (``actuator_xy`` required).
+        failed: indices of the actuators flagged failed.
+    """
+    from matplotlib.figure import Figure
+
+    if t.actuator_xy is None:
+        raise ParameterError("t: expected an ActuatorTable with actuator_xy (positions), got None")
+    xy = np.asarray(t.actuator_xy, dtype=np.float64)
+    marks = {"dead": np.array([s == "dead" for s in t.status]), "weak": np.array([s == "weak" for s in t.status]),
+             "poor_fit": np.asarray(t.poor_fit, dtype=bool), "failed": np.isin(np.arange(len(t)), np.asarray(list(failed), dtype=int))}
+    fig = Figure(figsize=(14, 4.6), layout="constrained")
+    axes = fig.subplots(1, 3)
+    for ax, (name, key, unit) in zip(axes, _MAPS):
+        vals = np.asarray(getattr(t, key), dtype=np.float64)
+        live = ~marks["dead"] & np.isfinite(vals)
+        sc = ax.scatter(xy[live, 0], xy[live, 1], c=vals[live], s=150, marker="s", cmap="viridis")
+        cb = fig.colorbar(sc, ax=ax, label=f"{name} ({unit})", shrink=0.85)
+        cb.ax.ticklabel_format(useOffset=False)  # 0.9999, not "+1" and 1e-4 steps
+        for status, sel in marks.items():
+            if sel.any():
+                st = dict(STATUS_STYLES[status])
+                ax.scatter(xy[sel, 0], xy[sel, 1], label=st.pop("text"), zorder=3, **st)
+        ax.set_title(name)
+        ax.set_aspect("equal")
+        ax.margins(0.15)  # the rings of an edge actuator inside the frame
+        ax.invert_yaxis()  # y down, as the guide and the camera's rows
+        ax.set_xlabel("x (pitches, right)")
+        ax.set_ylabel("y (pitches, down)")
+    if any(sel.any() for sel in marks.values()):
+        fig.legend(*axes[0].get_legend_handles_labels(), loc="outside lower center", ncol=4, fontsize=8)
+    return fig
+
+
+def _write_maps(path: Path, t: ActuatorTable, say, failed=()) -> bool:
     try:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+        import matplotlib  # noqa: F401
     except ImportError:
         say(f"dm: matplotlib is not installed: {path.name} skipped (pip install matplotlib)")
         return False
     if t.actuator_xy is None:
         say(f"dm: no actuator positions: {path.name} skipped")
         return False
-    xy = t.actuator_xy
-    dead = np.array([s == "dead" for s in t.status])
-    fig, axes = plt.subplots(1, 3, figsize=(13, 4))
-    for ax, (name, vals, unit) in zip(axes, (("DC gain", t.dc_gain, ""), ("mode", t.mode_hz, "Hz"), ("damping", t.damping, ""))):
-        sc = ax.scatter(xy[~dead, 0], xy[~dead, 1], c=vals[~dead], s=120, marker="s", cmap="viridis")
-        ax.scatter(xy[dead, 0], xy[dead, 1], c="red", marker="x", s=80, label="dead")
-        fig.colorbar(sc, ax=ax, label=f"{name} {unit}".strip())
-        ax.set_title(name)
-        ax.set_aspect("equal")
-        ax.set_xlabel("x (pitches)")
-        ax.set_ylabel("y (pitches)")
-    if dead.any():
-        axes[0].legend(loc="upper right")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    actuator_maps_figure(t, failed=failed).savefig(path, dpi=100)
     return True
 
 
@@ -200,7 +240,7 @@ def write_dm_outputs(out_dir, est: DMEstimate, *, rcond: float = RCOND, say=None
     paths.update({k: d / k for k in ("command_matrix.npy", "unseen_modes.npy", "command_matrix.json")})
     dm_frequency_response(est).to_json(d / "frf.json")
     paths["frf.json"] = d / "frf.json"
-    if _write_maps(d / "actuator_maps.png", t, say):
+    if _write_maps(d / "actuator_maps.png", t, say, failed=sorted(failed_actuators(t, est.D))):
         paths["actuator_maps.png"] = d / "actuator_maps.png"
     say(f"dm: {len(paths)} files in {d}; command matrix keeps {info['n_kept']} modes, {info['n_unseen']} unseen "
         f"(rcond {rcond:g})")

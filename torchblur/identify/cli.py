@@ -56,11 +56,8 @@ from pathlib import Path
 
 
 def _demo(args) -> int:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     import torch
+    from matplotlib.figure import Figure  # not pyplot: the caller's backend stays as it was
 
     import torchblur as tb
 
@@ -84,7 +81,8 @@ def _demo(args) -> int:
     noisy = camera.expose(imgs[0] * scale, generator=torch.Generator().manual_seed(args.seed))
 
     t = torch.linspace(0, 2 / f_hz, 400, dtype=torch.float64)
-    fig, ax = plt.subplots(1, 4, figsize=(16, 3.8))
+    fig = Figure(figsize=(16, 3.8))
+    ax = fig.subplots(1, 4)
     for p, style in ((phase, "-"), (alias, "--")):
         y = (amp.norm() * torch.sin(omega * t + p)).numpy()
         ax[0].plot(t.numpy() * 1e3, y, style, label=f"phase {math.degrees(float(p)):.1f} deg")
@@ -343,7 +341,8 @@ def _fit_outside(args) -> int:
     rec = read_outside_recording(src)  # RecordingError naming file, line and column
     cfg = outside_config(rec, args.overrides)
     out.mkdir(parents=True, exist_ok=True)
-    stamp = f"torchblur {tb.__version__}, seed {cfg.seed}, fit of the outside recording {src}"
+    seeded = any(str(o).partition("=")[0] == "seed" for o in args.overrides)  # the recording itself has no seed
+    stamp = f"torchblur {tb.__version__}{f', seed {cfg.seed}' if seeded else ''}, fit of the outside recording {src}"
     (out / "config.yaml").write_text(f"# {stamp}\n" + config_to_yaml(cfg))
     t0 = time.perf_counter()
     res = identify_outside(rec, cfg, progress=not args.quiet)
@@ -454,9 +453,13 @@ def _left_out_points(cfg, frf) -> dict:
 
 def _write_figures(cfg, res, out: Path, stamp: str) -> None:
     """bode.png (with the truth where known) and residuals.png (the worst fits)."""
-    import numpy as np
+    _write_bode(cfg, res, out, stamp)
+    _write_residuals(res, out, stamp)
 
-    from torchblur.sysid.plots import bode_figure, residual_figure
+
+def _write_bode(cfg, res, out: Path, stamp: str) -> None:
+    """bode.png: the response, the model, the truth where known."""
+    from torchblur.sysid.plots import bode_figure
 
     frf = res.frf
     truth = None
@@ -467,8 +470,18 @@ def _write_figures(cfg, res, out: Path, stamp: str) -> None:
             from torchblur.identify.run import plant_of
 
             truth = plant_of(cfg).frequency_response
-    fig = bode_figure(frf, model=res.model, truth=truth, stamp=stamp)
+    frame_rate = None if cfg.rig.kind == "outside" else float(cfg.camera.frame_rate_hz)  # an outside recording's is unknown
+    fig = bode_figure(frf, model=res.model, truth=truth, stamp=stamp, frame_rate_hz=frame_rate)
     fig.savefig(out / "bode.png", dpi=110 if frf.n_outputs <= 2 else 80, metadata={"Description": stamp})
+
+
+def _write_residuals(res, out: Path, stamp: str) -> None:
+    """residuals.png: the worst fits' data, model and residual."""
+    import numpy as np
+
+    from torchblur.sysid.flags import flag_names
+    from torchblur.sysid.plots import residual_figure
+
     exposures = None
     if hasattr(res, "residual_panels"):  # multisine: one panel per image set
         data, models, labels = res.residual_panels(3)
@@ -476,11 +489,47 @@ def _write_figures(cfg, res, out: Path, stamp: str) -> None:
     else:
         cost = res.fit.cost.reshape(-1).numpy()
         n_pix = res.images.shape[-3] * res.images.shape[-2] * res.images.shape[-1]
-        worst = np.argsort(np.nan_to_num(cost / max(1, n_pix), nan=-np.inf))[-3:][::-1].copy()
-        data, models, labels, exposures = _fitted_images(res, worst)
-        reason = f"the {len(labels)} points with the largest fit cost per pixel"
-    fig = residual_figure(data, models, labels, stamp=stamp, unit="e-", exposures=exposures, reason=reason)
+        worst = [int(q) for q in np.argsort(np.nan_to_num(cost / max(1, n_pix), nan=-np.inf))[-3:][::-1]]
+        masks = _problem_flags(res)
+        extra = _one_per_flag(masks, worst)
+        data, models, labels, exposures = _fitted_images(res, worst + extra)
+        labels = [lab + (f" [{flag_names(masks[q])}]" if masks[q] else "") for lab, q in zip(labels, worst + extra)]
+        reason = f"the {len(worst)} points with the largest fit cost per pixel" + (
+            f", and {len(extra)} more so that each flag kind is shown" if extra else "")
+    sigma = None
+    if getattr(res, "noise", None) is not None:  # the residual in units of the noise the fit weighed each pixel by
+        import torch
+
+        sigma = res.noise.std(torch.as_tensor(models, dtype=torch.float64)).numpy()
+        sigma = sigma if np.all(sigma > 0) else None  # a noiseless camera model: the residual in e- instead
+    fig = residual_figure(data, models, labels, stamp=stamp, unit="e-", exposures=exposures, reason=reason, sigma=sigma)
     fig.savefig(out / "residuals.png", dpi=90, metadata={"Description": stamp})
+
+
+def _problem_flags(res):
+    """The flag mask (:mod:`torchblur.sysid.flags`) of each problem of ``res.fit`` (flat
+    index), int [n]: its point's flags, OR-ed over the outputs of its input."""
+    import numpy as np
+
+    frf = res.frf
+    F = len(frf.omega)
+    if res.fit.amplitude.dim() == 1:
+        return np.asarray(frf.flags[0, 0], dtype=np.int64)
+    P = res.fit.amplitude.shape[1]
+    per_point = np.bitwise_or.reduce(np.asarray(frf.flags, dtype=np.int64), axis=0)  # [I, F]
+    return np.array([per_point[(q // P) // F, (q // P) % F] for q in range(res.fit.cost.numel())], dtype=np.int64)
+
+
+def _one_per_flag(masks, shown: list, most: int = 3) -> list:
+    """Problems (flat indices) to show besides ``shown`` so that each flag kind present in
+    ``masks`` appears at least once (the first problem carrying it), at most ``most``."""
+    extra = []
+    for b in range(63):
+        bit = 1 << b
+        if len(extra) >= most or not any(int(m) & bit for m in masks) or any(int(masks[q]) & bit for q in shown + extra):
+            continue
+        extra.append(next(q for q, m in enumerate(masks) if int(m) & bit))
+    return extra
 
 
 def _summary(res, out: Path, elapsed: float, threshold: float | None = None) -> dict:
@@ -583,16 +632,17 @@ def _fitted_images(res, idx):
         k = j % F
         if single:
             img_d = res.images[j, 0]
-            w = res.windows[j, 0]
+            w_point = res.windows[j]
             label = f"{frf.freq_hz[k]:.4g} Hz"
         else:
             ii = j // F
             img_d = res.images[ii, k, p, 0]
-            w = res.windows[ii, k, 0]
+            w_point = res.windows[ii, k]
             label = f"{frf.freq_hz[k]:.4g} Hz, input {res.inputs[ii]}" + (f", spot s{p}" if res.spots is not None else "")
         data.append(img_d.numpy())
         labels.append(label)
-        exposures.append(_exposure_label(w, res.windows.shape[-1]))
+        w = w_point[0]
+        exposures.append(_exposure_label(w_point))
         fit = res.fit
         at = (j,) if single else (j, p)
         if not bool(fit.converged[at]):
@@ -615,10 +665,17 @@ def _fitted_images(res, idx):
     return np.stack(data), np.stack(out), labels, exposures
 
 
-def _exposure_label(window, n: int) -> str:
-    """``"exposure 1 of n (start-end ms)"`` of the first exposure of one point's ``window``."""
-    start, end = float(window.start.reshape(-1)[0]) * 1e3, float(window.end.reshape(-1)[0]) * 1e3
-    return f"exposure 1 of {n} ({start:.3g}-{end:.3g} ms)"
+def _exposure_label(window, index: int = 0) -> str:
+    """``"exposure e of E, L ms long (start-end ms), image r of R"`` of image ``index`` of one
+    point's ``window`` ``[E*R]``: E distinct exposures (start, duration), each repeated R times
+    in a row (the sweep's layout)."""
+    start, dur = window.start.reshape(-1).tolist(), window.duration.reshape(-1).tolist()
+    distinct = list(dict.fromkeys(zip(start, dur)))
+    R = max(1, len(start) // max(1, len(distinct)))
+    e = distinct.index((start[index], dur[index]))
+    r = sum(1 for q in range(index) if (start[q], dur[q]) == distinct[e])
+    s, d = start[index] * 1e3, dur[index] * 1e3
+    return f"exposure {e + 1} of {len(distinct)}, {d:.3g} ms long ({s:.3g}-{s + d:.3g} ms), image {r + 1} of {R}"
 
 
 def _report(cfg, res, elapsed, stamp) -> tuple[str, str]:

@@ -27,7 +27,8 @@ class IdentificationResult:
     reached, fitted at the smaller motion; see :mod:`torchblur.identify.drive`) and ``moved_px``
     (float per point: the motion the point reached, px: the fitted amplitude, the largest over
     the spots and image axes, NaN where nothing was fitted; a multisine: each tone's expected
-    motion at the amplitudes used, from its last pilot frame).
+    motion at the amplitudes used, from its last pilot frame), ``noise`` (the calibration's
+    :class:`~torchblur.render.camera.CameraNoise`, electrons).
 
     One axis, one spot (SISO): ``fit`` batch ``[F]``, ``images`` ``[F, E*R, H, W]``,
     ``windows`` ``[F, E*R]``, ``amplitude`` ``[F]``, ``truth`` complex ``[F]``.
@@ -58,3 +59,4 @@ class IdentificationResult:
     axis: object = None
     limited: np.ndarray | None = None  # [F] or [I*F] bool: the point was limited by the input range
     moved_px: np.ndarray | None = None  # [F] or [I*F]: the motion the point reached (px)
+    noise: object = None  # the calibration's CameraNoise (the residual figure's sigma), or None
