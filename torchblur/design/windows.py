@@ -98,12 +98,28 @@ def check_design(omega, window: ExposureWindow, *, min_separation: float = 0.2, 
                         f"(separation {float(sep.min()):.3f} < {min_separation}): the alias is not resolved; "
                         "use centres a quarter period apart, e.g. dual_exposure_windows(omega, fractions=(0.3, 0.8))")
     else:
-        msgs.append("one exposure per point: the phase has two branches; resolve them with resolve_branches() "
-                    "or trigger_phase_for(), or use two exposures")
+        msgs.append(_single_exposure_message(omega, window))
     if warn:
         for m in msgs:
             warnings.warn(m, DesignWarning, stacklevel=2)
     return msgs
+
+
+def _single_exposure_message(omega, window: ExposureWindow) -> str:
+    """The design check's words on one exposure per point: where the branches cross, and
+    whether the lowest frequency's phase (near 0) can anchor the continuity rule."""
+    x = torch.rad2deg(crossing_phase(omega, window[..., 0])).reshape(-1)
+    lo = float(x[int(torch.argmin(omega.reshape(-1)))]) if omega.dim() else float(x[0])
+    near = min(abs(math.remainder(lo, 180.0)), 180.0 - abs(math.remainder(lo, 180.0)))
+    where = f"{lo:.0f} deg" if bool((x - x[0]).abs().max() < 1e-6) else f"{lo:.0f} deg at the lowest frequency (it moves along the sweep)"
+    msg = (f"one exposure per point: the phase has two branches (the alias), crossing at {where} and 180 deg from it; the "
+           f"continuity rule (continuity_branches) chooses them along the sweep and flags alias the points it cannot decide "
+           f"(near a crossing, past a resonance, across a gap in the sweep): such a run is never trustworthy; use two "
+           f"exposures (e.g. [0.3, 0.8]) or trigger_phase_for()")
+    if near < 3 * math.degrees(ANCHOR_STD_RAD):
+        msg += (f". The crossing lies {near:.0f} deg from the phase 0 expected at the lowest frequency: the rule cannot "
+                f"anchor the sweep and will flag every point; choose another trigger phase")
+    return msg
 
 
 def trigger_phase_for(expected_phase, exposure_fraction) -> torch.Tensor:
