@@ -206,7 +206,8 @@ def _predict(nodes, w: float, delay_s: float, anchor_std: float) -> tuple[float,
     """Prediction (rad, unwrapped) and its std at ``w`` from the last nodes ``(omega, phase, std)``
     of a branch history (the first node is the anchor at omega 0, std 0: the DC phase is exact):
     the straight line through the last two nodes; its std holds their stds carried along the
-    line and the gap to the parabola through the last three (how fast the slope was changing).
+    line and the gap to the parabola through the last three (how fast the slope was changing,
+    less twice that change's own noise).
     The first point's prediction is the anchor less the delay's phase, std ``anchor_std``."""
     (wb, fb, sb) = nodes[-1]
     if len(nodes) == 1:  # the anchor alone: its phase less the delay's
@@ -216,9 +217,12 @@ def _predict(nodes, w: float, delay_s: float, anchor_std: float) -> tuple[float,
     p = fb + (fb - fa) * r
     u2 = (sb * (1 + r)) ** 2 + (sa * r) ** 2
     if len(nodes) >= 3:
-        (wc, fc, _) = nodes[-3]
+        (wc, fc, sc) = nodes[-3]
         s1, s0 = (fb - fa) / (wb - wa), (fa - fc) / (wa - wc)
-        u2 += (((s1 - s0) / (wb - wc)) * (w - wa) * (w - wb)) ** 2
+        # the slope's change beyond twice its own noise (noisy phases near the anchor fake a bend)
+        noise = math.sqrt((sb / (wb - wa)) ** 2 + (sa * (1 / (wb - wa) + 1 / (wa - wc))) ** 2 + (sc / (wa - wc)) ** 2)
+        bend = max(abs(s1 - s0) - 2 * noise, 0.0)
+        u2 += ((bend / (wb - wc)) * (w - wa) * (w - wb)) ** 2
     return p, math.sqrt(u2)
 
 
@@ -246,7 +250,7 @@ def continuity_branches(omega, phase, alias, phase_std=None, *, magnitude=None, 
     predicted by the straight line through the two previous chosen phases (the first point:
     through the anchor with slope ``-delay_s``; the second: through the anchor and the first),
     with a std that holds the stds of those phases, the gap to the parabola through the
-    last three (how fast the slope is changing) and, with ``magnitude``, pi/2 times the change
+    last three (how fast the slope is changing, beyond twice the noise of that change) and, with ``magnitude``, pi/2 times the change
     of the log-log slope of the magnitude from the two previous points to this one (Bode's
     gain-phase relation: a resonance between points shows in the magnitude, which has no
     alias, though the phase cannot be followed across it). The point takes the branch nearer the
