@@ -291,3 +291,23 @@ def test_the_dm_route_refuses_exposures_that_leave_the_alias(exposures):
 
 def test_anchor_std_is_the_documented_ten_degrees():
     assert ANCHOR_STD_RAD == pytest.approx(math.radians(10.0))
+
+
+def test_the_dm_truth_guard_names_the_actuators():
+    """A simulated DM run: an actuator beyond 5 std of the mirror's truth, or a live one reported
+    dead, makes the run untrustworthy whatever its flags; without a truth nothing changes."""
+    from types import SimpleNamespace
+
+    from torchblur.dm.verdict import DMVerdict, truth_disagreement_dm, truth_guard
+
+    mirror = SimpleNamespace(dead=np.array([False, True, False, False]), gain=np.array([1.0, 0.0, 1.0, 1.0]),
+                             mode_hz=np.full(4, 2000.0), damping=np.full(4, 0.1))
+    act = SimpleNamespace(status=("ok", "dead", "ok", "dead"), dc_gain=np.array([1.001, np.nan, 1.1, np.nan]), dc_gain_std=np.full(4, 0.002),
+                          mode_hz=np.array([2001.0, np.nan, 2000.0, np.nan]), mode_hz_std=np.full(4, 1.0), damping=np.full(4, 0.1),
+                          damping_std=np.full(4, 0.01))
+    assert truth_disagreement_dm(act, mirror) == (2, 3)
+    v = DMVerdict(line="verdict: trustworthy: all 4 actuators within tolerance", trustworthy=True, exit_code=0, actuators=4, flagged=0,
+                  poor_fit=(), failed=(), ok=(0, 2, 3), weak=(), dead=(1,), failed_spot_fits=0, spot_problems=10, max_reduced_chi2=1.0)
+    g = truth_guard(v, SimpleNamespace(mirror=mirror, actuators=act))
+    assert not g.trustworthy and g.exit_code == EXIT_FLAGGED and g.beyond_truth == (2, 3) and "(2, 3)" in g.line
+    assert truth_guard(v, SimpleNamespace(mirror=None)) is v

@@ -24,6 +24,7 @@ The adequacy rule (docs/reliability.md, "Per-point flags"; bits in :mod:`torchbl
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import torch
@@ -289,9 +290,10 @@ def resolve_single_exposure(frf: FrequencyResponse, alias_phase, single, *, axis
         frf: ``[O, I, F]`` response as the fits gave it.
         alias_phase: ``[O, I, F]`` the other branch of each point (rad; ``SinusoidFit.alias_phase``).
         single: bool ``[O, I, F]`` (or ``[F]``): the point's exposures do not resolve the alias.
-        axis_of: None (every channel chooses alone), or int ``[O]``: the output whose channel
-            decides for output ``o`` (one spot's x and y outputs come from one fit, whose time
-            reversal flips both: the axis that moves most decides, the other follows).
+        axis_of: None (every channel chooses alone), or int ``[O]`` or ``[O, I]``: the output
+            whose channel decides for output ``o`` (from input ``i``): one spot's x and y outputs
+            come from one fit, whose time reversal flips both, so the axis that moves most decides
+            and the other follows.
         anchor_phase: the phase expected at the lowest frequency (rad; 0: a positive DC gain).
 
     Returns:
@@ -304,15 +306,16 @@ def resolve_single_exposure(frf: FrequencyResponse, alias_phase, single, *, axis
     if not one.any():
         return frf
     lead = np.arange(shape[0]) if axis_of is None else np.asarray(axis_of, dtype=int)
+    lead = np.broadcast_to(lead.reshape(shape[0], -1), shape[:2])  # [O, I]: the output deciding for (o, i)
     ok = frf.valid & np.isfinite(al) & ((frf.flags & NO_MOTION) == 0)
     take = np.zeros(shape, dtype=bool)
     undecided = np.zeros(shape, dtype=bool)
-    for o in np.unique(lead):
-        for i in range(shape[1]):
+    for i in range(shape[1]):
+        for o in np.unique(lead[:, i]):
             other = np.where(one[o, i], al[o, i], frf.phase[o, i])  # a resolved point: one branch
             r = continuity_branches(frf.omega, frf.phase[o, i], other, frf.phase_std[o, i], magnitude=frf.magnitude[o, i],
                                     valid=ok[o, i], anchor_phase=anchor_phase)
-            for oo in np.flatnonzero(lead == o):
+            for oo in np.flatnonzero(lead[:, i] == o):
                 take[oo, i] = r.took_alias & one[oo, i] & ok[oo, i]
                 undecided[oo, i] = ~r.decided & one[oo, i] & ok[oo, i]
     resp = np.where(take, frf.magnitude * np.exp(1j * al), frf.response)
@@ -351,9 +354,11 @@ def alias_stage(run) -> None:
         n_o, n_i, n_f = frf.response.shape
         alias_oif = np.moveaxis(alias.reshape(n_i, n_f, -1), 2, 0)
         single_oif = np.broadcast_to(single.reshape(1, n_i, n_f), frf.response.shape)
-        mean_mag = np.nanmean(np.where(frf.valid, frf.magnitude, np.nan), axis=(1, 2)).reshape(-1, 2)  # [P, 2]
-        lead_axis = np.nan_to_num(mean_mag, nan=-1.0).argmax(1)
-        axis_of = np.repeat(2 * np.arange(n_o // 2) + lead_axis, 2)
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # a spot with no valid point: NaN, its x decides
+            mean_mag = np.nanmean(np.where(frf.valid, frf.magnitude, np.nan), axis=2)  # [O, I]
+        moves = np.nan_to_num(mean_mag, nan=-1.0).reshape(n_o // 2, 2, n_i)  # [P, axis, I]
+        axis_of = np.repeat(2 * np.arange(n_o // 2)[:, None] + moves.argmax(1), 2, axis=0)  # [O, I]
     run.frf = resolve_single_exposure(frf, alias_oif, single_oif, axis_of=axis_of)
     n_alias = int(((run.frf.flags & ALIAS) != 0).sum())
     run.say(f"alias: {int(single.sum())} point(s) with one exposure (their exposures do not resolve the alias): the phase branch "
