@@ -302,8 +302,8 @@ def test_the_dm_truth_guard_names_the_actuators():
 
     mirror = SimpleNamespace(dead=np.array([False, True, False, False]), gain=np.array([1.0, 0.0, 1.0, 1.0]),
                              mode_hz=np.full(4, 2000.0), damping=np.full(4, 0.1))
-    act = SimpleNamespace(status=("ok", "dead", "ok", "dead"), dc_gain=np.array([1.001, np.nan, 1.1, np.nan]), dc_gain_std=np.full(4, 0.002),
-                          mode_hz=np.array([2001.0, np.nan, 2000.0, np.nan]), mode_hz_std=np.full(4, 1.0), damping=np.full(4, 0.1),
+    act = SimpleNamespace(status=("ok", "dead", "ok", "dead"), dc_gain=np.array([1.001, np.nan, 1.1, np.nan]),
+                          dc_gain_std=np.full(4, 0.002), mode_hz=np.array([2001.0, np.nan, 2000.0, np.nan]), mode_hz_std=np.full(4, 1.0), damping=np.full(4, 0.1),
                           damping_std=np.full(4, 0.01))
     assert truth_disagreement_dm(act, mirror) == (2, 3)
     v = DMVerdict(line="verdict: trustworthy: all 4 actuators within tolerance", trustworthy=True, exit_code=0, actuators=4, flagged=0,

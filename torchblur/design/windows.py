@@ -280,7 +280,9 @@ def continuity_branches(omega, phase, alias, phase_std=None, *, magnitude=None, 
     a, b = _np(phase, "phase", F), _np(alias, "alias", F)
     mag = None if magnitude is None else np.abs(_np(magnitude, "magnitude", F))
     sd = np.zeros(F) if phase_std is None else np.nan_to_num(_np(phase_std, "phase_std", F), nan=0.0)
-    ok = np.isfinite(a) & np.isfinite(b) & np.isfinite(om) if valid is None else np.asarray(valid, dtype=bool) & np.isfinite(a) & np.isfinite(b)
+    ok = np.isfinite(a) & np.isfinite(b) & np.isfinite(om)
+    if valid is not None:
+        ok &= np.broadcast_to(np.asarray(valid, dtype=bool), (F,))
     if bool((np.diff(om[ok]) <= 0).any()):
         raise ParameterError("omega: expected strictly increasing frequencies over the valid points")
     if not (z > 0 and anchor_std > 0):

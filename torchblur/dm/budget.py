@@ -132,7 +132,8 @@ def check_dm_exposures(exposures) -> None:
     win = dual_exposure_windows(torch.tensor(2 * math.pi, dtype=torch.float64), fractions=[float(e) for e in exposures])
     sep = float(alias_separation(torch.tensor(2 * math.pi, dtype=torch.float64), win))
     if sep < MIN_SEPARATION:
+        why = "one exposure" if len(exposures) < 2 else "centres that coincide mod half a period"
         raise ConfigError(f"sweep.exposures: {list(exposures)} do not resolve the alias of a DM run (alias separation {sep:.3g}, "
-                          f"below {MIN_SEPARATION}: {'one exposure' if len(exposures) < 2 else 'centres that coincide mod half a period'}); "
+                          f"below {MIN_SEPARATION}: {why}); "
                           f"each spot's phase would be its alias as often as not. Use two exposures whose centres are a quarter "
                           f"period apart, e.g. sweep.exposures=[0.3,0.8]")

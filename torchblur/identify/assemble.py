@@ -37,8 +37,8 @@ from torchblur.render.window import ExposureWindow
 from torchblur.sysid.flags import ALIAS, FAILED, LIMITED, NO_MOTION, POOR_FIT, TIMING
 from torchblur.sysid.frequency_response import FrequencyResponse
 
-__all__ = ["adequacy", "adequacy_stage", "alias_stage", "resolve_single_exposure", "single_exposure_points", "assemble_mimo", "assemble_siso", "limited_mask", "mark_limited", "phase_std", "timing_limit_hz",
-           "timing_phase_std", "truth_of"]
+__all__ = ["adequacy", "adequacy_stage", "alias_stage", "resolve_single_exposure", "single_exposure_points", "assemble_mimo",
+           "assemble_siso", "limited_mask", "mark_limited", "phase_std", "timing_limit_hz", "timing_phase_std", "truth_of"]
 
 
 def timing_phase_std(omega, jitter_s, latency_std_s, n_frames):
@@ -317,7 +317,7 @@ def resolve_single_exposure(frf: FrequencyResponse, alias_phase, single, *, axis
                                     valid=ok[o, i], anchor_phase=anchor_phase)
             for oo in np.flatnonzero(lead[:, i] == o):
                 take[oo, i] = r.took_alias & one[oo, i] & ok[oo, i]
-                undecided[oo, i] = ~r.decided & one[oo, i] & ok[oo, i]
+                undecided[oo, i] = (~r.decided | ~ok[o, i]) & one[oo, i] & ok[oo, i]  # a lead point not judged: its follower neither
     resp = np.where(take, frf.magnitude * np.exp(1j * al), frf.response)
     cov = np.array(frf.cov)
     cov[take, 0, 1] *= -1
