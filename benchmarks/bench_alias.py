@@ -56,7 +56,7 @@ def one_run(name: str, overrides: list, config: str | None = None) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--phases", type=float, nargs="+", default=[math.pi / 2, 2.2, 3.0])
+    ap.add_argument("--phases", type=float, nargs="*", default=[math.pi / 2, 2.2, 3.0])
     ap.add_argument("--configs", nargs="*", default=[])
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args(argv)
