@@ -339,3 +339,34 @@ def test_saturated_still_frames_are_refused(good):
     rec = read_outside_recording(good)
     with pytest.raises(RecordingError, match=r"still frames have \d+ saturated pixel\(s\).*shorter exposure_s"):
         identify_outside(rec, progress=False)
+
+
+def test_an_outside_recording_with_one_exposure_is_resolved_or_flagged(sim):
+    """Issue 24: the same frames with only the first exposure (30 % of the period) of each point:
+    `torchblur fit FOLDER` chooses each phase branch by continuity; every point is within 5 of
+    its stds of the simulated truth or flagged alias (then the run is not trustworthy)."""
+    from torchblur.sysid.flags import ALIAS
+
+    exp, res, cfg = Experiment.open(sim["root"] / "run", writable=False), sim["res"], sim["cfg"]
+    (_, _, dark), = exp.load_calls("dark")
+    (_, args, still), = exp.load_calls("psf")
+    points = []
+    for k in range(len(res.amplitude)):
+        (_, a, cap), = exp.load_calls(f"sweep/x/{k:03d}")
+        E, R, H, W = cap.frames.shape
+        points.append(dict(freq_hz=a["freq_hz"], amplitude=float(res.amplitude[k]), power=float(res.power[k]), R=R,
+                           frames=cap.frames[:1].reshape(R, H, W).numpy(), start_s=res.windows.start[k, :R].numpy(),
+                           duration_s=res.windows.duration[k, :R].numpy()))
+    camera = dict(gain_e_per_adu=cfg.camera.gain, saturation_adu=float(res.saturation.saturation_adu), latency_s=res.latency_s,
+                  latency_std_s=res.latency_std_s, jitter_s=cfg.camera.jitter_s, trigger_delay_s=1e-4)
+    folder = write_outside(sim["root"] / "one_exposure", dark=dark.frames.numpy(), still=still.frames.numpy(),
+                           still_exposure_s=args["exposure_s"], points=points, camera=camera, dtype=np.uint16)
+    rec = read_outside_recording(folder)
+    out = identify_outside(rec, outside_config(rec, [f"fit.axis=[{DIRECTION[0]!r},{DIRECTION[1]!r}]"]), progress=False)
+    assert any(line.startswith("alias: 3 point(s) with one exposure") for line in out.log)
+    _, _, z = out.frf.errors_against(res.truth)
+    flagged = ((out.frf.flags & ALIAS) != 0)[0, 0]
+    assert not (z[0, 0] > 5)[~flagged].any(), (z, flagged)
+    from torchblur.identify.verdict import verdict
+
+    assert verdict(out.frf, truth=res.truth).trustworthy == (not flagged.any() and not (z > 5).any())

@@ -260,7 +260,7 @@ def test_cli_flagged_run_exits_4_and_writes_everything(tmp_path):
     doc = json.loads(proc.stdout)  # still exactly one JSON line on stdout
     assert doc["verdict"].startswith("verdict: 1 of 2 points flagged: 1 timing (above")
     # the default input range (200 units) cannot drive 20 kHz to its target: that point is also limited, and named
-    assert doc["point_flags"] == {"poor_fit": 0, "timing": 1, "failed": 0, "limited": 1, "no_motion": 0} and doc["trustworthy"] is False
+    assert doc["point_flags"] == {"poor_fit": 0, "timing": 1, "failed": 0, "limited": 1, "no_motion": 0, "alias": 0} and doc["trustworthy"] is False
     assert "1 limited by the drive (20 kHz:" in doc["verdict"]
     assert 1000 < doc["timing_limit_hz"] < 20000
     assert proc.stderr.rstrip().splitlines()[-1] == doc["verdict"]

@@ -15,14 +15,19 @@ from __future__ import annotations
 import copy
 from dataclasses import replace
 
-import numpy as np
+import math
 
+import numpy as np
+import torch
+
+from torchblur.design.windows import MIN_SEPARATION, alias_separation, dual_exposure_windows
 from torchblur.errors import ConfigError, ParameterError
 from torchblur.dm.mirror import DeformableMirror
 from torchblur.dm.plans import choose_plan
 from torchblur.dm.shack_hartmann import ShackHartmann
 
-__all__ = ["DM_DARK_FRAMES", "DM_STILL_FRAMES", "STILL_BYTES", "dm_geometry", "dm_plan", "dm_still_frames", "dm_sweep_size"]
+__all__ = ["DM_DARK_FRAMES", "DM_STILL_FRAMES", "STILL_BYTES", "check_dm_exposures", "dm_geometry", "dm_plan", "dm_still_frames",
+           "dm_sweep_size"]
 
 # The DM run's stds are small (0.03 % on a DC gain): each spot's PSF, fitted from the still frames
 # and held fixed, and the dark mean subtracted from every frame must be known better than that.
@@ -104,8 +109,10 @@ def dm_sweep_size(cfg) -> dict:
     ``patterns``, ``repeats`` and the sensor camera's ``frame_shape`` ``(H, W)`` px.
 
     Raises:
-        ConfigError: naming ``dm_plan.budget_frames`` when one repeat of the plan needs more.
+        ConfigError: naming ``dm_plan.budget_frames`` when one repeat of the plan needs more;
+            naming ``sweep.exposures`` when they do not resolve the alias (:func:`check_dm_exposures`).
     """
+    check_dm_exposures(cfg.sweep.exposures)
     try:
         plan, R, _ = dm_plan(cfg)
     except ParameterError as exc:
@@ -113,3 +120,20 @@ def dm_sweep_size(cfg) -> dict:
     frames = plan.n_frames(len(cfg.frequencies_hz()), len(cfg.sweep.exposures), R)
     shape = tuple(int(v) for v in _sensor(cfg)[1].frame_shape)
     return {"frames": frames, "patterns": plan.n_patterns, "repeats": R, "frame_shape": shape}
+
+
+def check_dm_exposures(exposures) -> None:
+    """Refuse a DM sweep whose exposures (fractions of the period, from one trigger) do not
+    resolve the alias (:func:`~torchblur.design.windows.alias_separation` below
+    :data:`~torchblur.design.windows.MIN_SEPARATION`): one exposure, or centres that coincide
+    mod half a period. The DM route fits every spot at every frequency on its own and has no
+    continuity rule for the branch (a sine run's :func:`~torchblur.identify.assemble.alias_stage`),
+    so it would give the alias as often as the phase. ConfigError naming ``sweep.exposures``."""
+    win = dual_exposure_windows(torch.tensor(2 * math.pi, dtype=torch.float64), fractions=[float(e) for e in exposures])
+    sep = float(alias_separation(torch.tensor(2 * math.pi, dtype=torch.float64), win))
+    if sep < MIN_SEPARATION:
+        why = "one exposure" if len(exposures) < 2 else "centres that coincide mod half a period"
+        raise ConfigError(f"sweep.exposures: {list(exposures)} do not resolve the alias of a DM run (alias separation {sep:.3g}, "
+                          f"below {MIN_SEPARATION}: {why}); "
+                          f"each spot's phase would be its alias as often as not. Use two exposures whose centres are a quarter "
+                          f"period apart, e.g. sweep.exposures=[0.3,0.8]")

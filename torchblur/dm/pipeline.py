@@ -39,7 +39,7 @@ from torchblur.dm.outputs import DMEstimate, write_dm_outputs
 from torchblur.dm.plans import static_motion_px
 from torchblur.dm.rig import SimulatedDMRig
 from torchblur.dm.shack_hartmann import ShackHartmann
-from torchblur.dm.verdict import run_verdict
+from torchblur.dm.verdict import run_verdict, truth_guard
 
 __all__ = ["DM_DARK_FRAMES", "DM_STILL_FRAMES", "DMResult", "build_dm", "identify_dm", "match_spots", "next_amplitude", "nominal_growth",
            "truth_errors"]
@@ -428,7 +428,7 @@ def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False, record=None
     res = _identify_on_config_rig(cfg, rig, quiet, record=out / "experiment" if record is None else record)
     elapsed = time.perf_counter() - t0
     _write_dm_outputs(res, out)
-    v = run_verdict(res, poor_fit_chi2=float(cfg.fit.poor_fit_chi2))
+    v = truth_guard(run_verdict(res, poor_fit_chi2=float(cfg.fit.poor_fit_chi2)), res)
     report = _report(res, elapsed) + "".join(f"{line}\n" for line in (*v.details, v.line))  # the verdict line last
     (out / "report.txt").write_text("\n".join(res.log) + "\n" + report)
     print(report, end="", file=sys.stderr if as_json else sys.stdout, flush=True)
@@ -437,7 +437,8 @@ def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False, record=None
                           "truth_errors": truth_errors(res), "verdict": v.line, "trustworthy": v.trustworthy,
                           "actuator_flags": {"poor_fit": list(v.poor_fit), "failed": list(v.failed)},
                           "failed_spot_fits": v.failed_spot_fits, "spot_problems": v.spot_problems, "poor_spot_fits": v.poor_spot_fits,
-                          "spot_model_fails": v.spot_model_fails}), flush=True)
+                          "spot_model_fails": v.spot_model_fails,
+                          "beyond_truth": None if v.beyond_truth is None else list(v.beyond_truth)}), flush=True)
     return v.exit_code
 
 

@@ -37,15 +37,16 @@ Lines::
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
 from torchblur.dm.actuator_fit import POOR_FIT_P, ActuatorTable
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, check_int
-from torchblur.identify.verdict import EXIT_FLAGGED, listed
+from torchblur.identify.verdict import EXIT_FLAGGED, TRUTH_BOUND, listed
 
-__all__ = ["DMVerdict", "dm_verdict", "failed_actuators", "lost_fraction", "run_verdict", "LOST_FRACTION", "POOR_SPOT_FRACTION"]
+__all__ = ["DMVerdict", "dm_verdict", "failed_actuators", "lost_fraction", "run_verdict", "truth_guard", "truth_disagreement_dm",
+           "LOST_FRACTION", "POOR_SPOT_FRACTION"]
 
 #: an actuator whose column ``D[:, j, :]`` has more than this fraction of its entries (on its
 #: support) lost to failed spot fits is flagged failed
@@ -73,6 +74,9 @@ class DMVerdict:
         poor_spot_fits: spot fits above ``poor_fit_chi2``; spot_model_fails: more than
             :data:`POOR_SPOT_FRACTION` of them (the run is then untrustworthy).
         details: one line per flagged actuator (why), for the report.
+        beyond_truth: with the simulated truth known, the actuators whose parameters lie more than
+            :data:`~torchblur.identify.verdict.TRUTH_BOUND` stds from it or whose status is wrong
+            (:func:`truth_guard`); None without a truth.
     """
 
     line: str
@@ -91,6 +95,7 @@ class DMVerdict:
     details: tuple = ()
     poor_spot_fits: int = 0
     spot_model_fails: bool = False
+    beyond_truth: tuple | None = None
 
     def to_dict(self) -> dict:
         """The fields as a strict-JSON dict (index tuples as lists)."""
@@ -243,3 +248,36 @@ def run_verdict(res, *, poor_fit_chi2: float = 1.5) -> DMVerdict:
     n_problems = int(res.plan.n_patterns) * len(res.freq_hz) * (int(np.shape(res.G)[0]) // 2)
     return dm_verdict(res.actuators, D=res.D, n_failed_spot_fits=int(res.n_failed), n_spot_problems=n_problems,
                       spot_reduced_chi2=getattr(res, "spot_reduced_chi2", None), poor_fit_chi2=poor_fit_chi2)
+
+
+def truth_disagreement_dm(actuators: ActuatorTable, mirror, bound: float = TRUTH_BOUND) -> tuple:
+    """The actuators (indices) that disagree with the simulated ``mirror`` (a
+    :class:`~torchblur.dm.mirror.DeformableMirror`): a live one whose ``dc_gain``, ``mode_hz``
+    or ``damping`` lies more than ``bound`` of its std from the truth (or is not finite), a dead
+    one not reported dead, or a live one reported dead."""
+    dead = np.asarray(mirror.dead, dtype=bool)
+    status = np.asarray(actuators.status)
+    bad = dead != (status == "dead")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for est, std, true in ((actuators.dc_gain, actuators.dc_gain_std, mirror.gain), (actuators.mode_hz, actuators.mode_hz_std,
+                                                                                        mirror.mode_hz),
+                               (actuators.damping, actuators.damping_std, mirror.damping)):
+            z = np.abs(np.asarray(est, dtype=np.float64) - np.asarray(true, dtype=np.float64)) / np.asarray(std, dtype=np.float64)
+            bad |= ~dead & ~(z <= bound)
+    return tuple(int(j) for j in np.flatnonzero(bad))
+
+
+def truth_guard(v: DMVerdict, res, bound: float = TRUTH_BOUND) -> DMVerdict:
+    """``v`` with the truth guard of a simulated run (``res.mirror``, the truth; None on a real
+    rig: ``v`` unchanged): actuators beyond ``bound`` stds of the truth (:func:`truth_disagreement_dm`)
+    make the run untrustworthy whatever its flags, and the line names them (docs/reliability.md,
+    "The truth guard")."""
+    mirror = getattr(res, "mirror", None)
+    if mirror is None:
+        return v
+    beyond = truth_disagreement_dm(res.actuators, mirror, bound)
+    if not beyond:
+        return replace(v, beyond_truth=())
+    line = (f"{v.line}; {len(beyond)} actuator(s) beyond {bound:g} std of the simulated truth or with a wrong status "
+            f"({listed(beyond)}): not trustworthy whatever the flags say")
+    return replace(v, line=line, trustworthy=False, exit_code=EXIT_FLAGGED, beyond_truth=beyond)

@@ -15,22 +15,30 @@ The adequacy rule (docs/reliability.md, "Per-point flags"; bits in :mod:`torchbl
 * ``TIMING``: the timing terms alone, :func:`timing_phase_std`, exceed ``report.tolerance_deg``.
   Their std is honest (it holds the timing terms), just large: they stay in the model fit.
 * ``LIMITED``: the drive limit cut the point's motion (the run's per-point ``limited``).
+* ``ALIAS``: one exposure per point (the exposures' :func:`~torchblur.design.windows.alias_separation`
+  below :data:`~torchblur.design.windows.MIN_SEPARATION`): each point's phase branch is chosen
+  by continuity along the sweep (:func:`resolve_single_exposure`, the rule of
+  :func:`~torchblur.design.windows.continuity_branches`), and the points it cannot decide are
+  flagged. Such a run is never trustworthy.
 """
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import torch
 
+from torchblur.design.windows import MIN_SEPARATION, alias_separation, continuity_branches
 from torchblur.errors import ShapeError
 from torchblur.image.spots import spot_labels
 from torchblur.fit.status import NO_MOTION as FIT_NO_MOTION
-from torchblur.sysid.flags import FAILED, LIMITED, NO_MOTION, POOR_FIT, TIMING
+from torchblur.render.window import ExposureWindow
+from torchblur.sysid.flags import ALIAS, FAILED, LIMITED, NO_MOTION, POOR_FIT, TIMING
 from torchblur.sysid.frequency_response import FrequencyResponse
 
-__all__ = ["adequacy", "adequacy_stage", "assemble_mimo", "assemble_siso", "limited_mask", "mark_limited", "phase_std", "timing_limit_hz",
-           "timing_phase_std", "truth_of"]
+__all__ = ["adequacy", "adequacy_stage", "alias_stage", "resolve_single_exposure", "single_exposure_points", "assemble_mimo",
+           "assemble_siso", "limited_mask", "mark_limited", "phase_std", "timing_limit_hz", "timing_phase_std", "truth_of"]
 
 
 def timing_phase_std(omega, jitter_s, latency_std_s, n_frames):
@@ -266,7 +274,93 @@ def adequacy_stage(run) -> None:
     no_motion = point_no_motion(run)
     if no_motion.any():
         run.frf = run.frf.replace(flags=np.asarray(run.frf.flags) | np.where(no_motion, NO_MOTION, 0))
+    alias_stage(run)
     poor = int(((run.frf.flags & POOR_FIT) != 0).sum())
     if poor:
         run.say(f"adequacy: {poor} point(s) with a reduced chi2 above fit.poor_fit_chi2 = {cfg.fit.poor_fit_chi2}: flagged "
                 f"poor_fit, their stds multiplied by sqrt(reduced chi2)")
+
+
+def resolve_single_exposure(frf: FrequencyResponse, alias_phase, single, *, axis_of=None, anchor_phase: float = 0.0) -> FrequencyResponse:
+    """``frf`` with the phase branch of every single-exposure point chosen by continuity along
+    the sweep, and ``ALIAS`` on the points the rule cannot decide
+    (:func:`~torchblur.design.windows.continuity_branches`, with the magnitude's Bode term).
+
+    Args:
+        frf: ``[O, I, F]`` response as the fits gave it.
+        alias_phase: ``[O, I, F]`` the other branch of each point (rad; ``SinusoidFit.alias_phase``).
+        single: bool ``[O, I, F]`` (or ``[F]``): the point's exposures do not resolve the alias.
+        axis_of: None (every channel chooses alone), or int ``[O]`` or ``[O, I]``: the output
+            whose channel decides for output ``o`` (from input ``i``): one spot's x and y outputs
+            come from one fit, whose time reversal flips both, so the axis that moves most decides
+            and the other follows.
+        anchor_phase: the phase expected at the lowest frequency (rad; 0: a positive DC gain).
+
+    Returns:
+        A new FrequencyResponse: where the alias is taken the phase is the alias and the
+        magnitude-phase covariance changes sign (the alias moves opposite to the phase).
+    """
+    shape = frf.response.shape
+    al = np.broadcast_to(np.asarray(alias_phase, dtype=np.float64), shape)
+    one = np.broadcast_to(np.asarray(single, dtype=bool), shape)
+    if not one.any():
+        return frf
+    lead = np.arange(shape[0]) if axis_of is None else np.asarray(axis_of, dtype=int)
+    lead = np.broadcast_to(lead.reshape(shape[0], -1), shape[:2])  # [O, I]: the output deciding for (o, i)
+    ok = frf.valid & np.isfinite(al) & ((frf.flags & NO_MOTION) == 0)
+    take = np.zeros(shape, dtype=bool)
+    undecided = np.zeros(shape, dtype=bool)
+    for i in range(shape[1]):
+        for o in np.unique(lead[:, i]):
+            other = np.where(one[o, i], al[o, i], frf.phase[o, i])  # a resolved point: one branch
+            r = continuity_branches(frf.omega, frf.phase[o, i], other, frf.phase_std[o, i], magnitude=frf.magnitude[o, i],
+                                    valid=ok[o, i], anchor_phase=anchor_phase)
+            for oo in np.flatnonzero(lead[:, i] == o):
+                take[oo, i] = r.took_alias & one[oo, i] & ok[oo, i]
+                undecided[oo, i] = (~r.decided | ~ok[o, i]) & one[oo, i] & ok[oo, i]  # a lead point not judged: its follower neither
+    resp = np.where(take, frf.magnitude * np.exp(1j * al), frf.response)
+    cov = np.array(frf.cov)
+    cov[take, 0, 1] *= -1
+    cov[take, 1, 0] *= -1
+    return frf.replace(response=resp, cov=cov, flags=np.asarray(frf.flags) | np.where(undecided, ALIAS, 0))
+
+
+def single_exposure_points(run) -> np.ndarray:
+    """bool ``[J]`` per job of a sine run (``run.windows``, ``run.acquisition.omega_job``): its
+    exposures do not resolve the alias (:func:`~torchblur.design.windows.alias_separation` below
+    :data:`~torchblur.design.windows.MIN_SEPARATION`: one exposure, or centres that coincide mod
+    half a period)."""
+    w, om = run.windows, run.acquisition.omega_job
+    flat = ExposureWindow(w.start.reshape(-1, w.start.shape[-1]), w.duration.reshape(-1, w.duration.shape[-1]))
+    return (alias_separation(om, flat) < MIN_SEPARATION).numpy()
+
+
+def alias_stage(run) -> None:
+    """The step of the adequacy stage for a sine run with one exposure per point: the branch of
+    every such point by continuity (:func:`resolve_single_exposure`; one spot's two axes follow
+    the axis that moves most) and a log line naming the points flagged ``alias``. Nothing for a
+    multisine run (its fit is a list) or where every point's exposures resolve the alias."""
+    fit = run.fit
+    if isinstance(fit, (list, tuple)) or getattr(fit, "alias_phase", None) is None:
+        return
+    single = single_exposure_points(run)
+    if not single.any():
+        return
+    frf = run.frf
+    alias = fit.alias_phase.detach().to(torch.float64).numpy()
+    if alias.ndim == 1:  # [F]: one axis, one spot
+        alias_oif, single_oif, axis_of = alias[None, None], single[None, None], None
+    else:  # [I*F, P, 2] -> [P*2, I, F], one spot's outputs 2p and 2p + 1
+        n_o, n_i, n_f = frf.response.shape
+        alias_oif = np.moveaxis(alias.reshape(n_i, n_f, -1), 2, 0)
+        single_oif = np.broadcast_to(single.reshape(1, n_i, n_f), frf.response.shape)
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # a spot with no valid point: NaN, its x decides
+            mean_mag = np.nanmean(np.where(frf.valid, frf.magnitude, np.nan), axis=2)  # [O, I]
+        moves = np.nan_to_num(mean_mag, nan=-1.0).reshape(n_o // 2, 2, n_i)  # [P, axis, I]
+        axis_of = np.repeat(2 * np.arange(n_o // 2)[:, None] + moves.argmax(1), 2, axis=0)  # [O, I]
+    run.frf = resolve_single_exposure(frf, alias_oif, single_oif, axis_of=axis_of)
+    n_alias = int(((run.frf.flags & ALIAS) != 0).sum())
+    run.say(f"alias: {int(single.sum())} point(s) with one exposure (their exposures do not resolve the alias): the phase branch "
+            f"chosen by continuity along the sweep; {n_alias} point(s) it cannot decide flagged alias" + (
+                f" ({', '.join(f'{v:.4g}' for v in frf.freq_hz[((run.frf.flags & ALIAS) != 0).any(axis=(0, 1))])} Hz)" if n_alias else ""))

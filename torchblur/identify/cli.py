@@ -41,7 +41,8 @@ the last line on stdout (on stderr with ``--json``) and in report.txt.
 
 Exit codes: 0 done and trustworthy (or only points limited by the drive), 2 bad input (config,
 recording), 3 the rig stopped the run (its recording is saved; resume it), 4 done with points
-flagged poor_fit, timing or failed (results written; the verdict names them), 130 interrupted
+flagged poor_fit, timing, failed, no_motion or alias, or, with a known truth (a simulated rig),
+points or a model beyond 5 std of it (results written; the verdict names them), 130 interrupted
 (Ctrl-C; resume it).
 """
 from __future__ import annotations
@@ -374,7 +375,7 @@ def _write_outputs(cfg, res, out: Path, elapsed: float, stamp: str, as_json: boo
     frf = res.frf  # immutable: a copy with the run's stamp and units (the Bode plot's axes) in its meta
     meta = {"output_unit": "px", "input_unit": "input unit", **frf.meta, "torchblur_version": tb.__version__, "seed": int(cfg.seed)}
     frf = res.frf = mark_limited(frf.replace(meta=meta), getattr(res, "limited", None))
-    v = verdict(frf, cfg, motion_px=_motion_px(res), model=getattr(res, "model", None))
+    v = verdict(frf, cfg, motion_px=_motion_px(res), model=getattr(res, "model", None), truth=getattr(res, "truth", None))
     frf.to_csv(out / "frf.csv", extra_columns={"torchblur_version": tb.__version__, "seed": cfg.seed})
     frf.to_mat(out / "frf.mat")
     frf.to_json(out / "frf.json")
@@ -410,7 +411,8 @@ def _verdict_summary(v) -> dict:
     the response's points by flag), ``flagged_points``, ``trustworthy`` and ``timing_limit_hz``
     (null: none, or unknown)."""
     d = v.to_dict()
-    return {"verdict": v.line, "point_flags": {k: d[k] for k in ("poor_fit", "timing", "failed", "limited", "no_motion")},
+    return {"verdict": v.line, "point_flags": {k: d[k] for k in ("poor_fit", "timing", "failed", "limited", "no_motion", "alias")},
+            "beyond_truth": d["beyond_truth"], "model_beyond_truth": d["model_beyond_truth"],
             "flagged_points": v.flagged, "timing_limit_hz": d["timing_limit_hz"], "trustworthy": v.trustworthy}
 
 

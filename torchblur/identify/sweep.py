@@ -299,6 +299,16 @@ def _sweep_point(run, lay: SweepLayout, acq: SineAcquisition, inp: str, k: int, 
     return max(M_est, 1e-3) / A
 
 
+def design_check(run, lay: SweepLayout) -> None:
+    """The pre-run design check of a sine sweep (:func:`~torchblur.design.windows.check_design`
+    on the designed windows of every frequency): its messages are logged (and, with progress
+    shown, warned) before the first point is driven, e.g. one exposure per point (the alias)."""
+    om = torch.tensor(2 * math.pi * lay.freqs, dtype=_F64)
+    win = dual_exposure_windows(om, fractions=lay.fracs, trigger_phase=lay.trigger_phase)
+    for msg in check_design(om, win, warn=run.progress):
+        run.say(f"design: warning: {msg}")
+
+
 def _drive_meta(run, lay: SweepLayout) -> dict:
     """Each point's reached motion (``acq.moved_px``: the fitted amplitude, px, the largest over
     the spots and image axes; NaN without a fit) and whether the input range limited it
@@ -333,6 +343,7 @@ class SinePlan:
         acq = SineAcquisition(omega_job=torch.tensor(np.tile(2 * math.pi * lay.freqs, I), dtype=_F64), layout=lay)
         acq.fitter = ChunkFitter(int(run.cfg.fit.chunk_points), partial(fit_points, acq, lay, run.cfg, run.cal.noise))
         run.acquisition = acq
+        design_check(run, lay)
         acq.t_sweep = time.perf_counter()
         bar = progress_bar(run.progress, total=I * F, desc="sweep", unit="pt")
         try:
@@ -345,8 +356,6 @@ class SinePlan:
                     bar.set_postfix(input=inp, f_hz=f"{f:.4g}", amplitude=f"{acq.amps[-1]:.3g}")
             bar.close()
             acq.t_acq_end = time.perf_counter()
-            win = self.windows(acq)
-            check_design(acq.omega_job, win[:, ::lay.R] if lay.R > 1 else win, warn=run.progress)
             n_sat = sum(acq.n_saturated)
             if n_sat:
                 run.say(f"saturation: {n_sat} saturated pixels masked out of the fit")

@@ -17,9 +17,9 @@ import numpy as np
 
 from torchblur.identify.assemble import timing_limit_hz
 from torchblur.identify.model import model_exclusions
-from torchblur.sysid.flags import FAILED, LIMITED, NO_MOTION, POOR_FIT, TIMING, UNTRUSTED, flag_names
+from torchblur.sysid.flags import ALIAS, FAILED, LIMITED, NO_MOTION, POOR_FIT, TIMING, UNTRUSTED, flag_names
 
-__all__ = ["EXIT_FLAGGED", "Verdict", "listed", "report_lines", "timing_band_hz", "verdict"]
+__all__ = ["EXIT_FLAGGED", "TRUTH_BOUND", "Verdict", "listed", "report_lines", "timing_band_hz", "truth_disagreement", "verdict"]
 
 #: exit status of a run that completed, results written, with points flagged poor_fit, timing or failed
 #: (3 is taken: the rig stopped the run)
@@ -41,6 +41,9 @@ class Verdict:
         poor_fit, timing, failed, limited: points with each flag (a point may have several).
         timing_limit_hz: the frequency above which the timing terms exceed the tolerance (inf:
             never; None: unknown, the response has no ``timing`` meta).
+        alias: points flagged alias (one exposure, branch not decided by continuity).
+        beyond_truth, model_beyond_truth: with a known truth, the points (and the points where
+            the model) lie more than :data:`TRUTH_BOUND` stds from it (None: no truth known).
     """
 
     line: str
@@ -56,6 +59,9 @@ class Verdict:
     no_motion: int = 0
     model_reduced_chi2: float | None = None
     model_poor: bool = False
+    alias: int = 0
+    beyond_truth: int | None = None
+    model_beyond_truth: int | None = None
 
     def to_dict(self) -> dict:
         """The fields as a strict-JSON dict (an infinite ``timing_limit_hz`` as null)."""
@@ -117,7 +123,7 @@ def _tolerances(frf, cfg) -> tuple[float, float]:
     return float(a.get("poor_fit_chi2", 1.5)), float(a.get("tolerance_deg", 1.0))
 
 
-def verdict(frf, cfg=None, *, motion_px=None, model=None) -> Verdict:
+def verdict(frf, cfg=None, *, motion_px=None, model=None, truth=None) -> Verdict:
     """The verdict on ``frf`` (its :attr:`~torchblur.sysid.frequency_response.FrequencyResponse.flags`).
 
     Args:
@@ -127,13 +133,16 @@ def verdict(frf, cfg=None, *, motion_px=None, model=None) -> Verdict:
         motion_px: optional [O, I, F] motion each point reached (px), named for limited points.
         model: the run's fitted model (a TransferFunctionFit), or None: a model whose reduced
             chi2 is above :func:`model_chi2_limit` makes the run untrustworthy (:func:`model_adequacy`).
+        truth: the true response where it is known (a simulated rig), ``[O, I, F]`` or ``[F]``
+            complex, or None: points or a model beyond :data:`TRUTH_BOUND` of their stds from it
+            make the run untrustworthy, whatever the flags say (:func:`truth_disagreement`).
 
     Returns:
         :class:`Verdict`.
     """
     thr, tol_deg = _tolerances(frf, cfg)
     flags = frf.flags | np.where(frf.valid, 0, FAILED)  # a NaN point is a failed one, flagged or not
-    has = {bit: (flags & bit) != 0 for bit in (POOR_FIT, TIMING, FAILED, LIMITED, NO_MOTION)}
+    has = {bit: (flags & bit) != 0 for bit in (POOR_FIT, TIMING, FAILED, LIMITED, NO_MOTION, ALIAS)}
     bad = (flags & UNTRUSTED) != 0
     n, k = int(flags.size), int(bad.sum())
     m_chi2, m_poor = model_adequacy(model)
@@ -142,9 +151,12 @@ def verdict(frf, cfg=None, *, motion_px=None, model=None) -> Verdict:
     limited = ""
     if has[LIMITED].any():
         limited = f"; {int(has[LIMITED].sum())} limited by the drive ({_freqs(frf, has[LIMITED], motion_px)})"
+    beyond, m_beyond = truth_disagreement(frf, truth, model)
+    t_bad = beyond is not None and bool(beyond.any() or m_beyond.any())
     model_part = (f"; the model does not explain the response (reduced chi2 {m_chi2:.3g} over {int(model.dof)} dof, above "
                   f"{model_chi2_limit(model.dof):.3g}): do not use model.json" if m_poor else "")
-    if not k and not m_poor:
+    model_part += _truth_part(frf, beyond, m_beyond) if t_bad else ""
+    if not k and not m_poor and not t_bad:
         unknown = int((~np.isfinite(frf.reduced_chi2) & frf.valid).sum())
         chi2 = f"reduced chi2 <= {thr:g}" + (f" ({unknown} unknown: not checked)" if unknown else "")
         timing = f"timing within {tol_deg:g} deg"
@@ -162,13 +174,62 @@ def verdict(frf, cfg=None, *, motion_px=None, model=None) -> Verdict:
             parts.append(f"{int(has[FAILED].sum())} failed ({_freqs(frf, has[FAILED])})")
         if has[NO_MOTION].any():
             parts.append(f"{int(has[NO_MOTION].sum())} no significant motion ({_freqs(frf, has[NO_MOTION])}: not a measurement)")
+        if has[ALIAS].any():
+            parts.append(f"{int(has[ALIAS].sum())} alias ({_freqs(frf, has[ALIAS])}: one exposure, the phase branch not decided "
+                         f"by continuity; use two exposures, e.g. sweep.exposures=[0.3,0.8])")
         head = f"verdict: {k} of {n} {word} flagged: {', '.join(parts)}" if k else f"verdict: all {n} {word} within tolerance"
         line = f"{head}{limited}{model_part}"
-    ok = not k and not m_poor
+    ok = not k and not m_poor and not t_bad
     return Verdict(line=line, trustworthy=ok, exit_code=0 if ok else EXIT_FLAGGED, points=n, flagged=k,
                    poor_fit=int(has[POOR_FIT].sum()), timing=int(has[TIMING].sum()), failed=int(has[FAILED].sum()),
                    limited=int(has[LIMITED].sum()), timing_limit_hz=band, no_motion=int(has[NO_MOTION].sum()),
-                   model_reduced_chi2=m_chi2, model_poor=m_poor)
+                   model_reduced_chi2=m_chi2, model_poor=m_poor, alias=int(has[ALIAS].sum()),
+                   beyond_truth=None if beyond is None else int(beyond.sum()),
+                   model_beyond_truth=None if m_beyond is None else int(m_beyond.sum()))
+
+
+#: the truth guard's bound: with the truth known (simulated rigs), a point whose error is more than
+#: TRUTH_BOUND of its stds (``FrequencyResponse.errors_against``'s error/std), or a model whose response is
+#: that far from the truth at a swept point (in the point's stds), makes the run untrustworthy
+#: (docs/reliability.md, "The truth guard"). At 5 std an honest Gaussian error exceeds it once in 1.7 million.
+TRUTH_BOUND = 5.0
+
+
+def truth_disagreement(frf, truth, model=None, bound: float = TRUTH_BOUND):
+    """The truth guard: ``(points [O, I, F], model_points [O, I, F])`` bool masks where the
+    response, and the model's response, lie more than ``bound`` of the point's stds from the
+    known ``truth`` (complex ``[O, I, F]`` or ``[F]``); ``(None, None)`` without a truth.
+    Points where the truth is 0 or a std is unknown are not judged (NaN error/std); a model
+    that has no ``frequency_response`` (or a MIMO one of another shape) is not judged."""
+    if truth is None:
+        return None, None
+    t = np.asarray(truth, dtype=complex)
+    if t.ndim == 1:
+        t = np.broadcast_to(t, frf.response.shape)
+    _, _, z = frf.errors_against(t)
+    with np.errstate(invalid="ignore"):
+        beyond = np.isfinite(z) & (z > bound)
+    m_beyond = np.zeros_like(beyond)
+    try:
+        h = np.asarray(model.frequency_response(frf.omega), dtype=complex)
+    except (AttributeError, TypeError, ValueError):
+        h = None
+    if h is not None and h.size == frf.response.size:
+        _, _, zm = frf.replace(response=h.reshape(frf.response.shape)).errors_against(t)
+        with np.errstate(invalid="ignore"):
+            m_beyond = np.isfinite(zm) & (zm > bound) & frf.valid
+    return beyond, m_beyond
+
+
+def _truth_part(frf, beyond, m_beyond) -> str:
+    """The verdict's words on the truth guard: the points (and model points) beyond the bound."""
+    parts = []
+    if beyond.any():
+        parts.append(f"{int(beyond.sum())} point(s) beyond {TRUTH_BOUND:g} std of the known truth ({_freqs(frf, beyond)})")
+    if m_beyond.any():
+        parts.append(f"the model beyond {TRUTH_BOUND:g} std of the known truth at {int(m_beyond.sum())} point(s) "
+                     f"({_freqs(frf, m_beyond)})")
+    return "; " + " and ".join(parts) + ": not trustworthy whatever the flags say"
 
 
 #: a model whose reduced chi2 is above max(MODEL_CHI2_FLOOR, 1 + 4 sqrt(2 / dof)) does not explain the

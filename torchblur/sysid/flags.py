@@ -10,19 +10,22 @@ from __future__ import annotations
 
 from torchblur.errors import ParameterError
 
-__all__ = ["POOR_FIT", "TIMING", "LIMITED", "FAILED", "NO_MOTION", "POINT_FLAGS", "UNTRUSTED", "flag_names", "parse_flags"]
+__all__ = ["POOR_FIT", "TIMING", "LIMITED", "FAILED", "NO_MOTION", "ALIAS", "POINT_FLAGS", "UNTRUSTED", "flag_names", "parse_flags"]
 
 POOR_FIT = 1  #: the model does not explain the images: reduced chi2 > ``fit.poor_fit_chi2`` (stds inflated)
 TIMING = 2  #: the timing terms alone (trigger jitter, latency std) exceed ``report.tolerance_deg``
 LIMITED = 4  #: the drive limit cut the motion: the point was fitted at a smaller motion than its target
 FAILED = 8  #: the fit failed: the response is NaN
 NO_MOTION = 16  #: the image fit found no significant motion (amplitude below 3 std): the value is not a measurement
+#: one exposure per point (the alias, PHYSICS.md Proposition 3): the continuity rule could not decide the
+#: point's phase branch (:func:`torchblur.design.windows.continuity_branches`); its phase may be the alias
+ALIAS = 32
 
 #: bit -> name (the names frf.csv and the report use)
-POINT_FLAGS = {POOR_FIT: "poor_fit", TIMING: "timing", LIMITED: "limited", FAILED: "failed", NO_MOTION: "no_motion"}
+POINT_FLAGS = {POOR_FIT: "poor_fit", TIMING: "timing", LIMITED: "limited", FAILED: "failed", NO_MOTION: "no_motion", ALIAS: "alias"}
 
 #: the bits that make a run's verdict untrustworthy (LIMITED alone does not: the point is honest, just smaller)
-UNTRUSTED = POOR_FIT | TIMING | FAILED | NO_MOTION
+UNTRUSTED = POOR_FIT | TIMING | FAILED | NO_MOTION | ALIAS
 
 _ALL = sum(POINT_FLAGS)
 
