@@ -11,7 +11,7 @@ import pytest
 matplotlib = pytest.importorskip("matplotlib")
 
 from torchblur.errors import ParameterError, ShapeError  # noqa: E402
-from torchblur.sysid.flags import FAILED, LIMITED, NO_MOTION, POINT_FLAGS, POOR_FIT, TIMING  # noqa: E402
+from torchblur.sysid.flags import ALIAS, FAILED, LIMITED, NO_MOTION, POINT_FLAGS, POOR_FIT, TIMING  # noqa: E402
 from torchblur.sysid.frequency_response import FrequencyResponse  # noqa: E402
 from torchblur.sysid.plots import FLAG_STYLES, bode_figure, flag_style, residual_figure  # noqa: E402
 
@@ -37,6 +37,7 @@ def _flagged(outlier=1e3):
     flags = np.zeros(F_HZ.size, dtype=np.int64)
     flags[[3, 5, 7, 9, 11, 13]] = [POOR_FIT, TIMING, LIMITED, NO_MOTION, UNKNOWN, TIMING | LIMITED | NO_MOTION]
     flags[12] = FAILED
+    flags[1] = ALIAS
     h[9] *= outlier
     h[12] = np.nan
     cov = np.zeros(h.shape + (2, 2))

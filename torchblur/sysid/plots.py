@@ -57,6 +57,7 @@ FLAG_STYLES = {
     "limited": dict(marker="v", color="C2", text="limited: the drive limit cut the motion"),
     "no_motion": dict(marker="o", color="0.45", text="no_motion: not a measurement"),
     "failed": dict(marker="X", color="k", text="failed: no value (drawn at the bottom)"),
+    "alias": dict(marker="P", color="C6", text="alias: one exposure, phase branch undecided"),
 }
 _SPARE_MARKERS = ("P", "*", "h", "p", "<", ">", "d", "H", "8")  # not ^ or v: the off-scale arrows
 _SPARE_COLORS = ("C8", "C6", "C9", "C5", "C7")
