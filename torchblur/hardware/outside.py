@@ -29,6 +29,7 @@ from typing import Optional
 import numpy as np
 
 from torchblur.errors import ConfigError
+from torchblur.files import excerpt
 from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.manifest import MAX_FRAME_SIDE, MAX_AMPLITUDE, read_bounded
 from torchblur.hardware.recording import decode_tiff
@@ -141,7 +142,7 @@ def read_outside_recording(path) -> OutsideRecording:
     by_kind = {k: [r for r in rows if r["kind"] == k] for k in KINDS}
     for kind, least in (("dark", 2), ("still", 1), ("sweep", 1)):
         if len(by_kind[kind]) < least:
-            raise RecordingError(f"{CSV_NAME}: {len(by_kind[kind])} row(s) of kind {kind!r}; at least {least} needed")
+            raise RecordingError(f"{CSV_NAME}: {len(by_kind[kind])} row(s) of kind {excerpt(kind)}; at least {least} needed")
     te = {r["exposure_s"] for r in by_kind["still"]}
     if None in te or len(te) != 1:
         line = next(r["line"] for r in by_kind["still"] if r["exposure_s"] is None or r["exposure_s"] != by_kind["still"][0]["exposure_s"])
@@ -178,17 +179,17 @@ def _read_camera(root: Path) -> OutsideCamera:
         if v is None and optional:
             continue
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            raise RecordingError(f"{YAML_NAME}: {key}: expected a finite number, got {v!r:.60}")
+            raise RecordingError(f"{YAML_NAME}: {key}: expected a finite number, got {excerpt(v)}")
         if key in ("gain_e_per_adu",) and v <= 0 or key in ("read_noise_e", "latency_std_s", "jitter_s") and v < 0:
-            raise RecordingError(f"{YAML_NAME}: {key}: expected a number {'> 0' if key == 'gain_e_per_adu' else '>= 0'}, got {v!r}")
+            raise RecordingError(f"{YAML_NAME}: {key}: expected a number {'> 0' if key == 'gain_e_per_adu' else '>= 0'}, got {excerpt(v)}")
     if not isinstance(cam.input_unit, str) or len(cam.input_unit) > 40:
-        raise RecordingError(f"{YAML_NAME}: input_unit: expected a string of at most 40 characters, got {cam.input_unit!r:.60}")
+        raise RecordingError(f"{YAML_NAME}: input_unit: expected a string of at most 40 characters, got {excerpt(cam.input_unit)}")
     return cam
 
 
 def _read_rows(root: Path) -> list:
     """The rows of ``frames.csv``, each a dict of checked values with its ``line``."""
-    data = read_bounded(root / CSV_NAME, MAX_CSV_BYTES, CSV_NAME)
+    data = read_bounded(CSV_NAME, MAX_CSV_BYTES, CSV_NAME, root=root)  # inside the folder: no symlink out
     try:
         text = data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
@@ -224,12 +225,12 @@ def _check_header(header: list) -> None:
         raise RecordingError(f"{CSV_NAME} line 1, column axis: two-input recordings are not supported (one input per recording)")
     for name in header:
         if name not in REQUIRED + OPTIONAL:
-            raise RecordingError(f"{CSV_NAME} line 1, column {name!r}: unknown column (known: {', '.join(REQUIRED + OPTIONAL)})")
+            raise RecordingError(f"{CSV_NAME} line 1, column {excerpt(name)}: unknown column (known: {', '.join(REQUIRED + OPTIONAL)})")
     if len(set(header)) != len(header):
         raise RecordingError(f"{CSV_NAME} line 1: a column is named twice ({header})")
     for name in REQUIRED:
         if name not in header:
-            raise RecordingError(f"{CSV_NAME} line 1: column {name!r} is missing (required: {', '.join(REQUIRED)})")
+            raise RecordingError(f"{CSV_NAME} line 1: column {excerpt(name)} is missing (required: {', '.join(REQUIRED)})")
 
 
 def _number(cell: str, line: int, col: str, *, low=None, high=None, positive=False, integer=False):
@@ -240,12 +241,12 @@ def _number(cell: str, line: int, col: str, *, low=None, high=None, positive=Fal
     try:
         v = int(cell) if integer else float(cell)
     except ValueError:
-        raise RecordingError(f"{where}: expected {'an integer' if integer else 'a number'}, got {cell[:40]!r}") from None
+        raise RecordingError(f"{where}: expected {'an integer' if integer else 'a number'}, got {excerpt(cell[:40])}") from None
     if not math.isfinite(v):
-        raise RecordingError(f"{where}: expected a finite number, got {cell[:40]!r}")
+        raise RecordingError(f"{where}: expected a finite number, got {excerpt(cell[:40])}")
     if (positive and v <= 0) or (low is not None and v < low) or (high is not None and v > high):
         lim = "> 0" if positive else f">= {low}"
-        raise RecordingError(f"{where}: expected a value {lim}{f' and <= {high}' if high is not None else ''}, got {cell[:40]!r}")
+        raise RecordingError(f"{where}: expected a value {lim}{f' and <= {high}' if high is not None else ''}, got {excerpt(cell[:40])}")
     return v
 
 
@@ -253,7 +254,7 @@ def _row(cells: dict, line: int) -> dict:
     """One CSV row checked: what every kind needs, what a sweep row needs."""
     kind = cells["kind"].lower()
     if kind not in KINDS:
-        raise RecordingError(f"{CSV_NAME} line {line}, column kind: expected one of {KINDS}, got {cells['kind'][:40]!r}")
+        raise RecordingError(f"{CSV_NAME} line {line}, column kind: expected one of {KINDS}, got {excerpt(cells['kind'][:40])}")
     if not cells["file"]:
         raise RecordingError(f"{CSV_NAME} line {line}, column file: empty")
     n = lambda col, **kw: _number(cells.get(col), line, col, **kw)  # noqa: E731
@@ -297,7 +298,7 @@ def _read_frames(root: Path, rows: list) -> tuple[dict, np.dtype]:
         if r["file"] not in stacks:
             path = inside(root, r["file"], where)
             if not path.is_file():
-                raise RecordingError(f"{where}: {r['file']!r} is not a file in {root}")
+                raise RecordingError(f"{where}: {excerpt(r['file'])} is not a file in {root}")
             data = read_bounded(path, MAX_TIFF_BYTES, r["file"])
             arr = decode_tiff(data, r["file"], partial(_grayscale_frames, r["file"]))
             arr = arr.reshape((-1,) + arr.shape[-2:])

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torchblur.files import excerpt
 from torchblur.hardware.errors import FrameTimeout, RecordingError
 from torchblur.hardware.frames import CameraInfo, Frame, FrameSource
 from torchblur.hardware.manifest import (MAX_MANIFEST_BYTES, MAX_META_BYTES, SCHEMA_VERSION, ManifestScan, check_meta, check_record,
@@ -203,8 +204,8 @@ class _ReplayCalls(_RigProperties):
         m, got, cap = self._calls[self._i]
         if m != method or set(got) != set(want) or not all(_same(got[k], want[k]) for k in want):
             diff = [k for k in want if k not in got or not _same(got[k], want[k])]
-            raise RecordingError(f"{self._key}: rig call {self._i} is {method}({', '.join(f'{k}={want[k]!r}' for k in diff)}), "
-                                 f"the recording holds {m}({', '.join(f'{k}={got.get(k)!r}' for k in diff)})")
+            raise RecordingError(f"{self._key}: rig call {self._i} is {method}({', '.join(f'{k}={excerpt(want[k])}' for k in diff)}), "
+                                 f"the recording holds {m}({', '.join(f'{k}={excerpt(got.get(k))}' for k in diff)})")
         self._i += 1
         return cap
 
@@ -348,7 +349,7 @@ class Experiment:
 
     @property
     def config_yaml(self) -> str:
-        return (self.path / "config.yaml").read_text()
+        return read_bounded(self.path / "config.yaml", MAX_META_BYTES, "config.yaml").decode("utf-8", "replace")
 
     def _write_meta(self) -> None:
         atomic_write_bytes(self.path / "experiment.json", (json.dumps(self.meta, indent=2) + "\n").encode())

@@ -8,12 +8,14 @@ pixels per input unit.
 """
 from __future__ import annotations
 
+import io
 import math
 import os
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
 from typing import Optional
 
 from torchblur.errors import ConfigError
+from torchblur.files import excerpt, read_bounded
 
 __all__ = ["IdentifyConfig", "load_config", "estimate_run", "check_limits", "LIMITS", "load_dataclass", "config_to_yaml", "validate", "validate_plant", "validate_camera",
            "validate_spots", "validate_excitation", "validate_dm", "validate_dm_model", "SpotsConfig", "PlantConfig",
@@ -304,7 +306,7 @@ def _from_dict(cls, data: dict, prefix: str = ""):
         default = names[k].default_factory() if names[k].default_factory is not field().default_factory else None  # type: ignore[misc]
         if is_dataclass(default):
             if not isinstance(v, dict):
-                raise ConfigError(f"{prefix}{k}: expected a section (mapping), got {v!r}")
+                raise ConfigError(f"{prefix}{k}: expected a section (mapping), got {excerpt(v)}")
             kwargs[k] = _from_dict(type(default), v, prefix + k + ".")
         elif names[k].type in ("int", "Optional[int]") and isinstance(v, float) and v.is_integer() and abs(v) < 2**53:
             kwargs[k] = int(v)  # 1e3 written for an integer key: the integer it is
@@ -347,15 +349,11 @@ def _load_file(path: str, *, trusted: bool):
     import yaml
     from omegaconf import OmegaConf
 
+    if not os.path.lexists(path):
+        raise ConfigError(f"--config: file not found: {path}")
+    data = read_bounded(path, MAX_CONFIG_BYTES, f"--config {path}", error=ConfigError)  # the opening rule (torchblur.files)
     try:
-        size = os.path.getsize(path)
-        if size > MAX_CONFIG_BYTES:
-            raise ConfigError(f"--config {path}: {size} bytes, more than the {MAX_CONFIG_BYTES} a config may hold")
-        file_cfg = OmegaConf.load(path)
-    except FileNotFoundError:
-        raise ConfigError(f"--config: file not found: {path}") from None
-    except OSError as exc:
-        raise ConfigError(f"--config {path}: cannot read it ({exc.strerror or exc})") from None
+        file_cfg = OmegaConf.load(io.StringIO(data.decode("utf-8")))
     except (yaml.YAMLError, UnicodeDecodeError, RecursionError) as exc:
         raise ConfigError(f"--config {path}: not a usable YAML file ({str(exc).splitlines()[0][:120]})") from None
     if not OmegaConf.is_dict(file_cfg):
@@ -367,7 +365,7 @@ def _load_file(path: str, *, trusted: bool):
 
 def _refuse_interpolation(value, path: str, key: str = "") -> None:
     if isinstance(value, str) and "${" in value:
-        raise ConfigError(f"{key or 'config'}: an interpolation ({value[:60]!r}) in the recorded {path}; a recording's "
+        raise ConfigError(f"{key or 'config'}: an interpolation ({excerpt(value[:60])}) in the recorded {path}; a recording's "
                           f"config is read literally, refused")
     if isinstance(value, dict):
         for k, v in value.items():
@@ -440,20 +438,20 @@ def config_to_yaml(cfg: IdentifyConfig) -> str:
 
 def _num(value, key, *, positive=False, nonnegative=False, integer=False, low=None, high=None):
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ConfigError(f"{key}: expected a number, got {value!r}")
+        raise ConfigError(f"{key}: expected a number, got {excerpt(value)}")
     if integer and not isinstance(value, int):
-        raise ConfigError(f"{key}: expected an integer, got {value!r}")
+        raise ConfigError(f"{key}: expected an integer, got {excerpt(value)}")
     v = float(value)
     if not math.isfinite(v):
-        raise ConfigError(f"{key}: expected a finite number, got {value!r}")
+        raise ConfigError(f"{key}: expected a finite number, got {excerpt(value)}")
     if positive and v <= 0:
-        raise ConfigError(f"{key}: expected a value > 0, got {value!r}")
+        raise ConfigError(f"{key}: expected a value > 0, got {excerpt(value)}")
     if nonnegative and v < 0:
-        raise ConfigError(f"{key}: expected a value >= 0, got {value!r}")
+        raise ConfigError(f"{key}: expected a value >= 0, got {excerpt(value)}")
     if low is not None and v < low:
-        raise ConfigError(f"{key}: expected a value >= {low}, got {value!r}")
+        raise ConfigError(f"{key}: expected a value >= {low}, got {excerpt(value)}")
     if high is not None and v > high:
-        raise ConfigError(f"{key}: expected a value <= {high}, got {value!r}")
+        raise ConfigError(f"{key}: expected a value <= {high}, got {excerpt(value)}")
     return v
 
 
@@ -464,7 +462,7 @@ def _short(value) -> str:
 
 def _flag(value, key) -> bool:
     if not isinstance(value, bool):
-        raise ConfigError(f"{key}: expected true or false, got {value!r}")
+        raise ConfigError(f"{key}: expected true or false, got {excerpt(value)}")
     return value
 
 
@@ -477,10 +475,10 @@ def _coeffs(value, key) -> list[float]:
 def _pair(value, key: str, what: str) -> list[float]:
     """A nonzero pair of finite numbers (a direction)."""
     if not isinstance(value, (list, tuple)) or len(value) != 2:
-        raise ConfigError(f"{key}: expected {what}, got {value!r}")
+        raise ConfigError(f"{key}: expected {what}, got {excerpt(value)}")
     v = [_num(x, f"{key}[{i}]") for i, x in enumerate(value)]
     if v == [0.0, 0.0]:
-        raise ConfigError(f"{key}: expected a nonzero direction, got {value!r}")
+        raise ConfigError(f"{key}: expected a nonzero direction, got {excerpt(value)}")
     return v
 
 
@@ -512,7 +510,7 @@ def _check_2x2(value, key: str) -> None:
     for i in range(2):
         for j in range(2):
             if not isinstance(value[i][j], (list, tuple)):
-                raise ConfigError(f"{key}[{i}][{j}]: expected a list of coefficients (highest power first), got {value[i][j]!r}")
+                raise ConfigError(f"{key}[{i}][{j}]: expected a list of coefficients (highest power first), got {excerpt(value[i][j])}")
 
 
 def validate_plant(plant: PlantConfig) -> None:
@@ -528,11 +526,11 @@ def validate_plant(plant: PlantConfig) -> None:
         return
     if direction != [1.0, 0.0]:
         raise ConfigError(f"plant.direction: applies to a one-axis plant (a 2x2 plant's channels hold its directions), "
-                          f"got {plant.direction!r}")
+                          f"got {excerpt(plant.direction)}")
     if not mimo_num:
-        raise ConfigError(f"plant.num: expected 2x2 nested lists like plant.den (a MIMO plant), got {plant.num!r}")
+        raise ConfigError(f"plant.num: expected 2x2 nested lists like plant.den (a MIMO plant), got {excerpt(plant.num)}")
     if not mimo_den:
-        raise ConfigError(f"plant.den: expected 2x2 nested lists like plant.num (a MIMO plant), got {plant.den!r}")
+        raise ConfigError(f"plant.den: expected 2x2 nested lists like plant.num (a MIMO plant), got {excerpt(plant.den)}")
     _check_2x2(plant.num, "plant.num")
     _check_2x2(plant.den, "plant.den")
     for i in range(2):
@@ -541,7 +539,7 @@ def validate_plant(plant: PlantConfig) -> None:
     d = plant.delay_s
     if isinstance(d, (list, tuple)):
         if len(d) != 2 or any(not isinstance(r, (list, tuple)) or len(r) != 2 for r in d):
-            raise ConfigError(f"plant.delay_s: expected a number or 2x2 nested lists, got {d!r}")
+            raise ConfigError(f"plant.delay_s: expected a number or 2x2 nested lists, got {excerpt(d)}")
         for i in range(2):
             for j in range(2):
                 _num(d[i][j], f"plant.delay_s[{i}][{j}]", nonnegative=True)
@@ -558,7 +556,7 @@ def validate_spots(sp: SpotsConfig, camera: CameraConfig | None = None) -> None:
     _num(sp.pitch_px, "spots.pitch_px", positive=True)
     if sp.center_px is not None:
         if not isinstance(sp.center_px, (list, tuple)) or len(sp.center_px) != 2:
-            raise ConfigError(f"spots.center_px: expected null or [x, y] (px), got {sp.center_px!r}")
+            raise ConfigError(f"spots.center_px: expected null or [x, y] (px), got {excerpt(sp.center_px)}")
         for i, v in enumerate(sp.center_px):
             _num(v, f"spots.center_px[{i}]")
     if sp.sigma_px is not None:
@@ -568,7 +566,7 @@ def validate_spots(sp: SpotsConfig, camera: CameraConfig | None = None) -> None:
     _num(sp.gain_variation, "spots.gain_variation", low=-0.99, high=0.99)
     _num(sp.rotation_rad, "spots.rotation_rad")
     if not isinstance(sp.missing, (list, tuple)):
-        raise ConfigError(f"spots.missing: expected a list of grid indices, got {sp.missing!r}")
+        raise ConfigError(f"spots.missing: expected a list of grid indices, got {excerpt(sp.missing)}")
     n = int(sp.rows) * int(sp.cols)
     for i, m in enumerate(sp.missing):
         _num(m, f"spots.missing[{i}]", integer=True, low=0, high=n - 1)
@@ -603,11 +601,11 @@ def validate_dm_model(d: DMConfig, w: WFSConfig) -> None:
     for k in ("dead", "weak"):
         v = getattr(d, k)
         if not isinstance(v, (list, tuple)):
-            raise ConfigError(f"dm.{k}: expected a list of actuator indices, got {v!r}")
+            raise ConfigError(f"dm.{k}: expected a list of actuator indices, got {excerpt(v)}")
         for i, j in enumerate(v):
             _num(j, f"dm.{k}[{i}]", integer=True, low=0)
     if d.actuator_table is not None and (not isinstance(d.actuator_table, str) or not d.actuator_table.strip()):
-        raise ConfigError(f"dm.actuator_table: expected a path to a CSV file or null, got {d.actuator_table!r}")
+        raise ConfigError(f"dm.actuator_table: expected a path to a CSV file or null, got {excerpt(d.actuator_table)}")
     if d.input_limit is not None:
         _num(d.input_limit, "dm.input_limit", positive=True)
     _num(w.n_across, "wfs.n_across", integer=True, low=1, high=128)
@@ -627,7 +625,7 @@ def validate_dm(cfg: IdentifyConfig) -> None:
     if not d.enabled:
         return
     if p.kind not in DM_PLAN_KINDS:
-        raise ConfigError(f"dm_plan.kind: expected one of {DM_PLAN_KINDS}, got {p.kind!r}")
+        raise ConfigError(f"dm_plan.kind: expected one of {DM_PLAN_KINDS}, got {excerpt(p.kind)}")
     if p.budget_frames is None and p.n_repeats is None:
         raise ConfigError("dm_plan.budget_frames: expected a frame budget, or set dm_plan.n_repeats")
     if p.budget_frames is not None:
@@ -663,11 +661,11 @@ def validate_camera(c: CameraConfig) -> None:
 def validate_rig(r: RigConfig) -> None:
     """Check the ``rig`` section; raise :class:`ConfigError` naming the key."""
     if r.kind not in RIG_KINDS:
-        raise ConfigError(f"rig.kind: expected one of {RIG_KINDS}, got {r.kind!r}")
+        raise ConfigError(f"rig.kind: expected one of {RIG_KINDS}, got {excerpt(r.kind)}")
     for k in ("port", "frames"):
         v = getattr(r, k)
         if v is not None and (not isinstance(v, str) or not v.strip()):
-            raise ConfigError(f"rig.{k}: expected a non-empty string, got {v!r}")
+            raise ConfigError(f"rig.{k}: expected a non-empty string, got {excerpt(v)}")
     if r.kind == "serial":
         if r.port is None:
             raise ConfigError("rig.port: required when rig.kind=serial (a device path such as /dev/ttyACM0 or a pyserial "
@@ -693,14 +691,14 @@ def validate_rig(r: RigConfig) -> None:
             try:
                 pylon_url_options(f)
             except ParameterError as exc:
-                raise ConfigError(f"rig.frames: {f!r}: {str(exc).removeprefix('url: ')}") from None
+                raise ConfigError(f"rig.frames: {excerpt(f)}: {str(exc).removeprefix('url: ')}") from None
             ok = True
         else:
             mod, sep, name = f.partition(":")
             ok = bool(sep and mod and name and "/" not in f)
         if not ok:
             raise ConfigError(f"rig.frames: expected tcp://HOST:PORT, pylon://[SERIAL][?trigger=...] or "
-                              f"package.module:ClassName, got {f!r}")
+                              f"package.module:ClassName, got {excerpt(f)}")
     _num(r.timeout_s, "rig.timeout_s", positive=True)
     _num(r.retries, "rig.retries", integer=True, low=0, high=100)
 
@@ -708,7 +706,7 @@ def validate_rig(r: RigConfig) -> None:
 def validate_excitation(x: ExcitationConfig) -> None:
     """Check the multisine keys of the ``excitation`` section; raise :class:`ConfigError` naming the key."""
     if x.kind not in EXCITATION_KINDS:
-        raise ConfigError(f"excitation.kind: expected one of {EXCITATION_KINDS}, got {x.kind!r}")
+        raise ConfigError(f"excitation.kind: expected one of {EXCITATION_KINDS}, got {excerpt(x.kind)}")
     _num(x.tones, "excitation.tones", integer=True, low=1, high=15)  # 15 + the base tone = the protocol's 16
     if x.tone_px is not None:
         _num(x.tone_px, "excitation.tone_px", positive=True)
@@ -725,7 +723,7 @@ def validate_sweep(s: SweepConfig) -> None:
     """Check the ``sweep`` section; raise :class:`ConfigError` naming the key."""
     if s.freq_hz is not None:
         if not isinstance(s.freq_hz, (list, tuple)) or not s.freq_hz:
-            raise ConfigError(f"sweep.freq_hz: expected a non-empty list of frequencies, got {s.freq_hz!r}")
+            raise ConfigError(f"sweep.freq_hz: expected a non-empty list of frequencies, got {excerpt(s.freq_hz)}")
         for i, f in enumerate(s.freq_hz):
             _num(f, f"sweep.freq_hz[{i}]", positive=True)
     else:
@@ -776,7 +774,7 @@ def validate(cfg: IdentifyConfig) -> None:
 
     if isinstance(cfg.fit.axis, str):
         if cfg.fit.axis not in AXIS_MODES:
-            raise ConfigError(f"fit.axis: expected one of {AXIS_MODES} or a direction [x, y], got {cfg.fit.axis!r}")
+            raise ConfigError(f"fit.axis: expected one of {AXIS_MODES} or a direction [x, y], got {excerpt(cfg.fit.axis)}")
     else:
         _pair(cfg.fit.axis, "fit.axis", f"one of {AXIS_MODES} or a direction [x, y]")
     if cfg.fit.axis != "measure" and (cfg.plant.is_mimo or cfg.spots.enabled):
@@ -784,11 +782,11 @@ def validate(cfg: IdentifyConfig) -> None:
                           f"{'a 2x2 plant' if cfg.plant.is_mimo else 'many spots (spots.rows > 0)'}, which fits both image axes")
     validate_fit_psf(cfg)
     if cfg.fit.optimizer not in OPTIMIZERS:
-        raise ConfigError(f"fit.optimizer: expected one of {OPTIMIZERS}, got {cfg.fit.optimizer!r}")
+        raise ConfigError(f"fit.optimizer: expected one of {OPTIMIZERS}, got {excerpt(cfg.fit.optimizer)}")
     if cfg.fit.loss not in LOSSES:
-        raise ConfigError(f"fit.loss: expected one of {LOSSES}, got {cfg.fit.loss!r}")
+        raise ConfigError(f"fit.loss: expected one of {LOSSES}, got {excerpt(cfg.fit.loss)}")
     if cfg.fit.loss not in LIKELIHOOD_LOSSES:
-        raise ConfigError(f"fit.loss: {cfg.fit.loss!r} is refused for an identification: it is no likelihood of the camera's noise, so its "
+        raise ConfigError(f"fit.loss: {excerpt(cfg.fit.loss)} is refused for an identification: it is no likelihood of the camera's noise, so its "
                           f"fit has no covariance and the response's stds would not hold; use one of {LIKELIHOOD_LOSSES} (l2, the default; "
                           f"l1 to be robust to outlier pixels, at 1.25x the std; poisson, the camera's shot and read noise exactly). "
                           f"fit_sinusoid(..., loss='linf', optimizer='adam' or 'lbfgs') still fits it outside a run")
@@ -797,7 +795,7 @@ def validate(cfg: IdentifyConfig) -> None:
     from torchblur.fit.sinusoid import OUTLIERS
 
     if cfg.fit.outliers not in OUTLIERS:
-        raise ConfigError(f"fit.outliers: expected one of {OUTLIERS}, got {cfg.fit.outliers!r}")
+        raise ConfigError(f"fit.outliers: expected one of {OUTLIERS}, got {excerpt(cfg.fit.outliers)}")
     _num(cfg.fit.outlier_sigma, "fit.outlier_sigma", positive=True)
     _flag(cfg.model.fit_delay, "model.fit_delay")
     for k in ("n_poles", "n_zeros"):
@@ -810,11 +808,11 @@ def validate(cfg: IdentifyConfig) -> None:
     _num(cfg.model.max_order, "model.max_order", integer=True, low=1, high=16)
     for k in ("direct",):
         if not isinstance(getattr(cfg.model, k), bool):
-            raise ConfigError(f"model.{k}: expected true or false, got {getattr(cfg.model, k)!r}")
+            raise ConfigError(f"model.{k}: expected true or false, got {excerpt(getattr(cfg.model, k))}")
     from torchblur.sysid.direct import FORMS
 
     if cfg.model.direct_form not in FORMS:
-        raise ConfigError(f"model.direct_form: expected one of {FORMS}, got {cfg.model.direct_form!r}")
+        raise ConfigError(f"model.direct_form: expected one of {FORMS}, got {excerpt(cfg.model.direct_form)}")
     _num(cfg.model.direct_max_iter, "model.direct_max_iter", integer=True, low=1, high=10000)
     if cfg.excitation.kind == "multisine" and (cfg.plant.is_mimo or cfg.spots.enabled):
         raise ConfigError("excitation.kind: a multisine excitation drives one axis and fits one spot; this run has "
@@ -836,7 +834,7 @@ def validate_loss_for_plan(cfg: IdentifyConfig) -> None:
     (and the direct model) is a weighted least squares only; nothing else of a multisine run
     uses ``fit.loss``, so l1 or poisson would be ignored without a word."""
     if cfg.excitation.kind == "multisine" and cfg.fit.loss != "l2":
-        raise ConfigError(f"fit.loss: {cfg.fit.loss!r} is not applied by the multisine plan (excitation.kind=multisine): its fit "
+        raise ConfigError(f"fit.loss: {excerpt(cfg.fit.loss)} is not applied by the multisine plan (excitation.kind=multisine): its fit "
                           f"is a least squares weighted by the camera's noise model (l2) only; set fit.loss=l2, or "
                           f"excitation.kind=sine to fit with {cfg.fit.loss}")
 
@@ -854,7 +852,7 @@ def validate_fit_psf(cfg) -> None:
     from torchblur.image.psf_from_still import KINDS as PSF_KINDS
 
     if not isinstance(cfg.fit.psf, str) or cfg.fit.psf not in PSF_KINDS:
-        raise ConfigError(f"fit.psf: expected one of {PSF_KINDS}, got {cfg.fit.psf!r}")
+        raise ConfigError(f"fit.psf: expected one of {PSF_KINDS}, got {excerpt(cfg.fit.psf)}")
     if cfg.fit.psf != "kernel":
         return
     gaussian_only = [why for cond, why in ((cfg.spots.enabled, "many spots (spots.rows > 0: a Gaussian per spot)"),
