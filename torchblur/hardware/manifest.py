@@ -10,6 +10,7 @@ at most :data:`MAX_LINE_BYTES`, JSON nested at most :data:`MAX_JSON_DEPTH` deep)
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import re
@@ -21,7 +22,7 @@ from torchblur.files import read_bounded as _read_bounded
 from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.run_folder import inside
 
-__all__ = ["SCHEMA_VERSION", "MAX_LINE_BYTES", "MAX_JSON_DEPTH", "MAX_META_BYTES", "MAX_MANIFEST_BYTES", "MAX_FRAME_SIDE", "METHODS",
+__all__ = ["SCHEMA_VERSION", "MAX_LINE_BYTES", "MAX_JSON_DEPTH", "MAX_META_BYTES", "MAX_MANIFEST_BYTES", "MAX_FRAME_SIDE", "METHODS", "SETTINGS_KEY", "INTEGRITY_KEY", "settings_digest", "meta_digest",
            "ManifestScan", "check_line", "check_meta", "check_record", "expected_file", "load_json", "read_bounded", "scan_manifest"]
 
 SCHEMA_VERSION = 1
@@ -35,7 +36,29 @@ MAX_AMPLITUDE = 1e6  # command units: far beyond any DAC's range
 METHODS = ("dark", "still", "sine", "pulse", "multisine", "pattern_sine")  # pattern_sine: a DM rig's (torchblur.dm.record)
 _GROUP = re.compile(r"^[A-Za-z0-9_-]{1,40}(/[A-Za-z0-9_-]{1,40}){0,3}$")
 _SHA = re.compile(r"^[0-9a-f]{64}$")
-_SHARED = ("kind", "group_frames", "file", "sha256", "dtype", "input", "freq_hz", "amplitude", "power", "point")
+
+
+SETTINGS_KEY = "settings_sha256"  # every line of a group: the digest of the group's lines (settings_digest)
+INTEGRITY_KEY = "integrity"  # experiment.json: {key: digest} of every key set after creation (a DM run's dm_plan)
+_SHARED = ("kind", "group_frames", "file", "sha256", "dtype", "input", "freq_hz", "amplitude", "power", "point", SETTINGS_KEY)
+_SCHEMA_KEYS = ("schema_version", "torchblur_version", "created", "camera", "status", "sessions", INTEGRITY_KEY)
+
+
+def _digest(value) -> str:
+    return hashlib.sha256(json.dumps(value, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
+def settings_digest(lines: list) -> str:
+    """SHA-256 of a group's manifest ``lines`` (every field but the file's and this digest, in
+    page order, keys sorted): written with the group, checked at every read, so a group whose
+    amplitudes, timing or arguments were edited is refused, not re-fitted."""
+    body = [{k: v for k, v in ln.items() if k not in ("sha256", SETTINGS_KEY)} for ln in sorted(lines, key=lambda ln: ln["page"])]
+    return _digest(body)
+
+
+def meta_digest(value) -> str:
+    """SHA-256 of a value ``experiment.json`` holds beside its schema (a DM run's plan)."""
+    return _digest(value)
 
 
 class _Bad(Exception):
@@ -214,6 +237,11 @@ def _check_group(g: str, gl: list, root: Path, verify: bool) -> None:
             raise _Bad(f"call {ci}: its lines disagree on call_shape, method or args")
         if sorted(ln["index"] for ln in cl) != list(range(size)):
             raise _Bad(f"call {ci}: index: expected 0 .. {size - 1} once each")
+    if not isinstance(first.get(SETTINGS_KEY), str):
+        raise _Bad(f"{SETTINGS_KEY}: missing (recorded by a torchblur before settings digests, or edited): the group's settings "
+                   f"cannot be checked; refused")
+    if settings_digest(gl) != first[SETTINGS_KEY]:
+        raise _Bad(f"{SETTINGS_KEY}: the group's settings (amplitude, timing, arguments, ...) changed after it was recorded; refused")
     f = inside(root, first["file"], "file")
     if f.is_symlink() or not f.is_file():
         raise _Bad(f"file: {first['file']} is missing (or not a regular file)")
@@ -338,3 +366,14 @@ def check_meta(meta, what: str) -> None:
         raise RecordingError(f"{what}: camera.{exc}") from None
     if not isinstance(meta.get("sessions", []), list) or not isinstance(meta.get("status", ""), str):
         raise RecordingError(f"{what}: sessions: expected a list (and status a string)")
+    sums = meta.get(INTEGRITY_KEY, {})
+    if not isinstance(sums, dict):
+        raise RecordingError(f"{what}: {INTEGRITY_KEY}: expected an object of digests")
+    for key in meta:
+        if key in _SCHEMA_KEYS:
+            continue
+        if key not in sums:
+            raise RecordingError(f"{what}: {key}: no digest in {INTEGRITY_KEY} (recorded by a torchblur before metadata digests, "
+                                 f"or edited): it cannot be checked; refused")
+        if sums[key] != meta_digest(meta[key]):
+            raise RecordingError(f"{what}: {key}: changed after it was recorded (its digest differs); refused")

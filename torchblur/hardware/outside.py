@@ -32,7 +32,7 @@ from torchblur.errors import ConfigError
 from torchblur.files import excerpt
 from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.manifest import MAX_FRAME_SIDE, MAX_AMPLITUDE, read_bounded
-from torchblur.hardware.recording import decode_tiff
+from torchblur.hardware.recording import check_distinct_frames, decode_tiff
 from torchblur.hardware.run_folder import inside
 
 __all__ = ["CSV_NAME", "YAML_NAME", "OutsideCamera", "OutsidePoint", "OutsideRecording", "is_outside_recording",
@@ -273,9 +273,14 @@ def _row(cells: dict, line: int) -> dict:
     return row
 
 
-def _grayscale_frames(name: str, series) -> None:
-    """Refuse (RecordingError, naming the file ``name``) a TIFF series that is not grayscale frames ``[N, H, W]`` or ``[H, W]``."""
+def _grayscale_frames(name: str, budget: int, series) -> None:
+    """Refuse (RecordingError, naming the file ``name``) a TIFF series that is not grayscale
+    frames ``[N, H, W]`` or ``[H, W]``, or that holds more than ``budget`` pixels (what is left
+    of :data:`MAX_PIXELS`), from its header, before decoding."""
     s = tuple(series.shape)
+    if math.prod(s) > budget:
+        raise RecordingError(f"{name}: declares {s} pixels; the recording would hold more than {MAX_PIXELS} pixels; refused "
+                             f"before decoding")
     if series.axes.endswith("S"):
         raise RecordingError(f"{name}: colour frames ({series.axes} {s}); expected grayscale frames "
                              f"[N, H, W] or [H, W]")
@@ -287,7 +292,7 @@ def _read_frames(root: Path, rows: list) -> tuple[dict, np.dtype]:
     """``{line: frame [H, W] float64}`` of every row, from the TIFF files it names (each read
     once), and the files' dtype. All frames must share one shape and one dtype."""
 
-    stacks, out, seen = {}, {}, {}
+    stacks, out, seen, seen_px = {}, {}, {}, {}
     shape = dtype = None
     for r in rows:
         where = f"{CSV_NAME} line {r['line']}, column file"
@@ -300,7 +305,8 @@ def _read_frames(root: Path, rows: list) -> tuple[dict, np.dtype]:
             if not path.is_file():
                 raise RecordingError(f"{where}: {excerpt(r['file'])} is not a file in {root}")
             data = read_bounded(path, MAX_TIFF_BYTES, r["file"])
-            arr = decode_tiff(data, r["file"], partial(_grayscale_frames, r["file"]))
+            budget = MAX_PIXELS - sum(a.size for a in stacks.values())
+            arr = decode_tiff(data, r["file"], partial(_grayscale_frames, r["file"], budget))
             arr = arr.reshape((-1,) + arr.shape[-2:])
             if arr.dtype.kind not in "uif":
                 raise RecordingError(f"{r['file']}: pixels of dtype {arr.dtype}; expected integers or floats")
@@ -319,6 +325,7 @@ def _read_frames(root: Path, rows: list) -> tuple[dict, np.dtype]:
         if not np.isfinite(frame).all():
             raise RecordingError(f"{r['file']} page {r['page']} ({CSV_NAME} line {r['line']}): NaN or infinite pixels; refused")
         out[r["line"]] = frame
+        check_distinct_frames(arr[r["page"]][None], [f"{r['file']} page {r['page']} ({CSV_NAME} line {r['line']})"], seen_px)
     return out, dtype
 
 

@@ -17,7 +17,7 @@ from typing import Optional
 from torchblur.errors import ConfigError
 from torchblur.files import excerpt, read_bounded
 
-__all__ = ["IdentifyConfig", "load_config", "estimate_run", "check_limits", "LIMITS", "load_dataclass", "config_to_yaml", "validate", "validate_plant", "validate_camera",
+__all__ = ["IdentifyConfig", "load_config", "estimate_run", "check_limits", "check_dm_bounds", "dm_size_bounds", "LIMITS", "load_dataclass", "config_to_yaml", "validate", "validate_plant", "validate_camera",
            "validate_spots", "validate_excitation", "validate_dm", "validate_dm_model", "SpotsConfig", "PlantConfig",
            "DMConfig", "WFSConfig", "DMPlanConfig", "DM_PLAN_KINDS",
            "DEFAULT_PLANT", "RIG_KINDS", "EXCITATION_KINDS"]
@@ -895,6 +895,73 @@ def calibration_frames(cfg: IdentifyConfig, *, n_dark: int, n_still: int) -> int
     return int(n_dark) + SATURATION_STEPS + int(n_still) + n_pulse
 
 
+# A DM run's geometry matrix evaluates every actuator's influence at oversample^2 points of every
+# subaperture; bounded by dm.n_across^2 x wfs.n_across^2 x wfs.oversample^2 evaluations (closed form,
+# nothing computed). 700 actuators on 40 x 40 subapertures (1.5e9 by the bound) took 80 s here.
+GEOMETRY_EVALUATIONS = 4e9
+_DM_DEFAULTS = {"dm.n_across": 8.0, "wfs.n_across": 10.0, "wfs.pitch_px": 16.0, "wfs.oversample": 32.0}
+
+
+def _largest(cfg: IdentifyConfig, keys) -> str:
+    """The key of ``keys`` (of :data:`_DM_DEFAULTS`) furthest above its usual value."""
+    values = {"dm.n_across": cfg.dm.n_across, "wfs.n_across": cfg.wfs.n_across, "wfs.pitch_px": cfg.wfs.pitch_px,
+              "wfs.oversample": cfg.wfs.oversample}
+    return max(keys, key=lambda k: float(values[k]) / _DM_DEFAULTS[k])
+
+
+def dm_size_bounds(cfg: IdentifyConfig) -> dict:
+    """Closed-form bounds of a DM run's size from counts alone (no geometry, no plan; instant):
+    ``frame_side`` px (``ceil(wfs.n_across * wfs.pitch_px)``), ``frames`` (the fewest sweep frames
+    any plan takes: one pattern x frequencies x exposures x ``dm_plan.n_repeats``, or more than
+    half of ``dm_plan.budget_frames``), ``memory_bytes`` and ``disk_bytes`` of those frames (as
+    :func:`estimate_run` counts them) and ``geometry`` (the most influence evaluations of the
+    geometry matrix: ``dm.n_across^2 wfs.n_across^2 wfs.oversample^2``), each with the ``key``
+    that drives it."""
+    s, w, p = cfg.sweep, cfg.wfs, cfg.dm_plan
+    side = math.ceil(float(w.n_across) * float(w.pitch_px))
+    n_freq = len(s.freq_hz) if s.freq_hz is not None else int(s.n)
+    per_pattern = n_freq * len(s.exposures)
+    if p.n_repeats is not None:
+        frames, frames_key = per_pattern * int(p.n_repeats), "dm_plan.n_repeats"
+    else:
+        frames, frames_key = (int(p.budget_frames) + 1) // 2, "dm_plan.budget_frames"
+    if per_pattern > frames:  # the sweep's own count dominates
+        frames_key = "sweep.freq_hz" if s.freq_hz is not None else "sweep.n"
+    pixels = side * side
+    return {"frame_side": side, "frame_key": _largest(cfg, ("wfs.n_across", "wfs.pitch_px")), "frames": frames,
+            "frames_key": frames_key, "memory_bytes": 3 * 8 * frames * pixels, "disk_bytes": 2 * frames * pixels,
+            "geometry": float(cfg.dm.n_across) ** 2 * float(w.n_across) ** 2 * float(w.oversample) ** 2,
+            "geometry_key": _largest(cfg, ("dm.n_across", "wfs.n_across", "wfs.oversample"))}
+
+
+def check_dm_bounds(cfg: IdentifyConfig) -> dict:
+    """Refuse a DM run that :func:`dm_size_bounds` already shows beyond :data:`LIMITS` (or
+    whose geometry would take more than :data:`GEOMETRY_EVALUATIONS`), before the geometry and
+    the plan are computed; returns the bounds.
+
+    Raises:
+        ConfigError: starting with the key that makes the run large.
+    """
+    b = dm_size_bounds(cfg)
+    tail = "refused before any work (--force to go on)"
+    if b["frame_side"] > 65536 or b["frame_side"] ** 2 > 2**28:
+        raise ConfigError(f"{b['frame_key']}: a {b['frame_side']} x {b['frame_side']} px sensor frame (wfs.n_across x "
+                          f"wfs.pitch_px) is more than any camera delivers (2^28 pixels); {tail}")
+    if b["frames"] > LIMITS["frames"]:
+        raise ConfigError(f"{b['frames_key']}: the run is too large (at least {b['frames']:,} sweep frames; limit "
+                          f"{LIMITS['frames']:,}); {tail}")
+    for k in ("memory_bytes", "disk_bytes"):
+        if b[k] > LIMITS[k]:
+            raise ConfigError(f"{b['frame_key']}: the run is too large (at least {b['frames']:,} frames of "
+                              f"{b['frame_side']} x {b['frame_side']} px: {_size(b[k])} of {k.split('_')[0]}; limit "
+                              f"{_size(LIMITS[k])}); {tail}")
+    if b["geometry"] > GEOMETRY_EVALUATIONS:
+        raise ConfigError(f"{b['geometry_key']}: the mirror's geometry matrix is too large to compute (up to {b['geometry']:.3g} "
+                          f"influence evaluations: dm.n_across^2 x wfs.n_across^2 x wfs.oversample^2; limit "
+                          f"{GEOMETRY_EVALUATIONS:.3g}); {tail}")
+    return b
+
+
 def _estimate_dm(cfg: IdentifyConfig) -> dict:
     """:func:`estimate_run` of a DM run (``dm.n_across`` > 0): the plan's sweep frames
     (:func:`torchblur.dm.budget.dm_sweep_size`) and the DM calibration's, on the sensor's frame."""
@@ -956,6 +1023,8 @@ def check_limits(cfg: IdentifyConfig) -> dict:
     Raises:
         ConfigError: starting with the key that makes the run large, naming the estimate.
     """
+    if cfg.dm.enabled:
+        check_dm_bounds(cfg)  # closed form, before the geometry and the plan that estimate_run computes
     est = estimate_run(cfg)
     s, c = cfg.sweep, cfg.camera
     bench = f"{est['bench_s'] / 3600:.3g} h" if math.isfinite(est["bench_s"]) else "not estimated (too many frames)"
@@ -969,6 +1038,9 @@ def check_limits(cfg: IdentifyConfig) -> dict:
         drivers = drivers or {"sweep.freq_hz" if s.freq_hz is not None else "sweep.n": n_freq,
                               "sweep.images_per_point": int(s.images_per_point), "sweep.exposures": len(s.exposures)}
         key = max(drivers, key=drivers.get)
+        if cfg.dm.enabled:  # the sensor's frame and the plan's frames, not camera.* or sweep.images_per_point
+            b = dm_size_bounds(cfg)
+            key = b["frame_key"] if over == ["memory_bytes"] or over == ["disk_bytes"] else b["frames_key"]
         shown = {"frames": f"{LIMITS['frames']:,} frames", "memory_bytes": f"memory {_size(LIMITS['memory_bytes'])}",
                  "disk_bytes": f"disk {_size(LIMITS['disk_bytes'])}", "bench_s": f"bench time {LIMITS['bench_s'] / 3600:g} h"}
         limits = ", ".join(shown[k] for k in over)
