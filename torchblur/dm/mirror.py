@@ -42,7 +42,7 @@ from torchblur.files import excerpt, read_bounded
 __all__ = ["DeformableMirror", "actuator_grid", "influence", "influence_gradient", "influence_width", "read_actuator_table"]
 
 TABLE_COLUMNS = ("actuator", "mode_hz", "damping", "gain", "delay_s")
-_TABLE_MAX_BYTES = 1 << 20
+TABLE_MAX_BYTES = 1 << 20  #: an actuator table's largest size (bytes)
 
 
 def actuator_grid(n_across: int) -> np.ndarray:
@@ -77,13 +77,17 @@ def influence_gradient(points, actuator_xy, coupling: float) -> np.ndarray:
     return -d / (w * w) * phi[..., None]
 
 
+TABLE_HIGH = {"mode_hz": 1e7, "damping": 1e3, "gain": 1e6, "delay_s": 1.0}  #: the largest value of each column a table may give
+
+
 def _table_number(text: str, row: int, column: str, path: str, *, low: float, strict: bool) -> float:
     try:
         v = float(text)
     except ValueError:
         raise ConfigError(f"dm.actuator_table: {path} row {row}, column {column}: expected a number, got {excerpt(text)}") from None
-    if not math.isfinite(v) or v < low or (strict and v == low):
-        what = f"> {low:g}" if strict else f">= {low:g}"
+    high = TABLE_HIGH[column]
+    if not math.isfinite(v) or v < low or (strict and v == low) or v > high:
+        what = (f"> {low:g}" if strict else f">= {low:g}") + f" and <= {high:g}"
         raise ConfigError(f"dm.actuator_table: {path} row {row}, column {column}: expected a finite number {what}, got {excerpt(text)}")
     return v
 
@@ -100,7 +104,7 @@ def read_actuator_table(path, n_actuators: int) -> dict[int, tuple[float, float,
         ConfigError: naming ``dm.actuator_table``, the file, and the row and column at fault.
     """
     path = os.fspath(path)
-    data = read_bounded(path, _TABLE_MAX_BYTES, f"dm.actuator_table: {path}", error=ConfigError)  # the opening rule
+    data = read_bounded(path, TABLE_MAX_BYTES, f"dm.actuator_table: {path}", error=ConfigError)  # the opening rule
     try:
         rows = list(csv.reader(io.StringIO(data.decode("utf-8"), newline="")))
     except UnicodeDecodeError as exc:

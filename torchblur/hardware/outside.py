@@ -34,6 +34,7 @@ from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.manifest import MAX_FRAME_SIDE, MAX_AMPLITUDE, read_bounded
 from torchblur.hardware.recording import check_distinct_frames, decode_tiff
 from torchblur.hardware.run_folder import inside
+from torchblur.identify.config import whole_periods
 
 __all__ = ["CSV_NAME", "YAML_NAME", "OutsideCamera", "OutsidePoint", "OutsideRecording", "is_outside_recording",
            "read_outside_recording"]
@@ -47,6 +48,9 @@ MAX_PIXELS = 2 ** 31  # all frames together: 16 GiB as float64
 MAX_FREQ_HZ = 1e7
 MAX_EXPOSURE_S = 1e3
 KINDS = ("dark", "still", "sweep")
+#: recording.yaml's largest magnitudes (beyond them a value is a typo, and its square overflows)
+CAMERA_HIGH = {"gain_e_per_adu": 1e6, "read_noise_e": 1e6, "saturation_adu": 1e12, "trigger_delay_s": MAX_EXPOSURE_S,
+               "latency_s": MAX_EXPOSURE_S, "latency_std_s": MAX_EXPOSURE_S, "jitter_s": MAX_EXPOSURE_S}
 REQUIRED = ("file", "kind")
 OPTIONAL = ("page", "freq_hz", "exposure_s", "window_start_s", "trigger_phase_rad", "amplitude", "power", "repeat", "note")
 
@@ -182,6 +186,8 @@ def _read_camera(root: Path) -> OutsideCamera:
             raise RecordingError(f"{YAML_NAME}: {key}: expected a finite number, got {excerpt(v)}")
         if key in ("gain_e_per_adu",) and v <= 0 or key in ("read_noise_e", "latency_std_s", "jitter_s") and v < 0:
             raise RecordingError(f"{YAML_NAME}: {key}: expected a number {'> 0' if key == 'gain_e_per_adu' else '>= 0'}, got {excerpt(v)}")
+        if abs(v) > CAMERA_HIGH[key]:
+            raise RecordingError(f"{YAML_NAME}: {key}: expected a magnitude of at most {CAMERA_HIGH[key]:g}, got {excerpt(v)}")
     if not isinstance(cam.input_unit, str) or len(cam.input_unit) > 40:
         raise RecordingError(f"{YAML_NAME}: input_unit: expected a string of at most 40 characters, got {excerpt(cam.input_unit)}")
     return cam
@@ -267,6 +273,9 @@ def _row(cells: dict, line: int) -> dict:
         for col in ("freq_hz", "exposure_s", "amplitude"):
             if row[col] is None:
                 raise RecordingError(f"{CSV_NAME} line {line}, column {col}: required for a sweep frame")
+        if whole_periods(row["exposure_s"] * row["freq_hz"]):
+            raise RecordingError(f"{CSV_NAME} line {line}, column exposure_s: {row['exposure_s']:g} s is a whole number of periods of "
+                                 f"{row['freq_hz']:g} Hz: such a frame does not depend on the phase; refused")
         if (row["window_start_s"] is None) == (row["trigger_phase_rad"] is None):
             raise RecordingError(f"{CSV_NAME} line {line}, columns window_start_s / trigger_phase_rad: a sweep frame needs exactly one "
                                  f"of them")

@@ -719,6 +719,11 @@ def validate_excitation(x: ExcitationConfig) -> None:
         raise ConfigError(f"excitation.snap_tol: expected a value in (0, 0.5), got {x.snap_tol}")
 
 
+def whole_periods(periods: float) -> bool:
+    """Whether an exposure of ``periods`` periods (> 0) is a whole number of them (to 1e-9)."""
+    return periods >= 1 - 1e-9 and abs(periods - round(periods)) <= 1e-9 * max(1.0, periods)
+
+
 def validate_sweep(s: SweepConfig) -> None:
     """Check the ``sweep`` section; raise :class:`ConfigError` naming the key."""
     if s.freq_hz is not None:
@@ -736,6 +741,9 @@ def validate_sweep(s: SweepConfig) -> None:
         raise ConfigError(f"sweep.exposures: expected a list of 1 to 16 fractions of the period, got {_short(s.exposures)}")
     for i, e in enumerate(s.exposures):
         _num(e, f"sweep.exposures[{i}]", positive=True)
+        if whole_periods(e):
+            raise ConfigError(f"sweep.exposures[{i}]: {e:g} is a whole number of periods: such an image does not depend on the "
+                              f"phase (PHYSICS.md: the moments' start is undefined there); use a fraction such as 0.3 or 0.8")
     _num(s.trigger_phase_rad, "sweep.trigger_phase_rad")
     _num(s.images_per_point, "sweep.images_per_point", integer=True, low=1)
     if s.settle_s is not None:
