@@ -26,7 +26,7 @@ from pathlib import Path, PurePosixPath
 
 from torchblur.errors import ParameterError
 
-__all__ = ["BLOCK_BYTES", "EXCERPT_CHARS", "excerpt", "open_regular", "read_bounded", "resolve_inside", "sha256_bounded"]
+__all__ = ["BLOCK_BYTES", "EXCERPT_CHARS", "excerpt", "key_excerpt", "open_regular", "read_bounded", "resolve_inside", "sha256_bounded"]
 
 BLOCK_BYTES = 1 << 20
 EXCERPT_CHARS = 40
@@ -45,6 +45,15 @@ def excerpt(value, limit: int = EXCERPT_CHARS) -> str:
         return repr(clean) + ("..." if len(value) > limit else "")
     r = repr(value)
     return r if len(r) <= limit else r[:limit] + "..."
+
+
+def key_excerpt(key) -> str:
+    """An untrusted key for an error message: as it is when it looks like a config key (at most
+    60 characters of letters, digits, ``_.-[]``), else its :func:`excerpt`."""
+    k = str(key)
+    if len(k) <= 60 and all(c.isascii() and (c.isalnum() or c in "_.-[]") for c in k):
+        return k
+    return excerpt(k)
 
 
 def resolve_inside(root, rel, what: str, *, error: type[Exception] = ParameterError) -> Path:

@@ -297,7 +297,7 @@ class Experiment:
             raise RecordingError(f"{path}: already holds a recording; resume it with torchblur identify --resume, "
                                  f"or choose another --out")
         meta = {"schema_version": SCHEMA_VERSION, "torchblur_version": _version(), "created": _now(), "camera": camera.to_dict(),
-                "status": "running", "sessions": []}
+                "status": "running", "sessions": [], INTEGRITY_KEY: {CONFIG_KEY: hashlib.sha256(config_yaml.encode()).hexdigest()}}
         atomic_write_bytes(path / "config.yaml", config_yaml.encode())
         (path / "manifest.jsonl").touch()
         exp = cls(path, meta, [], writable=True)
@@ -331,6 +331,7 @@ class Experiment:
             inside(path, name, name)  # none of them a symlink out of the folder
         meta = load_json(read_bounded(mp, MAX_META_BYTES, str(mp)), str(mp))
         check_meta(meta, str(mp))
+        _check_config_digest(path, meta)
         if writable and not os.access(path, os.W_OK | os.X_OK):
             raise RecordingError(f"{path}: not writable, and a resume writes the recording (copy the run elsewhere to "
                                  f"resume it, or re-fit it with torchblur fit)")
@@ -516,6 +517,24 @@ class Experiment:
         if self.writable:
             self.record(key, kind, proxy.calls, labels=labels)
         return out, False
+
+
+CONFIG_KEY = "config.yaml"  # experiment.json's integrity entry for the recorded config
+
+
+def _check_config_digest(path: Path, meta: dict) -> None:
+    """The recorded ``config.yaml`` must have the digest ``experiment.json`` noted at creation.
+
+    Raises:
+        RecordingError: naming ``config.yaml`` (edited, or a recording without the digest).
+    """
+    want = meta.get(INTEGRITY_KEY, {}).get(CONFIG_KEY)
+    if not isinstance(want, str):
+        raise RecordingError(f"{path / CONFIG_KEY}: no digest in experiment.json's {INTEGRITY_KEY} (recorded by a torchblur before "
+                             f"metadata digests, or edited): the recorded config cannot be checked; refused")
+    got = hashlib.sha256(read_bounded(path / CONFIG_KEY, MAX_META_BYTES, CONFIG_KEY)).hexdigest()
+    if got != want:
+        raise RecordingError(f"{path / CONFIG_KEY}: changed after it was recorded (its digest differs from experiment.json's); refused")
 
 
 def _finite_or_none(v):

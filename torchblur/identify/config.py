@@ -9,13 +9,14 @@ pixels per input unit.
 from __future__ import annotations
 
 import io
+import re
 import math
 import os
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
 from typing import Optional
 
 from torchblur.errors import ConfigError
-from torchblur.files import excerpt, read_bounded
+from torchblur.files import excerpt, key_excerpt, read_bounded
 
 __all__ = ["IdentifyConfig", "load_config", "estimate_run", "check_limits", "check_dm_bounds", "dm_size_bounds", "LIMITS", "load_dataclass", "config_to_yaml", "validate", "validate_plant", "validate_camera",
            "validate_spots", "validate_excitation", "validate_dm", "validate_dm_model", "SpotsConfig", "PlantConfig",
@@ -302,7 +303,7 @@ def _from_dict(cls, data: dict, prefix: str = ""):
     names = {f.name: f for f in fields(cls)}
     for k, v in data.items():
         if k not in names:
-            raise ConfigError(f"{prefix}{k}: unknown config key (known: {', '.join(prefix + n for n in names)})")
+            raise ConfigError(f"{key_excerpt(prefix + str(k))}: unknown config key (known: {', '.join(prefix + n for n in names)})")
         default = names[k].default_factory() if names[k].default_factory is not field().default_factory else None  # type: ignore[misc]
         if is_dataclass(default):
             if not isinstance(v, dict):
@@ -421,13 +422,18 @@ def load_dataclass(cls, path: str | None = None, overrides: list[str] | None = N
         data = OmegaConf.to_container(merged, resolve=True)
     except OmegaConfBaseException as exc:
         key = getattr(exc, "full_key", None) or getattr(exc, "key", None) or "config"
-        raise ConfigError(f"{key}: {str(exc).splitlines()[0]}") from None
+        raise ConfigError(f"{key_excerpt(key)}: {_clip_quotes(str(exc).splitlines()[0])}") from None
     except (RecursionError, ValueError) as exc:
         if isinstance(exc, ConfigError):
             raise
         raise ConfigError(f"config: cannot be read ({type(exc).__name__}: {str(exc).splitlines()[0][:100]})") from None
     _check_sizes(data)
     return _from_dict(cls, data)
+
+
+def _clip_quotes(text: str) -> str:
+    """A third-party message about untrusted content with every quoted part cut to an excerpt."""
+    return re.sub(r"'([^']*)'", lambda m: excerpt(m.group(1)), text)[:300]
 
 
 def config_to_yaml(cfg: IdentifyConfig) -> str:
@@ -456,8 +462,10 @@ def _num(value, key, *, positive=False, nonnegative=False, integer=False, low=No
 
 
 def _short(value) -> str:
-    r = repr(value)
-    return r if len(r) <= 80 else f"{r[:60]}... ({len(value) if hasattr(value, '__len__') else '?'} entries)"
+    if isinstance(value, str):
+        return excerpt(value)
+    r = excerpt(value, 80)
+    return r if not r.endswith("...") else f"{r}({len(value) if hasattr(value, '__len__') else '?'} entries)"
 
 
 def _flag(value, key) -> bool:
@@ -929,12 +937,14 @@ def dm_size_bounds(cfg: IdentifyConfig) -> dict:
     side = math.ceil(float(w.n_across) * float(w.pitch_px))
     n_freq = len(s.freq_hz) if s.freq_hz is not None else int(s.n)
     per_pattern = n_freq * len(s.exposures)
+    sweep_key = "sweep.freq_hz" if s.freq_hz is not None else "sweep.n"
     if p.n_repeats is not None:
-        frames, frames_key = per_pattern * int(p.n_repeats), "dm_plan.n_repeats"
+        frames = per_pattern * int(p.n_repeats)
+        frames_key = "dm_plan.n_repeats" if int(p.n_repeats) >= n_freq else sweep_key
     else:
         frames, frames_key = (int(p.budget_frames) + 1) // 2, "dm_plan.budget_frames"
-    if per_pattern > frames:  # the sweep's own count dominates
-        frames_key = "sweep.freq_hz" if s.freq_hz is not None else "sweep.n"
+        if per_pattern > frames:  # the sweep's own count dominates
+            frames_key = sweep_key
     pixels = side * side
     return {"frame_side": side, "frame_key": _largest(cfg, ("wfs.n_across", "wfs.pitch_px")), "frames": frames,
             "frames_key": frames_key, "memory_bytes": 3 * 8 * frames * pixels, "disk_bytes": 2 * frames * pixels,

@@ -662,7 +662,7 @@ class FrequencyResponse:
             mimo = False
         else:
             raise ParameterError(
-                f"path: header {header}; expected {_CSV_SISO_HEADER} "
+                f"path: header {excerpt(','.join(header))}; expected {_CSV_SISO_HEADER} "
                 f"(SISO) or {_CSV_MIMO_HEADER} (MIMO), optionally followed by extra columns"
             )
         ncol = len(header)
