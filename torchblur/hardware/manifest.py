@@ -22,8 +22,8 @@ from torchblur.files import read_bounded as _read_bounded
 from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.run_folder import inside
 
-__all__ = ["SCHEMA_VERSION", "MAX_LINE_BYTES", "MAX_JSON_DEPTH", "MAX_META_BYTES", "MAX_MANIFEST_BYTES", "MAX_FRAME_SIDE", "METHODS", "SETTINGS_KEY", "INTEGRITY_KEY", "settings_digest", "meta_digest",
-           "ManifestScan", "check_line", "check_meta", "check_record", "expected_file", "load_json", "read_bounded", "scan_manifest"]
+__all__ = ["SCHEMA_VERSION", "MAX_LINE_BYTES", "MAX_JSON_DEPTH", "MAX_META_BYTES", "MAX_MANIFEST_BYTES", "MAX_FRAME_SIDE", "METHODS",
+           "SETTINGS_KEY", "INTEGRITY_KEY", "settings_digest", "meta_digest", "ManifestScan", "check_line", "check_meta", "check_record", "expected_file", "load_json", "read_bounded", "scan_manifest"]
 
 SCHEMA_VERSION = 1
 MAX_LINE_BYTES = 64 * 1024
@@ -36,8 +36,6 @@ MAX_AMPLITUDE = 1e6  # command units: far beyond any DAC's range
 METHODS = ("dark", "still", "sine", "pulse", "multisine", "pattern_sine")  # pattern_sine: a DM rig's (torchblur.dm.record)
 _GROUP = re.compile(r"^[A-Za-z0-9_-]{1,40}(/[A-Za-z0-9_-]{1,40}){0,3}$")
 _SHA = re.compile(r"^[0-9a-f]{64}$")
-
-
 SETTINGS_KEY = "settings_sha256"  # every line of a group: the digest of the group's lines (settings_digest)
 INTEGRITY_KEY = "integrity"  # experiment.json: {key: digest} of every key set after creation (a DM run's dm_plan)
 _SHARED = ("kind", "group_frames", "file", "sha256", "dtype", "input", "freq_hz", "amplitude", "power", "point", SETTINGS_KEY)
