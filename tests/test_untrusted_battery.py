@@ -842,3 +842,24 @@ def test_demultiplex_covariance(case):
         assert judge(out, refuse=False) == [] and out["exc"] is None
     else:
         assert judge(out) == [] and "Y_cov" in str(out["exc"])
+
+
+# ---------------------------------------------------------------------- the opening rule itself
+
+
+def test_read_bounded_stops_at_the_limit_of_a_file_sized_zero():
+    from torchblur.errors import ParameterError
+    from torchblur.files import read_bounded
+
+    assert os.stat("/proc/self/status").st_size == 0  # the kernel sizes it 0: only the bounded read can stop it
+    with pytest.raises(ParameterError, match="larger than the 16 bytes"):
+        read_bounded("/proc/self/status", 16, "status")
+    assert read_bounded("/proc/self/status", 1 << 20, "status").startswith(b"Name:")
+
+
+def test_excerpt_is_short_and_printable():
+    from torchblur.files import excerpt
+
+    e = excerpt("ab\x00\n" + "x" * 100)
+    assert e == repr("ab??" + "x" * (EXCERPT_CHARS - 4)) + "..." and "\n" not in e
+    assert excerpt(1e300) == "1e+300" and excerpt(b"\xff\xfeok") == repr("??ok")
