@@ -235,7 +235,7 @@ OUTSIDE_FILE_CASES = {
 }
 BOMBS = {
     "tiled 60000^2 in 300 B": _bomb(1, 60000, tile=(16, 16)),
-    "200 pages of 8192^2 in 40 kB": _bomb(200, 8192),
+    "200 pages of 8192^2 in 100 kB": _bomb(200, 8192),
     "40000^2 compressed in 300 B": _bomb(1, 40000),
     "40000^2 uncompressed header": _bomb(1, 40000, compression=None),
     "side 70000": _bomb(1, 70000, compression=None),
