@@ -117,7 +117,7 @@ def test_bad_tables_are_refused(tmp_path, text, where):
 
 
 def test_missing_or_huge_table_is_refused(tmp_path):
-    with pytest.raises(ConfigError, match="dm.actuator_table: cannot read"):
+    with pytest.raises(ConfigError, match="dm.actuator_table: .*cannot read"):
         read_actuator_table(tmp_path / "nope.csv", 9)
     p = _write(tmp_path, "actuator,mode_hz,damping,gain,delay_s\n" + "0,1,1,1,0\n" * 200000)
     with pytest.raises(ConfigError, match="bytes"):

@@ -43,7 +43,9 @@ sys.addaudithook(_audit)
 def cap(n, shape=None, start=0, value=100.0):
     shape = shape or (n,)
     N = int(np.prod(shape))
-    frames = (value + torch.arange(N * 30, dtype=torch.float64).reshape(shape + (6, 5)) % 50).round()
+    # each frame its own pixels (a frame repeated byte for byte is refused as a copy): + 7 per frame, + 3 per start
+    ramp = torch.arange(N * 30, dtype=torch.float64) % 50 + 7 * torch.arange(N, dtype=torch.float64).repeat_interleave(30) + 3 * start
+    frames = (value + ramp.reshape(shape + (6, 5))).round()
     return Capture(frames=frames, exposure_s=torch.full(shape, 1e-3, dtype=torch.float64),
                    trigger_offset_s=torch.zeros(shape, dtype=torch.float64),
                    trigger_time_s=torch.arange(N, dtype=torch.float64).reshape(shape) * 0.04,

@@ -48,6 +48,11 @@ def _as_arrays(Y, Y_cov, patterns, support):
         raise ParameterError("patterns: expected finite values, got NaN or Inf")
     if Y_cov.shape != (P, S, F, 2, 2):
         raise ShapeError(f"Y_cov: expected [P, 2M, F, 2, 2] = {(P, S, F, 2, 2)}, got shape {Y_cov.shape}")
+    ok = np.isfinite(Y)  # where a fit failed (Y NaN) its covariance is not used
+    vx, vy, cxy = Y_cov[..., 0, 0][ok], Y_cov[..., 1, 1][ok], Y_cov[..., 0, 1][ok]
+    if np.any((vx < 0) | (vy < 0) | (cxy * cxy > vx * vy * (1 + 1e-9) + 1e-300)):
+        raise ParameterError("Y_cov: expected covariances with variances >= 0 (positive semi-definite) where Y is finite, got "
+                             "a negative or indefinite one")
     N = patterns.shape[1]
     if support is None:
         support = np.ones((S, N), dtype=bool)

@@ -29,6 +29,7 @@ actuators a table lists (:func:`read_actuator_table`) to the table's values.
 from __future__ import annotations
 
 import csv
+import io
 import math
 import os
 from dataclasses import dataclass
@@ -36,11 +37,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from torchblur.errors import ConfigError, ParameterError, ShapeError, check_int, check_real_scalar
+from torchblur.files import excerpt, read_bounded
 
 __all__ = ["DeformableMirror", "actuator_grid", "influence", "influence_gradient", "influence_width", "read_actuator_table"]
 
 TABLE_COLUMNS = ("actuator", "mode_hz", "damping", "gain", "delay_s")
-_TABLE_MAX_BYTES = 1 << 20
+TABLE_MAX_BYTES = 1 << 20  #: an actuator table's largest size (bytes)
 
 
 def actuator_grid(n_across: int) -> np.ndarray:
@@ -75,14 +77,18 @@ def influence_gradient(points, actuator_xy, coupling: float) -> np.ndarray:
     return -d / (w * w) * phi[..., None]
 
 
+TABLE_HIGH = {"mode_hz": 1e7, "damping": 1e3, "gain": 1e6, "delay_s": 1.0}  #: the largest value of each column a table may give
+
+
 def _table_number(text: str, row: int, column: str, path: str, *, low: float, strict: bool) -> float:
     try:
         v = float(text)
     except ValueError:
-        raise ConfigError(f"dm.actuator_table: {path} row {row}, column {column}: expected a number, got {text!r}") from None
-    if not math.isfinite(v) or v < low or (strict and v == low):
-        what = f"> {low:g}" if strict else f">= {low:g}"
-        raise ConfigError(f"dm.actuator_table: {path} row {row}, column {column}: expected a finite number {what}, got {text!r}")
+        raise ConfigError(f"dm.actuator_table: {path} row {row}, column {column}: expected a number, got {excerpt(text)}") from None
+    high = TABLE_HIGH[column]
+    if not math.isfinite(v) or v < low or (strict and v == low) or v > high:
+        what = (f"> {low:g}" if strict else f">= {low:g}") + f" and <= {high:g}"
+        raise ConfigError(f"dm.actuator_table: {path} row {row}, column {column}: expected a finite number {what}, got {excerpt(text)}")
     return v
 
 
@@ -98,17 +104,16 @@ def read_actuator_table(path, n_actuators: int) -> dict[int, tuple[float, float,
         ConfigError: naming ``dm.actuator_table``, the file, and the row and column at fault.
     """
     path = os.fspath(path)
+    data = read_bounded(path, TABLE_MAX_BYTES, f"dm.actuator_table: {path}", error=ConfigError)  # the opening rule
     try:
-        size = os.path.getsize(path)
-        if size > _TABLE_MAX_BYTES:
-            raise ConfigError(f"dm.actuator_table: {path} is {size} bytes, expected at most {_TABLE_MAX_BYTES}")
-        with open(path, newline="", encoding="utf-8") as fh:
-            rows = list(csv.reader(fh))
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise ConfigError(f"dm.actuator_table: cannot read {path}: {exc}") from None
+        rows = list(csv.reader(io.StringIO(data.decode("utf-8"), newline="")))
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"dm.actuator_table: {path}: not UTF-8 text (byte {exc.start})") from None
+    except csv.Error as exc:
+        raise ConfigError(f"dm.actuator_table: {path}: not a CSV table ({type(exc).__name__})") from None
     if not rows or [c.strip() for c in rows[0]] != list(TABLE_COLUMNS):
         got = rows[0] if rows else "an empty file"
-        raise ConfigError(f"dm.actuator_table: {path} row 1: expected the header {','.join(TABLE_COLUMNS)}, got {got!r}")
+        raise ConfigError(f"dm.actuator_table: {path} row 1: expected the header {','.join(TABLE_COLUMNS)}, got {excerpt(got)}")
     table: dict[int, tuple[float, float, float, float]] = {}
     for r, cells in enumerate(rows[1:], start=2):
         if not cells or all(not c.strip() for c in cells):
@@ -117,7 +122,7 @@ def read_actuator_table(path, n_actuators: int) -> dict[int, tuple[float, float,
             raise ConfigError(f"dm.actuator_table: {path} row {r}: expected {len(TABLE_COLUMNS)} cells, got {len(cells)}")
         text = cells[0].strip()
         if not text.lstrip("-").isdigit():
-            raise ConfigError(f"dm.actuator_table: {path} row {r}, column actuator: expected an integer, got {text!r}")
+            raise ConfigError(f"dm.actuator_table: {path} row {r}, column actuator: expected an integer, got {excerpt(text)}")
         j = int(text)
         if not 0 <= j < n_actuators:
             raise ConfigError(f"dm.actuator_table: {path} row {r}, column actuator: expected an actuator in [0, {n_actuators}), got {j}")
@@ -179,7 +184,7 @@ class DeformableMirror:
             arrays[name] = a
         limit = float(self.input_limit)
         if not limit > 0:
-            raise ParameterError(f"input_limit: expected a value > 0, got {self.input_limit!r}")
+            raise ParameterError(f"input_limit: expected a value > 0, got {excerpt(self.input_limit)}")
         object.__setattr__(self, "input_limit", limit)
         for name, a in arrays.items():
             a.setflags(write=False)
@@ -275,7 +280,7 @@ class DeformableMirror:
         ``|command|`` exceeds :attr:`input_limit`."""
         c = np.abs(np.asarray(command, dtype=np.float64))
         if not np.isfinite(c).all():
-            raise ParameterError(f"{name}: expected finite commands, got {command!r}")
+            raise ParameterError(f"{name}: expected finite commands, got {excerpt(command)}")
         if c.size and c.max() > self.input_limit * (1 + 1e-12):
             raise ParameterError(f"{name}: a command of {c.max():g} exceeds the mirror's input_limit = {self.input_limit:g}")
 

@@ -406,7 +406,7 @@ def _report(res: DMResult, elapsed: float) -> str:
     return "\n".join(lines) + "\n"
 
 
-def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False, record=None, rig=None) -> int:
+def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False, record=None, rig=None, base_dir: str | None = None) -> int:
     """``torchblur identify`` for a DM config: run, recorded in ``OUT/experiment/`` (or in
     ``record``: an Experiment to resume, or a read-only one that ``rig``, its
     :class:`~torchblur.hardware.recording.ReplayRig`, re-fits), then write ``OUT/dm/`` and
@@ -425,7 +425,7 @@ def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False, record=None
     (out / "config.yaml").write_text(config_to_yaml(cfg))
     torch.manual_seed(int(cfg.seed))
     t0 = time.perf_counter()
-    res = _identify_on_config_rig(cfg, rig, quiet, record=out / "experiment" if record is None else record)
+    res = _identify_on_config_rig(cfg, rig, quiet, record=out / "experiment" if record is None else record, base_dir=base_dir)
     elapsed = time.perf_counter() - t0
     _write_dm_outputs(res, out)
     v = truth_guard(run_verdict(res, poor_fit_chi2=float(cfg.fit.poor_fit_chi2)), res)
@@ -442,21 +442,21 @@ def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False, record=None
     return v.exit_code
 
 
-def _identify_on_config_rig(cfg, rig, quiet: bool, *, record) -> DMResult:
+def _identify_on_config_rig(cfg, rig, quiet: bool, *, record, base_dir: str | None = None) -> DMResult:
     """:func:`identify_dm` recorded in ``record`` on ``rig`` (a re-fit's ReplayRig) or else the
     config's rig: the simulated DM rig, or with ``rig.kind=serial`` a
     :class:`~torchblur.hardware.serial_dm_rig.SerialDMRig` on ``rig.port`` and ``rig.frames``
     (closed after the run). A HardwareError goes to the caller (the CLI names the recording and
     how to resume it)."""
     if rig is not None or cfg.rig.kind != "serial":
-        return identify_dm(cfg, rig, progress=not quiet, record=record)
+        return identify_dm(cfg, rig, progress=not quiet, record=record, base_dir=base_dir)
     import logging
 
     from torchblur.hardware.serial_dm_rig import open_dm_rig
 
     rig = open_dm_rig(cfg, log=logging.getLogger("torchblur.hardware").info)
     try:
-        res = identify_dm(cfg, rig, progress=not quiet, record=record)
+        res = identify_dm(cfg, rig, progress=not quiet, record=record, base_dir=base_dir)
     finally:
         rig.close()
     st = rig.stats

@@ -35,6 +35,8 @@ from dataclasses import replace
 import numpy as np
 
 from torchblur.dm.plans import Plan, seen_by
+from torchblur.errors import ConfigError
+from torchblur.files import read_bounded
 from torchblur.hardware.errors import HardwareError, RecordingError
 from torchblur.rig.base import DRIVE_RTOL
 
@@ -220,8 +222,7 @@ def table_digest(cfg, base_dir: str | None = None) -> str | None:
         return None
     if base_dir is not None and not os.path.isabs(path):
         path = os.path.join(base_dir, path)
-    with open(path, "rb") as fh:
-        return hashlib.sha256(fh.read(1 << 21)).hexdigest()
+    return hashlib.sha256(read_bounded(path, 1 << 20, f"dm.actuator_table: {path}", error=ConfigError)).hexdigest()
 
 
 def session_info(cfg, rig, table_sha256: str | None = None) -> dict:

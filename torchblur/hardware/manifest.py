@@ -17,11 +17,13 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from torchblur.files import excerpt, sha256_bounded
+from torchblur.files import read_bounded as _read_bounded
 from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.run_folder import inside
 
 __all__ = ["SCHEMA_VERSION", "MAX_LINE_BYTES", "MAX_JSON_DEPTH", "MAX_META_BYTES", "MAX_MANIFEST_BYTES", "MAX_FRAME_SIDE", "METHODS",
-           "ManifestScan", "check_line", "check_meta", "check_record", "expected_file", "load_json", "read_bounded", "scan_manifest"]
+           "SETTINGS_KEY", "INTEGRITY_KEY", "settings_digest", "meta_digest", "ManifestScan", "check_line", "check_meta", "check_record", "expected_file", "load_json", "read_bounded", "scan_manifest"]
 
 SCHEMA_VERSION = 1
 MAX_LINE_BYTES = 64 * 1024
@@ -29,31 +31,46 @@ MAX_JSON_DEPTH = 16
 MAX_META_BYTES = 4 * 1024 * 1024
 MAX_MANIFEST_BYTES = 512 * 1024 * 1024
 MAX_FRAME_SIDE = 65536
+MAX_GROUP_BYTES = 1 << 36  # one group's frame file (64 GiB): bounds the hash's read, never held whole
 MAX_AMPLITUDE = 1e6  # command units: far beyond any DAC's range
 METHODS = ("dark", "still", "sine", "pulse", "multisine", "pattern_sine")  # pattern_sine: a DM rig's (torchblur.dm.record)
 _GROUP = re.compile(r"^[A-Za-z0-9_-]{1,40}(/[A-Za-z0-9_-]{1,40}){0,3}$")
 _SHA = re.compile(r"^[0-9a-f]{64}$")
-_SHARED = ("kind", "group_frames", "file", "sha256", "dtype", "input", "freq_hz", "amplitude", "power", "point")
+SETTINGS_KEY = "settings_sha256"  # every line of a group: the digest of the group's lines (settings_digest)
+INTEGRITY_KEY = "integrity"  # experiment.json: {key: digest} of every key set after creation (a DM run's dm_plan)
+_SHARED = ("kind", "group_frames", "file", "sha256", "dtype", "input", "freq_hz", "amplitude", "power", "point", SETTINGS_KEY)
+_SCHEMA_KEYS = ("schema_version", "torchblur_version", "created", "camera", "status", "sessions", INTEGRITY_KEY)
+
+
+def _digest(value) -> str:
+    return hashlib.sha256(json.dumps(value, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
+def settings_digest(lines: list) -> str:
+    """SHA-256 of a group's manifest ``lines`` (every field but the file's and this digest, in
+    page order, keys sorted): written with the group, checked at every read, so a group whose
+    amplitudes, timing or arguments were edited is refused, not re-fitted."""
+    body = [{k: v for k, v in ln.items() if k not in ("sha256", SETTINGS_KEY)} for ln in sorted(lines, key=lambda ln: ln["page"])]
+    return _digest(body)
+
+
+def meta_digest(value) -> str:
+    """SHA-256 of a value ``experiment.json`` holds beside its schema (a DM run's plan)."""
+    return _digest(value)
 
 
 class _Bad(Exception):
     """One field of one line is invalid (internal: becomes a problem or a RecordingError)."""
 
 
-def read_bounded(path: Path, limit: int, what: str) -> bytes:
-    """The bytes of ``path`` if it is a regular file of at most ``limit`` bytes.
+def read_bounded(path: Path, limit: int, what: str, *, root: Path | None = None) -> bytes:
+    """:func:`torchblur.files.read_bounded` (the opening rule: a regular file, inside ``root``
+    when given, at most ``limit`` bytes) raising :class:`RecordingError`.
 
     Raises:
         RecordingError: naming ``what``.
     """
-    try:
-        size = path.stat().st_size
-        if size > limit:
-            raise RecordingError(f"{what}: {size} bytes, more than the {limit} a recording may hold; refused")
-        with open(path, "rb") as fh:
-            return fh.read(limit + 1)[:limit]
-    except OSError as exc:
-        raise RecordingError(f"{what}: cannot read it ({exc.strerror or exc})") from None
+    return _read_bounded(path, limit, what, root=root, error=RecordingError)
 
 
 def _depth(v, d=0) -> int:
@@ -85,9 +102,9 @@ def load_json(data: bytes, what: str):
 
 def _int(v, key, low=None, high=None):
     if isinstance(v, bool) or not isinstance(v, int):
-        raise _Bad(f"{key}: expected an integer, got {v!r:.60}")
+        raise _Bad(f"{key}: expected an integer, got {excerpt(v)}")
     if (low is not None and v < low) or (high is not None and v > high):
-        raise _Bad(f"{key}: expected an integer in [{low}, {high}], got {v!r}")
+        raise _Bad(f"{key}: expected an integer in [{low}, {high}], got {excerpt(v)}")
     return v
 
 
@@ -95,9 +112,9 @@ def _float(v, key, *, positive=False, nonnegative=False, optional=False):
     if v is None and optional:
         return None
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise _Bad(f"{key}: expected a finite number, got {v!r:.60}")
+        raise _Bad(f"{key}: expected a finite number, got {excerpt(v)}")
     if (positive and v <= 0) or (nonnegative and v < 0):
-        raise _Bad(f"{key}: expected a number {'> 0' if positive else '>= 0'}, got {v!r}")
+        raise _Bad(f"{key}: expected a number {'> 0' if positive else '>= 0'}, got {excerpt(v)}")
     return float(v)
 
 
@@ -105,7 +122,7 @@ def _str(v, key, *, optional=False, limit=200):
     if v is None and optional:
         return None
     if not isinstance(v, str) or len(v) > limit:
-        raise _Bad(f"{key}: expected a string of at most {limit} characters, got {v!r:.60}")
+        raise _Bad(f"{key}: expected a string of at most {limit} characters, got {excerpt(v)}")
     return v
 
 
@@ -124,27 +141,27 @@ def check_line(ln, root: Path) -> str:
         raise _Bad(f"expected a JSON object, got {type(ln).__name__}")
     g = ln.get("group")
     if not isinstance(g, str) or not _GROUP.match(g):
-        raise _Bad(f"group: expected a group key like 'dark' or 'sweep/x/003', got {g!r:.60}")
+        raise _Bad(f"group: expected a group key like 'dark' or 'sweep/x/003', got {excerpt(g)}")
     n = _int(ln.get("group_frames"), "group_frames", 1, 1_000_000)
     _str(ln.get("kind"), "kind", limit=32)
     _int(ln.get("call"), "call", 0, n - 1)
     shape = ln.get("call_shape")
     if not isinstance(shape, list) or len(shape) > 4:
-        raise _Bad(f"call_shape: expected a list of at most 4 sizes, got {shape!r:.60}")
+        raise _Bad(f"call_shape: expected a list of at most 4 sizes, got {excerpt(shape)}")
     size = math.prod(_int(s, "call_shape", 1, n) for s in shape)
     if size > n:
         raise _Bad(f"call_shape: {shape} holds {size} frames, more than the group's {n}")
     _int(ln.get("index"), "index", 0, size - 1)
     if ln.get("method") not in METHODS:
-        raise _Bad(f"method: expected one of {METHODS}, got {ln.get('method')!r:.60}")
+        raise _Bad(f"method: expected one of {METHODS}, got {excerpt(ln.get('method'))}")
     _int(ln.get("page"), "page", 0, n - 1)
     if ln.get("file") != expected_file(g):
-        raise _Bad(f"file: expected {expected_file(g)!r} (the group's frame file), got {ln.get('file')!r:.80}")
+        raise _Bad(f"file: expected {excerpt(expected_file(g))} (the group's frame file), got {excerpt(ln.get('file'))}")
     inside(root, ln["file"], "file")
     if ln.get("dtype") not in ("uint16", "float64"):
-        raise _Bad(f"dtype: expected 'uint16' or 'float64', got {ln.get('dtype')!r:.60}")
+        raise _Bad(f"dtype: expected 'uint16' or 'float64', got {excerpt(ln.get('dtype'))}")
     if not isinstance(ln.get("sha256"), str) or not _SHA.match(ln["sha256"]):
-        raise _Bad(f"sha256: expected 64 lowercase hex digits, got {ln.get('sha256')!r:.80}")
+        raise _Bad(f"sha256: expected 64 lowercase hex digits, got {excerpt(ln.get('sha256'))}")
     _int(ln.get("frame_counter"), "frame_counter", -(2**62), 2**62)
     _float(ln.get("exposure_s"), "exposure_s", positive=True)
     for k in ("timestamp_s", "trigger_time_s", "trigger_offset_s"):
@@ -162,12 +179,12 @@ def check_line(ln, root: Path) -> str:
     if (ln.get("kind") == "sweep" and ln.get("method") == "sine") or ln.get("method") == "pattern_sine":
         _float(ln.get("freq_hz"), "freq_hz", positive=True)
         if not 0 < _float(ln.get("amplitude"), "amplitude", positive=True) <= MAX_AMPLITUDE:
-            raise _Bad(f"amplitude: expected a value in (0, {MAX_AMPLITUDE:g}] command units, got {ln['amplitude']!r}")
+            raise _Bad(f"amplitude: expected a value in (0, {MAX_AMPLITUDE:g}] command units, got {excerpt(ln['amplitude'])}")
         _float(ln.get("power"), "power", nonnegative=True)
         for k in ("amplitude", "freq_hz", "power"):  # the labels repeat the rig call's arguments
             if k in ln["args"] and not (isinstance(ln["args"][k], (int, float)) and not isinstance(ln["args"][k], bool)
                                         and math.isclose(ln["args"][k], ln[k], rel_tol=1e-12)):
-                raise _Bad(f"{k}: {ln[k]!r} differs from the rig call's args.{k} = {ln['args'][k]!r:.40}")
+                raise _Bad(f"{k}: {excerpt(ln[k])} differs from the rig call's args.{k} = {excerpt(ln['args'][k])}")
         if ln.get("point") is not None:
             _int(ln["point"], "point", 0, 1_000_000)
         if ln.get("attempts") is not None:
@@ -179,10 +196,10 @@ def _check_pattern(p) -> None:
     """A DM pattern (``args.pattern`` of a ``pattern_sine`` line): a list of finite numbers, each
     actuator's command per unit amplitude."""
     if not isinstance(p, list) or not 1 <= len(p) <= MAX_FRAME_SIDE:
-        raise _Bad(f"args.pattern: expected a list of 1 to {MAX_FRAME_SIDE} commands, got {p!r:.60}")
+        raise _Bad(f"args.pattern: expected a list of 1 to {MAX_FRAME_SIDE} commands, got {excerpt(p)}")
     for v in p:
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or abs(v) > MAX_AMPLITUDE:
-            raise _Bad(f"args.pattern: expected finite commands within +-{MAX_AMPLITUDE:g}, got {v!r:.40}")
+            raise _Bad(f"args.pattern: expected finite commands within +-{MAX_AMPLITUDE:g}, got {excerpt(v)}")
 
 
 def check_record(record, root: Path) -> str:
@@ -203,7 +220,7 @@ def _check_group(g: str, gl: list, root: Path, verify: bool) -> None:
     for k in _SHARED:
         odd = [ln for ln in gl if ln.get(k) != first.get(k)]
         if odd:
-            raise _Bad(f"{k}: the group's lines disagree ({first.get(k)!r:.40} and {odd[0].get(k)!r:.40})")
+            raise _Bad(f"{k}: the group's lines disagree ({excerpt(first.get(k))} and {excerpt(odd[0].get(k))})")
     n = first["group_frames"]
     if len(gl) != n:
         raise _Bad(f"incomplete: {len(gl)} of its {n} lines")
@@ -218,15 +235,16 @@ def _check_group(g: str, gl: list, root: Path, verify: bool) -> None:
             raise _Bad(f"call {ci}: its lines disagree on call_shape, method or args")
         if sorted(ln["index"] for ln in cl) != list(range(size)):
             raise _Bad(f"call {ci}: index: expected 0 .. {size - 1} once each")
+    if not isinstance(first.get(SETTINGS_KEY), str):
+        raise _Bad(f"{SETTINGS_KEY}: missing (recorded by a torchblur before settings digests, or edited): the group's settings "
+                   f"cannot be checked; refused")
+    if settings_digest(gl) != first[SETTINGS_KEY]:
+        raise _Bad(f"{SETTINGS_KEY}: the group's settings (amplitude, timing, arguments, ...) changed after it was recorded; refused")
     f = inside(root, first["file"], "file")
     if f.is_symlink() or not f.is_file():
         raise _Bad(f"file: {first['file']} is missing (or not a regular file)")
     if verify:
-        h = hashlib.sha256()
-        with open(f, "rb") as fh:
-            for block in iter(lambda: fh.read(1 << 20), b""):
-                h.update(block)
-        if h.hexdigest() != first["sha256"]:
+        if sha256_bounded(f, MAX_GROUP_BYTES, first["file"], error=RecordingError) != first["sha256"]:
             raise _Bad(f"sha256: {first['file']} does not match its recorded hash (changed or corrupted)")
 
 
@@ -327,14 +345,14 @@ def check_meta(meta, what: str) -> None:
     if not isinstance(meta, dict):
         raise RecordingError(f"{what}: expected a JSON object, got {type(meta).__name__}")
     if meta.get("schema_version") != SCHEMA_VERSION or isinstance(meta.get("schema_version"), bool):
-        raise RecordingError(f"{what}: schema_version {meta.get('schema_version')!r:.40}; this torchblur reads {SCHEMA_VERSION}")
+        raise RecordingError(f"{what}: schema_version {excerpt(meta.get('schema_version'))}; this torchblur reads {SCHEMA_VERSION}")
     cam = meta.get("camera")
     try:
         if not isinstance(cam, dict):
-            raise _Bad(f"expected an object, got {cam!r:.60}")
+            raise _Bad(f"expected an object, got {excerpt(cam)}")
         shape = cam.get("frame_shape")
         if not isinstance(shape, list) or len(shape) != 2:
-            raise _Bad(f"frame_shape: expected [H, W], got {shape!r:.60}")
+            raise _Bad(f"frame_shape: expected [H, W], got {excerpt(shape)}")
         h, w = (_int(v, "frame_shape", 1, MAX_FRAME_SIDE) for v in shape)
         if h * w > 2**28:
             raise _Bad(f"frame_shape: {h}x{w} pixels is more than any camera delivers")
@@ -346,3 +364,14 @@ def check_meta(meta, what: str) -> None:
         raise RecordingError(f"{what}: camera.{exc}") from None
     if not isinstance(meta.get("sessions", []), list) or not isinstance(meta.get("status", ""), str):
         raise RecordingError(f"{what}: sessions: expected a list (and status a string)")
+    sums = meta.get(INTEGRITY_KEY, {})
+    if not isinstance(sums, dict):
+        raise RecordingError(f"{what}: {INTEGRITY_KEY}: expected an object of digests")
+    for key in meta:
+        if key in _SCHEMA_KEYS:
+            continue
+        if key not in sums:
+            raise RecordingError(f"{what}: {key}: no digest in {INTEGRITY_KEY} (recorded by a torchblur before metadata digests, "
+                                 f"or edited): it cannot be checked; refused")
+        if sums[key] != meta_digest(meta[key]):
+            raise RecordingError(f"{what}: {key}: changed after it was recorded (its digest differs); refused")

@@ -29,10 +29,12 @@ from typing import Optional
 import numpy as np
 
 from torchblur.errors import ConfigError
+from torchblur.files import excerpt
 from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.manifest import MAX_FRAME_SIDE, MAX_AMPLITUDE, read_bounded
-from torchblur.hardware.recording import decode_tiff
+from torchblur.hardware.recording import check_distinct_frames, decode_tiff
 from torchblur.hardware.run_folder import inside
+from torchblur.identify.config import whole_periods
 
 __all__ = ["CSV_NAME", "YAML_NAME", "OutsideCamera", "OutsidePoint", "OutsideRecording", "is_outside_recording",
            "read_outside_recording"]
@@ -46,6 +48,9 @@ MAX_PIXELS = 2 ** 31  # all frames together: 16 GiB as float64
 MAX_FREQ_HZ = 1e7
 MAX_EXPOSURE_S = 1e3
 KINDS = ("dark", "still", "sweep")
+#: recording.yaml's largest magnitudes (beyond them a value is a typo, and its square overflows)
+CAMERA_HIGH = {"gain_e_per_adu": 1e6, "read_noise_e": 1e6, "saturation_adu": 1e12, "trigger_delay_s": MAX_EXPOSURE_S,
+               "latency_s": MAX_EXPOSURE_S, "latency_std_s": MAX_EXPOSURE_S, "jitter_s": MAX_EXPOSURE_S}
 REQUIRED = ("file", "kind")
 OPTIONAL = ("page", "freq_hz", "exposure_s", "window_start_s", "trigger_phase_rad", "amplitude", "power", "repeat", "note")
 
@@ -141,7 +146,7 @@ def read_outside_recording(path) -> OutsideRecording:
     by_kind = {k: [r for r in rows if r["kind"] == k] for k in KINDS}
     for kind, least in (("dark", 2), ("still", 1), ("sweep", 1)):
         if len(by_kind[kind]) < least:
-            raise RecordingError(f"{CSV_NAME}: {len(by_kind[kind])} row(s) of kind {kind!r}; at least {least} needed")
+            raise RecordingError(f"{CSV_NAME}: {len(by_kind[kind])} row(s) of kind {excerpt(kind)}; at least {least} needed")
     te = {r["exposure_s"] for r in by_kind["still"]}
     if None in te or len(te) != 1:
         line = next(r["line"] for r in by_kind["still"] if r["exposure_s"] is None or r["exposure_s"] != by_kind["still"][0]["exposure_s"])
@@ -178,17 +183,19 @@ def _read_camera(root: Path) -> OutsideCamera:
         if v is None and optional:
             continue
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            raise RecordingError(f"{YAML_NAME}: {key}: expected a finite number, got {v!r:.60}")
+            raise RecordingError(f"{YAML_NAME}: {key}: expected a finite number, got {excerpt(v)}")
         if key in ("gain_e_per_adu",) and v <= 0 or key in ("read_noise_e", "latency_std_s", "jitter_s") and v < 0:
-            raise RecordingError(f"{YAML_NAME}: {key}: expected a number {'> 0' if key == 'gain_e_per_adu' else '>= 0'}, got {v!r}")
+            raise RecordingError(f"{YAML_NAME}: {key}: expected a number {'> 0' if key == 'gain_e_per_adu' else '>= 0'}, got {excerpt(v)}")
+        if abs(v) > CAMERA_HIGH[key]:
+            raise RecordingError(f"{YAML_NAME}: {key}: expected a magnitude of at most {CAMERA_HIGH[key]:g}, got {excerpt(v)}")
     if not isinstance(cam.input_unit, str) or len(cam.input_unit) > 40:
-        raise RecordingError(f"{YAML_NAME}: input_unit: expected a string of at most 40 characters, got {cam.input_unit!r:.60}")
+        raise RecordingError(f"{YAML_NAME}: input_unit: expected a string of at most 40 characters, got {excerpt(cam.input_unit)}")
     return cam
 
 
 def _read_rows(root: Path) -> list:
     """The rows of ``frames.csv``, each a dict of checked values with its ``line``."""
-    data = read_bounded(root / CSV_NAME, MAX_CSV_BYTES, CSV_NAME)
+    data = read_bounded(CSV_NAME, MAX_CSV_BYTES, CSV_NAME, root=root)  # inside the folder: no symlink out
     try:
         text = data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
@@ -224,12 +231,12 @@ def _check_header(header: list) -> None:
         raise RecordingError(f"{CSV_NAME} line 1, column axis: two-input recordings are not supported (one input per recording)")
     for name in header:
         if name not in REQUIRED + OPTIONAL:
-            raise RecordingError(f"{CSV_NAME} line 1, column {name!r}: unknown column (known: {', '.join(REQUIRED + OPTIONAL)})")
+            raise RecordingError(f"{CSV_NAME} line 1, column {excerpt(name)}: unknown column (known: {', '.join(REQUIRED + OPTIONAL)})")
     if len(set(header)) != len(header):
         raise RecordingError(f"{CSV_NAME} line 1: a column is named twice ({header})")
     for name in REQUIRED:
         if name not in header:
-            raise RecordingError(f"{CSV_NAME} line 1: column {name!r} is missing (required: {', '.join(REQUIRED)})")
+            raise RecordingError(f"{CSV_NAME} line 1: column {excerpt(name)} is missing (required: {', '.join(REQUIRED)})")
 
 
 def _number(cell: str, line: int, col: str, *, low=None, high=None, positive=False, integer=False):
@@ -240,12 +247,12 @@ def _number(cell: str, line: int, col: str, *, low=None, high=None, positive=Fal
     try:
         v = int(cell) if integer else float(cell)
     except ValueError:
-        raise RecordingError(f"{where}: expected {'an integer' if integer else 'a number'}, got {cell[:40]!r}") from None
+        raise RecordingError(f"{where}: expected {'an integer' if integer else 'a number'}, got {excerpt(cell[:40])}") from None
     if not math.isfinite(v):
-        raise RecordingError(f"{where}: expected a finite number, got {cell[:40]!r}")
+        raise RecordingError(f"{where}: expected a finite number, got {excerpt(cell[:40])}")
     if (positive and v <= 0) or (low is not None and v < low) or (high is not None and v > high):
         lim = "> 0" if positive else f">= {low}"
-        raise RecordingError(f"{where}: expected a value {lim}{f' and <= {high}' if high is not None else ''}, got {cell[:40]!r}")
+        raise RecordingError(f"{where}: expected a value {lim}{f' and <= {high}' if high is not None else ''}, got {excerpt(cell[:40])}")
     return v
 
 
@@ -253,7 +260,7 @@ def _row(cells: dict, line: int) -> dict:
     """One CSV row checked: what every kind needs, what a sweep row needs."""
     kind = cells["kind"].lower()
     if kind not in KINDS:
-        raise RecordingError(f"{CSV_NAME} line {line}, column kind: expected one of {KINDS}, got {cells['kind'][:40]!r}")
+        raise RecordingError(f"{CSV_NAME} line {line}, column kind: expected one of {KINDS}, got {excerpt(cells['kind'][:40])}")
     if not cells["file"]:
         raise RecordingError(f"{CSV_NAME} line {line}, column file: empty")
     n = lambda col, **kw: _number(cells.get(col), line, col, **kw)  # noqa: E731
@@ -266,15 +273,23 @@ def _row(cells: dict, line: int) -> dict:
         for col in ("freq_hz", "exposure_s", "amplitude"):
             if row[col] is None:
                 raise RecordingError(f"{CSV_NAME} line {line}, column {col}: required for a sweep frame")
+        if whole_periods(row["exposure_s"] * row["freq_hz"]):
+            raise RecordingError(f"{CSV_NAME} line {line}, column exposure_s: {row['exposure_s']:g} s is a whole number of periods of "
+                                 f"{row['freq_hz']:g} Hz: such a frame does not depend on the phase; refused")
         if (row["window_start_s"] is None) == (row["trigger_phase_rad"] is None):
             raise RecordingError(f"{CSV_NAME} line {line}, columns window_start_s / trigger_phase_rad: a sweep frame needs exactly one "
                                  f"of them")
     return row
 
 
-def _grayscale_frames(name: str, series) -> None:
-    """Refuse (RecordingError, naming the file ``name``) a TIFF series that is not grayscale frames ``[N, H, W]`` or ``[H, W]``."""
+def _grayscale_frames(name: str, budget: int, series) -> None:
+    """Refuse (RecordingError, naming the file ``name``) a TIFF series that is not grayscale
+    frames ``[N, H, W]`` or ``[H, W]``, or that holds more than ``budget`` pixels (what is left
+    of :data:`MAX_PIXELS`), from its header, before decoding."""
     s = tuple(series.shape)
+    if math.prod(s) > budget:
+        raise RecordingError(f"{name}: declares {s} pixels; the recording would hold more than {MAX_PIXELS} pixels; refused "
+                             f"before decoding")
     if series.axes.endswith("S"):
         raise RecordingError(f"{name}: colour frames ({series.axes} {s}); expected grayscale frames "
                              f"[N, H, W] or [H, W]")
@@ -286,7 +301,7 @@ def _read_frames(root: Path, rows: list) -> tuple[dict, np.dtype]:
     """``{line: frame [H, W] float64}`` of every row, from the TIFF files it names (each read
     once), and the files' dtype. All frames must share one shape and one dtype."""
 
-    stacks, out, seen = {}, {}, {}
+    stacks, out, seen, seen_px = {}, {}, {}, {}
     shape = dtype = None
     for r in rows:
         where = f"{CSV_NAME} line {r['line']}, column file"
@@ -297,9 +312,10 @@ def _read_frames(root: Path, rows: list) -> tuple[dict, np.dtype]:
         if r["file"] not in stacks:
             path = inside(root, r["file"], where)
             if not path.is_file():
-                raise RecordingError(f"{where}: {r['file']!r} is not a file in {root}")
+                raise RecordingError(f"{where}: {excerpt(r['file'])} is not a file in {root}")
             data = read_bounded(path, MAX_TIFF_BYTES, r["file"])
-            arr = decode_tiff(data, r["file"], partial(_grayscale_frames, r["file"]))
+            budget = MAX_PIXELS - sum(a.size for a in stacks.values())
+            arr = decode_tiff(data, r["file"], partial(_grayscale_frames, r["file"], budget))
             arr = arr.reshape((-1,) + arr.shape[-2:])
             if arr.dtype.kind not in "uif":
                 raise RecordingError(f"{r['file']}: pixels of dtype {arr.dtype}; expected integers or floats")
@@ -318,6 +334,7 @@ def _read_frames(root: Path, rows: list) -> tuple[dict, np.dtype]:
         if not np.isfinite(frame).all():
             raise RecordingError(f"{r['file']} page {r['page']} ({CSV_NAME} line {r['line']}): NaN or infinite pixels; refused")
         out[r["line"]] = frame
+        check_distinct_frames(arr[r["page"]][None], [f"{r['file']} page {r['page']} ({CSV_NAME} line {r['line']})"], seen_px)
     return out, dtype
 
 

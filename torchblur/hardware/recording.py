@@ -30,10 +30,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torchblur.files import excerpt
 from torchblur.hardware.errors import FrameTimeout, RecordingError
 from torchblur.hardware.frames import CameraInfo, Frame, FrameSource
-from torchblur.hardware.manifest import (MAX_MANIFEST_BYTES, MAX_META_BYTES, SCHEMA_VERSION, ManifestScan, check_meta, check_record,
-                                         load_json, read_bounded, scan_manifest)
+from torchblur.hardware.manifest import (MAX_FRAME_SIDE, MAX_MANIFEST_BYTES, MAX_META_BYTES, INTEGRITY_KEY, SCHEMA_VERSION, SETTINGS_KEY, ManifestScan,
+                                         check_meta, check_record, load_json, meta_digest, read_bounded, scan_manifest,
+                                         settings_digest)
 from torchblur.hardware.run_folder import RunLock, inside
 
 __all__ = ["SCHEMA_VERSION", "Experiment", "ReplayFrames", "ReplayRig", "atomic_write_bytes", "camera_info_of"]
@@ -203,8 +205,8 @@ class _ReplayCalls(_RigProperties):
         m, got, cap = self._calls[self._i]
         if m != method or set(got) != set(want) or not all(_same(got[k], want[k]) for k in want):
             diff = [k for k in want if k not in got or not _same(got[k], want[k])]
-            raise RecordingError(f"{self._key}: rig call {self._i} is {method}({', '.join(f'{k}={want[k]!r}' for k in diff)}), "
-                                 f"the recording holds {m}({', '.join(f'{k}={got.get(k)!r}' for k in diff)})")
+            raise RecordingError(f"{self._key}: rig call {self._i} is {method}({', '.join(f'{k}={excerpt(want[k])}' for k in diff)}), "
+                                 f"the recording holds {m}({', '.join(f'{k}={excerpt(got.get(k))}' for k in diff)})")
         self._i += 1
         return cap
 
@@ -269,6 +271,18 @@ class Experiment:
         self._session: int | None = None
         self._lock = None
         self.stats = {"groups_written": 0, "groups_reused": 0, "write_s": 0.0}
+        self._frames_seen: dict = {}  # frame digest -> its name, over the groups read (check_distinct_frames)
+        self._groups_seen: set = set()
+
+    def read_group(self, key: str) -> np.ndarray:
+        """The frames ``[N, H, W]`` of group ``key`` (:func:`read_stack`), refused when one
+        repeats a frame of another group read before (byte for byte: a copy)."""
+        gl = self.groups[key]
+        stack = read_stack(self.path, gl[0], tuple(self.camera_info.frame_shape))
+        if key not in self._groups_seen:
+            check_distinct_frames(stack, [f"{gl[0]['file']} page {p}" for p in range(stack.shape[0])], self._frames_seen)
+            self._groups_seen.add(key)
+        return stack
 
     # ------------------------------------------------------------------ create / open
 
@@ -283,7 +297,7 @@ class Experiment:
             raise RecordingError(f"{path}: already holds a recording; resume it with torchblur identify --resume, "
                                  f"or choose another --out")
         meta = {"schema_version": SCHEMA_VERSION, "torchblur_version": _version(), "created": _now(), "camera": camera.to_dict(),
-                "status": "running", "sessions": []}
+                "status": "running", "sessions": [], INTEGRITY_KEY: {CONFIG_KEY: hashlib.sha256(config_yaml.encode()).hexdigest()}}
         atomic_write_bytes(path / "config.yaml", config_yaml.encode())
         (path / "manifest.jsonl").touch()
         exp = cls(path, meta, [], writable=True)
@@ -317,6 +331,7 @@ class Experiment:
             inside(path, name, name)  # none of them a symlink out of the folder
         meta = load_json(read_bounded(mp, MAX_META_BYTES, str(mp)), str(mp))
         check_meta(meta, str(mp))
+        _check_config_digest(path, meta)
         if writable and not os.access(path, os.W_OK | os.X_OK):
             raise RecordingError(f"{path}: not writable, and a resume writes the recording (copy the run elsewhere to "
                                  f"resume it, or re-fit it with torchblur fit)")
@@ -348,7 +363,7 @@ class Experiment:
 
     @property
     def config_yaml(self) -> str:
-        return (self.path / "config.yaml").read_text()
+        return read_bounded(self.path / "config.yaml", MAX_META_BYTES, "config.yaml").decode("utf-8", "replace")
 
     def _write_meta(self) -> None:
         atomic_write_bytes(self.path / "experiment.json", (json.dumps(self.meta, indent=2) + "\n").encode())
@@ -357,9 +372,11 @@ class Experiment:
         """Store ``value`` (JSON-able) as ``key`` of ``experiment.json``, atomically (e.g. a DM
         run's plan, ``dm_plan``); the schema's own keys are refused."""
         self._need_writable()
-        if key in ("schema_version", "torchblur_version", "created", "camera", "status", "sessions"):
+        if key in ("schema_version", "torchblur_version", "created", "camera", "status", "sessions", INTEGRITY_KEY):
             raise RecordingError(f"{key}: a key of the experiment's schema, not settable")
+        value = json.loads(json.dumps(value))  # as it will be read back
         self.meta[key] = value
+        self.meta.setdefault(INTEGRITY_KEY, {})[key] = meta_digest(value)  # checked at every open (check_meta)
         self._write_meta()
 
     def start_session(self, rig: dict) -> int:
@@ -402,7 +419,7 @@ class Experiment:
 
         gl = self.groups[key]
         H, W = self.camera_info.frame_shape
-        stack = read_stack(self.path, gl[0], (H, W))
+        stack = self.read_group(key)
         calls = []
         by_call: dict[int, list] = {}
         for ln in gl:
@@ -466,14 +483,18 @@ class Experiment:
         stack = np.stack(frames)
         if np.all(stack >= 0) and np.all(stack <= 65535) and np.all(stack == np.round(stack)):
             stack = stack.astype(np.uint16)
+        for ln in lines:
+            ln["dtype"] = stack.dtype.name
+        lines = [json.loads(json.dumps(ln)) for ln in lines]  # as they will be read back
+        settings = settings_digest(lines)  # the group's settings, hashed now and checked at every read
         buf = io.BytesIO()
         tifffile.imwrite(buf, stack, photometric="minisblack", metadata=None,
-                         description=json.dumps({"torchblur_group": key, "kind": kind, "frames": len(lines)}))
+                         description=json.dumps({"torchblur_group": key, "kind": kind, "frames": len(lines), SETTINGS_KEY: settings}))
         data = buf.getvalue()
         sha = hashlib.sha256(data).hexdigest()
         for ln in lines:
-            ln["dtype"] = stack.dtype.name
             ln["sha256"] = sha
+            ln[SETTINGS_KEY] = settings
         atomic_write_bytes(self.path / fname, data)
         blob = b"".join(json.dumps(ln, separators=(",", ":")).encode() + b"\n" for ln in lines)
         with open(self.path / "manifest.jsonl", "ab") as fh:
@@ -498,27 +519,84 @@ class Experiment:
         return out, False
 
 
+CONFIG_KEY = "config.yaml"  # experiment.json's integrity entry for the recorded config
+
+
+def _check_config_digest(path: Path, meta: dict) -> None:
+    """The recorded ``config.yaml`` must have the digest ``experiment.json`` noted at creation.
+
+    Raises:
+        RecordingError: naming ``config.yaml`` (edited, or a recording without the digest).
+    """
+    want = meta.get(INTEGRITY_KEY, {}).get(CONFIG_KEY)
+    if not isinstance(want, str):
+        raise RecordingError(f"{path / CONFIG_KEY}: no digest in experiment.json's {INTEGRITY_KEY} (recorded by a torchblur before "
+                             f"metadata digests, or edited): the recorded config cannot be checked; refused")
+    got = hashlib.sha256(read_bounded(path / CONFIG_KEY, MAX_META_BYTES, CONFIG_KEY)).hexdigest()
+    if got != want:
+        raise RecordingError(f"{path / CONFIG_KEY}: changed after it was recorded (its digest differs from experiment.json's); refused")
+
+
 def _finite_or_none(v):
     return v if v is not None and math.isfinite(v) else None
 
 
-def decode_tiff(data: bytes, name: str, check=None, *, what: str = "TIFF") -> np.ndarray:
-    """The first series of the TIFF bytes ``data`` (an untrusted file's) as an array.
-    ``check(series)`` (a tifffile ``TiffPageSeries``) may refuse it with a RecordingError before
-    its pixels are decoded; any other failure of the decoder is a RecordingError naming the file
-    (``name``: "not a readable ``what``")."""
+MAX_TIFF_RATIO = 1000  #: the most a compressed TIFF's pixels may outweigh its bytes (real frames: 1-10)
+MAX_TIFF_TILE_BYTES = 1 << 28  #: one decoded tile or strip, at most (256 MiB)
+
+
+def tiff_header_limits(tf, series, n_bytes: int, name: str, max_bytes: int | None = None) -> int:
+    """Check what a TIFF declares before any pixel is decoded (tifffile reads only its tags):
+    every page's sides at most :data:`MAX_FRAME_SIDE`, the series' decoded size at most
+    ``max_bytes``, at most :data:`MAX_TIFF_RATIO` times the file's ``n_bytes`` (compressed) or
+    within them (uncompressed), and each tile at most :data:`MAX_TIFF_TILE_BYTES`. Returns the
+    decoded size (bytes).
+
+    Raises:
+        RecordingError: naming the file ``name`` and the limit.
+    """
+    page = series.pages[0] if len(series.pages) and series.pages[0] is not None else tf.pages.first
+    itemsize = np.dtype(series.dtype).itemsize
+    decoded = math.prod(int(v) for v in series.shape) * itemsize
+    sides = (int(page.imagelength), int(page.imagewidth), int(getattr(page, "imagedepth", 1) or 1))
+    if max(sides) > MAX_FRAME_SIDE:
+        raise RecordingError(f"{name}: declares {sides[0]}x{sides[1]} pixel pages, more than {MAX_FRAME_SIDE} a side; refused "
+                             f"before decoding")
+    if max_bytes is not None and decoded > max_bytes:
+        raise RecordingError(f"{name}: declares {tuple(series.shape)} {np.dtype(series.dtype).name} pixels ({decoded} bytes), more "
+                             f"than the {max_bytes} it may hold; refused before decoding")
+    compressed = int(page.compression) != 1
+    if decoded > (MAX_TIFF_RATIO if compressed else 1) * max(n_bytes, 1):
+        why = f"more than {MAX_TIFF_RATIO} times its {n_bytes} bytes" if compressed else f"more than its {n_bytes} uncompressed bytes"
+        raise RecordingError(f"{name}: declares {decoded} bytes of pixels, {why}; refused before decoding")
+    if page.is_tiled:
+        tile = int(page.tilewidth) * int(page.tilelength) * max(int(page.tiledepth or 1), 1) * int(page.samplesperpixel) * itemsize
+    else:
+        tile = int(page.imagewidth) * int(page.rowsperstrip or 1) * int(page.samplesperpixel) * itemsize
+    if tile > MAX_TIFF_TILE_BYTES:
+        raise RecordingError(f"{name}: declares tiles or strips of {tile} bytes, more than {MAX_TIFF_TILE_BYTES}; refused before decoding")
+    return decoded
+
+
+def decode_tiff(data: bytes, name: str, check=None, *, what: str = "TIFF", max_bytes: int | None = None) -> np.ndarray:
+    """The first series of the TIFF bytes ``data`` (an untrusted file's) as an array, after
+    :func:`tiff_header_limits` (``max_bytes``: the most decoded bytes). ``check(series)`` (a
+    tifffile ``TiffPageSeries``) may refuse it with a RecordingError before its pixels are
+    decoded; any other failure of the decoder is a RecordingError naming the file (``name``:
+    "not a readable ``what``")."""
     import tifffile
 
     try:
         with tifffile.TiffFile(io.BytesIO(data)) as tf:
             series = tf.series[0]
+            tiff_header_limits(tf, series, len(data), name, max_bytes)
             if check is not None:
                 check(series)
             return np.asarray(series.asarray())
     except RecordingError:
         raise
     except Exception as exc:  # a third-party decoder on untrusted bytes: any failure is a bad file
-        raise RecordingError(f"{name}: not a readable {what} ({type(exc).__name__}: {str(exc)[:100]})") from None
+        raise RecordingError(f"{name}: not a readable {what} ({type(exc).__name__}: {excerpt(str(exc), 100)})") from None
 
 
 def read_stack(root: Path, line: dict, frame_shape: tuple) -> np.ndarray:
@@ -537,15 +615,61 @@ def read_stack(root: Path, line: dict, frame_shape: tuple) -> np.ndarray:
         raise RecordingError(f"{line['group']}: {name}: its SHA-256 is not the recorded one (the file changed after "
                              f"it was recorded); refused")
     def check(series):
+        _check_description(series, line, name)
         if (math.prod(series.shape) != n * H * W or tuple(series.shape[-2:]) != (H, W)
                 or np.dtype(series.dtype).name != line["dtype"]):
             raise RecordingError(f"{name}: holds {series.shape} {np.dtype(series.dtype).name} values, the manifest "
                                  f"{n} frames of {H}x{W} {line['dtype']}")
 
-    stack = decode_tiff(data, name, check, what="TIFF stack").reshape(n, H, W)
+    stack = decode_tiff(data, name, check, what="TIFF stack", max_bytes=n * H * W * 8).reshape(n, H, W)
     if not np.isfinite(stack).all():
         raise RecordingError(f"{name}: holds NaN or infinite pixels; refused")
+    check_distinct_frames(stack, [f"{name} page {p}" for p in range(n)])
     return stack
+
+
+def _check_description(series, line: dict, name: str) -> None:
+    """The TIFF's description (written with the group) must carry the settings digest of the
+    group's manifest lines: lines edited with their digest recomputed are refused too."""
+    try:
+        desc = json.loads(series.pages[0].description or "{}")
+    except (ValueError, AttributeError, IndexError, TypeError):
+        desc = {}
+    if not isinstance(desc, dict) or desc.get(SETTINGS_KEY) != line.get(SETTINGS_KEY):
+        raise RecordingError(f"{line['group']}: {name}: its description does not carry the group's settings digest (the "
+                             f"manifest's settings were changed after recording); refused")
+
+
+def frame_digest(frame: np.ndarray) -> bytes | None:
+    """A content digest of one frame's pixels (its dtype, shape and bytes), or None for a
+    constant frame (two such are indistinguishable measurements, not copies)."""
+    frame = np.ascontiguousarray(frame)
+    if frame.size == 0 or frame.min() == frame.max():
+        return None
+    h = hashlib.blake2b(digest_size=20)
+    h.update(f"{frame.dtype.str}{frame.shape}".encode())
+    h.update(frame.tobytes())
+    return h.digest()
+
+
+def check_distinct_frames(frames, names: list, seen: dict | None = None) -> dict:
+    """Refuse a frame whose pixels repeat another's byte for byte (a copy counted as an
+    independent repeat makes every std too small): ``frames`` ``[N, H, W]``, ``names`` what to
+    call each in the message, ``seen`` the digests met so far (digest -> name; updated and
+    returned, to check across files).
+
+    Raises:
+        RecordingError: naming both frames.
+    """
+    seen = {} if seen is None else seen
+    for frame, name in zip(frames, names):
+        d = frame_digest(frame)
+        if d is None:
+            continue
+        if d in seen:
+            raise RecordingError(f"{name}: the same pixels as {seen[d]} (a copy, not an independent frame); refused")
+        seen[d] = name
+    return seen
 
 
 def _repair(exp: "Experiment", scan: ManifestScan) -> None:
@@ -619,7 +743,11 @@ class ReplayFrames(FrameSource):
     def _stack(self, record: dict) -> np.ndarray:
         key = (record.get("file"), record.get("sha256"))
         if key not in self._cache:
-            self._cache = {key: read_stack(self.experiment.path, record, tuple(self.info.frame_shape))}
+            if record.get("group") in self.experiment.groups and self.experiment.groups[record["group"]][0].get("sha256") == key[1]:
+                stack = self.experiment.read_group(record["group"])
+            else:
+                stack = read_stack(self.experiment.path, record, tuple(self.info.frame_shape))
+            self._cache = {key: stack}
         return self._cache[key]
 
     def frame(self, record: dict) -> Frame:

@@ -16,8 +16,9 @@ from __future__ import annotations
 import fcntl
 import os
 import threading
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 
+from torchblur.files import resolve_inside
 from torchblur.hardware.errors import RecordingError
 
 __all__ = ["LOCK_NAME", "OUTPUT_NAMES", "RESULT_FILES", "RunLock", "check_out_folder", "inside", "run_root_of"]
@@ -103,17 +104,7 @@ def inside(root: Path, rel, what: str) -> Path:
         RecordingError: ``rel`` is not a string, is absolute, holds ``..`` or a backslash, or
             resolves outside ``root``.
     """
-    if not isinstance(rel, str) or not rel or len(rel) > 300 or "\\" in rel or "\x00" in rel:
-        raise RecordingError(f"{what}: expected a relative path inside the run folder, got {rel!r}")
-    p = PurePosixPath(rel)
-    if p.is_absolute() or ".." in p.parts:
-        raise RecordingError(f"{what}: {rel!r} leaves the run folder (absolute or '..'); refused")
-    full = root / rel
-    real_root = os.path.realpath(root)
-    real = os.path.realpath(full)
-    if os.path.commonpath([real_root, real]) != real_root:
-        raise RecordingError(f"{what}: {rel!r} resolves outside the run folder ({real}); refused")
-    return full
+    return resolve_inside(root, rel, what, error=RecordingError)
 
 
 def run_root_of(path: Path) -> Path | None:

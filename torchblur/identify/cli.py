@@ -251,10 +251,44 @@ def _run_dm(cfg, out: Path, args, *, record=None, root: Path | None = None, rig=
     from torchblur.dm.pipeline import run_cli as run_dm
     from torchblur.hardware.errors import HardwareError
 
+    cfg, base_dir = _recorded_table(cfg, out if record is None else (out if root is None else root), new=record is None)
     try:
-        return run_dm(cfg, out, quiet=args.quiet, as_json=args.json, record=record, rig=rig)
+        return run_dm(cfg, out, quiet=args.quiet, as_json=args.json, record=record, rig=rig, base_dir=base_dir)
     except (KeyboardInterrupt, HardwareError) as exc:
         return _stopped(exc, out / "experiment" if record is None else record.path, out if root is None else root, cfg)
+
+
+TABLE_COPY = "experiment/actuator_table.csv"  # a DM run's own copy of its dm.actuator_table
+
+
+def _recorded_table(cfg, root: Path, *, new: bool):
+    """``(cfg, base_dir)`` for a DM run's ``dm.actuator_table``: a new run copies the user's file
+    (read under the opening rule) into its recording as :data:`TABLE_COPY` and names that, so a
+    recording never names a file outside itself; a resumed or re-fitted one (its config is the
+    recording's, untrusted) must name a file inside its run folder ``root``.
+
+    Raises:
+        RecordingError: naming ``dm.actuator_table`` (a recorded path outside the run folder).
+        ConfigError: the user's table cannot be read (not a regular file, too large).
+    """
+    import dataclasses
+
+    from torchblur.dm.mirror import TABLE_MAX_BYTES
+    from torchblur.errors import ConfigError
+    from torchblur.files import read_bounded, resolve_inside
+    from torchblur.hardware.errors import RecordingError
+    from torchblur.hardware.recording import atomic_write_bytes
+
+    path = cfg.dm.actuator_table
+    if not path:
+        return cfg, None
+    if not new:
+        resolve_inside(root, path, "dm.actuator_table (in the recorded config.yaml)", error=RecordingError)
+        return cfg, str(root)
+    data = read_bounded(path, TABLE_MAX_BYTES, f"dm.actuator_table: {path}", error=ConfigError)
+    (root / "experiment").mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(root / TABLE_COPY, data)
+    return dataclasses.replace(cfg, dm=dataclasses.replace(cfg.dm, actuator_table=TABLE_COPY)), str(root)
 
 
 def _source(exp, args) -> str:
@@ -294,7 +328,7 @@ def _fit(args) -> int:
         check_refit_config(recorded, cfg)
         out.mkdir(parents=True, exist_ok=True)
         (out / "source.json").write_text(_source(exp, args))
-        return _run_dm(cfg, out, args, record=exp, rig=ReplayRig(exp))
+        return _run_dm(cfg, out, args, record=exp, root=root, rig=ReplayRig(exp))
     check_resume_config(recorded, cfg, allowed=("fit", "model", "report"))
     out.mkdir(parents=True, exist_ok=True)
     stamp = f"torchblur {tb.__version__}, seed {cfg.seed}, re-fit of {exp.path}"

@@ -8,14 +8,17 @@ pixels per input unit.
 """
 from __future__ import annotations
 
+import io
+import re
 import math
 import os
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
 from typing import Optional
 
 from torchblur.errors import ConfigError
+from torchblur.files import excerpt, key_excerpt, read_bounded
 
-__all__ = ["IdentifyConfig", "load_config", "estimate_run", "check_limits", "LIMITS", "load_dataclass", "config_to_yaml", "validate", "validate_plant", "validate_camera",
+__all__ = ["IdentifyConfig", "load_config", "estimate_run", "check_limits", "check_dm_bounds", "dm_size_bounds", "LIMITS", "load_dataclass", "config_to_yaml", "validate", "validate_plant", "validate_camera",
            "validate_spots", "validate_excitation", "validate_dm", "validate_dm_model", "SpotsConfig", "PlantConfig",
            "DMConfig", "WFSConfig", "DMPlanConfig", "DM_PLAN_KINDS",
            "DEFAULT_PLANT", "RIG_KINDS", "EXCITATION_KINDS"]
@@ -300,11 +303,11 @@ def _from_dict(cls, data: dict, prefix: str = ""):
     names = {f.name: f for f in fields(cls)}
     for k, v in data.items():
         if k not in names:
-            raise ConfigError(f"{prefix}{k}: unknown config key (known: {', '.join(prefix + n for n in names)})")
+            raise ConfigError(f"{key_excerpt(prefix + str(k))}: unknown config key (known: {', '.join(prefix + n for n in names)})")
         default = names[k].default_factory() if names[k].default_factory is not field().default_factory else None  # type: ignore[misc]
         if is_dataclass(default):
             if not isinstance(v, dict):
-                raise ConfigError(f"{prefix}{k}: expected a section (mapping), got {v!r}")
+                raise ConfigError(f"{prefix}{k}: expected a section (mapping), got {excerpt(v)}")
             kwargs[k] = _from_dict(type(default), v, prefix + k + ".")
         elif names[k].type in ("int", "Optional[int]") and isinstance(v, float) and v.is_integer() and abs(v) < 2**53:
             kwargs[k] = int(v)  # 1e3 written for an integer key: the integer it is
@@ -347,15 +350,11 @@ def _load_file(path: str, *, trusted: bool):
     import yaml
     from omegaconf import OmegaConf
 
+    if not os.path.lexists(path):
+        raise ConfigError(f"--config: file not found: {path}")
+    data = read_bounded(path, MAX_CONFIG_BYTES, f"--config {path}", error=ConfigError)  # the opening rule (torchblur.files)
     try:
-        size = os.path.getsize(path)
-        if size > MAX_CONFIG_BYTES:
-            raise ConfigError(f"--config {path}: {size} bytes, more than the {MAX_CONFIG_BYTES} a config may hold")
-        file_cfg = OmegaConf.load(path)
-    except FileNotFoundError:
-        raise ConfigError(f"--config: file not found: {path}") from None
-    except OSError as exc:
-        raise ConfigError(f"--config {path}: cannot read it ({exc.strerror or exc})") from None
+        file_cfg = OmegaConf.load(io.StringIO(data.decode("utf-8")))
     except (yaml.YAMLError, UnicodeDecodeError, RecursionError) as exc:
         raise ConfigError(f"--config {path}: not a usable YAML file ({str(exc).splitlines()[0][:120]})") from None
     if not OmegaConf.is_dict(file_cfg):
@@ -367,7 +366,7 @@ def _load_file(path: str, *, trusted: bool):
 
 def _refuse_interpolation(value, path: str, key: str = "") -> None:
     if isinstance(value, str) and "${" in value:
-        raise ConfigError(f"{key or 'config'}: an interpolation ({value[:60]!r}) in the recorded {path}; a recording's "
+        raise ConfigError(f"{key or 'config'}: an interpolation ({excerpt(value[:60])}) in the recorded {path}; a recording's "
                           f"config is read literally, refused")
     if isinstance(value, dict):
         for k, v in value.items():
@@ -423,13 +422,18 @@ def load_dataclass(cls, path: str | None = None, overrides: list[str] | None = N
         data = OmegaConf.to_container(merged, resolve=True)
     except OmegaConfBaseException as exc:
         key = getattr(exc, "full_key", None) or getattr(exc, "key", None) or "config"
-        raise ConfigError(f"{key}: {str(exc).splitlines()[0]}") from None
+        raise ConfigError(f"{key_excerpt(key)}: {_clip_quotes(str(exc).splitlines()[0])}") from None
     except (RecursionError, ValueError) as exc:
         if isinstance(exc, ConfigError):
             raise
         raise ConfigError(f"config: cannot be read ({type(exc).__name__}: {str(exc).splitlines()[0][:100]})") from None
     _check_sizes(data)
     return _from_dict(cls, data)
+
+
+def _clip_quotes(text: str) -> str:
+    """A third-party message about untrusted content with every quoted part cut to an excerpt."""
+    return re.sub(r"'([^']*)'", lambda m: excerpt(m.group(1)), text)[:300]
 
 
 def config_to_yaml(cfg: IdentifyConfig) -> str:
@@ -440,31 +444,33 @@ def config_to_yaml(cfg: IdentifyConfig) -> str:
 
 def _num(value, key, *, positive=False, nonnegative=False, integer=False, low=None, high=None):
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ConfigError(f"{key}: expected a number, got {value!r}")
+        raise ConfigError(f"{key}: expected a number, got {excerpt(value)}")
     if integer and not isinstance(value, int):
-        raise ConfigError(f"{key}: expected an integer, got {value!r}")
+        raise ConfigError(f"{key}: expected an integer, got {excerpt(value)}")
     v = float(value)
     if not math.isfinite(v):
-        raise ConfigError(f"{key}: expected a finite number, got {value!r}")
+        raise ConfigError(f"{key}: expected a finite number, got {excerpt(value)}")
     if positive and v <= 0:
-        raise ConfigError(f"{key}: expected a value > 0, got {value!r}")
+        raise ConfigError(f"{key}: expected a value > 0, got {excerpt(value)}")
     if nonnegative and v < 0:
-        raise ConfigError(f"{key}: expected a value >= 0, got {value!r}")
+        raise ConfigError(f"{key}: expected a value >= 0, got {excerpt(value)}")
     if low is not None and v < low:
-        raise ConfigError(f"{key}: expected a value >= {low}, got {value!r}")
+        raise ConfigError(f"{key}: expected a value >= {low}, got {excerpt(value)}")
     if high is not None and v > high:
-        raise ConfigError(f"{key}: expected a value <= {high}, got {value!r}")
+        raise ConfigError(f"{key}: expected a value <= {high}, got {excerpt(value)}")
     return v
 
 
 def _short(value) -> str:
-    r = repr(value)
-    return r if len(r) <= 80 else f"{r[:60]}... ({len(value) if hasattr(value, '__len__') else '?'} entries)"
+    if isinstance(value, str):
+        return excerpt(value)
+    r = excerpt(value, 80)
+    return r if not r.endswith("...") else f"{r}({len(value) if hasattr(value, '__len__') else '?'} entries)"
 
 
 def _flag(value, key) -> bool:
     if not isinstance(value, bool):
-        raise ConfigError(f"{key}: expected true or false, got {value!r}")
+        raise ConfigError(f"{key}: expected true or false, got {excerpt(value)}")
     return value
 
 
@@ -477,10 +483,10 @@ def _coeffs(value, key) -> list[float]:
 def _pair(value, key: str, what: str) -> list[float]:
     """A nonzero pair of finite numbers (a direction)."""
     if not isinstance(value, (list, tuple)) or len(value) != 2:
-        raise ConfigError(f"{key}: expected {what}, got {value!r}")
+        raise ConfigError(f"{key}: expected {what}, got {excerpt(value)}")
     v = [_num(x, f"{key}[{i}]") for i, x in enumerate(value)]
     if v == [0.0, 0.0]:
-        raise ConfigError(f"{key}: expected a nonzero direction, got {value!r}")
+        raise ConfigError(f"{key}: expected a nonzero direction, got {excerpt(value)}")
     return v
 
 
@@ -512,7 +518,7 @@ def _check_2x2(value, key: str) -> None:
     for i in range(2):
         for j in range(2):
             if not isinstance(value[i][j], (list, tuple)):
-                raise ConfigError(f"{key}[{i}][{j}]: expected a list of coefficients (highest power first), got {value[i][j]!r}")
+                raise ConfigError(f"{key}[{i}][{j}]: expected a list of coefficients (highest power first), got {excerpt(value[i][j])}")
 
 
 def validate_plant(plant: PlantConfig) -> None:
@@ -528,11 +534,11 @@ def validate_plant(plant: PlantConfig) -> None:
         return
     if direction != [1.0, 0.0]:
         raise ConfigError(f"plant.direction: applies to a one-axis plant (a 2x2 plant's channels hold its directions), "
-                          f"got {plant.direction!r}")
+                          f"got {excerpt(plant.direction)}")
     if not mimo_num:
-        raise ConfigError(f"plant.num: expected 2x2 nested lists like plant.den (a MIMO plant), got {plant.num!r}")
+        raise ConfigError(f"plant.num: expected 2x2 nested lists like plant.den (a MIMO plant), got {excerpt(plant.num)}")
     if not mimo_den:
-        raise ConfigError(f"plant.den: expected 2x2 nested lists like plant.num (a MIMO plant), got {plant.den!r}")
+        raise ConfigError(f"plant.den: expected 2x2 nested lists like plant.num (a MIMO plant), got {excerpt(plant.den)}")
     _check_2x2(plant.num, "plant.num")
     _check_2x2(plant.den, "plant.den")
     for i in range(2):
@@ -541,7 +547,7 @@ def validate_plant(plant: PlantConfig) -> None:
     d = plant.delay_s
     if isinstance(d, (list, tuple)):
         if len(d) != 2 or any(not isinstance(r, (list, tuple)) or len(r) != 2 for r in d):
-            raise ConfigError(f"plant.delay_s: expected a number or 2x2 nested lists, got {d!r}")
+            raise ConfigError(f"plant.delay_s: expected a number or 2x2 nested lists, got {excerpt(d)}")
         for i in range(2):
             for j in range(2):
                 _num(d[i][j], f"plant.delay_s[{i}][{j}]", nonnegative=True)
@@ -558,7 +564,7 @@ def validate_spots(sp: SpotsConfig, camera: CameraConfig | None = None) -> None:
     _num(sp.pitch_px, "spots.pitch_px", positive=True)
     if sp.center_px is not None:
         if not isinstance(sp.center_px, (list, tuple)) or len(sp.center_px) != 2:
-            raise ConfigError(f"spots.center_px: expected null or [x, y] (px), got {sp.center_px!r}")
+            raise ConfigError(f"spots.center_px: expected null or [x, y] (px), got {excerpt(sp.center_px)}")
         for i, v in enumerate(sp.center_px):
             _num(v, f"spots.center_px[{i}]")
     if sp.sigma_px is not None:
@@ -568,7 +574,7 @@ def validate_spots(sp: SpotsConfig, camera: CameraConfig | None = None) -> None:
     _num(sp.gain_variation, "spots.gain_variation", low=-0.99, high=0.99)
     _num(sp.rotation_rad, "spots.rotation_rad")
     if not isinstance(sp.missing, (list, tuple)):
-        raise ConfigError(f"spots.missing: expected a list of grid indices, got {sp.missing!r}")
+        raise ConfigError(f"spots.missing: expected a list of grid indices, got {excerpt(sp.missing)}")
     n = int(sp.rows) * int(sp.cols)
     for i, m in enumerate(sp.missing):
         _num(m, f"spots.missing[{i}]", integer=True, low=0, high=n - 1)
@@ -603,11 +609,11 @@ def validate_dm_model(d: DMConfig, w: WFSConfig) -> None:
     for k in ("dead", "weak"):
         v = getattr(d, k)
         if not isinstance(v, (list, tuple)):
-            raise ConfigError(f"dm.{k}: expected a list of actuator indices, got {v!r}")
+            raise ConfigError(f"dm.{k}: expected a list of actuator indices, got {excerpt(v)}")
         for i, j in enumerate(v):
             _num(j, f"dm.{k}[{i}]", integer=True, low=0)
     if d.actuator_table is not None and (not isinstance(d.actuator_table, str) or not d.actuator_table.strip()):
-        raise ConfigError(f"dm.actuator_table: expected a path to a CSV file or null, got {d.actuator_table!r}")
+        raise ConfigError(f"dm.actuator_table: expected a path to a CSV file or null, got {excerpt(d.actuator_table)}")
     if d.input_limit is not None:
         _num(d.input_limit, "dm.input_limit", positive=True)
     _num(w.n_across, "wfs.n_across", integer=True, low=1, high=128)
@@ -627,7 +633,7 @@ def validate_dm(cfg: IdentifyConfig) -> None:
     if not d.enabled:
         return
     if p.kind not in DM_PLAN_KINDS:
-        raise ConfigError(f"dm_plan.kind: expected one of {DM_PLAN_KINDS}, got {p.kind!r}")
+        raise ConfigError(f"dm_plan.kind: expected one of {DM_PLAN_KINDS}, got {excerpt(p.kind)}")
     if p.budget_frames is None and p.n_repeats is None:
         raise ConfigError("dm_plan.budget_frames: expected a frame budget, or set dm_plan.n_repeats")
     if p.budget_frames is not None:
@@ -663,11 +669,11 @@ def validate_camera(c: CameraConfig) -> None:
 def validate_rig(r: RigConfig) -> None:
     """Check the ``rig`` section; raise :class:`ConfigError` naming the key."""
     if r.kind not in RIG_KINDS:
-        raise ConfigError(f"rig.kind: expected one of {RIG_KINDS}, got {r.kind!r}")
+        raise ConfigError(f"rig.kind: expected one of {RIG_KINDS}, got {excerpt(r.kind)}")
     for k in ("port", "frames"):
         v = getattr(r, k)
         if v is not None and (not isinstance(v, str) or not v.strip()):
-            raise ConfigError(f"rig.{k}: expected a non-empty string, got {v!r}")
+            raise ConfigError(f"rig.{k}: expected a non-empty string, got {excerpt(v)}")
     if r.kind == "serial":
         if r.port is None:
             raise ConfigError("rig.port: required when rig.kind=serial (a device path such as /dev/ttyACM0 or a pyserial "
@@ -693,14 +699,14 @@ def validate_rig(r: RigConfig) -> None:
             try:
                 pylon_url_options(f)
             except ParameterError as exc:
-                raise ConfigError(f"rig.frames: {f!r}: {str(exc).removeprefix('url: ')}") from None
+                raise ConfigError(f"rig.frames: {excerpt(f)}: {str(exc).removeprefix('url: ')}") from None
             ok = True
         else:
             mod, sep, name = f.partition(":")
             ok = bool(sep and mod and name and "/" not in f)
         if not ok:
             raise ConfigError(f"rig.frames: expected tcp://HOST:PORT, pylon://[SERIAL][?trigger=...] or "
-                              f"package.module:ClassName, got {f!r}")
+                              f"package.module:ClassName, got {excerpt(f)}")
     _num(r.timeout_s, "rig.timeout_s", positive=True)
     _num(r.retries, "rig.retries", integer=True, low=0, high=100)
 
@@ -708,7 +714,7 @@ def validate_rig(r: RigConfig) -> None:
 def validate_excitation(x: ExcitationConfig) -> None:
     """Check the multisine keys of the ``excitation`` section; raise :class:`ConfigError` naming the key."""
     if x.kind not in EXCITATION_KINDS:
-        raise ConfigError(f"excitation.kind: expected one of {EXCITATION_KINDS}, got {x.kind!r}")
+        raise ConfigError(f"excitation.kind: expected one of {EXCITATION_KINDS}, got {excerpt(x.kind)}")
     _num(x.tones, "excitation.tones", integer=True, low=1, high=15)  # 15 + the base tone = the protocol's 16
     if x.tone_px is not None:
         _num(x.tone_px, "excitation.tone_px", positive=True)
@@ -721,11 +727,16 @@ def validate_excitation(x: ExcitationConfig) -> None:
         raise ConfigError(f"excitation.snap_tol: expected a value in (0, 0.5), got {x.snap_tol}")
 
 
+def whole_periods(periods: float) -> bool:
+    """Whether an exposure of ``periods`` periods (> 0) is a whole number of them (to 1e-9)."""
+    return periods >= 1 - 1e-9 and abs(periods - round(periods)) <= 1e-9 * max(1.0, periods)
+
+
 def validate_sweep(s: SweepConfig) -> None:
     """Check the ``sweep`` section; raise :class:`ConfigError` naming the key."""
     if s.freq_hz is not None:
         if not isinstance(s.freq_hz, (list, tuple)) or not s.freq_hz:
-            raise ConfigError(f"sweep.freq_hz: expected a non-empty list of frequencies, got {s.freq_hz!r}")
+            raise ConfigError(f"sweep.freq_hz: expected a non-empty list of frequencies, got {excerpt(s.freq_hz)}")
         for i, f in enumerate(s.freq_hz):
             _num(f, f"sweep.freq_hz[{i}]", positive=True)
     else:
@@ -738,6 +749,9 @@ def validate_sweep(s: SweepConfig) -> None:
         raise ConfigError(f"sweep.exposures: expected a list of 1 to 16 fractions of the period, got {_short(s.exposures)}")
     for i, e in enumerate(s.exposures):
         _num(e, f"sweep.exposures[{i}]", positive=True)
+        if whole_periods(e):
+            raise ConfigError(f"sweep.exposures[{i}]: {e:g} is a whole number of periods: such an image does not depend on the "
+                              f"phase (PHYSICS.md: the moments' start is undefined there); use a fraction such as 0.3 or 0.8")
     _num(s.trigger_phase_rad, "sweep.trigger_phase_rad")
     _num(s.images_per_point, "sweep.images_per_point", integer=True, low=1)
     if s.settle_s is not None:
@@ -776,7 +790,7 @@ def validate(cfg: IdentifyConfig) -> None:
 
     if isinstance(cfg.fit.axis, str):
         if cfg.fit.axis not in AXIS_MODES:
-            raise ConfigError(f"fit.axis: expected one of {AXIS_MODES} or a direction [x, y], got {cfg.fit.axis!r}")
+            raise ConfigError(f"fit.axis: expected one of {AXIS_MODES} or a direction [x, y], got {excerpt(cfg.fit.axis)}")
     else:
         _pair(cfg.fit.axis, "fit.axis", f"one of {AXIS_MODES} or a direction [x, y]")
     if cfg.fit.axis != "measure" and (cfg.plant.is_mimo or cfg.spots.enabled):
@@ -784,11 +798,11 @@ def validate(cfg: IdentifyConfig) -> None:
                           f"{'a 2x2 plant' if cfg.plant.is_mimo else 'many spots (spots.rows > 0)'}, which fits both image axes")
     validate_fit_psf(cfg)
     if cfg.fit.optimizer not in OPTIMIZERS:
-        raise ConfigError(f"fit.optimizer: expected one of {OPTIMIZERS}, got {cfg.fit.optimizer!r}")
+        raise ConfigError(f"fit.optimizer: expected one of {OPTIMIZERS}, got {excerpt(cfg.fit.optimizer)}")
     if cfg.fit.loss not in LOSSES:
-        raise ConfigError(f"fit.loss: expected one of {LOSSES}, got {cfg.fit.loss!r}")
+        raise ConfigError(f"fit.loss: expected one of {LOSSES}, got {excerpt(cfg.fit.loss)}")
     if cfg.fit.loss not in LIKELIHOOD_LOSSES:
-        raise ConfigError(f"fit.loss: {cfg.fit.loss!r} is refused for an identification: it is no likelihood of the camera's noise, so its "
+        raise ConfigError(f"fit.loss: {excerpt(cfg.fit.loss)} is refused for an identification: it is no likelihood of the camera's noise, so its "
                           f"fit has no covariance and the response's stds would not hold; use one of {LIKELIHOOD_LOSSES} (l2, the default; "
                           f"l1 to be robust to outlier pixels, at 1.25x the std; poisson, the camera's shot and read noise exactly). "
                           f"fit_sinusoid(..., loss='linf', optimizer='adam' or 'lbfgs') still fits it outside a run")
@@ -797,7 +811,7 @@ def validate(cfg: IdentifyConfig) -> None:
     from torchblur.fit.sinusoid import OUTLIERS
 
     if cfg.fit.outliers not in OUTLIERS:
-        raise ConfigError(f"fit.outliers: expected one of {OUTLIERS}, got {cfg.fit.outliers!r}")
+        raise ConfigError(f"fit.outliers: expected one of {OUTLIERS}, got {excerpt(cfg.fit.outliers)}")
     _num(cfg.fit.outlier_sigma, "fit.outlier_sigma", positive=True)
     _flag(cfg.model.fit_delay, "model.fit_delay")
     for k in ("n_poles", "n_zeros"):
@@ -810,11 +824,11 @@ def validate(cfg: IdentifyConfig) -> None:
     _num(cfg.model.max_order, "model.max_order", integer=True, low=1, high=16)
     for k in ("direct",):
         if not isinstance(getattr(cfg.model, k), bool):
-            raise ConfigError(f"model.{k}: expected true or false, got {getattr(cfg.model, k)!r}")
+            raise ConfigError(f"model.{k}: expected true or false, got {excerpt(getattr(cfg.model, k))}")
     from torchblur.sysid.direct import FORMS
 
     if cfg.model.direct_form not in FORMS:
-        raise ConfigError(f"model.direct_form: expected one of {FORMS}, got {cfg.model.direct_form!r}")
+        raise ConfigError(f"model.direct_form: expected one of {FORMS}, got {excerpt(cfg.model.direct_form)}")
     _num(cfg.model.direct_max_iter, "model.direct_max_iter", integer=True, low=1, high=10000)
     if cfg.excitation.kind == "multisine" and (cfg.plant.is_mimo or cfg.spots.enabled):
         raise ConfigError("excitation.kind: a multisine excitation drives one axis and fits one spot; this run has "
@@ -836,7 +850,7 @@ def validate_loss_for_plan(cfg: IdentifyConfig) -> None:
     (and the direct model) is a weighted least squares only; nothing else of a multisine run
     uses ``fit.loss``, so l1 or poisson would be ignored without a word."""
     if cfg.excitation.kind == "multisine" and cfg.fit.loss != "l2":
-        raise ConfigError(f"fit.loss: {cfg.fit.loss!r} is not applied by the multisine plan (excitation.kind=multisine): its fit "
+        raise ConfigError(f"fit.loss: {excerpt(cfg.fit.loss)} is not applied by the multisine plan (excitation.kind=multisine): its fit "
                           f"is a least squares weighted by the camera's noise model (l2) only; set fit.loss=l2, or "
                           f"excitation.kind=sine to fit with {cfg.fit.loss}")
 
@@ -854,7 +868,7 @@ def validate_fit_psf(cfg) -> None:
     from torchblur.image.psf_from_still import KINDS as PSF_KINDS
 
     if not isinstance(cfg.fit.psf, str) or cfg.fit.psf not in PSF_KINDS:
-        raise ConfigError(f"fit.psf: expected one of {PSF_KINDS}, got {cfg.fit.psf!r}")
+        raise ConfigError(f"fit.psf: expected one of {PSF_KINDS}, got {excerpt(cfg.fit.psf)}")
     if cfg.fit.psf != "kernel":
         return
     gaussian_only = [why for cond, why in ((cfg.spots.enabled, "many spots (spots.rows > 0: a Gaussian per spot)"),
@@ -895,6 +909,75 @@ def calibration_frames(cfg: IdentifyConfig, *, n_dark: int, n_still: int) -> int
     scan = {k: v for k, v in LATENCY_SCAN.items() if k != "repeats"}
     n_pulse = len(latency_scan_times(float(cfg.camera.trigger_delay_s), **scan)) * LATENCY_SCAN["repeats"]
     return int(n_dark) + SATURATION_STEPS + int(n_still) + n_pulse
+
+
+# A DM run's geometry matrix evaluates every actuator's influence at oversample^2 points of every
+# subaperture; bounded by dm.n_across^2 x wfs.n_across^2 x wfs.oversample^2 evaluations (closed form,
+# nothing computed). 700 actuators on 40 x 40 subapertures (1.5e9 by the bound) took 80 s here.
+GEOMETRY_EVALUATIONS = 4e9
+_DM_DEFAULTS = {"dm.n_across": 8.0, "wfs.n_across": 10.0, "wfs.pitch_px": 16.0, "wfs.oversample": 32.0}
+
+
+def _largest(cfg: IdentifyConfig, keys) -> str:
+    """The key of ``keys`` (of :data:`_DM_DEFAULTS`) furthest above its usual value."""
+    values = {"dm.n_across": cfg.dm.n_across, "wfs.n_across": cfg.wfs.n_across, "wfs.pitch_px": cfg.wfs.pitch_px,
+              "wfs.oversample": cfg.wfs.oversample}
+    return max(keys, key=lambda k: float(values[k]) / _DM_DEFAULTS[k])
+
+
+def dm_size_bounds(cfg: IdentifyConfig) -> dict:
+    """Closed-form bounds of a DM run's size from counts alone (no geometry, no plan; instant):
+    ``frame_side`` px (``ceil(wfs.n_across * wfs.pitch_px)``), ``frames`` (the fewest sweep frames
+    any plan takes: one pattern x frequencies x exposures x ``dm_plan.n_repeats``, or more than
+    half of ``dm_plan.budget_frames``), ``memory_bytes`` and ``disk_bytes`` of those frames (as
+    :func:`estimate_run` counts them) and ``geometry`` (the most influence evaluations of the
+    geometry matrix: ``dm.n_across^2 wfs.n_across^2 wfs.oversample^2``), each with the ``key``
+    that drives it."""
+    s, w, p = cfg.sweep, cfg.wfs, cfg.dm_plan
+    side = math.ceil(float(w.n_across) * float(w.pitch_px))
+    n_freq = len(s.freq_hz) if s.freq_hz is not None else int(s.n)
+    per_pattern = n_freq * len(s.exposures)
+    sweep_key = "sweep.freq_hz" if s.freq_hz is not None else "sweep.n"
+    if p.n_repeats is not None:
+        frames = per_pattern * int(p.n_repeats)
+        frames_key = "dm_plan.n_repeats" if int(p.n_repeats) >= n_freq else sweep_key
+    else:
+        frames, frames_key = (int(p.budget_frames) + 1) // 2, "dm_plan.budget_frames"
+        if per_pattern > frames:  # the sweep's own count dominates
+            frames_key = sweep_key
+    pixels = side * side
+    return {"frame_side": side, "frame_key": _largest(cfg, ("wfs.n_across", "wfs.pitch_px")), "frames": frames,
+            "frames_key": frames_key, "memory_bytes": 3 * 8 * frames * pixels, "disk_bytes": 2 * frames * pixels,
+            "geometry": float(cfg.dm.n_across) ** 2 * float(w.n_across) ** 2 * float(w.oversample) ** 2,
+            "geometry_key": _largest(cfg, ("dm.n_across", "wfs.n_across", "wfs.oversample"))}
+
+
+def check_dm_bounds(cfg: IdentifyConfig) -> dict:
+    """Refuse a DM run that :func:`dm_size_bounds` already shows beyond :data:`LIMITS` (or
+    whose geometry would take more than :data:`GEOMETRY_EVALUATIONS`), before the geometry and
+    the plan are computed; returns the bounds.
+
+    Raises:
+        ConfigError: starting with the key that makes the run large.
+    """
+    b = dm_size_bounds(cfg)
+    tail = "refused before any work (--force to go on)"
+    if b["frame_side"] > 65536 or b["frame_side"] ** 2 > 2**28:
+        raise ConfigError(f"{b['frame_key']}: a {b['frame_side']} x {b['frame_side']} px sensor frame (wfs.n_across x "
+                          f"wfs.pitch_px) is more than any camera delivers (2^28 pixels); {tail}")
+    if b["frames"] > LIMITS["frames"]:
+        raise ConfigError(f"{b['frames_key']}: the run is too large (at least {b['frames']:,} sweep frames; limit "
+                          f"{LIMITS['frames']:,}); {tail}")
+    for k in ("memory_bytes", "disk_bytes"):
+        if b[k] > LIMITS[k]:
+            raise ConfigError(f"{b['frame_key']}: the run is too large (at least {b['frames']:,} frames of "
+                              f"{b['frame_side']} x {b['frame_side']} px: {_size(b[k])} of {k.split('_')[0]}; limit "
+                              f"{_size(LIMITS[k])}); {tail}")
+    if b["geometry"] > GEOMETRY_EVALUATIONS:
+        raise ConfigError(f"{b['geometry_key']}: the mirror's geometry matrix is too large to compute (up to {b['geometry']:.3g} "
+                          f"influence evaluations: dm.n_across^2 x wfs.n_across^2 x wfs.oversample^2; limit "
+                          f"{GEOMETRY_EVALUATIONS:.3g}); {tail}")
+    return b
 
 
 def _estimate_dm(cfg: IdentifyConfig) -> dict:
@@ -958,6 +1041,8 @@ def check_limits(cfg: IdentifyConfig) -> dict:
     Raises:
         ConfigError: starting with the key that makes the run large, naming the estimate.
     """
+    if cfg.dm.enabled:
+        check_dm_bounds(cfg)  # closed form, before the geometry and the plan that estimate_run computes
     est = estimate_run(cfg)
     s, c = cfg.sweep, cfg.camera
     bench = f"{est['bench_s'] / 3600:.3g} h" if math.isfinite(est["bench_s"]) else "not estimated (too many frames)"
@@ -971,6 +1056,9 @@ def check_limits(cfg: IdentifyConfig) -> dict:
         drivers = drivers or {"sweep.freq_hz" if s.freq_hz is not None else "sweep.n": n_freq,
                               "sweep.images_per_point": int(s.images_per_point), "sweep.exposures": len(s.exposures)}
         key = max(drivers, key=drivers.get)
+        if cfg.dm.enabled:  # the sensor's frame and the plan's frames, not camera.* or sweep.images_per_point
+            b = dm_size_bounds(cfg)
+            key = b["frame_key"] if over == ["memory_bytes"] or over == ["disk_bytes"] else b["frames_key"]
         shown = {"frames": f"{LIMITS['frames']:,} frames", "memory_bytes": f"memory {_size(LIMITS['memory_bytes'])}",
                  "disk_bytes": f"disk {_size(LIMITS['disk_bytes'])}", "bench_s": f"bench time {LIMITS['bench_s'] / 3600:g} h"}
         limits = ", ".join(shown[k] for k in over)

@@ -48,6 +48,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, TorchblurError
+from torchblur.files import excerpt, read_bounded
 from torchblur.sysid.flags import flag_names, parse_flags
 
 __all__ = ["FrequencyResponse", "control_names"]
@@ -143,7 +144,7 @@ def _check_labels(labels, n: int, name: str, prefix: str) -> tuple[str, ...]:
         if not isinstance(lab, str):
             raise InputTypeError(f"{name}: expected strings, got an entry of type {type(lab).__name__}")
     if len(labels) != n:
-        raise ShapeError(f"{name}: expected {n} labels (one per {prefix!r} channel), got {len(labels)}")
+        raise ShapeError(f"{name}: expected {n} labels (one per {excerpt(prefix)} channel), got {len(labels)}")
     if len(set(labels)) != len(labels):
         raise ParameterError(f"{name}: expected distinct labels, got {list(labels)}")
     return labels
@@ -661,7 +662,7 @@ class FrequencyResponse:
             mimo = False
         else:
             raise ParameterError(
-                f"path: header {header}; expected {_CSV_SISO_HEADER} "
+                f"path: header {excerpt(','.join(header))}; expected {_CSV_SISO_HEADER} "
                 f"(SISO) or {_CSV_MIMO_HEADER} (MIMO), optionally followed by extra columns"
             )
         ncol = len(header)
@@ -700,13 +701,13 @@ class FrequencyResponse:
         for o in outs:
             for i in ins:
                 if (o, i) not in channels:
-                    raise ParameterError(f"path: missing rows for output {o!r}, input {i!r}")
+                    raise ParameterError(f"path: missing rows for output {excerpt(o)}, input {excerpt(i)}")
                 f = np.array([v[0] for v in channels[(o, i)]])
                 if ref is None:
                     ref, n_f = f, f.size
                 elif f.size != n_f or not np.array_equal(f, ref):
                     raise ParameterError(
-                        f"path: output {o!r}, input {i!r} has frequencies that differ from "
+                        f"path: output {excerpt(o)}, input {excerpt(i)} has frequencies that differ from "
                         f"those of the first channel"
                     )
         data = np.array([[channels[(o, i)] for i in ins] for o in outs], dtype=np.float64)  # [O, I, F, 7]
@@ -761,11 +762,11 @@ class FrequencyResponse:
         if not isinstance(doc, dict):
             raise InputTypeError(f"doc: expected a JSON object, got {type(doc).__name__}")
         if doc.get("schema") != _SCHEMA:
-            raise ParameterError(f"schema: expected {_SCHEMA!r}, got {doc.get('schema')!r}")
+            raise ParameterError(f"schema: expected {excerpt(_SCHEMA)}, got {excerpt(doc.get('schema'))}")
         version = doc.get("schema_version")
         if isinstance(version, bool) or version not in _SUPPORTED_SCHEMA_VERSIONS:
             raise ParameterError(
-                f"schema_version: unsupported version {version!r}; supported versions: "
+                f"schema_version: unsupported version {excerpt(version)}; supported versions: "
                 f"{list(_SUPPORTED_SCHEMA_VERSIONS)}"
             )
         unknown = set(doc) - _JSON_KEYS
@@ -845,11 +846,7 @@ def _read_text(path: str | os.PathLike) -> str:
     """The UTF-8 text of the file ``path``; ParameterError naming it when it is larger than
     :data:`MAX_FILE_BYTES` or not text."""
     where = f"path {os.fspath(path)!r}"
-    size = os.stat(path).st_size
-    if size > MAX_FILE_BYTES:
-        raise ParameterError(f"{where}: {size} bytes, larger than the {MAX_FILE_BYTES} bytes a response file may have")
-    with open(path, "rb") as fh:
-        data = fh.read(MAX_FILE_BYTES + 1)
+    data = read_bounded(path, MAX_FILE_BYTES, where)  # the opening rule (torchblur.files): a regular file, bounded
     try:
         return data.decode("utf-8")
     except UnicodeDecodeError as exc:

@@ -70,7 +70,8 @@ import scipy.linalg
 import scipy.optimize
 
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_frequency_grid, check_bool, check_int
-from torchblur.sysid.frequency_response import FrequencyResponse, control_names
+from torchblur.files import excerpt, read_bounded
+from torchblur.sysid.frequency_response import MAX_FILE_BYTES, FrequencyResponse, control_names
 
 __all__ = ["fit_transfer_function", "TransferFunctionFit"]
 
@@ -171,7 +172,7 @@ class TransferFunctionFit:
         import control
 
         if delay not in _DELAY_FORMS:
-            raise ParameterError(f"delay: must be one of {set(_DELAY_FORMS)}, got {delay!r}")
+            raise ParameterError(f"delay: must be one of {set(_DELAY_FORMS)}, got {excerpt(delay)}")
         if not isinstance(name, str):
             raise InputTypeError(f"name: expected a string, got {type(name).__name__}")
         pade_order = check_int(pade_order, "pade_order", low=1)
@@ -231,7 +232,7 @@ class TransferFunctionFit:
             p, conj(p) with Im p > 0 (real roots are left out). MIMO: nested lists [O][I].
         """
         if kind not in _MODAL_KINDS:
-            raise ParameterError(f"kind: must be one of {set(_MODAL_KINDS)}, got {kind!r}")
+            raise ParameterError(f"kind: must be one of {set(_MODAL_KINDS)}, got {excerpt(kind)}")
         roots = self._channels(kind)
         out = [[_modes(roots[o][i]) for i in range(len(self.input_labels))] for o in range(len(self.output_labels))]
         return out[0][0] if self.is_siso else out
@@ -283,9 +284,9 @@ class TransferFunctionFit:
             raise InputTypeError(f"doc: expected a JSON object, got {type(doc).__name__}")
         if doc.get("schema") != _SCHEMA:
             why = f" (the file says: {doc['error']})" if "error" in doc else ""
-            raise ParameterError(f"schema: expected {_SCHEMA!r}, got {doc.get('schema')!r}{why}")
+            raise ParameterError(f"schema: expected {excerpt(_SCHEMA)}, got {excerpt(doc.get('schema'))}{why}")
         if isinstance(doc.get("schema_version"), bool) or doc.get("schema_version") != 1:
-            raise ParameterError(f"schema_version: unsupported version {doc.get('schema_version')!r}; supported versions: [1]")
+            raise ParameterError(f"schema_version: unsupported version {excerpt(doc.get('schema_version'))}; supported versions: [1]")
         kinds = {"num": "coeffs", "den": "coeffs", "delay_s": "float", "n_poles": "int", "n_zeros": "int",
                  "chi2": "float", "dof": "int", "reduced_chi2": "float", "rms_relative_error": "float",
                  "poles": "roots", "zeros": "roots"}
@@ -299,7 +300,7 @@ class TransferFunctionFit:
         labels = {k: tuple(doc[k]) for k in ("input_labels", "output_labels")}
         for k, v in labels.items():
             if not v or not all(isinstance(x, str) for x in v):
-                raise ParameterError(f"{k}: expected a non-empty list of strings, got {doc[k]!r}")
+                raise ParameterError(f"{k}: expected a non-empty list of strings, got {excerpt(doc[k])}")
         n_o, n_i = len(labels["output_labels"]), len(labels["input_labels"])
         siso = n_o == n_i == 1
 
@@ -328,8 +329,18 @@ class TransferFunctionFit:
     def from_json(cls, path: str | os.PathLike) -> "TransferFunctionFit":
         """Read a file written by :meth:`to_json`, or the CLI's model.json (two-step fit;
         with ``model.direct`` it is model_two_step.json)."""
-        with open(path) as fh:
-            return cls.from_dict(json.load(fh))
+        where = f"path {os.fspath(path)!r}"
+        data = read_bounded(path, MAX_FILE_BYTES, where)  # the opening rule (torchblur.files)
+        try:
+            doc = json.loads(data.decode("utf-8"))
+        except (ValueError, RecursionError) as exc:  # not UTF-8, not JSON, nested too deep
+            raise ParameterError(f"{where}: not a JSON document ({type(exc).__name__})") from None
+        try:
+            return cls.from_dict(doc)
+        except (InputTypeError, ParameterError, ShapeError) as exc:
+            raise type(exc)(f"{where}: {exc}") from None
+        except (KeyError, IndexError, TypeError, ValueError, AttributeError, OverflowError, RecursionError) as exc:
+            raise ParameterError(f"{where}: not a valid model.json document ({type(exc).__name__}: {excerpt(str(exc))})") from None
 
     def __repr__(self) -> str:
         if self.is_siso:
@@ -365,7 +376,7 @@ def _from_json_value(v, key: str, kind: str):
             raise ValueError("real and imag differ in length")
         return re + 1j * im
     except (TypeError, ValueError, KeyError) as exc:
-        raise ParameterError(f"{key}: expected a {kind} value as to_dict writes it, got {v!r} ({exc})") from None
+        raise ParameterError(f"{key}: expected a {kind} value as to_dict writes it, got {excerpt(v)} ({exc})") from None
 
 
 def _jf(x):
@@ -800,7 +811,7 @@ def _weights(frf: FrequencyResponse, weights, use: np.ndarray):
     shape = frf.response.shape
     if isinstance(weights, str):
         if weights not in _WEIGHT_MODES:
-            raise ParameterError(f"weights: must be one of {set(_WEIGHT_MODES)} or an array, got {weights!r}")
+            raise ParameterError(f"weights: must be one of {set(_WEIGHT_MODES)} or an array, got {excerpt(weights)}")
         if weights == "uncertainty":
             sr, si, corr = frf.response_std()
             known = np.isfinite(sr) & np.isfinite(si)
@@ -888,15 +899,15 @@ def fit_transfer_function(
         for i in range(frf.n_inputs):
             m = use[o, i]
             if np.sum(m) == 0:
-                raise ParameterError(f"frf: output {frf.output_labels[o]!r}, input {frf.input_labels[i]!r} has no valid point")
+                raise ParameterError(f"frf: output {excerpt(frf.output_labels[o])}, input {excerpt(frf.input_labels[i])} has no valid point")
             omega = frf.omega[m]
             data = _Data(omega=omega, h=frf.response[o, i, m], w00=w00[o, i, m], w10=w10[o, i, m], w11=w11[o, i, m],
                          wsc=wsc[o, i, m], scale=float(np.sqrt(omega[0] * omega[-1])))
             best = _fit_channel(data, orders, delay_s, n_iter, stable, label == "uncertainty")
             if best is None:
                 raise ParameterError(
-                    f"n_poles: no model of the requested order fits output {frf.output_labels[o]!r}, "
-                    f"input {frf.input_labels[i]!r}: {int(np.sum(m))} valid points give {data.n_obs} real "
+                    f"n_poles: no model of the requested order fits output {excerpt(frf.output_labels[o])}, "
+                    f"input {excerpt(frf.input_labels[i])}: {int(np.sum(m))} valid points give {data.n_obs} real "
                     f"observations, fewer than the parameters plus one"
                 )
             results[o][i] = _physical(best, data)
