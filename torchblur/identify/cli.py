@@ -375,11 +375,11 @@ def _write_outputs(cfg, res, out: Path, elapsed: float, stamp: str, as_json: boo
     frf = res.frf  # immutable: a copy with the run's stamp and units (the Bode plot's axes) in its meta
     meta = {"output_unit": "px", "input_unit": "input unit", **frf.meta, "torchblur_version": tb.__version__, "seed": int(cfg.seed)}
     frf = res.frf = mark_limited(frf.replace(meta=meta), getattr(res, "limited", None))
-    v = verdict(frf, cfg, motion_px=_motion_px(res), model=getattr(res, "model", None))
+    v = verdict(frf, cfg, motion_px=_motion_px(res), model=getattr(res, "model", None), direct=getattr(res, "direct_model", None))
     frf.to_csv(out / "frf.csv", extra_columns={"torchblur_version": tb.__version__, "seed": cfg.seed})
     frf.to_mat(out / "frf.mat")
     frf.to_json(out / "frf.json")
-    _write_models(cfg, res, out)
+    _write_models(cfg, res, out, v.models)
     _write_figures(cfg, res, out, stamp)
     log, table = _report(cfg, res, elapsed, stamp)
     (out / "report.txt").write_text(log + table + "\n" + v.line + "\n")
@@ -415,23 +415,34 @@ def _verdict_summary(v) -> dict:
             "flagged_points": v.flagged, "timing_limit_hz": d["timing_limit_hz"], "trustworthy": v.trustworthy}
 
 
-def _write_models(cfg, res, out: Path) -> None:
-    """model.json (and, with ``model.direct``, model_two_step.json)."""
+def _write_models(cfg, res, out: Path, judged=()) -> None:
+    """model.json (and, with ``model.direct``, model_two_step.json), each model with the
+    verdict's ``judgement`` (:mod:`torchblur.sysid.model_check`, one per channel) and
+    ``model_passed``; a model that failed has its stds inflated (``std_factor``). With
+    ``model.direct``, model.json holds the direct model unless it failed and the two-step one
+    passed: then the two-step model, the direct one under ``rejected_direct_model``."""
     import torchblur as tb
+    from torchblur.sysid.model_check import inflate
 
+    two_j = [j for j in judged if j.name.startswith("two-step")]
+    d_j = [j for j in judged if not j.name.startswith("two-step")]
     model = {"torchblur_version": tb.__version__, "seed": int(cfg.seed)}
     if res.model is not None:
-        model.update(res.model.to_dict())
+        model.update(inflate(res.model, two_j).to_dict())
         model.update(_left_out_points(cfg, res.frf))
+        model.update(judgement=[j.to_dict() for j in two_j], model_passed=bool(two_j) and all(j.passed for j in two_j))
     else:
         model["error"] = "the model fit failed; see report.txt"
     direct = getattr(res, "direct_model", None)
     if cfg.model.direct:
         # model.json holds the direct model; the two-step one it started from is kept beside it.
         (out / "model_two_step.json").write_text(json.dumps(model, indent=2))
-        model = {"torchblur_version": tb.__version__, "seed": int(cfg.seed)}
+        two_step, model = model, {"torchblur_version": tb.__version__, "seed": int(cfg.seed)}
         if direct is not None:
-            model.update(direct.to_dict())
+            model.update(inflate(direct, d_j).to_dict())
+            model.update(judgement=[j.to_dict() for j in d_j], model_passed=bool(d_j) and d_j[0].passed)
+            if not model["model_passed"] and two_step.get("model_passed"):
+                model = {**two_step, "rejected_direct_model": model}
         else:
             model["error"] = "the direct fit failed or was skipped; see report.txt (the two-step model is in model_two_step.json)"
     (out / "model.json").write_text(json.dumps(model, indent=2))
@@ -671,6 +682,7 @@ def _report(cfg, res, elapsed, stamp) -> tuple[str, str]:
     quality = _fit_quality(res.fit, cfg.fit.poor_fit_chi2)[1]
     if quality is not None:
         lines += ["", quality]
+    from torchblur.identify.model import model_parameter_lines
     from torchblur.identify.verdict import report_lines
 
     lines += ["", *report_lines(frf, cfg)]
@@ -679,21 +691,18 @@ def _report(cfg, res, elapsed, stamp) -> tuple[str, str]:
         lines += ["", f"model: {m.n_poles} poles, {m.n_zeros} zeros, delay {m.delay_s * 1e6:.3f} us, reduced chi2 "
                       f"{m.reduced_chi2:.3f} (dof {m.dof}), rms relative error {m.rms_relative_error:.2e}",
                   f"  num = {list(map(float, m.num))}", f"  den = {list(map(float, m.den))}"]
-        for mode in m.modal_parameters():
-            lines.append(f"  mode: {mode['freq_hz']:.3f} Hz, damping {mode['zeta']:.4f}")
+        lines += model_parameter_lines(m)
         if cfg.model.direct:
             lines.append("  (the two-step model: model_two_step.json)")
     elif res.model is not None:
         m = res.model
-        modes = m.modal_parameters()
         for o, out_l in enumerate(m.output_labels):
             for i, in_l in enumerate(m.input_labels):
                 lines += ["", f"model {out_l} from {in_l}: {m.n_poles[o][i]} poles, {m.n_zeros[o][i]} zeros, delay "
                               f"{m.delay_s[o][i] * 1e6:.3f} us, reduced chi2 {m.reduced_chi2[o][i]:.3f} (dof {m.dof[o][i]}), "
                               f"rms relative error {m.rms_relative_error[o][i]:.2e}",
                           f"  num = {list(map(float, m.num[o][i]))}", f"  den = {list(map(float, m.den[o][i]))}"]
-                for mode in modes[o][i]:
-                    lines.append(f"  mode: {mode['freq_hz']:.3f} Hz, damping {mode['zeta']:.4f}")
+                lines += model_parameter_lines(m, o, i)
     d = getattr(res, "direct_model", None)
     if d is not None:
         lines += ["", f"direct model ({d.form}, fitted to every image; model.json): delay {d.delay_s * 1e6:.3f} us, reduced chi2 "
@@ -703,6 +712,12 @@ def _report(cfg, res, elapsed, stamp) -> tuple[str, str]:
         for mode in d.modal_parameters():
             lines.append(f"  mode: {mode['freq_hz']:.3f} +- {mode['freq_hz_std']:.3f} Hz, damping {mode['zeta']:.4f} +- "
                          f"{mode['zeta_std']:.4f}, gain {mode['gain']:.4g} +- {mode['gain_std']:.2g}")
+        from torchblur.sysid.model_check import judge_fit
+
+        for j in judge_fit(d, "direct"):
+            if not j.passed:
+                lines.append(f"  the direct model fails the verdict's rule ({j.reason}): the stds above understate its error; "
+                             "see the verdict for the model model.json holds")
     elif cfg.model.direct:
         lines += ["", "direct model: none (see the log above); model.json holds the error, model_two_step.json the two-step model"]
     what = "simulated acquisition" if cfg.rig.kind == "simulated" else "acquisition"

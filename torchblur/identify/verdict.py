@@ -18,8 +18,10 @@ import numpy as np
 from torchblur.identify.assemble import timing_limit_hz
 from torchblur.identify.model import model_exclusions
 from torchblur.sysid.flags import FAILED, LIMITED, NO_MOTION, POOR_FIT, TIMING, UNTRUSTED, flag_names
+from torchblur.sysid.model_check import DISAGREE_SIGMA, MODEL_CHI2_FLOOR, disagreements, judge_fit, model_chi2_limit
 
-__all__ = ["EXIT_FLAGGED", "Verdict", "listed", "report_lines", "timing_band_hz", "verdict"]
+__all__ = ["EXIT_FLAGGED", "MODEL_CHI2_FLOOR", "Verdict", "judge_models", "listed", "model_chi2_limit", "report_lines",
+           "timing_band_hz", "verdict"]
 
 #: exit status of a run that completed, results written, with points flagged poor_fit, timing or failed
 #: (3 is taken: the rig stopped the run)
@@ -56,6 +58,8 @@ class Verdict:
     no_motion: int = 0
     model_reduced_chi2: float | None = None
     model_poor: bool = False
+    models: tuple = ()  # ModelJudgement per model (and per channel) the run reports: judge_models
+    disagree: tuple = ()  # "param: a +- sa vs b +- sb" where the two-step and direct models differ beyond their stds
 
     def to_dict(self) -> dict:
         """The fields as a strict-JSON dict (an infinite ``timing_limit_hz`` as null)."""
@@ -117,7 +121,7 @@ def _tolerances(frf, cfg) -> tuple[float, float]:
     return float(a.get("poor_fit_chi2", 1.5)), float(a.get("tolerance_deg", 1.0))
 
 
-def verdict(frf, cfg=None, *, motion_px=None, model=None) -> Verdict:
+def verdict(frf, cfg=None, *, motion_px=None, model=None, direct=None) -> Verdict:
     """The verdict on ``frf`` (its :attr:`~torchblur.sysid.frequency_response.FrequencyResponse.flags`).
 
     Args:
@@ -127,6 +131,11 @@ def verdict(frf, cfg=None, *, motion_px=None, model=None) -> Verdict:
         motion_px: optional [O, I, F] motion each point reached (px), named for limited points.
         model: the run's fitted model (a TransferFunctionFit), or None: a model whose reduced
             chi2 is above :func:`model_chi2_limit` makes the run untrustworthy (:func:`model_adequacy`).
+        direct: the run's direct model (a DirectModelFit, ``model.direct``), or None. Every
+            model (each channel of a MIMO one) is judged by one rule
+            (:mod:`torchblur.sysid.model_check`): one that fails it makes the run
+            untrustworthy and is named; so do a direct and a two-step model that disagree
+            beyond their combined stds (:func:`judge_models`).
 
     Returns:
         :class:`Verdict`.
@@ -137,13 +146,16 @@ def verdict(frf, cfg=None, *, motion_px=None, model=None) -> Verdict:
     bad = (flags & UNTRUSTED) != 0
     n, k = int(flags.size), int(bad.sum())
     m_chi2, m_poor = model_adequacy(model)
+    judged, disagree, models_part = judge_models(model, direct)
+    m_poor = m_poor or bool(models_part)
     band = timing_band_hz(frf, tol_deg)
     word = "points" if frf.is_siso else "channel points"
     limited = ""
     if has[LIMITED].any():
         limited = f"; {int(has[LIMITED].sum())} limited by the drive ({_freqs(frf, has[LIMITED], motion_px)})"
     model_part = (f"; the model does not explain the response (reduced chi2 {m_chi2:.3g} over {int(model.dof)} dof, above "
-                  f"{model_chi2_limit(model.dof):.3g}): do not use model.json" if m_poor else "")
+                  f"{model_chi2_limit(model.dof):.3g}): do not use model.json" if model_adequacy(model)[1] and direct is None
+                  else models_part)
     if not k and not m_poor:
         unknown = int((~np.isfinite(frf.reduced_chi2) & frf.valid).sum())
         chi2 = f"reduced chi2 <= {thr:g}" + (f" ({unknown} unknown: not checked)" if unknown else "")
@@ -168,18 +180,39 @@ def verdict(frf, cfg=None, *, motion_px=None, model=None) -> Verdict:
     return Verdict(line=line, trustworthy=ok, exit_code=0 if ok else EXIT_FLAGGED, points=n, flagged=k,
                    poor_fit=int(has[POOR_FIT].sum()), timing=int(has[TIMING].sum()), failed=int(has[FAILED].sum()),
                    limited=int(has[LIMITED].sum()), timing_limit_hz=band, no_motion=int(has[NO_MOTION].sum()),
-                   model_reduced_chi2=m_chi2, model_poor=m_poor)
+                   model_reduced_chi2=m_chi2, model_poor=m_poor, models=judged, disagree=tuple(disagree))
 
 
-#: a model whose reduced chi2 is above max(MODEL_CHI2_FLOOR, 1 + 4 sqrt(2 / dof)) does not explain the
-#: response it was fitted to (a chi2 test at about 4 sigma, and never below 2: the points' stds are
-#: estimates): the verdict says so and the run is not trustworthy.
-MODEL_CHI2_FLOOR = 2.0
+# MODEL_CHI2_FLOOR and model_chi2_limit (the rule's limit: a chi2 test at about 4 sigma, never below 2)
+# live in torchblur.sysid.model_check, the one rule every model of a run is judged by; imported above.
 
 
-def model_chi2_limit(dof) -> float:
-    """The largest reduced chi2 a model with ``dof`` degrees of freedom may have (see :data:`MODEL_CHI2_FLOOR`)."""
-    return max(MODEL_CHI2_FLOOR, 1.0 + 4.0 * math.sqrt(2.0 / max(int(dof), 1)))
+def judge_models(model, direct=None) -> tuple[tuple, list[str], str]:
+    """Every model of the run judged by one rule (:func:`torchblur.sysid.model_check.judge_model`):
+    ``(judgements, disagreements, verdict text)``. The two-step ``model`` (a TransferFunctionFit,
+    each channel of a MIMO one) and the ``direct`` one (a DirectModelFit: named ``"direct"``, or
+    ``"modal"`` for that form); the text (``""`` when all pass and agree) names each model that
+    fails and why, the model the run's model.json then holds, and the parameters on which the
+    direct and two-step models disagree beyond
+    :data:`~torchblur.sysid.model_check.DISAGREE_SIGMA` combined stds."""
+    if model is not None and not hasattr(model, "is_siso"):
+        return (), [], ""  # a bare (reduced_chi2, dof) record: model_adequacy judges it
+    two = judge_fit(model, "two-step")
+    d_name = "modal" if getattr(direct, "form", "") == "modal" else "direct"
+    dj = judge_fit(direct, d_name)
+    judged = two + dj
+    bad = [j for j in judged if not j.passed]
+    disagree = disagreements(direct, model) if model is not None and model.is_siso and direct is not None else []
+    parts = [f"the {j.name} model fails ({j.reason})" for j in bad]
+    if bad and direct is not None:
+        keep = "the direct model" if dj and dj[0].passed else "the two-step model" if two and all(j.passed for j in two) else None
+        parts.append(f"model.json holds {keep}" if keep else "no model passed: model.json's stds are inflated")
+    elif bad:
+        parts.append("no model passed: model.json's stds are inflated")
+    if disagree:
+        parts.append(f"the {d_name} and two-step models disagree beyond {DISAGREE_SIGMA:g} combined stds on "
+                     f"{'; '.join(disagree)}")
+    return judged, disagree, "".join(f"; {p}" for p in parts)
 
 
 def model_adequacy(model) -> tuple[float | None, bool]:
