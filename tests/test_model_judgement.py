@@ -132,36 +132,43 @@ def test_models_that_disagree_beyond_their_stds_are_named():
 
 
 # ------------------------------------------------------------------ a direct model that does not explain its images
-def _direct_on_wider_spots():
-    """A direct fit with a Gaussian PSF of std 1.6 px to spots of std 2.0 px (a PSF the images
-    do not follow, as diffraction spots fitted with a Gaussian), started at the true model."""
-    F, E, H, W = 5, 2, 32, 40
-    om = TWO_PI * np.array([50.0, 150.0, 280.0, 320.0, 600.0])
+@pytest.fixture(scope="module")
+def spots():
+    """Images of 4 sweep points of the plant (3 px of motion, 2 exposures) with Gaussian spots of
+    std 2 px, and what rendered them: ``(images, window, omega, input amplitude, true model)``."""
+    F, H, W = 4, 28, 36
+    om = TWO_PI * np.array([50.0, 250.0, 320.0, 600.0])
     start = fit_transfer_function(FrequencyResponse(om, _plant(om)), n_poles=2, n_zeros=0, weights="uniform")
     h = _plant(om)
     amp_in = 3.0 / np.abs(h)
     T = TWO_PI / om
     win = tb.ExposureWindow(torch.tensor(np.stack([0.25 * T] * 2, 1)), torch.tensor(np.stack([0.3 * T, 0.8 * T], 1)))
-    center = torch.tensor([20.0, 16.0], dtype=torch.float64)
-
-    def psf(sigma, peak, b=(F,)):
-        return tb.GaussianPSF(center.expand(b + (2,)), (sigma**2 * torch.eye(2, dtype=torch.float64)).expand(b + (2, 2)),
-                              torch.full(b, peak, dtype=torch.float64))
-
     motion = tb.Sinusoid(torch.tensor(np.stack([np.abs(h) * amp_in, 0 * om], 1))[:, None],
                          torch.tensor(np.angle(h))[:, None, None].expand(F, 1, 2), torch.tensor(om)[:, None])
-    clean = tb.render_blur(motion, psf(2.0, 4e5 / 2.0**2, (F, 1)), win, height=H, width=W)
-    g = torch.Generator().manual_seed(0)
-    images = clean + 3.0 * torch.randn(clean.shape, generator=g, dtype=torch.float64)
-    d = fit_direct(images, psf(1.6, 4e5 / 1.6**2), win, torch.tensor(om), torch.tensor(amp_in), start, noise_std=3.0,
-                   fit_scale=True, max_iter=30)
-    return start, d
+    clean = tb.render_blur(motion, _psf(2.0, (F, 1)), win, height=H, width=W)
+    images = clean + 3.0 * torch.randn(clean.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    return images, win, om, amp_in, start
 
 
-def test_a_direct_model_that_does_not_explain_its_images_is_named_and_model_json_holds_the_two_step(tmp_path):
+def _psf(sigma, b):
+    center = torch.tensor([18.0, 14.0], dtype=torch.float64)
+    return tb.GaussianPSF(center.expand(b + (2,)), (sigma**2 * torch.eye(2, dtype=torch.float64)).expand(b + (2, 2)),
+                          torch.full(b, 4e5 / sigma**2, dtype=torch.float64))
+
+
+def _direct(spots, sigma, shift_s=0.0):
+    images, win, om, amp_in, start = spots
+    win = tb.ExposureWindow(win.start + shift_s, win.duration)
+    return fit_direct(images, _psf(sigma, (len(om),)), win, torch.tensor(om), torch.tensor(amp_in), start, noise_std=3.0,
+                      fit_scale=True, max_iter=30)
+
+
+def test_a_direct_model_that_does_not_explain_its_images_is_named_and_model_json_holds_the_two_step(tmp_path, spots):
+    """A direct fit with a Gaussian PSF of std 1.6 px to spots of std 2 px (a PSF the images do
+    not follow, as diffraction spots fitted with a Gaussian), started at the true model."""
     from torchblur.identify.cli import _write_models
 
-    start, d = _direct_on_wider_spots()
+    start, d = spots[-1], _direct(spots, 1.6)
     assert d.reduced_chi2 > 2
     v = verdict(_frf_for_verdict(), None, model=start, direct=d)
     assert not v.trustworthy and v.exit_code == EXIT_FLAGGED
@@ -178,6 +185,21 @@ def test_a_direct_model_that_does_not_explain_its_images_is_named_and_model_json
     np.testing.assert_allclose(rej["std"], d.std * factor, rtol=1e-12)  # the failed model's stds inflated
     back = TransferFunctionFit.from_dict({k: v for k, v in doc.items() if k not in ("left_out_points", "poor_fit_points_kept")})
     np.testing.assert_allclose(back.std, start.std, rtol=1e-12)
+
+
+def test_a_direct_model_that_disagrees_with_the_two_step_one_is_set_aside(spots):
+    """The direct model explains its images (right PSF) but its windows are 15 us late (a wrong
+    latency), so its delay is 15 us off; the two-step model, fitted to a noisy response of the
+    truth, has a std of about 1 us: the verdict names the delay and sets the direct model aside."""
+    d = _direct(spots, 2.0, shift_s=15e-6)
+    (j,) = judge_fit(d, "direct")
+    assert j.passed  # the rule on its own chi2 cannot see it
+    om = TWO_PI * np.geomspace(5, 1500, 20)
+    two = fit_transfer_function(_noisy_frf(np.random.default_rng(6), om), n_poles=2, n_zeros=0)
+    v = verdict(_frf_for_verdict(), None, model=two, direct=d)
+    assert not v.trustworthy and v.exit_code == EXIT_FLAGGED
+    assert "the direct model fails (it disagrees with the two-step model" in v.line and "model.json holds the two-step model" in v.line
+    assert [x.split(":")[0] for x in v.disagree] == ["delay_s"]
 
 
 def test_the_shipped_default_run_writes_the_judgement(small_quiet_run):

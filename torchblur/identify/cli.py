@@ -669,7 +669,7 @@ def _report(cfg, res, elapsed, stamp) -> tuple[str, str]:
         if frf.is_siso:
             _, _, em, ep, z = summary[0]
             lines += ["", f"against the truth: max |H| error {em * 100:.3f}% (goal 1%), max phase error "
-                          f"{ep:.3f} deg (goal 1 deg), max error/std {z:.2f} (goal 5)"]
+                          f"{ep:.3f} deg (goal 1 deg), max error/std {z:.2f} (goal 5){_goal_note(em, ep, z, 0.01, 1.0)}"]
         else:
             lines += ["", "against the truth, per channel (goal 2% and 2 deg):"]
             for (out_l, in_l, em, ep, z), (o, i) in zip(summary, [(o, i) for o in range(frf.n_outputs) for i in range(frf.n_inputs)]):
@@ -678,7 +678,7 @@ def _report(cfg, res, elapsed, stamp) -> tuple[str, str]:
                                  f"(max |H| / std {np.nanmax(frf.magnitude[o, i] / frf.magnitude_std[o, i]):.2f})")
                     continue
                 lines.append(f"  {out_l:>6} from {in_l}: max |H| error {em * 100:.3f}%, max phase error {ep:.3f} deg, "
-                             f"max error/std {z:.2f}")
+                             f"max error/std {z:.2f}{_goal_note(em, ep, z, 0.02, 2.0)}")
     quality = _fit_quality(res.fit, cfg.fit.poor_fit_chi2)[1]
     if quality is not None:
         lines += ["", quality]
@@ -728,6 +728,18 @@ def _report(cfg, res, elapsed, stamp) -> tuple[str, str]:
                      f"{t['fit_chunks']} chunk(s) of which {t['fit_overlapped_s']:.2f} s during the sweep, "
                      f"{t['after_sweep_s']:.2f} s after the last frame")
     return title, "\n".join(lines) + "\n"
+
+
+def _goal_note(err_rel, err_deg, z, goal_rel, goal_deg) -> str:
+    """What a goal line says beside its figures, so that it never contradicts the verdict: nothing
+    when the relative goals are met; else whether the errors are within 5 of their stds (the
+    channel's precision does not reach the goal: its stds say so, the figures are not wrong) or
+    beyond them (wrong beyond its stds)."""
+    if not (math.isfinite(err_rel) and math.isfinite(err_deg) and math.isfinite(z)) or (err_rel <= goal_rel and err_deg <= goal_deg):
+        return ""
+    if z <= 5:
+        return "; goal not met: the points' stds are larger than the goal (within 5 std of the truth: imprecise, not wrong)"
+    return "; goal not met: beyond 5 std of the truth (wrong beyond its stds)"
 
 
 class _Version(argparse.Action):

@@ -11,6 +11,7 @@ each flag: :mod:`torchblur.identify.assemble` and docs/reliability.md ("Per-poin
 from __future__ import annotations
 
 import math
+import dataclasses
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -200,9 +201,15 @@ def judge_models(model, direct=None) -> tuple[tuple, list[str], str]:
     two = judge_fit(model, "two-step")
     d_name = "modal" if getattr(direct, "form", "") == "modal" else "direct"
     dj = judge_fit(direct, d_name)
+    disagree = disagreements(direct, model) if model is not None and model.is_siso and direct is not None else []
+    if disagree and dj and dj[0].passed and all(j.passed for j in two):
+        # Both explain their data, yet differ beyond their stds: the two-step points were each
+        # tested against their images (and fitted with the measured kernel where the still asked
+        # for it), the direct model with the Gaussian only: the direct model is the one set aside.
+        dj = (dataclasses.replace(dj[0], passed=False, reason=f"it disagrees with the two-step model beyond "
+                                  f"{DISAGREE_SIGMA:g} combined stds"),)
     judged = two + dj
     bad = [j for j in judged if not j.passed]
-    disagree = disagreements(direct, model) if model is not None and model.is_siso and direct is not None else []
     parts = [f"the {j.name} model fails ({j.reason})" for j in bad]
     if bad and direct is not None:
         keep = "the direct model" if dj and dj[0].passed else "the two-step model" if two and all(j.passed for j in two) else None
