@@ -188,6 +188,13 @@ def verdict(frf, cfg=None, *, motion_px=None, model=None, direct=None) -> Verdic
 # live in torchblur.sysid.model_check, the one rule every model of a run is judged by; imported above.
 
 
+def _none_passed(bad) -> str:
+    """The verdict's words when no model passed (model.json's ``model_passed`` is false)."""
+    inflated = any(j.std_factor != 1.0 for j in bad)
+    return "no model passed" + (": model.json's stds are inflated by sqrt(reduced chi2) where the chi2 failed" if inflated else
+                                ": model.json says so (model_passed false)")
+
+
 def judge_models(model, direct=None) -> tuple[tuple, list[str], str]:
     """Every model of the run judged by one rule (:func:`torchblur.sysid.model_check.judge_model`):
     ``(judgements, disagreements, verdict text)``. The two-step ``model`` (a TransferFunctionFit,
@@ -213,9 +220,9 @@ def judge_models(model, direct=None) -> tuple[tuple, list[str], str]:
     parts = [f"the {j.name} model fails ({j.reason})" for j in bad]
     if bad and direct is not None:
         keep = "the direct model" if dj and dj[0].passed else "the two-step model" if two and all(j.passed for j in two) else None
-        parts.append(f"model.json holds {keep}" if keep else "no model passed: model.json's stds are inflated")
+        parts.append(f"model.json holds {keep}" if keep else _none_passed(bad))
     elif bad:
-        parts.append("no model passed: model.json's stds are inflated")
+        parts.append(_none_passed(bad))
     if disagree:
         parts.append(f"the {d_name} and two-step models disagree beyond {DISAGREE_SIGMA:g} combined stds on "
                      f"{'; '.join(disagree)}")
