@@ -97,6 +97,13 @@ def test_a_three_point_model_is_flagged_too_few_points():
     assert [j.name for j in v.models if not j.passed] == ["two-step"]
 
 
+def test_a_run_whose_model_fit_failed_is_not_trustworthy():
+    # a 1-point run: no model can be fitted (fewer observations than parameters); the run had to have one
+    v = verdict(_frf_for_verdict(), None, model=None, expected=("two-step",))
+    assert not v.trustworthy and "the two-step model fails (its fit failed" in v.line and "no model passed" in v.line
+    assert verdict(_frf_for_verdict(), None, model=None).trustworthy  # no model asked for: nothing to judge
+
+
 def test_a_model_of_too_low_an_order_fails_the_rule():
     om = TWO_PI * np.geomspace(5, 1500, 20)
     fit = fit_transfer_function(_noisy_frf(np.random.default_rng(3), om), n_poles=1, n_zeros=0)

@@ -375,7 +375,8 @@ def _write_outputs(cfg, res, out: Path, elapsed: float, stamp: str, as_json: boo
     frf = res.frf  # immutable: a copy with the run's stamp and units (the Bode plot's axes) in its meta
     meta = {"output_unit": "px", "input_unit": "input unit", **frf.meta, "torchblur_version": tb.__version__, "seed": int(cfg.seed)}
     frf = res.frf = mark_limited(frf.replace(meta=meta), getattr(res, "limited", None))
-    v = verdict(frf, cfg, motion_px=_motion_px(res), model=getattr(res, "model", None), direct=getattr(res, "direct_model", None))
+    v = verdict(frf, cfg, motion_px=_motion_px(res), model=getattr(res, "model", None), direct=getattr(res, "direct_model", None),
+                expected=("two-step", "direct") if cfg.model.direct else ("two-step",))
     frf.to_csv(out / "frf.csv", extra_columns={"torchblur_version": tb.__version__, "seed": cfg.seed})
     frf.to_mat(out / "frf.mat")
     frf.to_json(out / "frf.json")
@@ -443,6 +444,8 @@ def _write_models(cfg, res, out: Path, judged=()) -> None:
             model.update(judgement=[j.to_dict() for j in d_j], model_passed=bool(d_j) and d_j[0].passed)
             if not model["model_passed"] and two_step.get("model_passed"):
                 model = {**two_step, "rejected_direct_model": model}
+        elif two_step.get("model_passed"):
+            model = {**two_step, "direct_model_error": "the direct fit failed or was skipped; see report.txt"}
         else:
             model["error"] = "the direct fit failed or was skipped; see report.txt (the two-step model is in model_two_step.json)"
     (out / "model.json").write_text(json.dumps(model, indent=2))
@@ -719,7 +722,8 @@ def _report(cfg, res, elapsed, stamp) -> tuple[str, str]:
                 lines.append(f"  the direct model fails the verdict's rule ({j.reason}): the stds above understate its error; "
                              "see the verdict for the model model.json holds")
     elif cfg.model.direct:
-        lines += ["", "direct model: none (see the log above); model.json holds the error, model_two_step.json the two-step model"]
+        lines += ["", "direct model: none (see the log above); model.json holds the two-step model where it passed the verdict's "
+                      "rule (else the error), model_two_step.json the two-step model"]
     what = "simulated acquisition" if cfg.rig.kind == "simulated" else "acquisition"
     t = getattr(res, "timing", {}) or {}
     lines += ["", f"elapsed {elapsed:.1f} s ({what} and fitting)"]

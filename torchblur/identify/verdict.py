@@ -19,7 +19,7 @@ import numpy as np
 from torchblur.identify.assemble import timing_limit_hz
 from torchblur.identify.model import model_exclusions
 from torchblur.sysid.flags import FAILED, LIMITED, NO_MOTION, POOR_FIT, TIMING, UNTRUSTED, flag_names
-from torchblur.sysid.model_check import DISAGREE_SIGMA, MODEL_CHI2_FLOOR, disagreements, judge_fit, model_chi2_limit
+from torchblur.sysid.model_check import DISAGREE_SIGMA, MODEL_CHI2_FLOOR, ModelJudgement, disagreements, judge_fit, model_chi2_limit
 
 __all__ = ["EXIT_FLAGGED", "MODEL_CHI2_FLOOR", "Verdict", "judge_models", "listed", "model_chi2_limit", "report_lines",
            "timing_band_hz", "verdict"]
@@ -122,7 +122,7 @@ def _tolerances(frf, cfg) -> tuple[float, float]:
     return float(a.get("poor_fit_chi2", 1.5)), float(a.get("tolerance_deg", 1.0))
 
 
-def verdict(frf, cfg=None, *, motion_px=None, model=None, direct=None) -> Verdict:
+def verdict(frf, cfg=None, *, motion_px=None, model=None, direct=None, expected=()) -> Verdict:
     """The verdict on ``frf`` (its :attr:`~torchblur.sysid.frequency_response.FrequencyResponse.flags`).
 
     Args:
@@ -137,6 +137,8 @@ def verdict(frf, cfg=None, *, motion_px=None, model=None, direct=None) -> Verdic
             (:mod:`torchblur.sysid.model_check`): one that fails it makes the run
             untrustworthy and is named; so do a direct and a two-step model that disagree
             beyond their combined stds (:func:`judge_models`).
+        expected: the models the run was to fit (``"two-step"``, ``"direct"``): one of them
+            None (its fit failed: too few points, no valid channel) fails too.
 
     Returns:
         :class:`Verdict`.
@@ -147,7 +149,7 @@ def verdict(frf, cfg=None, *, motion_px=None, model=None, direct=None) -> Verdic
     bad = (flags & UNTRUSTED) != 0
     n, k = int(flags.size), int(bad.sum())
     m_chi2, m_poor = model_adequacy(model)
-    judged, disagree, models_part = judge_models(model, direct)
+    judged, disagree, models_part = judge_models(model, direct, expected)
     m_poor = m_poor or bool(models_part)
     band = timing_band_hz(frf, tol_deg)
     word = "points" if frf.is_siso else "channel points"
@@ -195,7 +197,7 @@ def _none_passed(bad) -> str:
                                 ": model.json says so (model_passed false)")
 
 
-def judge_models(model, direct=None) -> tuple[tuple, list[str], str]:
+def judge_models(model, direct=None, expected=()) -> tuple[tuple, list[str], str]:
     """Every model of the run judged by one rule (:func:`torchblur.sysid.model_check.judge_model`):
     ``(judgements, disagreements, verdict text)``. The two-step ``model`` (a TransferFunctionFit,
     each channel of a MIMO one) and the ``direct`` one (a DirectModelFit: named ``"direct"``, or
@@ -215,10 +217,12 @@ def judge_models(model, direct=None) -> tuple[tuple, list[str], str]:
         # for it), the direct model with the Gaussian only: the direct model is the one set aside.
         dj = (dataclasses.replace(dj[0], passed=False, reason=f"it disagrees with the two-step model beyond "
                                   f"{DISAGREE_SIGMA:g} combined stds"),)
-    judged = two + dj
+    missing = tuple(ModelJudgement(name, False, None, None, None, "its fit failed: no model (see the log)")
+                    for name, m in (("two-step", model), ("direct", direct)) if name in expected and m is None)
+    judged = two + dj + missing
     bad = [j for j in judged if not j.passed]
     parts = [f"the {j.name} model fails ({j.reason})" for j in bad]
-    if bad and direct is not None:
+    if bad and (direct is not None or "direct" in expected):
         keep = "the direct model" if dj and dj[0].passed else "the two-step model" if two and all(j.passed for j in two) else None
         parts.append(f"model.json holds {keep}" if keep else _none_passed(bad))
     elif bad:
