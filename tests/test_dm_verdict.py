@@ -42,7 +42,7 @@ def test_trustworthy_names_dead_and_weak_without_flagging_them():
     v = dm_verdict(table, D=D, n_failed_spot_fits=0, n_spot_problems=PROBLEMS)
     assert isinstance(v, DMVerdict) and v.trustworthy and v.exit_code == 0 and v.flagged == 0
     assert v.line == (f"verdict: trustworthy: all 5 actuators within tolerance: 3 ok, 1 weak (3), 1 dead (4); "
-                      f"model reduced chi2 <= 1.2 (the model rule: <= max(2, 1 + 4 sqrt(2/dof))); 0 of {PROBLEMS} spot fits failed")
+                      f"model reduced chi2 <= 1.2 (chi2 test p >= 0.001); 0 of {PROBLEMS} spot fits failed")
     assert (v.ok, v.weak, v.dead, v.poor_fit, v.failed) == ((0, 1, 2), (3,), (4,), (), ())
     assert v.details == () and v.max_reduced_chi2 == pytest.approx(1.2)
     d = json.loads(json.dumps(v.to_dict()))

@@ -13,11 +13,9 @@ Actuator ``j``'s column is rank one: ``D[:, j, f] = G[:, j] * H_j(j w_f)`` with
    (``scipy.optimize.least_squares``) of ``H_j`` to ``h_j``, started from the best point of a
    grid over ``(mode_hz, damping)`` (the delay and gain solved in closed form at each node),
    stds from the Gauss-Newton covariance. The fit's ``chi2`` over ``2F - 4`` degrees of freedom
-   is judged by the rule every model of a run is judged by
-   (:func:`torchblur.sysid.model_check.model_fails`: reduced chi2 above
-   ``max(2, 1 + 4 sqrt(2 / dof))``, or fewer than 3 dof): an actuator that fails it is flagged
-   ``poor_fit`` and its stds are inflated by ``sqrt(chi2 / dof)`` (the model does not explain the
-   data: the numbers are not to be trusted at their nominal precision).
+   is tested: when its survival probability is below :data:`POOR_FIT_P` the actuator is
+   flagged ``poor_fit`` and its stds are inflated by ``sqrt(chi2 / dof)`` (the model does not
+   explain the data: the numbers are not to be trusted at their nominal precision).
 3. **Static column**: the measured ``D0[:, j]`` (px per input unit), per slope the real
    least-squares scalar between ``D[s, j, :]`` and the fitted unit-DC shape ``H_j / dc_gain``
    (:func:`static_columns`). Its std excludes the shape's own uncertainty, a factor common
@@ -42,14 +40,14 @@ import numpy as np
 from scipy import optimize, stats
 
 from torchblur.errors import ParameterError, ShapeError
-from torchblur.sysid.model_check import model_fails
 
 __all__ = ["ActuatorTable", "fit_actuators", "second_order", "project_columns", "static_columns", "actuator_status",
-           "DEAD_P", "DEAD_SIGMA", "WEAK_FRACTION"]
+           "DEAD_P", "DEAD_SIGMA", "WEAK_FRACTION", "POOR_FIT_P"]
 
 DEAD_P = 1e-3  #: no response detected: the column's chi2 against zero is this likely or more
 DEAD_SIGMA = 3.0  #: dead when |dc_gain| < DEAD_SIGMA * dc_gain_std
 WEAK_FRACTION = 0.5  #: weak when dc_gain < WEAK_FRACTION * median live dc_gain
+POOR_FIT_P = 1e-3  #: poor fit when the model's chi2 is this unlikely or less
 PARAMS = ("dc_gain", "mode_hz", "damping", "delay_s")
 
 
@@ -273,7 +271,7 @@ def fit_actuators(freq_hz, D, D_cov, G_nominal, *, actuator_xy=None) -> Actuator
     for j in np.flatnonzero(~silent):
         est[j], std[j], chi2, dof = _fit_one(f, h[j], h_cov[j])
         red[j] = chi2 / dof if dof > 0 else np.nan
-        if dof > 0 and model_fails(red[j], dof):
+        if dof > 0 and stats.chi2.sf(chi2, dof) < POOR_FIT_P:
             poor[j] = True
             std[j] *= math.sqrt(red[j])
     status = actuator_status(est[:, 0], std[:, 0], silent)

@@ -4,8 +4,8 @@
 Per actuator (:class:`~torchblur.dm.actuator_fit.ActuatorTable`), two flags make a run
 untrustworthy (exit status :data:`~torchblur.identify.verdict.EXIT_FLAGGED`):
 
-- **poor fit**: the actuator's ``poor_fit`` (its parametric model fails the rule every model of a
-  run is judged by, :func:`~torchblur.sysid.model_check.model_fails`: the stds were inflated by
+- **poor fit**: the actuator's ``poor_fit`` (its parametric model fails the chi2 test, survival
+  probability below :data:`~torchblur.dm.actuator_fit.POOR_FIT_P`: the stds were inflated by
   ``sqrt(reduced chi2)``, the numbers are not to be trusted at their nominal precision). Kept
   for a dead actuator too: a column the model could not explain that is then called dead is
   a call to check.
@@ -32,7 +32,7 @@ run is untrustworthy and the line says so.
 
 Lines::
 
-    verdict: trustworthy: all 52 actuators within tolerance: 50 ok, 1 weak (33), 1 dead (20); model reduced chi2 <= 1.48 (the model rule: <= max(2, 1 + 4 sqrt(2/dof))); 0 of 81920 spot fits failed
+    verdict: trustworthy: all 52 actuators within tolerance: 50 ok, 1 weak (33), 1 dead (20); model reduced chi2 <= 1.48 (chi2 test p >= 0.001); 0 of 81920 spot fits failed
     verdict: 3 of 52 actuators flagged: 2 poor fit (12, 40), 1 failed (7); status 50 ok, 1 weak (33), 1 dead (20); 96 of 81920 spot fits failed
 """
 from __future__ import annotations
@@ -41,7 +41,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from torchblur.dm.actuator_fit import ActuatorTable
+from torchblur.dm.actuator_fit import POOR_FIT_P, ActuatorTable
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, check_int
 from torchblur.identify.verdict import EXIT_FLAGGED, listed
 
@@ -206,7 +206,7 @@ def dm_verdict(table: ActuatorTable, *, D, n_failed_spot_fits: int, n_spot_probl
     poor_spots, spots_fail, spots = _spot_fits(spot_reduced_chi2, poor_fit_chi2, n_problems)
     fits += spots
     if not flagged and not spots_fail:
-        model = (f"model reduced chi2 <= {max_chi2:.3g} (the model rule: <= max(2, 1 + 4 sqrt(2/dof)))" if max_chi2 is not None
+        model = (f"model reduced chi2 <= {max_chi2:.3g} (chi2 test p >= {POOR_FIT_P:g})" if max_chi2 is not None
                  else "no actuator model to test")
         line = f"verdict: trustworthy: all {n} actuators within tolerance: {statuses}; {model}; {fits}"
     elif flagged:

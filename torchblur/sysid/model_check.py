@@ -26,7 +26,9 @@ conservative.
 The models judged: the two-step model (a
 :class:`~torchblur.sysid.tf_fit.TransferFunctionFit`, one judgement per channel of a MIMO
 fit), the direct model (a :class:`~torchblur.sysid.direct.DirectModelFit`, ``form`` ``tf`` or
-``modal``), and each actuator's model of a DM run (:mod:`torchblur.dm.actuator_fit`).
+``modal``). A DM run's actuators keep their own test (:mod:`torchblur.dm.actuator_fit`: the chi2
+survival probability below 1e-3, stds inflated by sqrt(reduced chi2)): with the 3-4 frequencies
+of the small DM runs this rule's dof >= 3 would flag every actuator.
 """
 from __future__ import annotations
 
