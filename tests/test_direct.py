@@ -342,6 +342,9 @@ def test_cli_identify_with_direct_writes_both_models(tmp_path, capsys):
     two = json.loads((out / "model_two_step.json").read_text())
     assert direct["schema"] == "torchblur.direct_model_fit" and direct["converged"]
     assert two["schema"] == "torchblur.transfer_function_fit"
+    # each model carries the verdict's judgement (torchblur.sysid.model_check)
+    assert [j["name"] for j in direct["judgement"]] == ["direct"] and [j["name"] for j in two["judgement"]] == ["two-step"]
+    assert direct["model_passed"] is two["model_passed"] is True
     assert direct["seed"] == 1 and direct["torchblur_version"]
     mode = direct["modes"][0]  # the default plant: 420 Hz, zeta 0.12
     assert abs(mode["freq_hz"] - 420.0) < 5 * mode["freq_hz_std"] + 0.5

@@ -153,6 +153,14 @@ def ref(fleet, tmp_path_factory):
     return root, res
 
 
+def _only_the_model_flagged(out) -> bool:
+    """Whether the run in ``out`` ended with its 3 points within tolerance and only its model
+    flagged: a model of 3 points has too few degrees of freedom for the verdict's model rule, or
+    a model of too low an order does not explain them (torchblur.sysid.model_check)."""
+    last = (out / "report.txt").read_text().strip().splitlines()[-1]
+    return last.startswith("verdict: all 3 points within tolerance; the ") and ("model fails (" in last or "model does not explain" in last)
+
+
 def test_emulator_start_line(fleet):
     info = fleet["ref"].info
     assert info["serial"].startswith("/dev/") and info["frames"].startswith("tcp://127.0.0.1:")
@@ -198,7 +206,7 @@ def test_kill_mid_sweep_then_resume(fleet, ref, tmp_path, capsys):
     assert "sweep.images_per_point" in capsys.readouterr().err
     rc = cli.main(["identify", "--resume", str(out), "--quiet", *fleet["ref"].rig_keys()])  # a new device
     captured = capsys.readouterr()
-    assert rc == 0, captured.err
+    assert rc == 0 or (rc == 4 and _only_the_model_flagged(out)), captured.err
     lines = check_recording(out / "experiment", complete=True)
     sessions = Counter((ln["kind"], ln["session"]) for ln in lines)
     assert sessions[("sweep", 0)] == 4 and sessions[("sweep", 1)] == 8  # point 0 kept, points 1 and 2 new
@@ -309,7 +317,8 @@ def test_fit_reproduces_the_recording_and_leaves_it_untouched(ref, tmp_path, cap
     root, res = ref
     before = tree_hash(root)
     new = tmp_path / "refit"
-    assert cli.main(["fit", str(root), "--out", str(new), "--quiet"]) == 0
+    rc = cli.main(["fit", str(root), "--out", str(new), "--quiet"])
+    assert rc == 0 or (rc == 4 and _only_the_model_flagged(new)), rc
     from torchblur.sysid.frequency_response import FrequencyResponse
 
     frf = FrequencyResponse.from_json(new / "frf.json")
@@ -320,8 +329,7 @@ def test_fit_reproduces_the_recording_and_leaves_it_untouched(ref, tmp_path, cap
     new2 = tmp_path / "refit2"
     # a 2-pole model of the 3-pole mirror: the points are the same; the verdict may fail the model (exit 4), never the points
     rc = cli.main(["fit", str(root / "experiment"), "--out", str(new2), "--quiet", "fit.chunk_points=1", "model.max_order=2"])
-    last = (new2 / "report.txt").read_text().strip().splitlines()[-1]
-    assert rc == 0 or (rc == 4 and last.startswith("verdict: all 3 points within tolerance; the model does not explain")), (rc, last)
+    assert rc == 0 or (rc == 4 and _only_the_model_flagged(new2)), rc
     frf2 = FrequencyResponse.from_json(new2 / "frf.json")
     np.testing.assert_allclose(frf2.response, res.frf.response, rtol=1e-5)
     assert json.loads((new2 / "model.json").read_text())["den"].__len__() <= 3

@@ -50,7 +50,8 @@ def test_cli_outputs_and_replay_of_the_recording(run, tmp_path):
     names = {p.name for p in tmp_path.iterdir()}
     assert {"frf.csv", "frf.json", "bode.png", "model.json", "report.txt", "residuals.png"} <= names
     assert "multisine group 0" in (tmp_path / "report.txt").read_text()
-    assert json.loads((tmp_path / "model.json").read_text())["seed"] == 4
+    model = json.loads((tmp_path / "model.json").read_text())
+    assert model["seed"] == 4 and [j["name"] for j in model["judgement"]] == ["two-step"]  # the verdict's judgement
     summary = json.loads(json.dumps(cli._summary(res, tmp_path, 1.0)))  # the --json line of a multisine run
     assert summary["points"] == res.frf.valid.size and summary["valid_points"] >= 1 and summary["elapsed_s"] == 1.0
     exp = Experiment.open(rec, writable=False)

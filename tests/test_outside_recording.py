@@ -72,7 +72,9 @@ def test_fit_folder_equals_identify_on_the_same_frames(sim, capsys):
     folder, out = sim["folder"], sim["root"] / "fit_out"
     before = _listing(folder)
     rc = main(["fit", str(folder), "--out", str(out), "--quiet", "--json", f"fit.axis=[{DIRECTION[0]!r},{DIRECTION[1]!r}]"])
-    assert rc == 0
+    last = (out / "report.txt").read_text().strip().splitlines()[-1]
+    # 3 points: the model may have too few degrees of freedom for the verdict's model rule (exit 4); the points never
+    assert rc == 0 or (rc == 4 and last.startswith("verdict: all 3 points within tolerance; the two-step model fails (")), last
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["points"] == 3 and summary["valid_points"] == 3 and summary["max_error_over_std"] is None
     frf, ref = FrequencyResponse.from_json(out / "frf.json"), sim["res"].frf
@@ -172,7 +174,10 @@ def _direct(p, dark_frames, direction):
 def test_hcipy_frames_through_fit_folder_equal_the_direct_call(hcipy_folders, tmp_path):
     for k, (p, folder, dark) in enumerate(hcipy_folders):
         axis = f"fit.axis=[{p['direction'][0]!r},{p['direction'][1]!r}]"
-        assert main(["fit", str(folder), "--out", str(tmp_path / f"o{k}"), "--quiet", axis]) == 0
+        # one point: no model can be fitted, and a run without its model is not trustworthy (exit 4); the point is fine
+        assert main(["fit", str(folder), "--out", str(tmp_path / f"o{k}"), "--quiet", axis]) == 4
+        last = (tmp_path / f"o{k}" / "report.txt").read_text().strip().splitlines()[-1]
+        assert last.startswith("verdict: all 1 points within tolerance; the two-step model fails (its fit failed"), last
         frf = FrequencyResponse.from_json(tmp_path / f"o{k}" / "frf.json")
         fit, kind = _direct(p, dark, torch.tensor(p["direction"], dtype=torch.float64))
         assert frf.meta["psf"] == kind == "kernel"

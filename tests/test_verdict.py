@@ -156,7 +156,7 @@ def test_a_model_that_does_not_explain_the_response_makes_the_run_untrustworthy(
     assert v.trustworthy and not v.model_poor and v.model_reduced_chi2 == 1.4
     # the limit: a chi2 test at ~4 sigma, never below 2
     assert model_chi2_limit(51) == 2.0 and model_chi2_limit(4) == pytest.approx(1 + 4 * math.sqrt(0.5))
-    assert verdict(frf, cfg, model=types.SimpleNamespace(reduced_chi2=float("nan"), dof=3)).trustworthy
+    assert verdict(frf, cfg, model=types.SimpleNamespace(reduced_chi2=float("nan"), dof=3)).trustworthy  # a bare record: unjudged
 
 
 def test_a_sine_run_flags_the_points_its_fit_saw_no_motion_at():

@@ -44,7 +44,7 @@ __all__ = ["MultisineFit", "render_multisine", "render_multisine_with_jacobian",
 # first search's 48 random phase starts land there for some seeds.
 RETRY_CHI2 = 1.15
 
-from torchblur.fit.status import POOR_FIT, STATUS  # noqa: F401  (torchblur.fit.multisine.STATUS is the one table)
+from torchblur.fit.status import POOR_FIT, STATUS, flag_poor_fit  # noqa: F401  (torchblur.fit.multisine.STATUS is the one table)
 
 
 def multisine_param_names(n_tones: int, fit_scale: bool) -> tuple:
@@ -241,6 +241,9 @@ def _check_and_flatten(images, psf, window, omega, direction, counts: dict) -> _
     B = max(1, math.prod(batch))
     data = images.reshape(B, E, H, W)
     p = psf.to(dtype)
+    if p.shape != tuple(batch) and (len(p.shape) > len(batch) or any(a not in (1, b) for a, b in zip(p.shape[::-1], batch[::-1]))):
+        raise ShapeError(f"psf: expected a batch shape that broadcasts to the images' batch {tuple(batch)} (images [..., E, H, W] = "
+                         f"{tuple(images.shape)}), got {tuple(p.shape)}")
     u = _unit_direction(direction, data)
     try:
         u = u.expand(batch + (2,)).reshape(B, 2)
@@ -747,4 +750,5 @@ def fit_multisine(
     )
     res.extras.update({"nodes": prob.settings.nodes, "starts": K, "refined": R_, "crop": crop, "retried": out(retried),
                        "reduced_chi2": out(red_chi2)})
+    res.flags = out(flag_poor_fit(None, red_chi2 if sigma_given else torch.full_like(red_chi2, float("nan"))))
     return res

@@ -38,7 +38,7 @@ from torchblur.render.window import ExposureWindow
 
 from torchblur.fit.status import (  # noqa: F401  (re-exported: torchblur.fit.sinusoid.STATUS, ...)
     DARK, FLAGS, MASKED, NO_MOTION, NO_PIXELS, NOT_CONVERGED, OUT_OF_FRAME, OUTLIERS_MASKED, PARTLY_OUT_OF_FRAME, SATURATED_MASKED,
-    SINGULAR, STATUS,
+    POOR_FIT_FLAG, SINGULAR, STATUS, flag_poor_fit,
 )
 
 __all__ = ["SinusoidFit", "fit_sinusoid", "STATUS", "FLAGS", "MASKED", "SATURATED_MASKED", "OUTLIERS_MASKED", "PARTLY_OUT_OF_FRAME",
@@ -63,6 +63,15 @@ def fit_dtype(images: torch.Tensor, psf, window: ExposureWindow) -> torch.dtype:
         if t.is_floating_point():
             dtype = torch.promote_types(dtype, t.dtype)
     return dtype
+
+
+def _broadcasts_to(shape, target) -> bool:
+    """Whether a tensor of ``shape`` can be expanded to ``target`` (broadcasting to a larger
+    shape is not enough: a PSF batch of 2 does not fit images of batch 1)."""
+    try:
+        return torch.broadcast_shapes(tuple(shape), tuple(target)) == tuple(target)
+    except RuntimeError:
+        return False
 
 
 def _validate(images, psf, window, omega, axes, optimizer, loss):
@@ -96,20 +105,16 @@ def _validate(images, psf, window, omega, axes, optimizer, loss):
     E = batch_e[-1]
     if window.shape and window.shape[-1] not in (1, E):
         raise ShapeError(f"window: expected a last dim of 1 or E={E} (one window per exposure), got shape {tuple(window.shape)}")
-    try:
-        torch.broadcast_shapes(window.shape, batch_e)
-    except RuntimeError:
-        raise ShapeError(f"window: expected a batch shape that broadcasts to the images' [..., E] = {tuple(batch_e)}, got {tuple(window.shape)}") from None
+    if not _broadcasts_to(window.shape, batch_e):
+        raise ShapeError(f"window: expected a batch shape that broadcasts to the images' [..., E] = {tuple(batch_e)}, got {tuple(window.shape)}")
     omega = check_positive(as_tensor(omega, "omega", dtype=images.dtype, device=images.device), "omega")
     batch = images.shape[:-3]
-    try:
-        torch.broadcast_shapes(omega.shape, batch)
-    except RuntimeError:
-        raise ShapeError(f"omega: expected a shape that broadcasts to the images' batch {tuple(batch)}, got {tuple(omega.shape)}") from None
-    try:
-        torch.broadcast_shapes(psf.shape, batch)
-    except RuntimeError:
-        raise ShapeError(f"psf: expected a batch shape that broadcasts to the images' batch {tuple(batch)}, got {tuple(psf.shape)}") from None
+    if not _broadcasts_to(omega.shape, batch):
+        raise ShapeError(f"omega: expected a shape that broadcasts to the images' batch {tuple(batch)} (images [..., E, H, W] = "
+                         f"{tuple(images.shape)}), got {tuple(omega.shape)}")
+    if not _broadcasts_to(psf.shape, batch):
+        raise ShapeError(f"psf: expected a batch shape that broadcasts to the images' batch {tuple(batch)} (images [..., E, H, W] = "
+                         f"{tuple(images.shape)}), got {tuple(psf.shape)}")
     if isinstance(psf, KernelPSF) and psf.frame_shape != tuple(images.shape[-2:]):
         raise ShapeError(f"psf: expected a kernel of frame shape {tuple(images.shape[-2:])}, got {psf.frame_shape}")
     return images, psf, window, omega
@@ -738,6 +743,7 @@ def _finish(res: SinusoidFit, inp: _FlatInputs, o: _FitOptions, rejected, plane,
     dof = (n_used - len(res.param_names)).clamp_min(1).to(res.cost.dtype)
     chi2 = res.cost if o.loss == "l2" else torch.where(torch.isnan(res.cost), res.cost, res.reduced_chi2)
     res.reduced_chi2 = chi2 / dof if (inp.noise is not None and o.loss != "linf") else torch.full_like(res.cost, float("nan"))
+    res.flags = flag_poor_fit(res.flags, res.reduced_chi2)
     res.background_plane = plane
     for f in fields(SinusoidFit):
         v = getattr(res, f.name)

@@ -6,9 +6,12 @@ a non-zero status has NaN where nothing can be estimated.
 """
 from __future__ import annotations
 
+import torch
+
 __all__ = [
     "STATUS", "OK", "DARK", "NOT_CONVERGED", "OUT_OF_FRAME", "SINGULAR", "NO_PIXELS", "POOR_FIT",
-    "FLAGS", "MASKED", "SATURATED_MASKED", "OUTLIERS_MASKED", "PARTLY_OUT_OF_FRAME", "NO_MOTION",
+    "FLAGS", "MASKED", "SATURATED_MASKED", "OUTLIERS_MASKED", "PARTLY_OUT_OF_FRAME", "NO_MOTION", "POOR_FIT_FLAG",
+    "POOR_FIT_CHI2", "flag_poor_fit",
 ]
 
 OK = 0  #: the estimate is usable
@@ -35,6 +38,11 @@ SATURATED_MASKED = 2  #: pixels at or above ``saturation_level`` were excluded
 OUTLIERS_MASKED = 4  #: the robust pass excluded pixels (hot pixels, cosmic rays): ``n_outliers``
 PARTLY_OUT_OF_FRAME = 8  #: more than 0.1% of the fitted spot's light falls outside the frame
 NO_MOTION = 16  #: the amplitude is below 3 standard deviations: no motion detected, the phase means nothing
+POOR_FIT_FLAG = 32  #: reduced chi2 above :data:`POOR_FIT_CHI2` with the noise given: the model does not explain the item
+
+#: the bound of :data:`POOR_FIT_FLAG`, the same as identify's ``fit.poor_fit_chi2`` default (there the
+#: point is flagged ``poor_fit`` and its stds inflated): a wrong omega (Hz for rad/s), PSF or noise shows here
+POOR_FIT_CHI2 = 1.5
 
 #: flag bit -> what it means
 FLAGS = {
@@ -43,4 +51,14 @@ FLAGS = {
     OUTLIERS_MASKED: "outlier pixels masked",
     PARTLY_OUT_OF_FRAME: "spot partly out of frame",
     NO_MOTION: "no significant motion",
+    POOR_FIT_FLAG: "poor fit (reduced chi2 above 1.5: the model does not explain the images)",
 }
+
+
+def flag_poor_fit(flags, reduced_chi2, threshold: float = POOR_FIT_CHI2):
+    """``flags`` (an int tensor ``[...]``, or None for none yet) with :data:`POOR_FIT_FLAG` set
+    where ``reduced_chi2`` (``[...]``, NaN where unknown: never flagged) is above ``threshold``."""
+    poor = torch.nan_to_num(reduced_chi2, nan=0.0) > threshold
+    if flags is None:
+        flags = torch.zeros(poor.shape, dtype=torch.long, device=poor.device)
+    return flags | (POOR_FIT_FLAG * poor.long())

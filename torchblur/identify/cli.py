@@ -409,11 +409,12 @@ def _write_outputs(cfg, res, out: Path, elapsed: float, stamp: str, as_json: boo
     frf = res.frf  # immutable: a copy with the run's stamp and units (the Bode plot's axes) in its meta
     meta = {"output_unit": "px", "input_unit": "input unit", **frf.meta, "torchblur_version": tb.__version__, "seed": int(cfg.seed)}
     frf = res.frf = mark_limited(frf.replace(meta=meta), getattr(res, "limited", None))
-    v = verdict(frf, cfg, motion_px=_motion_px(res), model=getattr(res, "model", None), truth=getattr(res, "truth", None))
+    v = verdict(frf, cfg, motion_px=_motion_px(res), model=getattr(res, "model", None), direct=getattr(res, "direct_model", None),
+                expected=("two-step", "direct") if cfg.model.direct else ("two-step",), truth=getattr(res, "truth", None))
     frf.to_csv(out / "frf.csv", extra_columns={"torchblur_version": tb.__version__, "seed": cfg.seed})
     frf.to_mat(out / "frf.mat")
     frf.to_json(out / "frf.json")
-    _write_models(cfg, res, out)
+    _write_models(cfg, res, out, v.models)
     _write_figures(cfg, res, out, stamp)
     log, table = _report(cfg, res, elapsed, stamp)
     (out / "report.txt").write_text(log + table + "\n" + v.line + "\n")
@@ -450,23 +451,36 @@ def _verdict_summary(v) -> dict:
             "flagged_points": v.flagged, "timing_limit_hz": d["timing_limit_hz"], "trustworthy": v.trustworthy}
 
 
-def _write_models(cfg, res, out: Path) -> None:
-    """model.json (and, with ``model.direct``, model_two_step.json)."""
+def _write_models(cfg, res, out: Path, judged=()) -> None:
+    """model.json (and, with ``model.direct``, model_two_step.json), each model with the
+    verdict's ``judgement`` (:mod:`torchblur.sysid.model_check`, one per channel) and
+    ``model_passed``; a model that failed has its stds inflated (``std_factor``). With
+    ``model.direct``, model.json holds the direct model unless it failed and the two-step one
+    passed: then the two-step model, the direct one under ``rejected_direct_model``."""
     import torchblur as tb
+    from torchblur.sysid.model_check import inflate
 
+    two_j = [j for j in judged if j.name.startswith("two-step")]
+    d_j = [j for j in judged if not j.name.startswith("two-step")]
     model = {"torchblur_version": tb.__version__, "seed": int(cfg.seed)}
     if res.model is not None:
-        model.update(res.model.to_dict())
+        model.update(inflate(res.model, two_j).to_dict())
         model.update(_left_out_points(cfg, res.frf))
+        model.update(judgement=[j.to_dict() for j in two_j], model_passed=bool(two_j) and all(j.passed for j in two_j))
     else:
         model["error"] = "the model fit failed; see report.txt"
     direct = getattr(res, "direct_model", None)
     if cfg.model.direct:
         # model.json holds the direct model; the two-step one it started from is kept beside it.
         (out / "model_two_step.json").write_text(json.dumps(model, indent=2))
-        model = {"torchblur_version": tb.__version__, "seed": int(cfg.seed)}
+        two_step, model = model, {"torchblur_version": tb.__version__, "seed": int(cfg.seed)}
         if direct is not None:
-            model.update(direct.to_dict())
+            model.update(inflate(direct, d_j).to_dict())
+            model.update(judgement=[j.to_dict() for j in d_j], model_passed=bool(d_j) and d_j[0].passed)
+            if not model["model_passed"] and two_step.get("model_passed"):
+                model = {**two_step, "rejected_direct_model": model}
+        elif two_step.get("model_passed"):
+            model = {**two_step, "direct_model_error": "the direct fit failed or was skipped; see report.txt"}
         else:
             model["error"] = "the direct fit failed or was skipped; see report.txt (the two-step model is in model_two_step.json)"
     (out / "model.json").write_text(json.dumps(model, indent=2))
@@ -751,7 +765,7 @@ def _report(cfg, res, elapsed, stamp) -> tuple[str, str]:
         if frf.is_siso:
             _, _, em, ep, z = summary[0]
             lines += ["", f"against the truth: max |H| error {em * 100:.3f}% (goal 1%), max phase error "
-                          f"{ep:.3f} deg (goal 1 deg), max error/std {z:.2f} (goal 5)"]
+                          f"{ep:.3f} deg (goal 1 deg), max error/std {z:.2f} (goal 5){_goal_note(em, ep, z, 0.01, 1.0)}"]
         else:
             lines += ["", "against the truth, per channel (goal 2% and 2 deg):"]
             for (out_l, in_l, em, ep, z), (o, i) in zip(summary, [(o, i) for o in range(frf.n_outputs) for i in range(frf.n_inputs)]):
@@ -760,10 +774,11 @@ def _report(cfg, res, elapsed, stamp) -> tuple[str, str]:
                                  f"(max |H| / std {np.nanmax(frf.magnitude[o, i] / frf.magnitude_std[o, i]):.2f})")
                     continue
                 lines.append(f"  {out_l:>6} from {in_l}: max |H| error {em * 100:.3f}%, max phase error {ep:.3f} deg, "
-                             f"max error/std {z:.2f}")
+                             f"max error/std {z:.2f}{_goal_note(em, ep, z, 0.02, 2.0)}")
     quality = _fit_quality(res.fit, cfg.fit.poor_fit_chi2)[1]
     if quality is not None:
         lines += ["", quality]
+    from torchblur.identify.model import model_parameter_lines
     from torchblur.identify.verdict import report_lines
 
     lines += ["", *report_lines(frf, cfg)]
@@ -772,21 +787,18 @@ def _report(cfg, res, elapsed, stamp) -> tuple[str, str]:
         lines += ["", f"model: {m.n_poles} poles, {m.n_zeros} zeros, delay {m.delay_s * 1e6:.3f} us, reduced chi2 "
                       f"{m.reduced_chi2:.3f} (dof {m.dof}), rms relative error {m.rms_relative_error:.2e}",
                   f"  num = {list(map(float, m.num))}", f"  den = {list(map(float, m.den))}"]
-        for mode in m.modal_parameters():
-            lines.append(f"  mode: {mode['freq_hz']:.3f} Hz, damping {mode['zeta']:.4f}")
+        lines += model_parameter_lines(m)
         if cfg.model.direct:
             lines.append("  (the two-step model: model_two_step.json)")
     elif res.model is not None:
         m = res.model
-        modes = m.modal_parameters()
         for o, out_l in enumerate(m.output_labels):
             for i, in_l in enumerate(m.input_labels):
                 lines += ["", f"model {out_l} from {in_l}: {m.n_poles[o][i]} poles, {m.n_zeros[o][i]} zeros, delay "
                               f"{m.delay_s[o][i] * 1e6:.3f} us, reduced chi2 {m.reduced_chi2[o][i]:.3f} (dof {m.dof[o][i]}), "
                               f"rms relative error {m.rms_relative_error[o][i]:.2e}",
                           f"  num = {list(map(float, m.num[o][i]))}", f"  den = {list(map(float, m.den[o][i]))}"]
-                for mode in modes[o][i]:
-                    lines.append(f"  mode: {mode['freq_hz']:.3f} Hz, damping {mode['zeta']:.4f}")
+                lines += model_parameter_lines(m, o, i)
     d = getattr(res, "direct_model", None)
     if d is not None:
         lines += ["", f"direct model ({d.form}, fitted to every image; model.json): delay {d.delay_s * 1e6:.3f} us, reduced chi2 "
@@ -796,8 +808,15 @@ def _report(cfg, res, elapsed, stamp) -> tuple[str, str]:
         for mode in d.modal_parameters():
             lines.append(f"  mode: {mode['freq_hz']:.3f} +- {mode['freq_hz_std']:.3f} Hz, damping {mode['zeta']:.4f} +- "
                          f"{mode['zeta_std']:.4f}, gain {mode['gain']:.4g} +- {mode['gain_std']:.2g}")
+        from torchblur.sysid.model_check import judge_fit
+
+        for j in judge_fit(d, "direct"):
+            if not j.passed:
+                lines.append(f"  the direct model fails the verdict's rule ({j.reason}): the stds above understate its error; "
+                             "see the verdict for the model model.json holds")
     elif cfg.model.direct:
-        lines += ["", "direct model: none (see the log above); model.json holds the error, model_two_step.json the two-step model"]
+        lines += ["", "direct model: none (see the log above); model.json holds the two-step model where it passed the verdict's "
+                      "rule (else the error), model_two_step.json the two-step model"]
     what = "simulated acquisition" if cfg.rig.kind == "simulated" else "acquisition"
     t = getattr(res, "timing", {}) or {}
     lines += ["", f"elapsed {elapsed:.1f} s ({what} and fitting)"]
@@ -806,6 +825,18 @@ def _report(cfg, res, elapsed, stamp) -> tuple[str, str]:
                      f"{t['fit_chunks']} chunk(s) of which {t['fit_overlapped_s']:.2f} s during the sweep, "
                      f"{t['after_sweep_s']:.2f} s after the last frame")
     return title, "\n".join(lines) + "\n"
+
+
+def _goal_note(err_rel, err_deg, z, goal_rel, goal_deg) -> str:
+    """What a goal line says beside its figures, so that it never contradicts the verdict: nothing
+    when the relative goals are met; else whether the errors are within 5 of their stds (the
+    channel's precision does not reach the goal: its stds say so, the figures are not wrong) or
+    beyond them (wrong beyond its stds)."""
+    if not (math.isfinite(err_rel) and math.isfinite(err_deg) and math.isfinite(z)) or (err_rel <= goal_rel and err_deg <= goal_deg):
+        return ""
+    if z <= 5:
+        return "; goal not met: the points' stds are larger than the goal (within 5 std of the truth: imprecise, not wrong)"
+    return "; goal not met: beyond 5 std of the truth (wrong beyond its stds)"
 
 
 class _Version(argparse.Action):

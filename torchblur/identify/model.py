@@ -16,7 +16,7 @@ from torchblur.sysid.direct import fit_direct
 from torchblur.sysid.flags import POOR_FIT
 from torchblur.sysid.tf_fit import fit_transfer_function
 
-__all__ = ["fit_direct_model", "fit_model", "model_exclusions", "modes_outside_band", "points_needed"]
+__all__ = ["fit_direct_model", "fit_model", "model_exclusions", "model_parameter_lines", "modes_outside_band", "points_needed"]
 
 
 def points_needed(model_cfg) -> int:
@@ -96,6 +96,46 @@ def fit_model(cfg, frf, log=None, progress: bool = False):
                 log_message(log, f"model {out} from {inp}: {model.n_poles[o][i]} poles, {model.n_zeros[o][i]} zeros, delay "
                           f"{model.delay_s[o][i] * 1e6:.2f} us, reduced chi2 {model.reduced_chi2[o][i]:.3f}", progress)
     return model
+
+
+def _pm(value: float, std: float, fmt: str) -> str:
+    """``"419.853 +- 0.12"`` (``"+- ?"`` where the std is unknown)."""
+    return f"{value:{fmt}} +- {std:.2g}" if math.isfinite(std) else f"{value:{fmt}} +- ?"
+
+
+def model_parameter_lines(model, o: int = 0, i: int = 0) -> list[str]:
+    """The report's lines on channel (o, i) of a two-step model (a TransferFunctionFit): its
+    parameters with their stds (modes, DC gain, delay, real poles and zeros) and the table of
+    the orders compared, the chosen one marked, under the stated criterion."""
+    pick = (lambda v: v) if model.is_siso else (lambda v: v[o][i])
+    lines = []
+    for kind, word in (("poles", "mode"), ("zeros", "anti-resonance")):
+        modes = model.modal_parameters(kind)
+        for m in pick(modes):
+            lines.append(f"  {word}: {_pm(m['freq_hz'], m['freq_hz_std'], '.3f')} Hz, damping {_pm(m['zeta'], m['zeta_std'], '.4f')}")
+    names = model.channel_parameters(o, i)[0]
+    for name in names:
+        v, sd = model.parameter(name, o, i)
+        if name == "dc_gain":
+            lines.append(f"  dc gain: {_pm(v, sd, '.5g')}")
+        elif name == "delay_s":
+            lines.append(f"  delay: {_pm(v * 1e6, sd * 1e6, '.3f')} us")
+        elif name.endswith("_rate"):
+            lines.append(f"  real {'pole' if name[0] == 'p' else 'zero'} at -{_pm(v / (2 * math.pi), sd / (2 * math.pi), '.4g')} Hz")
+    if not names:
+        lines.append("  (no parameter covariance)")
+    rows = pick(model.candidates)
+    if rows:
+        crit = model.order_criterion
+        how = ("orders fixed by the config" if crit == "fixed" else
+               "order chosen by the smallest BIC = chi2 + P ln(2 N) (N points, P parameters; chi2 after a short polish, the "
+               "chosen one's after the full one; the scan stops once larger orders cannot win)")
+        lines.append(f"  {how}:")
+        lines.append(f"    {'poles':>5} {'zeros':>5} {'P':>3} {'chi2':>11} {'dof':>4} {'red chi2':>9} {'BIC':>11}")
+        for r in rows:
+            lines.append(f"    {r['n_poles']:5d} {r['n_zeros']:5d} {r['n_params']:3d} {r['chi2']:11.4g} {r['dof']:4d} "
+                         f"{r['reduced_chi2']:9.3g} {r['bic']:11.4g}" + ("  <- chosen" if r["chosen"] else ""))
+    return lines
 
 
 def modes_outside_band(modes, f_lo_hz: float, f_hi_hz: float, factor: float = 3.0) -> list:

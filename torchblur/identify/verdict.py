@@ -11,6 +11,7 @@ each flag: :mod:`torchblur.identify.assemble` and docs/reliability.md ("Per-poin
 from __future__ import annotations
 
 import math
+import dataclasses
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -18,8 +19,10 @@ import numpy as np
 from torchblur.identify.assemble import timing_limit_hz
 from torchblur.identify.model import model_exclusions
 from torchblur.sysid.flags import ALIAS, FAILED, LIMITED, NO_MOTION, POOR_FIT, TIMING, UNTRUSTED, flag_names
+from torchblur.sysid.model_check import DISAGREE_SIGMA, MODEL_CHI2_FLOOR, ModelJudgement, disagreements, judge_fit, model_chi2_limit
 
-__all__ = ["EXIT_FLAGGED", "TRUTH_BOUND", "Verdict", "listed", "report_lines", "timing_band_hz", "truth_disagreement", "verdict"]
+__all__ = ["EXIT_FLAGGED", "MODEL_CHI2_FLOOR", "TRUTH_BOUND", "Verdict", "judge_models", "listed", "model_chi2_limit", "report_lines",
+           "timing_band_hz", "truth_disagreement", "verdict"]
 
 #: exit status of a run that completed, results written, with points flagged poor_fit, timing or failed
 #: (3 is taken: the rig stopped the run)
@@ -62,6 +65,8 @@ class Verdict:
     alias: int = 0
     beyond_truth: int | None = None
     model_beyond_truth: int | None = None
+    models: tuple = ()  # ModelJudgement per model (and per channel) the run reports: judge_models
+    disagree: tuple = ()  # "param: a +- sa vs b +- sb" where the two-step and direct models differ beyond their stds
 
     def to_dict(self) -> dict:
         """The fields as a strict-JSON dict (an infinite ``timing_limit_hz`` as null)."""
@@ -123,7 +128,7 @@ def _tolerances(frf, cfg) -> tuple[float, float]:
     return float(a.get("poor_fit_chi2", 1.5)), float(a.get("tolerance_deg", 1.0))
 
 
-def verdict(frf, cfg=None, *, motion_px=None, model=None, truth=None) -> Verdict:
+def verdict(frf, cfg=None, *, motion_px=None, model=None, direct=None, expected=(), truth=None) -> Verdict:
     """The verdict on ``frf`` (its :attr:`~torchblur.sysid.frequency_response.FrequencyResponse.flags`).
 
     Args:
@@ -133,6 +138,13 @@ def verdict(frf, cfg=None, *, motion_px=None, model=None, truth=None) -> Verdict
         motion_px: optional [O, I, F] motion each point reached (px), named for limited points.
         model: the run's fitted model (a TransferFunctionFit), or None: a model whose reduced
             chi2 is above :func:`model_chi2_limit` makes the run untrustworthy (:func:`model_adequacy`).
+        direct: the run's direct model (a DirectModelFit, ``model.direct``), or None. Every
+            model (each channel of a MIMO one) is judged by one rule
+            (:mod:`torchblur.sysid.model_check`): one that fails it makes the run
+            untrustworthy and is named; so do a direct and a two-step model that disagree
+            beyond their combined stds (:func:`judge_models`).
+        expected: the models the run was to fit (``"two-step"``, ``"direct"``): one of them
+            None (its fit failed: too few points, no valid channel) fails too.
         truth: the true response where it is known (a simulated rig), ``[O, I, F]`` or ``[F]``
             complex, or None: points or a model beyond :data:`TRUTH_BOUND` of their stds from it
             make the run untrustworthy, whatever the flags say (:func:`truth_disagreement`).
@@ -146,6 +158,8 @@ def verdict(frf, cfg=None, *, motion_px=None, model=None, truth=None) -> Verdict
     bad = (flags & UNTRUSTED) != 0
     n, k = int(flags.size), int(bad.sum())
     m_chi2, m_poor = model_adequacy(model)
+    judged, disagree, models_part = judge_models(model, direct, expected)
+    m_poor = m_poor or bool(models_part)
     band = timing_band_hz(frf, tol_deg)
     word = "points" if frf.is_siso else "channel points"
     limited = ""
@@ -154,7 +168,8 @@ def verdict(frf, cfg=None, *, motion_px=None, model=None, truth=None) -> Verdict
     beyond, m_beyond = truth_disagreement(frf, truth, model)
     t_bad = beyond is not None and bool(beyond.any() or m_beyond.any())
     model_part = (f"; the model does not explain the response (reduced chi2 {m_chi2:.3g} over {int(model.dof)} dof, above "
-                  f"{model_chi2_limit(model.dof):.3g}): do not use model.json" if m_poor else "")
+                  f"{model_chi2_limit(model.dof):.3g}): do not use model.json" if model_adequacy(model)[1] and direct is None
+                  else models_part)
     model_part += _truth_part(frf, beyond, m_beyond) if t_bad else ""
     if not k and not m_poor and not t_bad:
         unknown = int((~np.isfinite(frf.reduced_chi2) & frf.valid).sum())
@@ -185,7 +200,7 @@ def verdict(frf, cfg=None, *, motion_px=None, model=None, truth=None) -> Verdict
                    limited=int(has[LIMITED].sum()), timing_limit_hz=band, no_motion=int(has[NO_MOTION].sum()),
                    model_reduced_chi2=m_chi2, model_poor=m_poor, alias=int(has[ALIAS].sum()),
                    beyond_truth=None if beyond is None else int(beyond.sum()),
-                   model_beyond_truth=None if m_beyond is None else int(m_beyond.sum()))
+                   model_beyond_truth=None if m_beyond is None else int(m_beyond.sum()), models=judged, disagree=tuple(disagree))
 
 
 #: the truth guard's bound: with the truth known (simulated rigs), a point whose error is more than
@@ -232,15 +247,51 @@ def _truth_part(frf, beyond, m_beyond) -> str:
     return "; " + " and ".join(parts) + ": not trustworthy whatever the flags say"
 
 
-#: a model whose reduced chi2 is above max(MODEL_CHI2_FLOOR, 1 + 4 sqrt(2 / dof)) does not explain the
-#: response it was fitted to (a chi2 test at about 4 sigma, and never below 2: the points' stds are
-#: estimates): the verdict says so and the run is not trustworthy.
-MODEL_CHI2_FLOOR = 2.0
+# MODEL_CHI2_FLOOR and model_chi2_limit (the rule's limit: a chi2 test at about 4 sigma, never below 2)
+# live in torchblur.sysid.model_check, the one rule every model of a run is judged by; imported above.
 
 
-def model_chi2_limit(dof) -> float:
-    """The largest reduced chi2 a model with ``dof`` degrees of freedom may have (see :data:`MODEL_CHI2_FLOOR`)."""
-    return max(MODEL_CHI2_FLOOR, 1.0 + 4.0 * math.sqrt(2.0 / max(int(dof), 1)))
+def _none_passed(bad) -> str:
+    """The verdict's words when no model passed (model.json's ``model_passed`` is false)."""
+    inflated = any(j.std_factor != 1.0 for j in bad)
+    return "no model passed" + (": model.json's stds are inflated by sqrt(reduced chi2) where the chi2 failed" if inflated else
+                                ": model.json says so (model_passed false)")
+
+
+def judge_models(model, direct=None, expected=()) -> tuple[tuple, list[str], str]:
+    """Every model of the run judged by one rule (:func:`torchblur.sysid.model_check.judge_model`):
+    ``(judgements, disagreements, verdict text)``. The two-step ``model`` (a TransferFunctionFit,
+    each channel of a MIMO one) and the ``direct`` one (a DirectModelFit: named ``"direct"``, or
+    ``"modal"`` for that form); the text (``""`` when all pass and agree) names each model that
+    fails and why, the model the run's model.json then holds, and the parameters on which the
+    direct and two-step models disagree beyond
+    :data:`~torchblur.sysid.model_check.DISAGREE_SIGMA` combined stds."""
+    if model is not None and not hasattr(model, "is_siso"):
+        return (), [], ""  # a bare (reduced_chi2, dof) record: model_adequacy judges it
+    two = judge_fit(model, "two-step")
+    d_name = "modal" if getattr(direct, "form", "") == "modal" else "direct"
+    dj = judge_fit(direct, d_name)
+    disagree = disagreements(direct, model) if model is not None and model.is_siso and direct is not None else []
+    if disagree and dj and dj[0].passed and all(j.passed for j in two):
+        # Both explain their data, yet differ beyond their stds: the two-step points were each
+        # tested against their images (and fitted with the measured kernel where the still asked
+        # for it), the direct model with the Gaussian only: the direct model is the one set aside.
+        dj = (dataclasses.replace(dj[0], passed=False, reason=f"it disagrees with the two-step model beyond "
+                                  f"{DISAGREE_SIGMA:g} combined stds"),)
+    missing = tuple(ModelJudgement(name, False, None, None, None, "its fit failed: no model (see the log)")
+                    for name, m in (("two-step", model), ("direct", direct)) if name in expected and m is None)
+    judged = two + dj + missing
+    bad = [j for j in judged if not j.passed]
+    parts = [f"the {j.name} model fails ({j.reason})" for j in bad]
+    if bad and (direct is not None or "direct" in expected):
+        keep = "the direct model" if dj and dj[0].passed else "the two-step model" if two and all(j.passed for j in two) else None
+        parts.append(f"model.json holds {keep}" if keep else _none_passed(bad))
+    elif bad:
+        parts.append(_none_passed(bad))
+    if disagree:
+        parts.append(f"the {d_name} and two-step models disagree beyond {DISAGREE_SIGMA:g} combined stds on "
+                     f"{'; '.join(disagree)}")
+    return judged, disagree, "".join(f"; {p}" for p in parts)
 
 
 def model_adequacy(model) -> tuple[float | None, bool]:

@@ -80,6 +80,7 @@ _MODAL_KINDS = ("poles", "zeros")
 _DELAY_FORMS = (None, "pade", "frd")
 _SCHEMA = "torchblur.transfer_function_fit"
 _STAMP_KEYS = ("torchblur_version", "seed")  # written beside the fit into model.json by the CLI
+_VERDICT_KEYS = ("judgement", "model_passed", "rejected_direct_model", "direct_model_error")  # the verdict's, beside the fit in model.json (ignored)
 _FLOOR_RTOL = 1e-9
 _GRID_SK_ITER = 6
 _PATIENCE = 6
@@ -111,6 +112,25 @@ class TransferFunctionFit:
         weighting: "uncertainty", "uniform" or "array" (the weighting actually used).
         delay_estimated: whether the delay was a free parameter.
         input_labels, output_labels: channel names from the FRF.
+        param_names: the model's parameters in natural units:
+            ``"dc_gain"`` (FRF units), per quadratic factor of the poles ``"p{k}_omega_n"``
+            (rad/s) and ``"p{k}_zeta"`` (sorted by omega_n; zeta >= 1 is a pair of real poles),
+            per linear factor ``"p{k}_rate"`` (rad/s, the pole is at -rate), the same for the
+            zeros with ``"z"`` (a quadratic zero factor with a non-positive constant term as
+            ``"z{k}_a1"`` rad/s, ``"z{k}_a0"`` rad^2/s^2 of ``s^2 + a1 s + a0``), and
+            ``"delay_s"`` when estimated.
+        params: [P] their values.
+        covariance: [P, P] their covariance: the weighted least-squares Jacobian's
+            ``(J^T J)^-1`` at the optimum (Gauss-Newton), carried to the natural parameters by
+            the delta method; with ``weighting="uncertainty"`` (the noise scale known) as it
+            is, otherwise scaled by ``reduced_chi2`` (the noise estimated from the residuals).
+            NaN where ``J`` is rank deficient (a parameter the data do not determine).
+        std: [P] ``sqrt(diag(covariance))``.
+        candidates: the orders compared (:func:`fit_transfer_function`'s order selection):
+            dicts ``{"n_poles", "n_zeros", "n_params", "chi2", "dof", "reduced_chi2", "bic",
+            "chosen"}`` in the order tried (the scan's chi2 after a short polish; the chosen
+            one's after the full polish). One row when both orders were given.
+        order_criterion: how the order was chosen (``"BIC"``, or ``"fixed"``).
     """
 
     num: list
@@ -129,6 +149,12 @@ class TransferFunctionFit:
     delay_estimated: bool
     input_labels: tuple[str, ...]
     output_labels: tuple[str, ...]
+    param_names: Any = ()
+    params: Any = None
+    covariance: Any = None
+    std: Any = None
+    candidates: Any = ()
+    order_criterion: str = "BIC"
 
     @property
     def is_siso(self) -> bool:
@@ -228,14 +254,34 @@ class TransferFunctionFit:
 
         Returns:
             SISO: a list, sorted by frequency, of dicts ``{"omega_n": rad/s, "freq_hz": Hz,
-            "zeta": damping ratio}`` with omega_n = |p| and zeta = -Re(p) / |p|, one per pair
-            p, conj(p) with Im p > 0 (real roots are left out). MIMO: nested lists [O][I].
+            "zeta": damping ratio, "omega_n_std", "freq_hz_std", "zeta_std"}`` with
+            omega_n = |p| and zeta = -Re(p) / |p|, one per pair p, conj(p) with Im p > 0 (real
+            roots are left out); the stds from :attr:`covariance` (NaN where unknown). MIMO:
+            nested lists [O][I].
         """
         if kind not in _MODAL_KINDS:
             raise ParameterError(f"kind: must be one of {set(_MODAL_KINDS)}, got {excerpt(kind)}")
         roots = self._channels(kind)
-        out = [[_modes(roots[o][i]) for i in range(len(self.input_labels))] for o in range(len(self.output_labels))]
+        out = [[_modes(roots[o][i], kind[0], *self.channel_parameters(o, i)) for i in range(len(self.input_labels))]
+               for o in range(len(self.output_labels))]
         return out[0][0] if self.is_siso else out
+
+    def channel_parameters(self, o: int = 0, i: int = 0) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
+        """``(param_names, params [P], std [P])`` of channel (output o, input i); empty when
+        the fit carries no covariance (a fit built by hand, or read from an older file)."""
+        if self.params is None:
+            return (), np.zeros(0), np.zeros(0)
+        names, vals, std = (self._channels(f)[o][i] for f in ("param_names", "params", "std"))
+        return tuple(names), np.asarray(vals, dtype=np.float64), np.asarray(std, dtype=np.float64)
+
+    def parameter(self, name: str, o: int = 0, i: int = 0) -> tuple[float, float]:
+        """``(value, std)`` of the named natural parameter of channel (o, i) (see
+        :attr:`param_names`); ``(nan, nan)`` when the fit has no such parameter."""
+        names, vals, std = self.channel_parameters(o, i)
+        if name not in names:
+            return math.nan, math.nan
+        k = names.index(name)
+        return float(vals[k]), float(std[k])
 
     def to_dict(self) -> dict[str, Any]:
         """A JSON-serialisable dict: coefficients, delay, orders, fit statistics, roots.
@@ -265,7 +311,27 @@ class TransferFunctionFit:
         doc["delay_estimated"] = bool(self.delay_estimated)
         doc["input_labels"] = list(self.input_labels)
         doc["output_labels"] = list(self.output_labels)
+        if self.params is not None:
+            doc.update(self._uncertainty_dict(conv))
         return doc
+
+    def _uncertainty_dict(self, conv) -> dict[str, Any]:
+        """model.json's keys of the parameters' uncertainty and the order selection:
+        ``param_names``, ``params``, ``std``, ``covariance`` (per channel, nested [O][I] for MIMO),
+        ``candidates`` (rows of :attr:`candidates`) and ``order_criterion``."""
+
+        def per_channel(f, fn):
+            v = self._channels(f)
+            out = [[fn(v[o][i]) for i in range(len(self.input_labels))] for o in range(len(self.output_labels))]
+            return out[0][0] if self.is_siso else out
+
+        def rows(table):
+            return [{k: (bool(v) if k == "chosen" else int(v) if k in ("n_poles", "n_zeros", "n_params", "dof") else _jf(v))
+                     for k, v in r.items()} for r in table]
+
+        return {"param_names": per_channel("param_names", list), "params": per_channel("params", conv),
+                "std": per_channel("std", conv), "covariance": per_channel("covariance", conv),
+                "candidates": per_channel("candidates", rows), "order_criterion": self.order_criterion}
 
     @classmethod
     def from_dict(cls, doc: dict) -> "TransferFunctionFit":
@@ -291,7 +357,7 @@ class TransferFunctionFit:
                  "chi2": "float", "dof": "int", "reduced_chi2": "float", "rms_relative_error": "float",
                  "poles": "roots", "zeros": "roots"}
         known = set(kinds) | {"schema", "schema_version", "dc_gain", "weighting", "delay_estimated", "input_labels", "output_labels"}
-        unknown = set(doc) - known - set(_STAMP_KEYS)
+        unknown = set(doc) - known - set(_STAMP_KEYS) - set(_UNCERTAINTY_KEYS) - set(_VERDICT_KEYS)
         if unknown:
             raise ParameterError(f"doc: unknown keys {sorted(unknown)}; expected keys {sorted(known)}")
         missing = known - set(doc)
@@ -317,7 +383,9 @@ class TransferFunctionFit:
             dc = _dc_gain(fields["num"], fields["den"])
         else:
             dc = [[_dc_gain(n, d) for n, d in zip(nr, dr)] for nr, dr in zip(fields["num"], fields["den"])]
-        return cls(**fields, dc_gain=dc, weighting=str(doc["weighting"]), delay_estimated=bool(doc["delay_estimated"]), **labels)
+        extra = _uncertainty_from_dict(doc, siso, n_o, n_i)
+        return cls(**fields, dc_gain=dc, weighting=str(doc["weighting"]), delay_estimated=bool(doc["delay_estimated"]), **labels,
+                   **extra)
 
     def to_json(self, path: str | os.PathLike) -> None:
         """Write :meth:`to_dict` to a strict JSON file (read it back with :meth:`from_json`)."""
@@ -358,6 +426,43 @@ def _dc_gain(num, den) -> float:
     return math.copysign(math.inf, num[-1]) if num[-1] else math.nan
 
 
+_UNCERTAINTY_KEYS = ("param_names", "params", "std", "covariance", "candidates", "order_criterion")
+
+
+def _uncertainty_from_dict(doc: dict, siso: bool, n_o: int, n_i: int) -> dict[str, Any]:
+    """The :attr:`TransferFunctionFit.covariance` fields read back from ``doc`` (all of
+    :data:`_UNCERTAINTY_KEYS`, or none: a file written before they existed)."""
+    have = [k for k in _UNCERTAINTY_KEYS if k in doc]
+    if not have:
+        return {}
+    if len(have) != len(_UNCERTAINTY_KEYS):
+        raise ParameterError(f"doc: missing keys {sorted(set(_UNCERTAINTY_KEYS) - set(have))} (it has {sorted(have)})")
+
+    def one(names, vals, std, cov, rows):
+        try:
+            names = tuple(str(n) for n in names)
+            vals, std = (np.array([math.nan if x is None else x for x in v], dtype=np.float64) for v in (vals, std))
+            cov = np.array([[math.nan if x is None else x for x in r] for r in cov], dtype=np.float64).reshape(len(names), len(names))
+            rows = tuple({k: (math.nan if v is None else v) for k, v in dict(r).items()} for r in rows)
+        except (TypeError, ValueError) as exc:
+            raise ParameterError(f"params: expected param_names, params, std, covariance and candidates as to_dict writes "
+                                 f"them ({exc})") from None
+        if vals.shape != (len(names),) or std.shape != vals.shape:
+            raise ParameterError(f"params: expected {len(names)} values and stds (one per name), got {vals.size} and {std.size}")
+        return names, vals, std, cov, rows
+
+    keys = ("param_names", "params", "std", "covariance", "candidates")
+    if siso:
+        names, vals, std, cov, rows = one(*(doc[k] for k in keys))
+    else:
+        if any(not isinstance(doc[k], list) or len(doc[k]) != n_o or any(len(r) != n_i for r in doc[k]) for k in keys):
+            raise ParameterError(f"params: expected nested lists [O][I] = [{n_o}][{n_i}] for a MIMO fit")
+        chans = [[one(*(doc[k][o][i] for k in keys)) for i in range(n_i)] for o in range(n_o)]
+        names, vals, std, cov, rows = ([[c[j] for c in row] for row in chans] for j in range(5))
+    return {"param_names": names, "params": vals, "std": std, "covariance": cov, "candidates": rows,
+            "order_criterion": str(doc["order_criterion"])}
+
+
 def _from_json_value(v, key: str, kind: str):
     """One channel's value of :meth:`TransferFunctionFit.to_dict` read back: ``kind`` "float"
     (None = NaN), "int", "coeffs" (a list of floats) or "roots" (``{"real", "imag"}``)."""
@@ -384,12 +489,20 @@ def _jf(x):
     return x if math.isfinite(x) else None
 
 
-def _modes(roots: np.ndarray) -> list[dict[str, float]]:
+def _modes(roots: np.ndarray, prefix: str = "p", names=(), vals=None, std=None) -> list[dict[str, float]]:
+    """The complex pairs of ``roots`` as mode dicts, with the stds of the natural parameters
+    ``{prefix}{k}_omega_n`` / ``_zeta`` of the same factor (matched by omega_n) where known."""
+    factors = [(float(vals[j]), float(std[j]), float(std[j + 1])) for j, n in enumerate(names)
+               if n.startswith(prefix) and n.endswith("_omega_n")]
     modes = []
     for r in np.asarray(roots, dtype=np.complex128):
         if r.imag > 0:
             wn = float(abs(r))
-            modes.append({"omega_n": wn, "freq_hz": wn / (2.0 * np.pi), "zeta": float(-r.real / wn)})
+            sd = min(factors, key=lambda f: abs(f[0] - wn), default=(wn, math.nan, math.nan))
+            if not abs(sd[0] - wn) <= 1e-6 * wn:
+                sd = (wn, math.nan, math.nan)
+            modes.append({"omega_n": wn, "freq_hz": wn / (2.0 * np.pi), "zeta": float(-r.real / wn),
+                          "omega_n_std": sd[1], "freq_hz_std": sd[1] / (2.0 * np.pi), "zeta_std": sd[2]})
     return sorted(modes, key=lambda m: m["omega_n"])
 
 
@@ -753,7 +866,7 @@ def _fit_channel(data: _Data, orders, delay_s, n_iter, stable, sigma2_known: boo
     todo = sorted(
         ((1 + nz + npo + extra, npo, nz) for npo, nz in orders if 1 + nz + npo + extra < data.n_obs)
     )
-    best, best_crit = None, math.inf
+    best, best_crit, rows, chosen = None, math.inf, [], -1
     for n_params, npo, nz in todo:
         if _criterion(0.0, n_params, data, sigma2_known, floor) >= best_crit:
             break  # exact: no candidate with this many parameters can win
@@ -764,14 +877,86 @@ def _fit_channel(data: _Data, orders, delay_s, n_iter, stable, sigma2_known: boo
         if c is None or not math.isfinite(c.chi2):
             continue
         crit = _criterion(c.chi2, n_params, data, sigma2_known, floor)
+        rows.append(_candidate_row(c, crit, data.n_obs))
         if crit < best_crit:
-            best, best_crit = c, crit
+            best, best_crit, chosen = c, crit, len(rows) - 1
     if best is not None and len(todo) > 1:
         best = _polish(best, data, stable, _FINAL_NFEV * (best.n_params + 1))
-    return best
+    if best is not None:
+        rows[chosen] = {**_candidate_row(best, _criterion(best.chi2, best.n_params, data, sigma2_known, floor), data.n_obs),
+                        "chosen": True}
+    return best, rows
 
 
-def _physical(c: _Cand, data: _Data) -> dict[str, Any]:
+def _candidate_row(c: _Cand, crit: float, n_obs: int) -> dict[str, Any]:
+    """One row of :attr:`TransferFunctionFit.candidates`."""
+    dof = n_obs - c.n_params
+    return {"n_poles": c.n_poles, "n_zeros": c.n_zeros, "n_params": c.n_params, "chi2": c.chi2, "dof": dof,
+            "reduced_chi2": c.chi2 / dof, "bic": crit, "chosen": False}
+
+
+def _natural(theta: np.ndarray, nz: int, npo: int, est_tau: bool, scale: float, order=None):
+    """``(names, values [P])``: the natural parameters of a factored model (see
+    :attr:`TransferFunctionFit.param_names`); ``order`` fixes the quadratic factors' order
+    (``(zero order, pole order)``, by their constant terms; computed when None)."""
+    k, zq, zl, pq, pl, rest = _split(theta, nz, npo)
+    if order is None:
+        order = (np.argsort(zq[:, 1], kind="stable"), np.argsort(pq[:, 1], kind="stable"))
+    with np.errstate(all="ignore"):
+        dc = k * np.prod(zq[:, 1]) * np.prod(zl) / (np.prod(pq[:, 1]) * np.prod(pl))
+        names, vals = ["dc_gain"], [float(dc)]
+        for pre, quads, lins, idx in (("z", zq, zl, order[0]), ("p", pq, pl, order[1])):
+            for n, (a1, a0) in enumerate(quads[idx], start=1):
+                if a0 > 0:
+                    names += [f"{pre}{n}_omega_n", f"{pre}{n}_zeta"]
+                    vals += [math.sqrt(a0) * scale, a1 / (2.0 * math.sqrt(a0))]
+                else:
+                    names += [f"{pre}{n}_a1", f"{pre}{n}_a0"]
+                    vals += [a1 * scale, a0 * scale * scale]
+            for c in lins:
+                names.append(f"{pre}{len(quads) + 1}_rate")
+                vals.append(c * scale)
+    if est_tau:
+        names.append("delay_s")
+        vals.append(rest[0] / scale)
+    return tuple(names), np.array(vals, dtype=np.float64)
+
+
+def _covariance(c: _Cand, data: _Data, sigma2_known: bool):
+    """``(names, values [P], covariance [P, P])`` of the natural parameters at the optimum
+    ``c``: Gauss-Newton ``(J^T J)^-1`` of the whitened residuals (scaled by chi2 / dof when the
+    noise scale is not known), carried over by the delta method (central differences)."""
+    nz, npo, theta = c.n_zeros, c.n_poles, c.theta
+    k, zq, zl, pq, pl, rest = _split(theta, nz, npo)
+    order = (np.argsort(zq[:, 1], kind="stable"), np.argsort(pq[:, 1], kind="stable"))
+    names, vals = _natural(theta, nz, npo, c.est_tau, data.scale, order)
+    nan = np.full((vals.size, vals.size), math.nan)
+    with np.errstate(all="ignore"):
+        _, j = _model(theta, nz, npo, c.est_tau, c.tau_fixed, data, True)
+        jw = _whiten(j, data)
+    if not np.all(np.isfinite(jw)):
+        return names, vals, nan
+    _, sv, vt = np.linalg.svd(jw, full_matrices=False)
+    if not sv.min() > 1e-10 * sv.max():
+        return names, vals, nan  # a parameter the data do not determine
+    cov_t = (vt.T / sv ** 2) @ vt
+    dof = data.n_obs - c.n_params
+    if not sigma2_known:
+        cov_t = cov_t * (c.chi2 / dof)
+    jn = np.empty((vals.size, theta.size))
+    for p in range(theta.size):
+        h = 1e-6 * max(abs(float(theta[p])), 1e-3)
+        tp, tm = theta.copy(), theta.copy()
+        tp[p] += h
+        tm[p] -= h
+        jn[:, p] = (_natural(tp, nz, npo, c.est_tau, data.scale, order)[1]
+                    - _natural(tm, nz, npo, c.est_tau, data.scale, order)[1]) / (2.0 * h)
+    with np.errstate(all="ignore"):
+        cov = jn @ cov_t @ jn.T
+    return names, vals, np.where(np.isfinite(cov), cov, math.nan)
+
+
+def _physical(c: _Cand, data: _Data, sigma2_known: bool = True) -> dict[str, Any]:
     s = data.scale
     k, zq, zl, pq, pl, rest = _split(c.theta, c.n_zeros, c.n_poles)
     den = np.array([1.0])
@@ -789,7 +974,12 @@ def _physical(c: _Cand, data: _Data) -> dict[str, Any]:
         hm, _ = _model(c.theta, c.n_zeros, c.n_poles, c.est_tau, c.tau_fixed, data, False)
         rel = float(np.sqrt(np.mean(np.abs(hm - data.h) ** 2 / np.abs(data.h) ** 2)))
     dof = data.n_obs - c.n_params
+    names, vals, cov = _covariance(c, data, sigma2_known)
     return {
+        "param_names": names,
+        "params": vals,
+        "covariance": cov,
+        "std": np.sqrt(np.where(np.diag(cov) >= 0, np.diag(cov), math.nan)),
         "num": [float(x) for x in num],
         "den": [float(x) for x in den],
         "delay_s": tau,
@@ -903,14 +1093,14 @@ def fit_transfer_function(
             omega = frf.omega[m]
             data = _Data(omega=omega, h=frf.response[o, i, m], w00=w00[o, i, m], w10=w10[o, i, m], w11=w11[o, i, m],
                          wsc=wsc[o, i, m], scale=float(np.sqrt(omega[0] * omega[-1])))
-            best = _fit_channel(data, orders, delay_s, n_iter, stable, label == "uncertainty")
+            best, rows = _fit_channel(data, orders, delay_s, n_iter, stable, label == "uncertainty")
             if best is None:
                 raise ParameterError(
                     f"n_poles: no model of the requested order fits output {excerpt(frf.output_labels[o])}, "
                     f"input {excerpt(frf.input_labels[i])}: {int(np.sum(m))} valid points give {data.n_obs} real "
                     f"observations, fewer than the parameters plus one"
                 )
-            results[o][i] = _physical(best, data)
+            results[o][i] = {**_physical(best, data, label == "uncertainty"), "candidates": tuple(rows)}
 
     def field(name):
         if frf.is_siso:
@@ -918,9 +1108,10 @@ def fit_transfer_function(
         return [[results[o][i][name] for i in range(frf.n_inputs)] for o in range(frf.n_outputs)]
 
     names = ("num", "den", "delay_s", "n_poles", "n_zeros", "chi2", "dof", "reduced_chi2", "rms_relative_error", "poles",
-             "zeros", "dc_gain")
+             "zeros", "dc_gain", "param_names", "params", "covariance", "std", "candidates")
     return TransferFunctionFit(**{n: field(n) for n in names}, weighting=label, delay_estimated=delay_s is None,
-                               input_labels=tuple(frf.input_labels), output_labels=tuple(frf.output_labels))
+                               input_labels=tuple(frf.input_labels), output_labels=tuple(frf.output_labels),
+                               order_criterion="BIC" if len(orders) > 1 else "fixed")
 
 
 def _candidate_orders(n_poles, n_zeros, max_order, delay_s):
