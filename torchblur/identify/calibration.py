@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from torchblur.errors import ParameterError, as_unit_direction
+from torchblur.errors import ConfigError, ParameterError, as_unit_direction
 from torchblur.identify.config import LATENCY_SCAN, SATURATION_STEPS, latency_scan_times
 from torchblur.identify.drive import DriveLimit, at_limit, check_recorded_drive, drive_limit
 from torchblur.identify.record import log_message, run_stage
@@ -19,7 +19,7 @@ from torchblur.image.spots import locate_spots
 from torchblur.image.tracking import calibrate_axes
 from torchblur.render.camera import CameraNoise, camera_noise_std
 
-__all__ = ["Calibration", "MIN_INSIDE", "calibrate", "calibrate_latency"]
+__all__ = ["Calibration", "MIN_INSIDE", "calibrate", "calibrate_latency", "check_latency_source", "latency_given"]
 
 MIN_INSIDE = 0.5  # a spot with less of its still light in the frame is flagged, not fitted
 
@@ -57,6 +57,7 @@ class Calibration:
     axis_gain: float | None = None
     still_psf: object = None  # one spot: the StillPSF (fit.psf's choice and its evidence), else None
     drive: DriveLimit | None = None  # the run's input range (every command within drive.limit); None: no limit
+    latency_source: str = "scanned"  # "scanned" (laser pulses, rig.pulse) or "given" (camera.latency_s, camera.latency_std_s)
     noise: CameraNoise | None = None  # None: built from gain, dark and read_noise_e
 
     def __post_init__(self):
@@ -67,6 +68,11 @@ class Calibration:
     def input_limit(self) -> float:
         """The largest |command| (input units) the run may ask for (inf without a ``drive``)."""
         return math.inf if self.drive is None else float(self.drive.limit)
+
+    def limit_at(self, freq_hz: float) -> float:
+        """The largest sine amplitude (input units) at ``freq_hz`` Hz: the range and the slew limit
+        (:meth:`~torchblur.identify.drive.DriveLimit.at`; inf without a ``drive``)."""
+        return math.inf if self.drive is None else self.drive.at(freq_hz)
 
 
 #: dark frames of a calibration: the dark mean's noise is common to every frame and in no std (with
@@ -86,10 +92,11 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False, *, n_dark: i
     gain = float(c.gain)
     dtype = torch.float64
 
+    check_latency_source(cfg, rig)
     # 0. The input range, fixed before the first frame (a resumed recording must be within it).
-    drive = drive_limit(rig, cfg.excitation.max_amplitude, exp)
+    drive = drive_limit(rig, cfg.excitation.max_amplitude, exp, getattr(cfg.excitation, "max_slew", None))
     if exp is not None and exp.writable:
-        check_recorded_drive(exp, drive.limit)
+        check_recorded_drive(exp, drive.limit, drive.slew)
     log_message(log, drive.describe(), progress)
 
     # 1. Dark frame.
@@ -121,14 +128,21 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False, *, n_dark: i
         psf = still_psf.gaussian.psf
         peak_rate = float(psf.amplitude)  # electrons per second at power 1
 
-    # 4. Latency.
-    pulse_w = LATENCY_SCAN["pulse_width_s"]
-    latency, latency_std = run_stage(exp, "latency", "latency", rig, lambda r: calibrate_latency(
-        r, dark=dark, gain=gain, trigger_delay_s=c.trigger_delay_s, pulse_width_s=pulse_w,
-        power=c.peak_fraction * full_adu * gain / (peak_rate * pulse_w)))
-    log_message(log, f"latency: {latency * 1e6:.3f} +- {latency_std * 1e6:.3f} us", progress)
+    # 4. Latency: given (camera.latency_s, camera.latency_std_s), or scanned with laser pulses.
+    if latency_given(cfg):
+        latency, latency_std, latency_source = float(c.latency_s), float(c.latency_std_s), "given"
+        log_message(log, f"latency: {latency * 1e6:.3f} +- {latency_std * 1e6:.3f} us given (camera.latency_s, "
+                         f"camera.latency_std_s; not scanned)", progress)
+    else:
+        pulse_w = LATENCY_SCAN["pulse_width_s"]
+        latency, latency_std = run_stage(exp, "latency", "latency", rig, lambda r: calibrate_latency(
+            r, dark=dark, gain=gain, trigger_delay_s=c.trigger_delay_s, pulse_width_s=pulse_w,
+            power=c.peak_fraction * full_adu * gain / (peak_rate * pulse_w)))
+        latency_source = "scanned"
+        log_message(log, f"latency: {latency * 1e6:.3f} +- {latency_std * 1e6:.3f} us scanned with laser pulses", progress)
     cal = Calibration(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=full_adu, psf=psf, peak_rate=peak_rate,
-                      latency_s=latency, latency_std_s=latency_std, gain=gain, spots=spots, still_psf=still_psf, drive=drive)
+                      latency_s=latency, latency_std_s=latency_std, gain=gain, spots=spots, still_psf=still_psf, drive=drive,
+                      latency_source=latency_source)
 
     # 4b. The actuator's direction in the image (one axis, one spot; a 2x2 plant or many spots
     # fit both image axes).
@@ -157,6 +171,25 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False, *, n_dark: i
     return cal
 
 
+def latency_given(cfg) -> bool:
+    """Whether the run takes its trigger-to-exposure latency as given (``camera.latency_std_s`` set:
+    ``camera.latency_s`` +- it) instead of scanning it with laser pulses."""
+    return getattr(cfg.camera, "latency_std_s", None) is not None
+
+
+def check_latency_source(cfg, rig) -> None:
+    """Refuse, before any frame, a run that must scan its latency on a rig that cannot
+    (no ``pulse()``: a gated laser the controller does not have).
+
+    Raises:
+        ConfigError: naming ``camera.latency_std_s``.
+    """
+    if not latency_given(cfg) and not callable(getattr(rig, "pulse", None)):
+        raise ConfigError(f"camera.latency_std_s: the rig ({type(rig).__name__}) has no gated laser (pulse()) to scan the "
+                          f"trigger-to-exposure latency; give camera.latency_s=... and camera.latency_std_s=... (s), the "
+                          f"latency your camera's datasheet or your own measurement gives and its std")
+
+
 _AXIS_FRAMES = 24  # short exposures of the axis calibration, at phases spread over a period
 
 
@@ -167,7 +200,7 @@ def _measure_axis(cfg, rig, cal: Calibration):
     unit)``."""
     c, x = cfg.camera, cfg.excitation
     f = cfg.frequencies_hz()[0]
-    target, limit = float(x.target_px), cal.input_limit
+    target, limit = float(x.target_px), cal.limit_at(f)
     # Tracking exposures: 5 % of the period (shorter when the camera's longest exposure is).
     frac = min(0.05, 0.9 * min(float(c.max_exposure_s), float(getattr(rig, "max_exposure_s", c.max_exposure_s))) * f)
     te = frac / f
