@@ -138,9 +138,43 @@ def test_identify_through_the_serial_rig_reads_slew_and_keeps_within_it():
             rig.controller.stop()
             with pytest.raises(ParameterError, match="slewing"):
                 rig.sine(freq_hz=50.0, amplitude=3.5, exposures_s=[1e-3], trigger_offset_s=0.0, n_repeats=1)
-        base = ["camera.height=40", "camera.width=40", "seed=1", "sweep.freq_hz=[2000]", "sweep.images_per_point=1", "fit.axis=x"]
+        # the emulated camera's latency (camera.latency_s, 12 us) given, not scanned: the report says which
+        base = ["camera.height=40", "camera.width=40", "seed=1", "sweep.freq_hz=[2000]", "sweep.images_per_point=1", "fit.axis=x",
+                "camera.latency_std_s=0.2e-6"]
         res = identify(load_config(None, base + emu.rig_keys(2.0)), progress=False)
         assert res.amplitude[0] == pytest.approx(1000 / (2 * math.pi * 2000), rel=1e-9)
         assert res.limited.tolist() == [True] and res.frf.meta["slew_limit"] == 1000.0
+        assert res.frf.meta["timing"]["latency_source"] == "given" and res.latency_s == 12e-6
     finally:
         emu.stop()
+
+
+# ------------------------------------------------------------------ a latency given instead of scanned
+
+
+class NoPulseRig:
+    """A rig whose controller has no gated laser: every call but pulse() forwarded."""
+
+    def __init__(self, rig):
+        self._rig = rig
+
+    def __getattr__(self, name):
+        if name == "pulse":
+            raise AttributeError(name)
+        return getattr(self._rig, name)
+
+
+def test_a_rig_without_pulse_needs_the_latency_given_and_uses_it():
+    from torchblur.identify.calibration import calibrate
+
+    cfg = load_config(None, SMALL + ["sweep.freq_hz=[50]", "fit.axis=x"])
+    rig = NoPulseRig(build_simulated_rig(cfg))
+    with pytest.raises(ConfigError, match="^camera.latency_std_s: the rig .*no gated laser"):
+        calibrate(cfg, rig, n_dark=4, n_still=2)
+    with pytest.raises(ConfigError, match="^camera.latency_std_s"):
+        load_config(None, SMALL + ["camera.latency_std_s=-1e-6"])
+    given = load_config(None, SMALL + ["sweep.freq_hz=[50]", "fit.axis=x", "camera.latency_s=11e-6", "camera.latency_std_s=0.5e-6"])
+    log = []
+    cal = calibrate(given, rig, log=log, n_dark=16, n_still=4)
+    assert (cal.latency_s, cal.latency_std_s, cal.latency_source) == (11e-6, 0.5e-6, "given")
+    assert any(m.startswith("latency: 11.000 +- 0.500 us given") for m in log)
