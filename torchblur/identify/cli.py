@@ -481,6 +481,18 @@ def _write_figures(cfg, res, out: Path, stamp: str) -> None:
         reason = f"the {len(labels)} points with the largest fit cost per pixel"
     fig = residual_figure(data, models, labels, stamp=stamp, unit="e-", exposures=exposures, reason=reason)
     fig.savefig(out / "residuals.png", dpi=90, metadata={"Description": stamp})
+    _write_ptc_figure(cfg, res, out, stamp)
+
+
+def _write_ptc_figure(cfg, res, out: Path, stamp: str) -> None:
+    """ptc.png: the photon transfer curve the calibration measured (where it did), with camera.gain's line."""
+    ptc = getattr(res, "ptc", None)
+    if ptc is None:
+        return
+    from torchblur.image.photon_transfer import photon_transfer_figure
+
+    fig = photon_transfer_figure(ptc, configured_gain=float(cfg.camera.gain))
+    fig.savefig(out / "ptc.png", dpi=90, metadata={"Description": stamp})
 
 
 def _summary(res, out: Path, elapsed: float, threshold: float | None = None) -> dict:

@@ -147,6 +147,11 @@ class CameraConfig:
     jitter_s: float = 0.2e-6
     read_noise: float = 5.0
     gain: float = 1.0
+    # Which gain the run uses (torchblur.identify.calibration.choose_gain): "auto" (default): the photon transfer
+    # curve's (of the still frames, and of a ladder with ptc_frames) where it is within 1 % or camera.gain lies beyond
+    # 3 of its stds, else camera.gain; "measure": always the measured one; "config": camera.gain (a warning beyond 3 stds).
+    gain_from: str = "auto"
+    ptc_frames: int = 0  # frames per exposure of a photon transfer ladder (8 exposures) for a precise gain; 0: none
     full_well: float = 20000.0
     bit_depth: int = 12
     dark_level: float = 100.0
@@ -157,6 +162,7 @@ class CameraConfig:
 
 
 AXIS_MODES = ("measure", "x", "y")
+GAIN_FROM = ("auto", "measure", "config")
 
 
 @dataclass(frozen=True)
@@ -661,6 +667,11 @@ def validate_camera(c: CameraConfig) -> None:
                           f"least {MIN_PSF_SIGMA_PX} px")
     for k in ("readout_s", "trigger_delay_s", "latency_s", "jitter_s", "read_noise", "dark_level"):
         _num(getattr(c, k), f"camera.{k}", nonnegative=True)
+    if c.gain_from not in GAIN_FROM:
+        raise ConfigError(f"camera.gain_from: expected one of {GAIN_FROM}, got {c.gain_from!r}")
+    _num(c.ptc_frames, "camera.ptc_frames", integer=True, low=0, high=10000)
+    if c.ptc_frames == 1:
+        raise ConfigError("camera.ptc_frames: expected 0 (no ladder) or at least 2 frames per exposure (a pair), got 1")
     if c.latency_std_s is not None:
         _num(c.latency_std_s, "camera.latency_std_s", nonnegative=True)
     _num(c.bit_depth, "camera.bit_depth", integer=True, low=1, high=32)
@@ -914,7 +925,8 @@ def calibration_frames(cfg: IdentifyConfig, *, n_dark: int, n_still: int) -> int
     scan = {k: v for k, v in LATENCY_SCAN.items() if k != "repeats"}
     n_pulse = 0 if cfg.camera.latency_std_s is not None else (
         len(latency_scan_times(float(cfg.camera.trigger_delay_s), **scan)) * LATENCY_SCAN["repeats"])
-    return int(n_dark) + SATURATION_STEPS + int(n_still) + n_pulse
+    n_ptc = 8 * int(cfg.camera.ptc_frames)  # torchblur.identify.calibration.PTC_STEPS exposures
+    return int(n_dark) + SATURATION_STEPS + int(n_still) + n_pulse + n_ptc
 
 
 def _estimate_dm(cfg: IdentifyConfig) -> dict:

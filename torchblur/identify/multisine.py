@@ -407,7 +407,7 @@ class MultisinePlan:
                                              windows=run.windows, power=run.power, truth=run.truth, log=run.log, timing=run.timing,
                                              groups=acq.groups, direction=cal.direction, axis=cal.axis,
                                              limited=np.asarray(acq.limited, dtype=bool)[idx],
-                                             moved_px=np.asarray(acq.moved_px, dtype=np.float64)[idx])
+                                             moved_px=np.asarray(acq.moved_px, dtype=np.float64)[idx], ptc=cal.ptc)
 
 
 def identify_multisine(cfg, rig, exp, log, progress, cal, t_start: float) -> MultisineIdentificationResult:

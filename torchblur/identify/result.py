@@ -58,3 +58,4 @@ class IdentificationResult:
     axis: object = None
     limited: np.ndarray | None = None  # [F] or [I*F] bool: the point was limited by the input range
     moved_px: np.ndarray | None = None  # [F] or [I*F]: the motion the point reached (px)
+    ptc: object = None  # the calibration's PhotonTransfer (torchblur.image.photon_transfer), or None

@@ -434,4 +434,5 @@ class SinePlan:
                                     images=run.images, windows=run.windows, power=run.power, truth=run.truth, log=run.log,
                                     timing=run.timing, inputs=tuple(acq.layout.inputs),
                                     spots=cal.spots, direct_model=run.direct_model, direction=cal.direction, axis=cal.axis,
-                                    limited=np.asarray(acq.limited, dtype=bool), moved_px=np.asarray(acq.moved_px, dtype=np.float64))
+                                    limited=np.asarray(acq.limited, dtype=bool), moved_px=np.asarray(acq.moved_px, dtype=np.float64),
+                                    ptc=cal.ptc)
