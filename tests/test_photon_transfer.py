@@ -48,12 +48,12 @@ def test_a_ladder_of_flat_ramps_recovers_gain_read_noise_and_dark_level(gain):
 
 
 def test_a_still_spot_alone_gives_a_gain_with_an_honest_std():
-    """16 frames of a still spot (its pixels span dark to its peak): the std is honest over 8 seeds
+    """16 frames of a still spot (its pixels span dark to its peak): the std is honest over 6 seeds
     (rms z 0.5-1.6, no |z| above 4), a few % wide."""
     cam = _camera(1.5)
     z = []
-    for s in range(8):
-        p = photon_transfer(_frames(cam, _spot(4000.0), 16, seed=s), _frames(cam, torch.zeros(24, 24, dtype=torch.float64), 64, seed=50 + s),
+    for s in range(6):
+        p = photon_transfer(_frames(cam, _spot(4000.0), 16, seed=s), _frames(cam, torch.zeros(24, 24, dtype=torch.float64), 32, seed=50 + s),
                             saturation_adu=cam.saturation_adu)
         z.append(p.gain_z(1.5) * -1)
         assert 0.01 < p.relative_gain_std < 0.1
@@ -114,8 +114,8 @@ def test_choose_gain_auto_measure_config():
 
 def test_calibration_measures_a_gain_that_is_not_the_configs():
     """The simulated camera at 2 e-/ADU, the config saying 4: calibrate measures it (still frames and an
-    8-step ladder), uses it with a warning naming camera.gain, and records where it came from; with
-    camera.gain_from=config it keeps 4 and still warns; the ladder's frames are counted in the estimate."""
+    8-step ladder), uses it with a warning naming camera.gain, and records where it came from (camera.gain_from=config:
+    test_choose_gain_auto_measure_config); the ladder's frames are counted in the estimate."""
     from torchblur.identify.calibration import calibrate
     from torchblur.identify.config import calibration_frames, load_config
     from torchblur.rig.factory import build_simulated_rig
@@ -130,10 +130,6 @@ def test_calibration_measures_a_gain_that_is_not_the_configs():
     assert any(m.startswith("gain: warning: camera.gain 4 e-/ADU is") for m in log)
     assert cal.noise.gain_e_per_adu == cal.gain
     assert calibration_frames(cfg, n_dark=32, n_still=8) - calibration_frames(load_config(None, base), n_dark=32, n_still=8) == 64
-    log = []
-    kept = calibrate(load_config(None, base + ["camera.gain=4", "camera.gain_from=config"]), build_simulated_rig(rig_cfg), log=log,
-                     n_dark=32, n_still=8)
-    assert (kept.gain, kept.gain_source) == (4.0, "camera.gain") and any("warning" in m for m in log if m.startswith("gain:"))
     with pytest.raises(ConfigError, match="^camera.gain_from"):
         load_config(None, base + ["camera.gain_from=datasheet"])
     with pytest.raises(ConfigError, match="^camera.ptc_frames"):

@@ -39,6 +39,8 @@ def open_frame_source(spec: str) -> FrameSource:
     """A frame source from its config string: ``tcp://HOST:PORT`` (the emulator's camera
     channel), ``pylon://[SERIAL][?trigger=Line1&pixel_format=Mono12&readout_s=1e-3]`` (a Basler
     camera through pypylon, :class:`~torchblur.hardware.pylon.PylonCamera`; the ``pylon`` extra)
+    ``aravis://[DEVICE][?trigger=Line1&pixel_format=Mono16&readout_s=1e-3]`` (a GenICam camera
+    through Aravis, :class:`~torchblur.hardware.aravis.AravisCamera`; the ``aravis`` extra)
     or ``package.module:ClassName`` (a :class:`~torchblur.hardware.camera_sdk.SDKCamera`
     subclass, constructed without arguments).
 
@@ -55,6 +57,13 @@ def open_frame_source(spec: str) -> FrameSource:
 
         try:
             return PylonCamera.from_url(spec)
+        except ParameterError as exc:
+            raise ConfigError(f"rig.frames: {spec!r}: {str(exc).removeprefix('url: ')}") from None
+    if spec.startswith("aravis://"):
+        from torchblur.hardware.aravis import AravisCamera  # the optional aravis extra
+
+        try:
+            return AravisCamera.from_url(spec)
         except ParameterError as exc:
             raise ConfigError(f"rig.frames: {spec!r}: {str(exc).removeprefix('url: ')}") from None
     mod, sep, name = spec.partition(":")

@@ -719,12 +719,21 @@ def validate_rig(r: RigConfig) -> None:
             except ParameterError as exc:
                 raise ConfigError(f"rig.frames: {f!r}: {str(exc).removeprefix('url: ')}") from None
             ok = True
+        elif f.startswith("aravis://"):  # a GenICam camera through Aravis (the aravis extra): options checked here
+            from torchblur.errors import ParameterError
+            from torchblur.hardware.aravis import aravis_url_options
+
+            try:
+                aravis_url_options(f)
+            except ParameterError as exc:
+                raise ConfigError(f"rig.frames: {f!r}: {str(exc).removeprefix('url: ')}") from None
+            ok = True
         else:
             mod, sep, name = f.partition(":")
             ok = bool(sep and mod and name and "/" not in f)
         if not ok:
-            raise ConfigError(f"rig.frames: expected tcp://HOST:PORT, pylon://[SERIAL][?trigger=...] or "
-                              f"package.module:ClassName, got {f!r}")
+            raise ConfigError(f"rig.frames: expected tcp://HOST:PORT, pylon://[SERIAL][?trigger=...], aravis://[DEVICE][?...] "
+                              f"or package.module:ClassName, got {f!r}")
     _num(r.timeout_s, "rig.timeout_s", positive=True)
     _num(r.retries, "rig.retries", integer=True, low=0, high=100)
 
