@@ -99,6 +99,8 @@ class AravisCamera(SDKCamera):
             raise ParameterError(f"buffers: expected an int >= 1, got {buffers!r}")
         if not isinstance(readout_s, (int, float)) or not readout_s >= 0:
             raise ParameterError(f"readout_s: expected a number >= 0 seconds, got {readout_s!r}")
+        if feed is not None and not str(device).startswith("Fake"):
+            raise ParameterError(f"device: a feed (emulation) needs Aravis's in-process fake camera ('Fake_1'), got {device!r}")
         if feed is not None and trigger_source != "Software":
             raise ParameterError(f"trigger_source: a feed (emulation) fires software triggers; expected 'Software', got {trigger_source!r}")
         self._device, self._trigger_source, self._pixel_format = device, str(trigger_source), pixel_format
