@@ -134,6 +134,18 @@ def _bins(m, v, dof, n_bins):
     return np.array(mb), np.array(vb), np.array(sb), members
 
 
+def _dark_stats(dark, usable):
+    """Per-pixel dark mean ``[H, W]``; the temporal variance over the usable pixels and its std (ADU^2);
+    the mean dark level and its std (ADU)."""
+    D, P = dark.shape[0], int(usable.sum())
+    dark_mean = dark.mean(0)
+    var_d = float(dark.var(0, unbiased=True)[usable].mean())
+    var_d_std = math.sqrt(2.0 / ((D - 1) * P)) * var_d  # over P pixels, each a sample variance of D frames
+    level = float(dark_mean[usable].mean())
+    level_std = math.sqrt(var_d / (D * P) + float(dark_mean[usable].var()) / P)
+    return dark_mean, var_d, var_d_std, level, level_std
+
+
 def _slope(m, y, dof, var_model):
     """Weighted least squares of ``y = K m`` (through the origin), weights ``dof / (2 var_model^2)``: K, its std, chi2."""
     w = dof / (2.0 * var_model ** 2)
@@ -176,13 +188,7 @@ def photon_transfer(steps, dark, *, saturation_adu: float | None = None, hot_pix
     whole = bool(all(torch.equal(s, s.round()) for s in steps)) and bool(torch.equal(dark, dark.round()))
     q = 1.0 / 12.0 if whole else 0.0
 
-    D, P = dark.shape[0], int(usable.sum())
-    dark_mean = dark.mean(0)
-    dark_var_px = dark.var(0, unbiased=True)[usable]
-    var_d = float(dark_var_px.mean())
-    var_d_std = math.sqrt(2.0 / ((D - 1) * P)) * var_d  # over P pixels, each a sample variance of D frames
-    level = float(dark_mean[usable].mean())
-    level_std = math.sqrt(var_d / (D * P) + float(dark_mean[usable].var()) / P)
+    dark_mean, var_d, var_d_std, level, level_std = _dark_stats(dark, usable)
 
     # a first pass with a generous bound on K (1 ADU per e-: gain 1) finds K; the second cuts at 6 of its stds from saturation
     K_cut = 1.0
