@@ -135,17 +135,7 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False, *, n_dark: i
         peak_rate = float(psf.amplitude)  # electrons per second at power 1
 
     # 4. Latency: given (camera.latency_s, camera.latency_std_s), or scanned with laser pulses.
-    if latency_given(cfg):
-        latency, latency_std, latency_source = float(c.latency_s), float(c.latency_std_s), "given"
-        log_message(log, f"latency: {latency * 1e6:.3f} +- {latency_std * 1e6:.3f} us given (camera.latency_s, "
-                         f"camera.latency_std_s; not scanned)", progress)
-    else:
-        pulse_w = LATENCY_SCAN["pulse_width_s"]
-        latency, latency_std = run_stage(exp, "latency", "latency", rig, lambda r: calibrate_latency(
-            r, dark=dark, gain=gain, trigger_delay_s=c.trigger_delay_s, pulse_width_s=pulse_w,
-            power=c.peak_fraction * full_adu * gain / (peak_rate * pulse_w)))
-        latency_source = "scanned"
-        log_message(log, f"latency: {latency * 1e6:.3f} +- {latency_std * 1e6:.3f} us scanned with laser pulses", progress)
+    latency, latency_std, latency_source = _latency_stage(cfg, rig, exp, dark, gain, full_adu, peak_rate, log, progress)
     cal = Calibration(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=full_adu, psf=psf, peak_rate=peak_rate,
                       latency_s=latency, latency_std_s=latency_std, gain=gain, spots=spots, still_psf=still_psf, drive=drive,
                       latency_source=latency_source, ptc=ptc, gain_source=gain_source)
@@ -175,6 +165,24 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False, *, n_dark: i
                                   like=torch.zeros((), dtype=torch.float64))
             cal.direction = (float(u[0]), float(u[1]))
     return cal
+
+
+def _latency_stage(cfg, rig, exp, dark, gain: float, full_adu: float, peak_rate: float, log, progress):
+    """Stage 4: ``(latency_s, std_s, "given" | "scanned")``: ``camera.latency_s`` +- ``camera.latency_std_s``
+    where given, else :func:`calibrate_latency` with pulses that fill ``camera.peak_fraction`` of the range
+    (``full_adu``) at the still spot's peak (``peak_rate`` e-/s)."""
+    c = cfg.camera
+    if latency_given(cfg):
+        latency, std = float(c.latency_s), float(c.latency_std_s)
+        log_message(log, f"latency: {latency * 1e6:.3f} +- {std * 1e6:.3f} us given (camera.latency_s, camera.latency_std_s; "
+                         f"not scanned)", progress)
+        return latency, std, "given"
+    pulse_w = LATENCY_SCAN["pulse_width_s"]
+    latency, std = run_stage(exp, "latency", "latency", rig, lambda r: calibrate_latency(
+        r, dark=dark, gain=gain, trigger_delay_s=c.trigger_delay_s, pulse_width_s=pulse_w,
+        power=c.peak_fraction * full_adu * gain / (peak_rate * pulse_w)))
+    log_message(log, f"latency: {latency * 1e6:.3f} +- {std * 1e6:.3f} us scanned with laser pulses", progress)
+    return latency, std, "scanned"
 
 
 def latency_given(cfg) -> bool:
