@@ -144,7 +144,7 @@ def test_identify_through_the_serial_rig_reads_slew_and_keeps_within_it():
         res = identify(load_config(None, base + emu.rig_keys(2.0)), progress=False)
         assert res.amplitude[0] == pytest.approx(1000 / (2 * math.pi * 2000), rel=1e-9)
         assert res.limited.tolist() == [True] and res.frf.meta["slew_limit"] == 1000.0
-        assert res.frf.meta["timing"]["latency_source"] == "given" and res.latency_s == 12e-6
+        assert res.frf.meta["latency_source"] == "given" and res.latency_s == 12e-6
     finally:
         emu.stop()
 

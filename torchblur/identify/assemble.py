@@ -262,7 +262,7 @@ def adequacy_stage(run) -> None:
     covariance (:func:`adequacy`, with ``fit.poor_fit_chi2``, ``report.tolerance_deg``, the
     camera's jitter, the latency calibration's std and the run's ``limited`` where it has one),
     its meta's ``timing`` entry (``jitter_s``, ``latency_std_s``, ``frames_per_point``: the
-    fewest; ``latency_source``: scanned or given) and ``adequacy`` entry (the two thresholds) for the verdict; a log line when points
+    fewest), ``latency_source`` (scanned or given), ``camera_gain`` (:func:`gain_meta`) and ``adequacy`` entry (the two thresholds) for the verdict; a log line when points
     are flagged."""
     cfg, frf = run.cfg, run.frf
     n = frames_per_point(run)
@@ -270,8 +270,8 @@ def adequacy_stage(run) -> None:
     limited = getattr(run, "limited", None)
     if limited is None:
         limited = getattr(getattr(run, "acquisition", None), "limited", None)
-    meta = {**frf.meta, "timing": {"jitter_s": jitter, "latency_std_s": lat, "frames_per_point": int(n.min()),
-                                   "latency_source": getattr(run.cal, "latency_source", "scanned")},
+    meta = {**frf.meta, "timing": {"jitter_s": jitter, "latency_std_s": lat, "frames_per_point": int(n.min())},
+            "latency_source": getattr(run.cal, "latency_source", "scanned"),
             "camera_gain": gain_meta(run.cal),
             "adequacy": {"poor_fit_chi2": float(cfg.fit.poor_fit_chi2), "tolerance_deg": float(cfg.report.tolerance_deg),
                          "tolerance_rel": float(cfg.report.tolerance_rel)}}
