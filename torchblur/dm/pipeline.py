@@ -259,8 +259,12 @@ def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, log, progress, exp=None
                     motion = motion_static * nominal_growth(cfg.dm, f, None)
                 else:
                     motion = done_ref[1] * nominal_growth(cfg.dm, f, freqs[done_ref[0]])
-                amps[k] = next_amplitude(target_px=float(cfg.excitation.target_px), motion_per_unit=motion, input_limit=limit,
+                lim_f = min(limit, cal.limit_at(f))  # the range and, at f, the amplifier's slew limit
+                amps[k] = next_amplitude(target_px=float(cfg.excitation.target_px), motion_per_unit=motion, input_limit=lim_f,
                                          max_pattern=float(np.abs(plan.patterns).max()))
+                if lim_f < limit and amps[k] * float(np.abs(plan.patterns).max()) >= lim_f * (1 - 1e-9):
+                    log_message(log, f"dm sweep: {f:.4g} Hz limited by the slew limit {cal.drive.slew:.6g} input units/s "
+                                     f"(largest command {lim_f:.4g} there)", progress)
             te = [float(e) / f for e in s.exposures]
             powers[k] = c.peak_fraction * cal.full_adu * cal.gain / (cal.peak_rate * max(te))
             delay = float(rec["trigger_delay_s"]) if rec is not None else float(getattr(rig, "trigger_delay_s", c.trigger_delay_s))

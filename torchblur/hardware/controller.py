@@ -18,6 +18,7 @@ traffic, ``loop://``).
 """
 from __future__ import annotations
 
+import math
 import secrets
 import time
 
@@ -302,6 +303,27 @@ class Controller:
         if not (a > 0 and a < float("inf")):
             raise GarbageReply(f"RANGE reply with an amplitude that is not finite and > 0: {r.fields}")
         return a
+
+    def slew_rate(self) -> float | None:
+        """``SLEW?`` -> the device's slew-rate limit: the largest |d command / dt| (input units per
+        second) its amplifier takes, on any waveform and axis; None for a device without one
+        (``rate=none``) or a controller that does not know the query (``ERR 1 UNKNOWN``: an older
+        firmware). Raises :class:`GarbageReply` for a reply without a ``rate`` > 0."""
+        try:
+            r = self.command("SLEW?")
+        except DeviceError as exc:
+            if exc.code == E_UNKNOWN:
+                return None
+            raise
+        if r.fields.get("rate") == "none":
+            return None
+        try:
+            rate = float(r.fields["rate"])
+        except (KeyError, ValueError) as exc:
+            raise GarbageReply(f"malformed SLEW reply: {r.fields}") from exc
+        if not (rate > 0 and math.isfinite(rate)):
+            raise GarbageReply(f"SLEW reply with a rate that is not finite and > 0: {r.fields}")
+        return rate
 
     def ping(self, token: str = "p") -> None:
         r = self.command("PING", token)

@@ -61,7 +61,7 @@ from torchblur.errors import ConfigError, ParameterError
 from torchblur.hardware.frames import CameraInfo, encode_message, frame_message
 from torchblur.hardware.protocol import (E_AXIS, E_BUSY, E_INTERNAL, E_LINE, E_RANGE, E_UNKNOWN, MAX_LINE, PROTOCOL_VERSION,
                                          ProtocolViolation, format_err, format_ok, parse_command, pattern_checksum)
-from torchblur.rig.base import check_drive, command_peak
+from torchblur.rig.base import check_drive, check_slew, command_peak, command_slew
 
 __all__ = ["FaultConfig", "EmulatorConfig", "load_emulator_config", "EmulatedDevice", "main"]
 
@@ -96,6 +96,7 @@ class EmulatorConfig:
     threads: int = 1  # torch threads for rendering
     exit_with_parent: bool = False  # exit when the process that started the emulator ends (tests)
     range_query: bool = True  # false: an older firmware that answers RANGE? with ERR 1 UNKNOWN (its range still holds)
+    slew_query: bool = True  # false: an older firmware that answers SLEW? with ERR 1 UNKNOWN (its slew limit still holds)
     fault: FaultConfig = field(default_factory=FaultConfig)
 
 
@@ -272,6 +273,8 @@ class EmulatedDevice:
             self._settling_s = self.rig.plant.settling_time_s()
             limit = self.rig.input_limit
         self.input_limit = float(limit)  # RANGE?: the largest |command| on any actuator (dm.input_limit, else plant.input_limit)
+        slew = None if cfg.dm.enabled else cfg.plant.slew_limit
+        self.slew_limit = math.inf if slew is None else float(slew)  # SLEW?: the largest |d command / dt| (plant.slew_limit)
         self._send = send
         self.firmware, self.name = firmware, name
         self.lock = threading.RLock()
@@ -371,6 +374,10 @@ class EmulatedDevice:
                 if not self.cfg.range_query:
                     raise ProtocolViolation(E_UNKNOWN, "unknown command 'RANGE?'")
                 return format_ok("RANGE", amplitude=self.input_limit)
+            if w == "SLEW?":
+                if not self.cfg.slew_query:
+                    raise ProtocolViolation(E_UNKNOWN, "unknown command 'SLEW?'")
+                return format_ok("SLEW", rate=self.slew_limit if math.isfinite(self.slew_limit) else "none")
             if w == "RESET":
                 self.epoch += 1
                 self._boot_state()
@@ -403,10 +410,12 @@ class EmulatedDevice:
         if te > self.rig.max_exposure_s:
             raise ProtocolViolation(E_RANGE, f"exposure_s: at most {self.rig.max_exposure_s!r} s on this camera, got {te!r}")
 
-    def _check_drive(self, peak: float) -> None:
-        """ERR 4 RANGE for a waveform whose peak |command| exceeds the plant's input range."""
+    def _check_drive(self, peak: float, slew: float = 0.0) -> None:
+        """ERR 4 RANGE for a waveform whose peak |command| exceeds the plant's input range, or
+        whose slew rate ``slew`` (input units/s) exceeds its slew limit."""
         try:
             check_drive(peak, self.input_limit)
+            check_slew(slew, self.slew_limit if math.isfinite(self.slew_limit) else None)
         except ParameterError as exc:
             raise ProtocolViolation(E_RANGE, str(exc)) from None
 
@@ -425,11 +434,11 @@ class EmulatedDevice:
             return self._wave_pattern(a[2], a[3])
         if mode == "SINE":
             _in_range(a[2], "freq_hz")
-            self._check_drive(abs(a[3]))
+            self._check_drive(abs(a[3]), abs(a[3]) * 2 * math.pi * a[2])
             self.wave = {"mode": "SINE", "freq_hz": a[2], "amplitude": a[3], "start": self.clock, "period": 1.0 / a[2], "axis": axis}
             return format_ok("WAVE", axis=axis, mode=mode, start=float(self.clock))
         tones = a[2]
-        self._check_drive(command_peak(*zip(*tones), base_freq_hz=tones[0][0]))
+        self._check_drive(command_peak(*zip(*tones), base_freq_hz=tones[0][0]), command_slew(*zip(*tones), base_freq_hz=tones[0][0]))
         self.wave = {"mode": "MULTI", "tones": tones, "start": self.clock, "period": 1.0 / tones[0][0]}
         return format_ok("WAVE", axis=axis, mode=mode, tones=len(tones), start=float(self.clock))
 

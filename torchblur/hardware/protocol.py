@@ -178,7 +178,7 @@ def parse_command(line: str | bytes) -> Command:
     word, args = tokens[0], tokens[1:]
     if word == "" or any(t == "" for t in args):
         raise ProtocolViolation(E_ARGS, "empty field: separate the fields by single spaces")
-    if word in ("ID?", "STATUS?", "RANGE?", "RESET", "STOP", "ACT?", "PAT?"):
+    if word in ("ID?", "STATUS?", "RANGE?", "SLEW?", "RESET", "STOP", "ACT?", "PAT?"):
         _nargs(word, args, 0, "none")
         return Command(word)
     if word == "PING":

@@ -1,10 +1,12 @@
 """A run folder is owned: one process writes it, no other run writes into it.
 
-- :class:`RunLock`: an exclusive ``fcntl.flock`` on ``<experiment>/run.lock``, held for the run's
-  life. The kernel drops it when its holder exits (killed included), so a stale lock file
-  from a dead process is harmless by construction: the next run simply takes it. Within one
-  process the lock is re-entrant (a count per folder), so a run and its resume in one
-  Python session share it.
+- :class:`RunLock`: an exclusive OS lock on ``<experiment>/run.lock``, held for the run's
+  life: ``fcntl.flock`` on Linux and macOS, ``msvcrt.locking`` of one byte far past the holder's
+  pid on Windows (both imported only where they exist, so every module imports everywhere).
+  The OS drops it when its holder exits (killed included), so a stale lock file from a dead
+  process is harmless by construction: the next run simply takes it. Within one process the
+  lock is re-entrant (a count per folder), so a run and its resume in one Python session
+  share it.
 - :func:`check_out_folder`: an ``--out`` folder that is a file, under a file, not writable,
   inside another run's record, or (``torchblur fit``) holding a run's results is refused
   with one line naming the path.
@@ -13,7 +15,6 @@
 """
 from __future__ import annotations
 
-import fcntl
 import os
 import threading
 from pathlib import Path
@@ -21,16 +22,65 @@ from pathlib import Path
 from torchblur.files import resolve_inside
 from torchblur.hardware.errors import RecordingError
 
+try:  # Linux, macOS
+    import fcntl
+except ImportError:
+    fcntl = None
+try:  # Windows
+    import msvcrt
+except ImportError:
+    msvcrt = None
+
 __all__ = ["LOCK_NAME", "OUTPUT_NAMES", "RESULT_FILES", "RunLock", "check_out_folder", "inside", "run_root_of"]
 
 LOCK_NAME = "run.lock"
 RESULT_FILES = ("frf.json", "frf.csv", "model.json", "report.txt")
 #: what torchblur writes into an ``--out`` folder; a folder holding anything else is the user's
-OUTPUT_NAMES = frozenset(RESULT_FILES) | {"frf.mat", "bode.png", "residuals.png", "config.yaml", "source.json",
+OUTPUT_NAMES = frozenset(RESULT_FILES) | {"frf.mat", "bode.png", "residuals.png", "ptc.png", "config.yaml", "source.json",
                                           "model_two_step.json", "experiment", "dm"}  # dm: a DM run's outputs (torchblur.dm.outputs)
 
 _held: dict[str, list] = {}  # real path of the folder -> [fd, count]
 _guard = threading.Lock()
+#: the byte ``msvcrt.locking`` locks (Windows locks are mandatory: the pid at offset 0 stays readable)
+_WIN_LOCK_OFFSET = 1 << 20
+
+
+def _try_lock(fd: int) -> bool:
+    """Take the exclusive lock on the open file ``fd`` without waiting; False if another process holds it.
+
+    Raises:
+        RecordingError: this platform has neither ``fcntl`` nor ``msvcrt``.
+    """
+    try:
+        if fcntl is not None:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        elif msvcrt is not None:
+            os.lseek(fd, _WIN_LOCK_OFFSET, os.SEEK_SET)
+            msvcrt.locking(fd, msvcrt.LK_NBLCK, 1)
+        else:
+            raise RecordingError("run lock: this platform offers neither fcntl nor msvcrt file locks; a run folder "
+                                 "cannot be owned here")
+    except OSError:
+        return False
+    return True
+
+
+def _unlock(fd: int) -> None:
+    if fcntl is not None:
+        fcntl.flock(fd, fcntl.LOCK_UN)
+    elif msvcrt is not None:
+        os.lseek(fd, _WIN_LOCK_OFFSET, os.SEEK_SET)
+        msvcrt.locking(fd, msvcrt.LK_UNLCK, 1)
+
+
+def _read_head(fd: int) -> str:
+    os.lseek(fd, 0, os.SEEK_SET)
+    return os.read(fd, 32).decode("ascii", "replace").strip()
+
+
+def _write_pid(fd: int) -> None:
+    os.lseek(fd, 0, os.SEEK_SET)
+    os.write(fd, f"{os.getpid()}\n".ljust(32).encode())  # fixed width: no truncation (Windows: a locked region cannot shrink)
 
 
 class RunLock:
@@ -51,19 +101,21 @@ class RunLock:
                 return
             lock_path = os.path.join(self.key, LOCK_NAME)
             try:
-                fd = os.open(lock_path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+                fd = os.open(lock_path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_BINARY", 0), 0o644)
             except OSError as exc:
                 raise RecordingError(f"{path}: cannot create the run's lock file {LOCK_NAME} ({exc.strerror}); "
                                      f"is the folder read-only?") from None
             try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except OSError:
-                holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip() or "?"
+                locked = _try_lock(fd)
+            except RecordingError:
+                os.close(fd)
+                raise
+            if not locked:
+                holder = _read_head(fd) or "?"
                 os.close(fd)
                 raise RecordingError(f"{path}: another process (pid {holder}) is writing this run; wait for it to end "
                                      f"or choose another --out") from None
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+            _write_pid(fd)
             _held[self.key] = [fd, 1]
             self._held = True
 
@@ -85,7 +137,7 @@ class RunLock:
             if entry[1] == 0:
                 del _held[self.key]
                 try:
-                    fcntl.flock(entry[0], fcntl.LOCK_UN)
+                    _unlock(entry[0])
                 finally:
                     os.close(entry[0])
 

@@ -28,7 +28,7 @@ from torchblur.hardware.controller import Controller
 from torchblur.hardware.errors import (AcquisitionStopped, ConnectionLost, DeviceError, DeviceReset, FrameGap, FrameMismatch, FrameTimeout,
                      GarbageReply, HardwareError, StaleFrame)
 from torchblur.hardware.frames import CameraInfo, Frame, FrameSource
-from torchblur.rig.base import check_drive, check_tone_grid, command_peak, float_list, per_exposure
+from torchblur.rig.base import check_drive, check_slew, check_tone_grid, command_peak, command_slew, float_list, per_exposure
 
 __all__ = ["SerialRig", "open_frame_source"]
 
@@ -39,6 +39,8 @@ def open_frame_source(spec: str) -> FrameSource:
     """A frame source from its config string: ``tcp://HOST:PORT`` (the emulator's camera
     channel), ``pylon://[SERIAL][?trigger=Line1&pixel_format=Mono12&readout_s=1e-3]`` (a Basler
     camera through pypylon, :class:`~torchblur.hardware.pylon.PylonCamera`; the ``pylon`` extra)
+    ``aravis://[DEVICE][?trigger=Line1&pixel_format=Mono16&readout_s=1e-3]`` (a GenICam camera
+    through Aravis, :class:`~torchblur.hardware.aravis.AravisCamera`; the ``aravis`` extra)
     or ``package.module:ClassName`` (a :class:`~torchblur.hardware.camera_sdk.SDKCamera`
     subclass, constructed without arguments).
 
@@ -55,6 +57,13 @@ def open_frame_source(spec: str) -> FrameSource:
 
         try:
             return PylonCamera.from_url(spec)
+        except ParameterError as exc:
+            raise ConfigError(f"rig.frames: {spec!r}: {str(exc).removeprefix('url: ')}") from None
+    if spec.startswith("aravis://"):
+        from torchblur.hardware.aravis import AravisCamera  # the optional aravis extra
+
+        try:
+            return AravisCamera.from_url(spec)
         except ParameterError as exc:
             raise ConfigError(f"rig.frames: {spec!r}: {str(exc).removeprefix('url: ')}") from None
     mod, sep, name = spec.partition(":")
@@ -161,6 +170,13 @@ class SerialRig:
         (input units) it takes; None for a controller that does not answer the query."""
         return self.device.get("input_limit")
 
+    @property
+    def slew_limit(self) -> float | None:
+        """The controller's slew-rate limit (``SLEW?``, read on connecting): the largest
+        |d command / dt| (input units per second) it takes; None for a controller without one
+        or one that does not answer the query (an older firmware)."""
+        return self.device.get("slew_limit")
+
     def set_logger(self, log: Callable[[str], None] | None) -> None:
         self._log = log
 
@@ -199,6 +215,7 @@ class SerialRig:
         if self.axis not in self.device["axes"]:
             raise DeviceError(5, "AXIS", f"the controller has axes {self.device['axes']}, not {self.axis}", "ID?")
         self.device["input_limit"] = c.input_range()
+        self.device["slew_limit"] = c.slew_rate()
         c.stop()
         st = c.status()
         self._boot, self._next = st["boot"], st["frames"]
@@ -403,6 +420,7 @@ class SerialRig:
         freq = check_real_scalar(freq_hz, "freq_hz", positive=True)
         amp = check_real_scalar(amplitude, "amplitude")
         check_drive(amp, self.input_limit)
+        check_slew(abs(amp) * 2 * math.pi * freq, self.slew_limit)
         return self._periodic_capture(f"sine {freq:g} Hz", lambda c: c.wave_sine(axis, freq, amp), 1.0 / freq, exposures_s,
                                       trigger_offset_s, n_repeats, check_real_scalar(power, "power"), settle_s,
                                       {"kind": "sine", "freq_hz": freq, "omega": 2 * math.pi * freq, "period_s": None, "amplitude": amp,
@@ -432,6 +450,7 @@ class SerialRig:
         # 10 significant digits keep the line short (phase errors ~1e-10 rad) and within MAX_LINE.
         tones = [tuple(float(f"{v:.10g}") for v in t) for t in tones]
         check_drive(command_peak(*zip(*tones), base_freq_hz=tones[0][0]), self.input_limit)
+        check_slew(command_slew(*zip(*tones), base_freq_hz=tones[0][0]), self.slew_limit)
         from torchblur.hardware.protocol import MAX_LINE, MAX_TONES, format_number
 
         line = f"WAVE {self.axis} MULTI " + ",".join(":".join(format_number(v) for v in t) for t in tones)
@@ -512,4 +531,4 @@ class SerialRig:
 
     def __repr__(self) -> str:
         return (f"SerialRig(port={self.controller.port!r}, frames={self.frames!r}, device={self.device.get('name', '?')}, "
-                f"boot={self._boot}, input_limit={self.input_limit})")
+                f"boot={self._boot}, input_limit={self.input_limit}, slew_limit={self.slew_limit})")

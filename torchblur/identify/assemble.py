@@ -252,12 +252,25 @@ def frames_per_point(run) -> np.ndarray:
     return np.full(n_f, float(run.windows.start.shape[-1]))
 
 
+def gain_meta(cal) -> dict:
+    """The frequency response's ``camera_gain`` entry: the gain the run used (e-/ADU), where it came
+    from (``camera.gain`` or ``photon transfer``) and, where measured, the photon transfer's gain, read
+    noise (e-), dark level (ADU) and linear range (ADU above dark) with their stds."""
+    out = {"e_per_adu": float(cal.gain), "source": getattr(cal, "gain_source", "camera.gain")}
+    p = getattr(cal, "ptc", None)
+    if p is not None:
+        out["photon_transfer"] = {"gain_e_per_adu": p.gain_e_per_adu, "gain_std": p.gain_std, "read_noise_e": p.read_noise_e,
+                                  "read_noise_std_e": p.read_noise_std_e, "dark_level_adu": p.dark_level_adu,
+                                  "linear_max_adu": p.linear_max_adu, "reduced_chi2": p.reduced_chi2}
+    return out
+
+
 def adequacy_stage(run) -> None:
     """The stage after assemble: ``run.frf`` with each point's flags, reduced chi2 and inflated
     covariance (:func:`adequacy`, with ``fit.poor_fit_chi2``, ``report.tolerance_deg``, the
     camera's jitter, the latency calibration's std and the run's ``limited`` where it has one),
     its meta's ``timing`` entry (``jitter_s``, ``latency_std_s``, ``frames_per_point``: the
-    fewest) and ``adequacy`` entry (the two thresholds) for the verdict; a log line when points
+    fewest), ``latency_source`` (scanned or given), ``camera_gain`` (:func:`gain_meta`) and ``adequacy`` entry (the two thresholds) for the verdict; a log line when points
     are flagged."""
     cfg, frf = run.cfg, run.frf
     n = frames_per_point(run)
@@ -266,6 +279,8 @@ def adequacy_stage(run) -> None:
     if limited is None:
         limited = getattr(getattr(run, "acquisition", None), "limited", None)
     meta = {**frf.meta, "timing": {"jitter_s": jitter, "latency_std_s": lat, "frames_per_point": int(n.min())},
+            "latency_source": getattr(run.cal, "latency_source", "scanned"),
+            "camera_gain": gain_meta(run.cal),
             "adequacy": {"poor_fit_chi2": float(cfg.fit.poor_fit_chi2), "tolerance_deg": float(cfg.report.tolerance_deg),
                          "tolerance_rel": float(cfg.report.tolerance_rel)}}
     run.frf = adequacy(frf.replace(meta=meta), reduced_chi2=point_reduced_chi2(run), poor_fit_chi2=float(cfg.fit.poor_fit_chi2),

@@ -9,17 +9,19 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from torchblur.errors import ParameterError, as_unit_direction
+from torchblur.errors import ConfigError, ParameterError, as_unit_direction
 from torchblur.identify.config import LATENCY_SCAN, SATURATION_STEPS, latency_scan_times
 from torchblur.identify.drive import DriveLimit, at_limit, check_recorded_drive, drive_limit
 from torchblur.identify.record import log_message, run_stage
+from torchblur.image.photon_transfer import photon_transfer
 from torchblur.image.preprocess import dark_frame, saturation_curve, subtract_dark
 from torchblur.image.psf_from_still import psf_from_still
 from torchblur.image.spots import locate_spots
 from torchblur.image.tracking import calibrate_axes
 from torchblur.render.camera import CameraNoise, camera_noise_std
 
-__all__ = ["Calibration", "MIN_INSIDE", "calibrate", "calibrate_latency"]
+__all__ = ["Calibration", "MIN_INSIDE", "PTC_STEPS", "calibrate", "calibrate_latency", "check_latency_source", "choose_gain",
+           "latency_given", "measure_gain", "ptc_exposures"]
 
 MIN_INSIDE = 0.5  # a spot with less of its still light in the frame is flagged, not fitted
 
@@ -57,6 +59,9 @@ class Calibration:
     axis_gain: float | None = None
     still_psf: object = None  # one spot: the StillPSF (fit.psf's choice and its evidence), else None
     drive: DriveLimit | None = None  # the run's input range (every command within drive.limit); None: no limit
+    latency_source: str = "scanned"  # "scanned" (laser pulses, rig.pulse) or "given" (camera.latency_s, camera.latency_std_s)
+    ptc: object = None  # the PhotonTransfer measured from the run's frames (None: not measured)
+    gain_source: str = "camera.gain"  # where ``gain`` came from: "camera.gain" or "photon transfer"
     noise: CameraNoise | None = None  # None: built from gain, dark and read_noise_e
 
     def __post_init__(self):
@@ -67,6 +72,11 @@ class Calibration:
     def input_limit(self) -> float:
         """The largest |command| (input units) the run may ask for (inf without a ``drive``)."""
         return math.inf if self.drive is None else float(self.drive.limit)
+
+    def limit_at(self, freq_hz: float) -> float:
+        """The largest sine amplitude (input units) at ``freq_hz`` Hz: the range and the slew limit
+        (:meth:`~torchblur.identify.drive.DriveLimit.at`; inf without a ``drive``)."""
+        return math.inf if self.drive is None else self.drive.at(freq_hz)
 
 
 #: dark frames of a calibration: the dark mean's noise is common to every frame and in no std (with
@@ -83,21 +93,20 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False, *, n_dark: i
     no fitted point's std, so a run whose stds are small takes more."""
     log = [] if log is None else log
     c = cfg.camera
-    gain = float(c.gain)
     dtype = torch.float64
 
+    check_latency_source(cfg, rig)
     # 0. The input range, fixed before the first frame (a resumed recording must be within it).
-    drive = drive_limit(rig, cfg.excitation.max_amplitude, exp)
+    drive = drive_limit(rig, cfg.excitation.max_amplitude, exp, getattr(cfg.excitation, "max_slew", None))
     if exp is not None and exp.writable:
-        check_recorded_drive(exp, drive.limit)
+        check_recorded_drive(exp, drive.limit, drive.slew)
     log_message(log, drive.describe(), progress)
 
     # 1. Dark frame.
-    dark = dark_frame(run_stage(exp, "dark", "dark", rig, lambda r: r.dark(n=n_dark, exposure_s=min(0.01, c.max_exposure_s))).frames.to(dtype))
-    read_noise_e = float(dark.read_noise) * gain
-    log_message(log, f"dark: level {float(dark.mean.mean()):.2f} ADU, read noise {read_noise_e:.2f} e-, "
-              f"{int(dark.hot_pixels.sum())} hot pixels; gain {gain:g} e-/ADU from camera.gain (given, not measured: every "
-              f"std and reduced chi2 scales with it)", progress)
+    dark_raw = run_stage(exp, "dark", "dark", rig, lambda r: r.dark(n=n_dark, exposure_s=min(0.01, c.max_exposure_s))).frames.to(dtype)
+    dark = dark_frame(dark_raw)
+    log_message(log, f"dark: level {float(dark.mean.mean()):.2f} ADU, read noise {float(dark.read_noise):.3g} ADU, "
+              f"{int(dark.hot_pixels.sum())} hot pixels", progress)
 
     # 3 (before 2, to choose the PSF exposure). Saturation curve of the still spot.
     ladder = np.geomspace(1e-4, c.max_exposure_s, SATURATION_STEPS)
@@ -109,7 +118,11 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False, *, n_dark: i
 
     # 2. PSF: still frames at an exposure that fills peak_fraction of the range.
     te_psf = float(min(c.max_exposure_s, c.peak_fraction * float(sat.linear_limit_s)))
-    still_e = subtract_dark(run_stage(exp, "psf", "psf", rig, lambda r: r.still(n=n_still, exposure_s=te_psf)).frames.to(dtype), dark) * gain
+    still_raw = run_stage(exp, "psf", "psf", rig, lambda r: r.still(n=n_still, exposure_s=te_psf)).frames.to(dtype)
+    # 2a. The gain: a photon transfer curve of the still frames (and of a ladder with camera.ptc_frames), checked against camera.gain.
+    ptc, gain, gain_source = _gain_stage(cfg, rig, exp, dark_raw, dark, still_raw, sat, log, progress)
+    read_noise_e = float(dark.read_noise) * gain
+    still_e = subtract_dark(still_raw, dark) * gain
     spots = still_psf = None
     if getattr(cfg, "spots", None) is not None and cfg.spots.enabled:
         spots = _locate_spots(cfg, still_e.mean(0), te_psf, read_noise_e, log, progress)
@@ -121,14 +134,11 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False, *, n_dark: i
         psf = still_psf.gaussian.psf
         peak_rate = float(psf.amplitude)  # electrons per second at power 1
 
-    # 4. Latency.
-    pulse_w = LATENCY_SCAN["pulse_width_s"]
-    latency, latency_std = run_stage(exp, "latency", "latency", rig, lambda r: calibrate_latency(
-        r, dark=dark, gain=gain, trigger_delay_s=c.trigger_delay_s, pulse_width_s=pulse_w,
-        power=c.peak_fraction * full_adu * gain / (peak_rate * pulse_w)))
-    log_message(log, f"latency: {latency * 1e6:.3f} +- {latency_std * 1e6:.3f} us", progress)
+    # 4. Latency: given (camera.latency_s, camera.latency_std_s), or scanned with laser pulses.
+    latency, latency_std, latency_source = _latency_stage(cfg, rig, exp, dark, gain, full_adu, peak_rate, log, progress)
     cal = Calibration(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=full_adu, psf=psf, peak_rate=peak_rate,
-                      latency_s=latency, latency_std_s=latency_std, gain=gain, spots=spots, still_psf=still_psf, drive=drive)
+                      latency_s=latency, latency_std_s=latency_std, gain=gain, spots=spots, still_psf=still_psf, drive=drive,
+                      latency_source=latency_source, ptc=ptc, gain_source=gain_source)
 
     # 4b. The actuator's direction in the image (one axis, one spot; a 2x2 plant or many spots
     # fit both image axes).
@@ -157,6 +167,116 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False, *, n_dark: i
     return cal
 
 
+def _latency_stage(cfg, rig, exp, dark, gain: float, full_adu: float, peak_rate: float, log, progress):
+    """Stage 4: ``(latency_s, std_s, "given" | "scanned")``: ``camera.latency_s`` +- ``camera.latency_std_s``
+    where given, else :func:`calibrate_latency` with pulses that fill ``camera.peak_fraction`` of the range
+    (``full_adu``) at the still spot's peak (``peak_rate`` e-/s)."""
+    c = cfg.camera
+    if latency_given(cfg):
+        latency, std = float(c.latency_s), float(c.latency_std_s)
+        log_message(log, f"latency: {latency * 1e6:.3f} +- {std * 1e6:.3f} us given (camera.latency_s, camera.latency_std_s; "
+                         f"not scanned)", progress)
+        return latency, std, "given"
+    pulse_w = LATENCY_SCAN["pulse_width_s"]
+    latency, std = run_stage(exp, "latency", "latency", rig, lambda r: calibrate_latency(
+        r, dark=dark, gain=gain, trigger_delay_s=c.trigger_delay_s, pulse_width_s=pulse_w,
+        power=c.peak_fraction * full_adu * gain / (peak_rate * pulse_w)))
+    log_message(log, f"latency: {latency * 1e6:.3f} +- {std * 1e6:.3f} us scanned with laser pulses", progress)
+    return latency, std, "scanned"
+
+
+def latency_given(cfg) -> bool:
+    """Whether the run takes its trigger-to-exposure latency as given (``camera.latency_std_s`` set:
+    ``camera.latency_s`` +- it) instead of scanning it with laser pulses."""
+    return getattr(cfg.camera, "latency_std_s", None) is not None
+
+
+def check_latency_source(cfg, rig) -> None:
+    """Refuse, before any frame, a run that must scan its latency on a rig that cannot
+    (no ``pulse()``: a gated laser the controller does not have).
+
+    Raises:
+        ConfigError: naming ``camera.latency_std_s``.
+    """
+    if not latency_given(cfg) and not callable(getattr(rig, "pulse", None)):
+        raise ConfigError(f"camera.latency_std_s: the rig ({type(rig).__name__}) has no gated laser (pulse()) to scan the "
+                          f"trigger-to-exposure latency; give camera.latency_s=... and camera.latency_std_s=... (s), the "
+                          f"latency your camera's datasheet or your own measurement gives and its std")
+
+
+PTC_STEPS = 8  # exposures of the photon transfer ladder (camera.ptc_frames frames each), 5 %..95 % of the linear range
+WARN_Z = 3.0  # a configured gain this many stds from the measured one is named in a warning
+AUTO_REL_STD = 0.01  # camera.gain_from=auto takes the measured gain when it is this precise (or the configured one is off)
+
+
+def ptc_exposures(linear_limit_s: float, max_exposure_s: float) -> list[float]:
+    """The exposures (s) of the photon transfer ladder: :data:`PTC_STEPS` from 5 % to 95 % of the
+    still spot's linear range (its peak short of saturation), at most ``max_exposure_s``."""
+    return [float(min(max_exposure_s, t)) for t in np.geomspace(0.05, 0.95, PTC_STEPS) * float(linear_limit_s)]
+
+
+def choose_gain(ptc, configured: float, mode: str, name: str = "camera.gain") -> tuple[float, str, str]:
+    """The gain a run uses: ``(gain e-/ADU, source, log line)``. ``mode`` (``camera.gain_from``):
+    ``"measure"``: the photon transfer's; ``"config"``: ``configured`` (beyond :data:`WARN_Z` stds
+    from the measured one with a warning); ``"auto"``: the measured one where it is
+    within :data:`AUTO_REL_STD` relative std or the configured one lies more than :data:`WARN_Z`
+    stds from it, else the configured one. The line names both, their distance in stds and, beyond
+    :data:`WARN_Z`, warns that with the configured gain every std would be sqrt(true / configured) times the true error's.
+    ``name``: where ``configured`` comes from (``camera.gain``; a recording's ``gain_e_per_adu``).
+    """
+    if ptc is None:
+        return configured, name, f"gain: {configured:g} e-/ADU from {name} (given, not measured: every std scales with it)"
+    z = ptc.gain_z(configured)
+    measured = f"{ptc.gain_e_per_adu:.4g} +- {ptc.gain_std:.2g} e-/ADU measured (photon transfer)"
+    off = abs(z) > WARN_Z
+    use = mode == "measure" or (mode == "auto" and (ptc.relative_gain_std <= AUTO_REL_STD or off))
+    gain, source = (ptc.gain_e_per_adu, "photon transfer") if use else (configured, name)
+    line = f"gain: {gain:.4g} e-/ADU from {source} (camera.gain_from={mode}; {measured}; {name} {configured:g} is {z:+.1f} stds from it)"
+    if off:
+        line = (f"gain: warning: {name} {configured:g} e-/ADU is {z:+.1f} stds from the {measured}: with it every std would be "
+                f"{math.sqrt(ptc.gain_e_per_adu / configured):.3g} times the true error's; the run uses {gain:.4g} e-/ADU from {source}")
+    return gain, source, line
+
+
+def _gain_stage(cfg, rig, exp, dark_raw, dark, still_raw, sat, log, progress):
+    """Stage 2a: the photon transfer curve of the still frames (the spot's pixels span dark to its
+    peak) and, with ``camera.ptc_frames`` > 0, of a ladder of :data:`PTC_STEPS` exposures of that
+    many still frames each; the gain it gives is checked against ``camera.gain`` and chosen
+    (:func:`choose_gain`). Returns ``(PhotonTransfer or None, gain, source)``."""
+    c = cfg.camera
+    mode, configured = getattr(c, "gain_from", "config"), float(c.gain)
+    steps = [still_raw]
+    n_ladder = int(getattr(c, "ptc_frames", 0) or 0)
+    if n_ladder > 0:
+        te = ptc_exposures(float(sat.linear_limit_s), float(c.max_exposure_s))
+        steps += run_stage(exp, "ptc", "ptc", rig, lambda r: [r.still(n=n_ladder, exposure_s=t).frames.to(dark_raw.dtype) for t in te])
+    return measure_gain(steps, dark_raw, dark, float(sat.saturation_adu), configured, mode, log, progress)
+
+
+def measure_gain(steps, dark_raw, dark, saturation_adu: float, configured: float, mode: str, log, progress: bool = False, *,
+                 name: str = "camera.gain"):
+    """The photon transfer curve of ``steps`` (raw frames, ADU: a list of ``[N, H, W]``) against the
+    raw dark frames ``dark_raw`` ``[D, H, W]`` (``dark``: their DarkFrame, for the hot pixels), and
+    the gain :func:`choose_gain` takes from it; both logged. Returns ``(PhotonTransfer or None, gain,
+    source)``: None where the frames give no curve (then ``configured``, unless ``mode`` is measure).
+
+    Raises:
+        ConfigError: naming ``camera.gain_from`` (measure, and the frames give no curve).
+    """
+    ptc = None
+    if all(s.shape[0] >= 2 for s in steps) and dark_raw.shape[0] >= 2:
+        try:
+            ptc = photon_transfer(steps, dark_raw, saturation_adu=saturation_adu, hot_pixels=dark.hot_pixels)
+            log_message(log, f"photon transfer: {ptc.describe()}", progress)
+        except ParameterError as exc:
+            log_message(log, f"photon transfer: not measured ({exc})", progress)
+    if ptc is None and mode == "measure":
+        raise ConfigError("camera.gain_from: measure, but the frames give no photon transfer curve (see the log)")
+    gain, source, line = choose_gain(ptc, configured, mode, name)
+    log_message(log, line, progress)
+    return ptc, gain, source
+
+
 _AXIS_FRAMES = 24  # short exposures of the axis calibration, at phases spread over a period
 
 
@@ -167,7 +287,7 @@ def _measure_axis(cfg, rig, cal: Calibration):
     unit)``."""
     c, x = cfg.camera, cfg.excitation
     f = cfg.frequencies_hz()[0]
-    target, limit = float(x.target_px), cal.input_limit
+    target, limit = float(x.target_px), cal.limit_at(f)
     # Tracking exposures: 5 % of the period (shorter when the camera's longest exposure is).
     frac = min(0.05, 0.9 * min(float(c.max_exposure_s), float(getattr(rig, "max_exposure_s", c.max_exposure_s))) * f)
     te = frac / f

@@ -554,6 +554,18 @@ def _write_residuals(res, out: Path, stamp: str) -> None:
         sigma = sigma if np.all(sigma > 0) else None  # a noiseless camera model: the residual in e- instead
     fig = residual_figure(data, models, labels, stamp=stamp, unit="e-", exposures=exposures, reason=reason, sigma=sigma)
     fig.savefig(out / "residuals.png", dpi=90, metadata={"Description": stamp})
+    _write_ptc_figure(cfg, res, out, stamp)
+
+
+def _write_ptc_figure(cfg, res, out: Path, stamp: str) -> None:
+    """ptc.png: the photon transfer curve the calibration measured (where it did), with camera.gain's line."""
+    ptc = getattr(res, "ptc", None)
+    if ptc is None:
+        return
+    from torchblur.image.photon_transfer import photon_transfer_figure
+
+    fig = photon_transfer_figure(ptc, configured_gain=float(cfg.camera.gain))
+    fig.savefig(out / "ptc.png", dpi=90, metadata={"Description": stamp})
 
 
 def _problem_flags(res):

@@ -48,13 +48,18 @@ class PlantConfig:
     motion (x, y) px per plant output unit, e.g. ``[0.985, 0.174]`` for an actuator axis
     rotated 10 degrees in the camera's image. ``input_limit``: the simulated amplifier's input
     range, the largest |command| (input units, every input) it takes; a command beyond it is
-    refused, and every plan keeps within it (``excitation.max_amplitude`` may only narrow it)."""
+    refused, and every plan keeps within it (``excitation.max_amplitude`` may only narrow it).
+    ``slew_limit``: its slew-rate limit (input units per second; None: none), kept the same way
+    (``excitation.max_slew`` may only narrow it)."""
 
     num: list = field(default_factory=lambda: list(DEFAULT_PLANT[0]))
     den: list = field(default_factory=lambda: list(DEFAULT_PLANT[1]))
     delay_s: object = 30e-6
     direction: list = field(default_factory=lambda: [1.0, 0.0])
     input_limit: float = 200.0  # = torchblur.rig.simulated.DEFAULT_INPUT_LIMIT: 8 px at 5 kHz on the default mirror takes ~126
+    # The simulated amplifier's slew-rate limit, input units per second (|d command / dt|, a sine's amplitude * omega:
+    # the current limit of a piezo amplifier, its full range only up to slew_limit / (2 pi input_limit) Hz); null: none.
+    slew_limit: Optional[float] = None
 
     @property
     def is_mimo(self) -> bool:
@@ -120,6 +125,7 @@ EXCITATION_KINDS = ("sine", "multisine")
 class ExcitationConfig:
     target_px: float = 8.0
     max_amplitude: Optional[float] = None
+    max_slew: Optional[float] = None  # input units/s: narrows the rig's slew limit (plant.slew_limit, SLEW?); never widens it
     # "sine": one frequency per point (the sweep); "multisine": the sweep's frequencies in groups of `tones`, each group
     # one multisine on a common grid with one designed image set (torchblur.identify.multisine).
     kind: str = "sine"
@@ -137,10 +143,18 @@ class CameraConfig:
     max_exposure_s: float = 1.0
     readout_s: float = 1e-3
     trigger_delay_s: float = 0.0
+    # The trigger-to-exposure latency: the simulated camera's (its truth); with latency_std_s set, also the
+    # run's, given instead of scanned with laser pulses (a rig without pulse(): a camera whose latency is known).
     latency_s: float = 12e-6
+    latency_std_s: Optional[float] = None
     jitter_s: float = 0.2e-6
     read_noise: float = 5.0
     gain: float = 1.0
+    # Which gain the run uses (torchblur.identify.calibration.choose_gain): "auto" (default): the photon transfer
+    # curve's (of the still frames, and of a ladder with ptc_frames) where it is within 1 % or camera.gain lies beyond
+    # 3 of its stds, else camera.gain; "measure": always the measured one; "config": camera.gain (a warning beyond 3 stds).
+    gain_from: str = "auto"
+    ptc_frames: int = 0  # frames per exposure of a photon transfer ladder (8 exposures) for a precise gain; 0: none
     full_well: float = 20000.0
     bit_depth: int = 12
     dark_level: float = 100.0
@@ -151,6 +165,7 @@ class CameraConfig:
 
 
 AXIS_MODES = ("measure", "x", "y")
+GAIN_FROM = ("auto", "measure", "config")
 
 
 @dataclass(frozen=True)
@@ -526,6 +541,8 @@ def validate_plant(plant: PlantConfig) -> None:
     are flat lists (SISO) or both 2x2 nested lists (a tip-tilt mirror, ``num[i][j]``: output i
     from input j); ``delay_s`` is a number, or for a 2x2 plant a number or 2x2 nested list."""
     _num(plant.input_limit, "plant.input_limit", positive=True)
+    if plant.slew_limit is not None:
+        _num(plant.slew_limit, "plant.slew_limit", positive=True)
     mimo_num, mimo_den = _nested(plant.num), _nested(plant.den)
     direction = _pair(plant.direction, "plant.direction", "[x, y] px per output unit")
     if not mimo_num and not mimo_den:
@@ -656,6 +673,13 @@ def validate_camera(c: CameraConfig) -> None:
                           f"least {MIN_PSF_SIGMA_PX} px")
     for k in ("readout_s", "trigger_delay_s", "latency_s", "jitter_s", "read_noise", "dark_level"):
         _num(getattr(c, k), f"camera.{k}", nonnegative=True)
+    if c.gain_from not in GAIN_FROM:
+        raise ConfigError(f"camera.gain_from: expected one of {GAIN_FROM}, got {c.gain_from!r}")
+    _num(c.ptc_frames, "camera.ptc_frames", integer=True, low=0, high=10000)
+    if c.ptc_frames == 1:
+        raise ConfigError("camera.ptc_frames: expected 0 (no ladder) or at least 2 frames per exposure (a pair), got 1")
+    if c.latency_std_s is not None:
+        _num(c.latency_std_s, "camera.latency_std_s", nonnegative=True)
     _num(c.bit_depth, "camera.bit_depth", integer=True, low=1, high=32)
     _num(c.height, "camera.height", integer=True, low=8)
     _num(c.width, "camera.width", integer=True, low=8)
@@ -701,12 +725,21 @@ def validate_rig(r: RigConfig) -> None:
             except ParameterError as exc:
                 raise ConfigError(f"rig.frames: {excerpt(f)}: {str(exc).removeprefix('url: ')}") from None
             ok = True
+        elif f.startswith("aravis://"):  # a GenICam camera through Aravis (the aravis extra): options checked here
+            from torchblur.errors import ParameterError
+            from torchblur.hardware.aravis import aravis_url_options
+
+            try:
+                aravis_url_options(f)
+            except ParameterError as exc:
+                raise ConfigError(f"rig.frames: {f!r}: {str(exc).removeprefix('url: ')}") from None
+            ok = True
         else:
             mod, sep, name = f.partition(":")
             ok = bool(sep and mod and name and "/" not in f)
         if not ok:
-            raise ConfigError(f"rig.frames: expected tcp://HOST:PORT, pylon://[SERIAL][?trigger=...] or "
-                              f"package.module:ClassName, got {excerpt(f)}")
+            raise ConfigError(f"rig.frames: expected tcp://HOST:PORT, pylon://[SERIAL][?trigger=...], aravis://[DEVICE][?...] "
+                              f"or package.module:ClassName, got {excerpt(f)}")
     _num(r.timeout_s, "rig.timeout_s", positive=True)
     _num(r.retries, "rig.retries", integer=True, low=0, high=100)
 
@@ -777,6 +810,12 @@ def validate(cfg: IdentifyConfig) -> None:
         if cfg.rig.kind == "simulated" and float(cfg.excitation.max_amplitude) > float(cfg.plant.input_limit):
             raise ConfigError(f"excitation.max_amplitude: {cfg.excitation.max_amplitude} is beyond the simulated plant's input "
                               f"range plant.input_limit = {cfg.plant.input_limit}; it may only narrow the range, not widen it")
+    if cfg.excitation.max_slew is not None:
+        _num(cfg.excitation.max_slew, "excitation.max_slew", positive=True)
+        slew = cfg.plant.slew_limit
+        if cfg.rig.kind == "simulated" and slew is not None and float(cfg.excitation.max_slew) > float(slew):
+            raise ConfigError(f"excitation.max_slew: {cfg.excitation.max_slew} is beyond the simulated plant's slew limit "
+                              f"plant.slew_limit = {slew}; it may only narrow the limit, not widen it")
     validate_excitation(cfg.excitation)
     c = cfg.camera
     validate_camera(c)
@@ -907,8 +946,10 @@ def calibration_frames(cfg: IdentifyConfig, *, n_dark: int, n_still: int) -> int
     ``n_dark`` dark, the saturation ladder, ``n_still`` still and the latency scan (each pulse
     time :data:`LATENCY_SCAN` ``repeats`` times)."""
     scan = {k: v for k, v in LATENCY_SCAN.items() if k != "repeats"}
-    n_pulse = len(latency_scan_times(float(cfg.camera.trigger_delay_s), **scan)) * LATENCY_SCAN["repeats"]
-    return int(n_dark) + SATURATION_STEPS + int(n_still) + n_pulse
+    n_pulse = 0 if cfg.camera.latency_std_s is not None else (
+        len(latency_scan_times(float(cfg.camera.trigger_delay_s), **scan)) * LATENCY_SCAN["repeats"])
+    n_ptc = 8 * int(cfg.camera.ptc_frames)  # torchblur.identify.calibration.PTC_STEPS exposures
+    return int(n_dark) + SATURATION_STEPS + int(n_still) + n_pulse + n_ptc
 
 
 # A DM run's geometry matrix evaluates every actuator's influence at oversample^2 points of every

@@ -8,6 +8,14 @@ axis calibration and the multisine's peak stay within it. A point that cannot re
 motion is driven at the limit, fitted at the smaller motion and reported as ``limited``
 (:func:`limited_summary`). A recording whose commands exceed the limit of the rig it is
 resumed on is refused (:func:`check_recorded_drive`).
+
+Beside the range, the amplifier's slew-rate limit (:attr:`~torchblur.rig.base.Rig.slew_limit`,
+input units per second: ``plant.slew_limit``, a controller's ``SLEW?`` reply; ``excitation.max_slew``
+narrows it): a piezo amplifier delivers its full range only up to its power bandwidth, its current
+bounding ``amplitude * omega``. Every plan keeps a sine's ``A * omega`` (a multisine's
+:func:`~torchblur.rig.base.command_slew`) within it, so the largest amplitude at ``f`` Hz is
+``min(limit, slew / (2 pi f))`` (:meth:`DriveLimit.at`); points it limits are flagged and named
+as the range's are.
 """
 from __future__ import annotations
 
@@ -18,12 +26,15 @@ import numpy as np
 
 from torchblur.errors import ConfigError
 from torchblur.hardware.errors import RecordingError
-from torchblur.rig.base import DRIVE_RTOL, command_peak
+from torchblur.rig.base import DRIVE_RTOL, command_peak, command_slew
 
-__all__ = ["DriveLimit", "drive_limit", "at_limit", "is_limited", "check_recorded_drive", "limited_summary", "SESSION_KEY"]
+__all__ = ["DriveLimit", "drive_limit", "range_limit", "drive_use", "at_limit", "is_limited", "check_recorded_drive", "limited_summary", "SESSION_KEY",
+           "SLEW_KEY"]
 
 #: the key of a recording session's rig details that holds the rig's range (replays read it back)
 SESSION_KEY = "input_limit"
+#: the same for the rig's slew limit
+SLEW_KEY = "slew_limit"
 
 
 @dataclass(frozen=True)
@@ -36,23 +47,59 @@ class DriveLimit:
     limit: float
     device: float | None
     source: str
+    slew: float = math.inf  # the largest |d command / dt| (input units/s); inf: no slew limit
+    slew_device: float | None = None
+    slew_source: str = "none"
+
+    def at(self, freq_hz: float) -> float:
+        """The largest sine amplitude (input units) at ``freq_hz`` Hz: ``min(limit, slew / (2 pi freq_hz))``."""
+        f = abs(float(freq_hz))
+        return float(min(self.limit, self.slew / (2 * math.pi * f))) if f > 0 and math.isfinite(self.slew) else float(self.limit)
 
     def describe(self) -> str:
         """One line for the log."""
         dev = "not reported" if self.device is None else f"+-{self.device:.6g}"
-        return f"drive: input range +-{self.limit:.6g} input units (device {dev}; from {self.source})"
+        line = f"drive: input range +-{self.limit:.6g} input units (device {dev}; from {self.source})"
+        if math.isfinite(self.slew):
+            sdev = "not reported" if self.slew_device is None else f"{self.slew_device:.6g}"
+            line += (f", slew limit {self.slew:.6g} input units/s (device {sdev}; from {self.slew_source}): the full range "
+                     f"up to {self.slew / (2 * math.pi * self.limit):.4g} Hz")
+        return line
 
 
-def _recorded_range(exp) -> float | None:
-    """The rig range a recording's last session noted (None: not noted)."""
+def _recorded_range(exp, key: str = SESSION_KEY) -> float | None:
+    """The rig range (``key``: or slew limit) a recording's last session noted (None: not noted)."""
     for s in reversed(exp.meta.get("sessions", [])):
-        v = (s.get("rig") or {}).get(SESSION_KEY)
+        v = (s.get("rig") or {}).get(key)
         if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0:
             return float(v)
     return None
 
 
-def drive_limit(rig, max_amplitude, exp=None) -> DriveLimit:
+def drive_limit(rig, max_amplitude, exp=None, max_slew=None) -> DriveLimit:
+    """The run's :class:`DriveLimit`: the range (:func:`range_limit`) and the slew limit (the
+    rig's ``slew_limit``, None where it has none, narrowed by ``max_slew``: ``excitation.max_slew``).
+
+    Raises:
+        ConfigError: as :func:`range_limit`; naming ``excitation.max_slew`` when it is larger than
+            the rig's slew limit (it may only narrow it).
+    """
+    rng = range_limit(rig, max_amplitude, exp)
+    replay = exp is not None and not hasattr(rig, "input_limit")
+    device = _recorded_range(exp, SLEW_KEY) if replay else getattr(rig, "slew_limit", None)
+    device = None if device is None else float(device)
+    smax = None if max_slew is None else float(max_slew)
+    if smax is not None and device is not None and smax > device * (1 + DRIVE_RTOL):
+        raise ConfigError(f"excitation.max_slew: {smax:g} input units/s is beyond the slew limit {device:g} the rig reports "
+                          f"({rig!r}); it may only narrow the limit, not widen it")
+    if smax is not None:
+        return DriveLimit(rng.limit, rng.device, rng.source, smax, device, "excitation.max_slew")
+    if device is not None:
+        return DriveLimit(rng.limit, rng.device, rng.source, device, device, "recording" if replay else "device")
+    return rng
+
+
+def range_limit(rig, max_amplitude, exp=None) -> DriveLimit:
     """The run's :class:`DriveLimit` from the rig's range and ``excitation.max_amplitude``.
 
     A rig without the ``input_limit`` attribute replaying a recording ``exp``
@@ -84,6 +131,20 @@ def drive_limit(rig, max_amplitude, exp=None) -> DriveLimit:
                       f"|command| (input units) the actuator may take, to run on it")
 
 
+def drive_use(drive: DriveLimit | None, freq_hz, amplitude, phase_rad=None, base_freq_hz=None) -> float:
+    """How much of the drive a command uses: ``max(peak / limit, slew / slew limit)`` (1 at the
+    limit; 0 without a ``drive``). One tone: ``freq_hz``, ``amplitude`` numbers; a multisine:
+    ``[N]`` each with ``phase_rad`` and ``base_freq_hz`` (:func:`~torchblur.rig.base.command_peak`,
+    :func:`~torchblur.rig.base.command_slew`)."""
+    if drive is None:
+        return 0.0
+    phase = [0.0] * len(np.atleast_1d(freq_hz)) if phase_rad is None else phase_rad
+    use = command_peak(freq_hz, amplitude, phase, base_freq_hz) / drive.limit
+    if math.isfinite(drive.slew):
+        use = max(use, command_slew(freq_hz, amplitude, phase, base_freq_hz) / drive.slew)
+    return float(use)
+
+
 def at_limit(amplitude: float, limit: float) -> bool:
     """Whether a command of peak ``amplitude`` is at the limit (within 1e-9)."""
     return abs(float(amplitude)) >= float(limit) * (1 - 1e-9)
@@ -95,15 +156,15 @@ def is_limited(amplitude: float, moved_px: float, target_px: float, limit: float
     return at_limit(amplitude, limit) and not float(moved_px) >= low * float(target_px)
 
 
-def check_recorded_drive(exp, limit: float) -> None:
+def check_recorded_drive(exp, limit: float, slew: float = math.inf) -> None:
     """Refuse to resume a recording on a rig whose range it exceeds: every recorded ``sine``
     amplitude and ``multisine`` peak (:func:`~torchblur.rig.base.command_peak`) must be within
-    ``limit``.
+    ``limit``, and its slew rate (:func:`~torchblur.rig.base.command_slew`) within ``slew``.
 
     Raises:
         RecordingError: naming the first group that exceeds it.
     """
-    if exp is None or not math.isfinite(limit):
+    if exp is None or not (math.isfinite(limit) or math.isfinite(slew)):
         return
     seen = set()
     for ln in exp.lines:
@@ -115,17 +176,24 @@ def check_recorded_drive(exp, limit: float) -> None:
         try:
             if ln["method"] == "sine":
                 peak = abs(float(a["amplitude"]))
+                rate = peak * 2 * math.pi * abs(float(a["freq_hz"]))
             else:
                 peak = command_peak(a["freq_hz"], a["amplitude"], a["phase_rad"], a.get("base_freq_hz"))
+                rate = command_slew(a["freq_hz"], a["amplitude"], a["phase_rad"], a.get("base_freq_hz"))
         except (KeyError, TypeError, ValueError) as exc:
             raise RecordingError(f"{ln.get('group')}: the recorded {ln['method']} call has no readable amplitude ({exc})") from None
         if not peak <= limit * (1 + DRIVE_RTOL):
             raise RecordingError(f"{ln.get('group')}: recorded with a command of peak {peak:.6g} input units, beyond the input "
                                  f"range +-{limit:.6g} of this run's rig; refused (resume it on the rig it was recorded on, or "
                                  f"record anew)")
+        if not rate <= slew * (1 + DRIVE_RTOL):
+            raise RecordingError(f"{ln.get('group')}: recorded with a command slewing at {rate:.6g} input units/s, beyond the "
+                                 f"slew limit {slew:.6g} units/s of this run's rig; refused (resume it on the rig it was "
+                                 f"recorded on, or record anew)")
 
 
-def limited_summary(freq_hz, limited, moved_px, target_px: float, limit: float, inputs=("x",), no_motion=None) -> str | None:
+def limited_summary(freq_hz, limited, moved_px, target_px: float, limit: float, inputs=("x",), no_motion=None,
+                    slew: float = math.inf) -> str | None:
     """The log line of the limited points (None when there are none): per point the frequency
     (Hz), the input when there are several, the motion reached (px) of the target, and where
     ``no_motion`` (bool per point, or None) says so, that the fit found no significant motion
@@ -141,5 +209,6 @@ def limited_summary(freq_hz, limited, moved_px, target_px: float, limit: float, 
     for j in np.nonzero(lim)[0]:
         where = f"{f[j % F]:.4g} Hz" + (f" ({inputs[j // F]})" if len(inputs) > 1 else "")
         items.append(f"{where}: {moved[j]:.3g} px" + (" (no significant motion: flagged, not a measurement)" if none[j] else ""))
-    return (f"drive: {int(lim.sum())} of {lim.size} points limited by the input range +-{limit:.6g} (the target "
+    by = f"the input range +-{limit:.6g}" + (f" and the slew limit {slew:.6g} units/s" if math.isfinite(slew) else "")
+    return (f"drive: {int(lim.sum())} of {lim.size} points limited by {by} (the target "
             f"{target_px:g} px not reached; fitted at the smaller motion): " + ", ".join(items))

@@ -44,7 +44,7 @@ from torchblur.identify.stages import run_plan
 from torchblur.image.moments import image_moments, moments_along
 from torchblur.image.preprocess import subtract_dark
 from torchblur.render.window import ExposureWindow
-from torchblur.rig.base import command_peak
+from torchblur.rig.base import command_peak, command_slew
 from torchblur.sysid.frequency_response import FrequencyResponse
 
 __all__ = ["MultisineIdentificationResult", "MultisinePlan", "identify_multisine", "group_frequencies"]
@@ -134,13 +134,15 @@ class _Group:
 class _Settings:
     """What every group shares: ``peak_e`` (electrons at the still spot's peak in every
     frame), ``u`` (the motion's image direction ``[2]``), ``tone_px``, ``amax`` (the run's input
-    range: the largest peak of the command, input units; inf: none), ``tmax`` (s)."""
+    range: the largest peak of the command, input units; inf: none), ``tmax`` (s), ``slew`` (the
+    run's slew limit: the largest peak of the command's derivative, input units/s; inf: none)."""
 
     peak_e: float
     u: torch.Tensor
     tone_px: float
     amax: float
     tmax: float
+    slew: float = math.inf  # the run's slew limit, input units/s (the command's |d/dt|; inf: none)
 
 
 @dataclass
@@ -174,7 +176,8 @@ def _settings(cfg, rig, cal) -> _Settings:
     return _Settings(peak_e=c.peak_fraction * cal.full_adu * cal.gain,
                      u=torch.tensor(cal.direction if cal.direction is not None else (1.0, 0.0), dtype=_F64),
                      tone_px=float(x.tone_px) if x.tone_px is not None else 0.75 * float(x.target_px), amax=cal.input_limit,
-                     tmax=min(float(c.max_exposure_s), float(rig.max_exposure_s)))
+                     tmax=min(float(c.max_exposure_s), float(rig.max_exposure_s)),
+                     slew=math.inf if cal.drive is None else float(cal.drive.slew))
 
 
 def _group(fg, snap_tol: float, known: list, st: _Settings) -> _Group:
@@ -194,11 +197,19 @@ def _peak(a, phases, grp: _Group) -> float:
     return command_peak(grp.f_t, a, phases, grp.f0)
 
 
-def _limit(a, phases, grp: _Group, amax: float):
-    """``a`` scaled down so the command's peak stays within ``amax`` (inf: no limit)."""
-    if amax is None or not math.isfinite(amax):
-        return a
-    return a * min(1.0, float(amax) / _peak(a, phases, grp))
+def _use(a, phases, grp: _Group, amax: float, slew: float = math.inf) -> float:
+    """How much of the drive the command uses: ``max(peak / amax, slew rate / slew)`` (1: at the limit)."""
+    use = _peak(a, phases, grp) / amax if amax is not None and math.isfinite(amax) else 0.0
+    if math.isfinite(slew):
+        use = max(use, command_slew(grp.f_t, a, phases, grp.f0) / slew)
+    return use
+
+
+def _limit(a, phases, grp: _Group, amax: float, slew: float = math.inf):
+    """``a`` scaled down so the command's peak stays within ``amax`` and its slew rate
+    (:func:`~torchblur.rig.base.command_slew`) within ``slew`` (inf: no limit)."""
+    use = _use(a, phases, grp, amax, slew)
+    return a if use <= 1.0 else a / use
 
 
 def _pilots(r, run, grp: _Group, st: _Settings):
@@ -206,7 +217,7 @@ def _pilots(r, run, grp: _Group, st: _Settings):
     target (at most 3). Returns ``(amplitudes, phases, pilot captures, rms px)``."""
     cal, dark, gain = run.cal, run.cal.dark, run.cal.gain
     phases, _ = optimise_crest_factor(grp.harm, grp.a0)
-    a = _limit(grp.a0, phases, grp, st.amax)
+    a = _limit(grp.a0, phases, grp, st.amax, st.slew)
     pilots = []
     for attempt in range(3):
         cap = r.multisine(freq_hz=[float(v) for v in grp.f_t], amplitude=[float(v) for v in a], phase_rad=[float(v) for v in phases],
@@ -218,10 +229,10 @@ def _pilots(r, run, grp: _Group, st: _Settings):
         along, vex = moments_along(cen - cal.psf.center, cv - cal.psf.cov, st.u)
         rms = math.sqrt(max(float(vex + along**2), 1e-4))  # rms motion along the axis
         ok = 0.75 * grp.rms_target <= rms <= 1.33 * grp.rms_target
-        at_limit = math.isfinite(st.amax) and rms < grp.rms_target and np.allclose(_limit(a * 1.01, phases, grp, st.amax), a, rtol=1e-9)
+        at_limit = rms < grp.rms_target and np.allclose(_limit(a * 1.01, phases, grp, st.amax, st.slew), a, rtol=1e-9)
         if ok or at_limit or attempt == 2:
             break
-        a = _limit(a * grp.rms_target / max(rms, 0.05 * grp.rms_target), phases, grp, st.amax)
+        a = _limit(a * grp.rms_target / max(rms, 0.05 * grp.rms_target), phases, grp, st.amax, st.slew)
     return a, phases, pilots, rms
 
 
@@ -298,7 +309,7 @@ def _fit_group(run, acq: MultisineAcquisition, grp: _Group, st: _Settings, acqui
     acq.cov += list(cov)
     acq.amplitude += a_t.tolist()
     rms = math.sqrt(float(np.sum(np.asarray(M_exp) ** 2)) / 2)
-    acq.limited += [is_limited(_peak(a_t, phases, grp), rms, grp.rms_target, st.amax)] * N
+    acq.limited += [is_limited(_use(a_t, phases, grp, st.amax, st.slew), rms, grp.rms_target, 1.0)] * N
     acq.moved_px += [float(m) for m in np.abs(M_exp)]
     run.say(f"multisine group {len(acq.fits) - 1}: tones {', '.join(f'{v:.4g}' for v in grp.f_t)} Hz (f0 {grp.f0:.4g} Hz, harmonics "
             f"{grp.harm.tolist()}), {len(pilot)} pilot(s) + {E - 1} designed frames, {E} fitted (exposures "
@@ -364,12 +375,15 @@ class MultisinePlan:
         limited = np.asarray(acq.limited, dtype=bool)[idx]
         limit = cal.input_limit
         line = limited_summary(freq, limited, np.asarray(acq.moved_px)[idx], float(run.cfg.excitation.tone_px or
-                               0.75 * float(run.cfg.excitation.target_px)), limit)
+                               0.75 * float(run.cfg.excitation.target_px)), limit,
+                               slew=math.inf if cal.drive is None else cal.drive.slew)
         if line is not None:
             run.say(line)
         run.frf = FrequencyResponse(2 * np.pi * freq, response, cov=np.asarray(acq.cov)[idx], input_labels=["x"], output_labels=["x"],
                                     meta={"seed": int(run.cfg.seed), "excitation": "multisine", "direction": [float(v) for v in u],
                                           "input_limit": float(limit) if math.isfinite(limit) else None,
+                                          "slew_limit": None if cal.drive is None or not math.isfinite(cal.drive.slew)
+                                          else float(cal.drive.slew),
                                           "limited_hz": [float(f) for f in freq[limited]]})
         n_bad = int(np.isnan(response).sum())
         run.say(f"fit: {len(freq) - n_bad} of {len(freq)} points converged ({len(acq.groups)} multisine group(s))")
@@ -393,7 +407,8 @@ class MultisinePlan:
                                              windows=run.windows, power=run.power, truth=run.truth, log=run.log, timing=run.timing,
                                              groups=acq.groups, direction=cal.direction, axis=cal.axis,
                                              limited=np.asarray(acq.limited, dtype=bool)[idx],
-                                             moved_px=np.asarray(acq.moved_px, dtype=np.float64)[idx], noise=cal.noise)
+                                             moved_px=np.asarray(acq.moved_px, dtype=np.float64)[idx], noise=cal.noise,
+                                             ptc=cal.ptc)
 
 
 def identify_multisine(cfg, rig, exp, log, progress, cal, t_start: float) -> MultisineIdentificationResult:

@@ -25,7 +25,7 @@ from torchblur.design.windows import check_design
 from torchblur.errors import ConfigError, InputTypeError, as_unit_direction
 from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.outside import OutsideRecording
-from torchblur.identify.calibration import Calibration, _still_psf
+from torchblur.identify.calibration import Calibration, _still_psf, measure_gain
 from torchblur.identify.config import IdentifyConfig, load_config
 from torchblur.identify.fitting import ChunkFitter
 from torchblur.identify.record import RunRecord, console_logging, log_message
@@ -54,8 +54,8 @@ def outside_config(rec: OutsideRecording, overrides=()) -> IdentifyConfig:
     """
     for item in overrides:
         key = str(item).partition("=")[0]
-        if not (key.startswith(ALLOWED) or key == "seed"):
-            raise ConfigError(f"{key}: an outside recording takes only fit.*, model.*, report.* and seed overrides (its camera and sweep "
+        if not (key.startswith(ALLOWED) or key in ("seed", "camera.gain_from")):
+            raise ConfigError(f"{key}: an outside recording takes only fit.*, model.*, report.* and seed overrides, and camera.gain_from (its camera and sweep "
                               f"are in recording.yaml and frames.csv)")
     cfg = load_config(None, list(overrides), force=True)
     c = rec.camera
@@ -102,8 +102,12 @@ def outside_calibration(rec: OutsideRecording, cfg: IdentifyConfig, log: list, p
     (``fit.psf``, as ``identify``), the timing, and the motion's image direction
     (``fit.axis`` given; with ``measure`` it is left None for :class:`OutsidePlan`'s sweep)."""
     c = rec.camera
-    gain = float(c.gain_e_per_adu)
-    dark = dark_frame(torch.as_tensor(rec.dark, dtype=_F64))
+    dark_raw = torch.as_tensor(rec.dark, dtype=_F64)
+    dark = dark_frame(dark_raw)
+    # the gain: the still frames' photon transfer curve, checked against recording.yaml's (camera.gain_from, default auto)
+    ptc, gain, gain_source = measure_gain([torch.as_tensor(rec.still, dtype=_F64)], dark_raw, dark,
+                                          math.inf if c.saturation_adu is None else float(c.saturation_adu), float(c.gain_e_per_adu),
+                                          cfg.camera.gain_from, log, progress, name="recording.yaml gain_e_per_adu")
     read_noise_e = float(c.read_noise_e) if c.read_noise_e is not None else float(dark.read_noise) * gain
     level = dark.mean.mean()
     log_message(log, f"dark: level {float(level):.2f} ADU, read noise {read_noise_e:.2f} e- "
@@ -131,7 +135,7 @@ def outside_calibration(rec: OutsideRecording, cfg: IdentifyConfig, log: list, p
     psf = still_psf.gaussian.psf
     cal = Calibration(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=float(sat_adu - level), psf=psf,
                       peak_rate=float(psf.amplitude), latency_s=float(c.latency_s), latency_std_s=float(c.latency_std_s), gain=gain,
-                      still_psf=still_psf)
+                      still_psf=still_psf, latency_source="given", ptc=ptc, gain_source=gain_source)
     log_message(log, f"timing: latency {c.latency_s * 1e6:.3f} +- {c.latency_std_s * 1e6:.3f} us, jitter {c.jitter_s * 1e6:.3f} us "
                      f"(recording.yaml)", progress)
     mode = cfg.fit.axis

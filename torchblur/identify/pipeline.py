@@ -26,7 +26,7 @@ from torchblur.errors import InputTypeError
 from torchblur.hardware.errors import HardwareError
 from torchblur.identify.calibration import calibrate
 from torchblur.identify.config import IdentifyConfig
-from torchblur.identify.drive import SESSION_KEY
+from torchblur.identify.drive import SESSION_KEY, SLEW_KEY
 from torchblur.identify.multisine import MultisinePlan
 from torchblur.identify.record import RunRecord, console_logging, log_message, stage_bar
 from torchblur.identify.result import IdentificationResult
@@ -82,7 +82,8 @@ def _identify(cfg: IdentifyConfig, rig, progress: bool, record) -> Identificatio
         exp = open_experiment(record, cfg, rig)
         if exp is not None and exp.writable:
             exp.start_session({"kind": cfg.rig.kind, "port": cfg.rig.port, "frames": cfg.rig.frames, "rig": repr(rig),
-                               SESSION_KEY: getattr(rig, "input_limit", None)})  # a replay plans with the same range
+                               SESSION_KEY: getattr(rig, "input_limit", None),  # a replay plans with the same range
+                               SLEW_KEY: getattr(rig, "slew_limit", None)})
             if exp.meta["sessions"] and len(exp.groups):
                 log_message(log, f"resume: {len(exp.groups)} recorded group(s) in {exp.path} are reused", progress)
         result = run_stages(RunRecord(cfg=cfg, rig=rig, exp=exp, log=log, progress=progress))

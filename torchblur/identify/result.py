@@ -60,3 +60,4 @@ class IdentificationResult:
     limited: np.ndarray | None = None  # [F] or [I*F] bool: the point was limited by the input range
     moved_px: np.ndarray | None = None  # [F] or [I*F]: the motion the point reached (px)
     noise: object = None  # the calibration's CameraNoise (the residual figure's sigma), or None
+    ptc: object = None  # the calibration's PhotonTransfer (torchblur.image.photon_transfer), or None

@@ -245,7 +245,7 @@ def _take_point(run, key, inp, k, f, A, power, offset, te, moved):
     :data:`_MAX_ATTEMPTS`, until it is at the limit, where the motion it gives is kept) and record it.
     Returns ``(capture, amplitude, images, moved px)``."""
     cfg = run.cfg
-    target, limit = float(cfg.excitation.target_px), run.cal.input_limit
+    target, limit = float(cfg.excitation.target_px), run.cal.limit_at(f)  # the range and, at f, the slew limit
     for attempt in range(_MAX_ATTEMPTS):
         kw = dict(freq_hz=float(f), amplitude=float(A), exposures_s=te, trigger_offset_s=float(offset),
                   n_repeats=int(cfg.sweep.images_per_point), settle_s=cfg.sweep.settle_s, power=float(power))
@@ -273,7 +273,7 @@ def _sweep_point(run, lay: SweepLayout, acq: SineAcquisition, inp: str, k: int, 
     om = 2 * math.pi * f
     offset, win = point_windows(f, lay.fracs, lay.trigger_phase, c.trigger_delay_s, cal.latency_s)
     te = win.duration.tolist()
-    A = min(float(x.target_px) / gain_est if gain_est else float(x.target_px) / 10.0, cal.input_limit)
+    A = min(float(x.target_px) / gain_est if gain_est else float(x.target_px) / 10.0, cal.limit_at(f))
     # Laser power: a still spot over the longest exposure would reach peak_fraction of the range.
     power = c.peak_fraction * cal.full_adu * cal.gain / (cal.peak_rate * max(te))
     moved = partial(_moved_px, lay=lay, cal=cal, omega=om, window=win)
@@ -314,19 +314,22 @@ def _drive_meta(run, lay: SweepLayout) -> dict:
     the spots and image axes; NaN without a fit) and whether the input range limited it
     (``acq.limited``: at the limit and short of the target, or not fitted); the log line that
     names those points; the frequency response's entries ``input_limit`` (input units, None:
-    none) and ``limited_hz`` (the frequencies of the limited points, on any input)."""
+    none), ``slew_limit`` (input units/s, None: none) and ``limited_hz`` (the frequencies of the
+    limited points, on any input)."""
     acq, limit, target = run.acquisition, run.cal.input_limit, float(run.cfg.excitation.target_px)
+    slew = math.inf if run.cal.drive is None else run.cal.drive.slew
+    freqs = np.tile(lay.freqs, len(lay.inputs))
     amp = run.fit.amplitude.detach().to(_F64).reshape(len(acq.amps), -1)
     amp = torch.where(torch.isfinite(amp), amp, torch.full_like(amp, -1.0)).amax(1)
     acq.moved_px = [float(m) if m >= 0 else float("nan") for m in amp.tolist()]
-    acq.limited = [is_limited(A, m, target, limit) for A, m in zip(acq.amps, acq.moved_px)]
+    acq.limited = [is_limited(A, m, target, run.cal.limit_at(f)) for A, m, f in zip(acq.amps, acq.moved_px, freqs)]
     flags = run.fit.flags
     no_motion = None if flags is None else ((flags.reshape(len(acq.amps), -1) & NO_MOTION) != 0).any(1).tolist()
-    line = limited_summary(lay.freqs, acq.limited, acq.moved_px, target, limit, tuple(lay.inputs), no_motion)
+    line = limited_summary(lay.freqs, acq.limited, acq.moved_px, target, limit, tuple(lay.inputs), no_motion, slew=slew)
     if line is not None:
         run.say(line)
-    freqs = np.tile(lay.freqs, len(lay.inputs))
     return {"input_limit": float(limit) if math.isfinite(limit) else None,
+            "slew_limit": float(slew) if math.isfinite(slew) else None,
             "limited_hz": sorted({float(f) for f, lim in zip(freqs, acq.limited) if lim})}
 
 
@@ -441,4 +444,4 @@ class SinePlan:
                                     timing=run.timing, inputs=tuple(acq.layout.inputs),
                                     spots=cal.spots, direct_model=run.direct_model, direction=cal.direction, axis=cal.axis,
                                     limited=np.asarray(acq.limited, dtype=bool), moved_px=np.asarray(acq.moved_px, dtype=np.float64),
-                                    noise=cal.noise)
+                                    noise=cal.noise, ptc=cal.ptc)

@@ -321,7 +321,7 @@ def report_lines(frf, cfg) -> list[str]:
     if band is not None:
         t = frf.meta["timing"]
         terms = (f"trigger jitter {t['jitter_s'] * 1e6:.3g} us per frame over {t['frames_per_point']} frames, latency std "
-                 f"{t['latency_std_s'] * 1e6:.3g} us")
+                 f"{t['latency_std_s'] * 1e6:.3g} us" + (f" ({frf.meta['latency_source']})" if "latency_source" in frf.meta else ""))
         if band > f_top:
             reach = "never" if math.isinf(band) else f"only above {_hz(band)}"
             lines.append(f"timing: the whole band (to {_hz(f_top)}) is within the tolerance of {tol_deg:g} deg ({terms}: "

@@ -17,7 +17,7 @@ import torch
 
 from torchblur.errors import InputTypeError, ParameterError, ShapeError
 
-__all__ = ["Capture", "PatternSines", "Rig", "command_peak", "check_drive", "DRIVE_RTOL"]
+__all__ = ["Capture", "PatternSines", "Rig", "command_peak", "command_slew", "check_drive", "check_slew", "DRIVE_RTOL"]
 
 #: relative slack of a drive check: a command rounded on its way to the device (the serial
 #: protocol sends tones to 10 significant digits) still passes at the limit
@@ -95,7 +95,9 @@ class Rig(Protocol):
         on every input (the peak of a multisine, :func:`command_peak`); None where the device
         does not say (an old controller: the run then needs ``excitation.max_amplitude``).
         A call that asks for more raises :class:`~torchblur.errors.ParameterError` naming
-        ``amplitude`` (:func:`check_drive`), as a real amplifier would clip."""
+        ``amplitude`` (:func:`check_drive`), as a real amplifier would clip. A rig may also have
+        ``slew_limit`` (optional: the largest |d command / dt|, input units per second, None where
+        it has none or does not say; :func:`command_slew`, :func:`check_slew`)."""
         ...
 
     def dark(self, n: int, exposure_s: float) -> Capture:
@@ -276,3 +278,30 @@ def check_drive(peak: float, limit: float | None, what: str = "amplitude") -> No
     if limit is not None and not abs(float(peak)) <= float(limit) * (1 + DRIVE_RTOL):
         raise ParameterError(f"{what}: a command of peak {float(peak):.6g} input units is beyond the input range "
                              f"+-{float(limit):.6g} of this actuator (its amplifier would clip); refused")
+
+
+def command_slew(freq_hz, amplitude, phase_rad, base_freq_hz: float | None = None) -> float:
+    """An upper bound of the command's slew rate ``max_t |d/dt sum_k a_k sin(2 pi f_k t + p_k)|``
+    (input units per second): :func:`command_peak` of the derivative, the tones
+    ``a_k 2 pi f_k`` at ``p_k + pi / 2``. One tone gives ``|a| 2 pi f``.
+
+    Args:
+        freq_hz, amplitude, phase_rad: the N tones (Hz, input units, rad), numbers or ``[N]``.
+        base_freq_hz: f0 (Hz), or None.
+    """
+    f = np.asarray(float_list(freq_hz, "freq_hz"))
+    a = np.asarray(float_list(amplitude, "amplitude"))
+    p = np.asarray(float_list(phase_rad, "phase_rad"))
+    if not (f.size == a.size == p.size):
+        raise ShapeError(f"amplitude: expected one value per tone of freq_hz ({f.size}), got {a.size} amplitudes and "
+                         f"{p.size} phases")
+    return command_peak(f, np.abs(a) * 2 * np.pi * np.abs(f), p + np.pi / 2 * np.sign(a), base_freq_hz)
+
+
+def check_slew(slew: float, limit: float | None, what: str = "amplitude") -> None:
+    """Refuse a command whose slew rate ``slew`` (input units per second, :func:`command_slew`)
+    exceeds the amplifier's ``limit`` (None: no slew limit known) by more than
+    :data:`DRIVE_RTOL`: :class:`~torchblur.errors.ParameterError` naming ``what``."""
+    if limit is not None and not abs(float(slew)) <= float(limit) * (1 + DRIVE_RTOL):
+        raise ParameterError(f"{what}: a command slewing at {float(slew):.6g} input units/s is beyond the slew limit "
+                             f"{float(limit):.6g} units/s of this actuator's amplifier (amplitude * omega; it would overheat); refused")

@@ -30,4 +30,5 @@ def build_simulated_rig(cfg) -> SimulatedRig:
     return SimulatedRig(plant=plant_of(cfg), camera=camera, frame_shape=(int(c.height), int(c.width)), psf_sigma_px=c.psf_sigma_px,
                         frame_rate_hz=c.frame_rate_hz, trigger_delay_s=c.trigger_delay_s, readout_s=c.readout_s,
                         max_exposure_s=c.max_exposure_s, latency_s=c.latency_s, jitter_s=c.jitter_s, seed=int(cfg.seed), spots=spots,
-                        direction=direction, input_limit=float(cfg.plant.input_limit))
+                        direction=direction, input_limit=float(cfg.plant.input_limit),
+                        slew_limit=None if cfg.plant.slew_limit is None else float(cfg.plant.slew_limit))

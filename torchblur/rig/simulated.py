@@ -35,7 +35,8 @@ from torchblur.render.psf import GaussianPSF
 from torchblur.render.blur import RenderSettings, choose_node_count, render_blur
 from torchblur.render.window import ExposureWindow
 from torchblur.render.trajectory import Sinusoid, Trajectory
-from torchblur.rig.base import Capture, check_drive, check_tone_grid, command_peak, float_list, per_exposure
+from torchblur.rig.base import (Capture, check_drive, check_slew, check_tone_grid, command_peak, command_slew, float_list,
+                                per_exposure)
 
 __all__ = ["SimulatedRig", "DEFAULT_INPUT_LIMIT"]
 
@@ -75,6 +76,9 @@ class SimulatedRig:
         input_limit: the amplifier's input range: the largest |command| (input units) a
             :meth:`sine` or :meth:`multisine` may ask for (its peak, every input); a larger
             one raises :class:`~torchblur.errors.ParameterError` naming ``amplitude``.
+        slew_limit: the amplifier's slew-rate limit (input units per second; None: none): a
+            :meth:`sine` whose ``amplitude * 2 pi freq_hz`` (a :meth:`multisine` whose
+            :func:`~torchblur.rig.base.command_slew`) exceeds it raises the same error.
         spots: None (one spot), or a :class:`~torchblur.image.spots.SpotGrid` /
             :class:`~torchblur.image.spots.SpotLayout`: K spots in the frame (a Shack-Hartmann
             sensor), each with its own PSF and its own motion ``G_k @ y(t)`` (see
@@ -102,6 +106,7 @@ class SimulatedRig:
         seed: int = 0,
         spots=None,
         input_limit: float = DEFAULT_INPUT_LIMIT,
+        slew_limit: float | None = None,
     ):
         if not isinstance(plant, (Plant, PlantMatrix)):
             raise InputTypeError(f"plant: expected a torchblur.systems.lti.Plant or torchblur.systems.mimo.PlantMatrix, got {type(plant).__name__}")
@@ -128,6 +133,7 @@ class SimulatedRig:
         self._peak_e_per_s = check_real_scalar(peak_e_per_s, "peak_e_per_s", nonnegative=True)
         self._seed = int(seed)
         self._input_limit = check_real_scalar(input_limit, "input_limit", positive=True)
+        self._slew_limit = None if slew_limit is None else check_real_scalar(slew_limit, "slew_limit", positive=True)
 
         if rest_px is None:
             rest = torch.tensor([(W - 1) / 2, (H - 1) / 2], dtype=_F64)
@@ -187,6 +193,11 @@ class SimulatedRig:
     def input_limit(self) -> float:
         """The largest |command| (input units) the simulated amplifier takes."""
         return self._input_limit
+
+    @property
+    def slew_limit(self) -> float | None:
+        """The largest |d command / dt| (input units per second) the simulated amplifier takes; None: no limit."""
+        return self._slew_limit
 
     @property
     def trigger_delay_s(self) -> float:
@@ -465,6 +476,7 @@ class SimulatedRig:
         freq = check_real_scalar(freq_hz, "freq_hz", positive=True)
         amp = check_real_scalar(amplitude, "amplitude")
         check_drive(amp, self._input_limit)
+        check_slew(abs(amp) * 2 * math.pi * freq, self._slew_limit)
         power = self._check_power(power)
         R = check_int(n_repeats, "n_repeats", low=1)
         te = [self._check_exposure(v, "exposures_s") for v in float_list(exposures_s, "exposures_s")]
@@ -615,6 +627,7 @@ class SimulatedRig:
         f0 = min(freqs) if base_freq_hz is None else check_real_scalar(base_freq_hz, "base_freq_hz", positive=True)
         check_tone_grid(freqs, f0)
         check_drive(command_peak(freqs, amps, phases, f0), self._input_limit)
+        check_slew(command_slew(freqs, amps, phases, f0), self._slew_limit)
         R = check_int(n_repeats, "n_repeats", low=1)
         te = [self._check_exposure(v, "exposures_s") for v in float_list(exposures_s, "exposures_s")]
         E = len(te)

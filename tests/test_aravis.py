@@ -1,0 +1,117 @@
+"""AravisCamera (a GenICam camera through Aravis) against Aravis's fake cameras: the GigE Vision one
+on loopback (`arv-fake-gv-camera-0.8`, aravis-tools: software triggers, exposure, frame counters
+mapped onto the controller's count, a timeout without trigger), and `torchblur identify` over the
+emulator's serial link with the emulator's rendered frames delivered by the in-process fake camera's
+stream (its fill hook; that camera free-runs, so it is used for the data path only). Skipped where
+Aravis (PyGObject + the Aravis 0.8 typelib, the `aravis` extra) or the GigE fake camera is absent."""
+import shutil
+import subprocess
+import time
+
+import pytest
+
+from torchblur.errors import ConfigError, ParameterError
+from torchblur.hardware.aravis import AravisCamera, aravis_available, aravis_url_options
+from torchblur.hardware.errors import FrameTimeout, HardwareError
+
+if not aravis_available():
+    pytest.skip("Aravis is not installed (apt install gir1.2-aravis-0.8; pip install 'torchblur[aravis]')", allow_module_level=True)
+
+H, W = 24, 32
+
+
+def test_url_options_and_config_check():
+    from torchblur.identify.config import load_config
+
+    assert aravis_url_options("aravis://Fake_1?trigger=Software&readout_s=0.002") == {
+        "device": "Fake_1", "trigger_source": "Software", "pixel_format": None, "readout_s": 0.002, "feed": None}
+    assert aravis_url_options("aravis://?feed=tcp://127.0.0.1:5")["trigger_source"] == "Software"
+    for bad, words in (("tcp://x:1", "expected aravis://"), ("aravis://?gain=3", "unknown options"),
+                       ("aravis://?readout_s=x", "readout_s"), ("aravis://?feed=udp://x", "feed")):
+        with pytest.raises(ParameterError, match=words):
+            aravis_url_options(bad)
+    with pytest.raises(ConfigError, match="^rig.frames: 'aravis://\\?gain=3': unknown options"):
+        load_config(None, ["rig.frames=aravis://?gain=3"])
+
+
+@pytest.fixture(scope="module")
+def gige_camera():
+    """Aravis's fake GigE Vision camera on 127.0.0.1 (a process), its device id."""
+    exe = shutil.which("arv-fake-gv-camera-0.8")
+    if exe is None:
+        pytest.skip("arv-fake-gv-camera-0.8 is not installed (Debian: aravis-tools)")
+    from gi.repository import Aravis
+
+    proc = subprocess.Popen([exe, "-i", "127.0.0.1", "-s", "TB28"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        for _ in range(50):
+            Aravis.update_device_list()
+            ids = [Aravis.get_device_id(i) for i in range(Aravis.get_n_devices())]
+            found = [d for d in ids if d.endswith("TB28")]
+            if found:
+                break
+            time.sleep(0.1)
+        else:
+            pytest.skip(f"the fake GigE camera did not show up on loopback (Aravis finds {ids})")
+        yield found[0]
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def test_gige_fake_camera_frames_counters_and_exposure(gige_camera):
+    """Its own test pattern over GigE Vision on loopback, on software triggers: two acquisitions, each
+    frame's counter the controller's count (the first frame fixes the mapping, the second acquisition
+    continues it), the exposure the camera took, the region set; no trigger, no frame."""
+    cam = AravisCamera(gige_camera, trigger_source="Software", pixel_format="Mono16", frame_shape=(H, W))
+    try:
+        assert cam.info.frame_shape == (H, W) and "TB28" in cam.info.name and cam.info.max_exposure_s >= 1.0
+        for first, count in ((1000, 3), (1003, 2)):
+            cam.prepare(2.5e-3, count)
+            cam.bind(first, count)
+            time.sleep(0.1)  # the fake camera's acquisition thread starts (a controller's triggers come later still)
+            got = []
+            for _ in range(count):  # one at a time: the fake camera holds one pending software trigger
+                cam.software_trigger()
+                got.append(cam.read(timeout_s=2.0))
+            assert [f.counter for f in got] == list(range(first, first + count))
+            ids = [f.meta["camera_counter"] for f in got]
+            assert ids == list(range(ids[0], ids[0] + count))
+            for f in got:
+                assert f.dtype == "uint16" and tuple(f.data.shape) == (H, W) and f.exposure_s == pytest.approx(2.5e-3, rel=1e-6)
+        with pytest.raises(ParameterError, match="exposure_s"):
+            cam.prepare(100.0, 1)
+        cam.prepare(1e-3, 1)
+        cam.bind(1005, 1)
+        with pytest.raises(FrameTimeout):  # no trigger
+            cam.read(timeout_s=0.3)
+    finally:
+        cam.close()
+    with pytest.raises(HardwareError, match="trigger_source"):
+        AravisCamera(gige_camera, trigger_source="Line7")
+    with pytest.raises(HardwareError, match="device"):
+        AravisCamera("Fake_99")
+
+
+def test_identify_over_the_emulator_with_frames_through_aravis(tmp_path, capsys):
+    """`torchblur identify` over the emulator's serial link (a real pseudo-terminal), its rendered frames
+    written into the fake camera's buffers and delivered by Aravis's stream, runs to a verdict."""
+    from test_hardware_emulator import Emu
+
+    from torchblur.identify import cli
+
+    emu = Emu("camera.height=32", "camera.width=32")
+    try:
+        frames = f"aravis://Fake_1?feed={emu.info['frames']}"
+        code = cli.main(["identify", "--out", str(tmp_path / "run"), "--quiet", "rig.kind=serial", f"rig.port={emu.info['serial']}",
+                         f"rig.frames={frames}", "rig.timeout_s=2", "camera.height=32", "camera.width=32", "seed=1",
+                         "sweep.freq_hz=[20,200]", "sweep.images_per_point=1", "fit.axis=x", "camera.latency_std_s=0.2e-6"])
+    finally:
+        emu.stop()
+    out = capsys.readouterr().out
+    assert code in (0, 4), out
+    assert out.strip().splitlines()[-1].startswith("verdict:")
+    import json
+
+    session = json.loads((tmp_path / "run" / "experiment" / "experiment.json").read_text())["sessions"][-1]
+    assert session["rig"]["frames"] == frames and "AravisCamera" in session["rig"]["rig"]

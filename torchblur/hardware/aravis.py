@@ -1,0 +1,361 @@
+"""A GenICam camera (GigE Vision, USB3 Vision) through Aravis (the ``aravis`` extra).
+
+:class:`AravisCamera` is an :class:`~torchblur.hardware.camera_sdk.SDKCamera`, like the pylon source:
+the camera runs with ``TriggerSelector=FrameStart``, ``TriggerMode=On`` on ``trigger_source`` (the
+controller's wire, ``Line1`` by default), one frame per edge; per acquisition :meth:`~SDKCamera.prepare`
+sets the exposure (``ExposureTime``/``ExposureTimeAbs``, checked against the camera's bounds) and restarts
+the acquisition. Frames arrive in buffers this object allocates (numpy memory handed to Aravis), so a
+frame's pixels are read from memory Aravis wrote, whatever the transport. The frame counter is the
+buffer's frame id (GigE's 16-bit block id, unwrapped): the rig maps it onto the controller's trigger
+count, so a dropped frame is a :class:`~torchblur.hardware.errors.FrameGap`, never a silently wrong frame.
+Aravis does not say which id the next frame will carry before it comes: the first frame after opening
+fixes the mapping (a frame lost before the very first one is not seen); from then on each acquisition
+continues the count.
+
+In a config: ``rig.frames=aravis://[DEVICE][?trigger=Line1&pixel_format=Mono16&readout_s=1e-3]`` (no
+device: the first camera Aravis finds; ``arv-tool-0.8`` lists them). Install: PyGObject and Aravis's
+typelib (Debian: ``apt install gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev`` then
+``pip install 'torchblur[aravis]'``).
+
+Without hardware, Aravis's in-process fake camera (``aravis://Fake_1``, the "Fake" interface) takes
+software triggers (``trigger=Software``); with ``feed=tcp://HOST:PORT`` (emulation only) each frame the
+torchblur emulator renders is written into the fake camera's next buffer by its fill-pattern hook and
+delivered by Aravis's stream (tests/test_aravis.py runs ``torchblur identify`` that way).
+"""
+from __future__ import annotations
+
+import ctypes
+from urllib.parse import parse_qs, urlparse
+
+import numpy as np
+import torch
+
+from torchblur.errors import ParameterError
+from torchblur.hardware.camera_sdk import SDKCamera
+from torchblur.hardware.errors import ConnectionLost, FrameError, FrameTimeout, HardwareError
+from torchblur.hardware.frames import CameraInfo, Frame
+
+__all__ = ["AravisCamera", "aravis_available", "aravis_url_options"]
+
+_DTYPES = {"Mono8": np.uint8, "Mono10": "<u2", "Mono12": "<u2", "Mono14": "<u2", "Mono16": "<u2"}
+_ID_WRAP = 65535  # GigE Vision 1.x block ids run 1..65535
+
+
+def _aravis():
+    try:
+        import gi
+
+        gi.require_version("Aravis", "0.8")
+        from gi.repository import Aravis
+    except (ImportError, ValueError) as exc:
+        raise ImportError("AravisCamera needs PyGObject and Aravis 0.8's typelib: apt install gir1.2-aravis-0.8 (Debian), then "
+                          "pip install 'torchblur[aravis]'") from exc
+    return Aravis
+
+
+def aravis_available() -> bool:
+    """Whether Aravis imports (PyGObject and the Aravis 0.8 typelib)."""
+    try:
+        _aravis()
+        return True
+    except ImportError:
+        return False
+
+
+def _pointer(gobj) -> int:
+    """The C address of a PyGObject object (its ``__gpointer__`` capsule)."""
+    get = ctypes.pythonapi.PyCapsule_GetPointer
+    get.restype, get.argtypes = ctypes.c_void_p, [ctypes.py_object, ctypes.c_char_p]
+    return int(get(gobj.__gpointer__, None))
+
+
+class AravisCamera(SDKCamera):
+    """A GenICam camera through Aravis as a :class:`~torchblur.hardware.frames.FrameSource`.
+
+    Args:
+        device: Aravis's device id (``"Fake_1"``, ``"Basler-12345678"``, ...); None: the first camera.
+        trigger_source: ``"Line1"`` (default), ``"Line0"``, ... or ``"Software"`` (:meth:`software_trigger`).
+        pixel_format: e.g. ``"Mono16"``; None keeps the camera's (Mono8..Mono16 are read).
+        frame_shape: ``(H, W)`` px of the region to set; None keeps the camera's.
+        readout_s: the sensor readout time Tr (s).
+        buffers: buffers queued on the stream (frames held between reads).
+        feed: emulation only: a :class:`~torchblur.hardware.frames.FrameSource` (the emulator's
+            ``tcp://`` camera channel) whose frames the fake camera (``device="Fake_..."``) delivers,
+            one per software trigger; each delivered frame is checked against the feed's counter.
+
+    A frame's ``data`` is float64 ADU ``[H, W]``, its ``dtype`` the delivered pixel type, ``exposure_s``
+    the exposure the camera took for the acquisition, ``timestamp_s`` the buffer's timestamp x 1e-9 and
+    ``meta["camera_counter"]`` the (unwrapped) frame id.
+
+    Raises:
+        ImportError: Aravis is missing (names the extra).
+        HardwareError: no camera, no such device, or a trigger feature missing.
+        ParameterError: a bad argument (named).
+    """
+
+    def __init__(self, device: str | None = None, *, trigger_source: str = "Line1", pixel_format: str | None = None,
+                 frame_shape: tuple[int, int] | None = None, readout_s: float = 0.0, buffers: int = 16, feed=None):
+        if isinstance(buffers, bool) or not isinstance(buffers, int) or buffers < 1:
+            raise ParameterError(f"buffers: expected an int >= 1, got {buffers!r}")
+        if not isinstance(readout_s, (int, float)) or not readout_s >= 0:
+            raise ParameterError(f"readout_s: expected a number >= 0 seconds, got {readout_s!r}")
+        if feed is not None and not str(device).startswith("Fake"):
+            raise ParameterError(f"device: a feed (emulation) needs Aravis's in-process fake camera ('Fake_1'), got {device!r}")
+        if feed is not None and trigger_source != "Software":
+            raise ParameterError(f"trigger_source: a feed (emulation) fires software triggers; expected 'Software', got {trigger_source!r}")
+        self._device, self._trigger_source, self._pixel_format = device, str(trigger_source), pixel_format
+        if feed is not None and frame_shape is None:
+            frame_shape = tuple(feed.info.frame_shape)  # the emulator's frames
+        self._frame_shape, self._readout_s, self._buffers, self._feed = frame_shape, float(readout_s), buffers, feed
+        self._exposure_s = float("nan")
+        self.cam = self._stream = self._hook = None
+        self._mem: dict[int, np.ndarray] = {}
+        self._last_raw = self._pending_first = None
+        self._wraps = 0
+        self._queue: list[np.ndarray] = []
+        super().__init__()
+
+    @classmethod
+    def from_url(cls, url: str, *, feed=None) -> "AravisCamera":
+        """From ``aravis://[DEVICE][?trigger=Line1&pixel_format=Mono16&readout_s=1e-3]``; a ``feed=tcp://...``
+        option (emulation) opens the emulator's camera channel as the feed."""
+        opts = aravis_url_options(url)
+        spec = opts.pop("feed")
+        if spec is not None and feed is None:
+            from torchblur.hardware.frames import EmulatorFrames
+
+            feed = EmulatorFrames(spec)
+        return cls(opts.pop("device"), feed=feed, **opts)
+
+    # ----------------------------------------------------------------- SDKCamera
+    def _connect(self) -> None:
+        Aravis = _aravis()
+        if self._device is not None and str(self._device).startswith("Fake"):
+            Aravis.enable_interface("Fake")
+        Aravis.update_device_list()
+        if Aravis.get_n_devices() == 0:
+            raise HardwareError("camera: Aravis finds no camera (connected? powered? aravis://Fake_1 for its fake camera)")
+        try:
+            self.cam = Aravis.Camera.new(self._device)
+        except Exception as exc:  # noqa: BLE001 - GLib.Error: no such device
+            found = [Aravis.get_device_id(i) for i in range(Aravis.get_n_devices())]
+            raise HardwareError(f"device: no camera {self._device!r} ({exc}); Aravis finds {found}") from None
+        self._setup()
+
+    def _setup(self) -> None:
+        cam = self.cam
+        try:
+            if self._frame_shape is not None:
+                cam.set_region(0, 0, int(self._frame_shape[1]), int(self._frame_shape[0]))
+            if self._pixel_format is not None:
+                cam.set_pixel_format_from_string(str(self._pixel_format))
+            if self._trigger_source not in cam.dup_available_trigger_sources():
+                raise HardwareError(f"trigger_source: the camera offers {cam.dup_available_trigger_sources()}, not {self._trigger_source!r}")
+            cam.set_trigger(self._trigger_source)  # TriggerSelector=FrameStart, TriggerMode=On, this source
+            self._format = cam.get_pixel_format_as_string()
+            if self._format not in _DTYPES:
+                raise HardwareError(f"pixel_format: {self._format} is not read (expected one of {sorted(_DTYPES)})")
+        except HardwareError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - GLib.Error from a feature write
+            raise HardwareError(f"camera: cannot set up external triggering ({exc})") from None
+        if self._feed is not None:
+            self._hook = _FillHook(self)
+            cam.set_frame_rate(float(cam.get_frame_rate_bounds()[1]))  # the in-process fake free-runs: at its fastest
+        self._stream = cam.create_stream(None, None)
+        Aravis = _aravis()
+        for _ in range(self._buffers):
+            mem = np.zeros(int(cam.get_payload()), dtype=np.uint8)
+            buf = Aravis.Buffer.new(mem.nbytes, mem.ctypes.data)  # Aravis writes into this numpy memory
+            self._mem[_pointer(buf)] = mem
+            self._stream.push_buffer(buf)
+
+    def _disconnect(self) -> None:
+        if self.cam is not None:
+            try:
+                self.cam.stop_acquisition()
+            except Exception:  # noqa: BLE001 - closing
+                pass
+            if self._hook is not None:
+                self._hook.detach()
+            self._stream = self.cam = self._hook = None
+        self._mem.clear()
+
+    def close(self) -> None:
+        super().close()
+        if self._feed is not None:
+            self._feed.close()
+
+    def drain(self, quiet_s: float = 0.05) -> int:
+        """Drop frames of an earlier acquisition (the feed's and Aravis's queued buffers; their ids are
+        counted as seen, so the next acquisition's mapping continues from them); how many."""
+        n = self._feed.drain(quiet_s) if self._feed is not None else 0
+        for _ in range(self._buffers):  # at most the queued buffers (a free-running fake camera never goes quiet)
+            b = None if self._stream is None else self._stream.timeout_pop_buffer(int(quiet_s * 1e6))
+            if b is None:
+                break
+            self._seen(int(b.get_frame_id()))
+            self._stream.push_buffer(b)
+            n += 1
+        if self._hook is not None:
+            self._hook.filled.clear()
+        self._queue.clear()
+        return n
+
+    def _seen(self, raw: int) -> None:
+        if self._last_raw is not None and raw < self._last_raw and self._last_raw - raw > _ID_WRAP // 2:
+            self._wraps += 1
+        self._last_raw = raw
+
+    def _camera_info(self) -> CameraInfo:
+        cam = self.cam
+        _, _, w, h = cam.get_region()
+        rate = cam.get_frame_rate_bounds()
+        exp = cam.get_exposure_time_bounds()
+        name = f"{cam.get_vendor_name()} {cam.get_model_name()} ({cam.get_device_serial_number() or cam.get_device_id()})"
+        info = CameraInfo(frame_shape=(int(h), int(w)), frame_rate_hz=float(rate[1]), max_exposure_s=float(exp[1]) * 1e-6,
+                          readout_s=self._readout_s, name=name)
+        if self._feed is not None:  # emulation: the emulated sensor's limits (its controller checks them)
+            f = self._feed.info
+            info = CameraInfo(frame_shape=info.frame_shape, frame_rate_hz=min(info.frame_rate_hz, f.frame_rate_hz),
+                              max_exposure_s=min(info.max_exposure_s, f.max_exposure_s), readout_s=f.readout_s, name=f"{name} fed by {f.name}")
+        return info
+
+    def _configure(self, exposure_s: float, count: int) -> None:
+        cam = self.cam
+        cam.stop_acquisition()
+        lo, hi = cam.get_exposure_time_bounds()
+        us = exposure_s * 1e6
+        if not lo <= us <= hi:
+            raise ParameterError(f"exposure_s: the camera takes {lo * 1e-6:g}..{hi * 1e-6:g} s, got {exposure_s:g}")
+        cam.set_exposure_time(us)
+        self._exposure_s = float(cam.get_exposure_time()) * 1e-6  # what the camera will use (its own rounding)
+        while (b := self._stream.try_pop_buffer()) is not None:  # frames of an earlier acquisition: not this one's
+            self._seen(int(b.get_frame_id()))
+            self._stream.push_buffer(b)
+        if self._feed is not None:
+            self._feed.prepare(exposure_s, count)
+        cam.start_acquisition()
+
+    def _next_camera_counter(self) -> int:
+        return -1 if self._last_raw is None else self._unwrap(self._last_raw) + 1  # -1: unknown until the first frame
+
+    def bind(self, first_counter: int, count: int) -> None:
+        super().bind(first_counter, count)
+        self._pending_first = int(first_counter) if self._cam_next == -1 else None  # fixed by the first frame (read)
+        if self._feed is not None:
+            self._feed.bind(first_counter, count)
+
+    def _unwrap(self, raw: int) -> int:
+        return int(raw) + self._wraps * _ID_WRAP
+
+    def _grab(self, timeout_s: float):
+        if self.cam is None:
+            raise ConnectionLost("camera: closed")
+        if self._feed is not None:
+            frame = self._feed.read(timeout_s)
+            self._queue.append(frame)
+            self.cam.software_trigger()
+        buf = self._stream.timeout_pop_buffer(max(1, int(timeout_s * 1e6)))
+        while buf is not None and self._feed is not None and _pointer(buf) not in self._hook.filled:
+            # the fake camera also emits frames of its own (one as an acquisition starts): not the feed's, skipped
+            self._stream.push_buffer(buf)
+            buf = self._stream.timeout_pop_buffer(max(1, int(timeout_s * 1e6)))
+        if buf is None:
+            return None
+        try:
+            Aravis = _aravis()
+            if buf.get_status() != Aravis.BufferStatus.SUCCESS:
+                raise FrameError(f"camera: frame {buf.get_frame_id()} failed: {buf.get_status().value_nick}")
+            h, w = int(buf.get_image_height()), int(buf.get_image_width())
+            dtype = np.dtype(_DTYPES[self._format])
+            arr = self._mem[_pointer(buf)][:h * w * dtype.itemsize].view(dtype).reshape(h, w).copy()
+            raw = int(buf.get_frame_id())
+            ts = float(buf.get_timestamp()) * 1e-9
+            sent = self._hook.filled.pop(_pointer(buf)) if self._feed is not None else None
+        finally:
+            self._stream.push_buffer(buf)
+        self._seen(raw)
+        if sent is not None:  # emulation: the feed frame the hook wrote into this buffer, its counter the controller's
+            return arr, sent, ts, self._exposure_s
+        return arr, self._unwrap(raw), ts, self._exposure_s
+
+    def read(self, timeout_s: float) -> Frame:
+        """The next frame (:meth:`SDKCamera.read`); the first frame after opening fixes the counter mapping;
+        with a feed, a frame whose counter is not the feed's is a :class:`FrameError`."""
+        got = self._grab(timeout_s)
+        if got is None:
+            raise FrameTimeout(f"no frame from {self._info.name} within {timeout_s:g} s")
+        arr, cam_counter, ts, te = got
+        if self._feed is not None:  # emulation: cam_counter is the feed frame Aravis delivered
+            sent = self._queue.pop(0)
+            if cam_counter is not sent:
+                raise FrameError(f"camera: Aravis delivered feed frame {cam_counter.counter}, the next sent was {sent.counter}")
+            return Frame(data=torch.from_numpy(arr.astype(np.float64)), counter=sent.counter, timestamp_s=ts, exposure_s=sent.exposure_s,
+                         dtype=arr.dtype.name, boot=sent.boot, meta={"camera_counter": int(self._last_raw), **sent.meta})
+        if self._pending_first is not None:  # the mapping waits for the first frame
+            self._offset, self._pending_first = self._pending_first - cam_counter, None
+        return Frame(data=torch.from_numpy(arr.astype(np.float64)), counter=int(cam_counter) + self._offset,
+                     timestamp_s=ts, exposure_s=float(te), dtype=arr.dtype.name, boot=None, meta={"camera_counter": int(cam_counter)})
+
+    # --------------------------------------------------------------------- extras
+    def software_trigger(self) -> None:
+        """Fire one frame from software (``trigger_source="Software"``): tests, the fake camera."""
+        self.cam.software_trigger()
+
+
+class _FillHook:
+    """Emulation: the fake camera's fill-pattern hook (through ctypes: Aravis calls it from its stream
+    thread) writes the next frame the feed sent into the buffer it is filling (numpy memory of the
+    camera), as 16-bit pixels."""
+
+    _FILL = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint32, ctypes.c_uint32)
+
+    def __init__(self, camera: AravisCamera):
+        self._lib = ctypes.CDLL("libaravis-0.8.so.0")
+        self._lib.arv_fake_camera_set_fill_pattern.argtypes = [ctypes.c_void_p, self._FILL, ctypes.c_void_p]
+        self._camera = camera
+        self._fake = _pointer(camera.cam.get_device().get_fake_camera())
+        self.filled: dict[int, object] = {}  # buffer address -> the feed frame written into it
+        self._callback = self._FILL(self._fill)  # kept alive while the fake camera may call it
+        self._lib.arv_fake_camera_set_fill_pattern(self._fake, self._callback, None)
+
+    def _fill(self, buffer, data, exposure_us, gain, pixel_format) -> None:
+        cam = self._camera
+        pending = [f for f in cam._queue if all(f is not g for g in self.filled.values())]
+        mem = cam._mem.get(int(buffer))
+        if not pending or mem is None:
+            return  # a frame of the fake camera's own (no trigger of ours): left unmarked, skipped by _grab
+        img = np.clip(np.rint(pending[0].data.numpy()), 0, 65535).astype("<u2")
+        if mem.nbytes >= img.nbytes:
+            mem[:img.nbytes] = np.frombuffer(img.tobytes(), dtype=np.uint8)
+            self.filled[int(buffer)] = pending[0]
+
+    def detach(self) -> None:
+        self._lib.arv_fake_camera_set_fill_pattern(self._fake, ctypes.cast(None, self._FILL), None)
+
+
+def aravis_url_options(url: str) -> dict:
+    """The camera an ``aravis://[DEVICE][?trigger=Line1&pixel_format=Mono16&readout_s=1e-3&feed=tcp://H:P]``
+    URL names, as :class:`AravisCamera`'s arguments (``device``, ``trigger_source``, ``pixel_format``,
+    ``readout_s``, ``feed``: the emulator's camera channel, emulation only); nothing is opened.
+
+    Raises:
+        ParameterError: naming ``url``: another scheme, an unknown option, a readout_s that is not a number.
+    """
+    u = urlparse(url)
+    if u.scheme != "aravis":
+        raise ParameterError(f"url: expected aravis://[DEVICE][?trigger=...&pixel_format=...], got {url!r}")
+    q = {k: v[-1] for k, v in parse_qs(u.query).items()}
+    unknown = set(q) - {"trigger", "pixel_format", "readout_s", "feed"}
+    if unknown:
+        raise ParameterError(f"url: unknown options {sorted(unknown)}; expected trigger, pixel_format, readout_s, feed")
+    try:
+        readout = float(q.get("readout_s", 0.0))
+    except ValueError:
+        raise ParameterError(f"url: readout_s must be a number of seconds, got {q['readout_s']!r}") from None
+    feed = q.get("feed")
+    if feed is not None and not feed.startswith("tcp://"):
+        raise ParameterError(f"url: feed must be the emulator's camera channel tcp://HOST:PORT, got {feed!r}")
+    return {"device": u.netloc or None, "trigger_source": q.get("trigger", "Software" if feed else "Line1"),
+            "pixel_format": q.get("pixel_format", "Mono16" if feed else None), "readout_s": readout, "feed": feed}
