@@ -147,7 +147,8 @@ def test_an_outside_recording_uses_the_gain_its_still_frames_measure(tmp_path):
     cam = _camera(2.0, bit_depth=16)
     still = _frames(cam, _spot(8000.0), 16, seed=5).numpy().astype(np.uint16)
     dark = _frames(cam, torch.zeros(24, 24, dtype=torch.float64), 64, seed=6).numpy().astype(np.uint16)
-    pts = [dict(freq_hz=50.0, amplitude=0.5, R=2, frames=still[:4], start_s=[1e-3] * 4, duration_s=[2e-3, 2e-3, 5e-3, 5e-3])]
+    sweep = _frames(cam, _spot(8000.0), 4, seed=7).numpy().astype(np.uint16)  # own frames: copies of the stills are refused
+    pts = [dict(freq_hz=50.0, amplitude=0.5, R=2, frames=sweep, start_s=[1e-3] * 4, duration_s=[2e-3, 2e-3, 5e-3, 5e-3])]
     folder = write_outside(tmp_path / "rec", dark=dark, still=still, still_exposure_s=1e-3, points=pts,
                            camera=dict(gain_e_per_adu=4.0, latency_std_s=0.0))
     rec = read_outside_recording(folder)

@@ -505,6 +505,7 @@ def _write_figures(cfg, res, out: Path, stamp: str) -> None:
     """bode.png (with the truth where known) and residuals.png (the worst fits)."""
     _write_bode(cfg, res, out, stamp)
     _write_residuals(res, out, stamp)
+    _write_ptc_figure(cfg, res, out, stamp)
 
 
 def _write_bode(cfg, res, out: Path, stamp: str) -> None:
@@ -554,7 +555,6 @@ def _write_residuals(res, out: Path, stamp: str) -> None:
         sigma = sigma if np.all(sigma > 0) else None  # a noiseless camera model: the residual in e- instead
     fig = residual_figure(data, models, labels, stamp=stamp, unit="e-", exposures=exposures, reason=reason, sigma=sigma)
     fig.savefig(out / "residuals.png", dpi=90, metadata={"Description": stamp})
-    _write_ptc_figure(cfg, res, out, stamp)
 
 
 def _write_ptc_figure(cfg, res, out: Path, stamp: str) -> None:
