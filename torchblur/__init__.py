@@ -9,7 +9,8 @@ The names a user calls (each documented where it lives):
 - fitting: :func:`fit_sinusoid`, :func:`dual_exposure_windows`, :class:`BlurConsistencyLoss`,
   :func:`blur_consistency`;
 - identification: :class:`FrequencyResponse`, :func:`fit_transfer_function`,
-  :func:`identify` (the pipeline; also the package ``torchblur.identify``), :func:`load_config`;
+  :class:`TransferFunctionFit` (its result; ``from_json`` reads model.json), :func:`identify`
+  (the pipeline; also the package ``torchblur.identify``), :func:`load_config`;
 - errors: :class:`TorchblurError` and its subclasses.
 
 ``import torchblur`` loads torch and numpy only: the image-formation names are imported at
@@ -42,6 +43,7 @@ _LAZY = {
     "dual_exposure_windows": "torchblur.design.windows",
     "FrequencyResponse": "torchblur.sysid.frequency_response",
     "fit_transfer_function": "torchblur.sysid.tf_fit",
+    "TransferFunctionFit": "torchblur.sysid.tf_fit",
     "load_config": "torchblur.identify.config",
 }
 
@@ -80,6 +82,7 @@ __all__ = [
     "SplineTrajectory",
     "TorchblurError",
     "Trajectory",
+    "TransferFunctionFit",
     "alias_phase",
     "blur_consistency",
     "dual_exposure_windows",

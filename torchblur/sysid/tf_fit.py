@@ -78,7 +78,23 @@ _WEIGHT_MODES = ("uncertainty", "uniform")
 _MODAL_KINDS = ("poles", "zeros")
 _DELAY_FORMS = (None, "pade", "frd")
 _SCHEMA = "torchblur.transfer_function_fit"
-_STAMP_KEYS = ("torchblur_version", "seed")  # written beside the fit into model.json by the CLI
+#: the schema version :meth:`TransferFunctionFit.to_dict` writes
+SCHEMA_VERSION = 2
+#: the units of model.json's numbers (version 2 writes them; version 1 files meant the same)
+UNITS = {"s": "rad/s", "num": "output unit per input unit (the response's), coefficients of s", "den": "coefficients of s",
+         "delay_s": "s", "poles": "rad/s", "zeros": "rad/s", "dc_gain": "output unit per input unit"}
+_FIT_KEYS = frozenset({"num", "den", "delay_s", "n_poles", "n_zeros", "chi2", "dof", "reduced_chi2", "rms_relative_error",
+                       "poles", "zeros", "dc_gain", "weighting", "delay_estimated", "input_labels", "output_labels"})
+#: model.json's keys by schema_version, in one place: ``{version: (required, optional)}``. A key
+#: is refused only when its file's own version does not know it; a version not listed is refused
+#: by name. The optional keys are what the CLI writes beside the fit (its stamp, and the points the
+#: model was not fitted to: :func:`torchblur.identify.cli._left_out_points`); read, checked, not kept.
+#: A new key goes into a new version here (and into :meth:`TransferFunctionFit.to_dict`).
+SCHEMA_KEYS = {
+    1: (_FIT_KEYS | {"schema", "schema_version"}, frozenset({"torchblur_version", "seed", "left_out_points", "poor_fit_points_kept"})),
+    2: (_FIT_KEYS | {"schema", "schema_version", "units"},
+        frozenset({"torchblur_version", "seed", "left_out_points", "poor_fit_points_kept"})),
+}
 _FLOOR_RTOL = 1e-9
 _GRID_SK_ITER = 6
 _PATIENCE = 6
@@ -254,7 +270,7 @@ class TransferFunctionFit:
                 return int(v)
             return _jf(v)
 
-        doc: dict[str, Any] = {"schema": _SCHEMA, "schema_version": 1}
+        doc: dict[str, Any] = {"schema": _SCHEMA, "schema_version": SCHEMA_VERSION, "units": dict(UNITS)}
         for f in (
             "num", "den", "delay_s", "n_poles", "n_zeros", "chi2", "dof", "reduced_chi2",
             "rms_relative_error", "dc_gain", "poles", "zeros",
@@ -268,34 +284,28 @@ class TransferFunctionFit:
 
     @classmethod
     def from_dict(cls, doc: dict) -> "TransferFunctionFit":
-        """Inverse of :meth:`to_dict` (checks ``schema`` and ``schema_version``).
+        """Inverse of :meth:`to_dict` (checks ``schema``, ``schema_version`` and the keys of
+        that version: :data:`SCHEMA_KEYS`; version 1 files, written before ``units``, read too).
 
-        Also reads the CLI's model.json, which adds ``torchblur_version`` and ``seed`` beside
-        the fit (ignored). ``None`` reads back as NaN, except ``dc_gain``, recomputed from
-        ``num`` and ``den`` (a pole at 0 gives +-inf, which JSON cannot hold).
+        Also reads the CLI's model.json, which adds ``torchblur_version``, ``seed``,
+        ``left_out_points`` and ``poor_fit_points_kept`` beside the fit (checked, not kept).
+        ``None`` reads back as NaN, except ``dc_gain``, recomputed from ``num`` and ``den`` (a
+        pole at 0 gives +-inf, which JSON cannot hold).
 
         Raises:
             InputTypeError: ``doc`` is not a dict.
             ParameterError: another schema (a direct fit, or a failed fit's ``error``), an
-                unsupported version, unknown or missing keys, malformed values.
+                unsupported version, keys unknown to its version or missing, malformed values.
         """
         if not isinstance(doc, dict):
             raise InputTypeError(f"doc: expected a JSON object, got {type(doc).__name__}")
         if doc.get("schema") != _SCHEMA:
             why = f" (the file says: {doc['error']})" if "error" in doc else ""
             raise ParameterError(f"schema: expected {_SCHEMA!r}, got {doc.get('schema')!r}{why}")
-        if isinstance(doc.get("schema_version"), bool) or doc.get("schema_version") != 1:
-            raise ParameterError(f"schema_version: unsupported version {doc.get('schema_version')!r}; supported versions: [1]")
+        _check_keys(doc)
         kinds = {"num": "coeffs", "den": "coeffs", "delay_s": "float", "n_poles": "int", "n_zeros": "int",
                  "chi2": "float", "dof": "int", "reduced_chi2": "float", "rms_relative_error": "float",
                  "poles": "roots", "zeros": "roots"}
-        known = set(kinds) | {"schema", "schema_version", "dc_gain", "weighting", "delay_estimated", "input_labels", "output_labels"}
-        unknown = set(doc) - known - set(_STAMP_KEYS)
-        if unknown:
-            raise ParameterError(f"doc: unknown keys {sorted(unknown)}; expected keys {sorted(known)}")
-        missing = known - set(doc)
-        if missing:
-            raise ParameterError(f"doc: missing keys {sorted(missing)}")
         labels = {k: tuple(doc[k]) for k in ("input_labels", "output_labels")}
         for k, v in labels.items():
             if not v or not all(isinstance(x, str) for x in v):
@@ -338,6 +348,29 @@ class TransferFunctionFit:
                 f"delay_s={self.delay_s:.4g}, reduced_chi2={self.reduced_chi2:.4g})"
             )
         return f"TransferFunctionFit({len(self.output_labels)}x{len(self.input_labels)} channels)"
+
+
+def _check_keys(doc: dict) -> None:
+    """ParameterError unless ``doc``'s ``schema_version`` is one of :data:`SCHEMA_KEYS` and its
+    keys are that version's (required all present, nothing unknown), and its ``units`` (version
+    2 on) are :data:`UNITS`."""
+    version = doc.get("schema_version")
+    if isinstance(version, bool) or version not in SCHEMA_KEYS:
+        newer = " (written by a newer torchblur: upgrade to read it)" if isinstance(version, int) and version > SCHEMA_VERSION else ""
+        raise ParameterError(f"schema_version: unsupported version {version!r}{newer}; supported versions: {sorted(SCHEMA_KEYS)}")
+    required, optional = SCHEMA_KEYS[version]
+    unknown = set(doc) - required - optional
+    if unknown:
+        raise ParameterError(f"doc: unknown keys {sorted(unknown)} for schema_version {version}; expected keys {sorted(required)}"
+                             f" and optionally {sorted(optional)}")
+    missing = required - set(doc)
+    if missing:
+        raise ParameterError(f"doc: missing keys {sorted(missing)}")
+    for key in ("left_out_points", "poor_fit_points_kept"):
+        if key in doc and not (isinstance(doc[key], list) and all(isinstance(x, dict) for x in doc[key])):
+            raise ParameterError(f"{key}: expected a list of objects, got {doc[key]!r}")
+    if "units" in required and doc["units"] != UNITS:
+        raise ParameterError(f"units: expected {UNITS}, got {doc['units']!r}")
 
 
 def _dc_gain(num, den) -> float:
