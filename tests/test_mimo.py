@@ -19,6 +19,7 @@ from torchblur.systems.lti import LTISineTrajectory, Plant
 from torchblur.systems.mimo import MIMOSineTrajectory, PlantMatrix, plant_from_coefficients
 from torchblur.rig.simulated import SimulatedRig
 from torchblur.render.window import ExposureWindow
+from readback import assert_reads_back
 
 ROOT = Path(__file__).resolve().parents[1]
 MIMO_CFG = str(ROOT / "configs" / "identify_mimo.yaml")
@@ -166,6 +167,7 @@ def test_short_mimo_sweep_matches_the_truth(cli_run):
     assert np.shape(model["n_poles"]) == (2, 2)
     report = (out / "report.txt").read_text()
     assert "output y from input u_x:" in report and "against the truth, per channel" in report
+    assert assert_reads_back(out)["model.json"].n_poles == model["n_poles"]  # every output reads back
 
 
 def test_mimo_frf_csv_columns_round_trip(cli_run):

@@ -164,7 +164,7 @@ def _identify(args) -> int:
     cfg = load_config(args.config, args.overrides, force=args.force)  # ConfigError (named key) before any work
     out = Path(args.out)
     check_out_folder(out, command="identify", force=args.force)
-    if (out / "experiment" / "manifest.jsonl").exists():
+    if (out / "experiment" / "experiment.json").exists():
         print(f"torchblur identify: error: {out} already holds a recorded run; continue it with "
               f"'torchblur identify --resume {out}' or choose another --out", file=sys.stderr)
         return 2
@@ -173,7 +173,7 @@ def _identify(args) -> int:
     (out / "experiment").mkdir(parents=True, exist_ok=True)
     lock = RunLock(out / "experiment")  # held for the run's life: a second run on this folder refuses
     try:
-        if (out / "experiment" / "manifest.jsonl").exists():  # created while we waited for the lock
+        if (out / "experiment" / "experiment.json").exists():  # created while we waited for the lock
             raise RecordingError(f"--out {out}: already holds a recorded run; resume it with torchblur identify --resume")
         return _run_identify(cfg, out, out / "experiment", args.quiet, as_json=args.json)
     finally:
@@ -268,8 +268,11 @@ def _stopped(exc, exp_dir: Path, root: Path, cfg) -> int:
     """A run the rig stopped (a HardwareError) or Ctrl-C interrupted: say where its recording
     is and how to resume it; the exit code."""
     if isinstance(exc, KeyboardInterrupt):
-        print(f"\ntorchblur identify: interrupted; the recording so far is saved in {exp_dir}; resume with: "
-              f"{_resume_hint(root, cfg)}", file=sys.stderr)
+        if (exp_dir / "experiment.json").is_file():
+            print(f"\ntorchblur identify: interrupted; the recording so far is saved in {exp_dir}; resume with: "
+                  f"{_resume_hint(root, cfg)}", file=sys.stderr)
+        else:
+            print(f"\n{_NOTHING_RECORDED}", file=sys.stderr)
         return EXIT_INTERRUPTED
     if (exp_dir / "manifest.jsonl").exists():
         print(f"torchblur identify: stopped: {exc}\nThe recording so far is saved in {exp_dir}.\n"
@@ -296,7 +299,10 @@ def _source(exp, args) -> str:
     """``source.json`` of a re-fit: the recording, its status and frames, the overrides."""
     import torchblur as tb
 
-    return json.dumps({"recording": str(exp.path), "status": exp.meta.get("status"), "frames": len(exp.lines),
+    from torchblur.identify.read_outputs import SOURCE_SCHEMA
+
+    return json.dumps({"schema": SOURCE_SCHEMA[0], "schema_version": SOURCE_SCHEMA[1][-1],
+                       "recording": str(exp.path), "status": exp.meta.get("status"), "frames": len(exp.lines),
                        "overrides": list(args.overrides), "torchblur_version": tb.__version__}, indent=2)
 
 
@@ -384,7 +390,10 @@ def _fit_outside(args) -> int:
     t0 = time.perf_counter()
     res = identify_outside(rec, cfg, progress=not args.quiet)
     elapsed = time.perf_counter() - t0
-    (out / "source.json").write_text(json.dumps({"outside_recording": str(src), "frames": rec.n_frames, "points": len(rec.points),
+    from torchblur.identify.read_outputs import SOURCE_SCHEMA
+
+    (out / "source.json").write_text(json.dumps({"schema": SOURCE_SCHEMA[0], "schema_version": SOURCE_SCHEMA[1][-1],
+                                                 "outside_recording": str(src), "frames": rec.n_frames, "points": len(rec.points),
                                                  "overrides": list(args.overrides), "torchblur_version": tb.__version__}, indent=2))
     return _write_outputs(cfg, res, out, elapsed, stamp, as_json=args.json, source="outside").exit_code
 
@@ -539,8 +548,11 @@ def _summary(res, out: Path, elapsed: float, threshold: float | None = None) -> 
     import torchblur as tb
     from torchblur.fit.status import FLAGS, STATUS
 
+    from torchblur.identify.read_outputs import SUMMARY_SCHEMA
+
     frf = res.frf
-    doc = {"out": str(out), "points": int(frf.valid.size), "valid_points": int(frf.valid.sum()),
+    doc = {"schema": SUMMARY_SCHEMA[0], "schema_version": SUMMARY_SCHEMA[1][-1],
+           "out": str(out), "points": int(frf.valid.size), "valid_points": int(frf.valid.sum()),
            "max_magnitude_error_pct": None, "max_phase_error_deg": None, "max_error_over_std": None}
     if res.truth is not None:
         em, ep, z = frf.errors_against(res.truth)  # NaN where there is no true motion
@@ -868,16 +880,19 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+_NOTHING_RECORDED = "torchblur identify: interrupted before anything was recorded; run the same command again to start over"
+
+
 def _interrupted_line(args) -> str:
     """The one line of a Ctrl-C outside a run's own handler: what to run next."""
     out = getattr(args, "out", None)
     if args.command == "identify" and getattr(args, "resume", None) is not None:
         return f"torchblur identify: interrupted; resume with: torchblur identify --resume {args.resume}"
     if args.command == "identify" and out is not None:
-        if (Path(out) / "experiment" / "manifest.jsonl").is_file():
+        if (Path(out) / "experiment" / "experiment.json").is_file():
             return (f"torchblur identify: interrupted; the recording so far is saved in {Path(out) / 'experiment'}; "
                     f"resume with: torchblur identify --resume {out}")
-        return "torchblur identify: interrupted before anything was recorded; run the same command again to start over"
+        return _NOTHING_RECORDED
     if args.command == "fit" and out is not None and Path(out).exists():
         return f"torchblur fit: interrupted; {out} may hold partial results: run the same command again with --force"
     return f"torchblur {args.command}: interrupted"
