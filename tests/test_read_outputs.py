@@ -83,3 +83,11 @@ def test_torchblur_config_lists_every_key_with_its_value_and_unit(capsys):
     assert unit_of("camera.gain") == "e-/ADU" and unit_of("camera.latency_s") == "s" and unit_of("fit.loss") == "-"
     assert not cli.main(["config", "sweep.nn=3"]) == 0
     assert "sweep.nn" in capsys.readouterr().err
+
+
+def test_demo_writes_a_figure_and_a_json_that_reads_back(tmp_path, capsys):
+    assert cli.main(["demo", "--out", str(tmp_path)]) == 0
+    doc = read_outputs(tmp_path)["demo.json"]
+    assert doc["max_abs_difference_true_vs_alias_image"] < 1e-9 * doc["image_peak"]  # the alias renders the same image
+    assert doc["alias_phase_rad"] != doc["phase_rad"] and (tmp_path / "demo.png").stat().st_size > 10_000
+    assert "render the same image" in capsys.readouterr().out

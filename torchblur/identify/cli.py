@@ -101,7 +101,11 @@ def _demo(args) -> int:
     fig.suptitle("torchblur demo: a fast steering mirror seen by a slow camera; the alias phase gives the same image")
     fig.tight_layout()
     fig.savefig(out / "demo.png", dpi=110)
+    from torchblur.identify.read_outputs import DEMO_SCHEMA
+
     summary = {
+        "schema": DEMO_SCHEMA[0],
+        "schema_version": DEMO_SCHEMA[1][-1],
         "torchblur_version": tb.__version__,
         "seed": args.seed,
         "freq_hz": f_hz,

@@ -15,6 +15,7 @@ file                        read back as
                             ``{"error": ...}`` as it is
 ``config.yaml``             :class:`~torchblur.identify.config.IdentifyConfig`
 ``source.json``             a dict (schema checked; re-fits)
+``demo.json``               a dict (schema checked; ``torchblur demo``)
 ``dm/frf.json``             FrequencyResponse ``[2M, N, F]``
 ``dm/actuators.csv``        a dict of columns (:func:`torchblur.dm.outputs.read_actuators_csv`)
 ``dm/*.npy``                numpy arrays (no pickles)
@@ -31,7 +32,7 @@ from pathlib import Path
 
 from torchblur.errors import ParameterError
 
-__all__ = ["read_outputs", "check_document", "DIRECT_MODEL_SCHEMA", "SOURCE_SCHEMA", "SUMMARY_SCHEMA"]
+__all__ = ["read_outputs", "check_document", "DIRECT_MODEL_SCHEMA", "SOURCE_SCHEMA", "SUMMARY_SCHEMA", "DEMO_SCHEMA"]
 
 #: model.json of a direct fit (:meth:`torchblur.sysid.direct.DirectModelFit.to_dict`): versions read
 DIRECT_MODEL_SCHEMA = ("torchblur.direct_model_fit", (1,))
@@ -39,6 +40,8 @@ DIRECT_MODEL_SCHEMA = ("torchblur.direct_model_fit", (1,))
 SOURCE_SCHEMA = ("torchblur.source", (1,))
 #: the ``--json`` summary line
 SUMMARY_SCHEMA = ("torchblur.run_summary", (1,))
+#: ``torchblur demo``'s demo.json
+DEMO_SCHEMA = ("torchblur.demo", (1,))
 
 
 def check_document(doc, schema: tuple, where: str) -> dict:
@@ -107,7 +110,8 @@ def read_outputs(out) -> dict:
     readers = {"frf.json": FrequencyResponse.from_json, "frf.csv": FrequencyResponse.from_csv, "frf.mat": FrequencyResponse.from_mat,
                "model.json": _model, "model_two_step.json": _model,
                "config.yaml": lambda p: load_config(str(p), trusted=False, force=True),
-               "source.json": lambda p: check_document(_json(p), SOURCE_SCHEMA, str(p))}
+               "source.json": lambda p: check_document(_json(p), SOURCE_SCHEMA, str(p)),
+               "demo.json": lambda p: check_document(_json(p), DEMO_SCHEMA, str(p))}
     for name, read in readers.items():
         if (out / name).is_file():
             got[name] = read(out / name)
