@@ -73,6 +73,9 @@ def trial(k: int, after_s: float, base: list, tmp: Path) -> dict:
     rc, lines, signalled = _interrupt(argv, after_s)
     row = {"k": k, "after_s": after_s, "rc": rc, "signalled": signalled, "lines": len(lines),
            "traceback": any("Traceback" in ln for ln in lines), "line": lines[-1] if lines else ""}
+    if row["traceback"] and not any("/torchblur/" in ln for ln in lines):  # before any torchblur code: Python's own start
+        row.update(ok=False, what="during the interpreter's start, before torchblur's code ran (Python's traceback)")
+        return row
     if rc != 130:  # finished before the signal arrived (or failed)
         row["ok"] = rc in (0, 4) and _finished(out) and not signalled
         row["what"] = "finished before the signal" if row["ok"] else f"exit {rc}: {' | '.join(lines[-3:])}"
@@ -122,11 +125,12 @@ def main(argv=None) -> int:
     resumed = sum(r.get("finished", False) and r.get("resume_rc") in (0, 4) for r in interrupted)
     second = sum(r.get("second_resume_says", False) for r in interrupted)
     early = sum(r["rc"] != 130 and r["ok"] for r in rows)
+    start = sum("interpreter's start" in r["what"] for r in rows)
     bad = [r for r in rows if not r["ok"]]
     print(f"interrupted {len(interrupted)} of {len(rows)} (the others finished before the signal: {early}); "
           f"one line and no traceback: {one} of {len(interrupted)}; the named command finished: {resumed} of "
           f"{len(interrupted)}; a second --resume said 'finished' and did nothing: {second} of {len(interrupted)}; "
-          f"failed checks: {len(bad)}")
+          f"in the interpreter's start (before torchblur's code): {start}; failed checks: {len(bad)}")
     return 1 if bad else 0
 
 

@@ -23,33 +23,10 @@ import importlib as _importlib
 import os as _os
 import sys as _sys
 
+if _sys.argv and _os.path.basename(_sys.argv[0]) == "torchblur":  # the console script (not a user's program)
+    from torchblur import _console
 
-_SIGINT_SEEN: list = []
-
-
-def _command_line_sigint(signum, frame):
-    """The ``torchblur`` command's SIGINT handler: Python's own (raise KeyboardInterrupt),
-    remembering that it came (a Ctrl-C inside a C extension's import surfaces as an ImportError)."""
-    _SIGINT_SEEN.append(signum)
-    raise KeyboardInterrupt
-
-
-def _command_line_excepthook(kind, value, tb, _default=_sys.excepthook):
-    """The ``torchblur`` command's excepthook: a Ctrl-C before its ``main`` runs (while torch
-    loads) is one line, as everywhere else in the command (:func:`torchblur.identify.cli.main`)."""
-    if issubclass(kind, KeyboardInterrupt) or _SIGINT_SEEN:
-        print("\ntorchblur: interrupted while starting; nothing was written: run the same command again", file=_sys.stderr)
-        _sys.stderr.flush()
-        _os._exit(130)
-    _default(kind, value, tb)
-
-
-if _sys.argv and _os.path.basename(_sys.argv[0]) == "torchblur":  # the console script, not a user's program
-    import signal as _signal
-
-    if _signal.getsignal(_signal.SIGINT) is _signal.default_int_handler:  # not when started with SIGINT ignored (nohup)
-        _signal.signal(_signal.SIGINT, _command_line_sigint)
-    _sys.excepthook = _command_line_excepthook
+    _console.install()  # a Ctrl-C while torch loads is one line too
 
 from torchblur import _legacy
 from torchblur.errors import ConfigError, InputTypeError, ParameterError, ShapeError, TorchblurError
