@@ -76,9 +76,10 @@ def trial(k: int, after_s: float, base: list, tmp: Path) -> dict:
     if row["traceback"] and not any("/torchblur/" in ln for ln in lines):  # before any torchblur code: Python's own start
         row.update(ok=False, what="during the interpreter's start, before torchblur's code ran (Python's traceback)")
         return row
-    if rc != 130:  # finished before the signal arrived (or failed)
-        row["ok"] = rc in (0, 4) and _finished(out) and not signalled
-        row["what"] = "finished before the signal" if row["ok"] else f"exit {rc}: {' | '.join(lines[-3:])}"
+    if rc != 130:  # finished before the signal arrived, or as it exited (then ignored: the work was done), or failed
+        row["ok"] = rc in (0, 4) and _finished(out) and not lines
+        what = "finished as the signal came (ignored: the run was done)" if signalled else "finished before the signal"
+        row["what"] = what if row["ok"] else f"exit {rc}: {' | '.join(lines[-3:])}"
         return row
     nxt = _next_command(lines[-1] if lines else "", argv)
     if nxt is None:
