@@ -13,7 +13,7 @@ file                        read back as
                             ``model.direct`` the direct fit's document (schema checked) and
                             ``model_two_step.json`` the TransferFunctionFit; a failed fit's
                             ``{"error": ...}`` as it is
-``config.yaml``             :class:`~torchblur.identify.config.IdentifyConfig`
+``config.yaml``             :class:`~torchblur.identify.config.IdentifyConfig` (validated)
 ``source.json``             a dict (schema checked; re-fits)
 ``demo.json``               a dict (schema checked; ``torchblur demo``)
 ``dm/frf.json``             FrequencyResponse ``[2M, N, F]``
@@ -81,6 +81,18 @@ def _model(path: Path):
         raise ParameterError(f"{path}: {exc}") from None
 
 
+def _config(path: Path):
+    """config.yaml: the IdentifyConfig, validated as a run's (an outside recording's fit,
+    ``rig.kind = "outside"``, is made by :func:`~torchblur.identify.outside.outside_config`, not
+    by a rig: its rig section is not checked)."""
+    from torchblur.identify.config import IdentifyConfig, load_dataclass, validate
+
+    cfg = load_dataclass(IdentifyConfig, str(path), trusted=False)
+    if cfg.rig.kind != "outside":
+        validate(cfg)
+    return cfg
+
+
 def _dm(d: Path) -> dict:
     import numpy as np
 
@@ -102,14 +114,13 @@ def read_outputs(out) -> dict:
     Raises:
         ParameterError / ConfigError: a file that does not read back, naming it.
     """
-    from torchblur.identify.config import load_config
     from torchblur.sysid.frequency_response import FrequencyResponse
 
     out = Path(out)
     got: dict = {}
     readers = {"frf.json": FrequencyResponse.from_json, "frf.csv": FrequencyResponse.from_csv, "frf.mat": FrequencyResponse.from_mat,
                "model.json": _model, "model_two_step.json": _model,
-               "config.yaml": lambda p: load_config(str(p), trusted=False, force=True),
+               "config.yaml": _config,
                "source.json": lambda p: check_document(_json(p), SOURCE_SCHEMA, str(p)),
                "demo.json": lambda p: check_document(_json(p), DEMO_SCHEMA, str(p))}
     for name, read in readers.items():
