@@ -38,6 +38,7 @@ def test_json_is_the_only_line_on_stdout(json_run):
     assert len(lines) == 1
     doc = json.loads(lines[0])
     assert doc["out"] == str(out) and doc["points"] == 4 and doc["valid_points"] == 4
+    assert doc["schema"] == "torchblur.run_summary" and doc["schema_version"] == 1
     assert doc["status"] == {"ok": 4} and isinstance(doc["flags"], dict)
     assert 0 <= doc["max_magnitude_error_pct"] < 1 and 0 <= doc["max_phase_error_deg"] < 1  # the simulated truth is known
     assert doc["elapsed_s"] > 0 and doc["torchblur_version"]

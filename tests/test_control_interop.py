@@ -221,6 +221,14 @@ def test_from_json_reads_the_cli_model_json(siso_fit, tmp_path):
         TransferFunctionFit.from_json(path)
 
 
+def test_from_dict_reads_a_version_1_file(siso_fit):
+    """A model.json written before ``units`` (schema_version 1, with the CLI's keys) still reads."""
+    _, fit = siso_fit
+    old = {k: v for k, v in fit.to_dict().items() if k != "units"}
+    old.update(schema_version=1, torchblur_version="0.1.0", seed=0, left_out_points=[], poor_fit_points_kept=[])
+    _same_fit(fit, TransferFunctionFit.from_dict(old))
+
+
 def test_from_dict_recovers_an_infinite_dc_gain():
     w = TWO_PI * np.logspace(0, 3, 40)
     frf = FrequencyResponse(w, 1000.0 / (1j * w * (1j * w / 3000.0 + 1.0)))
@@ -238,10 +246,16 @@ def test_from_dict_rejects_bad_documents(siso_fit, mimo_fit):
         TransferFunctionFit.from_dict([doc])
     with pytest.raises(ParameterError, match="schema"):
         TransferFunctionFit.from_dict({**doc, "schema": "torchblur.direct_model_fit"})
-    with pytest.raises(ParameterError, match="schema_version"):
-        TransferFunctionFit.from_dict({**doc, "schema_version": 2})
+    with pytest.raises(ParameterError, match="schema_version: unsupported version 3 .written by a newer torchblur"):
+        TransferFunctionFit.from_dict({**doc, "schema_version": 3})
     with pytest.raises(ParameterError, match="unknown keys"):
         TransferFunctionFit.from_dict({**doc, "extra": 1})
+    with pytest.raises(ParameterError, match=r"unknown keys \['units'\] for schema_version 1"):  # 1 had no units
+        TransferFunctionFit.from_dict({**doc, "schema_version": 1})
+    with pytest.raises(ParameterError, match="units"):
+        TransferFunctionFit.from_dict({**doc, "units": {**doc["units"], "delay_s": "ms"}})
+    with pytest.raises(ParameterError, match="left_out_points"):
+        TransferFunctionFit.from_dict({**doc, "left_out_points": 3})
     with pytest.raises(ParameterError, match="missing keys"):
         TransferFunctionFit.from_dict({k: v for k, v in doc.items() if k != "den"})
     with pytest.raises(ParameterError, match="n_poles"):

@@ -20,6 +20,7 @@ from torchblur.errors import ConfigError, InputTypeError, ParameterError, ShapeE
 from torchblur.fit.sinusoid import fit_sinusoid
 from torchblur.sysid.frequency_response import FrequencyResponse
 from torchblur.sysid.tf_fit import fit_transfer_function
+from readback import assert_reads_back
 
 F64 = torch.float64
 # Truth: a 650 Hz resonance (zeta 0.03) and a second mode at 1.5 kHz (zeta 0.05), 40 us delay.
@@ -351,6 +352,8 @@ def test_cli_identify_with_direct_writes_both_models(tmp_path, capsys):
     assert abs(mode["zeta"] - 0.12) < 5 * mode["zeta_std"] + 0.002
     report = (out / "report.txt").read_text()
     assert "direct model" in report and "model_two_step.json" in report
+    got = assert_reads_back(out)  # model.json: the direct fit's document; model_two_step.json: a TransferFunctionFit
+    assert got["model.json"]["schema"] == "torchblur.direct_model_fit" and got["model_two_step.json"].n_poles >= 2
 
 
 def test_direct_is_refused_for_mimo_and_spots_runs():

@@ -13,6 +13,7 @@ from torchblur.identify import cli
 from torchblur.identify.config import estimate_run, load_config
 
 from test_dm_run import SMALL as _RUN_SMALL
+from readback import assert_reads_back
 
 SMALL = [*_RUN_SMALL, "sweep.n=3"]  # the small mirror of test_dm_run at 3 frequencies
 CALIBRATION = ("dark", "saturation", "psf", "latency")
@@ -97,6 +98,8 @@ def test_refit_gives_the_live_outputs_bit_for_bit(live, tmp_path):
     assert json.loads((out / "source.json").read_text())["recording"] == str(live / "experiment")
     assert "against the simulated truth" in (out / "report.txt").read_text()  # recorded on the simulated rig: its truth
     assert _sha(live / "experiment" / "manifest.jsonl") == before and not (live / "experiment" / "quarantine").exists()
+    got = assert_reads_back(live)  # every output of the DM run reads back
+    assert got["dm/actuators.csv"]["status"].tolist().count("dead") == 1 and got["dm/frf.json"].input_labels[0] == "a0"
 
 
 def test_refit_may_change_the_fit_and_the_support_threshold_only(live, tmp_path, capsys):

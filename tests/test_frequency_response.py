@@ -139,7 +139,8 @@ def test_json_round_trip_is_bit_exact(siso, tmp_path):
     path = tmp_path / "frf.json"
     siso.to_json(path)
     doc = json.loads(path.read_text())
-    assert doc["schema"] == "torchblur.sysid.frequency_response" and doc["schema_version"] == 1
+    assert doc["schema"] == "torchblur.sysid.frequency_response" and doc["schema_version"] == 2
+    assert doc["units"]["omega"] == "rad/s" and doc["units"]["phase"] == doc["units"]["phase_std"] == "rad"
     back = FrequencyResponse.from_json(path)
     _assert_bit_identical(back.omega, siso.omega)
     _assert_bit_identical(back.response.real, siso.response.real)
@@ -171,10 +172,20 @@ def test_json_round_trip_mimo(mimo, tmp_path):
 def test_json_unknown_schema_version_raises(siso, tmp_path):
     path = tmp_path / "frf.json"
     doc = siso.to_dict()
-    doc["schema_version"] = 2
+    doc["schema_version"] = 3
     path.write_text(json.dumps(doc))
-    with pytest.raises(ParameterError, match=r"schema_version.*supported versions: \[1\]"):
+    with pytest.raises(ParameterError, match=r"schema_version.*newer torchblur.*supported versions: \[1, 2\]"):
         FrequencyResponse.from_json(path)
+
+
+def test_json_version_1_reads_without_units_and_refuses_other_units(siso):
+    doc = siso.to_dict()
+    old = {**{k: v for k, v in doc.items() if k != "units"}, "schema_version": 1}  # a file written before units
+    assert FrequencyResponse.from_dict(old).to_dict() == doc
+    with pytest.raises(ParameterError, match=r"unknown keys \['units'\] for schema_version 1"):
+        FrequencyResponse.from_dict({**doc, "schema_version": 1})
+    with pytest.raises(ParameterError, match="^units"):
+        FrequencyResponse.from_dict({**doc, "units": {**doc["units"], "phase": "deg"}})
 
 
 def test_json_unknown_key_raises(siso):
@@ -487,3 +498,23 @@ def test_unknown_flag_names_in_csv_are_refused_with_the_path(tmp_path):
     path.write_text("freq_hz,magnitude,phase_deg,magnitude_std,phase_std_deg,reduced_chi2,flags\n1,1,0,0.1,1,1.0,poor_fit|odd\n")
     with pytest.raises(ParameterError, match="frf.csv.*unknown flag 'odd'"):
         FrequencyResponse.from_csv(path)
+
+
+def test_mat_round_trip_mimo(mimo, tmp_path):
+    """frf.mat reads back: response, labels, meta, flags exactly; the covariance (rebuilt from
+    the stds and the correlation) to round-off; its units say radians."""
+    import scipy.io
+
+    path = tmp_path / "frf.mat"
+    mimo.to_mat(path)
+    back = FrequencyResponse.from_mat(path)
+    _assert_bit_identical(back.response.real, mimo.response.real)
+    _assert_bit_identical(back.omega, mimo.omega)
+    np.testing.assert_allclose(back.cov, mimo.cov, rtol=1e-12, atol=1e-15 * np.nanmax(np.abs(mimo.cov)))
+    assert back.input_labels == mimo.input_labels and back.output_labels == mimo.output_labels and back.meta == mimo.meta
+    np.testing.assert_array_equal(back.flags, mimo.flags)
+    units = scipy.io.loadmat(path)["units"]
+    assert str(units["phase_std"][0, 0][0]) == "rad" and str(units["omega"][0, 0][0]) == "rad/s"
+    (tmp_path / "bad.mat").write_text("not a mat file")
+    with pytest.raises(ParameterError, match="bad.mat"):
+        FrequencyResponse.from_mat(tmp_path / "bad.mat")

@@ -19,6 +19,7 @@ from torchblur.systems.lti import LTISineTrajectory, Plant
 from torchblur.systems.mimo import MIMOSineTrajectory, PlantMatrix, plant_from_coefficients
 from torchblur.rig.simulated import SimulatedRig
 from torchblur.render.window import ExposureWindow
+from readback import assert_reads_back
 
 ROOT = Path(__file__).resolve().parents[1]
 MIMO_CFG = str(ROOT / "configs" / "identify_mimo.yaml")
@@ -156,7 +157,7 @@ def test_short_mimo_sweep_matches_the_truth(cli_run):
 
     out, _ = cli_run
     frf = FrequencyResponse.from_json(out / "frf.json")
-    assert frf.response.shape == (2, 2, 3) and frf.output_labels == ("x", "y") and frf.input_labels == ("x", "y")
+    assert frf.response.shape == (2, 2, 3) and frf.output_labels == ("x", "y") and frf.input_labels == ("u_x", "u_y")
     t = plant_of(load_config(MIMO_CFG, SHORT)).frequency_response(frf.omega)
     em = np.abs(frf.magnitude - np.abs(t)) / np.abs(t)
     ep = np.abs(np.angle(frf.response / t))
@@ -171,7 +172,8 @@ def test_short_mimo_sweep_matches_the_truth(cli_run):
     assert [j["name"] for j in model["judgement"]] == [f"two-step {o} from {i}" for o in "xy" for i in "xy"]
     assert model["model_passed"] is False and [len(row) for row in model["std"]] == [2, 2]
     report = (out / "report.txt").read_text()
-    assert "output y from input x:" in report and "against the truth, per channel" in report
+    assert "output y from input u_x:" in report and "against the truth, per channel" in report
+    assert assert_reads_back(out)["model.json"].n_poles == model["n_poles"]  # every output reads back
 
 
 def test_mimo_frf_csv_columns_round_trip(cli_run):
@@ -181,7 +183,7 @@ def test_mimo_frf_csv_columns_round_trip(cli_run):
     with open(out / "frf.csv") as fh:
         rows = list(csv.DictReader(fh))
     assert list(rows[0])[:7] == ["output", "input", "freq_hz", "magnitude", "phase_deg", "magnitude_std", "phase_std_deg"]
-    assert [(r["output"], r["input"]) for r in rows[::3]] == [("x", "x"), ("x", "y"), ("y", "x"), ("y", "y")]
+    assert [(r["output"], r["input"]) for r in rows[::3]] == [("x", "u_x"), ("x", "u_y"), ("y", "u_x"), ("y", "u_y")]
     back = FrequencyResponse.from_csv(out / "frf.csv")  # extra stamp columns ignored
     ref = FrequencyResponse.from_json(out / "frf.json")
     assert back.output_labels == ref.output_labels and back.input_labels == ref.input_labels

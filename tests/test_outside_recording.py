@@ -29,6 +29,7 @@ from torchblur.render.camera import CameraNoise, camera_noise_std
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.window import ExposureWindow
 from torchblur.sysid.frequency_response import FrequencyResponse
+from readback import assert_reads_back
 
 ANGLE = 0.3  # rad: the simulated spot moves along (cos, sin) of it
 DIRECTION = [math.cos(ANGLE), math.sin(ANGLE)]
@@ -88,6 +89,7 @@ def test_fit_folder_equals_identify_on_the_same_frames(sim, capsys):
     assert _listing(folder) == before  # the recording is never written
     assert "fit of the outside recording" in (out / "report.txt").read_text()
     assert "seed" not in (out / "report.txt").read_text().splitlines()[0]  # frames from outside have no seed to stamp
+    assert assert_reads_back(out)["source.json"]["frames"] > 0  # every output reads back
 
 
 def test_trigger_phase_and_delays_give_the_same_windows(sim):

@@ -9,7 +9,8 @@ The names a user calls (each documented where it lives):
 - fitting: :func:`fit_sinusoid`, :func:`dual_exposure_windows`, :class:`BlurConsistencyLoss`,
   :func:`blur_consistency`;
 - identification: :class:`FrequencyResponse`, :func:`fit_transfer_function`,
-  :func:`identify` (the pipeline; also the package ``torchblur.identify``), :func:`load_config`;
+  :class:`TransferFunctionFit` (its result; ``from_json`` reads model.json), :func:`identify`
+  (the pipeline; also the package ``torchblur.identify``), :func:`load_config`;
 - errors: :class:`TorchblurError` and its subclasses.
 
 ``import torchblur`` loads torch and numpy only: the image-formation names are imported at
@@ -19,6 +20,13 @@ once, the others (and the subpackages ``fit``, ``sysid``, ``image``, ``design``,
 from __future__ import annotations
 
 import importlib as _importlib
+import os as _os
+import sys as _sys
+
+if _sys.argv and _os.path.basename(_sys.argv[0]) == "torchblur":  # the console script (not a user's program)
+    from torchblur import _console
+
+    _console.install()  # a Ctrl-C while torch loads is one line too
 
 from torchblur import _legacy
 from torchblur.errors import ConfigError, InputTypeError, ParameterError, ShapeError, TorchblurError
@@ -42,6 +50,7 @@ _LAZY = {
     "dual_exposure_windows": "torchblur.design.windows",
     "FrequencyResponse": "torchblur.sysid.frequency_response",
     "fit_transfer_function": "torchblur.sysid.tf_fit",
+    "TransferFunctionFit": "torchblur.sysid.tf_fit",
     "load_config": "torchblur.identify.config",
 }
 
@@ -80,6 +89,7 @@ __all__ = [
     "SplineTrajectory",
     "TorchblurError",
     "Trajectory",
+    "TransferFunctionFit",
     "alias_phase",
     "blur_consistency",
     "dual_exposure_windows",

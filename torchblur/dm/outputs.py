@@ -13,7 +13,11 @@ Files (:func:`write_dm_outputs`):
   (:func:`command_matrix`: truncated SVD, singular values below ``rcond`` times the largest
   dropped), ``unseen_modes.npy`` ``[K, N]``: the actuator-space modes it cannot see (the right
   singular vectors dropped, and the null space when N > 2M), and ``command_matrix.json``: the
-  rule, the threshold, the singular values, the modes kept.
+  rule, the threshold, the singular values, the modes kept (with ``schema`` and
+  ``schema_version``: :data:`COMMAND_MATRIX_SCHEMA`).
+
+Every file reads back: :func:`read_actuators_csv`, ``numpy.load``, ``FrequencyResponse.from_json``
+(:func:`torchblur.identify.read_outputs.read_outputs` reads them all).
 - ``frf.json``: the dynamic interaction matrix D(jw) as a
   :class:`~torchblur.sysid.frequency_response.FrequencyResponse` (2M outputs ``s{m}_x`` then
   ``s{m}_y``: python-control refuses dots in signal names; N inputs ``a{j}``; the (magnitude,
@@ -40,7 +44,10 @@ from torchblur.errors import ParameterError, ShapeError
 from torchblur.sysid.frequency_response import FrequencyResponse
 
 __all__ = ["DMEstimate", "command_matrix", "magnitude_phase_cov", "dm_frequency_response", "write_dm_outputs", "CSV_COLUMNS",
-           "RCOND", "actuator_maps_figure", "STATUS_STYLES"]
+           "RCOND", "actuator_maps_figure", "STATUS_STYLES", "read_actuators_csv", "COMMAND_MATRIX_SCHEMA"]
+
+#: command_matrix.json's schema and the versions read (1: with ``schema``; its keys in :func:`command_matrix`)
+COMMAND_MATRIX_SCHEMA = ("torchblur.dm.command_matrix", (1,))
 
 #: singular values of D0 below RCOND times the largest are dropped from the command matrix
 RCOND = 0.05
@@ -215,6 +222,31 @@ def _write_maps(path: Path, t: ActuatorTable, say, failed=()) -> bool:
     return True
 
 
+def read_actuators_csv(path) -> dict:
+    """``actuators.csv`` read back: ``{column: array [N]}`` for :data:`CSV_COLUMNS` (``actuator``
+    int, ``status`` str, ``poor_fit`` bool, the others float64; NaN where written ``nan``).
+
+    Raises:
+        ParameterError: naming ``path``, a header other than :data:`CSV_COLUMNS`, a row of
+            another length, a value that is not a number.
+    """
+    with open(path, newline="") as fh:
+        rows = list(csv.reader(fh))
+    if not rows or tuple(rows[0]) != CSV_COLUMNS:
+        raise ParameterError(f"{path}: header {rows[0] if rows else None}; expected {list(CSV_COLUMNS)}")
+    body = [r for r in rows[1:] if r]
+    if any(len(r) != len(CSV_COLUMNS) for r in body):
+        raise ParameterError(f"{path}: expected {len(CSV_COLUMNS)} columns in every row")
+    cols = dict(zip(CSV_COLUMNS, zip(*body))) if body else {c: () for c in CSV_COLUMNS}
+    try:
+        out = {c: np.array(v, dtype=np.float64) for c, v in cols.items() if c not in ("actuator", "status", "poor_fit")}
+        out.update(actuator=np.array(cols["actuator"], dtype=np.int64), poor_fit=np.array(cols["poor_fit"], dtype=np.int64) != 0,
+                   status=np.array(cols["status"], dtype=str))
+    except ValueError as exc:
+        raise ParameterError(f"{path}: not a number ({exc})") from None
+    return {c: out[c] for c in CSV_COLUMNS}
+
+
 def write_dm_outputs(out_dir, est: DMEstimate, *, rcond: float = RCOND, say=None) -> dict:
     """Write ``out_dir/dm/`` (see the module docstring). ``say``: a callable for log lines
     (default: this module's logger). Returns ``{name: path}`` of the files written."""
@@ -236,7 +268,8 @@ def write_dm_outputs(out_dir, est: DMEstimate, *, rcond: float = RCOND, say=None
     C, unseen, info = command_matrix(np.nan_to_num(est.D0), rcond=rcond)
     np.save(d / "command_matrix.npy", C)
     np.save(d / "unseen_modes.npy", unseen)
-    (d / "command_matrix.json").write_text(json.dumps(info, indent=1) + "\n")
+    doc = {"schema": COMMAND_MATRIX_SCHEMA[0], "schema_version": COMMAND_MATRIX_SCHEMA[1][-1], **info}
+    (d / "command_matrix.json").write_text(json.dumps(doc, indent=1) + "\n")
     paths.update({k: d / k for k in ("command_matrix.npy", "unseen_modes.npy", "command_matrix.json")})
     dm_frequency_response(est).to_json(d / "frf.json")
     paths["frf.json"] = d / "frf.json"

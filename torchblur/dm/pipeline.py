@@ -40,6 +40,7 @@ from torchblur.dm.plans import static_motion_px
 from torchblur.dm.rig import SimulatedDMRig
 from torchblur.dm.shack_hartmann import ShackHartmann
 from torchblur.dm.verdict import run_verdict, truth_guard
+from torchblur.identify.read_outputs import SUMMARY_SCHEMA
 
 __all__ = ["DM_DARK_FRAMES", "DM_STILL_FRAMES", "DMResult", "build_dm", "identify_dm", "match_spots", "next_amplitude", "nominal_growth",
            "truth_errors"]
@@ -437,7 +438,8 @@ def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False, record=None
     (out / "report.txt").write_text("\n".join(res.log) + "\n" + report)
     print(report, end="", file=sys.stderr if as_json else sys.stdout, flush=True)
     if as_json:
-        print(json.dumps({"elapsed_s": elapsed, "frames": res.n_frames, "plan": res.plan.kind, "timing_s": res.timing_s,
+        print(json.dumps({"schema": SUMMARY_SCHEMA[0], "schema_version": SUMMARY_SCHEMA[1][-1],
+                          "elapsed_s": elapsed, "frames": res.n_frames, "plan": res.plan.kind, "timing_s": res.timing_s,
                           "truth_errors": truth_errors(res), "verdict": v.line, "trustworthy": v.trustworthy,
                           "actuator_flags": {"poor_fit": list(v.poor_fit), "failed": list(v.failed)},
                           "failed_spot_fits": v.failed_spot_fits, "spot_problems": v.spot_problems, "poor_spot_fits": v.poor_spot_fits,

@@ -292,7 +292,8 @@ class Experiment:
         path = Path(path)
         (path / "frames").mkdir(parents=True, exist_ok=True)
         lock = RunLock(path)
-        if (path / "manifest.jsonl").exists() or (path / "experiment.json").exists():
+        mf = path / "manifest.jsonl"  # an empty manifest without experiment.json (written last): a creation cut short
+        if (path / "experiment.json").exists() or mf.is_symlink() or (mf.exists() and mf.stat().st_size > 0):
             lock.release()
             raise RecordingError(f"{path}: already holds a recording; resume it with torchblur identify --resume, "
                                  f"or choose another --out")

@@ -80,7 +80,13 @@ def assemble_siso(fit, amps, omega, camera, latency_std, n_frames, meta):
     bad = ~fit.converged.numpy()
     response[bad] = np.nan
     cov[bad] = np.nan
-    return FrequencyResponse(omega.numpy(), response, cov=cov, input_labels=["x"], output_labels=["x"], meta=meta)
+    return FrequencyResponse(omega.numpy(), response, cov=cov, input_labels=[input_label("x")], output_labels=["x"], meta=meta)
+
+
+def input_label(name: str) -> str:
+    """The response's label of the rig's input ``name``: ``"u_x"`` for the command to axis x,
+    distinct from the output ``"x"`` (the spot's motion along x)."""
+    return f"u_{name}"
 
 
 def assemble_mimo(fit, amps, omega_job, camera, latency_std, n_frames, inputs, P, many_spots, meta):
@@ -117,7 +123,7 @@ def assemble_mimo(fit, amps, omega_job, camera, latency_std, n_frames, inputs, P
         return x.reshape((P * 2, I, F) + x.shape[4:])
 
     outputs = spot_labels(P) if many_spots else ["x", "y"]
-    return FrequencyResponse(omega_job.numpy()[:F], arrange(response), cov=arrange(cov), input_labels=list(inputs),
+    return FrequencyResponse(omega_job.numpy()[:F], arrange(response), cov=arrange(cov), input_labels=[input_label(n) for n in inputs],
                              output_labels=outputs, meta=meta)
 
 

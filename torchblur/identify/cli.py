@@ -24,6 +24,9 @@ Commands:
     emulator [--config FILE] [key=value ...]
                         a bench emulator on a pseudo-terminal; prints one JSON line with
                         'serial' (for rig.port) and 'frames' (for rig.frames), then serves.
+    config [--config FILE] [key=value ...]
+                        list every config key with its value (the defaults, or the file and
+                        overrides resolved) and its unit; nothing is run.
     demo --out DIR      render a blurred laser spot (the paper's "peanut"), its motion and
                         its alias, and save DIR/demo.png and DIR/demo.json.
 
@@ -97,7 +100,11 @@ def _demo(args) -> int:
     fig.suptitle("torchblur demo: a fast steering mirror seen by a slow camera; the alias phase gives the same image")
     fig.tight_layout()
     fig.savefig(out / "demo.png", dpi=110)
+    from torchblur.identify.read_outputs import DEMO_SCHEMA
+
     summary = {
+        "schema": DEMO_SCHEMA[0],
+        "schema_version": DEMO_SCHEMA[1][-1],
         "torchblur_version": tb.__version__,
         "seed": args.seed,
         "freq_hz": f_hz,
@@ -160,7 +167,7 @@ def _identify(args) -> int:
     cfg = load_config(args.config, args.overrides, force=args.force)  # ConfigError (named key) before any work
     out = Path(args.out)
     check_out_folder(out, command="identify", force=args.force)
-    if (out / "experiment" / "manifest.jsonl").exists():
+    if (out / "experiment" / "experiment.json").exists():
         print(f"torchblur identify: error: {out} already holds a recorded run; continue it with "
               f"'torchblur identify --resume {out}' or choose another --out", file=sys.stderr)
         return 2
@@ -169,7 +176,7 @@ def _identify(args) -> int:
     (out / "experiment").mkdir(parents=True, exist_ok=True)
     lock = RunLock(out / "experiment")  # held for the run's life: a second run on this folder refuses
     try:
-        if (out / "experiment" / "manifest.jsonl").exists():  # created while we waited for the lock
+        if (out / "experiment" / "experiment.json").exists():  # created while we waited for the lock
             raise RecordingError(f"--out {out}: already holds a recorded run; resume it with torchblur identify --resume")
         return _run_identify(cfg, out, out / "experiment", args.quiet, as_json=args.json)
     finally:
@@ -177,12 +184,21 @@ def _identify(args) -> int:
 
 
 def _resume(args) -> int:
+    from torchblur.hardware.errors import RecordingError
     from torchblur.hardware.recording import Experiment
     from torchblur.hardware.run_folder import check_out_folder
     from torchblur.identify.config import load_config, load_dataclass
     from torchblur.identify.run import check_resume_config
 
     root = Path(args.resume)
+    if not root.exists():
+        raise RecordingError(f"--resume {root}: does not exist")
+    top = root.parent if root.name == "experiment" and (root / "experiment.json").is_file() else root
+    done = _finished(top)
+    if done is not None and args.out is None:
+        print(f"torchblur identify: {top} is a finished run ({done}); nothing to resume. Re-fit it with "
+              f"'torchblur fit {top} --out NEW', or start a new run with --out NEW", file=sys.stderr)
+        return 0
     exp = Experiment.open(root)  # RecordingError if none or locked; sets aside what it cannot keep
     try:
         if exp.path == root:  # given the experiment folder itself
@@ -226,15 +242,40 @@ def _run_identify(cfg, out: Path, record, quiet: bool, root: Path | None = None,
     except (KeyboardInterrupt, HardwareError) as exc:
         return _stopped(exc, exp_dir, root, cfg)
     elapsed = time.perf_counter() - t0
-    return _write_outputs(cfg, res, out, elapsed, stamp, as_json=as_json).exit_code
+    try:
+        return _write_outputs(cfg, res, out, elapsed, stamp, as_json=as_json).exit_code
+    except KeyboardInterrupt as exc:  # the recording is complete; a resume fits it again and writes every output
+        return _stopped(exc, exp_dir, root, cfg)
+
+
+def _finished(root: Path) -> str | None:
+    """Why the run in ``root`` needs no resume (its recording complete and report.txt, the
+    output written last, there), or None."""
+    from torchblur.hardware.errors import RecordingError
+    from torchblur.hardware.recording import Experiment
+
+    report = root / "report.txt"
+    if not report.is_file():
+        return None
+    try:
+        exp = Experiment.open(root, writable=False, verify=False)
+    except RecordingError:
+        return None
+    try:
+        return "its recording is complete and report.txt was written" if exp.meta.get("status") == "complete" else None
+    finally:
+        exp.close()
 
 
 def _stopped(exc, exp_dir: Path, root: Path, cfg) -> int:
     """A run the rig stopped (a HardwareError) or Ctrl-C interrupted: say where its recording
     is and how to resume it; the exit code."""
     if isinstance(exc, KeyboardInterrupt):
-        print(f"\ntorchblur identify: interrupted. The recording so far is saved in {exp_dir}.\n"
-              f"Resume with:\n  {_resume_hint(root, cfg)}", file=sys.stderr)
+        if (exp_dir / "experiment.json").is_file():
+            print(f"\ntorchblur identify: interrupted; the recording so far is saved in {exp_dir}; resume with: "
+                  f"{_resume_hint(root, cfg)}", file=sys.stderr)
+        else:
+            print(f"\n{_NOTHING_RECORDED}", file=sys.stderr)
         return EXIT_INTERRUPTED
     if (exp_dir / "manifest.jsonl").exists():
         print(f"torchblur identify: stopped: {exc}\nThe recording so far is saved in {exp_dir}.\n"
@@ -295,7 +336,10 @@ def _source(exp, args) -> str:
     """``source.json`` of a re-fit: the recording, its status and frames, the overrides."""
     import torchblur as tb
 
-    return json.dumps({"recording": str(exp.path), "status": exp.meta.get("status"), "frames": len(exp.lines),
+    from torchblur.identify.read_outputs import SOURCE_SCHEMA
+
+    return json.dumps({"schema": SOURCE_SCHEMA[0], "schema_version": SOURCE_SCHEMA[1][-1],
+                       "recording": str(exp.path), "status": exp.meta.get("status"), "frames": len(exp.lines),
                        "overrides": list(args.overrides), "torchblur_version": tb.__version__}, indent=2)
 
 
@@ -337,7 +381,7 @@ def _fit(args) -> int:
     res = identify(cfg, rig=ReplayRig(exp), record=exp, progress=not args.quiet)
     elapsed = time.perf_counter() - t0
     (out / "source.json").write_text(_source(exp, args))
-    return _write_outputs(cfg, res, out, elapsed, stamp, as_json=args.json).exit_code
+    return _write_outputs(cfg, res, out, elapsed, stamp, as_json=args.json, source="re-fit").exit_code
 
 
 def _is_outside(path) -> bool:
@@ -347,6 +391,8 @@ def _is_outside(path) -> bool:
     from torchblur.hardware.outside import CSV_NAME, is_outside_recording
 
     p = Path(path)
+    if not p.exists():
+        raise RecordingError(f"{p}: does not exist")
     if is_outside_recording(p):
         return True
     if not any((q / "experiment.json").is_file() for q in (p, p / "experiment")):
@@ -382,9 +428,21 @@ def _fit_outside(args) -> int:
     t0 = time.perf_counter()
     res = identify_outside(rec, cfg, progress=not args.quiet)
     elapsed = time.perf_counter() - t0
-    (out / "source.json").write_text(json.dumps({"outside_recording": str(src), "frames": rec.n_frames, "points": len(rec.points),
+    from torchblur.identify.read_outputs import SOURCE_SCHEMA
+
+    (out / "source.json").write_text(json.dumps({"schema": SOURCE_SCHEMA[0], "schema_version": SOURCE_SCHEMA[1][-1],
+                                                 "outside_recording": str(src), "frames": rec.n_frames, "points": len(rec.points),
                                                  "overrides": list(args.overrides), "torchblur_version": tb.__version__}, indent=2))
-    return _write_outputs(cfg, res, out, elapsed, stamp, as_json=args.json).exit_code
+    return _write_outputs(cfg, res, out, elapsed, stamp, as_json=args.json, source="outside").exit_code
+
+
+def _config(args) -> int:
+    """``torchblur config``: every key, its resolved value and its unit, one line each on stdout."""
+    from torchblur.identify.config import load_config
+    from torchblur.identify.config_keys import format_config_keys
+
+    print(format_config_keys(load_config(args.config, list(args.overrides), force=True)), end="")
+    return 0
 
 
 def _emulator(args) -> int:
@@ -396,11 +454,13 @@ def _emulator(args) -> int:
         return EXIT_INTERRUPTED
 
 
-def _write_outputs(cfg, res, out: Path, elapsed: float, stamp: str, as_json: bool = False):
+def _write_outputs(cfg, res, out: Path, elapsed: float, stamp: str, as_json: bool = False, source: str = "run"):
     """frf.csv, frf.mat, frf.json, model.json, bode.png, residuals.png, report.txt (the verdict
     its last line); then the report's table (the log lines were shown as they came), what was
     written and the verdict line, on stdout, or with ``as_json`` on stderr and one JSON summary
-    line (:func:`_summary`) on stdout. Returns the :class:`~torchblur.identify.verdict.Verdict`."""
+    line (:func:`_summary`) on stdout. ``source``: "run" (frames acquired now), "re-fit" (of a
+    recording) or "outside" (an outside recording). report.txt is written last: a run whose
+    report.txt is there is finished. Returns the :class:`~torchblur.identify.verdict.Verdict`."""
     import torchblur as tb
 
     from torchblur.identify.assemble import mark_limited
@@ -416,7 +476,7 @@ def _write_outputs(cfg, res, out: Path, elapsed: float, stamp: str, as_json: boo
     frf.to_json(out / "frf.json")
     _write_models(cfg, res, out, v.models)
     _write_figures(cfg, res, out, stamp)
-    log, table = _report(cfg, res, elapsed, stamp)
+    log, table = _report(cfg, res, elapsed, stamp, source)
     (out / "report.txt").write_text(log + table + "\n" + v.line + "\n")
     human = sys.stderr if as_json else sys.stdout
     print(table, end="", file=human)
@@ -603,8 +663,11 @@ def _summary(res, out: Path, elapsed: float, threshold: float | None = None) -> 
     import torchblur as tb
     from torchblur.fit.status import FLAGS, STATUS
 
+    from torchblur.identify.read_outputs import SUMMARY_SCHEMA
+
     frf = res.frf
-    doc = {"out": str(out), "points": int(frf.valid.size), "valid_points": int(frf.valid.sum()),
+    doc = {"schema": SUMMARY_SCHEMA[0], "schema_version": SUMMARY_SCHEMA[1][-1],
+           "out": str(out), "points": int(frf.valid.size), "valid_points": int(frf.valid.sum()),
            "max_magnitude_error_pct": None, "max_phase_error_deg": None, "max_error_over_std": None}
     if res.truth is not None:
         em, ep, z = frf.errors_against(res.truth)  # NaN where there is no true motion
@@ -740,7 +803,19 @@ def _exposure_label(window, index: int = 0) -> str:
     return f"exposure {e + 1} of {len(distinct)}, {d:.3g} ms long ({s:.3g}-{s + d:.3g} ms), image {r + 1} of {R}"
 
 
-def _report(cfg, res, elapsed, stamp) -> tuple[str, str]:
+def _method_line(cfg, res) -> str:
+    """What was done: the route, the loss and the PSF (the gain is on the dark line above)."""
+    from torchblur.render.psf import KernelPSF
+
+    route = (f"multisine ({cfg.excitation.tones} tones per image set)" if cfg.excitation.kind == "multisine"
+             else f"sine sweep, {len(cfg.sweep.exposures)} exposure(s) x {cfg.sweep.images_per_point} image(s) per point")
+    psf = ("a measured kernel" if isinstance(res.psf, KernelPSF) else
+           "a Gaussian per spot" if getattr(res, "spots", None) is not None else "a Gaussian (point-sampled)")
+    model = "fitted directly to every image (model.direct)" if cfg.model.direct else "two-step (fitted to the response)"
+    return f"method: {route}; fit.loss={cfg.fit.loss}; PSF {psf} (fit.psf={cfg.fit.psf}); model {model}"
+
+
+def _report(cfg, res, elapsed, stamp, source: str = "run") -> tuple[str, str]:
     """report.txt in two parts: ``(title, table)``: the title and the run's log (shown on the
     terminal as it came), then the table of points, the errors against the truth, the models
     and the timing."""
@@ -829,11 +904,13 @@ def _report(cfg, res, elapsed, stamp) -> tuple[str, str]:
     elif cfg.model.direct:
         lines += ["", "direct model: none (see the log above); model.json holds the two-step model where it passed the verdict's "
                       "rule (else the error), model_two_step.json the two-step model"]
-    what = "simulated acquisition" if cfg.rig.kind == "simulated" else "acquisition"
+    what = {"re-fit": "re-fit of recorded frames: no acquisition", "outside": "fit of an outside recording: no acquisition"}.get(
+        source, "simulated acquisition and fitting" if cfg.rig.kind == "simulated" else "acquisition and fitting")
     t = getattr(res, "timing", {}) or {}
-    lines += ["", f"elapsed {elapsed:.1f} s ({what} and fitting)"]
+    lines += ["", _method_line(cfg, res), f"elapsed {elapsed:.1f} s ({what})"]
     if t:
-        lines.append(f"  calibration {t['calibration_s']:.2f} s, sweep {t['sweep_s']:.2f} s, fitting {t['fit_s']:.2f} s in "
+        sweep = "sweep" if source == "run" else "reading the sweep"
+        lines.append(f"  calibration {t['calibration_s']:.2f} s, {sweep} {t['sweep_s']:.2f} s, fitting {t['fit_s']:.2f} s in "
                      f"{t['fit_chunks']} chunk(s) of which {t['fit_overlapped_s']:.2f} s during the sweep, "
                      f"{t['after_sweep_s']:.2f} s after the last frame")
     return title, "\n".join(lines) + "\n"
@@ -864,8 +941,40 @@ class _Version(argparse.Action):
         parser.exit(0)
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse that suggests the closest option or command for a mistyped one (difflib;
+    argparse's own ``suggest_on_error`` exists from Python 3.14 only). ``argv``: the command
+    line being parsed (set by :func:`main`)."""
+
+    argv: tuple = ()
+
+    def error(self, message):
+        super().error(message + _suggestion(self, type(self).argv))
+
+
+def _suggestion(parser: argparse.ArgumentParser, argv) -> str:
+    """``" (--output: did you mean --out?)"`` for the first word of ``argv`` that is neither an option
+    nor a command of ``parser`` but close to one; "" if none is."""
+    import difflib
+
+    options = [o for a in parser._actions for o in a.option_strings]
+    commands = [c for a in parser._actions if isinstance(a, argparse._SubParsersAction) for c in a.choices]
+    for word in argv:
+        if word.startswith("--") and word.split("=")[0] not in options:
+            close = difflib.get_close_matches(word.split("=")[0], options, n=1, cutoff=0.6)
+        elif commands and not word.startswith("-"):
+            if word in commands:
+                return ""
+            close = difflib.get_close_matches(word, commands, n=1, cutoff=0.6)
+        else:
+            continue
+        if close:
+            return f" ({word.split('=')[0]}: did you mean {close[0]}?)"
+    return ""
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="torchblur", description="Identify fast actuator dynamics from camera motion blur.")
+    parser = _Parser(prog="torchblur", description="Identify fast actuator dynamics from camera motion blur.")
     parser.add_argument("--version", action=_Version, help="print the version and exit")
     sub = parser.add_subparsers(dest="command", required=True)
     ident = sub.add_parser("identify", help="identify the frequency response and a model (default: the built-in simulated mirror)",
@@ -899,6 +1008,11 @@ def build_parser() -> argparse.ArgumentParser:
     emu.add_argument("--config", default=None, help="YAML config (plant.*, camera.*, seed; identify-only sections are ignored)")
     emu.add_argument("overrides", nargs="*", help="plant.*, camera.*, seed, transport=pty|socket, fault.*=N, ...")
     emu.set_defaults(func=_emulator)
+    conf = sub.add_parser("config", help="list every config key with its value (the defaults, or a --config file and "
+                                         "overrides resolved) and its unit")
+    conf.add_argument("--config", default=None, help="YAML config (see configs/); default: built-in")
+    conf.add_argument("overrides", nargs="*", help="dotted key=value overrides, e.g. sweep.n=20")
+    conf.set_defaults(func=_config)
     demo = sub.add_parser("demo", help="render a blurred spot and its alias; save a figure")
     demo.add_argument("--out", required=True, help="output directory")
     demo.add_argument("--seed", type=int, default=0)
@@ -906,17 +1020,37 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+_NOTHING_RECORDED = "torchblur identify: interrupted before anything was recorded; run the same command again to start over"
+
+
+def _interrupted_line(args) -> str:
+    """The one line of a Ctrl-C outside a run's own handler: what to run next."""
+    out = getattr(args, "out", None)
+    if args.command == "identify" and getattr(args, "resume", None) is not None:
+        return f"torchblur identify: interrupted; resume with: torchblur identify --resume {args.resume}"
+    if args.command == "identify" and out is not None:
+        if (Path(out) / "experiment" / "experiment.json").is_file():
+            return (f"torchblur identify: interrupted; the recording so far is saved in {Path(out) / 'experiment'}; "
+                    f"resume with: torchblur identify --resume {out}")
+        return _NOTHING_RECORDED
+    if args.command == "fit" and out is not None and Path(out).exists():
+        return f"torchblur fit: interrupted; {out} may hold partial results: run the same command again with --force"
+    return f"torchblur {args.command}: interrupted"
+
+
 def main(argv: list[str] | None = None) -> int:
     from torchblur.errors import TorchblurError
     from torchblur.identify.record import console_logging
 
     parser = build_parser()
+    _Parser.argv = tuple(sys.argv[1:] if argv is None else argv)
     args, extra = parser.parse_known_args(argv)
     if extra:  # key=value overrides after an option (argparse stops filling a '*' positional there)
         if hasattr(args, "overrides") and all("=" in e and not e.startswith("-") for e in extra):
             args.overrides = list(args.overrides) + extra
         else:
-            parser.error(f"unrecognized arguments: {' '.join(extra)}")
+            sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[args.command]
+            sub.error(f"unrecognized arguments: {' '.join(extra)}")
     level = logging.WARNING if getattr(args, "quiet", False) else logging.INFO
     try:
         with console_logging(level):  # the run's messages on stderr, one line each, above the bars
@@ -928,7 +1062,10 @@ def main(argv: list[str] | None = None) -> int:
         where = f" {exc.filename}" if exc.filename else ""
         print(f"torchblur {args.command}: error:{where}: {exc.strerror or exc}", file=sys.stderr)
         return 2
-    except (KeyboardInterrupt, SystemExit):
+    except KeyboardInterrupt:  # one line, at any moment (the run's own handler names its recording)
+        print(f"\n{_interrupted_line(args)}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except SystemExit:
         raise
     except Exception as exc:  # a bug: one line for the user, the traceback on request
         if os.environ.get("TORCHBLUR_DEBUG"):

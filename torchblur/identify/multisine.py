@@ -36,7 +36,7 @@ import torch
 from torchblur.design.fisher import design_acquisition
 from torchblur.design.multisine import common_grid, optimise_crest_factor
 from torchblur.fit.multisine import fit_multisine, render_multisine
-from torchblur.identify.assemble import phase_std
+from torchblur.identify.assemble import input_label, phase_std
 from torchblur.identify.drive import is_limited, limited_summary
 from torchblur.identify.record import RunRecord, progress_bar, run_stage
 from torchblur.identify.result import IdentificationResult
@@ -379,7 +379,7 @@ class MultisinePlan:
                                slew=math.inf if cal.drive is None else cal.drive.slew)
         if line is not None:
             run.say(line)
-        run.frf = FrequencyResponse(2 * np.pi * freq, response, cov=np.asarray(acq.cov)[idx], input_labels=["x"], output_labels=["x"],
+        run.frf = FrequencyResponse(2 * np.pi * freq, response, cov=np.asarray(acq.cov)[idx], input_labels=[input_label("x")], output_labels=["x"],
                                     meta={"seed": int(run.cfg.seed), "excitation": "multisine", "direction": [float(v) for v in u],
                                           "input_limit": float(limit) if math.isfinite(limit) else None,
                                           "slew_limit": None if cal.drive is None or not math.isfinite(cal.drive.slew)

@@ -21,9 +21,11 @@ File formats:
   CLI's frf.csv adds ``torchblur_version,seed``). CSV keeps the standard deviations but **loses the
   magnitude-phase correlation**: ``from_csv`` returns a diagonal covariance (correlation 0).
   A SISO CSV also drops the labels, and no CSV keeps ``meta``.
-* MAT (``to_mat``, write only): MATLAB variables for ``idfrd``/``tfest`` (see :meth:`to_mat`).
+* MAT (``to_mat``/``from_mat``): MATLAB variables for ``idfrd``/``tfest`` (see :meth:`to_mat`),
+  phase and its std in radians, a ``units`` struct.
 * JSON (``to_json``/``from_json``): everything, bit-exact, under a versioned schema
-  ``{"schema": "torchblur.sysid.frequency_response", "schema_version": 1, ...}``. Non-finite
+  ``{"schema": "torchblur.sysid.frequency_response", "schema_version": 2, "units": {...}, ...}``
+  (version 1, without ``units``, still reads; a newer one is refused by name). Non-finite
   numbers (failed points, unknown covariance) are written as ``null`` so the file is strict
   JSON.
 
@@ -82,8 +84,16 @@ def control_names(labels: Sequence[str]) -> list[str]:
     return names
 
 _SCHEMA = "torchblur.sysid.frequency_response"
-_SUPPORTED_SCHEMA_VERSIONS = (1,)
+#: the version :meth:`FrequencyResponse.to_dict` writes (2: with ``units``; 1 files still read)
+SCHEMA_VERSION = 2
+_SUPPORTED_SCHEMA_VERSIONS = (1, 2)
+#: the units of frf.json's and frf.mat's numbers (version 2 writes them; version 1 meant the
+#: same): the output and input units themselves are ``meta["output_unit"]`` / ``meta["input_unit"]``
+UNITS = {"omega": "rad/s", "freq_hz": "Hz", "response": "output unit per input unit (absolute, not dB)",
+         "magnitude_std": "output unit per input unit", "phase": "rad", "phase_std": "rad",
+         "cov": "[[magnitude^2, magnitude rad], [magnitude rad, rad^2]]"}
 _JSON_KEYS = {
+    "units",
     "schema",
     "schema_version",
     "omega",
@@ -576,9 +586,12 @@ class FrequencyResponse:
         * ``input_labels`` [1, I], ``output_labels`` [1, O]: cell arrays of strings;
         * ``meta``: the JSON text of :attr:`meta` (a string);
         * ``flags`` int32 [O, I, F] (bits of :mod:`torchblur.sysid.flags`, 0 = none) and
-          ``reduced_chi2`` [O, I, F] (NaN = unknown).
+          ``reduced_chi2`` [O, I, F] (NaN = unknown);
+        * ``units``: a struct naming each variable's unit (:data:`UNITS`), ``schema`` and
+          ``schema_version`` (the JSON's).
 
-        A SISO response keeps the [1, 1, F] shape, as in MATLAB's ``idfrd``.
+        A SISO response keeps the [1, 1, F] shape, as in MATLAB's ``idfrd``. :meth:`from_mat`
+        reads it back (the covariance from the stds and the correlation).
         """
         import scipy.io
 
@@ -601,9 +614,51 @@ class FrequencyResponse:
                 "meta": json.dumps(self._meta),
                 "flags": self._flags.astype(np.int32),
                 "reduced_chi2": np.array(self._reduced_chi2),
+                "units": dict(UNITS),
+                "schema": _SCHEMA,
+                "schema_version": SCHEMA_VERSION,
             },
             do_compression=True,
         )
+
+    @classmethod
+    def from_mat(cls, path: str | os.PathLike) -> "FrequencyResponse":
+        """Read a file written by :meth:`to_mat` (``scipy.io.loadmat``): the response, labels,
+        meta, flags and reduced chi2 exactly; the covariance from ``magnitude_std``,
+        ``phase_std`` and ``correlation`` (equal to the written one to round-off).
+
+        Raises:
+            ParameterError: naming ``path``, a file that is not a MAT file, or lacks a variable
+                :meth:`to_mat` writes, or (files with ``units``) says other units.
+        """
+        import scipy.io
+
+        where = f"path {os.fspath(path)!r}"
+        if os.stat(path).st_size > MAX_FILE_BYTES:
+            raise ParameterError(f"{where}: larger than the {MAX_FILE_BYTES} bytes a response file may have")
+        try:
+            m = scipy.io.loadmat(path, squeeze_me=False, chars_as_strings=True)
+        except (ValueError, TypeError, NotImplementedError, OSError, scipy.io.matlab.MatReadError) as exc:
+            raise ParameterError(f"{where}: not a MAT file frf.mat ({type(exc).__name__}: {exc})") from None
+        need = {"omega", "H", "magnitude_std", "phase_std", "correlation", "input_labels", "output_labels", "meta"}
+        if need - set(m):
+            raise ParameterError(f"{where}: missing variables {sorted(need - set(m))}; expected a file written by to_mat")
+        if "units" in m:
+            units = {k: str(np.asarray(m["units"][k][0, 0]).reshape(-1)[0]) for k in m["units"].dtype.names}
+            if units != UNITS:
+                raise ParameterError(f"{where}: units: expected {UNITS}, got {units}")
+        try:
+            h = np.asarray(m["H"], dtype=np.complex128)
+            ms, ps, rho = (np.asarray(m[k], dtype=np.float64) for k in ("magnitude_std", "phase_std", "correlation"))
+            cov = np.stack([np.stack([ms * ms, rho * ms * ps], -1), np.stack([rho * ms * ps, ps * ps], -1)], -2)
+            labels = {k: [str(np.asarray(c).reshape(-1)[0]) for c in m[k].reshape(-1)] for k in ("input_labels", "output_labels")}
+            extra = {k: np.asarray(m[k]) for k in ("flags", "reduced_chi2") if k in m}
+            return cls(np.asarray(m["omega"], dtype=np.float64).reshape(-1), h, cov=cov, meta=json.loads(str(m["meta"][0])),
+                       **labels, **{k: (v.astype(np.int64) if k == "flags" else v) for k, v in extra.items()})
+        except TorchblurError as exc:
+            raise _naming_path(exc, path) from None
+        except (KeyError, IndexError, TypeError, ValueError) as exc:
+            raise ParameterError(f"{where}: not a valid frf.mat ({type(exc).__name__}: {exc})") from None
 
     # -------------------------------------------------------------------- CSV
     def to_csv(self, path: str | os.PathLike, *, extra_columns: dict | None = None) -> None:
@@ -739,7 +794,8 @@ class FrequencyResponse:
         adequacy = {"flags": self._flags.tolist(), "reduced_chi2": _json_floats(self._reduced_chi2)} if self.has_adequacy else {}
         return {
             "schema": _SCHEMA,
-            "schema_version": 1,
+            "schema_version": SCHEMA_VERSION,
+            "units": dict(UNITS),
             "omega": _json_floats(self._omega),
             "response_real": _json_floats(self._response.real),
             "response_imag": _json_floats(self._response.imag),
@@ -765,13 +821,17 @@ class FrequencyResponse:
             raise ParameterError(f"schema: expected {excerpt(_SCHEMA)}, got {excerpt(doc.get('schema'))}")
         version = doc.get("schema_version")
         if isinstance(version, bool) or version not in _SUPPORTED_SCHEMA_VERSIONS:
+            newer = " (written by a newer torchblur: upgrade to read it)" if isinstance(version, int) and version > SCHEMA_VERSION else ""
             raise ParameterError(
-                f"schema_version: unsupported version {excerpt(version)}; supported versions: "
+                f"schema_version: unsupported version {excerpt(version)}{newer}; supported versions: "
                 f"{list(_SUPPORTED_SCHEMA_VERSIONS)}"
             )
-        unknown = set(doc) - _JSON_KEYS
+        keys = _JSON_KEYS - {"units"} if version == 1 else _JSON_KEYS  # a key is refused only when its version lacks it
+        unknown = set(doc) - keys
         if unknown:
-            raise ParameterError(f"doc: unknown keys {sorted(unknown)}; expected keys {sorted(_JSON_KEYS)}")
+            raise ParameterError(f"doc: unknown keys {sorted(unknown)} for schema_version {version}; expected keys {sorted(keys)}")
+        if version >= 2 and doc.get("units") != UNITS:
+            raise ParameterError(f"units: expected {UNITS}, got {doc.get('units')!r}")
         missing = {"omega", "response_real", "response_imag"} - set(doc)
         if missing:
             raise ParameterError(f"doc: missing keys {sorted(missing)}")

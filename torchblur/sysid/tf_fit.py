@@ -79,8 +79,27 @@ _WEIGHT_MODES = ("uncertainty", "uniform")
 _MODAL_KINDS = ("poles", "zeros")
 _DELAY_FORMS = (None, "pade", "frd")
 _SCHEMA = "torchblur.transfer_function_fit"
-_STAMP_KEYS = ("torchblur_version", "seed")  # written beside the fit into model.json by the CLI
-_VERDICT_KEYS = ("judgement", "model_passed", "rejected_direct_model", "direct_model_error")  # the verdict's, beside the fit in model.json (ignored)
+#: the schema version :meth:`TransferFunctionFit.to_dict` writes
+SCHEMA_VERSION = 2
+#: the units of model.json's numbers (version 2 writes them; version 1 files meant the same)
+UNITS = {"s": "rad/s", "num": "output unit per input unit (the response's), coefficients of s", "den": "coefficients of s",
+         "delay_s": "s", "poles": "rad/s", "zeros": "rad/s", "dc_gain": "output unit per input unit"}
+_FIT_KEYS = frozenset({"num", "den", "delay_s", "n_poles", "n_zeros", "chi2", "dof", "reduced_chi2", "rms_relative_error",
+                       "poles", "zeros", "dc_gain", "weighting", "delay_estimated", "input_labels", "output_labels"})
+#: model.json's keys by schema_version, in one place: ``{version: (required, optional)}``. A key
+#: is refused only when its file's own version does not know it; a version not listed is refused
+#: by name. The optional keys are what the CLI writes beside the fit (its stamp, and the points the
+#: model was not fitted to: :func:`torchblur.identify.cli._left_out_points`); read, checked, not kept.
+#: A new key goes into a new version here (and into :meth:`TransferFunctionFit.to_dict`).
+_CLI_KEYS = frozenset({"torchblur_version", "seed", "left_out_points", "poor_fit_points_kept"})
+#: the model's parameters with their uncertainty and the orders compared (all or none:
+#: :func:`_uncertainty_from_doc`), and the verdict's judgement beside the fit (read, checked, not kept)
+_UNCERTAINTY_KEYS = ("param_names", "params", "std", "covariance", "candidates", "order_criterion")
+_VERDICT_KEYS = ("judgement", "model_passed", "rejected_direct_model", "direct_model_error")
+SCHEMA_KEYS = {
+    1: (_FIT_KEYS | {"schema", "schema_version"}, _CLI_KEYS),
+    2: (_FIT_KEYS | {"schema", "schema_version", "units"}, _CLI_KEYS | set(_UNCERTAINTY_KEYS) | set(_VERDICT_KEYS)),
+}
 _FLOOR_RTOL = 1e-9
 _GRID_SK_ITER = 6
 _PATIENCE = 6
@@ -301,7 +320,7 @@ class TransferFunctionFit:
                 return int(v)
             return _jf(v)
 
-        doc: dict[str, Any] = {"schema": _SCHEMA, "schema_version": 1}
+        doc: dict[str, Any] = {"schema": _SCHEMA, "schema_version": SCHEMA_VERSION, "units": dict(UNITS)}
         for f in (
             "num", "den", "delay_s", "n_poles", "n_zeros", "chi2", "dof", "reduced_chi2",
             "rms_relative_error", "dc_gain", "poles", "zeros",
@@ -335,34 +354,28 @@ class TransferFunctionFit:
 
     @classmethod
     def from_dict(cls, doc: dict) -> "TransferFunctionFit":
-        """Inverse of :meth:`to_dict` (checks ``schema`` and ``schema_version``).
+        """Inverse of :meth:`to_dict` (checks ``schema``, ``schema_version`` and the keys of
+        that version: :data:`SCHEMA_KEYS`; version 1 files, written before ``units``, read too).
 
-        Also reads the CLI's model.json, which adds ``torchblur_version`` and ``seed`` beside
-        the fit (ignored). ``None`` reads back as NaN, except ``dc_gain``, recomputed from
-        ``num`` and ``den`` (a pole at 0 gives +-inf, which JSON cannot hold).
+        Also reads the CLI's model.json, which adds ``torchblur_version``, ``seed``,
+        ``left_out_points`` and ``poor_fit_points_kept`` beside the fit (checked, not kept).
+        ``None`` reads back as NaN, except ``dc_gain``, recomputed from ``num`` and ``den`` (a
+        pole at 0 gives +-inf, which JSON cannot hold).
 
         Raises:
             InputTypeError: ``doc`` is not a dict.
             ParameterError: another schema (a direct fit, or a failed fit's ``error``), an
-                unsupported version, unknown or missing keys, malformed values.
+                unsupported version, keys unknown to its version or missing, malformed values.
         """
         if not isinstance(doc, dict):
             raise InputTypeError(f"doc: expected a JSON object, got {type(doc).__name__}")
         if doc.get("schema") != _SCHEMA:
             why = f" (the file says: {doc['error']})" if "error" in doc else ""
             raise ParameterError(f"schema: expected {excerpt(_SCHEMA)}, got {excerpt(doc.get('schema'))}{why}")
-        if isinstance(doc.get("schema_version"), bool) or doc.get("schema_version") != 1:
-            raise ParameterError(f"schema_version: unsupported version {excerpt(doc.get('schema_version'))}; supported versions: [1]")
+        _check_keys(doc)
         kinds = {"num": "coeffs", "den": "coeffs", "delay_s": "float", "n_poles": "int", "n_zeros": "int",
                  "chi2": "float", "dof": "int", "reduced_chi2": "float", "rms_relative_error": "float",
                  "poles": "roots", "zeros": "roots"}
-        known = set(kinds) | {"schema", "schema_version", "dc_gain", "weighting", "delay_estimated", "input_labels", "output_labels"}
-        unknown = set(doc) - known - set(_STAMP_KEYS) - set(_UNCERTAINTY_KEYS) - set(_VERDICT_KEYS)
-        if unknown:
-            raise ParameterError(f"doc: unknown keys {sorted(unknown)}; expected keys {sorted(known)}")
-        missing = known - set(doc)
-        if missing:
-            raise ParameterError(f"doc: missing keys {sorted(missing)}")
         labels = {k: tuple(doc[k]) for k in ("input_labels", "output_labels")}
         for k, v in labels.items():
             if not v or not all(isinstance(x, str) for x in v):
@@ -419,14 +432,35 @@ class TransferFunctionFit:
         return f"TransferFunctionFit({len(self.output_labels)}x{len(self.input_labels)} channels)"
 
 
+def _check_keys(doc: dict) -> None:
+    """ParameterError unless ``doc``'s ``schema_version`` is one of :data:`SCHEMA_KEYS` and its
+    keys are that version's (required all present, nothing unknown), and its ``units`` (version
+    2 on) are :data:`UNITS`."""
+    version = doc.get("schema_version")
+    if isinstance(version, bool) or version not in SCHEMA_KEYS:
+        newer = " (written by a newer torchblur: upgrade to read it)" if isinstance(version, int) and version > SCHEMA_VERSION else ""
+        raise ParameterError(f"schema_version: unsupported version {excerpt(version)}{newer}; supported versions: {sorted(SCHEMA_KEYS)}")
+    required, optional = SCHEMA_KEYS[version]
+    unknown = set(doc) - required - optional
+    if unknown:
+        raise ParameterError(f"doc: unknown keys {sorted(unknown)} for schema_version {version}; expected keys {sorted(required)}"
+                             f" and optionally {sorted(optional)}")
+    missing = required - set(doc)
+    if missing:
+        raise ParameterError(f"doc: missing keys {sorted(missing)}")
+    for key in ("left_out_points", "poor_fit_points_kept"):
+        if key in doc and not (isinstance(doc[key], list) and all(isinstance(x, dict) for x in doc[key])):
+            raise ParameterError(f"{key}: expected a list of objects, got {excerpt(doc[key])}")
+    if "units" in required and doc["units"] != UNITS:
+        raise ParameterError(f"units: expected {UNITS}, got {excerpt(doc['units'])}")
+
+
 def _dc_gain(num, den) -> float:
     """H(0) = num[-1] / den[-1]; +-inf for a pole at 0 (sign of num[-1]), NaN for 0/0."""
     if den[-1] != 0:
         return float(num[-1] / den[-1])
     return math.copysign(math.inf, num[-1]) if num[-1] else math.nan
 
-
-_UNCERTAINTY_KEYS = ("param_names", "params", "std", "covariance", "candidates", "order_criterion")
 
 
 def _uncertainty_from_dict(doc: dict, siso: bool, n_o: int, n_i: int) -> dict[str, Any]:

@@ -1,0 +1,139 @@
+"""Ctrl-C at random moments of a run: one line each time, and what it says to run next finishes.
+
+    python benchmarks/bench_ctrl_c.py [--n 20] [--seed 0] [--small] [key=value ...]
+
+Runs ``torchblur identify --out DIR --quiet`` (the console script; the default run; ``--small``: 4 frequencies)
+once uninterrupted to time it (T), then ``--n`` times sends SIGINT at a moment drawn uniformly
+in [0, T] (seeded), and checks: the exit status is 130, stderr holds exactly one line and no
+traceback, and the command that line names (``resume with: ...``, or the same command again
+when nothing was recorded) finishes with exit 0 or 4 and a report.txt whose last line is the
+verdict; a second ``--resume`` of the finished run says so and changes nothing. Prints the
+counts; exit status 1 if any check failed.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import random
+import shlex
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+SMALL = ["sweep.freq_hz=[20,150,300,600]"]
+
+
+def _env():
+    return {**os.environ, "PYTHONPATH": str(ROOT)}
+
+
+def _cmd(*argv):
+    """The ``torchblur`` console script beside this Python (what a user runs), else ``-m``."""
+    script = Path(sys.executable).parent / "torchblur"
+    return [str(script), *argv] if script.is_file() else [sys.executable, "-m", "torchblur.identify.cli", *argv]
+
+
+def _run(argv, timeout=900):
+    return subprocess.run(_cmd(*argv), capture_output=True, text=True, env=_env(), timeout=timeout)
+
+
+def _interrupt(argv, after_s: float):
+    """Start ``argv``, SIGINT it after ``after_s`` -> (exit status, stderr lines, signalled)."""
+    proc = subprocess.Popen(_cmd(*argv), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(),
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    time.sleep(after_s)
+    signalled = proc.poll() is None
+    if signalled:
+        proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=600)
+    return proc.returncode, [ln for ln in err.splitlines() if ln.strip()], signalled
+
+
+def _next_command(line: str, argv: list) -> list | None:
+    """The command the interruption line says to run next (argv without the program)."""
+    if "resume with: torchblur " in line:
+        return shlex.split(line.split("resume with: torchblur ", 1)[1]) + ["--quiet"]
+    if "run the same command again" in line:
+        return list(argv)
+    return None
+
+
+def _finished(out: Path) -> bool:
+    report = out / "report.txt"
+    return report.is_file() and report.read_text().rstrip().splitlines()[-1].startswith("verdict:")
+
+
+def trial(k: int, after_s: float, base: list, tmp: Path) -> dict:
+    out = tmp / f"run{k}"
+    argv = ["identify", "--out", str(out), "--quiet", *base]
+    rc, lines, signalled = _interrupt(argv, after_s)
+    row = {"k": k, "after_s": after_s, "rc": rc, "signalled": signalled, "lines": len(lines),
+           "traceback": any("Traceback" in ln for ln in lines), "line": lines[-1] if lines else ""}
+    if row["traceback"] and not any("/torchblur/" in ln for ln in lines):  # before any torchblur code: Python's own start
+        row.update(ok=False, what="during the interpreter's start, before torchblur's code ran (Python's traceback)")
+        return row
+    if rc != 130:  # finished before the signal arrived, or as it exited (then ignored: the work was done), or failed
+        row["ok"] = rc in (0, 4) and _finished(out) and not lines
+        what = "finished as the signal came (ignored: the run was done)" if signalled else "finished before the signal"
+        row["what"] = what if row["ok"] else f"exit {rc}: {' | '.join(lines[-3:])}"
+        return row
+    nxt = _next_command(lines[-1] if lines else "", argv)
+    if nxt is None:
+        row.update(ok=False, what=f"no command to run next in: {row['line']}")
+        return row
+    r2 = _run(nxt)
+    before = sorted(p.name for p in out.iterdir()) if out.exists() else []
+    r3 = _run(["identify", "--resume", str(out), "--quiet"])  # a finished run: says so, does nothing
+    after = sorted(p.name for p in out.iterdir()) if out.exists() else []
+    row.update(resume_rc=r2.returncode, finished=_finished(out), second_resume_rc=r3.returncode,
+               second_resume_says="finished run" in r3.stderr and before == after)
+    row["ok"] = (len(lines) == 1 and not row["traceback"] and r2.returncode in (0, 4) and row["finished"]
+                 and r3.returncode == 0 and row["second_resume_says"])
+    row["what"] = "interrupted, resumed" if row["ok"] else f"resume exit {r2.returncode}: {r2.stderr.strip()[-300:]}"
+    return row
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n", type=int, default=20)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--small", action="store_true", help="4 frequencies instead of the default 30")
+    ap.add_argument("overrides", nargs="*")
+    args = ap.parse_args(argv)
+    base = (SMALL if args.small else []) + list(args.overrides)
+    rng = random.Random(args.seed)
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        t0 = time.perf_counter()
+        ref = _run(["identify", "--out", str(tmp / "ref"), "--quiet", *base])
+        total = time.perf_counter() - t0
+        if ref.returncode not in (0, 4):
+            print(f"the uninterrupted run failed (exit {ref.returncode}): {ref.stderr[-500:]}")
+            return 1
+        print(f"uninterrupted run: {total:.1f} s (exit {ref.returncode}); {args.n} interruptions uniform in [0, {total:.1f}] s")
+        rows = []
+        for k in range(args.n):
+            row = trial(k, rng.uniform(0.0, total), base, tmp)
+            rows.append(row)
+            print(f"  {k:2d}: SIGINT at {row['after_s']:5.1f} s: exit {row['rc']}, {row['lines']} line(s): "
+                  f"{row['what']}; {row['line'][:110]}", flush=True)
+    interrupted = [r for r in rows if r["rc"] == 130]
+    one = sum(r["lines"] == 1 and not r["traceback"] for r in interrupted)
+    resumed = sum(r.get("finished", False) and r.get("resume_rc") in (0, 4) for r in interrupted)
+    second = sum(r.get("second_resume_says", False) for r in interrupted)
+    early = sum(r["rc"] != 130 and r["ok"] for r in rows)
+    start = sum("interpreter's start" in r["what"] for r in rows)
+    bad = [r for r in rows if not r["ok"]]
+    print(f"interrupted {len(interrupted)} of {len(rows)} (the others finished before the signal: {early}); "
+          f"one line and no traceback: {one} of {len(interrupted)}; the named command finished: {resumed} of "
+          f"{len(interrupted)}; a second --resume said 'finished' and did nothing: {second} of {len(interrupted)}; "
+          f"in the interpreter's start (before torchblur's code): {start}; failed checks: {len(bad)}")
+    return 1 if bad else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

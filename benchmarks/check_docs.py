@@ -1,0 +1,203 @@
+"""Compare the figures README.md and docs/*.md quote with what the commands print now.
+
+    python benchmarks/check_docs.py              # the quick claims (a few runs of the CLI, ~2 min on 2 cores)
+    python benchmarks/check_docs.py --instant    # only those that take no run (what the test suite runs)
+    python benchmarks/check_docs.py --all        # every claim, benchmarks included (an hour and more)
+    python benchmarks/check_docs.py --list       # the claims and where each figure comes from
+
+Each claim names a passage of a guide (a regular expression whose groups are the quoted
+numbers), the command that prints those figures (run from the repository root in a temporary
+folder) and a regular expression on its output whose groups are the printed numbers; the
+numbers are compared in order, each within the claim's relative tolerance (the run's noise:
+seeded runs repeat to round-off, times swing with the machine's load). A quoted passage that is
+no longer in its guide fails too: the registry and the guides move together. Prints one line
+per claim and the counts; exit status 1 if any claim fails.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+NUM = r"([0-9][0-9,]*(?:\.[0-9]+)?(?:e[-+]?[0-9]+)?)"  # a quoted or printed number (thousands commas allowed)
+TB = [sys.executable, "-m", "torchblur.identify.cli"]
+
+
+@dataclass(frozen=True)
+class Claim:
+    """``doc``: the guide; ``quote``: a regex on it, one group per quoted number; ``cmd``: the
+    command (a list; ``{out}`` a fresh folder) that prints them; ``printed``: a regex on its
+    stdout + stderr, the same number of groups; ``rtol``: per number (one value for all);
+    ``speed``: "instant" (no run), "quick" (a CLI run) or "slow" (a benchmark)."""
+
+    name: str
+    doc: str
+    quote: str
+    cmd: list
+    printed: str
+    rtol: tuple = (0.02,)
+    speed: str = "quick"
+    exit_codes: tuple = (0, 2, 4)
+    source: str = field(default="")  # what to run by hand, for --list
+
+    def where(self) -> str:
+        return self.source or " ".join(str(c) for c in self.cmd[len(TB):] if True)
+
+
+def _tb(*args):
+    return [*TB, *args]
+
+
+CLAIMS = [
+    Claim("quick start: the default run's time", "README.md",
+          r"`report\.txt` \(about " + NUM + r" s on 2 cores",
+          _tb("identify", "--out", "{out}"), r"elapsed " + NUM + r" s \(", rtol=(0.75,),  # a machine's load: within 4x
+          source="torchblur identify --out runs/default (report.txt: elapsed)"),
+    Claim("quick start: the PSF the default run chooses", "README.md",
+          r"on its own simulated mirror the (Gaussian|kernel) [^(]*\(reduced chi2 " + NUM + r", threshold " + NUM,
+          _tb("identify", "--out", "{out}"), r"psf: (gaussian|kernel): .*?reduced chi2 Gaussian " + NUM + r" over \d+ px, threshold "
+          + NUM, rtol=(0.0, 0.15, 0.05), source="torchblur identify --out runs/default (the psf: line)"),
+    Claim("verdict of the jitter example", "README.md",
+          r"(verdict: 2 of 3 points flagged: 2 timing \(above " + NUM + r" kHz, beyond 1 deg\); 2 limited by the drive \(8 kHz: "
+          + NUM + r" px, 20 kHz: " + NUM + r" px\))",
+          _tb("identify", "--out", "{out}", "camera.jitter_s=0.5e-6", "sweep.freq_hz=[1000,8000,20000]", "sweep.images_per_point=1"),
+          r"(verdict: 2 of 3 points flagged: 2 timing \(above " + NUM + r" kHz, beyond 1 deg\); 2 limited by the drive \(8 kHz: "
+          + NUM + r" px, 20 kHz: " + NUM + r" px\))", rtol=(0.0, 0.02, 0.05, 0.05)),
+    Claim("verdict of the fast-sweep example", "README.md",
+          r"(verdict: 1 of 6 points flagged: 1 timing \(above " + NUM + r" kHz, beyond 1 deg\), 1 no significant motion \(200 kHz: "
+          r"not a measurement\); 2 limited by the drive \(17.4 kHz: " + NUM + r" px, 200 kHz: " + NUM + r" px\))",
+          _tb("identify", "--out", "{out}", "sweep.f_max_hz=200000", "sweep.n=6", "sweep.images_per_point=1"),
+          r"(verdict: 1 of 6 points flagged: 1 timing \(above " + NUM + r" kHz, beyond 1 deg\), 1 no significant motion \(200 kHz: "
+          r"not a measurement\); 2 limited by the drive \(17.4 kHz: " + NUM + r" px, 200 kHz: " + NUM + r" px\))",
+          rtol=(0.0, 0.02, 0.05, 0.1)),
+    Claim("the 5 kHz sweep against the truth", "README.md",
+          r"`sweep\.f_max_hz=5000` run stays within the range and holds " + NUM + r" % / " + NUM + r" deg against the truth",
+          _tb("identify", "--out", "{out}", "sweep.f_max_hz=5000"),
+          r"against the truth: max \|H\| error " + NUM + r"% \(goal 1%\), max phase error " + NUM + r" deg", rtol=(0.05, 0.05)),
+    Claim("the size limit's estimate", "README.md",
+          r"sweep\.n: the run is too large \(estimate: " + NUM + r" frames",
+          _tb("identify", "--out", "{out}", "sweep.n=1e7"), r"sweep\.n: the run is too large \(estimate: " + NUM + r" frames",
+          rtol=(0.0,), speed="instant"),
+    Claim("the contract's case count", "README.md",
+          r"`tests/test_bad_input_contract\.py` lists " + NUM + r" bad inputs with their exact exceptions and " + NUM
+          + " degenerate cases",
+          [sys.executable, "-c", "import sys; sys.path.insert(0, 'tests'); import test_bad_input_contract as t; "
+                                 "print(len(t.BAD), 'bad inputs,', len(t.DEGENERATE), 'degenerate')"],
+          NUM + r" bad inputs, " + NUM + " degenerate", rtol=(0.0,)),
+    Claim("the fitter's efficiency", "README.md",
+          r"RMSE / Cramer-Rao bound " + NUM + r" \(M\) and " + NUM + r" \(phase\)",
+          [sys.executable, "benchmarks/bench_fit.py"], r"RMSE/CRLB: M " + NUM + r" +phi " + NUM, rtol=(0.05, 0.05), speed="slow"),
+    Claim("the direct fit's resonance", "README.md",
+          r"resonance frequency within " + NUM + r" % and damping within " + NUM + " %",
+          [sys.executable, "benchmarks/bench_direct.py"],
+          r"worst frequency error " + NUM + r"% \(goal 0.5%\), worst damping error " + NUM + "%", rtol=(0.5, 0.5), speed="slow"),
+    Claim("spots: the worst channel against the truth", "README.md",
+          r"of the direct motion, a few tenths of a pixel\) within " + NUM + r" % and " + NUM + r" deg; largest error/std " + NUM,
+          [sys.executable, "benchmarks/bench_mimo.py", "--which", "spots"],
+          r"worst channel: \|H\| " + NUM + r"% \(goal 2%\), phase " + NUM + r" deg \(goal 2 deg\), err/std " + NUM,
+          rtol=(0.3, 0.3, 0.3), speed="slow"),
+    Claim("the DM run's verdict", "README.md",
+          r"`verdict: trustworthy: all " + NUM + r" actuators within tolerance: " + NUM + r" ok, 1 weak \(" + NUM
+          + r"\), 1 dead \(" + NUM + r"\);",
+          _tb("identify", "--config", "configs/identify_dm.yaml", "--out", "{out}"),
+          r"verdict: trustworthy: all " + NUM + r" actuators within tolerance: " + NUM + r" ok, 1 weak \(" + NUM
+          + r"\), 1 dead \(" + NUM + r"\);", rtol=(0.0,), speed="slow"),
+    Claim("MIMO: every channel against the truth", "README.md",
+          r"every channel within " + NUM + r" % and " + NUM + r" deg of the truth",
+          [sys.executable, "benchmarks/bench_mimo.py", "--which", "mimo"],
+          r"worst channel: \|H\| " + NUM + r"% \(goal 2%\), phase " + NUM + r" deg", rtol=(0.3, 0.3), speed="slow"),
+]
+
+
+def _numbers(match) -> list:
+    """The match's groups that are numbers, as floats (a group that is a whole line is skipped)."""
+    out = []
+    for g in match.groups():
+        if g is None or len(g) > 30:
+            continue
+        try:
+            out.append(float(g.replace(",", "")))
+        except ValueError:
+            out.append(g.lower())  # a word (gaussian / kernel): compared exactly, whatever its case
+    return out
+
+
+def _run(claim: Claim, tmp: Path, cache: dict) -> tuple:
+    """(exit status, output) of the claim's command; identical commands run once."""
+    key = tuple(claim.cmd)
+    if key not in cache and claim.speed == "instant" and claim.cmd[:len(TB)] == TB:  # refused before any work: in this process
+        import contextlib
+        import io
+
+        from torchblur.identify import cli
+
+        buf = io.StringIO()
+        with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(buf):
+            rc = cli.main([str(c).replace("{out}", str(tmp / "instant")) for c in claim.cmd[len(TB):]])
+        cache[key] = (rc, buf.getvalue())
+    if key not in cache:
+        out = tmp / f"run{len(cache)}"
+        cmd = [str(c).replace("{out}", str(out)) for c in claim.cmd]
+        env = {**os.environ, "PYTHONPATH": str(ROOT)}
+        p = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, env=env, timeout=7200)
+        cache[key] = (p.returncode, p.stdout + p.stderr + ((out / "report.txt").read_text() if (out / "report.txt").is_file() else ""))
+    return cache[key]
+
+
+def check(claim: Claim, tmp: Path, cache: dict) -> tuple[bool, str]:
+    """(holds, one line): the quoted numbers against the printed ones."""
+    text = re.sub(r"\n\s*#?\s*", " ", (ROOT / claim.doc).read_text())  # one line: a sentence or a comment may wrap
+    q = re.search(claim.quote, text)
+    if q is None:
+        return False, "the quoted passage is not in the guide any more (update the claim with the guide)"
+    quoted = _numbers(q)
+    rc, output = _run(claim, tmp, cache)
+    if rc not in claim.exit_codes:
+        return False, f"the command failed (exit {rc}): {output.strip().splitlines()[-1:]}"
+    p = re.search(claim.printed, output)
+    if p is None:
+        return False, f"the command did not print the figure ({claim.printed[:60]}...)"
+    printed = _numbers(p)
+    if len(printed) != len(quoted):
+        return False, f"quoted {quoted}, printed {printed}"
+    rtol = claim.rtol * len(quoted) if len(claim.rtol) == 1 else claim.rtol
+    bad = [(a, b) for a, b, r in zip(quoted, printed, rtol)
+           if (a != b if isinstance(a, str) or isinstance(b, str) else abs(a - b) > r * max(abs(a), abs(b)))]
+    return not bad, f"quoted {quoted}, printed {printed}" + (f"; outside the tolerance: {bad}" if bad else "")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    g = ap.add_mutually_exclusive_group()
+    g.add_argument("--instant", action="store_true", help="only the claims that need no run")
+    g.add_argument("--all", action="store_true", help="every claim, the benchmarks included")
+    g.add_argument("--list", action="store_true", help="list the claims and their sources, run nothing")
+    ap.add_argument("-k", default=None, help="only claims whose name contains this")
+    args = ap.parse_args(argv)
+    speeds = ("instant",) if args.instant else ("instant", "quick", "slow") if args.all else ("instant", "quick")
+    claims = [c for c in CLAIMS if c.speed in speeds and (args.k is None or args.k in c.name)]
+    if args.list:
+        for c in CLAIMS:
+            print(f"{c.doc}: {c.name} [{c.speed}] <- {c.where()}")
+        return 0
+    failed = 0
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        cache: dict = {}
+        for c in claims:
+            ok, line = check(c, Path(tmp), cache)
+            failed += not ok
+            print(f"{'ok  ' if ok else 'FAIL'} {c.doc}: {c.name}: {line}", flush=True)
+    print(f"{len(claims) - failed} of {len(claims)} claims hold ({', '.join(speeds)}; {time.perf_counter() - t0:.0f} s)")
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
