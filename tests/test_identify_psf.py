@@ -153,3 +153,35 @@ def test_the_multisine_route_fits_with_the_kernel_the_calibration_chose():
     big = with_kernel_noise(fit, cal.still_psf, light)
     torch.testing.assert_close(big.phase_std, 2 * f * one)
     torch.testing.assert_close(big.covariance, f ** 2 * torch.eye(4, dtype=torch.float64))
+
+
+def test_many_spots_take_every_spot_kernel_when_a_gaussian_fails():
+    """issue 29, many spots: psf_from_still on each spot's crop of the still; Airy spots fail the
+    Gaussian test, so every spot is fitted with its measured kernel (crop frame, e-/s at power 1),
+    and fit.psf=gaussian keeps the Gaussians."""
+    from torchblur.identify.calibration import SpotKernels, spot_kernels
+    from torchblur.image.spots import locate_spots
+    from torchblur.render.camera import camera_noise_std
+
+    H = W = 44
+    g = torch.Generator().manual_seed(3)
+    y = torch.arange(H, dtype=torch.float64)[:, None]
+    x = torch.arange(W, dtype=torch.float64)[None, :]
+    still = torch.zeros(H, W, dtype=torch.float64)
+    for cx, cy in ((11.3, 10.8), (32.6, 11.2), (10.9, 32.4), (32.2, 33.1)):
+        v = math.pi * ((x - cx) ** 2 + (y - cy) ** 2).sqrt().clamp_min(1e-12) / 3.0
+        still = still + 3000 * (2 * torch.special.bessel_j1(v) / v) ** 2
+    frames = still + (still + 9).sqrt() * torch.randn((8, H, W), generator=g, dtype=torch.float64)
+    mean = frames.mean(0)
+    spots = locate_spots(mean, exposure_s=1e-3, noise_std=camera_noise_std(float(mean.max()), 3.0) / 4, pitch_px=22.0, crop_px=22)
+    assert len(spots) == 4
+    log = []
+    cfg = types.SimpleNamespace(fit=types.SimpleNamespace(psf="auto", fit_background=False))
+    sk = spot_kernels(cfg, frames, 1e-3, 3.0, spots, log, False)
+    assert isinstance(sk, SpotKernels) and sk.psf.kernel.shape == (4, 22, 22)
+    assert any("spots psf: the measured kernel of every spot (4 of 4 spots' Gaussians do not explain" in line for line in log)
+    # each kernel is its spot's crop of the still, per second: about the Airy peak rate at its centre
+    assert float(sk.psf.kernel.amax((-1, -2)).min()) > 0.8 * 3000 / 1e-3
+    assert float(sk.kernel_noise_factor(torch.tensor([1e-3, 2e-3]))) == pytest.approx(math.sqrt(1 + 3 / 8))
+    cfg.fit.psf = "gaussian"
+    assert spot_kernels(cfg, frames, 1e-3, 3.0, spots, log, False) is None
