@@ -724,9 +724,7 @@ def fit_multisine(
     Args:
         images: ``[..., E, H, W]``: E images of the same periodic motion (dark subtracted, in
             the PSF's units times seconds), each over its own window.
-        psf: :class:`GaussianPSF` or a measured :class:`KernelPSF` (kernel ``[..., H, W]``, the
-            images' frame: shifted as a band-limited image), batch ``[...]`` (its amplitude or
-            kernel includes the laser power).
+        psf: :class:`GaussianPSF` or a measured :class:`KernelPSF` (``[..., H, W]``), batch ``[...]`` (the laser power in it)
         window: exposure windows (s) on the command clock, batch ``[..., E]``.
         omega: tone frequencies (rad/s), ``[..., N]``.
         noise_std: pixel noise std: a number, ``[...]`` or ``[..., E, H, W]``; None: from

@@ -34,8 +34,9 @@ class Calibration:
     of :func:`~torchblur.image.psf_from_still.psf_from_still`, the pixel model of every fit;
     with many spots one per spot), ``peak_rate`` (its peak, e-/s), ``latency_s`` and
     ``latency_std_s``, ``gain`` (e-/ADU), with one spot ``still_psf`` (the
-    :class:`~torchblur.image.psf_from_still.StillPSF`: the PSF the sine sweep fits with,
-    ``still_psf.psf``, a KernelPSF or that Gaussian, and why), and for one-axis runs the
+    :class:`~torchblur.image.psf_from_still.StillPSF`: the PSF every fit of the run uses (sine
+    sweep, multisine, direct model), ``still_psf.psf``, a KernelPSF or that Gaussian, and why),
+    with many spots ``spot_kernels`` (:class:`SpotKernels`, or None: the Gaussians), and for one-axis runs the
     actuator's image ``direction``; ``noise``, the camera's
     :class:`~torchblur.render.camera.CameraNoise` (gain, mean dark level, read noise: the one noise
     model every fit of the run weighs its residuals with), is built from them."""
@@ -78,14 +79,12 @@ class Calibration:
 N_DARK = 256
 
 
-def calibrate(cfg, rig, exp=None, log=None, progress: bool = False, *, n_dark: int = N_DARK, n_still: int = 16,
-              spot_psfs: bool = True) -> Calibration:
+def calibrate(cfg, rig, exp=None, log=None, progress: bool = False, *, n_dark: int = N_DARK, n_still: int = 16, spot_psfs: bool = True):
     """Stages 1-4 of :func:`identify`: dark frame, saturation curve, PSF, latency and, for a
     one-axis, one-spot run, the actuator's direction in the image (each taken from the
     recording ``exp`` when it holds it). ``n_dark`` dark frames (:data:`N_DARK`) and ``n_still``
-    still frames: the PSF's own error and the dark mean's noise, common to every frame, are in
-    no fitted point's std, so a run whose stds are small takes more. ``spot_psfs``: with many
-    spots, choose each spot's PSF from the still (:func:`spot_kernels`; False: the Gaussians)."""
+    still frames: the PSF's own error and the dark mean's noise, common to every frame, are in no fitted point's std, so a
+    run whose stds are small takes more. ``spot_psfs``: many spots' PSFs by :func:`spot_kernels` (False: the Gaussians)."""
     log = [] if log is None else log
     c = cfg.camera
     gain = float(c.gain)
@@ -121,8 +120,7 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False, *, n_dark: i
         psf = spots.psf  # [K], full-frame coordinates
         whole = spots.inside_fraction >= MIN_INSIDE  # an edge spot's peak is an extrapolation: not trusted here
         peak_rate = float(psf.amplitude[whole].max() if bool(whole.any()) else psf.amplitude.max())  # e-/s at power 1
-        if spot_psfs:
-            spot_kern = spot_kernels(cfg, still_e, te_psf, read_noise_e, spots, log, progress)
+        spot_kern = spot_kernels(cfg, still_e, te_psf, read_noise_e, spots, log, progress) if spot_psfs else None
     else:
         still_psf = _still_psf(cfg, still_e, te_psf, read_noise_e, log, progress)
         psf = still_psf.gaussian.psf
@@ -135,8 +133,7 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False, *, n_dark: i
         power=c.peak_fraction * full_adu * gain / (peak_rate * pulse_w)))
     log_message(log, f"latency: {latency * 1e6:.3f} +- {latency_std * 1e6:.3f} us", progress)
     cal = Calibration(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=full_adu, psf=psf, peak_rate=peak_rate,
-                      latency_s=latency, latency_std_s=latency_std, gain=gain, spots=spots, still_psf=still_psf, drive=drive,
-                      spot_kernels=spot_kern)
+                      latency_s=latency, latency_std_s=latency_std, gain=gain, spots=spots, still_psf=still_psf, drive=drive, spot_kernels=spot_kern)
 
     # 4b. The actuator's direction in the image (one axis, one spot; a 2x2 plant or many spots
     # fit both image axes).

@@ -740,9 +740,7 @@ def fit_direct(
         images: ``[F, E, H, W]``: E images (exposures, repeats) of each of F sweep points,
             dark level subtracted, in the units of the PSF times seconds.
         psf: ``GaussianPSF`` of batch ``[]`` or ``[F]`` (the laser power per point in its
-            amplitude); its centre is the rest position. Or a measured ``KernelPSF`` (kernel
-            ``[H, W]`` or ``[F, H, W]``, the power in it; rest position where it shows the spot),
-            shifted as a band-limited image by the one forward model.
+            amplitude); its centre is the rest position. Or a ``KernelPSF`` ``[H, W]``/``[F, H, W]`` (the power in it).
         window: exposure windows, batch broadcastable to ``[F, E]`` (seconds from an upward
             zero crossing of the command).
         omega: ``[F]`` rad/s.
