@@ -148,3 +148,24 @@ def test_coded_fit_of_two_images_at_two_frequencies():
         one = Sinusoid(torch.stack([M[b], torch.tensor(0.0, dtype=F64)]), torch.tensor([alias, alias], dtype=F64), om[b])
         expected = float(((render_coded(one, PSF, WIN, CODE, height=24, width=48) - img[b]) ** 2).sum())
         assert float(fit.alias_cost[b]) == pytest.approx(expected, rel=1e-6)
+
+
+def test_coded_fit_with_a_measured_kernel_equals_the_gaussian_fit():
+    """issue 29: fit_sinusoid_coded with the still image of the 2 px Gaussian as a KernelPSF (its
+    Fourier shift is the Gaussian's splat to ~1e-10 of peak): the same estimates and stds."""
+    from torchblur.render.psf import KernelPSF
+
+    y, x = torch.meshgrid(torch.arange(24, dtype=F64), torch.arange(48, dtype=F64), indexing="ij")
+    kernel = KernelPSF(PSF.evaluate(x, y))
+    phis = torch.tensor([-2.5], dtype=F64)
+    img = render_coded(sine(torch.full((1,), 6.0, dtype=F64), phis), PSF, WIN.expand((1,)), CODE, height=24, width=48)
+    img_k = render_coded(sine(torch.full((1,), 6.0, dtype=F64), phis), kernel, WIN.expand((1,)), CODE, height=24, width=48)
+    assert float((img_k - img).abs().max()) < 1e-8 * float(img.max())
+    noise = torch.sqrt(25 + img)
+    noisy = img + noise * torch.randn(img.shape, generator=torch.Generator().manual_seed(4), dtype=F64)
+    fk = fit_sinusoid_coded(noisy, kernel, WIN.expand((1,)), CODE, OM, noise_std=noise, n_phases=3)
+    fg = fit_sinusoid_coded(noisy, PSF, WIN.expand((1,)), CODE, OM, noise_std=noise, n_phases=3)
+    assert fk.converged.all() and fg.converged.all()
+    assert float(((fk.phase - fg.phase) / fg.phase_std).abs().max()) < 1e-4
+    assert float(((fk.amplitude - fg.amplitude) / fg.amplitude_std).abs().max()) < 1e-4
+    np.testing.assert_allclose(fk.phase_std.numpy(), fg.phase_std.numpy(), rtol=1e-4)

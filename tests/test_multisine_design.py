@@ -231,3 +231,26 @@ def test_unweighted_fit_with_a_dark_set_in_the_batch():
         np.testing.assert_allclose(fit.amplitude[b].numpy(), one.amplitude.numpy(), rtol=1e-6)
         np.testing.assert_allclose(fit.noise_std[b].numpy(), one.noise_std.numpy(), rtol=1e-6)
         assert float(fit.extras["reduced_chi2"][b]) == pytest.approx(float(one.extras["reduced_chi2"]), rel=1e-6)
+
+
+def test_kernel_psf_fit_equals_the_gaussian_fit_on_the_same_spot():
+    """fit_multisine with a measured kernel (issue 29): the still spot's image of a 2 px Gaussian
+    (band-limited: its Fourier shift is the Gaussian's own splat to ~1e-10 of peak) gives the
+    Gaussian PSF's estimates and stds on the same noisy frames."""
+    from torchblur.render.psf import KernelPSF
+
+    y, x = torch.meshgrid(torch.arange(H, dtype=F64), torch.arange(W, dtype=F64), indexing="ij")
+    kernel = KernelPSF(PSF.evaluate(x, y))
+    win = windows([0.0, 0.13, 0.37, 0.55, 0.71, 0.86], [0.3, 0.5, 0.2, 0.7, 0.4, 0.25])
+    img = render_multisine(THETA, OM, PSF, win, height=H, width=W)
+    assert float((render_multisine(THETA, OM, kernel, win, height=H, width=W) - img).abs().max()) < 1e-8 * float(img.max())
+    noise = torch.sqrt(25 + img)
+    noisy = img + noise * torch.randn(img.shape, generator=torch.Generator().manual_seed(5), dtype=F64)
+    fk = fit_multisine(noisy, kernel, win, OM, noise_std=noise, n_starts=4, n_refine=1, amplitude_guess=THETA[:3])
+    fg = fit_multisine(noisy, PSF, win, OM, noise_std=noise, n_starts=4, n_refine=1, amplitude_guess=THETA[:3])
+    assert bool(fk.converged) and bool(fg.converged)
+    assert float(((fk.amplitude - fg.amplitude) / fg.amplitude_std).abs().max()) < 1e-4
+    assert float(((fk.phase - fg.phase) / fg.phase_std).abs().max()) < 1e-4
+    np.testing.assert_allclose(fk.phase_std.numpy(), fg.phase_std.numpy(), rtol=1e-4)
+    with pytest.raises(ShapeError, match="psf"):
+        fit_multisine(noisy[:, :, :-1], kernel, win, OM)

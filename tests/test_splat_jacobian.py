@@ -305,3 +305,114 @@ def test_fitter_model_splat_matches_renderer_and_forward_ad(axes, fit_center):
     img2, jac2 = mixed.image_and_jacobian(theta, n)
     assert float((img2 - ref_img).abs().max()) < 1e-6 * float(ref_img.abs().max())
     assert float((jac2 - ref_jac).abs().max()) < 1e-5 * float(ref_jac.abs().max())
+
+
+# --- the one forward model with a measured kernel (issue 29) ------------------------------------
+
+def _airy_like_kernels(n, H, W, seed=0):
+    """``n`` band-limited, asymmetric kernels ``[n, H, W]``: a ring plus two offset Gaussians
+    (sigmas >= 1.6 px, so their Fourier interpolation is the function itself to ~1e-7)."""
+    g = torch.Generator().manual_seed(seed)
+    rnd = lambda *s: torch.rand(*s, generator=g, dtype=F64)  # noqa: E731
+    y, x = torch.arange(H, dtype=F64)[:, None], torch.arange(W, dtype=F64)
+    out = []
+    for _ in range(n):
+        cx, cy = W / 2 + rnd(()) - 0.5, H / 2 + rnd(()) - 0.5
+        r = ((x - cx) ** 2 + (y - cy) ** 2).sqrt()
+        k = torch.exp(-r ** 2 / (2 * 1.8 ** 2)) + 0.15 * torch.exp(-(r - 5.0) ** 2 / (2 * 1.6 ** 2))
+        k = k + 0.3 * torch.exp(-((x - cx - 1.5) ** 2 + (y - cy + 1.0) ** 2) / (2 * 2.0 ** 2)) * (1 + rnd(()))
+        out.append(k)
+    return torch.stack(out)
+
+
+def _kernel_reference(kernel, t, w, amplitude, phase, omega, direction, pad):
+    """Slow reference: every node's kernel shifted by its own Fourier transform on the same padded
+    grid (numpy, node by node), summed; the Jacobian by central differences of that sum."""
+    import numpy as np
+
+    from torchblur.render.blur import _next_odd_fast
+
+    H, W = kernel.shape[-2:]
+    Hp, Wp = _next_odd_fast(H + 2 * pad), _next_odd_fast(W + 2 * pad)
+    ph, pw = (Hp - H) // 2, (Wp - W) // 2
+    kp = np.zeros((Hp, Wp))
+    kp[ph:ph + H, pw:pw + W] = kernel.numpy()
+    khat = np.fft.fft2(kp)
+    ky = 2 * np.pi * np.fft.fftfreq(Hp)[:, None]
+    kx = 2 * np.pi * np.fft.fftfreq(Wp)[None, :]
+
+    def image(a, p):
+        acc = np.zeros((Hp, Wp), complex)
+        for s in range(t.shape[-1]):
+            d = (a * np.sin(omega * float(t[s]) + p))[:, None] * direction  # [K, 2]
+            dx, dy = d[:, 0].sum(), d[:, 1].sum()
+            acc += float(w[s]) * np.exp(-1j * (kx * dx + ky * dy))
+        return np.fft.ifft2(khat * acc).real[ph:ph + H, pw:pw + W]
+
+    a0, p0 = amplitude.numpy(), phase.numpy()
+    img = image(a0, p0)
+    cols, h = [], 1e-6
+    for which in range(2):
+        for k in range(a0.size):
+            e = np.zeros_like(a0)
+            e[k] = h
+            plus = image(a0 + e, p0) if which == 0 else image(a0, p0 + e)
+            minus = image(a0 - e, p0) if which == 0 else image(a0, p0 - e)
+            cols.append((plus - minus) / (2 * h))
+    return torch.from_numpy(img), torch.from_numpy(np.stack(cols))
+
+
+def test_kernel_forward_model_matches_slow_reference_and_renderer():
+    """The kernel path of the one forward model: its image is the renderer's KernelPSF image and a
+    node-by-node numpy Fourier shift; its Jacobian that reference's central differences."""
+    import torchblur as tb
+    from torchblur.render.splat import sine_blur_with_jacobian
+
+    H, W = 22, 26
+    p = _sine_problem(seed=2, K=2, batch=(1,))
+    kern = _airy_like_kernels(1, H, W)
+    args = (p["t"], p["w"], p["amplitude"], p["phase"], p["omega"], p["direction"], torch.zeros(1, 2, dtype=F64), None, H, W)
+    img, jac = sine_blur_with_jacobian(*args, kernel=kern, pad=12)
+    ref_img, ref_jac = _kernel_reference(kern[0], p["t"][0], p["w"][0], p["amplitude"][0], p["phase"][0], p["omega"][0].numpy(),
+                                         p["direction"][0].numpy(), 12)
+    assert (img[0] - ref_img).abs().max() <= 1e-12 * ref_img.abs().max()
+    assert (jac[0] - ref_jac).abs().max() <= 1e-6 * ref_jac.abs().max()
+    # The renderer's KernelPSF path on the same nodes and, with pad=None, the same grid: the same image.
+    img, _ = sine_blur_with_jacobian(*args, kernel=kern, jacobian=False)
+    amp_xy = p["amplitude"][0, :, None] * p["direction"][0]
+    flip = (amp_xy < 0).to(F64) * math.pi
+    traj = tb.Multisine(amp_xy.abs(), p["phase"][0, :, None] + flip, p["omega"][0])
+    ref = tb.render_blur(traj, tb.KernelPSF(kern[0]), tb.ExposureWindow(p["start"][0], p["dur"][0]), height=H, width=W,
+                         settings=tb.RenderSettings(nodes=96))
+    scale = p["psf_amp"][0]  # window_nodes put the Gaussian's amplitude into w
+    assert (img[0] / scale - ref).abs().max() <= 1e-13 * ref.abs().max()
+
+
+def test_kernel_forward_model_gradcheck_batch_and_errors():
+    """float64 gradcheck of the kernel path (amplitudes, phases, shift, kernel); a batch with a
+    kernel per item equals the items alone (same grid); a kernel of the wrong frame is refused."""
+    from torchblur.errors import ShapeError
+    from torchblur.render.splat import sine_blur_with_jacobian
+
+    H, W = 14, 16
+    p = _sine_problem(seed=3, K=2, batch=(2,))
+    kern = _airy_like_kernels(2, H, W, seed=1)
+    t, w, om, d = p["t"][:, :24], p["w"][:, :24], p["omega"], p["direction"]
+
+    def image(amplitude, phase, center, kernel):
+        return sine_blur_with_jacobian(t, w, amplitude, phase, om, d, center, None, H, W, kernel=kernel, jacobian=False, pad=9)[0]
+
+    center = torch.tensor([[0.3, -0.2], [0.0, 0.4]], dtype=F64)
+    args = tuple(v.clone().requires_grad_(True) for v in (p["amplitude"] * 0.5, p["phase"], center, kern))
+    assert torch.autograd.gradcheck(image, args, fast_mode=True)
+    img, jac = sine_blur_with_jacobian(t, w, *args[:2], om, d, args[2], None, H, W, kernel=args[3], center_jacobian=True, pad=9)
+    auto = torch.autograd.functional.jacobian(lambda a, ph, c: image(a, ph, c, kern), tuple(v.detach() for v in args[:3]))
+    ref = torch.cat([torch.stack([auto[k][b, :, :, b] for b in range(2)]).movedim(-1, 1) for k in range(3)], 1)
+    assert torch.allclose(jac.detach(), ref, rtol=1e-9, atol=1e-12 * ref.abs().max())
+    for b in range(2):
+        one, jac1 = sine_blur_with_jacobian(t[b], w[b], p["amplitude"][b] * 0.5, p["phase"][b], om[b], d[b], center[b], None, H, W,
+                                            kernel=kern[b], center_jacobian=True, pad=9)
+        assert torch.allclose(one, img[b].detach(), rtol=0, atol=1e-13 * float(one.abs().max()))
+        assert torch.allclose(jac1, jac[b].detach(), rtol=0, atol=1e-13 * float(jac1.abs().max()))
+    with pytest.raises(ShapeError, match="kernel"):
+        sine_blur_with_jacobian(t, w, *args[:2], om, d, center, None, H, W + 1, kernel=kern)

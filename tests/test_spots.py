@@ -115,6 +115,8 @@ def test_short_spots_identification_with_missing_and_edge_spots(edge_run):
     assert frf.output_labels == ("s0.x", "s0.y", "s1.x", "s1.y", "s2.x", "s2.y") and frf.input_labels == ("u_x",)
     log = "\n".join(res.log)
     assert "3 found (grid 1x4 = 4)" in log and "1 of the 4 expected spot(s) not found" in log
+    assert "spots psf: Gaussian per spot (each of the 2 spots' Gaussians explains its still" in log  # the edge spot: not fitted
+    assert frf.meta["psf"] == "gaussian"
     assert "s2 flagged at every point (mostly outside the frame)" in log
     assert np.isnan(frf.response[4:]).all()  # the edge spot: flagged, not fitted
     t = res.truth

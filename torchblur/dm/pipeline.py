@@ -161,7 +161,8 @@ def _calibrate(cfg, rig, wfs, log, progress, exp=None):
     spots_cfg = replace(cfg.spots, rows=n, cols=n, pitch_px=float(cfg.wfs.pitch_px), sigma_px=float(cfg.wfs.sigma_px))
     size = dm_sweep_size(cfg)
     n_still = dm_still_frames(size["frames"], size["frame_shape"])
-    cal = calibrate(replace(cfg, spots=spots_cfg), rig, exp, log=log, progress=progress, n_dark=DM_DARK_FRAMES, n_still=n_still)
+    cal = calibrate(replace(cfg, spots=spots_cfg), rig, exp, log=log, progress=progress, n_dark=DM_DARK_FRAMES, n_still=n_still,
+                    spot_psfs=False)  # the DM fits Gaussian spots (issue 23)
     order = match_spots(cal.spots.psf.center.numpy(), wfs.rest_px, wfs.pitch_px)
     log_message(log, f"dm spots: {len(cal.spots)} found, matched to the {wfs.n_valid} valid subapertures (the other "
                      f"{n * n - wfs.n_valid} cells of the {n}x{n} grid are outside the pupil)", progress)

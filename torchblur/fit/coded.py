@@ -26,7 +26,7 @@ from torchblur.image.moments import image_moments
 from torchblur.render.alias import wrap_phase
 from torchblur.render.blur import RenderSettings, choose_node_count, quadrature_nodes
 from torchblur.render.coded import check_code, coded_windows, mirror_code, render_coded
-from torchblur.render.psf import GaussianPSF
+from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.splat import sine_blur_with_jacobian, window_nodes
 from torchblur.render.trajectory import Sinusoid
 from torchblur.render.window import ExposureWindow
@@ -56,9 +56,11 @@ class CodedFit:
 class _CodedProblem:
     """B flattened coded images and everything their model needs (checked, one dtype).
 
-    ``center [B, 2]``, ``cov [B, 2, 2]``, ``amp [B]`` (the PSF), ``start, dur [B]`` (the whole
-    exposures, s), ``om [B]`` rad/s, ``code [K, 2]``, ``height, width``, ``settings`` (with the
-    node count fixed), ``fit_scale``. The motion is along x: ``theta = (M, phi[, scale])``.
+    ``center [B, 2]``, ``cov [B, 2, 2]``, ``amp [B]`` (the PSF; a measured kernel's centroid,
+    second moments and 1), ``start, dur [B]`` (the whole exposures, s), ``om [B]`` rad/s,
+    ``code [K, 2]``, ``height, width``, ``settings`` (with the node count fixed), ``fit_scale``,
+    ``kernel [B, H, W]`` (a measured kernel, or None: the Gaussian) and ``pad`` (its FFT grid's
+    padding, px, fixed with the node count). The motion is along x: ``theta = (M, phi[, scale])``.
     """
 
     center: torch.Tensor
@@ -72,9 +74,14 @@ class _CodedProblem:
     width: int
     settings: RenderSettings
     fit_scale: bool
+    kernel: torch.Tensor | None = None
+    pad: int = 0
 
     def model(self, theta: torch.Tensor, it: torch.Tensor) -> torch.Tensor:
-        """The rendered coded images of the items ``it [n]`` at ``theta [n, P]`` -> ``[n, H W]``."""
+        """The rendered coded images of the items ``it [n]`` at ``theta [n, P]`` -> ``[n, H W]``
+        (a kernel: the splat's image, the model :meth:`model_and_jacobian` differentiates)."""
+        if self.kernel is not None:
+            return self.model_and_jacobian(theta, it, jacobian=False)[0]
         M, ph = theta[:, 0], theta[:, 1]
         # omega [n, 2] (x, y): a plain [n] with n == 2 would read as one omega per axis
         traj = Sinusoid(torch.stack([M, torch.zeros_like(M)], -1), torch.stack([ph, ph], -1), self.om[it][:, None].expand(-1, 2))
@@ -84,9 +91,10 @@ class _CodedProblem:
             img = img * theta[:, 2, None, None]
         return img.reshape(theta.shape[0], -1)
 
-    def model_and_jacobian(self, theta: torch.Tensor, it: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Model ``[n, H W]`` (point-sampled pixels) and Jacobian ``[n, H W, P]`` from one splat of
-        the nodes of every open interval (:func:`~torchblur.render.splat.sine_blur_with_jacobian`)."""
+    def model_and_jacobian(self, theta: torch.Tensor, it: torch.Tensor, *, jacobian: bool = True):
+        """Model ``[n, H W]`` (point-sampled pixels) and Jacobian ``[n, H W, P]`` (None without
+        ``jacobian``) from one splat of the nodes of every open interval
+        (:func:`~torchblur.render.splat.sine_blur_with_jacobian`; a kernel: its Fourier shift)."""
         n = theta.shape[0]
         m = self.settings.nodes_per_panel
         dtype, device = theta.dtype, theta.device
@@ -94,11 +102,16 @@ class _CodedProblem:
         sub = coded_windows(ExposureWindow(self.start[it], self.dur[it]), self.code)  # [n, K]
         t, w = window_nodes(sub.start, sub.duration, tau, wq, self.amp[it][:, None])  # [n, K, S]
         x_axis = torch.tensor([[1.0, 0.0]], dtype=dtype, device=device)
+        kern = self.kernel is not None
+        center = torch.zeros_like(self.center[it]) if kern else self.center[it]
+        prec = None if kern else GaussianPSF(self.center[it], self.cov[it], self.amp[it]).precision()
         img, dimg = sine_blur_with_jacobian(t.flatten(-2), w.flatten(-2), theta[:, :1], theta[:, 1:2], self.om[it][:, None], x_axis,
-                                            self.center[it], GaussianPSF(self.center[it], self.cov[it], self.amp[it]).precision(),
-                                            self.height, self.width)
-        J = dimg.movedim(1, -1).reshape(n, self.height * self.width, 2)
+                                            center, prec, self.height, self.width, jacobian=jacobian,
+                                            kernel=self.kernel[it] if kern else None, pad=self.pad)
         model = img.reshape(n, -1)
+        if not jacobian:
+            return model * theta[:, 2, None] if self.fit_scale else model, None
+        J = dimg.movedim(1, -1).reshape(n, self.height * self.width, 2)
         if self.fit_scale:
             J = torch.cat([J * theta[:, 2, None, None], model[..., None]], -1)
             model = model * theta[:, 2, None]
@@ -109,8 +122,10 @@ def _check_inputs(images, psf, code, omega, n_phases):
     """The public entry's checks -> ``(code [K, 2], omega)`` in the images' dtype."""
     if not isinstance(images, torch.Tensor) or images.dim() < 2:
         raise ShapeError("images: expected a tensor [..., H, W]")
-    if not isinstance(psf, GaussianPSF):
-        raise InputTypeError(f"psf: expected a GaussianPSF, got {type(psf).__name__}")
+    if not isinstance(psf, (GaussianPSF, KernelPSF)):
+        raise InputTypeError(f"psf: expected a GaussianPSF or KernelPSF, got {type(psf).__name__}")
+    if isinstance(psf, KernelPSF) and psf.frame_shape != tuple(images.shape[-2:]):
+        raise ShapeError(f"psf: expected a kernel of the images' frame {tuple(images.shape[-2:])}, got {psf.frame_shape}")
     if isinstance(n_phases, bool) or not isinstance(n_phases, int) or n_phases < 1:
         raise ParameterError(f"n_phases: expected an integer >= 1, got {n_phases!r}")
     check_finite(images, "images")
@@ -141,24 +156,32 @@ def _amplitude_start(images, cov_xx, center_x, amplitude_guess, batch, B: int) -
     return (2 * ms).sqrt()
 
 
-def _problem(images, psf: GaussianPSF, window: ExposureWindow, code, omega, fit_scale: bool) -> _CodedProblem:
+def _problem(images, psf: GaussianPSF | KernelPSF, window: ExposureWindow, code, omega, fit_scale: bool) -> _CodedProblem:
     """The flattened problem ``[B]``; its renderer settings have no node count yet (:func:`_with_nodes`)."""
-    batch = images.shape[:-2]
+    batch, (H, W) = images.shape[:-2], images.shape[-2:]
     B = max(1, math.prod(batch))
     win = window.to(images.dtype).expand(batch)
     p = psf.to(images.dtype)
-    return _CodedProblem(center=p.center.expand(batch + (2,)).reshape(B, 2), cov=p.cov.expand(batch + (2, 2)).reshape(B, 2, 2),
-                         amp=p.amplitude.expand(batch).reshape(B), start=win.start.reshape(B), dur=win.duration.reshape(B),
-                         om=omega.expand(batch).reshape(B), code=code, height=images.shape[-2], width=images.shape[-1],
-                         settings=RenderSettings(panel_path_sigmas=3.5), fit_scale=fit_scale)
+    kernel = None
+    if isinstance(p, KernelPSF):
+        kernel = p.kernel.expand(batch + (H, W)).reshape(B, H, W)
+        center, cov = KernelPSF(kernel).moments()
+        amp = torch.ones(B, dtype=images.dtype, device=images.device)
+    else:
+        center, cov = p.center.expand(batch + (2,)).reshape(B, 2), p.cov.expand(batch + (2, 2)).reshape(B, 2, 2)
+        amp = p.amplitude.expand(batch).reshape(B)
+    return _CodedProblem(center=center, cov=cov, amp=amp, start=win.start.reshape(B), dur=win.duration.reshape(B),
+                         om=omega.expand(batch).reshape(B), code=code, height=H, width=W,
+                         settings=RenderSettings(panel_path_sigmas=3.5), fit_scale=fit_scale, kernel=kernel)
 
 
 def _with_nodes(prob: _CodedProblem, M0: torch.Tensor) -> _CodedProblem:
     """``prob`` with the node count fixed for motions up to ``1.5 M0 + 0.5`` px (``M0 [B]``)."""
     bound = Sinusoid(torch.stack([M0 * 1.5 + 0.5, torch.zeros_like(M0)], -1), torch.zeros_like(prob.center), prob.om[:, None].expand(-1, 2))
-    smin = GaussianPSF(prob.center, prob.cov, prob.amp).sigma_min()
+    smin = (KernelPSF(prob.kernel) if prob.kernel is not None else GaussianPSF(prob.center, prob.cov, prob.amp)).sigma_min()
     S = choose_node_count(bound.path_length(ExposureWindow(torch.zeros_like(prob.dur), prob.dur)), smin, prob.settings)
-    return dataclasses.replace(prob, settings=RenderSettings(panel_path_sigmas=3.5, nodes=S))
+    pad = int(math.ceil(float((M0 * 1.5 + 0.5).max()))) + 2
+    return dataclasses.replace(prob, settings=RenderSettings(panel_path_sigmas=3.5, nodes=S), pad=pad)
 
 
 def _phase_grid_starts(M0: torch.Tensor, n_phases: int, fit_scale: bool) -> torch.Tensor:
@@ -195,13 +218,14 @@ def _fisher_covariance(prob: _CodedProblem, theta, data, weight, noise_given: bo
     return torch.linalg.inv_ex(F)[0]
 
 
-def fit_sinusoid_coded(images, psf: GaussianPSF, window: ExposureWindow, code, omega, *, noise_std=None, amplitude_guess=None,
+def fit_sinusoid_coded(images, psf: GaussianPSF | KernelPSF, window: ExposureWindow, code, omega, *, noise_std=None, amplitude_guess=None,
                        fit_scale: bool = False, n_phases: int = 12, max_iter: int = 60, tol: float = 1e-10) -> CodedFit:
     """Fit ``y(t) = M sin(omega t + phi)`` along x to single coded images.
 
     Args:
         images: ``[..., H, W]``, one coded exposure each (dark subtracted).
-        psf: :class:`GaussianPSF`, batch ``[...]``.
+        psf: :class:`GaussianPSF`, or a measured :class:`KernelPSF` (kernel ``[..., H, W]``, shifted
+            as a band-limited image), batch ``[...]``.
         window: the whole exposures ``[...]`` (s, command clock).
         code: ``[K, 2]`` open intervals (fractions of the exposure).
         omega: rad/s, ``[...]``.

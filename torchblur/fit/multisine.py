@@ -29,7 +29,8 @@ from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tens
 from torchblur.fit.losses import image_loss
 from torchblur.image.moments import image_moments, moments_along
 from torchblur.fit.optim import levenberg_marquardt, model_jacobian
-from torchblur.render.psf import GaussianPSF
+from torchblur.fit.problem import _nonzero_box
+from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.camera import CameraNoise
 from torchblur.render.blur import RenderSettings, choose_node_count, quadrature_nodes, render_blur
 from torchblur.render.splat import sine_blur_with_jacobian, window_nodes
@@ -68,7 +69,7 @@ def _motion(theta: torch.Tensor, n_tones: int, u: torch.Tensor):
     return amp, torch.stack([ph, ph], -1)
 
 
-def render_multisine(theta, omega, psf: GaussianPSF, window: ExposureWindow, *, height: int, width: int,
+def render_multisine(theta, omega, psf: GaussianPSF | KernelPSF, window: ExposureWindow, *, height: int, width: int,
                      settings: RenderSettings | None = None, direction=None) -> torch.Tensor:
     """Images of a spot moving along ``direction`` (default x) as ``sum_k M_k sin(omega_k t + phi_k)``.
 
@@ -76,7 +77,7 @@ def render_multisine(theta, omega, psf: GaussianPSF, window: ExposureWindow, *, 
         theta: ``[..., 2N]`` ``(M_1..M_N px, phi_1..phi_N rad)`` or ``[..., 2N + 1]`` with an
             intensity scale last.
         omega: rad/s, ``[..., N]``.
-        psf: the spot at rest, batch ``[...]``.
+        psf: the spot at rest, batch ``[...]``: a GaussianPSF, or a KernelPSF (kernel ``[..., H, W]``).
         window: exposure windows (s), batch ``[..., E]`` (E images of the same motion).
         height, width: frame size H, W.
         settings: renderer settings.
@@ -92,25 +93,33 @@ def render_multisine(theta, omega, psf: GaussianPSF, window: ExposureWindow, *, 
         raise ShapeError(f"theta: expected a last dim of 2N = {2 * N} or 2N + 1 (with the scale), got {tuple(theta.shape)}")
     amp, ph = _motion(theta, N, _unit_direction(direction, theta))
     traj = Multisine(amp[..., None, :, :], ph[..., None, :, :], omega[..., None, :])
-    p = GaussianPSF(psf.center[..., None, :], psf.cov[..., None, :, :], psf.amplitude[..., None])
+    if isinstance(psf, KernelPSF):
+        p = KernelPSF(psf.kernel[..., None, :, :])
+    else:
+        p = GaussianPSF(psf.center[..., None, :], psf.cov[..., None, :, :], psf.amplitude[..., None])
     img = render_blur(traj, p, window, height=height, width=width, settings=settings)
     if theta.shape[-1] == 2 * N + 1:
         img = img * theta[..., 2 * N, None, None, None]
     return img
 
 
-def render_multisine_with_jacobian(theta, omega, psf: GaussianPSF, window: ExposureWindow, *, height: int, width: int,
-                                   nodes: int, nodes_per_panel: int = 8, direction=None) -> tuple[torch.Tensor, torch.Tensor]:
+def render_multisine_with_jacobian(theta, omega, psf: GaussianPSF | KernelPSF, window: ExposureWindow, *, height: int, width: int,
+                                   nodes: int, nodes_per_panel: int = 8, direction=None, pad=None,
+                                   jacobian: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`render_multisine` (point-sampled pixels, ``nodes`` time nodes) and its Jacobian
     from one splat: the forward model :func:`~torchblur.render.splat.sine_blur_with_jacobian`
     with N components along the unit ``direction`` ``u`` (default +x), node positions
-    ``c + u sum_k M_k sin(omega_k t_s + phi_k)``.
+    ``c + u sum_k M_k sin(omega_k t_s + phi_k)`` (a Gaussian), or the kernel shifted by
+    ``u sum_k ...`` (a measured kernel, its Fourier shift).
 
     Args:
         theta: ``[n, 2N]`` or ``[n, 2N + 1]`` (scale last).
-        omega: ``[n, N]`` rad/s; psf: batch ``[n]``; window: ``[n, E]``.
+        omega: ``[n, N]`` rad/s; psf: batch ``[n]`` (a GaussianPSF, or a KernelPSF of kernel
+            ``[n, H, W]``); window: ``[n, E]``.
         height, width: frame size; nodes: time nodes (a multiple of ``nodes_per_panel``).
         direction: ``[2]`` or ``[n, 2]``, as in :func:`render_multisine`.
+        pad: a kernel's FFT padding (px; :func:`~torchblur.render.splat.kernel_shift_with_jacobian`).
+        jacobian: False: the image alone (``jac`` empty, ``P = 0``).
 
     Returns:
         ``(image [n, E, H, W], jac [n, E, H, W, P])``, ``jac[..., p] = d image / d theta_p``.
@@ -119,15 +128,20 @@ def render_multisine_with_jacobian(theta, omega, psf: GaussianPSF, window: Expos
     N = omega.shape[-1]
     m = nodes_per_panel if nodes % nodes_per_panel == 0 else nodes
     tau, wq = quadrature_nodes(nodes // m, m, dtype=theta.dtype, device=theta.device)
-    t, w = window_nodes(window.start.to(theta.dtype), window.duration.to(theta.dtype), tau, wq, psf.amplitude[:, None])  # [n, E, S]
+    kern = isinstance(psf, KernelPSF)
+    amp_psf = torch.ones(n, dtype=theta.dtype, device=theta.device) if kern else psf.amplitude
+    t, w = window_nodes(window.start.to(theta.dtype), window.duration.to(theta.dtype), tau, wq, amp_psf[:, None])  # [n, E, S]
     u = _unit_direction(direction, theta).expand(n, 2)
+    center = theta.new_zeros(n, 2) if kern else psf.center
+    precision = None if kern else tuple(v[:, None] for v in psf.precision())
     img, dimg = sine_blur_with_jacobian(t, w, theta[:, None, :N], theta[:, None, N:2 * N], omega[:, None, :],
-                                        u[:, None, None, :], psf.center[:, None, :], tuple(v[:, None] for v in psf.precision()),
-                                        height, width)
+                                        u[:, None, None, :], center[:, None, :], precision, height, width, jacobian=jacobian,
+                                        kernel=psf.kernel[:, None] if kern else None, pad=pad)
     J = dimg.movedim(2, -1)  # [n, E, H, W, 2N]
     if P == 2 * N + 1:
         sc = theta[:, 2 * N, None, None, None]
-        J = torch.cat([J * sc[..., None], img[..., None]], -1)
+        if jacobian:
+            J = torch.cat([J * sc[..., None], img[..., None]], -1)
         img = img * sc
     return img, J
 
@@ -193,8 +207,10 @@ class _Flat:
     """The inputs of :func:`fit_multisine` checked and flattened to ``B`` image sets.
 
     ``data [B, E, H, W]``; ``om [B, N]`` rad/s; ``start, dur [B, E]`` s; ``center [B, 2]``,
-    ``cov [B, 2, 2]``, ``amp_psf [B]`` (the PSF); ``u [B, 2]`` the unit direction; ``batch``
-    the images' leading dims; ``psf`` the PSF in the images' dtype (batch ``[...]``).
+    ``cov [B, 2, 2]``, ``amp_psf [B]`` (the PSF; a measured kernel's centroid and second
+    moments, amplitude 1); ``u [B, 2]`` the unit direction; ``batch`` the images' leading dims;
+    ``psf`` the PSF in the images' dtype (batch ``[...]``); ``kernel [B, H, W]`` a measured
+    kernel's image (intensity per second), None for a Gaussian.
     """
 
     data: torch.Tensor
@@ -206,7 +222,14 @@ class _Flat:
     amp_psf: torch.Tensor
     u: torch.Tensor
     batch: tuple
-    psf: GaussianPSF
+    psf: GaussianPSF | KernelPSF
+    kernel: torch.Tensor | None = None
+
+    def total_light(self) -> torch.Tensor:
+        """The PSF's light per second ``[B]``."""
+        if self.kernel is not None:
+            return self.kernel.sum((-1, -2))
+        return self.psf.total_light().expand(self.batch).reshape(-1)
 
 
 def _check_and_flatten(images, psf, window, omega, direction, counts: dict) -> _Flat:
@@ -218,8 +241,10 @@ def _check_and_flatten(images, psf, window, omega, direction, counts: dict) -> _
     if not images.is_floating_point():
         images = images.to(torch.get_default_dtype())
     check_finite(images, "images")
-    if not isinstance(psf, GaussianPSF):
-        raise InputTypeError(f"psf: expected a GaussianPSF, got {type(psf).__name__}")
+    if not isinstance(psf, (GaussianPSF, KernelPSF)):
+        raise InputTypeError(f"psf: expected a GaussianPSF or KernelPSF, got {type(psf).__name__}")
+    if isinstance(psf, KernelPSF) and psf.frame_shape != tuple(images.shape[-2:]):
+        raise ShapeError(f"psf: expected a kernel of the images' frame {tuple(images.shape[-2:])}, got {psf.frame_shape}")
     if not isinstance(window, ExposureWindow):
         raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
     for name, v in counts.items():
@@ -250,6 +275,14 @@ def _check_and_flatten(images, psf, window, omega, direction, counts: dict) -> _
     except RuntimeError:
         raise ShapeError(f"direction: expected [2] or a shape that broadcasts to the images' batch {tuple(batch)} + (2,), "
                          f"got {tuple(u.shape)}") from None
+    if isinstance(p, KernelPSF):
+        try:
+            kernel = p.kernel.expand(batch + (H, W)).reshape(B, H, W)
+        except RuntimeError:
+            raise ShapeError(f"psf: expected a kernel batch that broadcasts to the images' {tuple(batch)}, got {tuple(p.shape)}") from None
+        center, cov = KernelPSF(kernel).moments()
+        return _Flat(data=data, om=om.reshape(B, N), start=win.start.reshape(B, E), dur=win.duration.reshape(B, E), center=center,
+                     cov=cov, amp_psf=torch.ones(B, dtype=dtype, device=data.device), u=u, batch=batch, psf=p, kernel=kernel)
     return _Flat(data=data, om=om.reshape(B, N), start=win.start.reshape(B, E), dur=win.duration.reshape(B, E),
                  center=p.center.expand(batch + (2,)).reshape(B, 2), cov=p.cov.expand(batch + (2, 2)).reshape(B, 2, 2),
                  amp_psf=p.amplitude.expand(batch).reshape(B), u=u, batch=batch, psf=p)
@@ -402,7 +435,7 @@ def _starts(flat: _Flat, M0, thr, phase_guess, n_starts: int, g: torch.Generator
     theta_c = torch.stack(cands, 1)  # [B, K, 2N]
     if fit_scale:
         K = theta_c.shape[1]
-        expected = (flat.psf.total_light().expand(flat.batch).reshape(B)[:, None] * flat.dur).sum(-1)
+        expected = (flat.total_light()[:, None] * flat.dur).sum(-1)
         sc = (flat.data.sum((-1, -2, -3)) / expected.clamp_min(1e-30)).clamp_min(1e-3)
         theta_c = torch.cat([theta_c, sc[:, None, None].expand(B, K, 1)], -1)
     return theta_c
@@ -414,11 +447,15 @@ def _crop_box(flat: _Flat, theta_c) -> tuple[int, int, int, int]:
     N = flat.om.shape[-1]
     center = flat.center
     reach = (theta_c[..., :N].abs().sum(-1).amax(1) * 1.3 + 0.5)[:, None] * flat.u.abs()  # [B, 2] (x, y) px
-    sd = torch.diagonal(flat.cov, dim1=-2, dim2=-1).sqrt()
-    lo_x = int(max(0, math.floor(float((center[:, 0] - reach[:, 0] - 7 * sd[:, 0]).min()))))
-    hi_x = int(min(W, math.ceil(float((center[:, 0] + reach[:, 0] + 7 * sd[:, 0]).max())) + 1))
-    lo_y = int(max(0, math.floor(float((center[:, 1] - reach[:, 1] - 7 * sd[:, 1]).min()))))
-    hi_y = int(min(H, math.ceil(float((center[:, 1] + reach[:, 1] + 7 * sd[:, 1]).max())) + 1))
+    if flat.kernel is not None:  # wherever the kernel is not zero, its faint wings included
+        lo, hi = _nonzero_box(flat.kernel)
+    else:
+        sd = torch.diagonal(flat.cov, dim1=-2, dim2=-1).sqrt()
+        lo, hi = center - 7 * sd, center + 7 * sd
+    lo_x = int(max(0, math.floor(float((lo[:, 0] - reach[:, 0]).min()))))
+    hi_x = int(min(W, math.ceil(float((hi[:, 0] + reach[:, 0]).max())) + 1))
+    lo_y = int(max(0, math.floor(float((lo[:, 1] - reach[:, 1]).min()))))
+    hi_y = int(min(H, math.ceil(float((hi[:, 1] + reach[:, 1]).max())) + 1))
     if hi_x - lo_x < 4 or hi_y - lo_y < 4:
         return 0, H, 0, W
     return lo_y, hi_y, lo_x, hi_x
@@ -429,10 +466,11 @@ class _Problem:
     """The cropped problem every search step evaluates.
 
     ``target, wflat [B, R]`` (R = E Hc Wc pixels in the crop); ``om [B, N]``; ``start, dur
-    [B, E]``; ``psf`` (batch ``[B]``, centre in crop coordinates); ``u [B, 2]``; ``height,
-    width`` of the crop; ``settings`` (node count fixed); ``outside_cost, outside_sq,
-    outside_n [B]``: the weighted and plain sums of squares and the count of the used pixels
-    outside the crop (a constant of the cost).
+    [B, E]``; ``psf`` (batch ``[B]``, centre in crop coordinates; a KernelPSF cut with the
+    frame); ``u [B, 2]``; ``height, width`` of the crop; ``settings`` (node count fixed);
+    ``outside_cost, outside_sq, outside_n [B]``: the weighted and plain sums of squares and the
+    count of the used pixels outside the crop (a constant of the cost); ``pad``: a kernel's FFT
+    padding (px), fixed from the starts' motion so the model does not jump between iterations.
     """
 
     target: torch.Tensor
@@ -448,19 +486,26 @@ class _Problem:
     outside_cost: torch.Tensor
     outside_sq: torch.Tensor
     outside_n: torch.Tensor
+    pad: int = 0
 
     @property
     def analytic(self) -> bool:
-        """Whether the Jacobian comes from the splat (point-sampled pixels)."""
-        return not self.settings.pixel_integration
+        """Whether the Jacobian comes from the splat (point-sampled pixels; a kernel always)."""
+        return isinstance(self.psf, KernelPSF) or not self.settings.pixel_integration
 
     def _items(self, item):
         p = self.psf
-        return GaussianPSF(p.center[item], p.cov[item], p.amplitude[item]), ExposureWindow(self.start[item], self.dur[item])
+        win = ExposureWindow(self.start[item], self.dur[item])
+        if isinstance(p, KernelPSF):
+            return KernelPSF(p.kernel[item]), win
+        return GaussianPSF(p.center[item], p.cov[item], p.amplitude[item]), win
 
     def model(self, theta, item) -> torch.Tensor:
-        """Rendered images of the sets ``item [n]`` at ``theta [n, P]`` -> ``[n, R]``."""
+        """Rendered images of the sets ``item [n]`` at ``theta [n, P]`` -> ``[n, R]`` (a kernel:
+        the splat's image, the very model :meth:`model_and_jacobian` differentiates)."""
         psf_i, win_i = self._items(item)
+        if isinstance(psf_i, KernelPSF):
+            return self._splat(theta, item, psf_i, win_i, jacobian=False)[0]
         img = render_multisine(theta, self.om[item], psf_i, win_i, height=self.height, width=self.width, settings=self.settings,
                                direction=self.u[item])
         return img.reshape(theta.shape[0], -1)
@@ -468,10 +513,13 @@ class _Problem:
     def model_and_jacobian(self, theta, item):
         """``(model [n, R], J [n, R, P])`` from one splat (:func:`render_multisine_with_jacobian`)."""
         psf_i, win_i = self._items(item)
+        return self._splat(theta, item, psf_i, win_i, jacobian=True)
+
+    def _splat(self, theta, item, psf_i, win_i, *, jacobian: bool):
         img, J = render_multisine_with_jacobian(theta, self.om[item], psf_i, win_i, height=self.height, width=self.width,
                                                 nodes=self.settings.nodes, nodes_per_panel=self.settings.nodes_per_panel,
-                                                direction=self.u[item])
-        return img.reshape(theta.shape[0], -1), J.reshape(theta.shape[0], -1, theta.shape[-1])
+                                                direction=self.u[item], pad=self.pad, jacobian=jacobian)
+        return img.reshape(theta.shape[0], -1), J.reshape(theta.shape[0], -1, theta.shape[-1]) if jacobian else None
 
 
 def _problem(flat: _Flat, weight, theta_c, render_settings) -> tuple[_Problem, tuple]:
@@ -482,7 +530,8 @@ def _problem(flat: _Flat, weight, theta_c, render_settings) -> tuple[_Problem, t
     lo_y, hi_y, lo_x, hi_x = box = _crop_box(flat, theta_c)
     wflat, outside_cost = _weight_terms(weight, data, box)
     center_c = flat.center - torch.tensor([lo_x, lo_y], dtype=dtype, device=device)
-    psf_c = GaussianPSF(center_c, flat.cov, flat.amp_psf)
+    psf_c = GaussianPSF(center_c, flat.cov, flat.amp_psf) if flat.kernel is None else KernelPSF(flat.kernel[:, lo_y:hi_y, lo_x:hi_x])
+    reach = float((theta_c[..., :N].abs().sum(-1).amax(1) * 1.3 + 0.5).max()) if B else 0.0
     settings = render_settings or RenderSettings(panel_path_sigmas=3.5)
     if settings.nodes is None:
         bound = Multisine(((theta_c[..., :N].abs().amax(1) * 1.3 + 0.5)[..., None] * flat.u[:, None, :])[:, None],
@@ -495,7 +544,7 @@ def _problem(flat: _Flat, weight, theta_c, render_settings) -> tuple[_Problem, t
     out_used[..., lo_y:hi_y, lo_x:hi_x] = False
     prob = _Problem(target=data[..., lo_y:hi_y, lo_x:hi_x].reshape(B, -1), wflat=wflat,
                     om=flat.om, start=flat.start, dur=flat.dur, psf=psf_c, u=flat.u, height=hi_y - lo_y, width=hi_x - lo_x,
-                    settings=settings, outside_cost=outside_cost,
+                    settings=settings, outside_cost=outside_cost, pad=int(math.ceil(reach)) + 2,
                     outside_sq=(out_used * data * data).sum((-1, -2, -3)), outside_n=out_used.sum((-1, -2, -3)).to(dtype))
     return prob, box
 
@@ -653,7 +702,7 @@ def _status(converged, red_chi2, singular, dark, sigma_given: bool) -> torch.Ten
 
 def fit_multisine(
     images,
-    psf: GaussianPSF,
+    psf: GaussianPSF | KernelPSF,
     window: ExposureWindow,
     omega,
     *,
@@ -678,7 +727,7 @@ def fit_multisine(
     Args:
         images: ``[..., E, H, W]``: E images of the same periodic motion (dark subtracted, in
             the PSF's units times seconds), each over its own window.
-        psf: :class:`GaussianPSF`, batch ``[...]`` (its amplitude includes the laser power).
+        psf: :class:`GaussianPSF` or a measured :class:`KernelPSF` (``[..., H, W]``), batch ``[...]`` (the laser power in it)
         window: exposure windows (s) on the command clock, batch ``[..., E]``.
         omega: tone frequencies (rad/s), ``[..., N]``.
         noise_std: pixel noise std: a number, ``[...]`` or ``[..., E, H, W]``; None: from

@@ -4,7 +4,7 @@ spot, the actuator's direction in the image."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -16,12 +16,13 @@ from torchblur.identify.record import log_message, run_stage
 from torchblur.image.photon_transfer import photon_transfer
 from torchblur.image.preprocess import dark_frame, saturation_curve, subtract_dark
 from torchblur.image.psf_from_still import psf_from_still
-from torchblur.image.spots import locate_spots
+from torchblur.image.spots import crop_spots, locate_spots
+from torchblur.render.psf import KernelPSF
 from torchblur.image.tracking import calibrate_axes
 from torchblur.render.camera import CameraNoise, camera_noise_std
 
-__all__ = ["Calibration", "MIN_INSIDE", "PTC_STEPS", "calibrate", "calibrate_latency", "check_latency_source", "choose_gain",
-           "latency_given", "measure_gain", "ptc_exposures"]
+__all__ = ["Calibration", "MIN_INSIDE", "PTC_STEPS", "SpotKernels", "calibrate", "calibrate_latency", "check_latency_source", "choose_gain",
+           "latency_given", "measure_gain", "ptc_exposures", "spot_kernels"]
 
 MIN_INSIDE = 0.5  # a spot with less of its still light in the frame is flagged, not fitted
 
@@ -35,8 +36,9 @@ class Calibration:
     of :func:`~torchblur.image.psf_from_still.psf_from_still`, the pixel model of every fit;
     with many spots one per spot), ``peak_rate`` (its peak, e-/s), ``latency_s`` and
     ``latency_std_s``, ``gain`` (e-/ADU), with one spot ``still_psf`` (the
-    :class:`~torchblur.image.psf_from_still.StillPSF`: the PSF the sine sweep fits with,
-    ``still_psf.psf``, a KernelPSF or that Gaussian, and why), and for one-axis runs the
+    :class:`~torchblur.image.psf_from_still.StillPSF`: the PSF every fit of the run uses (sine
+    sweep, multisine, direct model), ``still_psf.psf``, a KernelPSF or that Gaussian, and why),
+    with many spots ``spot_kernels`` (:class:`SpotKernels`, or None: the Gaussians), and for one-axis runs the
     actuator's image ``direction``; ``noise``, the camera's
     :class:`~torchblur.render.camera.CameraNoise` (gain, mean dark level, read noise: the one noise
     model every fit of the run weighs its residuals with), is built from them."""
@@ -58,6 +60,8 @@ class Calibration:
     axis: object = None
     axis_gain: float | None = None
     still_psf: object = None  # one spot: the StillPSF (fit.psf's choice and its evidence), else None
+    # many spots: the measured kernels every spot is fitted with (SpotKernels), None: the Gaussians spots.psf
+    spot_kernels: object = None
     drive: DriveLimit | None = None  # the run's input range (every command within drive.limit); None: no limit
     latency_source: str = "scanned"  # "scanned" (laser pulses, rig.pulse) or "given" (camera.latency_s, camera.latency_std_s)
     ptc: object = None  # the PhotonTransfer measured from the run's frames (None: not measured)
@@ -85,12 +89,12 @@ class Calibration:
 N_DARK = 256
 
 
-def calibrate(cfg, rig, exp=None, log=None, progress: bool = False, *, n_dark: int = N_DARK, n_still: int = 16) -> Calibration:
+def calibrate(cfg, rig, exp=None, log=None, progress: bool = False, *, n_dark: int = N_DARK, n_still: int = 16, spot_psfs: bool = True):
     """Stages 1-4 of :func:`identify`: dark frame, saturation curve, PSF, latency and, for a
     one-axis, one-spot run, the actuator's direction in the image (each taken from the
     recording ``exp`` when it holds it). ``n_dark`` dark frames (:data:`N_DARK`) and ``n_still``
-    still frames: the PSF's own error and the dark mean's noise, common to every frame, are in
-    no fitted point's std, so a run whose stds are small takes more."""
+    still frames: the PSF's own error and the dark mean's noise, common to every frame, are in no fitted point's std, so a
+    run whose stds are small takes more. ``spot_psfs``: many spots' PSFs by :func:`spot_kernels` (False: the Gaussians)."""
     log = [] if log is None else log
     c = cfg.camera
     dtype = torch.float64
@@ -123,12 +127,13 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False, *, n_dark: i
     ptc, gain, gain_source = _gain_stage(cfg, rig, exp, dark_raw, dark, still_raw, sat, log, progress)
     read_noise_e = float(dark.read_noise) * gain
     still_e = subtract_dark(still_raw, dark) * gain
-    spots = still_psf = None
+    spots = still_psf = spot_kern = None
     if getattr(cfg, "spots", None) is not None and cfg.spots.enabled:
         spots = _locate_spots(cfg, still_e.mean(0), te_psf, read_noise_e, log, progress)
         psf = spots.psf  # [K], full-frame coordinates
         whole = spots.inside_fraction >= MIN_INSIDE  # an edge spot's peak is an extrapolation: not trusted here
         peak_rate = float(psf.amplitude[whole].max() if bool(whole.any()) else psf.amplitude.max())  # e-/s at power 1
+        spot_kern = spot_kernels(cfg, still_e, te_psf, read_noise_e, spots, log, progress) if spot_psfs else None
     else:
         still_psf = _still_psf(cfg, still_e, te_psf, read_noise_e, log, progress)
         psf = still_psf.gaussian.psf
@@ -138,7 +143,7 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False, *, n_dark: i
     latency, latency_std, latency_source = _latency_stage(cfg, rig, exp, dark, gain, full_adu, peak_rate, log, progress)
     cal = Calibration(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=full_adu, psf=psf, peak_rate=peak_rate,
                       latency_s=latency, latency_std_s=latency_std, gain=gain, spots=spots, still_psf=still_psf, drive=drive,
-                      latency_source=latency_source, ptc=ptc, gain_source=gain_source)
+                      latency_source=latency_source, ptc=ptc, gain_source=gain_source, spot_kernels=spot_kern)
 
     # 4b. The actuator's direction in the image (one axis, one spot; a 2x2 plant or many spots
     # fit both image axes).
@@ -305,19 +310,13 @@ def _measure_axis(cfg, rig, cal: Calibration):
     return axis, axis.px_per_unit
 
 
-def _gaussian_only_stages(cfg) -> list:
-    """The stages of ``cfg`` that fit with a Gaussian PSF whatever ``fit.psf`` chose."""
-    return ((["the multisine fit"] if cfg.excitation.kind == "multisine" else [])
-            + (["the direct model"] if cfg.model.direct else []))
-
-
 def _still_psf(cfg, still_e, exposure_s, read_noise_e, log, progress):
     """Stage 2 with one spot: :func:`~torchblur.image.psf_from_still.psf_from_still` of the
     dark-subtracted still frames ``still_e`` ``[N, H, W]`` (electrons; one frame's noise from
     the camera model; background 0 after the dark subtraction, unless ``fit.fit_background``
     lets the sweep fit a level, when it is measured too) with ``kind = fit.psf``. Logs the
-    choice, its reason (both reduced chi2) and the Gaussian; where the kernel is chosen but a
-    stage can only fit a Gaussian, says that the stage's results carry the mismatch."""
+    choice, its reason (both reduced chi2) and the Gaussian;
+    every route (sine sweep, multisine, direct model) fits with ``sp.psf``."""
     noise = camera_noise_std(still_e.mean(0), read_noise_e)  # one frame's noise [H, W], e-
     sp = psf_from_still(still_e, exposure_s, noise, kind=cfg.fit.psf, background=None if cfg.fit.fit_background else 0.0)
     if sp.gaussian is None:
@@ -328,13 +327,64 @@ def _still_psf(cfg, still_e, exposure_s, read_noise_e, log, progress):
     log_message(log, f"psf: Gaussian (point-sampled) centre ({float(g.center[0]):.2f}, {float(g.center[1]):.2f}) px, cov "
                      f"[[{float(g.cov[0, 0]):.3f}, {float(g.cov[0, 1]):.3f}], [., {float(g.cov[1, 1]):.3f}]] px^2, relative "
                      f"residual {float(sp.gaussian.relative_residual):.2e}", progress)
-    gaussian_only = _gaussian_only_stages(cfg)
-    if sp.kind == "kernel" and gaussian_only:
-        log_message(log, f"psf: warning: {' and '.join(gaussian_only)} can only use the Gaussian, which does not explain the still "
-                         f"to its noise (reduced chi2 {float(sp.chi2_gaussian):.3g} > {sp.chi2_threshold:.3g}): its results may carry "
-                         f"that model mismatch (biased values, too small std; the more, the larger the chi2); set "
-                         f"excitation.kind=sine and model.direct=false to fit with the measured kernel only", progress)
     return sp
+
+
+@dataclass(frozen=True)
+class SpotKernels:
+    """The measured kernels of many spots: ``psf`` (:class:`KernelPSF` ``[K, h, w]`` in the spots'
+    crops, electrons per second at power 1), ``still`` (``[K]``, each spot's
+    :class:`~torchblur.image.psf_from_still.StillPSF`, None for a spot not fitted) and ``rule``
+    (one of them, kind ``kernel``: its :meth:`kernel_noise_factor` is every spot's)."""
+
+    psf: KernelPSF
+    still: list
+    rule: object
+
+    def kernel_noise_factor(self, exposures_s) -> torch.Tensor:
+        """The kernels' own noise (every spot's still has the same frames and exposure)."""
+        return self.rule.kernel_noise_factor(exposures_s)
+
+
+def spot_kernels(cfg, still_e, exposure_s, read_noise_e, spots, log, progress):
+    """Stage 2 with many spots and ``fit.psf`` auto or kernel: :func:`~torchblur.image.psf_from_still.psf_from_still`
+    on every spot's crop of the dark-subtracted still frames ``still_e [N, H, W]`` (e-). Every spot is
+    fitted with its measured kernel when ``fit.psf=kernel`` or, with ``auto``, when any fitted spot's
+    Gaussian fails its test (one PSF type per batch; a spot whose Gaussian passes is as well
+    described by its kernel); else (or with ``fit.psf=gaussian``) None: the Gaussians. A spot mostly
+    outside the frame (not fitted) keeps its Gaussian's image as a placeholder kernel."""
+    if cfg.fit.psf == "gaussian":
+        return None
+    crops = crop_spots(still_e, spots.offset, spots.size)  # [N, K, h, w]
+    h, w = spots.size
+    inside = spots.inside_fraction >= MIN_INSIDE
+    psf_c = spots.psf_in_crops()
+    yy, xx = torch.meshgrid(torch.arange(h, dtype=still_e.dtype), torch.arange(w, dtype=still_e.dtype), indexing="ij")
+    kern, still = [], []
+    for k in range(len(spots)):
+        sp = None
+        if bool(inside[k]):
+            c = crops[:, k]
+            try:
+                sp = psf_from_still(c, exposure_s, camera_noise_std(c.mean(0), read_noise_e), kind=cfg.fit.psf,
+                                    background=None if cfg.fit.fit_background else 0.0)
+            except ParameterError:
+                sp = None
+        still.append(sp)
+        kern.append(sp.kernel.kernel if sp is not None else psf_c[k].evaluate(xx, yy))
+    fitted = [sp for sp in still if sp is not None]
+    failing = [sp for sp in fitted if sp.kind == "kernel"]
+    if not fitted or not failing:
+        if fitted:
+            log_message(log, f"spots psf: Gaussian per spot (each of the {len(fitted)} spots' Gaussians explains its still: worst "
+                             f"reduced chi2 {max(float(sp.chi2_gaussian) for sp in fitted):.3g})", progress)
+        return None
+    worst = max(failing, key=lambda sp: float(sp.chi2_gaussian))
+    why = "fit.psf=kernel" if cfg.fit.psf == "kernel" else (f"{len(failing)} of {len(fitted)} spots' Gaussians do not explain "
+                                                            f"their still, worst reduced chi2 {float(worst.chi2_gaussian):.3g} > "
+                                                            f"{worst.chi2_threshold:.3g}")
+    log_message(log, f"spots psf: the measured kernel of every spot ({why})", progress)
+    return SpotKernels(psf=KernelPSF(torch.stack(kern)), still=still, rule=replace(fitted[0], kind="kernel", psf=fitted[0].kernel))
 
 
 def _locate_spots(cfg, still, exposure_s, read_noise_e, log, progress):

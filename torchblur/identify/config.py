@@ -174,10 +174,11 @@ class FitConfig:
     # during the calibration (torchblur.image.tracking.calibrate_axes at the sweep's first frequency); "x", "y",
     # or [x, y]. The response is the motion along that direction (the sign that points toward +x, or +y).
     axis: object = "measure"
-    # One-spot runs: the PSF the sine sweep fits with (torchblur.image.psf_from_still on the still frames).
-    # "auto" (default): the point-sampled Gaussian where it explains the averaged still to its noise, else
-    # the measured kernel; "kernel" or "gaussian" forces one. Many spots, the multisine and the direct fit
-    # use the Gaussian (fit.psf=kernel is refused there; with auto the log says when it does not fit).
+    # The PSF every fit of the run uses (torchblur.image.psf_from_still on the still frames; per spot with
+    # many spots). "auto" (default): the point-sampled Gaussian where it explains the averaged still to its
+    # noise, else the measured kernel (many spots: the kernels of every spot when any spot's Gaussian fails);
+    # "kernel" or "gaussian" forces one. The same on every route: sine sweep, multisine, direct model, many
+    # spots (the DM command fits Gaussians: issue 23).
     psf: str = "auto"
     optimizer: str = "lm"
     loss: str = "l2"  # "l2", "l1" or "poisson", each weighted by the calibrated camera noise (linf: refused, no likelihood)
@@ -902,20 +903,12 @@ def validate_report(cfg: IdentifyConfig) -> None:
 
 
 def validate_fit_psf(cfg) -> None:
-    """``fit.psf``: one of :data:`torchblur.image.psf_from_still.KINDS`; ``kernel`` only where
-    every fit of the run can use a measured kernel (one spot, a sine sweep, no direct model)."""
+    """``fit.psf``: one of :data:`torchblur.image.psf_from_still.KINDS` (every route fits with
+    the PSF it chooses: one spot, many spots, multisine, the direct model)."""
     from torchblur.image.psf_from_still import KINDS as PSF_KINDS
 
     if not isinstance(cfg.fit.psf, str) or cfg.fit.psf not in PSF_KINDS:
         raise ConfigError(f"fit.psf: expected one of {PSF_KINDS}, got {excerpt(cfg.fit.psf)}")
-    if cfg.fit.psf != "kernel":
-        return
-    gaussian_only = [why for cond, why in ((cfg.spots.enabled, "many spots (spots.rows > 0: a Gaussian per spot)"),
-                                            (cfg.excitation.kind == "multisine", "excitation.kind=multisine"),
-                                            (cfg.model.direct, "model.direct=true")) if cond]
-    if gaussian_only:
-        raise ConfigError(f"fit.psf: 'kernel' applies to one-spot sine sweeps without the direct model; this run has "
-                          f"{' and '.join(gaussian_only)}, which fit(s) a Gaussian PSF: set fit.psf=auto or gaussian")
 
 
 MIN_PSF_SIGMA_PX = 0.1

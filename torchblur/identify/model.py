@@ -4,6 +4,7 @@
 (:func:`fit_direct_model`)."""
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 
@@ -11,7 +12,7 @@ import numpy as np
 import torch
 
 from torchblur.identify.record import log_message
-from torchblur.render.psf import GaussianPSF
+from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.sysid.direct import fit_direct
 from torchblur.sysid.flags import POOR_FIT
 from torchblur.sysid.tf_fit import fit_transfer_function
@@ -145,18 +146,26 @@ def modes_outside_band(modes, f_lo_hz: float, f_hi_hz: float, factor: float = 3.
     return [m for m in modes if not (f_lo_hz / factor <= m["freq_hz"] <= factor * f_hi_hz)]
 
 
-def fit_direct_model(cfg, model, images, windows, omega, amps, psf, power_t, noise, mask, fit, log, progress, direction):
+def fit_direct_model(cfg, model, images, windows, omega, amps, psf, power_t, noise, mask, fit, log, progress, direction, still_psf=None):
     """The direct model (one axis, one spot): every image at once, weighted by the camera's
     noise model ``noise`` (:class:`~torchblur.render.camera.CameraNoise`; the fit's own rule:
     :func:`~torchblur.sysid.direct.fit_direct` with ``noise``) and the sweep's mask; dark or
     out-of-frame points are left out. None, logged, if it fails. The direct fit is a least
-    squares whatever ``fit.loss`` (the two-step points use it): a warning says so."""
+    squares whatever ``fit.loss`` (the two-step points use it): a warning says so.
+    With ``still_psf`` (the calibration's :class:`~torchblur.image.psf_from_still.StillPSF`)
+    choosing the measured kernel, the images are fitted with it, and the stds include the
+    kernel's own noise (:func:`direct_kernel_noise_factor`)."""
     F = images.shape[0]
     t_direct = time.perf_counter()
     if cfg.fit.loss != "l2":
         log_message(log, f"direct: warning: fit.loss={cfg.fit.loss} applies to the two-step points only; the direct model "
                     f"(model.direct) is fitted by least squares (l2) weighted by the camera's noise model", progress)
-    psf_pts = GaussianPSF(psf.center.expand(F, 2), psf.cov.expand(F, 2, 2), psf.amplitude * power_t)
+    kernel = still_psf is not None and isinstance(still_psf.psf, KernelPSF)
+    if kernel:
+        k = still_psf.psf.kernel.to(images.dtype)
+        psf_pts = KernelPSF(k.expand((F,) + tuple(k.shape)) * power_t.to(k)[:, None, None])
+    else:
+        psf_pts = GaussianPSF(psf.center.expand(F, 2), psf.cov.expand(F, 2, 2), psf.amplitude * power_t)
     A_t = torch.tensor(amps, dtype=torch.float64)
     try:
         d = fit_direct(images, psf_pts, windows, omega, A_t, model, form=cfg.model.direct_form, fit_delay=bool(cfg.model.fit_delay),
@@ -167,6 +176,8 @@ def fit_direct_model(cfg, model, images, windows, omega, amps, psf, power_t, noi
     except Exception as exc:  # the two-step model is still a result; say why the direct fit failed
         log_message(log, f"direct: fit failed: {exc}", progress)
         return None
+    if kernel:
+        d = with_kernel_noise(d, direct_kernel_noise_factor(still_psf, windows, power_t, d.used))
     modal = d.modal_parameters()
     modes = ", ".join(f"{m['freq_hz']:.3f} +- {m['freq_hz_std']:.3f} Hz (zeta {m['zeta']:.4f} +- {m['zeta_std']:.4f})"
                       for m in modal)
@@ -178,3 +189,20 @@ def fit_direct_model(cfg, model, images, windows, omega, amps, psf, power_t, noi
               f"converged {d.converged}, reduced chi2 {d.reduced_chi2:.3f}, {time.perf_counter() - t_direct:.2f} s; "
               f"modes: {modes or 'none'}", progress)
     return d
+
+
+def direct_kernel_noise_factor(still_psf, windows, power_t, used) -> float:
+    """The factor by which the direct model's stds grow from the measured kernel's own noise:
+    :meth:`~torchblur.image.psf_from_still.StillPSF.kernel_noise_factor` of one point's light
+    (the mean over the used points ``used [F]`` of their exposures ``windows [F, E]`` times their
+    laser power ``power_t [F]``), the rule of the sweep's points, whose values the model's
+    parameters pool (benchmarks/bench_hcipy_routes.py checks it)."""
+    light = (windows.duration.to(torch.float64) * torch.as_tensor(power_t, dtype=torch.float64)[:, None])
+    use = torch.as_tensor(np.asarray(used), dtype=torch.bool)
+    per_point = light[use].sum(-1).mean() if bool(use.any()) else light.sum(-1).mean()
+    return float(still_psf.kernel_noise_factor(per_point[None]))
+
+
+def with_kernel_noise(d, factor: float):
+    """The :class:`~torchblur.sysid.direct.DirectModelFit` ``d`` with its stds times ``factor`` (covariance times its square)."""
+    return dataclasses.replace(d, covariance=d.covariance * factor**2, std=d.std * factor)

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -65,6 +65,7 @@ class MultisineIdentificationResult(IdentificationResult):
     its tones in the frequency response)."""
 
     groups: list = field(default_factory=list)
+    fit_psf: object = None  # the PSF the groups were fitted with (the measured kernel or the Gaussian); None: ``psf``
 
     @property
     def images_used(self) -> int:
@@ -88,7 +89,8 @@ class MultisineIdentificationResult(IdentificationResult):
                 theta = torch.cat([f.amplitude, f.phase] + ([f.scale.reshape(1)] if f.scale is not None else []))
                 om = torch.as_tensor(2 * np.pi * np.asarray(g["freq_hz"]), dtype=theta.dtype)
                 w = ExposureWindow(self.windows.start[i:i + 1], self.windows.duration[i:i + 1])
-                img = render_multisine(theta, om, self.psf, w, height=H, width=W, direction=self.direction)[0]
+                psf = self.fit_psf if self.fit_psf is not None else self.psf
+                img = render_multisine(theta, om, psf, w, height=H, width=W, direction=self.direction)[0]
                 models.append(img.detach().numpy())
             labels.append(f"{', '.join(f'{v:.4g}' for v in g['freq_hz'])} Hz")
         return np.stack(data), np.stack(models), labels
@@ -279,9 +281,10 @@ def _fit_group(run, acq: MultisineAcquisition, grp: _Group, st: _Settings, acqui
     start = torch.tensor([o + c.trigger_delay_s + cal.latency_s for o in offsets], dtype=_F64)
     dur = torch.tensor(exposures, dtype=_F64)
     t0 = time.perf_counter()
-    fit = fit_multisine(img, cal.psf, ExposureWindow(start, dur), torch.tensor(grp.om, dtype=_F64), noise=cal.noise, power=pw,
+    fit = fit_multisine(img, fit_psf(cal), ExposureWindow(start, dur), torch.tensor(grp.om, dtype=_F64), noise=cal.noise, power=pw,
                         mask=cal.saturation.mask(frames), amplitude_guess=torch.tensor(M_exp, dtype=_F64),
                         fit_scale=bool(run.cfg.fit.fit_scale), seed=int(run.cfg.seed), direction=st.u)
+    fit = with_kernel_noise(fit, cal.still_psf, dur * pw)
     acq.fit_s += time.perf_counter() - t0
     a_t = np.asarray(a, dtype=np.float64)
     resp = fit.amplitude.numpy() / a_t * np.exp(1j * (fit.phase.numpy() - np.asarray(phases)))
@@ -316,6 +319,23 @@ def _fit_group(run, acq: MultisineAcquisition, grp: _Group, st: _Settings, acqui
             f"{', '.join(f'{t / grp.T0:.2f}' for t in exposures)} T0), predicted std |H| "
             f"{100 * float(np.max(design.amplitude_rel_std)):.3f}% / phase "
             f"{math.degrees(float(np.max(design.phase_std))):.3f} deg; {_fit_word(fit, float(run.cfg.fit.poor_fit_chi2))}")
+
+
+def fit_psf(cal):
+    """The PSF the multisine fit uses: the calibration's choice (``cal.still_psf.psf``, the
+    measured kernel or the Gaussian, at laser power 1), else its Gaussian ``cal.psf``."""
+    return cal.still_psf.psf if cal.still_psf is not None else cal.psf
+
+
+def with_kernel_noise(fit, still_psf, light_s):
+    """``fit`` (a :class:`~torchblur.fit.multisine.MultisineFit` of one image set) with its stds
+    times :meth:`~torchblur.image.psf_from_still.StillPSF.kernel_noise_factor` of the set's
+    light ``light_s [E]`` (each exposure times its laser power) where the measured kernel was
+    fitted (the kernel's own noise, the one-spot sweep's rule); unchanged with a Gaussian."""
+    if still_psf is None or still_psf.kind != "kernel":
+        return fit
+    f = still_psf.kernel_noise_factor(light_s).to(fit.amplitude_std)
+    return replace(fit, amplitude_std=fit.amplitude_std * f, phase_std=fit.phase_std * f, covariance=fit.covariance * f**2)
 
 
 def _fit_word(fit, poor_fit_chi2: float) -> str:
@@ -384,7 +404,8 @@ class MultisinePlan:
                                           "input_limit": float(limit) if math.isfinite(limit) else None,
                                           "slew_limit": None if cal.drive is None or not math.isfinite(cal.drive.slew)
                                           else float(cal.drive.slew),
-                                          "limited_hz": [float(f) for f in freq[limited]]})
+                                          "limited_hz": [float(f) for f in freq[limited]],
+                                          "psf": cal.still_psf.kind if cal.still_psf is not None else "gaussian"})
         n_bad = int(np.isnan(response).sum())
         run.say(f"fit: {len(freq) - n_bad} of {len(freq)} points converged ({len(acq.groups)} multisine group(s))")
         H, W = run.rig.frame_shape
@@ -405,7 +426,7 @@ class MultisinePlan:
                                              amplitude=np.asarray(acq.amplitude)[idx], latency_s=cal.latency_s,
                                              latency_std_s=cal.latency_std_s, saturation=cal.saturation, images=run.images,
                                              windows=run.windows, power=run.power, truth=run.truth, log=run.log, timing=run.timing,
-                                             groups=acq.groups, direction=cal.direction, axis=cal.axis,
+                                             groups=acq.groups, direction=cal.direction, axis=cal.axis, fit_psf=fit_psf(cal),
                                              limited=np.asarray(acq.limited, dtype=bool)[idx],
                                              moved_px=np.asarray(acq.moved_px, dtype=np.float64)[idx], noise=cal.noise,
                                              ptc=cal.ptc)

@@ -60,8 +60,10 @@ class SweepLayout:
     (problems whose motion steers the amplitude), ``moment_dirs`` (directions it is measured
     along), with one spot ``still_psf`` (the calibration's
     :class:`~torchblur.image.psf_from_still.StillPSF`: the points are fitted with
-    ``still_psf.psf``), and with many spots ``spots``, ``in_frame`` ``[P, h, w]`` and
-    ``flagged`` ``[P]``."""
+    ``still_psf.psf``), and with many spots ``spots``, ``in_frame`` ``[P, h, w]``,
+    ``flagged`` ``[P]`` and ``spot_kernels`` (the calibration's
+    :class:`~torchblur.identify.calibration.SpotKernels`: every spot fitted with its measured
+    kernel; None: the Gaussians ``psf_p``)."""
 
     inputs: list
     freqs: np.ndarray
@@ -80,6 +82,7 @@ class SweepLayout:
     spots: object = None
     in_frame: torch.Tensor | None = None
     flagged: torch.Tensor | None = None
+    spot_kernels: object = None
 
     @property
     def E(self) -> int:
@@ -87,8 +90,15 @@ class SweepLayout:
 
     @property
     def uses_kernel(self) -> bool:
-        """The points are fitted with the measured kernel (``still_psf.psf`` is a KernelPSF)."""
-        return self.still_psf is not None and isinstance(self.still_psf.psf, KernelPSF)
+        """The points are fitted with the measured kernel (``still_psf.psf`` is a KernelPSF, or
+        many spots' ``spot_kernels``)."""
+        return self.spot_kernels is not None or (self.still_psf is not None and isinstance(self.still_psf.psf, KernelPSF))
+
+    @property
+    def kernel_rule(self):
+        """What gives the kernel's own noise factor (``kernel_noise_factor``): the one spot's
+        StillPSF or the spots' kernels."""
+        return self.spot_kernels if self.spot_kernels is not None else self.still_psf
 
     def pieces_of(self, frames: torch.Tensor) -> torch.Tensor:
         """``[E, R, H, W]`` -> ``[E, R, P, h, w]`` (the spots' crops, or the frame)."""
@@ -111,7 +121,8 @@ def sweep_layout(cfg, cal, frame_shape) -> SweepLayout:
         use_p = ~spots.clipped if bool((~spots.clipped).any()) else torch.ones(P, dtype=torch.bool)
         flagged = spots.inside_fraction < MIN_INSIDE  # [P] spots mostly outside the frame: not fitted
         use_p = use_p & ~flagged if bool((use_p & ~flagged).any()) else use_p
-        kw = dict(spots=spots, in_frame=crop_valid(tuple(frame_shape), spots.offset, spots.size), flagged=flagged)
+        kw = dict(spots=spots, in_frame=crop_valid(tuple(frame_shape), spots.offset, spots.size), flagged=flagged,
+                  spot_kernels=getattr(cal, "spot_kernels", None))
     else:
         P, (h, w) = 1, tuple(frame_shape)
         psf_p = GaussianPSF(psf.center[None], psf.cov[None], psf.amplitude[None])
@@ -169,6 +180,8 @@ def _point_psf(lay: SweepLayout, power: torch.Tensor):
     """The PSF of points of laser powers ``power`` ``[n]``, batch ``[n, P]``: the measured
     kernel where the calibration chose it (one spot), else the Gaussian(s) ``lay.psf_p``."""
     n, P, psf_p = power.shape[0], lay.P, lay.psf_p
+    if lay.spot_kernels is not None:  # [P, h, w]: a kernel per spot
+        return KernelPSF(lay.spot_kernels.psf.kernel.to(_F64).expand(n, P, lay.h, lay.w) * power[:, None, None, None])
     if lay.uses_kernel:
         return KernelPSF(lay.still_psf.psf.kernel.to(_F64).expand(n, P, lay.h, lay.w) * power[:, None, None, None])
     return GaussianPSF(psf_p.center.expand(n, P, 2), psf_p.cov.expand(n, P, 2, 2), psf_p.amplitude[None, :] * power[:, None])
@@ -205,7 +218,7 @@ def fit_points(acq: SineAcquisition, lay: SweepLayout, cfg, noise: CameraNoise, 
                            outliers=f.outliers, outlier_sigma=float(f.outlier_sigma))
     if lay.uses_kernel:
         # the rule counts the light: a point's exposures at laser power p hold the light of p times them at power 1
-        fit = inflate_std(fit, lay.still_psf.kernel_noise_factor(win.duration * pw[:, None, None]))  # [n, 1]
+        fit = inflate_std(fit, lay.kernel_rule.kernel_noise_factor(win.duration * pw[:, None, None]))  # [n, 1]
     return squeeze_problems(fit) if lay.single else fit
 
 
@@ -405,6 +418,8 @@ class SinePlan:
         meta = {"seed": int(run.cfg.seed), **_drive_meta(run, lay)}
         if lay.still_psf is not None:
             meta["psf"] = lay.still_psf.kind  # the PSF the points were fitted with: "kernel" or "gaussian"
+        elif lay.spots is not None:
+            meta["psf"] = "kernel" if lay.spot_kernels is not None else "gaussian"
         if lay.single:
             meta["direction"] = list(cal.direction)  # the image direction of the fitted motion (x, y)
             run.images = images[:, 0]  # [F, E*R, H, W]
@@ -433,7 +448,7 @@ class SinePlan:
         acq, cal = run.acquisition, run.cal
         return fit_direct_model(run.cfg, run.model, run.images, run.windows, acq.omega_job, acq.amps, cal.psf, run.power,
                                 cal.noise, torch.stack(acq.masks)[:, 0], run.fit,
-                                run.log, run.progress, cal.direction)
+                                run.log, run.progress, cal.direction, still_psf=cal.still_psf)
 
     def result(self, run) -> IdentificationResult:
         """The report stage: the :class:`IdentificationResult`."""

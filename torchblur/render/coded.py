@@ -22,7 +22,7 @@ import torch
 
 from torchblur.errors import InputTypeError, ShapeError, ParameterError, as_tensor, check_finite
 from torchblur.render.blur import RenderSettings, render_blur
-from torchblur.render.psf import GaussianPSF
+from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.trajectory import Sinusoid
 from torchblur.render.window import ExposureWindow
 
@@ -80,6 +80,8 @@ def render_coded(trajectory, psf, window: ExposureWindow, code, *, height: int, 
         raise InputTypeError(f"trajectory: expected a Sinusoid, got {type(trajectory).__name__}")
     if isinstance(psf, GaussianPSF):
         psf_b = GaussianPSF(psf.center[..., None, :], psf.cov[..., None, :, :], psf.amplitude[..., None])
+    elif isinstance(psf, KernelPSF):
+        psf_b = KernelPSF(psf.kernel[..., None, :, :])
     else:
-        raise InputTypeError(f"psf: expected a GaussianPSF, got {type(psf).__name__}")
+        raise InputTypeError(f"psf: expected a GaussianPSF or KernelPSF, got {type(psf).__name__}")
     return render_blur(traj_b, psf_b, sub, height=height, width=width, settings=settings).sum(-3)

@@ -39,9 +39,9 @@ import math
 import torch
 
 from torchblur.errors import InputTypeError, ParameterError, ShapeError
-from torchblur.render.blur import _exp_budget, _exp_floor, _tile_grid
+from torchblur.render.blur import _exp_budget, _exp_floor, _next_odd_fast, _tile_grid
 
-__all__ = ["gaussian_splat_with_jacobian", "sine_blur_with_jacobian", "window_nodes"]
+__all__ = ["gaussian_splat_with_jacobian", "kernel_shift_with_jacobian", "sine_blur_with_jacobian", "window_nodes"]
 
 # Temporaries of one chunk of frames. Cache-sized chunks (~8 MB) were no faster than this on an
 # idle 2-core machine, and many small ops are far slower when the cores are shared.
@@ -186,6 +186,108 @@ def _splat_jacobian(px, py, dpx, dpy, w, A, B, C, H, W):
     return image.reshape(batch + (H, W)), jac.reshape(batch + (nq, H, W))
 
 
+def kernel_shift_with_jacobian(kernel, dx, dy, dpx, dpy, w, *, pad=None):
+    """A measured kernel shifted along the nodes (a band-limited image, Fourier shift) and its
+    Jacobian with respect to node-moving parameters: the kernel path of the one forward model.
+
+    Proposition 1 in Fourier space, as :func:`torchblur.render.blur._kernel_fourier` renders a
+    :class:`~torchblur.render.psf.KernelPSF`: ``image = IFFT(K(k) D(k))`` with
+    ``D(k) = sum_s w_s exp(-i (kx dx_s + ky dy_s))``, a separable complex GEMM on a padded
+    (odd-sized) grid. The derivative of a node's phase factor is ``-i (kx dpx_sk + ky dpy_sk)``
+    times it, and ``kx`` (a column) and ``ky`` (a row) factor out of the sum over nodes, so
+
+        jac_k = IFFT(-i K(k) (kx Dx_k(k) + ky Dy_k(k))),  Dx_k = sum_s w_s dpx_sk e_s, Dy_k likewise,
+
+    ``1 + 2 Q`` column variants of one GEMM (exact: no finite differences, no forward AD).
+
+    Args:
+        kernel: the still spot's image ``[..., H, W]`` (intensity per second; its rest position
+            wherever it sits in the frame).
+        dx, dy: node displacements from that rest position (px) ``[..., S]``.
+        dpx, dpy: their derivatives with respect to ``Q`` parameters ``[..., S, Q]``.
+        w: node weights ``[..., S]`` (quadrature weight * duration * intensity scale).
+        pad: px of zeros around the kernel on the FFT grid (the shifted kernel must not wrap
+            round): None, the largest displacement of the batch plus 2 px; a number, at least
+            that many (a fit fixes it from its motion bound so that its model does not jump
+            between iterations). Items of one batch share the grid.
+
+    Returns:
+        ``(image [..., H, W], jac [..., Q, H, W])``, ``image[..., i, j] = sum_s w_s K(j - dx_s, i - dy_s)``
+        (K the band-limited interpolant of the kernel), ``jac[..., k, i, j] = d image / d theta_k``.
+        Broadcast batch ``[...]``; computed in float64 for inputs of 32 bits or fewer (cast back);
+        differentiable by autograd in every input.
+
+    Example:
+        >>> S = 16
+        >>> dx, dy = torch.linspace(-3, 3, S), torch.zeros(S)
+        >>> img, jac = kernel_shift_with_jacobian(torch.rand(24, 32), dx, dy, torch.ones(S, 1), torch.zeros(S, 1), torch.full((S,), 1 / S))
+        >>> img.shape, jac.shape
+        (torch.Size([24, 32]), torch.Size([1, 24, 32]))
+    """
+    names = ("kernel", "dx", "dy", "dpx", "dpy", "w")
+    args = (kernel, dx, dy, dpx, dpy, w)
+    for name, val in zip(names, args):
+        if not isinstance(val, torch.Tensor):
+            raise InputTypeError(f"{name}: expected a torch.Tensor, got {type(val).__name__}")
+        if val.is_complex():
+            raise InputTypeError(f"{name}: expected a real tensor, got {val.dtype}")
+    for name, val, nd in zip(names, args, (2, 1, 1, 2, 2, 1)):
+        if val.dim() < nd:
+            raise ShapeError(f"{name}: expected at least {nd} dimension(s), got shape {tuple(val.shape)}")
+    if pad is not None and (isinstance(pad, bool) or not isinstance(pad, (int, float)) or not pad >= 0):
+        raise ParameterError(f"pad: expected None or a number >= 0 (px), got {pad!r}")
+    dtype = functools.reduce(torch.promote_types, (v.dtype for v in args))
+    dtype = dtype if dtype.is_floating_point else torch.get_default_dtype()
+    wide = torch.float64 if torch.finfo(dtype).bits <= 32 else dtype
+    kernel, dx, dy, dpx, dpy, w = (v.to(device=kernel.device, dtype=wide) for v in args)
+    (H, W), S, nq = kernel.shape[-2:], dx.shape[-1], dpx.shape[-1]
+    try:
+        batch = torch.broadcast_shapes(kernel.shape[:-2], dx.shape[:-1], dy.shape[:-1], w.shape[:-1], dpx.shape[:-2], dpy.shape[:-2])
+        kernel = kernel.expand(batch + (H, W))
+        dx, dy, w = (v.expand(batch + (S,)) for v in (dx, dy, w))
+        dpx, dpy = (v.expand(batch + (S, nq)) for v in (dpx, dpy))
+    except RuntimeError as exc:
+        raise ShapeError(f"kernel [..., H, W], dx, dy, w [..., S], dpx, dpy [..., S, Q]: shapes do not broadcast "
+                         f"({', '.join(f'{n} {tuple(v.shape)}' for n, v in zip(names, args))}): {exc}") from None
+    reach = float(torch.maximum(dx.detach().abs().max(), dy.detach().abs().max())) if dx.numel() else 0.0
+    pad_px = max(int(math.ceil(reach)) + 2, int(math.ceil(pad or 0)))
+    image, jac = _kernel_jacobian(kernel, dx, dy, dpx, dpy, w, pad_px)
+    return image.to(dtype), jac.to(dtype)
+
+
+def _kernel_jacobian(kernel, dx, dy, dpx, dpy, w, pad: int):
+    """Broadcast inputs of one floating dtype, ``pad`` px -> (image [..., H, W], jac [..., Q, H, W])."""
+    batch, (H, W) = kernel.shape[:-2], kernel.shape[-2:]
+    S, nq = dx.shape[-1], dpx.shape[-1]
+    N, V = math.prod(batch), 1 + 2 * nq
+    Hp, Wp = _next_odd_fast(H + 2 * pad), _next_odd_fast(W + 2 * pad)
+    ph, pw = (Hp - H) // 2, (Wp - W) // 2
+    two_pi = 2 * math.pi
+    ky = two_pi * torch.fft.fftfreq(Hp, dtype=dx.dtype, device=dx.device)  # [Hp]
+    kx = two_pi * torch.fft.rfftfreq(Wp, dtype=dx.dtype, device=dx.device)  # [Kx]
+    Kx = kx.numel()
+    kernel, dx, dy, w = kernel.reshape(N, H, W), dx.reshape(N, S), dy.reshape(N, S), w.reshape(N, S)
+    coef = torch.cat((w[..., None], dpx.reshape(N, S, nq) * w[..., None], dpy.reshape(N, S, nq) * w[..., None]), -1)  # [N, S, V]
+    image = kernel.new_empty(N, H, W)
+    jac = kernel.new_empty(N, nq, H, W)
+    per_item = 16 * (S * (Hp + V * Kx) + 3 * V * Hp * Kx)
+    step = max(1, int(_CHUNK_BYTES // per_item))
+    for i in range(0, N, step):
+        sl = slice(i, i + step)
+        kp = torch.nn.functional.pad(kernel[sl], (pw, Wp - W - pw, ph, Hp - H - ph))
+        khat = torch.fft.rfft2(kp)  # [n, Hp, Kx]
+        ay, ax = -dy[sl, :, None] * ky, -dx[sl, :, None] * kx  # [n, S, Hp], [n, S, Kx]
+        ey = torch.polar(torch.ones_like(ay), ay)
+        ex = torch.polar(torch.ones_like(ax), ax)
+        rp = ex[:, :, None, :] * coef[sl, :, :, None].to(ex.dtype)  # [n, S, V, Kx]
+        d = (ey.transpose(-1, -2) @ rp.flatten(-2)).unflatten(-1, (V, Kx))  # [n, Hp, V, Kx]
+        spec = torch.cat((d[:, :, :1], -1j * (kx * d[:, :, 1:1 + nq] + ky[:, None, None] * d[:, :, 1 + nq:])), 2)
+        out = torch.fft.irfft2(khat[:, None] * spec.movedim(2, 1), s=(Hp, Wp))[..., ph:ph + H, pw:pw + W]  # [n, V', H, W]
+        image[sl] = out[:, 0]
+        jac[sl] = out[:, 1:]
+    return image.reshape(batch + (H, W)), jac.reshape(batch + (nq, H, W))
+
+
 def window_nodes(start, duration, tau, weights, amplitude):
     """Time nodes and splat weights of exposure windows on a quadrature rule over [0, 1].
 
@@ -204,26 +306,35 @@ def window_nodes(start, duration, tau, weights, amplitude):
 
 
 def sine_blur_with_jacobian(t, w, amplitude, phase, omega, direction, center, precision, height, width, *,
-                            center_jacobian=False, jacobian=True):
-    """The forward model of every fitter: a Gaussian spot moved by a sum of sines, and the
-    image's derivatives with respect to the sines' amplitudes and phases (and the rest position).
+                            center_jacobian=False, jacobian=True, kernel=None, pad=None):
+    """The forward model of every fitter: a spot (a Gaussian or a measured kernel) moved by a sum
+    of sines, and the image's derivatives with respect to the sines' amplitudes and phases (and
+    the rest position).
 
     The spot's position at time ``t`` is
     ``p(t) = center + sum_k direction_k * amplitude_k * sin(omega_k t + phase_k)``, so a motion
     along x is one component with direction ``(1, 0)``, a Lissajous figure two components along
     x and y, a multisine ``K`` tones along one direction, a parametric model's response the sine
     its frequency response gives. The image is ``sum_s w_s Psi(eta - p(t_s))`` (point-sampled
-    pixels), computed with its Jacobian in one splat (:func:`gaussian_splat_with_jacobian`).
+    pixels), computed with its Jacobian in one splat: :func:`gaussian_splat_with_jacobian` for a
+    Gaussian, :func:`kernel_shift_with_jacobian` for a measured kernel (``kernel`` given: the
+    still spot's image shifted as a band-limited image, as the renderer renders a
+    :class:`~torchblur.render.psf.KernelPSF`; ``center`` is then the shift of the kernel's rest
+    position, zeros for the spot at rest where the kernel shows it).
 
     Args:
         t: time nodes (s) ``[..., S]``; w: their splat weights ``[..., S]`` (:func:`window_nodes`).
         amplitude: ``[..., K]`` px; phase: ``[..., K]`` rad; omega: ``[..., K]`` rad/s.
         direction: unit image directions of the components ``[..., K, 2]`` (x, y).
         center: rest position ``[..., 2]`` px (x, y).
-        precision: ``(A, B, C)``, each ``[...]``: the PSF's inverse covariance ``[[A, B], [B, C]]``.
+        precision: ``(A, B, C)``, each ``[...]``: the Gaussian's inverse covariance ``[[A, B], [B, C]]``
+            (ignored, may be None, with ``kernel``).
         height, width: frame size H, W in pixels.
         center_jacobian: also differentiate with respect to ``center`` (two more parameters).
         jacobian: ``False`` returns an empty Jacobian (``P = 0``): the image alone, same splat.
+        kernel: None (a Gaussian), or the measured kernel ``[..., H, W]`` (intensity per second,
+            one per item or shared; ``w`` then carries no PSF amplitude, only an intensity scale).
+        pad: kernel path: the FFT grid's padding (px), see :func:`kernel_shift_with_jacobian`.
 
     Returns:
         ``(image [..., H, W], jac [..., P, H, W])`` with ``jac[..., p, i, j] = d image[..., i, j] /
@@ -247,5 +358,10 @@ def sine_blur_with_jacobian(t, w, amplitude, phase, omega, direction, center, pr
             dpy = torch.cat([dpy, zero, one], -1)
     else:
         dpx = dpy = px[..., None][..., :0]
+    if kernel is not None:
+        if not isinstance(kernel, torch.Tensor) or kernel.dim() < 2 or tuple(kernel.shape[-2:]) != (height, width):
+            got = tuple(kernel.shape) if isinstance(kernel, torch.Tensor) else type(kernel).__name__
+            raise ShapeError(f"kernel: expected a tensor [..., {height}, {width}] (the still spot in the frame), got {got}")
+        return kernel_shift_with_jacobian(kernel, px, py, dpx, dpy, w, pad=pad)
     A, B, C = precision
     return gaussian_splat_with_jacobian(px, py, dpx, dpy, w, A, B, C, height, width)

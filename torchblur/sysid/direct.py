@@ -57,9 +57,10 @@ import torch
 
 from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_frequency_grid, as_tensor, as_unit_direction, check_choice,
                      check_finite, check_positive)
+from torchblur.fit.problem import _nonzero_box
 from torchblur.render.blur import RenderSettings, choose_node_count, quadrature_nodes
 from torchblur.render.camera import CameraNoise
-from torchblur.render.psf import GaussianPSF
+from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.splat import sine_blur_with_jacobian, window_nodes
 from torchblur.render.trajectory import Sinusoid
 from torchblur.render.window import ExposureWindow
@@ -275,10 +276,12 @@ def _validate(images, psf, window, omega, input_amplitude, start, form, axis, va
         raise ShapeError(f"images: expected a non-empty set, got shape {tuple(images.shape)}")
     check_finite(images, "images")
     F, E = images.shape[:2]
-    if not isinstance(psf, GaussianPSF):
-        raise InputTypeError(f"psf: expected a GaussianPSF (batch [] or [F]), got {type(psf).__name__}")
+    if not isinstance(psf, (GaussianPSF, KernelPSF)):
+        raise InputTypeError(f"psf: expected a GaussianPSF or KernelPSF (batch [] or [F]), got {type(psf).__name__}")
     if psf.shape not in ((), (F,)):
         raise ShapeError(f"psf: expected batch shape [] or [F] = [{F}], got {tuple(psf.shape)}")
+    if isinstance(psf, KernelPSF) and psf.frame_shape != tuple(images.shape[-2:]):
+        raise ShapeError(f"psf: expected a kernel of the images' frame {tuple(images.shape[-2:])}, got {psf.frame_shape}")
     if not isinstance(window, ExposureWindow):
         raise InputTypeError(f"window: expected an ExposureWindow [F, E], got {type(window).__name__}")
     try:
@@ -374,7 +377,7 @@ class _Motion:
         return torch.stack([self.input_amplitude * h.abs().to(self.dtype), torch.angle(h).to(self.dtype)])
 
 
-def _point_images(M, phi, omega, direction, center, precision, t, w, height: int, width: int):
+def _point_images(M, phi, omega, direction, center, precision, t, w, height: int, width: int, *, kernel=None, pad=None):
     """Unit-scale images of the used points and their derivatives with respect to ``(M, phi)``:
     the one forward model (:func:`~torchblur.render.splat.sine_blur_with_jacobian`), one sine
     ``M sin(omega t + phi)`` along the unit ``direction [2]``.
@@ -383,13 +386,16 @@ def _point_images(M, phi, omega, direction, center, precision, t, w, height: int
         M, phi, omega: ``[n]`` (px, rad, rad/s); center ``[n, 2]`` px; precision ``(A, B, C)`` each ``[n]``.
         t, w: time nodes (s) and splat weights ``[n, E, S]`` (:func:`~torchblur.render.splat.window_nodes`).
         height, width: frame size.
+        kernel: a measured kernel per point ``[n, H, W]`` (then ``center`` is its shift, ``precision`` None), or None.
+        pad: the kernel's FFT padding (px).
 
     Returns:
         ``(image [n, E, H, W], jac [n, E, 2, H, W])``.
     """
     col = (slice(None), None, None)  # [n] -> [n, 1, K = 1]
     return sine_blur_with_jacobian(t, w, M[col], phi[col], omega[col], direction[None], center[:, None, :],
-                                   tuple(v[:, None] for v in precision), height, width)
+                                   None if precision is None else tuple(v[:, None] for v in precision), height, width,
+                                   kernel=None if kernel is None else kernel[:, None], pad=pad)
 
 
 @dataclasses.dataclass
@@ -397,7 +403,7 @@ class _Problem:
     """The used points' data (cropped), everything their images need, and the time nodes.
 
     ``data, wts [n, E, H, W]``; ``omega [n]``; ``window [n, E]``; ``psf`` (batch ``[n]``, its
-    centre moved with the crop); ``direction [2]``; ``out_cost``, ``out_n``: the cost and the
+    centre moved with the crop; a KernelPSF ``[n, H, W]`` cut with the frame); ``direction [2]``; ``out_cost``, ``out_n``: the cost and the
     count of the used pixels outside the crop, ``out_sq`` their plain sum of squares; ``m_limit``: the motion (px) the crop allows;
     ``tau, wq``: the quadrature rule on [0, 1] (renewed when the motion grows past ``m_bound``).
     """
@@ -406,7 +412,7 @@ class _Problem:
     wts: torch.Tensor
     omega: torch.Tensor
     window: ExposureWindow
-    psf: GaussianPSF
+    psf: GaussianPSF | KernelPSF
     direction: torch.Tensor
     settings: RenderSettings
     fit_scale: bool
@@ -438,9 +444,15 @@ class _Problem:
         self.tau, self.wq = quadrature_nodes(S // m, m, dtype=dtype, device=device)
 
     def render(self, M, phi):
-        """Unit-scale images ``[n, E, H, W]`` and d/d(M, phi) ``[n, E, 2, H, W]``."""
-        t, w = window_nodes(self.window.start, self.window.duration, self.tau, self.wq, self.psf.amplitude[:, None])
+        """Unit-scale images ``[n, E, H, W]`` and d/d(M, phi) ``[n, E, 2, H, W]`` (a measured
+        kernel: its Fourier shift on a grid padded for motions up to ``m_bound``)."""
         H, W = self.data.shape[-2:]
+        if isinstance(self.psf, KernelPSF):
+            t, w = window_nodes(self.window.start, self.window.duration, self.tau, self.wq, torch.ones_like(self.omega)[:, None])
+            pad = int(math.ceil(float(self.m_bound.max()))) + 2
+            return _point_images(M, phi, self.omega, self.direction, torch.zeros_like(M)[:, None].expand(-1, 2), None, t, w, H, W,
+                                 kernel=self.psf.kernel, pad=pad)
+        t, w = window_nodes(self.window.start, self.window.duration, self.tau, self.wq, self.psf.amplitude[:, None])
         return _point_images(M, phi, self.omega, self.direction, self.psf.center, self.psf.precision(), t, w, H, W)
 
     def nuisance(self, img, nuis):
@@ -456,8 +468,11 @@ def _used_points(images, weight, window, omega, psf, use, direction, settings, f
     F = images.shape[0]
     dtype = images.dtype
     idx = torch.nonzero(use)[:, 0]
-    psf_b = GaussianPSF(psf.center.to(dtype).expand(F, 2)[idx], psf.cov.to(dtype).expand(F, 2, 2)[idx],
-                        psf.amplitude.to(dtype).expand(F)[idx])
+    if isinstance(psf, KernelPSF):
+        psf_b = KernelPSF(psf.kernel.to(dtype).expand((F,) + tuple(images.shape[-2:]))[idx])
+    else:
+        psf_b = GaussianPSF(psf.center.to(dtype).expand(F, 2)[idx], psf.cov.to(dtype).expand(F, 2, 2)[idx],
+                            psf.amplitude.to(dtype).expand(F)[idx])
     return _Problem(data=images[idx], wts=weight[idx], omega=omega[idx], window=window[idx], psf=psf_b, direction=direction,
                     settings=settings, fit_scale=fit_scale, fit_background=fit_background,
                     out_cost=torch.zeros((), dtype=dtype, device=images.device))
@@ -472,11 +487,16 @@ def _crop(prob: _Problem, M0: torch.Tensor) -> None:
         return
     H, W = prob.data.shape[-2:]
     dtype, device = prob.data.dtype, prob.data.device
-    center = prob.psf.center
-    sd = torch.diagonal(prob.psf.cov, dim1=-2, dim2=-1).sqrt()
+    kern = isinstance(prob.psf, KernelPSF)
     reach = (M0 * 1.5 + 1.0)[:, None] * prob.direction.abs()  # [n, 2] (x, y) px
-    lo = (center - reach - 7 * sd).amin(0)
-    hi = (center + reach + 7 * sd).amax(0)
+    if kern:  # wherever the kernel is not zero, its faint wings included
+        lo_k, hi_k = _nonzero_box(prob.psf.kernel)
+    else:
+        center = prob.psf.center
+        sd = torch.diagonal(prob.psf.cov, dim1=-2, dim2=-1).sqrt()
+        lo_k, hi_k = center - 7 * sd, center + 7 * sd
+    lo = (lo_k - reach).amin(0)
+    hi = (hi_k + reach).amax(0)
     cx0, cy0 = max(0, int(math.floor(float(lo[0])))), max(0, int(math.floor(float(lo[1]))))
     cx1, cy1 = min(W, int(math.ceil(float(hi[0]))) + 1), min(H, int(math.ceil(float(hi[1]))) + 1)
     if not (cx1 - cx0 >= 4 and cy1 - cy0 >= 4 and (cx1 - cx0) * (cy1 - cy0) < 0.9 * H * W):
@@ -488,7 +508,10 @@ def _crop(prob: _Problem, M0: torch.Tensor) -> None:
     prob.out_n = int(((ow > 0)).sum())
     prob.out_sq = ((ow > 0) * prob.data * prob.data).sum()
     prob.data, prob.wts = prob.data[..., cy0:cy1, cx0:cx1], prob.wts[..., cy0:cy1, cx0:cx1]
-    prob.psf = GaussianPSF(center - torch.tensor([cx0, cy0], dtype=dtype, device=device), prob.psf.cov, prob.psf.amplitude)
+    if kern:
+        prob.psf = KernelPSF(prob.psf.kernel[..., cy0:cy1, cx0:cx1])
+    else:
+        prob.psf = GaussianPSF(center - torch.tensor([cx0, cy0], dtype=dtype, device=device), prob.psf.cov, prob.psf.amplitude)
     prob.m_limit = M0 * 1.5 + 1.0  # along the axis
 
 
@@ -692,7 +715,7 @@ def _per_point(nuis, use, fit_scale: bool, fit_background: bool):
 
 def fit_direct(
     images,
-    psf: GaussianPSF,
+    psf: GaussianPSF | KernelPSF,
     window: ExposureWindow,
     omega,
     input_amplitude,
@@ -717,7 +740,7 @@ def fit_direct(
         images: ``[F, E, H, W]``: E images (exposures, repeats) of each of F sweep points,
             dark level subtracted, in the units of the PSF times seconds.
         psf: ``GaussianPSF`` of batch ``[]`` or ``[F]`` (the laser power per point in its
-            amplitude); its centre is the rest position.
+            amplitude); its centre is the rest position. Or a ``KernelPSF`` ``[H, W]``/``[F, H, W]`` (the power in it).
         window: exposure windows, batch broadcastable to ``[F, E]`` (seconds from an upward
             zero crossing of the command).
         omega: ``[F]`` rad/s.
