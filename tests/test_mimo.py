@@ -145,7 +145,7 @@ def cli_run(tmp_path_factory):
     # 3 points: each channel's model has 1-2 degrees of freedom, too few for the verdict's model rule
     # (torchblur.sysid.model_check): every result is written and the run exits 4, naming them
     assert cli.main(["identify", "--config", MIMO_CFG, "--out", str(out), "--quiet", *SHORT]) == 4
-    assert "the two-step y from x model fails (too few points" in (out / "report.txt").read_text().splitlines()[-1]
+    assert "the two-step y from u_x model fails (too few points" in (out / "report.txt").read_text().splitlines()[-1]
     refit = root / "refit"
     assert cli.main(["fit", str(out), "--out", str(refit), "--quiet", "model.max_order=1"]) == 4  # likewise
     return out, refit
@@ -169,7 +169,7 @@ def test_short_mimo_sweep_matches_the_truth(cli_run):
     model = json.loads((out / "model.json").read_text())
     assert np.shape(model["n_poles"]) == (2, 2)
     # every channel's model carries the verdict's judgement, and its parameters' stds
-    assert [j["name"] for j in model["judgement"]] == [f"two-step {o} from {i}" for o in "xy" for i in "xy"]
+    assert [j["name"] for j in model["judgement"]] == [f"two-step {o} from u_{i}" for o in "xy" for i in "xy"]
     assert model["model_passed"] is False and [len(row) for row in model["std"]] == [2, 2]
     report = (out / "report.txt").read_text()
     assert "output y from input u_x:" in report and "against the truth, per channel" in report
