@@ -721,8 +721,7 @@ def fit_multisine(
     render_settings: RenderSettings | None = None,
     direction=None,
 ) -> MultisineFit:
-    """Fit the N tones ``(M_k, phi_k)`` of a multisine motion along ``direction`` (default x)
-    to an image set.
+    """Fit the N tones ``(M_k, phi_k)`` of a multisine motion along ``direction`` (default x) to an image set.
 
     Args:
         images: ``[..., E, H, W]``: E images of the same periodic motion (dark subtracted, in
