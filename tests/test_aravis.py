@@ -103,13 +103,19 @@ def test_identify_over_the_emulator_with_frames_through_aravis(tmp_path, capsys)
     emu = Emu("camera.height=32", "camera.width=32")
     try:
         frames = f"aravis://Fake_1?feed={emu.info['frames']}"
-        code = cli.main(["identify", "--out", str(tmp_path / "run"), "--quiet", "rig.kind=serial", f"rig.port={emu.info['serial']}",
-                         f"rig.frames={frames}", "rig.timeout_s=2", "camera.height=32", "camera.width=32", "seed=1",
-                         "sweep.freq_hz=[20,200]", "sweep.images_per_point=1", "fit.axis=x", "camera.latency_std_s=0.2e-6"])
+        args = ["identify", "--out", str(tmp_path / "run"), "--quiet", "rig.kind=serial", f"rig.port={emu.info['serial']}",
+                f"rig.frames={frames}", "rig.timeout_s=10", "camera.height=32", "camera.width=32", "seed=1",
+                "sweep.freq_hz=[20,200]", "sweep.images_per_point=1", "fit.axis=x", "camera.latency_std_s=0.2e-6"]
+        code = cli.main(args)
+        if code == 3:  # the rig stopped the run (a frame the free-running fake camera missed under load): resume it, as documented
+            capsys.readouterr()
+            code = cli.main(["identify", "--resume", str(tmp_path / "run"), "--quiet", f"rig.port={emu.info['serial']}",
+                             f"rig.frames={frames}"])
     finally:
         emu.stop()
-    out = capsys.readouterr().out
-    assert code in (0, 4), out
+    cap = capsys.readouterr()
+    out = cap.out
+    assert code in (0, 4), out + cap.err
     assert out.strip().splitlines()[-1].startswith("verdict:")
     import json
 
