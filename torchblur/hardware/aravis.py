@@ -25,13 +25,12 @@ delivered by Aravis's stream (tests/test_aravis.py runs ``torchblur identify`` t
 from __future__ import annotations
 
 import ctypes
-from urllib.parse import parse_qs, urlparse
 
 import numpy as np
 import torch
 
 from torchblur.errors import ParameterError
-from torchblur.hardware.camera_sdk import SDKCamera
+from torchblur.hardware.camera_sdk import SDKCamera, camera_url_query
 from torchblur.hardware.errors import ConnectionLost, FrameError, FrameTimeout, HardwareError
 from torchblur.hardware.frames import CameraInfo, Frame
 
@@ -343,19 +342,10 @@ def aravis_url_options(url: str) -> dict:
     Raises:
         ParameterError: naming ``url``: another scheme, an unknown option, a readout_s that is not a number.
     """
-    u = urlparse(url)
-    if u.scheme != "aravis":
-        raise ParameterError(f"url: expected aravis://[DEVICE][?trigger=...&pixel_format=...], got {url!r}")
-    q = {k: v[-1] for k, v in parse_qs(u.query).items()}
-    unknown = set(q) - {"trigger", "pixel_format", "readout_s", "feed"}
-    if unknown:
-        raise ParameterError(f"url: unknown options {sorted(unknown)}; expected trigger, pixel_format, readout_s, feed")
-    try:
-        readout = float(q.get("readout_s", 0.0))
-    except ValueError:
-        raise ParameterError(f"url: readout_s must be a number of seconds, got {q['readout_s']!r}") from None
+    netloc, q, readout = camera_url_query(url, "aravis", ("trigger", "pixel_format", "readout_s", "feed"),
+                                          "aravis://[DEVICE][?trigger=...&pixel_format=...]")
     feed = q.get("feed")
     if feed is not None and not feed.startswith("tcp://"):
         raise ParameterError(f"url: feed must be the emulator's camera channel tcp://HOST:PORT, got {feed!r}")
-    return {"device": u.netloc or None, "trigger_source": q.get("trigger", "Software" if feed else "Line1"),
+    return {"device": netloc or None, "trigger_source": q.get("trigger", "Software" if feed else "Line1"),
             "pixel_format": q.get("pixel_format", "Mono16" if feed else None), "readout_s": readout, "feed": feed}

@@ -20,12 +20,11 @@ tests/test_pylon.py runs the whole path on it with torchblur-rendered frames.
 from __future__ import annotations
 
 import os
-from urllib.parse import parse_qs, urlparse
 
 import numpy as np
 
 from torchblur.errors import ParameterError
-from torchblur.hardware.camera_sdk import SDKCamera
+from torchblur.hardware.camera_sdk import SDKCamera, camera_url_query
 from torchblur.hardware.errors import ConnectionLost, FrameError, HardwareError
 from torchblur.hardware.frames import CameraInfo
 
@@ -259,16 +258,7 @@ def pylon_url_options(url: str) -> dict:
         ParameterError: naming ``url``: another scheme, an unknown option, a readout_s that is
             not a number.
     """
-    u = urlparse(url)
-    if u.scheme != "pylon":
-        raise ParameterError(f"url: expected pylon://[SERIAL][?trigger=...&pixel_format=...], got {url!r}")
-    q = {k: v[-1] for k, v in parse_qs(u.query).items()}
-    unknown = set(q) - {"trigger", "pixel_format", "readout_s"}
-    if unknown:
-        raise ParameterError(f"url: unknown options {sorted(unknown)}; expected trigger, pixel_format, readout_s")
-    try:
-        readout = float(q.get("readout_s", 0.0))
-    except ValueError:
-        raise ParameterError(f"url: readout_s must be a number of seconds, got {q['readout_s']!r}") from None
-    return {"serial": u.netloc or None, "trigger_source": q.get("trigger", "Line1"), "pixel_format": q.get("pixel_format"),
+    netloc, q, readout = camera_url_query(url, "pylon", ("trigger", "pixel_format", "readout_s"),
+                                          "pylon://[SERIAL][?trigger=...&pixel_format=...]")
+    return {"serial": netloc or None, "trigger_source": q.get("trigger", "Line1"), "pixel_format": q.get("pixel_format"),
             "readout_s": readout}
