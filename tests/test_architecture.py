@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1] / "torchblur"
-# May name torchblur.identify: the package's lazy table and the old flat paths.
-IDENTIFY_EXCEPTIONS = {"torchblur", "torchblur._legacy",
+# May name torchblur.identify: the package's lazy table.
+IDENTIFY_EXCEPTIONS = {"torchblur",
                        "torchblur.dm.pipeline",  # the DM run: a pipeline beside identify's, reusing its calibration stage
                        "torchblur.dm.record",  # the DM run's recording: identify's experiment folder, resume and re-fit checks
                        "torchblur.dm.verdict"}  # the DM run's verdict: identify's exit status (EXIT_FLAGGED) and name lists

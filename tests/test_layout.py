@@ -1,62 +1,60 @@
-"""The package's layout: the public surface, and the import paths of the flat layout still working."""
+"""The package's layout: the public surface, and every dotted path the README and the guides
+quote is a real one (there are no alias module paths: each name is quoted where it lives)."""
 import importlib
+import re
+from pathlib import Path
 
 import pytest
 
 import torchblur as tb
-from torchblur._legacy import MOVED
 
-# Import paths the README and guides documented before the subpackages (old path, name, new home).
-DOCUMENTED = [
-    ("torchblur.fit", "fit_sinusoid", "torchblur.fit.sinusoid"),
-    ("torchblur.fit", "SinusoidFit", "torchblur.fit.sinusoid"),
-    ("torchblur.design", "dual_exposure_windows", "torchblur.design.windows"),
-    ("torchblur.design", "resolve_branches", "torchblur.design.windows"),
-    ("torchblur.design", "check_design", "torchblur.design.windows"),
-    ("torchblur.design", "trigger_phase_for", "torchblur.design.windows"),
-    ("torchblur.preprocess", "dark_frame", "torchblur.image.preprocess"),
-    ("torchblur.preprocess", "fit_gaussian_psf", "torchblur.image.preprocess"),
-    ("torchblur.preprocess", "find_spots", "torchblur.image.preprocess"),
-    ("torchblur.identify", "identify", "torchblur.identify.run"),
-    ("torchblur.consistency", "BlurConsistencyLoss", "torchblur.fit.consistency"),
-    ("torchblur.landscape", "cost_landscape", "torchblur.fit.landscape"),
-    ("torchblur.hardware", "SDKCamera", "torchblur.hardware.camera_sdk"),
-    ("torchblur.hardware", "Controller", "torchblur.hardware.controller"),
-    ("torchblur.tracking", "calibrate_axes", "torchblur.image.tracking"),
-    ("torchblur.camera", "CameraModel", "torchblur.render.camera"),
-    ("torchblur.excitation_design", "image_fisher", "torchblur.design.fisher"),
-    ("torchblur.coded_exposure", "mirror_code", "torchblur.fit.coded"),
-    ("torchblur.coded_exposure", "fit_sinusoid_coded", "torchblur.fit.coded"),
-    ("torchblur.spots", "SpotGrid", "torchblur.image.spots"),
-    ("torchblur.multisine_fit", "fit_multisine", "torchblur.fit.multisine"),
-    ("torchblur.multisine", "LTIMultisineTrajectory", "torchblur.design.multisine"),
-    ("torchblur.model_fit", "fit_transfer_function", "torchblur.sysid.tf_fit"),
-    ("torchblur.frequency_response", "FrequencyResponse", "torchblur.sysid.frequency_response"),
-    ("torchblur.mimo", "PlantMatrix", "torchblur.systems.mimo"),
-    ("torchblur.direct", "fit_direct", "torchblur.sysid.direct"),
-    ("torchblur.render", "render_blur", "torchblur.render.blur"),
-    ("torchblur.psf", "GaussianPSF", "torchblur.render.psf"),
-    ("torchblur.timing", "ExposureWindow", "torchblur.render.window"),
-    ("torchblur.config", "load_config", "torchblur.identify.config"),
-    ("torchblur.cli", "main", "torchblur.identify.cli"),
-]
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("**/*.md")), *sorted((ROOT / "configs").glob("*.yaml"))]
+DOTTED = re.compile(r"(?<![\w./\"'-])torchblur(?:\.[A-Za-z_]\w*)+")  # not in a quoted string (a schema name)
 
 
-@pytest.mark.parametrize("old, name, new", DOCUMENTED)
-def test_documented_import_paths_give_the_same_object(old, name, new):
-    assert getattr(importlib.import_module(old), name) is getattr(importlib.import_module(new), name)
+def quoted_paths() -> list[tuple[str, str]]:
+    """(file, dotted path) for every ``torchblur.x.y`` the docs quote (file paths like
+    ``torchblur/fit/...`` are not dotted, and quoted strings such as a file's schema name
+    ``"torchblur.model_fit"`` are not paths: neither is read here)."""
+    found = set()
+    for path in DOCS:
+        for m in DOTTED.finditer(path.read_text(encoding="utf-8")):
+            found.add((path.relative_to(ROOT).as_posix(), m.group(0)))
+    return sorted(found)
 
 
-@pytest.mark.parametrize("old", sorted(MOVED))
-def test_every_moved_module_path_is_the_module_itself(old):
-    assert importlib.import_module(old) is importlib.import_module(MOVED[old])
+def resolve(dotted: str):
+    """The object a dotted path names: the longest importable module prefix, then attributes."""
+    parts = dotted.split(".")
+    for k in range(len(parts), 0, -1):
+        try:
+            obj = importlib.import_module(".".join(parts[:k]))
+        except ModuleNotFoundError:
+            continue
+        for attr in parts[k:]:
+            obj = getattr(obj, attr)
+        return obj
+    raise ModuleNotFoundError(dotted)
 
 
-def test_from_import_of_a_moved_module():
-    from torchblur import preprocess  # noqa: F401  (a submodule import through the old path)
-    import torchblur.image.preprocess as new
+def test_the_docs_quote_dotted_paths():
+    assert len(quoted_paths()) > 50
 
-    assert preprocess is new
+
+@pytest.mark.parametrize("where, dotted", quoted_paths())
+def test_every_dotted_path_the_docs_quote_resolves(where, dotted):
+    try:
+        resolve(dotted)
+    except (ImportError, AttributeError) as exc:
+        pytest.fail(f"{where}: {dotted} does not resolve ({exc})")
+
+
+def test_the_flat_layout_paths_are_gone():
+    """0.1.0 was never released: the pre-subpackage module paths are not kept as aliases."""
+    for old in ("torchblur.preprocess", "torchblur.model_fit", "torchblur.coded_exposure", "torchblur.psf"):
+        with pytest.raises(ModuleNotFoundError):
+            importlib.import_module(old)
 
 
 @pytest.mark.parametrize("name", tb.__all__)

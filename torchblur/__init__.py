@@ -28,7 +28,6 @@ if _sys.argv and _os.path.basename(_sys.argv[0]) == "torchblur":  # the console 
 
     _console.install()  # a Ctrl-C while torch loads is one line too
 
-from torchblur import _legacy
 from torchblur.errors import ConfigError, InputTypeError, ParameterError, ShapeError, TorchblurError
 from torchblur.render.alias import alias_phase, wrap_phase
 from torchblur.render.blur import BlurRenderer, RenderSettings, render_blur
@@ -38,8 +37,6 @@ from torchblur.render.trajectory import Multisine, Sinusoid, SplineTrajectory, T
 from torchblur.render.window import ExposureWindow, SensorTiming
 
 __version__ = "0.1.0"
-
-_legacy.install()
 
 #: name -> module that defines it, imported on first access
 _LAZY = {

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from torchblur.errors import ParameterError, ShapeError, as_tensor
-from torchblur.systems.lti import LTIMultisineTrajectory  # noqa: F401  (re-exported: torchblur.multisine.LTIMultisineTrajectory)
+from torchblur.systems.lti import LTIMultisineTrajectory  # noqa: F401  (re-exported beside the design)
 
 __all__ = ["MultisineDesign", "crest_factor", "multisine_signal", "schroeder_phases", "optimise_crest_factor", "common_grid",
            "design_multisine", "LTIMultisineTrajectory"]

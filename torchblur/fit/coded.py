@@ -8,8 +8,7 @@ the best start wins), with Fisher-information stds; the image and its Jacobian c
 splat of the nodes of every open interval (:func:`~torchblur.render.splat.sine_blur_with_jacobian`).
 
 The rendering names (:func:`check_code`, :func:`mirror_code`, :func:`coded_windows`,
-:func:`render_coded`) live in :mod:`torchblur.render.coded` and are re-exported here
-(``torchblur.coded_exposure`` is this module).
+:func:`render_coded`) live in :mod:`torchblur.render.coded` and are re-exported here.
 """
 from __future__ import annotations
 

@@ -3,7 +3,7 @@
 kernel, or a Gaussian where it explains the still to its noise), the saturation curve
 (``saturation``), spot grids of a Shack-Hartmann sensor (``spots``), image moments
 (``moments``) and frame-by-frame tracking below the frame rate (``tracking``).
-``preprocess`` gathers the steps before a fit in one namespace (``torchblur.preprocess``)."""
+``preprocess`` gathers the steps before a fit in one namespace."""
 from torchblur.image.moments import image_moments, moments_along, sinusoid_from_moments
 from torchblur.image.preprocess import (
     DarkFrame, PSFFit, SaturationCurve, Spots, crop, dark_frame, find_spots, fit_gaussian_psf, saturation_curve,
