@@ -32,9 +32,14 @@ COLUMNS = ("dc_gain", "dc_gain_std", "mode_hz", "mode_hz_std", "damping", "dampi
 
 
 def _rel(a, b) -> float:
+    """The largest |a - b| over the largest |b| (NaN where only one of them is NaN: a dead actuator's are NaN in both)."""
     a, b = np.asarray(a), np.asarray(b)
-    scale = np.abs(b).max()
-    return float(np.abs(a - b).max() / scale) if scale > 0 else float(np.abs(a - b).max())
+    if not np.array_equal(np.isnan(a), np.isnan(b)):
+        return float("nan")
+    ok = ~np.isnan(b)
+    scale = np.abs(b[ok]).max() if ok.any() else 0.0
+    d = float(np.abs(a[ok] - b[ok]).max()) if ok.any() else 0.0
+    return d / scale if scale > 0 else d
 
 
 def main(argv=None) -> int:

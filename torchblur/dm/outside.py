@@ -29,6 +29,7 @@ import csv
 import io
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
@@ -370,11 +371,12 @@ def identify_dm_recording(rec: DMRecording, cfg=None, *, progress: bool = False)
     t["calibration"], t["acquisition"] = time.perf_counter() - t0, 0.0
     plan, ratio = _plan(rec, cfg, G)
     t0 = time.perf_counter()
-    res = []
-    for k, f in enumerate(rec.freq_hz):
-        window = ExposureWindow(torch.as_tensor(rec.start_s[k], dtype=_F64)[:, None], torch.as_tensor(rec.duration_s[k], dtype=_F64)[:, None])
-        res.append(_fit_frequency(torch.as_tensor(rec.frames[k], dtype=_F64), window, 2 * math.pi * float(f), float(rec.amplitude[k]),
-                                  float(rec.power[k]), cal, psf, offset, size, float(cfg.camera.jitter_s), _fit_options(cfg)))
+    with ThreadPoolExecutor(max_workers=1) as pool:  # as the live run fits (on a busy machine two OpenMP threads on the main one were 12x slower)
+        futures = [pool.submit(_fit_frequency, torch.as_tensor(rec.frames[k], dtype=_F64), ExposureWindow(
+            torch.as_tensor(rec.start_s[k], dtype=_F64)[:, None], torch.as_tensor(rec.duration_s[k], dtype=_F64)[:, None]),
+            2 * math.pi * float(f), float(rec.amplitude[k]), float(rec.power[k]), cal, psf, offset, size, float(cfg.camera.jitter_s),
+            _fit_options(cfg)) for k, f in enumerate(rec.freq_hz)]
+        res = [fu.result() for fu in futures]
     log_message(log, f"recording: {len(rec.freq_hz)} frequencies x {plan.n_patterns} patterns, {rec.n_frames} frames, from {rec.path}",
                 progress)
     t["fit_wait"] = time.perf_counter() - t0
