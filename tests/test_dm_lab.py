@@ -152,6 +152,24 @@ def test_a_bad_dm_recording_is_refused_naming_file_line_and_column(lab_run, tmp_
         dm_recording_config(read_dm_recording(folder))
 
 
+def test_saturated_frames_are_refused_not_fitted(lab_run, tmp_path):
+    """The DM spot fit does not leave saturated pixels out: a recording with one is refused, naming the frame."""
+    import tifffile
+
+    from torchblur.dm.outside import identify_dm_recording, read_dm_recording
+
+    folder = tmp_path / "sat"
+    shutil.copytree(lab_run[2], folder)
+    sweep = tifffile.imread(folder / "sweep.tif")
+    sweep[5, 3, 3] = 4095  # page 5: the first frequency, pattern 2, its second frame (4 patterns x 2 exposures)
+    tifffile.imwrite(folder / "sweep.tif", sweep, photometric="minisblack")
+    _edit(folder / "recording.yaml", "saturation_adu:", "saturation_adu: 4095.0\nold_saturation_adu:")
+    text = "\n".join(ln for ln in (folder / "recording.yaml").read_text().splitlines() if not ln.startswith("old_saturation_adu"))
+    (folder / "recording.yaml").write_text(text + "\n")
+    with pytest.raises(RecordingError, match=r"frames.csv: the sweep frame of pattern 2 at 50 Hz \(its frame 1 there\) has saturated"):
+        identify_dm_recording(read_dm_recording(folder))
+
+
 def test_a_dm_recording_takes_only_fit_overrides(lab_run):
     from torchblur.dm.outside import dm_recording_config, read_dm_recording
 

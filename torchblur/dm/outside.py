@@ -330,13 +330,14 @@ def recording_calibration(rec: DMRecording, cfg, wfs: ShackHartmann, log: list, 
     dark_raw, still_raw = torch.as_tensor(rec.dark, dtype=_F64), torch.as_tensor(rec.still, dtype=_F64)
     dark = dark_frame(dark_raw)
     sat_adu = math.inf if c.saturation_adu is None else float(c.saturation_adu)
-    ptc, gain, gain_source = measure_gain([still_raw], dark_raw, dark, sat_adu, float(c.gain_e_per_adu), cfg.camera.gain_from, log,
-                                          progress, name=f"{YAML_NAME} gain_e_per_adu")
-    read_noise_e = float(c.read_noise_e) if c.read_noise_e is not None else float(dark.read_noise) * gain
     level = dark.mean.mean()
     nan = torch.tensor(math.nan, dtype=_F64)
     sat = SaturationCurve(slope_adu_per_s=nan, offset_adu=level, saturation_adu=torch.tensor(sat_adu, dtype=_F64),
                           linear_limit_s=torch.tensor(math.inf, dtype=_F64), residual_rms_adu=nan, saturated_in_data=False)
+    _refuse_saturated(rec, sat, dark)
+    ptc, gain, gain_source = measure_gain([still_raw], dark_raw, dark, sat_adu, float(c.gain_e_per_adu), cfg.camera.gain_from, log,
+                                          progress, name=f"{YAML_NAME} gain_e_per_adu")
+    read_noise_e = float(c.read_noise_e) if c.read_noise_e is not None else float(dark.read_noise) * gain
     log_message(log, f"dark: level {float(level):.2f} ADU, read noise {read_noise_e:.3g} e-; saturation: {rec.saturation_source}", progress)
     n = int(cfg.wfs.n_across)
     spots_cfg = replace(cfg, spots=replace(cfg.spots, rows=n, cols=n, pitch_px=float(cfg.wfs.pitch_px), sigma_px=float(cfg.wfs.sigma_px)))
@@ -348,6 +349,25 @@ def recording_calibration(rec: DMRecording, cfg, wfs: ShackHartmann, log: list, 
     log_message(log, f"latency: {c.latency_s * 1e6:.3f} +- {c.latency_std_s * 1e6:.3f} us given ({YAML_NAME})", progress)
     order = torch.as_tensor(match_spots(spots.psf.center.numpy(), wfs.rest_px, wfs.pitch_px))
     return cal, spots.psf_in_crops()[order], spots.offset[order], spots.size
+
+
+def _refuse_saturated(rec: DMRecording, sat: SaturationCurve, dark) -> None:
+    """RecordingError naming the first still or sweep frame with a saturated pixel (within 1 % of the
+    range below ``saturation_adu``, hot pixels aside): the DM spot fit does not leave such pixels
+    out, so a saturated spot would give a wrong response with a std that does not show it."""
+    hot = dark.hot_pixels
+    n = int((~sat.mask(torch.as_tensor(rec.still, dtype=_F64)) & ~hot).sum())
+    if n:
+        raise RecordingError(f"{rec.path}: the still frames have {n} saturated pixel(s) (at or within 1 % below saturation_adu "
+                             f"{float(sat.saturation_adu):.6g}); take them with a shorter exposure or less light")
+    for k, fr in enumerate(rec.frames):
+        bad = (~sat.mask(torch.as_tensor(fr, dtype=_F64)) & ~hot).flatten(2).any(-1)  # [P, E*R]
+        if bool(bad.any()):
+            p, j = (int(v) for v in torch.nonzero(bad)[0])
+            raise RecordingError(f"{CSV_NAME}: the sweep frame of pattern {p} at {rec.freq_hz[k]:g} Hz (its frame {j} there) has "
+                                 f"saturated pixels (at or within 1 % below saturation_adu {float(sat.saturation_adu):.6g}; "
+                                 f"{int(bad.sum())} frame(s) at that frequency); the DM fit does not leave them out: record with "
+                                 f"less light or a shorter exposure, or give saturation_adu in {YAML_NAME} if the sensor clips higher")
 
 
 def identify_dm_recording(rec: DMRecording, cfg=None, *, progress: bool = False) -> DMResult:
