@@ -107,7 +107,7 @@ def test_the_rig_contract_is_checked_before_any_frame(example):
     with pytest.raises(InputTypeError, match=r"rig: a object lacks pattern_sine\(\)"):
         identify_dm(cfg, object.__new__(type("object", (), {"dark": lambda s: 0, "still": lambda s: 0})))
     no_latency = tb.load_config(None, [o for o in example.EXAMPLE if not o.startswith("camera.latency_std_s")])
-    with pytest.raises(ConfigError, match="camera.latency_std_s: the rig .* has no pulse"):
+    with pytest.raises(ConfigError, match=r"camera.latency_std_s: the rig \(_NoFrames\) has no gated laser \(pulse\(\)\)"):
         identify_dm(no_latency, _NoFrames())
     rig = _NoFrames()
     rig.n_actuators = 5

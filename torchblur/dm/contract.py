@@ -108,24 +108,21 @@ def _has(rig, name: str) -> bool:
 
 def check_dm_rig(rig, cfg) -> None:
     """Refuse, before any frame, a rig that does not fulfil :class:`DMRig` for the DM config
-    ``cfg``: a missing method or property, ``pulse`` missing where the latency must be
-    scanned (``camera.latency_std_s`` not given), a mirror whose ``n_actuators`` differs from
-    the config's geometry, or a frame shape other than the sensor's.
+    ``cfg``: a missing method or property, a mirror whose ``n_actuators`` differs from the
+    config's geometry, or a frame shape other than the sensor's. (``pulse`` missing where the
+    latency must be scanned: :func:`torchblur.identify.calibration.check_latency_source`, which
+    :func:`torchblur.dm.identify_dm` calls beside this.)
 
     Raises:
         InputTypeError: naming ``rig`` and what it lacks.
-        ConfigError: naming ``camera.latency_std_s`` (no ``pulse``), ``dm.n_across`` or
-            ``wfs.pitch_px`` (the rig's mirror or frames do not match the config).
+        ConfigError: naming ``dm.n_across`` or ``wfs.pitch_px`` (the rig's mirror or frames do
+            not match the config).
     """
     missing = [f"{m}()" for m in REQUIRED_METHODS if not callable(getattr(rig, m, None))]
     missing += [a for a in REQUIRED_ATTRIBUTES if not _has(rig, a)]
     if missing:
         raise InputTypeError(f"rig: a {type(rig).__name__} lacks {', '.join(missing)} of the DM rig contract "
                              f"(torchblur.dm.contract.DMRig, docs/dm_rig.md)")
-    if getattr(cfg.camera, "latency_std_s", None) is None and not callable(getattr(rig, "pulse", None)):
-        raise ConfigError(f"camera.latency_std_s: the rig ({type(rig).__name__}) has no pulse() (a gated light source) to scan "
-                          f"the trigger-to-exposure latency; give camera.latency_s=... and camera.latency_std_s=... (s), from "
-                          f"the camera's datasheet or your own measurement (docs/dm_rig.md)")
     n = int(rig.n_actuators)
     want = dm_geometry(cfg).shape[1]
     if n != want:

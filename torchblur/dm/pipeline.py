@@ -314,11 +314,13 @@ def identify_dm(cfg, rig=None, *, progress: bool = False, base_dir: str | None =
     from torchblur.dm.record import open_recording, resume_seed, same_table, session, session_info, simulated_frames, table_digest
     from torchblur.hardware.errors import RecordingError
     from torchblur.hardware.recording import ReplayRig
+    from torchblur.identify.calibration import check_latency_source
     from torchblur.identify.record import log_message
 
     check_dm_config(cfg)
     if rig is not None and not isinstance(rig, ReplayRig):  # a lab's rig: the contract, before any frame (docs/dm_rig.md)
         check_dm_rig(rig, cfg)
+        check_latency_source(cfg, rig)
     log: list = []
     model_mirror, wfs, sim = build_dm(cfg, base_dir=base_dir)
     exp = open_recording(record, cfg, sim if rig is None else rig)
