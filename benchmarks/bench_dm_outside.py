@@ -11,6 +11,11 @@ column (actuators.csv, 9 significant digits), of D0 (interaction_matrix.npy) and
 default; times are for this machine only).
 
     python benchmarks/bench_dm_outside.py [--config FILE] [--keep DIR] [overrides ...]
+    python benchmarks/bench_dm_outside.py --run RUN     # a run recorded on any rig (identify_dm(cfg, rig, record=RUN/experiment))
+
+With ``--run`` the reference is ``torchblur fit RUN`` (a re-fit of the recording gives the live
+run's table bit for bit: docs/deformable_mirrors.md), so a run on a lab's or a test's rig (an HCIPy
+Shack-Hartmann rig) is compared the same way.
 """
 from __future__ import annotations
 
@@ -51,6 +56,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--config", default=None)
     ap.add_argument("--keep", default=None, help="keep the run, the recording and the fit in this folder")
+    ap.add_argument("--run", default=None, help="a recorded DM run (its folder holds experiment/): re-fitted as the reference")
     ap.add_argument("overrides", nargs="*")
     args = ap.parse_args(argv)
     root = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="bench_dm_outside_"))
@@ -59,10 +65,14 @@ def main(argv=None) -> int:
     base = (["--config", args.config] if args.config else []) + (list(args.overrides) if args.config else SMALL + list(args.overrides))
     t = {}
     t0 = time.perf_counter()
-    rc_live = cli(["identify", "--out", str(root / "live"), "--quiet", *base])
-    t["live run"] = time.perf_counter() - t0
+    if args.run is None:
+        rc_live = cli(["identify", "--out", str(root / "live"), "--quiet", *base])
+        t["live run"] = time.perf_counter() - t0
+    else:
+        rc_live = cli(["fit", str(args.run), "--out", str(root / "live"), "--quiet"])
+        t["re-fit of the run"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    export_dm_recording(root / "live", root / "outside")
+    export_dm_recording(root / "live" if args.run is None else args.run, root / "outside")
     t["export"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     rc_fit = cli(["fit", str(root / "outside"), "--out", str(root / "fit"), "--quiet"])

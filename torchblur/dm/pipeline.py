@@ -44,8 +44,8 @@ from torchblur.dm.verdict import run_verdict, truth_guard
 from torchblur.identify.config import IdentifyConfig
 from torchblur.identify.read_outputs import SUMMARY_SCHEMA
 
-__all__ = ["DM_DARK_FRAMES", "DM_STILL_FRAMES", "DMResult", "build_dm", "check_dm_config", "identify_dm", "match_spots", "next_amplitude", "nominal_growth",
-           "truth_errors"]
+__all__ = ["DM_DARK_FRAMES", "DM_STILL_FRAMES", "DMResult", "build_dm", "check_dm_config", "identify_dm", "match_spots", "next_amplitude",
+           "nominal_growth", "truth_errors"]
 
 _F64 = torch.float64
 
