@@ -14,7 +14,7 @@ Two parts:
    the rig has no ``pulse()``: the camera's trigger-to-exposure latency is given instead
    (``camera.latency_s`` and ``camera.latency_std_s``, from the camera's datasheet).
 
-Run it (a 4-actuator mirror, about 10 s)::
+Run it (a 4-actuator mirror under 2 x 2 subapertures)::
 
     python docs/examples/vendor_dm.py --out runs/vendor_dm
 
