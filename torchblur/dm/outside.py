@@ -61,6 +61,7 @@ __all__ = ["PATTERNS_NAME", "DMRecording", "dm_recording_config", "export_dm_rec
 
 PATTERNS_NAME = "patterns.csv"
 MAX_PATTERNS_BYTES = 64 * 1024 * 1024
+MAX_ACTUATORS = 20000  # patterns.csv's columns: beyond any deformable mirror made
 _F64 = torch.float64
 _PLAN_KINDS = ("hadamard", "sparse", "one_at_a_time")
 _ALLOWED = ("fit.", "model.", "report.")  # what a user may set for a recording (the rest is the recording's)
@@ -170,6 +171,8 @@ def _read_patterns(root: Path) -> np.ndarray:
     if len(rows) < 2 or len(rows) > MAX_ROWS:
         raise RecordingError(f"{PATTERNS_NAME}: expected a header and 1 to {MAX_ROWS} patterns, got {max(0, len(rows) - 1)} row(s)")
     head = [h.strip() for h in rows[0]]
+    if len(head) - 1 > MAX_ACTUATORS:
+        raise RecordingError(f"{PATTERNS_NAME} line 1: {len(head) - 1} actuator columns, more than {MAX_ACTUATORS}; refused")
     want = ["pattern"] + [f"a{j}" for j in range(len(head) - 1)]
     if head != want or len(head) < 2:
         raise RecordingError(f"{PATTERNS_NAME} line 1: expected the header pattern,a0,a1,...; got {excerpt(','.join(head))}")
