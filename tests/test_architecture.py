@@ -11,7 +11,8 @@ ROOT = Path(__file__).resolve().parents[1] / "torchblur"
 IDENTIFY_EXCEPTIONS = {"torchblur",
                        "torchblur.dm.pipeline",  # the DM run: a pipeline beside identify's, reusing its calibration stage
                        "torchblur.dm.record",  # the DM run's recording: identify's experiment folder, resume and re-fit checks
-                       "torchblur.dm.verdict"}  # the DM run's verdict: identify's exit status (EXIT_FLAGGED) and name lists
+                       "torchblur.dm.verdict",  # the DM run's verdict: identify's exit status (EXIT_FLAGGED) and name lists
+                       "torchblur.dm.outside"}  # outside DM recordings: the one-spot outside format's calibration pieces
 # The identification's settings: a leaf (it imports nothing of torchblur.identify) that the
 # bench emulator shares for its plant, camera and spots sections.
 IDENTIFY_DATA = "torchblur.identify.config"

@@ -30,9 +30,10 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
-from torchblur.errors import ParameterError
+from torchblur.errors import ConfigError, InputTypeError, ParameterError
 from torchblur.render.camera import CameraModel
 from torchblur.render.window import ExposureWindow
+from torchblur.dm.contract import check_dm_rig
 from torchblur.dm.budget import DM_DARK_FRAMES, DM_STILL_FRAMES, dm_geometry, dm_plan, dm_still_frames, dm_sweep_size
 from torchblur.dm.mirror import DeformableMirror
 from torchblur.dm.outputs import DMEstimate, write_dm_outputs
@@ -40,10 +41,11 @@ from torchblur.dm.plans import static_motion_px
 from torchblur.dm.rig import SimulatedDMRig
 from torchblur.dm.shack_hartmann import ShackHartmann
 from torchblur.dm.verdict import run_verdict, truth_guard
+from torchblur.identify.config import IdentifyConfig
 from torchblur.identify.read_outputs import SUMMARY_SCHEMA
 
-__all__ = ["DM_DARK_FRAMES", "DM_STILL_FRAMES", "DMResult", "build_dm", "identify_dm", "match_spots", "next_amplitude", "nominal_growth",
-           "truth_errors"]
+__all__ = ["DM_DARK_FRAMES", "DM_STILL_FRAMES", "DMResult", "build_dm", "check_dm_config", "identify_dm", "match_spots", "next_amplitude",
+           "nominal_growth", "truth_errors"]
 
 _F64 = torch.float64
 
@@ -293,7 +295,10 @@ def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, log, progress, exp=None
 
 def identify_dm(cfg, rig=None, *, progress: bool = False, base_dir: str | None = None, record=None) -> DMResult:
     """Run a DM identification (module docstring) on ``rig`` (default: the config's simulated
-    DM rig). Returns a :class:`DMResult`.
+    DM rig). Returns a :class:`DMResult`. Public as ``torchblur.dm.identify_dm``: a lab's own
+    rig implements :class:`~torchblur.dm.contract.DMRig` (docs/dm_rig.md), checked by
+    :func:`~torchblur.dm.contract.check_dm_rig` before the first frame; with
+    ``camera.latency_s`` and ``camera.latency_std_s`` given the rig needs no ``pulse()``.
 
     ``record``: None, a directory or a :class:`~torchblur.hardware.recording.Experiment`: the run
     is recorded there as it goes (:mod:`torchblur.dm.record`). Groups it holds already (a resumed
@@ -303,11 +308,19 @@ def identify_dm(cfg, rig=None, *, progress: bool = False, base_dir: str | None =
 
     Raises:
         HardwareError: the rig failed (the recording so far is kept; resume it); KeyboardInterrupt: likewise.
+        InputTypeError: ``cfg`` is not an IdentifyConfig, or ``rig`` lacks part of the contract;
+        ConfigError: ``cfg`` is not a DM config (``dm.n_across``), or the rig does not match it.
     """
     from torchblur.dm.record import open_recording, resume_seed, same_table, session, session_info, simulated_frames, table_digest
     from torchblur.hardware.errors import RecordingError
+    from torchblur.hardware.recording import ReplayRig
+    from torchblur.identify.calibration import check_latency_source
     from torchblur.identify.record import log_message
 
+    check_dm_config(cfg)
+    if rig is not None and not isinstance(rig, ReplayRig):  # a lab's rig: the contract, before any frame (docs/dm_rig.md)
+        check_dm_rig(rig, cfg)
+        check_latency_source(cfg, rig)
     log: list = []
     model_mirror, wfs, sim = build_dm(cfg, base_dir=base_dir)
     exp = open_recording(record, cfg, sim if rig is None else rig)
@@ -330,6 +343,15 @@ def identify_dm(cfg, rig=None, *, progress: bool = False, base_dir: str | None =
         if resumed:
             log_message(log, f"resume: {len(exp.groups)} recorded group(s) in {exp.path} are reused", progress)
         return _identify_dm(cfg, rig, exp, model_mirror, wfs, truth_rig, log, progress)
+
+
+def check_dm_config(cfg) -> None:
+    """Refuse a ``cfg`` that is not a DM run's :class:`~torchblur.identify.config.IdentifyConfig`
+    (InputTypeError naming ``cfg``; ConfigError naming ``dm.n_across`` when it is 0)."""
+    if not isinstance(cfg, IdentifyConfig):
+        raise InputTypeError(f"cfg: expected an IdentifyConfig (torchblur.load_config), got {type(cfg).__name__}")
+    if not cfg.dm.enabled:
+        raise ConfigError("dm.n_across: 0, not a DM config; set the mirror's dm section (configs/identify_dm.yaml)")
 
 
 def _identify_dm(cfg, rig, exp, model_mirror, wfs, truth_rig, log, progress) -> DMResult:
@@ -412,14 +434,17 @@ def _report(res: DMResult, elapsed: float) -> str:
     return "\n".join(lines) + "\n"
 
 
-def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False, record=None, rig=None, base_dir: str | None = None) -> int:
+def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False, record=None, rig=None, base_dir: str | None = None,
+            identify=None) -> int:
     """``torchblur identify`` for a DM config: run, recorded in ``OUT/experiment/`` (or in
     ``record``: an Experiment to resume, or a read-only one that ``rig``, its
     :class:`~torchblur.hardware.recording.ReplayRig`, re-fits), then write ``OUT/dm/`` and
     ``OUT/report.txt``, the verdict line (:func:`torchblur.dm.verdict.dm_verdict`) last in both
     and on stdout (stderr with ``as_json``, then one JSON summary line on stdout, with
     ``verdict`` and ``trustworthy``). Returns the exit status: the verdict's (0 trustworthy, 4
-    actuators flagged); a stopped rig raises to the CLI, which names the recording."""
+    actuators flagged); a stopped rig raises to the CLI, which names the recording. ``identify``: a
+    callable that gives the :class:`DMResult` instead of a run (an outside DM recording's fit,
+    :func:`torchblur.dm.outside.run_recording`)."""
     import json
     import sys
     from pathlib import Path
@@ -431,7 +456,8 @@ def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False, record=None
     (out / "config.yaml").write_text(config_to_yaml(cfg))
     torch.manual_seed(int(cfg.seed))
     t0 = time.perf_counter()
-    res = _identify_on_config_rig(cfg, rig, quiet, record=out / "experiment" if record is None else record, base_dir=base_dir)
+    res = identify() if identify is not None else _identify_on_config_rig(
+        cfg, rig, quiet, record=out / "experiment" if record is None else record, base_dir=base_dir)
     elapsed = time.perf_counter() - t0
     _write_dm_outputs(res, out)
     v = truth_guard(run_verdict(res, poor_fit_chi2=float(cfg.fit.poor_fit_chi2)), res)

@@ -158,8 +158,9 @@ def read_outside_recording(path) -> OutsideRecording:
                             points=points, frame_shape=tuple(frames[rows[0]["line"]].shape), n_frames=len(rows), saturation_source=source)
 
 
-def _read_camera(root: Path) -> OutsideCamera:
-    """``recording.yaml`` as an :class:`OutsideCamera`, every value checked."""
+def _read_camera(root: Path, sections: tuple = ()) -> OutsideCamera:
+    """``recording.yaml`` as an :class:`OutsideCamera`, every value checked (its top-level
+    ``sections``, a DM recording's sensor layout, are read by the caller: :mod:`torchblur.dm.outside`)."""
     from torchblur.identify.config import load_dataclass
 
     where = root / YAML_NAME
@@ -167,11 +168,11 @@ def _read_camera(root: Path) -> OutsideCamera:
         raise RecordingError(f"{where}: missing; it must give at least gain_e_per_adu (docs/outside_recordings.md)")
     inside(root, YAML_NAME, YAML_NAME)
     try:
-        cam = load_dataclass(OutsideCamera, str(where), trusted=False)
+        cam = load_dataclass(OutsideCamera, str(where), ignore_file_sections=sections, trusted=False)
     except ConfigError as exc:
         msg = str(exc)
         if "is not in struct" in msg:  # OmegaConf's words for a key the dataclass does not have
-            known = ", ".join(f.name for f in fields(OutsideCamera))
+            known = ", ".join([f.name for f in fields(OutsideCamera)] + list(sections))
             msg = f"{msg.partition(':')[0]}: unknown key (known: {known})"
         raise RecordingError(f"{YAML_NAME}: {msg}") from None
     if cam.gain_e_per_adu is None:
@@ -193,8 +194,9 @@ def _read_camera(root: Path) -> OutsideCamera:
     return cam
 
 
-def _read_rows(root: Path) -> list:
-    """The rows of ``frames.csv``, each a dict of checked values with its ``line``."""
+def _read_rows(root: Path, extra: tuple = ()) -> list:
+    """The rows of ``frames.csv``, each a dict of checked values with its ``line`` (``extra``: the
+    columns a DM recording adds, ``pattern``)."""
     data = read_bounded(CSV_NAME, MAX_CSV_BYTES, CSV_NAME, root=root)  # inside the folder: no symlink out
     try:
         text = data.decode("utf-8-sig")
@@ -207,7 +209,7 @@ def _read_rows(root: Path) -> list:
         raise RecordingError(f"{CSV_NAME}: empty") from None
     except csv.Error as exc:
         raise RecordingError(f"{CSV_NAME} line 1: {exc}") from None
-    _check_header(header)
+    _check_header(header, extra)
     rows = []
     try:
         for cells in reader:
@@ -226,12 +228,14 @@ def _read_rows(root: Path) -> list:
     return rows
 
 
-def _check_header(header: list) -> None:
+def _check_header(header: list, extra: tuple = ()) -> None:
     if "axis" in header:
         raise RecordingError(f"{CSV_NAME} line 1, column axis: two-input recordings are not supported (one input per recording)")
     for name in header:
-        if name not in REQUIRED + OPTIONAL:
-            raise RecordingError(f"{CSV_NAME} line 1, column {excerpt(name)}: unknown column (known: {', '.join(REQUIRED + OPTIONAL)})")
+        if name not in REQUIRED + OPTIONAL + tuple(extra):
+            more = " (a pattern column: a deformable-mirror recording needs its patterns.csv)" if name == "pattern" else ""
+            raise RecordingError(f"{CSV_NAME} line 1, column {excerpt(name)}: unknown column (known: "
+                                 f"{', '.join(REQUIRED + OPTIONAL + tuple(extra))}){more}")
     if len(set(header)) != len(header):
         raise RecordingError(f"{CSV_NAME} line 1: a column is named twice ({header})")
     for name in REQUIRED:
@@ -268,7 +272,8 @@ def _row(cells: dict, line: int) -> dict:
                exposure_s=n("exposure_s", positive=True, high=MAX_EXPOSURE_S), freq_hz=n("freq_hz", positive=True, high=MAX_FREQ_HZ),
                amplitude=n("amplitude", positive=True, high=MAX_AMPLITUDE), power=n("power", positive=True, high=1e12),
                window_start_s=n("window_start_s", low=-MAX_EXPOSURE_S, high=MAX_EXPOSURE_S),
-               trigger_phase_rad=n("trigger_phase_rad", low=-100.0, high=100.0), repeat=n("repeat", low=0, integer=True))
+               trigger_phase_rad=n("trigger_phase_rad", low=-100.0, high=100.0), repeat=n("repeat", low=0, integer=True),
+               pattern=n("pattern", low=0, high=MAX_ROWS, integer=True))
     if kind == "sweep":
         for col in ("freq_hz", "exposure_s", "amplitude"):
             if row[col] is None:

@@ -410,6 +410,7 @@ def _fit_outside(args) -> int:
     from torchblur.hardware.outside import read_outside_recording
     from torchblur.hardware.run_folder import check_out_folder
     from torchblur.identify.config import config_to_yaml
+    from torchblur.dm.outside import is_dm_recording
     from torchblur.identify.outside import identify_outside, outside_config
 
     src, out = Path(args.dir).resolve(), Path(args.out)
@@ -419,6 +420,8 @@ def _fit_outside(args) -> int:
         print(f"torchblur fit: error: --out {out} is inside the recording {args.dir}; it is never written, choose another folder",
               file=sys.stderr)
         return 2
+    if is_dm_recording(src):  # a deformable mirror's: patterns.csv beside frames.csv
+        return _fit_dm_outside(args, src, out)
     rec = read_outside_recording(src)  # RecordingError naming file, line and column
     cfg = outside_config(rec, args.overrides)
     out.mkdir(parents=True, exist_ok=True)
@@ -434,6 +437,22 @@ def _fit_outside(args) -> int:
                                                  "outside_recording": str(src), "frames": rec.n_frames, "points": len(rec.points),
                                                  "overrides": list(args.overrides), "torchblur_version": tb.__version__}, indent=2))
     return _write_outputs(cfg, res, out, elapsed, stamp, as_json=args.json, source="outside").exit_code
+
+
+def _fit_dm_outside(args, src: Path, out: Path) -> int:
+    """``torchblur fit FOLDER`` of an outside DM recording (docs/outside_recordings.md, "Deformable-mirror
+    recordings"): read and check it, fit it with the DM run's own stages, write the DM run's outputs."""
+    import torchblur as tb
+    from torchblur.dm.outside import dm_recording_config, read_dm_recording, run_recording
+    from torchblur.identify.read_outputs import SOURCE_SCHEMA
+
+    rec = read_dm_recording(src)  # RecordingError naming file, line and column
+    cfg = dm_recording_config(rec, args.overrides)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "source.json").write_text(json.dumps({"schema": SOURCE_SCHEMA[0], "schema_version": SOURCE_SCHEMA[1][-1],
+                                                 "outside_recording": str(src), "frames": rec.n_frames, "points": len(rec.freq_hz),
+                                                 "overrides": list(args.overrides), "torchblur_version": tb.__version__}, indent=2))
+    return run_recording(rec, cfg, out, quiet=args.quiet, as_json=args.json)
 
 
 def _config(args) -> int:

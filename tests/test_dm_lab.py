@@ -1,0 +1,179 @@
+"""A lab's own DM (issue 23 part D): the worked vendor-SDK example (docs/examples/vendor_dm.py)
+through the public ``torchblur.dm.identify_dm`` with the latency given (its rig has no pulse()),
+its recording exported as an outside DM recording and fitted by ``torchblur fit FOLDER`` to the
+same table, the rig contract checked before any frame, and the outside format read as untrusted
+input (every error names the file, line and column)."""
+import importlib.util
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import torchblur as tb
+from torchblur.errors import ConfigError, InputTypeError
+from torchblur.hardware.errors import RecordingError
+
+EXAMPLE_PATH = Path(__file__).resolve().parents[1] / "docs" / "examples" / "vendor_dm.py"
+
+
+def _example():
+    spec = importlib.util.spec_from_file_location("vendor_dm_example", EXAMPLE_PATH)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.fixture(scope="module")
+def example():
+    return _example()
+
+
+@pytest.fixture(scope="module")
+def lab_run(example, tmp_path_factory):
+    """The example's run on the Acme stand-in, recorded, and its recording exported: ``(res, rig, folder)``."""
+    from torchblur.dm import export_dm_recording
+
+    root = tmp_path_factory.mktemp("lab")
+    res, rig = example.identify_with_acme(record=root / "run" / "experiment")
+    return res, rig, export_dm_recording(root / "run", root / "outside")
+
+
+def test_the_vendor_example_identifies_its_mirror_with_the_latency_given(lab_run):
+    res, rig, _ = lab_run
+    assert not hasattr(rig, "pulse") and isinstance(rig, tb.dm.DMRig)
+    assert any("given (camera.latency_s, camera.latency_std_s; not scanned)" in line for line in res.log)
+    truth = rig._m._b.sim.mirror  # the stand-in's hidden hardware: for this test only
+    t = res.actuators
+    assert list(t.status) == ["ok"] * 4 and res.n_failed == 0
+    for est, std, true, rel in ((t.mode_hz, t.mode_hz_std, truth.mode_hz, 0.005), (t.damping, t.damping_std, truth.damping, 0.05),
+                                (t.dc_gain, t.dc_gain_std, truth.gain, 0.01)):
+        assert np.all(np.abs(est / true - 1) < rel)
+        assert np.all(np.abs(est - true) < 4 * std)  # the stds hold (4 of them: 12 numbers)
+
+
+def test_the_exported_recording_fits_to_the_same_table_through_torchblur_fit(lab_run, tmp_path, capsys):
+    from torchblur.dm.outputs import read_actuators_csv
+    from torchblur.identify.cli import main
+    from torchblur.sysid.frequency_response import FrequencyResponse
+
+    res, _, folder = lab_run
+    assert main(["fit", str(folder), "--out", str(tmp_path / "fit"), "--quiet", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["trustworthy"] and summary["frames"] == res.n_frames
+    t, back = res.actuators, read_actuators_csv(tmp_path / "fit" / "dm" / "actuators.csv")
+    assert list(back["status"]) == list(t.status)
+    for col in ("dc_gain", "mode_hz", "damping", "delay_s", "dc_gain_std", "mode_hz_std", "damping_std", "delay_s_std"):
+        np.testing.assert_allclose(back[col], getattr(t, col), rtol=1e-8)  # actuators.csv holds 9 significant digits
+    D0 = np.load(tmp_path / "fit" / "dm" / "interaction_matrix.npy")
+    np.testing.assert_allclose(D0, t.static_column, rtol=1e-9, atol=1e-12 * np.abs(t.static_column).max())
+    D = FrequencyResponse.from_json(tmp_path / "fit" / "dm" / "frf.json").response
+    np.testing.assert_allclose(D, res.D, rtol=1e-9, atol=1e-12 * np.abs(res.D).max())
+
+
+def test_write_dm_recording_reads_back(lab_run, tmp_path):
+    from torchblur.dm.outside import read_dm_recording, write_dm_recording
+
+    rec = read_dm_recording(lab_run[2])
+    again = write_dm_recording(tmp_path / "again", dark=rec.dark, still=rec.still, still_exposure_s=rec.still_exposure_s,
+                               patterns=rec.patterns, freq_hz=rec.freq_hz, amplitude=rec.amplitude, power=rec.power, frames=rec.frames,
+                               start_s=rec.start_s, duration_s=rec.duration_s, R=rec.R,
+                               camera={"gain_e_per_adu": rec.camera.gain_e_per_adu, "latency_s": rec.camera.latency_s,
+                                       "latency_std_s": rec.camera.latency_std_s},
+                               layout={"dm": {"n_across": 2}, "wfs": {"n_across": 2, "pitch_px": 16.0, "sigma_px": 1.2},
+                                       "dm_plan": {"kind": "hadamard"}})
+    back = read_dm_recording(again)
+    for name in ("dark", "still", "patterns", "freq_hz", "amplitude", "power", "start_s", "duration_s"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(rec, name))
+    assert all(np.array_equal(a, b) for a, b in zip(back.frames, rec.frames)) and back.R == rec.R
+
+
+class _NoFrames:
+    """A rig whose every frame call fails the test: the checks come before any frame."""
+
+    frame_shape, frame_rate_hz, max_exposure_s, readout_s, input_limit, n_actuators = (32, 32), 30.0, 1.0, 1e-3, 10.0, 4
+
+    def dark(self, *a, **k):
+        raise AssertionError("a frame was taken before the rig was checked")
+
+    still = pattern_sine = dark
+
+
+def test_the_rig_contract_is_checked_before_any_frame(example):
+    from torchblur.dm import identify_dm
+
+    cfg = tb.load_config(None, example.EXAMPLE)
+    with pytest.raises(InputTypeError, match=r"rig: a object lacks pattern_sine\(\)"):
+        identify_dm(cfg, object.__new__(type("object", (), {"dark": lambda s: 0, "still": lambda s: 0})))
+    no_latency = tb.load_config(None, [o for o in example.EXAMPLE if not o.startswith("camera.latency_std_s")])
+    with pytest.raises(ConfigError, match=r"camera.latency_std_s: the rig \(_NoFrames\) has no gated laser \(pulse\(\)\)"):
+        identify_dm(no_latency, _NoFrames())
+    rig = _NoFrames()
+    rig.n_actuators = 5
+    with pytest.raises(ConfigError, match="dm.n_across: .* 4 actuators .* the rig's 5"):
+        identify_dm(cfg, rig)
+    rig = _NoFrames()
+    rig.frame_shape = (64, 64)
+    with pytest.raises(ConfigError, match="wfs.pitch_px: .* 32x32 px frames, the rig.s camera 64x64"):
+        identify_dm(cfg, rig)
+    with pytest.raises(ConfigError, match="dm.n_across: 0, not a DM config"):
+        identify_dm(tb.load_config(), _NoFrames())
+    with pytest.raises(InputTypeError, match="cfg: expected an IdentifyConfig"):
+        identify_dm({"dm": {}}, _NoFrames())
+
+
+def _edit(path: Path, old: str, new: str) -> None:
+    text = path.read_text()
+    assert old in text
+    path.write_text(text.replace(old, new, 1))
+
+
+@pytest.mark.parametrize("file,old,new,error", [
+    ("patterns.csv", "0,1.0,1.0", "0,1.0,nan", r"patterns.csv line 2, column a1: expected a finite number"),
+    ("patterns.csv", "pattern,a0", "pattern,b0", r"patterns.csv line 1: expected the header pattern,a0,a1"),
+    ("patterns.csv", "1,1.0,-1.0,1.0,-1.0", "1,1.0,1.0,1.0,1.0", r"patterns.csv: the 4 patterns do not separate the actuators"),
+    ("frames.csv", "sweep.tif,0,sweep,0,", "sweep.tif,0,sweep,9,", r"frames.csv line \d+, column pattern: .* \(0..3\), got 9"),
+    ("frames.csv", "sweep.tif,0,sweep,0,", "sweep.tif,0,sweep,,", r"frames.csv line \d+, column pattern: a sweep frame needs"),
+    ("frames.csv", "sweep.tif,0,sweep,0,", "sweep.tif,0,sweep,x,", r"frames.csv line \d+, column pattern: expected an integer"),
+    ("recording.yaml", "coupling:", "stiffness: 1\n  coupling:", r"recording.yaml: dm.stiffness"),
+    ("recording.yaml", "pitch_px: 16.0", "pitch_px: 20.0", r"recording.yaml: wfs: the sensor .* 40x40 px frames, the recording.s are 32x32"),
+    ("recording.yaml", "kind: hadamard", "kind: random", r"recording.yaml: dm_plan.kind: expected one of"),
+    ("recording.yaml", "n_across: 2", "n_across: 3", r"patterns.csv line 1: 4 actuators .* has 9 inside the pupil"),
+    ("recording.yaml", "coupling: 0.15", "coupling: 7", r"recording.yaml: dm.coupling"),
+])
+def test_a_bad_dm_recording_is_refused_naming_file_line_and_column(lab_run, tmp_path, file, old, new, error):
+    from torchblur.dm.outside import dm_recording_config, read_dm_recording
+
+    folder = tmp_path / "bad"
+    shutil.copytree(lab_run[2], folder)
+    _edit(folder / file, old, new)
+    with pytest.raises(RecordingError, match=error):
+        dm_recording_config(read_dm_recording(folder))
+
+
+def test_saturated_frames_are_refused_not_fitted(lab_run, tmp_path):
+    """The DM spot fit does not leave saturated pixels out: a recording with one is refused, naming the frame."""
+    import tifffile
+
+    from torchblur.dm.outside import identify_dm_recording, read_dm_recording
+
+    folder = tmp_path / "sat"
+    shutil.copytree(lab_run[2], folder)
+    sweep = tifffile.imread(folder / "sweep.tif")
+    sweep[5, 3, 3] = 4095  # page 5: the first frequency, pattern 2, its second frame (4 patterns x 2 exposures)
+    tifffile.imwrite(folder / "sweep.tif", sweep, photometric="minisblack")
+    _edit(folder / "recording.yaml", "saturation_adu:", "saturation_adu: 4095.0\nold_saturation_adu:")
+    text = "\n".join(ln for ln in (folder / "recording.yaml").read_text().splitlines() if not ln.startswith("old_saturation_adu"))
+    (folder / "recording.yaml").write_text(text + "\n")
+    with pytest.raises(RecordingError, match=r"frames.csv: the sweep frame of pattern 2 at 50 Hz \(its frame 1 there\) has saturated"):
+        identify_dm_recording(read_dm_recording(folder))
+
+
+def test_a_dm_recording_takes_only_fit_overrides(lab_run):
+    from torchblur.dm.outside import dm_recording_config, read_dm_recording
+
+    rec = read_dm_recording(lab_run[2])
+    with pytest.raises(ConfigError, match="dm.n_across: a DM recording takes only fit"):
+        dm_recording_config(rec, ["dm.n_across=3"])
+    assert dm_recording_config(rec, ["fit.loss=poisson"]).fit.loss == "poisson"

@@ -1,0 +1,530 @@
+"""Outside DM recordings: frames a lab took of its deformable mirror with its own software, in
+a folder that ``torchblur fit FOLDER`` identifies like a live DM run (docs/outside_recordings.md,
+"Deformable-mirror recordings").
+
+The folder is the one-spot outside format (:mod:`torchblur.hardware.outside`: TIFF frames,
+``frames.csv``, ``recording.yaml``, read under the same rule for untrusted files) with:
+
+- ``frames.csv``: one more column, ``pattern`` (the row of ``patterns.csv`` a sweep frame was
+  driven with); a sweep row also has ``freq_hz``, ``exposure_s``, ``window_start_s`` (or
+  ``trigger_phase_rad``), ``amplitude`` (one per frequency, the same for every pattern),
+  optional ``power`` and ``repeat``;
+- ``patterns.csv``: the plan, ``pattern,a0,...,a{N-1}``, one row per pattern (pattern p drives
+  actuator j with ``amplitude * a_j * sin(2 pi freq_hz t)``);
+- ``recording.yaml``: the camera keys of the one-spot format and the sensor layout, sections
+  ``dm`` (``n_across``, ``coupling``: the mirror's actuator grid and influence, for the nominal
+  geometry G), ``wfs`` (the Shack-Hartmann sensor: ``n_across``, ``pitch_px``, ``sigma_px``, ...,
+  as the config's ``wfs`` section) and ``dm_plan`` (``kind``: hadamard, sparse or one_at_a_time,
+  and ``support_threshold``: which unknowns a sparse plan measures).
+
+:func:`read_dm_recording` reads and checks a folder into a :class:`DMRecording`;
+:func:`dm_recording_config` makes the run's config of it; :func:`identify_dm_recording` fits it
+with the live run's own pieces (the spot fitter, the demultiplexing, the actuator fit of
+:mod:`torchblur.dm.pipeline`); :func:`write_dm_recording` writes the format from arrays and
+:func:`export_dm_recording` from a torchblur DM run's own recording (``OUT/experiment``).
+"""
+from __future__ import annotations
+
+import csv
+import io
+import math
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass, field, fields, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from torchblur.dm.actuator_fit import fit_actuators
+from torchblur.dm.budget import dm_geometry
+from torchblur.dm.demux import demultiplex
+from torchblur.dm.mirror import DeformableMirror
+from torchblur.dm.pipeline import DMResult, _calibrate, _fit_frequency, _fit_options, check_dm_config, match_spots, run_cli
+from torchblur.dm.plans import Plan, one_at_a_time_plan, plan_cost
+from torchblur.dm.record import PLAN_KEY, SWEEP_KIND, plan_support
+from torchblur.dm.shack_hartmann import ShackHartmann
+from torchblur.errors import ConfigError, InputTypeError
+from torchblur.files import excerpt, read_bounded
+from torchblur.hardware.errors import RecordingError
+from torchblur.hardware.outside import (CSV_NAME, YAML_NAME, MAX_ROWS, OutsideCamera, _points, _read_camera, _read_frames,
+                                        _read_rows, _resolved_saturation)
+from torchblur.identify.calibration import Calibration, _locate_spots, measure_gain
+from torchblur.identify.config import WFSConfig, load_config, load_dataclass
+from torchblur.identify.record import log_message
+from torchblur.image.preprocess import dark_frame, subtract_dark
+from torchblur.image.saturation import SaturationCurve
+from torchblur.render.window import ExposureWindow
+
+__all__ = ["PATTERNS_NAME", "DMRecording", "dm_recording_config", "export_dm_recording", "identify_dm_recording",
+           "is_dm_recording", "read_dm_recording", "recording_calibration", "run_recording", "write_dm_recording"]
+
+PATTERNS_NAME = "patterns.csv"
+MAX_PATTERNS_BYTES = 64 * 1024 * 1024
+MAX_ACTUATORS = 20000  # patterns.csv's columns: beyond any deformable mirror made
+_F64 = torch.float64
+_PLAN_KINDS = ("hadamard", "sparse", "one_at_a_time")
+_ALLOWED = ("fit.", "model.", "report.")  # what a user may set for a recording (the rest is the recording's)
+
+
+@dataclass(frozen=True)
+class _DMGeometry:
+    """``recording.yaml``'s ``dm`` section: the actuator grid and its influence (the dynamics are what is measured)."""
+
+    n_across: int = 0
+    coupling: float = 0.15
+
+
+@dataclass(frozen=True)
+class _PlanInfo:
+    """``recording.yaml``'s ``dm_plan`` section."""
+
+    kind: str = "hadamard"
+    support_threshold: float = 0.01
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """``recording.yaml``'s sensor layout (the camera keys are :class:`~torchblur.hardware.outside.OutsideCamera`'s)."""
+
+    dm: _DMGeometry = field(default_factory=_DMGeometry)
+    wfs: WFSConfig = field(default_factory=WFSConfig)
+    dm_plan: _PlanInfo = field(default_factory=_PlanInfo)
+
+
+_SECTIONS = tuple(f.name for f in fields(_Layout))
+
+
+@dataclass(frozen=True)
+class DMRecording:
+    """A checked outside DM recording.
+
+    Attributes:
+        path: the folder; camera: :class:`~torchblur.hardware.outside.OutsideCamera` (saturation resolved).
+        layout: the sensor layout (``dm``, ``wfs``, ``dm_plan`` sections of ``recording.yaml``).
+        dark ``[Nd, H, W]``, still ``[Ns, H, W]``: ADU, float64; ``still_exposure_s``.
+        patterns: ``[P, N]`` (``patterns.csv``).
+        freq_hz, amplitude, power: ``[F]``, increasing frequency.
+        frames: ``[F]`` arrays ``[P, E*R, H, W]`` ADU (exposure-major: the R repeats of an exposure in a row).
+        start_s, duration_s: ``[F, P, E*R]``: each frame's window (s after the sine's upward zero crossing).
+        R: frames per exposure window; frame_shape ``(H, W)``; n_frames: rows read; saturation_source: in words.
+    """
+
+    path: Path
+    camera: OutsideCamera
+    layout: _Layout
+    dark: np.ndarray
+    still: np.ndarray
+    still_exposure_s: float
+    patterns: np.ndarray
+    freq_hz: np.ndarray
+    amplitude: np.ndarray
+    power: np.ndarray
+    frames: tuple
+    start_s: np.ndarray
+    duration_s: np.ndarray
+    R: int
+    frame_shape: tuple
+    n_frames: int
+    saturation_source: str = ""
+
+
+def is_dm_recording(path) -> bool:
+    """Whether ``path`` is a folder with a ``frames.csv`` and a ``patterns.csv`` (an outside DM recording)."""
+    return (Path(path) / CSV_NAME).is_file() and (Path(path) / PATTERNS_NAME).is_file()
+
+
+# ---------------------------------------------------------------------- reading
+
+
+def _read_layout(root: Path) -> _Layout:
+    """``recording.yaml``'s ``dm``, ``wfs`` and ``dm_plan`` sections, every value's type checked
+    (the ranges are the config's: :func:`dm_recording_config`)."""
+    camera_keys = tuple(f.name for f in fields(OutsideCamera))
+    try:
+        lay = load_dataclass(_Layout, str(root / YAML_NAME), ignore_file_sections=camera_keys, trusted=False)
+    except ConfigError as exc:
+        raise RecordingError(f"{YAML_NAME}: {exc}") from None
+    for sec in _SECTIONS:
+        for f in fields(getattr(lay, sec)):
+            v = getattr(getattr(lay, sec), f.name)
+            ok = isinstance(v, str) if f.name == "kind" else isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+            if not ok or (f.type in ("int",) and not float(v).is_integer()):
+                raise RecordingError(f"{YAML_NAME}: {sec}.{f.name}: expected {'a string' if f.name == 'kind' else 'a finite number'}, "
+                                     f"got {excerpt(v)}")
+    if lay.dm_plan.kind not in _PLAN_KINDS:
+        raise RecordingError(f"{YAML_NAME}: dm_plan.kind: expected one of {_PLAN_KINDS}, got {excerpt(lay.dm_plan.kind)}")
+    if int(lay.dm.n_across) < 1:
+        raise RecordingError(f"{YAML_NAME}: dm.n_across: the mirror's actuators across (the sensor layout) is required, got "
+                             f"{excerpt(lay.dm.n_across)}")
+    return lay
+
+
+def _read_patterns(root: Path) -> np.ndarray:
+    """``patterns.csv`` as ``[P, N]``: a header ``pattern,a0,...,a{N-1}``, rows 0..P-1 in order."""
+    data = read_bounded(PATTERNS_NAME, MAX_PATTERNS_BYTES, PATTERNS_NAME, root=root, error=RecordingError)
+    try:
+        rows = list(csv.reader(io.StringIO(data.decode("utf-8-sig"), newline="")))
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise RecordingError(f"{PATTERNS_NAME}: not a CSV text file ({str(exc)[:80]})") from None
+    rows = [r for r in rows if any(c.strip() for c in r)]
+    if len(rows) < 2 or len(rows) > MAX_ROWS:
+        raise RecordingError(f"{PATTERNS_NAME}: expected a header and 1 to {MAX_ROWS} patterns, got {max(0, len(rows) - 1)} row(s)")
+    head = [h.strip() for h in rows[0]]
+    if len(head) - 1 > MAX_ACTUATORS:
+        raise RecordingError(f"{PATTERNS_NAME} line 1: {len(head) - 1} actuator columns, more than {MAX_ACTUATORS}; refused")
+    want = ["pattern"] + [f"a{j}" for j in range(len(head) - 1)]
+    if head != want or len(head) < 2:
+        raise RecordingError(f"{PATTERNS_NAME} line 1: expected the header pattern,a0,a1,...; got {excerpt(','.join(head))}")
+    out = np.zeros((len(rows) - 1, len(head) - 1))
+    for p, cells in enumerate(rows[1:]):
+        line = p + 2
+        if len(cells) != len(head):
+            raise RecordingError(f"{PATTERNS_NAME} line {line}: {len(cells)} cells, the header has {len(head)}")
+        for col, cell in zip(head, cells):
+            try:
+                v = float(cell) if col != "pattern" else int(cell)
+            except ValueError:
+                raise RecordingError(f"{PATTERNS_NAME} line {line}, column {col}: expected a number, got {excerpt(cell)}") from None
+            if col == "pattern" and v != p:
+                raise RecordingError(f"{PATTERNS_NAME} line {line}, column pattern: expected {p} (the patterns in order from 0), got {v}")
+            if col != "pattern" and not (math.isfinite(v) and abs(v) <= 1e3):
+                raise RecordingError(f"{PATTERNS_NAME} line {line}, column {col}: expected a finite number of magnitude <= 1000, "
+                                     f"got {excerpt(cell)}")
+            if col != "pattern":
+                out[p, int(col[1:])] = v
+    return out
+
+
+def _sweep(rows: list, frames: dict, camera: OutsideCamera, P: int):
+    """The sweep rows as ``(freq [F], amplitude [F], power [F], frames (F x [P, E*R, H, W]), start [F, P, E*R],
+    duration [F, P, E*R], R)``: every pattern at every frequency, one amplitude and power per frequency."""
+    for r in rows:
+        if r["pattern"] is None or r["pattern"] >= P:
+            raise RecordingError(f"{CSV_NAME} line {r['line']}, column pattern: a sweep frame needs the row of {PATTERNS_NAME} it was "
+                                 f"driven with (0..{P - 1}), got {r['pattern']}")
+    per = [_points(mine, frames, camera) if (mine := [r for r in rows if r["pattern"] == p]) else () for p in range(P)]
+    ref = per[0]
+    for p, pts in enumerate(per):
+        if len(pts) != len(ref) or not pts:
+            raise RecordingError(f"{CSV_NAME}: pattern {p} of {PATTERNS_NAME} has sweep frames at {len(pts)} frequencies, pattern 0 at "
+                                 f"{len(ref)}; every pattern at every frequency")
+        for a, b in zip(pts, ref):
+            for col in ("freq_hz", "amplitude", "power", "E", "R"):
+                if getattr(a, col) != getattr(b, col):
+                    raise RecordingError(f"{CSV_NAME} line {a.lines[0]}, column {col}: pattern {p} at {a.freq_hz:g} Hz has "
+                                         f"{getattr(a, col):g}, pattern 0 at {b.freq_hz:g} Hz {getattr(b, col):g}; every pattern needs "
+                                         f"the same frequencies, amplitude, power, exposures and repeats")
+    F = len(ref)
+    stack = tuple(np.stack([per[p][k].frames for p in range(P)]) for k in range(F))
+    start = np.array([[per[p][k].start_s for p in range(P)] for k in range(F)])
+    dur = np.array([[per[p][k].duration_s for p in range(P)] for k in range(F)])
+    return (np.array([q.freq_hz for q in ref]), np.array([q.amplitude for q in ref]), np.array([q.power for q in ref]), stack, start,
+            dur, ref[0].R)
+
+
+def read_dm_recording(path) -> DMRecording:
+    """Read and check the outside DM recording in folder ``path`` (module docstring; untrusted:
+    sizes bounded before reading, every cell checked).
+
+    Raises:
+        RecordingError: naming the file, line and column of the first problem.
+    """
+    root = Path(path)
+    if not root.is_dir() or not is_dm_recording(root):
+        raise RecordingError(f"{root}: not an outside DM recording (a folder with {CSV_NAME} and {PATTERNS_NAME}: "
+                             f"docs/outside_recordings.md)")
+    if not (root / YAML_NAME).is_file():
+        raise RecordingError(f"{root / YAML_NAME}: missing; it gives the camera's gain and the sensor layout (dm, wfs, dm_plan)")
+    camera = _read_camera(root, _SECTIONS)
+    layout = _read_layout(root)
+    patterns = _read_patterns(root)
+    rows = _read_rows(root, ("pattern",))
+    frames, dtype = _read_frames(root, rows)
+    given = camera.saturation_adu is not None
+    camera = _resolved_saturation(camera, dtype)
+    source = (f"{camera.saturation_adu:.6g} ADU ({YAML_NAME})" if given else f"{camera.saturation_adu:.6g} ADU (the "
+              f"{np.dtype(dtype).name} maximum)" if camera.saturation_adu is not None else "none (float frames, no saturation_adu)")
+    by_kind = {k: [r for r in rows if r["kind"] == k] for k in ("dark", "still", "sweep")}
+    for kind, least in (("dark", 2), ("still", 1), ("sweep", 1)):
+        if len(by_kind[kind]) < least:
+            raise RecordingError(f"{CSV_NAME}: {len(by_kind[kind])} row(s) of kind {kind}; at least {least} needed")
+    te = {r["exposure_s"] for r in by_kind["still"]}
+    if None in te or len(te) != 1:
+        raise RecordingError(f"{CSV_NAME}, column exposure_s: every still frame needs one and the same exposure_s, got {sorted(map(str, te))}")
+    freq, amp, power, stack, start, dur, R = _sweep(by_kind["sweep"], frames, camera, patterns.shape[0])
+    take = lambda kind: np.stack([frames[r["line"]] for r in by_kind[kind]])  # noqa: E731
+    return DMRecording(path=root, camera=camera, layout=layout, dark=take("dark"), still=take("still"), still_exposure_s=te.pop(),
+                       patterns=patterns, freq_hz=freq, amplitude=amp, power=power, frames=stack, start_s=start, duration_s=dur, R=R,
+                       frame_shape=tuple(frames[rows[0]["line"]].shape), n_frames=len(rows), saturation_source=source)
+
+
+# ---------------------------------------------------------------------- the run
+
+
+def _sensor(cfg) -> tuple[DeformableMirror, ShackHartmann]:
+    """The nominal mirror (its geometry: the actuator table plays no part) and the sensor of ``cfg``."""
+    mirror = DeformableMirror.from_config(replace(cfg.dm, actuator_table=None), seed=int(cfg.seed))
+    return mirror, ShackHartmann.from_config(cfg.wfs, mirror)
+
+
+def dm_recording_config(rec: DMRecording, overrides=()):
+    """The DM config that fits ``rec``: the defaults with the ``fit.*`` / ``model.*`` /
+    ``report.*`` ``overrides`` (and ``seed``, ``camera.gain_from``), the sensor layout, the
+    camera's gain and timing from ``recording.yaml``, the frequencies and exposures from
+    ``frames.csv``; checked against the frames (their shape is the sensor's, a pattern has one
+    value per actuator).
+
+    Raises:
+        ConfigError: an override outside those (named); RecordingError: the layout does not fit the frames.
+    """
+    for item in overrides:
+        key = str(item).partition("=")[0]
+        if not (key.startswith(_ALLOWED) or key in ("seed", "camera.gain_from")):
+            raise ConfigError(f"{key}: a DM recording takes only fit.*, model.*, report.*, seed and camera.gain_from overrides "
+                              f"(its mirror, sensor, camera and sweep are in {YAML_NAME}, {PATTERNS_NAME} and {CSV_NAME})")
+    lay, c = rec.layout, rec.camera
+    E = rec.frames[0].shape[1] // rec.R
+    own = [f"dm.{f.name}={getattr(lay.dm, f.name)!r}" for f in fields(lay.dm)]
+    own += [f"wfs.{k}={v!r}" for k, v in asdict(lay.wfs).items()]
+    own += [f"dm_plan.kind={lay.dm_plan.kind}", f"dm_plan.support_threshold={lay.dm_plan.support_threshold!r}",
+            "dm_plan.budget_frames=null", f"dm_plan.n_repeats={rec.R}",
+            f"sweep.freq_hz=[{','.join(repr(float(f)) for f in rec.freq_hz)}]",
+            f"sweep.exposures=[{','.join(repr(float(d * rec.freq_hz[0])) for d in rec.duration_s[0, 0, ::rec.R][:E])}]",
+            f"camera.gain={float(c.gain_e_per_adu)!r}", f"camera.jitter_s={float(c.jitter_s)!r}",
+            f"camera.trigger_delay_s={float(c.trigger_delay_s)!r}", f"camera.latency_s={float(c.latency_s)!r}",
+            f"camera.latency_std_s={float(c.latency_std_s)!r}",
+            "excitation.target_px=0.1"]  # no acquisition: the amplitudes are the recording's (the config's check wants one that fits)
+    try:
+        cfg = load_config(None, own + list(overrides), force=True)
+    except ConfigError as exc:
+        raise RecordingError(f"{YAML_NAME}: {exc}") from None
+    cfg = replace(cfg, rig=replace(cfg.rig, kind="outside"))
+    N, shape = dm_geometry(cfg).shape[1], _sensor(cfg)[1].frame_shape
+    if rec.patterns.shape[1] != N:
+        raise RecordingError(f"{PATTERNS_NAME} line 1: {rec.patterns.shape[1]} actuators (a0..), the mirror of {YAML_NAME} (dm.n_across "
+                             f"{lay.dm.n_across}) has {N} inside the pupil")
+    if tuple(shape) != tuple(rec.frame_shape):
+        raise RecordingError(f"{YAML_NAME}: wfs: the sensor (n_across {lay.wfs.n_across} x pitch_px {lay.wfs.pitch_px:g}) has "
+                             f"{shape[0]}x{shape[1]} px frames, the recording's are {rec.frame_shape[0]}x{rec.frame_shape[1]}")
+    _plan(rec, cfg, dm_geometry(cfg))
+    return cfg
+
+
+def _plan(rec: DMRecording, cfg, G: np.ndarray) -> tuple[Plan, float]:
+    """The recorded plan (``patterns.csv`` on the support of ``dm_plan``) and its cost relative to
+    one actuator at a time; RecordingError where the patterns cannot be demultiplexed."""
+    kind = rec.layout.dm_plan.kind
+    plan = Plan(kind, rec.patterns, plan_support(kind, G, float(cfg.dm_plan.support_threshold)))
+    ratio = plan_cost(plan, G) / plan_cost(one_at_a_time_plan(G), G)
+    if not math.isfinite(ratio):
+        raise RecordingError(f"{PATTERNS_NAME}: the {plan.n_patterns} patterns do not separate the actuators each slope sees (their "
+                             f"matrix has too low a rank on the {kind} plan's support); D cannot be demultiplexed")
+    return plan, ratio
+
+
+def recording_calibration(rec: DMRecording, cfg, wfs: ShackHartmann, log: list, progress: bool = False):
+    """The calibration of ``rec`` and its spots in valid-subaperture order, ``(cal, psf, offset,
+    size)`` as the live run's (:func:`torchblur.dm.pipeline._calibrate`, the same steps on the
+    recorded frames): the dark frame, the gain (the still frames' photon transfer checked against
+    ``gain_e_per_adu``, ``camera.gain_from``), the read noise, the spots found in the mean still
+    frame and matched to the sensor's valid subapertures, the latency given by ``recording.yaml``."""
+    c = rec.camera
+    dark_raw, still_raw = torch.as_tensor(rec.dark, dtype=_F64), torch.as_tensor(rec.still, dtype=_F64)
+    dark = dark_frame(dark_raw)
+    sat_adu = math.inf if c.saturation_adu is None else float(c.saturation_adu)
+    level = dark.mean.mean()
+    nan = torch.tensor(math.nan, dtype=_F64)
+    sat = SaturationCurve(slope_adu_per_s=nan, offset_adu=level, saturation_adu=torch.tensor(sat_adu, dtype=_F64),
+                          linear_limit_s=torch.tensor(math.inf, dtype=_F64), residual_rms_adu=nan, saturated_in_data=False)
+    _refuse_saturated(rec, sat, dark)
+    ptc, gain, gain_source = measure_gain([still_raw], dark_raw, dark, sat_adu, float(c.gain_e_per_adu), cfg.camera.gain_from, log,
+                                          progress, name=f"{YAML_NAME} gain_e_per_adu")
+    read_noise_e = float(c.read_noise_e) if c.read_noise_e is not None else float(dark.read_noise) * gain
+    log_message(log, f"dark: level {float(level):.2f} ADU, read noise {read_noise_e:.3g} e-; saturation: {rec.saturation_source}", progress)
+    n = int(cfg.wfs.n_across)
+    spots_cfg = replace(cfg, spots=replace(cfg.spots, rows=n, cols=n, pitch_px=float(cfg.wfs.pitch_px), sigma_px=float(cfg.wfs.sigma_px)))
+    still_e = subtract_dark(still_raw, dark) * gain
+    spots = _locate_spots(spots_cfg, still_e.mean(0), float(rec.still_exposure_s), read_noise_e, log, progress)
+    cal = Calibration(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=float(sat_adu - level), psf=spots.psf,
+                      peak_rate=float(spots.psf.amplitude.max()), latency_s=float(c.latency_s), latency_std_s=float(c.latency_std_s),
+                      gain=gain, spots=spots, latency_source="given", ptc=ptc, gain_source=gain_source)
+    log_message(log, f"latency: {c.latency_s * 1e6:.3f} +- {c.latency_std_s * 1e6:.3f} us given ({YAML_NAME})", progress)
+    order = torch.as_tensor(match_spots(spots.psf.center.numpy(), wfs.rest_px, wfs.pitch_px))
+    return cal, spots.psf_in_crops()[order], spots.offset[order], spots.size
+
+
+def _refuse_saturated(rec: DMRecording, sat: SaturationCurve, dark) -> None:
+    """RecordingError naming the first still or sweep frame with a saturated pixel (within 1 % of the
+    range below ``saturation_adu``, hot pixels aside): the DM spot fit does not leave such pixels
+    out, so a saturated spot would give a wrong response with a std that does not show it."""
+    hot = dark.hot_pixels
+    n = int((~sat.mask(torch.as_tensor(rec.still, dtype=_F64)) & ~hot).sum())
+    if n:
+        raise RecordingError(f"{rec.path}: the still frames have {n} saturated pixel(s) (at or within 1 % below saturation_adu "
+                             f"{float(sat.saturation_adu):.6g}); take them with a shorter exposure or less light")
+    for k, fr in enumerate(rec.frames):
+        bad = (~sat.mask(torch.as_tensor(fr, dtype=_F64)) & ~hot).flatten(2).any(-1)  # [P, E*R]
+        if bool(bad.any()):
+            p, j = (int(v) for v in torch.nonzero(bad)[0])
+            raise RecordingError(f"{CSV_NAME}: the sweep frame of pattern {p} at {rec.freq_hz[k]:g} Hz (its frame {j} there) has "
+                                 f"saturated pixels (at or within 1 % below saturation_adu {float(sat.saturation_adu):.6g}; "
+                                 f"{int(bad.sum())} frame(s) at that frequency); the DM fit does not leave them out: record with "
+                                 f"less light or a shorter exposure, or give saturation_adu in {YAML_NAME} if the sensor clips higher")
+
+
+def identify_dm_recording(rec: DMRecording, cfg=None, *, progress: bool = False) -> DMResult:
+    """Identify the mirror of the outside DM recording ``rec`` like a live run: its calibration
+    (:func:`recording_calibration`), every frequency's pattern responses by the live run's spot
+    fitter, the demultiplexing and the actuator fit. Returns a :class:`~torchblur.dm.pipeline.DMResult`
+    (no simulated truth).
+
+    Args:
+        rec: from :func:`read_dm_recording`; cfg: from :func:`dm_recording_config` (default: its defaults).
+    """
+    if not isinstance(rec, DMRecording):
+        raise InputTypeError(f"rec: expected a DMRecording (read_dm_recording), got {type(rec).__name__}")
+    cfg = dm_recording_config(rec) if cfg is None else cfg
+    check_dm_config(cfg)
+    log, t = [], {}
+    t0 = time.perf_counter()
+    mirror, wfs = _sensor(cfg)
+    G = dm_geometry(cfg)
+    cal, psf, offset, size = recording_calibration(rec, cfg, wfs, log, progress)
+    t["calibration"], t["acquisition"] = time.perf_counter() - t0, 0.0
+    plan, ratio = _plan(rec, cfg, G)
+    t0 = time.perf_counter()
+    with ThreadPoolExecutor(max_workers=1) as pool:  # as the live run fits (on a busy machine two OpenMP threads on the main one were 12x slower)
+        futures = [pool.submit(_fit_frequency, torch.as_tensor(rec.frames[k], dtype=_F64), ExposureWindow(
+            torch.as_tensor(rec.start_s[k], dtype=_F64)[:, None], torch.as_tensor(rec.duration_s[k], dtype=_F64)[:, None]),
+            2 * math.pi * float(f), float(rec.amplitude[k]), float(rec.power[k]), cal, psf, offset, size, float(cfg.camera.jitter_s),
+            _fit_options(cfg)) for k, f in enumerate(rec.freq_hz)]
+        res = [fu.result() for fu in futures]
+    log_message(log, f"recording: {len(rec.freq_hz)} frequencies x {plan.n_patterns} patterns, {rec.n_frames} frames, from {rec.path}",
+                progress)
+    t["fit_wait"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    Y, Y_cov = np.stack([r[0] for r in res], -1), np.stack([r[1] for r in res], 2)
+    D, D_cov = demultiplex(Y, Y_cov, plan.patterns, plan.support)
+    table = fit_actuators(rec.freq_hz, D, D_cov, G, actuator_xy=mirror.actuator_xy)
+    t["estimation"] = time.perf_counter() - t0
+    return DMResult(freq_hz=np.asarray(rec.freq_hz), plan=plan, n_repeats=rec.R, plan_info={"cost_ratio_to_one_at_a_time": ratio},
+                    amplitude=np.asarray(rec.amplitude), power=np.asarray(rec.power), Y=Y, Y_cov=Y_cov, D=D, D_cov=D_cov, actuators=table,
+                    G=G, actuator_xy=mirror.actuator_xy, n_frames=int(sum(fr.shape[0] * fr.shape[1] for fr in rec.frames)),
+                    n_failed=sum(r[2] for r in res), timing_s=t, spot_reduced_chi2=np.stack([r[3] for r in res], -1), log=log)
+
+
+# ---------------------------------------------------------------------- writing
+
+
+def _tiff(path: Path, frames: np.ndarray) -> None:
+    """A grayscale TIFF stack: uint16 where every value is a whole number in its range (a camera's
+    ADU), else float64 (read back exactly either way)."""
+    import tifffile
+
+    a = np.asarray(frames, dtype=np.float64)
+    if np.all(a >= 0) and np.all(a <= 65535) and np.all(a == np.round(a)):
+        a = a.astype(np.uint16)
+    tifffile.imwrite(path, a, photometric="minisblack", metadata=None)
+
+
+def write_dm_recording(folder, *, dark, still, still_exposure_s: float, patterns, freq_hz, amplitude, frames, start_s, duration_s,
+                       camera: dict, layout: dict, power=None, R: int = 1) -> Path:
+    """Write an outside DM recording (module docstring) from arrays into ``folder`` (created;
+    existing files of the format are replaced) and return it.
+
+    Args:
+        dark ``[Nd, H, W]``, still ``[Ns, H, W]``: ADU; still_exposure_s: the still frames' exposure (s).
+        patterns: ``[P, N]``; freq_hz, amplitude: ``[F]`` (power ``[F]``, default 1).
+        frames: ``[F, P, E*R, H, W]`` ADU (or F arrays ``[P, E*R, H, W]``), exposure-major.
+        start_s, duration_s: ``[F, P, E*R]`` each frame's window (s after the sine's upward zero crossing).
+        camera: the camera keys of ``recording.yaml`` (``gain_e_per_adu`` required; ``latency_s``, ...).
+        layout: ``{"dm": {...}, "wfs": {...}, "dm_plan": {...}}``.
+        R: frames per exposure window (the repeats).
+    """
+    import yaml
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    patterns = np.asarray(patterns, dtype=np.float64)
+    F, P = len(freq_hz), patterns.shape[0]
+    power = np.ones(F) if power is None else np.asarray(power, dtype=np.float64)
+    _tiff(folder / "dark.tif", dark)
+    _tiff(folder / "still.tif", still)
+    _tiff(folder / "sweep.tif", np.concatenate([np.asarray(fr, dtype=np.float64).reshape((-1,) + np.shape(dark)[-2:]) for fr in frames]))
+    head = ["file", "page", "kind", "pattern", "freq_hz", "exposure_s", "window_start_s", "amplitude", "power", "repeat"]
+    rows = [["dark.tif", i, "dark"] + [""] * 7 for i in range(len(dark))]
+    rows += [["still.tif", i, "still", "", "", repr(float(still_exposure_s)), "", "", "", ""] for i in range(len(still))]
+    page = 0
+    for k in range(F):
+        for p in range(P):
+            for j in range(np.shape(frames[k])[1]):
+                rows.append(["sweep.tif", page, "sweep", p, repr(float(freq_hz[k])), repr(float(duration_s[k][p][j])),
+                             repr(float(start_s[k][p][j])), repr(float(amplitude[k])), repr(float(power[k])), j % R])
+                page += 1
+    with open(folder / CSV_NAME, "w", newline="") as fh:
+        csv.writer(fh).writerows([head] + rows)
+    with open(folder / PATTERNS_NAME, "w", newline="") as fh:
+        csv.writer(fh).writerows([["pattern"] + [f"a{j}" for j in range(patterns.shape[1])]]
+                                 + [[p] + [repr(float(v)) for v in row] for p, row in enumerate(patterns)])
+    doc = {k: (float(v) if isinstance(v, (int, float, np.floating)) and not isinstance(v, bool) else v) for k, v in camera.items()
+           if v is not None}
+    doc.update({sec: dict(layout[sec]) for sec in _SECTIONS if sec in layout})
+    (folder / YAML_NAME).write_text(yaml.safe_dump(doc, sort_keys=False))
+    return folder
+
+
+def export_dm_recording(run, folder) -> Path:
+    """Write the frames of a torchblur DM run's recording ``run`` (its ``--out`` folder or its
+    ``experiment/``) as an outside DM recording in ``folder`` (:func:`write_dm_recording`): the
+    dark frames, the PSF's still frames, every swept frequency's frames with their windows (the
+    trigger time plus ``trigger_delay_s`` plus the calibrated latency, as the run fitted them), the
+    plan, the camera (the configured gain, the calibrated latency and its std, the measured
+    saturation level) and the sensor layout. The calibration is replayed from the recording
+    (:func:`torchblur.dm.pipeline._calibrate` on a ReplayRig) for the latency and saturation.
+    Not exported: the photon transfer ladder of ``camera.ptc_frames`` (the fit's gain then comes
+    from the still frames alone) and a ``camera.gain_from`` other than the default (pass it to ``torchblur fit``).
+
+    Raises:
+        RecordingError: not a complete DM recording.
+    """
+    from torchblur.hardware.recording import Experiment, ReplayRig
+
+    path = Path(run)
+    exp = Experiment.open(path / "experiment" if (path / "experiment" / "experiment.json").is_file() else path, writable=False)
+    cfg = load_config(str(exp.path / "config.yaml"), trusted=False, force=True)
+    doc = exp.meta.get(PLAN_KEY)
+    if not cfg.dm.enabled or doc is None:
+        raise RecordingError(f"{exp.path}: not a DM run's recording with its plan ({PLAN_KEY})")
+    cal = _calibrate(cfg, ReplayRig(exp), _sensor(cfg)[1], [], False, exp)[0]
+    (_, _, dark), (_, args, still) = exp.load_calls( "dark")[0], exp.load_calls( "psf")[0]
+    keys = sorted(k for k in exp.groups if exp.groups[k][0].get("kind") == SWEEP_KIND)
+    if not keys:
+        raise RecordingError(f"{exp.path}: holds no swept frequency ({SWEEP_KIND} group)")
+    freq, amp, power, frames, start, dur = [], [], [], [], [], []
+    for key in keys:
+        lab = exp.groups[key][0]
+        calls = exp.load_calls( key)
+        delay = float(lab["trigger_delay_s"])
+        freq.append(float(lab["freq_hz"]))
+        amp.append(float(lab["amplitude"]))
+        power.append(float(lab["power"]))
+        frames.append(np.stack([cap.frames.reshape((-1,) + tuple(cap.frames.shape[-2:])).numpy() for _, _, cap in calls]))
+        start.append(np.stack([(cap.trigger_time_s.reshape(-1) + delay + cal.latency_s).numpy() for _, _, cap in calls]))
+        dur.append(np.stack([cap.exposure_s.reshape(-1).numpy() for _, _, cap in calls]))
+    c = cfg.camera
+    camera = {"gain_e_per_adu": float(c.gain), "saturation_adu": float(cal.saturation.saturation_adu),
+              "trigger_delay_s": float(c.trigger_delay_s), "latency_s": float(cal.latency_s), "latency_std_s": float(cal.latency_std_s),
+              "jitter_s": float(c.jitter_s)}
+    layout = {"dm": {"n_across": int(cfg.dm.n_across), "coupling": float(cfg.dm.coupling)}, "wfs": asdict(cfg.wfs),
+              "dm_plan": {"kind": str(doc["kind"]), "support_threshold": float(doc["support_threshold"])}}
+    return write_dm_recording(folder, dark=dark.frames.numpy(), still=still.frames.numpy(), still_exposure_s=float(args["exposure_s"]),
+                              patterns=np.asarray(doc["patterns"], dtype=np.float64), freq_hz=freq, amplitude=amp, power=power,
+                              frames=frames, start_s=start, duration_s=dur, camera=camera, layout=layout, R=int(doc["n_repeats"]))
+
+
+def run_recording(rec: DMRecording, cfg, out, *, quiet: bool = False, as_json: bool = False) -> int:
+    """``torchblur fit FOLDER`` of an outside DM recording: :func:`identify_dm_recording` written
+    as a live run writes (``OUT/config.yaml``, ``OUT/dm/``, ``OUT/report.txt``, the verdict line
+    last; :func:`torchblur.dm.pipeline.run_cli`). Returns the verdict's exit status."""
+    return run_cli(cfg, out, quiet=quiet, as_json=as_json, identify=lambda: identify_dm_recording(rec, cfg, progress=not quiet))
