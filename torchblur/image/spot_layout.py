@@ -18,8 +18,10 @@ pixels), then Nelder-Mead on the four parameters from the best. Every spot's cen
 own centroid in a window of half-side ``pitch_px / 2`` around its prediction, then twice in
 one of ``pitch_px / 4`` around the last centroid, above the window's floor (its lowest quartile): robust to the floor and to partly
 lit edge subapertures. A spot with less than :data:`DARK_FRACTION` of the median spot's light
-is flagged ``dark``, one whose centroid leaves its cell ``off_cell`` (both keep the predicted
-position): flagged by name, never raised.
+is flagged ``dark``, one whose centroid leaves its cell ``off_cell``, one whose light in its cell
+(above the floor) has an rms radius beyond :data:`SPREAD_FRACTION` of the pitch ``not_compact``
+(a ring, two spots in one cell): these keep the predicted position and are not fitted (a
+Gaussian fit of such a crop wanders for its 100 iterations). Flagged by name, never raised.
 
 :func:`layout_spots` crops every declared spot there and fits its Gaussian PSF
 (:func:`~torchblur.image.psf_fit.fit_gaussian_psf`, one batch): a
@@ -38,9 +40,10 @@ import torch
 
 from torchblur.errors import ShapeError, as_tensor, check_finite, check_real_scalar
 
-__all__ = ["DARK_FRACTION", "POOR_RESIDUAL", "LayoutRegistration", "layout_spots", "predict_layout", "register_layout"]
+__all__ = ["DARK_FRACTION", "POOR_RESIDUAL", "SPREAD_FRACTION", "LayoutRegistration", "layout_spots", "predict_layout", "register_layout"]
 
 DARK_FRACTION = 0.05  #: a spot with less light than this fraction of the median spot's is flagged dark
+SPREAD_FRACTION = 0.25  #: a spot whose light's rms radius in its cell exceeds this fraction of the pitch is flagged
 POOR_RESIDUAL = 0.05  #: a Gaussian fit whose residual rms exceeds this fraction of its peak is flagged
 
 
@@ -53,7 +56,8 @@ class LayoutRegistration:
         predicted_px: ``[M, 2]`` the declared positions mapped to the frame.
         center_px: ``[M, 2]`` every spot's refined centre (the prediction where flagged).
         light: ``[M]`` each spot's light above its cell's floor (image units).
-        status: ``[M]`` ``"ok"``, ``"dark"`` or ``"off_cell"``.
+        status: ``[M]`` ``"ok"``, ``"dark"``, ``"off_cell"`` or ``"not_compact"``.
+        radius: ``[M]`` rms radius of each spot's light in its cell (px).
         score: the normalised correlation of the frame with the registered grid.
     """
 
@@ -64,10 +68,11 @@ class LayoutRegistration:
     center_px: np.ndarray
     light: np.ndarray
     status: list
+    radius: np.ndarray
     score: float
 
     def describe(self) -> str:
-        bad = {s: [k for k, v in enumerate(self.status) if v == s] for s in ("dark", "off_cell")}
+        bad = {s: [k for k, v in enumerate(self.status) if v == s] for s in ("dark", "off_cell", "not_compact")}
         flags = "; ".join(f"{s}: {', '.join(f's{k}' for k in ks)}" for s, ks in bad.items() if ks)
         return (f"layout registered: offset ({self.offset_px[0]:+.2f}, {self.offset_px[1]:+.2f}) px, rotation "
                 f"{math.degrees(self.rotation_rad):+.3f} deg, scale {self.scale:.4f}, correlation {self.score:.3f}; "
@@ -153,23 +158,28 @@ def _search(img, rest, sigma, max_offset, max_rotation, max_scale):
 
 def _refine(img, pred, half: float):
     """Centroids ``[M, 2]`` in windows about ``pred``, each above its window's lowest quartile,
-    and the light ``[M]`` above that floor: three passes, of half-side ``half`` then ``half / 2``
-    twice (a narrower window sees less of the neighbours' wings)."""
+    the light ``[M]`` above that floor and the rms radius ``[M]`` of that light (px), from the
+    first pass: three passes, of half-side ``half`` then ``half / 2`` twice (a narrower window
+    sees less of the neighbours' wings)."""
     H, W = img.shape
     cen = pred.copy()
-    light = np.zeros(len(pred))
-    for half in (half, half / 2, half / 2):
+    light, radius = np.zeros(len(pred)), np.full(len(pred), np.inf)
+    for i, hw in enumerate((half, half / 2, half / 2)):
         for k, (x, y) in enumerate(cen):
-            x0, x1 = max(0, int(math.floor(x - half))), min(W, int(math.ceil(x + half)) + 1)
-            y0, y1 = max(0, int(math.floor(y - half))), min(H, int(math.ceil(y + half)) + 1)
+            x0, x1 = max(0, int(math.floor(x - hw))), min(W, int(math.ceil(x + hw)) + 1)
+            y0, y1 = max(0, int(math.floor(y - hw))), min(H, int(math.ceil(y + hw)) + 1)
             win = img[y0:y1, x0:x1]
             if win.size == 0:
                 continue
             v = (win - np.quantile(win, 0.25)).clip(0)
             light[k] = v.sum()
             if light[k] > 0:
-                cen[k] = ((v.sum(0) * np.arange(x0, x1)).sum() / light[k], (v.sum(1) * np.arange(y0, y1)).sum() / light[k])
-    return cen, light
+                xs, ys = np.arange(x0, x1), np.arange(y0, y1)
+                c = np.array([(v.sum(0) * xs).sum(), (v.sum(1) * ys).sum()]) / light[k]
+                if i == 0:
+                    radius[k] = math.sqrt((v.sum(0) * (xs - c[0]) ** 2).sum() / light[k] + (v.sum(1) * (ys - c[1]) ** 2).sum() / light[k])
+                cen[k] = c
+    return cen, light, radius
 
 
 def register_layout(still, rest_px, *, pitch_px: float, sigma_px: float = 1.5, max_offset_px: float | None = None,
@@ -201,7 +211,7 @@ def register_layout(still, rest_px, *, pitch_px: float, sigma_px: float = 1.5, m
     img = img - np.median(img)
     off, rot, sc = _search(img, rest, sigma, max_off, math.radians(max_rotation_deg), max_scale)
     pred = predict_layout(rest, img.shape, off, rot, sc)
-    cen, light = _refine(img, pred, pitch / 2)
+    cen, light, radius = _refine(img, pred, pitch / 2)
     med = float(np.median(light)) if light.size else 0.0
     status = []
     for k in range(len(rest)):
@@ -209,13 +219,15 @@ def register_layout(still, rest_px, *, pitch_px: float, sigma_px: float = 1.5, m
             status.append("dark")
         elif np.abs(cen[k] - pred[k]).max() > pitch / 4:
             status.append("off_cell")
+        elif radius[k] > SPREAD_FRACTION * pitch:
+            status.append("not_compact")
         else:
             status.append("ok")
     bad = np.array([s != "ok" for s in status])
     cen[bad] = pred[bad]
     t = _template(img.shape, pred, sigma)
     score = float((img * t).sum() / max(np.linalg.norm(img) * np.linalg.norm(t), 1e-300))
-    return LayoutRegistration(offset_px=off, rotation_rad=rot, scale=sc, predicted_px=pred, center_px=cen, light=light, status=status,
+    return LayoutRegistration(offset_px=off, rotation_rad=rot, scale=sc, predicted_px=pred, center_px=cen, light=light, status=status, radius=radius,
                               score=score)
 
 
@@ -226,7 +238,7 @@ def layout_spots(still, *, exposure_s: float, noise_std, rest_px, pitch_px: floa
     ``crop_px`` and ``mask`` as :func:`~torchblur.image.spots.locate_spots`; ``rest_px [M, 2]``
     the declared rest positions. ``flags [M]``: the registration's status where it is not ``ok``,
     else the fit's (``ok``, ``not_gaussian``, ``no_light``). Spots in the declared order."""
-    from torchblur.image.psf_fit import fit_gaussian_psf, point_sampled_equivalent
+    from torchblur.image.psf_fit import point_sampled_equivalent
     from torchblur.image.spots import SpotPSFs, crop_spots, crop_valid
     from torchblur.render.psf import GaussianPSF
 
@@ -241,7 +253,7 @@ def layout_spots(still, *, exposure_s: float, noise_std, rest_px, pitch_px: floa
     crops = crop_spots(still, offset, size)
     valid = crop_valid((H, W), offset, size)
     m = valid if mask is None else valid & crop_spots(mask.to(still.dtype), offset, size).gt(0.5)
-    fit = fit_gaussian_psf(crops, exposure_s=exposure_s, noise_std=noise_std, mask=m, pixel_integration=True)
+    fit = _fit_registered(crops, m, [s == "ok" for s in reg.status], exposure_s, noise_std, sigma_px, size)
     fitted = point_sampled_equivalent(fit.psf)
     psf = GaussianPSF(fitted.center + offset.to(still.dtype), fitted.cov, fitted.amplitude)
     light = (fit.model - fit.background[..., None, None]).clamp_min(0)
@@ -258,3 +270,30 @@ def layout_spots(still, *, exposure_s: float, noise_std, rest_px, pitch_px: floa
             flags.append("ok")
     spots = SpotPSFs(psf=psf, offset=offset, size=size, fit=fit, clipped=~valid.all(-1).all(-1), inside_fraction=inside)
     return spots, reg, flags
+
+
+def _fit_registered(crops, mask, fit_it, exposure_s, noise_std, sigma_px, size):
+    """:func:`~torchblur.image.psf_fit.fit_gaussian_psf` of the crops ``[M, h, w]`` whose spot the
+    registration centred (``fit_it [M]``, one batch); the others (dark, off their cell) get a
+    placeholder of no light: a round Gaussian of ``sigma_px`` at the crop centre, amplitude 0."""
+    from torchblur.image.psf_fit import PSFFit, fit_gaussian_psf
+    from torchblur.render.psf import GaussianPSF
+
+    idx = torch.as_tensor(np.flatnonzero(fit_it), dtype=torch.long)
+    M, dt = crops.shape[0], crops.dtype
+    h, w = size
+    nan = float("nan")
+    centre = torch.tensor([(w - 1) / 2, (h - 1) / 2], dtype=dt).expand(M, 2).clone()
+    cov = (sigma_px ** 2 * torch.eye(2, dtype=dt)).expand(M, 2, 2).clone()
+    out = dict(amp=torch.zeros(M, dtype=dt), bg=torch.zeros(M, dtype=dt), rms=torch.full((M,), nan, dtype=dt),
+               rel=torch.full((M,), nan, dtype=dt), cov_std=torch.full((M, 2, 2), nan, dtype=dt), c_std=torch.full((M, 2), nan, dtype=dt),
+               a_std=torch.full((M,), nan, dtype=dt), conv=torch.zeros(M, dtype=torch.bool), model=torch.zeros_like(crops))
+    if idx.numel():
+        ns = noise_std[idx] if isinstance(noise_std, torch.Tensor) and noise_std.dim() > 0 and noise_std.shape[0] == M else noise_std
+        f = fit_gaussian_psf(crops[idx], exposure_s=exposure_s, noise_std=ns, mask=mask[idx], pixel_integration=True)
+        centre[idx], cov[idx], out["amp"][idx] = f.psf.center, f.psf.cov, f.psf.amplitude
+        for key, v in (("bg", f.background), ("rms", f.residual_rms), ("rel", f.relative_residual), ("cov_std", f.cov_std),
+                       ("c_std", f.center_std), ("a_std", f.amplitude_std), ("conv", f.converged), ("model", f.model)):
+            out[key][idx] = v
+    return PSFFit(psf=GaussianPSF(centre, cov, out["amp"]), background=out["bg"], residual_rms=out["rms"], relative_residual=out["rel"],
+                  cov_std=out["cov_std"], center_std=out["c_std"], amplitude_std=out["a_std"], converged=out["conv"], model=out["model"])
