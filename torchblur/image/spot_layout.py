@@ -37,8 +37,12 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from scipy.optimize import minimize
 
 from torchblur.errors import ShapeError, as_tensor, check_finite, check_real_scalar
+from torchblur.image.psf_fit import PSFFit, fit_gaussian_psf, point_sampled_equivalent
+from torchblur.image.spots import SpotPSFs, crop_spots, crop_valid
+from torchblur.render.psf import GaussianPSF
 
 __all__ = ["DARK_FRACTION", "POOR_RESIDUAL", "SPREAD_FRACTION", "LayoutRegistration", "layout_spots", "predict_layout", "register_layout"]
 
@@ -136,8 +140,6 @@ def _best_offset(img_f, shape, p, sigma, max_offset: float):
 
 def _search(img, rest, sigma, max_offset, max_rotation, max_scale):
     """Grid of rotations and scales, FFT offsets, then Nelder-Mead: ``(offset, rotation, scale)``."""
-    from scipy.optimize import minimize
-
     H, W = img.shape
     pad = np.zeros((2 * H, 2 * W))
     pad[:H, :W] = img
@@ -238,10 +240,6 @@ def layout_spots(still, *, exposure_s: float, noise_std, rest_px, pitch_px: floa
     ``crop_px`` and ``mask`` as :func:`~torchblur.image.spots.locate_spots`; ``rest_px [M, 2]``
     the declared rest positions. ``flags [M]``: the registration's status where it is not ``ok``,
     else the fit's (``ok``, ``not_gaussian``, ``no_light``). Spots in the declared order."""
-    from torchblur.image.psf_fit import point_sampled_equivalent
-    from torchblur.image.spots import SpotPSFs, crop_spots, crop_valid
-    from torchblur.render.psf import GaussianPSF
-
     still = check_finite(as_tensor(still, "still"), "still")
     reg = register_layout(still, rest_px, pitch_px=pitch_px, sigma_px=sigma_px)
     H, W = still.shape
@@ -276,9 +274,6 @@ def _fit_registered(crops, mask, fit_it, exposure_s, noise_std, sigma_px, size):
     """:func:`~torchblur.image.psf_fit.fit_gaussian_psf` of the crops ``[M, h, w]`` whose spot the
     registration centred (``fit_it [M]``, one batch); the others (dark, off their cell) get a
     placeholder of no light: a round Gaussian of ``sigma_px`` at the crop centre, amplitude 0."""
-    from torchblur.image.psf_fit import PSFFit, fit_gaussian_psf
-    from torchblur.render.psf import GaussianPSF
-
     idx = torch.as_tensor(np.flatnonzero(fit_it), dtype=torch.long)
     M, dt = crops.shape[0], crops.dtype
     h, w = size
