@@ -4,10 +4,11 @@ config whose ``dm.n_across`` > 0 comes here).
 Stages:
 
 1. calibration: the one-spot/many-spot run's own stage (:func:`torchblur.identify.calibration.calibrate`
-   with the sensor's spot grid): dark frame, saturation, still frames (every spot found with
-   :func:`~torchblur.image.spots.locate_spots`, a Gaussian PSF fitted per spot), trigger
-   latency from the pulse scan; the found spots are matched to the sensor's valid subapertures
-   (nearest rest position within half a pitch; a valid subaperture without a spot stops the run).
+   with the sensor's spot grid): dark frame, saturation, still frames (every spot cropped
+   on the sensor's declared layout registered to the still frame,
+   :func:`~torchblur.image.spot_layout.layout_spots`, a Gaussian PSF fitted per spot, the spots
+   it cannot describe flagged by name), trigger latency from the pulse scan; the spots are
+   matched to the sensor's valid subapertures (nearest rest position within half a pitch).
 2. the plan (:func:`torchblur.dm.plans.choose_plan`: kind, frame budget, the nominal geometry G).
 3. the sweep, frequency by frequency (``sweep`` section: frequencies, exposures in periods,
    trigger phase): every pattern is driven at one amplitude per frequency (:func:`next_amplitude`:
@@ -164,7 +165,7 @@ def _calibrate(cfg, rig, wfs, log, progress, exp=None):
     size = dm_sweep_size(cfg)
     n_still = dm_still_frames(size["frames"], size["frame_shape"])
     cal = calibrate(replace(cfg, spots=spots_cfg), rig, exp, log=log, progress=progress, n_dark=DM_DARK_FRAMES, n_still=n_still,
-                    spot_psfs=False)  # the DM fits Gaussian spots (issue 23)
+                    spot_psfs=False, spot_layout=wfs.rest_px)  # Gaussian spots cropped on the sensor's layout (issue 23)
     order = match_spots(cal.spots.psf.center.numpy(), wfs.rest_px, wfs.pitch_px)
     log_message(log, f"dm spots: {len(cal.spots)} found, matched to the {wfs.n_valid} valid subapertures (the other "
                      f"{n * n - wfs.n_valid} cells of the {n}x{n} grid are outside the pupil)", progress)

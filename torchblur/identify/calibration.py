@@ -89,12 +89,15 @@ class Calibration:
 N_DARK = 256
 
 
-def calibrate(cfg, rig, exp=None, log=None, progress: bool = False, *, n_dark: int = N_DARK, n_still: int = 16, spot_psfs: bool = True):
+def calibrate(cfg, rig, exp=None, log=None, progress: bool = False, *, n_dark: int = N_DARK, n_still: int = 16, spot_psfs: bool = True,
+              spot_layout=None):
     """Stages 1-4 of :func:`identify`: dark frame, saturation curve, PSF, latency and, for a
     one-axis, one-spot run, the actuator's direction in the image (each taken from the
     recording ``exp`` when it holds it). ``n_dark`` dark frames (:data:`N_DARK`) and ``n_still``
     still frames: the PSF's own error and the dark mean's noise, common to every frame, are in no fitted point's std, so a
-    run whose stds are small takes more. ``spot_psfs``: many spots' PSFs by :func:`spot_kernels` (False: the Gaussians)."""
+    run whose stds are small takes more. ``spot_psfs``: many spots' PSFs by :func:`spot_kernels` (False: the Gaussians).
+    ``spot_layout``: the sensor's declared rest positions ``[M, 2]`` (x, y px): the spots are cropped there
+    (:func:`_layout_spots`), not found by thresholding the frame."""
     log = [] if log is None else log
     c = cfg.camera
     dtype = torch.float64
@@ -129,7 +132,10 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False, *, n_dark: i
     still_e = subtract_dark(still_raw, dark) * gain
     spots = still_psf = spot_kern = None
     if getattr(cfg, "spots", None) is not None and cfg.spots.enabled:
-        spots = _locate_spots(cfg, still_e.mean(0), te_psf, read_noise_e, log, progress)
+        if spot_layout is None:
+            spots = _locate_spots(cfg, still_e.mean(0), te_psf, read_noise_e, log, progress)
+        else:
+            spots = _layout_spots(cfg, still_e.mean(0), te_psf, read_noise_e, spot_layout, log, progress)
         psf = spots.psf  # [K], full-frame coordinates
         whole = spots.inside_fraction >= MIN_INSIDE  # an edge spot's peak is an extrapolation: not trusted here
         peak_rate = float(psf.amplitude[whole].max() if bool(whole.any()) else psf.amplitude.max())  # e-/s at power 1
@@ -407,6 +413,27 @@ def _locate_spots(cfg, still, exposure_s, read_noise_e, log, progress):
         what = "flagged: not fitted" if frac < MIN_INSIDE else "fitted on the pixels in the frame"
         log_message(log, f"spots: s{k} at ({float(c[0]):.1f}, {float(c[1]):.1f}) px is at the frame edge, {frac * 100:.0f}% of its light "
                   f"in the frame ({what})", progress)
+    return spots
+
+
+def _layout_spots(cfg, still, exposure_s, read_noise_e, rest_px, log, progress):
+    """Stage 2 on a sensor's known layout: the declared spots ``rest_px [M, 2]`` registered to the
+    still image and fitted (:func:`~torchblur.image.spot_layout.layout_spots`, one batch, in the
+    declared order); logs the registration and names every flagged spot (its fit goes on)."""
+    from torchblur.image.spot_layout import layout_spots
+
+    sp = cfg.spots
+    spots, reg, flags = layout_spots(still, exposure_s=exposure_s, noise_std=camera_noise_std(float(still.max()), read_noise_e) / 4,
+                                     rest_px=rest_px, pitch_px=float(sp.pitch_px), sigma_px=float(sp.sigma_px),
+                                     crop_px=None if sp.crop_px is None else int(sp.crop_px))
+    log_message(log, f"spots: {reg.describe()}", progress)
+    sd = torch.linalg.eigvalsh(spots.psf.cov).clamp_min(0).sqrt()
+    log_message(log, f"spots: {len(spots)} declared spots cropped {spots.size[0]}x{spots.size[1]} px, Gaussian PSF sigma "
+                     f"{float(sd.min()):.2f}..{float(sd.max()):.2f} px, worst relative residual "
+                     f"{float(spots.fit.relative_residual.max()):.2e}", progress)
+    for k, f in enumerate(flags):
+        if f != "ok":
+            log_message(log, f"spots: s{k} flagged {f} (its Gaussian PSF is kept; its fits are judged by their own chi2)", progress)
     return spots
 
 

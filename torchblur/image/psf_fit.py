@@ -261,6 +261,7 @@ def _psf_model(pb: _PSFProblem, a_scale, b_scale):
         theta[:, 3] = theta[:, 3].clamp(-4.0 * max(H, W), 4.0 * max(H, W))
         theta[:, 0] = theta[:, 0].clamp(-W, 2 * W)
         theta[:, 1] = theta[:, 1].clamp(-H, 2 * H)
+        theta[:, 5] = theta[:, 5].clamp_min(0.0)  # a spot the Gaussian cannot describe ends at 0 light, never raises (issue 23)
         return theta
 
     return model_fn, jac_fn, project

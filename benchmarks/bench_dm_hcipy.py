@@ -1,0 +1,175 @@
+"""Issue 23's first two "done when" items measured end to end on HCIPy Shack-Hartmann frames.
+
+The DM route (``torchblur.dm.pipeline.identify_dm`` and its verdict, what ``run_cli`` runs) on
+a user-written rig (tests/hcipy_sh_rig.py) whose frames HCIPy makes (tests/hcipy_sh.py: circular
+pupil, HCIPy's DM of Gaussian influence functions, 52 actuators, 10 x 10 square lenslets with
+diffraction and crosstalk, 80 valid, 16 px pitch, 160 x 160 px; each actuator's own second-order
+dynamics and delay, actuator 20 dead, 33 at 0.4 gain; the motion integrated over each exposure
+with Gauss-Legendre nodes; Poisson and read noise, ADU rounding), configs/identify_dm.yaml's
+plan (Hadamard, 10 Hz-2 kHz, exposures 0.3 and 0.8 of the period). Two cases: the DM registered
+to the lenslets, and misregistered (0.25 actuator pitch shift in x, 1.5 deg, 3 % magnification).
+
+Printed per case: every live actuator's largest mode, damping and delay error; D0's rms error over
+max |D0| against the fitted-shift truth (each spot's least-squares shift under a small static poke of
+each actuator, tests/hcipy_sh.py ``shift_truth``, times the actuator's gain); rms(error/std) of
+D(jw) (against ``shift_truth`` x H_j(jw), the linearised truth) and of every actuator parameter;
+the dead and weak actuators' status; the spot fits' reduced chi2 median; the verdict and its exit
+code; the times. ``--quick``: 4 frequencies, one repeat (512 frames a case; the full plan is
+configs/identify_dm.yaml's 16 frequencies x 2 repeats, 4096 frames).
+
+    python benchmarks/bench_dm_hcipy.py --quick [--case aligned|misregistered|both|none]
+
+First the generator's checks (batched FFT vs HCIPy's own forward, the time integral's node
+rule at the worst exposure, what thresholding the still frame finds).
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import time
+
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
+
+import hcipy_sh as hs  # noqa: E402
+import hcipy_sh_rig as hr  # noqa: E402
+
+from torchblur.dm.pipeline import identify_dm  # noqa: E402
+from torchblur.dm.verdict import run_verdict, truth_guard  # noqa: E402
+from torchblur.identify.config import load_config  # noqa: E402
+
+CASES = {"aligned": hs.SHOptics(),
+         "misregistered": hs.SHOptics(shift=(0.25, 0.0), rotation_deg=1.5, magnification=1.03)}
+DYNAMICS_SEED = 23
+
+
+def _z_complex(err, cov):
+    """rms of the Mahalanobis distance per complex point / sqrt(2): about 1 where the stds hold."""
+    e = np.stack([err.real, err.imag], -1)[..., None]
+    ok = np.isfinite(cov).all((-1, -2)) & np.isfinite(e[..., 0]).all(-1) & (np.abs(np.linalg.det(cov)) > 0)
+    d2 = (np.swapaxes(e[ok], -1, -2) @ np.linalg.inv(cov[ok]) @ e[ok])[..., 0, 0]
+    return float(np.sqrt(np.mean(d2) / 2)) if d2.size else math.nan
+
+
+def figures(res, truth, dyn) -> dict:
+    """The "done when" figures of one run against the generator's truth."""
+    a = res.actuators
+    live = ~dyn.dead
+    out = {}
+    for name, est, std, true in (("mode", a.mode_hz, a.mode_hz_std, dyn.mode_hz), ("damping", a.damping, a.damping_std, dyn.damping),
+                                 ("dc_gain", a.dc_gain, a.dc_gain_std, dyn.gain)):
+        rel = est[live] / true[live] - 1
+        out[f"{name}_max_rel_error"] = float(np.nanmax(np.abs(rel)))
+        out[f"{name}_rms_z"] = float(np.sqrt(np.nanmean(((est[live] - true[live]) / std[live]) ** 2)))
+    dd = a.delay_s[live] - dyn.delay_s[live]
+    out["delay_max_error_us"] = float(np.nanmax(np.abs(dd)) * 1e6)
+    out["delay_rms_z"] = float(np.sqrt(np.nanmean((dd / a.delay_s_std[live]) ** 2)))
+    D0 = truth["D0"]
+    out["D0_rms_error_over_max"] = float(np.sqrt(np.mean((a.static_column - D0) ** 2)) / np.abs(D0).max())
+    Dt = truth["shift_slopes"][:, :, None] * dyn.response(res.freq_hz)[None]  # [2M, N, F]
+    out["D_rms_z"] = _z_complex(res.D[:, live] - Dt[:, live], res.D_cov[:, live])
+    st = np.asarray(a.status)
+    out["dead_status"] = [str(st[j]) for j in np.flatnonzero(dyn.dead)]
+    weak = np.flatnonzero((dyn.gain > 0) & (dyn.gain < 0.7))
+    out["weak_status"] = [str(st[j]) for j in weak]
+    out["other_not_ok"] = [int(j) for j in np.flatnonzero(st != "ok") if j not in set(np.flatnonzero(dyn.dead)) | set(weak)]
+    chi2 = res.spot_reduced_chi2
+    out["spot_chi2_median"] = float(np.nanmedian(chi2)) if chi2 is not None else math.nan
+    out["poor_fit_actuators"] = int(np.sum(a.poor_fit))
+    return out
+
+
+def physics_checks() -> None:
+    """The generator's checks at the benchmark's worst exposure, and what thresholding sees."""
+    import torch
+
+    from torchblur.image.detection import find_spots
+    from torchblur.render.camera import camera_noise_std
+
+    gen = hs.HcipySH()
+    rng = np.random.default_rng(11)
+    still = gen.still() * 3000.0  # a 3000 e- peak, 20 e- background, 3 e- read noise
+    img = rng.poisson(still + 20.0).astype(float) - 20.0 + 3.0 * rng.standard_normal(still.shape)
+    found = find_spots(torch.as_tensor(img), noise_std=camera_noise_std(float(img.max()), 3.0) / 4)[0]
+    corner = gen.still()[16:144:16, 16:144:16]
+    print(f"  thresholding (find_spots, the calibration's old spot finder) on a noisy still: {len(found)} connected component(s) "
+          f"for {gen.valid.size} spots; floor at the corners between spots {np.median(corner) * 100:.3f} % of the peak")
+    cmd = np.random.default_rng(3).normal(size=gen.n_actuators)
+    ours = gen.intensity(cmd[None])[0]
+    print(f"  batched FFT vs HCIPy's DeformableMirror + MicroLensArray + FresnelPropagator forward: "
+          f"{np.abs(ours - gen.reference_intensity(cmd)).max() / ours.max():.1e} of the peak")
+    f = 900.0
+    omega, T = 2 * math.pi * f, 1 / f
+    S = gen.shift_truth()
+    amp = np.zeros(gen.n_actuators)
+    amp[27] = 3.0 / np.abs(S[:, 27]).max()
+    n = gen.node_count(3.0, omega, 0.8 * T)
+    a = gen.blurred(amp, np.full(gen.n_actuators, 0.3), omega, [0.05 * T], [0.8 * T], n)
+    b = gen.blurred(amp, np.full(gen.n_actuators, 0.3), omega, [0.05 * T], [0.8 * T], 2 * n)
+    print(f"  time integral, 3 px motion over 0.8 of a 900 Hz period: {n} vs {2 * n} Gauss-Legendre nodes differ by "
+          f"{np.abs(a - b).max() / b.max():.1e} of the peak")
+    sys.stdout.flush()
+
+
+def run_case(name: str, quick: bool) -> None:
+    over = ["sweep.n=4", "dm_plan.budget_frames=512"] if quick else []
+    cfg = load_config("configs/identify_dm.yaml", over)
+    t0 = time.perf_counter()
+    gen = hs.HcipySH(CASES[name])
+    dyn = hs.draw_dynamics(gen.n_actuators, DYNAMICS_SEED)
+    rig = hr.hcipy_dm_rig(cfg, gen, dyn)
+    truth = rig.truth(None)
+    t_gen = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    res = identify_dm(cfg, rig)
+    t_run = time.perf_counter() - t0
+    if os.environ.get("BENCH_DM_HCIPY_SAVE"):  # keep the run (re-read the figures without re-running)
+        import pickle
+
+        with open(f"{os.environ['BENCH_DM_HCIPY_SAVE']}_{name}.pkl", "wb") as fh:
+            pickle.dump({"res": res, "truth": truth, "dyn": dyn, "cfg_poor_fit_chi2": float(cfg.fit.poor_fit_chi2)}, fh)
+    v = truth_guard(run_verdict(res, poor_fit_chi2=float(cfg.fit.poor_fit_chi2)), res)
+    f = figures(res, truth, dyn)
+    print(f"== {name}: {gen.optics}")
+    for line in res.log:
+        if line.startswith(("spots:", "latency:", "dm plan:")):
+            print("  " + line)
+    print(f"  {res.n_frames} sweep frames ({len(res.freq_hz)} frequencies {res.freq_hz[0]:.4g}..{res.freq_hz[-1]:.4g} Hz), generator set-up "
+          f"{t_gen:.1f} s, run {t_run:.1f} s ({', '.join(f'{k} {v:.1f} s' for k, v in res.timing_s.items())}); mean Gauss-Legendre "
+          f"nodes per frame {np.mean(rig.nodes_used):.1f}")
+    print(f"  live actuators, largest error: mode {f['mode_max_rel_error'] * 100:.3f} % (done when <= 0.5 %), damping "
+          f"{f['damping_max_rel_error'] * 100:.2f} % (<= 5 %), delay {f['delay_max_error_us']:.2f} us (<= 2 us), DC gain "
+          f"{f['dc_gain_max_rel_error'] * 100:.3f} %")
+    print(f"  D0 rms error / max|D0| against the fitted-shift truth: {f['D0_rms_error_over_max'] * 100:.3f} % (<= 1 %)")
+    print(f"  rms(error/std) (0.8..1.3): D(jw) {f['D_rms_z']:.2f}; mode {f['mode_rms_z']:.2f}, damping {f['damping_rms_z']:.2f}, "
+          f"delay {f['delay_rms_z']:.2f}, DC gain {f['dc_gain_rms_z']:.2f}")
+    print(f"  dead actuator status {f['dead_status']} (want dead), weak {f['weak_status']} (want weak), other live actuators not ok: "
+          f"{f['other_not_ok']}")
+    print(f"  spot fits' reduced chi2 median {f['spot_chi2_median']:.3g} (<= 1.2); poor_fit actuators {f['poor_fit_actuators']}")
+    print(f"  {v.line}")
+    print(f"  exit {v.exit_code} (want 0)")
+    sys.stdout.flush()
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--quick", action="store_true", help="4 frequencies, one repeat (512 frames per case)")
+    p.add_argument("--case", choices=["aligned", "misregistered", "both", "none"], default="both",
+                   help="none: only the generator's checks")
+    args = p.parse_args(argv)
+    import torch
+    from threadpoolctl import threadpool_limits
+
+    torch.set_num_threads(1)
+    print(f"torch threads 1, BLAS threads 1; {'quick' if args.quick else 'full'} plan; HCIPy dynamics seed {DYNAMICS_SEED}")
+    with threadpool_limits(limits=1):
+        physics_checks()
+        for name in {"both": ["aligned", "misregistered"], "none": []}.get(args.case, [args.case]):
+            run_case(name, args.quick)
+
+
+if __name__ == "__main__":
+    main()
