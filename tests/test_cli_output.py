@@ -20,7 +20,7 @@ from cli_run import ROOT, SMALL, run_cli as _cli
 @pytest.fixture(scope="module")
 def json_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("cli") / "run"
-    proc = _cli("identify", "--out", str(out), "--json", *SMALL)
+    proc = _cli("identify", "--out", str(out), "--json", *SMALL, "report.figures=false")  # no test here looks at figures
     assert proc.returncode == 0, proc.stderr
     return out, proc
 
@@ -64,6 +64,9 @@ def test_frf_mat_and_units_beside_frf_csv(json_run):
     mat = scipy.io.loadmat(out / "frf.mat")
     np.testing.assert_allclose(mat["freq_hz"].ravel(), frf.freq_hz)
     np.testing.assert_allclose(np.asarray(mat["H"]).ravel(), frf.response.ravel())
+    # report.figures=false: every number file, no figure
+    assert {"frf.csv", "frf.json", "frf.mat", "model.json", "config.yaml", "report.txt"} <= {p.name for p in out.iterdir()}
+    assert not sorted(out.glob("*.png"))
 
 
 def test_plain_run_prints_the_table_on_stdout(small_quiet_run, tmp_path):
