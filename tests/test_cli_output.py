@@ -184,8 +184,10 @@ def test_rig_frames_pylon_url_is_accepted_and_a_bad_one_is_one_clear_error(tmp_p
 
 
 def test_identify_from_python_shows_its_messages_where_logging_is_not_configured():
+    # a smaller run than SMALL (2 points, a 32 x 32 frame): what is checked is how the messages reach stderr
+    small = ["sweep.freq_hz=[20,200]", "camera.height=32", "camera.width=32"]
     code = ("from torchblur.identify.config import load_config; from torchblur.identify.pipeline import identify; "
-            f"identify(load_config(None, {SMALL!r}), progress=True)")
+            f"identify(load_config(None, {small!r}), progress=True)")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)},
                           timeout=600)
     assert proc.returncode == 0, proc.stderr

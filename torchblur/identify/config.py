@@ -214,7 +214,7 @@ class ReportConfig:
     # per frame, averaged, and the latency's std) exceed tolerance_deg of phase, and flags those points timing.
     tolerance_deg: float = 1.0
     tolerance_rel: float = 0.01  # |H| relative: the report counts the points whose |H| std is within it
-    # false: no figures (bode.png, residuals.png, ptc.png, dm/actuator_maps.png; about 4.5 s of a small run);
+    # false: no figures (bode.png, residuals.png, ptc.png, dm/actuator_maps.png; benchmarks/bench_figures.py: their cost);
     # every number file (frf.*, model.json, report.txt, dm/*.csv/.npy/.json) is written as before.
     figures: bool = True
 
