@@ -1,4 +1,5 @@
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -6,6 +7,9 @@ import pytest
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
+# Figures are only written to files in the tests: matplotlib's Agg backend, no GUI backend probed (here and in the
+# fresh processes the tests start). Set for the tests only; the library never touches the backend.
+os.environ.setdefault("MPLBACKEND", "Agg")
 
 import torchblur as tb  # noqa: E402
 
@@ -20,11 +24,13 @@ def small_quiet_run(tmp_path_factory):
     """``torchblur identify --out OUT --quiet`` of the default simulated rig at 4 frequencies
     (cli_run.SMALL), in a fresh process, once per session -> ``(OUT, finished process)``. Several
     test files check this same run (its stdout, its verdict, refits of its recording); they only
-    read OUT and write elsewhere."""
+    read OUT and write elsewhere. ``report.figures=false``: none of them looks at a figure (the
+    figures of a CLI run are checked by test_identify, test_mimo, test_multisine_identify,
+    test_outside_recording and test_photon_transfer), and a re-fit of it draws none either."""
     from cli_run import SMALL, run_cli
 
     out = tmp_path_factory.mktemp("small_quiet") / "run"
-    proc = run_cli("identify", "--out", str(out), "--quiet", *SMALL)
+    proc = run_cli("identify", "--out", str(out), "--quiet", *SMALL, "report.figures=false")
     assert proc.returncode == 0, proc.stderr
     return out, proc
 

@@ -2,6 +2,7 @@
 count): nothing below the identification pipeline imports it, and no module imports one that
 imports it back."""
 import ast
+import functools
 from pathlib import Path
 
 import pytest
@@ -44,8 +45,9 @@ def _imported(name: str, path: Path) -> set:
     return out
 
 
+@functools.lru_cache(maxsize=1)  # read once per session: every test below asks the same source tree (none changes it)
 def _graph() -> dict:
-    """``{module: {torchblur modules it imports}}``."""
+    """``{module: {torchblur modules it imports}}`` (shared: do not modify)."""
     mods = _modules()
     edges = {}
     for name, path in mods.items():

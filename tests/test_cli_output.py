@@ -20,7 +20,7 @@ from cli_run import ROOT, SMALL, run_cli as _cli
 @pytest.fixture(scope="module")
 def json_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("cli") / "run"
-    proc = _cli("identify", "--out", str(out), "--json", *SMALL)
+    proc = _cli("identify", "--out", str(out), "--json", *SMALL, "report.figures=false")  # no test here looks at figures
     assert proc.returncode == 0, proc.stderr
     return out, proc
 
@@ -64,6 +64,9 @@ def test_frf_mat_and_units_beside_frf_csv(json_run):
     mat = scipy.io.loadmat(out / "frf.mat")
     np.testing.assert_allclose(mat["freq_hz"].ravel(), frf.freq_hz)
     np.testing.assert_allclose(np.asarray(mat["H"]).ravel(), frf.response.ravel())
+    # report.figures=false: every number file, no figure
+    assert {"frf.csv", "frf.json", "frf.mat", "model.json", "config.yaml", "report.txt"} <= {p.name for p in out.iterdir()}
+    assert not sorted(out.glob("*.png"))
 
 
 def test_plain_run_prints_the_table_on_stdout(small_quiet_run, tmp_path):
@@ -181,8 +184,10 @@ def test_rig_frames_pylon_url_is_accepted_and_a_bad_one_is_one_clear_error(tmp_p
 
 
 def test_identify_from_python_shows_its_messages_where_logging_is_not_configured():
+    # a smaller run than SMALL (2 points, a 32 x 32 frame): what is checked is how the messages reach stderr
+    small = ["sweep.freq_hz=[20,200]", "camera.height=32", "camera.width=32"]
     code = ("from torchblur.identify.config import load_config; from torchblur.identify.pipeline import identify; "
-            f"identify(load_config(None, {SMALL!r}), progress=True)")
+            f"identify(load_config(None, {small!r}), progress=True)")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)},
                           timeout=600)
     assert proc.returncode == 0, proc.stderr

@@ -40,6 +40,7 @@ BAD = [
     (["excitation.target_px=0"], "excitation.target_px"),
     (["sweep.images_per_point=0"], "sweep.images_per_point"),
     (["rig.kind=bench"], "rig.kind"),
+    (["report.figures=perhaps"], "report.figures"),
     (["sweep"], "sweep"),
 ]
 

@@ -139,7 +139,8 @@ def test_gradient_descent_recovers_the_parameters():
     crit = BlurConsistencyLoss(renderer, psf, window, omega=OMEGA, reduction="sum")
     theta = torch.stack([M_true * 1.15, phi_true + 0.25], -1).requires_grad_(True)  # a nearby start
     opt = torch.optim.Adam([theta], lr=0.03)
-    for _ in range(300):
+    # 150 steps: measured, the errors settle by ~120 steps (0.0059 px, 0.0053 rad from then to 300 steps; 300 cost 2x)
+    for _ in range(150):
         opt.zero_grad()
         M, phi = theta[:, 0], theta[:, 1]
         loss = crit({"amplitude": torch.stack([M, 0.5 * M], -1), "phase": torch.stack([phi, phi + 0.4], -1)}, noisy)

@@ -337,7 +337,7 @@ def test_cli_identify_with_direct_writes_both_models(tmp_path, capsys):
     # test_cli_output.py; a fresh process here cost ~3 s of imports)
     out = tmp_path / "run"
     argv = ["identify", "--out", str(out), "--quiet", "sweep.freq_hz=[3,100,300,420,450,900]",
-            "camera.height=40", "camera.width=40", "model.max_order=3", "seed=1", "model.direct=true"]
+            "camera.height=40", "camera.width=40", "model.max_order=3", "seed=1", "model.direct=true", "report.figures=false"]
     assert cli.main(argv) == 0, capsys.readouterr().err
     direct = json.loads((out / "model.json").read_text())
     two = json.loads((out / "model_two_step.json").read_text())

@@ -15,7 +15,7 @@ from torchblur.identify.config import estimate_run, load_config
 from test_dm_run import SMALL as _RUN_SMALL
 from readback import assert_reads_back
 
-SMALL = [*_RUN_SMALL, "sweep.n=3"]  # the small mirror of test_dm_run at 3 frequencies
+SMALL = [*_RUN_SMALL, "sweep.n=3", "report.figures=false"]  # the small mirror of test_dm_run at 3 frequencies (no test here looks at actuator_maps.png)
 CALIBRATION = ("dark", "saturation", "psf", "latency")
 OUTPUTS = ("actuators.csv", "interaction_matrix.npy", "interaction_matrix_std.npy", "command_matrix.npy", "frf.json")
 
@@ -95,6 +95,7 @@ def test_refit_gives_the_live_outputs_bit_for_bit(live, tmp_path):
     assert cli.main(["fit", str(live), "--out", str(out), "--quiet"]) == 0
     for name in OUTPUTS:
         assert (out / "dm" / name).read_bytes() == (live / "dm" / name).read_bytes(), name
+    assert not (live / "dm" / "actuator_maps.png").exists() and not (out / "dm" / "actuator_maps.png").exists()  # report.figures=false
     assert json.loads((out / "source.json").read_text())["recording"] == str(live / "experiment")
     assert "against the simulated truth" in (out / "report.txt").read_text()  # recorded on the simulated rig: its truth
     assert _sha(live / "experiment" / "manifest.jsonl") == before and not (live / "experiment" / "quarantine").exists()

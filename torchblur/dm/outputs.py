@@ -25,7 +25,8 @@ Every file reads back: :func:`read_actuators_csv`, ``numpy.load``, ``FrequencyRe
   ``FrequencyResponse.from_json(...).to_control()`` is a python-control FRD).
 - ``actuator_maps.png``: DC gain (relative to the nominal actuator), mode frequency (Hz) and
   damping over the actuator grid, every status and flag marked, y down as in the guide
-  (:func:`actuator_maps_figure`; skipped with a log line when matplotlib is missing).
+  (:func:`actuator_maps_figure`; skipped with a log line when matplotlib is missing, and with
+  ``figures=False``, a run's ``report.figures=false``).
 """
 from __future__ import annotations
 
@@ -247,9 +248,10 @@ def read_actuators_csv(path) -> dict:
     return {c: out[c] for c in CSV_COLUMNS}
 
 
-def write_dm_outputs(out_dir, est: DMEstimate, *, rcond: float = RCOND, say=None) -> dict:
+def write_dm_outputs(out_dir, est: DMEstimate, *, rcond: float = RCOND, say=None, figures: bool = True) -> dict:
     """Write ``out_dir/dm/`` (see the module docstring). ``say``: a callable for log lines
-    (default: this module's logger). Returns ``{name: path}`` of the files written."""
+    (default: this module's logger); ``figures=False`` (a run's ``report.figures``): no
+    actuator_maps.png. Returns ``{name: path}`` of the files written."""
     say = say or _log.info
     d = Path(out_dir) / "dm"
     d.mkdir(parents=True, exist_ok=True)
@@ -273,7 +275,7 @@ def write_dm_outputs(out_dir, est: DMEstimate, *, rcond: float = RCOND, say=None
     paths.update({k: d / k for k in ("command_matrix.npy", "unseen_modes.npy", "command_matrix.json")})
     dm_frequency_response(est).to_json(d / "frf.json")
     paths["frf.json"] = d / "frf.json"
-    if _write_maps(d / "actuator_maps.png", t, say, failed=sorted(failed_actuators(t, est.D))):
+    if figures and _write_maps(d / "actuator_maps.png", t, say, failed=sorted(failed_actuators(t, est.D))):
         paths["actuator_maps.png"] = d / "actuator_maps.png"
     say(f"dm: {len(paths)} files in {d}; command matrix keeps {info['n_kept']} modes, {info['n_unseen']} unseen "
         f"(rcond {rcond:g})")

@@ -460,7 +460,7 @@ def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False, record=None
     res = identify() if identify is not None else _identify_on_config_rig(
         cfg, rig, quiet, record=out / "experiment" if record is None else record, base_dir=base_dir)
     elapsed = time.perf_counter() - t0
-    _write_dm_outputs(res, out)
+    _write_dm_outputs(res, out, figures=cfg.report.figures)
     v = truth_guard(run_verdict(res, poor_fit_chi2=float(cfg.fit.poor_fit_chi2)), res)
     report = _report(res, elapsed) + "".join(f"{line}\n" for line in (*v.details, v.line))  # the verdict line last
     (out / "report.txt").write_text("\n".join(res.log) + "\n" + report)
@@ -499,10 +499,10 @@ def _identify_on_config_rig(cfg, rig, quiet: bool, *, record, base_dir: str | No
     return res
 
 
-def _write_dm_outputs(res: DMResult, out) -> None:
-    """``OUT/dm/`` by :func:`torchblur.dm.outputs.write_dm_outputs`."""
+def _write_dm_outputs(res: DMResult, out, figures: bool = True) -> None:
+    """``OUT/dm/`` by :func:`torchblur.dm.outputs.write_dm_outputs` (``figures``: ``report.figures``)."""
     from torchblur.identify.record import log_message
 
     meta = {"plan": res.plan.kind, "n_patterns": res.plan.n_patterns, "n_repeats": res.n_repeats, "n_frames": res.n_frames}
     write_dm_outputs(out, DMEstimate(freq_hz=res.freq_hz, D=res.D, D_cov=res.D_cov, table=res.actuators, meta=meta),
-                     say=lambda msg: log_message(res.log, msg))
+                     say=lambda msg: log_message(res.log, msg), figures=figures)

@@ -581,7 +581,10 @@ def _left_out_points(cfg, frf) -> dict:
 
 
 def _write_figures(cfg, res, out: Path, stamp: str) -> None:
-    """bode.png (with the truth where known) and residuals.png (the worst fits)."""
+    """bode.png (with the truth where known), residuals.png (the worst fits) and ptc.png; none
+    with ``report.figures=false`` (every number file is written all the same)."""
+    if not cfg.report.figures:
+        return
     _write_bode(cfg, res, out, stamp)
     _write_residuals(res, out, stamp)
     _write_ptc_figure(cfg, res, out, stamp)

@@ -214,6 +214,9 @@ class ReportConfig:
     # per frame, averaged, and the latency's std) exceed tolerance_deg of phase, and flags those points timing.
     tolerance_deg: float = 1.0
     tolerance_rel: float = 0.01  # |H| relative: the report counts the points whose |H| std is within it
+    # false: no figures (bode.png, residuals.png, ptc.png, dm/actuator_maps.png; benchmarks/bench_figures.py: their cost);
+    # every number file (frf.*, model.json, report.txt, dm/*.csv/.npy/.json) is written as before.
+    figures: bool = True
 
 
 @dataclass(frozen=True)
@@ -896,10 +899,11 @@ def validate_loss_for_plan(cfg: IdentifyConfig) -> None:
 
 
 def validate_report(cfg: IdentifyConfig) -> None:
-    """``fit.poor_fit_chi2`` (> 0) and the ``report`` section's tolerances (> 0)."""
+    """``fit.poor_fit_chi2`` (> 0), the ``report`` section's tolerances (> 0) and ``report.figures`` (true or false)."""
     _num(cfg.fit.poor_fit_chi2, "fit.poor_fit_chi2", positive=True)
     _num(cfg.report.tolerance_deg, "report.tolerance_deg", positive=True)
     _num(cfg.report.tolerance_rel, "report.tolerance_rel", positive=True)
+    _flag(cfg.report.figures, "report.figures")
 
 
 def validate_fit_psf(cfg) -> None:
