@@ -65,7 +65,7 @@ class DMResult:
         actuator_xy: ``[N, 2]``.
         n_frames: sweep frames taken; ``n_failed``: spot problems whose fit failed.
         spot_reduced_chi2: ``[P, M, F]`` every spot fit's reduced chi2 (NaN where it failed): about
-            1 where the spots' Gaussian PSF and the camera's noise model explain the images.
+            1 where the spots' PSFs (Gaussians or measured kernels) and the camera's noise model explain the images.
         timing_s: seconds per stage (``calibration``, ``acquisition``, ``fit_wait``, ``estimation``).
         truth_D: ``[2M, N, F]`` the simulated rig's D (None on a real rig); ``mirror``: the
             simulated mirror (its true dynamics), or None.
