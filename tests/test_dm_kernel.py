@@ -10,12 +10,10 @@ import torch
 from sinc_spots import sinc2_case
 from torchblur.dm.spot_fit import PerSpotPSF, fit_spot_problems
 from torchblur.errors import InputTypeError, ParameterError, ShapeError
-from torchblur.image.psf_from_still import psf_from_still
-from torchblur.render.camera import camera_noise_std
 from torchblur.render.psf import GaussianPSF, KernelPSF
 
 MOTIONS = (0.5, 1.0, 2.0, 3.0)
-N_EACH = 3  # points per motion size
+N_EACH = 4  # points per motion size
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -29,17 +27,21 @@ def one_thread():
 
 @pytest.fixture(scope="module")
 def sinc():
-    c = sinc2_case([m for m in MOTIONS for _ in range(N_EACH)], n_side=2, n_rows=1, n_still=64, seed=3)
-    M = c["offset"].shape[0]
-    still = [psf_from_still(c["still_crops"][:, m], c["still_s"], camera_noise_std(c["still_crops"][:, m].mean(0), 3.0), background=0.0)
-             for m in range(M)]
-    g = [s.gaussian.psf for s in still]
-    c["gauss"] = GaussianPSF(torch.stack([p.center for p in g]), torch.stack([p.cov for p in g]), torch.stack([p.amplitude for p in g]))
-    c["kernel"] = KernelPSF(torch.stack([s.kernel.kernel for s in still]))
-    c["still_psf"] = still
-    c["factor"] = still[0].kernel_noise_factor(c["window"].duration)[..., None]  # [1, F, 1]: every spot's still has the same light
+    """Two sinc^2 spots side by side (each one's wings in the other's crop, 12 px pitch); spot 0's
+    problems are fitted with its measured kernel (its averaged still crop per second: what
+    psf_from_still keeps where a floor fills the crop; psf_from_still itself chooses the kernel on
+    these spots in benchmarks/bench_dm_kernel.py, and costs seconds here) and with the Gaussian of the
+    kernel's moments."""
+    c = sinc2_case([m for m in MOTIONS for _ in range(N_EACH)], n_side=2, n_rows=1, pitch=12, n_still=64, seed=3)
+    c["crops"], c["noise"], c["amplitude"] = c["crops"][:, :, :1], c["noise"][:, :, :1], c["amplitude"][:, :1]
+    n_still = c["still_crops"].shape[0]
+    c["kernel"] = KernelPSF(c["still_crops"][:, :1].mean(0), c["still_s"])  # [1, h, w]
+    centre, cov = c["kernel"].moments()
+    c["gauss"] = GaussianPSF(centre, cov, c["kernel"].kernel.sum((-1, -2)) / (2 * math.pi * torch.linalg.det(cov).sqrt()))
+    # the kernel's own noise (StillPSF.kernel_noise_factor's rule): sqrt(1 + a point's light / the still's light)
+    c["factor"] = (1 + c["window"].duration.sum(-1) / (n_still * c["still_s"])).sqrt()[..., None]  # [1, F, 1]
     c["fits"] = fit_spot_problems(c["crops"], c["kernel"], c["window"], c["omega"], noise_std=c["noise"], kernel_noise=c["factor"])
-    c["gauss_fits"] = fit_spot_problems(c["crops"], c["gauss"], c["window"], c["omega"], noise_std=c["noise"], chunk=2)
+    c["gauss_fits"] = fit_spot_problems(c["crops"], c["gauss"], c["window"], c["omega"], noise_std=c["noise"], chunk=5)
     return c
 
 
@@ -48,10 +50,9 @@ def _amp_std(fits):
 
 
 def test_kernel_response_does_not_depend_on_the_motion(sinc):
-    """measured/true of every motion size (0.5-3 px) within its stds with the per-spot kernel; the
-    Gaussian, which psf_from_still refuses on these spots, fits them worse."""
+    """measured/true of every motion size (0.5-3 px) within its stds with the spot's kernel; a
+    Gaussian fits the same frames worse."""
     c = sinc
-    assert all(s.kind == "kernel" for s in c["still_psf"])  # the Gaussian does not explain a sinc^2 still
     fits = c["fits"]
     assert bool((fits.status == 0).all())
     z = ((fits.amplitude[0] - c["amplitude"]) / _amp_std(fits)[0]).unflatten(0, (len(MOTIONS), N_EACH))  # [motion, point, M, 2]
@@ -67,16 +68,19 @@ def test_kernel_response_does_not_depend_on_the_motion(sinc):
 
 
 def test_per_spot_psf_mixes_kernel_and_gaussian_and_inflates_only_kernel_stds(sinc):
+    """Spot 0's crops twice, as two spots: the first fitted with its kernel, the second with its
+    Gaussian (one batch), each equal to its kind's fit alone; the kernel noise factor only on the first."""
     c = sinc
-    use = torch.tensor([True, False])
-    sel = dict(window=c["window"][:, :2], omega=c["omega"][:2], noise_std=c["noise"][:, :2])
-    crops = c["crops"][:, :2]
-    mixed = fit_spot_problems(crops, PerSpotPSF(c["gauss"], c["kernel"], use), kernel_noise=c["factor"][:, :2] * 1.5, **sel)
-    kern, gaus = c["fits"], c["gauss_fits"]  # the whole batch, fitted alone by kind (the Gaussians in chunks of 2)
-    torch.testing.assert_close(mixed.amplitude[:, :, use], kern.amplitude[:, :2, use], rtol=1e-9, atol=1e-9)
-    torch.testing.assert_close(mixed.amplitude[:, :, ~use], gaus.amplitude[:, :2, ~use], rtol=1e-9, atol=1e-9)
-    torch.testing.assert_close(mixed.covariance[:, :, use], 2.25 * kern.covariance[:, :2, use], rtol=1e-7, atol=0)
-    torch.testing.assert_close(mixed.covariance[:, :, ~use], gaus.covariance[:, :2, ~use], rtol=1e-7, atol=0)
+    g, k = c["gauss"], c["kernel"]
+    psf = PerSpotPSF(GaussianPSF(g.center.expand(2, 2), g.cov.expand(2, 2, 2), g.amplitude.expand(2)), KernelPSF(k.kernel.expand(2, -1, -1)),
+                     torch.tensor([True, False]))
+    crops = c["crops"][:, :3].expand(-1, -1, 2, -1, -1, -1)
+    mixed = fit_spot_problems(crops, psf, c["window"][:, :3], c["omega"][:3], noise_std=c["noise"][:, :3], kernel_noise=c["factor"][:, :3] * 1.5)
+    kern, gaus = c["fits"], c["gauss_fits"]  # the whole batch, fitted alone by kind (the Gaussians in chunks of 5)
+    torch.testing.assert_close(mixed.amplitude[:, :, :1], kern.amplitude[:, :3], rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(mixed.amplitude[:, :, 1:], gaus.amplitude[:, :3], rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(mixed.covariance[:, :, :1], 2.25 * kern.covariance[:, :3], rtol=1e-7, atol=0)
+    torch.testing.assert_close(mixed.covariance[:, :, 1:], gaus.covariance[:, :3], rtol=1e-7, atol=0)
     assert mixed.n_chunks == 2  # one chunk of each kind
 
 
@@ -89,7 +93,11 @@ def test_spot_psf_arguments_are_checked(sinc):
         fit_spot_problems(*args, kernel_noise=torch.ones(3))
     with pytest.raises(ShapeError, match="use_kernel"):
         PerSpotPSF(c["gauss"], c["kernel"], torch.ones(3, dtype=torch.bool))
+    with pytest.raises(ShapeError, match="use_kernel"):
+        PerSpotPSF(c["gauss"], c["kernel"], torch.ones(1))
     with pytest.raises(InputTypeError, match="psf"):
         fit_spot_problems(args[0], "gaussian", *args[2:])
     with pytest.raises(ShapeError, match="psf"):
         fit_spot_problems(args[0], KernelPSF(c["kernel"].kernel[:, :8, :8]), *args[2:])
+    with pytest.raises(ShapeError, match="psf"):
+        fit_spot_problems(args[0], KernelPSF(c["kernel"].kernel.expand(3, -1, -1)), *args[2:])
