@@ -10,13 +10,19 @@ comparison (issue 17).
    single-spot fitter). Each fit runs in its own process so the peak memory is its own: the
    rise of the peak RSS over the loaded crops (CPU) or ``torch.cuda.max_memory_allocated``
    (CUDA). Printed: problems/s and peak MB of both, and their ratios.
+   With kernels (issue 23): the same problems by ``fit_spot_problems`` with every spot's measured
+   kernel (a :class:`~torchblur.render.psf.KernelPSF` ``[M, h, w]``: here the spot's exact image,
+   so the figures are the kernel path's cost, not a PSF error), problems/s and the ratio to the
+   Gaussian batched run; and whether that keeps up with a 30 Hz camera on
+   ``configs/identify_dm.yaml`` (64 patterns x 80 spots per frequency, 64 x 4 frames = 8.5 s of
+   acquisition per frequency at 30 Hz, 16 frequencies).
 2. Plans (when d1's ``torchblur.dm.plans`` is present): for the ``configs/identify_dm.yaml``
    mirror (8 across, 10x10 sensor), the frames one-at-a-time needs to reach the worst D std
    the chosen plan reaches with its frames, from the demultiplexing covariance
    (:func:`torchblur.dm.demux.demultiplex`, every response of std ``sigma_1 / a``, ``a`` the
    plan's amplitude for a ``target_px`` motion), beside ``plan_cost``'s ratio.
 
-    python benchmarks/bench_dm.py [--device cuda] [--cases 8/10 18/20 32/34] [--points 2] [--single 24]
+    python benchmarks/bench_dm.py [--device cuda] [--cases 8/10 18/20 32/34] [--points 2] [--single 24] [--threads N]
 """
 from __future__ import annotations
 
@@ -36,7 +42,7 @@ import torch
 from torchblur.design.windows import dual_exposure_windows
 from torchblur.render.blur import render_blur
 from torchblur.render.camera import camera_noise_std
-from torchblur.render.psf import GaussianPSF
+from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.trajectory import Sinusoid
 from torchblur.render.window import ExposureWindow
 
@@ -87,15 +93,34 @@ def render_problems(n: int, seed: int = 0) -> dict:
                 start=win.start[None], duration=win.duration[None], omega=omega, mag=mag)
 
 
+def spot_images(psf: GaussianPSF) -> torch.Tensor:
+    """``[..., CROP, CROP]``: the point-sampled image of every spot of ``psf`` (batch ``[...]``)."""
+    g = torch.arange(CROP, dtype=psf.cov.dtype, device=psf.cov.device)
+    e = (...,) + (None, None)
+    A, B, C = (v[e] for v in psf.precision())
+    dx, dy = g[None, :] - psf.center[..., 0][e], g[:, None] - psf.center[..., 1][e]
+    return psf.amplitude[e] * torch.exp(-0.5 * (A * dx * dx + 2 * B * dx * dy + C * dy * dy))
+
+
 def _peak(device) -> float:
     if device.type == "cuda":
         return float(torch.cuda.max_memory_allocated(device))
     return float(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024.0
 
 
+def _fit_batched(d: dict, method: str, sl=slice(None)):
+    """``fit_spot_problems`` of the problems ``sl`` with the Gaussian (``batched``) or every spot's kernel."""
+    from torchblur.dm.spot_fit import fit_spot_problems
+
+    psf = GaussianPSF(d["center"][sl, None], d["cov"][sl, None], d["amp"][sl, None])  # [F=n, M=1]
+    if method == "kernel":  # every spot its exact image as a measured kernel [F=n, M=1, h, w]
+        psf = KernelPSF(spot_images(psf))
+    return fit_spot_problems(d["crops"][:, sl], psf, ExposureWindow(d["start"][:, sl], d["duration"][:, sl]), d["omega"][sl],
+                             noise_std=d["noise"][:, sl])
+
+
 def child(path: str, method: str, device: str, n_single: int) -> dict:
     """One measurement in this process: fit the problems saved at ``path``."""
-    from torchblur.dm.spot_fit import fit_spot_problems
     from torchblur.fit.sinusoid import fit_sinusoid
 
     dev = torch.device(device)
@@ -103,11 +128,12 @@ def child(path: str, method: str, device: str, n_single: int) -> dict:
     if dev.type == "cuda":
         torch.cuda.synchronize(dev)
         torch.cuda.reset_peak_memory_stats(dev)
+    if method in ("batched", "kernel"):  # warm up (first-call imports and allocations) on two problems, not timed
+        _fit_batched(d, method, slice(0, 2))
     base = _peak(dev)
     t0 = time.perf_counter()
-    if method == "batched":
-        psf = GaussianPSF(d["center"][:, None], d["cov"][:, None], d["amp"][:, None])  # [F=n, M=1]
-        fits = fit_spot_problems(d["crops"], psf, ExposureWindow(d["start"], d["duration"]), d["omega"], noise_std=d["noise"])
+    if method in ("batched", "kernel"):
+        fits = _fit_batched(d, method)
         n, amp_std = d["crops"].shape[1], fits.covariance[0, :, 0, 0, 0].sqrt()
         ok = int((fits.status == 0).sum())
         err = (fits.amplitude[0, :, 0] - d["mag"]).abs().max().item()
@@ -165,6 +191,41 @@ def throughput(cases, points: int, n_single: int, device: str) -> float:
     return sigma1
 
 
+#: configs/identify_dm.yaml per frequency: 64 Hadamard patterns x 80 spots, 64 x (2 exposures x 2 repeats) frames
+SHIPPED = {"problems": 64 * 80, "frames": 64 * 4, "frequencies": 16, "frame_rate_hz": 30.0}
+
+
+def kernel_throughput(cases, points: int, device: str) -> None:
+    """The DM spot fitter with every spot's measured kernel against the Gaussian, in problems/s
+    (each in its own process, on the same crops), and the 30 Hz test on the shipped config."""
+    print(f"\nwith kernels (every spot a KernelPSF [M, 16, 16], its exact image), {points} points per case, on {device}, "
+          f"{torch.get_num_threads()} thread(s)")
+    print(f"{'case':>6} {'act':>4} {'subap':>5} {'problems':>8} | {'Gaussian /s':>11} {'kernel /s':>9} {'kernel/Gaussian':>15} | "
+          f"{'max err px G/K':>15}")
+    rates = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for spec in cases:
+            n_act, n_sub = case_sizes(spec)
+            path = os.path.join(tmp, f"k_{spec.replace('/', '_')}.pt")
+            torch.save(render_problems(points * n_sub, seed=1), path)
+            b = run_child(path, "batched", device, 0)
+            k = run_child(path, "kernel", device, 0)
+            rates[spec] = (b["per_s"], k["per_s"])
+            print(f"{spec:>6} {n_act:>4} {n_sub:>5} {b['problems']:>8} | {b['per_s']:>11.1f} {k['per_s']:>9.1f} {k['per_s'] / b['per_s']:>15.3f} | "
+                  f"{b['max_err_px']:>7.3g}/{k['max_err_px']:<7.3g}")
+    g_rate, k_rate = rates.get("8/10", next(iter(rates.values())))
+    acq = SHIPPED["frames"] / SHIPPED["frame_rate_hz"]
+    F = SHIPPED["frequencies"]
+    for name, rate in (("Gaussian", g_rate), ("kernel", k_rate)):
+        t_fit = SHIPPED["problems"] / rate
+        # the worker fits frequency k while k + 1 is acquired; the last frame comes at F * acq, the last fit ends at
+        # acq + F * t_fit when the fits are the slower (and the sweep waits for frequency k - 2's fit: AMPLITUDE_LAG)
+        wait = max(t_fit, acq + F * t_fit - F * acq)
+        print(f"configs/identify_dm.yaml at {SHIPPED['frame_rate_hz']:g} Hz with every spot {name}: {t_fit:.1f} s of fitting per frequency "
+              f"({SHIPPED['problems']} problems at {rate:.0f}/s) against {acq:.1f} s of acquisition: "
+              f"{'keeps up' if t_fit <= acq else 'does NOT keep up'}; wait after the last frame about {wait:.0f} s")
+
+
 def plan_comparison(sigma1: float, target_px: float = 3.0, n_freq: int = 16, n_exp: int = 2, budget: int = 4096) -> None:
     try:
         from torchblur.dm.mirror import DeformableMirror
@@ -203,15 +264,24 @@ def main():
     ap.add_argument("--cases", nargs="+", default=["8/10", "18/20", "32/34"])
     ap.add_argument("--points", type=int, default=2, help="sweep points (pattern, frequency) per case")
     ap.add_argument("--single", type=int, default=24, help="problems fitted one by one")
+    ap.add_argument("--kernel-points", type=int, default=1, help="sweep points per case of the kernel comparison (0: skip it)")
+    ap.add_argument("--threads", type=int, default=0, help="torch threads in every fit (0: torch's default)")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     ap.add_argument("--method", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+        os.environ["BENCH_DM_THREADS"] = str(args.threads)
+    elif os.environ.get("BENCH_DM_THREADS"):
+        torch.set_num_threads(int(os.environ["BENCH_DM_THREADS"]))
     if args.child:
         print(json.dumps(child(args.child, args.method, args.device, args.single)))
         return
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         raise SystemExit("--device cuda: no CUDA device here")
-    sigma1 = throughput(args.cases, args.points, args.single, args.device)
+    sigma1 = throughput(args.cases, args.points, args.single, args.device) if args.points > 0 else 0.3
+    if args.kernel_points > 0:
+        kernel_throughput(args.cases, args.kernel_points, args.device)
     plan_comparison(sigma1)
 
 

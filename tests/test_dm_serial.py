@@ -28,6 +28,7 @@ wfs: {n_across: 4, pitch_px: 16.0, sigma_px: 1.2}
 dm_plan: {kind: hadamard, budget_frames: null, n_repeats: 1}
 sweep: {f_min_hz: 50.0, f_max_hz: 1500.0, n: 4, exposures: [0.3, 0.8]}
 excitation: {target_px: 3.0}
+fit: {psf: gaussian}
 """
 
 

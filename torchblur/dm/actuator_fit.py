@@ -22,12 +22,22 @@ Actuator ``j``'s column is rank one: ``D[:, j, f] = G[:, j] * H_j(j w_f)`` with
    to the column (reported as ``dc_gain_std``). A dead actuator's column is measured against
    the median live shape.
 
-Status (documented rules, :func:`actuator_status`): **dead** when no response is detected
-(the column's chi2 against zero has survival probability above :data:`DEAD_P`) or the DC gain
-is within :data:`DEAD_SIGMA` of its std from 0 (its dynamics are then NaN: there is nothing to
-fit; its DC gain is the least-squares scalar against the median live shape); **weak** when
-its DC gain is below :data:`WEAK_FRACTION` of the median DC gain of the live actuators;
-**ok** otherwise.
+Status (documented rules, :func:`actuator_status`), with ``ref`` the median DC gain of the
+actuators that respond and ``k`` = :data:`STATUS_SIGMA`:
+
+- **dead** when no response is detected (the column's chi2 against zero has survival
+  probability above :data:`DEAD_P`), or its DC gain is not significantly above
+  :data:`DEAD_FRACTION` of ``ref``: ``dc_gain - k * dc_gain_std <= DEAD_FRACTION * ref`` (a gain
+  consistent with 0 is a case of it). A dead actuator's column is not exactly zero on real spots:
+  a spot model's error, through the demultiplexing, leaves crosstalk from the others in it (a
+  Gaussian PSF on sinc^2 lenslet spots gave the dead actuator of an HCIPy mirror a column, which
+  the former rule, weak below half of ``ref`` with no lower bound, called weak). Such a column is
+  not shaped like the actuator's dynamics: its model fit is poor and its std inflated (step 2), so
+  ``dc_gain - k * std`` falls below the bound. Its dynamics are NaN: there is nothing to fit; its
+  DC gain is the least-squares scalar against the median live shape.
+- **weak** only when its DC gain is significantly between the bounds: ``dc_gain - k * std >
+  DEAD_FRACTION * ref`` and ``dc_gain + k * std < WEAK_FRACTION * ref``.
+- **ok** otherwise (a gain not significantly below :data:`WEAK_FRACTION` of ``ref`` is ok).
 
 Shapes: S = 2M slopes, N actuators, F frequencies.
 """
@@ -42,11 +52,13 @@ from scipy import optimize, stats
 from torchblur.errors import ParameterError, ShapeError
 
 __all__ = ["ActuatorTable", "fit_actuators", "second_order", "project_columns", "static_columns", "actuator_status",
-           "DEAD_P", "DEAD_SIGMA", "WEAK_FRACTION", "POOR_FIT_P"]
+           "DEAD_P", "DEAD_SIGMA", "DEAD_FRACTION", "STATUS_SIGMA", "WEAK_FRACTION", "POOR_FIT_P"]
 
 DEAD_P = 1e-3  #: no response detected: the column's chi2 against zero is this likely or more
-DEAD_SIGMA = 3.0  #: dead when |dc_gain| < DEAD_SIGMA * dc_gain_std
-WEAK_FRACTION = 0.5  #: weak when dc_gain < WEAK_FRACTION * median live dc_gain
+DEAD_SIGMA = 3.0  #: dead when |dc_gain| < DEAD_SIGMA * dc_gain_std (kept: implied by the DEAD_FRACTION rule)
+DEAD_FRACTION = 0.1  #: dead unless dc_gain is significantly above this fraction of the median responding dc_gain
+STATUS_SIGMA = 3.0  #: "significantly": by this many dc_gain stds
+WEAK_FRACTION = 0.5  #: weak when dc_gain is significantly below this fraction of the median responding dc_gain
 POOR_FIT_P = 1e-3  #: poor fit when the model's chi2 is this unlikely or less
 PARAMS = ("dc_gain", "mode_hz", "damping", "delay_s")
 
@@ -221,14 +233,17 @@ def _scalar_against(h, h_cov, shape):
 
 
 def actuator_status(dc_gain, dc_gain_std, no_response) -> tuple:
-    """Status per actuator (module rules): ``"dead"`` where ``no_response`` or ``|dc_gain| <
-    DEAD_SIGMA * dc_gain_std``, ``"weak"`` where ``dc_gain < WEAK_FRACTION`` times the median
-    DC gain of the others, else ``"ok"``. Arrays ``[N]``."""
+    """Status per actuator (module rules): ``"dead"`` where ``no_response`` or ``dc_gain -
+    STATUS_SIGMA * dc_gain_std <= DEAD_FRACTION * ref`` (NaN gain or std: dead), ``"weak"`` where
+    significantly between ``DEAD_FRACTION * ref`` and ``WEAK_FRACTION * ref``, else ``"ok"``; ``ref``
+    the median DC gain of the actuators that respond. Arrays ``[N]``."""
     g, s = np.asarray(dc_gain, dtype=float), np.asarray(dc_gain_std, dtype=float)
-    dead = np.asarray(no_response, dtype=bool) | ~(np.abs(g) >= DEAD_SIGMA * s)
-    live = g[~dead]
-    ref = float(np.median(live)) if live.size else math.nan
-    weak = ~dead & (g < WEAK_FRACTION * ref)
+    silent = np.asarray(no_response, dtype=bool) | ~np.isfinite(g) | ~np.isfinite(s)
+    ref = float(np.median(g[~silent])) if (~silent).any() else math.nan
+    lo, hi = g - STATUS_SIGMA * s, g + STATUS_SIGMA * s
+    with np.errstate(invalid="ignore"):
+        dead = silent | ~(lo > DEAD_FRACTION * ref) | ~(np.abs(g) >= DEAD_SIGMA * s)
+        weak = ~dead & (hi < WEAK_FRACTION * ref)
     return tuple("dead" if d else "weak" if w else "ok" for d, w in zip(dead, weak))
 
 

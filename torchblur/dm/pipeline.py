@@ -6,9 +6,10 @@ Stages:
 1. calibration: the one-spot/many-spot run's own stage (:func:`torchblur.identify.calibration.calibrate`
    with the sensor's spot grid): dark frame, saturation, still frames (every spot cropped
    on the sensor's declared layout registered to the still frame,
-   :func:`~torchblur.image.spot_layout.layout_spots`, a Gaussian PSF fitted per spot, the spots
-   it cannot describe flagged by name), trigger latency from the pulse scan; the spots are
-   matched to the sensor's valid subapertures (nearest rest position within half a pitch).
+   :func:`~torchblur.image.spot_layout.layout_spots`, a Gaussian PSF fitted per spot, and with
+   ``fit.psf`` auto or kernel each spot's measured kernel where its Gaussian fails the still's
+   test; the spots it cannot describe flagged by name), trigger latency from the pulse scan; the
+   spots are matched to the sensor's valid subapertures (nearest rest position within half a pitch).
 2. the plan (:func:`torchblur.dm.plans.choose_plan`: kind, frame budget, the nominal geometry G).
 3. the sweep, frequency by frequency (``sweep`` section: frequencies, exposures in periods,
    trigger phase): every pattern is driven at one amplitude per frequency (:func:`next_amplitude`:
@@ -67,7 +68,7 @@ class DMResult:
         actuator_xy: ``[N, 2]``.
         n_frames: sweep frames taken; ``n_failed``: spot problems whose fit failed.
         spot_reduced_chi2: ``[P, M, F]`` every spot fit's reduced chi2 (NaN where it failed): about
-            1 where the spots' Gaussian PSF and the camera's noise model explain the images.
+            1 where the spots' PSFs (Gaussians or measured kernels) and the camera's noise model explain the images.
         timing_s: seconds per stage (``calibration``, ``acquisition``, ``fit_wait``, ``estimation``).
         truth_D: ``[2M, N, F]`` the simulated rig's D (None on a real rig); ``mirror``: the
             simulated mirror (its true dynamics), or None.
@@ -165,18 +166,38 @@ def _calibrate(cfg, rig, wfs, log, progress, exp=None):
     size = dm_sweep_size(cfg)
     n_still = dm_still_frames(size["frames"], size["frame_shape"])
     cal = calibrate(replace(cfg, spots=spots_cfg), rig, exp, log=log, progress=progress, n_dark=DM_DARK_FRAMES, n_still=n_still,
-                    spot_psfs=False, spot_layout=wfs.rest_px)  # Gaussian spots cropped on the sensor's layout (issue 23)
+                    spot_layout=wfs.rest_px)  # spots cropped on the sensor's layout; each spot's PSF (fit.psf) (issue 23)
     order = match_spots(cal.spots.psf.center.numpy(), wfs.rest_px, wfs.pitch_px)
     log_message(log, f"dm spots: {len(cal.spots)} found, matched to the {wfs.n_valid} valid subapertures (the other "
                      f"{n * n - wfs.n_valid} cells of the {n}x{n} grid are outside the pupil)", progress)
-    psf = cal.spots.psf_in_crops()[torch.as_tensor(order)]
+    psf = _spot_psf(cal, torch.as_tensor(order), log, progress)
     return cal, psf, cal.spots.offset[torch.as_tensor(order)], cal.spots.size
+
+
+def _spot_psf(cal, order, log, progress):
+    """The PSF of every valid subaperture's spot (in ``order``): its Gaussian, or where the
+    calibration measured kernels (``fit.psf`` kernel, or auto and a spot's Gaussian fails
+    :func:`~torchblur.image.psf_from_still.psf_from_still`'s test) a
+    :class:`~torchblur.dm.spot_fit.PerSpotPSF`: the kernel for each spot whose still chose it."""
+    from torchblur.dm.spot_fit import PerSpotPSF
+    from torchblur.identify.record import log_message
+    from torchblur.render.psf import KernelPSF
+
+    gauss = cal.spots.psf_in_crops()[order]
+    sk = cal.spot_kernels
+    if sk is None:
+        return gauss
+    use = torch.tensor([st is not None and st.kind == "kernel" for st in sk.still], dtype=torch.bool)[order]
+    log_message(log, f"dm spots psf: the measured kernel for {int(use.sum())} of {len(use)} spots, the Gaussian for the others "
+                     f"(each spot's own still decides; the kernels' own noise is in the stds)", progress)
+    return PerSpotPSF(gauss, KernelPSF(sk.psf.kernel[order]), use)
 
 
 def _fit_frequency(frames, window, omega, amplitude, power, cal, psf, offset, size, jitter_s, fit_options):
     """One frequency's pattern responses: frames ``[P, E*R, H, W]`` ADU -> ``(Y [P, 2M],
-    Y_cov [P, 2M, 2, 2], failed, reduced chi2 [P, M] of every spot fit)``."""
-    from torchblur.dm.spot_fit import crop_problems, fit_spot_problems, pattern_responses
+    Y_cov [P, 2M, 2, 2], failed, reduced chi2 [P, M] of every spot fit)``. ``psf``: the spots'
+    Gaussians or :class:`~torchblur.dm.spot_fit.PerSpotPSF` (:func:`_spot_psf`, at power 1)."""
+    from torchblur.dm.spot_fit import PerSpotPSF, crop_problems, fit_spot_problems, pattern_responses
     from torchblur.identify.assemble import timing_phase_std
     from torchblur.image.dark import subtract_dark
     from torchblur.render.psf import GaussianPSF
@@ -184,10 +205,16 @@ def _fit_frequency(frames, window, omega, amplitude, power, cal, psf, offset, si
     e = subtract_dark(frames.to(_F64), cal.dark) * cal.gain
     crops, in_frame = crop_problems(e[:, None], offset, size)  # [P, 1, M, ER, h, w]
     hot = _crop_mask(cal.dark.hot_pixels, offset, size)
-    p = GaussianPSF(psf.center, psf.cov, psf.amplitude * power)
+    kernel_noise = None
+    if isinstance(psf, PerSpotPSF):
+        p = psf.scaled(power)
+        # the kernels' own noise: the still frames' light against this point's (its exposures at laser power `power`)
+        kernel_noise = cal.spot_kernels.kernel_noise_factor(window.duration.to(_F64) * power).reshape(-1, 1, 1)  # [P, 1, 1]
+    else:
+        p = GaussianPSF(psf.center, psf.cov, psf.amplitude * power)
     # weights from the camera's noise model: the fitter refits with the first fit's expected signal
     fits = fit_spot_problems(crops, p, window, torch.tensor([omega], dtype=_F64), noise=cal.noise, mask=(in_frame & ~hot)[:, None],
-                             **fit_options)
+                             kernel_noise=kernel_noise, **fit_options)
     n = window.shape[-1]
     phase_var = float(timing_phase_std(omega, jitter_s, cal.latency_std_s, n)) ** 2
     Y, Yc = pattern_responses(fits, amplitude, phase_var=phase_var)

@@ -10,6 +10,14 @@ out of the frame, no usable pixel) is flagged in its own ``status`` and does not
 others (each item of a batched fit is independent). :func:`pattern_responses` turns the fits
 into ``Y [P, 2M, F]`` and ``Y_cov [P, 2M, F, 2, 2]`` (see :mod:`torchblur.dm.demux`).
 
+The PSF is each spot's own: a Gaussian (:class:`GaussianPSF` ``[M]``), a measured kernel
+(:class:`KernelPSF` ``[M, h, w]``, the spot's still image in its crop) or, per spot, the one the
+still chose (:class:`PerSpotPSF`: :func:`~torchblur.image.psf_from_still.psf_from_still`'s test
+per subaperture, the kernel where the Gaussian does not explain the still). A problem fitted
+with a kernel has its stds multiplied by the kernel's own noise factor (``kernel_noise``:
+:meth:`~torchblur.image.psf_from_still.StillPSF.kernel_noise_factor` of its exposures' light, as
+the one-spot route does).
+
 Phase convention (as :func:`torchblur.identify.assemble.assemble_mimo`): the command is
 ``amplitude * sin(w t + command_phase)`` and the fitted motion ``M sin(w t + phi)``, so
 ``Y = M / amplitude * exp(i (phi - command_phase))``: the response at ``exp(i w t)``.
@@ -28,10 +36,10 @@ import torch
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, check_int
 from torchblur.fit.sinusoid import fit_sinusoid
 from torchblur.image.spots import crop_spots, crop_valid
-from torchblur.render.psf import GaussianPSF
+from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.window import ExposureWindow
 
-__all__ = ["SpotFits", "crop_problems", "fit_spot_problems", "pattern_responses", "chunk_size", "free_memory_bytes",
+__all__ = ["PerSpotPSF", "SpotFits", "crop_problems", "fit_spot_problems", "pattern_responses", "chunk_size", "free_memory_bytes",
            "BYTES_PER_PIXEL"]
 
 #: Peak bytes one problem's fit holds per exposure-pixel (``E*R*h*w``) in float64. Measured on
@@ -44,6 +52,39 @@ BYTES_PER_PIXEL = 256
 MEMORY_FRACTION = 0.25
 #: names of the four parameters kept per problem, in ``SpotFits.covariance`` order
 _KEPT = ("amplitude_x", "phase_x", "amplitude_y", "phase_y")
+
+
+@dataclass(frozen=True)
+class PerSpotPSF:
+    """Each spot's PSF, chosen per spot: spot ``m`` is fitted with ``kernel`` where
+    ``use_kernel[m]``, else with ``gaussian`` (crop coordinates, intensity per second).
+
+    Attributes:
+        gaussian: :class:`GaussianPSF` of batch ``[M]``.
+        kernel: :class:`KernelPSF` of batch ``[M]`` (kernels ``[M, h, w]``, the spots' crops).
+        use_kernel: ``[M]`` bool.
+    """
+
+    gaussian: GaussianPSF
+    kernel: KernelPSF
+    use_kernel: torch.Tensor
+
+    def __post_init__(self):
+        if not isinstance(self.gaussian, GaussianPSF) or not isinstance(self.kernel, KernelPSF):
+            raise InputTypeError(f"PerSpotPSF: expected a GaussianPSF and a KernelPSF, got {type(self.gaussian).__name__} and "
+                                 f"{type(self.kernel).__name__}")
+        u = self.use_kernel
+        if not isinstance(u, torch.Tensor) or u.dtype != torch.bool or u.dim() != 1:
+            raise ShapeError(f"use_kernel: expected a bool tensor [M], got {getattr(u, 'dtype', type(u).__name__)} "
+                             f"{tuple(getattr(u, 'shape', ()))}")
+        if tuple(self.kernel.shape) != tuple(u.shape) or tuple(self.gaussian.shape) != tuple(u.shape):
+            raise ShapeError(f"PerSpotPSF: expected gaussian [M], kernel [M, h, w] and use_kernel [M] with one M, got "
+                             f"{list(self.gaussian.shape)}, {list(self.kernel.kernel.shape)}, {list(u.shape)}")
+
+    def scaled(self, power) -> "PerSpotPSF":
+        """The same PSFs at laser power ``power`` (a number: amplitudes and kernels times it)."""
+        g = self.gaussian
+        return PerSpotPSF(GaussianPSF(g.center, g.cov, g.amplitude * power), KernelPSF(self.kernel.kernel * power), self.use_kernel)
 
 
 @dataclass(frozen=True)
@@ -110,20 +151,45 @@ def chunk_size(n_exposures: int, h: int, w: int, *, device="cpu", dtype=torch.fl
     return max(1, int(memory_fraction * free // per))
 
 
+def _spot_psfs(psf, P, F, M, h, w, like):
+    """``(GaussianPSF [n] or None, kernels [n, h, w] or None, use_kernel [n] bool)`` of every problem."""
+    n = P * F * M
+    gauss = kern = None
+    use = torch.zeros(M, dtype=torch.bool, device=like["device"])
+    if isinstance(psf, PerSpotPSF):
+        gauss, kern, use = psf.gaussian, psf.kernel, psf.use_kernel.to(like["device"])
+    elif isinstance(psf, KernelPSF):
+        kern, use = psf, torch.ones(M, dtype=torch.bool, device=like["device"])
+    elif isinstance(psf, GaussianPSF):
+        gauss = psf
+    else:
+        raise InputTypeError(f"psf: expected a GaussianPSF, a KernelPSF or a PerSpotPSF of batch [M] (crop coordinates), got "
+                             f"{type(psf).__name__}")
+    if use.shape != (M,):
+        raise ShapeError(f"psf: expected use_kernel [M={M}], got {tuple(use.shape)}")
+    out = [None, None, use[None, None].expand(P, F, M).reshape(n)]
+    if gauss is not None:
+        out[0] = GaussianPSF(gauss.center.to(**like).expand(P, F, M, 2).reshape(n, 2), gauss.cov.to(**like).expand(P, F, M, 2, 2).reshape(n, 2, 2),
+                             gauss.amplitude.to(**like).expand(P, F, M).reshape(n))
+    if kern is not None:
+        k = kern.kernel.to(**like)
+        try:
+            out[1] = k.expand(P, F, M, h, w).reshape(n, h, w)
+        except RuntimeError as e:
+            raise ShapeError(f"psf: expected kernels broadcastable to [P, F, M, h, w] = {[P, F, M, h, w]}, got {list(k.shape)}") from e
+    return tuple(out)
+
+
 def _problem_inputs(crops, psf, window, omega, noise_std, mask):
-    """Broadcast and flatten: ``[n, E*R, h, w]`` data, ``[n]`` PSF, ``[n, E*R]`` window, ``[n]`` omega."""
+    """Broadcast and flatten: ``[n, E*R, h, w]`` data, the PSFs (:func:`_spot_psfs`), ``[n, E*R]`` window, ``[n]`` omega."""
     if not isinstance(crops, torch.Tensor) or crops.dim() != 6:
         raise ShapeError(f"crops: expected a tensor [P, F, M, E*R, h, w], got {getattr(crops, 'shape', type(crops).__name__)}")
-    if not isinstance(psf, GaussianPSF):
-        raise InputTypeError(f"psf: expected a GaussianPSF of batch [M] or [P, F, M] (crop coordinates), got {type(psf).__name__}")
     if not isinstance(window, ExposureWindow):
         raise InputTypeError(f"window: expected an ExposureWindow of batch [P, F, E*R], got {type(window).__name__}")
     P, F, M, ER, h, w = crops.shape
     like = dict(dtype=crops.dtype, device=crops.device)
     n = P * F * M
-    cen = psf.center.to(**like).expand(P, F, M, 2).reshape(n, 2)
-    cov = psf.cov.to(**like).expand(P, F, M, 2, 2).reshape(n, 2, 2)
-    amp = psf.amplitude.to(**like).expand(P, F, M).reshape(n)
+    psfs = _spot_psfs(psf, P, F, M, h, w, like)
     try:
         start = window.start.to(**like).expand(P, F, ER)[:, :, None].expand(P, F, M, ER).reshape(n, ER)
         dur = window.duration.to(**like).expand(P, F, ER)[:, :, None].expand(P, F, M, ER).reshape(n, ER)
@@ -135,7 +201,21 @@ def _problem_inputs(crops, psf, window, omega, noise_std, mask):
     om = om[None, :, None].expand(P, F, M).reshape(n)
     ns = None if noise_std is None else torch.as_tensor(noise_std, **like).expand(P, F, M, ER, h, w).reshape(n, ER, h, w)
     mk = None if mask is None else torch.as_tensor(mask, device=crops.device).expand(P, F, M, ER, h, w).reshape(n, ER, h, w)
-    return crops.reshape(n, ER, h, w), (cen, cov, amp), (start, dur), om, ns, mk
+    return crops.reshape(n, ER, h, w), psfs, (start, dur), om, ns, mk
+
+
+def _kernel_noise(kernel_noise, P, F, M, like):
+    """The std factor of every problem ``[n]`` (1 where None)."""
+    if kernel_noise is None:
+        return torch.ones(P * F * M, **like)
+    k = torch.as_tensor(kernel_noise, **like)
+    try:
+        k = k.expand(P, F, M).reshape(-1)
+    except RuntimeError as e:
+        raise ShapeError(f"kernel_noise: expected a factor broadcastable to [P, F, M] = {[P, F, M]}, got {list(k.shape)}") from e
+    if not bool(torch.isfinite(k).all()) or bool((k < 1).any()):
+        raise ParameterError(f"kernel_noise: expected finite factors >= 1, got minimum {float(k.min()):g}")
+    return k
 
 
 def _empty(n, like):
@@ -145,14 +225,19 @@ def _empty(n, like):
                 flags=torch.zeros(n, dtype=torch.long, device=like["device"]), reduced_chi2=nan.clone())
 
 
-def fit_spot_problems(crops, psf, window, omega, *, noise_std=None, mask=None, chunk: int | None = None, **fit_options) -> SpotFits:
+def fit_spot_problems(crops, psf, window, omega, *, noise_std=None, mask=None, chunk: int | None = None, kernel_noise=None,
+                      **fit_options) -> SpotFits:
     """Fit every (pattern, frequency, spot) problem, in chunks bounded in memory.
 
     Args:
         crops: ``[P, F, M, E*R, h, w]`` (:func:`crop_problems`), electrons; dtype and device
             of the fit.
-        psf: :class:`GaussianPSF` of batch ``[M]`` (or broadcastable to ``[P, F, M]``) in crop
-            coordinates, amplitude in electrons per second (the laser power folded in).
+        psf: each spot's PSF in crop coordinates, intensity in electrons per second (the laser
+            power folded in): :class:`GaussianPSF` of batch ``[M]`` (or broadcastable to
+            ``[P, F, M]``), :class:`KernelPSF` of kernels ``[M, h, w]`` (or broadcastable to
+            ``[P, F, M, h, w]``; every spot its measured kernel), or :class:`PerSpotPSF` (spot
+            ``m`` its kernel where ``use_kernel[m]``, else its Gaussian). The Gaussian and the
+            kernel problems are fitted in separate chunks.
         window: :class:`ExposureWindow` broadcastable to ``[P, F, E*R]`` (s).
         omega: ``[F]`` rad/s.
         noise_std: pixel noise std broadcastable to the crops (e.g.
@@ -160,6 +245,10 @@ def fit_spot_problems(crops, psf, window, omega, *, noise_std=None, mask=None, c
             (unweighted; the noise is estimated from the residuals).
         mask: bool broadcastable to the crops (False: excluded; e.g. ``in_frame``).
         chunk: problems per chunk; None: :func:`chunk_size` for the crops' device and dtype.
+        kernel_noise: the kernel's own noise, a factor (>= 1) broadcastable to ``[P, F, M]`` by
+            which the amplitude and phase stds of the problems fitted with a kernel grow
+            (``covariance`` times its square): :meth:`~torchblur.identify.calibration.SpotKernels.kernel_noise_factor`
+            of each point's exposures times its laser power; None: 1.
         **fit_options: passed on to :func:`~torchblur.fit.sinusoid.fit_sinusoid` (``optimizer``,
             ``loss``, ``fit_background``, ``outliers``, ...).
 
@@ -167,25 +256,30 @@ def fit_spot_problems(crops, psf, window, omega, *, noise_std=None, mask=None, c
         :class:`SpotFits` of batch ``[P, F, M]``; a problem whose fit failed has a non-zero
         ``status`` and NaN estimates, the others are as fitted alone (to round-off).
     """
-    data, (cen, cov, amp), (start, dur), om, ns, mk = _problem_inputs(crops, psf, window, omega, noise_std, mask)
+    data, (gauss, kern, use_k), (start, dur), om, ns, mk = _problem_inputs(crops, psf, window, omega, noise_std, mask)
     P, F, M, ER, h, w = crops.shape
-    n = data.shape[0]
+    like = dict(dtype=crops.dtype, device=crops.device)
+    factor = _kernel_noise(kernel_noise, P, F, M, like)
     chunk = chunk_size(ER, h, w, device=crops.device, dtype=crops.dtype) if chunk is None else check_int(chunk, "chunk", low=1)
     if "axes" in fit_options:
         raise ParameterError("fit_options: axes is always 'xy' for DM spot problems")
-    out = _empty(n, dict(dtype=crops.dtype, device=crops.device))
+    out = _empty(data.shape[0], like)
     n_chunks = 0
-    for i0 in range(0, n, chunk):
-        s = slice(i0, min(n, i0 + chunk))
-        fit = fit_sinusoid(data[s], GaussianPSF(cen[s], cov[s], amp[s]), ExposureWindow(start[s], dur[s]), om[s], axes="xy",
-                           noise_std=None if ns is None else ns[s], mask=None if mk is None else mk[s], **fit_options)
-        idx = [fit.param_names.index(k) for k in _KEPT]
-        out["amplitude"][s], out["phase"][s] = fit.amplitude, fit.phase
-        out["covariance"][s] = fit.covariance[:, idx][:, :, idx]
-        out["status"][s], out["flags"][s] = fit.status, fit.flags
-        if fit.reduced_chi2 is not None:
-            out["reduced_chi2"][s] = fit.reduced_chi2
-        n_chunks += 1
+    for kind in ("gaussian", "kernel"):
+        rows = torch.nonzero(use_k if kind == "kernel" else ~use_k).reshape(-1)
+        for i0 in range(0, rows.numel(), chunk):
+            s = rows[i0:i0 + chunk]
+            p = KernelPSF(kern[s]) if kind == "kernel" else GaussianPSF(gauss.center[s], gauss.cov[s], gauss.amplitude[s])
+            fit = fit_sinusoid(data[s], p, ExposureWindow(start[s], dur[s]), om[s], axes="xy",
+                               noise_std=None if ns is None else ns[s], mask=None if mk is None else mk[s], **fit_options)
+            idx = [fit.param_names.index(k) for k in _KEPT]
+            f2 = factor[s, None, None] ** 2 if kind == "kernel" else 1.0
+            out["amplitude"][s], out["phase"][s] = fit.amplitude, fit.phase
+            out["covariance"][s] = fit.covariance[:, idx][:, :, idx] * f2
+            out["status"][s], out["flags"][s] = fit.status, fit.flags
+            if fit.reduced_chi2 is not None:
+                out["reduced_chi2"][s] = fit.reduced_chi2
+            n_chunks += 1
     shaped = {k: v.reshape((P, F, M) + tuple(v.shape[1:])) for k, v in out.items()}
     return SpotFits(**shaped, n_chunks=n_chunks)
 

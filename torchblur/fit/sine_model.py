@@ -139,6 +139,12 @@ class SineModel:
     regions: torch.Tensor | None = None
 
     @property
+    def kernel_jacobian(self) -> bool:
+        """True on the kernel path when the Jacobian comes in one pass with the image
+        (:meth:`_kernel_image_and_jacobian`; not with ``normalize`` or a fitted rest position)."""
+        return self.kernel_rule is not None and not self.normalize and not self.layout.fit_center
+
+    @property
     def analytic(self) -> bool:
         """True when the Jacobian comes from the splat (cheap: evaluated with every trial point)."""
         return self.panels is not None
@@ -193,6 +199,47 @@ class SineModel:
         img = torch.cat(parts) if len(parts) > 1 else parts[0]
         return img if len(parts) == 1 else img.index_select(0, torch.argsort(torch.cat(order)))
 
+    def _kernel_image_and_jacobian(self, theta: torch.Tensor, n: torch.Tensor):
+        """Kernel path: :meth:`image_and_jacobian` in one pass of
+        :func:`~torchblur.render.splat.kernel_shift_with_jacobian` (exact, about 3 times faster than
+        forward AD through :meth:`_kernel_images`; the same rows, crops, rules and FFT grids, so the
+        same image to round-off)."""
+        L, H, W = self.layout, self.height, self.width
+        amp, ph = L.amplitudes(theta), L.phases(theta)  # [m, n_axes]
+        tau, wq = (v[n] for v in self.kernel_rule)  # [m, E, S]
+        live = wq > 0
+        m, E, K = n.shape[0], tau.shape[1], amp.shape[-1]
+        t = self.start[n][..., None] + self.duration[n][..., None] * tau
+        w = self.duration[n][..., None] * wq
+        with torch.no_grad():  # the FFT grid per row, as _kernel_images chooses it
+            s = torch.sin(self.omega[n][:, None, None, None] * t[..., None] + ph[:, None, None, :]) * amp[:, None, None, :]
+            disp = torch.where(live[..., None], (s[..., None] * self.direction[n][:, None, None]).sum(-2), 0.0)
+            reach = disp.abs().flatten(1).amax(-1).ceil().long() + 2
+        pad = -(-reach // _PAD_STEP) * _PAD_STEP
+        hw = self.regions[n] if self.regions is not None else torch.tensor([[H, W]], device=n.device).expand(m, 2)
+        keys = torch.stack([hw[:, 0].to(pad.device), hw[:, 1].to(pad.device), pad], -1)
+        uniq, group = torch.unique(keys, dim=0, return_inverse=True)
+        img = theta.new_zeros(m, E, H, W)
+        J = theta.new_zeros(m, theta.shape[1], E, H, W)
+        for g, (h, wd, pd) in enumerate(uniq.tolist()):
+            r = (group == g).nonzero(as_tuple=True)[0].to(n.device)
+            S = max(int(live[r].sum(-1).max()), 1)
+            i, dj = sine_blur_with_jacobian(t[r, :, :S], w[r, :, :S], amp[r, None].expand(-1, E, K), ph[r, None].expand(-1, E, K),
+                                            self.omega[n[r], None, None].expand(-1, E, K), self.direction[n[r], None].expand(-1, E, K, 2),
+                                            theta.new_zeros(r.numel(), E, 2), None, h, wd,
+                                            kernel=self.psf.kernel[n[r], :h, :wd][:, None].expand(-1, E, h, wd), pad=pd)
+            img[r, :, :h, :wd] = i
+            J[r, :2 * K, :, :h, :wd] = dj.transpose(1, 2)  # [rows, 2K, E, h, w]: amplitudes then phases, as theta
+        model = img
+        if L.fit_scale:
+            J.mul_(theta[:, L.scale, None, None, None, None])
+            J[:, L.scale] = img
+            model = model * theta[:, L.scale, None, None, None]
+        if L.fit_background:
+            model = model + theta[:, L.background, None, None, None]
+            J[:, L.background] = 1
+        return model.reshape(m, -1), J.reshape(m, theta.shape[1], E * H * W).transpose(1, 2)
+
     def image(self, theta: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
         """Model ``[m, E * H * W]`` of rows ``theta [m, P]`` of problems ``n [m]`` (the splat's
         image alone on the analytic path, else :meth:`rendered`)."""
@@ -209,6 +256,8 @@ class SineModel:
     def image_and_jacobian(self, theta: torch.Tensor, n: torch.Tensor):
         """``(model [m, R], J [m, R, P])``, ``R = E * H * W``, of rows ``theta [m, P]`` of problems
         ``n [m]``: from the splat (frames grouped by their node count), else by forward AD."""
+        if self.kernel_jacobian:
+            return self._kernel_image_and_jacobian(theta, n)
         if not self.analytic:
             return model_jacobian(self.rendered, theta, n)
         L, H, W = self.layout, self.height, self.width

@@ -438,7 +438,8 @@ def _optimise(model: SineModel, items, theta0, data, weight, o: _FitOptions):
 
     if o.optimizer == "lm":
         it = max_iter or 60
-        jacobian_fn = (lambda theta, i: model.image_and_jacobian(theta, items[i])) if model.analytic else None  # noqa: E731
+        jacobian_fn = ((lambda theta, i: model.image_and_jacobian(theta, items[i]))  # noqa: E731
+                       if model.analytic or model.kernel_jacobian else None)
         # Converged once the next Gauss-Newton step is below 0.1 standard deviation (that
         # step is then taken unevaluated; the result is within ~0.01 std of the optimum).
         tol = max(o.tol, 0.025 / data.shape[-1]) if loss == "l1" else o.tol
