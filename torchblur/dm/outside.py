@@ -40,7 +40,7 @@ from torchblur.dm.actuator_fit import fit_actuators
 from torchblur.dm.budget import dm_geometry
 from torchblur.dm.demux import demultiplex
 from torchblur.dm.mirror import DeformableMirror
-from torchblur.dm.pipeline import DMResult, _calibrate, _fit_frequency, _fit_options, check_dm_config, match_spots, run_cli
+from torchblur.dm.pipeline import DMResult, _calibrate, _fit_frequency, _fit_options, _spot_psf, check_dm_config, match_spots, run_cli
 from torchblur.dm.plans import Plan, one_at_a_time_plan, plan_cost
 from torchblur.dm.record import PLAN_KEY, SWEEP_KIND, plan_support
 from torchblur.dm.shack_hartmann import ShackHartmann
@@ -49,7 +49,7 @@ from torchblur.files import excerpt, read_bounded
 from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.outside import (CSV_NAME, YAML_NAME, MAX_ROWS, OutsideCamera, _points, _read_camera, _read_frames,
                                         _read_rows, _resolved_saturation)
-from torchblur.identify.calibration import Calibration, _locate_spots, measure_gain
+from torchblur.identify.calibration import Calibration, measure_gain, spots_from_still
 from torchblur.identify.config import WFSConfig, load_config, load_dataclass
 from torchblur.identify.record import log_message
 from torchblur.image.preprocess import dark_frame, subtract_dark
@@ -327,8 +327,10 @@ def recording_calibration(rec: DMRecording, cfg, wfs: ShackHartmann, log: list, 
     """The calibration of ``rec`` and its spots in valid-subaperture order, ``(cal, psf, offset,
     size)`` as the live run's (:func:`torchblur.dm.pipeline._calibrate`, the same steps on the
     recorded frames): the dark frame, the gain (the still frames' photon transfer checked against
-    ``gain_e_per_adu``, ``camera.gain_from``), the read noise, the spots found in the mean still
-    frame and matched to the sensor's valid subapertures, the latency given by ``recording.yaml``."""
+    ``gain_e_per_adu``, ``camera.gain_from``), the read noise, the spots cropped on the sensor's
+    declared layout and each spot's PSF (``fit.psf``), both by the live calibration's own
+    :func:`~torchblur.identify.calibration.spots_from_still` and
+    :func:`~torchblur.dm.pipeline._spot_psf`, the latency given by ``recording.yaml``."""
     c = rec.camera
     dark_raw, still_raw = torch.as_tensor(rec.dark, dtype=_F64), torch.as_tensor(rec.still, dtype=_F64)
     dark = dark_frame(dark_raw)
@@ -345,13 +347,14 @@ def recording_calibration(rec: DMRecording, cfg, wfs: ShackHartmann, log: list, 
     n = int(cfg.wfs.n_across)
     spots_cfg = replace(cfg, spots=replace(cfg.spots, rows=n, cols=n, pitch_px=float(cfg.wfs.pitch_px), sigma_px=float(cfg.wfs.sigma_px)))
     still_e = subtract_dark(still_raw, dark) * gain
-    spots = _locate_spots(spots_cfg, still_e.mean(0), float(rec.still_exposure_s), read_noise_e, log, progress)
+    spots, kernels = spots_from_still(spots_cfg, still_e, float(rec.still_exposure_s), read_noise_e, log, progress,
+                                      spot_layout=wfs.rest_px)
     cal = Calibration(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=float(sat_adu - level), psf=spots.psf,
                       peak_rate=float(spots.psf.amplitude.max()), latency_s=float(c.latency_s), latency_std_s=float(c.latency_std_s),
-                      gain=gain, spots=spots, latency_source="given", ptc=ptc, gain_source=gain_source)
+                      gain=gain, spots=spots, latency_source="given", ptc=ptc, gain_source=gain_source, spot_kernels=kernels)
     log_message(log, f"latency: {c.latency_s * 1e6:.3f} +- {c.latency_std_s * 1e6:.3f} us given ({YAML_NAME})", progress)
     order = torch.as_tensor(match_spots(spots.psf.center.numpy(), wfs.rest_px, wfs.pitch_px))
-    return cal, spots.psf_in_crops()[order], spots.offset[order], spots.size
+    return cal, _spot_psf(cal, order, log, progress), spots.offset[order], spots.size
 
 
 def _refuse_saturated(rec: DMRecording, sat: SaturationCurve, dark) -> None:

@@ -22,7 +22,7 @@ from torchblur.image.tracking import calibrate_axes
 from torchblur.render.camera import CameraNoise, camera_noise_std
 
 __all__ = ["Calibration", "MIN_INSIDE", "PTC_STEPS", "SpotKernels", "calibrate", "calibrate_latency", "check_latency_source", "choose_gain",
-           "latency_given", "measure_gain", "ptc_exposures", "spot_kernels"]
+           "latency_given", "measure_gain", "ptc_exposures", "spot_kernels", "spots_from_still"]
 
 MIN_INSIDE = 0.5  # a spot with less of its still light in the frame is flagged, not fitted
 
@@ -132,14 +132,11 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False, *, n_dark: i
     still_e = subtract_dark(still_raw, dark) * gain
     spots = still_psf = spot_kern = None
     if getattr(cfg, "spots", None) is not None and cfg.spots.enabled:
-        if spot_layout is None:
-            spots = _locate_spots(cfg, still_e.mean(0), te_psf, read_noise_e, log, progress)
-        else:
-            spots = _layout_spots(cfg, still_e.mean(0), te_psf, read_noise_e, spot_layout, log, progress)
+        spots, spot_kern = spots_from_still(cfg, still_e, te_psf, read_noise_e, log, progress, spot_layout=spot_layout,
+                                            spot_psfs=spot_psfs)
         psf = spots.psf  # [K], full-frame coordinates
         whole = spots.inside_fraction >= MIN_INSIDE  # an edge spot's peak is an extrapolation: not trusted here
         peak_rate = float(psf.amplitude[whole].max() if bool(whole.any()) else psf.amplitude.max())  # e-/s at power 1
-        spot_kern = spot_kernels(cfg, still_e, te_psf, read_noise_e, spots, log, progress) if spot_psfs else None
     else:
         still_psf = _still_psf(cfg, still_e, te_psf, read_noise_e, log, progress)
         psf = still_psf.gaussian.psf
@@ -350,6 +347,20 @@ class SpotKernels:
     def kernel_noise_factor(self, exposures_s) -> torch.Tensor:
         """The kernels' own noise (every spot's still has the same frames and exposure)."""
         return self.rule.kernel_noise_factor(exposures_s)
+
+
+def spots_from_still(cfg, still_e, exposure_s, read_noise_e, log, progress, *, spot_layout=None, spot_psfs: bool = True):
+    """Many spots from the still frames ``still_e [N, H, W]`` (electrons, dark subtracted):
+    ``(spots, kernels)``, the :class:`~torchblur.image.spots.SpotPSFs` (found by thresholding, or
+    with ``spot_layout`` ``[M, 2]`` cropped on the sensor's declared layout) and their
+    :class:`SpotKernels` (:func:`spot_kernels`; None when ``spot_psfs`` is False). One function for
+    a live calibration and for a recording's (``torchblur.dm.outside``), so both take the same steps."""
+    if spot_layout is None:
+        spots = _locate_spots(cfg, still_e.mean(0), exposure_s, read_noise_e, log, progress)
+    else:
+        spots = _layout_spots(cfg, still_e.mean(0), exposure_s, read_noise_e, spot_layout, log, progress)
+    kernels = spot_kernels(cfg, still_e, exposure_s, read_noise_e, spots, log, progress) if spot_psfs else None
+    return spots, kernels
 
 
 def spot_kernels(cfg, still_e, exposure_s, read_noise_e, spots, log, progress):
