@@ -83,6 +83,23 @@ def test_spots_found_with_their_own_psfs(grid_still):
     assert sp.size == (30, 30) and not sp.clipped.any() and (sp.inside_fraction > 0.999).all()
 
 
+def test_a_spot_found_twice_is_fitted_once(grid_still):
+    """A detached lobe beside a spot (as an aberrated diffraction spot has) is a connected component
+    of its own, and its crop's fit lands within half a pitch of the spot: one spot, fitted once."""
+    rig, still, te = grid_still
+    lay = rig.spots
+    yy, xx = torch.meshgrid(torch.arange(90, dtype=still.dtype), torch.arange(90, dtype=still.dtype), indexing="ij")
+    c = lay.rest_px[4]
+    lobe = 0.15 * float(still.max()) * torch.exp(-((xx - c[0] - 10) ** 2 + (yy - c[1] - 4) ** 2) / (2 * 0.8**2))
+    noise = math.sqrt(25 + float(still.max())) / math.sqrt(8)
+    from torchblur.image.detection import find_spots
+
+    assert len(find_spots(still + lobe, noise_std=noise)[0]) == 9  # the lobe is a component of its own
+    sp = locate_spots(still + lobe, exposure_s=te, noise_std=noise, pitch_px=30.0)
+    assert len(sp) == 8
+    np.testing.assert_allclose(sp.psf.center.numpy(), lay.rest_px.numpy(), atol=0.3)
+
+
 def test_spots_config_errors_name_the_key():
     for over, key in ((["spots.rows=-1"], "spots.rows"), (["spots.rows=2", "spots.cols=0"], "spots.cols"),
                       (["spots.rows=2", "spots.cols=2", "spots.gain_variation=1.5"], "spots.gain_variation"),
