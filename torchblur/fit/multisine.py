@@ -758,8 +758,7 @@ def fit_multisine(
     tol: float = 1e-9,
     seed: int = 0,
     render_settings: RenderSettings | None = None,
-    direction=None,
-    kernel_var=None,
+    direction=None, kernel_var=None,
 ) -> MultisineFit:
     """Fit the N tones ``(M_k, phi_k)`` of a multisine motion along ``direction`` (default x) to an image set.
 
@@ -789,8 +788,7 @@ def fit_multisine(
         direction: the image direction (x, y) of the motion, ``[2]`` or ``[..., 2]``
             (normalised): an actuator axis rotated in the camera's image
             (:func:`torchblur.image.tracking.calibrate_axes`); None: +x.
-        kernel_var: a measured kernel's pixel variance ``[..., H, W]`` (``StillPSF.kernel_variance()``):
-            its noise enters the covariance (:mod:`torchblur.fit.kernel_noise`); None: left out.
+        kernel_var: a measured kernel's pixel variance ``[..., H, W]``: its noise in the covariance (:mod:`~torchblur.fit.kernel_noise`).
 
     Returns:
         :class:`MultisineFit`.
