@@ -14,7 +14,7 @@ largest |H| error (%), phase error (deg) and error/std against the rig's truth, 
 the time ratio auto / gaussian. The other configs/*.yaml (fig*, beyond_precision,
 learned_deblur) drive experiments/ scripts with their own Gaussian spot model: no ``fit.psf``.
 
-    python benchmarks/bench_config_psf.py [--threads 1] [--repeats 2] [--runs]
+    python benchmarks/bench_config_psf.py [--threads 1] [--repeats 2] [--runs [--only spots]]
 """
 from __future__ import annotations
 
@@ -54,11 +54,12 @@ def _identify(path: str, psf: str) -> tuple:
     return wall, frf.meta.get("psf"), figs
 
 
-def runs(repeats: int) -> None:
-    """Every identify config (the DM's aside) with fit.psf=auto and fit.psf=gaussian, alternating."""
+def runs(repeats: int, only: str = "") -> None:
+    """Every identify config (the DM's aside; with ``only``, those whose path holds it) with
+    fit.psf=auto and fit.psf=gaussian, alternating."""
     identify(load_config(None, ["sweep.freq_hz=[10]", "model.max_order=2"]), progress=False)  # warm-up: imports, first calls
     for path in sorted(glob.glob("configs/identify_*.yaml")):
-        if path.endswith("identify_dm.yaml"):
+        if path.endswith("identify_dm.yaml") or only not in path:
             continue
         best, out = {"auto": math.inf, "gaussian": math.inf}, {}
         for _ in range(repeats):
@@ -76,14 +77,16 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--runs", action="store_true", help="whole runs, fit.psf=auto vs gaussian (else the calibrations)")
+    ap.add_argument("--only", default="", help="only the configs whose path holds this")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     print(f"torch threads {args.threads}")
     if args.runs:
-        runs(args.repeats)
+        runs(args.repeats, args.only)
         return
+    _calibrate("configs/identify_default.yaml", False)  # warm-up: the process's imports and first calls
     for path in sorted(glob.glob("configs/identify_*.yaml")):
-        if path.endswith("identify_dm.yaml"):
+        if path.endswith("identify_dm.yaml") or args.only not in path:
             continue
         spots = load_config(path).spots.enabled
         best = {True: math.inf, False: math.inf}
