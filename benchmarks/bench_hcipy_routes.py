@@ -15,9 +15,13 @@ model mismatch): its figures are its best case.
 
     python benchmarks/bench_hcipy_routes.py [--n 40] [--routes multisine,direct,spots] [--threads 1] [--seed0 1000]
     python benchmarks/bench_hcipy_routes.py --jobs 15     # the same figures, the seeds in parts over 15 processes
-    # the figures in docs/measured_psf.md: each route's 40 seeds in parts run in parallel, then merged
-    python benchmarks/bench_hcipy_routes.py --routes spots --n 10 --seed0 1000 --save spots0.npz   # ... 1010, 1020, 1030
-    python benchmarks/bench_hcipy_routes.py --merge multisine*.npz direct*.npz spots*.npz
+    # the figures in docs/measured_psf.md: --jobs 15 --save-dir parts (61 s on 16 cores), the grids of
+    # seeds 1034-1035 again after the locate_spots fix, then merged
+    python benchmarks/bench_hcipy_routes.py --routes spots --n 2 --seed0 1034 --save spots_1034.npz
+    python benchmarks/bench_hcipy_routes.py --merge parts/direct_*.npz parts/multisine_*.npz parts/spots_10[0-2]*.npz \
+        parts/spots_103[0268].npz spots_1034.npz
+
+A grid where ``locate_spots`` does not find the 9 spots counts its 18 channels as gross errors.
 """
 from __future__ import annotations
 
