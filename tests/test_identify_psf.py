@@ -132,10 +132,10 @@ def test_kernel_points_do_not_depend_on_the_chunking():
 
 
 def test_the_multisine_route_fits_with_the_kernel_the_calibration_chose():
-    """issue 29: the multisine fit takes the still's choice (the kernel on an Airy spot), with its
-    stds times the kernel's noise factor; no stage is left on the Gaussian (no warning)."""
-    from torchblur.fit.multisine import MultisineFit
-    from torchblur.identify.multisine import fit_psf, with_kernel_noise
+    """issue 29: the multisine fit takes the still's choice (the kernel on an Airy spot), with the
+    kernel's pixel variance for its covariance (the kernel's own noise, propagated); no stage is
+    left on the Gaussian (no warning)."""
+    from torchblur.identify.multisine import fit_psf, kernel_variance
 
     cfg = load_config(None, SHORT + ["excitation.kind=multisine"])
     log = []
@@ -144,15 +144,10 @@ def test_the_multisine_route_fits_with_the_kernel_the_calibration_chose():
     assert isinstance(cal.psf, GaussianPSF)  # the centre, peak rate and axis calibration still use it
     assert fit_psf(cal) is cal.still_psf.psf
     assert not any("warning" in line and "psf" in line for line in log)
-    one = torch.ones(2, dtype=torch.float64)
-    fit = MultisineFit(amplitude=one, phase=one, amplitude_std=one, phase_std=2 * one, covariance=torch.eye(4, dtype=torch.float64),
-                       param_names=(), cost=one[0], converged=one[0] > 0, status=one[0].long(), noise_std=one[0], n_iter=one[0].long())
-    light = torch.tensor([1e-3, 4e-3], dtype=torch.float64)
-    f = float(cal.still_psf.kernel_noise_factor(light))
-    assert f > 1
-    big = with_kernel_noise(fit, cal.still_psf, light)
-    torch.testing.assert_close(big.phase_std, 2 * f * one)
-    torch.testing.assert_close(big.covariance, f ** 2 * torch.eye(4, dtype=torch.float64))
+    var = kernel_variance(cal)
+    assert var.shape == cal.still_psf.psf.kernel.shape
+    torch.testing.assert_close(var, (cal.still_psf.noise_std * cal.still_psf.taper / cal.still_psf.exposure_s) ** 2)
+    assert bool((var[cal.still_psf.support] > 0).all()) and bool((var[cal.still_psf.taper == 0] == 0).all())
 
 
 def test_many_spots_take_every_spot_kernel_when_a_gaussian_fails():

@@ -83,6 +83,22 @@ def test_spots_found_with_their_own_psfs(grid_still):
     assert sp.size == (30, 30) and not sp.clipped.any() and (sp.inside_fraction > 0.999).all()
 
 
+def test_a_spot_found_twice_is_fitted_once():
+    """A detached lobe beside a spot (as an aberrated diffraction spot has) is a connected component
+    of its own, and its crop's fit lands within half a pitch of the spot: one spot, fitted once."""
+    from torchblur.image.detection import find_spots
+
+    yy, xx = torch.meshgrid(torch.arange(32, dtype=torch.float64), torch.arange(64, dtype=torch.float64), indexing="ij")
+    truth = torch.tensor([[15.3, 15.6], [47.6, 15.4]], dtype=torch.float64)
+    still = sum(2000 * torch.exp(-((xx - x) ** 2 + (yy - y) ** 2) / (2 * 1.6**2)) for x, y in truth.tolist())
+    still = still + 300 * torch.exp(-((xx - 57.6) ** 2 + (yy - 19.4) ** 2) / (2 * 0.8**2))  # 10.8 px from the second spot
+    still = still + 5 * torch.randn(still.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    assert len(find_spots(still, noise_std=5.0)[0]) == 3  # the lobe is a component of its own
+    sp = locate_spots(still, exposure_s=1e-3, noise_std=5.0, pitch_px=32.0)
+    assert len(sp) == 2
+    np.testing.assert_allclose(sp.psf.center.numpy(), truth.numpy(), atol=0.3)
+
+
 def test_spots_config_errors_name_the_key():
     for over, key in ((["spots.rows=-1"], "spots.rows"), (["spots.rows=2", "spots.cols=0"], "spots.cols"),
                       (["spots.rows=2", "spots.cols=2", "spots.gain_variation=1.5"], "spots.gain_variation"),

@@ -26,6 +26,7 @@ import torch
 
 from torchblur.render.alias import wrap_phase
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, as_unit_direction, check_finite, check_positive
+from torchblur.fit.kernel_noise import kernel_noise_covariance
 from torchblur.fit.losses import image_loss
 from torchblur.image.moments import image_moments, moments_along
 from torchblur.fit.optim import levenberg_marquardt, model_jacobian
@@ -163,7 +164,8 @@ class MultisineFit:
         noise_std: pixel noise std used (median), ``[...]``.
         n_iter: LM iterations of the best start (plus the refit's, weighted by the noise
             model), ``[...]``.
-        extras: ``nodes``, ``starts``, ``refined``, ``crop``.
+        extras: ``nodes``, ``starts``, ``refined``, ``crop``, ``retried``, ``reduced_chi2``; with
+            ``kernel_var``, ``kernel_covariance [..., P, P]``: the measured kernel's part of ``covariance``.
     """
 
     amplitude: torch.Tensor
@@ -305,7 +307,7 @@ def _pixel_weight(noise_std, mask, flat: _Flat):
             except RuntimeError:
                 raise ShapeError(f"noise_std: expected a number, [...] or [..., E, H, W], got {tuple(s.shape)}") from None
         weight = 1 / s**2
-        noise_level = s.reshape(B, -1).median(-1).values
+        noise_level = s.reshape(B, -1).contiguous().median(-1).values  # a stride-0 (expanded) median is garbage (torch 2.13)
     if mask is not None:
         if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool:
             raise InputTypeError("mask: expected a bool tensor [..., E, H, W] (True = use the pixel)")
@@ -470,7 +472,8 @@ class _Problem:
     frame); ``u [B, 2]``; ``height, width`` of the crop; ``settings`` (node count fixed);
     ``outside_cost, outside_sq, outside_n [B]``: the weighted and plain sums of squares and the
     count of the used pixels outside the crop (a constant of the cost); ``pad``: a kernel's FFT
-    padding (px), fixed from the starts' motion so the model does not jump between iterations.
+    padding (px), fixed from the starts' motion so the model does not jump between iterations;
+    ``kernel_var [B, Hc, Wc]``: a measured kernel's pixel variance (cut like it), or None.
     """
 
     target: torch.Tensor
@@ -487,6 +490,7 @@ class _Problem:
     outside_sq: torch.Tensor
     outside_n: torch.Tensor
     pad: int = 0
+    kernel_var: torch.Tensor | None = None
 
     @property
     def analytic(self) -> bool:
@@ -522,7 +526,7 @@ class _Problem:
         return img.reshape(theta.shape[0], -1), J.reshape(theta.shape[0], -1, theta.shape[-1]) if jacobian else None
 
 
-def _problem(flat: _Flat, weight, theta_c, render_settings) -> tuple[_Problem, tuple]:
+def _problem(flat: _Flat, weight, theta_c, render_settings, kernel_var=None) -> tuple[_Problem, tuple]:
     """The problem cropped to where the starts reach, its node count fixed for them -> ``(problem, crop box)``."""
     B, N = flat.om.shape
     dtype, device = flat.data.dtype, flat.data.device
@@ -545,7 +549,8 @@ def _problem(flat: _Flat, weight, theta_c, render_settings) -> tuple[_Problem, t
     prob = _Problem(target=data[..., lo_y:hi_y, lo_x:hi_x].reshape(B, -1), wflat=wflat,
                     om=flat.om, start=flat.start, dur=flat.dur, psf=psf_c, u=flat.u, height=hi_y - lo_y, width=hi_x - lo_x,
                     settings=settings, outside_cost=outside_cost, pad=int(math.ceil(reach)) + 2,
-                    outside_sq=(out_used * data * data).sum((-1, -2, -3)), outside_n=out_used.sum((-1, -2, -3)).to(dtype))
+                    outside_sq=(out_used * data * data).sum((-1, -2, -3)), outside_n=out_used.sum((-1, -2, -3)).to(dtype),
+                    kernel_var=None if kernel_var is None else kernel_var[:, lo_y:hi_y, lo_x:hi_x])
     return prob, box
 
 
@@ -657,15 +662,17 @@ def _canonical(theta: torch.Tensor, N: int) -> torch.Tensor:
 
 def _fisher(prob: _Problem, theta, live, noise_level):
     """Inverse Fisher information at the solution -> ``(covariance [B, P, P], noise std used [B],
-    singular [B])`` (NaN for sets not live). With ``noise_level`` None the noise is estimated
-    from the residuals (inside and outside the crop)."""
+    singular [B], kernel term [B, P, P] or None)`` (NaN for sets not live). With ``noise_level``
+    None the noise is estimated from the residuals (inside and outside the crop). With the
+    problem's ``kernel_var`` the measured kernel's own noise is added to the covariance
+    (:func:`_kernel_term`) and returned apart."""
     B, P = theta.shape
     dtype, device = theta.dtype, theta.device
     cov_out = torch.full((B, P, P), float("nan"), dtype=dtype, device=device)
     sigma_used = torch.full((B,), float("nan"), dtype=dtype, device=device)
     singular = torch.zeros(B, dtype=torch.bool, device=device)
     if not live.numel():
-        return cov_out, sigma_used, singular
+        return cov_out, sigma_used, singular, None
     if prob.analytic:
         model, J = prob.model_and_jacobian(theta[live], live)
     else:
@@ -682,10 +689,42 @@ def _fisher(prob: _Problem, theta, live, noise_level):
         sigma_used[live] = sig2.sqrt()
     F = (J * fw[..., None]).transpose(-1, -2) @ J
     c_l, info = torch.linalg.inv_ex(F)
+    kcov = None
+    if prob.kernel_var is not None:
+        kcov = torch.full_like(cov_out, float("nan"))
+        kcov[live] = _kernel_term(prob, theta[live], live, J, fw, c_l)
+        c_l = c_l + kcov[live]
     diag = torch.diagonal(c_l, dim1=-2, dim2=-1)
     singular[live] = (info != 0) | ~torch.isfinite(c_l).all(-1).all(-1) | (diag <= 0).any(-1)
     cov_out[live] = c_l
-    return cov_out, sigma_used, singular
+    return cov_out, sigma_used, singular, kcov
+
+
+def _kernel_term(prob: _Problem, theta, live, J, fw, cov) -> torch.Tensor:
+    """The measured kernel's own noise in the covariance of the live sets ``[L, P, P]``
+    (:func:`~torchblur.fit.kernel_noise.kernel_noise_covariance`, the splat's model as a function of the kernel)."""
+    win = ExposureWindow(prob.start[live], prob.dur[live])
+
+    def render(k):
+        return prob._splat(theta, live, KernelPSF(k), win, jacobian=False)[0]
+
+    return kernel_noise_covariance(render, prob.psf.kernel[live], prob.kernel_var[live], J, fw, cov)
+
+
+def _kernel_variance(kernel_var, flat: _Flat) -> torch.Tensor | None:
+    """``kernel_var`` checked (only with a KernelPSF; >= 0; the kernel's shape) -> ``[B, H, W]`` or None."""
+    if kernel_var is None:
+        return None
+    if flat.kernel is None:
+        raise ParameterError("kernel_var: the variance of a measured kernel; the psf is a GaussianPSF (leave kernel_var out)")
+    v = check_finite(as_tensor(kernel_var, "kernel_var", like=flat.data), "kernel_var")
+    if bool((v < 0).any()):
+        raise ParameterError(f"kernel_var: expected every value >= 0, got minimum {float(v.min()):g}")
+    try:
+        return v.expand(flat.batch + flat.kernel.shape[-2:]).reshape(flat.kernel.shape)
+    except RuntimeError:
+        raise ShapeError(f"kernel_var: expected the kernel's shape {tuple(flat.psf.kernel.shape)} (or one that broadcasts to "
+                         f"{tuple(flat.batch + flat.kernel.shape[-2:])}), got {tuple(v.shape)}") from None
 
 
 def _status(converged, red_chi2, singular, dark, sigma_given: bool) -> torch.Tensor:
@@ -719,7 +758,7 @@ def fit_multisine(
     tol: float = 1e-9,
     seed: int = 0,
     render_settings: RenderSettings | None = None,
-    direction=None,
+    direction=None, kernel_var=None,
 ) -> MultisineFit:
     """Fit the N tones ``(M_k, phi_k)`` of a multisine motion along ``direction`` (default x) to an image set.
 
@@ -749,6 +788,7 @@ def fit_multisine(
         direction: the image direction (x, y) of the motion, ``[2]`` or ``[..., 2]``
             (normalised): an actuator axis rotated in the camera's image
             (:func:`torchblur.image.tracking.calibrate_axes`); None: +x.
+        kernel_var: a measured kernel's pixel variance ``[..., H, W]``: its noise in the covariance (:mod:`~torchblur.fit.kernel_noise`).
 
     Returns:
         :class:`MultisineFit`.
@@ -763,7 +803,7 @@ def fit_multisine(
     g = torch.Generator(device="cpu").manual_seed(int(seed))
     theta_c = _starts(flat, M0, thr, phase_guess, n_starts, g, fit_scale)
     K, P = theta_c.shape[1:]
-    prob, crop = _problem(flat, weight, theta_c, render_settings)
+    prob, crop = _problem(flat, weight, theta_c, render_settings, _kernel_variance(kernel_var, flat))
     live = torch.arange(B, device=flat.data.device)[~dark]
     theta_best, cost_best, conv_best, iters_best, R_, retried = _search_all(
         prob, theta_c, live, M0, sigma_given=sigma_given, n_starts=n_starts, n_refine=n_refine, fit_scale=fit_scale, g=g,
@@ -772,7 +812,7 @@ def fit_multisine(
         prob, theta_best = _reweight_by_model(prob, crop, flat.data, weight, _canonical(theta_best, N), live, noise, pw,
                                               (cost_best, conv_best, iters_best, noise_level), max_iter=max_iter, tol=tol)
     theta_best = _canonical(theta_best, N)
-    cov_out, sigma_used, singular = _fisher(prob, theta_best, live, noise_level if sigma_given else None)
+    cov_out, sigma_used, singular, kcov = _fisher(prob, theta_best, live, noise_level if sigma_given else None)
     std = torch.diagonal(cov_out, dim1=-2, dim2=-1).clamp_min(0).sqrt()
     red_chi2 = _reduced_chi2(prob, cost_best)
     status = _status(conv_best, red_chi2, singular, dark, sigma_given)
@@ -797,6 +837,6 @@ def fit_multisine(
         scale=out(torch.where(dark, nan, theta_best[:, 2 * N])) if fit_scale else None,
     )
     res.extras.update({"nodes": prob.settings.nodes, "starts": K, "refined": R_, "crop": crop, "retried": out(retried),
-                       "reduced_chi2": out(red_chi2)})
+                       "reduced_chi2": out(red_chi2)} | ({} if kcov is None else {"kernel_covariance": out(kcov, (P, P))}))
     res.flags = out(flag_poor_fit(None, red_chi2 if sigma_given else torch.full_like(red_chi2, float("nan"))))
     return res

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -283,8 +283,7 @@ def _fit_group(run, acq: MultisineAcquisition, grp: _Group, st: _Settings, acqui
     t0 = time.perf_counter()
     fit = fit_multisine(img, fit_psf(cal), ExposureWindow(start, dur), torch.tensor(grp.om, dtype=_F64), noise=cal.noise, power=pw,
                         mask=cal.saturation.mask(frames), amplitude_guess=torch.tensor(M_exp, dtype=_F64),
-                        fit_scale=bool(run.cfg.fit.fit_scale), seed=int(run.cfg.seed), direction=st.u)
-    fit = with_kernel_noise(fit, cal.still_psf, dur * pw)
+                        fit_scale=bool(run.cfg.fit.fit_scale), seed=int(run.cfg.seed), direction=st.u, kernel_var=kernel_variance(cal))
     acq.fit_s += time.perf_counter() - t0
     a_t = np.asarray(a, dtype=np.float64)
     resp = fit.amplitude.numpy() / a_t * np.exp(1j * (fit.phase.numpy() - np.asarray(phases)))
@@ -327,15 +326,17 @@ def fit_psf(cal):
     return cal.still_psf.psf if cal.still_psf is not None else cal.psf
 
 
-def with_kernel_noise(fit, still_psf, light_s):
-    """``fit`` (a :class:`~torchblur.fit.multisine.MultisineFit` of one image set) with its stds
-    times :meth:`~torchblur.image.psf_from_still.StillPSF.kernel_noise_factor` of the set's
-    light ``light_s [E]`` (each exposure times its laser power) where the measured kernel was
-    fitted (the kernel's own noise, the one-spot sweep's rule); unchanged with a Gaussian."""
-    if still_psf is None or still_psf.kind != "kernel":
-        return fit
-    f = still_psf.kernel_noise_factor(light_s).to(fit.amplitude_std)
-    return replace(fit, amplitude_std=fit.amplitude_std * f, phase_std=fit.phase_std * f, covariance=fit.covariance * f**2)
+def kernel_variance(cal):
+    """The measured kernel's pixel variance ``[H, W]`` where the multisine fit uses it
+    (:meth:`~torchblur.image.psf_from_still.StillPSF.kernel_variance`, at laser power 1 as the
+    kernel): ``fit_multisine(kernel_var=)`` propagates the kernel's own noise into each group's
+    covariance (:mod:`torchblur.fit.kernel_noise`); None with a Gaussian.
+
+    Not the one-spot sweep's scalar rule (``kernel_noise_factor``): on a multisine set the kernel's
+    light error goes into the fitted intensity scale, not the tones (HCIPy spots: the rule's 1.22
+    made the phase stds too large, rms(error/std) 0.73; ``benchmarks/bench_hcipy_routes.py``)."""
+    sp = cal.still_psf
+    return sp.kernel_variance() if sp is not None and sp.kind == "kernel" else None
 
 
 def _fit_word(fit, poor_fit_chi2: float) -> str:

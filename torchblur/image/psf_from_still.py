@@ -119,6 +119,14 @@ class StillPSF:
         ratio = t.sum(-1) / (self.n_frames * self.exposure_s)
         return torch.ones_like(ratio) if self.kind == "gaussian" else (1 + ratio).sqrt()
 
+    def kernel_variance(self) -> torch.Tensor:
+        """The measured kernel's per-pixel variance ``[H, W]`` ((intensity per second)^2): the
+        averaged still's noise times the taper, over the exposure, squared (0 where the taper is;
+        the background's own error, common to every pixel, is left out). A fit given it
+        (``fit_multisine(..., kernel_var=)``) propagates the kernel's noise into its covariance
+        exactly (:mod:`torchblur.fit.kernel_noise`) instead of :meth:`kernel_noise_factor`'s rule."""
+        return (self.noise_std * self.taper / self.exposure_s).square().to(self.kernel.kernel)
+
     def frame_noise_std(self, frames) -> torch.Tensor:
         """Per-pixel noise std of other frames of the same camera (e.g. the blurred ones),
         ``[..., H, W]`` like ``frames`` (in the same units and with the same offset as the
