@@ -14,7 +14,7 @@ import torch
 from torchblur.identify.record import log_message
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.sysid.direct import fit_direct
-from torchblur.sysid.flags import POOR_FIT
+from torchblur.sysid.flags import ALIAS, POOR_FIT
 from torchblur.sysid.tf_fit import fit_transfer_function
 
 __all__ = ["fit_direct_model", "fit_model", "model_exclusions", "model_parameter_lines", "modes_outside_band", "points_needed"]
@@ -32,34 +32,39 @@ def points_needed(model_cfg) -> int:
 def model_exclusions(frf, cfg) -> tuple[np.ndarray, list]:
     """Which points the transfer-function fit leaves out: ``(left_out, kept)``.
 
-    The rule: a valid point flagged ``POOR_FIT`` (its images' model does not explain them) gets
-    weight 0, unless its channel would keep fewer than :func:`points_needed` valid points; then
-    the channel's poor-fit points are all kept (at their inflated stds).
+    The rule: a valid point flagged ``ALIAS`` (one exposure, its phase branch not decided: its
+    phase may be the alias, far beyond any std) always gets weight 0. A valid point flagged
+    ``POOR_FIT`` (its images' model does not explain them) gets weight 0, unless its channel
+    would keep fewer than :func:`points_needed` valid points; then the channel's poor-fit points
+    are all kept (at their inflated stds).
 
     Returns:
         ``left_out`` bool ``[O, I, F]``; ``kept``: ``(output label, input label, n poor-fit
         points kept)`` for each channel where the rule kept them.
     """
-    poor = ((frf.flags & POOR_FIT) != 0) & frf.valid
+    alias = ((frf.flags & ALIAS) != 0) & frf.valid
+    poor = ((frf.flags & POOR_FIT) != 0) & frf.valid & ~alias
     need = points_needed(cfg.model)
-    left_out = np.zeros(poor.shape, dtype=bool)
+    left_out = np.array(alias)
     kept = []
     for o in range(frf.n_outputs):
         for i in range(frf.n_inputs):
             if not poor[o, i].any():
                 continue
-            if int((frf.valid[o, i] & ~poor[o, i]).sum()) >= need:
-                left_out[o, i] = poor[o, i]
+            if int((frf.valid[o, i] & ~poor[o, i] & ~alias[o, i]).sum()) >= need:
+                left_out[o, i] |= poor[o, i]
             else:
                 kept.append((frf.output_labels[o], frf.input_labels[i], int(poor[o, i].sum())))
     return left_out, kept
 
 
 def _without(frf, left_out, log, progress):
-    """``frf`` with the ``left_out`` points set to NaN (weight 0 in the fit), each logged."""
-    if left_out.any():
-        f = ", ".join(f"{v:.4g}" for v in frf.freq_hz[left_out.any(axis=(0, 1))])
-        log_message(log, f"model: {int(left_out.sum())} poor-fit point(s) left out of the fit ({f} Hz)", progress)
+    """``frf`` with the ``left_out`` points set to NaN (weight 0 in the fit), each logged by its reason."""
+    alias = left_out & ((frf.flags & ALIAS) != 0)
+    for pts, what in ((left_out & ~alias, "poor-fit point(s)"), (alias, "alias point(s) (phase branch not decided)")):
+        if pts.any():
+            f = ", ".join(f"{v:.4g}" for v in frf.freq_hz[pts.any(axis=(0, 1))])
+            log_message(log, f"model: {int(pts.sum())} {what} left out of the fit ({f} Hz)", progress)
     return frf.replace(response=np.where(left_out, np.nan, frf.response)) if left_out.any() else frf
 
 
