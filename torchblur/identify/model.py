@@ -11,6 +11,7 @@ import time
 import numpy as np
 import torch
 
+from torchblur.fit.status import POOR_FIT_CHI2, POOR_FIT_FLAG
 from torchblur.identify.record import log_message
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.sysid.direct import fit_direct
@@ -190,6 +191,11 @@ def fit_direct_model(cfg, model, images, windows, omega, amps, psf, power_t, noi
     for m in modes_outside_band(modal, f_lo, f_hi):
         log_message(log, f"direct: warning: a mode at {m['freq_hz']:.4g} Hz lies far outside the swept band "
                   f"({f_lo:.4g}-{f_hi:.4g} Hz); the images do not constrain it (std {m['freq_hz_std']:.3g} Hz)", progress)
+    poor = (np.asarray(d.flags) & POOR_FIT_FLAG) != 0
+    if poor.any():
+        hz = ", ".join(f"{v:.4g}" for v in np.asarray(omega, dtype=np.float64)[poor] / (2 * math.pi))
+        log_message(log, f"direct: warning: the model does not explain {int(poor.sum())} point(s) ({hz} Hz): their reduced "
+                    f"chi2 is above {POOR_FIT_CHI2:g}", progress)
     log_message(log, f"direct: {d.form} model from {int(d.used.sum())} points ({d.n_excluded} excluded), {d.n_iter} iterations, "
               f"converged {d.converged}, reduced chi2 {d.reduced_chi2:.3f}, {time.perf_counter() - t_direct:.2f} s; "
               f"modes: {modes or 'none'}", progress)
