@@ -69,6 +69,46 @@ def test_two_step_parameter_stds_hold_over_seeds():
     assert mode["zeta_std"] == fit.parameter("p1_zeta")[1]
 
 
+def test_a_timing_error_common_to_every_point_goes_into_the_delay_std_once():
+    """A latency calibration's error is one number for the whole sweep: a phase ``omega * e`` at
+    every point. The estimated delay absorbs it exactly (the other parameters do not move), so
+    ``common_delay_std_s`` takes its share out of the weights and adds its variance to the delay's:
+    over 10 sweeps whose common error is 6x the delay's own std, the delay's rms(error/std) holds;
+    with the share left in frf.cov as independent per-point errors (the old way) it is not."""
+    om = TWO_PI * np.geomspace(5, 1500, 20)
+    rng = np.random.default_rng(11)
+    common = 6 * fit_transfer_function(_noisy_frf(rng, om), n_poles=2, n_zeros=0).parameter("delay_s")[1]
+    z_new, z_old = [], []
+    for _ in range(10):
+        e = common * rng.standard_normal()
+        f = _noisy_frf(rng, om, h=_plant(om) * np.exp(-1j * om * e))  # the sweep's timing is off by e
+        cov = np.array(f.cov)
+        cov[:, :, :, 1, 1] += (om * common) ** 2  # frf.cov holds the share, as identify's phase_std adds it
+        f = f.replace(cov=cov)
+        new = fit_transfer_function(f, n_poles=2, n_zeros=0, common_delay_std_s=common)
+        old = fit_transfer_function(f, n_poles=2, n_zeros=0)
+        z_new.append((new.parameter("delay_s")[0] - TAU) / new.parameter("delay_s")[1])
+        z_old.append((old.parameter("delay_s")[0] - TAU) / old.parameter("delay_s")[1])
+    assert 0.6 < float(np.sqrt(np.mean(np.square(z_new)))) < 1.4  # 0.75 here
+    assert float(np.sqrt(np.mean(np.square(z_old)))) > 1.5  # 1.63 here
+    # exact: the shift moves the delay by e, nothing else; the other parameters' covariance is the
+    # fit's without the share, the delay's variance that plus common**2
+    clean = _noisy_frf(np.random.default_rng(3), om)
+    cov = np.array(clean.cov)
+    cov[:, :, :, 1, 1] += (om * common) ** 2
+    a = fit_transfer_function(clean, n_poles=2, n_zeros=0)
+    b = fit_transfer_function(clean.replace(response=clean.response * np.exp(-1j * om * 2e-6), cov=cov), n_poles=2, n_zeros=0,
+                              common_delay_std_s=common)
+    np.testing.assert_allclose(b.params[:-1], a.params[:-1], rtol=1e-6)
+    assert b.params[-1] - a.params[-1] == pytest.approx(2e-6, rel=1e-5)
+    np.testing.assert_allclose(b.covariance[:-1, :-1], a.covariance[:-1, :-1], rtol=1e-5)
+    assert b.covariance[-1, -1] == pytest.approx(a.covariance[-1, -1] + common**2, rel=1e-5)
+    with pytest.raises(tb.errors.ParameterError, match="common_delay_std_s"):
+        fit_transfer_function(clean, n_poles=2, n_zeros=0, common_delay_std_s=common)  # frf.cov does not hold the share
+    with pytest.raises(tb.errors.ParameterError, match="common_delay_std_s"):
+        fit_transfer_function(f, n_poles=2, n_zeros=0, delay_s=TAU, common_delay_std_s=common)
+
+
 def test_covariance_and_order_table_round_trip_through_json(tmp_path):
     om = TWO_PI * np.geomspace(5, 1500, 16)
     fit = fit_transfer_function(_noisy_frf(np.random.default_rng(1), om), max_order=3)
