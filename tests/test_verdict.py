@@ -172,6 +172,17 @@ def test_a_sine_run_flags_the_points_its_fit_saw_no_motion_at():
     assert not point_no_motion(run).any()
 
 
+def test_a_sine_run_reads_its_fits_branch_undecided_flag_per_point():
+    import types
+
+    from torchblur.fit.status import BRANCH_UNDECIDED
+    from torchblur.identify.assemble import point_fit_flag
+
+    frf, _ = _frf()
+    run = types.SimpleNamespace(frf=frf, fit=types.SimpleNamespace(flags=torch.tensor([0, BRANCH_UNDECIDED | 1] + [1] * 6)))
+    np.testing.assert_array_equal(point_fit_flag(run, BRANCH_UNDECIDED)[0, 0], [False, True] + [False] * 6)
+
+
 def test_the_model_fit_leaves_poor_fit_points_out():
     frf, h_true = _frf(n=12)
     cfg = load_config(None, ["model.n_poles=1", "model.n_zeros=0", "model.fit_delay=false"])
