@@ -282,29 +282,29 @@ def test_omega_in_hz_shows_on_the_item_as_poor_fit():
 
 
 def test_too_little_light_to_decide_the_phase_branch_is_flagged_per_item():
-    """At a 3000 e-/s peak and 100 Hz (10 e- at the brightest pixel) two exposures barely resolve
+    """A 4 px motion at a 1500 e-/s peak and 100 Hz (a few e- per pixel): two exposures barely resolve
     the alias: fit_sinusoid flags BRANCH_UNDECIDED exactly the items whose alias costs less than
     BRANCH_CHI2 more than the fit (benchmarks/bench_low_light.py: they made the amplitude 2 % low);
     one exposure, where the alias is left to identify's continuity rule, is never flagged."""
     from torchblur.fit.status import BRANCH_CHI2, BRANCH_UNDECIDED
     from torchblur.render.camera import CameraNoise
 
-    n, om, size = 16, TWO_PI * 100.0, 32
+    n, om, size = 8, TWO_PI * 100.0, 24
     win = tb.ExposureWindow(torch.full((n, 2), (math.pi / 2) / om, dtype=torch.float64),
                             torch.tensor([[0.3, 0.8]] * n, dtype=torch.float64) * TWO_PI / om)
     psf = tb.GaussianPSF(torch.full((n, 2), (size - 1) / 2, dtype=torch.float64), 4.0 * torch.eye(2, dtype=torch.float64).expand(n, 2, 2),
-                         torch.full((n,), 3000.0, dtype=torch.float64))
-    traj = tb.Sinusoid(torch.tensor([6.0, 0.0], dtype=torch.float64).expand(n, 1, 2), torch.full((n, 1, 2), 0.4, dtype=torch.float64),
+                         torch.full((n,), 1500.0, dtype=torch.float64))
+    traj = tb.Sinusoid(torch.tensor([4.0, 0.0], dtype=torch.float64).expand(n, 1, 2), torch.full((n, 1, 2), 0.4, dtype=torch.float64),
                        torch.full((n, 1), om, dtype=torch.float64))
     clean = tb.render_blur(traj, tb.GaussianPSF(psf.center[:, None], psf.cov[:, None], psf.amplitude[:, None]), win, height=size, width=size)
-    g = torch.Generator().manual_seed(4)
+    g = torch.Generator().manual_seed(2)
     img = torch.poisson(clean, generator=g) + 5.0 * torch.randn(clean.shape, generator=g, dtype=torch.float64)
     noise = CameraNoise(gain_e_per_adu=1.0, offset_adu=0.0, read_noise_e=5.0)
     fit = fit_sinusoid(img, psf, win, torch.full((n,), om, dtype=torch.float64), noise=noise)
     flagged = (fit.flags & BRANCH_UNDECIDED) != 0
-    assert 0 < int(flagged.sum()) < n // 4
+    assert (fit.status == 0).all() and 0 < int(flagged.sum()) < n // 2
     assert torch.equal(flagged, (fit.alias_cost - fit.cost) < BRANCH_CHI2)
-    one = fit_sinusoid(img[:4, :1], psf[:4], win[:4, :1], torch.full((4,), om, dtype=torch.float64), noise=noise)
+    one = fit_sinusoid(img[:2, :1], psf[:2], win[:2, :1], torch.full((2,), om, dtype=torch.float64), noise=noise)
     assert not ((one.flags & BRANCH_UNDECIDED) != 0).any()
 
 
