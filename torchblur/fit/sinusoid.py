@@ -746,7 +746,8 @@ def _finish(res: SinusoidFit, inp: _FlatInputs, o: _FitOptions, rejected, plane,
     res.reduced_chi2 = chi2 / dof if (inp.noise is not None and o.loss != "linf") else torch.full_like(res.cost, float("nan"))
     res.flags = flag_poor_fit(res.flags, res.reduced_chi2)
     # the alias's cost less the fit's is a chi2 difference for l2 and poisson (a deviance) with the noise given
-    resolving = (alias_separation(inp.omega, inp.window) >= MIN_SEPARATION) & (o.loss in ("l2", "poisson"))
+    # (an item with no significant motion is NO_MOTION already: its phase means nothing on either branch)
+    resolving = (alias_separation(inp.omega, inp.window) >= MIN_SEPARATION) & (o.loss in ("l2", "poisson")) & ((res.flags & NO_MOTION) == 0)
     res.flags = flag_branch_undecided(res.flags, torch.where(torch.isnan(res.reduced_chi2), res.reduced_chi2, res.alias_cost - res.cost),
                                       resolving)
     res.background_plane = plane

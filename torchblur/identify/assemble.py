@@ -303,7 +303,7 @@ def adequacy_stage(run) -> None:
     no_motion = point_no_motion(run)
     if no_motion.any():
         run.frf = run.frf.replace(flags=np.asarray(run.frf.flags) | np.where(no_motion, NO_MOTION, 0))
-    undecided = point_fit_flag(run, FIT_BRANCH_UNDECIDED) & run.frf.valid
+    undecided = point_fit_flag(run, FIT_BRANCH_UNDECIDED) & run.frf.valid & ((run.frf.flags & NO_MOTION) == 0)
     if undecided.any():  # two exposures, too little light to decide the phase branch: as undecided as one exposure's
         run.frf = run.frf.replace(flags=np.asarray(run.frf.flags) | np.where(undecided, ALIAS, 0))
         run.say(f"alias: {int(undecided.sum())} point(s) whose exposures did not decide the phase branch at their light (the "
