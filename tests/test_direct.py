@@ -262,6 +262,28 @@ def test_excluded_points_are_counted_and_ignored():
         fit_direct(bad, d["psf"], d["window"], d["omega"], d["amplitude"], tf, valid=torch.zeros(len(FREQS), dtype=torch.bool))
 
 
+def test_a_point_the_model_does_not_explain_is_flagged_poor_fit():
+    """The per-point rule of fit_sinusoid (reduced chi2 above POOR_FIT_CHI2 = 1.5): on a right
+    sweep no point is flagged and each point's reduced chi2 is about 1; a point with a mislabelled
+    exposure is flagged, the worst; with the noise estimated nothing is flagged (NaN: unknown)."""
+    from torchblur.fit.status import POOR_FIT_CHI2, POOR_FIT_FLAG
+
+    freqs = FREQS[::2]
+    d = sweep(freqs, seed=3)
+    tf = start_model(MODES, GAIN, DELAY, d["omega"].numpy())
+    args = (d["psf"], d["window"], d["omega"], d["amplitude"], tf)
+    right = fit_direct(d["images"], *args, noise_std=d["noise"])
+    assert right.flags.shape == right.point_reduced_chi2.shape == (len(freqs),)
+    assert not right.flags.any() and np.all(np.abs(right.point_reduced_chi2 - 1) < 0.2)
+    imgs = d["images"].clone()
+    imgs[2, 0] = sweep(freqs, fracs=(0.45, 0.8), seed=3)["images"][2, 0]  # one point's 30 % exposure lasted 45 %
+    r = fit_direct(imgs, *args, noise_std=d["noise"])
+    assert r.flags[2] & POOR_FIT_FLAG and r.point_reduced_chi2[2] > 5 * POOR_FIT_CHI2
+    assert int(np.argmax(r.point_reduced_chi2)) == 2  # the worst (the one model spreads the damage to its neighbours)
+    unknown = fit_direct(d["images"], *args, max_iter=3)
+    assert np.isnan(unknown.point_reduced_chi2).all() and not unknown.flags.any()
+
+
 def test_result_api_is_consistent():
     control = pytest.importorskip("control")
     d = sweep(FREQS, seed=2, kind="modal")

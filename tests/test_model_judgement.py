@@ -69,6 +69,46 @@ def test_two_step_parameter_stds_hold_over_seeds():
     assert mode["zeta_std"] == fit.parameter("p1_zeta")[1]
 
 
+def test_a_timing_error_common_to_every_point_goes_into_the_delay_std_once():
+    """A latency calibration's error is one number for the whole sweep: a phase ``omega * e`` at
+    every point. The estimated delay absorbs it exactly (the other parameters do not move), so
+    ``common_delay_std_s`` takes its share out of the weights and adds its variance to the delay's:
+    over 10 sweeps whose common error is 6x the delay's own std, the delay's rms(error/std) holds;
+    with the share left in frf.cov as independent per-point errors (the old way) it is not."""
+    om = TWO_PI * np.geomspace(5, 1500, 20)
+    rng = np.random.default_rng(11)
+    common = 6 * fit_transfer_function(_noisy_frf(rng, om), n_poles=2, n_zeros=0).parameter("delay_s")[1]
+    z_new, z_old = [], []
+    for _ in range(10):
+        e = common * rng.standard_normal()
+        f = _noisy_frf(rng, om, h=_plant(om) * np.exp(-1j * om * e))  # the sweep's timing is off by e
+        cov = np.array(f.cov)
+        cov[:, :, :, 1, 1] += (om * common) ** 2  # frf.cov holds the share, as identify's phase_std adds it
+        f = f.replace(cov=cov)
+        new = fit_transfer_function(f, n_poles=2, n_zeros=0, common_delay_std_s=common)
+        old = fit_transfer_function(f, n_poles=2, n_zeros=0)
+        z_new.append((new.parameter("delay_s")[0] - TAU) / new.parameter("delay_s")[1])
+        z_old.append((old.parameter("delay_s")[0] - TAU) / old.parameter("delay_s")[1])
+    assert 0.6 < float(np.sqrt(np.mean(np.square(z_new)))) < 1.4  # 0.75 here
+    assert float(np.sqrt(np.mean(np.square(z_old)))) > 1.5  # 1.63 here
+    # exact: the shift moves the delay by e, nothing else; the other parameters' covariance is the
+    # fit's without the share, the delay's variance that plus common**2
+    clean = _noisy_frf(np.random.default_rng(3), om)
+    cov = np.array(clean.cov)
+    cov[:, :, :, 1, 1] += (om * common) ** 2
+    a = fit_transfer_function(clean, n_poles=2, n_zeros=0)
+    b = fit_transfer_function(clean.replace(response=clean.response * np.exp(-1j * om * 2e-6), cov=cov), n_poles=2, n_zeros=0,
+                              common_delay_std_s=common)
+    np.testing.assert_allclose(b.params[:-1], a.params[:-1], rtol=1e-6)
+    assert b.params[-1] - a.params[-1] == pytest.approx(2e-6, rel=1e-5)
+    np.testing.assert_allclose(b.covariance[:-1, :-1], a.covariance[:-1, :-1], rtol=1e-5)
+    assert b.covariance[-1, -1] == pytest.approx(a.covariance[-1, -1] + common**2, rel=1e-5)
+    with pytest.raises(tb.errors.ParameterError, match="common_delay_std_s"):
+        fit_transfer_function(clean, n_poles=2, n_zeros=0, common_delay_std_s=common)  # frf.cov does not hold the share
+    with pytest.raises(tb.errors.ParameterError, match="common_delay_std_s"):
+        fit_transfer_function(f, n_poles=2, n_zeros=0, delay_s=TAU, common_delay_std_s=common)
+
+
 def test_covariance_and_order_table_round_trip_through_json(tmp_path):
     om = TWO_PI * np.geomspace(5, 1500, 16)
     fit = fit_transfer_function(_noisy_frf(np.random.default_rng(1), om), max_order=3)
@@ -239,6 +279,33 @@ def test_omega_in_hz_shows_on_the_item_as_poor_fit():
     wrong = fit_sinusoid(img, psf, w, torch.tensor([om / TWO_PI]), noise_std=2.0)  # Hz given for rad/s
     assert int(wrong.status[0]) == 0 and float(wrong.reduced_chi2[0]) > 1.5
     assert int(wrong.flags[0]) & POOR_FIT_FLAG
+
+
+def test_too_little_light_to_decide_the_phase_branch_is_flagged_per_item():
+    """A 4 px motion at a 1500 e-/s peak and 100 Hz (a few e- per pixel): two exposures barely resolve
+    the alias: fit_sinusoid flags BRANCH_UNDECIDED exactly the items whose alias costs less than
+    BRANCH_CHI2 more than the fit (benchmarks/bench_low_light.py: they made the amplitude 2 % low);
+    one exposure, where the alias is left to identify's continuity rule, is never flagged."""
+    from torchblur.fit.status import BRANCH_CHI2, BRANCH_UNDECIDED
+    from torchblur.render.camera import CameraNoise
+
+    n, om, size = 8, TWO_PI * 100.0, 24
+    win = tb.ExposureWindow(torch.full((n, 2), (math.pi / 2) / om, dtype=torch.float64),
+                            torch.tensor([[0.3, 0.8]] * n, dtype=torch.float64) * TWO_PI / om)
+    psf = tb.GaussianPSF(torch.full((n, 2), (size - 1) / 2, dtype=torch.float64), 4.0 * torch.eye(2, dtype=torch.float64).expand(n, 2, 2),
+                         torch.full((n,), 1500.0, dtype=torch.float64))
+    traj = tb.Sinusoid(torch.tensor([4.0, 0.0], dtype=torch.float64).expand(n, 1, 2), torch.full((n, 1, 2), 0.4, dtype=torch.float64),
+                       torch.full((n, 1), om, dtype=torch.float64))
+    clean = tb.render_blur(traj, tb.GaussianPSF(psf.center[:, None], psf.cov[:, None], psf.amplitude[:, None]), win, height=size, width=size)
+    g = torch.Generator().manual_seed(2)
+    img = torch.poisson(clean, generator=g) + 5.0 * torch.randn(clean.shape, generator=g, dtype=torch.float64)
+    noise = CameraNoise(gain_e_per_adu=1.0, offset_adu=0.0, read_noise_e=5.0)
+    fit = fit_sinusoid(img, psf, win, torch.full((n,), om, dtype=torch.float64), noise=noise)
+    flagged = (fit.flags & BRANCH_UNDECIDED) != 0
+    assert (fit.status == 0).all() and 0 < int(flagged.sum()) < n // 2
+    assert torch.equal(flagged, (fit.alias_cost - fit.cost) < BRANCH_CHI2)
+    one = fit_sinusoid(img[:2, :1], psf[:2], win[:2, :1], torch.full((2,), om, dtype=torch.float64), noise=noise)
+    assert not ((one.flags & BRANCH_UNDECIDED) != 0).any()
 
 
 def test_shape_mismatches_are_shape_errors_naming_the_arguments():

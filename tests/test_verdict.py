@@ -13,7 +13,7 @@ from torchblur.identify.config import load_config
 from torchblur.identify.model import fit_model, model_exclusions, points_needed
 from torchblur.identify.run import identify
 from torchblur.identify.verdict import EXIT_FLAGGED, model_chi2_limit, verdict
-from torchblur.sysid.flags import FAILED, LIMITED, NO_MOTION, POOR_FIT, TIMING
+from torchblur.sysid.flags import ALIAS, FAILED, LIMITED, NO_MOTION, POOR_FIT, TIMING
 from torchblur.sysid.frequency_response import FrequencyResponse
 from test_identify_psf import SHORT, airy_rig
 from cli_run import run_cli as _cli
@@ -172,6 +172,17 @@ def test_a_sine_run_flags_the_points_its_fit_saw_no_motion_at():
     assert not point_no_motion(run).any()
 
 
+def test_a_sine_run_reads_its_fits_branch_undecided_flag_per_point():
+    import types
+
+    from torchblur.fit.status import BRANCH_UNDECIDED
+    from torchblur.identify.assemble import point_fit_flag
+
+    frf, _ = _frf()
+    run = types.SimpleNamespace(frf=frf, fit=types.SimpleNamespace(flags=torch.tensor([0, BRANCH_UNDECIDED | 1] + [1] * 6)))
+    np.testing.assert_array_equal(point_fit_flag(run, BRANCH_UNDECIDED)[0, 0], [False, True] + [False] * 6)
+
+
 def test_the_model_fit_leaves_poor_fit_points_out():
     frf, h_true = _frf(n=12)
     cfg = load_config(None, ["model.n_poles=1", "model.n_zeros=0", "model.fit_delay=false"])
@@ -189,6 +200,35 @@ def test_the_model_fit_leaves_poor_fit_points_out():
     assert model.reduced_chi2 < 3  # the 30 % outliers (30 stds) did not enter
     unflagged = fit_model(cfg, frf.replace(response=bad), [])
     assert unflagged.reduced_chi2 > 50  # the same points with weight: the fit is pulled off
+
+
+def test_the_model_fit_leaves_alias_points_out_and_the_report_says_so():
+    from torchblur.identify.cli import _left_out_points
+    from torchblur.identify.verdict import report_lines
+
+    frf, _ = _frf(n=12)
+    cfg = load_config(None, ["model.n_poles=1", "model.n_zeros=0", "model.fit_delay=false"])
+    wrong = np.array(frf.response)
+    wrong[0, 0, [9, 10]] *= np.exp(1j * 1.2)  # the alias branch: 1.2 rad (120 stds) off
+    flags = np.zeros(12, dtype=np.int64)
+    flags[[9, 10]] = ALIAS
+    flags[4] = POOR_FIT | ALIAS  # both: left out as an alias point
+    flagged = frf.replace(response=wrong, flags=flags, reduced_chi2=np.ones(12))
+    left_out, kept = model_exclusions(flagged, cfg)
+    np.testing.assert_array_equal(left_out[0, 0], flags != 0)
+    assert kept == []
+    log = []
+    model = fit_model(cfg, flagged, log)
+    assert any("3 alias point(s) (phase branch not decided) left out of the fit" in line for line in log)
+    assert model.reduced_chi2 < 3  # the wrong branches did not enter
+    assert fit_model(cfg, frf.replace(response=wrong), []).reduced_chi2 > 50  # with weight they pull the fit off
+    lines = report_lines(flagged.replace(meta={"timing": {"jitter_s": 0.0, "latency_std_s": 0.0, "frames_per_point": 1}}), cfg)
+    assert sum("alias" in ln and "left out of the model fit (its phase may be the alias)" in ln for ln in lines) == 3
+    doc = _left_out_points(cfg, flagged)["left_out_points"]
+    assert [d["flags"] for d in doc] == ["poor_fit|alias", "alias", "alias"]
+    # too few points without them: alias points are still left out (no inflated std covers the other branch)
+    few = frf.replace(flags=np.array([ALIAS] * 11 + [0]))
+    assert model_exclusions(few, cfg)[0][0, 0, :11].all()
 
 
 def test_poor_fit_points_are_kept_when_too_few_would_remain():

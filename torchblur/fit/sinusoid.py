@@ -35,10 +35,11 @@ from torchblur.render.camera import CameraNoise
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.trajectory import Sinusoid
 from torchblur.render.window import ExposureWindow
+from torchblur.design.windows import MIN_SEPARATION, alias_separation
 
 from torchblur.fit.status import (  # noqa: F401  (re-exported: torchblur.fit.sinusoid.STATUS, ...)
     DARK, FLAGS, MASKED, NO_MOTION, NO_PIXELS, NOT_CONVERGED, OUT_OF_FRAME, OUTLIERS_MASKED, PARTLY_OUT_OF_FRAME, SATURATED_MASKED,
-    POOR_FIT_FLAG, SINGULAR, STATUS, flag_poor_fit,
+    POOR_FIT_FLAG, SINGULAR, STATUS, flag_branch_undecided, flag_poor_fit,
 )
 
 __all__ = ["SinusoidFit", "fit_sinusoid", "STATUS", "FLAGS", "MASKED", "SATURATED_MASKED", "OUTLIERS_MASKED", "PARTLY_OUT_OF_FRAME",
@@ -745,6 +746,11 @@ def _finish(res: SinusoidFit, inp: _FlatInputs, o: _FitOptions, rejected, plane,
     chi2 = res.cost if o.loss == "l2" else torch.where(torch.isnan(res.cost), res.cost, res.reduced_chi2)
     res.reduced_chi2 = chi2 / dof if (inp.noise is not None and o.loss != "linf") else torch.full_like(res.cost, float("nan"))
     res.flags = flag_poor_fit(res.flags, res.reduced_chi2)
+    # the alias's cost less the fit's is a chi2 difference for l2 and poisson (a deviance) with the noise given
+    # (an item with no significant motion is NO_MOTION already: its phase means nothing on either branch)
+    resolving = (alias_separation(inp.omega, inp.window) >= MIN_SEPARATION) & (o.loss in ("l2", "poisson")) & ((res.flags & NO_MOTION) == 0)
+    res.flags = flag_branch_undecided(res.flags, torch.where(torch.isnan(res.reduced_chi2), res.reduced_chi2, res.alias_cost - res.cost),
+                                      resolving)
     res.background_plane = plane
     for f in fields(SinusoidFit):
         v = getattr(res, f.name)

@@ -19,7 +19,8 @@ The adequacy rule (docs/reliability.md, "Per-point flags"; bits in :mod:`torchbl
   below :data:`~torchblur.design.windows.MIN_SEPARATION`): each point's phase branch is chosen
   by continuity along the sweep (:func:`resolve_single_exposure`, the rule of
   :func:`~torchblur.design.windows.continuity_branches`), and the points it cannot decide are
-  flagged. Such a run is never trustworthy.
+  flagged; with exposures that resolve the alias, a point whose fit says the light was too little
+  to decide it (:data:`~torchblur.fit.status.BRANCH_UNDECIDED`). Such a run is never trustworthy.
 """
 from __future__ import annotations
 
@@ -32,6 +33,7 @@ import torch
 from torchblur.design.windows import MIN_SEPARATION, alias_separation, continuity_branches
 from torchblur.errors import ShapeError
 from torchblur.image.spots import spot_labels
+from torchblur.fit.status import BRANCH_UNDECIDED as FIT_BRANCH_UNDECIDED
 from torchblur.fit.status import NO_MOTION as FIT_NO_MOTION
 from torchblur.render.window import ExposureWindow
 from torchblur.sysid.flags import ALIAS, FAILED, LIMITED, NO_MOTION, POOR_FIT, TIMING
@@ -239,10 +241,16 @@ def point_reduced_chi2(run) -> np.ndarray:
 def point_no_motion(run) -> np.ndarray:
     """[O, I, F] bool: the sine sweep's image fit behind the point found no significant motion
     (its :data:`~torchblur.fit.status.NO_MOTION` flag on any fitted axis); False where unknown."""
+    return point_fit_flag(run, FIT_NO_MOTION)
+
+
+def point_fit_flag(run, bit: int) -> np.ndarray:
+    """[O, I, F] bool: the sine sweep's image fit behind the point carries the fit flag ``bit``
+    (:data:`torchblur.fit.status.FLAGS`); False where unknown (a multisine run)."""
     flags = getattr(run.fit, "flags", None) if not isinstance(run.fit, (list, tuple)) else None
     if flags is None:
         return np.zeros(run.frf.response.shape, dtype=bool)
-    hit = (np.asarray(flags) & FIT_NO_MOTION) != 0  # the fit batch: [F], or [I*F, P]
+    hit = (np.asarray(flags) & bit) != 0  # the fit batch: [F], or [I*F, P]
     return _per_point(run, hit)
 
 
@@ -295,6 +303,11 @@ def adequacy_stage(run) -> None:
     no_motion = point_no_motion(run)
     if no_motion.any():
         run.frf = run.frf.replace(flags=np.asarray(run.frf.flags) | np.where(no_motion, NO_MOTION, 0))
+    undecided = point_fit_flag(run, FIT_BRANCH_UNDECIDED) & run.frf.valid & ((run.frf.flags & NO_MOTION) == 0)
+    if undecided.any():  # two exposures, too little light to decide the phase branch: as undecided as one exposure's
+        run.frf = run.frf.replace(flags=np.asarray(run.frf.flags) | np.where(undecided, ALIAS, 0))
+        run.say(f"alias: {int(undecided.sum())} point(s) whose exposures did not decide the phase branch at their light (the "
+                f"alias's chi2 within 4 of the fit's) flagged alias ({', '.join(f'{v:.4g}' for v in frf.freq_hz[undecided.any(axis=(0, 1))])} Hz)")
     alias_stage(run)
     poor = int(((run.frf.flags & POOR_FIT) != 0).sum())
     if poor:

@@ -22,7 +22,7 @@ from torchblur.image.tracking import calibrate_axes
 from torchblur.render.camera import CameraNoise, camera_noise_std
 
 __all__ = ["Calibration", "MIN_INSIDE", "PTC_STEPS", "SpotKernels", "calibrate", "calibrate_latency", "check_latency_source", "choose_gain",
-           "latency_given", "measure_gain", "ptc_exposures", "spot_kernels", "spots_from_still"]
+           "latency_from_scan", "latency_given", "measure_gain", "ptc_exposures", "spot_kernels", "spots_from_still"]
 
 MIN_INSIDE = 0.5  # a spot with less of its still light in the frame is flagged, not fitted
 
@@ -467,8 +467,27 @@ def calibrate_latency(rig, *, dark, gain: float, exposure_s: float = LATENCY_SCA
         cap = rig.pulse(exposure_s=exposure_s, trigger_offset_s=0.0, pulse_time_s=float(p), pulse_width_s=pulse_width_s, n=repeats,
                         power=power)
         light.append(float(subtract_dark(cap.frames, dark).sum((-1, -2)).mean()) * gain)
-    light = np.asarray(light)
-    top = np.median(np.sort(light)[-max(3, len(light) // 10):])
+    return latency_from_scan(times, np.asarray(light), pulse_width_s=pulse_width_s, trigger_delay_s=trigger_delay_s)
+
+
+def latency_from_scan(times, light, *, pulse_width_s: float, trigger_delay_s: float = 0.0):
+    """``(latency_s, std_s)`` from a pulse scan's ``light [n]`` (e-, per frame) at pulse times
+    ``times [n]`` (s after the trigger): :func:`calibrate_latency`'s estimate.
+
+    The plateau's level ``top`` is the median of every point above 90 % of a first guess (the
+    median of the highest tenth), not of the highest points alone: those are the ones the noise
+    pushed up, and their median (about 1.3 noise stds high on a 90-point plateau) moved the half
+    height, hence the latency, late by a bias larger than its std. The rising edge (points
+    strictly between 10 % and 90 % of ``top`` before the first plateau point) is fitted by a line;
+    the latency is where it reaches ``top / 2``, plus half the pulse, minus the trigger delay.
+    The std: the line's covariance (its residual scatter) and the plateau median's
+    (``1.2533 std / sqrt(n)``), carried to the half-height time by linearisation.
+    """
+    light = np.asarray(light, dtype=np.float64)
+    guess = np.median(np.sort(light)[-max(3, len(light) // 10):])
+    plateau = light[light >= 0.9 * guess]
+    top = float(np.median(plateau))
+    top_var = 1.2533 ** 2 * float(np.var(plateau, ddof=1)) / plateau.size if plateau.size > 1 else 0.0
     # Points on the rising edge: strictly between 10% and 90% of the top.
     idx = np.nonzero((light > 0.1 * top) & (light < 0.9 * top))[0]
     first_top = np.nonzero(light >= 0.9 * top)[0]
@@ -477,15 +496,13 @@ def calibrate_latency(rig, *, dark, gain: float, exposure_s: float = LATENCY_SCA
     if idx.size < 2:
         raise RuntimeError("latency calibration: the pulse scan found no rising edge; widen max_latency_s or the pulse")
     A = np.stack([times[idx], np.ones(idx.size)], 1)
-    coef, res, *_ = np.linalg.lstsq(A, light[idx], rcond=None)
+    coef, *_ = np.linalg.lstsq(A, light[idx], rcond=None)
     slope, intercept = coef
     t_half = (0.5 * top - intercept) / slope
     latency = t_half + pulse_width_s / 2 - trigger_delay_s
     resid = light[idx] - A @ coef
-    dof = max(1, idx.size - 2)
-    s2 = float(resid @ resid) / dof
+    s2 = float(resid @ resid) / max(1, idx.size - 2)
     cov = s2 * np.linalg.inv(A.T @ A)
-    # std of t_half by linearisation (slope and intercept), plus the top level's scatter.
-    g = np.array([-(0.5 * top - intercept) / slope**2, -1 / slope])
-    std = math.sqrt(max(float(g @ cov @ g), 0.0) + (0.5 * math.sqrt(s2) / abs(slope)) ** 2 / max(1, len(light) // 10))
+    g = np.array([-(0.5 * top - intercept) / slope**2, -1 / slope])  # d t_half / d (slope, intercept)
+    std = math.sqrt(max(float(g @ cov @ g), 0.0) + 0.25 * top_var / slope**2)
     return float(latency), float(std)

@@ -566,17 +566,19 @@ def _write_models(cfg, res, out: Path, judged=()) -> None:
 
 
 def _left_out_points(cfg, frf) -> dict:
-    """model.json's ``left_out_points`` (the poor-fit points the model was not fitted to:
-    freq_hz, output, input, reduced_chi2) and ``poor_fit_points_kept`` (channels where too few
+    """model.json's ``left_out_points`` (the poor-fit and alias points the model was not fitted to:
+    freq_hz, output, input, reduced_chi2, flags) and ``poor_fit_points_kept`` (channels where too few
     points would have remained: output, input, count) by
     :func:`~torchblur.identify.model.model_exclusions`."""
     import numpy as np
 
     from torchblur.identify.model import model_exclusions
+    from torchblur.sysid.flags import flag_names
 
     left_out, kept = model_exclusions(frf, cfg)
     pts = [{"freq_hz": float(frf.freq_hz[k]), "output": frf.output_labels[o], "input": frf.input_labels[i],
-            "reduced_chi2": float(frf.reduced_chi2[o, i, k])} for o, i, k in zip(*np.nonzero(left_out))]
+            "reduced_chi2": float(frf.reduced_chi2[o, i, k]), "flags": flag_names(frf.flags[o, i, k])}
+           for o, i, k in zip(*np.nonzero(left_out))]
     return {"left_out_points": pts, "poor_fit_points_kept": [{"output": o, "input": i, "count": n} for o, i, n in kept]}
 
 

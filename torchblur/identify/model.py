@@ -11,13 +11,14 @@ import time
 import numpy as np
 import torch
 
+from torchblur.fit.status import POOR_FIT_CHI2, POOR_FIT_FLAG
 from torchblur.identify.record import log_message
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.sysid.direct import fit_direct
-from torchblur.sysid.flags import POOR_FIT
+from torchblur.sysid.flags import ALIAS, POOR_FIT
 from torchblur.sysid.tf_fit import fit_transfer_function
 
-__all__ = ["fit_direct_model", "fit_model", "model_exclusions", "model_parameter_lines", "modes_outside_band", "points_needed"]
+__all__ = ["common_delay_std", "fit_direct_model", "fit_model", "model_exclusions", "model_parameter_lines", "modes_outside_band", "points_needed", "with_common_delay"]
 
 
 def points_needed(model_cfg) -> int:
@@ -32,34 +33,39 @@ def points_needed(model_cfg) -> int:
 def model_exclusions(frf, cfg) -> tuple[np.ndarray, list]:
     """Which points the transfer-function fit leaves out: ``(left_out, kept)``.
 
-    The rule: a valid point flagged ``POOR_FIT`` (its images' model does not explain them) gets
-    weight 0, unless its channel would keep fewer than :func:`points_needed` valid points; then
-    the channel's poor-fit points are all kept (at their inflated stds).
+    The rule: a valid point flagged ``ALIAS`` (one exposure, its phase branch not decided: its
+    phase may be the alias, far beyond any std) always gets weight 0. A valid point flagged
+    ``POOR_FIT`` (its images' model does not explain them) gets weight 0, unless its channel
+    would keep fewer than :func:`points_needed` valid points; then the channel's poor-fit points
+    are all kept (at their inflated stds).
 
     Returns:
         ``left_out`` bool ``[O, I, F]``; ``kept``: ``(output label, input label, n poor-fit
         points kept)`` for each channel where the rule kept them.
     """
-    poor = ((frf.flags & POOR_FIT) != 0) & frf.valid
+    alias = ((frf.flags & ALIAS) != 0) & frf.valid
+    poor = ((frf.flags & POOR_FIT) != 0) & frf.valid & ~alias
     need = points_needed(cfg.model)
-    left_out = np.zeros(poor.shape, dtype=bool)
+    left_out = np.array(alias)
     kept = []
     for o in range(frf.n_outputs):
         for i in range(frf.n_inputs):
             if not poor[o, i].any():
                 continue
-            if int((frf.valid[o, i] & ~poor[o, i]).sum()) >= need:
-                left_out[o, i] = poor[o, i]
+            if int((frf.valid[o, i] & ~poor[o, i] & ~alias[o, i]).sum()) >= need:
+                left_out[o, i] |= poor[o, i]
             else:
                 kept.append((frf.output_labels[o], frf.input_labels[i], int(poor[o, i].sum())))
     return left_out, kept
 
 
 def _without(frf, left_out, log, progress):
-    """``frf`` with the ``left_out`` points set to NaN (weight 0 in the fit), each logged."""
-    if left_out.any():
-        f = ", ".join(f"{v:.4g}" for v in frf.freq_hz[left_out.any(axis=(0, 1))])
-        log_message(log, f"model: {int(left_out.sum())} poor-fit point(s) left out of the fit ({f} Hz)", progress)
+    """``frf`` with the ``left_out`` points set to NaN (weight 0 in the fit), each logged by its reason."""
+    alias = left_out & ((frf.flags & ALIAS) != 0)
+    for pts, what in ((left_out & ~alias, "poor-fit point(s)"), (alias, "alias point(s) (phase branch not decided)")):
+        if pts.any():
+            f = ", ".join(f"{v:.4g}" for v in frf.freq_hz[pts.any(axis=(0, 1))])
+            log_message(log, f"model: {int(pts.sum())} {what} left out of the fit ({f} Hz)", progress)
     return frf.replace(response=np.where(left_out, np.nan, frf.response)) if left_out.any() else frf
 
 
@@ -84,7 +90,8 @@ def fit_model(cfg, frf, log=None, progress: bool = False):
         frf = frf.select_outputs(keep)
     try:
         model = fit_transfer_function(frf, n_poles=cfg.model.n_poles, n_zeros=cfg.model.n_zeros,
-                                      delay_s=None if cfg.model.fit_delay else 0.0, max_order=int(cfg.model.max_order))
+                                      delay_s=None if cfg.model.fit_delay else 0.0, max_order=int(cfg.model.max_order),
+                                      common_delay_std_s=common_delay_std(frf, cfg))
     except Exception as exc:  # the FRF is still a result; say why the model failed
         log_message(log, f"model: fit failed: {exc}", progress)
         return None
@@ -97,6 +104,15 @@ def fit_model(cfg, frf, log=None, progress: bool = False):
                 log_message(log, f"model {out} from {inp}: {model.n_poles[o][i]} poles, {model.n_zeros[o][i]} zeros, delay "
                           f"{model.delay_s[o][i] * 1e6:.2f} us, reduced chi2 {model.reduced_chi2[o][i]:.3f}", progress)
     return model
+
+
+def common_delay_std(frf, cfg) -> float:
+    """The std (s) of the timing error every point of ``frf`` shares: the latency calibration's
+    (``frf.meta["timing"]["latency_std_s"]``, which the points' phase variance holds), for
+    :func:`~torchblur.sysid.tf_fit.fit_transfer_function`'s ``common_delay_std_s`` where the
+    delay is fitted (``model.fit_delay``); 0 otherwise or where the response does not say."""
+    lat = frf.meta.get("timing", {}).get("latency_std_s", 0.0) if cfg.model.fit_delay else 0.0
+    return float(lat) if lat is not None and math.isfinite(float(lat)) else 0.0
 
 
 def _pm(value: float, std: float, fmt: str) -> str:
@@ -146,7 +162,8 @@ def modes_outside_band(modes, f_lo_hz: float, f_hi_hz: float, factor: float = 3.
     return [m for m in modes if not (f_lo_hz / factor <= m["freq_hz"] <= factor * f_hi_hz)]
 
 
-def fit_direct_model(cfg, model, images, windows, omega, amps, psf, power_t, noise, mask, fit, log, progress, direction, still_psf=None):
+def fit_direct_model(cfg, model, images, windows, omega, amps, psf, power_t, noise, mask, fit, log, progress, direction, still_psf=None,
+                     latency_std_s: float = 0.0):
     """The direct model (one axis, one spot): every image at once, weighted by the camera's
     noise model ``noise`` (:class:`~torchblur.render.camera.CameraNoise`; the fit's own rule:
     :func:`~torchblur.sysid.direct.fit_direct` with ``noise``) and the sweep's mask; dark or
@@ -154,7 +171,9 @@ def fit_direct_model(cfg, model, images, windows, omega, amps, psf, power_t, noi
     squares whatever ``fit.loss`` (the two-step points use it): a warning says so.
     With ``still_psf`` (the calibration's :class:`~torchblur.image.psf_from_still.StillPSF`)
     choosing the measured kernel, the images are fitted with it, and the stds include the
-    kernel's own noise (:func:`direct_kernel_noise_factor`)."""
+    kernel's own noise (:func:`direct_kernel_noise_factor`). ``latency_std_s`` (s): the latency
+    calibration's std, an error every window shares, which the fitted delay absorbs exactly: its
+    variance is added to the delay's (:func:`with_common_delay`)."""
     F = images.shape[0]
     t_direct = time.perf_counter()
     if cfg.fit.loss != "l2":
@@ -178,6 +197,7 @@ def fit_direct_model(cfg, model, images, windows, omega, amps, psf, power_t, noi
         return None
     if kernel:
         d = with_kernel_noise(d, direct_kernel_noise_factor(still_psf, windows, power_t, d.used))
+    d = with_common_delay(d, latency_std_s)
     modal = d.modal_parameters()
     modes = ", ".join(f"{m['freq_hz']:.3f} +- {m['freq_hz_std']:.3f} Hz (zeta {m['zeta']:.4f} +- {m['zeta_std']:.4f})"
                       for m in modal)
@@ -185,6 +205,11 @@ def fit_direct_model(cfg, model, images, windows, omega, amps, psf, power_t, noi
     for m in modes_outside_band(modal, f_lo, f_hi):
         log_message(log, f"direct: warning: a mode at {m['freq_hz']:.4g} Hz lies far outside the swept band "
                   f"({f_lo:.4g}-{f_hi:.4g} Hz); the images do not constrain it (std {m['freq_hz_std']:.3g} Hz)", progress)
+    poor = (np.asarray(d.flags) & POOR_FIT_FLAG) != 0
+    if poor.any():
+        hz = ", ".join(f"{v:.4g}" for v in np.asarray(omega, dtype=np.float64)[poor] / (2 * math.pi))
+        log_message(log, f"direct: warning: the model does not explain {int(poor.sum())} point(s) ({hz} Hz): their reduced "
+                    f"chi2 is above {POOR_FIT_CHI2:g}", progress)
     log_message(log, f"direct: {d.form} model from {int(d.used.sum())} points ({d.n_excluded} excluded), {d.n_iter} iterations, "
               f"converged {d.converged}, reduced chi2 {d.reduced_chi2:.3f}, {time.perf_counter() - t_direct:.2f} s; "
               f"modes: {modes or 'none'}", progress)
@@ -201,6 +226,17 @@ def direct_kernel_noise_factor(still_psf, windows, power_t, used) -> float:
     use = torch.as_tensor(np.asarray(used), dtype=torch.bool)
     per_point = light[use].sum(-1).mean() if bool(use.any()) else light.sum(-1).mean()
     return float(still_psf.kernel_noise_factor(per_point[None]))
+
+
+def with_common_delay(d, std_s: float):
+    """The :class:`~torchblur.sysid.direct.DirectModelFit` ``d`` with ``std_s**2`` added to its
+    ``delay_s`` variance (a timing error every point shares; unchanged without a fitted delay)."""
+    if not std_s or "delay_s" not in d.param_names:
+        return d
+    k = list(d.param_names).index("delay_s")
+    cov = np.array(d.covariance)
+    cov[k, k] += float(std_s) ** 2
+    return dataclasses.replace(d, covariance=cov, std=np.sqrt(np.clip(np.diag(cov), 0, None)))
 
 
 def with_kernel_noise(d, factor: float):

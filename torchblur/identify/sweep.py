@@ -448,7 +448,8 @@ class SinePlan:
         acq, cal = run.acquisition, run.cal
         return fit_direct_model(run.cfg, run.model, run.images, run.windows, acq.omega_job, acq.amps, cal.psf, run.power,
                                 cal.noise, torch.stack(acq.masks)[:, 0], run.fit,
-                                run.log, run.progress, cal.direction, still_psf=cal.still_psf)
+                                run.log, run.progress, cal.direction, still_psf=cal.still_psf,
+                                latency_std_s=cal.latency_std_s if run.cfg.model.fit_delay else 0.0)
 
     def result(self, run) -> IdentificationResult:
         """The report stage: the :class:`IdentificationResult`."""

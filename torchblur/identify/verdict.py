@@ -339,7 +339,9 @@ def report_lines(frf, cfg) -> list[str]:
         where = "" if frf.is_siso else f" ({frf.output_labels[o]} from {frf.input_labels[i]})"
         chi2 = frf.reduced_chi2[o, i, k]
         extra = f", reduced chi2 {chi2:.3g}" if np.isfinite(chi2) else ""
-        if frf.flags[o, i, k] & POOR_FIT:
+        if frf.flags[o, i, k] & ALIAS and left_out[o, i, k]:
+            extra += ", left out of the model fit (its phase may be the alias)"
+        elif frf.flags[o, i, k] & POOR_FIT:
             extra += f", stds x{math.sqrt(chi2):.3g}, " + ("left out of the model fit" if left_out[o, i, k] else
                                                          "kept in the model fit (too few points without it)")
         lines.append(f"  flagged {_hz(float(frf.freq_hz[k]))}{where}: {flag_names(frf.flags[o, i, k])}{extra}")

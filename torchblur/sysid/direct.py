@@ -58,6 +58,7 @@ import torch
 from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_frequency_grid, as_tensor, as_unit_direction, check_choice,
                      check_finite, check_positive)
 from torchblur.fit.problem import _nonzero_box
+from torchblur.fit.status import POOR_FIT_CHI2, flag_poor_fit
 from torchblur.render.blur import RenderSettings, choose_node_count, quadrature_nodes
 from torchblur.render.camera import CameraNoise
 from torchblur.render.psf import GaussianPSF, KernelPSF
@@ -100,6 +101,15 @@ class DirectModelFit:
         n_excluded: how many points were excluded.
         scale, background: [F] per-point nuisance estimates (NaN where excluded; background
             None when not fitted).
+        point_reduced_chi2: [F] each point's reduced chi2 under the fitted model: its weighted
+            squared residuals over the pixels the model reaches (the fit's crop) divided by
+            their count less its nuisance parameters and its share ``P / n_used`` of the model's;
+            NaN where excluded or where the noise was estimated (then it means nothing).
+        flags: [F] int, :data:`~torchblur.fit.status.POOR_FIT_FLAG` where ``point_reduced_chi2``
+            exceeds :data:`~torchblur.fit.status.POOR_FIT_CHI2` (1.5, the rule of
+            :func:`~torchblur.fit.sinusoid.fit_sinusoid` and identify's ``fit.poor_fit_chi2``):
+            the model does not explain that point's images (a wrong omega or exposure, a
+            resonance the model lacks, a wrong PSF); 0 elsewhere.
     """
 
     form: str
@@ -120,6 +130,8 @@ class DirectModelFit:
     scale: np.ndarray
     background: np.ndarray | None
     _struct: _Structure = dataclasses.field(repr=False)
+    point_reduced_chi2: np.ndarray | None = None
+    flags: np.ndarray | None = None
 
     # ------------------------------------------------------------------ evaluation
     def frequency_response(self, omega) -> np.ndarray:
@@ -713,6 +725,23 @@ def _per_point(nuis, use, fit_scale: bool, fit_background: bool):
     return scale_full, bg_full
 
 
+def _point_chi2(prob: _Problem, motion: _Motion, u, nuis, use, known: bool):
+    """``(point_reduced_chi2 [F], flags [F])`` of :class:`DirectModelFit` (NaN and 0 where a point
+    is excluded, every point NaN when the noise is not ``known``)."""
+    F = use.shape[0]
+    red = torch.full((F,), math.nan, dtype=torch.float64, device=use.device)
+    if known:
+        with torch.no_grad():
+            M, phi = motion(u)
+            img, _ = prob.render(M, phi)
+            sc, bg = prob.nuisance(img, nuis)
+            r = prob.data - (img * sc[:, None, None, None] + bg[:, None, None, None])
+            n_pix = (prob.wts > 0).sum((1, 2, 3)).to(torch.float64)
+            dof = (n_pix - prob.q - u.numel() / prob.data.shape[0]).clamp_min(1.0)
+            red[use] = (prob.wts * r * r).sum((1, 2, 3)).to(torch.float64) / dof
+    return red.cpu().numpy(), flag_poor_fit(None, red, POOR_FIT_CHI2).cpu().numpy()
+
+
 def fit_direct(
     images,
     psf: GaussianPSF | KernelPSF,
@@ -807,9 +836,10 @@ def fit_direct(
     u, nuis, cost, blocks, converged, it = _passes(prob, motion, u, nuis, noise if by_model else None, known, max_iter=max_iter, tol=tol)
     params, cov, total_cost, dof, red = _covariance(prob, motion, u, blocks, cost, not known)
     scale_full, bg_full = _per_point(nuis, use, fit_scale, fit_background)
+    point_red, point_flags = _point_chi2(prob, motion, u, nuis, use, known)
     delay_hat = float(params[list(names).index("delay_s")]) if struct.fit_delay else float(delay)
     return DirectModelFit(
         form=struct.form, param_names=tuple(names), params=params, covariance=cov, std=np.sqrt(np.clip(np.diag(cov), 0, None)),
         start_params=np.asarray(p0), delay_s=delay_hat, cost=total_cost, dof=int(dof), reduced_chi2=float(red),
         noise_estimated=not known, converged=bool(converged), n_iter=int(it), used=use.cpu().numpy(), n_excluded=int((~use).sum()),
-        scale=scale_full, background=bg_full, _struct=struct)
+        scale=scale_full, background=bg_full, _struct=struct, point_reduced_chi2=point_red, flags=point_flags)

@@ -1084,6 +1084,7 @@ def fit_transfer_function(
     max_order: int = 8,
     n_iter: int = 30,
     stable: bool = True,
+    common_delay_std_s: float = 0.0,
 ) -> TransferFunctionFit:
     """Fit ``K prod(s - z) / prod(s - p) exp(-s delay_s)`` to each channel of ``frf``.
 
@@ -1102,6 +1103,14 @@ def fit_transfer_function(
         max_order: largest n_poles tried when selecting (1..30).
         n_iter: maximum number of Sanathanan-Koerner iterations (>= 1).
         stable: keep every pole in the closed left half plane.
+        common_delay_std_s: std (s, >= 0) of a timing error shared by every point, such as the
+            latency calibration's (a phase error ``omega * e`` with one ``e`` for the whole
+            sweep), whose share ``(omega * common_delay_std_s)**2`` ``frf.cov``'s phase
+            variance holds (identify's :func:`~torchblur.identify.assemble.phase_std`). The
+            estimated delay absorbs such an error exactly, the other parameters not at all, so
+            the share is taken out of the weights and ``common_delay_std_s**2`` is added to the
+            delay's variance: counted once, fully correlated, instead of as independent
+            per-point errors that average down. Needs ``delay_s=None``.
 
     Returns:
         :class:`TransferFunctionFit` (per-channel values nested [O][I] for MIMO).
@@ -1116,7 +1125,8 @@ def fit_transfer_function(
     n_iter = check_int(n_iter, "n_iter", low=1)
     stable = check_bool(stable, "stable")
     valid = frf.valid
-    w00, w10, w11, wsc, label = _weights(frf, weights, valid)
+    common = _common_delay_std(common_delay_std_s, delay_s)
+    w00, w10, w11, wsc, label = _weights(_without_common_delay(frf, common, weights), weights, valid)
     use = valid & (wsc > 0) & (w00 > 0)
     results = [[None] * frf.n_inputs for _ in range(frf.n_outputs)]
     for o in range(frf.n_outputs):
@@ -1134,7 +1144,7 @@ def fit_transfer_function(
                     f"input {excerpt(frf.input_labels[i])}: {int(np.sum(m))} valid points give {data.n_obs} real "
                     f"observations, fewer than the parameters plus one"
                 )
-            results[o][i] = {**_physical(best, data, label == "uncertainty"), "candidates": tuple(rows)}
+            results[o][i] = _with_common_delay({**_physical(best, data, label == "uncertainty"), "candidates": tuple(rows)}, common)
 
     def field(name):
         if frf.is_siso:
@@ -1146,6 +1156,46 @@ def fit_transfer_function(
     return TransferFunctionFit(**{n: field(n) for n in names}, weighting=label, delay_estimated=delay_s is None,
                                input_labels=tuple(frf.input_labels), output_labels=tuple(frf.output_labels),
                                order_criterion="BIC" if len(orders) > 1 else "fixed")
+
+
+def _common_delay_std(value, delay_s) -> float:
+    """The checked ``common_delay_std_s`` of :func:`fit_transfer_function` (s)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
+        raise InputTypeError(f"common_delay_std_s: expected a real number (s), got {type(value).__name__}")
+    value = float(value)
+    if not math.isfinite(value) or value < 0:
+        raise ParameterError(f"common_delay_std_s: expected a finite value >= 0 seconds, got {value:g}")
+    if value > 0 and delay_s is not None:
+        raise ParameterError(f"common_delay_std_s: a timing error common to every point is absorbed by an estimated delay; "
+                             f"it needs delay_s=None, got delay_s={delay_s:g} with common_delay_std_s={value:g}")
+    return value
+
+
+def _without_common_delay(frf: FrequencyResponse, common: float, weights) -> FrequencyResponse:
+    """``frf`` with the common timing error's share ``(omega * common)**2`` taken out of its phase
+    variance (for the weights); ParameterError where the phase variance does not hold it."""
+    if common == 0 or not (isinstance(weights, str) and weights == "uncertainty") or frf.cov is None:
+        return frf
+    cov = np.array(frf.cov)
+    share = (frf.omega * common) ** 2
+    left = cov[..., 1, 1] - share
+    known = frf.valid & np.isfinite(cov[..., 1, 1])
+    if np.any(known & ~(left > 0)):
+        k = int(np.argmax((known & ~(left > 0)).any(axis=(0, 1))))
+        raise ParameterError(f"common_delay_std_s: {common:g} s gives a phase variance share {share[k]:.3g} rad^2 at "
+                             f"{frf.freq_hz[k]:.4g} Hz that frf.cov's phase variance does not hold; it must be part of it")
+    cov[..., 1, 1] = np.where(known, left, cov[..., 1, 1])
+    return frf.replace(cov=cov)
+
+
+def _with_common_delay(res: dict, common: float) -> dict:
+    """One channel's :func:`_physical` result with ``common**2`` added to the delay's variance."""
+    if common == 0 or "delay_s" not in res["param_names"]:
+        return res
+    k = list(res["param_names"]).index("delay_s")
+    cov = np.array(res["covariance"])
+    cov[k, k] += common * common
+    return {**res, "covariance": cov, "std": np.sqrt(np.where(np.diag(cov) >= 0, np.diag(cov), math.nan))}
 
 
 def _candidate_orders(n_poles, n_zeros, max_order, delay_s):
