@@ -109,6 +109,16 @@ CLAIMS = [
           _tb("identify", "--config", "configs/identify_dm.yaml", "--out", "{out}"),
           r"verdict: trustworthy: all " + NUM + r" actuators within tolerance: " + NUM + r" ok, 1 weak \(" + NUM
           + r"\), 1 dead \(" + NUM + r"\);", rtol=(0.0,), speed="slow"),
+    Claim("the DM run's time", "docs/deformable_mirrors.md",
+          r"--out runs/dm` from a fresh clone on an idle 2-core machine: " + NUM + r" s wall for the whole command",
+          _tb("identify", "--config", "configs/identify_dm.yaml", "--out", "{out}"),
+          r"time: " + NUM + r" s \(calibration", rtol=(0.75,), speed="slow",  # a machine's load: within 4x, as the default run's
+          source="torchblur identify --config configs/identify_dm.yaml --out runs/dm (report.txt: time)"),
+    Claim("the DM run's time (README)", "README.md",
+          r"0\.187 of what one actuator at a time needs for the same accuracy\): " + NUM + r" s for the whole command",
+          _tb("identify", "--config", "configs/identify_dm.yaml", "--out", "{out}"),
+          r"time: " + NUM + r" s \(calibration", rtol=(0.75,), speed="slow",
+          source="torchblur identify --config configs/identify_dm.yaml --out runs/dm (report.txt: time)"),
     Claim("MIMO: every channel against the truth", "README.md",
           r"every channel within " + NUM + r" % and " + NUM + r" deg of the truth",
           [sys.executable, "benchmarks/bench_mimo.py", "--which", "mimo"],
