@@ -1,10 +1,12 @@
 """Ctrl-C at random moments of a run: one line each time, and what it says to run next finishes.
 
-    python benchmarks/bench_ctrl_c.py [--n 20] [--seed 0] [--small] [key=value ...]
+    python benchmarks/bench_ctrl_c.py [--n 20] [--seed 0] [--small] [--clock process|work|cpu] [key=value ...]
 
 Runs ``torchblur identify --out DIR --quiet`` (the console script; the default run; ``--small``: 4 frequencies)
 once uninterrupted to time it (T), then ``--n`` times sends SIGINT at a moment drawn uniformly
-in [0, T] (seeded), and checks: the exit status is 130, stderr holds exactly one line and no
+in [0, T] (seeded; ``--clock work``: T and the moments counted from when the run made its output
+folder; ``--clock cpu``: T is the run's CPU time and each signal goes when the run has used the
+drawn CPU seconds, so that on a loaded machine the moments still cover the run's work), and checks: the exit status is 130, stderr holds exactly one line and no
 traceback, and the command that line names (``resume with: ...``, or the same command again
 when nothing was recorded) finishes with exit 0 or 4 and a report.txt whose last line is the
 verdict; a second ``--resume`` of the finished run says so and changes nothing. Prints the
@@ -41,11 +43,34 @@ def _run(argv, timeout=900):
     return subprocess.run(_cmd(*argv), capture_output=True, text=True, env=_env(), timeout=timeout)
 
 
-def _interrupt(argv, after_s: float):
-    """Start ``argv``, SIGINT it after ``after_s`` -> (exit status, stderr lines, signalled)."""
+def _started(proc, out: Path | None) -> None:
+    """Wait until the run has made its output folder ``out`` (torchblur's work began: the
+    interpreter and the imports are behind it) or has exited; no wait for ``out=None``."""
+    while out is not None and not out.exists() and proc.poll() is None:
+        time.sleep(0.02)
+
+
+def _cpu_s(pid: int) -> float:
+    """CPU seconds (user + system, all threads) the process ``pid`` has used so far (Linux /proc)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return float("inf")
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _interrupt(argv, after_s: float, out: Path | None = None, cpu: bool = False):
+    """Start ``argv``, SIGINT it ``after_s`` after its start (with ``out``: after the folder
+    ``out`` appeared; with ``cpu``: once it has used ``after_s`` CPU seconds) -> (exit status,
+    stderr lines, signalled)."""
     proc = subprocess.Popen(_cmd(*argv), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(),
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    time.sleep(after_s)
+    if cpu:
+        while proc.poll() is None and _cpu_s(proc.pid) < after_s:
+            time.sleep(0.01)
+    else:
+        _started(proc, out)
+        time.sleep(after_s)
     signalled = proc.poll() is None
     if signalled:
         proc.send_signal(signal.SIGINT)
@@ -67,10 +92,10 @@ def _finished(out: Path) -> bool:
     return report.is_file() and report.read_text().rstrip().splitlines()[-1].startswith("verdict:")
 
 
-def trial(k: int, after_s: float, base: list, tmp: Path) -> dict:
+def trial(k: int, after_s: float, base: list, tmp: Path, clock: str = "process") -> dict:
     out = tmp / f"run{k}"
     argv = ["identify", "--out", str(out), "--quiet", *base]
-    rc, lines, signalled = _interrupt(argv, after_s)
+    rc, lines, signalled = _interrupt(argv, after_s, out if clock == "work" else None, cpu=clock == "cpu")
     row = {"k": k, "after_s": after_s, "rc": rc, "signalled": signalled, "lines": len(lines),
            "traceback": any("Traceback" in ln for ln in lines), "line": lines[-1] if lines else ""}
     if row["traceback"] and not any("/torchblur/" in ln for ln in lines):  # before any torchblur code: Python's own start
@@ -102,22 +127,37 @@ def main(argv=None) -> int:
     ap.add_argument("--n", type=int, default=20)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--small", action="store_true", help="4 frequencies instead of the default 30")
+    ap.add_argument("--clock", choices=("process", "work", "cpu"), default="process",
+                    help="process: moments from the process's start (the interpreter's start and imports included); work: "
+                         "from the moment the run made its output folder, uniform over the reference run's time from there; "
+                         "cpu: at a CPU time of the run uniform over the reference run's (the same moments of the work "
+                         "whatever the machine's load)")
     ap.add_argument("overrides", nargs="*")
     args = ap.parse_args(argv)
     base = (SMALL if args.small else []) + list(args.overrides)
     rng = random.Random(args.seed)
+    work = args.clock == "work"
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        t0 = time.perf_counter()
-        ref = _run(["identify", "--out", str(tmp / "ref"), "--quiet", *base])
-        total = time.perf_counter() - t0
+        with open(tmp / "ref.err", "w+") as err:
+            proc = subprocess.Popen(_cmd("identify", "--out", str(tmp / "ref"), "--quiet", *base), stdout=subprocess.DEVNULL,
+                                    stderr=err, text=True, env=_env())
+            if work:
+                _started(proc, tmp / "ref")
+            t0 = time.perf_counter()
+            _, status, usage = os.wait4(proc.pid, 0)
+            total = usage.ru_utime + usage.ru_stime if args.clock == "cpu" else time.perf_counter() - t0
+            err.seek(0)
+            ref = subprocess.CompletedProcess(proc.args, os.waitstatus_to_exitcode(status), "", err.read())
         if ref.returncode not in (0, 4):
             print(f"the uninterrupted run failed (exit {ref.returncode}): {ref.stderr[-500:]}")
             return 1
-        print(f"uninterrupted run: {total:.1f} s (exit {ref.returncode}); {args.n} interruptions uniform in [0, {total:.1f}] s")
+        since = {"process": "s from its start", "work": "s from when its output folder appeared", "cpu": "CPU seconds"}[args.clock]
+        print(f"uninterrupted run: {total:.1f} {since} (exit {ref.returncode}); {args.n} interruptions uniform in "
+              f"[0, {total:.1f}] {since}")
         rows = []
         for k in range(args.n):
-            row = trial(k, rng.uniform(0.0, total), base, tmp)
+            row = trial(k, rng.uniform(0.0, total), base, tmp, args.clock)
             rows.append(row)
             print(f"  {k:2d}: SIGINT at {row['after_s']:5.1f} s: exit {row['rc']}, {row['lines']} line(s): "
                   f"{row['what']}; {row['line'][:110]}", flush=True)

@@ -125,6 +125,17 @@ CLAIMS = [
           [sys.executable, "benchmarks/bench_hcipy_routes.py", "--jobs", "2"],
           r"multisine: 40 problems[^\n]*\n[^\n]*\n  psf_from_still \(auto\) +" + NUM + " +" + NUM + " +" + NUM + " +" + NUM,
           rtol=(0.05,), speed="slow", source="python benchmarks/bench_hcipy_routes.py --jobs 2 (each route's psf_from_still line)"),
+
+    Claim("the DM run's time", "docs/deformable_mirrors.md",
+          r"--out runs/dm` from a fresh clone on an idle 2-core machine: " + NUM + r" s wall for the whole command",
+          _tb("identify", "--config", "configs/identify_dm.yaml", "--out", "{out}"),
+          r"time: " + NUM + r" s \(calibration", rtol=(0.75,), speed="slow",  # a machine's load: within 4x, as the default run's
+          source="torchblur identify --config configs/identify_dm.yaml --out runs/dm (report.txt: time)"),
+    Claim("the DM run's time (README)", "README.md",
+          r"0\.187 of what one actuator at a time needs for the same accuracy\): " + NUM + r" s for the whole command",
+          _tb("identify", "--config", "configs/identify_dm.yaml", "--out", "{out}"),
+          r"time: " + NUM + r" s \(calibration", rtol=(0.75,), speed="slow",
+          source="torchblur identify --config configs/identify_dm.yaml --out runs/dm (report.txt: time)"),
     Claim("MIMO: every channel against the truth", "README.md",
           r"every channel within " + NUM + r" % and " + NUM + r" deg of the truth",
           [sys.executable, "benchmarks/bench_mimo.py", "--which", "mimo"],

@@ -257,6 +257,7 @@ def test_excluded_points_are_counted_and_ignored():
                      noise_std=d["noise"][valid])
     assert r.n_excluded == 1 and r.used.tolist() == keep.tolist()
     assert np.isnan(r.scale[2])
+    assert _assert_round_trip(r).used.tolist() == keep.tolist()  # the excluded point and its NaN scale read back
     np.testing.assert_allclose(r.params, sub.params, rtol=1e-9)
     with pytest.raises(ParameterError, match="valid"):
         fit_direct(bad, d["psf"], d["window"], d["omega"], d["amplitude"], tf, valid=torch.zeros(len(FREQS), dtype=torch.bool))
@@ -283,6 +284,33 @@ def test_a_point_the_model_does_not_explain_is_flagged_poor_fit():
     unknown = fit_direct(d["images"], *args, max_iter=3)
     assert np.isnan(unknown.point_reduced_chi2).all() and not unknown.flags.any()
 
+def _assert_round_trip(r: DirectModelFit) -> DirectModelFit:
+    """``r`` through model.json's document and back (strict JSON): every field, the covariance
+    exactly, the same response, poles and modes; a version-1, a newer or a padded document
+    refused by name."""
+    doc = json.loads(json.dumps(r.to_dict(), allow_nan=False))
+    back = DirectModelFit.from_dict(doc)
+    for f in ("params", "covariance", "std", "start_params", "used", "scale"):
+        np.testing.assert_array_equal(getattr(back, f), getattr(r, f), err_msg=f)
+    assert (back.background is None) == (r.background is None)
+    if r.background is not None:
+        np.testing.assert_array_equal(back.background, r.background)
+    for f in ("form", "param_names", "delay_s", "cost", "dof", "reduced_chi2", "noise_estimated", "converged", "n_iter", "n_excluded",
+              "_struct"):
+        assert getattr(back, f) == getattr(r, f), f
+    w = np.geomspace(50, 5000, 9) * 2 * math.pi
+    np.testing.assert_array_equal(back.frequency_response(w), r.frequency_response(w))
+    assert back.modal_parameters() == r.modal_parameters() and back.to_dict() == doc
+    with pytest.raises(ParameterError, match="schema_version: 1 .*read_outputs"):
+        DirectModelFit.from_dict({**doc, "schema_version": 1})
+    with pytest.raises(ParameterError, match=r"unsupported version 3 \(written by a newer torchblur"):
+        DirectModelFit.from_dict({**doc, "schema_version": 3})
+    with pytest.raises(ParameterError, match=r"unknown keys \['extra'\]"):
+        DirectModelFit.from_dict({**doc, "extra": 1})
+    with pytest.raises(ParameterError, match=r"covariance: expected shape"):
+        DirectModelFit.from_dict({**doc, "covariance": doc["covariance"][:-1]})
+    return back
+
 
 def test_result_api_is_consistent():
     control = pytest.importorskip("control")
@@ -301,6 +329,7 @@ def test_result_api_is_consistent():
     i = min((r.param_names.index(f"mode{k}_omega_n") for k in (1, 2)), key=lambda j: r.params[j])
     assert r.modal_parameters()[0]["omega_n_std"] == pytest.approx(r.std[i], rel=1e-9)
     assert isinstance(r, DirectModelFit) and "modal" in repr(r)
+    _assert_round_trip(r)
     # a DirectModelFit as the start: its own form is a fixed point; the tf form (2 zeros, 4 poles)
     # holds the modal model, so it fits at least as well
     args = (d["images"], d["psf"], d["window"], d["omega"], d["amplitude"], r)
@@ -375,7 +404,8 @@ def test_cli_identify_with_direct_writes_both_models(tmp_path, capsys):
     report = (out / "report.txt").read_text()
     assert "direct model" in report and "model_two_step.json" in report
     got = assert_reads_back(out)  # model.json: the direct fit's document; model_two_step.json: a TransferFunctionFit
-    assert got["model.json"]["schema"] == "torchblur.direct_model_fit" and got["model_two_step.json"].n_poles >= 2
+    assert isinstance(got["model.json"], DirectModelFit) and got["model_two_step.json"].n_poles >= 2
+    np.testing.assert_array_equal(got["model.json"].covariance, np.array(direct["covariance"], dtype=float))  # with its covariance
 
 
 def test_direct_is_refused_for_mimo_and_spots_runs():

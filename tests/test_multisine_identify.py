@@ -10,6 +10,7 @@ import pytest
 from torchblur.identify.config import load_config
 from torchblur.errors import ConfigError
 from torchblur.identify.run import identify
+from readback import assert_reads_back
 from reference import truth_errors
 
 KEYS = ["excitation.kind=multisine", "excitation.tones=3", "sweep.freq_hz=[150,200,250]", "camera.height=32", "camera.width=64",
@@ -20,7 +21,7 @@ KEYS = ["excitation.kind=multisine", "excitation.tones=3", "sweep.freq_hz=[150,2
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
-    cfg = load_config(None, KEYS)
+    cfg = load_config("configs/identify_multisine.yaml", KEYS)  # the shipped config, reduced (its keys are the defaults but the sweep)
     rec = tmp_path_factory.mktemp("ms") / "experiment"
     return cfg, identify(cfg, progress=False, record=rec), rec
 
@@ -46,7 +47,8 @@ def test_cli_outputs_and_replay_of_the_recording(run, tmp_path):
     from torchblur.hardware.recording import Experiment, ReplayRig
 
     cfg, res, rec = run
-    cli._write_outputs(cfg, res, tmp_path, 1.0, "test")
+    v = cli._write_outputs(cfg, res, tmp_path, 1.0, "test")
+    assert_reads_back(tmp_path, json.dumps({**cli._summary(res, tmp_path, 1.0), **cli._verdict_summary(v)}))  # every output
     names = {p.name for p in tmp_path.iterdir()}
     assert {"frf.csv", "frf.json", "bode.png", "model.json", "report.txt", "residuals.png"} <= names
     assert "multisine group 0" in (tmp_path / "report.txt").read_text()

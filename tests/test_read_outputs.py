@@ -6,7 +6,7 @@ import json
 import pytest
 
 import torchblur as tb
-from torchblur.errors import ParameterError
+from torchblur.errors import ConfigError, ParameterError
 from torchblur.identify import cli
 from torchblur.identify.config import load_config
 from torchblur.identify.config_keys import config_keys, unit_of
@@ -26,6 +26,43 @@ def test_the_default_runs_outputs_read_back(small_quiet_run):
     assert doc["schema_version"] == 2 and doc["left_out_points"] == [] and doc["units"]["delay_s"] == "s"
     assert model.to_dict() == got["model.json"].to_dict() and got["frf.json"].input_labels == ("u_x",)
     assert json.loads((out / "frf.json").read_text())["units"]["phase"] == "rad"
+
+
+def test_config_yaml_has_a_schema_version_and_older_ones_read(small_quiet_run, tmp_path):
+    out, _ = small_quiet_run
+    text = (out / "config.yaml").read_text()
+    body = [ln for ln in text.splitlines(True) if not ln.startswith("#")]
+    assert body[:2] == ["schema: torchblur.config\n", "schema_version: 1\n"]
+    cfg = load_config(str(out / "config.yaml"), force=True)
+    older = tmp_path / "older" / "config.yaml"  # a run's config.yaml from before the schema lines: version 1
+    older.parent.mkdir()
+    older.write_text("".join(body[2:]))
+    assert read_outputs(older.parent)["config.yaml"] == cfg
+    newer = tmp_path / "newer" / "config.yaml"
+    newer.parent.mkdir()
+    newer.write_text(text.replace("schema_version: 1", "schema_version: 2"))
+    with pytest.raises(ConfigError, match=r"schema_version: unsupported version 2 in .* \(written by a newer torchblur"):
+        read_outputs(newer.parent)
+    newer.write_text(text.replace("schema: torchblur.config", "schema: torchblur.source"))
+    with pytest.raises(ConfigError, match=r"schema: expected 'torchblur.config' in .*, got 'torchblur.source'"):
+        load_config(str(newer))
+
+
+def test_every_shipped_config_has_a_test_that_reads_its_outputs_back():
+    """configs/identify_*.yaml and readback.READBACK_TESTS name the same configs, and each named
+    test exists and calls assert_reads_back (a new config needs its reduced run read back)."""
+    import re
+    from pathlib import Path
+
+    from readback import READBACK_TESTS
+
+    root = Path(__file__).resolve().parents[1]
+    assert {p.name for p in (root / "configs").glob("identify_*.yaml")} == set(READBACK_TESTS)
+    for config, where in READBACK_TESTS.items():
+        file, name = where.split("::")
+        body = re.search(rf"^def {name}\(.*?(?=^\S)", (root / "tests" / file).read_text() + "\nEND", re.S | re.M)
+        assert body, where
+        assert "assert_reads_back(" in body.group(0), where
 
 
 def test_a_newer_document_is_refused_by_name():

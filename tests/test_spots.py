@@ -146,6 +146,23 @@ def test_short_spots_identification_with_missing_and_edge_spots(edge_run):
     assert res.images.shape[:4] == (1, 2, 3, 4) and res.images.shape[-2:] == (22, 22)
 
 
+def test_spots_run_outputs_read_back_with_each_channels_judgement(edge_run, tmp_path, monkeypatch):
+    """The spots run's outputs (the figures left out: their own tests draw them) read back, each
+    spot channel's model with its judgement, the --json line too. The run is the spots route on
+    a 1x4 row (edge_run: reduced from configs/identify_spots.yaml's 3x3 grid and 2x2 plant, whose
+    calibration alone takes ~30 s)."""
+    import json
+
+    from torchblur.identify import cli
+    from readback import assert_reads_back
+
+    monkeypatch.setattr(cli, "_write_figures", lambda *a, **k: None)
+    v = cli._write_outputs(load_config(None, EDGE), edge_run, tmp_path, 1.0, "test")
+    got = assert_reads_back(tmp_path, json.dumps({**cli._summary(edge_run, tmp_path, 1.0), **cli._verdict_summary(v)}))
+    assert got["frf.json"].output_labels == edge_run.frf.output_labels and got["model.json"].output_labels == ("s0.x", "s0.y", "s1.x", "s1.y")
+    assert len(json.loads((tmp_path / "model.json").read_text())["judgement"]) == 4  # one per channel that has a model
+
+
 def test_a_flagged_spot_is_left_out_of_the_model_not_the_others(edge_run):
     """The edge spot has no valid point; the other spots still get their models."""
     res = edge_run

@@ -378,6 +378,7 @@ def _load_file(path: str, *, trusted: bool):
         raise ConfigError(f"--config {path}: not a usable YAML file ({str(exc).splitlines()[0][:120]})") from None
     if not OmegaConf.is_dict(file_cfg):
         raise ConfigError(f"--config {path}: expected a mapping of sections, got a {type(file_cfg).__name__}")
+    _check_config_schema(file_cfg, path)
     if not trusted:
         _refuse_interpolation(OmegaConf.to_container(file_cfg, resolve=False), path)
     return file_cfg
@@ -455,10 +456,34 @@ def _clip_quotes(text: str) -> str:
     return re.sub(r"'([^']*)'", lambda m: excerpt(m.group(1)), text)[:300]
 
 
+#: the ``schema`` and ``schema_version`` a run's config.yaml starts with (:func:`config_to_yaml`);
+#: versions read. A file without them (a config written by hand, or a run's config.yaml from before
+#: they were written) reads as version 1.
+CONFIG_SCHEMA = ("torchblur.config", (1,))
+
+
 def config_to_yaml(cfg: IdentifyConfig) -> str:
+    """The YAML of every key of ``cfg`` (a run's config.yaml), headed by ``schema`` and
+    ``schema_version`` (:data:`CONFIG_SCHEMA`); :func:`load_config` reads it back."""
     from omegaconf import OmegaConf
 
-    return OmegaConf.to_yaml(OmegaConf.create(asdict(cfg)))
+    head = f"schema: {CONFIG_SCHEMA[0]}\nschema_version: {CONFIG_SCHEMA[1][-1]}\n"
+    return head + OmegaConf.to_yaml(OmegaConf.create(asdict(cfg)))
+
+
+def _check_config_schema(file_cfg, path: str) -> None:
+    """Take ``schema`` / ``schema_version`` out of the loaded file ``file_cfg`` (in place); a
+    file without them is version 1. ConfigError naming the key for another schema or a version
+    this torchblur does not read (a newer one: say so)."""
+    if "schema" not in file_cfg and "schema_version" not in file_cfg:
+        return
+    name, version = file_cfg.pop("schema", None), file_cfg.pop("schema_version", None)
+    if name != CONFIG_SCHEMA[0]:
+        raise ConfigError(f"schema: expected {CONFIG_SCHEMA[0]!r} in {path}, got {excerpt(name)}")
+    if isinstance(version, bool) or version not in CONFIG_SCHEMA[1]:
+        newer = " (written by a newer torchblur: upgrade to read it)" if isinstance(version, int) and version > CONFIG_SCHEMA[1][-1] else ""
+        raise ConfigError(f"schema_version: unsupported version {excerpt(version)} in {path}{newer}; supported versions: "
+                          f"{list(CONFIG_SCHEMA[1])}")
 
 
 def _num(value, key, *, positive=False, nonnegative=False, integer=False, low=None, high=None):

@@ -10,9 +10,10 @@ file                        read back as
 ``frf.csv``                 the same (stds kept, correlation lost: the CSV has no column)
 ``frf.mat``                 the same (:meth:`FrequencyResponse.from_mat`)
 ``model.json``              :class:`~torchblur.sysid.tf_fit.TransferFunctionFit`; with
-                            ``model.direct`` the direct fit's document (schema checked) and
-                            ``model_two_step.json`` the TransferFunctionFit; a failed fit's
-                            ``{"error": ...}`` as it is
+                            ``model.direct`` the :class:`~torchblur.sysid.direct.DirectModelFit`
+                            (a version-1 direct document, written before its structure
+                            was kept: the checked document) and ``model_two_step.json``
+                            the TransferFunctionFit; a failed fit's ``{"error": ...}`` as it is
 ``config.yaml``             :class:`~torchblur.identify.config.IdentifyConfig` (validated)
 ``source.json``             a dict (schema checked; re-fits)
 ``demo.json``               a dict (schema checked; ``torchblur demo``)
@@ -35,7 +36,7 @@ from torchblur.errors import ParameterError
 __all__ = ["read_outputs", "check_document", "DIRECT_MODEL_SCHEMA", "SOURCE_SCHEMA", "SUMMARY_SCHEMA", "DEMO_SCHEMA"]
 
 #: model.json of a direct fit (:meth:`torchblur.sysid.direct.DirectModelFit.to_dict`): versions read
-DIRECT_MODEL_SCHEMA = ("torchblur.direct_model_fit", (1,))
+DIRECT_MODEL_SCHEMA = ("torchblur.direct_model_fit", (1, 2))
 #: source.json of a re-fit or of an outside recording's fit
 SOURCE_SCHEMA = ("torchblur.source", (1,))
 #: the ``--json`` summary line
@@ -66,16 +67,21 @@ def _json(path: Path):
 
 
 def _model(path: Path):
-    """model.json / model_two_step.json: a TransferFunctionFit, a direct fit's checked
-    document, or a failed fit's ``{"error": ...}`` document."""
+    """model.json / model_two_step.json: a TransferFunctionFit, a DirectModelFit (a version-1
+    direct document: the checked document), or a failed fit's ``{"error": ...}`` document."""
     from torchblur.sysid.tf_fit import TransferFunctionFit
 
     doc = _json(path)
     if isinstance(doc, dict) and "schema" not in doc and "error" in doc:
         return doc
-    if isinstance(doc, dict) and doc.get("schema") == DIRECT_MODEL_SCHEMA[0]:
-        return check_document(doc, DIRECT_MODEL_SCHEMA, str(path))
+    direct = isinstance(doc, dict) and doc.get("schema") == DIRECT_MODEL_SCHEMA[0]
+    if direct and check_document(doc, DIRECT_MODEL_SCHEMA, str(path))["schema_version"] == 1:
+        return doc
     try:
+        if direct:
+            from torchblur.sysid.direct import DirectModelFit
+
+            return DirectModelFit.from_dict(doc)
         return TransferFunctionFit.from_dict(doc)
     except ParameterError as exc:
         raise ParameterError(f"{path}: {exc}") from None

@@ -49,7 +49,9 @@ start (:func:`resolve_alias_with_model`, :class:`AliasResolution`) is in
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
+import os
 from typing import Any
 
 import numpy as np
@@ -57,6 +59,7 @@ import torch
 
 from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_frequency_grid, as_tensor, as_unit_direction, check_choice,
                      check_finite, check_positive)
+from torchblur.files import read_bounded
 from torchblur.fit.problem import _nonzero_box
 from torchblur.fit.status import POOR_FIT_CHI2, flag_poor_fit
 from torchblur.render.blur import RenderSettings, choose_node_count, quadrature_nodes
@@ -66,6 +69,8 @@ from torchblur.render.splat import sine_blur_with_jacobian, window_nodes
 from torchblur.render.trajectory import Sinusoid
 from torchblur.render.window import ExposureWindow
 from torchblur.sysid.alias_resolution import AliasResolution, resolve_alias_with_model
+from torchblur.sysid.direct_doc import DIRECT_SCHEMA, DIRECT_SCHEMA_VERSION, DIRECT_UNITS, direct_fields_from_dict
+from torchblur.sysid.frequency_response import MAX_FILE_BYTES
 from torchblur.sysid.parametric import _poles_zeros, _response, _Structure, _structure_from_tf
 from torchblur.sysid.tf_fit import TransferFunctionFit
 
@@ -236,9 +241,11 @@ class DirectModelFit:
             return {"real": [jf(x) for x in r.real], "imag": [jf(x) for x in r.imag]}
 
         return {
-            "schema": "torchblur.direct_model_fit",
-            "schema_version": 1,
+            "schema": DIRECT_SCHEMA,
+            "schema_version": DIRECT_SCHEMA_VERSION,
+            "units": dict(DIRECT_UNITS),
             "form": self.form,
+            "structure": dataclasses.asdict(self._struct),
             "param_names": list(self.param_names),
             "params": [jf(x) for x in self.params],
             "std": [jf(x) for x in self.std],
@@ -258,7 +265,45 @@ class DirectModelFit:
             "n_iter": int(self.n_iter),
             "n_points_used": int(self.used.sum()),
             "n_excluded": int(self.n_excluded),
+            "used": [bool(x) for x in self.used],
+            "scale": [jf(x) for x in self.scale],
+            "background": None if self.background is None else [jf(x) for x in self.background],
         }
+
+    @classmethod
+    def from_dict(cls, doc: dict) -> "DirectModelFit":
+        """Inverse of :meth:`to_dict` (schema version 2; the parameters, covariance, stds, start,
+        structure and per-point results exactly as written; None reads back as NaN). Also reads
+        the CLI's model.json, which adds ``torchblur_version``, ``seed``, ``judgement`` and
+        ``model_passed`` beside the fit (checked, not kept).
+
+        Raises:
+            InputTypeError: ``doc`` is not a dict.
+            ParameterError: another schema, a version 1 document (written before the model's
+                structure was kept: read it as a document, :func:`torchblur.identify.read_outputs.read_outputs`),
+                unknown or missing keys, malformed values; each naming the key.
+        """
+        return cls(**direct_fields_from_dict(doc))
+
+    def to_json(self, path) -> None:
+        """Write :meth:`to_dict` to a strict JSON file (read it back with :meth:`from_json`)."""
+        with open(path, "w") as fh:
+            json.dump(self.to_dict(), fh, allow_nan=False, indent=2)
+            fh.write("\n")
+
+    @classmethod
+    def from_json(cls, path) -> "DirectModelFit":
+        """Read a file written by :meth:`to_json`, or the CLI's model.json of a direct run."""
+        where = f"path {os.fspath(path)!r}"
+        data = read_bounded(path, MAX_FILE_BYTES, where)  # the opening rule (torchblur.files)
+        try:
+            doc = json.loads(data.decode("utf-8"))
+        except (ValueError, RecursionError) as exc:
+            raise ParameterError(f"{where}: not a JSON document ({type(exc).__name__})") from None
+        try:
+            return cls.from_dict(doc)
+        except (InputTypeError, ParameterError) as exc:
+            raise type(exc)(f"{where}: {exc}") from None
 
     def __repr__(self) -> str:
         return (f"DirectModelFit(form={self.form!r}, P={self.params.size}, delay_s={self.delay_s:.4g}, "
