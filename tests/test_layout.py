@@ -10,7 +10,8 @@ import torchblur as tb
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("**/*.md")), *sorted((ROOT / "configs").glob("*.yaml"))]
-DOTTED = re.compile(r"(?<![\w./\"'-])torchblur(?:\.[A-Za-z_]\w*)+")  # not in a quoted string (a schema name)
+# not in a quoted string, nor after "schema: " (a file's schema name, e.g. config.yaml's)
+DOTTED = re.compile(r"(?<![\w./\"'-])(?<!schema: )torchblur(?:\.[A-Za-z_]\w*)+")
 
 
 def quoted_paths() -> list[tuple[str, str]]:
