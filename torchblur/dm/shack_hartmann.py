@@ -40,7 +40,7 @@ import numpy as np
 from torchblur.errors import ParameterError, check_int, check_real_scalar
 from torchblur.dm.mirror import influence_gradient
 
-__all__ = ["ShackHartmann", "mean_slopes", "subaperture_grid"]
+__all__ = ["ShackHartmann", "mean_slopes", "subaperture_grid", "subaperture_points"]
 
 
 def _offsets(oversample: int) -> np.ndarray:
@@ -65,10 +65,21 @@ def subaperture_grid(n_across: int, pupil_diameter: float, oversample: int = 32)
     return centres, d, inside.mean(-1)
 
 
+def subaperture_points(centres, side: float, pupil_radius: float, oversample: int = 32) -> tuple[np.ndarray, np.ndarray]:
+    """The midpoint rule of :func:`mean_slopes`: points ``[M, q*q, 2]`` (pitches) over each
+    subaperture and ``lit [M, q*q]`` float (1 inside the pupil, else 0)."""
+    centres = np.asarray(centres, dtype=np.float64)
+    pts = centres[:, None, :] + side * _offsets(check_int(oversample, "oversample", low=1))
+    return pts, (np.hypot(pts[..., 0], pts[..., 1]) <= pupil_radius).astype(np.float64)
+
+
 def mean_slopes(centres, side: float, pupil_radius: float, actuator_xy, coupling: float, oversample: int = 32,
-                chunk: int = 8) -> np.ndarray:
+                chunk: int = 8, *, registration=None) -> np.ndarray:
     """Mean influence-function slope over the illuminated part of each subaperture:
     ``[2M, N]`` (rows: x slopes of the M subapertures, then y), per pitch per unit command.
+    With ``registration`` (a :class:`~torchblur.dm.registration.Registration`) the actuators
+    sit at ``registration.actuators(actuator_xy)`` and their influence functions are
+    ``registration.magnification`` times wider (its ``coupling``, when set, replaces ``coupling``).
 
     Args:
         centres: ``[M, 2]`` subaperture centres (pitches).
@@ -78,7 +89,10 @@ def mean_slopes(centres, side: float, pupil_radius: float, actuator_xy, coupling
         coupling: the influence functions' coupling at one pitch.
         oversample: midpoint-rule points per subaperture side.
         chunk: subapertures per step (memory: chunk * oversample^2 * N * 2 doubles).
+        registration: the mirror's registration on the sensor (None: nominal).
     """
+    if registration is not None:
+        actuator_xy, coupling = registration.actuators(actuator_xy), registration.sensor_coupling(coupling)
     centres = np.asarray(centres, dtype=np.float64)
     M = centres.shape[0]
     N = np.asarray(actuator_xy).shape[0]
@@ -186,11 +200,12 @@ class ShackHartmann:
         rho = np.hypot(self._centres[:, 0], self._centres[:, 1]) / (self.pupil_diameter / 2)
         return self.sigma_px * (1 + self.sigma_variation * rho)
 
-    def geometry_matrix(self, mirror) -> np.ndarray:
+    def geometry_matrix(self, mirror, registration=None) -> np.ndarray:
         """G ``[2M, N]`` in px per input unit of the nominal actuator (gain 1) of ``mirror``
-        (a :class:`~torchblur.dm.mirror.DeformableMirror`; module docstring: the formula)."""
+        (a :class:`~torchblur.dm.mirror.DeformableMirror`; module docstring: the formula), the
+        mirror at ``registration`` (a :class:`~torchblur.dm.registration.Registration`; None: nominal)."""
         return self.slope_px * mean_slopes(self._centres, self._side, self.pupil_diameter / 2, mirror.actuator_xy,
-                                           mirror.coupling, self.oversample)
+                                           mirror.coupling, self.oversample, registration=registration)
 
     def __repr__(self) -> str:
         return (f"ShackHartmann(n_across={self.n_across}, M={self.n_valid}, pitch_px={self.pitch_px:g}, "
