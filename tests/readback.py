@@ -44,4 +44,6 @@ def assert_reads_back(out: Path) -> dict:
         assert got["dm/interaction_matrix.npy"].shape == d.response.shape[:2] == (d.n_outputs, act["actuator"].size)
         assert got["dm/command_matrix.npy"].shape == (d.n_inputs, d.n_outputs)
         assert got["dm/command_matrix.json"]["n_kept"] + got["dm/command_matrix.json"]["n_unseen"] == d.n_inputs
+        if "dm/registration.json" in got:  # the registration fitted to D0 (torchblur.dm.registration)
+            assert got["dm/registration.json"]["registration"].magnification > 0
     return got

@@ -37,7 +37,8 @@ from torchblur.dm.budget import DM_DARK_FRAMES, DM_STILL_FRAMES, dm_geometry, dm
 from torchblur.dm.mirror import DeformableMirror
 from torchblur.dm.outputs import DMEstimate, write_dm_outputs
 from torchblur.dm.plans import static_motion_px
-from torchblur.dm.registration import Registration, RegistrationFit, register_and_refit, support_line, write_registration_json
+from torchblur.dm.registration import (DC_GAIN_REFERENCE, Registration, RegistrationFit, register_and_refit, support_line,
+                                       write_registration_json)
 from torchblur.dm.rig import SimulatedDMRig
 from torchblur.dm.shack_hartmann import ShackHartmann
 from torchblur.dm.verdict import run_verdict, support_guard, truth_guard
@@ -517,7 +518,8 @@ def _write_dm_outputs(res: DMResult, out) -> None:
     from torchblur.identify.record import log_message
 
     meta = {"plan": res.plan.kind, "n_patterns": res.plan.n_patterns, "n_repeats": res.n_repeats, "n_frames": res.n_frames}
+    reg = res.registration
     write_dm_outputs(out, DMEstimate(freq_hz=res.freq_hz, D=res.D, D_cov=res.D_cov, table=res.actuators, meta=meta),
-                     say=lambda msg: log_message(res.log, msg))
+                     say=lambda msg: log_message(res.log, msg), **({"dc_gain_reference": DC_GAIN_REFERENCE} if reg and reg.ok else {}))
     if res.registration is not None:
         write_registration_json(out / "dm" / "registration.json", res.registration, res.support_check)
