@@ -10,7 +10,7 @@ from torchblur.dm.mirror import DeformableMirror
 from torchblur.dm.plans import sparse_plan
 from torchblur.dm.registration import (Registration, fit_registration, read_registration_json, register_and_refit,
                                        registration_model, support_check, write_registration_json)
-from torchblur.dm.shack_hartmann import ShackHartmann, mean_slopes, subaperture_points
+from torchblur.dm.shack_hartmann import ShackHartmann, lit_rows, mean_slopes
 from torchblur.errors import ConfigError, ParameterError, ShapeError
 
 MISREG = Registration(shift_x=0.25, shift_y=-0.25, rotation_deg=1.5, magnification=1.03, coupling=0.17)
@@ -31,15 +31,15 @@ def test_model_is_mean_slopes_at_the_registration_and_its_derivatives():
     np.testing.assert_allclose(G_ref, wfs.slope_px * moved, rtol=0, atol=1e-15)
     a = math.radians(1.5)
     np.testing.assert_allclose(MISREG.actuators([[1.0, 0.0]]), [[1.03 * math.cos(a) + 0.25, 1.03 * math.sin(a) - 0.25]])
-    pts, lit = subaperture_points(wfs.centres, wfs.side, 2.0, 8)
+    rows = (lit_rows(wfs.centres, wfs.side, 2.0, 8), lit_rows(wfs.centres[:, ::-1], wfs.side, 2.0, 8))
     theta = np.array([0.25, -0.25, a, 1.03, 1 / math.sqrt(-2 * math.log(0.17))])
-    G, dG = registration_model(theta, pts, lit, mirror.actuator_xy, wfs.slope_px)
+    G, dG = registration_model(theta, rows, mirror.actuator_xy, wfs.slope_px)
     np.testing.assert_allclose(G, G_ref, rtol=0, atol=1e-13 * np.abs(G_ref).max())
     for k in range(5):
         e = np.zeros(5)
         e[k] = 1e-6
-        num = (registration_model(theta + e, pts, lit, mirror.actuator_xy, 1.0)[0]
-               - registration_model(theta - e, pts, lit, mirror.actuator_xy, 1.0)[0]) / 2e-6
+        num = (registration_model(theta + e, rows, mirror.actuator_xy, 1.0)[0]
+               - registration_model(theta - e, rows, mirror.actuator_xy, 1.0)[0]) / 2e-6
         np.testing.assert_allclose(dG[k], num, rtol=0, atol=1e-7 * np.abs(dG[k]).max())
 
 

@@ -44,7 +44,7 @@ from torchblur.errors import ConfigError, ParameterError, ShapeError, check_real
 from torchblur.dm.actuator_fit import fit_actuators
 from torchblur.dm.mirror import influence_width
 from torchblur.dm.plans import seen_by
-from torchblur.dm.shack_hartmann import subaperture_points
+from torchblur.dm.shack_hartmann import lit_rows
 
 __all__ = ["Registration", "RegistrationFit", "fit_registration", "register_and_refit", "registration_model", "support_check",
            "support_line", "with_registration_stds",
@@ -169,15 +169,16 @@ def _from_theta(theta) -> Registration:
                         magnification=float(theta[3]), coupling=math.exp(-1.0 / (2.0 * w * w)))
 
 
-def registration_model(theta, points, lit, actuator_xy, slope_px: float) -> tuple[np.ndarray, np.ndarray]:
+def registration_model(theta, rows, actuator_xy, slope_px: float) -> tuple[np.ndarray, np.ndarray]:
     """The geometry matrix and its derivatives at ``theta`` = (shift_x, shift_y, rotation rad,
-    magnification, width pitches): ``(G [2M, N], dG [5, 2M, N])``, px per input unit; the same
-    midpoint rule as :func:`~torchblur.dm.shack_hartmann.mean_slopes`, computed by separation:
-    on the ``q x q`` product grid of a subaperture the Gaussian is ``e_x(x) e_y(y)``, so every sum
-    ``sum lit dx^a dy^b phi`` is ``Y_b^T L X_a`` (``L [q, q]`` the lit mask), a batched GEMM.
+    magnification, width pitches): ``(G [2M, N], dG [5, 2M, N])``, px per input unit; the rule of
+    :func:`~torchblur.dm.shack_hartmann.mean_slopes` (a slope's mean is the difference of the
+    surface at the ends of each lit row), differentiated: ``d phi / d p = phi (u - p) / W^2``,
+    ``d phi / d W = phi |u - p|^2 / W^3`` at every row end u.
 
     Args:
-        points, lit: ``[M, q*q, 2]`` and ``[M, q*q]`` from :func:`~torchblur.dm.shack_hartmann.subaperture_points`.
+        rows: ``((t, weight, lo, hi) of the x slopes, (...) of the y slopes)``, each ``[M, K]``
+            from :func:`~torchblur.dm.shack_hartmann.lit_rows` (the y slopes' on swapped centres).
         actuator_xy: ``[N, 2]`` nominal positions (pitches).
         slope_px: px per unit mean slope.
     """
@@ -190,28 +191,20 @@ def registration_model(theta, points, lit, actuator_xy, slope_px: float) -> tupl
                    np.zeros_like(p)])  # [5, N, 2] d p / d theta
     dW = np.array([0.0, 0.0, 0.0, w, m])  # d (m w) / d theta
     W = m * w
-    M, Q = lit.shape
-    q = math.isqrt(Q)
-    L = lit.reshape(M, q, q) / np.maximum(lit.sum(-1), 1.0)[:, None, None]  # [M, qy, qx], the mean's weights
-
-    def factors(u, c):  # [M, q] coordinates, [N] centres -> [M, q, 4, N]: d^k exp(-d^2 / 2W^2), k = 0..3
-        d = u[:, :, None] - c
-        e = np.exp(-d * d / (2 * W * W))
-        return np.stack([e, d * e, d * d * e, d * d * d * e], 2)
-
-    X = factors(points[:, :q, 0], p[:, 0])  # x along a row of the grid
-    Yf = factors(points[:, ::q, 1], p[:, 1])  # y down a column
-    N = xy.shape[0]
-    LX = (L @ X.reshape(M, q, 4 * N)).reshape(M, q, 4, N)
-    S = np.einsum("myan,mybn->abmn", LX, Yf)  # S[a, b] = mean of dx^a dy^b phi
-    W2, W3, W4, W5 = W**2, W**3, W**4, W**5
-    gx, gy = -S[1, 0] / W2, -S[0, 1] / W2
-    hxx, hxy, hyy = S[0, 0] / W2 - S[2, 0] / W4, -S[1, 1] / W4, S[0, 0] / W2 - S[0, 2] / W4
-    wx = 2 * S[1, 0] / W3 - (S[3, 0] + S[1, 2]) / W5
-    wy = 2 * S[0, 1] / W3 - (S[2, 1] + S[0, 3]) / W5
-    dG = np.stack([np.concatenate([hxx * dp[k, :, 0] + hxy * dp[k, :, 1] + wx * dW[k],
-                                   hxy * dp[k, :, 0] + hyy * dp[k, :, 1] + wy * dW[k]]) for k in range(5)])
-    return slope_px * np.concatenate([gx, gy]), slope_px * dG
+    G, dG = [], []
+    for axis, (t, wt, lo, hi) in enumerate(rows):
+        area = np.maximum((wt * (hi - lo)).sum(-1), 1e-300)[:, None]
+        S = 0.0  # [4, M, N]: sums over the rows of weight * (phi, phi dx / W^2, phi dy / W^2, phi r^2 / W^3), hi end less lo end
+        for sign, e in ((1.0, hi), (-1.0, lo)):
+            u = np.stack([e, t], -1)[..., ::-1] if axis else np.stack([e, t], -1)  # [M, K, 2] row ends (x, y)
+            d = u[:, :, None, :] - p  # [M, K, N, 2]
+            r2 = (d * d).sum(-1)
+            wphi = wt[..., None] * np.exp(-r2 / (2 * W * W))  # [M, K, N]
+            S = S + sign * np.stack([wphi.sum(1), (wphi * d[..., 0]).sum(1) / W**2, (wphi * d[..., 1]).sum(1) / W**2,
+                                     (wphi * r2).sum(1) / W**3])
+        G.append(S[0] / area)
+        dG.append((S[1][None] * dp[:, None, :, 0] + S[2][None] * dp[:, None, :, 1] + S[3][None] * dW[:, None, None]) / area)
+    return slope_px * np.concatenate(G), slope_px * np.concatenate(dG, axis=1)
 
 
 def _whitened(D0, D0_std):
@@ -255,7 +248,8 @@ def fit_registration(D0, D0_std, wfs, actuator_xy, coupling: float, *, start: Re
     """
     xy = np.asarray(actuator_xy, dtype=np.float64)
     start = Registration() if start is None else start
-    pts, lit = subaperture_points(wfs.centres, wfs.side, wfs.pupil_diameter / 2, wfs.oversample)
+    centres, R = wfs.centres, wfs.pupil_diameter / 2
+    rows = (lit_rows(centres, wfs.side, R, wfs.oversample), lit_rows(centres[:, ::-1], wfs.side, R, wfs.oversample))
     B, wt, cols = _whitened(D0, D0_std)
     if B.shape != (2 * wfs.n_valid, xy.shape[0]):
         raise ShapeError(f"D0: expected [2M, N] = [{2 * wfs.n_valid}, {xy.shape[0]}], got {B.shape}")
@@ -263,7 +257,7 @@ def fit_registration(D0, D0_std, wfs, actuator_xy, coupling: float, *, start: Re
     sub = np.flatnonzero(cols)
     n_entries = int((wt[:, sub] > 0).sum())
     dof = n_entries - sub.size - 5
-    full = lambda th: registration_model(th, pts, lit, xy, wfs.slope_px)  # noqa: E731
+    full = lambda th: registration_model(th, rows, xy, wfs.slope_px)  # noqa: E731
     if sub.size == 0 or dof < 1:
         return _failed(start, theta0, full, xy.shape[0], f"{n_entries} usable D0 entries over {sub.size} columns: fewer than the "
                                                          f"unknowns", n_entries, int(sub.size))
