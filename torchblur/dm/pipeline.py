@@ -374,7 +374,6 @@ def _identify_dm(cfg, rig, exp, model_mirror, wfs, truth_rig, log, progress) -> 
     table = fit_actuators(freqs, D, D_cov, G, actuator_xy=model_mirror.actuator_xy)
     table, reg, support = register_and_refit(freqs, D, D_cov, table, wfs, model_mirror.actuator_xy, float(cfg.dm.coupling),
                                              support=plan.support, threshold=float(cfg.dm_plan.support_threshold))
-    log_message(log, reg.line(), progress)
     t["estimation"] = time.perf_counter() - t0
     if exp is not None:
         log_message(log, f"recording: {exp.stats['groups_written']} group(s) written ({exp.stats['write_s']:.2f} s), "

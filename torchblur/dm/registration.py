@@ -271,11 +271,13 @@ def fit_registration(D0, D0_std, wfs, actuator_xy, coupling: float, *, start: Re
             cache[key] = _projected(th, part, B[:, sub], wt[:, sub])
         return cache[key]
 
-    sol = optimize.least_squares(lambda th: proj(th)[0], theta0, jac=lambda th: proj(th)[1], method="lm", x_scale="jac",
-                                 xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
+    try:
+        sol = optimize.least_squares(lambda th: proj(th)[0], theta0, jac=lambda th: proj(th)[1], method="lm", x_scale="jac",
+                                     xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
+    except ValueError as exc:  # a residual that is not finite (a width driven to 0)
+        return _failed(start, theta0, full, xy.shape[0], f"the fit failed ({exc})", n_entries, int(sub.size))
     r, J, g_sub, dg = proj(sol.x)
-    ok = bool(np.isfinite(sol.x).all() and sol.x[3] > 0 and sol.x[4] > 0)
-    if not ok:
+    if not (np.isfinite(sol.x).all() and sol.x[3] > 0 and sol.x[4] > 0 and np.isfinite(r).all()):
         return _failed(start, theta0, full, xy.shape[0], f"the fit left the model's domain ({sol.message})", n_entries, int(sub.size))
     chi2 = float(r @ r)
     red = chi2 / dof
