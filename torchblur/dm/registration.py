@@ -285,6 +285,9 @@ def fit_registration(D0, D0_std, wfs, actuator_xy, coupling: float, *, start: Re
         cov = np.linalg.inv(J.T @ J)
     except np.linalg.LinAlgError:
         cov = np.full((5, 5), np.nan)
+    if not (np.isfinite(cov).all() and np.all(np.diag(cov) > 0)):
+        return _failed(start, theta0, full, xy.shape[0], "D0 does not determine the registration (singular information matrix)",
+                       n_entries, int(sub.size))
     inflated = red > 1
     cov = cov * max(1.0, red)
     gain = np.full(xy.shape[0], np.nan)
