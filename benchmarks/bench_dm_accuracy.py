@@ -5,7 +5,8 @@ for each ``--seeds`` value (the mirror's spread, the camera noise and the jitter
 and prints, over the live actuators, each estimate's largest relative error and the rms and
 largest of error / reported std (rms about 1 where the stds hold; with 51 actuators an rms
 within about 1 +- 0.2), D0's rms error over its largest element, whether the dead actuators are
-reported dead, and the run's time by stage.
+reported dead, the registration fitted to D0 and its error against the simulated one
+(``dm.registration.*`` overrides misregister the simulated mirror), and the run's time by stage.
 
     python benchmarks/bench_dm_accuracy.py [--config configs/identify_dm.yaml] [--seeds 0 1] [key=value ...]
 """
@@ -46,6 +47,12 @@ def main(argv=None) -> int:
                   f"mean {z.mean():+.2f}, largest {np.abs(z).max():.2f}")
         print(f"  D0 rms error / largest element {err['D0_rms_error_over_max'] * 100:.3f} %; dead reported dead: "
               f"{err['dead_reported_dead']}; live reported dead: {err['live_reported_dead']}")
+        if res.registration is not None:  # the registration fitted to D0 (torchblur.dm.registration) against the simulated one
+            print(f"  {res.registration.line()}")
+            reg = {k[len("registration_"):]: v for k, v in err.items() if k.startswith("registration_")}
+            if reg:
+                print("  registration error: " + ", ".join(f"{k} {reg[k + '_error']:+.4g} ({reg[k + '_z']:+.2f} std)"
+                                                          for k in ("shift_x", "shift_y", "rotation_deg", "magnification", "coupling")))
     return 0
 
 

@@ -140,6 +140,12 @@ CLAIMS = [
           r"every channel within " + NUM + r" % and " + NUM + r" deg of the truth",
           [sys.executable, "benchmarks/bench_mimo.py", "--which", "mimo"],
           r"worst channel: \|H\| " + NUM + r"% \(goal 2%\), phase " + NUM + r" deg", rtol=(0.3, 0.3), speed="slow"),
+    Claim("DM: the registration fitted to an independent D0", "docs/deformable_mirrors.md",
+          r"rms\(error/std\) shift x " + NUM + r", y " + NUM + r", rotation " + NUM + r", magnification " + NUM + r", coupling "
+          + NUM + r",\s+all " + NUM,
+          [sys.executable, "benchmarks/bench_dm_registration.py"],
+          r"rms\(error/std\): shift_x " + NUM + r", shift_y " + NUM + r", rotation_deg " + NUM + r", magnification " + NUM
+          + r", coupling " + NUM + r"; all: " + NUM, rtol=(0.01,), speed="slow"),
 ]
 
 

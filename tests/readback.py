@@ -90,4 +90,6 @@ def assert_reads_back(out: Path, summary: str | None = None) -> dict:
         assert got["dm/command_matrix.npy"].shape == (d.n_inputs, d.n_outputs)
         assert got["dm/command_matrix.json"]["n_kept"] + got["dm/command_matrix.json"]["n_unseen"] == d.n_inputs
         assert set(act["status"]) <= {"ok", "weak", "dead"} and act["reduced_chi2"].size == act["actuator"].size  # each judged
+        if "dm/registration.json" in got:  # the registration fitted to D0 (torchblur.dm.registration)
+            assert got["dm/registration.json"]["registration"].magnification > 0
     return got

@@ -75,7 +75,12 @@ def small_run():
     pytest.importorskip("torchblur.dm.spot_fit")  # d2's estimation (merged from main)
     from torchblur.dm.pipeline import identify_dm
 
-    return identify_dm(load_config(None, SMALL))
+    return identify_dm(load_config(None, SMALL + MISREGISTERED))
+
+
+#: the small run's simulated mirror is misregistered on its sensor (issue 23): the run fits the registration
+MISREGISTERED = ["dm.registration.shift_x=0.25", "dm.registration.shift_y=-0.25", "dm.registration.rotation_deg=1.5",
+                 "dm.registration.magnification=1.03"]
 
 
 def test_small_run_against_the_truth(small_run):
@@ -92,6 +97,11 @@ def test_small_run_against_the_truth(small_run):
     assert err["damping_max_rel_error"] < 0.05
     assert err["dc_gain_max_rel_error"] < 0.01
     assert err["D0_rms_error_over_max"] < 0.01
+    # the registration fitted to D0 (9 actuators, 12 subapertures): within 0.02 pitch, 0.1 deg, 0.3 %, and within 4 of its stds
+    assert abs(err["registration_shift_x_error"]) < 0.02 and abs(err["registration_shift_y_error"]) < 0.02
+    assert abs(err["registration_rotation_deg_error"]) < 0.1 and abs(err["registration_magnification_error"]) < 0.003
+    assert max(abs(v) for k, v in err.items() if k.startswith("registration_") and k.endswith("_z")) < 4.0
+    assert res.support_check["n_missing"] == 0 and not np.allclose(res.G, res.G_nominal)
     # the demultiplexed D against the truth at every frequency, within 5 of its stds (Re and Im)
     live = ~res.mirror.dead
     d = (res.D - res.truth_D)[:, live]
@@ -122,6 +132,13 @@ def test_cli_routes_a_dm_config(tmp_path, capsys, monkeypatch, small_run):
     rows = (tmp_path / "run" / "dm" / "actuators.csv").read_text().splitlines()
     header = rows[0].split(",")
     assert len(rows) == 10 and rows[3].split(",")[header.index("status")] == "dead"
+    # the registration fitted to D0 reads back; README.txt and the report say what dc_gain is relative to
+    from torchblur.identify.read_outputs import read_outputs
+
+    doc = read_outputs(tmp_path / "run")["dm/registration.json"]
+    assert doc["fitted"] and doc["registration"] == small_run.registration.registration and doc["units"]["shift_x"] == "actuator pitch"
+    assert "relative to the fitted registration's influence function" in (tmp_path / "run" / "dm" / "README.txt").read_text()
+    assert "dm registration (fitted to D0)" in out.err
     assert np.load(tmp_path / "run" / "dm" / "interaction_matrix.npy").shape == (24, 9)
 
 

@@ -23,6 +23,9 @@ Every file reads back: :func:`read_actuators_csv`, ``numpy.load``, ``FrequencyRe
   ``s{m}_y``: python-control refuses dots in signal names; N inputs ``a{j}``; the (magnitude,
   phase) covariance of every element, NaN where ``D`` is exactly 0 off a sparse support;
   ``FrequencyResponse.from_json(...).to_control()`` is a python-control FRD).
+- ``README.txt``: what the files hold and what ``dc_gain`` is relative to (:func:`dm_readme`:
+  the fitted registration's influence function after a run, :mod:`torchblur.dm.registration`,
+  whose ``registration.json`` the run writes beside).
 - ``actuator_maps.png``: DC gain (relative to the nominal actuator), mode frequency (Hz) and
   damping over the actuator grid, every status and flag marked, y down as in the guide
   (:func:`actuator_maps_figure`; skipped with a log line when matplotlib is missing, and with
@@ -45,7 +48,7 @@ from torchblur.errors import ParameterError, ShapeError
 from torchblur.sysid.frequency_response import FrequencyResponse
 
 __all__ = ["DMEstimate", "command_matrix", "magnitude_phase_cov", "dm_frequency_response", "write_dm_outputs", "CSV_COLUMNS",
-           "RCOND", "actuator_maps_figure", "STATUS_STYLES", "read_actuators_csv", "COMMAND_MATRIX_SCHEMA"]
+           "RCOND", "actuator_maps_figure", "dm_readme", "DC_GAIN_NOMINAL", "STATUS_STYLES", "read_actuators_csv", "COMMAND_MATRIX_SCHEMA"]
 
 #: command_matrix.json's schema and the versions read (1: with ``schema``; its keys in :func:`command_matrix`)
 COMMAND_MATRIX_SCHEMA = ("torchblur.dm.command_matrix", (1,))
@@ -248,10 +251,25 @@ def read_actuators_csv(path) -> dict:
     return {c: out[c] for c in CSV_COLUMNS}
 
 
-def write_dm_outputs(out_dir, est: DMEstimate, *, rcond: float = RCOND, say=None, figures: bool = True) -> dict:
+DC_GAIN_NOMINAL = "dc_gain is relative to the nominal geometry G (the mirror model's registration and influence functions)"
+
+
+def dm_readme(dc_gain_reference: str = DC_GAIN_NOMINAL) -> str:
+    """The text of ``dm/README.txt``: one line per file, then what ``dc_gain`` is relative to."""
+    return ("torchblur DM identification outputs\n"
+            "actuators.csv: per actuator dc_gain, mode_hz, damping, delay_s with stds, status (x, y in actuator pitches)\n"
+            "interaction_matrix.npy / _std.npy / .fits: the measured static interaction matrix D0 [2M, N] (px per input unit)\n"
+            "command_matrix.npy, unseen_modes.npy, command_matrix.json: its truncated-SVD pseudo-inverse and the modes dropped\n"
+            "frf.json: the dynamic interaction matrix D(jw) with covariances\n"
+            "registration.json: the mirror's registration fitted to D0 (shift, rotation, magnification, coupling, stds)\n"
+            f"dc_gain: {dc_gain_reference}\n")
+
+
+def write_dm_outputs(out_dir, est: DMEstimate, *, rcond: float = RCOND, say=None, figures: bool = True,
+                     dc_gain_reference: str = DC_GAIN_NOMINAL) -> dict:
     """Write ``out_dir/dm/`` (see the module docstring). ``say``: a callable for log lines
     (default: this module's logger); ``figures=False`` (a run's ``report.figures``): no
-    actuator_maps.png. Returns ``{name: path}`` of the files written."""
+    actuator_maps.png; ``dc_gain_reference``: what ``dc_gain`` is relative to (``README.txt``). Returns ``{name: path}`` of the files written."""
     say = say or _log.info
     d = Path(out_dir) / "dm"
     d.mkdir(parents=True, exist_ok=True)
@@ -262,6 +280,8 @@ def write_dm_outputs(out_dir, est: DMEstimate, *, rcond: float = RCOND, say=None
         w.writerow(CSV_COLUMNS)
         w.writerows(_csv_rows(t))
     paths["actuators.csv"] = d / "actuators.csv"
+    (d / "README.txt").write_text(dm_readme(dc_gain_reference))
+    paths["README.txt"] = d / "README.txt"
     for name, arr in (("interaction_matrix.npy", est.D0), ("interaction_matrix_std.npy", t.static_column_std)):
         np.save(d / name, arr)
         paths[name] = d / name

@@ -40,14 +40,16 @@ from torchblur.dm.budget import DM_DARK_FRAMES, DM_STILL_FRAMES, dm_geometry, dm
 from torchblur.dm.mirror import DeformableMirror
 from torchblur.dm.outputs import DMEstimate, write_dm_outputs
 from torchblur.dm.plans import static_motion_px
+from torchblur.dm.registration import (DC_GAIN_REFERENCE, Registration, RegistrationFit, register_and_refit, support_line,
+                                       write_registration_json)
 from torchblur.dm.rig import SimulatedDMRig
 from torchblur.dm.shack_hartmann import ShackHartmann
-from torchblur.dm.verdict import run_verdict, truth_guard
+from torchblur.dm.verdict import run_verdict, support_guard, truth_guard
 from torchblur.identify.config import IdentifyConfig
 from torchblur.identify.read_outputs import SUMMARY_SCHEMA
 
 __all__ = ["DM_DARK_FRAMES", "DM_STILL_FRAMES", "DMResult", "build_dm", "check_dm_config", "identify_dm", "match_spots", "next_amplitude",
-           "nominal_growth", "truth_errors"]
+           "nominal_growth", "registration_errors", "truth_errors"]
 
 _F64 = torch.float64
 
@@ -63,15 +65,20 @@ class DMResult:
         amplitude: ``[F]`` command amplitude; ``power``: ``[F]`` laser power.
         Y, Y_cov: ``[P, 2M, F]`` pattern responses and ``[P, 2M, F, 2, 2]`` their (Re, Im) covariance.
         D, D_cov: ``[2M, N, F]`` and ``[2M, N, F, 2, 2]``.
-        actuators: the :class:`~torchblur.dm.actuator_fit.ActuatorTable`.
-        G: ``[2M, N]`` the nominal geometry (px per input unit).
+        actuators: the :class:`~torchblur.dm.actuator_fit.ActuatorTable` (``dc_gain`` relative to ``G``).
+        G: ``[2M, N]`` the geometry the actuators were fitted on (px per input unit): the fitted
+            registration's (:mod:`torchblur.dm.registration`), the nominal one where that fit did not run.
+        G_nominal: ``[2M, N]`` the nominal geometry (the plan's); registration: the
+            :class:`~torchblur.dm.registration.RegistrationFit`; support_check: the plan's support
+            against the fitted G (:func:`~torchblur.dm.registration.support_check`, None without a fit).
         actuator_xy: ``[N, 2]``.
         n_frames: sweep frames taken; ``n_failed``: spot problems whose fit failed.
         spot_reduced_chi2: ``[P, M, F]`` every spot fit's reduced chi2 (NaN where it failed): about
             1 where the spots' PSFs (Gaussians or measured kernels) and the camera's noise model explain the images.
         timing_s: seconds per stage (``calibration``, ``acquisition``, ``fit_wait``, ``estimation``).
         truth_D: ``[2M, N, F]`` the simulated rig's D (None on a real rig); ``mirror``: the
-            simulated mirror (its true dynamics), or None.
+            simulated mirror (its true dynamics), or None; ``truth_G``, ``truth_registration``: its
+            true geometry and registration, or None.
         log: the run's messages.
     """
 
@@ -95,12 +102,18 @@ class DMResult:
     truth_D: np.ndarray | None = None
     mirror: DeformableMirror | None = None
     log: list = field(default_factory=list)
+    G_nominal: np.ndarray | None = None
+    registration: RegistrationFit | None = None
+    support_check: dict | None = None
+    truth_G: np.ndarray | None = None
+    truth_registration: Registration | None = None
 
 
 def build_dm(cfg, *, base_dir: str | None = None, rig_seed: int | None = None):
     """``(mirror, wfs, rig)`` of a DM config: the simulated mirror (``dm`` section, seeded by
     ``seed``), the sensor (``wfs``) and the :class:`~torchblur.dm.rig.SimulatedDMRig` with the
-    ``camera`` section's sensor and timing (its noise seeded by ``rig_seed``, default ``seed``)."""
+    ``camera`` section's sensor and timing (its noise seeded by ``rig_seed``, default ``seed``)
+    and the mirror's true registration ``dm.registration``."""
     mirror = DeformableMirror.from_config(cfg.dm, base_dir=base_dir, seed=int(cfg.seed))
     wfs = ShackHartmann.from_config(cfg.wfs, mirror)
     c = cfg.camera
@@ -108,7 +121,8 @@ def build_dm(cfg, *, base_dir: str | None = None, rig_seed: int | None = None):
                          bit_depth=int(c.bit_depth))
     rig = SimulatedDMRig(mirror=mirror, wfs=wfs, camera=camera, frame_rate_hz=c.frame_rate_hz, trigger_delay_s=c.trigger_delay_s,
                          readout_s=c.readout_s, max_exposure_s=c.max_exposure_s, latency_s=c.latency_s, jitter_s=c.jitter_s,
-                         seed=int(cfg.seed) if rig_seed is None else int(rig_seed))
+                         seed=int(cfg.seed) if rig_seed is None else int(rig_seed),
+                         registration=Registration.from_config(cfg.dm.registration))
     return mirror, wfs, rig
 
 
@@ -408,14 +422,19 @@ def _identify_dm(cfg, rig, exp, model_mirror, wfs, truth_rig, log, progress) -> 
     t0 = time.perf_counter()
     D, D_cov = demultiplex(Y, Y_cov, plan.patterns, plan.support)
     table = fit_actuators(freqs, D, D_cov, G, actuator_xy=model_mirror.actuator_xy)
+    table, reg, support = register_and_refit(freqs, D, D_cov, table, wfs, model_mirror.actuator_xy, float(cfg.dm.coupling),
+                                             support=plan.support, threshold=float(cfg.dm_plan.support_threshold))
     t["estimation"] = time.perf_counter() - t0
     if exp is not None:
         log_message(log, f"recording: {exp.stats['groups_written']} group(s) written ({exp.stats['write_s']:.2f} s), "
                          f"{exp.stats['groups_reused']} reused, in {exp.path}", progress)
     truth = truth_rig.truth_D(freqs) if truth_rig is not None else None
     return DMResult(freq_hz=freqs, plan=plan, n_repeats=R, plan_info=info, amplitude=amps, power=powers, Y=Y, Y_cov=Y_cov, D=D,
-                    D_cov=D_cov, actuators=table, G=G, actuator_xy=model_mirror.actuator_xy, n_frames=n_frames, n_failed=failed,
-                    spot_reduced_chi2=chi2, timing_s=t, truth_D=truth, mirror=truth_rig.mirror if truth_rig is not None else None, log=log)
+                    D_cov=D_cov, actuators=table, G=reg.G, actuator_xy=model_mirror.actuator_xy, n_frames=n_frames, n_failed=failed,
+                    spot_reduced_chi2=chi2, timing_s=t, truth_D=truth, mirror=truth_rig.mirror if truth_rig is not None else None, log=log,
+                    G_nominal=G, registration=reg, support_check=support,
+                    truth_G=truth_rig.geometry if truth_rig is not None else None,
+                    truth_registration=truth_rig.registration if truth_rig is not None else None)
 
 
 def truth_errors(res: DMResult) -> dict | None:
@@ -435,10 +454,27 @@ def truth_errors(res: DMResult) -> dict | None:
         z = (est[live] - true[live]) / std[live]
         out[f"{name}_max_z"] = float(np.nanmax(np.abs(z)))
         out[f"{name}_rms_z"] = float(np.sqrt(np.nanmean(z**2)))  # about 1 where the stds hold
-    D0 = res.G * m.gain
+    D0 = (res.G if res.truth_G is None else res.truth_G) * m.gain
+    out.update(registration_errors(res))
     out["D0_rms_error_over_max"] = float(np.sqrt(np.mean((a.static_column - D0) ** 2)) / np.abs(D0).max())
     out["dead_reported_dead"] = bool(np.all(status[m.dead] == "dead"))
     out["live_reported_dead"] = np.flatnonzero(live & (status == "dead")).tolist()
+    return out
+
+
+def registration_errors(res: DMResult) -> dict:
+    """The fitted registration's errors against the simulated truth (``registration_*_error``:
+    shift x/y in actuator pitches, rotation in degrees, magnification and coupling as differences;
+    ``registration_*_z``: each over its std); empty without a truth or a fit."""
+    fit, true = res.registration, res.truth_registration
+    if fit is None or true is None or not fit.ok:
+        return {}
+    r = fit.registration
+    c_true = float(res.mirror.coupling) if true.coupling is None else true.coupling
+    errs = {"shift_x": r.shift_x - true.shift_x, "shift_y": r.shift_y - true.shift_y, "rotation_deg": r.rotation_deg - true.rotation_deg,
+            "magnification": r.magnification - true.magnification, "coupling": r.coupling - c_true}
+    out = {f"registration_{k}_error": float(v) for k, v in errs.items()}
+    out.update({f"registration_{k}_z": float(v / fit.std[k]) for k, v in errs.items()})
     return out
 
 
@@ -452,6 +488,10 @@ def _report(res: DMResult, elapsed: float) -> str:
              f"fits {t['fit_wait']:.1f} s, estimation {t['estimation']:.1f} s); failed spot fits: {res.n_failed}",
              "status: " + ", ".join(f"{s} {list(res.actuators.status).count(s)}" for s in ("ok", "weak", "dead"))
              + f"; {int(np.sum(res.actuators.poor_fit))} poor_fit (stds inflated)"]
+    if res.registration is not None:
+        lines.append(res.registration.line())
+        if support_line(res.support_check):
+            lines.append(support_line(res.support_check))
     err = truth_errors(res)
     if err is not None:
         lines.append(f"against the simulated truth: mode {err['mode_hz_max_rel_error'] * 100:.3f} %, damping "
@@ -488,7 +528,7 @@ def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False, record=None
         cfg, rig, quiet, record=out / "experiment" if record is None else record, base_dir=base_dir)
     elapsed = time.perf_counter() - t0
     _write_dm_outputs(res, out, figures=cfg.report.figures)
-    v = truth_guard(run_verdict(res, poor_fit_chi2=float(cfg.fit.poor_fit_chi2)), res)
+    v = support_guard(truth_guard(run_verdict(res, poor_fit_chi2=float(cfg.fit.poor_fit_chi2)), res), res.support_check)
     report = _report(res, elapsed) + "".join(f"{line}\n" for line in (*v.details, v.line))  # the verdict line last
     (out / "report.txt").write_text("\n".join(res.log) + "\n" + report)
     print(report, end="", file=sys.stderr if as_json else sys.stdout, flush=True)
@@ -531,5 +571,9 @@ def _write_dm_outputs(res: DMResult, out, figures: bool = True) -> None:
     from torchblur.identify.record import log_message
 
     meta = {"plan": res.plan.kind, "n_patterns": res.plan.n_patterns, "n_repeats": res.n_repeats, "n_frames": res.n_frames}
+    reg = res.registration
+    reference = {"dc_gain_reference": DC_GAIN_REFERENCE} if reg and reg.ok else {}
     write_dm_outputs(out, DMEstimate(freq_hz=res.freq_hz, D=res.D, D_cov=res.D_cov, table=res.actuators, meta=meta),
-                     say=lambda msg: log_message(res.log, msg), figures=figures)
+                     say=lambda msg: log_message(res.log, msg), figures=figures, **reference)
+    if res.registration is not None:
+        write_registration_json(out / "dm" / "registration.json", res.registration, res.support_check)

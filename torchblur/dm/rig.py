@@ -42,6 +42,7 @@ from torchblur.rig.base import Capture, PatternSines, float_list, per_exposure
 from torchblur.rig.simulated import SimulatedRig
 from torchblur.systems.lti import Plant
 from torchblur.dm.mirror import DeformableMirror
+from torchblur.dm.registration import Registration
 from torchblur.dm.shack_hartmann import ShackHartmann
 
 __all__ = ["SimulatedDMRig", "spot_motion"]
@@ -72,11 +73,13 @@ class SimulatedDMRig(PatternSines, SimulatedRig):
         camera: the :class:`~torchblur.render.camera.CameraModel`.
         frame_rate_hz, trigger_delay_s, readout_s, max_exposure_s, latency_s, jitter_s,
         peak_e_per_s, seed: as :class:`~torchblur.rig.simulated.SimulatedRig`.
+        registration: the mirror's true :class:`~torchblur.dm.registration.Registration` on the
+            sensor (None: nominal); its G is then the geometry at that registration.
     """
 
     def __init__(self, *, mirror: DeformableMirror, wfs: ShackHartmann, camera: CameraModel, frame_rate_hz: float = 30.0,
                  trigger_delay_s: float = 0.0, readout_s: float = 1e-3, max_exposure_s: float = 1.0, latency_s: float = 12e-6,
-                 jitter_s: float = 0.2e-6, peak_e_per_s: float = 1e6, seed: int = 0):
+                 jitter_s: float = 0.2e-6, peak_e_per_s: float = 1e6, seed: int = 0, registration: Registration | None = None):
         if not isinstance(mirror, DeformableMirror):
             raise InputTypeError(f"mirror: expected a DeformableMirror, got {type(mirror).__name__}")
         if not isinstance(wfs, ShackHartmann):
@@ -91,7 +94,10 @@ class SimulatedDMRig(PatternSines, SimulatedRig):
                          jitter_s=jitter_s, peak_e_per_s=peak_e_per_s, seed=seed, spots=layout)
         self._mirror = mirror
         self._wfs = wfs
-        self._G = wfs.geometry_matrix(mirror)
+        if registration is not None and not isinstance(registration, Registration):
+            raise InputTypeError(f"registration: expected a Registration or None, got {type(registration).__name__}")
+        self._registration = Registration() if registration is None else registration
+        self._G = wfs.geometry_matrix(mirror, registration=registration)
         pad = math.ceil(_EDGE_SIGMAS * float(sigma.max()))
         self._crop = math.ceil(wfs.pitch_px) + 2 * pad
         corner = torch.floor(rest - (self._crop - 1) / 2).long()  # [M, 2] (x0, y0) of each crop
@@ -109,8 +115,13 @@ class SimulatedDMRig(PatternSines, SimulatedRig):
         return self._wfs
 
     @property
+    def registration(self) -> Registration:
+        """The mirror's true registration on the sensor (for tests: a pipeline fits it)."""
+        return self._registration
+
+    @property
     def geometry(self) -> np.ndarray:
-        """G ``[2M, N]`` (px per input unit of the nominal actuator)."""
+        """G ``[2M, N]`` (px per input unit of the nominal actuator, at the true registration)."""
         return self._G.copy()
 
     @property

@@ -42,10 +42,11 @@ from dataclasses import asdict, dataclass, replace
 import numpy as np
 
 from torchblur.dm.actuator_fit import POOR_FIT_P, ActuatorTable
+from torchblur.dm.registration import support_line
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, check_int
 from torchblur.identify.verdict import EXIT_FLAGGED, TRUTH_BOUND, listed
 
-__all__ = ["DMVerdict", "dm_verdict", "failed_actuators", "lost_fraction", "run_verdict", "truth_guard", "truth_disagreement_dm",
+__all__ = ["DMVerdict", "dm_verdict", "failed_actuators", "lost_fraction", "run_verdict", "truth_guard", "truth_disagreement_dm", "support_guard",
            "LOST_FRACTION", "POOR_SPOT_FRACTION"]
 
 #: an actuator whose column ``D[:, j, :]`` has more than this fraction of its entries (on its
@@ -281,3 +282,13 @@ def truth_guard(v: DMVerdict, res, bound: float = TRUTH_BOUND) -> DMVerdict:
     line = (f"{v.line}; {len(beyond)} actuator(s) beyond {bound:g} std of the simulated truth or with a wrong status "
             f"({listed(beyond)}): not trustworthy whatever the flags say")
     return replace(v, line=line, trustworthy=False, exit_code=EXIT_FLAGGED, beyond_truth=beyond)
+
+
+def support_guard(v, info: dict | None):
+    """The DM verdict ``v`` made untrustworthy (exit :data:`~torchblur.identify.verdict.EXIT_FLAGGED`)
+    when the fitted geometry needs support the plan lacks (:func:`~torchblur.dm.registration.support_check`); else ``v``."""
+    line = support_line(info)
+    if line is None:
+        return v
+    return replace(v, line=f"{v.line}; the plan's support lacks {info['n_missing']} pair(s) the fitted geometry needs: not trustworthy",
+                   trustworthy=False, exit_code=EXIT_FLAGGED, details=(*v.details, line))

@@ -20,7 +20,7 @@ from torchblur.files import excerpt, key_excerpt, read_bounded
 
 __all__ = ["IdentifyConfig", "load_config", "estimate_run", "check_limits", "check_dm_bounds", "dm_size_bounds", "LIMITS", "load_dataclass", "config_to_yaml", "validate", "validate_plant", "validate_camera",
            "validate_spots", "validate_excitation", "validate_dm", "validate_dm_model", "SpotsConfig", "PlantConfig",
-           "DMConfig", "WFSConfig", "DMPlanConfig", "DM_PLAN_KINDS",
+           "DMConfig", "DMRegistrationConfig", "WFSConfig", "DMPlanConfig", "DM_PLAN_KINDS",
            "DEFAULT_PLANT", "RIG_KINDS", "EXCITATION_KINDS"]
 
 RIG_KINDS = ("simulated", "serial")
@@ -229,6 +229,20 @@ class RigConfig:
 
 
 @dataclass(frozen=True)
+class DMRegistrationConfig:
+    """The SIMULATED mirror's registration on its sensor (:class:`torchblur.dm.registration.Registration`):
+    ``shift_x``/``shift_y`` (actuator pitches), ``rotation_deg``, ``magnification`` and the true
+    ``coupling`` (null: ``dm.coupling``). The run does not read it: it fits the registration to
+    the measured D0 (a real mirror's is whatever it is)."""
+
+    shift_x: float = 0.0
+    shift_y: float = 0.0
+    rotation_deg: float = 0.0
+    magnification: float = 1.0
+    coupling: Optional[float] = None
+
+
+@dataclass(frozen=True)
 class DMConfig:
     """A deformable mirror (:mod:`torchblur.dm.mirror`); the run is a DM run when ``n_across`` > 0.
     ``coupling``: an influence function's value one pitch away; ``mode_hz``, ``damping``,
@@ -253,6 +267,7 @@ class DMConfig:
     weak_gain: float = 0.3
     actuator_table: Optional[str] = None
     input_limit: Optional[float] = None
+    registration: DMRegistrationConfig = field(default_factory=DMRegistrationConfig)
 
     @property
     def enabled(self) -> bool:
@@ -662,6 +677,7 @@ def validate_dm_model(d: DMConfig, w: WFSConfig) -> None:
         raise ConfigError(f"dm.actuator_table: expected a path to a CSV file or null, got {excerpt(d.actuator_table)}")
     if d.input_limit is not None:
         _num(d.input_limit, "dm.input_limit", positive=True)
+    _validate_dm_registration(d.registration)
     _num(w.n_across, "wfs.n_across", integer=True, low=1, high=128)
     _num(w.pitch_px, "wfs.pitch_px", low=8)
     _num(w.sigma_px, "wfs.sigma_px", low=MIN_PSF_SIGMA_PX)
@@ -669,6 +685,17 @@ def validate_dm_model(d: DMConfig, w: WFSConfig) -> None:
     _num(w.slope_px, "wfs.slope_px", positive=True)
     _num(w.min_illumination, "wfs.min_illumination", positive=True, high=1.0)
     _num(w.oversample, "wfs.oversample", integer=True, low=1, high=256)
+
+
+def _validate_dm_registration(r: DMRegistrationConfig) -> None:
+    """Check ``dm.registration`` (the simulated mirror's): shifts within 2 pitches, rotation within
+    10 degrees, magnification in [0.8, 1.25], coupling null or in (0, 0.99]."""
+    for k in ("shift_x", "shift_y"):
+        _num(getattr(r, k), f"dm.registration.{k}", low=-2.0, high=2.0)
+    _num(r.rotation_deg, "dm.registration.rotation_deg", low=-10.0, high=10.0)
+    _num(r.magnification, "dm.registration.magnification", low=0.8, high=1.25)
+    if r.coupling is not None:
+        _num(r.coupling, "dm.registration.coupling", positive=True, high=0.99)
 
 
 def validate_dm(cfg: IdentifyConfig) -> None:

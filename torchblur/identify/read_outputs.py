@@ -21,6 +21,8 @@ file                        read back as
 ``dm/actuators.csv``        a dict of columns (:func:`torchblur.dm.outputs.read_actuators_csv`)
 ``dm/*.npy``                numpy arrays (no pickles)
 ``dm/command_matrix.json``  a dict (schema checked)
+``dm/registration.json``    a dict (schema checked), ``registration`` a
+                            :class:`~torchblur.dm.registration.Registration`
 =========================== ==========================================================
 
 Each JSON document carries ``schema`` and ``schema_version``; a version this torchblur does
@@ -103,6 +105,7 @@ def _dm(d: Path) -> dict:
     import numpy as np
 
     from torchblur.dm.outputs import COMMAND_MATRIX_SCHEMA, read_actuators_csv
+    from torchblur.dm.registration import read_registration_json
     from torchblur.sysid.frequency_response import FrequencyResponse
 
     got = {"dm/frf.json": FrequencyResponse.from_json(d / "frf.json"), "dm/actuators.csv": read_actuators_csv(d / "actuators.csv"),
@@ -110,6 +113,8 @@ def _dm(d: Path) -> dict:
                                                     str(d / "command_matrix.json"))}
     for p in sorted(d.glob("*.npy")):
         got[f"dm/{p.name}"] = np.load(p, allow_pickle=False)
+    if (d / "registration.json").is_file():
+        got["dm/registration.json"] = read_registration_json(d / "registration.json")
     return got
 
 

@@ -1,0 +1,150 @@
+"""The mirror's registration fitted to the measured D0 (torchblur.dm.registration, issue 23 part C)."""
+import json
+import math
+
+import numpy as np
+import pytest
+
+from torchblur.dm.actuator_fit import fit_actuators
+from torchblur.dm.mirror import DeformableMirror
+from torchblur.dm.plans import sparse_plan
+from torchblur.dm.registration import (Registration, fit_registration, read_registration_json, register_and_refit,
+                                       registration_model, support_check, write_registration_json)
+from torchblur.dm.shack_hartmann import ShackHartmann, lit_rows, mean_slopes
+from torchblur.errors import ConfigError, ParameterError, ShapeError
+
+MISREG = Registration(shift_x=0.25, shift_y=-0.25, rotation_deg=1.5, magnification=1.03, coupling=0.17)
+
+
+def _small(oversample=8):
+    mirror = DeformableMirror.build(4, coupling=0.15)  # 12 actuators
+    wfs = ShackHartmann(n_across=5, pupil_diameter=4.0, oversample=oversample)  # 21 valid subapertures, partly lit edges
+    return mirror, wfs
+
+
+def test_model_is_mean_slopes_at_the_registration_and_its_derivatives():
+    mirror, wfs = _small()
+    G_ref = wfs.geometry_matrix(mirror, registration=MISREG)
+    # the reference itself: mean_slopes with the registration is mean_slopes at the moved actuators and the wider influence
+    w = MISREG.magnification * 1 / math.sqrt(-2 * math.log(MISREG.coupling))
+    moved = mean_slopes(wfs.centres, wfs.side, 2.0, MISREG.actuators(mirror.actuator_xy), math.exp(-1 / (2 * w * w)), 8)
+    np.testing.assert_allclose(G_ref, wfs.slope_px * moved, rtol=0, atol=1e-15)
+    a = math.radians(1.5)
+    np.testing.assert_allclose(MISREG.actuators([[1.0, 0.0]]), [[1.03 * math.cos(a) + 0.25, 1.03 * math.sin(a) - 0.25]])
+    rows = (lit_rows(wfs.centres, wfs.side, 2.0, 8), lit_rows(wfs.centres[:, ::-1], wfs.side, 2.0, 8))
+    theta = np.array([0.25, -0.25, a, 1.03, 1 / math.sqrt(-2 * math.log(0.17))])
+    G, dG = registration_model(theta, rows, mirror.actuator_xy, wfs.slope_px)
+    np.testing.assert_allclose(G, G_ref, rtol=0, atol=1e-13 * np.abs(G_ref).max())
+    for k in range(5):
+        e = np.zeros(5)
+        e[k] = 1e-6
+        num = (registration_model(theta + e, rows, mirror.actuator_xy, 1.0)[0]
+               - registration_model(theta - e, rows, mirror.actuator_xy, 1.0)[0]) / 2e-6
+        np.testing.assert_allclose(dG[k], num, rtol=0, atol=1e-7 * np.abs(dG[k]).max())
+
+
+def _noisy_D0(G, gain, rng, rel=2e-3):
+    std = np.full_like(G, rel * np.abs(G).max())
+    return G * gain + std * rng.standard_normal(G.shape), std
+
+
+def test_fit_recovers_a_misregistration_with_honest_stds():
+    mirror, wfs = _small()
+    G_true = wfs.geometry_matrix(mirror, registration=MISREG)
+    z, gz = [], []
+    for seed in range(12):
+        rng = np.random.default_rng(seed)
+        gain = 1 + 0.05 * rng.standard_normal(12)
+        gain[3], gain[7] = 0.0, 0.3 * gain[7]  # a dead and a weak actuator do not drag the registration
+        D0, std = _noisy_D0(G_true, gain, rng)
+        fit = fit_registration(D0, std, wfs, mirror.actuator_xy, coupling=0.15)
+        r = fit.registration
+        assert fit.ok and fit.dof == D0.size - 12 - 5 and 0.6 < fit.reduced_chi2 < 1.4
+        err = np.array([r.shift_x - 0.25, r.shift_y + 0.25, r.rotation_deg - 1.5, r.magnification - 1.03, r.coupling - 0.17])
+        assert np.all(np.abs(err[:4]) < [0.02, 0.02, 0.1, 0.003])
+        z.append(err / np.array([fit.std[k] for k in ("shift_x", "shift_y", "rotation_deg", "magnification", "coupling")]))
+        live = gain > 0
+        gz.append((fit.gain - gain)[live] / np.sqrt(std[0, 0] ** 2 / (fit.G[:, live] ** 2).sum(0) + fit.gain_var_registration[live]))
+    rms = np.sqrt(np.mean(np.square(z), 0))
+    assert np.all((rms > 0.6) & (rms < 1.45)), rms  # 12 seeds: rms of 12 unit normals within these bounds at p > 0.99
+    assert 0.75 < np.sqrt(np.mean(np.square(gz))) < 1.3
+
+
+def test_refit_on_the_fitted_geometry_gives_the_true_gains():
+    """D(jw) of a misregistered mirror with known noise: the actuators fitted on the nominal G
+    carry the geometry's error in dc_gain; refitted on the fitted registration they do not."""
+    mirror = DeformableMirror.build(4, coupling=0.15, mode_hz=800.0, mode_spread=0.05, gain_spread=0.05, dead=[3], seed=1)
+    wfs = ShackHartmann(n_across=5, pupil_diameter=4.0, oversample=8)
+    f = np.geomspace(50.0, 2000.0, 10)
+    G_true = wfs.geometry_matrix(mirror, registration=MISREG)
+    rng = np.random.default_rng(3)
+    D_true = G_true[:, :, None] * mirror.response(f)[None]
+    s = 1e-3 * np.abs(G_true).max()
+    D = D_true + s * (rng.standard_normal(D_true.shape) + 1j * rng.standard_normal(D_true.shape))
+    cov = np.broadcast_to(s * s * np.eye(2), D.shape + (2, 2)).copy()
+    table0 = fit_actuators(f, D, cov, wfs.geometry_matrix(mirror), actuator_xy=mirror.actuator_xy)
+    table, fit, info = register_and_refit(f, D, cov, table0, wfs, mirror.actuator_xy, 0.15, support=np.ones(D.shape[:2], bool))
+    live = ~mirror.dead
+    z0 = (table0.dc_gain - mirror.gain)[live] / table0.dc_gain_std[live]
+    z = (table.dc_gain - mirror.gain)[live] / table.dc_gain_std[live]
+    assert np.sqrt(np.mean(z0**2)) > 10  # the nominal geometry is wrong by far more than the noise
+    assert np.sqrt(np.mean(z**2)) < 2.0 and np.abs(table.dc_gain - mirror.gain)[live].max() < 0.01
+    assert table.status[3] == "dead" and info["n_missing"] == 0
+    assert abs(fit.registration.shift_x - 0.25) < 0.02 and abs(fit.registration.rotation_deg - 1.5) < 0.1
+    np.testing.assert_allclose(table.mode_hz[live], mirror.mode_hz[live], rtol=5e-3)
+
+
+def test_plan_support_rechecked_against_the_fitted_geometry():
+    mirror, wfs = _small()
+    G_nom = wfs.geometry_matrix(mirror)
+    plan = sparse_plan(G_nom, 0.01)
+    assert support_check(plan.support, G_nom, 0.01)["n_missing"] == 0
+    far = wfs.geometry_matrix(mirror, registration=Registration(shift_x=0.5, rotation_deg=5.0))
+    info = support_check(plan.support, far, 0.01)
+    M = wfs.n_valid
+    assert info["n_missing"] > 0 and info["largest_missing_over_max"] > 0.01
+    for m, j in info["missing"]:
+        assert not plan.support[m, j] and math.hypot(far[m, j], far[M + m, j]) > 0.01 * np.hypot(far[:M], far[M:]).max()
+    # a pair on the threshold within 3 stds of the registration's uncertainty is not flagged
+    assert support_check(plan.support, far, 0.01, G_std=np.abs(far))["n_missing"] == 0
+
+
+def test_registration_json_reads_back_and_bad_input(tmp_path):
+    mirror, wfs = _small()
+    rng = np.random.default_rng(0)
+    D0, std = _noisy_D0(wfs.geometry_matrix(mirror, registration=MISREG), np.ones(12), rng)
+    fit = fit_registration(D0, std, wfs, mirror.actuator_xy, coupling=0.15)
+    write_registration_json(tmp_path / "registration.json", fit, {"missing": [], "n_missing": 0})
+    doc = read_registration_json(tmp_path / "registration.json")
+    assert doc["registration"] == fit.registration and doc["units"]["shift_x"] == "actuator pitch" and doc["units"]["rotation_deg"] == "deg"
+    assert doc["std"]["magnification"] == fit.std["magnification"] and "fitted registration" in doc["dc_gain_reference"]
+    raw = json.loads((tmp_path / "registration.json").read_text())
+    raw["schema_version"] = 99
+    (tmp_path / "bad.json").write_text(json.dumps(raw))
+    with pytest.raises(ParameterError, match="schema"):
+        read_registration_json(tmp_path / "bad.json")
+    # too few entries: not fitted, flagged, never raises; the start's geometry
+    few = np.full_like(std, np.nan)
+    few[:3, :2] = std[:3, :2]
+    bad = fit_registration(D0, few, wfs, mirror.actuator_xy, coupling=0.15)
+    assert not bad.ok and "fewer than the unknowns" in bad.message and np.allclose(bad.G, wfs.geometry_matrix(mirror))
+    with pytest.raises(ShapeError, match="D0"):
+        fit_registration(D0[:, :5], std[:, :5], wfs, mirror.actuator_xy, coupling=0.15)
+    with pytest.raises(ParameterError, match="magnification"):
+        Registration(magnification=0.0)
+
+
+def test_simulated_mirror_takes_the_registration_from_the_config():
+    from torchblur.dm.pipeline import build_dm
+    from torchblur.identify.config import load_config
+
+    base = ["dm.n_across=3", "wfs.n_across=4", "wfs.oversample=8", "excitation.target_px=3.0"]
+    keys = ["dm.registration.shift_x=0.25", "dm.registration.rotation_deg=1.5", "dm.registration.magnification=1.03"]
+    mirror, wfs, rig = build_dm(load_config(None, base + keys, force=True))
+    assert rig.registration == Registration(shift_x=0.25, rotation_deg=1.5, magnification=1.03)
+    np.testing.assert_array_equal(rig.geometry, wfs.geometry_matrix(mirror, registration=rig.registration))
+    assert not np.allclose(rig.geometry, wfs.geometry_matrix(mirror))
+    for bad, key in (("dm.registration.magnification=2.0", "dm.registration.magnification"),
+                     ("dm.registration.coupling=1.5", "dm.registration.coupling"), ("dm.registration.tilt=1", "dm.registration.tilt")):
+        with pytest.raises(ConfigError, match=key):
+            load_config(None, base + [bad], force=True)

@@ -1,0 +1,411 @@
+"""The mirror's registration on the Shack-Hartmann sensor, fitted to the measured static
+interaction matrix D0 (issue 23: the geometry measured, not assumed).
+
+Registration (:class:`Registration`). The nominal model (:mod:`torchblur.dm.shack_hartmann`)
+puts actuator j at ``x_j`` (actuator pitches, 0 at the pupil centre, x right, y down) with a
+Gaussian influence function of width ``w`` (:func:`~torchblur.dm.mirror.influence_width` of
+the mirror's ``coupling``). A real mirror is seen by the sensor shifted, rotated and magnified,
+and its influence functions are not exactly nominal. In the sensor's frame (lengths in nominal
+actuator pitches, the pupil and the subapertures fixed) actuator j sits at
+
+    p_j = magnification * R(rotation) x_j + (shift_x, shift_y),   R(a) = [[cos a, -sin a], [sin a, cos a]]
+
+(a positive rotation turns +x toward +y, i.e. clockwise on an image drawn with y down) and its
+influence function has the width ``magnification * w(coupling)`` there: ``coupling`` is the
+mirror's own (its influence at one of its own pitches), the relay magnifies both.
+
+Fit (:func:`fit_registration`). Weighted nonlinear least squares of ``D0[s, j] = g_j G[s,
+j](theta)`` over every finite entry with a positive std, theta = (shift_x, shift_y, rotation,
+magnification, width), ``G(theta)`` the geometry matrix of :meth:`ShackHartmann.geometry_matrix
+<torchblur.dm.shack_hartmann.ShackHartmann.geometry_matrix>` at that registration, and one free
+gain ``g_j`` per actuator solved in closed form inside the residual (variable projection: a
+dead or weak actuator's column only counts as much as its own signal, so it cannot drag the
+registration). ``scipy.optimize.least_squares`` (Levenberg-Marquardt) with the analytic
+Jacobian of the projected residual (Kaufman's: ``J^T J`` is then the information on theta with
+the gains marginalised). The stds are ``sqrt(diag((J^T J)^-1))`` at the optimum, multiplied by
+``sqrt(reduced chi2)`` when that is above 1 (``inflated``: the model does not explain D0 to its
+noise). The gains' std gets the registration's share, ``(dg/dtheta) cov (dg/dtheta)^T``
+(:func:`with_registration_stds`), so that a ``dc_gain`` relative to the fitted geometry keeps
+an honest std.
+
+Shapes: S = 2M slopes (x of all M subapertures, then y), N actuators.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+from scipy import optimize
+
+from torchblur.errors import ConfigError, ParameterError, ShapeError, check_real_scalar
+from torchblur.dm.actuator_fit import fit_actuators
+from torchblur.dm.mirror import influence_width
+from torchblur.dm.plans import seen_by
+from torchblur.dm.shack_hartmann import lit_rows
+
+__all__ = ["Registration", "RegistrationFit", "fit_registration", "register_and_refit", "registration_model", "support_check",
+           "support_line", "with_registration_stds",
+           "write_registration_json", "read_registration_json", "REGISTRATION_SCHEMA", "PARAMETERS"]
+
+#: registration.json's schema and the versions read
+REGISTRATION_SCHEMA = ("torchblur.dm.registration", (1,))
+#: the fitted parameters, their units in registration.json
+PARAMETERS = (("shift_x", "actuator pitch"), ("shift_y", "actuator pitch"), ("rotation_deg", "deg"), ("magnification", "1"),
+              ("coupling", "1"))
+DC_GAIN_REFERENCE = ("dc_gain is relative to the fitted registration's influence function: 1 is an actuator whose static column is "
+                     "the geometry matrix G at the fitted registration (shift, rotation, magnification, coupling)")
+
+
+@dataclass(frozen=True)
+class Registration:
+    """The mirror as the sensor sees it (module docstring).
+
+    Attributes:
+        shift_x, shift_y: actuator grid's shift on the sensor (nominal actuator pitches; x right, y down).
+        rotation_deg: its rotation (degrees, +x toward +y).
+        magnification: its scale (1 nominal).
+        coupling: the influence functions' coupling at one mirror pitch (None: the mirror's nominal).
+    """
+
+    shift_x: float = 0.0
+    shift_y: float = 0.0
+    rotation_deg: float = 0.0
+    magnification: float = 1.0
+    coupling: float | None = None
+
+    def __post_init__(self):
+        for name in ("shift_x", "shift_y", "rotation_deg"):
+            object.__setattr__(self, name, check_real_scalar(getattr(self, name), name))
+        object.__setattr__(self, "magnification", check_real_scalar(self.magnification, "magnification", positive=True))
+        if self.coupling is not None:
+            object.__setattr__(self, "coupling", check_real_scalar(self.coupling, "coupling", positive=True))
+            influence_width(self.coupling)  # in (0, 1)
+
+    @classmethod
+    def from_config(cls, r) -> "Registration":
+        """From ``dm.registration`` (:class:`~torchblur.identify.config.DMRegistrationConfig`)."""
+        try:
+            return cls(shift_x=r.shift_x, shift_y=r.shift_y, rotation_deg=r.rotation_deg, magnification=r.magnification,
+                       coupling=r.coupling)
+        except (ParameterError, TypeError, ValueError) as exc:
+            raise ConfigError(f"dm.registration.{exc}") from None
+
+    @property
+    def is_nominal(self) -> bool:
+        """No shift, rotation or magnification, the mirror's coupling."""
+        return (self.shift_x, self.shift_y, self.rotation_deg, self.magnification, self.coupling) == (0.0, 0.0, 0.0, 1.0, None)
+
+    def actuators(self, actuator_xy) -> np.ndarray:
+        """``[N, 2]`` the actuators' positions on the sensor (pitches) from the nominal ``[N, 2]``."""
+        a = math.radians(self.rotation_deg)
+        R = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+        return self.magnification * np.asarray(actuator_xy, dtype=np.float64) @ R.T + np.array([self.shift_x, self.shift_y])
+
+    def sensor_coupling(self, coupling: float) -> float:
+        """The coupling at one nominal pitch on the sensor (width ``magnification * w``) of a
+        mirror whose coupling is ``coupling`` (replaced by :attr:`coupling` when set)."""
+        w = self.magnification * influence_width(coupling if self.coupling is None else self.coupling)
+        return math.exp(-1.0 / (2.0 * w * w))
+
+
+@dataclass(frozen=True, eq=False)
+class RegistrationFit:
+    """A fitted registration (module docstring).
+
+    Attributes:
+        registration: the :class:`Registration` (its ``coupling`` set).
+        std: ``{parameter: std}`` for :data:`PARAMETERS` (plus ``influence_width``, pitches).
+        cov: ``[5, 5]`` covariance of (shift_x, shift_y, rotation rad, magnification, width pitches).
+        chi2, dof, reduced_chi2: the fit's chi2 over ``entries - actuators - 5`` degrees of freedom.
+        inflated: the stds were multiplied by ``sqrt(reduced_chi2)`` (> 1).
+        G: ``[2M, N]`` the geometry matrix at the fitted registration (px per input unit);
+            G_std: ``[2M, N]`` its std from the registration's (first order).
+        gain: ``[N]`` each actuator's static gain against ``G``; gain_var_registration: ``[N]``
+            the share of its variance the registration's uncertainty adds.
+        ok: the fit ran (else ``registration`` is the start, ``G`` the start's and ``message`` says why).
+        message: why it did not, or how it ended.
+        n_entries, n_columns: D0 entries and actuators used.
+    """
+
+    registration: Registration
+    std: dict
+    cov: np.ndarray
+    chi2: float
+    dof: int
+    reduced_chi2: float
+    inflated: bool
+    G: np.ndarray
+    G_std: np.ndarray
+    gain: np.ndarray
+    gain_var_registration: np.ndarray
+    ok: bool
+    message: str
+    n_entries: int
+    n_columns: int
+
+    def line(self) -> str:
+        """One report line."""
+        if not self.ok:
+            return f"dm registration: not fitted ({self.message}); dc_gain is relative to the nominal geometry"
+        r, s = self.registration, self.std
+        return (f"dm registration (fitted to D0): shift x {r.shift_x:+.4f} +- {s['shift_x']:.4f}, y {r.shift_y:+.4f} +- "
+                f"{s['shift_y']:.4f} actuator pitches, rotation {r.rotation_deg:+.3f} +- {s['rotation_deg']:.3f} deg, magnification "
+                f"{r.magnification:.5f} +- {s['magnification']:.5f}, coupling {r.coupling:.4f} +- {s['coupling']:.4f}; reduced chi2 "
+                f"{self.reduced_chi2:.3g}{' (stds inflated by its square root)' if self.inflated else ''}; dc_gain is relative to "
+                f"the fitted registration's influence function")
+
+
+def _theta(reg: Registration, coupling: float) -> np.ndarray:
+    return np.array([reg.shift_x, reg.shift_y, math.radians(reg.rotation_deg), reg.magnification,
+                     influence_width(coupling if reg.coupling is None else reg.coupling)])
+
+
+def _from_theta(theta) -> Registration:
+    w = float(theta[4])
+    return Registration(shift_x=float(theta[0]), shift_y=float(theta[1]), rotation_deg=math.degrees(float(theta[2])),
+                        magnification=float(theta[3]), coupling=math.exp(-1.0 / (2.0 * w * w)))
+
+
+def registration_model(theta, rows, actuator_xy, slope_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """The geometry matrix and its derivatives at ``theta`` = (shift_x, shift_y, rotation rad,
+    magnification, width pitches): ``(G [2M, N], dG [5, 2M, N])``, px per input unit; the rule of
+    :func:`~torchblur.dm.shack_hartmann.mean_slopes` (a slope's mean is the difference of the
+    surface at the ends of each lit row), differentiated: ``d phi / d p = phi (u - p) / W^2``,
+    ``d phi / d W = phi |u - p|^2 / W^3`` at every row end u.
+
+    Args:
+        rows: ``((t, weight, lo, hi) of the x slopes, (...) of the y slopes)``, each ``[M, K]``
+            from :func:`~torchblur.dm.shack_hartmann.lit_rows` (the y slopes' on swapped centres).
+        actuator_xy: ``[N, 2]`` nominal positions (pitches).
+        slope_px: px per unit mean slope.
+    """
+    sx, sy, a, m, w = (float(v) for v in theta)
+    xy = np.asarray(actuator_xy, dtype=np.float64)
+    R = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+    dR = np.array([[-math.sin(a), -math.cos(a)], [math.cos(a), -math.sin(a)]])
+    p = m * xy @ R.T + np.array([sx, sy])  # [N, 2]
+    dp = np.stack([np.broadcast_to([1.0, 0.0], p.shape), np.broadcast_to([0.0, 1.0], p.shape), m * xy @ dR.T, xy @ R.T,
+                   np.zeros_like(p)])  # [5, N, 2] d p / d theta
+    dW = np.array([0.0, 0.0, 0.0, w, m])  # d (m w) / d theta
+    W = m * w
+    G, dG = [], []
+    for axis, (t, wt, lo, hi) in enumerate(rows):
+        area = np.maximum((wt * (hi - lo)).sum(-1), 1e-300)[:, None]
+        S = 0.0  # [4, M, N]: sums over the rows of weight * (phi, phi dx / W^2, phi dy / W^2, phi r^2 / W^3), hi end less lo end
+        for sign, e in ((1.0, hi), (-1.0, lo)):
+            u = np.stack([e, t], -1)[..., ::-1] if axis else np.stack([e, t], -1)  # [M, K, 2] row ends (x, y)
+            d = u[:, :, None, :] - p  # [M, K, N, 2]
+            r2 = (d * d).sum(-1)
+            wphi = wt[..., None] * np.exp(-r2 / (2 * W * W))  # [M, K, N]
+            S = S + sign * np.stack([wphi.sum(1), (wphi * d[..., 0]).sum(1) / W**2, (wphi * d[..., 1]).sum(1) / W**2,
+                                     (wphi * r2).sum(1) / W**3])
+        G.append(S[0] / area)
+        dG.append((S[1][None] * dp[:, None, :, 0] + S[2][None] * dp[:, None, :, 1] + S[3][None] * dW[:, None, None]) / area)
+    return slope_px * np.concatenate(G), slope_px * np.concatenate(dG, axis=1)
+
+
+def _whitened(D0, D0_std):
+    """``(B [S, N], weight [S, N], columns [N] bool)``: D0 / std where usable (0 elsewhere)."""
+    D0, std = np.asarray(D0, dtype=np.float64), np.asarray(D0_std, dtype=np.float64)
+    if D0.ndim != 2 or std.shape != D0.shape:
+        raise ShapeError(f"D0, D0_std: expected two [2M, N] arrays, got shapes {D0.shape} and {std.shape}")
+    good = np.isfinite(D0) & np.isfinite(std) & (std > 0)
+    wt = np.where(good, 1.0 / np.where(good, std, 1.0), 0.0)
+    return np.where(good, D0, 0.0) * wt, wt, good.sum(0) >= 2
+
+
+def _projected(theta, model, B, wt):
+    """Variable projection at ``theta``: ``(residual [S*N'], Jacobian [S*N', 5], gains [N'], dgain [N', 5])``."""
+    G, dG = model(theta)
+    A, dA = G * wt, dG * wt  # [S, N], [5, S, N]
+    aa = np.maximum((A * A).sum(0), 1e-300)
+    g = (A * B).sum(0) / aa
+    r = g * A - B
+    gdA = g * dA
+    J = gdA - A * ((A * gdA).sum(1) / aa)[:, None, :]  # [5, S, N], Kaufman
+    dg = ((dA * B).sum(1) - 2 * g * (A * dA).sum(1)) / aa  # [5, N]
+    return r.reshape(-1), J.reshape(5, -1).T, g, dg.T
+
+
+def fit_registration(D0, D0_std, wfs, actuator_xy, coupling: float, *, start: Registration | None = None) -> RegistrationFit:
+    """The registration that best explains the measured static columns (module docstring).
+
+    Args:
+        D0, D0_std: ``[2M, N]`` the measured static interaction matrix (px per input unit) and its
+            std (entries with std 0, NaN or a NaN value are left out: off a sparse plan's support).
+        wfs: the :class:`~torchblur.dm.shack_hartmann.ShackHartmann` sensor.
+        actuator_xy: ``[N, 2]`` nominal actuator positions (pitches).
+        coupling: the mirror's nominal coupling (the start's width).
+        start: where the fit starts (default: nominal).
+
+    Returns:
+        :class:`RegistrationFit`; never raises on data: a D0 that cannot constrain the
+        registration (fewer entries than unknowns, no usable column) gives ``ok=False`` and the
+        start's geometry.
+    """
+    xy = np.asarray(actuator_xy, dtype=np.float64)
+    start = Registration() if start is None else start
+    centres, R = wfs.centres, wfs.pupil_diameter / 2
+    rows = (lit_rows(centres, wfs.side, R, wfs.oversample), lit_rows(centres[:, ::-1], wfs.side, R, wfs.oversample))
+    B, wt, cols = _whitened(D0, D0_std)
+    if B.shape != (2 * wfs.n_valid, xy.shape[0]):
+        raise ShapeError(f"D0: expected [2M, N] = [{2 * wfs.n_valid}, {xy.shape[0]}], got {B.shape}")
+    theta0 = _theta(start, coupling)
+    sub = np.flatnonzero(cols)
+    n_entries = int((wt[:, sub] > 0).sum())
+    dof = n_entries - sub.size - 5
+    full = lambda th: registration_model(th, rows, xy, wfs.slope_px)  # noqa: E731
+    if sub.size == 0 or dof < 1:
+        return _failed(start, theta0, full, xy.shape[0], f"{n_entries} usable D0 entries over {sub.size} columns: fewer than the "
+                                                         f"unknowns", n_entries, int(sub.size))
+    part = lambda th: tuple(a[..., sub] for a in full(th))  # noqa: E731
+    cache = {}
+
+    def proj(th):
+        key = th.tobytes()
+        if key not in cache:
+            cache.clear()
+            cache[key] = _projected(th, part, B[:, sub], wt[:, sub])
+        return cache[key]
+
+    try:
+        sol = optimize.least_squares(lambda th: proj(th)[0], theta0, jac=lambda th: proj(th)[1], method="lm", x_scale="jac",
+                                     xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
+    except ValueError as exc:  # a residual that is not finite (a width driven to 0)
+        return _failed(start, theta0, full, xy.shape[0], f"the fit failed ({exc})", n_entries, int(sub.size))
+    r, J, g_sub, dg = proj(sol.x)
+    if not (np.isfinite(sol.x).all() and sol.x[3] > 0 and sol.x[4] > 0 and np.isfinite(r).all()):
+        return _failed(start, theta0, full, xy.shape[0], f"the fit left the model's domain ({sol.message})", n_entries, int(sub.size))
+    chi2 = float(r @ r)
+    red = chi2 / dof
+    try:
+        cov = np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        cov = np.full((5, 5), np.nan)
+    if not (np.isfinite(cov).all() and np.all(np.diag(cov) > 0)):
+        return _failed(start, theta0, full, xy.shape[0], "D0 does not determine the registration (singular information matrix)",
+                       n_entries, int(sub.size))
+    inflated = red > 1
+    cov = cov * max(1.0, red)
+    gain = np.full(xy.shape[0], np.nan)
+    gain[sub] = g_sub
+    gvar = np.zeros(xy.shape[0])
+    gvar[sub] = np.einsum("jk,kl,jl->j", dg, cov, dg)
+    G, dG = full(sol.x)
+    G_std = np.sqrt(np.abs(np.einsum("ksj,kl,lsj->sj", dG, cov, dG)))
+    return RegistrationFit(registration=_from_theta(sol.x), std=_stds(sol.x, cov), cov=cov, chi2=chi2, dof=int(dof),
+                           reduced_chi2=float(red), inflated=bool(inflated), G=G, G_std=G_std, gain=gain, gain_var_registration=gvar,
+                           ok=True, message=str(sol.message), n_entries=n_entries, n_columns=int(sub.size))
+
+
+def _stds(theta, cov) -> dict:
+    sd = np.sqrt(np.abs(np.diag(cov)))
+    w = float(theta[4])
+    c = math.exp(-1.0 / (2 * w * w))
+    return {"shift_x": float(sd[0]), "shift_y": float(sd[1]), "rotation_deg": math.degrees(float(sd[2])), "magnification": float(sd[3]),
+            "coupling": float(c / w**3 * sd[4]), "influence_width": float(sd[4])}
+
+
+def _failed(start, theta0, model, N, why, n_entries, n_columns) -> RegistrationFit:
+    nan = {k: math.nan for k, _ in PARAMETERS} | {"influence_width": math.nan}
+    return RegistrationFit(registration=_from_theta(theta0) if start.coupling is None else start, std=nan, cov=np.full((5, 5), np.nan),
+                           chi2=math.nan, dof=0, reduced_chi2=math.nan, inflated=False, G=model(theta0)[0],
+                           G_std=np.full_like(model(theta0)[0], np.nan), gain=np.full(N, np.nan),
+                           gain_var_registration=np.zeros(N), ok=False, message=why, n_entries=n_entries, n_columns=n_columns)
+
+
+def with_registration_stds(table, fit: RegistrationFit):
+    """``table`` (an :class:`~torchblur.dm.actuator_fit.ActuatorTable` fitted on ``fit.G``) with
+    each ``dc_gain_std`` grown by the registration's share ``sqrt(std^2 + gain_var_registration)``."""
+    if not fit.ok:
+        return table
+    return replace(table, dc_gain_std=np.sqrt(np.asarray(table.dc_gain_std) ** 2 + fit.gain_var_registration))
+
+
+def support_check(support, G, threshold: float, G_std=None) -> dict:
+    """The plan's support re-checked against the geometry ``G [2M, N]`` (the fitted one): the
+    (subaperture, actuator) pairs that :func:`~torchblur.dm.plans.seen_by` at ``threshold`` needs
+    and ``support [2M, N]`` lacks (the plan measured them as 0). With ``G_std [2M, N]`` (the
+    registration's uncertainty) a pair counts only when its spot motion exceeds the threshold by
+    more than 3 stds (``hypot`` of its x and y stds), so that a fit of the nominal mirror does not
+    flag the pairs that sit on the threshold. Returns ``{"missing": [[subaperture, actuator],
+    ...], "n_missing", "largest_missing_over_max", "threshold"}``."""
+    support = np.asarray(support, dtype=bool)
+    M = support.shape[0] // 2
+    length = np.hypot(G[:M], G[M:])
+    margin = 0.0 if G_std is None else 3.0 * np.hypot(G_std[:M], G_std[M:])
+    need = seen_by(G, threshold) & (length - margin > threshold * length.max())
+    miss = need & ~(support[:M] & support[M:])
+    worst = float(length[miss].max() / length.max()) if miss.any() else 0.0
+    return {"missing": np.argwhere(miss).tolist(), "n_missing": int(miss.sum()), "largest_missing_over_max": worst,
+            "threshold": float(threshold)}
+
+
+def write_registration_json(path, fit: RegistrationFit, support: dict | None = None) -> None:
+    """``registration.json``: the fitted registration, its stds and units, the fit's reduced chi2
+    and what ``dc_gain`` is relative to (``schema`` and ``schema_version``: :data:`REGISTRATION_SCHEMA`)."""
+    r = fit.registration
+    doc = {"schema": REGISTRATION_SCHEMA[0], "schema_version": REGISTRATION_SCHEMA[1][-1], "fitted": bool(fit.ok),
+           "message": fit.message, "units": dict(PARAMETERS) | {"influence_width": "actuator pitch"},
+           "registration": {k: getattr(r, k) for k, _ in PARAMETERS} | {"influence_width": influence_width(r.coupling)},
+           "std": {k: (v if math.isfinite(v) else None) for k, v in fit.std.items()},
+           "reduced_chi2": fit.reduced_chi2 if math.isfinite(fit.reduced_chi2) else None, "dof": fit.dof,
+           "stds_inflated_by_sqrt_reduced_chi2": bool(fit.inflated), "n_entries": fit.n_entries, "n_columns": fit.n_columns,
+           "frame": "sensor: p_j = magnification * R(rotation) x_j + shift, nominal actuator pitches, x right, y down, "
+                    "rotation +x toward +y",
+           "dc_gain_reference": DC_GAIN_REFERENCE if fit.ok else "dc_gain is relative to the nominal geometry (not fitted)",
+           "support_check": support}
+    Path(path).write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
+
+
+def read_registration_json(path) -> dict:
+    """``registration.json`` read back: the document with ``registration`` as a :class:`Registration`.
+
+    Raises:
+        ParameterError: naming ``path``, another schema or version, a missing or non-numeric parameter.
+    """
+    try:
+        doc = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as exc:
+        raise ParameterError(f"{path}: not a registration.json ({type(exc).__name__})") from None
+    if not isinstance(doc, dict) or doc.get("schema") != REGISTRATION_SCHEMA[0] or doc.get("schema_version") not in REGISTRATION_SCHEMA[1]:
+        raise ParameterError(f"{path}: expected schema {REGISTRATION_SCHEMA[0]} version in {REGISTRATION_SCHEMA[1]}")
+    reg = doc.get("registration")
+    try:
+        doc["registration"] = Registration(**{k: reg[k] for k, _ in PARAMETERS})
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ParameterError(f"{path}: registration: {exc}") from None
+    return doc
+
+
+def register_and_refit(freq_hz, D, D_cov, table, wfs, actuator_xy, coupling: float, *, support=None,
+                       threshold: float = 0.01):
+    """The run's step after :func:`~torchblur.dm.actuator_fit.fit_actuators` on the nominal G:
+    the registration fitted to ``table``'s static columns, the actuators fitted again on the
+    fitted G (so ``dc_gain`` is relative to the fitted registration's influence function, its
+    std with the registration's share) and the plan's ``support [2M, N]`` re-checked against the
+    fitted G (:func:`support_check`; None without a support).
+
+    Returns:
+        ``(table, fit, support_info)``: ``table`` unchanged when the fit did not run (``fit.ok`` False).
+    """
+    fit = fit_registration(table.static_column, table.static_column_std, wfs, actuator_xy, coupling)
+    if not fit.ok:
+        return table, fit, None
+    refit = fit_actuators(freq_hz, D, D_cov, fit.G, actuator_xy=table.actuator_xy)
+    info = None if support is None else support_check(support, fit.G, threshold, fit.G_std)
+    return with_registration_stds(refit, fit), fit, info
+
+
+def support_line(info: dict | None) -> str | None:
+    """The report's line on the plan's support against the fitted G (None: nothing missing)."""
+    if not info or not info["n_missing"]:
+        return None
+    pairs = ", ".join(f"s{m}/a{j}" for m, j in info["missing"][:8]) + (" ..." if info["n_missing"] > 8 else "")
+    return (f"dm plan support: the fitted geometry needs {info['n_missing']} (subaperture, actuator) pair(s) the plan measured as 0 "
+            f"({pairs}; largest {info['largest_missing_over_max'] * 100:.2f} % of the largest spot motion, threshold "
+            f"{info['threshold'] * 100:g} %): those D entries are biased; choose the plan again on the fitted geometry or use "
+            f"dm_plan.kind=hadamard")
