@@ -36,11 +36,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchblur.dm.actuator_fit import fit_actuators
 from torchblur.dm.budget import dm_geometry
-from torchblur.dm.demux import demultiplex
 from torchblur.dm.mirror import DeformableMirror
-from torchblur.dm.pipeline import DMResult, _calibrate, _fit_frequency, _fit_options, _spot_psf, check_dm_config, match_spots, run_cli
+from torchblur.dm.pipeline import (DMResult, _calibrate, _fit_frequency, _fit_options, _spot_psf, check_dm_config, estimate_mirror,
+                                    match_spots, run_cli)
 from torchblur.dm.plans import Plan, one_at_a_time_plan, plan_cost
 from torchblur.dm.record import PLAN_KEY, SWEEP_KIND, plan_support
 from torchblur.dm.shack_hartmann import ShackHartmann
@@ -379,7 +378,8 @@ def _refuse_saturated(rec: DMRecording, sat: SaturationCurve, dark) -> None:
 def identify_dm_recording(rec: DMRecording, cfg=None, *, progress: bool = False) -> DMResult:
     """Identify the mirror of the outside DM recording ``rec`` like a live run: its calibration
     (:func:`recording_calibration`), every frequency's pattern responses by the live run's spot
-    fitter, the demultiplexing and the actuator fit. Returns a :class:`~torchblur.dm.pipeline.DMResult`
+    fitter, the demultiplexing, the actuator fit and the mirror's registration
+    (:func:`~torchblur.dm.pipeline.estimate_mirror`). Returns a :class:`~torchblur.dm.pipeline.DMResult`
     (no simulated truth).
 
     Args:
@@ -408,12 +408,11 @@ def identify_dm_recording(rec: DMRecording, cfg=None, *, progress: bool = False)
     t["fit_wait"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     Y, Y_cov = np.stack([r[0] for r in res], -1), np.stack([r[1] for r in res], 2)
-    D, D_cov = demultiplex(Y, Y_cov, plan.patterns, plan.support)
-    table = fit_actuators(rec.freq_hz, D, D_cov, G, actuator_xy=mirror.actuator_xy)
+    D, D_cov, table, reg, support = estimate_mirror(cfg, np.asarray(rec.freq_hz), Y, Y_cov, plan, G, wfs, mirror.actuator_xy)
     t["estimation"] = time.perf_counter() - t0
     return DMResult(freq_hz=np.asarray(rec.freq_hz), plan=plan, n_repeats=rec.R, plan_info={"cost_ratio_to_one_at_a_time": ratio},
                     amplitude=np.asarray(rec.amplitude), power=np.asarray(rec.power), Y=Y, Y_cov=Y_cov, D=D, D_cov=D_cov, actuators=table,
-                    G=G, actuator_xy=mirror.actuator_xy, n_frames=int(sum(fr.shape[0] * fr.shape[1] for fr in rec.frames)),
+                    G=reg.G, G_nominal=G, registration=reg, support_check=support, actuator_xy=mirror.actuator_xy, n_frames=int(sum(fr.shape[0] * fr.shape[1] for fr in rec.frames)),
                     n_failed=sum(r[2] for r in res), timing_s=t, spot_reduced_chi2=np.stack([r[3] for r in res], -1), log=log)
 
 

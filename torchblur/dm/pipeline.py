@@ -48,7 +48,7 @@ from torchblur.dm.verdict import run_verdict, support_guard, truth_guard
 from torchblur.identify.config import IdentifyConfig
 from torchblur.identify.read_outputs import SUMMARY_SCHEMA
 
-__all__ = ["DM_DARK_FRAMES", "DM_STILL_FRAMES", "DMResult", "build_dm", "check_dm_config", "identify_dm", "match_spots", "next_amplitude",
+__all__ = ["DM_DARK_FRAMES", "DM_STILL_FRAMES", "DMResult", "build_dm", "check_dm_config", "estimate_mirror", "identify_dm", "match_spots", "next_amplitude",
            "nominal_growth", "registration_errors", "truth_errors"]
 
 _F64 = torch.float64
@@ -399,8 +399,6 @@ def check_dm_config(cfg) -> None:
 def _identify_dm(cfg, rig, exp, model_mirror, wfs, truth_rig, log, progress) -> DMResult:
     """:func:`identify_dm` once the rig and the recording are open (``truth_rig``: the simulated
     rig whose truth the result carries, or None)."""
-    from torchblur.dm.actuator_fit import fit_actuators
-    from torchblur.dm.demux import demultiplex
     from torchblur.dm.record import check_recorded_commands, run_plan
     from torchblur.identify.record import log_message
 
@@ -420,10 +418,7 @@ def _identify_dm(cfg, rig, exp, model_mirror, wfs, truth_rig, log, progress) -> 
     amps, powers, Y, Y_cov, failed, chi2, n_frames, t["acquisition"], t["fit_wait"] = _sweep(cfg, rig, plan, R, G, cal, psf, offset, size,
                                                                                          log, progress, exp)
     t0 = time.perf_counter()
-    D, D_cov = demultiplex(Y, Y_cov, plan.patterns, plan.support)
-    table = fit_actuators(freqs, D, D_cov, G, actuator_xy=model_mirror.actuator_xy)
-    table, reg, support = register_and_refit(freqs, D, D_cov, table, wfs, model_mirror.actuator_xy, float(cfg.dm.coupling),
-                                             support=plan.support, threshold=float(cfg.dm_plan.support_threshold))
+    D, D_cov, table, reg, support = estimate_mirror(cfg, freqs, Y, Y_cov, plan, G, wfs, model_mirror.actuator_xy)
     t["estimation"] = time.perf_counter() - t0
     if exp is not None:
         log_message(log, f"recording: {exp.stats['groups_written']} group(s) written ({exp.stats['write_s']:.2f} s), "
@@ -435,6 +430,22 @@ def _identify_dm(cfg, rig, exp, model_mirror, wfs, truth_rig, log, progress) -> 
                     G_nominal=G, registration=reg, support_check=support,
                     truth_G=truth_rig.geometry if truth_rig is not None else None,
                     truth_registration=truth_rig.registration if truth_rig is not None else None)
+
+
+def estimate_mirror(cfg, freqs, Y, Y_cov, plan, G, wfs, actuator_xy):
+    """Stage 4 (module docstring), one function for a live run and an outside recording: the
+    pattern responses ``Y [P, 2M, F]`` demultiplexed into ``D (jw)``, every actuator fitted on the
+    nominal ``G``, the mirror's registration fitted to D0 and the actuators fitted again on the
+    fitted G (:func:`~torchblur.dm.registration.register_and_refit`). Returns ``(D, D_cov, table,
+    registration, support_check)``."""
+    from torchblur.dm.actuator_fit import fit_actuators
+    from torchblur.dm.demux import demultiplex
+
+    D, D_cov = demultiplex(Y, Y_cov, plan.patterns, plan.support)
+    table = fit_actuators(freqs, D, D_cov, G, actuator_xy=actuator_xy)
+    table, reg, support = register_and_refit(freqs, D, D_cov, table, wfs, actuator_xy, float(cfg.dm.coupling),
+                                             support=plan.support, threshold=float(cfg.dm_plan.support_threshold))
+    return D, D_cov, table, reg, support
 
 
 def truth_errors(res: DMResult) -> dict | None:
