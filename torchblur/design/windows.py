@@ -16,16 +16,13 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from torchblur.render.alias import wrap_phase
+from torchblur.render.alias import MIN_SEPARATION, alias_separation, wrap_phase  # noqa: F401  (design names too)
 from torchblur.errors import InputTypeError, ParameterError, as_tensor, check_finite, check_positive
 from torchblur.render.window import ExposureWindow
 
 __all__ = ["DesignWarning", "dual_exposure_windows", "alias_separation", "check_design", "trigger_phase_for", "resolve_branches",
            "Continuity", "continuity_branches", "crossing_phase", "ANCHOR_STD_RAD", "CONTINUITY_Z", "MIN_SEPARATION"]
 
-#: alias_separation below this: the exposures of a point do not resolve the alias (one exposure, or centres that
-#: coincide mod half a period); :func:`check_design` warns and the continuity rule decides the branch
-MIN_SEPARATION = 0.2
 #: the continuity rule's std of the anchor (the phase expected at the sweep's lowest frequency), rad
 ANCHOR_STD_RAD = math.radians(10.0)
 #: the continuity rule decides a point only where its prediction lies this many of its stds from the branches' crossing
@@ -54,27 +51,6 @@ def dual_exposure_windows(omega, *, fractions=(0.3, 0.8), trigger_phase=math.pi 
     period = 2 * math.pi / omega
     start = (torch.remainder(b, 2 * math.pi) / omega)[..., None]
     return ExposureWindow(start.expand(start.shape[:-1] + fr.shape), period[..., None] * fr)
-
-
-def alias_separation(omega, window: ExposureWindow) -> torch.Tensor:
-    """How well the exposures of a point resolve the alias, ``[...]`` in [0, 1].
-
-    ``max_{i<j} |sin(c_i - c_j)|`` over window centres ``c = omega (tcam + Te/2)`` of the
-    last axis ``E`` (1: centres a quarter period apart, the best; 0: one exposure, or
-    centres that coincide mod half a period, which resolve nothing). Also 0 where an
-    exposure is a whole number of periods (that image carries no phase).
-    """
-    if not isinstance(window, ExposureWindow):
-        raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
-    omega = check_positive(as_tensor(omega, "omega", like=window.start), "omega")
-    c = omega[..., None] * window.center
-    p = omega[..., None] * window.duration
-    if c.shape[-1] < 2:
-        return torch.zeros(c.shape[:-1], dtype=c.dtype, device=c.device)
-    d = (c[..., :, None] - c[..., None, :]).sin().abs()
-    d = d.flatten(-2).amax(-1)
-    whole = (torch.sin(p / 2).abs() < 1e-3).any(-1)
-    return torch.where(whole, torch.zeros_like(d), d)
 
 
 def check_design(omega, window: ExposureWindow, *, min_separation: float = 0.2, warn: bool = True) -> list[str]:

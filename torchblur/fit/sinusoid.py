@@ -35,7 +35,7 @@ from torchblur.render.camera import CameraNoise
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.trajectory import Sinusoid
 from torchblur.render.window import ExposureWindow
-from torchblur.design.windows import MIN_SEPARATION, alias_separation
+from torchblur.render.alias import MIN_SEPARATION, alias_separation
 
 from torchblur.fit.status import (  # noqa: F401  (re-exported: torchblur.fit.sinusoid.STATUS, ...)
     DARK, FLAGS, MASKED, NO_MOTION, NO_PIXELS, NOT_CONVERGED, OUT_OF_FRAME, OUTLIERS_MASKED, PARTLY_OUT_OF_FRAME, SATURATED_MASKED,

@@ -13,7 +13,11 @@ import torch
 from torchblur.errors import InputTypeError, as_tensor, check_finite, check_positive
 from torchblur.render.window import ExposureWindow
 
-__all__ = ["alias_phase", "wrap_phase", "window_center_phase"]
+__all__ = ["MIN_SEPARATION", "alias_phase", "alias_separation", "wrap_phase", "window_center_phase"]
+
+#: alias_separation below this: the exposures of a point do not resolve the alias (one exposure, or centres that
+#: coincide mod half a period); :func:`torchblur.design.windows.check_design` warns and the continuity rule decides the branch
+MIN_SEPARATION = 0.2
 
 
 def wrap_phase(phase: torch.Tensor) -> torch.Tensor:
@@ -53,3 +57,24 @@ def alias_phase(phase, omega, window: ExposureWindow) -> torch.Tensor:
         raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
     phase = check_finite(as_tensor(phase, "phase", like=window.start), "phase")
     return wrap_phase(math.pi - 2 * window_center_phase(omega, window) - phase)
+
+
+def alias_separation(omega, window: ExposureWindow) -> torch.Tensor:
+    """How well the exposures of a point resolve the alias, ``[...]`` in [0, 1].
+
+    ``max_{i<j} |sin(c_i - c_j)|`` over window centres ``c = omega (tcam + Te/2)`` of the
+    last axis ``E`` (1: centres a quarter period apart, the best; 0: one exposure, or
+    centres that coincide mod half a period, which resolve nothing). Also 0 where an
+    exposure is a whole number of periods (that image carries no phase).
+    """
+    if not isinstance(window, ExposureWindow):
+        raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
+    omega = check_positive(as_tensor(omega, "omega", like=window.start), "omega")
+    c = omega[..., None] * window.center
+    p = omega[..., None] * window.duration
+    if c.shape[-1] < 2:
+        return torch.zeros(c.shape[:-1], dtype=c.dtype, device=c.device)
+    d = (c[..., :, None] - c[..., None, :]).sin().abs()
+    d = d.flatten(-2).amax(-1)
+    whole = (torch.sin(p / 2).abs() < 1e-3).any(-1)
+    return torch.where(whole, torch.zeros_like(d), d)
