@@ -17,7 +17,7 @@ the dead and weak actuators' status; the spot fits' reduced chi2 median; the ver
 code; the times. ``--quick``: 4 frequencies, one repeat (512 frames a case; the full plan is
 configs/identify_dm.yaml's 16 frequencies x 2 repeats, 4096 frames).
 
-    python benchmarks/bench_dm_hcipy.py --quick [--case aligned|misregistered|both|none]
+    python benchmarks/bench_dm_hcipy.py --quick [--case aligned|misregistered|both|none] [--psf auto|kernel|gaussian]
 
 First the generator's checks (batched FFT vs HCIPy's own forward, the time integral's node
 rule at the worst exposure, what thresholding the still frame finds).
@@ -38,7 +38,7 @@ import hcipy_sh as hs  # noqa: E402
 import hcipy_sh_rig as hr  # noqa: E402
 
 from torchblur.dm.pipeline import identify_dm  # noqa: E402
-from torchblur.dm.verdict import run_verdict, truth_guard  # noqa: E402
+from torchblur.dm.verdict import run_verdict, support_guard, truth_guard  # noqa: E402
 from torchblur.identify.config import load_config  # noqa: E402
 
 CASES = {"aligned": hs.SHOptics(),
@@ -114,8 +114,8 @@ def physics_checks() -> None:
     sys.stdout.flush()
 
 
-def run_case(name: str, quick: bool) -> None:
-    over = ["sweep.n=4", "dm_plan.budget_frames=512"] if quick else []
+def run_case(name: str, quick: bool, psf: str = "auto") -> None:
+    over = (["sweep.n=4", "dm_plan.budget_frames=512"] if quick else []) + [f"fit.psf={psf}"]
     cfg = load_config("configs/identify_dm.yaml", over)
     t0 = time.perf_counter()
     gen = hs.HcipySH(CASES[name])
@@ -131,9 +131,9 @@ def run_case(name: str, quick: bool) -> None:
 
         with open(f"{os.environ['BENCH_DM_HCIPY_SAVE']}_{name}.pkl", "wb") as fh:
             pickle.dump({"res": res, "truth": truth, "dyn": dyn, "cfg_poor_fit_chi2": float(cfg.fit.poor_fit_chi2)}, fh)
-    v = truth_guard(run_verdict(res, poor_fit_chi2=float(cfg.fit.poor_fit_chi2)), res)
+    v = support_guard(truth_guard(run_verdict(res, poor_fit_chi2=float(cfg.fit.poor_fit_chi2)), res), res.support_check)
     f = figures(res, truth, dyn)
-    print(f"== {name}: {gen.optics}")
+    print(f"== {name}: {gen.optics}; fit.psf={psf}")
     for line in res.log:
         if line.startswith(("spots:", "latency:", "dm plan:")):
             print("  " + line)
@@ -149,6 +149,8 @@ def run_case(name: str, quick: bool) -> None:
     print(f"  dead actuator status {f['dead_status']} (want dead), weak {f['weak_status']} (want weak), other live actuators not ok: "
           f"{f['other_not_ok']}")
     print(f"  spot fits' reduced chi2 median {f['spot_chi2_median']:.3g} (<= 1.2); poor_fit actuators {f['poor_fit_actuators']}")
+    if res.registration is not None:
+        print(f"  registration fitted to D0 (torchblur's mirror model, its own frame): {res.registration.line()}")
     print(f"  {v.line}")
     print(f"  exit {v.exit_code} (want 0)")
     sys.stdout.flush()
@@ -159,6 +161,8 @@ def main(argv=None) -> None:
     p.add_argument("--quick", action="store_true", help="4 frequencies, one repeat (512 frames per case)")
     p.add_argument("--case", choices=["aligned", "misregistered", "both", "none"], default="both",
                    help="none: only the generator's checks")
+    p.add_argument("--psf", choices=["auto", "kernel", "gaussian"], default="auto",
+                   help="fit.psf (auto: each spot's kernel where its Gaussian fails the still's test, as on a real camera)")
     args = p.parse_args(argv)
     import torch
     from threadpoolctl import threadpool_limits
@@ -168,7 +172,7 @@ def main(argv=None) -> None:
     with threadpool_limits(limits=1):
         physics_checks()
         for name in {"both": ["aligned", "misregistered"], "none": []}.get(args.case, [args.case]):
-            run_case(name, args.quick)
+            run_case(name, args.quick, args.psf)
 
 
 if __name__ == "__main__":
