@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import torch
 
+from torchblur._compat import median_along
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_finite, check_positive
 from torchblur.fit.losses import image_loss
 from torchblur.fit.optim import levenberg_marquardt
@@ -149,7 +150,7 @@ def _amplitude_start(images, cov_xx, center_x, amplitude_guess, batch, B: int) -
         return as_tensor(amplitude_guess, "amplitude_guess", like=images).expand(batch).reshape(B).abs().clamp_min(1e-3)
     H, W = images.shape[-2:]
     flat = images.reshape(B, H * W)
-    thr = flat.median(-1).values + 3 * (flat - flat.median(-1).values[:, None]).abs().median(-1).values * 1.4826
+    thr = median_along(flat) + 3 * median_along((flat - median_along(flat)[:, None]).abs()) * 1.4826
     _, cen, icov = image_moments(images.reshape(B, H, W), threshold=thr)
     ms = (icov[:, 0, 0] - cov_xx + (cen[:, 0] - center_x) ** 2).clamp_min(0.25)
     return (2 * ms).sqrt()

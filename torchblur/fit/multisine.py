@@ -24,6 +24,7 @@ from dataclasses import dataclass, field, replace
 
 import torch
 
+from torchblur._compat import median_along
 from torchblur.render.alias import wrap_phase
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, as_unit_direction, check_finite, check_positive
 from torchblur.fit.kernel_noise import kernel_noise_covariance
@@ -307,7 +308,7 @@ def _pixel_weight(noise_std, mask, flat: _Flat):
             except RuntimeError:
                 raise ShapeError(f"noise_std: expected a number, [...] or [..., E, H, W], got {tuple(s.shape)}") from None
         weight = 1 / s**2
-        noise_level = s.reshape(B, -1).contiguous().median(-1).values  # a stride-0 (expanded) median is garbage (torch 2.13)
+        noise_level = median_along(s.reshape(B, -1))
     if mask is not None:
         if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool:
             raise InputTypeError("mask: expected a bool tensor [..., E, H, W] (True = use the pixel)")
@@ -382,7 +383,7 @@ def _reweight_by_model(prob: _Problem, box, data, weight, theta, live, noise: Ca
     theta = theta.clone()
     theta[live] = res.theta
     cost, converged, n_iter, level = stats
-    cost[live], converged[live], level[live] = res.cost, res.converged, std.reshape(live.numel(), -1).median(-1).values
+    cost[live], converged[live], level[live] = res.cost, res.converged, median_along(std.reshape(live.numel(), -1))
     n_iter[live] += res.n_iter
     return prob, theta
 
@@ -392,8 +393,8 @@ def _levels(data: torch.Tensor, noise_level):
     (the given one, else the MAD), dark sets (peak below 8 noise stds), the moments' threshold."""
     B = data.shape[0]
     flat = data.reshape(B, -1)
-    med = flat.median(-1).values
-    mad = (flat - med[:, None]).abs().median(-1).values * 1.4826
+    med = median_along(flat)
+    mad = median_along((flat - med[:, None]).abs()) * 1.4826
     if noise_level is None:
         noise_level = mad
     peak = (flat - med[:, None]).amax(-1)

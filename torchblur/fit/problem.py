@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import torch
 
+from torchblur._compat import median_along
 from torchblur.fit.sine_model import ParamLayout
 from torchblur.image.moments import image_moments, moments_along, sinusoid_from_moments
 from torchblur.render.alias import wrap_phase
@@ -108,8 +109,8 @@ def sine_problem(data, psf, window: ExposureWindow, omega, direction, *, noise_s
     # selection per item).
     flat = data.reshape(N, -1)
     sub = flat[:, ::max(1, flat.shape[-1] // 1024)]
-    med = sub.median(-1).values
-    noise_level = sigma_level if sigma_level is not None else (sub - med[:, None]).abs().median(-1).values * 1.4826
+    med = median_along(sub)
+    noise_level = sigma_level if sigma_level is not None else median_along((sub - med[:, None]).abs()) * 1.4826
     peak = (flat - med[:, None]).amax(-1)
     dark = dark_items(data, med, noise_level, cov_psf, noise_given=noise_std is not None, peak=peak)
     dim = ~dark & ~(peak > 8 * noise_level.clamp_min(torch.finfo(dtype).tiny))
@@ -169,7 +170,7 @@ def dark_items(data, level, noise_level, psf_cov, *, noise_given: bool = True, p
         noise = noise_level[idx]
         if not noise_given:  # the candidates' noise again, from every pixel (a finer estimate)
             flat = data[idx].reshape(idx.numel(), -1)
-            noise = (flat - flat.median(-1, keepdim=True).values).abs().median(-1).values * 1.4826
+            noise = median_along((flat - median_along(flat, keepdim=True)).abs()) * 1.4826
         snr = matched_filter_peak(data[idx], psf_cov[idx]) / noise.clamp_min(tiny)
         t = statistics.NormalDist().inv_cdf(1 - false_alarm / (E * H * W))
         dark[idx] = ~(snr > t)
@@ -227,7 +228,7 @@ def _pixel_weights(data, noise_std, use):
     sigma_level = None
     if noise_std is not None:
         s = noise_std.reshape(N, 1, 1, 1) if noise_std.dim() == 1 else noise_std
-        sigma_level = s.reshape(N, -1).contiguous().median(-1).values
+        sigma_level = median_along(s.reshape(N, -1))
         if s.shape[-3:] == (1, 1, 1):
             row_weight = 1 / s.reshape(N) ** 2
             weight = row_weight[:, None, None, None].expand(N, E, H, W)

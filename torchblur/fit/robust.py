@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import torch
 
+from torchblur._compat import median_along
 from torchblur.render.psf import GaussianPSF
 
 __all__ = ["inpaint", "robust_scale", "impulses", "plane_fit", "plane_image"]
@@ -30,8 +31,8 @@ def inpaint(data: torch.Tensor, keep: torch.Tensor) -> torch.Tensor:
 def robust_scale(r: torch.Tensor, used: torch.Tensor) -> torch.Tensor:
     """``1.4826 MAD`` of the residuals ``r [n, E, H, W]`` over the used pixels, ``[n, 1, 1, 1]``."""
     x = torch.where(used, r, torch.full_like(r, float("nan"))).flatten(1)
-    med = x.nanmedian(-1, keepdim=True).values
-    mad = (x - med).abs().nanmedian(-1).values * 1.482602218505602
+    med = median_along(x, keepdim=True, ignore_nan=True)
+    mad = median_along((x - med).abs(), ignore_nan=True) * 1.482602218505602
     return torch.nan_to_num(mad, nan=0.0).clamp_min(torch.finfo(r.dtype).tiny)[:, None, None, None]
 
 

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import torch
 
+from torchblur._compat import median_along
 from torchblur.errors import InputTypeError, ShapeError, as_image, check_finite, check_real_scalar
 
 __all__ = ["DarkFrame", "dark_frame", "subtract_dark", "robust_std"]
@@ -20,8 +21,8 @@ def robust_std(x: torch.Tensor, dim: int) -> torch.Tensor:
     """``1.4826 * median(|x - median(x)|)`` over the (flattened) trailing ``dim`` dims: the
     std of Gaussian data, unmoved by a few outliers (hot pixels, the spot)."""
     flat = x.flatten(-dim) if dim > 1 else x
-    med = flat.median(-1, keepdim=True).values
-    return _MAD_TO_STD * (flat - med).abs().median(-1).values
+    med = median_along(flat, keepdim=True)
+    return _MAD_TO_STD * median_along((flat - med).abs())
 
 
 @dataclass
@@ -78,7 +79,7 @@ def dark_frame(frames, *, k: float = 8.0) -> DarkFrame:
     mean = f.mean(-3)
     resid = (f - mean[..., None, :, :]) * math.sqrt(N / (N - 1))
     read_noise = robust_std(resid, 3)
-    level = mean.flatten(-2).median(-1).values
+    level = median_along(mean.flatten(-2))
     spread = torch.maximum(robust_std(mean, 2), read_noise / math.sqrt(N))
     spread = spread.clamp_min(torch.finfo(f.dtype).eps * (level.abs() + 1))
     hot = mean > (level + k * spread)[..., None, None]

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import torch
 import torch.autograd.forward_ad as fwAD
 
+from torchblur._compat import median_along
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_image, as_tensor, broadcast_batch, check_bool, check_int, check_positive
 from torchblur.fit.optim import levenberg_marquardt
 from torchblur.image.dark import _MAD_TO_STD
@@ -336,11 +337,11 @@ def _psf_start(data, used, expo, H, W, fit_background):
         edge = torch.zeros(H, W, dtype=torch.bool, device=img.device)
         edge[0, :] = edge[-1, :] = edge[:, 0] = edge[:, -1] = True
         ev = torch.where(u & edge, img, nan).reshape(N, -1)
-        bg = torch.where(torch.isnan(ev).all(-1), vals.nanmedian(-1).values, ev.nanmedian(-1).values)
+        bg = torch.where(torch.isnan(ev).all(-1), median_along(vals, ignore_nan=True), median_along(ev, ignore_nan=True))
     else:
         bg = torch.zeros(N, dtype=dtype, device=img.device)
     sig = img - bg[:, None, None]
-    noise = _MAD_TO_STD * (vals - bg[:, None]).abs().nanmedian(-1).values
+    noise = _MAD_TO_STD * median_along((vals - bg[:, None]).abs(), ignore_nan=True)
     peak = torch.where(u, sig, torch.full_like(sig, -float("inf"))).amax((-1, -2))
     thr = torch.maximum(0.02 * peak, 3 * noise)
     total, centroid, cov = image_moments(torch.where(u, sig, torch.zeros_like(sig)), threshold=thr)
