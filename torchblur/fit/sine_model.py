@@ -230,15 +230,7 @@ class SineModel:
                                             kernel=self.psf.kernel[n[r], :h, :wd][:, None].expand(-1, E, h, wd), pad=pd)
             img[r, :, :h, :wd] = i
             J[r, :2 * K, :, :h, :wd] = dj.transpose(1, 2)  # [rows, 2K, E, h, w]: amplitudes then phases, as theta
-        model = img
-        if L.fit_scale:
-            J.mul_(theta[:, L.scale, None, None, None, None])
-            J[:, L.scale] = img
-            model = model * theta[:, L.scale, None, None, None]
-        if L.fit_background:
-            model = model + theta[:, L.background, None, None, None]
-            J[:, L.background] = 1
-        return model.reshape(m, -1), J.reshape(m, theta.shape[1], E * H * W).transpose(1, 2)
+        return self._nuisance_with_jacobian(img, J, theta)
 
     def image(self, theta: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
         """Model ``[m, E * H * W]`` of rows ``theta [m, P]`` of problems ``n [m]`` (the splat's
@@ -260,7 +252,7 @@ class SineModel:
             return self._kernel_image_and_jacobian(theta, n)
         if not self.analytic:
             return model_jacobian(self.rendered, theta, n)
-        L, H, W = self.layout, self.height, self.width
+        H, W = self.height, self.width
         rows, P = theta.shape
         pc = self.panels[n]  # [rows, E]
         E = pc.shape[-1]
@@ -281,15 +273,7 @@ class SineModel:
                 img[r_f, e_f], dimg = self.frames(theta[r_f], n[r_f], e_f, u)
                 for j_theta, j_splat in self._splat_columns():
                     J[r_f, j_theta, e_f] = dimg[:, j_splat]
-        model = img
-        if L.fit_scale:
-            J.mul_(theta[:, L.scale, None, None, None, None])
-            J[:, L.scale] = img
-            model = model * theta[:, L.scale, None, None, None]
-        if L.fit_background:
-            model = model + theta[:, L.background, None, None, None]
-            J[:, L.background] = 1
-        return model.reshape(rows, -1), J.reshape(rows, P, E * H * W).transpose(1, 2)
+        return self._nuisance_with_jacobian(img, J, theta)
 
     def frames(self, theta_f: torch.Tensor, n_f: torch.Tensor, e_f: torch.Tensor, n_panels: int, *, jacobian: bool = True):
         """Image ``[m, H, W]`` and splat Jacobian ``[m, Q, H, W]`` (``Q = 2 n_axes (+ 2)``: the
@@ -317,6 +301,19 @@ class SineModel:
         if L.fit_center:
             out.append((slice(L.center, L.center + 2), slice(k2, k2 + 2)))
         return out
+
+    def _nuisance_with_jacobian(self, img: torch.Tensor, J: torch.Tensor, theta: torch.Tensor):
+        """:meth:`_nuisance` with its Jacobian: ``img [m, E, H, W]`` and the splat's ``J [m, P,
+        E, H, W]`` (its scale and background columns filled here, in place) -> ``(model [m, R],
+        J [m, R, P])``."""
+        L = self.layout
+        m, P = J.shape[:2]
+        if L.fit_scale:
+            J.mul_(theta[:, L.scale, None, None, None, None])
+            J[:, L.scale] = img
+        if L.fit_background:
+            J[:, L.background] = 1
+        return self._nuisance(img, theta).reshape(m, -1), J.reshape(m, P, -1).transpose(1, 2)
 
     def _nuisance(self, img: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
         """``img [m, E, H, W]`` times the fitted scale, plus the fitted background."""
