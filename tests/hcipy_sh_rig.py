@@ -21,9 +21,9 @@ import numpy as np
 import torch
 
 import hcipy_sh as hs
-from torchblur.errors import ShapeError, check_int, check_real_scalar
+from torchblur.errors import ShapeError, check_real_scalar
 from torchblur.render.camera import CameraModel
-from torchblur.rig.base import Capture, PatternSines, check_drive, float_list, per_exposure
+from torchblur.rig.base import Capture, PatternSines, check_drive, float_list
 from torchblur.rig.simulated import SimulatedRig
 from torchblur.systems.lti import Plant
 
@@ -53,6 +53,9 @@ class HcipyDMRig(PatternSines, SimulatedRig):
         return {"mode_hz": d.mode_hz, "damping": d.damping, "gain": d.gain, "delay_s": d.delay_s,
                 "D0": self._slopes * d.gain[None, :], "shift_slopes": self._slopes}
 
+    def _settling_time_s(self) -> float:
+        return self.settling_time_s()
+
     def settling_time_s(self, tol: float = 1e-7) -> float:
         d = self.dynamics
         return float(np.max(-math.log(tol) / (d.damping * 2 * np.pi * d.mode_hz)))
@@ -75,14 +78,8 @@ class HcipyDMRig(PatternSines, SimulatedRig):
         amp = check_real_scalar(amplitude, "amplitude")
         check_drive(float(np.abs(amp * p).max()), self._input_limit)
         power = self._check_power(power)
-        R = check_int(n_repeats, "n_repeats", low=1)
-        te = [self._check_exposure(v, "exposures_s") for v in float_list(exposures_s, "exposures_s")]
-        offsets = [check_real_scalar(v, "trigger_offset_s") for v in per_exposure(trigger_offset_s, len(te), "trigger_offset_s")]
         period = 1.0 / freq
-        if settle_s is None:
-            settle_s = math.ceil(self.settling_time_s() / period - 1e-9) * period
-        settle, trig_t, exp_t, off_t = self._schedule(period, te, offsets, R, settle_s)
-        window = self._actual_starts(trig_t, exp_t)
+        te, R, settle, trig_t, exp_t, off_t, window = self._triggers(period, exposures_s, trigger_offset_s, n_repeats, settle_s)
         omega = 2 * math.pi * freq
         h = self.dynamics.response(freq) * amp * p  # [N] complex surface command
         motion = np.abs(self._slopes @ h)  # [2M] px amplitude per axis (linear prediction)

@@ -31,14 +31,14 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from torchblur.errors import InputTypeError, ParameterError, ShapeError, check_int, check_real_scalar
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, check_real_scalar
 from torchblur.image.spots import SpotLayout
 from torchblur.render.blur import render_blur
 from torchblur.render.camera import CameraModel
 from torchblur.render.psf import GaussianPSF
 from torchblur.render.trajectory import Sinusoid
 from torchblur.render.window import ExposureWindow
-from torchblur.rig.base import Capture, PatternSines, float_list, per_exposure
+from torchblur.rig.base import Capture, PatternSines, float_list
 from torchblur.rig.simulated import SimulatedRig
 from torchblur.systems.lti import Plant
 from torchblur.dm.mirror import DeformableMirror
@@ -189,6 +189,10 @@ class SimulatedDMRig(PatternSines, SimulatedRig):
 
     # ------------------------------------------------------------------ commands
 
+    def _settling_time_s(self) -> float:
+        """The slowest actuator's settling time (s): the default wait before the first trigger."""
+        return self._mirror.settling_time_s()
+
     def pattern_sine(self, pattern, freq_hz: float, amplitude: float, exposures_s: Sequence[float],
                      trigger_offset_s: float | Sequence[float], n_repeats: int, settle_s: float | None = None,
                      power: float = 1.0) -> Capture:
@@ -211,14 +215,8 @@ class SimulatedDMRig(PatternSines, SimulatedRig):
         """
         p, freq, amp, a_px, ph = self._pattern_motion(pattern, freq_hz, amplitude)
         power = self._check_power(power)
-        R = check_int(n_repeats, "n_repeats", low=1)
-        te = [self._check_exposure(v, "exposures_s") for v in float_list(exposures_s, "exposures_s")]
-        offsets = [check_real_scalar(v, "trigger_offset_s") for v in per_exposure(trigger_offset_s, len(te), "trigger_offset_s")]
         period = 1.0 / freq
-        if settle_s is None:
-            settle_s = math.ceil(self._mirror.settling_time_s() / period - 1e-9) * period
-        settle, trig_t, exp_t, off_t = self._schedule(period, te, offsets, R, settle_s)
-        window = self._actual_starts(trig_t, exp_t)
+        te, R, settle, trig_t, exp_t, off_t, window = self._triggers(period, exposures_s, trigger_offset_s, n_repeats, settle_s)
         flat = ExposureWindow(window.start.reshape(-1), window.duration.reshape(-1))
         omega = 2 * math.pi * freq
         expected = self._render_spots(torch.as_tensor(a_px), torch.as_tensor(ph), omega, flat, power)

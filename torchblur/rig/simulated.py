@@ -383,13 +383,28 @@ class SimulatedRig:
             expected = expected + self._render(traj, psf if psf.shape == () else psf[k], window)
         return self._expose(expected)
 
+    def _settling_time_s(self) -> float:
+        """How long the command's transient lasts (s): the plant's settling time (a DM rig: its
+        slowest actuator's). The default wait of :meth:`_schedule`."""
+        return self._plant.settling_time_s()
+
+    def _triggers(self, period: float, exposures_s, trigger_offset_s, n_repeats: int, settle_s):
+        """The checked exposures, trigger offsets and repeats of a periodic command and their
+        schedule: ``(te [E], R, settle_s, trigger times [E, R], exposures [E, R], offsets [E, R],
+        window)``, ``window`` the frames' actual exposure windows (:meth:`_actual_starts`)."""
+        R = check_int(n_repeats, "n_repeats", low=1)
+        te = [self._check_exposure(v, "exposures_s") for v in float_list(exposures_s, "exposures_s")]
+        offsets = [check_real_scalar(v, "trigger_offset_s") for v in per_exposure(trigger_offset_s, len(te), "trigger_offset_s")]
+        settle, trig_t, exp_t, off_t = self._schedule(period, te, offsets, R, settle_s)
+        return te, R, settle, trig_t, exp_t, off_t, self._actual_starts(trig_t, exp_t)
+
     def _schedule(self, period: float, te: list, offsets: list, R: int, settle_s):
         """The triggers of a periodic command: ``R`` frames per exposure ``te[e]``, each fired
         ``offsets[e]`` after a period start, the first after the settling wait and each once
         the camera is ready. Returns ``(settle_s, trigger times [E, R], exposures [E, R],
         offsets within the period [E, R])``."""
         if settle_s is None:
-            settle = math.ceil(self._plant.settling_time_s() / period - 1e-9) * period
+            settle = math.ceil(self._settling_time_s() / period - 1e-9) * period
         else:
             settle = check_real_scalar(settle_s, "settle_s", nonnegative=True)
         E = len(te)
@@ -478,14 +493,9 @@ class SimulatedRig:
         check_drive(amp, self._input_limit)
         check_slew(abs(amp) * 2 * math.pi * freq, self._slew_limit)
         power = self._check_power(power)
-        R = check_int(n_repeats, "n_repeats", low=1)
-        te = [self._check_exposure(v, "exposures_s") for v in float_list(exposures_s, "exposures_s")]
-        E = len(te)
-        offsets = [check_real_scalar(v, "trigger_offset_s") for v in per_exposure(trigger_offset_s, E, "trigger_offset_s")]
         period = 1.0 / freq
-        settle, trig_t, exp_t, off_t = self._schedule(period, te, offsets, R, settle_s)
-
-        window = self._actual_starts(trig_t, exp_t)
+        te, R, settle, trig_t, exp_t, off_t, window = self._triggers(period, exposures_s, trigger_offset_s, n_repeats, settle_s)
+        E = len(te)
         omega = 2 * math.pi * freq
         psf = self._psf if power == 1.0 else GaussianPSF(self._psf.center, self._psf.cov, self._psf.amplitude * power)
         flat = ExposureWindow(window.start.reshape(-1), window.duration.reshape(-1))
