@@ -27,7 +27,7 @@ from torchblur.dm.plans import choose_plan
 from torchblur.dm.shack_hartmann import ShackHartmann
 
 __all__ = ["DM_DARK_FRAMES", "DM_STILL_FRAMES", "STILL_BYTES", "check_dm_exposures", "dm_geometry", "dm_plan", "dm_still_frames",
-           "dm_sweep_size"]
+           "dm_sweep_size", "dm_sensor"]
 
 # The DM run's stds are small (0.03 % on a DC gain): each spot's PSF, fitted from the still frames
 # and held fixed, and the dark mean subtracted from every frame must be known better than that.
@@ -52,7 +52,7 @@ def dm_still_frames(sweep_frames: int, frame_shape) -> int:
     return int(min(cap, max(DM_STILL_FRAMES, -(-int(sweep_frames) // 4))))
 
 
-def _sensor(cfg) -> tuple[DeformableMirror, ShackHartmann]:
+def dm_sensor(cfg) -> tuple[DeformableMirror, ShackHartmann]:
     """The nominal mirror (geometry only: no actuator table) and the sensor of a DM config."""
     mirror = DeformableMirror.from_config(replace(cfg.dm, actuator_table=None), seed=int(cfg.seed))
     return mirror, ShackHartmann.from_config(cfg.wfs, mirror)
@@ -81,7 +81,7 @@ def dm_geometry(cfg) -> np.ndarray:
     """The nominal geometry matrix G ``[2M, N]`` (px per input unit) of a DM config (``dm``
     geometry and ``wfs``; the dynamics and the actuator table play no part). A new array each call."""
     def compute():
-        mirror, wfs = _sensor(cfg)
+        mirror, wfs = dm_sensor(cfg)
         return wfs.geometry_matrix(mirror)
 
     return _memo(("G", _geometry_key(cfg)), compute).copy()
@@ -118,7 +118,7 @@ def dm_sweep_size(cfg) -> dict:
     except ParameterError as exc:
         raise ConfigError(str(exc)) from None
     frames = plan.n_frames(len(cfg.frequencies_hz()), len(cfg.sweep.exposures), R)
-    shape = tuple(int(v) for v in _sensor(cfg)[1].frame_shape)
+    shape = tuple(int(v) for v in dm_sensor(cfg)[1].frame_shape)
     return {"frames": frames, "patterns": plan.n_patterns, "repeats": R, "frame_shape": shape}
 
 

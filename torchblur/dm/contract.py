@@ -14,11 +14,9 @@ Units at this interface: seconds, Hz, the command in the rig's input units (what
 """
 from __future__ import annotations
 
-import math
-
 from typing import Protocol, Sequence, runtime_checkable
 
-from torchblur.dm.budget import dm_geometry
+from torchblur.dm.budget import dm_geometry, dm_sensor
 from torchblur.errors import ConfigError, InputTypeError
 from torchblur.rig.base import Capture
 
@@ -129,7 +127,7 @@ def check_dm_rig(rig, cfg) -> None:
         raise ConfigError(f"dm.n_across: the config's mirror ({cfg.dm.n_across} across) has {want} actuators inside the pupil, "
                           f"the rig's {n}; describe the rig's mirror in the dm section")
     shape = tuple(int(v) for v in rig.frame_shape)
-    sensor = (int(math.ceil(int(cfg.wfs.n_across) * float(cfg.wfs.pitch_px))),) * 2  # ShackHartmann.frame_shape
+    sensor = tuple(dm_sensor(cfg)[1].frame_shape)
     if shape != sensor:
         raise ConfigError(f"wfs.pitch_px: the sensor of the config (wfs.n_across {cfg.wfs.n_across} x wfs.pitch_px "
                           f"{cfg.wfs.pitch_px:g}) has {sensor[0]}x{sensor[1]} px frames, the rig's camera {shape[0]}x{shape[1]}; "

@@ -36,8 +36,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchblur.dm.budget import dm_geometry
-from torchblur.dm.mirror import DeformableMirror
+from torchblur.dm.budget import dm_geometry, dm_sensor
 from torchblur.dm.pipeline import (DMResult, _calibrate, _fit_frequency, _fit_options, _spot_psf, check_dm_config, estimate_mirror,
                                     match_spots, run_cli)
 from torchblur.dm.plans import Plan, one_at_a_time_plan, plan_cost
@@ -261,12 +260,6 @@ def read_dm_recording(path) -> DMRecording:
 # ---------------------------------------------------------------------- the run
 
 
-def _sensor(cfg) -> tuple[DeformableMirror, ShackHartmann]:
-    """The nominal mirror (its geometry: the actuator table plays no part) and the sensor of ``cfg``."""
-    mirror = DeformableMirror.from_config(replace(cfg.dm, actuator_table=None), seed=int(cfg.seed))
-    return mirror, ShackHartmann.from_config(cfg.wfs, mirror)
-
-
 def dm_recording_config(rec: DMRecording, overrides=()):
     """The DM config that fits ``rec``: the defaults with the ``fit.*`` / ``model.*`` /
     ``report.*`` ``overrides`` (and ``seed``, ``camera.gain_from``), the sensor layout, the
@@ -299,7 +292,7 @@ def dm_recording_config(rec: DMRecording, overrides=()):
     except ConfigError as exc:
         raise RecordingError(f"{YAML_NAME}: {exc}") from None
     cfg = replace(cfg, rig=replace(cfg.rig, kind="outside"))
-    N, shape = dm_geometry(cfg).shape[1], _sensor(cfg)[1].frame_shape
+    N, shape = dm_geometry(cfg).shape[1], dm_sensor(cfg)[1].frame_shape
     if rec.patterns.shape[1] != N:
         raise RecordingError(f"{PATTERNS_NAME} line 1: {rec.patterns.shape[1]} actuators (a0..), the mirror of {YAML_NAME} (dm.n_across "
                              f"{lay.dm.n_across}) has {N} inside the pupil")
@@ -391,7 +384,7 @@ def identify_dm_recording(rec: DMRecording, cfg=None, *, progress: bool = False)
     check_dm_config(cfg)
     log, t = [], {}
     t0 = time.perf_counter()
-    mirror, wfs = _sensor(cfg)
+    mirror, wfs = dm_sensor(cfg)
     G = dm_geometry(cfg)
     cal, psf, offset, size = recording_calibration(rec, cfg, wfs, log, progress)
     t["calibration"], t["acquisition"] = time.perf_counter() - t0, 0.0
@@ -498,7 +491,7 @@ def export_dm_recording(run, folder) -> Path:
     doc = exp.meta.get(PLAN_KEY)
     if not cfg.dm.enabled or doc is None:
         raise RecordingError(f"{exp.path}: not a DM run's recording with its plan ({PLAN_KEY})")
-    cal = _calibrate(cfg, ReplayRig(exp), _sensor(cfg)[1], [], False, exp)[0]
+    cal = _calibrate(cfg, ReplayRig(exp), dm_sensor(cfg)[1], [], False, exp)[0]
     (_, _, dark), (_, args, still) = exp.load_calls( "dark")[0], exp.load_calls( "psf")[0]
     keys = sorted(k for k in exp.groups if exp.groups[k][0].get("kind") == SWEEP_KIND)
     if not keys:
