@@ -38,7 +38,7 @@ import hcipy_sh as hs  # noqa: E402
 import hcipy_sh_rig as hr  # noqa: E402
 
 from torchblur.dm.pipeline import identify_dm  # noqa: E402
-from torchblur.dm.verdict import run_verdict, support_guard, truth_guard  # noqa: E402
+from torchblur.dm.verdict import final_verdict  # noqa: E402
 from torchblur.identify.config import load_config  # noqa: E402
 
 CASES = {"aligned": hs.SHOptics(),
@@ -131,7 +131,7 @@ def run_case(name: str, quick: bool, psf: str = "auto") -> None:
 
         with open(f"{os.environ['BENCH_DM_HCIPY_SAVE']}_{name}.pkl", "wb") as fh:
             pickle.dump({"res": res, "truth": truth, "dyn": dyn, "cfg_poor_fit_chi2": float(cfg.fit.poor_fit_chi2)}, fh)
-    v = support_guard(truth_guard(run_verdict(res, poor_fit_chi2=float(cfg.fit.poor_fit_chi2)), res), res.support_check)
+    v = final_verdict(res, float(cfg.fit.poor_fit_chi2))
     f = figures(res, truth, dyn)
     print(f"== {name}: {gen.optics}; fit.psf={psf}")
     for line in res.log:

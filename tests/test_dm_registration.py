@@ -148,3 +148,29 @@ def test_simulated_mirror_takes_the_registration_from_the_config():
                      ("dm.registration.coupling=1.5", "dm.registration.coupling"), ("dm.registration.tilt=1", "dm.registration.tilt")):
         with pytest.raises(ConfigError, match=key):
             load_config(None, base + [bad], force=True)
+
+
+def test_a_mirror_the_model_does_not_describe_is_flagged_by_the_model_rule():
+    """Influence functions the model's Gaussian does not describe (here each subaperture's
+    slopes distorted by up to 20 %): the registration's reduced chi2 fails the one model rule,
+    its report line says its stds do not hold, and the DM verdict is not trustworthy; a mirror
+    the model does describe passes and leaves the verdict alone."""
+    from dataclasses import replace as dc_replace
+
+    from torchblur.dm.verdict import DMVerdict, registration_guard
+
+    mirror, wfs = _small()
+    rng = np.random.default_rng(1)
+    G = wfs.geometry_matrix(mirror, registration=MISREG)
+    M = G.shape[0] // 2
+    distort = np.tile(1 + 0.2 * np.cos(np.arange(M)), 2)[:, None]
+    good = fit_registration(*_noisy_D0(G, np.ones(12), rng), wfs, mirror.actuator_xy, coupling=0.15)
+    bad = fit_registration(*_noisy_D0(G * distort, np.ones(12), rng), wfs, mirror.actuator_xy, coupling=0.15)
+    assert good.ok and bad.ok and good.reduced_chi2 < 2 < bad.reduced_chi2
+    assert "fails the model rule" in bad.line() and "fails the model rule" not in good.line()
+    v = DMVerdict(line="verdict: trustworthy", trustworthy=True, exit_code=0, actuators=12, flagged=(), poor_fit=(), failed=(),
+                  ok=tuple(range(12)), weak=(), dead=(), failed_spot_fits=0, spot_problems=0, max_reduced_chi2=None)
+    assert registration_guard(v, good) is v
+    flagged = registration_guard(v, bad)
+    assert not flagged.trustworthy and flagged.exit_code == 4 and "does not explain D0" in flagged.line
+    assert registration_guard(v, dc_replace(bad, ok=False)) is v  # not fitted: the nominal geometry, said by its own line

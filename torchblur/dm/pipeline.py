@@ -44,7 +44,7 @@ from torchblur.dm.registration import (DC_GAIN_REFERENCE, Registration, Registra
                                        write_registration_json)
 from torchblur.dm.rig import SimulatedDMRig
 from torchblur.dm.shack_hartmann import ShackHartmann
-from torchblur.dm.verdict import run_verdict, support_guard, truth_guard
+from torchblur.dm.verdict import final_verdict
 from torchblur.identify.config import IdentifyConfig
 from torchblur.identify.read_outputs import SUMMARY_SCHEMA
 
@@ -539,7 +539,7 @@ def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False, record=None
         cfg, rig, quiet, record=out / "experiment" if record is None else record, base_dir=base_dir)
     elapsed = time.perf_counter() - t0
     _write_dm_outputs(res, out, figures=cfg.report.figures)
-    v = support_guard(truth_guard(run_verdict(res, poor_fit_chi2=float(cfg.fit.poor_fit_chi2)), res), res.support_check)
+    v = final_verdict(res, float(cfg.fit.poor_fit_chi2))
     report = _report(res, elapsed) + "".join(f"{line}\n" for line in (*v.details, v.line))  # the verdict line last
     (out / "report.txt").write_text("\n".join(res.log) + "\n" + report)
     print(report, end="", file=sys.stderr if as_json else sys.stdout, flush=True)

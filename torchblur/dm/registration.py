@@ -40,11 +40,12 @@ from pathlib import Path
 import numpy as np
 from scipy import optimize
 
-from torchblur.errors import ConfigError, ParameterError, ShapeError, check_real_scalar
 from torchblur.dm.actuator_fit import fit_actuators
 from torchblur.dm.mirror import influence_width
 from torchblur.dm.plans import seen_by
 from torchblur.dm.shack_hartmann import lit_rows
+from torchblur.errors import ConfigError, ParameterError, ShapeError, check_real_scalar
+from torchblur.sysid.model_check import model_chi2_limit, model_fails
 
 __all__ = ["Registration", "RegistrationFit", "fit_registration", "register_and_refit", "registration_model", "support_check",
            "support_line", "with_registration_stds",
@@ -154,8 +155,15 @@ class RegistrationFit:
         return (f"dm registration (fitted to D0): shift x {r.shift_x:+.4f} +- {s['shift_x']:.4f}, y {r.shift_y:+.4f} +- "
                 f"{s['shift_y']:.4f} actuator pitches, rotation {r.rotation_deg:+.3f} +- {s['rotation_deg']:.3f} deg, magnification "
                 f"{r.magnification:.5f} +- {s['magnification']:.5f}, coupling {r.coupling:.4f} +- {s['coupling']:.4f}; reduced chi2 "
-                f"{self.reduced_chi2:.3g}{' (stds inflated by its square root)' if self.inflated else ''}; dc_gain is relative to "
-                f"the fitted registration's influence function")
+                f"{self.reduced_chi2:.3g}{' (stds inflated by its square root)' if self.inflated else ''}{self._judged()}; dc_gain "
+                f"is relative to the fitted registration's influence function")
+
+    def _judged(self) -> str:
+        """The one model rule's word on this fit: empty when it passes."""
+        if not model_fails(self.reduced_chi2, self.dof):
+            return ""
+        return (f"; the mirror model fails the model rule (limit {model_chi2_limit(self.dof):.3g}): these stds and dc_gain's "
+                f"reference do not hold")
 
 
 def _theta(reg: Registration, coupling: float) -> np.ndarray:

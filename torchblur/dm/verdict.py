@@ -45,8 +45,9 @@ from torchblur.dm.actuator_fit import POOR_FIT_P, ActuatorTable
 from torchblur.dm.registration import support_line
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, check_int
 from torchblur.identify.verdict import EXIT_FLAGGED, TRUTH_BOUND, listed
+from torchblur.sysid.model_check import model_chi2_limit, model_fails
 
-__all__ = ["DMVerdict", "dm_verdict", "failed_actuators", "lost_fraction", "run_verdict", "truth_guard", "truth_disagreement_dm", "support_guard",
+__all__ = ["DMVerdict", "dm_verdict", "failed_actuators", "lost_fraction", "run_verdict", "truth_guard", "truth_disagreement_dm", "support_guard", "registration_guard", "final_verdict",
            "LOST_FRACTION", "POOR_SPOT_FRACTION"]
 
 #: an actuator whose column ``D[:, j, :]`` has more than this fraction of its entries (on its
@@ -292,3 +293,24 @@ def support_guard(v, info: dict | None):
         return v
     return replace(v, line=f"{v.line}; the plan's support lacks {info['n_missing']} pair(s) the fitted geometry needs: not trustworthy",
                    trustworthy=False, exit_code=EXIT_FLAGGED, details=(*v.details, line))
+
+
+def registration_guard(v, reg):
+    """The DM verdict ``v`` made untrustworthy when the mirror model fails the one model rule
+    (:func:`~torchblur.sysid.model_check.model_fails`) on the static columns it was registered to:
+    its registration's stds and the reference ``dc_gain`` is relative to do not hold (a mirror
+    whose influence functions the model's Gaussian does not describe); else ``v``."""
+    if reg is None or not reg.ok or not model_fails(reg.reduced_chi2, reg.dof):
+        return v
+    line = (f"dm registration: the mirror model does not explain D0 (reduced chi2 {reg.reduced_chi2:.3g} over {reg.dof} dof, "
+            f"limit {model_chi2_limit(reg.dof):.3g}): the registration's stds and dc_gain's reference do not hold")
+    return replace(v, line=f"{v.line}; the mirror model does not explain D0 (registration reduced chi2 {reg.reduced_chi2:.3g}): "
+                           f"not trustworthy", trustworthy=False, exit_code=EXIT_FLAGGED, details=(*v.details, line))
+
+
+def final_verdict(res, poor_fit_chi2: float):
+    """A DM run's verdict with every guard: :func:`run_verdict`, then :func:`truth_guard`,
+    :func:`support_guard` and :func:`registration_guard` (one place for the run, a re-fit and
+    an outside recording)."""
+    v = truth_guard(run_verdict(res, poor_fit_chi2=poor_fit_chi2), res)
+    return registration_guard(support_guard(v, res.support_check), res.registration)
