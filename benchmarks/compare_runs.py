@@ -2,7 +2,7 @@
 
     python benchmarks/compare_runs.py RUN_A RUN_B [--rtol 1e-12]
 
-Reads every ``*.csv`` and ``*.json`` in both folders (the recording under experiment/ left out) (a run's frf.csv, frf.json,
+Reads every ``*.csv``, ``*.json`` and ``*.npy`` in both folders (the recording under experiment/ left out) (a run's frf.csv, frf.json,
 model.json, actuators.csv, registration.json, ...), and compares them value by value: numbers within
 ``rtol`` of the larger magnitude (or both within ``atol`` of zero), everything else equal. Keys that
 hold the clock (elapsed times, dates, stamps) are skipped. Prints one line per file with the
@@ -78,6 +78,9 @@ def compare_values(a, b, where: str, rtol: float, atol: float, out: list) -> flo
 def _read(path: Path):
     if path.suffix == ".json":
         return json.loads(path.read_text())
+    if path.suffix == ".npy":
+        import numpy as np
+        return np.load(path, allow_pickle=False).tolist()
     with path.open(newline="") as fh:
         rows = list(csv.reader(fh))
     if rows and rows[0]:
@@ -88,7 +91,7 @@ def _read(path: Path):
 
 def compare_runs(run_a: Path, run_b: Path, rtol: float = 1e-12, atol: float = 1e-300) -> int:
     names = sorted({str(p.relative_to(d)) for d in (run_a, run_b) for p in d.rglob("*")
-                    if p.is_file() and p.suffix in (".csv", ".json")
+                    if p.is_file() and p.suffix in (".csv", ".json", ".npy")
                     and "experiment" not in p.relative_to(d).parts})
     failed = 0
     for name in names:
