@@ -20,8 +20,8 @@ import torch
 
 from torchblur._compat import median_along
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_finite, check_positive
-from torchblur.fit.losses import image_loss
-from torchblur.fit.optim import levenberg_marquardt
+from torchblur.losses import image_loss
+from torchblur.optim import levenberg_marquardt
 from torchblur.image.moments import image_moments
 from torchblur.render.alias import wrap_phase
 from torchblur.render.blur import RenderSettings, choose_node_count, quadrature_nodes

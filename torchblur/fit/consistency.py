@@ -18,7 +18,7 @@ import torch
 from torch import nn
 
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_choice, check_finite
-from torchblur.fit.losses import LOSSES, image_loss
+from torchblur.losses import LOSSES, image_loss
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.blur import BlurRenderer
 from torchblur.render.window import ExposureWindow

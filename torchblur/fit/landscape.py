@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 
 from torchblur.errors import InputTypeError, ShapeError, as_tensor, check_choice, check_finite, check_positive
-from torchblur.fit.losses import LOSSES, image_loss
+from torchblur.losses import LOSSES, image_loss
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.blur import RenderSettings, render_blur
 from torchblur.render.window import ExposureWindow
@@ -31,7 +31,7 @@ def cost_landscape(images, psf, window: ExposureWindow, omega, amplitude, phase,
         omega: rad/s, a number or a 0-d tensor.
         amplitude: ``[A]`` amplitudes (px); phase: ``[P]`` phases (rad).
         axis: ``"x"`` or ``"y"``: the direction of the motion.
-        losses: names from :data:`torchblur.fit.losses.LOSSES` (``"l2"``, ``"l1"``, ``"linf"``,
+        losses: names from :data:`torchblur.losses.LOSSES` (``"l2"``, ``"l1"``, ``"linf"``,
             ``"poisson"``).
         weight: optional per-pixel weights ``[E, H, W]`` (``1 / sigma^2``; 0 masks a pixel).
         settings: renderer settings (default: the renderer's).

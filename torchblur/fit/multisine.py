@@ -13,7 +13,7 @@ The parameter vector of one image set is ``theta = (M_1..M_N, phi_1..phi_N[, sca
 :func:`fit_multisine` fits every unknown of an image set at once: starts from the image
 centroids (linear in ``M_k e^{j phi_k}``: exact with 2N or more images) and from a batch of
 phase vectors whose cost is evaluated in one render, the best few refined together by
-batched Levenberg-Marquardt (:func:`~torchblur.fit.optim.levenberg_marquardt`, Jacobians by
+batched Levenberg-Marquardt (:func:`~torchblur.optim.levenberg_marquardt`, Jacobians by
 forward AD); uncertainties from the Fisher information at the solution.
 """
 from __future__ import annotations
@@ -28,9 +28,9 @@ from torchblur._compat import median_along
 from torchblur.render.alias import wrap_phase
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, as_unit_direction, check_finite, check_positive
 from torchblur.fit.kernel_noise import kernel_noise_covariance
-from torchblur.fit.losses import image_loss
+from torchblur.losses import image_loss
 from torchblur.image.moments import image_moments, moments_along
-from torchblur.fit.optim import levenberg_marquardt, model_jacobian
+from torchblur.optim import levenberg_marquardt, model_jacobian
 from torchblur.fit.problem import _nonzero_box
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.camera import CameraNoise

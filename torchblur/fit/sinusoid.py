@@ -22,8 +22,8 @@ import torch
 
 from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_tensor, as_unit_direction, check_choice, check_finite,
                               check_positive, check_real_scalar)
-from torchblur.fit.losses import LOSSES, covariance_factor, image_loss, irls_weights, loss_weight
-from torchblur.fit.optim import levenberg_marquardt
+from torchblur.losses import LOSSES, covariance_factor, image_loss, irls_weights, loss_weight
+from torchblur.optim import LMResult, levenberg_marquardt
 from torchblur.fit.problem import SineProblem, crop_to_reach, sine_problem, starting_points
 from torchblur.fit.results import SinusoidFit, put_items
 from torchblur.fit.robust import impulses, inpaint, plane_fit, plane_image, robust_scale
@@ -298,7 +298,7 @@ def _resolve_alias(model: SineModel, problem: SineProblem, layout: ParamLayout, 
 def _uncertainty(model: SineModel, problem: SineProblem, sol: _Solution, target, o: _FitOptions, reuse: bool):
     """The covariance of the estimates at the solution: ``(covariance [N, P, P], singular [N],
     noise std used [N], model [N, R], chi2 [N])``, from the Fisher information ``F = J^T diag(1 / sigma^2) J``
-    of the loss's noise model, times :func:`~torchblur.fit.losses.covariance_factor`:
+    of the loss's noise model, times :func:`~torchblur.losses.covariance_factor`:
 
     - l2: ``F^-1``, ``sigma`` the given noise, else one std per item estimated from the
       residuals (the pixels the crop cut off included);
@@ -430,8 +430,6 @@ def _optimise(model: SineModel, items, theta0, data, weight, o: _FitOptions):
     ``data [n, R]`` with pixel weights ``weight [n, R]``: Levenberg-Marquardt on the model's
     image and Jacobian (on the analytic path the Jacobian is cheap and comes with every
     trial point), Adam or L-BFGS on the rendered model by autograd."""
-    from torchblur.fit.optim import LMResult
-
     loss, max_iter = o.loss, o.max_iter
 
     def model_fn(theta, i):
@@ -555,7 +553,7 @@ def noise_terms(images: torch.Tensor, noise_std, noise: CameraNoise | None):
     ``noise.std`` of the first fit's model, :func:`_reweight_by_model`), else None. ``shift``:
     poisson's read-noise shift, ``noise.poisson_shift_e`` (0 without ``noise``: the images are
     pure counts).
-    Every loss weighs by it as :mod:`torchblur.fit.losses` says (l2 ``1 / sigma^2``, l1 and linf
+    Every loss weighs by it as :mod:`torchblur.losses` says (l2 ``1 / sigma^2``, l1 and linf
     ``1 / sigma``, poisson the shifted Poisson's own variance).
     """
     if noise is None:
@@ -904,7 +902,7 @@ def fit_sinusoid(
             along that direction (``[...]``) and the parameters are named ``amplitude_u``,
             ``phase_u``.
         optimizer: ``"lm"`` (batched Levenberg-Marquardt, default), ``"adam"``, ``"lbfgs"``.
-        loss: ``"l2"`` (default), ``"l1"``, ``"linf"`` (adam/lbfgs only), ``"poisson"``: see :mod:`torchblur.fit.losses`.
+        loss: ``"l2"`` (default), ``"l1"``, ``"linf"`` (adam/lbfgs only), ``"poisson"``: see :mod:`torchblur.losses`.
         noise_std: pixel noise std: a number, ``[...]`` or ``[..., E, H, W]``; None: from ``noise`` (a refit
             weighted by ``noise.std`` of a first fit's model: unbiased, :func:`_reweight_by_model`), else the
             l2 fit is unweighted and the noise is estimated from the residuals.
