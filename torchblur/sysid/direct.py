@@ -70,7 +70,7 @@ from torchblur.render.trajectory import Sinusoid
 from torchblur.render.window import ExposureWindow
 from torchblur.sysid.alias_resolution import AliasResolution, resolve_alias_with_model
 from torchblur.sysid.direct_doc import DIRECT_SCHEMA, DIRECT_SCHEMA_VERSION, DIRECT_UNITS, direct_fields_from_dict
-from torchblur.sysid.frequency_response import MAX_FILE_BYTES
+from torchblur.sysid.frequency_response_io import MAX_FILE_BYTES
 from torchblur.sysid.parametric import _poles_zeros, _response, _Structure, _structure_from_tf
 from torchblur.sysid.tf_fit import TransferFunctionFit
 

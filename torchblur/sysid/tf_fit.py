@@ -71,7 +71,8 @@ import scipy.optimize
 
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_frequency_grid, check_bool, check_int
 from torchblur.files import excerpt, read_bounded
-from torchblur.sysid.frequency_response import MAX_FILE_BYTES, FrequencyResponse, control_names
+from torchblur.sysid.frequency_response import FrequencyResponse, control_names
+from torchblur.sysid.frequency_response_io import MAX_FILE_BYTES
 
 __all__ = ["fit_transfer_function", "TransferFunctionFit"]
 
