@@ -803,7 +803,7 @@ def fit_multisine(
     M0 = _amplitude_start(flat, amplitude_guess, thr)
     g = torch.Generator(device="cpu").manual_seed(int(seed))
     theta_c = _starts(flat, M0, thr, phase_guess, n_starts, g, fit_scale)
-    K, P = theta_c.shape[1:]
+    K = theta_c.shape[1]
     prob, crop = _problem(flat, weight, theta_c, render_settings, _kernel_variance(kernel_var, flat))
     live = torch.arange(B, device=flat.data.device)[~dark]
     theta_best, cost_best, conv_best, iters_best, R_, retried = _search_all(
@@ -812,7 +812,20 @@ def fit_multisine(
     if pw is not None and live.numel():
         prob, theta_best = _reweight_by_model(prob, crop, flat.data, weight, _canonical(theta_best, N), live, noise, pw,
                                               (cost_best, conv_best, iters_best, noise_level), max_iter=max_iter, tol=tol)
-    theta_best = _canonical(theta_best, N)
+    search = {"starts": K, "refined": R_, "crop": crop, "retried": retried}
+    return _multisine_result(prob, _canonical(theta_best, N), (cost_best, conv_best, iters_best), live, dark, noise_level,
+                             sigma_given, fit_scale, batch, search)
+
+
+def _multisine_result(prob, theta_best, best, live, dark, noise_level, sigma_given: bool, fit_scale: bool, batch: tuple,
+                      search: dict) -> MultisineFit:
+    """The :class:`MultisineFit` (batch shape ``batch``) of the best parameters ``theta_best
+    [B, P]`` (canonical) with their ``best = (cost [B], converged [B], iterations [B])``: the
+    Fisher covariance, status and flags; NaN where ``dark [B]``; ``search`` (starts, refined,
+    crop, retried [B]) goes into ``extras``."""
+    cost_best, conv_best, iters_best = best
+    N = (theta_best.shape[-1] - int(fit_scale)) // 2
+    P = theta_best.shape[-1]
     cov_out, sigma_used, singular, kcov = _fisher(prob, theta_best, live, noise_level if sigma_given else None)
     std = torch.diagonal(cov_out, dim1=-2, dim2=-1).clamp_min(0).sqrt()
     red_chi2 = _reduced_chi2(prob, cost_best)
@@ -837,7 +850,8 @@ def fit_multisine(
         n_iter=out(iters_best),
         scale=out(torch.where(dark, nan, theta_best[:, 2 * N])) if fit_scale else None,
     )
-    res.extras.update({"nodes": prob.settings.nodes, "starts": K, "refined": R_, "crop": crop, "retried": out(retried),
-                       "reduced_chi2": out(red_chi2)} | ({} if kcov is None else {"kernel_covariance": out(kcov, (P, P))}))
+    res.extras.update({"nodes": prob.settings.nodes, "starts": search["starts"], "refined": search["refined"],
+                       "crop": search["crop"], "retried": out(search["retried"]), "reduced_chi2": out(red_chi2)}
+                      | ({} if kcov is None else {"kernel_covariance": out(kcov, (P, P))}))
     res.flags = out(flag_poor_fit(None, red_chi2 if sigma_given else torch.full_like(red_chi2, float("nan"))))
     return res

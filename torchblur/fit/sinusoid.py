@@ -522,9 +522,10 @@ def _check_flag(value, name: str) -> bool:
     return value
 
 
-def _check_options(*, fit_scale, fit_background, fit_center, fit_gradient, normalize, outliers, outlier_sigma, max_iter, tol,
-                   render_settings):
-    """Check :func:`fit_sinusoid`'s options; ``(outlier_sigma, tol)`` as floats."""
+def _check_options(*, optimizer, loss, fit_scale, fit_background, fit_center, fit_gradient, normalize, outliers, outlier_sigma,
+                   max_iter, tol, render_settings) -> tuple[_FitOptions, float]:
+    """Check :func:`fit_sinusoid`'s options (``optimizer`` and ``loss`` are checked by
+    ``_validate``): ``(the pass settings without the noise's shift, outlier_sigma)``."""
     for name, v in (("fit_scale", fit_scale), ("fit_background", fit_background), ("fit_center", fit_center), ("fit_gradient", fit_gradient),
                     ("normalize", normalize)):
         _check_flag(v, name)
@@ -540,7 +541,8 @@ def _check_options(*, fit_scale, fit_background, fit_center, fit_gradient, norma
     tol = check_real_scalar(tol, "tol", nonnegative=True)
     if render_settings is not None and not isinstance(render_settings, RenderSettings):
         raise InputTypeError(f"render_settings: expected a RenderSettings or None, got {type(render_settings).__name__}")
-    return outlier_sigma, tol
+    return _FitOptions(optimizer=optimizer, loss=loss, fit_scale=fit_scale, fit_background=fit_background, fit_center=fit_center,
+                       normalize=normalize, max_iter=max_iter, tol=tol, render_settings=render_settings), outlier_sigma
 
 
 def noise_terms(images: torch.Tensor, noise_std, noise: CameraNoise | None):
@@ -861,28 +863,10 @@ def _light_in_frame(res: SinusoidFit, inp: _FlatInputs, fit_center: bool, n_t: i
 
 
 def fit_sinusoid(
-    images,
-    psf,
-    window: ExposureWindow,
-    omega,
-    *,
-    axes="x",
-    optimizer: str = "lm",
-    loss: str = "l2",
-    noise_std=None,
-    noise: CameraNoise | None = None,
-    mask=None,
-    saturation_level=None,
-    outliers: str = "none",
-    outlier_sigma: float = 5.0,
-    fit_scale: bool = False,
-    fit_background: bool = False,
-    fit_center: bool = False,
-    fit_gradient: bool = False,
-    normalize: bool = False,
-    max_iter: int | None = None,
-    tol: float = 1e-9,
-    render_settings: RenderSettings | None = None,
+    images, psf, window: ExposureWindow, omega, *, axes="x", optimizer: str = "lm", loss: str = "l2", noise_std=None,
+    noise: CameraNoise | None = None, mask=None, saturation_level=None, outliers: str = "none", outlier_sigma: float = 5.0,
+    fit_scale: bool = False, fit_background: bool = False, fit_center: bool = False, fit_gradient: bool = False,
+    normalize: bool = False, max_iter: int | None = None, tol: float = 1e-9, render_settings: RenderSettings | None = None,
 ) -> SinusoidFit:
     """Fit ``y(t) = M sin(omega t + phi)`` to blurred images of a moving spot.
 
@@ -934,9 +918,8 @@ def fit_sinusoid(
         render_settings: renderer settings; the node count is fixed for the whole fit
             (default: panels of 3.5 PSF widths, model error < 1e-6 of the peak).
 
-    dtype: the fit computes in, and returns, the widest floating dtype of ``images``, the PSF and the window, at least
-    float32 (:func:`fit_dtype`): float16/bfloat16 and integer images are promoted, float32 images with a float64 PSF or
-    window give a float64 fit; ``omega``, ``noise_std`` and ``saturation_level`` are converted to it.
+    dtype: the fit computes in, and returns, :func:`fit_dtype` (float16/bfloat16 and integer images are promoted,
+    float32 images with a float64 PSF or window give a float64 fit); ``omega``, ``noise_std`` and ``saturation_level`` too.
 
     Returns:
         :class:`SinusoidFit`. Degenerate items are flagged, never raised, and do not change
@@ -952,11 +935,10 @@ def fit_sinusoid(
         >>> bad = (fit.flags & PARTLY_OUT_OF_FRAME) != 0
     """
     images, psf, window, omega = _validate(images, psf, window, omega, axes, optimizer, loss)
-    outlier_sigma, tol = _check_options(fit_scale=fit_scale, fit_background=fit_background, fit_center=fit_center,
-                                        fit_gradient=fit_gradient, normalize=normalize, outliers=outliers, outlier_sigma=outlier_sigma,
-                                        max_iter=max_iter, tol=tol, render_settings=render_settings)
+    options, outlier_sigma = _check_options(optimizer=optimizer, loss=loss, fit_scale=fit_scale, fit_background=fit_background,
+                                            fit_center=fit_center, fit_gradient=fit_gradient, normalize=normalize, outliers=outliers,
+                                            outlier_sigma=outlier_sigma, max_iter=max_iter, tol=tol, render_settings=render_settings)
     inp = _flat_inputs(images, psf, window, omega, axes, noise_std, mask, saturation_level, noise)
-    options = _FitOptions(optimizer=optimizer, loss=loss, fit_scale=fit_scale, fit_background=fit_background, fit_center=fit_center,
-                          normalize=normalize, max_iter=max_iter, tol=tol, render_settings=render_settings, shift=inp.shift)
+    options = replace(options, shift=inp.shift)
     inp, res, rejected, plane, passes = _robust_fit(inp, options, outliers, outlier_sigma, fit_gradient)
     return _finish(res, inp, options, rejected, plane, passes, batch=images.shape[:-3])
