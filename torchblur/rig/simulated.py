@@ -29,7 +29,7 @@ import torch
 
 from torchblur.render.camera import CameraModel
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_finite, check_int, check_real_scalar
-from torchblur.systems.lti import LTISineTrajectory, Plant
+from torchblur.systems.lti import LTIMultisineTrajectory, LTISineTrajectory, Plant
 from torchblur.systems.mimo import MIMOSineTrajectory, PlantMatrix
 from torchblur.render.psf import GaussianPSF
 from torchblur.render.blur import RenderSettings, choose_node_count, render_blur
@@ -616,7 +616,7 @@ class SimulatedRig:
         tone), so the command repeats every ``T0 = 1 / base_freq_hz`` and a frame's trigger is
         at ``k T0 + trigger_offset_s`` (the first such time at or after the camera is ready,
         as :meth:`sine` with ``T0`` for the period). The image is the exact plant output
-        (:class:`~torchblur.design.multisine.LTIMultisineTrajectory`, transients included).
+        (:class:`~torchblur.systems.lti.LTIMultisineTrajectory`, transients included).
 
         Args:
             freq_hz, amplitude, phase_rad: the N tones (Hz, command units, rad).
@@ -633,8 +633,6 @@ class SimulatedRig:
         ``meta`` holds the tones, ``base_freq_hz``, ``period_s``, ``settle_s``, ``power``,
         ``trigger_delay_s`` and, for tests only, ``actual_start_s`` ``[E, R]``.
         """
-        from torchblur.design.multisine import LTIMultisineTrajectory
-
         freqs = float_list(freq_hz, "freq_hz")
         N = len(freqs)
         amps = float_list(amplitude, "amplitude")
