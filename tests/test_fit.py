@@ -256,7 +256,7 @@ def test_merged_panel_groups_are_the_cheapest_partition():
     sorted distinct counts into consecutive groups, and never gives a frame fewer panels."""
     import itertools
 
-    from torchblur.fit.sinusoid import _merge_panel_groups
+    from torchblur.fit.sine_model import _merge_panel_groups
 
     g = torch.Generator().manual_seed(3)
     for trial in range(40):

@@ -5,7 +5,7 @@ changes of this session remove; the lead empties it at merge."""
 import re
 from pathlib import Path
 
-from import_graph import cycles, edges_with_place
+from import_graph import cycles, edges_with_place, imported
 
 # From the bottom; a unit is a subpackage (torchblur.X.*) or a top-level module (torchblur.X);
 # "torchblur" is the package's __init__. A module may import its own layer or below.
@@ -87,11 +87,13 @@ def test_every_unit_has_a_layer():
     assert units - set(LAYER) == set()
 
 
-def test_the_checks_see_what_they_look_for():
+def test_the_checks_see_what_they_look_for(tmp_path):
     """Each rule fires on an example: an upward edge, a cycle, an import inside a function."""
     assert _upward("render -> fit") and not _upward("fit -> render") and not _upward("torchblur -> render")
     assert cycles({"fit": {"image"}, "image": {"fit"}}) == [["fit", "image"]]
-    assert "torchblur.image.spots" in _in_function()["torchblur.rig.simulated"]
+    src = tmp_path / "m.py"
+    src.write_text("import torchblur.errors\n\ndef f():\n    from torchblur.render import psf\n")
+    assert imported("torchblur.x.m", src) == {"torchblur.errors": False, "torchblur.render": True, "torchblur.render.psf": True}
 
 
 def test_no_upward_edge():

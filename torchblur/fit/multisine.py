@@ -25,7 +25,7 @@ from dataclasses import dataclass, field, replace
 import torch
 
 from torchblur._compat import median_along
-from torchblur.render.alias import wrap_phase
+from torchblur.render.alias import canonical_sines, wrap_phase
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, as_unit_direction, check_finite, check_positive
 from torchblur.fit.kernel_noise import kernel_noise_covariance
 from torchblur.losses import image_loss
@@ -653,14 +653,6 @@ def _wide_starts(M0, best, theta_c, N: int, n_starts: int, g: torch.Generator, f
     return c2
 
 
-def _canonical(theta: torch.Tensor, N: int) -> torch.Tensor:
-    """``theta [B, P]`` in place with ``M >= 0`` (a negative M is a phase shift of pi) and the phases wrapped."""
-    neg = theta[:, :N] < 0
-    theta[:, :N] = theta[:, :N].abs()
-    theta[:, N:2 * N] = wrap_phase(theta[:, N:2 * N] + math.pi * neg)
-    return theta
-
-
 def _fisher(prob: _Problem, theta, live, noise_level):
     """Inverse Fisher information at the solution -> ``(covariance [B, P, P], noise std used [B],
     singular [B], kernel term [B, P, P] or None)`` (NaN for sets not live). With ``noise_level``
@@ -810,10 +802,10 @@ def fit_multisine(
         prob, theta_c, live, M0, sigma_given=sigma_given, n_starts=n_starts, n_refine=n_refine, fit_scale=fit_scale, g=g,
         max_iter=max_iter, tol=tol)
     if pw is not None and live.numel():
-        prob, theta_best = _reweight_by_model(prob, crop, flat.data, weight, _canonical(theta_best, N), live, noise, pw,
+        prob, theta_best = _reweight_by_model(prob, crop, flat.data, weight, canonical_sines(theta_best, N), live, noise, pw,
                                               (cost_best, conv_best, iters_best, noise_level), max_iter=max_iter, tol=tol)
     search = {"starts": K, "refined": R_, "crop": crop, "retried": retried}
-    return _multisine_result(prob, _canonical(theta_best, N), (cost_best, conv_best, iters_best), live, dark, noise_level,
+    return _multisine_result(prob, canonical_sines(theta_best, N), (cost_best, conv_best, iters_best), live, dark, noise_level,
                              sigma_given, fit_scale, batch, search)
 
 

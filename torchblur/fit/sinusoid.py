@@ -27,9 +27,9 @@ from torchblur.optim import LMResult, levenberg_marquardt
 from torchblur.fit.problem import SineProblem, crop_to_reach, sine_problem, starting_points
 from torchblur.fit.results import SinusoidFit, put_items
 from torchblur.fit.robust import impulses, inpaint, plane_fit, plane_image, robust_scale
-from torchblur.fit.sine_model import _CALL_NODE_PIXELS, ParamLayout, SineModel, _merge_panel_groups, sine_model  # noqa: F401
+from torchblur.fit.sine_model import ParamLayout, SineModel, sine_model
 from torchblur.render.alias import alias_phase as _alias_phase
-from torchblur.render.alias import wrap_phase
+from torchblur.render.alias import canonical_sines
 from torchblur.render.blur import RenderSettings, panel_count, render_blur
 from torchblur.render.camera import CameraNoise
 from torchblur.render.psf import GaussianPSF, KernelPSF
@@ -48,10 +48,6 @@ __all__ = ["SinusoidFit", "fit_sinusoid", "STATUS", "FLAGS", "MASKED", "SATURATE
 OPTIMIZERS = ("lm", "adam", "lbfgs")
 AXES = ("x", "y", "xy")
 OUTLIERS = ("none", "reject")
-
-# Old private names, kept importable from here.
-_put = put_items
-_inpaint, _robust_scale, _impulses, _plane_fit, _plane_image = inpaint, robust_scale, impulses, plane_fit, plane_image
 
 
 def fit_dtype(images: torch.Tensor, psf, window: ExposureWindow) -> torch.dtype:
@@ -228,16 +224,6 @@ def _refine_candidates(model: SineModel, problem: SineProblem, theta0, K: int, t
     return out
 
 
-def _canonical(theta: torch.Tensor, layout: ParamLayout) -> torch.Tensor:
-    """``theta [..., P]`` in canonical form: ``(-M, phi)`` -> ``(M, phi + pi)``, phases wrapped."""
-    t = theta.clone()
-    n = layout.n_axes
-    neg = t[..., :n] < 0
-    t[..., :n] = t[..., :n].abs()
-    t[..., n:2 * n] = wrap_phase(t[..., n:2 * n] + math.pi * neg)
-    return t
-
-
 def _best_candidates(fits: dict, layout: ParamLayout, K: int) -> _Solution:
     """The candidate of least cost of each item, from :func:`_refine_candidates`' output."""
     P = layout.size
@@ -249,7 +235,7 @@ def _best_candidates(fits: dict, layout: ParamLayout, K: int) -> _Solution:
     def pick(name, tail=()):
         return fits[name].reshape((N, K) + tail)[ar, best] if name in fits else None
 
-    return _Solution(theta=_canonical(th, layout)[ar, best], cost=pick("cost"), converged=pick("converged"), n_iter=pick("n_iter"),
+    return _Solution(theta=canonical_sines(th, layout.n_axes)[ar, best], cost=pick("cost"), converged=pick("converged"), n_iter=pick("n_iter"),
                      flipped=(th[..., :layout.n_axes] < 0)[ar, best], jtj=pick("jtj", (P, P)), model=pick("model", (-1,)))
 
 
@@ -284,7 +270,7 @@ def _resolve_alias(model: SineModel, problem: SineProblem, layout: ParamLayout, 
     rb = r[better]
     if not rb.numel():  # the consensus start was right everywhere
         return
-    sol.theta[rb] = _canonical(res.theta[better], layout)
+    sol.theta[rb] = canonical_sines(res.theta[better], layout.n_axes)
     sol.flipped[rb] = res.theta[better][:, :n] < 0
     if reuse:
         sol.jtj[rb], sol.model[rb] = res.jtj[better], res.model[better]

@@ -139,10 +139,6 @@ class AxisCalibration:
     px_per_unit_std: float
     direction: tuple
 
-    def to_image(self, value_units: float) -> np.ndarray:
-        """Image displacement (x, y) px of an actuator displacement in input units."""
-        return np.asarray(self.direction) * self.px_per_unit * value_units
-
 
 def calibrate_axes(rig, *, freq_hz: float, amplitude: float, rest_px, dark, gain: float = 1.0, n_frames: int = 24,
                    latency_s: float = 0.0, trigger_delay_s: float = 0.0, power: float = 1.0, noise_e=None,

@@ -59,37 +59,25 @@ def control_names(labels: Sequence[str]) -> list[str]:
         names.append(name)
     return names
 
+
 def _readonly(a: np.ndarray) -> np.ndarray:
     a.setflags(write=False)
     return a
 
 
-def _as_real_array(value, name: str) -> np.ndarray:
+def _as_array(value, name: str, *, complex_ok: bool = False) -> np.ndarray:
+    """``value`` as a float64 (or, ``complex_ok``, complex128) array; InputTypeError naming
+    ``name`` for anything but numbers (bool, strings, objects)."""
+    what = "complex" if complex_ok else "real"
     if value is None or isinstance(value, (str, bytes)):
-        raise InputTypeError(f"{name}: expected an array of real numbers, got {type(value).__name__}")
+        raise InputTypeError(f"{name}: expected an array of {what} numbers, got {type(value).__name__}")
     try:
         a = np.array(value)
     except (TypeError, ValueError) as exc:
-        raise InputTypeError(f"{name}: expected an array of real numbers, got {type(value).__name__}") from exc
-    if a.dtype == bool or not (np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.floating)):
-        raise InputTypeError(f"{name}: expected an array of real numbers, got dtype {a.dtype}")
-    return a.astype(np.float64)
-
-
-def _as_complex_array(value, name: str) -> np.ndarray:
-    if value is None or isinstance(value, (str, bytes)):
-        raise InputTypeError(f"{name}: expected an array of complex numbers, got {type(value).__name__}")
-    try:
-        a = np.array(value)
-    except (TypeError, ValueError) as exc:
-        raise InputTypeError(f"{name}: expected an array of complex numbers, got {type(value).__name__}") from exc
-    if a.dtype == bool or not (
-        np.issubdtype(a.dtype, np.integer)
-        or np.issubdtype(a.dtype, np.floating)
-        or np.issubdtype(a.dtype, np.complexfloating)
-    ):
-        raise InputTypeError(f"{name}: expected an array of complex numbers, got dtype {a.dtype}")
-    return a.astype(np.complex128)
+        raise InputTypeError(f"{name}: expected an array of {what} numbers, got {type(value).__name__}") from exc
+    if a.dtype.kind not in ("iufc" if complex_ok else "iuf"):
+        raise InputTypeError(f"{name}: expected an array of {what} numbers, got dtype {a.dtype}")
+    return a.astype(np.complex128 if complex_ok else np.float64)
 
 
 def _check_labels(labels, n: int, name: str, prefix: str) -> tuple[str, ...]:
@@ -125,7 +113,7 @@ def _per_point(value, name: str, shape: tuple, integer: bool) -> np.ndarray:
             raise InputTypeError(f"{name}: expected an array of integer bit masks, got dtype {a.dtype}")
         a = a.astype(np.int64)
     else:
-        a = _as_real_array(value, name)
+        a = _as_array(value, name)
     if a.shape == shape[-1:] and shape[:2] == (1, 1):
         a = a.reshape(shape)
     if a.shape != shape:
@@ -139,7 +127,7 @@ def _per_point(value, name: str, shape: tuple, integer: bool) -> np.ndarray:
 
 def _check_omega(omega) -> np.ndarray:
     """``omega`` as float64 [F]: finite, > 0, strictly increasing."""
-    w = _as_real_array(omega, "omega")
+    w = _as_array(omega, "omega")
     if w.ndim != 1 or w.size == 0:
         raise ShapeError(f"omega: expected shape [F] with F >= 1, got {w.shape}")
     if not np.all(np.isfinite(w)):
@@ -157,7 +145,7 @@ def _check_omega(omega) -> np.ndarray:
 
 def _check_response(response, n_f: int) -> tuple[np.ndarray, bool]:
     """``(response as complex128 [O, I, F], whether it came as SISO [F])``; NaN allowed, Inf not."""
-    h = _as_complex_array(response, "response")
+    h = _as_array(response, "response", complex_ok=True)
     siso_input = h.ndim == 1
     if siso_input:
         h = h.reshape(1, 1, -1)
@@ -179,7 +167,7 @@ def _check_cov(cov, shape: tuple, siso_input: bool) -> np.ndarray:
     n_o, n_i, n_f = shape
     if cov is None:
         return np.full((n_o, n_i, n_f, 2, 2), np.nan)
-    c = _as_real_array(cov, "cov")
+    c = _as_array(cov, "cov")
     want = (n_o, n_i, n_f, 2, 2)
     if c.shape == (n_f, 2, 2) and n_o == n_i == 1:
         c = c.reshape(want)
