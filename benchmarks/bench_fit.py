@@ -23,7 +23,7 @@ from scipy.optimize import least_squares
 import torchblur as tb
 from torchblur.design.windows import dual_exposure_windows
 from torchblur.fit.sinusoid import fit_sinusoid
-from torchblur.fit.optim import model_jacobian
+from torchblur.optim import model_jacobian
 from torchblur.render.blur import RenderSettings, quadrature_nodes
 
 H, W = 48, 64

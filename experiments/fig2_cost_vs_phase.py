@@ -23,7 +23,7 @@ import torch
 from common import parse, periodic_minima, plt, save_figure, wrapped_distance, write_metrics, x_sinusoid
 
 import torchblur as tb
-from torchblur.fit.losses import image_loss
+from torchblur.losses import image_loss
 
 F64 = torch.float64
 

@@ -2,7 +2,7 @@
 
 One exposure (p = half a period, w tcam = pi/2), the amplitude known, the phase scanned
 over a full turn: ``||C(M sin(w t + phi)) - Y||`` with the 1-norm, the 2-norm (Frobenius)
-and the inf-norm of the pixel residual (``torchblur.fit.losses.image_loss``; the l2 loss is the
+and the inf-norm of the pixel residual (``torchblur.losses.image_loss``; the l2 loss is the
 squared norm, its square root is plotted). Noise-free (perfect predictor) and noisy
 (``CameraModel``: shot and read noise, 12-bit ADC, four frames averaged, as the paper). Each
 curve is normalised to [0, 1] for display. Both minima (the true phase and its alias) are
@@ -25,7 +25,7 @@ from common import parse, periodic_minima, plt, save_figure, wrapped, write_metr
 
 import torchblur as tb
 from torchblur.render.camera import CameraModel
-from torchblur.fit.losses import image_loss
+from torchblur.losses import image_loss
 
 F64 = torch.float64
 LABEL = {"l1": "1-norm", "l2": "2-norm (Frobenius)", "linf": "inf-norm"}

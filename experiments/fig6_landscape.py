@@ -24,7 +24,7 @@ from common import parse, plt, save_figure, write_metrics, x_sinusoid
 
 import torchblur as tb
 from torchblur.fit.landscape import cost_landscape
-from torchblur.fit.losses import image_loss
+from torchblur.losses import image_loss
 
 F64 = torch.float64
 LABEL = {"l1": "1-norm", "l2": "2-norm (Frobenius)", "linf": "inf-norm"}

@@ -1,13 +1,10 @@
 """The package's import graph, read from the source with ast (imports inside functions
 count): nothing below the identification pipeline imports it, and no module imports one that
 imports it back."""
-import ast
-import functools
-from pathlib import Path
-
 import pytest
+from import_graph import cycles as _cycles
+from import_graph import graph as _graph
 
-ROOT = Path(__file__).resolve().parents[1] / "torchblur"
 # May name torchblur.identify: the package's lazy table.
 IDENTIFY_EXCEPTIONS = {"torchblur",
                        "torchblur.dm.pipeline",  # the DM run: a pipeline beside identify's, reusing its calibration stage
@@ -17,48 +14,6 @@ IDENTIFY_EXCEPTIONS = {"torchblur",
 # The identification's settings: a leaf (it imports nothing of torchblur.identify) that the
 # bench emulator shares for its plant, camera and spots sections.
 IDENTIFY_DATA = "torchblur.identify.config"
-
-
-def _module_name(path: Path) -> str:
-    parts = path.relative_to(ROOT.parent).with_suffix("").parts
-    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
-
-
-def _modules() -> dict:
-    return {_module_name(p): p for p in ROOT.rglob("*.py")}
-
-
-def _imported(name: str, path: Path) -> set:
-    """Every dotted name ``name`` imports (``from a import b`` gives ``a`` and ``a.b``)."""
-    out = set()
-    pkg = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
-    for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.Import):
-            out.update(a.name for a in node.names)
-        elif isinstance(node, ast.ImportFrom):
-            base = node.module or ""
-            if node.level:
-                stem = pkg[: len(pkg) - (node.level - 1)]
-                base = ".".join(stem + ([node.module] if node.module else []))
-            out.add(base)
-            out.update(f"{base}.{a.name}" for a in node.names)
-    return out
-
-
-@functools.lru_cache(maxsize=1)  # read once per session: every test below asks the same source tree (none changes it)
-def _graph() -> dict:
-    """``{module: {torchblur modules it imports}}`` (shared: do not modify)."""
-    mods = _modules()
-    edges = {}
-    for name, path in mods.items():
-        targets = set()
-        for t in _imported(name, path):
-            while t and t not in mods:
-                t = t.rpartition(".")[0]
-            if t and t != name and t.startswith("torchblur."):
-                targets.add(t)
-        edges[name] = targets
-    return edges
 
 
 def test_the_graph_sees_imports_inside_functions():
@@ -84,38 +39,6 @@ def test_identify_config_is_a_leaf():
 
 def test_multisine_plan_does_not_import_the_pipeline():
     assert "torchblur.identify.pipeline" not in _graph()["torchblur.identify.multisine"]
-
-
-def _cycles(edges: dict) -> list:
-    """Strongly connected components of more than one module (Tarjan)."""
-    index, low, stack, on, comps, counter = {}, {}, [], set(), [], [0]
-
-    def visit(v):
-        index[v] = low[v] = counter[0]
-        counter[0] += 1
-        stack.append(v)
-        on.add(v)
-        for w in edges.get(v, ()):
-            if w not in index:
-                visit(w)
-                low[v] = min(low[v], low[w])
-            elif w in on:
-                low[v] = min(low[v], index[w])
-        if low[v] == index[v]:
-            comp = []
-            while True:
-                w = stack.pop()
-                on.discard(w)
-                comp.append(w)
-                if w == v:
-                    break
-            if len(comp) > 1:
-                comps.append(sorted(comp))
-
-    for v in list(edges):
-        if v not in index:
-            visit(v)
-    return comps
 
 
 def test_cycle_finder_finds_a_cycle():

@@ -7,7 +7,7 @@ import torch
 
 import torchblur as tb
 from torchblur.fit.consistency import REDUCTIONS, BlurConsistencyLoss, blur_consistency
-from torchblur.fit.losses import LOSSES
+from torchblur.losses import LOSSES
 
 hypothesis = pytest.importorskip("hypothesis")
 from hypothesis import given, settings  # noqa: E402

@@ -171,7 +171,7 @@ def test_covariance_is_the_inverse_fisher_information_of_a_dense_reference():
         return (img * theta[P:, None, None, None]).reshape(-1)
 
     theta = torch.cat([torch.tensor(r.params), torch.tensor(r.scale)])
-    from torchblur.fit.optim import model_jacobian
+    from torchblur.optim import model_jacobian
 
     _, J = model_jacobian(lambda t, i: model(t[0])[None], theta[None], torch.zeros(1, dtype=torch.long))
     J = J[0]

@@ -256,7 +256,7 @@ def test_merged_panel_groups_are_the_cheapest_partition():
     sorted distinct counts into consecutive groups, and never gives a frame fewer panels."""
     import itertools
 
-    from torchblur.fit.sinusoid import _merge_panel_groups
+    from torchblur.fit.sine_model import _merge_panel_groups
 
     g = torch.Generator().manual_seed(3)
     for trial in range(40):
@@ -288,7 +288,7 @@ def test_merged_panel_groups_are_the_cheapest_partition():
 def test_lm_final_gauss_newton_step_lands_on_the_optimum():
     """With gn_tol the last Gauss-Newton step (shorter than 0.1 std) is taken unevaluated:
     fewer iterations, the same optimum to a small fraction of a standard deviation."""
-    from torchblur.fit.optim import levenberg_marquardt, model_jacobian
+    from torchblur.optim import levenberg_marquardt, model_jacobian
 
     g = torch.Generator().manual_seed(0)
     t = torch.linspace(0, 3, 60, dtype=F64)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, TorchblurError
-from torchblur.sysid import frequency_response as fr
+from torchblur.sysid import frequency_response_io as fr
 from torchblur.sysid.frequency_response import FrequencyResponse
 
 

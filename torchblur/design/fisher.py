@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from torchblur.errors import ParameterError, ShapeError, as_tensor, check_finite, check_positive, check_real_scalar
+from torchblur.fit.multisine import _unit_direction, render_multisine_with_jacobian
 from torchblur.render.psf import GaussianPSF
 from torchblur.render.blur import RenderSettings, choose_node_count
 from torchblur.render.window import ExposureWindow
@@ -86,8 +87,6 @@ def image_fisher(theta, omega, psf: GaussianPSF, window: ExposureWindow, *, fram
     under hypothesis h (pixels beyond 7 PSF stds of the motion are left out: their
     derivatives are below e^-24 of the peak).
     """
-    from torchblur.fit.multisine import _unit_direction, render_multisine_with_jacobian
-
     theta = check_finite(as_tensor(theta, "theta", dtype=torch.float64), "theta")
     if theta.dim() == 1:
         theta = theta[None]

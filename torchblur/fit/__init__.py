@@ -6,15 +6,15 @@ crop), ``sine_model`` (the image and Jacobian of the parameters, on the one forw
 :func:`torchblur.render.splat.sine_blur_with_jacobian`), ``robust`` (outliers, stray-light
 planes), ``multisine``, ``coded`` (a coded exposure), ``consistency``
 (:class:`BlurConsistencyLoss`, the renderer as a loss inside learned models), ``landscape`` (the
-loss over a parameter grid), ``optim`` (the batched Levenberg-Marquardt), ``losses`` (image
-losses and IRLS weights).
+loss over a parameter grid). The batched Levenberg-Marquardt (:mod:`torchblur.optim`) and the
+image losses (:mod:`torchblur.losses`) sit in the base layer: the image layer fits with them too.
 """
+from torchblur.losses import LOSSES, image_loss
+from torchblur.optim import LMResult, levenberg_marquardt
 from torchblur.fit.coded import CodedFit, fit_sinusoid_coded
 from torchblur.fit.consistency import BlurConsistencyLoss, blur_consistency
 from torchblur.fit.landscape import cost_landscape
-from torchblur.fit.losses import LOSSES, image_loss
 from torchblur.fit.multisine import MultisineFit, fit_multisine
-from torchblur.fit.optim import LMResult, levenberg_marquardt
 from torchblur.fit.sinusoid import (
     FLAGS, MASKED, NO_MOTION, OUTLIERS_MASKED, PARTLY_OUT_OF_FRAME, SATURATED_MASKED, STATUS, SinusoidFit, fit_sinusoid,
 )

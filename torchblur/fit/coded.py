@@ -20,10 +20,10 @@ import torch
 
 from torchblur._compat import median_along
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_finite, check_positive
-from torchblur.fit.losses import image_loss
-from torchblur.fit.optim import levenberg_marquardt
+from torchblur.losses import image_loss
+from torchblur.optim import levenberg_marquardt
 from torchblur.image.moments import image_moments
-from torchblur.render.alias import wrap_phase
+from torchblur.render.alias import canonical_sines, wrap_phase
 from torchblur.render.blur import RenderSettings, choose_node_count, quadrature_nodes
 from torchblur.render.coded import check_code, coded_windows, mirror_code, render_coded
 from torchblur.render.psf import GaussianPSF, KernelPSF
@@ -195,15 +195,6 @@ def _phase_grid_starts(M0: torch.Tensor, n_phases: int, fit_scale: bool) -> torc
     return theta0
 
 
-def _canonical(theta: torch.Tensor) -> torch.Tensor:
-    """``theta [B, P]`` with ``M >= 0`` and the phase wrapped (a negative M is a phase shift of pi)."""
-    theta = theta.clone()
-    neg = theta[:, 0] < 0
-    theta[:, 0] = theta[:, 0].abs()
-    theta[:, 1] = wrap_phase(theta[:, 1] + math.pi * neg)
-    return theta
-
-
 def _fisher_covariance(prob: _CodedProblem, theta, data, weight, noise_given: bool) -> torch.Tensor:
     """Inverse Fisher information ``[B, P, P]`` at ``theta [B, P]``; without a given noise the
     weights are scaled by the reduced chi2 (noise from the residuals)."""
@@ -254,7 +245,7 @@ def fit_sinusoid_coded(images, psf: GaussianPSF | KernelPSF, window: ExposureWin
     cost = torch.nan_to_num(res.cost, nan=float("inf")).reshape(B, K)
     best = cost.argmin(-1)
     ar = torch.arange(B, device=images.device)
-    theta = _canonical(res.theta.reshape(B, K, P)[ar, best])
+    theta = canonical_sines(res.theta.reshape(B, K, P)[ar, best], 1)
     # The plain window's alias branch: the code breaks the alias when its cost is higher there.
     ta = theta.clone()
     ta[:, 1] = wrap_phase(math.pi - 2 * prob.om * (prob.start + prob.dur / 2) - theta[:, 1])

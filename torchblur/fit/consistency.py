@@ -18,7 +18,7 @@ import torch
 from torch import nn
 
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_choice, check_finite
-from torchblur.fit.losses import LOSSES, image_loss
+from torchblur.losses import LOSSES, image_loss
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.blur import BlurRenderer
 from torchblur.render.window import ExposureWindow
@@ -207,6 +207,22 @@ def blur_consistency(
     _check_settings(renderer, psf, window, loss, reduction, normalize)
     observed = _as_observed(observed, renderer, window)
     traj = _as_trajectory(pred, omega, observed)
+    model, data = _model_and_data(renderer, traj, psf, window, observed)
+    weight = _pixel_weight(noise_std, loss, model, data)
+    if normalize:
+        model, data = _unit_frobenius(model), _unit_frobenius(data)
+    value = image_loss(model.flatten(-3), data.flatten(-3), loss=loss, weight=None if weight is None else weight.flatten(-3))
+    if reduction == "mean":
+        return value.mean()
+    if reduction == "sum":
+        return value.sum()
+    return value
+
+
+def _model_and_data(renderer: BlurRenderer, traj: Trajectory, psf, window: ExposureWindow, observed: torch.Tensor):
+    """``(model, data)``, both ``[..., E, H, W]`` on the broadcast batch ``[...]`` of ``traj``,
+    ``psf``, ``window`` (as ``[..., E]``) and ``observed`` ``[..., E, H, W]``: the rendered
+    motion in each exposure, and the observed images in the model's dtype."""
     batch_e = observed.shape[:-2]  # [..., E]
     E, H, W = batch_e[-1], renderer.height, renderer.width
     try:
@@ -218,17 +234,7 @@ def blur_consistency(
         ) from None
     model = renderer(_ExposureAxis(traj), _psf_with_exposure_axis(psf), window if window.shape else window.expand((1,)))
     model = model.expand(out_batch + (E, H, W))
-    data = observed.to(model.dtype).expand(out_batch + (E, H, W))
-    weight = _pixel_weight(noise_std, loss, model, data)
-    if normalize:
-        model, data = _unit_frobenius(model), _unit_frobenius(data)
-    value = image_loss(model.flatten(-3), data.flatten(-3), loss=loss, weight=None if weight is None else weight.flatten(-3))
-    if reduction == "mean":
-        return value.mean()
-    if reduction == "sum":
-        return value.sum()
-    return value
-
+    return model, observed.to(model.dtype).expand(out_batch + (E, H, W))
 
 def _as_observed(observed, renderer: BlurRenderer, window: ExposureWindow) -> torch.Tensor:
     """``observed`` checked as ``[..., E, H, W]`` floating, finite, of the renderer's frame size,

@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 
 from torchblur.errors import InputTypeError, ShapeError, as_tensor, check_choice, check_finite, check_positive
-from torchblur.fit.losses import LOSSES, image_loss
+from torchblur.losses import LOSSES, image_loss
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.blur import RenderSettings, render_blur
 from torchblur.render.window import ExposureWindow
@@ -31,7 +31,7 @@ def cost_landscape(images, psf, window: ExposureWindow, omega, amplitude, phase,
         omega: rad/s, a number or a 0-d tensor.
         amplitude: ``[A]`` amplitudes (px); phase: ``[P]`` phases (rad).
         axis: ``"x"`` or ``"y"``: the direction of the motion.
-        losses: names from :data:`torchblur.fit.losses.LOSSES` (``"l2"``, ``"l1"``, ``"linf"``,
+        losses: names from :data:`torchblur.losses.LOSSES` (``"l2"``, ``"l1"``, ``"linf"``,
             ``"poisson"``).
         weight: optional per-pixel weights ``[E, H, W]`` (``1 / sigma^2``; 0 masks a pixel).
         settings: renderer settings (default: the renderer's).
@@ -52,6 +52,17 @@ def cost_landscape(images, psf, window: ExposureWindow, omega, amplitude, phase,
         >>> land["l2"].shape
         torch.Size([3, 7, 2])
     """
+    om, amp, ph, losses, w = _checked(images, psf, window, omega, amplitude, phase, axis, losses, weight, chunk)
+    E, H, W = images.shape
+    A_, P_ = torch.meshgrid(amp, ph, indexing="ij")
+    out = _grid_costs(images, psf, window, om, A_.reshape(-1), P_.reshape(-1), axis=axis, losses=losses, weight=w,
+                      settings=settings, chunk=chunk)
+    return {nm: v.reshape(amp.numel(), ph.numel(), E) for nm, v in out.items()}
+
+
+def _checked(images, psf, window, omega, amplitude, phase, axis, losses, weight, chunk):
+    """:func:`cost_landscape`'s inputs checked: ``(omega 0-d, amplitude [A], phase [P], the loss
+    names, weight [E, H * W] or None)``; errors name the argument."""
     if not isinstance(images, torch.Tensor):
         raise InputTypeError(f"images: expected a torch.Tensor [E, H, W], got {type(images).__name__}")
     if images.dim() != 3:
@@ -68,7 +79,6 @@ def cost_landscape(images, psf, window: ExposureWindow, omega, amplitude, phase,
         raise InputTypeError(f"window: expected an ExposureWindow [E], got {type(window).__name__}")
     if tuple(window.shape) != (E,):
         raise ShapeError(f"window: expected shape [E] = [{E}] (one window per exposure), got {tuple(window.shape)}")
-    dtype, device = images.dtype, images.device
     om = check_positive(as_tensor(omega, "omega", like=images), "omega")
     if om.dim() != 0:
         raise ShapeError(f"omega: expected a number, got shape {tuple(om.shape)}")
@@ -92,8 +102,14 @@ def cost_landscape(images, psf, window: ExposureWindow, omega, amplitude, phase,
     if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
         raise InputTypeError(f"chunk: expected an integer >= 1, got {chunk!r}")
 
-    A_, P_ = torch.meshgrid(amp, ph, indexing="ij")
-    fa, fp = A_.reshape(-1), P_.reshape(-1)
+    return om, amp, ph, losses, w
+
+
+def _grid_costs(images, psf, window, om, fa, fp, *, axis, losses, weight, settings, chunk) -> dict:
+    """``{loss: cost [G, E]}`` at the grid points ``(fa [G], fp [G])`` (amplitude px, phase rad),
+    rendered ``chunk`` points per call."""
+    E, H, W = images.shape
+    dtype, device = images.dtype, images.device
     data = images.reshape(E, H * W)
     out = {nm: torch.empty(fa.numel(), E, dtype=dtype, device=device) for nm in losses}
     k = 0 if axis == "x" else 1
@@ -106,5 +122,5 @@ def cost_landscape(images, psf, window: ExposureWindow, omega, amplitude, phase,
             model = render_blur(Sinusoid(amp_xy, ph_xy, om), psf, window, height=H, width=W, settings=settings)  # [B, E, H, W]
         model = model.reshape(-1, E, H * W)
         for nm in losses:
-            out[nm][s:s + chunk] = image_loss(model, data, loss=nm, weight=w)
-    return {nm: v.reshape(amp.numel(), ph.numel(), E) for nm, v in out.items()}
+            out[nm][s:s + chunk] = image_loss(model, data, loss=nm, weight=weight)
+    return out

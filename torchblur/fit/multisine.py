@@ -13,7 +13,7 @@ The parameter vector of one image set is ``theta = (M_1..M_N, phi_1..phi_N[, sca
 :func:`fit_multisine` fits every unknown of an image set at once: starts from the image
 centroids (linear in ``M_k e^{j phi_k}``: exact with 2N or more images) and from a batch of
 phase vectors whose cost is evaluated in one render, the best few refined together by
-batched Levenberg-Marquardt (:func:`~torchblur.fit.optim.levenberg_marquardt`, Jacobians by
+batched Levenberg-Marquardt (:func:`~torchblur.optim.levenberg_marquardt`, Jacobians by
 forward AD); uncertainties from the Fisher information at the solution.
 """
 from __future__ import annotations
@@ -25,12 +25,12 @@ from dataclasses import dataclass, field, replace
 import torch
 
 from torchblur._compat import median_along
-from torchblur.render.alias import wrap_phase
+from torchblur.render.alias import canonical_sines, wrap_phase
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, as_unit_direction, check_finite, check_positive
 from torchblur.fit.kernel_noise import kernel_noise_covariance
-from torchblur.fit.losses import image_loss
+from torchblur.losses import image_loss
 from torchblur.image.moments import image_moments, moments_along
-from torchblur.fit.optim import levenberg_marquardt, model_jacobian
+from torchblur.optim import levenberg_marquardt, model_jacobian
 from torchblur.fit.problem import _nonzero_box
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.camera import CameraNoise
@@ -653,14 +653,6 @@ def _wide_starts(M0, best, theta_c, N: int, n_starts: int, g: torch.Generator, f
     return c2
 
 
-def _canonical(theta: torch.Tensor, N: int) -> torch.Tensor:
-    """``theta [B, P]`` in place with ``M >= 0`` (a negative M is a phase shift of pi) and the phases wrapped."""
-    neg = theta[:, :N] < 0
-    theta[:, :N] = theta[:, :N].abs()
-    theta[:, N:2 * N] = wrap_phase(theta[:, N:2 * N] + math.pi * neg)
-    return theta
-
-
 def _fisher(prob: _Problem, theta, live, noise_level):
     """Inverse Fisher information at the solution -> ``(covariance [B, P, P], noise std used [B],
     singular [B], kernel term [B, P, P] or None)`` (NaN for sets not live). With ``noise_level``
@@ -803,16 +795,29 @@ def fit_multisine(
     M0 = _amplitude_start(flat, amplitude_guess, thr)
     g = torch.Generator(device="cpu").manual_seed(int(seed))
     theta_c = _starts(flat, M0, thr, phase_guess, n_starts, g, fit_scale)
-    K, P = theta_c.shape[1:]
+    K = theta_c.shape[1]
     prob, crop = _problem(flat, weight, theta_c, render_settings, _kernel_variance(kernel_var, flat))
     live = torch.arange(B, device=flat.data.device)[~dark]
     theta_best, cost_best, conv_best, iters_best, R_, retried = _search_all(
         prob, theta_c, live, M0, sigma_given=sigma_given, n_starts=n_starts, n_refine=n_refine, fit_scale=fit_scale, g=g,
         max_iter=max_iter, tol=tol)
     if pw is not None and live.numel():
-        prob, theta_best = _reweight_by_model(prob, crop, flat.data, weight, _canonical(theta_best, N), live, noise, pw,
+        prob, theta_best = _reweight_by_model(prob, crop, flat.data, weight, canonical_sines(theta_best, N), live, noise, pw,
                                               (cost_best, conv_best, iters_best, noise_level), max_iter=max_iter, tol=tol)
-    theta_best = _canonical(theta_best, N)
+    search = {"starts": K, "refined": R_, "crop": crop, "retried": retried}
+    return _multisine_result(prob, canonical_sines(theta_best, N), (cost_best, conv_best, iters_best), live, dark, noise_level,
+                             sigma_given, fit_scale, batch, search)
+
+
+def _multisine_result(prob, theta_best, best, live, dark, noise_level, sigma_given: bool, fit_scale: bool, batch: tuple,
+                      search: dict) -> MultisineFit:
+    """The :class:`MultisineFit` (batch shape ``batch``) of the best parameters ``theta_best
+    [B, P]`` (canonical) with their ``best = (cost [B], converged [B], iterations [B])``: the
+    Fisher covariance, status and flags; NaN where ``dark [B]``; ``search`` (starts, refined,
+    crop, retried [B]) goes into ``extras``."""
+    cost_best, conv_best, iters_best = best
+    N = (theta_best.shape[-1] - int(fit_scale)) // 2
+    P = theta_best.shape[-1]
     cov_out, sigma_used, singular, kcov = _fisher(prob, theta_best, live, noise_level if sigma_given else None)
     std = torch.diagonal(cov_out, dim1=-2, dim2=-1).clamp_min(0).sqrt()
     red_chi2 = _reduced_chi2(prob, cost_best)
@@ -837,7 +842,8 @@ def fit_multisine(
         n_iter=out(iters_best),
         scale=out(torch.where(dark, nan, theta_best[:, 2 * N])) if fit_scale else None,
     )
-    res.extras.update({"nodes": prob.settings.nodes, "starts": K, "refined": R_, "crop": crop, "retried": out(retried),
-                       "reduced_chi2": out(red_chi2)} | ({} if kcov is None else {"kernel_covariance": out(kcov, (P, P))}))
+    res.extras.update({"nodes": prob.settings.nodes, "starts": search["starts"], "refined": search["refined"],
+                       "crop": search["crop"], "retried": out(search["retried"]), "reduced_chi2": out(red_chi2)}
+                      | ({} if kcov is None else {"kernel_covariance": out(kcov, (P, P))}))
     res.flags = out(flag_poor_fit(None, red_chi2 if sigma_given else torch.full_like(red_chi2, float("nan"))))
     return res

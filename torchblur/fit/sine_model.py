@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import torch
 
-from torchblur.fit.optim import model_jacobian
+from torchblur.optim import model_jacobian
 from torchblur.render.blur import RenderSettings, _kernel_fourier, choose_node_count, panel_count, quadrature_nodes, render_blur
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.splat import sine_blur_with_jacobian, window_nodes

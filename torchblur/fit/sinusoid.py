@@ -22,14 +22,14 @@ import torch
 
 from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_tensor, as_unit_direction, check_choice, check_finite,
                               check_positive, check_real_scalar)
-from torchblur.fit.losses import LOSSES, covariance_factor, image_loss, irls_weights, loss_weight
-from torchblur.fit.optim import levenberg_marquardt
+from torchblur.losses import LOSSES, covariance_factor, image_loss, irls_weights, loss_weight
+from torchblur.optim import LMResult, levenberg_marquardt
 from torchblur.fit.problem import SineProblem, crop_to_reach, sine_problem, starting_points
 from torchblur.fit.results import SinusoidFit, put_items
 from torchblur.fit.robust import impulses, inpaint, plane_fit, plane_image, robust_scale
-from torchblur.fit.sine_model import _CALL_NODE_PIXELS, ParamLayout, SineModel, _merge_panel_groups, sine_model  # noqa: F401
+from torchblur.fit.sine_model import ParamLayout, SineModel, sine_model
 from torchblur.render.alias import alias_phase as _alias_phase
-from torchblur.render.alias import wrap_phase
+from torchblur.render.alias import canonical_sines
 from torchblur.render.blur import RenderSettings, panel_count, render_blur
 from torchblur.render.camera import CameraNoise
 from torchblur.render.psf import GaussianPSF, KernelPSF
@@ -48,10 +48,6 @@ __all__ = ["SinusoidFit", "fit_sinusoid", "STATUS", "FLAGS", "MASKED", "SATURATE
 OPTIMIZERS = ("lm", "adam", "lbfgs")
 AXES = ("x", "y", "xy")
 OUTLIERS = ("none", "reject")
-
-# Old private names, kept importable from here.
-_put = put_items
-_inpaint, _robust_scale, _impulses, _plane_fit, _plane_image = inpaint, robust_scale, impulses, plane_fit, plane_image
 
 
 def fit_dtype(images: torch.Tensor, psf, window: ExposureWindow) -> torch.dtype:
@@ -228,16 +224,6 @@ def _refine_candidates(model: SineModel, problem: SineProblem, theta0, K: int, t
     return out
 
 
-def _canonical(theta: torch.Tensor, layout: ParamLayout) -> torch.Tensor:
-    """``theta [..., P]`` in canonical form: ``(-M, phi)`` -> ``(M, phi + pi)``, phases wrapped."""
-    t = theta.clone()
-    n = layout.n_axes
-    neg = t[..., :n] < 0
-    t[..., :n] = t[..., :n].abs()
-    t[..., n:2 * n] = wrap_phase(t[..., n:2 * n] + math.pi * neg)
-    return t
-
-
 def _best_candidates(fits: dict, layout: ParamLayout, K: int) -> _Solution:
     """The candidate of least cost of each item, from :func:`_refine_candidates`' output."""
     P = layout.size
@@ -249,7 +235,7 @@ def _best_candidates(fits: dict, layout: ParamLayout, K: int) -> _Solution:
     def pick(name, tail=()):
         return fits[name].reshape((N, K) + tail)[ar, best] if name in fits else None
 
-    return _Solution(theta=_canonical(th, layout)[ar, best], cost=pick("cost"), converged=pick("converged"), n_iter=pick("n_iter"),
+    return _Solution(theta=canonical_sines(th, layout.n_axes)[ar, best], cost=pick("cost"), converged=pick("converged"), n_iter=pick("n_iter"),
                      flipped=(th[..., :layout.n_axes] < 0)[ar, best], jtj=pick("jtj", (P, P)), model=pick("model", (-1,)))
 
 
@@ -284,7 +270,7 @@ def _resolve_alias(model: SineModel, problem: SineProblem, layout: ParamLayout, 
     rb = r[better]
     if not rb.numel():  # the consensus start was right everywhere
         return
-    sol.theta[rb] = _canonical(res.theta[better], layout)
+    sol.theta[rb] = canonical_sines(res.theta[better], layout.n_axes)
     sol.flipped[rb] = res.theta[better][:, :n] < 0
     if reuse:
         sol.jtj[rb], sol.model[rb] = res.jtj[better], res.model[better]
@@ -298,7 +284,7 @@ def _resolve_alias(model: SineModel, problem: SineProblem, layout: ParamLayout, 
 def _uncertainty(model: SineModel, problem: SineProblem, sol: _Solution, target, o: _FitOptions, reuse: bool):
     """The covariance of the estimates at the solution: ``(covariance [N, P, P], singular [N],
     noise std used [N], model [N, R], chi2 [N])``, from the Fisher information ``F = J^T diag(1 / sigma^2) J``
-    of the loss's noise model, times :func:`~torchblur.fit.losses.covariance_factor`:
+    of the loss's noise model, times :func:`~torchblur.losses.covariance_factor`:
 
     - l2: ``F^-1``, ``sigma`` the given noise, else one std per item estimated from the
       residuals (the pixels the crop cut off included);
@@ -430,8 +416,6 @@ def _optimise(model: SineModel, items, theta0, data, weight, o: _FitOptions):
     ``data [n, R]`` with pixel weights ``weight [n, R]``: Levenberg-Marquardt on the model's
     image and Jacobian (on the analytic path the Jacobian is cheap and comes with every
     trial point), Adam or L-BFGS on the rendered model by autograd."""
-    from torchblur.fit.optim import LMResult
-
     loss, max_iter = o.loss, o.max_iter
 
     def model_fn(theta, i):
@@ -524,9 +508,10 @@ def _check_flag(value, name: str) -> bool:
     return value
 
 
-def _check_options(*, fit_scale, fit_background, fit_center, fit_gradient, normalize, outliers, outlier_sigma, max_iter, tol,
-                   render_settings):
-    """Check :func:`fit_sinusoid`'s options; ``(outlier_sigma, tol)`` as floats."""
+def _check_options(*, optimizer, loss, fit_scale, fit_background, fit_center, fit_gradient, normalize, outliers, outlier_sigma,
+                   max_iter, tol, render_settings) -> tuple[_FitOptions, float]:
+    """Check :func:`fit_sinusoid`'s options (``optimizer`` and ``loss`` are checked by
+    ``_validate``): ``(the pass settings without the noise's shift, outlier_sigma)``."""
     for name, v in (("fit_scale", fit_scale), ("fit_background", fit_background), ("fit_center", fit_center), ("fit_gradient", fit_gradient),
                     ("normalize", normalize)):
         _check_flag(v, name)
@@ -542,7 +527,8 @@ def _check_options(*, fit_scale, fit_background, fit_center, fit_gradient, norma
     tol = check_real_scalar(tol, "tol", nonnegative=True)
     if render_settings is not None and not isinstance(render_settings, RenderSettings):
         raise InputTypeError(f"render_settings: expected a RenderSettings or None, got {type(render_settings).__name__}")
-    return outlier_sigma, tol
+    return _FitOptions(optimizer=optimizer, loss=loss, fit_scale=fit_scale, fit_background=fit_background, fit_center=fit_center,
+                       normalize=normalize, max_iter=max_iter, tol=tol, render_settings=render_settings), outlier_sigma
 
 
 def noise_terms(images: torch.Tensor, noise_std, noise: CameraNoise | None):
@@ -555,7 +541,7 @@ def noise_terms(images: torch.Tensor, noise_std, noise: CameraNoise | None):
     ``noise.std`` of the first fit's model, :func:`_reweight_by_model`), else None. ``shift``:
     poisson's read-noise shift, ``noise.poisson_shift_e`` (0 without ``noise``: the images are
     pure counts).
-    Every loss weighs by it as :mod:`torchblur.fit.losses` says (l2 ``1 / sigma^2``, l1 and linf
+    Every loss weighs by it as :mod:`torchblur.losses` says (l2 ``1 / sigma^2``, l1 and linf
     ``1 / sigma``, poisson the shifted Poisson's own variance).
     """
     if noise is None:
@@ -863,28 +849,10 @@ def _light_in_frame(res: SinusoidFit, inp: _FlatInputs, fit_center: bool, n_t: i
 
 
 def fit_sinusoid(
-    images,
-    psf,
-    window: ExposureWindow,
-    omega,
-    *,
-    axes="x",
-    optimizer: str = "lm",
-    loss: str = "l2",
-    noise_std=None,
-    noise: CameraNoise | None = None,
-    mask=None,
-    saturation_level=None,
-    outliers: str = "none",
-    outlier_sigma: float = 5.0,
-    fit_scale: bool = False,
-    fit_background: bool = False,
-    fit_center: bool = False,
-    fit_gradient: bool = False,
-    normalize: bool = False,
-    max_iter: int | None = None,
-    tol: float = 1e-9,
-    render_settings: RenderSettings | None = None,
+    images, psf, window: ExposureWindow, omega, *, axes="x", optimizer: str = "lm", loss: str = "l2", noise_std=None,
+    noise: CameraNoise | None = None, mask=None, saturation_level=None, outliers: str = "none", outlier_sigma: float = 5.0,
+    fit_scale: bool = False, fit_background: bool = False, fit_center: bool = False, fit_gradient: bool = False,
+    normalize: bool = False, max_iter: int | None = None, tol: float = 1e-9, render_settings: RenderSettings | None = None,
 ) -> SinusoidFit:
     """Fit ``y(t) = M sin(omega t + phi)`` to blurred images of a moving spot.
 
@@ -904,7 +872,7 @@ def fit_sinusoid(
             along that direction (``[...]``) and the parameters are named ``amplitude_u``,
             ``phase_u``.
         optimizer: ``"lm"`` (batched Levenberg-Marquardt, default), ``"adam"``, ``"lbfgs"``.
-        loss: ``"l2"`` (default), ``"l1"``, ``"linf"`` (adam/lbfgs only), ``"poisson"``: see :mod:`torchblur.fit.losses`.
+        loss: ``"l2"`` (default), ``"l1"``, ``"linf"`` (adam/lbfgs only), ``"poisson"``: see :mod:`torchblur.losses`.
         noise_std: pixel noise std: a number, ``[...]`` or ``[..., E, H, W]``; None: from ``noise`` (a refit
             weighted by ``noise.std`` of a first fit's model: unbiased, :func:`_reweight_by_model`), else the
             l2 fit is unweighted and the noise is estimated from the residuals.
@@ -936,9 +904,8 @@ def fit_sinusoid(
         render_settings: renderer settings; the node count is fixed for the whole fit
             (default: panels of 3.5 PSF widths, model error < 1e-6 of the peak).
 
-    dtype: the fit computes in, and returns, the widest floating dtype of ``images``, the PSF and the window, at least
-    float32 (:func:`fit_dtype`): float16/bfloat16 and integer images are promoted, float32 images with a float64 PSF or
-    window give a float64 fit; ``omega``, ``noise_std`` and ``saturation_level`` are converted to it.
+    dtype: the fit computes in, and returns, :func:`fit_dtype` (float16/bfloat16 and integer images are promoted,
+    float32 images with a float64 PSF or window give a float64 fit); ``omega``, ``noise_std`` and ``saturation_level`` too.
 
     Returns:
         :class:`SinusoidFit`. Degenerate items are flagged, never raised, and do not change
@@ -954,11 +921,10 @@ def fit_sinusoid(
         >>> bad = (fit.flags & PARTLY_OUT_OF_FRAME) != 0
     """
     images, psf, window, omega = _validate(images, psf, window, omega, axes, optimizer, loss)
-    outlier_sigma, tol = _check_options(fit_scale=fit_scale, fit_background=fit_background, fit_center=fit_center,
-                                        fit_gradient=fit_gradient, normalize=normalize, outliers=outliers, outlier_sigma=outlier_sigma,
-                                        max_iter=max_iter, tol=tol, render_settings=render_settings)
+    options, outlier_sigma = _check_options(optimizer=optimizer, loss=loss, fit_scale=fit_scale, fit_background=fit_background,
+                                            fit_center=fit_center, fit_gradient=fit_gradient, normalize=normalize, outliers=outliers,
+                                            outlier_sigma=outlier_sigma, max_iter=max_iter, tol=tol, render_settings=render_settings)
     inp = _flat_inputs(images, psf, window, omega, axes, noise_std, mask, saturation_level, noise)
-    options = _FitOptions(optimizer=optimizer, loss=loss, fit_scale=fit_scale, fit_background=fit_background, fit_center=fit_center,
-                          normalize=normalize, max_iter=max_iter, tol=tol, render_settings=render_settings, shift=inp.shift)
+    options = replace(options, shift=inp.shift)
     inp, res, rejected, plane, passes = _robust_fit(inp, options, outliers, outlier_sigma, fit_gradient)
     return _finish(res, inp, options, rejected, plane, passes, batch=images.shape[:-3])

@@ -881,7 +881,7 @@ def validate(cfg: IdentifyConfig) -> None:
         raise ConfigError(f"sweep.exposures: the longest exposure ({max(s.exposures)} of the period at {f_min:g} Hz = "
                           f"{longest:g} s) exceeds camera.max_exposure_s = {c.max_exposure_s:g} s")
     from torchblur.fit.sinusoid import OPTIMIZERS
-    from torchblur.fit.losses import LIKELIHOOD_LOSSES, LOSSES
+    from torchblur.losses import LIKELIHOOD_LOSSES, LOSSES
 
     if isinstance(cfg.fit.axis, str):
         if cfg.fit.axis not in AXIS_MODES:

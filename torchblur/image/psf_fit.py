@@ -11,7 +11,7 @@ import torch.autograd.forward_ad as fwAD
 
 from torchblur._compat import median_along
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_image, as_tensor, broadcast_batch, check_bool, check_int, check_positive
-from torchblur.fit.optim import levenberg_marquardt
+from torchblur.optim import levenberg_marquardt
 from torchblur.image.dark import _MAD_TO_STD
 from torchblur.image.moments import image_moments
 from torchblur.render.blur import RenderSettings, render_blur
@@ -104,7 +104,7 @@ def fit_gaussian_psf(
     exposure and the pixel-integration setting matches. Parameters
     ``(cx, cy, log L00, L10, log L11, a[, b])`` with ``cov = L L^T`` (L lower triangular,
     positive diagonal) keep the covariance positive definite. The fit is a batched
-    Levenberg-Marquardt (:func:`torchblur.fit.optim.levenberg_marquardt`) started from the image
+    Levenberg-Marquardt (:func:`torchblur.optim.levenberg_marquardt`) started from the image
     moments, computed in float64 (results cast back to the image's dtype).
 
     Args:

@@ -314,17 +314,7 @@ def psf_from_still(
     """
     f, in_dtype = _frames(still)
     N, H, W = f.shape
-    e = as_tensor(exposure_s, "exposure_s", dtype=torch.float64)
-    if e.numel() != 1:
-        raise ShapeError(f"exposure_s: expected one exposure (a number), got shape {tuple(e.shape)}")
-    exposure = float(check_positive(e, "exposure_s").reshape(()))
-    check_choice(kind, "kind", KINDS)
-    support_sigma = check_real_scalar(support_sigma, "support_sigma", positive=True)
-    for name, v in (("margin_px", margin_px), ("taper_px", taper_px)):
-        if isinstance(v, bool) or not isinstance(v, int) or v < 0:
-            raise ParameterError(f"{name}: expected an integer >= 0, got {v!r}")
-    if background is not None:
-        background = check_real_scalar(background, "background")
+    exposure, support_sigma, background = _check_options(exposure_s, kind, support_sigma, margin_px, taper_px, background)
     mean, frame_noise, model, sigma, background, support, taper = _measure(f, noise_std, dark_std, background, support_sigma, margin_px, taper_px)
     signal = mean - background
     kernel = KernelPSF((signal * taper).to(in_dtype), exposure)
@@ -333,14 +323,7 @@ def psf_from_still(
 
     dof = max(int(support.sum()) - 6, 1)
     threshold = 1 + CHI2_Z * math.sqrt(2 / dof)
-    try:
-        gauss = fit_gaussian_psf(signal.to(in_dtype), exposure_s=exposure, noise_std=sigma.to(in_dtype), fit_background=False,
-                                 pixel_integration=True)
-        chi2_g = ((signal - gauss.model.to(signal)) / sigma).square()[support].sum() / dof
-        gauss = replace(gauss, psf=point_sampled_equivalent(gauss.psf))  # the pixel model the blur fits sample
-        failed = ""
-    except ParameterError as exc:  # no Gaussian fits (e.g. a spot wider than the frame): the kernel it is
-        gauss, chi2_g, failed = None, torch.tensor(math.inf, dtype=signal.dtype), f"; the Gaussian fit failed: {exc}"
+    gauss, chi2_g, failed = _gaussian_candidate(signal, sigma, support, dof, exposure, in_dtype)
     if kind == "gaussian" and gauss is None:
         raise ParameterError(f"kind: 'gaussian' asked for, but no Gaussian fits the still{failed}")
     passes = bool(chi2_g <= threshold)
@@ -356,3 +339,35 @@ def psf_from_still(
         noise_model=model, frame_noise=frame_noise, support=support, taper=taper, touches_edge=edge, n_frames=N,
         exposure_s=exposure,
     )
+
+
+def _check_options(exposure_s, kind, support_sigma, margin_px, taper_px, background):
+    """:func:`psf_from_still`'s options checked: ``(exposure s, support_sigma, background or
+    None)`` as floats; errors name the argument."""
+    e = as_tensor(exposure_s, "exposure_s", dtype=torch.float64)
+    if e.numel() != 1:
+        raise ShapeError(f"exposure_s: expected one exposure (a number), got shape {tuple(e.shape)}")
+    exposure = float(check_positive(e, "exposure_s").reshape(()))
+    check_choice(kind, "kind", KINDS)
+    support_sigma = check_real_scalar(support_sigma, "support_sigma", positive=True)
+    for name, v in (("margin_px", margin_px), ("taper_px", taper_px)):
+        if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+            raise ParameterError(f"{name}: expected an integer >= 0, got {v!r}")
+    if background is not None:
+        background = check_real_scalar(background, "background")
+    return exposure, support_sigma, background
+
+
+def _gaussian_candidate(signal, sigma, support, dof: int, exposure: float, in_dtype):
+    """The Gaussian fitted to the averaged still ``signal [H, W]`` (noise ``sigma``) with pixel
+    integration, then as its point-sampled equivalent (the pixel model the blur fits sample):
+    ``(PSFFit or None, reduced chi2 over the support's pixels with dof degrees of
+    freedom, "" or why no Gaussian fits)``; a spot no Gaussian fits (e.g. wider than the frame)
+    gives None and chi2 inf (the kernel it is)."""
+    try:
+        gauss = fit_gaussian_psf(signal.to(in_dtype), exposure_s=exposure, noise_std=sigma.to(in_dtype), fit_background=False,
+                                 pixel_integration=True)
+    except ParameterError as exc:
+        return None, torch.tensor(math.inf, dtype=signal.dtype), f"; the Gaussian fit failed: {exc}"
+    chi2_g = ((signal - gauss.model.to(signal)) / sigma).square()[support].sum() / dof
+    return replace(gauss, psf=point_sampled_equivalent(gauss.psf)), chi2_g, ""

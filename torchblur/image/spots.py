@@ -38,6 +38,8 @@ from dataclasses import dataclass, field
 import torch
 
 from torchblur.errors import ParameterError, ShapeError, as_tensor, check_finite, check_int, check_real_scalar
+from torchblur.image.detection import crop, find_spots
+from torchblur.image.psf_fit import fit_gaussian_psf, point_sampled_equivalent
 from torchblur.render.psf import GaussianPSF
 
 __all__ = ["SpotGrid", "SpotLayout", "SpotPSFs", "locate_spots", "crop_spots", "crop_valid", "raster_order", "spot_labels"]
@@ -233,9 +235,6 @@ def locate_spots(still, *, exposure_s: float, noise_std, pitch_px: float, crop_p
     Raises:
         ParameterError: no spot found.
     """
-    from torchblur.image.detection import find_spots
-    from torchblur.image.psf_fit import fit_gaussian_psf, point_sampled_equivalent
-
     still = as_tensor(still, "still")
     if still.dim() != 2:
         raise ShapeError(f"still: expected shape [H, W], got {tuple(still.shape)}")
@@ -301,8 +300,6 @@ def crop_spots(frames, offset, size) -> torch.Tensor:
         offset: ``[K, 2]`` long crop corners (x0, y0) (from :func:`locate_spots`).
         size: ``(h, w)``.
     """
-    from torchblur.image.detection import crop
-
     if not isinstance(offset, torch.Tensor) or offset.dim() != 2 or offset.shape[-1] != 2:
         raise ShapeError(f"offset: expected a tensor [K, 2] (x0, y0), got {getattr(offset, 'shape', offset)!r}")
     h, w = size

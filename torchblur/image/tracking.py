@@ -17,6 +17,8 @@ import numpy as np
 import torch
 
 from torchblur.errors import ParameterError, ShapeError, check_real_scalar
+from torchblur.image.dark import subtract_dark
+from torchblur.image.moments import image_moments
 
 __all__ = ["TrackingResult", "track_sine", "sine_from_centroids", "AxisCalibration", "calibrate_axes"]
 
@@ -110,9 +112,6 @@ def track_sine(rig, *, freq_hz: float, amplitude: float, rest_px, dark, gain: fl
     Returns:
         :class:`TrackingResult` of the spot's motion in px (divide by ``amplitude`` for |H|).
     """
-    from torchblur.image.moments import image_moments
-    from torchblur.image.dark import subtract_dark
-
     period = 1.0 / freq_hz
     te = exposure_fraction * period
     offsets = [(k / n_frames * period) % period for k in range(n_frames)]
@@ -139,10 +138,6 @@ class AxisCalibration:
     px_per_unit: float
     px_per_unit_std: float
     direction: tuple
-
-    def to_image(self, value_units: float) -> np.ndarray:
-        """Image displacement (x, y) px of an actuator displacement in input units."""
-        return np.asarray(self.direction) * self.px_per_unit * value_units
 
 
 def calibrate_axes(rig, *, freq_hz: float, amplitude: float, rest_px, dark, gain: float = 1.0, n_frames: int = 24,

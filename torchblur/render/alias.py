@@ -13,7 +13,7 @@ import torch
 from torchblur.errors import InputTypeError, as_tensor, check_finite, check_positive
 from torchblur.render.window import ExposureWindow
 
-__all__ = ["MIN_SEPARATION", "alias_phase", "alias_separation", "wrap_phase", "window_center_phase"]
+__all__ = ["MIN_SEPARATION", "alias_phase", "alias_separation", "canonical_sines", "wrap_phase", "window_center_phase"]
 
 #: alias_separation below this: the exposures of a point do not resolve the alias (one exposure, or centres that
 #: coincide mod half a period); :func:`torchblur.design.windows.check_design` warns and the continuity rule decides the branch
@@ -28,6 +28,16 @@ def wrap_phase(phase: torch.Tensor) -> torch.Tensor:
         raise InputTypeError(f"phase: expected a real tensor, got dtype {phase.dtype}")
     return math.pi - torch.remainder(math.pi - phase, 2 * math.pi)
 
+
+def canonical_sines(theta: torch.Tensor, n: int) -> torch.Tensor:
+    """``theta [..., P]`` (``n`` amplitudes, then their ``n`` phases in rad, then any other
+    parameters) as a new tensor with every amplitude >= 0: ``(-M, phi)`` is the same sine as
+    ``(M, phi + pi)``; the phases wrapped to ``(-pi, pi]``."""
+    t = theta.clone()
+    neg = t[..., :n] < 0
+    t[..., :n] = t[..., :n].abs()
+    t[..., n:2 * n] = wrap_phase(t[..., n:2 * n] + math.pi * neg)
+    return t
 
 def window_center_phase(omega, window: ExposureWindow) -> torch.Tensor:
     """``c = omega (tcam + Te / 2)`` (rad), broadcast of ``omega [...]`` and the window's ``[...]``."""

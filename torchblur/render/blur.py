@@ -272,6 +272,29 @@ def render_blur(
         >>> render_blur(traj, psf, ExposureWindow(0.0, 5e-3), height=32, width=32).shape
         torch.Size([32, 32])
     """
+    settings, sigma_min, ref, batch = _checked_inputs(trajectory, psf, window, height, width, settings)
+    dtype, device = ref.dtype, ref.device
+
+    S = choose_node_count(trajectory.path_length(window), sigma_min, settings, trajectory.phase_span(window))
+    m = settings.nodes_per_panel if S % settings.nodes_per_panel == 0 else S
+    tau, wq = quadrature_nodes(S // m, m, dtype=dtype, device=device)
+    start = window.start.to(dtype)[..., None]
+    dur = window.duration.to(dtype)[..., None]
+    t = (start + dur * tau).expand(batch + (S,))
+    disp = trajectory.position(t)  # [..., S, 2]
+    w = (dur * wq).expand(batch + (S,))
+
+    if isinstance(psf, KernelPSF):
+        kernel = psf.kernel.expand(batch + (height, width))
+        return _kernel_fourier(kernel, disp[..., 0], disp[..., 1], w)
+
+    return _render_gaussian(psf, disp, w, batch, sigma_min, settings, height, width)
+
+
+def _checked_inputs(trajectory, psf, window, height, width, settings):
+    """:func:`render_blur`'s inputs checked: ``(settings, the PSF's smallest sigma (px), the
+    tensor whose dtype and device the image takes, the batch shape [...])``; errors name the
+    argument."""
     if settings is not None and not isinstance(settings, RenderSettings):
         raise InputTypeError(f"settings: expected a RenderSettings or None, got {type(settings).__name__}")
     settings = settings or RenderSettings()
@@ -296,21 +319,14 @@ def render_blur(
     if math.prod(batch) == 0:
         raise ShapeError(f"trajectory, psf, window: expected a non-empty batch, got batch shapes trajectory {tuple(trajectory.shape)}, "
                          f"psf {tuple(psf.shape)}, window {tuple(window.shape)}")
-    dtype, device = ref.dtype, ref.device
+    return settings, sigma_min, ref, batch
 
-    S = choose_node_count(trajectory.path_length(window), sigma_min, settings, trajectory.phase_span(window))
-    m = settings.nodes_per_panel if S % settings.nodes_per_panel == 0 else S
-    tau, wq = quadrature_nodes(S // m, m, dtype=dtype, device=device)
-    start = window.start.to(dtype)[..., None]
-    dur = window.duration.to(dtype)[..., None]
-    t = (start + dur * tau).expand(batch + (S,))
-    disp = trajectory.position(t)  # [..., S, 2]
-    w = (dur * wq).expand(batch + (S,))
 
-    if isinstance(psf, KernelPSF):
-        kernel = psf.kernel.expand(batch + (height, width))
-        return _kernel_fourier(kernel, disp[..., 0], disp[..., 1], w)
-
+def _render_gaussian(psf: GaussianPSF, disp, w, batch, sigma_min, settings: RenderSettings, height: int, width: int):
+    """The image ``[..., H, W]`` of a Gaussian spot displaced by ``disp [..., S, 2]`` (px) at the
+    time nodes of weights ``w [..., S]`` (s): separable when the covariance is axis-aligned,
+    tiled (factors in float64) when it is tilted."""
+    dtype, device = w.dtype, w.device
     w = w * psf.amplitude[..., None]
     px = psf.center[..., None, 0] + disp[..., 0]
     py = psf.center[..., None, 1] + disp[..., 1]

@@ -29,7 +29,7 @@ import torch
 
 from torchblur.render.camera import CameraModel
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_finite, check_int, check_real_scalar
-from torchblur.systems.lti import LTISineTrajectory, Plant
+from torchblur.systems.lti import LTIMultisineTrajectory, LTISineTrajectory, Plant
 from torchblur.systems.mimo import MIMOSineTrajectory, PlantMatrix
 from torchblur.render.psf import GaussianPSF
 from torchblur.render.blur import RenderSettings, choose_node_count, render_blur
@@ -49,6 +49,45 @@ _F64 = torch.float64
 _MAX_NODES_PER_RENDER = 4096  # longer windows are split into sub-windows (the integral adds up)
 _RENDER_BUDGET = 1 << 24  # elements of a splat factor per render call (memory bound)
 
+
+
+def _spots_model(plant, frame_shape: tuple, *, rest_px, direction, psf_sigma_px, psf_cov, peak: float, spots):
+    """The rig's spots, checked: ``(direction [2] float64, GaussianPSF of amplitude ``peak``
+    (e-/s) at the rest positions, batch [] or [K], SpotLayout or None)``. One spot: at
+    ``rest_px`` (default the frame's centre), isotropic of ``psf_sigma_px`` or of covariance
+    ``psf_cov``; ``spots`` (a SpotGrid or SpotLayout): its rest positions and covariances."""
+    H, W = frame_shape
+    if rest_px is None:
+        rest = torch.tensor([(W - 1) / 2, (H - 1) / 2], dtype=_F64)
+    else:
+        rest = check_finite(as_tensor(rest_px, "rest_px", dtype=_F64), "rest_px")
+        if rest.shape != (2,):
+            raise ShapeError(f"rest_px: expected shape [2] (x, y px), got {tuple(rest.shape)}")
+    d = check_finite(as_tensor(direction, "direction", dtype=_F64), "direction")
+    if d.shape != (2,):
+        raise ShapeError(f"direction: expected shape [2] (x, y), got {tuple(d.shape)}")
+    if psf_cov is None:
+        sigma = check_real_scalar(psf_sigma_px, "psf_sigma_px", positive=True)
+        psf = GaussianPSF.isotropic(rest, torch.tensor(sigma, dtype=_F64), amplitude=peak)
+    else:
+        psf = GaussianPSF(rest, as_tensor(psf_cov, "psf_cov", dtype=_F64), amplitude=peak)
+        if psf.shape != ():
+            raise ShapeError(f"psf_cov: expected shape [2, 2], got {tuple(psf.cov.shape)}")
+    layout = None
+    if spots is not None:
+        from torchblur.image.spots import SpotGrid, SpotLayout
+
+        if isinstance(spots, SpotGrid):
+            spots = spots.layout((H, W), plant.n_outputs if isinstance(plant, PlantMatrix) else 1)
+        if not isinstance(spots, SpotLayout):
+            raise InputTypeError(f"spots: expected None, a SpotGrid or a SpotLayout, got {type(spots).__name__}")
+        n_out = plant.n_outputs if isinstance(plant, PlantMatrix) else 1
+        if tuple(spots.response.shape[1:]) != (2, n_out):
+            raise ShapeError(f"spots: expected responses [K, 2, {n_out}] for a plant with {n_out} output(s), "
+                             f"got {tuple(spots.response.shape)}")
+        layout = spots
+        psf = GaussianPSF(spots.rest_px.to(_F64), spots.cov.to(_F64), torch.full((len(spots),), peak, dtype=_F64))
+    return d, psf, layout
 
 class SimulatedRig:
     """A simulated rig implementing :class:`~torchblur.rig.base.Rig`.
@@ -135,37 +174,9 @@ class SimulatedRig:
         self._input_limit = check_real_scalar(input_limit, "input_limit", positive=True)
         self._slew_limit = None if slew_limit is None else check_real_scalar(slew_limit, "slew_limit", positive=True)
 
-        if rest_px is None:
-            rest = torch.tensor([(W - 1) / 2, (H - 1) / 2], dtype=_F64)
-        else:
-            rest = check_finite(as_tensor(rest_px, "rest_px", dtype=_F64), "rest_px")
-            if rest.shape != (2,):
-                raise ShapeError(f"rest_px: expected shape [2] (x, y px), got {tuple(rest.shape)}")
-        d = check_finite(as_tensor(direction, "direction", dtype=_F64), "direction")
-        if d.shape != (2,):
-            raise ShapeError(f"direction: expected shape [2] (x, y), got {tuple(d.shape)}")
-        self._direction = d
-        if psf_cov is None:
-            sigma = check_real_scalar(psf_sigma_px, "psf_sigma_px", positive=True)
-            self._psf = GaussianPSF.isotropic(rest, torch.tensor(sigma, dtype=_F64), amplitude=self._peak_e_per_s)
-        else:
-            self._psf = GaussianPSF(rest, as_tensor(psf_cov, "psf_cov", dtype=_F64), amplitude=self._peak_e_per_s)
-            if self._psf.shape != ():
-                raise ShapeError(f"psf_cov: expected shape [2, 2], got {tuple(self._psf.cov.shape)}")
-        self._layout = None
-        if spots is not None:
-            from torchblur.image.spots import SpotGrid, SpotLayout
-
-            if isinstance(spots, SpotGrid):
-                spots = spots.layout((H, W), plant.n_outputs if isinstance(plant, PlantMatrix) else 1)
-            if not isinstance(spots, SpotLayout):
-                raise InputTypeError(f"spots: expected None, a SpotGrid or a SpotLayout, got {type(spots).__name__}")
-            n_out = plant.n_outputs if isinstance(plant, PlantMatrix) else 1
-            if tuple(spots.response.shape[1:]) != (2, n_out):
-                raise ShapeError(f"spots: expected responses [K, 2, {n_out}] for a plant with {n_out} output(s), "
-                                 f"got {tuple(spots.response.shape)}")
-            self._layout = spots
-            self._psf = GaussianPSF(spots.rest_px.to(_F64), spots.cov.to(_F64), torch.full((len(spots),), self._peak_e_per_s, dtype=_F64))
+        self._direction, self._psf, self._layout = _spots_model(plant, (H, W), rest_px=rest_px, direction=direction,
+                                                                psf_sigma_px=psf_sigma_px, psf_cov=psf_cov,
+                                                                peak=self._peak_e_per_s, spots=spots)
         self._settings = RenderSettings(pixel_integration=True, max_nodes=1 << 30)
         self._generator = torch.Generator().manual_seed(self._seed)
         self._next_counter = 0
@@ -605,7 +616,7 @@ class SimulatedRig:
         tone), so the command repeats every ``T0 = 1 / base_freq_hz`` and a frame's trigger is
         at ``k T0 + trigger_offset_s`` (the first such time at or after the camera is ready,
         as :meth:`sine` with ``T0`` for the period). The image is the exact plant output
-        (:class:`~torchblur.design.multisine.LTIMultisineTrajectory`, transients included).
+        (:class:`~torchblur.systems.lti.LTIMultisineTrajectory`, transients included).
 
         Args:
             freq_hz, amplitude, phase_rad: the N tones (Hz, command units, rad).
@@ -622,8 +633,6 @@ class SimulatedRig:
         ``meta`` holds the tones, ``base_freq_hz``, ``period_s``, ``settle_s``, ``power``,
         ``trigger_delay_s`` and, for tests only, ``actual_start_s`` ``[E, R]``.
         """
-        from torchblur.design.multisine import LTIMultisineTrajectory
-
         freqs = float_list(freq_hz, "freq_hz")
         N = len(freqs)
         amps = float_list(amplitude, "amplitude")

@@ -70,7 +70,7 @@ from torchblur.render.trajectory import Sinusoid
 from torchblur.render.window import ExposureWindow
 from torchblur.sysid.alias_resolution import AliasResolution, resolve_alias_with_model
 from torchblur.sysid.direct_doc import DIRECT_SCHEMA, DIRECT_SCHEMA_VERSION, DIRECT_UNITS, direct_fields_from_dict
-from torchblur.sysid.frequency_response import MAX_FILE_BYTES
+from torchblur.sysid.frequency_response_io import MAX_FILE_BYTES
 from torchblur.sysid.parametric import _poles_zeros, _response, _Structure, _structure_from_tf
 from torchblur.sysid.tf_fit import TransferFunctionFit
 
@@ -847,20 +847,13 @@ def fit_direct(
         InputTypeError, ShapeError, ParameterError naming the argument.
     """
     if isinstance(start, (list, tuple)):
-        if not start:
-            raise ParameterError("start: expected a model or a non-empty list of models, got an empty list")
-        kw = dict(form=form, fit_delay=fit_delay, axis=axis, noise_std=noise_std, noise=noise, mask=mask, valid=valid, fit_scale=fit_scale,
-                  fit_background=fit_background, max_iter=max_iter, tol=tol, render_settings=render_settings)
-        fits = [fit_direct(images, psf, window, omega, input_amplitude, s, **kw) for s in start]
-        return min(fits, key=lambda f: f.cost if math.isfinite(f.cost) else math.inf)
+        return _best_of_starts((images, psf, window, omega, input_amplitude), start, dict(
+            form=form, fit_delay=fit_delay, axis=axis, noise_std=noise_std, noise=noise, mask=mask, valid=valid, fit_scale=fit_scale,
+            fit_background=fit_background, max_iter=max_iter, tol=tol, render_settings=render_settings))
     flags = {"fit_delay": fit_delay, "fit_scale": fit_scale, "fit_background": fit_background}
     images, window, omega, amp, use = _validate(images, psf, window, omega, input_amplitude, start, form, axis, valid, flags,
                                                 max_iter)
-    struct, p0, delay = _start_values(start, form, fit_delay)
-    names, transforms = zip(*struct.names_transforms())
-    is_log = torch.tensor([t == "log" for t in transforms], device=images.device)
-    if np.any(p0[is_log.cpu().numpy()] <= 0) or not np.all(np.isfinite(p0)):
-        raise ParameterError(f"start: the start gives invalid parameters {dict(zip(names, p0.tolist()))}")
+    struct, names, is_log, p0, delay = _start_params(start, form, fit_delay, images.device)
     by_model = _model_weighted(noise, noise_std)
     weight = _pixel_weights(images, noise.std(images) if by_model else noise_std, mask)
     if not bool(use.any()):
@@ -868,17 +861,19 @@ def fit_direct(
 
     prob = _used_points(images, weight, window, omega, psf, use, _unit_axis(axis, images),
                         render_settings or RenderSettings(panel_path_sigmas=3.5), fit_scale, fit_background)
-    # complex128: H needs the precision whatever the images
-    motion = _Motion(struct, is_log, 1j * prob.omega.to(torch.float64), delay, amp[use], images.dtype)
-    p0_t = torch.as_tensor(p0, dtype=torch.float64, device=images.device)
-    u = torch.where(is_log, torch.log(p0_t), p0_t)
-    with torch.no_grad():
-        M0 = motion(u)[0]
-    _crop(prob, M0)
-    prob.set_nodes(M0 * 1.3 + 0.5)  # time nodes fixed for a motion bound (renewed if the motion grows past it)
-    nuis = _nuisance_start(prob, motion, u)
+    motion, u, nuis = _prepare_start(prob, (struct, is_log, delay, p0), amp[use], images.dtype)
     known = noise_std is not None or by_model
     u, nuis, cost, blocks, converged, it = _passes(prob, motion, u, nuis, noise if by_model else None, known, max_iter=max_iter, tol=tol)
+    return _direct_result(prob, motion, (u, nuis, cost, blocks, converged, it), (struct, names, p0, delay), use, known,
+                          fit_scale, fit_background)
+
+
+def _direct_result(prob, motion, fitted, model, use, known: bool, fit_scale: bool, fit_background: bool) -> DirectModelFit:
+    """The :class:`DirectModelFit` of the passes' result ``fitted = (u, nuisance, cost, blocks,
+    converged, iterations)`` for ``model = (structure, names, start values, start delay)``:
+    the covariance, the per-point nuisance on all F points (``use`` [F]) and per-point chi2."""
+    u, nuis, cost, blocks, converged, it = fitted
+    struct, names, p0, delay = model
     params, cov, total_cost, dof, red = _covariance(prob, motion, u, blocks, cost, not known)
     scale_full, bg_full = _per_point(nuis, use, fit_scale, fit_background)
     point_red, point_flags = _point_chi2(prob, motion, u, nuis, use, known)
@@ -888,3 +883,40 @@ def fit_direct(
         start_params=np.asarray(p0), delay_s=delay_hat, cost=total_cost, dof=int(dof), reduced_chi2=float(red),
         noise_estimated=not known, converged=bool(converged), n_iter=int(it), used=use.cpu().numpy(), n_excluded=int((~use).sum()),
         scale=scale_full, background=bg_full, _struct=struct, point_reduced_chi2=point_red, flags=point_flags)
+
+
+def _best_of_starts(args: tuple, starts, kw: dict) -> DirectModelFit:
+    """Multi-start: :func:`fit_direct` ``(*args, start, **kw)`` from each of ``starts``; the fit
+    of the lowest finite cost."""
+    if not starts:
+        raise ParameterError("start: expected a model or a non-empty list of models, got an empty list")
+    fits = [fit_direct(*args, s, **kw) for s in starts]
+    return min(fits, key=lambda f: f.cost if math.isfinite(f.cost) else math.inf)
+
+def _start_params(start, form: str, fit_delay: bool, device):
+    """The model to fit and where it starts: ``(structure, parameter names [P], is_log [P] bool
+    tensor on ``device`` (fitted as logs), start values [P] (numpy), delay s)``; ParameterError
+    naming ``start`` where the start gives a non-finite or (log parameters) non-positive value."""
+    struct, p0, delay = _start_values(start, form, fit_delay)
+    names, transforms = zip(*struct.names_transforms())
+    is_log = torch.tensor([t == "log" for t in transforms], device=device)
+    if np.any(p0[is_log.cpu().numpy()] <= 0) or not np.all(np.isfinite(p0)):
+        raise ParameterError(f"start: the start gives invalid parameters {dict(zip(names, p0.tolist()))}")
+    return struct, names, is_log, p0, delay
+
+
+def _prepare_start(prob, model: tuple, amp, dtype):
+    """The motion of ``model = (structure, is_log, delay, start values p0 [P])`` at the used
+    points (command amplitudes ``amp``, images of ``dtype``) and the fit's unknowns at the
+    start: ``(motion, u [P] float64, the nuisance start)``; crops ``prob`` to the start's motion
+    and fixes its time nodes for a motion bound (renewed if the motion grows past it)."""
+    struct, is_log, delay, p0 = model
+    # complex128: H needs the precision whatever the images
+    motion = _Motion(struct, is_log, 1j * prob.omega.to(torch.float64), delay, amp, dtype)
+    p0_t = torch.as_tensor(p0, dtype=torch.float64, device=is_log.device)
+    u = torch.where(is_log, torch.log(p0_t), p0_t)
+    with torch.no_grad():
+        M0 = motion(u)[0]
+    _crop(prob, M0)
+    prob.set_nodes(M0 * 1.3 + 0.5)
+    return motion, u, _nuisance_start(prob, motion, u)

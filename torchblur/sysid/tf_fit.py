@@ -71,7 +71,8 @@ import scipy.optimize
 
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_frequency_grid, check_bool, check_int
 from torchblur.files import excerpt, read_bounded
-from torchblur.sysid.frequency_response import MAX_FILE_BYTES, FrequencyResponse, control_names
+from torchblur.sysid.frequency_response import FrequencyResponse, control_names
+from torchblur.sysid.frequency_response_io import MAX_FILE_BYTES
 
 __all__ = ["fit_transfer_function", "TransferFunctionFit"]
 
@@ -1131,17 +1132,12 @@ def fit_transfer_function(
     results = [[None] * frf.n_inputs for _ in range(frf.n_outputs)]
     for o in range(frf.n_outputs):
         for i in range(frf.n_inputs):
-            m = use[o, i]
-            if np.sum(m) == 0:
-                raise ParameterError(f"frf: output {excerpt(frf.output_labels[o])}, input {excerpt(frf.input_labels[i])} has no valid point")
-            omega = frf.omega[m]
-            data = _Data(omega=omega, h=frf.response[o, i, m], w00=w00[o, i, m], w10=w10[o, i, m], w11=w11[o, i, m],
-                         wsc=wsc[o, i, m], scale=float(np.sqrt(omega[0] * omega[-1])))
+            data = _channel_data(frf, o, i, use[o, i], (w00, w10, w11, wsc))
             best, rows = _fit_channel(data, orders, delay_s, n_iter, stable, label == "uncertainty")
             if best is None:
                 raise ParameterError(
                     f"n_poles: no model of the requested order fits output {excerpt(frf.output_labels[o])}, "
-                    f"input {excerpt(frf.input_labels[i])}: {int(np.sum(m))} valid points give {data.n_obs} real "
+                    f"input {excerpt(frf.input_labels[i])}: {int(np.sum(use[o, i]))} valid points give {data.n_obs} real "
                     f"observations, fewer than the parameters plus one"
                 )
             results[o][i] = _with_common_delay({**_physical(best, data, label == "uncertainty"), "candidates": tuple(rows)}, common)
@@ -1157,6 +1153,16 @@ def fit_transfer_function(
                                input_labels=tuple(frf.input_labels), output_labels=tuple(frf.output_labels),
                                order_criterion="BIC" if len(orders) > 1 else "fixed")
 
+
+def _channel_data(frf: FrequencyResponse, o: int, i: int, m: np.ndarray, weights: tuple) -> "_Data":
+    """The points ``m [F]`` (bool) of channel ``(o, i)`` with their weights ``(w00, w10, w11,
+    wsc)`` (each ``[O, I, F]``, see :func:`_weights`); ParameterError where no point is left."""
+    if np.sum(m) == 0:
+        raise ParameterError(f"frf: output {excerpt(frf.output_labels[o])}, input {excerpt(frf.input_labels[i])} has no valid point")
+    omega = frf.omega[m]
+    w00, w10, w11, wsc = (w[o, i, m] for w in weights)
+    return _Data(omega=omega, h=frf.response[o, i, m], w00=w00, w10=w10, w11=w11, wsc=wsc,
+                 scale=float(np.sqrt(omega[0] * omega[-1])))
 
 def _common_delay_std(value, delay_s) -> float:
     """The checked ``common_delay_std_s`` of :func:`fit_transfer_function` (s)."""

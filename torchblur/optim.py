@@ -13,7 +13,7 @@ from typing import Callable
 import torch
 import torch.autograd.forward_ad as fwAD
 
-from torchblur.fit.losses import gauss_newton_terms, image_loss
+from torchblur.losses import gauss_newton_terms, image_loss
 
 __all__ = ["LMResult", "levenberg_marquardt", "model_jacobian"]
 
@@ -73,7 +73,7 @@ def levenberg_marquardt(
         data: ``[N, R]``.
         loss: ``"l2"``, ``"poisson"`` or ``"l1"`` (by iteratively reweighted least squares).
         weight: per-pixel weights ``[N, R]`` (0 masks a pixel; the loss's own, see
-            :func:`~torchblur.fit.losses.loss_weight`) or None.
+            :func:`~torchblur.losses.loss_weight`) or None.
         max_iter: iterations at most; tol: relative cost decrease that counts as converged.
         project: optional ``theta -> theta`` applied after each step (e.g. keep bounds).
         jacobian_fn: optional ``(theta [n, P], idx) -> (model [n, R], J [n, R, P])`` (an
@@ -95,7 +95,7 @@ def levenberg_marquardt(
             ``benchmarks/bench_fit.py`` the actual remainder after the steps in the
             0.05-5 std range was 0.2x the estimate at the median, at most 3.6x, and the steps
             taken unevaluated with ``gn_tol=1e-2`` landed within 0.026 std.
-        shift: poisson's read-noise shift (counts, see :func:`~torchblur.fit.losses.image_loss`).
+        shift: poisson's read-noise shift (counts, see :func:`~torchblur.losses.image_loss`).
 
     Returns:
         :class:`LMResult`. ``converged`` is False where ``max_iter`` ran out.
