@@ -56,7 +56,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from torchblur.identify.config import CameraConfig, DMConfig, PlantConfig, SpotsConfig, WFSConfig
+from torchblur.config import (CameraConfig, DMConfig, PlantConfig, SpotsConfig, WFSConfig, check_number, load_dataclass,
+                              validate_camera, validate_dm_model, validate_plant, validate_spots)
 from torchblur.errors import ConfigError, ParameterError
 from torchblur.hardware.frames import CameraInfo, encode_message, frame_message
 from torchblur.hardware.protocol import (E_AXIS, E_BUSY, E_INTERNAL, E_LINE, E_RANGE, E_UNKNOWN, MAX_LINE, PROTOCOL_VERSION,
@@ -111,26 +112,24 @@ def load_emulator_config(path: str | None = None, overrides: list[str] | None = 
     Raises:
         ConfigError: naming the key.
     """
-    from torchblur.identify.config import _num, load_dataclass, validate_camera, validate_dm_model, validate_plant, validate_spots
-
     cfg = load_dataclass(EmulatorConfig, path, overrides, ignore_file_sections=("sweep", "excitation", "fit", "model", "rig", "dm_plan"))
     validate_dm_model(cfg.dm, cfg.wfs)
     validate_plant(cfg.plant)
     validate_camera(cfg.camera)
     validate_spots(cfg.spots, cfg.camera)
-    _num(cfg.seed, "seed", integer=True, low=0)
+    check_number(cfg.seed, "seed", integer=True, low=0)
     if cfg.transport not in ("pty", "socket"):
         raise ConfigError(f"transport: expected one of ('pty', 'socket'), got {cfg.transport!r}")
     for k in ("serial_port", "frames_port"):
-        _num(getattr(cfg, k), k, integer=True, low=0, high=65535)
-    _num(cfg.threads, "threads", integer=True, low=1)
+        check_number(getattr(cfg, k), k, integer=True, low=0, high=65535)
+    check_number(cfg.threads, "threads", integer=True, low=1)
     for k in ("exit_with_parent", "range_query"):
         if not isinstance(getattr(cfg, k), bool):
             raise ConfigError(f"{k}: expected true or false, got {getattr(cfg, k)!r}")
     for k in ("timeout_after", "garbage_after", "reset_after", "drop_frame", "stale_frame", "exit_after", "hang_after",
               "disconnect_after"):
-        _num(getattr(cfg.fault, k), f"fault.{k}", integer=True, low=-1)
-    _num(cfg.fault.repeat, "fault.repeat", integer=True, low=1)
+        check_number(getattr(cfg.fault, k), f"fault.{k}", integer=True, low=-1)
+    check_number(cfg.fault.repeat, "fault.repeat", integer=True, low=1)
     if cfg.fault.start not in ("boot", "wave"):
         raise ConfigError(f"fault.start: expected one of ('boot', 'wave'), got {cfg.fault.start!r}")
     return cfg

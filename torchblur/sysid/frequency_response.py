@@ -49,8 +49,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from torchblur.errors import InputTypeError, ParameterError, ShapeError, TorchblurError
-from torchblur.files import excerpt, read_bounded
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, TorchblurError, excerpt
+from torchblur.files import read_bounded
 from torchblur.sysid.flags import flag_names, parse_flags
 
 __all__ = ["FrequencyResponse", "control_names"]
