@@ -125,7 +125,7 @@ def test_rotated_actuator_axis_is_measured_and_fitted_along():
 
 
 def test_axis_config_is_checked():
-    from torchblur.config import ConfigError
+    from torchblur.errors import ConfigError
 
     with pytest.raises(ConfigError, match="fit.axis"):
         load_config(None, ["fit.axis=diagonal"])

@@ -16,15 +16,17 @@ from torchblur.config.budget import (DM_DARK_FRAMES, DM_STILL_FRAMES, GEOMETRY_E
                                      check_limits, dm_geometry, dm_plan, dm_sensor, dm_size_bounds, dm_still_frames,
                                      dm_sweep_size, estimate_run, latency_scan_times)
 from torchblur.config.camera_urls import aravis_url_options, camera_url_query, pylon_url_options
-from torchblur.config.checks import (MIN_PSF_SIGMA_PX, check_number, validate, validate_camera, validate_dm, validate_dm_model,
-                                     validate_excitation, validate_fit_psf, validate_loss_for_plan, validate_plant,
-                                     validate_report, validate_rig, validate_spots, validate_sweep, whole_periods)
+from torchblur.config.checks import (check_declared, check_number, validate, validate_camera, validate_dm, validate_dm_model,
+                                     validate_drive_limits, validate_excitation, validate_exposure_time, validate_fit,
+                                     validate_loss_for_plan, validate_model, validate_plan_compatibility, validate_plant,
+                                     validate_report, validate_rig, validate_spot_room, validate_spots, validate_sweep,
+                                     whole_periods)
 from torchblur.config.keys import UNITS, config_keys, format_config_keys, unit_of
 from torchblur.config.load import CONFIG_SCHEMA, MAX_CONFIG_BYTES, MAX_LIST_ENTRIES, config_to_yaml, load_config, load_dataclass
-from torchblur.config.schema import (AXIS_MODES, DEFAULT_PLANT, DM_PLAN_KINDS, EXCITATION_KINDS, GAIN_FROM, RIG_KINDS,
+from torchblur.config.schema import (AXIS_MODES, DEFAULT_PLANT, DM_PLAN_KINDS, EXCITATION_KINDS, GAIN_FROM, MIN_PSF_SIGMA_PX, RIG_KINDS,
                                      CameraConfig, DMConfig, DMPlanConfig, DMRegistrationConfig, ExcitationConfig, FitConfig,
                                      IdentifyConfig, ModelConfig, PlantConfig, ReportConfig, RigConfig, SpotsConfig,
-                                     SweepConfig, WFSConfig, is_nested)
+                                     SweepConfig, WFSConfig, is_nested, key)
 
 __all__ = [
     "IdentifyConfig", "PlantConfig", "SweepConfig", "ExcitationConfig", "CameraConfig", "FitConfig", "ModelConfig",
@@ -32,8 +34,9 @@ __all__ = [
     "DEFAULT_PLANT", "RIG_KINDS", "EXCITATION_KINDS", "AXIS_MODES", "GAIN_FROM", "DM_PLAN_KINDS", "is_nested",
     "load_config", "load_dataclass", "config_to_yaml", "CONFIG_SCHEMA", "MAX_CONFIG_BYTES", "MAX_LIST_ENTRIES",
     "validate", "validate_plant", "validate_camera", "validate_spots", "validate_excitation", "validate_sweep",
-    "validate_rig", "validate_dm", "validate_dm_model", "validate_report", "validate_fit_psf", "validate_loss_for_plan",
-    "whole_periods", "check_number", "MIN_PSF_SIGMA_PX",
+    "validate_rig", "validate_dm", "validate_dm_model", "validate_fit", "validate_model", "validate_report",
+    "validate_spot_room", "validate_drive_limits", "validate_exposure_time", "validate_plan_compatibility",
+    "validate_loss_for_plan", "whole_periods", "check_number", "check_declared", "MIN_PSF_SIGMA_PX", "key",
     "LIMITS", "SATURATION_STEPS", "LATENCY_SCAN", "GEOMETRY_EVALUATIONS", "estimate_run", "check_limits",
     "check_dm_bounds", "dm_size_bounds", "calibration_frames", "latency_scan_times", "DM_DARK_FRAMES", "DM_STILL_FRAMES",
     "STILL_BYTES", "check_dm_exposures", "dm_geometry", "dm_plan", "dm_still_frames", "dm_sweep_size", "dm_sensor",

@@ -4,32 +4,46 @@ what was expected and what came.
 """
 from __future__ import annotations
 
-import math
+from dataclasses import fields
 from urllib.parse import urlparse
 
 import numpy as np
 
 from torchblur.config.budget import LIMITS
 from torchblur.config.camera_urls import aravis_url_options, pylon_url_options
-from torchblur.config.schema import (AXIS_MODES, DM_PLAN_KINDS, EXCITATION_KINDS, GAIN_FROM, RIG_KINDS, CameraConfig, DMConfig,
-                                     DMRegistrationConfig, ExcitationConfig, IdentifyConfig, PlantConfig, RigConfig,
-                                     SpotsConfig, SweepConfig, WFSConfig, is_nested)
+from torchblur.config.schema import (AXIS_MODES, MIN_PSF_SIGMA_PX, CameraConfig, DMConfig, ExcitationConfig, IdentifyConfig,
+                                     PlantConfig, RigConfig, SpotsConfig, SweepConfig, WFSConfig, is_nested)
 from torchblur.errors import ConfigError, ParameterError, check_real_scalar, excerpt
-from torchblur.fit.losses import LIKELIHOOD_LOSSES, LOSSES
-from torchblur.fit.sinusoid import OPTIMIZERS, OUTLIERS
-from torchblur.image.psf_from_still import KINDS as PSF_KINDS
-from torchblur.sysid.direct import FORMS
+from torchblur.fit.losses import LIKELIHOOD_LOSSES
 
 __all__ = ["validate", "validate_plant", "validate_camera", "validate_spots", "validate_excitation", "validate_sweep",
-           "validate_rig", "validate_dm", "validate_dm_model", "validate_report", "validate_fit_psf",
-           "validate_loss_for_plan", "whole_periods", "check_number", "MIN_PSF_SIGMA_PX"]
+           "validate_rig", "validate_dm", "validate_dm_model", "validate_fit", "validate_model", "validate_report",
+           "validate_spot_room", "validate_drive_limits", "validate_exposure_time", "validate_plan_compatibility",
+           "validate_loss_for_plan", "whole_periods", "check_number", "check_declared"]
 
-MIN_PSF_SIGMA_PX = 0.1
 
 def check_number(value, key: str, **bounds) -> float:
     """:func:`~torchblur.errors.check_real_scalar` of the config ``key`` (``bounds``: its keywords):
     a :class:`ConfigError` naming the key."""
     return check_real_scalar(value, key, error=ConfigError, **bounds)
+
+
+def check_declared(section, prefix: str) -> None:
+    """Every single-field check declared in the dataclass ``section``'s fields
+    (:func:`torchblur.config.schema.key`), in field order; :class:`ConfigError` naming the key
+    ``prefix.name`` (``name`` for the top level, ``prefix`` empty)."""
+    for f in fields(section):
+        rule = f.metadata.get("check")
+        value, key = getattr(section, f.name), f"{prefix}.{f.name}" if prefix else f.name
+        if rule is None or (value is None and rule.get("optional")):
+            continue
+        if "choice" in rule:
+            if not isinstance(value, str) or value not in rule["choice"]:
+                raise ConfigError(f"{key}: expected one of {tuple(rule['choice'])}, got {excerpt(value)}")
+        elif rule.get("flag"):
+            _flag(value, key)
+        else:
+            check_number(value, key, **{k: v for k, v in rule.items() if k != "optional"})
 
 
 def _short(value) -> str:
@@ -61,7 +75,6 @@ def _pair(value, key: str, what: str) -> list[float]:
     return v
 
 
-
 def _check_channel(num, den, key_num: str, key_den: str) -> None:
     num = _coeffs(num, key_num)
     den = _coeffs(den, key_den)
@@ -91,9 +104,7 @@ def validate_plant(plant: PlantConfig) -> None:
     """Check the ``plant`` section; raise :class:`ConfigError` naming the key. ``num``/``den``
     are flat lists (SISO) or both 2x2 nested lists (a tip-tilt mirror, ``num[i][j]``: output i
     from input j); ``delay_s`` is a number, or for a 2x2 plant a number or 2x2 nested list."""
-    check_number(plant.input_limit, "plant.input_limit", positive=True)
-    if plant.slew_limit is not None:
-        check_number(plant.slew_limit, "plant.slew_limit", positive=True)
+    check_declared(plant, "plant")
     mimo_num, mimo_den = is_nested(plant.num), is_nested(plant.den)
     direction = _pair(plant.direction, "plant.direction", "[x, y] px per output unit")
     if not mimo_num and not mimo_den:
@@ -125,22 +136,15 @@ def validate_plant(plant: PlantConfig) -> None:
 
 def validate_spots(sp: SpotsConfig, camera: CameraConfig | None = None) -> None:
     """Check the ``spots`` section; raise :class:`ConfigError` naming the key."""
-    check_number(sp.rows, "spots.rows", integer=True, low=0)
+    check_number(sp.rows, "spots.rows", integer=True, low=0)  # the section's switch: the rest only when enabled
     if not sp.enabled:
         return
-    check_number(sp.cols, "spots.cols", integer=True, low=1)
-    check_number(sp.pitch_px, "spots.pitch_px", positive=True)
+    check_declared(sp, "spots")
     if sp.center_px is not None:
         if not isinstance(sp.center_px, (list, tuple)) or len(sp.center_px) != 2:
             raise ConfigError(f"spots.center_px: expected null or [x, y] (px), got {excerpt(sp.center_px)}")
         for i, v in enumerate(sp.center_px):
             check_number(v, f"spots.center_px[{i}]")
-    if sp.sigma_px is not None:
-        check_number(sp.sigma_px, "spots.sigma_px", low=MIN_PSF_SIGMA_PX)
-    for k in ("sigma_variation", "elongation"):
-        check_number(getattr(sp, k), f"spots.{k}", nonnegative=True)
-    check_number(sp.gain_variation, "spots.gain_variation", low=-0.99, high=0.99)
-    check_number(sp.rotation_rad, "spots.rotation_rad")
     if not isinstance(sp.missing, (list, tuple)):
         raise ConfigError(f"spots.missing: expected a list of grid indices, got {excerpt(sp.missing)}")
     n = int(sp.rows) * int(sp.cols)
@@ -148,8 +152,6 @@ def validate_spots(sp: SpotsConfig, camera: CameraConfig | None = None) -> None:
         check_number(m, f"spots.missing[{i}]", integer=True, low=0, high=n - 1)
     if len(set(int(m) for m in sp.missing)) >= n:
         raise ConfigError("spots.missing: every spot of the grid is missing")
-    if sp.crop_px is not None:
-        check_number(sp.crop_px, "spots.crop_px", integer=True, low=8)
     if camera is not None:
         side = sp.crop_side()
         if side < 8:
@@ -158,20 +160,13 @@ def validate_spots(sp: SpotsConfig, camera: CameraConfig | None = None) -> None:
             raise ConfigError(f"spots.crop_px: a crop of {side} px does not fit a {camera.height}x{camera.width} frame")
 
 
-
 def validate_dm_model(d: DMConfig, w: WFSConfig) -> None:
     """Check the ``dm`` and ``wfs`` sections (the mirror and its sensor: all the bench emulator's
     DM mode reads); raise :class:`ConfigError` naming the key."""
-    check_number(d.n_across, "dm.n_across", integer=True, low=0, high=64)
+    check_number(d.n_across, "dm.n_across", integer=True, low=0, high=64)  # the section's switch
     if not d.enabled:
         return
-    check_number(d.coupling, "dm.coupling", positive=True, high=0.99)
-    for k in ("mode_hz", "damping"):
-        check_number(getattr(d, k), f"dm.{k}", positive=True)
-    for k in ("gain", "delay_s", "delay_spread_s", "weak_gain"):
-        check_number(getattr(d, k), f"dm.{k}", nonnegative=True)
-    for k in ("mode_spread", "damping_spread", "gain_spread"):
-        check_number(getattr(d, k), f"dm.{k}", nonnegative=True, high=0.33)
+    check_declared(d, "dm")
     for k in ("dead", "weak"):
         v = getattr(d, k)
         if not isinstance(v, (list, tuple)):
@@ -180,27 +175,8 @@ def validate_dm_model(d: DMConfig, w: WFSConfig) -> None:
             check_number(j, f"dm.{k}[{i}]", integer=True, low=0)
     if d.actuator_table is not None and (not isinstance(d.actuator_table, str) or not d.actuator_table.strip()):
         raise ConfigError(f"dm.actuator_table: expected a path to a CSV file or null, got {excerpt(d.actuator_table)}")
-    if d.input_limit is not None:
-        check_number(d.input_limit, "dm.input_limit", positive=True)
-    _validate_dm_registration(d.registration)
-    check_number(w.n_across, "wfs.n_across", integer=True, low=1, high=128)
-    check_number(w.pitch_px, "wfs.pitch_px", low=8)
-    check_number(w.sigma_px, "wfs.sigma_px", low=MIN_PSF_SIGMA_PX)
-    check_number(w.sigma_variation, "wfs.sigma_variation", nonnegative=True)
-    check_number(w.slope_px, "wfs.slope_px", positive=True)
-    check_number(w.min_illumination, "wfs.min_illumination", positive=True, high=1.0)
-    check_number(w.oversample, "wfs.oversample", integer=True, low=1, high=256)
-
-
-def _validate_dm_registration(r: DMRegistrationConfig) -> None:
-    """Check ``dm.registration`` (the simulated mirror's): shifts within 2 pitches, rotation within
-    10 degrees, magnification in [0.8, 1.25], coupling null or in (0, 0.99]."""
-    for k in ("shift_x", "shift_y"):
-        check_number(getattr(r, k), f"dm.registration.{k}", low=-2.0, high=2.0)
-    check_number(r.rotation_deg, "dm.registration.rotation_deg", low=-10.0, high=10.0)
-    check_number(r.magnification, "dm.registration.magnification", low=0.8, high=1.25)
-    if r.coupling is not None:
-        check_number(r.coupling, "dm.registration.coupling", positive=True, high=0.99)
+    check_declared(d.registration, "dm.registration")
+    check_declared(w, "wfs")
 
 
 def validate_dm(cfg: IdentifyConfig) -> None:
@@ -210,15 +186,11 @@ def validate_dm(cfg: IdentifyConfig) -> None:
     validate_dm_model(d, w)
     if not d.enabled:
         return
-    if p.kind not in DM_PLAN_KINDS:
-        raise ConfigError(f"dm_plan.kind: expected one of {DM_PLAN_KINDS}, got {excerpt(p.kind)}")
+    check_declared(p, "dm_plan")
     if p.budget_frames is None and p.n_repeats is None:
         raise ConfigError("dm_plan.budget_frames: expected a frame budget, or set dm_plan.n_repeats")
     if p.budget_frames is not None:
         check_number(p.budget_frames, "dm_plan.budget_frames", integer=True, low=1, high=LIMITS["frames"])
-    if p.n_repeats is not None:
-        check_number(p.n_repeats, "dm_plan.n_repeats", integer=True, low=1)
-    check_number(p.support_threshold, "dm_plan.support_threshold", nonnegative=True, high=1.0)
     room = w.pitch_px / 2 - 3 * w.sigma_px * (1 + w.sigma_variation)
     if cfg.excitation.target_px > room:
         raise ConfigError(f"excitation.target_px: a DM spot motion of {cfg.excitation.target_px} px does not stay in its "
@@ -227,23 +199,12 @@ def validate_dm(cfg: IdentifyConfig) -> None:
 
 def validate_camera(c: CameraConfig) -> None:
     """Check the ``camera`` section; raise :class:`ConfigError` naming the key."""
-    for k in ("frame_rate_hz", "max_exposure_s", "gain", "full_well", "psf_sigma_px", "peak_fraction"):
-        check_number(getattr(c, k), f"camera.{k}", positive=True)
+    check_declared(c, "camera")
     if c.psf_sigma_px < MIN_PSF_SIGMA_PX:
         raise ConfigError(f"camera.psf_sigma_px: a PSF of {c.psf_sigma_px} px std is not sampled by the pixels; expected at "
                           f"least {MIN_PSF_SIGMA_PX} px")
-    for k in ("readout_s", "trigger_delay_s", "latency_s", "jitter_s", "read_noise", "dark_level"):
-        check_number(getattr(c, k), f"camera.{k}", nonnegative=True)
-    if c.gain_from not in GAIN_FROM:
-        raise ConfigError(f"camera.gain_from: expected one of {GAIN_FROM}, got {c.gain_from!r}")
-    check_number(c.ptc_frames, "camera.ptc_frames", integer=True, low=0, high=10000)
     if c.ptc_frames == 1:
         raise ConfigError("camera.ptc_frames: expected 0 (no ladder) or at least 2 frames per exposure (a pair), got 1")
-    if c.latency_std_s is not None:
-        check_number(c.latency_std_s, "camera.latency_std_s", nonnegative=True)
-    check_number(c.bit_depth, "camera.bit_depth", integer=True, low=1, high=32)
-    check_number(c.height, "camera.height", integer=True, low=8)
-    check_number(c.width, "camera.width", integer=True, low=8)
     if c.peak_fraction > 1:
         raise ConfigError(f"camera.peak_fraction: expected a value in (0, 1], got {c.peak_fraction}")
     if c.dark_level >= 2 ** int(c.bit_depth) - 1:
@@ -253,8 +214,7 @@ def validate_camera(c: CameraConfig) -> None:
 
 def validate_rig(r: RigConfig) -> None:
     """Check the ``rig`` section; raise :class:`ConfigError` naming the key."""
-    if r.kind not in RIG_KINDS:
-        raise ConfigError(f"rig.kind: expected one of {RIG_KINDS}, got {excerpt(r.kind)}")
+    check_declared(r, "rig")
     for k in ("port", "frames"):
         v = getattr(r, k)
         if v is not None and (not isinstance(v, str) or not v.strip()):
@@ -293,22 +253,12 @@ def validate_rig(r: RigConfig) -> None:
         if not ok:
             raise ConfigError(f"rig.frames: expected tcp://HOST:PORT, pylon://[SERIAL][?trigger=...], aravis://[DEVICE][?...] "
                               f"or package.module:ClassName, got {excerpt(f)}")
-    check_number(r.timeout_s, "rig.timeout_s", positive=True)
-    check_number(r.retries, "rig.retries", integer=True, low=0, high=100)
 
 
 def validate_excitation(x: ExcitationConfig) -> None:
-    """Check the multisine keys of the ``excitation`` section; raise :class:`ConfigError` naming the key."""
-    if x.kind not in EXCITATION_KINDS:
-        raise ConfigError(f"excitation.kind: expected one of {EXCITATION_KINDS}, got {excerpt(x.kind)}")
-    check_number(x.tones, "excitation.tones", integer=True, low=1, high=15)  # 15 + the base tone = the protocol's 16
-    if x.tone_px is not None:
-        check_number(x.tone_px, "excitation.tone_px", positive=True)
-    check_number(x.max_images, "excitation.max_images", integer=True, low=2, high=1000)
-    if x.images is not None:
-        check_number(x.images, "excitation.images", integer=True, low=2, high=1000)
-    check_number(x.target_std, "excitation.target_std", positive=True)
-    check_number(x.snap_tol, "excitation.snap_tol", positive=True)
+    """Check the ``excitation`` section (``tones`` at most 15: with the base tone, the protocol's
+    16); raise :class:`ConfigError` naming the key."""
+    check_declared(x, "excitation")
     if x.snap_tol >= 0.5:
         raise ConfigError(f"excitation.snap_tol: expected a value in (0, 0.5), got {x.snap_tol}")
 
@@ -338,96 +288,112 @@ def validate_sweep(s: SweepConfig) -> None:
         if whole_periods(e):
             raise ConfigError(f"sweep.exposures[{i}]: {e:g} is a whole number of periods: such an image does not depend on the "
                               f"phase (PHYSICS.md: the moments' start is undefined there); use a fraction such as 0.3 or 0.8")
-    check_number(s.trigger_phase_rad, "sweep.trigger_phase_rad")
-    check_number(s.images_per_point, "sweep.images_per_point", integer=True, low=1)
-    if s.settle_s is not None:
-        check_number(s.settle_s, "sweep.settle_s", nonnegative=True)
+    check_declared(s, "sweep")
 
 
 def validate(cfg: IdentifyConfig) -> None:
-    """Check every value; raise :class:`ConfigError` naming the key."""
+    """Check every value, section by section, then the rules between keys; raise
+    :class:`ConfigError` naming the key."""
     validate_plant(cfg.plant)
-    s = cfg.sweep
-    validate_sweep(s)
-    check_number(cfg.excitation.target_px, "excitation.target_px", positive=True)
-    validate_spots(cfg.spots, cfg.camera)
-    if cfg.spots.enabled:
-        sigma = cfg.spots.sigma_px if cfg.spots.sigma_px is not None else cfg.camera.psf_sigma_px
-        room = cfg.spots.crop_side() / 2 - 3 * float(sigma) * (1 + float(cfg.spots.sigma_variation)) * (1 + float(cfg.spots.elongation))
-        if 1.33 * float(cfg.excitation.target_px) > room:
-            raise ConfigError(f"excitation.target_px: a motion of up to 1.33 x {cfg.excitation.target_px} px does not stay in a "
-                              f"{cfg.spots.crop_side()} px spot crop (room {room:.3g} px from the centre, 3 PSF sigmas kept); "
-                              f"lower excitation.target_px or raise spots.pitch_px / spots.crop_px")
-    if cfg.excitation.max_amplitude is not None:
-        check_number(cfg.excitation.max_amplitude, "excitation.max_amplitude", positive=True)
-        if cfg.rig.kind == "simulated" and float(cfg.excitation.max_amplitude) > float(cfg.plant.input_limit):
-            raise ConfigError(f"excitation.max_amplitude: {cfg.excitation.max_amplitude} is beyond the simulated plant's input "
-                              f"range plant.input_limit = {cfg.plant.input_limit}; it may only narrow the range, not widen it")
-    if cfg.excitation.max_slew is not None:
-        check_number(cfg.excitation.max_slew, "excitation.max_slew", positive=True)
-        slew = cfg.plant.slew_limit
-        if cfg.rig.kind == "simulated" and slew is not None and float(cfg.excitation.max_slew) > float(slew):
-            raise ConfigError(f"excitation.max_slew: {cfg.excitation.max_slew} is beyond the simulated plant's slew limit "
-                              f"plant.slew_limit = {slew}; it may only narrow the limit, not widen it")
+    validate_sweep(cfg.sweep)
     validate_excitation(cfg.excitation)
-    c = cfg.camera
-    validate_camera(c)
+    validate_spots(cfg.spots, cfg.camera)
+    validate_spot_room(cfg)
+    validate_drive_limits(cfg)
+    validate_camera(cfg.camera)
+    validate_exposure_time(cfg)
+    validate_fit(cfg)
+    validate_model(cfg)
+    validate_plan_compatibility(cfg)
+    validate_loss_for_plan(cfg)
+    validate_rig(cfg.rig)
+    validate_report(cfg)
+    validate_dm(cfg)
+    check_declared(cfg, "")
+
+
+def _two_axes(cfg: IdentifyConfig) -> str:
+    """What makes a run fit both image axes (for a message): a 2x2 plant or many spots."""
+    return "a 2x2 plant" if cfg.plant.is_mimo else "many spots (spots.rows > 0)"
+
+
+def validate_spot_room(cfg: IdentifyConfig) -> None:
+    """Many spots: the largest motion, 1.33 ``excitation.target_px``, stays in a spot's crop with
+    3 PSF sigmas kept from its edge."""
+    if not cfg.spots.enabled:
+        return
+    sp = cfg.spots
+    sigma = sp.sigma_px if sp.sigma_px is not None else cfg.camera.psf_sigma_px
+    room = sp.crop_side() / 2 - 3 * float(sigma) * (1 + float(sp.sigma_variation)) * (1 + float(sp.elongation))
+    if 1.33 * float(cfg.excitation.target_px) > room:
+        raise ConfigError(f"excitation.target_px: a motion of up to 1.33 x {cfg.excitation.target_px} px does not stay in a "
+                          f"{sp.crop_side()} px spot crop (room {room:.3g} px from the centre, 3 PSF sigmas kept); "
+                          f"lower excitation.target_px or raise spots.pitch_px / spots.crop_px")
+
+
+def validate_drive_limits(cfg: IdentifyConfig) -> None:
+    """``excitation.max_amplitude`` and ``excitation.max_slew`` may only narrow the simulated
+    plant's ``plant.input_limit`` and ``plant.slew_limit``, never widen them."""
+    x, plant = cfg.excitation, cfg.plant
+    if cfg.rig.kind != "simulated":
+        return
+    if x.max_amplitude is not None and float(x.max_amplitude) > float(plant.input_limit):
+        raise ConfigError(f"excitation.max_amplitude: {x.max_amplitude} is beyond the simulated plant's input "
+                          f"range plant.input_limit = {plant.input_limit}; it may only narrow the range, not widen it")
+    if x.max_slew is not None and plant.slew_limit is not None and float(x.max_slew) > float(plant.slew_limit):
+        raise ConfigError(f"excitation.max_slew: {x.max_slew} is beyond the simulated plant's slew limit "
+                          f"plant.slew_limit = {plant.slew_limit}; it may only narrow the limit, not widen it")
+
+
+def validate_exposure_time(cfg: IdentifyConfig) -> None:
+    """The longest exposure (the largest fraction of the period at the lowest frequency) within
+    ``camera.max_exposure_s``."""
+    s = cfg.sweep
     f_min = min(s.freq_hz) if s.freq_hz is not None else s.f_min_hz  # (not the whole list: sweep.n may be huge)
     longest = max(s.exposures) / f_min
-    if longest > c.max_exposure_s:
+    if longest > cfg.camera.max_exposure_s:
         raise ConfigError(f"sweep.exposures: the longest exposure ({max(s.exposures)} of the period at {f_min:g} Hz = "
-                          f"{longest:g} s) exceeds camera.max_exposure_s = {c.max_exposure_s:g} s")
+                          f"{longest:g} s) exceeds camera.max_exposure_s = {cfg.camera.max_exposure_s:g} s")
+
+
+def validate_fit(cfg: IdentifyConfig) -> None:
+    """The ``fit`` section: its declared keys, ``fit.axis`` (a mode or a direction; one-axis,
+    one-spot runs only) and ``fit.loss`` a likelihood of the camera's noise."""
+    check_declared(cfg.fit, "fit")
     if isinstance(cfg.fit.axis, str):
         if cfg.fit.axis not in AXIS_MODES:
             raise ConfigError(f"fit.axis: expected one of {AXIS_MODES} or a direction [x, y], got {excerpt(cfg.fit.axis)}")
     else:
         _pair(cfg.fit.axis, "fit.axis", f"one of {AXIS_MODES} or a direction [x, y]")
     if cfg.fit.axis != "measure" and (cfg.plant.is_mimo or cfg.spots.enabled):
-        raise ConfigError("fit.axis: applies to one-axis, one-spot runs; this run has "
-                          f"{'a 2x2 plant' if cfg.plant.is_mimo else 'many spots (spots.rows > 0)'}, which fits both image axes")
-    validate_fit_psf(cfg)
-    if cfg.fit.optimizer not in OPTIMIZERS:
-        raise ConfigError(f"fit.optimizer: expected one of {OPTIMIZERS}, got {excerpt(cfg.fit.optimizer)}")
-    if cfg.fit.loss not in LOSSES:
-        raise ConfigError(f"fit.loss: expected one of {LOSSES}, got {excerpt(cfg.fit.loss)}")
+        raise ConfigError(f"fit.axis: applies to one-axis, one-spot runs; this run has {_two_axes(cfg)}, which fits both image axes")
     if cfg.fit.loss not in LIKELIHOOD_LOSSES:
         raise ConfigError(f"fit.loss: {excerpt(cfg.fit.loss)} is refused for an identification: it is no likelihood of the camera's noise, so its "
                           f"fit has no covariance and the response's stds would not hold; use one of {LIKELIHOOD_LOSSES} (l2, the default; "
                           f"l1 to be robust to outlier pixels, at 1.25x the std; poisson, the camera's shot and read noise exactly). "
                           f"fit_sinusoid(..., loss='linf', optimizer='adam' or 'lbfgs') still fits it outside a run")
-    for k in ("fit_scale", "fit_background", "fit_gradient"):
-        _flag(getattr(cfg.fit, k), f"fit.{k}")
-    if cfg.fit.outliers not in OUTLIERS:
-        raise ConfigError(f"fit.outliers: expected one of {OUTLIERS}, got {excerpt(cfg.fit.outliers)}")
-    check_number(cfg.fit.outlier_sigma, "fit.outlier_sigma", positive=True)
-    _flag(cfg.model.fit_delay, "model.fit_delay")
-    for k in ("n_poles", "n_zeros"):
-        v = getattr(cfg.model, k)
-        if v is not None:
-            check_number(v, f"model.{k}", integer=True, low=0)
-    if cfg.model.n_zeros is not None and cfg.model.n_poles is not None and cfg.model.n_zeros > cfg.model.n_poles:
-        raise ConfigError(f"model.n_zeros: expected at most model.n_poles = {cfg.model.n_poles} (a proper model), got {cfg.model.n_zeros}")
-    check_number(cfg.fit.chunk_points, "fit.chunk_points", integer=True, low=0)
-    check_number(cfg.model.max_order, "model.max_order", integer=True, low=1, high=16)
-    for k in ("direct",):
-        if not isinstance(getattr(cfg.model, k), bool):
-            raise ConfigError(f"model.{k}: expected true or false, got {excerpt(getattr(cfg.model, k))}")
-    if cfg.model.direct_form not in FORMS:
-        raise ConfigError(f"model.direct_form: expected one of {FORMS}, got {excerpt(cfg.model.direct_form)}")
-    check_number(cfg.model.direct_max_iter, "model.direct_max_iter", integer=True, low=1, high=10000)
-    if cfg.excitation.kind == "multisine" and (cfg.plant.is_mimo or cfg.spots.enabled):
-        raise ConfigError("excitation.kind: a multisine excitation drives one axis and fits one spot; this run has "
-                          f"{'a 2x2 plant' if cfg.plant.is_mimo else 'many spots (spots.rows > 0)'}: use excitation.kind=sine")
+
+
+def validate_model(cfg: IdentifyConfig) -> None:
+    """The ``model`` section: its declared keys, and at most as many zeros as poles."""
+    m = cfg.model
+    check_declared(m, "model")
+    if m.n_zeros is not None and m.n_poles is not None and m.n_zeros > m.n_poles:
+        raise ConfigError(f"model.n_zeros: expected at most model.n_poles = {m.n_poles} (a proper model), got {m.n_zeros}")
+
+
+def validate_plan_compatibility(cfg: IdentifyConfig) -> None:
+    """A multisine excitation and the direct model each drive one axis and fit one spot; the
+    direct model fits a sine sweep's images."""
+    two_axes = cfg.plant.is_mimo or cfg.spots.enabled
+    if cfg.excitation.kind == "multisine" and two_axes:
+        raise ConfigError(f"excitation.kind: a multisine excitation drives one axis and fits one spot; this run has "
+                          f"{_two_axes(cfg)}: use excitation.kind=sine")
     if cfg.model.direct and cfg.excitation.kind == "multisine":
         raise ConfigError("model.direct: the direct fit works on a sine sweep's images; set excitation.kind=sine or model.direct=false")
-    if cfg.model.direct and (cfg.plant.is_mimo or cfg.spots.enabled):
-        raise ConfigError("model.direct: the direct fit handles one axis and one spot; this run has "
-                          f"{'a 2x2 plant' if cfg.plant.is_mimo else 'many spots (spots.rows > 0)'}: set model.direct=false")
-    validate_loss_for_plan(cfg)
-    validate_rig(cfg.rig)
-    validate_report(cfg)
-    validate_dm(cfg)
-    check_number(cfg.seed, "seed", integer=True, low=0, high=2**63 - 1)
+    if cfg.model.direct and two_axes:
+        raise ConfigError(f"model.direct: the direct fit handles one axis and one spot; this run has {_two_axes(cfg)}: "
+                          f"set model.direct=false")
 
 
 def validate_loss_for_plan(cfg: IdentifyConfig) -> None:
@@ -441,15 +407,5 @@ def validate_loss_for_plan(cfg: IdentifyConfig) -> None:
 
 
 def validate_report(cfg: IdentifyConfig) -> None:
-    """``fit.poor_fit_chi2`` (> 0), the ``report`` section's tolerances (> 0) and ``report.figures`` (true or false)."""
-    check_number(cfg.fit.poor_fit_chi2, "fit.poor_fit_chi2", positive=True)
-    check_number(cfg.report.tolerance_deg, "report.tolerance_deg", positive=True)
-    check_number(cfg.report.tolerance_rel, "report.tolerance_rel", positive=True)
-    _flag(cfg.report.figures, "report.figures")
-
-
-def validate_fit_psf(cfg) -> None:
-    """``fit.psf``: one of :data:`torchblur.image.psf_from_still.KINDS` (every route fits with
-    the PSF it chooses: one spot, many spots, multisine, the direct model)."""
-    if not isinstance(cfg.fit.psf, str) or cfg.fit.psf not in PSF_KINDS:
-        raise ConfigError(f"fit.psf: expected one of {PSF_KINDS}, got {excerpt(cfg.fit.psf)}")
+    """The ``report`` section's declared keys (tolerances > 0, ``figures`` true or false)."""
+    check_declared(cfg.report, "report")
