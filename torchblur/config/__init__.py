@@ -11,35 +11,12 @@ DM's physics below it, nothing of the rigs, the hardware, the pipeline or the co
 
 The bench emulator imports these settings without loading the pipeline.
 """
-from torchblur.config.budget import (DM_DARK_FRAMES, DM_STILL_FRAMES, GEOMETRY_EVALUATIONS, LATENCY_SCAN, LIMITS,
-                                     SATURATION_STEPS, STILL_BYTES, calibration_frames, check_dm_bounds, check_dm_exposures,
-                                     check_limits, dm_geometry, dm_plan, dm_sensor, dm_size_bounds, dm_still_frames,
-                                     dm_sweep_size, estimate_run, latency_scan_times)
-from torchblur.config.camera_urls import aravis_url_options, camera_url_query, pylon_url_options
-from torchblur.config.checks import (check_declared, check_number, validate, validate_camera, validate_dm, validate_dm_model,
-                                     validate_drive_limits, validate_excitation, validate_exposure_time, validate_fit,
-                                     validate_loss_for_plan, validate_model, validate_plan_compatibility, validate_plant,
-                                     validate_report, validate_rig, validate_spot_room, validate_spots, validate_sweep,
-                                     whole_periods)
-from torchblur.config.keys import UNITS, config_keys, format_config_keys, unit_of
-from torchblur.config.load import CONFIG_SCHEMA, MAX_CONFIG_BYTES, MAX_LIST_ENTRIES, config_to_yaml, load_config, load_dataclass
-from torchblur.config.schema import (AXIS_MODES, DEFAULT_PLANT, DM_PLAN_KINDS, EXCITATION_KINDS, GAIN_FROM, MIN_PSF_SIGMA_PX, RIG_KINDS,
-                                     CameraConfig, DMConfig, DMPlanConfig, DMRegistrationConfig, ExcitationConfig, FitConfig,
-                                     IdentifyConfig, ModelConfig, PlantConfig, ReportConfig, RigConfig, SpotsConfig,
-                                     SweepConfig, WFSConfig, is_nested, key)
+from torchblur.config import budget, camera_urls, checks, keys, load, schema
+from torchblur.config.budget import *  # noqa: F401,F403 (each module's __all__)
+from torchblur.config.camera_urls import *  # noqa: F401,F403
+from torchblur.config.checks import *  # noqa: F401,F403
+from torchblur.config.keys import *  # noqa: F401,F403
+from torchblur.config.load import *  # noqa: F401,F403
+from torchblur.config.schema import *  # noqa: F401,F403
 
-__all__ = [
-    "IdentifyConfig", "PlantConfig", "SweepConfig", "ExcitationConfig", "CameraConfig", "FitConfig", "ModelConfig",
-    "ReportConfig", "RigConfig", "SpotsConfig", "DMConfig", "DMRegistrationConfig", "WFSConfig", "DMPlanConfig",
-    "DEFAULT_PLANT", "RIG_KINDS", "EXCITATION_KINDS", "AXIS_MODES", "GAIN_FROM", "DM_PLAN_KINDS", "is_nested",
-    "load_config", "load_dataclass", "config_to_yaml", "CONFIG_SCHEMA", "MAX_CONFIG_BYTES", "MAX_LIST_ENTRIES",
-    "validate", "validate_plant", "validate_camera", "validate_spots", "validate_excitation", "validate_sweep",
-    "validate_rig", "validate_dm", "validate_dm_model", "validate_fit", "validate_model", "validate_report",
-    "validate_spot_room", "validate_drive_limits", "validate_exposure_time", "validate_plan_compatibility",
-    "validate_loss_for_plan", "whole_periods", "check_number", "check_declared", "MIN_PSF_SIGMA_PX", "key",
-    "LIMITS", "SATURATION_STEPS", "LATENCY_SCAN", "GEOMETRY_EVALUATIONS", "estimate_run", "check_limits",
-    "check_dm_bounds", "dm_size_bounds", "calibration_frames", "latency_scan_times", "DM_DARK_FRAMES", "DM_STILL_FRAMES",
-    "STILL_BYTES", "check_dm_exposures", "dm_geometry", "dm_plan", "dm_still_frames", "dm_sweep_size", "dm_sensor",
-    "UNITS", "config_keys", "format_config_keys", "unit_of",
-    "camera_url_query", "pylon_url_options", "aravis_url_options",
-]
+__all__ = [*schema.__all__, *load.__all__, *checks.__all__, *budget.__all__, *keys.__all__, *camera_urls.__all__]

@@ -41,7 +41,8 @@ def check_declared(section, prefix: str) -> None:
             if not isinstance(value, str) or value not in rule["choice"]:
                 raise ConfigError(f"{key}: expected one of {tuple(rule['choice'])}, got {excerpt(value)}")
         elif rule.get("flag"):
-            _flag(value, key)
+            if not isinstance(value, bool):
+                raise ConfigError(f"{key}: expected true or false, got {excerpt(value)}")
         else:
             check_number(value, key, **{k: v for k, v in rule.items() if k != "optional"})
 
@@ -51,12 +52,6 @@ def _short(value) -> str:
         return excerpt(value)
     r = excerpt(value, 80)
     return r if not r.endswith("...") else f"{r}({len(value) if hasattr(value, '__len__') else '?'} entries)"
-
-
-def _flag(value, key) -> bool:
-    if not isinstance(value, bool):
-        raise ConfigError(f"{key}: expected true or false, got {excerpt(value)}")
-    return value
 
 
 def _coeffs(value, key) -> list[float]:
@@ -235,17 +230,11 @@ def validate_rig(r: RigConfig) -> None:
                 ok = bool(u.hostname) and u.port is not None
             except ValueError:
                 ok = False
-        elif f.startswith("pylon://"):  # a Basler camera (the pylon extra): its options checked here, opened later
+        elif f.startswith(("pylon://", "aravis://")):  # a Basler or GenICam camera (the pylon, aravis extra): options checked here
             try:
-                pylon_url_options(f)
+                (pylon_url_options if f.startswith("pylon://") else aravis_url_options)(f)
             except ParameterError as exc:
                 raise ConfigError(f"rig.frames: {excerpt(f)}: {str(exc).removeprefix('url: ')}") from None
-            ok = True
-        elif f.startswith("aravis://"):  # a GenICam camera through Aravis (the aravis extra): options checked here
-            try:
-                aravis_url_options(f)
-            except ParameterError as exc:
-                raise ConfigError(f"rig.frames: {f!r}: {str(exc).removeprefix('url: ')}") from None
             ok = True
         else:
             mod, sep, name = f.partition(":")

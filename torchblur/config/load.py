@@ -25,6 +25,7 @@ from torchblur.files import read_bounded
 
 __all__ = ["load_config", "load_dataclass", "config_to_yaml", "CONFIG_SCHEMA", "MAX_CONFIG_BYTES", "MAX_LIST_ENTRIES"]
 
+
 def _from_dict(cls, data: dict, prefix: str = ""):
     kwargs = {}
     names = {f.name: f for f in fields(cls)}
