@@ -27,7 +27,7 @@ import time
 import numpy as np
 import torch
 
-from torchblur.identify.config import load_config
+from torchblur.config import load_config
 from torchblur.identify.run import identify
 from torchblur.identify.verdict import TRUTH_BOUND, verdict
 from torchblur.sysid.flags import ALIAS

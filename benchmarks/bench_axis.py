@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from torchblur.identify.config import load_config
+from torchblur.config import load_config
 from torchblur.identify.run import identify
 
 

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from torchblur.identify.calibration import calibrate
-from torchblur.identify.config import load_config
+from torchblur.config import load_config
 from torchblur.identify.run import build_simulated_rig, identify
 
 

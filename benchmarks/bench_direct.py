@@ -31,7 +31,7 @@ import time
 import numpy as np
 import torch
 
-from torchblur.identify.config import load_config
+from torchblur.config import load_config
 from torchblur.identify.run import build_simulated_rig, calibrate, identify
 
 TRUTH = ((650.0, 0.03), (1600.0, 0.05))

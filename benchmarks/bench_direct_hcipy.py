@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 import hcipy_rig as hr  # noqa: E402
 
 import torchblur as tb  # noqa: E402
-from torchblur.identify.config import load_config  # noqa: E402
+from torchblur.config import load_config  # noqa: E402
 from torchblur.identify.verdict import verdict  # noqa: E402
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "identify_direct.yaml"

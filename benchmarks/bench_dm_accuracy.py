@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from torchblur.dm.pipeline import identify_dm, truth_errors
-from torchblur.identify.config import load_config
+from torchblur.config import load_config
 
 
 def main(argv=None) -> int:

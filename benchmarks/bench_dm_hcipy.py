@@ -39,7 +39,7 @@ import hcipy_sh_rig as hr  # noqa: E402
 
 from torchblur.dm.pipeline import identify_dm  # noqa: E402
 from torchblur.dm.verdict import final_verdict  # noqa: E402
-from torchblur.identify.config import load_config  # noqa: E402
+from torchblur.config import load_config  # noqa: E402
 
 CASES = {"aligned": hs.SHOptics(),
          "misregistered": hs.SHOptics(shift=(0.25, 0.0), rotation_deg=1.5, magnification=1.03)}

@@ -45,7 +45,7 @@ def small_runs() -> None:
     from test_dm_run import SMALL
 
     from torchblur.dm.pipeline import identify_dm, truth_errors
-    from torchblur.identify.config import load_config
+    from torchblur.config import load_config
 
     base = [k for k in SMALL if not k.startswith("fit.psf=")]
     for psf in ("auto", "gaussian"):

@@ -22,7 +22,7 @@ from pathlib import Path
 import torch
 
 from torchblur.identify.cli import _write_outputs
-from torchblur.identify.config import load_config
+from torchblur.config import load_config
 from torchblur.identify.pipeline import identify
 
 

@@ -31,7 +31,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from torchblur.identify.config import load_config  # noqa: E402
+from torchblur.config import load_config  # noqa: E402
 from torchblur.identify.run import identify  # noqa: E402
 from torchblur.rig.factory import build_simulated_rig  # noqa: E402
 

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 import torchblur.identify.calibration as C
-from torchblur.identify.config import load_config
+from torchblur.config import load_config
 from torchblur.identify.run import build_simulated_rig
 
 _scan = {}

@@ -18,7 +18,7 @@ import time
 import numpy as np
 import torch
 
-from torchblur.identify.config import load_config
+from torchblur.config import load_config
 from torchblur.identify.run import identify
 
 CONFIGS = {"mimo": "configs/identify_mimo.yaml", "spots": "configs/identify_spots.yaml"}

@@ -22,7 +22,7 @@ import numpy as np
 import scipy.stats
 import torch
 
-from torchblur.identify.config import load_config
+from torchblur.config import load_config
 from torchblur.identify.run import identify, plant_of
 from torchblur.sysid.frequency_response import FrequencyResponse
 from torchblur.sysid.tf_fit import fit_transfer_function

@@ -21,7 +21,7 @@ import torch
 
 from torchblur.identify import cli
 from torchblur.identify.assemble import mark_limited
-from torchblur.identify.config import load_config
+from torchblur.config import load_config
 from torchblur.identify.run import identify
 
 FAST = ["sweep.f_max_hz=200000", "sweep.n=6", "sweep.images_per_point=1"]

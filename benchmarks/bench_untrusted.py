@@ -34,7 +34,7 @@ ABSURD = [["dm.n_across=64", "wfs.n_across=128"], ["dm.n_across=16", "wfs.n_acro
 
 def sizes() -> None:
     from torchblur.errors import ConfigError
-    from torchblur.identify.config import load_config
+    from torchblur.config import load_config
 
     load_config(None)  # imports and OmegaConf warmed up
     print("1. absurd DM sizes (configs/identify_dm.yaml + overrides): refusal time, key named")

@@ -25,7 +25,7 @@ import torch
 
 from common import parse, plt, save_figure, write_metrics
 
-from torchblur.identify.config import load_config
+from torchblur.config import load_config
 from torchblur.design.windows import resolve_branches
 from torchblur.identify.run import build_simulated_rig, identify
 

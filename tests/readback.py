@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from torchblur.identify.config import config_to_yaml
+from torchblur.config import config_to_yaml
 from torchblur.identify.read_outputs import SUMMARY_SCHEMA, check_document, read_outputs
 from torchblur.sysid.direct import DirectModelFit
 from torchblur.sysid.frequency_response import FrequencyResponse

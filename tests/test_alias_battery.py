@@ -16,7 +16,7 @@ from torchblur.design.windows import (ANCHOR_STD_RAD, DesignWarning, check_desig
 from torchblur.errors import ConfigError, ParameterError
 from torchblur.fit.sinusoid import fit_sinusoid
 from torchblur.identify.assemble import resolve_single_exposure
-from torchblur.identify.config import load_config
+from torchblur.config import load_config
 from torchblur.identify.verdict import EXIT_FLAGGED, TRUTH_BOUND, truth_disagreement, verdict
 from torchblur.sysid.flags import ALIAS, POINT_FLAGS, UNTRUSTED, flag_names, parse_flags
 from torchblur.sysid.frequency_response import FrequencyResponse

@@ -10,8 +10,9 @@ import time
 
 import pytest
 
+from torchblur.config.camera_urls import aravis_url_options
 from torchblur.errors import ConfigError, ParameterError
-from torchblur.hardware.aravis import AravisCamera, aravis_available, aravis_url_options
+from torchblur.hardware.aravis import AravisCamera, aravis_available
 from torchblur.hardware.errors import FrameTimeout, HardwareError
 
 if not aravis_available():
@@ -21,7 +22,7 @@ H, W = 24, 32
 
 
 def test_url_options_and_config_check():
-    from torchblur.identify.config import load_config
+    from torchblur.config import load_config
 
     assert aravis_url_options("aravis://Fake_1?trigger=Software&readout_s=0.002") == {
         "device": "Fake_1", "trigger_source": "Software", "pixel_format": None, "readout_s": 0.002, "feed": None}

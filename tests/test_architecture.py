@@ -11,9 +11,11 @@ IDENTIFY_EXCEPTIONS = {"torchblur",
                        "torchblur.dm.record",  # the DM run's recording: identify's experiment folder, resume and re-fit checks
                        "torchblur.dm.verdict",  # the DM run's verdict: identify's exit status (EXIT_FLAGGED) and name lists
                        "torchblur.dm.outside"}  # outside DM recordings: the one-spot outside format's calibration pieces
-# The identification's settings: a leaf (it imports nothing of torchblur.identify) that the
-# bench emulator shares for its plant, camera and spots sections.
-IDENTIFY_DATA = "torchblur.identify.config"
+# The identification's settings: below the pipeline (they import nothing of torchblur.identify,
+# nor the rigs, the hardware or the command line above them); the bench emulator shares them for
+# its plant, camera and spots sections.
+CONFIG = "torchblur.config"
+ABOVE_CONFIG = ("torchblur.identify", "torchblur.rig", "torchblur.hardware", "torchblur.cli")
 
 
 def test_the_graph_sees_imports_inside_functions():
@@ -28,13 +30,17 @@ def test_nothing_below_identify_imports_it():
         for m, ts in _graph().items()
         if not m.startswith("torchblur.identify") and m not in IDENTIFY_EXCEPTIONS
         for t in ts
-        if (t == "torchblur.identify" or t.startswith("torchblur.identify.")) and t != IDENTIFY_DATA
+        if t == "torchblur.identify" or t.startswith("torchblur.identify.")
     )
     assert offenders == []
 
 
-def test_identify_config_is_a_leaf():
-    assert not {t for t in _graph()[IDENTIFY_DATA] if t.startswith("torchblur.identify")}
+def test_config_imports_nothing_above_it():
+    edges = _graph()
+    modules = [m for m in edges if m == CONFIG or m.startswith(CONFIG + ".")]
+    assert len(modules) > 1
+    assert not {f"{m} -> {t}" for m in modules for t in edges[m]
+                if any(t == a or t.startswith(a + ".") for a in ABOVE_CONFIG)}
 
 
 def test_multisine_plan_does_not_import_the_pipeline():
@@ -62,11 +68,11 @@ def test_the_emulator_and_the_settings_do_not_load_the_pipeline():
     import subprocess
     import sys
 
-    code = ("import sys, torchblur.hardware.emulator, torchblur.identify.config; "
+    code = ("import sys, torchblur.hardware.emulator, torchblur.config; "
             "print(sorted(m for m in sys.modules if m.startswith('torchblur.identify')))")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
-    assert done.stdout.strip() == "['torchblur.identify', 'torchblur.identify.config']"
+    assert done.stdout.strip() == "[]"
 
 
 def test_identify_package_names_load_on_use():

@@ -26,7 +26,7 @@ import torch
 import torchblur as tb
 from torchblur.image import preprocess as pp
 from torchblur.render.camera import CameraModel
-from torchblur.identify.config import load_config
+from torchblur.config import load_config
 from torchblur.design.windows import check_design, dual_exposure_windows
 from torchblur.errors import ConfigError, InputTypeError, ParameterError, ShapeError
 from torchblur.fit.sinusoid import (MASKED, NO_MOTION, OUTLIERS_MASKED, PARTLY_OUT_OF_FRAME, SATURATED_MASKED, fit_sinusoid)

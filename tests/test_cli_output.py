@@ -12,7 +12,7 @@ import pytest
 
 from torchblur.identify import record
 from torchblur.identify.pipeline import calibration_stages
-from torchblur.identify.config import load_config
+from torchblur.config import load_config
 from torchblur.sysid.frequency_response import FrequencyResponse
 from cli_run import ROOT, SMALL, run_cli as _cli
 
@@ -186,7 +186,7 @@ def test_rig_frames_pylon_url_is_accepted_and_a_bad_one_is_one_clear_error(tmp_p
 def test_identify_from_python_shows_its_messages_where_logging_is_not_configured():
     # a smaller run than SMALL (2 points, a 32 x 32 frame): what is checked is how the messages reach stderr
     small = ["sweep.freq_hz=[20,200]", "camera.height=32", "camera.width=32"]
-    code = ("from torchblur.identify.config import load_config; from torchblur.identify.pipeline import identify; "
+    code = ("from torchblur.config import load_config; from torchblur.identify.pipeline import identify; "
             f"identify(load_config(None, {small!r}), progress=True)")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)},
                           timeout=600)

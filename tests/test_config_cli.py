@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from torchblur.identify.config import IdentifyConfig, load_config
+from torchblur.config import IdentifyConfig, load_config
 from torchblur.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]

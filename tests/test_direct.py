@@ -14,7 +14,7 @@ import pytest
 import torch
 
 import torchblur as tb
-from torchblur.identify.config import load_config
+from torchblur.config import load_config
 from torchblur.sysid.direct import DirectModelFit, fit_direct, resolve_alias_with_model
 from torchblur.errors import ConfigError, InputTypeError, ParameterError, ShapeError
 from torchblur.fit.sinusoid import fit_sinusoid
@@ -412,7 +412,7 @@ def test_direct_is_refused_for_mimo_and_spots_runs():
     """The direct fit handles one axis and one spot: a 2x2 plant or a spot grid is a config error."""
     from pathlib import Path
 
-    from torchblur.identify.config import load_config
+    from torchblur.config import load_config
     from torchblur.errors import ConfigError
 
     mimo_cfg = str(Path(__file__).resolve().parents[1] / "configs" / "identify_mimo.yaml")

@@ -32,7 +32,7 @@ import hcipy_routes as routes  # noqa: E402
 from readback import assert_judged  # noqa: E402
 
 import torchblur as tb  # noqa: E402
-from torchblur.identify.config import load_config  # noqa: E402
+from torchblur.config import load_config  # noqa: E402
 from torchblur.design.windows import dual_exposure_windows  # noqa: E402
 from torchblur.fit.sinusoid import fit_sinusoid  # noqa: E402
 from torchblur.identify.model import direct_kernel_noise_factor, with_kernel_noise  # noqa: E402

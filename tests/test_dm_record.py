@@ -10,7 +10,7 @@ import pytest
 from torchblur.hardware.errors import ConnectionLost, RecordingError
 from torchblur.hardware.recording import Experiment, ReplayRig
 from torchblur.identify import cli
-from torchblur.identify.config import estimate_run, load_config
+from torchblur.config import estimate_run, load_config
 
 from test_dm_run import SMALL as _RUN_SMALL
 from readback import assert_reads_back
@@ -115,7 +115,7 @@ def test_refit_may_change_the_fit_and_the_support_threshold_only(live, tmp_path,
 
 
 def test_a_recorded_plan_is_kept_and_a_refit_takes_its_support_at_another_threshold(tmp_path):
-    from torchblur.dm.budget import dm_geometry
+    from torchblur.config.budget import dm_geometry
     from torchblur.dm.plans import hadamard_plan, sparse_plan
     from torchblur.dm.record import plan_document, plan_support, run_plan
     from torchblur.hardware.frames import CameraInfo

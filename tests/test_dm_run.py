@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from torchblur.errors import ConfigError, ParameterError
-from torchblur.identify.config import load_config
+from torchblur.config import load_config
 
 SMALL = [
     "dm.n_across=3", "dm.mode_hz=600.0", "dm.damping=0.1", "dm.mode_spread=0.05", "dm.dead=[2]", "dm.input_limit=10.0",
@@ -172,7 +172,7 @@ def test_the_amplitude_reference_is_the_fit_two_frequencies_back_whatever_has_fi
 
 
 def test_the_still_frames_grow_with_the_sweep_within_a_memory_bound():
-    from torchblur.dm.budget import DM_STILL_FRAMES, STILL_BYTES, dm_still_frames
+    from torchblur.config.budget import DM_STILL_FRAMES, STILL_BYTES, dm_still_frames
 
     assert dm_still_frames(100, (160, 160)) == DM_STILL_FRAMES  # never fewer than the least
     assert dm_still_frames(4096, (160, 160)) == 1024  # a quarter of configs/identify_dm.yaml's sweep

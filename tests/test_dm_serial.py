@@ -19,7 +19,7 @@ from torchblur.errors import ConfigError, ParameterError, ShapeError
 from torchblur.hardware.controller import Controller
 from torchblur.hardware.errors import AcquisitionStopped, DeviceError, PatternMismatch
 from torchblur.hardware.protocol import E_AXIS, E_BUSY, E_RANGE, MAX_LINE, parse_command, pattern_checksum, pattern_lines
-from torchblur.identify.config import load_config
+from torchblur.config import load_config
 
 SMALL_YAML = """\
 seed: 3

@@ -167,7 +167,7 @@ def small_result():
 
     from torchblur.dm.pipeline import DMResult, build_dm
     from torchblur.dm.plans import choose_plan
-    from torchblur.identify.config import load_config
+    from torchblur.config import load_config
 
     cfg = load_config(None, SMALL)
     mirror, wfs, rig = build_dm(cfg)

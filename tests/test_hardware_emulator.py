@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from torchblur.identify import cli
-from torchblur.identify.config import load_config
+from torchblur.config import load_config
 from torchblur.hardware import AcquisitionStopped, Experiment
 from torchblur.identify.calibration import N_DARK
 from torchblur.identify.run import identify

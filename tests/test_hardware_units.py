@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchblur.identify.config import load_config
+from torchblur.config import load_config
 from torchblur.errors import ConfigError
 from torchblur.hardware import CameraInfo, Experiment, ReplayFrames, SDKCamera
 from torchblur.hardware.emulator import EmulatedDevice, EmulatorConfig, _LineBuffer, load_emulator_config

@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from torchblur.identify.config import load_config
+from torchblur.config import load_config
 from torchblur.identify.run import identify
 from readback import assert_reads_back
 from reference import truth_errors
@@ -38,7 +38,7 @@ def test_the_latency_from_a_pulse_scan_is_unbiased_and_its_std_holds():
     is within 0.15 of its std and rms(error/std) within 0.85-1.2. (Taking the plateau as the
     median of its highest tenth, the noise's top, made the mean error +1.6 std on the default run.)"""
     from torchblur.identify.calibration import latency_from_scan
-    from torchblur.identify.config import LATENCY_SCAN, latency_scan_times
+    from torchblur.config import LATENCY_SCAN, latency_scan_times
 
     scan = {k: v for k, v in LATENCY_SCAN.items() if k != "repeats"}
     t = latency_scan_times(0.0, **scan)
@@ -125,7 +125,7 @@ def test_rotated_actuator_axis_is_measured_and_fitted_along():
 
 
 def test_axis_config_is_checked():
-    from torchblur.identify.config import ConfigError
+    from torchblur.errors import ConfigError
 
     with pytest.raises(ConfigError, match="fit.axis"):
         load_config(None, ["fit.axis=diagonal"])

@@ -10,7 +10,7 @@ import torch
 from torchblur.errors import ConfigError
 from torchblur.fit.sinusoid import fit_sinusoid
 from torchblur.identify.calibration import calibrate
-from torchblur.identify.config import load_config
+from torchblur.config import load_config
 from torchblur.identify.run import identify
 from torchblur.identify.sweep import inflate_std
 from torchblur.render.psf import GaussianPSF, KernelPSF

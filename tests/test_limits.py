@@ -9,7 +9,7 @@ import pytest
 
 from torchblur.errors import ConfigError
 from torchblur.identify import cli
-from torchblur.identify.config import LIMITS, check_limits, estimate_run, load_config
+from torchblur.config import LIMITS, check_limits, estimate_run, load_config
 
 
 @pytest.mark.parametrize("override,key", [

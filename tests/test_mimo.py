@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from torchblur.render.camera import CameraModel
-from torchblur.identify.config import load_config
+from torchblur.config import load_config
 from torchblur.errors import ConfigError, InputTypeError, ParameterError, ShapeError
 from torchblur.systems.lti import LTISineTrajectory, Plant
 from torchblur.systems.mimo import MIMOSineTrajectory, PlantMatrix, plant_from_coefficients

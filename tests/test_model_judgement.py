@@ -19,7 +19,7 @@ from torchblur.errors import ShapeError
 from torchblur.fit.multisine import fit_multisine
 from torchblur.fit.sinusoid import fit_sinusoid
 from torchblur.fit.status import POOR_FIT_FLAG
-from torchblur.identify.config import load_config
+from torchblur.config import load_config
 from torchblur.identify.verdict import EXIT_FLAGGED, verdict
 from torchblur.sysid.direct import fit_direct
 from torchblur.sysid.frequency_response import FrequencyResponse

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from torchblur.render.camera import CameraModel
-from torchblur.identify.config import DEFAULT_PLANT
+from torchblur.config import DEFAULT_PLANT
 from torchblur.errors import ParameterError, ShapeError
 from torchblur.systems.lti import LTISineTrajectory, Plant
 from torchblur.design.multisine import (LTIMultisineTrajectory, common_grid, crest_factor, design_multisine, multisine_signal,

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from torchblur.identify.config import load_config
+from torchblur.config import load_config
 from torchblur.errors import ConfigError
 from torchblur.identify.run import identify
 from readback import assert_reads_back

@@ -17,7 +17,7 @@ import torch
 import torchblur as tb
 from torchblur.errors import ConfigError, InputTypeError, ParameterError, ShapeError
 from torchblur.fit.multisine import fit_multisine, render_multisine
-from torchblur.identify.config import load_config
+from torchblur.config import load_config
 from torchblur.render.camera import CameraModel, CameraNoise
 from torchblur.sysid.direct import fit_direct
 from torchblur.sysid.frequency_response import FrequencyResponse

@@ -78,7 +78,7 @@ def test_the_figure_is_written_and_reads_back(tmp_path):
     import matplotlib.image
 
     from torchblur.identify.cli import _write_ptc_figure
-    from torchblur.identify.config import load_config
+    from torchblur.config import load_config
 
     cam = _camera(2.0)
     p = photon_transfer([_frames(cam, _spot(6000.0), 8, seed=3)], _frames(cam, torch.zeros(24, 24, dtype=torch.float64), 16, seed=4),
@@ -117,7 +117,7 @@ def test_calibration_measures_a_gain_that_is_not_the_configs():
     8-step ladder), uses it with a warning naming camera.gain, and records where it came from (camera.gain_from=config:
     test_choose_gain_auto_measure_config); the ladder's frames are counted in the estimate."""
     from torchblur.identify.calibration import calibrate
-    from torchblur.identify.config import calibration_frames, load_config
+    from torchblur.config import calibration_frames, load_config
     from torchblur.rig.factory import build_simulated_rig
 
     base = ["camera.height=32", "camera.width=32", "sweep.freq_hz=[50]", "fit.axis=x", "camera.latency_std_s=1e-7", "seed=2"]

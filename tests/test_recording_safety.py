@@ -72,7 +72,7 @@ def pristine(tmp_path_factory):
 def read_everything(d: Path):
     """Everything a re-fit reads: each group's calls, every frame, the config (untrusted).
     Returns a digest of the data read."""
-    from torchblur.identify.config import load_dataclass, IdentifyConfig
+    from torchblur.config import load_dataclass, IdentifyConfig
 
     exp = Experiment.open(d, writable=False)
     h = hashlib.sha256()

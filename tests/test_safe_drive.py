@@ -12,7 +12,7 @@ import torch
 from torchblur.errors import ConfigError, ParameterError
 from torchblur.fit.status import NO_MOTION
 from torchblur.hardware.errors import RecordingError
-from torchblur.identify.config import PlantConfig, load_config
+from torchblur.config import PlantConfig, load_config
 from torchblur.identify.drive import check_recorded_drive, drive_limit, is_limited
 from torchblur.identify.run import identify
 from torchblur.rig.base import check_drive, command_peak

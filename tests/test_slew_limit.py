@@ -10,7 +10,7 @@ import pytest
 
 from test_safe_drive import SMALL, LoggingRig
 from torchblur.errors import ConfigError, ParameterError
-from torchblur.identify.config import load_config
+from torchblur.config import load_config
 from torchblur.identify.drive import DriveLimit, drive_limit
 from torchblur.identify.run import identify
 from torchblur.rig.base import command_slew

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from torchblur.render.camera import CameraModel
-from torchblur.identify.config import load_config
+from torchblur.config import load_config
 from torchblur.errors import ConfigError, ParameterError
 from torchblur.systems.lti import Plant
 from torchblur.rig.simulated import SimulatedRig

@@ -7,7 +7,7 @@ audit hook that sees every ``open``, and is judged on the same counts (:func:`ju
 - ``hang``: not finished within 10 s;
 - ``traceback``: an exception that is not a torchblur error (a ValueError/TypeError subclass);
 - ``silent``: a tampered or impossible input accepted (a wrong result without a word);
-- ``echo``: more than :data:`torchblur.files.EXCERPT_CHARS` characters of a planted secret in
+- ``echo``: more than :data:`torchblur.errors.EXCERPT_CHARS` characters of a planted secret in
   the message, or a message of more than one line;
 - ``outside``: a file outside the recording (the planted secret, ``/proc/self/environ``,
   ``/dev/zero``) opened;
@@ -33,8 +33,7 @@ import pytest
 import tifffile
 import torch
 
-from torchblur.errors import TorchblurError
-from torchblur.files import EXCERPT_CHARS
+from torchblur.errors import EXCERPT_CHARS, TorchblurError
 
 from outside_folder import write_outside
 
@@ -392,7 +391,7 @@ def _read_all(d):
     """Everything a re-fit reads: experiment.json (plan included), every group's calls, every frame, the config."""
     def read():
         from torchblur.hardware.recording import Experiment, ReplayFrames
-        from torchblur.identify.config import IdentifyConfig, load_dataclass
+        from torchblur.config import IdentifyConfig, load_dataclass
 
         exp = Experiment.open(d, writable=False)
         for g in exp.groups:
@@ -632,7 +631,7 @@ RECORDED_TABLES = {"absolute /proc/self/environ": "/proc/self/environ", "absolut
 
 @pytest.fixture(scope="module")
 def default_cfg():
-    from torchblur.identify.config import load_config
+    from torchblur.config import load_config
 
     return load_config(None, force=True)
 
@@ -712,7 +711,7 @@ PLAIN_ABSURD = {
 
 @pytest.mark.parametrize("case", sorted(ABSURD) + sorted(PLAIN_ABSURD))
 def test_absurd_sizes_refused_naming_their_key(case, tmp_path):
-    from torchblur.identify.config import load_config
+    from torchblur.config import load_config
 
     overrides, keys = ABSURD[case] if case in ABSURD else PLAIN_ABSURD[case]
     path = "configs/identify_dm.yaml" if case in ABSURD else None
@@ -734,7 +733,7 @@ SECRET_KEYS = ["sweep.n", "sweep.exposures", "camera.gain", "plant.num", "plant.
 
 @pytest.mark.parametrize("case", sorted(CONFIG_FILES))
 def test_config_files(base, tmp_path, case):
-    from torchblur.identify.config import load_config
+    from torchblur.config import load_config
 
     p = tmp_path / "c.yaml"
     CONFIG_FILES[case](p)
@@ -744,7 +743,7 @@ def test_config_files(base, tmp_path, case):
 
 @pytest.mark.parametrize("key", SECRET_KEYS)
 def test_config_values_never_echoed(tmp_path, key):
-    from torchblur.identify.config import load_config
+    from torchblur.config import load_config
 
     section, name = key.split(".") if "." in key else (None, key)
     p = tmp_path / "c.yaml"
@@ -755,7 +754,7 @@ def test_config_values_never_echoed(tmp_path, key):
 
 
 def test_recorded_config_interpolation_refused(tmp_path):
-    from torchblur.identify.config import load_config
+    from torchblur.config import load_config
 
     p = tmp_path / "config.yaml"
     p.write_text("seed: ${oc.env:HOME}\n")
@@ -858,7 +857,7 @@ def test_read_bounded_stops_at_the_limit_of_a_file_sized_zero():
 
 
 def test_excerpt_is_short_and_printable():
-    from torchblur.files import excerpt
+    from torchblur.errors import excerpt
 
     e = excerpt("ab\x00\n" + "x" * 100)
     assert e == repr("ab??" + "x" * (EXCERPT_CHARS - 4)) + "..." and "\n" not in e

@@ -9,7 +9,7 @@ import torch
 
 from torchblur.errors import ShapeError
 from torchblur.identify.assemble import (adequacy, limited_mask, mark_limited, timing_limit_hz, timing_phase_std)
-from torchblur.identify.config import load_config
+from torchblur.config import load_config
 from torchblur.identify.model import fit_model, model_exclusions, points_needed
 from torchblur.identify.run import identify
 from torchblur.identify.verdict import EXIT_FLAGGED, model_chi2_limit, verdict

@@ -48,7 +48,7 @@ _LAZY = {
     "FrequencyResponse": "torchblur.sysid.frequency_response",
     "fit_transfer_function": "torchblur.sysid.tf_fit",
     "TransferFunctionFit": "torchblur.sysid.tf_fit",
-    "load_config": "torchblur.identify.config",
+    "load_config": "torchblur.config",
 }
 
 

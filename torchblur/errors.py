@@ -31,7 +31,35 @@ __all__ = [
     "check_bool",
     "as_image",
     "as_noise_std",
+    "excerpt",
+    "key_excerpt",
+    "EXCERPT_CHARS",
 ]
+
+
+EXCERPT_CHARS = 40  #: the most characters of an untrusted value an error message quotes
+
+
+def excerpt(value, limit: int = EXCERPT_CHARS) -> str:
+    """A short, sanitised quote of an untrusted ``value`` for an error message: a string (or
+    bytes) as at most ``limit`` characters, control and non-ASCII characters as ``?``, quoted;
+    anything else as its ``repr`` cut to ``limit`` characters; ``...`` where cut."""
+    if isinstance(value, (bytes, bytearray)):
+        value = bytes(value[: 4 * limit]).decode("utf-8", "replace")
+    if isinstance(value, str):
+        clean = "".join(c if " " <= c <= "~" else "?" for c in value[:limit])
+        return repr(clean) + ("..." if len(value) > limit else "")
+    r = repr(value)
+    return r if len(r) <= limit else r[:limit] + "..."
+
+
+def key_excerpt(key) -> str:
+    """An untrusted key for an error message: as it is when it looks like a config key (at most
+    60 characters of letters, digits, ``_.-[]``), else its :func:`excerpt`."""
+    k = str(key)
+    if len(k) <= 60 and all(c.isascii() and (c.isalnum() or c in "_.-[]") for c in k):
+        return k
+    return excerpt(k)
 
 
 class TorchblurError(Exception):
@@ -138,17 +166,29 @@ def broadcast_batch(shapes: dict[str, torch.Size | tuple]) -> torch.Size:
         raise ShapeError(f"batch shapes do not broadcast: {desc}") from None
 
 
-def check_real_scalar(value, name: str, *, positive: bool = False, nonnegative: bool = False) -> float:
-    """Validate a Python real scalar (used by frozen settings); return it as ``float``."""
+def check_real_scalar(value, name: str, *, positive: bool = False, nonnegative: bool = False, integer: bool = False,
+                      low: float | None = None, high: float | None = None, error: type[Exception] | None = None) -> float:
+    """A real number (a Python ``int`` or ``float``, not a bool), finite, within the bounds, as a
+    ``float``: the one scalar check of frozen settings' arguments and of config keys.
+
+    ``positive``: > 0; ``nonnegative``: >= 0; ``integer``: an ``int``; ``low``, ``high``:
+    inclusive bounds.
+
+    Raises:
+        InputTypeError: naming ``name``, for a value that is not a number (or not an integer);
+        ParameterError: naming ``name``, for one that is not finite or out of range;
+        ``error`` for both when given (a config key: :class:`ConfigError`).
+    """
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise InputTypeError(f"{name}: expected a real number, got {type(value).__name__}")
+        raise (error or InputTypeError)(f"{name}: expected a number, got {excerpt(value)}")
+    if integer and not isinstance(value, int):
+        raise (error or InputTypeError)(f"{name}: expected an integer, got {excerpt(value)}")
     v = float(value)
-    if not math.isfinite(v):
-        raise ParameterError(f"{name}: expected a finite number, got {v}")
-    if positive and v <= 0:
-        raise ParameterError(f"{name}: expected a value > 0, got {v:g}")
-    if nonnegative and v < 0:
-        raise ParameterError(f"{name}: expected a value >= 0, got {v:g}")
+    for bad, want in ((not math.isfinite(v), "a finite number"), (positive and v <= 0, "a value > 0"),
+                      (nonnegative and v < 0, "a value >= 0"), (low is not None and v < low, f"a value >= {low}"),
+                      (high is not None and v > high, f"a value <= {high}")):
+        if bad:
+            raise (error or ParameterError)(f"{name}: expected {want}, got {excerpt(value)}")
     return v
 
 

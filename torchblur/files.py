@@ -10,8 +10,8 @@ actuator tables, response files, TIFF, CSV, JSON): :func:`read_bounded`.
 - ``root``: a path that a recording names (untrusted) must resolve inside the recording's
   folder after every symlink (:func:`resolve_inside`): a recording never names a file outside
   itself.
-- No file's content goes into an error message beyond :func:`excerpt` (at most
-  :data:`EXCERPT_CHARS` printable characters).
+- No file's content goes into an error message beyond :func:`~torchblur.errors.excerpt` (at
+  most :data:`~torchblur.errors.EXCERPT_CHARS` printable characters).
 
 A leaf: it imports nothing of torchblur but :mod:`torchblur.errors`, so every reader (the
 hardware package's recordings, the config loader, :mod:`torchblur.sysid`) shares it without
@@ -24,36 +24,13 @@ import os
 import stat
 from pathlib import Path, PurePosixPath
 
-from torchblur.errors import ParameterError
+from torchblur.errors import ParameterError, excerpt
 
-__all__ = ["BLOCK_BYTES", "EXCERPT_CHARS", "excerpt", "key_excerpt", "open_regular", "read_bounded", "resolve_inside", "sha256_bounded"]
+__all__ = ["BLOCK_BYTES", "open_regular", "read_bounded", "resolve_inside", "sha256_bounded"]
 
 BLOCK_BYTES = 1 << 20
-EXCERPT_CHARS = 40
 _KINDS = ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISCHR, "a character device"),
           (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
-
-
-def excerpt(value, limit: int = EXCERPT_CHARS) -> str:
-    """A short, sanitised quote of an untrusted ``value`` for an error message: a string (or
-    bytes) as at most ``limit`` characters, control and non-ASCII characters as ``?``, quoted;
-    anything else as its ``repr`` cut to ``limit`` characters; ``...`` where cut."""
-    if isinstance(value, (bytes, bytearray)):
-        value = bytes(value[: 4 * limit]).decode("utf-8", "replace")
-    if isinstance(value, str):
-        clean = "".join(c if " " <= c <= "~" else "?" for c in value[:limit])
-        return repr(clean) + ("..." if len(value) > limit else "")
-    r = repr(value)
-    return r if len(r) <= limit else r[:limit] + "..."
-
-
-def key_excerpt(key) -> str:
-    """An untrusted key for an error message: as it is when it looks like a config key (at most
-    60 characters of letters, digits, ``_.-[]``), else its :func:`excerpt`."""
-    k = str(key)
-    if len(k) <= 60 and all(c.isascii() and (c.isalnum() or c in "_.-[]") for c in k):
-        return k
-    return excerpt(k)
 
 
 def resolve_inside(root, rel, what: str, *, error: type[Exception] = ParameterError) -> Path:

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from typing import Protocol, Sequence, runtime_checkable
 
-from torchblur.dm.budget import dm_geometry, dm_sensor
+from torchblur.config.budget import dm_geometry, dm_sensor
 from torchblur.errors import ConfigError, InputTypeError
 from torchblur.rig.base import Capture
 

@@ -36,8 +36,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from torchblur.errors import ConfigError, ParameterError, ShapeError, check_int, check_real_scalar
-from torchblur.files import excerpt, read_bounded
+from torchblur.errors import ConfigError, ParameterError, ShapeError, check_int, check_real_scalar, excerpt
+from torchblur.files import read_bounded
 
 __all__ = ["DeformableMirror", "actuator_grid", "influence", "influence_gradient", "influence_width", "read_actuator_table"]
 
@@ -221,7 +221,7 @@ class DeformableMirror:
 
     @classmethod
     def from_config(cls, dm, *, base_dir: str | None = None, seed: int = 0) -> "DeformableMirror":
-        """From a :class:`~torchblur.identify.config.DMConfig`; ``dm.actuator_table`` (a path,
+        """From a :class:`~torchblur.config.DMConfig`; ``dm.actuator_table`` (a path,
         relative to ``base_dir`` when given and not absolute) is read with
         :func:`read_actuator_table`."""
         n = check_int(dm.n_across, "dm.n_across", low=1)

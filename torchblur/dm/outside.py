@@ -36,19 +36,19 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchblur.dm.budget import dm_geometry, dm_sensor
+from torchblur.config.budget import dm_geometry, dm_sensor
 from torchblur.dm.pipeline import (DMResult, _calibrate, _fit_frequency, _fit_options, _spot_psf, check_dm_config, estimate_mirror,
                                     match_spots, run_cli)
 from torchblur.dm.plans import Plan, one_at_a_time_plan, plan_cost
 from torchblur.dm.record import PLAN_KEY, SWEEP_KIND, plan_support
 from torchblur.dm.shack_hartmann import ShackHartmann
-from torchblur.errors import ConfigError, InputTypeError
-from torchblur.files import excerpt, read_bounded
+from torchblur.errors import ConfigError, InputTypeError, excerpt
+from torchblur.files import read_bounded
 from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.outside import (CSV_NAME, YAML_NAME, MAX_ROWS, OutsideCamera, _points, _read_camera, _read_frames,
                                         _read_rows, _resolved_saturation)
 from torchblur.identify.calibration import Calibration, measure_gain, spots_from_still
-from torchblur.identify.config import WFSConfig, load_config, load_dataclass
+from torchblur.config import WFSConfig, load_config, load_dataclass
 from torchblur.identify.record import log_message
 from torchblur.image.preprocess import dark_frame, subtract_dark
 from torchblur.image.saturation import SaturationCurve

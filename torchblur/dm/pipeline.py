@@ -36,7 +36,7 @@ from torchblur.errors import ConfigError, InputTypeError, ParameterError
 from torchblur.render.camera import CameraModel
 from torchblur.render.window import ExposureWindow
 from torchblur.dm.contract import check_dm_rig
-from torchblur.dm.budget import DM_DARK_FRAMES, DM_STILL_FRAMES, dm_geometry, dm_plan, dm_still_frames, dm_sweep_size
+from torchblur.config.budget import DM_DARK_FRAMES, DM_STILL_FRAMES, dm_geometry, dm_plan, dm_still_frames, dm_sweep_size
 from torchblur.dm.mirror import DeformableMirror
 from torchblur.dm.outputs import DMEstimate, write_dm_outputs
 from torchblur.dm.plans import static_motion_px
@@ -45,7 +45,7 @@ from torchblur.dm.registration import (DC_GAIN_REFERENCE, Registration, Registra
 from torchblur.dm.rig import SimulatedDMRig
 from torchblur.dm.shack_hartmann import ShackHartmann
 from torchblur.dm.verdict import final_verdict
-from torchblur.identify.config import IdentifyConfig
+from torchblur.config import IdentifyConfig
 from torchblur.identify.read_outputs import SUMMARY_SCHEMA
 
 __all__ = ["DM_DARK_FRAMES", "DM_STILL_FRAMES", "DMResult", "build_dm", "check_dm_config", "estimate_mirror", "identify_dm", "match_spots", "next_amplitude",
@@ -167,7 +167,7 @@ def next_amplitude(*, target_px: float, motion_per_unit: float, input_limit: flo
     return float(min(amp, input_limit / max_pattern))
 
 
-# DM_DARK_FRAMES, dm_still_frames (torchblur.dm.budget): the calibration's dark and still frames.
+# DM_DARK_FRAMES, dm_still_frames (torchblur.config.budget): the calibration's dark and still frames.
 
 def _calibrate(cfg, rig, wfs, log, progress, exp=None):
     """Stage 1 (module docstring): the calibration (from the recording ``exp`` where it holds
@@ -388,7 +388,7 @@ def identify_dm(cfg, rig=None, *, progress: bool = False, base_dir: str | None =
 
 
 def check_dm_config(cfg) -> None:
-    """Refuse a ``cfg`` that is not a DM run's :class:`~torchblur.identify.config.IdentifyConfig`
+    """Refuse a ``cfg`` that is not a DM run's :class:`~torchblur.config.IdentifyConfig`
     (InputTypeError naming ``cfg``; ConfigError naming ``dm.n_across`` when it is 0)."""
     if not isinstance(cfg, IdentifyConfig):
         raise InputTypeError(f"cfg: expected an IdentifyConfig (torchblur.load_config), got {type(cfg).__name__}")
@@ -528,7 +528,7 @@ def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False, record=None
     import sys
     from pathlib import Path
 
-    from torchblur.identify.config import config_to_yaml
+    from torchblur.config import config_to_yaml
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -186,7 +186,7 @@ def open_recording(record, cfg, rig):
     or opened to resume) or an Experiment, checked against ``cfg`` (only ``rig.*``, ``fit.*``,
     ``model.*`` and ``report.*`` may differ from the recorded config; a read-only recording, a
     re-fit, may also take another ``dm_plan.support_threshold``) and ``rig``'s frame shape."""
-    from torchblur.identify.config import load_dataclass
+    from torchblur.config import load_dataclass
     from torchblur.identify.rigs import open_experiment
 
     if record is not None and getattr(record, "writable", True) is False:

@@ -87,7 +87,7 @@ class Registration:
 
     @classmethod
     def from_config(cls, r) -> "Registration":
-        """From ``dm.registration`` (:class:`~torchblur.identify.config.DMRegistrationConfig`)."""
+        """From ``dm.registration`` (:class:`~torchblur.config.DMRegistrationConfig`)."""
         try:
             return cls(shift_x=r.shift_x, shift_y=r.shift_y, rotation_deg=r.rotation_deg, magnification=r.magnification,
                        coupling=r.coupling)

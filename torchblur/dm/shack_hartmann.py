@@ -179,7 +179,7 @@ class ShackHartmann:
 
     @classmethod
     def from_config(cls, wfs, mirror) -> "ShackHartmann":
-        """From a :class:`~torchblur.identify.config.WFSConfig` and the mirror it looks at
+        """From a :class:`~torchblur.config.WFSConfig` and the mirror it looks at
         (its pupil: ``mirror.n_across`` pitches across)."""
         return cls(n_across=wfs.n_across, pupil_diameter=float(mirror.n_across), pitch_px=wfs.pitch_px, sigma_px=wfs.sigma_px,
                    sigma_variation=wfs.sigma_variation, slope_px=wfs.slope_px, min_illumination=wfs.min_illumination,

@@ -29,12 +29,13 @@ import ctypes
 import numpy as np
 import torch
 
+from torchblur.config.camera_urls import aravis_url_options
 from torchblur.errors import ParameterError
-from torchblur.hardware.camera_sdk import SDKCamera, camera_url_query
+from torchblur.hardware.camera_sdk import SDKCamera
 from torchblur.hardware.errors import ConnectionLost, FrameError, FrameTimeout, HardwareError
 from torchblur.hardware.frames import CameraInfo, Frame
 
-__all__ = ["AravisCamera", "aravis_available", "aravis_url_options"]
+__all__ = ["AravisCamera", "aravis_available"]
 
 _DTYPES = {"Mono8": np.uint8, "Mono10": "<u2", "Mono12": "<u2", "Mono14": "<u2", "Mono16": "<u2"}
 _ID_WRAP = 65535  # GigE Vision 1.x block ids run 1..65535
@@ -332,20 +333,3 @@ class _FillHook:
 
     def detach(self) -> None:
         self._lib.arv_fake_camera_set_fill_pattern(self._fake, ctypes.cast(None, self._FILL), None)
-
-
-def aravis_url_options(url: str) -> dict:
-    """The camera an ``aravis://[DEVICE][?trigger=Line1&pixel_format=Mono16&readout_s=1e-3&feed=tcp://H:P]``
-    URL names, as :class:`AravisCamera`'s arguments (``device``, ``trigger_source``, ``pixel_format``,
-    ``readout_s``, ``feed``: the emulator's camera channel, emulation only); nothing is opened.
-
-    Raises:
-        ParameterError: naming ``url``: another scheme, an unknown option, a readout_s that is not a number.
-    """
-    netloc, q, readout = camera_url_query(url, "aravis", ("trigger", "pixel_format", "readout_s", "feed"),
-                                          "aravis://[DEVICE][?trigger=...&pixel_format=...]")
-    feed = q.get("feed")
-    if feed is not None and not feed.startswith("tcp://"):
-        raise ParameterError(f"url: feed must be the emulator's camera channel tcp://HOST:PORT, got {feed!r}")
-    return {"device": netloc or None, "trigger_source": q.get("trigger", "Software" if feed else "Line1"),
-            "pixel_format": q.get("pixel_format", "Mono16" if feed else None), "readout_s": readout, "feed": feed}

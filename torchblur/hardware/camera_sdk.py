@@ -43,38 +43,14 @@ Example (a sketch with a hypothetical ``vendor`` SDK)::
 from __future__ import annotations
 
 from abc import abstractmethod
-from urllib.parse import parse_qs, urlparse
 
 import numpy as np
 import torch
 
-from torchblur.errors import ParameterError
 from torchblur.hardware.errors import FrameTimeout
 from torchblur.hardware.frames import CameraInfo, Frame, FrameSource
 
-__all__ = ["SDKCamera", "camera_url_query"]
-
-
-def camera_url_query(url: str, scheme: str, options: tuple, form: str) -> tuple:
-    """A camera URL ``scheme://[NAME][?option=value&...]`` split into ``(netloc, {option: value},
-    readout_s)``: the one parser of the SDK cameras' URLs (``pylon://``, ``aravis://``).
-
-    Raises:
-        ParameterError: naming ``url``: another scheme (``form`` is the expected one), an option
-            not in ``options``, a ``readout_s`` that is not a number (default 0).
-    """
-    u = urlparse(url)
-    if u.scheme != scheme:
-        raise ParameterError(f"url: expected {form}, got {url!r}")
-    q = {k: v[-1] for k, v in parse_qs(u.query).items()}
-    unknown = set(q) - set(options)
-    if unknown:
-        raise ParameterError(f"url: unknown options {sorted(unknown)}; expected {', '.join(options)}")
-    try:
-        readout = float(q.get("readout_s", 0.0))
-    except ValueError:
-        raise ParameterError(f"url: readout_s must be a number of seconds, got {q['readout_s']!r}") from None
-    return u.netloc, q, readout
+__all__ = ["SDKCamera"]
 
 
 class SDKCamera(FrameSource):

@@ -56,8 +56,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from torchblur.identify.config import CameraConfig, DMConfig, PlantConfig, SpotsConfig, WFSConfig
-from torchblur.errors import ConfigError, ParameterError
+from torchblur.config import (CameraConfig, DMConfig, PlantConfig, SpotsConfig, WFSConfig, check_declared, key, load_dataclass,
+                              validate_camera, validate_dm_model, validate_plant, validate_spots)
+from torchblur.errors import ParameterError
 from torchblur.hardware.frames import CameraInfo, encode_message, frame_message
 from torchblur.hardware.protocol import (E_AXIS, E_BUSY, E_INTERNAL, E_LINE, E_RANGE, E_UNKNOWN, MAX_LINE, PROTOCOL_VERSION,
                                          ProtocolViolation, format_err, format_ok, parse_command, pattern_checksum)
@@ -70,16 +71,16 @@ GARBAGE = b"\xff\x00\x1b[7m\x8f garbage \x07\n\xfe\x81\x00"
 
 @dataclass(frozen=True)
 class FaultConfig:
-    timeout_after: int = -1
-    garbage_after: int = -1
-    reset_after: int = -1
-    drop_frame: int = -1
-    stale_frame: int = -1
-    exit_after: int = -1
-    hang_after: int = -1
-    disconnect_after: int = -1
-    repeat: int = 1
-    start: str = "boot"  # the fault clock counts frames from "boot", or from the first WAVE ("wave": the sweep)
+    timeout_after: int = key(-1, integer=True, low=-1)
+    garbage_after: int = key(-1, integer=True, low=-1)
+    reset_after: int = key(-1, integer=True, low=-1)
+    drop_frame: int = key(-1, integer=True, low=-1)
+    stale_frame: int = key(-1, integer=True, low=-1)
+    exit_after: int = key(-1, integer=True, low=-1)
+    hang_after: int = key(-1, integer=True, low=-1)
+    disconnect_after: int = key(-1, integer=True, low=-1)
+    repeat: int = key(1, integer=True, low=1)
+    start: str = key("boot", choice=("boot", "wave"))  # the fault clock counts frames from "boot", or from the first WAVE ("wave": the sweep)
 
 
 @dataclass(frozen=True)
@@ -89,14 +90,14 @@ class EmulatorConfig:
     spots: SpotsConfig = field(default_factory=SpotsConfig)  # many spots (rows > 0), as in identify
     dm: DMConfig = field(default_factory=DMConfig)  # dm.n_across > 0: the DM mode (a mirror read by the wfs sensor)
     wfs: WFSConfig = field(default_factory=WFSConfig)  # the DM mode's Shack-Hartmann sensor
-    seed: int = 0
-    transport: str = "pty"  # "pty" (a pseudo-terminal) or "socket" (pyserial socket://)
-    serial_port: int = 0  # transport=socket: TCP port of the serial line (0 = any free port)
-    frames_port: int = 0  # TCP port of the camera channel (0 = any free port)
-    threads: int = 1  # torch threads for rendering
-    exit_with_parent: bool = False  # exit when the process that started the emulator ends (tests)
-    range_query: bool = True  # false: an older firmware that answers RANGE? with ERR 1 UNKNOWN (its range still holds)
-    slew_query: bool = True  # false: an older firmware that answers SLEW? with ERR 1 UNKNOWN (its slew limit still holds)
+    seed: int = key(0, integer=True, low=0)
+    transport: str = key("pty", choice=("pty", "socket"))  # "pty" (a pseudo-terminal) or "socket" (pyserial socket://)
+    serial_port: int = key(0, integer=True, low=0, high=65535)  # transport=socket: TCP port of the serial line (0 = any free port)
+    frames_port: int = key(0, integer=True, low=0, high=65535)  # TCP port of the camera channel (0 = any free port)
+    threads: int = key(1, integer=True, low=1)  # torch threads for rendering
+    exit_with_parent: bool = key(False, flag=True)  # exit when the process that started the emulator ends (tests)
+    range_query: bool = key(True, flag=True)  # false: an older firmware that answers RANGE? with ERR 1 UNKNOWN (its range still holds)
+    slew_query: bool = key(True, flag=True)  # false: an older firmware that answers SLEW? with ERR 1 UNKNOWN (its slew limit still holds)
     fault: FaultConfig = field(default_factory=FaultConfig)
 
 
@@ -111,28 +112,13 @@ def load_emulator_config(path: str | None = None, overrides: list[str] | None = 
     Raises:
         ConfigError: naming the key.
     """
-    from torchblur.identify.config import _num, load_dataclass, validate_camera, validate_dm_model, validate_plant, validate_spots
-
     cfg = load_dataclass(EmulatorConfig, path, overrides, ignore_file_sections=("sweep", "excitation", "fit", "model", "rig", "dm_plan"))
     validate_dm_model(cfg.dm, cfg.wfs)
     validate_plant(cfg.plant)
     validate_camera(cfg.camera)
     validate_spots(cfg.spots, cfg.camera)
-    _num(cfg.seed, "seed", integer=True, low=0)
-    if cfg.transport not in ("pty", "socket"):
-        raise ConfigError(f"transport: expected one of ('pty', 'socket'), got {cfg.transport!r}")
-    for k in ("serial_port", "frames_port"):
-        _num(getattr(cfg, k), k, integer=True, low=0, high=65535)
-    _num(cfg.threads, "threads", integer=True, low=1)
-    for k in ("exit_with_parent", "range_query"):
-        if not isinstance(getattr(cfg, k), bool):
-            raise ConfigError(f"{k}: expected true or false, got {getattr(cfg, k)!r}")
-    for k in ("timeout_after", "garbage_after", "reset_after", "drop_frame", "stale_frame", "exit_after", "hang_after",
-              "disconnect_after"):
-        _num(getattr(cfg.fault, k), f"fault.{k}", integer=True, low=-1)
-    _num(cfg.fault.repeat, "fault.repeat", integer=True, low=1)
-    if cfg.fault.start not in ("boot", "wave"):
-        raise ConfigError(f"fault.start: expected one of ('boot', 'wave'), got {cfg.fault.start!r}")
+    check_declared(cfg, "")
+    check_declared(cfg.fault, "fault")
     return cfg
 
 

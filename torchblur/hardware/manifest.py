@@ -17,7 +17,8 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from torchblur.files import excerpt, sha256_bounded
+from torchblur.errors import excerpt
+from torchblur.files import sha256_bounded
 from torchblur.files import read_bounded as _read_bounded
 from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.run_folder import inside

@@ -23,12 +23,13 @@ import os
 
 import numpy as np
 
+from torchblur.config.camera_urls import pylon_url_options
 from torchblur.errors import ParameterError
-from torchblur.hardware.camera_sdk import SDKCamera, camera_url_query
+from torchblur.hardware.camera_sdk import SDKCamera
 from torchblur.hardware.errors import ConnectionLost, FrameError, HardwareError
 from torchblur.hardware.frames import CameraInfo
 
-__all__ = ["PylonCamera", "pylon_available", "pylon_url_options"]
+__all__ = ["PylonCamera", "pylon_available"]
 
 _GIGE_CLASS = "BaslerGigE"
 
@@ -247,18 +248,3 @@ class PylonCamera(SDKCamera):
                 max(1, int(timeout_s * 1e3)), pylon.TimeoutHandling_Return):
             raise HardwareError(f"camera: not ready for a frame trigger within {timeout_s:g} s")
         self.cam.ExecuteSoftwareTrigger()
-
-
-def pylon_url_options(url: str) -> dict:
-    """The camera a ``pylon://[SERIAL][?trigger=Line1&pixel_format=Mono12&readout_s=1e-3]`` URL
-    names, as :class:`PylonCamera`'s arguments (``serial``, ``trigger_source``,
-    ``pixel_format``, ``readout_s``); nothing is opened (the config check uses it).
-
-    Raises:
-        ParameterError: naming ``url``: another scheme, an unknown option, a readout_s that is
-            not a number.
-    """
-    netloc, q, readout = camera_url_query(url, "pylon", ("trigger", "pixel_format", "readout_s"),
-                                          "pylon://[SERIAL][?trigger=...&pixel_format=...]")
-    return {"serial": netloc or None, "trigger_source": q.get("trigger", "Line1"), "pixel_format": q.get("pixel_format"),
-            "readout_s": readout}

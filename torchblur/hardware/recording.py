@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchblur.files import excerpt
+from torchblur.errors import excerpt
 from torchblur.hardware.errors import FrameTimeout, RecordingError
 from torchblur.hardware.frames import CameraInfo, Frame, FrameSource
 from torchblur.hardware.manifest import (MAX_FRAME_SIDE, MAX_MANIFEST_BYTES, MAX_META_BYTES, INTEGRITY_KEY, SCHEMA_VERSION, SETTINGS_KEY, ManifestScan,

@@ -6,7 +6,7 @@ and ``cli`` (the ``torchblur`` command).
 
 The package is itself callable: ``torchblur.identify(cfg, rig)`` is
 ``torchblur.identify.identify(cfg, rig)``. Its names load on first use, so importing
-``torchblur.identify.config`` (the settings, which the bench emulator shares) does not load
+``torchblur.config`` (the settings, which the bench emulator shares) does not load
 the pipeline.
 """
 import importlib as _importlib

@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from torchblur.errors import ConfigError, ParameterError, as_unit_direction
-from torchblur.identify.config import LATENCY_SCAN, SATURATION_STEPS, latency_scan_times
+from torchblur.config import LATENCY_SCAN, SATURATION_STEPS, latency_scan_times
 from torchblur.identify.drive import DriveLimit, at_limit, check_recorded_drive, drive_limit
 from torchblur.identify.record import log_message, run_stage
 from torchblur.image.photon_transfer import photon_transfer

@@ -156,7 +156,7 @@ def _rig_options(args) -> list[str]:
 def _identify(args) -> int:
     from torchblur.hardware.errors import RecordingError
     from torchblur.hardware.run_folder import RunLock, check_out_folder
-    from torchblur.identify.config import load_config
+    from torchblur.config import load_config
 
     args.overrides = _rig_options(args) + list(args.overrides)
     if args.resume is not None:
@@ -187,7 +187,7 @@ def _resume(args) -> int:
     from torchblur.hardware.errors import RecordingError
     from torchblur.hardware.recording import Experiment
     from torchblur.hardware.run_folder import check_out_folder
-    from torchblur.identify.config import load_config, load_dataclass
+    from torchblur.config import load_config, load_dataclass
     from torchblur.identify.run import check_resume_config
 
     root = Path(args.resume)
@@ -227,7 +227,7 @@ def _run_identify(cfg, out: Path, record, quiet: bool, root: Path | None = None,
     import torch
 
     import torchblur as tb
-    from torchblur.identify.config import config_to_yaml
+    from torchblur.config import config_to_yaml
     from torchblur.hardware.errors import HardwareError
     from torchblur.identify.run import identify
 
@@ -347,7 +347,7 @@ def _fit(args) -> int:
     import time
 
     import torchblur as tb
-    from torchblur.identify.config import config_to_yaml, load_config, load_dataclass
+    from torchblur.config import config_to_yaml, load_config, load_dataclass
     from torchblur.hardware.recording import Experiment, ReplayRig
     from torchblur.hardware.run_folder import check_out_folder
     from torchblur.identify.run import check_resume_config, identify
@@ -409,7 +409,7 @@ def _fit_outside(args) -> int:
     import torchblur as tb
     from torchblur.hardware.outside import read_outside_recording
     from torchblur.hardware.run_folder import check_out_folder
-    from torchblur.identify.config import config_to_yaml
+    from torchblur.config import config_to_yaml
     from torchblur.dm.outside import is_dm_recording
     from torchblur.identify.outside import identify_outside, outside_config
 
@@ -457,8 +457,8 @@ def _fit_dm_outside(args, src: Path, out: Path) -> int:
 
 def _config(args) -> int:
     """``torchblur config``: every key, its resolved value and its unit, one line each on stdout."""
-    from torchblur.identify.config import load_config
-    from torchblur.identify.config_keys import format_config_keys
+    from torchblur.config import load_config
+    from torchblur.config.keys import format_config_keys
 
     print(format_config_keys(load_config(args.config, list(args.overrides), force=True)), end="")
     return 0

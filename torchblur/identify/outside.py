@@ -26,7 +26,7 @@ from torchblur.errors import ConfigError, InputTypeError, as_unit_direction
 from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.outside import OutsideRecording
 from torchblur.identify.calibration import Calibration, _still_psf, measure_gain
-from torchblur.identify.config import IdentifyConfig, load_config
+from torchblur.config import IdentifyConfig, load_config
 from torchblur.identify.fitting import ChunkFitter
 from torchblur.identify.record import RunRecord, console_logging, log_message
 from torchblur.identify.result import IdentificationResult

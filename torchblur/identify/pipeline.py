@@ -25,7 +25,7 @@ import time
 from torchblur.errors import InputTypeError
 from torchblur.hardware.errors import HardwareError
 from torchblur.identify.calibration import calibrate
-from torchblur.identify.config import IdentifyConfig
+from torchblur.config import IdentifyConfig
 from torchblur.identify.drive import SESSION_KEY, SLEW_KEY
 from torchblur.identify.multisine import MultisinePlan
 from torchblur.identify.record import RunRecord, console_logging, log_message, stage_bar
@@ -60,7 +60,7 @@ def identify(cfg: IdentifyConfig, rig=None, *, progress: bool = True, record=Non
         KeyboardInterrupt: likewise.
     """
     if not isinstance(cfg, IdentifyConfig):
-        raise InputTypeError(f"cfg: expected an IdentifyConfig (see torchblur.identify.config.load_config), got {type(cfg).__name__}")
+        raise InputTypeError(f"cfg: expected an IdentifyConfig (see torchblur.config.load_config), got {type(cfg).__name__}")
     if rig is not None and not all(hasattr(rig, a) for a in ("frame_shape", "dark", "still", "sine")):
         raise InputTypeError(f"rig: expected a torchblur Rig (frame_shape, dark, still, sine, ...) or None, got {type(rig).__name__}")
     shown = progress and not logging.getLogger("torchblur").hasHandlers()

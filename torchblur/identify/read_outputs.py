@@ -14,7 +14,7 @@ file                        read back as
                             (a version-1 direct document, written before its structure
                             was kept: the checked document) and ``model_two_step.json``
                             the TransferFunctionFit; a failed fit's ``{"error": ...}`` as it is
-``config.yaml``             :class:`~torchblur.identify.config.IdentifyConfig` (validated)
+``config.yaml``             :class:`~torchblur.config.IdentifyConfig` (validated)
 ``source.json``             a dict (schema checked; re-fits)
 ``demo.json``               a dict (schema checked; ``torchblur demo``)
 ``dm/frf.json``             FrequencyResponse ``[2M, N, F]``
@@ -93,7 +93,7 @@ def _config(path: Path):
     """config.yaml: the IdentifyConfig, validated as a run's (an outside recording's fit,
     ``rig.kind = "outside"``, is made by :func:`~torchblur.identify.outside.outside_config`, not
     by a rig: its rig section is not checked)."""
-    from torchblur.identify.config import IdentifyConfig, load_dataclass, validate
+    from torchblur.config import IdentifyConfig, load_dataclass, validate
 
     cfg = load_dataclass(IdentifyConfig, str(path), trusted=False)
     if cfg.rig.kind != "outside":

@@ -10,7 +10,7 @@ from torchblur.errors import ConfigError
 from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.recording import Experiment, camera_info_of
 from torchblur.hardware.serial_rig import SerialRig
-from torchblur.identify.config import IdentifyConfig, config_to_yaml, load_dataclass
+from torchblur.config import IdentifyConfig, config_to_yaml, load_dataclass
 from torchblur.rig.factory import build_simulated_rig, plant_of
 
 __all__ = ["build_rig", "build_simulated_rig", "check_resume_config", "open_experiment", "plant_of"]

@@ -2,7 +2,7 @@
 (:func:`plant_of`).
 
 Both take any object with the ``plant``, ``camera``, ``seed`` (and optionally ``spots``)
-sections of :class:`~torchblur.identify.config.IdentifyConfig`; nothing here imports the
+sections of :class:`~torchblur.config.IdentifyConfig`; nothing here imports the
 identification pipeline, so the bench emulator builds its rig from here.
 """
 from __future__ import annotations

@@ -17,8 +17,7 @@ import math
 
 import numpy as np
 
-from torchblur.errors import InputTypeError, ParameterError
-from torchblur.files import excerpt
+from torchblur.errors import InputTypeError, ParameterError, excerpt
 from torchblur.sysid.parametric import _Structure
 
 __all__ = ["DIRECT_SCHEMA", "DIRECT_SCHEMA_VERSION", "DIRECT_UNITS", "direct_fields_from_dict"]

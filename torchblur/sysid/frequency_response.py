@@ -25,8 +25,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from torchblur.errors import InputTypeError, ParameterError, ShapeError
-from torchblur.files import excerpt
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, excerpt
 import torchblur.sysid.frequency_response_io as frf_io
 
 __all__ = ["FrequencyResponse", "control_names"]

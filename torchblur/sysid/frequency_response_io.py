@@ -43,7 +43,8 @@ from typing import Any
 import numpy as np
 
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, TorchblurError
-from torchblur.files import excerpt, read_bounded
+from torchblur.errors import excerpt
+from torchblur.files import read_bounded
 from torchblur.sysid.flags import flag_names, parse_flags
 
 __all__ = ["MAX_FILE_BYTES", "SCHEMA_VERSION", "UNITS", "from_dict", "read_csv", "read_json", "read_mat", "to_dict",

@@ -69,8 +69,8 @@ import numpy as np
 import scipy.linalg
 import scipy.optimize
 
-from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_frequency_grid, check_bool, check_int
-from torchblur.files import excerpt, read_bounded
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_frequency_grid, check_bool, check_int, excerpt
+from torchblur.files import read_bounded
 from torchblur.sysid.frequency_response import FrequencyResponse, control_names
 from torchblur.sysid.frequency_response_io import MAX_FILE_BYTES
 

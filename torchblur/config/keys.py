@@ -1,14 +1,15 @@
 """Every key of ``torchblur identify``'s config with its value and unit: ``torchblur config``.
 
-:func:`config_keys` walks the resolved :class:`~torchblur.identify.config.IdentifyConfig`
+:func:`config_keys` walks the resolved :class:`~torchblur.config.schema.IdentifyConfig`
 (defaults, a ``--config`` file and overrides merged by
-:func:`~torchblur.identify.config.load_config`); the unit of a key comes from its name's
+:func:`~torchblur.config.load.load_config`); the unit of a key comes from its name's
 suffix (``_hz`` Hz, ``_s`` s, ``_px`` px, ``_rad`` rad, ``_deg`` deg) or, for the keys whose
 name does not say it, from :data:`UNITS`. ``-`` marks a key without a unit (a count, a choice,
 a flag).
 """
 from __future__ import annotations
 
+import json
 from dataclasses import fields, is_dataclass
 
 __all__ = ["config_keys", "format_config_keys", "unit_of", "UNITS"]
@@ -74,8 +75,6 @@ def config_keys(cfg) -> list[tuple[str, object, str]]:
 
 def format_config_keys(cfg) -> str:
     """One line per key, ``key = value  # unit``, values as YAML writes them (``null``, lists)."""
-    import json
-
     rows = [(k, json.dumps(v) if not isinstance(v, str) else v, u) for k, v, u in config_keys(cfg)]
     width = max(len(f"{k} = {v}") for k, v, _ in rows if len(f"{k} = {v}") <= 60)
     return "\n".join(f"{f'{k} = {v}':<{width}}  # {u}" if u != "-" else f"{k} = {v}" for k, v, u in rows) + "\n"
