@@ -42,8 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from torchblur.errors import InputTypeError, ParameterError, ShapeError, TorchblurError
-from torchblur.errors import excerpt
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, TorchblurError, excerpt
 from torchblur.files import read_bounded
 from torchblur.sysid.flags import flag_names, parse_flags
 
