@@ -36,7 +36,7 @@ def _env():
 def _cmd(*argv):
     """The ``torchblur`` console script beside this Python (what a user runs), else ``-m``."""
     script = Path(sys.executable).parent / "torchblur"
-    return [str(script), *argv] if script.is_file() else [sys.executable, "-m", "torchblur.identify.cli", *argv]
+    return [str(script), *argv] if script.is_file() else [sys.executable, "-m", "torchblur.cli", *argv]
 
 
 def _run(argv, timeout=900):

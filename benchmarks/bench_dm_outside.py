@@ -50,7 +50,7 @@ def _rel(a, b) -> float:
 def main(argv=None) -> int:
     from torchblur.dm import export_dm_recording
     from torchblur.dm.outputs import read_actuators_csv
-    from torchblur.identify.cli import main as cli
+    from torchblur.cli import main as cli
     from torchblur.sysid.frequency_response import FrequencyResponse
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

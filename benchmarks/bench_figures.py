@@ -2,7 +2,7 @@
 
 One identification of the simulated default rig (in-process, seed 0; the test suite's small run,
 ``sweep.freq_hz=[20,150,300,600]``, unless ``--overrides`` says otherwise), then its outputs
-written ``--repeats`` times each way (``torchblur.identify.cli._write_outputs``, the command's own
+written ``--repeats`` times each way (``torchblur.identify.outputs.write_outputs``, the command's own
 writer, into temporary folders). Prints the run's time, the writer's median time with and without
 figures, the difference (what ``report.figures=false`` saves a run) and the files each way.
 
@@ -21,7 +21,7 @@ from pathlib import Path
 
 import torch
 
-from torchblur.identify.cli import _write_outputs
+from torchblur.identify.outputs import write_outputs
 from torchblur.config import load_config
 from torchblur.identify.pipeline import identify
 
@@ -32,7 +32,7 @@ def _write_times(res, overrides, figures: bool, repeats: int) -> tuple[list[floa
     for _ in range(repeats):
         with tempfile.TemporaryDirectory() as d, contextlib.redirect_stdout(io.StringIO()):
             t0 = time.perf_counter()
-            _write_outputs(cfg, res, Path(d), 1.0, "bench")
+            write_outputs(cfg, res, Path(d), 1.0, "bench")
             times.append(time.perf_counter() - t0)
             names = sorted(p.name for p in Path(d).iterdir())
     return times, names

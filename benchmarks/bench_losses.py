@@ -27,7 +27,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from torchblur.identify import cli  # noqa: E402
+from torchblur import cli  # noqa: E402
 from torchblur.sysid.frequency_response import FrequencyResponse  # noqa: E402
 
 

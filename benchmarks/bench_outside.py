@@ -14,7 +14,7 @@ electrons). Two routes on the same frames:
   float TIFF stacks, ``--n-dark`` dark frames of the same background and noise (128 by default: 4
   per still frame, as docs/outside_recordings.md asks; 16 shows the dark's own noise), gain 1 e-/ADU,
   amplitude 1 input unit so that |H| is M in px), then ``torchblur fit FOLDER --out OUT``
-  in-process (``torchblur.identify.cli.main``) with the default settings: ``fit.psf=auto`` and
+  in-process (``torchblur.cli.main``) with the default settings: ``fit.psf=auto`` and
   ``fit.axis=measure`` (the direction from the sweep frames' second moments), or with
   ``--given-axis`` the true direction as ``fit.axis``.
 
@@ -43,7 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 import hcipy_frames as hf  # noqa: E402
 from outside_folder import write_outside  # noqa: E402
 
-from torchblur.identify.cli import main as cli_main  # noqa: E402
+from torchblur.cli import main as cli_main  # noqa: E402
 from torchblur.sysid.frequency_response import FrequencyResponse  # noqa: E402
 
 

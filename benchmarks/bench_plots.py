@@ -3,7 +3,7 @@
 Runs one identification in this process (the default config, or the README's fast-sweep
 example with ``--fast``: ``sweep.f_max_hz=200000 sweep.n=6 sweep.images_per_point=1``), then
 builds and saves each figure ``--repeat`` times exactly as ``torchblur identify`` does
-(:func:`torchblur.identify.cli._write_bode` and ``_write_residuals``), and prints the
+(:func:`torchblur.identify.outputs.write_bode` and ``write_residuals``), and prints the
 median wall and CPU time of each (s) and their ratios to the identification's own. With
 ``--out DIR`` the figures are left there to look at.
 
@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchblur.identify import cli
+from torchblur.identify import outputs
 from torchblur.identify.assemble import mark_limited
 from torchblur.config import load_config
 from torchblur.identify.run import identify
@@ -55,8 +55,8 @@ def main() -> None:
     out.mkdir(parents=True, exist_ok=True)
     stamp = f"torchblur bench_plots, seed {cfg.seed}"
     res.frf = mark_limited(res.frf.replace(meta={"output_unit": "px", "input_unit": "input unit", **res.frf.meta}), res.limited)
-    t_bode = _timed(lambda: cli._write_bode(cfg, res, out, stamp), args.repeat)
-    t_res = _timed(lambda: cli._write_residuals(res, out, stamp), args.repeat)
+    t_bode = _timed(lambda: outputs.write_bode(cfg, res, out, stamp), args.repeat)
+    t_res = _timed(lambda: outputs.write_residuals(res, out, stamp), args.repeat)
     sizes = {p.name: p.stat().st_size for p in (out / "bode.png", out / "residuals.png")}
     print(f"{'fast-sweep example' if args.fast else 'default run'}: {res.frf.omega.size} points, {args.threads} thread(s), "
           f"median of {args.repeat}")

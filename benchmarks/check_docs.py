@@ -27,7 +27,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 NUM = r"([0-9][0-9,]*(?:\.[0-9]+)?(?:e[-+]?[0-9]+)?)"  # a quoted or printed number (thousands commas allowed)
-TB = [sys.executable, "-m", "torchblur.identify.cli"]
+TB = [sys.executable, "-m", "torchblur.cli"]
 
 
 @dataclass(frozen=True)
@@ -169,7 +169,7 @@ def _run(claim: Claim, tmp: Path, cache: dict) -> tuple:
         import contextlib
         import io
 
-        from torchblur.identify import cli
+        from torchblur import cli
 
         buf = io.StringIO()
         with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(buf):

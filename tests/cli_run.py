@@ -11,7 +11,7 @@ SMALL = ["sweep.freq_hz=[20,150,300,600]"]  # enough points for the model (with 
 
 
 def run_cli(*argv, cwd=None) -> subprocess.CompletedProcess:
-    """``python -m torchblur.identify.cli ARGV`` with this tree's torchblur -> the finished process (text output)."""
+    """``python -m torchblur.cli ARGV`` with this tree's torchblur -> the finished process (text output)."""
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    return subprocess.run([sys.executable, "-m", "torchblur.identify.cli", *argv], capture_output=True, text=True, env=env,
+    return subprocess.run([sys.executable, "-m", "torchblur.cli", *argv], capture_output=True, text=True, env=env,
                           cwd=cwd, timeout=600)

@@ -99,7 +99,7 @@ def test_identify_over_the_emulator_with_frames_through_aravis(tmp_path, capsys)
     written into the fake camera's buffers and delivered by Aravis's stream, runs to a verdict."""
     from test_hardware_emulator import Emu
 
-    from torchblur.identify import cli
+    from torchblur import cli
 
     emu = Emu("camera.height=32", "camera.width=32")
     try:

@@ -180,7 +180,7 @@ def test_the_contract_is_large_and_its_cases_distinct():
 
 
 def test_cli_bad_key_is_one_line_exit_2(tmp_path):
-    out = subprocess.run([sys.executable, "-m", "torchblur.identify.cli", "identify", "--out", str(tmp_path / "o"), "fit.fit_background=perhaps"],
+    out = subprocess.run([sys.executable, "-m", "torchblur.cli", "identify", "--out", str(tmp_path / "o"), "fit.fit_background=perhaps"],
                          capture_output=True, text=True, cwd=ROOT)
     assert out.returncode == 2
     lines = [ln for ln in out.stderr.splitlines() if ln.strip()]

@@ -70,7 +70,7 @@ def test_frf_mat_and_units_beside_frf_csv(json_run):
 
 
 def test_plain_run_prints_the_table_on_stdout(small_quiet_run, tmp_path):
-    from torchblur.identify import cli
+    from torchblur import cli
 
     out, proc = small_quiet_run  # identify --out OUT --quiet SMALL, in a fresh process (tests/conftest.py)
     assert "against the truth" in proc.stdout and "dark: level" not in proc.stdout + proc.stderr  # --quiet: no log lines
@@ -80,16 +80,16 @@ def test_plain_run_prints_the_table_on_stdout(small_quiet_run, tmp_path):
 
 
 def test_exposure_label():
-    from torchblur.identify.cli import _exposure_label
+    from torchblur.identify.outputs import exposure_label
     from torchblur.render.window import ExposureWindow
     import torch
 
     w = ExposureWindow(torch.tensor([0.5e-3, 2e-3]), torch.tensor([1e-3, 1e-3]))
-    assert _exposure_label(w) == "exposure 1 of 2, 1 ms long (0.5-1.5 ms), image 1 of 1"
+    assert exposure_label(w) == "exposure 1 of 2, 1 ms long (0.5-1.5 ms), image 1 of 1"
     # the sweep's layout [E*R]: 2 exposures (30 % and 80 % of a 10 ms period) each repeated twice in a row
     w = ExposureWindow(torch.tensor([1e-3, 1e-3, 1e-3, 1e-3]), torch.tensor([3e-3, 3e-3, 8e-3, 8e-3]))
-    assert _exposure_label(w, 0) == "exposure 1 of 2, 3 ms long (1-4 ms), image 1 of 2"
-    assert _exposure_label(w, 3) == "exposure 2 of 2, 8 ms long (1-9 ms), image 2 of 2"
+    assert exposure_label(w, 0) == "exposure 1 of 2, 3 ms long (1-4 ms), image 1 of 2"
+    assert exposure_label(w, 3) == "exposure 2 of 2, 8 ms long (1-9 ms), image 2 of 2"
 
 
 def test_log_message_goes_through_the_torchblur_logger(caplog):
@@ -140,7 +140,7 @@ def test_calibration_stage_count(overrides, n):
 def test_out_folder_of_the_users_own_files_is_refused_unless_force(tmp_path, capsys):
     from torchblur.hardware.errors import RecordingError
     from torchblur.hardware.run_folder import check_out_folder
-    from torchblur.identify import cli
+    from torchblur import cli
 
     mine = tmp_path / "thesis"
     mine.mkdir()
@@ -164,7 +164,7 @@ def test_out_folder_of_the_users_own_files_is_refused_unless_force(tmp_path, cap
 
 def test_rig_frames_pylon_url_is_accepted_and_a_bad_one_is_one_clear_error(tmp_path, capsys):
     from torchblur.errors import ConfigError
-    from torchblur.identify import cli
+    from torchblur import cli
 
     cfg = load_config(None, ["rig.kind=serial", "rig.port=/dev/null", "rig.frames=pylon://0815-0000?trigger=Line1"])
     assert cfg.rig.frames == "pylon://0815-0000?trigger=Line1"

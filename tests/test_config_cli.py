@@ -53,7 +53,7 @@ def test_bad_config_names_the_key(overrides, key):
 
 
 def test_cli_bad_config_is_one_clear_line_without_traceback(tmp_path):
-    out = subprocess.run([sys.executable, "-m", "torchblur.identify.cli", "identify", "--out", str(tmp_path / "o"), "sweep.f_min_hz=-3"],
+    out = subprocess.run([sys.executable, "-m", "torchblur.cli", "identify", "--out", str(tmp_path / "o"), "sweep.f_min_hz=-3"],
                          capture_output=True, text=True)
     assert out.returncode == 2
     assert "sweep.f_min_hz" in out.stderr and "Traceback" not in out.stderr
@@ -61,6 +61,6 @@ def test_cli_bad_config_is_one_clear_line_without_traceback(tmp_path):
 
 
 def test_cli_missing_config_file(tmp_path):
-    out = subprocess.run([sys.executable, "-m", "torchblur.identify.cli", "identify", "--config", str(tmp_path / "nope.yaml"), "--out", str(tmp_path)],
+    out = subprocess.run([sys.executable, "-m", "torchblur.cli", "identify", "--config", str(tmp_path / "nope.yaml"), "--out", str(tmp_path)],
                          capture_output=True, text=True)
     assert out.returncode == 2 and "--config" in out.stderr and "Traceback" not in out.stderr

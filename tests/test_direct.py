@@ -382,7 +382,7 @@ def test_config_validates_the_direct_keys(overrides, key):
 
 
 def test_cli_identify_with_direct_writes_both_models(tmp_path, capsys):
-    from torchblur.identify import cli
+    from torchblur import cli
 
     # through the command's main() in this process (the fresh-process path of the command has its own tests in
     # test_cli_output.py; a fresh process here cost ~3 s of imports)

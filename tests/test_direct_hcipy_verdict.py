@@ -118,7 +118,7 @@ def _params(model) -> dict:
 
 
 def test_issue30_case_reduced_is_flagged_or_right(tmp_path):
-    from torchblur.identify.cli import _write_models
+    from torchblur.identify.outputs import write_models
 
     frf, two, d, kind = _fit(_sweep())
     assert kind == "kernel"  # the Gaussian does not explain these spots: the measured kernel
@@ -129,7 +129,7 @@ def test_issue30_case_reduced_is_flagged_or_right(tmp_path):
         assert v.exit_code == EXIT_FLAGGED and not v.trustworthy and "the direct model fails" in v.line, v.line
     num, den, tau = hr.issue30_plant()
     cfg = load_config(str(CONFIG), [f"plant.num={num}", f"plant.den={den}", f"plant.delay_s={tau}", "sweep.n=5"])
-    _write_models(cfg, types.SimpleNamespace(model=two, direct_model=d, frf=frf), tmp_path, v.models)
+    write_models(cfg, types.SimpleNamespace(model=two, direct_model=d, frf=frf), tmp_path, v.models)
     doc = json.loads((tmp_path / "model.json").read_text())
     held = DirectModelFit.from_json(tmp_path / "model.json") if doc["schema"] == "torchblur.direct_model_fit" else \
         TransferFunctionFit.from_json(tmp_path / "model.json")
@@ -149,7 +149,7 @@ def _within(model_params: dict, sigma: float = 3.0) -> bool:
 
 @SLOW
 def test_direct_model_on_diffraction_spots_is_flagged_or_right(tmp_path):
-    from torchblur.identify.cli import _write_models
+    from torchblur.identify.outputs import write_models
 
     num, den, tau = hr.issue30_plant()
     cfg = load_config(str(CONFIG), [f"plant.num={num}", f"plant.den={den}", f"plant.delay_s={tau}", "sweep.n=5",
@@ -167,7 +167,7 @@ def test_direct_model_on_diffraction_spots_is_flagged_or_right(tmp_path):
     if not _within(direct):  # a direct model off beyond its stds is flagged by name
         assert v.exit_code == EXIT_FLAGGED and not v.trustworthy
         assert "the direct model fails" in v.line and "model.json holds the two-step model" in v.line
-    _write_models(cfg, res, tmp_path, v.models)
+    write_models(cfg, res, tmp_path, v.models)
     doc = json.loads((tmp_path / "model.json").read_text())
     assert doc["model_passed"] is True
     held = "direct" if doc["schema"] == "torchblur.direct_model_fit" else "two-step"

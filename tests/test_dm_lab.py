@@ -55,7 +55,7 @@ def test_the_vendor_example_identifies_its_mirror_with_the_latency_given(lab_run
 
 def test_the_exported_recording_fits_to_the_same_table_through_torchblur_fit(lab_run, tmp_path, capsys):
     from torchblur.dm.outputs import read_actuators_csv
-    from torchblur.identify.cli import main
+    from torchblur.cli import main
     from torchblur.sysid.frequency_response import FrequencyResponse
 
     res, _, folder = lab_run

@@ -9,7 +9,7 @@ import pytest
 
 from torchblur.hardware.errors import ConnectionLost, RecordingError
 from torchblur.hardware.recording import Experiment, ReplayRig
-from torchblur.identify import cli
+from torchblur import cli
 from torchblur.config import estimate_run, load_config
 
 from test_dm_run import SMALL as _RUN_SMALL

@@ -116,7 +116,7 @@ def test_small_run_against_the_truth(small_run):
 
 def test_cli_routes_a_dm_config(tmp_path, capsys, monkeypatch, small_run):
     from torchblur.dm import pipeline
-    from torchblur.identify.cli import main
+    from torchblur.cli import main
 
     monkeypatch.setattr(pipeline, "identify_dm", lambda cfg, rig=None, **kw: small_run)
     rc = main(["identify", "--out", str(tmp_path / "run"), "--json", *SMALL, "report.figures=false"])  # no figure checked here

@@ -36,7 +36,7 @@ class DMEmulator:
     """``torchblur emulator --config FILE`` (the identify config: DM mode) in a subprocess."""
 
     def __init__(self, config_path, *keys):
-        self.proc = subprocess.Popen([sys.executable, "-m", "torchblur.identify.cli", "emulator", "--config", str(config_path),
+        self.proc = subprocess.Popen([sys.executable, "-m", "torchblur.cli", "emulator", "--config", str(config_path),
                                       "exit_with_parent=true", *keys], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         self._info = None
 
@@ -341,7 +341,7 @@ def test_cli_runs_a_dm_config_over_the_link(emulators, config_path, runs, tmp_pa
     no truth errors on a real rig."""
     from torchblur.dm import pipeline
     from torchblur.hardware.serial_dm_rig import SerialDMRig
-    from torchblur.identify.cli import main
+    from torchblur.cli import main
 
     seen = {}
 

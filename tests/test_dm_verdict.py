@@ -189,7 +189,7 @@ def small_result():
 
 def _run(tmp_path, monkeypatch, res, small, *args):
     from torchblur.dm import pipeline
-    from torchblur.identify.cli import main
+    from torchblur.cli import main
 
     monkeypatch.setattr(pipeline, "identify_dm", lambda cfg, rig=None, **kw: res)
     out = tmp_path / "run"

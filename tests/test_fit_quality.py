@@ -6,7 +6,8 @@ import numpy as np
 import torch
 
 import torchblur as tb
-from torchblur.identify.cli import POOR_FIT_CHI2, _fit_quality
+from torchblur.fit.status import POOR_FIT_CHI2
+from torchblur.identify.report import fit_quality
 
 F64 = torch.float64
 
@@ -41,12 +42,12 @@ def test_reduced_chi2_unknown_without_a_given_noise():
 
 def test_the_report_says_when_the_model_does_not_explain_the_images():
     good = types.SimpleNamespace(reduced_chi2=torch.tensor([0.98, 1.02, 1.01], dtype=F64))
-    doc, line = _fit_quality(good)
+    doc, line = fit_quality(good)
     assert doc == {"max_reduced_chi2": 1.02, "poor_fit_problems": 0} and line.startswith("fit quality:")
     bad = types.SimpleNamespace(reduced_chi2=torch.tensor([1.01, 2.4, float("nan")]))
-    doc, line = _fit_quality(bad)
+    doc, line = fit_quality(bad)
     assert doc["poor_fit_problems"] == 1 and line.startswith("warning: 1 of 2 fitted problems")
     assert "stds understate the error" in line
     multisine = types.SimpleNamespace(extras={"reduced_chi2": torch.tensor([1.0])})  # a MultisineFit keeps it in extras
-    assert _fit_quality([multisine])[0]["poor_fit_problems"] == 0
-    assert _fit_quality(types.SimpleNamespace())[1] is None  # nothing known: no line, no claim
+    assert fit_quality([multisine])[0]["poor_fit_problems"] == 0
+    assert fit_quality(types.SimpleNamespace())[1] is None  # nothing known: no line, no claim

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from torchblur.identify import cli
+from torchblur import cli
 from torchblur.config import load_config
 from torchblur.hardware import AcquisitionStopped, Experiment
 from torchblur.identify.calibration import N_DARK
@@ -47,7 +47,7 @@ class Emu:
 
     def __init__(self, *keys):
         self.keys = keys
-        self.proc = subprocess.Popen([sys.executable, "-m", "torchblur.identify.cli", "emulator", "exit_with_parent=true", *BASE, *keys],
+        self.proc = subprocess.Popen([sys.executable, "-m", "torchblur.cli", "emulator", "exit_with_parent=true", *BASE, *keys],
                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         self.stderr: list[str] = []
         self._info = None
@@ -292,7 +292,7 @@ def _default_sigint():
 def test_ctrl_c_saves_and_exits_130(fleet, tmp_path):
     emu = fleet["sigint"]
     out = tmp_path / "run"
-    proc = subprocess.Popen([sys.executable, "-m", "torchblur.identify.cli", "identify", "--out", str(out), "--quiet", *BASE, *SWEEP, *ALONG_X,
+    proc = subprocess.Popen([sys.executable, "-m", "torchblur.cli", "identify", "--out", str(out), "--quiet", *BASE, *SWEEP, *ALONG_X,
                              *emu.rig_keys(timeout_s=60.0)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             preexec_fn=_default_sigint)
     try:

@@ -63,7 +63,7 @@ def test_excitation_follows_the_response(short_run):
 
 
 def test_cli_identify_writes_every_output(tmp_path, capsys):
-    from torchblur.identify import cli
+    from torchblur import cli
 
     # through the command's main() in this process (the fresh-process path of the command has its own tests in
     # test_cli_output.py; a fresh process here cost ~3 s of imports)

@@ -49,8 +49,8 @@ PENDING = {
     "torchblur.hardware.serial_dm_rig": "lead: hardware/ has no owner this session (dm.mirror, dm.shack_hartmann: downward)",
     "torchblur.hardware.serial_rig": "lead: hardware/ has no owner this session (pylon/aravis import their SDKs on use themselves)",
     "torchblur.identify.calibration": "hP: image.spot_layout to the top (calibration already imports torchblur.image)",
-    "torchblur.identify.cli": "hK: moves to torchblur/cli/",
-    "torchblur.identify.config": "hC: moves to torchblur/config/",
+    "torchblur.cli": "hK: moves to torchblur/cli/",
+    "torchblur.config": "hC: moves to torchblur/config/",
     "torchblur.identify.read_outputs": "lead/hK: the outputs' reader, after the config and cli moves",
 }
 DOC = Path(__file__).resolve().parents[1] / "docs" / "architecture.md"

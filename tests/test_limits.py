@@ -8,7 +8,7 @@ import shutil
 import pytest
 
 from torchblur.errors import ConfigError
-from torchblur.identify import cli
+from torchblur import cli
 from torchblur.config import LIMITS, check_limits, estimate_run, load_config
 
 

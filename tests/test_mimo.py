@@ -138,7 +138,7 @@ SHORT = ["sweep.freq_hz=[3,150,430]", "camera.height=32", "camera.width=32", "ex
 @pytest.fixture(scope="module")
 def cli_run(tmp_path_factory):
     """A short 2x2 identification through the command line (recorded), then its offline refit."""
-    from torchblur.identify import cli
+    from torchblur import cli
 
     root = tmp_path_factory.mktemp("mimo")
     out = root / "run"

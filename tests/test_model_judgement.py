@@ -213,7 +213,7 @@ def _direct(spots, sigma, shift_s=0.0):
 def test_a_direct_model_that_does_not_explain_its_images_is_named_and_model_json_holds_the_two_step(tmp_path, spots):
     """A direct fit with a Gaussian PSF of std 1.6 px to spots of std 2 px (a PSF the images do
     not follow, as diffraction spots fitted with a Gaussian), started at the true model."""
-    from torchblur.identify.cli import _write_models
+    from torchblur.identify.outputs import write_models
 
     start, d = spots[-1], _direct(spots, 1.6)
     assert d.reduced_chi2 > 2
@@ -222,7 +222,7 @@ def test_a_direct_model_that_does_not_explain_its_images_is_named_and_model_json
     assert "the direct model fails (reduced chi2" in v.line and "model.json holds the two-step model" in v.line
     cfg = load_config(None, ["model.direct=true"])
     res = types.SimpleNamespace(model=start, direct_model=d, frf=_frf_for_verdict())
-    _write_models(cfg, res, tmp_path, v.models)
+    write_models(cfg, res, tmp_path, v.models)
     doc = json.loads((tmp_path / "model.json").read_text())
     assert doc["schema"] == "torchblur.transfer_function_fit" and doc["model_passed"] is True
     rej = doc["rejected_direct_model"]

@@ -43,18 +43,19 @@ def test_three_tones_from_one_designed_image_set(run):
 
 
 def test_cli_outputs_and_replay_of_the_recording(run, tmp_path):
-    from torchblur.identify import cli
     from torchblur.hardware.recording import Experiment, ReplayRig
+    from torchblur.identify.outputs import write_outputs
+    from torchblur.identify.report import run_summary, verdict_summary
 
     cfg, res, rec = run
-    v = cli._write_outputs(cfg, res, tmp_path, 1.0, "test")
-    assert_reads_back(tmp_path, json.dumps({**cli._summary(res, tmp_path, 1.0), **cli._verdict_summary(v)}))  # every output
+    v = write_outputs(cfg, res, tmp_path, 1.0, "test")
+    assert_reads_back(tmp_path, json.dumps({**run_summary(res, tmp_path, 1.0), **verdict_summary(v)}))  # every output
     names = {p.name for p in tmp_path.iterdir()}
     assert {"frf.csv", "frf.json", "bode.png", "model.json", "report.txt", "residuals.png"} <= names
     assert "multisine group 0" in (tmp_path / "report.txt").read_text()
     model = json.loads((tmp_path / "model.json").read_text())
     assert model["seed"] == 4 and [j["name"] for j in model["judgement"]] == ["two-step"]  # the verdict's judgement
-    summary = json.loads(json.dumps(cli._summary(res, tmp_path, 1.0)))  # the --json line of a multisine run
+    summary = json.loads(json.dumps(run_summary(res, tmp_path, 1.0)))  # the --json line of a multisine run
     assert summary["points"] == res.frf.valid.size and summary["valid_points"] >= 1 and summary["elapsed_s"] == 1.0
     exp = Experiment.open(rec, writable=False)
     assert exp.has("sweep/multisine/000")

@@ -19,7 +19,7 @@ from torchblur.design.windows import dual_exposure_windows
 from torchblur.errors import ConfigError, InputTypeError, ParameterError
 from torchblur.losses import covariance_factor, gauss_newton_terms, image_loss, loss_weight
 from torchblur.fit.sinusoid import fit_sinusoid
-from torchblur.identify import cli
+from torchblur import cli
 from torchblur.config import load_config
 from torchblur.render.camera import CameraModel, CameraNoise, camera_noise_std
 from torchblur.sysid.frequency_response import FrequencyResponse

@@ -18,7 +18,7 @@ from torchblur.fit.sinusoid import fit_sinusoid
 from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.outside import read_outside_recording
 from torchblur.hardware.recording import Experiment
-from torchblur.identify.cli import main
+from torchblur.cli import main
 from torchblur.config import load_config
 from torchblur.identify.outside import fitted_direction, identify_outside, outside_config
 from torchblur.identify.run import identify

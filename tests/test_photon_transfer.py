@@ -77,7 +77,7 @@ def test_the_figure_is_written_and_reads_back(tmp_path):
     """The curve's PNG (the CLI writes it as ptc.png beside bode.png) reads back as an image."""
     import matplotlib.image
 
-    from torchblur.identify.cli import _write_ptc_figure
+    from torchblur.identify.outputs import write_ptc_figure
     from torchblur.config import load_config
 
     cam = _camera(2.0)
@@ -86,7 +86,7 @@ def test_the_figure_is_written_and_reads_back(tmp_path):
     fig = photon_transfer_figure(p, configured_gain=4.0)
     assert len(fig.axes) == 1 and len(fig.axes[0].lines) >= 3
     res = type("R", (), {"ptc": p})()
-    _write_ptc_figure(load_config(None, []), res, tmp_path, "stamp")
+    write_ptc_figure(load_config(None, []), res, tmp_path, "stamp")
     img = matplotlib.image.imread(tmp_path / "ptc.png")
     assert img.ndim == 3 and img.shape[0] > 100 and img.shape[1] > 100 and float(img[..., :3].std()) > 0.01
 

@@ -7,7 +7,7 @@ import pytest
 
 import torchblur as tb
 from torchblur.errors import ConfigError, ParameterError
-from torchblur.identify import cli
+from torchblur import cli
 from torchblur.config import load_config
 from torchblur.config.keys import config_keys, unit_of
 from torchblur.identify.read_outputs import check_document, read_outputs
@@ -103,6 +103,8 @@ def test_ctrl_c_before_a_run_is_one_line_saying_what_to_run(tmp_path, monkeypatc
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
+    for command in ("commands", "tools"):  # where the identify and config commands load it
+        monkeypatch.setattr(f"torchblur.cli.{command}.load_config", interrupted)
     monkeypatch.setattr("torchblur.config.load_config", interrupted)
     assert cli.main(["identify", "--out", str(tmp_path / "r")]) == cli.EXIT_INTERRUPTED
     err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]

@@ -347,7 +347,7 @@ def test_battery_has_enough_cases():
 def test_fit_of_a_recording_with_an_env_interpolation_is_refused(pristine, tmp_path, monkeypatch):
     """The CLI: `torchblur fit` of a recording whose config asks for an environment
     variable is one line and exit 2; the secret never reaches the output."""
-    from torchblur.identify import cli
+    from torchblur import cli
 
     d = tmp_path / "run" / "e"
     shutil.copytree(pristine, d)
@@ -465,7 +465,8 @@ _TRY = textwrap.dedent("""
 def test_identify_holds_the_run_lock_and_a_second_identify_refuses(tmp_path, monkeypatch, capsys):
     """`torchblur identify --out SAME`: while one runs, another process cannot lock the
     folder; a second identify on a folder another process holds exits 2 with one line."""
-    from torchblur.identify import cli
+    from torchblur import cli
+    from torchblur.cli import commands
 
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     seen = []
@@ -474,7 +475,7 @@ def test_identify_holds_the_run_lock_and_a_second_identify_refuses(tmp_path, mon
         seen.append(subprocess.run([sys.executable, "-c", _TRY, str(record)], capture_output=True, text=True, env=env).stdout)
         return 0
 
-    monkeypatch.setattr(cli, "_run_identify", run)
+    monkeypatch.setattr(commands, "_run_identify", run)
     assert cli.main(["identify", "--out", str(tmp_path / "same"), "--quiet", "sweep.freq_hz=[5]"]) == 0
     assert seen and seen[0].startswith("refused:") and f"pid {os.getpid()}" in seen[0]
     (tmp_path / "same2" / "experiment").mkdir(parents=True)

@@ -153,12 +153,13 @@ def test_spots_run_outputs_read_back_with_each_channels_judgement(edge_run, tmp_
     calibration alone takes ~30 s)."""
     import json
 
-    from torchblur.identify import cli
+    from torchblur.identify import outputs
+    from torchblur.identify.report import run_summary, verdict_summary
     from readback import assert_reads_back
 
-    monkeypatch.setattr(cli, "_write_figures", lambda *a, **k: None)
-    v = cli._write_outputs(load_config(None, EDGE), edge_run, tmp_path, 1.0, "test")
-    got = assert_reads_back(tmp_path, json.dumps({**cli._summary(edge_run, tmp_path, 1.0), **cli._verdict_summary(v)}))
+    monkeypatch.setattr(outputs, "write_figures", lambda *a, **k: None)
+    v = outputs.write_outputs(load_config(None, EDGE), edge_run, tmp_path, 1.0, "test")
+    got = assert_reads_back(tmp_path, json.dumps({**run_summary(edge_run, tmp_path, 1.0), **verdict_summary(v)}))
     assert got["frf.json"].output_labels == edge_run.frf.output_labels and got["model.json"].output_labels == ("s0.x", "s0.y", "s1.x", "s1.y")
     assert len(json.loads((tmp_path / "model.json").read_text())["judgement"]) == 4  # one per channel that has a model
 

@@ -640,7 +640,7 @@ def default_cfg():
 def test_recorded_actuator_table_stays_inside(base, tmp_path, case, default_cfg):
     import dataclasses
 
-    from torchblur.identify.cli import _recorded_table
+    from torchblur.cli.commands import _recorded_table
 
     d = _copy(base["exp"], tmp_path)
     (d / "link.csv").symlink_to(base["outside"] / "secret.csv")
@@ -654,7 +654,7 @@ def test_recorded_actuator_table_inside_reads(base, tmp_path, default_cfg):
     import dataclasses
 
     from torchblur.dm.mirror import read_actuator_table
-    from torchblur.identify.cli import _recorded_table
+    from torchblur.cli.commands import _recorded_table
 
     d = _copy(base["exp"], tmp_path)
     cfg = dataclasses.replace(default_cfg, dm=dataclasses.replace(default_cfg.dm, actuator_table="actuator_table.csv"))

@@ -203,7 +203,7 @@ def test_the_model_fit_leaves_poor_fit_points_out():
 
 
 def test_the_model_fit_leaves_alias_points_out_and_the_report_says_so():
-    from torchblur.identify.cli import _left_out_points
+    from torchblur.identify.outputs import left_out_points
     from torchblur.identify.verdict import report_lines
 
     frf, _ = _frf(n=12)
@@ -224,7 +224,7 @@ def test_the_model_fit_leaves_alias_points_out_and_the_report_says_so():
     assert fit_model(cfg, frf.replace(response=wrong), []).reduced_chi2 > 50  # with weight they pull the fit off
     lines = report_lines(flagged.replace(meta={"timing": {"jitter_s": 0.0, "latency_std_s": 0.0, "frames_per_point": 1}}), cfg)
     assert sum("alias" in ln and "left out of the model fit (its phase may be the alias)" in ln for ln in lines) == 3
-    doc = _left_out_points(cfg, flagged)["left_out_points"]
+    doc = left_out_points(cfg, flagged)["left_out_points"]
     assert [d["flags"] for d in doc] == ["poor_fit|alias", "alias", "alias"]
     # too few points without them: alias points are still left out (no inflated std covers the other branch)
     few = frf.replace(flags=np.array([ALIAS] * 11 + [0]))
@@ -331,7 +331,7 @@ def test_cli_default_run_is_trustworthy_with_exit_0_and_a_refit_has_its_own_verd
 
 
 def test_help_documents_the_exit_status(capsys):
-    from torchblur.identify import cli
+    from torchblur import cli
 
     # in this process (two fresh ones cost ~2.5 s of imports): the exit-status table is a raw epilog, whatever the width
     helps = {}
@@ -373,12 +373,13 @@ def test_point_chi2_of_a_mimo_sweep_and_of_multisine_groups():
 def test_the_report_fit_quality_uses_the_run_threshold():
     import types
 
-    from torchblur.identify.cli import POOR_FIT_CHI2, _fit_quality
+    from torchblur.fit.status import POOR_FIT_CHI2
+    from torchblur.identify.report import fit_quality
 
     assert load_config(None, []).fit.poor_fit_chi2 == POOR_FIT_CHI2  # one default threshold
     fits = types.SimpleNamespace(reduced_chi2=torch.tensor([1.1, 1.3], dtype=torch.float64))
-    assert _fit_quality(fits)[0]["poor_fit_problems"] == 0
-    doc, line = _fit_quality(fits, 1.2)
+    assert fit_quality(fits)[0]["poor_fit_problems"] == 0
+    doc, line = fit_quality(fits, 1.2)
     assert doc["poor_fit_problems"] == 1 and "above 1.2 " in line
 
 

@@ -4,7 +4,7 @@ Installed by ``torchblur/__init__.py`` only when the program is the ``torchblur`
 user's own program importing torchblur), before torch loads: a SIGINT handler that is Python's
 own (raise KeyboardInterrupt) but remembers that it came (a Ctrl-C inside a C extension's
 import surfaces as an ImportError), and an excepthook that turns such an interruption into the
-command's one line. :func:`torchblur.identify.cli.main` handles every Ctrl-C once it runs.
+command's one line. :func:`torchblur.cli.main` handles every Ctrl-C once it runs.
 Imports the standard library only.
 """
 from __future__ import annotations

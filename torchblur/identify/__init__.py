@@ -1,8 +1,9 @@
 """The identification pipeline: ``config`` (the run's settings), ``pipeline`` (the stages
 over one run record: ``calibration``, ``sweep`` (the sine plan) or ``multisine`` (the
 multisine plan), ``fitting``, ``assemble``, ``model``, the ``result``), ``rigs`` (the rig
-and the recording), ``run`` (the public names, where they have always been imported from)
-and ``cli`` (the ``torchblur`` command).
+and the recording), ``run`` (the public names, where they have always been imported from),
+``outputs`` (the files a run writes) and ``report`` (report.txt and the ``--json`` line). The
+``torchblur`` command is :mod:`torchblur.cli`.
 
 The package is itself callable: ``torchblur.identify(cfg, rig)`` is
 ``torchblur.identify.identify(cfg, rig)``. Its names load on first use, so importing

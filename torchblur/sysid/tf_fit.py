@@ -90,7 +90,7 @@ _FIT_KEYS = frozenset({"num", "den", "delay_s", "n_poles", "n_zeros", "chi2", "d
 #: model.json's keys by schema_version, in one place: ``{version: (required, optional)}``. A key
 #: is refused only when its file's own version does not know it; a version not listed is refused
 #: by name. The optional keys are what the CLI writes beside the fit (its stamp, and the points the
-#: model was not fitted to: :func:`torchblur.identify.cli._left_out_points`); read, checked, not kept.
+#: model was not fitted to: :func:`torchblur.identify.outputs.left_out_points`); read, checked, not kept.
 #: A new key goes into a new version here (and into :meth:`TransferFunctionFit.to_dict`).
 _CLI_KEYS = frozenset({"torchblur_version", "seed", "left_out_points", "poor_fit_points_kept"})
 #: the model's parameters with their uncertainty and the orders compared (all or none:
