@@ -44,7 +44,7 @@ def small_runs() -> None:
     """``--run``: the test mirror, fit.psf auto and gaussian (module docstring)."""
     from test_dm_run import SMALL
 
-    from torchblur.dm.pipeline import identify_dm, truth_errors
+    from torchblur.identify.dm_plan import identify_dm, truth_errors
     from torchblur.identify.config import load_config
 
     base = [k for k in SMALL if not k.startswith("fit.psf=")]

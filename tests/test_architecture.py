@@ -9,11 +9,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1] / "torchblur"
 # May name torchblur.identify: the package's lazy table.
-IDENTIFY_EXCEPTIONS = {"torchblur",
-                       "torchblur.dm.pipeline",  # the DM run: a pipeline beside identify's, reusing its calibration stage
-                       "torchblur.dm.record",  # the DM run's recording: identify's experiment folder, resume and re-fit checks
-                       "torchblur.dm.verdict",  # the DM run's verdict: identify's exit status (EXIT_FLAGGED) and name lists
-                       "torchblur.dm.outside"}  # outside DM recordings: the one-spot outside format's calibration pieces
+IDENTIFY_EXCEPTIONS = {"torchblur"}
 # The identification's settings: a leaf (it imports nothing of torchblur.identify) that the
 # bench emulator shares for its plant, camera and spots sections.
 IDENTIFY_DATA = "torchblur.identify.config"
@@ -64,7 +60,7 @@ def _graph() -> dict:
 def test_the_graph_sees_imports_inside_functions():
     edges = _graph()
     assert "torchblur.identify.pipeline" in edges["torchblur.identify.run"]
-    assert "torchblur.rig.factory" in edges["torchblur.hardware.emulator"]  # imported inside EmulatedDevice.__init__
+    assert "torchblur.rig.factory" in edges["torchblur.hardware.emulator"]  # build_dm: the DM mode's simulated rig
 
 
 def test_nothing_below_identify_imports_it():

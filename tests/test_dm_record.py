@@ -1,4 +1,4 @@
-"""The DM run recorded, resumed and re-fitted (torchblur.dm.record), and estimate_run counting
+"""The DM run recorded, resumed and re-fitted (torchblur.identify.dm_record), and estimate_run counting
 its frames: a small mirror (9 actuators, 4 x 4 subapertures, one dead), 3 frequencies, the
 simulated rig (seeded), CPU."""
 import hashlib
@@ -31,7 +31,7 @@ def _lines(exp_dir):
 @pytest.fixture(scope="module")
 def live(tmp_path_factory):
     """The uninterrupted run, through the command line: ``OUT`` with its recording and outputs."""
-    pytest.importorskip("torchblur.dm.outputs")
+    pytest.importorskip("torchblur.identify.dm_outputs")
     out = tmp_path_factory.mktemp("dm") / "run"
     assert cli.main(["identify", "--out", str(out), "--quiet", *SMALL]) == 0
     return out
@@ -41,7 +41,7 @@ def live(tmp_path_factory):
 def reference(live):
     """The live run's result, read back by a re-fit of its recording (bit-identical to it:
     test_refit_gives_the_live_outputs_bit_for_bit)."""
-    from torchblur.dm.pipeline import identify_dm
+    from torchblur.identify.dm_plan import identify_dm
 
     exp = Experiment.open(live / "experiment", writable=False)
     return identify_dm(load_config(None, SMALL), ReplayRig(exp), record=exp)
@@ -108,7 +108,7 @@ def test_refit_may_change_the_fit_and_the_support_threshold_only(live, tmp_path,
     assert "dm_plan.kind" in capsys.readouterr().err
     assert cli.main(["fit", str(live), "--out", str(tmp_path / "b"), "dm.mode_hz=700"]) == 2
     assert "dm.mode_hz" in capsys.readouterr().err
-    from torchblur.dm.record import check_refit_config
+    from torchblur.identify.dm_record import check_refit_config
 
     recorded = load_config(None, SMALL)
     check_refit_config(recorded, load_config(None, SMALL + ["dm_plan.support_threshold=0.2", "fit.loss=poisson"]))
@@ -117,7 +117,7 @@ def test_refit_may_change_the_fit_and_the_support_threshold_only(live, tmp_path,
 def test_a_recorded_plan_is_kept_and_a_refit_takes_its_support_at_another_threshold(tmp_path):
     from torchblur.dm.budget import dm_geometry
     from torchblur.dm.plans import hadamard_plan, sparse_plan
-    from torchblur.dm.record import plan_document, plan_support, run_plan
+    from torchblur.identify.dm_record import plan_document, plan_support, run_plan
     from torchblur.hardware.frames import CameraInfo
 
     G = dm_geometry(load_config(None, SMALL))
@@ -141,7 +141,7 @@ def test_a_recorded_plan_is_kept_and_a_refit_takes_its_support_at_another_thresh
     assert plan.support.sum() < sparse.support.sum() and "support_threshold=0.3" in said[-1]
     doc = dict(exp.meta["dm_plan"], patterns=[[1.0, 2.0]])
     with pytest.raises(RecordingError, match="dm_plan.patterns"):
-        from torchblur.dm.record import plan_from_document
+        from torchblur.identify.dm_record import plan_from_document
 
         plan_from_document(doc, G, "experiment.json")
 
@@ -163,8 +163,8 @@ class _Crashing:
 
 
 def test_crash_then_resume(live, reference, tmp_path, capsys, monkeypatch):
-    from torchblur.dm import pipeline
-    from torchblur.dm.pipeline import identify_dm
+    from torchblur.identify import dm_plan as pipeline
+    from torchblur.identify.dm_plan import identify_dm
 
     cfg = load_config(None, SMALL)
     root = tmp_path / "run"
@@ -219,7 +219,7 @@ def test_crash_then_resume(live, reference, tmp_path, capsys, monkeypatch):
 
 
 def _actuators_csv(res, tmp_path) -> str:
-    from torchblur.dm.outputs import DMEstimate, write_dm_outputs
+    from torchblur.identify.dm_outputs import DMEstimate, write_dm_outputs
 
     out = tmp_path / "written"
     write_dm_outputs(out, DMEstimate(freq_hz=res.freq_hz, D=res.D, D_cov=res.D_cov, table=res.actuators, meta={}), say=lambda m: None)
@@ -261,7 +261,7 @@ def test_set_meta_refuses_the_schemas_own_keys(tmp_path):
 
 
 def test_ctrl_c_during_the_sweep_leaves_a_resumable_recording(tmp_path):
-    from torchblur.dm.pipeline import build_dm, identify_dm
+    from torchblur.identify.dm_plan import build_dm, identify_dm
 
     class _Interrupted(_Crashing):
         def pattern_sine(self, **kwargs):
@@ -278,7 +278,7 @@ def test_ctrl_c_during_the_sweep_leaves_a_resumable_recording(tmp_path):
 def test_the_truth_only_where_every_frame_is_simulated():
     from types import SimpleNamespace
 
-    from torchblur.dm.record import simulated_frames
+    from torchblur.identify.dm_record import simulated_frames
 
     sim = {"rig": {"rig": "SimulatedDMRig(9 actuators, ..., seed=0)"}}
     other = {"rig": {"rig": "SerialDMRig(/dev/ttyUSB0)"}}
@@ -292,8 +292,8 @@ def test_the_truth_only_where_every_frame_is_simulated():
 
 
 def test_a_resume_on_the_simulator_needs_the_same_actuator_table(tmp_path, monkeypatch):
-    from torchblur.dm.pipeline import identify_dm
-    from torchblur.dm.rig import SimulatedDMRig
+    from torchblur.identify.dm_plan import identify_dm
+    from torchblur.rig.dm import SimulatedDMRig
 
     table = tmp_path / "act.csv"
     table.write_text("actuator,mode_hz,damping,gain,delay_s\n4,650,0.07,1.0,2e-5\n")

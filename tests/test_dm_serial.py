@@ -205,7 +205,7 @@ def test_frames_over_the_link_equal_the_simulated_rig(emulators, config_path):
     """Call by call (each one ARM, so the seeded random stream is drawn in the same order), the
     frames over the link are the SimulatedDMRig's of the same config and seed, bit for bit, at
     the same trigger times: the emulator renders with that rig's own renderer."""
-    from torchblur.dm.pipeline import build_dm
+    from torchblur.identify.dm_plan import build_dm
     from torchblur.dm.plans import hadamard_plan
     from torchblur.hardware.serial_dm_rig import open_dm_rig
 
@@ -265,7 +265,7 @@ def test_a_controller_reset_loads_the_pattern_again(config_path):
     """A controller that reboots in the middle of a pattern_sine forgets its pattern (zeros):
     the redone call finds that with PAT?, loads the pattern again and takes the frames, which are
     the SimulatedDMRig's second identical call (the first attempt rendered its frames too)."""
-    from torchblur.dm.pipeline import build_dm
+    from torchblur.identify.dm_plan import build_dm
     from torchblur.dm.plans import hadamard_plan
     from torchblur.hardware.serial_dm_rig import SerialDMRig
 
@@ -293,7 +293,7 @@ def test_a_controller_reset_loads_the_pattern_again(config_path):
 def runs(emulators, config_path):
     """identify_dm over the link (SerialDMRig on the "run" emulator) and on the SimulatedDMRig,
     the same config and seed."""
-    from torchblur.dm.pipeline import identify_dm
+    from torchblur.identify.dm_plan import identify_dm
     from torchblur.hardware.serial_dm_rig import open_dm_rig
 
     cfg = serial_cfg(config_path, emulators["run"])
@@ -339,7 +339,7 @@ def test_cli_runs_a_dm_config_over_the_link(emulators, config_path, runs, tmp_pa
     """``torchblur identify --config DM.yaml --port P --frames F`` opens a SerialDMRig on the
     emulator and hands it to identify_dm (here returning the run above: the CLI's own part);
     no truth errors on a real rig."""
-    from torchblur.dm import pipeline
+    from torchblur.identify import dm_plan as pipeline
     from torchblur.hardware.serial_dm_rig import SerialDMRig
     from torchblur.identify.cli import main
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchblur.dm.shard import fit_sharded, shard_ranges
+from torchblur.identify.dm_shard import fit_sharded, shard_ranges
 from torchblur.dm.spot_fit import crop_problems, fit_spot_problems
 from torchblur.fit.status import NOT_CONVERGED
 

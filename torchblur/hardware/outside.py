@@ -160,7 +160,7 @@ def read_outside_recording(path) -> OutsideRecording:
 
 def _read_camera(root: Path, sections: tuple = ()) -> OutsideCamera:
     """``recording.yaml`` as an :class:`OutsideCamera`, every value checked (its top-level
-    ``sections``, a DM recording's sensor layout, are read by the caller: :mod:`torchblur.dm.outside`)."""
+    ``sections``, a DM recording's sensor layout, are read by the caller: :mod:`torchblur.identify.dm_outside`)."""
     from torchblur.identify.config import load_dataclass
 
     where = root / YAML_NAME

@@ -354,7 +354,7 @@ def spots_from_still(cfg, still_e, exposure_s, read_noise_e, log, progress, *, s
     ``(spots, kernels)``, the :class:`~torchblur.image.spots.SpotPSFs` (found by thresholding, or
     with ``spot_layout`` ``[M, 2]`` cropped on the sensor's declared layout) and their
     :class:`SpotKernels` (:func:`spot_kernels`; None when ``spot_psfs`` is False). One function for
-    a live calibration and for a recording's (``torchblur.dm.outside``), so both take the same steps."""
+    a live calibration and for a recording's (``torchblur.identify.dm_outside``), so both take the same steps."""
     if spot_layout is None:
         spots = _locate_spots(cfg, still_e.mean(0), exposure_s, read_noise_e, log, progress)
     else:

@@ -171,7 +171,7 @@ def _identify(args) -> int:
         print(f"torchblur identify: error: {out} already holds a recorded run; continue it with "
               f"'torchblur identify --resume {out}' or choose another --out", file=sys.stderr)
         return 2
-    if cfg.dm.enabled:  # a deformable-mirror run (dm.n_across > 0): torchblur.dm.pipeline, recorded in OUT/experiment
+    if cfg.dm.enabled:  # a deformable-mirror run (dm.n_across > 0): torchblur.identify.dm_plan, recorded in OUT/experiment
         return _run_dm(cfg, out, args)
     (out / "experiment").mkdir(parents=True, exist_ok=True)
     lock = RunLock(out / "experiment")  # held for the run's life: a second run on this folder refuses
@@ -286,10 +286,10 @@ def _stopped(exc, exp_dir: Path, root: Path, cfg) -> int:
 
 
 def _run_dm(cfg, out: Path, args, *, record=None, root: Path | None = None, rig=None) -> int:
-    """A DM run (:func:`torchblur.dm.pipeline.run_cli`): new (recorded in ``OUT/experiment``),
+    """A DM run (:func:`torchblur.identify.dm_plan.run_cli`): new (recorded in ``OUT/experiment``),
     resumed (``record``, a writable Experiment) or re-fitted (``record`` read-only, ``rig`` its
     ReplayRig); stopped by the rig or interrupted, as :func:`_run_identify`."""
-    from torchblur.dm.pipeline import run_cli as run_dm
+    from torchblur.identify.dm_plan import run_cli as run_dm
     from torchblur.hardware.errors import HardwareError
 
     cfg, base_dir = _recorded_table(cfg, out if record is None else (out if root is None else root), new=record is None)
@@ -367,7 +367,7 @@ def _fit(args) -> int:
     recorded = load_dataclass(type(load_config()), str(exp.path / "config.yaml"), trusted=False)
     cfg = load_config(str(exp.path / "config.yaml"), args.overrides, trusted=False, force=True)  # the recording is made
     if recorded.dm.enabled:  # a DM recording: torchblur.dm re-fits it (dm_plan.support_threshold may change too)
-        from torchblur.dm.record import check_refit_config
+        from torchblur.identify.dm_record import check_refit_config
 
         check_refit_config(recorded, cfg)
         out.mkdir(parents=True, exist_ok=True)
@@ -410,7 +410,7 @@ def _fit_outside(args) -> int:
     from torchblur.hardware.outside import read_outside_recording
     from torchblur.hardware.run_folder import check_out_folder
     from torchblur.identify.config import config_to_yaml
-    from torchblur.dm.outside import is_dm_recording
+    from torchblur.identify.dm_outside import is_dm_recording
     from torchblur.identify.outside import identify_outside, outside_config
 
     src, out = Path(args.dir).resolve(), Path(args.out)
@@ -443,7 +443,7 @@ def _fit_dm_outside(args, src: Path, out: Path) -> int:
     """``torchblur fit FOLDER`` of an outside DM recording (docs/outside_recordings.md, "Deformable-mirror
     recordings"): read and check it, fit it with the DM run's own stages, write the DM run's outputs."""
     import torchblur as tb
-    from torchblur.dm.outside import dm_recording_config, read_dm_recording, run_recording
+    from torchblur.identify.dm_outside import dm_recording_config, read_dm_recording, run_recording
     from torchblur.identify.read_outputs import SOURCE_SCHEMA
 
     rec = read_dm_recording(src)  # RecordingError naming file, line and column

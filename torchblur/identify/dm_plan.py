@@ -24,31 +24,48 @@ Stages:
 """
 from __future__ import annotations
 
+import json
+import logging
 import math
+import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 import torch
 
-from torchblur.errors import ConfigError, InputTypeError, ParameterError
-from torchblur.render.camera import CameraModel
-from torchblur.render.window import ExposureWindow
-from torchblur.dm.contract import check_dm_rig
+from torchblur.dm.actuator_fit import fit_actuators
 from torchblur.dm.budget import DM_DARK_FRAMES, DM_STILL_FRAMES, dm_geometry, dm_plan, dm_still_frames, dm_sweep_size
+from torchblur.dm.demux import demultiplex
 from torchblur.dm.mirror import DeformableMirror
-from torchblur.dm.outputs import DMEstimate, write_dm_outputs
 from torchblur.dm.plans import static_motion_px
 from torchblur.dm.registration import (DC_GAIN_REFERENCE, Registration, RegistrationFit, register_and_refit, support_line,
                                        write_registration_json)
-from torchblur.dm.rig import SimulatedDMRig
-from torchblur.dm.shack_hartmann import ShackHartmann
-from torchblur.dm.verdict import final_verdict
-from torchblur.identify.config import IdentifyConfig
+from torchblur.dm.spot_fit import PerSpotPSF, crop_problems, fit_spot_problems, pattern_responses
+from torchblur.errors import ConfigError, InputTypeError, ParameterError
+from torchblur.hardware.errors import RecordingError
+from torchblur.hardware.recording import ReplayRig
+from torchblur.hardware.serial_dm_rig import open_dm_rig
+from torchblur.identify.assemble import timing_phase_std
+from torchblur.identify.calibration import calibrate, check_latency_source
+from torchblur.identify.config import IdentifyConfig, config_to_yaml
+from torchblur.identify.dm_outputs import DMEstimate, write_dm_outputs
+from torchblur.identify.dm_record import (check_recorded_commands, open_recording, recorded_labels, resume_seed, run_plan, same_table,
+                                          session, session_info, simulated_frames, sweep_key, table_digest, take_group)
+from torchblur.identify.dm_verdict import final_verdict
 from torchblur.identify.read_outputs import SUMMARY_SCHEMA
+from torchblur.identify.record import log_message
+from torchblur.image.dark import subtract_dark
+from torchblur.image.spots import crop_spots
+from torchblur.render.psf import GaussianPSF, KernelPSF
+from torchblur.render.window import ExposureWindow
+from torchblur.rig.dm import SimulatedDMRig
+from torchblur.rig.dm_contract import check_dm_rig
+from torchblur.rig.factory import build_dm
 
-__all__ = ["DM_DARK_FRAMES", "DM_STILL_FRAMES", "DMResult", "build_dm", "check_dm_config", "estimate_mirror", "identify_dm", "match_spots", "next_amplitude",
+__all__ = ["DM_DARK_FRAMES", "DM_STILL_FRAMES", "DMResult", "check_dm_config", "estimate_mirror", "identify_dm", "match_spots", "next_amplitude",
            "nominal_growth", "registration_errors", "truth_errors"]
 
 _F64 = torch.float64
@@ -109,23 +126,6 @@ class DMResult:
     truth_registration: Registration | None = None
 
 
-def build_dm(cfg, *, base_dir: str | None = None, rig_seed: int | None = None):
-    """``(mirror, wfs, rig)`` of a DM config: the simulated mirror (``dm`` section, seeded by
-    ``seed``), the sensor (``wfs``) and the :class:`~torchblur.dm.rig.SimulatedDMRig` with the
-    ``camera`` section's sensor and timing (its noise seeded by ``rig_seed``, default ``seed``)
-    and the mirror's true registration ``dm.registration``."""
-    mirror = DeformableMirror.from_config(cfg.dm, base_dir=base_dir, seed=int(cfg.seed))
-    wfs = ShackHartmann.from_config(cfg.wfs, mirror)
-    c = cfg.camera
-    camera = CameraModel(dark_level_adu=c.dark_level, read_noise_e=c.read_noise, gain_e_per_adu=c.gain, full_well_e=c.full_well,
-                         bit_depth=int(c.bit_depth))
-    rig = SimulatedDMRig(mirror=mirror, wfs=wfs, camera=camera, frame_rate_hz=c.frame_rate_hz, trigger_delay_s=c.trigger_delay_s,
-                         readout_s=c.readout_s, max_exposure_s=c.max_exposure_s, latency_s=c.latency_s, jitter_s=c.jitter_s,
-                         seed=int(cfg.seed) if rig_seed is None else int(rig_seed),
-                         registration=Registration.from_config(cfg.dm.registration))
-    return mirror, wfs, rig
-
-
 def match_spots(found_xy: np.ndarray, rest_px: np.ndarray, pitch_px: float) -> np.ndarray:
     """For each of the M valid subapertures (rest positions ``[M, 2]`` px) the index of the
     found spot (``[K, 2]`` px) nearest its rest position; raises :class:`ParameterError`
@@ -172,9 +172,6 @@ def next_amplitude(*, target_px: float, motion_per_unit: float, input_limit: flo
 def _calibrate(cfg, rig, wfs, log, progress, exp=None):
     """Stage 1 (module docstring): the calibration (from the recording ``exp`` where it holds
     it) and the spots in valid-subaperture order."""
-    from torchblur.identify.calibration import calibrate
-    from torchblur.identify.record import log_message
-
     n = int(cfg.wfs.n_across)
     spots_cfg = replace(cfg.spots, rows=n, cols=n, pitch_px=float(cfg.wfs.pitch_px), sigma_px=float(cfg.wfs.sigma_px))
     size = dm_sweep_size(cfg)
@@ -193,10 +190,6 @@ def _spot_psf(cal, order, log, progress):
     calibration measured kernels (``fit.psf`` kernel, or auto and a spot's Gaussian fails
     :func:`~torchblur.image.psf_from_still.psf_from_still`'s test) a
     :class:`~torchblur.dm.spot_fit.PerSpotPSF`: the kernel for each spot whose still chose it."""
-    from torchblur.dm.spot_fit import PerSpotPSF
-    from torchblur.identify.record import log_message
-    from torchblur.render.psf import KernelPSF
-
     gauss = cal.spots.psf_in_crops()[order]
     sk = cal.spot_kernels
     if sk is None:
@@ -211,11 +204,6 @@ def _fit_frequency(frames, window, omega, amplitude, power, cal, psf, offset, si
     """One frequency's pattern responses: frames ``[P, E*R, H, W]`` ADU -> ``(Y [P, 2M],
     Y_cov [P, 2M, 2, 2], failed, reduced chi2 [P, M] of every spot fit)``. ``psf``: the spots'
     Gaussians or :class:`~torchblur.dm.spot_fit.PerSpotPSF` (:func:`_spot_psf`, at power 1)."""
-    from torchblur.dm.spot_fit import PerSpotPSF, crop_problems, fit_spot_problems, pattern_responses
-    from torchblur.identify.assemble import timing_phase_std
-    from torchblur.image.dark import subtract_dark
-    from torchblur.render.psf import GaussianPSF
-
     e = subtract_dark(frames.to(_F64), cal.dark) * cal.gain
     crops, in_frame = crop_problems(e[:, None], offset, size)  # [P, 1, M, ER, h, w]
     hot = _crop_mask(cal.dark.hot_pixels, offset, size)
@@ -238,8 +226,6 @@ def _fit_frequency(frames, window, omega, amplitude, power, cal, psf, offset, si
 
 def _crop_mask(mask, offset, size):
     """A frame mask ``[H, W]`` bool cropped at every spot, ``[M, h, w]``."""
-    from torchblur.image.spots import crop_spots
-
     return crop_spots(mask, offset, size)
 
 
@@ -282,11 +268,8 @@ def _amplitude_reference(futures, k: int, M: int):
 
 def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, log, progress, exp=None):
     """Stage 3 (module docstring): ``(amplitude [F], power [F], Y [P, 2M, F], Y_cov, failed, frames, t_acq, t_wait)``.
-    With a recording ``exp`` each frequency is one group (:mod:`torchblur.dm.record`): taken from
+    With a recording ``exp`` each frequency is one group (:mod:`torchblur.identify.dm_record`): taken from
     it, at its recorded amplitude, where it holds it, else acquired and recorded."""
-    from torchblur.dm.record import recorded_labels, sweep_key, take_group
-    from torchblur.identify.record import log_message
-
     freqs = cfg.frequencies_hz()
     F, P, M2 = len(freqs), plan.n_patterns, G.shape[0]
     c, s = cfg.camera, cfg.sweep
@@ -337,15 +320,15 @@ def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, log, progress, exp=None
 
 def identify_dm(cfg, rig=None, *, progress: bool = False, base_dir: str | None = None, record=None) -> DMResult:
     """Run a DM identification (module docstring) on ``rig`` (default: the config's simulated
-    DM rig). Returns a :class:`DMResult`. Public as ``torchblur.dm.identify_dm``: a lab's own
-    rig implements :class:`~torchblur.dm.contract.DMRig` (docs/dm_rig.md), checked by
-    :func:`~torchblur.dm.contract.check_dm_rig` before the first frame; with
+    DM rig). Returns a :class:`DMResult`. Public as ``torchblur.identify`` (a DM config): a lab's own
+    rig implements :class:`~torchblur.rig.dm_contract.DMRig` (docs/dm_rig.md), checked by
+    :func:`~torchblur.rig.dm_contract.check_dm_rig` before the first frame; with
     ``camera.latency_s`` and ``camera.latency_std_s`` given the rig needs no ``pulse()``.
 
     ``record``: None, a directory or a :class:`~torchblur.hardware.recording.Experiment`: the run
-    is recorded there as it goes (:mod:`torchblur.dm.record`). Groups it holds already (a resumed
+    is recorded there as it goes (:mod:`torchblur.identify.dm_record`). Groups it holds already (a resumed
     run) are taken from it instead of the rig (a resumed simulated rig draws its own noise stream,
-    :func:`~torchblur.dm.record.resume_seed`); a read-only one with a
+    :func:`~torchblur.identify.dm_record.resume_seed`); a read-only one with a
     :class:`~torchblur.hardware.recording.ReplayRig` re-fits the recording.
 
     Raises:
@@ -353,12 +336,6 @@ def identify_dm(cfg, rig=None, *, progress: bool = False, base_dir: str | None =
         InputTypeError: ``cfg`` is not an IdentifyConfig, or ``rig`` lacks part of the contract;
         ConfigError: ``cfg`` is not a DM config (``dm.n_across``), or the rig does not match it.
     """
-    from torchblur.dm.record import open_recording, resume_seed, same_table, session, session_info, simulated_frames, table_digest
-    from torchblur.hardware.errors import RecordingError
-    from torchblur.hardware.recording import ReplayRig
-    from torchblur.identify.calibration import check_latency_source
-    from torchblur.identify.record import log_message
-
     check_dm_config(cfg)
     if rig is not None and not isinstance(rig, ReplayRig):  # a lab's rig: the contract, before any frame (docs/dm_rig.md)
         check_dm_rig(rig, cfg)
@@ -399,9 +376,6 @@ def check_dm_config(cfg) -> None:
 def _identify_dm(cfg, rig, exp, model_mirror, wfs, truth_rig, log, progress) -> DMResult:
     """:func:`identify_dm` once the rig and the recording are open (``truth_rig``: the simulated
     rig whose truth the result carries, or None)."""
-    from torchblur.dm.record import check_recorded_commands, run_plan
-    from torchblur.identify.record import log_message
-
     G = dm_geometry(cfg)  # the geometry does not depend on the dynamics (nor on dm.actuator_table)
     t = {}
     t0 = time.perf_counter()
@@ -438,9 +412,6 @@ def estimate_mirror(cfg, freqs, Y, Y_cov, plan, G, wfs, actuator_xy):
     nominal ``G``, the mirror's registration fitted to D0 and the actuators fitted again on the
     fitted G (:func:`~torchblur.dm.registration.register_and_refit`). Returns ``(D, D_cov, table,
     registration, support_check)``."""
-    from torchblur.dm.actuator_fit import fit_actuators
-    from torchblur.dm.demux import demultiplex
-
     D, D_cov = demultiplex(Y, Y_cov, plan.patterns, plan.support)
     table = fit_actuators(freqs, D, D_cov, G, actuator_xy=actuator_xy)
     table, reg, support = register_and_refit(freqs, D, D_cov, table, wfs, actuator_xy, float(cfg.dm.coupling),
@@ -518,17 +489,12 @@ def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False, record=None
     """``torchblur identify`` for a DM config: run, recorded in ``OUT/experiment/`` (or in
     ``record``: an Experiment to resume, or a read-only one that ``rig``, its
     :class:`~torchblur.hardware.recording.ReplayRig`, re-fits), then write ``OUT/dm/`` and
-    ``OUT/report.txt``, the verdict line (:func:`torchblur.dm.verdict.dm_verdict`) last in both
+    ``OUT/report.txt``, the verdict line (:func:`torchblur.identify.dm_verdict.dm_verdict`) last in both
     and on stdout (stderr with ``as_json``, then one JSON summary line on stdout, with
     ``verdict`` and ``trustworthy``). Returns the exit status: the verdict's (0 trustworthy, 4
     actuators flagged); a stopped rig raises to the CLI, which names the recording. ``identify``: a
     callable that gives the :class:`DMResult` instead of a run (an outside DM recording's fit,
-    :func:`torchblur.dm.outside.run_recording`)."""
-    import json
-    import sys
-    from pathlib import Path
-
-    from torchblur.identify.config import config_to_yaml
+    :func:`torchblur.identify.dm_outside.run_recording`)."""
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -562,9 +528,6 @@ def _identify_on_config_rig(cfg, rig, quiet: bool, *, record, base_dir: str | No
     how to resume it)."""
     if rig is not None or cfg.rig.kind != "serial":
         return identify_dm(cfg, rig, progress=not quiet, record=record, base_dir=base_dir)
-    import logging
-
-    from torchblur.hardware.serial_dm_rig import open_dm_rig
 
     rig = open_dm_rig(cfg, log=logging.getLogger("torchblur.hardware").info)
     try:
@@ -578,9 +541,7 @@ def _identify_on_config_rig(cfg, rig, quiet: bool, *, record, base_dir: str | No
 
 
 def _write_dm_outputs(res: DMResult, out, figures: bool = True) -> None:
-    """``OUT/dm/`` by :func:`torchblur.dm.outputs.write_dm_outputs` (``figures``: ``report.figures``)."""
-    from torchblur.identify.record import log_message
-
+    """``OUT/dm/`` by :func:`torchblur.identify.dm_outputs.write_dm_outputs` (``figures``: ``report.figures``)."""
     meta = {"plan": res.plan.kind, "n_patterns": res.plan.n_patterns, "n_repeats": res.n_repeats, "n_frames": res.n_frames}
     reg = res.registration
     reference = {"dc_gain_reference": DC_GAIN_REFERENCE} if reg and reg.ok else {}

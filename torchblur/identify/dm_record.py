@@ -29,7 +29,9 @@ patterns; a sparse plan's support is then taken again from G, :func:`plan_suppor
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import math
+import os
 from dataclasses import replace
 
 import numpy as np
@@ -38,6 +40,9 @@ from torchblur.dm.plans import Plan, seen_by
 from torchblur.errors import ConfigError
 from torchblur.files import read_bounded
 from torchblur.hardware.errors import HardwareError, RecordingError
+from torchblur.identify.config import load_dataclass
+from torchblur.identify.drive import SESSION_KEY
+from torchblur.identify.rigs import check_resume_config, open_experiment
 from torchblur.rig.base import DRIVE_RTOL
 
 __all__ = ["PLAN_KEY", "SWEEP_KIND", "check_recorded_commands", "check_refit_config", "open_recording", "plan_document",
@@ -186,9 +191,6 @@ def open_recording(record, cfg, rig):
     or opened to resume) or an Experiment, checked against ``cfg`` (only ``rig.*``, ``fit.*``,
     ``model.*`` and ``report.*`` may differ from the recorded config; a read-only recording, a
     re-fit, may also take another ``dm_plan.support_threshold``) and ``rig``'s frame shape."""
-    from torchblur.identify.config import load_dataclass
-    from torchblur.identify.rigs import open_experiment
-
     if record is not None and getattr(record, "writable", True) is False:
         recorded = load_dataclass(type(cfg), str(record.path / "config.yaml"), trusted=False)
         cfg = check_refit_config(recorded, cfg, allowed=("rig", "fit", "model", "report"))
@@ -200,8 +202,6 @@ def check_refit_config(recorded, cfg, *, allowed=("fit", "model", "report")):
     re-fit's ``cfg`` differs from the ``recorded`` config outside the sections in ``allowed``
     and ``dm_plan.support_threshold`` (:func:`torchblur.identify.rigs.check_resume_config`).
     Returns ``cfg`` with the recorded threshold (what the recording's checks compare)."""
-    from torchblur.identify.rigs import check_resume_config
-
     aligned = replace(cfg, dm_plan=replace(cfg.dm_plan, support_threshold=recorded.dm_plan.support_threshold))
     check_resume_config(recorded, aligned, allowed=allowed)
     return aligned
@@ -214,9 +214,6 @@ def table_digest(cfg, base_dir: str | None = None) -> str | None:
     """The SHA-256 of the file ``dm.actuator_table`` names (relative to ``base_dir`` as
     :meth:`~torchblur.dm.mirror.DeformableMirror.from_config` reads it), or None without one:
     the recorded config holds only the path, and the simulated mirror is built from the file."""
-    import hashlib
-    import os
-
     path = cfg.dm.actuator_table
     if not path:
         return None
@@ -229,8 +226,6 @@ def session_info(cfg, rig, table_sha256: str | None = None) -> dict:
     """What a session notes of its rig: ``kind`` (``rig.kind``), ``rig`` (its repr), its input
     range (``input_limit``, None when it has none: a re-fit plans within the recorded one) and
     the actuator table's digest (:func:`table_digest`)."""
-    from torchblur.identify.drive import SESSION_KEY
-
     limit = getattr(rig, "input_limit", None)
     return {"kind": cfg.rig.kind, "rig": repr(rig), TABLE_KEY: table_sha256,
             SESSION_KEY: float(limit) if limit is not None and math.isfinite(float(limit)) else None}

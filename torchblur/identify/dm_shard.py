@@ -23,6 +23,7 @@ import torch
 from torchblur.dm.spot_fit import SpotFits, fit_spot_problems
 from torchblur.errors import InputTypeError, ShapeError, check_int
 from torchblur.fit.status import NOT_CONVERGED
+from torchblur.render.psf import GaussianPSF
 from torchblur.render.window import ExposureWindow
 
 __all__ = ["ShardedFits", "fit_sharded", "shard_ranges"]
@@ -56,8 +57,6 @@ def shard_ranges(n_points: int, shard_points: int) -> tuple:
 
 def _fit_shard(crops, center, cov, amplitude, start, duration, omega, noise_std, mask, options, fit_fn):
     """One shard on a worker: points ``[b]`` as a ``[1, b, M, ...]`` sweep."""
-    from torchblur.render.psf import GaussianPSF
-
     return fit_fn(crops, GaussianPSF(center, cov, amplitude), ExposureWindow(start, duration), omega, noise_std=noise_std,
                   mask=mask, **options)
 
