@@ -18,7 +18,8 @@ import time
 import numpy as np
 import torch
 
-from torchblur.identify.dm_plan import identify_dm, truth_errors
+from torchblur.identify.dm_plan import truth_errors
+    from torchblur.identify.pipeline import identify
 from torchblur.identify.config import load_config
 
 
@@ -32,7 +33,7 @@ def main(argv=None) -> int:
         cfg = load_config(args.config, [*args.overrides, f"seed={seed}"])
         torch.manual_seed(seed)
         t0 = time.perf_counter()
-        res = identify_dm(cfg)
+        res = identify(cfg, progress=False)
         elapsed = time.perf_counter() - t0
         err = truth_errors(res)
         stages = ", ".join(f"{k} {v:.1f} s" for k, v in res.timing_s.items())

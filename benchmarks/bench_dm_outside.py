@@ -11,7 +11,7 @@ column (actuators.csv, 9 significant digits), of D0 (interaction_matrix.npy) and
 default; times are for this machine only).
 
     python benchmarks/bench_dm_outside.py [--config FILE] [--keep DIR] [overrides ...]
-    python benchmarks/bench_dm_outside.py --run RUN     # a run recorded on any rig (identify_dm(cfg, rig, record=RUN/experiment))
+    python benchmarks/bench_dm_outside.py --run RUN     # a run recorded on any rig (torchblur.identify(cfg, rig, record=RUN/experiment))
 
 With ``--run`` the reference is ``torchblur fit RUN`` (a re-fit of the recording gives the live
 run's table bit for bit: docs/deformable_mirrors.md), so a run on a lab's or a test's rig (an HCIPy

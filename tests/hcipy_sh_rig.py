@@ -11,7 +11,7 @@ benchmarks compare with :meth:`HcipyDMRig.truth`.
 
     gen = hcipy_sh.HcipySH()
     rig = hcipy_sh_rig.hcipy_dm_rig(cfg, gen, hcipy_sh.draw_dynamics(gen.n_actuators, seed=5))
-    torchblur.identify.dm_plan.run_cli(cfg, out, rig=rig)
+    torchblur.identify.dm_report.run_cli(cfg, out, rig=rig)
 """
 from __future__ import annotations
 

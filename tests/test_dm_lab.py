@@ -1,5 +1,5 @@
 """A lab's own DM (issue 23 part D): the worked vendor-SDK example (docs/examples/vendor_dm.py)
-through the public ``torchblur.identify`` (a DM config) with the latency given (its rig has no pulse()),
+through the public ``torchblur.identify`` (a DM config and its rig) with the latency given (its rig has no pulse()),
 its recording exported as an outside DM recording and fitted by ``torchblur fit FOLDER`` to the
 same table, the rig contract checked before any frame, and the outside format read as untrusted
 input (every error names the file, line and column)."""
@@ -102,26 +102,24 @@ class _NoFrames:
 
 
 def test_the_rig_contract_is_checked_before_any_frame(example):
-    from torchblur.identify.dm_plan import identify_dm
-
     cfg = tb.load_config(None, example.EXAMPLE)
     with pytest.raises(InputTypeError, match=r"rig: a object lacks pattern_sine\(\)"):
-        identify_dm(cfg, object.__new__(type("object", (), {"dark": lambda s: 0, "still": lambda s: 0})))
+        tb.identify(cfg, object.__new__(type("object", (), {"dark": lambda s: 0, "still": lambda s: 0})), progress=False)
     no_latency = tb.load_config(None, [o for o in example.EXAMPLE if not o.startswith("camera.latency_std_s")])
     with pytest.raises(ConfigError, match=r"camera.latency_std_s: the rig \(_NoFrames\) has no gated laser \(pulse\(\)\)"):
-        identify_dm(no_latency, _NoFrames())
+        tb.identify(no_latency, _NoFrames(), progress=False)
     rig = _NoFrames()
     rig.n_actuators = 5
     with pytest.raises(ConfigError, match="dm.n_across: .* 4 actuators .* the rig's 5"):
-        identify_dm(cfg, rig)
+        tb.identify(cfg, rig, progress=False)
     rig = _NoFrames()
     rig.frame_shape = (64, 64)
     with pytest.raises(ConfigError, match="wfs.pitch_px: .* 32x32 px frames, the rig.s camera 64x64"):
-        identify_dm(cfg, rig)
+        tb.identify(cfg, rig, progress=False)
     with pytest.raises(ConfigError, match="dm.n_across: 0, not a DM config"):
-        identify_dm(tb.load_config(), _NoFrames())
+        tb.identify(tb.load_config(), _NoFrames(), progress=False)
     with pytest.raises(InputTypeError, match="cfg: expected an IdentifyConfig"):
-        identify_dm({"dm": {}}, _NoFrames())
+        tb.identify({"dm": {}}, _NoFrames(), progress=False)
 
 
 def _edit(path: Path, old: str, new: str) -> None:

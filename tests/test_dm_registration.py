@@ -135,7 +135,7 @@ def test_registration_json_reads_back_and_bad_input(tmp_path):
 
 
 def test_simulated_mirror_takes_the_registration_from_the_config():
-    from torchblur.identify.dm_plan import build_dm
+    from torchblur.rig.factory import build_dm
     from torchblur.identify.config import load_config
 
     base = ["dm.n_across=3", "wfs.n_across=4", "wfs.oversample=8", "excitation.target_px=3.0"]

@@ -1,5 +1,5 @@
 """The DM run end to end on a small mirror (9 actuators, 4 x 4 subapertures, one dead): the
-pipeline's pieces, identify_dm against the simulated truth, and the CLI routing."""
+pipeline's pieces, the DM plan's run (torchblur.identify) against the simulated truth, and the CLI routing."""
 import json
 import math
 
@@ -33,7 +33,7 @@ def test_dm_config_sections_and_errors(tmp_path):
         with pytest.raises(ConfigError, match=key):
             load_config(None, SMALL + [bad])
     full = load_config("configs/identify_dm.yaml")
-    from torchblur.identify.dm_plan import build_dm
+    from torchblur.rig.factory import build_dm
 
     mirror, wfs, rig = build_dm(full)
     assert mirror.n_actuators == 52 and wfs.n_valid == 80 and rig.frame_shape == (160, 160)
@@ -41,7 +41,7 @@ def test_dm_config_sections_and_errors(tmp_path):
 
 
 def test_actuator_table_through_the_config(tmp_path):
-    from torchblur.identify.dm_plan import build_dm
+    from torchblur.rig.factory import build_dm
 
     p = tmp_path / "act.csv"
     p.write_text("actuator,mode_hz,damping,gain,delay_s\n4,777,0.07,0,1e-5\n")
@@ -73,9 +73,9 @@ def test_match_spots_and_amplitude_rule():
 @pytest.fixture(scope="module")
 def small_run():
     pytest.importorskip("torchblur.dm.spot_fit")  # d2's estimation (merged from main)
-    from torchblur.identify.dm_plan import identify_dm
+    from torchblur.identify.pipeline import identify
 
-    return identify_dm(load_config(None, SMALL + MISREGISTERED))
+    return identify(load_config(None, SMALL + MISREGISTERED), progress=False)
 
 
 #: the small run's simulated mirror is misregistered on its sensor (issue 23): the run fits the registration
@@ -115,10 +115,10 @@ def test_small_run_against_the_truth(small_run):
 
 
 def test_cli_routes_a_dm_config(tmp_path, capsys, monkeypatch, small_run):
-    from torchblur.identify import dm_plan as pipeline
+    from torchblur.identify import dm_report
     from torchblur.identify.cli import main
 
-    monkeypatch.setattr(pipeline, "identify_dm", lambda cfg, rig=None, **kw: small_run)
+    monkeypatch.setattr(dm_report, "identify", lambda cfg, rig=None, **kw: small_run)
     rc = main(["identify", "--out", str(tmp_path / "run"), "--json", *SMALL, "report.figures=false"])  # no figure checked here
     assert rc == 0
     out = capsys.readouterr()

@@ -162,10 +162,11 @@ def test_bad_arguments_are_named():
 @pytest.fixture(scope="module")
 def small_result():
     """A DMResult of the small DM config (tests/test_dm_run.py's SMALL) without the sweep: D is
-    the simulated rig's truth plus seeded noise, fitted by fit_actuators (as identify_dm does)."""
+    the simulated rig's truth plus seeded noise, fitted by fit_actuators (as the DM plan does)."""
     from test_dm_run import SMALL
 
-    from torchblur.identify.dm_plan import DMResult, build_dm
+    from torchblur.identify.dm_plan import DMResult
+    from torchblur.rig.factory import build_dm
     from torchblur.dm.plans import choose_plan
     from torchblur.identify.config import load_config
 
@@ -188,10 +189,10 @@ def small_result():
 
 
 def _run(tmp_path, monkeypatch, res, small, *args):
-    from torchblur.identify import dm_plan as pipeline
+    from torchblur.identify import dm_report
     from torchblur.identify.cli import main
 
-    monkeypatch.setattr(pipeline, "identify_dm", lambda cfg, rig=None, **kw: res)
+    monkeypatch.setattr(dm_report, "identify", lambda cfg, rig=None, **kw: res)
     out = tmp_path / "run"
     return main(["identify", "--out", str(out), "--quiet", *args, *small, "report.figures=false"]), out  # no figure checked here
 

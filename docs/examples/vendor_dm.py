@@ -29,7 +29,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchblur.identify.dm_plan import identify_dm
 from torchblur.errors import ParameterError
 from torchblur.hardware.errors import HardwareError
 from torchblur.rig.base import Capture
@@ -124,7 +123,7 @@ class AcmeCamera:
 
 def acme_open(cfg):
     """``(mirror, camera)`` of the stand-in SDK, its hardware the simulated DM of the torchblur config ``cfg``."""
-    from torchblur.identify.dm_plan import build_dm
+    from torchblur.rig.factory import build_dm
 
     bench = _Bench(build_dm(cfg)[2])
     return AcmeMirror(bench), AcmeCamera(bench)
@@ -211,7 +210,7 @@ def identify_with_acme(overrides=(), *, record=None):
 
     cfg = tb.load_config(None, EXAMPLE + list(overrides))
     rig = AcmeDMRig(*acme_open(cfg))
-    return identify_dm(cfg, rig, record=record), rig
+    return tb.identify(cfg, rig, record=record, progress=False), rig
 
 
 def main(argv=None) -> int:

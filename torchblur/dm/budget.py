@@ -5,7 +5,7 @@ work so that the size guard sees the real frame count.
 The plan depends only on the geometry: the mirror's actuator grid and influence functions
 (``dm.n_across``, ``dm.coupling``) and the sensor (``wfs``), through the nominal geometry
 matrix G, never on the dynamics (so ``dm.actuator_table`` is not read here). The run
-(:func:`torchblur.identify.dm_plan.identify_dm`) chooses its plan with the same function.
+(:class:`torchblur.identify.dm_plan.DMPlan`) chooses its plan with the same function.
 
 A leaf of the DM package: it imports nothing of ``torchblur.identify`` (the settings module
 imports it).

@@ -260,7 +260,7 @@ class EmulatedDevice:
     def __init__(self, cfg: EmulatorConfig, send, *, firmware: str = "0.1.0", name: str = "torchblur-emulator"):
         self.cfg = cfg
         if cfg.dm.enabled:  # the DM mode: one axis, "pat", the loaded pattern on every actuator
-            mirror, _, self.rig = build_dm(cfg)  # the mirror, the sensor and the SimulatedDMRig identify_dm builds
+            mirror, _, self.rig = build_dm(cfg)  # the mirror, the sensor and the SimulatedDMRig a DM run builds
             self.axes, self.n_actuators = ("pat",), mirror.n_actuators
             self._settling_s = mirror.settling_time_s()
             limit = cfg.dm.input_limit if cfg.dm.input_limit is not None else cfg.plant.input_limit

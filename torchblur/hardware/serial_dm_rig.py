@@ -1,5 +1,5 @@
 """A deformable mirror over the serial link: :class:`SerialDMRig`, the interface
-:func:`torchblur.identify.dm_plan.identify_dm` uses on :class:`~torchblur.rig.dm.SimulatedDMRig`
+the DM plan (:class:`torchblur.identify.dm_plan.DMPlan`) uses on :class:`~torchblur.rig.dm.SimulatedDMRig`
 (``pattern_sine``, ``dark``, ``still``, ``pulse``, ``input_limit``, the frame geometry), on a
 controller that speaks protocol 2 (docs/protocol.md: ``ACT?``, ``PAT``, ``PAT?`` and the axis
 ``pat``) and a camera.

@@ -286,10 +286,10 @@ def _stopped(exc, exp_dir: Path, root: Path, cfg) -> int:
 
 
 def _run_dm(cfg, out: Path, args, *, record=None, root: Path | None = None, rig=None) -> int:
-    """A DM run (:func:`torchblur.identify.dm_plan.run_cli`): new (recorded in ``OUT/experiment``),
+    """A DM run (:func:`torchblur.identify.dm_report.run_cli`): new (recorded in ``OUT/experiment``),
     resumed (``record``, a writable Experiment) or re-fitted (``record`` read-only, ``rig`` its
     ReplayRig); stopped by the rig or interrupted, as :func:`_run_identify`."""
-    from torchblur.identify.dm_plan import run_cli as run_dm
+    from torchblur.identify.dm_report import run_cli as run_dm
     from torchblur.hardware.errors import HardwareError
 
     cfg, base_dir = _recorded_table(cfg, out if record is None else (out if root is None else root), new=record is None)

@@ -38,7 +38,8 @@ import torch
 
 from torchblur.dm.budget import dm_geometry, dm_sensor
 from torchblur.identify.dm_plan import (DMResult, _calibrate, _fit_frequency, _fit_options, _spot_psf, check_dm_config, estimate_mirror,
-                                        match_spots, run_cli)
+                                        match_spots)
+from torchblur.identify.dm_report import run_cli
 from torchblur.dm.plans import Plan, one_at_a_time_plan, plan_cost
 from torchblur.identify.dm_record import PLAN_KEY, SWEEP_KIND, plan_support
 from torchblur.dm.shack_hartmann import ShackHartmann
@@ -520,5 +521,5 @@ def export_dm_recording(run, folder) -> Path:
 def run_recording(rec: DMRecording, cfg, out, *, quiet: bool = False, as_json: bool = False) -> int:
     """``torchblur fit FOLDER`` of an outside DM recording: :func:`identify_dm_recording` written
     as a live run writes (``OUT/config.yaml``, ``OUT/dm/``, ``OUT/report.txt``, the verdict line
-    last; :func:`torchblur.identify.dm_plan.run_cli`). Returns the verdict's exit status."""
-    return run_cli(cfg, out, quiet=quiet, as_json=as_json, identify=lambda: identify_dm_recording(rec, cfg, progress=not quiet))
+    last; :func:`torchblur.identify.dm_report.run_cli`). Returns the verdict's exit status."""
+    return run_cli(cfg, out, quiet=quiet, as_json=as_json, run=lambda: identify_dm_recording(rec, cfg, progress=not quiet))

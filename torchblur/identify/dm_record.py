@@ -28,7 +28,6 @@ patterns; a sparse plan's support is then taken again from G, :func:`plan_suppor
 """
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import math
 import os
@@ -39,14 +38,14 @@ import numpy as np
 from torchblur.dm.plans import Plan, seen_by
 from torchblur.errors import ConfigError
 from torchblur.files import read_bounded
-from torchblur.hardware.errors import HardwareError, RecordingError
+from torchblur.hardware.errors import RecordingError
 from torchblur.identify.config import load_dataclass
 from torchblur.identify.drive import SESSION_KEY
 from torchblur.identify.rigs import check_resume_config, open_experiment
 from torchblur.rig.base import DRIVE_RTOL
 
 __all__ = ["PLAN_KEY", "SWEEP_KIND", "check_recorded_commands", "check_refit_config", "open_recording", "plan_document",
-           "plan_from_document", "plan_support", "recorded_labels", "recorded_on_simulation", "resume_seed", "run_plan", "session",
+           "plan_from_document", "plan_support", "recorded_labels", "recorded_on_simulation", "recorded_plan", "resume_seed",
            "same_table", "session_info", "simulated_frames", "sweep_key", "table_digest", "take_group"]
 
 PLAN_KEY = "dm_plan"  # experiment.json: the plan of a DM run
@@ -110,7 +109,7 @@ def plan_support(kind: str, G: np.ndarray, threshold: float) -> np.ndarray:
     return np.concatenate([seen, seen], 0)
 
 
-def run_plan(exp, plan: Plan, n_repeats: int, G: np.ndarray, threshold: float, say) -> tuple[Plan, int]:
+def recorded_plan(exp, plan: Plan, n_repeats: int, G: np.ndarray, threshold: float, say) -> tuple[Plan, int]:
     """The plan a run uses: ``plan`` without a recording; with one, the recorded plan (a resume
     or a re-fit; a re-fit at another ``threshold`` takes the support of the recorded patterns at
     that threshold, :func:`plan_support`); a new recording stores ``plan`` now.
@@ -264,24 +263,3 @@ def resume_seed(seed: int, session: int) -> int:
     if session == 0:
         return int(seed)
     return int(np.random.SeedSequence([int(seed), int(session)]).generate_state(1)[0])
-
-
-@contextlib.contextmanager
-def session(exp, rig_info: dict):
-    """A session of the recording ``exp`` (none: nothing) around the ``with`` block: started with
-    ``rig_info``, ended ``complete``, or ``interrupted`` (KeyboardInterrupt), ``stopped`` (the
-    rig's :class:`~torchblur.hardware.errors.HardwareError`) or ``failed``, then re-raised. A
-    read-only recording (a re-fit) gets no session."""
-    if exp is None or not exp.writable:
-        yield
-        return
-    exp.start_session(rig_info)
-    try:
-        yield
-    except KeyboardInterrupt:
-        exp.end_session("interrupted", "KeyboardInterrupt")
-        raise
-    except BaseException as exc:
-        exp.end_session("stopped" if isinstance(exc, HardwareError) else "failed", f"{type(exc).__name__}: {exc}")
-        raise
-    exp.end_session("complete")

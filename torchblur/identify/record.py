@@ -38,7 +38,8 @@ class RunRecord:
     ``acquisition`` (the plan's sweep: frames, windows, amplitudes, its fits as they come),
     ``fit`` (the fits of every point), ``frf`` (FrequencyResponse), the fitted ``images``,
     their ``windows`` and laser ``power`` (shapes as in the result) and ``truth``, ``model``
-    (TransferFunctionFit or None) and ``direct_model``, ``timing`` (seconds per stage)."""
+    (TransferFunctionFit or None) and ``direct_model``, ``timing`` (seconds per stage);
+    ``executor``: the :class:`concurrent.futures.Executor` a plan may submit its fits to (None: its own worker thread)."""
 
     cfg: object
     rig: object
@@ -58,6 +59,7 @@ class RunRecord:
     model: object = None
     direct_model: object = None
     timing: dict = field(default_factory=dict)
+    executor: object = None
 
     def say(self, msg: str) -> None:
         """Log ``msg`` (to ``log`` and the ``torchblur.identify`` logger)."""
