@@ -49,9 +49,9 @@ from torchblur.hardware.serial_dm_rig import open_dm_rig
 from torchblur.identify.assemble import timing_phase_std
 from torchblur.identify.calibration import calibrate, check_latency_source
 from torchblur.identify.config import IdentifyConfig
-from torchblur.identify.dm_record import (check_recorded_commands, open_recording, recorded_labels, recorded_plan, resume_seed, same_table,
-                                          session_info, simulated_frames, sweep_key, table_digest, take_group)
-from torchblur.identify.record import RunRecord, log_message
+from torchblur.identify.dm_record import (SWEEP_KIND, check_recorded_commands, open_recording, recorded_labels, recorded_plan, resume_seed,
+                                          same_table, session_info, simulated_frames, sweep_key, table_digest)
+from torchblur.identify.record import RunRecord, log_message, run_stage
 from torchblur.identify.rigs import session
 from torchblur.image.dark import subtract_dark
 from torchblur.image.spots import crop_spots
@@ -313,7 +313,7 @@ def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, log, progress, exp=None
             labels = {"freq_hz": float(f), "amplitude": float(amps[k]), "power": float(powers[k]), "point": k,
                       "trigger_delay_s": delay, "n_patterns": P, "n_repeats": R}
             t0 = time.perf_counter()
-            frames, window = take_group(exp, sweep_key(k), rig, lambda r: _acquire_frequency(
+            frames, window = run_stage(exp, sweep_key(k), SWEEP_KIND, rig, lambda r: _acquire_frequency(
                 r, plan, f, float(amps[k]), te, float(s.trigger_phase_rad) / (2 * math.pi * f), R, s.settle_s, float(powers[k]),
                 cal.latency_s, delay), labels)
             t_acq += time.perf_counter() - t0

@@ -46,7 +46,7 @@ from torchblur.rig.base import DRIVE_RTOL
 
 __all__ = ["PLAN_KEY", "SWEEP_KIND", "check_recorded_commands", "check_refit_config", "open_recording", "plan_document",
            "plan_from_document", "plan_support", "recorded_labels", "recorded_on_simulation", "recorded_plan", "resume_seed",
-           "same_table", "session_info", "simulated_frames", "sweep_key", "table_digest", "take_group"]
+           "same_table", "session_info", "simulated_frames", "sweep_key", "table_digest"]
 
 PLAN_KEY = "dm_plan"  # experiment.json: the plan of a DM run
 SWEEP_KIND = "dm_sweep"  # the kind of a swept frequency's group
@@ -152,15 +152,6 @@ def recorded_labels(exp, key: str) -> dict | None:
     if line.get("kind") != SWEEP_KIND:
         raise RecordingError(f"{key}: a {line.get('kind')!r} group, expected {SWEEP_KIND!r}")
     return line
-
-
-def take_group(exp, key: str, rig, fn, labels: dict):
-    """``fn(rig)`` for group ``key``: directly without a recording; with one, from the recording
-    when it holds the group (every rig call replayed and checked against the recorded one), else
-    on ``rig`` with every call recorded as one group (:meth:`~torchblur.hardware.recording.Experiment.stage`)."""
-    if exp is None:
-        return fn(rig)
-    return exp.stage(key, SWEEP_KIND, rig, fn, labels=labels)[0]
 
 
 def check_recorded_commands(exp, limit: float) -> None:

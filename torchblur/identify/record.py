@@ -126,13 +126,14 @@ def stage_bar(progress: bool, desc: str, total: int):
         bar.close()
 
 
-def run_stage(exp, key: str, kind: str, rig, fn):
+def run_stage(exp, key: str, kind: str, rig, fn, labels: dict | None = None):
     """``fn(rig)``, or with a recording ``exp`` the recorded result of group ``key`` (taken
-    and recorded now if it is not there yet); inside :func:`stage_bar`, one step of its bar."""
+    and recorded now if it is not there yet, every manifest line with ``labels``; a recorded
+    group's calls are replayed and checked against the recorded ones); inside :func:`stage_bar`, one step of its bar."""
     bar = _STAGE_BAR.get()
     if bar is not None:
         bar.set_postfix_str(key, refresh=True)
-    out = fn(rig) if exp is None else exp.stage(key, kind, rig, fn)[0]
+    out = fn(rig) if exp is None else exp.stage(key, kind, rig, fn, labels=labels)[0]
     if bar is not None:
         bar.update(1)
     return out
