@@ -1,6 +1,6 @@
 """DM identification against the simulated truth: do the reported stds hold? (issue 17)
 
-Runs :func:`torchblur.dm.pipeline.identify_dm` on ``configs/identify_dm.yaml`` (or ``--config``)
+Runs :func:`torchblur.identify.dm_plan.identify_dm` on ``configs/identify_dm.yaml`` (or ``--config``)
 for each ``--seeds`` value (the mirror's spread, the camera noise and the jitter change with it)
 and prints, over the live actuators, each estimate's largest relative error and the rms and
 largest of error / reported std (rms about 1 where the stds hold; with 51 actuators an rms
@@ -18,7 +18,8 @@ import time
 import numpy as np
 import torch
 
-from torchblur.dm.pipeline import identify_dm, truth_errors
+from torchblur.identify.dm_plan import truth_errors
+    from torchblur.identify.pipeline import identify
 from torchblur.config import load_config
 
 
@@ -32,7 +33,7 @@ def main(argv=None) -> int:
         cfg = load_config(args.config, [*args.overrides, f"seed={seed}"])
         torch.manual_seed(seed)
         t0 = time.perf_counter()
-        res = identify_dm(cfg)
+        res = identify(cfg, progress=False)
         elapsed = time.perf_counter() - t0
         err = truth_errors(res)
         stages = ", ".join(f"{k} {v:.1f} s" for k, v in res.timing_s.items())

@@ -1,6 +1,6 @@
 """Issue 23's first two "done when" items measured end to end on HCIPy Shack-Hartmann frames.
 
-The DM route (``torchblur.dm.pipeline.identify_dm`` and its verdict, what ``run_cli`` runs) on
+The DM route (``torchblur.identify`` with a DM config and its verdict, what ``run_cli`` runs) on
 a user-written rig (tests/hcipy_sh_rig.py) whose frames HCIPy makes (tests/hcipy_sh.py: circular
 pupil, HCIPy's DM of Gaussian influence functions, 52 actuators, 10 x 10 square lenslets with
 diffraction and crosstalk, 80 valid, 16 px pitch, 160 x 160 px; each actuator's own second-order
@@ -37,8 +37,8 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 import hcipy_sh as hs  # noqa: E402
 import hcipy_sh_rig as hr  # noqa: E402
 
-from torchblur.dm.pipeline import identify_dm  # noqa: E402
-from torchblur.dm.verdict import final_verdict  # noqa: E402
+from torchblur.identify.pipeline import identify  # noqa: E402
+from torchblur.identify.dm_verdict import final_verdict  # noqa: E402
 from torchblur.config import load_config  # noqa: E402
 
 CASES = {"aligned": hs.SHOptics(),
@@ -124,7 +124,7 @@ def run_case(name: str, quick: bool, psf: str = "auto") -> None:
     truth = rig.truth(None)
     t_gen = time.perf_counter() - t0
     t0 = time.perf_counter()
-    res = identify_dm(cfg, rig)
+    res = identify(cfg, rig, progress=False)
     t_run = time.perf_counter() - t0
     if os.environ.get("BENCH_DM_HCIPY_SAVE"):  # keep the run (re-read the figures without re-running)
         import pickle

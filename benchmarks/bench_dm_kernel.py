@@ -44,13 +44,14 @@ def small_runs() -> None:
     """``--run``: the test mirror, fit.psf auto and gaussian (module docstring)."""
     from test_dm_run import SMALL
 
-    from torchblur.dm.pipeline import identify_dm, truth_errors
+    from torchblur.identify.dm_plan import truth_errors
+    from torchblur.identify.pipeline import identify
     from torchblur.config import load_config
 
     base = [k for k in SMALL if not k.startswith("fit.psf=")]
     for psf in ("auto", "gaussian"):
         t0 = time.perf_counter()
-        res = identify_dm(load_config(None, base + [f"fit.psf={psf}"]))
+        res = identify(load_config(None, base + [f"fit.psf={psf}"]), progress=False)
         wall = time.perf_counter() - t0
         e = truth_errors(res)
         chose = [line for line in res.log if line.startswith("dm spots psf")] or ["dm spots psf: the Gaussian for every spot"]

@@ -4,14 +4,14 @@ recordings").
 
 Runs ``torchblur identify`` on a DM config (default: a 9-actuator mirror under 4 x 4
 subapertures, the suite's tests/test_dm_run.py size; ``--config configs/identify_dm.yaml`` for the
-shipped 52-actuator one), exports its recording (:func:`torchblur.dm.export_dm_recording`), fits
+shipped 52-actuator one), exports its recording (:func:`torchblur.identify.export_dm_recording`), fits
 the folder with ``torchblur fit`` and prints: the largest relative difference of every actuator
 column (actuators.csv, 9 significant digits), of D0 (interaction_matrix.npy) and of D(jw)
 (frf.json) between the two, the folder's size, and the wall time of each step (threads: torch's
 default; times are for this machine only).
 
     python benchmarks/bench_dm_outside.py [--config FILE] [--keep DIR] [overrides ...]
-    python benchmarks/bench_dm_outside.py --run RUN     # a run recorded on any rig (identify_dm(cfg, rig, record=RUN/experiment))
+    python benchmarks/bench_dm_outside.py --run RUN     # a run recorded on any rig (torchblur.identify(cfg, rig, record=RUN/experiment))
 
 With ``--run`` the reference is ``torchblur fit RUN`` (a re-fit of the recording gives the live
 run's table bit for bit: docs/deformable_mirrors.md), so a run on a lab's or a test's rig (an HCIPy
@@ -48,8 +48,8 @@ def _rel(a, b) -> float:
 
 
 def main(argv=None) -> int:
-    from torchblur.dm import export_dm_recording
-    from torchblur.dm.outputs import read_actuators_csv
+    from torchblur.identify import export_dm_recording
+    from torchblur.identify.dm_outputs import read_actuators_csv
     from torchblur.cli import main as cli
     from torchblur.sysid.frequency_response import FrequencyResponse
 

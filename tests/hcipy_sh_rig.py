@@ -6,12 +6,12 @@ timing) over :class:`hcipy_sh.HcipySH`: the timing, jitter, latency and camera n
 read noise, ADU rounding, saturation) of torchblur's :class:`~torchblur.rig.simulated.SimulatedRig`
 (a lab's camera model), every image made by HCIPy's optics and the generator's own actuator
 dynamics (:class:`hcipy_sh.Dynamics`), not by torchblur's mirror or renderer. It is not a
-:class:`~torchblur.dm.rig.SimulatedDMRig`, so a run on it carries no simulated truth: tests and
+:class:`~torchblur.rig.dm.SimulatedDMRig`, so a run on it carries no simulated truth: tests and
 benchmarks compare with :meth:`HcipyDMRig.truth`.
 
     gen = hcipy_sh.HcipySH()
     rig = hcipy_sh_rig.hcipy_dm_rig(cfg, gen, hcipy_sh.draw_dynamics(gen.n_actuators, seed=5))
-    torchblur.dm.pipeline.run_cli(cfg, out, rig=rig)
+    torchblur.identify.dm_report.run_cli(cfg, out, rig=rig)
 """
 from __future__ import annotations
 
@@ -101,7 +101,7 @@ class HcipyDMRig(PatternSines, SimulatedRig):
 
 def hcipy_dm_rig(cfg, gen: hs.HcipySH, dynamics: hs.Dynamics, **kwargs) -> HcipyDMRig:
     """The HCIPy rig with the camera, timing and seed of the DM config ``cfg`` (as
-    :func:`torchblur.dm.pipeline.build_dm`)."""
+    :func:`torchblur.identify.dm_plan.build_dm`)."""
     c = cfg.camera
     camera = CameraModel(dark_level_adu=c.dark_level, read_noise_e=c.read_noise, gain_e_per_adu=c.gain, full_well_e=c.full_well,
                          bit_depth=int(c.bit_depth))

@@ -6,11 +6,7 @@ from import_graph import cycles as _cycles
 from import_graph import graph as _graph
 
 # May name torchblur.identify: the package's lazy table.
-IDENTIFY_EXCEPTIONS = {"torchblur",
-                       "torchblur.dm.pipeline",  # the DM run: a pipeline beside identify's, reusing its calibration stage
-                       "torchblur.dm.record",  # the DM run's recording: identify's experiment folder, resume and re-fit checks
-                       "torchblur.dm.verdict",  # the DM run's verdict: identify's exit status (EXIT_FLAGGED) and name lists
-                       "torchblur.dm.outside"}  # outside DM recordings: the one-spot outside format's calibration pieces
+IDENTIFY_EXCEPTIONS = {"torchblur"}
 # The identification's settings: below the pipeline (they import nothing of torchblur.identify,
 # nor the rigs, the hardware or the command line above them); the bench emulator shares them for
 # its plant, camera and spots sections.
@@ -21,7 +17,7 @@ ABOVE_CONFIG = ("torchblur.identify", "torchblur.rig", "torchblur.hardware", "to
 def test_the_graph_sees_imports_inside_functions():
     edges = _graph()
     assert "torchblur.identify.pipeline" in edges["torchblur.identify.run"]
-    assert "torchblur.rig.factory" in edges["torchblur.hardware.emulator"]  # imported inside EmulatedDevice.__init__
+    assert "torchblur.rig.factory" in edges["torchblur.hardware.emulator"]  # build_dm: the DM mode's simulated rig
 
 
 def test_nothing_below_identify_imports_it():

@@ -1,5 +1,5 @@
 """A lab's own DM (issue 23 part D): the worked vendor-SDK example (docs/examples/vendor_dm.py)
-through the public ``torchblur.dm.identify_dm`` with the latency given (its rig has no pulse()),
+through the public ``torchblur.identify`` (a DM config and its rig) with the latency given (its rig has no pulse()),
 its recording exported as an outside DM recording and fitted by ``torchblur fit FOLDER`` to the
 same table, the rig contract checked before any frame, and the outside format read as untrusted
 input (every error names the file, line and column)."""
@@ -14,6 +14,7 @@ import pytest
 import torchblur as tb
 from torchblur.errors import ConfigError, InputTypeError
 from torchblur.hardware.errors import RecordingError
+from torchblur.rig import DMRig
 
 EXAMPLE_PATH = Path(__file__).resolve().parents[1] / "docs" / "examples" / "vendor_dm.py"
 
@@ -33,7 +34,7 @@ def example():
 @pytest.fixture(scope="module")
 def lab_run(example, tmp_path_factory):
     """The example's run on the Acme stand-in, recorded, and its recording exported: ``(res, rig, folder)``."""
-    from torchblur.dm import export_dm_recording
+    from torchblur.identify import export_dm_recording
 
     root = tmp_path_factory.mktemp("lab")
     res, rig = example.identify_with_acme(record=root / "run" / "experiment")
@@ -42,7 +43,7 @@ def lab_run(example, tmp_path_factory):
 
 def test_the_vendor_example_identifies_its_mirror_with_the_latency_given(lab_run):
     res, rig, _ = lab_run
-    assert not hasattr(rig, "pulse") and isinstance(rig, tb.dm.DMRig)
+    assert not hasattr(rig, "pulse") and isinstance(rig, DMRig)
     assert any("given (camera.latency_s, camera.latency_std_s; not scanned)" in line for line in res.log)
     truth = rig._m._b.sim.mirror  # the stand-in's hidden hardware: for this test only
     t = res.actuators
@@ -54,7 +55,7 @@ def test_the_vendor_example_identifies_its_mirror_with_the_latency_given(lab_run
 
 
 def test_the_exported_recording_fits_to_the_same_table_through_torchblur_fit(lab_run, tmp_path, capsys):
-    from torchblur.dm.outputs import read_actuators_csv
+    from torchblur.identify.dm_outputs import read_actuators_csv
     from torchblur.cli import main
     from torchblur.sysid.frequency_response import FrequencyResponse
 
@@ -73,7 +74,7 @@ def test_the_exported_recording_fits_to_the_same_table_through_torchblur_fit(lab
 
 
 def test_write_dm_recording_reads_back(lab_run, tmp_path):
-    from torchblur.dm.outside import read_dm_recording, write_dm_recording
+    from torchblur.identify.dm_outside import read_dm_recording, write_dm_recording
 
     rec = read_dm_recording(lab_run[2])
     again = write_dm_recording(tmp_path / "again", dark=rec.dark, still=rec.still, still_exposure_s=rec.still_exposure_s,
@@ -101,26 +102,24 @@ class _NoFrames:
 
 
 def test_the_rig_contract_is_checked_before_any_frame(example):
-    from torchblur.dm import identify_dm
-
     cfg = tb.load_config(None, example.EXAMPLE)
     with pytest.raises(InputTypeError, match=r"rig: a object lacks pattern_sine\(\)"):
-        identify_dm(cfg, object.__new__(type("object", (), {"dark": lambda s: 0, "still": lambda s: 0})))
+        tb.identify(cfg, object.__new__(type("object", (), {"dark": lambda s: 0, "still": lambda s: 0})), progress=False)
     no_latency = tb.load_config(None, [o for o in example.EXAMPLE if not o.startswith("camera.latency_std_s")])
     with pytest.raises(ConfigError, match=r"camera.latency_std_s: the rig \(_NoFrames\) has no gated laser \(pulse\(\)\)"):
-        identify_dm(no_latency, _NoFrames())
+        tb.identify(no_latency, _NoFrames(), progress=False)
     rig = _NoFrames()
     rig.n_actuators = 5
     with pytest.raises(ConfigError, match="dm.n_across: .* 4 actuators .* the rig's 5"):
-        identify_dm(cfg, rig)
+        tb.identify(cfg, rig, progress=False)
     rig = _NoFrames()
     rig.frame_shape = (64, 64)
     with pytest.raises(ConfigError, match="wfs.pitch_px: .* 32x32 px frames, the rig.s camera 64x64"):
-        identify_dm(cfg, rig)
+        tb.identify(cfg, rig, progress=False)
     with pytest.raises(ConfigError, match="dm.n_across: 0, not a DM config"):
-        identify_dm(tb.load_config(), _NoFrames())
+        tb.identify(tb.load_config(), _NoFrames(), progress=False)
     with pytest.raises(InputTypeError, match="cfg: expected an IdentifyConfig"):
-        identify_dm({"dm": {}}, _NoFrames())
+        tb.identify({"dm": {}}, _NoFrames(), progress=False)
 
 
 def _edit(path: Path, old: str, new: str) -> None:
@@ -143,7 +142,7 @@ def _edit(path: Path, old: str, new: str) -> None:
     ("recording.yaml", "coupling: 0.15", "coupling: 7", r"recording.yaml: dm.coupling"),
 ])
 def test_a_bad_dm_recording_is_refused_naming_file_line_and_column(lab_run, tmp_path, file, old, new, error):
-    from torchblur.dm.outside import dm_recording_config, read_dm_recording
+    from torchblur.identify.dm_outside import dm_recording_config, read_dm_recording
 
     folder = tmp_path / "bad"
     shutil.copytree(lab_run[2], folder)
@@ -156,7 +155,7 @@ def test_saturated_frames_are_refused_not_fitted(lab_run, tmp_path):
     """The DM spot fit does not leave saturated pixels out: a recording with one is refused, naming the frame."""
     import tifffile
 
-    from torchblur.dm.outside import identify_dm_recording, read_dm_recording
+    from torchblur.identify.dm_outside import identify_dm_recording, read_dm_recording
 
     folder = tmp_path / "sat"
     shutil.copytree(lab_run[2], folder)
@@ -171,7 +170,7 @@ def test_saturated_frames_are_refused_not_fitted(lab_run, tmp_path):
 
 
 def test_a_dm_recording_takes_only_fit_overrides(lab_run):
-    from torchblur.dm.outside import dm_recording_config, read_dm_recording
+    from torchblur.identify.dm_outside import dm_recording_config, read_dm_recording
 
     rec = read_dm_recording(lab_run[2])
     with pytest.raises(ConfigError, match="dm.n_across: a DM recording takes only fit"):

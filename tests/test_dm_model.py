@@ -261,7 +261,7 @@ def _quiet_camera():
 
 
 def _small_rig(small, **kw):
-    from torchblur.dm.rig import SimulatedDMRig
+    from torchblur.rig.dm import SimulatedDMRig
 
     mirror, wfs, _ = small
     kw = {"camera": _quiet_camera(), "peak_e_per_s": 1e5, "jitter_s": 1e-6, "seed": 5, **kw}

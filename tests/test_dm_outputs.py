@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from torchblur.dm.actuator_fit import fit_actuators, second_order
-from torchblur.dm.outputs import CSV_COLUMNS, DMEstimate, command_matrix, magnitude_phase_cov, write_dm_outputs
+from torchblur.identify.dm_outputs import CSV_COLUMNS, DMEstimate, command_matrix, magnitude_phase_cov, write_dm_outputs
 from torchblur.errors import ParameterError
 from torchblur.sysid.frequency_response import FrequencyResponse
 

@@ -1,4 +1,4 @@
-"""The DM run recorded, resumed and re-fitted (torchblur.dm.record), and estimate_run counting
+"""The DM run recorded, resumed and re-fitted (torchblur.identify.dm_record), and estimate_run counting
 its frames: a small mirror (9 actuators, 4 x 4 subapertures, one dead), 3 frequencies, the
 simulated rig (seeded), CPU."""
 import hashlib
@@ -31,7 +31,7 @@ def _lines(exp_dir):
 @pytest.fixture(scope="module")
 def live(tmp_path_factory):
     """The uninterrupted run, through the command line: ``OUT`` with its recording and outputs."""
-    pytest.importorskip("torchblur.dm.outputs")
+    pytest.importorskip("torchblur.identify.dm_outputs")
     out = tmp_path_factory.mktemp("dm") / "run"
     assert cli.main(["identify", "--out", str(out), "--quiet", *SMALL]) == 0
     return out
@@ -41,10 +41,10 @@ def live(tmp_path_factory):
 def reference(live):
     """The live run's result, read back by a re-fit of its recording (bit-identical to it:
     test_refit_gives_the_live_outputs_bit_for_bit)."""
-    from torchblur.dm.pipeline import identify_dm
+    from torchblur.identify.pipeline import identify
 
     exp = Experiment.open(live / "experiment", writable=False)
-    return identify_dm(load_config(None, SMALL), ReplayRig(exp), record=exp)
+    return identify(load_config(None, SMALL), ReplayRig(exp), record=exp, progress=False)
 
 
 def test_recording_layout(live, reference):
@@ -108,7 +108,7 @@ def test_refit_may_change_the_fit_and_the_support_threshold_only(live, tmp_path,
     assert "dm_plan.kind" in capsys.readouterr().err
     assert cli.main(["fit", str(live), "--out", str(tmp_path / "b"), "dm.mode_hz=700"]) == 2
     assert "dm.mode_hz" in capsys.readouterr().err
-    from torchblur.dm.record import check_refit_config
+    from torchblur.identify.dm_record import check_refit_config
 
     recorded = load_config(None, SMALL)
     check_refit_config(recorded, load_config(None, SMALL + ["dm_plan.support_threshold=0.2", "fit.loss=poisson"]))
@@ -117,7 +117,7 @@ def test_refit_may_change_the_fit_and_the_support_threshold_only(live, tmp_path,
 def test_a_recorded_plan_is_kept_and_a_refit_takes_its_support_at_another_threshold(tmp_path):
     from torchblur.config.budget import dm_geometry
     from torchblur.dm.plans import hadamard_plan, sparse_plan
-    from torchblur.dm.record import plan_document, plan_support, run_plan
+    from torchblur.identify.dm_record import plan_document, plan_support, recorded_plan
     from torchblur.hardware.frames import CameraInfo
 
     G = dm_geometry(load_config(None, SMALL))
@@ -125,23 +125,23 @@ def test_a_recorded_plan_is_kept_and_a_refit_takes_its_support_at_another_thresh
     exp = Experiment.create(tmp_path / "e", config_yaml="seed: 0\n", camera=info)
     said = []
     sparse = sparse_plan(G, 0.01)
-    assert run_plan(exp, sparse, 2, G, 0.01, said.append) == (sparse, 2)  # stored now
+    assert recorded_plan(exp, sparse, 2, G, 0.01, said.append) == (sparse, 2)  # stored now
     assert exp.meta["dm_plan"] == plan_document(sparse, 2, 0.01)
     exp.close()
     had = hadamard_plan(G)
     for writable in (True, False):  # a resume, then a re-fit: the recorded plan, not the config's choice now
         again = Experiment.open(tmp_path / "e", writable=writable)
-        plan, R = run_plan(again, had, 1, G, 0.01, said.append)
+        plan, R = recorded_plan(again, had, 1, G, 0.01, said.append)
         assert plan.kind == "sparse" and R == 2 and np.array_equal(plan.patterns, sparse.patterns)
         assert np.array_equal(plan.support, sparse.support)
         again.close()
     refit = Experiment.open(tmp_path / "e", writable=False)
-    plan, _ = run_plan(refit, sparse, 2, G, 0.3, said.append)
+    plan, _ = recorded_plan(refit, sparse, 2, G, 0.3, said.append)
     assert np.array_equal(plan.patterns, sparse.patterns) and np.array_equal(plan.support, plan_support("sparse", G, 0.3))
     assert plan.support.sum() < sparse.support.sum() and "support_threshold=0.3" in said[-1]
     doc = dict(exp.meta["dm_plan"], patterns=[[1.0, 2.0]])
     with pytest.raises(RecordingError, match="dm_plan.patterns"):
-        from torchblur.dm.record import plan_from_document
+        from torchblur.identify.dm_record import plan_from_document
 
         plan_from_document(doc, G, "experiment.json")
 
@@ -163,8 +163,8 @@ class _Crashing:
 
 
 def test_crash_then_resume(live, reference, tmp_path, capsys, monkeypatch):
-    from torchblur.dm import pipeline
-    from torchblur.dm.pipeline import identify_dm
+    from torchblur.identify import dm_plan as pipeline
+    from torchblur.identify.pipeline import identify
 
     cfg = load_config(None, SMALL)
     root = tmp_path / "run"
@@ -206,7 +206,7 @@ def test_crash_then_resume(live, reference, tmp_path, capsys, monkeypatch):
     assert estimate_run(cfg)["frames"] == len(lines)
 
     exp = Experiment.open(exp_dir, writable=False)
-    res = identify_dm(cfg, ReplayRig(exp), record=exp)  # the resumed run's result (a re-fit gives it bit for bit)
+    res = identify(cfg, ReplayRig(exp), record=exp, progress=False)  # the resumed run's result (a re-fit gives it bit for bit)
     assert (root / "dm" / "actuators.csv").read_text() == _actuators_csv(res, tmp_path)
     ref = reference
     # frequency 0: the same frames, so the same D bit for bit; the others: new frames, the same D within its stds
@@ -219,7 +219,7 @@ def test_crash_then_resume(live, reference, tmp_path, capsys, monkeypatch):
 
 
 def _actuators_csv(res, tmp_path) -> str:
-    from torchblur.dm.outputs import DMEstimate, write_dm_outputs
+    from torchblur.identify.dm_outputs import DMEstimate, write_dm_outputs
 
     out = tmp_path / "written"
     write_dm_outputs(out, DMEstimate(freq_hz=res.freq_hz, D=res.D, D_cov=res.D_cov, table=res.actuators, meta={}), say=lambda m: None)
@@ -261,7 +261,8 @@ def test_set_meta_refuses_the_schemas_own_keys(tmp_path):
 
 
 def test_ctrl_c_during_the_sweep_leaves_a_resumable_recording(tmp_path):
-    from torchblur.dm.pipeline import build_dm, identify_dm
+    from torchblur.identify.pipeline import identify
+    from torchblur.rig.factory import build_dm
 
     class _Interrupted(_Crashing):
         def pattern_sine(self, **kwargs):
@@ -269,7 +270,7 @@ def test_ctrl_c_during_the_sweep_leaves_a_resumable_recording(tmp_path):
 
     cfg = load_config(None, SMALL)
     with pytest.raises(KeyboardInterrupt):
-        identify_dm(cfg, _Interrupted(build_dm(cfg)[2], after=0), record=tmp_path / "experiment")
+        identify(cfg, _Interrupted(build_dm(cfg)[2], after=0), record=tmp_path / "experiment", progress=False)
     meta = json.loads((tmp_path / "experiment" / "experiment.json").read_text())
     assert meta["status"] == "interrupted" and meta["dm_plan"]["kind"] == "hadamard"
     assert {ln["group"] for ln in _lines(tmp_path / "experiment")} == set(CALIBRATION)
@@ -278,7 +279,7 @@ def test_ctrl_c_during_the_sweep_leaves_a_resumable_recording(tmp_path):
 def test_the_truth_only_where_every_frame_is_simulated():
     from types import SimpleNamespace
 
-    from torchblur.dm.record import simulated_frames
+    from torchblur.identify.dm_record import simulated_frames
 
     sim = {"rig": {"rig": "SimulatedDMRig(9 actuators, ..., seed=0)"}}
     other = {"rig": {"rig": "SerialDMRig(/dev/ttyUSB0)"}}
@@ -292,8 +293,8 @@ def test_the_truth_only_where_every_frame_is_simulated():
 
 
 def test_a_resume_on_the_simulator_needs_the_same_actuator_table(tmp_path, monkeypatch):
-    from torchblur.dm.pipeline import identify_dm
-    from torchblur.dm.rig import SimulatedDMRig
+    from torchblur.identify.pipeline import identify
+    from torchblur.rig.dm import SimulatedDMRig
 
     table = tmp_path / "act.csv"
     table.write_text("actuator,mode_hz,damping,gain,delay_s\n4,650,0.07,1.0,2e-5\n")
@@ -305,10 +306,10 @@ def test_a_resume_on_the_simulator_needs_the_same_actuator_table(tmp_path, monke
     with monkeypatch.context() as m:
         m.setattr(SimulatedDMRig, "pattern_sine", interrupted)
         with pytest.raises(KeyboardInterrupt):
-            identify_dm(cfg, record=tmp_path / "experiment")
+            identify(cfg, record=tmp_path / "experiment", progress=False)
     meta = json.loads((tmp_path / "experiment" / "experiment.json").read_text())
     assert meta["sessions"][0]["rig"]["dm_actuator_table_sha256"] == _sha(table)
     table.write_text("actuator,mode_hz,damping,gain,delay_s\n4,700,0.07,1.0,2e-5\n")  # another mirror under the same name
     with pytest.raises(RecordingError, match="dm.actuator_table"):
-        identify_dm(cfg, record=tmp_path / "experiment")
+        identify(cfg, record=tmp_path / "experiment", progress=False)
     assert len(json.loads((tmp_path / "experiment" / "experiment.json").read_text())["sessions"]) == 1  # no session begun

@@ -135,7 +135,7 @@ def test_registration_json_reads_back_and_bad_input(tmp_path):
 
 
 def test_simulated_mirror_takes_the_registration_from_the_config():
-    from torchblur.dm.pipeline import build_dm
+    from torchblur.rig.factory import build_dm
     from torchblur.config import load_config
 
     base = ["dm.n_across=3", "wfs.n_across=4", "wfs.oversample=8", "excitation.target_px=3.0"]
@@ -157,7 +157,7 @@ def test_a_mirror_the_model_does_not_describe_is_flagged_by_the_model_rule():
     the model does describe passes and leaves the verdict alone."""
     from dataclasses import replace as dc_replace
 
-    from torchblur.dm.verdict import DMVerdict, registration_guard
+    from torchblur.identify.dm_verdict import DMVerdict, registration_guard
 
     mirror, wfs = _small()
     rng = np.random.default_rng(1)

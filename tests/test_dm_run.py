@@ -1,5 +1,5 @@
 """The DM run end to end on a small mirror (9 actuators, 4 x 4 subapertures, one dead): the
-pipeline's pieces, identify_dm against the simulated truth, and the CLI routing."""
+pipeline's pieces, the DM plan's run (torchblur.identify) against the simulated truth, and the CLI routing."""
 import json
 import math
 
@@ -33,7 +33,7 @@ def test_dm_config_sections_and_errors(tmp_path):
         with pytest.raises(ConfigError, match=key):
             load_config(None, SMALL + [bad])
     full = load_config("configs/identify_dm.yaml")
-    from torchblur.dm.pipeline import build_dm
+    from torchblur.rig.factory import build_dm
 
     mirror, wfs, rig = build_dm(full)
     assert mirror.n_actuators == 52 and wfs.n_valid == 80 and rig.frame_shape == (160, 160)
@@ -41,7 +41,7 @@ def test_dm_config_sections_and_errors(tmp_path):
 
 
 def test_actuator_table_through_the_config(tmp_path):
-    from torchblur.dm.pipeline import build_dm
+    from torchblur.rig.factory import build_dm
 
     p = tmp_path / "act.csv"
     p.write_text("actuator,mode_hz,damping,gain,delay_s\n4,777,0.07,0,1e-5\n")
@@ -53,7 +53,7 @@ def test_actuator_table_through_the_config(tmp_path):
 
 
 def test_match_spots_and_amplitude_rule():
-    from torchblur.dm.pipeline import match_spots, next_amplitude, nominal_growth
+    from torchblur.identify.dm_plan import match_spots, next_amplitude, nominal_growth
 
     rest = np.array([[10.0, 10.0], [26.0, 10.0], [10.0, 26.0]])
     found = rest[[2, 0, 1]] + 0.3
@@ -73,9 +73,9 @@ def test_match_spots_and_amplitude_rule():
 @pytest.fixture(scope="module")
 def small_run():
     pytest.importorskip("torchblur.dm.spot_fit")  # d2's estimation (merged from main)
-    from torchblur.dm.pipeline import identify_dm
+    from torchblur.identify.pipeline import identify
 
-    return identify_dm(load_config(None, SMALL + MISREGISTERED))
+    return identify(load_config(None, SMALL + MISREGISTERED), progress=False)
 
 
 #: the small run's simulated mirror is misregistered on its sensor (issue 23): the run fits the registration
@@ -84,7 +84,7 @@ MISREGISTERED = ["dm.registration.shift_x=0.25", "dm.registration.shift_y=-0.25"
 
 
 def test_small_run_against_the_truth(small_run):
-    from torchblur.dm.pipeline import truth_errors
+    from torchblur.identify.dm_plan import truth_errors
 
     res = small_run
     P, N = res.plan.patterns.shape
@@ -115,10 +115,10 @@ def test_small_run_against_the_truth(small_run):
 
 
 def test_cli_routes_a_dm_config(tmp_path, capsys, monkeypatch, small_run):
-    from torchblur.dm import pipeline
+    from torchblur.identify import dm_report
     from torchblur.cli import main
 
-    monkeypatch.setattr(pipeline, "identify_dm", lambda cfg, rig=None, **kw: small_run)
+    monkeypatch.setattr(dm_report, "identify", lambda cfg, rig=None, **kw: small_run)
     rc = main(["identify", "--out", str(tmp_path / "run"), "--json", *SMALL, "report.figures=false"])  # no figure checked here
     assert rc == 0
     out = capsys.readouterr()
@@ -149,7 +149,7 @@ def test_the_amplitude_reference_is_the_fit_two_frequencies_back_whatever_has_fi
     import threading
     from concurrent.futures import Future
 
-    from torchblur.dm.pipeline import AMPLITUDE_LAG, _amplitude_reference
+    from torchblur.identify.dm_plan import AMPLITUDE_LAG, _amplitude_reference
 
     assert AMPLITUDE_LAG == 2
     M = 2

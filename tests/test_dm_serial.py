@@ -1,7 +1,7 @@
 """A deformable mirror over the serial link (issue 17): the emulator in DM mode (a separate
 process on a real pseudo-terminal, frames over TCP) renders whole Shack-Hartmann frames with
 SimulatedDMRig's own renderer; protocol 2 loads a pattern in chunks (PAT, PAT?) and drives it
-(WAVE pat); SerialDMRig runs identify_dm over the link. Small mirror: 9 actuators (one dead),
+(WAVE pat); SerialDMRig runs the DM plan (torchblur.identify) over the link. Small mirror: 9 actuators (one dead),
 4 x 4 subapertures (12 valid), 4 frequencies."""
 import dataclasses
 import json
@@ -205,7 +205,7 @@ def test_frames_over_the_link_equal_the_simulated_rig(emulators, config_path):
     """Call by call (each one ARM, so the seeded random stream is drawn in the same order), the
     frames over the link are the SimulatedDMRig's of the same config and seed, bit for bit, at
     the same trigger times: the emulator renders with that rig's own renderer."""
-    from torchblur.dm.pipeline import build_dm
+    from torchblur.rig.factory import build_dm
     from torchblur.dm.plans import hadamard_plan
     from torchblur.hardware.serial_dm_rig import open_dm_rig
 
@@ -265,7 +265,7 @@ def test_a_controller_reset_loads_the_pattern_again(config_path):
     """A controller that reboots in the middle of a pattern_sine forgets its pattern (zeros):
     the redone call finds that with PAT?, loads the pattern again and takes the frames, which are
     the SimulatedDMRig's second identical call (the first attempt rendered its frames too)."""
-    from torchblur.dm.pipeline import build_dm
+    from torchblur.rig.factory import build_dm
     from torchblur.dm.plans import hadamard_plan
     from torchblur.hardware.serial_dm_rig import SerialDMRig
 
@@ -291,19 +291,19 @@ def test_a_controller_reset_loads_the_pattern_again(config_path):
 
 @pytest.fixture(scope="module")
 def runs(emulators, config_path):
-    """identify_dm over the link (SerialDMRig on the "run" emulator) and on the SimulatedDMRig,
+    """torchblur.identify over the link (SerialDMRig on the "run" emulator) and on the SimulatedDMRig,
     the same config and seed."""
-    from torchblur.dm.pipeline import identify_dm
+    from torchblur.identify.pipeline import identify
     from torchblur.hardware.serial_dm_rig import open_dm_rig
 
     cfg = serial_cfg(config_path, emulators["run"])
     rig = open_dm_rig(cfg)
     try:
-        link = identify_dm(cfg, rig=rig)
+        link = identify(cfg, rig=rig, progress=False)
         stats = dict(rig.stats)
     finally:
         rig.close()
-    return link, identify_dm(load_config(str(config_path))), stats
+    return link, identify(load_config(str(config_path)), progress=False), stats
 
 
 def _z(d, C):
@@ -337,20 +337,21 @@ def test_identify_dm_over_the_link_gives_the_simulated_rigs_D(runs):
 
 def test_cli_runs_a_dm_config_over_the_link(emulators, config_path, runs, tmp_path, capsys, monkeypatch):
     """``torchblur identify --config DM.yaml --port P --frames F`` opens a SerialDMRig on the
-    emulator and hands it to identify_dm (here returning the run above: the CLI's own part);
-    no truth errors on a real rig."""
-    from torchblur.dm import pipeline
+    emulator and runs the DM plan's stages on it (here returning the run above: the CLI's own
+    part, the run's log carried as the plan's result carries it); no truth errors on a real rig."""
+    from torchblur.identify import pipeline
     from torchblur.hardware.serial_dm_rig import SerialDMRig
     from torchblur.cli import main
 
     seen = {}
 
-    def fake_identify_dm(cfg, rig=None, **kw):
-        seen["rig"] = rig
+    def fake_run_stages(run):
+        seen["rig"] = rig = run.rig
         assert isinstance(rig, SerialDMRig) and rig.n_actuators == 9 and rig.controller.is_open
-        return dataclasses.replace(runs[0], log=list(runs[0].log))
+        run.log += runs[0].log
+        return dataclasses.replace(runs[0], log=run.log)
 
-    monkeypatch.setattr(pipeline, "identify_dm", fake_identify_dm)
+    monkeypatch.setattr(pipeline, "run_stages", fake_run_stages)
     info = emulators["frames"].info
     rc = main(["identify", "--config", str(config_path), "--out", str(tmp_path / "run"), "--json", "--port", info["serial"],
                "--frames", info["frames"], "report.figures=false"])  # no figure checked here

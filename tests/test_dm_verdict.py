@@ -1,4 +1,4 @@
-"""The DM run's verdict (torchblur/dm/verdict.py): hand-built actuator tables (trustworthy, poor
+"""The DM run's verdict (torchblur/identify/dm_verdict.py): hand-built actuator tables (trustworthy, poor
 fit, failed, dead and weak named but not flagged, failed spot fits under and over the rule), and
 the CLI's exit status and last line on the small DM config (a synthetic run: seconds)."""
 import dataclasses
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from torchblur.dm.actuator_fit import ActuatorTable, fit_actuators, second_order
-from torchblur.dm.verdict import LOST_FRACTION, DMVerdict, dm_verdict, failed_actuators, lost_fraction
+from torchblur.identify.dm_verdict import LOST_FRACTION, DMVerdict, dm_verdict, failed_actuators, lost_fraction
 from torchblur.errors import InputTypeError, ParameterError, ShapeError
 from torchblur.identify.verdict import EXIT_FLAGGED
 
@@ -54,7 +54,7 @@ def test_spot_fits_that_do_not_explain_their_images_make_the_run_untrustworthy()
     camera): every actuator's numbers look fine and their stds are too small. Judged from the
     spot fits' reduced chi2: a stray above fit.poor_fit_chi2 is named, more than 1 % of them fail
     the run."""
-    from torchblur.dm.verdict import POOR_SPOT_FRACTION
+    from torchblur.identify.dm_verdict import POOR_SPOT_FRACTION
 
     table, D = _table()
     rng = np.random.default_rng(0)
@@ -162,10 +162,11 @@ def test_bad_arguments_are_named():
 @pytest.fixture(scope="module")
 def small_result():
     """A DMResult of the small DM config (tests/test_dm_run.py's SMALL) without the sweep: D is
-    the simulated rig's truth plus seeded noise, fitted by fit_actuators (as identify_dm does)."""
+    the simulated rig's truth plus seeded noise, fitted by fit_actuators (as the DM plan does)."""
     from test_dm_run import SMALL
 
-    from torchblur.dm.pipeline import DMResult, build_dm
+    from torchblur.identify.dm_plan import DMResult
+    from torchblur.rig.factory import build_dm
     from torchblur.dm.plans import choose_plan
     from torchblur.config import load_config
 
@@ -188,10 +189,10 @@ def small_result():
 
 
 def _run(tmp_path, monkeypatch, res, small, *args):
-    from torchblur.dm import pipeline
+    from torchblur.identify import dm_report
     from torchblur.cli import main
 
-    monkeypatch.setattr(pipeline, "identify_dm", lambda cfg, rig=None, **kw: res)
+    monkeypatch.setattr(dm_report, "identify", lambda cfg, rig=None, **kw: res)
     out = tmp_path / "run"
     return main(["identify", "--out", str(out), "--quiet", *args, *small, "report.figures=false"]), out  # no figure checked here
 

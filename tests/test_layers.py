@@ -35,22 +35,12 @@ ALLOWED_IN_FUNCTION = {
 # Removed by other changes of this session (upward edges "unit -> unit", and modules whose
 # in-function imports go): key -> who removes it. Every entry must still be there (so it shrinks).
 PENDING = {
-    "dm -> hardware": "hP: dm/pipeline.py, dm/record.py, dm/outside.py move to identify/",
-    "dm -> identify": "hP: dm/pipeline.py, dm/record.py, dm/verdict.py, dm/outside.py move to identify/",
-    "dm -> rig": "hP: dm/rig.py, dm/contract.py move to rig/ (dm/record.py to identify/)",
-    "hardware -> identify": "hC: identify/config.py moves to torchblur/config/",
     "torchblur.dm.mirror": "lead: systems.lti to the top (dm/mirror.py is h23b's this session)",
-    "torchblur.dm.outside": "hP: moves to identify/",
-    "torchblur.dm.pipeline": "hP: moves to identify/ (the DM plan)",
-    "torchblur.dm.record": "hP: moves to identify/",
-    "torchblur.dm.shard": "hP: removed or reduced to an executor",
     "torchblur.hardware.emulator": "hC/hP: config and build_dm move below hardware; then the imports go to the top",
     "torchblur.hardware.recording": "lead: hardware/ has no owner this session (rig.base, __version__: downward)",
     "torchblur.hardware.serial_dm_rig": "lead: hardware/ has no owner this session (dm.mirror, dm.shack_hartmann: downward)",
     "torchblur.hardware.serial_rig": "lead: hardware/ has no owner this session (pylon/aravis import their SDKs on use themselves)",
     "torchblur.identify.calibration": "hP: image.spot_layout to the top (calibration already imports torchblur.image)",
-    "torchblur.cli": "hK: moves to torchblur/cli/",
-    "torchblur.config": "hC: moves to torchblur/config/",
     "torchblur.identify.read_outputs": "lead/hK: the outputs' reader, after the config and cli moves",
 }
 DOC = Path(__file__).resolve().parents[1] / "docs" / "architecture.md"

@@ -195,7 +195,7 @@ def _actuator_table():
 
 
 def test_dm_maps_mark_every_status_with_units_and_y_down():
-    from torchblur.dm.outputs import STATUS_STYLES, actuator_maps_figure
+    from torchblur.identify.dm_outputs import STATUS_STYLES, actuator_maps_figure
 
     t = _actuator_table()
     fig = actuator_maps_figure(t, failed=[8])

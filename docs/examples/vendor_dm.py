@@ -1,15 +1,15 @@
 """A worked example: a lab's own deformable mirror and camera, driven through their vendor's
-Python SDK, identified by :func:`torchblur.dm.identify_dm` (the rig contract: docs/dm_rig.md).
+Python SDK, identified by :func:`torchblur.identify` (a DM config) (the rig contract: docs/dm_rig.md).
 
 Two parts:
 
 1. ``acme`` below stands in for the vendor's package (in a lab: ``import acme_dm``). It has what
    such SDKs have: method names of its own, commands in volts, exposures in microseconds, the
    stroke in microns, integer error codes instead of exceptions, uint16 frames. So that the
-   example runs anywhere, its "hardware" is torchblur's simulated DM (:class:`~torchblur.dm.rig.SimulatedDMRig`);
+   example runs anywhere, its "hardware" is torchblur's simulated DM (:class:`~torchblur.rig.dm.SimulatedDMRig`);
    nothing of it is visible through the SDK's methods.
 2. :class:`AcmeDMRig`, the part a lab writes: about 80 lines that map the SDK onto the contract
-   (:class:`torchblur.dm.DMRig`): ``dark``, ``still``, ``pattern_sine`` and the camera's
+   (:class:`torchblur.rig.DMRig`): ``dark``, ``still``, ``pattern_sine`` and the camera's
    properties, error codes turned into torchblur's errors. The mirror has no gated laser, so
    the rig has no ``pulse()``: the camera's trigger-to-exposure latency is given instead
    (``camera.latency_s`` and ``camera.latency_std_s``, from the camera's datasheet).
@@ -29,7 +29,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-import torchblur.dm as tbdm
 from torchblur.errors import ParameterError
 from torchblur.hardware.errors import HardwareError
 from torchblur.rig.base import Capture
@@ -124,7 +123,7 @@ class AcmeCamera:
 
 def acme_open(cfg):
     """``(mirror, camera)`` of the stand-in SDK, its hardware the simulated DM of the torchblur config ``cfg``."""
-    from torchblur.dm.pipeline import build_dm
+    from torchblur.rig.factory import build_dm
 
     bench = _Bench(build_dm(cfg)[2])
     return AcmeMirror(bench), AcmeCamera(bench)
@@ -142,7 +141,7 @@ def _ok(code: int, what: str) -> None:
 
 
 class AcmeDMRig:
-    """The Acme mirror and camera as a torchblur DM rig (:class:`torchblur.dm.DMRig`, docs/dm_rig.md).
+    """The Acme mirror and camera as a torchblur DM rig (:class:`torchblur.rig.DMRig`, docs/dm_rig.md).
     Input units: volts. No ``pulse()``: give ``camera.latency_s`` and ``camera.latency_std_s``."""
 
     def __init__(self, mirror: AcmeMirror, camera: AcmeCamera):
@@ -205,13 +204,13 @@ EXAMPLE = ["dm.n_across=2", "dm.mode_hz=600.0", "dm.damping=0.1", "dm.mode_sprea
 
 
 def identify_with_acme(overrides=(), *, record=None):
-    """``(result, rig)``: :func:`torchblur.dm.identify_dm` of the Acme mirror (the config
+    """``(result, rig)``: :func:`torchblur.identify` (a DM config) of the Acme mirror (the config
     :data:`EXAMPLE` and ``overrides`` describe the mirror and the sensor; recorded in ``record``)."""
     import torchblur as tb
 
     cfg = tb.load_config(None, EXAMPLE + list(overrides))
     rig = AcmeDMRig(*acme_open(cfg))
-    return tbdm.identify_dm(cfg, rig, record=record), rig
+    return tb.identify(cfg, rig, record=record, progress=False), rig
 
 
 def main(argv=None) -> int:

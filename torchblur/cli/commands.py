@@ -16,9 +16,9 @@ import torch
 import torchblur as tb
 from torchblur.cli import _NOTHING_RECORDED, EXIT_INTERRUPTED, EXIT_STOPPED
 from torchblur.dm.mirror import TABLE_MAX_BYTES
-from torchblur.dm.outside import dm_recording_config, is_dm_recording, read_dm_recording, run_recording
-from torchblur.dm.pipeline import run_cli as run_dm
-from torchblur.dm.record import check_refit_config
+from torchblur.identify.dm_outside import dm_recording_config, is_dm_recording, read_dm_recording, run_recording
+from torchblur.identify.dm_report import run_cli as run_dm
+from torchblur.identify.dm_record import check_refit_config
 from torchblur.errors import ConfigError
 from torchblur.files import read_bounded, resolve_inside
 from torchblur.hardware.errors import HardwareError, RecordingError
@@ -61,7 +61,7 @@ def identify_command(args) -> int:
         print(f"torchblur identify: error: {out} already holds a recorded run; continue it with "
               f"'torchblur identify --resume {out}' or choose another --out", file=sys.stderr)
         return 2
-    if cfg.dm.enabled:  # a deformable-mirror run (dm.n_across > 0): torchblur.dm.pipeline, recorded in OUT/experiment
+    if cfg.dm.enabled:  # a deformable-mirror run (dm.n_across > 0): torchblur.identify.dm_plan, recorded in OUT/experiment
         return _run_dm(cfg, out, args)
     (out / "experiment").mkdir(parents=True, exist_ok=True)
     lock = RunLock(out / "experiment")  # held for the run's life: a second run on this folder refuses
@@ -158,7 +158,7 @@ def _stopped(exc, exp_dir: Path, root: Path, cfg) -> int:
 
 
 def _run_dm(cfg, out: Path, args, *, record=None, root: Path | None = None, rig=None) -> int:
-    """A DM run (:func:`torchblur.dm.pipeline.run_cli`): new (recorded in ``OUT/experiment``),
+    """A DM run (:func:`torchblur.identify.dm_report.run_cli`): new (recorded in ``OUT/experiment``),
     resumed (``record``, a writable Experiment) or re-fitted (``record`` read-only, ``rig`` its
     ReplayRig); stopped by the rig or interrupted, as :func:`_run_identify`."""
     cfg, base_dir = _recorded_table(cfg, out if record is None else (out if root is None else root), new=record is None)

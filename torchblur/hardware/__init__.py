@@ -8,7 +8,7 @@
 - :class:`SerialRig`: the :class:`~torchblur.rig.base.Rig` protocol on a controller and a
   camera, so ``identify(cfg, rig=SerialRig.open(port, frames))`` runs unchanged;
   :class:`SerialDMRig` the same for a deformable mirror (protocol 2), so
-  ``identify_dm(cfg, rig=SerialDMRig.open(port, frames))`` does.
+  ``identify(cfg_dm, rig=SerialDMRig.open(port, frames))`` does.
 - :class:`Experiment`: the experiment directory written as a run goes (TIFF frames,
   ``manifest.jsonl``, the resolved config), read back to resume or re-fit.
 - ``torchblur emulator``: :mod:`torchblur.hardware.emulator`, a process that behaves like

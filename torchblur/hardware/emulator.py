@@ -63,6 +63,7 @@ from torchblur.hardware.frames import CameraInfo, encode_message, frame_message
 from torchblur.hardware.protocol import (E_AXIS, E_BUSY, E_INTERNAL, E_LINE, E_RANGE, E_UNKNOWN, MAX_LINE, PROTOCOL_VERSION,
                                          ProtocolViolation, format_err, format_ok, parse_command, pattern_checksum)
 from torchblur.rig.base import check_drive, check_slew, command_peak, command_slew
+from torchblur.rig.factory import build_dm
 
 __all__ = ["FaultConfig", "EmulatorConfig", "load_emulator_config", "EmulatedDevice", "main"]
 
@@ -106,8 +107,8 @@ def load_emulator_config(path: str | None = None, overrides: list[str] | None = 
     ``model``, ``rig``, ``dm_plan`` are skipped, so one file serves both commands), then
     overrides. ``dm.n_across`` > 0 is the DM mode: the ``dm``, ``wfs``, ``camera`` and ``seed``
     sections build the mirror, the sensor and the
-    :class:`~torchblur.dm.rig.SimulatedDMRig` as ``torchblur identify`` does
-    (:func:`torchblur.dm.pipeline.build_dm`).
+    :class:`~torchblur.rig.dm.SimulatedDMRig` as ``torchblur identify`` does
+    (:func:`torchblur.rig.factory.build_dm`).
 
     Raises:
         ConfigError: naming the key.
@@ -245,9 +246,7 @@ class EmulatedDevice:
     def __init__(self, cfg: EmulatorConfig, send, *, firmware: str = "0.1.0", name: str = "torchblur-emulator"):
         self.cfg = cfg
         if cfg.dm.enabled:  # the DM mode: one axis, "pat", the loaded pattern on every actuator
-            from torchblur.dm.pipeline import build_dm
-
-            mirror, _, self.rig = build_dm(cfg)  # the mirror, the sensor and the SimulatedDMRig identify_dm builds
+            mirror, _, self.rig = build_dm(cfg)  # the mirror, the sensor and the SimulatedDMRig a DM run builds
             self.axes, self.n_actuators = ("pat",), mirror.n_actuators
             self._settling_s = mirror.settling_time_s()
             limit = cfg.dm.input_limit if cfg.dm.input_limit is not None else cfg.plant.input_limit

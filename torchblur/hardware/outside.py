@@ -28,7 +28,8 @@ from typing import Optional
 
 import numpy as np
 
-from torchblur.errors import ConfigError, excerpt
+from torchblur.errors import ConfigError
+from torchblur.files import excerpt
 from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.manifest import MAX_FRAME_SIDE, MAX_AMPLITUDE, read_bounded
 from torchblur.hardware.recording import check_distinct_frames, decode_tiff
@@ -159,7 +160,7 @@ def read_outside_recording(path) -> OutsideRecording:
 
 def _read_camera(root: Path, sections: tuple = ()) -> OutsideCamera:
     """``recording.yaml`` as an :class:`OutsideCamera`, every value checked (its top-level
-    ``sections``, a DM recording's sensor layout, are read by the caller: :mod:`torchblur.dm.outside`)."""
+    ``sections``, a DM recording's sensor layout, are read by the caller: :mod:`torchblur.identify.dm_outside`)."""
     from torchblur.config import load_dataclass
 
     where = root / YAML_NAME

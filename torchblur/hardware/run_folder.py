@@ -37,7 +37,7 @@ LOCK_NAME = "run.lock"
 RESULT_FILES = ("frf.json", "frf.csv", "model.json", "report.txt")
 #: what torchblur writes into an ``--out`` folder; a folder holding anything else is the user's
 OUTPUT_NAMES = frozenset(RESULT_FILES) | {"frf.mat", "bode.png", "residuals.png", "ptc.png", "config.yaml", "source.json",
-                                          "model_two_step.json", "experiment", "dm"}  # dm: a DM run's outputs (torchblur.dm.outputs)
+                                          "model_two_step.json", "experiment", "dm"}  # dm: a DM run's outputs (torchblur.identify.dm_outputs)
 
 _held: dict[str, list] = {}  # real path of the folder -> [fd, count]
 _guard = threading.Lock()

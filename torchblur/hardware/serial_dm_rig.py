@@ -1,5 +1,5 @@
 """A deformable mirror over the serial link: :class:`SerialDMRig`, the interface
-:func:`torchblur.dm.pipeline.identify_dm` uses on :class:`~torchblur.dm.rig.SimulatedDMRig`
+the DM plan (:class:`torchblur.identify.dm_plan.DMPlan`) uses on :class:`~torchblur.rig.dm.SimulatedDMRig`
 (``pattern_sine``, ``dark``, ``still``, ``pulse``, ``input_limit``, the frame geometry), on a
 controller that speaks protocol 2 (docs/protocol.md: ``ACT?``, ``PAT``, ``PAT?`` and the axis
 ``pat``) and a camera.
@@ -109,7 +109,7 @@ class SerialDMRig(PatternSines, SerialRig):
     def pattern_sine(self, pattern, freq_hz: float, amplitude: float, exposures_s: Sequence[float],
                      trigger_offset_s: float | Sequence[float], n_repeats: int, settle_s: float | None = None, power: float = 1.0):
         """Frames ``[E, R, H, W]`` of the mirror driven with ``amplitude * pattern[j] * sin(2 pi
-        freq_hz t)`` on actuator j, as :meth:`~torchblur.dm.rig.SimulatedDMRig.pattern_sine`
+        freq_hz t)`` on actuator j, as :meth:`~torchblur.rig.dm.SimulatedDMRig.pattern_sine`
         (``settle_s`` None: ``SETTLE AUTO``, the controller's settling wait).
 
         Raises:

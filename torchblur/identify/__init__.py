@@ -15,8 +15,9 @@ import sys as _sys
 import types as _types
 
 __all__ = [
-    "Calibration", "IdentificationResult", "build_rig", "build_simulated_rig", "calibrate", "calibrate_latency",
-    "check_resume_config", "fit_model", "identify", "plant_of",
+    "Calibration", "DMResult", "IdentificationResult", "build_rig", "build_simulated_rig", "calibrate", "calibrate_latency",
+    "check_resume_config", "export_dm_recording", "fit_model", "identify", "identify_dm_recording", "plant_of", "read_dm_recording",
+    "write_dm_recording",
 ]
 
 

@@ -151,28 +151,35 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False, *, n_dark: i
     # 4b. The actuator's direction in the image (one axis, one spot; a 2x2 plant or many spots
     # fit both image axes).
     if not cfg.plant.is_mimo and spots is None:
-        mode = cfg.fit.axis
-        if mode == "measure" and exp is not None and not exp.writable and "axis" not in exp.groups:
-            cal.direction = (1.0, 0.0)
-            log_message(log, "axis: not in the recording (made before the axis calibration): the motion is fitted along x", progress)
-        elif mode == "measure":
-            axis, axis_gain = run_stage(exp, "axis", "axis", rig, lambda r: _measure_axis(cfg, r, cal))
-            u = np.asarray(axis.direction, dtype=float)
-            if u[0] < 0 or (u[0] == 0 and u[1] < 0):  # the sign that points toward +x: the FRF keeps the x convention
-                u = -u
-            if not (np.isfinite(u).all() and axis.px_per_unit > 5 * axis.px_per_unit_std):
-                cal.direction = (1.0, 0.0)  # no clear motion to take a direction from
-                log_message(log, f"axis: no clear motion in the tracking ({axis.px_per_unit:.3g} +- {axis.px_per_unit_std:.2g} px per "
-                          f"input unit at {cfg.frequencies_hz()[0]:.4g} Hz): the motion is fitted along x", progress)
-            else:
-                cal.direction, cal.axis, cal.axis_gain = (float(u[0]), float(u[1])), axis, axis_gain
-                log_message(log, f"axis: {math.degrees(math.atan2(u[1], u[0])):.3f} +- {math.degrees(axis.angle_std_rad):.3f} deg from "
-                          f"+x (tracked at {cfg.frequencies_hz()[0]:.4g} Hz, {axis.px_per_unit:.4g} px per input unit)", progress)
-        else:
-            u = as_unit_direction({"x": (1.0, 0.0), "y": (0.0, 1.0)}[mode] if isinstance(mode, str) else mode, "fit.axis",
-                                  like=torch.zeros((), dtype=torch.float64))
-            cal.direction = (float(u[0]), float(u[1]))
+        _axis_stage(cfg, rig, exp, cal, log, progress)
     return cal
+
+
+def _axis_stage(cfg, rig, exp, cal: Calibration, log, progress) -> None:
+    """Stage 4b of :func:`calibrate` (one axis, one spot): ``cal.direction``, the actuator's
+    direction in the image (measured by tracking with ``fit.axis=measure``, from the recording
+    where it holds it, else x; or the configured axis), with ``cal.axis`` and ``cal.axis_gain`` where measured."""
+    mode = cfg.fit.axis
+    if mode == "measure" and exp is not None and not exp.writable and "axis" not in exp.groups:
+        cal.direction = (1.0, 0.0)
+        log_message(log, "axis: not in the recording (made before the axis calibration): the motion is fitted along x", progress)
+    elif mode == "measure":
+        axis, axis_gain = run_stage(exp, "axis", "axis", rig, lambda r: _measure_axis(cfg, r, cal))
+        u = np.asarray(axis.direction, dtype=float)
+        if u[0] < 0 or (u[0] == 0 and u[1] < 0):  # the sign that points toward +x: the FRF keeps the x convention
+            u = -u
+        if not (np.isfinite(u).all() and axis.px_per_unit > 5 * axis.px_per_unit_std):
+            cal.direction = (1.0, 0.0)  # no clear motion to take a direction from
+            log_message(log, f"axis: no clear motion in the tracking ({axis.px_per_unit:.3g} +- {axis.px_per_unit_std:.2g} px per "
+                      f"input unit at {cfg.frequencies_hz()[0]:.4g} Hz): the motion is fitted along x", progress)
+        else:
+            cal.direction, cal.axis, cal.axis_gain = (float(u[0]), float(u[1])), axis, axis_gain
+            log_message(log, f"axis: {math.degrees(math.atan2(u[1], u[0])):.3f} +- {math.degrees(axis.angle_std_rad):.3f} deg from "
+                      f"+x (tracked at {cfg.frequencies_hz()[0]:.4g} Hz, {axis.px_per_unit:.4g} px per input unit)", progress)
+    else:
+        u = as_unit_direction({"x": (1.0, 0.0), "y": (0.0, 1.0)}[mode] if isinstance(mode, str) else mode, "fit.axis",
+                              like=torch.zeros((), dtype=torch.float64))
+        cal.direction = (float(u[0]), float(u[1]))
 
 
 def _latency_stage(cfg, rig, exp, dark, gain: float, full_adu: float, peak_rate: float, log, progress):
@@ -354,7 +361,7 @@ def spots_from_still(cfg, still_e, exposure_s, read_noise_e, log, progress, *, s
     ``(spots, kernels)``, the :class:`~torchblur.image.spots.SpotPSFs` (found by thresholding, or
     with ``spot_layout`` ``[M, 2]`` cropped on the sensor's declared layout) and their
     :class:`SpotKernels` (:func:`spot_kernels`; None when ``spot_psfs`` is False). One function for
-    a live calibration and for a recording's (``torchblur.dm.outside``), so both take the same steps."""
+    a live calibration and for a recording's (``torchblur.identify.dm_outside``), so both take the same steps."""
     if spot_layout is None:
         spots = _locate_spots(cfg, still_e.mean(0), exposure_s, read_noise_e, log, progress)
     else:

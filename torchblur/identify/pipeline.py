@@ -4,10 +4,11 @@
 1. **calibrate** (:mod:`torchblur.identify.calibration`): dark frame, saturation curve and
    mask, PSF (one spot, or a grid), trigger-to-exposure latency from laser pulses and, for
    one axis and one spot, the actuator's direction in the image (``fit.axis=measure``);
-2. **sweep**: the excitation plan's acquisition (``excitation.kind``: one sine per point,
+2. **sweep**: the plan's acquisition (:data:`PLANS`; ``excitation.kind``: one sine per point,
    :class:`~torchblur.identify.sweep.SinePlan`, the amplitude following the response; or
-   multisine groups, :class:`~torchblur.identify.multisine.MultisinePlan`), fitting what is
-   complete while it runs;
+   multisine groups, :class:`~torchblur.identify.multisine.MultisinePlan`; a deformable mirror's
+   patterns, :class:`~torchblur.identify.dm_plan.DMPlan`, which also has its own opening and
+   calibration), fitting what is complete while it runs;
 3. **fit**: the fits of every point;
 4. **assemble**: a FrequencyResponse with covariances (fit, trigger jitter and latency
    calibration included), and the truth where the rig knows it;
@@ -23,30 +24,40 @@ import logging
 import time
 
 from torchblur.errors import InputTypeError
-from torchblur.hardware.errors import HardwareError
 from torchblur.identify.calibration import calibrate
 from torchblur.config import IdentifyConfig
+from torchblur.identify.dm_plan import DMPlan, DMResult, check_dm_config
 from torchblur.identify.drive import SESSION_KEY, SLEW_KEY
 from torchblur.identify.multisine import MultisinePlan
 from torchblur.identify.record import RunRecord, console_logging, log_message, stage_bar
 from torchblur.identify.result import IdentificationResult
-from torchblur.identify.rigs import build_rig, open_experiment
+from torchblur.identify.rigs import build_rig, open_experiment, session
 from torchblur.identify.stages import run_plan
 from torchblur.identify.sweep import SinePlan
 
-__all__ = ["PLANS", "calibrate_stage", "identify", "run_stages"]
+__all__ = ["PLANS", "calibrate_stage", "identify", "plan_kind", "run_stages"]
 
 HARDWARE_LOGGER = logging.getLogger("torchblur.hardware")  # the rig's messages (faults, retries, reconnects)
-PLANS = {"sine": SinePlan, "multisine": MultisinePlan}  # excitation.kind -> its plan of the sweep, fit and assemble stages
+#: the plan of the sweep, fit and assemble stages of each kind of run (:func:`plan_kind`)
+PLANS = {"sine": SinePlan, "multisine": MultisinePlan, "dm": DMPlan}
 
 
-def identify(cfg: IdentifyConfig, rig=None, *, progress: bool = True, record=None) -> IdentificationResult:
+def plan_kind(cfg: IdentifyConfig) -> str:
+    """The key of ``cfg``'s plan in :data:`PLANS`: ``"dm"`` for a deformable mirror (``dm.n_across`` > 0), else ``excitation.kind``."""
+    return "dm" if cfg.dm.enabled else cfg.excitation.kind
+
+
+def identify(cfg: IdentifyConfig, rig=None, *, progress: bool = True, record=None, base_dir: str | None = None,
+             executor=None) -> IdentificationResult | DMResult:
     """Run the identification on ``rig`` (default: the rig of ``cfg.rig``: the simulated rig,
-    or a :class:`~torchblur.hardware.SerialRig` on ``rig.port`` / ``rig.frames``).
+    or a :class:`~torchblur.hardware.SerialRig` on ``rig.port`` / ``rig.frames``), with the plan
+    of ``cfg`` (:func:`plan_kind`); a deformable mirror's (``dm.n_across`` > 0) gives a
+    :class:`~torchblur.identify.dm_plan.DMResult`.
 
     Args:
         cfg: the configuration.
-        rig: a :class:`~torchblur.rig.base.Rig`, or None.
+        rig: a :class:`~torchblur.rig.base.Rig` (a deformable mirror's: a
+            :class:`~torchblur.rig.dm_contract.DMRig`, checked before the first frame, docs/dm_rig.md), or None.
         progress: show progress bars (on a terminal) and, where nothing handles the
             ``torchblur`` logger, the run's messages on stderr (:func:`~torchblur.identify.record.console_logging`).
         record: None, a directory, or a :class:`~torchblur.hardware.Experiment`: the run is
@@ -54,22 +65,41 @@ def identify(cfg: IdentifyConfig, rig=None, *, progress: bool = True, record=Non
             recorded (a resumed run) are taken from the recording instead of the rig; a
             read-only experiment with :class:`~torchblur.hardware.recording.ReplayRig`
             re-fits a recording offline.
+        base_dir: where a relative ``dm.actuator_table`` is read from (a DM run's simulated mirror).
+        executor: a :class:`concurrent.futures.Executor` (Dask's ``client.get_executor()``
+            included) the DM plan's spot fits are submitted to; None: one worker thread.
 
     Raises:
         HardwareError: the rig failed (the recording so far is kept; resume it);
-        KeyboardInterrupt: likewise.
+        KeyboardInterrupt: likewise;
+        InputTypeError: ``cfg`` is not an IdentifyConfig, or ``rig`` is not a rig of its plan;
+        ConfigError: a DM rig with a config that is not a DM run's (``dm.n_across``), or a DM rig that does not match its config.
     """
     if not isinstance(cfg, IdentifyConfig):
         raise InputTypeError(f"cfg: expected an IdentifyConfig (see torchblur.config.load_config), got {type(cfg).__name__}")
-    if rig is not None and not all(hasattr(rig, a) for a in ("frame_shape", "dark", "still", "sine")):
-        raise InputTypeError(f"rig: expected a torchblur Rig (frame_shape, dark, still, sine, ...) or None, got {type(rig).__name__}")
+    plan = PLANS[plan_kind(cfg)]()
+    getattr(plan, "check", _check_rig)(cfg, rig)
     shown = progress and not logging.getLogger("torchblur").hasHandlers()
     with console_logging() if shown else contextlib.nullcontext():
-        return _identify(cfg, rig, progress, record)
+        with getattr(plan, "open", open_run)(cfg, rig, progress=progress, record=record, base_dir=base_dir, executor=executor) as run:
+            run.plan = plan
+            return run_stages(run)
 
 
-def _identify(cfg: IdentifyConfig, rig, progress: bool, record) -> IdentificationResult:
-    """:func:`identify` after its checks: open the rig and the recording, run the stages."""
+def _check_rig(cfg: IdentifyConfig, rig) -> None:
+    """Refuse a ``rig`` that is not a sine or multisine run's (a DM rig: its config is not a DM run's, ``dm.n_across``)."""
+    if rig is not None and not all(hasattr(rig, a) for a in ("frame_shape", "dark", "still", "sine")):
+        if hasattr(rig, "pattern_sine"):  # a deformable mirror's rig
+            check_dm_config(cfg)
+        raise InputTypeError(f"rig: expected a torchblur Rig (frame_shape, dark, still, sine, ...) or None, got {type(rig).__name__}")
+
+
+@contextlib.contextmanager
+def open_run(cfg: IdentifyConfig, rig, *, progress: bool, record, base_dir: str | None = None, executor=None):
+    """The :class:`~torchblur.identify.record.RunRecord` of a sine or multisine run: its rig
+    opened (``rig``, or the rig of ``cfg.rig``, closed after the run) and its recording with the
+    run's session (:func:`~torchblur.identify.rigs.session`); a plan with its own (the DM's) opens its run itself.
+    ``base_dir``: unused (no actuator table)."""
     log: list[str] = []
     own_rig = rig is None
     hw_log = functools.partial(log_message, log, progress=progress, logger=HARDWARE_LOGGER)  # hw_log(message)
@@ -77,44 +107,37 @@ def _identify(cfg: IdentifyConfig, rig, progress: bool, record) -> Identificatio
         rig = build_rig(cfg, log=hw_log)
     elif hasattr(rig, "set_logger"):
         rig.set_logger(hw_log)
-    exp = None
     try:
         exp = open_experiment(record, cfg, rig)
-        if exp is not None and exp.writable:
-            exp.start_session({"kind": cfg.rig.kind, "port": cfg.rig.port, "frames": cfg.rig.frames, "rig": repr(rig),
-                               SESSION_KEY: getattr(rig, "input_limit", None),  # a replay plans with the same range
-                               SLEW_KEY: getattr(rig, "slew_limit", None)})
-            if exp.meta["sessions"] and len(exp.groups):
+        info = {"kind": cfg.rig.kind, "port": cfg.rig.port, "frames": cfg.rig.frames, "rig": repr(rig),
+                SESSION_KEY: getattr(rig, "input_limit", None),  # a replay plans with the same range
+                SLEW_KEY: getattr(rig, "slew_limit", None)}
+        with session(exp, info):
+            if exp is not None and exp.writable and exp.meta["sessions"] and len(exp.groups):
                 log_message(log, f"resume: {len(exp.groups)} recorded group(s) in {exp.path} are reused", progress)
-        result = run_stages(RunRecord(cfg=cfg, rig=rig, exp=exp, log=log, progress=progress))
-    except KeyboardInterrupt:
-        if exp is not None:
-            exp.end_session("interrupted", "KeyboardInterrupt")
-        raise
-    except BaseException as exc:
-        if exp is not None:
-            exp.end_session("stopped" if isinstance(exc, HardwareError) else "failed", f"{type(exc).__name__}: {exc}")
-        raise
+            yield RunRecord(cfg=cfg, rig=rig, exp=exp, log=log, progress=progress, executor=executor)
     finally:
         if own_rig and hasattr(rig, "close"):
             rig.close()
-    if exp is not None:
-        exp.end_session("complete")
-    return result
 
 
 def run_stages(run: RunRecord) -> IdentificationResult:
     """calibrate -> sweep -> fit -> assemble -> model -> report over ``run`` (its rig and
-    recording open); the plan of ``run.cfg.excitation.kind`` does sweep, fit, assemble and
-    the report's result."""
+    recording open); the plan of ``run.cfg`` (:func:`plan_kind`, unless ``run.plan`` is set) does
+    sweep, fit, assemble and the report's result."""
     run.t_start = time.perf_counter()
+    if run.plan is None:
+        run.plan = PLANS[plan_kind(run.cfg)]()
     calibrate_stage(run)
-    run.plan = PLANS[run.cfg.excitation.kind]()
     return run_plan(run)
 
 
 def calibrate_stage(run: RunRecord) -> None:
-    """``run.cal``: :func:`~torchblur.identify.calibration.calibrate` (from the recording where it holds it)."""
+    """``run.cal``: :func:`~torchblur.identify.calibration.calibrate` (from the recording where it
+    holds it), or the plan's own calibration stage where it has one (the DM's: the sensor's spots)."""
+    if hasattr(run.plan, "calibrate"):
+        run.plan.calibrate(run)
+        return
     with stage_bar(run.progress, "calibration", calibration_stages(run.cfg)):
         run.cal = calibrate(run.cfg, run.rig, run.exp, run.log, run.progress)
 

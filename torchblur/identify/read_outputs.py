@@ -18,7 +18,7 @@ file                        read back as
 ``source.json``             a dict (schema checked; re-fits)
 ``demo.json``               a dict (schema checked; ``torchblur demo``)
 ``dm/frf.json``             FrequencyResponse ``[2M, N, F]``
-``dm/actuators.csv``        a dict of columns (:func:`torchblur.dm.outputs.read_actuators_csv`)
+``dm/actuators.csv``        a dict of columns (:func:`torchblur.identify.dm_outputs.read_actuators_csv`)
 ``dm/*.npy``                numpy arrays (no pickles)
 ``dm/command_matrix.json``  a dict (schema checked)
 ``dm/registration.json``    a dict (schema checked), ``registration`` a
@@ -104,7 +104,7 @@ def _config(path: Path):
 def _dm(d: Path) -> dict:
     import numpy as np
 
-    from torchblur.dm.outputs import COMMAND_MATRIX_SCHEMA, read_actuators_csv
+    from torchblur.identify.dm_outputs import COMMAND_MATRIX_SCHEMA, read_actuators_csv
     from torchblur.dm.registration import read_registration_json
     from torchblur.sysid.frequency_response import FrequencyResponse
 

@@ -38,7 +38,8 @@ class RunRecord:
     ``acquisition`` (the plan's sweep: frames, windows, amplitudes, its fits as they come),
     ``fit`` (the fits of every point), ``frf`` (FrequencyResponse), the fitted ``images``,
     their ``windows`` and laser ``power`` (shapes as in the result) and ``truth``, ``model``
-    (TransferFunctionFit or None) and ``direct_model``, ``timing`` (seconds per stage)."""
+    (TransferFunctionFit or None) and ``direct_model``, ``timing`` (seconds per stage);
+    ``executor``: the :class:`concurrent.futures.Executor` a plan may submit its fits to (None: its own worker thread)."""
 
     cfg: object
     rig: object
@@ -58,6 +59,7 @@ class RunRecord:
     model: object = None
     direct_model: object = None
     timing: dict = field(default_factory=dict)
+    executor: object = None
 
     def say(self, msg: str) -> None:
         """Log ``msg`` (to ``log`` and the ``torchblur.identify`` logger)."""
@@ -124,13 +126,14 @@ def stage_bar(progress: bool, desc: str, total: int):
         bar.close()
 
 
-def run_stage(exp, key: str, kind: str, rig, fn):
+def run_stage(exp, key: str, kind: str, rig, fn, labels: dict | None = None):
     """``fn(rig)``, or with a recording ``exp`` the recorded result of group ``key`` (taken
-    and recorded now if it is not there yet); inside :func:`stage_bar`, one step of its bar."""
+    and recorded now if it is not there yet, every manifest line with ``labels``; a recorded
+    group's calls are replayed and checked against the recorded ones); inside :func:`stage_bar`, one step of its bar."""
     bar = _STAGE_BAR.get()
     if bar is not None:
         bar.set_postfix_str(key, refresh=True)
-    out = fn(rig) if exp is None else exp.stage(key, kind, rig, fn)[0]
+    out = fn(rig) if exp is None else exp.stage(key, kind, rig, fn, labels=labels)[0]
     if bar is not None:
         bar.update(1)
     return out

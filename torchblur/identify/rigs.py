@@ -1,19 +1,21 @@
 """Where the run's frames come from: the rig of the config (:func:`build_rig`; the simulated
 rig itself is built by :mod:`torchblur.rig.factory`) and the recording it is written to or
-resumed from (:func:`open_experiment`, :func:`check_resume_config`)."""
+resumed from (:func:`open_experiment`, :func:`check_resume_config`), and a run's session of it
+(:func:`session`: every plan's)."""
 from __future__ import annotations
 
+import contextlib
 from dataclasses import asdict
 from pathlib import Path
 
 from torchblur.errors import ConfigError
-from torchblur.hardware.errors import RecordingError
+from torchblur.hardware.errors import HardwareError, RecordingError
 from torchblur.hardware.recording import Experiment, camera_info_of
 from torchblur.hardware.serial_rig import SerialRig
 from torchblur.config import IdentifyConfig, config_to_yaml, load_dataclass
 from torchblur.rig.factory import build_simulated_rig, plant_of
 
-__all__ = ["build_rig", "build_simulated_rig", "check_resume_config", "open_experiment", "plant_of"]
+__all__ = ["build_rig", "build_simulated_rig", "check_resume_config", "open_experiment", "plant_of", "session"]
 
 
 def build_rig(cfg: IdentifyConfig, *, log=None):
@@ -69,3 +71,24 @@ def open_experiment(record, cfg, rig):
         raise RecordingError(f"{exp.path}: recorded with {shape[0]}x{shape[1]} frames, the rig delivers "
                              f"{rig.frame_shape[0]}x{rig.frame_shape[1]}")
     return exp
+
+
+@contextlib.contextmanager
+def session(exp, rig_info: dict):
+    """A session of the recording ``exp`` (none: nothing) around the ``with`` block: started with
+    ``rig_info``, ended ``complete``, or ``interrupted`` (KeyboardInterrupt), ``stopped`` (the
+    rig's :class:`~torchblur.hardware.errors.HardwareError`) or ``failed``, then re-raised. A
+    read-only recording (a re-fit) gets no session."""
+    if exp is None or not exp.writable:
+        yield
+        return
+    exp.start_session(rig_info)
+    try:
+        yield
+    except KeyboardInterrupt:
+        exp.end_session("interrupted", "KeyboardInterrupt")
+        raise
+    except BaseException as exc:
+        exp.end_session("stopped" if isinstance(exc, HardwareError) else "failed", f"{type(exc).__name__}: {exc}")
+        raise
+    exp.end_session("complete")

@@ -13,11 +13,13 @@ __all__ = ["model_stage", "run_plan"]
 
 def run_plan(run: RunRecord):
     """sweep -> fit -> assemble -> model -> report of ``run`` (calibrated: ``run.cal`` set)
-    by its ``run.plan``; returns the plan's result."""
+    by its ``run.plan``; returns the plan's result. The model stages are :func:`adequacy_stage`
+    and :func:`model_stage`, or the plan's ``model_stages`` (the DM's: none, its assemble fits each actuator's model)."""
     run.plan.sweep(run)  # its own bar, per point or group
-    bar = progress_bar(run.progress, total=4, desc="fit and model", unit="stage", leave=False)
+    stages = (run.plan.fit, run.plan.assemble, *getattr(run.plan, "model_stages", (adequacy_stage, model_stage)))
+    bar = progress_bar(run.progress, total=len(stages), desc="fit and model", unit="stage", leave=False)
     try:
-        for stage in (run.plan.fit, run.plan.assemble, adequacy_stage, model_stage):
+        for stage in stages:
             bar.set_postfix_str(stage.__name__, refresh=True)
             stage(run)
             bar.update(1)

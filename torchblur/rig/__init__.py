@@ -1,11 +1,14 @@
 """Rigs: where frames come from. :class:`Rig` is the interface an identification pipeline
-uses; :class:`SimulatedRig` a simulated laboratory (LTI mirror, laser spot, noisy camera).
+uses; :class:`SimulatedRig` a simulated laboratory (LTI mirror, laser spot, noisy camera);
+:class:`DMRig` the contract of a deformable-mirror rig (:func:`check_dm_rig`, docs/dm_rig.md), whose
+simulated one is :class:`~torchblur.rig.dm.SimulatedDMRig`.
 
 Not imported by ``import torchblur``; import ``torchblur.rig`` on use.
 """
 from __future__ import annotations
 
 from torchblur.rig.base import Capture, Rig
+from torchblur.rig.dm_contract import DMRig, check_dm_rig
 from torchblur.rig.simulated import SimulatedRig
 
-__all__ = ["Capture", "Rig", "SimulatedRig"]
+__all__ = ["Capture", "DMRig", "Rig", "SimulatedRig", "check_dm_rig"]

@@ -245,7 +245,7 @@ def _spot_fits(chi2, threshold: float, n_problems: int) -> tuple[int, bool, str]
 
 
 def run_verdict(res, *, poor_fit_chi2: float = 1.5) -> DMVerdict:
-    """:func:`dm_verdict` of a :class:`~torchblur.dm.pipeline.DMResult` (``P * F * M`` spot problems,
+    """:func:`dm_verdict` of a :class:`~torchblur.identify.dm_plan.DMResult` (``P * F * M`` spot problems,
     their reduced chi2 judged against ``poor_fit_chi2``, the run's ``fit.poor_fit_chi2``)."""
     n_problems = int(res.plan.n_patterns) * len(res.freq_hz) * (int(np.shape(res.G)[0]) // 2)
     return dm_verdict(res.actuators, D=res.D, n_failed_spot_fits=int(res.n_failed), n_spot_problems=n_problems,

@@ -1,5 +1,6 @@
-"""The deformable-mirror identification run: :func:`identify_dm` (``torchblur identify`` with a
-config whose ``dm.n_across`` > 0 comes here).
+"""The deformable mirror's plan of the identification (:class:`DMPlan`): ``torchblur.identify(cfg,
+rig)`` and ``torchblur identify`` with a config whose ``dm.n_across`` > 0 run the identification's
+stages (:mod:`torchblur.identify.pipeline`) with this plan.
 
 Stages:
 
@@ -16,14 +17,16 @@ Stages:
    the largest spot motion predicted at ``excitation.target_px`` from the last fitted frequency
    and the nominal resonance's growth, never above ``dm.input_limit``) and the laser power that
    keeps a still spot at ``camera.peak_fraction`` of the range over the longest exposure; each
-   completed frequency goes to the batched spot fitter (:mod:`torchblur.dm.spot_fit`) on a
-   worker thread, so fitting overlaps the acquisition.
+   completed frequency goes to the batched spot fitter (:mod:`torchblur.dm.spot_fit`) on the
+   run's executor (one worker thread by default), so fitting overlaps the acquisition.
 4. the pattern responses ``Y [P, 2M, F]`` (phase variance of the trigger jitter and the latency
    calibration added), the demultiplexing (:mod:`torchblur.dm.demux`) into ``D [2M, N, F]`` and
    the per-actuator fit (:mod:`torchblur.dm.actuator_fit`).
 """
 from __future__ import annotations
 
+import contextlib
+import logging
 import math
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -32,23 +35,33 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
-from torchblur.errors import ConfigError, InputTypeError, ParameterError
-from torchblur.render.camera import CameraModel
-from torchblur.render.window import ExposureWindow
-from torchblur.dm.contract import check_dm_rig
+from torchblur.dm.actuator_fit import fit_actuators
 from torchblur.config.budget import DM_DARK_FRAMES, DM_STILL_FRAMES, dm_geometry, dm_plan, dm_still_frames, dm_sweep_size
+from torchblur.dm.demux import demultiplex
 from torchblur.dm.mirror import DeformableMirror
-from torchblur.dm.outputs import DMEstimate, write_dm_outputs
 from torchblur.dm.plans import static_motion_px
-from torchblur.dm.registration import (DC_GAIN_REFERENCE, Registration, RegistrationFit, register_and_refit, support_line,
-                                       write_registration_json)
-from torchblur.dm.rig import SimulatedDMRig
-from torchblur.dm.shack_hartmann import ShackHartmann
-from torchblur.dm.verdict import final_verdict
+from torchblur.dm.registration import Registration, RegistrationFit, register_and_refit
+from torchblur.dm.spot_fit import PerSpotPSF, crop_problems, fit_spot_problems, pattern_responses
+from torchblur.errors import ConfigError, InputTypeError, ParameterError
+from torchblur.hardware.errors import RecordingError
+from torchblur.hardware.recording import ReplayRig
+from torchblur.hardware.serial_dm_rig import open_dm_rig
+from torchblur.identify.assemble import timing_phase_std
+from torchblur.identify.calibration import calibrate, check_latency_source
 from torchblur.config import IdentifyConfig
-from torchblur.identify.read_outputs import SUMMARY_SCHEMA
+from torchblur.identify.dm_record import (SWEEP_KIND, check_recorded_commands, open_recording, recorded_labels, recorded_plan, resume_seed,
+                                          same_table, session_info, simulated_frames, sweep_key, table_digest)
+from torchblur.identify.record import RunRecord, log_message, run_stage
+from torchblur.identify.rigs import session
+from torchblur.image.dark import subtract_dark
+from torchblur.image.spots import crop_spots
+from torchblur.render.psf import GaussianPSF, KernelPSF
+from torchblur.render.window import ExposureWindow
+from torchblur.rig.dm import SimulatedDMRig
+from torchblur.rig.dm_contract import check_dm_rig
+from torchblur.rig.factory import build_dm
 
-__all__ = ["DM_DARK_FRAMES", "DM_STILL_FRAMES", "DMResult", "build_dm", "check_dm_config", "estimate_mirror", "identify_dm", "match_spots", "next_amplitude",
+__all__ = ["DM_DARK_FRAMES", "DM_STILL_FRAMES", "DMPlan", "DMResult", "check_dm_config", "estimate_mirror", "match_spots", "next_amplitude",
            "nominal_growth", "registration_errors", "truth_errors"]
 
 _F64 = torch.float64
@@ -109,23 +122,6 @@ class DMResult:
     truth_registration: Registration | None = None
 
 
-def build_dm(cfg, *, base_dir: str | None = None, rig_seed: int | None = None):
-    """``(mirror, wfs, rig)`` of a DM config: the simulated mirror (``dm`` section, seeded by
-    ``seed``), the sensor (``wfs``) and the :class:`~torchblur.dm.rig.SimulatedDMRig` with the
-    ``camera`` section's sensor and timing (its noise seeded by ``rig_seed``, default ``seed``)
-    and the mirror's true registration ``dm.registration``."""
-    mirror = DeformableMirror.from_config(cfg.dm, base_dir=base_dir, seed=int(cfg.seed))
-    wfs = ShackHartmann.from_config(cfg.wfs, mirror)
-    c = cfg.camera
-    camera = CameraModel(dark_level_adu=c.dark_level, read_noise_e=c.read_noise, gain_e_per_adu=c.gain, full_well_e=c.full_well,
-                         bit_depth=int(c.bit_depth))
-    rig = SimulatedDMRig(mirror=mirror, wfs=wfs, camera=camera, frame_rate_hz=c.frame_rate_hz, trigger_delay_s=c.trigger_delay_s,
-                         readout_s=c.readout_s, max_exposure_s=c.max_exposure_s, latency_s=c.latency_s, jitter_s=c.jitter_s,
-                         seed=int(cfg.seed) if rig_seed is None else int(rig_seed),
-                         registration=Registration.from_config(cfg.dm.registration))
-    return mirror, wfs, rig
-
-
 def match_spots(found_xy: np.ndarray, rest_px: np.ndarray, pitch_px: float) -> np.ndarray:
     """For each of the M valid subapertures (rest positions ``[M, 2]`` px) the index of the
     found spot (``[K, 2]`` px) nearest its rest position; raises :class:`ParameterError`
@@ -172,9 +168,6 @@ def next_amplitude(*, target_px: float, motion_per_unit: float, input_limit: flo
 def _calibrate(cfg, rig, wfs, log, progress, exp=None):
     """Stage 1 (module docstring): the calibration (from the recording ``exp`` where it holds
     it) and the spots in valid-subaperture order."""
-    from torchblur.identify.calibration import calibrate
-    from torchblur.identify.record import log_message
-
     n = int(cfg.wfs.n_across)
     spots_cfg = replace(cfg.spots, rows=n, cols=n, pitch_px=float(cfg.wfs.pitch_px), sigma_px=float(cfg.wfs.sigma_px))
     size = dm_sweep_size(cfg)
@@ -193,10 +186,6 @@ def _spot_psf(cal, order, log, progress):
     calibration measured kernels (``fit.psf`` kernel, or auto and a spot's Gaussian fails
     :func:`~torchblur.image.psf_from_still.psf_from_still`'s test) a
     :class:`~torchblur.dm.spot_fit.PerSpotPSF`: the kernel for each spot whose still chose it."""
-    from torchblur.dm.spot_fit import PerSpotPSF
-    from torchblur.identify.record import log_message
-    from torchblur.render.psf import KernelPSF
-
     gauss = cal.spots.psf_in_crops()[order]
     sk = cal.spot_kernels
     if sk is None:
@@ -211,11 +200,6 @@ def _fit_frequency(frames, window, omega, amplitude, power, cal, psf, offset, si
     """One frequency's pattern responses: frames ``[P, E*R, H, W]`` ADU -> ``(Y [P, 2M],
     Y_cov [P, 2M, 2, 2], failed, reduced chi2 [P, M] of every spot fit)``. ``psf``: the spots'
     Gaussians or :class:`~torchblur.dm.spot_fit.PerSpotPSF` (:func:`_spot_psf`, at power 1)."""
-    from torchblur.dm.spot_fit import PerSpotPSF, crop_problems, fit_spot_problems, pattern_responses
-    from torchblur.identify.assemble import timing_phase_std
-    from torchblur.image.dark import subtract_dark
-    from torchblur.render.psf import GaussianPSF
-
     e = subtract_dark(frames.to(_F64), cal.dark) * cal.gain
     crops, in_frame = crop_problems(e[:, None], offset, size)  # [P, 1, M, ER, h, w]
     hot = _crop_mask(cal.dark.hot_pixels, offset, size)
@@ -238,8 +222,6 @@ def _fit_frequency(frames, window, omega, amplitude, power, cal, psf, offset, si
 
 def _crop_mask(mask, offset, size):
     """A frame mask ``[H, W]`` bool cropped at every spot, ``[M, h, w]``."""
-    from torchblur.image.spots import crop_spots
-
     return crop_spots(mask, offset, size)
 
 
@@ -274,19 +256,33 @@ def _amplitude_reference(futures, k: int, M: int):
     ``k``: the latest frequency ``i <= k - AMPLITUDE_LAG`` whose fit has a finite response
     (waiting for those fits), or None (then the nominal prediction)."""
     for i in range(min(k - AMPLITUDE_LAG, len(futures) - 1), -1, -1):
-        Yi = futures[i].result()[0]
-        if np.isfinite(Yi).any():
+        done = _fit_outcome(futures[i])[0]
+        if done is not None and np.isfinite(done[0]).any():
+            Yi = done[0]
             return i, float(np.nanmax(np.hypot(np.abs(Yi[:, :M]), np.abs(Yi[:, M:]))))
     return None
 
 
-def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, log, progress, exp=None):
-    """Stage 3 (module docstring): ``(amplitude [F], power [F], Y [P, 2M, F], Y_cov, failed, frames, t_acq, t_wait)``.
-    With a recording ``exp`` each frequency is one group (:mod:`torchblur.dm.record`): taken from
-    it, at its recorded amplitude, where it holds it, else acquired and recorded."""
-    from torchblur.dm.record import recorded_labels, sweep_key, take_group
-    from torchblur.identify.record import log_message
+def _fit_outcome(future):
+    """``(result, None)`` of one frequency's fit (:func:`_fit_frequency`), or where its task
+    raised (a lost worker, a failed task on a cluster) ``(None, message)``: reported, not lost."""
+    try:
+        return future.result(), None
+    except Exception as exc:  # noqa: BLE001 - one frequency's failed task is flagged, the others kept
+        return None, f"{type(exc).__name__}: {exc}"
 
+
+def _failed_frequency(P: int, M2: int):
+    """A frequency whose fit task failed: NaN responses and covariances, every one of its ``P * M`` spot fits failed."""
+    return (np.full((P, M2), np.nan + 0j), np.full((P, M2, 2, 2), np.nan), P * (M2 // 2), np.full((P, M2 // 2), np.nan))
+
+
+def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, log, progress, exp=None, executor=None):
+    """Stage 3 (module docstring): ``(amplitude [F], power [F], Y [P, 2M, F], Y_cov, failed, frames, t_acq, t_wait)``.
+    With a recording ``exp`` each frequency is one group (:mod:`torchblur.identify.dm_record`): taken from
+    it, at its recorded amplitude, where it holds it, else acquired and recorded. Each frequency's
+    spot fits go to ``executor`` (any :class:`concurrent.futures.Executor`, Dask's
+    ``client.get_executor()`` included; default: one worker thread) while the next is acquired."""
     freqs = cfg.frequencies_hz()
     F, P, M2 = len(freqs), plan.n_patterns, G.shape[0]
     c, s = cfg.camera, cfg.sweep
@@ -294,7 +290,7 @@ def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, log, progress, exp=None
     limit = min(math.inf if cfg.dm.input_limit is None else float(cfg.dm.input_limit), cal.input_limit)  # and the rig's RANGE?
     amps, powers, futures = np.zeros(F), np.zeros(F), []
     t_acq = 0.0
-    with ThreadPoolExecutor(max_workers=1) as pool:
+    with ThreadPoolExecutor(max_workers=1) if executor is None else contextlib.nullcontext(executor) as pool:
         for k, f in enumerate(freqs):
             done_ref = _amplitude_reference(futures, k, M2 // 2)
             rec = recorded_labels(exp, sweep_key(k))
@@ -317,7 +313,7 @@ def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, log, progress, exp=None
             labels = {"freq_hz": float(f), "amplitude": float(amps[k]), "power": float(powers[k]), "point": k,
                       "trigger_delay_s": delay, "n_patterns": P, "n_repeats": R}
             t0 = time.perf_counter()
-            frames, window = take_group(exp, sweep_key(k), rig, lambda r: _acquire_frequency(
+            frames, window = run_stage(exp, sweep_key(k), SWEEP_KIND, rig, lambda r: _acquire_frequency(
                 r, plan, f, float(amps[k]), te, float(s.trigger_phase_rad) / (2 * math.pi * f), R, s.settle_s, float(powers[k]),
                 cal.latency_s, delay), labels)
             t_acq += time.perf_counter() - t0
@@ -326,65 +322,18 @@ def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, log, progress, exp=None
             log_message(log, f"dm sweep: {f:.4g} Hz, amplitude {amps[k]:.4g}, power {powers[k]:.3g}, {P} patterns x "
                              f"{len(te)} exposures x {R} repeats ({k + 1}/{F}{', recorded' if rec is not None else ''})", progress)
         t0 = time.perf_counter()
-        results = [fu.result() for fu in futures]
+        outcomes = [_fit_outcome(fu) for fu in futures]
         t_wait = time.perf_counter() - t0
+    for f, (_, why) in zip(freqs, outcomes):
+        if why is not None:
+            log_message(log, f"dm sweep: the spot fits of {f:.4g} Hz failed on the executor ({why}): its responses are NaN and "
+                             f"its {P * (M2 // 2)} spot fits counted failed", progress)
+    results = [r if r is not None else _failed_frequency(P, M2) for r, _ in outcomes]
     Y = np.stack([r[0] for r in results], -1)  # [P, 2M, F]
     Y_cov = np.stack([r[1] for r in results], 2)  # [P, 2M, F, 2, 2]
     failed = sum(r[2] for r in results)
     chi2 = np.stack([r[3] for r in results], -1)  # [P, M, F]
     return amps, powers, Y, Y_cov, failed, chi2, P * F * len(s.exposures) * R, t_acq, t_wait
-
-
-def identify_dm(cfg, rig=None, *, progress: bool = False, base_dir: str | None = None, record=None) -> DMResult:
-    """Run a DM identification (module docstring) on ``rig`` (default: the config's simulated
-    DM rig). Returns a :class:`DMResult`. Public as ``torchblur.dm.identify_dm``: a lab's own
-    rig implements :class:`~torchblur.dm.contract.DMRig` (docs/dm_rig.md), checked by
-    :func:`~torchblur.dm.contract.check_dm_rig` before the first frame; with
-    ``camera.latency_s`` and ``camera.latency_std_s`` given the rig needs no ``pulse()``.
-
-    ``record``: None, a directory or a :class:`~torchblur.hardware.recording.Experiment`: the run
-    is recorded there as it goes (:mod:`torchblur.dm.record`). Groups it holds already (a resumed
-    run) are taken from it instead of the rig (a resumed simulated rig draws its own noise stream,
-    :func:`~torchblur.dm.record.resume_seed`); a read-only one with a
-    :class:`~torchblur.hardware.recording.ReplayRig` re-fits the recording.
-
-    Raises:
-        HardwareError: the rig failed (the recording so far is kept; resume it); KeyboardInterrupt: likewise.
-        InputTypeError: ``cfg`` is not an IdentifyConfig, or ``rig`` lacks part of the contract;
-        ConfigError: ``cfg`` is not a DM config (``dm.n_across``), or the rig does not match it.
-    """
-    from torchblur.dm.record import open_recording, resume_seed, same_table, session, session_info, simulated_frames, table_digest
-    from torchblur.hardware.errors import RecordingError
-    from torchblur.hardware.recording import ReplayRig
-    from torchblur.identify.calibration import check_latency_source
-    from torchblur.identify.record import log_message
-
-    check_dm_config(cfg)
-    if rig is not None and not isinstance(rig, ReplayRig):  # a lab's rig: the contract, before any frame (docs/dm_rig.md)
-        check_dm_rig(rig, cfg)
-        check_latency_source(cfg, rig)
-    log: list = []
-    model_mirror, wfs, sim = build_dm(cfg, base_dir=base_dir)
-    exp = open_recording(record, cfg, sim if rig is None else rig)
-    resumed = exp is not None and exp.writable and bool(exp.meta["sessions"])
-    if rig is None and resumed:
-        sim = build_dm(cfg, base_dir=base_dir, rig_seed=resume_seed(int(cfg.seed), len(exp.meta["sessions"])))[2]
-    rig = sim if rig is None else rig
-    digest = table_digest(cfg, base_dir)
-    simulated = simulated_frames(isinstance(rig, SimulatedDMRig), exp)
-    if simulated and exp is not None and not same_table(exp, digest):
-        if exp.writable:
-            exp.close()
-            raise RecordingError(f"dm.actuator_table: {cfg.dm.actuator_table} is not the file the recording {exp.path} was "
-                                 f"simulated with (its SHA-256 differs); resume with that file, or record anew")
-        simulated = False
-        log_message(log, f"dm: no simulated truth: {cfg.dm.actuator_table} is not the actuator table the recording was simulated "
-                         f"with (its SHA-256 differs)", progress)
-    truth_rig = (rig if isinstance(rig, SimulatedDMRig) else sim) if simulated else None
-    with session(exp, session_info(cfg, rig, digest)):
-        if resumed:
-            log_message(log, f"resume: {len(exp.groups)} recorded group(s) in {exp.path} are reused", progress)
-        return _identify_dm(cfg, rig, exp, model_mirror, wfs, truth_rig, log, progress)
 
 
 def check_dm_config(cfg) -> None:
@@ -396,40 +345,131 @@ def check_dm_config(cfg) -> None:
         raise ConfigError("dm.n_across: 0, not a DM config; set the mirror's dm section (configs/identify_dm.yaml)")
 
 
-def _identify_dm(cfg, rig, exp, model_mirror, wfs, truth_rig, log, progress) -> DMResult:
-    """:func:`identify_dm` once the rig and the recording are open (``truth_rig``: the simulated
-    rig whose truth the result carries, or None)."""
-    from torchblur.dm.record import check_recorded_commands, run_plan
-    from torchblur.identify.record import log_message
+class DMPlan:
+    """The deformable mirror's plan of the identification's stages (``dm.n_across`` > 0; module
+    docstring), registered as ``"dm"`` in :data:`torchblur.identify.pipeline.PLANS`: :meth:`open`
+    (the rig, the recording and its session), :meth:`calibrate` (stage 1), :meth:`sweep` (stages
+    2 and 3: each frequency's spot fits submitted to ``run.executor``, default one worker thread,
+    while the next frequency is acquired), :meth:`assemble` (stage 4, the actuators' models
+    included, so the runner's model stages are not this plan's) and :meth:`result` (a :class:`DMResult`)."""
 
-    G = dm_geometry(cfg)  # the geometry does not depend on the dynamics (nor on dm.actuator_table)
-    t = {}
-    t0 = time.perf_counter()
-    cal, psf, offset, size = _calibrate(cfg, rig, wfs, log, progress, exp)
-    t["calibration"] = time.perf_counter() - t0
-    freqs = np.asarray(cfg.frequencies_hz())
-    plan, R, info = dm_plan(cfg)
-    plan, R = run_plan(exp, plan, R, G, float(cfg.dm_plan.support_threshold), lambda msg: log_message(log, msg, progress))
-    if exp is not None and exp.writable:
-        check_recorded_commands(exp, math.inf if cfg.dm.input_limit is None else float(cfg.dm.input_limit))
-    log_message(log, f"dm plan: {plan.kind}, {plan.n_patterns} patterns x {len(freqs)} frequencies x {len(cfg.sweep.exposures)} "
-                     f"exposures x {R} repeats = {plan.n_frames(len(freqs), len(cfg.sweep.exposures), R)} frames; frames for the same "
-                     f"accuracy vs one at a time: {info['cost_ratio_to_one_at_a_time']:.3f}", progress)
-    amps, powers, Y, Y_cov, failed, chi2, n_frames, t["acquisition"], t["fit_wait"] = _sweep(cfg, rig, plan, R, G, cal, psf, offset, size,
-                                                                                         log, progress, exp)
-    t0 = time.perf_counter()
-    D, D_cov, table, reg, support = estimate_mirror(cfg, freqs, Y, Y_cov, plan, G, wfs, model_mirror.actuator_xy)
-    t["estimation"] = time.perf_counter() - t0
-    if exp is not None:
-        log_message(log, f"recording: {exp.stats['groups_written']} group(s) written ({exp.stats['write_s']:.2f} s), "
-                         f"{exp.stats['groups_reused']} reused, in {exp.path}", progress)
-    truth = truth_rig.truth_D(freqs) if truth_rig is not None else None
-    return DMResult(freq_hz=freqs, plan=plan, n_repeats=R, plan_info=info, amplitude=amps, power=powers, Y=Y, Y_cov=Y_cov, D=D,
-                    D_cov=D_cov, actuators=table, G=reg.G, actuator_xy=model_mirror.actuator_xy, n_frames=n_frames, n_failed=failed,
-                    spot_reduced_chi2=chi2, timing_s=t, truth_D=truth, mirror=truth_rig.mirror if truth_rig is not None else None, log=log,
-                    G_nominal=G, registration=reg, support_check=support,
-                    truth_G=truth_rig.geometry if truth_rig is not None else None,
-                    truth_registration=truth_rig.registration if truth_rig is not None else None)
+    kind = "dm"
+    supports_direct = False
+    model_stages = ()  # the actuators' models are fitted in assemble (estimate_mirror)
+
+    @staticmethod
+    def check(cfg, rig) -> None:
+        """Refuse ``cfg`` that is not a DM run's (:func:`check_dm_config`) and a lab's ``rig``
+        that breaks the contract (:func:`~torchblur.rig.dm_contract.check_dm_rig`) or has no
+        latency source, before any frame (docs/dm_rig.md)."""
+        check_dm_config(cfg)
+        if rig is not None and not isinstance(rig, ReplayRig):
+            check_dm_rig(rig, cfg)
+            check_latency_source(cfg, rig)
+
+    @contextlib.contextmanager
+    def open(self, cfg, rig, *, progress: bool, record, base_dir: str | None = None, executor=None):
+        """The :class:`~torchblur.identify.record.RunRecord` of a DM run on ``rig`` (None: the
+        config's rig: the simulated DM rig, or with ``rig.kind=serial`` a
+        :class:`~torchblur.hardware.serial_dm_rig.SerialDMRig` on ``rig.port`` and ``rig.frames``,
+        closed after the run, its link's statistics logged) recorded in ``record``
+        (:mod:`torchblur.identify.dm_record`), inside the recording's session."""
+        log: list = []
+        own = rig is None and cfg.rig.kind == "serial"
+        if own:
+            rig = open_dm_rig(cfg, log=logging.getLogger("torchblur.hardware").info)
+        try:
+            if own:
+                self.check(cfg, rig)
+            with self._session(cfg, rig, log, progress, record, base_dir) as run:
+                run.executor = executor
+                yield run
+        finally:
+            if own:
+                rig.close()
+        if own:
+            st = rig.stats
+            log += [f"serial link: {rig!r}: {st['calls']} calls, {st['retries']} retried, {st['resets']} controller resets, "
+                    f"{st['reconnects']} reconnects, {st['stale_discarded']} stale frames discarded", *rig.events]
+
+    @contextlib.contextmanager
+    def _session(self, cfg, rig, log, progress, record, base_dir):
+        """:meth:`open` once the rig is open: the simulated mirror (the model's geometry, and the
+        truth where every frame is simulated), the recording and its session."""
+        self.model_mirror, self.wfs, sim = build_dm(cfg, base_dir=base_dir)
+        exp = open_recording(record, cfg, sim if rig is None else rig)
+        resumed = exp is not None and exp.writable and bool(exp.meta["sessions"])
+        if rig is None and resumed:
+            sim = build_dm(cfg, base_dir=base_dir, rig_seed=resume_seed(int(cfg.seed), len(exp.meta["sessions"])))[2]
+        rig = sim if rig is None else rig
+        digest = table_digest(cfg, base_dir)
+        simulated = simulated_frames(isinstance(rig, SimulatedDMRig), exp)
+        if simulated and exp is not None and not same_table(exp, digest):
+            if exp.writable:
+                exp.close()
+                raise RecordingError(f"dm.actuator_table: {cfg.dm.actuator_table} is not the file the recording {exp.path} was "
+                                     f"simulated with (its SHA-256 differs); resume with that file, or record anew")
+            simulated = False
+            log_message(log, f"dm: no simulated truth: {cfg.dm.actuator_table} is not the actuator table the recording was simulated "
+                             f"with (its SHA-256 differs)", progress)
+        self.truth_rig = (rig if isinstance(rig, SimulatedDMRig) else sim) if simulated else None
+        with session(exp, session_info(cfg, rig, digest)):
+            if resumed:
+                log_message(log, f"resume: {len(exp.groups)} recorded group(s) in {exp.path} are reused", progress)
+            yield RunRecord(cfg=cfg, rig=rig, exp=exp, log=log, progress=progress)
+
+    def calibrate(self, run) -> None:
+        """Stage 1: ``run.cal`` and every valid subaperture's spot PSF, crop offset and size."""
+        t0 = time.perf_counter()
+        run.cal, self.psf, self.offset, self.size = _calibrate(run.cfg, run.rig, self.wfs, run.log, run.progress, run.exp)
+        run.timing["calibration"] = time.perf_counter() - t0
+
+    def sweep(self, run) -> None:
+        """Stages 2 and 3: the plan (the recorded one where the recording holds it) and the sweep
+        (``run.acquisition``: :func:`_sweep`'s amplitudes, powers, pattern responses and spot-fit counts)."""
+        cfg, exp = run.cfg, run.exp
+        self.G = dm_geometry(cfg)  # the geometry does not depend on the dynamics (nor on dm.actuator_table)
+        freqs = np.asarray(cfg.frequencies_hz())
+        plan, R, self.info = dm_plan(cfg)
+        self.plan, self.R = recorded_plan(exp, plan, R, self.G, float(cfg.dm_plan.support_threshold), run.say)
+        if exp is not None and exp.writable:
+            check_recorded_commands(exp, math.inf if cfg.dm.input_limit is None else float(cfg.dm.input_limit))
+        run.say(f"dm plan: {self.plan.kind}, {self.plan.n_patterns} patterns x {len(freqs)} frequencies x {len(cfg.sweep.exposures)} "
+                f"exposures x {self.R} repeats = {self.plan.n_frames(len(freqs), len(cfg.sweep.exposures), self.R)} frames; frames for "
+                f"the same accuracy vs one at a time: {self.info['cost_ratio_to_one_at_a_time']:.3f}")
+        out = _sweep(cfg, run.rig, self.plan, self.R, self.G, run.cal, self.psf, self.offset, self.size, run.log, run.progress, exp,
+                     executor=run.executor)
+        run.acquisition, (run.timing["acquisition"], run.timing["fit_wait"]) = out[:7], out[7:]
+
+    def fit(self, run) -> None:
+        """Nothing left: every frequency's spot fits ran on the executor during :meth:`sweep`."""
+
+    def assemble(self, run) -> None:
+        """Stage 4: ``D (jw)``, the actuators' table, the registration and the support check
+        (:func:`estimate_mirror`)."""
+        t0 = time.perf_counter()
+        Y, Y_cov = run.acquisition[2:4]
+        self.estimate = estimate_mirror(run.cfg, np.asarray(run.cfg.frequencies_hz()), Y, Y_cov, self.plan, self.G, self.wfs,
+                                        self.model_mirror.actuator_xy)
+        run.timing["estimation"] = time.perf_counter() - t0
+        if run.exp is not None:
+            st = run.exp.stats
+            run.say(f"recording: {st['groups_written']} group(s) written ({st['write_s']:.2f} s), {st['groups_reused']} reused, in "
+                    f"{run.exp.path}")
+
+    def result(self, run) -> DMResult:
+        """The run's :class:`DMResult` (the simulated truth where every frame was simulated)."""
+        freqs = np.asarray(run.cfg.frequencies_hz())
+        amps, powers, Y, Y_cov, failed, chi2, n_frames = run.acquisition
+        D, D_cov, table, reg, support = self.estimate
+        truth = self.truth_rig
+        return DMResult(freq_hz=freqs, plan=self.plan, n_repeats=self.R, plan_info=self.info, amplitude=amps, power=powers, Y=Y,
+                        Y_cov=Y_cov, D=D, D_cov=D_cov, actuators=table, G=reg.G, actuator_xy=self.model_mirror.actuator_xy,
+                        n_frames=n_frames, n_failed=failed, spot_reduced_chi2=chi2, timing_s=run.timing,
+                        truth_D=truth.truth_D(freqs) if truth is not None else None, mirror=truth.mirror if truth is not None else None,
+                        log=run.log, G_nominal=self.G, registration=reg, support_check=support,
+                        truth_G=truth.geometry if truth is not None else None,
+                        truth_registration=truth.registration if truth is not None else None)
 
 
 def estimate_mirror(cfg, freqs, Y, Y_cov, plan, G, wfs, actuator_xy):
@@ -438,9 +478,6 @@ def estimate_mirror(cfg, freqs, Y, Y_cov, plan, G, wfs, actuator_xy):
     nominal ``G``, the mirror's registration fitted to D0 and the actuators fitted again on the
     fitted G (:func:`~torchblur.dm.registration.register_and_refit`). Returns ``(D, D_cov, table,
     registration, support_check)``."""
-    from torchblur.dm.actuator_fit import fit_actuators
-    from torchblur.dm.demux import demultiplex
-
     D, D_cov = demultiplex(Y, Y_cov, plan.patterns, plan.support)
     table = fit_actuators(freqs, D, D_cov, G, actuator_xy=actuator_xy)
     table, reg, support = register_and_refit(freqs, D, D_cov, table, wfs, actuator_xy, float(cfg.dm.coupling),
@@ -487,104 +524,3 @@ def registration_errors(res: DMResult) -> dict:
     out = {f"registration_{k}_error": float(v) for k, v in errs.items()}
     out.update({f"registration_{k}_z": float(v / fit.std[k]) for k, v in errs.items()})
     return out
-
-
-def _report(res: DMResult, elapsed: float) -> str:
-    """The run's summary lines."""
-    t = res.timing_s
-    lines = [f"dm run: {len(res.actuators)} actuators, {res.G.shape[0] // 2} spots, plan {res.plan.kind} ({res.plan.n_patterns} "
-             f"patterns x {len(res.freq_hz)} frequencies, {res.n_repeats} repeats): {res.n_frames} sweep frames, "
-             f"{res.plan_info['cost_ratio_to_one_at_a_time']:.3f} of the frames one at a time needs for the same accuracy",
-             f"time: {elapsed:.1f} s (calibration {t['calibration']:.1f} s, acquisition {t['acquisition']:.1f} s, waiting for the "
-             f"fits {t['fit_wait']:.1f} s, estimation {t['estimation']:.1f} s); failed spot fits: {res.n_failed}",
-             "status: " + ", ".join(f"{s} {list(res.actuators.status).count(s)}" for s in ("ok", "weak", "dead"))
-             + f"; {int(np.sum(res.actuators.poor_fit))} poor_fit (stds inflated)"]
-    if res.registration is not None:
-        lines.append(res.registration.line())
-        if support_line(res.support_check):
-            lines.append(support_line(res.support_check))
-    err = truth_errors(res)
-    if err is not None:
-        lines.append(f"against the simulated truth: mode {err['mode_hz_max_rel_error'] * 100:.3f} %, damping "
-                     f"{err['damping_max_rel_error'] * 100:.2f} %, DC gain {err['dc_gain_max_rel_error'] * 100:.3f} % (largest over live "
-                     f"actuators), D0 {err['D0_rms_error_over_max'] * 100:.3f} % rms of its largest element, dead reported dead: "
-                     f"{err['dead_reported_dead']}; rms(error/std) over the live actuators: DC gain {err['dc_gain_rms_z']:.2f}, mode "
-                     f"{err['mode_hz_rms_z']:.2f}, damping {err['damping_rms_z']:.2f}")
-    return "\n".join(lines) + "\n"
-
-
-def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False, record=None, rig=None, base_dir: str | None = None,
-            identify=None) -> int:
-    """``torchblur identify`` for a DM config: run, recorded in ``OUT/experiment/`` (or in
-    ``record``: an Experiment to resume, or a read-only one that ``rig``, its
-    :class:`~torchblur.hardware.recording.ReplayRig`, re-fits), then write ``OUT/dm/`` and
-    ``OUT/report.txt``, the verdict line (:func:`torchblur.dm.verdict.dm_verdict`) last in both
-    and on stdout (stderr with ``as_json``, then one JSON summary line on stdout, with
-    ``verdict`` and ``trustworthy``). Returns the exit status: the verdict's (0 trustworthy, 4
-    actuators flagged); a stopped rig raises to the CLI, which names the recording. ``identify``: a
-    callable that gives the :class:`DMResult` instead of a run (an outside DM recording's fit,
-    :func:`torchblur.dm.outside.run_recording`)."""
-    import json
-    import sys
-    from pathlib import Path
-
-    from torchblur.config import config_to_yaml
-
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "config.yaml").write_text(config_to_yaml(cfg))
-    torch.manual_seed(int(cfg.seed))
-    t0 = time.perf_counter()
-    res = identify() if identify is not None else _identify_on_config_rig(
-        cfg, rig, quiet, record=out / "experiment" if record is None else record, base_dir=base_dir)
-    elapsed = time.perf_counter() - t0
-    _write_dm_outputs(res, out, figures=cfg.report.figures)
-    v = final_verdict(res, float(cfg.fit.poor_fit_chi2))
-    report = _report(res, elapsed) + "".join(f"{line}\n" for line in (*v.details, v.line))  # the verdict line last
-    (out / "report.txt").write_text("\n".join(res.log) + "\n" + report)
-    print(report, end="", file=sys.stderr if as_json else sys.stdout, flush=True)
-    if as_json:
-        print(json.dumps({"schema": SUMMARY_SCHEMA[0], "schema_version": SUMMARY_SCHEMA[1][-1],
-                          "elapsed_s": elapsed, "frames": res.n_frames, "plan": res.plan.kind, "timing_s": res.timing_s,
-                          "truth_errors": truth_errors(res), "verdict": v.line, "trustworthy": v.trustworthy,
-                          "actuator_flags": {"poor_fit": list(v.poor_fit), "failed": list(v.failed)},
-                          "failed_spot_fits": v.failed_spot_fits, "spot_problems": v.spot_problems, "poor_spot_fits": v.poor_spot_fits,
-                          "spot_model_fails": v.spot_model_fails,
-                          "beyond_truth": None if v.beyond_truth is None else list(v.beyond_truth)}), flush=True)
-    return v.exit_code
-
-
-def _identify_on_config_rig(cfg, rig, quiet: bool, *, record, base_dir: str | None = None) -> DMResult:
-    """:func:`identify_dm` recorded in ``record`` on ``rig`` (a re-fit's ReplayRig) or else the
-    config's rig: the simulated DM rig, or with ``rig.kind=serial`` a
-    :class:`~torchblur.hardware.serial_dm_rig.SerialDMRig` on ``rig.port`` and ``rig.frames``
-    (closed after the run). A HardwareError goes to the caller (the CLI names the recording and
-    how to resume it)."""
-    if rig is not None or cfg.rig.kind != "serial":
-        return identify_dm(cfg, rig, progress=not quiet, record=record, base_dir=base_dir)
-    import logging
-
-    from torchblur.hardware.serial_dm_rig import open_dm_rig
-
-    rig = open_dm_rig(cfg, log=logging.getLogger("torchblur.hardware").info)
-    try:
-        res = identify_dm(cfg, rig, progress=not quiet, record=record, base_dir=base_dir)
-    finally:
-        rig.close()
-    st = rig.stats
-    res.log += [f"serial link: {rig!r}: {st['calls']} calls, {st['retries']} retried, {st['resets']} controller resets, "
-                f"{st['reconnects']} reconnects, {st['stale_discarded']} stale frames discarded", *rig.events]
-    return res
-
-
-def _write_dm_outputs(res: DMResult, out, figures: bool = True) -> None:
-    """``OUT/dm/`` by :func:`torchblur.dm.outputs.write_dm_outputs` (``figures``: ``report.figures``)."""
-    from torchblur.identify.record import log_message
-
-    meta = {"plan": res.plan.kind, "n_patterns": res.plan.n_patterns, "n_repeats": res.n_repeats, "n_frames": res.n_frames}
-    reg = res.registration
-    reference = {"dc_gain_reference": DC_GAIN_REFERENCE} if reg and reg.ok else {}
-    write_dm_outputs(out, DMEstimate(freq_hz=res.freq_hz, D=res.D, D_cov=res.D_cov, table=res.actuators, meta=meta),
-                     say=lambda msg: log_message(res.log, msg), figures=figures, **reference)
-    if res.registration is not None:
-        write_registration_json(out / "dm" / "registration.json", res.registration, res.support_check)

@@ -1,8 +1,8 @@
-"""The DM rig contract: what :func:`torchblur.dm.identify_dm` calls on a lab's deformable-mirror
+"""The DM rig contract: what :func:`torchblur.identify` (a DM config) calls on a lab's deformable-mirror
 rig (docs/dm_rig.md says it in words, with the timing and what the calibration needs).
 
 :class:`DMRig` is the :class:`typing.Protocol` a rig implements (the simulated
-:class:`~torchblur.dm.rig.SimulatedDMRig`, the serial :class:`~torchblur.hardware.serial_dm_rig.SerialDMRig`,
+:class:`~torchblur.rig.dm.SimulatedDMRig`, the serial :class:`~torchblur.hardware.serial_dm_rig.SerialDMRig`,
 a lab's wrapper of its vendor SDK: docs/examples/vendor_dm.py). :func:`check_dm_rig` checks a rig
 against it and against the run's config before the first frame, so a missing method or a
 mirror of another size stops the run with an error that names what is missing, not a
@@ -109,7 +109,7 @@ def check_dm_rig(rig, cfg) -> None:
     ``cfg``: a missing method or property, a mirror whose ``n_actuators`` differs from the
     config's geometry, or a frame shape other than the sensor's. (``pulse`` missing where the
     latency must be scanned: :func:`torchblur.identify.calibration.check_latency_source`, which
-    :func:`torchblur.dm.identify_dm` calls beside this.)
+    :func:`torchblur.identify` (a DM config) calls beside this.)
 
     Raises:
         InputTypeError: naming ``rig`` and what it lacks.
@@ -120,7 +120,7 @@ def check_dm_rig(rig, cfg) -> None:
     missing += [a for a in REQUIRED_ATTRIBUTES if not _has(rig, a)]
     if missing:
         raise InputTypeError(f"rig: a {type(rig).__name__} lacks {', '.join(missing)} of the DM rig contract "
-                             f"(torchblur.dm.contract.DMRig, docs/dm_rig.md)")
+                             f"(torchblur.rig.dm_contract.DMRig, docs/dm_rig.md)")
     n = int(rig.n_actuators)
     want = dm_geometry(cfg).shape[1]
     if n != want:

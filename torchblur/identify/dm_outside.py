@@ -20,7 +20,7 @@ The folder is the one-spot outside format (:mod:`torchblur.hardware.outside`: TI
 :func:`read_dm_recording` reads and checks a folder into a :class:`DMRecording`;
 :func:`dm_recording_config` makes the run's config of it; :func:`identify_dm_recording` fits it
 with the live run's own pieces (the spot fitter, the demultiplexing, the actuator fit of
-:mod:`torchblur.dm.pipeline`); :func:`write_dm_recording` writes the format from arrays and
+:mod:`torchblur.identify.dm_plan`); :func:`write_dm_recording` writes the format from arrays and
 :func:`export_dm_recording` from a torchblur DM run's own recording (``OUT/experiment``).
 """
 from __future__ import annotations
@@ -37,14 +37,16 @@ import numpy as np
 import torch
 
 from torchblur.config.budget import dm_geometry, dm_sensor
-from torchblur.dm.pipeline import (DMResult, _calibrate, _fit_frequency, _fit_options, _spot_psf, check_dm_config, estimate_mirror,
-                                    match_spots, run_cli)
+from torchblur.identify.dm_plan import (DMResult, _calibrate, _fit_frequency, _fit_options, _spot_psf, check_dm_config, estimate_mirror,
+                                        match_spots)
+from torchblur.identify.dm_report import run_cli
 from torchblur.dm.plans import Plan, one_at_a_time_plan, plan_cost
-from torchblur.dm.record import PLAN_KEY, SWEEP_KIND, plan_support
+from torchblur.identify.dm_record import PLAN_KEY, SWEEP_KIND, plan_support
 from torchblur.dm.shack_hartmann import ShackHartmann
-from torchblur.errors import ConfigError, InputTypeError, excerpt
-from torchblur.files import read_bounded
+from torchblur.errors import ConfigError, InputTypeError
+from torchblur.files import excerpt, read_bounded
 from torchblur.hardware.errors import RecordingError
+from torchblur.hardware.recording import Experiment, ReplayRig
 from torchblur.hardware.outside import (CSV_NAME, YAML_NAME, MAX_ROWS, OutsideCamera, _points, _read_camera, _read_frames,
                                         _read_rows, _resolved_saturation)
 from torchblur.identify.calibration import Calibration, measure_gain, spots_from_still
@@ -317,12 +319,12 @@ def _plan(rec: DMRecording, cfg, G: np.ndarray) -> tuple[Plan, float]:
 
 def recording_calibration(rec: DMRecording, cfg, wfs: ShackHartmann, log: list, progress: bool = False):
     """The calibration of ``rec`` and its spots in valid-subaperture order, ``(cal, psf, offset,
-    size)`` as the live run's (:func:`torchblur.dm.pipeline._calibrate`, the same steps on the
+    size)`` as the live run's (:func:`torchblur.identify.dm_plan._calibrate`, the same steps on the
     recorded frames): the dark frame, the gain (the still frames' photon transfer checked against
     ``gain_e_per_adu``, ``camera.gain_from``), the read noise, the spots cropped on the sensor's
     declared layout and each spot's PSF (``fit.psf``), both by the live calibration's own
     :func:`~torchblur.identify.calibration.spots_from_still` and
-    :func:`~torchblur.dm.pipeline._spot_psf`, the latency given by ``recording.yaml``."""
+    :func:`~torchblur.identify.dm_plan._spot_psf`, the latency given by ``recording.yaml``."""
     c = rec.camera
     dark_raw, still_raw = torch.as_tensor(rec.dark, dtype=_F64), torch.as_tensor(rec.still, dtype=_F64)
     dark = dark_frame(dark_raw)
@@ -372,7 +374,7 @@ def identify_dm_recording(rec: DMRecording, cfg=None, *, progress: bool = False)
     """Identify the mirror of the outside DM recording ``rec`` like a live run: its calibration
     (:func:`recording_calibration`), every frequency's pattern responses by the live run's spot
     fitter, the demultiplexing, the actuator fit and the mirror's registration
-    (:func:`~torchblur.dm.pipeline.estimate_mirror`). Returns a :class:`~torchblur.dm.pipeline.DMResult`
+    (:func:`~torchblur.identify.dm_plan.estimate_mirror`). Returns a :class:`~torchblur.identify.dm_plan.DMResult`
     (no simulated truth).
 
     Args:
@@ -476,15 +478,13 @@ def export_dm_recording(run, folder) -> Path:
     trigger time plus ``trigger_delay_s`` plus the calibrated latency, as the run fitted them), the
     plan, the camera (the configured gain, the calibrated latency and its std, the measured
     saturation level) and the sensor layout. The calibration is replayed from the recording
-    (:func:`torchblur.dm.pipeline._calibrate` on a ReplayRig) for the latency and saturation.
+    (:func:`torchblur.identify.dm_plan._calibrate` on a ReplayRig) for the latency and saturation.
     Not exported: the photon transfer ladder of ``camera.ptc_frames`` (the fit's gain then comes
     from the still frames alone) and a ``camera.gain_from`` other than the default (pass it to ``torchblur fit``).
 
     Raises:
         RecordingError: not a complete DM recording.
     """
-    from torchblur.hardware.recording import Experiment, ReplayRig
-
     path = Path(run)
     exp = Experiment.open(path / "experiment" if (path / "experiment" / "experiment.json").is_file() else path, writable=False)
     cfg = load_config(str(exp.path / "config.yaml"), trusted=False, force=True)
@@ -521,5 +521,5 @@ def export_dm_recording(run, folder) -> Path:
 def run_recording(rec: DMRecording, cfg, out, *, quiet: bool = False, as_json: bool = False) -> int:
     """``torchblur fit FOLDER`` of an outside DM recording: :func:`identify_dm_recording` written
     as a live run writes (``OUT/config.yaml``, ``OUT/dm/``, ``OUT/report.txt``, the verdict line
-    last; :func:`torchblur.dm.pipeline.run_cli`). Returns the verdict's exit status."""
-    return run_cli(cfg, out, quiet=quiet, as_json=as_json, identify=lambda: identify_dm_recording(rec, cfg, progress=not quiet))
+    last; :func:`torchblur.identify.dm_report.run_cli`). Returns the verdict's exit status."""
+    return run_cli(cfg, out, quiet=quiet, as_json=as_json, run=lambda: identify_dm_recording(rec, cfg, progress=not quiet))

@@ -28,8 +28,9 @@ patterns; a sparse plan's support is then taken again from G, :func:`plan_suppor
 """
 from __future__ import annotations
 
-import contextlib
+import hashlib
 import math
+import os
 from dataclasses import replace
 
 import numpy as np
@@ -37,12 +38,15 @@ import numpy as np
 from torchblur.dm.plans import Plan, seen_by
 from torchblur.errors import ConfigError
 from torchblur.files import read_bounded
-from torchblur.hardware.errors import HardwareError, RecordingError
+from torchblur.hardware.errors import RecordingError
+from torchblur.config import load_dataclass
+from torchblur.identify.drive import SESSION_KEY
+from torchblur.identify.rigs import check_resume_config, open_experiment
 from torchblur.rig.base import DRIVE_RTOL
 
 __all__ = ["PLAN_KEY", "SWEEP_KIND", "check_recorded_commands", "check_refit_config", "open_recording", "plan_document",
-           "plan_from_document", "plan_support", "recorded_labels", "recorded_on_simulation", "resume_seed", "run_plan", "session",
-           "same_table", "session_info", "simulated_frames", "sweep_key", "table_digest", "take_group"]
+           "plan_from_document", "plan_support", "recorded_labels", "recorded_on_simulation", "recorded_plan", "resume_seed",
+           "same_table", "session_info", "simulated_frames", "sweep_key", "table_digest"]
 
 PLAN_KEY = "dm_plan"  # experiment.json: the plan of a DM run
 SWEEP_KIND = "dm_sweep"  # the kind of a swept frequency's group
@@ -105,7 +109,7 @@ def plan_support(kind: str, G: np.ndarray, threshold: float) -> np.ndarray:
     return np.concatenate([seen, seen], 0)
 
 
-def run_plan(exp, plan: Plan, n_repeats: int, G: np.ndarray, threshold: float, say) -> tuple[Plan, int]:
+def recorded_plan(exp, plan: Plan, n_repeats: int, G: np.ndarray, threshold: float, say) -> tuple[Plan, int]:
     """The plan a run uses: ``plan`` without a recording; with one, the recorded plan (a resume
     or a re-fit; a re-fit at another ``threshold`` takes the support of the recorded patterns at
     that threshold, :func:`plan_support`); a new recording stores ``plan`` now.
@@ -150,15 +154,6 @@ def recorded_labels(exp, key: str) -> dict | None:
     return line
 
 
-def take_group(exp, key: str, rig, fn, labels: dict):
-    """``fn(rig)`` for group ``key``: directly without a recording; with one, from the recording
-    when it holds the group (every rig call replayed and checked against the recorded one), else
-    on ``rig`` with every call recorded as one group (:meth:`~torchblur.hardware.recording.Experiment.stage`)."""
-    if exp is None:
-        return fn(rig)
-    return exp.stage(key, SWEEP_KIND, rig, fn, labels=labels)[0]
-
-
 def check_recorded_commands(exp, limit: float) -> None:
     """Refuse to resume a recording whose recorded DM commands exceed ``limit`` (input units):
     every ``pattern_sine`` call's ``amplitude * max |pattern|``.
@@ -186,9 +181,6 @@ def open_recording(record, cfg, rig):
     or opened to resume) or an Experiment, checked against ``cfg`` (only ``rig.*``, ``fit.*``,
     ``model.*`` and ``report.*`` may differ from the recorded config; a read-only recording, a
     re-fit, may also take another ``dm_plan.support_threshold``) and ``rig``'s frame shape."""
-    from torchblur.config import load_dataclass
-    from torchblur.identify.rigs import open_experiment
-
     if record is not None and getattr(record, "writable", True) is False:
         recorded = load_dataclass(type(cfg), str(record.path / "config.yaml"), trusted=False)
         cfg = check_refit_config(recorded, cfg, allowed=("rig", "fit", "model", "report"))
@@ -200,8 +192,6 @@ def check_refit_config(recorded, cfg, *, allowed=("fit", "model", "report")):
     re-fit's ``cfg`` differs from the ``recorded`` config outside the sections in ``allowed``
     and ``dm_plan.support_threshold`` (:func:`torchblur.identify.rigs.check_resume_config`).
     Returns ``cfg`` with the recorded threshold (what the recording's checks compare)."""
-    from torchblur.identify.rigs import check_resume_config
-
     aligned = replace(cfg, dm_plan=replace(cfg.dm_plan, support_threshold=recorded.dm_plan.support_threshold))
     check_resume_config(recorded, aligned, allowed=allowed)
     return aligned
@@ -214,9 +204,6 @@ def table_digest(cfg, base_dir: str | None = None) -> str | None:
     """The SHA-256 of the file ``dm.actuator_table`` names (relative to ``base_dir`` as
     :meth:`~torchblur.dm.mirror.DeformableMirror.from_config` reads it), or None without one:
     the recorded config holds only the path, and the simulated mirror is built from the file."""
-    import hashlib
-    import os
-
     path = cfg.dm.actuator_table
     if not path:
         return None
@@ -229,8 +216,6 @@ def session_info(cfg, rig, table_sha256: str | None = None) -> dict:
     """What a session notes of its rig: ``kind`` (``rig.kind``), ``rig`` (its repr), its input
     range (``input_limit``, None when it has none: a re-fit plans within the recorded one) and
     the actuator table's digest (:func:`table_digest`)."""
-    from torchblur.identify.drive import SESSION_KEY
-
     limit = getattr(rig, "input_limit", None)
     return {"kind": cfg.rig.kind, "rig": repr(rig), TABLE_KEY: table_sha256,
             SESSION_KEY: float(limit) if limit is not None and math.isfinite(float(limit)) else None}
@@ -269,24 +254,3 @@ def resume_seed(seed: int, session: int) -> int:
     if session == 0:
         return int(seed)
     return int(np.random.SeedSequence([int(seed), int(session)]).generate_state(1)[0])
-
-
-@contextlib.contextmanager
-def session(exp, rig_info: dict):
-    """A session of the recording ``exp`` (none: nothing) around the ``with`` block: started with
-    ``rig_info``, ended ``complete``, or ``interrupted`` (KeyboardInterrupt), ``stopped`` (the
-    rig's :class:`~torchblur.hardware.errors.HardwareError`) or ``failed``, then re-raised. A
-    read-only recording (a re-fit) gets no session."""
-    if exp is None or not exp.writable:
-        yield
-        return
-    exp.start_session(rig_info)
-    try:
-        yield
-    except KeyboardInterrupt:
-        exp.end_session("interrupted", "KeyboardInterrupt")
-        raise
-    except BaseException as exc:
-        exp.end_session("stopped" if isinstance(exc, HardwareError) else "failed", f"{type(exc).__name__}: {exc}")
-        raise
-    exp.end_session("complete")
