@@ -36,12 +36,7 @@ ALLOWED_IN_FUNCTION = {
 # in-function imports go): key -> who removes it. Every entry must still be there (so it shrinks).
 PENDING = {
     "torchblur.dm.mirror": "lead: systems.lti to the top (dm/mirror.py is h23b's this session)",
-    "torchblur.hardware.emulator": "hC/hP: config and build_dm move below hardware; then the imports go to the top",
-    "torchblur.hardware.recording": "lead: hardware/ has no owner this session (rig.base, __version__: downward)",
-    "torchblur.hardware.serial_dm_rig": "lead: hardware/ has no owner this session (dm.mirror, dm.shack_hartmann: downward)",
-    "torchblur.hardware.serial_rig": "lead: hardware/ has no owner this session (pylon/aravis import their SDKs on use themselves)",
     "torchblur.identify.calibration": "hP: image.spot_layout to the top (calibration already imports torchblur.image)",
-    "torchblur.identify.read_outputs": "lead/hK: the outputs' reader, after the config and cli moves",
 }
 DOC = Path(__file__).resolve().parents[1] / "docs" / "architecture.md"
 

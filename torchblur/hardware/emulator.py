@@ -64,6 +64,9 @@ from torchblur.hardware.protocol import (E_AXIS, E_BUSY, E_INTERNAL, E_LINE, E_R
                                          ProtocolViolation, format_err, format_ok, parse_command, pattern_checksum)
 from torchblur.rig.base import check_drive, check_slew, command_peak, command_slew
 from torchblur.rig.factory import build_dm
+from torchblur import __version__
+from torchblur.render.trajectory import Multisine
+from torchblur.rig.factory import build_simulated_rig
 
 __all__ = ["FaultConfig", "EmulatorConfig", "load_emulator_config", "EmulatedDevice", "main"]
 
@@ -251,7 +254,6 @@ class EmulatedDevice:
             self._settling_s = mirror.settling_time_s()
             limit = cfg.dm.input_limit if cfg.dm.input_limit is not None else cfg.plant.input_limit
         else:
-            from torchblur.rig.factory import build_simulated_rig
 
             self.rig = build_simulated_rig(cfg)  # its plant, camera, spots and seed sections
             self.axes, self.n_actuators = tuple(self.rig.inputs), 0  # "x", or "x", "y" for a 2x2 plant; no pattern drive
@@ -559,7 +561,6 @@ class EmulatedDevice:
         each tone through the plant's frequency response, rendered by the rig's renderer."""
         import torch
 
-        from torchblur.render.trajectory import Multisine
 
         r = self.rig
         tones = job.args["wave"]["tones"]
@@ -734,7 +735,6 @@ def main(argv: list[str] | None = None, *, config_path: str | None = None) -> in
 
     import torch
 
-    from torchblur import __version__
 
     cfg = load_emulator_config(config_path, list(argv or []))
     torch.set_num_threads(int(cfg.threads))

@@ -37,6 +37,8 @@ from torchblur.hardware.manifest import (MAX_FRAME_SIDE, MAX_MANIFEST_BYTES, MAX
                                          check_meta, check_record, load_json, meta_digest, read_bounded, scan_manifest,
                                          settings_digest)
 from torchblur.hardware.run_folder import RunLock, inside
+from torchblur import __version__
+from torchblur.rig.base import Capture, Rig
 
 __all__ = ["SCHEMA_VERSION", "Experiment", "ReplayFrames", "ReplayRig", "atomic_write_bytes", "camera_info_of"]
 
@@ -120,7 +122,6 @@ def _same(a, b) -> bool:
 
 
 def _bind(method: str, args: tuple, kwargs: dict) -> dict:
-    from torchblur.rig.base import Rig
 
     if not hasattr(Rig, method):  # a command of one kind of rig (pattern_sine: a DM rig's): called by keyword only
         if args:
@@ -416,7 +417,6 @@ class Experiment:
 
     def load_calls(self, key: str) -> list:
         """The recorded rig calls of a group: ``[(method, args, Capture), ...]``."""
-        from torchblur.rig.base import Capture
 
         gl = self.groups[key]
         H, W = self.camera_info.frame_shape
@@ -711,7 +711,6 @@ def _repair(exp: "Experiment", scan: ManifestScan) -> None:
 
 
 def _version() -> str:
-    from torchblur import __version__
 
     return __version__
 

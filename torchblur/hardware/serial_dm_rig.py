@@ -31,6 +31,8 @@ from torchblur.hardware.errors import DeviceError, PatternMismatch
 from torchblur.hardware.protocol import pattern_checksum
 from torchblur.hardware.serial_rig import SerialRig
 from torchblur.rig.base import PatternSines, check_drive, float_list
+from torchblur.dm.mirror import DeformableMirror
+from torchblur.dm.shack_hartmann import ShackHartmann
 
 __all__ = ["SerialDMRig", "describe_pattern", "open_dm_rig"]
 
@@ -141,8 +143,6 @@ def open_dm_rig(cfg, *, log=None) -> SerialDMRig:
         ConfigError: naming ``dm.n_across`` or ``wfs.n_across`` when they differ (the rig is
             closed); AcquisitionStopped: the controller or the camera cannot be reached.
     """
-    from torchblur.dm.mirror import DeformableMirror
-    from torchblur.dm.shack_hartmann import ShackHartmann
 
     mirror = DeformableMirror.from_config(cfg.dm, seed=int(cfg.seed))
     wfs = ShackHartmann.from_config(cfg.wfs, mirror)

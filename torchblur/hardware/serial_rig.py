@@ -29,6 +29,11 @@ from torchblur.hardware.errors import (AcquisitionStopped, ConnectionLost, Devic
                      GarbageReply, HardwareError, StaleFrame)
 from torchblur.hardware.frames import CameraInfo, Frame, FrameSource
 from torchblur.rig.base import check_drive, check_slew, check_tone_grid, command_peak, command_slew, float_list, per_exposure
+from torchblur.hardware.aravis import AravisCamera  # imports its SDK on use
+from torchblur.hardware.frames import EmulatorFrames
+from torchblur.hardware.protocol import MAX_LINE, MAX_TONES, format_number
+from torchblur.hardware.pylon import PylonCamera  # imports its SDK on use
+from torchblur.rig.base import Capture
 
 __all__ = ["SerialRig", "open_frame_source"]
 
@@ -48,19 +53,16 @@ def open_frame_source(spec: str) -> FrameSource:
         ConfigError: a malformed ``pylon://`` URL, naming ``rig.frames``.
         HardwareError: the camera cannot be opened (none found, no such serial).
     """
-    from torchblur.hardware.frames import EmulatorFrames
 
     if spec.startswith("tcp://"):
         return EmulatorFrames(spec)
     if spec.startswith("pylon://"):
-        from torchblur.hardware.pylon import PylonCamera  # the optional pylon extra
 
         try:
             return PylonCamera.from_url(spec)
         except ParameterError as exc:
             raise ConfigError(f"rig.frames: {spec!r}: {str(exc).removeprefix('url: ')}") from None
     if spec.startswith("aravis://"):
-        from torchblur.hardware.aravis import AravisCamera  # the optional aravis extra
 
         try:
             return AravisCamera.from_url(spec)
@@ -368,7 +370,6 @@ class SerialRig:
         return te
 
     def _capture(self, frames: list[Frame], shape: tuple, offsets, meta: dict):
-        from torchblur.rig.base import Capture
 
         H, W = self.frame_shape
         data = torch.stack([f.data for f in frames]).reshape(shape + (H, W))
@@ -451,7 +452,6 @@ class SerialRig:
         tones = [tuple(float(f"{v:.10g}") for v in t) for t in tones]
         check_drive(command_peak(*zip(*tones), base_freq_hz=tones[0][0]), self.input_limit)
         check_slew(command_slew(*zip(*tones), base_freq_hz=tones[0][0]), self.slew_limit)
-        from torchblur.hardware.protocol import MAX_LINE, MAX_TONES, format_number
 
         line = f"WAVE {self.axis} MULTI " + ",".join(":".join(format_number(v) for v in t) for t in tones)
         if len(tones) > MAX_TONES or len(line) > MAX_LINE:

@@ -34,6 +34,12 @@ import json
 from pathlib import Path
 
 from torchblur.errors import ParameterError
+from torchblur.config import IdentifyConfig, load_dataclass, validate
+from torchblur.dm.registration import read_registration_json
+from torchblur.identify.dm_outputs import COMMAND_MATRIX_SCHEMA, read_actuators_csv
+from torchblur.sysid.direct import DirectModelFit
+from torchblur.sysid.frequency_response import FrequencyResponse
+from torchblur.sysid.tf_fit import TransferFunctionFit
 
 __all__ = ["read_outputs", "check_document", "DIRECT_MODEL_SCHEMA", "SOURCE_SCHEMA", "SUMMARY_SCHEMA", "DEMO_SCHEMA"]
 
@@ -71,7 +77,6 @@ def _json(path: Path):
 def _model(path: Path):
     """model.json / model_two_step.json: a TransferFunctionFit, a DirectModelFit (a version-1
     direct document: the checked document), or a failed fit's ``{"error": ...}`` document."""
-    from torchblur.sysid.tf_fit import TransferFunctionFit
 
     doc = _json(path)
     if isinstance(doc, dict) and "schema" not in doc and "error" in doc:
@@ -81,7 +86,6 @@ def _model(path: Path):
         return doc
     try:
         if direct:
-            from torchblur.sysid.direct import DirectModelFit
 
             return DirectModelFit.from_dict(doc)
         return TransferFunctionFit.from_dict(doc)
@@ -93,7 +97,6 @@ def _config(path: Path):
     """config.yaml: the IdentifyConfig, validated as a run's (an outside recording's fit,
     ``rig.kind = "outside"``, is made by :func:`~torchblur.identify.outside.outside_config`, not
     by a rig: its rig section is not checked)."""
-    from torchblur.config import IdentifyConfig, load_dataclass, validate
 
     cfg = load_dataclass(IdentifyConfig, str(path), trusted=False)
     if cfg.rig.kind != "outside":
@@ -104,9 +107,6 @@ def _config(path: Path):
 def _dm(d: Path) -> dict:
     import numpy as np
 
-    from torchblur.identify.dm_outputs import COMMAND_MATRIX_SCHEMA, read_actuators_csv
-    from torchblur.dm.registration import read_registration_json
-    from torchblur.sysid.frequency_response import FrequencyResponse
 
     got = {"dm/frf.json": FrequencyResponse.from_json(d / "frf.json"), "dm/actuators.csv": read_actuators_csv(d / "actuators.csv"),
            "dm/command_matrix.json": check_document(_json(d / "command_matrix.json"), COMMAND_MATRIX_SCHEMA,
@@ -125,7 +125,6 @@ def read_outputs(out) -> dict:
     Raises:
         ParameterError / ConfigError: a file that does not read back, naming it.
     """
-    from torchblur.sysid.frequency_response import FrequencyResponse
 
     out = Path(out)
     got: dict = {}
