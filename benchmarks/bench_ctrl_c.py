@@ -1,6 +1,6 @@
 """Ctrl-C at random moments of a run: one line each time, and what it says to run next finishes.
 
-    python benchmarks/bench_ctrl_c.py [--n 20] [--seed 0] [--small] [--clock process|work|cpu] [--warmup 1] [key=value ...]
+    python benchmarks/bench_ctrl_c.py [--n 20] [--seed 0] [--small] [--clock process|work|cpu] [--warmup 1] [--total T] [--jobs 1] [key=value ...]
 
 Runs ``torchblur identify --out DIR --quiet`` (the console script; the default run; ``--small``: 4 frequencies)
 once uninterrupted to warm up (the first run in a tree compiles its bytecode and reads cold files: with
@@ -17,6 +17,7 @@ counts; exit status 1 if any check failed.
 from __future__ import annotations
 
 import argparse
+import concurrent.futures
 import os
 import random
 import shlex
@@ -149,14 +150,16 @@ def main(argv=None) -> int:
                          "cpu: at a CPU time of the run uniform over the reference run's (the same moments of the work "
                          "whatever the machine's load)")
     ap.add_argument("--warmup", type=int, default=1, help="uninterrupted runs before the timed one (T: the smallest of all)")
+    ap.add_argument("--total", type=float, default=None, help="T measured before (on --clock): no uninterrupted run")
+    ap.add_argument("--jobs", type=int, default=1, help="trials at a time (with --clock cpu the moments do not move with the load)")
     ap.add_argument("overrides", nargs="*")
     args = ap.parse_args(argv)
     base = (SMALL if args.small else []) + list(args.overrides)
     rng = random.Random(args.seed)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        totals = []
-        for r in range(args.warmup + 1):
+        totals = [] if args.total is None else [args.total]
+        for r in range(args.warmup + 1 if args.total is None else 0):
             total, ref = _reference(base, tmp / f"ref{r}", args.clock)
             if ref.returncode not in (0, 4):
                 print(f"the uninterrupted run failed (exit {ref.returncode}): {ref.stderr[-500:]}")
@@ -164,14 +167,19 @@ def main(argv=None) -> int:
             totals.append(total)
         total = min(totals)
         since = {"process": "s from its start", "work": "s from when its output folder appeared", "cpu": "CPU seconds"}[args.clock]
-        print(f"uninterrupted runs: {', '.join(f'{t:.1f}' for t in totals)} {since} (exit {ref.returncode}); {args.n} "
-              f"interruptions uniform in [0, {total:.1f}] {since} (the smallest)")
-        rows = []
-        for k in range(args.n):
-            row = trial(k, rng.uniform(0.0, total), base, tmp, args.clock)
-            rows.append(row)
+        print(f"uninterrupted runs: {', '.join(f'{t:.1f}' for t in totals)} {since}"
+              f"{' (given: --total)' if args.total is not None else ''}; {args.n} interruptions uniform in [0, {total:.1f}] {since} "
+              f"(the smallest), {args.jobs} at a time")
+        moments = [rng.uniform(0.0, total) for _ in range(args.n)]
+
+        def one(k):
+            row = trial(k, moments[k], base, tmp, args.clock)
             print(f"  {k:2d}: SIGINT at {row['after_s']:5.1f} s: exit {row['rc']}, {row['lines']} line(s): "
                   f"{row['what']}; {row['line'][:110]}", flush=True)
+            return row
+
+        with concurrent.futures.ThreadPoolExecutor(max(args.jobs, 1)) as pool:
+            rows = list(pool.map(one, range(args.n)))
     interrupted = [r for r in rows if r["rc"] == 130]
     one = sum(r["lines"] == 1 and not r["traceback"] for r in interrupted)
     resumed = sum(r.get("finished", False) and r.get("resume_rc") in (0, 4) for r in interrupted)

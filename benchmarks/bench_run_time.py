@@ -4,9 +4,10 @@ the machine's load where that is possible (the CPU seconds) and beside them the 
     python benchmarks/bench_run_time.py [--config configs/identify_dm.yaml] [key=value ...]
 
 Runs ``torchblur identify --config CONFIG --out TMP --quiet [key=value ...]`` (the console script,
-from a temporary folder) once and prints: the wall seconds of the whole command; its CPU seconds
-(user + system of every thread, from the child's resource usage: what the work costs, nearly the
-same on a busy machine, where the wall time is several times the idle one); their ratio; the peak
+from a temporary folder) once and prints: the CPU seconds of the whole command (user + system of
+every thread, from the child's resource usage: what the work costs, much less dependent on other
+work on the machine than the wall time, which on a busy machine is several times the idle one); its
+wall seconds; their ratio; the peak
 resident memory; the torch / OpenMP threads it ran with; the 1-minute load average before and
 after (a wall time is an idle machine's figure only where these are below the core count); and the
 run's own timing line (``time:`` of a DM run, ``elapsed`` of a sine run). Exit status: the run's.
@@ -55,7 +56,7 @@ def main(argv=None) -> int:
     cpu = usage.ru_utime + usage.ru_stime
     own = [ln.strip() for ln in lines if re.match(r"\s*(time: |elapsed )", ln)]
     print(f"torchblur identify --config {args.config} {' '.join(args.overrides)}: exit {rc}")
-    print(f"wall {wall:.1f} s, CPU {cpu:.1f} s (user {usage.ru_utime:.1f} + system {usage.ru_stime:.1f}, every thread), "
+    print(f"CPU {cpu:.1f} s (user {usage.ru_utime:.1f} + system {usage.ru_stime:.1f}, every thread), wall {wall:.1f} s, "
           f"CPU/wall {cpu / wall:.2f}, peak memory {usage.ru_maxrss / 1024 ** 2:.2f} GB")
     print(f"threads: OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}, {os.cpu_count()} cores; 1-minute load "
           f"average {load0:.1f} before, {load1:.1f} after (the wall time is an idle machine's only below {os.cpu_count()})")
