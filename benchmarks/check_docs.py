@@ -140,6 +140,17 @@ CLAIMS = [
           [sys.executable, "benchmarks/bench_run_time.py", "--config", "configs/identify_dm.yaml"],
           r"CPU " + NUM + r" s \(user[^)]*\), wall " + NUM + r" s, CPU/wall [0-9.]+, peak memory " + NUM + " GB",
           rtol=(0.3, 0.75, 0.2), speed="slow", source="python benchmarks/bench_run_time.py (the DM config)"),
+    Claim("model stds: the chi2 test over seeds 0..9", "docs/reliability.md",
+          r"seeds 0\.\.9 give p " + NUM + ", " + NUM + ", " + NUM + ", " + NUM + " and " + NUM,
+          [sys.executable, "benchmarks/bench_model_stds.py", "--seeds", "10", "--profile"],
+          "".join(rf"{n} +[0-9.]+ +[0-9.]+ +\d+ +[A-Z ]*?(?:holds|HOLD) +[0-9.]+\.\.[0-9.]+ +" + NUM + r"[^\n]*\n *"
+                  for n in ("dc_gain", "p1_omega_n", "p1_zeta", "p2_rate", "delay_s")), rtol=(0.1,), speed="slow"),
+    Claim("model stds: the delay's profile likelihood", "docs/reliability.md",
+          r"interval reaches " + NUM + r" of the linearised std below and " + NUM + r" above, and the likelihood-ratio z at the "
+          r"true delay differs from \(estimate - truth\) / std by at most " + NUM,
+          [sys.executable, "benchmarks/bench_model_stds.py", "--seeds", "10", "--profile"],
+          r"half-width / linearised std below " + NUM + r" \([^)]*\), above " + NUM + r" \([^)]*\);[^\n]*largest \|z_lin - "
+          r"z_profile\| " + NUM, rtol=(0.01, 0.01, 0.5), speed="slow"),
     Claim("MIMO: every channel against the truth", "README.md",
           r"every channel within " + NUM + r" % and " + NUM + r" deg of the truth",
           [sys.executable, "benchmarks/bench_mimo.py", "--which", "mimo"],
