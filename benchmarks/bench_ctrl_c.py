@@ -1,6 +1,6 @@
 """Ctrl-C at random moments of a run: one line each time, and what it says to run next finishes.
 
-    python benchmarks/bench_ctrl_c.py [--n 20] [--seed 0] [--small] [--clock process|work|cpu] [--warmup 1] [--total T] [--jobs 1] [key=value ...]
+    python benchmarks/bench_ctrl_c.py [--n 20] [--seed 0] [--small] [--clock process|work|cpu] [--warmup 1] [--total T] [--jobs 1] [--only K ...] [key=value ...]
 
 Runs ``torchblur identify --out DIR --quiet`` (the console script; the default run; ``--small``: 4 frequencies)
 once uninterrupted to warm up (the first run in a tree compiles its bytecode and reads cold files: with
@@ -152,6 +152,7 @@ def main(argv=None) -> int:
     ap.add_argument("--warmup", type=int, default=1, help="uninterrupted runs before the timed one (T: the smallest of all)")
     ap.add_argument("--total", type=float, default=None, help="T measured before (on --clock): no uninterrupted run")
     ap.add_argument("--jobs", type=int, default=1, help="trials at a time (with --clock cpu the moments do not move with the load)")
+    ap.add_argument("--only", type=int, nargs="*", default=None, help="run only these trials (the same moments as in the full run)")
     ap.add_argument("overrides", nargs="*")
     args = ap.parse_args(argv)
     base = (SMALL if args.small else []) + list(args.overrides)
@@ -179,7 +180,7 @@ def main(argv=None) -> int:
             return row
 
         with concurrent.futures.ThreadPoolExecutor(max(args.jobs, 1)) as pool:
-            rows = list(pool.map(one, range(args.n)))
+            rows = list(pool.map(one, range(args.n) if args.only is None else args.only))
     interrupted = [r for r in rows if r["rc"] == 130]
     one = sum(r["lines"] == 1 and not r["traceback"] for r in interrupted)
     resumed = sum(r.get("finished", False) and r.get("resume_rc") in (0, 4) for r in interrupted)
