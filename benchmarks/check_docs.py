@@ -140,6 +140,12 @@ CLAIMS = [
           [sys.executable, "benchmarks/bench_run_time.py", "--config", "configs/identify_dm.yaml"],
           r"CPU " + NUM + r" s \(user[^)]*\), wall " + NUM + r" s, CPU/wall [0-9.]+, peak memory " + NUM + " GB",
           rtol=(0.3, 0.75, 0.2), speed="slow", source="python benchmarks/bench_run_time.py (the DM config)"),
+    Claim("Ctrl-C at 20 moments of the default run", "README.md",
+          r"drawn within the uninterrupted run's " + NUM + r" CPU seconds \(the smaller of a warm-up run and a timed one\), "
+          r"interrupted " + NUM + r" of 20 runs",
+          [sys.executable, "benchmarks/bench_ctrl_c.py", "--n", "20", "--clock", "cpu", "--jobs", "4"],
+          r"20 interruptions uniform in \[0, " + NUM + r"\] CPU seconds[\s\S]*?\ninterrupted " + NUM + " of 20",
+          rtol=(0.5, 0.2), speed="slow"),  # CPU seconds move with the machine (and its load) and with them the count
     Claim("model stds: the chi2 test over seeds 0..9", "docs/reliability.md",
           r"seeds 0\.\.9 give p " + NUM + ", " + NUM + ", " + NUM + ", " + NUM + " and " + NUM,
           [sys.executable, "benchmarks/bench_model_stds.py", "--seeds", "10", "--profile"],
