@@ -1,9 +1,11 @@
 """Ctrl-C at random moments of a run: one line each time, and what it says to run next finishes.
 
-    python benchmarks/bench_ctrl_c.py [--n 20] [--seed 0] [--small] [--clock process|work|cpu] [key=value ...]
+    python benchmarks/bench_ctrl_c.py [--n 20] [--seed 0] [--small] [--clock process|work|cpu] [--warmup 1] [--total T] [--jobs 1] [--only K ...] [key=value ...]
 
 Runs ``torchblur identify --out DIR --quiet`` (the console script; the default run; ``--small``: 4 frequencies)
-once uninterrupted to time it (T), then ``--n`` times sends SIGINT at a moment drawn uniformly
+once uninterrupted to warm up (the first run in a tree compiles its bytecode and reads cold files: with
+``--clock cpu`` it used ~40 % more CPU than the later runs, so 8 of 20 moments drawn from it fell after
+those runs had finished), then once more to time it (T, the smaller of the two), then ``--n`` times sends SIGINT at a moment drawn uniformly
 in [0, T] (seeded; ``--clock work``: T and the moments counted from when the run made its output
 folder; ``--clock cpu``: T is the run's CPU time and each signal goes when the run has used the
 drawn CPU seconds, so that on a loaded machine the moments still cover the run's work), and checks: the exit status is 130, stderr holds exactly one line and no
@@ -15,6 +17,7 @@ counts; exit status 1 if any check failed.
 from __future__ import annotations
 
 import argparse
+import concurrent.futures
 import os
 import random
 import shlex
@@ -122,6 +125,20 @@ def trial(k: int, after_s: float, base: list, tmp: Path, clock: str = "process")
     return row
 
 
+def _reference(base: list, out: Path, clock: str):
+    """One uninterrupted run into ``out`` -> (its duration on ``clock``, CompletedProcess with its stderr)."""
+    with open(out.with_suffix(".err"), "w+") as err:
+        proc = subprocess.Popen(_cmd("identify", "--out", str(out), "--quiet", *base), stdout=subprocess.DEVNULL,
+                                stderr=err, text=True, env=_env())
+        if clock == "work":
+            _started(proc, out)
+        t0 = time.perf_counter()
+        _, status, usage = os.wait4(proc.pid, 0)
+        total = usage.ru_utime + usage.ru_stime if clock == "cpu" else time.perf_counter() - t0
+        err.seek(0)
+        return total, subprocess.CompletedProcess(proc.args, os.waitstatus_to_exitcode(status), "", err.read())
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=20)
@@ -132,35 +149,38 @@ def main(argv=None) -> int:
                          "from the moment the run made its output folder, uniform over the reference run's time from there; "
                          "cpu: at a CPU time of the run uniform over the reference run's (the same moments of the work "
                          "whatever the machine's load)")
+    ap.add_argument("--warmup", type=int, default=1, help="uninterrupted runs before the timed one (T: the smallest of all)")
+    ap.add_argument("--total", type=float, default=None, help="T measured before (on --clock): no uninterrupted run")
+    ap.add_argument("--jobs", type=int, default=1, help="trials at a time (with --clock cpu the moments do not move with the load)")
+    ap.add_argument("--only", type=int, nargs="*", default=None, help="run only these trials (the same moments as in the full run)")
     ap.add_argument("overrides", nargs="*")
     args = ap.parse_args(argv)
     base = (SMALL if args.small else []) + list(args.overrides)
     rng = random.Random(args.seed)
-    work = args.clock == "work"
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        with open(tmp / "ref.err", "w+") as err:
-            proc = subprocess.Popen(_cmd("identify", "--out", str(tmp / "ref"), "--quiet", *base), stdout=subprocess.DEVNULL,
-                                    stderr=err, text=True, env=_env())
-            if work:
-                _started(proc, tmp / "ref")
-            t0 = time.perf_counter()
-            _, status, usage = os.wait4(proc.pid, 0)
-            total = usage.ru_utime + usage.ru_stime if args.clock == "cpu" else time.perf_counter() - t0
-            err.seek(0)
-            ref = subprocess.CompletedProcess(proc.args, os.waitstatus_to_exitcode(status), "", err.read())
-        if ref.returncode not in (0, 4):
-            print(f"the uninterrupted run failed (exit {ref.returncode}): {ref.stderr[-500:]}")
-            return 1
+        totals = [] if args.total is None else [args.total]
+        for r in range(args.warmup + 1 if args.total is None else 0):
+            total, ref = _reference(base, tmp / f"ref{r}", args.clock)
+            if ref.returncode not in (0, 4):
+                print(f"the uninterrupted run failed (exit {ref.returncode}): {ref.stderr[-500:]}")
+                return 1
+            totals.append(total)
+        total = min(totals)
         since = {"process": "s from its start", "work": "s from when its output folder appeared", "cpu": "CPU seconds"}[args.clock]
-        print(f"uninterrupted run: {total:.1f} {since} (exit {ref.returncode}); {args.n} interruptions uniform in "
-              f"[0, {total:.1f}] {since}")
-        rows = []
-        for k in range(args.n):
-            row = trial(k, rng.uniform(0.0, total), base, tmp, args.clock)
-            rows.append(row)
+        print(f"uninterrupted runs: {', '.join(f'{t:.1f}' for t in totals)} {since}"
+              f"{' (given: --total)' if args.total is not None else ''}; {args.n} interruptions uniform in [0, {total:.1f}] {since} "
+              f"(the smallest), {args.jobs} at a time")
+        moments = [rng.uniform(0.0, total) for _ in range(args.n)]
+
+        def one(k):
+            row = trial(k, moments[k], base, tmp, args.clock)
             print(f"  {k:2d}: SIGINT at {row['after_s']:5.1f} s: exit {row['rc']}, {row['lines']} line(s): "
                   f"{row['what']}; {row['line'][:110]}", flush=True)
+            return row
+
+        with concurrent.futures.ThreadPoolExecutor(max(args.jobs, 1)) as pool:
+            rows = list(pool.map(one, range(args.n) if args.only is None else args.only))
     interrupted = [r for r in rows if r["rc"] == 130]
     one = sum(r["lines"] == 1 and not r["traceback"] for r in interrupted)
     resumed = sum(r.get("finished", False) and r.get("resume_rc") in (0, 4) for r in interrupted)

@@ -8,9 +8,20 @@ of the same model structure fitted to the noise-free true response (exact to ~1e
 per parameter the rms of (estimate - truth) / std over the seeds whose chosen order is the
 true one (a std that holds gives 0.7-1.4 with 10 seeds most of the time: 95 % of the time the
 rms of 10 N(0, 1) errors is within 0.57-1.43, the "chance range" printed for each count), the
-largest |error| / std, and how many seeds chose another order.
+largest |error| / std, and how many seeds chose another order; and per parameter the chi2 test
+of the seeds' errors: ``sum (error/std)^2`` against chi2 with one degree of freedom per seed
+(two-sided p: a small p says the stds are too small or too large, beyond chance).
 
-    python benchmarks/bench_model_stds.py [--seeds 10] [--first 0] [--threads 1]
+With ``--profile`` it also asks whether the delay's linearised std (Gauss-Newton, the delta
+method) is right where the delay and the real pole above the band are strongly correlated: for
+each seed the delay is fixed on a grid around the estimate and every other parameter refitted
+(the profile likelihood, chi2 of the whitened residuals, ``common_delay_std_s=0`` on both sides
+so that only the linearisation differs); printed: the linearised std, the half-widths of the
+profile's ``delta chi2 <= 1`` interval below and above over that std (1 and 1 where the
+linearisation holds), and the error of the estimate in both measures: ``(estimate - truth) /
+std`` and the signed ``sqrt(chi2(truth) - chi2_min)`` (the likelihood-ratio z at the true delay).
+
+    python benchmarks/bench_model_stds.py [--seeds 10] [--first 0] [--threads 1] [--profile]
 """
 from __future__ import annotations
 
@@ -36,14 +47,36 @@ def true_parameters(cfg, omega, n_poles, n_zeros):
     return fit.param_names, fit.params, fit.rms_relative_error
 
 
+def delay_profile(frf, m, truth_delay, n_poles, n_zeros, k=(-2.0, -1.0, -0.5, 0.5, 1.0, 2.0)):
+    """``(std, lower / std, upper / std, z_lin, z_profile)`` of the delay of ``frf``'s model in
+    ``m``'s structure, with no common timing term (see the module docstring)."""
+    kw = dict(n_poles=n_poles, n_zeros=n_zeros)
+    m0 = fit_transfer_function(frf, **kw)
+    d0, s0 = m0.parameter("delay_s")
+    ds = [d0 + s0 * x for x in k]
+    chi = np.array([fit_transfer_function(frf, delay_s=max(d, 0.0), **kw).chi2 - m0.chi2 for d in ds])
+    x = np.asarray(k)
+    half = []
+    for sign in (-1.0, 1.0):  # the delta chi2 = 1 crossing of a parabola through the minimum and that side's points
+        side = np.sign(x) == sign
+        a, b, c = np.polyfit(np.r_[0.0, x[side]], np.r_[0.0, chi[side]], 2)
+        r = np.roots([a, b, c - 1.0])
+        r = r[np.isreal(r)].real
+        r = r[np.sign(r) == sign]
+        half.append(float(np.min(np.abs(r))) if r.size else float("nan"))
+    dt = fit_transfer_function(frf, delay_s=max(truth_delay, 0.0), **kw).chi2 - m0.chi2
+    return s0, half[0], half[1], (d0 - truth_delay) / s0, math.copysign(math.sqrt(max(dt, 0.0)), d0 - truth_delay)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--first", type=int, default=0, help="the first seed")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--profile", action="store_true", help="the delay's profile likelihood against its linearised std")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    z, other, t0 = {}, [], time.perf_counter()
+    z, other, prof, t0 = {}, [], [], time.perf_counter()
     for seed in range(args.first, args.first + args.seeds):
         cfg = load_config(None, [f"seed={seed}"])
         res = identify(cfg, progress=False)
@@ -57,16 +90,31 @@ def main():
             z.setdefault(name, []).append((v - t) / sd)
         print(f"seed {seed}: " + ", ".join(f"{n} {(m.parameter(n)[0] - t) / m.parameter(n)[1]:+.2f}"
                                            for n, t in zip(names, truth)) + " (error / std)", flush=True)
+        if args.profile:
+            prof.append(delay_profile(res.frf, m, float(truth[list(names).index("delay_s")]), m.n_poles, m.n_zeros))
+            print("    delay, no common term: std {:.3g} us, profile half-widths {:.3f} below, {:.3f} above (x std); "
+                  "z linearised {:+.2f}, z profile {:+.2f}".format(prof[-1][0] * 1e6, *prof[-1][1:]), flush=True)
     print(f"\n{args.seeds} seeds ({args.first}..{args.first + args.seeds - 1}) of the default run, threads={args.threads}, {time.perf_counter() - t0:.0f} s; "
           f"{len(other)} chose another order than 3 poles, 0 zeros: {other}")
-    print(f"{'parameter':>12} {'rms(err/std)':>13} {'max |err/std|':>14} {'seeds':>6}  (holds: rms 0.7..1.4)  chance range")
+    print(f"{'parameter':>12} {'rms(err/std)':>13} {'max |err/std|':>14} {'seeds':>6}  (holds: rms 0.7..1.4)  chance range  "
+          f"chi2 test p  mean(err/std)")
     for name, v in z.items():
         v = np.asarray(v)
         rms = float(np.sqrt(np.mean(v * v)))
         lo, hi = (math.sqrt(scipy.stats.chi2.ppf(q, v.size) / v.size) for q in (0.025, 0.975))
+        c = scipy.stats.chi2(v.size)
+        p = 2 * min(c.cdf(float(v @ v)), c.sf(float(v @ v)))
         print(f"{name:>12} {rms:13.3f} {np.abs(v).max():14.2f} {v.size:6d}  {'holds' if 0.7 <= rms <= 1.4 else 'DOES NOT HOLD':13s}"
-              f"  {lo:.2f}..{hi:.2f}")
-    print("chance range: where the rms of that many N(0, 1) errors falls 95 % of the time (stds that hold: sqrt(chi2_n / n))")
+              f"  {lo:.2f}..{hi:.2f}    {p:9.3f}  {v.mean():+.2f}")
+    print("chance range: where the rms of that many N(0, 1) errors falls 95 % of the time (stds that hold: sqrt(chi2_n / n)); "
+          "chi2 test p: two-sided, sum (err/std)^2 against chi2 with one degree of freedom per seed")
+    if prof:
+        a = np.asarray(prof)
+        zl, zp = a[:, 3], a[:, 4]
+        print(f"delay profile over {len(a)} seeds: half-width / linearised std below {np.nanmean(a[:, 1]):.3f} "
+              f"({np.nanmin(a[:, 1]):.3f}..{np.nanmax(a[:, 1]):.3f}), above {np.nanmean(a[:, 2]):.3f} ({np.nanmin(a[:, 2]):.3f}.."
+              f"{np.nanmax(a[:, 2]):.3f}); rms z linearised {np.sqrt(np.mean(zl ** 2)):.3f}, profile {np.sqrt(np.mean(zp ** 2)):.3f}; "
+              f"largest |z_lin - z_profile| {np.max(np.abs(zl - zp)):.3f}")
 
 
 if __name__ == "__main__":

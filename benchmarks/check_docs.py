@@ -126,16 +126,37 @@ CLAIMS = [
           r"multisine: 40 problems[^\n]*\n[^\n]*\n  psf_from_still \(auto\) +" + NUM + " +" + NUM + " +" + NUM + " +" + NUM,
           rtol=(0.05,), speed="slow", source="python benchmarks/bench_hcipy_routes.py --jobs 2 (each route's psf_from_still line)"),
 
+    # the DM run's cost: CPU-seconds (what the work costs, little moved by other work on the machine), the
+    # wall time on an idle machine (a busy one's is several times it: within 4x, as the default run's) and the peak memory
     Claim("the DM run's time", "docs/deformable_mirrors.md",
-          r"--out runs/dm` from a fresh clone on an idle 2-core machine: " + NUM + r" s wall for the whole command",
-          _tb("identify", "--config", "configs/identify_dm.yaml", "--out", "{out}"),
-          r"time: " + NUM + r" s \(calibration", rtol=(0.75,), speed="slow",  # a machine's load: within 4x, as the default run's
-          source="torchblur identify --config configs/identify_dm.yaml --out runs/dm (report.txt: time)"),
+          r"--out runs/dm` from a fresh clone on a 2-core machine: " + NUM + r" CPU-seconds for the whole command, " + NUM
+          + r" s wall on an idle machine, peak memory " + NUM + " GB",
+          [sys.executable, "benchmarks/bench_run_time.py", "--config", "configs/identify_dm.yaml"],
+          r"CPU " + NUM + r" s \(user[^)]*\), wall " + NUM + r" s, CPU/wall [0-9.]+, peak memory " + NUM + " GB",
+          rtol=(0.3, 0.75, 0.2), speed="slow", source="python benchmarks/bench_run_time.py (the DM config)"),
     Claim("the DM run's time (README)", "README.md",
-          r"0\.187 of what one actuator at a time needs for the same accuracy\): " + NUM + r" s for the whole command",
-          _tb("identify", "--config", "configs/identify_dm.yaml", "--out", "{out}"),
-          r"time: " + NUM + r" s \(calibration", rtol=(0.75,), speed="slow",
-          source="torchblur identify --config configs/identify_dm.yaml --out runs/dm (report.txt: time)"),
+          r"`python benchmarks/bench_run_time\.py` runs the command and prints these figures\): " + NUM + r" CPU-seconds "
+          r"for the whole command, " + NUM + r" s wall on an idle machine \([^)]*\), peak memory " + NUM + " GB",
+          [sys.executable, "benchmarks/bench_run_time.py", "--config", "configs/identify_dm.yaml"],
+          r"CPU " + NUM + r" s \(user[^)]*\), wall " + NUM + r" s, CPU/wall [0-9.]+, peak memory " + NUM + " GB",
+          rtol=(0.3, 0.75, 0.2), speed="slow", source="python benchmarks/bench_run_time.py (the DM config)"),
+    Claim("Ctrl-C at 20 moments of the default run", "README.md",
+          r"drawn within the uninterrupted run's " + NUM + r" CPU seconds \(the smaller of a warm-up run and a timed one\), "
+          r"interrupted " + NUM + r" of 20 runs",
+          [sys.executable, "benchmarks/bench_ctrl_c.py", "--n", "20", "--clock", "cpu", "--jobs", "4"],
+          r"20 interruptions uniform in \[0, " + NUM + r"\] CPU seconds[\s\S]*?\ninterrupted " + NUM + " of 20",
+          rtol=(0.5, 0.2), speed="slow"),  # CPU seconds move with the machine (and its load) and with them the count
+    Claim("model stds: the chi2 test over seeds 0..9", "docs/reliability.md",
+          r"seeds 0\.\.9 give p " + NUM + ", " + NUM + ", " + NUM + ", " + NUM + " and " + NUM,
+          [sys.executable, "benchmarks/bench_model_stds.py", "--seeds", "10", "--profile"],
+          "".join(rf"{n} +[0-9.]+ +[0-9.]+ +\d+ +[A-Z ]*?(?:holds|HOLD) +[0-9.]+\.\.[0-9.]+ +" + NUM + r"[^\n]*\n *"
+                  for n in ("dc_gain", "p1_omega_n", "p1_zeta", "p2_rate", "delay_s")), rtol=(0.1,), speed="slow"),
+    Claim("model stds: the delay's profile likelihood", "docs/reliability.md",
+          r"interval reaches " + NUM + r" of the linearised std below and " + NUM + r" above, and the likelihood-ratio z at the "
+          r"true delay differs from \(estimate - truth\) / std by at most " + NUM,
+          [sys.executable, "benchmarks/bench_model_stds.py", "--seeds", "10", "--profile"],
+          r"half-width / linearised std below " + NUM + r" \([^)]*\), above " + NUM + r" \([^)]*\);[^\n]*largest \|z_lin - "
+          r"z_profile\| " + NUM, rtol=(0.01, 0.01, 0.5), speed="slow"),
     Claim("MIMO: every channel against the truth", "README.md",
           r"every channel within " + NUM + r" % and " + NUM + r" deg of the truth",
           [sys.executable, "benchmarks/bench_mimo.py", "--which", "mimo"],

@@ -1,6 +1,6 @@
 """Run README.md's code blocks in order, as a new user copies them, and say how each ended.
 
-    python benchmarks/readme_blocks.py [--root DIR] [--skip-install] [--with-tests] [--skip TEXT ...]
+    python benchmarks/readme_blocks.py [--root DIR] [--skip-install] [--with-tests] [--skip TEXT ...] [--lines N ...]
 
 Run it in a fresh clone (``git clone REPO DIR``): every ```bash block runs in one bash in
 ``--root`` (the Quick start's ``python3 -m venv .venv && . .venv/bin/activate`` stays active for
@@ -58,12 +58,13 @@ def main(argv=None) -> int:
     ap.add_argument("--timeout", type=float, default=1800)
     ap.add_argument("--with-tests", action="store_true", help="run the test block too (the whole suite)")
     ap.add_argument("--skip", action="append", default=[], help="skip blocks containing this text (repeatable)")
+    ap.add_argument("--lines", type=int, nargs="*", default=None, help="run only the blocks that start at these README lines")
     args = ap.parse_args(argv)
     root = Path(args.root).resolve()
     failed = 0
     prelude = ". .venv/bin/activate 2>/dev/null; "
     for lang, code, line in blocks(root / "README.md"):
-        if lang not in ("bash", "python"):
+        if lang not in ("bash", "python") or (args.lines is not None and line not in args.lines):
             continue
         skips = list(_SKIP) + [(k, "asked (--skip)") for k in args.skip]
         if not args.with_tests:
