@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def _cmd(*argv):
     """The ``torchblur`` console script beside this Python (what a user runs), else ``-m``."""
     script = Path(sys.executable).parent / "torchblur"
-    return [str(script), *argv] if script.is_file() else [sys.executable, "-m", "torchblur.identify.cli", *argv]
+    return [str(script), *argv] if script.is_file() else [sys.executable, "-m", "torchblur.cli", *argv]
 
 
 def main(argv=None) -> int:
