@@ -82,6 +82,29 @@ def figures(res, truth, dyn) -> dict:
     return out
 
 
+def d_error_lines(res, truth, dyn) -> list[str]:
+    """Where D(jw)'s error against the linearised truth comes from, per frequency: its rms(error/std),
+    the mean relative error of the large entries (over 0.3 of the column's largest) along the truth
+    (gain) and across it (phase, rad) beside their median relative std (a bias shows as a mean
+    beyond it), and the live actuators with the largest rms(error/std)."""
+    live = np.flatnonzero(~dyn.dead)
+    Dt = (truth["shift_slopes"][:, :, None] * dyn.response(res.freq_hz)[None])[:, live]
+    D, C = res.D[:, live], res.D_cov[:, live]
+    big = np.abs(Dt) > 0.3 * np.abs(Dt).max(0, keepdims=True)
+    rel_std = np.sqrt(np.trace(C, axis1=-2, axis2=-1) / 2) / np.abs(Dt)
+    r = (D - Dt) / Dt
+    lines = []
+    for k, f in enumerate(res.freq_hz):
+        b = big[:, :, k]
+        lines.append(f"{f:7.4g} Hz: rms(error/std) {_z_complex(D[:, :, k] - Dt[:, :, k], C[:, :, k]):.2f}; large entries: gain "
+                     f"{np.nanmean(r[:, :, k][b].real) * 100:+.2f} %, phase {np.nanmean(r[:, :, k][b].imag):+.4f} rad (median "
+                     f"relative std {np.nanmedian(rel_std[:, :, k][b]) * 100:.2f} %)")
+    z = np.array([_z_complex(D[:, j] - Dt[:, j], C[:, j]) for j in range(len(live))])
+    worst = np.argsort(-np.nan_to_num(z))[:5]
+    lines.append("largest per actuator: " + ", ".join(f"{int(live[j])}: {z[j]:.2f}" for j in worst) + f" (median {np.nanmedian(z):.2f})")
+    return lines
+
+
 def physics_checks() -> None:
     """The generator's checks at the benchmark's worst exposure, and what thresholding sees."""
     import torch
@@ -146,6 +169,8 @@ def run_case(name: str, quick: bool, psf: str = "auto") -> None:
     print(f"  D0 rms error / max|D0| against the fitted-shift truth: {f['D0_rms_error_over_max'] * 100:.3f} % (<= 1 %)")
     print(f"  rms(error/std) (0.8..1.3): D(jw) {f['D_rms_z']:.2f}; mode {f['mode_rms_z']:.2f}, damping {f['damping_rms_z']:.2f}, "
           f"delay {f['delay_rms_z']:.2f}, DC gain {f['dc_gain_rms_z']:.2f}")
+    for line in d_error_lines(res, truth, dyn):
+        print(f"  D(jw) error, {line}")
     print(f"  dead actuator status {f['dead_status']} (want dead), weak {f['weak_status']} (want weak), other live actuators not ok: "
           f"{f['other_not_ok']}")
     print(f"  spot fits' reduced chi2 median {f['spot_chi2_median']:.3g} (<= 1.2); poor_fit actuators {f['poor_fit_actuators']}")
