@@ -17,7 +17,7 @@ the dead and weak actuators' status; the spot fits' reduced chi2 median; the ver
 code; the times. ``--quick``: 4 frequencies, one repeat (512 frames a case; the full plan is
 configs/identify_dm.yaml's 16 frequencies x 2 repeats, 4096 frames).
 
-    python benchmarks/bench_dm_hcipy.py --quick [--case aligned|misregistered|both|none] [--psf auto|kernel|gaussian]
+    python benchmarks/bench_dm_hcipy.py --quick [--case aligned|misregistered|both|none] [--psf auto|kernel|gaussian] [--target-px 1.5]
 
 First the generator's checks (batched FFT vs HCIPy's own forward, the time integral's node
 rule at the worst exposure, what thresholding the still frame finds).
@@ -137,8 +137,9 @@ def physics_checks() -> None:
     sys.stdout.flush()
 
 
-def run_case(name: str, quick: bool, psf: str = "auto") -> None:
+def run_case(name: str, quick: bool, psf: str = "auto", target_px: float | None = None) -> None:
     over = (["sweep.n=4", "dm_plan.budget_frames=512"] if quick else []) + [f"fit.psf={psf}"]
+    over += [] if target_px is None else [f"excitation.target_px={target_px}"]
     cfg = load_config("configs/identify_dm.yaml", over)
     t0 = time.perf_counter()
     gen = hs.HcipySH(CASES[name])
@@ -156,7 +157,7 @@ def run_case(name: str, quick: bool, psf: str = "auto") -> None:
             pickle.dump({"res": res, "truth": truth, "dyn": dyn, "cfg_poor_fit_chi2": float(cfg.fit.poor_fit_chi2)}, fh)
     v = final_verdict(res, float(cfg.fit.poor_fit_chi2))
     f = figures(res, truth, dyn)
-    print(f"== {name}: {gen.optics}; fit.psf={psf}")
+    print(f"== {name}: {gen.optics}; fit.psf={psf}; excitation.target_px={cfg.excitation.target_px:g}")
     for line in res.log:
         if line.startswith(("spots:", "latency:", "dm plan:")):
             print("  " + line)
@@ -188,6 +189,9 @@ def main(argv=None) -> None:
                    help="none: only the generator's checks")
     p.add_argument("--psf", choices=["auto", "kernel", "gaussian"], default="auto",
                    help="fit.psf (auto: each spot's kernel where its Gaussian fails the still's test, as on a real camera)")
+    p.add_argument("--target-px", type=float, default=None,
+                   help="excitation.target_px (default: the config's 3 px; the spots change shape under the DM's curvature, "
+                        "a bias that grows faster than the motion: benchmarks/bench_dm_spot_causes.py)")
     args = p.parse_args(argv)
     import torch
     from threadpoolctl import threadpool_limits
@@ -197,7 +201,7 @@ def main(argv=None) -> None:
     with threadpool_limits(limits=1):
         physics_checks()
         for name in {"both": ["aligned", "misregistered"], "none": []}.get(args.case, [args.case]):
-            run_case(name, args.quick, args.psf)
+            run_case(name, args.quick, args.psf, args.target_px)
 
 
 if __name__ == "__main__":
