@@ -17,7 +17,7 @@ the dead and weak actuators' status; the spot fits' reduced chi2 median; the ver
 code; the times. ``--quick``: 4 frequencies, one repeat (512 frames a case; the full plan is
 configs/identify_dm.yaml's 16 frequencies x 2 repeats, 4096 frames).
 
-    python benchmarks/bench_dm_hcipy.py --quick [--case aligned|misregistered|both|none] [--psf auto|kernel|gaussian]
+    python benchmarks/bench_dm_hcipy.py --quick [--case aligned|misregistered|both|none] [--psf auto|kernel|gaussian] [--target-px 1.5]
 
 First the generator's checks (batched FFT vs HCIPy's own forward, the time integral's node
 rule at the worst exposure, what thresholding the still frame finds).
@@ -82,6 +82,29 @@ def figures(res, truth, dyn) -> dict:
     return out
 
 
+def d_error_lines(res, truth, dyn) -> list[str]:
+    """Where D(jw)'s error against the linearised truth comes from, per frequency: its rms(error/std),
+    the mean relative error of the large entries (over 0.3 of the column's largest) along the truth
+    (gain) and across it (phase, rad) beside their median relative std (a bias shows as a mean
+    beyond it), and the live actuators with the largest rms(error/std)."""
+    live = np.flatnonzero(~dyn.dead)
+    Dt = (truth["shift_slopes"][:, :, None] * dyn.response(res.freq_hz)[None])[:, live]
+    D, C = res.D[:, live], res.D_cov[:, live]
+    big = np.abs(Dt) > 0.3 * np.abs(Dt).max(0, keepdims=True)
+    rel_std = np.sqrt(np.trace(C, axis1=-2, axis2=-1) / 2) / np.abs(Dt)
+    r = (D - Dt) / Dt
+    lines = []
+    for k, f in enumerate(res.freq_hz):
+        b = big[:, :, k]
+        lines.append(f"{f:7.4g} Hz: rms(error/std) {_z_complex(D[:, :, k] - Dt[:, :, k], C[:, :, k]):.2f}; large entries: gain "
+                     f"{np.nanmean(r[:, :, k][b].real) * 100:+.2f} %, phase {np.nanmean(r[:, :, k][b].imag):+.4f} rad (median "
+                     f"relative std {np.nanmedian(rel_std[:, :, k][b]) * 100:.2f} %)")
+    z = np.array([_z_complex(D[:, j] - Dt[:, j], C[:, j]) for j in range(len(live))])
+    worst = np.argsort(-np.nan_to_num(z))[:5]
+    lines.append("largest per actuator: " + ", ".join(f"{int(live[j])}: {z[j]:.2f}" for j in worst) + f" (median {np.nanmedian(z):.2f})")
+    return lines
+
+
 def physics_checks() -> None:
     """The generator's checks at the benchmark's worst exposure, and what thresholding sees."""
     import torch
@@ -114,8 +137,9 @@ def physics_checks() -> None:
     sys.stdout.flush()
 
 
-def run_case(name: str, quick: bool, psf: str = "auto") -> None:
+def run_case(name: str, quick: bool, psf: str = "auto", target_px: float | None = None) -> None:
     over = (["sweep.n=4", "dm_plan.budget_frames=512"] if quick else []) + [f"fit.psf={psf}"]
+    over += [] if target_px is None else [f"excitation.target_px={target_px}"]
     cfg = load_config("configs/identify_dm.yaml", over)
     t0 = time.perf_counter()
     gen = hs.HcipySH(CASES[name])
@@ -133,7 +157,7 @@ def run_case(name: str, quick: bool, psf: str = "auto") -> None:
             pickle.dump({"res": res, "truth": truth, "dyn": dyn, "cfg_poor_fit_chi2": float(cfg.fit.poor_fit_chi2)}, fh)
     v = final_verdict(res, float(cfg.fit.poor_fit_chi2))
     f = figures(res, truth, dyn)
-    print(f"== {name}: {gen.optics}; fit.psf={psf}")
+    print(f"== {name}: {gen.optics}; fit.psf={psf}; excitation.target_px={cfg.excitation.target_px:g}")
     for line in res.log:
         if line.startswith(("spots:", "latency:", "dm plan:")):
             print("  " + line)
@@ -146,6 +170,8 @@ def run_case(name: str, quick: bool, psf: str = "auto") -> None:
     print(f"  D0 rms error / max|D0| against the fitted-shift truth: {f['D0_rms_error_over_max'] * 100:.3f} % (<= 1 %)")
     print(f"  rms(error/std) (0.8..1.3): D(jw) {f['D_rms_z']:.2f}; mode {f['mode_rms_z']:.2f}, damping {f['damping_rms_z']:.2f}, "
           f"delay {f['delay_rms_z']:.2f}, DC gain {f['dc_gain_rms_z']:.2f}")
+    for line in d_error_lines(res, truth, dyn):
+        print(f"  D(jw) error, {line}")
     print(f"  dead actuator status {f['dead_status']} (want dead), weak {f['weak_status']} (want weak), other live actuators not ok: "
           f"{f['other_not_ok']}")
     print(f"  spot fits' reduced chi2 median {f['spot_chi2_median']:.3g} (<= 1.2); poor_fit actuators {f['poor_fit_actuators']}")
@@ -163,6 +189,9 @@ def main(argv=None) -> None:
                    help="none: only the generator's checks")
     p.add_argument("--psf", choices=["auto", "kernel", "gaussian"], default="auto",
                    help="fit.psf (auto: each spot's kernel where its Gaussian fails the still's test, as on a real camera)")
+    p.add_argument("--target-px", type=float, default=None,
+                   help="excitation.target_px (default: the config's 3 px; the spots change shape under the DM's curvature, "
+                        "a bias that grows faster than the motion: benchmarks/bench_dm_spot_causes.py)")
     args = p.parse_args(argv)
     import torch
     from threadpoolctl import threadpool_limits
@@ -172,7 +201,7 @@ def main(argv=None) -> None:
     with threadpool_limits(limits=1):
         physics_checks()
         for name in {"both": ["aligned", "misregistered"], "none": []}.get(args.case, [args.case]):
-            run_case(name, args.quick, args.psf)
+            run_case(name, args.quick, args.psf, args.target_px)
 
 
 if __name__ == "__main__":
