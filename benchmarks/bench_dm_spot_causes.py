@@ -42,9 +42,9 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 import hcipy_sh as hs  # noqa: E402
 
 from torchblur.dm.actuator_fit import fit_actuators  # noqa: E402
-from torchblur.dm.budget import dm_plan  # noqa: E402
+from torchblur.config.budget import dm_plan  # noqa: E402
 from torchblur.dm.spot_fit import crop_problems, fit_spot_problems, pattern_responses  # noqa: E402
-from torchblur.identify.config import load_config  # noqa: E402
+from torchblur.config import load_config  # noqa: E402
 from torchblur.render.camera import camera_noise_std  # noqa: E402
 from torchblur.render.psf import KernelPSF  # noqa: E402
 from torchblur.render.window import ExposureWindow  # noqa: E402
