@@ -31,11 +31,13 @@ mean-slope sensor, about 1 for diffraction spots (HCIPy's square lenslets: 0.90 
 it their Gaussian influence functions' coupling 0.147-0.150 of the true 0.15, where the mean slope
 alone fitted 0.126 with a reduced chi2 of 18, ``benchmarks/bench_dm_registration.py --hcipy``).
 On a partly lit subaperture the weight is cut at the pupil's edge, which is not what
-diffraction there does: the registration is fitted to the FULLY lit subapertures only (their
-square inside the pupil), and the fitted model then gives G on every subaperture.
+diffraction there does: where the fit on every subaperture fails the model rule
+(:func:`~torchblur.sysid.model_check.model_fails`), the registration is fitted again on the FULLY
+lit subapertures (their square inside the pupil) and that fit is kept when it explains them
+better (``fitted_on``); the fitted model then gives G on every subaperture.
 
 Fit (:func:`fit_registration`). Weighted nonlinear least squares of ``D0[s, j] = g_j G[s,
-j](theta)`` over every finite entry with a positive std on a fully lit subaperture, theta =
+j](theta)`` over every finite entry with a positive std (of the subapertures above), theta =
 (shift_x, shift_y, rotation, magnification, width, beta), ``G(theta)`` the geometry matrix of
 :meth:`ShackHartmann.geometry_matrix <torchblur.dm.shack_hartmann.ShackHartmann.geometry_matrix>`
 at that registration (beta 0) mixed with the diffraction weighting, and one free
@@ -152,8 +154,7 @@ class RegistrationFit:
         std: ``{parameter: std}`` for :data:`PARAMETERS` and :data:`SENSOR_PARAMETERS` (plus
             ``influence_width``, pitches).
         cov: ``[6, 6]`` covariance of (shift_x, shift_y, rotation rad, magnification, width pitches, beta).
-        chi2, dof, reduced_chi2: the fit's chi2 over ``entries - actuators - 6`` degrees of freedom
-            (the entries of the fully lit subapertures).
+        chi2, dof, reduced_chi2: the fit's chi2 over ``entries - actuators - 6`` degrees of freedom.
         inflated: the stds were multiplied by ``sqrt(reduced_chi2)`` (> 1).
         G: ``[2M, N]`` the geometry matrix at the fitted registration (px per input unit);
             G_std: ``[2M, N]`` its std from the registration's (first order).
@@ -162,6 +163,7 @@ class RegistrationFit:
         ok: the fit ran (else ``registration`` is the start, ``G`` the start's and ``message`` says why).
         message: why it did not, or how it ended.
         n_entries, n_columns: D0 entries and actuators used.
+        fitted_on: "every subaperture", or "the fully lit subapertures" (module docstring).
     """
 
     registration: Registration
@@ -180,6 +182,7 @@ class RegistrationFit:
     message: str
     n_entries: int
     n_columns: int
+    fitted_on: str = "every subaperture"
 
     def line(self) -> str:
         """One report line."""
@@ -190,7 +193,7 @@ class RegistrationFit:
                 f"{s['shift_y']:.4f} actuator pitches, rotation {r.rotation_deg:+.3f} +- {s['rotation_deg']:.3f} deg, magnification "
                 f"{r.magnification:.5f} +- {s['magnification']:.5f}, coupling {r.coupling:.4f} +- {s['coupling']:.4f}, sensor "
                 f"weighting {self.diffraction_weight:.3f} +- {s['diffraction_weight']:.3f} (0 mean slope, 1 diffraction spots; fitted "
-                f"on {self.n_entries} entries of the fully lit subapertures); reduced chi2 "
+                f"on {self.n_entries} entries of {self.fitted_on}); reduced chi2 "
                 f"{self.reduced_chi2:.3g}{' (stds inflated by its square root)' if self.inflated else ''}{self._judged()}; dc_gain "
                 f"is relative to the fitted influence function's peak")
 
@@ -356,14 +359,26 @@ def fit_registration(D0, D0_std, wfs, actuator_xy, coupling: float, *, start: Re
     quad = diffraction_quadrature(centres, wfs.side, R)
     if np.shape(D0) != (2 * wfs.n_valid, xy.shape[0]):
         raise ShapeError(f"D0: expected [2M, N] = [{2 * wfs.n_valid}, {xy.shape[0]}], got {np.shape(D0)}")
-    B, wt, cols = _whitened(D0, np.where(np.tile(fully_lit(wfs), 2)[:, None], D0_std, np.nan))  # the fully lit subapertures
+    full = lambda th: registration_model(th, rows, xy, wfs.slope_px, quad)  # noqa: E731
+    fit = _fit_on(D0, D0_std, full, start, coupling, xy.shape[0])
+    lit = np.tile(fully_lit(wfs), 2)[:, None]
+    if fit.ok and model_fails(fit.reduced_chi2, fit.dof) and not lit.all():
+        inner = _fit_on(D0, np.where(lit, D0_std, np.nan), full, start, coupling, xy.shape[0])
+        if inner.ok and inner.reduced_chi2 < fit.reduced_chi2:
+            return replace(inner, fitted_on="the fully lit subapertures")
+    return fit
+
+
+def _fit_on(D0, D0_std, full, start, coupling, N) -> RegistrationFit:
+    """:func:`fit_registration` on the entries of ``D0`` with a usable std; ``full``: theta ->
+    (G, dG) of every subaperture."""
+    B, wt, cols = _whitened(D0, D0_std)
     theta0 = np.append(_theta(start, coupling), 0.0)
     sub = np.flatnonzero(cols)
     n_entries = int((wt[:, sub] > 0).sum())
     dof = n_entries - sub.size - theta0.size
-    full = lambda th: registration_model(th, rows, xy, wfs.slope_px, quad)  # noqa: E731
     if sub.size == 0 or dof < 1:
-        return _failed(start, theta0, full, xy.shape[0], f"{n_entries} usable D0 entries over {sub.size} columns: fewer than the "
+        return _failed(start, theta0, full, N, f"{n_entries} usable D0 entries over {sub.size} columns: fewer than the "
                                                          f"unknowns", n_entries, int(sub.size))
     part = lambda th: tuple(a[..., sub] for a in full(th))  # noqa: E731
     cache = {}
@@ -379,10 +394,10 @@ def fit_registration(D0, D0_std, wfs, actuator_xy, coupling: float, *, start: Re
         sol = optimize.least_squares(lambda th: proj(th)[0], theta0, jac=lambda th: proj(th)[1], method="lm", x_scale="jac",
                                      xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
     except ValueError as exc:  # a residual that is not finite (a width driven to 0)
-        return _failed(start, theta0, full, xy.shape[0], f"the fit failed ({exc})", n_entries, int(sub.size))
+        return _failed(start, theta0, full, N, f"the fit failed ({exc})", n_entries, int(sub.size))
     r, J, g_sub, dg = proj(sol.x)
     if not (np.isfinite(sol.x).all() and sol.x[3] > 0 and sol.x[4] > 0 and np.isfinite(r).all()):  # beta may leave [0, 1]
-        return _failed(start, theta0, full, xy.shape[0], f"the fit left the model's domain ({sol.message})", n_entries, int(sub.size))
+        return _failed(start, theta0, full, N, f"the fit left the model's domain ({sol.message})", n_entries, int(sub.size))
     chi2 = float(r @ r)
     red = chi2 / dof
     try:
@@ -390,13 +405,13 @@ def fit_registration(D0, D0_std, wfs, actuator_xy, coupling: float, *, start: Re
     except np.linalg.LinAlgError:
         cov = np.full((theta0.size,) * 2, np.nan)
     if not (np.isfinite(cov).all() and np.all(np.diag(cov) > 0)):
-        return _failed(start, theta0, full, xy.shape[0], "D0 does not determine the registration (singular information matrix)",
+        return _failed(start, theta0, full, N, "D0 does not determine the registration (singular information matrix)",
                        n_entries, int(sub.size))
     inflated = red > 1
     cov = cov * max(1.0, red)
-    gain = np.full(xy.shape[0], np.nan)
+    gain = np.full(N, np.nan)
     gain[sub] = g_sub
-    gvar = np.zeros(xy.shape[0])
+    gvar = np.zeros(N)
     gvar[sub] = np.einsum("jk,kl,jl->j", dg, cov, dg)
     G, dG = full(sol.x)
     G_std = np.sqrt(np.abs(np.einsum("ksj,kl,lsj->sj", dG, cov, dG)))
@@ -458,7 +473,7 @@ def write_registration_json(path, fit: RegistrationFit, support: dict | None = N
            "message": fit.message, "units": dict(PARAMETERS) | {"influence_width": "actuator pitch"},
            "registration": {k: getattr(r, k) for k, _ in PARAMETERS} | {"influence_width": influence_width(r.coupling)},
            "sensor": {"diffraction_weight": fit.diffraction_weight if math.isfinite(fit.diffraction_weight) else None,
-                      "units": dict(SENSOR_PARAMETERS), "fitted_on": "the fully lit subapertures"},
+                      "units": dict(SENSOR_PARAMETERS), "fitted_on": fit.fitted_on},
            "std": {k: (v if math.isfinite(v) else None) for k, v in fit.std.items()},
            "reduced_chi2": fit.reduced_chi2 if math.isfinite(fit.reduced_chi2) else None, "dof": fit.dof,
            "stds_inflated_by_sqrt_reduced_chi2": bool(fit.inflated), "n_entries": fit.n_entries, "n_columns": fit.n_columns,
@@ -493,7 +508,7 @@ def register_and_refit(freq_hz, D, D_cov, table, wfs, actuator_xy, coupling: flo
                        threshold: float = 0.01):
     """The run's step after :func:`~torchblur.dm.actuator_fit.fit_actuators` on the nominal G:
     the registration fitted to ``table``'s static columns, the actuators fitted again on the
-    fitted G (so ``dc_gain`` is relative to the fitted registration's influence function, its
+    fitted G (so ``dc_gain`` is relative to the fitted influence function's peak, its
     std with the registration's share) and the plan's ``support [2M, N]`` re-checked against the
     fitted G (:func:`support_check`; None without a support).
 
