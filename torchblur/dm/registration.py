@@ -27,9 +27,10 @@ plane, linear in the phase) the x shift is the mean of ``d phi / dx`` under the 
 projection of the image change on the spot's derivative is, by Parseval, a pupil integral
 against ``x`` times the lenslet's triple self-convolution). The model's geometry matrix is
 ``(1 - beta) G_mean + beta G_diffraction``, ``beta`` (``diffraction_weight``) fitted: 0 for a
-mean-slope sensor, about 1 for diffraction spots (HCIPy's square lenslets: 0.90 to 1.01, and with
-it their Gaussian influence functions' coupling 0.147-0.150 of the true 0.15, where the mean slope
-alone fitted 0.126 with a reduced chi2 of 18, ``benchmarks/bench_dm_registration.py --hcipy``).
+mean-slope sensor, about 1 for diffraction spots (HCIPy's square lenslets: 0.995 to 1.008, and
+with it their Gaussian influence functions' coupling within 0.0006 of the true 0.15, where the mean
+slope alone fitted 0.12 with a reduced chi2 of 23; ``benchmarks/bench_dm_registration.py --hcipy``,
+docs/deformable_mirrors.md).
 On a partly lit subaperture the weight is cut at the pupil's edge, which is not what
 diffraction there does: where the fit on every subaperture fails the model rule
 (:func:`~torchblur.sysid.model_check.model_fails`), the registration is fitted again on the FULLY
