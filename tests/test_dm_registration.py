@@ -214,3 +214,22 @@ def test_a_mirror_the_model_does_not_describe_is_flagged_by_the_model_rule():
     flagged = registration_guard(v, bad)
     assert not flagged.trustworthy and flagged.exit_code == 4 and "does not explain D0" in flagged.line
     assert registration_guard(v, dc_replace(bad, ok=False)) is v  # not fitted: the nominal geometry, said by its own line
+
+
+def test_partly_lit_subapertures_the_model_does_not_describe_are_left_out():
+    """Partly lit subapertures whose spots the model does not describe (slopes distorted by up to
+    20 % there, as a diffraction spot cut by the pupil's edge is): the fit on every subaperture
+    fails the model rule, the fit on the fully lit ones passes and is kept, and the registration
+    is right."""
+    mirror, wfs = _small()
+    rng = np.random.default_rng(2)
+    G = wfs.geometry_matrix(mirror, registration=MISREG)
+    lit = fully_lit(wfs)
+    M = G.shape[0] // 2
+    distort = np.tile(np.where(lit, 1.0, 1 + 0.2 * np.cos(np.arange(M))), 2)[:, None]
+    fit = fit_registration(*_noisy_D0(G * distort, np.ones(12), rng), wfs, mirror.actuator_xy, coupling=0.15)
+    r = fit.registration
+    assert fit.ok and fit.fitted_on == "the fully lit subapertures" and 0 < lit.sum() < M
+    assert fit.n_entries == 2 * int(lit.sum()) * 12 and fit.reduced_chi2 < 1.5 and "fails the model rule" not in fit.line()
+    assert abs(r.shift_x - 0.25) < 0.02 and abs(r.shift_y + 0.25) < 0.02 and abs(r.rotation_deg - 1.5) < 0.1
+    assert abs(r.magnification - 1.03) < 0.003 and fit.G.shape == G.shape
