@@ -12,12 +12,21 @@ to the lenslets, and misregistered (0.25 actuator pitch shift in x, 1.5 deg, 3 %
 Printed per case: every live actuator's largest mode, damping and delay error; D0's rms error over
 max |D0| against the fitted-shift truth (each spot's least-squares shift under a small static poke of
 each actuator, tests/hcipy_sh.py ``shift_truth``, times the actuator's gain); rms(error/std) of
-D(jw) (against ``shift_truth`` x H_j(jw), the linearised truth) and of every actuator parameter;
+D(jw) (against ``shift_truth`` x H_j(jw), the linearised truth) and of every actuator parameter
+(the DC gain's truth is the generator's gain g_j: actuator j's static surface per unit command at
+its peak relative to HCIPy's own influence function, a Gaussian of peak 1 in the generator's
+stroke; the same definition as ``dc_gain``, relative to the fitted influence function's peak);
 the dead and weak actuators' status; the spot fits' reduced chi2 median; the verdict and its exit
 code; the times. ``--quick``: 4 frequencies, one repeat (512 frames a case; the full plan is
 configs/identify_dm.yaml's 16 frequencies x 2 repeats, 4096 frames).
 
     python benchmarks/bench_dm_hcipy.py --quick [--case aligned|misregistered|both|none] [--psf auto|kernel|gaussian] [--target-px 1.5]
+                                        [--device cuda] [--jobs N]
+
+``--device cuda``: the spot fits (every (pattern, frequency, spot) problem) run on that device
+(:func:`on_device`), and so does the generator's propagation (its FFTs in torch,
+``HcipySH.device``); ``--jobs N``: the frames' propagation on the CPU uses N threads (scipy.fft
+workers, BLAS) and torch N threads (default 1: the 2-core machine's figures).
 
 First the generator's checks (batched FFT vs HCIPy's own forward, the time integral's node
 rule at the worst exposure, what thresholding the still frame finds).
@@ -113,6 +122,9 @@ def physics_checks() -> None:
     from torchblur.render.camera import camera_noise_std
 
     gen = hs.HcipySH()
+    peak = gen._if.max(1) / gen.stroke  # each HCIPy influence function's largest sample per unit command (stroke units)
+    print(f"  HCIPy's influence functions (the DC gain's reference): Gaussian, peak 1 stroke per unit command (sampled peaks "
+          f"{peak.min():.4f}..{peak.max():.4f}), {gen.optics.coupling:g} at one pitch")
     rng = np.random.default_rng(11)
     still = gen.still() * 3000.0  # a 3000 e- peak, 20 e- background, 3 e- read noise
     img = rng.poisson(still + 20.0).astype(float) - 20.0 + 3.0 * rng.standard_normal(still.shape)
@@ -137,18 +149,51 @@ def physics_checks() -> None:
     sys.stdout.flush()
 
 
-def run_case(name: str, quick: bool, psf: str = "auto", target_px: float | None = None) -> None:
-    over = (["sweep.n=4", "dm_plan.budget_frames=512"] if quick else []) + [f"fit.psf={psf}"]
+def on_device(device: str):
+    """Make the DM route's spot fits run on ``device``: wraps
+    :func:`torchblur.dm.spot_fit.fit_spot_problems` (and the DM plan's name for it) so
+    that its tensors go to ``device`` and its :class:`~torchblur.dm.spot_fit.SpotFits` come back
+    to the CPU. Returns a function that undoes it."""
+    import dataclasses
+
+    import torch
+
+    from torchblur.dm import spot_fit
+    from torchblur.identify import dm_plan
+
+    dev = torch.device(device)
+    original = spot_fit.fit_spot_problems
+
+    def move(x):
+        if isinstance(x, spot_fit.PerSpotPSF):
+            return spot_fit.PerSpotPSF(move(x.gaussian), move(x.kernel), x.use_kernel.to(dev))
+        return x.to(dev) if hasattr(x, "to") else x
+
+    def fit(crops, psf, window, omega, **kw):
+        kw = {k: move(v) for k, v in kw.items()}
+        fits = original(move(crops), move(psf), move(window), move(omega), **kw)
+        return dataclasses.replace(fits, **{f.name: getattr(fits, f.name).cpu() for f in dataclasses.fields(fits)
+                                            if isinstance(getattr(fits, f.name), torch.Tensor)})
+
+    spot_fit.fit_spot_problems = dm_plan.fit_spot_problems = fit
+    return lambda: (setattr(spot_fit, "fit_spot_problems", original), setattr(dm_plan, "fit_spot_problems", original))
+
+
+def run_case(name: str, quick: bool, psf: str = "auto", jobs: int = 1, extra=(), progress: bool = False, device: str = "cpu",
+             target_px: float | None = None) -> None:
+    over = (["sweep.n=4", "dm_plan.budget_frames=512"] if quick else []) + [f"fit.psf={psf}"] + list(extra)
     over += [] if target_px is None else [f"excitation.target_px={target_px}"]
     cfg = load_config("configs/identify_dm.yaml", over)
     t0 = time.perf_counter()
     gen = hs.HcipySH(CASES[name])
+    gen.workers = jobs
+    gen.device = None if device == "cpu" else device
     dyn = hs.draw_dynamics(gen.n_actuators, DYNAMICS_SEED)
     rig = hr.hcipy_dm_rig(cfg, gen, dyn)
     truth = rig.truth(None)
     t_gen = time.perf_counter() - t0
     t0 = time.perf_counter()
-    res = identify(cfg, rig, progress=False)
+    res = identify(cfg, rig, progress=progress)
     t_run = time.perf_counter() - t0
     if os.environ.get("BENCH_DM_HCIPY_SAVE"):  # keep the run (re-read the figures without re-running)
         import pickle
@@ -162,7 +207,7 @@ def run_case(name: str, quick: bool, psf: str = "auto", target_px: float | None 
         if line.startswith(("spots:", "latency:", "dm plan:")):
             print("  " + line)
     print(f"  {res.n_frames} sweep frames ({len(res.freq_hz)} frequencies {res.freq_hz[0]:.4g}..{res.freq_hz[-1]:.4g} Hz), generator set-up "
-          f"{t_gen:.1f} s, run {t_run:.1f} s ({', '.join(f'{k} {v:.1f} s' for k, v in res.timing_s.items())}); mean Gauss-Legendre "
+          f"{t_gen:.1f} s, run {t_run:.1f} s = {t_run / res.n_frames * 1e3:.0f} ms a sweep frame ({', '.join(f'{k} {v:.1f} s' for k, v in res.timing_s.items())}); mean Gauss-Legendre "
           f"nodes per frame {np.mean(rig.nodes_used):.1f}")
     print(f"  live actuators, largest error: mode {f['mode_max_rel_error'] * 100:.3f} % (done when <= 0.5 %), damping "
           f"{f['damping_max_rel_error'] * 100:.2f} % (<= 5 %), delay {f['delay_max_error_us']:.2f} us (<= 2 us), DC gain "
@@ -192,16 +237,34 @@ def main(argv=None) -> None:
     p.add_argument("--target-px", type=float, default=None,
                    help="excitation.target_px (default: the config's 3 px; the spots change shape under the DM's curvature, "
                         "a bias that grows faster than the motion: benchmarks/bench_dm_spot_causes.py)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="a config override after --quick's (e.g. sweep.n=2 for a smoke test)")
+    p.add_argument("--progress", action="store_true", help="the run's log lines as it goes (stderr)")
+    p.add_argument("--no-checks", action="store_true", help="skip the generator's checks")
+    p.add_argument("--device", default="cpu", help="where the spot fits run (cuda: on_device)")
+    p.add_argument("--jobs", type=int, default=1, help="threads of the frames' propagation (scipy.fft, BLAS) and of torch")
     args = p.parse_args(argv)
     import torch
     from threadpoolctl import threadpool_limits
 
-    torch.set_num_threads(1)
-    print(f"torch threads 1, BLAS threads 1; {'quick' if args.quick else 'full'} plan; HCIPy dynamics seed {DYNAMICS_SEED}")
-    with threadpool_limits(limits=1):
-        physics_checks()
-        for name in {"both": ["aligned", "misregistered"], "none": []}.get(args.case, [args.case]):
-            run_case(name, args.quick, args.psf, args.target_px)
+    if args.device.startswith("cuda") and not torch.cuda.is_available():
+        raise SystemExit("--device cuda: no CUDA device here")
+    torch.set_num_threads(args.jobs)
+    if args.progress:
+        import logging
+
+        logging.basicConfig(stream=sys.stderr, level=logging.INFO, format="%(relativeCreated)9.0f ms  %(message)s")
+    undo = on_device(args.device) if args.device != "cpu" else (lambda: None)
+    print(f"torch threads {args.jobs}, BLAS and scipy.fft threads {args.jobs}; spot fits on {args.device}; "
+          f"{'quick' if args.quick else 'full'} plan{''.join(' ' + o for o in args.set)}; HCIPy dynamics seed {DYNAMICS_SEED}")
+    try:
+        with threadpool_limits(limits=args.jobs):
+            if not args.no_checks:
+                physics_checks()
+            for name in {"both": ["aligned", "misregistered"], "none": []}.get(args.case, [args.case]):
+                run_case(name, args.quick, args.psf, args.jobs, args.set, args.progress, args.device, args.target_px)
+    finally:
+        undo()
 
 
 if __name__ == "__main__":

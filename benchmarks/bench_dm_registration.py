@@ -18,11 +18,21 @@ of shift (pitches), rotation (deg), magnification (relative), coupling, and rms(
 parameter (the stds hold where it is 0.8-1.3), the reduced chi2, rms(gain error/std).
 
     python benchmarks/bench_dm_registration.py [--seeds 12] [--noise 5e-4] [--shift 0.25 -0.25] [--rotation 1.5] [--magnification 1.03]
+    python benchmarks/bench_dm_registration.py --hcipy [--seeds 4] [--noise 1e-3] [--shift 0.25 0] ...
+
+``--hcipy``: D0 from an independent optics engine instead, HCIPy's Shack-Hartmann
+(tests/hcipy_sh.py ``shift_truth``: each spot's least-squares shift under a small static poke;
+square lenslets with their diffraction spots and crosstalk, HCIPy's Gaussian influence functions
+of coupling 0.15, the mirror at ``--shift``/``--rotation``/``--magnification``), the true
+coupling 0.15 and the gains' truth relative to HCIPy's influence functions' peak. The sensor
+weighting (``diffraction_weight``) is printed; its truth is not known there (about 1).
 """
 from __future__ import annotations
 
 import argparse
 import math
+import os
+import sys
 import time
 
 import numpy as np
@@ -89,24 +99,32 @@ def main(argv=None) -> int:
     ap.add_argument("--rotation", type=float, default=1.5)
     ap.add_argument("--magnification", type=float, default=1.03)
     ap.add_argument("--coupling", type=float, default=0.16, help="the mirror's true coupling (nominal 0.15)")
+    ap.add_argument("--hcipy", action="store_true", help="D0 from HCIPy's Shack-Hartmann (module docstring)")
     args = ap.parse_args(argv)
     mirror = DeformableMirror.build(8, coupling=0.15)
     wfs = ShackHartmann(n_across=10, pupil_diameter=8.0)
     t0 = time.perf_counter()
-    G_true = independent_G(wfs, mirror.actuator_xy, args.shift, args.rotation, args.magnification, args.coupling)
+    if args.hcipy:
+        sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
+        import hcipy_sh as hs
+
+        gen = hs.HcipySH(hs.SHOptics(shift=tuple(args.shift), rotation_deg=args.rotation, magnification=args.magnification))
+        G_true, args.coupling = gen.shift_truth(), gen.optics.coupling
+    else:
+        G_true = independent_G(wfs, mirror.actuator_xy, args.shift, args.rotation, args.magnification, args.coupling)
     t_quad = time.perf_counter() - t0
     truth = Registration(shift_x=args.shift[0], shift_y=args.shift[1], rotation_deg=args.rotation, magnification=args.magnification,
                          coupling=args.coupling)
     scale = np.abs(G_true).max()
-    print(f"independent D0 (scipy quad, {t_quad:.1f} s): {wfs.n_valid} subapertures x {mirror.n_actuators} actuators; noise {args.noise:g} "
+    print(f"independent D0 ({'HCIPy shift_truth' if args.hcipy else 'scipy quad'}, {t_quad:.1f} s): {wfs.n_valid} subapertures x {mirror.n_actuators} actuators; noise {args.noise:g} "
           f"of its largest element")
-    for q in (8, 16, 32):
+    for q in () if args.hcipy else (8, 16, 32):
         G_model = ShackHartmann(n_across=10, pupil_diameter=8.0, oversample=q).geometry_matrix(mirror, registration=truth)
         print(f"  torchblur's G (shack_hartmann.mean_slopes, oversample {q}) at the true registration: largest difference "
               f"{np.abs(G_model - G_true).max() / scale:.2e} of the largest element, rms {np.sqrt(np.mean((G_model - G_true) ** 2)) / scale:.2e}")
     names = ("shift_x", "shift_y", "rotation_deg", "magnification", "coupling")
     true = np.array([truth.shift_x, truth.shift_y, truth.rotation_deg, truth.magnification, args.coupling])
-    errs, zs, chi2, gz, times = [], [], [], [], []
+    errs, zs, chi2, gz, times, betas, ratio = [], [], [], [], [], [], []
     for seed in range(args.seeds):
         rng = np.random.default_rng(seed)
         gain = 1 + 0.02 * rng.standard_normal(mirror.n_actuators)
@@ -120,17 +138,21 @@ def main(argv=None) -> int:
         e = np.array([getattr(r, k) for k in names]) - true
         z = e / np.array([fit.std[k] for k in names])
         errs.append(e), zs.append(z), chi2.append(fit.reduced_chi2)
+        betas.append((fit.diffraction_weight, fit.std["diffraction_weight"]))
         live = gain > 0
+        ratio.append(np.median(fit.gain[live] / gain[live]))
         gz.append((fit.gain - gain)[live] / np.sqrt(std[0, 0] ** 2 / (fit.G[:, live] ** 2).sum(0) + fit.gain_var_registration[live]))
         print(f"seed {seed:2d}: error shift {e[0]:+.5f} {e[1]:+.5f} pitch, rotation {e[2]:+.4f} deg, magnification {e[3] / true[3] * 100:+.4f} %,"
-              f" coupling {e[4]:+.5f}; z {' '.join(f'{v:+.2f}' for v in z)}; reduced chi2 {fit.reduced_chi2:.3f}{' (inflated)' if fit.inflated else ''}")
+              f" coupling {e[4]:+.5f}; z {' '.join(f'{v:+.2f}' for v in z)}; sensor weighting {betas[-1][0]:.3f} +- "
+              f"{betas[-1][1]:.3f}; reduced chi2 {fit.reduced_chi2:.3f}{' (inflated)' if fit.inflated else ''}")
     errs, zs = np.array(errs), np.array(zs)
     rms = np.sqrt(np.mean(zs**2, 0))
     print(f"over {args.seeds} seeds (fit {np.median(times):.2f} s each, median): largest |error| shift {np.abs(errs[:, :2]).max():.5f} pitch "
           f"(bound 0.02), rotation {np.abs(errs[:, 2]).max():.4f} deg (0.1), magnification {np.abs(errs[:, 3]).max() / true[3] * 100:.4f} % (0.3), "
           f"coupling {np.abs(errs[:, 4]).max():.5f}")
     print("rms(error/std): " + ", ".join(f"{k} {v:.2f}" for k, v in zip(names, rms)) + f"; all: {np.sqrt(np.mean(zs**2)):.2f} "
-          f"(honest: 0.8-1.3); reduced chi2 median {np.median(chi2):.3f}; rms(gain error/std) {np.sqrt(np.mean(np.square(gz))):.2f}")
+          f"(honest: 0.8-1.3); reduced chi2 median {np.median(chi2):.3f}; rms(gain error/std) {np.sqrt(np.mean(np.square(gz))):.2f}; "
+          f"fitted/true gain, median over the live actuators {min(ratio):.4f}..{max(ratio):.4f} over the seeds")
     ok = (np.abs(errs[:, :2]).max() < 0.02 and np.abs(errs[:, 2]).max() < 0.1 and np.abs(errs[:, 3]).max() / true[3] < 0.003
           and 0.8 <= np.sqrt(np.mean(zs**2)) <= 1.3)
     print(f"done-when (0.02 pitch, 0.1 deg, 0.3 %, rms(error/std) 0.8-1.3): {'holds' if ok else 'FAILS'}")

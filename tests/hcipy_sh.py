@@ -121,6 +121,9 @@ class HcipySH:
 
     def __init__(self, optics: SHOptics = SHOptics()):
         self.optics = o = optics
+        self.workers = 1  # scipy.fft threads of the batched propagation (a benchmark's --jobs)
+        self.device = None  # a torch device: the batched propagation in torch there (a benchmark's --device)
+        self._on = None
         n_px = o.n_lenslets * o.pitch_px
         self.shape = (n_px, n_px)
         d = o.pitch_px * _PIXEL  # lenslet pitch (m)
@@ -206,15 +209,39 @@ class HcipySH:
         else:
             buf = np.zeros((S,) + self._tf.shape, dtype=np.complex64)
             buf[(slice(None),) + self._cut] = e.reshape(S, H, W)
-        f = scipy.fft.fft2(buf, workers=1, overwrite_x=True)
+        f = scipy.fft.fft2(buf, workers=self.workers, overwrite_x=True)
         f *= self._tf
-        f = scipy.fft.ifft2(f, workers=1, overwrite_x=True)
+        f = scipy.fft.ifft2(f, workers=self.workers, overwrite_x=True)
         return f if self._cut is None else f[(slice(None),) + self._cut]
 
     def intensity(self, commands) -> np.ndarray:
-        """``[S, H, W]`` camera intensity (1 at the brightest still spot's peak)."""
+        """``[S, H, W]`` camera intensity (1 at the brightest still spot's peak); with
+        :attr:`device` set, :meth:`field`'s propagation in torch on that device (the same
+        single-precision FFTs; a test checks the two agree)."""
+        if self.device is not None:
+            return self._intensity_torch(commands)
         f = self.field(commands)
         return (f.real**2 + f.imag**2) / self._norm
+
+    def _intensity_torch(self, commands) -> np.ndarray:
+        import torch
+
+        dev = torch.device(self.device)
+        if self._on is None or self._on[0] != dev:
+            self._on = (dev, torch.as_tensor(self._if, device=dev), torch.as_tensor(self._pupil_lens, device=dev),
+                        torch.as_tensor(self._tf, device=dev))
+        _, infl, lens, tf = self._on
+        phase = (2 * (2 * np.pi / _WAVELENGTH) * (torch.as_tensor(np.asarray(commands, dtype=float), device=dev) @ infl)).float()
+        e = torch.polar(torch.ones_like(phase), phase) * lens
+        S, (H, W) = e.shape[0], self.shape
+        if self._cut is None:
+            buf = e.reshape(S, H, W)
+        else:
+            buf = torch.zeros((S,) + tuple(tf.shape), dtype=torch.complex64, device=dev)
+            buf[(slice(None),) + self._cut] = e.reshape(S, H, W)
+        f = torch.fft.ifft2(torch.fft.fft2(buf) * tf)
+        f = f if self._cut is None else f[(slice(None),) + self._cut]
+        return ((f.real**2 + f.imag**2) / self._norm).cpu().numpy()
 
     def reference_intensity(self, command) -> np.ndarray:
         """``[H, W]`` the same by HCIPy's own ``DeformableMirror.forward`` and the sensor optics'
@@ -288,7 +315,8 @@ class HcipySH:
             x, w = np.polynomial.legendre.leggauss(int(S))
             t = t0 + (x + 1) * te / 2
             cmd = A[None, :] * np.sin(omega * t[:, None] + ph[None, :])
-            for s in range(0, int(S), 32):
-                out[i] += np.tensordot(w[s:s + 32], self.intensity(cmd[s:s + 32]), 1)
+            step = 32 if self.device is None else 256
+            for s in range(0, int(S), step):
+                out[i] += np.tensordot(w[s:s + step], self.intensity(cmd[s:s + step]), 1)
             out[i] *= te / 2
         return out

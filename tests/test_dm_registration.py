@@ -8,8 +8,8 @@ import pytest
 from torchblur.dm.actuator_fit import fit_actuators
 from torchblur.dm.mirror import DeformableMirror
 from torchblur.dm.plans import sparse_plan
-from torchblur.dm.registration import (Registration, fit_registration, read_registration_json, register_and_refit,
-                                       registration_model, support_check, write_registration_json)
+from torchblur.dm.registration import (Registration, diffraction_quadrature, fit_registration, fully_lit, read_registration_json,
+                                       register_and_refit, registration_model, support_check, write_registration_json)
 from torchblur.dm.shack_hartmann import ShackHartmann, lit_rows, mean_slopes
 from torchblur.errors import ConfigError, ParameterError, ShapeError
 
@@ -41,6 +41,44 @@ def test_model_is_mean_slopes_at_the_registration_and_its_derivatives():
         num = (registration_model(theta + e, rows, mirror.actuator_xy, 1.0)[0]
                - registration_model(theta - e, rows, mirror.actuator_xy, 1.0)[0]) / 2e-6
         np.testing.assert_allclose(dG[k], num, rtol=0, atol=1e-7 * np.abs(dG[k]).max())
+    # with the sensor weighting beta: (1 - beta) G_mean + beta G_diffraction, and its derivatives
+    quad = diffraction_quadrature(wfs.centres, wfs.side, 2.0)
+    th6 = np.append(theta, 0.7)
+    G6, dG6 = registration_model(th6, rows, mirror.actuator_xy, 1.0, quad)
+    Gd = registration_model(np.append(theta, 1.0), rows, mirror.actuator_xy, 1.0, quad)[0]
+    np.testing.assert_allclose(G6, 0.3 * G_ref + 0.7 * Gd, rtol=0, atol=1e-13 * np.abs(G_ref).max())
+    for k in range(6):
+        e = np.zeros(6)
+        e[k] = 1e-6
+        num = (registration_model(th6 + e, rows, mirror.actuator_xy, 1.0, quad)[0]
+               - registration_model(th6 - e, rows, mirror.actuator_xy, 1.0, quad)[0]) / 2e-6
+        np.testing.assert_allclose(dG6[k], num, rtol=0, atol=1e-7 * np.abs(dG6[k]).max())
+
+
+def test_diffraction_weighting_is_the_best_fit_shift_of_a_square_lenslets_spot():
+    """The weight K(a) B(b) of the module docstring: the least-squares shift of the diffraction
+    spot of a square lenslet (an FFT of its pupil, zero padded: the whole focal plane) under a
+    small phase is the K B-weighted mean of its x slope, not the plain mean."""
+    n, pad = 32, 512
+    u = (np.arange(n) + 0.5) / n - 0.5  # pupil samples over the side, [-1/2, 1/2]
+    y, x = np.meshgrid(u, u, indexing="ij")
+
+    def image(phase):
+        e = np.zeros((pad, pad), complex)
+        e[:n, :n] = np.exp(1j * phase)
+        return np.abs(np.fft.fft2(e)) ** 2
+
+    eps = 1e-3
+    tilt = (image(eps * x) - image(-eps * x)) / (2 * eps)  # the image's change per unit mean x slope
+
+    def shift(phase):  # best-fit shift, per unit of the tilt's
+        dI = (image(eps * phase) - image(-eps * phase)) / (2 * eps)
+        return float((dI * tilt).sum() / (tilt * tilt).sum())
+
+    K, B = 5 / 64 - 3 * x**2 / 8 + x**4 / 4, 3 / 4 - y**2
+    for phase, slope in ((x**3, 3 * x**2), (x * y**2, y**2), (x**3 + x**2 * y, 3 * x**2 + 2 * x * y)):
+        weighted, plain = float((K * B * slope).sum() / (K * B).sum()), float(slope.mean())
+        assert abs(shift(phase) - weighted) < 1e-2 * abs(plain) and abs(weighted - plain) > 0.05 * abs(plain)
 
 
 def _noisy_D0(G, gain, rng, rel=2e-3):
@@ -59,10 +97,12 @@ def test_fit_recovers_a_misregistration_with_honest_stds():
         D0, std = _noisy_D0(G_true, gain, rng)
         fit = fit_registration(D0, std, wfs, mirror.actuator_xy, coupling=0.15)
         r = fit.registration
-        assert fit.ok and fit.dof == D0.size - 12 - 5 and 0.6 < fit.reduced_chi2 < 1.4
-        err = np.array([r.shift_x - 0.25, r.shift_y + 0.25, r.rotation_deg - 1.5, r.magnification - 1.03, r.coupling - 0.17])
+        assert fit.ok and fit.dof == D0.size - 12 - 6 and 0.6 < fit.reduced_chi2 < 1.4 and fit.fitted_on == "every subaperture"
+        err = np.array([r.shift_x - 0.25, r.shift_y + 0.25, r.rotation_deg - 1.5, r.magnification - 1.03, r.coupling - 0.17,
+                        fit.diffraction_weight])  # a mean-slope sensor: weighting 0
         assert np.all(np.abs(err[:4]) < [0.02, 0.02, 0.1, 0.003])
-        z.append(err / np.array([fit.std[k] for k in ("shift_x", "shift_y", "rotation_deg", "magnification", "coupling")]))
+        z.append(err / np.array([fit.std[k] for k in ("shift_x", "shift_y", "rotation_deg", "magnification", "coupling",
+                                                      "diffraction_weight")]))
         live = gain > 0
         gz.append((fit.gain - gain)[live] / np.sqrt(std[0, 0] ** 2 / (fit.G[:, live] ** 2).sum(0) + fit.gain_var_registration[live]))
     rms = np.sqrt(np.mean(np.square(z), 0))
@@ -174,3 +214,22 @@ def test_a_mirror_the_model_does_not_describe_is_flagged_by_the_model_rule():
     flagged = registration_guard(v, bad)
     assert not flagged.trustworthy and flagged.exit_code == 4 and "does not explain D0" in flagged.line
     assert registration_guard(v, dc_replace(bad, ok=False)) is v  # not fitted: the nominal geometry, said by its own line
+
+
+def test_partly_lit_subapertures_the_model_does_not_describe_are_left_out():
+    """Partly lit subapertures whose spots the model does not describe (slopes distorted by up to
+    20 % there, as a diffraction spot cut by the pupil's edge is): the fit on every subaperture
+    fails the model rule, the fit on the fully lit ones passes and is kept, and the registration
+    is right."""
+    mirror, wfs = _small()
+    rng = np.random.default_rng(2)
+    G = wfs.geometry_matrix(mirror, registration=MISREG)
+    lit = fully_lit(wfs)
+    M = G.shape[0] // 2
+    distort = np.tile(np.where(lit, 1.0, 1 + 0.2 * np.cos(np.arange(M))), 2)[:, None]
+    fit = fit_registration(*_noisy_D0(G * distort, np.ones(12), rng), wfs, mirror.actuator_xy, coupling=0.15)
+    r = fit.registration
+    assert fit.ok and fit.fitted_on == "the fully lit subapertures" and 0 < lit.sum() < M
+    assert fit.n_entries == 2 * int(lit.sum()) * 12 and fit.reduced_chi2 < 1.5 and "fails the model rule" not in fit.line()
+    assert abs(r.shift_x - 0.25) < 0.02 and abs(r.shift_y + 0.25) < 0.02 and abs(r.rotation_deg - 1.5) < 0.1
+    assert abs(r.magnification - 1.03) < 0.003 and fit.G.shape == G.shape

@@ -137,7 +137,7 @@ def test_cli_routes_a_dm_config(tmp_path, capsys, monkeypatch, small_run):
 
     doc = read_outputs(tmp_path / "run")["dm/registration.json"]
     assert doc["fitted"] and doc["registration"] == small_run.registration.registration and doc["units"]["shift_x"] == "actuator pitch"
-    assert "relative to the fitted registration's influence function" in (tmp_path / "run" / "dm" / "README.txt").read_text()
+    assert "relative to the fitted influence function's peak" in (tmp_path / "run" / "dm" / "README.txt").read_text()
     assert "dm registration (fitted to D0)" in out.err
     assert np.load(tmp_path / "run" / "dm" / "interaction_matrix.npy").shape == (24, 9)
 

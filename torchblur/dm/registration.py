@@ -14,10 +14,34 @@ actuator pitches, the pupil and the subapertures fixed) actuator j sits at
 influence function has the width ``magnification * w(coupling)`` there: ``coupling`` is the
 mirror's own (its influence at one of its own pitches), the relay magnifies both.
 
+Sensor weighting. What a spot's fitted shift measures depends on the spot: a centroid, or the
+shift of a Gaussian spot (torchblur's simulator), is the MEAN slope over the subaperture
+(:func:`~torchblur.dm.shack_hartmann.mean_slopes`); the best-fit shift of a real lenslet's
+diffraction spot (a sinc^2 fitted with its own still image as the kernel) weights the slope
+toward the subaperture's centre. For a fully lit square lenslet of side d (continuous focal
+plane, linear in the phase) the x shift is the mean of ``d phi / dx`` under the weight
+
+    K(a) B(b),   K(a) = 5/64 - 3 a^2 / 8 + a^4 / 4,   B(b) = 3/4 - b^2
+
+(a, b the position along and across the slope over d, in [-1/2, 1/2]: the best-fit shift's
+projection of the image change on the spot's derivative is, by Parseval, a pupil integral
+against ``x`` times the lenslet's triple self-convolution). The model's geometry matrix is
+``(1 - beta) G_mean + beta G_diffraction``, ``beta`` (``diffraction_weight``) fitted: 0 for a
+mean-slope sensor, about 1 for diffraction spots (HCIPy's square lenslets: 0.995 to 1.008, and
+with it their Gaussian influence functions' coupling within 0.0006 of the true 0.15, where the mean
+slope alone fitted 0.12 with a reduced chi2 of 23; ``benchmarks/bench_dm_registration.py --hcipy``,
+docs/deformable_mirrors.md).
+On a partly lit subaperture the weight is cut at the pupil's edge, which is not what
+diffraction there does: where the fit on every subaperture fails the model rule
+(:func:`~torchblur.sysid.model_check.model_fails`), the registration is fitted again on the FULLY
+lit subapertures (their square inside the pupil) and that fit is kept when it explains them
+better (``fitted_on``); the fitted model then gives G on every subaperture.
+
 Fit (:func:`fit_registration`). Weighted nonlinear least squares of ``D0[s, j] = g_j G[s,
-j](theta)`` over every finite entry with a positive std, theta = (shift_x, shift_y, rotation,
-magnification, width), ``G(theta)`` the geometry matrix of :meth:`ShackHartmann.geometry_matrix
-<torchblur.dm.shack_hartmann.ShackHartmann.geometry_matrix>` at that registration, and one free
+j](theta)`` over every finite entry with a positive std (of the subapertures above), theta =
+(shift_x, shift_y, rotation, magnification, width, beta), ``G(theta)`` the geometry matrix of
+:meth:`ShackHartmann.geometry_matrix <torchblur.dm.shack_hartmann.ShackHartmann.geometry_matrix>`
+at that registration (beta 0) mixed with the diffraction weighting, and one free
 gain ``g_j`` per actuator solved in closed form inside the residual (variable projection: a
 dead or weak actuator's column only counts as much as its own signal, so it cannot drag the
 registration). ``scipy.optimize.least_squares`` (Levenberg-Marquardt) with the analytic
@@ -28,7 +52,11 @@ noise). The gains' std gets the registration's share, ``(dg/dtheta) cov (dg/dthe
 (:func:`with_registration_stds`), so that a ``dc_gain`` relative to the fitted geometry keeps
 an honest std.
 
-Shapes: S = 2M slopes (x of all M subapertures, then y), N actuators.
+``dc_gain`` (:data:`DC_GAIN_REFERENCE`): an actuator's static surface per unit command relative to
+the fitted influence function's peak (a Gaussian of the fitted width, peak 1 at the actuator):
+1 is an actuator whose static column is ``G`` at the fitted registration and weighting.
+
+Shapes: S = 2M slopes (x of all M subapertures, then y), N actuators, Q quadrature points.
 """
 from __future__ import annotations
 
@@ -49,15 +77,20 @@ from torchblur.sysid.model_check import model_chi2_limit, model_fails
 
 __all__ = ["Registration", "RegistrationFit", "fit_registration", "register_and_refit", "registration_model", "support_check",
            "support_line", "with_registration_stds",
-           "write_registration_json", "read_registration_json", "REGISTRATION_SCHEMA", "PARAMETERS"]
+           "write_registration_json", "read_registration_json", "REGISTRATION_SCHEMA", "PARAMETERS", "SENSOR_PARAMETERS",
+           "diffraction_quadrature", "fully_lit"]
 
 #: registration.json's schema and the versions read
 REGISTRATION_SCHEMA = ("torchblur.dm.registration", (1,))
 #: the fitted parameters, their units in registration.json
 PARAMETERS = (("shift_x", "actuator pitch"), ("shift_y", "actuator pitch"), ("rotation_deg", "deg"), ("magnification", "1"),
               ("coupling", "1"))
-DC_GAIN_REFERENCE = ("dc_gain is relative to the fitted registration's influence function: 1 is an actuator whose static column is "
-                     "the geometry matrix G at the fitted registration (shift, rotation, magnification, coupling)")
+DC_GAIN_REFERENCE = ("dc_gain is the actuator's static surface per unit command relative to the fitted influence function's peak "
+                     "(a Gaussian of the fitted coupling, peak 1 at the actuator): 1 is an actuator whose static column is the geometry "
+                     "matrix G at the fitted registration (shift, rotation, magnification, coupling) and sensor weighting "
+                     "(diffraction_weight)")
+#: the sensor's fitted weighting, its unit in registration.json (module docstring: sensor weighting)
+SENSOR_PARAMETERS = (("diffraction_weight", "1 (0: mean slope over the subaperture, 1: a fully lit square lenslet's diffraction spot)"),)
 
 
 @dataclass(frozen=True)
@@ -118,9 +151,11 @@ class RegistrationFit:
 
     Attributes:
         registration: the :class:`Registration` (its ``coupling`` set).
-        std: ``{parameter: std}`` for :data:`PARAMETERS` (plus ``influence_width``, pitches).
-        cov: ``[5, 5]`` covariance of (shift_x, shift_y, rotation rad, magnification, width pitches).
-        chi2, dof, reduced_chi2: the fit's chi2 over ``entries - actuators - 5`` degrees of freedom.
+        diffraction_weight: the sensor's weighting beta (module docstring; NaN: not fitted).
+        std: ``{parameter: std}`` for :data:`PARAMETERS` and :data:`SENSOR_PARAMETERS` (plus
+            ``influence_width``, pitches).
+        cov: ``[6, 6]`` covariance of (shift_x, shift_y, rotation rad, magnification, width pitches, beta).
+        chi2, dof, reduced_chi2: the fit's chi2 over ``entries - actuators - 6`` degrees of freedom.
         inflated: the stds were multiplied by ``sqrt(reduced_chi2)`` (> 1).
         G: ``[2M, N]`` the geometry matrix at the fitted registration (px per input unit);
             G_std: ``[2M, N]`` its std from the registration's (first order).
@@ -129,9 +164,11 @@ class RegistrationFit:
         ok: the fit ran (else ``registration`` is the start, ``G`` the start's and ``message`` says why).
         message: why it did not, or how it ended.
         n_entries, n_columns: D0 entries and actuators used.
+        fitted_on: "every subaperture", or "the fully lit subapertures" (module docstring).
     """
 
     registration: Registration
+    diffraction_weight: float
     std: dict
     cov: np.ndarray
     chi2: float
@@ -146,6 +183,7 @@ class RegistrationFit:
     message: str
     n_entries: int
     n_columns: int
+    fitted_on: str = "every subaperture"
 
     def line(self) -> str:
         """One report line."""
@@ -154,9 +192,11 @@ class RegistrationFit:
         r, s = self.registration, self.std
         return (f"dm registration (fitted to D0): shift x {r.shift_x:+.4f} +- {s['shift_x']:.4f}, y {r.shift_y:+.4f} +- "
                 f"{s['shift_y']:.4f} actuator pitches, rotation {r.rotation_deg:+.3f} +- {s['rotation_deg']:.3f} deg, magnification "
-                f"{r.magnification:.5f} +- {s['magnification']:.5f}, coupling {r.coupling:.4f} +- {s['coupling']:.4f}; reduced chi2 "
+                f"{r.magnification:.5f} +- {s['magnification']:.5f}, coupling {r.coupling:.4f} +- {s['coupling']:.4f}, sensor "
+                f"weighting {self.diffraction_weight:.3f} +- {s['diffraction_weight']:.3f} (0 mean slope, 1 diffraction spots; fitted "
+                f"on {self.n_entries} entries of {self.fitted_on}); reduced chi2 "
                 f"{self.reduced_chi2:.3g}{' (stds inflated by its square root)' if self.inflated else ''}{self._judged()}; dc_gain "
-                f"is relative to the fitted registration's influence function")
+                f"is relative to the fitted influence function's peak")
 
     def _judged(self) -> str:
         """The one model rule's word on this fit: empty when it passes."""
@@ -177,28 +217,76 @@ def _from_theta(theta) -> Registration:
                         magnification=float(theta[3]), coupling=math.exp(-1.0 / (2.0 * w * w)))
 
 
-def registration_model(theta, rows, actuator_xy, slope_px: float) -> tuple[np.ndarray, np.ndarray]:
+def diffraction_quadrature(centres, side: float, pupil_radius: float, nodes: int = 8):
+    """The diffraction weighting's quadrature (module docstring: sensor weighting): ``((points
+    [M, Q, 2], weight [M, Q]) of the x slopes, (...) of the y slopes)``, points (x, y pitches) over
+    the lit part of each subaperture (:func:`~torchblur.dm.shack_hartmann.lit_rows`' rows, ``nodes``
+    Gauss-Legendre nodes along each), weights ``K(a) B(b)`` times the quadrature's, summing to 1
+    per subaperture (an empty one: 0)."""
+    centres = np.asarray(centres, dtype=np.float64)
+    g, wg = np.polynomial.legendre.leggauss(nodes)
+    out = []
+    for axis in (0, 1):
+        c = centres[:, ::-1] if axis else centres  # (along, across)
+        t, wt, lo, hi = lit_rows(c, side, pupil_radius, nodes)  # [M, K]
+        a = lo[..., None] + (hi - lo)[..., None] * (g + 1) / 2  # [M, K, L] along the slope
+        ra, rb = (a - c[:, 0, None, None]) / side, (t - c[:, 1, None]) / side
+        w = wt[..., None] * (hi - lo)[..., None] / 2 * wg * (5 / 64 - 3 * ra**2 / 8 + ra**4 / 4) * (3 / 4 - rb**2)[..., None]
+        pts = np.stack([a, np.broadcast_to(t[..., None], a.shape)], -1)
+        pts = pts[..., ::-1] if axis else pts
+        w = w.reshape(len(c), -1)
+        out.append((pts.reshape(len(c), -1, 2), w / np.where(w.sum(1, keepdims=True) > 0, w.sum(1, keepdims=True), 1.0)))
+    return tuple(out)
+
+
+def _geometry(theta, actuator_xy):
+    """``(p [N, 2], dp [5, N, 2], W, dW [5])``: the actuators on the sensor, their influence width
+    and the derivatives over (shift_x, shift_y, rotation rad, magnification, width)."""
+    sx, sy, a, m, w = (float(v) for v in theta[:5])
+    xy = np.asarray(actuator_xy, dtype=np.float64)
+    R = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+    dR = np.array([[-math.sin(a), -math.cos(a)], [math.cos(a), -math.sin(a)]])
+    p = m * xy @ R.T + np.array([sx, sy])
+    dp = np.stack([np.broadcast_to([1.0, 0.0], p.shape), np.broadcast_to([0.0, 1.0], p.shape), m * xy @ dR.T, xy @ R.T,
+                   np.zeros_like(p)])
+    return p, dp, m * w, np.array([0.0, 0.0, 0.0, w, m])
+
+
+def _weighted_slopes(quad, p, dp, W, dW):
+    """``(G [2M, N], dG [5, 2M, N])``: the weighted mean slopes of the actuators' influence
+    functions over ``quad`` (:func:`diffraction_quadrature`) and their derivatives:
+    ``d/dp_b of -d_a phi / W^2 = phi (delta_ab - d_a d_b / W^2) / W^2`` and ``d/dW = phi d_a (2 -
+    |d|^2 / W^2) / W^3`` (d = point - actuator)."""
+    G, dG = [], []
+    for axis, (pts, w) in enumerate(quad):
+        d = pts[:, :, None, :] - p  # [M, Q, N, 2]
+        r2 = (d * d).sum(-1)
+        wphi = w[..., None] * np.exp(-r2 / (2 * W * W))  # [M, Q, N]
+        da = d[..., axis]
+        Sb = [(wphi * (float(axis == b) - da * d[..., b] / W**2)).sum(1) / W**2 for b in (0, 1)]
+        G.append(-(wphi * da).sum(1) / W**2)
+        dG.append(Sb[0][None] * dp[:, None, :, 0] + Sb[1][None] * dp[:, None, :, 1]
+                  + ((wphi * da * (2 - r2 / W**2)).sum(1) / W**3)[None] * dW[:, None, None])
+    return np.concatenate(G), np.concatenate(dG, axis=1)
+
+
+def registration_model(theta, rows, actuator_xy, slope_px: float, quad=None) -> tuple[np.ndarray, np.ndarray]:
     """The geometry matrix and its derivatives at ``theta`` = (shift_x, shift_y, rotation rad,
-    magnification, width pitches): ``(G [2M, N], dG [5, 2M, N])``, px per input unit; the rule of
-    :func:`~torchblur.dm.shack_hartmann.mean_slopes` (a slope's mean is the difference of the
-    surface at the ends of each lit row), differentiated: ``d phi / d p = phi (u - p) / W^2``,
-    ``d phi / d W = phi |u - p|^2 / W^3`` at every row end u.
+    magnification, width pitches[, beta]): ``(G [2M, N], dG [T, 2M, N])``, px per input unit, T
+    the length of ``theta``; the rule of :func:`~torchblur.dm.shack_hartmann.mean_slopes` (a
+    slope's mean is the difference of the surface at the ends of each lit row), differentiated:
+    ``d phi / d p = phi (u - p) / W^2``, ``d phi / d W = phi |u - p|^2 / W^3`` at every row end u;
+    with ``beta`` (and ``quad``) mixed with the diffraction weighting as ``(1 - beta) G_mean + beta
+    G_diffraction`` (module docstring: sensor weighting).
 
     Args:
         rows: ``((t, weight, lo, hi) of the x slopes, (...) of the y slopes)``, each ``[M, K]``
             from :func:`~torchblur.dm.shack_hartmann.lit_rows` (the y slopes' on swapped centres).
         actuator_xy: ``[N, 2]`` nominal positions (pitches).
         slope_px: px per unit mean slope.
+        quad: :func:`diffraction_quadrature` (needed with ``beta``).
     """
-    sx, sy, a, m, w = (float(v) for v in theta)
-    xy = np.asarray(actuator_xy, dtype=np.float64)
-    R = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
-    dR = np.array([[-math.sin(a), -math.cos(a)], [math.cos(a), -math.sin(a)]])
-    p = m * xy @ R.T + np.array([sx, sy])  # [N, 2]
-    dp = np.stack([np.broadcast_to([1.0, 0.0], p.shape), np.broadcast_to([0.0, 1.0], p.shape), m * xy @ dR.T, xy @ R.T,
-                   np.zeros_like(p)])  # [5, N, 2] d p / d theta
-    dW = np.array([0.0, 0.0, 0.0, w, m])  # d (m w) / d theta
-    W = m * w
+    p, dp, W, dW = _geometry(theta, actuator_xy)
     G, dG = [], []
     for axis, (t, wt, lo, hi) in enumerate(rows):
         area = np.maximum((wt * (hi - lo)).sum(-1), 1e-300)[:, None]
@@ -212,7 +300,18 @@ def registration_model(theta, rows, actuator_xy, slope_px: float) -> tuple[np.nd
                                      (wphi * r2).sum(1) / W**3])
         G.append(S[0] / area)
         dG.append((S[1][None] * dp[:, None, :, 0] + S[2][None] * dp[:, None, :, 1] + S[3][None] * dW[:, None, None]) / area)
-    return slope_px * np.concatenate(G), slope_px * np.concatenate(dG, axis=1)
+    G, dG = np.concatenate(G), np.concatenate(dG, axis=1)
+    if len(theta) > 5:
+        beta = float(theta[5])
+        Gd, dGd = _weighted_slopes(quad, p, dp, W, dW)
+        G, dG = (1 - beta) * G + beta * Gd, np.concatenate([(1 - beta) * dG + beta * dGd, (Gd - G)[None]])
+    return slope_px * G, slope_px * dG
+
+
+def fully_lit(wfs) -> np.ndarray:
+    """``[M]`` bool: the subapertures whose square lies inside the pupil."""
+    c, h = np.abs(wfs.centres), wfs.side / 2
+    return np.hypot(c[:, 0] + h, c[:, 1] + h) <= wfs.pupil_diameter / 2 * (1 + 1e-12)
 
 
 def _whitened(D0, D0_std):
@@ -226,16 +325,16 @@ def _whitened(D0, D0_std):
 
 
 def _projected(theta, model, B, wt):
-    """Variable projection at ``theta``: ``(residual [S*N'], Jacobian [S*N', 5], gains [N'], dgain [N', 5])``."""
+    """Variable projection at ``theta``: ``(residual [S*N'], Jacobian [S*N', T], gains [N'], dgain [N', T])``."""
     G, dG = model(theta)
     A, dA = G * wt, dG * wt  # [S, N], [5, S, N]
     aa = np.maximum((A * A).sum(0), 1e-300)
     g = (A * B).sum(0) / aa
     r = g * A - B
     gdA = g * dA
-    J = gdA - A * ((A * gdA).sum(1) / aa)[:, None, :]  # [5, S, N], Kaufman
-    dg = ((dA * B).sum(1) - 2 * g * (A * dA).sum(1)) / aa  # [5, N]
-    return r.reshape(-1), J.reshape(5, -1).T, g, dg.T
+    J = gdA - A * ((A * gdA).sum(1) / aa)[:, None, :]  # [T, S, N], Kaufman
+    dg = ((dA * B).sum(1) - 2 * g * (A * dA).sum(1)) / aa  # [T, N]
+    return r.reshape(-1), J.reshape(len(theta), -1).T, g, dg.T
 
 
 def fit_registration(D0, D0_std, wfs, actuator_xy, coupling: float, *, start: Registration | None = None) -> RegistrationFit:
@@ -258,16 +357,29 @@ def fit_registration(D0, D0_std, wfs, actuator_xy, coupling: float, *, start: Re
     start = Registration() if start is None else start
     centres, R = wfs.centres, wfs.pupil_diameter / 2
     rows = (lit_rows(centres, wfs.side, R, wfs.oversample), lit_rows(centres[:, ::-1], wfs.side, R, wfs.oversample))
+    quad = diffraction_quadrature(centres, wfs.side, R)
+    if np.shape(D0) != (2 * wfs.n_valid, xy.shape[0]):
+        raise ShapeError(f"D0: expected [2M, N] = [{2 * wfs.n_valid}, {xy.shape[0]}], got {np.shape(D0)}")
+    full = lambda th: registration_model(th, rows, xy, wfs.slope_px, quad)  # noqa: E731
+    fit = _fit_on(D0, D0_std, full, start, coupling, xy.shape[0])
+    lit = np.tile(fully_lit(wfs), 2)[:, None]
+    if fit.ok and model_fails(fit.reduced_chi2, fit.dof) and not lit.all():
+        inner = _fit_on(D0, np.where(lit, D0_std, np.nan), full, start, coupling, xy.shape[0])
+        if inner.ok and inner.reduced_chi2 < fit.reduced_chi2:
+            return replace(inner, fitted_on="the fully lit subapertures")
+    return fit
+
+
+def _fit_on(D0, D0_std, full, start, coupling, N) -> RegistrationFit:
+    """:func:`fit_registration` on the entries of ``D0`` with a usable std; ``full``: theta ->
+    (G, dG) of every subaperture."""
     B, wt, cols = _whitened(D0, D0_std)
-    if B.shape != (2 * wfs.n_valid, xy.shape[0]):
-        raise ShapeError(f"D0: expected [2M, N] = [{2 * wfs.n_valid}, {xy.shape[0]}], got {B.shape}")
-    theta0 = _theta(start, coupling)
+    theta0 = np.append(_theta(start, coupling), 0.0)
     sub = np.flatnonzero(cols)
     n_entries = int((wt[:, sub] > 0).sum())
-    dof = n_entries - sub.size - 5
-    full = lambda th: registration_model(th, rows, xy, wfs.slope_px)  # noqa: E731
+    dof = n_entries - sub.size - theta0.size
     if sub.size == 0 or dof < 1:
-        return _failed(start, theta0, full, xy.shape[0], f"{n_entries} usable D0 entries over {sub.size} columns: fewer than the "
+        return _failed(start, theta0, full, N, f"{n_entries} usable D0 entries over {sub.size} columns: fewer than the "
                                                          f"unknowns", n_entries, int(sub.size))
     part = lambda th: tuple(a[..., sub] for a in full(th))  # noqa: E731
     cache = {}
@@ -283,28 +395,29 @@ def fit_registration(D0, D0_std, wfs, actuator_xy, coupling: float, *, start: Re
         sol = optimize.least_squares(lambda th: proj(th)[0], theta0, jac=lambda th: proj(th)[1], method="lm", x_scale="jac",
                                      xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
     except ValueError as exc:  # a residual that is not finite (a width driven to 0)
-        return _failed(start, theta0, full, xy.shape[0], f"the fit failed ({exc})", n_entries, int(sub.size))
+        return _failed(start, theta0, full, N, f"the fit failed ({exc})", n_entries, int(sub.size))
     r, J, g_sub, dg = proj(sol.x)
-    if not (np.isfinite(sol.x).all() and sol.x[3] > 0 and sol.x[4] > 0 and np.isfinite(r).all()):
-        return _failed(start, theta0, full, xy.shape[0], f"the fit left the model's domain ({sol.message})", n_entries, int(sub.size))
+    if not (np.isfinite(sol.x).all() and sol.x[3] > 0 and sol.x[4] > 0 and np.isfinite(r).all()):  # beta may leave [0, 1]
+        return _failed(start, theta0, full, N, f"the fit left the model's domain ({sol.message})", n_entries, int(sub.size))
     chi2 = float(r @ r)
     red = chi2 / dof
     try:
         cov = np.linalg.inv(J.T @ J)
     except np.linalg.LinAlgError:
-        cov = np.full((5, 5), np.nan)
+        cov = np.full((theta0.size,) * 2, np.nan)
     if not (np.isfinite(cov).all() and np.all(np.diag(cov) > 0)):
-        return _failed(start, theta0, full, xy.shape[0], "D0 does not determine the registration (singular information matrix)",
+        return _failed(start, theta0, full, N, "D0 does not determine the registration (singular information matrix)",
                        n_entries, int(sub.size))
     inflated = red > 1
     cov = cov * max(1.0, red)
-    gain = np.full(xy.shape[0], np.nan)
+    gain = np.full(N, np.nan)
     gain[sub] = g_sub
-    gvar = np.zeros(xy.shape[0])
+    gvar = np.zeros(N)
     gvar[sub] = np.einsum("jk,kl,jl->j", dg, cov, dg)
     G, dG = full(sol.x)
     G_std = np.sqrt(np.abs(np.einsum("ksj,kl,lsj->sj", dG, cov, dG)))
-    return RegistrationFit(registration=_from_theta(sol.x), std=_stds(sol.x, cov), cov=cov, chi2=chi2, dof=int(dof),
+    return RegistrationFit(registration=_from_theta(sol.x), diffraction_weight=float(sol.x[5]), std=_stds(sol.x, cov), cov=cov,
+                           chi2=chi2, dof=int(dof),
                            reduced_chi2=float(red), inflated=bool(inflated), G=G, G_std=G_std, gain=gain, gain_var_registration=gvar,
                            ok=True, message=str(sol.message), n_entries=n_entries, n_columns=int(sub.size))
 
@@ -314,12 +427,13 @@ def _stds(theta, cov) -> dict:
     w = float(theta[4])
     c = math.exp(-1.0 / (2 * w * w))
     return {"shift_x": float(sd[0]), "shift_y": float(sd[1]), "rotation_deg": math.degrees(float(sd[2])), "magnification": float(sd[3]),
-            "coupling": float(c / w**3 * sd[4]), "influence_width": float(sd[4])}
+            "coupling": float(c / w**3 * sd[4]), "influence_width": float(sd[4]), "diffraction_weight": float(sd[5])}
 
 
 def _failed(start, theta0, model, N, why, n_entries, n_columns) -> RegistrationFit:
-    nan = {k: math.nan for k, _ in PARAMETERS} | {"influence_width": math.nan}
-    return RegistrationFit(registration=_from_theta(theta0) if start.coupling is None else start, std=nan, cov=np.full((5, 5), np.nan),
+    nan = {k: math.nan for k, _ in PARAMETERS + SENSOR_PARAMETERS} | {"influence_width": math.nan}
+    return RegistrationFit(registration=_from_theta(theta0) if start.coupling is None else start, diffraction_weight=math.nan, std=nan,
+                           cov=np.full((theta0.size,) * 2, np.nan),
                            chi2=math.nan, dof=0, reduced_chi2=math.nan, inflated=False, G=model(theta0)[0],
                            G_std=np.full_like(model(theta0)[0], np.nan), gain=np.full(N, np.nan),
                            gain_var_registration=np.zeros(N), ok=False, message=why, n_entries=n_entries, n_columns=n_columns)
@@ -359,6 +473,8 @@ def write_registration_json(path, fit: RegistrationFit, support: dict | None = N
     doc = {"schema": REGISTRATION_SCHEMA[0], "schema_version": REGISTRATION_SCHEMA[1][-1], "fitted": bool(fit.ok),
            "message": fit.message, "units": dict(PARAMETERS) | {"influence_width": "actuator pitch"},
            "registration": {k: getattr(r, k) for k, _ in PARAMETERS} | {"influence_width": influence_width(r.coupling)},
+           "sensor": {"diffraction_weight": fit.diffraction_weight if math.isfinite(fit.diffraction_weight) else None,
+                      "units": dict(SENSOR_PARAMETERS), "fitted_on": fit.fitted_on},
            "std": {k: (v if math.isfinite(v) else None) for k, v in fit.std.items()},
            "reduced_chi2": fit.reduced_chi2 if math.isfinite(fit.reduced_chi2) else None, "dof": fit.dof,
            "stds_inflated_by_sqrt_reduced_chi2": bool(fit.inflated), "n_entries": fit.n_entries, "n_columns": fit.n_columns,
@@ -393,7 +509,7 @@ def register_and_refit(freq_hz, D, D_cov, table, wfs, actuator_xy, coupling: flo
                        threshold: float = 0.01):
     """The run's step after :func:`~torchblur.dm.actuator_fit.fit_actuators` on the nominal G:
     the registration fitted to ``table``'s static columns, the actuators fitted again on the
-    fitted G (so ``dc_gain`` is relative to the fitted registration's influence function, its
+    fitted G (so ``dc_gain`` is relative to the fitted influence function's peak, its
     std with the registration's share) and the plan's ``support [2M, N]`` re-checked against the
     fitted G (:func:`support_check`; None without a support).
 

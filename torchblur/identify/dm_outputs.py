@@ -24,7 +24,7 @@ Every file reads back: :func:`read_actuators_csv`, ``numpy.load``, ``FrequencyRe
   phase) covariance of every element, NaN where ``D`` is exactly 0 off a sparse support;
   ``FrequencyResponse.from_json(...).to_control()`` is a python-control FRD).
 - ``README.txt``: what the files hold and what ``dc_gain`` is relative to (:func:`dm_readme`:
-  the fitted registration's influence function after a run, :mod:`torchblur.dm.registration`,
+  the fitted influence function's peak after a run, :mod:`torchblur.dm.registration`,
   whose ``registration.json`` the run writes beside).
 - ``actuator_maps.png``: DC gain (relative to the nominal actuator), mode frequency (Hz) and
   damping over the actuator grid, every status and flag marked, y down as in the guide
@@ -261,7 +261,8 @@ def dm_readme(dc_gain_reference: str = DC_GAIN_NOMINAL) -> str:
             "interaction_matrix.npy / _std.npy / .fits: the measured static interaction matrix D0 [2M, N] (px per input unit)\n"
             "command_matrix.npy, unseen_modes.npy, command_matrix.json: its truncated-SVD pseudo-inverse and the modes dropped\n"
             "frf.json: the dynamic interaction matrix D(jw) with covariances\n"
-            "registration.json: the mirror's registration fitted to D0 (shift, rotation, magnification, coupling, stds)\n"
+            "registration.json: the mirror's registration fitted to D0 (shift, rotation, magnification, coupling, stds) and the "
+            "sensor's slope weighting\n"
             f"dc_gain: {dc_gain_reference}\n")
 
 
