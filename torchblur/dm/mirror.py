@@ -38,6 +38,7 @@ import numpy as np
 
 from torchblur.errors import ConfigError, ParameterError, ShapeError, check_int, check_real_scalar, excerpt
 from torchblur.files import read_bounded
+from torchblur.systems.lti import Plant
 
 __all__ = ["DeformableMirror", "actuator_grid", "influence", "influence_gradient", "influence_width", "read_actuator_table"]
 
@@ -258,8 +259,6 @@ class DeformableMirror:
 
     def plant(self, j: int):
         """Actuator j as a :class:`~torchblur.systems.lti.Plant` (its delay included)."""
-        from torchblur.systems.lti import Plant
-
         j = check_int(j, "j", low=0, high=self.n_actuators - 1)
         wn = 2 * math.pi * float(self.mode_hz[j])
         return Plant(num=(float(self.gain[j]) * wn * wn,), den=(1.0, 2 * float(self.damping[j]) * wn, wn * wn),
