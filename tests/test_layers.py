@@ -1,7 +1,6 @@
 """The layers of docs/architecture.md, checked on the subpackage graph read from the source
 (tests/import_graph.py; imports inside functions count): no cycle between subpackages, no edge
-upward, no torchblur import inside a function but the listed ones. PENDING holds what other
-changes of this session remove; the lead empties it at merge."""
+upward, no torchblur import inside a function but the listed ones."""
 import re
 from pathlib import Path
 
@@ -31,11 +30,6 @@ FACADE = "torchblur"
 # Imports of a torchblur module inside a function, allowed for a heavy dependency: (module, target): why.
 ALLOWED_IN_FUNCTION = {
     ("torchblur.rig.simulated", "torchblur.image.spots"): "torchblur.image loads kornia (~1.5 s); a rig without spots does not",
-}
-# Removed by other changes of this session (upward edges "unit -> unit", and modules whose
-# in-function imports go): key -> who removes it. Every entry must still be there (so it shrinks).
-PENDING = {
-    "torchblur.identify.calibration": "hP: image.spot_layout to the top (calibration already imports torchblur.image)",
 }
 DOC = Path(__file__).resolve().parents[1] / "docs" / "architecture.md"
 
@@ -81,28 +75,26 @@ def test_the_checks_see_what_they_look_for(tmp_path):
 
 
 def test_no_upward_edge():
-    found = {e: ms for e, ms in _unit_edges().items() if _upward(e) and e not in PENDING}
+    found = {e: ms for e, ms in _unit_edges().items() if _upward(e)}
     assert found == {}
 
 
 def test_no_cycle_between_subpackages():
     graph: dict = {}
     for e in _unit_edges():
-        if e not in PENDING:
-            a, b = e.split(" -> ")
-            graph.setdefault(a, set()).add(b)
+        a, b = e.split(" -> ")
+        graph.setdefault(a, set()).add(b)
     assert cycles(graph) == []
 
 
 def test_imports_inside_functions_are_listed():
-    found = {m: [t for t in ts if (m, t) not in ALLOWED_IN_FUNCTION] for m, ts in _in_function().items() if m not in PENDING}
+    found = {m: [t for t in ts if (m, t) not in ALLOWED_IN_FUNCTION] for m, ts in _in_function().items()}
     assert {m: ts for m, ts in found.items() if ts} == {}
 
 
-def test_allowed_and_pending_entries_still_exist():
-    inside, edges = _in_function(), _unit_edges()
+def test_allowed_entries_still_exist():
+    inside = _in_function()
     stale = [k for k in ALLOWED_IN_FUNCTION if k[1] not in inside.get(k[0], ())]
-    stale += [k for k in PENDING if k not in edges and not inside.get(k)]
     assert stale == []  # remove these entries: what they excused is gone
 
 

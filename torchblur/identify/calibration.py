@@ -16,6 +16,7 @@ from torchblur.identify.record import log_message, run_stage
 from torchblur.image.photon_transfer import photon_transfer
 from torchblur.image.preprocess import dark_frame, saturation_curve, subtract_dark
 from torchblur.image.psf_from_still import psf_from_still
+from torchblur.image.spot_layout import layout_spots
 from torchblur.image.spots import crop_spots, locate_spots
 from torchblur.render.psf import KernelPSF
 from torchblur.image.tracking import calibrate_axes
@@ -438,7 +439,6 @@ def _layout_spots(cfg, still, exposure_s, read_noise_e, rest_px, log, progress):
     """Stage 2 on a sensor's known layout: the declared spots ``rest_px [M, 2]`` registered to the
     still image and fitted (:func:`~torchblur.image.spot_layout.layout_spots`, one batch, in the
     declared order); logs the registration and names every flagged spot (its fit goes on)."""
-    from torchblur.image.spot_layout import layout_spots
 
     sp = cfg.spots
     spots, reg, flags = layout_spots(still, exposure_s=exposure_s, noise_std=camera_noise_std(float(still.max()), read_noise_e) / 4,
