@@ -64,3 +64,60 @@ def test_cli_missing_config_file(tmp_path):
     out = subprocess.run([sys.executable, "-m", "torchblur.cli", "identify", "--config", str(tmp_path / "nope.yaml"), "--out", str(tmp_path)],
                          capture_output=True, text=True)
     assert out.returncode == 2 and "--config" in out.stderr and "Traceback" not in out.stderr
+
+
+def _declared_keys():
+    """``[(dotted key, rule)]`` of every key whose check the schema declares (config.key)."""
+    from dataclasses import fields, is_dataclass
+
+    def walk(obj, prefix):
+        for f in fields(obj):
+            value = getattr(obj, f.name)
+            if is_dataclass(value):
+                yield from walk(value, f"{prefix}{f.name}.")
+            elif "check" in f.metadata:
+                yield f"{prefix}{f.name}", f.metadata["check"]
+
+    return list(walk(IdentifyConfig(), ""))
+
+
+def _with(cfg, key, value):
+    """``cfg`` with the dotted ``key`` set to ``value`` (frozen sections replaced)."""
+    from dataclasses import replace
+
+    head, _, rest = key.partition(".")
+    return replace(cfg, **{head: _with(getattr(cfg, head), rest, value) if rest else value})
+
+
+def test_every_declared_check_refuses_a_wrong_value_naming_its_key():
+    from torchblur.config import validate
+
+    base = IdentifyConfig()  # spots and a mirror enabled, so that their sections are checked too
+    for key, value in (("spots.rows", 2), ("spots.cols", 2), ("dm.n_across", 4), ("excitation.target_px", 2.0)):
+        base = _with(base, key, value)
+    validate(base)
+    declared = _declared_keys()
+    assert len(declared) > 80 and {"camera.frame_rate_hz", "fit.loss", "report.figures", "seed", "dm.registration.shift_x"} <= {k for k, _ in declared}
+    for key, rule in declared:
+        with pytest.raises(ConfigError) as info:
+            validate(_with(base, key, "abc"))
+        want = "one of" if "choice" in rule else "true or false" if rule.get("flag") else "a number"
+        assert str(info.value).startswith(f"{key}: expected {want}"), str(info.value)
+        if rule.get("integer"):
+            with pytest.raises(ConfigError, match=rf"^{key}: expected an integer, got 2\.5$"):
+                validate(_with(base, key, 2.5))
+
+
+def test_one_scalar_check_for_arguments_and_config_keys():
+    from torchblur.errors import InputTypeError, ParameterError, check_real_scalar
+
+    assert check_real_scalar(3, "x", integer=True, low=0, high=3) == 3.0
+    for value, exc, message in (("abc", InputTypeError, "x: expected a number, got 'abc'"),
+                                (True, InputTypeError, "x: expected a number, got True"),
+                                (float("inf"), ParameterError, "x: expected a finite number, got inf"),
+                                (-1, ParameterError, "x: expected a value >= 0, got -1")):
+        with pytest.raises(exc) as plain:
+            check_real_scalar(value, "x", nonnegative=True)
+        with pytest.raises(ConfigError) as config:
+            check_real_scalar(value, "x", nonnegative=True, error=ConfigError)
+        assert type(plain.value) is exc and str(plain.value) == str(config.value) == message

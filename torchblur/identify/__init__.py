@@ -1,4 +1,4 @@
-"""The identification pipeline: ``config`` (the run's settings), ``pipeline`` (the stages
+"""The identification pipeline (its settings: :mod:`torchblur.config`): ``pipeline`` (the stages
 over one run record: ``calibration``, ``sweep`` (the sine plan) or ``multisine`` (the
 multisine plan), ``fitting``, ``assemble``, ``model``, the ``result``), ``rigs`` (the rig
 and the recording), ``run`` (the public names, where they have always been imported from),
@@ -6,9 +6,7 @@ and the recording), ``run`` (the public names, where they have always been impor
 ``torchblur`` command is :mod:`torchblur.cli`.
 
 The package is itself callable: ``torchblur.identify(cfg, rig)`` is
-``torchblur.identify.identify(cfg, rig)``. Its names load on first use, so importing
-``torchblur.config`` (the settings, which the bench emulator shares) does not load
-the pipeline.
+``torchblur.identify.identify(cfg, rig)``. Its names load on first use.
 """
 import importlib as _importlib
 import sys as _sys
