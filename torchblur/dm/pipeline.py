@@ -173,14 +173,15 @@ def _calibrate(cfg, rig, wfs, log, progress, exp=None):
     """Stage 1 (module docstring): the calibration (from the recording ``exp`` where it holds
     it) and the spots in valid-subaperture order."""
     from torchblur.identify.calibration import calibrate
-    from torchblur.identify.record import log_message
+    from torchblur.identify.record import collect_log, log_message
 
     n = int(cfg.wfs.n_across)
     spots_cfg = replace(cfg.spots, rows=n, cols=n, pitch_px=float(cfg.wfs.pitch_px), sigma_px=float(cfg.wfs.sigma_px))
     size = dm_sweep_size(cfg)
     n_still = dm_still_frames(size["frames"], size["frame_shape"])
-    cal = calibrate(replace(cfg, spots=spots_cfg), rig, exp, log=log, progress=progress, n_dark=DM_DARK_FRAMES, n_still=n_still,
-                    spot_layout=wfs.rest_px)  # spots cropped on the sensor's layout; each spot's PSF (fit.psf) (issue 23)
+    with collect_log(log, "torchblur.identify"):  # the calibration's messages, into this run's log
+        cal = calibrate(replace(cfg, spots=spots_cfg), rig, exp, n_dark=DM_DARK_FRAMES, n_still=n_still,
+                        spot_layout=wfs.rest_px)  # spots cropped on the sensor's layout; each spot's PSF (fit.psf) (issue 23)
     order = match_spots(cal.spots.psf.center.numpy(), wfs.rest_px, wfs.pitch_px)
     log_message(log, f"dm spots: {len(cal.spots)} found, matched to the {wfs.n_valid} valid subapertures (the other "
                      f"{n * n - wfs.n_valid} cells of the {n}x{n} grid are outside the pupil)", progress)

@@ -18,7 +18,6 @@
 from __future__ import annotations
 
 import contextlib
-import functools
 import logging
 import time
 
@@ -28,7 +27,7 @@ from torchblur.identify.calibration import calibrate
 from torchblur.identify.config import IdentifyConfig
 from torchblur.identify.drive import SESSION_KEY, SLEW_KEY
 from torchblur.identify.multisine import MultisinePlan
-from torchblur.identify.record import RunRecord, console_logging, log_message, stage_bar
+from torchblur.identify.record import LOGGER, RunRecord, collect_log, console_logging, stage_bar
 from torchblur.identify.result import IdentificationResult
 from torchblur.identify.rigs import build_rig, open_experiment
 from torchblur.identify.stages import run_plan
@@ -49,6 +48,7 @@ def identify(cfg: IdentifyConfig, rig=None, *, progress: bool = True, record=Non
         rig: a :class:`~torchblur.rig.base.Rig`, or None.
         progress: show progress bars (on a terminal) and, where nothing handles the
             ``torchblur`` logger, the run's messages on stderr (:func:`~torchblur.identify.record.console_logging`).
+            The messages are in the result's ``log`` either way (:func:`~torchblur.identify.record.collect_log`).
         record: None, a directory, or a :class:`~torchblur.hardware.Experiment`: the run is
             recorded there as it goes (TIFF frames, ``manifest.jsonl``). Groups already
             recorded (a resumed run) are taken from the recording instead of the rig; a
@@ -64,19 +64,19 @@ def identify(cfg: IdentifyConfig, rig=None, *, progress: bool = True, record=Non
     if rig is not None and not all(hasattr(rig, a) for a in ("frame_shape", "dark", "still", "sine")):
         raise InputTypeError(f"rig: expected a torchblur Rig (frame_shape, dark, still, sine, ...) or None, got {type(rig).__name__}")
     shown = progress and not logging.getLogger("torchblur").hasHandlers()
-    with console_logging() if shown else contextlib.nullcontext():
-        return _identify(cfg, rig, progress, record)
+    with console_logging() if shown else contextlib.nullcontext(), collect_log() as log:
+        result = _identify(cfg, rig, progress, record)
+    result.log = log
+    return result
 
 
 def _identify(cfg: IdentifyConfig, rig, progress: bool, record) -> IdentificationResult:
     """:func:`identify` after its checks: open the rig and the recording, run the stages."""
-    log: list[str] = []
     own_rig = rig is None
-    hw_log = functools.partial(log_message, log, progress=progress, logger=HARDWARE_LOGGER)  # hw_log(message)
     if own_rig:
-        rig = build_rig(cfg, log=hw_log)
+        rig = build_rig(cfg, log=HARDWARE_LOGGER.info)
     elif hasattr(rig, "set_logger"):
-        rig.set_logger(hw_log)
+        rig.set_logger(HARDWARE_LOGGER.info)
     exp = None
     try:
         exp = open_experiment(record, cfg, rig)
@@ -85,8 +85,8 @@ def _identify(cfg: IdentifyConfig, rig, progress: bool, record) -> Identificatio
                                SESSION_KEY: getattr(rig, "input_limit", None),  # a replay plans with the same range
                                SLEW_KEY: getattr(rig, "slew_limit", None)})
             if exp.meta["sessions"] and len(exp.groups):
-                log_message(log, f"resume: {len(exp.groups)} recorded group(s) in {exp.path} are reused", progress)
-        result = run_stages(RunRecord(cfg=cfg, rig=rig, exp=exp, log=log, progress=progress))
+                LOGGER.info(f"resume: {len(exp.groups)} recorded group(s) in {exp.path} are reused")
+        result = run_stages(RunRecord(cfg=cfg, rig=rig, exp=exp, progress=progress))
     except KeyboardInterrupt:
         if exp is not None:
             exp.end_session("interrupted", "KeyboardInterrupt")
@@ -116,7 +116,7 @@ def run_stages(run: RunRecord) -> IdentificationResult:
 def calibrate_stage(run: RunRecord) -> None:
     """``run.cal``: :func:`~torchblur.identify.calibration.calibrate` (from the recording where it holds it)."""
     with stage_bar(run.progress, "calibration", calibration_stages(run.cfg)):
-        run.cal = calibrate(run.cfg, run.rig, run.exp, run.log, run.progress)
+        run.cal = calibrate(run.cfg, run.rig, run.exp)
 
 
 def calibration_stages(cfg: IdentifyConfig) -> int:
