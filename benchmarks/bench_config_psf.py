@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from torchblur.identify.calibration import calibrate
+from torchblur.identify.record import collect_log
 from torchblur.config import load_config
 from torchblur.identify.run import build_simulated_rig, identify
 
@@ -34,9 +35,9 @@ from torchblur.identify.run import build_simulated_rig, identify
 def _calibrate(path: str, spot_psfs: bool):
     cfg = load_config(path)
     torch.manual_seed(int(cfg.seed))
-    log = []
     t = time.perf_counter()
-    cal = calibrate(cfg, build_simulated_rig(cfg), log=log, spot_psfs=spot_psfs)
+    with collect_log() as log:
+        cal = calibrate(cfg, build_simulated_rig(cfg), spot_psfs=spot_psfs)
     return time.perf_counter() - t, cal, [line for line in log if line.startswith(("psf:", "spots psf:"))]
 
 

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from torchblur.identify import record
+from torchblur.identify.record import collect_log
 from torchblur.identify.pipeline import calibration_stages
 from torchblur.config import load_config
 from torchblur.sysid.frequency_response import FrequencyResponse
@@ -98,6 +99,26 @@ def test_log_message_goes_through_the_torchblur_logger(caplog):
         record.log_message(log, "dark: level 1", True)
     assert log == ["dark: level 1"]
     assert [(r.name, r.getMessage()) for r in caplog.records] == [("torchblur.identify", "dark: level 1")]
+
+
+def test_collect_log_gathers_the_run_messages_in_order_even_when_quiet(capsys):
+    """The report's log (collect_log): every torchblur record at INFO and above, from the pipeline's
+    and the rig's loggers, in the order they came, also under --quiet (the console shows warnings
+    only); the logger's level and handlers are restored after."""
+    root = logging.getLogger("torchblur")
+    before = (root.level, list(root.handlers))
+    with record.console_logging(logging.WARNING), collect_log() as log:
+        record.LOGGER.info("dark: level 1")
+        logging.getLogger("torchblur.hardware").info("serial link: retried")
+        record.LOGGER.debug("not for the report")
+        record.LOGGER.warning("saturated")
+    assert log == ["dark: level 1", "serial link: retried", "saturated"]
+    assert capsys.readouterr().err == "warning: saturated\n"
+    assert (root.level, root.handlers) == before
+    with collect_log([], "torchblur.identify") as only:  # one child logger: the DM run's calibration
+        logging.getLogger("torchblur.hardware").info("not this one")
+        record.LOGGER.info("psf: Gaussian")
+    assert only == ["psf: Gaussian"]
 
 
 def test_console_logging_writes_one_line_per_message_to_stderr(capsys):

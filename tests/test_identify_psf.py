@@ -10,6 +10,7 @@ import torch
 from torchblur.errors import ConfigError
 from torchblur.fit.sinusoid import fit_sinusoid
 from torchblur.identify.calibration import calibrate
+from torchblur.identify.record import collect_log
 from torchblur.config import load_config
 from torchblur.identify.run import identify
 from torchblur.identify.sweep import inflate_std
@@ -138,8 +139,8 @@ def test_the_multisine_route_fits_with_the_kernel_the_calibration_chose():
     from torchblur.identify.multisine import fit_psf, kernel_variance
 
     cfg = load_config(None, SHORT + ["excitation.kind=multisine"])
-    log = []
-    cal = calibrate(cfg, airy_rig(cfg), log=log)
+    with collect_log() as log:
+        cal = calibrate(cfg, airy_rig(cfg))
     assert cal.still_psf.kind == "kernel" and isinstance(cal.still_psf.psf, KernelPSF)
     assert isinstance(cal.psf, GaussianPSF)  # the centre, peak rate and axis calibration still use it
     assert fit_psf(cal) is cal.still_psf.psf
@@ -170,13 +171,13 @@ def test_many_spots_take_every_spot_kernel_when_a_gaussian_fails():
     mean = frames.mean(0)
     spots = locate_spots(mean, exposure_s=1e-3, noise_std=camera_noise_std(float(mean.max()), 3.0) / 4, pitch_px=22.0, crop_px=22)
     assert len(spots) == 4
-    log = []
     cfg = types.SimpleNamespace(fit=types.SimpleNamespace(psf="auto", fit_background=False))
-    sk = spot_kernels(cfg, frames, 1e-3, 3.0, spots, log, False)
+    with collect_log() as log:
+        sk = spot_kernels(cfg, frames, 1e-3, 3.0, spots)
     assert isinstance(sk, SpotKernels) and sk.psf.kernel.shape == (4, 22, 22)
     assert any("spots psf: the measured kernel of every spot (4 of 4 spots' Gaussians do not explain" in line for line in log)
     # each kernel is its spot's crop of the still, per second: about the Airy peak rate at its centre
     assert float(sk.psf.kernel.amax((-1, -2)).min()) > 0.8 * 3000 / 1e-3
     assert float(sk.kernel_noise_factor(torch.tensor([1e-3, 2e-3]))) == pytest.approx(math.sqrt(1 + 3 / 8))
     cfg.fit.psf = "gaussian"
-    assert spot_kernels(cfg, frames, 1e-3, 3.0, spots, log, False) is None
+    assert spot_kernels(cfg, frames, 1e-3, 3.0, spots) is None

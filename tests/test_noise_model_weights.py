@@ -177,13 +177,14 @@ def test_fit_loss_other_than_l2_is_refused_with_the_multisine_plan(loss):
 def test_the_direct_model_says_fit_loss_is_not_applied_to_it():
     """model.direct with fit.loss=l1: the direct fit is l2; the log says so, naming fit.loss."""
     from torchblur.identify.model import fit_direct_model
+    from torchblur.identify.record import collect_log
 
     psf = tb.GaussianPSF(torch.tensor([2.0, 2.0], dtype=F64), torch.eye(2, dtype=F64), torch.tensor(1.0, dtype=F64))
     args = (torch.zeros(1, 1, 5, 5, dtype=F64), tb.ExposureWindow(torch.zeros(1, 1, dtype=F64), torch.ones(1, 1, dtype=F64)),
             torch.ones(1, dtype=F64), [1.0], psf, torch.ones(1, dtype=F64), CAMERA.noise, None, None)
     for loss, warned in (("l1", True), ("l2", False)):
-        log = []
         cfg = load_config(None, overrides=[f"fit.loss={loss}"])
-        assert fit_direct_model(cfg, None, *args, log, False, (1.0, 0.0)) is None  # no start model: the fit fails, logged
+        with collect_log() as log:
+            assert fit_direct_model(cfg, None, *args, (1.0, 0.0)) is None  # no start model: the fit fails, logged
         assert any("fit.loss=l1" in m and "direct" in m for m in log) == warned
         assert any("direct: fit failed" in m for m in log)

@@ -117,14 +117,15 @@ def test_calibration_measures_a_gain_that_is_not_the_configs():
     8-step ladder), uses it with a warning naming camera.gain, and records where it came from (camera.gain_from=config:
     test_choose_gain_auto_measure_config); the ladder's frames are counted in the estimate."""
     from torchblur.identify.calibration import calibrate
+    from torchblur.identify.record import collect_log
     from torchblur.config import calibration_frames, load_config
     from torchblur.rig.factory import build_simulated_rig
 
     base = ["camera.height=32", "camera.width=32", "sweep.freq_hz=[50]", "fit.axis=x", "camera.latency_std_s=1e-7", "seed=2"]
     rig_cfg = load_config(None, base + ["camera.gain=2"])
     cfg = load_config(None, base + ["camera.gain=4", "camera.ptc_frames=8"])
-    log = []
-    cal = calibrate(cfg, build_simulated_rig(rig_cfg), log=log, n_dark=32, n_still=8)
+    with collect_log() as log:
+        cal = calibrate(cfg, build_simulated_rig(rig_cfg), n_dark=32, n_still=8)
     assert cal.gain_source == "photon transfer" and cal.ptc.n_steps == 9
     assert abs(cal.gain - 2.0) < 4 * cal.ptc.gain_std and cal.ptc.relative_gain_std < 0.05
     assert any(m.startswith("gain: warning: camera.gain 4 e-/ADU is") for m in log)
@@ -143,6 +144,7 @@ def test_an_outside_recording_uses_the_gain_its_still_frames_measure(tmp_path):
 
     from torchblur.hardware.outside import read_outside_recording
     from torchblur.identify.outside import outside_calibration, outside_config
+    from torchblur.identify.record import collect_log
 
     cam = _camera(2.0, bit_depth=16)
     still = _frames(cam, _spot(8000.0), 16, seed=5).numpy().astype(np.uint16)
@@ -152,9 +154,9 @@ def test_an_outside_recording_uses_the_gain_its_still_frames_measure(tmp_path):
     folder = write_outside(tmp_path / "rec", dark=dark, still=still, still_exposure_s=1e-3, points=pts,
                            camera=dict(gain_e_per_adu=4.0, latency_std_s=0.0))
     rec = read_outside_recording(folder)
-    log = []
-    cal = outside_calibration(rec, outside_config(rec), log)
+    with collect_log() as log:
+        cal = outside_calibration(rec, outside_config(rec))
     assert cal.gain_source == "photon transfer" and abs(cal.gain - 2.0) < 4 * cal.ptc.gain_std
     assert any(m.startswith("gain: warning: recording.yaml gain_e_per_adu 4") for m in log)
     cfg = outside_config(rec, ["camera.gain_from=config"])
-    assert outside_calibration(rec, cfg, []).gain == 4.0
+    assert outside_calibration(rec, cfg).gain == 4.0

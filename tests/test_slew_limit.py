@@ -166,6 +166,7 @@ class NoPulseRig:
 
 def test_a_rig_without_pulse_needs_the_latency_given_and_uses_it():
     from torchblur.identify.calibration import calibrate
+    from torchblur.identify.record import collect_log
 
     cfg = load_config(None, SMALL + ["sweep.freq_hz=[50]", "fit.axis=x"])
     rig = NoPulseRig(build_simulated_rig(cfg))
@@ -174,7 +175,7 @@ def test_a_rig_without_pulse_needs_the_latency_given_and_uses_it():
     with pytest.raises(ConfigError, match="^camera.latency_std_s"):
         load_config(None, SMALL + ["camera.latency_std_s=-1e-6"])
     given = load_config(None, SMALL + ["sweep.freq_hz=[50]", "fit.axis=x", "camera.latency_s=11e-6", "camera.latency_std_s=0.5e-6"])
-    log = []
-    cal = calibrate(given, rig, log=log, n_dark=16, n_still=4)
+    with collect_log() as log:
+        cal = calibrate(given, rig, n_dark=16, n_still=4)
     assert (cal.latency_s, cal.latency_std_s, cal.latency_source) == (11e-6, 0.5e-6, "given")
     assert any(m.startswith("latency: 11.000 +- 0.500 us given") for m in log)

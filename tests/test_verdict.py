@@ -11,6 +11,7 @@ from torchblur.errors import ShapeError
 from torchblur.identify.assemble import (adequacy, limited_mask, mark_limited, timing_limit_hz, timing_phase_std)
 from torchblur.config import load_config
 from torchblur.identify.model import fit_model, model_exclusions, points_needed
+from torchblur.identify.record import collect_log
 from torchblur.identify.run import identify
 from torchblur.identify.verdict import EXIT_FLAGGED, model_chi2_limit, verdict
 from torchblur.sysid.flags import ALIAS, FAILED, LIMITED, NO_MOTION, POOR_FIT, TIMING
@@ -194,11 +195,11 @@ def test_the_model_fit_leaves_poor_fit_points_out():
     left_out, kept = model_exclusions(flagged, cfg)
     np.testing.assert_array_equal(left_out[0, 0], flags != 0)
     assert kept == []
-    log = []
-    model = fit_model(cfg, flagged, log)
+    with collect_log() as log:
+        model = fit_model(cfg, flagged)
     assert any("2 poor-fit point(s) left out of the fit" in line for line in log)
     assert model.reduced_chi2 < 3  # the 30 % outliers (30 stds) did not enter
-    unflagged = fit_model(cfg, frf.replace(response=bad), [])
+    unflagged = fit_model(cfg, frf.replace(response=bad))
     assert unflagged.reduced_chi2 > 50  # the same points with weight: the fit is pulled off
 
 
@@ -217,11 +218,11 @@ def test_the_model_fit_leaves_alias_points_out_and_the_report_says_so():
     left_out, kept = model_exclusions(flagged, cfg)
     np.testing.assert_array_equal(left_out[0, 0], flags != 0)
     assert kept == []
-    log = []
-    model = fit_model(cfg, flagged, log)
+    with collect_log() as log:
+        model = fit_model(cfg, flagged)
     assert any("3 alias point(s) (phase branch not decided) left out of the fit" in line for line in log)
     assert model.reduced_chi2 < 3  # the wrong branches did not enter
-    assert fit_model(cfg, frf.replace(response=wrong), []).reduced_chi2 > 50  # with weight they pull the fit off
+    assert fit_model(cfg, frf.replace(response=wrong)).reduced_chi2 > 50  # with weight they pull the fit off
     lines = report_lines(flagged.replace(meta={"timing": {"jitter_s": 0.0, "latency_std_s": 0.0, "frames_per_point": 1}}), cfg)
     assert sum("alias" in ln and "left out of the model fit (its phase may be the alias)" in ln for ln in lines) == 3
     doc = left_out_points(cfg, flagged)["left_out_points"]
@@ -238,8 +239,8 @@ def test_poor_fit_points_are_kept_when_too_few_would_remain():
     flagged = frf.replace(flags=np.array([POOR_FIT, POOR_FIT, 0]))
     left_out, kept = model_exclusions(flagged, cfg)
     assert not left_out.any() and kept == [("y0", "u0", 2)]
-    log = []
-    fit_model(cfg, flagged, log)
+    with collect_log() as log:
+        fit_model(cfg, flagged)
     assert any("warning: output y0 from input u0: leaving its 2 poor-fit point(s) out" in line for line in log)
 
 

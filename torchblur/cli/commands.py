@@ -193,11 +193,15 @@ def _recorded_table(cfg, root: Path, *, new: bool):
     return dataclasses.replace(cfg, dm=dataclasses.replace(cfg.dm, actuator_table=TABLE_COPY)), str(root)
 
 
-def _source(exp, args) -> str:
-    """``source.json`` of a re-fit: the recording, its status and frames, the overrides."""
-    return json.dumps({"schema": SOURCE_SCHEMA[0], "schema_version": SOURCE_SCHEMA[1][-1],
-                       "recording": str(exp.path), "status": exp.meta.get("status"), "frames": len(exp.lines),
-                       "overrides": list(args.overrides), "torchblur_version": tb.__version__}, indent=2)
+def _write_source(out: Path, args, **what) -> None:
+    """``out/source.json`` of a re-fit or a fit of an outside recording: ``what`` (the recording,
+    its status or points, its frames), the overrides, the version."""
+    (out / "source.json").write_text(json.dumps({"schema": SOURCE_SCHEMA[0], "schema_version": SOURCE_SCHEMA[1][-1], **what,
+                                                 "overrides": list(args.overrides), "torchblur_version": tb.__version__}, indent=2))
+
+
+def _write_refit_source(out: Path, args, exp) -> None:
+    _write_source(out, args, recording=str(exp.path), status=exp.meta.get("status"), frames=len(exp.lines))
 
 
 def fit_command(args) -> int:
@@ -219,7 +223,7 @@ def fit_command(args) -> int:
     if recorded.dm.enabled:  # a DM recording: torchblur.dm re-fits it (dm_plan.support_threshold may change too)
         check_refit_config(recorded, cfg)
         out.mkdir(parents=True, exist_ok=True)
-        (out / "source.json").write_text(_source(exp, args))
+        _write_refit_source(out, args, exp)
         return _run_dm(cfg, out, args, record=exp, root=root, rig=ReplayRig(exp))
     check_resume_config(recorded, cfg, allowed=("fit", "model", "report"))
     out.mkdir(parents=True, exist_ok=True)
@@ -228,7 +232,7 @@ def fit_command(args) -> int:
     t0 = time.perf_counter()
     res = identify(cfg, rig=ReplayRig(exp), record=exp, progress=not args.quiet)
     elapsed = time.perf_counter() - t0
-    (out / "source.json").write_text(_source(exp, args))
+    _write_refit_source(out, args, exp)
     return write_outputs(cfg, res, out, elapsed, stamp, as_json=args.json, source="re-fit").exit_code
 
 
@@ -267,9 +271,7 @@ def _fit_outside(args) -> int:
     t0 = time.perf_counter()
     res = identify_outside(rec, cfg, progress=not args.quiet)
     elapsed = time.perf_counter() - t0
-    (out / "source.json").write_text(json.dumps({"schema": SOURCE_SCHEMA[0], "schema_version": SOURCE_SCHEMA[1][-1],
-                                                 "outside_recording": str(src), "frames": rec.n_frames, "points": len(rec.points),
-                                                 "overrides": list(args.overrides), "torchblur_version": tb.__version__}, indent=2))
+    _write_source(out, args, outside_recording=str(src), frames=rec.n_frames, points=len(rec.points))
     return write_outputs(cfg, res, out, elapsed, stamp, as_json=args.json, source="outside").exit_code
 
 
@@ -279,7 +281,5 @@ def _fit_dm_outside(args, src: Path, out: Path) -> int:
     rec = read_dm_recording(src)  # RecordingError naming file, line and column
     cfg = dm_recording_config(rec, args.overrides)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "source.json").write_text(json.dumps({"schema": SOURCE_SCHEMA[0], "schema_version": SOURCE_SCHEMA[1][-1],
-                                                 "outside_recording": str(src), "frames": rec.n_frames, "points": len(rec.freq_hz),
-                                                 "overrides": list(args.overrides), "torchblur_version": tb.__version__}, indent=2))
+    _write_source(out, args, outside_recording=str(src), frames=rec.n_frames, points=len(rec.freq_hz))
     return run_recording(rec, cfg, out, quiet=args.quiet, as_json=args.json)

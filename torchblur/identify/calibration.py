@@ -12,7 +12,7 @@ import torch
 from torchblur.errors import ConfigError, ParameterError, as_unit_direction
 from torchblur.config import LATENCY_SCAN, SATURATION_STEPS, latency_scan_times
 from torchblur.identify.drive import DriveLimit, at_limit, check_recorded_drive, drive_limit
-from torchblur.identify.record import log_message, run_stage
+from torchblur.identify.record import LOGGER, run_stage
 from torchblur.image.photon_transfer import photon_transfer
 from torchblur.image.preprocess import dark_frame, saturation_curve, subtract_dark
 from torchblur.image.psf_from_still import psf_from_still
@@ -90,7 +90,7 @@ class Calibration:
 N_DARK = 256
 
 
-def calibrate(cfg, rig, exp=None, log=None, progress: bool = False, *, n_dark: int = N_DARK, n_still: int = 16, spot_psfs: bool = True,
+def calibrate(cfg, rig, exp=None, *, n_dark: int = N_DARK, n_still: int = 16, spot_psfs: bool = True,
               spot_layout=None):
     """Stages 1-4 of :func:`identify`: dark frame, saturation curve, PSF, latency and, for a
     one-axis, one-spot run, the actuator's direction in the image (each taken from the
@@ -99,7 +99,6 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False, *, n_dark: i
     run whose stds are small takes more. ``spot_psfs``: many spots' PSFs by :func:`spot_kernels` (False: the Gaussians).
     ``spot_layout``: the sensor's declared rest positions ``[M, 2]`` (x, y px): the spots are cropped there
     (:func:`_layout_spots`), not found by thresholding the frame."""
-    log = [] if log is None else log
     c = cfg.camera
     dtype = torch.float64
 
@@ -108,13 +107,13 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False, *, n_dark: i
     drive = drive_limit(rig, cfg.excitation.max_amplitude, exp, getattr(cfg.excitation, "max_slew", None))
     if exp is not None and exp.writable:
         check_recorded_drive(exp, drive.limit, drive.slew)
-    log_message(log, drive.describe(), progress)
+    LOGGER.info(drive.describe())
 
     # 1. Dark frame.
     dark_raw = run_stage(exp, "dark", "dark", rig, lambda r: r.dark(n=n_dark, exposure_s=min(0.01, c.max_exposure_s))).frames.to(dtype)
     dark = dark_frame(dark_raw)
-    log_message(log, f"dark: level {float(dark.mean.mean()):.2f} ADU, read noise {float(dark.read_noise):.3g} ADU, "
-              f"{int(dark.hot_pixels.sum())} hot pixels", progress)
+    LOGGER.info(f"dark: level {float(dark.mean.mean()):.2f} ADU, read noise {float(dark.read_noise):.3g} ADU, "
+                f"{int(dark.hot_pixels.sum())} hot pixels")
 
     # 3 (before 2, to choose the PSF exposure). Saturation curve of the still spot.
     ladder = np.geomspace(1e-4, c.max_exposure_s, SATURATION_STEPS)
@@ -122,29 +121,29 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False, *, n_dark: i
                    lambda r: [float(r.still(n=1, exposure_s=float(te)).frames.to(dtype).amax()) for te in ladder])
     sat = saturation_curve(torch.tensor(peaks, dtype=dtype), torch.tensor(ladder, dtype=dtype))
     full_adu = float(sat.saturation_adu) - float(dark.mean.mean())
-    log_message(log, f"saturation: {float(sat.saturation_adu):.0f} ADU plateau, linear up to {float(sat.linear_limit_s) * 1e3:.3g} ms of still exposure", progress)
+    LOGGER.info(f"saturation: {float(sat.saturation_adu):.0f} ADU plateau, linear up to {float(sat.linear_limit_s) * 1e3:.3g} ms of still exposure")
 
     # 2. PSF: still frames at an exposure that fills peak_fraction of the range.
     te_psf = float(min(c.max_exposure_s, c.peak_fraction * float(sat.linear_limit_s)))
     still_raw = run_stage(exp, "psf", "psf", rig, lambda r: r.still(n=n_still, exposure_s=te_psf)).frames.to(dtype)
     # 2a. The gain: a photon transfer curve of the still frames (and of a ladder with camera.ptc_frames), checked against camera.gain.
-    ptc, gain, gain_source = _gain_stage(cfg, rig, exp, dark_raw, dark, still_raw, sat, log, progress)
+    ptc, gain, gain_source = _gain_stage(cfg, rig, exp, dark_raw, dark, still_raw, sat)
     read_noise_e = float(dark.read_noise) * gain
     still_e = subtract_dark(still_raw, dark) * gain
     spots = still_psf = spot_kern = None
     if getattr(cfg, "spots", None) is not None and cfg.spots.enabled:
-        spots, spot_kern = spots_from_still(cfg, still_e, te_psf, read_noise_e, log, progress, spot_layout=spot_layout,
+        spots, spot_kern = spots_from_still(cfg, still_e, te_psf, read_noise_e, spot_layout=spot_layout,
                                             spot_psfs=spot_psfs)
         psf = spots.psf  # [K], full-frame coordinates
         whole = spots.inside_fraction >= MIN_INSIDE  # an edge spot's peak is an extrapolation: not trusted here
         peak_rate = float(psf.amplitude[whole].max() if bool(whole.any()) else psf.amplitude.max())  # e-/s at power 1
     else:
-        still_psf = _still_psf(cfg, still_e, te_psf, read_noise_e, log, progress)
+        still_psf = _still_psf(cfg, still_e, te_psf, read_noise_e)
         psf = still_psf.gaussian.psf
         peak_rate = float(psf.amplitude)  # electrons per second at power 1
 
     # 4. Latency: given (camera.latency_s, camera.latency_std_s), or scanned with laser pulses.
-    latency, latency_std, latency_source = _latency_stage(cfg, rig, exp, dark, gain, full_adu, peak_rate, log, progress)
+    latency, latency_std, latency_source = _latency_stage(cfg, rig, exp, dark, gain, full_adu, peak_rate)
     cal = Calibration(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=full_adu, psf=psf, peak_rate=peak_rate,
                       latency_s=latency, latency_std_s=latency_std, gain=gain, spots=spots, still_psf=still_psf, drive=drive,
                       latency_source=latency_source, ptc=ptc, gain_source=gain_source, spot_kernels=spot_kern)
@@ -152,18 +151,18 @@ def calibrate(cfg, rig, exp=None, log=None, progress: bool = False, *, n_dark: i
     # 4b. The actuator's direction in the image (one axis, one spot; a 2x2 plant or many spots
     # fit both image axes).
     if not cfg.plant.is_mimo and spots is None:
-        _axis_stage(cfg, rig, exp, cal, log, progress)
+        _axis_stage(cfg, rig, exp, cal)
     return cal
 
 
-def _axis_stage(cfg, rig, exp, cal: Calibration, log, progress) -> None:
+def _axis_stage(cfg, rig, exp, cal: Calibration) -> None:
     """Stage 4b of :func:`calibrate` (one axis, one spot): ``cal.direction``, the actuator's
     direction in the image (measured by tracking with ``fit.axis=measure``, from the recording
     where it holds it, else x; or the configured axis), with ``cal.axis`` and ``cal.axis_gain`` where measured."""
     mode = cfg.fit.axis
     if mode == "measure" and exp is not None and not exp.writable and "axis" not in exp.groups:
         cal.direction = (1.0, 0.0)
-        log_message(log, "axis: not in the recording (made before the axis calibration): the motion is fitted along x", progress)
+        LOGGER.info("axis: not in the recording (made before the axis calibration): the motion is fitted along x")
     elif mode == "measure":
         axis, axis_gain = run_stage(exp, "axis", "axis", rig, lambda r: _measure_axis(cfg, r, cal))
         u = np.asarray(axis.direction, dtype=float)
@@ -171,33 +170,33 @@ def _axis_stage(cfg, rig, exp, cal: Calibration, log, progress) -> None:
             u = -u
         if not (np.isfinite(u).all() and axis.px_per_unit > 5 * axis.px_per_unit_std):
             cal.direction = (1.0, 0.0)  # no clear motion to take a direction from
-            log_message(log, f"axis: no clear motion in the tracking ({axis.px_per_unit:.3g} +- {axis.px_per_unit_std:.2g} px per "
-                      f"input unit at {cfg.frequencies_hz()[0]:.4g} Hz): the motion is fitted along x", progress)
+            LOGGER.info(f"axis: no clear motion in the tracking ({axis.px_per_unit:.3g} +- {axis.px_per_unit_std:.2g} px per "
+                        f"input unit at {cfg.frequencies_hz()[0]:.4g} Hz): the motion is fitted along x")
         else:
             cal.direction, cal.axis, cal.axis_gain = (float(u[0]), float(u[1])), axis, axis_gain
-            log_message(log, f"axis: {math.degrees(math.atan2(u[1], u[0])):.3f} +- {math.degrees(axis.angle_std_rad):.3f} deg from "
-                      f"+x (tracked at {cfg.frequencies_hz()[0]:.4g} Hz, {axis.px_per_unit:.4g} px per input unit)", progress)
+            LOGGER.info(f"axis: {math.degrees(math.atan2(u[1], u[0])):.3f} +- {math.degrees(axis.angle_std_rad):.3f} deg from "
+                        f"+x (tracked at {cfg.frequencies_hz()[0]:.4g} Hz, {axis.px_per_unit:.4g} px per input unit)")
     else:
         u = as_unit_direction({"x": (1.0, 0.0), "y": (0.0, 1.0)}[mode] if isinstance(mode, str) else mode, "fit.axis",
                               like=torch.zeros((), dtype=torch.float64))
         cal.direction = (float(u[0]), float(u[1]))
 
 
-def _latency_stage(cfg, rig, exp, dark, gain: float, full_adu: float, peak_rate: float, log, progress):
+def _latency_stage(cfg, rig, exp, dark, gain: float, full_adu: float, peak_rate: float):
     """Stage 4: ``(latency_s, std_s, "given" | "scanned")``: ``camera.latency_s`` +- ``camera.latency_std_s``
     where given, else :func:`calibrate_latency` with pulses that fill ``camera.peak_fraction`` of the range
     (``full_adu``) at the still spot's peak (``peak_rate`` e-/s)."""
     c = cfg.camera
     if latency_given(cfg):
         latency, std = float(c.latency_s), float(c.latency_std_s)
-        log_message(log, f"latency: {latency * 1e6:.3f} +- {std * 1e6:.3f} us given (camera.latency_s, camera.latency_std_s; "
-                         f"not scanned)", progress)
+        LOGGER.info(f"latency: {latency * 1e6:.3f} +- {std * 1e6:.3f} us given (camera.latency_s, camera.latency_std_s; "
+                    f"not scanned)")
         return latency, std, "given"
     pulse_w = LATENCY_SCAN["pulse_width_s"]
     latency, std = run_stage(exp, "latency", "latency", rig, lambda r: calibrate_latency(
         r, dark=dark, gain=gain, trigger_delay_s=c.trigger_delay_s, pulse_width_s=pulse_w,
         power=c.peak_fraction * full_adu * gain / (peak_rate * pulse_w)))
-    log_message(log, f"latency: {latency * 1e6:.3f} +- {std * 1e6:.3f} us scanned with laser pulses", progress)
+    LOGGER.info(f"latency: {latency * 1e6:.3f} +- {std * 1e6:.3f} us scanned with laser pulses")
     return latency, std, "scanned"
 
 
@@ -254,7 +253,7 @@ def choose_gain(ptc, configured: float, mode: str, name: str = "camera.gain") ->
     return gain, source, line
 
 
-def _gain_stage(cfg, rig, exp, dark_raw, dark, still_raw, sat, log, progress):
+def _gain_stage(cfg, rig, exp, dark_raw, dark, still_raw, sat):
     """Stage 2a: the photon transfer curve of the still frames (the spot's pixels span dark to its
     peak) and, with ``camera.ptc_frames`` > 0, of a ladder of :data:`PTC_STEPS` exposures of that
     many still frames each; the gain it gives is checked against ``camera.gain`` and chosen
@@ -266,10 +265,10 @@ def _gain_stage(cfg, rig, exp, dark_raw, dark, still_raw, sat, log, progress):
     if n_ladder > 0:
         te = ptc_exposures(float(sat.linear_limit_s), float(c.max_exposure_s))
         steps += run_stage(exp, "ptc", "ptc", rig, lambda r: [r.still(n=n_ladder, exposure_s=t).frames.to(dark_raw.dtype) for t in te])
-    return measure_gain(steps, dark_raw, dark, float(sat.saturation_adu), configured, mode, log, progress)
+    return measure_gain(steps, dark_raw, dark, float(sat.saturation_adu), configured, mode)
 
 
-def measure_gain(steps, dark_raw, dark, saturation_adu: float, configured: float, mode: str, log, progress: bool = False, *,
+def measure_gain(steps, dark_raw, dark, saturation_adu: float, configured: float, mode: str, *,
                  name: str = "camera.gain"):
     """The photon transfer curve of ``steps`` (raw frames, ADU: a list of ``[N, H, W]``) against the
     raw dark frames ``dark_raw`` ``[D, H, W]`` (``dark``: their DarkFrame, for the hot pixels), and
@@ -283,13 +282,13 @@ def measure_gain(steps, dark_raw, dark, saturation_adu: float, configured: float
     if all(s.shape[0] >= 2 for s in steps) and dark_raw.shape[0] >= 2:
         try:
             ptc = photon_transfer(steps, dark_raw, saturation_adu=saturation_adu, hot_pixels=dark.hot_pixels)
-            log_message(log, f"photon transfer: {ptc.describe()}", progress)
+            LOGGER.info(f"photon transfer: {ptc.describe()}")
         except ParameterError as exc:
-            log_message(log, f"photon transfer: not measured ({exc})", progress)
+            LOGGER.info(f"photon transfer: not measured ({exc})")
     if ptc is None and mode == "measure":
         raise ConfigError("camera.gain_from: measure, but the frames give no photon transfer curve (see the log)")
     gain, source, line = choose_gain(ptc, configured, mode, name)
-    log_message(log, line, progress)
+    LOGGER.info(line)
     return ptc, gain, source
 
 
@@ -321,7 +320,7 @@ def _measure_axis(cfg, rig, cal: Calibration):
     return axis, axis.px_per_unit
 
 
-def _still_psf(cfg, still_e, exposure_s, read_noise_e, log, progress):
+def _still_psf(cfg, still_e, exposure_s, read_noise_e):
     """Stage 2 with one spot: :func:`~torchblur.image.psf_from_still.psf_from_still` of the
     dark-subtracted still frames ``still_e`` ``[N, H, W]`` (electrons; one frame's noise from
     the camera model; background 0 after the dark subtraction, unless ``fit.fit_background``
@@ -334,10 +333,10 @@ def _still_psf(cfg, still_e, exposure_s, read_noise_e, log, progress):
         raise ParameterError(f"fit.psf: no Gaussian fits the still frame, and the centre, peak rate and axis calibration need "
                              f"one ({sp.reason})")
     g = sp.gaussian.psf
-    log_message(log, f"psf: {sp.reason}", progress)
-    log_message(log, f"psf: Gaussian (point-sampled) centre ({float(g.center[0]):.2f}, {float(g.center[1]):.2f}) px, cov "
-                     f"[[{float(g.cov[0, 0]):.3f}, {float(g.cov[0, 1]):.3f}], [., {float(g.cov[1, 1]):.3f}]] px^2, relative "
-                     f"residual {float(sp.gaussian.relative_residual):.2e}", progress)
+    LOGGER.info(f"psf: {sp.reason}")
+    LOGGER.info(f"psf: Gaussian (point-sampled) centre ({float(g.center[0]):.2f}, {float(g.center[1]):.2f}) px, cov "
+                f"[[{float(g.cov[0, 0]):.3f}, {float(g.cov[0, 1]):.3f}], [., {float(g.cov[1, 1]):.3f}]] px^2, relative "
+                f"residual {float(sp.gaussian.relative_residual):.2e}")
     return sp
 
 
@@ -357,21 +356,21 @@ class SpotKernels:
         return self.rule.kernel_noise_factor(exposures_s)
 
 
-def spots_from_still(cfg, still_e, exposure_s, read_noise_e, log, progress, *, spot_layout=None, spot_psfs: bool = True):
+def spots_from_still(cfg, still_e, exposure_s, read_noise_e, *, spot_layout=None, spot_psfs: bool = True):
     """Many spots from the still frames ``still_e [N, H, W]`` (electrons, dark subtracted):
     ``(spots, kernels)``, the :class:`~torchblur.image.spots.SpotPSFs` (found by thresholding, or
     with ``spot_layout`` ``[M, 2]`` cropped on the sensor's declared layout) and their
     :class:`SpotKernels` (:func:`spot_kernels`; None when ``spot_psfs`` is False). One function for
     a live calibration and for a recording's (``torchblur.identify.dm_outside``), so both take the same steps."""
     if spot_layout is None:
-        spots = _locate_spots(cfg, still_e.mean(0), exposure_s, read_noise_e, log, progress)
+        spots = _locate_spots(cfg, still_e.mean(0), exposure_s, read_noise_e)
     else:
-        spots = _layout_spots(cfg, still_e.mean(0), exposure_s, read_noise_e, spot_layout, log, progress)
-    kernels = spot_kernels(cfg, still_e, exposure_s, read_noise_e, spots, log, progress) if spot_psfs else None
+        spots = _layout_spots(cfg, still_e.mean(0), exposure_s, read_noise_e, spot_layout)
+    kernels = spot_kernels(cfg, still_e, exposure_s, read_noise_e, spots) if spot_psfs else None
     return spots, kernels
 
 
-def spot_kernels(cfg, still_e, exposure_s, read_noise_e, spots, log, progress):
+def spot_kernels(cfg, still_e, exposure_s, read_noise_e, spots):
     """Stage 2 with many spots and ``fit.psf`` auto or kernel: :func:`~torchblur.image.psf_from_still.psf_from_still`
     on every spot's crop of the dark-subtracted still frames ``still_e [N, H, W]`` (e-). Every spot is
     fitted with its measured kernel when ``fit.psf=kernel`` or, with ``auto``, when any fitted spot's
@@ -401,18 +400,18 @@ def spot_kernels(cfg, still_e, exposure_s, read_noise_e, spots, log, progress):
     failing = [sp for sp in fitted if sp.kind == "kernel"]
     if not fitted or not failing:
         if fitted:
-            log_message(log, f"spots psf: Gaussian per spot (each of the {len(fitted)} spots' Gaussians explains its still: worst "
-                             f"reduced chi2 {max(float(sp.chi2_gaussian) for sp in fitted):.3g})", progress)
+            LOGGER.info(f"spots psf: Gaussian per spot (each of the {len(fitted)} spots' Gaussians explains its still: worst "
+                        f"reduced chi2 {max(float(sp.chi2_gaussian) for sp in fitted):.3g})")
         return None
     worst = max(failing, key=lambda sp: float(sp.chi2_gaussian))
     why = "fit.psf=kernel" if cfg.fit.psf == "kernel" else (f"{len(failing)} of {len(fitted)} spots' Gaussians do not explain "
                                                             f"their still, worst reduced chi2 {float(worst.chi2_gaussian):.3g} > "
                                                             f"{worst.chi2_threshold:.3g}")
-    log_message(log, f"spots psf: the measured kernel of every spot ({why})", progress)
+    LOGGER.info(f"spots psf: the measured kernel of every spot ({why})")
     return SpotKernels(psf=KernelPSF(torch.stack(kern)), still=still, rule=replace(fitted[0], kind="kernel", psf=fitted[0].kernel))
 
 
-def _locate_spots(cfg, still, exposure_s, read_noise_e, log, progress):
+def _locate_spots(cfg, still, exposure_s, read_noise_e):
     """Stage 2 with many spots: find them in the still image and fit a PSF per spot (one
     batch, on crops); log how many of the expected grid were found."""
     sp = cfg.spots
@@ -420,22 +419,21 @@ def _locate_spots(cfg, still, exposure_s, read_noise_e, log, progress):
                          pitch_px=float(sp.pitch_px), crop_px=None if sp.crop_px is None else int(sp.crop_px))
     K, expected = len(spots), int(sp.rows) * int(sp.cols)
     sd = torch.linalg.eigvalsh(spots.psf.cov).clamp_min(0).sqrt()
-    log_message(log, f"spots: {K} found (grid {sp.rows}x{sp.cols} = {expected}), crops {spots.size[0]}x{spots.size[1]} px, PSF sigma "
-              f"{float(sd.min()):.2f}..{float(sd.max()):.2f} px, worst relative residual "
-              f"{float(spots.fit.relative_residual.max()):.2e}", progress)
+    LOGGER.info(f"spots: {K} found (grid {sp.rows}x{sp.cols} = {expected}), crops {spots.size[0]}x{spots.size[1]} px, PSF sigma "
+                f"{float(sd.min()):.2f}..{float(sd.max()):.2f} px, worst relative residual "
+                f"{float(spots.fit.relative_residual.max()):.2e}")
     if K < expected:
-        log_message(log, f"spots: {expected - K} of the {expected} expected spot(s) not found (missing or too dim); the others are fitted",
-             progress)
+        LOGGER.info(f"spots: {expected - K} of the {expected} expected spot(s) not found (missing or too dim); the others are fitted")
     for k in torch.nonzero(spots.clipped).reshape(-1).tolist():
         c = spots.psf.center[k]
         frac = float(spots.inside_fraction[k])
         what = "flagged: not fitted" if frac < MIN_INSIDE else "fitted on the pixels in the frame"
-        log_message(log, f"spots: s{k} at ({float(c[0]):.1f}, {float(c[1]):.1f}) px is at the frame edge, {frac * 100:.0f}% of its light "
-                  f"in the frame ({what})", progress)
+        LOGGER.info(f"spots: s{k} at ({float(c[0]):.1f}, {float(c[1]):.1f}) px is at the frame edge, {frac * 100:.0f}% of its light "
+                    f"in the frame ({what})")
     return spots
 
 
-def _layout_spots(cfg, still, exposure_s, read_noise_e, rest_px, log, progress):
+def _layout_spots(cfg, still, exposure_s, read_noise_e, rest_px):
     """Stage 2 on a sensor's known layout: the declared spots ``rest_px [M, 2]`` registered to the
     still image and fitted (:func:`~torchblur.image.spot_layout.layout_spots`, one batch, in the
     declared order); logs the registration and names every flagged spot (its fit goes on)."""
@@ -444,14 +442,14 @@ def _layout_spots(cfg, still, exposure_s, read_noise_e, rest_px, log, progress):
     spots, reg, flags = layout_spots(still, exposure_s=exposure_s, noise_std=camera_noise_std(float(still.max()), read_noise_e) / 4,
                                      rest_px=rest_px, pitch_px=float(sp.pitch_px), sigma_px=float(sp.sigma_px),
                                      crop_px=None if sp.crop_px is None else int(sp.crop_px))
-    log_message(log, f"spots: {reg.describe()}", progress)
+    LOGGER.info(f"spots: {reg.describe()}")
     sd = torch.linalg.eigvalsh(spots.psf.cov).clamp_min(0).sqrt()
-    log_message(log, f"spots: {len(spots)} declared spots cropped {spots.size[0]}x{spots.size[1]} px, Gaussian PSF sigma "
-                     f"{float(sd.min()):.2f}..{float(sd.max()):.2f} px, worst relative residual "
-                     f"{float(spots.fit.relative_residual.max()):.2e}", progress)
+    LOGGER.info(f"spots: {len(spots)} declared spots cropped {spots.size[0]}x{spots.size[1]} px, Gaussian PSF sigma "
+                f"{float(sd.min()):.2f}..{float(sd.max()):.2f} px, worst relative residual "
+                f"{float(spots.fit.relative_residual.max()):.2e}")
     for k, f in enumerate(flags):
         if f != "ok":
-            log_message(log, f"spots: s{k} flagged {f} (its Gaussian PSF is kept; its fits are judged by their own chi2)", progress)
+            LOGGER.info(f"spots: s{k} flagged {f} (its Gaussian PSF is kept; its fits are judged by their own chi2)")
     return spots
 
 

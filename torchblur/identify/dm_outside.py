@@ -51,7 +51,7 @@ from torchblur.hardware.outside import (CSV_NAME, YAML_NAME, MAX_ROWS, OutsideCa
                                         _read_rows, _resolved_saturation)
 from torchblur.identify.calibration import Calibration, measure_gain, spots_from_still
 from torchblur.config import WFSConfig, load_config, load_dataclass
-from torchblur.identify.record import log_message
+from torchblur.identify.record import collect_log, log_message
 from torchblur.image.preprocess import dark_frame, subtract_dark
 from torchblur.image.saturation import SaturationCurve
 from torchblur.render.window import ExposureWindow
@@ -334,15 +334,16 @@ def recording_calibration(rec: DMRecording, cfg, wfs: ShackHartmann, log: list, 
     sat = SaturationCurve(slope_adu_per_s=nan, offset_adu=level, saturation_adu=torch.tensor(sat_adu, dtype=_F64),
                           linear_limit_s=torch.tensor(math.inf, dtype=_F64), residual_rms_adu=nan, saturated_in_data=False)
     _refuse_saturated(rec, sat, dark)
-    ptc, gain, gain_source = measure_gain([still_raw], dark_raw, dark, sat_adu, float(c.gain_e_per_adu), cfg.camera.gain_from, log,
-                                          progress, name=f"{YAML_NAME} gain_e_per_adu")
+    with collect_log(log, "torchblur.identify"):  # the calibration's messages, into this run's log
+        ptc, gain, gain_source = measure_gain([still_raw], dark_raw, dark, sat_adu, float(c.gain_e_per_adu), cfg.camera.gain_from,
+                                              name=f"{YAML_NAME} gain_e_per_adu")
     read_noise_e = float(c.read_noise_e) if c.read_noise_e is not None else float(dark.read_noise) * gain
     log_message(log, f"dark: level {float(level):.2f} ADU, read noise {read_noise_e:.3g} e-; saturation: {rec.saturation_source}", progress)
     n = int(cfg.wfs.n_across)
     spots_cfg = replace(cfg, spots=replace(cfg.spots, rows=n, cols=n, pitch_px=float(cfg.wfs.pitch_px), sigma_px=float(cfg.wfs.sigma_px)))
     still_e = subtract_dark(still_raw, dark) * gain
-    spots, kernels = spots_from_still(spots_cfg, still_e, float(rec.still_exposure_s), read_noise_e, log, progress,
-                                      spot_layout=wfs.rest_px)
+    with collect_log(log, "torchblur.identify"):
+        spots, kernels = spots_from_still(spots_cfg, still_e, float(rec.still_exposure_s), read_noise_e, spot_layout=wfs.rest_px)
     cal = Calibration(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=float(sat_adu - level), psf=spots.psf,
                       peak_rate=float(spots.psf.amplitude.max()), latency_s=float(c.latency_s), latency_std_s=float(c.latency_std_s),
                       gain=gain, spots=spots, latency_source="given", ptc=ptc, gain_source=gain_source, spot_kernels=kernels)

@@ -51,7 +51,7 @@ from torchblur.identify.calibration import calibrate, check_latency_source
 from torchblur.config import IdentifyConfig
 from torchblur.identify.dm_record import (SWEEP_KIND, check_recorded_commands, open_recording, recorded_labels, recorded_plan, resume_seed,
                                           same_table, session_info, simulated_frames, sweep_key, table_digest)
-from torchblur.identify.record import RunRecord, log_message, run_stage
+from torchblur.identify.record import RunRecord, collect_log, log_message, run_stage
 from torchblur.identify.rigs import session
 from torchblur.image.dark import subtract_dark
 from torchblur.image.spots import crop_spots
@@ -172,8 +172,9 @@ def _calibrate(cfg, rig, wfs, log, progress, exp=None):
     spots_cfg = replace(cfg.spots, rows=n, cols=n, pitch_px=float(cfg.wfs.pitch_px), sigma_px=float(cfg.wfs.sigma_px))
     size = dm_sweep_size(cfg)
     n_still = dm_still_frames(size["frames"], size["frame_shape"])
-    cal = calibrate(replace(cfg, spots=spots_cfg), rig, exp, log=log, progress=progress, n_dark=DM_DARK_FRAMES, n_still=n_still,
-                    spot_layout=wfs.rest_px)  # spots cropped on the sensor's layout; each spot's PSF (fit.psf) (issue 23)
+    with collect_log(log, "torchblur.identify"):  # the calibration's messages, into this run's log
+        cal = calibrate(replace(cfg, spots=spots_cfg), rig, exp, n_dark=DM_DARK_FRAMES, n_still=n_still,
+                        spot_layout=wfs.rest_px)  # spots cropped on the sensor's layout; each spot's PSF (fit.psf) (issue 23)
     order = match_spots(cal.spots.psf.center.numpy(), wfs.rest_px, wfs.pitch_px)
     log_message(log, f"dm spots: {len(cal.spots)} found, matched to the {wfs.n_valid} valid subapertures (the other "
                      f"{n * n - wfs.n_valid} cells of the {n}x{n} grid are outside the pupil)", progress)

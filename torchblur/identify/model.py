@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from torchblur.fit.status import POOR_FIT_CHI2, POOR_FIT_FLAG
-from torchblur.identify.record import log_message
+from torchblur.identify.record import LOGGER
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.sysid.direct import fit_direct
 from torchblur.sysid.flags import ALIAS, POOR_FIT
@@ -59,50 +59,49 @@ def model_exclusions(frf, cfg) -> tuple[np.ndarray, list]:
     return left_out, kept
 
 
-def _without(frf, left_out, log, progress):
+def _without(frf, left_out):
     """``frf`` with the ``left_out`` points set to NaN (weight 0 in the fit), each logged by its reason."""
     alias = left_out & ((frf.flags & ALIAS) != 0)
     for pts, what in ((left_out & ~alias, "poor-fit point(s)"), (alias, "alias point(s) (phase branch not decided)")):
         if pts.any():
             f = ", ".join(f"{v:.4g}" for v in frf.freq_hz[pts.any(axis=(0, 1))])
-            log_message(log, f"model: {int(pts.sum())} {what} left out of the fit ({f} Hz)", progress)
+            LOGGER.info(f"model: {int(pts.sum())} {what} left out of the fit ({f} Hz)")
     return frf.replace(response=np.where(left_out, np.nan, frf.response)) if left_out.any() else frf
 
 
-def fit_model(cfg, frf, log=None, progress: bool = False):
+def fit_model(cfg, frf):
     """Stage 7 of :func:`identify`: the transfer-function model of ``frf`` under
     ``cfg.model`` (None, with the reason logged, when the fit fails)."""
-    log = [] if log is None else log
     left_out, kept = model_exclusions(frf, cfg)
     for out, inp, n in kept:
-        log_message(log, f"model: warning: output {out} from input {inp}: leaving its {n} poor-fit point(s) out would leave fewer "
-                    f"than {points_needed(cfg.model)} points; they are kept, at their inflated stds", progress)
-    frf = _without(frf, left_out, log, progress)
+        LOGGER.info(f"model: warning: output {out} from input {inp}: leaving its {n} poor-fit point(s) out would leave fewer "
+                    f"than {points_needed(cfg.model)} points; they are kept, at their inflated stds")
+    frf = _without(frf, left_out)
     # Outputs with a channel that has no valid point at all (a spot flagged at every
     # frequency) are left out, so they do not take the other outputs' models with them.
     keep = frf.valid.any(-1).all(-1)  # [O]
     if not keep.any():
-        log_message(log, "model: fit failed: no output has a valid point in every channel", progress)
+        LOGGER.info("model: fit failed: no output has a valid point in every channel")
         return None
     if not keep.all():
         dropped = [lab for lab, k in zip(frf.output_labels, keep) if not k]
-        log_message(log, f"model: output(s) {', '.join(dropped)} have a channel with no valid point and are left out of the model", progress)
+        LOGGER.info(f"model: output(s) {', '.join(dropped)} have a channel with no valid point and are left out of the model")
         frf = frf.select_outputs(keep)
     try:
         model = fit_transfer_function(frf, n_poles=cfg.model.n_poles, n_zeros=cfg.model.n_zeros,
                                       delay_s=None if cfg.model.fit_delay else 0.0, max_order=int(cfg.model.max_order),
                                       common_delay_std_s=common_delay_std(frf, cfg))
     except Exception as exc:  # the FRF is still a result; say why the model failed
-        log_message(log, f"model: fit failed: {exc}", progress)
+        LOGGER.info(f"model: fit failed: {exc}")
         return None
     if model.is_siso:
-        log_message(log, f"model: {model.n_poles} poles, {model.n_zeros} zeros, delay {model.delay_s * 1e6:.2f} us, "
-                  f"reduced chi2 {model.reduced_chi2:.3f}", progress)
+        LOGGER.info(f"model: {model.n_poles} poles, {model.n_zeros} zeros, delay {model.delay_s * 1e6:.2f} us, "
+                    f"reduced chi2 {model.reduced_chi2:.3f}")
     else:  # one model per channel (output o from input i)
         for o, out in enumerate(model.output_labels):
             for i, inp in enumerate(model.input_labels):
-                log_message(log, f"model {out} from {inp}: {model.n_poles[o][i]} poles, {model.n_zeros[o][i]} zeros, delay "
-                          f"{model.delay_s[o][i] * 1e6:.2f} us, reduced chi2 {model.reduced_chi2[o][i]:.3f}", progress)
+                LOGGER.info(f"model {out} from {inp}: {model.n_poles[o][i]} poles, {model.n_zeros[o][i]} zeros, delay "
+                            f"{model.delay_s[o][i] * 1e6:.2f} us, reduced chi2 {model.reduced_chi2[o][i]:.3f}")
     return model
 
 
@@ -162,7 +161,7 @@ def modes_outside_band(modes, f_lo_hz: float, f_hi_hz: float, factor: float = 3.
     return [m for m in modes if not (f_lo_hz / factor <= m["freq_hz"] <= factor * f_hi_hz)]
 
 
-def fit_direct_model(cfg, model, images, windows, omega, amps, psf, power_t, noise, mask, fit, log, progress, direction, still_psf=None,
+def fit_direct_model(cfg, model, images, windows, omega, amps, psf, power_t, noise, mask, fit, direction, still_psf=None,
                      latency_std_s: float = 0.0):
     """The direct model (one axis, one spot): every image at once, weighted by the camera's
     noise model ``noise`` (:class:`~torchblur.render.camera.CameraNoise`; the fit's own rule:
@@ -177,8 +176,8 @@ def fit_direct_model(cfg, model, images, windows, omega, amps, psf, power_t, noi
     F = images.shape[0]
     t_direct = time.perf_counter()
     if cfg.fit.loss != "l2":
-        log_message(log, f"direct: warning: fit.loss={cfg.fit.loss} applies to the two-step points only; the direct model "
-                    f"(model.direct) is fitted by least squares (l2) weighted by the camera's noise model", progress)
+        LOGGER.info(f"direct: warning: fit.loss={cfg.fit.loss} applies to the two-step points only; the direct model "
+                    f"(model.direct) is fitted by least squares (l2) weighted by the camera's noise model")
     kernel = still_psf is not None and isinstance(still_psf.psf, KernelPSF)
     if kernel:
         k = still_psf.psf.kernel.to(images.dtype)
@@ -193,7 +192,7 @@ def fit_direct_model(cfg, model, images, windows, omega, amps, psf, power_t, noi
                        valid=(fit.status != 1) & (fit.status != 3), fit_scale=cfg.fit.fit_scale,
                        fit_background=cfg.fit.fit_background, max_iter=int(cfg.model.direct_max_iter))
     except Exception as exc:  # the two-step model is still a result; say why the direct fit failed
-        log_message(log, f"direct: fit failed: {exc}", progress)
+        LOGGER.info(f"direct: fit failed: {exc}")
         return None
     if kernel:
         d = with_kernel_noise(d, direct_kernel_noise_factor(still_psf, windows, power_t, d.used))
@@ -203,16 +202,16 @@ def fit_direct_model(cfg, model, images, windows, omega, amps, psf, power_t, noi
                       for m in modal)
     f_lo, f_hi = float(omega.min()) / (2 * math.pi), float(omega.max()) / (2 * math.pi)
     for m in modes_outside_band(modal, f_lo, f_hi):
-        log_message(log, f"direct: warning: a mode at {m['freq_hz']:.4g} Hz lies far outside the swept band "
-                  f"({f_lo:.4g}-{f_hi:.4g} Hz); the images do not constrain it (std {m['freq_hz_std']:.3g} Hz)", progress)
+        LOGGER.info(f"direct: warning: a mode at {m['freq_hz']:.4g} Hz lies far outside the swept band "
+                    f"({f_lo:.4g}-{f_hi:.4g} Hz); the images do not constrain it (std {m['freq_hz_std']:.3g} Hz)")
     poor = (np.asarray(d.flags) & POOR_FIT_FLAG) != 0
     if poor.any():
         hz = ", ".join(f"{v:.4g}" for v in np.asarray(omega, dtype=np.float64)[poor] / (2 * math.pi))
-        log_message(log, f"direct: warning: the model does not explain {int(poor.sum())} point(s) ({hz} Hz): their reduced "
-                    f"chi2 is above {POOR_FIT_CHI2:g}", progress)
-    log_message(log, f"direct: {d.form} model from {int(d.used.sum())} points ({d.n_excluded} excluded), {d.n_iter} iterations, "
-              f"converged {d.converged}, reduced chi2 {d.reduced_chi2:.3f}, {time.perf_counter() - t_direct:.2f} s; "
-              f"modes: {modes or 'none'}", progress)
+        LOGGER.info(f"direct: warning: the model does not explain {int(poor.sum())} point(s) ({hz} Hz): their reduced "
+                    f"chi2 is above {POOR_FIT_CHI2:g}")
+    LOGGER.info(f"direct: {d.form} model from {int(d.used.sum())} points ({d.n_excluded} excluded), {d.n_iter} iterations, "
+                f"converged {d.converged}, reduced chi2 {d.reduced_chi2:.3f}, {time.perf_counter() - t_direct:.2f} s; "
+                f"modes: {modes or 'none'}")
     return d
 
 

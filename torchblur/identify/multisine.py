@@ -38,16 +38,15 @@ from torchblur.design.multisine import common_grid, optimise_crest_factor
 from torchblur.fit.multisine import fit_multisine, render_multisine
 from torchblur.identify.assemble import input_label, phase_std
 from torchblur.identify.drive import is_limited, limited_summary
-from torchblur.identify.record import RunRecord, progress_bar, run_stage
+from torchblur.identify.record import progress_bar, run_stage
 from torchblur.identify.result import IdentificationResult
-from torchblur.identify.stages import run_plan
 from torchblur.image.moments import image_moments, moments_along
 from torchblur.image.preprocess import subtract_dark
 from torchblur.render.window import ExposureWindow
 from torchblur.rig.base import command_peak, command_slew
 from torchblur.sysid.frequency_response import FrequencyResponse
 
-__all__ = ["MultisineIdentificationResult", "MultisinePlan", "identify_multisine", "group_frequencies"]
+__all__ = ["MultisineIdentificationResult", "MultisinePlan", "group_frequencies"]
 
 _F64 = torch.float64
 
@@ -426,16 +425,9 @@ class MultisinePlan:
         return MultisineIdentificationResult(frf=run.frf, model=run.model, psf=cal.psf, fit=run.fit,
                                              amplitude=np.asarray(acq.amplitude)[idx], latency_s=cal.latency_s,
                                              latency_std_s=cal.latency_std_s, saturation=cal.saturation, images=run.images,
-                                             windows=run.windows, power=run.power, truth=run.truth, log=run.log, timing=run.timing,
+                                             windows=run.windows, power=run.power, truth=run.truth, timing=run.timing,
                                              groups=acq.groups, direction=cal.direction, axis=cal.axis, fit_psf=fit_psf(cal),
                                              limited=np.asarray(acq.limited, dtype=bool)[idx],
                                              moved_px=np.asarray(acq.moved_px, dtype=np.float64)[idx], noise=cal.noise,
                                              ptc=cal.ptc)
 
-
-def identify_multisine(cfg, rig, exp, log, progress, cal, t_start: float) -> MultisineIdentificationResult:
-    """The stages after the calibration ``cal`` of a multisine run (sweep, fit, assemble,
-    model, report; :func:`~torchblur.identify.stages.run_plan` with :class:`MultisinePlan`),
-    appending to ``log``; ``t_start`` (perf_counter s) is when the calibration began."""
-    run = RunRecord(cfg=cfg, rig=rig, exp=exp, log=log, progress=progress, t_start=t_start, cal=cal, plan=MultisinePlan())
-    return run_plan(run)

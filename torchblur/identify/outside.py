@@ -28,7 +28,7 @@ from torchblur.hardware.outside import OutsideRecording
 from torchblur.identify.calibration import Calibration, _still_psf, measure_gain
 from torchblur.config import IdentifyConfig, load_config
 from torchblur.identify.fitting import ChunkFitter
-from torchblur.identify.record import RunRecord, console_logging, log_message
+from torchblur.identify.record import LOGGER, RunRecord, collect_log, console_logging
 from torchblur.identify.result import IdentificationResult
 from torchblur.identify.stages import run_plan
 from torchblur.identify.sweep import SineAcquisition, SinePlan, fit_points, sweep_layout
@@ -96,7 +96,7 @@ def fitted_direction(fit):
     return (float(u[0]), float(u[1])), float((1 / s_j ** 2).sum() ** -0.5), float(lam[0].clamp_min(0) / lam[1])
 
 
-def outside_calibration(rec: OutsideRecording, cfg: IdentifyConfig, log: list, progress: bool = False) -> Calibration:
+def outside_calibration(rec: OutsideRecording, cfg: IdentifyConfig) -> Calibration:
     """The calibration of ``rec``: the dark frame and read noise (``recording.yaml``'s
     ``read_noise_e``, else measured), the saturation level, the PSF of the still frames
     (``fit.psf``, as ``identify``), the timing, and the motion's image direction
@@ -107,23 +107,23 @@ def outside_calibration(rec: OutsideRecording, cfg: IdentifyConfig, log: list, p
     # the gain: the still frames' photon transfer curve, checked against recording.yaml's (camera.gain_from, default auto)
     ptc, gain, gain_source = measure_gain([torch.as_tensor(rec.still, dtype=_F64)], dark_raw, dark,
                                           math.inf if c.saturation_adu is None else float(c.saturation_adu), float(c.gain_e_per_adu),
-                                          cfg.camera.gain_from, log, progress, name="recording.yaml gain_e_per_adu")
+                                          cfg.camera.gain_from, name="recording.yaml gain_e_per_adu")
     read_noise_e = float(c.read_noise_e) if c.read_noise_e is not None else float(dark.read_noise) * gain
     level = dark.mean.mean()
-    log_message(log, f"dark: level {float(level):.2f} ADU, read noise {read_noise_e:.2f} e- "
-                     f"({'recording.yaml' if c.read_noise_e is not None else f'from {dark.n_frames} dark frames'}), "
-                     f"{int(dark.hot_pixels.sum())} hot pixels", progress)
+    LOGGER.info(f"dark: level {float(level):.2f} ADU, read noise {read_noise_e:.2f} e- "
+                f"({'recording.yaml' if c.read_noise_e is not None else f'from {dark.n_frames} dark frames'}), "
+                f"{int(dark.hot_pixels.sum())} hot pixels")
     n_still = len(rec.still)
     if dark.n_frames < DARKS_PER_STILL * n_still:
-        log_message(log, f"dark: warning: {dark.n_frames} dark frames for {n_still} still frames: the dark level's own noise "
-                         f"({read_noise_e / math.sqrt(dark.n_frames):.2g} e- per pixel) is subtracted from the PSF and from every frame "
-                         f"and is in no std, so the stds may understate the errors (docs/outside_recordings.md); take at least "
-                         f"{DARKS_PER_STILL * n_still} dark frames", progress)
+        LOGGER.info(f"dark: warning: {dark.n_frames} dark frames for {n_still} still frames: the dark level's own noise "
+                    f"({read_noise_e / math.sqrt(dark.n_frames):.2g} e- per pixel) is subtracted from the PSF and from every frame "
+                    f"and is in no std, so the stds may understate the errors (docs/outside_recordings.md); take at least "
+                    f"{DARKS_PER_STILL * n_still} dark frames")
     sat_adu = torch.tensor(math.inf if c.saturation_adu is None else float(c.saturation_adu), dtype=_F64)
     nan = torch.tensor(math.nan, dtype=_F64)
     sat = SaturationCurve(slope_adu_per_s=nan, offset_adu=level, saturation_adu=sat_adu, linear_limit_s=torch.tensor(math.inf, dtype=_F64),
                           residual_rms_adu=nan, saturated_in_data=False)
-    log_message(log, f"saturation: {rec.saturation_source}", progress)
+    LOGGER.info(f"saturation: {rec.saturation_source}")
     still_raw = torch.as_tensor(rec.still, dtype=_F64)
     clipped = int((~sat.mask(still_raw) & ~dark.hot_pixels).sum())
     if clipped:
@@ -131,13 +131,13 @@ def outside_calibration(rec: OutsideRecording, cfg: IdentifyConfig, log: list, p
                              f"{float(sat_adu):.6g}, hot pixels aside); the PSF needs unsaturated still frames: take them with a shorter "
                              f"exposure_s or less light")
     still_e = subtract_dark(still_raw, dark) * gain
-    still_psf = _still_psf(cfg, still_e, float(rec.still_exposure_s), read_noise_e, log, progress)
+    still_psf = _still_psf(cfg, still_e, float(rec.still_exposure_s), read_noise_e)
     psf = still_psf.gaussian.psf
     cal = Calibration(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=float(sat_adu - level), psf=psf,
                       peak_rate=float(psf.amplitude), latency_s=float(c.latency_s), latency_std_s=float(c.latency_std_s), gain=gain,
                       still_psf=still_psf, latency_source="given", ptc=ptc, gain_source=gain_source)
-    log_message(log, f"timing: latency {c.latency_s * 1e6:.3f} +- {c.latency_std_s * 1e6:.3f} us, jitter {c.jitter_s * 1e6:.3f} us "
-                     f"(recording.yaml)", progress)
+    LOGGER.info(f"timing: latency {c.latency_s * 1e6:.3f} +- {c.latency_std_s * 1e6:.3f} us, jitter {c.jitter_s * 1e6:.3f} us "
+                f"(recording.yaml)")
     mode = cfg.fit.axis
     if mode != "measure":  # else the sweep stage measures it from the recorded points (fitted_direction)
         d = as_unit_direction({"x": (1.0, 0.0), "y": (0.0, 1.0)}[mode] if isinstance(mode, str) else mode, "fit.axis",
@@ -232,8 +232,10 @@ def identify_outside(rec: OutsideRecording, cfg: IdentifyConfig | None = None, *
     if not isinstance(cfg, IdentifyConfig):
         raise InputTypeError(f"cfg: expected an IdentifyConfig (outside_config), got {type(cfg).__name__}")
     shown = progress and not logging.getLogger("torchblur").hasHandlers()
-    with console_logging() if shown else contextlib.nullcontext():
+    with console_logging() if shown else contextlib.nullcontext(), collect_log() as log:
         run = RunRecord(cfg=cfg, rig=None, progress=progress, t_start=time.perf_counter())
-        run.cal = outside_calibration(rec, cfg, run.log, progress)
+        run.cal = outside_calibration(rec, cfg)
         run.plan = OutsidePlan(rec)
-        return run_plan(run)
+        result = run_plan(run)
+    result.log = log
+    return result

@@ -19,7 +19,6 @@
 from __future__ import annotations
 
 import contextlib
-import functools
 import logging
 import time
 
@@ -29,7 +28,7 @@ from torchblur.config import IdentifyConfig
 from torchblur.identify.dm_plan import DMPlan, DMResult, check_dm_config
 from torchblur.identify.drive import SESSION_KEY, SLEW_KEY
 from torchblur.identify.multisine import MultisinePlan
-from torchblur.identify.record import RunRecord, console_logging, log_message, stage_bar
+from torchblur.identify.record import LOGGER, RunRecord, collect_log, console_logging, stage_bar
 from torchblur.identify.result import IdentificationResult
 from torchblur.identify.rigs import build_rig, open_experiment, session
 from torchblur.identify.stages import run_plan
@@ -60,6 +59,7 @@ def identify(cfg: IdentifyConfig, rig=None, *, progress: bool = True, record=Non
             :class:`~torchblur.rig.dm_contract.DMRig`, checked before the first frame, docs/dm_rig.md), or None.
         progress: show progress bars (on a terminal) and, where nothing handles the
             ``torchblur`` logger, the run's messages on stderr (:func:`~torchblur.identify.record.console_logging`).
+            The messages are in the result's ``log`` either way (:func:`~torchblur.identify.record.collect_log`).
         record: None, a directory, or a :class:`~torchblur.hardware.Experiment`: the run is
             recorded there as it goes (TIFF frames, ``manifest.jsonl``). Groups already
             recorded (a resumed run) are taken from the recording instead of the rig; a
@@ -80,10 +80,13 @@ def identify(cfg: IdentifyConfig, rig=None, *, progress: bool = True, record=Non
     plan = PLANS[plan_kind(cfg)]()
     getattr(plan, "check", _check_rig)(cfg, rig)
     shown = progress and not logging.getLogger("torchblur").hasHandlers()
-    with console_logging() if shown else contextlib.nullcontext():
+    with console_logging() if shown else contextlib.nullcontext(), collect_log() as log:
         with getattr(plan, "open", open_run)(cfg, rig, progress=progress, record=record, base_dir=base_dir, executor=executor) as run:
             run.plan = plan
-            return run_stages(run)
+            result = run_stages(run)
+    if isinstance(result, IdentificationResult):  # the DM plan's result keeps the list its modules write (log_message)
+        result.log = log
+    return result
 
 
 def _check_rig(cfg: IdentifyConfig, rig) -> None:
@@ -100,13 +103,11 @@ def open_run(cfg: IdentifyConfig, rig, *, progress: bool, record, base_dir: str 
     opened (``rig``, or the rig of ``cfg.rig``, closed after the run) and its recording with the
     run's session (:func:`~torchblur.identify.rigs.session`); a plan with its own (the DM's) opens its run itself.
     ``base_dir``: unused (no actuator table)."""
-    log: list[str] = []
     own_rig = rig is None
-    hw_log = functools.partial(log_message, log, progress=progress, logger=HARDWARE_LOGGER)  # hw_log(message)
     if own_rig:
-        rig = build_rig(cfg, log=hw_log)
+        rig = build_rig(cfg, log=HARDWARE_LOGGER.info)
     elif hasattr(rig, "set_logger"):
-        rig.set_logger(hw_log)
+        rig.set_logger(HARDWARE_LOGGER.info)
     try:
         exp = open_experiment(record, cfg, rig)
         info = {"kind": cfg.rig.kind, "port": cfg.rig.port, "frames": cfg.rig.frames, "rig": repr(rig),
@@ -114,8 +115,8 @@ def open_run(cfg: IdentifyConfig, rig, *, progress: bool, record, base_dir: str 
                 SLEW_KEY: getattr(rig, "slew_limit", None)}
         with session(exp, info):
             if exp is not None and exp.writable and exp.meta["sessions"] and len(exp.groups):
-                log_message(log, f"resume: {len(exp.groups)} recorded group(s) in {exp.path} are reused", progress)
-            yield RunRecord(cfg=cfg, rig=rig, exp=exp, log=log, progress=progress, executor=executor)
+                LOGGER.info(f"resume: {len(exp.groups)} recorded group(s) in {exp.path} are reused")
+            yield RunRecord(cfg=cfg, rig=rig, exp=exp, progress=progress, executor=executor)
     finally:
         if own_rig and hasattr(rig, "close"):
             rig.close()
@@ -139,7 +140,7 @@ def calibrate_stage(run: RunRecord) -> None:
         run.plan.calibrate(run)
         return
     with stage_bar(run.progress, "calibration", calibration_stages(run.cfg)):
-        run.cal = calibrate(run.cfg, run.rig, run.exp, run.log, run.progress)
+        run.cal = calibrate(run.cfg, run.rig, run.exp)
 
 
 def calibration_stages(cfg: IdentifyConfig) -> int:

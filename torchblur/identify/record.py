@@ -7,10 +7,11 @@ the result). What differs between excitations (one sine per point, or multisine 
 the record's ``plan`` (:mod:`torchblur.identify.sweep`, :mod:`torchblur.identify.multisine`).
 
 The run's messages go to the ``torchblur`` logger (``torchblur.identify`` and its children,
-``torchblur.hardware`` for the rig's) and to ``RunRecord.log`` (for the report); nothing here
-prints. :func:`console_logging` shows them on stderr above any progress bar (the CLI does,
-and :func:`~torchblur.identify.pipeline.identify` does with ``progress`` when nothing else
-handles the ``torchblur`` logger). Progress bars (:func:`progress_bar`) show only on a terminal.
+``torchblur.hardware`` for the rig's); nothing here prints. :func:`collect_log` (a
+:class:`RunLog` handler) gathers them, in order, into the result's ``log`` for the report;
+:func:`console_logging` shows them on stderr above any progress bar (the CLI does, and
+:func:`~torchblur.identify.pipeline.identify` does with ``progress`` when nothing else handles
+the ``torchblur`` logger). Progress bars (:func:`progress_bar`) show only on a terminal.
 """
 from __future__ import annotations
 
@@ -22,7 +23,7 @@ from dataclasses import dataclass, field
 
 from tqdm.auto import tqdm
 
-__all__ = ["RunRecord", "console_logging", "log_message", "progress_bar", "run_stage", "stage_bar"]
+__all__ = ["LOGGER", "RunLog", "RunRecord", "collect_log", "console_logging", "log_message", "progress_bar", "run_stage", "stage_bar"]
 
 LOGGER = logging.getLogger("torchblur.identify")
 _STAGE_BAR: contextvars.ContextVar = contextvars.ContextVar("torchblur_stage_bar", default=None)
@@ -33,18 +34,19 @@ class RunRecord:
     """Everything one identification run has so far.
 
     ``cfg`` (IdentifyConfig), ``rig``, ``exp`` (the Experiment it is recorded in, or None),
-    ``log`` (messages), ``progress`` (print them, show bars), ``t_start`` (perf_counter s);
+    ``progress`` (show bars), ``t_start`` (perf_counter s);
     then, stage by stage: ``cal`` (Calibration), ``plan`` (the excitation's plan),
     ``acquisition`` (the plan's sweep: frames, windows, amplitudes, its fits as they come),
     ``fit`` (the fits of every point), ``frf`` (FrequencyResponse), the fitted ``images``,
     their ``windows`` and laser ``power`` (shapes as in the result) and ``truth``, ``model``
     (TransferFunctionFit or None) and ``direct_model``, ``timing`` (seconds per stage);
-    ``executor``: the :class:`concurrent.futures.Executor` a plan may submit its fits to (None: its own worker thread)."""
+    ``executor``: the :class:`concurrent.futures.Executor` a plan may submit its fits to (None: its own worker thread);
+    ``log``: the DM plan's own list of its messages (its modules still write it with :func:`log_message`;
+    the sine and multisine plans log to :data:`LOGGER` only)."""
 
     cfg: object
     rig: object
     exp: object = None
-    log: list = field(default_factory=list)
     progress: bool = True
     t_start: float = 0.0
     cal: object = None
@@ -60,18 +62,54 @@ class RunRecord:
     direct_model: object = None
     timing: dict = field(default_factory=dict)
     executor: object = None
+    log: list = field(default_factory=list)
 
     def say(self, msg: str) -> None:
-        """Log ``msg`` (to ``log`` and the ``torchblur.identify`` logger)."""
-        log_message(self.log, msg, self.progress)
+        """Log ``msg`` to the ``torchblur.identify`` logger at INFO (:func:`collect_log` gathers it for the report)."""
+        LOGGER.info(msg)
 
 
 def log_message(log: list, msg: str, progress: bool = False, *, logger: logging.Logger = LOGGER) -> None:
-    """Append ``msg`` to ``log`` and send it to ``logger`` at INFO (shown where the
-    ``torchblur`` logger is handled, e.g. by :func:`console_logging`). ``progress`` is kept
-    for the callers' signature; what shows is the logging configuration's choice."""
+    """Append ``msg`` to ``log`` and send it to ``logger`` at INFO. Only the DM modules
+    (``torchblur.dm.pipeline``, ``torchblur.dm.outside``) still keep a list by hand; the
+    identification logs to :data:`LOGGER` and collects with :func:`collect_log`. ``progress``
+    is not used."""
     log.append(msg)
     logger.info(msg)
+
+
+class RunLog(logging.Handler):
+    """Collects the message of every record at INFO and above that reaches it, in the order
+    they come (from any thread), into ``lines``: a run's log for report.txt."""
+
+    def __init__(self, lines: list | None = None):
+        super().__init__(logging.INFO)
+        self.lines = [] if lines is None else lines
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            self.lines.append(record.getMessage())
+        except Exception:  # noqa: BLE001 - logging's own contract: never raise from emit
+            self.handleError(record)
+
+
+@contextlib.contextmanager
+def collect_log(lines: list | None = None, logger: str = "torchblur"):
+    """Collect the messages of ``logger`` and its children (INFO and above) into ``lines`` (a
+    new list by default) for the ``with`` block's duration; yields the list. The logger is
+    enabled at INFO meanwhile where it was not (what is shown is still each handler's choice:
+    :func:`console_logging` with ``--quiet`` shows warnings only)."""
+    target = logging.getLogger(logger)
+    handler = RunLog(lines)
+    old = target.level
+    if not target.isEnabledFor(logging.INFO):
+        target.setLevel(logging.INFO)
+    target.addHandler(handler)
+    try:
+        yield handler.lines
+    finally:
+        target.removeHandler(handler)
+        target.setLevel(old)
 
 
 class _AboveBars(logging.Handler):

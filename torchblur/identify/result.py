@@ -18,7 +18,7 @@ class IdentificationResult:
     many spots), ``fit`` (SinusoidFit of all points), ``amplitude`` (input amplitude per
     point), ``latency_s`` and its std, ``saturation`` (SaturationCurve), ``images`` (dark
     subtracted, electrons), ``windows``, ``truth`` (the true response or None), ``log``
-    (list of messages), ``timing`` (acquisition and fit seconds, and how much of the fit
+    (the run's messages in order, collected by :func:`~torchblur.identify.record.collect_log`), ``timing`` (acquisition and fit seconds, and how much of the fit
     overlapped the acquisition), ``inputs`` (the excited inputs), ``spots`` (SpotPSFs or
     None), ``direction`` (one axis, one spot: the unit image direction (x, y) along which the
     motion was fitted; the response is the motion along it) and ``axis`` (the

@@ -31,7 +31,7 @@ def run_plan(run: RunRecord):
 def model_stage(run: RunRecord) -> None:
     """``run.model`` (:func:`~torchblur.identify.model.fit_model`) and, with ``model.direct``
     and a plan that supports it, ``run.direct_model`` fitted to every image from it."""
-    run.model = fit_model(run.cfg, run.frf, run.log, run.progress)
+    run.model = fit_model(run.cfg, run.frf)
     if not (run.cfg.model.direct and run.plan.supports_direct):
         return
     if run.model is None:

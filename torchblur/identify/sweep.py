@@ -447,8 +447,7 @@ class SinePlan:
         :func:`~torchblur.identify.model.fit_direct_model`)."""
         acq, cal = run.acquisition, run.cal
         return fit_direct_model(run.cfg, run.model, run.images, run.windows, acq.omega_job, acq.amps, cal.psf, run.power,
-                                cal.noise, torch.stack(acq.masks)[:, 0], run.fit,
-                                run.log, run.progress, cal.direction, still_psf=cal.still_psf,
+                                cal.noise, torch.stack(acq.masks)[:, 0], run.fit, cal.direction, still_psf=cal.still_psf,
                                 latency_std_s=cal.latency_std_s if run.cfg.model.fit_delay else 0.0)
 
     def result(self, run) -> IdentificationResult:
@@ -456,7 +455,7 @@ class SinePlan:
         acq, cal = run.acquisition, run.cal
         return IdentificationResult(frf=run.frf, model=run.model, psf=cal.psf, fit=run.fit, amplitude=np.asarray(acq.amps),
                                     latency_s=cal.latency_s, latency_std_s=cal.latency_std_s, saturation=cal.saturation,
-                                    images=run.images, windows=run.windows, power=run.power, truth=run.truth, log=run.log,
+                                    images=run.images, windows=run.windows, power=run.power, truth=run.truth,
                                     timing=run.timing, inputs=tuple(acq.layout.inputs),
                                     spots=cal.spots, direct_model=run.direct_model, direction=cal.direction, axis=cal.axis,
                                     limited=np.asarray(acq.limited, dtype=bool), moved_px=np.asarray(acq.moved_px, dtype=np.float64),
