@@ -592,6 +592,8 @@ def _coarse_cost(prob: _Problem, cands: torch.Tensor, item: int) -> torch.Tensor
     h = float(psf_i.sigma_min()) / 10
     reach = float(coef.abs().sum(-1).max()) + h
     G = int(math.ceil(2 * reach / h)) + 2
+    if G * prob.height * prob.width > 2e7:  # a long path over a narrow spot: the grid's images would not fit, render each start
+        return _rendered_cost(prob, cands, item)
     grid = torch.arange(G, dtype=dtype, device=device) * h - reach
     u = prob.u[item]
     if kern:
@@ -618,6 +620,15 @@ def _coarse_cost(prob: _Problem, cands: torch.Tensor, item: int) -> torch.Tensor
             model = model * cands[i:i + chunk, 2 * N, None]
         costs.append(image_loss(model, prob.target[item], loss="l2", weight=prob.wflat[item]))
     return torch.where(ok, torch.cat(costs), torch.full_like(ok, float("nan"), dtype=dtype))
+
+
+def _rendered_cost(prob: _Problem, cands: torch.Tensor, item: int) -> torch.Tensor:
+    """The cost ``[K]`` of the starts ``cands [K, P]`` of set ``item`` from their rendered images (chunks of ~2e7 elements)."""
+    E = prob.start.shape[-1]
+    chunk = max(1, int(2e7 // max(1, E * prob.settings.nodes * (prob.height + prob.width))))
+    it = torch.full((cands.shape[0],), item, dtype=torch.long, device=cands.device)
+    return torch.cat([image_loss(prob.model(cands[i:i + chunk], it[i:i + chunk]), prob.target[item], loss="l2", weight=prob.wflat[item])
+                      for i in range(0, cands.shape[0], chunk)])
 
 
 def _search(prob: _Problem, cands, items_l, n_ref: int, max_iter: int, tol: float):
