@@ -167,6 +167,12 @@ CLAIMS = [
           [sys.executable, "benchmarks/bench_dm_registration.py"],
           r"rms\(error/std\): shift_x " + NUM + r", shift_y " + NUM + r", rotation_deg " + NUM + r", magnification " + NUM
           + r", coupling " + NUM + r"; all: " + NUM, rtol=(0.01,), speed="slow"),
+    Claim("multisine: the binned cost of the starts against the rendered one", "docs/multisine.md",
+          r"group's " + NUM + r" starts " + NUM + r" s CPU instead of " + NUM + r" s rendering each, costs within " + NUM
+          + r" of the rendered ones,\s+the same " + NUM + " best",
+          [sys.executable, "benchmarks/bench_search_starts.py"],
+          NUM + r" starts: binned cost " + NUM + r" s CPU, rendered " + NUM + r" s CPU \(from 160\); largest relative difference "
+          + NUM + r"; the same best " + NUM + r" of 160: True", rtol=(0.0, 1.0, 1.0, 0.1, 0.0), speed="slow"),
 ]
 
 

@@ -189,6 +189,30 @@ def test_fit_gaussian_psf_noise_free_is_exact():
     assert torch.allclose(fit.model, img, rtol=0, atol=1e-6 * 2000)
 
 
+@pytest.mark.parametrize("pixel_integration", [True, False])
+def test_fit_gaussian_psf_jacobian_equals_forward_ad_of_the_renderer(pixel_integration):
+    """The PSF fit's closed-form Jacobian (image/psf_fit._still_jacobian) is the renderer's own
+    derivative: torch.func.jacfwd through the model, a batch of three with a tilted, a narrow and
+    an untilted (L10 = 0) spot, with and without background."""
+    from torch.func import jacfwd
+
+    from torchblur.image.psf_fit import _psf_model, _psf_problem
+
+    theta = torch.tensor([[10.3, 9.1, math.log(1.3), 0.4, math.log(0.9), 1.2, 0.1],
+                          [11.0, 8.0, math.log(0.5), -0.2, math.log(0.7), 0.8, -0.3],
+                          [9.0, 12.0, math.log(2.0), 0.0, math.log(1.5), 1.0, 0.0]], dtype=torch.float64)
+    expo = torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
+    for bg in (True, False):
+        pb = _psf_problem(torch.rand(3, 20, 24, dtype=torch.float64), expo, None, None, bg, pixel_integration)
+        model_fn, jac_fn, _ = _psf_model(pb, expo + 1, expo * 2)
+        idx = torch.arange(3)
+        th = theta if bg else theta[:, :6]
+        model, J = jac_fn(th, idx)
+        ref = jacfwd(lambda t: model_fn(t, idx))(th)  # [3, R, 3, P]: the batch together (its sub-pixel count is the batch's)
+        assert torch.equal(model, model_fn(th, idx))
+        torch.testing.assert_close(J, torch.stack([ref[i, :, i] for i in range(3)]), rtol=0, atol=1e-12 * float(ref.abs().max()))
+
+
 def test_fit_gaussian_psf_float32_in_float32_out():
     psf = tb.GaussianPSF.from_axes(torch.tensor([9.6, 10.2], dtype=F64), torch.tensor(2.0, dtype=F64),
                                    torch.tensor(1.6, dtype=F64), torch.tensor(-0.4, dtype=F64), amplitude=torch.tensor(1e5, dtype=F64))

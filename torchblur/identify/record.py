@@ -71,7 +71,7 @@ class RunRecord:
 
 def log_message(log: list, msg: str, progress: bool = False, *, logger: logging.Logger = LOGGER) -> None:
     """Append ``msg`` to ``log`` and send it to ``logger`` at INFO. Only the DM modules
-    (``torchblur.dm.pipeline``, ``torchblur.dm.outside``) still keep a list by hand; the
+    (``torchblur.identify.dm_plan``, ``torchblur.identify.dm_outside``) still keep a list by hand; the
     identification logs to :data:`LOGGER` and collects with :func:`collect_log`. ``progress``
     is not used."""
     log.append(msg)

@@ -7,14 +7,13 @@ import math
 from dataclasses import dataclass
 
 import torch
-import torch.autograd.forward_ad as fwAD
 
 from torchblur._compat import median_along
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_image, as_tensor, broadcast_batch, check_bool, check_int, check_positive
 from torchblur.optim import levenberg_marquardt
 from torchblur.image.dark import _MAD_TO_STD
 from torchblur.image.moments import image_moments
-from torchblur.render.blur import RenderSettings, render_blur
+from torchblur.render.blur import RenderSettings, _subpixel, _subpixel_count, render_blur
 from torchblur.render.psf import GaussianPSF
 from torchblur.render.trajectory import Sinusoid
 from torchblur.render.window import ExposureWindow
@@ -243,15 +242,13 @@ def _psf_model(pb: _PSFProblem, a_scale, b_scale):
         return img
 
     def jac_fn(theta, idx):
-        # All P Jacobian columns from ONE forward-AD pass: row (i, k) carries problem i with
-        # the tangent e_k (fewer, larger renderer calls than P passes of model_jacobian).
-        n = theta.shape[0]
-        rep = theta.detach().repeat_interleave(P, 0)
-        tangent = torch.eye(P, dtype=dtype, device=device).repeat(n, 1)
-        with fwAD.dual_level():
-            outd = fwAD.unpack_dual(model_fn(fwAD.make_dual(rep, tangent), idx.repeat_interleave(P)))
-        primal = outd.primal.detach().reshape(n, P, -1)[:, 0]
-        return primal, outd.tangent.reshape(n, P, -1).transpose(1, 2)
+        # The model from the renderer (the values the fit matches), its Jacobian in closed form
+        # (forward-mode AD through the renderer cost the same and imported torch._dynamo, ~2 s).
+        theta = theta.detach()
+        J = _still_jacobian(theta, pb.expo[idx] * a_scale[idx], H, W, pb.pixel_integration)
+        if pb.fit_background:
+            J = torch.cat([J, b_scale[idx, None, None].expand(theta.shape[0], H * W, 1)], -1)
+        return model_fn(theta, idx), J
 
     log_lo, log_hi = math.log(0.05), math.log(4.0 * max(H, W))
 
@@ -266,6 +263,41 @@ def _psf_model(pb: _PSFProblem, a_scale, b_scale):
         return theta
 
     return model_fn, jac_fn, project
+
+
+def _still_jacobian(theta: torch.Tensor, light: torch.Tensor, H: int, W: int, pixel_integration: bool) -> torch.Tensor:
+    """``d image / d theta[:, :6]`` ``[n, H W, 6]`` of the still spot that :func:`_psf_model` renders:
+    ``image = theta_5 light sum_ab w_a w_b exp(-q/2)`` over the renderer's sub-pixel nodes (one
+    node at the pixel centre when point-sampled), ``q = |L^-1 (x - c)|^2 = u^2 + v^2`` with
+    ``u = dx / L00``, ``v = (dy - L10 u) / L11``. ``theta [n, 6+]`` as :func:`fit_gaussian_psf`'s,
+    ``light [n]`` = exposure times the amplitude's scale."""
+    n, dtype, device = theta.shape[0], theta.dtype, theta.device
+    cov = _cholesky_cov(theta)
+    if pixel_integration:
+        off, ow = _subpixel(_subpixel_count(GaussianPSF(theta[:, :2], cov).sigma_min()), dtype, device)
+    else:
+        off, ow = torch.zeros(1, dtype=dtype, device=device), torch.ones(1, dtype=dtype, device=device)
+    m = off.numel()
+    e0, e1 = torch.exp(-theta[:, 2]), torch.exp(-theta[:, 4])
+    c = cov[:, 0, 1] * e0  # L10 as the renderer used it (an exact 0 nudged, see _cholesky_cov)
+    cols = []
+    step = max(1, int(4e6 // (H * W * m * m)))  # problems per chunk: the [n, H, m, W, m] grids stay ~32 MB
+    for i in range(0, n, step):
+        s = slice(i, i + step)
+        dx = (torch.arange(W, dtype=dtype, device=device)[:, None] + off) - theta[s, 0, None, None]  # [k, W, m]
+        dy = (torch.arange(H, dtype=dtype, device=device)[:, None] + off) - theta[s, 1, None, None]  # [k, H, m]
+        u = (dx * e0[s, None, None])[:, None, None]  # [k, 1, 1, W, m]
+        v = (dy[..., None, None] - c[s, None, None, None, None] * u) * e1[s, None, None, None, None]  # [k, H, m, W, m]
+        g = torch.exp(-0.5 * (u * u + v * v)) * (ow[:, None, None] * ow)  # sub-pixel weights folded in
+        k = g.shape[0]
+        # -q/2's derivatives: centre (x, y), log L00, L10, log L11
+        d = torch.stack([u * e0[s, None, None, None, None] - v * (c * e0 * e1)[s, None, None, None, None],
+                         (v * e1[s, None, None, None, None]).expand_as(g), u * u - v * (c * e1)[s, None, None, None, None] * u,
+                         v * u * e1[s, None, None, None, None], v * v], -1)  # [k, H, m, W, m, 5]
+        scale = theta[s, 5] * light[s]
+        dg = (g[..., None] * d).sum((2, 4)).reshape(k, H * W, 5) * scale[:, None, None]
+        cols.append(torch.cat([dg[..., :5], (g.sum((2, 4)).reshape(k, H * W) * light[s, None])[..., None]], -1))
+    return torch.cat(cols, 0)
 
 
 def _theta_covariance(J, weight, used, resid, *, noise_given: bool) -> torch.Tensor:
