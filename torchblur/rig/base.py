@@ -17,7 +17,7 @@ import torch
 
 from torchblur.errors import InputTypeError, ParameterError, ShapeError
 
-__all__ = ["Capture", "PatternSines", "Rig", "command_peak", "command_slew", "check_drive", "check_slew", "DRIVE_RTOL"]
+__all__ = ["CameraRig", "Capture", "PatternSines", "Rig", "command_peak", "command_slew", "check_drive", "check_slew", "DRIVE_RTOL"]
 
 #: relative slack of a drive check: a command rounded on its way to the device (the serial
 #: protocol sends tones to 10 significant digits) still passes at the limit
@@ -62,12 +62,10 @@ class Capture:
 
 
 @runtime_checkable
-class Rig(Protocol):
-    """What an identification pipeline needs from a rig (simulated or real).
-
-    Every method returns a :class:`Capture`. Exposures longer than :attr:`max_exposure_s`
-    raise :class:`~torchblur.errors.ParameterError` naming ``exposure_s``.
-    """
+class CameraRig(Protocol):
+    """What every rig says about its camera and its drive: the properties the one-spot
+    :class:`Rig` and the deformable mirror's :class:`~torchblur.rig.dm_contract.DMRig` share
+    (a recording keeps them as its camera description; the run's checks read them)."""
 
     @property
     def frame_shape(self) -> tuple[int, int]:
@@ -99,6 +97,15 @@ class Rig(Protocol):
         ``slew_limit`` (optional: the largest |d command / dt|, input units per second, None where
         it has none or does not say; :func:`command_slew`, :func:`check_slew`)."""
         ...
+
+
+@runtime_checkable
+class Rig(CameraRig, Protocol):
+    """What an identification pipeline needs from a rig (simulated or real).
+
+    The camera's properties are :class:`CameraRig`'s. Every method returns a :class:`Capture`. Exposures longer than :attr:`max_exposure_s`
+    raise :class:`~torchblur.errors.ParameterError` naming ``exposure_s``.
+    """
 
     def dark(self, n: int, exposure_s: float) -> Capture:
         """``n`` frames with the laser off: frames ``[n, H, W]``."""

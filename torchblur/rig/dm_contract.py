@@ -18,7 +18,7 @@ from typing import Protocol, Sequence, runtime_checkable
 
 from torchblur.config.budget import dm_geometry, dm_sensor
 from torchblur.errors import ConfigError, InputTypeError
-from torchblur.rig.base import Capture
+from torchblur.rig.base import CameraRig, Capture
 
 __all__ = ["DMRig", "OPTIONAL", "REQUIRED_ATTRIBUTES", "REQUIRED_METHODS", "check_dm_rig"]
 
@@ -33,41 +33,16 @@ OPTIONAL = {"pulse": "the latency scan (needed unless camera.latency_s and camer
 
 
 @runtime_checkable
-class DMRig(Protocol):
+class DMRig(CameraRig, Protocol):
     """A deformable mirror driven by a controller that fires the camera trigger on its own clock,
     and the Shack-Hartmann sensor's camera (docs/dm_rig.md).
 
     Every method returns a :class:`~torchblur.rig.base.Capture` (frames in ADU, float, and each
     frame's ``exposure_s``, ``trigger_offset_s`` and ``trigger_time_s``). The route calls
-    ``pattern_sine`` by keyword (a recording stores the arguments by name).
+    ``pattern_sine`` by keyword (a recording stores the arguments by name). The camera's
+    properties are :class:`~torchblur.rig.base.CameraRig`'s: here ``frame_shape`` is the sensor's
+    (``wfs.n_across * wfs.pitch_px`` square) and ``input_limit`` the largest |command| of any actuator.
     """
-
-    @property
-    def frame_shape(self) -> tuple[int, int]:
-        """``(H, W)`` of a frame (px): the sensor's (``wfs.n_across * wfs.pitch_px`` square)."""
-        ...
-
-    @property
-    def frame_rate_hz(self) -> float:
-        """Highest frame rate of the camera (Hz)."""
-        ...
-
-    @property
-    def max_exposure_s(self) -> float:
-        """Longest exposure the camera accepts (s)."""
-        ...
-
-    @property
-    def readout_s(self) -> float:
-        """Readout time after each exposure (s)."""
-        ...
-
-    @property
-    def input_limit(self) -> float | None:
-        """The largest |command| of any actuator (input units; None: the device does not say,
-        then ``excitation.max_amplitude`` is needed). A call beyond it raises
-        :class:`~torchblur.errors.ParameterError` naming ``amplitude``."""
-        ...
 
     @property
     def n_actuators(self) -> int:
