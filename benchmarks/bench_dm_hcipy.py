@@ -149,11 +149,15 @@ def physics_checks() -> None:
     sys.stdout.flush()
 
 
+DEVICE_CALLS = [0]  #: spot-fit calls that went through :func:`on_device`'s wrapper
+
+
 def on_device(device: str):
     """Make the DM route's spot fits run on ``device``: wraps
     :func:`torchblur.dm.spot_fit.fit_spot_problems` (and the DM plan's name for it) so
     that its tensors go to ``device`` and its :class:`~torchblur.dm.spot_fit.SpotFits` come back
-    to the CPU. Returns a function that undoes it."""
+    to the CPU; each call is counted in :data:`DEVICE_CALLS` (so a run whose fits did not go
+    through the wrapper is refused, not reported as a device run). Returns a function that undoes it."""
     import dataclasses
 
     import torch
@@ -170,6 +174,7 @@ def on_device(device: str):
         return x.to(dev) if hasattr(x, "to") else x
 
     def fit(crops, psf, window, omega, **kw):
+        DEVICE_CALLS[0] += 1
         kw = {k: move(v) for k, v in kw.items()}
         fits = original(move(crops), move(psf), move(window), move(omega), **kw)
         return dataclasses.replace(fits, **{f.name: getattr(fits, f.name).cpu() for f in dataclasses.fields(fits)
@@ -193,7 +198,11 @@ def run_case(name: str, quick: bool, psf: str = "auto", jobs: int = 1, extra=(),
     truth = rig.truth(None)
     t_gen = time.perf_counter() - t0
     t0 = time.perf_counter()
+    calls = DEVICE_CALLS[0]
     res = identify(cfg, rig, progress=progress)
+    if device != "cpu" and DEVICE_CALLS[0] == calls:
+        raise SystemExit(f"--device {device}: none of the run's spot fits went through the device wrapper (on_device); "
+                         f"the DM plan no longer calls torchblur.dm.spot_fit.fit_spot_problems by that name")
     t_run = time.perf_counter() - t0
     if os.environ.get("BENCH_DM_HCIPY_SAVE"):  # keep the run (re-read the figures without re-running)
         import pickle
