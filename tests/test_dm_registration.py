@@ -158,6 +158,8 @@ def test_registration_json_reads_back_and_bad_input(tmp_path):
     doc = read_registration_json(tmp_path / "registration.json")
     assert doc["registration"] == fit.registration and doc["units"]["shift_x"] == "actuator pitch" and doc["units"]["rotation_deg"] == "deg"
     assert doc["std"]["magnification"] == fit.std["magnification"] and "fitted registration" in doc["dc_gain_reference"]
+    assert doc["sensor"]["diffraction_weight"] == fit.diffraction_weight and doc["sensor"]["fitted_on"] == fit.fitted_on
+    assert doc["std"]["diffraction_weight"] == fit.std["diffraction_weight"]
     raw = json.loads((tmp_path / "registration.json").read_text())
     raw["schema_version"] = 99
     (tmp_path / "bad.json").write_text(json.dumps(raw))
