@@ -84,8 +84,7 @@ def identify(cfg: IdentifyConfig, rig=None, *, progress: bool = True, record=Non
         with getattr(plan, "open", open_run)(cfg, rig, progress=progress, record=record, base_dir=base_dir, executor=executor) as run:
             run.plan = plan
             result = run_stages(run)
-    if isinstance(result, IdentificationResult):  # the DM plan's result keeps the list its modules write (log_message)
-        result.log = log
+    result.log = log
     return result
 
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 from tqdm.auto import tqdm
 
-__all__ = ["LOGGER", "RunLog", "RunRecord", "collect_log", "console_logging", "log_message", "progress_bar", "run_stage", "stage_bar"]
+__all__ = ["LOGGER", "RunLog", "RunRecord", "collect_log", "console_logging", "progress_bar", "run_stage", "stage_bar"]
 
 LOGGER = logging.getLogger("torchblur.identify")
 _STAGE_BAR: contextvars.ContextVar = contextvars.ContextVar("torchblur_stage_bar", default=None)
@@ -40,9 +40,8 @@ class RunRecord:
     ``fit`` (the fits of every point), ``frf`` (FrequencyResponse), the fitted ``images``,
     their ``windows`` and laser ``power`` (shapes as in the result) and ``truth``, ``model``
     (TransferFunctionFit or None) and ``direct_model``, ``timing`` (seconds per stage);
-    ``executor``: the :class:`concurrent.futures.Executor` a plan may submit its fits to (None: its own worker thread);
-    ``log``: the DM plan's own list of its messages (its modules still write it with :func:`log_message`;
-    the sine and multisine plans log to :data:`LOGGER` only)."""
+    ``executor``: the :class:`concurrent.futures.Executor` a plan may submit its fits to (None: its own worker thread).
+    The run's messages go to :data:`LOGGER` (:meth:`say`), not to the record."""
 
     cfg: object
     rig: object
@@ -62,20 +61,10 @@ class RunRecord:
     direct_model: object = None
     timing: dict = field(default_factory=dict)
     executor: object = None
-    log: list = field(default_factory=list)
 
     def say(self, msg: str) -> None:
         """Log ``msg`` to the ``torchblur.identify`` logger at INFO (:func:`collect_log` gathers it for the report)."""
         LOGGER.info(msg)
-
-
-def log_message(log: list, msg: str, progress: bool = False, *, logger: logging.Logger = LOGGER) -> None:
-    """Append ``msg`` to ``log`` and send it to ``logger`` at INFO. Only the DM modules
-    (``torchblur.identify.dm_plan``, ``torchblur.identify.dm_outside``) still keep a list by hand; the
-    identification logs to :data:`LOGGER` and collects with :func:`collect_log`. ``progress``
-    is not used."""
-    log.append(msg)
-    logger.info(msg)
 
 
 class RunLog(logging.Handler):
