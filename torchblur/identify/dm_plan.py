@@ -30,7 +30,7 @@ import logging
 import math
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 import torch
@@ -212,13 +212,28 @@ def _fit_frequency(frames, window, omega, amplitude, power, cal, psf, offset, si
     else:
         p = GaussianPSF(psf.center, psf.cov, psf.amplitude * power)
     # weights from the camera's noise model: the fitter refits with the first fit's expected signal
-    fits = fit_spot_problems(crops, p, window, torch.tensor([omega], dtype=_F64), noise=cal.noise, mask=(in_frame & ~hot)[:, None],
+    fits = _fit_spots(crops, p, window, torch.tensor([omega], dtype=_F64), noise=cal.noise, mask=(in_frame & ~hot)[:, None],
                              kernel_noise=kernel_noise, **fit_options)
     n = window.shape[-1]
     phase_var = float(timing_phase_std(omega, jitter_s, cal.latency_std_s, n)) ** 2
     Y, Yc = pattern_responses(fits, amplitude, phase_var=phase_var)
     chi2 = fits.reduced_chi2.reshape(fits.reduced_chi2.shape[0], -1).numpy()  # [P, M] (F = 1)
     return Y[..., 0], Yc[:, :, 0], int((fits.status != 0).sum()), chi2
+
+
+def _fit_spots(crops, psf, window, omega, *, device: str = "cpu", **kw):
+    """:func:`~torchblur.dm.spot_fit.fit_spot_problems` on ``device`` (``fit.device``): the crops,
+    PSFs, window, omega, mask and kernel noise moved there, the
+    :class:`~torchblur.dm.spot_fit.SpotFits` back on the CPU (``.to`` of a tensor already there is itself)."""
+    dev = torch.device(device)
+
+    def move(x):
+        if isinstance(x, PerSpotPSF):
+            return PerSpotPSF(move(x.gaussian), move(x.kernel), x.use_kernel.to(dev))
+        return x.to(dev) if isinstance(x, (torch.Tensor, GaussianPSF, KernelPSF, ExposureWindow)) else x
+
+    fits = fit_spot_problems(move(crops), move(psf), move(window), move(omega), **{k: move(v) for k, v in kw.items()})
+    return replace(fits, **{f.name: v.cpu() for f in fields(fits) if isinstance(v := getattr(fits, f.name), torch.Tensor)})
 
 
 def _crop_mask(mask, offset, size):
@@ -243,7 +258,7 @@ def _acquire_frequency(rig, plan, f, amp, te, offset_s, R, settle_s, power, late
 
 def _fit_options(cfg) -> dict:
     return {"optimizer": cfg.fit.optimizer, "loss": cfg.fit.loss, "fit_scale": bool(cfg.fit.fit_scale),
-            "fit_background": bool(cfg.fit.fit_background)}
+            "fit_background": bool(cfg.fit.fit_background), "device": cfg.fit.device}
 
 
 #: the amplitude at frequency k is predicted from the fit of frequency k - AMPLITUDE_LAG (waited
