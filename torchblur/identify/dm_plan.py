@@ -446,7 +446,7 @@ class DMPlan:
         self.G = dm_geometry(cfg)  # the geometry does not depend on the dynamics (nor on dm.actuator_table)
         freqs = np.asarray(cfg.frequencies_hz())
         plan, R, self.info = dm_plan(cfg)
-        self.plan, self.R = recorded_plan(exp, plan, R, self.G, float(cfg.dm_plan.support_threshold), run.say)
+        self.plan, self.R = recorded_plan(exp, plan, R, self.G, float(cfg.dm_plan.support_threshold))
         if exp is not None and exp.writable:
             check_recorded_commands(exp, math.inf if cfg.dm.input_limit is None else float(cfg.dm.input_limit))
         run.say(f"dm plan: {self.plan.kind}, {self.plan.n_patterns} patterns x {len(freqs)} frequencies x {len(cfg.sweep.exposures)} "
