@@ -26,7 +26,6 @@ Stages:
 from __future__ import annotations
 
 import contextlib
-import logging
 import math
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -51,7 +50,7 @@ from torchblur.identify.calibration import calibrate, check_latency_source
 from torchblur.config import IdentifyConfig
 from torchblur.identify.dm_record import (SWEEP_KIND, check_recorded_commands, open_recording, recorded_labels, recorded_plan, resume_seed,
                                           same_table, session_info, simulated_frames, sweep_key, table_digest)
-from torchblur.identify.record import LOGGER, RunRecord, run_stage
+from torchblur.identify.record import HARDWARE_LOGGER, LOGGER, RunRecord, run_stage
 from torchblur.identify.rigs import session
 from torchblur.image.dark import subtract_dark
 from torchblur.image.spots import crop_spots
@@ -65,7 +64,6 @@ __all__ = ["DM_DARK_FRAMES", "DM_STILL_FRAMES", "DMPlan", "DMResult", "check_dm_
            "nominal_growth", "registration_errors", "truth_errors"]
 
 _F64 = torch.float64
-_HARDWARE = logging.getLogger("torchblur.hardware")  # the rig's messages (its link's statistics)
 
 
 @dataclass
@@ -392,7 +390,7 @@ class DMPlan:
         (:mod:`torchblur.identify.dm_record`), inside the recording's session."""
         own = rig is None and cfg.rig.kind == "serial"
         if own:
-            rig = open_dm_rig(cfg, log=_HARDWARE.info)
+            rig = open_dm_rig(cfg, log=HARDWARE_LOGGER.info)
         try:
             if own:
                 self.check(cfg, rig)
@@ -404,8 +402,8 @@ class DMPlan:
                 rig.close()
         if own:
             st = rig.stats  # its events were logged as they came
-            _HARDWARE.info(f"serial link: {rig!r}: {st['calls']} calls, {st['retries']} retried, {st['resets']} controller resets, "
-                           f"{st['reconnects']} reconnects, {st['stale_discarded']} stale frames discarded")
+            HARDWARE_LOGGER.info(f"serial link: {rig!r}: {st['calls']} calls, {st['retries']} retried, {st['resets']} controller resets, "
+                                 f"{st['reconnects']} reconnects, {st['stale_discarded']} stale frames discarded")
 
     @contextlib.contextmanager
     def _session(self, cfg, rig, progress, record, base_dir):

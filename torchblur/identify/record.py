@@ -23,9 +23,10 @@ from dataclasses import dataclass, field
 
 from tqdm.auto import tqdm
 
-__all__ = ["LOGGER", "RunLog", "RunRecord", "collect_log", "console_logging", "progress_bar", "run_stage", "stage_bar"]
+__all__ = ["HARDWARE_LOGGER", "LOGGER", "RunLog", "RunRecord", "collect_log", "console_logging", "progress_bar", "run_stage", "stage_bar"]
 
 LOGGER = logging.getLogger("torchblur.identify")
+HARDWARE_LOGGER = logging.getLogger("torchblur.hardware")  # the rig's messages (faults, retries, reconnects, its link's statistics)
 _STAGE_BAR: contextvars.ContextVar = contextvars.ContextVar("torchblur_stage_bar", default=None)
 
 
