@@ -125,20 +125,18 @@ def test_a_recorded_plan_is_kept_and_a_refit_takes_its_support_at_another_thresh
     info = CameraInfo(frame_shape=(64, 64), frame_rate_hz=30.0, max_exposure_s=1.0, readout_s=1e-3, name="unit")
     exp = Experiment.create(tmp_path / "e", config_yaml="seed: 0\n", camera=info)
     sparse = sparse_plan(G, 0.01)
-    with collect_log() as said:  # the run's log lines
-        assert recorded_plan(exp, sparse, 2, G, 0.01) == (sparse, 2)  # stored now
+    assert recorded_plan(exp, sparse, 2, G, 0.01) == (sparse, 2)  # stored now
     assert exp.meta["dm_plan"] == plan_document(sparse, 2, 0.01)
     exp.close()
     had = hadamard_plan(G)
     for writable in (True, False):  # a resume, then a re-fit: the recorded plan, not the config's choice now
         again = Experiment.open(tmp_path / "e", writable=writable)
-        with collect_log(said):
-            plan, R = recorded_plan(again, had, 1, G, 0.01)
+        plan, R = recorded_plan(again, had, 1, G, 0.01)
         assert plan.kind == "sparse" and R == 2 and np.array_equal(plan.patterns, sparse.patterns)
         assert np.array_equal(plan.support, sparse.support)
         again.close()
     refit = Experiment.open(tmp_path / "e", writable=False)
-    with collect_log(said):
+    with collect_log() as said:  # the run's log lines
         plan, _ = recorded_plan(refit, sparse, 2, G, 0.3)
     assert np.array_equal(plan.patterns, sparse.patterns) and np.array_equal(plan.support, plan_support("sparse", G, 0.3))
     assert plan.support.sum() < sparse.support.sum() and "support_threshold=0.3" in said[-1]

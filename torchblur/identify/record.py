@@ -72,9 +72,9 @@ class RunLog(logging.Handler):
     """Collects the message of every record at INFO and above that reaches it, in the order
     they come (from any thread), into ``lines``: a run's log for report.txt."""
 
-    def __init__(self, lines: list | None = None):
+    def __init__(self):
         super().__init__(logging.INFO)
-        self.lines = [] if lines is None else lines
+        self.lines = []
 
     def emit(self, record: logging.LogRecord) -> None:
         try:
@@ -84,13 +84,13 @@ class RunLog(logging.Handler):
 
 
 @contextlib.contextmanager
-def collect_log(lines: list | None = None, logger: str = "torchblur"):
-    """Collect the messages of ``logger`` and its children (INFO and above) into ``lines`` (a
-    new list by default) for the ``with`` block's duration; yields the list. The logger is
+def collect_log():
+    """Collect the messages of the ``torchblur`` logger and its children (INFO and above) into a
+    new list for the ``with`` block's duration; yields the list. The logger is
     enabled at INFO meanwhile where it was not (what is shown is still each handler's choice:
     :func:`console_logging` with ``--quiet`` shows warnings only)."""
-    target = logging.getLogger(logger)
-    handler = RunLog(lines)
+    target = logging.getLogger("torchblur")
+    handler = RunLog()
     old = target.level
     if not target.isEnabledFor(logging.INFO):
         target.setLevel(logging.INFO)
