@@ -211,7 +211,7 @@ def _fit_frequency(frames, window, omega, amplitude, power, cal, psf, offset, si
         p = GaussianPSF(psf.center, psf.cov, psf.amplitude * power)
     # weights from the camera's noise model: the fitter refits with the first fit's expected signal
     fits = _fit_spots(crops, p, window, torch.tensor([omega], dtype=_F64), noise=cal.noise, mask=(in_frame & ~hot)[:, None],
-                             kernel_noise=kernel_noise, **fit_options)
+                      kernel_noise=kernel_noise, **fit_options)
     n = window.shape[-1]
     phase_var = float(timing_phase_std(omega, jitter_s, cal.latency_std_s, n)) ** 2
     Y, Yc = pattern_responses(fits, amplitude, phase_var=phase_var)
@@ -255,6 +255,7 @@ def _acquire_frequency(rig, plan, f, amp, te, offset_s, R, settle_s, power, late
 
 
 def _fit_options(cfg) -> dict:
+    """The spot fits' options of ``cfg.fit`` (``device``: where :func:`_fit_spots` runs them)."""
     return {"optimizer": cfg.fit.optimizer, "loss": cfg.fit.loss, "fit_scale": bool(cfg.fit.fit_scale),
             "fit_background": bool(cfg.fit.fit_background), "device": cfg.fit.device}
 
