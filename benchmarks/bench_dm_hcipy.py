@@ -24,8 +24,8 @@ configs/identify_dm.yaml's 16 frequencies x 2 repeats, 4096 frames).
                                         [--device cuda] [--jobs N]
 
 ``--device cuda``: the spot fits (every (pattern, frequency, spot) problem) run on that device
-(:func:`on_device`), and so does the generator's propagation (its FFTs in torch,
-``HcipySH.device``); ``--jobs N``: the frames' propagation on the CPU uses N threads (scipy.fft
+(the config's ``fit.device``; refused where there is none), and so does the generator's
+propagation (its FFTs in torch, ``HcipySH.device``); ``--jobs N``: the frames' propagation on the CPU uses N threads (scipy.fft
 workers, BLAS) and torch N threads (default 1: the 2-core machine's figures).
 
 First the generator's checks (batched FFT vs HCIPy's own forward, the time integral's node
@@ -149,45 +149,10 @@ def physics_checks() -> None:
     sys.stdout.flush()
 
 
-DEVICE_CALLS = [0]  #: spot-fit calls that went through :func:`on_device`'s wrapper
-
-
-def on_device(device: str):
-    """Make the DM route's spot fits run on ``device``: wraps
-    :func:`torchblur.dm.spot_fit.fit_spot_problems` (and the DM plan's name for it) so
-    that its tensors go to ``device`` and its :class:`~torchblur.dm.spot_fit.SpotFits` come back
-    to the CPU; each call is counted in :data:`DEVICE_CALLS` (so a run whose fits did not go
-    through the wrapper is refused, not reported as a device run). Returns a function that undoes it."""
-    import dataclasses
-
-    import torch
-
-    from torchblur.dm import spot_fit
-    from torchblur.identify import dm_plan
-
-    dev = torch.device(device)
-    original = spot_fit.fit_spot_problems
-
-    def move(x):
-        if isinstance(x, spot_fit.PerSpotPSF):
-            return spot_fit.PerSpotPSF(move(x.gaussian), move(x.kernel), x.use_kernel.to(dev))
-        return x.to(dev) if hasattr(x, "to") else x
-
-    def fit(crops, psf, window, omega, **kw):
-        DEVICE_CALLS[0] += 1
-        kw = {k: move(v) for k, v in kw.items()}
-        fits = original(move(crops), move(psf), move(window), move(omega), **kw)
-        return dataclasses.replace(fits, **{f.name: getattr(fits, f.name).cpu() for f in dataclasses.fields(fits)
-                                            if isinstance(getattr(fits, f.name), torch.Tensor)})
-
-    spot_fit.fit_spot_problems = dm_plan.fit_spot_problems = fit
-    return lambda: (setattr(spot_fit, "fit_spot_problems", original), setattr(dm_plan, "fit_spot_problems", original))
-
-
 def run_case(name: str, quick: bool, psf: str = "auto", jobs: int = 1, extra=(), progress: bool = False, device: str = "cpu",
              target_px: float | None = None) -> None:
     over = (["sweep.n=4", "dm_plan.budget_frames=512"] if quick else []) + [f"fit.psf={psf}"] + list(extra)
-    over += [] if target_px is None else [f"excitation.target_px={target_px}"]
+    over += ([] if target_px is None else [f"excitation.target_px={target_px}"]) + [f"fit.device={device}"]
     cfg = load_config("configs/identify_dm.yaml", over)
     t0 = time.perf_counter()
     gen = hs.HcipySH(CASES[name])
@@ -198,11 +163,7 @@ def run_case(name: str, quick: bool, psf: str = "auto", jobs: int = 1, extra=(),
     truth = rig.truth(None)
     t_gen = time.perf_counter() - t0
     t0 = time.perf_counter()
-    calls = DEVICE_CALLS[0]
     res = identify(cfg, rig, progress=progress)
-    if device != "cpu" and DEVICE_CALLS[0] == calls:
-        raise SystemExit(f"--device {device}: none of the run's spot fits went through the device wrapper (on_device); "
-                         f"the DM plan no longer calls torchblur.dm.spot_fit.fit_spot_problems by that name")
     t_run = time.perf_counter() - t0
     if os.environ.get("BENCH_DM_HCIPY_SAVE"):  # keep the run (re-read the figures without re-running)
         import pickle
@@ -250,30 +211,24 @@ def main(argv=None) -> None:
                    help="a config override after --quick's (e.g. sweep.n=2 for a smoke test)")
     p.add_argument("--progress", action="store_true", help="the run's log lines as it goes (stderr)")
     p.add_argument("--no-checks", action="store_true", help="skip the generator's checks")
-    p.add_argument("--device", default="cpu", help="where the spot fits run (cuda: on_device)")
+    p.add_argument("--device", default="cpu", help="where the spot fits run (the config's fit.device) and the generator's propagation")
     p.add_argument("--jobs", type=int, default=1, help="threads of the frames' propagation (scipy.fft, BLAS) and of torch")
     args = p.parse_args(argv)
     import torch
     from threadpoolctl import threadpool_limits
 
-    if args.device.startswith("cuda") and not torch.cuda.is_available():
-        raise SystemExit("--device cuda: no CUDA device here")
     torch.set_num_threads(args.jobs)
     if args.progress:
         import logging
 
         logging.basicConfig(stream=sys.stderr, level=logging.INFO, format="%(relativeCreated)9.0f ms  %(message)s")
-    undo = on_device(args.device) if args.device != "cpu" else (lambda: None)
     print(f"torch threads {args.jobs}, BLAS and scipy.fft threads {args.jobs}; spot fits on {args.device}; "
           f"{'quick' if args.quick else 'full'} plan{''.join(' ' + o for o in args.set)}; HCIPy dynamics seed {DYNAMICS_SEED}")
-    try:
-        with threadpool_limits(limits=args.jobs):
-            if not args.no_checks:
-                physics_checks()
-            for name in {"both": ["aligned", "misregistered"], "none": []}.get(args.case, [args.case]):
-                run_case(name, args.quick, args.psf, args.jobs, args.set, args.progress, args.device, args.target_px)
-    finally:
-        undo()
+    with threadpool_limits(limits=args.jobs):
+        if not args.no_checks:
+            physics_checks()
+        for name in {"both": ["aligned", "misregistered"], "none": []}.get(args.case, [args.case]):
+            run_case(name, args.quick, args.psf, args.jobs, args.set, args.progress, args.device, args.target_px)
 
 
 if __name__ == "__main__":

@@ -93,14 +93,6 @@ def test_exposure_label():
     assert exposure_label(w, 3) == "exposure 2 of 2, 8 ms long (1-9 ms), image 2 of 2"
 
 
-def test_log_message_goes_through_the_torchblur_logger(caplog):
-    log = []
-    with caplog.at_level(logging.INFO, logger="torchblur"):
-        record.log_message(log, "dark: level 1", True)
-    assert log == ["dark: level 1"]
-    assert [(r.name, r.getMessage()) for r in caplog.records] == [("torchblur.identify", "dark: level 1")]
-
-
 def test_collect_log_gathers_the_run_messages_in_order_even_when_quiet(capsys):
     """The report's log (collect_log): every torchblur record at INFO and above, from the pipeline's
     and the rig's loggers, in the order they came, also under --quiet (the console shows warnings
@@ -115,10 +107,6 @@ def test_collect_log_gathers_the_run_messages_in_order_even_when_quiet(capsys):
     assert log == ["dark: level 1", "serial link: retried", "saturated"]
     assert capsys.readouterr().err == "warning: saturated\n"
     assert (root.level, root.handlers) == before
-    with collect_log([], "torchblur.identify") as only:  # one child logger: the DM run's calibration
-        logging.getLogger("torchblur.hardware").info("not this one")
-        record.LOGGER.info("psf: Gaussian")
-    assert only == ["psf: Gaussian"]
 
 
 def test_console_logging_writes_one_line_per_message_to_stderr(capsys):

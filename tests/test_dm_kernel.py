@@ -67,21 +67,49 @@ def test_kernel_response_does_not_depend_on_the_motion(sinc):
     assert float(c["gauss_fits"].reduced_chi2.median()) > float(fits.reduced_chi2.median())
 
 
-def test_per_spot_psf_mixes_kernel_and_gaussian_and_inflates_only_kernel_stds(sinc):
-    """Spot 0's crops twice, as two spots: the first fitted with its kernel, the second with its
-    Gaussian (one batch), each equal to its kind's fit alone; the kernel noise factor only on the first."""
+@pytest.fixture(scope="module")
+def mixed(sinc):
+    """Spot 0's first 3 problems twice, as two spots, the first with its kernel, the second with its Gaussian:
+    ``(args, kwargs, fits)`` of :func:`fit_spot_problems` (the kernel noise factor 1.5 times the still's rule)."""
     c = sinc
     g, k = c["gauss"], c["kernel"]
     psf = PerSpotPSF(GaussianPSF(g.center.expand(2, 2), g.cov.expand(2, 2, 2), g.amplitude.expand(2)), KernelPSF(k.kernel.expand(2, -1, -1)),
                      torch.tensor([True, False]))
     crops = c["crops"][:, :3].expand(-1, -1, 2, -1, -1, -1)
-    mixed = fit_spot_problems(crops, psf, c["window"][:, :3], c["omega"][:3], noise_std=c["noise"][:, :3], kernel_noise=c["factor"][:, :3] * 1.5)
+    args, kw = (crops, psf, c["window"][:, :3], c["omega"][:3]), {"noise_std": c["noise"][:, :3], "kernel_noise": c["factor"][:, :3] * 1.5}
+    return args, kw, fit_spot_problems(*args, **kw)
+
+
+def test_per_spot_psf_mixes_kernel_and_gaussian_and_inflates_only_kernel_stds(sinc, mixed):
+    """Spot 0's crops twice, as two spots: the first fitted with its kernel, the second with its
+    Gaussian (one batch), each equal to its kind's fit alone; the kernel noise factor only on the first."""
+    c = sinc
+    mixed = mixed[2]
     kern, gaus = c["fits"], c["gauss_fits"]  # the whole batch, fitted alone by kind (the Gaussians in chunks of 5)
     torch.testing.assert_close(mixed.amplitude[:, :, :1], kern.amplitude[:, :3], rtol=1e-9, atol=1e-9)
     torch.testing.assert_close(mixed.amplitude[:, :, 1:], gaus.amplitude[:, :3], rtol=1e-9, atol=1e-9)
     torch.testing.assert_close(mixed.covariance[:, :, :1], 2.25 * kern.covariance[:, :3], rtol=1e-7, atol=0)
     torch.testing.assert_close(mixed.covariance[:, :, 1:], gaus.covariance[:, :3], rtol=1e-7, atol=0)
     assert mixed.n_chunks == 2  # one chunk of each kind
+
+
+@pytest.mark.parametrize("device", ["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
+def test_fit_device_moves_the_spot_fits_and_brings_them_back(mixed, device):
+    """``fit.device`` (the DM plan's ``_fit_spots``): the mixed kernel/Gaussian batch fitted on ``device``
+    (crops, PerSpotPSF, window, omega, noise and kernel noise moved there), every fit back on the CPU:
+    bit for bit the direct call on the CPU, the same to round-off on a GPU."""
+    from torchblur.identify.dm_plan import _fit_spots
+
+    args, kw, ref = mixed
+    got = _fit_spots(*args, device=device, **kw)
+    assert got.n_chunks == ref.n_chunks
+    for name in ("amplitude", "phase", "covariance", "status", "flags", "reduced_chi2"):
+        a, b = getattr(got, name), getattr(ref, name)
+        assert a.device.type == "cpu" and a.dtype == b.dtype
+        if device == "cpu":
+            assert torch.equal(a, b), name
+        else:
+            torch.testing.assert_close(a, b, rtol=1e-7, atol=1e-9, equal_nan=True)
 
 
 def test_spot_psf_arguments_are_checked(sinc):

@@ -11,6 +11,7 @@ import pytest
 from torchblur.dm.actuator_fit import fit_actuators, second_order
 from torchblur.identify.dm_outputs import CSV_COLUMNS, DMEstimate, command_matrix, magnitude_phase_cov, write_dm_outputs
 from torchblur.errors import ParameterError
+from torchblur.identify.record import collect_log
 from torchblur.sysid.frequency_response import FrequencyResponse
 
 
@@ -37,9 +38,8 @@ def test_write_outputs_read_back(tmp_path):
     import matplotlib.pyplot as plt
 
     est, G = _estimate()
-    lines = []
     backend, open_before = matplotlib.get_backend(), plt.get_fignums()
-    paths = write_dm_outputs(tmp_path, est, say=lines.append)
+    paths = write_dm_outputs(tmp_path, est)
     assert matplotlib.get_backend() == backend and plt.get_fignums() == open_before  # actuator_maps.png: no backend switch
     d = tmp_path / "dm"
     for name in ("actuators.csv", "interaction_matrix.npy", "interaction_matrix.fits", "command_matrix.npy", "unseen_modes.npy",
@@ -63,7 +63,7 @@ def test_frf_json_is_a_control_frd(tmp_path):
     import control
 
     est, _ = _estimate()
-    write_dm_outputs(tmp_path, est, say=lambda s: None)
+    write_dm_outputs(tmp_path, est)
     frf = FrequencyResponse.from_json(tmp_path / "dm" / "frf.json")
     assert (frf.n_outputs, frf.n_inputs) == (32, 9)
     assert frf.output_labels[0] == "s0_x" and frf.output_labels[16] == "s0_y" and frf.input_labels[3] == "a3"
@@ -80,8 +80,8 @@ def test_outputs_without_astropy_log_and_skip(tmp_path, monkeypatch):
     est, _ = _estimate()
     monkeypatch.setitem(sys.modules, "astropy", None)
     monkeypatch.setitem(sys.modules, "astropy.io", None)
-    lines = []
-    paths = write_dm_outputs(tmp_path, est, say=lines.append)
+    with collect_log() as lines:  # the run's log lines
+        paths = write_dm_outputs(tmp_path, est)
     assert "interaction_matrix.fits" not in paths and not (tmp_path / "dm" / "interaction_matrix.fits").exists()
     assert any("astropy" in s and "skipped" in s for s in lines)
 

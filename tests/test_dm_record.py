@@ -11,6 +11,7 @@ from torchblur.hardware.errors import ConnectionLost, RecordingError
 from torchblur.hardware.recording import Experiment, ReplayRig
 from torchblur import cli
 from torchblur.config import estimate_run, load_config
+from torchblur.identify.record import collect_log
 
 from test_dm_run import SMALL as _RUN_SMALL
 from readback import assert_reads_back
@@ -123,20 +124,20 @@ def test_a_recorded_plan_is_kept_and_a_refit_takes_its_support_at_another_thresh
     G = dm_geometry(load_config(None, SMALL))
     info = CameraInfo(frame_shape=(64, 64), frame_rate_hz=30.0, max_exposure_s=1.0, readout_s=1e-3, name="unit")
     exp = Experiment.create(tmp_path / "e", config_yaml="seed: 0\n", camera=info)
-    said = []
     sparse = sparse_plan(G, 0.01)
-    assert recorded_plan(exp, sparse, 2, G, 0.01, said.append) == (sparse, 2)  # stored now
+    assert recorded_plan(exp, sparse, 2, G, 0.01) == (sparse, 2)  # stored now
     assert exp.meta["dm_plan"] == plan_document(sparse, 2, 0.01)
     exp.close()
     had = hadamard_plan(G)
     for writable in (True, False):  # a resume, then a re-fit: the recorded plan, not the config's choice now
         again = Experiment.open(tmp_path / "e", writable=writable)
-        plan, R = recorded_plan(again, had, 1, G, 0.01, said.append)
+        plan, R = recorded_plan(again, had, 1, G, 0.01)
         assert plan.kind == "sparse" and R == 2 and np.array_equal(plan.patterns, sparse.patterns)
         assert np.array_equal(plan.support, sparse.support)
         again.close()
     refit = Experiment.open(tmp_path / "e", writable=False)
-    plan, _ = recorded_plan(refit, sparse, 2, G, 0.3, said.append)
+    with collect_log() as said:  # the run's log lines
+        plan, _ = recorded_plan(refit, sparse, 2, G, 0.3)
     assert np.array_equal(plan.patterns, sparse.patterns) and np.array_equal(plan.support, plan_support("sparse", G, 0.3))
     assert plan.support.sum() < sparse.support.sum() and "support_threshold=0.3" in said[-1]
     doc = dict(exp.meta["dm_plan"], patterns=[[1.0, 2.0]])
@@ -222,7 +223,7 @@ def _actuators_csv(res, tmp_path) -> str:
     from torchblur.identify.dm_outputs import DMEstimate, write_dm_outputs
 
     out = tmp_path / "written"
-    write_dm_outputs(out, DMEstimate(freq_hz=res.freq_hz, D=res.D, D_cov=res.D_cov, table=res.actuators, meta={}), say=lambda m: None)
+    write_dm_outputs(out, DMEstimate(freq_hz=res.freq_hz, D=res.D, D_cov=res.D_cov, table=res.actuators, meta={}))
     return (out / "dm" / "actuators.csv").read_text()
 
 

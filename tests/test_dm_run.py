@@ -5,6 +5,7 @@ import math
 
 import numpy as np
 import pytest
+import torch
 
 from torchblur.errors import ConfigError, ParameterError
 from torchblur.config import load_config
@@ -32,6 +33,14 @@ def test_dm_config_sections_and_errors(tmp_path):
                      ("dm_plan.budget_frames=1000000", "dm_plan.budget_frames")):
         with pytest.raises(ConfigError, match=key):
             load_config(None, SMALL + [bad])
+    assert load_config(None, SMALL + ["fit.device=cpu"]).fit.device == "cpu"  # the default
+    with pytest.raises(ConfigError, match="fit.device: expected a torch device"):
+        load_config(None, SMALL + ["fit.device=gpu0"])
+    with pytest.raises(ConfigError, match="fit.device: mps applies to a DM run"):
+        load_config(None, ["fit.device=mps"])  # a sine run fits on the CPU
+    if not torch.cuda.is_available():  # a device that is not here is refused by name, before any frame
+        with pytest.raises(ConfigError, match="fit.device: cuda is not available on this machine"):
+            load_config(None, SMALL + ["fit.device=cuda"])
     full = load_config("configs/identify_dm.yaml")
     from torchblur.rig.factory import build_dm
 

@@ -340,6 +340,7 @@ def test_cli_runs_a_dm_config_over_the_link(emulators, config_path, runs, tmp_pa
     emulator and runs the DM plan's stages on it (here returning the run above: the CLI's own
     part, the run's log carried as the plan's result carries it); no truth errors on a real rig."""
     from torchblur.identify import pipeline
+    from torchblur.identify.record import LOGGER
     from torchblur.hardware.serial_dm_rig import SerialDMRig
     from torchblur.cli import main
 
@@ -348,8 +349,9 @@ def test_cli_runs_a_dm_config_over_the_link(emulators, config_path, runs, tmp_pa
     def fake_run_stages(run):
         seen["rig"] = rig = run.rig
         assert isinstance(rig, SerialDMRig) and rig.n_actuators == 9 and rig.controller.is_open
-        run.log += runs[0].log
-        return dataclasses.replace(runs[0], log=run.log)
+        for line in runs[0].log:  # the run's messages, as its stages log them
+            LOGGER.info(line)
+        return dataclasses.replace(runs[0])
 
     monkeypatch.setattr(pipeline, "run_stages", fake_run_stages)
     info = emulators["frames"].info

@@ -29,6 +29,7 @@ __all__ = [
     "check_real_scalar",
     "check_int",
     "check_bool",
+    "check_schema_version",
     "as_image",
     "as_noise_std",
     "excerpt",
@@ -248,6 +249,16 @@ def check_bool(value, name: str) -> bool:
     if not isinstance(value, (bool, np.bool_)):
         raise InputTypeError(f"{name}: expected True or False, got {type(value).__name__}")
     return bool(value)
+
+
+def check_schema_version(version, supported, where: str = "", *, error: type[Exception] = ParameterError) -> int:
+    """``version`` if it is one of the ``supported`` versions of a document's schema, else ``error``
+    naming ``schema_version`` after ``where`` (a prefix, e.g. ``"PATH: "``): what came, the versions
+    read, and that a newer torchblur wrote it where it is larger."""
+    if isinstance(version, bool) or version not in supported:
+        newer = " (written by a newer torchblur: upgrade to read it)" if isinstance(version, int) and version > max(supported) else ""
+        raise error(f"{where}schema_version: unsupported version {excerpt(version)}{newer}; supported versions: {sorted(supported)}")
+    return version
 
 
 def as_image(value, name: str, *, min_dim: int = 2, desc: str = "[..., H, W]") -> torch.Tensor:

@@ -8,6 +8,7 @@ from dataclasses import fields
 from urllib.parse import urlparse
 
 import numpy as np
+import torch
 
 from torchblur.config.budget import LIMITS
 from torchblur.config.camera_urls import aravis_url_options, pylon_url_options
@@ -17,7 +18,7 @@ from torchblur.errors import ConfigError, ParameterError, check_real_scalar, exc
 from torchblur.losses import LIKELIHOOD_LOSSES
 
 __all__ = ["validate", "validate_plant", "validate_camera", "validate_spots", "validate_excitation", "validate_sweep",
-           "validate_rig", "validate_dm", "validate_dm_model", "validate_fit", "validate_model", "validate_report",
+           "validate_rig", "validate_dm", "validate_dm_model", "validate_fit", "validate_device", "validate_model", "validate_report",
            "validate_spot_room", "validate_drive_limits", "validate_exposure_time", "validate_plan_compatibility",
            "validate_loss_for_plan", "whole_periods", "check_number", "check_declared"]
 
@@ -349,6 +350,7 @@ def validate_fit(cfg: IdentifyConfig) -> None:
     """The ``fit`` section: its declared keys, ``fit.axis`` (a mode or a direction; one-axis,
     one-spot runs only) and ``fit.loss`` a likelihood of the camera's noise."""
     check_declared(cfg.fit, "fit")
+    validate_device(cfg)
     if isinstance(cfg.fit.axis, str):
         if cfg.fit.axis not in AXIS_MODES:
             raise ConfigError(f"fit.axis: expected one of {AXIS_MODES} or a direction [x, y], got {excerpt(cfg.fit.axis)}")
@@ -361,6 +363,30 @@ def validate_fit(cfg: IdentifyConfig) -> None:
                           f"fit has no covariance and the response's stds would not hold; use one of {LIKELIHOOD_LOSSES} (l2, the default; "
                           f"l1 to be robust to outlier pixels, at 1.25x the std; poisson, the camera's shot and read noise exactly). "
                           f"fit_sinusoid(..., loss='linf', optimizer='adam' or 'lbfgs') still fits it outside a run")
+
+
+def validate_device(cfg: IdentifyConfig) -> None:
+    """``fit.device``: a torch device that is here (cpu always; cuda or cuda:N with that GPU; mps
+    where available), other than cpu only for a DM run (where its spot fits run)."""
+    name = cfg.fit.device
+    try:
+        dev = torch.device(name) if isinstance(name, str) else None
+    except RuntimeError:
+        dev = None
+    if dev is None:
+        raise ConfigError(f"fit.device: expected a torch device such as cpu, cuda, cuda:1 or mps, got {excerpt(name)}")
+    if dev.type == "cpu":
+        return
+    if not cfg.dm.enabled:
+        raise ConfigError(f"fit.device: {name} applies to a DM run's spot fits (dm.n_across > 0); a sine or multisine run fits "
+                          f"on the CPU: set fit.device=cpu")
+    if dev.type == "cuda":
+        here = torch.cuda.is_available() and (dev.index or 0) < torch.cuda.device_count()
+    else:
+        here = dev.type == "mps" and torch.backends.mps.is_available()
+    if not here:
+        raise ConfigError(f"fit.device: {name} is not available on this machine (torch sees {torch.cuda.device_count()} CUDA "
+                          f"device(s)); set fit.device=cpu")
 
 
 def validate_model(cfg: IdentifyConfig) -> None:

@@ -20,7 +20,7 @@ from omegaconf.errors import OmegaConfBaseException
 from torchblur.config.budget import check_limits
 from torchblur.config.checks import validate
 from torchblur.config.schema import IdentifyConfig
-from torchblur.errors import ConfigError, excerpt, key_excerpt
+from torchblur.errors import ConfigError, check_schema_version, excerpt, key_excerpt
 from torchblur.files import read_bounded
 
 __all__ = ["load_config", "load_dataclass", "config_to_yaml", "CONFIG_SCHEMA", "MAX_CONFIG_BYTES", "MAX_LIST_ENTRIES"]
@@ -180,7 +180,4 @@ def _check_config_schema(file_cfg, path: str) -> None:
     name, version = file_cfg.pop("schema", None), file_cfg.pop("schema_version", None)
     if name != CONFIG_SCHEMA[0]:
         raise ConfigError(f"schema: expected {CONFIG_SCHEMA[0]!r} in {path}, got {excerpt(name)}")
-    if isinstance(version, bool) or version not in CONFIG_SCHEMA[1]:
-        newer = " (written by a newer torchblur: upgrade to read it)" if isinstance(version, int) and version > CONFIG_SCHEMA[1][-1] else ""
-        raise ConfigError(f"schema_version: unsupported version {excerpt(version)} in {path}{newer}; supported versions: "
-                          f"{list(CONFIG_SCHEMA[1])}")
+    check_schema_version(version, CONFIG_SCHEMA[1], f"{path}: ", error=ConfigError)

@@ -205,6 +205,10 @@ class FitConfig:
     # A point whose image fit has a reduced chi2 above this is flagged poor_fit: its stds are multiplied by
     # sqrt(reduced chi2) and it is left out of the transfer-function fit (docs/reliability.md, "Per-point flags").
     poor_fit_chi2: float = key(1.5, positive=True)
+    # Where a DM run's spot fits run (a torch device: cpu, cuda, cuda:1, mps): every frequency's crops and
+    # PSFs go there, its fits come back to the CPU. A device that is not here is refused, and so is any
+    # other than cpu for a sine or multisine run (its fits run on the CPU).
+    device: str = "cpu"
 
 
 @dataclass(frozen=True)

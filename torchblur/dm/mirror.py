@@ -40,7 +40,7 @@ from torchblur.errors import ConfigError, ParameterError, ShapeError, check_int,
 from torchblur.files import read_bounded
 from torchblur.systems.lti import Plant
 
-__all__ = ["DeformableMirror", "actuator_grid", "influence", "influence_gradient", "influence_width", "read_actuator_table"]
+__all__ = ["DeformableMirror", "actuator_grid", "influence", "influence_width", "read_actuator_table"]
 
 TABLE_COLUMNS = ("actuator", "mode_hz", "damping", "gain", "delay_s")
 TABLE_MAX_BYTES = 1 << 20  #: an actuator table's largest size (bytes)
@@ -68,14 +68,6 @@ def influence(points, actuator_xy, coupling: float) -> np.ndarray:
     w = influence_width(coupling)
     d = np.asarray(points, dtype=np.float64)[..., None, :] - np.asarray(actuator_xy, dtype=np.float64)
     return np.exp(-(d ** 2).sum(-1) / (2 * w * w))
-
-
-def influence_gradient(points, actuator_xy, coupling: float) -> np.ndarray:
-    """``grad[..., j, a]``: d phi_j / d x_a at ``points [..., 2]`` (per pitch), ``[..., N, 2]``."""
-    w = influence_width(coupling)
-    d = np.asarray(points, dtype=np.float64)[..., None, :] - np.asarray(actuator_xy, dtype=np.float64)
-    phi = np.exp(-(d ** 2).sum(-1) / (2 * w * w))
-    return -d / (w * w) * phi[..., None]
 
 
 TABLE_HIGH = {"mode_hz": 1e7, "damping": 1e3, "gain": 1e6, "delay_s": 1.0}  #: the largest value of each column a table may give

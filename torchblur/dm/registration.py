@@ -127,11 +127,6 @@ class Registration:
         except (ParameterError, TypeError, ValueError) as exc:
             raise ConfigError(f"dm.registration.{exc}") from None
 
-    @property
-    def is_nominal(self) -> bool:
-        """No shift, rotation or magnification, the mirror's coupling."""
-        return (self.shift_x, self.shift_y, self.rotation_deg, self.magnification, self.coupling) == (0.0, 0.0, 0.0, 1.0, None)
-
     def actuators(self, actuator_xy) -> np.ndarray:
         """``[N, 2]`` the actuators' positions on the sensor (pitches) from the nominal ``[N, 2]``."""
         a = math.radians(self.rotation_deg)

@@ -774,9 +774,6 @@ class ReplayFrames(FrameSource):
         self._i += 1
         return self.frame(rec)
 
-    def rewind(self) -> None:
-        self._i = 0
-
     def __len__(self) -> int:
         return len(self.records)
 

@@ -31,7 +31,7 @@ try:  # Windows
 except ImportError:
     msvcrt = None
 
-__all__ = ["LOCK_NAME", "OUTPUT_NAMES", "RESULT_FILES", "RunLock", "check_out_folder", "inside", "run_root_of"]
+__all__ = ["LOCK_NAME", "OUTPUT_NAMES", "RESULT_FILES", "RunLock", "check_out_folder", "inside"]
 
 LOCK_NAME = "run.lock"
 RESULT_FILES = ("frf.json", "frf.csv", "model.json", "report.txt")
@@ -157,16 +157,6 @@ def inside(root: Path, rel, what: str) -> Path:
             resolves outside ``root``.
     """
     return resolve_inside(root, rel, what, error=RecordingError)
-
-
-def run_root_of(path: Path) -> Path | None:
-    """The folder of a run holding ``path`` (``path`` itself or an ancestor): one with an
-    ``experiment/experiment.json`` (a run's output folder) or an ``experiment.json`` (its
-    record), else None."""
-    for p in (path, *path.parents):
-        if (p / "experiment.json").is_file() or (p / "experiment" / "experiment.json").is_file():
-            return p
-    return None
 
 
 def check_out_folder(out: str | Path, *, command: str, force: bool = False, own_run: Path | None = None) -> Path:

@@ -145,11 +145,11 @@ def _csv_rows(t: ActuatorTable):
                int(t.poor_fit[j])]
 
 
-def _write_fits(path: Path, D0: np.ndarray, say) -> bool:
+def _write_fits(path: Path, D0: np.ndarray) -> bool:
     try:
         from astropy.io import fits
     except ImportError:
-        say(f"dm: astropy is not installed: {path.name} skipped (pip install astropy)")
+        _log.info(f"dm: astropy is not installed: {path.name} skipped (pip install astropy)")
         return False
     hdu = fits.PrimaryHDU(D0)
     hdu.header["BUNIT"] = "px/unit"
@@ -213,14 +213,14 @@ def actuator_maps_figure(t: ActuatorTable, *, failed=()):
     return fig
 
 
-def _write_maps(path: Path, t: ActuatorTable, say, failed=()) -> bool:
+def _write_maps(path: Path, t: ActuatorTable, failed=()) -> bool:
     try:
         import matplotlib  # noqa: F401
     except ImportError:
-        say(f"dm: matplotlib is not installed: {path.name} skipped (pip install matplotlib)")
+        _log.info(f"dm: matplotlib is not installed: {path.name} skipped (pip install matplotlib)")
         return False
     if t.actuator_xy is None:
-        say(f"dm: no actuator positions: {path.name} skipped")
+        _log.info(f"dm: no actuator positions: {path.name} skipped")
         return False
     actuator_maps_figure(t, failed=failed).savefig(path, dpi=100)
     return True
@@ -266,12 +266,11 @@ def dm_readme(dc_gain_reference: str = DC_GAIN_NOMINAL) -> str:
             f"dc_gain: {dc_gain_reference}\n")
 
 
-def write_dm_outputs(out_dir, est: DMEstimate, *, rcond: float = RCOND, say=None, figures: bool = True,
+def write_dm_outputs(out_dir, est: DMEstimate, *, rcond: float = RCOND, figures: bool = True,
                      dc_gain_reference: str = DC_GAIN_NOMINAL) -> dict:
-    """Write ``out_dir/dm/`` (see the module docstring). ``say``: a callable for log lines
-    (default: this module's logger); ``figures=False`` (a run's ``report.figures``): no
+    """Write ``out_dir/dm/`` (see the module docstring), its log lines to this module's logger;
+    ``figures=False`` (a run's ``report.figures``): no
     actuator_maps.png; ``dc_gain_reference``: what ``dc_gain`` is relative to (``README.txt``). Returns ``{name: path}`` of the files written."""
-    say = say or _log.info
     d = Path(out_dir) / "dm"
     d.mkdir(parents=True, exist_ok=True)
     t = est.table
@@ -286,7 +285,7 @@ def write_dm_outputs(out_dir, est: DMEstimate, *, rcond: float = RCOND, say=None
     for name, arr in (("interaction_matrix.npy", est.D0), ("interaction_matrix_std.npy", t.static_column_std)):
         np.save(d / name, arr)
         paths[name] = d / name
-    if _write_fits(d / "interaction_matrix.fits", est.D0, say):
+    if _write_fits(d / "interaction_matrix.fits", est.D0):
         paths["interaction_matrix.fits"] = d / "interaction_matrix.fits"
     C, unseen, info = command_matrix(np.nan_to_num(est.D0), rcond=rcond)
     np.save(d / "command_matrix.npy", C)
@@ -296,8 +295,8 @@ def write_dm_outputs(out_dir, est: DMEstimate, *, rcond: float = RCOND, say=None
     paths.update({k: d / k for k in ("command_matrix.npy", "unseen_modes.npy", "command_matrix.json")})
     dm_frequency_response(est).to_json(d / "frf.json")
     paths["frf.json"] = d / "frf.json"
-    if figures and _write_maps(d / "actuator_maps.png", t, say, failed=sorted(failed_actuators(t, est.D))):
+    if figures and _write_maps(d / "actuator_maps.png", t, failed=sorted(failed_actuators(t, est.D))):
         paths["actuator_maps.png"] = d / "actuator_maps.png"
-    say(f"dm: {len(paths)} files in {d}; command matrix keeps {info['n_kept']} modes, {info['n_unseen']} unseen "
-        f"(rcond {rcond:g})")
+    _log.info(f"dm: {len(paths)} files in {d}; command matrix keeps {info['n_kept']} modes, {info['n_unseen']} unseen "
+              f"(rcond {rcond:g})")
     return paths

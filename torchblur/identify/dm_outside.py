@@ -51,7 +51,7 @@ from torchblur.hardware.outside import (CSV_NAME, YAML_NAME, MAX_ROWS, OutsideCa
                                         _read_rows, _resolved_saturation)
 from torchblur.identify.calibration import Calibration, measure_gain, spots_from_still
 from torchblur.config import WFSConfig, load_config, load_dataclass
-from torchblur.identify.record import collect_log, log_message
+from torchblur.identify.record import LOGGER, collect_log
 from torchblur.image.preprocess import dark_frame, subtract_dark
 from torchblur.image.saturation import SaturationCurve
 from torchblur.render.window import ExposureWindow
@@ -317,7 +317,7 @@ def _plan(rec: DMRecording, cfg, G: np.ndarray) -> tuple[Plan, float]:
     return plan, ratio
 
 
-def recording_calibration(rec: DMRecording, cfg, wfs: ShackHartmann, log: list, progress: bool = False):
+def recording_calibration(rec: DMRecording, cfg, wfs: ShackHartmann):
     """The calibration of ``rec`` and its spots in valid-subaperture order, ``(cal, psf, offset,
     size)`` as the live run's (:func:`torchblur.identify.dm_plan._calibrate`, the same steps on the
     recorded frames): the dark frame, the gain (the still frames' photon transfer checked against
@@ -334,22 +334,20 @@ def recording_calibration(rec: DMRecording, cfg, wfs: ShackHartmann, log: list, 
     sat = SaturationCurve(slope_adu_per_s=nan, offset_adu=level, saturation_adu=torch.tensor(sat_adu, dtype=_F64),
                           linear_limit_s=torch.tensor(math.inf, dtype=_F64), residual_rms_adu=nan, saturated_in_data=False)
     _refuse_saturated(rec, sat, dark)
-    with collect_log(log, "torchblur.identify"):  # the calibration's messages, into this run's log
-        ptc, gain, gain_source = measure_gain([still_raw], dark_raw, dark, sat_adu, float(c.gain_e_per_adu), cfg.camera.gain_from,
-                                              name=f"{YAML_NAME} gain_e_per_adu")
+    ptc, gain, gain_source = measure_gain([still_raw], dark_raw, dark, sat_adu, float(c.gain_e_per_adu), cfg.camera.gain_from,
+                                          name=f"{YAML_NAME} gain_e_per_adu")
     read_noise_e = float(c.read_noise_e) if c.read_noise_e is not None else float(dark.read_noise) * gain
-    log_message(log, f"dark: level {float(level):.2f} ADU, read noise {read_noise_e:.3g} e-; saturation: {rec.saturation_source}", progress)
+    LOGGER.info(f"dark: level {float(level):.2f} ADU, read noise {read_noise_e:.3g} e-; saturation: {rec.saturation_source}")
     n = int(cfg.wfs.n_across)
     spots_cfg = replace(cfg, spots=replace(cfg.spots, rows=n, cols=n, pitch_px=float(cfg.wfs.pitch_px), sigma_px=float(cfg.wfs.sigma_px)))
     still_e = subtract_dark(still_raw, dark) * gain
-    with collect_log(log, "torchblur.identify"):
-        spots, kernels = spots_from_still(spots_cfg, still_e, float(rec.still_exposure_s), read_noise_e, spot_layout=wfs.rest_px)
+    spots, kernels = spots_from_still(spots_cfg, still_e, float(rec.still_exposure_s), read_noise_e, spot_layout=wfs.rest_px)
     cal = Calibration(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=float(sat_adu - level), psf=spots.psf,
                       peak_rate=float(spots.psf.amplitude.max()), latency_s=float(c.latency_s), latency_std_s=float(c.latency_std_s),
                       gain=gain, spots=spots, latency_source="given", ptc=ptc, gain_source=gain_source, spot_kernels=kernels)
-    log_message(log, f"latency: {c.latency_s * 1e6:.3f} +- {c.latency_std_s * 1e6:.3f} us given ({YAML_NAME})", progress)
+    LOGGER.info(f"latency: {c.latency_s * 1e6:.3f} +- {c.latency_std_s * 1e6:.3f} us given ({YAML_NAME})")
     order = torch.as_tensor(match_spots(spots.psf.center.numpy(), wfs.rest_px, wfs.pitch_px))
-    return cal, _spot_psf(cal, order, log, progress), spots.offset[order], spots.size
+    return cal, _spot_psf(cal, order), spots.offset[order], spots.size
 
 
 def _refuse_saturated(rec: DMRecording, sat: SaturationCurve, dark) -> None:
@@ -371,12 +369,12 @@ def _refuse_saturated(rec: DMRecording, sat: SaturationCurve, dark) -> None:
                                  f"less light or a shorter exposure, or give saturation_adu in {YAML_NAME} if the sensor clips higher")
 
 
-def identify_dm_recording(rec: DMRecording, cfg=None, *, progress: bool = False) -> DMResult:
+def identify_dm_recording(rec: DMRecording, cfg=None) -> DMResult:
     """Identify the mirror of the outside DM recording ``rec`` like a live run: its calibration
     (:func:`recording_calibration`), every frequency's pattern responses by the live run's spot
     fitter, the demultiplexing, the actuator fit and the mirror's registration
     (:func:`~torchblur.identify.dm_plan.estimate_mirror`). Returns a :class:`~torchblur.identify.dm_plan.DMResult`
-    (no simulated truth).
+    (no simulated truth; its ``log``: the messages of the ``torchblur`` logger during the fit, :func:`~torchblur.identify.record.collect_log`).
 
     Args:
         rec: from :func:`read_dm_recording`; cfg: from :func:`dm_recording_config` (default: its defaults).
@@ -385,11 +383,19 @@ def identify_dm_recording(rec: DMRecording, cfg=None, *, progress: bool = False)
         raise InputTypeError(f"rec: expected a DMRecording (read_dm_recording), got {type(rec).__name__}")
     cfg = dm_recording_config(rec) if cfg is None else cfg
     check_dm_config(cfg)
-    log, t = [], {}
+    with collect_log() as log:
+        res = _fit_recording(rec, cfg)
+    res.log = log
+    return res
+
+
+def _fit_recording(rec: DMRecording, cfg) -> DMResult:
+    """:func:`identify_dm_recording`'s steps, its messages to the ``torchblur.identify`` logger."""
+    t = {}
     t0 = time.perf_counter()
     mirror, wfs = dm_sensor(cfg)
     G = dm_geometry(cfg)
-    cal, psf, offset, size = recording_calibration(rec, cfg, wfs, log, progress)
+    cal, psf, offset, size = recording_calibration(rec, cfg, wfs)
     t["calibration"], t["acquisition"] = time.perf_counter() - t0, 0.0
     plan, ratio = _plan(rec, cfg, G)
     t0 = time.perf_counter()
@@ -399,8 +405,7 @@ def identify_dm_recording(rec: DMRecording, cfg=None, *, progress: bool = False)
             2 * math.pi * float(f), float(rec.amplitude[k]), float(rec.power[k]), cal, psf, offset, size, float(cfg.camera.jitter_s),
             _fit_options(cfg)) for k, f in enumerate(rec.freq_hz)]
         res = [fu.result() for fu in futures]
-    log_message(log, f"recording: {len(rec.freq_hz)} frequencies x {plan.n_patterns} patterns, {rec.n_frames} frames, from {rec.path}",
-                progress)
+    LOGGER.info(f"recording: {len(rec.freq_hz)} frequencies x {plan.n_patterns} patterns, {rec.n_frames} frames, from {rec.path}")
     t["fit_wait"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     Y, Y_cov = np.stack([r[0] for r in res], -1), np.stack([r[1] for r in res], 2)
@@ -409,7 +414,7 @@ def identify_dm_recording(rec: DMRecording, cfg=None, *, progress: bool = False)
     return DMResult(freq_hz=np.asarray(rec.freq_hz), plan=plan, n_repeats=rec.R, plan_info={"cost_ratio_to_one_at_a_time": ratio},
                     amplitude=np.asarray(rec.amplitude), power=np.asarray(rec.power), Y=Y, Y_cov=Y_cov, D=D, D_cov=D_cov, actuators=table,
                     G=reg.G, G_nominal=G, registration=reg, support_check=support, actuator_xy=mirror.actuator_xy, n_frames=int(sum(fr.shape[0] * fr.shape[1] for fr in rec.frames)),
-                    n_failed=sum(r[2] for r in res), timing_s=t, spot_reduced_chi2=np.stack([r[3] for r in res], -1), log=log)
+                    n_failed=sum(r[2] for r in res), timing_s=t, spot_reduced_chi2=np.stack([r[3] for r in res], -1))
 
 
 # ---------------------------------------------------------------------- writing
@@ -492,7 +497,7 @@ def export_dm_recording(run, folder) -> Path:
     doc = exp.meta.get(PLAN_KEY)
     if not cfg.dm.enabled or doc is None:
         raise RecordingError(f"{exp.path}: not a DM run's recording with its plan ({PLAN_KEY})")
-    cal = _calibrate(cfg, ReplayRig(exp), dm_sensor(cfg)[1], [], False, exp)[0]
+    cal = _calibrate(cfg, ReplayRig(exp), dm_sensor(cfg)[1], exp)[0]
     (_, _, dark), (_, args, still) = exp.load_calls( "dark")[0], exp.load_calls( "psf")[0]
     keys = sorted(k for k in exp.groups if exp.groups[k][0].get("kind") == SWEEP_KIND)
     if not keys:
@@ -523,4 +528,4 @@ def run_recording(rec: DMRecording, cfg, out, *, quiet: bool = False, as_json: b
     """``torchblur fit FOLDER`` of an outside DM recording: :func:`identify_dm_recording` written
     as a live run writes (``OUT/config.yaml``, ``OUT/dm/``, ``OUT/report.txt``, the verdict line
     last; :func:`torchblur.identify.dm_report.run_cli`). Returns the verdict's exit status."""
-    return run_cli(cfg, out, quiet=quiet, as_json=as_json, run=lambda: identify_dm_recording(rec, cfg, progress=not quiet))
+    return run_cli(cfg, out, quiet=quiet, as_json=as_json, run=lambda: identify_dm_recording(rec, cfg))

@@ -26,11 +26,10 @@ Stages:
 from __future__ import annotations
 
 import contextlib
-import logging
 import math
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 import torch
@@ -51,7 +50,7 @@ from torchblur.identify.calibration import calibrate, check_latency_source
 from torchblur.config import IdentifyConfig
 from torchblur.identify.dm_record import (SWEEP_KIND, check_recorded_commands, open_recording, recorded_labels, recorded_plan, resume_seed,
                                           same_table, session_info, simulated_frames, sweep_key, table_digest)
-from torchblur.identify.record import RunRecord, collect_log, log_message, run_stage
+from torchblur.identify.record import HARDWARE_LOGGER, LOGGER, RunRecord, run_stage
 from torchblur.identify.rigs import session
 from torchblur.image.dark import subtract_dark
 from torchblur.image.spots import crop_spots
@@ -92,7 +91,7 @@ class DMResult:
         truth_D: ``[2M, N, F]`` the simulated rig's D (None on a real rig); ``mirror``: the
             simulated mirror (its true dynamics), or None; ``truth_G``, ``truth_registration``: its
             true geometry and registration, or None.
-        log: the run's messages.
+        log: the run's messages (collected by the runner, :func:`~torchblur.identify.record.collect_log`).
     """
 
     freq_hz: np.ndarray
@@ -165,24 +164,23 @@ def next_amplitude(*, target_px: float, motion_per_unit: float, input_limit: flo
 
 # DM_DARK_FRAMES, dm_still_frames (torchblur.config.budget): the calibration's dark and still frames.
 
-def _calibrate(cfg, rig, wfs, log, progress, exp=None):
+def _calibrate(cfg, rig, wfs, exp=None):
     """Stage 1 (module docstring): the calibration (from the recording ``exp`` where it holds
     it) and the spots in valid-subaperture order."""
     n = int(cfg.wfs.n_across)
     spots_cfg = replace(cfg.spots, rows=n, cols=n, pitch_px=float(cfg.wfs.pitch_px), sigma_px=float(cfg.wfs.sigma_px))
     size = dm_sweep_size(cfg)
     n_still = dm_still_frames(size["frames"], size["frame_shape"])
-    with collect_log(log, "torchblur.identify"):  # the calibration's messages, into this run's log
-        cal = calibrate(replace(cfg, spots=spots_cfg), rig, exp, n_dark=DM_DARK_FRAMES, n_still=n_still,
-                        spot_layout=wfs.rest_px)  # spots cropped on the sensor's layout; each spot's PSF (fit.psf) (issue 23)
+    cal = calibrate(replace(cfg, spots=spots_cfg), rig, exp, n_dark=DM_DARK_FRAMES, n_still=n_still,
+                    spot_layout=wfs.rest_px)  # spots cropped on the sensor's layout; each spot's PSF (fit.psf) (issue 23)
     order = match_spots(cal.spots.psf.center.numpy(), wfs.rest_px, wfs.pitch_px)
-    log_message(log, f"dm spots: {len(cal.spots)} found, matched to the {wfs.n_valid} valid subapertures (the other "
-                     f"{n * n - wfs.n_valid} cells of the {n}x{n} grid are outside the pupil)", progress)
-    psf = _spot_psf(cal, torch.as_tensor(order), log, progress)
+    LOGGER.info(f"dm spots: {len(cal.spots)} found, matched to the {wfs.n_valid} valid subapertures (the other "
+                f"{n * n - wfs.n_valid} cells of the {n}x{n} grid are outside the pupil)")
+    psf = _spot_psf(cal, torch.as_tensor(order))
     return cal, psf, cal.spots.offset[torch.as_tensor(order)], cal.spots.size
 
 
-def _spot_psf(cal, order, log, progress):
+def _spot_psf(cal, order):
     """The PSF of every valid subaperture's spot (in ``order``): its Gaussian, or where the
     calibration measured kernels (``fit.psf`` kernel, or auto and a spot's Gaussian fails
     :func:`~torchblur.image.psf_from_still.psf_from_still`'s test) a
@@ -192,8 +190,8 @@ def _spot_psf(cal, order, log, progress):
     if sk is None:
         return gauss
     use = torch.tensor([st is not None and st.kind == "kernel" for st in sk.still], dtype=torch.bool)[order]
-    log_message(log, f"dm spots psf: the measured kernel for {int(use.sum())} of {len(use)} spots, the Gaussian for the others "
-                     f"(each spot's own still decides; the kernels' own noise is in the stds)", progress)
+    LOGGER.info(f"dm spots psf: the measured kernel for {int(use.sum())} of {len(use)} spots, the Gaussian for the others "
+                f"(each spot's own still decides; the kernels' own noise is in the stds)")
     return PerSpotPSF(gauss, KernelPSF(sk.psf.kernel[order]), use)
 
 
@@ -212,13 +210,28 @@ def _fit_frequency(frames, window, omega, amplitude, power, cal, psf, offset, si
     else:
         p = GaussianPSF(psf.center, psf.cov, psf.amplitude * power)
     # weights from the camera's noise model: the fitter refits with the first fit's expected signal
-    fits = fit_spot_problems(crops, p, window, torch.tensor([omega], dtype=_F64), noise=cal.noise, mask=(in_frame & ~hot)[:, None],
-                             kernel_noise=kernel_noise, **fit_options)
+    fits = _fit_spots(crops, p, window, torch.tensor([omega], dtype=_F64), noise=cal.noise, mask=(in_frame & ~hot)[:, None],
+                      kernel_noise=kernel_noise, **fit_options)
     n = window.shape[-1]
     phase_var = float(timing_phase_std(omega, jitter_s, cal.latency_std_s, n)) ** 2
     Y, Yc = pattern_responses(fits, amplitude, phase_var=phase_var)
     chi2 = fits.reduced_chi2.reshape(fits.reduced_chi2.shape[0], -1).numpy()  # [P, M] (F = 1)
     return Y[..., 0], Yc[:, :, 0], int((fits.status != 0).sum()), chi2
+
+
+def _fit_spots(crops, psf, window, omega, *, device: str = "cpu", **kw):
+    """:func:`~torchblur.dm.spot_fit.fit_spot_problems` on ``device`` (``fit.device``): the crops,
+    PSFs, window, omega, mask and kernel noise moved there, the
+    :class:`~torchblur.dm.spot_fit.SpotFits` back on the CPU (``.to`` of a tensor already there is itself)."""
+    dev = torch.device(device)
+
+    def move(x):
+        if isinstance(x, PerSpotPSF):
+            return PerSpotPSF(move(x.gaussian), move(x.kernel), x.use_kernel.to(dev))
+        return x.to(dev) if isinstance(x, (torch.Tensor, GaussianPSF, KernelPSF, ExposureWindow)) else x
+
+    fits = fit_spot_problems(move(crops), move(psf), move(window), move(omega), **{k: move(v) for k, v in kw.items()})
+    return replace(fits, **{f.name: v.cpu() for f in fields(fits) if isinstance(v := getattr(fits, f.name), torch.Tensor)})
 
 
 def _crop_mask(mask, offset, size):
@@ -242,8 +255,9 @@ def _acquire_frequency(rig, plan, f, amp, te, offset_s, R, settle_s, power, late
 
 
 def _fit_options(cfg) -> dict:
+    """The spot fits' options of ``cfg.fit`` (``device``: where :func:`_fit_spots` runs them)."""
     return {"optimizer": cfg.fit.optimizer, "loss": cfg.fit.loss, "fit_scale": bool(cfg.fit.fit_scale),
-            "fit_background": bool(cfg.fit.fit_background)}
+            "fit_background": bool(cfg.fit.fit_background), "device": cfg.fit.device}
 
 
 #: the amplitude at frequency k is predicted from the fit of frequency k - AMPLITUDE_LAG (waited
@@ -278,7 +292,7 @@ def _failed_frequency(P: int, M2: int):
     return (np.full((P, M2), np.nan + 0j), np.full((P, M2, 2, 2), np.nan), P * (M2 // 2), np.full((P, M2 // 2), np.nan))
 
 
-def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, log, progress, exp=None, executor=None):
+def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, exp=None, executor=None):
     """Stage 3 (module docstring): ``(amplitude [F], power [F], Y [P, 2M, F], Y_cov, failed, frames, t_acq, t_wait)``.
     With a recording ``exp`` each frequency is one group (:mod:`torchblur.identify.dm_record`): taken from
     it, at its recorded amplitude, where it holds it, else acquired and recorded. Each frequency's
@@ -306,8 +320,8 @@ def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, log, progress, exp=None
                 amps[k] = next_amplitude(target_px=float(cfg.excitation.target_px), motion_per_unit=motion, input_limit=lim_f,
                                          max_pattern=float(np.abs(plan.patterns).max()))
                 if lim_f < limit and amps[k] * float(np.abs(plan.patterns).max()) >= lim_f * (1 - 1e-9):
-                    log_message(log, f"dm sweep: {f:.4g} Hz limited by the slew limit {cal.drive.slew:.6g} input units/s "
-                                     f"(largest command {lim_f:.4g} there)", progress)
+                    LOGGER.info(f"dm sweep: {f:.4g} Hz limited by the slew limit {cal.drive.slew:.6g} input units/s "
+                                f"(largest command {lim_f:.4g} there)")
             te = [float(e) / f for e in s.exposures]
             powers[k] = c.peak_fraction * cal.full_adu * cal.gain / (cal.peak_rate * max(te))
             delay = float(rec["trigger_delay_s"]) if rec is not None else float(getattr(rig, "trigger_delay_s", c.trigger_delay_s))
@@ -320,15 +334,15 @@ def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, log, progress, exp=None
             t_acq += time.perf_counter() - t0
             futures.append(pool.submit(_fit_frequency, frames, window, 2 * math.pi * f, float(amps[k]), float(powers[k]), cal, psf,
                                        offset, size, float(c.jitter_s), _fit_options(cfg)))
-            log_message(log, f"dm sweep: {f:.4g} Hz, amplitude {amps[k]:.4g}, power {powers[k]:.3g}, {P} patterns x "
-                             f"{len(te)} exposures x {R} repeats ({k + 1}/{F}{', recorded' if rec is not None else ''})", progress)
+            LOGGER.info(f"dm sweep: {f:.4g} Hz, amplitude {amps[k]:.4g}, power {powers[k]:.3g}, {P} patterns x "
+                        f"{len(te)} exposures x {R} repeats ({k + 1}/{F}{', recorded' if rec is not None else ''})")
         t0 = time.perf_counter()
         outcomes = [_fit_outcome(fu) for fu in futures]
         t_wait = time.perf_counter() - t0
     for f, (_, why) in zip(freqs, outcomes):
         if why is not None:
-            log_message(log, f"dm sweep: the spot fits of {f:.4g} Hz failed on the executor ({why}): its responses are NaN and "
-                             f"its {P * (M2 // 2)} spot fits counted failed", progress)
+            LOGGER.info(f"dm sweep: the spot fits of {f:.4g} Hz failed on the executor ({why}): its responses are NaN and "
+                        f"its {P * (M2 // 2)} spot fits counted failed")
     results = [r if r is not None else _failed_frequency(P, M2) for r, _ in outcomes]
     Y = np.stack([r[0] for r in results], -1)  # [P, 2M, F]
     Y_cov = np.stack([r[1] for r in results], 2)  # [P, 2M, F, 2, 2]
@@ -375,26 +389,25 @@ class DMPlan:
         :class:`~torchblur.hardware.serial_dm_rig.SerialDMRig` on ``rig.port`` and ``rig.frames``,
         closed after the run, its link's statistics logged) recorded in ``record``
         (:mod:`torchblur.identify.dm_record`), inside the recording's session."""
-        log: list = []
         own = rig is None and cfg.rig.kind == "serial"
         if own:
-            rig = open_dm_rig(cfg, log=logging.getLogger("torchblur.hardware").info)
+            rig = open_dm_rig(cfg, log=HARDWARE_LOGGER.info)
         try:
             if own:
                 self.check(cfg, rig)
-            with self._session(cfg, rig, log, progress, record, base_dir) as run:
+            with self._session(cfg, rig, progress, record, base_dir) as run:
                 run.executor = executor
                 yield run
         finally:
             if own:
                 rig.close()
         if own:
-            st = rig.stats
-            log += [f"serial link: {rig!r}: {st['calls']} calls, {st['retries']} retried, {st['resets']} controller resets, "
-                    f"{st['reconnects']} reconnects, {st['stale_discarded']} stale frames discarded", *rig.events]
+            st = rig.stats  # its events were logged as they came
+            HARDWARE_LOGGER.info(f"serial link: {rig!r}: {st['calls']} calls, {st['retries']} retried, {st['resets']} controller resets, "
+                                 f"{st['reconnects']} reconnects, {st['stale_discarded']} stale frames discarded")
 
     @contextlib.contextmanager
-    def _session(self, cfg, rig, log, progress, record, base_dir):
+    def _session(self, cfg, rig, progress, record, base_dir):
         """:meth:`open` once the rig is open: the simulated mirror (the model's geometry, and the
         truth where every frame is simulated), the recording and its session."""
         self.model_mirror, self.wfs, sim = build_dm(cfg, base_dir=base_dir)
@@ -411,18 +424,18 @@ class DMPlan:
                 raise RecordingError(f"dm.actuator_table: {cfg.dm.actuator_table} is not the file the recording {exp.path} was "
                                      f"simulated with (its SHA-256 differs); resume with that file, or record anew")
             simulated = False
-            log_message(log, f"dm: no simulated truth: {cfg.dm.actuator_table} is not the actuator table the recording was simulated "
-                             f"with (its SHA-256 differs)", progress)
+            LOGGER.info(f"dm: no simulated truth: {cfg.dm.actuator_table} is not the actuator table the recording was simulated "
+                        f"with (its SHA-256 differs)")
         self.truth_rig = (rig if isinstance(rig, SimulatedDMRig) else sim) if simulated else None
         with session(exp, session_info(cfg, rig, digest)):
             if resumed:
-                log_message(log, f"resume: {len(exp.groups)} recorded group(s) in {exp.path} are reused", progress)
-            yield RunRecord(cfg=cfg, rig=rig, exp=exp, log=log, progress=progress)
+                LOGGER.info(f"resume: {len(exp.groups)} recorded group(s) in {exp.path} are reused")
+            yield RunRecord(cfg=cfg, rig=rig, exp=exp, progress=progress)
 
     def calibrate(self, run) -> None:
         """Stage 1: ``run.cal`` and every valid subaperture's spot PSF, crop offset and size."""
         t0 = time.perf_counter()
-        run.cal, self.psf, self.offset, self.size = _calibrate(run.cfg, run.rig, self.wfs, run.log, run.progress, run.exp)
+        run.cal, self.psf, self.offset, self.size = _calibrate(run.cfg, run.rig, self.wfs, run.exp)
         run.timing["calibration"] = time.perf_counter() - t0
 
     def sweep(self, run) -> None:
@@ -432,14 +445,13 @@ class DMPlan:
         self.G = dm_geometry(cfg)  # the geometry does not depend on the dynamics (nor on dm.actuator_table)
         freqs = np.asarray(cfg.frequencies_hz())
         plan, R, self.info = dm_plan(cfg)
-        self.plan, self.R = recorded_plan(exp, plan, R, self.G, float(cfg.dm_plan.support_threshold), run.say)
+        self.plan, self.R = recorded_plan(exp, plan, R, self.G, float(cfg.dm_plan.support_threshold))
         if exp is not None and exp.writable:
             check_recorded_commands(exp, math.inf if cfg.dm.input_limit is None else float(cfg.dm.input_limit))
         run.say(f"dm plan: {self.plan.kind}, {self.plan.n_patterns} patterns x {len(freqs)} frequencies x {len(cfg.sweep.exposures)} "
                 f"exposures x {self.R} repeats = {self.plan.n_frames(len(freqs), len(cfg.sweep.exposures), self.R)} frames; frames for "
                 f"the same accuracy vs one at a time: {self.info['cost_ratio_to_one_at_a_time']:.3f}")
-        out = _sweep(cfg, run.rig, self.plan, self.R, self.G, run.cal, self.psf, self.offset, self.size, run.log, run.progress, exp,
-                     executor=run.executor)
+        out = _sweep(cfg, run.rig, self.plan, self.R, self.G, run.cal, self.psf, self.offset, self.size, exp, executor=run.executor)
         run.acquisition, (run.timing["acquisition"], run.timing["fit_wait"]) = out[:7], out[7:]
 
     def fit(self, run) -> None:
@@ -468,7 +480,7 @@ class DMPlan:
                         Y_cov=Y_cov, D=D, D_cov=D_cov, actuators=table, G=reg.G, actuator_xy=self.model_mirror.actuator_xy,
                         n_frames=n_frames, n_failed=failed, spot_reduced_chi2=chi2, timing_s=run.timing,
                         truth_D=truth.truth_D(freqs) if truth is not None else None, mirror=truth.mirror if truth is not None else None,
-                        log=run.log, G_nominal=self.G, registration=reg, support_check=support,
+                        G_nominal=self.G, registration=reg, support_check=support,
                         truth_G=truth.geometry if truth is not None else None,
                         truth_registration=truth.registration if truth is not None else None)
 

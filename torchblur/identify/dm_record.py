@@ -41,6 +41,7 @@ from torchblur.files import read_bounded
 from torchblur.hardware.errors import RecordingError
 from torchblur.config import load_dataclass
 from torchblur.identify.drive import SESSION_KEY
+from torchblur.identify.record import LOGGER
 from torchblur.identify.rigs import check_resume_config, open_experiment
 from torchblur.rig.base import DRIVE_RTOL
 
@@ -109,7 +110,7 @@ def plan_support(kind: str, G: np.ndarray, threshold: float) -> np.ndarray:
     return np.concatenate([seen, seen], 0)
 
 
-def recorded_plan(exp, plan: Plan, n_repeats: int, G: np.ndarray, threshold: float, say) -> tuple[Plan, int]:
+def recorded_plan(exp, plan: Plan, n_repeats: int, G: np.ndarray, threshold: float) -> tuple[Plan, int]:
     """The plan a run uses: ``plan`` without a recording; with one, the recorded plan (a resume
     or a re-fit; a re-fit at another ``threshold`` takes the support of the recorded patterns at
     that threshold, :func:`plan_support`); a new recording stores ``plan`` now.
@@ -128,11 +129,11 @@ def recorded_plan(exp, plan: Plan, n_repeats: int, G: np.ndarray, threshold: flo
     recorded, R, t = plan_from_document(doc, G, str(exp.path / "experiment.json"))
     if t != threshold and not exp.writable:
         recorded = Plan(recorded.kind, recorded.patterns, plan_support(recorded.kind, G, threshold))
-        say(f"dm plan: the recorded {recorded.kind} patterns with the support at dm_plan.support_threshold={threshold:g} "
-            f"(recorded at {t:g}): {int(recorded.support.sum())} unknowns")
+        LOGGER.info(f"dm plan: the recorded {recorded.kind} patterns with the support at dm_plan.support_threshold={threshold:g} "
+                    f"(recorded at {t:g}): {int(recorded.support.sum())} unknowns")
     if (recorded.kind, recorded.n_patterns, R) != (plan.kind, plan.n_patterns, n_repeats):
-        say(f"dm plan: the recording's ({recorded.kind}, {recorded.n_patterns} patterns x {R} repeats) is used, not the "
-            f"config's choice now ({plan.kind}, {plan.n_patterns} x {n_repeats})")
+        LOGGER.info(f"dm plan: the recording's ({recorded.kind}, {recorded.n_patterns} patterns x {R} repeats) is used, not the "
+                    f"config's choice now ({plan.kind}, {plan.n_patterns} x {n_repeats})")
     return recorded, R
 
 

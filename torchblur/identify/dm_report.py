@@ -20,7 +20,7 @@ from torchblur.identify.dm_plan import DMResult, truth_errors
 from torchblur.identify.dm_verdict import final_verdict
 from torchblur.identify.pipeline import identify
 from torchblur.identify.read_outputs import SUMMARY_SCHEMA
-from torchblur.identify.record import log_message
+from torchblur.identify.record import collect_log
 
 __all__ = ["run_cli"]
 
@@ -68,10 +68,11 @@ def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False, record=None
     res = run() if run is not None else identify(cfg, rig, progress=not quiet, record=out / "experiment" if record is None else record,
                                                  base_dir=base_dir)
     elapsed = time.perf_counter() - t0
-    _write_dm_outputs(res, out, figures=cfg.report.figures)
+    with collect_log() as written:  # the outputs' own lines (dm: N files in ...), after the run's
+        _write_dm_outputs(res, out, figures=cfg.report.figures)
     v = final_verdict(res, float(cfg.fit.poor_fit_chi2))
     report = _report(res, elapsed) + "".join(f"{line}\n" for line in (*v.details, v.line))  # the verdict line last
-    (out / "report.txt").write_text("\n".join(res.log) + "\n" + report)
+    (out / "report.txt").write_text("\n".join([*res.log, *written]) + "\n" + report)
     print(report, end="", file=sys.stderr if as_json else sys.stdout, flush=True)
     if as_json:
         print(json.dumps({"schema": SUMMARY_SCHEMA[0], "schema_version": SUMMARY_SCHEMA[1][-1],
@@ -90,6 +91,6 @@ def _write_dm_outputs(res: DMResult, out, figures: bool = True) -> None:
     reg = res.registration
     reference = {"dc_gain_reference": DC_GAIN_REFERENCE} if reg and reg.ok else {}
     write_dm_outputs(out, DMEstimate(freq_hz=res.freq_hz, D=res.D, D_cov=res.D_cov, table=res.actuators, meta=meta),
-                     say=lambda msg: log_message(res.log, msg), figures=figures, **reference)
+                     figures=figures, **reference)
     if res.registration is not None:
         write_registration_json(out / "dm" / "registration.json", res.registration, res.support_check)

@@ -28,7 +28,7 @@ from torchblur.errors import ConfigError
 from torchblur.hardware.errors import RecordingError
 from torchblur.rig.base import DRIVE_RTOL, command_peak, command_slew
 
-__all__ = ["DriveLimit", "drive_limit", "range_limit", "drive_use", "at_limit", "is_limited", "check_recorded_drive", "limited_summary", "SESSION_KEY",
+__all__ = ["DriveLimit", "drive_limit", "range_limit", "at_limit", "is_limited", "check_recorded_drive", "limited_summary", "SESSION_KEY",
            "SLEW_KEY"]
 
 #: the key of a recording session's rig details that holds the rig's range (replays read it back)
@@ -129,20 +129,6 @@ def range_limit(rig, max_amplitude, exp=None) -> DriveLimit:
     raise ConfigError(f"excitation.max_amplitude: the rig ({rig!r}) does not report its input range (a controller "
                       f"that does not answer RANGE?: an older firmware); give excitation.max_amplitude=..., the largest "
                       f"|command| (input units) the actuator may take, to run on it")
-
-
-def drive_use(drive: DriveLimit | None, freq_hz, amplitude, phase_rad=None, base_freq_hz=None) -> float:
-    """How much of the drive a command uses: ``max(peak / limit, slew / slew limit)`` (1 at the
-    limit; 0 without a ``drive``). One tone: ``freq_hz``, ``amplitude`` numbers; a multisine:
-    ``[N]`` each with ``phase_rad`` and ``base_freq_hz`` (:func:`~torchblur.rig.base.command_peak`,
-    :func:`~torchblur.rig.base.command_slew`)."""
-    if drive is None:
-        return 0.0
-    phase = [0.0] * len(np.atleast_1d(freq_hz)) if phase_rad is None else phase_rad
-    use = command_peak(freq_hz, amplitude, phase, base_freq_hz) / drive.limit
-    if math.isfinite(drive.slew):
-        use = max(use, command_slew(freq_hz, amplitude, phase, base_freq_hz) / drive.slew)
-    return float(use)
 
 
 def at_limit(amplitude: float, limit: float) -> bool:

@@ -28,7 +28,7 @@ from torchblur.config import IdentifyConfig
 from torchblur.identify.dm_plan import DMPlan, DMResult, check_dm_config
 from torchblur.identify.drive import SESSION_KEY, SLEW_KEY
 from torchblur.identify.multisine import MultisinePlan
-from torchblur.identify.record import LOGGER, RunRecord, collect_log, console_logging, stage_bar
+from torchblur.identify.record import HARDWARE_LOGGER, LOGGER, RunRecord, collect_log, console_logging, stage_bar
 from torchblur.identify.result import IdentificationResult
 from torchblur.identify.rigs import build_rig, open_experiment, session
 from torchblur.identify.stages import run_plan
@@ -36,7 +36,6 @@ from torchblur.identify.sweep import SinePlan
 
 __all__ = ["PLANS", "calibrate_stage", "identify", "plan_kind", "run_stages"]
 
-HARDWARE_LOGGER = logging.getLogger("torchblur.hardware")  # the rig's messages (faults, retries, reconnects)
 #: the plan of the sweep, fit and assemble stages of each kind of run (:func:`plan_kind`)
 PLANS = {"sine": SinePlan, "multisine": MultisinePlan, "dm": DMPlan}
 
@@ -84,8 +83,7 @@ def identify(cfg: IdentifyConfig, rig=None, *, progress: bool = True, record=Non
         with getattr(plan, "open", open_run)(cfg, rig, progress=progress, record=record, base_dir=base_dir, executor=executor) as run:
             run.plan = plan
             result = run_stages(run)
-    if isinstance(result, IdentificationResult):  # the DM plan's result keeps the list its modules write (log_message)
-        result.log = log
+    result.log = log
     return result
 
 

@@ -33,7 +33,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from torchblur.errors import ParameterError
+from torchblur.errors import ParameterError, check_schema_version
 from torchblur.config import IdentifyConfig, load_dataclass, validate
 from torchblur.dm.registration import read_registration_json
 from torchblur.identify.dm_outputs import COMMAND_MATRIX_SCHEMA, read_actuators_csv
@@ -60,10 +60,7 @@ def check_document(doc, schema: tuple, where: str) -> dict:
     if not isinstance(doc, dict) or doc.get("schema") != name:
         got = doc.get("schema") if isinstance(doc, dict) else type(doc).__name__
         raise ParameterError(f"{where}: schema: expected {name!r}, got {got!r}")
-    v = doc.get("schema_version")
-    if isinstance(v, bool) or v not in versions:
-        newer = " (written by a newer torchblur: upgrade to read it)" if isinstance(v, int) and v > max(versions) else ""
-        raise ParameterError(f"{where}: schema_version: unsupported version {v!r}{newer}; supported versions: {list(versions)}")
+    check_schema_version(doc.get("schema_version"), versions, f"{where}: ")
     return doc
 
 

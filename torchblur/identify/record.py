@@ -23,9 +23,10 @@ from dataclasses import dataclass, field
 
 from tqdm.auto import tqdm
 
-__all__ = ["LOGGER", "RunLog", "RunRecord", "collect_log", "console_logging", "log_message", "progress_bar", "run_stage", "stage_bar"]
+__all__ = ["HARDWARE_LOGGER", "LOGGER", "RunLog", "RunRecord", "collect_log", "console_logging", "progress_bar", "run_stage", "stage_bar"]
 
 LOGGER = logging.getLogger("torchblur.identify")
+HARDWARE_LOGGER = logging.getLogger("torchblur.hardware")  # the rig's messages (faults, retries, reconnects, its link's statistics)
 _STAGE_BAR: contextvars.ContextVar = contextvars.ContextVar("torchblur_stage_bar", default=None)
 
 
@@ -40,9 +41,8 @@ class RunRecord:
     ``fit`` (the fits of every point), ``frf`` (FrequencyResponse), the fitted ``images``,
     their ``windows`` and laser ``power`` (shapes as in the result) and ``truth``, ``model``
     (TransferFunctionFit or None) and ``direct_model``, ``timing`` (seconds per stage);
-    ``executor``: the :class:`concurrent.futures.Executor` a plan may submit its fits to (None: its own worker thread);
-    ``log``: the DM plan's own list of its messages (its modules still write it with :func:`log_message`;
-    the sine and multisine plans log to :data:`LOGGER` only)."""
+    ``executor``: the :class:`concurrent.futures.Executor` a plan may submit its fits to (None: its own worker thread).
+    The run's messages go to :data:`LOGGER` (:meth:`say`), not to the record."""
 
     cfg: object
     rig: object
@@ -62,29 +62,19 @@ class RunRecord:
     direct_model: object = None
     timing: dict = field(default_factory=dict)
     executor: object = None
-    log: list = field(default_factory=list)
 
     def say(self, msg: str) -> None:
         """Log ``msg`` to the ``torchblur.identify`` logger at INFO (:func:`collect_log` gathers it for the report)."""
         LOGGER.info(msg)
 
 
-def log_message(log: list, msg: str, progress: bool = False, *, logger: logging.Logger = LOGGER) -> None:
-    """Append ``msg`` to ``log`` and send it to ``logger`` at INFO. Only the DM modules
-    (``torchblur.identify.dm_plan``, ``torchblur.identify.dm_outside``) still keep a list by hand; the
-    identification logs to :data:`LOGGER` and collects with :func:`collect_log`. ``progress``
-    is not used."""
-    log.append(msg)
-    logger.info(msg)
-
-
 class RunLog(logging.Handler):
     """Collects the message of every record at INFO and above that reaches it, in the order
     they come (from any thread), into ``lines``: a run's log for report.txt."""
 
-    def __init__(self, lines: list | None = None):
+    def __init__(self):
         super().__init__(logging.INFO)
-        self.lines = [] if lines is None else lines
+        self.lines = []
 
     def emit(self, record: logging.LogRecord) -> None:
         try:
@@ -94,13 +84,13 @@ class RunLog(logging.Handler):
 
 
 @contextlib.contextmanager
-def collect_log(lines: list | None = None, logger: str = "torchblur"):
-    """Collect the messages of ``logger`` and its children (INFO and above) into ``lines`` (a
-    new list by default) for the ``with`` block's duration; yields the list. The logger is
+def collect_log():
+    """Collect the messages of the ``torchblur`` logger and its children (INFO and above) into a
+    new list for the ``with`` block's duration; yields the list. The logger is
     enabled at INFO meanwhile where it was not (what is shown is still each handler's choice:
     :func:`console_logging` with ``--quiet`` shows warnings only)."""
-    target = logging.getLogger(logger)
-    handler = RunLog(lines)
+    target = logging.getLogger("torchblur")
+    handler = RunLog()
     old = target.level
     if not target.isEnabledFor(logging.INFO):
         target.setLevel(logging.INFO)

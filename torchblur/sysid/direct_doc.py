@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 
-from torchblur.errors import InputTypeError, ParameterError, excerpt
+from torchblur.errors import InputTypeError, ParameterError, check_schema_version, excerpt
 from torchblur.sysid.parametric import _Structure
 
 __all__ = ["DIRECT_SCHEMA", "DIRECT_SCHEMA_VERSION", "DIRECT_UNITS", "direct_fields_from_dict"]
@@ -85,9 +85,7 @@ def direct_fields_from_dict(doc) -> dict:
     if v == 1:
         raise ParameterError("schema_version: 1 (written before the model's structure and per-point results were kept) cannot "
                              "rebuild a DirectModelFit; read it as a document with torchblur.identify.read_outputs.read_outputs")
-    if isinstance(v, bool) or v != DIRECT_SCHEMA_VERSION:
-        newer = " (written by a newer torchblur: upgrade to read it)" if isinstance(v, int) and v > DIRECT_SCHEMA_VERSION else ""
-        raise ParameterError(f"schema_version: unsupported version {excerpt(v)}{newer}; supported versions: [{DIRECT_SCHEMA_VERSION}]")
+    check_schema_version(v, (DIRECT_SCHEMA_VERSION,))
     unknown, missing = set(doc) - _REQUIRED - _CLI_KEYS, _REQUIRED - set(doc)
     if unknown or missing:
         raise ParameterError(f"doc: unknown keys {sorted(unknown)}, missing keys {sorted(missing)} for schema_version 2")

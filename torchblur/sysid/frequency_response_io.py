@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from torchblur.errors import InputTypeError, ParameterError, ShapeError, TorchblurError, excerpt
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, TorchblurError, check_schema_version, excerpt
 from torchblur.files import read_bounded
 from torchblur.sysid.flags import flag_names, parse_flags
 
@@ -378,13 +378,7 @@ def _check_schema(doc) -> None:
         raise InputTypeError(f"doc: expected a JSON object, got {type(doc).__name__}")
     if doc.get("schema") != _SCHEMA:
         raise ParameterError(f"schema: expected {excerpt(_SCHEMA)}, got {excerpt(doc.get('schema'))}")
-    version = doc.get("schema_version")
-    if isinstance(version, bool) or version not in _SUPPORTED_SCHEMA_VERSIONS:
-        newer = " (written by a newer torchblur: upgrade to read it)" if isinstance(version, int) and version > SCHEMA_VERSION else ""
-        raise ParameterError(
-            f"schema_version: unsupported version {excerpt(version)}{newer}; supported versions: "
-            f"{list(_SUPPORTED_SCHEMA_VERSIONS)}"
-        )
+    version = check_schema_version(doc.get("schema_version"), _SUPPORTED_SCHEMA_VERSIONS)
     keys = _JSON_KEYS - {"units"} if version == 1 else _JSON_KEYS  # a key is refused only when its version lacks it
     unknown = set(doc) - keys
     if unknown:

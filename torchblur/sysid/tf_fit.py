@@ -69,7 +69,7 @@ import numpy as np
 import scipy.linalg
 import scipy.optimize
 
-from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_frequency_grid, check_bool, check_int, excerpt
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_frequency_grid, check_bool, check_int, check_schema_version, excerpt
 from torchblur.files import read_bounded
 from torchblur.sysid.frequency_response import FrequencyResponse, control_names
 from torchblur.sysid.frequency_response_io import MAX_FILE_BYTES
@@ -437,10 +437,7 @@ def _check_keys(doc: dict) -> None:
     """ParameterError unless ``doc``'s ``schema_version`` is one of :data:`SCHEMA_KEYS` and its
     keys are that version's (required all present, nothing unknown), and its ``units`` (version
     2 on) are :data:`UNITS`."""
-    version = doc.get("schema_version")
-    if isinstance(version, bool) or version not in SCHEMA_KEYS:
-        newer = " (written by a newer torchblur: upgrade to read it)" if isinstance(version, int) and version > SCHEMA_VERSION else ""
-        raise ParameterError(f"schema_version: unsupported version {excerpt(version)}{newer}; supported versions: {sorted(SCHEMA_KEYS)}")
+    version = check_schema_version(doc.get("schema_version"), SCHEMA_KEYS)
     required, optional = SCHEMA_KEYS[version]
     unknown = set(doc) - required - optional
     if unknown:
