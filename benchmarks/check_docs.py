@@ -167,6 +167,11 @@ CLAIMS = [
           [sys.executable, "benchmarks/bench_dm_registration.py"],
           r"rms\(error/std\): shift_x " + NUM + r", shift_y " + NUM + r", rotation_deg " + NUM + r", magnification " + NUM
           + r", coupling " + NUM + r"; all: " + NUM, rtol=(0.01,), speed="slow"),
+    Claim("DM: the ladder spot model against the run's on HCIPy spots", "docs/deformable_mirrors.md",
+          r"dynamics\): " + NUM + r", \*\*" + NUM + r" %, \+" + NUM + r" rad\*\*",
+          [sys.executable, "benchmarks/bench_dm_spot_models.py", "--spots", "0:80:4", "--models", "ladder+delta"],
+          r"ladder\+delta +noiseless reduced chi2 median " + NUM + r"; D error rms/max " + NUM + r" %; large slopes: gain [-+][0-9.]+ %, "
+          r"phase \+" + NUM, rtol=(0.5, 0.05, 0.1), speed="slow"),
     Claim("multisine: the binned cost of the starts against the rendered one", "docs/multisine.md",
           r"group's " + NUM + r" starts " + NUM + r" s CPU instead of " + NUM + r" s rendering each, costs within " + NUM
           + r" of the rendered ones,\s+the same " + NUM + " best",

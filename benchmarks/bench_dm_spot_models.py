@@ -1,0 +1,242 @@
+"""Which spot model removes the DM spot fits' bias on HCIPy lenslet spots (issue 23): the run's
+shifted still against models built from static frames of each Hadamard pattern.
+
+bench_dm_spot_causes.py traced the bias: under a Hadamard pattern the surface under a lenslet is
+curved, not only tilted, so each spot changes shape as it moves, and the run's model (the spot's
+still, shifted along two sinusoids) reads that change as motion (a phase lead of ~0.04-0.06 rad at
+3 px, barely moving spots fitted with 0.5 px). Here the same noiseless frames (tests/hcipy_sh.py,
+configs/identify_dm.yaml's geometry and plan, a 3 px largest motion, exposures 0.3 and 0.8 of the
+period, weights from the camera noise of a 1650 e- still peak) are fitted per (pattern, spot) by
+scipy's least squares with four models, and the responses compared with the fitted-shift truth
+``shift_truth x pattern x H(jw)``:
+
+- ``base``: the run's fit (:func:`torchblur.dm.spot_fit.fit_spot_problems`, each spot's still as
+  its kernel).
+- ``linear``: base plus a shape image driven linearly by the pattern's command: the odd part of
+  the residuals left by a shifted still fitted to static frames of the pattern at +-its amplitude,
+  its phasor free (2 parameters).
+- ``ladder``: the spot's image *is* the static image of the pattern at the instantaneous command
+  ``u(t) = Re(g e^{i w t})`` (a ladder of static frames at ``LADDER`` levels of the pattern's
+  amplitude, a cubic spline in u per pixel; the crop, the neighbours' light and the shift's
+  nonlinearity all included): 2 parameters per spot, its motion ``g`` times the spot's
+  small-signal shift per unit u (dI/du at 0 on the still's Fourier derivatives). Exact when every
+  actuator has the same dynamics.
+- ``ladder+delta``: the ladder plus a small free motion ``delta(t)`` (x and y sinusoids, to first
+  order: ``L(u) + delta . dL/dshift(u)``) for the actuators' differing dynamics; the response is
+  the ladder's motion plus delta.
+
+    python benchmarks/bench_dm_spot_models.py [--patterns 1] [--freq 342] [--same-dynamics]
+        [--models base,linear,ladder,ladder+delta] [--spots 0:80]
+
+Slow (scipy with finite-difference Jacobians, one spot at a time: minutes per model and
+pattern); a model for the run would be batched and analytic.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import time
+
+import numpy as np
+import scipy.optimize as so
+import torch
+from scipy.interpolate import CubicSpline
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+import bench_dm_spot_causes as bc  # noqa: E402
+import hcipy_sh as hs  # noqa: E402
+
+from torchblur.config import load_config  # noqa: E402
+from torchblur.config.budget import dm_plan  # noqa: E402
+from torchblur.dm.spot_fit import crop_problems, fit_spot_problems, pattern_responses  # noqa: E402
+from torchblur.render.blur import _kernel_fourier  # noqa: E402
+from torchblur.render.camera import camera_noise_std  # noqa: E402
+from torchblur.render.psf import KernelPSF  # noqa: E402
+
+#: the ladder's levels (units of the pattern's sweep amplitude; the motion reaches |H| ~ 1.2 of it)
+LADDER = np.linspace(-1.4, 1.4, 29)
+_F64 = torch.float64
+NODES = 96  #: Gauss-Legendre nodes per exposure of the fitted models
+
+
+def _shift(img, dx, dy, pad=6):
+    """``img [..., h, w]`` moved by (dx, dy) px (Fourier shift, one node)."""
+    n = img.reshape(-1, *img.shape[-2:]).shape[0]
+    one = torch.ones(n, 1, dtype=_F64)
+    return _kernel_fourier(img.reshape(n, *img.shape[-2:]), one * dx, one * dy, one, pad=pad).reshape(img.shape)
+
+
+def _shift_residual(img, K):
+    """The residual ``img - a K(x - s)`` of the best shifted still (uniform weights), and ``s``."""
+    def res(s):
+        return (s[2] * _shift(K, s[0], s[1]) - img).reshape(-1).numpy()
+    sol = so.least_squares(res, [0.0, 0.0, 1.0], x_scale=[1, 1, 0.1])
+    return -torch.as_tensor(res(sol.x)).reshape(img.shape), sol.x[:2]
+
+
+class Case:
+    """The frames, truth and base fit of one frequency (``--patterns`` patterns from row 1 of the plan)."""
+
+    def __init__(self, n_patterns: int, f: float, same: bool):
+        cfg = load_config("configs/identify_dm.yaml", ["sweep.n=4", "dm_plan.budget_frames=512"])
+        self.gen = gen = hs.HcipySH()
+        dyn = hs.draw_dynamics(gen.n_actuators, 23)
+        if same:
+            N = gen.n_actuators
+            dyn = hs.Dynamics(mode_hz=np.full(N, 900.0), damping=np.full(N, 0.08), gain=np.ones(N), delay_s=np.full(N, 20e-6))
+        S = gen.shift_truth()
+        self.pats = dm_plan(cfg)[0].patterns[1:1 + n_patterns]
+        n, self.pitch = gen.optics.n_lenslets, gen.optics.pitch_px
+        r, c = np.divmod(gen.valid, n)
+        self.offset = torch.as_tensor(np.stack([c * self.pitch, r * self.pitch], -1))
+        self.size = (self.pitch, self.pitch)
+        self.f, self.om = f, 2 * math.pi * f
+        self.power = bc.PEAK_E / (bc.EXPOSURES[1] / f)
+        self.window = bc.windows(f, len(self.pats))
+        frames, self.Yt, self.amps = bc.dm_frames(gen, dyn, S, self.pats, f, self.window, self.power, 1.0)
+        self.M = S.shape[0] // 2
+        self.crops, inside = crop_problems(frames[:, None], self.offset, self.size)  # [P, 1, M, E, h, w]
+        self.kern = self._crop(torch.as_tensor(gen.still() * self.power))  # [M, h, w]
+        self.fits = fit_spot_problems(self.crops, KernelPSF(self.kern), self.window, torch.tensor([self.om], dtype=_F64),
+                                      noise_std=camera_noise_std(self.crops, bc.READ_NOISE_E), mask=inside[:, None])
+        self.Y0 = pattern_responses(self.fits, self.amps[:, None])[0][..., 0]  # [P, 2M]
+        st, du = self.window.start[0, 0], self.window.duration[0, 0]
+        x, w = np.polynomial.legendre.leggauss(NODES)
+        self.t = [(st[e] + du[e] * torch.as_tensor((x + 1) / 2)).numpy() for e in range(2)]  # node times per exposure
+        self.w = [(du[e] * torch.as_tensor(w / 2)).numpy() for e in range(2)]  # node weights (s)
+
+    def _crop(self, img):
+        return crop_problems(img[None, None, None], self.offset, self.size)[0][0, 0, :, 0]
+
+    def static(self, p: int, levels) -> torch.Tensor:
+        """Static frames of pattern ``p`` at ``levels`` of its amplitude, cropped: ``[L, M, h, w]`` (rate x power)."""
+        imgs = self.gen.intensity(np.asarray(levels)[:, None] * self.amps[p] * self.pats[p][None]) * self.power
+        return crop_problems(torch.as_tensor(imgs)[:, None, None], self.offset, self.size)[0][:, 0, :, 0]
+
+    def data(self, p, m):
+        d = self.crops[p, 0, m]
+        return d.numpy(), camera_noise_std(d, bc.READ_NOISE_E).numpy()
+
+    def start_phasor(self, p, m, sl):
+        """A start for u's phasor (gc, gs): the base fit's motion on the spot's larger static axis over its static shift."""
+        a = int(np.argmax(np.abs(sl)))
+        amp, ph = float(self.fits.amplitude[p, 0, m, a]), float(self.fits.phase[p, 0, m, a])
+        r0, phi = amp / max(abs(sl[a]), 1e-9), ph + (np.pi if sl[a] < 0 else 0.0)
+        return [r0 * np.sin(phi), r0 * np.cos(phi)]
+
+
+def fit_linear(case: Case, p: int, spots):
+    """``linear`` (module docstring): ``{m: (x phasor, y phasor, chi2)}`` px."""
+    st = case.static(p, [1.0, -1.0])
+    st_, du = case.window.start[0, 0], case.window.duration[0, 0]
+    Wc = ((torch.sin(case.om * (st_ + du)) - torch.sin(case.om * st_)) / case.om).numpy()
+    Ws = (-(torch.cos(case.om * (st_ + du)) - torch.cos(case.om * st_)) / case.om).numpy()
+    out = {}
+    for m in spots:
+        B = ((_shift_residual(st[0, m], case.kern[m])[0] - _shift_residual(st[1, m], case.kern[m])[0]) / 2).numpy()
+        data, sig = case.data(p, m)
+        K = case.kern[m]
+
+        def model(th):
+            ax, px, ay, py, gc, gs = th
+            imgs = []
+            for e in range(2):
+                t = torch.as_tensor(case.t[e])
+                img = _kernel_fourier(K, ax * torch.sin(case.om * t + px), ay * torch.sin(case.om * t + py), torch.as_tensor(case.w[e]), pad=8)
+                imgs.append(img.numpy() + (gc * Wc[e] + gs * Ws[e]) * B)
+            return np.stack(imgs)
+        th0 = [float(case.fits.amplitude[p, 0, m, 0]), float(case.fits.phase[p, 0, m, 0]), float(case.fits.amplitude[p, 0, m, 1]),
+               float(case.fits.phase[p, 0, m, 1]), 0.0, 0.0]
+        sol = so.least_squares(lambda th: ((model(th) - data) / sig).ravel(), th0, x_scale=[0.1, 0.01, 0.1, 0.01, 100, 100])
+        ax, px, ay, py = sol.x[:4]
+        out[m] = (ax * np.exp(1j * px), ay * np.exp(1j * py), float(np.sum(sol.fun ** 2)))
+    return out
+
+
+def fit_ladder(case: Case, p: int, spots, delta: bool):
+    """``ladder`` / ``ladder+delta`` (module docstring): ``{m: (x phasor, y phasor, chi2)}`` px."""
+    L = case.static(p, LADDER)  # [L, M, h, w]
+    spl = CubicSpline(LADDER, L.numpy(), axis=0)
+    dL0 = spl.derivative()(0.0)  # [M, h, w] per unit u at rest
+    h = 0.05
+    jx = ((_shift(case.kern, h, 0.0) - _shift(case.kern, -h, 0.0)) / (2 * h)).numpy()
+    jy = ((_shift(case.kern, 0.0, h) - _shift(case.kern, 0.0, -h)) / (2 * h)).numpy()
+    if delta:
+        Lf = L.reshape(-1, *L.shape[-2:])
+        splx = CubicSpline(LADDER, ((_shift(Lf, h, 0.0) - _shift(Lf, -h, 0.0)) / (2 * h)).reshape(L.shape).numpy(), axis=0)
+        sply = CubicSpline(LADDER, ((_shift(Lf, 0.0, h) - _shift(Lf, 0.0, -h)) / (2 * h)).reshape(L.shape).numpy(), axis=0)
+    out = {}
+    for m in spots:
+        J = np.stack([jx[m].ravel(), jy[m].ravel()], 1)
+        sl = np.linalg.lstsq(J, dL0[m].ravel(), rcond=None)[0]  # px per unit u (the truth's convention: LSQ on the derivatives)
+        data, sig = case.data(p, m)
+
+        def model(g):
+            imgs = []
+            for e in range(2):
+                t, w = case.t[e], case.w[e]
+                u = np.clip(g[0] * np.cos(case.om * t) + g[1] * np.sin(case.om * t), LADDER[0], LADDER[-1])
+                img = np.tensordot(w, spl(u)[:, m], 1)
+                if delta:
+                    dx = g[2] * np.cos(case.om * t) + g[3] * np.sin(case.om * t)
+                    dy = g[4] * np.cos(case.om * t) + g[5] * np.sin(case.om * t)
+                    img = img + np.tensordot(w * dx, splx(u)[:, m], 1) + np.tensordot(w * dy, sply(u)[:, m], 1)
+                imgs.append(img)
+            return np.stack(imgs)
+        sol = so.least_squares(lambda g: ((model(g) - data) / sig).ravel(), case.start_phasor(p, m, sl) + [0.0] * (4 * delta))
+        G = sol.x[1] + 1j * sol.x[0]  # u(t) = |G| sin(w t + arg G)
+        dxp = sol.x[3] + 1j * sol.x[2] if delta else 0.0
+        dyp = sol.x[5] + 1j * sol.x[4] if delta else 0.0
+        out[m] = (sl[0] * G + dxp, sl[1] * G + dyp, float(np.sum(sol.fun ** 2)))
+    return out
+
+
+def summary(name, Y, Yt, chi2, n_pixels, seconds):
+    """One line: noiseless reduced chi2 median, D error rms over max, the mean relative gain and phase errors of the large slopes."""
+    err = Y - Yt
+    big = np.abs(Yt) > 0.3 * np.abs(Yt).max(1, keepdims=True)
+    rr = err[big] / Yt[big]
+    print(f"  {name:13s} noiseless reduced chi2 median {np.median(chi2) / n_pixels:.4f}; D error rms/max "
+          f"{np.sqrt(np.mean(np.abs(err) ** 2)) / np.abs(Yt).max() * 100:.3f} %; large slopes: gain {np.mean(rr.real) * 100:+.3f} %, "
+          f"phase {np.mean(rr.imag):+.5f} rad, rms |relative error| {np.sqrt(np.mean(np.abs(rr) ** 2)) * 100:.3f} % ({seconds:.0f} s)", flush=True)
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--patterns", type=int, default=1)
+    ap.add_argument("--freq", type=float, default=342.0)
+    ap.add_argument("--same-dynamics", action="store_true", help="every actuator 900 Hz, damping 0.08, gain 1, delay 20 us")
+    ap.add_argument("--models", default="base,linear,ladder,ladder+delta")
+    ap.add_argument("--spots", default="0:80", help="a slice of the 80 spots (start:stop[:step])")
+    a = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    t0 = time.perf_counter()
+    case = Case(a.patterns, a.freq, a.same_dynamics)
+    spots = range(case.M)[slice(*[int(v) for v in a.spots.split(":")])]
+    cols = np.concatenate([np.asarray(spots), case.M + np.asarray(spots)])
+    print(f"HCIPy frames, noiseless: {len(case.pats)} Hadamard pattern(s), {case.f:g} Hz, 3 px, {len(spots)} spots, dynamics "
+          f"{'all the same' if a.same_dynamics else 'seed 23 (mode +-5 %, damping +-10 %, delay +-5 us, one dead, one weak)'} "
+          f"({time.perf_counter() - t0:.0f} s set-up)")
+    n_pix = 2 * case.pitch ** 2
+    for name in a.models.split(","):
+        t1 = time.perf_counter()
+        if name == "base":
+            Y, chi2 = case.Y0, case.fits.reduced_chi2[:, 0].numpy() * n_pix
+            summary(name, Y[:, cols], case.Yt[:, cols], chi2[:, list(spots)], n_pix, time.perf_counter() - t1)
+            continue
+        Y = np.full((len(case.pats), 2 * case.M), np.nan + 0j)
+        chi2 = []
+        for p in range(len(case.pats)):
+            res = fit_linear(case, p, spots) if name == "linear" else fit_ladder(case, p, spots, delta=name == "ladder+delta")
+            for m, (zx, zy, c2) in res.items():
+                Y[p, m], Y[p, case.M + m] = zx / case.amps[p], zy / case.amps[p]
+                chi2.append(c2)
+        summary(name, Y[:, cols], case.Yt[:, cols], np.asarray(chi2), n_pix, time.perf_counter() - t1)
+
+
+if __name__ == "__main__":
+    main()
