@@ -1,6 +1,8 @@
 import math
 import os
+import shutil
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -33,6 +35,72 @@ def small_quiet_run(tmp_path_factory):
     proc = run_cli("identify", "--out", str(out), "--quiet", *SMALL, "report.figures=false")
     assert proc.returncode == 0, proc.stderr
     return out, proc
+
+
+_BACKGROUND = pytest.StashKey()
+
+
+def pytest_collection_finish(session):
+    """The experiment batches of the collected modules (each module's ``EXPERIMENT_SCRIPTS``) start at
+    once in the background (tests/run_experiments.Background: one fresh process per batch, one after
+    another, one torch thread), and this process runs the other tests meanwhile on one torch thread too
+    (and its children, through OMP_NUM_THREADS): two processes of two OpenMP threads on 2 cores spin-wait
+    each other to a crawl. The threads are given back at the first module that starts after the batches
+    have finished (within a module, a fixture's run and a test's compared bit for bit share the count)."""
+    if session.config.option.collectonly:
+        return
+    batches = {}
+    for item in session.items:
+        module = getattr(item, "module", None)
+        if module is not None and hasattr(module, "EXPERIMENT_SCRIPTS"):
+            batches.setdefault(module.__name__, tuple(module.EXPERIMENT_SCRIPTS))
+    if not batches:
+        return
+    from run_experiments import Background
+
+    out = Path(tempfile.mkdtemp(prefix="torchblur-experiments-"))
+    state = {"threads": torch.get_num_threads(), "omp": os.environ.get("OMP_NUM_THREADS"), "out": out, "module": None}
+    torch.set_num_threads(1)
+    os.environ["OMP_NUM_THREADS"] = "1"
+    state["background"] = Background(out, batches)
+    session.config.stash[_BACKGROUND] = state
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_setup(item):
+    state = item.config.stash.get(_BACKGROUND, None)
+    if state is None or state["threads"] is None:
+        return
+    module = getattr(item, "module", None)
+    if module is not state["module"]:
+        state["module"] = module
+        if state["background"].done():
+            _restore_threads(state)
+
+
+def _restore_threads(state):
+    torch.set_num_threads(state["threads"])
+    if state["omp"] is None:
+        os.environ.pop("OMP_NUM_THREADS", None)
+    else:
+        os.environ["OMP_NUM_THREADS"] = state["omp"]
+    state["threads"] = None
+
+
+def pytest_sessionfinish(session):
+    state = session.config.stash.get(_BACKGROUND, None)
+    if state is not None:
+        state["background"].stop()
+        shutil.rmtree(state["out"], ignore_errors=True)
+
+
+@pytest.fixture(scope="session")
+def experiment_runs(pytestconfig):
+    """The experiment batches started in the background (``pytest_collection_finish``):
+    ``experiment_runs.get(module_name)`` waits for that module's batch -> its ``run_experiments.Runs``."""
+    state = pytestconfig.stash.get(_BACKGROUND, None)
+    assert state is not None, "no experiment batch was started (the module defines no EXPERIMENT_SCRIPTS?)"
+    return state["background"]
 
 
 def make_case(dtype=torch.float64, tilted=True, batch=()):

@@ -1,9 +1,14 @@
 """Run experiment scripts one after another in ONE fresh process, each as
 ``python experiments/NAME.py --quick --out OUT/NAME`` would run it (its own ``__main__``
 namespace and ``sys.argv``), so their imports (torch, matplotlib, torchblur: ~2 s each time)
-are paid once. Usage: ``python tests/run_experiments.py OUT NAME [NAME ...]``; prints one line per
+are paid once. Usage: ``python tests/run_experiments.py OUT THREADS NAME [NAME ...]`` (THREADS: torch's CPU
+threads, also given as ``threads=THREADS`` to the scripts whose config has that key); prints one line per
 script, ``run_experiments: {"name": NAME, "ok": bool, "error": traceback or null}`` (JSON after the
-prefix); exit status 0."""
+prefix); exit status 0.
+
+The suite runs its batches in the background (:class:`Background`, started by tests/conftest.py once
+the test modules that name them in ``EXPERIMENT_SCRIPTS`` are collected), one thread each, beside its
+other tests: their ~40 CPU-seconds then cost little wall time on 2 cores."""
 from __future__ import annotations
 
 import json
@@ -11,19 +16,25 @@ import os
 import runpy
 import subprocess
 import sys
+import threading
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
 
 EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
+CONFIGS = EXPERIMENTS.parent / "configs"
 PREFIX = "run_experiments: "
 
 
-def run_one(name: str, out: Path) -> dict:
-    """``experiments/<name>.py --quick --out <out>/<name>`` in this process -> ``{"name", "ok", "error"}``."""
+def run_one(name: str, out: Path, threads: int) -> dict:
+    """``experiments/<name>.py --quick --out <out>/<name> [threads=THREADS]`` in this process -> ``{"name", "ok", "error"}``."""
+    from omegaconf import OmegaConf
+
     script = EXPERIMENTS / f"{name}.py"
     argv = sys.argv
     sys.argv = [str(script), "--quick", "--out", str(out / name)]
+    if "threads" in OmegaConf.load(CONFIGS / f"{name}.yaml"):
+        sys.argv.append(f"threads={threads}")
     try:
         runpy.run_path(str(script), run_name="__main__")
         return {"name": name, "ok": True, "error": None}
@@ -36,10 +47,21 @@ def run_one(name: str, out: Path) -> dict:
         sys.argv = argv
 
 
-def run_scripts(out: Path, names, *, env: dict | None = None, timeout_s: float = 600) -> "Runs":
-    """The scripts ``names`` run by this file in one fresh process (cwd: the repository) into ``out``."""
-    proc = subprocess.run([sys.executable, __file__, str(out), *names], cwd=EXPERIMENTS.parent, capture_output=True,
-                          text=True, env=dict(os.environ, **(env or {})), timeout=timeout_s)
+def run_scripts(out: Path, names, *, threads: int = 1, env: dict | None = None, timeout_s: float = 600,
+                started=None) -> "Runs":
+    """The scripts ``names`` run by this file in one fresh process (cwd: the repository) into ``out``,
+    with ``threads`` torch threads; ``started(proc)`` is told the process once it runs."""
+    env = dict(os.environ, MPLBACKEND="Agg", OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads), **(env or {}))
+    with subprocess.Popen([sys.executable, __file__, str(out), str(threads), *names], cwd=EXPERIMENTS.parent,
+                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env) as popen:
+        if started is not None:
+            started(popen)
+        try:
+            stdout, stderr = popen.communicate(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            popen.kill()
+            raise
+    proc = subprocess.CompletedProcess(popen.args, popen.returncode, stdout, stderr)
     assert proc.returncode == 0, proc.stderr[-3000:]
     status = {}
     for line in proc.stdout.splitlines():
@@ -69,11 +91,60 @@ class Runs:
         return out, metrics
 
 
+class Background:
+    """Batches ``{key: names}`` run by :func:`run_scripts` one after another on a daemon thread
+    (``threads`` torch threads each), into folders of ``out``. ``get(key)`` waits for its batch and
+    returns its :class:`Runs` (or raises what running it raised); ``done()`` whether all have
+    finished; ``stop()`` kills the batch running now and skips the rest."""
+
+    def __init__(self, out: Path, batches: dict, *, threads: int = 1, timeout_s: float = 600):
+        self._batches, self._results = dict(batches), {}
+        self._events = {key: threading.Event() for key in self._batches}
+        self._proc, self._stopped = None, False
+        self._thread = threading.Thread(target=self._run, args=(Path(out), threads, timeout_s), daemon=True)
+        self._thread.start()
+
+    def _run(self, out: Path, threads: int, timeout_s: float) -> None:
+        for key, names in self._batches.items():
+            try:
+                if self._stopped:
+                    raise RuntimeError("stopped before it ran")
+                self._results[key] = run_scripts(out / key, names, threads=threads, timeout_s=timeout_s, started=self._started)
+            except BaseException as exc:  # noqa: BLE001 - re-raised by get() in the test that needs it
+                self._results[key] = exc
+            finally:
+                self._events[key].set()
+
+    def _started(self, proc) -> None:
+        self._proc = proc
+        if self._stopped:
+            proc.kill()
+
+    def get(self, key: str, timeout_s: float = 1200) -> Runs:
+        assert self._events[key].wait(timeout_s), f"the experiment batch {key} did not finish in {timeout_s} s"
+        result = self._results[key]
+        if isinstance(result, BaseException):
+            raise result
+        return result
+
+    def done(self) -> bool:
+        return not self._thread.is_alive()
+
+    def stop(self) -> None:
+        self._stopped = True
+        if self._proc is not None and self._proc.poll() is None:
+            self._proc.kill()
+        self._thread.join(30)
+
+
 def main(args: list[str]) -> None:
     sys.path.insert(0, str(EXPERIMENTS))  # the scripts import their `common` module, as run from there
-    out = Path(args[0])
-    for name in args[1:]:
-        print(PREFIX + json.dumps(run_one(name, out)), flush=True)
+    out, threads = Path(args[0]), int(args[1])
+    import torch
+
+    torch.set_num_threads(threads)
+    for name in args[2:]:
+        print(PREFIX + json.dumps(run_one(name, out, threads)), flush=True)
 
 
 if __name__ == "__main__":

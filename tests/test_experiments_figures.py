@@ -6,20 +6,19 @@ import math
 
 import pytest
 
-from run_experiments import run_scripts
-
 pytest.importorskip("matplotlib")
 pytest.importorskip("omegaconf")
 
-SCRIPTS = ("fig1_peanut", "fig2_cost_vs_phase", "fig4_saturation", "fig5_norms", "fig6_landscape", "fig7_dual_exposure",
-           "fig10_psf")
+# Started in the background by tests/conftest.py once this module is collected.
+EXPERIMENT_SCRIPTS = ("fig1_peanut", "fig2_cost_vs_phase", "fig4_saturation", "fig5_norms", "fig6_landscape",
+                      "fig7_dual_exposure", "fig10_psf")
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory):
+def runs(experiment_runs, request):
     """Every script of this module run with ``--quick``, one after another in one fresh process
-    (tests/run_experiments.py: the imports paid once, not once per script)."""
-    return run_scripts(tmp_path_factory.mktemp("experiments"), SCRIPTS, timeout_s=600)
+    (tests/run_experiments.py: the imports paid once, not once per script), in the background."""
+    return experiment_runs.get(request.module.__name__)
 
 
 def run_script(name: str, runs) -> dict:

@@ -1,17 +1,16 @@
 """The learned-model and frequency-response experiments run (--quick) and their claims hold (issue 7)."""
 import pytest
 
-from run_experiments import run_scripts
-
+# Started in the background by tests/conftest.py once this module is collected.
 # learned_deblur last: it sets torch.set_flush_denormal(True) for the process
-SCRIPTS = ("fig11_frequency_response", "beyond_precision", "learned_deblur")
+EXPERIMENT_SCRIPTS = ("fig11_frequency_response", "beyond_precision", "learned_deblur")
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory):
-    """The three scripts run with ``--quick``, one after another in one fresh process
-    (tests/run_experiments.py: the imports paid once, not once per script)."""
-    return run_scripts(tmp_path_factory.mktemp("learned"), SCRIPTS, env={"MPLBACKEND": "Agg", "OMP_NUM_THREADS": "2"})
+def runs(experiment_runs, request):
+    """The three scripts run with ``--quick`` (``threads=1``), one after another in one fresh process
+    (tests/run_experiments.py: the imports paid once, not once per script), in the background."""
+    return experiment_runs.get(request.module.__name__)
 
 
 def run_quick(name, runs):
