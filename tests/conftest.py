@@ -22,18 +22,27 @@ def gen():
 
 
 @pytest.fixture(scope="session")
-def small_quiet_run(tmp_path_factory):
+def small_quiet_run(background):
     """``torchblur identify --out OUT --quiet`` of the default simulated rig at 4 frequencies
-    (cli_run.SMALL), in a fresh process, once per session -> ``(OUT, finished process)``. Several
-    test files check this same run (its stdout, its verdict, refits of its recording); they only
-    read OUT and write elsewhere. ``report.figures=false``: none of them looks at a figure (the
-    figures of a CLI run are checked by test_identify, test_mimo, test_multisine_identify,
-    test_outside_recording and test_photon_transfer), and a re-fit of it draws none either."""
-    from cli_run import SMALL, run_cli
-
-    out = tmp_path_factory.mktemp("small_quiet") / "run"
-    proc = run_cli("identify", "--out", str(out), "--quiet", *SMALL, "report.figures=false")
+    (cli_run.SMALL), in a fresh process, once per session, started in the background as soon as a
+    collected test asks for it -> ``(OUT, finished process)``. Several test files check this same run
+    (its stdout, its verdict, refits of its recording); they only read OUT and write elsewhere.
+    ``report.figures=false``: none of them looks at a figure (the figures of a CLI run are checked by
+    test_identify, test_mimo, test_multisine_identify, test_outside_recording and test_photon_transfer),
+    and a re-fit of it draws none either."""
+    out, proc = background.get("small_quiet_run")
     assert proc.returncode == 0, proc.stderr
+    return out, proc
+
+
+def _small_quiet_run(out, started):
+    """The background job of :func:`small_quiet_run` -> ``(OUT, finished process)``."""
+    from background import run
+    from cli_run import ROOT, SMALL
+
+    out = out / "run"
+    proc = run([sys.executable, "-m", "torchblur.cli", "identify", "--out", str(out), "--quiet", *SMALL, "report.figures=false"],
+               started, env={"PYTHONPATH": str(ROOT)})
     return out, proc
 
 
@@ -41,28 +50,31 @@ _BACKGROUND = pytest.StashKey()
 
 
 def pytest_collection_finish(session):
-    """The experiment batches of the collected modules (each module's ``EXPERIMENT_SCRIPTS``) start at
-    once in the background (tests/run_experiments.Background: one fresh process per batch, one after
-    another, one torch thread), and this process runs the other tests meanwhile on one torch thread too
-    (and its children, through OMP_NUM_THREADS): two processes of two OpenMP threads on 2 cores spin-wait
-    each other to a crawl. The threads are given back at the first module that starts after the batches
-    have finished (within a module, a fixture's run and a test's compared bit for bit share the count)."""
+    """The background jobs of the collected modules (each module's ``BACKGROUND_JOB``, tests/background.py,
+    and the session's ``small_quiet_run``) start at once, one after another in the order the tests need
+    them, in fresh processes of one torch thread, and this process runs the other tests meanwhile on one
+    torch thread too (and its children, through OMP_NUM_THREADS): two
+    processes of two OpenMP threads on 2 cores spin-wait each other to a crawl. The threads are given
+    back at the first module that starts after the jobs have finished (within a module, a fixture's run
+    and a test's compared bit for bit share the count)."""
     if session.config.option.collectonly:
         return
-    batches = {}
+    jobs = {}
     for item in session.items:
         module = getattr(item, "module", None)
-        if module is not None and hasattr(module, "EXPERIMENT_SCRIPTS"):
-            batches.setdefault(module.__name__, tuple(module.EXPERIMENT_SCRIPTS))
-    if not batches:
+        if module is not None and hasattr(module, "BACKGROUND_JOB"):
+            jobs.setdefault(module.__name__, module.BACKGROUND_JOB)
+        if "small_quiet_run" in getattr(item, "fixturenames", ()):
+            jobs.setdefault("small_quiet_run", _small_quiet_run)
+    if not jobs:
         return
-    from run_experiments import Background
+    from background import Background
 
-    out = Path(tempfile.mkdtemp(prefix="torchblur-experiments-"))
+    out = Path(tempfile.mkdtemp(prefix="torchblur-background-"))
     state = {"threads": torch.get_num_threads(), "omp": os.environ.get("OMP_NUM_THREADS"), "out": out, "module": None}
     torch.set_num_threads(1)
     os.environ["OMP_NUM_THREADS"] = "1"
-    state["background"] = Background(out, batches)
+    state["background"] = Background(out, jobs)  # in the order the tests need them
     session.config.stash[_BACKGROUND] = state
 
 
@@ -95,11 +107,11 @@ def pytest_sessionfinish(session):
 
 
 @pytest.fixture(scope="session")
-def experiment_runs(pytestconfig):
-    """The experiment batches started in the background (``pytest_collection_finish``):
-    ``experiment_runs.get(module_name)`` waits for that module's batch -> its ``run_experiments.Runs``."""
+def background(pytestconfig):
+    """The jobs started in the background (``pytest_collection_finish``): ``background.get(module_name)``
+    waits for that module's ``BACKGROUND_JOB`` -> its result."""
     state = pytestconfig.stash.get(_BACKGROUND, None)
-    assert state is not None, "no experiment batch was started (the module defines no EXPERIMENT_SCRIPTS?)"
+    assert state is not None, "no background job was started (the module defines no BACKGROUND_JOB?)"
     return state["background"]
 
 

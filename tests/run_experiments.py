@@ -6,17 +6,14 @@ threads, also given as ``threads=THREADS`` to the scripts whose config has that 
 script, ``run_experiments: {"name": NAME, "ok": bool, "error": traceback or null}`` (JSON after the
 prefix); exit status 0.
 
-The suite runs its batches in the background (:class:`Background`, started by tests/conftest.py once
-the test modules that name them in ``EXPERIMENT_SCRIPTS`` are collected), one thread each, beside its
-other tests: their ~40 CPU-seconds then cost little wall time on 2 cores."""
+The suite runs its batches in the background (tests/background.py), one thread each, beside its other
+tests: their ~40 CPU-seconds then cost little wall time on 2 cores."""
 from __future__ import annotations
 
 import json
-import os
 import runpy
 import subprocess
 import sys
-import threading
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,21 +44,14 @@ def run_one(name: str, out: Path, threads: int) -> dict:
         sys.argv = argv
 
 
-def run_scripts(out: Path, names, *, threads: int = 1, env: dict | None = None, timeout_s: float = 600,
-                started=None) -> "Runs":
+def run_scripts(out: Path, names, *, threads: int = 1, timeout_s: float = 600, started=None) -> "Runs":
     """The scripts ``names`` run by this file in one fresh process (cwd: the repository) into ``out``,
-    with ``threads`` torch threads; ``started(proc)`` is told the process once it runs."""
-    env = dict(os.environ, MPLBACKEND="Agg", OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads), **(env or {}))
-    with subprocess.Popen([sys.executable, __file__, str(out), str(threads), *names], cwd=EXPERIMENTS.parent,
-                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env) as popen:
-        if started is not None:
-            started(popen)
-        try:
-            stdout, stderr = popen.communicate(timeout=timeout_s)
-        except subprocess.TimeoutExpired:
-            popen.kill()
-            raise
-    proc = subprocess.CompletedProcess(popen.args, popen.returncode, stdout, stderr)
+    with ``threads`` torch threads; ``started(popen)`` is told the process once it runs (tests/background.py)."""
+    from background import run
+
+    proc = run([sys.executable, __file__, str(out), str(threads), *names], started or (lambda popen: None),
+               env={"MPLBACKEND": "Agg", "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)},
+               cwd=EXPERIMENTS.parent, timeout_s=timeout_s)
     assert proc.returncode == 0, proc.stderr[-3000:]
     status = {}
     for line in proc.stdout.splitlines():
@@ -89,52 +79,6 @@ class Runs:
         metrics = json.loads((out / "metrics.json").read_text())
         assert metrics["quick"] is True
         return out, metrics
-
-
-class Background:
-    """Batches ``{key: names}`` run by :func:`run_scripts` one after another on a daemon thread
-    (``threads`` torch threads each), into folders of ``out``. ``get(key)`` waits for its batch and
-    returns its :class:`Runs` (or raises what running it raised); ``done()`` whether all have
-    finished; ``stop()`` kills the batch running now and skips the rest."""
-
-    def __init__(self, out: Path, batches: dict, *, threads: int = 1, timeout_s: float = 600):
-        self._batches, self._results = dict(batches), {}
-        self._events = {key: threading.Event() for key in self._batches}
-        self._proc, self._stopped = None, False
-        self._thread = threading.Thread(target=self._run, args=(Path(out), threads, timeout_s), daemon=True)
-        self._thread.start()
-
-    def _run(self, out: Path, threads: int, timeout_s: float) -> None:
-        for key, names in self._batches.items():
-            try:
-                if self._stopped:
-                    raise RuntimeError("stopped before it ran")
-                self._results[key] = run_scripts(out / key, names, threads=threads, timeout_s=timeout_s, started=self._started)
-            except BaseException as exc:  # noqa: BLE001 - re-raised by get() in the test that needs it
-                self._results[key] = exc
-            finally:
-                self._events[key].set()
-
-    def _started(self, proc) -> None:
-        self._proc = proc
-        if self._stopped:
-            proc.kill()
-
-    def get(self, key: str, timeout_s: float = 1200) -> Runs:
-        assert self._events[key].wait(timeout_s), f"the experiment batch {key} did not finish in {timeout_s} s"
-        result = self._results[key]
-        if isinstance(result, BaseException):
-            raise result
-        return result
-
-    def done(self) -> bool:
-        return not self._thread.is_alive()
-
-    def stop(self) -> None:
-        self._stopped = True
-        if self._proc is not None and self._proc.poll() is None:
-            self._proc.kill()
-        self._thread.join(30)
 
 
 def main(args: list[str]) -> None:

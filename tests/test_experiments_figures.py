@@ -6,19 +6,25 @@ import math
 
 import pytest
 
+from run_experiments import run_scripts
+
 pytest.importorskip("matplotlib")
 pytest.importorskip("omegaconf")
 
-# Started in the background by tests/conftest.py once this module is collected.
-EXPERIMENT_SCRIPTS = ("fig1_peanut", "fig2_cost_vs_phase", "fig4_saturation", "fig5_norms", "fig6_landscape",
-                      "fig7_dual_exposure", "fig10_psf")
+SCRIPTS = ("fig1_peanut", "fig2_cost_vs_phase", "fig4_saturation", "fig5_norms", "fig6_landscape", "fig7_dual_exposure",
+           "fig10_psf")
+
+
+def BACKGROUND_JOB(out, started):
+    """The scripts run with ``--quick`` in the background (tests/background.py) -> their ``Runs``."""
+    return run_scripts(out, SCRIPTS, threads=1, started=started)
 
 
 @pytest.fixture(scope="module")
-def runs(experiment_runs, request):
+def runs(background, request):
     """Every script of this module run with ``--quick``, one after another in one fresh process
     (tests/run_experiments.py: the imports paid once, not once per script), in the background."""
-    return experiment_runs.get(request.module.__name__)
+    return background.get(request.module.__name__)
 
 
 def run_script(name: str, runs) -> dict:

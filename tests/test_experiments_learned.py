@@ -1,16 +1,22 @@
 """The learned-model and frequency-response experiments run (--quick) and their claims hold (issue 7)."""
 import pytest
 
-# Started in the background by tests/conftest.py once this module is collected.
+from run_experiments import run_scripts
+
 # learned_deblur last: it sets torch.set_flush_denormal(True) for the process
-EXPERIMENT_SCRIPTS = ("fig11_frequency_response", "beyond_precision", "learned_deblur")
+SCRIPTS = ("fig11_frequency_response", "beyond_precision", "learned_deblur")
+
+
+def BACKGROUND_JOB(out, started):
+    """The scripts run with ``--quick`` in the background (tests/background.py) -> their ``Runs``."""
+    return run_scripts(out, SCRIPTS, threads=1, started=started)
 
 
 @pytest.fixture(scope="module")
-def runs(experiment_runs, request):
+def runs(background, request):
     """The three scripts run with ``--quick`` (``threads=1``), one after another in one fresh process
     (tests/run_experiments.py: the imports paid once, not once per script), in the background."""
-    return experiment_runs.get(request.module.__name__)
+    return background.get(request.module.__name__)
 
 
 def run_quick(name, runs):
