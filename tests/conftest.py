@@ -53,19 +53,19 @@ def pytest_collection_finish(session):
     """The background jobs of the collected modules (each module's ``BACKGROUND_JOB``, tests/background.py,
     and the session's ``small_quiet_run``) start at once, one after another in the order the tests need
     them, in fresh processes of one torch thread, and this process runs the other tests meanwhile on one
-    torch thread too (and its children, through OMP_NUM_THREADS): two
-    processes of two OpenMP threads on 2 cores spin-wait each other to a crawl. The threads are given
-    back at the first module that starts after the jobs have finished (within a module, a fixture's run
-    and a test's compared bit for bit share the count)."""
+    torch thread too (and its children, through OMP_NUM_THREADS): two processes of two OpenMP threads on
+    2 cores spin-wait each other to a crawl. The threads are given back at the first module that starts
+    after the jobs have finished (within a module, a fixture's run and a test's compared bit for bit
+    share the count)."""
     if session.config.option.collectonly:
         return
     jobs = {}
     for item in session.items:
-        module = getattr(item, "module", None)
-        if module is not None and hasattr(module, "BACKGROUND_JOB"):
-            jobs.setdefault(module.__name__, module.BACKGROUND_JOB)
-        if "small_quiet_run" in getattr(item, "fixturenames", ()):
+        module, names = getattr(item, "module", None), getattr(item, "fixturenames", ())
+        if "small_quiet_run" in names:
             jobs.setdefault("small_quiet_run", _small_quiet_run)
+        if "background" in names and hasattr(module, "BACKGROUND_JOB"):  # a test that needs its module's job
+            jobs.setdefault(module.__name__, module.BACKGROUND_JOB)
     if not jobs:
         return
     from background import Background
