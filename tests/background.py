@@ -6,7 +6,8 @@ another (in the order the tests need them) on one daemon thread, each in its own
 child process (the second core: a thread of the suite's process would share its GIL) and calls
 ``started(popen)`` once that runs, so that an interrupted session can kill it. The module's fixture then
 takes the result with ``background.get(request.module.__name__)`` (tests/conftest.py: the ``background``
-fixture), which waits for it. Measured on the shared 2-core machine: the experiment batches' ~40 CPU-seconds
+fixture), which waits for it. ``TORCHBLUR_TEST_BACKGROUND=0`` runs each job only there, in the foreground,
+as the suite did before (to compare the two on one machine). Measured on the shared 2-core machine: the experiment batches' ~40 CPU-seconds
 and the multisine local-minimum fit's ~15 ran beside the rest instead of before it."""
 from __future__ import annotations
 
@@ -25,24 +26,28 @@ class Background:
     raised); ``done()`` whether all have finished; ``stop()`` kills the child running now and skips
     the rest."""
 
-    def __init__(self, out: Path, jobs: dict):
-        self._jobs, self._results = dict(jobs), {}
+    def __init__(self, out: Path, jobs: dict, *, inline: bool = False):
+        self._jobs, self._results, self._out, self._inline = dict(jobs), {}, Path(out), inline
         self._events = {key: threading.Event() for key in self._jobs}
         self._proc, self._stopped = None, False
-        self._thread = threading.Thread(target=self._run, args=(Path(out),), daemon=True)
-        self._thread.start()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        if not inline:
+            self._thread.start()
 
-    def _run(self, out: Path) -> None:
-        for key, job in self._jobs.items():
-            try:
-                if self._stopped:
-                    raise RuntimeError("stopped before it ran")
-                (out / key).mkdir(parents=True)
-                self._results[key] = job(out / key, self._started)
-            except BaseException as exc:  # noqa: BLE001 - re-raised by get() in the test that needs it
-                self._results[key] = exc
-            finally:
-                self._events[key].set()
+    def _run(self) -> None:
+        for key in self._jobs:
+            self._run_one(key)
+
+    def _run_one(self, key: str) -> None:
+        try:
+            if self._stopped:
+                raise RuntimeError("stopped before it ran")
+            (self._out / key).mkdir(parents=True)
+            self._results[key] = self._jobs[key](self._out / key, self._started)
+        except BaseException as exc:  # noqa: BLE001 - re-raised by get() in the test that needs it
+            self._results[key] = exc
+        finally:
+            self._events[key].set()
 
     def _started(self, proc) -> None:
         self._proc = proc
@@ -50,6 +55,8 @@ class Background:
             proc.kill()
 
     def get(self, key: str, timeout_s: float = 1200):
+        if self._inline and not self._events[key].is_set():
+            self._run_one(key)  # the job, where the test needs it (TORCHBLUR_TEST_BACKGROUND=0)
         assert self._events[key].wait(timeout_s), f"the background job {key} did not finish in {timeout_s} s"
         result = self._results[key]
         if isinstance(result, BaseException):
@@ -63,7 +70,8 @@ class Background:
         self._stopped = True
         if self._proc is not None and self._proc.poll() is None:
             self._proc.kill()
-        self._thread.join(30)
+        if self._thread.is_alive():
+            self._thread.join(30)
 
 
 def run(argv: list[str], started, *, env: dict | None = None, cwd=None, timeout_s: float = 600) -> subprocess.CompletedProcess:

@@ -71,10 +71,13 @@ def pytest_collection_finish(session):
     from background import Background
 
     out = Path(tempfile.mkdtemp(prefix="torchblur-background-"))
-    state = {"threads": torch.get_num_threads(), "omp": os.environ.get("OMP_NUM_THREADS"), "out": out, "module": None}
-    torch.set_num_threads(1)
-    os.environ["OMP_NUM_THREADS"] = "1"
-    state["background"] = Background(out, jobs)  # in the order the tests need them
+    inline = os.environ.get("TORCHBLUR_TEST_BACKGROUND") == "0"  # each job in the foreground, where a test needs it
+    state = {"threads": None if inline else torch.get_num_threads(), "omp": os.environ.get("OMP_NUM_THREADS"), "out": out,
+             "module": None}
+    if not inline:
+        torch.set_num_threads(1)
+        os.environ["OMP_NUM_THREADS"] = "1"
+    state["background"] = Background(out, jobs, inline=inline)  # in the order the tests need them
     session.config.stash[_BACKGROUND] = state
 
 
