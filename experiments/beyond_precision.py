@@ -101,7 +101,7 @@ def finite_or_none(x):
 def main():
     started = time.time()
     args, cfg, out = parse(__doc__.splitlines()[0], "beyond_precision.yaml")
-    torch.set_num_threads(2)
+    torch.set_num_threads(int(cfg.threads))
     s = Setup(cfg)
     phi0 = float(cfg.true_phase_rad)
     g = cfg.grid

@@ -195,7 +195,7 @@ def bode_panel(ax_m, ax_p, d, title):
 def main():
     started = time.time()
     args, cfg, out = parse(__doc__.splitlines()[0], "fig11_frequency_response.yaml")
-    torch.set_num_threads(2)
+    torch.set_num_threads(int(cfg.threads))
     metrics = {}
     spacings = [str(cfg.paper.spacing)] + ([str(cfg.paper.compare_spacing)] if cfg.paper.compare_spacing else [])
     paper = {}

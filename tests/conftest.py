@@ -1,6 +1,8 @@
 import math
 import os
+import shutil
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -20,19 +22,100 @@ def gen():
 
 
 @pytest.fixture(scope="session")
-def small_quiet_run(tmp_path_factory):
+def small_quiet_run(background):
     """``torchblur identify --out OUT --quiet`` of the default simulated rig at 4 frequencies
-    (cli_run.SMALL), in a fresh process, once per session -> ``(OUT, finished process)``. Several
-    test files check this same run (its stdout, its verdict, refits of its recording); they only
-    read OUT and write elsewhere. ``report.figures=false``: none of them looks at a figure (the
-    figures of a CLI run are checked by test_identify, test_mimo, test_multisine_identify,
-    test_outside_recording and test_photon_transfer), and a re-fit of it draws none either."""
-    from cli_run import SMALL, run_cli
-
-    out = tmp_path_factory.mktemp("small_quiet") / "run"
-    proc = run_cli("identify", "--out", str(out), "--quiet", *SMALL, "report.figures=false")
+    (cli_run.SMALL), in a fresh process, once per session, started in the background as soon as a
+    collected test asks for it -> ``(OUT, finished process)``. Several test files check this same run
+    (its stdout, its verdict, refits of its recording); they only read OUT and write elsewhere.
+    ``report.figures=false``: none of them looks at a figure (the figures of a CLI run are checked by
+    test_identify, test_mimo, test_multisine_identify, test_outside_recording and test_photon_transfer),
+    and a re-fit of it draws none either."""
+    out, proc = background.get("small_quiet_run")
     assert proc.returncode == 0, proc.stderr
     return out, proc
+
+
+def _small_quiet_run(out, started):
+    """The background job of :func:`small_quiet_run` -> ``(OUT, finished process)``."""
+    from background import run
+    from cli_run import ROOT, SMALL
+
+    out = out / "run"
+    proc = run([sys.executable, "-m", "torchblur.cli", "identify", "--out", str(out), "--quiet", *SMALL, "report.figures=false"],
+               started, env={"PYTHONPATH": str(ROOT)})
+    return out, proc
+
+
+_BACKGROUND = pytest.StashKey()
+
+
+def pytest_collection_finish(session):
+    """The background jobs of the collected modules (each module's ``BACKGROUND_JOB``, tests/background.py,
+    and the session's ``small_quiet_run``) start at once, one after another in the order the tests need
+    them, in fresh processes of one torch thread, and this process runs the other tests meanwhile on one
+    torch thread too (and its children, through OMP_NUM_THREADS): two processes of two OpenMP threads on
+    2 cores spin-wait each other to a crawl. The threads are given back at the first module that starts
+    after the jobs have finished (within a module, a fixture's run and a test's compared bit for bit
+    share the count)."""
+    if session.config.option.collectonly:
+        return
+    jobs = {}
+    for item in session.items:
+        module, names = getattr(item, "module", None), getattr(item, "fixturenames", ())
+        if "small_quiet_run" in names:
+            jobs.setdefault("small_quiet_run", _small_quiet_run)
+        if "background" in names and hasattr(module, "BACKGROUND_JOB"):  # a test that needs its module's job
+            jobs.setdefault(module.__name__, module.BACKGROUND_JOB)
+    if not jobs:
+        return
+    from background import Background
+
+    out = Path(tempfile.mkdtemp(prefix="torchblur-background-"))
+    inline = os.environ.get("TORCHBLUR_TEST_BACKGROUND") == "0"  # each job in the foreground, where a test needs it
+    state = {"threads": None if inline else torch.get_num_threads(), "omp": os.environ.get("OMP_NUM_THREADS"), "out": out,
+             "module": None}
+    if not inline:
+        torch.set_num_threads(1)
+        os.environ["OMP_NUM_THREADS"] = "1"
+    state["background"] = Background(out, jobs, inline=inline)  # in the order the tests need them
+    session.config.stash[_BACKGROUND] = state
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_setup(item):
+    state = item.config.stash.get(_BACKGROUND, None)
+    if state is None or state["threads"] is None:
+        return
+    module = getattr(item, "module", None)
+    if module is not state["module"]:
+        state["module"] = module
+        if state["background"].done():
+            _restore_threads(state)
+
+
+def _restore_threads(state):
+    torch.set_num_threads(state["threads"])
+    if state["omp"] is None:
+        os.environ.pop("OMP_NUM_THREADS", None)
+    else:
+        os.environ["OMP_NUM_THREADS"] = state["omp"]
+    state["threads"] = None
+
+
+def pytest_sessionfinish(session):
+    state = session.config.stash.get(_BACKGROUND, None)
+    if state is not None:
+        state["background"].stop()
+        shutil.rmtree(state["out"], ignore_errors=True)
+
+
+@pytest.fixture(scope="session")
+def background(pytestconfig):
+    """The jobs started in the background (``pytest_collection_finish``): ``background.get(module_name)``
+    waits for that module's ``BACKGROUND_JOB`` -> its result."""
+    state = pytestconfig.stash.get(_BACKGROUND, None)
+    assert state is not None, "no background job was started (the module defines no BACKGROUND_JOB?)"
+    return state["background"]
 
 
 def make_case(dtype=torch.float64, tilted=True, batch=()):

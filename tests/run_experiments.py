@@ -1,13 +1,16 @@
 """Run experiment scripts one after another in ONE fresh process, each as
 ``python experiments/NAME.py --quick --out OUT/NAME`` would run it (its own ``__main__``
 namespace and ``sys.argv``), so their imports (torch, matplotlib, torchblur: ~2 s each time)
-are paid once. Usage: ``python tests/run_experiments.py OUT NAME [NAME ...]``; prints one line per
+are paid once. Usage: ``python tests/run_experiments.py OUT THREADS NAME [NAME ...]`` (THREADS: torch's CPU
+threads, also given as ``threads=THREADS`` to the scripts whose config has that key); prints one line per
 script, ``run_experiments: {"name": NAME, "ok": bool, "error": traceback or null}`` (JSON after the
-prefix); exit status 0."""
+prefix); exit status 0.
+
+The suite runs its batches in the background (tests/background.py), one thread each, beside its other
+tests: their ~40 CPU-seconds then cost little wall time on 2 cores."""
 from __future__ import annotations
 
 import json
-import os
 import runpy
 import subprocess
 import sys
@@ -16,14 +19,19 @@ from dataclasses import dataclass
 from pathlib import Path
 
 EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
+CONFIGS = EXPERIMENTS.parent / "configs"
 PREFIX = "run_experiments: "
 
 
-def run_one(name: str, out: Path) -> dict:
-    """``experiments/<name>.py --quick --out <out>/<name>`` in this process -> ``{"name", "ok", "error"}``."""
+def run_one(name: str, out: Path, threads: int) -> dict:
+    """``experiments/<name>.py --quick --out <out>/<name> [threads=THREADS]`` in this process -> ``{"name", "ok", "error"}``."""
+    from omegaconf import OmegaConf
+
     script = EXPERIMENTS / f"{name}.py"
     argv = sys.argv
     sys.argv = [str(script), "--quick", "--out", str(out / name)]
+    if "threads" in OmegaConf.load(CONFIGS / f"{name}.yaml"):
+        sys.argv.append(f"threads={threads}")
     try:
         runpy.run_path(str(script), run_name="__main__")
         return {"name": name, "ok": True, "error": None}
@@ -36,10 +44,14 @@ def run_one(name: str, out: Path) -> dict:
         sys.argv = argv
 
 
-def run_scripts(out: Path, names, *, env: dict | None = None, timeout_s: float = 600) -> "Runs":
-    """The scripts ``names`` run by this file in one fresh process (cwd: the repository) into ``out``."""
-    proc = subprocess.run([sys.executable, __file__, str(out), *names], cwd=EXPERIMENTS.parent, capture_output=True,
-                          text=True, env=dict(os.environ, **(env or {})), timeout=timeout_s)
+def run_scripts(out: Path, names, *, threads: int = 1, timeout_s: float = 600, started=None) -> "Runs":
+    """The scripts ``names`` run by this file in one fresh process (cwd: the repository) into ``out``,
+    with ``threads`` torch threads; ``started(popen)`` is told the process once it runs (tests/background.py)."""
+    from background import run
+
+    proc = run([sys.executable, __file__, str(out), str(threads), *names], started or (lambda popen: None),
+               env={"MPLBACKEND": "Agg", "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)},
+               cwd=EXPERIMENTS.parent, timeout_s=timeout_s)
     assert proc.returncode == 0, proc.stderr[-3000:]
     status = {}
     for line in proc.stdout.splitlines():
@@ -71,9 +83,12 @@ class Runs:
 
 def main(args: list[str]) -> None:
     sys.path.insert(0, str(EXPERIMENTS))  # the scripts import their `common` module, as run from there
-    out = Path(args[0])
-    for name in args[1:]:
-        print(PREFIX + json.dumps(run_one(name, out)), flush=True)
+    out, threads = Path(args[0]), int(args[1])
+    import torch
+
+    torch.set_num_threads(threads)
+    for name in args[2:]:
+        print(PREFIX + json.dumps(run_one(name, out, threads)), flush=True)
 
 
 if __name__ == "__main__":

@@ -60,13 +60,19 @@ def test_old_identify_modules_keep_their_names(module):
     assert all(hasattr(mod, n) for n in mod.__all__)
 
 
-def test_the_emulator_and_the_settings_do_not_load_the_pipeline():
-    import subprocess
+def BACKGROUND_JOB(out, started):
+    """The fresh process of the test below, run in the background by tests/background.py -> the finished process."""
     import sys
+
+    from background import run
 
     code = ("import sys, torchblur.hardware.emulator, torchblur.config; "
             "print(sorted(m for m in sys.modules if m.startswith('torchblur.identify')))")
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    return run([sys.executable, "-c", code], started, timeout_s=300)
+
+
+def test_the_emulator_and_the_settings_do_not_load_the_pipeline(background, request):
+    done = background.get(request.module.__name__)  # import torchblur.hardware.emulator and torchblur.config in a fresh process
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "[]"
 

@@ -14,7 +14,6 @@ Two tables:
   ``status`` / ``flags`` and the other items of the batch come out as if fitted alone.
 """
 import math
-import subprocess
 import sys
 import traceback
 from pathlib import Path
@@ -179,9 +178,17 @@ def test_the_contract_is_large_and_its_cases_distinct():
     assert len(beyond_fitter) >= 30
 
 
-def test_cli_bad_key_is_one_line_exit_2(tmp_path):
-    out = subprocess.run([sys.executable, "-m", "torchblur.cli", "identify", "--out", str(tmp_path / "o"), "fit.fit_background=perhaps"],
-                         capture_output=True, text=True, cwd=ROOT)
+def BACKGROUND_JOB(tmp_path, started):
+    """``torchblur identify --out TMP/o fit.fit_background=perhaps`` in a fresh process, run in the background by
+    tests/background.py -> the finished process."""
+    from background import run
+
+    return run([sys.executable, "-m", "torchblur.cli", "identify", "--out", str(tmp_path / "o"), "fit.fit_background=perhaps"],
+               started, cwd=ROOT)
+
+
+def test_cli_bad_key_is_one_line_exit_2(background, request):
+    out = background.get(request.module.__name__)
     assert out.returncode == 2
     lines = [ln for ln in out.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and "fit.fit_background" in lines[0] and "Traceback" not in out.stderr

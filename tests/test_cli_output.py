@@ -4,7 +4,6 @@ line, alone on stdout), frf.mat, units in the response's meta, residuals.png's e
 import json
 import logging
 import os
-import subprocess
 import sys
 
 import numpy as np
@@ -15,21 +14,44 @@ from torchblur.identify.record import collect_log
 from torchblur.identify.pipeline import calibration_stages
 from torchblur.config import load_config
 from torchblur.sysid.frequency_response import FrequencyResponse
-from cli_run import ROOT, SMALL, run_cli as _cli
+from cli_run import ROOT, SMALL
+
+
+# a smaller run than SMALL (2 points, a 32 x 32 frame): what is checked is how the messages reach stderr
+FROM_PYTHON = ["sweep.freq_hz=[20,200]", "camera.height=32", "camera.width=32"]
+
+
+def BACKGROUND_JOB(out, started):
+    """This module's fresh processes (``torchblur identify --json``, ``torchblur --version``, identify from
+    Python), run in the background by tests/background.py -> ``{name: result}``."""
+    from background import run
+
+    cli, env = [sys.executable, "-m", "torchblur.cli"], {"PYTHONPATH": str(ROOT)}
+    run_out = out / "run"  # no test here looks at figures
+    code = ("from torchblur.config import load_config; from torchblur.identify.pipeline import identify; "
+            f"identify(load_config(None, {FROM_PYTHON!r}), progress=True)")
+    return {"json_run": (run_out, run([*cli, "identify", "--out", str(run_out), "--json", *SMALL, "report.figures=false"], started, env=env)),
+            "version": run([*cli, "--version"], started, env=env),
+            "from_python": run([sys.executable, "-c", code], started, env=env)}
 
 
 @pytest.fixture(scope="module")
-def json_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("cli") / "run"
-    proc = _cli("identify", "--out", str(out), "--json", *SMALL, "report.figures=false")  # no test here looks at figures
+def fresh(background, request):
+    """This module's fresh processes (:func:`BACKGROUND_JOB`) -> ``{name: result}``."""
+    return background.get(request.module.__name__)
+
+
+@pytest.fixture(scope="module")
+def json_run(fresh):
+    out, proc = fresh["json_run"]
     assert proc.returncode == 0, proc.stderr
     return out, proc
 
 
-def test_version():
+def test_version(fresh):
     import torchblur
 
-    proc = _cli("--version")
+    proc = fresh["version"]
     assert proc.returncode == 0 and proc.stdout == f"torchblur {torchblur.__version__}\n"
 
 
@@ -192,13 +214,8 @@ def test_rig_frames_pylon_url_is_accepted_and_a_bad_one_is_one_clear_error(tmp_p
     assert rc == 2 and "rig.frames" in err and "gain" in err and len(err.strip().splitlines()) == 1, err
 
 
-def test_identify_from_python_shows_its_messages_where_logging_is_not_configured():
-    # a smaller run than SMALL (2 points, a 32 x 32 frame): what is checked is how the messages reach stderr
-    small = ["sweep.freq_hz=[20,200]", "camera.height=32", "camera.width=32"]
-    code = ("from torchblur.config import load_config; from torchblur.identify.pipeline import identify; "
-            f"identify(load_config(None, {small!r}), progress=True)")
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)},
-                          timeout=600)
+def test_identify_from_python_shows_its_messages_where_logging_is_not_configured(fresh):
+    proc = fresh["from_python"]  # identify(load_config(None, FROM_PYTHON), progress=True) in a fresh process
     assert proc.returncode == 0, proc.stderr
     assert proc.stderr.count("dark: level") == 1 and proc.stderr.count("points converged") == 1
     assert proc.stdout == "" and "\r" not in proc.stderr

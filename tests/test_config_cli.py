@@ -1,5 +1,4 @@
 """identify's configuration and command line: defaults, overrides, errors that name the key."""
-import subprocess
 import sys
 from pathlib import Path
 
@@ -52,17 +51,25 @@ def test_bad_config_names_the_key(overrides, key):
     assert str(info.value).startswith(key)
 
 
-def test_cli_bad_config_is_one_clear_line_without_traceback(tmp_path):
-    out = subprocess.run([sys.executable, "-m", "torchblur.cli", "identify", "--out", str(tmp_path / "o"), "sweep.f_min_hz=-3"],
-                         capture_output=True, text=True)
+def BACKGROUND_JOB(tmp_path, started):
+    """The two command lines below, each in a fresh process, run in the background by tests/background.py
+    -> ``{name: (tmp_path, finished process)}``."""
+    from background import run
+
+    cli = [sys.executable, "-m", "torchblur.cli", "identify"]
+    return {"bad": (tmp_path, run([*cli, "--out", str(tmp_path / "o"), "sweep.f_min_hz=-3"], started)),
+            "missing": (tmp_path, run([*cli, "--config", str(tmp_path / "nope.yaml"), "--out", str(tmp_path)], started))}
+
+
+def test_cli_bad_config_is_one_clear_line_without_traceback(background, request):
+    tmp_path, out = background.get(request.module.__name__)["bad"]  # identify --out TMP/o sweep.f_min_hz=-3
     assert out.returncode == 2
     assert "sweep.f_min_hz" in out.stderr and "Traceback" not in out.stderr
     assert not (tmp_path / "o").exists()  # nothing started
 
 
-def test_cli_missing_config_file(tmp_path):
-    out = subprocess.run([sys.executable, "-m", "torchblur.cli", "identify", "--config", str(tmp_path / "nope.yaml"), "--out", str(tmp_path)],
-                         capture_output=True, text=True)
+def test_cli_missing_config_file(background, request):
+    tmp_path, out = background.get(request.module.__name__)["missing"]  # identify --config TMP/nope.yaml --out TMP
     assert out.returncode == 2 and "--config" in out.stderr and "Traceback" not in out.stderr
 
 

@@ -58,18 +58,28 @@ class DMEmulator:
         self.proc.wait(10)
 
 
-@pytest.fixture(scope="module")
-def config_path(tmp_path_factory):
-    p = tmp_path_factory.mktemp("dm_serial") / "small_dm.yaml"
+def BACKGROUND_JOB(out, started):
+    """SMALL_YAML written, and two DM emulators started on it at once: "frames" (whose random stream only
+    the frame-by-frame test draws from) and "run" (the identification's); in the background as soon as the
+    module is collected (tests/background.py), their start lines read -> ``(config path, {name: DMEmulator})``
+    (they exit with this process if the module's tests never stop them)."""
+    p = out / "small_dm.yaml"
     p.write_text(SMALL_YAML)
-    return p
+    emus = {"frames": DMEmulator(p), "run": DMEmulator(p)}
+    for e in emus.values():
+        e.info  # noqa: B018 - waits for its start line
+    return p, emus
 
 
 @pytest.fixture(scope="module")
-def emulators(config_path):
-    """Two DM emulators started at once: "frames" (whose random stream only the frame-by-frame
-    test draws from) and "run" (the identification's)."""
-    emus = {"frames": DMEmulator(config_path), "run": DMEmulator(config_path)}
+def config_path(background, request):
+    return background.get(request.module.__name__)[0]
+
+
+@pytest.fixture(scope="module")
+def emulators(background, request):
+    """The two DM emulators of :func:`BACKGROUND_JOB`."""
+    emus = background.get(request.module.__name__)[1]
     yield emus
     for e in emus.values():
         e.stop()

@@ -15,11 +15,16 @@ SCRIPTS = ("fig1_peanut", "fig2_cost_vs_phase", "fig4_saturation", "fig5_norms",
            "fig10_psf")
 
 
+def BACKGROUND_JOB(out, started):
+    """The scripts run with ``--quick`` in the background (tests/background.py) -> their ``Runs``."""
+    return run_scripts(out, SCRIPTS, threads=1, started=started)
+
+
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory):
+def runs(background, request):
     """Every script of this module run with ``--quick``, one after another in one fresh process
-    (tests/run_experiments.py: the imports paid once, not once per script)."""
-    return run_scripts(tmp_path_factory.mktemp("experiments"), SCRIPTS, timeout_s=600)
+    (tests/run_experiments.py: the imports paid once, not once per script), in the background."""
+    return background.get(request.module.__name__)
 
 
 def run_script(name: str, runs) -> dict:

@@ -7,11 +7,16 @@ from run_experiments import run_scripts
 SCRIPTS = ("fig11_frequency_response", "beyond_precision", "learned_deblur")
 
 
+def BACKGROUND_JOB(out, started):
+    """The scripts run with ``--quick`` in the background (tests/background.py) -> their ``Runs``."""
+    return run_scripts(out, SCRIPTS, threads=1, started=started)
+
+
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory):
-    """The three scripts run with ``--quick``, one after another in one fresh process
-    (tests/run_experiments.py: the imports paid once, not once per script)."""
-    return run_scripts(tmp_path_factory.mktemp("learned"), SCRIPTS, env={"MPLBACKEND": "Agg", "OMP_NUM_THREADS": "2"})
+def runs(background, request):
+    """The three scripts run with ``--quick`` (``threads=1``), one after another in one fresh process
+    (tests/run_experiments.py: the imports paid once, not once per script), in the background."""
+    return background.get(request.module.__name__)
 
 
 def run_quick(name, runs):

@@ -92,10 +92,20 @@ FLEET = {
 }
 
 
-@pytest.fixture(scope="module")
-def fleet():
-    """Every emulator of this module, started at once (their start-up overlaps)."""
+def BACKGROUND_JOB(out, started):
+    """Every emulator of this module started at once (their start-up overlaps), in the background as soon as
+    the module is collected (tests/background.py), their start lines read -> ``{name: Emu}``. They exit with
+    this process (``exit_with_parent``) if the module's tests never run."""
     emus = {name: Emu(*keys) for name, keys in FLEET.items()}
+    for e in emus.values():
+        e.info  # noqa: B018 - waits for its start line
+    return emus
+
+
+@pytest.fixture(scope="module")
+def fleet(background, request):
+    """Every emulator of this module, started in the background (:func:`BACKGROUND_JOB`)."""
+    emus = background.get(request.module.__name__)
     yield emus
     for e in emus.values():
         e.stop()

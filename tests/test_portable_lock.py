@@ -6,7 +6,6 @@ no Windows here."""
 from __future__ import annotations
 
 import os
-import subprocess
 import sys
 import textwrap
 import types
@@ -34,12 +33,18 @@ _NO_FCNTL = textwrap.dedent("""
 """)
 
 
-def test_recording_imports_without_fcntl(tmp_path):
+def BACKGROUND_JOB(tmp_path, started):
+    """``_NO_FCNTL`` in a fresh process, run in the background by tests/background.py -> the finished process."""
+    from background import run
+
+    return run([sys.executable, "-c", _NO_FCNTL, str(tmp_path)], started, env={"PYTHONPATH": str(ROOT)}, timeout_s=120)
+
+
+def test_recording_imports_without_fcntl(background, request):
     """`import torchblur.hardware.recording` (and what imports it) works with fcntl unavailable; with no
     OS lock at all (neither fcntl nor msvcrt) a run lock is refused with one clear error, never taken
     silently."""
-    r = subprocess.run([sys.executable, "-c", _NO_FCNTL, str(tmp_path)], capture_output=True, text=True, timeout=120,
-                       env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    r = background.get(request.module.__name__)
     assert r.returncode == 0, r.stderr
     lines = r.stdout.strip().splitlines()
     assert lines[0] == "imported"

@@ -236,13 +236,22 @@ def test_emulator_reports_its_range_and_refuses_beyond_it():
     assert old.handle(b"RANGE?\n").startswith(b"ERR 1 UNKNOWN")
 
 
-@pytest.fixture(scope="module")
-def emulators():
-    """Two emulators over real pseudo-terminals: a range of 3 input units, and an older
-    firmware that does not answer RANGE?."""
+def BACKGROUND_JOB(out, started):
+    """Two emulators over real pseudo-terminals: a range of 3 input units, and an older firmware that
+    does not answer RANGE?; started in the background as soon as the module is collected
+    (tests/background.py), their start lines read -> ``{name: Emu}`` (they exit with this process)."""
     from test_hardware_emulator import Emu
 
     emus = {"range": Emu("plant.input_limit=3"), "old": Emu("range_query=false")}
+    for e in emus.values():
+        e.info  # noqa: B018 - waits for its start line
+    return emus
+
+
+@pytest.fixture(scope="module")
+def emulators(background, request):
+    """The two emulators of :func:`BACKGROUND_JOB`."""
+    emus = background.get(request.module.__name__)
     yield emus
     for e in emus.values():
         e.stop()

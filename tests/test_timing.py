@@ -38,11 +38,19 @@ def test_window_is_differentiable():
     assert start.grad.item() == 2.0 and dur.grad.item() == 1.0
 
 
-def test_import_is_light():
-    import subprocess
+def BACKGROUND_JOB(out, started):
+    """The fresh process of :func:`test_import_is_light`, run in the background by tests/background.py -> the finished process."""
     import sys
+
+    from background import run
 
     code = ("import sys, torchblur; heavy = [m for m in ('kornia', 'scipy', 'matplotlib', 'control', 'serial', 'omegaconf', 'tifffile') "
             "if m in sys.modules]; print(','.join(heavy))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    return run([sys.executable, "-c", code], started)
+
+
+def test_import_is_light(background, request):
+    done = background.get(request.module.__name__)  # import torchblur in a fresh process: which heavy modules came with it
+    assert done.returncode == 0, done.stderr
+    out = done.stdout.strip()
     assert out == "", f"import torchblur loaded heavy modules: {out}"
