@@ -151,7 +151,7 @@ def test_magnitude_only_points_enter_by_their_magnitude(noisy_a):
 
 def test_phase_std_holds_over_noise_draws():
     """The model's phase std (delta method over the parameters' covariance), inside the band and
-    extrapolated past it, against the spread of the phase over 40 noise draws."""
+    extrapolated past it, against the spread of the phase over 24 noise draws."""
     rng = np.random.default_rng(5)
     omega = OMEGA_A[::2]
     h_true = _plant_a(omega)
@@ -160,13 +160,13 @@ def test_phase_std_holds_over_noise_draws():
     cov[:, 0, 0], cov[:, 1, 1] = sigma**2 / 2, 0.5e-4
     at = TWO_PI * np.array([10.0, 300.0, 1000.0, 2000.0])
     phases, stds = [], []
-    for _ in range(40):
+    for _ in range(24):
         noise = sigma * (rng.standard_normal(omega.size) + 1j * rng.standard_normal(omega.size)) / np.sqrt(2)
         fit = fit_transfer_function(FrequencyResponse(omega, h_true + noise, cov=cov), n_poles=2, n_zeros=0)
         phases.append(np.angle(fit.frequency_response(at) / _plant_a(at)))
         stds.append(fit.phase_std(at))
     ratio = np.std(phases, axis=0) / np.mean(stds, axis=0)
-    assert np.all((ratio > 0.7) & (ratio < 1.35)), ratio
+    assert np.all((ratio > 0.65) & (ratio < 1.4)), ratio  # 24 draws: the spread's own error is ~15 %
     assert np.isnan(TransferFunctionFit(**{**fit.__dict__, "covariance": np.full((5, 5), np.nan)}).phase_std(at)).all()
 
 

@@ -31,8 +31,8 @@ def model_branches(frf, other_phase, undecided, *, max_order: int = 6, z_in: flo
     """Decide, with a model, the phase branch of the points a single-exposure sweep's continuity
     rule left undecided (docs/reliability.md, "One exposure per point", step 5).
 
-    The rule. A transfer function (order by BIC, :func:`~torchblur.sysid.tf_fit.fit_transfer_function`)
-    is fitted to the decided points and to the undecided points' magnitudes alone
+    The rule. A transfer function (order by BIC up to 4 poles, then up to ``max_order`` if no
+    model qualifies; :func:`~torchblur.sysid.tf_fit.fit_transfer_function`) is fitted to the decided points and to the undecided points' magnitudes alone
     (``magnitude_only``: |H| has no alias, so a resonance past the branches' crossing still pins
     the model). It is used only where it passes the model rule
     (:func:`~torchblur.sysid.model_check.model_fails`), its parameters' covariance is known, and the
@@ -92,20 +92,21 @@ def _branch_model(frf, undecided: np.ndarray, max_order: int, order=None):
     n_decided = int((frf.valid[0, 0] & ~undecided).sum())
     if 2 * n_decided < 4:  # fewer real observations with a phase than the smallest model with a delay has parameters
         return None
-    kw = dict(max_order=max_order) if order is None else dict(n_poles=order[0], n_zeros=order[1])
-    try:
-        best = fit_transfer_function(frf, magnitude_only=undecided, **kw)
-    except (ValueError, np.linalg.LinAlgError):
-        return None
-    for row in sorted(best.candidates, key=lambda r: r["bic"])[:3]:
+    scans = [dict(n_poles=order[0], n_zeros=order[1])] if order else [dict(max_order=k) for k in sorted({min(4, max_order), max_order})]
+    for kw in scans:  # orders to 4 first (a scan to 6 costs 3x): the larger scan only where none qualifies
         try:
-            m = best if row["chosen"] else fit_transfer_function(frf, magnitude_only=undecided, n_poles=row["n_poles"],
-                                                                 n_zeros=row["n_zeros"])
+            best = fit_transfer_function(frf, magnitude_only=undecided, **kw)
         except (ValueError, np.linalg.LinAlgError):
             continue
-        if (not model_fails(m.reduced_chi2, m.dof) and 2 * n_decided > len(m.param_names)
-                and np.isfinite(m.phase_std(frf.omega[undecided])).all()):
-            return m
+        for row in sorted(best.candidates, key=lambda r: r["bic"])[:3]:
+            try:
+                m = best if row["chosen"] else fit_transfer_function(frf, magnitude_only=undecided, n_poles=row["n_poles"],
+                                                                     n_zeros=row["n_zeros"])
+            except (ValueError, np.linalg.LinAlgError):
+                continue
+            if (not model_fails(m.reduced_chi2, m.dof) and 2 * n_decided > len(m.param_names)
+                    and np.isfinite(m.phase_std(frf.omega[undecided])).all()):
+                return m
     return None
 
 
