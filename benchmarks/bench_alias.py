@@ -13,7 +13,11 @@ With ``--configs FILE ...`` (e.g. configs/identify_mimo.yaml configs/identify_sp
 config is also run with one exposure (its channel points counted the same way; the spots config
 takes about 6 minutes).
 
-    python benchmarks/bench_alias.py [--phases 1.5708 2.2 3.0] [--configs FILE ...] [--threads 1]
+With ``--sweep N`` only single-exposure runs of the default plant: 8 trigger phases (0.1 + k pi/8
+rad, k = 0..7: b and b + pi give the same branches) x seeds 0..N-1, one line each and the totals
+(the phases whose crossing lies near 0 deg, about 0.5-0.9 rad, cannot anchor the rule: all flagged).
+
+    python benchmarks/bench_alias.py [--phases 1.5708 2.2 3.0] [--configs FILE ...] [--sweep 3] [--threads 1]
 """
 from __future__ import annotations
 
@@ -54,13 +58,36 @@ def one_run(name: str, overrides: list, config: str | None = None) -> dict:
                 model_beyond=v.model_beyond_truth, seconds=time.perf_counter() - t0, line=v.line)
 
 
+def sweep(n_seeds: int) -> int:
+    """Single-exposure runs of the default plant at 8 trigger phases x ``n_seeds`` seeds: per run
+    the points, right, flagged, wrong-and-unflagged; then the totals."""
+    tot = dict(points=0, right=0, alias=0, wrong_unflagged=0, runs=0, anchored=0)
+    print(f"{'trigger rad':>11} {'seed':>4} {'pts':>4} {'right':>5} {'alias':>5} {'wrong,unflagged':>15} {'trustworthy':>11} {'s':>5}")
+    for seed in range(n_seeds):
+        for k in range(8):
+            b = 0.1 + k * math.pi / 8
+            r = one_run("", ["sweep.exposures=[0.3]", f"sweep.trigger_phase_rad={b!r}", f"seed={seed}"])
+            print(f"{b:11.4f} {seed:4d} {r['points']:4d} {r['right']:5d} {r['alias']:5d} {r['wrong_unflagged']:15d} "
+                  f"{str(r['trustworthy']):>11} {r['seconds']:5.1f}", flush=True)
+            for key in ("points", "right", "alias", "wrong_unflagged"):
+                tot[key] += r[key]
+            tot["runs"] += 1
+            tot["anchored"] += int(r["alias"] < r["points"])
+    print(f"{tot['runs']} runs ({tot['anchored']} anchored: not every point flagged): {tot['points']} points, {tot['right']} right, "
+          f"{tot['alias']} flagged alias, {tot['wrong_unflagged']} wrong and unflagged")
+    return 1 if tot["wrong_unflagged"] else 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--phases", type=float, nargs="*", default=[math.pi / 2, 2.2, 3.0])
     ap.add_argument("--configs", nargs="*", default=[])
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--sweep", type=int, default=0, help="seeds of the 8-phase single-exposure sweep (0: the table instead)")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
+    if args.sweep:
+        return sweep(args.sweep)
     runs = [(f"one exposure, trigger {b:.4g} rad", ["sweep.exposures=[0.3]", f"sweep.trigger_phase_rad={b!r}"], None) for b in args.phases]
     runs += [("issue repro: one exposure, sweep.n=6", ["sweep.exposures=[0.3]", "sweep.n=6"], None),
              ("baseline: default two exposures", [], None)]

@@ -128,6 +128,48 @@ def test_noisy_order_selection_picks_true_order(noisy_a):
     assert (fit.n_poles, fit.n_zeros) == (2, 0)
 
 
+def test_magnitude_only_points_enter_by_their_magnitude(noisy_a):
+    """Points marked ``magnitude_only`` (a single exposure's undecided phase branch) count one
+    observation each, their magnitude: the fit does not depend on the phase they carry, and
+    still finds the resonance they cover."""
+    frf, h_true, sigma = noisy_a
+    mo = frf.freq_hz > 200.0  # the resonance (300 Hz) and everything above it: magnitude only
+    fits = []
+    for turn in (2.0, -1.0):  # two wrong phases at those points
+        h = np.where(mo, frf.response[0, 0] * np.exp(1j * turn), frf.response[0, 0])
+        fits.append(fit_transfer_function(frf.replace(response=h), n_poles=2, n_zeros=0, magnitude_only=mo))
+    a, b = fits
+    assert a.dof == 2 * 100 - int(mo.sum()) - 4
+    np.testing.assert_allclose(a.params, b.params, rtol=1e-6)
+    assert abs(a.reduced_chi2 - 1.0) < 4.0 * np.sqrt(2.0 / a.dof)
+    (mode,) = a.modal_parameters()
+    assert abs(mode["omega_n"] - WN) < 4 * mode["omega_n_std"] and abs(mode["zeta"] - ZETA) < 4 * mode["zeta_std"]
+    # the model's phase at the magnitude-only points is the true one within its stds
+    err = np.angle(a.frequency_response(frf.omega[mo]) / h_true[mo])
+    assert np.all(np.abs(err) < 4 * a.phase_std(frf.omega[mo]))
+
+
+def test_phase_std_holds_over_noise_draws():
+    """The model's phase std (delta method over the parameters' covariance), inside the band and
+    extrapolated past it, against the spread of the phase over 24 noise draws."""
+    rng = np.random.default_rng(5)
+    omega = OMEGA_A[::2]
+    h_true = _plant_a(omega)
+    sigma = 0.01 * np.abs(h_true)
+    cov = np.zeros((omega.size, 2, 2))
+    cov[:, 0, 0], cov[:, 1, 1] = sigma**2 / 2, 0.5e-4
+    at = TWO_PI * np.array([10.0, 300.0, 1000.0, 2000.0])
+    phases, stds = [], []
+    for _ in range(24):
+        noise = sigma * (rng.standard_normal(omega.size) + 1j * rng.standard_normal(omega.size)) / np.sqrt(2)
+        fit = fit_transfer_function(FrequencyResponse(omega, h_true + noise, cov=cov), n_poles=2, n_zeros=0)
+        phases.append(np.angle(fit.frequency_response(at) / _plant_a(at)))
+        stds.append(fit.phase_std(at))
+    ratio = np.std(phases, axis=0) / np.mean(stds, axis=0)
+    assert np.all((ratio > 0.65) & (ratio < 1.4)), ratio  # 24 draws: the spread's own error is ~15 %
+    assert np.isnan(TransferFunctionFit(**{**fit.__dict__, "covariance": np.full((5, 5), np.nan)}).phase_std(at)).all()
+
+
 def test_nan_points_are_skipped(noisy_a):
     frf, _, _ = noisy_a
     h = np.array(frf.response[0, 0])
@@ -238,6 +280,10 @@ def test_bad_arguments_raise():
         fit_transfer_function(frf, weights=-np.ones(40))
     with pytest.raises(ParameterError, match="^kind:"):
         fit_transfer_function(frf, n_poles=2, n_zeros=0).modal_parameters("modes")
+    with pytest.raises(InputTypeError, match="^magnitude_only:"):
+        fit_transfer_function(frf, magnitude_only=np.ones(40))
+    with pytest.raises(ShapeError, match="^magnitude_only:"):
+        fit_transfer_function(frf, magnitude_only=np.ones(3, dtype=bool))
     few = FrequencyResponse(OMEGA_A[:2], _plant_a(OMEGA_A[:2]))
     with pytest.raises(ParameterError, match="^n_poles:"):
         fit_transfer_function(few, n_poles=2, n_zeros=1)

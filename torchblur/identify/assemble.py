@@ -18,7 +18,8 @@ The adequacy rule (docs/reliability.md, "Per-point flags"; bits in :mod:`torchbl
 * ``ALIAS``: one exposure per point (the exposures' :func:`~torchblur.design.windows.alias_separation`
   below :data:`~torchblur.design.windows.MIN_SEPARATION`): each point's phase branch is chosen
   by continuity along the sweep (:func:`resolve_single_exposure`, the rule of
-  :func:`~torchblur.design.windows.continuity_branches`), and the points it cannot decide are
+  :func:`~torchblur.design.windows.continuity_branches`, then
+  :func:`~torchblur.sysid.alias_resolution.model_branches`), and the points it cannot decide are
   flagged; with exposures that resolve the alias, a point whose fit says the light was too little
   to decide it (:data:`~torchblur.fit.status.BRANCH_UNDECIDED`). Such a run is never trustworthy.
 """
@@ -36,6 +37,7 @@ from torchblur.image.spots import spot_labels
 from torchblur.fit.status import BRANCH_UNDECIDED as FIT_BRANCH_UNDECIDED
 from torchblur.fit.status import NO_MOTION as FIT_NO_MOTION
 from torchblur.render.window import ExposureWindow
+from torchblur.sysid.alias_resolution import model_branches
 from torchblur.sysid.flags import ALIAS, FAILED, LIMITED, NO_MOTION, POOR_FIT, TIMING
 from torchblur.sysid.frequency_response import FrequencyResponse
 
@@ -317,8 +319,10 @@ def adequacy_stage(run) -> None:
 
 def resolve_single_exposure(frf: FrequencyResponse, alias_phase, single, *, axis_of=None, anchor_phase: float = 0.0) -> FrequencyResponse:
     """``frf`` with the phase branch of every single-exposure point chosen by continuity along
-    the sweep, and ``ALIAS`` on the points the rule cannot decide
-    (:func:`~torchblur.design.windows.continuity_branches`, with the magnitude's Bode term).
+    the sweep (:func:`~torchblur.design.windows.continuity_branches`, with the magnitude's Bode
+    term), the points it leaves undecided then by a model of the decided points and their
+    magnitudes (:func:`~torchblur.sysid.alias_resolution.model_branches`), and ``ALIAS`` on the
+    points neither decides.
 
     Args:
         frf: ``[O, I, F]`` response as the fits gave it.
@@ -349,14 +353,30 @@ def resolve_single_exposure(frf: FrequencyResponse, alias_phase, single, *, axis
             other = np.where(one[o, i], al[o, i], frf.phase[o, i])  # a resolved point: one branch
             r = continuity_branches(frf.omega, frf.phase[o, i], other, frf.phase_std[o, i], magnitude=frf.magnitude[o, i],
                                     valid=ok[o, i], anchor_phase=anchor_phase)
+            took, und = _with_model(frf, o, i, r.took_alias & ok[o, i], ~r.decided & ok[o, i], other, ok[o, i])
             for oo in np.flatnonzero(lead[:, i] == o):
-                take[oo, i] = r.took_alias & one[oo, i] & ok[oo, i]
-                undecided[oo, i] = (~r.decided | ~ok[o, i]) & one[oo, i] & ok[oo, i]  # a lead point not judged: its follower neither
+                take[oo, i] = took & one[oo, i] & ok[oo, i]
+                undecided[oo, i] = (und | ~ok[o, i]) & one[oo, i] & ok[oo, i]  # a lead point not judged: its follower neither
     resp = np.where(take, frf.magnitude * np.exp(1j * al), frf.response)
     cov = np.array(frf.cov)
     cov[take, 0, 1] *= -1
     cov[take, 1, 0] *= -1
     return frf.replace(response=resp, cov=cov, flags=np.asarray(frf.flags) | np.where(undecided, ALIAS, 0))
+
+
+def _with_model(frf, o: int, i: int, took, undecided, other, ok):
+    """``(took, undecided)`` bool ``[F]`` of channel (o, i) after the model step of the rule
+    (:func:`~torchblur.sysid.alias_resolution.model_branches`) on its points ``ok``, each on the
+    branch continuity chose (``took``: ``other``, the second candidate)."""
+    if not undecided.any():
+        return took, undecided
+    h, cov = frf.response[o, i], np.array(frf.cov[o, i])
+    cov[took, 0, 1] *= -1
+    cov[took, 1, 0] *= -1
+    ch = FrequencyResponse(frf.omega, np.where(ok, np.where(took, np.abs(h) * np.exp(1j * other), h), np.nan), cov=cov)
+    new, und = model_branches(ch, np.where(took, frf.phase[o, i], other), undecided)
+    flipped = np.abs(np.angle(new.response[0, 0] * np.conj(ch.response[0, 0]))) > 1e-12
+    return took ^ (flipped & ok), und
 
 
 def single_exposure_points(run) -> np.ndarray:
@@ -396,5 +416,6 @@ def alias_stage(run) -> None:
     run.frf = resolve_single_exposure(frf, alias_oif, single_oif, axis_of=axis_of)
     n_alias = int(((run.frf.flags & ALIAS) != 0).sum())
     run.say(f"alias: {int(single.sum())} point(s) with one exposure (their exposures do not resolve the alias): the phase branch "
-            f"chosen by continuity along the sweep; {n_alias} point(s) it cannot decide flagged alias" + (
+            f"chosen by continuity along the sweep, then by a model of the decided points and the magnitudes; {n_alias} point(s) "
+            f"neither decides flagged alias" + (
                 f" ({', '.join(f'{v:.4g}' for v in frf.freq_hz[((run.frf.flags & ALIAS) != 0).any(axis=(0, 1))])} Hz)" if n_alias else ""))

@@ -1,8 +1,10 @@
-"""A single-exposure start: each point's phase branch (measured or alias) chosen with a model.
+"""A single-exposure sweep: each point's phase branch (measured or alias) chosen with a model.
 
 With one exposure window per point (Proposition 3) every phase has an alias that renders the
-same image; :func:`resolve_alias_with_model` fits a transfer function to every branch choice
-it visits and keeps the one with the smallest chi2 (a start for :func:`~torchblur.sysid.direct.fit_direct`).
+same image. :func:`model_branches` decides the points the continuity rule left undecided with one
+model of the decided points and the undecided points' magnitudes (which have no alias);
+:func:`resolve_alias_with_model` fits a transfer function to every branch choice it visits and
+keeps the one with the smallest chi2 (a start for :func:`~torchblur.sysid.direct.fit_direct`).
 """
 from __future__ import annotations
 
@@ -11,11 +13,101 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
+from torchblur.design.windows import CONTINUITY_Z
 from torchblur.errors import InputTypeError, ParameterError, ShapeError
 from torchblur.sysid.frequency_response import FrequencyResponse
+from torchblur.sysid.model_check import model_fails
 from torchblur.sysid.tf_fit import fit_transfer_function
 
-__all__ = ["AliasResolution", "resolve_alias_with_model"]
+__all__ = ["AliasResolution", "MODEL_BRANCH_Z_OUT", "model_branches", "resolve_alias_with_model"]
+
+#: :func:`model_branches` decides a point only where the other branch lies at least this many
+#: stds from the model's phase (the kept one within ``CONTINUITY_Z``)
+MODEL_BRANCH_Z_OUT = 10.0
+
+
+def model_branches(frf, other_phase, undecided, *, max_order: int = 6, z_in: float = CONTINUITY_Z,
+                   z_out: float = MODEL_BRANCH_Z_OUT, max_rounds: int = 10):
+    """Decide, with a model, the phase branch of the points a single-exposure sweep's continuity
+    rule left undecided (docs/reliability.md, "One exposure per point", step 5).
+
+    The rule. A transfer function (order by BIC up to 4 poles, then up to ``max_order`` if no
+    model qualifies; :func:`~torchblur.sysid.tf_fit.fit_transfer_function`) is fitted to the decided points and to the undecided points' magnitudes alone
+    (``magnitude_only``: |H| has no alias, so a resonance past the branches' crossing still pins
+    the model). It is used only where it passes the model rule
+    (:func:`~torchblur.sysid.model_check.model_fails`), its parameters' covariance is known, and the
+    decided points' real observations alone outnumber its parameters; else the next two orders by
+    BIC are tried, then nothing is decided (the refits keep the order found first). An undecided point takes the branch whose phase lies
+    within ``z_in`` stds of the model's (the std: the point's and the model's prediction's,
+    :meth:`~torchblur.sysid.tf_fit.TransferFunctionFit.phase_std`, in quadrature) when the other
+    lies beyond ``z_out``; the model is refitted with the points so decided and the step repeated
+    until nothing changes.
+
+    Args:
+        frf: SISO FrequencyResponse, each point on its current branch (its covariance weights the fit).
+        other_phase: ``[F]`` the other branch of each point (rad).
+        undecided: bool ``[F]``: the points whose branch is not decided (the others are fitted
+            with their phase; invalid points are skipped).
+        max_order, z_in, z_out, max_rounds: the model's largest order (the config's default), the
+            rule's constants, the refits at most.
+
+    Returns:
+        ``(frf, undecided)``: the response with the branches chosen (where the other is taken
+        the magnitude-phase covariance changes sign) and bool ``[F]``, the points still undecided.
+    """
+    if not isinstance(frf, FrequencyResponse) or not frf.is_siso:
+        raise InputTypeError(f"frf: expected a SISO FrequencyResponse, got {type(frf).__name__}")
+    F = frf.omega.size
+    other, und = np.array(other_phase, dtype=np.float64), np.array(undecided, dtype=bool)
+    if other.shape != (F,) or und.shape != (F,):
+        raise ShapeError(f"other_phase, undecided: expected shape [F] = [{F}], got {other.shape}, {und.shape}")
+    und &= frf.valid[0, 0] & np.isfinite(other)
+    order = None
+    for _ in range(max_rounds):
+        model = _branch_model(frf, und, max_order, order) if und.any() else None
+        if model is None:
+            break
+        order = (model.n_poles, model.n_zeros)
+        h = frf.response[0, 0]
+        pred = np.angle(model.frequency_response(frf.omega))
+        sd = np.sqrt(frf.phase_std[0, 0] ** 2 + model.phase_std(frf.omega) ** 2)
+        z = np.abs(np.angle(np.exp(1j * (np.stack([np.angle(h), other]) - pred)))) / sd  # [2, F]
+        near = z[1] < z[0]
+        sure = und & (z.min(0) <= z_in) & (z.max(0) >= z_out)
+        if not sure.any():
+            break
+        flip = sure & near
+        cov = np.array(frf.cov)
+        cov[0, 0, flip, 0, 1] *= -1
+        cov[0, 0, flip, 1, 0] *= -1
+        frf = frf.replace(response=np.where(flip, np.abs(h) * np.exp(1j * other), h)[None, None], cov=cov)
+        other = np.where(flip, np.angle(h), other)
+        und &= ~sure
+    return frf, und
+
+
+def _branch_model(frf, undecided: np.ndarray, max_order: int, order=None):
+    """The model :func:`model_branches` decides with, of the order ``(n_poles, n_zeros)`` or by
+    BIC (None: none qualifies)."""
+    n_decided = int((frf.valid[0, 0] & ~undecided).sum())
+    if 2 * n_decided < 4:  # fewer real observations with a phase than the smallest model with a delay has parameters
+        return None
+    scans = [dict(n_poles=order[0], n_zeros=order[1])] if order else [dict(max_order=k) for k in sorted({min(4, max_order), max_order})]
+    for kw in scans:  # orders to 4 first (a scan to 6 costs 3x): the larger scan only where none qualifies
+        try:
+            best = fit_transfer_function(frf, magnitude_only=undecided, **kw)
+        except (ValueError, np.linalg.LinAlgError):
+            continue
+        for row in sorted(best.candidates, key=lambda r: r["bic"])[:3]:
+            try:
+                m = best if row["chosen"] else fit_transfer_function(frf, magnitude_only=undecided, n_poles=row["n_poles"],
+                                                                     n_zeros=row["n_zeros"])
+            except (ValueError, np.linalg.LinAlgError):
+                continue
+            if (not model_fails(m.reduced_chi2, m.dof) and 2 * n_decided > len(m.param_names)
+                    and np.isfinite(m.phase_std(frf.omega[undecided])).all()):
+                return m
+    return None
 
 
 class AliasResolution(NamedTuple):

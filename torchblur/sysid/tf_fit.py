@@ -41,6 +41,10 @@ Weights: ``W_f`` whitens the (Re H, Im H) covariance that
 with ``dof = 2 * n_points - n_parameters`` when the covariance is right. ``"uniform"`` is
 W = I, and an array ``w`` is W = w I (w = 1 / std of the real and of the imaginary part).
 
+Magnitude-only points (``magnitude_only``: a single exposure's point whose phase branch is not
+decided): one observation each, ``(|H_model| - |H|)`` over the magnitude's std (times the point's
+weight with other weights); the linear start (steps 2-3) takes the phase they carry.
+
 Order selection (``n_poles=None`` and/or ``n_zeros=None``): proper candidates
 (1 <= n_poles <= max_order, 0 <= n_zeros <= n_poles, fewer parameters than real
 observations) are fit in order of their number of parameters P (a short polish each), and the
@@ -52,7 +56,7 @@ one with the smallest Bayesian information criterion is chosen, then polished to
   ``floor = (1e-9)^2 x`` the mean weighted squared response, so noise-free data choose the
   smallest exact model rather than one fitting round-off.
 
-``n_obs = 2 x`` the number of fitted points; ties go to fewer parameters. The scan stops
+``n_obs = 2 x`` the number of fitted points (less one per magnitude-only point); ties go to fewer parameters. The scan stops
 early when no remaining candidate can beat the best score even with chi2 = 0 (exact), or once
 candidates have 6 parameters more than the best one without beating it (a heuristic that
 saves time on noisy data; resonances come in pairs, so this allows three more pairs).
@@ -265,6 +269,26 @@ class TransferFunctionFit:
                     h /= s - pk
                 out[o, i] = h * np.exp(-s * tau[o][i])
         return out[0, 0] if self.is_siso else out
+
+    def phase_std(self, omega, o: int = 0, i: int = 0) -> np.ndarray:
+        """The std (rad) of the model's phase at ``omega`` (rad/s, ``[F]``) from the parameters'
+        :attr:`covariance` (delta method, central differences over :attr:`params`), channel
+        (o, i); NaN where the covariance is unknown."""
+        w = as_frequency_grid(omega, "omega")
+        names, vals, _ = self.channel_parameters(o, i)
+        cov = np.asarray(self._channels("covariance")[o][i], dtype=np.float64) if names else None
+        if cov is None or not np.all(np.isfinite(cov)):
+            return np.full(w.size, math.nan)
+        tau = float(self._channels("delay_s")[o][i])
+        jac = np.empty((w.size, vals.size))
+        for p in range(vals.size):
+            d = np.zeros(vals.size)
+            d[p] = 1e-6 * max(abs(float(vals[p])), 1e-9)
+            with np.errstate(all="ignore"):
+                ratio = _natural_response(names, vals + d, w, tau) / _natural_response(names, vals - d, w, tau)
+            jac[:, p] = np.angle(ratio) / (2 * d[p])
+        var = np.einsum("fp,pq,fq->f", jac, cov, jac)
+        return np.sqrt(np.where(var >= 0, var, math.nan))
 
     def modal_parameters(self, kind: str = "poles"):
         """Natural frequency and damping ratio of each complex pair of poles (or zeros).
@@ -521,6 +545,26 @@ def _jf(x):
     return x if math.isfinite(x) else None
 
 
+def _natural_response(names, vals: np.ndarray, omega: np.ndarray, delay_s: float) -> np.ndarray:
+    """H(j omega) ``[F]`` from natural parameters (:attr:`TransferFunctionFit.param_names`;
+    ``delay_s`` where the delay is not among them): the DC gain times each zero factor over its
+    value at 0, over each pole factor's."""
+    s, p = 1j * omega, dict(zip(names, vals))
+    h = np.full(omega.size, p["dc_gain"], dtype=np.complex128)
+    for name, v in p.items():
+        pre, _, kind = name.partition("_")
+        if kind == "omega_n":
+            f = (s * s + 2 * p[f"{pre}_zeta"] * v * s + v * v) / (v * v)
+        elif kind == "a1":
+            f = (s * s + v * s + p[f"{pre}_a0"]) / p[f"{pre}_a0"]
+        elif kind == "rate":
+            f = (s + v) / v
+        else:
+            continue
+        h = h * f if pre[0] == "z" else h / f
+    return h * np.exp(-s * p.get("delay_s", delay_s))
+
+
 def _modes(roots: np.ndarray, prefix: str = "p", names=(), vals=None, std=None) -> list[dict[str, float]]:
     """The complex pairs of ``roots`` as mode dicts, with the stds of the natural parameters
     ``{prefix}{k}_omega_n`` / ``_zeta`` of the same factor (matched by omega_n) where known."""
@@ -548,8 +592,10 @@ class _Data:
     w00: np.ndarray  # [N] whitening W = [[w00, 0], [w10, w11]] applied to (Re r, Im r)
     w10: np.ndarray
     w11: np.ndarray
-    wsc: np.ndarray  # [N] scalar weight for the linear SK steps
+    wsc: np.ndarray  # [N] scalar weight for the linear SK steps (0 at a magnitude-only point)
     scale: float  # omega_s, rad/s
+    mag_only: np.ndarray | None = None  # [N] bool: the point's phase is unknown, its magnitude fitted alone
+    wm: np.ndarray | None = None  # [N] 1 / std of a magnitude-only point's magnitude
 
     @property
     def sp(self) -> np.ndarray:
@@ -561,7 +607,7 @@ class _Data:
 
     @property
     def n_obs(self) -> int:
-        return 2 * self.omega.size
+        return 2 * self.omega.size - (0 if self.mag_only is None else int(self.mag_only.sum()))
 
 
 @dataclasses.dataclass
@@ -631,10 +677,27 @@ def _whiten(r: np.ndarray, data: _Data) -> np.ndarray:
     return np.concatenate([w00 * r.real, w10 * r.real + w11 * r.imag], axis=0)
 
 
+def _residuals(hm: np.ndarray, data: _Data, j: np.ndarray | None = None):
+    """Whitened residuals ``[n_obs]`` of the model ``hm [N]`` (and their Jacobian ``[n_obs, P]``
+    from ``dH/dtheta`` ``j [N, P]``): two per point, one (``|hm| - |h|`` over its std) at a
+    magnitude-only point."""
+    e = _whiten(hm - data.h, data)
+    jw = None if j is None else _whiten(j, data)
+    mo = data.mag_only
+    if mo is None or not mo.any():
+        return e, jw
+    n, a = data.omega.size, np.abs(hm[mo])
+    e[:n][mo] = data.wm[mo] * (a - np.abs(data.h[mo]))
+    if jw is not None:
+        jw[:n][mo] = data.wm[mo, None] * (np.conj(hm[mo])[:, None] * j[mo]).real / a[:, None]
+    keep = np.concatenate([np.ones(n, dtype=bool), ~mo])
+    return e[keep], None if jw is None else jw[keep]
+
+
 def _chi2(c: _Cand, data: _Data) -> float:
     with np.errstate(all="ignore"):
         hm, _ = _model(c.theta, c.n_zeros, c.n_poles, c.est_tau, c.tau_fixed, data, False)
-        e = _whiten(hm - data.h, data)
+        e, _ = _residuals(hm, data)
     v = float(e @ e)
     return v if math.isfinite(v) else math.inf
 
@@ -795,7 +858,7 @@ def _polish(c: _Cand, data: _Data, stable: bool, max_nfev: int) -> _Cand:
             with np.errstate(all="ignore"):
                 hm, j = _model(theta_of(u), nz, npo, c.est_tau, c.tau_fixed, data, True)
                 j = j * np.where(sq, 2.0 * u, 1.0)
-                e, jw = _whiten(hm - data.h, data), _whiten(j, data)
+                e, jw = _residuals(hm, data, j)
             ok = np.all(np.isfinite(e)) and np.all(np.isfinite(jw))
             cache.update(key=key, e=e if ok else np.full(e.shape, 1e150), j=jw if ok else np.zeros(jw.shape))
         return cache
@@ -821,13 +884,13 @@ def _polish(c: _Cand, data: _Data, stable: bool, max_nfev: int) -> _Cand:
 
 # ----------------------------------------------------------------- one channel
 def _delay_grid(data: _Data) -> np.ndarray:
-    w = data.omega
-    wmax = float(w.max())
+    wmax = float(data.omega.max())
+    w, h = data.omega, data.h
     m = max(3, w.size // 8)
     slope = 0.0
     if w.size >= 3:
         top = slice(w.size - min(m, w.size), None)
-        ph = np.unwrap(np.angle(data.h[top]))
+        ph = np.unwrap(np.angle(h[top]))
         with np.errstate(all="ignore"):
             fit = np.polyfit(w[top], ph, 1)[0]
         if np.isfinite(fit):
@@ -964,8 +1027,8 @@ def _covariance(c: _Cand, data: _Data, sigma2_known: bool):
     names, vals = _natural(theta, nz, npo, c.est_tau, data.scale, order)
     nan = np.full((vals.size, vals.size), math.nan)
     with np.errstate(all="ignore"):
-        _, j = _model(theta, nz, npo, c.est_tau, c.tau_fixed, data, True)
-        jw = _whiten(j, data)
+        hm, j = _model(theta, nz, npo, c.est_tau, c.tau_fixed, data, True)
+        jw = _residuals(hm, data, j)[1]
     if not np.all(np.isfinite(jw)):
         return names, vals, nan
     _, sv, vt = np.linalg.svd(jw, full_matrices=False)
@@ -1004,7 +1067,8 @@ def _physical(c: _Cand, data: _Data, sigma2_known: bool = True) -> dict[str, Any
     tau = float(rest[0] / s) if c.est_tau else float(c.tau_fixed)
     with np.errstate(all="ignore"):
         hm, _ = _model(c.theta, c.n_zeros, c.n_poles, c.est_tau, c.tau_fixed, data, False)
-        rel = float(np.sqrt(np.mean(np.abs(hm - data.h) ** 2 / np.abs(data.h) ** 2)))
+        err = hm - data.h if data.mag_only is None else np.where(data.mag_only, np.abs(hm) - np.abs(data.h), hm - data.h)
+        rel = float(np.sqrt(np.mean(np.abs(err) ** 2 / np.abs(data.h) ** 2)))
     dof = data.n_obs - c.n_params
     names, vals, cov = _covariance(c, data, sigma2_known)
     return {
@@ -1083,6 +1147,7 @@ def fit_transfer_function(
     n_iter: int = 30,
     stable: bool = True,
     common_delay_std_s: float = 0.0,
+    magnitude_only=None,
 ) -> TransferFunctionFit:
     """Fit ``K prod(s - z) / prod(s - p) exp(-s delay_s)`` to each channel of ``frf``.
 
@@ -1109,6 +1174,8 @@ def fit_transfer_function(
             the share is taken out of the weights and ``common_delay_std_s**2`` is added to the
             delay's variance: counted once, fully correlated, instead of as independent
             per-point errors that average down. Needs ``delay_s=None``.
+        magnitude_only: bool ``[F]`` or ``[O, I, F]``: points whose phase is unknown (an undecided
+            alias branch), fitted by their magnitude alone (see "Magnitude-only points" above).
 
     Returns:
         :class:`TransferFunctionFit` (per-channel values nested [O][I] for MIMO).
@@ -1122,14 +1189,14 @@ def fit_transfer_function(
     orders, delay_s = _candidate_orders(n_poles, n_zeros, max_order, delay_s)
     n_iter = check_int(n_iter, "n_iter", low=1)
     stable = check_bool(stable, "stable")
-    valid = frf.valid
     common = _common_delay_std(common_delay_std_s, delay_s)
-    w00, w10, w11, wsc, label = _weights(_without_common_delay(frf, common, weights), weights, valid)
-    use = valid & (wsc > 0) & (w00 > 0)
+    w00, w10, w11, wsc, label = _weights(_without_common_delay(frf, common, weights), weights, frf.valid)
+    use = frf.valid & (wsc > 0) & (w00 > 0)
+    mag_only, wm = _magnitude_only(magnitude_only, frf, w00 if label != "uncertainty" else None, use)
     results = [[None] * frf.n_inputs for _ in range(frf.n_outputs)]
     for o in range(frf.n_outputs):
         for i in range(frf.n_inputs):
-            data = _channel_data(frf, o, i, use[o, i], (w00, w10, w11, wsc))
+            data = _channel_data(frf, o, i, use[o, i], (w00, w10, w11, wsc), mag_only, wm)
             best, rows = _fit_channel(data, orders, delay_s, n_iter, stable, label == "uncertainty")
             if best is None:
                 raise ParameterError(
@@ -1151,15 +1218,38 @@ def fit_transfer_function(
                                order_criterion="BIC" if len(orders) > 1 else "fixed")
 
 
-def _channel_data(frf: FrequencyResponse, o: int, i: int, m: np.ndarray, weights: tuple) -> "_Data":
+def _channel_data(frf: FrequencyResponse, o: int, i: int, m: np.ndarray, weights: tuple, mag_only=None, wm=None) -> "_Data":
     """The points ``m [F]`` (bool) of channel ``(o, i)`` with their weights ``(w00, w10, w11,
-    wsc)`` (each ``[O, I, F]``, see :func:`_weights`); ParameterError where no point is left."""
+    wsc)`` (each ``[O, I, F]``, see :func:`_weights`) and the magnitude-only ones (``mag_only``,
+    their weights ``wm``, each ``[O, I, F]`` or None); ParameterError where no point is left."""
     if np.sum(m) == 0:
         raise ParameterError(f"frf: output {excerpt(frf.output_labels[o])}, input {excerpt(frf.input_labels[i])} has no valid point")
     omega = frf.omega[m]
     w00, w10, w11, wsc = (w[o, i, m] for w in weights)
+    mo = None if mag_only is None or not mag_only[o, i, m].any() else mag_only[o, i, m]
     return _Data(omega=omega, h=frf.response[o, i, m], w00=w00, w10=w10, w11=w11, wsc=wsc,
-                 scale=float(np.sqrt(omega[0] * omega[-1])))
+                 scale=float(np.sqrt(omega[0] * omega[-1])), mag_only=mo, wm=None if mo is None else np.where(mo, wm[o, i, m], 1.0))
+
+def _magnitude_only(value, frf: FrequencyResponse, weight, use: np.ndarray):
+    """The checked ``magnitude_only`` of :func:`fit_transfer_function` as ``(mask, wm)``: bool
+    ``[O, I, F]`` (None: none) and the weight of each such point's magnitude (``weight``, or 1 /
+    the magnitude's std where None); ``use`` loses the points whose weight is unknown."""
+    if value is None:
+        return None, None
+    shape = frf.response.shape
+    m = np.asarray(value)
+    if m.dtype != bool:
+        raise InputTypeError(f"magnitude_only: expected None or a bool array, got dtype {m.dtype}")
+    if m.shape not in (shape, shape[-1:]):
+        raise ShapeError(f"magnitude_only: expected shape [F] = {shape[-1:]} or [O, I, F] = {shape}, got {m.shape}")
+    if not m.any():
+        return None, None
+    with np.errstate(all="ignore"):
+        wm = 1.0 / frf.magnitude_std if weight is None else weight
+    m = np.broadcast_to(m, shape) & use
+    use &= ~m | (wm > 0)
+    return m, wm
+
 
 def _common_delay_std(value, delay_s) -> float:
     """The checked ``common_delay_std_s`` of :func:`fit_transfer_function` (s)."""
