@@ -442,6 +442,8 @@ def _edge_test(fit, D0, D0_std, full, coupling, wfs, N) -> RegistrationFit:
     d = theta(fit) - theta(inside)
     lam, U = np.linalg.eigh(inside.cov / max(1.0, inside.reduced_chi2) - fit.cov / max(1.0, fit.reduced_chi2))
     keep = lam > 1e-9 * lam.max()
+    if not keep.any():  # every fitted entry is an interior one: nothing to compare
+        return replace(fit, edge_test={"n_interior": int(inner.sum()), "message": "no fitted subaperture outside the interior"})
     chi2 = float(((U[:, keep].T @ d) ** 2 / lam[keep]).sum())
     p = float(stats.chi2.sf(chi2, int(keep.sum())))
     # each actuator's gain on the interior rows against its gain on every fitted row, at the same G
