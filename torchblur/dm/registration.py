@@ -37,23 +37,16 @@ diffraction there does: where the fit on every subaperture fails the model rule
 lit subapertures (their square inside the pupil) and that fit is kept when it explains them
 better (``fitted_on``); the fitted model then gives G on every subaperture.
 
-Edge test (model error the reduced chi2 misses). A lenslet's spot takes light from its neighbours
-(crosstalk), symmetric inside the pupil and one-sided at its edge: on HCIPy's D0 the subapertures
-next to a dark or partly lit lenslet bias the magnification by 0.03-0.04 % (15 of its stds) while
-the reduced chi2 stays at 1.3 (``benchmarks/bench_dm_registration.py --hcipy --trace``). So the
-registration is fitted again on the INTERIOR subapertures (:func:`interior`: their 8 neighbours
-fully lit; at least :data:`EDGE_TEST_MIN_INTERIOR`, else no test), and the two fits' difference
-``d`` (6 parameters) is tested against its noise, ``cov_interior - cov`` (the Hausman test; chi2
-over the covariance's rank): at ``p <`` :data:`EDGE_TEST_P` the model is wrong at the edge, and
-``d d^T`` (the measured model error) is added to the covariance, so that every std, the gains' and G's
-included, covers it (``edge_test`` in the fit, the line and ``registration.json``). Likewise each
-actuator's gain on the interior rows against its gain on every fitted row (at the same G; two-sided
-at the same level): where they disagree, the squared difference joins that gain's variance
-(``gains_widened``: the outer actuators, seen by the edge's lenslets, are 1 % off on HCIPy's D0).
-Where the registration's test fails, a gain whose interior rows carry under :data:`EDGE_GAIN_SHARE`
-of its information cannot be checked so and is flagged (``gains_unverified``: its std does not
-hold). The level is high (0.05) because the test has little power at a few 1e-3 of noise and a
-missed bias is silent; a false alarm only widens the stds (conservative, and said).
+Edge test (a model error the reduced chi2 misses; docs/deformable_mirrors.md). A lenslet's spot
+takes light from its neighbours, one-sidedly at the pupil's edge: on HCIPy's D0 that biases the
+magnification by 15 of its stds at a reduced chi2 of 1.3. So the registration is fitted again on
+the :func:`interior` subapertures (at least :data:`EDGE_TEST_MIN_INTERIOR`) and the two fits'
+difference ``d`` is tested against ``cov_interior - cov`` (Hausman; chi2 over its rank). At ``p <``
+:data:`EDGE_TEST_P` the measured model error ``d d^T`` joins the covariance (every std, the gains'
+and G's, covers it). Each gain on the interior rows is tested likewise against its gain on every
+fitted row (the same G, two-sided): where they differ, the squared difference joins its variance
+(``gains_widened``); where the registration's test fails, a gain whose interior rows carry under
+:data:`EDGE_GAIN_SHARE` of its information is flagged (``gains_unverified``: its std does not hold).
 
 Fit (:func:`fit_registration`). Weighted nonlinear least squares of ``D0[s, j] = g_j G[s,
 j](theta)`` over every finite entry with a positive std (of the subapertures above), theta =
@@ -108,7 +101,8 @@ DC_GAIN_REFERENCE = ("dc_gain is the actuator's static surface per unit command 
                      "(a Gaussian of the fitted coupling, peak 1 at the actuator): 1 is an actuator whose static column is the geometry "
                      "matrix G at the fitted registration (shift, rotation, magnification, coupling) and sensor weighting "
                      "(diffraction_weight)")
-#: the edge test's level (module docstring): below it the covariance takes the two fits' difference
+#: the edge test's level (module docstring): high, since the test has little power at a few 1e-3 of noise and a
+#: missed bias is silent, while a false alarm only widens stds (and says so)
 EDGE_TEST_P = 0.05
 #: an actuator whose interior rows carry less than this share of its gain's information cannot be tested
 EDGE_GAIN_SHARE = 0.1
