@@ -43,10 +43,10 @@ magnification by 15 of its stds at a reduced chi2 of 1.3. So the registration is
 the :func:`interior` subapertures (at least :data:`EDGE_TEST_MIN_INTERIOR`) and the two fits'
 difference ``d`` is tested against ``cov_interior - cov`` (Hausman; chi2 over its rank). At ``p <``
 :data:`EDGE_TEST_P` the measured model error ``d d^T`` joins the covariance (every std, the gains'
-and G's, covers it). Each gain on the interior rows is tested likewise against its gain on every
-fitted row (the same G, two-sided): where they differ, the squared difference joins its variance
-(``gains_widened``); where the registration's test fails, a gain whose interior rows carry under
-:data:`EDGE_GAIN_SHARE` of its information is flagged (``gains_unverified``: its std does not hold).
+and G's, covers it), and each gain whose interior rows carry at least :data:`EDGE_GAIN_SHARE` of
+its information is tested likewise, on the interior rows against every fitted row (the same G,
+two-sided): where they differ, the squared difference joins its variance (``gains_widened``); the
+other gains cannot be checked so and are flagged (``gains_unverified``: their stds do not hold).
 
 Fit (:func:`fit_registration`). Weighted nonlinear least squares of ``D0[s, j] = g_j G[s,
 j](theta)`` over every finite entry with a positive std (of the subapertures above), theta =
@@ -104,7 +104,7 @@ DC_GAIN_REFERENCE = ("dc_gain is the actuator's static surface per unit command 
 #: the edge test's level (module docstring): high, since the test has little power at a few 1e-3 of noise and a
 #: missed bias is silent, while a false alarm only widens stds (and says so)
 EDGE_TEST_P = 0.05
-#: an actuator whose interior rows carry less than this share of its gain's information cannot be tested
+#: a gain whose interior rows carry less than this share of its information cannot be tested (module docstring)
 EDGE_GAIN_SHARE = 0.1
 #: the fewest interior subapertures the edge test runs on
 EDGE_TEST_MIN_INTERIOR = 4
@@ -447,8 +447,9 @@ def _edge_test(fit, D0, D0_std, full, coupling, wfs, N) -> RegistrationFit:
     g_in = (A * B * rows).sum(0) / np.where(a_in > 0, a_in, 1.0)
     dg = np.where(a_in > 0, fit.gain - g_in, 0.0)
     z = dg / np.sqrt(np.maximum(1 / np.where(a_in > 0, a_in, 1.0) - 1 / np.maximum(a_all, 1e-300), 1e-300))
-    widen_g = np.isfinite(fit.gain) & (a_in > 0) & (np.abs(z) > stats.norm.isf(EDGE_TEST_P / 2))
-    unverified = np.isfinite(fit.gain) & (a_in < EDGE_GAIN_SHARE * a_all) & (p < EDGE_TEST_P)
+    checkable = np.isfinite(fit.gain) & (a_in >= EDGE_GAIN_SHARE * a_all) & (p < EDGE_TEST_P)
+    widen_g = checkable & (np.abs(z) > stats.norm.isf(EDGE_TEST_P / 2))
+    unverified = np.isfinite(fit.gain) & ~checkable & (p < EDGE_TEST_P)
     test = {"n_interior": int(inner.sum()), "chi2": chi2, "dof": int(keep.sum()), "p": p, "widened": p < EDGE_TEST_P,
             "difference": dict(zip(("shift_x", "shift_y", "rotation_rad", "magnification", "influence_width", "diffraction_weight"),
                                    d.tolist())), "gains_widened": np.flatnonzero(widen_g).tolist(),
