@@ -8,8 +8,9 @@ import pytest
 from torchblur.dm.actuator_fit import fit_actuators
 from torchblur.dm.mirror import DeformableMirror
 from torchblur.dm.plans import sparse_plan
-from torchblur.dm.registration import (Registration, diffraction_quadrature, fit_registration, fully_lit, read_registration_json,
-                                       register_and_refit, registration_model, support_check, write_registration_json)
+from torchblur.dm.registration import (EDGE_TEST_P, Registration, diffraction_quadrature, fit_registration, fully_lit, interior,
+                                       read_registration_json, register_and_refit, registration_model, support_check,
+                                       write_registration_json)
 from torchblur.dm.shack_hartmann import ShackHartmann, lit_rows, mean_slopes
 from torchblur.errors import ConfigError, ParameterError, ShapeError
 
@@ -158,6 +159,7 @@ def test_registration_json_reads_back_and_bad_input(tmp_path):
     doc = read_registration_json(tmp_path / "registration.json")
     assert doc["registration"] == fit.registration and doc["units"]["shift_x"] == "actuator pitch" and doc["units"]["rotation_deg"] == "deg"
     assert doc["std"]["magnification"] == fit.std["magnification"] and "fitted registration" in doc["dc_gain_reference"]
+    assert doc["edge_test"] == fit.edge_test  # None: the small sensor has no interior subaperture
     assert doc["sensor"]["diffraction_weight"] == fit.diffraction_weight and doc["sensor"]["fitted_on"] == fit.fitted_on
     assert doc["std"]["diffraction_weight"] == fit.std["diffraction_weight"]
     raw = json.loads((tmp_path / "registration.json").read_text())
@@ -235,3 +237,26 @@ def test_partly_lit_subapertures_the_model_does_not_describe_are_left_out():
     assert fit.n_entries == 2 * int(lit.sum()) * 12 and fit.reduced_chi2 < 1.5 and "fails the model rule" not in fit.line()
     assert abs(r.shift_x - 0.25) < 0.02 and abs(r.shift_y + 0.25) < 0.02 and abs(r.rotation_deg - 1.5) < 0.1
     assert abs(r.magnification - 1.03) < 0.003 and fit.G.shape == G.shape
+
+
+def test_edge_subapertures_that_disagree_widen_the_stds(tmp_path):
+    """Subapertures at the pupil's edge that see the mirror otherwise than the interior ones (here
+    0.6 % more magnified, as one-sided lenslet crosstalk does on HCIPy's D0) bias the fit while its
+    reduced chi2 passes the model rule: the edge test (the interior refit's difference) flags it,
+    and the covariance with the difference covers the magnification's error, which the noise's
+    std alone does not."""
+    wfs = ShackHartmann(n_across=6, pupil_diameter=4.8, oversample=4)  # 32 valid, 4 interior
+    mirror = DeformableMirror.build(5, coupling=0.15)  # 21 actuators
+    edge = Registration(shift_x=0.25, shift_y=-0.25, rotation_deg=1.5, magnification=1.036, coupling=0.17)
+    inner = np.tile(interior(wfs), 2)[:, None]
+    G = np.where(inner, wfs.geometry_matrix(mirror, registration=MISREG), wfs.geometry_matrix(mirror, registration=edge))
+    D0, std = _noisy_D0(G, np.ones(21), np.random.default_rng(0), rel=1e-3)
+    fit = fit_registration(D0, std, wfs, mirror.actuator_xy, coupling=0.15)
+    e = fit.edge_test
+    assert fit.ok and fit.reduced_chi2 < 2 and 0 < int(inner.sum()) == 2 * e["n_interior"] and e["widened"] and e["p"] < EDGE_TEST_P
+    err = fit.registration.magnification - 1.03
+    noise_only = math.sqrt(fit.cov[3, 3] - e["difference"]["magnification"] ** 2)
+    assert abs(err) / noise_only > 5 and abs(err) / fit.std["magnification"] < 2
+    assert "edge subapertures disagree" in fit.line() and np.all(fit.gain_var_registration > 0)
+    write_registration_json(tmp_path / "registration.json", fit)
+    assert read_registration_json(tmp_path / "registration.json")["edge_test"] == fit.edge_test
