@@ -57,7 +57,7 @@ def _tb(*args):
 
 CLAIMS = [
     Claim("quick start: the default run's time", "README.md",
-          r"`report\.txt` \(about " + NUM + r" s on 2 cores",
+          r"`report\.txt` \(about " + NUM + r" s of acquisition and fitting on 2 cores",
           _tb("identify", "--out", "{out}"), r"elapsed " + NUM + r" s \(", rtol=(0.75,),  # a machine's load: within 4x
           source="torchblur identify --out runs/default (report.txt: elapsed)"),
     Claim("quick start: the PSF the default run chooses", "README.md",
