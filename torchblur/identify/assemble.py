@@ -357,11 +357,7 @@ def resolve_single_exposure(frf: FrequencyResponse, alias_phase, single, *, axis
             for oo in np.flatnonzero(lead[:, i] == o):
                 take[oo, i] = took & one[oo, i] & ok[oo, i]
                 undecided[oo, i] = (und | ~ok[o, i]) & one[oo, i] & ok[oo, i]  # a lead point not judged: its follower neither
-    resp = np.where(take, frf.magnitude * np.exp(1j * al), frf.response)
-    cov = np.array(frf.cov)
-    cov[take, 0, 1] *= -1
-    cov[take, 1, 0] *= -1
-    return frf.replace(response=resp, cov=cov, flags=np.asarray(frf.flags) | np.where(undecided, ALIAS, 0))
+    return frf.with_branch(take, al).replace(flags=np.asarray(frf.flags) | np.where(undecided, ALIAS, 0))
 
 
 def _with_model(frf, o: int, i: int, took, undecided, other, ok):
@@ -370,10 +366,7 @@ def _with_model(frf, o: int, i: int, took, undecided, other, ok):
     branch continuity chose (``took``: ``other``, the second candidate)."""
     if not undecided.any():
         return took, undecided
-    h, cov = frf.response[o, i], np.array(frf.cov[o, i])
-    cov[took, 0, 1] *= -1
-    cov[took, 1, 0] *= -1
-    ch = FrequencyResponse(frf.omega, np.where(ok, np.where(took, np.abs(h) * np.exp(1j * other), h), np.nan), cov=cov)
+    ch = FrequencyResponse(frf.omega, np.where(ok, frf.response[o, i], np.nan), cov=frf.cov[o, i]).with_branch(took, other)
     new, und = model_branches(ch, np.where(took, frf.phase[o, i], other), undecided)
     flipped = np.abs(np.angle(new.response[0, 0] * np.conj(ch.response[0, 0]))) > 1e-12
     return took ^ (flipped & ok), und

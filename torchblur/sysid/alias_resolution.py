@@ -77,10 +77,7 @@ def model_branches(frf, other_phase, undecided, *, max_order: int = 6, z_in: flo
         if not sure.any():
             break
         flip = sure & near
-        cov = np.array(frf.cov)
-        cov[0, 0, flip, 0, 1] *= -1
-        cov[0, 0, flip, 1, 0] *= -1
-        frf = frf.replace(response=np.where(flip, np.abs(h) * np.exp(1j * other), h)[None, None], cov=cov)
+        frf = frf.with_branch(flip, other)
         other = np.where(flip, np.angle(h), other)
         und &= ~sure
     return frf, und

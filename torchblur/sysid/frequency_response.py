@@ -328,6 +328,19 @@ class FrequencyResponse:
         omega, response = args.pop("omega"), args.pop("response")
         return FrequencyResponse(omega, response, **args)
 
+    def with_branch(self, take, phase) -> "FrequencyResponse":
+        """A copy with the points ``take`` (bool, broadcastable to ``[O, I, F]``) on the phase
+        ``phase`` (rad, broadcastable likewise; e.g. a single exposure's alias branch), their
+        magnitude kept and the sign of their magnitude-phase covariance turned (the phase's
+        direction is reversed on that branch); everything else kept."""
+        shape = self._response.shape
+        t = np.broadcast_to(np.asarray(take, dtype=bool), shape)
+        ph = np.broadcast_to(np.asarray(phase, dtype=np.float64), shape)
+        cov = np.array(self._cov)
+        cov[t, 0, 1] *= -1
+        cov[t, 1, 0] *= -1
+        return self.replace(response=np.where(t, np.abs(self._response) * np.exp(1j * ph), self._response), cov=cov)
+
     def select_outputs(self, keep) -> "FrequencyResponse":
         """The outputs where ``keep`` (bool [O]) is True, every per-point array (response,
         cov, flags, reduced chi2) and the labels with them."""
