@@ -94,3 +94,17 @@ def run_python(code: str, started, *, timeout_s: float = 600) -> subprocess.Comp
                timeout_s=timeout_s)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return proc
+
+
+def started_fleet(procs: dict) -> dict:
+    """``procs`` ``{name: emulator process}`` once each has printed its start line (``.info`` waits
+    for it): a module's BACKGROUND_JOB that starts its emulators at once, their start-ups overlapping."""
+    for p in procs.values():
+        p.info  # noqa: B018 - waits for its start line
+    return procs
+
+
+def stop_fleet(procs: dict) -> None:
+    """Stop every emulator of ``procs`` (a module fixture's teardown)."""
+    for p in procs.values():
+        p.stop()

@@ -13,8 +13,10 @@ import tty
 
 import numpy as np
 import pytest
+
 import torch
 
+from background import started_fleet, stop_fleet
 from torchblur.errors import ConfigError, ParameterError, ShapeError
 from torchblur.hardware.controller import Controller
 from torchblur.hardware.errors import AcquisitionStopped, DeviceError, PatternMismatch
@@ -65,10 +67,7 @@ def BACKGROUND_JOB(out, started):
     (they exit with this process if the module's tests never stop them)."""
     p = out / "small_dm.yaml"
     p.write_text(SMALL_YAML)
-    emus = {"frames": DMEmulator(p), "run": DMEmulator(p)}
-    for e in emus.values():
-        e.info  # noqa: B018 - waits for its start line
-    return p, emus
+    return p, started_fleet({"frames": DMEmulator(p), "run": DMEmulator(p)})
 
 
 @pytest.fixture(scope="module")
@@ -81,8 +80,7 @@ def emulators(background, request):
     """The two DM emulators of :func:`BACKGROUND_JOB`."""
     emus = background.get(request.module.__name__)[1]
     yield emus
-    for e in emus.values():
-        e.stop()
+    stop_fleet(emus)
 
 
 def serial_cfg(config_path, emu, *extra):

@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+
+from background import started_fleet, stop_fleet
 from torchblur import cli
 from torchblur.config import load_config
 from torchblur.hardware import AcquisitionStopped, Experiment
@@ -96,10 +98,7 @@ def BACKGROUND_JOB(out, started):
     """Every emulator of this module started at once (their start-up overlaps), in the background as soon as
     the module is collected (tests/background.py), their start lines read -> ``{name: Emu}``. They exit with
     this process (``exit_with_parent``) if the module's tests never run."""
-    emus = {name: Emu(*keys) for name, keys in FLEET.items()}
-    for e in emus.values():
-        e.info  # noqa: B018 - waits for its start line
-    return emus
+    return started_fleet({name: Emu(*keys) for name, keys in FLEET.items()})
 
 
 @pytest.fixture(scope="module")
@@ -107,8 +106,7 @@ def fleet(background, request):
     """Every emulator of this module, started in the background (:func:`BACKGROUND_JOB`)."""
     emus = background.get(request.module.__name__)
     yield emus
-    for e in emus.values():
-        e.stop()
+    stop_fleet(emus)
 
 
 def sweep_key(ln):

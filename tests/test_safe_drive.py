@@ -7,8 +7,10 @@ import math
 
 import numpy as np
 import pytest
+
 import torch
 
+from background import started_fleet, stop_fleet
 from torchblur.errors import ConfigError, ParameterError
 from torchblur.fit.status import NO_MOTION
 from torchblur.hardware.errors import RecordingError
@@ -242,10 +244,7 @@ def BACKGROUND_JOB(out, started):
     (tests/background.py), their start lines read -> ``{name: Emu}`` (they exit with this process)."""
     from test_hardware_emulator import Emu
 
-    emus = {"range": Emu("plant.input_limit=3"), "old": Emu("range_query=false")}
-    for e in emus.values():
-        e.info  # noqa: B018 - waits for its start line
-    return emus
+    return started_fleet({"range": Emu("plant.input_limit=3"), "old": Emu("range_query=false")})
 
 
 @pytest.fixture(scope="module")
@@ -253,8 +252,7 @@ def emulators(background, request):
     """The two emulators of :func:`BACKGROUND_JOB`."""
     emus = background.get(request.module.__name__)
     yield emus
-    for e in emus.values():
-        e.stop()
+    stop_fleet(emus)
 
 
 def test_serial_rig_reads_the_range_and_never_sends_beyond_it(emulators):
