@@ -1,4 +1,4 @@
-"""The DM run's verdict (torchblur/identify/dm_verdict.py): hand-built actuator tables (trustworthy, poor
+"""The DM run's verdict (torchblur/identify/verdict.py): hand-built actuator tables (trustworthy, poor
 fit, failed, dead and weak named but not flagged, failed spot fits under and over the rule), and
 the CLI's exit status and last line on the small DM config (a synthetic run: seconds)."""
 import dataclasses
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from torchblur.dm.actuator_fit import ActuatorTable, fit_actuators, second_order
-from torchblur.identify.dm_verdict import LOST_FRACTION, DMVerdict, dm_verdict, failed_actuators, lost_fraction
+from torchblur.identify.verdict import LOST_FRACTION, DMVerdict, dm_verdict, failed_actuators, lost_fraction
 from torchblur.errors import InputTypeError, ParameterError, ShapeError
 from torchblur.identify.verdict import EXIT_FLAGGED
 
@@ -54,7 +54,7 @@ def test_spot_fits_that_do_not_explain_their_images_make_the_run_untrustworthy()
     camera): every actuator's numbers look fine and their stds are too small. Judged from the
     spot fits' reduced chi2: a stray above fit.poor_fit_chi2 is named, more than 1 % of them fail
     the run."""
-    from torchblur.identify.dm_verdict import POOR_SPOT_FRACTION
+    from torchblur.identify.verdict import POOR_SPOT_FRACTION
 
     table, D = _table()
     rng = np.random.default_rng(0)

@@ -1,7 +1,7 @@
 """A deformable mirror's run written out (``torchblur identify`` and ``torchblur fit`` of a DM
 config or recording): :func:`run_cli` runs it (:func:`torchblur.identify.pipeline.identify` with
 the DM plan) or takes a fitted one, writes ``OUT/dm/`` (:mod:`torchblur.identify.dm_outputs`) and
-``OUT/report.txt`` with the verdict line (:func:`torchblur.identify.dm_verdict.final_verdict`) last.
+``OUT/report.txt`` with the verdict line (:func:`torchblur.identify.verdict.final_verdict`) last.
 """
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from torchblur.dm.registration import DC_GAIN_REFERENCE, support_line, write_reg
 from torchblur.config import config_to_yaml
 from torchblur.identify.dm_outputs import DMEstimate, write_dm_outputs
 from torchblur.identify.dm_plan import DMResult, truth_errors
-from torchblur.identify.dm_verdict import final_verdict
+from torchblur.identify.verdict import final_verdict
 from torchblur.identify.pipeline import identify
 from torchblur.identify.read_outputs import SUMMARY_SCHEMA
 from torchblur.identify.record import collect_log
@@ -54,7 +54,7 @@ def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False, record=None
     """``torchblur identify`` for a DM config: run, recorded in ``OUT/experiment/`` (or in
     ``record``: an Experiment to resume, or a read-only one that ``rig``, its
     :class:`~torchblur.hardware.recording.ReplayRig`, re-fits), then write ``OUT/dm/`` and
-    ``OUT/report.txt``, the verdict line (:func:`torchblur.identify.dm_verdict.final_verdict`) last in both
+    ``OUT/report.txt``, the verdict line (:func:`torchblur.identify.verdict.final_verdict`) last in both
     and on stdout (stderr with ``as_json``, then one JSON summary line on stdout, with
     ``verdict`` and ``trustworthy``). Returns the exit status: the verdict's (0 trustworthy, 4
     actuators flagged); a stopped rig raises to the CLI, which names the recording. ``run``: a
