@@ -144,6 +144,28 @@ def test_many_flagged_are_listed_with_more():
     assert "9 of 9 actuators flagged: 9 poor fit (0, 1, 2, 3, 4, 5, ... 3 more); status 9 ok" in v.line and len(v.details) == 9
 
 
+
+def test_every_plan_has_one_verdict_type_and_a_dm_guard_is_one_more_function(monkeypatch):
+    """One Verdict type for every plan; a DM rule after the actuators' is a guard in DM_GUARDS:
+    final_verdict applies each in order, and a failing one appends its reason, its report line
+    and exit 4 through Verdict.untrusted."""
+    from types import SimpleNamespace
+
+    from torchblur.identify import verdict as verdict_module
+    from torchblur.identify.verdict import ResponseVerdict, Verdict, final_verdict
+
+    table, D = _table()
+    res = SimpleNamespace(plan=SimpleNamespace(n_patterns=16), freq_hz=FREQ, G=np.zeros((S, N)), actuators=table, D=D, n_failed=0,
+                          spot_reduced_chi2=None, mirror=None, support_check=None, registration=None)
+    v = final_verdict(res, 1.5)
+    assert isinstance(v, DMVerdict) and isinstance(v, Verdict) and not issubclass(ResponseVerdict, DMVerdict)
+    assert v.trustworthy and v.line == dm_verdict(table, D=D, n_failed_spot_fits=0, n_spot_problems=PROBLEMS).line
+    guard = lambda v, res: v.untrusted("a new rule fails", "  new rule: why")  # noqa: E731
+    monkeypatch.setattr(verdict_module, "DM_GUARDS", (*verdict_module.DM_GUARDS, guard))
+    g = final_verdict(res, 1.5)
+    assert g.line == v.line + "; a new rule fails" and not g.trustworthy and g.exit_code == EXIT_FLAGGED
+    assert g.details == ("  new rule: why",) and json.loads(json.dumps(g.to_dict()))["details"] == ["  new rule: why"]
+
 def test_bad_arguments_are_named():
     table, D = _table()
     with pytest.raises(ShapeError, match="D: expected"):
