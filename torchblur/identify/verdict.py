@@ -33,18 +33,11 @@ and make the run untrustworthy only through the rule above: :func:`~torchblur.dm
 leaves a failed fit's pattern out, so the data left still give an unbiased ``D`` with honest
 (larger) stds, until the column loses so much that it is no longer measured as planned.
 
-The spot fits themselves (``spot_reduced_chi2``, when given): every spot is fitted with a
-Gaussian PSF from the still frames and the camera's noise model; a fit whose reduced chi2 is
-above ``poor_fit_chi2`` (``fit.poor_fit_chi2``, 1.5) does not explain its images. One such fit in
-a thousand is a stray (a cosmic ray, a hot pixel); more than :data:`POOR_SPOT_FRACTION` of them
-means the model does not describe these spots (a real lenslet's spot is not a Gaussian, a camera
-not in the noise model), every std of the run is too small and the figures may be biased: the
-run is untrustworthy and the line says so.
-
-Then :func:`final_verdict` applies the DM's guards, :data:`DM_GUARDS` (the simulated truth, the
-plan's support, the mirror model's registration): each is a function ``(verdict, result) ->
-verdict`` that calls :meth:`Verdict.untrusted` when its rule fails. A new DM rule is one more
-such function in that tuple.
+The spot fits themselves (``spot_reduced_chi2``, when given): a fit whose reduced chi2 is above
+``poor_fit_chi2`` (``fit.poor_fit_chi2``) does not explain its images. One such fit in a thousand
+is a stray (a cosmic ray, a hot pixel); more than :data:`POOR_SPOT_FRACTION` of them means the
+model does not describe these spots, every std of the run is too small and the figures may be
+biased: the run is untrustworthy and the line says so. Then the DM's guards (:data:`DM_GUARDS`).
 
 Lines::
 
@@ -53,7 +46,6 @@ Lines::
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import asdict, dataclass, replace
 
@@ -384,8 +376,8 @@ def judge_models(model, direct=None, expected=()) -> tuple[tuple, list[str], lis
         # Both explain their data, yet differ beyond their stds: the two-step points were each
         # tested against their images (and fitted with the measured kernel where the still asked
         # for it), the direct model with the Gaussian only: the direct model is the one set aside.
-        dj = (dataclasses.replace(dj[0], passed=False, reason=f"it disagrees with the two-step model beyond "
-                                  f"{DISAGREE_SIGMA:g} combined stds"),)
+        dj = (replace(dj[0], passed=False, reason=f"it disagrees with the two-step model beyond "
+                      f"{DISAGREE_SIGMA:g} combined stds"),)
     missing = tuple(ModelJudgement(name, False, None, None, None, "its fit failed: no model (see the log)")
                     for name, m in (("two-step", model), ("direct", direct)) if name in expected and m is None)
     judged = two + dj + missing
