@@ -47,7 +47,7 @@ import hcipy_sh as hs  # noqa: E402
 import hcipy_sh_rig as hr  # noqa: E402
 
 from torchblur.identify.pipeline import identify  # noqa: E402
-from torchblur.identify.dm_verdict import final_verdict  # noqa: E402
+from torchblur.identify.verdict import final_verdict  # noqa: E402
 from torchblur.config import load_config  # noqa: E402
 
 CASES = {"aligned": hs.SHOptics(),

@@ -334,7 +334,7 @@ def test_the_dm_truth_guard_names_the_actuators():
     dead, makes the run untrustworthy whatever its flags; without a truth nothing changes."""
     from types import SimpleNamespace
 
-    from torchblur.identify.dm_verdict import DMVerdict, truth_disagreement_dm, truth_guard
+    from torchblur.identify.verdict import DMVerdict, truth_disagreement_dm, truth_guard
 
     mirror = SimpleNamespace(dead=np.array([False, True, False, False]), gain=np.array([1.0, 0.0, 1.0, 1.0]),
                              mode_hz=np.full(4, 2000.0), damping=np.full(4, 0.1))

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import torchblur as tb
-from torchblur.identify.dm_verdict import final_verdict
+from torchblur.identify.verdict import final_verdict
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "docs" / "examples"))
 from vendor_dm import EXAMPLE  # noqa: E402  (a 4-actuator mirror, latency given: the smallest DM run)

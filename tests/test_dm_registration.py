@@ -201,7 +201,7 @@ def test_a_mirror_the_model_does_not_describe_is_flagged_by_the_model_rule():
     the model does describe passes and leaves the verdict alone."""
     from dataclasses import replace as dc_replace
 
-    from torchblur.identify.dm_verdict import DMVerdict, registration_guard
+    from torchblur.identify.verdict import DMVerdict, registration_guard
 
     mirror, wfs = _small()
     rng = np.random.default_rng(1)

@@ -1,4 +1,4 @@
-"""The DM run's verdict (torchblur/identify/dm_verdict.py): hand-built actuator tables (trustworthy, poor
+"""The DM run's verdict (torchblur/identify/verdict.py): hand-built actuator tables (trustworthy, poor
 fit, failed, dead and weak named but not flagged, failed spot fits under and over the rule), and
 the CLI's exit status and last line on the small DM config (a synthetic run: seconds)."""
 import dataclasses
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from torchblur.dm.actuator_fit import ActuatorTable, fit_actuators, second_order
-from torchblur.identify.dm_verdict import LOST_FRACTION, DMVerdict, dm_verdict, failed_actuators, lost_fraction
+from torchblur.identify.verdict import LOST_FRACTION, DMVerdict, dm_verdict, failed_actuators, lost_fraction
 from torchblur.errors import InputTypeError, ParameterError, ShapeError
 from torchblur.identify.verdict import EXIT_FLAGGED
 
@@ -54,7 +54,7 @@ def test_spot_fits_that_do_not_explain_their_images_make_the_run_untrustworthy()
     camera): every actuator's numbers look fine and their stds are too small. Judged from the
     spot fits' reduced chi2: a stray above fit.poor_fit_chi2 is named, more than 1 % of them fail
     the run."""
-    from torchblur.identify.dm_verdict import POOR_SPOT_FRACTION
+    from torchblur.identify.verdict import POOR_SPOT_FRACTION
 
     table, D = _table()
     rng = np.random.default_rng(0)
@@ -143,6 +143,28 @@ def test_many_flagged_are_listed_with_more():
     v = dm_verdict(table, D=G[:, :, None] * H[None], n_failed_spot_fits=0, n_spot_problems=1)
     assert "9 of 9 actuators flagged: 9 poor fit (0, 1, 2, 3, 4, 5, ... 3 more); status 9 ok" in v.line and len(v.details) == 9
 
+
+
+def test_every_plan_has_one_verdict_type_and_a_dm_guard_is_one_more_function(monkeypatch):
+    """One Verdict type for every plan; a DM rule after the actuators' is a guard in DM_GUARDS:
+    final_verdict applies each in order, and a failing one appends its reason, its report line
+    and exit 4 through Verdict.untrusted."""
+    from types import SimpleNamespace
+
+    from torchblur.identify import verdict as verdict_module
+    from torchblur.identify.verdict import ResponseVerdict, Verdict, final_verdict
+
+    table, D = _table()
+    res = SimpleNamespace(plan=SimpleNamespace(n_patterns=16), freq_hz=FREQ, G=np.zeros((S, N)), actuators=table, D=D, n_failed=0,
+                          spot_reduced_chi2=None, mirror=None, support_check=None, registration=None)
+    v = final_verdict(res, 1.5)
+    assert isinstance(v, DMVerdict) and isinstance(v, Verdict) and not issubclass(ResponseVerdict, DMVerdict)
+    assert v.trustworthy and v.line == dm_verdict(table, D=D, n_failed_spot_fits=0, n_spot_problems=PROBLEMS).line
+    guard = lambda v, res: v.untrusted("a new rule fails", "  new rule: why")  # noqa: E731
+    monkeypatch.setattr(verdict_module, "DM_GUARDS", (*verdict_module.DM_GUARDS, guard))
+    g = final_verdict(res, 1.5)
+    assert g.line == v.line + "; a new rule fails" and not g.trustworthy and g.exit_code == EXIT_FLAGGED
+    assert g.details == ("  new rule: why",) and json.loads(json.dumps(g.to_dict()))["details"] == ["  new rule: why"]
 
 def test_bad_arguments_are_named():
     table, D = _table()

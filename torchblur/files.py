@@ -19,6 +19,7 @@ importing each other.
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import stat
@@ -105,28 +106,29 @@ def read_bounded(path, limit: int, what: str, *, root=None, error: type[Exceptio
     """
     if root is not None:
         path = resolve_inside(root, os.fspath(path), what, error=error)
-    fd, size = open_regular(path, what, error=error)
-    try:
-        if size > limit:
-            raise error(f"{what}: {size} bytes, larger than the {limit} bytes it may hold; refused")
-        return b"".join(_blocks(fd, limit, what, error))
-    except OSError as exc:
-        raise error(f"{what}: cannot read it ({exc.strerror or type(exc).__name__})") from None
-    finally:
-        os.close(fd)
+    with _opened_blocks(path, limit, what, error) as blocks:
+        return b"".join(blocks)
 
 
 def sha256_bounded(path, limit: int, what: str, *, error: type[Exception] = ParameterError) -> str:
     """The SHA-256 (hex) of the regular file ``path`` of at most ``limit`` bytes, read in blocks
     under the same rule as :func:`read_bounded` (never held whole)."""
+    h = hashlib.sha256()
+    with _opened_blocks(path, limit, what, error) as blocks:
+        for block in blocks:
+            h.update(block)
+    return h.hexdigest()
+
+
+@contextlib.contextmanager
+def _opened_blocks(path, limit: int, what: str, error):
+    """The blocks (:func:`_blocks`) of the regular file ``path``, refused when larger than
+    ``limit``; every failure, reading included, an ``error`` naming ``what``."""
     fd, size = open_regular(path, what, error=error)
     try:
         if size > limit:
             raise error(f"{what}: {size} bytes, larger than the {limit} bytes it may hold; refused")
-        h = hashlib.sha256()
-        for block in _blocks(fd, limit, what, error):
-            h.update(block)
-        return h.hexdigest()
+        yield _blocks(fd, limit, what, error)
     except OSError as exc:
         raise error(f"{what}: cannot read it ({exc.strerror or type(exc).__name__})") from None
     finally:

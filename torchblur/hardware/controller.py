@@ -290,40 +290,33 @@ class Controller:
         amplifier takes, the peak of any waveform on any axis; None for a controller that
         does not know the query (``ERR 1 UNKNOWN``: an older firmware). Raises
         :class:`GarbageReply` for a reply without a finite positive ``amplitude``."""
-        try:
-            r = self.command("RANGE?")
-        except DeviceError as exc:
-            if exc.code == E_UNKNOWN:
-                return None
-            raise
-        try:
-            a = float(r.fields["amplitude"])
-        except (KeyError, ValueError) as exc:
-            raise GarbageReply(f"malformed RANGE reply: {r.fields}") from exc
-        if not (a > 0 and a < float("inf")):
-            raise GarbageReply(f"RANGE reply with an amplitude that is not finite and > 0: {r.fields}")
-        return a
+        return self._positive_query("RANGE", "amplitude", none_ok=False)
 
     def slew_rate(self) -> float | None:
         """``SLEW?`` -> the device's slew-rate limit: the largest |d command / dt| (input units per
         second) its amplifier takes, on any waveform and axis; None for a device without one
         (``rate=none``) or a controller that does not know the query (``ERR 1 UNKNOWN``: an older
         firmware). Raises :class:`GarbageReply` for a reply without a ``rate`` > 0."""
+        return self._positive_query("SLEW", "rate", none_ok=True)
+
+    def _positive_query(self, name: str, key: str, *, none_ok: bool) -> float | None:
+        """``NAME?``'s field ``key``, a finite number > 0; None for a controller that does not know
+        the query (``ERR 1 UNKNOWN``) or, with ``none_ok``, a reply ``key=none``."""
         try:
-            r = self.command("SLEW?")
+            r = self.command(f"{name}?")
         except DeviceError as exc:
             if exc.code == E_UNKNOWN:
                 return None
             raise
-        if r.fields.get("rate") == "none":
+        if none_ok and r.fields.get(key) == "none":
             return None
         try:
-            rate = float(r.fields["rate"])
+            v = float(r.fields[key])
         except (KeyError, ValueError) as exc:
-            raise GarbageReply(f"malformed SLEW reply: {r.fields}") from exc
-        if not (rate > 0 and math.isfinite(rate)):
-            raise GarbageReply(f"SLEW reply with a rate that is not finite and > 0: {r.fields}")
-        return rate
+            raise GarbageReply(f"malformed {name} reply: {r.fields}") from exc
+        if not (v > 0 and math.isfinite(v)):
+            raise GarbageReply(f"{name} reply with {'an' if key[0] in 'aeiou' else 'a'} {key} that is not finite and > 0: {r.fields}")
+        return v
 
     def ping(self, token: str = "p") -> None:
         r = self.command("PING", token)

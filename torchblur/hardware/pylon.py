@@ -71,24 +71,15 @@ def _writable(node) -> bool:
         return False
 
 
-def _readable_value(cam, *names):
-    """The value of the first readable feature among ``names``, else None."""
+def _readable(cam, *names, maximum: bool = False):
+    """The value (with ``maximum``: the largest allowed value) of the first readable feature
+    among ``names``, else None."""
     from pypylon import genicam
 
     for name in names:
         node = cam.GetNodeMap().GetNode(name)
         if node is not None and genicam.IsReadable(node):
-            return node.GetValue()
-    return None
-
-
-def _max_of(cam, *names):
-    from pypylon import genicam
-
-    for name in names:
-        node = cam.GetNodeMap().GetNode(name)
-        if node is not None and genicam.IsReadable(node):
-            return node.GetMax()
+            return node.GetMax() if maximum else node.GetValue()
     return None
 
 
@@ -188,11 +179,11 @@ class PylonCamera(SDKCamera):
     def _camera_info(self) -> CameraInfo:
         cam = self.cam
         info = cam.GetDeviceInfo()
-        rate = _readable_value(cam, "ResultingFrameRate", "BslResultingFrameRate", "ResultingFrameRateAbs")
+        rate = _readable(cam, "ResultingFrameRate", "BslResultingFrameRate", "ResultingFrameRateAbs")
         if rate is None:
-            rate = _max_of(cam, "AcquisitionFrameRate", "AcquisitionFrameRateAbs")
-        max_exposure_us = _max_of(cam, "ExposureTime", "ExposureTimeAbs")
-        readout_us = _readable_value(cam, "SensorReadoutTime")
+            rate = _readable(cam, "AcquisitionFrameRate", "AcquisitionFrameRateAbs", maximum=True)
+        max_exposure_us = _readable(cam, "ExposureTime", "ExposureTimeAbs", maximum=True)
+        readout_us = _readable(cam, "SensorReadoutTime")
         return CameraInfo(
             frame_shape=(int(cam.GetNodeMap().GetNode("Height").GetValue()), int(cam.GetNodeMap().GetNode("Width").GetValue())),
             frame_rate_hz=float(rate) if rate is not None else float("nan"),

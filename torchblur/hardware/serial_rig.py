@@ -53,21 +53,14 @@ def open_frame_source(spec: str) -> FrameSource:
         ConfigError: a malformed ``pylon://`` URL, naming ``rig.frames``.
         HardwareError: the camera cannot be opened (none found, no such serial).
     """
-
     if spec.startswith("tcp://"):
         return EmulatorFrames(spec)
-    if spec.startswith("pylon://"):
-
-        try:
-            return PylonCamera.from_url(spec)
-        except ParameterError as exc:
-            raise ConfigError(f"rig.frames: {spec!r}: {str(exc).removeprefix('url: ')}") from None
-    if spec.startswith("aravis://"):
-
-        try:
-            return AravisCamera.from_url(spec)
-        except ParameterError as exc:
-            raise ConfigError(f"rig.frames: {spec!r}: {str(exc).removeprefix('url: ')}") from None
+    for scheme, camera in (("pylon://", PylonCamera), ("aravis://", AravisCamera)):
+        if spec.startswith(scheme):
+            try:
+                return camera.from_url(spec)
+            except ParameterError as exc:
+                raise ConfigError(f"rig.frames: {spec!r}: {str(exc).removeprefix('url: ')}") from None
     mod, sep, name = spec.partition(":")
     if sep and mod and name and "/" not in spec:
         import importlib

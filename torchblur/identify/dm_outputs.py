@@ -43,7 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from torchblur.dm.actuator_fit import PARAMS, ActuatorTable
-from torchblur.identify.dm_verdict import failed_actuators
+from torchblur.identify.verdict import failed_actuators
 from torchblur.errors import ParameterError, ShapeError
 from torchblur.sysid.frequency_response import FrequencyResponse
 

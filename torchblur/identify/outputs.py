@@ -1,8 +1,9 @@
 """The files and figures an identification run writes (the ``torchblur identify`` and ``fit``
 commands call :func:`write_outputs`): frf.csv, frf.mat, frf.json, model.json (and
-model_two_step.json), bode.png, residuals.png, ptc.png and report.txt (text from
-:mod:`torchblur.identify.report`), the verdict line last. Figures are matplotlib ``Figure``
-objects (:mod:`torchblur.sysid.plots`): the caller's backend is never switched.
+model_two_step.json), bode.png, residuals.png, ptc.png; and report.txt, every plan's, by
+:func:`write_report` (its sections from :mod:`torchblur.identify.report`), the verdict line last.
+Figures are matplotlib ``Figure`` objects (:mod:`torchblur.sysid.plots`): the caller's backend is
+never switched.
 """
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ import torch
 import torchblur as tb
 from torchblur.identify.assemble import mark_limited
 from torchblur.identify.model import model_exclusions
-from torchblur.identify.report import report_text, run_summary, verdict_summary
+from torchblur.identify.report import response_lines, run_summary, verdict_summary
 from torchblur.identify.verdict import verdict
 from torchblur.image.photon_transfer import photon_transfer_figure
 from torchblur.rig.factory import plant_of
@@ -26,16 +27,14 @@ from torchblur.sysid.model_check import inflate
 from torchblur.sysid.plots import bode_figure, residual_figure
 
 __all__ = ["exposure_label", "left_out_points", "write_bode", "write_figures", "write_models", "write_outputs", "write_ptc_figure",
-           "write_residuals"]
+           "write_report", "write_residuals"]
 
 
 def write_outputs(cfg, res, out: Path, elapsed: float, stamp: str, as_json: bool = False, source: str = "run"):
-    """frf.csv, frf.mat, frf.json, model.json, bode.png, residuals.png, report.txt (the verdict
-    its last line); then the report's table (the log lines were shown as they came), what was
-    written and the verdict line, on stdout, or with ``as_json`` on stderr and one JSON summary
-    line (:func:`run_summary`) on stdout. ``source``: "run" (frames acquired now), "re-fit" (of a
-    recording) or "outside" (an outside recording). report.txt is written last: a run whose
-    report.txt is there is finished. Returns the :class:`~torchblur.identify.verdict.Verdict`."""
+    """frf.csv, frf.mat, frf.json, model.json, bode.png, residuals.png, then report.txt and the
+    terminal's lines (:func:`write_report`; the JSON summary: :func:`run_summary`). ``source``:
+    "run" (frames acquired now), "re-fit" (of a recording) or "outside" (an outside recording).
+    Returns the :class:`~torchblur.identify.verdict.ResponseVerdict`."""
     frf = res.frf  # immutable: a copy with the run's stamp and units (the Bode plot's axes) in its meta
     meta = {"output_unit": "px", "input_unit": "input unit", **frf.meta, "torchblur_version": tb.__version__, "seed": int(cfg.seed)}
     frf = res.frf = mark_limited(frf.replace(meta=meta), getattr(res, "limited", None))
@@ -46,15 +45,26 @@ def write_outputs(cfg, res, out: Path, elapsed: float, stamp: str, as_json: bool
     frf.to_json(out / "frf.json")
     write_models(cfg, res, out, v.models)
     write_figures(cfg, res, out, stamp)
-    log, table = report_text(cfg, res, elapsed, stamp, source)
-    (out / "report.txt").write_text(log + table + "\n" + v.line + "\n")
-    human = sys.stderr if as_json else sys.stdout
-    print(table, end="", file=human)
-    print(f"wrote {', '.join(sorted(p.name for p in out.iterdir()))} in {out}", file=human)
-    print(v.line, file=human, flush=True)
-    if as_json:
-        print(json.dumps({**run_summary(res, out, elapsed, cfg.fit.poor_fit_chi2), **verdict_summary(v)}), flush=True)
+    write_report(out, v, stamp=stamp, log=res.log, body=response_lines(cfg, res, elapsed, source), as_json=as_json,
+                 summary={**run_summary(res, out, elapsed, cfg.fit.poor_fit_chi2), **verdict_summary(v)})
     return v
+
+
+def write_report(out: Path, v, *, stamp: str, log, body, summary: dict, as_json: bool = False) -> None:
+    """report.txt of any plan's run: its title (``stamp``), the run's ``log`` (shown on the terminal
+    as it came), the plan's section ``body`` (lines: :func:`~torchblur.identify.report.response_lines`,
+    :func:`~torchblur.identify.report.dm_lines`), the verdict's details and its line last
+    (``v``, a :class:`~torchblur.identify.verdict.Verdict`). Then ``body``, what was written and
+    the details and verdict on stdout, or with ``as_json`` on stderr and the one JSON ``summary``
+    line on stdout. Written after every other output: a run whose report.txt is there is finished."""
+    tail = [*v.details, v.line]
+    (out / "report.txt").write_text("\n".join([f"torchblur identify report ({stamp})", "", *log, *body, "", *tail]) + "\n")
+    human = sys.stderr if as_json else sys.stdout
+    print("\n".join(body), file=human)
+    print(f"wrote {', '.join(sorted(p.name for p in out.iterdir()))} in {out}", file=human)
+    print("\n".join(tail), file=human, flush=True)
+    if as_json:
+        print(json.dumps(summary), flush=True)
 
 
 def _motion_px(res):

@@ -1,8 +1,10 @@
-"""The text a run reports: report.txt (:func:`report_text`: the title and the run's log, then the
-table of points, the errors against the truth with their goals, the fit quality, the models and
-the timing), the ``--json`` summary line (:func:`run_summary` and :func:`verdict_summary`) and
-the fit-quality line (:func:`fit_quality`). Pure functions of a run's result; nothing is written
-here (:mod:`torchblur.identify.outputs` writes the files).
+"""The text a run reports, per plan: report.txt's section (:func:`response_lines` for a sine or
+multisine run: the table of points, the errors against the truth with their goals, the fit
+quality, the models and the timing; :func:`dm_lines` for a DM run: its plan, time, statuses,
+registration and errors against the simulated truth), the ``--json`` summary line
+(:func:`run_summary` and :func:`verdict_summary`; :func:`dm_summary`) and the fit-quality line
+(:func:`fit_quality`). Pure functions of a run's result; :func:`torchblur.identify.outputs.write_report`
+writes report.txt, the same way for every plan.
 """
 from __future__ import annotations
 
@@ -12,22 +14,23 @@ from pathlib import Path
 import numpy as np
 
 import torchblur as tb
+from torchblur.dm.registration import support_line
 from torchblur.fit.status import FLAGS, POOR_FIT_CHI2, STATUS
+from torchblur.identify.dm_plan import truth_errors
 from torchblur.identify.model import model_parameter_lines
 from torchblur.identify.read_outputs import SUMMARY_SCHEMA
 from torchblur.identify.verdict import report_lines
 from torchblur.render.psf import KernelPSF
 from torchblur.sysid.model_check import judge_fit
 
-__all__ = ["fit_quality", "report_text", "run_summary", "verdict_summary"]
+__all__ = ["dm_lines", "dm_summary", "fit_quality", "response_lines", "run_summary", "verdict_summary"]
 
 
-def report_text(cfg, res, elapsed, stamp, source: str = "run") -> tuple[str, str]:
-    """report.txt in two parts: ``(title, table)``: the title and the run's log (shown on the
-    terminal as it came), then the table of points, the errors against the truth, the models
-    and the timing. ``source``: "run", "re-fit" or "outside" (:func:`_timing_lines`)."""
+def response_lines(cfg, res, elapsed: float, source: str = "run") -> list[str]:
+    """A sine or multisine run's section of report.txt (after the run's log, before the verdict):
+    the table of points, the errors against the truth, the models and the timing. ``source``:
+    "run", "re-fit" or "outside" (:func:`_timing_lines`)."""
     frf = res.frf
-    title = "\n".join([f"torchblur identify report ({stamp})", "", *res.log]) + "\n"
     truth = errors = None
     if res.truth is not None:
         truth = res.truth if res.truth.ndim == 3 else res.truth[None, None]
@@ -40,8 +43,43 @@ def report_text(cfg, res, elapsed, stamp, source: str = "run") -> tuple[str, str
         lines += ["", quality]
     lines += ["", *report_lines(frf, cfg)]
     lines += _model_lines(cfg, res.model) + _direct_lines(cfg, getattr(res, "direct_model", None))
-    lines += _timing_lines(cfg, res, elapsed, source)
-    return title, "\n".join(lines) + "\n"
+    return lines + _timing_lines(cfg, res, elapsed, source)
+
+
+def dm_lines(res, elapsed: float) -> list[str]:
+    """A DM run's section of report.txt (a :class:`~torchblur.identify.dm_plan.DMResult`, ``elapsed``
+    s): its plan and frames, the time of each stage, the statuses, the registration and, on the
+    simulated rig, the errors against the truth."""
+    t = res.timing_s
+    lines = ["", f"dm run: {len(res.actuators)} actuators, {res.G.shape[0] // 2} spots, plan {res.plan.kind} ({res.plan.n_patterns} "
+                 f"patterns x {len(res.freq_hz)} frequencies, {res.n_repeats} repeats): {res.n_frames} sweep frames, "
+                 f"{res.plan_info['cost_ratio_to_one_at_a_time']:.3f} of the frames one at a time needs for the same accuracy",
+             f"time: {elapsed:.1f} s (calibration {t['calibration']:.1f} s, acquisition {t['acquisition']:.1f} s, waiting for the "
+             f"fits {t['fit_wait']:.1f} s, estimation {t['estimation']:.1f} s); failed spot fits: {res.n_failed}",
+             "status: " + ", ".join(f"{s} {list(res.actuators.status).count(s)}" for s in ("ok", "weak", "dead"))
+             + f"; {int(np.sum(res.actuators.poor_fit))} poor_fit (stds inflated)"]
+    if res.registration is not None:
+        lines.append(res.registration.line())
+        if support_line(res.support_check):
+            lines.append(support_line(res.support_check))
+    err = truth_errors(res)
+    if err is not None:
+        lines.append(f"against the simulated truth: mode {err['mode_hz_max_rel_error'] * 100:.3f} %, damping "
+                     f"{err['damping_max_rel_error'] * 100:.2f} %, DC gain {err['dc_gain_max_rel_error'] * 100:.3f} % (largest over live "
+                     f"actuators), D0 {err['D0_rms_error_over_max'] * 100:.3f} % rms of its largest element, dead reported dead: "
+                     f"{err['dead_reported_dead']}; rms(error/std) over the live actuators: DC gain {err['dc_gain_rms_z']:.2f}, mode "
+                     f"{err['mode_hz_rms_z']:.2f}, damping {err['damping_rms_z']:.2f}")
+    return lines
+
+
+def dm_summary(res, v, elapsed: float) -> dict:
+    """A DM run's ``--json`` line: its frames, plan, stage times, errors against the simulated
+    truth (null on a real rig) and the verdict ``v`` (a :class:`~torchblur.identify.verdict.DMVerdict`)."""
+    return {"schema": SUMMARY_SCHEMA[0], "schema_version": SUMMARY_SCHEMA[1][-1], "elapsed_s": elapsed, "frames": res.n_frames,
+            "plan": res.plan.kind, "timing_s": res.timing_s, "truth_errors": truth_errors(res), "verdict": v.line,
+            "trustworthy": v.trustworthy, "actuator_flags": {"poor_fit": list(v.poor_fit), "failed": list(v.failed)},
+            "failed_spot_fits": v.failed_spot_fits, "spot_problems": v.spot_problems, "poor_spot_fits": v.poor_spot_fits,
+            "spot_model_fails": v.spot_model_fails, "beyond_truth": None if v.beyond_truth is None else list(v.beyond_truth)}
 
 
 def _point_lines(frf, errors) -> list[str]:
