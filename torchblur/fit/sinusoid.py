@@ -29,13 +29,12 @@ from torchblur.fit.results import SinusoidFit, put_items
 from torchblur.fit.robust import impulses, inpaint, plane_fit, plane_image, robust_scale
 from torchblur.fit.sine_model import ParamLayout, SineModel, sine_model
 from torchblur.render.alias import alias_phase as _alias_phase
-from torchblur.render.alias import canonical_sines
+from torchblur.render.alias import MIN_SEPARATION, alias_separation, canonical_sines, wrap_phase
 from torchblur.render.blur import RenderSettings, panel_count, render_blur
 from torchblur.render.camera import CameraNoise
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.trajectory import Sinusoid
 from torchblur.render.window import ExposureWindow
-from torchblur.render.alias import MIN_SEPARATION, alias_separation
 
 from torchblur.fit.status import (  # noqa: F401  (re-exported: torchblur.fit.sinusoid.STATUS, ...)
     DARK, FLAGS, MASKED, NO_MOTION, NO_PIXELS, NOT_CONVERGED, OUT_OF_FRAME, OUTLIERS_MASKED, PARTLY_OUT_OF_FRAME, SATURATED_MASKED,
@@ -243,7 +242,8 @@ def _resolve_alias(model: SineModel, problem: SineProblem, layout: ParamLayout, 
                    reuse: bool) -> None:
     """Set ``sol.alias`` (the other branch of the first exposure) and its cost over every
     exposure; with two or more exposures, where the alias fits better than the consensus
-    start, refit from it (a safety net) and keep the better. Updates ``sol`` in place."""
+    start, refit from it (a safety net) and keep the better; with one, move a fit off the
+    branches' crossing (:func:`_leave_crossing`). Updates ``sol`` in place."""
     N = sol.theta.shape[0]
     ar = torch.arange(N, device=sol.theta.device)
     first = ExposureWindow(problem.start[:, :1], problem.duration[:, :1])
@@ -260,15 +260,53 @@ def _resolve_alias(model: SineModel, problem: SineProblem, layout: ParamLayout, 
 
     sol.alias = alias_of(sol.theta, ar)
     sol.alias_cost = alias_cost(ar)
+    single = alias_separation(problem.omega, ExposureWindow(problem.start, problem.duration)) < MIN_SEPARATION  # [N]
+    _leave_crossing(model, problem, layout, sol, target, weight, o, reuse, alias_of, alias_cost, single)
     if problem.start.shape[-1] < 2:
         return
-    r = ar[problem.live & (sol.alias_cost < sol.cost)]
+    r = ar[problem.live & ~single & (sol.alias_cost < sol.cost)]
+    _keep_better(model, layout, sol, r, sol.alias[r], target, weight, o, reuse, alias_of, alias_cost)
+
+
+#: a single-exposure fit whose every axis' phase lies within this of the branches' crossing (rad)
+#: is refitted from starts this far off it on either side (:func:`_leave_crossing`)
+CROSSING_PROBE_RAD = 0.2
+
+
+def _leave_crossing(model: SineModel, problem: SineProblem, layout: ParamLayout, sol: _Solution, target, weight, o: _FitOptions,
+                    reuse: bool, alias_of, alias_cost, single) -> None:
+    """Items ``single`` (bool ``[N]``: exposures that do not resolve the alias): an item whose phases all lie within :data:`CROSSING_PROBE_RAD` of the
+    branches' crossing ``chi`` (phase = its alias) may sit on the stationary point the image's
+    symmetry about ``chi`` makes (the image's phase derivative vanishes there, so Gauss-Newton
+    stays put; its magnitude is then wrong with a small std). Refit it from ``chi -+
+    CROSSING_PROBE_RAD`` per axis (every sign pattern up to the joint reflection) and keep a lower cost."""
+    n = layout.n_axes
+    ph, al = sol.theta[:, n:2 * n], sol.alias[:, n:2 * n]
+    half = wrap_phase(ph - al) / 2  # phi - chi (the nearer crossing)
+    near = problem.live & single & (half.abs() < CROSSING_PROBE_RAD).all(1)
+    r = torch.nonzero(near).reshape(-1)
     if not r.numel():
         return
-    res = _optimise(model, r, sol.alias[r], target[r], weight[r], o)
+    chi = ph[r] - half[r]
+    slow = replace(o, max_iter=4 * (o.max_iter or 60))  # a flat double well near the crossing: LM takes more steps
+    for k in range(2 ** (n - 1)):
+        signs = torch.tensor([-1.0] + [1.0 if (k >> (a - 1)) & 1 else -1.0 for a in range(1, n)], dtype=ph.dtype, device=ph.device)
+        start = sol.theta[r].clone()
+        start[:, n:2 * n] = wrap_phase(chi + signs * CROSSING_PROBE_RAD)
+        _keep_better(model, layout, sol, r, start, target, weight, slow, reuse, alias_of, alias_cost)
+
+
+def _keep_better(model: SineModel, layout: ParamLayout, sol: _Solution, r, start, target, weight, o: _FitOptions, reuse: bool,
+                 alias_of, alias_cost) -> None:
+    """Refit items ``r`` from ``start [len(r), P]``; where the cost is lower, that solution (and
+    its alias) replaces ``sol``'s, in place."""
+    if not r.numel():
+        return
+    n = layout.n_axes
+    res = _optimise(model, r, start, target[r], weight[r], o)
     better = res.cost < sol.cost[r]
     rb = r[better]
-    if not rb.numel():  # the consensus start was right everywhere
+    if not rb.numel():  # the solution held
         return
     sol.theta[rb] = canonical_sines(res.theta[better], layout.n_axes)
     sol.flipped[rb] = res.theta[better][:, :n] < 0
