@@ -47,7 +47,7 @@ from torchblur.errors import InputTypeError, ParameterError, ShapeError, check_i
 from torchblur.identify.verdict import EXIT_FLAGGED, TRUTH_BOUND, listed
 from torchblur.sysid.model_check import model_chi2_limit, model_fails
 
-__all__ = ["DMVerdict", "dm_verdict", "failed_actuators", "lost_fraction", "run_verdict", "truth_guard", "truth_disagreement_dm", "support_guard", "registration_guard", "final_verdict",
+__all__ = ["DMVerdict", "dm_verdict", "failed_actuators", "lost_fraction", "run_verdict", "truth_guard", "truth_disagreement_dm", "support_guard", "registration_guard", "ladder_guard", "final_verdict",
            "LOST_FRACTION", "POOR_SPOT_FRACTION"]
 
 #: an actuator whose column ``D[:, j, :]`` has more than this fraction of its entries (on its
@@ -308,9 +308,21 @@ def registration_guard(v, reg):
                            f"not trustworthy", trustworthy=False, exit_code=EXIT_FLAGGED, details=(*v.details, line))
 
 
+def ladder_guard(v, n_out: int):
+    """The DM verdict ``v`` saying how many spot fits' motion left the ladder's levels
+    (``dm_plan.spot_model`` ladder: their responses extrapolate the held images), untrustworthy
+    where more than :data:`POOR_SPOT_FRACTION` of the spot fits did; ``v`` where none did."""
+    if not n_out:
+        return v
+    many = n_out > POOR_SPOT_FRACTION * max(v.spot_problems, 1)
+    line = f"{v.line}; {n_out} spot fits' motion left the ladder's levels (extrapolated; raise dm_plan.ladder_reach)"
+    return replace(v, line=line + (": not trustworthy" if many else ""), trustworthy=v.trustworthy and not many,
+                   exit_code=EXIT_FLAGGED if many else v.exit_code)
+
+
 def final_verdict(res, poor_fit_chi2: float):
     """A DM run's verdict with every guard: :func:`run_verdict`, then :func:`truth_guard`,
-    :func:`support_guard` and :func:`registration_guard` (one place for the run, a re-fit and
-    an outside recording)."""
+    :func:`support_guard`, :func:`registration_guard` and :func:`ladder_guard` (one place for the
+    run, a re-fit and an outside recording)."""
     v = truth_guard(run_verdict(res, poor_fit_chi2=poor_fit_chi2), res)
-    return registration_guard(support_guard(v, res.support_check), res.registration)
+    return ladder_guard(registration_guard(support_guard(v, res.support_check), res.registration), getattr(res, "n_out_of_ladder", 0))
