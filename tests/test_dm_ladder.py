@@ -2,7 +2,9 @@
 ``pattern_ladder`` (the simulated rig's, checked before any frame where the config needs it), the
 config keys, and the test of whether a shifted still explains a held spot
 (:func:`torchblur.dm.static_hold.fit_shifted_still`). Small and seeded, CPU."""
+import json
 import math
+import os
 
 import numpy as np
 import pytest
@@ -118,3 +120,70 @@ def test_a_changed_shape_fails_where_a_moved_still_passes():
     assert bool((red[:, 1] > thr).all())  # the wider spot is not a shifted still
     with pytest.raises(ShapeError, match="still"):
         fit_shifted_still(noisy, var, still[0])
+
+
+SLOW = pytest.mark.skipif(not os.environ.get("TORCHBLUR_SLOW"), reason="a whole small DM run with the ladder (~40 s); TORCHBLUR_SLOW=1")
+
+
+@SLOW
+def test_a_ladder_run_is_recorded_refitted_and_exported(tmp_path, capsys):
+    """The small mirror with ``dm_plan.spot_model=ladder`` through ``torchblur identify``: every pattern's
+    ladder is its own recorded group; a re-fit replays them to the same actuators.csv; the recording
+    exported as an outside DM recording (ladder rows) fits to the same actuators.csv through ``torchblur fit``."""
+    from torchblur import cli
+    from torchblur.identify import export_dm_recording
+    from torchblur.identify.dm_outputs import read_actuators_csv
+    from torchblur.identify.dm_outside import read_dm_recording
+
+    run = tmp_path / "run"
+    assert cli.main(["identify", "--out", str(run), "--quiet", *SMALL, "sweep.n=3", "report.figures=false",
+                     "dm_plan.spot_model=ladder", "dm_plan.ladder_frames=8"]) in (0, 4)
+    lines = [json.loads(ln) for ln in (run / "experiment" / "manifest.jsonl").read_text().splitlines()]
+    held = sorted({ln["group"] for ln in lines if ln["kind"] == "dm_ladder"})
+    assert held == [f"dm_ladder/{p:03d}" for p in range(16)]
+    assert all(ln["call_shape"] == [13, 8] and len(ln["args"]["levels"]) == 13 for ln in lines if ln["kind"] == "dm_ladder")
+    report = (run / "report.txt").read_text()
+    assert "dm spot model: ladder of 16 patterns x 13 levels x 8 frames" in report
+    live = (run / "dm" / "actuators.csv").read_text()
+    assert cli.main(["fit", str(run), "--out", str(tmp_path / "refit"), "--quiet"]) in (0, 4)
+    assert (tmp_path / "refit" / "dm" / "actuators.csv").read_text() == live  # the held groups replayed
+    folder = export_dm_recording(run, tmp_path / "outside")
+    rec = read_dm_recording(folder)
+    assert rec.ladder_levels.shape == (16, 13) and rec.ladder_frames[0].shape == (13, 8, 64, 64)
+    assert cli.main(["fit", str(folder), "--out", str(tmp_path / "fit"), "--quiet"]) in (0, 4)
+    a, b = read_actuators_csv(run / "dm" / "actuators.csv"), read_actuators_csv(tmp_path / "fit" / "dm" / "actuators.csv")
+    assert list(a["status"]) == list(b["status"])
+    for col in ("dc_gain", "mode_hz", "damping", "delay_s", "dc_gain_std", "mode_hz_std", "damping_std", "delay_s_std"):
+        np.testing.assert_allclose(b[col], a[col], rtol=1e-8)  # actuators.csv holds 9 significant digits
+
+
+@pytest.mark.parametrize("old,new,error", [
+    (",ladder,0,", ",ladder,7,", r"frames.csv line \d+, column pattern: expected a row of patterns.csv \(0..3\), got 7"),
+    (",ladder,0,", ",ladder,,", r"frames.csv line \d+, column pattern: required for a ladder frame"),
+    (",ladder,0,,0.001,,,1.0,,-1.0\n", ",ladder,0,,0.001,,,1.0,,-0.8333333333333334\n",
+     r"frames.csv line \d+, column level: pattern 0 has \[1, 2\] frames per level; every level"),
+    (",ladder,0,,0.001,,,1.0,,-1.0\n", ",ladder,0,,0.001,,,1.0,,nan\n", r"frames.csv line 13, column level: expected a finite number"),
+])
+def test_bad_ladder_rows_are_refused_naming_line_and_column(tmp_path, old, new, error):
+    """A tiny outside DM recording with ladder rows, edited: each error names frames.csv's line and column."""
+    from torchblur.hardware.errors import RecordingError
+    from torchblur.identify.dm_outside import read_dm_recording, write_dm_recording
+
+    rng = np.random.default_rng(0)
+    P, K, H = 4, 13, 32
+    frames = rng.integers(100, 200, size=(1, P, 2, H, H)).astype(float)  # every frame distinct (a copy is refused)
+    dark, still = rng.integers(95, 105, size=(2, H, H)).astype(float), rng.integers(100, 200, size=(1, H, H)).astype(float)
+    folder = write_dm_recording(tmp_path / "rec", dark=dark, still=still, still_exposure_s=1e-3,
+                                patterns=[[1, 1, 1, 1], [1, -1, 1, -1], [1, 1, -1, -1], [1, -1, -1, 1]], freq_hz=[100.0],
+                                amplitude=[1.0], frames=frames, start_s=np.zeros((1, P, 2)), duration_s=np.tile([3e-3, 8e-3], (1, P, 1)),
+                                camera={"gain_e_per_adu": 1.0}, layout={"dm": {"n_across": 2}, "wfs": {"n_across": 2, "pitch_px": 16.0}},
+                                ladder={"levels": np.tile(np.linspace(-1, 1, K), (P, 1)), "frames": rng.integers(100, 200, size=(P, K, 1, H, H)),
+                                        "exposure_s": 1e-3})
+    rec = read_dm_recording(folder)
+    np.testing.assert_array_equal(rec.ladder_levels, np.tile(np.linspace(-1, 1, K), (P, 1)))
+    assert len(rec.ladder_frames) == P and rec.ladder_frames[2].shape == (K, 1, H, H) and rec.ladder_exposure_s == 1e-3
+    text = (folder / "frames.csv").read_text()
+    assert old in text
+    (folder / "frames.csv").write_text(text.replace(old, new, 1))
+    with pytest.raises(RecordingError, match=error):
+        read_dm_recording(folder)

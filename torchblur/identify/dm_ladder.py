@@ -29,6 +29,7 @@ import math
 import numpy as np
 import torch
 
+from torchblur.dm.ladder_fit import PatternLadder
 from torchblur.dm.static_hold import chi2_threshold, fit_shifted_still
 from torchblur.hardware.recording import ReplayRig
 from torchblur.identify.record import LOGGER, run_stage
@@ -36,7 +37,8 @@ from torchblur.image.dark import subtract_dark
 from torchblur.image.spots import crop_spots, crop_valid
 from torchblur.render.camera import camera_noise_std
 
-__all__ = ["LADDER_KIND", "TEST_KEY", "HoldImages", "hold_exposure", "ladder_key", "ladder_levels", "acquire_holds", "choose_spot_model"]
+__all__ = ["LADDER_KIND", "TEST_KEY", "HoldImages", "hold_exposure", "hold_images", "ladder_key", "ladder_levels", "acquire_holds",
+           "choose_spot_model", "pattern_ladder"]
 
 LADDER_KIND = "dm_ladder"  #: the kind of the static holds' groups
 TEST_KEY = "dm_ladder/test"  #: auto's test: every pattern at its two end levels
@@ -92,13 +94,22 @@ def acquire_holds(rig, exp, keys, patterns, levels, n: int, exposure_s: float, c
         frames = run_stage(exp, keys, LADDER_KIND, rig, lambda r: [hold(r, p) for p in range(P)], labels={"n_patterns": P})
     else:
         frames = [run_stage(exp, keys[p], LADDER_KIND, rig, lambda r, p=p: hold(r, p), labels={"pattern": p}) for p in range(P)]
+    return hold_images(frames, levels, exposure_s, cal, offset, size)
+
+
+def hold_images(frames, levels, exposure_s: float, cal, offset, size, power: float = 1.0) -> HoldImages:
+    """:class:`HoldImages` of held frames (one per pattern ``[K, n, H, W]`` ADU, at ``levels``
+    ``[P, K]``, ``exposure_s`` and laser ``power``): dark subtracted, gain applied, the mean per
+    level per second at power 1 and its variance from the camera noise model, cropped at the spots
+    (``offset`` ``[M, 2]``, ``size``). One function for a live run and an outside recording."""
     imgs, var = [], []
-    for fr in frames:  # [K, n, H, W] ADU
-        e = subtract_dark(fr.to(_F64), cal.dark) * cal.gain
+    for fr in frames:
+        e = subtract_dark(torch.as_tensor(fr, dtype=_F64), cal.dark) * cal.gain
         mean = e.mean(1)
-        imgs.append(crop_spots(mean / exposure_s, offset, size))
-        var.append(crop_spots(camera_noise_std(mean, cal.read_noise_e) ** 2 / (fr.shape[1] * exposure_s**2), offset, size))
-    return HoldImages(torch.stack(imgs), torch.stack(var), torch.as_tensor(levels, dtype=_F64))
+        scale = exposure_s * power
+        imgs.append(crop_spots(mean / scale, offset, size))
+        var.append(crop_spots(camera_noise_std(mean, cal.read_noise_e) ** 2 / (e.shape[1] * scale**2), offset, size))
+    return HoldImages(torch.stack(imgs), torch.stack(var), torch.as_tensor(np.asarray(levels), dtype=_F64))
 
 
 def _still_crops(cal, offset, size):
@@ -156,3 +167,9 @@ def choose_spot_model(cfg, rig, exp, patterns: np.ndarray, G: np.ndarray, cal, o
 def _recorded(exp) -> bool:
     """A re-fit (a :class:`ReplayRig`) replays the holds the recording has."""
     return exp is not None and (exp.has(TEST_KEY) or exp.has(ladder_key(0)))
+
+
+def pattern_ladder(holds: HoldImages, cal, offset, size):
+    """The :class:`~torchblur.dm.ladder_fit.PatternLadder` of ``holds`` with the calibration's still
+    (``cal.still_rate``) cropped like them."""
+    return PatternLadder(levels=holds.levels, images=holds.images, variance=holds.variance, still=crop_spots(cal.still_rate, offset, size))

@@ -49,7 +49,7 @@ from torchblur.hardware.recording import ReplayRig
 from torchblur.hardware.serial_dm_rig import open_dm_rig
 from torchblur.identify.assemble import timing_phase_std
 from torchblur.identify.calibration import MIN_INSIDE, calibrate, check_latency_source
-from torchblur.identify.dm_ladder import choose_spot_model
+from torchblur.identify.dm_ladder import choose_spot_model, pattern_ladder
 from torchblur.config import IdentifyConfig
 from torchblur.identify.dm_record import (SWEEP_KIND, check_recorded_commands, open_recording, recorded_labels, recorded_plan, resume_seed,
                                           same_table, session_info, simulated_frames, sweep_key, table_digest)
@@ -488,8 +488,7 @@ class DMPlan:
         self.spot_model, holds = choose_spot_model(cfg, run.rig, exp, self.plan.patterns, self.G, run.cal, self.offset, self.size,
                                                    self.inside, limit)
         run.timing["calibration"] += time.perf_counter() - t0
-        ladder = None if holds is None else PatternLadder(levels=holds.levels, images=holds.images, variance=holds.variance,
-                                                          still=crop_spots(run.cal.still_rate, self.offset, self.size))
+        ladder = None if holds is None else pattern_ladder(holds, run.cal, self.offset, self.size)
         out = _sweep(cfg, run.rig, self.plan, self.R, self.G, run.cal, self.psf, self.offset, self.size, exp, executor=run.executor,
                      ladder=ladder)
         run.acquisition, (run.timing["acquisition"], run.timing["fit_wait"]) = out[:8], out[8:]
