@@ -122,7 +122,7 @@ def test_a_changed_shape_fails_where_a_moved_still_passes():
         fit_shifted_still(noisy, var, still[0])
 
 
-SLOW = pytest.mark.skipif(not os.environ.get("TORCHBLUR_SLOW"), reason="a whole small DM run with the ladder (~40 s); TORCHBLUR_SLOW=1")
+SLOW = pytest.mark.skipif(not os.environ.get("TORCHBLUR_SLOW"), reason="a whole small DM run with the ladder, a re-fit and an export (35 s alone, 221 s on the shared 2 cores); TORCHBLUR_SLOW=1")
 
 
 @SLOW

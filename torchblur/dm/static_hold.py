@@ -6,7 +6,8 @@ motion. :func:`fit_shifted_still` fits that model to static images of the spots 
 command, :meth:`torchblur.rig.dm_contract.DMRig` ``pattern_ladder``): per image the still ``K``
 (``[M, h, w]``, e-/s) moved by ``(dx, dy)`` px (a Fourier shift on a zero-padded crop) and scaled by
 ``a``, ``model = a K(x - dx, y - dy)``, fitted by Gauss-Newton with the analytic derivatives of the
-shift, weighted by the images' variance plus the still's (shifted and scaled as the model). Where the
+shift, weighted by the images' variance plus the still's (scaled as the model; shifted with it for
+the final chi2). Where the
 spots change shape as they move (a real lenslet under a curved surface), the reduced chi2 rises above
 its noise-only spread, :func:`chi2_threshold`.
 """
@@ -37,16 +38,15 @@ def _shifter(h: int, w: int, pad: int, like: torch.Tensor):
     return fy, fx
 
 
-def _shifted(F, fy, fx, dx, dy, h: int, w: int, pad: int):
-    """The padded image of spectrum ``F`` moved by (``dx``, ``dy``) ``[...]`` and its derivatives
-    along x and y, each cropped back to ``[..., h, w]``."""
-    ph = torch.exp(-2j * math.pi * (fx * dx[..., None, None] + fy * dy[..., None, None]))
-    G = F * ph
-    out = [G, G * (2j * math.pi * fx), G * (2j * math.pi * fy)]  # the image and its d/dx, d/dy
-    return [torch.fft.ifft2(g).real[..., pad:pad + h, pad:pad + w] for g in out]
+def _shifted(F, fy, fx, dx, dy, h: int, w: int, pad: int, derivatives: bool = True):
+    """The padded image of spectrum ``F`` moved by (``dx``, ``dy``) ``[...]`` (and its derivatives
+    along x and y), each cropped back to ``[..., h, w]``."""
+    G = F * torch.exp(-2j * math.pi * fx * dx[..., None, None]) * torch.exp(-2j * math.pi * fy * dy[..., None, None])  # separable
+    out = torch.stack([G, G * (2j * math.pi * fx), G * (2j * math.pi * fy)]) if derivatives else G[None]  # the image, d/dx, d/dy
+    return list(torch.fft.ifft2(out).real[..., pad:pad + h, pad:pad + w])
 
 
-def fit_shifted_still(images, variance, still, still_variance=None, *, mask=None, iterations: int = 12, pad: int = 6):
+def fit_shifted_still(images, variance, still, still_variance=None, *, mask=None, iterations: int = 5, pad: int = 6):
     """The best shifted still per image.
 
     Args:
@@ -86,8 +86,7 @@ def fit_shifted_still(images, variance, still, still_variance=None, *, mask=None
     dx, dy, a = cx - sx, cy - sy, m_img / m_st
     for _ in range(iterations):
         S, Sx, Sy = _shifted(F, fy, fx, dx, dy, h, w, pad)
-        Sv = _shifted(Fv, fy, fx, dx, dy, h, w, pad)[0].clamp_min(0)
-        wgt = torch.where(use, 1.0 / (var + a[..., None, None] ** 2 * Sv).clamp_min(torch.finfo(images.dtype).tiny), 0.0)
+        wgt = torch.where(use, 1.0 / (var + a[..., None, None] ** 2 * sv).clamp_min(torch.finfo(images.dtype).tiny), 0.0)
         r = (data - a[..., None, None] * S) * wgt.sqrt()
         J = torch.stack([-a[..., None, None] * Sx, -a[..., None, None] * Sy, S], -1) * wgt.sqrt()[..., None]  # d model / d (dx, dy, a)
         J = J.flatten(-3, -2)
@@ -95,8 +94,8 @@ def fit_shifted_still(images, variance, still, still_variance=None, *, mask=None
         step = torch.linalg.solve(JtJ + 1e-9 * torch.diag_embed(JtJ.diagonal(dim1=-2, dim2=-1)) + 1e-300 * torch.eye(3, dtype=J.dtype),
                                   (J.transpose(-1, -2) @ r.flatten(-2)[..., None]))[..., 0]
         dx, dy, a = dx + step[..., 0].clamp(-1, 1), dy + step[..., 1].clamp(-1, 1), a + step[..., 2]
-    S = _shifted(F, fy, fx, dx, dy, h, w, pad)[0]
-    Sv = _shifted(Fv, fy, fx, dx, dy, h, w, pad)[0].clamp_min(0)
+    S = _shifted(F, fy, fx, dx, dy, h, w, pad, derivatives=False)[0]
+    Sv = _shifted(Fv, fy, fx, dx, dy, h, w, pad, derivatives=False)[0].clamp_min(0)  # the still's variance, moved as the model
     wgt = torch.where(use, 1.0 / (var + a[..., None, None] ** 2 * Sv).clamp_min(torch.finfo(images.dtype).tiny), 0.0)
     chi2 = ((data - a[..., None, None] * S) ** 2 * wgt).sum((-1, -2))
     n = use.sum((-1, -2))

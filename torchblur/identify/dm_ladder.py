@@ -124,7 +124,7 @@ def _shifted_test(holds: HoldImages, cal, offset, size, inside) -> dict:
     mask = crop_valid((H, W), offset, size) & ~crop_spots(cal.dark.hot_pixels, offset, size)
     b = TEST_BORDER_PX  # the crop's rim left out: there the neighbours' light enters at the test's reach, not this spot's shape
     mask[:, :b], mask[:, -b:], mask[:, :, :b], mask[:, :, -b:] = False, False, False, False
-    red, _, _, dof = fit_shifted_still(holds.images, holds.variance, still, still_var, mask=mask, iterations=6)
+    red, _, _, dof = fit_shifted_still(holds.images, holds.variance, still, still_var, mask=mask)
     red = red[:, :, inside]  # [P, 2, M'] the spots mostly in the frame
     thr = chi2_threshold(dof, red.numel())
     fail = ~(red <= thr)
