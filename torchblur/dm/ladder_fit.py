@@ -40,19 +40,19 @@ positions and motions in px (x = column, y = row), times in s, ``omega`` rad/s.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from scipy.interpolate import CubicSpline
-from torch.func import jvp
 
 from torchblur.dm.spot_fit import SpotFits, chunk_size
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, check_int
 from torchblur.fit.status import (DARK, MASKED, NO_MOTION, NO_PIXELS, NOT_CONVERGED, OUT_OF_FRAME, OUT_OF_LADDER, SINGULAR,
                                   flag_poor_fit)
 from torchblur.optim import levenberg_marquardt
-from torchblur.render.blur import _kernel_fourier, quadrature_nodes
+from torchblur.render.blur import _next_odd_fast, quadrature_nodes
 from torchblur.render.window import ExposureWindow
 
 __all__ = ["PatternLadder", "fit_ladder_problems", "spline_basis", "NODES"]
@@ -130,21 +130,25 @@ def _basis_at(u, knots, coef):
     one, zero = torch.ones_like(d), torch.zeros_like(d)
     pw = torch.stack([d * d * d, d * d, d, one], -1)
     dpw = torch.stack([3 * d * d, 2 * d, one, zero], -1)
-    B = (pw[..., None, :] @ c)[..., 0, :]
-    dB = (dpw[..., None, :] @ c)[..., 0, :]
+    B = (pw[..., None] * c).sum(-2)
+    dB = (dpw[..., None] * c).sum(-2)
     return B.reshape(u.shape + (K,)), dB.reshape(u.shape + (K,))
 
 
 def shift_derivatives(img: torch.Tensor) -> torch.Tensor:
     """``[..., 2, h, w]``: the derivatives of ``img [..., h, w]`` along a shift of it by (dx, dy)
-    px (``d/ds img(x - s)``, Fourier, the crop zero padded by :data:`PAD` px; exact, by forward AD
-    through :func:`~torchblur.render.blur._kernel_fourier`). Linear in ``img`` and antisymmetric
-    (its adjoint is its negative)."""
-    z = torch.zeros(img.shape[:-2] + (1,), dtype=img.dtype, device=img.device)
-    one = torch.ones_like(z)
-    dx = jvp(lambda d: _kernel_fourier(img, d, z, one, pad=PAD), (z,), (one,))[1]
-    dy = jvp(lambda d: _kernel_fourier(img, z, d, one, pad=PAD), (z,), (one,))[1]
-    return torch.stack([dx, dy], -3)
+    px (``d/ds img(x - s)``: ``-i k`` in Fourier space on the grid
+    :func:`~torchblur.render.blur._kernel_fourier` pads to (:data:`PAD` px, odd sizes: no Nyquist
+    bin), so it is that renderer's exact derivative at zero shift). Linear in ``img`` and
+    antisymmetric (its adjoint is its negative)."""
+    h, w = img.shape[-2:]
+    Hp, Wp = _next_odd_fast(h + 2 * PAD), _next_odd_fast(w + 2 * PAD)
+    ph, pw = (Hp - h) // 2, (Wp - w) // 2
+    khat = torch.fft.rfft2(torch.nn.functional.pad(img, (pw, Wp - w - pw, ph, Hp - h - ph)))
+    ky = 2 * math.pi * torch.fft.fftfreq(Hp, dtype=img.dtype, device=img.device)[:, None]
+    kx = 2 * math.pi * torch.fft.rfftfreq(Wp, dtype=img.dtype, device=img.device)
+    out = torch.fft.irfft2(torch.stack([khat * (-1j * kx), khat * (-1j * ky)], -3), s=(Hp, Wp))
+    return out[..., ph:ph + h, pw:pw + w]
 
 
 @dataclass(frozen=True)
@@ -387,15 +391,20 @@ def _fit_chunk(prob: _Problems, ch: _Chunk, b0):
     all_c = torch.arange(c, device=theta.device)
     model, J = jac(theta, all_c)
     Cw, info = torch.linalg.inv_ex(J.transpose(1, 2) @ (W[..., None] * J))
-    for _ in range(BIAS_ITER):  # the ladder noise's bias removed: Gauss-Newton on S - V (:func:`_bias_step`)
-        step = (Cw @ (J.transpose(1, 2) @ (W * (data - model))[..., None]))[..., 0]
-        theta = theta + step + _bias_step(theta, prob, ch, W, Cw)
+    for i in range(BIAS_ITER + 1):  # the ladder noise's bias removed: Gauss-Newton on S - V (:func:`_bias_step`)
+        step = (Cw @ (J.transpose(1, 2) @ (W * (data - model))[..., None]))[..., 0] + _bias_step(theta, prob, ch, W, Cw)
+        if i == BIAS_ITER:
+            break
+        theta = theta + step
         model, J = jac(theta, all_c)
         Cw, info = torch.linalg.inv_ex(J.transpose(1, 2) @ (W[..., None] * J))
     r2 = (data - model).square()
     used = (W > 0).sum(-1).to(theta.dtype)
     dof = (used - N_PAR).clamp_min(1)
     s2 = torch.ones(c, dtype=theta.dtype, device=theta.device) if prob.noise_given else (r2 * W).sum(-1) / dof
+    # converged: the LM's own test, or the step left is below 0.1 std (of the given noise: noiseless data too)
+    left = (step[:, None, :] @ torch.linalg.pinv(Cw) @ step[..., None])[:, 0, 0] / s2
+    converged = res.converged | (left < 1e-2)
     amp, phase, H_t, H_s = _report_jacobians(theta, ch.slope)
     cov_l, var_model = _ladder_covariance(theta, prob, ch, J, W, Cw, H_t, H_s)
     cov = H_t @ (Cw * s2[:, None, None]) @ H_t.transpose(1, 2) + cov_l
@@ -404,7 +413,7 @@ def _fit_chunk(prob: _Problems, ch: _Chunk, b0):
         sig2 = torch.where(W > 0, 1 / W.clamp_min(torch.finfo(W.dtype).tiny), torch.zeros_like(W)) + var_model.reshape(c, -1)
         chi2 = torch.where(W > 0, r2 / sig2, torch.zeros_like(r2)).sum(-1) / dof
     status = torch.zeros(c, dtype=torch.long, device=theta.device)
-    status[~res.converged] = NOT_CONVERGED
+    status[~converged] = NOT_CONVERGED
     d = torch.diagonal(cov, dim1=-2, dim2=-1)
     status[(info != 0) | ~torch.isfinite(cov).flatten(1).all(-1) | (d <= 0).any(-1) | ~torch.isfinite(theta).all(-1)] = SINGULAR
     _, u = _coefficients(theta, prob, ch, all_c)
