@@ -62,6 +62,7 @@ PAD = 6  #: px of zero padding around a crop for its Fourier shift derivatives
 DARK_SNR = 5.0  #: a problem whose data correlate with its still below this many noise stds is DARK
 MAX_ITER = 60
 N_PAR = 6  #: (gc, gs, dx_cos, dx_sin, dy_cos, dy_sin)
+STEP_MAX = 6.0  #: std: a longer correction step is not taken
 BIAS_ITER = 3  #: Gauss-Newton steps on the bias-corrected cost after the fit (:func:`_bias_step`; 3 converge)
 
 
@@ -133,6 +134,25 @@ def _basis_at(u, knots, coef):
     B = (pw[..., None] * c).sum(-2)
     dB = (dpw[..., None] * c).sum(-2)
     return B.reshape(u.shape + (K,)), dB.reshape(u.shape + (K,))
+
+
+def _integrated_basis(u, wb, wd, knots, coef):
+    """``[n, E, A + D, K]``: ``sum_s wb[..., a, s] B(u_s)`` then ``sum_s wd[..., d, s] dB/du(u_s)``
+    at nodes ``u [n, E, S]`` (weights ``wb [n, E, A, S]``, ``wd [n, E, D, S]``; ``knots``, ``coef``
+    as :func:`_basis_at`). Each node's powers of its offset in its interval are summed into that
+    interval's slots first, then one product with the basis's coefficients: no ``[S, 4, K]`` per node."""
+    n, K = knots.shape
+    E, S = u.shape[1:]
+    flat = u.reshape(n, -1)
+    i = (torch.searchsorted(knots, flat.contiguous()) - 1).clamp(0, K - 2)
+    d = (flat - torch.gather(knots, 1, i)).reshape(n, E, 1, S, 1)
+    one, zero = torch.ones_like(d), torch.zeros_like(d)
+    val = torch.cat([wb[..., None] * torch.cat([d * d * d, d * d, d, one], -1),
+                     wd[..., None] * torch.cat([3 * d * d, 2 * d, one, zero], -1)], 2)  # [n, E, A + D, S, 4]
+    slot = (4 * i.reshape(n, E, 1, S, 1) + torch.arange(4, device=u.device)).expand(val.shape)
+    acc = torch.zeros(val.shape[:3] + (4 * (K - 1),), dtype=val.dtype, device=val.device)
+    acc.scatter_add_(-1, slot.reshape(val.shape[:3] + (-1,)), val.reshape(val.shape[:3] + (-1,)))
+    return (acc.reshape(n, -1, 4 * (K - 1)) @ coef.reshape(n, 4 * (K - 1), K)).reshape(acc.shape[:3] + (K,))
 
 
 def shift_derivatives(img: torch.Tensor) -> torch.Tensor:
@@ -263,9 +283,9 @@ def _coefficients(theta, prob: _Problems, ch: _Chunk, idx):
     E = prob.cw.shape[2]
     cw, sw, wq = (t.reshape(-1, E, t.shape[-1])[pf] for t in (prob.cw, prob.sw, prob.wq))  # [n, E, S]
     u = theta[:, 0, None, None] * cw + theta[:, 1, None, None] * sw
-    B, dB = _basis_at(u, prob.knots[pat], prob.coef[pat])  # [n, E, S, K]
-    b0, bc, bs = (torch.stack([wq, wq * cw, wq * sw], 2) @ B).unbind(2)  # [n, E, K]
-    dc, ds, dcc, dcs, dss = (torch.stack([wq * cw, wq * sw, wq * cw * cw, wq * cw * sw, wq * sw * sw], 2) @ dB).unbind(2)
+    b0, bc, bs, dc, ds, dcc, dcs, dss = _integrated_basis(u, torch.stack([wq, wq * cw, wq * sw], 2),
+                                                          torch.stack([wq * cw, wq * sw, wq * cw * cw, wq * cw * sw, wq * sw * sw], 2),
+                                                          prob.knots[pat], prob.coef[pat]).unbind(2)  # [n, E, K] each
     t = [theta[:, i, None, None] for i in range(2, N_PAR)]
     zero = torch.zeros_like(b0)
     rows = [(b0, t[0] * bc + t[1] * bs, t[2] * bc + t[3] * bs),
@@ -391,20 +411,21 @@ def _fit_chunk(prob: _Problems, ch: _Chunk, b0):
     all_c = torch.arange(c, device=theta.device)
     model, J = jac(theta, all_c)
     Cw, info = torch.linalg.inv_ex(J.transpose(1, 2) @ (W[..., None] * J))
+    used = (W > 0).sum(-1).to(theta.dtype)
+    dof = (used - N_PAR).clamp_min(1)
+    s2 = torch.ones(c, dtype=theta.dtype, device=theta.device) if prob.noise_given else ((data - model).square() * W).sum(-1) / dof
+    going = torch.ones(c, dtype=torch.bool, device=theta.device)
     for i in range(BIAS_ITER + 1):  # the ladder noise's bias removed: Gauss-Newton on S - V (:func:`_bias_step`)
         step = (Cw @ (J.transpose(1, 2) @ (W * (data - model))[..., None]))[..., 0] + _bias_step(theta, prob, ch, W, Cw)
+        left = (step[:, None, :] @ torch.linalg.pinv(Cw) @ step[..., None])[:, 0, 0] / s2  # its length^2 in std^2
+        going = going & (left < STEP_MAX ** 2)  # a longer step: the quadratic model does not hold there, the fit is kept
         if i == BIAS_ITER:
             break
-        theta = theta + step
+        theta = theta + step * going[:, None]
         model, J = jac(theta, all_c)
         Cw, info = torch.linalg.inv_ex(J.transpose(1, 2) @ (W[..., None] * J))
     r2 = (data - model).square()
-    used = (W > 0).sum(-1).to(theta.dtype)
-    dof = (used - N_PAR).clamp_min(1)
-    s2 = torch.ones(c, dtype=theta.dtype, device=theta.device) if prob.noise_given else (r2 * W).sum(-1) / dof
-    # converged: the LM's own test, or the step left is below 0.1 std (of the given noise: noiseless data too)
-    left = (step[:, None, :] @ torch.linalg.pinv(Cw) @ step[..., None])[:, 0, 0] / s2
-    converged = res.converged | (left < 1e-2)
+    converged = res.converged | (left < 1e-2)  # the LM's own test, or the step left is below 0.1 std (noiseless data too)
     amp, phase, H_t, H_s = _report_jacobians(theta, ch.slope)
     cov_l, var_model = _ladder_covariance(theta, prob, ch, J, W, Cw, H_t, H_s)
     cov = H_t @ (Cw * s2[:, None, None]) @ H_t.transpose(1, 2) + cov_l
