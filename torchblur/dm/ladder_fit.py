@@ -389,14 +389,38 @@ def _model_noise(C, prob: _Problems, ch: _Chunk, W):
     return var, grad
 
 
-def _bias_step(theta, prob: _Problems, ch: _Chunk, W, Cw):
-    """``dtheta [c, 6]`` that removes the ladder noise's bias to first order in its variance: the
-    least-squares cost's expectation has the term ``V(theta) = sum W var(model)``, which depends
-    on ``theta`` (a trajectory that dwells near few levels has a noisier model; a larger ``delta``
-    draws more of the shift derivatives' noise), so the fit minimises ``S_true + V``; the step
-    ``Cw grad V / 2`` goes to the minimum of ``S_true``."""
-    C, _ = _coefficients(theta, prob, ch, torch.arange(theta.shape[0], device=theta.device))
-    return 0.5 * (Cw @ _model_noise(C, prob, ch, W)[1][..., None])[..., 0]
+def _debias(theta, data, W, s2, prob: _Problems, ch: _Chunk, jac):
+    """The fit with the ladder noise's bias removed to first order in its variance:
+    ``(theta, model, J, Cw = (J^T W J)^-1, info, left)``, ``left`` the squared length (std^2) of
+    the step still to go.
+
+    The least-squares cost ``S`` against a noisy ladder has the expectation ``S_true + V(theta)``,
+    ``V = sum W var(model)`` (:func:`_model_noise`), which depends on ``theta`` (a trajectory that
+    dwells near few levels has a noisier model; a larger ``delta`` draws more of the shift
+    derivatives' noise), so the plain fit is biased. Up to :data:`BIAS_ITER` Gauss-Newton steps
+    on ``S - V`` (``Cw (J^T W r + grad V / 2)``) from the fit, each kept only where it lowers
+    ``S - V`` and is shorter than :data:`STEP_MAX` std; a refused step ends that problem's correction."""
+    c = theta.shape[0]
+    idx = torch.arange(c, device=theta.device)
+
+    def state(th):
+        model, J = jac(th, idx)
+        var, grad = _model_noise(_coefficients(th, prob, ch, idx)[0], prob, ch, W)
+        q = (W * (data - model).square()).sum(-1) - (W * var.reshape(c, -1)).sum(-1)
+        return [th, model, J, q, grad]
+    st = state(theta)
+    going = torch.ones(c, dtype=torch.bool, device=theta.device)
+    for i in range(BIAS_ITER + 1):
+        th, model, J, q, grad = st
+        Cw, info = torch.linalg.inv_ex(J.transpose(1, 2) @ (W[..., None] * J))
+        step = (Cw @ (J.transpose(1, 2) @ (W * (data - model))[..., None] + grad[..., None] / 2))[..., 0]
+        left = (step[:, None, :] @ torch.linalg.pinv(Cw) @ step[..., None])[:, 0, 0] / s2
+        if i == BIAS_ITER or not bool(going.any()):
+            break
+        trial = state(th + step)
+        going = going & (trial[3] <= st[3]) & (left < STEP_MAX ** 2)
+        st = [torch.where(going.reshape((c,) + (1,) * (a.dim() - 1)), a, b) for a, b in zip(trial, st)]
+    return st[0], st[1], st[2], Cw, info, left
 
 
 def _fit_chunk(prob: _Problems, ch: _Chunk, b0):
@@ -409,21 +433,11 @@ def _fit_chunk(prob: _Problems, ch: _Chunk, b0):
                               jacobian_fn=jac, gn_tol=1e-2)
     theta = res.theta
     all_c = torch.arange(c, device=theta.device)
-    model, J = jac(theta, all_c)
-    Cw, info = torch.linalg.inv_ex(J.transpose(1, 2) @ (W[..., None] * J))
+    model = jac(theta, all_c)[0]
     used = (W > 0).sum(-1).to(theta.dtype)
     dof = (used - N_PAR).clamp_min(1)
     s2 = torch.ones(c, dtype=theta.dtype, device=theta.device) if prob.noise_given else ((data - model).square() * W).sum(-1) / dof
-    going = torch.ones(c, dtype=torch.bool, device=theta.device)
-    for i in range(BIAS_ITER + 1):  # the ladder noise's bias removed: Gauss-Newton on S - V (:func:`_bias_step`)
-        step = (Cw @ (J.transpose(1, 2) @ (W * (data - model))[..., None]))[..., 0] + _bias_step(theta, prob, ch, W, Cw)
-        left = (step[:, None, :] @ torch.linalg.pinv(Cw) @ step[..., None])[:, 0, 0] / s2  # its length^2 in std^2
-        going = going & (left < STEP_MAX ** 2)  # a longer step: the quadratic model does not hold there, the fit is kept
-        if i == BIAS_ITER:
-            break
-        theta = theta + step * going[:, None]
-        model, J = jac(theta, all_c)
-        Cw, info = torch.linalg.inv_ex(J.transpose(1, 2) @ (W[..., None] * J))
+    theta, model, J, Cw, info, left = _debias(theta, data, W, s2, prob, ch, jac)
     r2 = (data - model).square()
     converged = res.converged | (left < 1e-2)  # the LM's own test, or the step left is below 0.1 std (noiseless data too)
     amp, phase, H_t, H_s = _report_jacobians(theta, ch.slope)
