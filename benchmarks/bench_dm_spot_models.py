@@ -263,7 +263,10 @@ def summary(name, Y, Yt, chi2, n_pixels, seconds):
     err = Y - Yt
     big = np.abs(Yt) > 0.3 * np.abs(Yt).max(1, keepdims=True)
     rr = err[big] / Yt[big]
-    print(f"  {name:13s} noiseless reduced chi2 median {np.median(chi2) / n_pixels:.4f}; D error rms/max "
+    if np.isnan(err).any():
+        print(f"  {name}: {int(np.isnan(err).sum())} of {err.size} slopes failed (left out below)")
+    err, rr = err[~np.isnan(err)], rr[~np.isnan(rr)]
+    print(f"  {name:13s} noiseless reduced chi2 median {np.nanmedian(chi2) / n_pixels:.4f}; D error rms/max "
           f"{np.sqrt(np.mean(np.abs(err) ** 2)) / np.abs(Yt).max() * 100:.3f} %; large slopes: gain {np.mean(rr.real) * 100:+.3f} %, "
           f"phase {np.mean(rr.imag):+.5f} rad, rms |relative error| {np.sqrt(np.mean(np.abs(rr) ** 2)) * 100:.3f} % ({seconds:.3g} s)", flush=True)
 

@@ -63,6 +63,7 @@ DARK_SNR = 5.0  #: a problem whose data correlate with its still below this many
 MAX_ITER = 60
 N_PAR = 6  #: (gc, gs, dx_cos, dx_sin, dy_cos, dy_sin)
 STEP_MAX = 6.0  #: std: a longer correction step is not taken
+LEFT_MAX = 0.3  #: std: a fit whose Gauss-Newton step left is shorter has converged (the LM crawls along a curved valley)
 BIAS_ITER = 3  #: Gauss-Newton steps on the bias-corrected cost after the fit (:func:`_bias_step`; 3 converge)
 
 
@@ -439,7 +440,7 @@ def _fit_chunk(prob: _Problems, ch: _Chunk, b0):
     s2 = torch.ones(c, dtype=theta.dtype, device=theta.device) if prob.noise_given else ((data - model).square() * W).sum(-1) / dof
     theta, model, J, Cw, info, left = _debias(theta, data, W, s2, prob, ch, jac)
     r2 = (data - model).square()
-    converged = res.converged | (left < 1e-2)  # the LM's own test, or the step left is below 0.1 std (noiseless data too)
+    converged = res.converged | (left < LEFT_MAX ** 2)  # the LM's own test, or the step left is short (noiseless data too)
     amp, phase, H_t, H_s = _report_jacobians(theta, ch.slope)
     cov_l, var_model = _ladder_covariance(theta, prob, ch, J, W, Cw, H_t, H_s)
     cov = H_t @ (Cw * s2[:, None, None]) @ H_t.transpose(1, 2) + cov_l
