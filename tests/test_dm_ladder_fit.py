@@ -76,7 +76,8 @@ def gauss_fit(gauss_case):
 
 def test_gaussian_spots_agree_with_the_shifted_still(gauss_case, gauss_fit):
     """A pure shift: the ladder fit's responses equal the shifted-still fit's (Gaussian PSF) within
-    their stds, its stds about the still fit's, reduced chi2 about 1; float32 gives float64's to 0.05 std."""
+    their stds, its stds about the still fit's, reduced chi2 about 1; unweighted (no noise std) its
+    amplitudes within their stds of the truth; float32 gives float64's to 0.05 std."""
     c, lad = gauss_case, gauss_fit
     ref = fit_spot_problems(c["crops"], c["psf"], c["window"], c["omega"], noise_std=c["ns"])
     assert bool((lad.status == 0).all()) and lad.n_chunks == 1
@@ -88,6 +89,11 @@ def test_gaussian_spots_agree_with_the_shifted_still(gauss_case, gauss_fit):
     ratio = np.sqrt(np.trace(Yc, axis1=-2, axis2=-1) / 2) / std0
     assert 0.9 < np.median(ratio) < 1.6
     assert 0.7 < float(lad.reduced_chi2.median()) < 1.3
+    un = _fit(c, noise_std=None)  # unweighted, one noise std per problem from its residuals
+    assert bool((un.status == 0).all()) and bool(torch.isnan(un.reduced_chi2).all())
+    sa_un = torch.diagonal(un.covariance, dim1=-2, dim2=-1)[..., ::2].sqrt()
+    z_un = (un.amplitude - c["z"].abs()) / sa_un  # against the truth
+    assert float(z_un.square().mean().sqrt()) < 1.5 and float(z_un.abs().max()) < 4.0
     f32 = _fit(c, torch.float32)
     assert f32.amplitude.dtype == torch.float32 and bool((f32.status == 0).all())
     sa = torch.diagonal(lad.covariance, dim1=-2, dim2=-1)[..., ::2].sqrt()

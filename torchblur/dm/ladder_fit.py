@@ -28,7 +28,8 @@ with their covariance in :class:`~torchblur.dm.spot_fit.SpotFits`' order, so
 
 Uncertainty: the data's part ``(J^T W J)^-1`` (with the noise given: unscaled, the reduced chi2
 reported and :data:`~torchblur.fit.status.POOR_FIT_FLAG` above 1.5, as every fit here; without:
-one noise std per problem from its residuals) plus the ladder's own noise, propagated to first
+unweighted, the sandwich ``C J^T diag(r^2) J C`` of each pixel's residual, since shot noise
+differs from pixel to pixel) plus the ladder's own noise, propagated to first
 order through both the fit (``dtheta = -C J^T W dY/dL dL``, the implicit function theorem, as
 :mod:`torchblur.fit.kernel_noise` does for a kernel) and ``s``, every ladder pixel independent
 with its ``variance``. The still's noise (averaged over many more frames than a level) is left
@@ -443,7 +444,12 @@ def _fit_chunk(prob: _Problems, ch: _Chunk, b0):
     converged = res.converged | (left < LEFT_MAX ** 2)  # the LM's own test, or the step left is short (noiseless data too)
     amp, phase, H_t, H_s = _report_jacobians(theta, ch.slope)
     cov_l, var_model = _ladder_covariance(theta, prob, ch, J, W, Cw, H_t, H_s)
-    cov = H_t @ (Cw * s2[:, None, None]) @ H_t.transpose(1, 2) + cov_l
+    if prob.noise_given:
+        cov_d = Cw
+    else:  # the sandwich with each pixel's own squared residual: the noise differs from pixel to pixel (shot noise)
+        WJ = (W * W * r2)[..., None] * J
+        cov_d = Cw @ (J.transpose(1, 2) @ WJ) @ Cw
+    cov = H_t @ cov_d @ H_t.transpose(1, 2) + cov_l
     chi2 = torch.full((c,), float("nan"), dtype=theta.dtype, device=theta.device)
     if prob.noise_given:
         sig2 = torch.where(W > 0, 1 / W.clamp_min(torch.finfo(W.dtype).tiny), torch.zeros_like(W)) + var_model.reshape(c, -1)
@@ -497,7 +503,7 @@ def fit_ladder_problems(crops, ladder: PatternLadder, window, omega, amplitude, 
             where the centroids give none.
         power: the sweep frames' laser power relative to the ladder's, ``[F]`` or a number.
         noise_std: pixel noise std broadcastable to the crops (e.g. the camera noise of the
-            expected signal), or None (unweighted, one std per problem from its residuals;
+            expected signal), or None (unweighted, the covariance from each pixel's residual;
             ``reduced_chi2`` NaN).
         mask: bool broadcastable to the crops (False: excluded), or None.
         chunk: problems per chunk; None: :func:`~torchblur.dm.spot_fit.chunk_size` with the
