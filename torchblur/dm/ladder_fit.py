@@ -28,7 +28,8 @@ with their covariance in :class:`~torchblur.dm.spot_fit.SpotFits`' order, so
 
 Uncertainty: the data's part ``(J^T W J)^-1`` (with the noise given: unscaled, the reduced chi2
 reported and :data:`~torchblur.fit.status.POOR_FIT_FLAG` above 1.5, as every fit here; without:
-one noise std per problem from its residuals) plus the ladder's own noise, propagated to first
+unweighted, the sandwich ``C J^T diag(r^2) J C`` of each pixel's residual, since shot noise
+differs from pixel to pixel) plus the ladder's own noise, propagated to first
 order through both the fit (``dtheta = -C J^T W dY/dL dL``, the implicit function theorem, as
 :mod:`torchblur.fit.kernel_noise` does for a kernel) and ``s``, every ladder pixel independent
 with its ``variance``. The still's noise (averaged over many more frames than a level) is left
@@ -40,19 +41,19 @@ positions and motions in px (x = column, y = row), times in s, ``omega`` rad/s.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from scipy.interpolate import CubicSpline
-from torch.func import jvp
 
 from torchblur.dm.spot_fit import SpotFits, chunk_size
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, check_int
 from torchblur.fit.status import (DARK, MASKED, NO_MOTION, NO_PIXELS, NOT_CONVERGED, OUT_OF_FRAME, OUT_OF_LADDER, SINGULAR,
                                   flag_poor_fit)
 from torchblur.optim import levenberg_marquardt
-from torchblur.render.blur import _kernel_fourier, quadrature_nodes
+from torchblur.render.blur import _next_odd_fast, quadrature_nodes
 from torchblur.render.window import ExposureWindow
 
 __all__ = ["PatternLadder", "fit_ladder_problems", "spline_basis", "NODES"]
@@ -62,6 +63,8 @@ PAD = 6  #: px of zero padding around a crop for its Fourier shift derivatives
 DARK_SNR = 5.0  #: a problem whose data correlate with its still below this many noise stds is DARK
 MAX_ITER = 60
 N_PAR = 6  #: (gc, gs, dx_cos, dx_sin, dy_cos, dy_sin)
+STEP_MAX = 6.0  #: std: a longer correction step is not taken
+LEFT_MAX = 0.3  #: std: a fit whose Gauss-Newton step left is shorter has converged (the LM crawls along a curved valley)
 BIAS_ITER = 3  #: Gauss-Newton steps on the bias-corrected cost after the fit (:func:`_bias_step`; 3 converge)
 
 
@@ -130,21 +133,44 @@ def _basis_at(u, knots, coef):
     one, zero = torch.ones_like(d), torch.zeros_like(d)
     pw = torch.stack([d * d * d, d * d, d, one], -1)
     dpw = torch.stack([3 * d * d, 2 * d, one, zero], -1)
-    B = (pw[..., None, :] @ c)[..., 0, :]
-    dB = (dpw[..., None, :] @ c)[..., 0, :]
+    B = (pw[..., None] * c).sum(-2)
+    dB = (dpw[..., None] * c).sum(-2)
     return B.reshape(u.shape + (K,)), dB.reshape(u.shape + (K,))
+
+
+def _integrated_basis(u, wb, wd, knots, coef):
+    """``[n, E, A + D, K]``: ``sum_s wb[..., a, s] B(u_s)`` then ``sum_s wd[..., d, s] dB/du(u_s)``
+    at nodes ``u [n, E, S]`` (weights ``wb [n, E, A, S]``, ``wd [n, E, D, S]``; ``knots``, ``coef``
+    as :func:`_basis_at`). Each node's powers of its offset in its interval are summed into that
+    interval's slots first, then one product with the basis's coefficients: no ``[S, 4, K]`` per node."""
+    n, K = knots.shape
+    E, S = u.shape[1:]
+    flat = u.reshape(n, -1)
+    i = (torch.searchsorted(knots, flat.contiguous()) - 1).clamp(0, K - 2)
+    d = (flat - torch.gather(knots, 1, i)).reshape(n, E, 1, S, 1)
+    one, zero = torch.ones_like(d), torch.zeros_like(d)
+    val = torch.cat([wb[..., None] * torch.cat([d * d * d, d * d, d, one], -1),
+                     wd[..., None] * torch.cat([3 * d * d, 2 * d, one, zero], -1)], 2)  # [n, E, A + D, S, 4]
+    slot = (4 * i.reshape(n, E, 1, S, 1) + torch.arange(4, device=u.device)).expand(val.shape)
+    acc = torch.zeros(val.shape[:3] + (4 * (K - 1),), dtype=val.dtype, device=val.device)
+    acc.scatter_add_(-1, slot.reshape(val.shape[:3] + (-1,)), val.reshape(val.shape[:3] + (-1,)))
+    return (acc.reshape(n, -1, 4 * (K - 1)) @ coef.reshape(n, 4 * (K - 1), K)).reshape(acc.shape[:3] + (K,))
 
 
 def shift_derivatives(img: torch.Tensor) -> torch.Tensor:
     """``[..., 2, h, w]``: the derivatives of ``img [..., h, w]`` along a shift of it by (dx, dy)
-    px (``d/ds img(x - s)``, Fourier, the crop zero padded by :data:`PAD` px; exact, by forward AD
-    through :func:`~torchblur.render.blur._kernel_fourier`). Linear in ``img`` and antisymmetric
-    (its adjoint is its negative)."""
-    z = torch.zeros(img.shape[:-2] + (1,), dtype=img.dtype, device=img.device)
-    one = torch.ones_like(z)
-    dx = jvp(lambda d: _kernel_fourier(img, d, z, one, pad=PAD), (z,), (one,))[1]
-    dy = jvp(lambda d: _kernel_fourier(img, z, d, one, pad=PAD), (z,), (one,))[1]
-    return torch.stack([dx, dy], -3)
+    px (``d/ds img(x - s)``: ``-i k`` in Fourier space on the grid
+    :func:`~torchblur.render.blur._kernel_fourier` pads to (:data:`PAD` px, odd sizes: no Nyquist
+    bin), so it is that renderer's exact derivative at zero shift). Linear in ``img`` and
+    antisymmetric (its adjoint is its negative)."""
+    h, w = img.shape[-2:]
+    Hp, Wp = _next_odd_fast(h + 2 * PAD), _next_odd_fast(w + 2 * PAD)
+    ph, pw = (Hp - h) // 2, (Wp - w) // 2
+    khat = torch.fft.rfft2(torch.nn.functional.pad(img, (pw, Wp - w - pw, ph, Hp - h - ph)))
+    ky = 2 * math.pi * torch.fft.fftfreq(Hp, dtype=img.dtype, device=img.device)[:, None]
+    kx = 2 * math.pi * torch.fft.rfftfreq(Wp, dtype=img.dtype, device=img.device)
+    out = torch.fft.irfft2(torch.stack([khat * (-1j * kx), khat * (-1j * ky)], -3), s=(Hp, Wp))
+    return out[..., ph:ph + h, pw:pw + w]
 
 
 @dataclass(frozen=True)
@@ -259,9 +285,9 @@ def _coefficients(theta, prob: _Problems, ch: _Chunk, idx):
     E = prob.cw.shape[2]
     cw, sw, wq = (t.reshape(-1, E, t.shape[-1])[pf] for t in (prob.cw, prob.sw, prob.wq))  # [n, E, S]
     u = theta[:, 0, None, None] * cw + theta[:, 1, None, None] * sw
-    B, dB = _basis_at(u, prob.knots[pat], prob.coef[pat])  # [n, E, S, K]
-    b0, bc, bs = (torch.stack([wq, wq * cw, wq * sw], 2) @ B).unbind(2)  # [n, E, K]
-    dc, ds, dcc, dcs, dss = (torch.stack([wq * cw, wq * sw, wq * cw * cw, wq * cw * sw, wq * sw * sw], 2) @ dB).unbind(2)
+    b0, bc, bs, dc, ds, dcc, dcs, dss = _integrated_basis(u, torch.stack([wq, wq * cw, wq * sw], 2),
+                                                          torch.stack([wq * cw, wq * sw, wq * cw * cw, wq * cw * sw, wq * sw * sw], 2),
+                                                          prob.knots[pat], prob.coef[pat]).unbind(2)  # [n, E, K] each
     t = [theta[:, i, None, None] for i in range(2, N_PAR)]
     zero = torch.zeros_like(b0)
     rows = [(b0, t[0] * bc + t[1] * bs, t[2] * bc + t[3] * bs),
@@ -365,14 +391,38 @@ def _model_noise(C, prob: _Problems, ch: _Chunk, W):
     return var, grad
 
 
-def _bias_step(theta, prob: _Problems, ch: _Chunk, W, Cw):
-    """``dtheta [c, 6]`` that removes the ladder noise's bias to first order in its variance: the
-    least-squares cost's expectation has the term ``V(theta) = sum W var(model)``, which depends
-    on ``theta`` (a trajectory that dwells near few levels has a noisier model; a larger ``delta``
-    draws more of the shift derivatives' noise), so the fit minimises ``S_true + V``; the step
-    ``Cw grad V / 2`` goes to the minimum of ``S_true``."""
-    C, _ = _coefficients(theta, prob, ch, torch.arange(theta.shape[0], device=theta.device))
-    return 0.5 * (Cw @ _model_noise(C, prob, ch, W)[1][..., None])[..., 0]
+def _debias(theta, data, W, s2, prob: _Problems, ch: _Chunk, jac):
+    """The fit with the ladder noise's bias removed to first order in its variance:
+    ``(theta, model, J, Cw = (J^T W J)^-1, info, left)``, ``left`` the squared length (std^2) of
+    the step still to go.
+
+    The least-squares cost ``S`` against a noisy ladder has the expectation ``S_true + V(theta)``,
+    ``V = sum W var(model)`` (:func:`_model_noise`), which depends on ``theta`` (a trajectory that
+    dwells near few levels has a noisier model; a larger ``delta`` draws more of the shift
+    derivatives' noise), so the plain fit is biased. Up to :data:`BIAS_ITER` Gauss-Newton steps
+    on ``S - V`` (``Cw (J^T W r + grad V / 2)``) from the fit, each kept only where it lowers
+    ``S - V`` and is shorter than :data:`STEP_MAX` std; a refused step ends that problem's correction."""
+    c = theta.shape[0]
+    idx = torch.arange(c, device=theta.device)
+
+    def state(th):
+        model, J = jac(th, idx)
+        var, grad = _model_noise(_coefficients(th, prob, ch, idx)[0], prob, ch, W)
+        q = (W * (data - model).square()).sum(-1) - (W * var.reshape(c, -1)).sum(-1)
+        return [th, model, J, q, grad]
+    st = state(theta)
+    going = torch.ones(c, dtype=torch.bool, device=theta.device)
+    for i in range(BIAS_ITER + 1):
+        th, model, J, q, grad = st
+        Cw, info = torch.linalg.inv_ex(J.transpose(1, 2) @ (W[..., None] * J))
+        step = (Cw @ (J.transpose(1, 2) @ (W * (data - model))[..., None] + grad[..., None] / 2))[..., 0]
+        left = (step[:, None, :] @ torch.linalg.pinv(Cw) @ step[..., None])[:, 0, 0] / s2
+        if i == BIAS_ITER or not bool(going.any()):
+            break
+        trial = state(th + step)
+        going = going & (trial[3] <= st[3]) & (left < STEP_MAX ** 2)
+        st = [torch.where(going.reshape((c,) + (1,) * (a.dim() - 1)), a, b) for a, b in zip(trial, st)]
+    return st[0], st[1], st[2], Cw, info, left
 
 
 def _fit_chunk(prob: _Problems, ch: _Chunk, b0):
@@ -385,26 +435,27 @@ def _fit_chunk(prob: _Problems, ch: _Chunk, b0):
                               jacobian_fn=jac, gn_tol=1e-2)
     theta = res.theta
     all_c = torch.arange(c, device=theta.device)
-    model, J = jac(theta, all_c)
-    Cw, info = torch.linalg.inv_ex(J.transpose(1, 2) @ (W[..., None] * J))
-    for _ in range(BIAS_ITER):  # the ladder noise's bias removed: Gauss-Newton on S - V (:func:`_bias_step`)
-        step = (Cw @ (J.transpose(1, 2) @ (W * (data - model))[..., None]))[..., 0]
-        theta = theta + step + _bias_step(theta, prob, ch, W, Cw)
-        model, J = jac(theta, all_c)
-        Cw, info = torch.linalg.inv_ex(J.transpose(1, 2) @ (W[..., None] * J))
-    r2 = (data - model).square()
+    model = jac(theta, all_c)[0]
     used = (W > 0).sum(-1).to(theta.dtype)
     dof = (used - N_PAR).clamp_min(1)
-    s2 = torch.ones(c, dtype=theta.dtype, device=theta.device) if prob.noise_given else (r2 * W).sum(-1) / dof
+    s2 = torch.ones(c, dtype=theta.dtype, device=theta.device) if prob.noise_given else ((data - model).square() * W).sum(-1) / dof
+    theta, model, J, Cw, info, left = _debias(theta, data, W, s2, prob, ch, jac)
+    r2 = (data - model).square()
+    converged = res.converged | (left < LEFT_MAX ** 2)  # the LM's own test, or the step left is short (noiseless data too)
     amp, phase, H_t, H_s = _report_jacobians(theta, ch.slope)
     cov_l, var_model = _ladder_covariance(theta, prob, ch, J, W, Cw, H_t, H_s)
-    cov = H_t @ (Cw * s2[:, None, None]) @ H_t.transpose(1, 2) + cov_l
+    if prob.noise_given:
+        cov_d = Cw
+    else:  # the sandwich with each pixel's own squared residual: the noise differs from pixel to pixel (shot noise)
+        WJ = (W * W * r2)[..., None] * J
+        cov_d = Cw @ (J.transpose(1, 2) @ WJ) @ Cw
+    cov = H_t @ cov_d @ H_t.transpose(1, 2) + cov_l
     chi2 = torch.full((c,), float("nan"), dtype=theta.dtype, device=theta.device)
     if prob.noise_given:
         sig2 = torch.where(W > 0, 1 / W.clamp_min(torch.finfo(W.dtype).tiny), torch.zeros_like(W)) + var_model.reshape(c, -1)
         chi2 = torch.where(W > 0, r2 / sig2, torch.zeros_like(r2)).sum(-1) / dof
     status = torch.zeros(c, dtype=torch.long, device=theta.device)
-    status[~res.converged] = NOT_CONVERGED
+    status[~converged] = NOT_CONVERGED
     d = torch.diagonal(cov, dim1=-2, dim2=-1)
     status[(info != 0) | ~torch.isfinite(cov).flatten(1).all(-1) | (d <= 0).any(-1) | ~torch.isfinite(theta).all(-1)] = SINGULAR
     _, u = _coefficients(theta, prob, ch, all_c)
@@ -452,7 +503,7 @@ def fit_ladder_problems(crops, ladder: PatternLadder, window, omega, amplitude, 
             where the centroids give none.
         power: the sweep frames' laser power relative to the ladder's, ``[F]`` or a number.
         noise_std: pixel noise std broadcastable to the crops (e.g. the camera noise of the
-            expected signal), or None (unweighted, one std per problem from its residuals;
+            expected signal), or None (unweighted, the covariance from each pixel's residual;
             ``reduced_chi2`` NaN).
         mask: bool broadcastable to the crops (False: excluded), or None.
         chunk: problems per chunk; None: :func:`~torchblur.dm.spot_fit.chunk_size` with the
