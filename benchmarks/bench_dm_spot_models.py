@@ -24,12 +24,14 @@ scipy's least squares with four models, and the responses compared with the fitt
 - ``ladder+delta``: the ladder plus a small free motion ``delta(t)`` (x and y sinusoids, to first
   order: ``L(u) + delta . dL/dshift(u)``) for the actuators' differing dynamics; the response is
   the ladder's motion plus delta.
+- ``fast``: ``ladder+delta`` by the run's fitter, :func:`torchblur.dm.ladder_fit.fit_ladder_problems`
+  (batched, analytic Jacobian, torch LM), on the same ladder (noiseless: variance 0) and frames.
 
     python benchmarks/bench_dm_spot_models.py [--patterns 1] [--freq 342] [--same-dynamics]
-        [--models base,linear,ladder,ladder+delta] [--spots 0:80]
+        [--models base,linear,ladder,ladder+delta,fast] [--spots 0:80]
 
 Slow (scipy with finite-difference Jacobians, one spot at a time: minutes per model and
-pattern); a model for the run would be batched and analytic.
+pattern); ``fast`` is the batched one (the wall times of one run compare them).
 """
 from __future__ import annotations
 
@@ -52,6 +54,7 @@ import hcipy_sh as hs  # noqa: E402
 
 from torchblur.config import load_config  # noqa: E402
 from torchblur.config.budget import dm_plan  # noqa: E402
+from torchblur.dm.ladder_fit import PatternLadder, fit_ladder_problems  # noqa: E402
 from torchblur.dm.spot_fit import crop_problems, fit_spot_problems, pattern_responses  # noqa: E402
 from torchblur.render.blur import _kernel_fourier  # noqa: E402
 from torchblur.render.camera import camera_noise_std  # noqa: E402
@@ -195,14 +198,77 @@ def fit_ladder(case: Case, p: int, spots, delta: bool):
     return out
 
 
+def fit_fast(case: Case, spots):
+    """``fast`` (module docstring): ``(Y [P, 2S] per unit amplitude, chi2 [P, S])`` of the spots ``spots`` (S of them)."""
+    sp = list(spots)
+    levels = torch.as_tensor(LADDER)[None] * torch.as_tensor(case.amps)[:, None]  # [P, K] input units
+    imgs = torch.stack([case.static(p, LADDER)[:, sp] for p in range(len(case.pats))])  # [P, K, S, h, w] e-/s at the sweep's power
+    ladder = PatternLadder(levels, imgs, torch.zeros_like(imgs), case.kern[sp])
+    crops = case.crops[:, :, sp]
+    t0 = time.perf_counter()
+    fits = fit_ladder_problems(crops, ladder, case.window, torch.tensor([case.om], dtype=_F64), torch.as_tensor(case.amps)[:, None],
+                               power=1.0, noise_std=camera_noise_std(crops, bc.READ_NOISE_E))
+    print(f"  fast: the fit of {crops.shape[0] * crops.shape[2]} problems took {time.perf_counter() - t0:.3f} s (the rest: the static frames)")
+    bad = int((fits.status != 0).sum())
+    if bad:
+        print(f"  fast: {bad} problems failed (status {sorted(set(fits.status.flatten().tolist()))})")
+    Y = pattern_responses(fits, case.amps[:, None])[0][..., 0]
+    return Y, fits.reduced_chi2[:, 0].numpy() * 2 * case.pitch ** 2
+
+
+def fit_noisy(case: Case, spots, draws: int, frames: int, seed: int = 0) -> None:
+    """``--noisy``: ``fast`` on noisy frames: the sweep's crops with Poisson and read noise, a ladder
+    of ``frames`` frames per level (each over the longer exposure: the mean, its variance from the
+    expected signal), a still of 256 such frames; ``draws`` noise draws. Prints rms(error/std) of
+    the pattern responses (the 2 x 2 Mahalanobis length per slope over sqrt 2) against the
+    fitted-shift truth and against the noiseless fit, and the share of the ladder in the variance."""
+    sp = list(spots)
+    rng = np.random.default_rng(seed)
+    T = float(case.window.duration[0, 0, 1])  # the ladder's and the still's exposure (s)
+    levels = torch.as_tensor(LADDER)[None] * torch.as_tensor(case.amps)[:, None]
+    clean_l = torch.stack([case.static(p, LADDER)[:, sp] for p in range(len(case.pats))]) * T  # e- per frame
+    crops = case.crops[:, :, sp]
+    Yt = case.Yt[:, np.concatenate([np.asarray(sp), case.M + np.asarray(sp)])]
+
+    def noisy(e, n):  # the mean of n frames of expected electrons e (Poisson + read noise), and its variance
+        mean = sum(rng.poisson(e.numpy()) + bc.READ_NOISE_E * rng.standard_normal(e.shape) for _ in range(n)) / n
+        return torch.as_tensor(mean), (e + bc.READ_NOISE_E ** 2) / n
+
+    def fit(data, ladder):  # weighted by the camera noise of the expected signal
+        f = fit_ladder_problems(data, ladder, case.window, torch.tensor([case.om], dtype=_F64), torch.as_tensor(case.amps)[:, None],
+                                power=1.0, noise_std=camera_noise_std(crops, bc.READ_NOISE_E))
+        Y, C = pattern_responses(f, case.amps[:, None])
+        return Y[..., 0], C[:, :, 0], f
+    Y0 = fit(crops, PatternLadder(levels, clean_l / T, torch.zeros_like(clean_l), case.kern[sp]))[0]
+    z_t, z_0, chi2 = [], [], []
+    for _ in range(draws):
+        lad, lvar = noisy(clean_l, frames)
+        still = noisy(case.kern[sp] * T, 256)[0] / T
+        Y, C, f = fit(noisy(crops, 1)[0], PatternLadder(levels, lad / T, lvar / T ** 2, still))
+        Ci = np.linalg.inv(C)
+        for ref, out in ((Yt, z_t), (Y0, z_0)):
+            e = np.stack([(Y - ref).real, (Y - ref).imag], -1)
+            out.append(np.einsum("...i,...ij,...j->...", e, Ci, e) / 2)
+        chi2.append(f.reduced_chi2.numpy().ravel())
+    big = np.abs(Yt) > 0.3 * np.abs(Yt).max(1, keepdims=True)
+    z_t, z_0 = np.stack(z_t), np.stack(z_0)
+    print(f"  noisy ({draws} draws, ladder {frames} frame(s) per level of {T * 1e3:.3g} ms, {len(LADDER)} levels; still peak {bc.PEAK_E:g} e-): "
+          f"rms(error/std) against the fitted-shift truth {np.sqrt(np.nanmean(z_t)):.2f} (slopes > 0.3 max: "
+          f"{np.sqrt(np.nanmean(z_t[:, big])):.2f}), against the noiseless fit {np.sqrt(np.nanmean(z_0)):.2f} "
+          f"({np.sqrt(np.nanmean(z_0[:, big])):.2f}); {z_t.size} slopes; reduced chi2 median {np.nanmedian(np.concatenate(chi2)):.3f}", flush=True)
+
+
 def summary(name, Y, Yt, chi2, n_pixels, seconds):
     """One line: noiseless reduced chi2 median, D error rms over max, the mean relative gain and phase errors of the large slopes."""
     err = Y - Yt
     big = np.abs(Yt) > 0.3 * np.abs(Yt).max(1, keepdims=True)
     rr = err[big] / Yt[big]
-    print(f"  {name:13s} noiseless reduced chi2 median {np.median(chi2) / n_pixels:.4f}; D error rms/max "
+    if np.isnan(err).any():
+        print(f"  {name}: {int(np.isnan(err).sum())} of {err.size} slopes failed (left out below)")
+    err, rr = err[~np.isnan(err)], rr[~np.isnan(rr)]
+    print(f"  {name:13s} noiseless reduced chi2 median {np.nanmedian(chi2) / n_pixels:.4f}; D error rms/max "
           f"{np.sqrt(np.mean(np.abs(err) ** 2)) / np.abs(Yt).max() * 100:.3f} %; large slopes: gain {np.mean(rr.real) * 100:+.3f} %, "
-          f"phase {np.mean(rr.imag):+.5f} rad, rms |relative error| {np.sqrt(np.mean(np.abs(rr) ** 2)) * 100:.3f} % ({seconds:.0f} s)", flush=True)
+          f"phase {np.mean(rr.imag):+.5f} rad, rms |relative error| {np.sqrt(np.mean(np.abs(rr) ** 2)) * 100:.3f} % ({seconds:.3g} s)", flush=True)
 
 
 def main(argv=None) -> None:
@@ -212,6 +278,8 @@ def main(argv=None) -> None:
     ap.add_argument("--same-dynamics", action="store_true", help="every actuator 900 Hz, damping 0.08, gain 1, delay 20 us")
     ap.add_argument("--models", default="base,linear,ladder,ladder+delta")
     ap.add_argument("--spots", default="0:80", help="a slice of the 80 spots (start:stop[:step])")
+    ap.add_argument("--noisy", type=int, default=0, help="with the fast model: this many noisy draws (rms(error/std))")
+    ap.add_argument("--ladder-frames", type=int, default=4, help="--noisy: frames per level of the ladder")
     a = ap.parse_args(argv)
     torch.set_num_threads(1)
     t0 = time.perf_counter()
@@ -227,6 +295,12 @@ def main(argv=None) -> None:
         if name == "base":
             Y, chi2 = case.Y0, case.fits.reduced_chi2[:, 0].numpy() * n_pix
             summary(name, Y[:, cols], case.Yt[:, cols], chi2[:, list(spots)], n_pix, time.perf_counter() - t1)
+            continue
+        if name == "fast":
+            Y, chi2 = fit_fast(case, spots)
+            summary(name, Y, case.Yt[:, cols], chi2, n_pix, time.perf_counter() - t1)
+            if a.noisy:
+                fit_noisy(case, spots, a.noisy, a.ladder_frames)
             continue
         Y = np.full((len(case.pats), 2 * case.M), np.nan + 0j)
         chi2 = []

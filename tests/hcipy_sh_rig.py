@@ -1,7 +1,8 @@
 """A user-written DM rig whose frames are HCIPy Shack-Hartmann frames (issue 23).
 
 :class:`HcipyDMRig` implements what torchblur's DM route calls on a rig (``dark``, ``still``,
-``pulse`` for the latency scan, ``pattern_sine``, ``n_actuators``, ``input_limit``, the camera's
+``pulse`` for the latency scan, ``pattern_sine``, ``pattern_ladder`` (static holds), ``n_actuators``,
+``input_limit``, the camera's
 timing) over :class:`hcipy_sh.HcipySH`: the timing, jitter, latency and camera noise (Poisson,
 read noise, ADU rounding, saturation) of torchblur's :class:`~torchblur.rig.simulated.SimulatedRig`
 (a lab's camera model), every image made by HCIPy's optics and the generator's own actuator
@@ -94,6 +95,16 @@ class HcipyDMRig(PatternSines, SimulatedRig):
         meta = {"kind": "pattern_sine", "pattern": p, "freq_hz": freq, "omega": omega, "period_s": period, "amplitude": amp,
                 "settle_s": settle, "power": power, "trigger_delay_s": self._trigger_delay_s, "actual_start_s": window.start}
         return self._capture(expected, exp_t, off_t, trig_t, meta=meta)
+
+    def pattern_ladder(self, pattern, levels, n: int, exposure_s: float, power: float = 1.0) -> Capture:
+        """Frames ``[K, n, H, W]`` (ADU) of the mirror held still at ``levels[k] * pattern``: HCIPy's
+        static intensity at each actuator's DC response to that command (its ``gain``)."""
+        commands = self._ladder_commands(pattern, levels)
+        check_drive(float(np.abs(commands).max()), self._input_limit)
+        power = self._check_power(power)
+        dc = np.real(self.dynamics.response(0.0))  # [N] each actuator's static gain
+        rates = torch.as_tensor(self.gen.intensity(commands * dc[None, :]) * (self._peak_e_per_s * power), dtype=_F64).clamp_min(0.0)
+        return self._hold_capture(rates, n, exposure_s, meta={"kind": "pattern_ladder", "power": power})
 
     def __repr__(self) -> str:
         return f"HcipyDMRig({self.n_actuators} actuators, {self.gen.valid.size} subapertures, {self.gen.optics})"

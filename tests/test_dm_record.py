@@ -60,7 +60,13 @@ def test_recording_layout(live, reference):
     assert len(plan["support"]) == 24 and set("".join(plan["support"])) == {"1"}
     lines = _lines(exp_dir)
     groups = {ln["group"] for ln in lines}
-    assert groups == set(CALIBRATION) | {"dm_sweep/000", "dm_sweep/001", "dm_sweep/002"}
+    assert groups == set(CALIBRATION) | {"dm_sweep/000", "dm_sweep/001", "dm_sweep/002", "dm_ladder/test"}
+    # dm_plan.spot_model auto's test: every pattern held still at its two end levels (4 frames each), its own group
+    gl = [ln for ln in lines if ln["group"] == "dm_ladder/test"]
+    assert len(gl) == 16 * 2 * 4 and {ln["kind"] for ln in gl} == {"dm_ladder"} and {ln["method"] for ln in gl} == {"pattern_ladder"}
+    assert all(ln["call_shape"] == [2, 4] and ln["args"]["pattern"] == res.plan.patterns[ln["call"]].tolist() for ln in gl)
+    assert all(ln["args"]["levels"][1] == -ln["args"]["levels"][0] > 0 and ln["args"]["n"] == 4 for ln in gl)
+    assert res.spot_model == "shifted" and any("dm spot model: shifted (auto" in line for line in res.log)
     for k, f in enumerate(res.freq_hz):
         gl = [ln for ln in lines if ln["group"] == f"dm_sweep/{k:03d}"]
         assert len(gl) == 16 * 2 and {ln["kind"] for ln in gl} == {"dm_sweep"} and {ln["method"] for ln in gl} == {"pattern_sine"}
@@ -83,9 +89,13 @@ def test_estimate_counts_the_frames_the_run_takes(live):
     assert est["sweep_frames"] == 16 * 3 * 2 * 1 == sum(ln["kind"] == "dm_sweep" for ln in lines)
     assert sum(ln["group"] == "dark" for ln in lines) == 256 and sum(ln["group"] == "psf" for ln in lines) == 128
     assert est["frame_px"] == (64, 64)
-    # the plan's patterns, frequencies, exposures and repeats, each counted
+    assert est["hold_frames"] == 16 * 2 * 4 == sum(ln["kind"] == "dm_ladder" for ln in lines)  # spot_model auto's test
+    # the plan's patterns, frequencies, exposures and repeats, each counted (and the holds: patterns x 2 levels x 4 frames)
     more = estimate_run(load_config(None, SMALL + ["sweep.n=5", "dm_plan.n_repeats=3", "dm_plan.kind=one_at_a_time"]))
-    assert more["sweep_frames"] == 9 * 5 * 2 * 3 and more["frames"] - more["sweep_frames"] == est["frames"] - est["sweep_frames"]
+    assert more["sweep_frames"] == 9 * 5 * 2 * 3 and more["hold_frames"] == 9 * 2 * 4
+    assert more["frames"] - more["sweep_frames"] - more["hold_frames"] == est["frames"] - est["sweep_frames"] - est["hold_frames"]
+    ladder = estimate_run(load_config(None, SMALL + ["dm_plan.spot_model=ladder", "dm_plan.ladder_levels=9", "dm_plan.ladder_frames=3"]))
+    assert ladder["hold_frames"] == 16 * 9 * 3 and ladder["frames"] - ladder["hold_frames"] == est["frames"] - est["hold_frames"]
     full = estimate_run(load_config("configs/identify_dm.yaml"))
     assert full["sweep_frames"] == 64 * 16 * 2 * 2 and full["frame_px"] == (160, 160)
 
@@ -102,6 +112,19 @@ def test_refit_gives_the_live_outputs_bit_for_bit(live, tmp_path):
     assert _sha(live / "experiment" / "manifest.jsonl") == before and not (live / "experiment" / "quarantine").exists()
     got = assert_reads_back(live)  # every output of the DM run reads back
     assert got["dm/actuators.csv"]["status"].tolist().count("dead") == 1 and got["dm/frf.json"].input_labels[0] == "a0"
+    edge = json.loads((live / "dm" / "registration.json").read_text())["edge_test"] or {}  # the DC gains its edge test could not verify
+    assert np.flatnonzero(got["dm/actuators.csv"]["dc_gain_unverified"]).tolist() == edge.get("gains_unverified", [])
+
+
+def test_actuators_csv_flags_the_unverified_dc_gains(reference, tmp_path):
+    from torchblur.identify.dm_outputs import DMEstimate, read_actuators_csv, write_dm_outputs
+
+    res = reference
+    write_dm_outputs(tmp_path, DMEstimate(freq_hz=res.freq_hz, D=res.D, D_cov=res.D_cov, table=res.actuators, gains_unverified=(1, 4)),
+                     figures=False)
+    back = read_actuators_csv(tmp_path / "dm" / "actuators.csv")
+    assert back["dc_gain_unverified"].dtype == bool and np.flatnonzero(back["dc_gain_unverified"]).tolist() == [1, 4]
+    np.testing.assert_array_equal(back["poor_fit"], res.actuators.poor_fit)
 
 
 def test_refit_may_change_the_fit_and_the_support_threshold_only(live, tmp_path, capsys):
@@ -185,7 +208,7 @@ def test_crash_then_resume(live, reference, tmp_path, capsys, monkeypatch):
     meta = json.loads((exp_dir / "experiment.json").read_text())
     assert meta["status"] == "stopped" and "ConnectionLost" in meta["sessions"][0]["reason"]
     kept = {ln["group"] for ln in _lines(exp_dir)}
-    assert kept == set(CALIBRATION) | {"dm_sweep/000"}  # the cut frequency is not stored at all
+    assert kept == set(CALIBRATION) | {"dm_ladder/test", "dm_sweep/000"}  # the cut frequency is not stored at all
     # what was stored is what the uninterrupted run stored (same seed, same commands)
     for g in kept:
         name = g.replace("/", "_") + ".tif"
@@ -202,7 +225,7 @@ def test_crash_then_resume(live, reference, tmp_path, capsys, monkeypatch):
     assert "seed=0)" not in meta["sessions"][1]["rig"]["rig"]  # the resumed rig draws its own noise
     lines = _lines(exp_dir)
     by_session = {(ln["group"], ln["session"]) for ln in lines}
-    assert {g for g, s in by_session if s == 1} == {"dm_sweep/001", "dm_sweep/002"}  # only the missing groups taken
+    assert {g for g, s in by_session if s == 1} == {"dm_sweep/001", "dm_sweep/002"}  # only the missing groups taken (the holds reused)
     assert {g: _sha(exp_dir / "frames" / (g.replace("/", "_") + ".tif")) for g in kept} == stored  # nothing rewritten
     assert estimate_run(cfg)["frames"] == len(lines)
 
@@ -274,7 +297,7 @@ def test_ctrl_c_during_the_sweep_leaves_a_resumable_recording(tmp_path):
         identify(cfg, _Interrupted(build_dm(cfg)[2], after=0), record=tmp_path / "experiment", progress=False)
     meta = json.loads((tmp_path / "experiment" / "experiment.json").read_text())
     assert meta["status"] == "interrupted" and meta["dm_plan"]["kind"] == "hadamard"
-    assert {ln["group"] for ln in _lines(tmp_path / "experiment")} == set(CALIBRATION)
+    assert {ln["group"] for ln in _lines(tmp_path / "experiment")} == set(CALIBRATION) | {"dm_ladder/test"}
 
 
 def test_the_truth_only_where_every_frame_is_simulated():

@@ -8,9 +8,11 @@ Two parts:
    stroke in microns, integer error codes instead of exceptions, uint16 frames. So that the
    example runs anywhere, its "hardware" is torchblur's simulated DM (:class:`~torchblur.rig.dm.SimulatedDMRig`);
    nothing of it is visible through the SDK's methods.
-2. :class:`AcmeDMRig`, the part a lab writes: about 80 lines that map the SDK onto the contract
+2. :class:`AcmeDMRig`, the part a lab writes: about 100 lines that map the SDK onto the contract
    (:class:`torchblur.rig.DMRig`): ``dark``, ``still``, ``pattern_sine`` and the camera's
-   properties, error codes turned into torchblur's errors. The mirror has no gated laser, so
+   properties, error codes turned into torchblur's errors; the optional ``pattern_ladder`` (the
+   mirror held still at a ladder of levels: the spot model ``dm_plan.spot_model``) is one more SDK
+   call, ``acme_hold``, before the camera's snapshots. The mirror has no gated laser, so
    the rig has no ``pulse()``: the camera's trigger-to-exposure latency is given instead
    (``camera.latency_s`` and ``camera.latency_std_s``, from the camera's datasheet).
 
@@ -43,7 +45,7 @@ class _Bench:
     """The stand-in's hardware: torchblur's simulated DM rig (hidden from the SDK's user)."""
 
     def __init__(self, sim):
-        self.sim, self.waveform, self.light, self.armed, self.buffer = sim, None, 0.0, None, None
+        self.sim, self.waveform, self.light, self.armed, self.buffer, self.hold = sim, None, 0.0, None, None, None
 
 
 class AcmeMirror:
@@ -66,6 +68,13 @@ class AcmeMirror:
         if max(abs(v) for v in volts) > self.acme_max_volts():
             return ACME_ERR_RANGE
         self._b.waveform = (np.asarray(volts, dtype=float), float(freq_hz))
+        return ACME_OK
+
+    def acme_hold(self, volts: list) -> int:
+        """Hold actuator j still at ``volts[j]`` (all zeros: the mirror flat) until the next call."""
+        if max(abs(v) for v in volts) > self.acme_max_volts():
+            return ACME_ERR_RANGE
+        self._b.hold = np.asarray(volts, dtype=float) if any(volts) else None
         return ACME_OK
 
     def acme_run_triggered(self, trigger_delays_s: list, frames_per_delay: int, settle_s: float | None) -> int:
@@ -108,10 +117,15 @@ class AcmeCamera:
         return ACME_OK
 
     def acme_snap(self, n: int, exposure_us: float):
-        """``n`` free-running frames (the mirror flat): ``(code, frames uint16 [n, H, W])``."""
-        b = self._b
-        cap = b.sim.still(n=n, exposure_s=exposure_us * 1e-6, power=b.light) if b.light > 0 else b.sim.dark(n=n, exposure_s=exposure_us * 1e-6)
-        return ACME_OK, cap.frames.numpy().astype(np.uint16)
+        """``n`` free-running frames (the mirror flat, or as ``acme_hold`` holds it): ``(code, frames uint16 [n, H, W])``."""
+        b, te = self._b, exposure_us * 1e-6
+        if b.light <= 0:
+            cap = b.sim.dark(n=n, exposure_s=te)
+        elif b.hold is not None:
+            cap = b.sim.pattern_ladder(pattern=b.hold, levels=[1.0], n=n, exposure_s=te, power=b.light)
+        else:
+            cap = b.sim.still(n=n, exposure_s=te, power=b.light)
+        return ACME_OK, cap.frames.reshape((n,) + tuple(cap.frames.shape[-2:])).numpy().astype(np.uint16)
 
     def acme_fetch(self):
         """The triggered frames: ``(code, frames uint16 [E, R, H, W], trigger times s [E, R], counters [E, R])``."""
@@ -168,6 +182,23 @@ class AcmeDMRig:
 
     def still(self, n: int, exposure_s: float, power: float = 1.0) -> Capture:
         return self._frames(n, exposure_s, power)
+
+    def pattern_ladder(self, pattern, levels, n: int, exposure_s: float, power: float = 1.0) -> Capture:
+        """The mirror held still at ``levels[k] * pattern`` (volts), ``n`` frames each: frames ``[K, n, H, W]``."""
+        caps = []
+        try:
+            for u in levels:
+                volts = [float(u) * float(p) for p in pattern]
+                if max(abs(v) for v in volts) > self.input_limit:
+                    raise ParameterError(f"levels: a command of {max(abs(v) for v in volts):.4g} V is beyond the mirror's "
+                                         f"+-{self.input_limit:g} V")
+                _ok(self._m.acme_hold(volts), "hold")
+                caps.append(self._frames(n, exposure_s, power))
+        finally:
+            self._m.acme_hold([0.0] * self.n_actuators)  # the mirror flat again
+        return Capture(frames=torch.stack([c.frames for c in caps]), exposure_s=torch.stack([c.exposure_s for c in caps]),
+                       trigger_offset_s=torch.stack([c.trigger_offset_s for c in caps]),
+                       trigger_time_s=torch.stack([c.trigger_time_s for c in caps]), frame_counter=torch.stack([c.frame_counter for c in caps]))
 
     def pattern_sine(self, pattern, freq_hz: float, amplitude: float, exposures_s, trigger_offset_s, n_repeats: int,
                      settle_s: float | None = None, power: float = 1.0) -> Capture:

@@ -132,12 +132,17 @@ def check_dm_bounds(cfg: IdentifyConfig) -> dict:
 
 def _estimate_dm(cfg: IdentifyConfig) -> dict:
     """:func:`estimate_run` of a DM run (``dm.n_across`` > 0): the plan's sweep frames
-    (:func:`dm_sweep_size`) and the DM calibration's, on the sensor's frame."""
+    (:func:`dm_sweep_size`), the DM calibration's and the spot model's static holds
+    (``hold_frames``: with ``dm_plan.spot_model`` auto its test only; the ladder it may choose
+    adds ``patterns x (ladder_levels) x ladder_frames``), on the sensor's frame."""
     size = dm_sweep_size(cfg)
     n_still = dm_still_frames(size["frames"], size["frame_shape"])
-    frames = size["frames"] + calibration_frames(cfg, n_dark=DM_DARK_FRAMES, n_still=n_still)
+    p = cfg.dm_plan  # the static holds of the spot model: auto's test (2 levels), the ladder's levels, none for shifted
+    levels = {"shifted": 0, "auto": 2, "ladder": int(p.ladder_levels)}[p.spot_model]
+    holds = size["patterns"] * levels * int(p.ladder_frames)
+    frames = size["frames"] + calibration_frames(cfg, n_dark=DM_DARK_FRAMES, n_still=n_still) + holds
     est = _estimate(cfg, frames, size["frame_shape"], n_drives=size["patterns"], repeats=size["repeats"])
-    est["sweep_frames"] = size["frames"]
+    est["sweep_frames"], est["hold_frames"] = size["frames"], holds
     return est
 
 

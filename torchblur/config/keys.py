@@ -46,6 +46,9 @@ UNITS = {
     "wfs.sigma_variation": "relative",
     "dm_plan.budget_frames": "frames",
     "dm_plan.support_threshold": "relative",
+    "dm_plan.ladder_levels": "levels",
+    "dm_plan.ladder_frames": "frames per level",
+    "dm_plan.ladder_reach": "of the largest command the sweep expects",
 }
 _SUFFIXES = (("_hz", "Hz"), ("_s", "s"), ("_px", "px"), ("_rad", "rad"), ("_deg", "deg"))
 

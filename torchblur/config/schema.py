@@ -18,7 +18,7 @@ from torchblur.sysid.direct import FORMS
 
 __all__ = ["IdentifyConfig", "PlantConfig", "SweepConfig", "ExcitationConfig", "CameraConfig", "FitConfig", "ModelConfig",
            "ReportConfig", "RigConfig", "SpotsConfig", "DMConfig", "DMRegistrationConfig", "WFSConfig", "DMPlanConfig",
-           "DEFAULT_PLANT", "RIG_KINDS", "EXCITATION_KINDS", "AXIS_MODES", "GAIN_FROM", "DM_PLAN_KINDS", "MIN_PSF_SIGMA_PX",
+           "DEFAULT_PLANT", "RIG_KINDS", "EXCITATION_KINDS", "AXIS_MODES", "GAIN_FROM", "DM_PLAN_KINDS", "DM_SPOT_MODELS", "MIN_PSF_SIGMA_PX",
            "is_nested", "key"]
 
 RIG_KINDS = ("simulated", "serial")
@@ -26,6 +26,7 @@ EXCITATION_KINDS = ("sine", "multisine")
 AXIS_MODES = ("measure", "x", "y")
 GAIN_FROM = ("auto", "measure", "config")
 DM_PLAN_KINDS = ("auto", "one_at_a_time", "sparse", "hadamard")
+DM_SPOT_MODELS = ("auto", "shifted", "ladder")
 MIN_PSF_SIGMA_PX = 0.1  #: px: a narrower PSF is not sampled by the pixels
 
 
@@ -313,12 +314,22 @@ class DMPlanConfig:
     """The excitation plan of a DM run (:mod:`torchblur.dm.plans`): ``kind`` one of auto,
     one_at_a_time, sparse, hadamard; ``budget_frames`` the most sweep frames (the repeats per
     exposure are the most that fit, unless ``n_repeats`` is set); ``support_threshold``: the
-    sparse plan's |G| threshold relative to the largest."""
+    sparse plan's |G| threshold relative to the largest. The spots' model in the sweep's fits,
+    ``spot_model``: ``shifted`` (each spot's still, shifted by its motion), ``ladder`` (each
+    pattern's static images held at ``ladder_levels`` levels, ``ladder_frames`` frames each,
+    spanning +-``ladder_reach`` x the largest command the sweep expects of the pattern:
+    ``excitation.target_px`` over its static motion, within the input range; the rig needs
+    ``pattern_ladder``) or ``auto`` (the two end levels first: the ladder only where a shifted
+    still does not explain every spot's static image within its noise)."""
 
     kind: str = key("auto", choice=DM_PLAN_KINDS)
     budget_frames: Optional[int] = 20000
     n_repeats: Optional[int] = key(None, optional=True, integer=True, low=1)
     support_threshold: float = key(0.01, nonnegative=True, high=1.0)
+    spot_model: str = key("auto", choice=DM_SPOT_MODELS)
+    ladder_levels: int = key(13, integer=True, low=4, high=257)
+    ladder_frames: int = key(4, integer=True, low=1, high=4096)
+    ladder_reach: float = key(1.3, positive=True, high=10.0)
 
 
 @dataclass(frozen=True)

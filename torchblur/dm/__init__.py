@@ -2,7 +2,8 @@
 
 ``mirror`` (the actuators, their influence functions and dynamics), ``shack_hartmann`` (the
 subapertures, their spots and the geometry matrix G), ``plans`` (which actuators move together
-in each pattern), ``spot_fit`` (the batched spot fitter), ``demux`` (pattern responses to
+in each pattern), ``spot_fit`` (the batched spot fitter), ``ladder_fit`` (the spot fit on static
+frames of each pattern at a ladder of levels, for spots that change shape as they move), ``demux`` (pattern responses to
 actuator columns), ``actuator_fit`` (each actuator's model), ``registration`` (the mirror's
 geometry fitted to D0) and ``budget`` (a DM config's run size). Not imported by ``import
 torchblur``: import the submodules where they are used.

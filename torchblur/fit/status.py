@@ -13,7 +13,7 @@ import torch
 __all__ = [
     "STATUS", "OK", "DARK", "NOT_CONVERGED", "OUT_OF_FRAME", "SINGULAR", "NO_PIXELS", "POOR_FIT",
     "FLAGS", "MASKED", "SATURATED_MASKED", "OUTLIERS_MASKED", "PARTLY_OUT_OF_FRAME", "NO_MOTION", "POOR_FIT_FLAG",
-    "POOR_FIT_CHI2", "flag_poor_fit", "BRANCH_UNDECIDED", "BRANCH_CHI2", "flag_branch_undecided",
+    "POOR_FIT_CHI2", "flag_poor_fit", "BRANCH_UNDECIDED", "BRANCH_CHI2", "flag_branch_undecided", "OUT_OF_LADDER",
 ]
 
 OK = 0  #: the estimate is usable
@@ -47,6 +47,11 @@ POOR_FIT_FLAG = 32  #: reduced chi2 above :data:`POOR_FIT_CHI2` with the noise g
 #: decide the phase branch (the fit may sit on the wrong one with a small local std)
 BRANCH_UNDECIDED = 64
 
+#: the fitted motion leaves the range of the static frames its model is built from (the DM ladder fit,
+#: :mod:`torchblur.dm.ladder_fit`: the command ``u`` beyond the ladder's levels during an exposure,
+#: where the spline extrapolates its end cubics)
+OUT_OF_LADDER = 128
+
 #: the bound of :data:`BRANCH_UNDECIDED`, in chi2 (cost) units: a likelihood ratio below e^2 (7.4)
 #: between the two branches (bench_low_light.py: at a 3000 e-/s peak, 100 Hz, 9 of the 14 items of
 #: 200 with a phase beyond 3 std were below it, 1 % of the right ones)
@@ -65,6 +70,7 @@ FLAGS = {
     NO_MOTION: "no significant motion",
     POOR_FIT_FLAG: "poor fit (reduced chi2 above 1.5: the model does not explain the images)",
     BRANCH_UNDECIDED: "phase branch undecided (the alias's cost within 4 of the fit's: too little light)",
+    OUT_OF_LADDER: "the motion leaves the ladder's levels (the model extrapolated)",
 }
 
 

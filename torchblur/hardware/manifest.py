@@ -34,7 +34,7 @@ MAX_MANIFEST_BYTES = 512 * 1024 * 1024
 MAX_FRAME_SIDE = 65536
 MAX_GROUP_BYTES = 1 << 36  # one group's frame file (64 GiB): bounds the hash's read, never held whole
 MAX_AMPLITUDE = 1e6  # command units: far beyond any DAC's range
-METHODS = ("dark", "still", "sine", "pulse", "multisine", "pattern_sine")  # pattern_sine: a DM rig's (torchblur.identify.dm_record)
+METHODS = ("dark", "still", "sine", "pulse", "multisine", "pattern_sine", "pattern_ladder")  # pattern_*: a DM rig's (torchblur.identify.dm_record)
 _GROUP = re.compile(r"^[A-Za-z0-9_-]{1,40}(/[A-Za-z0-9_-]{1,40}){0,3}$")
 _SHA = re.compile(r"^[0-9a-f]{64}$")
 SETTINGS_KEY = "settings_sha256"  # every line of a group: the digest of the group's lines (settings_digest)
@@ -175,8 +175,10 @@ def check_line(ln, root: Path) -> str:
     _float(ln.get("freq_hz"), "freq_hz", positive=True, optional=True)
     if not isinstance(ln.get("args"), dict) or not isinstance(ln.get("meta", {}), dict):
         raise _Bad("args: expected an object (and meta an object)")
-    if ln.get("method") == "pattern_sine":
+    if ln.get("method") in ("pattern_sine", "pattern_ladder"):
         _check_pattern(ln["args"].get("pattern"))
+    if ln.get("method") == "pattern_ladder":
+        _check_pattern(ln["args"].get("levels"), "levels")  # the static levels: a list of finite numbers too
     if (ln.get("kind") == "sweep" and ln.get("method") == "sine") or ln.get("method") == "pattern_sine":
         _float(ln.get("freq_hz"), "freq_hz", positive=True)
         if not 0 < _float(ln.get("amplitude"), "amplitude", positive=True) <= MAX_AMPLITUDE:
@@ -193,14 +195,14 @@ def check_line(ln, root: Path) -> str:
     return g
 
 
-def _check_pattern(p) -> None:
+def _check_pattern(p, name: str = "pattern") -> None:
     """A DM pattern (``args.pattern`` of a ``pattern_sine`` line): a list of finite numbers, each
     actuator's command per unit amplitude."""
     if not isinstance(p, list) or not 1 <= len(p) <= MAX_FRAME_SIDE:
-        raise _Bad(f"args.pattern: expected a list of 1 to {MAX_FRAME_SIDE} commands, got {excerpt(p)}")
+        raise _Bad(f"args.{name}: expected a list of 1 to {MAX_FRAME_SIDE} commands, got {excerpt(p)}")
     for v in p:
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or abs(v) > MAX_AMPLITUDE:
-            raise _Bad(f"args.pattern: expected finite commands within +-{MAX_AMPLITUDE:g}, got {excerpt(v)}")
+            raise _Bad(f"args.{name}: expected finite commands within +-{MAX_AMPLITUDE:g}, got {excerpt(v)}")
 
 
 def check_record(record, root: Path) -> str:

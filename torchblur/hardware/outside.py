@@ -48,6 +48,7 @@ MAX_PIXELS = 2 ** 31  # all frames together: 16 GiB as float64
 MAX_FREQ_HZ = 1e7
 MAX_EXPOSURE_S = 1e3
 KINDS = ("dark", "still", "sweep")
+DM_KINDS = KINDS + ("ladder",)  #: a DM recording's rows: also its patterns held still (columns pattern, level)
 #: recording.yaml's largest magnitudes (beyond them a value is a typo, and its square overflows)
 CAMERA_HIGH = {"gain_e_per_adu": 1e6, "read_noise_e": 1e6, "saturation_adu": 1e12, "trigger_delay_s": MAX_EXPOSURE_S,
                "latency_s": MAX_EXPOSURE_S, "latency_std_s": MAX_EXPOSURE_S, "jitter_s": MAX_EXPOSURE_S}
@@ -263,8 +264,9 @@ def _number(cell: str, line: int, col: str, *, low=None, high=None, positive=Fal
 def _row(cells: dict, line: int) -> dict:
     """One CSV row checked: what every kind needs, what a sweep row needs."""
     kind = cells["kind"].lower()
-    if kind not in KINDS:
-        raise RecordingError(f"{CSV_NAME} line {line}, column kind: expected one of {KINDS}, got {excerpt(cells['kind'][:40])}")
+    kinds = DM_KINDS if "level" in cells else KINDS
+    if kind not in kinds:
+        raise RecordingError(f"{CSV_NAME} line {line}, column kind: expected one of {kinds}, got {excerpt(cells['kind'][:40])}")
     if not cells["file"]:
         raise RecordingError(f"{CSV_NAME} line {line}, column file: empty")
     n = lambda col, **kw: _number(cells.get(col), line, col, **kw)  # noqa: E731
@@ -273,7 +275,11 @@ def _row(cells: dict, line: int) -> dict:
                amplitude=n("amplitude", positive=True, high=MAX_AMPLITUDE), power=n("power", positive=True, high=1e12),
                window_start_s=n("window_start_s", low=-MAX_EXPOSURE_S, high=MAX_EXPOSURE_S),
                trigger_phase_rad=n("trigger_phase_rad", low=-100.0, high=100.0), repeat=n("repeat", low=0, integer=True),
-               pattern=n("pattern", low=0, high=MAX_ROWS, integer=True))
+               pattern=n("pattern", low=0, high=MAX_ROWS, integer=True), level=n("level", low=-MAX_AMPLITUDE, high=MAX_AMPLITUDE))
+    if kind == "ladder":
+        for col in ("pattern", "level", "exposure_s"):
+            if row[col] is None:
+                raise RecordingError(f"{CSV_NAME} line {line}, column {col}: required for a ladder frame (a pattern held still)")
     if kind == "sweep":
         for col in ("freq_hz", "exposure_s", "amplitude"):
             if row[col] is None:

@@ -190,6 +190,9 @@ class _RecordingRig:
     def pattern_sine(self, *a, **k):
         return self._call("pattern_sine", a, k)
 
+    def pattern_ladder(self, *a, **k):
+        return self._call("pattern_ladder", a, k)
+
 
 class _ReplayCalls(_RigProperties):
     """Serves recorded calls in order; a call that differs from the recording is an error."""
@@ -229,6 +232,9 @@ class _ReplayCalls(_RigProperties):
     def pattern_sine(self, *a, **k):
         return self._next("pattern_sine", a, k)
 
+    def pattern_ladder(self, *a, **k):
+        return self._next("pattern_ladder", a, k)
+
 
 class ReplayRig(_RigProperties):
     """A rig that only knows the recording: every live call raises :class:`RecordingError`
@@ -243,7 +249,7 @@ class ReplayRig(_RigProperties):
                              f"resume it first: torchblur identify --resume {self._dir.parent if self._dir.name == 'experiment' else self._dir} "
                              f"rig.port=... rig.frames=...")
 
-    dark = still = sine = pulse = multisine = pattern_sine = _missing
+    dark = still = sine = pulse = multisine = pattern_sine = pattern_ladder = _missing
 
 
 # ---------------------------------------------------------------------- the directory

@@ -23,7 +23,8 @@ from torchblur.image.tracking import calibrate_axes
 from torchblur.render.camera import CameraNoise, camera_noise_std
 
 __all__ = ["Calibration", "MIN_INSIDE", "PTC_STEPS", "SpotKernels", "calibrate", "calibrate_latency", "check_latency_source", "choose_gain",
-           "latency_from_scan", "latency_given", "measure_gain", "ptc_exposures", "spot_kernels", "spots_from_still"]
+           "latency_from_scan", "latency_given", "measure_gain", "ptc_exposures", "spot_kernels", "spots_from_still",
+           "still_rate"]
 
 MIN_INSIDE = 0.5  # a spot with less of its still light in the frame is flagged, not fitted
 
@@ -68,6 +69,10 @@ class Calibration:
     ptc: object = None  # the PhotonTransfer measured from the run's frames (None: not measured)
     gain_source: str = "camera.gain"  # where ``gain`` came from: "camera.gain" or "photon transfer"
     noise: CameraNoise | None = None  # None: built from gain, dark and read_noise_e
+    # many spots: the mean still frame [H, W] (e-/s at power 1, dark subtracted, gain applied) and its variance (of the
+    # mean, (e-/s)^2, the camera noise model): a DM run's static holds are compared with it (torchblur.identify.dm_ladder)
+    still_rate: torch.Tensor | None = None
+    still_rate_var: torch.Tensor | None = None
 
     def __post_init__(self):
         if self.noise is None:
@@ -147,12 +152,21 @@ def calibrate(cfg, rig, exp=None, *, n_dark: int = N_DARK, n_still: int = 16, sp
     cal = Calibration(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=full_adu, psf=psf, peak_rate=peak_rate,
                       latency_s=latency, latency_std_s=latency_std, gain=gain, spots=spots, still_psf=still_psf, drive=drive,
                       latency_source=latency_source, ptc=ptc, gain_source=gain_source, spot_kernels=spot_kern)
+    if spots is not None:
+        cal.still_rate, cal.still_rate_var = still_rate(still_e, te_psf, read_noise_e)
 
     # 4b. The actuator's direction in the image (one axis, one spot; a 2x2 plant or many spots
     # fit both image axes).
     if not cfg.plant.is_mimo and spots is None:
         _axis_stage(cfg, rig, exp, cal)
     return cal
+
+
+def still_rate(frames_e, exposure_s: float, read_noise_e: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The mean of still frames ``frames_e [n, H, W]`` (e-, dark subtracted) per second and its
+    variance (of the mean, from the camera noise model): ``([H, W], [H, W])``."""
+    mean = frames_e.mean(0)
+    return mean / exposure_s, camera_noise_std(mean, read_noise_e) ** 2 / (frames_e.shape[0] * exposure_s**2)
 
 
 def _axis_stage(cfg, rig, exp, cal: Calibration) -> None:

@@ -3,8 +3,10 @@
 Files (:func:`write_dm_outputs`):
 
 - ``actuators.csv``: ``actuator,x,y,dc_gain,dc_gain_std,mode_hz,mode_hz_std,damping,damping_std,
-  delay_s,delay_s_std,status`` (then ``reduced_chi2,poor_fit``), one row per actuator
-  (:class:`~torchblur.dm.actuator_fit.ActuatorTable`; x, y in actuator pitches).
+  delay_s,delay_s_std,status`` (then ``reduced_chi2,poor_fit,dc_gain_unverified``), one row per actuator
+  (:class:`~torchblur.dm.actuator_fit.ActuatorTable`; x, y in actuator pitches; ``dc_gain_unverified``
+  1 where the registration's edge test could not verify the DC gain: its std does not hold,
+  ``registration.json``'s ``gains_unverified``).
 - ``interaction_matrix.npy`` ``[2M, N]``: the static interaction matrix D0 (px of spot
   displacement per input unit; rows ``[x of all M, y of all M]``), and
   ``interaction_matrix_std.npy``; ``interaction_matrix.fits`` the same (astropy, an optional
@@ -56,7 +58,7 @@ COMMAND_MATRIX_SCHEMA = ("torchblur.dm.command_matrix", (1,))
 #: singular values of D0 below RCOND times the largest are dropped from the command matrix
 RCOND = 0.05
 CSV_COLUMNS = ("actuator", "x", "y", "dc_gain", "dc_gain_std", "mode_hz", "mode_hz_std", "damping", "damping_std", "delay_s",
-               "delay_s_std", "status", "reduced_chi2", "poor_fit")
+               "delay_s_std", "status", "reduced_chi2", "poor_fit", "dc_gain_unverified")
 _log = logging.getLogger(__name__)
 
 
@@ -70,6 +72,9 @@ class DMEstimate:
         D_cov: ``[2M, N, F, 2, 2]`` covariance of ``(Re, Im) D``.
         table: the :class:`ActuatorTable` (its ``static_column`` is D0 ``[2M, N]``).
         meta: strict-JSON extras written into ``frf.json`` (plan, seed, ...).
+        gains_unverified: the actuators whose DC gain the registration's edge test could not verify
+            (``registration.json``'s ``gains_unverified``: their stds do not hold); actuators.csv's
+            ``dc_gain_unverified`` column is 1 for them.
     """
 
     freq_hz: np.ndarray
@@ -77,6 +82,7 @@ class DMEstimate:
     D_cov: np.ndarray
     table: ActuatorTable
     meta: dict = field(default_factory=dict)
+    gains_unverified: tuple = ()
 
     @property
     def D0(self) -> np.ndarray:
@@ -137,12 +143,13 @@ def dm_frequency_response(est: DMEstimate) -> FrequencyResponse:
                              input_labels=[f"a{j}" for j in range(N)], meta=dict(est.meta))
 
 
-def _csv_rows(t: ActuatorTable):
+def _csv_rows(t: ActuatorTable, unverified=()):
     xy = t.actuator_xy if t.actuator_xy is not None else np.full((len(t), 2), np.nan)
+    flagged = {int(j) for j in unverified}
     for j in range(len(t)):
         vals = [getattr(t, k)[j] for p in PARAMS for k in (p, p + "_std")]
         yield [j, f"{xy[j, 0]:.6g}", f"{xy[j, 1]:.6g}", *(f"{v:.9g}" for v in vals), t.status[j], f"{t.reduced_chi2[j]:.4g}",
-               int(t.poor_fit[j])]
+               int(t.poor_fit[j]), int(j in flagged)]
 
 
 def _write_fits(path: Path, D0: np.ndarray) -> bool:
@@ -228,7 +235,7 @@ def _write_maps(path: Path, t: ActuatorTable, failed=()) -> bool:
 
 def read_actuators_csv(path) -> dict:
     """``actuators.csv`` read back: ``{column: array [N]}`` for :data:`CSV_COLUMNS` (``actuator``
-    int, ``status`` str, ``poor_fit`` bool, the others float64; NaN where written ``nan``).
+    int, ``status`` str, ``poor_fit`` and ``dc_gain_unverified`` bool, the others float64; NaN where written ``nan``).
 
     Raises:
         ParameterError: naming ``path``, a header other than :data:`CSV_COLUMNS`, a row of
@@ -243,9 +250,10 @@ def read_actuators_csv(path) -> dict:
         raise ParameterError(f"{path}: expected {len(CSV_COLUMNS)} columns in every row")
     cols = dict(zip(CSV_COLUMNS, zip(*body))) if body else {c: () for c in CSV_COLUMNS}
     try:
-        out = {c: np.array(v, dtype=np.float64) for c, v in cols.items() if c not in ("actuator", "status", "poor_fit")}
-        out.update(actuator=np.array(cols["actuator"], dtype=np.int64), poor_fit=np.array(cols["poor_fit"], dtype=np.int64) != 0,
-                   status=np.array(cols["status"], dtype=str))
+        flags = ("poor_fit", "dc_gain_unverified")
+        out = {c: np.array(v, dtype=np.float64) for c, v in cols.items() if c not in ("actuator", "status", *flags)}
+        out.update(actuator=np.array(cols["actuator"], dtype=np.int64), status=np.array(cols["status"], dtype=str),
+                   **{c: np.array(cols[c], dtype=np.int64) != 0 for c in flags})
     except ValueError as exc:
         raise ParameterError(f"{path}: not a number ({exc})") from None
     return {c: out[c] for c in CSV_COLUMNS}
@@ -278,7 +286,7 @@ def write_dm_outputs(out_dir, est: DMEstimate, *, rcond: float = RCOND, figures:
     with open(d / "actuators.csv", "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(CSV_COLUMNS)
-        w.writerows(_csv_rows(t))
+        w.writerows(_csv_rows(t, est.gains_unverified))
     paths["actuators.csv"] = d / "actuators.csv"
     (d / "README.txt").write_text(dm_readme(dc_gain_reference))
     paths["README.txt"] = d / "README.txt"

@@ -8,7 +8,11 @@ The folder is the one-spot outside format (:mod:`torchblur.hardware.outside`: TI
 - ``frames.csv``: one more column, ``pattern`` (the row of ``patterns.csv`` a sweep frame was
   driven with); a sweep row also has ``freq_hz``, ``exposure_s``, ``window_start_s`` (or
   ``trigger_phase_rad``), ``amplitude`` (one per frequency, the same for every pattern),
-  optional ``power`` and ``repeat``;
+  optional ``power`` and ``repeat``; optionally rows of kind ``ladder`` (the spot model
+  ``dm_plan.spot_model`` ladder: every pattern held still, with a ``pattern``, its command
+  ``level`` in a column of that name (input units: every actuator j at ``level * a_j``),
+  ``exposure_s`` (one for all) and optional ``power``; every pattern at the same number of
+  levels, at least 4, the same frames per level);
 - ``patterns.csv``: the plan, ``pattern,a0,...,a{N-1}``, one row per pattern (pattern p drives
   actuator j with ``amplitude * a_j * sin(2 pi freq_hz t)``);
 - ``recording.yaml``: the camera keys of the one-spot format and the sensor layout, sections
@@ -49,7 +53,8 @@ from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.recording import Experiment, ReplayRig
 from torchblur.hardware.outside import (CSV_NAME, YAML_NAME, MAX_ROWS, OutsideCamera, _points, _read_camera, _read_frames,
                                         _read_rows, _resolved_saturation)
-from torchblur.identify.calibration import Calibration, measure_gain, spots_from_still
+from torchblur.identify.calibration import Calibration, measure_gain, spots_from_still, still_rate
+from torchblur.identify.dm_ladder import TEST_KEY, hold_images, pattern_ladder
 from torchblur.config import WFSConfig, load_config, load_dataclass
 from torchblur.identify.record import LOGGER, collect_log
 from torchblur.image.preprocess import dark_frame, subtract_dark
@@ -108,6 +113,9 @@ class DMRecording:
         frames: ``[F]`` arrays ``[P, E*R, H, W]`` ADU (exposure-major: the R repeats of an exposure in a row).
         start_s, duration_s: ``[F, P, E*R]``: each frame's window (s after the sine's upward zero crossing).
         R: frames per exposure window; frame_shape ``(H, W)``; n_frames: rows read; saturation_source: in words.
+        ladder_levels: ``[P, K]`` each pattern's held levels (input units, increasing; rows of kind
+            ``ladder``), or None (no ladder: the shifted still); ladder_frames: ``[P]`` arrays
+            ``[K, n, H, W]`` ADU; ladder_exposure_s, ladder_power: theirs.
     """
 
     path: Path
@@ -127,6 +135,10 @@ class DMRecording:
     frame_shape: tuple
     n_frames: int
     saturation_source: str = ""
+    ladder_levels: np.ndarray | None = None
+    ladder_frames: tuple | None = None
+    ladder_exposure_s: float | None = None
+    ladder_power: float = 1.0
 
 
 def is_dm_recording(path) -> bool:
@@ -239,7 +251,7 @@ def read_dm_recording(path) -> DMRecording:
     camera = _read_camera(root, _SECTIONS)
     layout = _read_layout(root)
     patterns = _read_patterns(root)
-    rows = _read_rows(root, ("pattern",))
+    rows = _read_rows(root, ("pattern", "level"))
     frames, dtype = _read_frames(root, rows)
     given = camera.saturation_adu is not None
     camera = _resolved_saturation(camera, dtype)
@@ -253,10 +265,47 @@ def read_dm_recording(path) -> DMRecording:
     if None in te or len(te) != 1:
         raise RecordingError(f"{CSV_NAME}, column exposure_s: every still frame needs one and the same exposure_s, got {sorted(map(str, te))}")
     freq, amp, power, stack, start, dur, R = _sweep(by_kind["sweep"], frames, camera, patterns.shape[0])
+    ladder = _ladder([r for r in rows if r["kind"] == "ladder"], frames, patterns.shape[0])
     take = lambda kind: np.stack([frames[r["line"]] for r in by_kind[kind]])  # noqa: E731
     return DMRecording(path=root, camera=camera, layout=layout, dark=take("dark"), still=take("still"), still_exposure_s=te.pop(),
                        patterns=patterns, freq_hz=freq, amplitude=amp, power=power, frames=stack, start_s=start, duration_s=dur, R=R,
-                       frame_shape=tuple(frames[rows[0]["line"]].shape), n_frames=len(rows), saturation_source=source)
+                       frame_shape=tuple(frames[rows[0]["line"]].shape), n_frames=len(rows), saturation_source=source, **ladder)
+
+
+def _ladder(rows: list, frames: dict, P: int) -> dict:
+    """The ``ladder`` rows as DMRecording's ``ladder_*`` fields (none: {}); RecordingError naming
+    the line and column of a ladder that is not every pattern at the same K >= 4 levels, n frames
+    each, one exposure and power."""
+    if not rows:
+        return {}
+    where = lambda r, col: f"{CSV_NAME} line {r['line']}, column {col}"  # noqa: E731
+    for col in ("exposure_s", "power"):
+        first = rows[0][col]
+        for r in rows:
+            if r[col] != first:
+                raise RecordingError(f"{where(r, col)}: every ladder frame needs the same {col} ({first}), got {r[col]}")
+    bad = next((r for r in rows if r["pattern"] >= P), None)
+    if bad is not None:
+        raise RecordingError(f"{where(bad, 'pattern')}: expected a row of {PATTERNS_NAME} (0..{P - 1}), got {bad['pattern']}")
+    per = []
+    for p in range(P):
+        mine = [r for r in rows if r["pattern"] == p]
+        levels = sorted({r["level"] for r in mine})
+        by_level = [[r for r in mine if r["level"] == u] for u in levels]
+        ref = per[0][0] if per else None
+        if len(levels) < 4 or (ref is not None and len(levels) != len(ref)):
+            r = mine[0] if mine else rows[-1]
+            first = f", pattern 0 at {len(ref)}" if ref is not None else ""
+            raise RecordingError(f"{where(r, 'level')}: pattern {p} is held at {len(levels)} levels{first}; every pattern of "
+                                 f"{PATTERNS_NAME} needs the same number, at least 4 (a cubic spline)")
+        n = {len(b) for b in by_level}
+        if len(n) != 1 or (per and n != {per[0][1].shape[1]}):
+            r = min(by_level, key=len)[0]
+            raise RecordingError(f"{where(r, 'level')}: pattern {p} has {sorted(n)} frames per level; every level of every pattern "
+                                 f"needs the same number")
+        per.append((levels, np.stack([np.stack([frames[r["line"]] for r in b]) for b in by_level])))
+    return {"ladder_levels": np.array([lv for lv, _ in per]), "ladder_frames": tuple(fr for _, fr in per),
+            "ladder_exposure_s": float(rows[0]["exposure_s"]), "ladder_power": float(rows[0]["power"] or 1.0)}
 
 
 # ---------------------------------------------------------------------- the run
@@ -289,6 +338,11 @@ def dm_recording_config(rec: DMRecording, overrides=()):
             f"camera.trigger_delay_s={float(c.trigger_delay_s)!r}", f"camera.latency_s={float(c.latency_s)!r}",
             f"camera.latency_std_s={float(c.latency_std_s)!r}",
             "excitation.target_px=0.1"]  # no acquisition: the amplitudes are the recording's (the config's check wants one that fits)
+    if rec.ladder_levels is None:
+        own.append("dm_plan.spot_model=shifted")  # no held frames: the shifted still
+    else:
+        own += ["dm_plan.spot_model=ladder", f"dm_plan.ladder_levels={rec.ladder_levels.shape[1]}",
+                f"dm_plan.ladder_frames={rec.ladder_frames[0].shape[1]}"]
     try:
         cfg = load_config(None, own + list(overrides), force=True)
     except ConfigError as exc:
@@ -345,6 +399,7 @@ def recording_calibration(rec: DMRecording, cfg, wfs: ShackHartmann):
     cal = Calibration(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=float(sat_adu - level), psf=spots.psf,
                       peak_rate=float(spots.psf.amplitude.max()), latency_s=float(c.latency_s), latency_std_s=float(c.latency_std_s),
                       gain=gain, spots=spots, latency_source="given", ptc=ptc, gain_source=gain_source, spot_kernels=kernels)
+    cal.still_rate, cal.still_rate_var = still_rate(still_e, float(rec.still_exposure_s), read_noise_e)
     LOGGER.info(f"latency: {c.latency_s * 1e6:.3f} +- {c.latency_std_s * 1e6:.3f} us given ({YAML_NAME})")
     order = torch.as_tensor(match_spots(spots.psf.center.numpy(), wfs.rest_px, wfs.pitch_px))
     return cal, _spot_psf(cal, order), spots.offset[order], spots.size
@@ -398,12 +453,18 @@ def _fit_recording(rec: DMRecording, cfg) -> DMResult:
     cal, psf, offset, size = recording_calibration(rec, cfg, wfs)
     t["calibration"], t["acquisition"] = time.perf_counter() - t0, 0.0
     plan, ratio = _plan(rec, cfg, G)
+    ladder = None
+    if rec.ladder_levels is not None:
+        holds = hold_images(rec.ladder_frames, rec.ladder_levels, float(rec.ladder_exposure_s), cal, offset, size, float(rec.ladder_power))
+        ladder = pattern_ladder(holds, cal, offset, size)
+        LOGGER.info(f"dm spot model: ladder ({rec.ladder_levels.shape[1]} levels x {rec.ladder_frames[0].shape[1]} frames per pattern, "
+                    f"from {CSV_NAME}'s ladder rows)")
     t0 = time.perf_counter()
     with ThreadPoolExecutor(max_workers=1) as pool:  # as the live run fits (on a busy machine two OpenMP threads on the main one were 12x slower)
         futures = [pool.submit(_fit_frequency, torch.as_tensor(rec.frames[k], dtype=_F64), ExposureWindow(
             torch.as_tensor(rec.start_s[k], dtype=_F64)[:, None], torch.as_tensor(rec.duration_s[k], dtype=_F64)[:, None]),
             2 * math.pi * float(f), float(rec.amplitude[k]), float(rec.power[k]), cal, psf, offset, size, float(cfg.camera.jitter_s),
-            _fit_options(cfg)) for k, f in enumerate(rec.freq_hz)]
+            _fit_options(cfg), ladder) for k, f in enumerate(rec.freq_hz)]
         res = [fu.result() for fu in futures]
     LOGGER.info(f"recording: {len(rec.freq_hz)} frequencies x {plan.n_patterns} patterns, {rec.n_frames} frames, from {rec.path}")
     t["fit_wait"] = time.perf_counter() - t0
@@ -414,7 +475,8 @@ def _fit_recording(rec: DMRecording, cfg) -> DMResult:
     return DMResult(freq_hz=np.asarray(rec.freq_hz), plan=plan, n_repeats=rec.R, plan_info={"cost_ratio_to_one_at_a_time": ratio},
                     amplitude=np.asarray(rec.amplitude), power=np.asarray(rec.power), Y=Y, Y_cov=Y_cov, D=D, D_cov=D_cov, actuators=table,
                     G=reg.G, G_nominal=G, registration=reg, support_check=support, actuator_xy=mirror.actuator_xy, n_frames=int(sum(fr.shape[0] * fr.shape[1] for fr in rec.frames)),
-                    n_failed=sum(r[2] for r in res), timing_s=t, spot_reduced_chi2=np.stack([r[3] for r in res], -1))
+                    n_failed=sum(r[2] for r in res), timing_s=t, spot_reduced_chi2=np.stack([r[3] for r in res], -1),
+                    spot_model="shifted" if ladder is None else "ladder", n_out_of_ladder=sum(r[4] for r in res))
 
 
 # ---------------------------------------------------------------------- writing
@@ -432,7 +494,7 @@ def _tiff(path: Path, frames: np.ndarray) -> None:
 
 
 def write_dm_recording(folder, *, dark, still, still_exposure_s: float, patterns, freq_hz, amplitude, frames, start_s, duration_s,
-                       camera: dict, layout: dict, power=None, R: int = 1) -> Path:
+                       camera: dict, layout: dict, power=None, R: int = 1, ladder: dict | None = None) -> Path:
     """Write an outside DM recording (module docstring) from arrays into ``folder`` (created;
     existing files of the format are replaced) and return it.
 
@@ -444,6 +506,8 @@ def write_dm_recording(folder, *, dark, still, still_exposure_s: float, patterns
         camera: the camera keys of ``recording.yaml`` (``gain_e_per_adu`` required; ``latency_s``, ...).
         layout: ``{"dm": {...}, "wfs": {...}, "dm_plan": {...}}``.
         R: frames per exposure window (the repeats).
+        ladder: the patterns held still, or None: ``{"levels": [P, K], "frames": [P, K, n, H, W] ADU,
+            "exposure_s": s, "power": relative (default 1)}`` (rows of kind ``ladder``, column ``level``).
     """
     import yaml
 
@@ -465,6 +529,16 @@ def write_dm_recording(folder, *, dark, still, still_exposure_s: float, patterns
                 rows.append(["sweep.tif", page, "sweep", p, repr(float(freq_hz[k])), repr(float(duration_s[k][p][j])),
                              repr(float(start_s[k][p][j])), repr(float(amplitude[k])), repr(float(power[k])), j % R])
                 page += 1
+    if ladder is not None:
+        lv, fr = np.asarray(ladder["levels"], dtype=np.float64), [np.asarray(f, dtype=np.float64) for f in ladder["frames"]]
+        _tiff(folder / "ladder.tif", np.concatenate([f.reshape((-1,) + np.shape(dark)[-2:]) for f in fr]))
+        head, rows, page = head + ["level"], [r + [""] for r in rows], 0
+        for p in range(lv.shape[0]):
+            for k in range(lv.shape[1]):
+                for _ in range(fr[p].shape[1]):
+                    rows.append(["ladder.tif", page, "ladder", p, "", repr(float(ladder["exposure_s"])), "", "",
+                                 repr(float(ladder.get("power", 1.0))), "", repr(float(lv[p, k]))])
+                    page += 1
     with open(folder / CSV_NAME, "w", newline="") as fh:
         csv.writer(fh).writerows([head] + rows)
     with open(folder / PATTERNS_NAME, "w", newline="") as fh:
@@ -480,7 +554,8 @@ def write_dm_recording(folder, *, dark, still, still_exposure_s: float, patterns
 def export_dm_recording(run, folder) -> Path:
     """Write the frames of a torchblur DM run's recording ``run`` (its ``--out`` folder or its
     ``experiment/``) as an outside DM recording in ``folder`` (:func:`write_dm_recording`): the
-    dark frames, the PSF's still frames, every swept frequency's frames with their windows (the
+    dark frames, the PSF's still frames, the patterns held still where the run fitted with the
+    ladder (its ``dm_ladder/PPP`` groups, as rows of kind ``ladder``), every swept frequency's frames with their windows (the
     trigger time plus ``trigger_delay_s`` plus the calibrated latency, as the run fitted them), the
     plan, the camera (the configured gain, the calibrated latency and its std, the measured
     saturation level) and the sensor layout. The calibration is replayed from the recording
@@ -514,6 +589,12 @@ def export_dm_recording(run, folder) -> Path:
         start.append(np.stack([(cap.trigger_time_s.reshape(-1) + delay + cal.latency_s).numpy() for _, _, cap in calls]))
         dur.append(np.stack([cap.exposure_s.reshape(-1).numpy() for _, _, cap in calls]))
     c = cfg.camera
+    held = sorted(k for k in exp.groups if k.startswith("dm_ladder/") and k != TEST_KEY)  # the ladder the run fitted with, if any
+    ladder = None
+    if held:
+        calls = [exp.load_calls(k)[0] for k in held]
+        ladder = {"levels": np.array([a["levels"] for _, a, _ in calls]), "frames": [cap.frames.numpy() for _, _, cap in calls],
+                  "exposure_s": float(calls[0][1]["exposure_s"]), "power": float(calls[0][1]["power"])}
     camera = {"gain_e_per_adu": float(c.gain), "saturation_adu": float(cal.saturation.saturation_adu),
               "trigger_delay_s": float(c.trigger_delay_s), "latency_s": float(cal.latency_s), "latency_std_s": float(cal.latency_std_s),
               "jitter_s": float(c.jitter_s)}
@@ -521,7 +602,8 @@ def export_dm_recording(run, folder) -> Path:
               "dm_plan": {"kind": str(doc["kind"]), "support_threshold": float(doc["support_threshold"])}}
     return write_dm_recording(folder, dark=dark.frames.numpy(), still=still.frames.numpy(), still_exposure_s=float(args["exposure_s"]),
                               patterns=np.asarray(doc["patterns"], dtype=np.float64), freq_hz=freq, amplitude=amp, power=power,
-                              frames=frames, start_s=start, duration_s=dur, camera=camera, layout=layout, R=int(doc["n_repeats"]))
+                              frames=frames, start_s=start, duration_s=dur, camera=camera, layout=layout, R=int(doc["n_repeats"]),
+                              ladder=ladder)
 
 
 def run_recording(rec: DMRecording, cfg, out, *, quiet: bool = False, as_json: bool = False) -> int:

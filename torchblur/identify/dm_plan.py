@@ -37,6 +37,8 @@ import torch
 from torchblur.dm.actuator_fit import fit_actuators
 from torchblur.config.budget import DM_DARK_FRAMES, DM_STILL_FRAMES, dm_geometry, dm_plan, dm_still_frames, dm_sweep_size
 from torchblur.dm.demux import demultiplex
+from torchblur.dm.ladder_fit import PatternLadder, fit_ladder_problems
+from torchblur.fit.status import OUT_OF_LADDER
 from torchblur.dm.mirror import DeformableMirror
 from torchblur.dm.plans import static_motion_px
 from torchblur.dm.registration import Registration, RegistrationFit, register_and_refit
@@ -46,7 +48,8 @@ from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.recording import ReplayRig
 from torchblur.hardware.serial_dm_rig import open_dm_rig
 from torchblur.identify.assemble import timing_phase_std
-from torchblur.identify.calibration import calibrate, check_latency_source
+from torchblur.identify.calibration import MIN_INSIDE, calibrate, check_latency_source
+from torchblur.identify.dm_ladder import choose_spot_model, pattern_ladder
 from torchblur.config import IdentifyConfig
 from torchblur.identify.dm_record import (SWEEP_KIND, check_recorded_commands, open_recording, recorded_labels, recorded_plan, resume_seed,
                                           same_table, session_info, simulated_frames, sweep_key, table_digest)
@@ -54,6 +57,7 @@ from torchblur.identify.record import HARDWARE_LOGGER, LOGGER, RunRecord, run_st
 from torchblur.identify.rigs import session
 from torchblur.image.dark import subtract_dark
 from torchblur.image.spots import crop_spots
+from torchblur.render.camera import camera_noise_std
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.window import ExposureWindow
 from torchblur.rig.dm import SimulatedDMRig
@@ -88,6 +92,8 @@ class DMResult:
         spot_reduced_chi2: ``[P, M, F]`` every spot fit's reduced chi2 (NaN where it failed): about
             1 where the spots' PSFs (Gaussians or measured kernels) and the camera's noise model explain the images.
         timing_s: seconds per stage (``calibration``, ``acquisition``, ``fit_wait``, ``estimation``).
+        spot_model: the sweep's spot model (``shifted`` or ``ladder``, :mod:`torchblur.identify.dm_ladder`);
+            n_out_of_ladder: spot fits whose motion left the ladder's levels (flagged: the verdict says so).
         truth_D: ``[2M, N, F]`` the simulated rig's D (None on a real rig); ``mirror``: the
             simulated mirror (its true dynamics), or None; ``truth_G``, ``truth_registration``: its
             true geometry and registration, or None.
@@ -119,6 +125,8 @@ class DMResult:
     support_check: dict | None = None
     truth_G: np.ndarray | None = None
     truth_registration: Registration | None = None
+    spot_model: str = "shifted"
+    n_out_of_ladder: int = 0
 
 
 def match_spots(found_xy: np.ndarray, rest_px: np.ndarray, pitch_px: float) -> np.ndarray:
@@ -195,13 +203,29 @@ def _spot_psf(cal, order):
     return PerSpotPSF(gauss, KernelPSF(sk.psf.kernel[order]), use)
 
 
-def _fit_frequency(frames, window, omega, amplitude, power, cal, psf, offset, size, jitter_s, fit_options):
+def _fit_frequency(frames, window, omega, amplitude, power, cal, psf, offset, size, jitter_s, fit_options, ladder=None):
     """One frequency's pattern responses: frames ``[P, E*R, H, W]`` ADU -> ``(Y [P, 2M],
-    Y_cov [P, 2M, 2, 2], failed, reduced chi2 [P, M] of every spot fit)``. ``psf``: the spots'
-    Gaussians or :class:`~torchblur.dm.spot_fit.PerSpotPSF` (:func:`_spot_psf`, at power 1)."""
+    Y_cov [P, 2M, 2, 2], failed, reduced chi2 [P, M] of every spot fit, out of the ladder)``. ``psf``: the spots'
+    Gaussians or :class:`~torchblur.dm.spot_fit.PerSpotPSF` (:func:`_spot_psf`, at power 1); ``ladder``: the
+    patterns' :class:`~torchblur.dm.ladder_fit.PatternLadder` (``dm_plan.spot_model`` ladder: the spots
+    fitted with it, :func:`~torchblur.dm.ladder_fit.fit_ladder_problems`; ``out of the ladder`` counts
+    the spot fits whose motion left its levels), or None (the shifted ``psf``)."""
     e = subtract_dark(frames.to(_F64), cal.dark) * cal.gain
     crops, in_frame = crop_problems(e[:, None], offset, size)  # [P, 1, M, ER, h, w]
     hot = _crop_mask(cal.dark.hot_pixels, offset, size)
+    n = window.shape[-1]
+    phase_var = float(timing_phase_std(omega, jitter_s, cal.latency_std_s, n)) ** 2
+    if ladder is not None:
+        amp = torch.full((crops.shape[0], 1), float(amplitude), dtype=_F64)
+        # pixel weights from the camera noise of each crop's 3 x 3 local mean (a pixel's own value would bias the amplitudes low)
+        local = torch.nn.functional.avg_pool2d(crops.flatten(0, -3), 3, stride=1, padding=1, count_include_pad=False).reshape(crops.shape)
+        fits = _fit_spots(crops, ladder, window, torch.tensor([omega], dtype=_F64), amp, fitter=fit_ladder_problems, power=float(power),
+                          noise_std=camera_noise_std(local, cal.read_noise_e), mask=(in_frame & ~hot)[:, None],
+                          device=fit_options["device"])
+        Y, Yc = pattern_responses(fits, amplitude, phase_var=phase_var)
+        chi2 = fits.reduced_chi2.reshape(fits.reduced_chi2.shape[0], -1).numpy()
+        out = int(((fits.flags & OUT_OF_LADDER) != 0).sum())
+        return Y[..., 0], Yc[:, :, 0], int((fits.status != 0).sum()), chi2, out
     kernel_noise = None
     if isinstance(psf, PerSpotPSF):
         p = psf.scaled(power)
@@ -212,25 +236,26 @@ def _fit_frequency(frames, window, omega, amplitude, power, cal, psf, offset, si
     # weights from the camera's noise model: the fitter refits with the first fit's expected signal
     fits = _fit_spots(crops, p, window, torch.tensor([omega], dtype=_F64), noise=cal.noise, mask=(in_frame & ~hot)[:, None],
                       kernel_noise=kernel_noise, **fit_options)
-    n = window.shape[-1]
-    phase_var = float(timing_phase_std(omega, jitter_s, cal.latency_std_s, n)) ** 2
     Y, Yc = pattern_responses(fits, amplitude, phase_var=phase_var)
     chi2 = fits.reduced_chi2.reshape(fits.reduced_chi2.shape[0], -1).numpy()  # [P, M] (F = 1)
-    return Y[..., 0], Yc[:, :, 0], int((fits.status != 0).sum()), chi2
+    return Y[..., 0], Yc[:, :, 0], int((fits.status != 0).sum()), chi2, 0
 
 
-def _fit_spots(crops, psf, window, omega, *, device: str = "cpu", **kw):
-    """:func:`~torchblur.dm.spot_fit.fit_spot_problems` on ``device`` (``fit.device``): the crops,
-    PSFs, window, omega, mask and kernel noise moved there, the
+def _fit_spots(crops, psf, window, omega, *args, device: str = "cpu", fitter=fit_spot_problems, **kw):
+    """``fitter`` (:func:`~torchblur.dm.spot_fit.fit_spot_problems`, or the ladder's
+    :func:`~torchblur.dm.ladder_fit.fit_ladder_problems`) on ``device`` (``fit.device``): the crops,
+    PSFs (or the ladder), window, omega, mask and kernel noise moved there, the
     :class:`~torchblur.dm.spot_fit.SpotFits` back on the CPU (``.to`` of a tensor already there is itself)."""
     dev = torch.device(device)
 
     def move(x):
         if isinstance(x, PerSpotPSF):
             return PerSpotPSF(move(x.gaussian), move(x.kernel), x.use_kernel.to(dev))
+        if isinstance(x, PatternLadder):
+            return replace(x, **{f.name: getattr(x, f.name).to(dev) for f in fields(x)})
         return x.to(dev) if isinstance(x, (torch.Tensor, GaussianPSF, KernelPSF, ExposureWindow)) else x
 
-    fits = fit_spot_problems(move(crops), move(psf), move(window), move(omega), **{k: move(v) for k, v in kw.items()})
+    fits = fitter(move(crops), move(psf), move(window), move(omega), *map(move, args), **{k: move(v) for k, v in kw.items()})
     return replace(fits, **{f.name: v.cpu() for f in fields(fits) if isinstance(v := getattr(fits, f.name), torch.Tensor)})
 
 
@@ -289,11 +314,12 @@ def _fit_outcome(future):
 
 def _failed_frequency(P: int, M2: int):
     """A frequency whose fit task failed: NaN responses and covariances, every one of its ``P * M`` spot fits failed."""
-    return (np.full((P, M2), np.nan + 0j), np.full((P, M2, 2, 2), np.nan), P * (M2 // 2), np.full((P, M2 // 2), np.nan))
+    return (np.full((P, M2), np.nan + 0j), np.full((P, M2, 2, 2), np.nan), P * (M2 // 2), np.full((P, M2 // 2), np.nan), 0)
 
 
-def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, exp=None, executor=None):
-    """Stage 3 (module docstring): ``(amplitude [F], power [F], Y [P, 2M, F], Y_cov, failed, frames, t_acq, t_wait)``.
+def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, exp=None, executor=None, ladder=None):
+    """Stage 3 (module docstring): ``(amplitude [F], power [F], Y [P, 2M, F], Y_cov, failed, chi2, frames, out of the
+    ladder, t_acq, t_wait)``; ``ladder``: the patterns' PatternLadder (the spot model ladder) or None.
     With a recording ``exp`` each frequency is one group (:mod:`torchblur.identify.dm_record`): taken from
     it, at its recorded amplitude, where it holds it, else acquired and recorded. Each frequency's
     spot fits go to ``executor`` (any :class:`concurrent.futures.Executor`, Dask's
@@ -333,7 +359,7 @@ def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, exp=None, executor=None
                 cal.latency_s, delay), labels)
             t_acq += time.perf_counter() - t0
             futures.append(pool.submit(_fit_frequency, frames, window, 2 * math.pi * f, float(amps[k]), float(powers[k]), cal, psf,
-                                       offset, size, float(c.jitter_s), _fit_options(cfg)))
+                                       offset, size, float(c.jitter_s), _fit_options(cfg), ladder))
             LOGGER.info(f"dm sweep: {f:.4g} Hz, amplitude {amps[k]:.4g}, power {powers[k]:.3g}, {P} patterns x "
                         f"{len(te)} exposures x {R} repeats ({k + 1}/{F}{', recorded' if rec is not None else ''})")
         t0 = time.perf_counter()
@@ -348,7 +374,11 @@ def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, exp=None, executor=None
     Y_cov = np.stack([r[1] for r in results], 2)  # [P, 2M, F, 2, 2]
     failed = sum(r[2] for r in results)
     chi2 = np.stack([r[3] for r in results], -1)  # [P, M, F]
-    return amps, powers, Y, Y_cov, failed, chi2, P * F * len(s.exposures) * R, t_acq, t_wait
+    out = sum(r[4] for r in results)
+    if out:
+        LOGGER.info(f"dm spot model: {out} spot fits' motion left the ladder's levels (flagged; their responses extrapolate the "
+                    f"static images: raise dm_plan.ladder_reach)")
+    return amps, powers, Y, Y_cov, failed, chi2, P * F * len(s.exposures) * R, out, t_acq, t_wait
 
 
 def check_dm_config(cfg) -> None:
@@ -436,6 +466,8 @@ class DMPlan:
         """Stage 1: ``run.cal`` and every valid subaperture's spot PSF, crop offset and size."""
         t0 = time.perf_counter()
         run.cal, self.psf, self.offset, self.size = _calibrate(run.cfg, run.rig, self.wfs, run.exp)
+        order = match_spots(run.cal.spots.psf.center.numpy(), self.wfs.rest_px, self.wfs.pitch_px)
+        self.inside = (run.cal.spots.inside_fraction >= MIN_INSIDE)[torch.as_tensor(order)]  # [M] the spots mostly in the frame
         run.timing["calibration"] = time.perf_counter() - t0
 
     def sweep(self, run) -> None:
@@ -451,8 +483,15 @@ class DMPlan:
         run.say(f"dm plan: {self.plan.kind}, {self.plan.n_patterns} patterns x {len(freqs)} frequencies x {len(cfg.sweep.exposures)} "
                 f"exposures x {self.R} repeats = {self.plan.n_frames(len(freqs), len(cfg.sweep.exposures), self.R)} frames; frames for "
                 f"the same accuracy vs one at a time: {self.info['cost_ratio_to_one_at_a_time']:.3f}")
-        out = _sweep(cfg, run.rig, self.plan, self.R, self.G, run.cal, self.psf, self.offset, self.size, exp, executor=run.executor)
-        run.acquisition, (run.timing["acquisition"], run.timing["fit_wait"]) = out[:7], out[7:]
+        t0 = time.perf_counter()
+        limit = min(math.inf if cfg.dm.input_limit is None else float(cfg.dm.input_limit), run.cal.input_limit)
+        self.spot_model, holds = choose_spot_model(cfg, run.rig, exp, self.plan.patterns, self.G, run.cal, self.offset, self.size,
+                                                   self.inside, limit)
+        run.timing["calibration"] += time.perf_counter() - t0
+        ladder = None if holds is None else pattern_ladder(holds, run.cal, self.offset, self.size)
+        out = _sweep(cfg, run.rig, self.plan, self.R, self.G, run.cal, self.psf, self.offset, self.size, exp, executor=run.executor,
+                     ladder=ladder)
+        run.acquisition, (run.timing["acquisition"], run.timing["fit_wait"]) = out[:8], out[8:]
 
     def fit(self, run) -> None:
         """Nothing left: every frequency's spot fits ran on the executor during :meth:`sweep`."""
@@ -473,12 +512,13 @@ class DMPlan:
     def result(self, run) -> DMResult:
         """The run's :class:`DMResult` (the simulated truth where every frame was simulated)."""
         freqs = np.asarray(run.cfg.frequencies_hz())
-        amps, powers, Y, Y_cov, failed, chi2, n_frames = run.acquisition
+        amps, powers, Y, Y_cov, failed, chi2, n_frames, out = run.acquisition
         D, D_cov, table, reg, support = self.estimate
         truth = self.truth_rig
         return DMResult(freq_hz=freqs, plan=self.plan, n_repeats=self.R, plan_info=self.info, amplitude=amps, power=powers, Y=Y,
                         Y_cov=Y_cov, D=D, D_cov=D_cov, actuators=table, G=reg.G, actuator_xy=self.model_mirror.actuator_xy,
                         n_frames=n_frames, n_failed=failed, spot_reduced_chi2=chi2, timing_s=run.timing,
+                        spot_model=self.spot_model, n_out_of_ladder=out,
                         truth_D=truth.truth_D(freqs) if truth is not None else None, mirror=truth.mirror if truth is not None else None,
                         G_nominal=self.G, registration=reg, support_check=support,
                         truth_G=truth.geometry if truth is not None else None,

@@ -14,6 +14,9 @@ docs/protocol.md "Experiment directory"; no second format), ``OUT/experiment/``:
   exposure of a frame starts ``trigger_delay_s`` + the calibrated latency after its trigger: a
   re-fit rebuilds the same :class:`~torchblur.render.window.ExposureWindow`), ``n_patterns`` and
   ``n_repeats``;
+- the spot model's static holds (:mod:`torchblur.identify.dm_ladder`, kind ``dm_ladder``):
+  ``dm_ladder/test`` (``dm_plan.spot_model`` auto's test, every pattern at its two end levels) and
+  ``dm_ladder/PPP`` (pattern PPP's ladder), one ``pattern_ladder`` call each;
 - in ``experiment.json`` the plan, ``dm_plan``: ``kind``, ``support_threshold``, ``n_repeats``,
   ``patterns`` ``[P, N]`` and ``support`` (2M strings of N characters 0/1), stored before the first
   sweep group, so a resume takes the same patterns whatever the code would choose now.

@@ -57,7 +57,8 @@ def _write_dm_outputs(res: DMResult, out, figures: bool = True) -> None:
     meta = {"plan": res.plan.kind, "n_patterns": res.plan.n_patterns, "n_repeats": res.n_repeats, "n_frames": res.n_frames}
     reg = res.registration
     reference = {"dc_gain_reference": DC_GAIN_REFERENCE} if reg and reg.ok else {}
-    write_dm_outputs(out, DMEstimate(freq_hz=res.freq_hz, D=res.D, D_cov=res.D_cov, table=res.actuators, meta=meta),
-                     figures=figures, **reference)
+    unverified = tuple(((reg.edge_test or {}).get("gains_unverified") or ()) if reg is not None else ())
+    write_dm_outputs(out, DMEstimate(freq_hz=res.freq_hz, D=res.D, D_cov=res.D_cov, table=res.actuators, meta=meta,
+                                     gains_unverified=unverified), figures=figures, **reference)
     if res.registration is not None:
         write_registration_json(out / "dm" / "registration.json", res.registration, res.support_check)

@@ -62,7 +62,7 @@ from torchblur.sysid.model_check import (DISAGREE_SIGMA, MODEL_CHI2_FLOOR, Model
 
 __all__ = ["DMVerdict", "DM_GUARDS", "EXIT_FLAGGED", "LOST_FRACTION", "MODEL_CHI2_FLOOR", "POOR_SPOT_FRACTION", "ResponseVerdict",
            "TRUTH_BOUND", "Verdict", "dm_verdict", "failed_actuators", "final_verdict", "judge_models", "listed", "lost_fraction",
-           "model_chi2_limit", "registration_guard", "report_lines", "run_verdict", "support_guard", "timing_band_hz",
+           "model_chi2_limit", "registration_guard", "ladder_guard", "report_lines", "run_verdict", "support_guard", "timing_band_hz",
            "truth_disagreement", "truth_disagreement_dm", "truth_guard", "verdict"]
 
 #: exit status of a run that completed, results written, with points flagged poor_fit, timing or failed
@@ -647,10 +647,25 @@ def registration_guard(v, reg):
                        line)
 
 
+def ladder_guard(v, res):
+    """The DM verdict ``v`` saying how many spot fits' motion left the ladder's levels
+    (``res.n_out_of_ladder``; ``dm_plan.spot_model`` ladder: their responses extrapolate the held
+    images), untrustworthy where more than :data:`POOR_SPOT_FRACTION` of the spot fits did; ``v``
+    where none did."""
+    n_out = int(getattr(res, "n_out_of_ladder", 0) or 0)
+    if not n_out:
+        return v
+    note = f"{n_out} spot fits' motion left the ladder's levels (extrapolated; raise dm_plan.ladder_reach)"
+    if n_out > POOR_SPOT_FRACTION * max(v.spot_problems, 1):
+        return v.untrusted(f"{note}: not trustworthy")
+    return replace(v, line=f"{v.line}; {note}")
+
+
 #: the DM's guards, applied in order after :func:`run_verdict` by :func:`final_verdict`: each
 #: ``(verdict, DMResult) -> verdict``, the verdict unchanged when its rule holds, else
 #: :meth:`Verdict.untrusted` (a new DM rule is one more function here)
-DM_GUARDS = (truth_guard, lambda v, res: support_guard(v, res.support_check), lambda v, res: registration_guard(v, res.registration))
+DM_GUARDS = (truth_guard, lambda v, res: support_guard(v, res.support_check), lambda v, res: registration_guard(v, res.registration),
+             ladder_guard)
 
 
 def final_verdict(res, poor_fit_chi2: float) -> DMVerdict:

@@ -200,6 +200,15 @@ class PatternSines:
     def multisine(self, *args, **kwargs):
         raise ParameterError("multisine: the DM rig drives one sine per pattern (pattern_sine)")
 
+    def _ladder_commands(self, pattern, levels) -> np.ndarray:
+        """The static commands of ``pattern_ladder``: ``[K, N]``, ``levels[k] * pattern`` (``pattern``
+        ``[N]``, ``levels`` ``[K]`` finite numbers; ShapeError naming ``pattern`` otherwise)."""
+        N = self.n_actuators
+        p = np.asarray(float_list(pattern, "pattern"), dtype=np.float64)
+        if p.shape != (N,):
+            raise ShapeError(f"pattern: expected [{N}] (one command per actuator), got shape {p.shape}")
+        return np.asarray(float_list(levels, "levels"), dtype=np.float64)[:, None] * p[None, :]
+
 
 def float_list(value, name: str) -> list[float]:
     """A number or a 1-D sequence/array/tensor of finite numbers as a non-empty list of floats."""

@@ -97,6 +97,7 @@ class SimulatedDMRig(PatternSines, SimulatedRig):
         if registration is not None and not isinstance(registration, Registration):
             raise InputTypeError(f"registration: expected a Registration or None, got {type(registration).__name__}")
         self._registration = Registration() if registration is None else registration
+        self._hold_generator = None  # pattern_ladder's noise stream (created at its first call)
         self._G = wfs.geometry_matrix(mirror, registration=registration)
         pad = math.ceil(_EDGE_SIGMAS * float(sigma.max()))
         self._crop = math.ceil(wfs.pitch_px) + 2 * pad
@@ -224,6 +225,35 @@ class SimulatedDMRig(PatternSines, SimulatedRig):
         meta = {"kind": "pattern_sine", "pattern": p, "freq_hz": freq, "omega": omega, "period_s": period, "amplitude": amp,
                 "settle_s": settle, "power": power, "trigger_delay_s": self._trigger_delay_s, "actual_start_s": window.start}
         return self._capture(expected, exp_t, off_t, trig_t, meta=meta)
+
+    def pattern_ladder(self, pattern, levels: Sequence[float], n: int, exposure_s: float, power: float = 1.0) -> Capture:
+        """Frames ``[K, n, H, W]`` of the mirror held still at ``levels[k] * pattern`` (input units;
+        every spot at its static position ``(G diag(gain) levels[k] pattern)[m]``), ``n`` frames per
+        level at ``exposure_s`` and laser ``power`` (docs/dm_rig.md). Their noise is drawn from a
+        stream of its own (from the seed), so that taking a ladder leaves the sweep's frames as
+        they would be without it.
+
+        Raises:
+            ParameterError: naming ``levels`` for a command beyond ``input_limit`` or a spot
+                leaving its crop; ShapeError naming ``pattern`` when it is not [N].
+        """
+        commands = self._ladder_commands(pattern, levels)
+        power = self._check_power(power)
+        one = ExposureWindow(torch.zeros(1, dtype=_F64), 1.0)
+        rates = []
+        for c in commands:
+            self._mirror.check_command(c, "levels")
+            s = np.real(self.truth_D(0.0) @ c)  # [2M] static shift (px)
+            M = s.size // 2
+            s = np.stack([s[:M], s[M:]], -1)
+            self._check_reach(np.abs(s))
+            # a fixed displacement: a sinusoid of amplitude |s| at phase +-pi/2, too slow to move in the window
+            rates.append(self._render_spots(torch.as_tensor(np.abs(s)), torch.as_tensor(np.where(s < 0, -np.pi / 2, np.pi / 2)),
+                                            1e-12, one, power)[0])
+        if self._hold_generator is None:
+            self._hold_generator = torch.Generator().manual_seed(int(np.random.SeedSequence([self._seed, 1]).generate_state(1)[0]))
+        return self._hold_capture(torch.stack(rates), n, exposure_s, meta={"kind": "pattern_ladder", "power": power},
+                                  generator=self._hold_generator)
 
     def check_pattern(self, pattern, freq_hz: float, amplitude: float) -> None:
         """Raise what :meth:`pattern_sine` raises for this command (``pattern`` not [N], a

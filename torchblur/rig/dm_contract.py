@@ -29,7 +29,9 @@ REQUIRED_ATTRIBUTES = ("frame_shape", "frame_rate_hz", "max_exposure_s", "readou
 #: what the route uses where a rig has it (``getattr`` with a default)
 OPTIONAL = {"pulse": "the latency scan (needed unless camera.latency_s and camera.latency_std_s are given)",
             "trigger_delay_s": "the trigger-to-exposure delay the camera is set to (default camera.trigger_delay_s)",
-            "slew_limit": "the amplifier's largest |d command / dt| (input units/s; default none)"}
+            "slew_limit": "the amplifier's largest |d command / dt| (input units/s; default none)",
+            "pattern_ladder": "static holds of each pattern at a ladder of levels: the spot model dm_plan.spot_model ladder "
+                              "(and auto's test) needs it"}
 
 
 @runtime_checkable
@@ -89,7 +91,7 @@ def check_dm_rig(rig, cfg) -> None:
     Raises:
         InputTypeError: naming ``rig`` and what it lacks.
         ConfigError: naming ``dm.n_across`` or ``wfs.pitch_px`` (the rig's mirror or frames do
-            not match the config).
+            not match the config), or ``dm_plan.spot_model`` (ladder on a rig without ``pattern_ladder``).
     """
     missing = [f"{m}()" for m in REQUIRED_METHODS if not callable(getattr(rig, m, None))]
     missing += [a for a in REQUIRED_ATTRIBUTES if not _has(rig, a)]
@@ -107,3 +109,6 @@ def check_dm_rig(rig, cfg) -> None:
         raise ConfigError(f"wfs.pitch_px: the sensor of the config (wfs.n_across {cfg.wfs.n_across} x wfs.pitch_px "
                           f"{cfg.wfs.pitch_px:g}) has {sensor[0]}x{sensor[1]} px frames, the rig's camera {shape[0]}x{shape[1]}; "
                           f"crop the camera to the lenslet array or describe it in the wfs section")
+    if cfg.dm_plan.spot_model == "ladder" and not callable(getattr(rig, "pattern_ladder", None)):
+        raise ConfigError(f"dm_plan.spot_model: ladder needs static holds of each pattern, and a {type(rig).__name__} has no "
+                          f"pattern_ladder() (docs/dm_rig.md); use auto or shifted, or add pattern_ladder to the rig")

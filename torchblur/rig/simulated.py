@@ -441,6 +441,18 @@ class SimulatedRig:
         return Capture(frames=self._expose(expected_e), exposure_s=exposure_s, trigger_offset_s=trigger_offset_s,
                        trigger_time_s=trigger_time_s, frame_counter=self._counters(tuple(exposure_s.shape)), meta=meta)
 
+    def _hold_capture(self, rate_e_per_s: torch.Tensor, n, exposure_s, *, meta: dict, generator=None) -> Capture:
+        """``n`` frames of each still image ``rate_e_per_s`` ``[K, H, W]`` (e-/s) at ``exposure_s``:
+        frames ``[K, n, H, W]`` (a DM rig's ``pattern_ladder``), drawn from ``generator`` (default the rig's)."""
+        n = check_int(n, "n", low=1)
+        te = self._check_exposure(exposure_s)
+        K = rate_e_per_s.shape[0]
+        expected = (rate_e_per_s * te)[:, None].expand((K, n) + self._frame_shape).contiguous()
+        trig = (torch.arange(K * n, dtype=_F64) * self._cycle_s(te)).reshape(K, n)
+        frames = self._camera.expose(expected, generator=self._generator if generator is None else generator)
+        return Capture(frames=frames, exposure_s=torch.full((K, n), te, dtype=_F64), trigger_offset_s=torch.zeros(K, n, dtype=_F64),
+                       trigger_time_s=trig, frame_counter=self._counters((K, n)), meta=meta)
+
     def _check_power(self, power) -> float:
         return check_real_scalar(power, "power", nonnegative=True)
 

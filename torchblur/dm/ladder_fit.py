@@ -1,0 +1,548 @@
+"""The DM spot fit on a *ladder*: each spot's image under a pattern from static frames of that
+pattern held at a ladder of command levels (issue 23).
+
+Under a Hadamard pattern the surface under a lenslet is curved, so a real (diffraction) spot
+changes shape as it moves; a shifted still (:func:`~torchblur.dm.spot_fit.fit_spot_problems`)
+reads the change as motion. Here the spot's crop at time ``t`` of problem (pattern ``p``,
+frequency ``f``, spot ``m``) is
+
+    power * [ L(u(t)) + dx(t) Dx L(u(t)) + dy(t) Dy L(u(t)) ]
+
+- ``L(u)``: the static image (e-/s at laser power 1) of pattern ``p`` held at the scalar command
+  ``u`` (every actuator ``j`` at ``u * pattern[j]``): a cubic spline in ``u`` per pixel through
+  the ladder's levels (scipy's ``CubicSpline``, not-a-knot ends; beyond the ends its end cubics);
+  ``Dx L``, ``Dy L`` its derivatives along a shift of the image (Fourier, of each level's image,
+  splined the same way, the spline being linear in the knot values);
+- ``u(t) = gc cos(w t) + gs sin(w t)`` (the pattern's own response: the phasor ``G = gs + i gc``);
+- ``dx(t), dy(t)``: free sinusoids to first order (the actuators' differing dynamics);
+- each exposure integrated by :data:`NODES` Gauss-Legendre nodes.
+
+The model is linear in the ladder's images: an exposure is ``sum_k c_k(theta) . [L_k, Dx L_k,
+Dy L_k]``, the coefficients from the spline's basis at the nodes, so the image and its analytic
+Jacobian are one batched GEMM per problem; :func:`~torchblur.optim.levenberg_marquardt` fits the
+six parameters. The reported motion per axis is the phasor ``s G + delta`` (``s = (s_x, s_y)``
+the spot's static shift per unit ``u``: the least squares of ``dL/du`` at ``u = 0`` on the
+still's shift derivatives, the convention of the fitted-shift truth), as amplitude and phase
+with their covariance in :class:`~torchblur.dm.spot_fit.SpotFits`' order, so
+:func:`~torchblur.dm.spot_fit.pattern_responses` turns it into ``Y`` unchanged.
+
+Uncertainty: the data's part ``(J^T W J)^-1`` (with the noise given: unscaled, the reduced chi2
+reported and :data:`~torchblur.fit.status.POOR_FIT_FLAG` above 1.5, as every fit here; without:
+unweighted, the sandwich ``C J^T diag(r^2) J C`` of each pixel's residual, since shot noise
+differs from pixel to pixel) plus the ladder's own noise, propagated to first
+order through both the fit (``dtheta = -C J^T W dY/dL dL``, the implicit function theorem, as
+:mod:`torchblur.fit.kernel_noise` does for a kernel) and ``s``, every ladder pixel independent
+with its ``variance``. The still's noise (averaged over many more frames than a level) is left
+out. The reduced chi2 weighs each pixel by the data's variance plus the model's from the ladder
+(its ``L`` term only: the shift terms are first order small).
+
+Shapes: P patterns, F frequencies, M spots, K levels, ``E*R`` exposures, ``h x w`` crop pixels;
+positions and motions in px (x = column, y = row), times in s, ``omega`` rad/s.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from scipy.interpolate import CubicSpline
+
+from torchblur.dm.spot_fit import SpotFits, chunk_size
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, check_int
+from torchblur.fit.status import (DARK, MASKED, NO_MOTION, NO_PIXELS, NOT_CONVERGED, OUT_OF_FRAME, OUT_OF_LADDER, SINGULAR,
+                                  flag_poor_fit)
+from torchblur.optim import levenberg_marquardt
+from torchblur.render.blur import _next_odd_fast, quadrature_nodes
+from torchblur.render.window import ExposureWindow
+
+__all__ = ["PatternLadder", "fit_ladder_problems", "spline_basis", "NODES"]
+
+NODES = 96  #: Gauss-Legendre nodes per exposure (benchmarks/bench_dm_spot_models.py's; the spline is C2)
+PAD = 6  #: px of zero padding around a crop for its Fourier shift derivatives
+DARK_SNR = 5.0  #: a problem whose data correlate with its still below this many noise stds is DARK
+MAX_ITER = 60
+N_PAR = 6  #: (gc, gs, dx_cos, dx_sin, dy_cos, dy_sin)
+STEP_MAX = 6.0  #: std: a longer correction step is not taken
+LEFT_MAX = 0.3  #: std: a fit whose Gauss-Newton step left is shorter has converged (the LM crawls along a curved valley)
+BIAS_ITER = 3  #: Gauss-Newton steps on the bias-corrected cost after the fit (:func:`_bias_step`; 3 converge)
+
+
+@dataclass(frozen=True)
+class PatternLadder:
+    """Static frames of each pattern at a ladder of command levels, cropped at the spots.
+
+    Attributes:
+        levels: ``[P, K]`` input units, increasing per row (``u``: every actuator at ``u * pattern[j]``), K >= 4.
+        images: ``[P, K, M, h, w]`` e- per second at laser power 1 (dark subtracted, gain
+            applied; the mean of the frames): ``images[p, k, m]`` = spot ``m``'s crop with pattern
+            ``p`` held at ``levels[p, k]``.
+        variance: ``[P, K, M, h, w]`` the variance of ``images`` ((e-/s)^2, of the mean).
+        still: ``[M, h, w]`` the spots' still (``u = 0``), e-/s at power 1 (for ``s`` and the shift derivatives).
+    """
+
+    levels: torch.Tensor
+    images: torch.Tensor
+    variance: torch.Tensor
+    still: torch.Tensor
+
+    def __post_init__(self):
+        names = ("levels", "images", "variance", "still")
+        for name in names:
+            v = getattr(self, name)
+            if not isinstance(v, torch.Tensor) or not v.is_floating_point():
+                raise InputTypeError(f"{name}: expected a floating-point tensor, got {getattr(v, 'dtype', type(v).__name__)}")
+        lv, im = self.levels, self.images
+        if lv.dim() != 2 or lv.shape[1] < 4:
+            raise ShapeError(f"levels: expected [P, K] with K >= 4 levels (a cubic spline), got {tuple(lv.shape)}")
+        P, K = lv.shape
+        if im.dim() != 5 or tuple(im.shape[:2]) != (P, K):
+            raise ShapeError(f"images: expected [P={P}, K={K}, M, h, w], got {tuple(im.shape)}")
+        if tuple(self.variance.shape) != tuple(im.shape):
+            raise ShapeError(f"variance: expected the shape of images {tuple(im.shape)}, got {tuple(self.variance.shape)}")
+        if tuple(self.still.shape) != tuple(im.shape[2:]):
+            raise ShapeError(f"still: expected [M, h, w] = {tuple(im.shape[2:])}, got {tuple(self.still.shape)}")
+        for name in names:
+            if not bool(torch.isfinite(getattr(self, name)).all()):
+                raise ParameterError(f"{name}: expected finite values, got NaN or inf")
+        if not bool((lv.diff(dim=1) > 0).all()):
+            raise ParameterError(f"levels: expected strictly increasing levels in every row, got {lv.tolist()}")
+        if bool((self.variance < 0).any()):
+            raise ParameterError(f"variance: expected values >= 0, got minimum {float(self.variance.min()):g}")
+
+
+def spline_basis(levels: torch.Tensor) -> torch.Tensor:
+    """The cubic spline's cardinal basis of each row of ``levels [P, K]``: ``coef [P, K-1, 4, K]``
+    (float64, the levels' device). On interval ``i`` (``levels[p, i] <= u < levels[p, i+1]``, the
+    first and last extended) the spline through knot values ``y [K]`` is
+    ``sum_j (coef[p, i, j] @ y) (u - levels[p, i])^(3 - j)`` (scipy ``CubicSpline``, not-a-knot)."""
+    lv = levels.detach().cpu().double().numpy()
+    K = lv.shape[1]
+    c = np.stack([np.moveaxis(CubicSpline(row, np.eye(K)).c, 0, 1) for row in lv])
+    return torch.as_tensor(c, device=levels.device)
+
+
+def _basis_at(u, knots, coef):
+    """The basis and its derivative at ``u [n, ...]``: ``(B, dB/du)`` each ``[n, ..., K]``
+    (``knots [n, K]``, ``coef [n, K-1, 4, K]`` of :func:`spline_basis`)."""
+    n, K = knots.shape
+    flat = u.reshape(n, -1)
+    i = (torch.searchsorted(knots, flat.contiguous()) - 1).clamp(0, K - 2)  # [n, Q]
+    d = flat - torch.gather(knots, 1, i)
+    c = coef[torch.arange(n, device=u.device)[:, None], i]  # [n, Q, 4, K]
+    one, zero = torch.ones_like(d), torch.zeros_like(d)
+    pw = torch.stack([d * d * d, d * d, d, one], -1)
+    dpw = torch.stack([3 * d * d, 2 * d, one, zero], -1)
+    B = (pw[..., None] * c).sum(-2)
+    dB = (dpw[..., None] * c).sum(-2)
+    return B.reshape(u.shape + (K,)), dB.reshape(u.shape + (K,))
+
+
+def _integrated_basis(u, wb, wd, knots, coef):
+    """``[n, E, A + D, K]``: ``sum_s wb[..., a, s] B(u_s)`` then ``sum_s wd[..., d, s] dB/du(u_s)``
+    at nodes ``u [n, E, S]`` (weights ``wb [n, E, A, S]``, ``wd [n, E, D, S]``; ``knots``, ``coef``
+    as :func:`_basis_at`). Each node's powers of its offset in its interval are summed into that
+    interval's slots first, then one product with the basis's coefficients: no ``[S, 4, K]`` per node."""
+    n, K = knots.shape
+    E, S = u.shape[1:]
+    flat = u.reshape(n, -1)
+    i = (torch.searchsorted(knots, flat.contiguous()) - 1).clamp(0, K - 2)
+    d = (flat - torch.gather(knots, 1, i)).reshape(n, E, 1, S, 1)
+    one, zero = torch.ones_like(d), torch.zeros_like(d)
+    val = torch.cat([wb[..., None] * torch.cat([d * d * d, d * d, d, one], -1),
+                     wd[..., None] * torch.cat([3 * d * d, 2 * d, one, zero], -1)], 2)  # [n, E, A + D, S, 4]
+    slot = (4 * i.reshape(n, E, 1, S, 1) + torch.arange(4, device=u.device)).expand(val.shape)
+    acc = torch.zeros(val.shape[:3] + (4 * (K - 1),), dtype=val.dtype, device=val.device)
+    acc.scatter_add_(-1, slot.reshape(val.shape[:3] + (-1,)), val.reshape(val.shape[:3] + (-1,)))
+    return (acc.reshape(n, -1, 4 * (K - 1)) @ coef.reshape(n, 4 * (K - 1), K)).reshape(acc.shape[:3] + (K,))
+
+
+def shift_derivatives(img: torch.Tensor) -> torch.Tensor:
+    """``[..., 2, h, w]``: the derivatives of ``img [..., h, w]`` along a shift of it by (dx, dy)
+    px (``d/ds img(x - s)``: ``-i k`` in Fourier space on the grid
+    :func:`~torchblur.render.blur._kernel_fourier` pads to (:data:`PAD` px, odd sizes: no Nyquist
+    bin), so it is that renderer's exact derivative at zero shift). Linear in ``img`` and
+    antisymmetric (its adjoint is its negative)."""
+    h, w = img.shape[-2:]
+    Hp, Wp = _next_odd_fast(h + 2 * PAD), _next_odd_fast(w + 2 * PAD)
+    ph, pw = (Hp - h) // 2, (Wp - w) // 2
+    khat = torch.fft.rfft2(torch.nn.functional.pad(img, (pw, Wp - w - pw, ph, Hp - h - ph)))
+    ky = 2 * math.pi * torch.fft.fftfreq(Hp, dtype=img.dtype, device=img.device)[:, None]
+    kx = 2 * math.pi * torch.fft.rfftfreq(Wp, dtype=img.dtype, device=img.device)
+    out = torch.fft.irfft2(torch.stack([khat * (-1j * kx), khat * (-1j * ky)], -3), s=(Hp, Wp))
+    return out[..., ph:ph + h, pw:pw + w]
+
+
+@dataclass(frozen=True)
+class _Problems:
+    """Every problem's inputs, flat ``[n]`` in (p, f, m) order, on the fit's device and dtype."""
+
+    data: torch.Tensor  # [n, E, hw] electrons
+    weight: torch.Tensor  # [n, E, hw] 1 / std^2 (or 1), 0 where masked
+    keep: torch.Tensor  # [n, E, hw] bool
+    noise_given: bool
+    cw: torch.Tensor  # [P, F, E, S] cos(w t) at the nodes
+    sw: torch.Tensor  # [P, F, E, S]
+    wq: torch.Tensor  # [P, F, E, S] node weights (s)
+    power: torch.Tensor  # [F]
+    amplitude: torch.Tensor  # [P, F]
+    knots: torch.Tensor  # [P, K]
+    coef: torch.Tensor  # [P, K-1, 4, K]
+    shape: tuple  # (P, F, M, E, h, w)
+
+
+def _flat_problems(crops, ladder: PatternLadder, window, omega, amplitude, power, noise_std, mask, like) -> _Problems:
+    """Check and broadcast the inputs of :func:`fit_ladder_problems` (errors name the argument)."""
+    if not isinstance(crops, torch.Tensor) or crops.dim() != 6:
+        raise ShapeError(f"crops: expected a tensor [P, F, M, E*R, h, w], got {getattr(crops, 'shape', type(crops).__name__)}")
+    if not isinstance(ladder, PatternLadder):
+        raise InputTypeError(f"ladder: expected a PatternLadder, got {type(ladder).__name__}")
+    if not isinstance(window, ExposureWindow):
+        raise InputTypeError(f"window: expected an ExposureWindow of batch [P, F, E*R], got {type(window).__name__}")
+    P, F, M, E, h, w = crops.shape
+    Pl, K, Ml, hl, wl = ladder.images.shape
+    if (Pl, Ml, hl, wl) != (P, M, h, w):
+        raise ShapeError(f"ladder: expected images [P={P}, K, M={M}, h={h}, w={w}] like the crops, got {list(ladder.images.shape)}")
+
+    def expand(value, name, shape, desc, **kw):
+        t = torch.as_tensor(value, **(kw or like))
+        try:
+            return t.to(**(kw or like)).expand(shape)
+        except RuntimeError as e:
+            raise ShapeError(f"{name}: expected {desc} broadcastable to {list(shape)}, got {list(t.shape)}") from e
+    start = expand(window.start, "window", (P, F, E), "a batch")
+    dur = expand(window.duration, "window", (P, F, E), "a batch")
+    om = torch.as_tensor(omega, **like)
+    if om.shape != (F,):
+        raise ShapeError(f"omega: expected [F={F}] rad/s, got shape {tuple(om.shape)}")
+    amp = expand(amplitude, "amplitude", (P, F), "command amplitudes")
+    pw = expand(power, "power", (F,), "a laser power")
+    if not bool(torch.isfinite(pw).all()) or bool((pw <= 0).any()):
+        raise ParameterError(f"power: expected finite values > 0, got {pw.tolist()}")
+    data = crops.to(**like)
+    keep = torch.isfinite(data)
+    if mask is not None:
+        keep = keep & expand(mask, "mask", data.shape, "a bool mask", device=like["device"]).bool()
+    if noise_std is None:
+        weight = keep.to(like["dtype"])
+    else:
+        ns = expand(noise_std, "noise_std", data.shape, "pixel stds")
+        keep = keep & (ns > 0) & torch.isfinite(ns)
+        weight = torch.where(keep, 1 / ns.clamp_min(torch.finfo(ns.dtype).tiny).square(), torch.zeros_like(ns))
+    x, wg = quadrature_nodes(1, NODES, **like)
+    t = start[..., None] + dur[..., None] * x  # [P, F, E, S]
+    ph = om[None, :, None, None] * t
+    n = P * F * M
+    return _Problems(data=torch.where(keep, data, torch.zeros_like(data)).reshape(n, E, h * w), weight=weight.reshape(n, E, h * w),
+                     keep=keep.reshape(n, E, h * w), noise_given=noise_std is not None, cw=torch.cos(ph), sw=torch.sin(ph),
+                     wq=dur[..., None] * wg, power=pw, amplitude=amp, knots=ladder.levels.to(**like),
+                     coef=spline_basis(ladder.levels).to(**like), shape=(P, F, M, E, h, w))
+
+
+@dataclass(frozen=True)
+class _Chunk:
+    """One chunk's problems ``rows [c]`` and the ladders they use (``u`` distinct (pattern, spot))."""
+
+    rows: torch.Tensor  # [c] flat problem indices
+    pat: torch.Tensor  # [c] pattern
+    pf: torch.Tensor  # [c] flat (pattern, frequency)
+    freq: torch.Tensor  # [c] frequency
+    inv: torch.Tensor  # [c] -> the chunk's ladder
+    lad: torch.Tensor  # [u, 3K, hw]: L, Dx L, Dy L of every level
+    var: torch.Tensor  # [u, K, hw]: the variance of L
+    noise: torch.Tensor  # [u, 4, K, hw]: the pixel (co)variances of the ladder's L, Dx L, Dy L: LL, xx, yy, xy (L-x, L-y: 0)
+    slope: torch.Tensor  # [c, 2] s: px per unit u
+    ds_dl: torch.Tensor  # [c, 2, K, hw]: ds / dL
+
+
+def _chunk(prob: _Problems, ladder: PatternLadder, rows, still_pinv, b0, like) -> _Chunk:
+    """The chunk of problems ``rows``: their ladders on the fit's device, with the shift
+    derivatives and the static shifts ``s`` (``still_pinv [M, 2, hw]`` the least squares on the
+    still's shift derivatives, ``b0 (B, dB) [P, K]`` the basis at ``u = 0``)."""
+    P, F, M, E, h, w = prob.shape
+    pat, m = rows // (F * M), rows % M
+    uniq, inv = torch.unique(pat * M + m, return_inverse=True)
+    up, um = (uniq // M).cpu(), (uniq % M).cpu()
+    L = ladder.images[up, :, um].to(**like)  # [u, K, h, w]
+    K = L.shape[1]
+    der = shift_derivatives(L).movedim(-3, 1).reshape(len(uniq), 2 * K, h * w)  # [u, 2K, hw]: x of every level, then y
+    lad = torch.cat([L.reshape(len(uniq), K, h * w), der], 1)
+    dl0 = (b0[1][pat][:, :, None] * L.reshape(len(uniq), K, h * w)[inv]).sum(1)  # [c, hw]: dL/du at 0
+    pinv = still_pinv[m]  # [c, 2, hw]
+    var = ladder.variance[up, :, um].to(**like).reshape(len(uniq), K, h * w)
+    dmat = shift_derivatives(torch.eye(h * w, **like).reshape(h * w, h, w)).reshape(h * w, 2, h * w)  # [q', a, q] = D_a[q, q']
+    dd = torch.stack([dmat[:, 0] ** 2, dmat[:, 1] ** 2, dmat[:, 0] * dmat[:, 1]])  # [3, q', q]
+    return _Chunk(rows=rows, pat=pat, pf=rows // M, freq=(rows // M) % F, inv=inv, lad=lad, var=var,
+                  noise=torch.cat([var[:, None], var[:, None] @ dd], 1),
+                  slope=(pinv @ dl0[..., None])[..., 0], ds_dl=b0[1][pat][:, None, :, None] * pinv[:, :, None, :])
+
+
+def _coefficients(theta, prob: _Problems, ch: _Chunk, idx):
+    """``(C [n, E, 7, 3, K], u [n, E, S])``: the image (row 0) and its derivatives along the six
+    parameters (rows 1-6) of problems ``idx`` (of the chunk) as weights of the ladder's
+    ``(L, Dx L, Dy L)`` of every level, already integrated over each exposure's nodes (s)."""
+    pf, pat = ch.pf[idx], ch.pat[idx]
+    E = prob.cw.shape[2]
+    cw, sw, wq = (t.reshape(-1, E, t.shape[-1])[pf] for t in (prob.cw, prob.sw, prob.wq))  # [n, E, S]
+    u = theta[:, 0, None, None] * cw + theta[:, 1, None, None] * sw
+    b0, bc, bs, dc, ds, dcc, dcs, dss = _integrated_basis(u, torch.stack([wq, wq * cw, wq * sw], 2),
+                                                          torch.stack([wq * cw, wq * sw, wq * cw * cw, wq * cw * sw, wq * sw * sw], 2),
+                                                          prob.knots[pat], prob.coef[pat]).unbind(2)  # [n, E, K] each
+    t = [theta[:, i, None, None] for i in range(2, N_PAR)]
+    zero = torch.zeros_like(b0)
+    rows = [(b0, t[0] * bc + t[1] * bs, t[2] * bc + t[3] * bs),
+            (dc, t[0] * dcc + t[1] * dcs, t[2] * dcc + t[3] * dcs),
+            (ds, t[0] * dcs + t[1] * dss, t[2] * dcs + t[3] * dss),
+            (zero, bc, zero), (zero, bs, zero), (zero, zero, bc), (zero, zero, bs)]
+    return torch.stack([torch.stack(r, 2) for r in rows], 2), u
+
+
+def _model_jacobian(theta, prob: _Problems, ch: _Chunk, idx):
+    """``(model [n, E*hw], J [n, E*hw, 6])`` of problems ``idx`` of the chunk at ``theta [n, 6]`` (electrons)."""
+    C, _ = _coefficients(theta, prob, ch, idx)
+    n, E = C.shape[:2]
+    out = C.reshape(n, E * 7, -1) @ ch.lad[ch.inv[idx]]  # [n, E*7, hw]
+    out = out.reshape(n, E, 7, -1) * prob.power[ch.freq[idx], None, None, None]
+    return out[:, :, 0].reshape(n, -1), out[:, :, 1:].transpose(1, 2).reshape(n, N_PAR, -1).transpose(1, 2)
+
+
+def _start(prob: _Problems, ch: _Chunk, b0):
+    """``theta0 [c, 6]``: ``G`` from the centroids of the exposures against the ladder's centroid
+    curve linearised at ``u = 0`` (least squares over both axes and every exposure); where that
+    fails (no centroid slope, no light), ``G = amplitude`` (the command's own phase); ``|G|``
+    kept within the levels; ``delta = 0``."""
+    P, F, M, E, h, w = prob.shape
+    c = ch.rows.numel()
+    like = dict(dtype=prob.data.dtype, device=prob.data.device)
+    keep = prob.keep[ch.rows].all(1).to(like["dtype"])  # [c, hw]
+    yy, xx = torch.meshgrid(torch.arange(h, **like), torch.arange(w, **like), indexing="ij")
+    xy = torch.stack([xx.reshape(-1), yy.reshape(-1)])  # [2, hw]
+    L = ch.lad[ch.inv, :prob.knots.shape[1]] * keep[:, None]  # [c, K, hw]
+    cen_l = (L @ xy.T) / L.sum(-1, keepdim=True)  # [c, K, 2]
+    c0 = (b0[0][ch.pat][:, None, :] @ cen_l)[:, 0]  # [c, 2]
+    slope = (b0[1][ch.pat][:, None, :] @ cen_l)[:, 0]
+    D = prob.data[ch.rows] * keep[:, None]  # [c, E, hw]
+    r = (D @ xy.T) / D.sum(-1, keepdim=True) - c0[:, None]  # [c, E, 2]
+    cw, sw, wq = (t.reshape(-1, E, t.shape[-1])[ch.pf] for t in (prob.cw, prob.sw, prob.wq))  # [c, E, S]
+    v = torch.stack([(wq * cw).sum(-1), (wq * sw).sum(-1)], -1) / wq.sum(-1, keepdim=True)  # [c, E, 2]: the exposures' means of cos, sin
+    A = (slope.square().sum(-1))[:, None, None] * (v.transpose(1, 2) @ v)
+    b = ((r * slope[:, None, :]).sum(-1, keepdim=True) * v).sum(1)  # [c, 2]
+    g = (torch.linalg.pinv(A) @ b[..., None])[..., 0]  # (gc, gs)
+    amp = prob.amplitude.reshape(-1)[ch.pf]
+    bad = ~torch.isfinite(g).all(-1) | (g.square().sum(-1) == 0)
+    g = torch.where(bad[:, None], torch.stack([torch.zeros_like(amp), amp], -1), g)
+    top = prob.knots.abs().amax(-1)[ch.pat]
+    g = g * (top / g.norm(dim=-1).clamp_min(torch.finfo(g.dtype).tiny)).clamp(max=1.0)[:, None]
+    return torch.cat([g, torch.zeros(c, N_PAR - 2, **like)], -1)
+
+
+def _report_jacobians(theta, slope):
+    """``(amplitude [c, 2], phase [c, 2], H_theta [c, 4, 6], H_s [c, 4, 2])``: the motion per
+    axis ``s_a G + delta_a`` as amplitude and phase, and its Jacobians along ``theta`` and ``s``
+    in the order (amplitude_x, phase_x, amplitude_y, phase_y)."""
+    c = theta.shape[0]
+    gc, gs = theta[:, 0], theta[:, 1]
+    re = slope * gs[:, None] + theta[:, [3, 5]]  # [c, 2]: Re of x and y
+    im = slope * gc[:, None] + theta[:, [2, 4]]
+    cart_t = torch.zeros(c, 4, N_PAR, dtype=theta.dtype, device=theta.device)  # rows Re_x, Im_x, Re_y, Im_y
+    cart_s = torch.zeros(c, 4, 2, dtype=theta.dtype, device=theta.device)
+    for a in range(2):
+        cart_t[:, 2 * a, 1], cart_t[:, 2 * a, 3 + 2 * a] = slope[:, a], 1.0
+        cart_t[:, 2 * a + 1, 0], cart_t[:, 2 * a + 1, 2 + 2 * a] = slope[:, a], 1.0
+        cart_s[:, 2 * a, a], cart_s[:, 2 * a + 1, a] = gs, gc
+    amp = torch.hypot(re, im)
+    a2 = amp.square().clamp_min(torch.finfo(amp.dtype).tiny)
+    polar = torch.zeros(c, 4, 4, dtype=theta.dtype, device=theta.device)
+    for a in range(2):
+        polar[:, 2 * a, 2 * a], polar[:, 2 * a, 2 * a + 1] = re[:, a] / a2[:, a].sqrt(), im[:, a] / a2[:, a].sqrt()
+        polar[:, 2 * a + 1, 2 * a], polar[:, 2 * a + 1, 2 * a + 1] = -im[:, a] / a2[:, a], re[:, a] / a2[:, a]
+    return amp, torch.atan2(im, re), polar @ cart_t, polar @ cart_s
+
+
+def _ladder_covariance(theta, prob: _Problems, ch: _Chunk, J, W, Cw, H_t, H_s):
+    """``(cov [c, 4, 4], model variance [c, E, hw])`` from the ladder's noise: the reported
+    motion's covariance through the fit (``dtheta = -Cw G dL``, ``G_p = J_p^T W dY/dL``, using
+    ``Dx^T = -Dx``) and through ``s``; and each model pixel's variance from its ``L`` term."""
+    C, _ = _coefficients(theta, prob, ch, torch.arange(theta.shape[0], device=theta.device))
+    c, E, K = C.shape[0], C.shape[1], C.shape[-1]
+    h, w = prob.shape[4:]
+    pw = prob.power[ch.freq]
+    v = (W[..., None] * J).reshape(c, E, h, w, N_PAR).permute(0, 4, 1, 2, 3)  # [c, 6, E, h, w]
+    dv = shift_derivatives(v).reshape(c, N_PAR, E, 2, h * w)
+    v = v.reshape(c, N_PAR, E, h * w)
+    G = (torch.einsum("cek,cpeq->cpkq", C[:, :, 0, 0], v) - torch.einsum("cek,cpeq->cpkq", C[:, :, 0, 1], dv[:, :, :, 0])
+         - torch.einsum("cek,cpeq->cpkq", C[:, :, 0, 2], dv[:, :, :, 1])) * pw[:, None, None, None]
+    A = H_t @ (-Cw @ G.reshape(c, N_PAR, -1)) + H_s @ ch.ds_dl.reshape(c, 2, -1)  # [c, 4, K hw]
+    var = ch.var[ch.inv]  # [c, K, hw]
+    cov = (A * var.reshape(c, 1, -1)) @ A.transpose(1, 2)
+    return cov, _model_noise(C, prob, ch, W)[0]
+
+
+def _model_noise(C, prob: _Problems, ch: _Chunk, W):
+    """The ladder noise in the model of a chunk's problems at their coefficients ``C`` (:func:`_coefficients`):
+    ``(var [c, E, hw], grad [c, 6])``, each model pixel's variance and the gradient along
+    ``theta`` of ``V = sum W var``."""
+    c, E = C.shape[:2]
+    nz = ch.noise[ch.inv] * prob.power[ch.freq, None, None, None] ** 2  # [c, 4, K, hw]
+    pairs = ((0, 0, 0), (1, 1, 1), (2, 2, 2), (1, 2, 3), (2, 1, 3))  # (block a, block b, noise term)
+    var = sum((C[:, :, 0, a] * C[:, :, 0, b]) @ nz[:, t] for a, b, t in pairs)  # [c, E, hw]
+    wn = W.reshape(c, 1, E, -1) @ nz.transpose(-1, -2)  # [c, 4, E, K]: sum_q W cov
+    grad = 2 * sum((C[:, :, 1:, a] * C[:, :, :1, b] * wn[:, t, :, None]).sum((1, 3)) for a, b, t in pairs)
+    return var, grad
+
+
+def _debias(theta, data, W, s2, prob: _Problems, ch: _Chunk, jac):
+    """The fit with the ladder noise's bias removed to first order in its variance:
+    ``(theta, model, J, Cw = (J^T W J)^-1, info, left)``, ``left`` the squared length (std^2) of
+    the step still to go.
+
+    The least-squares cost ``S`` against a noisy ladder has the expectation ``S_true + V(theta)``,
+    ``V = sum W var(model)`` (:func:`_model_noise`), which depends on ``theta`` (a trajectory that
+    dwells near few levels has a noisier model; a larger ``delta`` draws more of the shift
+    derivatives' noise), so the plain fit is biased. Up to :data:`BIAS_ITER` Gauss-Newton steps
+    on ``S - V`` (``Cw (J^T W r + grad V / 2)``) from the fit, each kept only where it lowers
+    ``S - V`` and is shorter than :data:`STEP_MAX` std; a refused step ends that problem's correction."""
+    c = theta.shape[0]
+    idx = torch.arange(c, device=theta.device)
+
+    def state(th):
+        model, J = jac(th, idx)
+        var, grad = _model_noise(_coefficients(th, prob, ch, idx)[0], prob, ch, W)
+        q = (W * (data - model).square()).sum(-1) - (W * var.reshape(c, -1)).sum(-1)
+        return [th, model, J, q, grad]
+    st = state(theta)
+    going = torch.ones(c, dtype=torch.bool, device=theta.device)
+    for i in range(BIAS_ITER + 1):
+        th, model, J, q, grad = st
+        Cw, info = torch.linalg.inv_ex(J.transpose(1, 2) @ (W[..., None] * J))
+        step = (Cw @ (J.transpose(1, 2) @ (W * (data - model))[..., None] + grad[..., None] / 2))[..., 0]
+        left = (step[:, None, :] @ torch.linalg.pinv(Cw) @ step[..., None])[:, 0, 0] / s2
+        if i == BIAS_ITER or not bool(going.any()):
+            break
+        trial = state(th + step)
+        going = going & (trial[3] <= st[3]) & (left < STEP_MAX ** 2)
+        st = [torch.where(going.reshape((c,) + (1,) * (a.dim() - 1)), a, b) for a, b in zip(trial, st)]
+    return st[0], st[1], st[2], Cw, info, left
+
+
+def _fit_chunk(prob: _Problems, ch: _Chunk, b0):
+    """Fit one chunk: ``dict`` of ``[c]``-batched amplitude, phase, covariance, status, flags, reduced_chi2."""
+    c = ch.rows.numel()
+    E = prob.shape[3]
+    data, W = prob.data[ch.rows].reshape(c, -1), prob.weight[ch.rows].reshape(c, -1)
+    jac = lambda th, i: _model_jacobian(th, prob, ch, i)  # noqa: E731
+    res = levenberg_marquardt(lambda th, i: jac(th, i)[0], _start(prob, ch, b0), data, weight=W, max_iter=MAX_ITER,
+                              jacobian_fn=jac, gn_tol=1e-2)
+    theta = res.theta
+    all_c = torch.arange(c, device=theta.device)
+    model = jac(theta, all_c)[0]
+    used = (W > 0).sum(-1).to(theta.dtype)
+    dof = (used - N_PAR).clamp_min(1)
+    s2 = torch.ones(c, dtype=theta.dtype, device=theta.device) if prob.noise_given else ((data - model).square() * W).sum(-1) / dof
+    theta, model, J, Cw, info, left = _debias(theta, data, W, s2, prob, ch, jac)
+    r2 = (data - model).square()
+    converged = res.converged | (left < LEFT_MAX ** 2)  # the LM's own test, or the step left is short (noiseless data too)
+    amp, phase, H_t, H_s = _report_jacobians(theta, ch.slope)
+    cov_l, var_model = _ladder_covariance(theta, prob, ch, J, W, Cw, H_t, H_s)
+    if prob.noise_given:
+        cov_d = Cw
+    else:  # the sandwich with each pixel's own squared residual: the noise differs from pixel to pixel (shot noise)
+        WJ = (W * W * r2)[..., None] * J
+        cov_d = Cw @ (J.transpose(1, 2) @ WJ) @ Cw
+    cov = H_t @ cov_d @ H_t.transpose(1, 2) + cov_l
+    chi2 = torch.full((c,), float("nan"), dtype=theta.dtype, device=theta.device)
+    if prob.noise_given:
+        sig2 = torch.where(W > 0, 1 / W.clamp_min(torch.finfo(W.dtype).tiny), torch.zeros_like(W)) + var_model.reshape(c, -1)
+        chi2 = torch.where(W > 0, r2 / sig2, torch.zeros_like(r2)).sum(-1) / dof
+    status = torch.zeros(c, dtype=torch.long, device=theta.device)
+    status[~converged] = NOT_CONVERGED
+    d = torch.diagonal(cov, dim1=-2, dim2=-1)
+    status[(info != 0) | ~torch.isfinite(cov).flatten(1).all(-1) | (d <= 0).any(-1) | ~torch.isfinite(theta).all(-1)] = SINGULAR
+    _, u = _coefficients(theta, prob, ch, all_c)
+    flags = OUT_OF_LADDER * ((u.flatten(1).amin(-1) < prob.knots[ch.pat, 0]) | (u.flatten(1).amax(-1) > prob.knots[ch.pat, -1])).long()
+    flags = flags | NO_MOTION * ((amp / d[:, ::2].clamp_min(0).sqrt() < 3).any(-1)).long()
+    return dict(amplitude=amp, phase=phase, covariance=cov, status=status, flags=flag_poor_fit(flags, chi2), reduced_chi2=chi2)
+
+
+def _prefit_status(prob: _Problems, still):
+    """``[n]`` status before fitting: :data:`NO_PIXELS` (at most 6 pixels left),
+    :data:`OUT_OF_FRAME` (fewer than half the crop's pixels usable), :data:`DARK` (the data's
+    correlation with the zero-mean still, in noise stds, below :data:`DARK_SNR`; the noise
+    std from the median absolute deviation where none is given)."""
+    P, F, M, E, h, w = prob.shape
+    n = P * F * M
+    keep = prob.keep
+    tmpl = still.reshape(M, 1, h * w).to(prob.data)[torch.arange(n, device=keep.device) % M]  # [n, 1, hw]
+    k = keep.to(prob.data.dtype)
+    tmpl = (tmpl - (tmpl * k).sum(-1, keepdim=True) / k.sum(-1, keepdim=True).clamp_min(1)) * k
+    W = prob.weight
+    if not prob.noise_given:
+        flat = torch.where(keep, prob.data, torch.full_like(prob.data, float("nan"))).flatten(1)
+        med = flat.nanmedian(-1, keepdim=True).values
+        mad = (flat - med).abs().nanmedian(-1).values * 1.4826
+        W = k / mad.square()[:, None, None].clamp_min(torch.finfo(W.dtype).tiny)
+    snr = (W * prob.data * tmpl).flatten(1).sum(-1) / (W * tmpl * tmpl).flatten(1).sum(-1).sqrt()
+    status = torch.zeros(n, dtype=torch.long, device=keep.device)
+    status[~(snr >= DARK_SNR)] = DARK
+    status[keep.any(1).sum(-1) < 0.5 * h * w] = OUT_OF_FRAME
+    status[keep.flatten(1).sum(-1) <= N_PAR] = NO_PIXELS
+    return status
+
+
+def fit_ladder_problems(crops, ladder: PatternLadder, window, omega, amplitude, *, power, noise_std=None, mask=None, chunk=None,
+                        device=None) -> SpotFits:
+    """Fit every (pattern, frequency, spot) problem with the ladder's model (module docstring).
+
+    Args:
+        crops: ``[P, F, M, E*R, h, w]`` electrons (:func:`~torchblur.dm.spot_fit.crop_problems`);
+            its floating dtype is the fit's (an integer one: float64).
+        ladder: :class:`PatternLadder` of the same P patterns, M spots and crop.
+        window: :class:`ExposureWindow` broadcastable to ``[P, F, E*R]`` (s).
+        omega: ``[F]`` rad/s.
+        amplitude: the command amplitude (input units) broadcastable to ``[P, F]``: the start
+            where the centroids give none.
+        power: the sweep frames' laser power relative to the ladder's, ``[F]`` or a number.
+        noise_std: pixel noise std broadcastable to the crops (e.g. the camera noise of the
+            expected signal), or None (unweighted, the covariance from each pixel's residual;
+            ``reduced_chi2`` NaN).
+        mask: bool broadcastable to the crops (False: excluded), or None.
+        chunk: problems per chunk; None: :func:`~torchblur.dm.spot_fit.chunk_size` with the
+            chunk's ``E*R + 3K`` planes per problem (the data and the ladder's three images per level).
+        device: where to fit (None: the crops').
+
+    Returns:
+        :class:`~torchblur.dm.spot_fit.SpotFits` ``[P, F, M]`` (on ``device``): per axis the
+        phasor ``s G + delta`` as amplitude (px) and phase (rad), the covariance of both axes
+        with the ladder's noise, ``status`` (non-zero: NaN estimates), ``flags``
+        (:data:`~torchblur.fit.status.OUT_OF_LADDER`, ``NO_MOTION``, ``MASKED``, ``POOR_FIT_FLAG``).
+    """
+    if not isinstance(crops, torch.Tensor):
+        raise ShapeError(f"crops: expected a tensor [P, F, M, E*R, h, w], got {type(crops).__name__}")
+    dev = torch.device(device) if device is not None else crops.device
+    like = dict(dtype=crops.dtype if crops.is_floating_point() else torch.float64, device=dev)
+    prob = _flat_problems(crops, ladder, window, omega, amplitude, power, noise_std, mask, like)
+    P, F, M, E, h, w = prob.shape
+    K = ladder.levels.shape[1]
+    n = P * F * M
+    js = shift_derivatives(ladder.still.to(**like)).reshape(M, 2, h * w)
+    still_pinv = torch.linalg.pinv(js.transpose(1, 2))  # [M, 2, hw]
+    b0 = _basis_at(torch.zeros(P, 1, **like), prob.knots, prob.coef)
+    b0 = (b0[0][:, 0], b0[1][:, 0])  # [P, K] each: the basis and its derivative at u = 0
+    chunk = chunk_size(E + 3 * K, h, w, device=dev, dtype=like["dtype"]) if chunk is None else check_int(chunk, "chunk", low=1)
+    status = _prefit_status(prob, ladder.still)
+    nan = torch.full((n,), float("nan"), **like)
+    out = dict(amplitude=nan[:, None].repeat(1, 2), phase=nan[:, None].repeat(1, 2), covariance=nan[:, None, None].repeat(1, 4, 4),
+               status=status, flags=MASKED * (~prob.keep).flatten(1).any(-1).long(), reduced_chi2=nan.clone())
+    todo = torch.nonzero(status == 0).reshape(-1)
+    n_chunks = 0
+    for i0 in range(0, todo.numel(), chunk):
+        ch = _chunk(prob, ladder, todo[i0:i0 + chunk], still_pinv, b0, like)
+        with torch.no_grad():
+            r = _fit_chunk(prob, ch, b0)
+        ok = r["status"] == 0
+        for key in ("amplitude", "phase", "covariance"):
+            r[key][~ok] = float("nan")
+        for key, v in r.items():
+            out[key][ch.rows] = out[key][ch.rows] | v if key == "flags" else v
+        n_chunks += 1
+    return SpotFits(**{k: v.reshape((P, F, M) + tuple(v.shape[1:])) for k, v in out.items()}, n_chunks=n_chunks)
