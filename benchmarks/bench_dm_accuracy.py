@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from torchblur.identify.dm_plan import truth_errors
-    from torchblur.identify.pipeline import identify
+from torchblur.identify.pipeline import identify
 from torchblur.config import load_config
 
 
