@@ -52,6 +52,7 @@ def dc_gain_split(res) -> dict:
             theta(t, float(m.coupling) if t.coupling is None else t.coupling, 0.0)
         Jg = fit.gain_jacobian[live]
         out["common"] = float(np.mean(Jg @ dtheta / a.dc_gain_std[live]))
+        out["weighting_z"] = float(dtheta[5] / math.sqrt(fit.cov[5, 5]))
         common = Jg @ fit.cov @ Jg.T  # the registration's share, one error for all gains
         own = np.asarray(a.dc_gain_std)[live] ** 2 - np.diag(common)  # the rest (edge-widened gains' extra included)
         chi2 = float(err @ np.linalg.solve(common + np.diag(own), err))
@@ -60,7 +61,43 @@ def dc_gain_split(res) -> dict:
         tab = fit_actuators(res.freq_hz, res.D, res.D_cov, res.truth_G, actuator_xy=a.actuator_xy)
         z = (tab.dc_gain - m.gain)[live] / tab.dc_gain_std[live]
         out.update(true_G_rms=float(np.sqrt(np.mean(z**2))), true_G_mean=float(z.mean()))
+    if res.truth_D is not None:  # each column's scale against the truth per frequency, in stds (a bias every spot fit shares)
+        x, t = (np.stack([v.real, v.imag], -1)[:, live] for v in (res.D, res.truth_D))
+        w = np.stack([1 / res.D_cov[..., 0, 0], 1 / res.D_cov[..., 1, 1]], -1)[:, live]
+        w = np.where(np.isfinite(w) & np.isfinite(x), w, 0.0)
+        num, den = (w * t * (np.nan_to_num(x) - t)).sum((0, 3)), (w * t * t).sum((0, 3))
+        out["column_scale_mean"] = float(np.mean(num[den > 0] / np.sqrt(den[den > 0])))
     return out
+
+
+def print_errors(res) -> None:
+    """Print a simulated DM run's errors against its truth (module docstring)."""
+    err = truth_errors(res)
+    m, a = res.mirror, res.actuators
+    live = ~m.dead
+    for name, est, std, true in (("dc_gain", a.dc_gain, a.dc_gain_std, m.gain), ("mode_hz", a.mode_hz, a.mode_hz_std, m.mode_hz),
+                                 ("damping", a.damping, a.damping_std, m.damping), ("delay_s", a.delay_s, a.delay_s_std, m.delay_s)):
+        z = (est[live] - true[live]) / std[live]
+        rel = np.abs(est[live] / true[live] - 1)
+        print(f"  {name:8s} largest error {rel.max() * 100:.3f} %   error/std: rms {np.sqrt(np.mean(z ** 2)):.2f}, "
+              f"mean {z.mean():+.2f}, largest {np.abs(z).max():.2f}")
+    split = dc_gain_split(res)
+    if "chi2" in split:
+        print(f"  dc_gain  the registration's error (sensor weighting {split['weighting_z']:+.2f} std) shifts every gain by "
+              f"{split['common']:+.2f} std (mean); chi2 of the errors "
+              f"under their full covariance {split['chi2']:.1f} over {split['dof']} (p {split['p']:.3g})")
+    if "true_G_rms" in split:
+        print(f"  dc_gain  fitted on the simulated geometry (no registration error): error/std rms {split['true_G_rms']:.2f}, "
+              f"mean {split['true_G_mean']:+.2f}; D's columns against the truth per frequency: mean scale error "
+              f"{split.get('column_scale_mean', math.nan):+.3f} std")
+    print(f"  D0 rms error / largest element {err['D0_rms_error_over_max'] * 100:.3f} %; dead reported dead: "
+          f"{err['dead_reported_dead']}; live reported dead: {err['live_reported_dead']}")
+    if res.registration is not None:  # the registration fitted to D0 (torchblur.dm.registration) against the simulated one
+        print(f"  {res.registration.line()}")
+        reg = {k[len("registration_"):]: v for k, v in err.items() if k.startswith("registration_")}
+        if reg:
+            print("  registration error: " + ", ".join(f"{k} {reg[k + '_error']:+.4g} ({reg[k + '_z']:+.2f} std)"
+                                                      for k in ("shift_x", "shift_y", "rotation_deg", "magnification", "coupling")))
 
 
 def main(argv=None) -> int:
@@ -75,32 +112,9 @@ def main(argv=None) -> int:
         t0 = time.perf_counter()
         res = identify(cfg, progress=False)
         elapsed = time.perf_counter() - t0
-        err = truth_errors(res)
-        stages = ", ".join(f"{k} {v:.1f} s" for k, v in res.timing_s.items())
-        print(f"seed {seed}: {len(res.actuators)} actuators, {res.n_frames} sweep frames, {elapsed:.1f} s ({stages})")
-        m, a = res.mirror, res.actuators
-        live = ~m.dead
-        for name, est, std, true in (("dc_gain", a.dc_gain, a.dc_gain_std, m.gain), ("mode_hz", a.mode_hz, a.mode_hz_std, m.mode_hz),
-                                     ("damping", a.damping, a.damping_std, m.damping), ("delay_s", a.delay_s, a.delay_s_std, m.delay_s)):
-            z = (est[live] - true[live]) / std[live]
-            rel = np.abs(est[live] / true[live] - 1)
-            print(f"  {name:8s} largest error {rel.max() * 100:.3f} %   error/std: rms {np.sqrt(np.mean(z ** 2)):.2f}, "
-                  f"mean {z.mean():+.2f}, largest {np.abs(z).max():.2f}")
-        split = dc_gain_split(res)
-        if "chi2" in split:
-            print(f"  dc_gain  the registration's error shifts every gain by {split['common']:+.2f} std (mean); chi2 of the errors "
-                  f"under their full covariance {split['chi2']:.1f} over {split['dof']} (p {split['p']:.3g})")
-        if "true_G_rms" in split:
-            print(f"  dc_gain  fitted on the simulated geometry (no registration error): error/std rms {split['true_G_rms']:.2f}, "
-                  f"mean {split['true_G_mean']:+.2f}")
-        print(f"  D0 rms error / largest element {err['D0_rms_error_over_max'] * 100:.3f} %; dead reported dead: "
-              f"{err['dead_reported_dead']}; live reported dead: {err['live_reported_dead']}")
-        if res.registration is not None:  # the registration fitted to D0 (torchblur.dm.registration) against the simulated one
-            print(f"  {res.registration.line()}")
-            reg = {k[len("registration_"):]: v for k, v in err.items() if k.startswith("registration_")}
-            if reg:
-                print("  registration error: " + ", ".join(f"{k} {reg[k + '_error']:+.4g} ({reg[k + '_z']:+.2f} std)"
-                                                          for k in ("shift_x", "shift_y", "rotation_deg", "magnification", "coupling")))
+        print(f"seed {seed}: {len(res.actuators)} actuators, {res.n_frames} sweep frames, {elapsed:.1f} s "
+              f"({', '.join(f'{k} {v:.1f} s' for k, v in res.timing_s.items())})")
+        print_errors(res)
     return 0
 
 
