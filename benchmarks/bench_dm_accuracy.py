@@ -53,6 +53,8 @@ def dc_gain_split(res) -> dict:
         Jg = fit.gain_jacobian[live]
         out["common"] = float(np.mean(Jg @ dtheta / a.dc_gain_std[live]))
         out["weighting_z"] = float(dtheta[5] / math.sqrt(fit.cov[5, 5]))
+        out["registration_chi2"] = float(dtheta @ np.linalg.solve(fit.cov, dtheta))  # over 6
+        out["share"] = float(np.median(fit.gain_var_registration[live] / a.dc_gain_std[live] ** 2))
         common = Jg @ fit.cov @ Jg.T  # the registration's share, one error for all gains
         own = np.asarray(a.dc_gain_std)[live] ** 2 - np.diag(common)  # the rest (edge-widened gains' extra included)
         chi2 = float(err @ np.linalg.solve(common + np.diag(own), err))
@@ -67,6 +69,10 @@ def dc_gain_split(res) -> dict:
         w = np.where(np.isfinite(w) & np.isfinite(x), w, 0.0)
         num, den = (w * t * (np.nan_to_num(x) - t)).sum((0, 3)), (w * t * t).sum((0, 3))
         out["column_scale_mean"] = float(np.mean(num[den > 0] / np.sqrt(den[den > 0])))
+        zc = (num / np.sqrt(np.where(den > 0, den, np.nan)))[:, res.freq_hz < 400]  # [N live, F low]: below the modes
+        zc = zc - np.nanmean(zc, axis=0)
+        cc = np.corrcoef(zc.T)  # one actuator's errors at two frequencies: 0 where they are independent
+        out["frequency_correlation"] = float((cc.sum() - np.trace(cc)) / (cc.size - len(cc)))
     return out
 
 
@@ -83,13 +89,15 @@ def print_errors(res) -> None:
               f"mean {z.mean():+.2f}, largest {np.abs(z).max():.2f}")
     split = dc_gain_split(res)
     if "chi2" in split:
-        print(f"  dc_gain  the registration's error (sensor weighting {split['weighting_z']:+.2f} std) shifts every gain by "
-              f"{split['common']:+.2f} std (mean); chi2 of the errors "
+        print(f"  dc_gain  the registration's error (chi2 {split['registration_chi2']:.1f} over 6; sensor weighting "
+              f"{split['weighting_z']:+.2f} std) shifts every gain by {split['common']:+.2f} std (mean; its share of a gain's "
+              f"variance {split['share']:.3f}, median); chi2 of the errors "
               f"under their full covariance {split['chi2']:.1f} over {split['dof']} (p {split['p']:.3g})")
     if "true_G_rms" in split:
         print(f"  dc_gain  fitted on the simulated geometry (no registration error): error/std rms {split['true_G_rms']:.2f}, "
               f"mean {split['true_G_mean']:+.2f}; D's columns against the truth per frequency: mean scale error "
-              f"{split.get('column_scale_mean', math.nan):+.3f} std")
+              f"{split.get('column_scale_mean', math.nan):+.3f} std, one actuator's at two frequencies below 400 Hz "
+              f"correlated {split.get('frequency_correlation', math.nan):+.3f} (mean)")
     print(f"  D0 rms error / largest element {err['D0_rms_error_over_max'] * 100:.3f} %; dead reported dead: "
           f"{err['dead_reported_dead']}; live reported dead: {err['live_reported_dead']}")
     if res.registration is not None:  # the registration fitted to D0 (torchblur.dm.registration) against the simulated one
