@@ -64,6 +64,24 @@ CLAIMS = [
           r"on its own simulated mirror the (Gaussian|kernel) [^(]*\(reduced chi2 " + NUM + r", threshold " + NUM,
           _tb("identify", "--out", "{out}"), r"psf: (gaussian|kernel): .*?reduced chi2 Gaussian " + NUM + r" over \d+ px, threshold "
           + NUM, rtol=(0.0, 0.15, 0.05), source="torchblur identify --out runs/default (the psf: line)"),
+    # a seeded run repeats to round-off: the values within a few units of their last printed digit, the stds within 5 %
+    Claim("the default run's mode with its stds", "README.md",
+          r"`mode: " + NUM + r" \+- " + NUM + r" Hz, damping " + NUM + r" \+- " + NUM + r"` in report\.txt of the default run",
+          _tb("identify", "--out", "{out}"), r"mode: " + NUM + r" \+- " + NUM + r" Hz, damping " + NUM + r" \+- " + NUM,
+          rtol=(1e-5, 0.05, 1e-3, 0.5), source="torchblur identify --out runs/default (report.txt: mode)"),
+    Claim("the default run's fit quality line", "README.md",
+          r"`fit quality: reduced chi2 median " + NUM + r", max " + NUM + r" \.\.\.`",
+          _tb("identify", "--out", "{out}"), r"fit quality: reduced chi2 median " + NUM + r", max " + NUM,
+          rtol=(0.01,), source="torchblur identify --out runs/default (report.txt: fit quality)"),
+    Claim("the slew-limit example's drive lines", "README.md",
+          r"slew limit 200000 input units/s \(device 200000; from device\): the full range up to " + NUM + r" Hz drive: 2 of 4 points "
+          r"limited by the input range \+-200 and the slew limit 200000 units/s \(\.\.\.\): " + NUM + r" Hz: " + NUM + r" px, 2e\+05 Hz: "
+          + NUM + r" px",
+          _tb("identify", "--out", "{out}", "sweep.f_max_hz=200000", "sweep.n=4", "plant.slew_limit=2e5", "camera.height=40",
+              "camera.width=40", "seed=3", "sweep.images_per_point=1", "fit.axis=x"),
+          r"slew limit 200000 input units/s \(device 200000; from device\): the full range up to " + NUM + r" Hz[\s\S]*?drive: 2 of 4 "
+          r"points limited by the input range \+-200 and the slew limit 200000 units/s \([^)]*\): " + NUM + r" Hz: " + NUM
+          + r" px, 2e\+05 Hz: " + NUM + r" px", rtol=(1e-3, 1e-3, 0.05, 0.1)),
     Claim("verdict of the jitter example", "README.md",
           r"(verdict: 2 of 3 points flagged: 2 timing \(above " + NUM + r" kHz, beyond 1 deg\); 2 limited by the drive \(8 kHz: "
           + NUM + r" px, 20 kHz: " + NUM + r" px\))",
