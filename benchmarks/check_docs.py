@@ -127,6 +127,16 @@ CLAIMS = [
           _tb("identify", "--config", "configs/identify_dm.yaml", "--out", "{out}"),
           r"verdict: trustworthy: all " + NUM + r" actuators within tolerance: " + NUM + r" ok, 1 weak \(" + NUM
           + r"\), 1 dead \(" + NUM + r"\);", rtol=(0.0,), speed="slow"),
+    Claim("the DM run's size", "README.md",
+          r"`configs/identify_dm\.yaml`: " + NUM + r" actuators, one dead and one weak, " + NUM + r" spots, a Hadamard plan",
+          _tb("identify", "--config", "configs/identify_dm.yaml", "--out", "{out}"),
+          r"dm run: " + NUM + r" actuators, " + NUM + r" spots, plan hadamard", rtol=(0.0,), speed="slow"),
+    Claim("the DM run's plan", "README.md",
+          r"a Hadamard plan of " + NUM + r" patterns x " + NUM + r" frequencies x " + NUM + r" exposures x " + NUM + r" repeats = "
+          + NUM + r" frames, " + NUM + r" of what one actuator at a time needs",
+          _tb("identify", "--config", "configs/identify_dm.yaml", "--out", "{out}"),
+          r"dm plan: hadamard, " + NUM + r" patterns x " + NUM + r" frequencies x " + NUM + r" exposures x " + NUM + r" repeats = "
+          + NUM + r" frames; frames for the same accuracy vs one at a time: " + NUM, rtol=(0.0,), speed="slow"),
     Claim("HCIPy routes: the direct model with the measured kernel", "README.md",
           r"direct model of a resonance within " + NUM + r" % \(frequency\) and " + NUM + r" % \(damping\), rms\(error/std\) "
           + NUM + " / " + NUM,
