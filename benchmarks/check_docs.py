@@ -143,6 +143,14 @@ CLAIMS = [
           _tb("identify", "--config", "configs/identify_dm.yaml", "--out", "{out}"),
           r"dm plan: hadamard, " + NUM + r" patterns x " + NUM + r" frequencies x " + NUM + r" exposures x " + NUM + r" repeats = "
           + NUM + r" frames; frames for the same accuracy vs one at a time: " + NUM, rtol=(0.0,), speed="slow"),
+    Claim("the DM run against the truth", "README.md",
+          r"largest errors over the 51 live actuators: mode " + NUM + r" %, damping " + NUM + r" %, DC gain " + NUM + r" %; D0 " + NUM
+          + r" % rms of its largest element; the dead actuator reported dead, the weak one weak; rms\(error/std\) DC gain " + NUM
+          + r", mode " + NUM + r", damping " + NUM,
+          _tb("identify", "--config", "configs/identify_dm.yaml", "--out", "{out}"),
+          r"against the simulated truth: mode " + NUM + r" %, damping " + NUM + r" %, DC gain " + NUM + r" % \(largest over live "
+          r"actuators\), D0 " + NUM + r" % rms of its largest element, dead reported dead: True; rms\(error/std\) over the live "
+          r"actuators: DC gain " + NUM + r", mode " + NUM + r", damping " + NUM, rtol=(0.02,), speed="slow"),  # seeded: round-off
     # the seeded DM run repeats to round-off: its verdict's figures exactly, the models' chi2 bound to its printed digits
     *(Claim(f"the DM run's verdict line ({where})", "docs/deformable_mirrors.md", before + r"verdict: trustworthy: all " + NUM
             + r" actuators within tolerance: " + NUM + r" ok, 1 weak \(" + NUM + r"\), 1 dead \(" + NUM + r"\); model reduced chi2 <= "
