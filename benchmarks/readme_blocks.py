@@ -248,6 +248,8 @@ def main(argv=None) -> int:
         last = out.strip().splitlines()[-1:] or [""]
         print(f"{'ok  ' if ok else 'FAIL'}  README.md:{line} ({lang}): exit {rc} in {time.perf_counter() - t0:.0f} s; "
               f"last line: {last[0][:160]}", flush=True)
+        if not ok:  # what went wrong, as the user would see it
+            print("\n".join("      | " + x[:200] for x in out.strip().splitlines()[-15:]), flush=True)
         for holds, text in block_claims(run, out, rc, root):
             claims += 1
             failed += not holds
