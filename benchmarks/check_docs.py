@@ -109,12 +109,13 @@ CLAIMS = [
           [sys.executable, "-c", "import sys; sys.path.insert(0, 'tests'); import test_bad_input_contract as t; "
                                  "print(len(t.BAD), 'bad inputs,', len(t.DEGENERATE), 'degenerate')"],
           NUM + r" bad inputs, " + NUM + " degenerate", rtol=(0.0,)),
-    # the re-fits of one seeded run: they repeat to round-off; the README rounds to one decimal
+    # the re-fits of one seeded run: they repeat to round-off (0.01 and 0.02 are one printed digit: within half)
     Claim("the losses against l2 on the default run", "README.md",
-          r"On the default run poisson and l1 agree with l2 within " + NUM + " and " + NUM + " l2 std at every point",
+          r"On the default run poisson agrees with l2 within " + NUM + r" \(\|H\|\) and " + NUM + r" \(phase\) l2 std at every point "
+          r"\([^)]*\), l1 within " + NUM + " and " + NUM,
           [sys.executable, "benchmarks/bench_losses.py"],
-          r"fit.loss=poisson: [^\n]*?max \|diff\|/std\(l2\): \|H\| " + NUM + r", phase [0-9.]+[\s\S]*?fit.loss=l1: [^\n]*?"
-          r"max \|diff\|/std\(l2\): \|H\| " + NUM, rtol=(0.1,), speed="slow"),
+          r"fit.loss=poisson: [^\n]*?max \|diff\|/std\(l2\): \|H\| " + NUM + r", phase " + NUM + r"[\s\S]*?fit.loss=l1: [^\n]*?"
+          r"max \|diff\|/std\(l2\): \|H\| " + NUM + r", phase " + NUM, rtol=(0.5, 0.5, 0.1, 0.1), speed="slow"),
     Claim("the fitter's efficiency", "README.md",
           r"RMSE / Cramer-Rao bound " + NUM + r" \(M\) and " + NUM + r" \(phase\)",
           [sys.executable, "benchmarks/bench_fit.py"], r"RMSE/CRLB: M " + NUM + r" +phi " + NUM, rtol=(0.05, 0.05), speed="slow"),
