@@ -152,6 +152,18 @@ CLAIMS = [
           r"against the simulated truth: mode " + NUM + r" %, damping " + NUM + r" %, DC gain " + NUM + r" % \(largest over live "
           r"actuators\), D0 " + NUM + r" % rms of its largest element, dead reported dead: True; rms\(error/std\) over the live "
           r"actuators: DC gain " + NUM + r", mode " + NUM + r", damping " + NUM, rtol=(0.02,), speed="slow"),  # seeded: round-off
+    # bench_dm_accuracy's seeded runs repeat to round-off: within the printed digits
+    *(Claim(f"DM accuracy against the truth, seed {seed}", "docs/deformable_mirrors.md",
+            before + r"DC gain " + NUM + r" % \(" + NUM + ", " + NUM + r"\), mode " + NUM + r" % \(" + NUM + ", " + NUM + r"\), damping "
+            + NUM + r" % \(" + NUM + ", " + NUM + r"\), delay " + NUM + r" % \(" + NUM + ", " + NUM + r"\); D0 " + NUM + " %",
+            [sys.executable, "benchmarks/bench_dm_accuracy.py", "--seeds", "0", "1"],
+            rf"seed {seed}: [^\n]*\n" + "".join(rf" +{name} +largest error " + NUM + r" % +error/std: rms " + NUM
+                                                 + r", mean [-+0-9.]+, largest " + NUM + r"\n" for name in ("dc_gain", "mode_hz", "damping",
+                                                                                                        "delay_s"))
+            + r" +D0 rms error / largest element " + NUM + " %", rtol=(0.02,), speed="slow")
+      for seed, before in ((0, r"the shipped config \(seed 0\): largest errors and rms\(error/std\) \(largest \|error/std\|\) over the 51 "
+                               r"live actuators: "),
+                           (1, r"Seed 1 \(another mirror spread, noise and jitter\): "))),
     # the seeded DM run repeats to round-off: its verdict's figures exactly, the models' chi2 bound to its printed digits
     *(Claim(f"the DM run's verdict line ({where})", "docs/deformable_mirrors.md", before + r"verdict: trustworthy: all " + NUM
             + r" actuators within tolerance: " + NUM + r" ok, 1 weak \(" + NUM + r"\), 1 dead \(" + NUM + r"\); model reduced chi2 <= "
