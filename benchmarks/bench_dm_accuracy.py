@@ -1,6 +1,6 @@
 """DM identification against the simulated truth: do the reported stds hold? (issue 17)
 
-Runs :func:`torchblur.identify.dm_plan.identify_dm` on ``configs/identify_dm.yaml`` (or ``--config``)
+Runs :func:`torchblur.identify.pipeline.identify` on ``configs/identify_dm.yaml`` (or ``--config``)
 for each ``--seeds`` value (the mirror's spread, the camera noise and the jitter change with it)
 and prints, over the live actuators, each estimate's largest relative error and the rms and
 largest of error / reported std (rms about 1 where the stds hold; with 51 actuators an rms

@@ -64,6 +64,24 @@ CLAIMS = [
           r"on its own simulated mirror the (Gaussian|kernel) [^(]*\(reduced chi2 " + NUM + r", threshold " + NUM,
           _tb("identify", "--out", "{out}"), r"psf: (gaussian|kernel): .*?reduced chi2 Gaussian " + NUM + r" over \d+ px, threshold "
           + NUM, rtol=(0.0, 0.15, 0.05), source="torchblur identify --out runs/default (the psf: line)"),
+    # a seeded run repeats to round-off: the values within a few units of their last printed digit, the stds within 5 %
+    Claim("the default run's mode with its stds", "README.md",
+          r"`mode: " + NUM + r" \+- " + NUM + r" Hz, damping " + NUM + r" \+- " + NUM + r"` in report\.txt of the default run",
+          _tb("identify", "--out", "{out}"), r"mode: " + NUM + r" \+- " + NUM + r" Hz, damping " + NUM + r" \+- " + NUM,
+          rtol=(1e-5, 0.05, 1e-3, 0.5), source="torchblur identify --out runs/default (report.txt: mode)"),
+    Claim("the default run's fit quality line", "README.md",
+          r"`fit quality: reduced chi2 median " + NUM + r", max " + NUM + r" \.\.\.`",
+          _tb("identify", "--out", "{out}"), r"fit quality: reduced chi2 median " + NUM + r", max " + NUM,
+          rtol=(0.01,), source="torchblur identify --out runs/default (report.txt: fit quality)"),
+    Claim("the slew-limit example's drive lines", "README.md",
+          r"slew limit 200000 input units/s \(device 200000; from device\): the full range up to " + NUM + r" Hz drive: 2 of 4 points "
+          r"limited by the input range \+-200 and the slew limit 200000 units/s \(\.\.\.\): " + NUM + r" Hz: " + NUM + r" px, 2e\+05 Hz: "
+          + NUM + r" px",
+          _tb("identify", "--out", "{out}", "sweep.f_max_hz=200000", "sweep.n=4", "plant.slew_limit=2e5", "camera.height=40",
+              "camera.width=40", "seed=3", "sweep.images_per_point=1", "fit.axis=x"),
+          r"slew limit 200000 input units/s \(device 200000; from device\): the full range up to " + NUM + r" Hz[\s\S]*?drive: 2 of 4 "
+          r"points limited by the input range \+-200 and the slew limit 200000 units/s \([^)]*\): " + NUM + r" Hz: " + NUM
+          + r" px, 2e\+05 Hz: " + NUM + r" px", rtol=(1e-3, 1e-3, 0.05, 0.1)),
     Claim("verdict of the jitter example", "README.md",
           r"(verdict: 2 of 3 points flagged: 2 timing \(above " + NUM + r" kHz, beyond 1 deg\); 2 limited by the drive \(8 kHz: "
           + NUM + r" px, 20 kHz: " + NUM + r" px\))",
@@ -91,6 +109,13 @@ CLAIMS = [
           [sys.executable, "-c", "import sys; sys.path.insert(0, 'tests'); import test_bad_input_contract as t; "
                                  "print(len(t.BAD), 'bad inputs,', len(t.DEGENERATE), 'degenerate')"],
           NUM + r" bad inputs, " + NUM + " degenerate", rtol=(0.0,)),
+    # the re-fits of one seeded run: they repeat to round-off (0.01 and 0.02 are one printed digit: within half)
+    Claim("the losses against l2 on the default run", "README.md",
+          r"On the default run poisson agrees with l2 within " + NUM + r" \(\|H\|\) and " + NUM + r" \(phase\) l2 std at every point "
+          r"\([^)]*\), l1 within " + NUM + " and " + NUM,
+          [sys.executable, "benchmarks/bench_losses.py"],
+          r"fit.loss=poisson: [^\n]*?max \|diff\|/std\(l2\): \|H\| " + NUM + r", phase " + NUM + r"[\s\S]*?fit.loss=l1: [^\n]*?"
+          r"max \|diff\|/std\(l2\): \|H\| " + NUM + r", phase " + NUM, rtol=(0.5, 0.5, 0.1, 0.1), speed="slow"),
     Claim("the fitter's efficiency", "README.md",
           r"RMSE / Cramer-Rao bound " + NUM + r" \(M\) and " + NUM + r" \(phase\)",
           [sys.executable, "benchmarks/bench_fit.py"], r"RMSE/CRLB: M " + NUM + r" +phi " + NUM, rtol=(0.05, 0.05), speed="slow"),
@@ -109,6 +134,46 @@ CLAIMS = [
           _tb("identify", "--config", "configs/identify_dm.yaml", "--out", "{out}"),
           r"verdict: trustworthy: all " + NUM + r" actuators within tolerance: " + NUM + r" ok, 1 weak \(" + NUM
           + r"\), 1 dead \(" + NUM + r"\);", rtol=(0.0,), speed="slow"),
+    Claim("the DM run's size", "README.md",
+          r"`configs/identify_dm\.yaml`: " + NUM + r" actuators, one dead and one weak, " + NUM + r" spots, a Hadamard plan",
+          _tb("identify", "--config", "configs/identify_dm.yaml", "--out", "{out}"),
+          r"dm run: " + NUM + r" actuators, " + NUM + r" spots, plan hadamard", rtol=(0.0,), speed="slow"),
+    Claim("the DM run's plan", "README.md",
+          r"a Hadamard plan of " + NUM + r" patterns x " + NUM + r" frequencies x " + NUM + r" exposures x " + NUM + r" repeats = "
+          + NUM + r" frames, " + NUM + r" of what one actuator at a time needs",
+          _tb("identify", "--config", "configs/identify_dm.yaml", "--out", "{out}"),
+          r"dm plan: hadamard, " + NUM + r" patterns x " + NUM + r" frequencies x " + NUM + r" exposures x " + NUM + r" repeats = "
+          + NUM + r" frames; frames for the same accuracy vs one at a time: " + NUM, rtol=(0.0,), speed="slow"),
+    Claim("the DM run against the truth", "README.md",
+          r"largest errors over the 51 live actuators: mode " + NUM + r" %, damping " + NUM + r" %, DC gain " + NUM + r" %; D0 " + NUM
+          + r" % rms of its largest element; the dead actuator reported dead, the weak one weak; rms\(error/std\) DC gain " + NUM
+          + r", mode " + NUM + r", damping " + NUM,
+          _tb("identify", "--config", "configs/identify_dm.yaml", "--out", "{out}"),
+          r"against the simulated truth: mode " + NUM + r" %, damping " + NUM + r" %, DC gain " + NUM + r" % \(largest over live "
+          r"actuators\), D0 " + NUM + r" % rms of its largest element, dead reported dead: True; rms\(error/std\) over the live "
+          r"actuators: DC gain " + NUM + r", mode " + NUM + r", damping " + NUM, rtol=(0.02,), speed="slow"),  # seeded: round-off
+    # bench_dm_accuracy's seeded runs repeat to round-off: within the printed digits
+    *(Claim(f"DM accuracy against the truth, seed {seed}", "docs/deformable_mirrors.md",
+            before + r"DC gain " + NUM + r" % \(" + NUM + ", " + NUM + r"\), mode " + NUM + r" % \(" + NUM + ", " + NUM + r"\), damping "
+            + NUM + r" % \(" + NUM + ", " + NUM + r"\), delay " + NUM + r" % \(" + NUM + ", " + NUM + r"\); D0 " + NUM + " %",
+            [sys.executable, "benchmarks/bench_dm_accuracy.py", "--seeds", "0", "1"],
+            rf"seed {seed}: [^\n]*\n" + "".join(rf" +{name} +largest error " + NUM + r" % +error/std: rms " + NUM
+                                                 + r", mean [-+0-9.]+, largest " + NUM + r"\n" for name in ("dc_gain", "mode_hz", "damping",
+                                                                                                        "delay_s"))
+            + r"(?:[^\n]*\n)*? +D0 rms error / largest element " + NUM + " %", rtol=(0.02,), speed="slow")
+      for seed, before in ((0, r"the shipped config \(seed 0\): largest errors and rms\(error/std\) \(largest \|error/std\|\) over the 51 "
+                               r"live actuators: "),
+                           (1, r"Seed 1 \(another mirror spread, noise and jitter\): "))),
+    # the seeded DM run repeats to round-off: its verdict's figures exactly, the models' chi2 bound to its printed digits
+    *(Claim(f"the DM run's verdict line ({where})", "docs/deformable_mirrors.md", before + r"verdict: trustworthy: all " + NUM
+            + r" actuators within tolerance: " + NUM + r" ok, 1 weak \(" + NUM + r"\), 1 dead \(" + NUM + r"\); model reduced chi2 <= "
+            + NUM + r" \(chi2 test p >= 0\.001\); " + NUM + " of " + NUM + " spot fits failed",
+            _tb("identify", "--config", "configs/identify_dm.yaml", "--out", "{out}"),
+            r"verdict: trustworthy: all " + NUM + r" actuators within tolerance: " + NUM + r" ok, 1 weak \(" + NUM + r"\), 1 dead \("
+            + NUM + r"\); model reduced chi2 <= " + NUM + r" \(chi2 test p >= 0\.001\); " + NUM + " of " + NUM + " spot fits failed",
+            rtol=(0.0, 0.0, 0.0, 0.0, 0.005, 0.0, 0.0), speed="slow")
+      for where, before in (("the verdict's section", r"the second shows how a flagged run reads: ``` "),
+                            ("the config's run", r"its last line `"))),
     Claim("HCIPy routes: the direct model with the measured kernel", "README.md",
           r"direct model of a resonance within " + NUM + r" % \(frequency\) and " + NUM + r" % \(damping\), rms\(error/std\) "
           + NUM + " / " + NUM,
@@ -126,17 +191,17 @@ CLAIMS = [
           r"multisine: 40 problems[^\n]*\n[^\n]*\n  psf_from_still \(auto\) +" + NUM + " +" + NUM + " +" + NUM + " +" + NUM,
           rtol=(0.05,), speed="slow", source="python benchmarks/bench_hcipy_routes.py --jobs 2 (each route's psf_from_still line)"),
 
-    # the DM run's cost: CPU-seconds (what the work costs, little moved by other work on the machine), the
-    # wall time on an idle machine (a busy one's is several times it: within 4x, as the default run's) and the peak memory
+    # the DM run's cost: CPU-seconds (what the work costs; it grows with other work on the machine too: 261 at a load of
+    # 2-2.6, 286 at 6.4: within 1.4x), the wall time (it moves with the load: within 4x, as the default run's) and the peak memory
     Claim("the DM run's time", "docs/deformable_mirrors.md",
           r"--out runs/dm` from a fresh clone on a 2-core machine: " + NUM + r" CPU-seconds for the whole command, " + NUM
-          + r" s wall on an idle machine, peak memory " + NUM + " GB",
+          + r" s wall, peak memory " + NUM + " GB, with a little other work on the machine",
           [sys.executable, "benchmarks/bench_run_time.py", "--config", "configs/identify_dm.yaml"],
           r"CPU " + NUM + r" s \(user[^)]*\), wall " + NUM + r" s, CPU/wall [0-9.]+, peak memory " + NUM + " GB",
           rtol=(0.3, 0.75, 0.2), speed="slow", source="python benchmarks/bench_run_time.py (the DM config)"),
     Claim("the DM run's time (README)", "README.md",
           r"`python benchmarks/bench_run_time\.py` runs the command and prints these figures\): " + NUM + r" CPU-seconds "
-          r"for the whole command, " + NUM + r" s wall on an idle machine \([^)]*\), peak memory " + NUM + " GB",
+          r"for the whole command, " + NUM + r" s wall, peak memory " + NUM + " GB, exit 0, with a little other work on the machine",
           [sys.executable, "benchmarks/bench_run_time.py", "--config", "configs/identify_dm.yaml"],
           r"CPU " + NUM + r" s \(user[^)]*\), wall " + NUM + r" s, CPU/wall [0-9.]+, peak memory " + NUM + " GB",
           rtol=(0.3, 0.75, 0.2), speed="slow", source="python benchmarks/bench_run_time.py (the DM config)"),

@@ -20,7 +20,7 @@ from background import started_fleet, stop_fleet
 from torchblur.errors import ConfigError, ParameterError, ShapeError
 from torchblur.hardware.controller import Controller
 from torchblur.hardware.errors import AcquisitionStopped, DeviceError, PatternMismatch
-from torchblur.hardware.protocol import E_AXIS, E_BUSY, E_RANGE, MAX_LINE, parse_command, pattern_checksum, pattern_lines
+from torchblur.hardware.protocol import E_AXIS, E_BUSY, E_RANGE, MAX_COUNT, MAX_LINE, parse_command, pattern_checksum, pattern_lines
 from torchblur.config import load_config
 
 SMALL_YAML = """\
@@ -265,6 +265,27 @@ def test_a_pattern_the_device_holds_wrong_stops_the_run(config_path):
             rig.pattern_sine(p, 100.0, 1.0, [1e-3], 0.0, 1)
         assert isinstance(info.value.cause, PatternMismatch)
         assert not any(ln.startswith(b"WAVE") for d, ln in rig.controller.traffic if d == ">")  # never driven
+    finally:
+        rig.close()
+
+
+def test_more_still_frames_than_one_arm_fires(config_path, monkeypatch):
+    """configs/identify_dm.yaml's calibration takes 1024 still frames and an ARM fires at most
+    MAX_COUNT (1000) triggers (the README's DM run over the serial link stopped with ERR 4 RANGE):
+    the rig arms as many times as it takes, each within the limit (here lowered to 3 in the rig, for
+    a cheap test), and the frames come back in order, one per trigger."""
+    from torchblur.hardware import serial_rig
+    from torchblur.hardware.serial_dm_rig import SerialDMRig
+
+    assert serial_rig.MAX_COUNT == MAX_COUNT  # the rig's limit is the protocol's
+    monkeypatch.setattr(serial_rig, "MAX_COUNT", 3)
+    _, port, frames = device_on_a_pty(config_path)
+    rig = SerialDMRig.open(port, frames, timeout_s=5.0, retries=0)
+    try:
+        cap = rig.still(7, 1e-4)
+        arms = [ln.split()[-1] for d, ln in rig.controller.traffic if d == ">" and ln.startswith(b"ARM")]
+        assert arms == [b"3", b"3", b"1"]
+        assert cap.frames.shape[0] == 7 and (cap.frame_counter.diff() == 1).all()
     finally:
         rig.close()
 

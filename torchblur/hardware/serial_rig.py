@@ -31,7 +31,7 @@ from torchblur.hardware.frames import CameraInfo, Frame, FrameSource
 from torchblur.rig.base import check_drive, check_slew, check_tone_grid, command_peak, command_slew, float_list, per_exposure
 from torchblur.hardware.aravis import AravisCamera  # imports its SDK on use
 from torchblur.hardware.frames import EmulatorFrames
-from torchblur.hardware.protocol import MAX_LINE, MAX_TONES, format_number
+from torchblur.hardware.protocol import MAX_COUNT, MAX_LINE, MAX_TONES, format_number
 from torchblur.hardware.pylon import PylonCamera  # imports its SDK on use
 from torchblur.rig.base import Capture
 
@@ -380,8 +380,8 @@ class SerialRig:
             self._begin()
             c.stop()
             c.power(power)
-            frames = self._acquire(te, n, lambda: c.arm(0.0, te, n))
-            return frames
+            counts = [min(MAX_COUNT, n - k) for k in range(0, n, MAX_COUNT)]  # an ARM fires at most MAX_COUNT triggers
+            return [f for m in counts for f in self._acquire(te, m, lambda m=m: c.arm(0.0, te, m))]
 
         return once
 
