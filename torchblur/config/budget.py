@@ -26,7 +26,7 @@ from torchblur.dm.plans import choose_plan
 from torchblur.dm.shack_hartmann import ShackHartmann
 from torchblur.errors import ConfigError, ParameterError
 
-__all__ = ["LIMITS", "SATURATION_STEPS", "LATENCY_SCAN", "GEOMETRY_EVALUATIONS", "estimate_run", "check_limits",
+__all__ = ["LADDER_TEST_FRAMES", "LIMITS", "SATURATION_STEPS", "LATENCY_SCAN", "GEOMETRY_EVALUATIONS", "estimate_run", "check_limits",
            "check_dm_bounds", "dm_size_bounds", "calibration_frames", "latency_scan_times",
            "DM_DARK_FRAMES", "DM_STILL_FRAMES", "STILL_BYTES", "check_dm_exposures", "dm_geometry", "dm_plan", "dm_still_frames",
            "dm_sweep_size", "dm_sensor"]
@@ -133,13 +133,14 @@ def check_dm_bounds(cfg: IdentifyConfig) -> dict:
 def _estimate_dm(cfg: IdentifyConfig) -> dict:
     """:func:`estimate_run` of a DM run (``dm.n_across`` > 0): the plan's sweep frames
     (:func:`dm_sweep_size`), the DM calibration's and the spot model's static holds
-    (``hold_frames``: with ``dm_plan.spot_model`` auto its test only; the ladder it may choose
-    adds ``patterns x (ladder_levels) x ladder_frames``), on the sensor's frame."""
+    (``hold_frames``: with ``dm_plan.spot_model`` auto its test only, ``patterns x 2 x``
+    :data:`LADDER_TEST_FRAMES`; the ladder it may choose adds ``patterns x ladder_levels x
+    ladder_frames``), on the sensor's frame."""
     size = dm_sweep_size(cfg)
     n_still = dm_still_frames(size["frames"], size["frame_shape"])
     p = cfg.dm_plan  # the static holds of the spot model: auto's test (2 levels), the ladder's levels, none for shifted
-    levels = {"shifted": 0, "auto": 2, "ladder": int(p.ladder_levels)}[p.spot_model]
-    holds = size["patterns"] * levels * int(p.ladder_frames)
+    per_pattern = {"shifted": 0, "auto": 2 * LADDER_TEST_FRAMES, "ladder": int(p.ladder_levels) * int(p.ladder_frames)}
+    holds = size["patterns"] * per_pattern[p.spot_model]
     frames = size["frames"] + calibration_frames(cfg, n_dark=DM_DARK_FRAMES, n_still=n_still) + holds
     est = _estimate(cfg, frames, size["frame_shape"], n_drives=size["patterns"], repeats=size["repeats"])
     est["sweep_frames"], est["hold_frames"] = size["frames"], holds
@@ -225,6 +226,9 @@ def check_limits(cfg: IdentifyConfig) -> dict:
 # The DM run's stds are small (0.03 % on a DC gain): each spot's PSF, fitted from the still frames
 # and held fixed, and the dark mean subtracted from every frame must be known better than that.
 DM_DARK_FRAMES = 256
+#: frames per level of the spot model's auto test (every pattern at its two end levels: whether a
+#: shifted still explains the held spots; :mod:`torchblur.identify.dm_ladder`)
+LADDER_TEST_FRAMES = 4
 DM_STILL_FRAMES = 128  #: the fewest still frames a DM run takes (dm_still_frames)
 STILL_BYTES = 1 << 28  #: the still frames a DM run holds at once (float64), at most this many bytes
 

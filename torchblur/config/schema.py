@@ -319,8 +319,11 @@ class DMPlanConfig:
     pattern's static images held at ``ladder_levels`` levels, ``ladder_frames`` frames each,
     spanning +-``ladder_reach`` x the largest command the sweep expects of the pattern:
     ``excitation.target_px`` over its static motion, within the input range; the rig needs
-    ``pattern_ladder``) or ``auto`` (the two end levels first: the ladder only where a shifted
-    still does not explain every spot's static image within its noise)."""
+    ``pattern_ladder``) or ``auto`` (the two end levels first, ``LADDER_TEST_FRAMES`` frames each:
+    the ladder only where a shifted still does not explain every spot's static image within its
+    noise). ``ladder_frames`` 32: the ladder fit's DC gains are biased by the held images' noise
+    (on the small simulated mirror: 4.3 % at 4 frames, 1.0 % at 16, 0.5 % at 32,
+    benchmarks/bench_dm_ladder_frames.py)."""
 
     kind: str = key("auto", choice=DM_PLAN_KINDS)
     budget_frames: Optional[int] = 20000
@@ -328,7 +331,7 @@ class DMPlanConfig:
     support_threshold: float = key(0.01, nonnegative=True, high=1.0)
     spot_model: str = key("auto", choice=DM_SPOT_MODELS)
     ladder_levels: int = key(13, integer=True, low=4, high=257)
-    ladder_frames: int = key(4, integer=True, low=1, high=4096)
+    ladder_frames: int = key(32, integer=True, low=1, high=4096)
     ladder_reach: float = key(1.3, positive=True, high=10.0)
 
 

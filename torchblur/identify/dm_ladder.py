@@ -10,7 +10,8 @@ reads that as motion (a phase lead of 0.07 rad on HCIPy's spots, docs/deformable
   ``+-U_p``, ``U_p = dm_plan.ladder_reach x min(excitation.target_px / m_p, limit / max|pattern_p|)``
   (``m_p`` the pattern's largest static spot motion per unit on the nominal G: the largest
   command the sweep expects of it), ``dm_plan.ladder_frames`` frames per level;
-- ``auto``: first the two end levels of every pattern (one group); where a shifted still
+- ``auto``: first the two end levels of every pattern (one group,
+  :data:`~torchblur.config.budget.LADDER_TEST_FRAMES` frames each); where a shifted still
   (:func:`~torchblur.dm.static_hold.fit_shifted_still`) explains the spots of them within their
   noise (:func:`~torchblur.dm.static_hold.chi2_threshold`; inside a rim of :data:`TEST_BORDER_PX`,
   where a neighbour's spot moved 1.3 x its sweep's motion enters the crop; at most :data:`FAIL_FRACTION` of the
@@ -29,6 +30,7 @@ import math
 import numpy as np
 import torch
 
+from torchblur.config.budget import LADDER_TEST_FRAMES
 from torchblur.dm.ladder_fit import PatternLadder
 from torchblur.dm.static_hold import chi2_threshold, fit_shifted_still
 from torchblur.hardware.recording import ReplayRig
@@ -147,9 +149,10 @@ def choose_spot_model(cfg, rig, exp, patterns: np.ndarray, G: np.ndarray, cal, o
     levels = ladder_levels(cfg, patterns, G, limit)
     n, te = int(cfg.dm_plan.ladder_frames), hold_exposure(cfg, cal)
     if choice == "auto":
-        test = acquire_holds(rig, exp, TEST_KEY, patterns, levels[:, [0, -1]], n, te, cal, offset, size)
+        test = acquire_holds(rig, exp, TEST_KEY, patterns, levels[:, [0, -1]], LADDER_TEST_FRAMES, te, cal, offset, size)
         t = _shifted_test(test, cal, offset, size, torch.as_tensor(inside, dtype=torch.bool))
-        figures = (f"{t['tests']} spot images of {len(patterns)} patterns held at +-their end levels, {n} frames each: reduced chi2 "
+        figures = (f"{t['tests']} spot images of {len(patterns)} patterns held at +-their end levels, {LADDER_TEST_FRAMES} frames each: "
+                   f"reduced chi2 "
                    f"median {t['median']:.3g}, worst {t['worst']:.3g}, threshold {t['threshold']:.3g} (dof {t['dof']})")
         if t["failed"] <= max(1, int(FAIL_FRACTION * t["tests"])):
             LOGGER.info(f"dm spot model: shifted (auto: a shifted still explains the spots held still, {t['failed']} spot images "
