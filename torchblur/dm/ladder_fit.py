@@ -53,7 +53,8 @@ from torchblur.errors import InputTypeError, ParameterError, ShapeError, check_i
 from torchblur.fit.status import (DARK, MASKED, NO_MOTION, NO_PIXELS, NOT_CONVERGED, OUT_OF_FRAME, OUT_OF_LADDER, SINGULAR,
                                   flag_poor_fit)
 from torchblur.optim import levenberg_marquardt
-from torchblur.render.blur import _next_odd_fast, quadrature_nodes
+from torchblur.render.blur import quadrature_nodes
+from torchblur.render.splat import kernel_shift_with_jacobian
 from torchblur.render.window import ExposureWindow
 
 __all__ = ["PatternLadder", "fit_ladder_problems", "spline_basis", "NODES"]
@@ -159,18 +160,12 @@ def _integrated_basis(u, wb, wd, knots, coef):
 
 def shift_derivatives(img: torch.Tensor) -> torch.Tensor:
     """``[..., 2, h, w]``: the derivatives of ``img [..., h, w]`` along a shift of it by (dx, dy)
-    px (``d/ds img(x - s)``: ``-i k`` in Fourier space on the grid
-    :func:`~torchblur.render.blur._kernel_fourier` pads to (:data:`PAD` px, odd sizes: no Nyquist
-    bin), so it is that renderer's exact derivative at zero shift). Linear in ``img`` and
-    antisymmetric (its adjoint is its negative)."""
-    h, w = img.shape[-2:]
-    Hp, Wp = _next_odd_fast(h + 2 * PAD), _next_odd_fast(w + 2 * PAD)
-    ph, pw = (Hp - h) // 2, (Wp - w) // 2
-    khat = torch.fft.rfft2(torch.nn.functional.pad(img, (pw, Wp - w - pw, ph, Hp - h - ph)))
-    ky = 2 * math.pi * torch.fft.fftfreq(Hp, dtype=img.dtype, device=img.device)[:, None]
-    kx = 2 * math.pi * torch.fft.rfftfreq(Wp, dtype=img.dtype, device=img.device)
-    out = torch.fft.irfft2(torch.stack([khat * (-1j * kx), khat * (-1j * ky)], -3), s=(Hp, Wp))
-    return out[..., ph:ph + h, pw:pw + w]
+    px (``d/ds img(x - s)``): :func:`~torchblur.render.splat.kernel_shift_with_jacobian`'s at zero
+    shift on a grid padded by :data:`PAD` px (odd sizes: no Nyquist bin), the renderer's exact
+    derivative. Linear in ``img`` and antisymmetric (its adjoint is its negative)."""
+    zero, one = img.new_zeros(img.shape[:-2] + (1,)), img.new_ones(img.shape[:-2] + (1,))
+    eye = torch.eye(2, dtype=img.dtype, device=img.device)
+    return kernel_shift_with_jacobian(img, zero, zero, eye[None, :1], eye[None, 1:], one, pad=PAD)[1]
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,7 @@ auto test, issue 23).
 The run's shifted spot model says that under any command a spot is its still image moved by its
 motion. :func:`fit_shifted_still` fits that model to static images of the spots (a pattern held at a
 command, :meth:`torchblur.rig.dm_contract.DMRig` ``pattern_ladder``): per image the still ``K``
-(``[M, h, w]``, e-/s) moved by ``(dx, dy)`` px (a Fourier shift on a zero-padded crop) and scaled by
+(``[M, h, w]``, e-/s) moved by ``(dx, dy)`` px (the renderer's Fourier shift of a kernel) and scaled by
 ``a``, ``model = a K(x - dx, y - dy)``, fitted by Gauss-Newton with the analytic derivatives of the
 shift, weighted by the images' variance plus the still's (scaled as the model; shifted with it for
 the final chi2). Where the
@@ -18,6 +18,7 @@ import math
 import torch
 
 from torchblur.errors import ShapeError
+from torchblur.render.splat import kernel_shift_with_jacobian
 
 __all__ = ["fit_shifted_still", "chi2_threshold"]
 
@@ -31,19 +32,14 @@ def chi2_threshold(dof: int, n_tests: int, false_alarm: float = 0.01) -> float:
     return 1.0 + z * math.sqrt(2.0 / max(1, int(dof)))
 
 
-def _shifter(h: int, w: int, pad: int, like: torch.Tensor):
-    """The padded grid's frequencies ``(fy [H, 1], fx [1, W])`` (cycles per px)."""
-    fy = torch.fft.fftfreq(h + 2 * pad, dtype=like.dtype, device=like.device)[:, None]
-    fx = torch.fft.fftfreq(w + 2 * pad, dtype=like.dtype, device=like.device)[None, :]
-    return fy, fx
-
-
-def _shifted(F, fy, fx, dx, dy, h: int, w: int, pad: int, derivatives: bool = True):
-    """The padded image of spectrum ``F`` moved by (``dx``, ``dy``) ``[...]`` (and its derivatives
-    along x and y), each cropped back to ``[..., h, w]``."""
-    G = F * torch.exp(-2j * math.pi * fx * dx[..., None, None]) * torch.exp(-2j * math.pi * fy * dy[..., None, None])  # separable
-    out = torch.stack([G, G * (2j * math.pi * fx), G * (2j * math.pi * fy)]) if derivatives else G[None]  # the image, d/dx, d/dy
-    return list(torch.fft.ifft2(out).real[..., pad:pad + h, pad:pad + w])
+def _shifted(still, dx, dy, pad: int):
+    """``still [M, h, w]`` moved by (``dx``, ``dy``) ``[..., M]`` px and its derivatives along x and y
+    (:func:`~torchblur.render.splat.kernel_shift_with_jacobian`, one node): ``(image [..., M, h, w],
+    d/dx, d/dy)``."""
+    eye = torch.eye(2, dtype=dx.dtype, device=dx.device)
+    img, jac = kernel_shift_with_jacobian(still, dx[..., None], dy[..., None], eye[None, :1], eye[None, 1:], torch.ones_like(dx)[..., None],
+                                          pad=pad)
+    return img, jac[..., 0, :, :], jac[..., 1, :, :]
 
 
 def fit_shifted_still(images, variance, still, still_variance=None, *, mask=None, iterations: int = 5, pad: int = 6):
@@ -69,9 +65,6 @@ def fit_shifted_still(images, variance, still, still_variance=None, *, mask=None
     use = torch.ones_like(images, dtype=torch.bool) if mask is None else torch.as_tensor(mask).expand_as(images)
     var = torch.as_tensor(variance, dtype=images.dtype, device=images.device).expand_as(images)
     use = use & (var > 0) & torch.isfinite(images)
-    fy, fx = _shifter(h, w, pad, images)
-    F = torch.fft.fft2(torch.nn.functional.pad(still, (pad, pad, pad, pad)))
-    Fv = torch.fft.fft2(torch.nn.functional.pad(sv, (pad, pad, pad, pad)))
     data = torch.where(use, images, torch.zeros_like(images))
     # start: the centroids' difference and the light's ratio
     yy = torch.arange(h, dtype=images.dtype, device=images.device)[:, None]
@@ -85,17 +78,17 @@ def fit_shifted_still(images, variance, still, still_variance=None, *, mask=None
     sx, sy, m_st = centroid(still)
     dx, dy, a = cx - sx, cy - sy, m_img / m_st
     for _ in range(iterations):
-        S, Sx, Sy = _shifted(F, fy, fx, dx, dy, h, w, pad)
+        S, Sx, Sy = _shifted(still, dx, dy, pad)
         wgt = torch.where(use, 1.0 / (var + a[..., None, None] ** 2 * sv).clamp_min(torch.finfo(images.dtype).tiny), 0.0)
         r = (data - a[..., None, None] * S) * wgt.sqrt()
-        J = torch.stack([-a[..., None, None] * Sx, -a[..., None, None] * Sy, S], -1) * wgt.sqrt()[..., None]  # d model / d (dx, dy, a)
+        J = torch.stack([a[..., None, None] * Sx, a[..., None, None] * Sy, S], -1) * wgt.sqrt()[..., None]  # d model / d (dx, dy, a)
         J = J.flatten(-3, -2)
         JtJ = J.transpose(-1, -2) @ J
         step = torch.linalg.solve(JtJ + 1e-9 * torch.diag_embed(JtJ.diagonal(dim1=-2, dim2=-1)) + 1e-300 * torch.eye(3, dtype=J.dtype),
                                   (J.transpose(-1, -2) @ r.flatten(-2)[..., None]))[..., 0]
         dx, dy, a = dx + step[..., 0].clamp(-1, 1), dy + step[..., 1].clamp(-1, 1), a + step[..., 2]
-    S = _shifted(F, fy, fx, dx, dy, h, w, pad, derivatives=False)[0]
-    Sv = _shifted(Fv, fy, fx, dx, dy, h, w, pad, derivatives=False)[0].clamp_min(0)  # the still's variance, moved as the model
+    S = _shifted(still, dx, dy, pad)[0]
+    Sv = _shifted(sv, dx, dy, pad)[0].clamp_min(0)  # the still's variance, moved as the model
     wgt = torch.where(use, 1.0 / (var + a[..., None, None] ** 2 * Sv).clamp_min(torch.finfo(images.dtype).tiny), 0.0)
     chi2 = ((data - a[..., None, None] * S) ** 2 * wgt).sum((-1, -2))
     n = use.sum((-1, -2))
