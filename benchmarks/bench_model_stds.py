@@ -104,6 +104,38 @@ def print_common(rows):
           + ", ".join(f"{np.sqrt(np.mean(b * b)):.3f}" for b in np.array_split(zm, 3, axis=1)))
 
 
+def print_blocks(z: dict, kept: np.ndarray, first: int, size: int) -> None:
+    """Each consecutive block of ``size`` seeds (those that chose 3 poles, 0 zeros): every
+    parameter's rms(error/std) and whether it is within 0.7..1.4; the share of blocks within,
+    per parameter and for all parameters at once, against the share honest N(0, 1) errors give
+    (per parameter: chi2 with the block's count; all at once: simulated with the parameters'
+    correlation over the seeds, since the model's parameters are correlated)."""
+    block = (kept - first) // size
+    names = list(z)
+    Z = np.column_stack([np.asarray(z[n]) for n in names])  # [seeds kept, parameters]
+    print(f"\nblocks of {size} seeds: rms(error/std) per parameter ('*': outside 0.7..1.4)")
+    print(f"{'seeds':>9} {'n':>3} " + " ".join(f"{n:>11}" for n in names) + "  all within")
+    inside = []
+    for b in np.unique(block):
+        zb = Z[block == b]
+        rms = np.sqrt(np.mean(zb * zb, axis=0))
+        ok = (rms >= 0.7) & (rms <= 1.4)
+        inside.append(ok)
+        lo = first + int(b) * size
+        print(f"{lo:>4}..{lo + size - 1:<4} {len(zb):3d} " + " ".join(f"{r:10.2f}{' ' if o else '*'}" for r, o in zip(rms, ok))
+              + f"  {'yes' if ok.all() else 'no'}")
+    inside = np.asarray(inside)
+    p_one = scipy.stats.chi2.cdf(1.4 ** 2 * size, size) - scipy.stats.chi2.cdf(0.7 ** 2 * size, size)
+    rng = np.random.default_rng(0)
+    corr = np.corrcoef(Z, rowvar=False)
+    sim = rng.multivariate_normal(np.zeros(len(names)), corr, size=(20000, size))  # honest errors with the seeds' correlation
+    srms = np.sqrt(np.mean(sim * sim, axis=1))
+    p_all = float(np.mean(np.all((srms >= 0.7) & (srms <= 1.4), axis=1)))
+    print("share of blocks within 0.7..1.4, per parameter: " + ", ".join(f"{n} {v:.2f}" for n, v in zip(names, inside.mean(0)))
+          + f" (honest stds: {p_one:.2f} each); all parameters at once: {int(inside.all(1).sum())} of {len(inside)} blocks "
+          f"(honest stds, with the parameters' correlation over these seeds: {p_all:.2f})")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=10)
@@ -111,9 +143,10 @@ def main():
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--profile", action="store_true", help="the delay's profile likelihood against its linearised std")
     ap.add_argument("--common", action="store_true", help="test the points' errors for a common-mode term")
+    ap.add_argument("--block", type=int, default=0, help="also judge consecutive blocks of this many seeds (10: the issue's test)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    z, other, prof, common, t0 = {}, [], [], [], time.perf_counter()
+    z, other, prof, common, kept, t0 = {}, [], [], [], [], time.perf_counter()
     for seed in range(args.first, args.first + args.seeds):
         cfg = load_config(None, [f"seed={seed}"])
         res = identify(cfg, progress=False)
@@ -124,6 +157,7 @@ def main():
         if (m.n_poles, m.n_zeros) != (3, 0) or exact > 1e-6:
             other.append((seed, m.n_poles, m.n_zeros))
             continue
+        kept.append(seed)
         for name, t in zip(names, truth):
             v, sd = m.parameter(name)
             z.setdefault(name, []).append((v - t) / sd)
@@ -147,6 +181,8 @@ def main():
               f"  {lo:.2f}..{hi:.2f}    {p:9.3f}  {v.mean():+.2f}")
     print("chance range: where the rms of that many N(0, 1) errors falls 95 % of the time (stds that hold: sqrt(chi2_n / n)); "
           "chi2 test p: two-sided, sum (err/std)^2 against chi2 with one degree of freedom per seed")
+    if args.block:
+        print_blocks(z, np.asarray(kept), args.first, args.block)
     if common:
         print_common(common)
     if prof:

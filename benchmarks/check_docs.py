@@ -216,6 +216,14 @@ CLAIMS = [
           [sys.executable, "benchmarks/bench_model_stds.py", "--seeds", "10", "--profile"],
           "".join(rf"{n} +[0-9.]+ +[0-9.]+ +\d+ +[A-Z ]*?(?:holds|HOLD) +[0-9.]+\.\.[0-9.]+ +" + NUM + r"[^\n]*\n *"
                   for n in ("dc_gain", "p1_omega_n", "p1_zeta", "p2_rate", "delay_s")), rtol=(0.1,), speed="slow"),
+    Claim("model stds: pooled over 100 seeds and by blocks of 10", "docs/reliability.md",
+          r"printed, pooled over the 91 seeds,\s+rms\(error/std\) dc_gain " + NUM + ", p1_omega_n " + NUM + r",\s+p1_zeta " + NUM
+          + r", p2_rate " + NUM + r", delay_s " + NUM + r"[\s\S]*?lie within 0\.7\.\.1\.4, where honest stds give " + NUM
+          + r" of blocks\s+each, and " + NUM + r" of 10 with all five parameters within at once",
+          [sys.executable, "benchmarks/bench_model_stds.py", "--first", "0", "--seeds", "100", "--block", "10"],
+          "".join(rf"{n} +" + NUM + r"[^\n]*\n *" for n in ("dc_gain", "p1_omega_n", "p1_zeta", "p2_rate", "delay_s"))
+          + r"[\s\S]*?\(honest stds: " + NUM + r" each\); all parameters at once: " + NUM + " of 10 blocks",
+          rtol=(0.02, 0.02, 0.02, 0.02, 0.02, 0.0, 0.0), speed="slow"),
     Claim("model stds: the delay's profile likelihood", "docs/reliability.md",
           r"interval reaches " + NUM + r" of the linearised std below and " + NUM + r" above, and the likelihood-ratio z at the "
           r"true delay differs from \(estimate - truth\) / std by at most " + NUM,
