@@ -360,7 +360,7 @@ class Controller:
         r = self.command("PULSE", float(trigger_offset_s), float(pulse_time_s), float(pulse_width_s), float(exposure_s), int(count))
         return r.get_int("first"), r.get_int("count")
 
-    # ------------------------------------------------------------------ protocol 2: a DM's pattern
+    # ------------------------------------------------------------------ protocols 2 and 3: a DM's pattern
 
     def actuators(self) -> int:
         """``ACT?`` -> the number of actuators the pattern drives (0: a device without a

@@ -48,7 +48,7 @@ def describe_pattern(pattern: np.ndarray) -> str:
 
 
 class SerialDMRig(PatternSines, SerialRig):
-    """A DM's controller (protocol 2, axis ``pat``) and camera as the DM run's rig.
+    """A DM's controller (protocol 2, axis ``pat``; 3 for ``pattern_ladder``) and camera as the DM run's rig.
 
     Args:
         controller, frames: as :class:`~torchblur.hardware.serial_rig.SerialRig`.
