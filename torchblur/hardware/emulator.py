@@ -62,8 +62,8 @@ from torchblur.config import (CameraConfig, DMConfig, PlantConfig, SpotsConfig, 
                               validate_camera, validate_dm_model, validate_plant, validate_spots)
 from torchblur.errors import ParameterError
 from torchblur.hardware.frames import CameraInfo, encode_message, frame_message
-from torchblur.hardware.protocol import (E_ARGS, E_AXIS, E_BUSY, E_INTERNAL, E_LINE, E_RANGE, E_UNKNOWN, HOLD_PROTOCOL, MAX_LINE, PROTOCOL_VERSION,
-                                         ProtocolViolation, format_err, format_ok, parse_command, pattern_checksum)
+from torchblur.hardware.protocol import (E_ARGS, E_AXIS, E_BUSY, E_INTERNAL, E_LINE, E_RANGE, E_UNKNOWN, HOLD_PROTOCOL, MAX_LINE,
+                                         PROTOCOL_VERSION, ProtocolViolation, format_err, format_ok, parse_command, pattern_checksum)
 from torchblur.rig.base import check_drive, check_slew, command_peak, command_slew
 from torchblur.rig.factory import build_dm
 from torchblur import __version__

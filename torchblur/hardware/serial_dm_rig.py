@@ -16,8 +16,8 @@ waveform starts as follows:
 
 and one ``pattern_ladder`` is one transaction too (``STOP``, ``POWER``, ``SETTLE AUTO``, then per
 level ``u`` the same ``PAT?`` (and load) and ``WAVE pat HOLD u`` -> ``OK WAVE ... crc=<ours>``, the
-``ARM 0 Te n`` of its frames; ``STOP``), so every waveform drives exactly the pattern asked for: the checksum (CRC-32 of the float64
-values, :func:`~torchblur.hardware.protocol.pattern_checksum`) is checked after the load and
+``ARM 0 Te n`` of its frames; ``STOP``), so every waveform drives exactly the pattern asked for: the
+checksum (CRC-32 of the float64 values, :func:`~torchblur.hardware.protocol.pattern_checksum`) is checked after the load and
 again in the ``WAVE`` reply, which names the pattern it drives. A mismatch is a
 :class:`~torchblur.hardware.errors.PatternMismatch` naming the pattern; the call is redone
 (the pattern loaded again) at most ``retries`` times, then the run stops.
@@ -140,8 +140,8 @@ class SerialDMRig(PatternSines, SerialRig):
         freq = check_real_scalar(freq_hz, "freq_hz", positive=True)
         amp = check_real_scalar(amplitude, "amplitude")
         check_drive(abs(amp) * float(np.abs(p).max(initial=0.0)), self.input_limit)
-        return self._periodic_capture(f"pattern_sine {describe_pattern(p)} at {freq:g} Hz", lambda c: self._drive_pattern(p, lambda c: c.wave_pattern(freq, amp)),
-                                      1.0 / freq, exposures_s, trigger_offset_s, n_repeats, check_real_scalar(power, "power"), settle_s,
+        return self._periodic_capture(f"pattern_sine {describe_pattern(p)} at {freq:g} Hz",
+                                      lambda c: self._drive_pattern(p, lambda c: c.wave_pattern(freq, amp)), 1.0 / freq, exposures_s, trigger_offset_s, n_repeats, check_real_scalar(power, "power"), settle_s,
                                       {"kind": "pattern_sine", "pattern": p, "freq_hz": freq, "omega": 2 * math.pi * freq, "period_s": None,
                                        "amplitude": amp, "settle_s": None, "power": None, "trigger_delay_s": self.trigger_delay_s})
 
