@@ -1,7 +1,8 @@
 """A deformable mirror over the serial link (issue 17): the emulator in DM mode (a separate
 process on a real pseudo-terminal, frames over TCP) renders whole Shack-Hartmann frames with
 SimulatedDMRig's own renderer; protocol 2 loads a pattern in chunks (PAT, PAT?) and drives it
-(WAVE pat); SerialDMRig runs the DM plan (torchblur.identify) over the link. Small mirror: 9 actuators (one dead),
+(WAVE pat), protocol 3 holds it still (WAVE pat HOLD: the rig's pattern_ladder, issue 23);
+SerialDMRig runs the DM plan (torchblur.identify) over the link. Small mirror: 9 actuators (one dead),
 4 x 4 subapertures (12 valid), 4 frequencies."""
 import dataclasses
 import json
@@ -20,7 +21,8 @@ from background import started_fleet, stop_fleet
 from torchblur.errors import ConfigError, ParameterError, ShapeError
 from torchblur.hardware.controller import Controller
 from torchblur.hardware.errors import AcquisitionStopped, DeviceError, PatternMismatch
-from torchblur.hardware.protocol import E_AXIS, E_BUSY, E_RANGE, MAX_COUNT, MAX_LINE, parse_command, pattern_checksum, pattern_lines
+from torchblur.hardware.protocol import (E_ARGS, E_AXIS, E_BUSY, E_NUMBER, E_RANGE, MAX_COUNT, MAX_LINE, PROTOCOL_VERSION, parse_command,
+                                         pattern_checksum, pattern_lines)
 from torchblur.config import load_config
 
 SMALL_YAML = """\
@@ -131,14 +133,14 @@ def test_protocol_round_trips_a_pattern(emulators):
     """Over the pty: ACT?, a pattern loaded in chunks, PAT? its checksum, a partial load, the
     refusals (beyond N, while the waveform runs), WAVE pat naming the pattern it drives."""
     info = emulators["frames"].info
-    assert info["protocol"] == 2
+    assert info["protocol"] == PROTOCOL_VERSION == 3
     rng = np.random.default_rng(1)
     p = rng.normal(size=9) * 1e-7 * np.pi
     assert len(pattern_lines(p)) == 2  # nine 22-character values do not fit one 200-byte line
     with Controller(info["serial"], timeout_s=2.0) as c:
         c.resync()
         ident = c.identify()
-        assert ident["protocol"] == 2 and ident["axes"] == ["pat"]
+        assert ident["protocol"] == 3 and ident["axes"] == ["pat"]
         assert c.actuators() == 9
         c.stop()
         assert c.pattern() == {"n": 9, "crc": pattern_checksum(np.zeros(9))}  # zeros after the boot
@@ -315,24 +317,137 @@ def test_a_controller_reset_loads_the_pattern_again(config_path):
     assert torch.equal(cap.frames.to(torch.float64), again.frames.to(torch.float64))
 
 
+# ---------------------------------------------------------------------- static holds (protocol 3)
+
+
+@pytest.fixture(scope="module")
+def hold_device(config_path):
+    """The emulator's device (DM mode) in this process on a real pty, for the static-hold tests."""
+    return device_on_a_pty(config_path)
+
+
+def test_a_ladder_over_the_link_is_the_simulated_rigs(hold_device, config_path, monkeypatch):
+    """pattern_ladder over the link is one transaction: the pattern loaded once, then per level
+    ``WAVE pat HOLD u`` and its ARMs (chunked at MAX_COUNT, lowered to 3 here), STOP; its frames
+    ``[K, n, H, W]`` are bit for bit the SimulatedDMRig's of the same config and seed called once per
+    ARM (the emulator renders each ARM of a hold with that rig's pattern_ladder, one level, from the
+    holds' own noise stream), and the held spots moved."""
+    from torchblur.hardware import serial_rig
+    from torchblur.rig.factory import build_dm
+    from torchblur.dm.plans import hadamard_plan
+    from torchblur.hardware.serial_dm_rig import SerialDMRig
+
+    _, _, sim = build_dm(load_config(str(config_path)))
+    p = hadamard_plan(sim.geometry).patterns[3]
+    levels, n, te = [-1.5, 0.0, 1.5], 4, 2e-3
+    monkeypatch.setattr(serial_rig, "MAX_COUNT", 3)
+    rig = SerialDMRig.open(hold_device[1], hold_device[2], timeout_s=5.0, retries=0)
+    try:
+        cap = rig.pattern_ladder(pattern=p, levels=levels, n=n, exposure_s=te, power=1.5)
+        sent = [ln.decode().strip() for d, ln in rig.controller.traffic if d == ">"]
+    finally:
+        rig.close()
+    sent = sent[sent.index("POWER 1.5") - 2:]  # the transaction
+    assert sent[:4] == ["STATUS?", "STOP", "POWER 1.5", "SETTLE AUTO"] and sent[-1] == "STOP"
+    assert [ln for ln in sent if ln.startswith("WAVE")] == [f"WAVE pat HOLD {u!r}" for u in levels]
+    assert [ln for ln in sent if ln.startswith("ARM")] == ["ARM 0.0 0.002 3", "ARM 0.0 0.002 1"] * 3
+    assert sum(ln.startswith("PAT 0 ") for ln in sent) == 1  # loaded once, checked (PAT?) before every hold
+    want = torch.cat([torch.cat([sim.pattern_ladder(pattern=p, levels=[u], n=m, exposure_s=te, power=1.5).frames for m in (3, 1)], 1)
+                      for u in levels])
+    assert cap.frames.shape == (3, n, 64, 64) and torch.equal(cap.frames.to(torch.float64), want.to(torch.float64))
+    assert bool((cap.exposure_s == te).all()) and bool((cap.frame_counter.flatten().diff() == 1).all())
+    assert cap.meta["kind"] == "pattern_ladder" and cap.meta["levels"] == levels
+    moved = cap.frames[2].to(torch.float64).mean(0) - cap.frames[0].to(torch.float64).mean(0)
+    assert float(moved.abs().max()) > 100  # the spots held at -1.5 and +1.5 are apart (2.5 px)
+
+
+def test_bad_holds_are_refused_naming_them(hold_device):
+    """The rig refuses before sending anything a ladder whose peak command is beyond RANGE (naming
+    ``levels``) and bad arguments (naming them); the device refuses a hold within RANGE that would
+    carry a spot out of its crop (ERR 4 naming levels: the simulated rig's own check), HOLD on an axis
+    it lacks, without its level or with a level that is not a number, a negative trigger offset while
+    holding, and a pattern load while holding."""
+    from torchblur.hardware.serial_dm_rig import SerialDMRig
+
+    rig = SerialDMRig.open(hold_device[1], hold_device[2], timeout_s=2.0, retries=0)
+    p = np.zeros(9)
+    p[[0, 4]] = [2.0, -0.5]
+    try:
+        c, n0 = rig.controller, len(rig.controller.traffic)
+        for kw, err, match in (({"levels": [0.5, -6.0]}, ParameterError, "levels: a command of peak 12"),
+                               ({"levels": []}, ParameterError, "levels: expected at least one value"),
+                               ({"levels": [float("nan")]}, ParameterError, "levels: expected finite"),
+                               ({"pattern": np.ones(8)}, ShapeError, r"pattern: expected \[9\]"), ({"n": 0}, ParameterError, "n: "),
+                               ({"exposure_s": 5.0}, ParameterError, "exposure_s: expected at most"),
+                               ({"power": -1.0}, ParameterError, "power: ")):
+            with pytest.raises(err, match=match):
+                rig.pattern_ladder(**{"pattern": p, "levels": [1.0], "n": 1, "exposure_s": 1e-3, **kw})
+        assert len(c.traffic) == n0  # refused before anything was sent
+        with pytest.raises(AcquisitionStopped, match=r"ERR 4 RANGE.*levels: spot \d+ would move 9.\d+ px"):
+            rig.pattern_ladder(pattern=np.eye(9)[4], levels=[10.0], n=1, exposure_s=1e-3)  # within RANGE (10), beyond the crop
+        c.stop()
+        for line, code in (("WAVE x HOLD 1.0", E_AXIS), ("WAVE pat HOLD", E_ARGS), ("WAVE pat HOLD one", E_NUMBER)):
+            with pytest.raises(DeviceError) as info:
+                c.command(*line.split())
+            assert info.value.code == code, line
+        c.hold_pattern(0.5)
+        with pytest.raises(DeviceError) as info:
+            c.arm(-1e-3, 1e-3, 1)
+        assert info.value.code == E_RANGE and "with a HOLD" in info.value.detail
+        with pytest.raises(DeviceError) as info:
+            c.load_pattern(p)
+        assert info.value.code == E_BUSY
+        c.stop()
+    finally:
+        rig.close()
+
+
+def test_a_protocol_2_controller_has_no_ladder_and_says_so(config_path):
+    """A protocol-2 firmware (``hold_wave=false``: ID? says 2, WAVE pat HOLD is ERR 2): the rig has
+    no pattern_ladder (``getattr`` gives None; the attribute's error names the protocol) and says so
+    in its events, which a run logs; a DM run with ``dm_plan.spot_model=ladder`` is refused before
+    any frame, one with ``auto`` passes the rig check (and keeps the shifted still)."""
+    from torchblur.hardware.serial_dm_rig import SerialDMRig
+    from torchblur.identify.pipeline import identify
+    from torchblur.rig.dm_contract import check_dm_rig
+
+    _, port, frames = device_on_a_pty(config_path, "hold_wave=false")
+    rig = SerialDMRig.open(port, frames, timeout_s=2.0)
+    try:
+        assert rig.device["protocol"] == 2 and getattr(rig, "pattern_ladder", None) is None
+        with pytest.raises(AttributeError, match=r"pattern_ladder: the controller on .* speaks protocol 2; static holds need protocol 3"):
+            rig.pattern_ladder(pattern=np.ones(9), levels=[1.0], n=1, exposure_s=1e-3)
+        assert any("no static holds" in e and "auto keeps the shifted still" in e for e in rig.events)
+        with pytest.raises(ConfigError, match=r"dm_plan\.spot_model: ladder needs static holds .* SerialDMRig has no pattern_ladder"):
+            identify(load_config(str(config_path), ["dm_plan.spot_model=ladder"]), rig=rig, progress=False)
+        check_dm_rig(rig, load_config(str(config_path), ["dm_plan.spot_model=auto"]))
+        with pytest.raises(DeviceError) as info:
+            rig.controller.hold_pattern(1.0)
+        assert info.value.code == E_ARGS
+        assert not any(ln.startswith(b"ARM") for d, ln in rig.controller.traffic if d == ">")  # no frame was taken
+    finally:
+        rig.close()
+
+
 # ---------------------------------------------------------------------- the identification
 
 
 @pytest.fixture(scope="module")
-def runs(emulators, config_path):
-    """torchblur.identify over the link (SerialDMRig on the "run" emulator) and on the SimulatedDMRig,
-    the same config and seed."""
+def runs(emulators, config_path, tmp_path_factory):
+    """torchblur.identify over the link (SerialDMRig on the "run" emulator, recorded) and on the
+    SimulatedDMRig, the same config and seed: ``(link, sim, the link's stats, its recording's folder)``."""
     from torchblur.identify.pipeline import identify
     from torchblur.hardware.serial_dm_rig import open_dm_rig
 
     cfg = serial_cfg(config_path, emulators["run"])
     rig = open_dm_rig(cfg)
+    exp_dir = tmp_path_factory.mktemp("link") / "experiment"
     try:
-        link = identify(cfg, rig=rig, progress=False)
+        link = identify(cfg, rig=rig, progress=False, record=exp_dir)
         stats = dict(rig.stats)
     finally:
         rig.close()
-    return link, identify(load_config(str(config_path)), progress=False), stats
+    return link, identify(load_config(str(config_path)), progress=False), stats, exp_dir
 
 
 def _z(d, C):
@@ -349,7 +464,7 @@ def test_identify_dm_over_the_link_gives_the_simulated_rigs_D(runs):
     two independent estimates: every element within 5 of their combined std (99 %; measured
     0.62 median, 2.6 at 99 %, 3.2 largest), the median below 1 (a pattern driven wrong, a sign
     or an actuator off by one, is tens of stds), and the link's D within 5 stds of the truth."""
-    link, sim, stats = runs
+    link, sim, stats, _ = runs
     assert stats["retries"] == 0 and stats["resets"] == 0
     assert link.plan.kind == sim.plan.kind == "hadamard" and link.n_frames == sim.n_frames == 16 * 4 * 2
     np.testing.assert_array_equal(link.plan.patterns, sim.plan.patterns)
@@ -362,6 +477,23 @@ def test_identify_dm_over_the_link_gives_the_simulated_rigs_D(runs):
     assert list(link.actuators.status) == list(sim.actuators.status) and link.actuators.status[2] == "dead"
     D0 = link.G * sim.mirror.gain
     assert np.sqrt(np.mean((link.actuators.static_column - D0) ** 2)) / np.abs(D0).max() < 0.01
+
+
+def test_auto_holds_the_patterns_still_over_the_link(runs):
+    """``dm_plan.spot_model`` auto (the default) over the link takes its test holds through the
+    rig's pattern_ladder (WAVE pat HOLD), as on the SimulatedDMRig: recorded as the group
+    ``dm_ladder/test`` (every pattern at its two end levels, 4 frames each), the decision made from
+    them (a shifted still explains torchblur's Gaussian spots: shifted, the simulated run's decision),
+    never skipped for want of the method."""
+    link, sim, _, exp_dir = runs
+    lines = [json.loads(ln) for ln in (exp_dir / "manifest.jsonl").read_text().splitlines()]
+    gl = [ln for ln in lines if ln["group"] == "dm_ladder/test"]
+    assert len(gl) == 16 * 2 * 4 and {ln["kind"] for ln in gl} == {"dm_ladder"} and {ln["method"] for ln in gl} == {"pattern_ladder"}
+    assert all(ln["call_shape"] == [2, 4] and ln["args"]["pattern"] == link.plan.patterns[ln["call"]].tolist() for ln in gl)
+    assert all(ln["args"]["levels"][1] == -ln["args"]["levels"][0] > 0 and ln["args"]["n"] == 4 for ln in gl)
+    assert link.spot_model == sim.spot_model == "shifted"
+    assert any("dm spot model: shifted (auto: a shifted still explains the spots held still" in line for line in link.log)
+    assert not any("holds no pattern_ladder" in line for line in link.log)
 
 
 def test_cli_runs_a_dm_config_over_the_link(emulators, config_path, runs, tmp_path, capsys, monkeypatch):
@@ -403,6 +535,7 @@ def test_a_device_without_a_mirror_has_no_pattern_drive():
     ask = lambda line: parse_reply(dev.handle(line.encode() + b"\n"))  # noqa: E731
     assert ask("ID?").fields["axes"] == "x" and ask("ACT?").fields["n"] == "0"
     assert ask("PAT 0 1.0").code == E_AXIS and ask("PAT?").code == E_AXIS and ask("WAVE pat SINE 10 1").code == E_AXIS
+    assert ask("WAVE pat HOLD 1").code == E_AXIS and ask("WAVE x HOLD 1").code == E_AXIS  # a hold drives a pattern only
 
 
 def test_the_emulator_config_has_a_dm_mode(config_path):
@@ -415,3 +548,29 @@ def test_the_emulator_config_has_a_dm_mode(config_path):
         load_emulator_config(str(config_path), ["dm.coupling=1.5"])
     with pytest.raises(ConfigError, match="wfs.pitch_px"):
         load_emulator_config(str(config_path), ["wfs.pitch_px=4"])
+
+
+SLOW = pytest.mark.skipif(not os.environ.get("TORCHBLUR_SLOW"), reason="a whole DM run with the ladder over the link and its "
+                          "re-fit (31 s on the shared 2 cores); TORCHBLUR_SLOW=1")
+
+
+@SLOW
+def test_a_ladder_run_over_the_link_is_recorded_and_refits(emulators, config_path, tmp_path):
+    """``torchblur identify --port --frames`` with ``dm_plan.spot_model=ladder`` (the smallest ladder: 4
+    levels, 2 frames each; 3 frequencies) completes over the link: every pattern's ladder is taken with
+    WAVE pat HOLD and recorded as its own group ``dm_ladder/PPP``, and a re-fit replays them to the same
+    actuators.csv."""
+    from torchblur import cli
+
+    info, run = emulators["run"].info, tmp_path / "run"
+    keys = ["sweep.n=3", "report.figures=false", "dm_plan.spot_model=ladder", "dm_plan.ladder_levels=4", "dm_plan.ladder_frames=2"]
+    assert cli.main(["identify", "--config", str(config_path), "--out", str(run), "--quiet", "--port", info["serial"],
+                     "--frames", info["frames"], *keys]) in (0, 4)
+    lines = [json.loads(ln) for ln in (run / "experiment" / "manifest.jsonl").read_text().splitlines()]
+    held = [ln for ln in lines if ln["kind"] == "dm_ladder"]
+    assert sorted({ln["group"] for ln in held}) == [f"dm_ladder/{p:03d}" for p in range(16)]
+    assert all(ln["call_shape"] == [4, 2] and ln["method"] == "pattern_ladder" for ln in held) and len(held) == 16 * 4 * 2
+    report = (run / "report.txt").read_text()
+    assert "dm spot model: ladder of 16 patterns x 4 levels x 2 frames" in report and "serial link: SerialDMRig(" in report
+    assert cli.main(["fit", str(run), "--out", str(tmp_path / "refit"), "--quiet"]) in (0, 4)
+    assert (tmp_path / "refit" / "dm" / "actuators.csv").read_text() == (run / "dm" / "actuators.csv").read_text()

@@ -172,7 +172,7 @@ def _only_the_model_flagged(out) -> bool:
 def test_emulator_start_line(fleet):
     info = fleet["ref"].info
     assert info["serial"].startswith("/dev/") and info["frames"].startswith("tcp://127.0.0.1:")
-    assert info["protocol"] == 2 and info["pid"] == fleet["ref"].proc.pid
+    assert info["protocol"] == 3 and info["pid"] == fleet["ref"].proc.pid
     assert fleet["persistent"].info["serial"].startswith("socket://127.0.0.1:")
 
 

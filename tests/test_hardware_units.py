@@ -47,7 +47,7 @@ def ask(dev, line):
 
 def test_device_replies_and_state(device):
     r = ask(device, "ID?")
-    assert r.ok and r.fields["protocol"] == "2" and r.fields["axes"] == "x"
+    assert r.ok and r.fields["protocol"] == "3" and r.fields["axes"] == "x"
     st = ask(device, "STATUS?").fields
     assert st["state"] == "IDLE" and st["frames"] == "0" and st["pending"] == "0"
     assert ask(device, "WAVE y SINE 10 1").code == 5  # the emulator has axis x only

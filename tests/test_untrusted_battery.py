@@ -766,7 +766,8 @@ def test_recorded_config_interpolation_refused(tmp_path):
 
 COMMANDS = ["PAT 0 " + " ".join(["1"] * 5000), "PAT -1 1", "PAT 99999999999 1", "PAT 0 nan", "PAT 0 1e400", "PAT", "PAT x 1",
             "WAVE pat SINE nan 1", "WAVE pat SINE 10 -1", "WAVE pat MULTI 10:1:0,nan:1:0", "ACT? 3", "PAT? 1", "ARM 0 1e-3 1e12",
-            "PING " + SECRET, "\x00\x01\x02", "WAVE x SINE 1e308 1e308", "SETTLE -1", "POWER 1e999"]
+            "PING " + SECRET, "\x00\x01\x02", "WAVE x SINE 1e308 1e308", "SETTLE -1", "POWER 1e999", "WAVE pat HOLD nan",
+            "WAVE pat HOLD 1e400 1"]
 REPLIES = [b"OK ACT n=1e999\n", b"OK PAT crc=" + SECRET.encode() + b"\n", b"ERR x y\n", b"OK\n", b"\xff\xfe\n", b"OK ID\x00 a=1\n",
            b"OK ACT n\n", b"ERR 99999999999999999999 E z\n"]
 

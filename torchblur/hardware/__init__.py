@@ -7,7 +7,7 @@
   real camera's SDK plugs into).
 - :class:`SerialRig`: the :class:`~torchblur.rig.base.Rig` protocol on a controller and a
   camera, so ``identify(cfg, rig=SerialRig.open(port, frames))`` runs unchanged;
-  :class:`SerialDMRig` the same for a deformable mirror (protocol 2), so
+  :class:`SerialDMRig` the same for a deformable mirror (protocol 2; its static holds: 3), so
   ``identify(cfg_dm, rig=SerialDMRig.open(port, frames))`` does.
 - :class:`Experiment`: the experiment directory written as a run goes (TIFF frames,
   ``manifest.jsonl``, the resolved config), read back to resume or re-fit.

@@ -360,7 +360,7 @@ class Controller:
         r = self.command("PULSE", float(trigger_offset_s), float(pulse_time_s), float(pulse_width_s), float(exposure_s), int(count))
         return r.get_int("first"), r.get_int("count")
 
-    # ------------------------------------------------------------------ protocol 2: a DM's pattern
+    # ------------------------------------------------------------------ protocols 2 and 3: a DM's pattern
 
     def actuators(self) -> int:
         """``ACT?`` -> the number of actuators the pattern drives (0: a device without a
@@ -403,9 +403,17 @@ class Controller:
     def wave_pattern(self, freq_hz: float, amplitude: float) -> tuple[float, str]:
         """``WAVE pat SINE f a``: actuator j driven with ``a * pattern[j] * sin(2 pi f t)``;
         returns (its start on the clock (s), the checksum of the pattern it drives)."""
-        r = self.command("WAVE", "pat", "SINE", float(freq_hz), float(amplitude))
+        return self._drive_pattern("SINE", float(freq_hz), float(amplitude))
+
+    def hold_pattern(self, level: float) -> tuple[float, str]:
+        """``WAVE pat HOLD u`` (protocol 3): actuator j held still at ``u * pattern[j]``; returns
+        (its start on the clock (s), the checksum of the pattern it holds)."""
+        return self._drive_pattern("HOLD", float(level))
+
+    def _drive_pattern(self, mode: str, *args) -> tuple[float, str]:
+        r = self.command("WAVE", "pat", mode, *args)
         if "crc" not in r.fields:
-            raise GarbageReply(f"WAVE pat reply without the pattern's crc: {r.fields}")
+            raise GarbageReply(f"WAVE pat {mode} reply without the pattern's crc: {r.fields}")
         return r.get_float("start"), r.fields["crc"]
 
     def __repr__(self) -> str:

@@ -7,7 +7,7 @@ keys as the simulated rig: ``plant.*``, ``camera.*``, ``seed``), and serves the 
 loopback TCP channel (:mod:`torchblur.hardware.frames` wire format). On start it prints one
 line of JSON, e.g.::
 
-    {"serial": "/dev/pts/4", "frames": "tcp://127.0.0.1:40123", "pid": 812, "protocol": 1, ...}
+    {"serial": "/dev/pts/4", "frames": "tcp://127.0.0.1:40123", "pid": 812, "protocol": 3, ...}
 
 then serves until killed.
 
@@ -16,7 +16,9 @@ time, so a 1 Hz sweep runs as fast as the frames render. The waveform and the tr
 share that clock: ``WAVE`` starts the command at the current clock time (from rest), each
 ``ARM`` trigger falls at ``start + k / f + trigger_offset_s``, the first such time after the
 settling wait and once the camera is ready, exactly as :meth:`SimulatedRig.sine` schedules
-them. ``STOP`` puts the mirror back to rest at once (no decay is modelled).
+them. ``STOP`` puts the mirror back to rest at once (no decay is modelled). In the DM mode
+``WAVE pat HOLD u`` holds the pattern still at ``u``: ``ARM`` then fires every camera cycle from
+the settling wait on and the frames are :meth:`SimulatedDMRig.pattern_ladder`'s at that level.
 
 Fault injection (``fault.*``, counted in frames the camera has finished with, from the boot
 or, with ``fault.start=wave``, from the first ``WAVE`` command (the sweep); -1 = off):
@@ -60,8 +62,8 @@ from torchblur.config import (CameraConfig, DMConfig, PlantConfig, SpotsConfig, 
                               validate_camera, validate_dm_model, validate_plant, validate_spots)
 from torchblur.errors import ParameterError
 from torchblur.hardware.frames import CameraInfo, encode_message, frame_message
-from torchblur.hardware.protocol import (E_AXIS, E_BUSY, E_INTERNAL, E_LINE, E_RANGE, E_UNKNOWN, MAX_LINE, PROTOCOL_VERSION,
-                                         ProtocolViolation, format_err, format_ok, parse_command, pattern_checksum)
+from torchblur.hardware.protocol import (E_ARGS, E_AXIS, E_BUSY, E_INTERNAL, E_LINE, E_RANGE, E_UNKNOWN, HOLD_PROTOCOL, MAX_LINE,
+                                         PROTOCOL_VERSION, ProtocolViolation, format_err, format_ok, parse_command, pattern_checksum)
 from torchblur.rig.base import check_drive, check_slew, command_peak, command_slew
 from torchblur.rig.factory import build_dm
 from torchblur import __version__
@@ -102,6 +104,7 @@ class EmulatorConfig:
     exit_with_parent: bool = key(False, flag=True)  # exit when the process that started the emulator ends (tests)
     range_query: bool = key(True, flag=True)  # false: an older firmware that answers RANGE? with ERR 1 UNKNOWN (its range still holds)
     slew_query: bool = key(True, flag=True)  # false: an older firmware that answers SLEW? with ERR 1 UNKNOWN (its slew limit still holds)
+    hold_wave: bool = key(True, flag=True)  # false: a protocol-2 firmware: ID? says protocol=2, WAVE pat HOLD is ERR 2 ARGS
     fault: FaultConfig = field(default_factory=FaultConfig)
 
 
@@ -140,7 +143,7 @@ def _as_wire_array(frame: np.ndarray) -> np.ndarray:
 @dataclass
 class _Job:
     epoch: int
-    kind: str  # dark | still | sine | multi | pulse
+    kind: str  # dark | still | hold | sine | multi | pulse
     first: int
     count: int
     exposure_s: float
@@ -153,8 +156,8 @@ class FrameServer:
     """The camera channel: one client at a time on a loopback TCP port (a new client replaces
     the old one); a hello message on connect, then frame messages."""
 
-    def __init__(self, info: CameraInfo, port: int = 0):
-        self.info = info
+    def __init__(self, info: CameraInfo, port: int = 0, protocol: int = PROTOCOL_VERSION):
+        self.info, self.protocol = info, protocol
         self._srv = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self._srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         self._srv.bind(("127.0.0.1", port))
@@ -177,7 +180,7 @@ class FrameServer:
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             try:  # the hello before the client is published, outside the lock
                 conn.settimeout(SEND_TIMEOUT_S)
-                conn.sendall(encode_message({"type": "hello", "camera": self.info.to_dict(), "protocol": PROTOCOL_VERSION}))
+                conn.sendall(encode_message({"type": "hello", "camera": self.info.to_dict(), "protocol": self.protocol}))
             except OSError:
                 conn.close()
                 continue
@@ -264,6 +267,7 @@ class EmulatedDevice:
         self.slew_limit = math.inf if slew is None else float(slew)  # SLEW?: the largest |d command / dt| (plant.slew_limit)
         self._send = send
         self.firmware, self.name = firmware, name
+        self.protocol = PROTOCOL_VERSION if cfg.hold_wave else HOLD_PROTOCOL - 1  # ID?'s (hold_wave=false: the version before HOLD)
         self.lock = threading.RLock()
         self.jobs: queue.Queue = queue.Queue()
         f = cfg.fault
@@ -351,7 +355,7 @@ class EmulatedDevice:
         w, a = cmd.word, cmd.args
         with self.lock:
             if w == "ID?":
-                return format_ok("ID", name=self.name, firmware=self.firmware, protocol=PROTOCOL_VERSION, axes=",".join(self.axes))
+                return format_ok("ID", name=self.name, firmware=self.firmware, protocol=self.protocol, axes=",".join(self.axes))
             if w == "STATUS?":
                 return format_ok("STATUS", state=self._state(), frames=self.counter, pending=self.pending, clock=float(self.clock),
                                  boot=self.boot)
@@ -410,13 +414,19 @@ class EmulatedDevice:
         axis, mode = a[0], a[1]
         if axis not in self.axes:
             raise ProtocolViolation(E_AXIS, f"this device drives axis {' and '.join(self.axes)} only, got {axis}")
-        if mode != "SINE" and axis != "x":
+        if mode == "HOLD" and self.protocol < HOLD_PROTOCOL:
+            raise ProtocolViolation(E_ARGS, f"WAVE: mode must be SINE or MULTI, got {mode!r}")  # as a protocol-2 firmware says
+        if mode == "HOLD" and axis != "pat":
+            raise ProtocolViolation(E_AXIS, f"HOLD drives axis pat only, got {axis}")
+        if mode == "MULTI" and axis != "x":
             raise ProtocolViolation(E_AXIS, f"MULTI drives axis x only, got {axis}")
         if self.pending:
             raise ProtocolViolation(E_BUSY, f"{self.pending} frame(s) pending; STOP first")
         self.reset_flag = False
         if self._fault_base is None:
             self._fault_base = self.served
+        if mode == "HOLD":
+            return self._hold_pattern(a[2])
         if axis == "pat":
             return self._wave_pattern(a[2], a[3])
         if mode == "SINE":
@@ -463,19 +473,36 @@ class EmulatedDevice:
                      "axis": "pat", "pattern": pattern}
         return format_ok("WAVE", axis="pat", mode="SINE", start=float(self.clock), crc=pattern_checksum(pattern))
 
+    def _hold_pattern(self, level: float) -> str:
+        """``WAVE pat HOLD u`` (protocol 3): actuator j held still at ``u * pattern[j]`` from now; the
+        peak command ``|u| max |pattern|`` within RANGE and the simulated rig's own checks of the
+        holds (its spots stay in their crops) pass (ERR 4); the reply names the pattern's checksum."""
+        pattern = self.pattern.copy()
+        self._check_drive(abs(level) * float(np.abs(pattern).max(initial=0.0)))
+        try:
+            self.rig.check_ladder(pattern, [level])
+        except ParameterError as exc:
+            raise ProtocolViolation(E_RANGE, str(exc)) from None
+        self.wave = {"mode": "HOLD", "level": level, "start": self.clock, "axis": "pat", "pattern": pattern}
+        return format_ok("WAVE", axis="pat", mode="HOLD", start=float(self.clock), crc=pattern_checksum(pattern))
+
     def _arm(self, off: float, te: float, n: int) -> str:
         self._check_exposure(te)
         if self.pending:
             raise ProtocolViolation(E_BUSY, f"{self.pending} frame(s) of the last acquisition pending")
         cycle = self.rig._cycle_s(te)
         self.reset_flag = False
-        if self.wave is None:
+        if self.wave is None or self.wave["mode"] == "HOLD":  # still: every camera cycle, the first offset after ready
             if off < 0:
-                raise ProtocolViolation(E_RANGE, "trigger_offset_s: must be >= 0 without a waveform")
+                raise ProtocolViolation(E_RANGE, "trigger_offset_s: must be >= 0 without a waveform or with a HOLD")
             base = max(self.clock, self.cam_ready) + off
             rel = [i * cycle for i in range(n)]
             kind = "dark" if self.power == 0 else "still"
             args = {"power": self.power}
+            if self.wave is not None:  # a hold: its settling wait (SETTLE, else the mirror's settling time) first
+                settle = self.settle if self.settle is not None else self._settling_s
+                base = max(base, self.wave["start"] + settle + off)
+                kind, args = "hold", {"wave": dict(self.wave), "offset": off, "power": self.power}
         else:
             wv = self.wave
             period = wv["period"]
@@ -533,6 +560,9 @@ class EmulatedDevice:
         elif job.kind == "pulse":
             cap = r.pulse(exposure_s=te, trigger_offset_s=a["offset"], pulse_time_s=a["pulse_time_s"],
                           pulse_width_s=a["pulse_width_s"], n=n, power=a["power"])
+        elif job.kind == "hold":  # the DM mode's static hold: SimulatedDMRig's pattern_ladder, one level
+            wv = a["wave"]
+            cap = r.pattern_ladder(pattern=wv["pattern"], levels=[wv["level"]], n=n, exposure_s=te, power=a["power"])
         elif job.kind == "sine" and a["wave"]["axis"] == "pat":  # the DM mode: SimulatedDMRig's own renderer
             wv = a["wave"]
             cap = r.pattern_sine(wv["pattern"], wv["freq_hz"], wv["amplitude"], [te], a["offset"], n, settle_s=a["settle_s"],
@@ -749,7 +779,7 @@ def main(argv: list[str] | None = None, *, config_path: str | None = None) -> in
         threading.Thread(target=watch, name="parent-watch", daemon=True).start()
     holder: dict = {}
     device = EmulatedDevice(cfg, lambda msg: holder["frames"].send(msg), firmware=__version__)
-    holder["frames"] = FrameServer(device.camera_info, cfg.frames_port)
+    holder["frames"] = FrameServer(device.camera_info, cfg.frames_port, device.protocol)
     serial_conn: dict = {}
 
     def disconnect():
@@ -762,7 +792,7 @@ def main(argv: list[str] | None = None, *, config_path: str | None = None) -> in
                 pass
 
     device.on_disconnect = disconnect
-    info = {"frames": holder["frames"].url, "pid": os.getpid(), "protocol": PROTOCOL_VERSION, "transport": cfg.transport,
+    info = {"frames": holder["frames"].url, "pid": os.getpid(), "protocol": device.protocol, "transport": cfg.transport,
             "name": device.name, "firmware": __version__, "boot": device.boot, "seed": int(cfg.seed)}
     if cfg.transport == "pty":
         master, slave = os.openpty()

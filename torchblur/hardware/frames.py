@@ -10,7 +10,7 @@ Wire format of the emulator's camera channel (TCP, loopback): a stream of messag
     b"TBF1" | u32 header_len | u32 payload_len | header (UTF-8 JSON) | payload
 
 (unsigned 32-bit big-endian lengths). The first message after connecting is
-``{"type": "hello", "camera": {...}, "protocol": 2}`` with no payload; then one
+``{"type": "hello", "camera": {...}, "protocol": 3}`` with no payload; then one
 ``{"type": "frame", "counter", "timestamp_s", "trigger_time_s", "trigger_offset_s",
 "exposure_s", "shape": [H, W], "dtype", "boot", "kind"}`` message per frame, its payload the
 pixels in C order, little-endian.

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 __all__ = [
     "PROTOCOL_VERSION",
     "PROTOCOL_VERSIONS",
+    "HOLD_PROTOCOL",
     "MAX_LINE",
     "MAX_ACTUATORS",
     "MAX_COUNT",
@@ -44,8 +45,9 @@ __all__ = [
     "pattern_lines",
 ]
 
-PROTOCOL_VERSION = 2  # 2: ACT?, PAT, PAT? and the axis ``pat`` (a deformable mirror's pattern); 1's commands unchanged
-PROTOCOL_VERSIONS = (1, 2)  # the versions this client speaks (2 is 1 plus the pattern commands)
+PROTOCOL_VERSION = 3  # 2: ACT?, PAT, PAT? and the axis ``pat`` (a deformable mirror's pattern); 3: WAVE pat HOLD (a static hold)
+PROTOCOL_VERSIONS = (1, 2, 3)  # the versions this client speaks (each is the one before plus its commands, those unchanged)
+HOLD_PROTOCOL = 3  # the first version with WAVE pat HOLD
 MAX_LINE = 200  # bytes, without the newline
 MAX_ACTUATORS = 100_000  # entries of a pattern (PAT's start index is below it)
 MAX_COUNT = 1000  # frames per ARM/PULSE
@@ -86,7 +88,8 @@ class Command:
     """A parsed command: ``word`` (e.g. ``"ARM"``, ``"ID?"``) and typed ``args``.
 
     ``args`` per word: ``PING`` (token,); ``POWER`` (p,); ``SETTLE`` (s or None for AUTO,);
-    ``WAVE`` (axis, "SINE", freq_hz, amplitude) or (axis, "MULTI", ((f, a, p), ...));
+    ``WAVE`` (axis, "SINE", freq_hz, amplitude), (axis, "MULTI", ((f, a, p), ...)) or (axis,
+    "HOLD", level);
     ``ARM`` (trigger_offset_s, exposure_s, count); ``PULSE`` (trigger_offset_s,
     pulse_time_s, pulse_width_s, exposure_s, count); ``PAT`` (start, (v, ...)); the others
     (``ID?``, ``STATUS?``, ``RANGE?``, ``RESET``, ``STOP``, ``ACT?``, ``PAT?``) ().
@@ -194,8 +197,8 @@ def parse_command(line: str | bytes) -> Command:
         return Command(word, (None if args[0] == "AUTO" else _float(args[0], "settle_s", nonnegative=True),))
     if word == "WAVE":
         if len(args) < 2:
-            raise ProtocolViolation(E_ARGS, f"WAVE: expected 'WAVE <axis> SINE <freq_hz> <amplitude>' or "
-                                            f"'WAVE <axis> MULTI <f:a:p,...>', got {len(args)} argument(s)")
+            raise ProtocolViolation(E_ARGS, f"WAVE: expected 'WAVE <axis> SINE <freq_hz> <amplitude>', "
+                                            f"'WAVE <axis> MULTI <f:a:p,...>' or 'WAVE <axis> HOLD <level>', got {len(args)} argument(s)")
         axis, mode = _axis(args[0]), args[1]
         if mode == "SINE":
             _nargs("WAVE SINE", args, 4, "axis SINE freq_hz amplitude")
@@ -203,7 +206,10 @@ def parse_command(line: str | bytes) -> Command:
         if mode == "MULTI":
             _nargs("WAVE MULTI", args, 3, "axis MULTI f:a:p,...")
             return Command(word, (axis, mode, _tones(args[2])))
-        raise ProtocolViolation(E_ARGS, f"WAVE: mode must be SINE or MULTI, got {mode!r}")
+        if mode == "HOLD":
+            _nargs("WAVE HOLD", args, 3, "axis HOLD level")
+            return Command(word, (axis, mode, _float(args[2], "level")))
+        raise ProtocolViolation(E_ARGS, f"WAVE: mode must be SINE, MULTI or HOLD, got {mode!r}")
     if word == "ARM":
         _nargs(word, args, 3, "trigger_offset_s exposure_s count")
         return Command(word, (_float(args[0], "trigger_offset_s"), _float(args[1], "exposure_s", positive=True), _count(args[2])))

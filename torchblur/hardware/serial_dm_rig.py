@@ -1,8 +1,9 @@
 """A deformable mirror over the serial link: :class:`SerialDMRig`, the interface
 the DM plan (:class:`torchblur.identify.dm_plan.DMPlan`) uses on :class:`~torchblur.rig.dm.SimulatedDMRig`
-(``pattern_sine``, ``dark``, ``still``, ``pulse``, ``input_limit``, the frame geometry), on a
-controller that speaks protocol 2 (docs/protocol.md: ``ACT?``, ``PAT``, ``PAT?`` and the axis
-``pat``) and a camera.
+(``pattern_sine``, ``pattern_ladder``, ``dark``, ``still``, ``pulse``, ``input_limit``, the frame
+geometry), on a controller that speaks protocol 2 (docs/protocol.md: ``ACT?``, ``PAT``, ``PAT?`` and
+the axis ``pat``) and a camera; ``pattern_ladder`` (the static holds of ``dm_plan.spot_model``) needs
+protocol 3 (``WAVE pat HOLD``): on a protocol-2 controller the rig has none (the run then says so).
 
 One ``pattern_sine`` is one transaction of :class:`~torchblur.hardware.serial_rig.SerialRig`
 (``STOP``, ``POWER``, ``SETTLE``, the waveform, one ``ARM`` per exposure, ``STOP``) whose
@@ -13,8 +14,10 @@ waveform starts as follows:
     PAT?                         -> OK PAT n=9 crc=<ours>     else PatternMismatch
     WAVE pat SINE 200.0 0.31     -> OK WAVE axis=pat mode=SINE start=... crc=<ours>
 
-so every waveform drives exactly the pattern asked for: the checksum (CRC-32 of the float64
-values, :func:`~torchblur.hardware.protocol.pattern_checksum`) is checked after the load and
+and one ``pattern_ladder`` is one transaction too (``STOP``, ``POWER``, ``SETTLE AUTO``, then per
+level ``u`` the same ``PAT?`` (and load) and ``WAVE pat HOLD u`` -> ``OK WAVE ... crc=<ours>``, the
+``ARM 0 Te n`` of its frames; ``STOP``), so every waveform drives exactly the pattern asked for: the
+checksum (CRC-32 of the float64 values, :func:`~torchblur.hardware.protocol.pattern_checksum`) is checked after the load and
 again in the ``WAVE`` reply, which names the pattern it drives. A mismatch is a
 :class:`~torchblur.hardware.errors.PatternMismatch` naming the pattern; the call is redone
 (the pattern loaded again) at most ``retries`` times, then the run stops.
@@ -26,11 +29,11 @@ from typing import Sequence
 
 import numpy as np
 
-from torchblur.errors import ConfigError, ParameterError, ShapeError, check_real_scalar
+from torchblur.errors import ConfigError, ParameterError, ShapeError, check_int, check_real_scalar
 from torchblur.hardware.errors import DeviceError, PatternMismatch
-from torchblur.hardware.protocol import pattern_checksum
+from torchblur.hardware.protocol import HOLD_PROTOCOL, pattern_checksum
 from torchblur.hardware.serial_rig import SerialRig
-from torchblur.rig.base import PatternSines, check_drive, float_list
+from torchblur.rig.base import Capture, PatternSines, check_drive, float_list
 from torchblur.dm.mirror import DeformableMirror
 from torchblur.dm.shack_hartmann import ShackHartmann
 
@@ -45,7 +48,7 @@ def describe_pattern(pattern: np.ndarray) -> str:
 
 
 class SerialDMRig(PatternSines, SerialRig):
-    """A DM's controller (protocol 2, axis ``pat``) and camera as the DM run's rig.
+    """A DM's controller (protocol 2, axis ``pat``; 3 for ``pattern_ladder``) and camera as the DM run's rig.
 
     Args:
         controller, frames: as :class:`~torchblur.hardware.serial_rig.SerialRig`.
@@ -77,11 +80,24 @@ class SerialDMRig(PatternSines, SerialRig):
         if self._n_actuators is not None and n != self._n_actuators:
             raise DeviceError(4, "RANGE", f"the controller now has {n} actuators, it had {self._n_actuators}", "ACT?")
         self._n_actuators = self.device["actuators"] = n
+        if self.device["protocol"] < HOLD_PROTOCOL:
+            self._note(f"the controller speaks protocol {self.device['protocol']}: no static holds (WAVE pat HOLD, protocol "
+                       f"{HOLD_PROTOCOL}), so this rig has no pattern_ladder (dm_plan.spot_model auto keeps the shifted still)")
 
     @property
     def n_actuators(self) -> int:
         return int(self._n_actuators)
 
+    @property
+    def pattern_ladder(self):
+        """The bound :meth:`_pattern_ladder` where the controller speaks protocol 3 (``WAVE pat HOLD``);
+        on an older controller an AttributeError saying so, so that ``getattr(rig, "pattern_ladder",
+        None)`` is None there: the DM run's rig contract (:mod:`torchblur.rig.dm_contract`) then refuses
+        ``dm_plan.spot_model=ladder`` before any frame and ``auto`` keeps the shifted still, both naming the rig."""
+        if self.device["protocol"] < HOLD_PROTOCOL:
+            raise AttributeError(f"pattern_ladder: the controller on {self.controller.port} speaks protocol {self.device['protocol']}; "
+                                 f"static holds need protocol {HOLD_PROTOCOL} (WAVE pat HOLD, docs/protocol.md)")
+        return self._pattern_ladder
 
     def _check_pattern(self, pattern) -> np.ndarray:
         N = self.n_actuators
@@ -92,9 +108,10 @@ class SerialDMRig(PatternSines, SerialRig):
             raise ParameterError(f"pattern: expected finite weights, got {describe_pattern(p)}")
         return p
 
-    def _start_pattern_wave(self, p: np.ndarray, freq: float, amp: float) -> None:
-        """Make the controller hold ``p`` (``PAT?``, loading it when it differs) and start
-        ``WAVE pat SINE``; every checksum must be ``p``'s (module docstring)."""
+    def _drive_pattern(self, p: np.ndarray, start) -> None:
+        """Make the controller hold ``p`` (``PAT?``, loading it when it differs) and start its
+        waveform, ``start(controller)`` -> (start, the crc of the pattern it drives): ``WAVE pat
+        SINE`` or ``HOLD``; every checksum must be ``p``'s (module docstring)."""
         c, crc, name = self.controller, pattern_checksum(p), describe_pattern(p)
         held = c.pattern()
         if held["n"] != p.size:
@@ -104,7 +121,7 @@ class SerialDMRig(PatternSines, SerialRig):
             held = c.pattern()
             if held["crc"] != crc:
                 raise PatternMismatch(f"{name}: after loading it the controller holds a pattern with crc {held['crc']}")
-        _, driven = c.wave_pattern(freq, amp)
+        _, driven = start(c)
         if driven != crc:
             raise PatternMismatch(f"{name}: the waveform drives a pattern with crc {driven}")
 
@@ -123,14 +140,51 @@ class SerialDMRig(PatternSines, SerialRig):
         freq = check_real_scalar(freq_hz, "freq_hz", positive=True)
         amp = check_real_scalar(amplitude, "amplitude")
         check_drive(abs(amp) * float(np.abs(p).max(initial=0.0)), self.input_limit)
-        return self._periodic_capture(f"pattern_sine {describe_pattern(p)} at {freq:g} Hz", lambda c: self._start_pattern_wave(p, freq, amp),
-                                      1.0 / freq, exposures_s, trigger_offset_s, n_repeats, check_real_scalar(power, "power"), settle_s,
+        return self._periodic_capture(f"pattern_sine {describe_pattern(p)} at {freq:g} Hz",
+                                      lambda c: self._drive_pattern(p, lambda c: c.wave_pattern(freq, amp)), 1.0 / freq, exposures_s, trigger_offset_s, n_repeats, check_real_scalar(power, "power"), settle_s,
                                       {"kind": "pattern_sine", "pattern": p, "freq_hz": freq, "omega": 2 * math.pi * freq, "period_s": None,
                                        "amplitude": amp, "settle_s": None, "power": None, "trigger_delay_s": self.trigger_delay_s})
 
+    def _pattern_ladder(self, pattern, levels: Sequence[float], n: int, exposure_s: float, power: float = 1.0) -> Capture:
+        """Frames ``[K, n, H, W]`` of the mirror held still at ``levels[k] * pattern`` (input units),
+        ``n`` frames per level at ``exposure_s`` and laser ``power``, as
+        :meth:`~torchblur.rig.dm.SimulatedDMRig.pattern_ladder` (the rig's ``pattern_ladder`` on a
+        protocol-3 controller): one transaction (module docstring), each level after the
+        controller's settling wait (``SETTLE AUTO``).
+
+        Raises:
+            ShapeError: ``pattern`` is not [N]; ParameterError: naming ``levels`` when the peak
+            command ``max|levels| max|pattern|`` exceeds the controller's RANGE, or ``n``,
+            ``exposure_s``, ``power`` (nothing sent); AcquisitionStopped: the controller refused
+            (a protocol-2 controller: ERR 2), or the faults outlasted the retries.
+        """
+        p = self._check_pattern(pattern)
+        lv = float_list(levels, "levels")
+        n = check_int(n, "n", low=1)
+        te = self._check_exposure(exposure_s)
+        power = check_real_scalar(power, "power", nonnegative=True)
+        check_drive(max(abs(u) for u in lv) * float(np.abs(p).max(initial=0.0)), self.input_limit, "levels")
+        c = self.controller
+
+        def once():
+            self._begin()
+            c.stop()
+            c.power(power)
+            c.settle(None)
+            out = []
+            for u in lv:
+                self._drive_pattern(p, lambda c, u=u: c.hold_pattern(u))
+                out += self._armed(te, n)
+            c.stop()
+            return out
+
+        frames = self._call(f"pattern_ladder {describe_pattern(p)} at {len(lv)} levels", once)
+        return self._capture(frames, (len(lv), n), [0.0] * (len(lv) * n),
+                             {"kind": "pattern_ladder", "pattern": p, "levels": lv, "power": power})
+
     def __repr__(self) -> str:
         return (f"SerialDMRig(port={self.controller.port!r}, frames={self.frames!r}, actuators={self.device.get('actuators')}, "
-                f"boot={self._boot}, input_limit={self.input_limit})")
+                f"protocol={self.device.get('protocol')}, boot={self._boot}, input_limit={self.input_limit})")
 
 
 def open_dm_rig(cfg, *, log=None) -> SerialDMRig:

@@ -373,6 +373,13 @@ class SerialRig:
                        trigger_time_s=t("trigger_time_s"),
                        frame_counter=torch.tensor([f.counter for f in frames], dtype=torch.long).reshape(shape), meta=meta)
 
+    def _armed(self, te: float, n: int) -> list[Frame]:
+        """``n`` frames at exposure ``te`` with no offset (still, dark or a hold), ``ARM 0 te m`` as
+        many times as it takes: an ARM fires at most MAX_COUNT triggers."""
+        c = self.controller
+        counts = [min(MAX_COUNT, n - k) for k in range(0, n, MAX_COUNT)]
+        return [f for m in counts for f in self._acquire(te, m, lambda m=m: c.arm(0.0, te, m))]
+
     def _still_frames(self, n: int, te: float, power: float):
         c = self.controller
 
@@ -380,8 +387,7 @@ class SerialRig:
             self._begin()
             c.stop()
             c.power(power)
-            counts = [min(MAX_COUNT, n - k) for k in range(0, n, MAX_COUNT)]  # an ARM fires at most MAX_COUNT triggers
-            return [f for m in counts for f in self._acquire(te, m, lambda m=m: c.arm(0.0, te, m))]
+            return self._armed(te, n)
 
         return once
 

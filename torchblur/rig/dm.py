@@ -171,14 +171,14 @@ class SimulatedDMRig(PatternSines, SimulatedRig):
                 out[i:i + step, y0[m]:y0[m] + c, x0[m]:x0[m] + c] += crops[:, m]
         return out[:, pad:pad + H, pad:pad + W].clamp_min(0.0)
 
-    def _check_reach(self, amplitude_px: np.ndarray) -> None:
+    def _check_reach(self, amplitude_px: np.ndarray, what: str = "amplitude") -> None:
         off = np.abs(self._wfs.rest_px - self._corner.numpy() - (self._crop - 1) / 2).max(-1)  # rest off the crop centre
         room = (self._crop - 1) / 2 - off - _EDGE_SIGMAS * self._wfs.sigma_spots_px
         reach = np.hypot(amplitude_px[:, 0], amplitude_px[:, 1])
         worst = int(np.argmax(reach - room))
         if reach[worst] > room[worst]:
-            raise ParameterError(f"amplitude: spot {worst} would move {reach[worst]:.3g} px, more than the {room[worst]:.3g} px its "
-                                 f"crop allows (rest to crop edge less {_EDGE_SIGMAS:g} PSF sigmas); lower the amplitude")
+            raise ParameterError(f"{what}: spot {worst} would move {reach[worst]:.3g} px, more than the {room[worst]:.3g} px its "
+                                 f"crop allows (rest to crop edge less {_EDGE_SIGMAS:g} PSF sigmas); lower the {what}")
 
     def _still_image_per_s(self) -> torch.Tensor:
         """Electrons per second of the still spots at power 1, ``[H, W]`` (cached; the crops)."""
@@ -237,16 +237,11 @@ class SimulatedDMRig(PatternSines, SimulatedRig):
             ParameterError: naming ``levels`` for a command beyond ``input_limit`` or a spot
                 leaving its crop; ShapeError naming ``pattern`` when it is not [N].
         """
-        commands = self._ladder_commands(pattern, levels)
+        shifts = self._hold_shifts(pattern, levels)
         power = self._check_power(power)
         one = ExposureWindow(torch.zeros(1, dtype=_F64), 1.0)
         rates = []
-        for c in commands:
-            self._mirror.check_command(c, "levels")
-            s = np.real(self.truth_D(0.0) @ c)  # [2M] static shift (px)
-            M = s.size // 2
-            s = np.stack([s[:M], s[M:]], -1)
-            self._check_reach(np.abs(s))
+        for s in shifts:
             # a fixed displacement: a sinusoid of amplitude |s| at phase +-pi/2, too slow to move in the window
             rates.append(self._render_spots(torch.as_tensor(np.abs(s)), torch.as_tensor(np.where(s < 0, -np.pi / 2, np.pi / 2)),
                                             1e-12, one, power)[0])
@@ -254,6 +249,25 @@ class SimulatedDMRig(PatternSines, SimulatedRig):
             self._hold_generator = torch.Generator().manual_seed(int(np.random.SeedSequence([self._seed, 1]).generate_state(1)[0]))
         return self._hold_capture(torch.stack(rates), n, exposure_s, meta={"kind": "pattern_ladder", "power": power},
                                   generator=self._hold_generator)
+
+    def _hold_shifts(self, pattern, levels) -> list[np.ndarray]:
+        """Every spot's static shift ``[M, 2]`` (px, x and y) at each level of ``pattern_ladder``,
+        the commands checked (what :meth:`pattern_ladder` raises)."""
+        out = []
+        for c in self._ladder_commands(pattern, levels):
+            self._mirror.check_command(c, "levels")
+            s = np.real(self.truth_D(0.0) @ c)  # [2M] static shift (px)
+            M = s.size // 2
+            s = np.stack([s[:M], s[M:]], -1)
+            self._check_reach(np.abs(s), "levels")
+            out.append(s)
+        return out
+
+    def check_ladder(self, pattern, levels) -> None:
+        """Raise what :meth:`pattern_ladder` raises for these holds (``pattern`` not [N], a command
+        beyond ``input_limit`` or a spot leaving its crop), without rendering: the bench emulator
+        refuses such a hold when it starts."""
+        self._hold_shifts(pattern, levels)
 
     def check_pattern(self, pattern, freq_hz: float, amplitude: float) -> None:
         """Raise what :meth:`pattern_sine` raises for this command (``pattern`` not [N], a
