@@ -16,7 +16,7 @@ import torch
 import torchblur as tb
 from torchblur.cli import _NOTHING_RECORDED, EXIT_INTERRUPTED, EXIT_STOPPED
 from torchblur.dm.mirror import TABLE_MAX_BYTES
-from torchblur.identify.dm_outside import dm_recording_config, is_dm_recording, read_dm_recording, run_recording
+from torchblur.identify.dm_outside import DMOutsidePlan, dm_recording_config, is_dm_recording, read_dm_recording
 from torchblur.identify.dm_report import run_cli as run_dm
 from torchblur.identify.dm_record import check_refit_config
 from torchblur.errors import ConfigError
@@ -282,4 +282,4 @@ def _fit_dm_outside(args, src: Path, out: Path) -> int:
     cfg = dm_recording_config(rec, args.overrides)
     out.mkdir(parents=True, exist_ok=True)
     _write_source(out, args, outside_recording=str(src), frames=rec.n_frames, points=len(rec.freq_hz))
-    return run_recording(rec, cfg, out, quiet=args.quiet, as_json=args.json)
+    return run_dm(cfg, out, quiet=args.quiet, as_json=args.json, plan=DMOutsidePlan(rec))

@@ -29,47 +29,47 @@ with the live run's own pieces (the spot fitter, the demultiplexing, the actuato
 """
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import math
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from torchblur.config import WFSConfig, load_config, load_dataclass
 from torchblur.config.budget import dm_geometry, dm_sensor
-from torchblur.identify.dm_plan import (DMResult, _calibrate, _fit_frequency, _fit_options, _spot_psf, check_dm_config, estimate_mirror,
-                                        match_spots)
-from torchblur.identify.dm_report import run_cli
 from torchblur.dm.plans import Plan, one_at_a_time_plan, plan_cost
-from torchblur.identify.dm_record import PLAN_KEY, SWEEP_KIND, plan_support
 from torchblur.dm.shack_hartmann import ShackHartmann
 from torchblur.errors import ConfigError, InputTypeError
 from torchblur.files import excerpt, read_bounded
 from torchblur.hardware.errors import RecordingError
-from torchblur.hardware.recording import Experiment, ReplayRig
 from torchblur.hardware.outside import (CSV_NAME, YAML_NAME, MAX_ROWS, OutsideCamera, _points, _read_camera, _read_frames,
                                         _read_rows, _resolved_saturation)
+from torchblur.hardware.recording import Experiment, ReplayRig
 from torchblur.identify.calibration import Calibration, measure_gain, spots_from_still, still_rate
 from torchblur.identify.dm_ladder import TEST_KEY, hold_images, pattern_ladder
-from torchblur.config import WFSConfig, load_config, load_dataclass
-from torchblur.identify.record import LOGGER, collect_log
+from torchblur.identify.dm_plan import (DMPlan, DMResult, _calibrate, _fit_frequency, _fit_options, _spot_psf, check_dm_config,
+                                        collect_fits, fit_pool, match_spots)
+from torchblur.identify.dm_record import PLAN_KEY, SWEEP_KIND, plan_support
+from torchblur.identify.outside import check_overrides
+from torchblur.identify.pipeline import identify
+from torchblur.identify.record import LOGGER, RunRecord
 from torchblur.image.preprocess import dark_frame, subtract_dark
 from torchblur.image.saturation import SaturationCurve
 from torchblur.render.window import ExposureWindow
 
-__all__ = ["PATTERNS_NAME", "DMRecording", "dm_recording_config", "export_dm_recording", "identify_dm_recording",
-           "is_dm_recording", "read_dm_recording", "recording_calibration", "run_recording", "write_dm_recording"]
+__all__ = ["PATTERNS_NAME", "DMOutsidePlan", "DMRecording", "dm_recording_config", "export_dm_recording", "identify_dm_recording",
+           "is_dm_recording", "read_dm_recording", "recording_calibration", "write_dm_recording"]
 
 PATTERNS_NAME = "patterns.csv"
 MAX_PATTERNS_BYTES = 64 * 1024 * 1024
 MAX_ACTUATORS = 20000  # patterns.csv's columns: beyond any deformable mirror made
 _F64 = torch.float64
 _PLAN_KINDS = ("hadamard", "sparse", "one_at_a_time")
-_ALLOWED = ("fit.", "model.", "report.")  # what a user may set for a recording (the rest is the recording's)
 
 
 @dataclass(frozen=True)
@@ -321,11 +321,7 @@ def dm_recording_config(rec: DMRecording, overrides=()):
     Raises:
         ConfigError: an override outside those (named); RecordingError: the layout does not fit the frames.
     """
-    for item in overrides:
-        key = str(item).partition("=")[0]
-        if not (key.startswith(_ALLOWED) or key in ("seed", "camera.gain_from")):
-            raise ConfigError(f"{key}: a DM recording takes only fit.*, model.*, report.*, seed and camera.gain_from overrides "
-                              f"(its mirror, sensor, camera and sweep are in {YAML_NAME}, {PATTERNS_NAME} and {CSV_NAME})")
+    check_overrides(overrides, "a DM recording", f"mirror, sensor, camera and sweep are in {YAML_NAME}, {PATTERNS_NAME} and {CSV_NAME}")
     lay, c = rec.layout, rec.camera
     E = rec.frames[0].shape[1] // rec.R
     own = [f"dm.{f.name}={getattr(lay.dm, f.name)!r}" for f in fields(lay.dm)]
@@ -424,59 +420,82 @@ def _refuse_saturated(rec: DMRecording, sat: SaturationCurve, dark) -> None:
                                  f"less light or a shorter exposure, or give saturation_adu in {YAML_NAME} if the sensor clips higher")
 
 
-def identify_dm_recording(rec: DMRecording, cfg=None) -> DMResult:
-    """Identify the mirror of the outside DM recording ``rec`` like a live run: its calibration
-    (:func:`recording_calibration`), every frequency's pattern responses by the live run's spot
-    fitter, the demultiplexing, the actuator fit and the mirror's registration
-    (:func:`~torchblur.identify.dm_plan.estimate_mirror`). Returns a :class:`~torchblur.identify.dm_plan.DMResult`
-    (no simulated truth; its ``log``: the messages of the ``torchblur`` logger during the fit, :func:`~torchblur.identify.record.collect_log`).
+def identify_dm_recording(rec: DMRecording, cfg=None, *, progress: bool = True, executor=None) -> DMResult:
+    """Identify the mirror of the outside DM recording ``rec`` with a live DM run's stages
+    (:func:`torchblur.identify.pipeline.identify` with the plan :class:`DMOutsidePlan`). Returns a
+    :class:`~torchblur.identify.dm_plan.DMResult` (no simulated truth; its ``log``: the run's messages).
 
     Args:
         rec: from :func:`read_dm_recording`; cfg: from :func:`dm_recording_config` (default: its defaults).
+        progress, executor: as :func:`~torchblur.identify.pipeline.identify`'s.
     """
     if not isinstance(rec, DMRecording):
         raise InputTypeError(f"rec: expected a DMRecording (read_dm_recording), got {type(rec).__name__}")
     cfg = dm_recording_config(rec) if cfg is None else cfg
-    check_dm_config(cfg)
-    with collect_log() as log:
-        res = _fit_recording(rec, cfg)
-    res.log = log
-    return res
+    return identify(cfg, progress=progress, executor=executor, plan=DMOutsidePlan(rec))
 
 
-def _fit_recording(rec: DMRecording, cfg) -> DMResult:
-    """:func:`identify_dm_recording`'s steps, its messages to the ``torchblur.identify`` logger."""
-    t = {}
-    t0 = time.perf_counter()
-    mirror, wfs = dm_sensor(cfg)
-    G = dm_geometry(cfg)
-    cal, psf, offset, size = recording_calibration(rec, cfg, wfs)
-    t["calibration"], t["acquisition"] = time.perf_counter() - t0, 0.0
-    plan, ratio = _plan(rec, cfg, G)
-    ladder = None
-    if rec.ladder_levels is not None:
-        holds = hold_images(rec.ladder_frames, rec.ladder_levels, float(rec.ladder_exposure_s), cal, offset, size, float(rec.ladder_power))
-        ladder = pattern_ladder(holds, cal, offset, size)
-        LOGGER.info(f"dm spot model: ladder ({rec.ladder_levels.shape[1]} levels x {rec.ladder_frames[0].shape[1]} frames per pattern, "
-                    f"from {CSV_NAME}'s ladder rows)")
-    t0 = time.perf_counter()
-    with ThreadPoolExecutor(max_workers=1) as pool:  # as the live run fits (on a busy machine two OpenMP threads on the main one were 12x slower)
-        futures = [pool.submit(_fit_frequency, torch.as_tensor(rec.frames[k], dtype=_F64), ExposureWindow(
-            torch.as_tensor(rec.start_s[k], dtype=_F64)[:, None], torch.as_tensor(rec.duration_s[k], dtype=_F64)[:, None]),
-            2 * math.pi * float(f), float(rec.amplitude[k]), float(rec.power[k]), cal, psf, offset, size, float(cfg.camera.jitter_s),
-            _fit_options(cfg), ladder) for k, f in enumerate(rec.freq_hz)]
-        res = [fu.result() for fu in futures]
-    LOGGER.info(f"recording: {len(rec.freq_hz)} frequencies x {plan.n_patterns} patterns, {rec.n_frames} frames, from {rec.path}")
-    t["fit_wait"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    Y, Y_cov = np.stack([r[0] for r in res], -1), np.stack([r[1] for r in res], 2)
-    D, D_cov, table, reg, support = estimate_mirror(cfg, np.asarray(rec.freq_hz), Y, Y_cov, plan, G, wfs, mirror.actuator_xy)
-    t["estimation"] = time.perf_counter() - t0
-    return DMResult(freq_hz=np.asarray(rec.freq_hz), plan=plan, n_repeats=rec.R, plan_info={"cost_ratio_to_one_at_a_time": ratio},
-                    amplitude=np.asarray(rec.amplitude), power=np.asarray(rec.power), Y=Y, Y_cov=Y_cov, D=D, D_cov=D_cov, actuators=table,
-                    G=reg.G, G_nominal=G, registration=reg, support_check=support, actuator_xy=mirror.actuator_xy, n_frames=int(sum(fr.shape[0] * fr.shape[1] for fr in rec.frames)),
-                    n_failed=sum(r[2] for r in res), timing_s=t, spot_reduced_chi2=np.stack([r[3] for r in res], -1),
-                    spot_model="shifted" if ladder is None else "ladder", n_out_of_ladder=sum(r[4] for r in res))
+class DMOutsidePlan(DMPlan):
+    """The DM plan over an outside DM recording ``rec`` (as :class:`~torchblur.identify.outside.OutsidePlan`
+    is the sine plan over a one-spot one): :meth:`open` opens no rig and records nothing (the folder
+    is the recording), :meth:`calibrate` is :func:`recording_calibration`, and :meth:`sweep` takes the
+    plan of ``patterns.csv``, the ladder of the ``ladder`` rows and the recorded frames instead of
+    driving a rig, each frequency's spot fits submitted as the live sweep's; fit, assemble
+    (:func:`~torchblur.identify.dm_plan.estimate_mirror`) and the result are the DM plan's."""
+
+    truth_rig = None  # an outside mirror: no simulated truth
+
+    def __init__(self, rec: DMRecording):
+        self.rec = rec
+
+    def check(self, cfg, rig) -> None:
+        """Refuse a ``cfg`` that is not a DM run's or not ``rec``'s frequencies, and any ``rig``."""
+        check_dm_config(cfg)
+        if rig is not None:
+            raise InputTypeError(f"rig: an outside DM recording is fitted without a rig, got {type(rig).__name__}")
+        if cfg.frequencies_hz() != [float(f) for f in self.rec.freq_hz]:
+            raise ConfigError(f"sweep.freq_hz: expected the recording's frequencies (dm_recording_config), got {cfg.frequencies_hz()}")
+
+    @contextlib.contextmanager
+    def open(self, cfg, rig, *, progress: bool, record, base_dir: str | None = None, executor=None):
+        """The run record: the sensor of ``cfg`` (``dm``, ``wfs``), no rig; ``record`` must be None (nothing is recorded)."""
+        if record is not None:
+            raise InputTypeError(f"record: an outside DM recording is not recorded again, got {type(record).__name__}")
+        self.model_mirror, self.wfs = dm_sensor(cfg)
+        yield RunRecord(cfg=cfg, rig=None, progress=progress, executor=executor)
+
+    def calibrate(self, run) -> None:
+        """``run.cal`` and every valid subaperture's spot PSF, crop offset and size (:func:`recording_calibration`)."""
+        t0 = time.perf_counter()
+        run.cal, self.psf, self.offset, self.size = recording_calibration(self.rec, run.cfg, self.wfs)
+        run.timing["calibration"], run.timing["acquisition"] = time.perf_counter() - t0, 0.0
+
+    def sweep(self, run) -> None:
+        """The recorded plan and spot model, and every frequency's frames to the spot fits
+        (``run.acquisition`` as the live sweep's)."""
+        rec, cfg, cal = self.rec, run.cfg, run.cal
+        self.G = dm_geometry(cfg)
+        self.plan, ratio = _plan(rec, cfg, self.G)
+        self.R, self.info = rec.R, {"cost_ratio_to_one_at_a_time": ratio}
+        ladder = None
+        if rec.ladder_levels is not None:
+            holds = hold_images(rec.ladder_frames, rec.ladder_levels, float(rec.ladder_exposure_s), cal, self.offset, self.size,
+                                float(rec.ladder_power))
+            ladder = pattern_ladder(holds, cal, self.offset, self.size)
+            LOGGER.info(f"dm spot model: ladder ({rec.ladder_levels.shape[1]} levels x {rec.ladder_frames[0].shape[1]} frames per "
+                        f"pattern, from {CSV_NAME}'s ladder rows)")
+        self.spot_model = "shifted" if ladder is None else "ladder"
+        t0 = time.perf_counter()
+        with fit_pool(run.executor) as pool:
+            futures = [pool.submit(_fit_frequency, torch.as_tensor(rec.frames[k], dtype=_F64), ExposureWindow(
+                torch.as_tensor(rec.start_s[k], dtype=_F64)[:, None], torch.as_tensor(rec.duration_s[k], dtype=_F64)[:, None]),
+                2 * math.pi * float(f), float(rec.amplitude[k]), float(rec.power[k]), cal, self.psf, self.offset, self.size,
+                float(cfg.camera.jitter_s), _fit_options(cfg), ladder) for k, f in enumerate(rec.freq_hz)]
+            Y, Y_cov, failed, chi2, out = collect_fits(rec.freq_hz, futures, self.plan.n_patterns, self.G.shape[0])
+        LOGGER.info(f"recording: {len(rec.freq_hz)} frequencies x {self.plan.n_patterns} patterns, {rec.n_frames} frames, from {rec.path}")
+        run.timing["fit_wait"] = time.perf_counter() - t0
+        n_frames = int(sum(fr.shape[0] * fr.shape[1] for fr in rec.frames))
+        run.acquisition = (np.asarray(rec.amplitude), np.asarray(rec.power), Y, Y_cov, failed, chi2, n_frames, out)
 
 
 # ---------------------------------------------------------------------- writing
@@ -604,10 +623,3 @@ def export_dm_recording(run, folder) -> Path:
                               patterns=np.asarray(doc["patterns"], dtype=np.float64), freq_hz=freq, amplitude=amp, power=power,
                               frames=frames, start_s=start, duration_s=dur, camera=camera, layout=layout, R=int(doc["n_repeats"]),
                               ladder=ladder)
-
-
-def run_recording(rec: DMRecording, cfg, out, *, quiet: bool = False, as_json: bool = False) -> int:
-    """``torchblur fit FOLDER`` of an outside DM recording: :func:`identify_dm_recording` written
-    as a live run writes (``OUT/config.yaml``, ``OUT/dm/``, ``OUT/report.txt``, the verdict line
-    last; :func:`torchblur.identify.dm_report.run_cli`). Returns the verdict's exit status."""
-    return run_cli(cfg, out, quiet=quiet, as_json=as_json, run=lambda: identify_dm_recording(rec, cfg))

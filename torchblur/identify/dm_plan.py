@@ -331,7 +331,7 @@ def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, exp=None, executor=None
     limit = min(math.inf if cfg.dm.input_limit is None else float(cfg.dm.input_limit), cal.input_limit)  # and the rig's RANGE?
     amps, powers, futures = np.zeros(F), np.zeros(F), []
     t_acq = 0.0
-    with ThreadPoolExecutor(max_workers=1) if executor is None else contextlib.nullcontext(executor) as pool:
+    with fit_pool(executor) as pool:
         for k, f in enumerate(freqs):
             done_ref = _amplitude_reference(futures, k, M2 // 2)
             rec = recorded_labels(exp, sweep_key(k))
@@ -363,22 +363,33 @@ def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, exp=None, executor=None
             LOGGER.info(f"dm sweep: {f:.4g} Hz, amplitude {amps[k]:.4g}, power {powers[k]:.3g}, {P} patterns x "
                         f"{len(te)} exposures x {R} repeats ({k + 1}/{F}{', recorded' if rec is not None else ''})")
         t0 = time.perf_counter()
-        outcomes = [_fit_outcome(fu) for fu in futures]
+        Y, Y_cov, failed, chi2, out = collect_fits(freqs, futures, P, M2)
         t_wait = time.perf_counter() - t0
+    return amps, powers, Y, Y_cov, failed, chi2, P * F * len(s.exposures) * R, out, t_acq, t_wait
+
+
+def fit_pool(executor=None):
+    """The executor the sweep's spot fits are submitted to, as a context: ``executor`` (left
+    open), or one worker thread (on a busy machine two OpenMP threads on the main one were 12x slower)."""
+    return ThreadPoolExecutor(max_workers=1) if executor is None else contextlib.nullcontext(executor)
+
+
+def collect_fits(freqs, futures, P: int, M2: int):
+    """Every frequency's spot fits (:func:`_fit_frequency` submitted in ``futures``, one per
+    frequency of ``freqs``), waited for: ``(Y [P, 2M, F], Y_cov [P, 2M, F, 2, 2], failed, chi2 [P, M, F],
+    out of the ladder)``; a frequency whose task raised has NaN responses and its ``P * M`` spot fits counted failed (logged)."""
+    outcomes = [_fit_outcome(fu) for fu in futures]
     for f, (_, why) in zip(freqs, outcomes):
         if why is not None:
             LOGGER.info(f"dm sweep: the spot fits of {f:.4g} Hz failed on the executor ({why}): its responses are NaN and "
                         f"its {P * (M2 // 2)} spot fits counted failed")
     results = [r if r is not None else _failed_frequency(P, M2) for r, _ in outcomes]
-    Y = np.stack([r[0] for r in results], -1)  # [P, 2M, F]
-    Y_cov = np.stack([r[1] for r in results], 2)  # [P, 2M, F, 2, 2]
-    failed = sum(r[2] for r in results)
-    chi2 = np.stack([r[3] for r in results], -1)  # [P, M, F]
     out = sum(r[4] for r in results)
     if out:
         LOGGER.info(f"dm spot model: {out} spot fits' motion left the ladder's levels (flagged; their responses extrapolate the "
                     f"static images: raise dm_plan.ladder_reach)")
-    return amps, powers, Y, Y_cov, failed, chi2, P * F * len(s.exposures) * R, out, t_acq, t_wait
+    return (np.stack([r[0] for r in results], -1), np.stack([r[1] for r in results], 2), sum(r[2] for r in results),
+            np.stack([r[3] for r in results], -1), out)
 
 
 def check_dm_config(cfg) -> None:

@@ -37,7 +37,7 @@ from torchblur.image.saturation import SaturationCurve
 from torchblur.render.window import ExposureWindow
 from torchblur.sysid.frequency_response import FrequencyResponse
 
-__all__ = ["OutsidePlan", "fitted_direction", "identify_outside", "outside_calibration", "outside_config"]
+__all__ = ["OutsidePlan", "check_overrides", "fitted_direction", "identify_outside", "outside_calibration", "outside_config"]
 
 _F64 = torch.float64
 DARKS_PER_STILL = 4  # fewer dark frames than this many per still frame: the dark's own noise shows in the errors (logged)
@@ -52,11 +52,7 @@ def outside_config(rec: OutsideRecording, overrides=()) -> IdentifyConfig:
     Raises:
         ConfigError: an override outside ``fit.*``, ``model.*`` and ``seed`` (named), or a bad value.
     """
-    for item in overrides:
-        key = str(item).partition("=")[0]
-        if not (key.startswith(ALLOWED) or key in ("seed", "camera.gain_from")):
-            raise ConfigError(f"{key}: an outside recording takes only fit.*, model.*, report.* and seed overrides, and camera.gain_from (its camera and sweep "
-                              f"are in recording.yaml and frames.csv)")
+    check_overrides(overrides)
     cfg = load_config(None, list(overrides), force=True)
     c = rec.camera
     H, W = rec.frame_shape
@@ -64,6 +60,17 @@ def outside_config(rec: OutsideRecording, overrides=()) -> IdentifyConfig:
                      latency_s=float(c.latency_s), height=int(H), width=int(W))
     sweep = replace(cfg.sweep, freq_hz=[p.freq_hz for p in rec.points], images_per_point=int(rec.points[0].R))
     return replace(cfg, camera=camera, sweep=sweep, rig=replace(cfg.rig, kind="outside"))
+
+
+def check_overrides(overrides, what: str = "an outside recording", source: str = "camera and sweep are in recording.yaml and "
+                    "frames.csv") -> None:
+    """Refuse (ConfigError naming the key) an override of a recording's config outside ``fit.*``,
+    ``model.*``, ``report.*``, ``seed`` and ``camera.gain_from``: the rest is the recording's (its ``source``)."""
+    for item in overrides:
+        key = str(item).partition("=")[0]
+        if not (key.startswith(ALLOWED) or key in ("seed", "camera.gain_from")):
+            raise ConfigError(f"{key}: {what} takes only fit.*, model.*, report.* and seed overrides, and camera.gain_from (its "
+                              f"{source})")
 
 
 def fitted_direction(fit):

@@ -46,7 +46,7 @@ def plan_kind(cfg: IdentifyConfig) -> str:
 
 
 def identify(cfg: IdentifyConfig, rig=None, *, progress: bool = True, record=None, base_dir: str | None = None,
-             executor=None) -> IdentificationResult | DMResult:
+             executor=None, plan=None) -> IdentificationResult | DMResult:
     """Run the identification on ``rig`` (default: the rig of ``cfg.rig``: the simulated rig,
     or a :class:`~torchblur.hardware.SerialRig` on ``rig.port`` / ``rig.frames``), with the plan
     of ``cfg`` (:func:`plan_kind`); a deformable mirror's (``dm.n_across`` > 0) gives a
@@ -67,6 +67,8 @@ def identify(cfg: IdentifyConfig, rig=None, *, progress: bool = True, record=Non
         base_dir: where a relative ``dm.actuator_table`` is read from (a DM run's simulated mirror).
         executor: a :class:`concurrent.futures.Executor` (Dask's ``client.get_executor()``
             included) the DM plan's spot fits are submitted to; None: one worker thread.
+        plan: the plan to run instead of ``cfg``'s (:func:`plan_kind`): an outside DM recording's
+            (:class:`~torchblur.identify.dm_outside.DMOutsidePlan`, no rig and no ``record``).
 
     Raises:
         HardwareError: the rig failed (the recording so far is kept; resume it);
@@ -76,7 +78,7 @@ def identify(cfg: IdentifyConfig, rig=None, *, progress: bool = True, record=Non
     """
     if not isinstance(cfg, IdentifyConfig):
         raise InputTypeError(f"cfg: expected an IdentifyConfig (see torchblur.config.load_config), got {type(cfg).__name__}")
-    plan = PLANS[plan_kind(cfg)]()
+    plan = PLANS[plan_kind(cfg)]() if plan is None else plan
     getattr(plan, "check", _check_rig)(cfg, rig)
     shown = progress and not logging.getLogger("torchblur").hasHandlers()
     with console_logging() if shown else contextlib.nullcontext(), collect_log() as log:
