@@ -37,7 +37,7 @@ from torchblur.hardware.run_folder import inside
 from torchblur.config import whole_periods
 
 __all__ = ["CSV_NAME", "YAML_NAME", "OutsideCamera", "OutsidePoint", "OutsideRecording", "is_outside_recording",
-           "read_outside_recording"]
+           "read_folder", "read_outside_recording"]
 
 CSV_NAME = "frames.csv"
 YAML_NAME = "recording.yaml"
@@ -132,19 +132,29 @@ def read_outside_recording(path) -> OutsideRecording:
         raise RecordingError(f"{root}: not a folder")
     if not (root / CSV_NAME).is_file():
         raise RecordingError(f"{root}: no {CSV_NAME}; not an outside recording (docs/outside_recordings.md)")
-    camera = _read_camera(root)
-    rows = _read_rows(root)
+    common, by_kind, frames = read_folder(root)
+    return OutsideRecording(points=_points(by_kind["sweep"], frames, common["camera"]), **common)
+
+
+def read_folder(root: Path, sections: tuple = (), extra: tuple = ()) -> tuple[dict, dict, dict]:
+    """What both outside formats share, read and checked: ``recording.yaml``'s camera keys (its
+    other top-level ``sections`` are the caller's), ``frames.csv``'s rows (``extra``: the columns
+    a DM recording adds) and the frames they name. Returns ``(fields, rows by kind, frames by
+    line)``: ``fields`` the recording's ``path``, ``camera`` (saturation resolved), ``dark``,
+    ``still``, ``still_exposure_s``, ``frame_shape``, ``n_frames`` and ``saturation_source``."""
+    camera = _read_camera(root, sections)
+    rows = _read_rows(root, extra)
     frames, dtype = _read_frames(root, rows)
     given = camera.saturation_adu is not None
     camera = _resolved_saturation(camera, dtype)
     if given:
-        source = f"{camera.saturation_adu:.6g} ADU (recording.yaml)"
+        source = f"{camera.saturation_adu:.6g} ADU ({YAML_NAME})"
     elif camera.saturation_adu is not None:
         source = (f"{camera.saturation_adu:.6g} ADU (the {np.dtype(dtype).name} maximum; give saturation_adu in {YAML_NAME} if the "
                   f"sensor clips lower)")
     else:
         source = f"none (float frames and no saturation_adu in {YAML_NAME}: no pixel is masked)"
-    by_kind = {k: [r for r in rows if r["kind"] == k] for k in KINDS}
+    by_kind = {k: [r for r in rows if r["kind"] == k] for k in DM_KINDS}
     for kind, least in (("dark", 2), ("still", 1), ("sweep", 1)):
         if len(by_kind[kind]) < least:
             raise RecordingError(f"{CSV_NAME}: {len(by_kind[kind])} row(s) of kind {excerpt(kind)}; at least {least} needed")
@@ -153,10 +163,9 @@ def read_outside_recording(path) -> OutsideRecording:
         line = next(r["line"] for r in by_kind["still"] if r["exposure_s"] is None or r["exposure_s"] != by_kind["still"][0]["exposure_s"])
         raise RecordingError(f"{CSV_NAME} line {line}, column exposure_s: every still frame needs one and the same exposure_s "
                              f"(the PSF's light per second), got {sorted(map(str, te))}")
-    points = _points(by_kind["sweep"], frames, camera)
     take = lambda kind: np.stack([frames[r["line"]] for r in by_kind[kind]])  # noqa: E731
-    return OutsideRecording(path=root, camera=camera, dark=take("dark"), still=take("still"), still_exposure_s=te.pop(),
-                            points=points, frame_shape=tuple(frames[rows[0]["line"]].shape), n_frames=len(rows), saturation_source=source)
+    return (dict(path=root, camera=camera, dark=take("dark"), still=take("still"), still_exposure_s=te.pop(),
+                 frame_shape=tuple(frames[rows[0]["line"]].shape), n_frames=len(rows), saturation_source=source), by_kind, frames)
 
 
 def _read_camera(root: Path, sections: tuple = ()) -> OutsideCamera:

@@ -47,18 +47,17 @@ from torchblur.dm.shack_hartmann import ShackHartmann
 from torchblur.errors import ConfigError, InputTypeError
 from torchblur.files import excerpt, read_bounded
 from torchblur.hardware.errors import RecordingError
-from torchblur.hardware.outside import (CSV_NAME, YAML_NAME, MAX_ROWS, OutsideCamera, _points, _read_camera, _read_frames,
-                                        _read_rows, _resolved_saturation)
+from torchblur.hardware.outside import CSV_NAME, YAML_NAME, MAX_ROWS, OutsideCamera, _points, read_folder
 from torchblur.hardware.recording import Experiment, ReplayRig
-from torchblur.identify.calibration import Calibration, measure_gain, spots_from_still, still_rate
+from torchblur.identify.calibration import Calibration, spots_from_still, still_rate
 from torchblur.identify.dm_ladder import TEST_KEY, hold_images, pattern_ladder
 from torchblur.identify.dm_plan import (DMPlan, DMResult, _calibrate, _fit_frequency, _fit_options, _spot_psf, check_dm_config,
                                         collect_fits, fit_pool, match_spots)
 from torchblur.identify.dm_record import PLAN_KEY, SWEEP_KIND, plan_support
-from torchblur.identify.outside import check_overrides
+from torchblur.identify.outside import check_overrides, recording_levels
 from torchblur.identify.pipeline import identify
 from torchblur.identify.record import LOGGER, RunRecord
-from torchblur.image.preprocess import dark_frame, subtract_dark
+from torchblur.image.preprocess import subtract_dark
 from torchblur.image.saturation import SaturationCurve
 from torchblur.render.window import ExposureWindow
 
@@ -248,28 +247,12 @@ def read_dm_recording(path) -> DMRecording:
                              f"docs/outside_recordings.md)")
     if not (root / YAML_NAME).is_file():
         raise RecordingError(f"{root / YAML_NAME}: missing; it gives the camera's gain and the sensor layout (dm, wfs, dm_plan)")
-    camera = _read_camera(root, _SECTIONS)
+    common, by_kind, frames = read_folder(root, _SECTIONS, ("pattern", "level"))
     layout = _read_layout(root)
     patterns = _read_patterns(root)
-    rows = _read_rows(root, ("pattern", "level"))
-    frames, dtype = _read_frames(root, rows)
-    given = camera.saturation_adu is not None
-    camera = _resolved_saturation(camera, dtype)
-    source = (f"{camera.saturation_adu:.6g} ADU ({YAML_NAME})" if given else f"{camera.saturation_adu:.6g} ADU (the "
-              f"{np.dtype(dtype).name} maximum)" if camera.saturation_adu is not None else "none (float frames, no saturation_adu)")
-    by_kind = {k: [r for r in rows if r["kind"] == k] for k in ("dark", "still", "sweep")}
-    for kind, least in (("dark", 2), ("still", 1), ("sweep", 1)):
-        if len(by_kind[kind]) < least:
-            raise RecordingError(f"{CSV_NAME}: {len(by_kind[kind])} row(s) of kind {kind}; at least {least} needed")
-    te = {r["exposure_s"] for r in by_kind["still"]}
-    if None in te or len(te) != 1:
-        raise RecordingError(f"{CSV_NAME}, column exposure_s: every still frame needs one and the same exposure_s, got {sorted(map(str, te))}")
-    freq, amp, power, stack, start, dur, R = _sweep(by_kind["sweep"], frames, camera, patterns.shape[0])
-    ladder = _ladder([r for r in rows if r["kind"] == "ladder"], frames, patterns.shape[0])
-    take = lambda kind: np.stack([frames[r["line"]] for r in by_kind[kind]])  # noqa: E731
-    return DMRecording(path=root, camera=camera, layout=layout, dark=take("dark"), still=take("still"), still_exposure_s=te.pop(),
-                       patterns=patterns, freq_hz=freq, amplitude=amp, power=power, frames=stack, start_s=start, duration_s=dur, R=R,
-                       frame_shape=tuple(frames[rows[0]["line"]].shape), n_frames=len(rows), saturation_source=source, **ladder)
+    freq, amp, power, stack, start, dur, R = _sweep(by_kind["sweep"], frames, common["camera"], patterns.shape[0])
+    return DMRecording(layout=layout, patterns=patterns, freq_hz=freq, amplitude=amp, power=power, frames=stack, start_s=start,
+                       duration_s=dur, R=R, **common, **_ladder(by_kind["ladder"], frames, patterns.shape[0]))
 
 
 def _ladder(rows: list, frames: dict, P: int) -> dict:
@@ -376,21 +359,13 @@ def recording_calibration(rec: DMRecording, cfg, wfs: ShackHartmann):
     :func:`~torchblur.identify.calibration.spots_from_still` and
     :func:`~torchblur.identify.dm_plan._spot_psf`, the latency given by ``recording.yaml``."""
     c = rec.camera
-    dark_raw, still_raw = torch.as_tensor(rec.dark, dtype=_F64), torch.as_tensor(rec.still, dtype=_F64)
-    dark = dark_frame(dark_raw)
-    sat_adu = math.inf if c.saturation_adu is None else float(c.saturation_adu)
-    level = dark.mean.mean()
-    nan = torch.tensor(math.nan, dtype=_F64)
-    sat = SaturationCurve(slope_adu_per_s=nan, offset_adu=level, saturation_adu=torch.tensor(sat_adu, dtype=_F64),
-                          linear_limit_s=torch.tensor(math.inf, dtype=_F64), residual_rms_adu=nan, saturated_in_data=False)
+    dark, sat, ptc, gain, gain_source, read_noise_e = recording_levels(rec, cfg)
     _refuse_saturated(rec, sat, dark)
-    ptc, gain, gain_source = measure_gain([still_raw], dark_raw, dark, sat_adu, float(c.gain_e_per_adu), cfg.camera.gain_from,
-                                          name=f"{YAML_NAME} gain_e_per_adu")
-    read_noise_e = float(c.read_noise_e) if c.read_noise_e is not None else float(dark.read_noise) * gain
+    level, sat_adu = sat.offset_adu, float(sat.saturation_adu)
     LOGGER.info(f"dark: level {float(level):.2f} ADU, read noise {read_noise_e:.3g} e-; saturation: {rec.saturation_source}")
     n = int(cfg.wfs.n_across)
     spots_cfg = replace(cfg, spots=replace(cfg.spots, rows=n, cols=n, pitch_px=float(cfg.wfs.pitch_px), sigma_px=float(cfg.wfs.sigma_px)))
-    still_e = subtract_dark(still_raw, dark) * gain
+    still_e = subtract_dark(torch.as_tensor(rec.still, dtype=_F64), dark) * gain
     spots, kernels = spots_from_still(spots_cfg, still_e, float(rec.still_exposure_s), read_noise_e, spot_layout=wfs.rest_px)
     cal = Calibration(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=float(sat_adu - level), psf=spots.psf,
                       peak_rate=float(spots.psf.amplitude.max()), latency_s=float(c.latency_s), latency_std_s=float(c.latency_std_s),
