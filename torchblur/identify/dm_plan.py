@@ -51,10 +51,10 @@ from torchblur.identify.assemble import timing_phase_std
 from torchblur.identify.calibration import MIN_INSIDE, calibrate, check_latency_source
 from torchblur.identify.dm_ladder import choose_spot_model, pattern_ladder
 from torchblur.config import IdentifyConfig
-from torchblur.identify.dm_record import (SWEEP_KIND, check_recorded_commands, open_recording, recorded_labels, recorded_plan, resume_seed,
-                                          same_table, session_info, simulated_frames, sweep_key, table_digest)
+from torchblur.identify.dm_record import (SWEEP_KIND, TABLE_KEY, check_recorded_commands, recorded_labels, recorded_plan, resume_seed,
+                                          same_table, simulated_frames, sweep_key, table_digest)
 from torchblur.identify.record import HARDWARE_LOGGER, LOGGER, RunRecord, run_stage
-from torchblur.identify.rigs import session
+from torchblur.identify.rigs import open_experiment, session, session_info
 from torchblur.image.dark import subtract_dark
 from torchblur.image.spots import crop_spots
 from torchblur.render.camera import camera_noise_std
@@ -452,7 +452,7 @@ class DMPlan:
         """:meth:`open` once the rig is open: the simulated mirror (the model's geometry, and the
         truth where every frame is simulated), the recording and its session."""
         self.model_mirror, self.wfs, sim = build_dm(cfg, base_dir=base_dir)
-        exp = open_recording(record, cfg, sim if rig is None else rig)
+        exp = open_experiment(record, cfg, sim if rig is None else rig)
         resumed = exp is not None and exp.writable and bool(exp.meta["sessions"])
         if rig is None and resumed:
             sim = build_dm(cfg, base_dir=base_dir, rig_seed=resume_seed(int(cfg.seed), len(exp.meta["sessions"])))[2]
@@ -468,7 +468,7 @@ class DMPlan:
             LOGGER.info(f"dm: no simulated truth: {cfg.dm.actuator_table} is not the actuator table the recording was simulated "
                         f"with (its SHA-256 differs)")
         self.truth_rig = (rig if isinstance(rig, SimulatedDMRig) else sim) if simulated else None
-        with session(exp, session_info(cfg, rig, digest)):
+        with session(exp, session_info(cfg, rig, **{TABLE_KEY: digest})):
             if resumed:
                 LOGGER.info(f"resume: {len(exp.groups)} recorded group(s) in {exp.path} are reused")
             yield RunRecord(cfg=cfg, rig=rig, exp=exp, progress=progress)

@@ -26,11 +26,10 @@ from torchblur.errors import InputTypeError
 from torchblur.identify.calibration import calibrate
 from torchblur.config import IdentifyConfig
 from torchblur.identify.dm_plan import DMPlan, DMResult, check_dm_config
-from torchblur.identify.drive import SESSION_KEY, SLEW_KEY
 from torchblur.identify.multisine import MultisinePlan
 from torchblur.identify.record import HARDWARE_LOGGER, LOGGER, RunRecord, collect_log, console_logging, stage_bar
 from torchblur.identify.result import IdentificationResult
-from torchblur.identify.rigs import build_rig, open_experiment, session
+from torchblur.identify.rigs import build_rig, open_experiment, session, session_info
 from torchblur.identify.stages import run_plan
 from torchblur.identify.sweep import SinePlan
 
@@ -110,10 +109,7 @@ def open_run(cfg: IdentifyConfig, rig, *, progress: bool, record, base_dir: str 
         rig.set_logger(HARDWARE_LOGGER.info)
     try:
         exp = open_experiment(record, cfg, rig)
-        info = {"kind": cfg.rig.kind, "port": cfg.rig.port, "frames": cfg.rig.frames, "rig": repr(rig),
-                SESSION_KEY: getattr(rig, "input_limit", None),  # a replay plans with the same range
-                SLEW_KEY: getattr(rig, "slew_limit", None)}
-        with session(exp, info):
+        with session(exp, session_info(cfg, rig)):
             if exp is not None and exp.writable and exp.meta["sessions"] and len(exp.groups):
                 LOGGER.info(f"resume: {len(exp.groups)} recorded group(s) in {exp.path} are reused")
             yield RunRecord(cfg=cfg, rig=rig, exp=exp, progress=progress, executor=executor)
