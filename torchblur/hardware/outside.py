@@ -36,8 +36,8 @@ from torchblur.hardware.recording import check_distinct_frames, decode_tiff
 from torchblur.hardware.run_folder import inside
 from torchblur.config import whole_periods
 
-__all__ = ["CSV_NAME", "YAML_NAME", "OutsideCamera", "OutsidePoint", "OutsideRecording", "is_outside_recording",
-           "read_folder", "read_outside_recording"]
+__all__ = ["CSV_NAME", "YAML_NAME", "OutsideCamera", "OutsidePoint", "OutsideRecording", "is_outside_recording", "number",
+           "read_csv", "read_folder", "read_outside_recording"]
 
 CSV_NAME = "frames.csv"
 YAML_NAME = "recording.yaml"
@@ -204,22 +204,25 @@ def _read_camera(root: Path, sections: tuple = ()) -> OutsideCamera:
     return cam
 
 
-def _read_rows(root: Path, extra: tuple = ()) -> list:
-    """The rows of ``frames.csv``, each a dict of checked values with its ``line`` (``extra``: the
-    columns a DM recording adds, ``pattern``)."""
-    data = read_bounded(CSV_NAME, MAX_CSV_BYTES, CSV_NAME, root=root)  # inside the folder: no symlink out
+def read_csv(root: Path, name: str, max_bytes: int, check_header=None) -> tuple[list, list]:
+    """The CSV file ``name`` in folder ``root``, read as untrusted input (at most ``max_bytes``,
+    inside the folder, UTF-8): its header (stripped cells, passed to ``check_header`` before any
+    row is read) and its non-blank rows as ``(line, stripped cells)``, at most :data:`MAX_ROWS`, each
+    with the header's number of cells. RecordingError naming the file and the line."""
+    data = read_bounded(name, max_bytes, name, root=root)  # inside the folder: no symlink out
     try:
         text = data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
-        raise RecordingError(f"{CSV_NAME}: not UTF-8 text (byte {exc.start})") from None
+        raise RecordingError(f"{name}: not UTF-8 text (byte {exc.start})") from None
     reader = csv.reader(io.StringIO(text, newline=""))
     try:
         header = [h.strip() for h in next(reader)]
     except StopIteration:
-        raise RecordingError(f"{CSV_NAME}: empty") from None
+        raise RecordingError(f"{name}: empty") from None
     except csv.Error as exc:
-        raise RecordingError(f"{CSV_NAME} line 1: {exc}") from None
-    _check_header(header, extra)
+        raise RecordingError(f"{name} line 1: {exc}") from None
+    if check_header is not None:
+        check_header(header)
     rows = []
     try:
         for cells in reader:
@@ -227,15 +230,22 @@ def _read_rows(root: Path, extra: tuple = ()) -> list:
             if not any(c.strip() for c in cells):
                 continue
             if len(rows) >= MAX_ROWS:
-                raise RecordingError(f"{CSV_NAME}: more than {MAX_ROWS} rows; refused")
+                raise RecordingError(f"{name}: more than {MAX_ROWS} rows; refused")
             if len(cells) != len(header):
-                raise RecordingError(f"{CSV_NAME} line {line}: {len(cells)} cells, the header has {len(header)}")
-            rows.append(_row(dict(zip(header, (c.strip() for c in cells))), line))
+                raise RecordingError(f"{name} line {line}: {len(cells)} cells, the header has {len(header)}")
+            rows.append((line, [c.strip() for c in cells]))
     except csv.Error as exc:
-        raise RecordingError(f"{CSV_NAME} line {reader.line_num}: {exc}") from None
+        raise RecordingError(f"{name} line {reader.line_num}: {exc}") from None
     if not rows:
-        raise RecordingError(f"{CSV_NAME}: no rows")
-    return rows
+        raise RecordingError(f"{name}: no rows")
+    return header, rows
+
+
+def _read_rows(root: Path, extra: tuple = ()) -> list:
+    """The rows of ``frames.csv``, each a dict of checked values with its ``line`` (``extra``: the
+    columns a DM recording adds, ``pattern``)."""
+    header, rows = read_csv(root, CSV_NAME, MAX_CSV_BYTES, partial(_check_header, extra=extra))
+    return [_row(dict(zip(header, cells)), line) for line, cells in rows]
 
 
 def _check_header(header: list, extra: tuple = ()) -> None:
@@ -253,11 +263,11 @@ def _check_header(header: list, extra: tuple = ()) -> None:
             raise RecordingError(f"{CSV_NAME} line 1: column {excerpt(name)} is missing (required: {', '.join(REQUIRED)})")
 
 
-def _number(cell: str, line: int, col: str, *, low=None, high=None, positive=False, integer=False):
-    """A CSV cell as a finite number (None where empty), range-checked, or an error naming it."""
+def number(cell: str, line: int, col: str, *, low=None, high=None, positive=False, integer=False, name: str = CSV_NAME):
+    """A cell of the CSV file ``name`` as a finite number (None where empty), range-checked, or an error naming it."""
     if cell is None or cell == "":
         return None
-    where = f"{CSV_NAME} line {line}, column {col}"
+    where = f"{name} line {line}, column {col}"
     try:
         v = int(cell) if integer else float(cell)
     except ValueError:
@@ -278,7 +288,7 @@ def _row(cells: dict, line: int) -> dict:
         raise RecordingError(f"{CSV_NAME} line {line}, column kind: expected one of {kinds}, got {excerpt(cells['kind'][:40])}")
     if not cells["file"]:
         raise RecordingError(f"{CSV_NAME} line {line}, column file: empty")
-    n = lambda col, **kw: _number(cells.get(col), line, col, **kw)  # noqa: E731
+    n = lambda col, **kw: number(cells.get(col), line, col, **kw)  # noqa: E731
     row = dict(line=line, kind=kind, file=cells["file"], page=n("page", low=0, integer=True) or 0,
                exposure_s=n("exposure_s", positive=True, high=MAX_EXPOSURE_S), freq_hz=n("freq_hz", positive=True, high=MAX_FREQ_HZ),
                amplitude=n("amplitude", positive=True, high=MAX_AMPLITUDE), power=n("power", positive=True, high=1e12),

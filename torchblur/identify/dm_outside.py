@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import contextlib
 import csv
-import io
 import math
 import time
 from dataclasses import asdict, dataclass, field, fields, replace
@@ -45,9 +44,9 @@ from torchblur.config.budget import dm_geometry, dm_sensor
 from torchblur.dm.plans import Plan, one_at_a_time_plan, plan_cost
 from torchblur.dm.shack_hartmann import ShackHartmann
 from torchblur.errors import ConfigError, InputTypeError
-from torchblur.files import excerpt, read_bounded
+from torchblur.files import excerpt
 from torchblur.hardware.errors import RecordingError
-from torchblur.hardware.outside import CSV_NAME, YAML_NAME, MAX_ROWS, OutsideCamera, _points, read_folder
+from torchblur.hardware.outside import CSV_NAME, YAML_NAME, OutsideCamera, _points, number, read_csv, read_folder
 from torchblur.hardware.recording import Experiment, ReplayRig
 from torchblur.identify.calibration import Calibration, spots_from_still, still_rate
 from torchblur.identify.dm_ladder import TEST_KEY, hold_images, pattern_ladder
@@ -172,38 +171,25 @@ def _read_layout(root: Path) -> _Layout:
 
 
 def _read_patterns(root: Path) -> np.ndarray:
-    """``patterns.csv`` as ``[P, N]``: a header ``pattern,a0,...,a{N-1}``, rows 0..P-1 in order."""
-    data = read_bounded(PATTERNS_NAME, MAX_PATTERNS_BYTES, PATTERNS_NAME, root=root, error=RecordingError)
-    try:
-        rows = list(csv.reader(io.StringIO(data.decode("utf-8-sig"), newline="")))
-    except (UnicodeDecodeError, csv.Error) as exc:
-        raise RecordingError(f"{PATTERNS_NAME}: not a CSV text file ({str(exc)[:80]})") from None
-    rows = [r for r in rows if any(c.strip() for c in r)]
-    if len(rows) < 2 or len(rows) > MAX_ROWS:
-        raise RecordingError(f"{PATTERNS_NAME}: expected a header and 1 to {MAX_ROWS} patterns, got {max(0, len(rows) - 1)} row(s)")
-    head = [h.strip() for h in rows[0]]
-    if len(head) - 1 > MAX_ACTUATORS:
-        raise RecordingError(f"{PATTERNS_NAME} line 1: {len(head) - 1} actuator columns, more than {MAX_ACTUATORS}; refused")
-    want = ["pattern"] + [f"a{j}" for j in range(len(head) - 1)]
-    if head != want or len(head) < 2:
-        raise RecordingError(f"{PATTERNS_NAME} line 1: expected the header pattern,a0,a1,...; got {excerpt(','.join(head))}")
-    out = np.zeros((len(rows) - 1, len(head) - 1))
-    for p, cells in enumerate(rows[1:]):
-        line = p + 2
-        if len(cells) != len(head):
-            raise RecordingError(f"{PATTERNS_NAME} line {line}: {len(cells)} cells, the header has {len(head)}")
-        for col, cell in zip(head, cells):
-            try:
-                v = float(cell) if col != "pattern" else int(cell)
-            except ValueError:
-                raise RecordingError(f"{PATTERNS_NAME} line {line}, column {col}: expected a number, got {excerpt(cell)}") from None
+    """``patterns.csv`` as ``[P, N]``: a header ``pattern,a0,...,a{N-1}``, rows 0..P-1 in order
+    (read as ``frames.csv`` is: :func:`~torchblur.hardware.outside.read_csv`)."""
+    def check(head):
+        if len(head) - 1 > MAX_ACTUATORS:
+            raise RecordingError(f"{PATTERNS_NAME} line 1: {len(head) - 1} actuator columns, more than {MAX_ACTUATORS}; refused")
+        if head != ["pattern"] + [f"a{j}" for j in range(len(head) - 1)] or len(head) < 2:
+            raise RecordingError(f"{PATTERNS_NAME} line 1: expected the header pattern,a0,a1,...; got {excerpt(','.join(head))}")
+
+    head, rows = read_csv(root, PATTERNS_NAME, MAX_PATTERNS_BYTES, check)
+    out = np.zeros((len(rows), len(head) - 1))
+    for p, (line, cells) in enumerate(rows):
+        for j, (col, cell) in enumerate(zip(head, cells)):
+            v = number(cell, line, col, integer=col == "pattern", low=-1e3, high=1e3 if col != "pattern" else None, name=PATTERNS_NAME)
+            if v is None:
+                raise RecordingError(f"{PATTERNS_NAME} line {line}, column {col}: expected a number, got an empty cell")
             if col == "pattern" and v != p:
                 raise RecordingError(f"{PATTERNS_NAME} line {line}, column pattern: expected {p} (the patterns in order from 0), got {v}")
-            if col != "pattern" and not (math.isfinite(v) and abs(v) <= 1e3):
-                raise RecordingError(f"{PATTERNS_NAME} line {line}, column {col}: expected a finite number of magnitude <= 1000, "
-                                     f"got {excerpt(cell)}")
             if col != "pattern":
-                out[p, int(col[1:])] = v
+                out[p, j - 1] = v
     return out
 
 
