@@ -469,8 +469,6 @@ class DMPlan:
                         f"with (its SHA-256 differs)")
         self.truth_rig = (rig if isinstance(rig, SimulatedDMRig) else sim) if simulated else None
         with session(exp, session_info(cfg, rig, **{TABLE_KEY: digest})):
-            if resumed:
-                LOGGER.info(f"resume: {len(exp.groups)} recorded group(s) in {exp.path} are reused")
             yield RunRecord(cfg=cfg, rig=rig, exp=exp, progress=progress)
 
     def calibrate(self, run) -> None:

@@ -27,7 +27,7 @@ from torchblur.identify.calibration import calibrate
 from torchblur.config import IdentifyConfig
 from torchblur.identify.dm_plan import DMPlan, DMResult, check_dm_config
 from torchblur.identify.multisine import MultisinePlan
-from torchblur.identify.record import HARDWARE_LOGGER, LOGGER, RunRecord, collect_log, console_logging, stage_bar
+from torchblur.identify.record import HARDWARE_LOGGER, RunRecord, collect_log, console_logging, stage_bar
 from torchblur.identify.result import IdentificationResult
 from torchblur.identify.rigs import build_rig, open_experiment, session, session_info
 from torchblur.identify.stages import run_plan
@@ -110,8 +110,6 @@ def open_run(cfg: IdentifyConfig, rig, *, progress: bool, record, base_dir: str 
     try:
         exp = open_experiment(record, cfg, rig)
         with session(exp, session_info(cfg, rig)):
-            if exp is not None and exp.writable and exp.meta["sessions"] and len(exp.groups):
-                LOGGER.info(f"resume: {len(exp.groups)} recorded group(s) in {exp.path} are reused")
             yield RunRecord(cfg=cfg, rig=rig, exp=exp, progress=progress, executor=executor)
     finally:
         if own_rig and hasattr(rig, "close"):

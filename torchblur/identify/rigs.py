@@ -15,6 +15,7 @@ from torchblur.hardware.recording import Experiment, camera_info_of
 from torchblur.hardware.serial_rig import SerialRig
 from torchblur.config import IdentifyConfig, config_to_yaml, load_dataclass
 from torchblur.identify.drive import SESSION_KEY, SLEW_KEY
+from torchblur.identify.record import LOGGER
 from torchblur.rig.factory import build_simulated_rig, plant_of
 
 __all__ = ["build_rig", "build_simulated_rig", "check_refit_config", "check_resume_config", "open_experiment", "plant_of", "session",
@@ -109,12 +110,14 @@ def open_experiment(record, cfg, rig):
 def session(exp, rig_info: dict):
     """A session of the recording ``exp`` (none: nothing) around the ``with`` block: started with
     ``rig_info``, ended ``complete``, or ``interrupted`` (KeyboardInterrupt), ``stopped`` (the
-    rig's :class:`~torchblur.hardware.errors.HardwareError`) or ``failed``, then re-raised. A
-    read-only recording (a re-fit) gets no session."""
+    rig's :class:`~torchblur.hardware.errors.HardwareError`) or ``failed``, then re-raised; a
+    resumed recording's reused groups are logged. A read-only recording (a re-fit) gets no session."""
     if exp is None or not exp.writable:
         yield
         return
     exp.start_session(rig_info)
+    if len(exp.groups):
+        LOGGER.info(f"resume: {len(exp.groups)} recorded group(s) in {exp.path} are reused")
     try:
         yield
     except KeyboardInterrupt:
