@@ -13,7 +13,9 @@ names the file, the line and the column. Nothing is written.
 (ADU, ``[N, H, W]``) and the sweep points (:class:`OutsidePoint`, one per frequency, frames
 ``[E*R, H, W]`` exposure-major: the ``R`` repeats of an exposure in a row), with the windows
 in seconds after the command's upward zero crossing. Only one-input recordings are read (an
-``axis`` column is refused: two-input rigs are out of scope).
+``axis`` column is refused: two-input rigs are out of scope). A deformable mirror's recording
+(:mod:`torchblur.identify.dm_outside`) is read by the same functions (:func:`read_folder`,
+:func:`read_csv`, :func:`number`) with its extra columns and sections.
 """
 from __future__ import annotations
 

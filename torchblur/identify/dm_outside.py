@@ -21,10 +21,11 @@ The folder is the one-spot outside format (:mod:`torchblur.hardware.outside`: TI
   as the config's ``wfs`` section) and ``dm_plan`` (``kind``: hadamard, sparse or one_at_a_time,
   and ``support_threshold``: which unknowns a sparse plan measures).
 
-:func:`read_dm_recording` reads and checks a folder into a :class:`DMRecording`;
-:func:`dm_recording_config` makes the run's config of it; :func:`identify_dm_recording` fits it
-with the live run's own pieces (the spot fitter, the demultiplexing, the actuator fit of
-:mod:`torchblur.identify.dm_plan`); :func:`write_dm_recording` writes the format from arrays and
+:func:`read_dm_recording` reads and checks a folder into a :class:`DMRecording` (the one-spot
+format's reader, :func:`~torchblur.hardware.outside.read_folder`, plus the sections above);
+:func:`dm_recording_config` makes the run's config of it; :func:`identify_dm_recording` runs a
+live DM run's stages on it (:func:`torchblur.identify.pipeline.identify` with the plan
+:class:`DMOutsidePlan`); :func:`write_dm_recording` writes the format from arrays and
 :func:`export_dm_recording` from a torchblur DM run's own recording (``OUT/experiment``).
 """
 from __future__ import annotations
