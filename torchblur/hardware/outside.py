@@ -38,7 +38,7 @@ from torchblur.hardware.recording import check_distinct_frames, decode_tiff
 from torchblur.hardware.run_folder import inside
 from torchblur.config import whole_periods
 
-__all__ = ["CSV_NAME", "YAML_NAME", "OutsideCamera", "OutsidePoint", "OutsideRecording", "is_outside_recording", "number",
+__all__ = ["CSV_NAME", "YAML_NAME", "OutsideCamera", "OutsideFrames", "OutsidePoint", "OutsideRecording", "is_outside_recording", "number",
            "read_csv", "read_folder", "read_outside_recording"]
 
 CSV_NAME = "frames.csv"
@@ -100,22 +100,27 @@ class OutsidePoint:
 
 
 @dataclass(frozen=True)
-class OutsideRecording:
-    """A checked outside recording: ``path``, ``camera`` (:class:`OutsideCamera`, saturation
-    resolved), ``dark`` ``[Nd, H, W]`` and ``still`` ``[Ns, H, W]`` (ADU, float64),
-    ``still_exposure_s``, ``points`` (:class:`OutsidePoint`, increasing frequency),
-    ``frame_shape`` (H, W), ``n_frames`` (rows read) and ``saturation_source`` (where
-    ``camera.saturation_adu`` came from, in words)."""
+class OutsideFrames:
+    """What both outside formats hold (:func:`read_folder`): ``path``, ``camera``
+    (:class:`OutsideCamera`, saturation resolved), ``dark`` ``[Nd, H, W]`` and ``still``
+    ``[Ns, H, W]`` (ADU, float64), ``still_exposure_s``, ``frame_shape`` (H, W), ``n_frames``
+    (rows read) and ``saturation_source`` (where ``camera.saturation_adu`` came from, in words)."""
 
     path: Path
     camera: OutsideCamera
     dark: np.ndarray
     still: np.ndarray
     still_exposure_s: float
-    points: tuple
     frame_shape: tuple
     n_frames: int
-    saturation_source: str = ""
+    saturation_source: str
+
+
+@dataclass(frozen=True)
+class OutsideRecording(OutsideFrames):
+    """A checked outside recording: :class:`OutsideFrames` and ``points`` (:class:`OutsidePoint`, increasing frequency)."""
+
+    points: tuple
 
 
 def is_outside_recording(path) -> bool:
@@ -140,10 +145,8 @@ def read_outside_recording(path) -> OutsideRecording:
 
 def read_folder(root: Path, sections: tuple = (), extra: tuple = ()) -> tuple[dict, dict, dict]:
     """What both outside formats share, read and checked: ``recording.yaml``'s camera keys (its
-    other top-level ``sections`` are the caller's), ``frames.csv``'s rows (``extra``: the columns
-    a DM recording adds) and the frames they name. Returns ``(fields, rows by kind, frames by
-    line)``: ``fields`` the recording's ``path``, ``camera`` (saturation resolved), ``dark``,
-    ``still``, ``still_exposure_s``, ``frame_shape``, ``n_frames`` and ``saturation_source``."""
+    other top-level ``sections`` are the caller's), ``frames.csv``'s rows (``extra``: the columns a
+    DM recording adds) and their frames. Returns ``(the fields of OutsideFrames, rows by kind, frames by line)``."""
     camera = _read_camera(root, sections)
     rows = _read_rows(root, extra)
     frames, dtype = _read_frames(root, rows)

@@ -47,7 +47,7 @@ from torchblur.dm.shack_hartmann import ShackHartmann
 from torchblur.errors import ConfigError, InputTypeError
 from torchblur.files import excerpt
 from torchblur.hardware.errors import RecordingError
-from torchblur.hardware.outside import CSV_NAME, YAML_NAME, OutsideCamera, _points, number, read_csv, read_folder
+from torchblur.hardware.outside import CSV_NAME, YAML_NAME, OutsideCamera, OutsideFrames, _points, number, read_csv, read_folder
 from torchblur.hardware.recording import Experiment, ReplayRig
 from torchblur.identify.calibration import Calibration, spots_from_still, still_rate
 from torchblur.identify.dm_ladder import TEST_KEY, hold_images, pattern_ladder
@@ -100,29 +100,22 @@ _SECTIONS = tuple(f.name for f in fields(_Layout))
 
 
 @dataclass(frozen=True)
-class DMRecording:
-    """A checked outside DM recording.
+class DMRecording(OutsideFrames):
+    """A checked outside DM recording: :class:`~torchblur.hardware.outside.OutsideFrames` and
 
     Attributes:
-        path: the folder; camera: :class:`~torchblur.hardware.outside.OutsideCamera` (saturation resolved).
         layout: the sensor layout (``dm``, ``wfs``, ``dm_plan`` sections of ``recording.yaml``).
-        dark ``[Nd, H, W]``, still ``[Ns, H, W]``: ADU, float64; ``still_exposure_s``.
         patterns: ``[P, N]`` (``patterns.csv``).
         freq_hz, amplitude, power: ``[F]``, increasing frequency.
         frames: ``[F]`` arrays ``[P, E*R, H, W]`` ADU (exposure-major: the R repeats of an exposure in a row).
         start_s, duration_s: ``[F, P, E*R]``: each frame's window (s after the sine's upward zero crossing).
-        R: frames per exposure window; frame_shape ``(H, W)``; n_frames: rows read; saturation_source: in words.
+        R: frames per exposure window.
         ladder_levels: ``[P, K]`` each pattern's held levels (input units, increasing; rows of kind
             ``ladder``), or None (no ladder: the shifted still); ladder_frames: ``[P]`` arrays
             ``[K, n, H, W]`` ADU; ladder_exposure_s, ladder_power: theirs.
     """
 
-    path: Path
-    camera: OutsideCamera
     layout: _Layout
-    dark: np.ndarray
-    still: np.ndarray
-    still_exposure_s: float
     patterns: np.ndarray
     freq_hz: np.ndarray
     amplitude: np.ndarray
@@ -131,9 +124,6 @@ class DMRecording:
     start_s: np.ndarray
     duration_s: np.ndarray
     R: int
-    frame_shape: tuple
-    n_frames: int
-    saturation_source: str = ""
     ladder_levels: np.ndarray | None = None
     ladder_frames: tuple | None = None
     ladder_exposure_s: float | None = None
@@ -398,12 +388,9 @@ def identify_dm_recording(rec: DMRecording, cfg=None, *, progress: bool = True, 
 
 
 class DMOutsidePlan(DMPlan):
-    """The DM plan over an outside DM recording ``rec`` (as :class:`~torchblur.identify.outside.OutsidePlan`
-    is the sine plan over a one-spot one): :meth:`open` opens no rig and records nothing (the folder
-    is the recording), :meth:`calibrate` is :func:`recording_calibration`, and :meth:`sweep` takes the
-    plan of ``patterns.csv``, the ladder of the ``ladder`` rows and the recorded frames instead of
-    driving a rig, each frequency's spot fits submitted as the live sweep's; fit, assemble
-    (:func:`~torchblur.identify.dm_plan.estimate_mirror`) and the result are the DM plan's."""
+    """The DM plan over an outside DM recording ``rec`` (as :class:`~torchblur.identify.outside.OutsidePlan` is the sine
+    plan over a one-spot one): no rig, nothing recorded, :func:`recording_calibration`, and a sweep that reads the plan,
+    ladder and frames of ``rec`` instead of driving a rig; fit, assemble and the result are the DM plan's."""
 
     truth_rig = None  # an outside mirror: no simulated truth
 

@@ -212,7 +212,7 @@ def _fit_frequency(frames, window, omega, amplitude, power, cal, psf, offset, si
     the spot fits whose motion left its levels), or None (the shifted ``psf``)."""
     e = subtract_dark(frames.to(_F64), cal.dark) * cal.gain
     crops, in_frame = crop_problems(e[:, None], offset, size)  # [P, 1, M, ER, h, w]
-    hot = _crop_mask(cal.dark.hot_pixels, offset, size)
+    hot = crop_spots(cal.dark.hot_pixels, offset, size)  # [M, h, w] the hot pixels in every crop
     n = window.shape[-1]
     phase_var = float(timing_phase_std(omega, jitter_s, cal.latency_std_s, n)) ** 2
     if ladder is not None:
@@ -257,11 +257,6 @@ def _fit_spots(crops, psf, window, omega, *args, device: str = "cpu", fitter=fit
 
     fits = fitter(move(crops), move(psf), move(window), move(omega), *map(move, args), **{k: move(v) for k, v in kw.items()})
     return replace(fits, **{f.name: v.cpu() for f in fields(fits) if isinstance(v := getattr(fits, f.name), torch.Tensor)})
-
-
-def _crop_mask(mask, offset, size):
-    """A frame mask ``[H, W]`` bool cropped at every spot, ``[M, h, w]``."""
-    return crop_spots(mask, offset, size)
 
 
 def _acquire_frequency(rig, plan, f, amp, te, offset_s, R, settle_s, power, latency_s, trigger_delay_s):
@@ -369,15 +364,13 @@ def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, exp=None, executor=None
 
 
 def fit_pool(executor=None):
-    """The executor the sweep's spot fits are submitted to, as a context: ``executor`` (left
-    open), or one worker thread (on a busy machine two OpenMP threads on the main one were 12x slower)."""
+    """``executor`` as a context (left open), or one worker thread (on a busy machine two OpenMP threads were 12x slower)."""
     return ThreadPoolExecutor(max_workers=1) if executor is None else contextlib.nullcontext(executor)
 
 
 def collect_fits(freqs, futures, P: int, M2: int):
-    """Every frequency's spot fits (:func:`_fit_frequency` submitted in ``futures``, one per
-    frequency of ``freqs``), waited for: ``(Y [P, 2M, F], Y_cov [P, 2M, F, 2, 2], failed, chi2 [P, M, F],
-    out of the ladder)``; a frequency whose task raised has NaN responses and its ``P * M`` spot fits counted failed (logged)."""
+    """The :func:`_fit_frequency` of every frequency (``futures``), waited for: ``(Y [P, 2M, F], Y_cov [P, 2M, F, 2, 2], failed,
+    chi2 [P, M, F], out of the ladder)``; a task that raised: NaN responses, its ``P * M`` spot fits counted failed (logged)."""
     outcomes = [_fit_outcome(fu) for fu in futures]
     for f, (_, why) in zip(freqs, outcomes):
         if why is not None:

@@ -63,10 +63,8 @@ def outside_config(rec: OutsideRecording, overrides=()) -> IdentifyConfig:
     return replace(cfg, camera=camera, sweep=sweep, rig=replace(cfg.rig, kind="outside"))
 
 
-def check_overrides(overrides, what: str = "an outside recording", source: str = "camera and sweep are in recording.yaml and "
-                    "frames.csv") -> None:
-    """Refuse (ConfigError naming the key) an override of a recording's config outside ``fit.*``,
-    ``model.*``, ``report.*``, ``seed`` and ``camera.gain_from``: the rest is the recording's (its ``source``)."""
+def check_overrides(overrides, what: str = "an outside recording", source: str = "camera and sweep are in recording.yaml and frames.csv"):
+    """ConfigError naming an override outside fit.*, model.*, report.*, seed and camera.gain_from (the rest is ``source``)."""
     for item in overrides:
         key = str(item).partition("=")[0]
         if not (key.startswith(ALLOWED) or key in ("seed", "camera.gain_from")):
@@ -105,11 +103,9 @@ def fitted_direction(fit):
 
 
 def recording_levels(rec, cfg: IdentifyConfig):
-    """The dark frame, saturation curve (``saturation_adu`` over the dark level; none where the
-    recording has none), gain (:func:`~torchblur.identify.calibration.measure_gain`: the still
-    frames' photon transfer checked against ``gain_e_per_adu``, ``camera.gain_from``) and read
-    noise (``read_noise_e``, else from the dark frames) of an outside recording ``rec`` (one-spot
-    or DM: its ``camera``, ``dark`` and ``still``): ``(dark, sat, ptc, gain, gain_source, read_noise_e)``."""
+    """``(dark, sat, ptc, gain, gain_source, read_noise_e)`` of an outside recording ``rec`` (one-spot or DM): the dark frame,
+    ``saturation_adu`` over its level, the gain (:func:`~torchblur.identify.calibration.measure_gain` of the still frames
+    against ``gain_e_per_adu``, ``camera.gain_from``) and the read noise (``read_noise_e``, else the dark frames')."""
     c = rec.camera
     dark_raw = torch.as_tensor(rec.dark, dtype=_F64)
     dark = dark_frame(dark_raw)

@@ -57,24 +57,17 @@ def check_resume_config(recorded, cfg, *, allowed=_RESUMABLE_SECTIONS) -> None:
 
 
 def check_refit_config(recorded, cfg, *, allowed=("fit", "model", "report")):
-    """Raise :class:`~torchblur.hardware.errors.RecordingError` naming the first key where the
-    re-fit's ``cfg`` differs from the ``recorded`` config outside the sections in ``allowed``
-    and ``dm_plan.support_threshold`` (a DM re-fit takes the support of the recorded patterns at
-    another threshold, :func:`torchblur.identify.dm_record.recorded_plan`). Returns ``cfg`` with
-    the recorded threshold (what the recording's checks compare)."""
+    """:func:`check_resume_config` of a re-fit, which may also change ``dm_plan.support_threshold``
+    (:func:`torchblur.identify.dm_record.recorded_plan`). Returns ``cfg`` with the recorded threshold."""
     aligned = replace(cfg, dm_plan=replace(cfg.dm_plan, support_threshold=recorded.dm_plan.support_threshold))
     check_resume_config(recorded, aligned, allowed=allowed)
     return aligned
 
 
 def session_info(cfg, rig, **extra) -> dict:
-    """What a session of a recording notes of its rig: ``kind``, ``port`` and ``frames``
-    (``rig.*``), ``rig`` (its repr), its input range and slew limit (None where it has none: a
-    replay plans within the recorded ones, :mod:`torchblur.identify.drive`) and ``extra`` (a DM
-    run's actuator table digest)."""
-    def finite(v):
-        return float(v) if v is not None and math.isfinite(float(v)) else None
-
+    """What a recording's session notes of its rig: ``rig.*`` kind, port, frames, its repr, its input range and slew limit
+    (None where it has none: a replay plans within the recorded ones, :mod:`torchblur.identify.drive`), and ``extra``."""
+    finite = lambda v: float(v) if v is not None and math.isfinite(float(v)) else None  # noqa: E731
     return {"kind": cfg.rig.kind, "port": cfg.rig.port, "frames": cfg.rig.frames, "rig": repr(rig),
             SESSION_KEY: finite(getattr(rig, "input_limit", None)), SLEW_KEY: finite(getattr(rig, "slew_limit", None)), **extra}
 
