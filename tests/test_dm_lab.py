@@ -176,3 +176,21 @@ def test_a_dm_recording_takes_only_fit_overrides(lab_run):
     with pytest.raises(ConfigError, match="dm.n_across: a DM recording takes only fit"):
         dm_recording_config(rec, ["dm.n_across=3"])
     assert dm_recording_config(rec, ["fit.loss=poisson"]).fit.loss == "poisson"
+
+
+def test_the_outside_plan_refuses_a_config_of_other_frequencies_a_rig_and_a_record(lab_run):
+    """DMOutsidePlan runs through the one runner (identify) and refuses, before any fit, what would pair the
+    recording with a sweep it does not hold, or a rig or a recording it does not use."""
+    from torchblur.identify.dm_outside import DMOutsidePlan, dm_recording_config, read_dm_recording
+
+    from dataclasses import replace
+
+    rec = read_dm_recording(lab_run[2])
+    cfg = dm_recording_config(rec)
+    other = replace(cfg, sweep=replace(cfg.sweep, freq_hz=[float(f) * 1.5 for f in rec.freq_hz]))
+    with pytest.raises(ConfigError, match="sweep.freq_hz: expected the recording's frequencies"):
+        tb.identify(other, plan=DMOutsidePlan(rec), progress=False)
+    with pytest.raises(InputTypeError, match="rig: an outside DM recording is fitted without a rig"):
+        tb.identify(cfg, _NoFrames(), plan=DMOutsidePlan(rec), progress=False)
+    with pytest.raises(InputTypeError, match="record: an outside DM recording is not recorded again"):
+        tb.identify(cfg, plan=DMOutsidePlan(rec), record="somewhere", progress=False)

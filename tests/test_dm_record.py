@@ -132,7 +132,7 @@ def test_refit_may_change_the_fit_and_the_support_threshold_only(live, tmp_path,
     assert "dm_plan.kind" in capsys.readouterr().err
     assert cli.main(["fit", str(live), "--out", str(tmp_path / "b"), "dm.mode_hz=700"]) == 2
     assert "dm.mode_hz" in capsys.readouterr().err
-    from torchblur.identify.dm_record import check_refit_config
+    from torchblur.identify.rigs import check_refit_config
 
     recorded = load_config(None, SMALL)
     check_refit_config(recorded, load_config(None, SMALL + ["dm_plan.support_threshold=0.2", "fit.loss=poisson"]))

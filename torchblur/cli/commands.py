@@ -16,9 +16,8 @@ import torch
 import torchblur as tb
 from torchblur.cli import _NOTHING_RECORDED, EXIT_INTERRUPTED, EXIT_STOPPED
 from torchblur.dm.mirror import TABLE_MAX_BYTES
-from torchblur.identify.dm_outside import dm_recording_config, is_dm_recording, read_dm_recording, run_recording
+from torchblur.identify.dm_outside import DMOutsidePlan, dm_recording_config, is_dm_recording, read_dm_recording
 from torchblur.identify.dm_report import run_cli as run_dm
-from torchblur.identify.dm_record import check_refit_config
 from torchblur.errors import ConfigError
 from torchblur.files import read_bounded, resolve_inside
 from torchblur.hardware.errors import HardwareError, RecordingError
@@ -29,6 +28,7 @@ from torchblur.config import config_to_yaml, load_config, load_dataclass
 from torchblur.identify.outputs import write_outputs
 from torchblur.identify.outside import identify_outside, outside_config
 from torchblur.identify.read_outputs import SOURCE_SCHEMA
+from torchblur.identify.rigs import check_refit_config
 from torchblur.identify.run import check_resume_config, identify
 
 __all__ = ["TABLE_COPY", "fit_command", "identify_command"]
@@ -220,12 +220,11 @@ def fit_command(args) -> int:
             return 2
     recorded = load_dataclass(type(load_config()), str(exp.path / "config.yaml"), trusted=False)
     cfg = load_config(str(exp.path / "config.yaml"), args.overrides, trusted=False, force=True)  # the recording is made
-    if recorded.dm.enabled:  # a DM recording: torchblur.dm re-fits it (dm_plan.support_threshold may change too)
-        check_refit_config(recorded, cfg)
+    check_refit_config(recorded, cfg)  # fit.*, model.*, report.* (and a DM's dm_plan.support_threshold) may change
+    if recorded.dm.enabled:  # a DM recording: the DM plan re-fits it
         out.mkdir(parents=True, exist_ok=True)
         _write_refit_source(out, args, exp)
         return _run_dm(cfg, out, args, record=exp, root=root, rig=ReplayRig(exp))
-    check_resume_config(recorded, cfg, allowed=("fit", "model", "report"))
     out.mkdir(parents=True, exist_ok=True)
     stamp = f"torchblur {tb.__version__}, seed {cfg.seed}, re-fit of {exp.path}"
     (out / "config.yaml").write_text(f"# {stamp}\n" + config_to_yaml(cfg))
@@ -282,4 +281,4 @@ def _fit_dm_outside(args, src: Path, out: Path) -> int:
     cfg = dm_recording_config(rec, args.overrides)
     out.mkdir(parents=True, exist_ok=True)
     _write_source(out, args, outside_recording=str(src), frames=rec.n_frames, points=len(rec.freq_hz))
-    return run_recording(rec, cfg, out, quiet=args.quiet, as_json=args.json)
+    return run_dm(cfg, out, quiet=args.quiet, as_json=args.json, plan=DMOutsidePlan(rec))

@@ -13,7 +13,9 @@ names the file, the line and the column. Nothing is written.
 (ADU, ``[N, H, W]``) and the sweep points (:class:`OutsidePoint`, one per frequency, frames
 ``[E*R, H, W]`` exposure-major: the ``R`` repeats of an exposure in a row), with the windows
 in seconds after the command's upward zero crossing. Only one-input recordings are read (an
-``axis`` column is refused: two-input rigs are out of scope).
+``axis`` column is refused: two-input rigs are out of scope). A deformable mirror's recording
+(:mod:`torchblur.identify.dm_outside`) is read by the same functions (:func:`read_folder`,
+:func:`read_csv`, :func:`number`) with its extra columns and sections.
 """
 from __future__ import annotations
 
@@ -36,8 +38,8 @@ from torchblur.hardware.recording import check_distinct_frames, decode_tiff
 from torchblur.hardware.run_folder import inside
 from torchblur.config import whole_periods
 
-__all__ = ["CSV_NAME", "YAML_NAME", "OutsideCamera", "OutsidePoint", "OutsideRecording", "is_outside_recording",
-           "read_outside_recording"]
+__all__ = ["CSV_NAME", "YAML_NAME", "OutsideCamera", "OutsideFrames", "OutsidePoint", "OutsideRecording", "is_outside_recording", "number",
+           "read_csv", "read_folder", "read_outside_recording"]
 
 CSV_NAME = "frames.csv"
 YAML_NAME = "recording.yaml"
@@ -98,22 +100,27 @@ class OutsidePoint:
 
 
 @dataclass(frozen=True)
-class OutsideRecording:
-    """A checked outside recording: ``path``, ``camera`` (:class:`OutsideCamera`, saturation
-    resolved), ``dark`` ``[Nd, H, W]`` and ``still`` ``[Ns, H, W]`` (ADU, float64),
-    ``still_exposure_s``, ``points`` (:class:`OutsidePoint`, increasing frequency),
-    ``frame_shape`` (H, W), ``n_frames`` (rows read) and ``saturation_source`` (where
-    ``camera.saturation_adu`` came from, in words)."""
+class OutsideFrames:
+    """What both outside formats hold (:func:`read_folder`): ``path``, ``camera``
+    (:class:`OutsideCamera`, saturation resolved), ``dark`` ``[Nd, H, W]`` and ``still``
+    ``[Ns, H, W]`` (ADU, float64), ``still_exposure_s``, ``frame_shape`` (H, W), ``n_frames``
+    (rows read) and ``saturation_source`` (where ``camera.saturation_adu`` came from, in words)."""
 
     path: Path
     camera: OutsideCamera
     dark: np.ndarray
     still: np.ndarray
     still_exposure_s: float
-    points: tuple
     frame_shape: tuple
     n_frames: int
-    saturation_source: str = ""
+    saturation_source: str
+
+
+@dataclass(frozen=True)
+class OutsideRecording(OutsideFrames):
+    """A checked outside recording: :class:`OutsideFrames` and ``points`` (:class:`OutsidePoint`, increasing frequency)."""
+
+    points: tuple
 
 
 def is_outside_recording(path) -> bool:
@@ -132,19 +139,27 @@ def read_outside_recording(path) -> OutsideRecording:
         raise RecordingError(f"{root}: not a folder")
     if not (root / CSV_NAME).is_file():
         raise RecordingError(f"{root}: no {CSV_NAME}; not an outside recording (docs/outside_recordings.md)")
-    camera = _read_camera(root)
-    rows = _read_rows(root)
+    common, by_kind, frames = read_folder(root)
+    return OutsideRecording(points=_points(by_kind["sweep"], frames, common["camera"]), **common)
+
+
+def read_folder(root: Path, sections: tuple = (), extra: tuple = ()) -> tuple[dict, dict, dict]:
+    """What both outside formats share, read and checked: ``recording.yaml``'s camera keys (its
+    other top-level ``sections`` are the caller's), ``frames.csv``'s rows (``extra``: the columns a
+    DM recording adds) and their frames. Returns ``(the fields of OutsideFrames, rows by kind, frames by line)``."""
+    camera = _read_camera(root, sections)
+    rows = _read_rows(root, extra)
     frames, dtype = _read_frames(root, rows)
     given = camera.saturation_adu is not None
     camera = _resolved_saturation(camera, dtype)
     if given:
-        source = f"{camera.saturation_adu:.6g} ADU (recording.yaml)"
+        source = f"{camera.saturation_adu:.6g} ADU ({YAML_NAME})"
     elif camera.saturation_adu is not None:
         source = (f"{camera.saturation_adu:.6g} ADU (the {np.dtype(dtype).name} maximum; give saturation_adu in {YAML_NAME} if the "
                   f"sensor clips lower)")
     else:
         source = f"none (float frames and no saturation_adu in {YAML_NAME}: no pixel is masked)"
-    by_kind = {k: [r for r in rows if r["kind"] == k] for k in KINDS}
+    by_kind = {k: [r for r in rows if r["kind"] == k] for k in DM_KINDS}
     for kind, least in (("dark", 2), ("still", 1), ("sweep", 1)):
         if len(by_kind[kind]) < least:
             raise RecordingError(f"{CSV_NAME}: {len(by_kind[kind])} row(s) of kind {excerpt(kind)}; at least {least} needed")
@@ -153,10 +168,9 @@ def read_outside_recording(path) -> OutsideRecording:
         line = next(r["line"] for r in by_kind["still"] if r["exposure_s"] is None or r["exposure_s"] != by_kind["still"][0]["exposure_s"])
         raise RecordingError(f"{CSV_NAME} line {line}, column exposure_s: every still frame needs one and the same exposure_s "
                              f"(the PSF's light per second), got {sorted(map(str, te))}")
-    points = _points(by_kind["sweep"], frames, camera)
     take = lambda kind: np.stack([frames[r["line"]] for r in by_kind[kind]])  # noqa: E731
-    return OutsideRecording(path=root, camera=camera, dark=take("dark"), still=take("still"), still_exposure_s=te.pop(),
-                            points=points, frame_shape=tuple(frames[rows[0]["line"]].shape), n_frames=len(rows), saturation_source=source)
+    return (dict(path=root, camera=camera, dark=take("dark"), still=take("still"), still_exposure_s=te.pop(),
+                 frame_shape=tuple(frames[rows[0]["line"]].shape), n_frames=len(rows), saturation_source=source), by_kind, frames)
 
 
 def _read_camera(root: Path, sections: tuple = ()) -> OutsideCamera:
@@ -195,22 +209,25 @@ def _read_camera(root: Path, sections: tuple = ()) -> OutsideCamera:
     return cam
 
 
-def _read_rows(root: Path, extra: tuple = ()) -> list:
-    """The rows of ``frames.csv``, each a dict of checked values with its ``line`` (``extra``: the
-    columns a DM recording adds, ``pattern``)."""
-    data = read_bounded(CSV_NAME, MAX_CSV_BYTES, CSV_NAME, root=root)  # inside the folder: no symlink out
+def read_csv(root: Path, name: str, max_bytes: int, check_header=None) -> tuple[list, list]:
+    """The CSV file ``name`` in folder ``root``, read as untrusted input (at most ``max_bytes``,
+    inside the folder, UTF-8): its header (stripped cells, passed to ``check_header`` before any
+    row is read) and its non-blank rows as ``(line, stripped cells)``, at most :data:`MAX_ROWS`, each
+    with the header's number of cells. RecordingError naming the file and the line."""
+    data = read_bounded(name, max_bytes, name, root=root)  # inside the folder: no symlink out
     try:
         text = data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
-        raise RecordingError(f"{CSV_NAME}: not UTF-8 text (byte {exc.start})") from None
+        raise RecordingError(f"{name}: not UTF-8 text (byte {exc.start})") from None
     reader = csv.reader(io.StringIO(text, newline=""))
     try:
         header = [h.strip() for h in next(reader)]
     except StopIteration:
-        raise RecordingError(f"{CSV_NAME}: empty") from None
+        raise RecordingError(f"{name}: empty") from None
     except csv.Error as exc:
-        raise RecordingError(f"{CSV_NAME} line 1: {exc}") from None
-    _check_header(header, extra)
+        raise RecordingError(f"{name} line 1: {exc}") from None
+    if check_header is not None:
+        check_header(header)
     rows = []
     try:
         for cells in reader:
@@ -218,15 +235,22 @@ def _read_rows(root: Path, extra: tuple = ()) -> list:
             if not any(c.strip() for c in cells):
                 continue
             if len(rows) >= MAX_ROWS:
-                raise RecordingError(f"{CSV_NAME}: more than {MAX_ROWS} rows; refused")
+                raise RecordingError(f"{name}: more than {MAX_ROWS} rows; refused")
             if len(cells) != len(header):
-                raise RecordingError(f"{CSV_NAME} line {line}: {len(cells)} cells, the header has {len(header)}")
-            rows.append(_row(dict(zip(header, (c.strip() for c in cells))), line))
+                raise RecordingError(f"{name} line {line}: {len(cells)} cells, the header has {len(header)}")
+            rows.append((line, [c.strip() for c in cells]))
     except csv.Error as exc:
-        raise RecordingError(f"{CSV_NAME} line {reader.line_num}: {exc}") from None
+        raise RecordingError(f"{name} line {reader.line_num}: {exc}") from None
     if not rows:
-        raise RecordingError(f"{CSV_NAME}: no rows")
-    return rows
+        raise RecordingError(f"{name}: no rows")
+    return header, rows
+
+
+def _read_rows(root: Path, extra: tuple = ()) -> list:
+    """The rows of ``frames.csv``, each a dict of checked values with its ``line`` (``extra``: the
+    columns a DM recording adds, ``pattern``)."""
+    header, rows = read_csv(root, CSV_NAME, MAX_CSV_BYTES, partial(_check_header, extra=extra))
+    return [_row(dict(zip(header, cells)), line) for line, cells in rows]
 
 
 def _check_header(header: list, extra: tuple = ()) -> None:
@@ -244,11 +268,11 @@ def _check_header(header: list, extra: tuple = ()) -> None:
             raise RecordingError(f"{CSV_NAME} line 1: column {excerpt(name)} is missing (required: {', '.join(REQUIRED)})")
 
 
-def _number(cell: str, line: int, col: str, *, low=None, high=None, positive=False, integer=False):
-    """A CSV cell as a finite number (None where empty), range-checked, or an error naming it."""
+def number(cell: str, line: int, col: str, *, low=None, high=None, positive=False, integer=False, name: str = CSV_NAME):
+    """A cell of the CSV file ``name`` as a finite number (None where empty), range-checked, or an error naming it."""
     if cell is None or cell == "":
         return None
-    where = f"{CSV_NAME} line {line}, column {col}"
+    where = f"{name} line {line}, column {col}"
     try:
         v = int(cell) if integer else float(cell)
     except ValueError:
@@ -269,7 +293,7 @@ def _row(cells: dict, line: int) -> dict:
         raise RecordingError(f"{CSV_NAME} line {line}, column kind: expected one of {kinds}, got {excerpt(cells['kind'][:40])}")
     if not cells["file"]:
         raise RecordingError(f"{CSV_NAME} line {line}, column file: empty")
-    n = lambda col, **kw: _number(cells.get(col), line, col, **kw)  # noqa: E731
+    n = lambda col, **kw: number(cells.get(col), line, col, **kw)  # noqa: E731
     row = dict(line=line, kind=kind, file=cells["file"], page=n("page", low=0, integer=True) or 0,
                exposure_s=n("exposure_s", positive=True, high=MAX_EXPOSURE_S), freq_hz=n("freq_hz", positive=True, high=MAX_FREQ_HZ),
                amplitude=n("amplitude", positive=True, high=MAX_AMPLITUDE), power=n("power", positive=True, high=1e12),

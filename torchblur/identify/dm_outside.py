@@ -21,55 +21,54 @@ The folder is the one-spot outside format (:mod:`torchblur.hardware.outside`: TI
   as the config's ``wfs`` section) and ``dm_plan`` (``kind``: hadamard, sparse or one_at_a_time,
   and ``support_threshold``: which unknowns a sparse plan measures).
 
-:func:`read_dm_recording` reads and checks a folder into a :class:`DMRecording`;
-:func:`dm_recording_config` makes the run's config of it; :func:`identify_dm_recording` fits it
-with the live run's own pieces (the spot fitter, the demultiplexing, the actuator fit of
-:mod:`torchblur.identify.dm_plan`); :func:`write_dm_recording` writes the format from arrays and
+:func:`read_dm_recording` reads and checks a folder into a :class:`DMRecording` (the one-spot
+format's reader, :func:`~torchblur.hardware.outside.read_folder`, plus the sections above);
+:func:`dm_recording_config` makes the run's config of it; :func:`identify_dm_recording` runs a
+live DM run's stages on it (:func:`torchblur.identify.pipeline.identify` with the plan
+:class:`DMOutsidePlan`); :func:`write_dm_recording` writes the format from arrays and
 :func:`export_dm_recording` from a torchblur DM run's own recording (``OUT/experiment``).
 """
 from __future__ import annotations
 
+import contextlib
 import csv
-import io
 import math
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from torchblur.config import WFSConfig, load_config, load_dataclass
 from torchblur.config.budget import dm_geometry, dm_sensor
-from torchblur.identify.dm_plan import (DMResult, _calibrate, _fit_frequency, _fit_options, _spot_psf, check_dm_config, estimate_mirror,
-                                        match_spots)
-from torchblur.identify.dm_report import run_cli
 from torchblur.dm.plans import Plan, one_at_a_time_plan, plan_cost
-from torchblur.identify.dm_record import PLAN_KEY, SWEEP_KIND, plan_support
 from torchblur.dm.shack_hartmann import ShackHartmann
 from torchblur.errors import ConfigError, InputTypeError
-from torchblur.files import excerpt, read_bounded
+from torchblur.files import excerpt
 from torchblur.hardware.errors import RecordingError
+from torchblur.hardware.outside import CSV_NAME, YAML_NAME, OutsideCamera, OutsideFrames, _points, number, read_csv, read_folder
 from torchblur.hardware.recording import Experiment, ReplayRig
-from torchblur.hardware.outside import (CSV_NAME, YAML_NAME, MAX_ROWS, OutsideCamera, _points, _read_camera, _read_frames,
-                                        _read_rows, _resolved_saturation)
-from torchblur.identify.calibration import Calibration, measure_gain, spots_from_still, still_rate
+from torchblur.identify.calibration import Calibration, spots_from_still, still_rate
 from torchblur.identify.dm_ladder import TEST_KEY, hold_images, pattern_ladder
-from torchblur.config import WFSConfig, load_config, load_dataclass
-from torchblur.identify.record import LOGGER, collect_log
-from torchblur.image.preprocess import dark_frame, subtract_dark
+from torchblur.identify.dm_plan import (DMPlan, DMResult, _calibrate, _fit_frequency, _fit_options, _spot_psf, check_dm_config,
+                                        collect_fits, fit_pool, match_spots)
+from torchblur.identify.dm_record import PLAN_KEY, SWEEP_KIND, plan_support
+from torchblur.identify.outside import check_overrides, recording_levels
+from torchblur.identify.pipeline import identify
+from torchblur.identify.record import LOGGER, RunRecord
+from torchblur.image.preprocess import subtract_dark
 from torchblur.image.saturation import SaturationCurve
 from torchblur.render.window import ExposureWindow
 
-__all__ = ["PATTERNS_NAME", "DMRecording", "dm_recording_config", "export_dm_recording", "identify_dm_recording",
-           "is_dm_recording", "read_dm_recording", "recording_calibration", "run_recording", "write_dm_recording"]
+__all__ = ["PATTERNS_NAME", "DMOutsidePlan", "DMRecording", "dm_recording_config", "export_dm_recording", "identify_dm_recording",
+           "is_dm_recording", "read_dm_recording", "recording_calibration", "write_dm_recording"]
 
 PATTERNS_NAME = "patterns.csv"
 MAX_PATTERNS_BYTES = 64 * 1024 * 1024
 MAX_ACTUATORS = 20000  # patterns.csv's columns: beyond any deformable mirror made
 _F64 = torch.float64
 _PLAN_KINDS = ("hadamard", "sparse", "one_at_a_time")
-_ALLOWED = ("fit.", "model.", "report.")  # what a user may set for a recording (the rest is the recording's)
 
 
 @dataclass(frozen=True)
@@ -101,29 +100,22 @@ _SECTIONS = tuple(f.name for f in fields(_Layout))
 
 
 @dataclass(frozen=True)
-class DMRecording:
-    """A checked outside DM recording.
+class DMRecording(OutsideFrames):
+    """A checked outside DM recording: :class:`~torchblur.hardware.outside.OutsideFrames` and
 
     Attributes:
-        path: the folder; camera: :class:`~torchblur.hardware.outside.OutsideCamera` (saturation resolved).
         layout: the sensor layout (``dm``, ``wfs``, ``dm_plan`` sections of ``recording.yaml``).
-        dark ``[Nd, H, W]``, still ``[Ns, H, W]``: ADU, float64; ``still_exposure_s``.
         patterns: ``[P, N]`` (``patterns.csv``).
         freq_hz, amplitude, power: ``[F]``, increasing frequency.
         frames: ``[F]`` arrays ``[P, E*R, H, W]`` ADU (exposure-major: the R repeats of an exposure in a row).
         start_s, duration_s: ``[F, P, E*R]``: each frame's window (s after the sine's upward zero crossing).
-        R: frames per exposure window; frame_shape ``(H, W)``; n_frames: rows read; saturation_source: in words.
+        R: frames per exposure window.
         ladder_levels: ``[P, K]`` each pattern's held levels (input units, increasing; rows of kind
             ``ladder``), or None (no ladder: the shifted still); ladder_frames: ``[P]`` arrays
             ``[K, n, H, W]`` ADU; ladder_exposure_s, ladder_power: theirs.
     """
 
-    path: Path
-    camera: OutsideCamera
     layout: _Layout
-    dark: np.ndarray
-    still: np.ndarray
-    still_exposure_s: float
     patterns: np.ndarray
     freq_hz: np.ndarray
     amplitude: np.ndarray
@@ -132,9 +124,6 @@ class DMRecording:
     start_s: np.ndarray
     duration_s: np.ndarray
     R: int
-    frame_shape: tuple
-    n_frames: int
-    saturation_source: str = ""
     ladder_levels: np.ndarray | None = None
     ladder_frames: tuple | None = None
     ladder_exposure_s: float | None = None
@@ -173,38 +162,25 @@ def _read_layout(root: Path) -> _Layout:
 
 
 def _read_patterns(root: Path) -> np.ndarray:
-    """``patterns.csv`` as ``[P, N]``: a header ``pattern,a0,...,a{N-1}``, rows 0..P-1 in order."""
-    data = read_bounded(PATTERNS_NAME, MAX_PATTERNS_BYTES, PATTERNS_NAME, root=root, error=RecordingError)
-    try:
-        rows = list(csv.reader(io.StringIO(data.decode("utf-8-sig"), newline="")))
-    except (UnicodeDecodeError, csv.Error) as exc:
-        raise RecordingError(f"{PATTERNS_NAME}: not a CSV text file ({str(exc)[:80]})") from None
-    rows = [r for r in rows if any(c.strip() for c in r)]
-    if len(rows) < 2 or len(rows) > MAX_ROWS:
-        raise RecordingError(f"{PATTERNS_NAME}: expected a header and 1 to {MAX_ROWS} patterns, got {max(0, len(rows) - 1)} row(s)")
-    head = [h.strip() for h in rows[0]]
-    if len(head) - 1 > MAX_ACTUATORS:
-        raise RecordingError(f"{PATTERNS_NAME} line 1: {len(head) - 1} actuator columns, more than {MAX_ACTUATORS}; refused")
-    want = ["pattern"] + [f"a{j}" for j in range(len(head) - 1)]
-    if head != want or len(head) < 2:
-        raise RecordingError(f"{PATTERNS_NAME} line 1: expected the header pattern,a0,a1,...; got {excerpt(','.join(head))}")
-    out = np.zeros((len(rows) - 1, len(head) - 1))
-    for p, cells in enumerate(rows[1:]):
-        line = p + 2
-        if len(cells) != len(head):
-            raise RecordingError(f"{PATTERNS_NAME} line {line}: {len(cells)} cells, the header has {len(head)}")
-        for col, cell in zip(head, cells):
-            try:
-                v = float(cell) if col != "pattern" else int(cell)
-            except ValueError:
-                raise RecordingError(f"{PATTERNS_NAME} line {line}, column {col}: expected a number, got {excerpt(cell)}") from None
+    """``patterns.csv`` as ``[P, N]``: a header ``pattern,a0,...,a{N-1}``, rows 0..P-1 in order
+    (read as ``frames.csv`` is: :func:`~torchblur.hardware.outside.read_csv`)."""
+    def check(head):
+        if len(head) - 1 > MAX_ACTUATORS:
+            raise RecordingError(f"{PATTERNS_NAME} line 1: {len(head) - 1} actuator columns, more than {MAX_ACTUATORS}; refused")
+        if head != ["pattern"] + [f"a{j}" for j in range(len(head) - 1)] or len(head) < 2:
+            raise RecordingError(f"{PATTERNS_NAME} line 1: expected the header pattern,a0,a1,...; got {excerpt(','.join(head))}")
+
+    head, rows = read_csv(root, PATTERNS_NAME, MAX_PATTERNS_BYTES, check)
+    out = np.zeros((len(rows), len(head) - 1))
+    for p, (line, cells) in enumerate(rows):
+        for j, (col, cell) in enumerate(zip(head, cells)):
+            v = number(cell, line, col, integer=col == "pattern", low=-1e3, high=1e3 if col != "pattern" else None, name=PATTERNS_NAME)
+            if v is None:
+                raise RecordingError(f"{PATTERNS_NAME} line {line}, column {col}: expected a number, got an empty cell")
             if col == "pattern" and v != p:
                 raise RecordingError(f"{PATTERNS_NAME} line {line}, column pattern: expected {p} (the patterns in order from 0), got {v}")
-            if col != "pattern" and not (math.isfinite(v) and abs(v) <= 1e3):
-                raise RecordingError(f"{PATTERNS_NAME} line {line}, column {col}: expected a finite number of magnitude <= 1000, "
-                                     f"got {excerpt(cell)}")
             if col != "pattern":
-                out[p, int(col[1:])] = v
+                out[p, j - 1] = v
     return out
 
 
@@ -248,28 +224,12 @@ def read_dm_recording(path) -> DMRecording:
                              f"docs/outside_recordings.md)")
     if not (root / YAML_NAME).is_file():
         raise RecordingError(f"{root / YAML_NAME}: missing; it gives the camera's gain and the sensor layout (dm, wfs, dm_plan)")
-    camera = _read_camera(root, _SECTIONS)
+    common, by_kind, frames = read_folder(root, _SECTIONS, ("pattern", "level"))
     layout = _read_layout(root)
     patterns = _read_patterns(root)
-    rows = _read_rows(root, ("pattern", "level"))
-    frames, dtype = _read_frames(root, rows)
-    given = camera.saturation_adu is not None
-    camera = _resolved_saturation(camera, dtype)
-    source = (f"{camera.saturation_adu:.6g} ADU ({YAML_NAME})" if given else f"{camera.saturation_adu:.6g} ADU (the "
-              f"{np.dtype(dtype).name} maximum)" if camera.saturation_adu is not None else "none (float frames, no saturation_adu)")
-    by_kind = {k: [r for r in rows if r["kind"] == k] for k in ("dark", "still", "sweep")}
-    for kind, least in (("dark", 2), ("still", 1), ("sweep", 1)):
-        if len(by_kind[kind]) < least:
-            raise RecordingError(f"{CSV_NAME}: {len(by_kind[kind])} row(s) of kind {kind}; at least {least} needed")
-    te = {r["exposure_s"] for r in by_kind["still"]}
-    if None in te or len(te) != 1:
-        raise RecordingError(f"{CSV_NAME}, column exposure_s: every still frame needs one and the same exposure_s, got {sorted(map(str, te))}")
-    freq, amp, power, stack, start, dur, R = _sweep(by_kind["sweep"], frames, camera, patterns.shape[0])
-    ladder = _ladder([r for r in rows if r["kind"] == "ladder"], frames, patterns.shape[0])
-    take = lambda kind: np.stack([frames[r["line"]] for r in by_kind[kind]])  # noqa: E731
-    return DMRecording(path=root, camera=camera, layout=layout, dark=take("dark"), still=take("still"), still_exposure_s=te.pop(),
-                       patterns=patterns, freq_hz=freq, amplitude=amp, power=power, frames=stack, start_s=start, duration_s=dur, R=R,
-                       frame_shape=tuple(frames[rows[0]["line"]].shape), n_frames=len(rows), saturation_source=source, **ladder)
+    freq, amp, power, stack, start, dur, R = _sweep(by_kind["sweep"], frames, common["camera"], patterns.shape[0])
+    return DMRecording(layout=layout, patterns=patterns, freq_hz=freq, amplitude=amp, power=power, frames=stack, start_s=start,
+                       duration_s=dur, R=R, **common, **_ladder(by_kind["ladder"], frames, patterns.shape[0]))
 
 
 def _ladder(rows: list, frames: dict, P: int) -> dict:
@@ -321,11 +281,7 @@ def dm_recording_config(rec: DMRecording, overrides=()):
     Raises:
         ConfigError: an override outside those (named); RecordingError: the layout does not fit the frames.
     """
-    for item in overrides:
-        key = str(item).partition("=")[0]
-        if not (key.startswith(_ALLOWED) or key in ("seed", "camera.gain_from")):
-            raise ConfigError(f"{key}: a DM recording takes only fit.*, model.*, report.*, seed and camera.gain_from overrides "
-                              f"(its mirror, sensor, camera and sweep are in {YAML_NAME}, {PATTERNS_NAME} and {CSV_NAME})")
+    check_overrides(overrides, "a DM recording", f"mirror, sensor, camera and sweep are in {YAML_NAME}, {PATTERNS_NAME} and {CSV_NAME}")
     lay, c = rec.layout, rec.camera
     E = rec.frames[0].shape[1] // rec.R
     own = [f"dm.{f.name}={getattr(lay.dm, f.name)!r}" for f in fields(lay.dm)]
@@ -380,21 +336,13 @@ def recording_calibration(rec: DMRecording, cfg, wfs: ShackHartmann):
     :func:`~torchblur.identify.calibration.spots_from_still` and
     :func:`~torchblur.identify.dm_plan._spot_psf`, the latency given by ``recording.yaml``."""
     c = rec.camera
-    dark_raw, still_raw = torch.as_tensor(rec.dark, dtype=_F64), torch.as_tensor(rec.still, dtype=_F64)
-    dark = dark_frame(dark_raw)
-    sat_adu = math.inf if c.saturation_adu is None else float(c.saturation_adu)
-    level = dark.mean.mean()
-    nan = torch.tensor(math.nan, dtype=_F64)
-    sat = SaturationCurve(slope_adu_per_s=nan, offset_adu=level, saturation_adu=torch.tensor(sat_adu, dtype=_F64),
-                          linear_limit_s=torch.tensor(math.inf, dtype=_F64), residual_rms_adu=nan, saturated_in_data=False)
+    dark, sat, ptc, gain, gain_source, read_noise_e = recording_levels(rec, cfg)
     _refuse_saturated(rec, sat, dark)
-    ptc, gain, gain_source = measure_gain([still_raw], dark_raw, dark, sat_adu, float(c.gain_e_per_adu), cfg.camera.gain_from,
-                                          name=f"{YAML_NAME} gain_e_per_adu")
-    read_noise_e = float(c.read_noise_e) if c.read_noise_e is not None else float(dark.read_noise) * gain
+    level, sat_adu = sat.offset_adu, float(sat.saturation_adu)
     LOGGER.info(f"dark: level {float(level):.2f} ADU, read noise {read_noise_e:.3g} e-; saturation: {rec.saturation_source}")
     n = int(cfg.wfs.n_across)
     spots_cfg = replace(cfg, spots=replace(cfg.spots, rows=n, cols=n, pitch_px=float(cfg.wfs.pitch_px), sigma_px=float(cfg.wfs.sigma_px)))
-    still_e = subtract_dark(still_raw, dark) * gain
+    still_e = subtract_dark(torch.as_tensor(rec.still, dtype=_F64), dark) * gain
     spots, kernels = spots_from_still(spots_cfg, still_e, float(rec.still_exposure_s), read_noise_e, spot_layout=wfs.rest_px)
     cal = Calibration(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=float(sat_adu - level), psf=spots.psf,
                       peak_rate=float(spots.psf.amplitude.max()), latency_s=float(c.latency_s), latency_std_s=float(c.latency_std_s),
@@ -424,59 +372,79 @@ def _refuse_saturated(rec: DMRecording, sat: SaturationCurve, dark) -> None:
                                  f"less light or a shorter exposure, or give saturation_adu in {YAML_NAME} if the sensor clips higher")
 
 
-def identify_dm_recording(rec: DMRecording, cfg=None) -> DMResult:
-    """Identify the mirror of the outside DM recording ``rec`` like a live run: its calibration
-    (:func:`recording_calibration`), every frequency's pattern responses by the live run's spot
-    fitter, the demultiplexing, the actuator fit and the mirror's registration
-    (:func:`~torchblur.identify.dm_plan.estimate_mirror`). Returns a :class:`~torchblur.identify.dm_plan.DMResult`
-    (no simulated truth; its ``log``: the messages of the ``torchblur`` logger during the fit, :func:`~torchblur.identify.record.collect_log`).
+def identify_dm_recording(rec: DMRecording, cfg=None, *, progress: bool = True, executor=None) -> DMResult:
+    """Identify the mirror of the outside DM recording ``rec`` with a live DM run's stages
+    (:func:`torchblur.identify.pipeline.identify` with the plan :class:`DMOutsidePlan`). Returns a
+    :class:`~torchblur.identify.dm_plan.DMResult` (no simulated truth; its ``log``: the run's messages).
 
     Args:
         rec: from :func:`read_dm_recording`; cfg: from :func:`dm_recording_config` (default: its defaults).
+        progress, executor: as :func:`~torchblur.identify.pipeline.identify`'s.
     """
     if not isinstance(rec, DMRecording):
         raise InputTypeError(f"rec: expected a DMRecording (read_dm_recording), got {type(rec).__name__}")
     cfg = dm_recording_config(rec) if cfg is None else cfg
-    check_dm_config(cfg)
-    with collect_log() as log:
-        res = _fit_recording(rec, cfg)
-    res.log = log
-    return res
+    return identify(cfg, progress=progress, executor=executor, plan=DMOutsidePlan(rec))
 
 
-def _fit_recording(rec: DMRecording, cfg) -> DMResult:
-    """:func:`identify_dm_recording`'s steps, its messages to the ``torchblur.identify`` logger."""
-    t = {}
-    t0 = time.perf_counter()
-    mirror, wfs = dm_sensor(cfg)
-    G = dm_geometry(cfg)
-    cal, psf, offset, size = recording_calibration(rec, cfg, wfs)
-    t["calibration"], t["acquisition"] = time.perf_counter() - t0, 0.0
-    plan, ratio = _plan(rec, cfg, G)
-    ladder = None
-    if rec.ladder_levels is not None:
-        holds = hold_images(rec.ladder_frames, rec.ladder_levels, float(rec.ladder_exposure_s), cal, offset, size, float(rec.ladder_power))
-        ladder = pattern_ladder(holds, cal, offset, size)
-        LOGGER.info(f"dm spot model: ladder ({rec.ladder_levels.shape[1]} levels x {rec.ladder_frames[0].shape[1]} frames per pattern, "
-                    f"from {CSV_NAME}'s ladder rows)")
-    t0 = time.perf_counter()
-    with ThreadPoolExecutor(max_workers=1) as pool:  # as the live run fits (on a busy machine two OpenMP threads on the main one were 12x slower)
-        futures = [pool.submit(_fit_frequency, torch.as_tensor(rec.frames[k], dtype=_F64), ExposureWindow(
-            torch.as_tensor(rec.start_s[k], dtype=_F64)[:, None], torch.as_tensor(rec.duration_s[k], dtype=_F64)[:, None]),
-            2 * math.pi * float(f), float(rec.amplitude[k]), float(rec.power[k]), cal, psf, offset, size, float(cfg.camera.jitter_s),
-            _fit_options(cfg), ladder) for k, f in enumerate(rec.freq_hz)]
-        res = [fu.result() for fu in futures]
-    LOGGER.info(f"recording: {len(rec.freq_hz)} frequencies x {plan.n_patterns} patterns, {rec.n_frames} frames, from {rec.path}")
-    t["fit_wait"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    Y, Y_cov = np.stack([r[0] for r in res], -1), np.stack([r[1] for r in res], 2)
-    D, D_cov, table, reg, support = estimate_mirror(cfg, np.asarray(rec.freq_hz), Y, Y_cov, plan, G, wfs, mirror.actuator_xy)
-    t["estimation"] = time.perf_counter() - t0
-    return DMResult(freq_hz=np.asarray(rec.freq_hz), plan=plan, n_repeats=rec.R, plan_info={"cost_ratio_to_one_at_a_time": ratio},
-                    amplitude=np.asarray(rec.amplitude), power=np.asarray(rec.power), Y=Y, Y_cov=Y_cov, D=D, D_cov=D_cov, actuators=table,
-                    G=reg.G, G_nominal=G, registration=reg, support_check=support, actuator_xy=mirror.actuator_xy, n_frames=int(sum(fr.shape[0] * fr.shape[1] for fr in rec.frames)),
-                    n_failed=sum(r[2] for r in res), timing_s=t, spot_reduced_chi2=np.stack([r[3] for r in res], -1),
-                    spot_model="shifted" if ladder is None else "ladder", n_out_of_ladder=sum(r[4] for r in res))
+class DMOutsidePlan(DMPlan):
+    """The DM plan over an outside DM recording ``rec`` (as :class:`~torchblur.identify.outside.OutsidePlan` is the sine
+    plan over a one-spot one): no rig, nothing recorded, :func:`recording_calibration`, and a sweep that reads the plan,
+    ladder and frames of ``rec`` instead of driving a rig; fit, assemble and the result are the DM plan's."""
+
+    truth_rig = None  # an outside mirror: no simulated truth
+
+    def __init__(self, rec: DMRecording):
+        self.rec = rec
+
+    def check(self, cfg, rig) -> None:
+        """Refuse a ``cfg`` that is not a DM run's or not ``rec``'s frequencies, and any ``rig``."""
+        check_dm_config(cfg)
+        if rig is not None:
+            raise InputTypeError(f"rig: an outside DM recording is fitted without a rig, got {type(rig).__name__}")
+        if cfg.frequencies_hz() != [float(f) for f in self.rec.freq_hz]:
+            raise ConfigError(f"sweep.freq_hz: expected the recording's frequencies (dm_recording_config), got {cfg.frequencies_hz()}")
+
+    @contextlib.contextmanager
+    def open(self, cfg, rig, *, progress: bool, record, base_dir: str | None = None, executor=None):
+        """The run record: the sensor of ``cfg`` (``dm``, ``wfs``), no rig; ``record`` must be None (nothing is recorded)."""
+        if record is not None:
+            raise InputTypeError(f"record: an outside DM recording is not recorded again, got {type(record).__name__}")
+        self.model_mirror, self.wfs = dm_sensor(cfg)
+        yield RunRecord(cfg=cfg, rig=None, progress=progress, executor=executor)
+
+    def calibrate(self, run) -> None:
+        """``run.cal`` and every valid subaperture's spot PSF, crop offset and size (:func:`recording_calibration`)."""
+        t0 = time.perf_counter()
+        run.cal, self.psf, self.offset, self.size = recording_calibration(self.rec, run.cfg, self.wfs)
+        run.timing["calibration"], run.timing["acquisition"] = time.perf_counter() - t0, 0.0
+
+    def sweep(self, run) -> None:
+        """The recorded plan and spot model, and every frequency's frames to the spot fits
+        (``run.acquisition`` as the live sweep's)."""
+        rec, cfg, cal = self.rec, run.cfg, run.cal
+        self.G = dm_geometry(cfg)
+        self.plan, ratio = _plan(rec, cfg, self.G)
+        self.R, self.info = rec.R, {"cost_ratio_to_one_at_a_time": ratio}
+        ladder = None
+        if rec.ladder_levels is not None:
+            holds = hold_images(rec.ladder_frames, rec.ladder_levels, float(rec.ladder_exposure_s), cal, self.offset, self.size,
+                                float(rec.ladder_power))
+            ladder = pattern_ladder(holds, cal, self.offset, self.size)
+            LOGGER.info(f"dm spot model: ladder ({rec.ladder_levels.shape[1]} levels x {rec.ladder_frames[0].shape[1]} frames per "
+                        f"pattern, from {CSV_NAME}'s ladder rows)")
+        self.spot_model = "shifted" if ladder is None else "ladder"
+        t0 = time.perf_counter()
+        with fit_pool(run.executor) as pool:
+            futures = [pool.submit(_fit_frequency, torch.as_tensor(rec.frames[k], dtype=_F64), ExposureWindow(
+                torch.as_tensor(rec.start_s[k], dtype=_F64)[:, None], torch.as_tensor(rec.duration_s[k], dtype=_F64)[:, None]),
+                2 * math.pi * float(f), float(rec.amplitude[k]), float(rec.power[k]), cal, self.psf, self.offset, self.size,
+                float(cfg.camera.jitter_s), _fit_options(cfg), ladder) for k, f in enumerate(rec.freq_hz)]
+            Y, Y_cov, failed, chi2, out = collect_fits(rec.freq_hz, futures, self.plan.n_patterns, self.G.shape[0])
+        LOGGER.info(f"recording: {len(rec.freq_hz)} frequencies x {self.plan.n_patterns} patterns, {rec.n_frames} frames, from {rec.path}")
+        run.timing["fit_wait"] = time.perf_counter() - t0
+        n_frames = int(sum(fr.shape[0] * fr.shape[1] for fr in rec.frames))
+        run.acquisition = (np.asarray(rec.amplitude), np.asarray(rec.power), Y, Y_cov, failed, chi2, n_frames, out)
 
 
 # ---------------------------------------------------------------------- writing
@@ -604,10 +572,3 @@ def export_dm_recording(run, folder) -> Path:
                               patterns=np.asarray(doc["patterns"], dtype=np.float64), freq_hz=freq, amplitude=amp, power=power,
                               frames=frames, start_s=start, duration_s=dur, camera=camera, layout=layout, R=int(doc["n_repeats"]),
                               ladder=ladder)
-
-
-def run_recording(rec: DMRecording, cfg, out, *, quiet: bool = False, as_json: bool = False) -> int:
-    """``torchblur fit FOLDER`` of an outside DM recording: :func:`identify_dm_recording` written
-    as a live run writes (``OUT/config.yaml``, ``OUT/dm/``, ``OUT/report.txt``, the verdict line
-    last; :func:`torchblur.identify.dm_report.run_cli`). Returns the verdict's exit status."""
-    return run_cli(cfg, out, quiet=quiet, as_json=as_json, run=lambda: identify_dm_recording(rec, cfg))

@@ -51,10 +51,10 @@ from torchblur.identify.assemble import timing_phase_std
 from torchblur.identify.calibration import MIN_INSIDE, calibrate, check_latency_source
 from torchblur.identify.dm_ladder import choose_spot_model, pattern_ladder
 from torchblur.config import IdentifyConfig
-from torchblur.identify.dm_record import (SWEEP_KIND, check_recorded_commands, open_recording, recorded_labels, recorded_plan, resume_seed,
-                                          same_table, session_info, simulated_frames, sweep_key, table_digest)
+from torchblur.identify.dm_record import (SWEEP_KIND, TABLE_KEY, check_recorded_commands, recorded_labels, recorded_plan, resume_seed,
+                                          same_table, simulated_frames, sweep_key, table_digest)
 from torchblur.identify.record import HARDWARE_LOGGER, LOGGER, RunRecord, run_stage
-from torchblur.identify.rigs import session
+from torchblur.identify.rigs import open_experiment, session, session_info
 from torchblur.image.dark import subtract_dark
 from torchblur.image.spots import crop_spots
 from torchblur.render.camera import camera_noise_std
@@ -212,7 +212,7 @@ def _fit_frequency(frames, window, omega, amplitude, power, cal, psf, offset, si
     the spot fits whose motion left its levels), or None (the shifted ``psf``)."""
     e = subtract_dark(frames.to(_F64), cal.dark) * cal.gain
     crops, in_frame = crop_problems(e[:, None], offset, size)  # [P, 1, M, ER, h, w]
-    hot = _crop_mask(cal.dark.hot_pixels, offset, size)
+    hot = crop_spots(cal.dark.hot_pixels, offset, size)  # [M, h, w] the hot pixels in every crop
     n = window.shape[-1]
     phase_var = float(timing_phase_std(omega, jitter_s, cal.latency_std_s, n)) ** 2
     if ladder is not None:
@@ -257,11 +257,6 @@ def _fit_spots(crops, psf, window, omega, *args, device: str = "cpu", fitter=fit
 
     fits = fitter(move(crops), move(psf), move(window), move(omega), *map(move, args), **{k: move(v) for k, v in kw.items()})
     return replace(fits, **{f.name: v.cpu() for f in fields(fits) if isinstance(v := getattr(fits, f.name), torch.Tensor)})
-
-
-def _crop_mask(mask, offset, size):
-    """A frame mask ``[H, W]`` bool cropped at every spot, ``[M, h, w]``."""
-    return crop_spots(mask, offset, size)
 
 
 def _acquire_frequency(rig, plan, f, amp, te, offset_s, R, settle_s, power, latency_s, trigger_delay_s):
@@ -331,7 +326,7 @@ def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, exp=None, executor=None
     limit = min(math.inf if cfg.dm.input_limit is None else float(cfg.dm.input_limit), cal.input_limit)  # and the rig's RANGE?
     amps, powers, futures = np.zeros(F), np.zeros(F), []
     t_acq = 0.0
-    with ThreadPoolExecutor(max_workers=1) if executor is None else contextlib.nullcontext(executor) as pool:
+    with fit_pool(executor) as pool:
         for k, f in enumerate(freqs):
             done_ref = _amplitude_reference(futures, k, M2 // 2)
             rec = recorded_labels(exp, sweep_key(k))
@@ -363,22 +358,31 @@ def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, exp=None, executor=None
             LOGGER.info(f"dm sweep: {f:.4g} Hz, amplitude {amps[k]:.4g}, power {powers[k]:.3g}, {P} patterns x "
                         f"{len(te)} exposures x {R} repeats ({k + 1}/{F}{', recorded' if rec is not None else ''})")
         t0 = time.perf_counter()
-        outcomes = [_fit_outcome(fu) for fu in futures]
+        Y, Y_cov, failed, chi2, out = collect_fits(freqs, futures, P, M2)
         t_wait = time.perf_counter() - t0
+    return amps, powers, Y, Y_cov, failed, chi2, P * F * len(s.exposures) * R, out, t_acq, t_wait
+
+
+def fit_pool(executor=None):
+    """``executor`` as a context (left open), or one worker thread (on a busy machine two OpenMP threads were 12x slower)."""
+    return ThreadPoolExecutor(max_workers=1) if executor is None else contextlib.nullcontext(executor)
+
+
+def collect_fits(freqs, futures, P: int, M2: int):
+    """The :func:`_fit_frequency` of every frequency (``futures``), waited for: ``(Y [P, 2M, F], Y_cov [P, 2M, F, 2, 2], failed,
+    chi2 [P, M, F], out of the ladder)``; a task that raised: NaN responses, its ``P * M`` spot fits counted failed (logged)."""
+    outcomes = [_fit_outcome(fu) for fu in futures]
     for f, (_, why) in zip(freqs, outcomes):
         if why is not None:
             LOGGER.info(f"dm sweep: the spot fits of {f:.4g} Hz failed on the executor ({why}): its responses are NaN and "
                         f"its {P * (M2 // 2)} spot fits counted failed")
     results = [r if r is not None else _failed_frequency(P, M2) for r, _ in outcomes]
-    Y = np.stack([r[0] for r in results], -1)  # [P, 2M, F]
-    Y_cov = np.stack([r[1] for r in results], 2)  # [P, 2M, F, 2, 2]
-    failed = sum(r[2] for r in results)
-    chi2 = np.stack([r[3] for r in results], -1)  # [P, M, F]
     out = sum(r[4] for r in results)
     if out:
         LOGGER.info(f"dm spot model: {out} spot fits' motion left the ladder's levels (flagged; their responses extrapolate the "
                     f"static images: raise dm_plan.ladder_reach)")
-    return amps, powers, Y, Y_cov, failed, chi2, P * F * len(s.exposures) * R, out, t_acq, t_wait
+    return (np.stack([r[0] for r in results], -1), np.stack([r[1] for r in results], 2), sum(r[2] for r in results),
+            np.stack([r[3] for r in results], -1), out)
 
 
 def check_dm_config(cfg) -> None:
@@ -441,7 +445,7 @@ class DMPlan:
         """:meth:`open` once the rig is open: the simulated mirror (the model's geometry, and the
         truth where every frame is simulated), the recording and its session."""
         self.model_mirror, self.wfs, sim = build_dm(cfg, base_dir=base_dir)
-        exp = open_recording(record, cfg, sim if rig is None else rig)
+        exp = open_experiment(record, cfg, sim if rig is None else rig)
         resumed = exp is not None and exp.writable and bool(exp.meta["sessions"])
         if rig is None and resumed:
             sim = build_dm(cfg, base_dir=base_dir, rig_seed=resume_seed(int(cfg.seed), len(exp.meta["sessions"])))[2]
@@ -457,9 +461,7 @@ class DMPlan:
             LOGGER.info(f"dm: no simulated truth: {cfg.dm.actuator_table} is not the actuator table the recording was simulated "
                         f"with (its SHA-256 differs)")
         self.truth_rig = (rig if isinstance(rig, SimulatedDMRig) else sim) if simulated else None
-        with session(exp, session_info(cfg, rig, digest)):
-            if resumed:
-                LOGGER.info(f"resume: {len(exp.groups)} recorded group(s) in {exp.path} are reused")
+        with session(exp, session_info(cfg, rig, **{TABLE_KEY: digest})):
             yield RunRecord(cfg=cfg, rig=rig, exp=exp, progress=progress)
 
     def calibrate(self, run) -> None:

@@ -34,23 +34,18 @@ from __future__ import annotations
 import hashlib
 import math
 import os
-from dataclasses import replace
-
 import numpy as np
 
 from torchblur.dm.plans import Plan, seen_by
 from torchblur.errors import ConfigError
 from torchblur.files import read_bounded
 from torchblur.hardware.errors import RecordingError
-from torchblur.config import load_dataclass
-from torchblur.identify.drive import SESSION_KEY
 from torchblur.identify.record import LOGGER
-from torchblur.identify.rigs import check_resume_config, open_experiment
 from torchblur.rig.base import DRIVE_RTOL
 
-__all__ = ["PLAN_KEY", "SWEEP_KIND", "check_recorded_commands", "check_refit_config", "open_recording", "plan_document",
-           "plan_from_document", "plan_support", "recorded_labels", "recorded_on_simulation", "recorded_plan", "resume_seed",
-           "same_table", "session_info", "simulated_frames", "sweep_key", "table_digest"]
+__all__ = ["PLAN_KEY", "SWEEP_KIND", "TABLE_KEY", "check_recorded_commands", "plan_document", "plan_from_document", "plan_support",
+           "recorded_labels", "recorded_on_simulation", "recorded_plan", "resume_seed", "same_table", "simulated_frames", "sweep_key",
+           "table_digest"]
 
 PLAN_KEY = "dm_plan"  # experiment.json: the plan of a DM run
 SWEEP_KIND = "dm_sweep"  # the kind of a swept frequency's group
@@ -180,27 +175,6 @@ def check_recorded_commands(exp, limit: float) -> None:
 # ---------------------------------------------------------------------- sessions
 
 
-def open_recording(record, cfg, rig):
-    """:func:`torchblur.identify.rigs.open_experiment` for a DM run: None, a directory (created,
-    or opened to resume) or an Experiment, checked against ``cfg`` (only ``rig.*``, ``fit.*``,
-    ``model.*`` and ``report.*`` may differ from the recorded config; a read-only recording, a
-    re-fit, may also take another ``dm_plan.support_threshold``) and ``rig``'s frame shape."""
-    if record is not None and getattr(record, "writable", True) is False:
-        recorded = load_dataclass(type(cfg), str(record.path / "config.yaml"), trusted=False)
-        cfg = check_refit_config(recorded, cfg, allowed=("rig", "fit", "model", "report"))
-    return open_experiment(record, cfg, rig)
-
-
-def check_refit_config(recorded, cfg, *, allowed=("fit", "model", "report")):
-    """Raise :class:`~torchblur.hardware.errors.RecordingError` naming the first key where the
-    re-fit's ``cfg`` differs from the ``recorded`` config outside the sections in ``allowed``
-    and ``dm_plan.support_threshold`` (:func:`torchblur.identify.rigs.check_resume_config`).
-    Returns ``cfg`` with the recorded threshold (what the recording's checks compare)."""
-    aligned = replace(cfg, dm_plan=replace(cfg.dm_plan, support_threshold=recorded.dm_plan.support_threshold))
-    check_resume_config(recorded, aligned, allowed=allowed)
-    return aligned
-
-
 TABLE_KEY = "dm_actuator_table_sha256"  # a session's note of the simulated mirror's actuator table
 
 
@@ -214,15 +188,6 @@ def table_digest(cfg, base_dir: str | None = None) -> str | None:
     if base_dir is not None and not os.path.isabs(path):
         path = os.path.join(base_dir, path)
     return hashlib.sha256(read_bounded(path, 1 << 20, f"dm.actuator_table: {path}", error=ConfigError)).hexdigest()
-
-
-def session_info(cfg, rig, table_sha256: str | None = None) -> dict:
-    """What a session notes of its rig: ``kind`` (``rig.kind``), ``rig`` (its repr), its input
-    range (``input_limit``, None when it has none: a re-fit plans within the recorded one) and
-    the actuator table's digest (:func:`table_digest`)."""
-    limit = getattr(rig, "input_limit", None)
-    return {"kind": cfg.rig.kind, "rig": repr(rig), TABLE_KEY: table_sha256,
-            SESSION_KEY: float(limit) if limit is not None and math.isfinite(float(limit)) else None}
 
 
 def same_table(exp, table_sha256: str | None) -> bool:

@@ -1,6 +1,6 @@
 """A deformable mirror's run written out (``torchblur identify`` and ``torchblur fit`` of a DM
 config or recording): :func:`run_cli` runs it (:func:`torchblur.identify.pipeline.identify` with
-the DM plan) or takes a fitted one, writes ``OUT/dm/`` (:mod:`torchblur.identify.dm_outputs`) and
+the DM plan, or an outside recording's), writes ``OUT/dm/`` (:mod:`torchblur.identify.dm_outputs`) and
 ``OUT/report.txt`` (:func:`torchblur.identify.outputs.write_report`, the DM's section
 :func:`torchblur.identify.report.dm_lines`) with the verdict line
 (:func:`torchblur.identify.verdict.final_verdict`) last.
@@ -27,22 +27,23 @@ __all__ = ["run_cli"]
 
 
 def run_cli(cfg, out, *, quiet: bool = False, as_json: bool = False, record=None, rig=None, base_dir: str | None = None,
-            run=None) -> int:
+            plan=None) -> int:
     """``torchblur identify`` for a DM config: run, recorded in ``OUT/experiment/`` (or in
     ``record``: an Experiment to resume, or a read-only one that ``rig``, its
     :class:`~torchblur.hardware.recording.ReplayRig`, re-fits), then write ``OUT/dm/`` and
     ``OUT/report.txt``, the verdict line last in both and on stdout (stderr with ``as_json``, then
     one JSON summary line on stdout: :func:`~torchblur.identify.report.dm_summary`). Returns the
     exit status: the verdict's (0 trustworthy, 4 actuators flagged); a stopped rig raises to the
-    CLI, which names the recording. ``run``: a callable that gives the :class:`DMResult` instead
-    of a run (an outside DM recording's fit, :func:`torchblur.identify.dm_outside.run_recording`)."""
+    CLI, which names the recording. ``plan``: the plan to run instead of the config's, recorded
+    nowhere (an outside DM recording's, :class:`torchblur.identify.dm_outside.DMOutsidePlan`)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.yaml").write_text(config_to_yaml(cfg))
     torch.manual_seed(int(cfg.seed))
     t0 = time.perf_counter()
-    res = run() if run is not None else identify(cfg, rig, progress=not quiet, record=out / "experiment" if record is None else record,
-                                                 base_dir=base_dir)
+    if record is None and plan is None:
+        record = out / "experiment"
+    res = identify(cfg, rig, progress=not quiet, record=record, base_dir=base_dir, plan=plan)
     elapsed = time.perf_counter() - t0
     with collect_log() as written:  # the outputs' own lines (dm: N files in ...), after the run's
         _write_dm_outputs(res, out, figures=cfg.report.figures)

@@ -24,7 +24,7 @@ import torch
 from torchblur.design.windows import check_design
 from torchblur.errors import ConfigError, InputTypeError, as_unit_direction
 from torchblur.hardware.errors import RecordingError
-from torchblur.hardware.outside import OutsideRecording
+from torchblur.hardware.outside import YAML_NAME, OutsideRecording
 from torchblur.identify.calibration import Calibration, _still_psf, measure_gain
 from torchblur.config import IdentifyConfig, load_config
 from torchblur.identify.fitting import ChunkFitter
@@ -37,7 +37,8 @@ from torchblur.image.saturation import SaturationCurve
 from torchblur.render.window import ExposureWindow
 from torchblur.sysid.frequency_response import FrequencyResponse
 
-__all__ = ["OutsidePlan", "fitted_direction", "identify_outside", "outside_calibration", "outside_config"]
+__all__ = ["OutsidePlan", "check_overrides", "fitted_direction", "identify_outside", "outside_calibration", "outside_config",
+           "recording_levels"]
 
 _F64 = torch.float64
 DARKS_PER_STILL = 4  # fewer dark frames than this many per still frame: the dark's own noise shows in the errors (logged)
@@ -52,11 +53,7 @@ def outside_config(rec: OutsideRecording, overrides=()) -> IdentifyConfig:
     Raises:
         ConfigError: an override outside ``fit.*``, ``model.*`` and ``seed`` (named), or a bad value.
     """
-    for item in overrides:
-        key = str(item).partition("=")[0]
-        if not (key.startswith(ALLOWED) or key in ("seed", "camera.gain_from")):
-            raise ConfigError(f"{key}: an outside recording takes only fit.*, model.*, report.* and seed overrides, and camera.gain_from (its camera and sweep "
-                              f"are in recording.yaml and frames.csv)")
+    check_overrides(overrides)
     cfg = load_config(None, list(overrides), force=True)
     c = rec.camera
     H, W = rec.frame_shape
@@ -64,6 +61,15 @@ def outside_config(rec: OutsideRecording, overrides=()) -> IdentifyConfig:
                      latency_s=float(c.latency_s), height=int(H), width=int(W))
     sweep = replace(cfg.sweep, freq_hz=[p.freq_hz for p in rec.points], images_per_point=int(rec.points[0].R))
     return replace(cfg, camera=camera, sweep=sweep, rig=replace(cfg.rig, kind="outside"))
+
+
+def check_overrides(overrides, what: str = "an outside recording", source: str = "camera and sweep are in recording.yaml and frames.csv"):
+    """ConfigError naming an override outside fit.*, model.*, report.*, seed and camera.gain_from (the rest is ``source``)."""
+    for item in overrides:
+        key = str(item).partition("=")[0]
+        if not (key.startswith(ALLOWED) or key in ("seed", "camera.gain_from")):
+            raise ConfigError(f"{key}: {what} takes only fit.*, model.*, report.* and seed overrides, and camera.gain_from (its "
+                              f"{source})")
 
 
 def fitted_direction(fit):
@@ -96,20 +102,31 @@ def fitted_direction(fit):
     return (float(u[0]), float(u[1])), float((1 / s_j ** 2).sum() ** -0.5), float(lam[0].clamp_min(0) / lam[1])
 
 
+def recording_levels(rec, cfg: IdentifyConfig):
+    """``(dark, sat, ptc, gain, gain_source, read_noise_e)`` of an outside recording ``rec`` (one-spot or DM): the dark frame,
+    ``saturation_adu`` over its level, the gain (:func:`~torchblur.identify.calibration.measure_gain` of the still frames
+    against ``gain_e_per_adu``, ``camera.gain_from``) and the read noise (``read_noise_e``, else the dark frames')."""
+    c = rec.camera
+    dark_raw = torch.as_tensor(rec.dark, dtype=_F64)
+    dark = dark_frame(dark_raw)
+    sat_adu = math.inf if c.saturation_adu is None else float(c.saturation_adu)
+    nan = torch.tensor(math.nan, dtype=_F64)
+    sat = SaturationCurve(slope_adu_per_s=nan, offset_adu=dark.mean.mean(), saturation_adu=torch.tensor(sat_adu, dtype=_F64),
+                          linear_limit_s=torch.tensor(math.inf, dtype=_F64), residual_rms_adu=nan, saturated_in_data=False)
+    ptc, gain, gain_source = measure_gain([torch.as_tensor(rec.still, dtype=_F64)], dark_raw, dark, sat_adu, float(c.gain_e_per_adu),
+                                          cfg.camera.gain_from, name=f"{YAML_NAME} gain_e_per_adu")
+    read_noise_e = float(c.read_noise_e) if c.read_noise_e is not None else float(dark.read_noise) * gain
+    return dark, sat, ptc, gain, gain_source, read_noise_e
+
+
 def outside_calibration(rec: OutsideRecording, cfg: IdentifyConfig) -> Calibration:
     """The calibration of ``rec``: the dark frame and read noise (``recording.yaml``'s
     ``read_noise_e``, else measured), the saturation level, the PSF of the still frames
     (``fit.psf``, as ``identify``), the timing, and the motion's image direction
     (``fit.axis`` given; with ``measure`` it is left None for :class:`OutsidePlan`'s sweep)."""
     c = rec.camera
-    dark_raw = torch.as_tensor(rec.dark, dtype=_F64)
-    dark = dark_frame(dark_raw)
-    # the gain: the still frames' photon transfer curve, checked against recording.yaml's (camera.gain_from, default auto)
-    ptc, gain, gain_source = measure_gain([torch.as_tensor(rec.still, dtype=_F64)], dark_raw, dark,
-                                          math.inf if c.saturation_adu is None else float(c.saturation_adu), float(c.gain_e_per_adu),
-                                          cfg.camera.gain_from, name="recording.yaml gain_e_per_adu")
-    read_noise_e = float(c.read_noise_e) if c.read_noise_e is not None else float(dark.read_noise) * gain
-    level = dark.mean.mean()
+    dark, sat, ptc, gain, gain_source, read_noise_e = recording_levels(rec, cfg)
+    level, sat_adu = sat.offset_adu, sat.saturation_adu
     LOGGER.info(f"dark: level {float(level):.2f} ADU, read noise {read_noise_e:.2f} e- "
                 f"({'recording.yaml' if c.read_noise_e is not None else f'from {dark.n_frames} dark frames'}), "
                 f"{int(dark.hot_pixels.sum())} hot pixels")
@@ -119,10 +136,6 @@ def outside_calibration(rec: OutsideRecording, cfg: IdentifyConfig) -> Calibrati
                     f"({read_noise_e / math.sqrt(dark.n_frames):.2g} e- per pixel) is subtracted from the PSF and from every frame "
                     f"and is in no std, so the stds may understate the errors (docs/outside_recordings.md); take at least "
                     f"{DARKS_PER_STILL * n_still} dark frames")
-    sat_adu = torch.tensor(math.inf if c.saturation_adu is None else float(c.saturation_adu), dtype=_F64)
-    nan = torch.tensor(math.nan, dtype=_F64)
-    sat = SaturationCurve(slope_adu_per_s=nan, offset_adu=level, saturation_adu=sat_adu, linear_limit_s=torch.tensor(math.inf, dtype=_F64),
-                          residual_rms_adu=nan, saturated_in_data=False)
     LOGGER.info(f"saturation: {rec.saturation_source}")
     still_raw = torch.as_tensor(rec.still, dtype=_F64)
     clipped = int((~sat.mask(still_raw) & ~dark.hot_pixels).sum())

@@ -26,11 +26,10 @@ from torchblur.errors import InputTypeError
 from torchblur.identify.calibration import calibrate
 from torchblur.config import IdentifyConfig
 from torchblur.identify.dm_plan import DMPlan, DMResult, check_dm_config
-from torchblur.identify.drive import SESSION_KEY, SLEW_KEY
 from torchblur.identify.multisine import MultisinePlan
-from torchblur.identify.record import HARDWARE_LOGGER, LOGGER, RunRecord, collect_log, console_logging, stage_bar
+from torchblur.identify.record import HARDWARE_LOGGER, RunRecord, collect_log, console_logging, stage_bar
 from torchblur.identify.result import IdentificationResult
-from torchblur.identify.rigs import build_rig, open_experiment, session
+from torchblur.identify.rigs import build_rig, open_experiment, session, session_info
 from torchblur.identify.stages import run_plan
 from torchblur.identify.sweep import SinePlan
 
@@ -46,7 +45,7 @@ def plan_kind(cfg: IdentifyConfig) -> str:
 
 
 def identify(cfg: IdentifyConfig, rig=None, *, progress: bool = True, record=None, base_dir: str | None = None,
-             executor=None) -> IdentificationResult | DMResult:
+             executor=None, plan=None) -> IdentificationResult | DMResult:
     """Run the identification on ``rig`` (default: the rig of ``cfg.rig``: the simulated rig,
     or a :class:`~torchblur.hardware.SerialRig` on ``rig.port`` / ``rig.frames``), with the plan
     of ``cfg`` (:func:`plan_kind`); a deformable mirror's (``dm.n_across`` > 0) gives a
@@ -67,6 +66,8 @@ def identify(cfg: IdentifyConfig, rig=None, *, progress: bool = True, record=Non
         base_dir: where a relative ``dm.actuator_table`` is read from (a DM run's simulated mirror).
         executor: a :class:`concurrent.futures.Executor` (Dask's ``client.get_executor()``
             included) the DM plan's spot fits are submitted to; None: one worker thread.
+        plan: the plan to run instead of ``cfg``'s (:func:`plan_kind`): an outside DM recording's
+            (:class:`~torchblur.identify.dm_outside.DMOutsidePlan`, no rig and no ``record``).
 
     Raises:
         HardwareError: the rig failed (the recording so far is kept; resume it);
@@ -76,7 +77,7 @@ def identify(cfg: IdentifyConfig, rig=None, *, progress: bool = True, record=Non
     """
     if not isinstance(cfg, IdentifyConfig):
         raise InputTypeError(f"cfg: expected an IdentifyConfig (see torchblur.config.load_config), got {type(cfg).__name__}")
-    plan = PLANS[plan_kind(cfg)]()
+    plan = PLANS[plan_kind(cfg)]() if plan is None else plan
     getattr(plan, "check", _check_rig)(cfg, rig)
     shown = progress and not logging.getLogger("torchblur").hasHandlers()
     with console_logging() if shown else contextlib.nullcontext(), collect_log() as log:
@@ -108,12 +109,7 @@ def open_run(cfg: IdentifyConfig, rig, *, progress: bool, record, base_dir: str 
         rig.set_logger(HARDWARE_LOGGER.info)
     try:
         exp = open_experiment(record, cfg, rig)
-        info = {"kind": cfg.rig.kind, "port": cfg.rig.port, "frames": cfg.rig.frames, "rig": repr(rig),
-                SESSION_KEY: getattr(rig, "input_limit", None),  # a replay plans with the same range
-                SLEW_KEY: getattr(rig, "slew_limit", None)}
-        with session(exp, info):
-            if exp is not None and exp.writable and exp.meta["sessions"] and len(exp.groups):
-                LOGGER.info(f"resume: {len(exp.groups)} recorded group(s) in {exp.path} are reused")
+        with session(exp, session_info(cfg, rig)):
             yield RunRecord(cfg=cfg, rig=rig, exp=exp, progress=progress, executor=executor)
     finally:
         if own_rig and hasattr(rig, "close"):

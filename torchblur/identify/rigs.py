@@ -1,11 +1,12 @@
 """Where the run's frames come from: the rig of the config (:func:`build_rig`; the simulated
 rig itself is built by :mod:`torchblur.rig.factory`) and the recording it is written to or
-resumed from (:func:`open_experiment`, :func:`check_resume_config`), and a run's session of it
-(:func:`session`: every plan's)."""
+resumed from (:func:`open_experiment`, :func:`check_resume_config`, :func:`check_refit_config`), and a
+run's session of it (:func:`session`, :func:`session_info`: every plan's)."""
 from __future__ import annotations
 
 import contextlib
-from dataclasses import asdict
+import math
+from dataclasses import asdict, replace
 from pathlib import Path
 
 from torchblur.errors import ConfigError
@@ -13,9 +14,12 @@ from torchblur.hardware.errors import HardwareError, RecordingError
 from torchblur.hardware.recording import Experiment, camera_info_of
 from torchblur.hardware.serial_rig import SerialRig
 from torchblur.config import IdentifyConfig, config_to_yaml, load_dataclass
+from torchblur.identify.drive import SESSION_KEY, SLEW_KEY
+from torchblur.identify.record import LOGGER
 from torchblur.rig.factory import build_simulated_rig, plant_of
 
-__all__ = ["build_rig", "build_simulated_rig", "check_resume_config", "open_experiment", "plant_of", "session"]
+__all__ = ["build_rig", "build_simulated_rig", "check_refit_config", "check_resume_config", "open_experiment", "plant_of", "session",
+           "session_info"]
 
 
 def build_rig(cfg: IdentifyConfig, *, log=None):
@@ -52,8 +56,27 @@ def check_resume_config(recorded, cfg, *, allowed=_RESUMABLE_SECTIONS) -> None:
     walk(asdict(recorded), asdict(cfg))
 
 
+def check_refit_config(recorded, cfg, *, allowed=("fit", "model", "report")):
+    """:func:`check_resume_config` of a re-fit, which may also change ``dm_plan.support_threshold``
+    (:func:`torchblur.identify.dm_record.recorded_plan`). Returns ``cfg`` with the recorded threshold."""
+    aligned = replace(cfg, dm_plan=replace(cfg.dm_plan, support_threshold=recorded.dm_plan.support_threshold))
+    check_resume_config(recorded, aligned, allowed=allowed)
+    return aligned
+
+
+def session_info(cfg, rig, **extra) -> dict:
+    """What a recording's session notes of its rig: ``rig.*`` kind, port, frames, its repr, its input range and slew limit
+    (None where it has none: a replay plans within the recorded ones, :mod:`torchblur.identify.drive`), and ``extra``."""
+    finite = lambda v: float(v) if v is not None and math.isfinite(float(v)) else None  # noqa: E731
+    return {"kind": cfg.rig.kind, "port": cfg.rig.port, "frames": cfg.rig.frames, "rig": repr(rig),
+            SESSION_KEY: finite(getattr(rig, "input_limit", None)), SLEW_KEY: finite(getattr(rig, "slew_limit", None)), **extra}
+
+
 def open_experiment(record, cfg, rig):
-    """An :class:`~torchblur.hardware.Experiment` from ``record`` (None, a path or one)."""
+    """An :class:`~torchblur.hardware.Experiment` from ``record`` (None, a path or one), checked
+    against ``cfg`` (only ``rig.*``, ``fit.*``, ``model.*`` and ``report.*`` may differ from the
+    recorded config, and for a read-only recording, a re-fit, ``dm_plan.support_threshold``:
+    :func:`check_refit_config`) and ``rig``'s frame shape."""
     if record is None:
         return None
     if isinstance(record, Experiment):
@@ -65,7 +88,10 @@ def open_experiment(record, cfg, rig):
         else:
             return Experiment.create(path, config_yaml=config_to_yaml(cfg), camera=camera_info_of(rig))
     recorded = load_dataclass(type(cfg), str(exp.path / "config.yaml"), trusted=False)
-    check_resume_config(recorded, cfg)
+    if exp.writable:
+        check_resume_config(recorded, cfg)
+    else:
+        check_refit_config(recorded, cfg, allowed=_RESUMABLE_SECTIONS)
     shape = tuple(exp.camera_info.frame_shape)
     if tuple(rig.frame_shape) != shape:
         raise RecordingError(f"{exp.path}: recorded with {shape[0]}x{shape[1]} frames, the rig delivers "
@@ -77,12 +103,14 @@ def open_experiment(record, cfg, rig):
 def session(exp, rig_info: dict):
     """A session of the recording ``exp`` (none: nothing) around the ``with`` block: started with
     ``rig_info``, ended ``complete``, or ``interrupted`` (KeyboardInterrupt), ``stopped`` (the
-    rig's :class:`~torchblur.hardware.errors.HardwareError`) or ``failed``, then re-raised. A
-    read-only recording (a re-fit) gets no session."""
+    rig's :class:`~torchblur.hardware.errors.HardwareError`) or ``failed``, then re-raised; a
+    resumed recording's reused groups are logged. A read-only recording (a re-fit) gets no session."""
     if exp is None or not exp.writable:
         yield
         return
     exp.start_session(rig_info)
+    if len(exp.groups):
+        LOGGER.info(f"resume: {len(exp.groups)} recorded group(s) in {exp.path} are reused")
     try:
         yield
     except KeyboardInterrupt:
