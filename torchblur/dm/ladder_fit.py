@@ -27,8 +27,8 @@ frequency ``f``, spot ``m``) is
 The model is linear in the ladder's images: an exposure is ``sum_jk c_jk(theta) Dn^j L_k``, the coefficients from the spline's basis at the nodes, so the image and its analytic
 Jacobian are one batched GEMM per problem; :func:`~torchblur.optim.levenberg_marquardt` fits the
 four parameters. The reported motion per axis is the phasor ``s G + N n`` (``N = n_sin + i n_cos``; ``s = (s_x, s_y)``
-the spot's static shift per unit ``u``: the least squares of ``dL/du`` at ``u = 0`` on the
-still's shift derivatives, the convention of the fitted-shift truth), as amplitude and phase
+the spot's static shift per unit ``u``: the slope at ``u = 0`` of the still's best shifts to the
+levels' images, :func:`static_slope`, the convention of the fitted-shift truth), as amplitude and phase
 with their covariance in :class:`~torchblur.dm.spot_fit.SpotFits`' order, so
 :func:`~torchblur.dm.spot_fit.pattern_responses` turns it into ``Y`` unchanged.
 
@@ -63,7 +63,7 @@ from torchblur.render.blur import quadrature_nodes
 from torchblur.render.splat import kernel_shift_with_jacobian
 from torchblur.render.window import ExposureWindow
 
-__all__ = ["PatternLadder", "fit_ladder_problems", "spline_basis", "NODES"]
+__all__ = ["PatternLadder", "fit_ladder_problems", "spline_basis", "static_slope", "NODES"]
 
 NODES = 96  #: Gauss-Legendre nodes per exposure (benchmarks/bench_dm_spot_models.py's; the spline is C2)
 PAD = 6  #: px of zero padding around a crop for its Fourier shift derivatives
@@ -257,31 +257,67 @@ class _Chunk:
     ds_dl: torch.Tensor  # [c, 2, K, hw]: ds / dL
 
 
-def _chunk(prob: _Problems, ladder: PatternLadder, rows, still_pinv, b0, like) -> _Chunk:
+SHIFT_ITER = 6  #: Gauss-Newton steps of each level's shifted-still fit (:func:`static_slope`)
+SLOPE_DEGREE = 3  #: the polynomial in ``u`` of the levels' shifts whose slope at 0 is ``s``
+
+
+def static_slope(images, still, levels, *, pad: int = PAD):
+    """``(s [u, 2], ds_dl [u, 2, K, hw])``: each ladder's static shift per unit ``u`` (px) and its
+    derivative along the ladder's images. Each level's image ``images [u, K, h, w]`` is fitted by
+    its spot's still ``still [u, h, w]`` shifted by ``(dx, dy)`` (Gauss-Newton, unweighted, the
+    renderer's Fourier shift), and ``s`` is the slope at ``u = 0`` of the least-squares polynomial
+    of degree :data:`SLOPE_DEGREE` through the levels' shifts (``levels [u, K]``): the
+    fitted-shift convention (at ``u -> 0`` the least squares of ``dL/du`` on the still's shift
+    derivatives) from every level. The spline's ``dL/du`` at 0 took it from two or three levels,
+    their noise weighed by ``1 / spacing``: on the small simulated mirror 7 x the std, an error
+    common to every frequency of a spot (8.5 % of a spot fit's variance at 32 frames per level)
+    that the actuator fit takes as independent. ``ds_dl`` from the fits' Jacobians (each level's
+    shift linear in its image to first order)."""
+    u, K, h, w = images.shape
+    eye = torch.eye(2, dtype=images.dtype, device=images.device)
+    yy, xx = torch.meshgrid(*(torch.arange(n, dtype=images.dtype, device=images.device) for n in (h, w)), indexing="ij")
+
+    def centroid(img):
+        m0 = img.clamp_min(0).sum((-1, -2)).clamp_min(torch.finfo(img.dtype).tiny)
+        return torch.stack([(img.clamp_min(0) * xx).sum((-1, -2)), (img.clamp_min(0) * yy).sum((-1, -2))], -1) / m0[..., None]
+    shift = centroid(images) - centroid(still)[:, None]  # [u, K, 2] the start
+    for i in range(SHIFT_ITER + 1):
+        img, jac = kernel_shift_with_jacobian(still[:, None], shift[..., :1], shift[..., 1:], eye[None, :1], eye[None, 1:],
+                                              torch.ones_like(shift[..., :1]), pad=pad)
+        J = jac.reshape(u, K, 2, h * w)
+        sens = torch.linalg.pinv(J @ J.transpose(-1, -2)) @ J  # [u, K, 2, hw]: the step per unit residual (0 for a dark spot)
+        if i == SHIFT_ITER:
+            break
+        step = (sens @ (images - img).reshape(u, K, h * w, 1))[..., 0]
+        shift = shift + step.clamp(-1, 1)
+    X = torch.stack([levels ** i for i in range(SLOPE_DEGREE + 1)], -1)  # [u, K, deg + 1]
+    c = torch.linalg.pinv(X)[:, 1]  # [u, K]: the slope at 0's weights
+    return (c[..., None] * shift).sum(1), c[:, None, :, None] * sens.transpose(1, 2)
+
+
+def _chunk(prob: _Problems, ladder: PatternLadder, rows, like) -> _Chunk:
     """The chunk of problems ``rows``: their ladders on the fit's device, with the shift
-    derivatives and the static shifts ``s`` (``still_pinv [M, 2, hw]`` the least squares on the
-    still's shift derivatives, ``b0 (B, dB) [P, K]`` the basis at ``u = 0``)."""
+    derivatives and the static shifts ``s`` (:func:`static_slope`)."""
     P, F, M, E, h, w = prob.shape
     pat, m = rows // (F * M), rows % M
     uniq, inv = torch.unique(pat * M + m, return_inverse=True)
     up, um = (uniq // M).cpu(), (uniq % M).cpu()
     L = ladder.images[up, :, um].to(**like)  # [u, K, h, w]
     K = L.shape[1]
-    dl0 = (b0[1][pat][:, :, None] * L.reshape(len(uniq), K, h * w)[inv]).sum(1)  # [c, hw]: dL/du at 0
-    pinv = still_pinv[m]  # [c, 2, hw]
-    row_of = torch.zeros(len(uniq), dtype=torch.long, device=inv.device).scatter_(0, inv, torch.arange(len(rows), device=inv.device))
-    n = _normal((pinv[row_of] @ dl0[row_of][..., None])[..., 0])  # [u, 2]
+    var = ladder.variance[up, :, um].to(**like)
+    slope, ds_dl = static_slope(L, ladder.still[um].to(**like), prob.knots[up.to(prob.knots.device)])
+    n = _normal(slope)  # [u, 2]
     blocks = [L]
     for _ in range(ORDER):
         blocks.append(_along(blocks[-1], n[:, None]))
     lad = torch.cat(blocks, 1).reshape(len(uniq), (ORDER + 1) * K, h * w)
-    var = ladder.variance[up, :, um].to(**like).reshape(len(uniq), K, h * w)
+    var = var.reshape(len(uniq), K, h * w)
     dmat = shift_derivatives(torch.eye(h * w, **like).reshape(h * w, h, w)).reshape(h * w, 2, h * w)  # [q', a, q] = D_a[q, q']
     dd = torch.stack([dmat[:, 0] ** 2, dmat[:, 1] ** 2, 2 * dmat[:, 0] * dmat[:, 1]])  # [3, q', q]
     nn = torch.stack([n[:, 0] ** 2, n[:, 1] ** 2, n[:, 0] * n[:, 1]], 1)[:, :, None, None]  # [u, 3, 1, 1]: Dn = nx Dx + ny Dy
     return _Chunk(rows=rows, pat=pat, pf=rows // M, freq=(rows // M) % F, inv=inv, lad=lad, var=var,
                   noise=torch.stack([var, (nn * (var[:, None] @ dd)).sum(1)], 1),
-                  slope=(pinv @ dl0[..., None])[..., 0], ds_dl=b0[1][pat][:, None, :, None] * pinv[:, :, None, :])
+                  slope=slope[inv], ds_dl=ds_dl[inv])
 
 
 def _coefficients(theta, prob: _Problems, ch: _Chunk, idx):
@@ -555,8 +591,6 @@ def fit_ladder_problems(crops, ladder: PatternLadder, window, omega, amplitude, 
     P, F, M, E, h, w = prob.shape
     K = ladder.levels.shape[1]
     n = P * F * M
-    js = shift_derivatives(ladder.still.to(**like)).reshape(M, 2, h * w)
-    still_pinv = torch.linalg.pinv(js.transpose(1, 2))  # [M, 2, hw]
     b0 = _basis_at(torch.zeros(P, 1, **like), prob.knots, prob.coef)
     b0 = (b0[0][:, 0], b0[1][:, 0])  # [P, K] each: the basis and its derivative at u = 0
     chunk = chunk_size(E + 3 * K, h, w, device=dev, dtype=like["dtype"]) if chunk is None else check_int(chunk, "chunk", low=1)
@@ -567,7 +601,7 @@ def fit_ladder_problems(crops, ladder: PatternLadder, window, omega, amplitude, 
     todo = torch.nonzero(status == 0).reshape(-1)
     n_chunks = 0
     for i0 in range(0, todo.numel(), chunk):
-        ch = _chunk(prob, ladder, todo[i0:i0 + chunk], still_pinv, b0, like)
+        ch = _chunk(prob, ladder, todo[i0:i0 + chunk], like)
         with torch.no_grad():
             r = _fit_chunk(prob, ch, b0)
         ok = r["status"] == 0
