@@ -183,4 +183,5 @@ def test_hcipy_lenslet_spots_unbiased_where_the_shifted_still_is_biased():
         rel = pattern_responses(fit, amp)[0][0, :, 0][big] / Yt[big] - 1
         err[k] = (np.sqrt(np.mean(np.abs(rel) ** 2)), abs(np.mean(rel.imag)))
     assert err["still"][0] > 0.05 and err["still"][1] > 0.02, err  # measured 0.19 and 0.080 rad
-    assert err["ladder"][0] < 0.01 and err["ladder"][1] < 0.002, err  # measured 0.0023 and 0.0002 rad
+    # measured 0.0056 and 0.0006 rad (the former six-parameter fit with s from dL/du at 0: 0.0023 and 0.0002 rad)
+    assert err["ladder"][0] < 0.01 and err["ladder"][1] < 0.002, err

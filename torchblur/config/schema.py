@@ -321,9 +321,9 @@ class DMPlanConfig:
     ``excitation.target_px`` over its static motion, within the input range; the rig needs
     ``pattern_ladder``) or ``auto`` (the two end levels first, ``LADDER_TEST_FRAMES`` frames each:
     the ladder only where a shifted still does not explain every spot's static image within its
-    noise). ``ladder_frames`` 32: the ladder fit's DC gains are biased by the held images' noise
-    (on the small simulated mirror: 4.3 % at 4 frames, 1.0 % at 16, 0.5 % at 32,
-    benchmarks/bench_dm_ladder_frames.py)."""
+    noise). ``ladder_frames`` 32: the held images' noise enters the ladder fit's results and stds
+    (on the small simulated mirror: benchmarks/bench_dm_ladder_frames.py, docs/deformable_mirrors.md
+    "The ladder fit for the run")."""
 
     kind: str = key("auto", choice=DM_PLAN_KINDS)
     budget_frames: Optional[int] = 20000

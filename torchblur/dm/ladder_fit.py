@@ -6,23 +6,29 @@ changes shape as it moves; a shifted still (:func:`~torchblur.dm.spot_fit.fit_sp
 reads the change as motion. Here the spot's crop at time ``t`` of problem (pattern ``p``,
 frequency ``f``, spot ``m``) is
 
-    power * [ L(u(t)) + dx(t) Dx L(u(t)) + dy(t) Dy L(u(t)) ]
+    power * sum_j d(t)^j / j! Dn^j L(u(t)),   j = 0..ORDER
 
 - ``L(u)``: the static image (e-/s at laser power 1) of pattern ``p`` held at the scalar command
   ``u`` (every actuator ``j`` at ``u * pattern[j]``): a cubic spline in ``u`` per pixel through
   the ladder's levels (scipy's ``CubicSpline``, not-a-knot ends; beyond the ends its end cubics);
-  ``Dx L``, ``Dy L`` its derivatives along a shift of the image (Fourier, of each level's image,
-  splined the same way, the spline being linear in the knot values);
+  ``Dn^j L`` its j-th derivatives along a shift of the image by ``n`` (Fourier, of each level's
+  image, splined the same way, the spline being linear in the knot values);
 - ``u(t) = gc cos(w t) + gs sin(w t)`` (the pattern's own response: the phasor ``G = gs + i gc``);
-- ``dx(t), dy(t)``: free sinusoids to first order (the actuators' differing dynamics);
+- ``d(t) = n_cos cos(w t) + n_sin sin(w t)``: a free motion (px) along ``n``, the unit normal of
+  ``s`` (below), as the Taylor series of a shift to :data:`ORDER`. The actuators' differing
+  dynamics move a spot off the ladder's path (near a resonance of the small simulated mirror by
+  up to 1.2 px at 1.5 px of motion: to first order its responses were off by up to 15 stds; to
+  fourth order a 1 px shift of a sigma-1.2 px spot is fitted within 0.06 %). Along the path
+  ``u(t)`` (fitted per spot) carries the motion: a free motion there too would be the same image
+  to first order (on a spot that only moves, exactly), a direction the data hardly see, and a
+  free x and y motion gave the spot motions a bias of +0.35 std, the DC gains 1 % high;
 - each exposure integrated by :data:`NODES` Gauss-Legendre nodes.
 
-The model is linear in the ladder's images: an exposure is ``sum_k c_k(theta) . [L_k, Dx L_k,
-Dy L_k]``, the coefficients from the spline's basis at the nodes, so the image and its analytic
+The model is linear in the ladder's images: an exposure is ``sum_jk c_jk(theta) Dn^j L_k``, the coefficients from the spline's basis at the nodes, so the image and its analytic
 Jacobian are one batched GEMM per problem; :func:`~torchblur.optim.levenberg_marquardt` fits the
-six parameters. The reported motion per axis is the phasor ``s G + delta`` (``s = (s_x, s_y)``
-the spot's static shift per unit ``u``: the least squares of ``dL/du`` at ``u = 0`` on the
-still's shift derivatives, the convention of the fitted-shift truth), as amplitude and phase
+four parameters. The reported motion per axis is the phasor ``s G + N n`` (``N = n_sin + i n_cos``; ``s = (s_x, s_y)``
+the spot's static shift per unit ``u``: the slope at ``u = 0`` of the still's best shifts to the
+levels' images, :func:`static_slope`, the convention of the fitted-shift truth), as amplitude and phase
 with their covariance in :class:`~torchblur.dm.spot_fit.SpotFits`' order, so
 :func:`~torchblur.dm.spot_fit.pattern_responses` turns it into ``Y`` unchanged.
 
@@ -34,7 +40,7 @@ order through both the fit (``dtheta = -C J^T W dY/dL dL``, the implicit functio
 :mod:`torchblur.fit.kernel_noise` does for a kernel) and ``s``, every ladder pixel independent
 with its ``variance``. The still's noise (averaged over many more frames than a level) is left
 out. The reduced chi2 weighs each pixel by the data's variance plus the model's from the ladder
-(its ``L`` term only: the shift terms are first order small).
+(its ``L`` and ``Dn L`` terms: the higher orders' noise, as in the bias correction, is left out).
 
 Shapes: P patterns, F frequencies, M spots, K levels, ``E*R`` exposures, ``h x w`` crop pixels;
 positions and motions in px (x = column, y = row), times in s, ``omega`` rad/s.
@@ -57,16 +63,17 @@ from torchblur.render.blur import quadrature_nodes
 from torchblur.render.splat import kernel_shift_with_jacobian
 from torchblur.render.window import ExposureWindow
 
-__all__ = ["PatternLadder", "fit_ladder_problems", "spline_basis", "NODES"]
+__all__ = ["PatternLadder", "fit_ladder_problems", "spline_basis", "static_slope", "NODES"]
 
 NODES = 96  #: Gauss-Legendre nodes per exposure (benchmarks/bench_dm_spot_models.py's; the spline is C2)
 PAD = 6  #: px of zero padding around a crop for its Fourier shift derivatives
 DARK_SNR = 5.0  #: a problem whose data correlate with its still below this many noise stds is DARK
 MAX_ITER = 60
-N_PAR = 6  #: (gc, gs, dx_cos, dx_sin, dy_cos, dy_sin)
+N_PAR = 4  #: (gc, gs, n_cos, n_sin): the command phasor and the free motion across the static shift
 STEP_MAX = 6.0  #: std: a longer correction step is not taken
 LEFT_MAX = 0.3  #: std: a fit whose Gauss-Newton step left is shorter has converged (the LM crawls along a curved valley)
 BIAS_ITER = 3  #: Gauss-Newton steps on the bias-corrected cost after the fit (:func:`_bias_step`; 3 converge)
+ORDER = 4  #: the free motion's Taylor order (:func:`_coefficients`)
 
 
 @dataclass(frozen=True)
@@ -243,69 +250,112 @@ class _Chunk:
     pf: torch.Tensor  # [c] flat (pattern, frequency)
     freq: torch.Tensor  # [c] frequency
     inv: torch.Tensor  # [c] -> the chunk's ladder
-    lad: torch.Tensor  # [u, 3K, hw]: L, Dx L, Dy L of every level
+    lad: torch.Tensor  # [u, (ORDER + 1) K, hw]: Dn^j L of every level, j = 0..ORDER (Dn: the derivative along the normal n of s)
     var: torch.Tensor  # [u, K, hw]: the variance of L
-    noise: torch.Tensor  # [u, 4, K, hw]: the pixel (co)variances of the ladder's L, Dx L, Dy L: LL, xx, yy, xy (L-x, L-y: 0)
+    noise: torch.Tensor  # [u, 2, K, hw]: the pixel variances of the ladder's L and Dn L (their covariance: 0)
     slope: torch.Tensor  # [c, 2] s: px per unit u
     ds_dl: torch.Tensor  # [c, 2, K, hw]: ds / dL
 
 
-def _chunk(prob: _Problems, ladder: PatternLadder, rows, still_pinv, b0, like) -> _Chunk:
+SHIFT_ITER = 6  #: Gauss-Newton steps of each level's shifted-still fit (:func:`static_slope`)
+SLOPE_DEGREE = 3  #: the polynomial in ``u`` of the levels' shifts whose slope at 0 is ``s``
+
+
+def static_slope(images, still, levels, *, pad: int = PAD):
+    """``(s [u, 2], ds_dl [u, 2, K, hw])``: each ladder's static shift per unit ``u`` (px) and its
+    derivative along the ladder's images. Each level's image ``images [u, K, h, w]`` is fitted by
+    its spot's still ``still [u, h, w]`` shifted by ``(dx, dy)`` (Gauss-Newton, unweighted, the
+    renderer's Fourier shift), and ``s`` is the slope at ``u = 0`` of the least-squares polynomial
+    of degree :data:`SLOPE_DEGREE` through the levels' shifts (``levels [u, K]``): the
+    fitted-shift convention (at ``u -> 0`` the least squares of ``dL/du`` on the still's shift
+    derivatives) from every level. The spline's ``dL/du`` at 0 took it from two or three levels,
+    their noise weighed by ``1 / spacing``: on the small simulated mirror 7 x the std, an error
+    common to every frequency of a spot (8.5 % of a spot fit's variance at 32 frames per level)
+    that the actuator fit takes as independent. ``ds_dl`` from the fits' Jacobians (each level's
+    shift linear in its image to first order)."""
+    u, K, h, w = images.shape
+    eye = torch.eye(2, dtype=images.dtype, device=images.device)
+    yy, xx = torch.meshgrid(*(torch.arange(n, dtype=images.dtype, device=images.device) for n in (h, w)), indexing="ij")
+
+    def centroid(img):
+        m0 = img.clamp_min(0).sum((-1, -2)).clamp_min(torch.finfo(img.dtype).tiny)
+        return torch.stack([(img.clamp_min(0) * xx).sum((-1, -2)), (img.clamp_min(0) * yy).sum((-1, -2))], -1) / m0[..., None]
+    shift = centroid(images) - centroid(still)[:, None]  # [u, K, 2] the start
+    for i in range(SHIFT_ITER + 1):
+        img, jac = kernel_shift_with_jacobian(still[:, None], shift[..., :1], shift[..., 1:], eye[None, :1], eye[None, 1:],
+                                              torch.ones_like(shift[..., :1]), pad=pad)
+        J = jac.reshape(u, K, 2, h * w)
+        sens = torch.linalg.pinv(J @ J.transpose(-1, -2)) @ J  # [u, K, 2, hw]: the step per unit residual (0 for a dark spot)
+        if i == SHIFT_ITER:
+            break
+        step = (sens @ (images - img).reshape(u, K, h * w, 1))[..., 0]
+        shift = shift + step.clamp(-1, 1)
+    X = torch.stack([levels ** i for i in range(SLOPE_DEGREE + 1)], -1)  # [u, K, deg + 1]
+    c = torch.linalg.pinv(X)[:, 1]  # [u, K]: the slope at 0's weights
+    return (c[..., None] * shift).sum(1), c[:, None, :, None] * sens.transpose(1, 2)
+
+
+def _chunk(prob: _Problems, ladder: PatternLadder, rows, like) -> _Chunk:
     """The chunk of problems ``rows``: their ladders on the fit's device, with the shift
-    derivatives and the static shifts ``s`` (``still_pinv [M, 2, hw]`` the least squares on the
-    still's shift derivatives, ``b0 (B, dB) [P, K]`` the basis at ``u = 0``)."""
+    derivatives and the static shifts ``s`` (:func:`static_slope`)."""
     P, F, M, E, h, w = prob.shape
     pat, m = rows // (F * M), rows % M
     uniq, inv = torch.unique(pat * M + m, return_inverse=True)
     up, um = (uniq // M).cpu(), (uniq % M).cpu()
     L = ladder.images[up, :, um].to(**like)  # [u, K, h, w]
     K = L.shape[1]
-    der = shift_derivatives(L).movedim(-3, 1).reshape(len(uniq), 2 * K, h * w)  # [u, 2K, hw]: x of every level, then y
-    lad = torch.cat([L.reshape(len(uniq), K, h * w), der], 1)
-    dl0 = (b0[1][pat][:, :, None] * L.reshape(len(uniq), K, h * w)[inv]).sum(1)  # [c, hw]: dL/du at 0
-    pinv = still_pinv[m]  # [c, 2, hw]
-    var = ladder.variance[up, :, um].to(**like).reshape(len(uniq), K, h * w)
+    var = ladder.variance[up, :, um].to(**like)
+    slope, ds_dl = static_slope(L, ladder.still[um].to(**like), prob.knots[up.to(prob.knots.device)])
+    n = _normal(slope)  # [u, 2]
+    blocks = [L]
+    for _ in range(ORDER):
+        blocks.append(_along(blocks[-1], n[:, None]))
+    lad = torch.cat(blocks, 1).reshape(len(uniq), (ORDER + 1) * K, h * w)
+    var = var.reshape(len(uniq), K, h * w)
     dmat = shift_derivatives(torch.eye(h * w, **like).reshape(h * w, h, w)).reshape(h * w, 2, h * w)  # [q', a, q] = D_a[q, q']
-    dd = torch.stack([dmat[:, 0] ** 2, dmat[:, 1] ** 2, dmat[:, 0] * dmat[:, 1]])  # [3, q', q]
+    dd = torch.stack([dmat[:, 0] ** 2, dmat[:, 1] ** 2, 2 * dmat[:, 0] * dmat[:, 1]])  # [3, q', q]
+    nn = torch.stack([n[:, 0] ** 2, n[:, 1] ** 2, n[:, 0] * n[:, 1]], 1)[:, :, None, None]  # [u, 3, 1, 1]: Dn = nx Dx + ny Dy
     return _Chunk(rows=rows, pat=pat, pf=rows // M, freq=(rows // M) % F, inv=inv, lad=lad, var=var,
-                  noise=torch.cat([var[:, None], var[:, None] @ dd], 1),
-                  slope=(pinv @ dl0[..., None])[..., 0], ds_dl=b0[1][pat][:, None, :, None] * pinv[:, :, None, :])
+                  noise=torch.stack([var, (nn * (var[:, None] @ dd)).sum(1)], 1),
+                  slope=slope[inv], ds_dl=ds_dl[inv])
 
 
 def _coefficients(theta, prob: _Problems, ch: _Chunk, idx):
-    """``(C [n, E, 7, 3, K], u [n, E, S])``: the image (row 0) and its derivatives along the six
-    parameters (rows 1-6) of problems ``idx`` (of the chunk) as weights of the ladder's
-    ``(L, Dx L, Dy L)`` of every level, already integrated over each exposure's nodes (s)."""
+    """``(C [n, E, 5, ORDER + 1, K], u [n, E, S])``: the image (row 0) and its derivatives along
+    the four parameters (rows 1-4) of problems ``idx`` (of the chunk) as weights of the ladder's
+    ``Dn^j L`` (``j = 0..ORDER``) of every level, already integrated over each exposure's nodes
+    (s). The free motion ``d(t) n`` (``d = n_cos cos(w t) + n_sin sin(w t)``, ``n`` the unit
+    normal of ``s``, :func:`_normal`) moves the ladder's image along ``n`` by its Taylor series to
+    :data:`ORDER`: ``sum_j d^j / j! Dn^j L(u)``."""
     pf, pat = ch.pf[idx], ch.pat[idx]
     E = prob.cw.shape[2]
     cw, sw, wq = (t.reshape(-1, E, t.shape[-1])[pf] for t in (prob.cw, prob.sw, prob.wq))  # [n, E, S]
     u = theta[:, 0, None, None] * cw + theta[:, 1, None, None] * sw
-    b0, bc, bs, dc, ds, dcc, dcs, dss = _integrated_basis(u, torch.stack([wq, wq * cw, wq * sw], 2),
-                                                          torch.stack([wq * cw, wq * sw, wq * cw * cw, wq * cw * sw, wq * sw * sw], 2),
-                                                          prob.knots[pat], prob.coef[pat]).unbind(2)  # [n, E, K] each
-    t = [theta[:, i, None, None] for i in range(2, N_PAR)]
-    zero = torch.zeros_like(b0)
-    rows = [(b0, t[0] * bc + t[1] * bs, t[2] * bc + t[3] * bs),
-            (dc, t[0] * dcc + t[1] * dcs, t[2] * dcc + t[3] * dcs),
-            (ds, t[0] * dcs + t[1] * dss, t[2] * dcs + t[3] * dss),
-            (zero, bc, zero), (zero, bs, zero), (zero, zero, bc), (zero, zero, bs)]
-    return torch.stack([torch.stack(r, 2) for r in rows], 2), u
+    d = theta[:, 2, None, None] * cw + theta[:, 3, None, None] * sw  # [n, E, S] px along n
+    pw = [wq * d ** j / math.factorial(j) for j in range(ORDER + 1)]  # the Taylor terms' weights d^j / j!
+    out = _integrated_basis(u, torch.stack(pw + [c * p for c in (cw, sw) for p in pw[:-1]], 2),
+                            torch.stack([c * p for c in (cw, sw) for p in pw], 2), prob.knots[pat], prob.coef[pat])
+    R = ORDER + 1
+    img, bdc, bds, dgc, dgs = out[:, :, :R], out[:, :, R:2 * R - 1], out[:, :, 2 * R - 1:3 * R - 2], out[:, :, 3 * R - 2:4 * R - 2], out[:, :, 4 * R - 2:]
+    zero = torch.zeros_like(img[:, :, :1])
+    rows = [img, dgc, dgs, torch.cat([zero, bdc], 2), torch.cat([zero, bds], 2)]  # each [n, E, R, K]: the image and d/d(gc, gs, n_cos, n_sin)
+    return torch.stack(rows, 2), u
 
 
 def _model_jacobian(theta, prob: _Problems, ch: _Chunk, idx):
-    """``(model [n, E*hw], J [n, E*hw, 6])`` of problems ``idx`` of the chunk at ``theta [n, 6]`` (electrons)."""
+    """``(model [n, E*hw], J [n, E*hw, 4])`` of problems ``idx`` of the chunk at ``theta [n, 4]`` (electrons)."""
     C, _ = _coefficients(theta, prob, ch, idx)
     n, E = C.shape[:2]
-    out = C.reshape(n, E * 7, -1) @ ch.lad[ch.inv[idx]]  # [n, E*7, hw]
-    out = out.reshape(n, E, 7, -1) * prob.power[ch.freq[idx], None, None, None]
+    out = C.reshape(n, E * (N_PAR + 1), -1) @ ch.lad[ch.inv[idx]]  # [n, E*5, hw]
+    out = out.reshape(n, E, N_PAR + 1, -1) * prob.power[ch.freq[idx], None, None, None]
     return out[:, :, 0].reshape(n, -1), out[:, :, 1:].transpose(1, 2).reshape(n, N_PAR, -1).transpose(1, 2)
 
 
 def _start(prob: _Problems, ch: _Chunk, b0):
-    """``theta0 [c, 6]``: ``G`` from the centroids of the exposures against the ladder's centroid
+    """``theta0 [c, 4]``: ``G`` from the centroids of the exposures against the ladder's centroid
     curve linearised at ``u = 0`` (least squares over both axes and every exposure); where that
     fails (no centroid slope, no light), ``G = amplitude`` (the command's own phase); ``|G|``
-    kept within the levels; ``delta = 0``."""
+    kept within the levels; ``d = 0``."""
     P, F, M, E, h, w = prob.shape
     c = ch.rows.numel()
     like = dict(dtype=prob.data.dtype, device=prob.data.device)
@@ -331,19 +381,38 @@ def _start(prob: _Problems, ch: _Chunk, b0):
     return torch.cat([g, torch.zeros(c, N_PAR - 2, **like)], -1)
 
 
+def _along(img, n):
+    """``Dn img``: the derivative of ``img [..., h, w]`` along a shift by ``n [..., 2]`` (unit,
+    broadcast against ``img``'s leading dims) px, :func:`shift_derivatives`."""
+    d = shift_derivatives(img)
+    return d[..., 0, :, :] * n[..., 0, None, None] + d[..., 1, :, :] * n[..., 1, None, None]
+
+
+def _normal(slope):
+    """``[c, 2]`` the unit normal ``(-s_y, s_x) / |s|`` of each static shift ``slope [c, 2]`` (x
+    where ``s = 0``): the free motion's direction. Along ``s`` the command phasor ``G`` carries
+    the motion; a free motion along ``s`` too would be the same image to first order (on a spot
+    that only moves, exactly): a direction the data hardly see, which biased the fitted motion."""
+    norm = slope.norm(dim=-1, keepdim=True)
+    n = torch.stack([-slope[:, 1], slope[:, 0]], -1) / norm.clamp_min(torch.finfo(slope.dtype).tiny)
+    return torch.where(norm > 0, n, torch.tensor([1.0, 0.0], dtype=slope.dtype, device=slope.device))
+
+
 def _report_jacobians(theta, slope):
-    """``(amplitude [c, 2], phase [c, 2], H_theta [c, 4, 6], H_s [c, 4, 2])``: the motion per
-    axis ``s_a G + delta_a`` as amplitude and phase, and its Jacobians along ``theta`` and ``s``
-    in the order (amplitude_x, phase_x, amplitude_y, phase_y)."""
+    """``(amplitude [c, 2], phase [c, 2], H_theta [c, 4, 4], H_s [c, 4, 2])``: the motion per
+    axis ``s_a G + n_a N`` (``N = n_sin + i n_cos``, ``n`` :func:`_normal`, held fixed: the
+    fitted ``G`` takes up a turn of it to first order) as amplitude and phase, and its Jacobians
+    along ``theta`` and ``s`` in the order (amplitude_x, phase_x, amplitude_y, phase_y)."""
     c = theta.shape[0]
     gc, gs = theta[:, 0], theta[:, 1]
-    re = slope * gs[:, None] + theta[:, [3, 5]]  # [c, 2]: Re of x and y
-    im = slope * gc[:, None] + theta[:, [2, 4]]
+    nrm = _normal(slope)
+    re = slope * gs[:, None] + nrm * theta[:, 3, None]  # [c, 2]: Re of x and y
+    im = slope * gc[:, None] + nrm * theta[:, 2, None]
     cart_t = torch.zeros(c, 4, N_PAR, dtype=theta.dtype, device=theta.device)  # rows Re_x, Im_x, Re_y, Im_y
     cart_s = torch.zeros(c, 4, 2, dtype=theta.dtype, device=theta.device)
     for a in range(2):
-        cart_t[:, 2 * a, 1], cart_t[:, 2 * a, 3 + 2 * a] = slope[:, a], 1.0
-        cart_t[:, 2 * a + 1, 0], cart_t[:, 2 * a + 1, 2 + 2 * a] = slope[:, a], 1.0
+        cart_t[:, 2 * a, 1], cart_t[:, 2 * a, 3] = slope[:, a], nrm[:, a]
+        cart_t[:, 2 * a + 1, 0], cart_t[:, 2 * a + 1, 2] = slope[:, a], nrm[:, a]
         cart_s[:, 2 * a, a], cart_s[:, 2 * a + 1, a] = gs, gc
     amp = torch.hypot(re, im)
     a2 = amp.square().clamp_min(torch.finfo(amp.dtype).tiny)
@@ -362,11 +431,14 @@ def _ladder_covariance(theta, prob: _Problems, ch: _Chunk, J, W, Cw, H_t, H_s):
     c, E, K = C.shape[0], C.shape[1], C.shape[-1]
     h, w = prob.shape[4:]
     pw = prob.power[ch.freq]
-    v = (W[..., None] * J).reshape(c, E, h, w, N_PAR).permute(0, 4, 1, 2, 3)  # [c, 6, E, h, w]
-    dv = shift_derivatives(v).reshape(c, N_PAR, E, 2, h * w)
-    v = v.reshape(c, N_PAR, E, h * w)
-    G = (torch.einsum("cek,cpeq->cpkq", C[:, :, 0, 0], v) - torch.einsum("cek,cpeq->cpkq", C[:, :, 0, 1], dv[:, :, :, 0])
-         - torch.einsum("cek,cpeq->cpkq", C[:, :, 0, 2], dv[:, :, :, 1])) * pw[:, None, None, None]
+    v = (W[..., None] * J).reshape(c, E, h, w, N_PAR).permute(0, 4, 1, 2, 3)  # [c, 4, E, h, w]
+    n = _normal(ch.slope)[:, None, None]  # [c, 1, 1, 2]
+    G, vj = 0, v
+    for j in range(ORDER + 1):  # (Dn^j)^T = (-Dn)^j
+        G = G + torch.einsum("cek,cpeq->cpkq", C[:, :, 0, j], vj.reshape(c, N_PAR, E, h * w))
+        if j < ORDER:
+            vj = -_along(vj, n)
+    G = G * pw[:, None, None, None]
     A = H_t @ (-Cw @ G.reshape(c, N_PAR, -1)) + H_s @ ch.ds_dl.reshape(c, 2, -1)  # [c, 4, K hw]
     var = ch.var[ch.inv]  # [c, K, hw]
     cov = (A * var.reshape(c, 1, -1)) @ A.transpose(1, 2)
@@ -375,11 +447,11 @@ def _ladder_covariance(theta, prob: _Problems, ch: _Chunk, J, W, Cw, H_t, H_s):
 
 def _model_noise(C, prob: _Problems, ch: _Chunk, W):
     """The ladder noise in the model of a chunk's problems at their coefficients ``C`` (:func:`_coefficients`):
-    ``(var [c, E, hw], grad [c, 6])``, each model pixel's variance and the gradient along
+    ``(var [c, E, hw], grad [c, 4])``, each model pixel's variance and the gradient along
     ``theta`` of ``V = sum W var``."""
     c, E = C.shape[:2]
-    nz = ch.noise[ch.inv] * prob.power[ch.freq, None, None, None] ** 2  # [c, 4, K, hw]
-    pairs = ((0, 0, 0), (1, 1, 1), (2, 2, 2), (1, 2, 3), (2, 1, 3))  # (block a, block b, noise term)
+    nz = ch.noise[ch.inv] * prob.power[ch.freq, None, None, None] ** 2  # [c, 2, K, hw]
+    pairs = ((0, 0, 0), (1, 1, 1))  # (block a, block b, noise term): L and Dn L (the higher orders' noise left out)
     var = sum((C[:, :, 0, a] * C[:, :, 0, b]) @ nz[:, t] for a, b, t in pairs)  # [c, E, hw]
     wn = W.reshape(c, 1, E, -1) @ nz.transpose(-1, -2)  # [c, 4, E, K]: sum_q W cov
     grad = 2 * sum((C[:, :, 1:, a] * C[:, :, :1, b] * wn[:, t, :, None]).sum((1, 3)) for a, b, t in pairs)
@@ -393,7 +465,7 @@ def _debias(theta, data, W, s2, prob: _Problems, ch: _Chunk, jac):
 
     The least-squares cost ``S`` against a noisy ladder has the expectation ``S_true + V(theta)``,
     ``V = sum W var(model)`` (:func:`_model_noise`), which depends on ``theta`` (a trajectory that
-    dwells near few levels has a noisier model; a larger ``delta`` draws more of the shift
+    dwells near few levels has a noisier model; a larger ``d`` draws more of the shift
     derivatives' noise), so the plain fit is biased. Up to :data:`BIAS_ITER` Gauss-Newton steps
     on ``S - V`` (``Cw (J^T W r + grad V / 2)``) from the fit, each kept only where it lowers
     ``S - V`` and is shorter than :data:`STEP_MAX` std; a refused step ends that problem's correction."""
@@ -507,7 +579,7 @@ def fit_ladder_problems(crops, ladder: PatternLadder, window, omega, amplitude, 
 
     Returns:
         :class:`~torchblur.dm.spot_fit.SpotFits` ``[P, F, M]`` (on ``device``): per axis the
-        phasor ``s G + delta`` as amplitude (px) and phase (rad), the covariance of both axes
+        phasor ``s G + N n`` (module docstring) as amplitude (px) and phase (rad), the covariance of both axes
         with the ladder's noise, ``status`` (non-zero: NaN estimates), ``flags``
         (:data:`~torchblur.fit.status.OUT_OF_LADDER`, ``NO_MOTION``, ``MASKED``, ``POOR_FIT_FLAG``).
     """
@@ -519,8 +591,6 @@ def fit_ladder_problems(crops, ladder: PatternLadder, window, omega, amplitude, 
     P, F, M, E, h, w = prob.shape
     K = ladder.levels.shape[1]
     n = P * F * M
-    js = shift_derivatives(ladder.still.to(**like)).reshape(M, 2, h * w)
-    still_pinv = torch.linalg.pinv(js.transpose(1, 2))  # [M, 2, hw]
     b0 = _basis_at(torch.zeros(P, 1, **like), prob.knots, prob.coef)
     b0 = (b0[0][:, 0], b0[1][:, 0])  # [P, K] each: the basis and its derivative at u = 0
     chunk = chunk_size(E + 3 * K, h, w, device=dev, dtype=like["dtype"]) if chunk is None else check_int(chunk, "chunk", low=1)
@@ -531,7 +601,7 @@ def fit_ladder_problems(crops, ladder: PatternLadder, window, omega, amplitude, 
     todo = torch.nonzero(status == 0).reshape(-1)
     n_chunks = 0
     for i0 in range(0, todo.numel(), chunk):
-        ch = _chunk(prob, ladder, todo[i0:i0 + chunk], still_pinv, b0, like)
+        ch = _chunk(prob, ladder, todo[i0:i0 + chunk], like)
         with torch.no_grad():
             r = _fit_chunk(prob, ch, b0)
         ok = r["status"] == 0

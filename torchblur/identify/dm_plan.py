@@ -93,7 +93,8 @@ class DMResult:
             1 where the spots' PSFs (Gaussians or measured kernels) and the camera's noise model explain the images.
         timing_s: seconds per stage (``calibration``, ``acquisition``, ``fit_wait``, ``estimation``).
         spot_model: the sweep's spot model (``shifted`` or ``ladder``, :mod:`torchblur.identify.dm_ladder`);
-            n_out_of_ladder: spot fits whose motion left the ladder's levels (flagged: the verdict says so).
+            n_out_of_ladder: spot fits whose motion left the ladder's levels (their responses left out of D, as a
+                failed fit's; the verdict says so).
         truth_D: ``[2M, N, F]`` the simulated rig's D (None on a real rig); ``mirror``: the
             simulated mirror (its true dynamics), or None; ``truth_G``, ``truth_registration``: its
             true geometry and registration, or None.
@@ -209,7 +210,7 @@ def _fit_frequency(frames, window, omega, amplitude, power, cal, psf, offset, si
     Gaussians or :class:`~torchblur.dm.spot_fit.PerSpotPSF` (:func:`_spot_psf`, at power 1); ``ladder``: the
     patterns' :class:`~torchblur.dm.ladder_fit.PatternLadder` (``dm_plan.spot_model`` ladder: the spots
     fitted with it, :func:`~torchblur.dm.ladder_fit.fit_ladder_problems`; ``out of the ladder`` counts
-    the spot fits whose motion left its levels), or None (the shifted ``psf``)."""
+    the spot fits whose motion left its levels, their responses NaN: left out of D), or None (the shifted ``psf``)."""
     e = subtract_dark(frames.to(_F64), cal.dark) * cal.gain
     crops, in_frame = crop_problems(e[:, None], offset, size)  # [P, 1, M, ER, h, w]
     hot = crop_spots(cal.dark.hot_pixels, offset, size)  # [M, h, w] the hot pixels in every crop
@@ -224,8 +225,12 @@ def _fit_frequency(frames, window, omega, amplitude, power, cal, psf, offset, si
                           device=fit_options["device"])
         Y, Yc = pattern_responses(fits, amplitude, phase_var=phase_var)
         chi2 = fits.reduced_chi2.reshape(fits.reduced_chi2.shape[0], -1).numpy()
-        out = int(((fits.flags & OUT_OF_LADDER) != 0).sum())
-        return Y[..., 0], Yc[:, :, 0], int((fits.status != 0).sum()), chi2, out
+        beyond = ((fits.flags & OUT_OF_LADDER) != 0).reshape(fits.flags.shape[0], -1).numpy()  # [P, M]
+        # a motion beyond the ladder's levels is the end cubics extrapolated: no error model holds there, so its
+        # responses are left out of D like a failed fit's (counted, and the verdict's ladder rule sees them)
+        Y[np.concatenate([beyond, beyond], 1)] = np.nan
+        Yc[np.concatenate([beyond, beyond], 1)] = np.nan
+        return Y[..., 0], Yc[:, :, 0], int((fits.status != 0).sum()), chi2, int(beyond.sum())
     kernel_noise = None
     if isinstance(psf, PerSpotPSF):
         p = psf.scaled(power)
