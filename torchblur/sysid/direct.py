@@ -58,7 +58,7 @@ import numpy as np
 import torch
 
 from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_frequency_grid, as_tensor, as_unit_direction, check_choice,
-                     check_finite, check_positive)
+                     check_finite, check_positive, flat_noise_and_mask)
 from torchblur.files import read_bounded
 from torchblur.fit.problem import _nonzero_box
 from torchblur.fit.status import POOR_FIT_CHI2, flag_poor_fit
@@ -391,24 +391,12 @@ def _start_values(start, form: str, fit_delay: bool):
 
 def _pixel_weights(images, noise_std, mask) -> torch.Tensor:
     """``1 / noise_std^2`` per pixel, 0 where ``mask`` is False, ``[F, E, H, W]``."""
-    F = images.shape[0]
+    s, keep = flat_noise_and_mask(noise_std, mask, images)
     weight = torch.ones_like(images)
-    if noise_std is not None:
-        s = check_positive(as_tensor(noise_std, "noise_std", like=images), "noise_std")
-        if s.dim() == 4:
-            if s.shape != images.shape:
-                raise ShapeError(f"noise_std: expected a number, [F] or [F, E, H, W] = {tuple(images.shape)}, got {tuple(s.shape)}")
-        elif s.dim() == 1 and s.shape == (F,):
-            s = s[:, None, None, None]
-        elif s.dim() != 0:
-            raise ShapeError(f"noise_std: expected a number, [F] or [F, E, H, W] = {tuple(images.shape)}, got {tuple(s.shape)}")
-        weight = (1 / s**2).expand(images.shape)
-    if mask is not None:
-        if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool:
-            raise InputTypeError("mask: expected a bool tensor [F, E, H, W] (True = use the pixel)")
-        if mask.shape != images.shape:
-            raise ShapeError(f"mask: expected shape [F, E, H, W] = {tuple(images.shape)}, got {tuple(mask.shape)}")
-        weight = weight * mask.to(images.dtype)
+    if s is not None:
+        weight = (1 / (s if s.dim() == 4 else s[:, None, None, None]) ** 2).expand(images.shape)
+    if keep is not None:
+        weight = weight * keep.to(images.dtype)
     return weight
 
 
