@@ -346,10 +346,8 @@ def _reweight_by_model(prob: _Problem, box, data, weight, theta, live, noise: Ca
     noise.std(model * power) / power`` of the first fit's model image (rendered by the problem's
     own forward model; 0 outside the crop, where every model is 0), masked pixels still 0.
 
-    Why: the first pass weighs each pixel by its own value, so a pixel that fluctuates up counts
-    less and the fitted motion comes out smaller: the amplitudes are biased low by a fraction of
-    their std (as :func:`torchblur.fit.sinusoid.fit_sinusoid`'s second pass). The model's
-    expected signal holds almost none of the noise, so these weights do not correlate with it.
+    Why: the first pass's weights correlate with the noise and bias the amplitudes low (see
+    :func:`torchblur.fit.sinusoid._reweight_by_model`).
 
     ``stats``: the fit's ``(cost, converged, n_iter, noise std) [B]``, set in place for the live
     sets (the refit's cost and convergence, the iterations added, the median of the new pixel
