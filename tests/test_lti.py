@@ -53,7 +53,7 @@ def test_sine_response_matches_lsim(make, freq_hz):
     plant = make()
     amp, omega = 1.7, 2 * math.pi * freq_hz
     t, y_ref = _lsim_reference(plant, amp, omega, dt=5e-7, n=12001)  # 6 ms: delay and transient
-    traj = plant.sine_response(amp, omega)
+    traj = LTISineTrajectory(plant, amp, omega)
     y = traj.output(torch.tensor(t, dtype=torch.float64)).numpy()
     assert np.abs(y - y_ref).max() <= 1e-6 * np.abs(y_ref).max()
     assert np.all(y[t < plant.delay_s] == 0)
@@ -94,7 +94,7 @@ def test_settling_time_and_steady_state(make):
     plant = make()
     tol = 1e-7
     omega = 2 * math.pi * 280.0
-    traj = plant.sine_response(1.3, omega)
+    traj = LTISineTrajectory(plant, 1.3, omega)
     ts = plant.settling_time_s(tol)
     p = plant.poles()
     assert ts == pytest.approx(math.log(1 / tol) / np.abs(p.real).min() + plant.delay_s, rel=1e-12)
@@ -142,13 +142,13 @@ def test_path_length_is_a_tight_upper_bound():
 
 def test_output_is_zero_before_delay_and_continuous():
     plant = Plant(num=(3.0, 4000.0), den=(1.0, 2000.0), delay_s=1e-4)  # biproper: D = 3
-    traj = plant.sine_response(1.0, 2 * math.pi * 100)
+    traj = LTISineTrajectory(plant, 1.0, 2 * math.pi * 100)
     t = torch.tensor([0.0, 5e-5, 1e-4 - 1e-12, 1e-4, 1e-4 + 1e-12], dtype=torch.float64)
     y = traj.output(t)
     assert torch.all(y[:3] == 0)
     assert float(y[3:].abs().max()) < 1e-7
     static = Plant(num=(2.5,), den=(1.0,), delay_s=3e-5)
-    y = static.sine_response(2.0, 1000.0).output(torch.tensor([1e-3], dtype=torch.float64))
+    y = LTISineTrajectory(static, 2.0, 1000.0).output(torch.tensor([1e-3], dtype=torch.float64))
     assert float(y) == pytest.approx(5.0 * math.sin(1000.0 * (1e-3 - 3e-5)), rel=1e-14)
 
 

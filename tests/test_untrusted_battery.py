@@ -807,14 +807,16 @@ API_FILES = {"FIFO": _fifo, "folder": _dir, "/dev/zero": _link("/dev/zero"), "/p
              "NUL bytes": lambda p: p.write_bytes(b"\x00" * 100), "nested 100000": _text("[" * 100000 + "]" * 100000)}
 
 
-@pytest.mark.parametrize("reader", ["FrequencyResponse.from_json", "FrequencyResponse.from_csv", "TransferFunctionFit.from_json"])
+@pytest.mark.parametrize("reader", ["FrequencyResponse.from_json", "FrequencyResponse.from_csv", "TransferFunctionFit.from_json",
+                                    "DirectModelFit.from_json"])
 @pytest.mark.parametrize("case", sorted(API_FILES))
 def test_response_and_model_files(tmp_path, reader, case):
+    from torchblur.sysid.direct import DirectModelFit
     from torchblur.sysid.frequency_response import FrequencyResponse
     from torchblur.sysid.tf_fit import TransferFunctionFit
 
     fn = {"FrequencyResponse.from_json": FrequencyResponse.from_json, "FrequencyResponse.from_csv": FrequencyResponse.from_csv,
-          "TransferFunctionFit.from_json": TransferFunctionFit.from_json}[reader]
+          "TransferFunctionFit.from_json": TransferFunctionFit.from_json, "DirectModelFit.from_json": DirectModelFit.from_json}[reader]
     p = tmp_path / "f.json"
     API_FILES[case](p)
     out = run_guarded(lambda: fn(p))

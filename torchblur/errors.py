@@ -276,3 +276,32 @@ def as_noise_std(noise_std, name: str, like: torch.Tensor) -> torch.Tensor:
     s = check_positive(as_tensor(noise_std, name, like=like), name)
     broadcast_batch({"image": like.shape[:-2], name: s.shape})
     return s
+
+
+def flat_noise_and_mask(noise_std, mask, images: torch.Tensor, frame_dims: int = 3):
+    """A fitter's ``noise_std`` and ``mask`` of ``images [..., *frame]`` (``frame``: the last
+    ``frame_dims`` dims, ``E, H, W`` or ``H, W``) checked and flattened to ``N = prod(...)`` items:
+    ``(std, keep)``, ``std`` None, ``[N]`` (a number or ``[...]``: one per item) or ``[N, *frame]``
+    (one per pixel), > 0; ``keep`` None or bool ``[N, *frame]`` (True = use the pixel), on the
+    images' device. Errors name ``noise_std`` or ``mask``."""
+    batch, frame = images.shape[:-frame_dims], tuple(images.shape[-frame_dims:])
+    N, desc = max(1, math.prod(batch)), f"[..., {', '.join('EHW'[-frame_dims:])}] = {tuple(images.shape)}"
+    std = keep = None
+    if noise_std is not None:
+        s = check_positive(as_tensor(noise_std, "noise_std", like=images), "noise_std")
+        try:
+            if s.dim() >= frame_dims and tuple(s.shape[-frame_dims:]) == frame:
+                std = s.expand(batch + frame).reshape((N,) + frame)
+            else:
+                std = s.expand(batch).reshape(N)
+        except RuntimeError:
+            raise ShapeError(f"noise_std: expected a number, [...] or {desc}, got {tuple(s.shape)}") from None
+    if mask is not None:
+        if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool:
+            raise InputTypeError(f"mask: expected a bool tensor {desc} (True = use the pixel), got "
+                                 f"{mask.dtype if isinstance(mask, torch.Tensor) else type(mask).__name__}")
+        try:
+            keep = mask.to(images.device).expand(batch + frame).reshape((N,) + frame)
+        except RuntimeError:
+            raise ShapeError(f"mask: expected shape {desc}, got {tuple(mask.shape)}") from None
+    return std, keep

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import torch
 
 from torchblur._compat import median_along
-from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_finite, check_positive
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_finite, check_positive, flat_noise_and_mask
 from torchblur.losses import image_loss
 from torchblur.optim import levenberg_marquardt
 from torchblur.image.moments import image_moments
@@ -136,12 +136,10 @@ def _check_inputs(images, psf, code, omega, n_phases):
 
 def _pixel_weight(noise_std, images, B: int) -> torch.Tensor:
     """``1 / noise_std^2`` per pixel ``[B, H W]`` (ones when ``noise_std`` is None)."""
-    batch, (H, W) = images.shape[:-2], images.shape[-2:]
-    if noise_std is None:
-        return torch.ones(B, H * W, dtype=images.dtype, device=images.device)
-    s = check_positive(as_tensor(noise_std, "noise_std", like=images), "noise_std")
-    s = s.expand(batch + (H, W)) if s.dim() >= 2 and tuple(s.shape[-2:]) == (H, W) else s.expand(batch)[..., None, None].expand(batch + (H, W))
-    return 1 / s.reshape(B, H * W) ** 2
+    s, _ = flat_noise_and_mask(noise_std, None, images, frame_dims=2)
+    if s is None:
+        return torch.ones(B, images.shape[-2:].numel(), dtype=images.dtype, device=images.device)
+    return 1 / (s.reshape(B, -1) if s.dim() == 3 else s[:, None].expand(B, images.shape[-2:].numel())) ** 2
 
 
 def _amplitude_start(images, cov_xx, center_x, amplitude_guess, batch, B: int) -> torch.Tensor:

@@ -26,7 +26,8 @@ import torch
 
 from torchblur._compat import median_along
 from torchblur.render.alias import canonical_sines, wrap_phase
-from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, as_unit_direction, check_finite, check_positive
+from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_tensor, as_unit_direction, check_finite, check_positive,
+                              flat_noise_and_mask)
 from torchblur.fit.kernel_noise import kernel_noise_covariance
 from torchblur.losses import image_loss
 from torchblur.image.moments import image_moments, moments_along
@@ -294,28 +295,16 @@ def _check_and_flatten(images, psf, window, omega, direction, counts: dict) -> _
 def _pixel_weight(noise_std, mask, flat: _Flat):
     """``(weight [B, E, H, W], noise_level [B] or None)``: ``1 / noise_std^2`` (ones when not
     given), 0 where ``mask`` is False; the median given noise std per image set."""
-    data, batch = flat.data, flat.batch
-    B, E, H, W = data.shape
+    data = flat.data
+    s, keep = flat_noise_and_mask(noise_std, mask, data.reshape(flat.batch + data.shape[1:]))
     weight = torch.ones_like(data)
     noise_level = None
-    if noise_std is not None:
-        s = check_positive(as_tensor(noise_std, "noise_std", like=data), "noise_std")
-        if s.dim() >= 3 and tuple(s.shape[-3:]) == (E, H, W):
-            s = s.expand(batch + (E, H, W)).reshape(B, E, H, W)
-        else:
-            try:
-                s = s.expand(batch).reshape(B, 1, 1, 1).expand(B, E, H, W)
-            except RuntimeError:
-                raise ShapeError(f"noise_std: expected a number, [...] or [..., E, H, W], got {tuple(s.shape)}") from None
+    if s is not None:
+        s = s if s.dim() == 4 else s[:, None, None, None].expand(data.shape)
         weight = 1 / s**2
-        noise_level = median_along(s.reshape(B, -1))
-    if mask is not None:
-        if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool:
-            raise InputTypeError("mask: expected a bool tensor [..., E, H, W] (True = use the pixel)")
-        try:
-            weight = weight * mask.expand(batch + (E, H, W)).reshape(B, E, H, W).to(data.dtype)
-        except RuntimeError:
-            raise ShapeError(f"mask: expected shape {tuple(batch + (E, H, W))}, got {tuple(mask.shape)}") from None
+        noise_level = median_along(s.reshape(data.shape[0], -1))
+    if keep is not None:
+        weight = weight * keep.to(data.dtype)
     return weight, noise_level
 
 
@@ -357,10 +346,8 @@ def _reweight_by_model(prob: _Problem, box, data, weight, theta, live, noise: Ca
     noise.std(model * power) / power`` of the first fit's model image (rendered by the problem's
     own forward model; 0 outside the crop, where every model is 0), masked pixels still 0.
 
-    Why: the first pass weighs each pixel by its own value, so a pixel that fluctuates up counts
-    less and the fitted motion comes out smaller: the amplitudes are biased low by a fraction of
-    their std (as :func:`torchblur.fit.sinusoid.fit_sinusoid`'s second pass). The model's
-    expected signal holds almost none of the noise, so these weights do not correlate with it.
+    Why: the first pass's weights correlate with the noise and bias the amplitudes low (see
+    :func:`torchblur.fit.sinusoid._reweight_by_model`).
 
     ``stats``: the fit's ``(cost, converged, n_iter, noise std) [B]``, set in place for the live
     sets (the refit's cost and convergence, the iterations added, the median of the new pixel

@@ -21,7 +21,7 @@ from dataclasses import dataclass, fields, replace
 import torch
 
 from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_tensor, as_unit_direction, check_choice, check_finite,
-                              check_positive, check_real_scalar)
+                              check_positive, check_real_scalar, flat_noise_and_mask)
 from torchblur.losses import LOSSES, covariance_factor, image_loss, irls_weights, loss_weight
 from torchblur.optim import LMResult, levenberg_marquardt
 from torchblur.fit.problem import SineProblem, crop_to_reach, sine_problem, starting_points
@@ -604,23 +604,10 @@ def _flat_inputs(images, psf, window, omega, axes, noise_std, mask, saturation_l
     else:
         axis_dirs, labels = _as_direction(axes, batch, N, data)[:, None, :], ("u",)
     w_full = window.to(dtype).expand(batch + (E,))
-    sig = None
-    if noise_std is not None:
-        s = check_positive(as_tensor(noise_std, "noise_std", like=data), "noise_std")
-        try:
-            sig = s.expand(batch + (E, H, W)).reshape(N, E, H, W) if s.dim() >= 3 and s.shape[-3:] == (E, H, W) else s.expand(batch).reshape(N)
-        except RuntimeError:
-            raise ShapeError(f"noise_std: expected a number, [...] or [..., E, H, W], got {tuple(s.shape)}") from None
+    sig, m = flat_noise_and_mask(noise_std, mask, images)
     keep = torch.ones(N, E, H, W, dtype=torch.bool, device=device)
     user_masked = torch.zeros(N, dtype=torch.bool, device=device)
-    if mask is not None:
-        if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool:
-            raise InputTypeError(f"mask: expected a bool tensor [..., E, H, W] (True = use the pixel), got "
-                                 f"{mask.dtype if isinstance(mask, torch.Tensor) else type(mask).__name__}")
-        try:
-            m = mask.to(device).expand(batch + (E, H, W)).reshape(N, E, H, W)
-        except RuntimeError:
-            raise ShapeError(f"mask: expected shape [..., E, H, W] = {tuple(images.shape)}, got {tuple(mask.shape)}") from None
+    if m is not None:
         keep = keep & m
         user_masked = (~m).flatten(1).any(1)
     sat_masked = torch.zeros(N, dtype=torch.bool, device=device)

@@ -59,11 +59,6 @@ class SaturationCurve:
         level = (self.saturation_adu - margin).to(device=frames.device, dtype=frames.dtype)
         return frames < level
 
-    def is_linear(self, exposure_s) -> torch.Tensor:
-        """bool, the shape of ``exposure_s``: the peak is still on the line at that exposure."""
-        t = as_tensor(exposure_s, "exposure_s", like=self.slope_adu_per_s)
-        return t <= self.linear_limit_s.to(device=t.device, dtype=t.dtype)
-
 
 def _hinge_fit(t: torch.Tensor, y: torch.Tensor, knots: torch.Tensor):
     """Least squares of ``y = a + b min(t, knot)`` for each knot: ``(a, b, sse)``, each ``[M]``."""

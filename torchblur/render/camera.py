@@ -181,16 +181,12 @@ class CameraModel:
             "full_well_e": check_real_scalar(self.full_well_e, "full_well_e", positive=True),
             "bit_depth": check_int(self.bit_depth, "bit_depth", low=1, high=32),
             "shot_noise": check_bool(self.shot_noise, "shot_noise"),
-            "hot_pixel_fraction": check_real_scalar(self.hot_pixel_fraction, "hot_pixel_fraction", nonnegative=True),
+            "hot_pixel_fraction": check_real_scalar(self.hot_pixel_fraction, "hot_pixel_fraction", low=0.0, high=1.0),
             "hot_pixel_e": check_real_scalar(self.hot_pixel_e, "hot_pixel_e", nonnegative=True),
             "hot_pixel_seed": check_int(self.hot_pixel_seed, "hot_pixel_seed", low=0, high=2**64 - 1),
             "jitter_s": check_real_scalar(self.jitter_s, "jitter_s", nonnegative=True),
             "quantize": check_bool(self.quantize, "quantize"),
         }
-        if checked["hot_pixel_fraction"] > 1:
-            raise ParameterError(
-                f"hot_pixel_fraction: expected a value in [0, 1], got {checked['hot_pixel_fraction']:g}"
-            )
         if checked["dark_level_adu"] >= 2 ** checked["bit_depth"] - 1:
             raise ParameterError(
                 f"dark_level_adu: expected a value below the ADC's maximum 2**bit_depth - 1 = {2 ** checked['bit_depth'] - 1} ADU "

@@ -49,17 +49,14 @@ start (:func:`resolve_alias_with_model`, :class:`AliasResolution`) is in
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
-import os
 from typing import Any
 
 import numpy as np
 import torch
 
 from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_frequency_grid, as_tensor, as_unit_direction, check_choice,
-                     check_finite, check_positive)
-from torchblur.files import read_bounded
+                     check_finite, check_positive, flat_noise_and_mask)
 from torchblur.fit.problem import _nonzero_box
 from torchblur.fit.status import POOR_FIT_CHI2, flag_poor_fit
 from torchblur.render.blur import RenderSettings, choose_node_count, quadrature_nodes
@@ -70,7 +67,7 @@ from torchblur.render.trajectory import Sinusoid
 from torchblur.render.window import ExposureWindow
 from torchblur.sysid.alias_resolution import AliasResolution, resolve_alias_with_model
 from torchblur.sysid.direct_doc import DIRECT_SCHEMA, DIRECT_SCHEMA_VERSION, DIRECT_UNITS, direct_fields_from_dict
-from torchblur.sysid.frequency_response_io import MAX_FILE_BYTES
+from torchblur.sysid.frequency_response_io import read_json_doc, write_json_doc
 from torchblur.sysid.parametric import _poles_zeros, _response, _Structure, _structure_from_tf
 from torchblur.sysid.tf_fit import TransferFunctionFit
 
@@ -287,23 +284,13 @@ class DirectModelFit:
 
     def to_json(self, path) -> None:
         """Write :meth:`to_dict` to a strict JSON file (read it back with :meth:`from_json`)."""
-        with open(path, "w") as fh:
-            json.dump(self.to_dict(), fh, allow_nan=False, indent=2)
-            fh.write("\n")
+        write_json_doc(self.to_dict(), path, indent=2)
 
     @classmethod
     def from_json(cls, path) -> "DirectModelFit":
-        """Read a file written by :meth:`to_json`, or the CLI's model.json of a direct run."""
-        where = f"path {os.fspath(path)!r}"
-        data = read_bounded(path, MAX_FILE_BYTES, where)  # the opening rule (torchblur.files)
-        try:
-            doc = json.loads(data.decode("utf-8"))
-        except (ValueError, RecursionError) as exc:
-            raise ParameterError(f"{where}: not a JSON document ({type(exc).__name__})") from None
-        try:
-            return cls.from_dict(doc)
-        except (InputTypeError, ParameterError) as exc:
-            raise type(exc)(f"{where}: {exc}") from None
+        """Read a file written by :meth:`to_json`, or the CLI's model.json of a direct run; errors
+        name ``path`` (:func:`~torchblur.sysid.frequency_response_io.read_json_doc`)."""
+        return read_json_doc(path, cls.from_dict, "model.json")
 
     def __repr__(self) -> str:
         return (f"DirectModelFit(form={self.form!r}, P={self.params.size}, delay_s={self.delay_s:.4g}, "
@@ -391,24 +378,12 @@ def _start_values(start, form: str, fit_delay: bool):
 
 def _pixel_weights(images, noise_std, mask) -> torch.Tensor:
     """``1 / noise_std^2`` per pixel, 0 where ``mask`` is False, ``[F, E, H, W]``."""
-    F = images.shape[0]
+    s, keep = flat_noise_and_mask(noise_std, mask, images)
     weight = torch.ones_like(images)
-    if noise_std is not None:
-        s = check_positive(as_tensor(noise_std, "noise_std", like=images), "noise_std")
-        if s.dim() == 4:
-            if s.shape != images.shape:
-                raise ShapeError(f"noise_std: expected a number, [F] or [F, E, H, W] = {tuple(images.shape)}, got {tuple(s.shape)}")
-        elif s.dim() == 1 and s.shape == (F,):
-            s = s[:, None, None, None]
-        elif s.dim() != 0:
-            raise ShapeError(f"noise_std: expected a number, [F] or [F, E, H, W] = {tuple(images.shape)}, got {tuple(s.shape)}")
-        weight = (1 / s**2).expand(images.shape)
-    if mask is not None:
-        if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool:
-            raise InputTypeError("mask: expected a bool tensor [F, E, H, W] (True = use the pixel)")
-        if mask.shape != images.shape:
-            raise ShapeError(f"mask: expected shape [F, E, H, W] = {tuple(images.shape)}, got {tuple(mask.shape)}")
-        weight = weight * mask.to(images.dtype)
+    if s is not None:
+        weight = (1 / (s if s.dim() == 4 else s[:, None, None, None]) ** 2).expand(images.shape)
+    if keep is not None:
+        weight = weight * keep.to(images.dtype)
     return weight
 
 
@@ -731,12 +706,8 @@ def _refit_by_model(prob: _Problem, motion: _Motion, u, nuis, noise: CameraNoise
     place to ``1 / noise.std(model)^2`` of the first pass's model images at ``(u, nuis)`` (the
     one forward model, :meth:`_Problem.render`; 0 outside the crop, so ``noise.std(0)`` there;
     masked pixels stay 0), then Levenberg-Marquardt from there -> as :func:`_levenberg_marquardt`.
-
-    Why: the first pass weighs each pixel by its own value, so a pixel that fluctuates up counts
-    less and the fitted motion comes out smaller: every amplitude, hence the gain, is biased low
-    by a fraction of its std (as :func:`torchblur.fit.sinusoid.fit_sinusoid`'s second pass). The
-    model's expected signal holds almost none of the noise, so these weights do not correlate
-    with it."""
+    Why: the first pass's weights correlate with the noise and bias every amplitude, hence the
+    gain, low (see :func:`torchblur.fit.sinusoid._reweight_by_model`)."""
     with torch.no_grad():
         M, phi = motion(u)
         img, _ = prob.render(M, phi)

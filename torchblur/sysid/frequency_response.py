@@ -103,6 +103,18 @@ def _wrap_phase(phase: np.ndarray) -> np.ndarray:
     return out
 
 
+def unwrap_along_frequency(phase: np.ndarray) -> np.ndarray:
+    """``phase [..., F]`` (rad) unwrapped along its last axis, each curve on its own; NaN
+    points stay NaN and are bridged."""
+    out = np.full(phase.shape, np.nan)
+    flat_p, flat_o = phase.reshape(-1, phase.shape[-1]), out.reshape(-1, phase.shape[-1])
+    for r in range(flat_p.shape[0]):
+        ok = np.isfinite(flat_p[r])
+        if ok.any():
+            flat_o[r, ok] = np.unwrap(flat_p[r, ok])
+    return out
+
+
 def _per_point(value, name: str, shape: tuple, integer: bool) -> np.ndarray:
     """``value`` ([F] for a 1x1 response, or [O, I, F] = ``shape``) as a read-only array of that
     shape: int64 bit masks >= 0 (``integer``), else float64 >= 0 or NaN."""
@@ -432,15 +444,7 @@ class FrequencyResponse:
         The first valid point of each channel keeps its wrapped value in (-pi, pi]; failed
         points stay NaN and are skipped (the unwrapping bridges them).
         """
-        wrapped = self.phase
-        out = np.full_like(wrapped, np.nan)
-        ok = self.valid
-        for o in range(self.n_outputs):
-            for i in range(self.n_inputs):
-                m = ok[o, i]
-                if np.any(m):
-                    out[o, i, m] = np.unwrap(wrapped[o, i, m])
-        return out
+        return unwrap_along_frequency(np.where(self.valid, self.phase, np.nan))
 
     def response_std(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Standard deviations of Re H and Im H and their correlation, by linearisation.

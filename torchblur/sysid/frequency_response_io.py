@@ -366,8 +366,13 @@ def to_dict(frf) -> dict[str, Any]:
 
 def write_json(frf, path: str | os.PathLike) -> None:
     """Write everything of ``frf`` (exact floats, covariance, labels, meta) to a JSON file."""
+    write_json_doc(to_dict(frf), path)
+
+
+def write_json_doc(doc: dict, path: str | os.PathLike, *, indent: int | None = None) -> None:
+    """Write ``doc`` to a strict JSON file (no NaN or Inf), ending in a newline."""
     with open(path, "w") as fh:
-        json.dump(to_dict(frf), fh, allow_nan=False)
+        json.dump(doc, fh, allow_nan=False, indent=indent)
         fh.write("\n")
 
 
@@ -425,26 +430,33 @@ def from_dict(cls, doc: dict):
 
 
 def read_json(cls, path: str | os.PathLike):
-    """A ``cls`` from a file written by :func:`write_json` (bit-exact round trip).
+    """A ``cls`` from a file written by :func:`write_json` (bit-exact round trip); errors as
+    :func:`read_json_doc`'s."""
+    return read_json_doc(path, lambda doc: from_dict(cls, doc), "frf.json")
+
+
+def read_json_doc(path: str | os.PathLike, from_dict, name: str):
+    """``from_dict(doc)`` of the JSON document in the file ``path`` (``name``: the document it
+    should be, for the messages: "frf.json", "model.json").
 
     The file is untrusted input: one that is empty, not UTF-8, not JSON, nested deeper
-    than Python can parse, larger than ``MAX_FILE_BYTES`` or not of this schema raises
-    :class:`~torchblur.errors.ParameterError` (or ``InputTypeError``/``ShapeError``)
+    than Python can parse, larger than ``MAX_FILE_BYTES`` or that ``from_dict`` refuses raises
+    :class:`~torchblur.errors.ParameterError` (or ``from_dict``'s ``InputTypeError``/``ShapeError``)
     naming ``path``.
     """
     where = f"path {os.fspath(path)!r}"
     text = _read_text(path)
     if not text.strip():
-        raise ParameterError(f"{where}: the file is empty, expected a frf.json document")
+        raise ParameterError(f"{where}: the file is empty, expected a {name} document")
     try:
         doc = json.loads(text)
     except ValueError as exc:  # JSONDecodeError, or an integer of more digits than Python converts
         raise ParameterError(f"{where}: not JSON ({exc})") from None
     except RecursionError:
-        raise ParameterError(f"{where}: JSON nested too deeply to read; not a frf.json document") from None
+        raise ParameterError(f"{where}: JSON nested too deeply to read; not a {name} document") from None
     try:
-        return from_dict(cls, doc)
+        return from_dict(doc)
     except TorchblurError as exc:
         raise _naming_path(exc, path) from None
     except (KeyError, IndexError, TypeError, ValueError, AttributeError, OverflowError, RecursionError) as exc:
-        raise ParameterError(f"{where}: not a valid frf.json document ({type(exc).__name__}: {exc})") from None
+        raise ParameterError(f"{where}: not a valid {name} document ({type(exc).__name__}: {excerpt(str(exc))})") from None

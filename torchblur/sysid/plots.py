@@ -35,6 +35,7 @@ import numpy as np
 
 from torchblur.errors import InputTypeError, ParameterError, ShapeError
 from torchblur.sysid.flags import POINT_FLAGS
+from torchblur.sysid.frequency_response import unwrap_along_frequency
 
 __all__ = ["bode_figure", "residual_figure", "response_units", "flag_style", "FLAG_STYLES"]
 
@@ -151,13 +152,7 @@ def _as_oif(h, frf) -> np.ndarray:
 
 def _unwrap_deg(h: np.ndarray) -> np.ndarray:
     """Unwrapped phase in deg along the last axis, NaN points bridged."""
-    out = np.full(h.shape, np.nan)
-    flat_h, flat_o = h.reshape(-1, h.shape[-1]), out.reshape(-1, h.shape[-1])
-    for r in range(flat_h.shape[0]):
-        ok = np.isfinite(flat_h[r])
-        if ok.any():
-            flat_o[r, ok] = np.degrees(np.unwrap(np.angle(flat_h[r, ok])))
-    return out
+    return np.degrees(unwrap_along_frequency(np.angle(np.where(np.isfinite(h), h, np.nan))))
 
 
 def _curves(frf, model, truth):

@@ -64,7 +64,6 @@ saves time on noisy data; resonances come in pairs, so this allows three more pa
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import os
 from typing import Any, Sequence
@@ -74,9 +73,8 @@ import scipy.linalg
 import scipy.optimize
 
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_frequency_grid, check_bool, check_int, check_schema_version, excerpt
-from torchblur.files import read_bounded
 from torchblur.sysid.frequency_response import FrequencyResponse, control_names
-from torchblur.sysid.frequency_response_io import MAX_FILE_BYTES
+from torchblur.sysid.frequency_response_io import read_json_doc, write_json_doc
 
 __all__ = ["fit_transfer_function", "TransferFunctionFit"]
 
@@ -427,26 +425,14 @@ class TransferFunctionFit:
 
     def to_json(self, path: str | os.PathLike) -> None:
         """Write :meth:`to_dict` to a strict JSON file (read it back with :meth:`from_json`)."""
-        with open(path, "w") as fh:
-            json.dump(self.to_dict(), fh, allow_nan=False, indent=2)
-            fh.write("\n")
+        write_json_doc(self.to_dict(), path, indent=2)
 
     @classmethod
     def from_json(cls, path: str | os.PathLike) -> "TransferFunctionFit":
         """Read a file written by :meth:`to_json`, or the CLI's model.json (two-step fit;
-        with ``model.direct`` it is model_two_step.json)."""
-        where = f"path {os.fspath(path)!r}"
-        data = read_bounded(path, MAX_FILE_BYTES, where)  # the opening rule (torchblur.files)
-        try:
-            doc = json.loads(data.decode("utf-8"))
-        except (ValueError, RecursionError) as exc:  # not UTF-8, not JSON, nested too deep
-            raise ParameterError(f"{where}: not a JSON document ({type(exc).__name__})") from None
-        try:
-            return cls.from_dict(doc)
-        except (InputTypeError, ParameterError, ShapeError) as exc:
-            raise type(exc)(f"{where}: {exc}") from None
-        except (KeyError, IndexError, TypeError, ValueError, AttributeError, OverflowError, RecursionError) as exc:
-            raise ParameterError(f"{where}: not a valid model.json document ({type(exc).__name__}: {excerpt(str(exc))})") from None
+        with ``model.direct`` it is model_two_step.json); errors name ``path``
+        (:func:`~torchblur.sysid.frequency_response_io.read_json_doc`)."""
+        return read_json_doc(path, cls.from_dict, "model.json")
 
     def __repr__(self) -> str:
         if self.is_siso:
@@ -909,19 +895,16 @@ def _fit_order(data, nz, npo, delay_s, n_iter, stable, grid, nfev) -> _Cand | No
     est_tau = delay_s is None
     if est_tau:
         n_sk = min(n_iter, _GRID_SK_ITER)
-        scores = []
-        for tau in grid:  # a few SK steps per delay are enough to rank them
+
+        def score(tau):  # a few SK steps per delay are enough to rank them
             c = _sk_candidate(data, nz, npo, float(tau), True, n_sk, stable)
-            scores.append(c.chi2 if c is not None else math.inf)
+            return c.chi2 if c is not None else math.inf
+
+        scores = [score(tau) for tau in grid]
         k = int(np.argmin(scores))
         if not math.isfinite(scores[k]):
             return None
         lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
-
-        def score(tau):
-            c = _sk_candidate(data, nz, npo, float(tau), True, n_sk, stable)
-            return c.chi2 if c is not None else math.inf
-
         tau0 = float(grid[k])
         if hi > lo:
             r = scipy.optimize.minimize_scalar(score, bounds=(lo, hi), method="bounded",

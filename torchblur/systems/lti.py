@@ -220,11 +220,6 @@ class Plant:
         pn, pd = control.pade(self.delay_s, pade_order)
         return tf * control.TransferFunction(pn, pd)
 
-    def sine_response(self, amplitude, omega, *, direction=(1.0, 0.0), method: str = "auto") -> "LTISineTrajectory":
-        """The exact response to ``amplitude sin(omega t)`` from rest at t = 0, as a
-        trajectory (see :class:`LTISineTrajectory`)."""
-        return LTISineTrajectory(self, amplitude, omega, direction=direction, method=method)
-
 
 class LTIResponse(Trajectory):
     """The response of a plant to a command applied from rest at t = 0: the steady state
@@ -269,10 +264,6 @@ class LTIResponse(Trajectory):
     def transient(self, t: torch.Tensor) -> torch.Tensor:
         """The transient part ``y_tr`` (0 before the delay), ``[..., S]`` -> ``[..., S]``."""
         return self._output(t, transient=True, steady=False)
-
-    def steady_state(self, t: torch.Tensor) -> torch.Tensor:
-        """The steady-state part ``y_ss`` (0 before the delay), ``[..., S]`` -> ``[..., S]``."""
-        return self._output(t, transient=False, steady=True)
 
     def position(self, t: torch.Tensor) -> torch.Tensor:
         """Displacement (px) ``[..., S, 2]`` at absolute command times ``t`` (s) ``[..., S]``."""

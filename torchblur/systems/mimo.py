@@ -184,10 +184,6 @@ class PlantMatrix:
         den = [[list(np.asarray(t.den[0][0], dtype=float)) for t in r] for r in tfs]
         return control.tf(num, den, inputs=list(self.input_labels), outputs=list(self.output_labels))
 
-    def sine_response(self, amplitude, omega, *, input="x", image_matrix=None) -> "MIMOSineTrajectory":
-        """The spot's exact motion when ``input`` is driven by ``amplitude sin(omega t)``."""
-        return MIMOSineTrajectory(self, amplitude, omega, input=input, image_matrix=image_matrix)
-
 
 def plant_from_coefficients(num, den, delay_s=0.0):
     """A :class:`~torchblur.systems.lti.Plant` for flat coefficient lists, a :class:`PlantMatrix` for
