@@ -47,6 +47,37 @@ def _small_quiet_run(out, started):
 
 
 _BACKGROUND = pytest.StashKey()
+XDIST_WORKER = "PYTEST_XDIST_WORKER" in os.environ  # this process is a pytest-xdist worker
+
+
+def pytest_configure(config):
+    """A pytest-xdist worker runs on one torch thread, it and its children (through OMP_NUM_THREADS): one worker
+    per core, and two processes of two OpenMP threads on 2 cores spin-wait each other to a crawl."""
+    if XDIST_WORKER:
+        torch.set_num_threads(1)
+        os.environ["OMP_NUM_THREADS"] = "1"
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    """``-n 2`` (the README's test command): each worker is sent whole modules (a module's fixtures and its
+    background job are built once, in the worker that runs its tests), in the order of the collection
+    (:func:`pytest_collection_modifyitems`), not xdist's largest-count-first."""
+    from xdist.scheduler import LoadFileScheduling
+
+    config.option.loadscopereorder = False
+    return LoadFileScheduling(config, log)
+
+
+def pytest_collection_modifyitems(config, items):
+    """In a pytest-xdist worker, the modules whose work runs in fresh processes (a ``BACKGROUND_JOB``, the
+    shared ``small_quiet_run``: the suite's longest) come first, each module's tests in their order: the
+    workers take them first and the short modules fill the end, so neither waits long for the other."""
+    if not XDIST_WORKER:
+        return
+    first = {item.module for item in items if hasattr(getattr(item, "module", None), "BACKGROUND_JOB")
+             or "small_quiet_run" in getattr(item, "fixturenames", ())}
+    items.sort(key=lambda item: getattr(item, "module", None) not in first)  # stable: the rest keep their order
 
 
 def pytest_collection_finish(session):
@@ -71,7 +102,9 @@ def pytest_collection_finish(session):
     from background import Background
 
     out = Path(tempfile.mkdtemp(prefix="torchblur-background-"))
-    inline = os.environ.get("TORCHBLUR_TEST_BACKGROUND") == "0"  # each job in the foreground, where a test needs it
+    # each job in the foreground, where a test needs it: asked for, or in a pytest-xdist worker (README: -n 2), where the
+    # other worker keeps the second core busy and a worker's jobs are those of the modules it is sent
+    inline = os.environ.get("TORCHBLUR_TEST_BACKGROUND") == "0" or XDIST_WORKER
     state = {"threads": None if inline else torch.get_num_threads(), "omp": os.environ.get("OMP_NUM_THREADS"), "out": out,
              "module": None}
     if not inline:
