@@ -22,17 +22,41 @@ def gen():
 
 
 @pytest.fixture(scope="session")
-def small_quiet_run(background):
+def small_quiet_run(background, tmp_path_factory):
     """``torchblur identify --out OUT --quiet`` of the default simulated rig at 4 frequencies
     (cli_run.SMALL), in a fresh process, once per session, started in the background as soon as a
     collected test asks for it -> ``(OUT, finished process)``. Several test files check this same run
     (its stdout, its verdict, refits of its recording); they only read OUT and write elsewhere.
     ``report.figures=false``: none of them looks at a figure (the figures of a CLI run are checked by
     test_identify, test_mimo, test_multisine_identify, test_outside_recording and test_photon_transfer),
-    and a re-fit of it draws none either."""
-    out, proc = background.get("small_quiet_run")
+    and a re-fit of it draws none either. pytest-xdist's workers (``-n 2``) share one run
+    (:func:`_shared_small_quiet_run`)."""
+    if XDIST_WORKER:
+        out, proc = _shared_small_quiet_run(tmp_path_factory.getbasetemp().parent)
+    else:
+        out, proc = background.get("small_quiet_run")
     assert proc.returncode == 0, proc.stderr
     return out, proc
+
+
+def _shared_small_quiet_run(root):
+    """The small run once for all pytest-xdist workers of the session (``root``: their shared temp folder):
+    the first to need it runs it under an exclusive lock and saves the finished process beside it, the
+    others wait on the lock and read it -> ``(OUT, finished process)``."""
+    import fcntl
+    import json
+    import subprocess
+
+    saved = root / "small_quiet_run.json"
+    with open(root / "small_quiet_run.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not saved.exists():
+            (root / "small_quiet_run").mkdir()
+            out, proc = _small_quiet_run(root / "small_quiet_run", lambda popen: None)
+            saved.write_text(json.dumps({"out": str(out), "args": proc.args, "returncode": proc.returncode,
+                                         "stdout": proc.stdout, "stderr": proc.stderr}))
+        got = json.loads(saved.read_text())
+    return Path(got["out"]), subprocess.CompletedProcess(got["args"], got["returncode"], got["stdout"], got["stderr"])
 
 
 def _small_quiet_run(out, started):
