@@ -7,7 +7,9 @@ child process (the second core: a thread of the suite's process would share its 
 ``started(popen)`` once that runs, so that an interrupted session can kill it. The module's fixture then
 takes the result with ``background.get(request.module.__name__)`` (tests/conftest.py: the ``background``
 fixture), which waits for it. ``TORCHBLUR_TEST_BACKGROUND=0`` runs each job only there, in the foreground,
-as the suite did before (to compare the two on one machine). Measured on the shared 2-core machine: the experiment batches' ~40 CPU-seconds
+as the suite did before (to compare the two on one machine); so does a pytest-xdist worker (``-n 2``, the
+README's command), whose modules with a job come first (tests/conftest.py) while the other worker fills
+the second core. Measured on the shared 2-core machine: the experiment batches' ~40 CPU-seconds
 and the multisine local-minimum fit's ~15 ran beside the rest instead of before it."""
 from __future__ import annotations
 

@@ -22,17 +22,41 @@ def gen():
 
 
 @pytest.fixture(scope="session")
-def small_quiet_run(background):
+def small_quiet_run(background, tmp_path_factory):
     """``torchblur identify --out OUT --quiet`` of the default simulated rig at 4 frequencies
     (cli_run.SMALL), in a fresh process, once per session, started in the background as soon as a
     collected test asks for it -> ``(OUT, finished process)``. Several test files check this same run
     (its stdout, its verdict, refits of its recording); they only read OUT and write elsewhere.
     ``report.figures=false``: none of them looks at a figure (the figures of a CLI run are checked by
     test_identify, test_mimo, test_multisine_identify, test_outside_recording and test_photon_transfer),
-    and a re-fit of it draws none either."""
-    out, proc = background.get("small_quiet_run")
+    and a re-fit of it draws none either. pytest-xdist's workers (``-n 2``) share one run
+    (:func:`_shared_small_quiet_run`)."""
+    if XDIST_WORKER:
+        out, proc = _shared_small_quiet_run(tmp_path_factory.getbasetemp().parent)
+    else:
+        out, proc = background.get("small_quiet_run")
     assert proc.returncode == 0, proc.stderr
     return out, proc
+
+
+def _shared_small_quiet_run(root):
+    """The small run once for all pytest-xdist workers of the session (``root``: their shared temp folder):
+    the first to need it runs it under an exclusive lock and saves the finished process beside it, the
+    others wait on the lock and read it -> ``(OUT, finished process)``."""
+    import fcntl
+    import json
+    import subprocess
+
+    saved = root / "small_quiet_run.json"
+    with open(root / "small_quiet_run.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not saved.exists():
+            (root / "small_quiet_run").mkdir()
+            out, proc = _small_quiet_run(root / "small_quiet_run", lambda popen: None)
+            saved.write_text(json.dumps({"out": str(out), "args": proc.args, "returncode": proc.returncode,
+                                         "stdout": proc.stdout, "stderr": proc.stderr}))
+        got = json.loads(saved.read_text())
+    return Path(got["out"]), subprocess.CompletedProcess(got["args"], got["returncode"], got["stdout"], got["stderr"])
 
 
 def _small_quiet_run(out, started):
@@ -47,6 +71,37 @@ def _small_quiet_run(out, started):
 
 
 _BACKGROUND = pytest.StashKey()
+XDIST_WORKER = "PYTEST_XDIST_WORKER" in os.environ  # this process is a pytest-xdist worker
+
+
+def pytest_configure(config):
+    """A pytest-xdist worker runs on one torch thread, it and its children (through OMP_NUM_THREADS): one worker
+    per core, and two processes of two OpenMP threads on 2 cores spin-wait each other to a crawl."""
+    if XDIST_WORKER:
+        torch.set_num_threads(1)
+        os.environ["OMP_NUM_THREADS"] = "1"
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    """``-n 2`` (the README's test command): each worker is sent whole modules (a module's fixtures and its
+    background job are built once, in the worker that runs its tests), in the order of the collection
+    (:func:`pytest_collection_modifyitems`), not xdist's largest-count-first."""
+    from xdist.scheduler import LoadFileScheduling
+
+    config.option.loadscopereorder = False
+    return LoadFileScheduling(config, log)
+
+
+def pytest_collection_modifyitems(config, items):
+    """In a pytest-xdist worker, the modules whose work runs in fresh processes (a ``BACKGROUND_JOB``, the
+    shared ``small_quiet_run``: the suite's longest) come first, each module's tests in their order: the
+    workers take them first and the short modules fill the end, so neither waits long for the other."""
+    if not XDIST_WORKER:
+        return
+    first = {item.module for item in items if hasattr(getattr(item, "module", None), "BACKGROUND_JOB")
+             or "small_quiet_run" in getattr(item, "fixturenames", ())}
+    items.sort(key=lambda item: getattr(item, "module", None) not in first)  # stable: the rest keep their order
 
 
 def pytest_collection_finish(session):
@@ -71,7 +126,9 @@ def pytest_collection_finish(session):
     from background import Background
 
     out = Path(tempfile.mkdtemp(prefix="torchblur-background-"))
-    inline = os.environ.get("TORCHBLUR_TEST_BACKGROUND") == "0"  # each job in the foreground, where a test needs it
+    # each job in the foreground, where a test needs it: asked for, or in a pytest-xdist worker (README: -n 2), where the
+    # other worker keeps the second core busy and a worker's jobs are those of the modules it is sent
+    inline = os.environ.get("TORCHBLUR_TEST_BACKGROUND") == "0" or XDIST_WORKER
     state = {"threads": None if inline else torch.get_num_threads(), "omp": os.environ.get("OMP_NUM_THREADS"), "out": out,
              "module": None}
     if not inline:

@@ -17,7 +17,6 @@ from torchblur.identify.verdict import EXIT_FLAGGED, model_chi2_limit, verdict
 from torchblur.sysid.flags import ALIAS, FAILED, LIMITED, NO_MOTION, POOR_FIT, TIMING
 from torchblur.sysid.frequency_response import FrequencyResponse
 from test_identify_psf import SHORT, airy_rig
-from cli_run import run_cli as _cli
 
 
 def _frf(n=8, seed=0, f_max=1000.0):
@@ -293,18 +292,21 @@ def test_the_verdict_names_the_timing_points_and_the_band(timing_run):
     assert not model_exclusions(frf, cfg)[0].any()
 
 
-def test_cli_flagged_run_exits_4_and_writes_everything(tmp_path):
-    out = tmp_path / "run"
-    proc = _cli("identify", "--out", str(out), "--json", "camera.jitter_s=0.5e-6", "sweep.freq_hz=[1000,20000]",
-                "sweep.images_per_point=1", "report.figures=false")  # no figure checked here
-    assert proc.returncode == EXIT_FLAGGED, proc.stderr
-    doc = json.loads(proc.stdout)  # still exactly one JSON line on stdout
+def test_cli_flagged_run_exits_4_and_writes_everything(tmp_path, capsys):
+    from torchblur import cli
+
+    out = tmp_path / "run"  # in this process (a fresh one costs ~2.5 s of imports; the exit status is main's return)
+    code = cli.main(["identify", "--out", str(out), "--json", "camera.jitter_s=0.5e-6", "sweep.freq_hz=[1000,20000]",
+                     "sweep.images_per_point=1", "report.figures=false"])  # no figure checked here
+    proc = capsys.readouterr()
+    assert code == EXIT_FLAGGED, proc.err
+    doc = json.loads(proc.out)  # still exactly one JSON line on stdout
     assert doc["verdict"].startswith("verdict: 1 of 2 points flagged: 1 timing (above")
     # the default input range (200 units) cannot drive 20 kHz to its target: that point is also limited, and named
     assert doc["point_flags"] == {"poor_fit": 0, "timing": 1, "failed": 0, "limited": 1, "no_motion": 0, "alias": 0} and doc["trustworthy"] is False
     assert "1 limited by the drive (20 kHz:" in doc["verdict"]
     assert 1000 < doc["timing_limit_hz"] < 20000
-    assert proc.stderr.rstrip().splitlines()[-1] == doc["verdict"]
+    assert proc.err.rstrip().splitlines()[-1] == doc["verdict"]
     assert (out / "report.txt").read_text().rstrip().splitlines()[-1] == doc["verdict"]
     rows = (out / "frf.csv").read_text().splitlines()
     assert rows[0].startswith("freq_hz,magnitude,phase_deg,magnitude_std,phase_std_deg,reduced_chi2,flags,")
@@ -316,19 +318,22 @@ def test_cli_flagged_run_exits_4_and_writes_everything(tmp_path):
     assert "timing: above" in (out / "report.txt").read_text()
 
 
-def test_cli_default_run_is_trustworthy_with_exit_0_and_a_refit_has_its_own_verdict(small_quiet_run, tmp_path):
+def test_cli_default_run_is_trustworthy_with_exit_0_and_a_refit_has_its_own_verdict(small_quiet_run, tmp_path, capsys):
+    from torchblur import cli
+
     # 4 points: enough for the model (with 2, a 1-pole model has reduced chi2 1e5 and the verdict says so)
     run, proc = small_quiet_run  # identify --out RUN --quiet sweep.freq_hz=[20,150,300,600], exit 0 (tests/conftest.py)
     last = proc.stdout.rstrip().splitlines()[-1]
     assert last.startswith("verdict: trustworthy: all 4 points within tolerance: reduced chi2 <= 1.5, timing within 1 deg up to")
     assert "timing: the whole band (to 600 Hz) is within the tolerance of 1 deg" in proc.stdout
     # torchblur fit on the recording, with a tolerance the timing terms exceed at both points: exit 4, named
-    proc = _cli("fit", str(run), "--out", str(tmp_path / "refit"), "--quiet", "report.tolerance_deg=0.0002")
-    assert proc.returncode == EXIT_FLAGGED, proc.stderr
+    code = cli.main(["fit", str(run), "--out", str(tmp_path / "refit"), "--quiet", "report.tolerance_deg=0.0002"])  # in this process
+    out = capsys.readouterr()
+    assert code == EXIT_FLAGGED, out.err
     band = json.loads((tmp_path / "refit" / "frf.json").read_text())["meta"]["timing"]
     f = timing_limit_hz(math.radians(0.0002), band["jitter_s"], band["latency_std_s"], band["frames_per_point"])
     assert f < 20
-    assert proc.stdout.rstrip().splitlines()[-1] == f"verdict: 4 of 4 points flagged: 4 timing (above {f:.4g} Hz, beyond 0.0002 deg)"
+    assert out.out.rstrip().splitlines()[-1] == f"verdict: 4 of 4 points flagged: 4 timing (above {f:.4g} Hz, beyond 0.0002 deg)"
 
 
 def test_help_documents_the_exit_status(capsys):
