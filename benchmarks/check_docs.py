@@ -224,6 +224,15 @@ CLAIMS = [
           "".join(rf"{n} +" + NUM + r"[^\n]*\n *" for n in ("dc_gain", "p1_omega_n", "p1_zeta", "p2_rate", "delay_s"))
           + r"[\s\S]*?\(honest stds: " + NUM + r" each\); all parameters at once: " + NUM + " of 10 blocks",
           rtol=(0.02, 0.02, 0.02, 0.02, 0.02, 0.0, 0.0), speed="slow"),
+    Claim("DM: the ladder on HCIPy's lenslet frames (quick, aligned)", "docs/deformable_mirrors.md",
+          r"0\.065\)\. The former model[\s\S]*?\): mode\s+" + NUM + r" %, damping " + NUM + r" %, delay " + NUM + r" us, DC gain "
+          + NUM + r" %, D0 " + NUM + r" % rms of max; rms\(error/std\)\s+D\(jw\) " + NUM + ", mode " + NUM + ", damping " + NUM
+          + ", delay " + NUM + ", DC gain " + NUM,
+          [sys.executable, "benchmarks/bench_dm_hcipy.py", "--quick", "--case", "aligned", "--no-checks"],
+          r"largest error: mode " + NUM + r" % \(done when <= 0\.5 %\), damping " + NUM + r" % \(<= 5 %\), delay " + NUM
+          + r" us \(<= 2 us\), DC gain " + NUM + r" %\s+D0 rms error / max\|D0\| against the fitted-shift truth: " + NUM
+          + r" %[^\n]*\n\s+rms\(error/std\) \(0\.8\.\.1\.3\): D\(jw\) " + NUM + "; mode " + NUM + ", damping " + NUM
+          + ", delay " + NUM + ", DC gain " + NUM, rtol=(0.02,), speed="slow"),
     Claim("model stds: the delay's profile likelihood", "docs/reliability.md",
           r"interval reaches " + NUM + r" of the linearised std below and " + NUM + r" above, and the likelihood-ratio z at the "
           r"true delay differs from \(estimate - truth\) / std by at most " + NUM,
