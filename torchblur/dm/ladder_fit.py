@@ -58,6 +58,7 @@ from torchblur.dm.spot_fit import SpotFits, chunk_size
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, check_int
 from torchblur.fit.status import (DARK, MASKED, NO_MOTION, NO_PIXELS, NOT_CONVERGED, OUT_OF_FRAME, OUT_OF_LADDER, SINGULAR,
                                   flag_poor_fit)
+from torchblur.image.moments import image_moments
 from torchblur.optim import levenberg_marquardt
 from torchblur.render.blur import quadrature_nodes
 from torchblur.render.splat import kernel_shift_with_jacobian
@@ -275,12 +276,7 @@ def static_slope(images, still, levels, *, pad: int = PAD):
     shift linear in its image to first order)."""
     u, K, h, w = images.shape
     eye = torch.eye(2, dtype=images.dtype, device=images.device)
-    yy, xx = torch.meshgrid(*(torch.arange(n, dtype=images.dtype, device=images.device) for n in (h, w)), indexing="ij")
-
-    def centroid(img):
-        m0 = img.clamp_min(0).sum((-1, -2)).clamp_min(torch.finfo(img.dtype).tiny)
-        return torch.stack([(img.clamp_min(0) * xx).sum((-1, -2)), (img.clamp_min(0) * yy).sum((-1, -2))], -1) / m0[..., None]
-    shift = centroid(images) - centroid(still)[:, None]  # [u, K, 2] the start
+    shift = image_moments(images)[1] - image_moments(still)[1][:, None]  # [u, K, 2] the start: the centroids' difference
     for i in range(SHIFT_ITER + 1):
         img, jac = kernel_shift_with_jacobian(still[:, None], shift[..., :1], shift[..., 1:], eye[None, :1], eye[None, 1:],
                                               torch.ones_like(shift[..., :1]), pad=pad)

@@ -18,6 +18,7 @@ import math
 import torch
 
 from torchblur.errors import ShapeError
+from torchblur.image.moments import image_moments
 from torchblur.render.splat import kernel_shift_with_jacobian
 
 __all__ = ["fit_shifted_still", "chi2_threshold"]
@@ -60,23 +61,15 @@ def fit_shifted_still(images, variance, still, still_variance=None, *, mask=None
     """
     if images.dim() < 3 or still.shape[-3:] != images.shape[-3:]:
         raise ShapeError(f"still: expected [M, h, w] = {tuple(images.shape[-3:])} (the images' last dims), got {tuple(still.shape)}")
-    h, w = images.shape[-2:]
     sv = torch.zeros_like(still) if still_variance is None else torch.as_tensor(still_variance, dtype=still.dtype).expand_as(still)
     use = torch.ones_like(images, dtype=torch.bool) if mask is None else torch.as_tensor(mask).expand_as(images)
     var = torch.as_tensor(variance, dtype=images.dtype, device=images.device).expand_as(images)
     use = use & (var > 0) & torch.isfinite(images)
     data = torch.where(use, images, torch.zeros_like(images))
     # start: the centroids' difference and the light's ratio
-    yy = torch.arange(h, dtype=images.dtype, device=images.device)[:, None]
-    xx = torch.arange(w, dtype=images.dtype, device=images.device)[None, :]
-
-    def centroid(img):
-        m0 = img.clamp_min(0).sum((-1, -2)).clamp_min(torch.finfo(img.dtype).tiny)
-        return (img.clamp_min(0) * xx).sum((-1, -2)) / m0, (img.clamp_min(0) * yy).sum((-1, -2)) / m0, m0
-
-    cx, cy, m_img = centroid(data)
-    sx, sy, m_st = centroid(still)
-    dx, dy, a = cx - sx, cy - sy, m_img / m_st
+    (m_img, c_img, _), (m_st, c_st, _) = image_moments(data), image_moments(still)
+    dx, dy = (c_img - c_st).unbind(-1)
+    a = m_img / m_st.clamp_min(torch.finfo(still.dtype).tiny)
     for _ in range(iterations):
         S, Sx, Sy = _shifted(still, dx, dy, pad)
         wgt = torch.where(use, 1.0 / (var + a[..., None, None] ** 2 * sv).clamp_min(torch.finfo(images.dtype).tiny), 0.0)
