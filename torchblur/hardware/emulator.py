@@ -220,14 +220,12 @@ class EmulatedDevice:
         if cfg.dm.enabled:  # the DM mode: one axis, "pat", the loaded pattern on every actuator
             mirror, _, self.rig = build_dm(cfg)  # the mirror, the sensor and the SimulatedDMRig a DM run builds
             self.axes, self.n_actuators = ("pat",), mirror.n_actuators
-            self._settling_s = mirror.settling_time_s()
             limit = cfg.dm.input_limit if cfg.dm.input_limit is not None else cfg.plant.input_limit
         else:
-
             self.rig = build_simulated_rig(cfg)  # its plant, camera, spots and seed sections
             self.axes, self.n_actuators = tuple(self.rig.inputs), 0  # "x", or "x", "y" for a 2x2 plant; no pattern drive
-            self._settling_s = self.rig.plant.settling_time_s()
             limit = self.rig.input_limit
+        self._settling_s = self.rig._settling_time_s()  # the plant's, or the mirror's slowest actuator's
         self.input_limit = float(limit)  # RANGE?: the largest |command| on any actuator (dm.input_limit, else plant.input_limit)
         slew = None if cfg.dm.enabled else cfg.plant.slew_limit
         self.slew_limit = math.inf if slew is None else float(slew)  # SLEW?: the largest |d command / dt| (plant.slew_limit)

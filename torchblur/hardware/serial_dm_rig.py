@@ -105,8 +105,7 @@ class SerialDMRig(PatternSines, SerialRig):
 
     def pattern_sine(self, pattern, freq_hz: float, amplitude: float, exposures_s: Sequence[float],
                      trigger_offset_s: float | Sequence[float], n_repeats: int, settle_s: float | None = None, power: float = 1.0):
-        """Frames ``[E, R, H, W]`` of the mirror driven with ``amplitude * pattern[j] * sin(2 pi
-        freq_hz t)`` on actuator j, as :meth:`~torchblur.rig.dm.SimulatedDMRig.pattern_sine`
+        """Frames ``[E, R, H, W]``, as :meth:`~torchblur.rig.dm_contract.DMRig.pattern_sine`
         (``settle_s`` None: ``SETTLE AUTO``, the controller's settling wait).
 
         Raises:
@@ -124,18 +123,11 @@ class SerialDMRig(PatternSines, SerialRig):
                                        "amplitude": amp, "settle_s": None, "power": None, "trigger_delay_s": self.trigger_delay_s})
 
     def _pattern_ladder(self, pattern, levels: Sequence[float], n: int, exposure_s: float, power: float = 1.0) -> Capture:
-        """Frames ``[K, n, H, W]`` of the mirror held still at ``levels[k] * pattern`` (input units),
-        ``n`` frames per level at ``exposure_s`` and laser ``power``, as
+        """Frames ``[K, n, H, W]`` of the mirror held still at ``levels[k] * pattern``, as
         :meth:`~torchblur.rig.dm.SimulatedDMRig.pattern_ladder` (the rig's ``pattern_ladder`` on a
-        protocol-3 controller): one transaction (module docstring), each level after the
-        controller's settling wait (``SETTLE AUTO``).
-
-        Raises:
-            ShapeError: ``pattern`` is not [N]; ParameterError: naming ``levels`` when the peak
-            command ``max|levels| max|pattern|`` exceeds the controller's RANGE, or ``n``,
-            ``exposure_s``, ``power`` (nothing sent); AcquisitionStopped: the controller refused
-            (a protocol-2 controller: ERR 2), or the faults outlasted the retries.
-        """
+        protocol-3 controller): one transaction, each level after the controller's settling wait
+        (``SETTLE AUTO``). Raises as :meth:`pattern_sine`, naming ``levels`` for a peak beyond RANGE
+        (and ``n``, ``exposure_s``, ``power``)."""
         p = self._check_pattern(pattern)
         lv = float_list(levels, "levels")
         n = check_int(n, "n", low=1)
