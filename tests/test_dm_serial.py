@@ -202,9 +202,9 @@ def test_open_dm_rig_checks_the_mirror_and_the_sensor(emulators, config_path):
     from torchblur.hardware.serial_dm_rig import open_dm_rig
 
     emu = emulators["frames"]
-    with pytest.raises(ConfigError, match="dm.n_across: the controller .* drives 9 actuators"):
+    with pytest.raises(ConfigError, match="dm.n_across: the config's mirror .* the rig's 9"):
         open_dm_rig(serial_cfg(config_path, emu, "dm.n_across=4"))
-    with pytest.raises(ConfigError, match="wfs.n_across: the camera .* 64x64"):
+    with pytest.raises(ConfigError, match="wfs.pitch_px: .* the rig's camera 64x64"):
         open_dm_rig(serial_cfg(config_path, emu, "wfs.pitch_px=20.0"))
 
 

@@ -390,15 +390,12 @@ def _make_experiment(path: Path) -> Path:
 def _read_all(d):
     """Everything a re-fit reads: experiment.json (plan included), every group's calls, every frame, the config."""
     def read():
-        from torchblur.hardware.recording import Experiment, ReplayFrames
+        from torchblur.hardware.recording import Experiment
         from torchblur.config import IdentifyConfig, load_dataclass
 
         exp = Experiment.open(d, writable=False)
         for g in exp.groups:
             exp.load_calls(g)
-        rf = ReplayFrames(d)
-        for _ in range(len(rf)):
-            rf.read()
         load_dataclass(IdentifyConfig, str(exp.path / "config.yaml"), trusted=False)
         return exp
     return read

@@ -3,8 +3,7 @@
 - :class:`Controller`: pyserial client of the line protocol (docs/protocol.md).
 - :class:`FrameSource`: where frames come from (:class:`Frame`: a tensor with its counter,
   timestamp, exposure); :class:`EmulatorFrames` (the emulator's TCP camera channel),
-  :class:`ReplayFrames` (a recorded experiment directory), :class:`SDKCamera` (the base a
-  real camera's SDK plugs into).
+  :class:`SDKCamera` (the base a real camera's SDK plugs into).
 - :class:`SerialRig`: the :class:`~torchblur.rig.base.Rig` protocol on a controller and a
   camera, so ``identify(cfg, rig=SerialRig.open(port, frames))`` runs unchanged;
   :class:`SerialDMRig` the same for a deformable mirror (protocol 2; its static holds: 3), so
@@ -24,7 +23,7 @@ from torchblur.hardware.errors import (AcquisitionStopped, ConnectionLost, Devic
                      FrameTimeout, GarbageReply, HardwareError, PatternMismatch, RecordingError, ReplyTimeout, StaleFrame)
 from torchblur.hardware.frames import CameraInfo, EmulatorFrames, Frame, FrameSource
 from torchblur.hardware.protocol import ERROR_CODES, PROTOCOL_VERSION
-from torchblur.hardware.recording import SCHEMA_VERSION, Experiment, ReplayFrames
+from torchblur.hardware.recording import SCHEMA_VERSION, Experiment
 from torchblur.hardware.serial_rig import SerialRig, open_frame_source
 from torchblur.hardware.serial_dm_rig import SerialDMRig
 
@@ -49,7 +48,6 @@ __all__ = [
     "PROTOCOL_VERSION",
     "PatternMismatch",
     "RecordingError",
-    "ReplayFrames",
     "ReplyTimeout",
     "SCHEMA_VERSION",
     "SDKCamera",

@@ -12,15 +12,10 @@ Aravis does not say which id the next frame will carry before it comes: the firs
 fixes the mapping (a frame lost before the very first one is not seen); from then on each acquisition
 continues the count.
 
-In a config: ``rig.frames=aravis://[DEVICE][?trigger=Line1&pixel_format=Mono16&readout_s=1e-3]`` (no
-device: the first camera Aravis finds; ``arv-tool-0.8`` lists them). Install: PyGObject and Aravis's
-typelib (Debian: ``apt install gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev`` then
-``pip install 'torchblur[aravis]'``).
-
-Without hardware, Aravis's in-process fake camera (``aravis://Fake_1``, the "Fake" interface) takes
-software triggers (``trigger=Software``); with ``feed=tcp://HOST:PORT`` (emulation only) each frame the
-torchblur emulator renders is written into the fake camera's next buffer by its fill-pattern hook and
-delivered by Aravis's stream (tests/test_aravis.py runs ``torchblur identify`` that way).
+The config (``rig.frames=aravis://[DEVICE][?trigger=Line1&pixel_format=Mono16&readout_s=1e-3]``),
+the install and the fake cameras it is tested on (``feed=tcp://HOST:PORT``: the emulator's frames
+written into the in-process fake camera's buffers by its fill-pattern hook): README, "GenICam cameras
+through Aravis".
 """
 from __future__ import annotations
 
@@ -33,9 +28,9 @@ from torchblur.config.camera_urls import aravis_url_options
 from torchblur.errors import ParameterError
 from torchblur.hardware.camera_sdk import SDKCamera
 from torchblur.hardware.errors import ConnectionLost, FrameError, FrameTimeout, HardwareError
-from torchblur.hardware.frames import CameraInfo, Frame
+from torchblur.hardware.frames import CameraInfo, EmulatorFrames, Frame
 
-__all__ = ["AravisCamera", "aravis_available"]
+__all__ = ["AravisCamera"]
 
 _DTYPES = {"Mono8": np.uint8, "Mono10": "<u2", "Mono12": "<u2", "Mono14": "<u2", "Mono16": "<u2"}
 _ID_WRAP = 65535  # GigE Vision 1.x block ids run 1..65535
@@ -51,15 +46,6 @@ def _aravis():
         raise ImportError("AravisCamera needs PyGObject and Aravis 0.8's typelib: apt install gir1.2-aravis-0.8 (Debian), then "
                           "pip install 'torchblur[aravis]'") from exc
     return Aravis
-
-
-def aravis_available() -> bool:
-    """Whether Aravis imports (PyGObject and the Aravis 0.8 typelib)."""
-    try:
-        _aravis()
-        return True
-    except ImportError:
-        return False
 
 
 def _pointer(gobj) -> int:
@@ -122,8 +108,6 @@ class AravisCamera(SDKCamera):
         opts = aravis_url_options(url)
         spec = opts.pop("feed")
         if spec is not None and feed is None:
-            from torchblur.hardware.frames import EmulatorFrames
-
             feed = EmulatorFrames(spec)
         return cls(opts.pop("device"), feed=feed, **opts)
 

@@ -23,8 +23,8 @@ import secrets
 import time
 
 from torchblur.hardware.errors import ConnectionLost, DeviceError, GarbageReply, ReplyTimeout
-from torchblur.hardware.protocol import (E_UNKNOWN, MAX_LINE, PROTOCOL_VERSIONS, Reply, format_command, parse_reply, pattern_checksum,
-                                         pattern_lines)
+from torchblur.hardware.protocol import (E_UNKNOWN, MAX_LINE, PROTOCOL_VERSIONS, Reply, format_command, format_number, parse_reply,
+                                         pattern_checksum, pattern_lines)
 
 __all__ = ["Controller", "import_serial"]
 
@@ -302,13 +302,8 @@ class Controller:
     def _positive_query(self, name: str, key: str, *, none_ok: bool) -> float | None:
         """``NAME?``'s field ``key``, a finite number > 0; None for a controller that does not know
         the query (``ERR 1 UNKNOWN``) or, with ``none_ok``, a reply ``key=none``."""
-        try:
-            r = self.command(f"{name}?")
-        except DeviceError as exc:
-            if exc.code == E_UNKNOWN:
-                return None
-            raise
-        if none_ok and r.fields.get(key) == "none":
+        r = self._optional(f"{name}?")
+        if r is None or (none_ok and r.fields.get(key) == "none"):
             return None
         try:
             v = float(r.fields[key])
@@ -317,6 +312,15 @@ class Controller:
         if not (v > 0 and math.isfinite(v)):
             raise GarbageReply(f"{name} reply with {'an' if key[0] in 'aeiou' else 'a'} {key} that is not finite and > 0: {r.fields}")
         return v
+
+    def _optional(self, word: str) -> Reply | None:
+        """The reply to ``word``; None from a controller that does not know it (``ERR 1 UNKNOWN``: an older firmware)."""
+        try:
+            return self.command(word)
+        except DeviceError as exc:
+            if exc.code == E_UNKNOWN:
+                return None
+            raise
 
     def ping(self, token: str = "p") -> None:
         r = self.command("PING", token)
@@ -344,8 +348,6 @@ class Controller:
 
     def wave_multi(self, axis: str, tones) -> float:
         """Start ``sum_k a_k sin(2 pi f_k t + p_k)``; ``tones`` = [(f_hz, a, p_rad), ...]."""
-        from torchblur.hardware.protocol import format_number
-
         spec = ",".join(f"{format_number(f)}:{format_number(a)}:{format_number(p)}" for f, a, p in tones)
         return self.command("WAVE", axis, "MULTI", spec).get_float("start")
 
@@ -365,12 +367,9 @@ class Controller:
     def actuators(self) -> int:
         """``ACT?`` -> the number of actuators the pattern drives (0: a device without a
         pattern drive; also 0 for a protocol-1 firmware, which answers ``ERR 1 UNKNOWN``)."""
-        try:
-            r = self.command("ACT?")
-        except DeviceError as exc:
-            if exc.code == E_UNKNOWN:
-                return 0
-            raise
+        r = self._optional("ACT?")
+        if r is None:
+            return 0
         try:
             n = int(r.fields["n"])
         except (KeyError, ValueError) as exc:

@@ -12,35 +12,10 @@ line of JSON, e.g.::
 then serves until killed.
 
 Time is simulated: the controller clock advances by the acquisitions' schedule, not by wall
-time, so a 1 Hz sweep runs as fast as the frames render. The waveform and the trigger
-share that clock: ``WAVE`` starts the command at the current clock time (from rest), each
-``ARM`` trigger falls at ``start + k / f + trigger_offset_s``, the first such time after the
-settling wait and once the camera is ready, exactly as :meth:`SimulatedRig.sine` schedules
-them. ``STOP`` puts the mirror back to rest at once (no decay is modelled). In the DM mode
-``WAVE pat HOLD u`` holds the pattern still at ``u``: ``ARM`` then fires every camera cycle from
-the settling wait on and the frames are :meth:`SimulatedDMRig.pattern_ladder`'s at that level.
-
-Fault injection (``fault.*``, counted in frames the camera has finished with, from the boot
-or, with ``fault.start=wave``, from the first ``WAVE`` command (the sweep); -1 = off):
-
-- ``fault.timeout_after=N``: the first ``fault.repeat`` commands received once N frames were
-  served get no reply (and are not executed);
-- ``fault.garbage_after=N``: the reply to the next ``fault.repeat`` commands is preceded by
-  garbage bytes (including a newline);
-- ``fault.reset_after=N``: after frame N the controller reboots (new boot id, frame counter
-  back to 0, waveform and laser off, the rest of the acquisition lost, STATUS says RESET);
-  with ``fault.repeat`` > 1 it reboots again after each of the next frames;
-- ``fault.drop_frame=N``: frames N .. N + repeat - 1 are never sent (their counters are used);
-- ``fault.stale_frame=N``: frames N .. N + repeat - 1 are replaced by a copy of the frame
-  sent before them;
-- ``fault.exit_after=N``: the process exits (code 3) right after frame N (a lost connection);
-- ``fault.hang_after=N``: after frame N the controller and the camera go silent (no replies,
-  no frames) until killed;
-- ``fault.disconnect_after=N``: after frame N the emulator closes the camera channel's
-  connection and, with ``transport=socket``, the serial connection (a cable pulled and put
-  back: the client may reconnect).
-
-Every fault is reported on stderr as ``emulator: fault: ...``.
+time, and every trigger falls where :class:`~torchblur.rig.simulated.SimulatedRig` would put it.
+The commands, the trigger timing, the device's ranges and the fault injection (``fault.*``,
+every fault reported on stderr as ``emulator: fault: ...``) are docs/protocol.md's ("The
+emulator", "Trigger timing").
 """
 from __future__ import annotations
 
@@ -57,18 +32,19 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+import torch
 
 from torchblur.config import (CameraConfig, DMConfig, PlantConfig, SpotsConfig, WFSConfig, check_declared, key, load_dataclass,
                               validate_camera, validate_dm_model, validate_plant, validate_spots)
 from torchblur.errors import ParameterError
-from torchblur.hardware.frames import CameraInfo, encode_message, frame_message
+from torchblur.hardware.frames import CameraInfo, encode_message, frame_message, raw_pixels
 from torchblur.hardware.protocol import (E_ARGS, E_AXIS, E_BUSY, E_INTERNAL, E_LINE, E_RANGE, E_UNKNOWN, HOLD_PROTOCOL, MAX_LINE,
                                          PROTOCOL_VERSION, ProtocolViolation, format_err, format_ok, parse_command, pattern_checksum)
 from torchblur.rig.base import check_drive, check_slew, command_peak, command_slew
-from torchblur.rig.factory import build_dm
+from torchblur.rig.factory import build_dm, build_simulated_rig
+from torchblur.rig.simulated import periodic_triggers, pulse_references
 from torchblur import __version__
 from torchblur.render.trajectory import Multisine
-from torchblur.rig.factory import build_simulated_rig
 
 __all__ = ["FaultConfig", "EmulatorConfig", "load_emulator_config", "EmulatedDevice", "main"]
 
@@ -133,13 +109,6 @@ def _log(msg: str) -> None:
     print(f"emulator: {msg}", file=sys.stderr, flush=True)
 
 
-def _as_wire_array(frame: np.ndarray) -> np.ndarray:
-    """uint16 when the frame holds integers in range (a real camera's raw frame), else float64."""
-    if frame.size and np.all(frame >= 0) and np.all(frame <= 65535) and np.all(frame == np.round(frame)):
-        return frame.astype(np.uint16)
-    return frame.astype(np.float64)
-
-
 @dataclass
 class _Job:
     epoch: int
@@ -158,10 +127,7 @@ class FrameServer:
 
     def __init__(self, info: CameraInfo, port: int = 0, protocol: int = PROTOCOL_VERSION):
         self.info, self.protocol = info, protocol
-        self._srv = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        self._srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        self._srv.bind(("127.0.0.1", port))
-        self._srv.listen(4)
+        self._srv = socket.create_server(("127.0.0.1", port), backlog=4)  # SO_REUSEADDR on POSIX
         self.port = self._srv.getsockname()[1]
         self._conn: socket.socket | None = None
         self._lock = threading.Lock()
@@ -254,14 +220,12 @@ class EmulatedDevice:
         if cfg.dm.enabled:  # the DM mode: one axis, "pat", the loaded pattern on every actuator
             mirror, _, self.rig = build_dm(cfg)  # the mirror, the sensor and the SimulatedDMRig a DM run builds
             self.axes, self.n_actuators = ("pat",), mirror.n_actuators
-            self._settling_s = mirror.settling_time_s()
             limit = cfg.dm.input_limit if cfg.dm.input_limit is not None else cfg.plant.input_limit
         else:
-
             self.rig = build_simulated_rig(cfg)  # its plant, camera, spots and seed sections
             self.axes, self.n_actuators = tuple(self.rig.inputs), 0  # "x", or "x", "y" for a 2x2 plant; no pattern drive
-            self._settling_s = self.rig.plant.settling_time_s()
             limit = self.rig.input_limit
+        self._settling_s = self.rig._settling_time_s()  # the plant's, or the mirror's slowest actuator's
         self.input_limit = float(limit)  # RANGE?: the largest |command| on any actuator (dm.input_limit, else plant.input_limit)
         slew = None if cfg.dm.enabled else cfg.plant.slew_limit
         self.slew_limit = math.inf if slew is None else float(slew)  # SLEW?: the largest |d command / dt| (plant.slew_limit)
@@ -425,10 +389,8 @@ class EmulatedDevice:
         self.reset_flag = False
         if self._fault_base is None:
             self._fault_base = self.served
-        if mode == "HOLD":
-            return self._hold_pattern(a[2])
         if axis == "pat":
-            return self._wave_pattern(a[2], a[3])
+            return self._pattern_wave(mode, *a[2:])
         if mode == "SINE":
             _in_range(a[2], "freq_hz")
             self._check_drive(abs(a[3]), abs(a[3]) * 2 * math.pi * a[2])
@@ -457,34 +419,26 @@ class EmulatedDevice:
         self.pattern[start:start + len(values)] = values
         return format_ok("PAT", start=start, count=len(values))
 
-    def _wave_pattern(self, freq_hz: float, amplitude: float) -> str:
-        """``WAVE pat SINE f a``: ``a * pattern[j] * sin(2 pi f (t - start))`` on actuator j. The
-        peak command ``|a| max |pattern|`` must be within RANGE (ERR 4, the safe drive), and
-        the simulated rig's own checks of the command (its spots stay in their crops) must
-        pass (ERR 4); the reply names the checksum of the pattern it drives."""
-        _in_range(freq_hz, "freq_hz")
+    def _pattern_wave(self, mode: str, *args) -> str:
+        """``WAVE pat SINE f a`` (``a * pattern[j] * sin(2 pi f (t - start))`` on actuator j) or
+        ``WAVE pat HOLD u`` (protocol 3: actuator j held still at ``u * pattern[j]`` from now). The
+        peak command (``|a|`` or ``|u|`` times ``max |pattern|``) must be within RANGE (the safe
+        drive) and the simulated rig's own checks of the command (its spots stay in their crops)
+        must pass, else ERR 4; the reply names the checksum of the pattern it drives."""
+        if mode == "SINE":
+            _in_range(args[0], "freq_hz")
         pattern = self.pattern.copy()
-        self._check_drive(abs(amplitude) * float(np.abs(pattern).max(initial=0.0)))
+        self._check_drive(abs(args[-1]) * float(np.abs(pattern).max(initial=0.0)))
         try:
-            self.rig.check_pattern(pattern, freq_hz, amplitude)
+            if mode == "SINE":
+                self.rig.check_pattern(pattern, *args)
+            else:
+                self.rig.check_ladder(pattern, list(args))
         except ParameterError as exc:
             raise ProtocolViolation(E_RANGE, str(exc)) from None
-        self.wave = {"mode": "SINE", "freq_hz": freq_hz, "amplitude": amplitude, "start": self.clock, "period": 1.0 / freq_hz,
-                     "axis": "pat", "pattern": pattern}
-        return format_ok("WAVE", axis="pat", mode="SINE", start=float(self.clock), crc=pattern_checksum(pattern))
-
-    def _hold_pattern(self, level: float) -> str:
-        """``WAVE pat HOLD u`` (protocol 3): actuator j held still at ``u * pattern[j]`` from now; the
-        peak command ``|u| max |pattern|`` within RANGE and the simulated rig's own checks of the
-        holds (its spots stay in their crops) pass (ERR 4); the reply names the pattern's checksum."""
-        pattern = self.pattern.copy()
-        self._check_drive(abs(level) * float(np.abs(pattern).max(initial=0.0)))
-        try:
-            self.rig.check_ladder(pattern, [level])
-        except ParameterError as exc:
-            raise ProtocolViolation(E_RANGE, str(exc)) from None
-        self.wave = {"mode": "HOLD", "level": level, "start": self.clock, "axis": "pat", "pattern": pattern}
-        return format_ok("WAVE", axis="pat", mode="HOLD", start=float(self.clock), crc=pattern_checksum(pattern))
+        wave = {"freq_hz": args[0], "amplitude": args[1], "period": 1.0 / args[0]} if mode == "SINE" else {"level": args[0]}
+        self.wave = {"mode": mode, **wave, "start": self.clock, "axis": "pat", "pattern": pattern}
+        return format_ok("WAVE", axis="pat", mode=mode, start=float(self.clock), crc=pattern_checksum(pattern))
 
     def _arm(self, off: float, te: float, n: int) -> str:
         self._check_exposure(te)
@@ -508,16 +462,10 @@ class EmulatedDevice:
             period = wv["period"]
             settle = self.settle if self.settle is not None else math.ceil(self._settling_s / period - 1e-9) * period
             ready = max(settle, self.cam_ready - wv["start"])
-            ready0 = ready
-            rel = []
-            for _ in range(n):  # SimulatedRig.sine's schedule, step for step
-                k = math.ceil((ready - off) / period - 1e-9)
-                t = k * period + off
-                rel.append(t)
-                ready = t + cycle
+            rel = periodic_triggers(ready, period, off, n, cycle)  # SimulatedRig.sine's schedule
             base = wv["start"]
             kind = "sine" if wv["mode"] == "SINE" else "multi"
-            args = {"wave": dict(wv), "settle_s": ready0, "offset": off, "power": self.power}
+            args = {"wave": dict(wv), "settle_s": ready, "offset": off, "power": self.power}
         return self._schedule(kind, te, n, base, rel, cycle, args, "ARM")
 
     def _pulse(self, off: float, p0: float, width: float, te: float, n: int) -> str:
@@ -529,11 +477,8 @@ class EmulatedDevice:
         self.reset_flag = False
         cycle = self.rig._cycle_s(te)
         base = max(self.clock, self.cam_ready)
-        rel, ready = [], 0.0
-        for _ in range(n):  # SimulatedRig.pulse's schedule
-            ref = ready - min(off, p0, 0.0)
-            rel.append(ref + off)
-            ready = max(ref + off + cycle, ref + p0 + width)
+        refs, ready = pulse_references([off] * n, p0, width, cycle)  # SimulatedRig.pulse's schedule
+        rel = [ref + off for ref in refs]
         args = {"offset": off, "pulse_time_s": p0, "pulse_width_s": width, "power": self.power, "end": ready}
         return self._schedule("pulse", te, n, base, rel, cycle, args, "PULSE")
 
@@ -589,9 +534,6 @@ class EmulatedDevice:
     def _render_multi(self, job: _Job) -> np.ndarray:
         """A MULTI waveform in steady state (the settle wait is assumed to cover transients):
         each tone through the plant's frequency response, rendered by the rig's renderer."""
-        import torch
-
-
         r = self.rig
         tones = job.args["wave"]["tones"]
         f = np.array([t[0] for t in tones])
@@ -634,7 +576,7 @@ class EmulatedDevice:
             self.served += 1
             self.pending -= 1
             counter = job.first + i
-            msg = frame_message(_as_wire_array(frame), counter=counter, timestamp_s=job.base_s + trig, trigger_time_s=trig,
+            msg = frame_message(raw_pixels(frame), counter=counter, timestamp_s=job.base_s + trig, trigger_time_s=trig,
                                 trigger_offset_s=off, exposure_s=job.exposure_s, boot=self.boot, kind=job.kind)
         send = msg
         if f.drop_frame >= 0 and f.drop_frame <= idx < f.drop_frame + f.repeat:
@@ -763,9 +705,6 @@ def main(argv: list[str] | None = None, *, config_path: str | None = None) -> in
     """Run the emulator with ``key=value`` overrides; prints the JSON start line."""
     import tty
 
-    import torch
-
-
     cfg = load_emulator_config(config_path, list(argv or []))
     torch.set_num_threads(int(cfg.threads))
     if cfg.exit_with_parent:
@@ -804,10 +743,7 @@ def main(argv: list[str] | None = None, *, config_path: str | None = None) -> in
         finally:
             os.close(slave)
     else:
-        srv = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        srv.bind(("127.0.0.1", int(cfg.serial_port)))
-        srv.listen(1)
+        srv = socket.create_server(("127.0.0.1", int(cfg.serial_port)), backlog=1)
         info["serial"] = f"socket://127.0.0.1:{srv.getsockname()[1]}"
         print(json.dumps(info), flush=True)
         serve_socket(device, srv, serial_conn)

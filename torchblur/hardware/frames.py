@@ -5,15 +5,8 @@ A frame source delivers :class:`Frame` objects: a ``[H, W]`` tensor in ADU with 
 metadata (frame counter, timestamp, exposure). The rig (:class:`~torchblur.hardware.
 serial_rig.SerialRig`) checks every frame against what the controller said it triggered.
 
-Wire format of the emulator's camera channel (TCP, loopback): a stream of messages, each
-
-    b"TBF1" | u32 header_len | u32 payload_len | header (UTF-8 JSON) | payload
-
-(unsigned 32-bit big-endian lengths). The first message after connecting is
-``{"type": "hello", "camera": {...}, "protocol": 3}`` with no payload; then one
-``{"type": "frame", "counter", "timestamp_s", "trigger_time_s", "trigger_offset_s",
-"exposure_s", "shape": [H, W], "dtype", "boot", "kind"}`` message per frame, its payload the
-pixels in C order, little-endian.
+The wire format of the emulator's camera channel (``TBF1`` messages: a JSON header and the
+pixels) is docs/protocol.md's "The camera channel".
 """
 from __future__ import annotations
 
@@ -31,7 +24,7 @@ import torch
 
 from torchblur.hardware.errors import ConnectionLost, FrameTimeout, GarbageReply
 
-__all__ = ["CameraInfo", "Frame", "FrameSource", "EmulatorFrames", "encode_message", "WireDecoder", "DTYPES"]
+__all__ = ["CameraInfo", "CameraProperties", "Frame", "FrameSource", "EmulatorFrames", "encode_message", "raw_pixels", "WireDecoder", "DTYPES"]
 
 MAGIC = b"TBF1"
 _HEAD = struct.Struct(">4sII")
@@ -60,6 +53,27 @@ class CameraInfo:
     def from_dict(cls, d: dict) -> "CameraInfo":
         return cls(frame_shape=tuple(int(v) for v in d["frame_shape"]), frame_rate_hz=float(d["frame_rate_hz"]),
                    max_exposure_s=float(d["max_exposure_s"]), readout_s=float(d["readout_s"]), name=str(d.get("name", "")))
+
+
+class CameraProperties:
+    """The camera properties of :class:`~torchblur.rig.base.CameraRig` read from ``self.info``
+    (a :class:`CameraInfo`): a rig whose camera is described by one."""
+
+    @property
+    def frame_shape(self) -> tuple[int, int]:
+        return tuple(self.info.frame_shape)
+
+    @property
+    def frame_rate_hz(self) -> float:
+        return self.info.frame_rate_hz
+
+    @property
+    def max_exposure_s(self) -> float:
+        return self.info.max_exposure_s
+
+    @property
+    def readout_s(self) -> float:
+        return self.info.readout_s
 
 
 @dataclass
@@ -149,6 +163,13 @@ def encode_message(header: dict, payload: bytes = b"") -> bytes:
     """One message of the camera channel's wire format."""
     h = json.dumps(header, separators=(",", ":")).encode()
     return _HEAD.pack(MAGIC, len(h), len(payload)) + h + payload
+
+
+def raw_pixels(frames: np.ndarray) -> np.ndarray:
+    """``frames`` as uint16 when they hold integers in range (a real camera's raw values), else float64."""
+    if frames.size and np.all(frames >= 0) and np.all(frames <= 65535) and np.all(frames == np.round(frames)):
+        return frames.astype(np.uint16)
+    return frames.astype(np.float64)
 
 
 def frame_message(frame_np: np.ndarray, **header) -> bytes:

@@ -1,12 +1,7 @@
-"""A recording is untrusted input: the schema checks of ``experiment.json`` and
-``manifest.jsonl`` lines, and the scan that sorts a manifest into complete groups and
-problems (docs/protocol.md, "The experiment directory").
-
-Every field is type- and range-checked (a page within its group, an amplitude finite and
-> 0, a frame file named ``frames/<group>.tif`` inside the run folder, ...); a group is
-complete when its lines agree with each other, cover pages ``0 .. group_frames-1`` once,
-and its file's SHA-256 is the recorded one. Sizes are bounded before parsing (a line
-at most :data:`MAX_LINE_BYTES`, JSON nested at most :data:`MAX_JSON_DEPTH` deep).
+"""A recording is untrusted input: the schema checks of ``experiment.json`` and of
+``manifest.jsonl`` lines, and the scan that sorts a manifest into complete groups and problems
+(what is checked: docs/protocol.md, "The experiment directory"). Sizes are bounded before
+parsing (a line at most :data:`MAX_LINE_BYTES`, JSON nested at most :data:`MAX_JSON_DEPTH` deep).
 """
 from __future__ import annotations
 
@@ -18,13 +13,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from torchblur.errors import excerpt
-from torchblur.files import sha256_bounded
-from torchblur.files import read_bounded as _read_bounded
+from torchblur.files import read_bounded as _read_bounded, sha256_bounded
 from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.run_folder import inside
 
 __all__ = ["SCHEMA_VERSION", "MAX_LINE_BYTES", "MAX_JSON_DEPTH", "MAX_META_BYTES", "MAX_MANIFEST_BYTES", "MAX_FRAME_SIDE", "METHODS",
-           "SETTINGS_KEY", "INTEGRITY_KEY", "settings_digest", "meta_digest", "ManifestScan", "check_line", "check_meta", "check_record", "expected_file", "load_json", "read_bounded", "scan_manifest"]
+           "SETTINGS_KEY", "INTEGRITY_KEY", "settings_digest", "meta_digest", "ManifestScan", "check_line", "check_meta", "expected_file", "load_json", "read_bounded", "scan_manifest"]
 
 SCHEMA_VERSION = 1
 MAX_LINE_BYTES = 64 * 1024
@@ -43,7 +37,8 @@ _SHARED = ("kind", "group_frames", "file", "sha256", "dtype", "input", "freq_hz"
 _SCHEMA_KEYS = ("schema_version", "torchblur_version", "created", "camera", "status", "sessions", INTEGRITY_KEY)
 
 
-def _digest(value) -> str:
+def meta_digest(value) -> str:
+    """SHA-256 of a JSON value (keys sorted): a value ``experiment.json`` holds beside its schema (a DM run's plan)."""
     return hashlib.sha256(json.dumps(value, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 
@@ -52,12 +47,7 @@ def settings_digest(lines: list) -> str:
     page order, keys sorted): written with the group, checked at every read, so a group whose
     amplitudes, timing or arguments were edited is refused, not re-fitted."""
     body = [{k: v for k, v in ln.items() if k not in ("sha256", SETTINGS_KEY)} for ln in sorted(lines, key=lambda ln: ln["page"])]
-    return _digest(body)
-
-
-def meta_digest(value) -> str:
-    """SHA-256 of a value ``experiment.json`` holds beside its schema (a DM run's plan)."""
-    return _digest(value)
+    return meta_digest(body)
 
 
 class _Bad(Exception):
@@ -203,18 +193,6 @@ def _check_pattern(p, name: str = "pattern") -> None:
     for v in p:
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or abs(v) > MAX_AMPLITUDE:
             raise _Bad(f"args.{name}: expected finite commands within +-{MAX_AMPLITUDE:g}, got {excerpt(v)}")
-
-
-def check_record(record, root: Path) -> str:
-    """:func:`check_line` for a caller's record; returns its group.
-
-    Raises:
-        RecordingError: naming the invalid field.
-    """
-    try:
-        return check_line(record, root)
-    except _Bad as exc:
-        raise RecordingError(f"record: {exc}") from None
 
 
 def _check_group(g: str, gl: list, root: Path, verify: bool) -> None:

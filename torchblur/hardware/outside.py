@@ -1,13 +1,10 @@
 """Outside recordings: frames a lab took with its own camera and function generator, read
 into one checked object (the folder format: docs/outside_recordings.md).
 
-A folder holds ``frames.csv`` (one row per frame: its TIFF ``file`` and ``page``, its
-``kind``, and for the sweep its ``freq_hz``, ``exposure_s``, ``window_start_s`` or
-``trigger_phase_rad``, ``amplitude``, optional ``power`` and ``repeat``), the TIFF files it
-names, and ``recording.yaml`` (the camera's ``gain_e_per_adu`` and the timing). Everything in
-it is untrusted input: sizes are bounded before reading, every cell is type- and
-range-checked, and every error is a :class:`~torchblur.hardware.errors.RecordingError` that
-names the file, the line and the column. Nothing is written.
+A folder holds ``frames.csv`` (one row per frame), the TIFF files it names and
+``recording.yaml`` (the camera and the timing). Everything in it is untrusted input, and every
+error is a :class:`~torchblur.hardware.errors.RecordingError` that names the file, the line and
+the column. Nothing is written.
 
 :func:`read_outside_recording` gives an :class:`OutsideRecording`: the dark and still frames
 (ADU, ``[N, H, W]``) and the sweep points (:class:`OutsidePoint`, one per frequency, frames
@@ -23,7 +20,7 @@ import csv
 import io
 import math
 import posixpath
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from functools import partial
 from pathlib import Path
 from typing import Optional
@@ -36,7 +33,7 @@ from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.manifest import MAX_FRAME_SIDE, MAX_AMPLITUDE, read_bounded
 from torchblur.hardware.recording import check_distinct_frames, decode_tiff
 from torchblur.hardware.run_folder import inside
-from torchblur.config import whole_periods
+from torchblur.config import check_declared, key, load_dataclass, whole_periods
 
 __all__ = ["CSV_NAME", "YAML_NAME", "OutsideCamera", "OutsideFrames", "OutsidePoint", "OutsideRecording", "is_outside_recording", "number",
            "read_csv", "read_folder", "read_outside_recording"]
@@ -51,9 +48,6 @@ MAX_FREQ_HZ = 1e7
 MAX_EXPOSURE_S = 1e3
 KINDS = ("dark", "still", "sweep")
 DM_KINDS = KINDS + ("ladder",)  #: a DM recording's rows: also its patterns held still (columns pattern, level)
-#: recording.yaml's largest magnitudes (beyond them a value is a typo, and its square overflows)
-CAMERA_HIGH = {"gain_e_per_adu": 1e6, "read_noise_e": 1e6, "saturation_adu": 1e12, "trigger_delay_s": MAX_EXPOSURE_S,
-               "latency_s": MAX_EXPOSURE_S, "latency_std_s": MAX_EXPOSURE_S, "jitter_s": MAX_EXPOSURE_S}
 REQUIRED = ("file", "kind")
 OPTIONAL = ("page", "freq_hz", "exposure_s", "window_start_s", "trigger_phase_rad", "amplitude", "power", "repeat", "note")
 
@@ -66,15 +60,16 @@ class OutsideCamera:
     ``trigger_delay_s`` and ``latency_s`` (the exposure begins ``trigger_delay_s +
     latency_s`` after the trigger; used with ``trigger_phase_rad``), ``latency_std_s`` (std of
     every exposure's start, common to the whole recording: enters the phase std),
-    ``jitter_s`` (frame-to-frame std of the start), ``input_unit`` (a label)."""
+    ``jitter_s`` (frame-to-frame std of the start), ``input_unit`` (a label). The bounds: beyond
+    them a value is a typo, and its square overflows."""
 
-    gain_e_per_adu: Optional[float] = None
-    read_noise_e: Optional[float] = None
-    saturation_adu: Optional[float] = None
-    trigger_delay_s: float = 0.0
-    latency_s: float = 0.0
-    latency_std_s: float = 0.0
-    jitter_s: float = 0.0
+    gain_e_per_adu: Optional[float] = key(None, positive=True, high=1e6, optional=True)
+    read_noise_e: Optional[float] = key(None, nonnegative=True, high=1e6, optional=True)
+    saturation_adu: Optional[float] = key(None, low=-1e12, high=1e12, optional=True)
+    trigger_delay_s: float = key(0.0, low=-MAX_EXPOSURE_S, high=MAX_EXPOSURE_S)
+    latency_s: float = key(0.0, low=-MAX_EXPOSURE_S, high=MAX_EXPOSURE_S)
+    latency_std_s: float = key(0.0, nonnegative=True, high=MAX_EXPOSURE_S)
+    jitter_s: float = key(0.0, nonnegative=True, high=MAX_EXPOSURE_S)
     input_unit: str = "input unit"
 
 
@@ -176,8 +171,6 @@ def read_folder(root: Path, sections: tuple = (), extra: tuple = ()) -> tuple[di
 def _read_camera(root: Path, sections: tuple = ()) -> OutsideCamera:
     """``recording.yaml`` as an :class:`OutsideCamera`, every value checked (its top-level
     ``sections``, a DM recording's sensor layout, are read by the caller: :mod:`torchblur.identify.dm_outside`)."""
-    from torchblur.config import load_dataclass
-
     where = root / YAML_NAME
     if not where.is_file():
         raise RecordingError(f"{where}: missing; it must give at least gain_e_per_adu (docs/outside_recordings.md)")
@@ -192,18 +185,10 @@ def _read_camera(root: Path, sections: tuple = ()) -> OutsideCamera:
         raise RecordingError(f"{YAML_NAME}: {msg}") from None
     if cam.gain_e_per_adu is None:
         raise RecordingError(f"{YAML_NAME}: gain_e_per_adu (electrons per ADU) is required")
-    checks = (("gain_e_per_adu", True, False), ("read_noise_e", False, True), ("saturation_adu", False, True),
-              ("trigger_delay_s", False, False), ("latency_s", False, False), ("latency_std_s", False, True), ("jitter_s", False, True))
-    for key, required, optional in checks:
-        v = getattr(cam, key)
-        if v is None and optional:
-            continue
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            raise RecordingError(f"{YAML_NAME}: {key}: expected a finite number, got {excerpt(v)}")
-        if key in ("gain_e_per_adu",) and v <= 0 or key in ("read_noise_e", "latency_std_s", "jitter_s") and v < 0:
-            raise RecordingError(f"{YAML_NAME}: {key}: expected a number {'> 0' if key == 'gain_e_per_adu' else '>= 0'}, got {excerpt(v)}")
-        if abs(v) > CAMERA_HIGH[key]:
-            raise RecordingError(f"{YAML_NAME}: {key}: expected a magnitude of at most {CAMERA_HIGH[key]:g}, got {excerpt(v)}")
+    try:
+        check_declared(cam, "")
+    except ConfigError as exc:
+        raise RecordingError(f"{YAML_NAME}: {exc}") from None
     if not isinstance(cam.input_unit, str) or len(cam.input_unit) > 40:
         raise RecordingError(f"{YAML_NAME}: input_unit: expected a string of at most 40 characters, got {excerpt(cam.input_unit)}")
     return cam
@@ -376,8 +361,6 @@ def _read_frames(root: Path, rows: list) -> tuple[dict, np.dtype]:
 def _resolved_saturation(camera: OutsideCamera, dtype: np.dtype) -> OutsideCamera:
     """The camera with ``saturation_adu`` set: as given, else the integer dtype's maximum
     (float frames: None, no pixel is masked)."""
-    from dataclasses import replace
-
     if camera.saturation_adu is not None or np.dtype(dtype).kind == "f":
         return camera
     return replace(camera, saturation_adu=float(np.iinfo(dtype).max))

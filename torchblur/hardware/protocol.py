@@ -2,17 +2,13 @@
 
 Shared by the client (:class:`~torchblur.hardware.controller.Controller`) and the emulator,
 so both sides parse with the same rules. Pure functions, no I/O.
-
-A command is one ASCII line ``WORD [ARG ...]\\n`` (single spaces, at most
-:data:`MAX_LINE` bytes, an optional ``\\r`` before the ``\\n`` is ignored). Every command
-gets exactly one reply line: ``OK <WORD> [key=value ...]`` where ``<WORD>`` is the
-command's word without ``?``, or ``ERR <code> <NAME> <text>`` with a code of
-:data:`ERROR_CODES`.
 """
 from __future__ import annotations
 
 import math
 import re
+import struct
+import zlib
 from dataclasses import dataclass
 
 __all__ = [
@@ -157,24 +153,16 @@ def parse_command(line: str | bytes) -> Command:
         ProtocolViolation: with the ``ERR`` code to answer (unknown word, wrong argument
             count, bad number, out of range, bad axis, bad bytes or length).
     """
-    if isinstance(line, (bytes, bytearray)):
-        raw = bytes(line)
-        if raw.endswith(b"\n"):
-            raw = raw[:-1]
-        if raw.endswith(b"\r"):
-            raw = raw[:-1]
-        if len(raw) > MAX_LINE:
-            raise ProtocolViolation(E_LINE, f"line longer than {MAX_LINE} bytes")
-        if any(b < 0x20 or b > 0x7E for b in raw):
-            raise ProtocolViolation(E_LINE, "line holds bytes that are not printable ASCII")
-        text = raw.decode("ascii")
-    else:
-        text = line[:-1] if line.endswith("\n") else line
-        text = text[:-1] if text.endswith("\r") else text
-        if len(text) > MAX_LINE:
-            raise ProtocolViolation(E_LINE, f"line longer than {MAX_LINE} bytes")
-        if any(not (0x20 <= ord(c) <= 0x7E) for c in text):
-            raise ProtocolViolation(E_LINE, "line holds bytes that are not printable ASCII")
+    raw = line.encode("utf-8", "surrogateescape") if isinstance(line, str) else bytes(line)
+    if raw.endswith(b"\n"):
+        raw = raw[:-1]
+    if raw.endswith(b"\r"):
+        raw = raw[:-1]
+    if len(raw) > MAX_LINE:
+        raise ProtocolViolation(E_LINE, f"line longer than {MAX_LINE} bytes")
+    if any(b < 0x20 or b > 0x7E for b in raw):
+        raise ProtocolViolation(E_LINE, "line holds bytes that are not printable ASCII")
+    text = raw.decode("ascii")
     if text == "":
         raise ProtocolViolation(E_UNKNOWN, "empty line")
     tokens = text.split(" ")
@@ -241,9 +229,6 @@ def pattern_checksum(values) -> str:
     polynomial) of the pattern's values as IEEE-754 float64, little-endian, in order, as 8
     lowercase hex digits. Exact: it tells every bit of every value (``-0.0`` from ``0.0`` too);
     a firmware computes it from the doubles it holds, with no text formatting."""
-    import struct
-    import zlib
-
     vals = [float(v) for v in values]
     return f"{zlib.crc32(struct.pack(f'<{len(vals)}d', *vals)) & 0xFFFFFFFF:08x}"
 

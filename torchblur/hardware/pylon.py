@@ -10,12 +10,8 @@ restarts at each start of grabbing (at 0 on USB3 and on pylon's camera emulation
 GigE): the rig maps it onto the controller's trigger count, so a dropped frame is a
 :class:`~torchblur.hardware.errors.FrameGap`, never a silently wrong frame.
 
-In a config: ``rig.frames=torchblur.hardware.pylon:PylonCamera`` (the first camera pylon finds,
-Line1), or a subclass of yours that passes a serial number. Without hardware, pylon's camera
-emulation (``PYLON_CAMEMU=1`` in the environment before pypylon is imported) gives a camera
-named "Emulation" that serves image files (``image_files=``, pylon's ``ImageFilename``) on
-software triggers (``trigger_source="Software"``, :meth:`PylonCamera.software_trigger`);
-tests/test_pylon.py runs the whole path on it with torchblur-rendered frames.
+The config (``rig.frames=pylon://SERIAL?...``) and pylon's camera emulation it is tested on
+(``PYLON_CAMEMU=1``, ``image_files=``, software triggers): README, "Basler cameras through pypylon".
 """
 from __future__ import annotations
 
@@ -29,7 +25,7 @@ from torchblur.hardware.camera_sdk import SDKCamera
 from torchblur.hardware.errors import ConnectionLost, FrameError, HardwareError
 from torchblur.hardware.frames import CameraInfo
 
-__all__ = ["PylonCamera", "pylon_available"]
+__all__ = ["PylonCamera"]
 
 _GIGE_CLASS = "BaslerGigE"
 
@@ -40,16 +36,6 @@ def _pylon():
     except ImportError as exc:
         raise ImportError("PylonCamera needs pypylon: pip install 'torchblur[pylon]' (or pip install pypylon)") from exc
     return pylon
-
-
-def pylon_available() -> bool:
-    """Whether pypylon imports and finds at least one camera (real, or emulated with
-    ``PYLON_CAMEMU=1``)."""
-    try:
-        pylon = _pylon()
-        return len(pylon.TlFactory.GetInstance().EnumerateDevices()) > 0
-    except Exception:  # noqa: BLE001 - any pylon failure means "not available"
-        return False
 
 
 def _set(cam, name: str, value, *, required: bool = True) -> None:

@@ -1,20 +1,9 @@
 """The experiment directory: written as a run goes, read back to resume or re-fit it.
 
-Layout (schema :data:`SCHEMA_VERSION`, docs/protocol.md "Experiment directory")::
-
-    experiment.json    schema_version, torchblur version, camera, sessions, status
-    config.yaml        the resolved configuration of the run
-    manifest.jsonl     one JSON line per stored frame
-    frames/*.tif       one TIFF stack per group (pages = frames, raw camera values)
-
-A *group* is the unit of storage and of resumption: the dark frames, the saturation ladder,
-the PSF frames, the latency scan, and each sweep point. A group is stored when it is
-complete: its TIFF is written to a temporary name, fsync'ed and renamed (``os.replace``),
-then its manifest lines are appended with one write, flushed and fsync'ed. So a crash leaves
-either the whole group or none of it: on opening, a manifest whose last group is
-incomplete (a torn append) is rewritten without it (atomically), leftover temporary files
-and unreferenced TIFFs are removed. A sweep point stores only the frames the fit uses (the
-accepted amplitude), so each sweep frame (input, frequency, exposure, repeat) is stored once.
+The layout (schema :data:`SCHEMA_VERSION`: ``experiment.json``, ``config.yaml``,
+``manifest.jsonl``, ``frames/<group>.tif``), the groups, the atomic writes and the repair on
+opening are docs/protocol.md's "The experiment directory". A group is the unit of storage and
+of resumption, stored whole or not at all.
 """
 from __future__ import annotations
 
@@ -25,22 +14,23 @@ import io
 import json
 import math
 import os
+import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from torchblur.errors import excerpt
-from torchblur.hardware.errors import FrameTimeout, RecordingError
-from torchblur.hardware.frames import CameraInfo, Frame, FrameSource
-from torchblur.hardware.manifest import (MAX_FRAME_SIDE, MAX_MANIFEST_BYTES, MAX_META_BYTES, INTEGRITY_KEY, SCHEMA_VERSION, SETTINGS_KEY, ManifestScan,
-                                         check_meta, check_record, load_json, meta_digest, read_bounded, scan_manifest,
+from torchblur.hardware.errors import RecordingError
+from torchblur.hardware.frames import CameraInfo, CameraProperties, raw_pixels
+from torchblur.hardware.manifest import (MAX_FRAME_SIDE, MAX_MANIFEST_BYTES, MAX_META_BYTES, INTEGRITY_KEY, METHODS, SCHEMA_VERSION, SETTINGS_KEY, ManifestScan,
+                                         check_meta, load_json, meta_digest, read_bounded, scan_manifest,
                                          settings_digest)
 from torchblur.hardware.run_folder import RunLock, inside
 from torchblur import __version__
 from torchblur.rig.base import Capture, Rig
 
-__all__ = ["SCHEMA_VERSION", "Experiment", "ReplayFrames", "ReplayRig", "atomic_write_bytes", "camera_info_of"]
+__all__ = ["SCHEMA_VERSION", "Experiment", "ReplayRig", "atomic_write_bytes", "camera_info_of"]
 
 _TMP = ".tmp"
 _F64 = torch.float64
@@ -136,70 +126,38 @@ def _bind(method: str, args: tuple, kwargs: dict) -> dict:
 # ---------------------------------------------------------------------- rig proxies
 
 
-class _RigProperties:
-    def __init__(self, info: CameraInfo):
-        self._info = info
-
-    @property
-    def frame_shape(self):
-        return tuple(self._info.frame_shape)
-
-    @property
-    def frame_rate_hz(self):
-        return self._info.frame_rate_hz
-
-    @property
-    def max_exposure_s(self):
-        return self._info.max_exposure_s
-
-    @property
-    def readout_s(self):
-        return self._info.readout_s
-
-
 class _RecordingRig:
-    """Forwards every rig call and keeps ``(method, args, capture)``."""
+    """Forwards every rig call and keeps ``(method, args, capture)`` of the rig methods
+    (:data:`~torchblur.hardware.manifest.METHODS`)."""
 
     def __init__(self, rig):
         self._rig = rig
         self.calls: list = []
 
     def __getattr__(self, name):
-        return getattr(self._rig, name)
+        attr = getattr(self._rig, name)
+        if name not in METHODS:
+            return attr
 
-    def _call(self, method, args, kwargs):
-        cap = getattr(self._rig, method)(*args, **kwargs)
-        self.calls.append((method, _bind(method, args, kwargs), cap))
-        return cap
+        def call(*args, **kwargs):
+            cap = attr(*args, **kwargs)
+            self.calls.append((name, _bind(name, args, kwargs), cap))
+            return cap
 
-    def dark(self, *a, **k):
-        return self._call("dark", a, k)
-
-    def still(self, *a, **k):
-        return self._call("still", a, k)
-
-    def sine(self, *a, **k):
-        return self._call("sine", a, k)
-
-    def pulse(self, *a, **k):
-        return self._call("pulse", a, k)
-
-    def multisine(self, *a, **k):
-        return self._call("multisine", a, k)
-
-    def pattern_sine(self, *a, **k):
-        return self._call("pattern_sine", a, k)
-
-    def pattern_ladder(self, *a, **k):
-        return self._call("pattern_ladder", a, k)
+        return call
 
 
-class _ReplayCalls(_RigProperties):
+class _ReplayCalls(CameraProperties):
     """Serves recorded calls in order; a call that differs from the recording is an error."""
 
     def __init__(self, info: CameraInfo, calls: list, key: str):
-        super().__init__(info)
+        self.info = info
         self._calls, self._key, self._i = calls, key, 0
+
+    def __getattr__(self, name):
+        if name not in METHODS:
+            raise AttributeError(name)
+        return lambda *args, **kwargs: self._next(name, args, kwargs)
 
     def _next(self, method, args, kwargs):
         want = _bind(method, args, kwargs)
@@ -214,34 +172,13 @@ class _ReplayCalls(_RigProperties):
         self._i += 1
         return cap
 
-    def dark(self, *a, **k):
-        return self._next("dark", a, k)
 
-    def still(self, *a, **k):
-        return self._next("still", a, k)
-
-    def sine(self, *a, **k):
-        return self._next("sine", a, k)
-
-    def pulse(self, *a, **k):
-        return self._next("pulse", a, k)
-
-    def multisine(self, *a, **k):
-        return self._next("multisine", a, k)
-
-    def pattern_sine(self, *a, **k):
-        return self._next("pattern_sine", a, k)
-
-    def pattern_ladder(self, *a, **k):
-        return self._next("pattern_ladder", a, k)
-
-
-class ReplayRig(_RigProperties):
+class ReplayRig(CameraProperties):
     """A rig that only knows the recording: every live call raises :class:`RecordingError`
     (the run is incomplete; resume it first). Used by ``torchblur fit``."""
 
     def __init__(self, experiment: "Experiment"):
-        super().__init__(experiment.camera_info)
+        self.info = experiment.camera_info
         self._dir = experiment.path
 
     def _missing(self, *a, **k):
@@ -304,7 +241,7 @@ class Experiment:
             lock.release()
             raise RecordingError(f"{path}: already holds a recording; resume it with torchblur identify --resume, "
                                  f"or choose another --out")
-        meta = {"schema_version": SCHEMA_VERSION, "torchblur_version": _version(), "created": _now(), "camera": camera.to_dict(),
+        meta = {"schema_version": SCHEMA_VERSION, "torchblur_version": __version__, "created": _now(), "camera": camera.to_dict(),
                 "status": "running", "sessions": [], INTEGRITY_KEY: {CONFIG_KEY: hashlib.sha256(config_yaml.encode()).hexdigest()}}
         atomic_write_bytes(path / "config.yaml", config_yaml.encode())
         (path / "manifest.jsonl").touch()
@@ -450,8 +387,6 @@ class Experiment:
         """Store a complete group: its TIFF (atomic), then its manifest lines (one fsync'ed
         append). ``calls``: ``[(method, args dict, Capture), ...]``; ``labels`` are added to
         every line (e.g. ``input``, ``freq_hz``, ``amplitude``)."""
-        import time
-
         import tifffile
 
         self._need_writable()
@@ -487,9 +422,7 @@ class Experiment:
                         ln[k] = _jsonable(v)
                 lines.append(ln)
                 page += 1
-        stack = np.stack(frames)
-        if np.all(stack >= 0) and np.all(stack <= 65535) and np.all(stack == np.round(stack)):
-            stack = stack.astype(np.uint16)
+        stack = raw_pixels(np.stack(frames))
         for ln in lines:
             ln["dtype"] = stack.dtype.name
         lines = [json.loads(json.dumps(ln)) for ln in lines]  # as they will be read back
@@ -714,74 +647,3 @@ def _repair(exp: "Experiment", scan: ManifestScan) -> None:
         rep["quarantined_files"] = reasons["files"]
     if scan.bad_raw or scan.torn_line:
         atomic_write_bytes(path / "manifest.jsonl", b"".join(r + b"\n" for r in scan.raw))
-
-
-def _version() -> str:
-
-    return __version__
-
-
-# ---------------------------------------------------------------------- replay as a frame source
-
-
-class ReplayFrames(FrameSource):
-    """A recorded experiment directory as a :class:`FrameSource`: :meth:`read` returns its
-    frames in manifest order (then raises :class:`FrameTimeout`: the recording ended).
-
-    Args:
-        path: the experiment directory (or the run's output folder holding ``experiment/``).
-
-    Attributes:
-        experiment: the read-only :class:`Experiment`.
-        records: its manifest lines.
-    """
-
-    def __init__(self, path: str | Path):
-        self.experiment = Experiment.open(path, writable=False)
-        self.records = self.experiment.lines
-        self._i = 0
-        self._cache: dict[str, np.ndarray] = {}
-
-    @property
-    def info(self) -> CameraInfo:
-        return self.experiment.camera_info
-
-    def _stack(self, record: dict) -> np.ndarray:
-        key = (record.get("file"), record.get("sha256"))
-        if key not in self._cache:
-            if record.get("group") in self.experiment.groups and self.experiment.groups[record["group"]][0].get("sha256") == key[1]:
-                stack = self.experiment.read_group(record["group"])
-            else:
-                stack = read_stack(self.experiment.path, record, tuple(self.info.frame_shape))
-            self._cache = {key: stack}
-        return self._cache[key]
-
-    def frame(self, record: dict) -> Frame:
-        """The :class:`Frame` of one manifest line (its file's hash checked against the line's)."""
-        check_record(record, self.experiment.path)
-        px = self._stack(record)[record["page"]]
-        nan = float("nan")
-        return Frame(data=torch.from_numpy(px.astype(np.float64)), counter=int(record["frame_counter"]),
-                     timestamp_s=record["timestamp_s"] if record.get("timestamp_s") is not None else nan,
-                     exposure_s=float(record["exposure_s"]),
-                     trigger_time_s=record["trigger_time_s"] if record.get("trigger_time_s") is not None else nan,
-                     trigger_offset_s=record["trigger_offset_s"] if record.get("trigger_offset_s") is not None else nan,
-                     dtype=record.get("dtype", "float64"), boot=record.get("boot"),
-                     meta={k: record.get(k) for k in ("kind", "group", "input", "freq_hz", "exposure_index", "repeat")})
-
-    def select(self, **where) -> list[dict]:
-        """Manifest lines whose fields equal ``where`` (e.g. ``kind="sweep"``)."""
-        return [r for r in self.records if all(r.get(k) == v for k, v in where.items())]
-
-    def read(self, timeout_s: float = 0.0) -> Frame:
-        if self._i >= len(self.records):
-            raise FrameTimeout("end of the recording")
-        rec = self.records[self._i]
-        self._i += 1
-        return self.frame(rec)
-
-    def __len__(self) -> int:
-        return len(self.records)
-
-    def __repr__(self) -> str:
-        return f"ReplayFrames({str(self.experiment.path)!r}, {len(self.records)} frames)"

@@ -5,22 +5,10 @@ geometry), on a controller that speaks protocol 2 (docs/protocol.md: ``ACT?``, `
 the axis ``pat``) and a camera; ``pattern_ladder`` (the static holds of ``dm_plan.spot_model``) needs
 protocol 3 (``WAVE pat HOLD``): on a protocol-2 controller the rig has none (the run then says so).
 
-One ``pattern_sine`` is one transaction of :class:`~torchblur.hardware.serial_rig.SerialRig`
-(``STOP``, ``POWER``, ``SETTLE``, the waveform, one ``ARM`` per exposure, ``STOP``) whose
-waveform starts as follows:
-
-    PAT?                         -> OK PAT n=9 crc=...        the device's pattern
-    PAT 0 1.0 -1.0 ...           -> OK PAT start=0 count=9   (only when the crc differs)
-    PAT?                         -> OK PAT n=9 crc=<ours>     else PatternMismatch
-    WAVE pat SINE 200.0 0.31     -> OK WAVE axis=pat mode=SINE start=... crc=<ours>
-
-and one ``pattern_ladder`` is one transaction too (``STOP``, ``POWER``, ``SETTLE AUTO``, then per
-level ``u`` the same ``PAT?`` (and load) and ``WAVE pat HOLD u`` -> ``OK WAVE ... crc=<ours>``, the
-``ARM 0 Te n`` of its frames; ``STOP``), so every waveform drives exactly the pattern asked for: the
-checksum (CRC-32 of the float64 values, :func:`~torchblur.hardware.protocol.pattern_checksum`) is checked after the load and
-again in the ``WAVE`` reply, which names the pattern it drives. A mismatch is a
-:class:`~torchblur.hardware.errors.PatternMismatch` naming the pattern; the call is redone
-(the pattern loaded again) at most ``retries`` times, then the run stops.
+Every waveform drives exactly the pattern asked for: its checksum
+(:func:`~torchblur.hardware.protocol.pattern_checksum`) is checked after the load and in the
+``WAVE`` reply; a mismatch is a :class:`~torchblur.hardware.errors.PatternMismatch`, redone at most
+``retries`` times (the transactions: docs/protocol.md, "A deformable mirror's pattern").
 """
 from __future__ import annotations
 
@@ -29,13 +17,12 @@ from typing import Sequence
 
 import numpy as np
 
-from torchblur.errors import ConfigError, ParameterError, ShapeError, check_int, check_real_scalar
+from torchblur.errors import ParameterError, check_int, check_real_scalar
 from torchblur.hardware.errors import DeviceError, PatternMismatch
 from torchblur.hardware.protocol import HOLD_PROTOCOL, pattern_checksum
 from torchblur.hardware.serial_rig import SerialRig
 from torchblur.rig.base import Capture, PatternSines, check_drive, float_list
-from torchblur.dm.mirror import DeformableMirror
-from torchblur.dm.shack_hartmann import ShackHartmann
+from torchblur.rig.dm_contract import check_dm_rig
 
 __all__ = ["SerialDMRig", "describe_pattern", "open_dm_rig"]
 
@@ -99,15 +86,6 @@ class SerialDMRig(PatternSines, SerialRig):
                                  f"static holds need protocol {HOLD_PROTOCOL} (WAVE pat HOLD, docs/protocol.md)")
         return self._pattern_ladder
 
-    def _check_pattern(self, pattern) -> np.ndarray:
-        N = self.n_actuators
-        p = np.asarray(float_list(pattern, "pattern") if np.ndim(pattern) <= 1 else pattern, dtype=np.float64)
-        if p.shape != (N,):
-            raise ShapeError(f"pattern: expected [{N}] (one command per actuator of the controller), got shape {p.shape}")
-        if not np.isfinite(p).all():
-            raise ParameterError(f"pattern: expected finite weights, got {describe_pattern(p)}")
-        return p
-
     def _drive_pattern(self, p: np.ndarray, start) -> None:
         """Make the controller hold ``p`` (``PAT?``, loading it when it differs) and start its
         waveform, ``start(controller)`` -> (start, the crc of the pattern it drives): ``WAVE pat
@@ -127,8 +105,7 @@ class SerialDMRig(PatternSines, SerialRig):
 
     def pattern_sine(self, pattern, freq_hz: float, amplitude: float, exposures_s: Sequence[float],
                      trigger_offset_s: float | Sequence[float], n_repeats: int, settle_s: float | None = None, power: float = 1.0):
-        """Frames ``[E, R, H, W]`` of the mirror driven with ``amplitude * pattern[j] * sin(2 pi
-        freq_hz t)`` on actuator j, as :meth:`~torchblur.rig.dm.SimulatedDMRig.pattern_sine`
+        """Frames ``[E, R, H, W]``, as :meth:`~torchblur.rig.dm_contract.DMRig.pattern_sine`
         (``settle_s`` None: ``SETTLE AUTO``, the controller's settling wait).
 
         Raises:
@@ -146,23 +123,16 @@ class SerialDMRig(PatternSines, SerialRig):
                                        "amplitude": amp, "settle_s": None, "power": None, "trigger_delay_s": self.trigger_delay_s})
 
     def _pattern_ladder(self, pattern, levels: Sequence[float], n: int, exposure_s: float, power: float = 1.0) -> Capture:
-        """Frames ``[K, n, H, W]`` of the mirror held still at ``levels[k] * pattern`` (input units),
-        ``n`` frames per level at ``exposure_s`` and laser ``power``, as
+        """Frames ``[K, n, H, W]`` of the mirror held still at ``levels[k] * pattern``, as
         :meth:`~torchblur.rig.dm.SimulatedDMRig.pattern_ladder` (the rig's ``pattern_ladder`` on a
-        protocol-3 controller): one transaction (module docstring), each level after the
-        controller's settling wait (``SETTLE AUTO``).
-
-        Raises:
-            ShapeError: ``pattern`` is not [N]; ParameterError: naming ``levels`` when the peak
-            command ``max|levels| max|pattern|`` exceeds the controller's RANGE, or ``n``,
-            ``exposure_s``, ``power`` (nothing sent); AcquisitionStopped: the controller refused
-            (a protocol-2 controller: ERR 2), or the faults outlasted the retries.
-        """
+        protocol-3 controller): one transaction, each level after the controller's settling wait
+        (``SETTLE AUTO``). Raises as :meth:`pattern_sine`, naming ``levels`` for a peak beyond RANGE
+        (and ``n``, ``exposure_s``, ``power``)."""
         p = self._check_pattern(pattern)
         lv = float_list(levels, "levels")
         n = check_int(n, "n", low=1)
         te = self._check_exposure(exposure_s)
-        power = check_real_scalar(power, "power", nonnegative=True)
+        power = self._check_power(power)
         check_drive(max(abs(u) for u in lv) * float(np.abs(p).max(initial=0.0)), self.input_limit, "levels")
         c = self.controller
 
@@ -190,27 +160,19 @@ class SerialDMRig(PatternSines, SerialRig):
 def open_dm_rig(cfg, *, log=None) -> SerialDMRig:
     """The DM rig of a config with ``rig.kind=serial``: the controller on ``rig.port``, the
     camera on ``rig.frames`` (``rig.timeout_s``, ``rig.retries``; Td from
-    ``camera.trigger_delay_s``). The controller's actuators and the camera's frame must be the
-    config's mirror (``dm.n_across``) and sensor (``wfs.n_across`` x ``wfs.pitch_px``).
+    ``camera.trigger_delay_s``), checked against the config (:func:`~torchblur.rig.dm_contract.check_dm_rig`).
 
     Raises:
-        ConfigError: naming ``dm.n_across`` or ``wfs.n_across`` when they differ (the rig is
-            closed); AcquisitionStopped: the controller or the camera cannot be reached.
+        ConfigError: naming ``dm.n_across`` or ``wfs.pitch_px`` when the controller's actuators or
+            the camera's frame are not the config's mirror and sensor (the rig is closed);
+            AcquisitionStopped: the controller or the camera cannot be reached.
     """
-
-    mirror = DeformableMirror.from_config(cfg.dm, seed=int(cfg.seed))
-    wfs = ShackHartmann.from_config(cfg.wfs, mirror)
     r = cfg.rig
     rig = SerialDMRig.open(r.port, r.frames, timeout_s=float(r.timeout_s), retries=int(r.retries), log=log,
                            trigger_delay_s=float(cfg.camera.trigger_delay_s))
-    problem = None
-    if rig.n_actuators != mirror.n_actuators:
-        problem = (f"dm.n_across: the controller on {r.port} drives {rig.n_actuators} actuators, the config's mirror "
-                   f"(dm.n_across={cfg.dm.n_across}) has {mirror.n_actuators}")
-    elif tuple(rig.frame_shape) != tuple(wfs.frame_shape):
-        problem = (f"wfs.n_across: the camera on {r.frames} delivers {rig.frame_shape[0]}x{rig.frame_shape[1]} frames, the "
-                   f"config's sensor {wfs.frame_shape[0]}x{wfs.frame_shape[1]} (wfs.n_across x wfs.pitch_px)")
-    if problem is not None:
+    try:
+        check_dm_rig(rig, cfg)
+    except BaseException:
         rig.close()
-        raise ConfigError(problem)
+        raise
     return rig

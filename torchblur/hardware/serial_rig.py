@@ -2,21 +2,15 @@
 line (:class:`~torchblur.hardware.controller.Controller`) and a camera
 (:class:`~torchblur.hardware.frames.FrameSource`).
 
-Every rig call is one transaction: configure the controller (``STOP``, ``POWER``,
-``SETTLE``, ``WAVE``), fire the triggers (``ARM``/``PULSE``, whose reply says the frame counter
-of the first frame), read exactly those frames, ``STOP``. Each frame is checked: its counter
-must be the next one expected (a jump forward is a dropped frame, a repeat a stale frame),
-its exposure and shape what was asked, its boot id the controller's. While waiting for
-frames the rig polls ``STATUS?`` so a controller reset is seen at once.
-
-A fault (reply timeout, garbage bytes, reset, dropped/stale frame, ``ERR 6 BUSY``) makes the
-rig resynchronise the link (drain, ``PING`` with a fresh token, ``STOP``, drain the camera)
-and redo the whole call, at most ``retries`` more times; a lost connection is reopened at
-most ``reconnects`` times. When that is not enough it raises
-:class:`~torchblur.hardware.errors.AcquisitionStopped`: nothing half-taken is ever returned.
+Every rig call is one transaction, each frame is checked, and a fault makes the rig
+resynchronise and redo the whole call at most ``retries`` more times (a lost connection is
+reopened at most ``reconnects`` times), then raise
+:class:`~torchblur.hardware.errors.AcquisitionStopped`: nothing half-taken is ever returned
+(docs/protocol.md, "Client rules").
 """
 from __future__ import annotations
 
+import importlib
 import math
 import time
 from typing import Callable, Sequence
@@ -27,13 +21,11 @@ from torchblur.errors import ConfigError, ParameterError, check_int, check_real_
 from torchblur.hardware.controller import Controller
 from torchblur.hardware.errors import (AcquisitionStopped, ConnectionLost, DeviceError, DeviceReset, FrameGap, FrameMismatch, FrameTimeout,
                      GarbageReply, HardwareError, StaleFrame)
-from torchblur.hardware.frames import CameraInfo, Frame, FrameSource
-from torchblur.rig.base import check_drive, check_slew, check_tone_grid, command_peak, command_slew, float_list, per_exposure
+from torchblur.hardware.frames import CameraInfo, CameraProperties, EmulatorFrames, Frame, FrameSource
+from torchblur.rig.base import Capture, RigChecks, check_drive, check_slew, command_peak, command_slew, float_list, per_exposure
 from torchblur.hardware.aravis import AravisCamera  # imports its SDK on use
-from torchblur.hardware.frames import EmulatorFrames
 from torchblur.hardware.protocol import MAX_COUNT, MAX_LINE, MAX_TONES, format_number
 from torchblur.hardware.pylon import PylonCamera  # imports its SDK on use
-from torchblur.rig.base import Capture
 
 __all__ = ["SerialRig", "open_frame_source"]
 
@@ -63,14 +55,12 @@ def open_frame_source(spec: str) -> FrameSource:
                 raise ConfigError(f"rig.frames: {spec!r}: {str(exc).removeprefix('url: ')}") from None
     mod, sep, name = spec.partition(":")
     if sep and mod and name and "/" not in spec:
-        import importlib
-
         cls = getattr(importlib.import_module(mod), name)
         return cls()
     raise ValueError(f"rig.frames: expected tcp://HOST:PORT, pylon://[SERIAL][?...] or package.module:ClassName, got {spec!r}")
 
 
-class SerialRig:
+class SerialRig(CameraProperties, RigChecks):
     """The :class:`~torchblur.rig.base.Rig` protocol over a controller and a camera.
 
     Args:
@@ -142,22 +132,6 @@ class SerialRig:
     @property
     def info(self) -> CameraInfo:
         return self.frames.info
-
-    @property
-    def frame_shape(self) -> tuple[int, int]:
-        return tuple(self.frames.info.frame_shape)
-
-    @property
-    def frame_rate_hz(self) -> float:
-        return self.frames.info.frame_rate_hz
-
-    @property
-    def max_exposure_s(self) -> float:
-        return self.frames.info.max_exposure_s
-
-    @property
-    def readout_s(self) -> float:
-        return self.frames.info.readout_s
 
     @property
     def input_limit(self) -> float | None:
@@ -356,12 +330,6 @@ class SerialRig:
 
     # ------------------------------------------------------------------ captures
 
-    def _check_exposure(self, te, name="exposure_s") -> float:
-        te = check_real_scalar(te, name, positive=True)
-        if te > self.max_exposure_s:
-            raise ParameterError(f"{name}: expected at most max_exposure_s = {self.max_exposure_s:g} s, got {te:g} s")
-        return te
-
     def _capture(self, frames: list[Frame], shape: tuple, offsets, meta: dict):
 
         H, W = self.frame_shape
@@ -402,7 +370,7 @@ class SerialRig:
         """``n`` frames of the spot at rest at ``power``, ``[n, H, W]``."""
         n = check_int(n, "n", low=1)
         te = self._check_exposure(exposure_s)
-        power = check_real_scalar(power, "power", nonnegative=True)
+        power = self._check_power(power)
         frames = self._call(f"still ({n} x {te:g} s)", self._still_frames(n, te, power))
         return self._capture(frames, (n,), [0.0] * n, {"kind": "still", "power": power})
 
@@ -417,10 +385,7 @@ class SerialRig:
             raise ParameterError(f"input: expected 'x' or 'y', got {input!r}")
         if self.device.get("axes") and axis not in self.device["axes"]:
             raise ParameterError(f"input: the controller drives axes {self.device['axes']}, got {input!r}")
-        freq = check_real_scalar(freq_hz, "freq_hz", positive=True)
-        amp = check_real_scalar(amplitude, "amplitude")
-        check_drive(amp, self.input_limit)
-        check_slew(abs(amp) * 2 * math.pi * freq, self.slew_limit)
+        freq, amp = self._check_sine(freq_hz, amplitude)
         return self._periodic_capture(f"sine {freq:g} Hz", lambda c: c.wave_sine(axis, freq, amp), 1.0 / freq, exposures_s,
                                       trigger_offset_s, n_repeats, check_real_scalar(power, "power"), settle_s,
                                       {"kind": "sine", "freq_hz": freq, "omega": 2 * math.pi * freq, "period_s": None, "amplitude": amp,
@@ -434,16 +399,7 @@ class SerialRig:
         when it is not one of the tones; ``trigger_offset_s`` is then the delay after the start
         of a common period ``1 / f0``. ``power`` (one value or one per exposure) is sent
         before each ``ARM`` whose power differs from the last."""
-        freqs = float_list(freq_hz, "freq_hz")
-        amps = float_list(amplitude, "amplitude")
-        phases = float_list(phase_rad, "phase_rad")
-        N = len(freqs)
-        for name, v in (("amplitude", amps), ("phase_rad", phases)):
-            if len(v) != N:
-                raise ParameterError(f"{name}: expected {N} values (one per tone of freq_hz), got {len(v)}")
-        freqs = [check_real_scalar(f, "freq_hz", positive=True) for f in freqs]
-        f0 = min(freqs) if base_freq_hz is None else check_real_scalar(base_freq_hz, "base_freq_hz", positive=True)
-        check_tone_grid(freqs, f0)
+        freqs, amps, phases, f0 = self._check_tones(freq_hz, amplitude, phase_rad, base_freq_hz)
         tones = sorted(zip(freqs, amps, phases))
         if not math.isclose(tones[0][0], f0, rel_tol=1e-12):
             tones = [(f0, 0.0, 0.0)] + tones
@@ -456,7 +412,7 @@ class SerialRig:
         if len(tones) > MAX_TONES or len(line) > MAX_LINE:
             raise ParameterError(f"freq_hz: {len(tones)} tones (base included) make a WAVE line of {len(line)} bytes; the "
                                  f"protocol allows {MAX_TONES} tones and {MAX_LINE} bytes: use fewer tones")
-        return self._periodic_capture(f"multisine {N} tones from {min(freqs):g} Hz", lambda c: c.wave_multi(self.axis, tones), 1.0 / f0,
+        return self._periodic_capture(f"multisine {len(freqs)} tones from {min(freqs):g} Hz", lambda c: c.wave_multi(self.axis, tones), 1.0 / f0,
                                       exposures_s, trigger_offset_s, n_repeats, power, settle_s,
                                       {"kind": "multisine", "freq_hz": freqs, "amplitude": amps, "phase_rad": phases, "base_freq_hz": f0,
                                        "period_s": None, "settle_s": None, "power": None, "axis": self.axis})
@@ -467,11 +423,9 @@ class SerialRig:
         offsets, laser power (one, or one per exposure) and settling wait checked,
         :meth:`_periodic`, and the capture ``[E, R, H, W]`` with ``meta``, whose ``period_s``,
         ``settle_s`` and ``power`` entries are filled in (in the places ``meta`` gives them)."""
-        R = check_int(n_repeats, "n_repeats", low=1)
-        te = [self._check_exposure(v, "exposures_s") for v in float_list(exposures_s, "exposures_s")]
+        te, offs, R = self._check_periodic(exposures_s, trigger_offset_s, n_repeats)
         E = len(te)
-        offs = per_exposure(trigger_offset_s, E, "trigger_offset_s")
-        powers = [check_real_scalar(p, "power", nonnegative=True) for p in per_exposure(power, E, "power")]
+        powers = [self._check_power(p) for p in per_exposure(power, E, "power")]
         settle = None if settle_s is None else check_real_scalar(settle_s, "settle_s", nonnegative=True)
         frames, off_mod = self._periodic(what, start_wave, period, te, offs, R, powers, settle)
         meta.update(period_s=period, settle_s=settle, power=powers if len(set(powers)) > 1 else powers[0])
@@ -504,11 +458,7 @@ class SerialRig:
     def pulse(self, exposure_s: float, trigger_offset_s, pulse_time_s: float, pulse_width_s: float, n: int, power: float = 1.0):
         """Mirror still; per offset ``PULSE offset pulse_time width Te n``: frames
         ``[..., n, H, W]`` with ``[...]`` the shape of ``trigger_offset_s``."""
-        te = self._check_exposure(exposure_s)
-        n = check_int(n, "n", low=1)
-        power = check_real_scalar(power, "power", nonnegative=True)
-        p0 = check_real_scalar(pulse_time_s, "pulse_time_s")
-        width = check_real_scalar(pulse_width_s, "pulse_width_s", positive=True)
+        te, n, power, p0, width = self._check_pulse(exposure_s, n, power, pulse_time_s, pulse_width_s)
         offs_t = torch.as_tensor(trigger_offset_s, dtype=_F64) if not isinstance(trigger_offset_s, torch.Tensor) \
             else trigger_offset_s.detach().to(_F64)
         offs = float_list(offs_t, "trigger_offset_s")

@@ -9,15 +9,16 @@ Glossary of shapes: E exposures, R repeats, H, W pixels; ``[...]`` the batch of 
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any, Protocol, Sequence, runtime_checkable
 
 import numpy as np
 import torch
 
-from torchblur.errors import InputTypeError, ParameterError, ShapeError
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, check_int, check_real_scalar
 
-__all__ = ["CameraRig", "Capture", "PatternSines", "Rig", "command_peak", "command_slew", "check_drive", "check_slew", "DRIVE_RTOL"]
+__all__ = ["CameraRig", "Capture", "PatternSines", "Rig", "RigChecks", "command_peak", "command_slew", "check_drive", "check_slew", "DRIVE_RTOL"]
 
 #: relative slack of a drive check: a command rounded on its way to the device (the serial
 #: protocol sends tones to 10 significant digits) still passes at the limit
@@ -175,6 +176,57 @@ class Rig(CameraRig, Protocol):
 # ---------------------------------------------------------------- argument checks shared by the rigs
 
 
+class RigChecks:
+    """The argument checks of the :class:`Rig` calls, shared by the simulated and the serial rig
+    (reading the rig's ``max_exposure_s``, ``input_limit`` and ``slew_limit``); each raises
+    :class:`~torchblur.errors.ParameterError` (or InputTypeError, ShapeError) naming the argument."""
+
+    def _check_exposure(self, value, name: str = "exposure_s") -> float:
+        te = check_real_scalar(value, name, positive=True)
+        if te > self.max_exposure_s:
+            raise ParameterError(f"{name}: expected at most max_exposure_s = {self.max_exposure_s:g} s, got {te:g} s")
+        return te
+
+    def _check_power(self, power) -> float:
+        return check_real_scalar(power, "power", nonnegative=True)
+
+    def _check_sine(self, freq_hz, amplitude) -> tuple[float, float]:
+        """``(freq_hz, amplitude)`` of a sine, its peak and slew rate within the drive's limits."""
+        freq = check_real_scalar(freq_hz, "freq_hz", positive=True)
+        amp = check_real_scalar(amplitude, "amplitude")
+        check_drive(amp, self.input_limit)
+        check_slew(abs(amp) * 2 * math.pi * freq, self.slew_limit)
+        return freq, amp
+
+    def _check_tones(self, freq_hz, amplitude, phase_rad, base_freq_hz) -> tuple[list, list, list, float]:
+        """``(freqs, amplitudes, phases, f0)`` of a multisine: N tones each, every tone a whole
+        multiple of ``f0`` (``base_freq_hz``, default the lowest tone)."""
+        freqs = float_list(freq_hz, "freq_hz")
+        amps = float_list(amplitude, "amplitude")
+        phases = float_list(phase_rad, "phase_rad")
+        for name, v in (("amplitude", amps), ("phase_rad", phases)):
+            if len(v) != len(freqs):
+                raise ShapeError(f"{name}: expected {len(freqs)} values (one per tone of freq_hz), got {len(v)}")
+        freqs = [check_real_scalar(f, "freq_hz", positive=True) for f in freqs]
+        f0 = min(freqs) if base_freq_hz is None else check_real_scalar(base_freq_hz, "base_freq_hz", positive=True)
+        check_tone_grid(freqs, f0)
+        return freqs, amps, phases, f0
+
+    def _check_periodic(self, exposures_s, trigger_offset_s, n_repeats) -> tuple[list, list, int]:
+        """``(exposures [E], trigger offsets [E], repeats R)`` of a periodic command's frames."""
+        R = check_int(n_repeats, "n_repeats", low=1)
+        te = [self._check_exposure(v, "exposures_s") for v in float_list(exposures_s, "exposures_s")]
+        return te, per_exposure(trigger_offset_s, len(te), "trigger_offset_s"), R
+
+    def _check_pulse(self, exposure_s, n, power, pulse_time_s, pulse_width_s) -> tuple[float, int, float, float, float]:
+        """``(exposure_s, n, power, pulse_time_s, pulse_width_s)`` of a latency scan."""
+        te = self._check_exposure(exposure_s)
+        n = check_int(n, "n", low=1)
+        power = self._check_power(power)
+        return (te, n, power, check_real_scalar(pulse_time_s, "pulse_time_s"),
+                check_real_scalar(pulse_width_s, "pulse_width_s", positive=True))
+
+
 class PatternSines:
     """What a rig that drives a deformable mirror's patterns (``pattern_sine(pattern, freq_hz,
     amplitude, exposures_s, trigger_offset_s, n_repeats, settle_s, power)`` and ``n_actuators``)
@@ -200,14 +252,17 @@ class PatternSines:
     def multisine(self, *args, **kwargs):
         raise ParameterError("multisine: the DM rig drives one sine per pattern (pattern_sine)")
 
-    def _ladder_commands(self, pattern, levels) -> np.ndarray:
-        """The static commands of ``pattern_ladder``: ``[K, N]``, ``levels[k] * pattern`` (``pattern``
-        ``[N]``, ``levels`` ``[K]`` finite numbers; ShapeError naming ``pattern`` otherwise)."""
+    def _check_pattern(self, pattern) -> np.ndarray:
+        """``pattern`` as float64 ``[N]``, finite (one command per actuator), else ShapeError naming it."""
         N = self.n_actuators
-        p = np.asarray(float_list(pattern, "pattern"), dtype=np.float64)
+        p = np.asarray(float_list(pattern, "pattern") if np.ndim(pattern) <= 1 else pattern, dtype=np.float64)
         if p.shape != (N,):
             raise ShapeError(f"pattern: expected [{N}] (one command per actuator), got shape {p.shape}")
-        return np.asarray(float_list(levels, "levels"), dtype=np.float64)[:, None] * p[None, :]
+        return p
+
+    def _ladder_commands(self, pattern, levels) -> np.ndarray:
+        """The static commands of ``pattern_ladder``: ``[K, N]``, ``levels[k] * pattern``."""
+        return np.asarray(float_list(levels, "levels"), dtype=np.float64)[:, None] * self._check_pattern(pattern)[None, :]
 
 
 def float_list(value, name: str) -> list[float]:
@@ -251,6 +306,15 @@ def check_tone_grid(freqs: Sequence[float], base_hz: float) -> None:
 # ---------------------------------------------------------------- the drive's range
 
 
+def _tone_arrays(freq_hz, amplitude, phase_rad) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The N tones as float64 arrays ``[N]`` (Hz, input units, rad); ShapeError naming ``amplitude`` for unequal sizes."""
+    f, a, p = (np.asarray(float_list(v, name)) for v, name in ((freq_hz, "freq_hz"), (amplitude, "amplitude"), (phase_rad, "phase_rad")))
+    if not (f.size == a.size == p.size):
+        raise ShapeError(f"amplitude: expected one value per tone of freq_hz ({f.size}), got {a.size} amplitudes and "
+                         f"{p.size} phases")
+    return f, a, p
+
+
 def command_peak(freq_hz, amplitude, phase_rad, base_freq_hz: float | None = None) -> float:
     """An upper bound of ``max_t |sum_k a_k sin(2 pi f_k t + p_k)|`` (input units), the peak
     a multisine commands.
@@ -266,12 +330,8 @@ def command_peak(freq_hz, amplitude, phase_rad, base_freq_hz: float | None = Non
         freq_hz, amplitude, phase_rad: the N tones (Hz, input units, rad), numbers or ``[N]``.
         base_freq_hz: f0 (Hz), or None.
     """
-    f = np.asarray(float_list(freq_hz, "freq_hz"))
-    a = np.abs(np.asarray(float_list(amplitude, "amplitude")))
-    p = np.asarray(float_list(phase_rad, "phase_rad"))
-    if not (f.size == a.size == p.size):
-        raise ShapeError(f"amplitude: expected one value per tone of freq_hz ({f.size}), got {a.size} amplitudes and "
-                         f"{p.size} phases")
+    f, a, p = _tone_arrays(freq_hz, amplitude, phase_rad)
+    a = np.abs(a)
     total = float(a.sum())
     if f.size == 1:
         return total
@@ -305,12 +365,7 @@ def command_slew(freq_hz, amplitude, phase_rad, base_freq_hz: float | None = Non
         freq_hz, amplitude, phase_rad: the N tones (Hz, input units, rad), numbers or ``[N]``.
         base_freq_hz: f0 (Hz), or None.
     """
-    f = np.asarray(float_list(freq_hz, "freq_hz"))
-    a = np.asarray(float_list(amplitude, "amplitude"))
-    p = np.asarray(float_list(phase_rad, "phase_rad"))
-    if not (f.size == a.size == p.size):
-        raise ShapeError(f"amplitude: expected one value per tone of freq_hz ({f.size}), got {a.size} amplitudes and "
-                         f"{p.size} phases")
+    f, a, p = _tone_arrays(freq_hz, amplitude, phase_rad)
     return command_peak(f, np.abs(a) * 2 * np.pi * np.abs(f), p + np.pi / 2 * np.sign(a), base_freq_hz)
 
 

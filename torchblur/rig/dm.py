@@ -2,26 +2,13 @@
 :class:`~torchblur.dm.shack_hartmann.ShackHartmann` sensor whose camera is slow.
 
 :class:`SimulatedDMRig` is a :class:`~torchblur.rig.simulated.SimulatedRig` whose spots are the
-sensor's M valid spots (``dark``, ``still`` and ``pulse`` are the base rig's, the same time
-model, jitter, latency and camera noise through :class:`~torchblur.render.camera.CameraModel`),
-with one more command, :meth:`SimulatedDMRig.pattern_sine`: actuator j is driven with
-``amplitude * pattern[j] * sin(omega t)`` from rest at t = 0; after the settling wait (the
-slowest actuator's settling time to 1e-7, rounded up to whole periods) every actuator's surface
-is in its steady state ``amplitude pattern[j] Im(H_j(j omega) e^{j omega t})`` and spot m moves
-on one sinusoid per axis,
-
-    s(t) = amplitude Im(D(j omega) pattern e^{j omega t})   (x: rows m, y: rows M + m),
-    D(j omega) = G diag(H_j(j omega))   [2M, N]  (:meth:`SimulatedDMRig.truth_D`),
-
-so the response of slope s is ``Y[s] = (D pattern)[s]``, magnitude in px per command unit and
-phase relative to the command's sine, as :mod:`torchblur.identify.assemble` reads a fit.
-
-Rendering: each spot is rendered with :func:`~torchblur.render.blur.render_blur` (pixel
-integration, float64) on a square crop of side ``ceil(pitch_px) + 2 ceil(6 sigma)`` px centred
-on its rest position, all spots and frames in one batch, and the crops added into the frame. A
-command that would carry any spot within 6 PSF sigmas of its crop's edge is refused
-(``ParameterError`` naming ``amplitude``): the Gaussian beyond 6 sigma is below 2e-8 of its peak.
-The base rig's ``sine`` drives one actuator (``input = "a{j}"``); ``multisine`` is refused.
+sensor's M valid spots, with :meth:`SimulatedDMRig.pattern_sine`: actuator j driven with
+``amplitude * pattern[j] * sin(omega t)`` from rest at t = 0; after the settling wait spot m moves
+on ``s(t) = amplitude Im(D(j omega) pattern e^{j omega t})`` (x: rows m, y: rows M + m),
+``D(j omega) = G diag(H_j(j omega))`` ``[2M, N]`` (:meth:`SimulatedDMRig.truth_D`), px per command
+unit. Each spot is rendered on a square crop of side ``ceil(pitch_px) + 2 ceil(6 sigma)`` px; a
+command that would carry a spot within 6 PSF sigmas of its crop's edge is refused
+(``ParameterError`` naming ``amplitude``): docs/deformable_mirrors.md, "The simulated rig".
 """
 from __future__ import annotations
 
@@ -31,14 +18,14 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from torchblur.errors import InputTypeError, ParameterError, ShapeError, check_real_scalar
+from torchblur.errors import InputTypeError, ParameterError, check_real_scalar
 from torchblur.image.spots import SpotLayout
 from torchblur.render.blur import render_blur
 from torchblur.render.camera import CameraModel
 from torchblur.render.psf import GaussianPSF
 from torchblur.render.trajectory import Sinusoid
 from torchblur.render.window import ExposureWindow
-from torchblur.rig.base import Capture, PatternSines, float_list
+from torchblur.rig.base import Capture, PatternSines
 from torchblur.rig.simulated import SimulatedRig
 from torchblur.systems.lti import Plant
 from torchblur.dm.mirror import DeformableMirror
@@ -198,14 +185,7 @@ class SimulatedDMRig(PatternSines, SimulatedRig):
                      trigger_offset_s: float | Sequence[float], n_repeats: int, settle_s: float | None = None,
                      power: float = 1.0) -> Capture:
         """Frames ``[E, R, H, W]`` of the mirror driven with ``amplitude * pattern * sin(2 pi
-        freq_hz t)`` (module docstring), triggered as :meth:`SimulatedRig.sine`.
-
-        Args:
-            pattern: ``[N]`` each actuator's command per unit amplitude.
-            freq_hz, amplitude, exposures_s, trigger_offset_s, n_repeats, power: as
-                :meth:`~torchblur.rig.simulated.SimulatedRig.sine`.
-            settle_s: wait (s) before the first trigger; default the slowest actuator's
-                settling time rounded up to whole periods.
+        freq_hz t)``, as :meth:`~torchblur.rig.dm_contract.DMRig.pattern_sine` (module docstring).
 
         Raises:
             ParameterError: naming ``amplitude`` when a command exceeds the mirror's
@@ -278,10 +258,7 @@ class SimulatedDMRig(PatternSines, SimulatedRig):
     def _pattern_motion(self, pattern, freq_hz, amplitude):
         """The checked command and every spot's sinusoid: ``(pattern [N], freq_hz, amplitude,
         amplitude_px [M, 2], phase_rad [M, 2])``."""
-        N = self._mirror.n_actuators
-        p = np.asarray(float_list(pattern, "pattern") if np.ndim(pattern) <= 1 else pattern, dtype=np.float64)
-        if p.shape != (N,):
-            raise ShapeError(f"pattern: expected [{N}] (one command per actuator), got shape {p.shape}")
+        p = self._check_pattern(pattern)
         freq = check_real_scalar(freq_hz, "freq_hz", positive=True)
         amp = check_real_scalar(amplitude, "amplitude")
         self._mirror.check_command(amp * p, "amplitude")

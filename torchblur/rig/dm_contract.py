@@ -20,18 +20,12 @@ from torchblur.config.budget import dm_geometry, dm_sensor
 from torchblur.errors import ConfigError, InputTypeError
 from torchblur.rig.base import CameraRig, Capture
 
-__all__ = ["DMRig", "OPTIONAL", "REQUIRED_ATTRIBUTES", "REQUIRED_METHODS", "check_dm_rig"]
+__all__ = ["DMRig", "REQUIRED_ATTRIBUTES", "REQUIRED_METHODS", "check_dm_rig"]
 
 #: the methods every DM rig has (``pulse`` only where the latency is scanned: :func:`check_dm_rig`)
 REQUIRED_METHODS = ("dark", "still", "pattern_sine")
 #: the properties every DM rig has (the recording's camera description and the run's checks)
 REQUIRED_ATTRIBUTES = ("frame_shape", "frame_rate_hz", "max_exposure_s", "readout_s", "input_limit", "n_actuators")
-#: what the route uses where a rig has it (``getattr`` with a default)
-OPTIONAL = {"pulse": "the latency scan (needed unless camera.latency_s and camera.latency_std_s are given)",
-            "trigger_delay_s": "the trigger-to-exposure delay the camera is set to (default camera.trigger_delay_s)",
-            "slew_limit": "the amplifier's largest |d command / dt| (input units/s; default none)",
-            "pattern_ladder": "static holds of each pattern at a ladder of levels: the spot model dm_plan.spot_model ladder "
-                              "(and auto's test) needs it"}
 
 
 @runtime_checkable

@@ -35,10 +35,9 @@ from torchblur.render.psf import GaussianPSF
 from torchblur.render.blur import RenderSettings, choose_node_count, render_blur
 from torchblur.render.window import ExposureWindow
 from torchblur.render.trajectory import Sinusoid, Trajectory
-from torchblur.rig.base import (Capture, check_drive, check_slew, check_tone_grid, command_peak, command_slew, float_list,
-                                per_exposure)
+from torchblur.rig.base import Capture, RigChecks, check_drive, check_slew, command_peak, command_slew, per_exposure
 
-__all__ = ["SimulatedRig", "DEFAULT_INPUT_LIMIT"]
+__all__ = ["SimulatedRig", "DEFAULT_INPUT_LIMIT", "periodic_triggers", "pulse_references"]
 
 #: The simulated amplifier's input range (input units): the default mirror (20 px per unit at
 #: DC, 0.064 px per unit at 5 kHz) moves 8 px with about 126 units at 5 kHz. The config's
@@ -49,6 +48,26 @@ _F64 = torch.float64
 _MAX_NODES_PER_RENDER = 4096  # longer windows are split into sub-windows (the integral adds up)
 _RENDER_BUDGET = 1 << 24  # elements of a splat factor per render call (memory bound)
 
+
+
+def periodic_triggers(ready: float, period: float, offset: float, n: int, cycle_s: float) -> list[float]:
+    """``n`` triggers (s) of a periodic command, each at ``k period + offset``, the first such time
+    once the camera is ready (at ``ready``, then ``cycle_s`` after each trigger)."""
+    out = []
+    for _ in range(n):
+        out.append(math.ceil((ready - offset) / period - 1e-9) * period + offset)
+        ready = out[-1] + cycle_s
+    return out
+
+
+def pulse_references(offsets, pulse_time_s: float, pulse_width_s: float, cycle_s: float) -> tuple[list[float], float]:
+    """The reference events (s) of a latency scan's frames, one per trigger offset (s), each once
+    the camera is ready and the last pulse is over; and the time the last frame is done."""
+    refs, ready = [], 0.0
+    for o in offsets:
+        refs.append(ready - min(o, pulse_time_s, 0.0))
+        ready = max(refs[-1] + o + cycle_s, refs[-1] + pulse_time_s + pulse_width_s)
+    return refs, ready
 
 
 def _spots_model(plant, frame_shape: tuple, *, rest_px, direction, psf_sigma_px, psf_cov, peak: float, spots):
@@ -89,7 +108,7 @@ def _spots_model(plant, frame_shape: tuple, *, rest_px, direction, psf_sigma_px,
         psf = GaussianPSF(spots.rest_px.to(_F64), spots.cov.to(_F64), torch.full((len(spots),), peak, dtype=_F64))
     return d, psf, layout
 
-class SimulatedRig:
+class SimulatedRig(RigChecks):
     """A simulated rig implementing :class:`~torchblur.rig.base.Rig`.
 
     Args (keyword-only):
@@ -292,12 +311,6 @@ class SimulatedRig:
 
     # ------------------------------------------------------------------ helpers
 
-    def _check_exposure(self, value, name: str = "exposure_s") -> float:
-        te = check_real_scalar(value, name, positive=True)
-        if te > self._max_exposure_s:
-            raise ParameterError(f"{name}: expected at most max_exposure_s = {self._max_exposure_s:g} s, got {te:g} s")
-        return te
-
     def _cycle_s(self, exposure_s: float) -> float:
         """Shortest time from one trigger to the next."""
         return max(1.0 / self._frame_rate_hz, self._trigger_delay_s + exposure_s + self._readout_s)
@@ -403,9 +416,7 @@ class SimulatedRig:
         """The checked exposures, trigger offsets and repeats of a periodic command and their
         schedule: ``(te [E], R, settle_s, trigger times [E, R], exposures [E, R], offsets [E, R],
         window)``, ``window`` the frames' actual exposure windows (:meth:`_actual_starts`)."""
-        R = check_int(n_repeats, "n_repeats", low=1)
-        te = [self._check_exposure(v, "exposures_s") for v in float_list(exposures_s, "exposures_s")]
-        offsets = [check_real_scalar(v, "trigger_offset_s") for v in per_exposure(trigger_offset_s, len(te), "trigger_offset_s")]
+        te, offsets, R = self._check_periodic(exposures_s, trigger_offset_s, n_repeats)
         settle, trig_t, exp_t, off_t = self._schedule(period, te, offsets, R, settle_s)
         return te, R, settle, trig_t, exp_t, off_t, self._actual_starts(trig_t, exp_t)
 
@@ -419,13 +430,10 @@ class SimulatedRig:
         else:
             settle = check_real_scalar(settle_s, "settle_s", nonnegative=True)
         E = len(te)
-        trig = np.empty((E, R))
-        ready = settle
+        trig, ready = [], settle
         for e in range(E):
-            for r in range(R):
-                k = math.ceil((ready - offsets[e]) / period - 1e-9)
-                trig[e, r] = k * period + offsets[e]
-                ready = trig[e, r] + self._cycle_s(te[e])
+            trig.append(periodic_triggers(ready, period, offsets[e], R, self._cycle_s(te[e])))
+            ready = trig[-1][-1] + self._cycle_s(te[e])
         off_mod = []
         for o in offsets:
             m = o - math.floor(o / period) * period
@@ -452,9 +460,6 @@ class SimulatedRig:
         frames = self._camera.expose(expected, generator=self._generator if generator is None else generator)
         return Capture(frames=frames, exposure_s=torch.full((K, n), te, dtype=_F64), trigger_offset_s=torch.zeros(K, n, dtype=_F64),
                        trigger_time_s=trig, frame_counter=self._counters((K, n)), meta=meta)
-
-    def _check_power(self, power) -> float:
-        return check_real_scalar(power, "power", nonnegative=True)
 
     # ------------------------------------------------------------------ captures
 
@@ -490,20 +495,7 @@ class SimulatedRig:
         power: float = 1.0,
         input: str = "x",
     ) -> Capture:
-        """Frames of the sine response, ``[E, R, H, W]`` (E exposures, R = ``n_repeats``).
-
-        Args:
-            freq_hz: command frequency (Hz), > 0.
-            amplitude: command amplitude (command units).
-            exposures_s: E exposure times (s); a number means E = 1.
-            trigger_offset_s: trigger time after an upward zero crossing of the command (s),
-                one number or E numbers.
-            n_repeats: frames per exposure.
-            settle_s: wait (s) from the start of the sine before the first trigger; default
-                ``plant.settling_time_s()`` rounded up to whole periods.
-            power: laser power (1 = ``peak_e_per_s``).
-            input: the driven input, one of :attr:`inputs` (``"x"``; ``"y"`` for a 2 x 2
-                plant); the other input is held at 0.
+        """Frames of the sine response ``[E, R, H, W]``, as :meth:`~torchblur.rig.base.Rig.sine`.
 
         ``meta`` holds ``freq_hz``, ``omega``, ``period_s``, ``amplitude``, ``settle_s``,
         ``power``, ``trigger_delay_s``, ``input`` and, for tests only, ``actual_start_s``
@@ -511,10 +503,7 @@ class SimulatedRig:
         """
         if input not in self.inputs:
             raise ParameterError(f"input: expected one of {self.inputs}, got {input!r}")
-        freq = check_real_scalar(freq_hz, "freq_hz", positive=True)
-        amp = check_real_scalar(amplitude, "amplitude")
-        check_drive(amp, self._input_limit)
-        check_slew(abs(amp) * 2 * math.pi * freq, self._slew_limit)
+        freq, amp = self._check_sine(freq_hz, amplitude)
         power = self._check_power(power)
         period = 1.0 / freq
         te, R, settle, trig_t, exp_t, off_t, window = self._triggers(period, exposures_s, trigger_offset_s, n_repeats, settle_s)
@@ -554,42 +543,20 @@ class SimulatedRig:
         n: int,
         power: float = 1.0,
     ) -> Capture:
-        """Latency calibration: the mirror is still; per frame the controller fires the
-        trigger ``trigger_offset_s`` after a reference event of its clock and the laser is on
-        during ``[pulse_time_s, pulse_time_s + pulse_width_s]`` after the same event.
+        """Latency calibration, as :meth:`~torchblur.rig.base.Rig.pulse`: frames ``[..., n, H, W]``.
 
         The light collected is the still spot times the overlap of the exposure
         ``[trigger + Td + latency, ... + Te]`` with the pulse, so brightness vs
         ``trigger_offset_s`` is a trapezoid: it falls to zero at
         ``trigger_offset_s = pulse_time_s + pulse_width_s - Td - latency`` and rises from
-        zero at ``pulse_time_s - Td - latency - Te``.
-
-        Args:
-            exposure_s: Te (s).
-            trigger_offset_s: trigger time after the reference event (s), a number or a
-                sequence/tensor of shape ``[...]``.
-            pulse_time_s, pulse_width_s: the laser pulse (s) after the reference event;
-                the width > 0.
-            n: frames per offset.
-            power: laser power during the pulse.
-
-        Returns frames ``[..., n, H, W]``; ``meta`` holds the pulse, ``reference_time_s``
-        and, for tests only, ``actual_start_s``.
+        zero at ``pulse_time_s - Td - latency - Te``. ``meta`` holds the pulse,
+        ``reference_time_s`` and, for tests only, ``actual_start_s``.
         """
-        te = self._check_exposure(exposure_s)
-        n = check_int(n, "n", low=1)
-        power = self._check_power(power)
-        p0 = check_real_scalar(pulse_time_s, "pulse_time_s")
-        width = check_real_scalar(pulse_width_s, "pulse_width_s", positive=True)
+        te, n, power, p0, width = self._check_pulse(exposure_s, n, power, pulse_time_s, pulse_width_s)
         offs = check_finite(as_tensor(trigger_offset_s, "trigger_offset_s", dtype=_F64), "trigger_offset_s")
         shape = tuple(offs.shape) + (n,)
         off_flat = offs[..., None].expand(shape).reshape(-1).tolist()
-        ref = np.empty(len(off_flat))
-        ready = 0.0
-        for i, o in enumerate(off_flat):
-            ref[i] = ready - min(o, p0, 0.0)
-            trig_i = ref[i] + o
-            ready = max(trig_i + self._cycle_s(te), ref[i] + p0 + width)
+        ref = pulse_references(off_flat, p0, width, self._cycle_s(te))[0]
         ref_t = torch.as_tensor(ref, dtype=_F64).reshape(shape)
         off_t = torch.as_tensor(off_flat, dtype=_F64).reshape(shape)
         trig_t = ref_t + off_t
@@ -621,48 +588,16 @@ class SimulatedRig:
         settle_s: float | None = None,
         power: float | Sequence[float] = 1.0,
     ) -> Capture:
-        """Frames of the multisine response, ``[E, R, H, W]`` (E exposures, R = ``n_repeats``).
-
-        The command ``sum_k amplitude_k sin(2 pi freq_hz_k t + phase_rad_k)`` starts at t = 0
-        from rest; every tone is a whole multiple of ``base_freq_hz`` (default: the lowest
-        tone), so the command repeats every ``T0 = 1 / base_freq_hz`` and a frame's trigger is
-        at ``k T0 + trigger_offset_s`` (the first such time at or after the camera is ready,
-        as :meth:`sine` with ``T0`` for the period). The image is the exact plant output
-        (:class:`~torchblur.systems.lti.LTIMultisineTrajectory`, transients included).
-
-        Args:
-            freq_hz, amplitude, phase_rad: the N tones (Hz, command units, rad).
-            exposures_s: E exposure times (s).
-            trigger_offset_s: trigger time after the start of a common period (s), one
-                number or E numbers.
-            n_repeats: frames per exposure.
-            base_freq_hz: f0 (Hz); default ``min(freq_hz)``.
-            settle_s: wait (s) from the start before the first trigger; default the plant's
-                settling time rounded up to whole common periods.
-            power: laser power (1 = ``peak_e_per_s``), one number or E numbers (one per
-                exposure: the laser follows the exposure).
-
-        ``meta`` holds the tones, ``base_freq_hz``, ``period_s``, ``settle_s``, ``power``,
+        """Frames of the multisine response ``[E, R, H, W]``, as :meth:`~torchblur.rig.base.Rig.multisine`:
+        the exact plant output (:class:`~torchblur.systems.lti.LTIMultisineTrajectory`, transients
+        included). ``meta`` holds the tones, ``base_freq_hz``, ``period_s``, ``settle_s``, ``power``,
         ``trigger_delay_s`` and, for tests only, ``actual_start_s`` ``[E, R]``.
         """
-        freqs = float_list(freq_hz, "freq_hz")
-        N = len(freqs)
-        amps = float_list(amplitude, "amplitude")
-        phases = float_list(phase_rad, "phase_rad")
-        for name, v in (("amplitude", amps), ("phase_rad", phases)):
-            if len(v) != N:
-                raise ShapeError(f"{name}: expected {N} values (one per tone of freq_hz), got {len(v)}")
-        freqs = [check_real_scalar(v, "freq_hz", positive=True) for v in freqs]
-        amps = [check_real_scalar(v, "amplitude") for v in amps]
-        phases = [check_real_scalar(v, "phase_rad") for v in phases]
-        f0 = min(freqs) if base_freq_hz is None else check_real_scalar(base_freq_hz, "base_freq_hz", positive=True)
-        check_tone_grid(freqs, f0)
+        freqs, amps, phases, f0 = self._check_tones(freq_hz, amplitude, phase_rad, base_freq_hz)
         check_drive(command_peak(freqs, amps, phases, f0), self._input_limit)
         check_slew(command_slew(freqs, amps, phases, f0), self._slew_limit)
-        R = check_int(n_repeats, "n_repeats", low=1)
-        te = [self._check_exposure(v, "exposures_s") for v in float_list(exposures_s, "exposures_s")]
+        te, offsets, R = self._check_periodic(exposures_s, trigger_offset_s, n_repeats)
         E = len(te)
-        offsets = [check_real_scalar(v, "trigger_offset_s") for v in per_exposure(trigger_offset_s, E, "trigger_offset_s")]
         powers = [self._check_power(v) for v in per_exposure(power, E, "power")]
         period = 1.0 / f0
         settle, trig_t, exp_t, off_t = self._schedule(period, te, offsets, R, settle_s)
