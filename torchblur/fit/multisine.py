@@ -25,7 +25,7 @@ from dataclasses import dataclass, field, replace
 import torch
 
 from torchblur._compat import median_along
-from torchblur.render.alias import canonical_sines, wrap_phase
+from torchblur.render.alias import canonical_sines
 from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_tensor, as_unit_direction, check_finite, check_positive,
                               flat_noise_and_mask)
 from torchblur.fit.kernel_noise import kernel_noise_covariance
@@ -34,7 +34,7 @@ from torchblur.image.moments import image_moments, moments_along
 from torchblur.optim import levenberg_marquardt, model_jacobian
 from torchblur.fit.problem import _nonzero_box
 from torchblur.render.psf import GaussianPSF, KernelPSF
-from torchblur.render.camera import CameraNoise
+from torchblur.render.camera import CameraNoise, noise_sets_weights
 from torchblur.render.blur import RenderSettings, _kernel_fourier, choose_node_count, quadrature_nodes, render_blur
 from torchblur.render.splat import sine_blur_with_jacobian, window_nodes
 from torchblur.render.window import ExposureWindow
@@ -48,7 +48,7 @@ __all__ = ["MultisineFit", "render_multisine", "render_multisine_with_jacobian",
 # first search's 48 random phase starts land there for some seeds.
 RETRY_CHI2 = 1.15
 
-from torchblur.fit.status import POOR_FIT, STATUS, flag_poor_fit  # noqa: F401  (torchblur.fit.multisine.STATUS is the one table)
+from torchblur.fit.status import POOR_FIT, flag_poor_fit
 
 
 def multisine_param_names(n_tones: int, fit_scale: bool) -> tuple:
@@ -161,7 +161,7 @@ class MultisineFit:
         param_names: ``amplitude_k``, ``phase_k`` (and ``scale``).
         cost: weighted sum of squared residuals at the solution, ``[...]``.
         converged: ``status == 0``, ``[...]``.
-        status: see :data:`STATUS`, ``[...]``.
+        status: see :data:`~torchblur.fit.status.STATUS`, ``[...]``.
         scale: fitted intensity scale ``[...]`` (None if not fitted).
         noise_std: pixel noise std used (median), ``[...]``.
         n_iter: LM iterations of the best start (plus the refit's, weighted by the noise
@@ -312,11 +312,7 @@ def _noise_power(noise, power, noise_std, flat: _Flat) -> torch.Tensor | None:
     """Check ``noise`` (a :class:`~torchblur.render.camera.CameraNoise` or None) and ``power``
     (``[..., E]`` or a number, > 0; only with ``noise``) -> ``power [B, E]`` (ones when not given)
     where the noise model sets the weights (``noise`` given, ``noise_std`` not), else None."""
-    if noise is not None and not isinstance(noise, CameraNoise):
-        raise InputTypeError(f"noise: expected a CameraNoise or None, got {type(noise).__name__}")
-    if noise is not None and noise_std is None and noise.read_noise_e == 0:
-        raise ParameterError("noise: read_noise_e is 0, so a pixel with no expected light would get zero std (infinite weight); "
-                             "pass noise_std")
+    by_model = noise_sets_weights(noise, noise_std)
     if power is None:
         pw = torch.ones_like(flat.start)
     elif noise is None:
@@ -329,7 +325,7 @@ def _noise_power(noise, power, noise_std, flat: _Flat) -> torch.Tensor | None:
         except RuntimeError:
             raise ShapeError(f"power: expected a number or [..., E] = {tuple(flat.batch + flat.start.shape[-1:])}, "
                              f"got {tuple(p.shape)}") from None
-    return pw if noise is not None and noise_std is None else None
+    return pw if by_model else None
 
 
 def _own_value_std(noise: CameraNoise, pw: torch.Tensor, flat: _Flat) -> torch.Tensor:
@@ -767,7 +763,7 @@ def _kernel_variance(kernel_var, flat: _Flat) -> torch.Tensor | None:
 
 
 def _status(converged, red_chi2, singular, dark, sigma_given: bool) -> torch.Tensor:
-    """Status codes ``[B]`` (:data:`STATUS`): 2 not converged; POOR_FIT still far above the
+    """Status codes ``[B]`` (:data:`~torchblur.fit.status.STATUS`): 2 not converged; POOR_FIT still far above the
     given noise (reduced chi2 > 3) after the wider search; 4 singular; 1 dark."""
     status = torch.zeros(converged.shape, dtype=torch.long, device=converged.device)
     status[~converged] = 2

@@ -26,7 +26,7 @@ import torch
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_bool, check_finite, check_int, check_real_scalar
 from torchblur.render.window import ExposureWindow
 
-__all__ = ["CameraModel", "CameraNoise", "camera_noise_std"]
+__all__ = ["CameraModel", "CameraNoise", "camera_noise_std", "noise_sets_weights"]
 
 
 def camera_noise_std(expected_e, read_noise_e: float):
@@ -103,6 +103,20 @@ class CameraNoise:
         same shape, dtype and device as ``frames_adu`` ``[...]``."""
         frames = check_finite(as_tensor(frames_adu, "frames_adu"), "frames_adu")
         return (frames - self.offset_adu) * self.gain_e_per_adu
+
+
+def noise_sets_weights(noise, noise_std) -> bool:
+    """Check ``noise`` (a :class:`CameraNoise` or None) -> whether a fit's weights come from the
+    noise model (``noise`` given, ``noise_std`` not); ParameterError when they would and
+    ``read_noise_e`` is 0 (a pixel with no expected light would get infinite weight)."""
+    if noise is None:
+        return False
+    if not isinstance(noise, CameraNoise):
+        raise InputTypeError(f"noise: expected a CameraNoise or None, got {type(noise).__name__}")
+    if noise_std is None and noise.read_noise_e == 0:
+        raise ParameterError("noise: read_noise_e is 0, so a pixel with no expected light would get zero std (infinite weight); "
+                             "pass noise_std")
+    return noise_std is None
 
 
 def _check_generator(generator, device: torch.device) -> None:

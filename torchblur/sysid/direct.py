@@ -60,7 +60,7 @@ from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_fre
 from torchblur.fit.problem import _nonzero_box
 from torchblur.fit.status import POOR_FIT_CHI2, flag_poor_fit
 from torchblur.render.blur import RenderSettings, choose_node_count, quadrature_nodes
-from torchblur.render.camera import CameraNoise
+from torchblur.render.camera import CameraNoise, noise_sets_weights
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.splat import sine_blur_with_jacobian, window_nodes
 from torchblur.render.trajectory import Sinusoid
@@ -688,19 +688,6 @@ def _covariance(prob: _Problem, motion: _Motion, u, blocks, cost, noise_estimate
     return p_hat.detach().cpu().numpy(), cov, total_cost, dof, red
 
 
-def _model_weighted(noise, noise_std) -> bool:
-    """Check ``noise`` (a CameraNoise or None) -> whether the weights come from the noise model
-    (``noise`` given, ``noise_std`` not: :func:`_refit_by_model`)."""
-    if noise is None:
-        return False
-    if not isinstance(noise, CameraNoise):
-        raise InputTypeError(f"noise: expected a CameraNoise or None, got {type(noise).__name__}")
-    if noise_std is None and noise.read_noise_e == 0:
-        raise ParameterError("noise: read_noise_e is 0, so a pixel with no expected light would get zero std (infinite weight); "
-                             "pass noise_std")
-    return noise_std is None
-
-
 def _refit_by_model(prob: _Problem, motion: _Motion, u, nuis, noise: CameraNoise, *, max_iter: int, tol: float):
     """The second pass of a fit weighted by the camera's noise model: ``prob``'s weights set in
     place to ``1 / noise.std(model)^2`` of the first pass's model images at ``(u, nuis)`` (the
@@ -825,7 +812,7 @@ def fit_direct(
     images, window, omega, amp, use = _validate(images, psf, window, omega, input_amplitude, start, form, axis, valid, flags,
                                                 max_iter)
     struct, names, is_log, p0, delay = _start_params(start, form, fit_delay, images.device)
-    by_model = _model_weighted(noise, noise_std)
+    by_model = noise_sets_weights(noise, noise_std)
     weight = _pixel_weights(images, noise.std(images) if by_model else noise_std, mask)
     if not bool(use.any()):
         raise ParameterError("valid: every point is excluded; nothing to fit")
