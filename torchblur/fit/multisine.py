@@ -27,7 +27,7 @@ import torch
 from torchblur._compat import median_along
 from torchblur.render.alias import canonical_sines
 from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_tensor, as_unit_direction, check_finite, check_positive,
-                              flat_noise_and_mask)
+                              pixel_weights)
 from torchblur.fit.kernel_noise import kernel_noise_covariance
 from torchblur.losses import image_loss
 from torchblur.image.moments import image_moments, moments_along
@@ -293,19 +293,11 @@ def _check_and_flatten(images, psf, window, omega, direction, counts: dict) -> _
 
 
 def _pixel_weight(noise_std, mask, flat: _Flat):
-    """``(weight [B, E, H, W], noise_level [B] or None)``: ``1 / noise_std^2`` (ones when not
-    given), 0 where ``mask`` is False; the median given noise std per image set."""
+    """``(weight [B, E, H, W], noise_level [B] or None)``: :func:`~torchblur.errors.pixel_weights`
+    and the median given noise std per image set."""
     data = flat.data
-    s, keep = flat_noise_and_mask(noise_std, mask, data.reshape(flat.batch + data.shape[1:]))
-    weight = torch.ones_like(data)
-    noise_level = None
-    if s is not None:
-        s = s if s.dim() == 4 else s[:, None, None, None].expand(data.shape)
-        weight = 1 / s**2
-        noise_level = median_along(s.reshape(data.shape[0], -1))
-    if keep is not None:
-        weight = weight * keep.to(data.dtype)
-    return weight, noise_level
+    weight, s = pixel_weights(noise_std, mask, data.reshape(flat.batch + data.shape[1:]))
+    return weight, None if s is None else median_along(s.reshape(data.shape[0], -1))
 
 
 def _noise_power(noise, power, noise_std, flat: _Flat) -> torch.Tensor | None:

@@ -56,7 +56,7 @@ import numpy as np
 import torch
 
 from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_frequency_grid, as_tensor, as_unit_direction, check_choice,
-                     check_finite, check_positive, flat_noise_and_mask)
+                     check_finite, check_positive, pixel_weights)
 from torchblur.fit.problem import _nonzero_box
 from torchblur.fit.status import POOR_FIT_CHI2, flag_poor_fit
 from torchblur.render.blur import RenderSettings, choose_node_count, quadrature_nodes
@@ -366,17 +366,6 @@ def _start_values(start, form: str, fit_delay: bool):
         if start.form == form and start._struct.fit_delay == fit_delay:
             return start._struct, np.array(start.params, dtype=np.float64), float(start.delay_s)
     return _structure_from_tf(start, form, fit_delay)
-
-
-def _pixel_weights(images, noise_std, mask) -> torch.Tensor:
-    """``1 / noise_std^2`` per pixel, 0 where ``mask`` is False, ``[F, E, H, W]``."""
-    s, keep = flat_noise_and_mask(noise_std, mask, images)
-    weight = torch.ones_like(images)
-    if s is not None:
-        weight = (1 / (s if s.dim() == 4 else s[:, None, None, None]) ** 2).expand(images.shape)
-    if keep is not None:
-        weight = weight * keep.to(images.dtype)
-    return weight
 
 
 @dataclasses.dataclass(frozen=True)
@@ -805,7 +794,7 @@ def fit_direct(
                                                 max_iter)
     struct, names, is_log, p0, delay = _start_params(start, form, fit_delay, images.device)
     by_model = noise_sets_weights(noise, noise_std)
-    weight = _pixel_weights(images, noise.std(images) if by_model else noise_std, mask)
+    weight, _ = pixel_weights(noise.std(images) if by_model else noise_std, mask, images)
     if not bool(use.any()):
         raise ParameterError("valid: every point is excluded; nothing to fit")
 
