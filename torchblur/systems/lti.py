@@ -24,6 +24,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.signal
 import torch
 
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, broadcast_batch, check_finite, check_positive, check_real_scalar
@@ -185,22 +186,12 @@ class Plant:
         """A balanced realisation ``(A [n, n], B [n], C [n], D scalar)`` of ``num / den``
         (no delay), float64. Balancing (a diagonal similarity) keeps the eigenvectors of
         high-order, high-frequency companion forms well conditioned."""
-        n = self.order
-        a = np.asarray(self.den) / self.den[0]
-        if n == 0:
+        if self.order == 0:
             return np.zeros((0, 0)), np.zeros(0), np.zeros(0), np.float64(self.num[-1] / self.den[0])
-        b = np.zeros(n + 1)
-        b[n + 1 - len(self.num):] = self.num
-        b = b / self.den[0]
-        A = np.zeros((n, n))  # controller canonical form (as scipy.signal.tf2ss)
-        A[0, :] = -a[1:]
-        A[np.arange(1, n), np.arange(n - 1)] = 1.0
-        B = np.zeros(n)
-        B[0] = 1.0
-        C = b[1:] - b[0] * a[1:]
+        A, B, C, D = scipy.signal.tf2ss(self.num, self.den)  # controller canonical form
         scale = _balance_scaling(A)
         A = A * scale[None, :] / scale[:, None]
-        return A, B / scale, C * scale, np.float64(b[0])
+        return A, B[:, 0] / scale, C[0] * scale, np.float64(D[0, 0])
 
     def to_control(self, pade_order: int | None = None):
         """A ``control.TransferFunction`` of ``num / den``.
