@@ -50,20 +50,14 @@ def test_expose_mean_and_variance_match_theory(quantize, gain):
     assert abs(float(frame.var()) - var_th) < N_SIGMA * var_th * math.sqrt(2.0 / (n - 1))
 
 
-def test_noise_std_e_matches_empirical_std_in_electrons():
+def test_noise_std_matches_empirical_std_in_electrons():
     e = 400.0
     cam = CameraModel(read_noise_e=8.0, gain_e_per_adu=3.0, bit_depth=16, full_well_e=1e5)
     electrons = cam.to_electrons(cam.expose(_flat(e), generator=_gen(2)))
-    std_th = float(cam.noise_std_e(torch.tensor(e, dtype=torch.float64)))
+    std_th = float(cam.noise.std(torch.tensor(e, dtype=torch.float64)))
     assert std_th == pytest.approx(math.sqrt(8.0**2 + e + 3.0**2 / 12.0), rel=1e-12)
     n = electrons.numel()
     assert abs(float(electrons.std()) - std_th) < N_SIGMA * std_th / math.sqrt(2.0 * (n - 1))
-
-
-def test_noise_std_e_terms_switch_off():
-    e = torch.tensor([0.0, 9.0, 100.0], dtype=torch.float64)
-    assert torch.allclose(CameraModel(read_noise_e=3.0, shot_noise=False, quantize=False).noise_std_e(e), torch.full_like(e, 3.0))
-    assert torch.allclose(CameraModel(read_noise_e=0.0, quantize=False).noise_std_e(e), e.sqrt())
 
 
 def test_noiseless_expose_is_affine_and_to_electrons_inverts_it():
@@ -191,7 +185,7 @@ def test_dtype_and_device_follow_the_input(dtype, device):
     expected = torch.full((3, 8, 9), 50.0, dtype=dtype, device=device)
     frame = cam.expose(expected, generator=_gen(0, device))
     assert frame.dtype == dtype and frame.device.type == device.type and frame.shape == expected.shape
-    for out in (cam.to_electrons(frame), cam.noise_std_e(expected)):
+    for out in (cam.to_electrons(frame), cam.noise.std(expected)):
         assert out.dtype == dtype and out.device.type == device.type
     assert cam.saturated_mask(frame).device.type == device.type
     assert cam.hot_pixel_mask(8, 9, device=device).device.type == device.type

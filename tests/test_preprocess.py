@@ -227,7 +227,7 @@ def noisy_still(psf, n, seed, background=30.0, size=32):
     cam = CameraModel(dark_level_adu=100.0, read_noise_e=5.0)
     expected = still_image(psf, size, size) + background
     frames = cam.expose(expected.expand(n, size, size), generator=torch.Generator().manual_seed(seed))
-    return frames - 100.0, cam.noise_std_e(expected)
+    return frames - 100.0, cam.noise.std(expected)
 
 
 def test_fit_gaussian_psf_noisy_within_reported_uncertainty():

@@ -147,7 +147,7 @@ def test_partial_saturation_masked_from_the_camera():
     electrons = cam.to_electrons(raw)
     gain = (4000.0 / d["peak"])[:, None, None, None]
     images = electrons / gain
-    noise = cam.noise_std_e(expected_e) / gain
+    noise = cam.noise.std(expected_e) / gain
     res = fit_sinusoid(images, d["psf"], d["win"], d["om"], noise_std=noise, mask=~sat)
     assert sat.flatten(1).any(1).all()
     assert (res.status == 0).all() and (res.flags == MASKED).all()

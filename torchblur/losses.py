@@ -26,11 +26,17 @@ import torch
 
 from torchblur.errors import ParameterError
 
-__all__ = ["LOSSES", "LIKELIHOOD_LOSSES", "covariance_factor", "gauss_newton_terms", "image_loss", "irls_weights", "loss_weight"]
+__all__ = ["LOSSES", "LIKELIHOOD_LOSSES", "chi2_limit", "covariance_factor", "gauss_newton_terms", "image_loss", "irls_weights", "loss_weight"]
 
 LOSSES = ("l2", "l1", "linf", "poisson")
 # The losses whose estimates come with a covariance that holds (identify accepts these).
 LIKELIHOOD_LOSSES = ("l2", "l1", "poisson")
+
+
+def chi2_limit(dof, z: float) -> float:
+    """``1 + z sqrt(2 / dof)``: the largest reduced chi2 of ``dof`` (>= 1 counted) degrees of freedom
+    that passes a test at ``z`` of its stds (a right model's reduced chi2 has std ``sqrt(2 / dof)``)."""
+    return 1.0 + z * math.sqrt(2.0 / max(1, int(dof)))
 
 
 def _check_loss(loss: str) -> None:

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import torch
 
 from torchblur._compat import median_along
-from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_finite, check_positive, flat_noise_and_mask
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_finite, check_positive, pixel_weights
 from torchblur.losses import image_loss
 from torchblur.optim import levenberg_marquardt
 from torchblur.image.moments import image_moments
@@ -134,14 +134,6 @@ def _check_inputs(images, psf, code, omega, n_phases):
     return code, om
 
 
-def _pixel_weight(noise_std, images, B: int) -> torch.Tensor:
-    """``1 / noise_std^2`` per pixel ``[B, H W]`` (ones when ``noise_std`` is None)."""
-    s, _ = flat_noise_and_mask(noise_std, None, images, frame_dims=2)
-    if s is None:
-        return torch.ones(B, images.shape[-2:].numel(), dtype=images.dtype, device=images.device)
-    return 1 / (s.reshape(B, -1) if s.dim() == 3 else s[:, None].expand(B, images.shape[-2:].numel())) ** 2
-
-
 def _amplitude_start(images, cov_xx, center_x, amplitude_guess, batch, B: int) -> torch.Tensor:
     """The amplitude start ``[B]``: ``amplitude_guess``, else from each image's second moment along x."""
     if amplitude_guess is not None:
@@ -232,7 +224,7 @@ def fit_sinusoid_coded(images, psf: GaussianPSF | KernelPSF, window: ExposureWin
     prob = _problem(images, psf, window, code, omega, fit_scale)
     B, K = prob.om.shape[0], n_phases
     data = images.reshape(B, -1)
-    weight = _pixel_weight(noise_std, images, B)
+    weight = pixel_weights(noise_std, None, images, frame_dims=2)[0].reshape(B, -1)
     M0 = _amplitude_start(images, prob.cov[:, 0, 0], prob.center[:, 0], amplitude_guess, batch, B)
     prob = _with_nodes(prob, M0)
     theta0 = _phase_grid_starts(M0, K, fit_scale)

@@ -25,16 +25,16 @@ from dataclasses import dataclass, field, replace
 import torch
 
 from torchblur._compat import median_along
-from torchblur.render.alias import canonical_sines, wrap_phase
+from torchblur.render.alias import canonical_sines
 from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_tensor, as_unit_direction, check_finite, check_positive,
-                              flat_noise_and_mask)
+                              pixel_weights)
 from torchblur.fit.kernel_noise import kernel_noise_covariance
 from torchblur.losses import image_loss
 from torchblur.image.moments import image_moments, moments_along
 from torchblur.optim import levenberg_marquardt, model_jacobian
 from torchblur.fit.problem import _nonzero_box
 from torchblur.render.psf import GaussianPSF, KernelPSF
-from torchblur.render.camera import CameraNoise
+from torchblur.render.camera import CameraNoise, noise_sets_weights
 from torchblur.render.blur import RenderSettings, _kernel_fourier, choose_node_count, quadrature_nodes, render_blur
 from torchblur.render.splat import sine_blur_with_jacobian, window_nodes
 from torchblur.render.window import ExposureWindow
@@ -48,7 +48,7 @@ __all__ = ["MultisineFit", "render_multisine", "render_multisine_with_jacobian",
 # first search's 48 random phase starts land there for some seeds.
 RETRY_CHI2 = 1.15
 
-from torchblur.fit.status import POOR_FIT, STATUS, flag_poor_fit  # noqa: F401  (torchblur.fit.multisine.STATUS is the one table)
+from torchblur.fit.status import POOR_FIT, flag_poor_fit
 
 
 def multisine_param_names(n_tones: int, fit_scale: bool) -> tuple:
@@ -161,7 +161,7 @@ class MultisineFit:
         param_names: ``amplitude_k``, ``phase_k`` (and ``scale``).
         cost: weighted sum of squared residuals at the solution, ``[...]``.
         converged: ``status == 0``, ``[...]``.
-        status: see :data:`STATUS`, ``[...]``.
+        status: see :data:`~torchblur.fit.status.STATUS`, ``[...]``.
         scale: fitted intensity scale ``[...]`` (None if not fitted).
         noise_std: pixel noise std used (median), ``[...]``.
         n_iter: LM iterations of the best start (plus the refit's, weighted by the noise
@@ -293,30 +293,18 @@ def _check_and_flatten(images, psf, window, omega, direction, counts: dict) -> _
 
 
 def _pixel_weight(noise_std, mask, flat: _Flat):
-    """``(weight [B, E, H, W], noise_level [B] or None)``: ``1 / noise_std^2`` (ones when not
-    given), 0 where ``mask`` is False; the median given noise std per image set."""
+    """``(weight [B, E, H, W], noise_level [B] or None)``: :func:`~torchblur.errors.pixel_weights`
+    and the median given noise std per image set."""
     data = flat.data
-    s, keep = flat_noise_and_mask(noise_std, mask, data.reshape(flat.batch + data.shape[1:]))
-    weight = torch.ones_like(data)
-    noise_level = None
-    if s is not None:
-        s = s if s.dim() == 4 else s[:, None, None, None].expand(data.shape)
-        weight = 1 / s**2
-        noise_level = median_along(s.reshape(data.shape[0], -1))
-    if keep is not None:
-        weight = weight * keep.to(data.dtype)
-    return weight, noise_level
+    weight, s = pixel_weights(noise_std, mask, data.reshape(flat.batch + data.shape[1:]))
+    return weight, None if s is None else median_along(s.reshape(data.shape[0], -1))
 
 
 def _noise_power(noise, power, noise_std, flat: _Flat) -> torch.Tensor | None:
     """Check ``noise`` (a :class:`~torchblur.render.camera.CameraNoise` or None) and ``power``
     (``[..., E]`` or a number, > 0; only with ``noise``) -> ``power [B, E]`` (ones when not given)
     where the noise model sets the weights (``noise`` given, ``noise_std`` not), else None."""
-    if noise is not None and not isinstance(noise, CameraNoise):
-        raise InputTypeError(f"noise: expected a CameraNoise or None, got {type(noise).__name__}")
-    if noise is not None and noise_std is None and noise.read_noise_e == 0:
-        raise ParameterError("noise: read_noise_e is 0, so a pixel with no expected light would get zero std (infinite weight); "
-                             "pass noise_std")
+    by_model = noise_sets_weights(noise, noise_std)
     if power is None:
         pw = torch.ones_like(flat.start)
     elif noise is None:
@@ -329,7 +317,7 @@ def _noise_power(noise, power, noise_std, flat: _Flat) -> torch.Tensor | None:
         except RuntimeError:
             raise ShapeError(f"power: expected a number or [..., E] = {tuple(flat.batch + flat.start.shape[-1:])}, "
                              f"got {tuple(p.shape)}") from None
-    return pw if noise is not None and noise_std is None else None
+    return pw if by_model else None
 
 
 def _own_value_std(noise: CameraNoise, pw: torch.Tensor, flat: _Flat) -> torch.Tensor:
@@ -767,7 +755,7 @@ def _kernel_variance(kernel_var, flat: _Flat) -> torch.Tensor | None:
 
 
 def _status(converged, red_chi2, singular, dark, sigma_given: bool) -> torch.Tensor:
-    """Status codes ``[B]`` (:data:`STATUS`): 2 not converged; POOR_FIT still far above the
+    """Status codes ``[B]`` (:data:`~torchblur.fit.status.STATUS`): 2 not converged; POOR_FIT still far above the
     given noise (reduced chi2 > 3) after the wider search; 4 singular; 1 dark."""
     status = torch.zeros(converged.shape, dtype=torch.long, device=converged.device)
     status[~converged] = 2

@@ -47,6 +47,7 @@ import torch
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_choice, check_finite, check_positive, check_real_scalar
 from torchblur.image.detection import threshold_mask
 from torchblur.image.psf_fit import PSFFit, fit_gaussian_psf, point_sampled_equivalent
+from torchblur.losses import chi2_limit
 from torchblur.render.psf import GaussianPSF, KernelPSF
 
 __all__ = ["StillPSF", "psf_from_still", "KINDS", "CHI2_Z"]
@@ -322,7 +323,7 @@ def psf_from_still(
     chi2_k = (((1 - taper) * signal / sigma).square()[out_px].sum() / out_px.sum().clamp_min(1))
 
     dof = max(int(support.sum()) - 6, 1)
-    threshold = 1 + CHI2_Z * math.sqrt(2 / dof)
+    threshold = chi2_limit(dof, CHI2_Z)
     gauss, chi2_g, failed = _gaussian_candidate(signal, sigma, support, dof, exposure, in_dtype)
     if kind == "gaussian" and gauss is None:
         raise ParameterError(f"kind: 'gaussian' asked for, but no Gaussian fits the still{failed}")

@@ -4,7 +4,7 @@ A slow CCD/CMOS camera looking at a laser spot. The renderer gives the noise-fre
 expected number of photo-electrons per pixel; :class:`CameraModel` adds what the sensor
 does to it (hot pixels, shot noise, full well, read noise, gain, dark level, quantization,
 ADC range) and gives the tools a fitter needs to undo it (:meth:`CameraModel.to_electrons`,
-:meth:`CameraModel.noise_std_e`, :meth:`CameraModel.saturated_mask`).
+:attr:`CameraModel.noise`, :meth:`CameraModel.saturated_mask`).
 
 Glossary: ``...`` batch dims, ``H, W`` pixels; ``image[..., i, j]`` is the pixel at row
 ``i``, column ``j`` (x = j, y = i). Charge is in electrons (``_e``), digital values in
@@ -26,7 +26,7 @@ import torch
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_bool, check_finite, check_int, check_real_scalar
 from torchblur.render.window import ExposureWindow
 
-__all__ = ["CameraModel", "CameraNoise", "camera_noise_std"]
+__all__ = ["CameraModel", "CameraNoise", "camera_noise_std", "noise_sets_weights"]
 
 
 def camera_noise_std(expected_e, read_noise_e: float):
@@ -103,6 +103,20 @@ class CameraNoise:
         same shape, dtype and device as ``frames_adu`` ``[...]``."""
         frames = check_finite(as_tensor(frames_adu, "frames_adu"), "frames_adu")
         return (frames - self.offset_adu) * self.gain_e_per_adu
+
+
+def noise_sets_weights(noise, noise_std) -> bool:
+    """Check ``noise`` (a :class:`CameraNoise` or None) -> whether a fit's weights come from the
+    noise model (``noise`` given, ``noise_std`` not); ParameterError when they would and
+    ``read_noise_e`` is 0 (a pixel with no expected light would get infinite weight)."""
+    if noise is None:
+        return False
+    if not isinstance(noise, CameraNoise):
+        raise InputTypeError(f"noise: expected a CameraNoise or None, got {type(noise).__name__}")
+    if noise_std is None and noise.read_noise_e == 0:
+        raise ParameterError("noise: read_noise_e is 0, so a pixel with no expected light would get zero std (infinite weight); "
+                             "pass noise_std")
+    return noise_std is None
 
 
 def _check_generator(generator, device: torch.device) -> None:
@@ -242,7 +256,7 @@ class CameraModel:
 
         Without noise and clipping, ``mean(adu) = expected_e / gain + dark`` and
         ``var(adu) = (expected_e + read_noise_e**2) / gain**2 + 1/12`` (the ``1/12`` from
-        rounding); see :meth:`noise_std_e`.
+        rounding); see :attr:`noise`.
 
         Not differentiable (Poisson sampling and rounding); use it to make data.
         """
@@ -326,30 +340,6 @@ class CameraModel:
         adds ``1/12`` ADU^2, as a dark frame's std measures it). Assumes ``shot_noise``."""
         q = self.gain_e_per_adu**2 / 12.0 if self.quantize else 0.0
         return CameraNoise(gain_e_per_adu=self.gain_e_per_adu, offset_adu=self.dark_level_adu, read_noise_e=math.sqrt(self.read_noise_e**2 + q))
-
-    def noise_std_e(self, expected_e) -> torch.Tensor:
-        """Per-pixel standard deviation of the measured charge, in electrons.
-
-        ``sqrt(read_noise_e**2 + expected_e [if shot_noise] + gain_e_per_adu**2 / 12
-        [if quantize])``: read noise, shot noise and rounding to whole ADU, expressed in
-        electrons. Ignores hot pixels and clipping (mask those out); a fitter uses it to
-        weight residuals of :meth:`to_electrons` of the frames.
-
-        Args:
-            expected_e: expected photo-electrons per pixel, shape ``[..., H, W]`` (any
-                shape works); finite and >= 0.
-
-        Returns:
-            Standard deviation in electrons, same shape, dtype and device; differentiable
-            in ``expected_e``.
-        """
-        e = _check_electrons(expected_e, "expected_e")
-        var = torch.full_like(e, self.read_noise_e**2)
-        if self.shot_noise:
-            var = var + e
-        if self.quantize:
-            var = var + self.gain_e_per_adu**2 / 12.0
-        return torch.sqrt(var)
 
     # ------------------------------------------------------------------ timing
 

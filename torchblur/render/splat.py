@@ -48,6 +48,19 @@ __all__ = ["gaussian_splat_with_jacobian", "kernel_shift_with_jacobian", "sine_b
 _CHUNK_BYTES = 32e6
 
 
+def _real_dtypes(names, args):
+    """Check that ``args`` are real tensors (errors name them) -> ``(dtype, wide)``: their promoted
+    floating dtype (the default one for integers), and float64 or wider to compute in."""
+    for name, val in zip(names, args):
+        if not isinstance(val, torch.Tensor):
+            raise InputTypeError(f"{name}: expected a torch.Tensor, got {type(val).__name__}")
+        if val.is_complex():
+            raise InputTypeError(f"{name}: expected a real tensor, got {val.dtype}")
+    dtype = functools.reduce(torch.promote_types, (v.dtype for v in args))
+    dtype = dtype if dtype.is_floating_point else torch.get_default_dtype()
+    return dtype, torch.float64 if torch.finfo(dtype).bits <= 32 else dtype
+
+
 def gaussian_splat_with_jacobian(px, py, dpx, dpy, w, A, B, C, height, width):
     """Gaussian splat (point-sampled pixels) and its Jacobian with respect to node-moving parameters.
 
@@ -83,17 +96,8 @@ def gaussian_splat_with_jacobian(px, py, dpx, dpy, w, A, B, C, height, width):
     for name, val in (("height", height), ("width", width)):
         if isinstance(val, bool) or not isinstance(val, int) or val < 1:
             raise ParameterError(f"{name}: expected an integer >= 1, got {val!r}")
-    names = ("px", "py", "dpx", "dpy", "w", "A", "B", "C")
     args = (px, py, dpx, dpy, w, A, B, C)
-    for name, val in zip(names, args):
-        if not isinstance(val, torch.Tensor):
-            raise InputTypeError(f"{name}: expected a torch.Tensor, got {type(val).__name__}")
-        if val.is_complex():
-            raise InputTypeError(f"{name}: expected a real tensor, got {val.dtype}")
-    dtype = functools.reduce(torch.promote_types, (v.dtype for v in args))
-    if not dtype.is_floating_point:
-        dtype = torch.get_default_dtype()
-    wide = torch.float64 if torch.finfo(dtype).bits <= 32 else dtype
+    dtype, wide = _real_dtypes(("px", "py", "dpx", "dpy", "w", "A", "B", "C"), args)
     device = px.device
     px, py, dpx, dpy, w, A, B, C = (v.to(device=device, dtype=wide) for v in args)
     for name, val, nd in (("px", px, 1), ("py", py, 1), ("w", w, 1), ("dpx", dpx, 2), ("dpy", dpy, 2)):
@@ -226,19 +230,12 @@ def kernel_shift_with_jacobian(kernel, dx, dy, dpx, dpy, w, *, pad=None):
     """
     names = ("kernel", "dx", "dy", "dpx", "dpy", "w")
     args = (kernel, dx, dy, dpx, dpy, w)
-    for name, val in zip(names, args):
-        if not isinstance(val, torch.Tensor):
-            raise InputTypeError(f"{name}: expected a torch.Tensor, got {type(val).__name__}")
-        if val.is_complex():
-            raise InputTypeError(f"{name}: expected a real tensor, got {val.dtype}")
+    dtype, wide = _real_dtypes(names, args)
     for name, val, nd in zip(names, args, (2, 1, 1, 2, 2, 1)):
         if val.dim() < nd:
             raise ShapeError(f"{name}: expected at least {nd} dimension(s), got shape {tuple(val.shape)}")
     if pad is not None and (isinstance(pad, bool) or not isinstance(pad, (int, float)) or not pad >= 0):
         raise ParameterError(f"pad: expected None or a number >= 0 (px), got {pad!r}")
-    dtype = functools.reduce(torch.promote_types, (v.dtype for v in args))
-    dtype = dtype if dtype.is_floating_point else torch.get_default_dtype()
-    wide = torch.float64 if torch.finfo(dtype).bits <= 32 else dtype
     kernel, dx, dy, dpx, dpy, w = (v.to(device=kernel.device, dtype=wide) for v in args)
     (H, W), S, nq = kernel.shape[-2:], dx.shape[-1], dpx.shape[-1]
     try:

@@ -56,11 +56,11 @@ import numpy as np
 import torch
 
 from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_frequency_grid, as_tensor, as_unit_direction, check_choice,
-                     check_finite, check_positive, flat_noise_and_mask)
+                     check_finite, check_positive, pixel_weights)
 from torchblur.fit.problem import _nonzero_box
 from torchblur.fit.status import POOR_FIT_CHI2, flag_poor_fit
 from torchblur.render.blur import RenderSettings, choose_node_count, quadrature_nodes
-from torchblur.render.camera import CameraNoise
+from torchblur.render.camera import CameraNoise, noise_sets_weights
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.splat import sine_blur_with_jacobian, window_nodes
 from torchblur.render.trajectory import Sinusoid
@@ -69,7 +69,7 @@ from torchblur.sysid.alias_resolution import AliasResolution, resolve_alias_with
 from torchblur.sysid.direct_doc import DIRECT_SCHEMA, DIRECT_SCHEMA_VERSION, DIRECT_UNITS, direct_fields_from_dict
 from torchblur.sysid.frequency_response_io import read_json_doc, write_json_doc
 from torchblur.sysid.parametric import _poles_zeros, _response, _Structure, _structure_from_tf
-from torchblur.sysid.tf_fit import TransferFunctionFit
+from torchblur.sysid.tf_fit import TransferFunctionFit, _jf
 
 __all__ = ["AliasResolution", "DirectModelFit", "fit_direct", "resolve_alias_with_model", "FORMS"]
 
@@ -229,10 +229,7 @@ class DirectModelFit:
     def to_dict(self) -> dict[str, Any]:
         """A JSON-serialisable dict (model.json): parameters with stds and covariance, num/den,
         poles/zeros, modal parameters, fit statistics. Non-finite numbers become None."""
-
-        def jf(x):
-            x = float(x)
-            return x if math.isfinite(x) else None
+        jf = _jf
 
         def roots(r):
             return {"real": [jf(x) for x in r.real], "imag": [jf(x) for x in r.imag]}
@@ -368,23 +365,7 @@ def _start_values(start, form: str, fit_delay: bool):
     if isinstance(start, DirectModelFit):
         if start.form == form and start._struct.fit_delay == fit_delay:
             return start._struct, np.array(start.params, dtype=np.float64), float(start.delay_s)
-        tf_like = TransferFunctionFit(num=start.num, den=start.den, delay_s=start.delay_s, n_poles=start.poles.size,
-                                      n_zeros=start.zeros.size, chi2=math.nan, dof=0, reduced_chi2=math.nan,
-                                      rms_relative_error=math.nan, poles=start.poles, zeros=start.zeros, dc_gain=math.nan,
-                                      weighting="uniform", delay_estimated=True, input_labels=("x",), output_labels=("x",))
-        return _structure_from_tf(tf_like, form, fit_delay)
     return _structure_from_tf(start, form, fit_delay)
-
-
-def _pixel_weights(images, noise_std, mask) -> torch.Tensor:
-    """``1 / noise_std^2`` per pixel, 0 where ``mask`` is False, ``[F, E, H, W]``."""
-    s, keep = flat_noise_and_mask(noise_std, mask, images)
-    weight = torch.ones_like(images)
-    if s is not None:
-        weight = (1 / (s if s.dim() == 4 else s[:, None, None, None]) ** 2).expand(images.shape)
-    if keep is not None:
-        weight = weight * keep.to(images.dtype)
-    return weight
 
 
 @dataclasses.dataclass(frozen=True)
@@ -486,6 +467,13 @@ class _Problem:
                                  kernel=self.psf.kernel, pad=pad)
         t, w = window_nodes(self.window.start, self.window.duration, self.tau, self.wq, self.psf.amplitude[:, None])
         return _point_images(M, phi, self.omega, self.direction, self.psf.center, self.psf.precision(), t, w, H, W)
+
+    @torch.no_grad()
+    def model(self, motion: "_Motion", u, nuis):
+        """The model images ``[n, E, H, W]`` at ``(u, nuis)``: unit-scale images times the scale plus the background."""
+        img, _ = self.render(*motion(u))
+        sc, bg = self.nuisance(img, nuis)
+        return img * sc[:, None, None, None] + bg[:, None, None, None]
 
     def nuisance(self, img, nuis):
         """``(scale [n], background [n])`` from the nuisance parameters ``nuis [n, q]``."""
@@ -688,19 +676,6 @@ def _covariance(prob: _Problem, motion: _Motion, u, blocks, cost, noise_estimate
     return p_hat.detach().cpu().numpy(), cov, total_cost, dof, red
 
 
-def _model_weighted(noise, noise_std) -> bool:
-    """Check ``noise`` (a CameraNoise or None) -> whether the weights come from the noise model
-    (``noise`` given, ``noise_std`` not: :func:`_refit_by_model`)."""
-    if noise is None:
-        return False
-    if not isinstance(noise, CameraNoise):
-        raise InputTypeError(f"noise: expected a CameraNoise or None, got {type(noise).__name__}")
-    if noise_std is None and noise.read_noise_e == 0:
-        raise ParameterError("noise: read_noise_e is 0, so a pixel with no expected light would get zero std (infinite weight); "
-                             "pass noise_std")
-    return noise_std is None
-
-
 def _refit_by_model(prob: _Problem, motion: _Motion, u, nuis, noise: CameraNoise, *, max_iter: int, tol: float):
     """The second pass of a fit weighted by the camera's noise model: ``prob``'s weights set in
     place to ``1 / noise.std(model)^2`` of the first pass's model images at ``(u, nuis)`` (the
@@ -708,11 +683,7 @@ def _refit_by_model(prob: _Problem, motion: _Motion, u, nuis, noise: CameraNoise
     masked pixels stay 0), then Levenberg-Marquardt from there -> as :func:`_levenberg_marquardt`.
     Why: the first pass's weights correlate with the noise and bias every amplitude, hence the
     gain, low (see :func:`torchblur.fit.sinusoid._reweight_by_model`)."""
-    with torch.no_grad():
-        M, phi = motion(u)
-        img, _ = prob.render(M, phi)
-        sc, bg = prob.nuisance(img, nuis)
-        model = img * sc[:, None, None, None] + bg[:, None, None, None]
+    model = prob.model(motion, u, nuis)
     prob.wts = torch.where(prob.wts > 0, 1 / noise.std(model) ** 2, torch.zeros_like(model))
     prob.out_cost = prob.out_sq / noise.std(0.0) ** 2
     return _levenberg_marquardt(prob, motion, u, nuis, max_iter=max_iter, tol=tol, noise_known=True)
@@ -748,10 +719,7 @@ def _point_chi2(prob: _Problem, motion: _Motion, u, nuis, use, known: bool):
     red = torch.full((F,), math.nan, dtype=torch.float64, device=use.device)
     if known:
         with torch.no_grad():
-            M, phi = motion(u)
-            img, _ = prob.render(M, phi)
-            sc, bg = prob.nuisance(img, nuis)
-            r = prob.data - (img * sc[:, None, None, None] + bg[:, None, None, None])
+            r = prob.data - prob.model(motion, u, nuis)
             n_pix = (prob.wts > 0).sum((1, 2, 3)).to(torch.float64)
             dof = (n_pix - prob.q - u.numel() / prob.data.shape[0]).clamp_min(1.0)
             red[use] = (prob.wts * r * r).sum((1, 2, 3)).to(torch.float64) / dof
@@ -825,8 +793,8 @@ def fit_direct(
     images, window, omega, amp, use = _validate(images, psf, window, omega, input_amplitude, start, form, axis, valid, flags,
                                                 max_iter)
     struct, names, is_log, p0, delay = _start_params(start, form, fit_delay, images.device)
-    by_model = _model_weighted(noise, noise_std)
-    weight = _pixel_weights(images, noise.std(images) if by_model else noise_std, mask)
+    by_model = noise_sets_weights(noise, noise_std)
+    weight, _ = pixel_weights(noise.std(images) if by_model else noise_std, mask, images)
     if not bool(use.any()):
         raise ParameterError("valid: every point is excluded; nothing to fit")
 

@@ -37,6 +37,8 @@ import math
 
 import numpy as np
 
+from torchblur.losses import chi2_limit
+
 __all__ = ["DISAGREE_SIGMA", "MIN_MODEL_DOF", "MODEL_CHI2_FLOOR", "ModelJudgement", "disagreements", "inflate", "judge_fit",
            "judge_model", "model_chi2_limit", "model_fails"]
 
@@ -51,7 +53,7 @@ DISAGREE_SIGMA = 3.0
 def model_chi2_limit(dof) -> float:
     """The largest reduced chi2 a model with ``dof`` degrees of freedom may have:
     ``max(MODEL_CHI2_FLOOR, 1 + 4 sqrt(2 / dof))``."""
-    return max(MODEL_CHI2_FLOOR, 1.0 + 4.0 * math.sqrt(2.0 / max(int(dof), 1)))
+    return max(MODEL_CHI2_FLOOR, chi2_limit(dof, 4.0))
 
 
 def model_fails(reduced_chi2, dof) -> bool:

@@ -166,7 +166,8 @@ def _modal_polys(struct: _Structure, p: np.ndarray):
 
 # ---------------------------------------------------------------------- start values
 def _structure_from_tf(tf_fit, form: str, fit_delay: bool):
-    """(structure, natural parameters [P], delay_s) from a SISO TransferFunctionFit."""
+    """(structure, natural parameters [P], delay_s) from a SISO TransferFunctionFit (or a
+    DirectModelFit: anything with ``poles``, ``zeros``, ``num``, ``den`` and ``delay_s``)."""
     poles = np.asarray(tf_fit.poles, dtype=np.complex128)
     zeros = np.asarray(tf_fit.zeros, dtype=np.complex128)
     K = float(tf_fit.num[0] / tf_fit.den[0])

@@ -24,6 +24,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.signal
 import torch
 
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, broadcast_batch, check_finite, check_positive, check_real_scalar
@@ -185,22 +186,12 @@ class Plant:
         """A balanced realisation ``(A [n, n], B [n], C [n], D scalar)`` of ``num / den``
         (no delay), float64. Balancing (a diagonal similarity) keeps the eigenvectors of
         high-order, high-frequency companion forms well conditioned."""
-        n = self.order
-        a = np.asarray(self.den) / self.den[0]
-        if n == 0:
+        if self.order == 0:
             return np.zeros((0, 0)), np.zeros(0), np.zeros(0), np.float64(self.num[-1] / self.den[0])
-        b = np.zeros(n + 1)
-        b[n + 1 - len(self.num):] = self.num
-        b = b / self.den[0]
-        A = np.zeros((n, n))  # controller canonical form (as scipy.signal.tf2ss)
-        A[0, :] = -a[1:]
-        A[np.arange(1, n), np.arange(n - 1)] = 1.0
-        B = np.zeros(n)
-        B[0] = 1.0
-        C = b[1:] - b[0] * a[1:]
+        A, B, C, D = scipy.signal.tf2ss(self.num, self.den)  # controller canonical form
         scale = _balance_scaling(A)
         A = A * scale[None, :] / scale[:, None]
-        return A, B / scale, C * scale, np.float64(b[0])
+        return A, B[:, 0] / scale, C[0] * scale, np.float64(D[0, 0])
 
     def to_control(self, pade_order: int | None = None):
         """A ``control.TransferFunction`` of ``num / den``.
@@ -325,121 +316,6 @@ class LTIResponse(Trajectory):
         return y.to(out_dtype)
 
 
-class LTISineTrajectory(LTIResponse):
-    """The exact response of a :class:`Plant` to ``u(t) = amplitude sin(omega t)`` applied
-    from rest at t = 0, transient and delay included, mapped to the image as
-    ``direction * y(t)``.
-
-    Args:
-        plant: the :class:`Plant`.
-        amplitude: command amplitude in input units, ``[...]``.
-        omega: command frequency in rad/s, ``[...]``, > 0.
-        direction: px per output unit along (x, y), ``[2]`` or ``[..., 2]``; default (1, 0).
-        method: ``"auto"`` (modal sum, or matrix exponential when the eigenvector matrix has
-            a condition number above 1e10), ``"modal"`` or ``"expm"``.
-
-    Batch shape ``[...]`` = broadcast of amplitude, omega and direction's leading dims. All
-    coefficients are computed once in float64 (numpy) at construction; :meth:`position` is
-    plain torch on ``t``. Not differentiable with respect to the plant.
-
-    ``position(t)[..., s, :]`` = displacement (px) from the rest position at the absolute
-    command time ``t[..., s]`` (s).
-
-    Example:
-        >>> p = Plant(num=(1.0,), den=(1e-3, 1.0))
-        >>> traj = LTISineTrajectory(p, amplitude=torch.tensor([2.0, 3.0]), omega=2 * math.pi * 50)
-        >>> traj.position(torch.zeros(2, 5, dtype=torch.float64)).shape
-        torch.Size([2, 5, 2])
-    """
-
-    __slots__ = ("plant", "amplitude", "omega", "direction", "method", "delay_s", "_h0", "_lam", "_c", "_a", "_cvec", "_x0", "_cond")
-
-    def __init__(self, plant: Plant, amplitude, omega, *, direction=(1.0, 0.0), method: str = "auto"):
-        if not isinstance(plant, Plant):
-            raise InputTypeError(f"plant: expected a torchblur.systems.lti.Plant, got {type(plant).__name__}")
-        if method not in _METHODS:
-            raise ParameterError(f"method: must be one of {set(_METHODS)}, got {method!r}")
-        f64 = torch.float64
-        amplitude = check_finite(as_tensor(amplitude, "amplitude", dtype=f64), "amplitude")
-        omega = check_positive(as_tensor(omega, "omega", dtype=f64), "omega")
-        direction = check_finite(as_tensor(direction, "direction", dtype=f64), "direction")
-        if direction.dim() == 0 or direction.shape[-1] != 2:
-            raise ShapeError(f"direction: expected shape [2] or [..., 2] (x, y px per output unit), got {tuple(direction.shape)}")
-        device = amplitude.device
-        shape = broadcast_batch({"amplitude": amplitude.shape, "omega": omega.shape, "direction": direction.shape[:-1]})
-        self.plant = plant
-        self.amplitude = amplitude.detach().expand(shape)
-        self.omega = omega.detach().to(device).expand(shape)
-        self.direction = direction.detach().to(device).expand(shape + (2,))
-        self.delay_s = plant.delay_s
-
-        A, B, C, D = plant.state_space()
-        n = A.shape[0]
-        amp = self.amplitude.cpu().numpy().reshape(-1)
-        w = self.omega.cpu().numpy().reshape(-1)
-        if n:
-            M = 1j * w[:, None, None] * np.eye(n) - A  # [N, n, n]
-            v = np.linalg.solve(M, np.broadcast_to(B.astype(complex), (w.size, n))[..., None])[..., 0]  # [N, n]
-            h0 = v @ C + D
-            x0 = -amp[:, None] * v.imag  # [N, n]
-        else:
-            h0 = np.full(w.shape, complex(D))
-            x0 = np.zeros((w.size, 0))
-        self._h0 = torch.as_tensor(np.stack([h0.real, h0.imag], -1).reshape(tuple(shape) + (2,)), device=device)
-
-        self._init_transient(A, C, x0, shape, device, method)
-
-    # ------------------------------------------------------------------ interface
-
-    @property
-    def shape(self) -> torch.Size:
-        return self.amplitude.shape
-
-    def steady_state_amplitude(self) -> torch.Tensor:
-        """``|amplitude| |H(j omega)|`` (output units), ``[...]``."""
-        return self.amplitude.abs() * torch.linalg.vector_norm(self._h0, dim=-1)
-
-    def steady_state_phase(self) -> torch.Tensor:
-        """Phase (rad, in (-pi, pi]) of the steady-state y relative to u, delay included:
-        ``angle(H(j omega))`` (plus pi for a negative amplitude), ``[...]``."""
-        ph = torch.atan2(self._h0[..., 1], self._h0[..., 0]) - self.omega * self.delay_s
-        ph = ph + math.pi * (self.amplitude < 0)
-        return torch.atan2(torch.sin(ph), torch.cos(ph))
-
-    def _steady(self, tp: torch.Tensor) -> torch.Tensor:
-        """The steady-state output at times ``tp`` after the delay (float64 ``[..., S]``)."""
-        dev = tp.device
-        amp = self.amplitude.to(dev)[..., None]
-        ph = self.omega.to(dev)[..., None] * tp
-        h = self._h0.to(dev)
-        return amp * (h[..., 0, None] * torch.sin(ph) + h[..., 1, None] * torch.cos(ph))
-
-    def path_length(self, window: ExposureWindow) -> torch.Tensor:
-        """Upper bound of the path (px) during ``window``, ``[...]``, no gradient.
-
-        ``|direction| * (TV(y_ss) + TV(y_tr))`` (Euclidean norm of ``direction``) over the part of the window after the
-        delay: the steady-state total variation is exact, the transient's is bounded by
-        ``sum_k |c_k| |lambda_k| integral e^{Re lambda_k t'} dt'`` (modal, well-conditioned
-        eigenvectors), or estimated from 2049 samples per window with a 10 % margin (nearly
-        repeated poles, where the modal terms cancel and their bound is far too loose)."""
-        with torch.no_grad():
-            t0, t1 = self._span_after_delay(window)
-            dev = t0.device
-            amp_ss = self.steady_state_amplitude().to(dev)
-            h = self._h0.to(dev)
-            phase0 = torch.atan2(h[..., 1], h[..., 0]) + math.pi * (self.amplitude.to(dev) < 0)
-            tv = _sine_path_bound(amp_ss, self.omega.to(dev), phase0, t0, t1 - t0) + self._transient_path_bound(t0, t1)
-            return tv * torch.linalg.vector_norm(self.direction.to(dev), dim=-1)
-
-    def phase_span(self, window: ExposureWindow) -> torch.Tensor:
-        """``omega * duration`` of the steady state; the transients' share of the nodes comes
-        from their path (:meth:`path_length`)."""
-        return self.omega.detach().abs().to(window.duration.device) * window.duration.detach()
-
-    def __repr__(self) -> str:
-        return f"LTISineTrajectory(shape={tuple(self.shape)}, order={self.plant.order}, method={self.method!r})"
-
-
 class LTIMultisineTrajectory(LTIResponse):
     """The exact response of a :class:`~torchblur.systems.lti.Plant` to the multisine command
     ``u(t) = sum_k amplitude_k sin(omega_k t + phase_k)`` applied from rest at t = 0,
@@ -450,13 +326,17 @@ class LTIMultisineTrajectory(LTIResponse):
         amplitude: command amplitudes (command units), ``[..., N]``.
         omega: tone frequencies (rad/s), ``[..., N]``, > 0.
         phase: command phases (rad), ``[..., N]``; default 0.
-        direction: px per output unit along (x, y), ``[2]`` or ``[..., 2]``.
+        direction: px per output unit along (x, y), ``[2]`` or ``[..., 2]``; default (1, 0).
+        method: ``"auto"`` (modal sum, or matrix exponential when the eigenvector matrix has
+            a condition number above 1e10), ``"modal"`` or ``"expm"``.
 
     Batch ``[...]``: the broadcast of the leading dims. Coefficients are computed once in
-    float64 (numpy) at construction; not differentiable in the plant or the tones. With
-    every phase 0 it equals the sum of :class:`~torchblur.systems.lti.LTISineTrajectory` responses.
+    float64 (numpy) at construction; :meth:`position` is plain torch on ``t``; not
+    differentiable in the plant or the tones. With every phase 0 it equals the sum of
+    :class:`~torchblur.systems.lti.LTISineTrajectory` responses.
 
-    ``position(t)[..., s, :]`` = displacement (px) at the absolute command time ``t[..., s]``.
+    ``position(t)[..., s, :]`` = displacement (px) from the rest position at the absolute
+    command time ``t[..., s]`` (s).
 
     Example:
         >>> p = Plant(num=(1.0,), den=(1e-3, 1.0))
@@ -468,9 +348,11 @@ class LTIMultisineTrajectory(LTIResponse):
     __slots__ = ("plant", "amplitude", "omega", "phase", "direction", "delay_s", "method", "_h0", "_lam", "_c", "_a", "_cvec",
                  "_x0", "_cond")
 
-    def __init__(self, plant: Plant, amplitude, omega, phase=None, *, direction=(1.0, 0.0)):
+    def __init__(self, plant: Plant, amplitude, omega, phase=None, *, direction=(1.0, 0.0), method: str = "auto"):
         if not isinstance(plant, Plant):
             raise InputTypeError(f"plant: expected a torchblur.systems.lti.Plant, got {type(plant).__name__}")
+        if method not in _METHODS:
+            raise ParameterError(f"method: must be one of {set(_METHODS)}, got {method!r}")
         f64 = torch.float64
         amplitude = check_finite(as_tensor(amplitude, "amplitude", dtype=f64), "amplitude")
         omega = check_positive(as_tensor(omega, "omega", dtype=f64), "omega")
@@ -480,7 +362,7 @@ class LTIMultisineTrajectory(LTIResponse):
             if v.dim() == 0:
                 raise ShapeError(f"{name}: expected shape [..., N] (one value per tone), got a scalar")
         if direction.dim() == 0 or direction.shape[-1] != 2:
-            raise ShapeError(f"direction: expected shape [2] or [..., 2], got {tuple(direction.shape)}")
+            raise ShapeError(f"direction: expected shape [2] or [..., 2] (x, y px per output unit), got {tuple(direction.shape)}")
         N = max(amplitude.shape[-1], omega.shape[-1], phase.shape[-1])
         for name, v in (("amplitude", amplitude), ("omega", omega), ("phase", phase)):
             if v.shape[-1] not in (1, N):
@@ -509,7 +391,7 @@ class LTIMultisineTrajectory(LTIResponse):
             h0 = np.full(w.shape, complex(D))
             x0 = np.zeros((w.shape[0], 0))
         self._h0 = torch.as_tensor(np.stack([h0.real, h0.imag], -1).reshape(tuple(shape) + (N, 2)), device=device)
-        self._init_transient(A, C, x0, shape, device)
+        self._init_transient(A, C, x0, shape, device, method)
 
     @property
     def shape(self) -> torch.Size:
@@ -540,16 +422,18 @@ class LTIMultisineTrajectory(LTIResponse):
         return (amp * (h[..., 0] * torch.sin(arg) + h[..., 1] * torch.cos(arg))).sum(-1)
 
     def path_length(self, window: ExposureWindow) -> torch.Tensor:
-        """Upper bound of the path (px) during ``window``, ``[...]``, no gradient: the sum of
-        the tones' exact steady-state total variations plus the transient's bound (as
-        :meth:`LTISineTrajectory.path_length`)."""
+        """Upper bound of the path (px) during ``window``, ``[...]``, no gradient.
+
+        ``|direction| * (TV(y_ss) + TV(y_tr))`` (Euclidean norm of ``direction``) over the part
+        of the window after the delay: the sum of the tones' exact steady-state total
+        variations, plus the transient's bound (:meth:`LTIResponse._transient_path_bound`)."""
         with torch.no_grad():
             t0, t1 = self._span_after_delay(window)
             dev = t0.device
             h = self._h0.to(dev)
             phase0 = torch.atan2(h[..., 1], h[..., 0]) + self.phase.to(dev) + math.pi * (self.amplitude.to(dev) < 0)
-            tv = _sine_path_bound(self.steady_state_amplitude().to(dev), self.omega.to(dev), phase0, t0[..., None],
-                                  (t1 - t0)[..., None]).sum(-1)
+            amp = self.amplitude.to(dev).abs() * torch.linalg.vector_norm(h, dim=-1)  # [..., N] (a subclass's steady_state_amplitude may be [...])
+            tv = _sine_path_bound(amp, self.omega.to(dev), phase0, t0[..., None], (t1 - t0)[..., None]).sum(-1)
             tv = tv + self._transient_path_bound(t0, t1)
             return tv * torch.linalg.vector_norm(self.direction.to(dev), dim=-1)
 
@@ -560,3 +444,44 @@ class LTIMultisineTrajectory(LTIResponse):
 
     def __repr__(self) -> str:
         return f"LTIMultisineTrajectory(shape={tuple(self.shape)}, tones={self.n_tones}, order={self.plant.order}, method={self.method!r})"
+
+
+class LTISineTrajectory(LTIMultisineTrajectory):
+    """The exact response of a :class:`Plant` to ``u(t) = amplitude sin(omega t)`` applied
+    from rest at t = 0, transient and delay included, mapped to the image as
+    ``direction * y(t)``: the one-tone :class:`LTIMultisineTrajectory`.
+
+    Args:
+        plant: the :class:`Plant`.
+        amplitude: command amplitude in input units, ``[...]``.
+        omega: command frequency in rad/s, ``[...]``, > 0.
+        direction, method: as :class:`LTIMultisineTrajectory`.
+
+    Batch shape ``[...]`` = broadcast of amplitude, omega and direction's leading dims.
+
+    Example:
+        >>> p = Plant(num=(1.0,), den=(1e-3, 1.0))
+        >>> traj = LTISineTrajectory(p, amplitude=torch.tensor([2.0, 3.0]), omega=2 * math.pi * 50)
+        >>> traj.position(torch.zeros(2, 5, dtype=torch.float64)).shape
+        torch.Size([2, 5, 2])
+    """
+
+    __slots__ = ()
+
+    def __init__(self, plant: Plant, amplitude, omega, *, direction=(1.0, 0.0), method: str = "auto"):
+        f64 = torch.float64
+        amplitude = as_tensor(amplitude, "amplitude", dtype=f64)
+        omega = as_tensor(omega, "omega", dtype=f64)
+        super().__init__(plant, amplitude[..., None], omega[..., None], direction=direction, method=method)
+
+    def steady_state_amplitude(self) -> torch.Tensor:
+        """``|amplitude| |H(j omega)|`` (output units), ``[...]``."""
+        return super().steady_state_amplitude()[..., 0]
+
+    def steady_state_phase(self) -> torch.Tensor:
+        """Phase (rad, in (-pi, pi]) of the steady-state y relative to u, delay included:
+        ``angle(H(j omega))`` (plus pi for a negative amplitude), ``[...]``."""
+        return super().steady_state_phase()[..., 0]
+
+    def __repr__(self) -> str:
+        return f"LTISineTrajectory(shape={tuple(self.shape)}, order={self.plant.order}, method={self.method!r})"
