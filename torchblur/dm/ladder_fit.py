@@ -174,19 +174,21 @@ def _basis_at(u, knots, coef):
 def _integrated_basis(u, wb, wd, knots, coef):
     """``[n, E, A + D, K]``: ``sum_s wb[..., a, s] B(u_s)`` then ``sum_s wd[..., d, s] dB/du(u_s)``
     at nodes ``u [n, E, S]`` (weights ``wb [n, E, A, S]``, ``wd [n, E, D, S]``; ``knots``, ``coef``
-    as :func:`_basis_at`). Each node's powers of its offset in its interval are summed into that
-    interval's slots first, then one product with the basis's coefficients: no ``[S, 4, K]`` per node."""
+    as :func:`_basis_at`). Each node's powers of its offset in its interval are placed in that
+    interval's slots (``[S, 4 (K - 1)]``, zero elsewhere), the weights summed into the slots by one
+    GEMM, then one product with the basis's coefficients: no ``[S, 4, K]`` per node."""
     n, K = knots.shape
     E, S = u.shape[1:]
     flat = u.reshape(n, -1)
     i = (torch.searchsorted(knots, flat.contiguous()) - 1).clamp(0, K - 2)
-    d = (flat - torch.gather(knots, 1, i)).reshape(n, E, 1, S, 1)
-    one, zero = torch.ones_like(d), torch.zeros_like(d)
-    val = torch.cat([wb[..., None] * torch.cat([d * d * d, d * d, d, one], -1),
-                     wd[..., None] * torch.cat([3 * d * d, 2 * d, one, zero], -1)], 2)  # [n, E, A + D, S, 4]
-    slot = (4 * i.reshape(n, E, 1, S, 1) + torch.arange(4, device=u.device)).expand(val.shape)
-    acc = torch.zeros(val.shape[:3] + (4 * (K - 1),), dtype=val.dtype, device=val.device)
-    acc.scatter_add_(-1, slot.reshape(val.shape[:3] + (-1,)), val.reshape(val.shape[:3] + (-1,)))
+    d = (flat - torch.gather(knots, 1, i)).reshape(n, E, S, 1)
+    one = torch.ones_like(d)
+    slot = 4 * i.reshape(n, E, S, 1) + torch.arange(4, device=u.device)  # [n, E, S, 4]
+    acc = []
+    for w, pw in ((wb, (d * d * d, d * d, d, one)), (wd, (3 * d * d, 2 * d, one, torch.zeros_like(d)))):
+        Z = torch.zeros(n, E, S, 4 * (K - 1), dtype=u.dtype, device=u.device).scatter_(-1, slot, torch.cat(pw, -1))
+        acc.append(w @ Z)  # [n, E, A or D, 4 (K - 1)]
+    acc = torch.cat(acc, 2)
     return (acc.reshape(n, -1, 4 * (K - 1)) @ coef.reshape(n, 4 * (K - 1), K)).reshape(acc.shape[:3] + (K,))
 
 
@@ -350,9 +352,8 @@ def _coefficients(theta, prob: _Problems, ch: _Chunk, idx):
     (s). The free motion ``d(t) n`` (``d = n_cos cos(w t) + n_sin sin(w t)``, ``n`` the unit
     normal of ``s``, :func:`_normal`) moves the ladder's image along ``n`` by its Taylor series to
     :data:`ORDER`: ``sum_j d^j / j! Dn^j L(u)``."""
-    pf, pat = ch.pf[idx], ch.pat[idx]
-    E = prob.cw.shape[2]
-    cw, sw, wq = (t.reshape(-1, E, t.shape[-1])[pf] for t in (prob.cw, prob.sw, prob.wq))  # [n, E, S]
+    pat = ch.pat[idx]
+    cw, sw, wq = _nodes(prob, ch.pf[idx])
     u = theta[:, 0, None, None] * cw + theta[:, 1, None, None] * sw
     d = theta[:, 2, None, None] * cw + theta[:, 3, None, None] * sw  # [n, E, S] px along n
     pw = [wq * d ** j / math.factorial(j) for j in range(ORDER + 1)]  # the Taylor terms' weights d^j / j!
@@ -365,11 +366,19 @@ def _coefficients(theta, prob: _Problems, ch: _Chunk, idx):
     return torch.stack(rows, 2), u
 
 
+def _nodes(prob: _Problems, pf):
+    """``(cos(w t), sin(w t), weights)`` at the nodes of the problems of (pattern, frequency) ``pf [n]``: each ``[n, E, S]``."""
+    E = prob.cw.shape[2]
+    return tuple(t.reshape(-1, E, t.shape[-1])[pf] for t in (prob.cw, prob.sw, prob.wq))
+
+
 def _model_jacobian(theta, prob: _Problems, ch: _Chunk, idx):
     """``(model [n, E*hw], J [n, E*hw, 4])`` of problems ``idx`` of the chunk at ``theta [n, 4]`` (electrons)."""
     C, _ = _coefficients(theta, prob, ch, idx)
     n, E = C.shape[:2]
-    out = C.reshape(n, E * (N_PAR + 1), -1) @ ch.lad[ch.inv[idx]]  # [n, E*5, hw]
+    sel = ch.inv[idx]
+    same = sel.numel() == ch.lad.shape[0] and bool((sel == torch.arange(sel.numel(), device=sel.device)).all())
+    out = C.reshape(n, E * (N_PAR + 1), -1) @ (ch.lad if same else ch.lad[sel])  # [n, E*5, hw] (no copy of the ladders in order)
     out = out.reshape(n, E, N_PAR + 1, -1) * prob.power[ch.freq[idx], None, None, None]
     return out[:, :, 0].reshape(n, -1), out[:, :, 1:].transpose(1, 2).reshape(n, N_PAR, -1).transpose(1, 2)
 
@@ -391,7 +400,7 @@ def _start(prob: _Problems, ch: _Chunk, b0):
     slope = (b0[1][ch.pat][:, None, :] @ cen_l)[:, 0]
     D = prob.data[ch.rows] * keep[:, None]  # [c, E, hw]
     r = (D @ xy.T) / D.sum(-1, keepdim=True) - c0[:, None]  # [c, E, 2]
-    cw, sw, wq = (t.reshape(-1, E, t.shape[-1])[ch.pf] for t in (prob.cw, prob.sw, prob.wq))  # [c, E, S]
+    cw, sw, wq = _nodes(prob, ch.pf)
     v = torch.stack([(wq * cw).sum(-1), (wq * sw).sum(-1)], -1) / wq.sum(-1, keepdim=True)  # [c, E, 2]: the exposures' means of cos, sin
     A = (slope.square().sum(-1))[:, None, None] * (v.transpose(1, 2) @ v)
     b = ((r * slope[:, None, :]).sum(-1, keepdim=True) * v).sum(1)  # [c, 2]
@@ -536,10 +545,9 @@ def _fit_chunk(prob: _Problems, ch: _Chunk, b0):
                               jacobian_fn=jac, gn_tol=1e-2)
     theta = res.theta
     all_c = torch.arange(c, device=theta.device)
-    model = jac(theta, all_c)[0]
     used = (W > 0).sum(-1).to(theta.dtype)
     dof = (used - N_PAR).clamp_min(1)
-    s2 = torch.ones(c, dtype=theta.dtype, device=theta.device) if prob.noise_given else ((data - model).square() * W).sum(-1) / dof
+    s2 = torch.ones(c, dtype=theta.dtype, device=theta.device) if prob.noise_given else ((data - jac(theta, all_c)[0]).square() * W).sum(-1) / dof
     theta, model, J, Cw, info, left = _debias(theta, data, W, s2, prob, ch, jac)
     r2 = (data - model).square()
     converged = res.converged | (left < LEFT_MAX ** 2)  # the LM's own test, or the step left is short (noiseless data too)
@@ -559,7 +567,8 @@ def _fit_chunk(prob: _Problems, ch: _Chunk, b0):
     status[~converged] = NOT_CONVERGED
     d = torch.diagonal(cov, dim1=-2, dim2=-1)
     status[(info != 0) | ~torch.isfinite(cov).flatten(1).all(-1) | (d <= 0).any(-1) | ~torch.isfinite(theta).all(-1)] = SINGULAR
-    _, u = _coefficients(theta, prob, ch, all_c)
+    cw, sw, _ = _nodes(prob, ch.pf)
+    u = theta[:, 0, None, None] * cw + theta[:, 1, None, None] * sw  # the command at the nodes, as in _coefficients
     flags = OUT_OF_LADDER * ((u.flatten(1).amin(-1) < prob.knots[ch.pat, 0]) | (u.flatten(1).amax(-1) > prob.knots[ch.pat, -1])).long()
     flags = flags | NO_MOTION * ((amp / d[:, ::2].clamp_min(0).sqrt() < 3).any(-1)).long()
     return dict(amplitude=amp, phase=phase, covariance=cov, status=status, flags=flag_poor_fit(flags, chi2), reduced_chi2=chi2)
