@@ -378,9 +378,9 @@ def _model_jacobian(theta, prob: _Problems, ch: _Chunk, idx):
     n, E = C.shape[:2]
     sel = ch.inv[idx]
     same = sel.numel() == ch.lad.shape[0] and bool((sel == torch.arange(sel.numel(), device=sel.device)).all())
-    out = C.reshape(n, E * (N_PAR + 1), -1) @ (ch.lad if same else ch.lad[sel])  # [n, E*5, hw] (no copy of the ladders in order)
-    out = out.reshape(n, E, N_PAR + 1, -1) * prob.power[ch.freq[idx], None, None, None]
-    return out[:, :, 0].reshape(n, -1), out[:, :, 1:].transpose(1, 2).reshape(n, N_PAR, -1).transpose(1, 2)
+    C = (C * prob.power[ch.freq[idx], None, None, None, None]).transpose(1, 2).reshape(n, (N_PAR + 1) * E, -1)  # [n, 5 E, (ORDER + 1) K]
+    out = (C @ (ch.lad if same else ch.lad[sel])).reshape(n, N_PAR + 1, -1)  # [n, 5, E*hw] (no copy of the ladders in order)
+    return out[:, 0], out[:, 1:].transpose(1, 2)  # J: a view of [n, 4, E*hw], the layout the normal equations' GEMMs want
 
 
 def _start(prob: _Problems, ch: _Chunk, b0):
