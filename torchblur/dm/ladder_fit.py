@@ -134,7 +134,7 @@ class PatternLadder:
 def with_slopes(ladder: PatternLadder, *, batch: int = 256) -> PatternLadder:
     """``ladder`` with its ``slope`` and ``ds_dl`` (:func:`static_slope` of every (pattern, spot),
     ``batch`` ladders at a time, in the ladder's dtype): the run computes them once, not once per
-    frequency (they were 60 % of a fit's time on HCIPy spots, benchmarks/bench_dm.py)."""
+    frequency (``benchmarks/bench_dm.py --ladder-points`` prints their time apart from the fit's)."""
     P, K, M, h, w = ladder.images.shape
     imgs = ladder.images.transpose(1, 2).reshape(P * M, K, h, w)  # [(p, m), K, h, w]
     pm = torch.arange(P * M, device=imgs.device)
@@ -416,7 +416,7 @@ def _start(prob: _Problems, ch: _Chunk, b0):
 def _along(img, n):
     """``Dn img``: the derivative of ``img [..., h, w]`` along a shift by ``n [..., 2]`` (unit,
     broadcast against ``img``'s leading dims) px, :func:`shift_derivatives` as one GEMM with its
-    matrix (:func:`_derivative_matrix`: 20-40x faster than the Fourier transforms on 16 x 16 crops)."""
+    matrix (:func:`_derivative_matrix`; the same values, without a Fourier transform per image)."""
     h, w = img.shape[-2:]
     dmat = _derivative_matrix(h, w, img.dtype, img.device)  # [q', 2, q]
     d = (img.reshape(-1, h * w) @ dmat.reshape(h * w, 2 * h * w)).reshape(img.shape[:-2] + (2, h, w))
