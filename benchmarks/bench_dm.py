@@ -22,7 +22,14 @@ comparison (issue 17).
    (:func:`torchblur.dm.demux.demultiplex`, every response of std ``sigma_1 / a``, ``a`` the
    plan's amplitude for a ``target_px`` motion), beside ``plan_cost``'s ratio.
 
+3. The ladder spot fit (``dm_plan.spot_model=ladder``, issue 23): problems/s for the same three
+   mirrors (``--ladder-points`` patterns x every subaperture's spot on its own ladder,
+   :func:`ladder_problems`), each in its own process; with ``--ladder-baseline REV`` the same
+   problems by the ladder fit of git revision ``REV`` in the same process (speed-up, largest
+   difference in stds); and the 30 Hz test on ``configs/identify_dm.yaml`` with the ladder.
+
     python benchmarks/bench_dm.py [--device cuda] [--cases 8/10 18/20 32/34] [--points 2] [--single 24] [--threads N]
+        [--ladder-points 2] [--ladder-baseline 1d13187] [--no-plans]
 """
 from __future__ import annotations
 
@@ -102,6 +109,128 @@ def spot_images(psf: GaussianPSF) -> torch.Tensor:
     return psf.amplitude[e] * torch.exp(-0.5 * (A * dx * dx + 2 * B * dx * dy + C * dy * dy))
 
 
+LADDER_LEVELS, LADDER_REACH, LADDER_FRAMES, LADDER_FREQ_HZ = 13, 1.3, 32, 300.0  #: dm_plan's defaults; the sweep point
+
+
+def _gauss_spots(centre, sigma, rate):
+    """``[..., CROP, CROP]`` e-/s: point-sampled round Gaussians at ``centre [..., 2]`` (x, y px), width ``sigma [...]``."""
+    g = torch.arange(CROP, dtype=centre.dtype)
+    r2 = (g[None, :] - centre[..., 0, None, None]) ** 2 + (g[:, None] - centre[..., 1, None, None]) ** 2
+    return rate * torch.exp(-r2 / (2 * sigma[..., None, None] ** 2))
+
+
+def ladder_problems(n_spots: int, n_patterns: int, seed: int = 0) -> dict:
+    """The ladder fit's problems of ``n_patterns`` patterns x ``n_spots`` spots at one sweep point
+    (:data:`LADDER_FREQ_HZ`, exposures 0.3 and 0.8 of the period x 2 repeats, a still peak of
+    ``PEAK_E`` e- over the longer one, shot + 3 e- read noise): each spot a Gaussian (sigma
+    1.2 px) that moves by ``s u`` (``s`` 0.9-3 px per unit command, any direction) and widens by
+    15 % per unit ``u`` (a lenslet spot changes shape as it moves), plus a free motion of 0-1 px
+    across ``s`` (the actuators' own dynamics near a resonance); the command ``u = Re(G e^{iwt})``,
+    ``|G|`` 0.6-1; the ladder: ``LADDER_LEVELS`` levels over +-``LADDER_REACH``, the mean of
+    ``LADDER_FRAMES`` frames each, its variance; the still the mean of 256 frames. Returns the
+    tensors and the truth ``z [P, 1, M, 2]`` (px phasors ``s G + n N``)."""
+    g = torch.Generator().manual_seed(seed)
+    f64, P, M = torch.float64, n_patterns, n_spots
+
+    def rand(*shape, lo=0.0, hi=1.0):
+        return lo + (hi - lo) * torch.rand(*shape, generator=g, dtype=f64)
+    om = 2 * math.pi * LADDER_FREQ_HZ
+    win = dual_exposure_windows(torch.tensor([om], dtype=f64), fractions=FRACS)  # [1, E]
+    start, dur = win.start.repeat_interleave(R, -1).expand(P, 1, -1), win.duration.repeat_interleave(R, -1).expand(P, 1, -1)
+    te = float(dur.max())
+    rate = PEAK_E / te
+    centre = CROP / 2 - 0.5 + rand(M, 2, lo=-0.5, hi=0.5)
+    ang = rand(P, M, lo=0, hi=2 * math.pi)
+    s = rand(P, M, lo=0.9, hi=3.0)[..., None] * torch.stack([torch.cos(ang), torch.sin(ang)], -1)  # [P, M, 2] px per unit u
+    n = torch.stack([-torch.sin(ang), torch.cos(ang)], -1)
+    G = rand(P, M, lo=0.6, hi=1.0) * torch.exp(1j * rand(P, M, lo=0, hi=2 * math.pi))  # u = |G| sin(wt + arg G)
+    N = rand(P, M) * torch.exp(1j * rand(P, M, lo=0, hi=2 * math.pi))  # the free motion along n (px)
+    levels = torch.linspace(-LADDER_REACH, LADDER_REACH, LADDER_LEVELS, dtype=f64)
+
+    def image(u, d):  # [P, M, ...] e-/s at the command u and free motion d (broadcast)
+        c = centre[None, :, None] + s[..., None, :] * u[..., None] + n[..., None, :] * d[..., None]
+        return _gauss_spots(c, SIGMA * (1 + 0.15 * u), rate)
+
+    def noisy(e, frames):  # the mean of `frames` frames of e electrons each, and its variance
+        var = (e.clamp_min(0) + READ_E ** 2) / frames
+        return e + var.sqrt() * torch.randn(e.shape, generator=g, dtype=f64), var
+    lad, lvar = noisy(image(levels.expand(P, M, -1), torch.zeros(P, M, LADDER_LEVELS, dtype=f64)) * te, LADDER_FRAMES)
+    still = noisy(_gauss_spots(centre, torch.full((M,), SIGMA, dtype=f64), rate) * te, 256)[0] / te
+    x, w = np.polynomial.legendre.leggauss(48)
+    crops = []
+    for e in range(start.shape[-1]):  # each exposure by 48 Gauss-Legendre nodes
+        t = float(start[0, 0, e]) + float(dur[0, 0, e]) * torch.as_tensor((x + 1) / 2)
+        ph = om * t
+        u = G.abs()[..., None] * torch.sin(ph + G.angle()[..., None])
+        d = N.abs()[..., None] * torch.sin(ph + N.angle()[..., None])
+        crops.append((image(u, d) * torch.as_tensor(w / 2 * float(dur[0, 0, e]))[:, None, None]).sum(2))
+    clean = torch.stack(crops, 2)[:, None]  # [P, 1, M, E*R, h, w] e-
+    noise = camera_noise_std(clean, READ_E)
+    data = clean + noise * torch.randn(clean.shape, generator=g, dtype=f64)
+    return dict(crops=data, noise=noise, levels=levels.expand(P, -1).clone(), images=(lad / te).transpose(1, 2).contiguous(),
+                variance=(lvar / te ** 2).transpose(1, 2).contiguous(), still=still, start=start, duration=dur,
+                omega=torch.tensor([om], dtype=f64), amplitude=torch.ones(P, 1, dtype=f64),
+                z=(s * G[..., None] + n * N[..., None])[:, None])
+
+
+def _ladder_module(rev: str | None):
+    """``torchblur.dm.ladder_fit``, or its source at git revision ``rev`` (the baseline) as a module."""
+    import importlib.util
+
+    import torchblur.dm.ladder_fit as lf
+    if not rev:
+        return lf
+    root = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
+    src = subprocess.run(["git", "-C", root, "show", f"{rev}:torchblur/dm/ladder_fit.py"], capture_output=True, text=True, check=True).stdout
+    spec = importlib.util.spec_from_loader(f"ladder_fit_{rev}", loader=None)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod
+    exec(compile(src, f"{rev}:torchblur/dm/ladder_fit.py", "exec"), mod.__dict__)
+    return mod
+
+
+def _fit_ladder(d: dict, mod, sl=slice(None)):
+    """``(fits, seconds of with_slopes)``: :func:`~torchblur.dm.ladder_fit.fit_ladder_problems` of the patterns ``sl``
+    (the slopes computed once first where ``mod`` has ``with_slopes``, timed apart)."""
+    lad = mod.PatternLadder(d["levels"][sl], d["images"][sl], d["variance"][sl], d["still"])
+    t0 = time.perf_counter()
+    lad = mod.with_slopes(lad) if hasattr(mod, "with_slopes") else lad
+    t_slopes = time.perf_counter() - t0
+    fits = mod.fit_ladder_problems(d["crops"][sl], lad, ExposureWindow(d["start"][sl], d["duration"][sl]), d["omega"], d["amplitude"][sl],
+                                   power=1.0, noise_std=d["noise"][sl])
+    return fits, t_slopes
+
+
+def ladder_child(path: str, baseline: str | None) -> dict:
+    """The ladder fit of the problems at ``path`` in this process: problems/s of the fit, the
+    slopes' seconds, rms(error/std) of the amplitudes against the truth; with ``baseline`` (a git
+    revision) also that revision's fit of the same problems, its time and the largest difference in stds."""
+    d = torch.load(path)
+    new = _ladder_module(None)
+    _fit_ladder(d, new, slice(0, 1))  # warm up (first-call allocations, the derivative matrix), not timed
+    t0 = time.perf_counter()
+    fits, t_slopes = _fit_ladder(d, new)
+    dt = time.perf_counter() - t0 - t_slopes
+    n = fits.status.numel()
+    ok = fits.status == 0
+    sd = torch.diagonal(fits.covariance, dim1=-2, dim2=-1)[..., ::2].sqrt()
+    z = ((fits.amplitude - d["z"].abs()) / sd)[ok]
+    out = {"problems": n, "per_s": n / dt, "slopes_s": t_slopes, "ok": int(ok.sum()), "rms_z": float(z.square().mean().sqrt()),
+           "load": os.getloadavg()[0]}
+    if baseline:
+        old = _ladder_module(baseline)
+        _fit_ladder(d, old, slice(0, 1))
+        t0 = time.perf_counter()
+        ref = _fit_ladder(d, old)[0]
+        out["baseline_s"] = time.perf_counter() - t0
+        sd0 = torch.diagonal(ref.covariance, dim1=-2, dim2=-1).sqrt()
+        both = ok & (ref.status == 0)
+        dz = torch.cat([((fits.amplitude - ref.amplitude) / sd0[..., ::2])[both], ((fits.phase - ref.phase) / sd0[..., 1::2])[both]])
+        out.update(baseline_per_s=n / out["baseline_s"], max_diff_std=float(dz.abs().max()), same_status=bool(torch.equal(fits.status, ref.status)),
+                   max_cov_rel=float(((fits.covariance - ref.covariance).abs() / (sd0[..., :, None] * sd0[..., None, :]))[both].max()))
+    return out
+
+
 def _peak(device) -> float:
     if device.type == "cuda":
         return float(torch.cuda.max_memory_allocated(device))
@@ -157,8 +286,9 @@ def child(path: str, method: str, device: str, n_single: int) -> dict:
             "max_err_px": err, "sigma1_px": float(amp_std.median()), "chunks": chunks}
 
 
-def run_child(path, method, device, n_single) -> dict:
+def run_child(path, method, device, n_single, baseline=None) -> dict:
     cmd = [sys.executable, __file__, "--child", path, "--method", method, "--device", device, "--single", str(n_single)]
+    cmd += ["--ladder-baseline", baseline] if baseline else []
     out = subprocess.run(cmd, capture_output=True, text=True, check=True, env=dict(os.environ))
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -226,6 +356,42 @@ def kernel_throughput(cases, points: int, device: str) -> None:
               f"{'keeps up' if t_fit <= acq else 'does NOT keep up'}; wait after the last frame about {wait:.0f} s")
 
 
+def ladder_throughput(cases, points: int, baseline: str | None) -> None:
+    """The ladder spot fit (:func:`~torchblur.dm.ladder_fit.fit_ladder_problems`, each pattern's
+    spots on their own ladders: :func:`ladder_problems`) in problems/s per case, each in its own
+    process; with ``baseline`` the ratio to that git revision's fit of the same problems in the same
+    process; and whether that keeps up with a 30 Hz camera on ``configs/identify_dm.yaml`` with
+    ``dm_plan.spot_model=ladder``."""
+    print(f"\nthe ladder spot fit (dm_plan.spot_model=ladder: {LADDER_LEVELS} levels x {LADDER_FRAMES} frames, Gaussian spots that "
+          f"widen as they move plus 0-1 px of free motion), {points} patterns per case at {LADDER_FREQ_HZ:g} Hz, cpu, "
+          f"{torch.get_num_threads()} thread(s)")
+    print(f"{'case':>6} {'act':>4} {'subap':>5} {'problems':>8} | {'ladder /s':>9} {'slopes s':>8} {'ok':>5} {'rms z':>6} | "
+          f"{'baseline /s':>11} {'speed-up':>8} {'max diff std':>12} {'status same':>11} | {'load':>5}")
+    rates = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for spec in cases:
+            n_act, n_sub = case_sizes(spec)
+            path = os.path.join(tmp, f"l_{spec.replace('/', '_')}.pt")
+            torch.save(ladder_problems(n_sub, points, seed=2), path)
+            r = run_child(path, "ladder", "cpu", 0, baseline)
+            rates[spec] = r
+            base = (f"{r['baseline_per_s']:>11.1f} {r['per_s'] / r['baseline_per_s']:>8.2f} {r['max_diff_std']:>12.2g} {str(r['same_status']):>11}"
+                    if baseline else f"{'-':>11} {'-':>8} {'-':>12} {'-':>11}")
+            print(f"{spec:>6} {n_act:>4} {n_sub:>5} {r['problems']:>8} | {r['per_s']:>9.1f} {r['slopes_s']:>8.2f} {r['ok']:>5} {r['rms_z']:>6.2f} | "
+                  f"{base} | {r['load']:>5.2f}")
+    print("  slopes s: with_slopes (every (pattern, spot)'s static shift, once per run, before the sweep); rms z: the amplitudes' "
+          "rms(error/std) against the truth; speed-up: problems/s over the baseline's (its fit computes the slopes itself); "
+          "max diff std: the largest |amplitude or phase difference| / the baseline's std; load: the 1-minute load average")
+    r = rates.get("8/10", next(iter(rates.values())))
+    acq, F, n = SHIPPED["frames"] / SHIPPED["frame_rate_hz"], SHIPPED["frequencies"], SHIPPED["problems"]
+    t_fit = n / r["per_s"]
+    wait = max(t_fit, acq + F * t_fit - F * acq)  # as kernel_throughput's
+    print(f"configs/identify_dm.yaml at {SHIPPED['frame_rate_hz']:g} Hz with dm_plan.spot_model=ladder: {t_fit:.1f} s of fitting per frequency "
+          f"({n} problems at {r['per_s']:.0f}/s) against {acq:.1f} s of acquisition: {'keeps up' if t_fit <= acq else 'does NOT keep up'} "
+          f"(fit/acquisition {t_fit / acq:.2f}); wait after the last frame about {wait:.0f} s; the slopes once before the sweep about "
+          f"{r['slopes_s'] / r['problems'] * n:.0f} s")
+
+
 def plan_comparison(sigma1: float, target_px: float = 3.0, n_freq: int = 16, n_exp: int = 2, budget: int = 4096) -> None:
     try:
         from torchblur.dm.mirror import DeformableMirror
@@ -266,6 +432,9 @@ def main():
     ap.add_argument("--single", type=int, default=24, help="problems fitted one by one")
     ap.add_argument("--kernel-points", type=int, default=1, help="sweep points per case of the kernel comparison (0: skip it)")
     ap.add_argument("--threads", type=int, default=0, help="torch threads in every fit (0: torch's default)")
+    ap.add_argument("--ladder-points", type=int, default=2, help="patterns per case of the ladder fit's throughput (0: skip it)")
+    ap.add_argument("--ladder-baseline", default="", help="a git revision whose ladder fit is timed on the same problems (the ratio)")
+    ap.add_argument("--no-plans", action="store_true", help="skip the plan comparison")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     ap.add_argument("--method", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -275,14 +444,18 @@ def main():
     elif os.environ.get("BENCH_DM_THREADS"):
         torch.set_num_threads(int(os.environ["BENCH_DM_THREADS"]))
     if args.child:
-        print(json.dumps(child(args.child, args.method, args.device, args.single)))
+        out = ladder_child(args.child, args.ladder_baseline) if args.method == "ladder" else child(args.child, args.method, args.device, args.single)
+        print(json.dumps(out))
         return
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         raise SystemExit("--device cuda: no CUDA device here")
     sigma1 = throughput(args.cases, args.points, args.single, args.device) if args.points > 0 else 0.3
     if args.kernel_points > 0:
         kernel_throughput(args.cases, args.kernel_points, args.device)
-    plan_comparison(sigma1)
+    if args.ladder_points > 0:
+        ladder_throughput(args.cases, args.ladder_points, args.ladder_baseline or None)
+    if not args.no_plans:
+        plan_comparison(sigma1)
 
 
 if __name__ == "__main__":

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchblur.dm.ladder_fit import PatternLadder, fit_ladder_problems
+from torchblur.dm.ladder_fit import PatternLadder, _along, fit_ladder_problems, shift_derivatives, with_slopes
 from torchblur.dm.spot_fit import SpotFits, crop_problems, fit_spot_problems, pattern_responses
 from torchblur.errors import ParameterError, ShapeError
 from torchblur.fit.status import DARK, OUT_OF_LADDER
@@ -122,6 +122,23 @@ def test_flags_are_per_item(gauss_case, gauss_fit):
     torch.testing.assert_close(dark.covariance[others], base.covariance[others], rtol=1e-9, atol=1e-15)
 
 
+def test_precomputed_slopes_and_the_derivative_gemm_change_nothing(gauss_case, gauss_fit):
+    """The run's fast paths against their references: a ladder with its slopes computed once
+    (with_slopes) fits as the ladder that computes them per fit; the shift derivative along n as a
+    GEMM with its matrix equals the Fourier one (shift_derivatives)."""
+    c = gauss_case
+    pre = _fit(c, n_freq=1, ladder=with_slopes(c["ladder"]))
+    ref = SpotFits(**{k: v[:, :1] if isinstance(v, torch.Tensor) else v for k, v in vars(gauss_fit).items()})
+    for key in ("amplitude", "phase", "covariance", "reduced_chi2"):
+        torch.testing.assert_close(getattr(pre, key), getattr(ref, key), rtol=1e-9, atol=1e-12)
+    assert torch.equal(pre.status, ref.status) and torch.equal(pre.flags, ref.flags)
+    img = c["ladder"].images[0, :, 0]  # [K, h, w]
+    n = torch.nn.functional.normalize(torch.randn(img.shape[0], 2, generator=torch.Generator().manual_seed(3), dtype=F64), dim=-1)
+    d = shift_derivatives(img)
+    torch.testing.assert_close(_along(img, n), d[:, 0] * n[:, 0, None, None] + d[:, 1] * n[:, 1, None, None], rtol=1e-10,
+                               atol=1e-10 * float(d.abs().max()))
+
+
 def test_structural_errors_name_the_argument(gauss_case):
     c = gauss_case
     lad = c["ladder"]
@@ -135,6 +152,8 @@ def test_structural_errors_name_the_argument(gauss_case):
         PatternLadder(lad.levels, bad, lad.variance, lad.still)
     with pytest.raises(ShapeError, match="still"):
         PatternLadder(lad.levels, lad.images, lad.variance, lad.still[:2])
+    with pytest.raises(ShapeError, match="slope"):
+        PatternLadder(lad.levels, lad.images, lad.variance, lad.still, slope=torch.zeros(2, 3, 2, dtype=F64))
     with pytest.raises(ShapeError, match="ladder"):
         _fit(c, crops=c["crops"][:, :, :2], noise_std=None)
     with pytest.raises(ShapeError, match="omega"):

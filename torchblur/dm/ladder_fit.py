@@ -47,8 +47,9 @@ positions and motions in px (x = column, y = row), times in s, ``omega`` rad/s.
 """
 from __future__ import annotations
 
+import functools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -64,7 +65,7 @@ from torchblur.render.blur import quadrature_nodes
 from torchblur.render.splat import kernel_shift_with_jacobian
 from torchblur.render.window import ExposureWindow
 
-__all__ = ["PatternLadder", "fit_ladder_problems", "spline_basis", "static_slope", "NODES"]
+__all__ = ["PatternLadder", "fit_ladder_problems", "spline_basis", "static_slope", "with_slopes", "NODES"]
 
 NODES = 96  #: Gauss-Legendre nodes per exposure (benchmarks/bench_dm_spot_models.py's; the spline is C2)
 PAD = 6  #: px of zero padding around a crop for its Fourier shift derivatives
@@ -88,12 +89,17 @@ class PatternLadder:
             ``p`` held at ``levels[p, k]``.
         variance: ``[P, K, M, h, w]`` the variance of ``images`` ((e-/s)^2, of the mean).
         still: ``[M, h, w]`` the spots' still (``u = 0``), e-/s at power 1 (for ``s`` and the shift derivatives).
+        slope, ds_dl: ``[P, M, 2]`` and ``[P, M, 2, K, h*w]``, :func:`static_slope` of every
+            (pattern, spot), or None (each fit computes them): :func:`with_slopes` computes them
+            once for every frequency of a run (they do not depend on the sweep's frames).
     """
 
     levels: torch.Tensor
     images: torch.Tensor
     variance: torch.Tensor
     still: torch.Tensor
+    slope: torch.Tensor | None = None
+    ds_dl: torch.Tensor | None = None
 
     def __post_init__(self):
         names = ("levels", "images", "variance", "still")
@@ -118,6 +124,24 @@ class PatternLadder:
             raise ParameterError(f"levels: expected strictly increasing levels in every row, got {lv.tolist()}")
         if bool((self.variance < 0).any()):
             raise ParameterError(f"variance: expected values >= 0, got minimum {float(self.variance.min()):g}")
+        M, h, w = im.shape[2:]
+        if (self.slope is None) != (self.ds_dl is None) or (self.slope is not None and (
+                tuple(self.slope.shape) != (P, M, 2) or tuple(self.ds_dl.shape) != (P, M, 2, K, h * w))):
+            raise ShapeError(f"slope, ds_dl: expected both None or [P, M, 2] and [P, M, 2, K, h*w] = {(P, M, 2)}, {(P, M, 2, K, h * w)}, "
+                             f"got {getattr(self.slope, 'shape', None)}, {getattr(self.ds_dl, 'shape', None)}")
+
+
+def with_slopes(ladder: PatternLadder, *, batch: int = 256) -> PatternLadder:
+    """``ladder`` with its ``slope`` and ``ds_dl`` (:func:`static_slope` of every (pattern, spot),
+    ``batch`` ladders at a time, in the ladder's dtype): the run computes them once, not once per
+    frequency (``benchmarks/bench_dm.py --ladder-points`` prints their time apart from the fit's)."""
+    P, K, M, h, w = ladder.images.shape
+    imgs = ladder.images.transpose(1, 2).reshape(P * M, K, h, w)  # [(p, m), K, h, w]
+    pm = torch.arange(P * M, device=imgs.device)
+    parts = [static_slope(imgs[i:i + batch], ladder.still[pm[i:i + batch] % M], ladder.levels[pm[i:i + batch] // M])
+             for i in range(0, P * M, batch)]
+    return replace(ladder, slope=torch.cat([s for s, _ in parts]).reshape(P, M, 2),
+                   ds_dl=torch.cat([d for _, d in parts]).reshape(P, M, 2, K, h * w))
 
 
 def spline_basis(levels: torch.Tensor) -> torch.Tensor:
@@ -150,19 +174,21 @@ def _basis_at(u, knots, coef):
 def _integrated_basis(u, wb, wd, knots, coef):
     """``[n, E, A + D, K]``: ``sum_s wb[..., a, s] B(u_s)`` then ``sum_s wd[..., d, s] dB/du(u_s)``
     at nodes ``u [n, E, S]`` (weights ``wb [n, E, A, S]``, ``wd [n, E, D, S]``; ``knots``, ``coef``
-    as :func:`_basis_at`). Each node's powers of its offset in its interval are summed into that
-    interval's slots first, then one product with the basis's coefficients: no ``[S, 4, K]`` per node."""
+    as :func:`_basis_at`). Each node's powers of its offset in its interval are placed in that
+    interval's slots (``[S, 4 (K - 1)]``, zero elsewhere), the weights summed into the slots by one
+    GEMM, then one product with the basis's coefficients: no ``[S, 4, K]`` per node."""
     n, K = knots.shape
     E, S = u.shape[1:]
     flat = u.reshape(n, -1)
     i = (torch.searchsorted(knots, flat.contiguous()) - 1).clamp(0, K - 2)
-    d = (flat - torch.gather(knots, 1, i)).reshape(n, E, 1, S, 1)
-    one, zero = torch.ones_like(d), torch.zeros_like(d)
-    val = torch.cat([wb[..., None] * torch.cat([d * d * d, d * d, d, one], -1),
-                     wd[..., None] * torch.cat([3 * d * d, 2 * d, one, zero], -1)], 2)  # [n, E, A + D, S, 4]
-    slot = (4 * i.reshape(n, E, 1, S, 1) + torch.arange(4, device=u.device)).expand(val.shape)
-    acc = torch.zeros(val.shape[:3] + (4 * (K - 1),), dtype=val.dtype, device=val.device)
-    acc.scatter_add_(-1, slot.reshape(val.shape[:3] + (-1,)), val.reshape(val.shape[:3] + (-1,)))
+    d = (flat - torch.gather(knots, 1, i)).reshape(n, E, S, 1)
+    one = torch.ones_like(d)
+    slot = 4 * i.reshape(n, E, S, 1) + torch.arange(4, device=u.device)  # [n, E, S, 4]
+    acc = []
+    for w, pw in ((wb, (d * d * d, d * d, d, one)), (wd, (3 * d * d, 2 * d, one, torch.zeros_like(d)))):
+        Z = torch.zeros(n, E, S, 4 * (K - 1), dtype=u.dtype, device=u.device).scatter_(-1, slot, torch.cat(pw, -1))
+        acc.append(w @ Z)  # [n, E, A or D, 4 (K - 1)]
+    acc = torch.cat(acc, 2)
     return (acc.reshape(n, -1, 4 * (K - 1)) @ coef.reshape(n, 4 * (K - 1), K)).reshape(acc.shape[:3] + (K,))
 
 
@@ -301,14 +327,17 @@ def _chunk(prob: _Problems, ladder: PatternLadder, rows, like) -> _Chunk:
     L = ladder.images[up, :, um].to(**like)  # [u, K, h, w]
     K = L.shape[1]
     var = ladder.variance[up, :, um].to(**like)
-    slope, ds_dl = static_slope(L, ladder.still[um].to(**like), prob.knots[up.to(prob.knots.device)])
+    if ladder.slope is not None:  # with_slopes: computed once for every frequency
+        slope, ds_dl = ladder.slope[up, um].to(**like), ladder.ds_dl[up, um].to(**like)
+    else:
+        slope, ds_dl = static_slope(L, ladder.still[um].to(**like), prob.knots[up.to(prob.knots.device)])
     n = _normal(slope)  # [u, 2]
     blocks = [L]
     for _ in range(ORDER):
         blocks.append(_along(blocks[-1], n[:, None]))
     lad = torch.cat(blocks, 1).reshape(len(uniq), (ORDER + 1) * K, h * w)
     var = var.reshape(len(uniq), K, h * w)
-    dmat = shift_derivatives(torch.eye(h * w, **like).reshape(h * w, h, w)).reshape(h * w, 2, h * w)  # [q', a, q] = D_a[q, q']
+    dmat = _derivative_matrix(h, w, like["dtype"], torch.device(like["device"]))  # [q', a, q] = D_a[q, q']
     dd = torch.stack([dmat[:, 0] ** 2, dmat[:, 1] ** 2, 2 * dmat[:, 0] * dmat[:, 1]])  # [3, q', q]
     nn = torch.stack([n[:, 0] ** 2, n[:, 1] ** 2, n[:, 0] * n[:, 1]], 1)[:, :, None, None]  # [u, 3, 1, 1]: Dn = nx Dx + ny Dy
     return _Chunk(rows=rows, pat=pat, pf=rows // M, freq=(rows // M) % F, inv=inv, lad=lad, var=var,
@@ -323,9 +352,8 @@ def _coefficients(theta, prob: _Problems, ch: _Chunk, idx):
     (s). The free motion ``d(t) n`` (``d = n_cos cos(w t) + n_sin sin(w t)``, ``n`` the unit
     normal of ``s``, :func:`_normal`) moves the ladder's image along ``n`` by its Taylor series to
     :data:`ORDER`: ``sum_j d^j / j! Dn^j L(u)``."""
-    pf, pat = ch.pf[idx], ch.pat[idx]
-    E = prob.cw.shape[2]
-    cw, sw, wq = (t.reshape(-1, E, t.shape[-1])[pf] for t in (prob.cw, prob.sw, prob.wq))  # [n, E, S]
+    pat = ch.pat[idx]
+    cw, sw, wq = _nodes(prob, ch.pf[idx])
     u = theta[:, 0, None, None] * cw + theta[:, 1, None, None] * sw
     d = theta[:, 2, None, None] * cw + theta[:, 3, None, None] * sw  # [n, E, S] px along n
     pw = [wq * d ** j / math.factorial(j) for j in range(ORDER + 1)]  # the Taylor terms' weights d^j / j!
@@ -338,13 +366,21 @@ def _coefficients(theta, prob: _Problems, ch: _Chunk, idx):
     return torch.stack(rows, 2), u
 
 
+def _nodes(prob: _Problems, pf):
+    """``(cos(w t), sin(w t), weights)`` at the nodes of the problems of (pattern, frequency) ``pf [n]``: each ``[n, E, S]``."""
+    E = prob.cw.shape[2]
+    return tuple(t.reshape(-1, E, t.shape[-1])[pf] for t in (prob.cw, prob.sw, prob.wq))
+
+
 def _model_jacobian(theta, prob: _Problems, ch: _Chunk, idx):
     """``(model [n, E*hw], J [n, E*hw, 4])`` of problems ``idx`` of the chunk at ``theta [n, 4]`` (electrons)."""
     C, _ = _coefficients(theta, prob, ch, idx)
     n, E = C.shape[:2]
-    out = C.reshape(n, E * (N_PAR + 1), -1) @ ch.lad[ch.inv[idx]]  # [n, E*5, hw]
-    out = out.reshape(n, E, N_PAR + 1, -1) * prob.power[ch.freq[idx], None, None, None]
-    return out[:, :, 0].reshape(n, -1), out[:, :, 1:].transpose(1, 2).reshape(n, N_PAR, -1).transpose(1, 2)
+    sel = ch.inv[idx]
+    same = sel.numel() == ch.lad.shape[0] and bool((sel == torch.arange(sel.numel(), device=sel.device)).all())
+    C = (C * prob.power[ch.freq[idx], None, None, None, None]).transpose(1, 2).reshape(n, (N_PAR + 1) * E, -1)  # [n, 5 E, (ORDER + 1) K]
+    out = (C @ (ch.lad if same else ch.lad[sel])).reshape(n, N_PAR + 1, -1)  # [n, 5, E*hw] (no copy of the ladders in order)
+    return out[:, 0], out[:, 1:].transpose(1, 2)  # J: a view of [n, 4, E*hw], the layout the normal equations' GEMMs want
 
 
 def _start(prob: _Problems, ch: _Chunk, b0):
@@ -364,7 +400,7 @@ def _start(prob: _Problems, ch: _Chunk, b0):
     slope = (b0[1][ch.pat][:, None, :] @ cen_l)[:, 0]
     D = prob.data[ch.rows] * keep[:, None]  # [c, E, hw]
     r = (D @ xy.T) / D.sum(-1, keepdim=True) - c0[:, None]  # [c, E, 2]
-    cw, sw, wq = (t.reshape(-1, E, t.shape[-1])[ch.pf] for t in (prob.cw, prob.sw, prob.wq))  # [c, E, S]
+    cw, sw, wq = _nodes(prob, ch.pf)
     v = torch.stack([(wq * cw).sum(-1), (wq * sw).sum(-1)], -1) / wq.sum(-1, keepdim=True)  # [c, E, 2]: the exposures' means of cos, sin
     A = (slope.square().sum(-1))[:, None, None] * (v.transpose(1, 2) @ v)
     b = ((r * slope[:, None, :]).sum(-1, keepdim=True) * v).sum(1)  # [c, 2]
@@ -379,9 +415,20 @@ def _start(prob: _Problems, ch: _Chunk, b0):
 
 def _along(img, n):
     """``Dn img``: the derivative of ``img [..., h, w]`` along a shift by ``n [..., 2]`` (unit,
-    broadcast against ``img``'s leading dims) px, :func:`shift_derivatives`."""
-    d = shift_derivatives(img)
+    broadcast against ``img``'s leading dims) px, :func:`shift_derivatives` as one GEMM with its
+    matrix (:func:`_derivative_matrix`; the same values, without a Fourier transform per image)."""
+    h, w = img.shape[-2:]
+    dmat = _derivative_matrix(h, w, img.dtype, img.device)  # [q', 2, q]
+    d = (img.reshape(-1, h * w) @ dmat.reshape(h * w, 2 * h * w)).reshape(img.shape[:-2] + (2, h, w))
     return d[..., 0, :, :] * n[..., 0, None, None] + d[..., 1, :, :] * n[..., 1, None, None]
+
+
+@functools.lru_cache(maxsize=8)
+def _derivative_matrix(h: int, w: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """``[hw, 2, hw]``: :func:`shift_derivatives` of every pixel's unit image, ``[q', a, q] = D_a[q, q']``
+    (the linear map itself; ``d/dx`` is ``a = 0``). Cached per crop size, dtype and device."""
+    eye = torch.eye(h * w, dtype=dtype, device=device).reshape(h * w, h, w)
+    return shift_derivatives(eye).reshape(h * w, 2, h * w)
 
 
 def _normal(slope):
@@ -498,10 +545,9 @@ def _fit_chunk(prob: _Problems, ch: _Chunk, b0):
                               jacobian_fn=jac, gn_tol=1e-2)
     theta = res.theta
     all_c = torch.arange(c, device=theta.device)
-    model = jac(theta, all_c)[0]
     used = (W > 0).sum(-1).to(theta.dtype)
     dof = (used - N_PAR).clamp_min(1)
-    s2 = torch.ones(c, dtype=theta.dtype, device=theta.device) if prob.noise_given else ((data - model).square() * W).sum(-1) / dof
+    s2 = torch.ones(c, dtype=theta.dtype, device=theta.device) if prob.noise_given else ((data - jac(theta, all_c)[0]).square() * W).sum(-1) / dof
     theta, model, J, Cw, info, left = _debias(theta, data, W, s2, prob, ch, jac)
     r2 = (data - model).square()
     converged = res.converged | (left < LEFT_MAX ** 2)  # the LM's own test, or the step left is short (noiseless data too)
@@ -521,7 +567,8 @@ def _fit_chunk(prob: _Problems, ch: _Chunk, b0):
     status[~converged] = NOT_CONVERGED
     d = torch.diagonal(cov, dim1=-2, dim2=-1)
     status[(info != 0) | ~torch.isfinite(cov).flatten(1).all(-1) | (d <= 0).any(-1) | ~torch.isfinite(theta).all(-1)] = SINGULAR
-    _, u = _coefficients(theta, prob, ch, all_c)
+    cw, sw, _ = _nodes(prob, ch.pf)
+    u = theta[:, 0, None, None] * cw + theta[:, 1, None, None] * sw  # the command at the nodes, as in _coefficients
     flags = OUT_OF_LADDER * ((u.flatten(1).amin(-1) < prob.knots[ch.pat, 0]) | (u.flatten(1).amax(-1) > prob.knots[ch.pat, -1])).long()
     flags = flags | NO_MOTION * ((amp / d[:, ::2].clamp_min(0).sqrt() < 3).any(-1)).long()
     return dict(amplitude=amp, phase=phase, covariance=cov, status=status, flags=flag_poor_fit(flags, chi2), reduced_chi2=chi2)

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from torchblur.config.budget import LADDER_TEST_FRAMES
-from torchblur.dm.ladder_fit import PatternLadder
+from torchblur.dm.ladder_fit import PatternLadder, with_slopes
 from torchblur.dm.static_hold import chi2_threshold, fit_shifted_still
 from torchblur.hardware.recording import ReplayRig
 from torchblur.identify.record import LOGGER, run_stage
@@ -174,5 +174,7 @@ def _recorded(exp) -> bool:
 
 def pattern_ladder(holds: HoldImages, cal, offset, size):
     """The :class:`~torchblur.dm.ladder_fit.PatternLadder` of ``holds`` with the calibration's still
-    (``cal.still_rate``) cropped like them."""
-    return PatternLadder(levels=holds.levels, images=holds.images, variance=holds.variance, still=crop_spots(cal.still_rate, offset, size))
+    (``cal.still_rate``) cropped like them, its static shifts computed once for every frequency
+    (:func:`~torchblur.dm.ladder_fit.with_slopes`)."""
+    return with_slopes(PatternLadder(levels=holds.levels, images=holds.images, variance=holds.variance,
+                                     still=crop_spots(cal.still_rate, offset, size)))
