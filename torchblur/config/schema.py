@@ -173,10 +173,10 @@ class CameraConfig:
     full_well: float = key(20000.0, positive=True)
     bit_depth: int = key(12, integer=True, low=1, high=32)
     dark_level: float = key(100.0, nonnegative=True)
-    psf_sigma_px: float = key(2.0, positive=True)
+    psf_sigma_px: float = key(2.0, low=MIN_PSF_SIGMA_PX)
     height: int = key(64, integer=True, low=8)
     width: int = key(64, integer=True, low=8)
-    peak_fraction: float = key(0.5, positive=True)
+    peak_fraction: float = key(0.5, positive=True, high=1.0)
 
 
 @dataclass(frozen=True)
