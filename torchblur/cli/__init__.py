@@ -149,7 +149,7 @@ def _command(name: str):
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``torchblur ARGV`` (default: ``sys.argv[1:]``) -> the exit status (see the module's doc)."""
+    """``torchblur ARGV`` (default: ``sys.argv[1:]``) -> the exit status (:data:`EXIT_EPILOG`)."""
     parser = build_parser()
     _Parser.argv = tuple(sys.argv[1:] if argv is None else argv)
     args, extra = parser.parse_known_args(argv)

@@ -38,7 +38,7 @@ def sweep_key(k: int) -> str:
 
 
 def plan_document(plan: Plan, n_repeats: int, threshold: float) -> dict:
-    """The plan as ``experiment.json`` holds it (module docstring)."""
+    """The plan as ``experiment.json`` holds it: ``patterns`` ``[P, N]``, ``support`` 2M strings of N characters 0/1."""
     return {"kind": plan.kind, "support_threshold": float(threshold), "n_repeats": int(n_repeats),
             "patterns": plan.patterns.tolist(), "support": ["".join("1" if v else "0" for v in row) for row in plan.support]}
 
