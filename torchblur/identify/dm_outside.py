@@ -23,6 +23,8 @@ import numpy as np
 import torch
 
 from torchblur.config import WFSConfig, load_config, load_dataclass
+from torchblur.config.checks import check_declared
+from torchblur.config.schema import key
 from torchblur.config.budget import dm_geometry, dm_sensor
 from torchblur.dm.plans import Plan, one_at_a_time_plan, plan_cost
 from torchblur.dm.shack_hartmann import ShackHartmann
@@ -57,16 +59,16 @@ _PLAN_KINDS = ("hadamard", "sparse", "one_at_a_time")
 class _DMGeometry:
     """``recording.yaml``'s ``dm`` section: the actuator grid and its influence (the dynamics are what is measured)."""
 
-    n_across: int = 0
-    coupling: float = 0.15
+    n_across: int = key(0, integer=True)
+    coupling: float = key(0.15, positive=True, high=0.99)
 
 
 @dataclass(frozen=True)
 class _PlanInfo:
     """``recording.yaml``'s ``dm_plan`` section."""
 
-    kind: str = "hadamard"
-    support_threshold: float = 0.01
+    kind: str = key("hadamard", choice=_PLAN_KINDS)
+    support_threshold: float = key(0.01, nonnegative=True, high=1.0)
 
 
 @dataclass(frozen=True)
@@ -121,22 +123,15 @@ def is_dm_recording(path) -> bool:
 
 
 def _read_layout(root: Path) -> _Layout:
-    """``recording.yaml``'s ``dm``, ``wfs`` and ``dm_plan`` sections, every value's type checked
-    (the ranges are the config's: :func:`dm_recording_config`)."""
+    """``recording.yaml``'s ``dm``, ``wfs`` and ``dm_plan`` sections, every value checked as the
+    config's keys are (:func:`~torchblur.config.checks.check_declared`)."""
     camera_keys = tuple(f.name for f in fields(OutsideCamera))
     try:
         lay = load_dataclass(_Layout, str(root / YAML_NAME), ignore_file_sections=camera_keys, trusted=False)
+        for sec in _SECTIONS:
+            check_declared(getattr(lay, sec), sec)
     except ConfigError as exc:
         raise RecordingError(f"{YAML_NAME}: {exc}") from None
-    for sec in _SECTIONS:
-        for f in fields(getattr(lay, sec)):
-            v = getattr(getattr(lay, sec), f.name)
-            ok = isinstance(v, str) if f.name == "kind" else isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-            if not ok or (f.type in ("int",) and not float(v).is_integer()):
-                raise RecordingError(f"{YAML_NAME}: {sec}.{f.name}: expected {'a string' if f.name == 'kind' else 'a finite number'}, "
-                                     f"got {excerpt(v)}")
-    if lay.dm_plan.kind not in _PLAN_KINDS:
-        raise RecordingError(f"{YAML_NAME}: dm_plan.kind: expected one of {_PLAN_KINDS}, got {excerpt(lay.dm_plan.kind)}")
     if int(lay.dm.n_across) < 1:
         raise RecordingError(f"{YAML_NAME}: dm.n_across: the mirror's actuators across (the sensor layout) is required, got "
                              f"{excerpt(lay.dm.n_across)}")
