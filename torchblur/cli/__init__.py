@@ -6,7 +6,8 @@ describe each. The run's messages go to the ``torchblur`` logger, shown on stder
 (``--quiet``: warnings only); report.txt holds them all. The report's table goes to stdout, or
 with ``--json`` to stderr while stdout gets exactly one JSON summary line
 (:mod:`torchblur.identify.report`). Every identify and fit run ends with one verdict line
-(:mod:`torchblur.identify.verdict`). Exit codes: :data:`EXIT_EPILOG`; 1 an internal error.
+(:mod:`torchblur.identify.verdict`). Exit codes: :data:`EXIT_EPILOG` (4 also for points flagged
+no_motion or alias, or beyond 5 std of a known truth); 1 an internal error.
 """
 from __future__ import annotations
 
@@ -46,8 +47,8 @@ exit status:
   0    done; trustworthy (or only points limited by the drive)
   2    bad input (config, recording)
   3    the rig stopped the run (the recording is saved; resume it)
-  4    done with points flagged poor_fit, timing, failed, no_motion or alias, or beyond 5 std of
-       a known truth (results written); a DM run: actuators flagged poor fit or failed
+  4    done with points flagged poor_fit, timing or failed (results written); a DM run:
+       actuators flagged poor fit or failed
   130  interrupted (Ctrl-C; resume it)"""
 
 
