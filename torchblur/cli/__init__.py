@@ -1,52 +1,13 @@
 """Command line: ``torchblur <command> ...`` (also ``python -m torchblur.cli <command> ...``).
 
-Commands:
-    identify [--config FILE] --out DIR [key=value ...]
-                        identify the frequency response and a model of the rig (simulated, or
-                        rig.kind=serial rig.port=... rig.frames=...: tcp://, pylon://SERIAL?...
-                        or package.module:Class); writes frf.csv, frf.mat, frf.json, model.json,
-                        bode.png, residuals.png, config.yaml and report.txt into DIR, and
-                        records the raw frames as it goes in DIR/experiment/. DIR holding
-                        files of its own (not a torchblur run's) is refused unless --force.
-                        With model.direct=true model.json holds the model fitted directly
-                        to every image and model_two_step.json the two-step model.
-                        --port PORT --frames URL: rig.kind=serial rig.port=PORT
-                        rig.frames=URL. A DM config (dm.n_across > 0) writes OUT/dm/, from
-                        the simulated DM rig or, with --port/--frames, a DM controller
-                        (docs/deformable_mirrors.md, "Over the serial link").
-    identify --resume DIR [key=value ...]
-                        continue an interrupted run from DIR/experiment/ (rig.*, fit.*,
-                        model.* and report.* may be given anew, e.g. the new rig.port).
-    fit DIR --out NEW [fit.*=... model.*=... report.*=...]
-                        re-fit a recorded run offline; DIR is never written. DIR may
-                        also be an outside recording (a folder with frames.csv, TIFF
-                        frames and recording.yaml: docs/outside_recordings.md).
-    emulator [--config FILE] [key=value ...]
-                        a bench emulator on a pseudo-terminal; prints one JSON line with
-                        'serial' (for rig.port) and 'frames' (for rig.frames), then serves.
-    config [--config FILE] [key=value ...]
-                        list every config key with its value (the defaults, or the file and
-                        overrides resolved) and its unit; nothing is run.
-    demo --out DIR      render a blurred laser spot (the paper's "peanut"), its motion and
-                        its alias, and save DIR/demo.png and DIR/demo.json.
-
-Output: the run's messages go to the ``torchblur`` logger, shown on stderr one line each
-(``--quiet``: warnings only; progress bars only on a terminal); report.txt holds them all.
-The report's table then goes to stdout, or with ``--json`` to stderr while stdout gets exactly
-one JSON line: ``out``, ``points``, ``valid_points``, ``max_magnitude_error_pct``,
-``max_phase_error_deg``, ``max_error_over_std`` (null without a known truth), ``status`` and
-``flags`` (counts by name, :mod:`torchblur.fit.status`), ``elapsed_s``, ``torchblur_version``,
-``verdict`` (the verdict line), ``point_flags``, ``flagged_points``, ``trustworthy`` and
-``timing_limit_hz`` (:mod:`torchblur.identify.verdict`). ``torchblur --version`` prints the version.
-
-Every identify and fit run ends with one verdict line (:func:`torchblur.identify.verdict.verdict`),
-the last line on stdout (on stderr with ``--json``) and in report.txt.
-
-Exit codes: 0 done and trustworthy (or only points limited by the drive), 2 bad input (config,
-recording), 3 the rig stopped the run (its recording is saved; resume it), 4 done with points
-flagged poor_fit, timing, failed, no_motion or alias, or, with a known truth (a simulated rig),
-points or a model beyond 5 std of it (results written; the verdict names them), 130 interrupted
-(Ctrl-C; resume it).
+The commands (``identify``, ``identify --resume``, ``fit``, ``emulator``, ``config``, ``demo``) and
+their options are :func:`build_parser`'s (``torchblur COMMAND --help``); README.md and the docs
+describe each. The run's messages go to the ``torchblur`` logger, shown on stderr one line each
+(``--quiet``: warnings only); report.txt holds them all. The report's table goes to stdout, or
+with ``--json`` to stderr while stdout gets exactly one JSON summary line
+(:mod:`torchblur.identify.report`). Every identify and fit run ends with one verdict line
+(:mod:`torchblur.identify.verdict`). Exit codes: :data:`EXIT_EPILOG` (4 also for points flagged
+no_motion or alias, or beyond 5 std of a known truth); 1 an internal error.
 """
 from __future__ import annotations
 
@@ -91,17 +52,6 @@ exit status:
   130  interrupted (Ctrl-C; resume it)"""
 
 
-class _Version(argparse.Action):
-    """``--version``: print ``torchblur X.Y.Z`` on stdout and exit 0."""
-
-    def __init__(self, option_strings, dest, **kwargs):
-        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
-
-    def __call__(self, parser, namespace, values, option_string=None):
-        print(f"torchblur {torchblur.__version__}")
-        parser.exit(0)
-
-
 class _Parser(argparse.ArgumentParser):
     """argparse that suggests the closest option or command for a mistyped one (difflib;
     argparse's own ``suggest_on_error`` exists from Python 3.14 only). ``argv``: the command
@@ -135,7 +85,7 @@ def _suggestion(parser: argparse.ArgumentParser, argv) -> str:
 def build_parser() -> argparse.ArgumentParser:
     """The ``torchblur`` command's parser: one sub-parser per command of :data:`COMMANDS`."""
     parser = _Parser(prog="torchblur", description="Identify fast actuator dynamics from camera motion blur.")
-    parser.add_argument("--version", action=_Version, help="print the version and exit")
+    parser.add_argument("--version", action="version", version=f"torchblur {torchblur.__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     ident = sub.add_parser("identify", help="identify the frequency response and a model (default: the built-in simulated mirror)",
                            epilog=EXIT_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -200,7 +150,7 @@ def _command(name: str):
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``torchblur ARGV`` (default: ``sys.argv[1:]``) -> the exit status (see the module's doc)."""
+    """``torchblur ARGV`` (default: ``sys.argv[1:]``) -> the exit status (:data:`EXIT_EPILOG`)."""
     parser = build_parser()
     _Parser.argv = tuple(sys.argv[1:] if argv is None else argv)
     args, extra = parser.parse_known_args(argv)

@@ -3,12 +3,8 @@ memory, disk and bench time (:func:`estimate_run`, :func:`check_limits` against 
 the calibration's frame counts and the latency scan's constants (which
 :mod:`torchblur.identify.calibration` takes from here, so that the estimate counts what it
 takes); a DM run's closed-form size bounds (:func:`dm_size_bounds`), its plan (:func:`dm_plan`)
-and its frames (:func:`dm_sweep_size`), so that the size guard sees the real frame count.
-
-A DM run's plan depends only on the geometry: the mirror's actuator grid and influence
-functions (``dm.n_across``, ``dm.coupling``) and the sensor (``wfs``), through the nominal
-geometry matrix G, never on the dynamics (so ``dm.actuator_table`` is not read here). The run
-chooses its plan with the same function.
+and its frames (:func:`dm_sweep_size`), so that the size guard sees the real frame count (the
+plan depends on the geometry alone, :func:`dm_geometry`; the run chooses its plan with the same function).
 """
 from __future__ import annotations
 

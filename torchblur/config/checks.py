@@ -12,7 +12,7 @@ import torch
 
 from torchblur.config.budget import LIMITS
 from torchblur.config.camera_urls import aravis_url_options, pylon_url_options
-from torchblur.config.schema import (AXIS_MODES, MIN_PSF_SIGMA_PX, CameraConfig, DMConfig, ExcitationConfig, IdentifyConfig,
+from torchblur.config.schema import (AXIS_MODES, CameraConfig, DMConfig, ExcitationConfig, IdentifyConfig,
                                      PlantConfig, RigConfig, SpotsConfig, SweepConfig, WFSConfig, is_nested)
 from torchblur.errors import ConfigError, ParameterError, check_real_scalar, excerpt
 from torchblur.losses import LIKELIHOOD_LOSSES
@@ -196,13 +196,8 @@ def validate_dm(cfg: IdentifyConfig) -> None:
 def validate_camera(c: CameraConfig) -> None:
     """Check the ``camera`` section; raise :class:`ConfigError` naming the key."""
     check_declared(c, "camera")
-    if c.psf_sigma_px < MIN_PSF_SIGMA_PX:
-        raise ConfigError(f"camera.psf_sigma_px: a PSF of {c.psf_sigma_px} px std is not sampled by the pixels; expected at "
-                          f"least {MIN_PSF_SIGMA_PX} px")
     if c.ptc_frames == 1:
         raise ConfigError("camera.ptc_frames: expected 0 (no ladder) or at least 2 frames per exposure (a pair), got 1")
-    if c.peak_fraction > 1:
-        raise ConfigError(f"camera.peak_fraction: expected a value in (0, 1], got {c.peak_fraction}")
     if c.dark_level >= 2 ** int(c.bit_depth) - 1:
         raise ConfigError(f"camera.dark_level: expected a value below the ADC's maximum 2**camera.bit_depth - 1 = "
                           f"{2 ** int(c.bit_depth) - 1} ADU (else every pixel is saturated), got {c.dark_level}")

@@ -164,19 +164,18 @@ class CameraConfig:
     jitter_s: float = key(0.2e-6, nonnegative=True)
     read_noise: float = key(5.0, nonnegative=True)
     gain: float = key(1.0, positive=True)
-    # Which gain the run uses (torchblur.identify.calibration.choose_gain): "auto" (default): the photon transfer
-    # curve's (of the still frames, and of a ladder with ptc_frames) where it is within 1 % or camera.gain lies beyond
-    # 3 of its stds, else camera.gain; "measure": always the measured one; "config": camera.gain (a warning beyond 3 stds).
+    # Which gain the run uses: "auto", "measure" (the photon transfer curve's) or "config" (camera.gain); the rule:
+    # torchblur.identify.calibration.choose_gain
     gain_from: str = key("auto", choice=GAIN_FROM)
     # frames per exposure of a photon transfer ladder (8 exposures) for a precise gain; 0: none
     ptc_frames: int = key(0, integer=True, low=0, high=10000)
     full_well: float = key(20000.0, positive=True)
     bit_depth: int = key(12, integer=True, low=1, high=32)
     dark_level: float = key(100.0, nonnegative=True)
-    psf_sigma_px: float = key(2.0, positive=True)
+    psf_sigma_px: float = key(2.0, low=MIN_PSF_SIGMA_PX)
     height: int = key(64, integer=True, low=8)
     width: int = key(64, integer=True, low=8)
-    peak_fraction: float = key(0.5, positive=True)
+    peak_fraction: float = key(0.5, positive=True, high=1.0)
 
 
 @dataclass(frozen=True)
@@ -185,11 +184,8 @@ class FitConfig:
     # during the calibration (torchblur.image.tracking.calibrate_axes at the sweep's first frequency); "x", "y",
     # or [x, y]. The response is the motion along that direction (the sign that points toward +x, or +y).
     axis: object = "measure"
-    # The PSF every fit of the run uses (torchblur.image.psf_from_still on the still frames; per spot with
-    # many spots). "auto" (default): the point-sampled Gaussian where it explains the averaged still to its
-    # noise, else the measured kernel (many spots: the kernels of every spot when any spot's Gaussian fails);
-    # "kernel" or "gaussian" forces one. The same on every route: sine sweep, multisine, direct model, many
-    # spots (the DM command fits Gaussians: issue 23).
+    # The PSF every fit of the run uses: "auto" (the Gaussian where it explains the still frames to their noise,
+    # else the measured kernel), "kernel" or "gaussian"; the rule: docs/measured_psf.md, "The rule, once for every route"
     psf: str = key("auto", choice=PSF_KINDS)
     optimizer: str = key("lm", choice=OPTIMIZERS)
     # "l2", "l1" or "poisson", each weighted by the calibrated camera noise (linf: refused, no likelihood)

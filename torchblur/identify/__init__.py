@@ -2,6 +2,7 @@
 over one run record: ``calibration``, ``sweep`` (the sine plan) or ``multisine`` (the
 multisine plan), ``fitting``, ``assemble``, ``model``, the ``result``), ``rigs`` (the rig
 and the recording), ``run`` (the public names, where they have always been imported from),
+``dm_plan`` (a deformable mirror's plan; its outside recordings ``dm_outside``), ``verdict``,
 ``outputs`` (the files a run writes) and ``report`` (report.txt and the ``--json`` line). The
 ``torchblur`` command is :mod:`torchblur.cli`.
 

@@ -5,23 +5,13 @@ with covariances from the fits of the sweep's points (:func:`assemble_siso`,
 point's adequacy (:func:`adequacy`, the rule; :func:`adequacy_stage`, the stage after assemble
 that applies it to a run).
 
-The adequacy rule (docs/reliability.md, "Per-point flags"; bits in :mod:`torchblur.sysid.flags`):
-
-* ``FAILED``: the response is NaN (the fit failed).
-* ``POOR_FIT``: the image fit's reduced chi2 exceeds ``fit.poor_fit_chi2`` (default 1.5): the
-  model does not explain the images. The fit's part of the point's covariance is multiplied by
-  the reduced chi2 (its stds by sqrt(reduced chi2): the Birge ratio); the timing part is not.
-  The model stage leaves such points out (:func:`torchblur.identify.model.model_exclusions`).
-* ``TIMING``: the timing terms alone, :func:`timing_phase_std`, exceed ``report.tolerance_deg``.
-  Their std is honest (it holds the timing terms), just large: they stay in the model fit.
-* ``LIMITED``: the drive limit cut the point's motion (the run's per-point ``limited``).
-* ``ALIAS``: one exposure per point (the exposures' :func:`~torchblur.design.windows.alias_separation`
-  below :data:`~torchblur.design.windows.MIN_SEPARATION`): each point's phase branch is chosen
-  by continuity along the sweep (:func:`resolve_single_exposure`, the rule of
-  :func:`~torchblur.design.windows.continuity_branches`, then
-  :func:`~torchblur.sysid.alias_resolution.model_branches`), and the points it cannot decide are
-  flagged; with exposures that resolve the alias, a point whose fit says the light was too little
-  to decide it (:data:`~torchblur.fit.status.BRANCH_UNDECIDED`). Such a run is never trustworthy.
+The adequacy rule (bits in :mod:`torchblur.sysid.flags`; the table of what sets each flag and
+what it does: docs/reliability.md, "Per-point flags and the verdict"): ``FAILED`` a NaN response;
+``POOR_FIT`` a reduced chi2 above ``fit.poor_fit_chi2``, the fit's part of the covariance times
+the reduced chi2 (the timing part not); ``TIMING`` :func:`timing_phase_std` above
+``report.tolerance_deg``; ``LIMITED`` the drive limit cut the motion; ``ALIAS`` a phase branch
+that :func:`resolve_single_exposure` (one exposure) or the fit
+(:data:`~torchblur.fit.status.BRANCH_UNDECIDED`) could not decide.
 """
 from __future__ import annotations
 

@@ -41,7 +41,8 @@ class Calibration:
     :class:`~torchblur.image.psf_from_still.StillPSF`: the PSF every fit of the run uses (sine
     sweep, multisine, direct model), ``still_psf.psf``, a KernelPSF or that Gaussian, and why),
     with many spots ``spot_kernels`` (:class:`SpotKernels`, or None: the Gaussians), and for one-axis runs the
-    actuator's image ``direction``; ``noise``, the camera's
+    actuator's unit image ``direction`` (x, y), with ``fit.axis=measure`` the ``axis`` (AxisCalibration) that
+    measured it and ``axis_gain`` (|H|, px per input unit, at that frequency: the sweep's first amplitude); ``noise``, the camera's
     :class:`~torchblur.render.camera.CameraNoise` (gain, mean dark level, read noise: the one noise
     model every fit of the run weighs its residuals with), is built from them."""
 
@@ -55,14 +56,10 @@ class Calibration:
     latency_std_s: float
     gain: float
     spots: object = None  # many spots: SpotPSFs (psf [K] per spot, crop offsets), else None
-    # One-axis, one-spot runs: the unit image direction (x, y) of the motion that is fitted, the
-    # AxisCalibration it was measured by (fit.axis=measure), and |H| (px per input unit) at the
-    # calibration frequency (seeds the sweep's first amplitude); else None.
     direction: tuple | None = None
     axis: object = None
     axis_gain: float | None = None
     still_psf: object = None  # one spot: the StillPSF (fit.psf's choice and its evidence), else None
-    # many spots: the measured kernels every spot is fitted with (SpotKernels), None: the Gaussians spots.psf
     spot_kernels: object = None
     drive: DriveLimit | None = None  # the run's input range (every command within drive.limit); None: no limit
     latency_source: str = "scanned"  # "scanned" (laser pulses, rig.pulse) or "given" (camera.latency_s, camera.latency_std_s)

@@ -1,28 +1,10 @@
 """Outside DM recordings: frames a lab took of its deformable mirror with its own software, in
-a folder that ``torchblur fit FOLDER`` identifies like a live DM run (docs/outside_recordings.md,
-"Deformable-mirror recordings").
+a folder that ``torchblur fit FOLDER`` identifies like a live DM run. The format (the one-spot
+outside format of :mod:`torchblur.hardware.outside` plus ``patterns.csv``, a ``pattern`` column,
+optional ``ladder`` rows and the ``dm``, ``wfs``, ``dm_plan`` sections of ``recording.yaml``):
+docs/outside_recordings.md, "Deformable-mirror recordings".
 
-The folder is the one-spot outside format (:mod:`torchblur.hardware.outside`: TIFF frames,
-``frames.csv``, ``recording.yaml``, read under the same rule for untrusted files) with:
-
-- ``frames.csv``: one more column, ``pattern`` (the row of ``patterns.csv`` a sweep frame was
-  driven with); a sweep row also has ``freq_hz``, ``exposure_s``, ``window_start_s`` (or
-  ``trigger_phase_rad``), ``amplitude`` (one per frequency, the same for every pattern),
-  optional ``power`` and ``repeat``; optionally rows of kind ``ladder`` (the spot model
-  ``dm_plan.spot_model`` ladder: every pattern held still, with a ``pattern``, its command
-  ``level`` in a column of that name (input units: every actuator j at ``level * a_j``),
-  ``exposure_s`` (one for all) and optional ``power``; every pattern at the same number of
-  levels, at least 4, the same frames per level);
-- ``patterns.csv``: the plan, ``pattern,a0,...,a{N-1}``, one row per pattern (pattern p drives
-  actuator j with ``amplitude * a_j * sin(2 pi freq_hz t)``);
-- ``recording.yaml``: the camera keys of the one-spot format and the sensor layout, sections
-  ``dm`` (``n_across``, ``coupling``: the mirror's actuator grid and influence, for the nominal
-  geometry G), ``wfs`` (the Shack-Hartmann sensor: ``n_across``, ``pitch_px``, ``sigma_px``, ...,
-  as the config's ``wfs`` section) and ``dm_plan`` (``kind``: hadamard, sparse or one_at_a_time,
-  and ``support_threshold``: which unknowns a sparse plan measures).
-
-:func:`read_dm_recording` reads and checks a folder into a :class:`DMRecording` (the one-spot
-format's reader, :func:`~torchblur.hardware.outside.read_folder`, plus the sections above);
+:func:`read_dm_recording` reads and checks a folder into a :class:`DMRecording`;
 :func:`dm_recording_config` makes the run's config of it; :func:`identify_dm_recording` runs a
 live DM run's stages on it (:func:`torchblur.identify.pipeline.identify` with the plan
 :class:`DMOutsidePlan`); :func:`write_dm_recording` writes the format from arrays and
@@ -41,6 +23,8 @@ import numpy as np
 import torch
 
 from torchblur.config import WFSConfig, load_config, load_dataclass
+from torchblur.config.checks import check_declared
+from torchblur.config.schema import key
 from torchblur.config.budget import dm_geometry, dm_sensor
 from torchblur.dm.plans import Plan, one_at_a_time_plan, plan_cost
 from torchblur.dm.shack_hartmann import ShackHartmann
@@ -75,16 +59,16 @@ _PLAN_KINDS = ("hadamard", "sparse", "one_at_a_time")
 class _DMGeometry:
     """``recording.yaml``'s ``dm`` section: the actuator grid and its influence (the dynamics are what is measured)."""
 
-    n_across: int = 0
-    coupling: float = 0.15
+    n_across: int = key(0, integer=True)
+    coupling: float = key(0.15, positive=True, high=0.99)
 
 
 @dataclass(frozen=True)
 class _PlanInfo:
     """``recording.yaml``'s ``dm_plan`` section."""
 
-    kind: str = "hadamard"
-    support_threshold: float = 0.01
+    kind: str = key("hadamard", choice=_PLAN_KINDS)
+    support_threshold: float = key(0.01, nonnegative=True, high=1.0)
 
 
 @dataclass(frozen=True)
@@ -139,22 +123,15 @@ def is_dm_recording(path) -> bool:
 
 
 def _read_layout(root: Path) -> _Layout:
-    """``recording.yaml``'s ``dm``, ``wfs`` and ``dm_plan`` sections, every value's type checked
-    (the ranges are the config's: :func:`dm_recording_config`)."""
+    """``recording.yaml``'s ``dm``, ``wfs`` and ``dm_plan`` sections, every value checked as the
+    config's keys are (:func:`~torchblur.config.checks.check_declared`)."""
     camera_keys = tuple(f.name for f in fields(OutsideCamera))
     try:
         lay = load_dataclass(_Layout, str(root / YAML_NAME), ignore_file_sections=camera_keys, trusted=False)
+        for sec in _SECTIONS:
+            check_declared(getattr(lay, sec), sec)
     except ConfigError as exc:
         raise RecordingError(f"{YAML_NAME}: {exc}") from None
-    for sec in _SECTIONS:
-        for f in fields(getattr(lay, sec)):
-            v = getattr(getattr(lay, sec), f.name)
-            ok = isinstance(v, str) if f.name == "kind" else isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-            if not ok or (f.type in ("int",) and not float(v).is_integer()):
-                raise RecordingError(f"{YAML_NAME}: {sec}.{f.name}: expected {'a string' if f.name == 'kind' else 'a finite number'}, "
-                                     f"got {excerpt(v)}")
-    if lay.dm_plan.kind not in _PLAN_KINDS:
-        raise RecordingError(f"{YAML_NAME}: dm_plan.kind: expected one of {_PLAN_KINDS}, got {excerpt(lay.dm_plan.kind)}")
     if int(lay.dm.n_across) < 1:
         raise RecordingError(f"{YAML_NAME}: dm.n_across: the mirror's actuators across (the sensor layout) is required, got "
                              f"{excerpt(lay.dm.n_across)}")
@@ -521,15 +498,10 @@ def write_dm_recording(folder, *, dark, still, still_exposure_s: float, patterns
 
 def export_dm_recording(run, folder) -> Path:
     """Write the frames of a torchblur DM run's recording ``run`` (its ``--out`` folder or its
-    ``experiment/``) as an outside DM recording in ``folder`` (:func:`write_dm_recording`): the
-    dark frames, the PSF's still frames, the patterns held still where the run fitted with the
-    ladder (its ``dm_ladder/PPP`` groups, as rows of kind ``ladder``), every swept frequency's frames with their windows (the
-    trigger time plus ``trigger_delay_s`` plus the calibrated latency, as the run fitted them), the
-    plan, the camera (the configured gain, the calibrated latency and its std, the measured
-    saturation level) and the sensor layout. The calibration is replayed from the recording
-    (:func:`torchblur.identify.dm_plan._calibrate` on a ReplayRig) for the latency and saturation.
-    Not exported: the photon transfer ladder of ``camera.ptc_frames`` (the fit's gain then comes
-    from the still frames alone) and a ``camera.gain_from`` other than the default (pass it to ``torchblur fit``).
+    ``experiment/``) as an outside DM recording in ``folder`` (:func:`write_dm_recording`; what is
+    exported and what is not: docs/outside_recordings.md, "Deformable-mirror recordings"). The
+    calibration is replayed from the recording (:func:`torchblur.identify.dm_plan._calibrate` on
+    a ReplayRig) for the latency and saturation.
 
     Raises:
         RecordingError: not a complete DM recording.

@@ -1,27 +1,12 @@
 """The deformable mirror's plan of the identification (:class:`DMPlan`): ``torchblur.identify(cfg,
 rig)`` and ``torchblur identify`` with a config whose ``dm.n_across`` > 0 run the identification's
-stages (:mod:`torchblur.identify.pipeline`) with this plan.
-
-Stages:
-
-1. calibration: the one-spot/many-spot run's own stage (:func:`torchblur.identify.calibration.calibrate`
-   with the sensor's spot grid): dark frame, saturation, still frames (every spot cropped
-   on the sensor's declared layout registered to the still frame,
-   :func:`~torchblur.image.spot_layout.layout_spots`, a Gaussian PSF fitted per spot, and with
-   ``fit.psf`` auto or kernel each spot's measured kernel where its Gaussian fails the still's
-   test; the spots it cannot describe flagged by name), trigger latency from the pulse scan; the
-   spots are matched to the sensor's valid subapertures (nearest rest position within half a pitch).
-2. the plan (:func:`torchblur.dm.plans.choose_plan`: kind, frame budget, the nominal geometry G).
-3. the sweep, frequency by frequency (``sweep`` section: frequencies, exposures in periods,
-   trigger phase): every pattern is driven at one amplitude per frequency (:func:`next_amplitude`:
-   the largest spot motion predicted at ``excitation.target_px`` from the last fitted frequency
-   and the nominal resonance's growth, never above ``dm.input_limit``) and the laser power that
-   keeps a still spot at ``camera.peak_fraction`` of the range over the longest exposure; each
-   completed frequency goes to the batched spot fitter (:mod:`torchblur.dm.spot_fit`) on the
-   run's executor (one worker thread by default), so fitting overlaps the acquisition.
-4. the pattern responses ``Y [P, 2M, F]`` (phase variance of the trigger jitter and the latency
-   calibration added), the demultiplexing (:mod:`torchblur.dm.demux`) into ``D [2M, N, F]`` and
-   the per-actuator fit (:mod:`torchblur.dm.actuator_fit`).
+stages (:mod:`torchblur.identify.pipeline`) with this plan: 1. the calibration on the sensor's spot
+grid (:func:`torchblur.identify.calibration.calibrate`, the spots matched to the valid
+subapertures: :func:`match_spots`); 2. the plan (:func:`torchblur.dm.plans.choose_plan`); 3. the
+sweep (one amplitude per frequency, :func:`next_amplitude`; each completed frequency fitted on the
+run's executor while the next is acquired); 4. ``Y [P, 2M, F]``, ``D [2M, N, F]``
+(:mod:`torchblur.dm.demux`) and the actuators (:mod:`torchblur.dm.actuator_fit`). Each step:
+docs/deformable_mirrors.md, "The run".
 """
 from __future__ import annotations
 

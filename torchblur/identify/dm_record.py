@@ -1,33 +1,10 @@
-"""A DM run recorded as it goes, resumed after a crash and re-fitted offline (docs/deformable_mirrors.md,
-"Recording, resume and re-fit").
-
-The run folder is the one-spot run's experiment directory (:class:`~torchblur.hardware.recording.Experiment`,
-docs/protocol.md "Experiment directory"; no second format), ``OUT/experiment/``:
-
-- the calibration groups ``dark``, ``saturation``, ``psf`` and ``latency``, recorded by the
-  calibration stage itself (:func:`torchblur.identify.calibration.calibrate` with the experiment);
-- one group per swept frequency, ``dm_sweep/NNN`` (kind ``dm_sweep``, k = NNN the frequency's
-  index): one ``pattern_sine`` call per pattern, in the plan's order, each with its frames ``[E, R]``
-  and every frame's trigger time, trigger offset and exposure; each call's arguments (pattern,
-  frequency, amplitude, exposures, trigger offset, repeats, settling wait, power) and, on every
-  line, the labels ``freq_hz``, ``amplitude``, ``power``, ``point`` (k), ``trigger_delay_s`` (the
-  exposure of a frame starts ``trigger_delay_s`` + the calibrated latency after its trigger: a
-  re-fit rebuilds the same :class:`~torchblur.render.window.ExposureWindow`), ``n_patterns`` and
-  ``n_repeats``;
-- the spot model's static holds (:mod:`torchblur.identify.dm_ladder`, kind ``dm_ladder``):
-  ``dm_ladder/test`` (``dm_plan.spot_model`` auto's test, every pattern at its two end levels) and
-  ``dm_ladder/PPP`` (pattern PPP's ladder), one ``pattern_ladder`` call each;
-- in ``experiment.json`` the plan, ``dm_plan``: ``kind``, ``support_threshold``, ``n_repeats``,
-  ``patterns`` ``[P, N]`` and ``support`` (2M strings of N characters 0/1), stored before the first
-  sweep group, so a resume takes the same patterns whatever the code would choose now.
-
-A resume (``torchblur identify --resume OUT``) reuses every group the recording holds: the
-calibration through the stage's replay, each recorded frequency with its recorded amplitude
-(every call's arguments checked against the plan and the calibration's laser power); only the
-missing groups are taken. A re-fit (``torchblur fit OUT --out NEW``) reads the recording
-through a :class:`~torchblur.hardware.recording.ReplayRig` and may change ``fit.*``,
-``model.*``, ``report.*`` and ``dm_plan.support_threshold`` (the support of the recorded
-patterns; a sparse plan's support is then taken again from G, :func:`plan_support`).
+"""A DM run recorded as it goes, resumed after a crash and re-fitted offline, in the one-spot
+run's experiment directory (:class:`~torchblur.hardware.recording.Experiment`, ``OUT/experiment/``;
+no second format): the calibration groups, one group ``dm_sweep/NNN`` per swept frequency
+(:func:`sweep_key`, kind :data:`SWEEP_KIND`), the spot model's static holds ``dm_ladder/*`` and
+the plan in ``experiment.json`` (:data:`PLAN_KEY`, stored before the first sweep group). What each
+group holds, what a resume reuses and what a re-fit may change: docs/deformable_mirrors.md,
+"Recording, resume and re-fit".
 """
 from __future__ import annotations
 
@@ -61,7 +38,7 @@ def sweep_key(k: int) -> str:
 
 
 def plan_document(plan: Plan, n_repeats: int, threshold: float) -> dict:
-    """The plan as ``experiment.json`` holds it (module docstring)."""
+    """The plan as ``experiment.json`` holds it: ``patterns`` ``[P, N]``, ``support`` 2M strings of N characters 0/1."""
     return {"kind": plan.kind, "support_threshold": float(threshold), "n_repeats": int(n_repeats),
             "patterns": plan.patterns.tolist(), "support": ["".join("1" if v else "0" for v in row) for row in plan.support]}
 

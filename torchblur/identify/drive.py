@@ -1,21 +1,11 @@
-"""The safe drive: the input range every plan of a run keeps within.
-
-A rig reports its range (:attr:`~torchblur.rig.base.Rig.input_limit`: the largest |command|, in
-input units, its amplifier takes; the simulated plant's ``plant.input_limit``, a controller's
-``RANGE?`` reply); ``excitation.max_amplitude`` may narrow it, never widen it. The run's limit
-(:func:`drive_limit`) is fixed before the first frame; the sweep's amplitude adaptation, the
-axis calibration and the multisine's peak stay within it. A point that cannot reach its target
-motion is driven at the limit, fitted at the smaller motion and reported as ``limited``
-(:func:`limited_summary`). A recording whose commands exceed the limit of the rig it is
-resumed on is refused (:func:`check_recorded_drive`).
-
-Beside the range, the amplifier's slew-rate limit (:attr:`~torchblur.rig.base.Rig.slew_limit`,
-input units per second: ``plant.slew_limit``, a controller's ``SLEW?`` reply; ``excitation.max_slew``
-narrows it): a piezo amplifier delivers its full range only up to its power bandwidth, its current
-bounding ``amplitude * omega``. Every plan keeps a sine's ``A * omega`` (a multisine's
-:func:`~torchblur.rig.base.command_slew`) within it, so the largest amplitude at ``f`` Hz is
-``min(limit, slew / (2 pi f))`` (:meth:`DriveLimit.at`); points it limits are flagged and named
-as the range's are.
+"""The safe drive: the input range (:attr:`~torchblur.rig.base.Rig.input_limit`, narrowed by
+``excitation.max_amplitude``) and the slew-rate limit (:attr:`~torchblur.rig.base.Rig.slew_limit`,
+input units/s, narrowed by ``excitation.max_slew``) every plan of a run keeps within: the run's
+:class:`DriveLimit` (:func:`drive_limit`, fixed before the first frame; at ``f`` Hz the largest
+amplitude is ``min(limit, slew / (2 pi f))``, :meth:`DriveLimit.at`), the points it limits
+(:func:`is_limited`, :func:`limited_summary`) and the refusal of a recording beyond it
+(:func:`check_recorded_drive`). What a run does at the limit: docs/reliability.md, "The safe
+drive"; the slew limit: README.md.
 """
 from __future__ import annotations
 

@@ -1,28 +1,13 @@
 """The identification with multisine excitation (``excitation.kind=multisine``).
 
 The multisine plan (:class:`MultisinePlan`) of the identification's stages: calibrate and
-model are those of every run (:mod:`torchblur.identify.calibration`,
-:mod:`torchblur.identify.model`); the sweep, fit and assemble stages become, for each group
-of ``excitation.tones`` frequencies of the sweep:
-
-1. tones on a common grid ``n_k f0`` (:func:`~torchblur.design.multisine.common_grid`, each frequency
-   moved by at most ``excitation.snap_tol``); command amplitudes so that every tone moves the
-   spot ``excitation.tone_px`` (from the gains of the groups fitted before; the first group
-   starts at 1/10 px per input unit); phases of minimal crest factor;
-2. a pilot frame over one common period: its second moment is the mean square of the motion
-   (``sum_k M_k^2 / 2``), and the amplitudes are rescaled until it is within [0.75, 1.33] of the
-   target (at most 3 pilots, as the sine sweep's attempts);
-3. the image set designed from the Fisher information at the expected amplitudes
-   (:func:`~torchblur.design.fisher.design_acquisition`: windows at different positions in
-   the common period and exposures, the laser power following each exposure so every frame
-   gets the same peak exposure), taken in one ``rig.multisine`` call (recorded as
-   ``sweep/multisine/{g:03d}``);
-4. every tone of the group fitted at once from the set
-   (:func:`~torchblur.fit.multisine.fit_multisine`), ``H_k = M_k / a_k e^{j (phi_k - p_k)}``
-   with its covariance (fit, trigger jitter and latency calibration).
-
-All points form one :class:`~torchblur.sysid.frequency_response.FrequencyResponse` at the tones'
-(grid) frequencies, then the model is fitted as usual.
+model are those of every run; the sweep, fit and assemble stages become, for each group of
+``excitation.tones`` frequencies, tones on a common grid
+(:func:`~torchblur.design.multisine.common_grid`), pilot frames that set the amplitudes, one image
+set designed from the Fisher information (:func:`~torchblur.design.fisher.design_acquisition`,
+recorded as ``sweep/multisine/{g:03d}``) and every tone fitted at once
+(:func:`~torchblur.fit.multisine.fit_multisine`): ``H_k = M_k / a_k e^{j (phi_k - p_k)}`` with
+its covariance (fit, trigger jitter and latency calibration). Each step: docs/multisine.md.
 """
 from __future__ import annotations
 

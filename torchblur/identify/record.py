@@ -1,10 +1,5 @@
-"""The run record: the one object the identification's stages read and fill.
-
-:func:`torchblur.identify.pipeline.identify` is ``calibrate -> sweep -> fit -> assemble ->
-model -> report``; each stage is a function of a :class:`RunRecord` that adds its part
-(``cal``, ``acquisition``, ``fit``, ``frf`` and ``truth``, ``model`` and ``direct_model``,
-the result). What differs between excitations (one sine per point, or multisine groups) is
-the record's ``plan`` (:mod:`torchblur.identify.sweep`, :mod:`torchblur.identify.multisine`).
+"""The run record (:class:`RunRecord`): the one object the identification's stages
+(:mod:`torchblur.identify.pipeline`) read and fill, each adding its part.
 
 The run's messages go to the ``torchblur`` logger (``torchblur.identify`` and its children,
 ``torchblur.hardware`` for the rig's); nothing here prints. :func:`collect_log` (a

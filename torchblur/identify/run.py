@@ -1,13 +1,5 @@
-"""The identification's public names, where they have always been imported from.
-
-The pipeline itself lives in stages over one run record: :mod:`torchblur.identify.pipeline`
-(:func:`identify`), :mod:`~torchblur.identify.calibration`, :mod:`~torchblur.identify.sweep`
-(the sine plan), :mod:`~torchblur.identify.multisine` (the multisine plan),
-:mod:`~torchblur.identify.fitting`, :mod:`~torchblur.identify.assemble`,
-:mod:`~torchblur.identify.model`, :mod:`~torchblur.identify.result`, and
-:mod:`~torchblur.identify.rigs` (the rig and the recording; the simulated rig is
-:mod:`torchblur.rig.factory`'s); a deformable mirror's run is the DM plan's (:mod:`~torchblur.identify.dm_plan`,
-its result :class:`DMResult`), its outside recordings :mod:`~torchblur.identify.dm_outside`'s.
+"""The identification's public names, where they have always been imported from (each module
+that defines them: the package's docstring, :mod:`torchblur.identify`).
 """
 from __future__ import annotations
 

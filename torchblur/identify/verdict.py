@@ -3,46 +3,13 @@ trustworthy, the exit status, the report's lines on what was flagged) built one 
 (:meth:`Verdict.judged`, then :meth:`Verdict.untrusted` for each guard that fails), and each
 plan's rules (pure functions of the run's results and its config).
 
-**Sine and multisine runs** (:func:`verdict`, a :class:`ResponseVerdict`): ``verdict: trustworthy:
-all N points ...`` when no point is flagged ``poor_fit``, ``timing`` or ``failed`` (exit status 0);
-else ``verdict: K of N points flagged: ...`` naming the frequencies of each kind (exit status
-:data:`EXIT_FLAGGED`). Points flagged ``limited`` (the drive limit cut their motion) are named
-with the motion they reached, but do not by themselves make a run untrustworthy: their stds hold
-at the smaller motion. The rule behind each flag: :mod:`torchblur.identify.assemble` and
-docs/reliability.md ("Per-point flags").
-
-**DM runs** (:func:`dm_verdict`, a :class:`DMVerdict`: from the actuator table, the demultiplexed
-``D`` and the count of failed spot fits). Per actuator (:class:`~torchblur.dm.actuator_fit.ActuatorTable`),
-two flags make a run untrustworthy:
-
-- **poor fit**: the actuator's ``poor_fit`` (its parametric model fails the chi2 test, survival
-  probability below :data:`~torchblur.dm.actuator_fit.POOR_FIT_P`: the stds were inflated by
-  ``sqrt(reduced chi2)``, the numbers are not to be trusted at their nominal precision). Kept
-  for a dead actuator too: a column the model could not explain that is then called dead is
-  a call to check.
-- **failed** (:func:`failed_actuators`): a live actuator (ok or weak) whose ``dc_gain``,
-  ``mode_hz``, ``damping``, ``delay_s`` or one of their stds is not finite; a dead one whose
-  ``dc_gain`` or ``dc_gain_std`` is not finite; or any actuator whose column lost its data to
-  failed spot fits: a slope of its support left without a static column entry (``D0`` not
-  finite: the interaction matrix would have a hole), or more than :data:`LOST_FRACTION` of its
-  column's entries ``D[s, j, f]`` (the slopes of its support times the frequencies) NaN.
-
-Dead and weak are statuses, not flags: a dead actuator reported dead is a correct
-measurement; the line names them. Failed spot fits are counted (``k of n spot fits failed``)
-and make the run untrustworthy only through the rule above: :func:`~torchblur.dm.demux.demultiplex`
-leaves a failed fit's pattern out, so the data left still give an unbiased ``D`` with honest
-(larger) stds, until the column loses so much that it is no longer measured as planned.
-
-The spot fits themselves (``spot_reduced_chi2``, when given): a fit whose reduced chi2 is above
-``poor_fit_chi2`` (``fit.poor_fit_chi2``) does not explain its images. One such fit in a thousand
-is a stray (a cosmic ray, a hot pixel); more than :data:`POOR_SPOT_FRACTION` of them means the
-model does not describe these spots, every std of the run is too small and the figures may be
-biased: the run is untrustworthy and the line says so. Then the DM's guards (:data:`DM_GUARDS`).
-
-Lines::
-
-    verdict: trustworthy: all 52 actuators within tolerance: 50 ok, 1 weak (33), 1 dead (20); model reduced chi2 <= 1.48 (chi2 test p >= 0.001); 0 of 81920 spot fits failed
-    verdict: 3 of 52 actuators flagged: 2 poor fit (12, 40), 1 failed (7); status 50 ok, 1 weak (33), 1 dead (20); 96 of 81920 spot fits failed
+- Sine and multisine runs (:func:`verdict`, a :class:`ResponseVerdict`): the per-point flags
+  and the line, docs/reliability.md, "Per-point flags and the verdict"; the rule behind each
+  flag, :mod:`torchblur.identify.assemble`.
+- DM runs (:func:`dm_verdict`, a :class:`DMVerdict`, then :data:`DM_GUARDS` by
+  :func:`final_verdict`): the actuator flags ``poor fit`` and ``failed``
+  (:func:`failed_actuators`, :data:`LOST_FRACTION`), the statuses dead and weak, the spot fits
+  (:data:`POOR_SPOT_FRACTION`), docs/deformable_mirrors.md, "Verdict".
 """
 from __future__ import annotations
 
@@ -471,7 +438,11 @@ def _support(D) -> np.ndarray:
 
 
 def failed_actuators(table: ActuatorTable, D) -> dict:
-    """``{j: reason}`` for every actuator flagged failed (module rules), ``D`` ``[2M, N, F]``."""
+    """``{j: reason}`` for every actuator flagged failed, ``D`` ``[2M, N, F]``: a live actuator
+    (ok or weak) with ``dc_gain``, ``mode_hz``, ``damping``, ``delay_s`` or a std not finite, a
+    dead one with ``dc_gain`` or its std not finite, or one whose column lost its data to failed
+    spot fits (a slope of its support without a finite ``D0``, or more than
+    :data:`LOST_FRACTION` of its entries NaN: :func:`lost_fraction`)."""
     dead = np.array([s == "dead" for s in table.status], dtype=bool)
     names = np.array(_LIVE_PARAMS)
     est = np.stack([np.asarray(getattr(table, k), dtype=np.float64) for k in _LIVE_PARAMS], 1)  # [N, 8]
@@ -525,7 +496,8 @@ def _detail(j: int, status: str, poor_chi2: float | None, failed_why: str | None
 
 def dm_verdict(table: ActuatorTable, *, D, n_failed_spot_fits: int, n_spot_problems: int, spot_reduced_chi2=None,
                poor_fit_chi2: float = 1.5) -> DMVerdict:
-    """The verdict on a DM run (module rules).
+    """The verdict on a DM run (docs/deformable_mirrors.md, "Verdict"): flagged actuators
+    (``poor_fit``, :func:`failed_actuators`) or too many poor spot fits make it untrustworthy.
 
     Args:
         table: the run's :class:`~torchblur.dm.actuator_fit.ActuatorTable` (N actuators).
@@ -571,7 +543,8 @@ def dm_verdict(table: ActuatorTable, *, D, n_failed_spot_fits: int, n_spot_probl
 
 
 def _spot_fits(chi2, threshold: float, n_problems: int) -> tuple[int, bool, str]:
-    """``(poor spot fits, too many, the line's words)`` of the spot fits' reduced chi2 (module rule)."""
+    """``(poor spot fits, too many, the line's words)`` of the spot fits' reduced chi2:
+    more than :data:`POOR_SPOT_FRACTION` of them above ``threshold`` is too many."""
     if chi2 is None:
         return 0, False, ""
     c = np.asarray(chi2, dtype=np.float64).ravel()
