@@ -16,6 +16,7 @@ import contextlib
 import csv
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
@@ -427,15 +428,42 @@ class DMOutsidePlan(DMPlan):
 # ---------------------------------------------------------------------- writing
 
 
-def _tiff(path: Path, frames: np.ndarray) -> None:
-    """A grayscale TIFF stack: uint16 where every value is a whole number in its range (a camera's
-    ADU), else float64 (read back exactly either way)."""
+def _tiff(path: Path, chunks) -> list[tuple]:
+    """Write ``chunks`` (one array ``[..., H, W]`` ADU, or a sequence of them: a recording's groups,
+    each read once per pass, so one group at a time is held in memory) as one grayscale TIFF stack,
+    page after page: uint16 where every value is a whole number in its range (a camera's ADU), else
+    float64 (read back exactly either way). Returns each chunk's shape."""
     import tifffile
 
-    a = np.asarray(frames, dtype=np.float64)
-    if np.all(a >= 0) and np.all(a <= 65535) and np.all(a == np.round(a)):
-        a = a.astype(np.uint16)
-    tifffile.imwrite(path, a, photometric="minisblack", metadata=None)
+    chunks = [chunks] if hasattr(chunks, "shape") else chunks
+    whole = all(_whole_adu(np.asarray(c, dtype=np.float64)) for c in chunks)
+    shapes = []
+    with tifffile.TiffWriter(path) as tw:
+        for c in chunks:
+            a = np.asarray(c, dtype=np.float64)
+            shapes.append(a.shape)
+            tw.write(a.reshape((-1,) + a.shape[-2:]).astype(np.uint16 if whole else np.float64), photometric="minisblack",
+                     metadata=None, contiguous=True)
+    return shapes
+
+
+def _whole_adu(a: np.ndarray) -> bool:
+    """Every value of ``a`` a whole number in uint16's range."""
+    return bool(np.all(a >= 0) and np.all(a <= 65535) and np.all(a == np.round(a)))
+
+
+class _GroupFrames(Sequence):
+    """The frames of a recording's groups ``keys`` (each group's first call), loaded one group at a
+    time when indexed: ``[K, n, H, W]`` ADU for a held pattern."""
+
+    def __init__(self, exp, keys):
+        self.exp, self.keys = exp, list(keys)
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    def __getitem__(self, i):
+        return self.exp.load_calls(self.keys[i])[0][2].frames.numpy()
 
 
 def write_dm_recording(folder, *, dark, still, still_exposure_s: float, patterns, freq_hz, amplitude, frames, start_s, duration_s,
@@ -446,12 +474,12 @@ def write_dm_recording(folder, *, dark, still, still_exposure_s: float, patterns
     Args:
         dark ``[Nd, H, W]``, still ``[Ns, H, W]``: ADU; still_exposure_s: the still frames' exposure (s).
         patterns: ``[P, N]``; freq_hz, amplitude: ``[F]`` (power ``[F]``, default 1).
-        frames: ``[F, P, E*R, H, W]`` ADU (or F arrays ``[P, E*R, H, W]``), exposure-major.
+        frames: ``[F, P, E*R, H, W]`` ADU (or a sequence of F arrays ``[P, E*R, H, W]``), exposure-major.
         start_s, duration_s: ``[F, P, E*R]`` each frame's window (s after the sine's upward zero crossing).
         camera: the camera keys of ``recording.yaml`` (``gain_e_per_adu`` required; ``latency_s``, ...).
         layout: ``{"dm": {...}, "wfs": {...}, "dm_plan": {...}}``.
         R: frames per exposure window (the repeats).
-        ladder: the patterns held still, or None: ``{"levels": [P, K], "frames": [P, K, n, H, W] ADU,
+        ladder: the patterns held still, or None: ``{"levels": [P, K], "frames": P arrays [K, n, H, W] ADU (a sequence, read one at a time),
             "exposure_s": s, "power": relative (default 1)}`` (rows of kind ``ladder``, column ``level``).
     """
     import yaml
@@ -463,7 +491,7 @@ def write_dm_recording(folder, *, dark, still, still_exposure_s: float, patterns
     power = np.ones(F) if power is None else np.asarray(power, dtype=np.float64)
     _tiff(folder / "dark.tif", dark)
     _tiff(folder / "still.tif", still)
-    _tiff(folder / "sweep.tif", np.concatenate([np.asarray(fr, dtype=np.float64).reshape((-1,) + np.shape(dark)[-2:]) for fr in frames]))
+    _tiff(folder / "sweep.tif", frames)
     head = ["file", "page", "kind", "pattern", "freq_hz", "exposure_s", "window_start_s", "amplitude", "power", "repeat"]
     rows = [["dark.tif", i, "dark"] + [""] * 7 for i in range(len(dark))]
     rows += [["still.tif", i, "still", "", "", repr(float(still_exposure_s)), "", "", "", ""] for i in range(len(still))]
@@ -475,12 +503,13 @@ def write_dm_recording(folder, *, dark, still, still_exposure_s: float, patterns
                              repr(float(start_s[k][p][j])), repr(float(amplitude[k])), repr(float(power[k])), j % R])
                 page += 1
     if ladder is not None:
-        lv, fr = np.asarray(ladder["levels"], dtype=np.float64), [np.asarray(f, dtype=np.float64) for f in ladder["frames"]]
-        _tiff(folder / "ladder.tif", np.concatenate([f.reshape((-1,) + np.shape(dark)[-2:]) for f in fr]))
+        lv = np.asarray(ladder["levels"], dtype=np.float64)
+        held = ladder["frames"]
+        shapes = _tiff(folder / "ladder.tif", list(held) if hasattr(held, "shape") else held)  # one chunk a pattern
         head, rows, page = head + ["level"], [r + [""] for r in rows], 0
         for p in range(lv.shape[0]):
             for k in range(lv.shape[1]):
-                for _ in range(fr[p].shape[1]):
+                for _ in range(shapes[p][1]):
                     rows.append(["ladder.tif", page, "ladder", p, "", repr(float(ladder["exposure_s"])), "", "",
                                  repr(float(ladder.get("power", 1.0))), "", repr(float(lv[p, k]))])
                     page += 1
@@ -532,9 +561,9 @@ def export_dm_recording(run, folder) -> Path:
     held = sorted(k for k in exp.groups if k.startswith("dm_ladder/") and k != TEST_KEY)  # the ladder the run fitted with, if any
     ladder = None
     if held:
-        calls = [exp.load_calls(k)[0] for k in held]
-        ladder = {"levels": np.array([a["levels"] for _, a, _ in calls]), "frames": [cap.frames.numpy() for _, _, cap in calls],
-                  "exposure_s": float(calls[0][1]["exposure_s"]), "power": float(calls[0][1]["power"])}
+        args = [exp.groups[k][0]["args"] for k in held]  # the manifest's: the frames are read one pattern at a time as written
+        ladder = {"levels": np.array([a["levels"] for a in args]), "frames": _GroupFrames(exp, held),
+                  "exposure_s": float(args[0]["exposure_s"]), "power": float(args[0]["power"])}
     camera = {"gain_e_per_adu": float(c.gain), "saturation_adu": float(cal.saturation.saturation_adu),
               "trigger_delay_s": float(c.trigger_delay_s), "latency_s": float(cal.latency_s), "latency_std_s": float(cal.latency_std_s),
               "jitter_s": float(c.jitter_s)}
