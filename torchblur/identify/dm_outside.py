@@ -561,9 +561,9 @@ def export_dm_recording(run, folder) -> Path:
     held = sorted(k for k in exp.groups if k.startswith("dm_ladder/") and k != TEST_KEY)  # the ladder the run fitted with, if any
     ladder = None
     if held:
-        args = [exp.groups[k][0]["args"] for k in held]  # the manifest's: the frames are read one pattern at a time as written
-        ladder = {"levels": np.array([a["levels"] for a in args]), "frames": _GroupFrames(exp, held),
-                  "exposure_s": float(args[0]["exposure_s"]), "power": float(args[0]["power"])}
+        holds = [exp.groups[k][0]["args"] for k in held]  # the manifest's: the frames are read one pattern at a time as written
+        ladder = {"levels": np.array([a["levels"] for a in holds]), "frames": _GroupFrames(exp, held),
+                  "exposure_s": float(holds[0]["exposure_s"]), "power": float(holds[0]["power"])}
     camera = {"gain_e_per_adu": float(c.gain), "saturation_adu": float(cal.saturation.saturation_adu),
               "trigger_delay_s": float(c.trigger_delay_s), "latency_s": float(cal.latency_s), "latency_std_s": float(cal.latency_std_s),
               "jitter_s": float(c.jitter_s)}
