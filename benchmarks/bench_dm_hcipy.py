@@ -115,6 +115,31 @@ def d_error_lines(res, truth, dyn) -> list[str]:
     return lines
 
 
+def pattern_scale_lines(res, truth, dyn) -> list[str]:
+    """Per frequency, one complex scale ``1 + eps`` per pattern of its responses ``Y [P, 2M]`` against the
+    linearised truth (weighted least squares over its entries with their covariance): the gains' mean
+    and sd over the patterns and their rms(eps/std). A scale common to a pattern's spots is an error
+    no entry's std shows; the demultiplexing hands it to every actuator."""
+    pats = np.asarray(res.plan.patterns)
+    Yt = np.einsum("pn,mnf->pmf", pats, truth["shift_slopes"][:, :, None] * dyn.response(res.freq_hz)[None])
+    lines = []
+    for k, fk in enumerate(res.freq_hz):
+        g, z = [], []
+        for p in range(pats.shape[0]):
+            y, yt, c = res.Y[p, :, k], Yt[p, :, k], res.Y_cov[p, :, k]
+            ok = np.isfinite(y) & np.isfinite(c).all((-1, -2))
+            A = np.stack([np.stack([yt.real, -yt.imag], -1), np.stack([yt.imag, yt.real], -1)], -2)[ok]  # d(Re, Im) / d(eps)
+            Wi = np.linalg.inv(c[ok])
+            F = np.einsum("nia,nij,njb->ab", A, Wi, A)
+            e = np.linalg.solve(F, np.einsum("nia,nij,nj->a", A, Wi, np.stack([(y - yt).real, (y - yt).imag], -1)[ok]))
+            g.append(e[0])
+            z.append(e / np.sqrt(np.diag(np.linalg.inv(F))))
+        g, z = np.asarray(g), np.asarray(z)
+        lines.append(f"{fk:7.4g} Hz: gain {g.mean() * 100:+.3f} % (sd {g.std() * 100:.3f} % over {len(g)} patterns), rms(error/std) "
+                     f"gain {np.sqrt(np.mean(z[:, 0] ** 2)):.2f}, phase {np.sqrt(np.mean(z[:, 1] ** 2)):.2f}")
+    return lines
+
+
 def shrink_lines(res, truth, dyn) -> list[str]:
     """Per frequency, how the live actuators' responses ``h_j`` (D's columns projected on the run's G) err
     against the linearised truth's, relative to how far each actuator's own ``H_j`` lies from the live
@@ -219,6 +244,8 @@ def report(res, truth, dyn, poor_fit_chi2: float) -> None:
           f"delay {f['delay_rms_z']:.2f}, DC gain {f['dc_gain_rms_z']:.2f}")
     for line in d_error_lines(res, truth, dyn):
         print(f"  D(jw) error, {line}")
+    for line in pattern_scale_lines(res, truth, dyn):
+        print(f"  one scale per pattern, {line}")
     for line in shrink_lines(res, truth, dyn):
         print(f"  pull toward the mean response, {line}")
     print(f"  dead actuator status {f['dead_status']} (want dead), weak {f['weak_status']} (want weak), other live actuators not ok: "
