@@ -148,7 +148,7 @@ def test_static_slope_is_the_slope_of_the_converged_least_squares_shifts():
     """A spot that changes shape as it moves (it widens along x, narrows along y and grows side
     lobes, as a lenslet's diffraction spot does): ``s`` is the slope at 0 of the cubic through each
     level's least-squares shift of the still found by scipy's ``least_squares`` on the same Fourier
-    shift (6 fixed Gauss-Newton steps left ~5e-5 px per unit here, and s 0.055 % high on HCIPy's spots)."""
+    shift (6 fixed Gauss-Newton steps left ~5e-5 px per unit here, and s 0.03 % high on HCIPy's spots)."""
     import scipy.optimize as so
 
     def spot(u):
