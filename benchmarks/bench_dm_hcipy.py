@@ -22,6 +22,7 @@ configs/identify_dm.yaml's 16 frequencies x 2 repeats, 4096 frames).
 
     python benchmarks/bench_dm_hcipy.py --quick [--case aligned|misregistered|both|none] [--psf auto|kernel|gaussian] [--target-px 1.5]
                                         [--device cuda] [--jobs N]
+    python benchmarks/bench_dm_hcipy.py --load PREFIX_aligned.pkl   # a run saved with BENCH_DM_HCIPY_SAVE=PREFIX
 
 ``--device cuda``: the spot fits (every (pattern, frequency, spot) problem) run on that device
 (the config's ``fit.device``; refused where there is none), and so does the generator's
@@ -114,6 +115,57 @@ def d_error_lines(res, truth, dyn) -> list[str]:
     return lines
 
 
+def pattern_scale_lines(res, truth, dyn) -> list[str]:
+    """Per frequency, one complex scale ``1 + eps`` per pattern of its responses ``Y [P, 2M]`` against the
+    linearised truth (weighted least squares over its entries with their covariance): the gains' mean
+    and sd over the patterns and their rms(eps/std). A scale common to a pattern's spots is an error
+    no entry's std shows; the demultiplexing hands it to every actuator."""
+    pats = np.asarray(res.plan.patterns)
+    Yt = np.einsum("pn,mnf->pmf", pats, truth["shift_slopes"][:, :, None] * dyn.response(res.freq_hz)[None])
+    lines = []
+    for k, fk in enumerate(res.freq_hz):
+        g, z = [], []
+        for p in range(pats.shape[0]):
+            y, yt, c = res.Y[p, :, k], Yt[p, :, k], res.Y_cov[p, :, k]
+            ok = np.isfinite(y) & np.isfinite(c).all((-1, -2))
+            A = np.stack([np.stack([yt.real, -yt.imag], -1), np.stack([yt.imag, yt.real], -1)], -2)[ok]  # d(Re, Im) / d(eps)
+            Wi = np.linalg.inv(c[ok])
+            F = np.einsum("nia,nij,njb->ab", A, Wi, A)
+            e = np.linalg.solve(F, np.einsum("nia,nij,nj->a", A, Wi, np.stack([(y - yt).real, (y - yt).imag], -1)[ok]))
+            g.append(e[0])
+            z.append(e / np.sqrt(np.diag(np.linalg.inv(F))))
+        g, z = np.asarray(g), np.asarray(z)
+        lines.append(f"{fk:7.4g} Hz: gain {g.mean() * 100:+.3f} % (sd {g.std() * 100:.3f} % over {len(g)} patterns), rms(error/std) "
+                     f"gain {np.sqrt(np.mean(z[:, 0] ** 2)):.2f}, phase {np.sqrt(np.mean(z[:, 1] ** 2)):.2f}")
+    return lines
+
+
+def shrink_lines(res, truth, dyn) -> list[str]:
+    """Per frequency, how the live actuators' responses ``h_j`` (D's columns projected on the run's G) err
+    against the linearised truth's, relative to how far each actuator's own ``H_j`` lies from the live
+    mean: the least-squares ``b`` of ``h_j / h_true_j - 1 = b (H_j / mean H - 1)`` (``b = -1``: every
+    actuator reported as the mean; 0: no pull) and the share of the errors' variance about their mean it
+    explains. A pull toward the common response is a spot model that ties a spot's change of shape to
+    the pattern's common command (the ladder) where the actuators under it move differently."""
+    from torchblur.dm.actuator_fit import project_columns
+
+    live = np.flatnonzero((dyn.gain > 0.7 * np.median(dyn.gain)))
+    f = res.freq_hz
+    h = project_columns(res.D, res.D_cov, res.G)[0][live]
+    ht = project_columns(truth["shift_slopes"][:, :, None] * dyn.response(f)[None], res.D_cov, res.G)[0][live]
+    lines = []
+    for k in range(len(f)):
+        H = dyn.response(f[k])[live]
+        dev, err = H / H.mean() - 1, h[:, k] / ht[:, k] - 1
+        b = np.vdot(dev, err) / np.vdot(dev, dev)
+        left = err - b * dev
+        share = 1 - np.mean(np.abs(left - left.mean()) ** 2) / np.mean(np.abs(err - err.mean()) ** 2)
+        lines.append(f"{f[k]:7.4g} Hz: actuators' |H_j / mean - 1| rms {np.sqrt(np.mean(np.abs(dev) ** 2)) * 100:.2f} %, error "
+                     f"rms {np.sqrt(np.mean(np.abs(err) ** 2)) * 100:.3f} %, b {b.real:+.3f} {b.imag:+.3f}i ({share:.2f} of the "
+                     f"error variance)")
+    return lines
+
+
 def physics_checks() -> None:
     """The generator's checks at the benchmark's worst exposure, and what thresholding sees."""
     import torch
@@ -170,8 +222,6 @@ def run_case(name: str, quick: bool, psf: str = "auto", jobs: int = 1, extra=(),
 
         with open(f"{os.environ['BENCH_DM_HCIPY_SAVE']}_{name}.pkl", "wb") as fh:
             pickle.dump({"res": res, "truth": truth, "dyn": dyn, "cfg_poor_fit_chi2": float(cfg.fit.poor_fit_chi2)}, fh)
-    v = final_verdict(res, float(cfg.fit.poor_fit_chi2))
-    f = figures(res, truth, dyn)
     print(f"== {name}: {gen.optics}; fit.psf={psf}; excitation.target_px={cfg.excitation.target_px:g}")
     for line in res.log:
         if line.startswith(("spots:", "latency:", "dm plan:")):
@@ -179,6 +229,13 @@ def run_case(name: str, quick: bool, psf: str = "auto", jobs: int = 1, extra=(),
     print(f"  {res.n_frames} sweep frames ({len(res.freq_hz)} frequencies {res.freq_hz[0]:.4g}..{res.freq_hz[-1]:.4g} Hz), generator set-up "
           f"{t_gen:.1f} s, run {t_run:.1f} s = {t_run / res.n_frames * 1e3:.0f} ms a sweep frame ({', '.join(f'{k} {v:.1f} s' for k, v in res.timing_s.items())}); mean Gauss-Legendre "
           f"nodes per frame {np.mean(rig.nodes_used):.1f}")
+    report(res, truth, dyn, float(cfg.fit.poor_fit_chi2))
+
+
+def report(res, truth, dyn, poor_fit_chi2: float) -> None:
+    """Print one run's "done when" figures against the generator's truth (a fresh run's or a saved one's)."""
+    v = final_verdict(res, poor_fit_chi2)
+    f = figures(res, truth, dyn)
     print(f"  live actuators, largest error: mode {f['mode_max_rel_error'] * 100:.3f} % (done when <= 0.5 %), damping "
           f"{f['damping_max_rel_error'] * 100:.2f} % (<= 5 %), delay {f['delay_max_error_us']:.2f} us (<= 2 us), DC gain "
           f"{f['dc_gain_max_rel_error'] * 100:.3f} %")
@@ -187,6 +244,10 @@ def run_case(name: str, quick: bool, psf: str = "auto", jobs: int = 1, extra=(),
           f"delay {f['delay_rms_z']:.2f}, DC gain {f['dc_gain_rms_z']:.2f}")
     for line in d_error_lines(res, truth, dyn):
         print(f"  D(jw) error, {line}")
+    for line in pattern_scale_lines(res, truth, dyn):
+        print(f"  one scale per pattern, {line}")
+    for line in shrink_lines(res, truth, dyn):
+        print(f"  pull toward the mean response, {line}")
     print(f"  dead actuator status {f['dead_status']} (want dead), weak {f['weak_status']} (want weak), other live actuators not ok: "
           f"{f['other_not_ok']}")
     print(f"  spot fits' reduced chi2 median {f['spot_chi2_median']:.3g} (<= 1.2); poor_fit actuators {f['poor_fit_actuators']}")
@@ -213,7 +274,19 @@ def main(argv=None) -> None:
     p.add_argument("--no-checks", action="store_true", help="skip the generator's checks")
     p.add_argument("--device", default="cpu", help="where the spot fits run (the config's fit.device) and the generator's propagation")
     p.add_argument("--jobs", type=int, default=1, help="threads of the frames' propagation (scipy.fft, BLAS) and of torch")
+    p.add_argument("--load", metavar="PKL", help="print the figures of a run saved with BENCH_DM_HCIPY_SAVE (no run)")
     args = p.parse_args(argv)
+    if args.load:
+        import pickle
+
+        with open(args.load, "rb") as fh:
+            d = pickle.load(fh)
+        print(f"== {args.load}")
+        for line in d["res"].log:
+            if line.startswith(("spots:", "dm plan:", "dm spot model:")):
+                print("  " + line)
+        report(d["res"], d["truth"], d["dyn"], d["cfg_poor_fit_chi2"])
+        return
     import torch
     from threadpoolctl import threadpool_limits
 

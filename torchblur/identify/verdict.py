@@ -630,7 +630,8 @@ def ladder_guard(v, res):
     benchmarks/bench_dm_ladder_frames.py) but not yet on HCIPy's lenslet frames, the spots the
     ladder is for (``benchmarks/bench_dm_hcipy.py --quick --case aligned``: D(jw) 1.05, damping
     1.06, delay 1.16, but mode 3.40 and DC gain 1.87; docs/deformable_mirrors.md, "The spot
-    model in the run")."""
+    model in the run"; why: "Why the ladder's actuator stds fail on HCIPy's frames": a gain common
+    to each pattern from ``s``, and responses pulled toward their mean above the modes)."""
     if getattr(res, "spot_model", "shifted") != "ladder":
         return v
     n_out = int(getattr(res, "n_out_of_ladder", 0) or 0)
