@@ -325,6 +325,17 @@ def throughput(cases, points: int, n_single: int, device: str) -> float:
 SHIPPED = {"problems": 64 * 80, "frames": 64 * 4, "frequencies": 16, "frame_rate_hz": 30.0}
 
 
+def keep_up(rate: float) -> tuple[float, float, float]:
+    """The shipped config's fitting time per frequency (s) at ``rate`` problems/s, its acquisition
+    time per frequency (s) at 30 Hz, and the wait after the last frame (s): the worker fits
+    frequency k while k + 1 is acquired; the last frame comes at F * acq, the last fit ends at
+    acq + F * t_fit when the fits are the slower (and the sweep waits for frequency k - 2's fit:
+    AMPLITUDE_LAG)."""
+    acq, F = SHIPPED["frames"] / SHIPPED["frame_rate_hz"], SHIPPED["frequencies"]
+    t_fit = SHIPPED["problems"] / rate
+    return t_fit, acq, max(t_fit, acq + F * t_fit - F * acq)
+
+
 def kernel_throughput(cases, points: int, device: str) -> None:
     """The DM spot fitter with every spot's measured kernel against the Gaussian, in problems/s
     (each in its own process, on the same crops), and the 30 Hz test on the shipped config."""
@@ -344,13 +355,8 @@ def kernel_throughput(cases, points: int, device: str) -> None:
             print(f"{spec:>6} {n_act:>4} {n_sub:>5} {b['problems']:>8} | {b['per_s']:>11.1f} {k['per_s']:>9.1f} {k['per_s'] / b['per_s']:>15.3f} | "
                   f"{b['max_err_px']:>7.3g}/{k['max_err_px']:<7.3g}")
     g_rate, k_rate = rates.get("8/10", next(iter(rates.values())))
-    acq = SHIPPED["frames"] / SHIPPED["frame_rate_hz"]
-    F = SHIPPED["frequencies"]
     for name, rate in (("Gaussian", g_rate), ("kernel", k_rate)):
-        t_fit = SHIPPED["problems"] / rate
-        # the worker fits frequency k while k + 1 is acquired; the last frame comes at F * acq, the last fit ends at
-        # acq + F * t_fit when the fits are the slower (and the sweep waits for frequency k - 2's fit: AMPLITUDE_LAG)
-        wait = max(t_fit, acq + F * t_fit - F * acq)
+        t_fit, acq, wait = keep_up(rate)
         print(f"configs/identify_dm.yaml at {SHIPPED['frame_rate_hz']:g} Hz with every spot {name}: {t_fit:.1f} s of fitting per frequency "
               f"({SHIPPED['problems']} problems at {rate:.0f}/s) against {acq:.1f} s of acquisition: "
               f"{'keeps up' if t_fit <= acq else 'does NOT keep up'}; wait after the last frame about {wait:.0f} s")
@@ -383,9 +389,8 @@ def ladder_throughput(cases, points: int, baseline: str | None) -> None:
           "rms(error/std) against the truth; speed-up: problems/s over the baseline's (its fit computes the slopes itself); "
           "max diff std: the largest |amplitude or phase difference| / the baseline's std; load: the 1-minute load average")
     r = rates.get("8/10", next(iter(rates.values())))
-    acq, F, n = SHIPPED["frames"] / SHIPPED["frame_rate_hz"], SHIPPED["frequencies"], SHIPPED["problems"]
-    t_fit = n / r["per_s"]
-    wait = max(t_fit, acq + F * t_fit - F * acq)  # as kernel_throughput's
+    n = SHIPPED["problems"]
+    t_fit, acq, wait = keep_up(r["per_s"])
     print(f"configs/identify_dm.yaml at {SHIPPED['frame_rate_hz']:g} Hz with dm_plan.spot_model=ladder: {t_fit:.1f} s of fitting per frequency "
           f"({n} problems at {r['per_s']:.0f}/s) against {acq:.1f} s of acquisition: {'keeps up' if t_fit <= acq else 'does NOT keep up'} "
           f"(fit/acquisition {t_fit / acq:.2f}); wait after the last frame about {wait:.0f} s; the slopes once before the sweep about "

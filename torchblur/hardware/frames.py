@@ -24,7 +24,7 @@ import torch
 
 from torchblur.hardware.errors import ConnectionLost, FrameTimeout, GarbageReply
 
-__all__ = ["CameraInfo", "CameraProperties", "Frame", "FrameSource", "EmulatorFrames", "encode_message", "raw_pixels", "WireDecoder", "DTYPES"]
+__all__ = ["CameraInfo", "CameraProperties", "Frame", "FrameSource", "EmulatorFrames", "encode_message", "raw_pixels", "whole_adu", "WireDecoder", "DTYPES"]
 
 MAGIC = b"TBF1"
 _HEAD = struct.Struct(">4sII")
@@ -165,9 +165,14 @@ def encode_message(header: dict, payload: bytes = b"") -> bytes:
     return _HEAD.pack(MAGIC, len(h), len(payload)) + h + payload
 
 
+def whole_adu(frames: np.ndarray) -> bool:
+    """Every value of ``frames`` a whole number in uint16's range (a real camera's raw values)."""
+    return bool(np.all(frames >= 0) and np.all(frames <= 65535) and np.all(frames == np.round(frames)))
+
+
 def raw_pixels(frames: np.ndarray) -> np.ndarray:
-    """``frames`` as uint16 when they hold integers in range (a real camera's raw values), else float64."""
-    if frames.size and np.all(frames >= 0) and np.all(frames <= 65535) and np.all(frames == np.round(frames)):
+    """``frames`` as uint16 when they hold integers in range (:func:`whole_adu`), else float64."""
+    if frames.size and whole_adu(frames):
         return frames.astype(np.uint16)
     return frames.astype(np.float64)
 

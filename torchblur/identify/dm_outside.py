@@ -32,6 +32,7 @@ from torchblur.dm.shack_hartmann import ShackHartmann
 from torchblur.errors import ConfigError, InputTypeError
 from torchblur.files import excerpt
 from torchblur.hardware.errors import RecordingError
+from torchblur.hardware.frames import whole_adu
 from torchblur.hardware.outside import CSV_NAME, YAML_NAME, OutsideCamera, OutsideFrames, _points, number, read_csv, read_folder
 from torchblur.hardware.recording import Experiment, ReplayRig
 from torchblur.identify.calibration import Calibration, spots_from_still, still_rate
@@ -436,7 +437,7 @@ def _tiff(path: Path, chunks) -> list[tuple]:
     import tifffile
 
     chunks = [chunks] if hasattr(chunks, "shape") else chunks
-    whole = all(_whole_adu(np.asarray(c, dtype=np.float64)) for c in chunks)
+    whole = all(whole_adu(np.asarray(c, dtype=np.float64)) for c in chunks)
     shapes = []
     with tifffile.TiffWriter(path) as tw:
         for c in chunks:
@@ -445,11 +446,6 @@ def _tiff(path: Path, chunks) -> list[tuple]:
             tw.write(a.reshape((-1,) + a.shape[-2:]).astype(np.uint16 if whole else np.float64), photometric="minisblack",
                      metadata=None, contiguous=True)
     return shapes
-
-
-def _whole_adu(a: np.ndarray) -> bool:
-    """Every value of ``a`` a whole number in uint16's range."""
-    return bool(np.all(a >= 0) and np.all(a <= 65535) and np.all(a == np.round(a)))
 
 
 class _GroupFrames(Sequence):

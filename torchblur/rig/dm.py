@@ -117,7 +117,6 @@ class SimulatedDMRig(PatternSines, SimulatedRig):
         """The largest command magnitude (input units) the mirror accepts."""
         return self._mirror.input_limit
 
-
     @property
     def n_actuators(self) -> int:
         """N, the mirror's actuators."""
