@@ -1,20 +1,6 @@
-"""The blurred image of a multisine motion and the fit of its tones from an image set.
-
-A spot driven by N tones in steady state moves along x as
-``y(t) = sum_k M_k sin(omega_k t + phi_k)``. One image records where the spot spent its time
-during its window, not in what order, so one image leaves ambiguities (the time reversal about
-the window centre maps every ``phi_k`` to ``pi - 2 omega_k c - phi_k`` at once; an exposure of
-whole common periods is blind to any time shift); a set of images at different window
-positions and exposures removes them (see :mod:`torchblur.design.fisher`).
-
-The parameter vector of one image set is ``theta = (M_1..M_N, phi_1..phi_N[, scale])``.
-:func:`render_multisine` is the image model (the differentiable renderer,
-:func:`~torchblur.render.blur.render_blur`, on a :class:`~torchblur.render.trajectory.Multisine`);
-:func:`fit_multisine` fits every unknown of an image set at once: starts from the image
-centroids (linear in ``M_k e^{j phi_k}``: exact with 2N or more images) and from a batch of
-phase vectors whose cost is evaluated in one render, the best few refined together by
-batched Levenberg-Marquardt (:func:`~torchblur.optim.levenberg_marquardt`, Jacobians by
-forward AD); uncertainties from the Fisher information at the solution.
+"""The blurred image of a multisine motion (:func:`render_multisine`) and the fit of its tones
+``theta = (M_1..M_N, phi_1..phi_N[, scale])`` from an image set (:func:`fit_multisine`); why one
+image leaves ambiguities and how the starts and the search work: docs/multisine.md.
 """
 from __future__ import annotations
 
@@ -26,10 +12,10 @@ import torch
 
 from torchblur._compat import median_along
 from torchblur.render.alias import canonical_sines
-from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_tensor, as_unit_direction, check_finite, check_positive,
-                              pixel_weights)
+from torchblur.errors import ParameterError, ShapeError, as_tensor, check_finite, check_positive, pixel_weights
+from torchblur.fit.inputs import check_data, flat_count, flat_direction, flat_omega, flat_psf, flat_window, psf_moments, unit_direction
 from torchblur.fit.kernel_noise import kernel_noise_covariance
-from torchblur.losses import image_loss
+from torchblur.losses import fisher_covariance, image_loss, residual_weights, singular_covariance
 from torchblur.image.moments import image_moments, moments_along
 from torchblur.optim import levenberg_marquardt, model_jacobian
 from torchblur.fit.problem import _nonzero_box
@@ -57,21 +43,6 @@ def multisine_param_names(n_tones: int, fit_scale: bool) -> tuple:
                  + (["scale"] if fit_scale else []))
 
 
-def _unit_direction(direction, like: torch.Tensor) -> torch.Tensor:
-    """The image direction of the motion as a unit vector ``[..., 2]`` (None: +x)."""
-    if direction is None:
-        return torch.tensor([1.0, 0.0], dtype=like.dtype, device=like.device)
-    return as_unit_direction(direction, "direction", like=like)
-
-
-def _motion(theta: torch.Tensor, n_tones: int, u: torch.Tensor):
-    """Per-tone ``(amplitude [..., N, 2], phase [..., N, 2])`` of a motion along the unit ``u [..., 2]``."""
-    M = theta[..., :n_tones]
-    ph = theta[..., n_tones:2 * n_tones]
-    amp = M[..., None] * u[..., None, :]  # [..., N, 2]
-    return amp, torch.stack([ph, ph], -1)
-
-
 def render_multisine(theta, omega, psf: GaussianPSF | KernelPSF, window: ExposureWindow, *, height: int, width: int,
                      settings: RenderSettings | None = None, direction=None) -> torch.Tensor:
     """Images of a spot moving along ``direction`` (default x) as ``sum_k M_k sin(omega_k t + phi_k)``.
@@ -94,8 +65,9 @@ def render_multisine(theta, omega, psf: GaussianPSF | KernelPSF, window: Exposur
     N = omega.shape[-1]
     if theta.shape[-1] not in (2 * N, 2 * N + 1):
         raise ShapeError(f"theta: expected a last dim of 2N = {2 * N} or 2N + 1 (with the scale), got {tuple(theta.shape)}")
-    amp, ph = _motion(theta, N, _unit_direction(direction, theta))
-    traj = Multisine(amp[..., None, :, :], ph[..., None, :, :], omega[..., None, :])
+    amp = theta[..., :N, None] * unit_direction(direction, theta)[..., None, :]  # [..., N, 2]
+    ph = theta[..., N:2 * N]
+    traj = Multisine(amp[..., None, :, :], torch.stack([ph, ph], -1)[..., None, :, :], omega[..., None, :])
     if isinstance(psf, KernelPSF):
         p = KernelPSF(psf.kernel[..., None, :, :])
     else:
@@ -134,7 +106,7 @@ def render_multisine_with_jacobian(theta, omega, psf: GaussianPSF | KernelPSF, w
     kern = isinstance(psf, KernelPSF)
     amp_psf = torch.ones(n, dtype=theta.dtype, device=theta.device) if kern else psf.amplitude
     t, w = window_nodes(window.start.to(theta.dtype), window.duration.to(theta.dtype), tau, wq, amp_psf[:, None])  # [n, E, S]
-    u = _unit_direction(direction, theta).expand(n, 2)
+    u = unit_direction(direction, theta).expand(n, 2)
     center = theta.new_zeros(n, 2) if kern else psf.center
     precision = None if kern else tuple(v[:, None] for v in psf.precision())
     img, dimg = sine_blur_with_jacobian(t, w, theta[:, None, :N], theta[:, None, N:2 * N], omega[:, None, :],
@@ -210,11 +182,10 @@ def _centroid_start(data, rest, u, start, dur, omega, thr):
 class _Flat:
     """The inputs of :func:`fit_multisine` checked and flattened to ``B`` image sets.
 
-    ``data [B, E, H, W]``; ``om [B, N]`` rad/s; ``start, dur [B, E]`` s; ``center [B, 2]``,
-    ``cov [B, 2, 2]``, ``amp_psf [B]`` (the PSF; a measured kernel's centroid and second
+    ``data [B, E, H, W]``; ``om [B, N]`` rad/s; ``start, dur [B, E]`` s; ``psf`` batch ``[B]``;
+    ``center [B, 2]``, ``cov [B, 2, 2]``, ``amp_psf [B]`` (a measured kernel's centroid and second
     moments, amplitude 1); ``u [B, 2]`` the unit direction; ``batch`` the images' leading dims;
-    ``psf`` the PSF in the images' dtype (batch ``[...]``); ``kernel [B, H, W]`` a measured
-    kernel's image (intensity per second), None for a Gaussian.
+    ``kernel [B, H, W]`` a measured kernel's image (intensity per second), None for a Gaussian.
     """
 
     data: torch.Tensor
@@ -231,65 +202,24 @@ class _Flat:
 
     def total_light(self) -> torch.Tensor:
         """The PSF's light per second ``[B]``."""
-        if self.kernel is not None:
-            return self.kernel.sum((-1, -2))
-        return self.psf.total_light().expand(self.batch).reshape(-1)
+        return self.kernel.sum((-1, -2)) if self.kernel is not None else self.psf.total_light()
 
 
 def _check_and_flatten(images, psf, window, omega, direction, counts: dict) -> _Flat:
-    """The public entry's checks, and the inputs flattened to ``B`` image sets."""
-    if not isinstance(images, torch.Tensor):
-        raise InputTypeError(f"images: expected a tensor [..., E, H, W], got {type(images).__name__}")
-    if images.dim() < 3 or images.numel() == 0:
-        raise ShapeError(f"images: expected a non-empty tensor [..., E, H, W], got shape {tuple(images.shape)}")
-    if not images.is_floating_point():
-        images = images.to(torch.get_default_dtype())
-    check_finite(images, "images")
-    if not isinstance(psf, (GaussianPSF, KernelPSF)):
-        raise InputTypeError(f"psf: expected a GaussianPSF or KernelPSF, got {type(psf).__name__}")
-    if isinstance(psf, KernelPSF) and psf.frame_shape != tuple(images.shape[-2:]):
-        raise ShapeError(f"psf: expected a kernel of the images' frame {tuple(images.shape[-2:])}, got {psf.frame_shape}")
-    if not isinstance(window, ExposureWindow):
-        raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
+    """The public entry's checks (:mod:`~torchblur.fit.inputs`), and the inputs flattened to ``B`` image sets."""
+    images, psf, window = check_data(images, psf, window)
     for name, v in counts.items():
         if isinstance(v, bool) or not isinstance(v, int) or v < (0 if name == "n_starts" else 1):
             raise ParameterError(f"{name}: expected an integer >= {0 if name == 'n_starts' else 1}, got {v!r}")
-    dtype = images.dtype
-    batch = images.shape[:-3]
-    E, H, W = images.shape[-3:]
-    omega = check_positive(as_tensor(omega, "omega", like=images), "omega")
-    if omega.dim() == 0:
-        raise ShapeError("omega: expected shape [..., N] (one value per tone), got a scalar")
-    N = omega.shape[-1]
-    try:
-        om = omega.expand(batch + (N,))
-        win = window.to(dtype).expand(batch + (E,))
-    except RuntimeError:
-        raise ShapeError(f"omega {tuple(omega.shape)} / window {tuple(window.shape)}: expected [..., N] and [..., E] with "
-                         f"[...] = {tuple(batch)}, E = {E}") from None
-    B = max(1, math.prod(batch))
+    batch, (E, H, W) = images.shape[:-3], images.shape[-3:]
+    B = flat_count(images)
     data = images.reshape(B, E, H, W)
-    p = psf.to(dtype)
-    if p.shape != tuple(batch) and (len(p.shape) > len(batch) or any(a not in (1, b) for a, b in zip(p.shape[::-1], batch[::-1]))):
-        raise ShapeError(f"psf: expected a batch shape that broadcasts to the images' batch {tuple(batch)} (images [..., E, H, W] = "
-                         f"{tuple(images.shape)}), got {tuple(p.shape)}")
-    u = _unit_direction(direction, data)
-    try:
-        u = u.expand(batch + (2,)).reshape(B, 2)
-    except RuntimeError:
-        raise ShapeError(f"direction: expected [2] or a shape that broadcasts to the images' batch {tuple(batch)} + (2,), "
-                         f"got {tuple(u.shape)}") from None
-    if isinstance(p, KernelPSF):
-        try:
-            kernel = p.kernel.expand(batch + (H, W)).reshape(B, H, W)
-        except RuntimeError:
-            raise ShapeError(f"psf: expected a kernel batch that broadcasts to the images' {tuple(batch)}, got {tuple(p.shape)}") from None
-        center, cov = KernelPSF(kernel).moments()
-        return _Flat(data=data, om=om.reshape(B, N), start=win.start.reshape(B, E), dur=win.duration.reshape(B, E), center=center,
-                     cov=cov, amp_psf=torch.ones(B, dtype=dtype, device=data.device), u=u, batch=batch, psf=p, kernel=kernel)
-    return _Flat(data=data, om=om.reshape(B, N), start=win.start.reshape(B, E), dur=win.duration.reshape(B, E),
-                 center=p.center.expand(batch + (2,)).reshape(B, 2), cov=p.cov.expand(batch + (2, 2)).reshape(B, 2, 2),
-                 amp_psf=p.amplitude.expand(batch).reshape(B), u=u, batch=batch, psf=p)
+    win, p = flat_window(window, batch, B, E), flat_psf(psf, batch, B)
+    center, cov = psf_moments(p)
+    kern = isinstance(p, KernelPSF)
+    return _Flat(data=data, om=flat_omega(omega, batch, B, data, tones=True), start=win.start, dur=win.duration, center=center, cov=cov,
+                 amp_psf=torch.ones(B, dtype=data.dtype, device=data.device) if kern else p.amplitude,
+                 u=flat_direction(direction, batch, B, data), batch=batch, psf=p, kernel=p.kernel if kern else None)
 
 
 def _pixel_weight(noise_std, mask, flat: _Flat):
@@ -709,20 +639,15 @@ def _fisher(prob: _Problem, theta, live, noise_level):
         fw = wl
         sigma_used[live] = noise_level[live]
     else:
-        resid = prob.target[live] - model
-        n_used = (wl > 0).sum(-1).to(dtype) + prob.outside_n[live]
-        sig2 = (((resid * resid) * (wl > 0)).sum(-1) + prob.outside_sq[live]) / (n_used - P).clamp_min(1)
-        fw = (wl > 0).to(dtype) / sig2[:, None].clamp_min(torch.finfo(dtype).tiny)
+        fw, sig2 = residual_weights(prob.target[live] - model, wl, P, cut_sq=prob.outside_sq[live], cut_n=prob.outside_n[live])
         sigma_used[live] = sig2.sqrt()
-    F = (J * fw[..., None]).transpose(-1, -2) @ J
-    c_l, info = torch.linalg.inv_ex(F)
+    c_l, info = fisher_covariance(J, fw)
     kcov = None
     if prob.kernel_var is not None:
         kcov = torch.full_like(cov_out, float("nan"))
         kcov[live] = _kernel_term(prob, theta[live], live, J, fw, c_l)
         c_l = c_l + kcov[live]
-    diag = torch.diagonal(c_l, dim1=-2, dim2=-1)
-    singular[live] = (info != 0) | ~torch.isfinite(c_l).all(-1).all(-1) | (diag <= 0).any(-1)
+    singular[live] = singular_covariance(c_l, info)
     cov_out[live] = c_l
     return cov_out, sigma_used, singular, kcov
 
@@ -750,7 +675,7 @@ def _kernel_variance(kernel_var, flat: _Flat) -> torch.Tensor | None:
     try:
         return v.expand(flat.batch + flat.kernel.shape[-2:]).reshape(flat.kernel.shape)
     except RuntimeError:
-        raise ShapeError(f"kernel_var: expected the kernel's shape {tuple(flat.psf.kernel.shape)} (or one that broadcasts to "
+        raise ShapeError(f"kernel_var: expected the kernel's shape {tuple(flat.kernel.shape[-2:])} (or one that broadcasts to "
                          f"{tuple(flat.batch + flat.kernel.shape[-2:])}), got {tuple(v.shape)}") from None
 
 

@@ -1,29 +1,19 @@
-"""Batched sinusoid fitting: amplitude and phase of a spot's motion from blurred images.
-
-Every problem (a frequency, a spot) of a batch is fitted at once. Starts come from the
-closed-form moments (every root, the alias pair included), all refined together; with two
-or more exposures of the same motion the fit is joint and the alias is gone. The result
-carries the Fisher-information uncertainty of each estimate and a status per item, so a
-dark frame or a spot out of frame is flagged and never stops or poisons the batch.
-
-The pieces: :mod:`torchblur.fit.problem` (pixels, weights, starts, crop),
-:mod:`torchblur.fit.sine_model` (the model image and its Jacobian, on the one forward model
-:func:`torchblur.render.splat.sine_blur_with_jacobian`), :mod:`torchblur.fit.results`
-(:class:`SinusoidFit`), :mod:`torchblur.fit.robust` (the robust options' pixel helpers). Here:
-the public entry :func:`fit_sinusoid` (checks once, robust passes, flags) and one pass of the
-fit in named steps (:func:`_fit_core`).
+"""Batched sinusoid fitting: :func:`fit_sinusoid` (checks once, robust passes, flags) and one pass
+of the fit in named steps (:func:`_fit_core`); its pieces are :mod:`~torchblur.fit.problem`,
+:mod:`~torchblur.fit.sine_model`, :mod:`~torchblur.fit.results`, :mod:`~torchblur.fit.robust`.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, fields, replace
 
 import torch
 
-from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_tensor, as_unit_direction, check_choice, check_finite,
-                              check_positive, check_real_scalar, flat_noise_and_mask)
-from torchblur.losses import LOSSES, covariance_factor, image_loss, irls_weights, loss_weight
+from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_tensor, check_choice, check_finite, check_real_scalar,
+                              flat_noise_and_mask)
+from torchblur.losses import (LOSSES, covariance_factor, fisher_covariance, image_loss, irls_weights, loss_weight, residual_weights,
+                              singular_covariance)
 from torchblur.optim import LMResult, levenberg_marquardt
+from torchblur.fit.inputs import check_data, flat_count, flat_direction, flat_omega, flat_psf, flat_window, take_psf
 from torchblur.fit.problem import SineProblem, crop_to_reach, sine_problem, starting_points
 from torchblur.fit.results import SinusoidFit, put_items
 from torchblur.fit.robust import impulses, inpaint, plane_fit, plane_image, robust_scale
@@ -49,47 +39,10 @@ AXES = ("x", "y", "xy")
 OUTLIERS = ("none", "reject")
 
 
-def fit_dtype(images: torch.Tensor, psf, window: ExposureWindow) -> torch.dtype:
-    """The dtype a fit computes in and returns: the widest floating dtype of ``images``, the
-    PSF and the window, at least float32 (integer images count as none; float16 and bfloat16
-    are promoted: the model's sums and the normal equations need float32's precision)."""
-    psf_t = psf.cov if isinstance(psf, GaussianPSF) else psf.kernel
-    dtype = torch.float32
-    for t in (images, psf_t, window.start, window.duration):
-        if t.is_floating_point():
-            dtype = torch.promote_types(dtype, t.dtype)
-    return dtype
-
-
-def _broadcasts_to(shape, target) -> bool:
-    """Whether a tensor of ``shape`` can be expanded to ``target`` (broadcasting to a larger
-    shape is not enough: a PSF batch of 2 does not fit images of batch 1)."""
-    try:
-        return torch.broadcast_shapes(tuple(shape), tuple(target)) == tuple(target)
-    except RuntimeError:
-        return False
-
-
-def _validate(images, psf, window, omega, axes, optimizer, loss):
-    """Check :func:`fit_sinusoid`'s data arguments, ``axes`` (a name), ``optimizer`` and ``loss``;
-    ``(images, psf, window, omega)`` in one floating dtype (:func:`fit_dtype`), ``omega`` a
-    tensor on the images' device."""
-    if not isinstance(images, torch.Tensor):
-        raise InputTypeError(f"images: expected a tensor [..., E, H, W], got {type(images).__name__}")
-    if images.is_complex() or images.dtype == torch.bool:
-        raise InputTypeError(f"images: expected a real tensor [..., E, H, W] (floating or integer counts) with the dark level "
-                             f"subtracted (preprocess.subtract_dark), got dtype {images.dtype}")
-    if images.dim() < 3:
-        raise ShapeError(f"images: expected shape [..., E, H, W], got {tuple(images.shape)}")
-    if images.numel() == 0:
-        raise ShapeError(f"images: expected a non-empty batch, got shape {tuple(images.shape)}")
-    if not isinstance(psf, (GaussianPSF, KernelPSF)):
-        raise InputTypeError(f"psf: expected GaussianPSF or KernelPSF, got {type(psf).__name__}")
-    if not isinstance(window, ExposureWindow):
-        raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
-    dtype = fit_dtype(images, psf, window)
-    images, psf, window = images.to(dtype), psf.to(dtype), window.to(dtype)
-    check_finite(images, "images")
+def _validate(images, psf, window, axes, optimizer, loss):
+    """Check :func:`fit_sinusoid`'s data arguments (:func:`~torchblur.fit.inputs.check_data`), ``axes``
+    (a name), ``optimizer`` and ``loss`` -> ``(images, psf, window)`` in one floating dtype."""
+    images, psf, window = check_data(images, psf, window)
     if isinstance(axes, str):
         check_choice(axes, "axes", AXES)
     check_choice(optimizer, "optimizer", OPTIMIZERS)
@@ -97,23 +50,7 @@ def _validate(images, psf, window, omega, axes, optimizer, loss):
     if optimizer == "lm" and loss == "linf":
         raise ParameterError("loss: 'linf' is not a sum of squares, so optimizer='lm' cannot fit it; use optimizer='adam' or 'lbfgs' "
                              "with it (the pairs that work: lm with l2, l1, poisson; adam and lbfgs with every loss)")
-    batch_e = images.shape[:-2]
-    E = batch_e[-1]
-    if window.shape and window.shape[-1] not in (1, E):
-        raise ShapeError(f"window: expected a last dim of 1 or E={E} (one window per exposure), got shape {tuple(window.shape)}")
-    if not _broadcasts_to(window.shape, batch_e):
-        raise ShapeError(f"window: expected a batch shape that broadcasts to the images' [..., E] = {tuple(batch_e)}, got {tuple(window.shape)}")
-    omega = check_positive(as_tensor(omega, "omega", dtype=images.dtype, device=images.device), "omega")
-    batch = images.shape[:-3]
-    if not _broadcasts_to(omega.shape, batch):
-        raise ShapeError(f"omega: expected a shape that broadcasts to the images' batch {tuple(batch)} (images [..., E, H, W] = "
-                         f"{tuple(images.shape)}), got {tuple(omega.shape)}")
-    if not _broadcasts_to(psf.shape, batch):
-        raise ShapeError(f"psf: expected a batch shape that broadcasts to the images' batch {tuple(batch)} (images [..., E, H, W] = "
-                         f"{tuple(images.shape)}), got {tuple(psf.shape)}")
-    if isinstance(psf, KernelPSF) and psf.frame_shape != tuple(images.shape[-2:]):
-        raise ShapeError(f"psf: expected a kernel of frame shape {tuple(images.shape[-2:])}, got {psf.frame_shape}")
-    return images, psf, window, omega
+    return images, psf, window
 
 
 @dataclass(frozen=True)
@@ -339,8 +276,6 @@ def _uncertainty(model: SineModel, problem: SineProblem, sol: _Solution, target,
     N, P = sol.theta.shape
     dtype, device = sol.theta.dtype, sol.theta.device
     w = p.weight.reshape(N, -1)
-    n_used = (torch.full((N,), float(w.shape[-1]), dtype=dtype, device=device) if p.row_weight is not None
-              else (w > 0).sum(-1).to(dtype)) + p.cut_n
     if reuse:
         fitted = sol.model
         sign = torch.ones(N, P, dtype=dtype, device=device)
@@ -356,19 +291,13 @@ def _uncertainty(model: SineModel, problem: SineProblem, sol: _Solution, target,
     elif p.noise_given:
         fisher_w, sigma_used, scale2 = w, p.noise_level, ones
     else:
-        sig2 = (((resid * resid) * (w > 0)).sum(-1) + p.cut_sq) / (n_used - P).clamp_min(1)
-        fisher_w = (w > 0).to(dtype) / sig2[:, None].clamp_min(torch.finfo(dtype).tiny)
+        fisher_w, sig2 = residual_weights(resid, w, P, cut_sq=p.cut_sq, cut_n=p.cut_n)
         sigma_used = sig2.sqrt()
         scale2 = 1 / sig2.clamp_min(torch.finfo(dtype).tiny)
-    if reuse:
-        F = F * scale2[:, None, None]
-    else:
-        F = (J * fisher_w[..., None]).transpose(-1, -2) @ J
-    cov, info = torch.linalg.inv_ex(F)
+    cov, info = torch.linalg.inv_ex(F * scale2[:, None, None]) if reuse else fisher_covariance(J, fisher_w)
     if loss != "linf":
         cov = cov * covariance_factor(loss)
-    singular = (info != 0) | ~torch.isfinite(cov).all(-1).all(-1)
-    singular = singular | (torch.diagonal(cov, dim1=-2, dim2=-1) <= 0).any(-1)
+    singular = singular_covariance(cov, info)
     chi2 = (resid * resid * w).sum(-1) + p.cut_cost
     return cov, singular, sigma_used, fitted, chi2
 
@@ -590,20 +519,21 @@ def noise_terms(images: torch.Tensor, noise_std, noise: CameraNoise | None):
 
 
 def _flat_inputs(images, psf, window, omega, axes, noise_std, mask, saturation_level, noise=None) -> _FlatInputs:
-    """The checked ``images [..., E, H, W]`` and the rest, flattened (checks ``axes``,
-    ``noise_std``, ``mask``, ``saturation_level``, ``noise``: :func:`noise_terms`)."""
+    """The checked ``images [..., E, H, W]`` and the rest, flattened (checks ``window``, ``omega``,
+    ``axes``, ``noise_std``, ``mask``, ``saturation_level``, ``noise``: :func:`noise_terms`)."""
     noise_model = noise if noise_std is None else None
     noise_std, shift = noise_terms(images, noise_std, noise)
     dtype, device = images.dtype, images.device
     batch = images.shape[:-3]
     E, H, W = images.shape[-3:]
-    N = max(1, math.prod(batch))
+    N = flat_count(images)
     data = images.reshape(N, E, H, W)
+    win, omega = flat_window(window, batch, N, E), flat_omega(omega, batch, N, data)
     if isinstance(axes, str):
-        axis_dirs, labels = _axis_directions(axes, N, dtype, device), tuple(axes)
+        eye = torch.eye(2, dtype=dtype, device=device)
+        axis_dirs, labels = {"x": eye[:1], "y": eye[1:], "xy": eye}[axes][None].expand(N, len(axes), 2), tuple(axes)
     else:
-        axis_dirs, labels = _as_direction(axes, batch, N, data)[:, None, :], ("u",)
-    w_full = window.to(dtype).expand(batch + (E,))
+        axis_dirs, labels = flat_direction(axes, batch, N, data, "axes")[:, None, :], ("u",)
     sig, m = flat_noise_and_mask(noise_std, mask, images)
     keep = torch.ones(N, E, H, W, dtype=torch.bool, device=device)
     user_masked = torch.zeros(N, dtype=torch.bool, device=device)
@@ -620,10 +550,9 @@ def _flat_inputs(images, psf, window, omega, axes, noise_std, mask, saturation_l
         sat = data >= lvl[:, None, None, None]
         sat_masked = (sat & keep).flatten(1).any(1)
         keep = keep & ~sat
-    return _FlatInputs(data=data, psf=_flatten_psf(psf.to(dtype) if isinstance(psf, GaussianPSF) else psf, batch, N),
-                       window=ExposureWindow(w_full.start.reshape(N, E), w_full.duration.reshape(N, E)), omega=omega.expand(batch).reshape(N),
-                       axis_dirs=axis_dirs, labels=labels, direction=None if isinstance(axes, str) and axes == "xy" else axis_dirs[:, 0], noise=sig, keep=keep,
-                       user_masked=user_masked, sat_masked=sat_masked, shift=shift, noise_model=noise_model)
+    return _FlatInputs(data=data, psf=flat_psf(psf, batch, N), window=win, omega=omega, axis_dirs=axis_dirs, labels=labels,
+                       direction=None if axes == "xy" else axis_dirs[:, 0], noise=sig, keep=keep, user_masked=user_masked,
+                       sat_masked=sat_masked, shift=shift, noise_model=noise_model)
 
 
 def _fit_items(inp: _FlatInputs, o: _FitOptions, data: torch.Tensor, idx: torch.Tensor, use: torch.Tensor) -> SinusoidFit:
@@ -633,7 +562,7 @@ def _fit_items(inp: _FlatInputs, o: _FitOptions, data: torch.Tensor, idx: torch.
     if idx.numel() == data.shape[0]:
         return _fit_core(inpaint(data, use), inp.psf, inp.window, inp.omega, inp.axis_dirs, labels=inp.labels, options=o,
                          noise_std=inp.noise, use=mask)
-    return _fit_core(inpaint(data[idx], use), _take_psf(inp.psf, idx), inp.window[idx], inp.omega[idx], inp.axis_dirs[idx],
+    return _fit_core(inpaint(data[idx], use), take_psf(inp.psf, idx), inp.window[idx], inp.omega[idx], inp.axis_dirs[idx],
                      labels=inp.labels, options=o, noise_std=None if inp.noise is None else inp.noise[idx], use=mask)
 
 
@@ -770,35 +699,6 @@ def _finish(res: SinusoidFit, inp: _FlatInputs, o: _FitOptions, rejected, plane,
     return res
 
 
-def _flatten_psf(psf, batch, N):
-    if isinstance(psf, GaussianPSF):
-        return GaussianPSF(psf.center.expand(batch + (2,)).reshape(N, 2), psf.cov.expand(batch + (2, 2)).reshape(N, 2, 2),
-                           psf.amplitude.expand(batch).reshape(N))
-    H, W = psf.frame_shape
-    return KernelPSF(psf.kernel.expand(batch + (H, W)).reshape(N, H, W))
-
-
-def _take_psf(psf, idx):
-    return psf[idx] if isinstance(psf, GaussianPSF) else KernelPSF(psf.kernel[idx])
-
-
-def _axis_directions(axes, N: int, dtype, device) -> torch.Tensor:
-    """The image directions ``[N, n_axes, 2]`` of the fitted axes ``"x"``, ``"y"``, ``"xy"``."""
-    eye = torch.eye(2, dtype=dtype, device=device)
-    rows = {"x": eye[:1], "y": eye[1:], "xy": eye}[axes]
-    return rows[None].expand(N, len(rows), 2)
-
-
-def _as_direction(axes, batch, N: int, like: torch.Tensor) -> torch.Tensor:
-    """``axes`` given as an image direction (a pair (x, y), or a tensor ``[2]`` or ``[..., 2]``
-    broadcastable to the images' batch) -> unit vectors ``[N, 2]``."""
-    d = as_unit_direction(axes, "axes", like=like)
-    try:
-        return d.expand(batch + (2,)).reshape(N, 2)
-    except RuntimeError:
-        raise ShapeError(f"axes: a direction [..., 2] must broadcast to the images' batch {tuple(batch)}, got {tuple(d.shape)}") from None
-
-
 def _axes_xy(amplitude: torch.Tensor, phase: torch.Tensor, direction: torch.Tensor | None):
     """Per-axis ``(amplitude [n, 2], phase [n, 2])`` of a fit: ``direction [n, 2]`` the unit
     image direction of a one-axis fit, None for a Lissajous (``"xy"``) fit."""
@@ -843,7 +743,7 @@ def _model_images(res: SinusoidFit, idx, inp: _FlatInputs, o: _FitOptions, *, wi
             n_panels = k // 2 if isinstance(psf, GaussianPSF) else int(panels[sel[0]])
             rule = replace(settings, nodes=int(n_panels) * settings.nodes_per_panel)
             sub = Sinusoid(amp[sel][:, None, :], ph[sel][:, None, :], inp.omega[idx][sel][:, None])
-            out[sel] = render_blur(sub, _take_psf(psf, sel), ExposureWindow(win.start[sel], win.duration[sel]), height=H, width=W,
+            out[sel] = render_blur(sub, take_psf(psf, sel), ExposureWindow(win.start[sel], win.duration[sel]), height=H, width=W,
                                    settings=rule)
     if with_background:
         out = out + res.background[idx][:, None, None, None]
@@ -945,7 +845,7 @@ def fit_sinusoid(
         >>> fit = fit_sinusoid(images, psf, window, omega, mask=~dark.hot_pixels, outliers="reject")
         >>> bad = (fit.flags & PARTLY_OUT_OF_FRAME) != 0
     """
-    images, psf, window, omega = _validate(images, psf, window, omega, axes, optimizer, loss)
+    images, psf, window = _validate(images, psf, window, axes, optimizer, loss)
     options, outlier_sigma = _check_options(optimizer=optimizer, loss=loss, fit_scale=fit_scale, fit_background=fit_background,
                                             fit_center=fit_center, fit_gradient=fit_gradient, normalize=normalize, outliers=outliers,
                                             outlier_sigma=outlier_sigma, max_iter=max_iter, tol=tol, render_settings=render_settings)
