@@ -26,8 +26,8 @@ import torch
 
 from torchblur.errors import ParameterError
 
-__all__ = ["LOSSES", "LIKELIHOOD_LOSSES", "chi2_limit", "covariance_factor", "fisher_covariance", "gauss_newton_terms", "image_loss",
-           "irls_weights", "loss_weight", "residual_weights", "singular_covariance"]
+__all__ = ["LOSSES", "LIKELIHOOD_LOSSES", "chi2_limit", "covariance_factor", "fisher_covariance", "gauss_newton_terms",
+           "image_loss", "irls_weights", "loss_weight", "residual_weights", "singular_covariance"]
 
 LOSSES = ("l2", "l1", "linf", "poisson")
 # The losses whose estimates come with a covariance that holds (identify accepts these).

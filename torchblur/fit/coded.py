@@ -11,8 +11,8 @@ from dataclasses import dataclass
 import torch
 
 from torchblur._compat import median_along
-from torchblur.errors import ParameterError, as_tensor, pixel_weights
-from torchblur.fit.inputs import check_data, flat_count, flat_omega, flat_psf, flat_window, psf_moments
+from torchblur.errors import as_tensor, pixel_weights
+from torchblur.fit.inputs import check_count, check_data, flat_count, flat_omega, flat_psf, flat_window, psf_moments
 from torchblur.losses import fisher_covariance, image_loss, residual_weights
 from torchblur.optim import levenberg_marquardt
 from torchblur.image.moments import image_moments
@@ -115,8 +115,7 @@ def _check_inputs(images, psf, window, code, n_phases):
     """The public entry's checks (:func:`~torchblur.fit.inputs.check_data`) -> ``(images, psf, window, code [K, 2])``
     in one floating dtype."""
     images, psf, window = check_data(images, psf, window, frame_dims=2)
-    if isinstance(n_phases, bool) or not isinstance(n_phases, int) or n_phases < 1:
-        raise ParameterError(f"n_phases: expected an integer >= 1, got {n_phases!r}")
+    check_count(n_phases, "n_phases")
     return images, psf, window, check_code(code, like=images)
 
 
@@ -140,8 +139,9 @@ def _problem(images, psf: GaussianPSF | KernelPSF, window: ExposureWindow, code,
     center, cov = psf_moments(p)
     kernel = p.kernel if isinstance(p, KernelPSF) else None
     amp = torch.ones(B, dtype=images.dtype, device=images.device) if kernel is not None else p.amplitude
-    return _CodedProblem(center=center, cov=cov, amp=amp, start=win.start, dur=win.duration, om=flat_omega(omega, batch, B, images),
-                         code=code, height=H, width=W, settings=RenderSettings(panel_path_sigmas=3.5), fit_scale=fit_scale, kernel=kernel)
+    return _CodedProblem(center=center, cov=cov, amp=amp, start=win.start, dur=win.duration,
+                         om=flat_omega(omega, batch, B, images), code=code, height=H, width=W,
+                         settings=RenderSettings(panel_path_sigmas=3.5), fit_scale=fit_scale, kernel=kernel)
 
 
 def _with_nodes(prob: _CodedProblem, M0: torch.Tensor) -> _CodedProblem:

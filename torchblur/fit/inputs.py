@@ -11,11 +11,13 @@ import math
 
 import torch
 
-from torchblur.errors import InputTypeError, ShapeError, as_tensor, as_unit_direction, check_finite, check_positive
+from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_tensor, as_unit_direction, check_finite,
+                              check_positive)
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.window import ExposureWindow
 
-__all__ = ["fit_dtype", "check_data", "flat_window", "flat_omega", "flat_psf", "psf_moments", "take_psf", "unit_direction", "flat_direction", "flat_count"]
+__all__ = ["fit_dtype", "check_data", "flat_window", "flat_omega", "flat_psf", "psf_moments", "take_psf",
+           "unit_direction", "flat_direction", "check_count", "flat_count"]
 
 
 def fit_dtype(images: torch.Tensor, psf, window: ExposureWindow) -> torch.dtype:
@@ -61,8 +63,8 @@ def check_data(images, psf, window, *, frame_dims: int = 3):
     check_finite(images, "images")
     batch = images.shape[:-frame_dims]
     if not _broadcasts_to(psf.shape, batch):
-        raise ShapeError(f"psf: expected a batch shape that broadcasts to the images' batch {tuple(batch)} (images {desc} = "
-                         f"{tuple(images.shape)}), got {tuple(psf.shape)}")
+        raise ShapeError(f"psf: expected a batch shape that broadcasts to the images' batch {tuple(batch)} "
+                         f"(images {desc} = {tuple(images.shape)}), got {tuple(psf.shape)}")
     if isinstance(psf, KernelPSF) and psf.frame_shape != tuple(images.shape[-2:]):
         raise ShapeError(f"psf: expected a kernel of frame shape {tuple(images.shape[-2:])}, got {psf.frame_shape}")
     return images, psf, window
@@ -74,8 +76,8 @@ def flat_window(window: ExposureWindow, batch: tuple, N: int, E: int | None = No
     tail = () if E is None else (E,)
     lead = tuple(batch) + tail
     if not _broadcasts_to(window.shape, lead):
-        raise ShapeError(f"window: expected a batch shape that broadcasts to the images' {'[..., E]' if tail else '[...]'} = "
-                         f"{lead}, got {tuple(window.shape)}")
+        raise ShapeError(f"window: expected a batch shape that broadcasts to the images' "
+                         f"{'[..., E]' if tail else '[...]'} = {lead}, got {tuple(window.shape)}")
     w = window.expand(lead)
     return ExposureWindow(w.start.reshape((N,) + tail), w.duration.reshape((N,) + tail))
 
@@ -96,8 +98,8 @@ def flat_omega(omega, batch: tuple, N: int, like: torch.Tensor, *, tones: bool =
 def flat_psf(psf, batch: tuple, N: int):
     """A PSF of batch broadcastable to ``[...]`` -> batch ``[N]`` (a KernelPSF's kernel ``[N, H, W]``)."""
     if isinstance(psf, GaussianPSF):
-        return GaussianPSF(psf.center.expand(batch + (2,)).reshape(N, 2), psf.cov.expand(batch + (2, 2)).reshape(N, 2, 2),
-                           psf.amplitude.expand(batch).reshape(N))
+        return GaussianPSF(psf.center.expand(batch + (2,)).reshape(N, 2),
+                           psf.cov.expand(batch + (2, 2)).reshape(N, 2, 2), psf.amplitude.expand(batch).reshape(N))
     H, W = psf.frame_shape
     return KernelPSF(psf.kernel.expand(batch + (H, W)).reshape(N, H, W))
 
@@ -130,6 +132,15 @@ def flat_direction(value, batch: tuple, N: int, like: torch.Tensor, name: str = 
     except RuntimeError:
         raise ShapeError(f"{name}: expected [2] or a shape that broadcasts to the images' batch {tuple(batch)} + (2,), "
                          f"got {tuple(d.shape)}") from None
+
+
+def check_count(value, name: str, low: int = 1, *, optional: bool = False) -> None:
+    """A fitter's count option (iterations, starts): an integer >= ``low`` (or None with ``optional``),
+    else :class:`~torchblur.errors.ParameterError` naming ``name``."""
+    if optional and value is None:
+        return
+    if isinstance(value, bool) or not isinstance(value, int) or value < low:
+        raise ParameterError(f"{name}: expected {'None or ' if optional else ''}an integer >= {low}, got {value!r}")
 
 
 def flat_count(images: torch.Tensor, frame_dims: int = 3) -> int:

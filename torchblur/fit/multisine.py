@@ -13,12 +13,13 @@ import torch
 from torchblur._compat import median_along
 from torchblur.render.alias import canonical_sines
 from torchblur.errors import ParameterError, ShapeError, as_tensor, check_finite, check_positive, pixel_weights
-from torchblur.fit.inputs import check_data, flat_count, flat_direction, flat_omega, flat_psf, flat_window, psf_moments, unit_direction
+from torchblur.fit.inputs import (check_count, check_data, flat_count, flat_direction, flat_omega, flat_psf,
+                                  flat_window, psf_moments, unit_direction)
 from torchblur.fit.kernel_noise import kernel_noise_covariance
 from torchblur.losses import fisher_covariance, image_loss, residual_weights, singular_covariance
 from torchblur.image.moments import image_moments, moments_along
 from torchblur.optim import levenberg_marquardt, model_jacobian
-from torchblur.fit.problem import _nonzero_box
+from torchblur.fit.problem import _nonzero_box, cut_sums
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.camera import CameraNoise, noise_sets_weights
 from torchblur.render.blur import RenderSettings, _kernel_fourier, choose_node_count, quadrature_nodes, render_blur
@@ -209,15 +210,15 @@ def _check_and_flatten(images, psf, window, omega, direction, counts: dict) -> _
     """The public entry's checks (:mod:`~torchblur.fit.inputs`), and the inputs flattened to ``B`` image sets."""
     images, psf, window = check_data(images, psf, window)
     for name, v in counts.items():
-        if isinstance(v, bool) or not isinstance(v, int) or v < (0 if name == "n_starts" else 1):
-            raise ParameterError(f"{name}: expected an integer >= {0 if name == 'n_starts' else 1}, got {v!r}")
+        check_count(v, name, 0 if name == "n_starts" else 1)
     batch, (E, H, W) = images.shape[:-3], images.shape[-3:]
     B = flat_count(images)
     data = images.reshape(B, E, H, W)
     win, p = flat_window(window, batch, B, E), flat_psf(psf, batch, B)
     center, cov = psf_moments(p)
     kern = isinstance(p, KernelPSF)
-    return _Flat(data=data, om=flat_omega(omega, batch, B, data, tones=True), start=win.start, dur=win.duration, center=center, cov=cov,
+    return _Flat(data=data, om=flat_omega(omega, batch, B, data, tones=True), start=win.start, dur=win.duration,
+                 center=center, cov=cov,
                  amp_psf=torch.ones(B, dtype=data.dtype, device=data.device) if kern else p.amplitude,
                  u=flat_direction(direction, batch, B, data), batch=batch, psf=p, kernel=p.kernel if kern else None)
 
@@ -264,9 +265,7 @@ def _reweight_by_model(prob: _Problem, box, data, weight, theta, live, noise: Ca
     noise.std(model * power) / power`` of the first fit's model image (rendered by the problem's
     own forward model; 0 outside the crop, where every model is 0), masked pixels still 0.
 
-    Why: the first pass's weights correlate with the noise and bias the amplitudes low (see
-    :func:`torchblur.fit.sinusoid._reweight_by_model`).
-
+    Why: docs/reliability.md, "The camera's noise and the losses".
     ``stats``: the fit's ``(cost, converged, n_iter, noise std) [B]``, set in place for the live
     sets (the refit's cost and convergence, the iterations added, the median of the new pixel
     stds). Returns ``(problem with the new weights, theta [B, P])``.
@@ -280,8 +279,7 @@ def _reweight_by_model(prob: _Problem, box, data, weight, theta, live, noise: Ca
     std = noise.std(expected * p) / p
     w2 = weight.clone()
     w2[live] = torch.where(weight[live] > 0, 1 / std**2, torch.zeros_like(std))
-    wflat, outside_cost = _weight_terms(w2, data, box)
-    prob = replace(prob, wflat=wflat, outside_cost=outside_cost)
+    prob = replace(prob, wflat=w2[..., lo_y:hi_y, lo_x:hi_x].reshape(B, -1), outside_cost=cut_sums(data, w2, box)[0])
     jac = (lambda th, i: prob.model_and_jacobian(th, live[i])) if prob.analytic else None
     res = levenberg_marquardt(lambda th, i: prob.model(th, live[i]), theta[live], prob.target[live], loss="l2", weight=prob.wflat[live],
                               max_iter=max_iter, tol=tol, jacobian_fn=jac)
@@ -438,7 +436,6 @@ def _problem(flat: _Flat, weight, theta_c, render_settings, kernel_var=None) -> 
     dtype, device = flat.data.dtype, flat.data.device
     data = flat.data
     lo_y, hi_y, lo_x, hi_x = box = _crop_box(flat, theta_c)
-    wflat, outside_cost = _weight_terms(weight, data, box)
     center_c = flat.center - torch.tensor([lo_x, lo_y], dtype=dtype, device=device)
     psf_c = GaussianPSF(center_c, flat.cov, flat.amp_psf) if flat.kernel is None else KernelPSF(flat.kernel[:, lo_y:hi_y, lo_x:hi_x])
     reach = float((theta_c[..., :N].abs().sum(-1).amax(1) * 1.3 + 0.5).max()) if B else 0.0
@@ -448,26 +445,15 @@ def _problem(flat: _Flat, weight, theta_c, render_settings, kernel_var=None) -> 
                           torch.zeros(B, 1, N, 2, dtype=dtype, device=device), flat.om[:, None])
         S = choose_node_count(bound.path_length(ExposureWindow(torch.zeros_like(flat.dur), flat.dur)), psf_c.sigma_min()[:, None],
                               settings)
-        settings = RenderSettings(pixel_integration=settings.pixel_integration, nodes_per_panel=settings.nodes_per_panel,
-                                  panel_path_sigmas=settings.panel_path_sigmas, max_nodes=settings.max_nodes, nodes=S)
-    out_used = weight > 0
-    out_used[..., lo_y:hi_y, lo_x:hi_x] = False
-    prob = _Problem(target=data[..., lo_y:hi_y, lo_x:hi_x].reshape(B, -1), wflat=wflat,
-                    om=flat.om, start=flat.start, dur=flat.dur, psf=psf_c, u=flat.u, height=hi_y - lo_y, width=hi_x - lo_x,
-                    settings=settings, outside_cost=outside_cost, pad=int(math.ceil(reach)) + 2,
-                    outside_sq=(out_used * data * data).sum((-1, -2, -3)), outside_n=out_used.sum((-1, -2, -3)).to(dtype),
+        settings = replace(settings, nodes=S)
+    outside_cost, outside_sq, outside_n = cut_sums(data, weight, box)
+    prob = _Problem(target=data[..., lo_y:hi_y, lo_x:hi_x].reshape(B, -1),
+                    wflat=weight[..., lo_y:hi_y, lo_x:hi_x].reshape(B, -1), om=flat.om, start=flat.start, dur=flat.dur,
+                    psf=psf_c, u=flat.u, height=hi_y - lo_y, width=hi_x - lo_x, settings=settings,
+                    outside_cost=outside_cost, outside_sq=outside_sq, outside_n=outside_n,
+                    pad=int(math.ceil(reach)) + 2,
                     kernel_var=None if kernel_var is None else kernel_var[:, lo_y:hi_y, lo_x:hi_x])
     return prob, box
-
-
-def _weight_terms(weight, data, box) -> tuple[torch.Tensor, torch.Tensor]:
-    """The weights ``weight [B, E, H, W]`` as the cropped problem takes them: ``(wflat [B, R]``
-    inside the crop ``box``, ``outside_cost [B]``, the weighted sum of squares of the data outside
-    it, where every model is 0)."""
-    lo_y, hi_y, lo_x, hi_x = box
-    out_w = weight.clone()
-    out_w[..., lo_y:hi_y, lo_x:hi_x] = 0
-    return weight[..., lo_y:hi_y, lo_x:hi_x].reshape(weight.shape[0], -1), (out_w * data * data).sum((-1, -2, -3))
 
 
 def _coarse_cost(prob: _Problem, cands: torch.Tensor, item: int) -> torch.Tensor:
@@ -639,7 +625,8 @@ def _fisher(prob: _Problem, theta, live, noise_level):
         fw = wl
         sigma_used[live] = noise_level[live]
     else:
-        fw, sig2 = residual_weights(prob.target[live] - model, wl, P, cut_sq=prob.outside_sq[live], cut_n=prob.outside_n[live])
+        fw, sig2 = residual_weights(prob.target[live] - model, wl, P, cut_sq=prob.outside_sq[live],
+                                    cut_n=prob.outside_n[live])
         sigma_used[live] = sig2.sqrt()
     c_l, info = fisher_covariance(J, fw)
     kcov = None
@@ -675,7 +662,8 @@ def _kernel_variance(kernel_var, flat: _Flat) -> torch.Tensor | None:
     try:
         return v.expand(flat.batch + flat.kernel.shape[-2:]).reshape(flat.kernel.shape)
     except RuntimeError:
-        raise ShapeError(f"kernel_var: expected the kernel's shape {tuple(flat.kernel.shape[-2:])} (or one that broadcasts to "
+        raise ShapeError(f"kernel_var: expected the kernel's shape {tuple(flat.kernel.shape[-2:])} (or one that "
+                         f"broadcasts to "
                          f"{tuple(flat.batch + flat.kernel.shape[-2:])}), got {tuple(v.shape)}") from None
 
 

@@ -8,12 +8,13 @@ from dataclasses import dataclass, fields, replace
 
 import torch
 
-from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_tensor, check_choice, check_finite, check_real_scalar,
-                              flat_noise_and_mask)
-from torchblur.losses import (LOSSES, covariance_factor, fisher_covariance, image_loss, irls_weights, loss_weight, residual_weights,
-                              singular_covariance)
+from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_tensor, check_bool, check_choice,
+                              check_finite, check_real_scalar, flat_noise_and_mask)
+from torchblur.losses import (LOSSES, covariance_factor, fisher_covariance, image_loss, irls_weights, loss_weight,
+                              residual_weights, singular_covariance)
 from torchblur.optim import LMResult, levenberg_marquardt
-from torchblur.fit.inputs import check_data, flat_count, flat_direction, flat_omega, flat_psf, flat_window, take_psf
+from torchblur.fit.inputs import (check_count, check_data, flat_count, flat_direction, flat_omega, flat_psf,
+                                  flat_window, take_psf)
 from torchblur.fit.problem import SineProblem, crop_to_reach, sine_problem, starting_points
 from torchblur.fit.results import SinusoidFit, put_items
 from torchblur.fit.robust import impulses, inpaint, plane_fit, plane_image, robust_scale
@@ -400,41 +401,43 @@ def _optimise(model: SineModel, items, theta0, data, weight, o: _FitOptions):
     n = theta0.shape[0]
     idx = torch.arange(n, device=theta0.device)
     scale = theta0.detach().abs().clamp_min(1.0)
+    u = torch.zeros_like(theta0, requires_grad=True)
+
+    def cost_at(v):  # the loss [n] at theta0 + v * scale
+        return image_loss(model_fn(theta0 + v * scale, idx), data, loss=loss, weight=weight, shift=o.shift)
+
     if o.optimizer == "adam":
         it = max_iter or 400
-        u = torch.zeros_like(theta0, requires_grad=True)
         opt = torch.optim.Adam([u], lr=0.02)
         history = []
         for _ in range(it):
             opt.zero_grad()
-            c = image_loss(model_fn(theta0 + u * scale, idx), data, loss=loss, weight=weight, shift=o.shift)
+            c = cost_at(u)
             c.sum().backward()
             opt.step()
             history.append(c.detach())
-        with torch.no_grad():
-            final = theta0 + u * scale
-            cost = image_loss(model_fn(final, idx), data, loss=loss, weight=weight, shift=o.shift)
-        prev = history[-20] if len(history) >= 20 else history[0]
-        conv = (prev - cost).abs() <= 1e-4 * cost.abs().clamp_min(1e-30)
-        return LMResult(final.detach(), cost, conv, torch.full((n,), it, dtype=torch.long, device=theta0.device))
-    it = max_iter or 100
-    u = torch.zeros_like(theta0, requires_grad=True)
-    opt = torch.optim.LBFGS([u], lr=1.0, max_iter=it, line_search_fn="strong_wolfe", tolerance_grad=1e-12, tolerance_change=1e-14)
+    else:
+        it = max_iter or 100
+        opt = torch.optim.LBFGS([u], lr=1.0, max_iter=it, line_search_fn="strong_wolfe", tolerance_grad=1e-12,
+                                tolerance_change=1e-14)
 
-    def closure():
-        opt.zero_grad()
-        c = image_loss(model_fn(theta0 + u * scale, idx), data, loss=loss, weight=weight, shift=o.shift).sum()
-        c.backward()
-        return c
+        def closure():
+            opt.zero_grad()
+            c = cost_at(u).sum()
+            c.backward()
+            return c
 
-    opt.step(closure)
+        opt.step(closure)
     with torch.no_grad():
-        final = theta0 + u * scale
-        cost = image_loss(model_fn(final, idx), data, loss=loss, weight=weight, shift=o.shift)
-    state = opt.state[opt._params[0]]
-    n_it = int(state.get("n_iter", it))
-    conv = torch.full((n,), n_it < it, dtype=torch.bool, device=theta0.device)
-    return LMResult(final.detach(), cost, conv, torch.full((n,), n_it, dtype=torch.long, device=theta0.device))
+        cost = cost_at(u)
+    if o.optimizer == "adam":
+        prev = history[-20] if len(history) >= 20 else history[0]
+        conv, n_it = (prev - cost).abs() <= 1e-4 * cost.abs().clamp_min(1e-30), it
+    else:
+        n_it = int(opt.state[opt._params[0]].get("n_iter", it))
+        conv = torch.full((n,), n_it < it, dtype=torch.bool, device=theta0.device)
+    n_iter = torch.full((n,), n_it, dtype=torch.long, device=theta0.device)
+    return LMResult((theta0 + u * scale).detach(), cost, conv, n_iter)
 
 
 # --------------------------------------------------------------------------- public entry: checks, masks, robust pass, flags
@@ -469,19 +472,13 @@ class _FlatInputs:
     noise_model: CameraNoise | None = None
 
 
-def _check_flag(value, name: str) -> bool:
-    if not isinstance(value, bool):
-        raise InputTypeError(f"{name}: expected True or False, got {type(value).__name__}")
-    return value
-
-
 def _check_options(*, optimizer, loss, fit_scale, fit_background, fit_center, fit_gradient, normalize, outliers, outlier_sigma,
                    max_iter, tol, render_settings) -> tuple[_FitOptions, float]:
     """Check :func:`fit_sinusoid`'s options (``optimizer`` and ``loss`` are checked by
     ``_validate``): ``(the pass settings without the noise's shift, outlier_sigma)``."""
     for name, v in (("fit_scale", fit_scale), ("fit_background", fit_background), ("fit_center", fit_center), ("fit_gradient", fit_gradient),
                     ("normalize", normalize)):
-        _check_flag(v, name)
+        check_bool(v, name)
     check_choice(outliers, "outliers", OUTLIERS)
     outlier_sigma = check_real_scalar(outlier_sigma, "outlier_sigma", positive=True)
     if fit_gradient and normalize:
@@ -489,8 +486,7 @@ def _check_options(*, optimizer, loss, fit_scale, fit_background, fit_center, fi
     if outliers == "reject" and normalize:
         raise ParameterError("outliers: expected 'none' with normalize=True (the robust pass compares data and model in image units), "
                              "got 'reject'")
-    if max_iter is not None and (isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 1):
-        raise ParameterError(f"max_iter: expected None or an integer >= 1, got {max_iter!r}")
+    check_count(max_iter, "max_iter", optional=True)
     tol = check_real_scalar(tol, "tol", nonnegative=True)
     if render_settings is not None and not isinstance(render_settings, RenderSettings):
         raise InputTypeError(f"render_settings: expected a RenderSettings or None, got {type(render_settings).__name__}")
@@ -550,9 +546,9 @@ def _flat_inputs(images, psf, window, omega, axes, noise_std, mask, saturation_l
         sat = data >= lvl[:, None, None, None]
         sat_masked = (sat & keep).flatten(1).any(1)
         keep = keep & ~sat
-    return _FlatInputs(data=data, psf=flat_psf(psf, batch, N), window=win, omega=omega, axis_dirs=axis_dirs, labels=labels,
-                       direction=None if axes == "xy" else axis_dirs[:, 0], noise=sig, keep=keep, user_masked=user_masked,
-                       sat_masked=sat_masked, shift=shift, noise_model=noise_model)
+    return _FlatInputs(data=data, psf=flat_psf(psf, batch, N), window=win, omega=omega, axis_dirs=axis_dirs,
+                       labels=labels, direction=None if axes == "xy" else axis_dirs[:, 0], noise=sig, keep=keep,
+                       user_masked=user_masked, sat_masked=sat_masked, shift=shift, noise_model=noise_model)
 
 
 def _fit_items(inp: _FlatInputs, o: _FitOptions, data: torch.Tensor, idx: torch.Tensor, use: torch.Tensor) -> SinusoidFit:
@@ -562,8 +558,9 @@ def _fit_items(inp: _FlatInputs, o: _FitOptions, data: torch.Tensor, idx: torch.
     if idx.numel() == data.shape[0]:
         return _fit_core(inpaint(data, use), inp.psf, inp.window, inp.omega, inp.axis_dirs, labels=inp.labels, options=o,
                          noise_std=inp.noise, use=mask)
-    return _fit_core(inpaint(data[idx], use), take_psf(inp.psf, idx), inp.window[idx], inp.omega[idx], inp.axis_dirs[idx],
-                     labels=inp.labels, options=o, noise_std=None if inp.noise is None else inp.noise[idx], use=mask)
+    noise = None if inp.noise is None else inp.noise[idx]
+    return _fit_core(inpaint(data[idx], use), take_psf(inp.psf, idx), inp.window[idx], inp.omega[idx],
+                     inp.axis_dirs[idx], labels=inp.labels, options=o, noise_std=noise, use=mask)
 
 
 def _robust_fit(inp: _FlatInputs, o: _FitOptions, outliers: str, outlier_sigma: float, fit_gradient: bool):
@@ -607,14 +604,8 @@ def _robust_fit(inp: _FlatInputs, o: _FitOptions, outliers: str, outlier_sigma: 
 def _reweight_by_model(inp: _FlatInputs, o: _FitOptions, data, res: SinusoidFit, use) -> _FlatInputs:
     """The second pass of a fit weighted by the camera's noise model: every fitted item refitted
     with ``inp.noise_model.std`` of its first-pass model image (with the background: stray light
-    is light), and ``inp`` returned with those stds.
-
-    Why: the first pass weighs each pixel by its own value, so a pixel that fluctuates up counts
-    less and the fitted spot comes out dimmer and less blurred: the amplitude is biased low by a
-    few hundredths of its std per fit. One fit cannot see that, but an estimate that averages
-    thousands of fits (a deformable mirror's DC gain from every slope, pattern and frequency) is
-    then off by several of its stds. The model's expected signal holds almost none of the noise
-    (it has a handful of parameters), so the second pass's weights do not correlate with it."""
+    is light), and ``inp`` returned with those stds. Why (the first pass's weights correlate with
+    the noise and bias the amplitudes low): docs/reliability.md, "The camera's noise and the losses"."""
     live = torch.arange(data.shape[0], device=data.device)[torch.isfinite(res.cost) & (res.status != 3)]
     if live.numel() == 0:
         return inp
@@ -743,8 +734,8 @@ def _model_images(res: SinusoidFit, idx, inp: _FlatInputs, o: _FitOptions, *, wi
             n_panels = k // 2 if isinstance(psf, GaussianPSF) else int(panels[sel[0]])
             rule = replace(settings, nodes=int(n_panels) * settings.nodes_per_panel)
             sub = Sinusoid(amp[sel][:, None, :], ph[sel][:, None, :], inp.omega[idx][sel][:, None])
-            out[sel] = render_blur(sub, take_psf(psf, sel), ExposureWindow(win.start[sel], win.duration[sel]), height=H, width=W,
-                                   settings=rule)
+            out[sel] = render_blur(sub, take_psf(psf, sel), ExposureWindow(win.start[sel], win.duration[sel]),
+                                   height=H, width=W, settings=rule)
     if with_background:
         out = out + res.background[idx][:, None, None, None]
     return out
