@@ -13,14 +13,14 @@ import torch
 from torchblur._compat import median_along
 from torchblur.errors import as_tensor, pixel_weights
 from torchblur.fit.inputs import check_count, check_data, flat_count, flat_omega, flat_psf, flat_window, psf_moments
+from torchblur.fit.multisine import render_multisine_with_jacobian
 from torchblur.losses import fisher_covariance, image_loss, residual_weights
 from torchblur.optim import levenberg_marquardt
 from torchblur.image.moments import image_moments
 from torchblur.render.alias import canonical_sines, wrap_phase
-from torchblur.render.blur import RenderSettings, choose_node_count, quadrature_nodes
+from torchblur.render.blur import RenderSettings, choose_node_count
 from torchblur.render.coded import check_code, coded_windows, render_coded
 from torchblur.render.psf import GaussianPSF, KernelPSF
-from torchblur.render.splat import sine_blur_with_jacobian, window_nodes
 from torchblur.render.trajectory import Sinusoid
 from torchblur.render.window import ExposureWindow
 
@@ -86,29 +86,15 @@ class _CodedProblem:
 
     def model_and_jacobian(self, theta: torch.Tensor, it: torch.Tensor, *, jacobian: bool = True):
         """Model ``[n, H W]`` (point-sampled pixels) and Jacobian ``[n, H W, P]`` (None without
-        ``jacobian``) from one splat of the nodes of every open interval
-        (:func:`~torchblur.render.splat.sine_blur_with_jacobian`; a kernel: its Fourier shift)."""
+        ``jacobian``): the one-tone :func:`~torchblur.fit.multisine.render_multisine_with_jacobian` of
+        every open interval (a kernel: its Fourier shift), summed."""
         n = theta.shape[0]
-        m = self.settings.nodes_per_panel
-        dtype, device = theta.dtype, theta.device
-        tau, wq = quadrature_nodes(self.settings.nodes // m, m, dtype=dtype, device=device)
-        sub = coded_windows(ExposureWindow(self.start[it], self.dur[it]), self.code)  # [n, K]
-        t, w = window_nodes(sub.start, sub.duration, tau, wq, self.amp[it][:, None])  # [n, K, S]
-        x_axis = torch.tensor([[1.0, 0.0]], dtype=dtype, device=device)
-        kern = self.kernel is not None
-        center = torch.zeros_like(self.center[it]) if kern else self.center[it]
-        prec = None if kern else GaussianPSF(self.center[it], self.cov[it], self.amp[it]).precision()
-        img, dimg = sine_blur_with_jacobian(t.flatten(-2), w.flatten(-2), theta[:, :1], theta[:, 1:2], self.om[it][:, None], x_axis,
-                                            center, prec, self.height, self.width, jacobian=jacobian,
-                                            kernel=self.kernel[it] if kern else None, pad=self.pad)
-        model = img.reshape(n, -1)
-        if not jacobian:
-            return model * theta[:, 2, None] if self.fit_scale else model, None
-        J = dimg.movedim(1, -1).reshape(n, self.height * self.width, 2)
-        if self.fit_scale:
-            J = torch.cat([J * theta[:, 2, None, None], model[..., None]], -1)
-            model = model * theta[:, 2, None]
-        return model, J
+        psf = KernelPSF(self.kernel[it]) if self.kernel is not None else GaussianPSF(self.center[it], self.cov[it], self.amp[it])
+        img, J = render_multisine_with_jacobian(theta, self.om[it][:, None], psf,
+                                                coded_windows(ExposureWindow(self.start[it], self.dur[it]), self.code),
+                                                height=self.height, width=self.width, nodes=self.settings.nodes,
+                                                nodes_per_panel=self.settings.nodes_per_panel, pad=self.pad, jacobian=jacobian)
+        return img.sum(1).reshape(n, -1), J.sum(1).reshape(n, self.height * self.width, -1) if jacobian else None
 
 
 def _check_inputs(images, psf, window, code, n_phases):

@@ -27,7 +27,7 @@ from torchblur.render.splat import sine_blur_with_jacobian, window_nodes
 from torchblur.render.window import ExposureWindow
 from torchblur.render.trajectory import Multisine, Sinusoid
 
-__all__ = ["MultisineFit", "render_multisine", "render_multisine_with_jacobian", "fit_multisine", "multisine_param_names"]
+__all__ = ["MultisineFit", "render_multisine", "render_multisine_with_jacobian", "fit_multisine"]
 
 # A set whose reduced chi2 (with the noise given) exceeds this after the first search is searched
 # again from a wider set of starts (_wide_starts). A local minimum was measured at 1.42 (one group of
@@ -36,12 +36,6 @@ __all__ = ["MultisineFit", "render_multisine", "render_multisine_with_jacobian",
 RETRY_CHI2 = 1.15
 
 from torchblur.fit.status import POOR_FIT, flag_poor_fit
-
-
-def multisine_param_names(n_tones: int, fit_scale: bool) -> tuple:
-    """``("amplitude_0", ..., "phase_0", ..., ["scale"])``."""
-    return tuple([f"amplitude_{k}" for k in range(n_tones)] + [f"phase_{k}" for k in range(n_tones)]
-                 + (["scale"] if fit_scale else []))
 
 
 def render_multisine(theta, omega, psf: GaussianPSF | KernelPSF, window: ExposureWindow, *, height: int, width: int,
@@ -221,14 +215,6 @@ def _check_and_flatten(images, psf, window, omega, direction, counts: dict) -> _
                  center=center, cov=cov,
                  amp_psf=torch.ones(B, dtype=data.dtype, device=data.device) if kern else p.amplitude,
                  u=flat_direction(direction, batch, B, data), batch=batch, psf=p, kernel=p.kernel if kern else None)
-
-
-def _pixel_weight(noise_std, mask, flat: _Flat):
-    """``(weight [B, E, H, W], noise_level [B] or None)``: :func:`~torchblur.errors.pixel_weights`
-    and the median given noise std per image set."""
-    data = flat.data
-    weight, s = pixel_weights(noise_std, mask, data.reshape(flat.batch + data.shape[1:]))
-    return weight, None if s is None else median_along(s.reshape(data.shape[0], -1))
 
 
 def _noise_power(noise, power, noise_std, flat: _Flat) -> torch.Tensor | None:
@@ -736,7 +722,9 @@ def fit_multisine(
     flat = _check_and_flatten(images, psf, window, omega, direction, {"n_starts": n_starts, "n_refine": n_refine, "max_iter": max_iter})
     batch, (B, N) = flat.batch, flat.om.shape
     pw = _noise_power(noise, power, noise_std, flat)
-    weight, given_level = _pixel_weight(noise_std if pw is None else _own_value_std(noise, pw, flat), mask, flat)
+    weight, s = pixel_weights(noise_std if pw is None else _own_value_std(noise, pw, flat), mask,
+                              flat.data.reshape(batch + flat.data.shape[1:]))
+    given_level = None if s is None else median_along(s.reshape(B, -1))  # the median given noise std per image set
     sigma_given = given_level is not None
     noise_level, dark, thr = _levels(flat.data, given_level)
     M0 = _amplitude_start(flat, amplitude_guess, thr)
@@ -781,7 +769,8 @@ def _multisine_result(prob, theta_best, best, live, dark, noise_level, sigma_giv
         amplitude_std=out(torch.where(bad, nan, std[:, :N]), (N,)),
         phase_std=out(torch.where(bad, nan, std[:, N:2 * N]), (N,)),
         covariance=out(cov_out, (P, P)),
-        param_names=multisine_param_names(N, fit_scale),
+        param_names=tuple([f"amplitude_{k}" for k in range(N)] + [f"phase_{k}" for k in range(N)]
+                          + ["scale"] * fit_scale),
         cost=out(cost_best + prob.outside_cost),
         converged=out(status == 0),
         status=out(status),

@@ -258,21 +258,12 @@ def _keep_better(model: SineModel, layout: ParamLayout, sol: _Solution, r, start
 
 
 def _uncertainty(model: SineModel, problem: SineProblem, sol: _Solution, target, o: _FitOptions, reuse: bool):
-    """The covariance of the estimates at the solution: ``(covariance [N, P, P], singular [N],
-    noise std used [N], model [N, R], chi2 [N])``, from the Fisher information ``F = J^T diag(1 / sigma^2) J``
-    of the loss's noise model, times :func:`~torchblur.losses.covariance_factor`:
-
-    - l2: ``F^-1``, ``sigma`` the given noise, else one std per item estimated from the
-      residuals (the pixels the crop cut off included);
-    - poisson: ``F^-1`` with ``sigma^2 = model + shift`` (its own Fisher information; the shifted
-      Poisson's variance, shot plus read noise);
-    - l1: ``(pi / 2) F^-1`` (least absolute deviations of the residuals in noise stds, under
-      Gaussian noise), ``sigma`` as for l2;
-    - linf: the l2 formula, which is no covariance of its estimate (it has no likelihood).
-
-    ``chi2``: the residuals' ``sum r^2 / sigma^2`` with the given noise (l2's cost; for poisson and
-    l1 the same sum at their solution, about l2's: the fit-quality check of every loss).
-    """
+    """The covariance of the estimates at the solution: ``(covariance [N, P, P], singular [N], noise std used
+    [N], model [N, R], chi2 [N])``: the Fisher information of the loss's noise model (``sigma`` the given noise,
+    else one std per item from the residuals, cut-off pixels included; poisson ``sigma^2 = model + shift``),
+    inverted, times :func:`~torchblur.losses.covariance_factor` (the table: docs/reliability.md, "The camera's
+    noise and the losses"). ``chi2``: ``sum r^2 / sigma^2`` with the given noise, the fit-quality check of
+    every loss."""
     p, loss = problem, o.loss
     N, P = sol.theta.shape
     dtype, device = sol.theta.dtype, sol.theta.device
@@ -495,18 +486,10 @@ def _check_options(*, optimizer, loss, fit_scale, fit_background, fit_center, fi
 
 
 def noise_terms(images: torch.Tensor, noise_std, noise: CameraNoise | None):
-    """What a fit takes from the camera's noise model ``noise`` (a
-    :class:`~torchblur.render.camera.CameraNoise` or None; ``images [..., E, H, W]`` in
-    dark-subtracted electrons): ``(noise_std, shift)``.
-
-    ``noise_std``: the caller's, else ``noise.std(images)`` (each pixel's own value as its expected
-    charge: only the first pass's weights; :func:`fit_sinusoid` then refits with
-    ``noise.std`` of the first fit's model, :func:`_reweight_by_model`), else None. ``shift``:
-    poisson's read-noise shift, ``noise.poisson_shift_e`` (0 without ``noise``: the images are
-    pure counts).
-    Every loss weighs by it as :mod:`torchblur.losses` says (l2 ``1 / sigma^2``, l1 and linf
-    ``1 / sigma``, poisson the shifted Poisson's own variance).
-    """
+    """What a fit takes from the camera's noise model ``noise`` (a :class:`~torchblur.render.camera.CameraNoise`
+    or None; ``images [..., E, H, W]`` in dark-subtracted electrons): ``(noise_std, shift)``: the caller's
+    ``noise_std``, else ``noise.std(images)`` (the first pass's weights: :func:`_reweight_by_model`), else None;
+    poisson's read-noise shift ``noise.poisson_shift_e`` (0 without ``noise``: pure counts)."""
     if noise is None:
         return noise_std, 0.0
     if not isinstance(noise, CameraNoise):
@@ -800,19 +783,15 @@ def fit_sinusoid(
         saturation_level: pixels of ``images`` at or above it are excluded (the clipping level
             in the units of ``images``, i.e. less the dark level): a number or ``[...]``.
             Sets :data:`SATURATED_MASKED`. None (default): nothing is clipped.
-        outliers: ``"none"`` (default) or ``"reject"``: after the fit, pixels whose residual
-            exceeds ``outlier_sigma`` noise standard deviations (``noise_std``, else a robust
-            MAD estimate from the residuals, which assumes the noise does not grow with the
-            signal) are excluded and the item refitted, up to 3 passes; for hot pixels
-            without a map and cosmic-ray hits. Sets :data:`OUTLIERS_MASKED` and ``n_outliers``.
+        outliers: ``"none"`` (default) or ``"reject"``: pixels no blurred spot can produce, and after the
+            fit those whose residual exceeds ``outlier_sigma`` noise stds, are excluded and the item refitted
+            (up to 3 passes; docs/reliability.md, "Robust fitting"). Sets :data:`OUTLIERS_MASKED`, ``n_outliers``.
         outlier_sigma: the rejection threshold in standard deviations (> 0, default 5: 6e-7 of clean pixels).
         fit_scale, fit_background, fit_center: fit an intensity scale, a constant background
             (stray light), the rest position jointly (nuisance parameters).
-        fit_gradient: remove a stray-light plane (level and slopes) from each exposure,
-            fitted to the pixels the spot does not reach: first the frame's 2-px border,
-            then every pixel where the fitted spot is below 1e-4 of its peak; the spot is
-            refitted after each. Reported in ``background_plane``; its uncertainty (from
-            many pixels) is not added to the estimates'.
+        fit_gradient: remove a stray-light plane per exposure, fitted to the frame's 2-px border, then to
+            every pixel where the fitted spot is below 1e-4 of its peak (the spot refitted after each);
+            reported in ``background_plane``, its uncertainty not added to the estimates'.
         normalize: the paper's eq. 8: compare images divided by their Frobenius norms (an
             option; it weights the exposures unequally and loses precision).
         max_iter: optimiser iterations, an int >= 1 (default 60 for lm, 400 for adam, 100 for lbfgs).
@@ -824,13 +803,10 @@ def fit_sinusoid(
     float32 images with a float64 PSF or window give a float64 fit); ``omega``, ``noise_std`` and ``saturation_level`` too.
 
     Returns:
-        :class:`SinusoidFit`. Degenerate items are flagged, never raised, and do not change
-        the other items: ``status`` 1 (no signal: decided by a matched filter on the spot's
-        total light, :func:`torchblur.fit.problem.dark_items`, so a dim streak whose brightest
-        pixel is 2-3 noise stds is still fitted), 3 (spot mostly outside the frame), 5 (no
-        usable pixel) give NaN estimates; ``flags`` mark masked, saturated and outlier
-        pixels, a spot partly out of the frame (fitted on what is visible) and a motion too
-        small to measure.
+        :class:`SinusoidFit`. Degenerate items are flagged, never raised, and do not change the other
+        items: ``status`` 1 (no signal, :func:`torchblur.fit.problem.dark_items`), 3 (spot mostly outside
+        the frame), 5 (no usable pixel) give NaN estimates; ``flags``: docs/reliability.md, "Degenerate
+        frames are flagged per item, never raised".
 
     Example:
         >>> fit = fit_sinusoid(images, psf, window, omega, mask=~dark.hot_pixels, outliers="reject")
