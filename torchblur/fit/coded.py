@@ -89,11 +89,13 @@ class _CodedProblem:
         ``jacobian``): the one-tone :func:`~torchblur.fit.multisine.render_multisine_with_jacobian` of
         every open interval (a kernel: its Fourier shift), summed."""
         n = theta.shape[0]
-        psf = KernelPSF(self.kernel[it]) if self.kernel is not None else GaussianPSF(self.center[it], self.cov[it], self.amp[it])
-        img, J = render_multisine_with_jacobian(theta, self.om[it][:, None], psf,
-                                                coded_windows(ExposureWindow(self.start[it], self.dur[it]), self.code),
-                                                height=self.height, width=self.width, nodes=self.settings.nodes,
-                                                nodes_per_panel=self.settings.nodes_per_panel, pad=self.pad, jacobian=jacobian)
+        kern = self.kernel is not None
+        psf = KernelPSF(self.kernel[it]) if kern else GaussianPSF(self.center[it], self.cov[it], self.amp[it])
+        sub = coded_windows(ExposureWindow(self.start[it], self.dur[it]), self.code)  # [n, K]: the open intervals
+        s = self.settings
+        img, J = render_multisine_with_jacobian(theta, self.om[it][:, None], psf, sub, height=self.height,
+                                                width=self.width, nodes=s.nodes, nodes_per_panel=s.nodes_per_panel,
+                                                pad=self.pad, jacobian=jacobian)
         return img.sum(1).reshape(n, -1), J.sum(1).reshape(n, self.height * self.width, -1) if jacobian else None
 
 

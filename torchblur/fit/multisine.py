@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import torch
 
@@ -20,6 +20,7 @@ from torchblur.losses import fisher_covariance, image_loss, residual_weights, si
 from torchblur.image.moments import image_moments, moments_along
 from torchblur.optim import levenberg_marquardt, model_jacobian
 from torchblur.fit.problem import _nonzero_box, cut_sums
+from torchblur.fit.results import ToneFit
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.camera import CameraNoise, noise_sets_weights
 from torchblur.render.blur import RenderSettings, _kernel_fourier, choose_node_count, quadrature_nodes, render_blur
@@ -116,40 +117,16 @@ def render_multisine_with_jacobian(theta, omega, psf: GaussianPSF | KernelPSF, w
     return img, J
 
 
-@dataclass
-class MultisineFit:
-    """Result of :func:`fit_multisine`; batch ``[...]`` = the images' leading dims.
-
-    Attributes:
-        amplitude: ``M_k`` (px, >= 0), ``[..., N]``.
-        phase: ``phi_k`` (rad, wrapped), ``[..., N]``.
-        amplitude_std, phase_std: one standard deviation (Fisher information), ``[..., N]``.
-        covariance: ``[..., P, P]`` in ``param_names`` order.
-        param_names: ``amplitude_k``, ``phase_k`` (and ``scale``).
-        cost: weighted sum of squared residuals at the solution, ``[...]``.
-        converged: ``status == 0``, ``[...]``.
-        status: see :data:`~torchblur.fit.status.STATUS`, ``[...]``.
-        scale: fitted intensity scale ``[...]`` (None if not fitted).
-        noise_std: pixel noise std used (median), ``[...]``.
-        n_iter: LM iterations of the best start (plus the refit's, weighted by the noise
-            model), ``[...]``.
-        extras: ``nodes``, ``starts``, ``refined``, ``crop``, ``retried``, ``reduced_chi2``; with
-            ``kernel_var``, ``kernel_covariance [..., P, P]``: the measured kernel's part of ``covariance``.
+@dataclass(kw_only=True)
+class MultisineFit(ToneFit):
+    """Result of :func:`fit_multisine`: the :class:`~torchblur.fit.results.ToneFit` fields, with
+    ``amplitude``, ``phase`` and their stds ``[..., N]`` (one per tone), ``param_names``
+    ``amplitude_k``, ``phase_k`` (and ``scale``), ``cost`` the weighted sum of squared residuals,
+    ``noise_std`` the median pixel noise std used, ``n_iter`` the LM iterations of the best start
+    (plus the refit's, weighted by the noise model), ``flags`` :data:`~torchblur.fit.status.POOR_FIT_FLAG`.
+    ``extras``: ``nodes``, ``starts``, ``refined``, ``crop``, ``retried``, ``reduced_chi2``; with
+    ``kernel_var``, ``kernel_covariance [..., P, P]``: the measured kernel's part of ``covariance``.
     """
-
-    amplitude: torch.Tensor
-    phase: torch.Tensor
-    amplitude_std: torch.Tensor
-    phase_std: torch.Tensor
-    covariance: torch.Tensor
-    param_names: tuple
-    cost: torch.Tensor
-    converged: torch.Tensor
-    status: torch.Tensor
-    noise_std: torch.Tensor
-    n_iter: torch.Tensor
-    scale: torch.Tensor | None = None
-    extras: dict = field(default_factory=dict)
 
 
 def _centroid_start(data, rest, u, start, dur, omega, thr):
