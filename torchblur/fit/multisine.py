@@ -36,7 +36,7 @@ __all__ = ["MultisineFit", "render_multisine", "render_multisine_with_jacobian",
 # first search's 48 random phase starts land there for some seeds.
 RETRY_CHI2 = 1.15
 
-from torchblur.fit.status import POOR_FIT, flag_poor_fit
+from torchblur.fit.status import flag_poor_fit, item_status
 
 
 def render_multisine(theta, omega, psf: GaussianPSF | KernelPSF, window: ExposureWindow, *, height: int, width: int,
@@ -630,18 +630,6 @@ def _kernel_variance(kernel_var, flat: _Flat) -> torch.Tensor | None:
                          f"{tuple(flat.batch + flat.kernel.shape[-2:])}), got {tuple(v.shape)}") from None
 
 
-def _status(converged, red_chi2, singular, dark, sigma_given: bool) -> torch.Tensor:
-    """Status codes ``[B]`` (:data:`~torchblur.fit.status.STATUS`): 2 not converged; POOR_FIT still far above the
-    given noise (reduced chi2 > 3) after the wider search; 4 singular; 1 dark."""
-    status = torch.zeros(converged.shape, dtype=torch.long, device=converged.device)
-    status[~converged] = 2
-    if sigma_given:
-        status[red_chi2 > 3.0] = POOR_FIT
-    status[singular] = 4
-    status[dark] = 1
-    return status
-
-
 def fit_multisine(
     images,
     psf: GaussianPSF | KernelPSF,
@@ -733,7 +721,8 @@ def _multisine_result(prob, theta_best, best, live, dark, noise_level, sigma_giv
     cov_out, sigma_used, singular, kcov = _fisher(prob, theta_best, live, noise_level if sigma_given else None)
     std = torch.diagonal(cov_out, dim1=-2, dim2=-1).clamp_min(0).sqrt()
     red_chi2 = _reduced_chi2(prob, cost_best)
-    status = _status(conv_best, red_chi2, singular, dark, sigma_given)
+    # POOR_FIT: still far above the given noise (reduced chi2 > 3) after the wider search
+    status = item_status(conv_best, singular, dark, poor=red_chi2 > 3.0 if sigma_given else None)
     nan = torch.tensor(float("nan"), dtype=theta_best.dtype, device=theta_best.device)
 
     def out(x, tail=()):

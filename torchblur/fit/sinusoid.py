@@ -29,7 +29,7 @@ from torchblur.render.window import ExposureWindow
 
 from torchblur.fit.status import (  # noqa: F401  (re-exported: torchblur.fit.sinusoid.STATUS, ...)
     DARK, FLAGS, MASKED, NO_MOTION, NO_PIXELS, NOT_CONVERGED, OUT_OF_FRAME, OUTLIERS_MASKED, PARTLY_OUT_OF_FRAME, SATURATED_MASKED,
-    POOR_FIT_FLAG, SINGULAR, STATUS, flag_branch_undecided, flag_poor_fit,
+    POOR_FIT_FLAG, SINGULAR, STATUS, flag_branch_undecided, flag_poor_fit, item_status,
 )
 
 __all__ = ["SinusoidFit", "fit_sinusoid", "STATUS", "FLAGS", "MASKED", "SATURATED_MASKED", "OUTLIERS_MASKED", "PARTLY_OUT_OF_FRAME",
@@ -301,9 +301,7 @@ def _item_status(model: SineModel, problem: SineProblem, sol: _Solution, fitted,
     p, L = problem, model.layout
     N = sol.theta.shape[0]
     dtype, device = sol.theta.dtype, sol.theta.device
-    status = torch.zeros(N, dtype=torch.long, device=device)
-    status[~sol.converged] = NOT_CONVERGED
-    status[singular] = SINGULAR
+    out_of_frame = p.outside
     if isinstance(p.psf, GaussianPSF):
         with torch.no_grad():
             scale = sol.theta[:, L.scale] if L.fit_scale else torch.ones(N, dtype=dtype, device=device)
@@ -311,10 +309,8 @@ def _item_status(model: SineModel, problem: SineProblem, sol: _Solution, fitted,
             if model.normalize:
                 inside = torch.full_like(inside, float("inf"))
             total = scale * (p.psf.total_light()[:, None] * p.duration).sum(-1)
-            status[inside < 0.5 * total] = OUT_OF_FRAME
-    status[p.outside] = OUT_OF_FRAME
-    status[p.dark] = DARK
-    return status
+            out_of_frame = out_of_frame | (inside < 0.5 * total)
+    return item_status(sol.converged, singular, p.dark, out_of_frame=out_of_frame)
 
 
 def _result(model: SineModel, problem: SineProblem, sol: _Solution, status, cov, sigma_used, K: int) -> SinusoidFit:
