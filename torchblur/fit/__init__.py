@@ -8,9 +8,8 @@ from torchblur.fit.coded import CodedFit, fit_sinusoid_coded
 from torchblur.fit.consistency import BlurConsistencyLoss, blur_consistency
 from torchblur.fit.landscape import cost_landscape
 from torchblur.fit.multisine import MultisineFit, fit_multisine
-from torchblur.fit.sinusoid import (
-    FLAGS, MASKED, NO_MOTION, OUTLIERS_MASKED, PARTLY_OUT_OF_FRAME, SATURATED_MASKED, STATUS, SinusoidFit, fit_sinusoid,
-)
+from torchblur.fit.sinusoid import SinusoidFit, fit_sinusoid
+from torchblur.fit.status import FLAGS, MASKED, NO_MOTION, OUTLIERS_MASKED, PARTLY_OUT_OF_FRAME, SATURATED_MASKED, STATUS
 
 __all__ = [
     "FLAGS", "LOSSES", "MASKED", "NO_MOTION", "OUTLIERS_MASKED", "PARTLY_OUT_OF_FRAME", "SATURATED_MASKED", "STATUS",
