@@ -21,7 +21,8 @@ import time
 import numpy as np
 import torch
 
-from torchblur.fit.coded import fit_sinusoid_coded, render_coded
+from torchblur.fit.coded import fit_sinusoid_coded
+from torchblur.render.coded import render_coded
 from torchblur.fit.multisine import fit_multisine, render_multisine
 from torchblur.fit.sinusoid import fit_sinusoid
 from torchblur.render.blur import render_blur

@@ -125,7 +125,8 @@ def coded_alias(trials: int):
     import math
 
     from torchblur.render.camera import CameraModel
-    from torchblur.fit.coded import fit_sinusoid_coded, render_coded
+    from torchblur.fit.coded import fit_sinusoid_coded
+    from torchblur.render.coded import render_coded
     from torchblur.fit.sinusoid import fit_sinusoid
     from torchblur.render.psf import GaussianPSF
     from torchblur.render.blur import render_blur

@@ -26,8 +26,8 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from test_robust_fit import N, add_cosmic_rays, hot_pixel_scene, make, zmax  # noqa: E402
 
-from torchblur.fit.sinusoid import (MASKED, OUTLIERS_MASKED, PARTLY_OUT_OF_FRAME, SATURATED_MASKED,  # noqa: E402
-                           fit_sinusoid)
+from torchblur.fit.sinusoid import fit_sinusoid  # noqa: E402
+from torchblur.fit.status import MASKED, OUTLIERS_MASKED, PARTLY_OUT_OF_FRAME, SATURATED_MASKED  # noqa: E402
 
 
 def contract():

@@ -28,7 +28,8 @@ from torchblur.render.camera import CameraModel
 from torchblur.config import load_config
 from torchblur.design.windows import check_design, dual_exposure_windows
 from torchblur.errors import ConfigError, InputTypeError, ParameterError, ShapeError
-from torchblur.fit.sinusoid import (MASKED, NO_MOTION, OUTLIERS_MASKED, PARTLY_OUT_OF_FRAME, SATURATED_MASKED, fit_sinusoid)
+from torchblur.fit.sinusoid import fit_sinusoid
+from torchblur.fit.status import MASKED, NO_MOTION, OUTLIERS_MASKED, PARTLY_OUT_OF_FRAME, SATURATED_MASKED
 from torchblur.sysid.frequency_response import FrequencyResponse
 from torchblur.sysid.tf_fit import fit_transfer_function
 from torchblur.image.moments import image_moments

@@ -16,7 +16,8 @@ import torch
 import torchblur as tb
 from torchblur.errors import InputTypeError, ParameterError
 from torchblur.fit.problem import DARK_FALSE_ALARM, _correlate, _template, dark_items, matched_filter_peak
-from torchblur.fit.sinusoid import fit_dtype, fit_sinusoid
+from torchblur.fit.inputs import fit_dtype
+from torchblur.fit.sinusoid import fit_sinusoid
 from torchblur.fit.status import DARK
 
 sys.path.insert(0, str(Path(__file__).parent))

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 import torch
 
-from torchblur.fit.coded import check_code, coded_windows, fit_sinusoid_coded, mirror_code, render_coded
+from torchblur.fit.coded import fit_sinusoid_coded
+from torchblur.render.coded import check_code, coded_windows, mirror_code, render_coded
 from torchblur.errors import ParameterError
 from torchblur.render.psf import GaussianPSF
 from torchblur.render.blur import render_blur

@@ -9,7 +9,8 @@ import torchblur as tb
 from torchblur.image import preprocess as pp
 from torchblur.render.camera import CameraModel
 from torchblur.design.windows import dual_exposure_windows
-from torchblur.fit.sinusoid import MASKED, OUTLIERS_MASKED, PARTLY_OUT_OF_FRAME, SATURATED_MASKED, fit_sinusoid
+from torchblur.fit.sinusoid import fit_sinusoid
+from torchblur.fit.status import MASKED, OUTLIERS_MASKED, PARTLY_OUT_OF_FRAME, SATURATED_MASKED
 
 F64 = torch.float64
 H, W = 28, 36

@@ -26,7 +26,8 @@ import torch
 
 from torchblur.errors import ParameterError
 
-__all__ = ["LOSSES", "LIKELIHOOD_LOSSES", "chi2_limit", "covariance_factor", "gauss_newton_terms", "image_loss", "irls_weights", "loss_weight"]
+__all__ = ["LOSSES", "LIKELIHOOD_LOSSES", "chi2_limit", "covariance_factor", "fisher_covariance", "gauss_newton_terms",
+           "image_loss", "irls_weights", "loss_weight", "residual_weights", "singular_covariance"]
 
 LOSSES = ("l2", "l1", "linf", "poisson")
 # The losses whose estimates come with a covariance that holds (identify accepts these).
@@ -70,6 +71,31 @@ def covariance_factor(loss: str) -> float:
     1978; a std ``sqrt(pi / 2) = 1.25`` times l2's); linf NaN (no likelihood)."""
     _check_loss(loss)
     return {"l2": 1.0, "poisson": 1.0, "l1": math.pi / 2, "linf": float("nan")}[loss]
+
+
+def residual_weights(resid: torch.Tensor, weight: torch.Tensor, n_params: int, *, cut_sq=0.0, cut_n=0.0):
+    """The Fisher weights of a fit whose noise is estimated from its residuals: ``(fisher_weight [N, R],
+    sigma^2 [N])``, one variance per item ``sum r^2 / (n_used - P)`` over the used pixels
+    (``weight [N, R] > 0``) of ``resid [N, R]``, plus the pixels a crop cut off (``cut_sq [N]`` their
+    sum of squares, ``cut_n [N]`` their count: the model is 0 there), and ``(weight > 0) / sigma^2``."""
+    used = weight > 0
+    n_used = used.sum(-1).to(resid.dtype) + cut_n
+    sig2 = (((resid * resid) * used).sum(-1) + cut_sq) / (n_used - n_params).clamp_min(1)
+    return used.to(resid.dtype) / sig2[:, None].clamp_min(torch.finfo(resid.dtype).tiny), sig2
+
+
+def fisher_covariance(jac: torch.Tensor, fisher_weight: torch.Tensor):
+    """The inverse Fisher information ``(J^T diag(w) J)^-1`` of ``jac [N, R, P]`` with the pixel
+    weights ``fisher_weight [N, R]`` (``1 / sigma^2``) -> ``(covariance [N, P, P], info [N])``
+    (``info`` non-zero where the inversion failed: :func:`singular_covariance`)."""
+    return torch.linalg.inv_ex((jac * fisher_weight[..., None]).transpose(-1, -2) @ jac)
+
+
+def singular_covariance(cov: torch.Tensor, info: torch.Tensor) -> torch.Tensor:
+    """``[N]`` bool: the parameters are not identifiable: the inversion failed (``info``), or a
+    covariance ``[N, P, P]`` is not finite or has a variance <= 0."""
+    bad = (info != 0) | ~torch.isfinite(cov).all(-1).all(-1)
+    return bad | (torch.diagonal(cov, dim1=-2, dim2=-1) <= 0).any(-1)
 
 
 def _poisson_floor(model: torch.Tensor) -> torch.Tensor:

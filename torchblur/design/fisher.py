@@ -26,7 +26,8 @@ import numpy as np
 import torch
 
 from torchblur.errors import ParameterError, ShapeError, as_tensor, check_finite, check_positive, check_real_scalar
-from torchblur.fit.multisine import _unit_direction, render_multisine_with_jacobian
+from torchblur.fit.inputs import unit_direction
+from torchblur.fit.multisine import render_multisine_with_jacobian
 from torchblur.render.psf import GaussianPSF
 from torchblur.render.blur import RenderSettings, choose_node_count
 from torchblur.render.window import ExposureWindow
@@ -101,7 +102,7 @@ def image_fisher(theta, omega, psf: GaussianPSF, window: ExposureWindow, *, fram
     dtype = theta.dtype
     psf = psf.to(dtype)
     C = window.shape[0]
-    u = _unit_direction(direction, theta).reshape(2)
+    u = unit_direction(direction, theta).reshape(2)
     bound = float(theta[:, :N].abs().sum(-1).max()) * 1.2 + 0.5
     y0, y1, x0, x1 = _crop(bound, psf, H, W, u)
     center = psf.center - torch.tensor([x0, y0], dtype=dtype)

@@ -1,14 +1,6 @@
-"""Coded exposure, the fit: one image that tells the direction of time (issue 6 part 5).
-
-A coded exposure (:mod:`torchblur.render.coded`: the shutter open during an asymmetric set of
-sub-intervals of the window) breaks the time-reversal alias of a plain exposure, so one image
-identifies the phase. :func:`fit_sinusoid_coded` fits ``(M, phi[, scale])`` to single coded
-images by batched Levenberg-Marquardt from a grid of phase starts (no alias pair to choose from:
-the best start wins), with Fisher-information stds; the image and its Jacobian come from one
-splat of the nodes of every open interval (:func:`~torchblur.render.splat.sine_blur_with_jacobian`).
-
-The rendering names (:func:`check_code`, :func:`mirror_code`, :func:`coded_windows`,
-:func:`render_coded`) live in :mod:`torchblur.render.coded` and are re-exported here.
+"""Coded exposure, the fit (issue 6 part 5): :func:`fit_sinusoid_coded` fits ``(M, phi[, scale])``
+to single coded images (:mod:`torchblur.render.coded`, which breaks the time-reversal alias) by
+batched Levenberg-Marquardt from a grid of phase starts; docs/multisine.md, "One image against the alias".
 """
 from __future__ import annotations
 
@@ -19,19 +11,20 @@ from dataclasses import dataclass
 import torch
 
 from torchblur._compat import median_along
-from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_finite, check_positive, pixel_weights
-from torchblur.losses import image_loss
+from torchblur.errors import as_tensor, pixel_weights
+from torchblur.fit.inputs import check_count, check_data, flat_count, flat_omega, flat_psf, flat_window, psf_moments
+from torchblur.fit.multisine import render_multisine_with_jacobian
+from torchblur.losses import fisher_covariance, image_loss, residual_weights
 from torchblur.optim import levenberg_marquardt
 from torchblur.image.moments import image_moments
 from torchblur.render.alias import canonical_sines, wrap_phase
-from torchblur.render.blur import RenderSettings, choose_node_count, quadrature_nodes
-from torchblur.render.coded import check_code, coded_windows, mirror_code, render_coded
+from torchblur.render.blur import RenderSettings, choose_node_count
+from torchblur.render.coded import check_code, coded_windows, render_coded
 from torchblur.render.psf import GaussianPSF, KernelPSF
-from torchblur.render.splat import sine_blur_with_jacobian, window_nodes
 from torchblur.render.trajectory import Sinusoid
 from torchblur.render.window import ExposureWindow
 
-__all__ = ["check_code", "mirror_code", "coded_windows", "render_coded", "CodedFit", "fit_sinusoid_coded"]
+__all__ = ["CodedFit", "fit_sinusoid_coded"]
 
 
 @dataclass
@@ -93,45 +86,25 @@ class _CodedProblem:
 
     def model_and_jacobian(self, theta: torch.Tensor, it: torch.Tensor, *, jacobian: bool = True):
         """Model ``[n, H W]`` (point-sampled pixels) and Jacobian ``[n, H W, P]`` (None without
-        ``jacobian``) from one splat of the nodes of every open interval
-        (:func:`~torchblur.render.splat.sine_blur_with_jacobian`; a kernel: its Fourier shift)."""
+        ``jacobian``): the one-tone :func:`~torchblur.fit.multisine.render_multisine_with_jacobian` of
+        every open interval (a kernel: its Fourier shift), summed."""
         n = theta.shape[0]
-        m = self.settings.nodes_per_panel
-        dtype, device = theta.dtype, theta.device
-        tau, wq = quadrature_nodes(self.settings.nodes // m, m, dtype=dtype, device=device)
-        sub = coded_windows(ExposureWindow(self.start[it], self.dur[it]), self.code)  # [n, K]
-        t, w = window_nodes(sub.start, sub.duration, tau, wq, self.amp[it][:, None])  # [n, K, S]
-        x_axis = torch.tensor([[1.0, 0.0]], dtype=dtype, device=device)
         kern = self.kernel is not None
-        center = torch.zeros_like(self.center[it]) if kern else self.center[it]
-        prec = None if kern else GaussianPSF(self.center[it], self.cov[it], self.amp[it]).precision()
-        img, dimg = sine_blur_with_jacobian(t.flatten(-2), w.flatten(-2), theta[:, :1], theta[:, 1:2], self.om[it][:, None], x_axis,
-                                            center, prec, self.height, self.width, jacobian=jacobian,
-                                            kernel=self.kernel[it] if kern else None, pad=self.pad)
-        model = img.reshape(n, -1)
-        if not jacobian:
-            return model * theta[:, 2, None] if self.fit_scale else model, None
-        J = dimg.movedim(1, -1).reshape(n, self.height * self.width, 2)
-        if self.fit_scale:
-            J = torch.cat([J * theta[:, 2, None, None], model[..., None]], -1)
-            model = model * theta[:, 2, None]
-        return model, J
+        psf = KernelPSF(self.kernel[it]) if kern else GaussianPSF(self.center[it], self.cov[it], self.amp[it])
+        sub = coded_windows(ExposureWindow(self.start[it], self.dur[it]), self.code)  # [n, K]: the open intervals
+        s = self.settings
+        img, J = render_multisine_with_jacobian(theta, self.om[it][:, None], psf, sub, height=self.height,
+                                                width=self.width, nodes=s.nodes, nodes_per_panel=s.nodes_per_panel,
+                                                pad=self.pad, jacobian=jacobian)
+        return img.sum(1).reshape(n, -1), J.sum(1).reshape(n, self.height * self.width, -1) if jacobian else None
 
 
-def _check_inputs(images, psf, code, omega, n_phases):
-    """The public entry's checks -> ``(code [K, 2], omega)`` in the images' dtype."""
-    if not isinstance(images, torch.Tensor) or images.dim() < 2:
-        raise ShapeError("images: expected a tensor [..., H, W]")
-    if not isinstance(psf, (GaussianPSF, KernelPSF)):
-        raise InputTypeError(f"psf: expected a GaussianPSF or KernelPSF, got {type(psf).__name__}")
-    if isinstance(psf, KernelPSF) and psf.frame_shape != tuple(images.shape[-2:]):
-        raise ShapeError(f"psf: expected a kernel of the images' frame {tuple(images.shape[-2:])}, got {psf.frame_shape}")
-    if isinstance(n_phases, bool) or not isinstance(n_phases, int) or n_phases < 1:
-        raise ParameterError(f"n_phases: expected an integer >= 1, got {n_phases!r}")
-    check_finite(images, "images")
-    code = check_code(code, like=images)
-    om = check_positive(as_tensor(omega, "omega", like=images), "omega")
-    return code, om
+def _check_inputs(images, psf, window, code, n_phases):
+    """The public entry's checks (:func:`~torchblur.fit.inputs.check_data`) -> ``(images, psf, window, code [K, 2])``
+    in one floating dtype."""
+    images, psf, window = check_data(images, psf, window, frame_dims=2)
+    check_count(n_phases, "n_phases")
+    return images, psf, window, check_code(code, like=images)
 
 
 def _amplitude_start(images, cov_xx, center_x, amplitude_guess, batch, B: int) -> torch.Tensor:
@@ -149,19 +122,13 @@ def _amplitude_start(images, cov_xx, center_x, amplitude_guess, batch, B: int) -
 def _problem(images, psf: GaussianPSF | KernelPSF, window: ExposureWindow, code, omega, fit_scale: bool) -> _CodedProblem:
     """The flattened problem ``[B]``; its renderer settings have no node count yet (:func:`_with_nodes`)."""
     batch, (H, W) = images.shape[:-2], images.shape[-2:]
-    B = max(1, math.prod(batch))
-    win = window.to(images.dtype).expand(batch)
-    p = psf.to(images.dtype)
-    kernel = None
-    if isinstance(p, KernelPSF):
-        kernel = p.kernel.expand(batch + (H, W)).reshape(B, H, W)
-        center, cov = KernelPSF(kernel).moments()
-        amp = torch.ones(B, dtype=images.dtype, device=images.device)
-    else:
-        center, cov = p.center.expand(batch + (2,)).reshape(B, 2), p.cov.expand(batch + (2, 2)).reshape(B, 2, 2)
-        amp = p.amplitude.expand(batch).reshape(B)
-    return _CodedProblem(center=center, cov=cov, amp=amp, start=win.start.reshape(B), dur=win.duration.reshape(B),
-                         om=omega.expand(batch).reshape(B), code=code, height=H, width=W,
+    B = flat_count(images, frame_dims=2)
+    win, p = flat_window(window, batch, B), flat_psf(psf, batch, B)
+    center, cov = psf_moments(p)
+    kernel = p.kernel if isinstance(p, KernelPSF) else None
+    amp = torch.ones(B, dtype=images.dtype, device=images.device) if kernel is not None else p.amplitude
+    return _CodedProblem(center=center, cov=cov, amp=amp, start=win.start, dur=win.duration,
+                         om=flat_omega(omega, batch, B, images), code=code, height=H, width=W,
                          settings=RenderSettings(panel_path_sigmas=3.5), fit_scale=fit_scale, kernel=kernel)
 
 
@@ -190,13 +157,9 @@ def _fisher_covariance(prob: _CodedProblem, theta, data, weight, noise_given: bo
     weights are scaled by the reduced chi2 (noise from the residuals)."""
     ar = torch.arange(theta.shape[0], device=theta.device)
     model, J = prob.model_and_jacobian(theta, ar)
-    fw = weight
-    if not noise_given:
-        P = theta.shape[-1]
-        sig2 = ((data - model) ** 2).sum(-1) / max(1, prob.height * prob.width - P)
-        fw = weight / sig2[:, None]
-    F = (J * fw[..., None]).transpose(-1, -2) @ J
-    return torch.linalg.inv_ex(F)[0]
+    if noise_given:
+        return fisher_covariance(J, weight)[0]
+    return fisher_covariance(J, residual_weights(data - model, weight, theta.shape[-1])[0])[0]
 
 
 def fit_sinusoid_coded(images, psf: GaussianPSF | KernelPSF, window: ExposureWindow, code, omega, *, noise_std=None, amplitude_guess=None,
@@ -219,7 +182,7 @@ def fit_sinusoid_coded(images, psf: GaussianPSF | KernelPSF, window: ExposureWin
     Returns:
         :class:`CodedFit`.
     """
-    code, omega = _check_inputs(images, psf, code, omega, n_phases)
+    images, psf, window, code = _check_inputs(images, psf, window, code, n_phases)
     batch = images.shape[:-2]
     prob = _problem(images, psf, window, code, omega, fit_scale)
     B, K = prob.om.shape[0], n_phases

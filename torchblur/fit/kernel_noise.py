@@ -1,19 +1,6 @@
-"""The measured kernel's own noise in a fit's covariance, propagated exactly (to first order).
-
-A fit with a measured kernel ``K`` (:class:`~torchblur.render.psf.KernelPSF`, the averaged
-still frames) solves ``J^T W (Y(theta, K) - D) = 0``. The kernel is data too: its error ``dK``
-moves the estimate by ``dtheta = -C J^T W L dK`` (the implicit function theorem, Gauss-Newton
-at the solution), with ``C = (J^T W J)^-1`` the fit's own covariance and ``L = dY/dK`` the
-blur, linear in ``K``. The kernel's pixels are independent (each an average of still frames), so
-
-    cov_kernel = C G diag(var K) G^T C,   G[p] = L^T (W J[:, p])   (one autograd pass per parameter).
-
-Why not a scalar factor (``StillPSF.kernel_noise_factor``, ``sqrt(1 + sum T_e / (N T_still))``):
-that rule treats the kernel's noise like more noise of the data, the same for every parameter.
-It is the same noise in every frame, so what it does to a parameter depends on how the
-parameter's image derivative projects onto it: on HCIPy multisine sets (12 frames, factor 1.22)
-the rule made the phase stds too large (rms error/std 0.73) while the amplitude's held
-(``benchmarks/bench_hcipy_routes.py``).
+"""The measured kernel's own noise in a fit's covariance, propagated exactly to first order
+(``C G diag(var K) G^T C``; the derivation, and why not a scalar factor: docs/measured_psf.md,
+"The kernel's noise on the multisine route, propagated").
 """
 from __future__ import annotations
 

@@ -1,38 +1,26 @@
-"""The blurred image of a multisine motion and the fit of its tones from an image set.
-
-A spot driven by N tones in steady state moves along x as
-``y(t) = sum_k M_k sin(omega_k t + phi_k)``. One image records where the spot spent its time
-during its window, not in what order, so one image leaves ambiguities (the time reversal about
-the window centre maps every ``phi_k`` to ``pi - 2 omega_k c - phi_k`` at once; an exposure of
-whole common periods is blind to any time shift); a set of images at different window
-positions and exposures removes them (see :mod:`torchblur.design.fisher`).
-
-The parameter vector of one image set is ``theta = (M_1..M_N, phi_1..phi_N[, scale])``.
-:func:`render_multisine` is the image model (the differentiable renderer,
-:func:`~torchblur.render.blur.render_blur`, on a :class:`~torchblur.render.trajectory.Multisine`);
-:func:`fit_multisine` fits every unknown of an image set at once: starts from the image
-centroids (linear in ``M_k e^{j phi_k}``: exact with 2N or more images) and from a batch of
-phase vectors whose cost is evaluated in one render, the best few refined together by
-batched Levenberg-Marquardt (:func:`~torchblur.optim.levenberg_marquardt`, Jacobians by
-forward AD); uncertainties from the Fisher information at the solution.
+"""The blurred image of a multisine motion (:func:`render_multisine`) and the fit of its tones
+``theta = (M_1..M_N, phi_1..phi_N[, scale])`` from an image set (:func:`fit_multisine`); why one
+image leaves ambiguities and how the starts and the search work: docs/multisine.md.
 """
 from __future__ import annotations
 
 import itertools
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import torch
 
 from torchblur._compat import median_along
 from torchblur.render.alias import canonical_sines
-from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_tensor, as_unit_direction, check_finite, check_positive,
-                              pixel_weights)
+from torchblur.errors import ParameterError, ShapeError, as_tensor, check_finite, check_positive, pixel_weights
+from torchblur.fit.inputs import (check_count, check_data, flat_count, flat_direction, flat_omega, flat_psf,
+                                  flat_window, psf_moments, unit_direction)
 from torchblur.fit.kernel_noise import kernel_noise_covariance
-from torchblur.losses import image_loss
+from torchblur.losses import fisher_covariance, image_loss, residual_weights, singular_covariance
 from torchblur.image.moments import image_moments, moments_along
 from torchblur.optim import levenberg_marquardt, model_jacobian
-from torchblur.fit.problem import _nonzero_box
+from torchblur.fit.problem import _nonzero_box, cut_sums
+from torchblur.fit.results import ToneFit
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.camera import CameraNoise, noise_sets_weights
 from torchblur.render.blur import RenderSettings, _kernel_fourier, choose_node_count, quadrature_nodes, render_blur
@@ -40,7 +28,7 @@ from torchblur.render.splat import sine_blur_with_jacobian, window_nodes
 from torchblur.render.window import ExposureWindow
 from torchblur.render.trajectory import Multisine, Sinusoid
 
-__all__ = ["MultisineFit", "render_multisine", "render_multisine_with_jacobian", "fit_multisine", "multisine_param_names"]
+__all__ = ["MultisineFit", "render_multisine", "render_multisine_with_jacobian", "fit_multisine"]
 
 # A set whose reduced chi2 (with the noise given) exceeds this after the first search is searched
 # again from a wider set of starts (_wide_starts). A local minimum was measured at 1.42 (one group of
@@ -48,28 +36,7 @@ __all__ = ["MultisineFit", "render_multisine", "render_multisine_with_jacobian",
 # first search's 48 random phase starts land there for some seeds.
 RETRY_CHI2 = 1.15
 
-from torchblur.fit.status import POOR_FIT, flag_poor_fit
-
-
-def multisine_param_names(n_tones: int, fit_scale: bool) -> tuple:
-    """``("amplitude_0", ..., "phase_0", ..., ["scale"])``."""
-    return tuple([f"amplitude_{k}" for k in range(n_tones)] + [f"phase_{k}" for k in range(n_tones)]
-                 + (["scale"] if fit_scale else []))
-
-
-def _unit_direction(direction, like: torch.Tensor) -> torch.Tensor:
-    """The image direction of the motion as a unit vector ``[..., 2]`` (None: +x)."""
-    if direction is None:
-        return torch.tensor([1.0, 0.0], dtype=like.dtype, device=like.device)
-    return as_unit_direction(direction, "direction", like=like)
-
-
-def _motion(theta: torch.Tensor, n_tones: int, u: torch.Tensor):
-    """Per-tone ``(amplitude [..., N, 2], phase [..., N, 2])`` of a motion along the unit ``u [..., 2]``."""
-    M = theta[..., :n_tones]
-    ph = theta[..., n_tones:2 * n_tones]
-    amp = M[..., None] * u[..., None, :]  # [..., N, 2]
-    return amp, torch.stack([ph, ph], -1)
+from torchblur.fit.status import flag_poor_fit, item_status
 
 
 def render_multisine(theta, omega, psf: GaussianPSF | KernelPSF, window: ExposureWindow, *, height: int, width: int,
@@ -94,8 +61,9 @@ def render_multisine(theta, omega, psf: GaussianPSF | KernelPSF, window: Exposur
     N = omega.shape[-1]
     if theta.shape[-1] not in (2 * N, 2 * N + 1):
         raise ShapeError(f"theta: expected a last dim of 2N = {2 * N} or 2N + 1 (with the scale), got {tuple(theta.shape)}")
-    amp, ph = _motion(theta, N, _unit_direction(direction, theta))
-    traj = Multisine(amp[..., None, :, :], ph[..., None, :, :], omega[..., None, :])
+    amp = theta[..., :N, None] * unit_direction(direction, theta)[..., None, :]  # [..., N, 2]
+    ph = theta[..., N:2 * N]
+    traj = Multisine(amp[..., None, :, :], torch.stack([ph, ph], -1)[..., None, :, :], omega[..., None, :])
     if isinstance(psf, KernelPSF):
         p = KernelPSF(psf.kernel[..., None, :, :])
     else:
@@ -134,7 +102,7 @@ def render_multisine_with_jacobian(theta, omega, psf: GaussianPSF | KernelPSF, w
     kern = isinstance(psf, KernelPSF)
     amp_psf = torch.ones(n, dtype=theta.dtype, device=theta.device) if kern else psf.amplitude
     t, w = window_nodes(window.start.to(theta.dtype), window.duration.to(theta.dtype), tau, wq, amp_psf[:, None])  # [n, E, S]
-    u = _unit_direction(direction, theta).expand(n, 2)
+    u = unit_direction(direction, theta).expand(n, 2)
     center = theta.new_zeros(n, 2) if kern else psf.center
     precision = None if kern else tuple(v[:, None] for v in psf.precision())
     img, dimg = sine_blur_with_jacobian(t, w, theta[:, None, :N], theta[:, None, N:2 * N], omega[:, None, :],
@@ -149,40 +117,16 @@ def render_multisine_with_jacobian(theta, omega, psf: GaussianPSF | KernelPSF, w
     return img, J
 
 
-@dataclass
-class MultisineFit:
-    """Result of :func:`fit_multisine`; batch ``[...]`` = the images' leading dims.
-
-    Attributes:
-        amplitude: ``M_k`` (px, >= 0), ``[..., N]``.
-        phase: ``phi_k`` (rad, wrapped), ``[..., N]``.
-        amplitude_std, phase_std: one standard deviation (Fisher information), ``[..., N]``.
-        covariance: ``[..., P, P]`` in ``param_names`` order.
-        param_names: ``amplitude_k``, ``phase_k`` (and ``scale``).
-        cost: weighted sum of squared residuals at the solution, ``[...]``.
-        converged: ``status == 0``, ``[...]``.
-        status: see :data:`~torchblur.fit.status.STATUS`, ``[...]``.
-        scale: fitted intensity scale ``[...]`` (None if not fitted).
-        noise_std: pixel noise std used (median), ``[...]``.
-        n_iter: LM iterations of the best start (plus the refit's, weighted by the noise
-            model), ``[...]``.
-        extras: ``nodes``, ``starts``, ``refined``, ``crop``, ``retried``, ``reduced_chi2``; with
-            ``kernel_var``, ``kernel_covariance [..., P, P]``: the measured kernel's part of ``covariance``.
+@dataclass(kw_only=True)
+class MultisineFit(ToneFit):
+    """Result of :func:`fit_multisine`: the :class:`~torchblur.fit.results.ToneFit` fields, with
+    ``amplitude``, ``phase`` and their stds ``[..., N]`` (one per tone), ``param_names``
+    ``amplitude_k``, ``phase_k`` (and ``scale``), ``cost`` the weighted sum of squared residuals,
+    ``noise_std`` the median pixel noise std used, ``n_iter`` the LM iterations of the best start
+    (plus the refit's, weighted by the noise model), ``flags`` :data:`~torchblur.fit.status.POOR_FIT_FLAG`.
+    ``extras``: ``nodes``, ``starts``, ``refined``, ``crop``, ``retried``, ``reduced_chi2``; with
+    ``kernel_var``, ``kernel_covariance [..., P, P]``: the measured kernel's part of ``covariance``.
     """
-
-    amplitude: torch.Tensor
-    phase: torch.Tensor
-    amplitude_std: torch.Tensor
-    phase_std: torch.Tensor
-    covariance: torch.Tensor
-    param_names: tuple
-    cost: torch.Tensor
-    converged: torch.Tensor
-    status: torch.Tensor
-    noise_std: torch.Tensor
-    n_iter: torch.Tensor
-    scale: torch.Tensor | None = None
-    extras: dict = field(default_factory=dict)
 
 
 def _centroid_start(data, rest, u, start, dur, omega, thr):
@@ -210,11 +154,10 @@ def _centroid_start(data, rest, u, start, dur, omega, thr):
 class _Flat:
     """The inputs of :func:`fit_multisine` checked and flattened to ``B`` image sets.
 
-    ``data [B, E, H, W]``; ``om [B, N]`` rad/s; ``start, dur [B, E]`` s; ``center [B, 2]``,
-    ``cov [B, 2, 2]``, ``amp_psf [B]`` (the PSF; a measured kernel's centroid and second
+    ``data [B, E, H, W]``; ``om [B, N]`` rad/s; ``start, dur [B, E]`` s; ``psf`` batch ``[B]``;
+    ``center [B, 2]``, ``cov [B, 2, 2]``, ``amp_psf [B]`` (a measured kernel's centroid and second
     moments, amplitude 1); ``u [B, 2]`` the unit direction; ``batch`` the images' leading dims;
-    ``psf`` the PSF in the images' dtype (batch ``[...]``); ``kernel [B, H, W]`` a measured
-    kernel's image (intensity per second), None for a Gaussian.
+    ``kernel [B, H, W]`` a measured kernel's image (intensity per second), None for a Gaussian.
     """
 
     data: torch.Tensor
@@ -231,73 +174,24 @@ class _Flat:
 
     def total_light(self) -> torch.Tensor:
         """The PSF's light per second ``[B]``."""
-        if self.kernel is not None:
-            return self.kernel.sum((-1, -2))
-        return self.psf.total_light().expand(self.batch).reshape(-1)
+        return self.kernel.sum((-1, -2)) if self.kernel is not None else self.psf.total_light()
 
 
 def _check_and_flatten(images, psf, window, omega, direction, counts: dict) -> _Flat:
-    """The public entry's checks, and the inputs flattened to ``B`` image sets."""
-    if not isinstance(images, torch.Tensor):
-        raise InputTypeError(f"images: expected a tensor [..., E, H, W], got {type(images).__name__}")
-    if images.dim() < 3 or images.numel() == 0:
-        raise ShapeError(f"images: expected a non-empty tensor [..., E, H, W], got shape {tuple(images.shape)}")
-    if not images.is_floating_point():
-        images = images.to(torch.get_default_dtype())
-    check_finite(images, "images")
-    if not isinstance(psf, (GaussianPSF, KernelPSF)):
-        raise InputTypeError(f"psf: expected a GaussianPSF or KernelPSF, got {type(psf).__name__}")
-    if isinstance(psf, KernelPSF) and psf.frame_shape != tuple(images.shape[-2:]):
-        raise ShapeError(f"psf: expected a kernel of the images' frame {tuple(images.shape[-2:])}, got {psf.frame_shape}")
-    if not isinstance(window, ExposureWindow):
-        raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
+    """The public entry's checks (:mod:`~torchblur.fit.inputs`), and the inputs flattened to ``B`` image sets."""
+    images, psf, window = check_data(images, psf, window)
     for name, v in counts.items():
-        if isinstance(v, bool) or not isinstance(v, int) or v < (0 if name == "n_starts" else 1):
-            raise ParameterError(f"{name}: expected an integer >= {0 if name == 'n_starts' else 1}, got {v!r}")
-    dtype = images.dtype
-    batch = images.shape[:-3]
-    E, H, W = images.shape[-3:]
-    omega = check_positive(as_tensor(omega, "omega", like=images), "omega")
-    if omega.dim() == 0:
-        raise ShapeError("omega: expected shape [..., N] (one value per tone), got a scalar")
-    N = omega.shape[-1]
-    try:
-        om = omega.expand(batch + (N,))
-        win = window.to(dtype).expand(batch + (E,))
-    except RuntimeError:
-        raise ShapeError(f"omega {tuple(omega.shape)} / window {tuple(window.shape)}: expected [..., N] and [..., E] with "
-                         f"[...] = {tuple(batch)}, E = {E}") from None
-    B = max(1, math.prod(batch))
+        check_count(v, name, 0 if name == "n_starts" else 1)
+    batch, (E, H, W) = images.shape[:-3], images.shape[-3:]
+    B = flat_count(images)
     data = images.reshape(B, E, H, W)
-    p = psf.to(dtype)
-    if p.shape != tuple(batch) and (len(p.shape) > len(batch) or any(a not in (1, b) for a, b in zip(p.shape[::-1], batch[::-1]))):
-        raise ShapeError(f"psf: expected a batch shape that broadcasts to the images' batch {tuple(batch)} (images [..., E, H, W] = "
-                         f"{tuple(images.shape)}), got {tuple(p.shape)}")
-    u = _unit_direction(direction, data)
-    try:
-        u = u.expand(batch + (2,)).reshape(B, 2)
-    except RuntimeError:
-        raise ShapeError(f"direction: expected [2] or a shape that broadcasts to the images' batch {tuple(batch)} + (2,), "
-                         f"got {tuple(u.shape)}") from None
-    if isinstance(p, KernelPSF):
-        try:
-            kernel = p.kernel.expand(batch + (H, W)).reshape(B, H, W)
-        except RuntimeError:
-            raise ShapeError(f"psf: expected a kernel batch that broadcasts to the images' {tuple(batch)}, got {tuple(p.shape)}") from None
-        center, cov = KernelPSF(kernel).moments()
-        return _Flat(data=data, om=om.reshape(B, N), start=win.start.reshape(B, E), dur=win.duration.reshape(B, E), center=center,
-                     cov=cov, amp_psf=torch.ones(B, dtype=dtype, device=data.device), u=u, batch=batch, psf=p, kernel=kernel)
-    return _Flat(data=data, om=om.reshape(B, N), start=win.start.reshape(B, E), dur=win.duration.reshape(B, E),
-                 center=p.center.expand(batch + (2,)).reshape(B, 2), cov=p.cov.expand(batch + (2, 2)).reshape(B, 2, 2),
-                 amp_psf=p.amplitude.expand(batch).reshape(B), u=u, batch=batch, psf=p)
-
-
-def _pixel_weight(noise_std, mask, flat: _Flat):
-    """``(weight [B, E, H, W], noise_level [B] or None)``: :func:`~torchblur.errors.pixel_weights`
-    and the median given noise std per image set."""
-    data = flat.data
-    weight, s = pixel_weights(noise_std, mask, data.reshape(flat.batch + data.shape[1:]))
-    return weight, None if s is None else median_along(s.reshape(data.shape[0], -1))
+    win, p = flat_window(window, batch, B, E), flat_psf(psf, batch, B)
+    center, cov = psf_moments(p)
+    kern = isinstance(p, KernelPSF)
+    return _Flat(data=data, om=flat_omega(omega, batch, B, data, tones=True), start=win.start, dur=win.duration,
+                 center=center, cov=cov,
+                 amp_psf=torch.ones(B, dtype=data.dtype, device=data.device) if kern else p.amplitude,
+                 u=flat_direction(direction, batch, B, data), batch=batch, psf=p, kernel=p.kernel if kern else None)
 
 
 def _noise_power(noise, power, noise_std, flat: _Flat) -> torch.Tensor | None:
@@ -334,9 +228,7 @@ def _reweight_by_model(prob: _Problem, box, data, weight, theta, live, noise: Ca
     noise.std(model * power) / power`` of the first fit's model image (rendered by the problem's
     own forward model; 0 outside the crop, where every model is 0), masked pixels still 0.
 
-    Why: the first pass's weights correlate with the noise and bias the amplitudes low (see
-    :func:`torchblur.fit.sinusoid._reweight_by_model`).
-
+    Why: docs/reliability.md, "The camera's noise and the losses".
     ``stats``: the fit's ``(cost, converged, n_iter, noise std) [B]``, set in place for the live
     sets (the refit's cost and convergence, the iterations added, the median of the new pixel
     stds). Returns ``(problem with the new weights, theta [B, P])``.
@@ -350,8 +242,7 @@ def _reweight_by_model(prob: _Problem, box, data, weight, theta, live, noise: Ca
     std = noise.std(expected * p) / p
     w2 = weight.clone()
     w2[live] = torch.where(weight[live] > 0, 1 / std**2, torch.zeros_like(std))
-    wflat, outside_cost = _weight_terms(w2, data, box)
-    prob = replace(prob, wflat=wflat, outside_cost=outside_cost)
+    prob = replace(prob, wflat=w2[..., lo_y:hi_y, lo_x:hi_x].reshape(B, -1), outside_cost=cut_sums(data, w2, box)[0])
     jac = (lambda th, i: prob.model_and_jacobian(th, live[i])) if prob.analytic else None
     res = levenberg_marquardt(lambda th, i: prob.model(th, live[i]), theta[live], prob.target[live], loss="l2", weight=prob.wflat[live],
                               max_iter=max_iter, tol=tol, jacobian_fn=jac)
@@ -508,7 +399,6 @@ def _problem(flat: _Flat, weight, theta_c, render_settings, kernel_var=None) -> 
     dtype, device = flat.data.dtype, flat.data.device
     data = flat.data
     lo_y, hi_y, lo_x, hi_x = box = _crop_box(flat, theta_c)
-    wflat, outside_cost = _weight_terms(weight, data, box)
     center_c = flat.center - torch.tensor([lo_x, lo_y], dtype=dtype, device=device)
     psf_c = GaussianPSF(center_c, flat.cov, flat.amp_psf) if flat.kernel is None else KernelPSF(flat.kernel[:, lo_y:hi_y, lo_x:hi_x])
     reach = float((theta_c[..., :N].abs().sum(-1).amax(1) * 1.3 + 0.5).max()) if B else 0.0
@@ -518,26 +408,15 @@ def _problem(flat: _Flat, weight, theta_c, render_settings, kernel_var=None) -> 
                           torch.zeros(B, 1, N, 2, dtype=dtype, device=device), flat.om[:, None])
         S = choose_node_count(bound.path_length(ExposureWindow(torch.zeros_like(flat.dur), flat.dur)), psf_c.sigma_min()[:, None],
                               settings)
-        settings = RenderSettings(pixel_integration=settings.pixel_integration, nodes_per_panel=settings.nodes_per_panel,
-                                  panel_path_sigmas=settings.panel_path_sigmas, max_nodes=settings.max_nodes, nodes=S)
-    out_used = weight > 0
-    out_used[..., lo_y:hi_y, lo_x:hi_x] = False
-    prob = _Problem(target=data[..., lo_y:hi_y, lo_x:hi_x].reshape(B, -1), wflat=wflat,
-                    om=flat.om, start=flat.start, dur=flat.dur, psf=psf_c, u=flat.u, height=hi_y - lo_y, width=hi_x - lo_x,
-                    settings=settings, outside_cost=outside_cost, pad=int(math.ceil(reach)) + 2,
-                    outside_sq=(out_used * data * data).sum((-1, -2, -3)), outside_n=out_used.sum((-1, -2, -3)).to(dtype),
+        settings = replace(settings, nodes=S)
+    outside_cost, outside_sq, outside_n = cut_sums(data, weight, box)
+    prob = _Problem(target=data[..., lo_y:hi_y, lo_x:hi_x].reshape(B, -1),
+                    wflat=weight[..., lo_y:hi_y, lo_x:hi_x].reshape(B, -1), om=flat.om, start=flat.start, dur=flat.dur,
+                    psf=psf_c, u=flat.u, height=hi_y - lo_y, width=hi_x - lo_x, settings=settings,
+                    outside_cost=outside_cost, outside_sq=outside_sq, outside_n=outside_n,
+                    pad=int(math.ceil(reach)) + 2,
                     kernel_var=None if kernel_var is None else kernel_var[:, lo_y:hi_y, lo_x:hi_x])
     return prob, box
-
-
-def _weight_terms(weight, data, box) -> tuple[torch.Tensor, torch.Tensor]:
-    """The weights ``weight [B, E, H, W]`` as the cropped problem takes them: ``(wflat [B, R]``
-    inside the crop ``box``, ``outside_cost [B]``, the weighted sum of squares of the data outside
-    it, where every model is 0)."""
-    lo_y, hi_y, lo_x, hi_x = box
-    out_w = weight.clone()
-    out_w[..., lo_y:hi_y, lo_x:hi_x] = 0
-    return weight[..., lo_y:hi_y, lo_x:hi_x].reshape(weight.shape[0], -1), (out_w * data * data).sum((-1, -2, -3))
 
 
 def _coarse_cost(prob: _Problem, cands: torch.Tensor, item: int) -> torch.Tensor:
@@ -709,20 +588,16 @@ def _fisher(prob: _Problem, theta, live, noise_level):
         fw = wl
         sigma_used[live] = noise_level[live]
     else:
-        resid = prob.target[live] - model
-        n_used = (wl > 0).sum(-1).to(dtype) + prob.outside_n[live]
-        sig2 = (((resid * resid) * (wl > 0)).sum(-1) + prob.outside_sq[live]) / (n_used - P).clamp_min(1)
-        fw = (wl > 0).to(dtype) / sig2[:, None].clamp_min(torch.finfo(dtype).tiny)
+        fw, sig2 = residual_weights(prob.target[live] - model, wl, P, cut_sq=prob.outside_sq[live],
+                                    cut_n=prob.outside_n[live])
         sigma_used[live] = sig2.sqrt()
-    F = (J * fw[..., None]).transpose(-1, -2) @ J
-    c_l, info = torch.linalg.inv_ex(F)
+    c_l, info = fisher_covariance(J, fw)
     kcov = None
     if prob.kernel_var is not None:
         kcov = torch.full_like(cov_out, float("nan"))
         kcov[live] = _kernel_term(prob, theta[live], live, J, fw, c_l)
         c_l = c_l + kcov[live]
-    diag = torch.diagonal(c_l, dim1=-2, dim2=-1)
-    singular[live] = (info != 0) | ~torch.isfinite(c_l).all(-1).all(-1) | (diag <= 0).any(-1)
+    singular[live] = singular_covariance(c_l, info)
     cov_out[live] = c_l
     return cov_out, sigma_used, singular, kcov
 
@@ -750,20 +625,9 @@ def _kernel_variance(kernel_var, flat: _Flat) -> torch.Tensor | None:
     try:
         return v.expand(flat.batch + flat.kernel.shape[-2:]).reshape(flat.kernel.shape)
     except RuntimeError:
-        raise ShapeError(f"kernel_var: expected the kernel's shape {tuple(flat.psf.kernel.shape)} (or one that broadcasts to "
+        raise ShapeError(f"kernel_var: expected the kernel's shape {tuple(flat.kernel.shape[-2:])} (or one that "
+                         f"broadcasts to "
                          f"{tuple(flat.batch + flat.kernel.shape[-2:])}), got {tuple(v.shape)}") from None
-
-
-def _status(converged, red_chi2, singular, dark, sigma_given: bool) -> torch.Tensor:
-    """Status codes ``[B]`` (:data:`~torchblur.fit.status.STATUS`): 2 not converged; POOR_FIT still far above the
-    given noise (reduced chi2 > 3) after the wider search; 4 singular; 1 dark."""
-    status = torch.zeros(converged.shape, dtype=torch.long, device=converged.device)
-    status[~converged] = 2
-    if sigma_given:
-        status[red_chi2 > 3.0] = POOR_FIT
-    status[singular] = 4
-    status[dark] = 1
-    return status
 
 
 def fit_multisine(
@@ -823,7 +687,9 @@ def fit_multisine(
     flat = _check_and_flatten(images, psf, window, omega, direction, {"n_starts": n_starts, "n_refine": n_refine, "max_iter": max_iter})
     batch, (B, N) = flat.batch, flat.om.shape
     pw = _noise_power(noise, power, noise_std, flat)
-    weight, given_level = _pixel_weight(noise_std if pw is None else _own_value_std(noise, pw, flat), mask, flat)
+    weight, s = pixel_weights(noise_std if pw is None else _own_value_std(noise, pw, flat), mask,
+                              flat.data.reshape(batch + flat.data.shape[1:]))
+    given_level = None if s is None else median_along(s.reshape(B, -1))  # the median given noise std per image set
     sigma_given = given_level is not None
     noise_level, dark, thr = _levels(flat.data, given_level)
     M0 = _amplitude_start(flat, amplitude_guess, thr)
@@ -855,7 +721,8 @@ def _multisine_result(prob, theta_best, best, live, dark, noise_level, sigma_giv
     cov_out, sigma_used, singular, kcov = _fisher(prob, theta_best, live, noise_level if sigma_given else None)
     std = torch.diagonal(cov_out, dim1=-2, dim2=-1).clamp_min(0).sqrt()
     red_chi2 = _reduced_chi2(prob, cost_best)
-    status = _status(conv_best, red_chi2, singular, dark, sigma_given)
+    # POOR_FIT: still far above the given noise (reduced chi2 > 3) after the wider search
+    status = item_status(conv_best, singular, dark, poor=red_chi2 > 3.0 if sigma_given else None)
     nan = torch.tensor(float("nan"), dtype=theta_best.dtype, device=theta_best.device)
 
     def out(x, tail=()):
@@ -868,7 +735,8 @@ def _multisine_result(prob, theta_best, best, live, dark, noise_level, sigma_giv
         amplitude_std=out(torch.where(bad, nan, std[:, :N]), (N,)),
         phase_std=out(torch.where(bad, nan, std[:, N:2 * N]), (N,)),
         covariance=out(cov_out, (P, P)),
-        param_names=multisine_param_names(N, fit_scale),
+        param_names=tuple([f"amplitude_{k}" for k in range(N)] + [f"phase_{k}" for k in range(N)]
+                          + ["scale"] * fit_scale),
         cost=out(cost_best + prob.outside_cost),
         converged=out(status == 0),
         status=out(status),

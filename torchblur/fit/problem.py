@@ -1,11 +1,6 @@
-"""The problems of a sinusoid fit as its steps see them: pixels and weights, starts, and the crop.
-
-:func:`sine_problem` turns checked, flat inputs (``N`` problems of ``E`` exposures) into a
-:class:`SineProblem`: the fit weight of each pixel, the noise and background levels, and which
-items cannot be fitted (a dark frame, a spot out of frame). :func:`starting_points` gives the
-closed-form starts from the image moments (every root of the first exposure, or the consensus
-root of two or more), with the nuisance parameters' starts. :func:`crop_to_reach` cuts the
-frames to the region the model can reach and keeps the constant contribution of the rest.
+"""The problems of a sinusoid fit as its steps see them: :func:`sine_problem` (pixel weights, noise
+and background levels, the items that cannot be fitted), :func:`starting_points` (closed-form starts
+from the image moments) and :func:`crop_to_reach` (the frames cut to where the model reaches).
 """
 from __future__ import annotations
 
@@ -23,7 +18,8 @@ from torchblur.render.alias import wrap_phase
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.window import ExposureWindow
 
-__all__ = ["SineProblem", "sine_problem", "starting_points", "crop_to_reach", "dark_items", "matched_filter_peak", "DARK_FALSE_ALARM"]
+__all__ = ["SineProblem", "sine_problem", "starting_points", "crop_to_reach", "cut_sums", "dark_items",
+           "matched_filter_peak", "DARK_FALSE_ALARM"]
 
 
 @dataclass(frozen=True)
@@ -130,26 +126,16 @@ DARK_FALSE_ALARM = 1e-3  # the matched filter's false-alarm rate per item on whi
 def dark_items(data, level, noise_level, psf_cov, *, noise_given: bool = True, peak=None,
                false_alarm: float = DARK_FALSE_ALARM) -> torch.Tensor:
     """Which items ``[N]`` (bool) hold no signal above the noise: "dark", decided on the total
-    signal of the spot by a matched filter, not on the brightest pixel.
+    signal of the spot by a matched filter, not on the brightest pixel (docs/reliability.md,
+    "Degenerate frames are flagged per item, never raised", has the rule's false-alarm rate and gain).
 
-    The rule: each exposure is correlated with the zero-mean, unit-norm template of the still
-    spot (a Gaussian of the PSF's covariance ``psf_cov``, so the background level drops out: a streak is a
-    sum of still spots along its path, so the filter gathers the light of a PSF's footprint
-    along it) and divided by the pixel noise std ``noise_level``; an item is dark when the
-    largest value over every pixel and exposure stays below ``t = Phi^-1(1 - false_alarm / n)``
-    (``n = E H W`` values, ``Phi`` the normal CDF: ``t`` = 4.9 for 2 x 32 x 40 pixels, 6.1
-    for 2 x 1000 x 1000). On white Gaussian noise of the given std every filtered value is a
-    standard normal, so a pure-noise item is called lit with probability at most
-    ``false_alarm`` (the union bound; the filtered values are correlated, so the rate is
-    lower). Where the noise std is estimated (``noise_given`` False) it is estimated again
-    for the candidates from every pixel (``1.4826`` MAD); its few-percent error raises the
-    rate somewhat. Measured on 4000 pure-noise items of two 32 x 40 exposures (PSF sigma
-    2.2 x 1.5 px): 2 called lit with the noise std given, 2 with it estimated (5e-4 each). An item whose brightest pixel is above 8 noise stds is lit without the filter,
-    and one whose brightest pixel is not above the level (an empty frame) is dark.
-
-    Compared with the brightest pixel alone, the filter's gain on a streak is about
-    ``sqrt(2 pi) sigma_psf`` (4.5 for a 1.8 px PSF): a streak with a per-pixel peak SNR of 3 is
-    at about 13 filtered stds.
+    Each exposure is correlated with the zero-mean, unit-norm template of the still spot (a
+    Gaussian of covariance ``psf_cov``) and divided by the pixel noise std ``noise_level``; an item
+    is dark when the largest value over every pixel and exposure stays below
+    ``t = Phi^-1(1 - false_alarm / n)`` (``n = E H W``, ``Phi`` the normal CDF). Where the noise std
+    is estimated (``noise_given`` False) it is estimated again for the candidates from every pixel
+    (``1.4826`` MAD). An item whose brightest pixel is above 8 noise stds is lit without the
+    filter, and one whose brightest pixel is not above the level (an empty frame) is dark.
 
     Args:
         data: ``[N, E, H, W]``; level, noise_level: ``[N]`` (background and pixel noise std);
@@ -345,28 +331,36 @@ def crop_to_reach(problem: SineProblem, amplitude_bound: torch.Tensor, *, fit_ce
     cx1, cy1 = min(W, int(math.ceil(float(hi[0]))) + 1), min(H, int(math.ceil(float(hi[1]))) + 1)
     if not _worth_cropping(cx1 - cx0, cy1 - cy0, H, W):
         return p
-    bands = ((slice(None, cy0), slice(None)), (slice(cy1, None), slice(None)),
-             (slice(cy0, cy1), slice(None, cx0)), (slice(cy0, cy1), slice(cx1, None)))
+    cut_cost, cut_sq, cut_n = cut_sums(p.data, p.weight, (cy0, cy1, cx0, cx1), p.row_weight)
+    shift = torch.tensor([cx0, cy0], dtype=p.data.dtype, device=p.data.device)
+    psf = GaussianPSF(p.psf.center - shift, p.psf.cov, p.psf.amplitude)
+    return dataclasses.replace(p, data=p.data[..., cy0:cy1, cx0:cx1], weight=p.weight[..., cy0:cy1, cx0:cx1], psf=psf,
+                               origin=(cx0, cy0), cut_cost=cut_cost, cut_sq=cut_sq, cut_n=cut_n)
+
+
+def cut_sums(data, weight, box, row_weight=None):
+    """Over the pixels of ``data [N, E, H, W]`` outside the crop ``box = (y0, y1, x0, x1)`` (px), where
+    every model is 0: ``(cost, sq, n)``, each ``[N]``: the weighted sum of squares (``weight [N, E, H,
+    W]``, or one weight per item ``row_weight [N]``, nothing masked), the plain sum of squares and the
+    count of the used pixels (weight > 0)."""
+    N, E, H, W = data.shape
+    y0, y1, x0, x1 = box
+    bands = ((slice(None, y0), slice(None)), (slice(y1, None), slice(None)),
+             (slice(y0, y1), slice(None, x0)), (slice(y0, y1), slice(x1, None)))
 
     def cut_sum(f):  # f(band) -> [N, E, h, w]: summed over the pixels the crop cuts off -> [N]
         return sum(f(b).sum((-1, -2, -3)) for b in bands)
 
     def sq(b):
-        d = p.data[(..., *b)]
+        d = data[(..., *b)]
         return d * d
 
-    if p.row_weight is not None:
+    if row_weight is not None:
         cut_sq = cut_sum(sq)
-        cut_cost = p.row_weight * cut_sq
-        cut_n = torch.full_like(cut_sq, float(E * (H * W - (cy1 - cy0) * (cx1 - cx0))))
-    else:
-        cut_cost = cut_sum(lambda b: p.weight[(..., *b)] * sq(b))
-        cut_sq = cut_sum(lambda b: (p.weight[(..., *b)] > 0) * sq(b))
-        cut_n = cut_sum(lambda b: (p.weight[(..., *b)] > 0).to(p.data.dtype))
-    shift = torch.tensor([cx0, cy0], dtype=p.data.dtype, device=p.data.device)
-    psf = GaussianPSF(p.psf.center - shift, p.psf.cov, p.psf.amplitude)
-    return dataclasses.replace(p, data=p.data[..., cy0:cy1, cx0:cx1], weight=p.weight[..., cy0:cy1, cx0:cx1], psf=psf,
-                               origin=(cx0, cy0), cut_cost=cut_cost, cut_sq=cut_sq, cut_n=cut_n)
+        return row_weight * cut_sq, cut_sq, torch.full_like(cut_sq, float(E * (H * W - (y1 - y0) * (x1 - x0))))
+    used = weight > 0
+    return (cut_sum(lambda b: weight[(..., *b)] * sq(b)), cut_sum(lambda b: used[(..., *b)] * sq(b)),
+            cut_sum(lambda b: used[(..., *b)].to(data.dtype)))
 
 
 def _reach_bounds(p: SineProblem, amplitude_bound: torch.Tensor, fit_center: bool):

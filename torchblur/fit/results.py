@@ -1,37 +1,66 @@
-"""The result of a sinusoid fit: :class:`SinusoidFit`, one named field per estimate and per status."""
+"""The results of the sine fitters: :class:`ToneFit`, the fields every one has, and :class:`SinusoidFit`."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
 
 import torch
 
-__all__ = ["SinusoidFit", "put_items"]
+__all__ = ["ToneFit", "SinusoidFit", "put_items"]
 
 
-@dataclass
-class SinusoidFit:
-    """Result of :func:`fit_sinusoid`; batch ``[...]`` is the images' leading dims.
+@dataclass(kw_only=True)
+class ToneFit:
+    """The fields of every sine fitter's result (:class:`SinusoidFit`,
+    :class:`~torchblur.fit.multisine.MultisineFit`); batch ``[...]`` is the images' leading dims.
 
     Attributes:
-        amplitude: M (px), ``[...]`` (axes "x"/"y") or ``[..., 2]`` (axes "xy"), >= 0.
+        amplitude: M (px, >= 0), one per fitted axis or tone (the shapes: each subclass).
         phase: phi (rad, wrapped to (-pi, pi]), same shape.
         amplitude_std, phase_std: one standard deviation from the Fisher information at the
-            solution (noise level given, or estimated from the residuals).
+            solution (noise level given, or estimated from the residuals), same shape.
+        covariance: ``[..., P, P]`` over every fitted parameter, in ``param_names`` order.
+        param_names: names of the P parameters.
+        cost: the loss at the solution, ``[...]``.
+        converged: ``[...]`` bool, ``status == 0``.
+        status: ``[...]`` int, see :data:`~torchblur.fit.status.STATUS`.
+        noise_std: the pixel noise std used for the uncertainty, ``[...]``.
+        n_iter: optimiser iterations, ``[...]``.
+        scale: the fitted intensity scale ``[...]`` (None if not fitted).
+        flags: ``[...]`` int, a bit field of :data:`~torchblur.fit.status.FLAGS`; test a bit with
+            ``(fit.flags & PARTLY_OUT_OF_FRAME) != 0``.
+        extras: the fitter's diagnostics (each subclass lists them).
+    """
+
+    amplitude: torch.Tensor
+    phase: torch.Tensor
+    amplitude_std: torch.Tensor
+    phase_std: torch.Tensor
+    covariance: torch.Tensor
+    param_names: tuple
+    cost: torch.Tensor
+    converged: torch.Tensor
+    status: torch.Tensor
+    noise_std: torch.Tensor
+    n_iter: torch.Tensor
+    scale: torch.Tensor | None = None
+    flags: torch.Tensor | None = None
+    extras: dict = field(default_factory=dict)
+
+
+@dataclass(kw_only=True)
+class SinusoidFit(ToneFit):
+    """Result of :func:`~torchblur.fit.sinusoid.fit_sinusoid`: the :class:`ToneFit` fields, with
+    ``amplitude``, ``phase`` and their stds ``[...]`` (axes "x"/"y", or an image direction) or
+    ``[..., 2]`` (axes "xy"); ``flags`` (:data:`~torchblur.fit.status.MASKED`,
+    :data:`~torchblur.fit.status.SATURATED_MASKED`, :data:`~torchblur.fit.status.OUTLIERS_MASKED`,
+    :data:`~torchblur.fit.status.PARTLY_OUT_OF_FRAME`, :data:`~torchblur.fit.status.NO_MOTION`, ...).
+
+    Attributes:
         alias_phase: the other branch for the first exposure (renders the same image as
             ``phase`` in that exposure), same shape as ``phase``.
         alias_cost: the loss at ``(amplitude, alias_phase)`` over all exposures, ``[...]``:
             equal to ``cost`` with one exposure, larger when the exposures resolve the alias.
-        cost: the loss at the solution, ``[...]``.
-        converged: ``[...]`` bool, ``status == 0``.
-        status: ``[...]`` int, see :data:`STATUS`.
-        covariance: ``[..., P, P]`` over every fitted parameter, in ``param_names`` order.
-        param_names: names of the P parameters.
-        noise_std: the pixel noise std used for the uncertainty, ``[...]``.
-        scale, background, center: fitted nuisance parameters (None if not fitted).
-        n_iter: optimiser iterations, ``[...]``.
-        flags: ``[...]`` int, a bit field of :data:`FLAGS` (:data:`MASKED`,
-            :data:`SATURATED_MASKED`, :data:`OUTLIERS_MASKED`, :data:`PARTLY_OUT_OF_FRAME`,
-            :data:`NO_MOTION`); test a bit with ``(fit.flags & PARTLY_OUT_OF_FRAME) != 0``.
+        background, center: fitted nuisance parameters (None if not fitted).
         n_masked: pixels excluded from the fit (every cause), ``[...]`` int.
         n_outliers: of which excluded by the robust pass (``outliers="reject"``), ``[...]`` int.
         background_plane: with ``fit_gradient``: the stray-light plane removed from each
@@ -44,24 +73,10 @@ class SinusoidFit:
             error (a wrong PSF, stray light, a motion that is not a sine). NaN otherwise.
     """
 
-    amplitude: torch.Tensor
-    phase: torch.Tensor
-    amplitude_std: torch.Tensor
-    phase_std: torch.Tensor
     alias_phase: torch.Tensor
     alias_cost: torch.Tensor
-    cost: torch.Tensor
-    converged: torch.Tensor
-    status: torch.Tensor
-    covariance: torch.Tensor
-    param_names: tuple
-    noise_std: torch.Tensor
-    n_iter: torch.Tensor
-    scale: torch.Tensor | None = None
     background: torch.Tensor | None = None
     center: torch.Tensor | None = None
-    extras: dict = field(default_factory=dict)
-    flags: torch.Tensor | None = None
     n_masked: torch.Tensor | None = None
     n_outliers: torch.Tensor | None = None
     background_plane: torch.Tensor | None = None

@@ -1,27 +1,11 @@
-"""The model a sinusoid fit compares with the images: the image of the parameters, and its Jacobian.
-
-A fit of ``N`` problems (flat batch) has parameters ``theta [n, P]`` laid out by
-:class:`ParamLayout`: the amplitudes (px) and phases (rad) of the fitted axes, then the nuisance
-parameters (intensity scale, background, rest position). :class:`SineModel` answers, for rows
-``theta`` of problems ``n [n]``, the model images ``[n, E * H * W]`` and their Jacobian
-``[n, E * H * W, P]``; the optimiser sees only these two calls.
-
-Two paths stand behind them:
-
-- analytic (Gaussian PSF, point-sampled pixels, no normalisation): the one forward model
-  :func:`torchblur.render.splat.sine_blur_with_jacobian` (a spot moved by sines along the fitted
-  axes' image directions), image and Jacobian from one splat; the frames of each exposure on
-  their own quadrature rule (``panels [N, E]``), frames of equal node count splatted together.
-  The scale and background columns are assembled around the splat.
-- measured kernel (a :class:`~torchblur.render.psf.KernelPSF`): the kernel's exact Fourier
-  shift, each item on its own terms (its own crop, ``regions``; its own quadrature rule per
-  frame; its own FFT grid, from its own motion), so a batch gives each item what a fit of it
-  alone gives; a forward-mode AD Jacobian.
-- generic (pixel integration, ``normalize``): :func:`~torchblur.render.blur.render_blur` and
-  a forward-mode AD Jacobian.
-
-:meth:`SineModel.rendered` (the renderer, differentiable by autograd) serves the gradient
-optimisers on both paths.
+"""The model a sinusoid fit compares with the images: for rows ``theta [n, P]`` (laid out by
+:class:`ParamLayout`) of problems ``n [n]``, :class:`SineModel` gives the model images
+``[n, E * H * W]`` and their Jacobian ``[n, E * H * W, P]``, the two calls the optimiser sees. Three
+paths: analytic (a Gaussian PSF, point-sampled pixels: image and Jacobian from one splat of
+:func:`torchblur.render.splat.sine_blur_with_jacobian`, frames of equal node count together), a
+measured kernel (its Fourier shift, each item on its own crop, rules and FFT grid, so a batch gives
+each item what a fit of it alone gives), and generic (pixel integration, ``normalize``:
+:func:`~torchblur.render.blur.render_blur` and forward-mode AD).
 """
 from __future__ import annotations
 
@@ -171,10 +155,11 @@ class SineModel:
             img = img / img.square().sum((-1, -2), keepdim=True).sqrt().clamp_min(1e-30)
         return img.reshape(img.shape[0], -1)
 
-    def _kernel_images(self, amp: torch.Tensor, ph: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
-        """Kernel path: images ``[m, E, H, W]`` of amplitudes and phases ``[m, n_axes]`` of problems
-        ``n [m]``; each row's frames from its item's own crop (kernel ``[:h, :w]``), its frames'
-        own rules, and an FFT grid padded by its own largest displacement (rows grouped by those)."""
+    def _kernel_nodes(self, amp: torch.Tensor, ph: torch.Tensor, n: torch.Tensor):
+        """Kernel path, amplitudes and phases ``[m, n_axes]`` of problems ``n [m]``: ``(t, w, disp, groups)``:
+        each frame's nodes (s) and weights ``[m, E, S]``, the spot's displacement at each node ``[m, E, S, 2]``
+        (0 past a frame's own nodes), and the rows grouped by crop and FFT grid, ``[(rows, h, w, pad, S)]``: the
+        crop ``h x w`` (kernel ``[:h, :w]``), the grid padded by the rows' largest displacement, S the nodes."""
         tau, wq = (v[n] for v in self.kernel_rule)  # [m, E, S]
         live = wq > 0
         t = self.start[n][..., None] + self.duration[n][..., None] * tau
@@ -188,13 +173,21 @@ class SineModel:
         pad = -(-reach // _PAD_STEP) * _PAD_STEP  # [m]: rows of similar reach share a grid
         keys = torch.stack([hw[:, 0].to(pad.device), hw[:, 1].to(pad.device), pad], -1)
         uniq, group = torch.unique(keys, dim=0, return_inverse=True)
-        parts, order = [], []
+        groups = []
         for g, (h, wd, pd) in enumerate(uniq.tolist()):
             rows = (group == g).nonzero(as_tuple=True)[0].to(n.device)
-            S = max(int(live[rows].sum(-1).max()), 1)
-            kern = self.psf.kernel[n[rows], :h, :wd][:, None].expand(-1, tau.shape[1], h, wd)
+            groups.append((rows, h, wd, pd, max(int(live[rows].sum(-1).max()), 1)))
+        return t, w, disp, groups
+
+    def _kernel_images(self, amp: torch.Tensor, ph: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
+        """Kernel path: images ``[m, E, H, W]`` of amplitudes and phases ``[m, n_axes]`` of problems
+        ``n [m]``, each row on its own crop, rules and FFT grid (:meth:`_kernel_nodes`)."""
+        t, w, disp, groups = self._kernel_nodes(amp, ph, n)
+        parts, order = [], []
+        for rows, h, wd, pd, S in groups:
+            kern = self.psf.kernel[n[rows], :h, :wd][:, None].expand(-1, t.shape[1], h, wd)
             img = _kernel_fourier(kern, disp[rows, :, :S, 0], disp[rows, :, :S, 1], w[rows, :, :S], pad=pd)
-            parts.append(torch.nn.functional.pad(img, (0, W - wd, 0, H - h)))
+            parts.append(torch.nn.functional.pad(img, (0, self.width - wd, 0, self.height - h)))
             order.append(rows)
         img = torch.cat(parts) if len(parts) > 1 else parts[0]
         return img if len(parts) == 1 else img.index_select(0, torch.argsort(torch.cat(order)))
@@ -206,24 +199,12 @@ class SineModel:
         same image to round-off)."""
         L, H, W = self.layout, self.height, self.width
         amp, ph = L.amplitudes(theta), L.phases(theta)  # [m, n_axes]
-        tau, wq = (v[n] for v in self.kernel_rule)  # [m, E, S]
-        live = wq > 0
-        m, E, K = n.shape[0], tau.shape[1], amp.shape[-1]
-        t = self.start[n][..., None] + self.duration[n][..., None] * tau
-        w = self.duration[n][..., None] * wq
+        m, E, K = n.shape[0], self.start.shape[1], amp.shape[-1]
         with torch.no_grad():  # the FFT grid per row, as _kernel_images chooses it
-            s = torch.sin(self.omega[n][:, None, None, None] * t[..., None] + ph[:, None, None, :]) * amp[:, None, None, :]
-            disp = torch.where(live[..., None], (s[..., None] * self.direction[n][:, None, None]).sum(-2), 0.0)
-            reach = disp.abs().flatten(1).amax(-1).ceil().long() + 2
-        pad = -(-reach // _PAD_STEP) * _PAD_STEP
-        hw = self.regions[n] if self.regions is not None else torch.tensor([[H, W]], device=n.device).expand(m, 2)
-        keys = torch.stack([hw[:, 0].to(pad.device), hw[:, 1].to(pad.device), pad], -1)
-        uniq, group = torch.unique(keys, dim=0, return_inverse=True)
+            t, w, _, groups = self._kernel_nodes(amp, ph, n)
         img = theta.new_zeros(m, E, H, W)
         J = theta.new_zeros(m, theta.shape[1], E, H, W)
-        for g, (h, wd, pd) in enumerate(uniq.tolist()):
-            r = (group == g).nonzero(as_tuple=True)[0].to(n.device)
-            S = max(int(live[r].sum(-1).max()), 1)
+        for r, h, wd, pd, S in groups:
             i, dj = sine_blur_with_jacobian(t[r, :, :S], w[r, :, :S], amp[r, None].expand(-1, E, K), ph[r, None].expand(-1, E, K),
                                             self.omega[n[r], None, None].expand(-1, E, K), self.direction[n[r], None].expand(-1, E, K, 2),
                                             theta.new_zeros(r.numel(), E, 2), None, h, wd,

@@ -1,29 +1,20 @@
-"""Batched sinusoid fitting: amplitude and phase of a spot's motion from blurred images.
-
-Every problem (a frequency, a spot) of a batch is fitted at once. Starts come from the
-closed-form moments (every root, the alias pair included), all refined together; with two
-or more exposures of the same motion the fit is joint and the alias is gone. The result
-carries the Fisher-information uncertainty of each estimate and a status per item, so a
-dark frame or a spot out of frame is flagged and never stops or poisons the batch.
-
-The pieces: :mod:`torchblur.fit.problem` (pixels, weights, starts, crop),
-:mod:`torchblur.fit.sine_model` (the model image and its Jacobian, on the one forward model
-:func:`torchblur.render.splat.sine_blur_with_jacobian`), :mod:`torchblur.fit.results`
-(:class:`SinusoidFit`), :mod:`torchblur.fit.robust` (the robust options' pixel helpers). Here:
-the public entry :func:`fit_sinusoid` (checks once, robust passes, flags) and one pass of the
-fit in named steps (:func:`_fit_core`).
+"""Batched sinusoid fitting: :func:`fit_sinusoid` (checks once, robust passes, flags) and one pass
+of the fit in named steps (:func:`_fit_core`); its pieces are :mod:`~torchblur.fit.problem`,
+:mod:`~torchblur.fit.sine_model`, :mod:`~torchblur.fit.results`, :mod:`~torchblur.fit.robust`.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, fields, replace
 
 import torch
 
-from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_tensor, as_unit_direction, check_choice, check_finite,
-                              check_positive, check_real_scalar, flat_noise_and_mask)
-from torchblur.losses import LOSSES, covariance_factor, image_loss, irls_weights, loss_weight
+from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_tensor, check_bool, check_choice,
+                              check_finite, check_real_scalar, flat_noise_and_mask)
+from torchblur.losses import (LOSSES, covariance_factor, fisher_covariance, image_loss, irls_weights, loss_weight,
+                              residual_weights, singular_covariance)
 from torchblur.optim import LMResult, levenberg_marquardt
+from torchblur.fit.inputs import (check_count, check_data, flat_count, flat_direction, flat_omega, flat_psf,
+                                  flat_window, take_psf)
 from torchblur.fit.problem import SineProblem, crop_to_reach, sine_problem, starting_points
 from torchblur.fit.results import SinusoidFit, put_items
 from torchblur.fit.robust import impulses, inpaint, plane_fit, plane_image, robust_scale
@@ -36,60 +27,21 @@ from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.trajectory import Sinusoid
 from torchblur.render.window import ExposureWindow
 
-from torchblur.fit.status import (  # noqa: F401  (re-exported: torchblur.fit.sinusoid.STATUS, ...)
-    DARK, FLAGS, MASKED, NO_MOTION, NO_PIXELS, NOT_CONVERGED, OUT_OF_FRAME, OUTLIERS_MASKED, PARTLY_OUT_OF_FRAME, SATURATED_MASKED,
-    POOR_FIT_FLAG, SINGULAR, STATUS, flag_branch_undecided, flag_poor_fit,
-)
+from torchblur.fit.status import (DARK, MASKED, NO_MOTION, NO_PIXELS, OUTLIERS_MASKED, PARTLY_OUT_OF_FRAME, SATURATED_MASKED,
+                                  flag_branch_undecided, flag_poor_fit, item_status)
+from torchblur.fit.status import STATUS  # noqa: F401  (identify.sweep imports it from here: another session's area)
 
-__all__ = ["SinusoidFit", "fit_sinusoid", "STATUS", "FLAGS", "MASKED", "SATURATED_MASKED", "OUTLIERS_MASKED", "PARTLY_OUT_OF_FRAME",
-           "NO_MOTION"]
+__all__ = ["SinusoidFit", "fit_sinusoid"]
 
 OPTIMIZERS = ("lm", "adam", "lbfgs")
 AXES = ("x", "y", "xy")
 OUTLIERS = ("none", "reject")
 
 
-def fit_dtype(images: torch.Tensor, psf, window: ExposureWindow) -> torch.dtype:
-    """The dtype a fit computes in and returns: the widest floating dtype of ``images``, the
-    PSF and the window, at least float32 (integer images count as none; float16 and bfloat16
-    are promoted: the model's sums and the normal equations need float32's precision)."""
-    psf_t = psf.cov if isinstance(psf, GaussianPSF) else psf.kernel
-    dtype = torch.float32
-    for t in (images, psf_t, window.start, window.duration):
-        if t.is_floating_point():
-            dtype = torch.promote_types(dtype, t.dtype)
-    return dtype
-
-
-def _broadcasts_to(shape, target) -> bool:
-    """Whether a tensor of ``shape`` can be expanded to ``target`` (broadcasting to a larger
-    shape is not enough: a PSF batch of 2 does not fit images of batch 1)."""
-    try:
-        return torch.broadcast_shapes(tuple(shape), tuple(target)) == tuple(target)
-    except RuntimeError:
-        return False
-
-
-def _validate(images, psf, window, omega, axes, optimizer, loss):
-    """Check :func:`fit_sinusoid`'s data arguments, ``axes`` (a name), ``optimizer`` and ``loss``;
-    ``(images, psf, window, omega)`` in one floating dtype (:func:`fit_dtype`), ``omega`` a
-    tensor on the images' device."""
-    if not isinstance(images, torch.Tensor):
-        raise InputTypeError(f"images: expected a tensor [..., E, H, W], got {type(images).__name__}")
-    if images.is_complex() or images.dtype == torch.bool:
-        raise InputTypeError(f"images: expected a real tensor [..., E, H, W] (floating or integer counts) with the dark level "
-                             f"subtracted (preprocess.subtract_dark), got dtype {images.dtype}")
-    if images.dim() < 3:
-        raise ShapeError(f"images: expected shape [..., E, H, W], got {tuple(images.shape)}")
-    if images.numel() == 0:
-        raise ShapeError(f"images: expected a non-empty batch, got shape {tuple(images.shape)}")
-    if not isinstance(psf, (GaussianPSF, KernelPSF)):
-        raise InputTypeError(f"psf: expected GaussianPSF or KernelPSF, got {type(psf).__name__}")
-    if not isinstance(window, ExposureWindow):
-        raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
-    dtype = fit_dtype(images, psf, window)
-    images, psf, window = images.to(dtype), psf.to(dtype), window.to(dtype)
-    check_finite(images, "images")
+def _validate(images, psf, window, axes, optimizer, loss):
+    """Check :func:`fit_sinusoid`'s data arguments (:func:`~torchblur.fit.inputs.check_data`), ``axes``
+    (a name), ``optimizer`` and ``loss`` -> ``(images, psf, window)`` in one floating dtype."""
+    images, psf, window = check_data(images, psf, window)
     if isinstance(axes, str):
         check_choice(axes, "axes", AXES)
     check_choice(optimizer, "optimizer", OPTIMIZERS)
@@ -97,23 +49,7 @@ def _validate(images, psf, window, omega, axes, optimizer, loss):
     if optimizer == "lm" and loss == "linf":
         raise ParameterError("loss: 'linf' is not a sum of squares, so optimizer='lm' cannot fit it; use optimizer='adam' or 'lbfgs' "
                              "with it (the pairs that work: lm with l2, l1, poisson; adam and lbfgs with every loss)")
-    batch_e = images.shape[:-2]
-    E = batch_e[-1]
-    if window.shape and window.shape[-1] not in (1, E):
-        raise ShapeError(f"window: expected a last dim of 1 or E={E} (one window per exposure), got shape {tuple(window.shape)}")
-    if not _broadcasts_to(window.shape, batch_e):
-        raise ShapeError(f"window: expected a batch shape that broadcasts to the images' [..., E] = {tuple(batch_e)}, got {tuple(window.shape)}")
-    omega = check_positive(as_tensor(omega, "omega", dtype=images.dtype, device=images.device), "omega")
-    batch = images.shape[:-3]
-    if not _broadcasts_to(omega.shape, batch):
-        raise ShapeError(f"omega: expected a shape that broadcasts to the images' batch {tuple(batch)} (images [..., E, H, W] = "
-                         f"{tuple(images.shape)}), got {tuple(omega.shape)}")
-    if not _broadcasts_to(psf.shape, batch):
-        raise ShapeError(f"psf: expected a batch shape that broadcasts to the images' batch {tuple(batch)} (images [..., E, H, W] = "
-                         f"{tuple(images.shape)}), got {tuple(psf.shape)}")
-    if isinstance(psf, KernelPSF) and psf.frame_shape != tuple(images.shape[-2:]):
-        raise ShapeError(f"psf: expected a kernel of frame shape {tuple(images.shape[-2:])}, got {psf.frame_shape}")
-    return images, psf, window, omega
+    return images, psf, window
 
 
 @dataclass(frozen=True)
@@ -320,27 +256,16 @@ def _keep_better(model: SineModel, layout: ParamLayout, sol: _Solution, r, start
 
 
 def _uncertainty(model: SineModel, problem: SineProblem, sol: _Solution, target, o: _FitOptions, reuse: bool):
-    """The covariance of the estimates at the solution: ``(covariance [N, P, P], singular [N],
-    noise std used [N], model [N, R], chi2 [N])``, from the Fisher information ``F = J^T diag(1 / sigma^2) J``
-    of the loss's noise model, times :func:`~torchblur.losses.covariance_factor`:
-
-    - l2: ``F^-1``, ``sigma`` the given noise, else one std per item estimated from the
-      residuals (the pixels the crop cut off included);
-    - poisson: ``F^-1`` with ``sigma^2 = model + shift`` (its own Fisher information; the shifted
-      Poisson's variance, shot plus read noise);
-    - l1: ``(pi / 2) F^-1`` (least absolute deviations of the residuals in noise stds, under
-      Gaussian noise), ``sigma`` as for l2;
-    - linf: the l2 formula, which is no covariance of its estimate (it has no likelihood).
-
-    ``chi2``: the residuals' ``sum r^2 / sigma^2`` with the given noise (l2's cost; for poisson and
-    l1 the same sum at their solution, about l2's: the fit-quality check of every loss).
-    """
+    """The covariance of the estimates at the solution: ``(covariance [N, P, P], singular [N], noise std used
+    [N], model [N, R], chi2 [N])``: the Fisher information of the loss's noise model (``sigma`` the given noise,
+    else one std per item from the residuals, cut-off pixels included; poisson ``sigma^2 = model + shift``),
+    inverted, times :func:`~torchblur.losses.covariance_factor` (the table: docs/reliability.md, "The camera's
+    noise and the losses"). ``chi2``: ``sum r^2 / sigma^2`` with the given noise, the fit-quality check of
+    every loss."""
     p, loss = problem, o.loss
     N, P = sol.theta.shape
     dtype, device = sol.theta.dtype, sol.theta.device
     w = p.weight.reshape(N, -1)
-    n_used = (torch.full((N,), float(w.shape[-1]), dtype=dtype, device=device) if p.row_weight is not None
-              else (w > 0).sum(-1).to(dtype)) + p.cut_n
     if reuse:
         fitted = sol.model
         sign = torch.ones(N, P, dtype=dtype, device=device)
@@ -356,19 +281,13 @@ def _uncertainty(model: SineModel, problem: SineProblem, sol: _Solution, target,
     elif p.noise_given:
         fisher_w, sigma_used, scale2 = w, p.noise_level, ones
     else:
-        sig2 = (((resid * resid) * (w > 0)).sum(-1) + p.cut_sq) / (n_used - P).clamp_min(1)
-        fisher_w = (w > 0).to(dtype) / sig2[:, None].clamp_min(torch.finfo(dtype).tiny)
+        fisher_w, sig2 = residual_weights(resid, w, P, cut_sq=p.cut_sq, cut_n=p.cut_n)
         sigma_used = sig2.sqrt()
         scale2 = 1 / sig2.clamp_min(torch.finfo(dtype).tiny)
-    if reuse:
-        F = F * scale2[:, None, None]
-    else:
-        F = (J * fisher_w[..., None]).transpose(-1, -2) @ J
-    cov, info = torch.linalg.inv_ex(F)
+    cov, info = torch.linalg.inv_ex(F * scale2[:, None, None]) if reuse else fisher_covariance(J, fisher_w)
     if loss != "linf":
         cov = cov * covariance_factor(loss)
-    singular = (info != 0) | ~torch.isfinite(cov).all(-1).all(-1)
-    singular = singular | (torch.diagonal(cov, dim1=-2, dim2=-1) <= 0).any(-1)
+    singular = singular_covariance(cov, info)
     chi2 = (resid * resid * w).sum(-1) + p.cut_cost
     return cov, singular, sigma_used, fitted, chi2
 
@@ -380,9 +299,7 @@ def _item_status(model: SineModel, problem: SineProblem, sol: _Solution, fitted,
     p, L = problem, model.layout
     N = sol.theta.shape[0]
     dtype, device = sol.theta.dtype, sol.theta.device
-    status = torch.zeros(N, dtype=torch.long, device=device)
-    status[~sol.converged] = NOT_CONVERGED
-    status[singular] = SINGULAR
+    out_of_frame = p.outside
     if isinstance(p.psf, GaussianPSF):
         with torch.no_grad():
             scale = sol.theta[:, L.scale] if L.fit_scale else torch.ones(N, dtype=dtype, device=device)
@@ -390,10 +307,8 @@ def _item_status(model: SineModel, problem: SineProblem, sol: _Solution, fitted,
             if model.normalize:
                 inside = torch.full_like(inside, float("inf"))
             total = scale * (p.psf.total_light()[:, None] * p.duration).sum(-1)
-            status[inside < 0.5 * total] = OUT_OF_FRAME
-    status[p.outside] = OUT_OF_FRAME
-    status[p.dark] = DARK
-    return status
+            out_of_frame = out_of_frame | (inside < 0.5 * total)
+    return item_status(sol.converged, singular, p.dark, out_of_frame=out_of_frame)
 
 
 def _result(model: SineModel, problem: SineProblem, sol: _Solution, status, cov, sigma_used, K: int) -> SinusoidFit:
@@ -471,41 +386,43 @@ def _optimise(model: SineModel, items, theta0, data, weight, o: _FitOptions):
     n = theta0.shape[0]
     idx = torch.arange(n, device=theta0.device)
     scale = theta0.detach().abs().clamp_min(1.0)
+    u = torch.zeros_like(theta0, requires_grad=True)
+
+    def cost_at(v):  # the loss [n] at theta0 + v * scale
+        return image_loss(model_fn(theta0 + v * scale, idx), data, loss=loss, weight=weight, shift=o.shift)
+
     if o.optimizer == "adam":
         it = max_iter or 400
-        u = torch.zeros_like(theta0, requires_grad=True)
         opt = torch.optim.Adam([u], lr=0.02)
         history = []
         for _ in range(it):
             opt.zero_grad()
-            c = image_loss(model_fn(theta0 + u * scale, idx), data, loss=loss, weight=weight, shift=o.shift)
+            c = cost_at(u)
             c.sum().backward()
             opt.step()
             history.append(c.detach())
-        with torch.no_grad():
-            final = theta0 + u * scale
-            cost = image_loss(model_fn(final, idx), data, loss=loss, weight=weight, shift=o.shift)
-        prev = history[-20] if len(history) >= 20 else history[0]
-        conv = (prev - cost).abs() <= 1e-4 * cost.abs().clamp_min(1e-30)
-        return LMResult(final.detach(), cost, conv, torch.full((n,), it, dtype=torch.long, device=theta0.device))
-    it = max_iter or 100
-    u = torch.zeros_like(theta0, requires_grad=True)
-    opt = torch.optim.LBFGS([u], lr=1.0, max_iter=it, line_search_fn="strong_wolfe", tolerance_grad=1e-12, tolerance_change=1e-14)
+    else:
+        it = max_iter or 100
+        opt = torch.optim.LBFGS([u], lr=1.0, max_iter=it, line_search_fn="strong_wolfe", tolerance_grad=1e-12,
+                                tolerance_change=1e-14)
 
-    def closure():
-        opt.zero_grad()
-        c = image_loss(model_fn(theta0 + u * scale, idx), data, loss=loss, weight=weight, shift=o.shift).sum()
-        c.backward()
-        return c
+        def closure():
+            opt.zero_grad()
+            c = cost_at(u).sum()
+            c.backward()
+            return c
 
-    opt.step(closure)
+        opt.step(closure)
     with torch.no_grad():
-        final = theta0 + u * scale
-        cost = image_loss(model_fn(final, idx), data, loss=loss, weight=weight, shift=o.shift)
-    state = opt.state[opt._params[0]]
-    n_it = int(state.get("n_iter", it))
-    conv = torch.full((n,), n_it < it, dtype=torch.bool, device=theta0.device)
-    return LMResult(final.detach(), cost, conv, torch.full((n,), n_it, dtype=torch.long, device=theta0.device))
+        cost = cost_at(u)
+    if o.optimizer == "adam":
+        prev = history[-20] if len(history) >= 20 else history[0]
+        conv, n_it = (prev - cost).abs() <= 1e-4 * cost.abs().clamp_min(1e-30), it
+    else:
+        n_it = int(opt.state[opt._params[0]].get("n_iter", it))
+        conv = torch.full((n,), n_it < it, dtype=torch.bool, device=theta0.device)
+    n_iter = torch.full((n,), n_it, dtype=torch.long, device=theta0.device)
+    return LMResult((theta0 + u * scale).detach(), cost, conv, n_iter)
 
 
 # --------------------------------------------------------------------------- public entry: checks, masks, robust pass, flags
@@ -540,19 +457,13 @@ class _FlatInputs:
     noise_model: CameraNoise | None = None
 
 
-def _check_flag(value, name: str) -> bool:
-    if not isinstance(value, bool):
-        raise InputTypeError(f"{name}: expected True or False, got {type(value).__name__}")
-    return value
-
-
 def _check_options(*, optimizer, loss, fit_scale, fit_background, fit_center, fit_gradient, normalize, outliers, outlier_sigma,
                    max_iter, tol, render_settings) -> tuple[_FitOptions, float]:
     """Check :func:`fit_sinusoid`'s options (``optimizer`` and ``loss`` are checked by
     ``_validate``): ``(the pass settings without the noise's shift, outlier_sigma)``."""
     for name, v in (("fit_scale", fit_scale), ("fit_background", fit_background), ("fit_center", fit_center), ("fit_gradient", fit_gradient),
                     ("normalize", normalize)):
-        _check_flag(v, name)
+        check_bool(v, name)
     check_choice(outliers, "outliers", OUTLIERS)
     outlier_sigma = check_real_scalar(outlier_sigma, "outlier_sigma", positive=True)
     if fit_gradient and normalize:
@@ -560,8 +471,7 @@ def _check_options(*, optimizer, loss, fit_scale, fit_background, fit_center, fi
     if outliers == "reject" and normalize:
         raise ParameterError("outliers: expected 'none' with normalize=True (the robust pass compares data and model in image units), "
                              "got 'reject'")
-    if max_iter is not None and (isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 1):
-        raise ParameterError(f"max_iter: expected None or an integer >= 1, got {max_iter!r}")
+    check_count(max_iter, "max_iter", optional=True)
     tol = check_real_scalar(tol, "tol", nonnegative=True)
     if render_settings is not None and not isinstance(render_settings, RenderSettings):
         raise InputTypeError(f"render_settings: expected a RenderSettings or None, got {type(render_settings).__name__}")
@@ -570,18 +480,10 @@ def _check_options(*, optimizer, loss, fit_scale, fit_background, fit_center, fi
 
 
 def noise_terms(images: torch.Tensor, noise_std, noise: CameraNoise | None):
-    """What a fit takes from the camera's noise model ``noise`` (a
-    :class:`~torchblur.render.camera.CameraNoise` or None; ``images [..., E, H, W]`` in
-    dark-subtracted electrons): ``(noise_std, shift)``.
-
-    ``noise_std``: the caller's, else ``noise.std(images)`` (each pixel's own value as its expected
-    charge: only the first pass's weights; :func:`fit_sinusoid` then refits with
-    ``noise.std`` of the first fit's model, :func:`_reweight_by_model`), else None. ``shift``:
-    poisson's read-noise shift, ``noise.poisson_shift_e`` (0 without ``noise``: the images are
-    pure counts).
-    Every loss weighs by it as :mod:`torchblur.losses` says (l2 ``1 / sigma^2``, l1 and linf
-    ``1 / sigma``, poisson the shifted Poisson's own variance).
-    """
+    """What a fit takes from the camera's noise model ``noise`` (a :class:`~torchblur.render.camera.CameraNoise`
+    or None; ``images [..., E, H, W]`` in dark-subtracted electrons): ``(noise_std, shift)``: the caller's
+    ``noise_std``, else ``noise.std(images)`` (the first pass's weights: :func:`_reweight_by_model`), else None;
+    poisson's read-noise shift ``noise.poisson_shift_e`` (0 without ``noise``: pure counts)."""
     if noise is None:
         return noise_std, 0.0
     if not isinstance(noise, CameraNoise):
@@ -590,20 +492,21 @@ def noise_terms(images: torch.Tensor, noise_std, noise: CameraNoise | None):
 
 
 def _flat_inputs(images, psf, window, omega, axes, noise_std, mask, saturation_level, noise=None) -> _FlatInputs:
-    """The checked ``images [..., E, H, W]`` and the rest, flattened (checks ``axes``,
-    ``noise_std``, ``mask``, ``saturation_level``, ``noise``: :func:`noise_terms`)."""
+    """The checked ``images [..., E, H, W]`` and the rest, flattened (checks ``window``, ``omega``,
+    ``axes``, ``noise_std``, ``mask``, ``saturation_level``, ``noise``: :func:`noise_terms`)."""
     noise_model = noise if noise_std is None else None
     noise_std, shift = noise_terms(images, noise_std, noise)
     dtype, device = images.dtype, images.device
     batch = images.shape[:-3]
     E, H, W = images.shape[-3:]
-    N = max(1, math.prod(batch))
+    N = flat_count(images)
     data = images.reshape(N, E, H, W)
+    win, omega = flat_window(window, batch, N, E), flat_omega(omega, batch, N, data)
     if isinstance(axes, str):
-        axis_dirs, labels = _axis_directions(axes, N, dtype, device), tuple(axes)
+        eye = torch.eye(2, dtype=dtype, device=device)
+        axis_dirs, labels = {"x": eye[:1], "y": eye[1:], "xy": eye}[axes][None].expand(N, len(axes), 2), tuple(axes)
     else:
-        axis_dirs, labels = _as_direction(axes, batch, N, data)[:, None, :], ("u",)
-    w_full = window.to(dtype).expand(batch + (E,))
+        axis_dirs, labels = flat_direction(axes, batch, N, data, "axes")[:, None, :], ("u",)
     sig, m = flat_noise_and_mask(noise_std, mask, images)
     keep = torch.ones(N, E, H, W, dtype=torch.bool, device=device)
     user_masked = torch.zeros(N, dtype=torch.bool, device=device)
@@ -620,9 +523,8 @@ def _flat_inputs(images, psf, window, omega, axes, noise_std, mask, saturation_l
         sat = data >= lvl[:, None, None, None]
         sat_masked = (sat & keep).flatten(1).any(1)
         keep = keep & ~sat
-    return _FlatInputs(data=data, psf=_flatten_psf(psf.to(dtype) if isinstance(psf, GaussianPSF) else psf, batch, N),
-                       window=ExposureWindow(w_full.start.reshape(N, E), w_full.duration.reshape(N, E)), omega=omega.expand(batch).reshape(N),
-                       axis_dirs=axis_dirs, labels=labels, direction=None if isinstance(axes, str) and axes == "xy" else axis_dirs[:, 0], noise=sig, keep=keep,
+    return _FlatInputs(data=data, psf=flat_psf(psf, batch, N), window=win, omega=omega, axis_dirs=axis_dirs,
+                       labels=labels, direction=None if axes == "xy" else axis_dirs[:, 0], noise=sig, keep=keep,
                        user_masked=user_masked, sat_masked=sat_masked, shift=shift, noise_model=noise_model)
 
 
@@ -633,8 +535,9 @@ def _fit_items(inp: _FlatInputs, o: _FitOptions, data: torch.Tensor, idx: torch.
     if idx.numel() == data.shape[0]:
         return _fit_core(inpaint(data, use), inp.psf, inp.window, inp.omega, inp.axis_dirs, labels=inp.labels, options=o,
                          noise_std=inp.noise, use=mask)
-    return _fit_core(inpaint(data[idx], use), _take_psf(inp.psf, idx), inp.window[idx], inp.omega[idx], inp.axis_dirs[idx],
-                     labels=inp.labels, options=o, noise_std=None if inp.noise is None else inp.noise[idx], use=mask)
+    noise = None if inp.noise is None else inp.noise[idx]
+    return _fit_core(inpaint(data[idx], use), take_psf(inp.psf, idx), inp.window[idx], inp.omega[idx],
+                     inp.axis_dirs[idx], labels=inp.labels, options=o, noise_std=noise, use=mask)
 
 
 def _robust_fit(inp: _FlatInputs, o: _FitOptions, outliers: str, outlier_sigma: float, fit_gradient: bool):
@@ -678,14 +581,8 @@ def _robust_fit(inp: _FlatInputs, o: _FitOptions, outliers: str, outlier_sigma: 
 def _reweight_by_model(inp: _FlatInputs, o: _FitOptions, data, res: SinusoidFit, use) -> _FlatInputs:
     """The second pass of a fit weighted by the camera's noise model: every fitted item refitted
     with ``inp.noise_model.std`` of its first-pass model image (with the background: stray light
-    is light), and ``inp`` returned with those stds.
-
-    Why: the first pass weighs each pixel by its own value, so a pixel that fluctuates up counts
-    less and the fitted spot comes out dimmer and less blurred: the amplitude is biased low by a
-    few hundredths of its std per fit. One fit cannot see that, but an estimate that averages
-    thousands of fits (a deformable mirror's DC gain from every slope, pattern and frequency) is
-    then off by several of its stds. The model's expected signal holds almost none of the noise
-    (it has a handful of parameters), so the second pass's weights do not correlate with it."""
+    is light), and ``inp`` returned with those stds. Why (the first pass's weights correlate with
+    the noise and bias the amplitudes low): docs/reliability.md, "The camera's noise and the losses"."""
     live = torch.arange(data.shape[0], device=data.device)[torch.isfinite(res.cost) & (res.status != 3)]
     if live.numel() == 0:
         return inp
@@ -770,35 +667,6 @@ def _finish(res: SinusoidFit, inp: _FlatInputs, o: _FitOptions, rejected, plane,
     return res
 
 
-def _flatten_psf(psf, batch, N):
-    if isinstance(psf, GaussianPSF):
-        return GaussianPSF(psf.center.expand(batch + (2,)).reshape(N, 2), psf.cov.expand(batch + (2, 2)).reshape(N, 2, 2),
-                           psf.amplitude.expand(batch).reshape(N))
-    H, W = psf.frame_shape
-    return KernelPSF(psf.kernel.expand(batch + (H, W)).reshape(N, H, W))
-
-
-def _take_psf(psf, idx):
-    return psf[idx] if isinstance(psf, GaussianPSF) else KernelPSF(psf.kernel[idx])
-
-
-def _axis_directions(axes, N: int, dtype, device) -> torch.Tensor:
-    """The image directions ``[N, n_axes, 2]`` of the fitted axes ``"x"``, ``"y"``, ``"xy"``."""
-    eye = torch.eye(2, dtype=dtype, device=device)
-    rows = {"x": eye[:1], "y": eye[1:], "xy": eye}[axes]
-    return rows[None].expand(N, len(rows), 2)
-
-
-def _as_direction(axes, batch, N: int, like: torch.Tensor) -> torch.Tensor:
-    """``axes`` given as an image direction (a pair (x, y), or a tensor ``[2]`` or ``[..., 2]``
-    broadcastable to the images' batch) -> unit vectors ``[N, 2]``."""
-    d = as_unit_direction(axes, "axes", like=like)
-    try:
-        return d.expand(batch + (2,)).reshape(N, 2)
-    except RuntimeError:
-        raise ShapeError(f"axes: a direction [..., 2] must broadcast to the images' batch {tuple(batch)}, got {tuple(d.shape)}") from None
-
-
 def _axes_xy(amplitude: torch.Tensor, phase: torch.Tensor, direction: torch.Tensor | None):
     """Per-axis ``(amplitude [n, 2], phase [n, 2])`` of a fit: ``direction [n, 2]`` the unit
     image direction of a one-axis fit, None for a Lissajous (``"xy"``) fit."""
@@ -843,8 +711,8 @@ def _model_images(res: SinusoidFit, idx, inp: _FlatInputs, o: _FitOptions, *, wi
             n_panels = k // 2 if isinstance(psf, GaussianPSF) else int(panels[sel[0]])
             rule = replace(settings, nodes=int(n_panels) * settings.nodes_per_panel)
             sub = Sinusoid(amp[sel][:, None, :], ph[sel][:, None, :], inp.omega[idx][sel][:, None])
-            out[sel] = render_blur(sub, _take_psf(psf, sel), ExposureWindow(win.start[sel], win.duration[sel]), height=H, width=W,
-                                   settings=rule)
+            out[sel] = render_blur(sub, take_psf(psf, sel), ExposureWindow(win.start[sel], win.duration[sel]),
+                                   height=H, width=W, settings=rule)
     if with_background:
         out = out + res.background[idx][:, None, None, None]
     return out
@@ -909,19 +777,15 @@ def fit_sinusoid(
         saturation_level: pixels of ``images`` at or above it are excluded (the clipping level
             in the units of ``images``, i.e. less the dark level): a number or ``[...]``.
             Sets :data:`SATURATED_MASKED`. None (default): nothing is clipped.
-        outliers: ``"none"`` (default) or ``"reject"``: after the fit, pixels whose residual
-            exceeds ``outlier_sigma`` noise standard deviations (``noise_std``, else a robust
-            MAD estimate from the residuals, which assumes the noise does not grow with the
-            signal) are excluded and the item refitted, up to 3 passes; for hot pixels
-            without a map and cosmic-ray hits. Sets :data:`OUTLIERS_MASKED` and ``n_outliers``.
+        outliers: ``"none"`` (default) or ``"reject"``: pixels no blurred spot can produce, and after the
+            fit those whose residual exceeds ``outlier_sigma`` noise stds, are excluded and the item refitted
+            (up to 3 passes; docs/reliability.md, "Robust fitting"). Sets :data:`OUTLIERS_MASKED`, ``n_outliers``.
         outlier_sigma: the rejection threshold in standard deviations (> 0, default 5: 6e-7 of clean pixels).
         fit_scale, fit_background, fit_center: fit an intensity scale, a constant background
             (stray light), the rest position jointly (nuisance parameters).
-        fit_gradient: remove a stray-light plane (level and slopes) from each exposure,
-            fitted to the pixels the spot does not reach: first the frame's 2-px border,
-            then every pixel where the fitted spot is below 1e-4 of its peak; the spot is
-            refitted after each. Reported in ``background_plane``; its uncertainty (from
-            many pixels) is not added to the estimates'.
+        fit_gradient: remove a stray-light plane per exposure, fitted to the frame's 2-px border, then to
+            every pixel where the fitted spot is below 1e-4 of its peak (the spot refitted after each);
+            reported in ``background_plane``, its uncertainty not added to the estimates'.
         normalize: the paper's eq. 8: compare images divided by their Frobenius norms (an
             option; it weights the exposures unequally and loses precision).
         max_iter: optimiser iterations, an int >= 1 (default 60 for lm, 400 for adam, 100 for lbfgs).
@@ -933,19 +797,16 @@ def fit_sinusoid(
     float32 images with a float64 PSF or window give a float64 fit); ``omega``, ``noise_std`` and ``saturation_level`` too.
 
     Returns:
-        :class:`SinusoidFit`. Degenerate items are flagged, never raised, and do not change
-        the other items: ``status`` 1 (no signal: decided by a matched filter on the spot's
-        total light, :func:`torchblur.fit.problem.dark_items`, so a dim streak whose brightest
-        pixel is 2-3 noise stds is still fitted), 3 (spot mostly outside the frame), 5 (no
-        usable pixel) give NaN estimates; ``flags`` mark masked, saturated and outlier
-        pixels, a spot partly out of the frame (fitted on what is visible) and a motion too
-        small to measure.
+        :class:`SinusoidFit`. Degenerate items are flagged, never raised, and do not change the other
+        items: ``status`` 1 (no signal, :func:`torchblur.fit.problem.dark_items`), 3 (spot mostly outside
+        the frame), 5 (no usable pixel) give NaN estimates; ``flags``: docs/reliability.md, "Degenerate
+        frames are flagged per item, never raised".
 
     Example:
         >>> fit = fit_sinusoid(images, psf, window, omega, mask=~dark.hot_pixels, outliers="reject")
         >>> bad = (fit.flags & PARTLY_OUT_OF_FRAME) != 0
     """
-    images, psf, window, omega = _validate(images, psf, window, omega, axes, optimizer, loss)
+    images, psf, window = _validate(images, psf, window, axes, optimizer, loss)
     options, outlier_sigma = _check_options(optimizer=optimizer, loss=loss, fit_scale=fit_scale, fit_background=fit_background,
                                             fit_center=fit_center, fit_gradient=fit_gradient, normalize=normalize, outliers=outliers,
                                             outlier_sigma=outlier_sigma, max_iter=max_iter, tol=tol, render_settings=render_settings)

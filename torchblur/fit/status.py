@@ -13,7 +13,8 @@ import torch
 __all__ = [
     "STATUS", "OK", "DARK", "NOT_CONVERGED", "OUT_OF_FRAME", "SINGULAR", "NO_PIXELS", "POOR_FIT",
     "FLAGS", "MASKED", "SATURATED_MASKED", "OUTLIERS_MASKED", "PARTLY_OUT_OF_FRAME", "NO_MOTION", "POOR_FIT_FLAG",
-    "POOR_FIT_CHI2", "flag_poor_fit", "BRANCH_UNDECIDED", "BRANCH_CHI2", "flag_branch_undecided", "OUT_OF_LADDER",
+    "POOR_FIT_CHI2", "item_status", "flag_poor_fit", "BRANCH_UNDECIDED", "BRANCH_CHI2", "flag_branch_undecided",
+    "OUT_OF_LADDER",
 ]
 
 OK = 0  #: the estimate is usable
@@ -72,6 +73,21 @@ FLAGS = {
     BRANCH_UNDECIDED: "phase branch undecided (the alias's cost within 4 of the fit's: too little light)",
     OUT_OF_LADDER: "the motion leaves the ladder's levels (the model extrapolated)",
 }
+
+
+def item_status(converged, singular, dark, *, poor=None, out_of_frame=None) -> torch.Tensor:
+    """Status codes ``[N]`` (:data:`STATUS`) from bool ``[N]`` masks: :data:`NOT_CONVERGED` where not
+    ``converged``, :data:`POOR_FIT` where ``poor``, :data:`SINGULAR`, :data:`OUT_OF_FRAME` where
+    ``out_of_frame``, :data:`DARK`; later codes win."""
+    status = torch.zeros(converged.shape, dtype=torch.long, device=converged.device)
+    status[~converged] = NOT_CONVERGED
+    if poor is not None:
+        status[poor] = POOR_FIT
+    status[singular] = SINGULAR
+    if out_of_frame is not None:
+        status[out_of_frame] = OUT_OF_FRAME
+    status[dark] = DARK
+    return status
 
 
 def flag_poor_fit(flags, reduced_chi2, threshold: float = POOR_FIT_CHI2):
