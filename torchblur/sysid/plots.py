@@ -1,30 +1,12 @@
 """Figures (matplotlib): computing and plotting are separate, as in python-control.
 
 Hz, degrees and percentages appear only here; magnitudes stay absolute, in the response's
-units (:func:`response_units`).
-
-The backend is never touched: without ``axes=`` each function builds a
-``matplotlib.figure.Figure`` that pyplot does not know about (no backend switch, no figure
-left open; save it with ``fig.savefig(...)``; in Jupyter, ``display(fig)`` or leave ``fig``
-last in a cell). With ``axes=`` it draws into the caller's axes (from ``plt.subplots`` or
-``fig.subplots``) and returns their figure.
-
-What a Bode figure shows is what the numbers say:
-
-* The measured phase is drawn on the reference's branch (the model's, else the truth's): the
-  reference's unwrapped phase plus the wrapped difference, so a point sits where the error
-  panel puts it (the truth is put on the model's branch too).
-* Flagged points (:attr:`FrequencyResponse.flags`) carry one hollow ring per flag
-  (:data:`FLAG_STYLES`, a default style for any other flag), each kind in the legend; their
-  error bars are faint. The axes' limits come from the unflagged points and the curves only:
-  a flagged point off scale is drawn at the edge with an arrow, a point without a value
-  (failed) at the bottom.
-* The camera's frame rate and its Nyquist frequency (``frame_rate_hz``, else the response's
-  ``meta["frame_rate_hz"]``) as vertical lines, or named in the x label when they lie
-  outside the measured range.
-
-Residual figures give ``(data - model) / sigma`` with the noise model's sigma of the fitted
-model, so a fit the noise explains looks like noise of rms 1.
+units (:func:`response_units`). The backend is never touched: without ``axes=`` each function
+builds a ``matplotlib.figure.Figure`` that pyplot does not know about (save it with
+``fig.savefig(...)``); with ``axes=`` it draws into the caller's axes and returns their figure.
+What the figures show (the measured phase on the model's branch, flagged points ringed and
+never setting the limits, the camera's frame rate, residuals in units of the noise model's
+sigma): README.md, "Reading the figures", and docs/reliability.md.
 """
 from __future__ import annotations
 
@@ -419,7 +401,7 @@ def bode_figure(
     else a truth) each block adds two error panels under magnitude and phase: measured minus
     model, in % of the model's magnitude and in deg, with the measurement's 1-sigma band
     around zero, where sub-percent error bars are readable. Phase branch, flags, limits and
-    the camera's frame rate: the module docstring. More than 4 outputs (the spots of a
+    the camera's frame rate: README.md, "Reading the figures". More than 4 outputs (the spots of a
     wavefront sensor) are overlaid, one magnitude and one phase panel per input, the truth
     dashed (``model`` is not drawn there).
 
