@@ -30,8 +30,7 @@ from torchblur.render.trajectory import Sinusoid
 from torchblur.render.window import ExposureWindow
 from torchblur.sysid.alias_resolution import AliasResolution, resolve_alias_with_model
 from torchblur.sysid.frequency_response_io import read_json_doc, write_json_doc
-from torchblur.sysid.model_io import (DIRECT_SCHEMA, DIRECT_SCHEMA_VERSION, DIRECT_UNITS, direct_fields_from_dict, json_float,
-                                       json_roots)
+from torchblur.sysid.model_io import direct_fields_from_dict, direct_fit_to_dict
 from torchblur.sysid.parametric import _poles_zeros, _response, _Structure, _structure_from_tf
 from torchblur.sysid.tf_fit import TransferFunctionFit
 
@@ -193,36 +192,7 @@ class DirectModelFit:
     def to_dict(self) -> dict[str, Any]:
         """A JSON-serialisable dict (model.json): parameters with stds and covariance, num/den,
         poles/zeros, modal parameters, fit statistics. Non-finite numbers become None."""
-        jf = json_float
-        return {
-            "schema": DIRECT_SCHEMA,
-            "schema_version": DIRECT_SCHEMA_VERSION,
-            "units": dict(DIRECT_UNITS),
-            "form": self.form,
-            "structure": dataclasses.asdict(self._struct),
-            "param_names": list(self.param_names),
-            "params": [jf(x) for x in self.params],
-            "std": [jf(x) for x in self.std],
-            "covariance": [[jf(x) for x in row] for row in self.covariance],
-            "start_params": [jf(x) for x in self.start_params],
-            "num": [jf(x) for x in self.num],
-            "den": [jf(x) for x in self.den],
-            "delay_s": jf(self.delay_s),
-            "poles": json_roots(self.poles),
-            "zeros": json_roots(self.zeros),
-            "modes": [{k: jf(v) for k, v in m.items()} for m in self.modal_parameters()],
-            "cost": jf(self.cost),
-            "dof": int(self.dof),
-            "reduced_chi2": jf(self.reduced_chi2),
-            "noise_estimated": bool(self.noise_estimated),
-            "converged": bool(self.converged),
-            "n_iter": int(self.n_iter),
-            "n_points_used": int(self.used.sum()),
-            "n_excluded": int(self.n_excluded),
-            "used": [bool(x) for x in self.used],
-            "scale": [jf(x) for x in self.scale],
-            "background": None if self.background is None else [jf(x) for x in self.background],
-        }
+        return direct_fit_to_dict(self)
 
     @classmethod
     def from_dict(cls, doc: dict) -> "DirectModelFit":

@@ -22,7 +22,7 @@ import numpy as np
 from torchblur.errors import InputTypeError, ParameterError, check_schema_version, excerpt
 from torchblur.sysid.parametric import _Structure
 
-__all__ = ["DIRECT_SCHEMA", "DIRECT_SCHEMA_VERSION", "DIRECT_UNITS", "direct_fields_from_dict", "TF_SCHEMA",
+__all__ = ["DIRECT_SCHEMA", "DIRECT_SCHEMA_VERSION", "DIRECT_UNITS", "direct_fields_from_dict", "direct_fit_to_dict", "TF_SCHEMA",
            "TF_SCHEMA_KEYS", "TF_SCHEMA_VERSION", "TF_UNITS", "tf_fit_fields_from_dict", "tf_fit_to_dict"]
 
 TF_SCHEMA = "torchblur.transfer_function_fit"
@@ -240,6 +240,40 @@ def _from_json_value(v, key: str, kind: str):
 
 
 # ---------------------------------------------------------------------- the direct fit
+def direct_fit_to_dict(fit) -> dict[str, Any]:
+    """The document of a :class:`~torchblur.sysid.direct.DirectModelFit` (its ``to_dict``)."""
+    jf = json_float
+    return {
+        "schema": DIRECT_SCHEMA,
+        "schema_version": DIRECT_SCHEMA_VERSION,
+        "units": dict(DIRECT_UNITS),
+        "form": fit.form,
+        "structure": dataclasses.asdict(fit._struct),
+        "param_names": list(fit.param_names),
+        "params": [jf(x) for x in fit.params],
+        "std": [jf(x) for x in fit.std],
+        "covariance": [[jf(x) for x in row] for row in fit.covariance],
+        "start_params": [jf(x) for x in fit.start_params],
+        "num": [jf(x) for x in fit.num],
+        "den": [jf(x) for x in fit.den],
+        "delay_s": jf(fit.delay_s),
+        "poles": json_roots(fit.poles),
+        "zeros": json_roots(fit.zeros),
+        "modes": [{k: jf(v) for k, v in m.items()} for m in fit.modal_parameters()],
+        "cost": jf(fit.cost),
+        "dof": int(fit.dof),
+        "reduced_chi2": jf(fit.reduced_chi2),
+        "noise_estimated": bool(fit.noise_estimated),
+        "converged": bool(fit.converged),
+        "n_iter": int(fit.n_iter),
+        "n_points_used": int(fit.used.sum()),
+        "n_excluded": int(fit.n_excluded),
+        "used": [bool(x) for x in fit.used],
+        "scale": [jf(x) for x in fit.scale],
+        "background": None if fit.background is None else [jf(x) for x in fit.background],
+    }
+
+
 def _scalar(doc: dict, key: str, kind):
     v = doc[key]
     if kind is float:

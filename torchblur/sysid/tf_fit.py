@@ -504,6 +504,17 @@ def _roots_of(quads, lins, scale) -> np.ndarray:
     return np.concatenate(r) * scale
 
 
+def _poly_of(lead, quads, lins, scale) -> np.ndarray:
+    """``lead`` times the factors ``s^2 + a1 s + a0`` and ``s + c`` of the scaled frequency,
+    in s (rad/s): coefficients, highest power first."""
+    poly = np.array(lead)
+    for a1, a0 in quads:
+        poly = np.polymul(poly, [1.0, a1 * scale, a0 * scale * scale])
+    for c in lins:
+        poly = np.polymul(poly, [1.0, c * scale])
+    return poly
+
+
 def _reflect(p: np.ndarray) -> np.ndarray:
     return np.where(p.real > 0, -p.real + 1j * p.imag, p)
 
@@ -814,16 +825,8 @@ def _covariance(c: _Cand, data: _Data, sigma2_known: bool):
 def _physical(c: _Cand, data: _Data, sigma2_known: bool = True) -> dict[str, Any]:
     s = data.scale
     k, zq, zl, pq, pl, rest = _split(c.theta, c.n_zeros, c.n_poles)
-    den = np.array([1.0])
-    for a1, a0 in pq:
-        den = np.polymul(den, [1.0, a1 * s, a0 * s * s])
-    for cc in pl:
-        den = np.polymul(den, [1.0, cc * s])
-    num = np.array([k * s ** (c.n_poles - c.n_zeros)])
-    for b1, b0 in zq:
-        num = np.polymul(num, [1.0, b1 * s, b0 * s * s])
-    for cc in zl:
-        num = np.polymul(num, [1.0, cc * s])
+    den = _poly_of([1.0], pq, pl, s)
+    num = _poly_of([k * s ** (c.n_poles - c.n_zeros)], zq, zl, s)
     tau = float(rest[0] / s) if c.est_tau else float(c.tau_fixed)
     with np.errstate(all="ignore"):
         hm, _ = _model(c.theta, c.n_zeros, c.n_poles, c.est_tau, c.tau_fixed, data, False)
