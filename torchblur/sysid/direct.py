@@ -7,7 +7,7 @@ per-point scale and background as nuisance parameters). The model forms ("tf", "
 blockwise Levenberg-Marquardt (Schur complement of the nuisance blocks) and the covariance
 (inverse Fisher information, nuisance profiled out): docs/direct_identification.md. The forms'
 parametrisation is in :mod:`torchblur.sysid.parametric`; the single-exposure start in
-:mod:`torchblur.sysid.alias_resolution` (re-exported here).
+:mod:`torchblur.sysid.alias_resolution`.
 """
 from __future__ import annotations
 
@@ -28,13 +28,12 @@ from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.splat import sine_blur_with_jacobian, window_nodes
 from torchblur.render.trajectory import Sinusoid
 from torchblur.render.window import ExposureWindow
-from torchblur.sysid.alias_resolution import AliasResolution, resolve_alias_with_model
 from torchblur.sysid.frequency_response_io import read_json_doc, write_json_doc
 from torchblur.sysid.model_io import direct_fields_from_dict, direct_fit_to_dict
 from torchblur.sysid.parametric import _poles_zeros, _response, _Structure, _structure_from_tf
 from torchblur.sysid.tf_fit import TransferFunctionFit
 
-__all__ = ["AliasResolution", "DirectModelFit", "fit_direct", "resolve_alias_with_model", "FORMS"]
+__all__ = ["DirectModelFit", "fit_direct", "FORMS"]
 
 #: Model forms of :func:`fit_direct`.
 FORMS = ("tf", "modal")

@@ -46,8 +46,8 @@ from torchblur.errors import InputTypeError, ParameterError, ShapeError, Torchbl
 from torchblur.files import read_bounded
 from torchblur.sysid.flags import flag_names, parse_flags
 
-__all__ = ["MAX_FILE_BYTES", "SCHEMA_VERSION", "UNITS", "from_dict", "read_csv", "read_json", "read_mat", "to_dict",
-           "write_csv", "write_json", "write_mat"]
+__all__ = ["MAX_FILE_BYTES", "SCHEMA_VERSION", "UNITS", "from_dict", "json_floats", "read_csv", "read_json", "read_mat",
+           "to_dict", "write_csv", "write_json", "write_mat"]
 
 _SCHEMA = "torchblur.sysid.frequency_response"
 #: the version :meth:`FrequencyResponse.to_dict` writes (2: with ``units``; 1 files still read)
@@ -97,14 +97,13 @@ def _read_text(path: str | os.PathLike) -> str:
         raise ParameterError(f"{where}: not UTF-8 text (byte {exc.start}); a binary file?") from None
 
 
-def _json_floats(a: np.ndarray):
+def json_floats(a: np.ndarray):
     """Nested lists of float, with ``None`` in place of NaN/Inf."""
     a = np.asarray(a, dtype=np.float64)
     if a.ndim == 0:
         v = float(a)
         return v if math.isfinite(v) else None
-    return [_json_floats(x) for x in a]
-
+    return [json_floats(x) for x in a]
 
 
 # ------------------------------------------------------------------------ MAT
@@ -347,15 +346,15 @@ def _csv_arrays(data: np.ndarray):
 def to_dict(frf) -> dict[str, Any]:
     """The JSON document of ``frf`` as a dict (schema in the module docstring; ``flags`` and
     ``reduced_chi2`` only where ``frf.has_adequacy``)."""
-    cov = None if np.all(np.isnan(frf.cov)) else _json_floats(frf.cov)
-    adequacy = {"flags": frf.flags.tolist(), "reduced_chi2": _json_floats(frf.reduced_chi2)} if frf.has_adequacy else {}
+    cov = None if np.all(np.isnan(frf.cov)) else json_floats(frf.cov)
+    adequacy = {"flags": frf.flags.tolist(), "reduced_chi2": json_floats(frf.reduced_chi2)} if frf.has_adequacy else {}
     return {
         "schema": _SCHEMA,
         "schema_version": SCHEMA_VERSION,
         "units": dict(UNITS),
-        "omega": _json_floats(frf.omega),
-        "response_real": _json_floats(frf.response.real),
-        "response_imag": _json_floats(frf.response.imag),
+        "omega": json_floats(frf.omega),
+        "response_real": json_floats(frf.response.real),
+        "response_imag": json_floats(frf.response.imag),
         "cov": cov,
         "output_labels": list(frf.output_labels),
         "input_labels": list(frf.input_labels),

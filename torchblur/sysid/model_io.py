@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from torchblur.errors import InputTypeError, ParameterError, check_schema_version, excerpt
+from torchblur.sysid.frequency_response_io import json_floats
 from torchblur.sysid.parametric import _Structure
 
 __all__ = ["DIRECT_SCHEMA", "DIRECT_SCHEMA_VERSION", "DIRECT_UNITS", "direct_fields_from_dict", "direct_fit_to_dict", "TF_SCHEMA",
@@ -69,15 +70,9 @@ _DIRECT_CLI_KEYS = frozenset({"torchblur_version", "seed", "judgement", "model_p
 
 
 # ----------------------------------------------------------------------------- shared
-def json_float(x):
-    """``float(x)``, or None where it is not finite (strict JSON has no NaN or infinity)."""
-    x = float(x)
-    return x if math.isfinite(x) else None
-
-
 def json_roots(r) -> dict:
     """Complex roots ``[n]`` as ``{"real": [n], "imag": [n]}``."""
-    return {"real": [json_float(x) for x in r.real], "imag": [json_float(x) for x in r.imag]}
+    return {"real": json_floats(r.real), "imag": json_floats(r.imag)}
 
 
 def _json_value(v):
@@ -90,7 +85,7 @@ def _json_value(v):
         return bool(v)
     if isinstance(v, (int, np.integer)):
         return int(v)
-    return json_float(v)
+    return json_floats(v)
 
 
 def _floats(v, key: str, shape=None) -> np.ndarray:
@@ -132,7 +127,7 @@ def _uncertainty_dict(fit) -> dict[str, Any]:
 
     def rows(table):
         ints = ("n_poles", "n_zeros", "n_params", "dof")
-        return [{k: (bool(v) if k == "chosen" else int(v) if k in ints else json_float(v)) for k, v in r.items()}
+        return [{k: (bool(v) if k == "chosen" else int(v) if k in ints else json_floats(v)) for k, v in r.items()}
                 for r in table]
 
     return {"param_names": per_channel("param_names", list), "params": per_channel("params", _json_value),
@@ -242,7 +237,6 @@ def _from_json_value(v, key: str, kind: str):
 # ---------------------------------------------------------------------- the direct fit
 def direct_fit_to_dict(fit) -> dict[str, Any]:
     """The document of a :class:`~torchblur.sysid.direct.DirectModelFit` (its ``to_dict``)."""
-    jf = json_float
     return {
         "schema": DIRECT_SCHEMA,
         "schema_version": DIRECT_SCHEMA_VERSION,
@@ -250,27 +244,27 @@ def direct_fit_to_dict(fit) -> dict[str, Any]:
         "form": fit.form,
         "structure": dataclasses.asdict(fit._struct),
         "param_names": list(fit.param_names),
-        "params": [jf(x) for x in fit.params],
-        "std": [jf(x) for x in fit.std],
-        "covariance": [[jf(x) for x in row] for row in fit.covariance],
-        "start_params": [jf(x) for x in fit.start_params],
-        "num": [jf(x) for x in fit.num],
-        "den": [jf(x) for x in fit.den],
-        "delay_s": jf(fit.delay_s),
+        "params": json_floats(fit.params),
+        "std": json_floats(fit.std),
+        "covariance": json_floats(fit.covariance),
+        "start_params": json_floats(fit.start_params),
+        "num": json_floats(fit.num),
+        "den": json_floats(fit.den),
+        "delay_s": json_floats(fit.delay_s),
         "poles": json_roots(fit.poles),
         "zeros": json_roots(fit.zeros),
-        "modes": [{k: jf(v) for k, v in m.items()} for m in fit.modal_parameters()],
-        "cost": jf(fit.cost),
+        "modes": [{k: json_floats(v) for k, v in m.items()} for m in fit.modal_parameters()],
+        "cost": json_floats(fit.cost),
         "dof": int(fit.dof),
-        "reduced_chi2": jf(fit.reduced_chi2),
+        "reduced_chi2": json_floats(fit.reduced_chi2),
         "noise_estimated": bool(fit.noise_estimated),
         "converged": bool(fit.converged),
         "n_iter": int(fit.n_iter),
         "n_points_used": int(fit.used.sum()),
         "n_excluded": int(fit.n_excluded),
         "used": [bool(x) for x in fit.used],
-        "scale": [jf(x) for x in fit.scale],
-        "background": None if fit.background is None else [jf(x) for x in fit.background],
+        "scale": json_floats(fit.scale),
+        "background": None if fit.background is None else json_floats(fit.background),
     }
 
 

@@ -1014,13 +1014,19 @@ def _magnitude_only(value, frf: FrequencyResponse, weight, use: np.ndarray):
     return m, wm
 
 
-def _common_delay_std(value, delay_s) -> float:
-    """The checked ``common_delay_std_s`` of :func:`fit_transfer_function` (s)."""
+def _seconds(value, name: str) -> float:
+    """``value`` checked as a duration: a real number (numpy's too), finite, >= 0 (s)."""
     if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
-        raise InputTypeError(f"common_delay_std_s: expected a real number (s), got {type(value).__name__}")
+        raise InputTypeError(f"{name}: expected a real number (s), got {type(value).__name__}")
     value = float(value)
     if not math.isfinite(value) or value < 0:
-        raise ParameterError(f"common_delay_std_s: expected a finite value >= 0 seconds, got {value:g}")
+        raise ParameterError(f"{name}: expected a finite value >= 0 seconds, got {value:g}")
+    return value
+
+
+def _common_delay_std(value, delay_s) -> float:
+    """The checked ``common_delay_std_s`` of :func:`fit_transfer_function` (s)."""
+    value = _seconds(value, "common_delay_std_s")
     if value > 0 and delay_s is not None:
         raise ParameterError(f"common_delay_std_s: a timing error common to every point is absorbed by an estimated delay; "
                              f"it needs delay_s=None, got delay_s={delay_s:g} with common_delay_std_s={value:g}")
@@ -1066,11 +1072,7 @@ def _candidate_orders(n_poles, n_zeros, max_order, delay_s):
         if n_poles is None and n_zeros > max_order:
             raise ParameterError(f"n_zeros: expected <= max_order = {max_order}, got {n_zeros}")
     if delay_s is not None:
-        if isinstance(delay_s, bool) or not isinstance(delay_s, (int, float, np.floating, np.integer)):
-            raise InputTypeError(f"delay_s: expected None or a real number, got {type(delay_s).__name__}")
-        delay_s = float(delay_s)
-        if not math.isfinite(delay_s) or delay_s < 0:
-            raise ParameterError(f"delay_s: expected a finite value >= 0 seconds, got {delay_s:g}")
+        delay_s = _seconds(delay_s, "delay_s")
     pole_range = [n_poles] if n_poles is not None else list(range(max(1, n_zeros or 0), max_order + 1))
     orders = [(p, z) for p in pole_range for z in ([n_zeros] if n_zeros is not None else range(p + 1))]
     return orders, delay_s
