@@ -19,8 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from torchblur.errors import InputTypeError, ParameterError, check_schema_version, excerpt
-from torchblur.sysid.frequency_response_io import json_floats
+from torchblur.errors import ParameterError, excerpt
+from torchblur.sysid.frequency_response_io import check_document, json_floats
 from torchblur.sysid.parametric import _Structure
 
 __all__ = ["DIRECT_SCHEMA", "DIRECT_SCHEMA_VERSION", "DIRECT_UNITS", "direct_fields_from_dict", "direct_fit_to_dict", "TF_SCHEMA",
@@ -139,12 +139,11 @@ def tf_fit_fields_from_dict(doc) -> dict[str, Any]:
     """The :class:`~torchblur.sysid.tf_fit.TransferFunctionFit` fields but ``dc_gain`` of a
     document (see :meth:`~torchblur.sysid.tf_fit.TransferFunctionFit.from_dict`); InputTypeError
     where ``doc`` is not a dict, ParameterError naming the key otherwise."""
-    if not isinstance(doc, dict):
-        raise InputTypeError(f"doc: expected a JSON object, got {type(doc).__name__}")
-    if doc.get("schema") != TF_SCHEMA:
-        why = f" (the file says: {doc['error']})" if "error" in doc else ""
-        raise ParameterError(f"schema: expected {excerpt(TF_SCHEMA)}, got {excerpt(doc.get('schema'))}{why}")
-    _check_tf_keys(doc)
+    why = f" (the file says: {doc['error']})" if isinstance(doc, dict) and "error" in doc else ""
+    check_document(doc, TF_SCHEMA, TF_SCHEMA_KEYS, TF_UNITS, why=why)
+    for key in ("left_out_points", "poor_fit_points_kept"):
+        if key in doc and not (isinstance(doc[key], list) and all(isinstance(x, dict) for x in doc[key])):
+            raise ParameterError(f"{key}: expected a list of objects, got {excerpt(doc[key])}")
     labels = {k: tuple(doc[k]) for k in ("input_labels", "output_labels")}
     for k, v in labels.items():
         if not v or not all(isinstance(x, str) for x in v):
@@ -162,26 +161,6 @@ def tf_fit_fields_from_dict(doc) -> dict[str, Any]:
 
     return {**{k: channels(k) for k in _TF_CHANNEL_KINDS}, "weighting": str(doc["weighting"]),
             "delay_estimated": bool(doc["delay_estimated"]), **labels, **_uncertainty_from_dict(doc, siso, n_o, n_i)}
-
-
-def _check_tf_keys(doc: dict) -> None:
-    """ParameterError unless ``doc``'s ``schema_version`` is one of :data:`TF_SCHEMA_KEYS` and its
-    keys are that version's (required all present, nothing unknown), and its ``units`` (version
-    2 on) are :data:`TF_UNITS`."""
-    version = check_schema_version(doc.get("schema_version"), TF_SCHEMA_KEYS)
-    required, optional = TF_SCHEMA_KEYS[version]
-    unknown = set(doc) - required - optional
-    if unknown:
-        raise ParameterError(f"doc: unknown keys {sorted(unknown)} for schema_version {version}; expected keys {sorted(required)}"
-                             f" and optionally {sorted(optional)}")
-    missing = required - set(doc)
-    if missing:
-        raise ParameterError(f"doc: missing keys {sorted(missing)}")
-    for key in ("left_out_points", "poor_fit_points_kept"):
-        if key in doc and not (isinstance(doc[key], list) and all(isinstance(x, dict) for x in doc[key])):
-            raise ParameterError(f"{key}: expected a list of objects, got {excerpt(doc[key])}")
-    if "units" in required and doc["units"] != TF_UNITS:
-        raise ParameterError(f"units: expected {TF_UNITS}, got {excerpt(doc['units'])}")
 
 
 def _uncertainty_from_dict(doc: dict, siso: bool, n_o: int, n_i: int) -> dict[str, Any]:
@@ -297,20 +276,10 @@ def _structure(doc: dict, names: tuple) -> _Structure:
 def direct_fields_from_dict(doc) -> dict:
     """The :class:`~torchblur.sysid.direct.DirectModelFit` fields (``_struct`` included) of a
     version-2 document; ParameterError naming the key otherwise."""
-    if not isinstance(doc, dict):
-        raise InputTypeError(f"doc: expected a JSON object, got {type(doc).__name__}")
-    if doc.get("schema") != DIRECT_SCHEMA:
-        raise ParameterError(f"schema: expected {DIRECT_SCHEMA!r}, got {excerpt(doc.get('schema'))}")
-    v = doc.get("schema_version")
-    if v == 1:
+    if isinstance(doc, dict) and doc.get("schema") == DIRECT_SCHEMA and doc.get("schema_version") == 1:
         raise ParameterError("schema_version: 1 (written before the model's structure and per-point results were kept) cannot "
                              "rebuild a DirectModelFit; read it as a document with torchblur.identify.read_outputs.read_outputs")
-    check_schema_version(v, (DIRECT_SCHEMA_VERSION,))
-    unknown, missing = set(doc) - _DIRECT_REQUIRED - _DIRECT_CLI_KEYS, _DIRECT_REQUIRED - set(doc)
-    if unknown or missing:
-        raise ParameterError(f"doc: unknown keys {sorted(unknown)}, missing keys {sorted(missing)} for schema_version 2")
-    if doc["units"] != DIRECT_UNITS:
-        raise ParameterError(f"units: expected {DIRECT_UNITS}, got {excerpt(doc['units'])}")
+    check_document(doc, DIRECT_SCHEMA, {DIRECT_SCHEMA_VERSION: (_DIRECT_REQUIRED, _DIRECT_CLI_KEYS)}, DIRECT_UNITS)
     names = doc["param_names"]
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
         raise ParameterError(f"param_names: expected a list of strings, got {excerpt(names)}")

@@ -261,8 +261,8 @@ class TransferFunctionFit:
 
     @classmethod
     def from_dict(cls, doc: dict) -> "TransferFunctionFit":
-        """Inverse of :meth:`to_dict` (checks ``schema``, ``schema_version`` and the keys of
-        that version: :data:`~torchblur.sysid.model_io.TF_SCHEMA_KEYS`; version 1 files, written before ``units``, read too).
+        """Inverse of :meth:`to_dict` (checks ``schema``, ``schema_version`` and the keys of that
+        version: ``torchblur.sysid.model_io.TF_SCHEMA_KEYS``; version 1 files, without ``units``, read too).
 
         Also reads the CLI's model.json, which adds ``torchblur_version``, ``seed``,
         ``left_out_points`` and ``poor_fit_points_kept`` beside the fit (checked, not kept).
