@@ -108,7 +108,8 @@ def acquire(rig, cal, cfg, freqs, fracs, repeats, b):
 
 def routes(images, window, psf, omega, amps, noise, mask, single):
     """(two-step modes, direct modes, seconds of the direct fit) for one data set."""
-    from torchblur.sysid.direct import fit_direct, resolve_alias_with_model
+    from torchblur.sysid.alias_resolution import resolve_alias_with_model
+    from torchblur.sysid.direct import fit_direct
     from torchblur.fit.sinusoid import fit_sinusoid
     from torchblur.sysid.frequency_response import FrequencyResponse
     from torchblur.sysid.tf_fit import fit_transfer_function

@@ -226,7 +226,7 @@ def test_from_json_reads_the_cli_model_json(siso_fit, tmp_path):
 def test_from_dict_reads_a_version_1_file(siso_fit):
     """A model.json written before ``units`` (schema_version 1, with the CLI's keys) still reads."""
     _, fit = siso_fit
-    from torchblur.sysid.tf_fit import _UNCERTAINTY_KEYS  # version 1 had neither units nor the parameters' covariance
+    from torchblur.sysid.model_io import TF_UNCERTAINTY_KEYS as _UNCERTAINTY_KEYS  # version 1 had neither units nor the parameters' covariance
 
     old = {k: v for k, v in fit.to_dict().items() if k != "units" and k not in _UNCERTAINTY_KEYS}
     old.update(schema_version=1, torchblur_version="0.1.0", seed=0, left_out_points=[], poor_fit_points_kept=[])

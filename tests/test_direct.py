@@ -15,7 +15,8 @@ import torch
 
 import torchblur as tb
 from torchblur.config import load_config
-from torchblur.sysid.direct import DirectModelFit, fit_direct, resolve_alias_with_model
+from torchblur.sysid.alias_resolution import resolve_alias_with_model
+from torchblur.sysid.direct import DirectModelFit, fit_direct
 from torchblur.errors import ConfigError, InputTypeError, ParameterError, ShapeError
 from torchblur.fit.sinusoid import fit_sinusoid
 from torchblur.sysid.frequency_response import FrequencyResponse

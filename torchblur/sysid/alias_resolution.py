@@ -189,26 +189,21 @@ class _BranchSearch:
     """
 
     def __init__(self, frf, alias: np.ndarray, fit_kw: dict, max_rounds: int):
-        self.frf, self.fit_kw, self.max_rounds = frf, fit_kw, max_rounds
+        self.frf, self.alias, self.fit_kw, self.max_rounds = frf, alias, fit_kw, max_rounds
         h = frf.response[0, 0]
         self.ok = np.isfinite(h) & np.isfinite(alias)
         mag = np.abs(h)
         self.branches = np.stack([h, mag * np.exp(1j * alias)])  # [2, F]
-        self.cov = np.array(frf.cov[0, 0])
-        self.cov_alias = self.cov.copy()
-        self.cov_alias[:, 0, 1] *= -1
-        self.cov_alias[:, 1, 0] *= -1
-        sig = np.sqrt(np.nan_to_num(self.cov[:, 0, 0]) + mag**2 * np.nan_to_num(self.cov[:, 1, 1]))
+        cov = frf.cov[0, 0]
+        sig = np.sqrt(np.nan_to_num(cov[:, 0, 0]) + mag**2 * np.nan_to_num(cov[:, 1, 1]))
         self.sig = np.where(sig > 0, sig, np.maximum(mag, 1e-300))  # a point's std (distance unit)
         self.tried: list = []
         self.seen: set = set()
 
     def frf_of(self, choice: np.ndarray):
-        """The response with the branches of ``choice`` (bool [F], True: the alias)."""
-        frf = self.frf
-        resp = np.where(choice, self.branches[1], self.branches[0])
-        c = np.where(choice[:, None, None], self.cov_alias, self.cov)
-        return frf.replace(response=resp, cov=c)  # labels, meta, flags and reduced chi2 kept
+        """The response with the branches of ``choice`` (bool [F], True: the alias;
+        :meth:`~torchblur.sysid.frequency_response.FrequencyResponse.with_branch`)."""
+        return self.frf.with_branch(choice, self.alias)
 
     def descend(self, choice: np.ndarray) -> None:
         """Fit, re-assign every point to the nearer branch, repeat until nothing changes."""

@@ -1,50 +1,13 @@
 """Direct identification: the parameters of a parametric model fitted to ALL images at once.
 
-The two-step route fits the motion amplitude and phase of every sweep point, then a model to
-the frequency response. The direct route (the paper's future work) fits the model's
-parameters ``theta`` straight to the images: for sweep point k (angular frequency
-``omega_k``, input amplitude ``A_k``) the model gives the spot's motion
-
-    y_k(t) = M_k sin(omega_k t + phi_k),   M_k = A_k |H(j omega_k; theta)|,  phi_k = angle H(j omega_k; theta),
-
-whose images (every exposure of the point, rendered with the PSF) are compared with the
-measured ones; the weighted sum of squares over every pixel of every image is minimised
-(maximum likelihood under Gaussian pixel noise of std ``noise_std``, e.g. sqrt(read^2 +
-signal) as :func:`torchblur.identify.run.identify` uses). Per point an intensity scale (and a
-background) is a nuisance parameter, as in :func:`torchblur.fit.sinusoid.fit_sinusoid`.
-
-Model forms (``form``), both with a pure delay ``exp(-s delay_s)``:
-
-* ``"tf"``: ``H(s) = gain s^n0 prod_z F_z(s) / prod_p F_p(s)`` with normalised factors:
-  a complex pair ``(s / omega_n)^2 + 2 zeta s / omega_n + 1`` (parameters omega_n rad/s and
-  zeta), a real root ``1 + s / rate`` (rate rad/s; a pole's rate > 0, a zero's may be
-  negative), ``n0`` roots at the origin kept fixed. ``gain`` is the low-frequency gain of
-  the non-origin part (the DC gain when n0 = 0). Well conditioned, unlike polynomial
-  coefficients.
-* ``"modal"``: ``H(s) = sum_pairs g omega_n^2 / (s^2 + 2 zeta omega_n s + omega_n^2) +
-  sum_real g rate / (s + rate) + D``: per resonant mode its static gain g (a real modal
-  residue, as a structure with proportional damping and a collocated sensor has), omega_n
-  and zeta; per real mode g and rate; D a feedthrough (only when the start has as many
-  zeros as poles). The start's pairs keep their real residue part (the s-part of a general
-  partial fraction is dropped): a plant outside this family is only approximated.
-
-Efficiency: no dense Jacobian over all pixels x all parameters is formed. Per point the image
-and its derivatives with respect to (M, phi) come from one splat, the one forward model
-(:func:`torchblur.render.splat.sine_blur_with_jacobian`), the scale and background
-derivatives are the image and 1, and ``d(M_k, phi_k) / d theta`` comes from autograd of
-``H(j omega; theta)``. The normal equations are assembled blockwise (theta block plus one
-small nuisance block per point) and every Levenberg-Marquardt step eliminates the nuisance
-blocks (Schur complement), so the cost is one splat with 2 derivatives per image per step
-whatever the number of model parameters.
-
-Uncertainty: the inverse Fisher information at the solution (the Schur complement, i.e. the
-nuisance parameters profiled out); with ``noise_std=None`` the fit is unweighted and the
-covariance is scaled by the reduced chi2 (the noise estimated from the residuals).
-Natural-unit covariances follow from the internal (log-) parameters by the delta method.
-
-The model forms' parametrisation is in :mod:`torchblur.sysid.parametric`; the single-exposure
-start (:func:`resolve_alias_with_model`, :class:`AliasResolution`) is in
-:mod:`torchblur.sysid.alias_resolution` and re-exported here.
+For sweep point k the model ``H(s; theta)`` gives the spot's motion
+``M_k sin(omega_k t + phi_k)`` with ``M_k = A_k |H(j omega_k)|``, ``phi_k = angle H(j omega_k)``;
+its images are compared with the measured ones over every pixel (weighted least squares, a
+per-point scale and background as nuisance parameters). The model forms ("tf", "modal"), the
+blockwise Levenberg-Marquardt (Schur complement of the nuisance blocks) and the covariance
+(inverse Fisher information, nuisance profiled out): docs/direct_identification.md. The forms'
+parametrisation is in :mod:`torchblur.sysid.parametric`; the single-exposure start in
+:mod:`torchblur.sysid.alias_resolution`.
 """
 from __future__ import annotations
 
@@ -65,13 +28,12 @@ from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.splat import sine_blur_with_jacobian, window_nodes
 from torchblur.render.trajectory import Sinusoid
 from torchblur.render.window import ExposureWindow
-from torchblur.sysid.alias_resolution import AliasResolution, resolve_alias_with_model
-from torchblur.sysid.direct_doc import DIRECT_SCHEMA, DIRECT_SCHEMA_VERSION, DIRECT_UNITS, direct_fields_from_dict
 from torchblur.sysid.frequency_response_io import read_json_doc, write_json_doc
+from torchblur.sysid.model_io import direct_fields_from_dict, direct_fit_to_dict
 from torchblur.sysid.parametric import _poles_zeros, _response, _Structure, _structure_from_tf
-from torchblur.sysid.tf_fit import TransferFunctionFit, _jf
+from torchblur.sysid.tf_fit import TransferFunctionFit
 
-__all__ = ["AliasResolution", "DirectModelFit", "fit_direct", "resolve_alias_with_model", "FORMS"]
+__all__ = ["DirectModelFit", "fit_direct", "FORMS"]
 
 #: Model forms of :func:`fit_direct`.
 FORMS = ("tf", "modal")
@@ -84,7 +46,7 @@ class DirectModelFit:
     """Result of :func:`fit_direct`.
 
     Attributes:
-        form: "tf" or "modal" (see the module docstring).
+        form: "tf" or "modal" (docs/direct_identification.md).
         param_names: names of the P model parameters (rad/s for omega_n and rates, seconds
             for delay_s, the gains in px per input unit).
         params: [P] the estimates (natural units).
@@ -229,40 +191,7 @@ class DirectModelFit:
     def to_dict(self) -> dict[str, Any]:
         """A JSON-serialisable dict (model.json): parameters with stds and covariance, num/den,
         poles/zeros, modal parameters, fit statistics. Non-finite numbers become None."""
-        jf = _jf
-
-        def roots(r):
-            return {"real": [jf(x) for x in r.real], "imag": [jf(x) for x in r.imag]}
-
-        return {
-            "schema": DIRECT_SCHEMA,
-            "schema_version": DIRECT_SCHEMA_VERSION,
-            "units": dict(DIRECT_UNITS),
-            "form": self.form,
-            "structure": dataclasses.asdict(self._struct),
-            "param_names": list(self.param_names),
-            "params": [jf(x) for x in self.params],
-            "std": [jf(x) for x in self.std],
-            "covariance": [[jf(x) for x in row] for row in self.covariance],
-            "start_params": [jf(x) for x in self.start_params],
-            "num": [jf(x) for x in self.num],
-            "den": [jf(x) for x in self.den],
-            "delay_s": jf(self.delay_s),
-            "poles": roots(self.poles),
-            "zeros": roots(self.zeros),
-            "modes": [{k: jf(v) for k, v in m.items()} for m in self.modal_parameters()],
-            "cost": jf(self.cost),
-            "dof": int(self.dof),
-            "reduced_chi2": jf(self.reduced_chi2),
-            "noise_estimated": bool(self.noise_estimated),
-            "converged": bool(self.converged),
-            "n_iter": int(self.n_iter),
-            "n_points_used": int(self.used.sum()),
-            "n_excluded": int(self.n_excluded),
-            "used": [bool(x) for x in self.used],
-            "scale": [jf(x) for x in self.scale],
-            "background": None if self.background is None else [jf(x) for x in self.background],
-        }
+        return direct_fit_to_dict(self)
 
     @classmethod
     def from_dict(cls, doc: dict) -> "DirectModelFit":
@@ -761,7 +690,7 @@ def fit_direct(
         start: a SISO :class:`~torchblur.sysid.tf_fit.TransferFunctionFit` (the two-step model:
             its orders and values are the start) or a :class:`DirectModelFit`; or a list of
             them: each is fitted and the lowest cost wins (multi-start).
-        form: "tf" (normalised poles/zeros) or "modal" (sum of modes); see the module docstring.
+        form: "tf" (normalised poles/zeros) or "modal" (sum of modes); docs/direct_identification.md.
         fit_delay: estimate the delay (else it stays at the start's).
         axis: "x" or "y", or an image direction (x, y) (a pair or a tensor ``[2]``,
             normalised; an actuator axis rotated in the camera's image): the motion's

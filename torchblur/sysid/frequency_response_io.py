@@ -46,32 +46,21 @@ from torchblur.errors import InputTypeError, ParameterError, ShapeError, Torchbl
 from torchblur.files import read_bounded
 from torchblur.sysid.flags import flag_names, parse_flags
 
-__all__ = ["MAX_FILE_BYTES", "SCHEMA_VERSION", "UNITS", "from_dict", "read_csv", "read_json", "read_mat", "to_dict",
-           "write_csv", "write_json", "write_mat"]
+__all__ = ["MAX_FILE_BYTES", "SCHEMA_VERSION", "UNITS", "check_document", "from_dict", "json_floats", "read_csv", "read_json", "read_mat",
+           "to_dict", "write_csv", "write_json", "write_mat"]
 
 _SCHEMA = "torchblur.sysid.frequency_response"
 #: the version :meth:`FrequencyResponse.to_dict` writes (2: with ``units``; 1 files still read)
 SCHEMA_VERSION = 2
-_SUPPORTED_SCHEMA_VERSIONS = (1, 2)
 #: the units of frf.json's and frf.mat's numbers (version 2 writes them; version 1 meant the
 #: same): the output and input units themselves are ``meta["output_unit"]`` / ``meta["input_unit"]``
 UNITS = {"omega": "rad/s", "freq_hz": "Hz", "response": "output unit per input unit (absolute, not dB)",
          "magnitude_std": "output unit per input unit", "phase": "rad", "phase_std": "rad",
          "cov": "[[magnitude^2, magnitude rad], [magnitude rad, rad^2]]"}
-_JSON_KEYS = {
-    "units",
-    "schema",
-    "schema_version",
-    "omega",
-    "response_real",
-    "response_imag",
-    "cov",
-    "output_labels",
-    "input_labels",
-    "meta",
-    "flags",
-    "reduced_chi2",
-}
+_JSON_REQUIRED = frozenset({"schema", "schema_version", "omega", "response_real", "response_imag"})
+_JSON_OPTIONAL = frozenset({"cov", "output_labels", "input_labels", "meta", "flags", "reduced_chi2"})
+#: frf.json's keys by schema_version, ``{version: (required, optional)}`` (:func:`check_document`)
+_JSON_KEYS = {1: (_JSON_REQUIRED, _JSON_OPTIONAL), 2: (_JSON_REQUIRED | {"units"}, _JSON_OPTIONAL)}
 _CSV_SISO_HEADER = ["freq_hz", "magnitude", "phase_deg", "magnitude_std", "phase_std_deg"]
 _CSV_MIMO_HEADER = ["output", "input"] + _CSV_SISO_HEADER
 _CSV_ADEQUACY = ["reduced_chi2", "flags"]  # written after the five where the response carries them
@@ -97,14 +86,13 @@ def _read_text(path: str | os.PathLike) -> str:
         raise ParameterError(f"{where}: not UTF-8 text (byte {exc.start}); a binary file?") from None
 
 
-def _json_floats(a: np.ndarray):
+def json_floats(a: np.ndarray):
     """Nested lists of float, with ``None`` in place of NaN/Inf."""
     a = np.asarray(a, dtype=np.float64)
     if a.ndim == 0:
         v = float(a)
         return v if math.isfinite(v) else None
-    return [_json_floats(x) for x in a]
-
+    return [json_floats(x) for x in a]
 
 
 # ------------------------------------------------------------------------ MAT
@@ -347,15 +335,15 @@ def _csv_arrays(data: np.ndarray):
 def to_dict(frf) -> dict[str, Any]:
     """The JSON document of ``frf`` as a dict (schema in the module docstring; ``flags`` and
     ``reduced_chi2`` only where ``frf.has_adequacy``)."""
-    cov = None if np.all(np.isnan(frf.cov)) else _json_floats(frf.cov)
-    adequacy = {"flags": frf.flags.tolist(), "reduced_chi2": _json_floats(frf.reduced_chi2)} if frf.has_adequacy else {}
+    cov = None if np.all(np.isnan(frf.cov)) else json_floats(frf.cov)
+    adequacy = {"flags": frf.flags.tolist(), "reduced_chi2": json_floats(frf.reduced_chi2)} if frf.has_adequacy else {}
     return {
         "schema": _SCHEMA,
         "schema_version": SCHEMA_VERSION,
         "units": dict(UNITS),
-        "omega": _json_floats(frf.omega),
-        "response_real": _json_floats(frf.response.real),
-        "response_imag": _json_floats(frf.response.imag),
+        "omega": json_floats(frf.omega),
+        "response_real": json_floats(frf.response.real),
+        "response_imag": json_floats(frf.response.imag),
         "cov": cov,
         "output_labels": list(frf.output_labels),
         "input_labels": list(frf.input_labels),
@@ -376,28 +364,36 @@ def write_json_doc(doc: dict, path: str | os.PathLike, *, indent: int | None = N
         fh.write("\n")
 
 
-def _check_schema(doc) -> None:
-    """ParameterError/InputTypeError unless ``doc`` is a dict of this schema, of a version read
-    here, with only its version's keys, the units and the response's keys."""
+def check_document(doc, schema: str, keys: dict, units: dict, *, why: str = "") -> int:
+    """The ``schema_version`` of ``doc``, a JSON document of ``schema`` with its version's keys
+    (``keys``: ``{version: (required, optional)}``; every required one, nothing unknown: a key is
+    refused only when its version lacks it) and, where its version has them, ``units``.
+
+    Raises:
+        InputTypeError: ``doc`` is not a dict.
+        ParameterError: naming the key (``schema``, ``schema_version``, ``doc``, ``units``);
+            ``why`` is added to a wrong schema's message.
+    """
     if not isinstance(doc, dict):
         raise InputTypeError(f"doc: expected a JSON object, got {type(doc).__name__}")
-    if doc.get("schema") != _SCHEMA:
-        raise ParameterError(f"schema: expected {excerpt(_SCHEMA)}, got {excerpt(doc.get('schema'))}")
-    version = check_schema_version(doc.get("schema_version"), _SUPPORTED_SCHEMA_VERSIONS)
-    keys = _JSON_KEYS - {"units"} if version == 1 else _JSON_KEYS  # a key is refused only when its version lacks it
-    unknown = set(doc) - keys
+    if doc.get("schema") != schema:
+        raise ParameterError(f"schema: expected {excerpt(schema)}, got {excerpt(doc.get('schema'))}{why}")
+    version = check_schema_version(doc.get("schema_version"), keys)
+    required, optional = keys[version]
+    unknown, missing = set(doc) - required - optional, required - set(doc)
     if unknown:
-        raise ParameterError(f"doc: unknown keys {sorted(unknown)} for schema_version {version}; expected keys {sorted(keys)}")
-    if version >= 2 and doc.get("units") != UNITS:
-        raise ParameterError(f"units: expected {UNITS}, got {doc.get('units')!r}")
-    missing = {"omega", "response_real", "response_imag"} - set(doc)
+        raise ParameterError(f"doc: unknown keys {sorted(unknown)} for schema_version {version}; expected keys "
+                             f"{sorted(required)} and optionally {sorted(optional)}")
     if missing:
         raise ParameterError(f"doc: missing keys {sorted(missing)}")
+    if "units" in required and doc["units"] != units:
+        raise ParameterError(f"units: expected {units}, got {excerpt(doc['units'])}")
+    return version
 
 
 def from_dict(cls, doc: dict):
     """A ``cls`` from the document of :func:`to_dict`; checks ``schema`` and ``schema_version``."""
-    _check_schema(doc)
+    check_document(doc, _SCHEMA, _JSON_KEYS, UNITS)
 
     def arr(key):
         try:

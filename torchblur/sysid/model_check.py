@@ -1,34 +1,12 @@
 """One rule that judges every model a run reports, by its reduced chi2 and degrees of freedom.
 
-The rule (:func:`judge_model`): a model fitted to data with ``dof`` degrees of freedom (real
-observations minus real parameters) **passes** when
-
-    reduced_chi2 <= max(MODEL_CHI2_FLOOR, 1 + 4 sqrt(2 / dof))   and   dof >= MIN_MODEL_DOF.
-
-The first is a chi2 test at about 4 sigma (a right model's reduced chi2 has std sqrt(2 / dof)),
-never tighter than 2 since the data's stds are themselves estimates; the second says that with
-fewer than :data:`MIN_MODEL_DOF` degrees of freedom the test cannot tell a wrong model (its
-limit would exceed 4.3 with 3, 6.7 with 1: nearly any model passes), so the model is flagged "too few
-points" rather than trusted. A model whose noise scale was estimated from its own residuals
-(``noise_estimated``) has no chi2 to test: it is reported "not judged" and does not pass.
-
-What a failed model means for its stds (:func:`inflate`): the model does not explain its data
-to their noise, so its stds understate the error; they are multiplied by ``sqrt(reduced_chi2)``
-(the usual scale factor; a lower bound on the true error, not a bound that holds).
-
-Where two models of the same plant are reported (the two-step model and the one fitted
-directly to every image), :func:`disagreements` names the parameters on which they differ by
-more than :data:`DISAGREE_SIGMA` of their combined stds ``sqrt(std_a^2 + std_b^2)``: at least
-one of them is wrong beyond its stds. Both are fitted to the same images, so their errors are
-correlated and the combined std overstates the spread of the difference: the test is
-conservative.
-
-The models judged: the two-step model (a
-:class:`~torchblur.sysid.tf_fit.TransferFunctionFit`, one judgement per channel of a MIMO
-fit), the direct model (a :class:`~torchblur.sysid.direct.DirectModelFit`, ``form`` ``tf`` or
-``modal``). A DM run's actuators keep their own test (:mod:`torchblur.dm.actuator_fit`: the chi2
-survival probability below 1e-3, stds inflated by sqrt(reduced chi2)): with the 3-4 frequencies
-of the small DM runs this rule's dof >= 3 would flag every actuator.
+A model passes when ``reduced_chi2 <= max(MODEL_CHI2_FLOOR, 1 + 4 sqrt(2 / dof))`` (a chi2 test
+at about 4 sigma, never tighter than 2: the data's stds are themselves estimates) and ``dof >=
+MIN_MODEL_DOF``; a failed model's stds are multiplied by ``sqrt(reduced_chi2)`` (:func:`inflate`,
+a scale, not a bound); :func:`disagreements` names the parameters on which two models of one
+plant differ beyond :data:`DISAGREE_SIGMA` combined stds (conservative: both are fitted to the
+same images). Which models, and why DM runs keep their own test: docs/reliability.md, "Every
+model judged by one rule, with its uncertainty".
 """
 from __future__ import annotations
 
@@ -42,7 +20,7 @@ from torchblur.losses import chi2_limit
 __all__ = ["DISAGREE_SIGMA", "MIN_MODEL_DOF", "MODEL_CHI2_FLOOR", "ModelJudgement", "disagreements", "inflate", "judge_fit",
            "judge_model", "model_chi2_limit", "model_fails"]
 
-#: the reduced chi2 limit is never below this (see the module docstring)
+#: the reduced chi2 limit is never below this (the data's stds are themselves estimates)
 MODEL_CHI2_FLOOR = 2.0
 #: fewer degrees of freedom than this: the chi2 test cannot tell a wrong model ("too few points")
 MIN_MODEL_DOF = 3

@@ -1,11 +1,7 @@
 """Parametric models of a frequency response for the direct fit: structure, response, roots.
 
-Two forms (see :mod:`torchblur.sysid.direct`), both with a pure delay ``exp(-s delay_s)``:
-``"tf"`` (normalised factors: a complex pair ``(s / omega_n)^2 + 2 zeta s / omega_n + 1``, a
-real root ``1 + s / rate``, ``n0`` roots at the origin, a gain) and ``"modal"`` (a sum of
-modes ``g omega_n^2 / (s^2 + 2 zeta omega_n s + omega_n^2)`` and ``g rate / (s + rate)``, and a
-feedthrough D).
-
+The forms "tf" (normalised factors, a gain, ``n0`` roots at the origin) and "modal" (a sum of
+modes and a feedthrough D), both with a pure delay: docs/direct_identification.md.
 :class:`_Structure` says which parameters a model has; :func:`_response` is ``H(s)`` from the
 natural parameters (differentiable by autograd); :func:`_poles_zeros` and :func:`_modal_polys`
 give its roots and polynomials; :func:`_structure_from_tf` turns a two-step

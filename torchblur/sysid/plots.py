@@ -1,30 +1,12 @@
 """Figures (matplotlib): computing and plotting are separate, as in python-control.
 
 Hz, degrees and percentages appear only here; magnitudes stay absolute, in the response's
-units (:func:`response_units`).
-
-The backend is never touched: without ``axes=`` each function builds a
-``matplotlib.figure.Figure`` that pyplot does not know about (no backend switch, no figure
-left open; save it with ``fig.savefig(...)``; in Jupyter, ``display(fig)`` or leave ``fig``
-last in a cell). With ``axes=`` it draws into the caller's axes (from ``plt.subplots`` or
-``fig.subplots``) and returns their figure.
-
-What a Bode figure shows is what the numbers say:
-
-* The measured phase is drawn on the reference's branch (the model's, else the truth's): the
-  reference's unwrapped phase plus the wrapped difference, so a point sits where the error
-  panel puts it (the truth is put on the model's branch too).
-* Flagged points (:attr:`FrequencyResponse.flags`) carry one hollow ring per flag
-  (:data:`FLAG_STYLES`, a default style for any other flag), each kind in the legend; their
-  error bars are faint. The axes' limits come from the unflagged points and the curves only:
-  a flagged point off scale is drawn at the edge with an arrow, a point without a value
-  (failed) at the bottom.
-* The camera's frame rate and its Nyquist frequency (``frame_rate_hz``, else the response's
-  ``meta["frame_rate_hz"]``) as vertical lines, or named in the x label when they lie
-  outside the measured range.
-
-Residual figures give ``(data - model) / sigma`` with the noise model's sigma of the fitted
-model, so a fit the noise explains looks like noise of rms 1.
+units (:func:`response_units`). The backend is never touched: without ``axes=`` each function
+builds a ``matplotlib.figure.Figure`` that pyplot does not know about (save it with
+``fig.savefig(...)``); with ``axes=`` it draws into the caller's axes and returns their figure.
+What the figures show (the measured phase on the model's branch, flagged points ringed and
+never setting the limits, the camera's frame rate, residuals in units of the noise model's
+sigma): README.md, "Reading the figures", and docs/reliability.md.
 """
 from __future__ import annotations
 
@@ -339,7 +321,7 @@ def _error_panels(a_mag, a_ph, frf, o, i, c, x):
 
 def _bode_channel(axs, frf, o, i, c, opt):
     """One output/input channel into ``axs`` = [magnitude, (magnitude error), phase, (phase error)]."""
-    xs = 1.0 if opt["Hz"] else 2 * np.pi
+    xs = opt["xs"]
     x, flags = frf.freq_hz * xs, frf.flags[o, i]
     a_mag, a_ph = (axs[0], axs[2]) if c["ref"] is not None else (axs[0], axs[1])
     mag_c, ph_c = [], []
@@ -360,8 +342,19 @@ def _bode_channel(axs, frf, o, i, c, opt):
     good = _draw_points(a_mag, x, my, merr, flags, "measured ±1σ")
     _draw_points(a_ph, x, ph, ph_s, flags, "measured ±1σ")
     pick = good if good.any() else np.isfinite(my)
-    for ax, vals, log in ((a_mag, [my[pick], *mag_c], not opt["dB"]),
-                          (a_ph, [ph[pick] - ph_s[pick], ph[pick] + ph_s[pick], *ph_c], False)):
+    _bode_axes(a_mag, a_ph, [my[pick], *mag_c], [ph[pick] - ph_s[pick], ph[pick] + ph_s[pick], *ph_c], opt)
+    _flag_marks(a_mag, x, my, flags, log=not opt["dB"])
+    _flag_marks(a_ph, x, ph, flags, log=False)
+    if c["ref"] is not None:
+        _error_panels(axs[1], axs[3], frf, o, i, c, x)
+    if frf.n_outputs > 1 or frf.n_inputs > 1:
+        a_mag.set_title(f"output {frf.output_labels[o]} from input {frf.input_labels[i]}", fontsize=9)
+
+
+def _bode_axes(a_mag, a_ph, mag_vals, ph_vals, opt) -> None:
+    """Log frequency axes; y limits spanning ``mag_vals`` and ``ph_vals`` (lists of arrays: the
+    unflagged points and the curves), grids, the magnitude's ticks and both y labels."""
+    for ax, vals, log in ((a_mag, mag_vals, not opt["dB"]), (a_ph, ph_vals, False)):
         ax.set_xscale("log")
         if log:
             ax.set_yscale("log")
@@ -371,14 +364,8 @@ def _bode_channel(axs, frf, o, i, c, opt):
         ax.grid(True, which="both", alpha=0.3)
     if not opt["dB"] and a_mag.get_ylim()[0] > 0:
         _log_ticks(a_mag, *a_mag.get_ylim())
-    _flag_marks(a_mag, x, my, flags, log=not opt["dB"])
-    _flag_marks(a_ph, x, ph, flags, log=False)
     a_mag.set_ylabel(f"|H| ({'dB re 1 ' if opt['dB'] else ''}{opt['mag_label']})")
     a_ph.set_ylabel("phase (deg)")
-    if c["ref"] is not None:
-        _error_panels(axs[1], axs[3], frf, o, i, c, x)
-    if frf.n_outputs > 1 or frf.n_inputs > 1:
-        a_mag.set_title(f"output {frf.output_labels[o]} from input {frf.input_labels[i]}", fontsize=9)
 
 
 def _legend(ax, axes, **kw) -> None:
@@ -414,7 +401,7 @@ def bode_figure(
     else a truth) each block adds two error panels under magnitude and phase: measured minus
     model, in % of the model's magnitude and in deg, with the measurement's 1-sigma band
     around zero, where sub-percent error bars are readable. Phase branch, flags, limits and
-    the camera's frame rate: the module docstring. More than 4 outputs (the spots of a
+    the camera's frame rate: README.md, "Reading the figures". More than 4 outputs (the spots of a
     wavefront sensor) are overlaid, one magnitude and one phase panel per input, the truth
     dashed (``model`` is not drawn there).
 
@@ -438,7 +425,9 @@ def bode_figure(
         The ``matplotlib.figure.Figure`` drawn on.
     """
     O, I = frf.n_outputs, frf.n_inputs
-    opt = dict(mag_label="{} per {}".format(*response_units(frf, units)), Hz=bool(Hz), dB=bool(dB),
+    xs = 1.0 if Hz else 2 * np.pi
+    opt = dict(mag_label="{} per {}".format(*response_units(frf, units)), Hz=bool(Hz), dB=bool(dB), xs=xs,
+               xlim=(frf.freq_hz.min() * xs / 1.15, frf.freq_hz.max() * xs * 1.15),
                frame_rate_hz=frame_rate_hz if frame_rate_hz is not None else frf.meta.get("frame_rate_hz"))
     if O > _OVERLAY_ABOVE:
         return _bode_overlay(frf, truth=truth, title=title, stamp=stamp, axes=axes, opt=opt)
@@ -451,14 +440,12 @@ def bode_figure(
     else:
         grid = _axes_grid(axes, per * O, I, f"{per} rows per output, one column per input")
         fig = grid[0, 0].figure
-    xs = 1.0 if opt["Hz"] else 2 * np.pi
-    xlim = (frf.freq_hz.min() * xs / 1.15, frf.freq_hz.max() * xs * 1.15)
     for o in range(O):
         for i in range(I):
-            grid[per * o, i].set_xlim(*xlim)
+            grid[per * o, i].set_xlim(*opt["xlim"])
             _bode_channel(grid[per * o:per * (o + 1), i], frf, o, i, c, opt)
     for i in range(I):
-        note = _camera_marks(list(grid[:, i]), opt["frame_rate_hz"], xs, xlim)
+        note = _camera_marks(list(grid[:, i]), opt["frame_rate_hz"], xs, opt["xlim"])
         grid[-1, i].set_xlabel(f"frequency ({'Hz' if opt['Hz'] else 'rad/s'}){note}")
     if axes is None:  # the upper panels' x tick labels are hidden (shared axis): the layout need not measure them
         for ax in grid[:-1].ravel():
@@ -486,13 +473,11 @@ def _bode_overlay(frf, *, truth, title, stamp, axes, opt):
     else:
         grid = _axes_grid(axes, 2, I, "magnitude and phase rows, one column per input")
         fig = grid[0, 0].figure
-    xs = 1.0 if opt["Hz"] else 2 * np.pi
-    f = frf.freq_hz
+    xs, xlim, f = opt["xs"], opt["xlim"], frf.freq_hz
     x, fine_f = f * xs, np.geomspace(f.min(), f.max(), 400)
     tru = None if truth is None else _as_oif(truth(2 * np.pi * fine_f) if callable(truth) else truth, frf)
     cmap = colormaps["tab20"]
     uph = np.degrees(frf.unwrapped_phase())
-    xlim = (f.min() * xs / 1.15, f.max() * xs * 1.15)
     for i in range(I):
         am, ap = grid[0, i], grid[1, i]
         mags, phs = [], []
@@ -509,27 +494,14 @@ def _bode_overlay(frf, *, truth, title, stamp, axes, opt):
             if tru is not None:
                 mags.append(_curve_mag(tru[o, i], opt["dB"]))
                 am.plot((fine_f if tru.shape[-1] == fine_f.size else f) * xs, mags[-1], "--", color=col, lw=0.8, alpha=0.7)
-        am.set_xscale("log")
-        if not opt["dB"]:
-            am.set_yscale("log")
-        ap.set_xscale("log")
         am.set_xlim(*xlim)
-        for ax, vals, log in ((am, mags, not opt["dB"]), (ap, phs, False)):
-            lim = _limits(vals, log)
-            if lim is not None:
-                ax.set_ylim(*lim)
-        if not opt["dB"] and am.get_ylim()[0] > 0:
-            _log_ticks(am, *am.get_ylim())
+        _bode_axes(am, ap, mags, phs, opt)
         for o in range(O):
             _flag_marks(am, x, _mag_values(frf, o, i, opt["dB"])[0], frf.flags[o, i], log=not opt["dB"])
             _flag_marks(ap, x, uph[o, i], frf.flags[o, i], log=False)
         note = _camera_marks([am, ap], opt["frame_rate_hz"], xs, xlim)
         am.set_title(f"every output from input {frf.input_labels[i]}" + (" (dashed: truth)" if tru is not None else ""))
-        am.set_ylabel(f"|H| ({'dB re 1 ' if opt['dB'] else ''}{opt['mag_label']})")
-        ap.set_ylabel("phase (deg)")
         ap.set_xlabel(f"frequency ({'Hz' if opt['Hz'] else 'rad/s'}){note}")
-        am.grid(True, which="both", alpha=0.3)
-        ap.grid(True, which="both", alpha=0.3)
         _legend(am, [am, ap], fontsize=6, ncol=max(1, O // 9), loc="lower left")
     if axes is None or title:
         fig.suptitle(title or f"Frequency response of {O} outputs identified from camera motion blur")

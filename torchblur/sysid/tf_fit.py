@@ -1,65 +1,11 @@
 """Fit a rational transfer function with a pure delay to a measured frequency response.
 
-python-control cannot fit a model to FRD data; this module can. Per channel (output o,
-input i) the model is
-
-    H(s) = K * prod_k (s - z_k) / prod_k (s - p_k) * exp(-s * delay_s),   s = j omega,
-
-with ``n_zeros <= n_poles`` (proper), omega in rad/s and H in the FRF's absolute units.
-
-Method (per channel, per candidate order):
-
-1. **Frequency scaling.** s is replaced by s' = s / omega_s with omega_s the geometric mean
-   of the lowest and highest valid omega, so |s'| spans [1/sqrt(r), sqrt(r)] for a band ratio r
-   (1 Hz..2 kHz: 0.022..45) and the polynomial columns stay representable.
-2. **Sanathanan-Koerner iteration** (``n_iter`` steps at most): linear least squares on
-   ``w (N(s') - H D(s')) / |D_prev(s')|`` with D monic in its highest power (finite for any
-   pole position, including an integrator), real and imaginary parts stacked, columns
-   equilibrated, until |D| changes by less than 1e-10 relative. With ``stable=True`` unstable
-   poles of the final denominator are reflected into the left half plane (reflecting inside
-   the loop would change nothing: |j w - p| = |j w + conj(p)|, so the SK weights of a pole and
-   of its mirror image are equal). The numerator is then refit with the final denominator
-   fixed, which is the exact weighted linear problem.
-3. **Delay.** ``delay_s`` fixed: the SK step fits ``H exp(+j omega delay_s)``. ``delay_s=None``:
-   a few SK steps are run on a grid of delays from 0 to max(one period of the highest
-   frequency, 1.5 x the phase slope of the top eighth of the band), a step of pi/4 rad at the
-   highest frequency; the best grid delay is refined by a bounded scalar search between its
-   neighbours, and the SK fit at that delay starts step 4, where the delay is a free
-   parameter (>= 0).
-4. **Nonlinear polish** (``scipy.optimize.least_squares``, Levenberg-Marquardt, analytic
-   Jacobian) of the exact weighted complex error ``sum_f e_f^T e_f``,
-   ``e_f = W_f [Re, Im](H_model - H)``, over a factored parametrisation: the gain K, quadratic
-   factors ``s'^2 + a1 s' + a0`` (one per pair of poles or zeros, real or complex) and one
-   linear factor ``s' + c`` for an odd degree. With ``stable=True`` the pole coefficients are
-   optimised as squares (a1, a0, c >= 0 is exactly the closed left half plane), as is the
-   estimated delay. The better of the SK and polished models (by chi2) is kept. Poles and
-   zeros come from the factors (quadratic formula), not from the expanded polynomials.
-
-Weights: ``W_f`` whitens the (Re H, Im H) covariance that
-:meth:`~torchblur.sysid.frequency_response.FrequencyResponse.response_std` derives from the FRF's
-(magnitude, phase) covariance (``weights="uncertainty"``), so ``chi2`` is a true chi-square
-with ``dof = 2 * n_points - n_parameters`` when the covariance is right. ``"uniform"`` is
-W = I, and an array ``w`` is W = w I (w = 1 / std of the real and of the imaginary part).
-
-Magnitude-only points (``magnitude_only``: a single exposure's point whose phase branch is not
-decided): one observation each, ``(|H_model| - |H|)`` over the magnitude's std (times the point's
-weight with other weights); the linear start (steps 2-3) takes the phase they carry.
-
-Order selection (``n_poles=None`` and/or ``n_zeros=None``): proper candidates
-(1 <= n_poles <= max_order, 0 <= n_zeros <= n_poles, fewer parameters than real
-observations) are fit in order of their number of parameters P (a short polish each), and the
-one with the smallest Bayesian information criterion is chosen, then polished to convergence:
-
-* weights from the FRF's uncertainty (noise scale known): ``BIC = chi2 + P ln(n_obs)``;
-* uniform or user weights (noise scale unknown):
-  ``BIC = n_obs ln(max(chi2, n_obs floor) / n_obs) + P ln(n_obs)``, with
-  ``floor = (1e-9)^2 x`` the mean weighted squared response, so noise-free data choose the
-  smallest exact model rather than one fitting round-off.
-
-``n_obs = 2 x`` the number of fitted points (less one per magnitude-only point); ties go to fewer parameters. The scan stops
-early when no remaining candidate can beat the best score even with chi2 = 0 (exact), or once
-candidates have 6 parameters more than the best one without beating it (a heuristic that
-saves time on noisy data; resonances come in pairs, so this allows three more pairs).
+python-control cannot fit a model to FRD data; this module can. Per channel (output o, input
+i) the model is ``H(s) = K prod_k (s - z_k) / prod_k (s - p_k) exp(-s delay_s)``, ``s = j omega``,
+with ``n_zeros <= n_poles`` (proper), omega in rad/s and H in the FRF's absolute units. The
+method (frequency scaling, Sanathanan-Koerner iteration, delay search, factored nonlinear
+polish), the weights, magnitude-only points and the order selection by BIC:
+docs/transfer_function_fit.md.
 """
 from __future__ import annotations
 
@@ -72,37 +18,16 @@ import numpy as np
 import scipy.linalg
 import scipy.optimize
 
-from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_frequency_grid, check_bool, check_int, check_schema_version, excerpt
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_frequency_grid, check_bool, check_int, excerpt
 from torchblur.sysid.frequency_response import FrequencyResponse, control_names
 from torchblur.sysid.frequency_response_io import read_json_doc, write_json_doc
+from torchblur.sysid.model_io import tf_fit_fields_from_dict, tf_fit_to_dict
 
 __all__ = ["fit_transfer_function", "TransferFunctionFit"]
 
 _WEIGHT_MODES = ("uncertainty", "uniform")
 _MODAL_KINDS = ("poles", "zeros")
 _DELAY_FORMS = (None, "pade", "frd")
-_SCHEMA = "torchblur.transfer_function_fit"
-#: the schema version :meth:`TransferFunctionFit.to_dict` writes
-SCHEMA_VERSION = 2
-#: the units of model.json's numbers (version 2 writes them; version 1 files meant the same)
-UNITS = {"s": "rad/s", "num": "output unit per input unit (the response's), coefficients of s", "den": "coefficients of s",
-         "delay_s": "s", "poles": "rad/s", "zeros": "rad/s", "dc_gain": "output unit per input unit"}
-_FIT_KEYS = frozenset({"num", "den", "delay_s", "n_poles", "n_zeros", "chi2", "dof", "reduced_chi2", "rms_relative_error",
-                       "poles", "zeros", "dc_gain", "weighting", "delay_estimated", "input_labels", "output_labels"})
-#: model.json's keys by schema_version, in one place: ``{version: (required, optional)}``. A key
-#: is refused only when its file's own version does not know it; a version not listed is refused
-#: by name. The optional keys are what the CLI writes beside the fit (its stamp, and the points the
-#: model was not fitted to: :func:`torchblur.identify.outputs.left_out_points`); read, checked, not kept.
-#: A new key goes into a new version here (and into :meth:`TransferFunctionFit.to_dict`).
-_CLI_KEYS = frozenset({"torchblur_version", "seed", "left_out_points", "poor_fit_points_kept"})
-#: the model's parameters with their uncertainty and the orders compared (all or none:
-#: :func:`_uncertainty_from_doc`), and the verdict's judgement beside the fit (read, checked, not kept)
-_UNCERTAINTY_KEYS = ("param_names", "params", "std", "covariance", "candidates", "order_criterion")
-_VERDICT_KEYS = ("judgement", "model_passed", "rejected_direct_model", "direct_model_error")
-SCHEMA_KEYS = {
-    1: (_FIT_KEYS | {"schema", "schema_version"}, _CLI_KEYS),
-    2: (_FIT_KEYS | {"schema", "schema_version", "units"}, _CLI_KEYS | set(_UNCERTAINTY_KEYS) | set(_VERDICT_KEYS)),
-}
 _FLOOR_RTOL = 1e-9
 _GRID_SK_ITER = 6
 _PATIENCE = 6
@@ -123,7 +48,7 @@ class TransferFunctionFit:
         den: denominator coefficients, highest power first, monic (den[0] == 1).
         delay_s: pure delay in seconds (not part of ``num``/``den``).
         n_poles, n_zeros: model orders.
-        chi2: weighted sum of squares ``sum_f e_f^T e_f`` (see the module docstring).
+        chi2: weighted sum of squares ``sum_f e_f^T e_f`` (docs/transfer_function_fit.md).
         dof: degrees of freedom, ``2 * n_points - n_parameters`` (real observations minus
             real parameters: K, the n_zeros + n_poles factor coefficients, and the delay if
             it was estimated).
@@ -326,59 +251,18 @@ class TransferFunctionFit:
         return float(vals[k]), float(std[k])
 
     def to_dict(self) -> dict[str, Any]:
-        """A JSON-serialisable dict: coefficients, delay, orders, fit statistics, roots.
+        """A JSON-serialisable dict: coefficients, delay, orders, fit statistics, roots, the
+        parameters' uncertainty (:func:`~torchblur.sysid.model_io.tf_fit_to_dict`).
 
         Roots are ``{"real": [...], "imag": [...]}``; non-finite numbers become ``None``.
         Per-channel values are nested [O][I] for MIMO as in the attributes.
         """
-
-        def conv(v):
-            if isinstance(v, np.ndarray) and np.iscomplexobj(v):
-                return {"real": [_jf(x) for x in v.real], "imag": [_jf(x) for x in v.imag]}
-            if isinstance(v, (list, tuple, np.ndarray)):
-                return [conv(x) for x in v]
-            if isinstance(v, (bool, np.bool_)):
-                return bool(v)
-            if isinstance(v, (int, np.integer)):
-                return int(v)
-            return _jf(v)
-
-        doc: dict[str, Any] = {"schema": _SCHEMA, "schema_version": SCHEMA_VERSION, "units": dict(UNITS)}
-        for f in (
-            "num", "den", "delay_s", "n_poles", "n_zeros", "chi2", "dof", "reduced_chi2",
-            "rms_relative_error", "dc_gain", "poles", "zeros",
-        ):
-            doc[f] = conv(getattr(self, f))
-        doc["weighting"] = self.weighting
-        doc["delay_estimated"] = bool(self.delay_estimated)
-        doc["input_labels"] = list(self.input_labels)
-        doc["output_labels"] = list(self.output_labels)
-        if self.params is not None:
-            doc.update(self._uncertainty_dict(conv))
-        return doc
-
-    def _uncertainty_dict(self, conv) -> dict[str, Any]:
-        """model.json's keys of the parameters' uncertainty and the order selection:
-        ``param_names``, ``params``, ``std``, ``covariance`` (per channel, nested [O][I] for MIMO),
-        ``candidates`` (rows of :attr:`candidates`) and ``order_criterion``."""
-
-        def per_channel(f, fn):
-            v = self._channels(f)
-            out = [[fn(v[o][i]) for i in range(len(self.input_labels))] for o in range(len(self.output_labels))]
-            return out[0][0] if self.is_siso else out
-
-        def rows(table):
-            return [{k: (bool(v) if k == "chosen" else int(v) if k in ("n_poles", "n_zeros", "n_params", "dof") else _jf(v))
-                     for k, v in r.items()} for r in table]
-
-        return {"param_names": per_channel("param_names", list), "params": per_channel("params", conv),
-                "std": per_channel("std", conv), "covariance": per_channel("covariance", conv),
-                "candidates": per_channel("candidates", rows), "order_criterion": self.order_criterion}
+        return tf_fit_to_dict(self)
 
     @classmethod
     def from_dict(cls, doc: dict) -> "TransferFunctionFit":
-        """Inverse of :meth:`to_dict` (checks ``schema``, ``schema_version`` and the keys of
-        that version: :data:`SCHEMA_KEYS`; version 1 files, written before ``units``, read too).
+        """Inverse of :meth:`to_dict` (checks ``schema``, ``schema_version`` and the keys of that
+        version: ``torchblur.sysid.model_io.TF_SCHEMA_KEYS``; version 1 files, without ``units``, read too).
 
         Also reads the CLI's model.json, which adds ``torchblur_version``, ``seed``,
         ``left_out_points`` and ``poor_fit_points_kept`` beside the fit (checked, not kept).
@@ -390,38 +274,12 @@ class TransferFunctionFit:
             ParameterError: another schema (a direct fit, or a failed fit's ``error``), an
                 unsupported version, keys unknown to its version or missing, malformed values.
         """
-        if not isinstance(doc, dict):
-            raise InputTypeError(f"doc: expected a JSON object, got {type(doc).__name__}")
-        if doc.get("schema") != _SCHEMA:
-            why = f" (the file says: {doc['error']})" if "error" in doc else ""
-            raise ParameterError(f"schema: expected {excerpt(_SCHEMA)}, got {excerpt(doc.get('schema'))}{why}")
-        _check_keys(doc)
-        kinds = {"num": "coeffs", "den": "coeffs", "delay_s": "float", "n_poles": "int", "n_zeros": "int",
-                 "chi2": "float", "dof": "int", "reduced_chi2": "float", "rms_relative_error": "float",
-                 "poles": "roots", "zeros": "roots"}
-        labels = {k: tuple(doc[k]) for k in ("input_labels", "output_labels")}
-        for k, v in labels.items():
-            if not v or not all(isinstance(x, str) for x in v):
-                raise ParameterError(f"{k}: expected a non-empty list of strings, got {excerpt(doc[k])}")
-        n_o, n_i = len(labels["output_labels"]), len(labels["input_labels"])
-        siso = n_o == n_i == 1
-
-        def channels(key):
-            v = doc[key]
-            if siso:
-                return _from_json_value(v, key, kinds[key])
-            if not isinstance(v, list) or len(v) != n_o or any(not isinstance(r, list) or len(r) != n_i for r in v):
-                raise ParameterError(f"{key}: expected nested lists [O][I] = [{n_o}][{n_i}] for a MIMO fit")
-            return [[_from_json_value(x, key, kinds[key]) for x in row] for row in v]
-
-        fields = {k: channels(k) for k in kinds}
-        if siso:
+        fields = tf_fit_fields_from_dict(doc)
+        if len(fields["input_labels"]) == len(fields["output_labels"]) == 1:
             dc = _dc_gain(fields["num"], fields["den"])
         else:
             dc = [[_dc_gain(n, d) for n, d in zip(nr, dr)] for nr, dr in zip(fields["num"], fields["den"])]
-        extra = _uncertainty_from_dict(doc, siso, n_o, n_i)
-        return cls(**fields, dc_gain=dc, weighting=str(doc["weighting"]), delay_estimated=bool(doc["delay_estimated"]), **labels,
-                   **extra)
+        return cls(**fields, dc_gain=dc)
 
     def to_json(self, path: str | os.PathLike) -> None:
         """Write :meth:`to_dict` to a strict JSON file (read it back with :meth:`from_json`)."""
@@ -443,92 +301,11 @@ class TransferFunctionFit:
         return f"TransferFunctionFit({len(self.output_labels)}x{len(self.input_labels)} channels)"
 
 
-def _check_keys(doc: dict) -> None:
-    """ParameterError unless ``doc``'s ``schema_version`` is one of :data:`SCHEMA_KEYS` and its
-    keys are that version's (required all present, nothing unknown), and its ``units`` (version
-    2 on) are :data:`UNITS`."""
-    version = check_schema_version(doc.get("schema_version"), SCHEMA_KEYS)
-    required, optional = SCHEMA_KEYS[version]
-    unknown = set(doc) - required - optional
-    if unknown:
-        raise ParameterError(f"doc: unknown keys {sorted(unknown)} for schema_version {version}; expected keys {sorted(required)}"
-                             f" and optionally {sorted(optional)}")
-    missing = required - set(doc)
-    if missing:
-        raise ParameterError(f"doc: missing keys {sorted(missing)}")
-    for key in ("left_out_points", "poor_fit_points_kept"):
-        if key in doc and not (isinstance(doc[key], list) and all(isinstance(x, dict) for x in doc[key])):
-            raise ParameterError(f"{key}: expected a list of objects, got {excerpt(doc[key])}")
-    if "units" in required and doc["units"] != UNITS:
-        raise ParameterError(f"units: expected {UNITS}, got {excerpt(doc['units'])}")
-
-
 def _dc_gain(num, den) -> float:
     """H(0) = num[-1] / den[-1]; +-inf for a pole at 0 (sign of num[-1]), NaN for 0/0."""
     if den[-1] != 0:
         return float(num[-1] / den[-1])
     return math.copysign(math.inf, num[-1]) if num[-1] else math.nan
-
-
-
-def _uncertainty_from_dict(doc: dict, siso: bool, n_o: int, n_i: int) -> dict[str, Any]:
-    """The :attr:`TransferFunctionFit.covariance` fields read back from ``doc`` (all of
-    :data:`_UNCERTAINTY_KEYS`, or none: a file written before they existed)."""
-    have = [k for k in _UNCERTAINTY_KEYS if k in doc]
-    if not have:
-        return {}
-    if len(have) != len(_UNCERTAINTY_KEYS):
-        raise ParameterError(f"doc: missing keys {sorted(set(_UNCERTAINTY_KEYS) - set(have))} (it has {sorted(have)})")
-
-    def one(names, vals, std, cov, rows):
-        try:
-            names = tuple(str(n) for n in names)
-            vals, std = (np.array([math.nan if x is None else x for x in v], dtype=np.float64) for v in (vals, std))
-            cov = np.array([[math.nan if x is None else x for x in r] for r in cov], dtype=np.float64).reshape(len(names), len(names))
-            rows = tuple({k: (math.nan if v is None else v) for k, v in dict(r).items()} for r in rows)
-        except (TypeError, ValueError) as exc:
-            raise ParameterError(f"params: expected param_names, params, std, covariance and candidates as to_dict writes "
-                                 f"them ({exc})") from None
-        if vals.shape != (len(names),) or std.shape != vals.shape:
-            raise ParameterError(f"params: expected {len(names)} values and stds (one per name), got {vals.size} and {std.size}")
-        return names, vals, std, cov, rows
-
-    keys = ("param_names", "params", "std", "covariance", "candidates")
-    if siso:
-        names, vals, std, cov, rows = one(*(doc[k] for k in keys))
-    else:
-        if any(not isinstance(doc[k], list) or len(doc[k]) != n_o or any(len(r) != n_i for r in doc[k]) for k in keys):
-            raise ParameterError(f"params: expected nested lists [O][I] = [{n_o}][{n_i}] for a MIMO fit")
-        chans = [[one(*(doc[k][o][i] for k in keys)) for i in range(n_i)] for o in range(n_o)]
-        names, vals, std, cov, rows = ([[c[j] for c in row] for row in chans] for j in range(5))
-    return {"param_names": names, "params": vals, "std": std, "covariance": cov, "candidates": rows,
-            "order_criterion": str(doc["order_criterion"])}
-
-
-def _from_json_value(v, key: str, kind: str):
-    """One channel's value of :meth:`TransferFunctionFit.to_dict` read back: ``kind`` "float"
-    (None = NaN), "int", "coeffs" (a list of floats) or "roots" (``{"real", "imag"}``)."""
-    try:
-        if kind == "int":
-            if isinstance(v, bool) or not isinstance(v, int):
-                raise TypeError(type(v).__name__)
-            return v
-        if kind == "float":
-            return math.nan if v is None else float(v)
-        if kind == "coeffs":
-            return [float(x) for x in v]
-        re = np.array([math.nan if x is None else x for x in v["real"]], dtype=np.float64)
-        im = np.array([math.nan if x is None else x for x in v["imag"]], dtype=np.float64)
-        if re.shape != im.shape:
-            raise ValueError("real and imag differ in length")
-        return re + 1j * im
-    except (TypeError, ValueError, KeyError) as exc:
-        raise ParameterError(f"{key}: expected a {kind} value as to_dict writes it, got {excerpt(v)} ({exc})") from None
-
-
-def _jf(x):
-    x = float(x)
-    return x if math.isfinite(x) else None
 
 
 def _natural_response(names, vals: np.ndarray, omega: np.ndarray, delay_s: float) -> np.ndarray:
@@ -725,6 +502,17 @@ def _roots_of(quads, lins, scale) -> np.ndarray:
     if not r:
         return np.zeros(0, dtype=np.complex128)
     return np.concatenate(r) * scale
+
+
+def _poly_of(lead, quads, lins, scale) -> np.ndarray:
+    """``lead`` times the factors ``s^2 + a1 s + a0`` and ``s + c`` of the scaled frequency,
+    in s (rad/s): coefficients, highest power first."""
+    poly = np.array(lead)
+    for a1, a0 in quads:
+        poly = np.polymul(poly, [1.0, a1 * scale, a0 * scale * scale])
+    for c in lins:
+        poly = np.polymul(poly, [1.0, c * scale])
+    return poly
 
 
 def _reflect(p: np.ndarray) -> np.ndarray:
@@ -1037,16 +825,8 @@ def _covariance(c: _Cand, data: _Data, sigma2_known: bool):
 def _physical(c: _Cand, data: _Data, sigma2_known: bool = True) -> dict[str, Any]:
     s = data.scale
     k, zq, zl, pq, pl, rest = _split(c.theta, c.n_zeros, c.n_poles)
-    den = np.array([1.0])
-    for a1, a0 in pq:
-        den = np.polymul(den, [1.0, a1 * s, a0 * s * s])
-    for cc in pl:
-        den = np.polymul(den, [1.0, cc * s])
-    num = np.array([k * s ** (c.n_poles - c.n_zeros)])
-    for b1, b0 in zq:
-        num = np.polymul(num, [1.0, b1 * s, b0 * s * s])
-    for cc in zl:
-        num = np.polymul(num, [1.0, cc * s])
+    den = _poly_of([1.0], pq, pl, s)
+    num = _poly_of([k * s ** (c.n_poles - c.n_zeros)], zq, zl, s)
     tau = float(rest[0] / s) if c.est_tau else float(c.tau_fixed)
     with np.errstate(all="ignore"):
         hm, _ = _model(c.theta, c.n_zeros, c.n_poles, c.est_tau, c.tau_fixed, data, False)
@@ -1134,7 +914,7 @@ def fit_transfer_function(
 ) -> TransferFunctionFit:
     """Fit ``K prod(s - z) / prod(s - p) exp(-s delay_s)`` to each channel of ``frf``.
 
-    Method, weighting and the order-selection rule are described in the module docstring.
+    Method, weighting and the order-selection rule: docs/transfer_function_fit.md.
     Failed points (``frf.valid`` False) and points of weight 0 are skipped. MIMO FRFs are
     fit channel by channel (own orders, own delay).
 
@@ -1158,7 +938,7 @@ def fit_transfer_function(
             delay's variance: counted once, fully correlated, instead of as independent
             per-point errors that average down. Needs ``delay_s=None``.
         magnitude_only: bool ``[F]`` or ``[O, I, F]``: points whose phase is unknown (an undecided
-            alias branch), fitted by their magnitude alone (see "Magnitude-only points" above).
+            alias branch), fitted by their magnitude alone (docs/transfer_function_fit.md).
 
     Returns:
         :class:`TransferFunctionFit` (per-channel values nested [O][I] for MIMO).
@@ -1234,13 +1014,19 @@ def _magnitude_only(value, frf: FrequencyResponse, weight, use: np.ndarray):
     return m, wm
 
 
-def _common_delay_std(value, delay_s) -> float:
-    """The checked ``common_delay_std_s`` of :func:`fit_transfer_function` (s)."""
+def _seconds(value, name: str) -> float:
+    """``value`` checked as a duration: a real number (numpy's too), finite, >= 0 (s)."""
     if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
-        raise InputTypeError(f"common_delay_std_s: expected a real number (s), got {type(value).__name__}")
+        raise InputTypeError(f"{name}: expected a real number (s), got {type(value).__name__}")
     value = float(value)
     if not math.isfinite(value) or value < 0:
-        raise ParameterError(f"common_delay_std_s: expected a finite value >= 0 seconds, got {value:g}")
+        raise ParameterError(f"{name}: expected a finite value >= 0 seconds, got {value:g}")
+    return value
+
+
+def _common_delay_std(value, delay_s) -> float:
+    """The checked ``common_delay_std_s`` of :func:`fit_transfer_function` (s)."""
+    value = _seconds(value, "common_delay_std_s")
     if value > 0 and delay_s is not None:
         raise ParameterError(f"common_delay_std_s: a timing error common to every point is absorbed by an estimated delay; "
                              f"it needs delay_s=None, got delay_s={delay_s:g} with common_delay_std_s={value:g}")
@@ -1286,11 +1072,7 @@ def _candidate_orders(n_poles, n_zeros, max_order, delay_s):
         if n_poles is None and n_zeros > max_order:
             raise ParameterError(f"n_zeros: expected <= max_order = {max_order}, got {n_zeros}")
     if delay_s is not None:
-        if isinstance(delay_s, bool) or not isinstance(delay_s, (int, float, np.floating, np.integer)):
-            raise InputTypeError(f"delay_s: expected None or a real number, got {type(delay_s).__name__}")
-        delay_s = float(delay_s)
-        if not math.isfinite(delay_s) or delay_s < 0:
-            raise ParameterError(f"delay_s: expected a finite value >= 0 seconds, got {delay_s:g}")
+        delay_s = _seconds(delay_s, "delay_s")
     pole_range = [n_poles] if n_poles is not None else list(range(max(1, n_zeros or 0), max_order + 1))
     orders = [(p, z) for p in pole_range for z in ([n_zeros] if n_zeros is not None else range(p + 1))]
     return orders, delay_s

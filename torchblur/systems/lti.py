@@ -24,6 +24,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.linalg
 import scipy.signal
 import torch
 
@@ -60,38 +61,6 @@ def _as_coefficients(value, name: str) -> tuple[float, ...]:
     if not np.all(np.isfinite(arr)):
         raise ParameterError(f"{name}: expected finite coefficients, got {arr.tolist()}")
     return tuple(float(v) for v in arr)
-
-
-def _balance_scaling(A: np.ndarray, radix: float = 2.0) -> np.ndarray:
-    """Diagonal scaling d (powers of ``radix``) such that ``diag(1/d) A diag(d)`` has rows and
-    columns of similar norms (Parlett-Reinsch balancing, as LAPACK ``gebal`` without
-    permutation). Exact in floating point: only powers of two."""
-    A = np.array(A, dtype=np.float64)
-    n = A.shape[0]
-    d = np.ones(n)
-    for _ in range(200):
-        done = True
-        for i in range(n):
-            c = np.abs(A[:, i]).sum() - abs(A[i, i])
-            r = np.abs(A[i, :]).sum() - abs(A[i, i])
-            if c == 0.0 or r == 0.0:
-                continue
-            s0 = c + r
-            f = 1.0
-            while c < r / radix:
-                c *= radix * radix
-                f *= radix
-            while c >= r * radix:
-                c /= radix * radix
-                f /= radix
-            if (c + r) / f < 0.95 * s0:
-                done = False
-                d[i] *= f
-                A[i, :] /= f
-                A[:, i] *= f
-        if done:
-            break
-    return d
 
 
 @dataclass(frozen=True)
@@ -189,8 +158,7 @@ class Plant:
         if self.order == 0:
             return np.zeros((0, 0)), np.zeros(0), np.zeros(0), np.float64(self.num[-1] / self.den[0])
         A, B, C, D = scipy.signal.tf2ss(self.num, self.den)  # controller canonical form
-        scale = _balance_scaling(A)
-        A = A * scale[None, :] / scale[:, None]
+        A, (scale, _) = scipy.linalg.matrix_balance(A, permute=False, separate=True)  # LAPACK gebal: powers of 2, exact
         return A, B[:, 0] / scale, C[0] * scale, np.float64(D[0, 0])
 
     def to_control(self, pade_order: int | None = None):

@@ -1,27 +1,13 @@
 """A multi-input multi-output plant (a tip-tilt mirror) and the spot's motion when one of its
-inputs is driven by a sine.
+inputs is driven by a sine (docs/mimo_and_spots.md).
 
-A two-axis fast steering mirror has two inputs (the commanded angles x, y) and two outputs
-(the actual angles, which move the spot along x and y on the sensor). Cross-coupling makes
-each output respond to both inputs:
-
-    y_o(t) = sum_i H_oi * u_i,       H_oi(s) = num[o][i](s) / den[o][i](s) * exp(-s delay[o][i])
-
-Each channel ``(o, i)`` (output o from input i, o, i in (x, y)) is a SISO
-:class:`~torchblur.systems.lti.Plant` with its own delay. Conventions as in :mod:`torchblur.systems.lti`:
-``omega`` rad/s, phases rad, outputs in px per input unit; a response is
-``[O, I, F]`` (python-control's layout, frequency last).
-
-When input ``i`` is driven by ``amplitude sin(omega t)`` from rest at t = 0 (the other input
-held at 0), the image of the spot moves by
-
-    d(t) = G @ y(t) = sum_o G[:, o] y_o(t),     y_o(t) = exact response of channel (o, i)
-
-with ``G`` ``[2, O]`` the image motion per output unit (px per px). For one tip-tilt spot
-``G`` is the identity (output x moves the image along x); for the spots of a
-Shack-Hartmann sensor each spot has its own ``G`` (:mod:`torchblur.image.spots`).
-:class:`MIMOSineTrajectory` is that motion, exact with transients (a sum of
-:class:`~torchblur.systems.lti.LTISineTrajectory`).
+Channel ``(o, i)`` (output o from input i) is a SISO :class:`~torchblur.systems.lti.Plant`
+with its own delay, ``y_o(t) = sum_i H_oi u_i``; conventions as in :mod:`torchblur.systems.lti`
+(``omega`` rad/s, phases rad, a response ``[O, I, F]``, frequency last). With input ``i``
+driven by ``amplitude sin(omega t)`` from rest at t = 0 (the other inputs held at 0), the image
+of the spot moves by ``d(t) = G @ y(t)``, ``G [2, O]`` the image motion per output unit (the
+identity for one tip-tilt spot; its own per spot of a Shack-Hartmann sensor,
+:mod:`torchblur.image.spots`): :class:`MIMOSineTrajectory`, exact with transients.
 
 This module is not imported by ``import torchblur`` (it needs scipy through ``lti``).
 """
