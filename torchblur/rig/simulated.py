@@ -388,25 +388,6 @@ class SimulatedRig(RigChecks):
     def _expose(self, expected_e: torch.Tensor) -> torch.Tensor:
         return self._camera.expose(expected_e, generator=self._generator)
 
-    def render_frames(self, trajectories: Sequence[Trajectory], trigger_time_s, exposure_s: float, *, power: float = 1.0) -> torch.Tensor:
-        """Frames ``[N, H, W]`` (ADU) of the spots moving along ``trajectories``, triggered at
-        ``trigger_time_s`` ``[N]`` (s, on the rig's clock) for ``exposure_s`` each: the
-        windows get the rig's trigger delay, latency and jitter, the image the camera's noise
-        (the rig's random stream, as every capture). ``trajectories``: one per spot of the
-        rig's layout (spot k's image motion, px), or one for the single spot; ``power`` scales
-        the laser (1 = ``peak_e_per_s``). For a waveform the rig's own commands do not cover
-        (the bench emulator's free multisine)."""
-        trig = as_tensor(trigger_time_s, "trigger_time_s", dtype=_F64).reshape(-1)
-        window = self._actual_starts(trig, torch.full_like(trig, self._check_exposure(exposure_s)))
-        p = self._check_power(power)
-        psf = GaussianPSF(self._psf.center, self._psf.cov, self._psf.amplitude * p)
-        if len(trajectories) != (1 if psf.shape == () else psf.shape[0]):
-            raise ShapeError(f"trajectories: expected one per spot ({1 if psf.shape == () else psf.shape[0]}), got {len(trajectories)}")
-        expected = 0
-        for k, traj in enumerate(trajectories):
-            expected = expected + self._render(traj, psf if psf.shape == () else psf[k], window)
-        return self._expose(expected)
-
     def _settling_time_s(self) -> float:
         """How long the command's transient lasts (s): the plant's settling time (a DM rig: its
         slowest actuator's). The default wait of :meth:`_schedule`."""
