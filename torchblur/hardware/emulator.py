@@ -1,21 +1,9 @@
-"""``torchblur emulator``: a separate process that behaves like the bench.
+"""``torchblur emulator``: a separate process that behaves like the bench (docs/protocol.md, "The emulator").
 
-It speaks the controller protocol (docs/protocol.md) on a pseudo-terminal (or, with
-``transport=socket``, on a loopback TCP port for pyserial's ``socket://``), simulates the
-mirror and the camera with :class:`~torchblur.rig.simulated.SimulatedRig` (the same config
-keys as the simulated rig: ``plant.*``, ``camera.*``, ``seed``), and serves the frames on a
-loopback TCP channel (:mod:`torchblur.hardware.frames` wire format). On start it prints one
-line of JSON, e.g.::
-
-    {"serial": "/dev/pts/4", "frames": "tcp://127.0.0.1:40123", "pid": 812, "protocol": 3, ...}
-
-then serves until killed.
-
-Time is simulated: the controller clock advances by the acquisitions' schedule, not by wall
-time, and every trigger falls where :class:`~torchblur.rig.simulated.SimulatedRig` would put it.
-The commands, the trigger timing, the device's ranges and the fault injection (``fault.*``,
-every fault reported on stderr as ``emulator: fault: ...``) are docs/protocol.md's ("The
-emulator", "Trigger timing").
+It speaks the controller protocol on a pseudo-terminal (``transport=socket``: a loopback TCP port for
+pyserial's ``socket://``), renders the frames with the config's simulated rig
+(:mod:`torchblur.rig.factory`) on a simulated clock, serves them on a loopback TCP channel
+(:mod:`torchblur.hardware.frames`), and prints one JSON start line (``serial``, ``frames``, ``pid``, ...).
 """
 from __future__ import annotations
 
@@ -29,7 +17,7 @@ import socket
 import sys
 import threading
 import time
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -153,20 +141,16 @@ class FrameServer:
             with self._lock:
                 old, self._conn = self._conn, conn
             if old is not None:
-                try:
+                with suppress(OSError):
                     old.close()
-                except OSError:
-                    pass
 
     def disconnect(self) -> None:
         """Close the current client's connection (it may connect again)."""
         with self._lock:
             if self._conn is not None:
-                try:
+                with suppress(OSError):
                     self._conn.shutdown(socket.SHUT_RDWR)
                     self._conn.close()
-                except OSError:
-                    pass
                 self._conn = None
 
     def send(self, message: bytes) -> bool:
@@ -186,10 +170,8 @@ class FrameServer:
             with self._lock:
                 if self._conn is conn:
                     self._conn = None
-            try:
+            with suppress(OSError):
                 conn.close()
-            except OSError:
-                pass
             return False
 
 
@@ -711,10 +693,8 @@ def main(argv: list[str] | None = None, *, config_path: str | None = None) -> in
         holder["frames"].disconnect()
         conn = serial_conn.get("conn")
         if conn is not None:
-            try:
+            with suppress(OSError):
                 conn.shutdown(socket.SHUT_RDWR)
-            except OSError:
-                pass
 
     device.on_disconnect = disconnect
     info = {"frames": holder["frames"].url, "pid": os.getpid(), "protocol": device.protocol, "transport": cfg.transport,
