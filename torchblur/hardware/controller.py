@@ -11,7 +11,7 @@ import secrets
 import time
 
 from torchblur.hardware.errors import ConnectionLost, DeviceError, GarbageReply, ReplyTimeout
-from torchblur.hardware.protocol import (E_UNKNOWN, MAX_LINE, PROTOCOL_VERSIONS, Reply, format_command, format_number, parse_reply,
+from torchblur.hardware.protocol import (E_UNKNOWN, MAX_LINE, PROTOCOL_VERSIONS, Reply, format_command, format_tones, parse_reply,
                                          pattern_checksum, pattern_lines)
 
 __all__ = ["Controller", "import_serial"]
@@ -334,8 +334,7 @@ class Controller:
 
     def wave_multi(self, axis: str, tones) -> float:
         """Start ``sum_k a_k sin(2 pi f_k t + p_k)``; ``tones`` = [(f_hz, a, p_rad), ...]."""
-        spec = ",".join(f"{format_number(f)}:{format_number(a)}:{format_number(p)}" for f, a, p in tones)
-        return self.command("WAVE", axis, "MULTI", spec).get_float("start")
+        return self.command("WAVE", axis, "MULTI", format_tones(tones)).get_float("start")
 
     def arm(self, trigger_offset_s: float, exposure_s: float, count: int) -> tuple[int, int]:
         """``ARM``; returns ``(first frame counter, count)``."""

@@ -15,6 +15,7 @@ import json
 import math
 import os
 import time
+from contextlib import suppress
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +25,7 @@ from torchblur.errors import excerpt
 from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.frames import CameraInfo, CameraProperties, raw_pixels
 from torchblur.hardware.manifest import (MAX_FRAME_SIDE, MAX_MANIFEST_BYTES, MAX_META_BYTES, INTEGRITY_KEY, METHODS, SCHEMA_VERSION, SETTINGS_KEY, ManifestScan,
-                                         check_meta, load_json, meta_digest, read_bounded, scan_manifest,
+                                         check_meta, expected_file, load_json, meta_digest, read_bounded, scan_manifest,
                                          settings_digest)
 from torchblur.hardware.run_folder import RunLock, inside
 from torchblur import __version__
@@ -40,16 +41,12 @@ _F64 = torch.float64
 
 
 def _fsync_dir(path: Path) -> None:
-    try:
+    with suppress(OSError):  # best effort: not every platform or file system syncs a folder
         fd = os.open(path, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
 
 
 def atomic_write_bytes(path: str | Path, data: bytes, *, fsync: bool = True) -> None:
@@ -65,10 +62,8 @@ def atomic_write_bytes(path: str | Path, data: bytes, *, fsync: bool = True) -> 
                 os.fsync(fh.fileno())
         os.replace(tmp, path)
     except BaseException:
-        try:
+        with suppress(OSError):
             tmp.unlink()
-        except OSError:
-            pass
         raise
     if fsync:
         _fsync_dir(path.parent)
@@ -396,7 +391,7 @@ class Experiment:
         labels = dict(labels or {})
         frames, lines = [], []
         n_total = sum(int(np.prod(c[2].shape)) if len(c[2].shape) else 1 for c in calls)
-        fname = "frames/" + key.replace("/", "_") + ".tif"
+        fname = expected_file(key)
         page = 0
         for ci, (method, args, cap) in enumerate(calls):
             shape = tuple(cap.shape)

@@ -134,21 +134,14 @@ class SerialDMRig(PatternSines, SerialRig):
         te = self._check_exposure(exposure_s)
         power = self._check_power(power)
         check_drive(max(abs(u) for u in lv) * float(np.abs(p).max(initial=0.0)), self.input_limit, "levels")
-        c = self.controller
-
-        def once():
-            self._begin()
-            c.stop()
-            c.power(power)
-            c.settle(None)
+        def body(c):
             out = []
             for u in lv:
                 self._drive_pattern(p, lambda c, u=u: c.hold_pattern(u))
                 out += self._armed(te, n)
-            c.stop()
             return out
 
-        frames = self._call(f"pattern_ladder {describe_pattern(p)} at {len(lv)} levels", once)
+        frames = self._transaction(f"pattern_ladder {describe_pattern(p)} at {len(lv)} levels", power, body, wave=True)
         return self._capture(frames, (len(lv), n), [0.0] * (len(lv) * n),
                              {"kind": "pattern_ladder", "pattern": p, "levels": lv, "power": power})
 
