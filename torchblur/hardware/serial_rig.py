@@ -1,12 +1,7 @@
-"""A :class:`~torchblur.rig.base.Rig` on a real (or emulated) bench: a controller on a serial
-line (:class:`~torchblur.hardware.controller.Controller`) and a camera
-(:class:`~torchblur.hardware.frames.FrameSource`).
-
-Every rig call is one transaction, each frame is checked, and a fault makes the rig
-resynchronise and redo the whole call at most ``retries`` more times (a lost connection is
-reopened at most ``reconnects`` times), then raise
-:class:`~torchblur.hardware.errors.AcquisitionStopped`: nothing half-taken is ever returned
-(docs/protocol.md, "Client rules").
+"""A :class:`~torchblur.rig.base.Rig` on a real (or emulated) bench: a controller on a serial line
+(:class:`~torchblur.hardware.controller.Controller`) and a camera
+(:class:`~torchblur.hardware.frames.FrameSource`); every call one transaction, every frame checked,
+faults retried, then :class:`~torchblur.hardware.errors.AcquisitionStopped` (docs/protocol.md, "Client rules").
 """
 from __future__ import annotations
 
