@@ -269,9 +269,7 @@ class EmulatedDevice:
 
     @property
     def camera_info(self) -> CameraInfo:
-        r = self.rig
-        return CameraInfo(frame_shape=tuple(r.frame_shape), frame_rate_hz=r.frame_rate_hz, max_exposure_s=r.max_exposure_s,
-                          readout_s=r.readout_s, name=self.name)
+        return CameraInfo.of(self.rig, self.name)
 
     def _state(self) -> str:
         if self.reset_flag:

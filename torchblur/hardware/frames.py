@@ -50,6 +50,14 @@ class CameraInfo:
         return cls(frame_shape=tuple(int(v) for v in d["frame_shape"]), frame_rate_hz=float(d["frame_rate_hz"]),
                    max_exposure_s=float(d["max_exposure_s"]), readout_s=float(d["readout_s"]), name=str(d.get("name", "")))
 
+    @classmethod
+    def of(cls, rig, name: str = "") -> "CameraInfo":
+        """The camera of any rig (its :class:`~torchblur.rig.base.CameraRig` properties), named
+        ``name``, else as the rig's camera is, else by the rig's class."""
+        return cls(frame_shape=tuple(int(v) for v in rig.frame_shape), frame_rate_hz=float(rig.frame_rate_hz),
+                   max_exposure_s=float(rig.max_exposure_s), readout_s=float(rig.readout_s),
+                   name=name or getattr(getattr(rig, "info", None), "name", "") or type(rig).__name__)
+
 
 class CameraProperties:
     """The camera properties of :class:`~torchblur.rig.base.CameraRig` read from ``self.info``

@@ -31,7 +31,7 @@ from torchblur.hardware.run_folder import RunLock, inside
 from torchblur import __version__
 from torchblur.rig.base import Capture, Rig
 
-__all__ = ["SCHEMA_VERSION", "Experiment", "ReplayRig", "atomic_write_bytes", "camera_info_of"]
+__all__ = ["SCHEMA_VERSION", "Experiment", "ReplayRig", "atomic_write_bytes"]
 
 _TMP = ".tmp"
 _F64 = torch.float64
@@ -71,13 +71,6 @@ def atomic_write_bytes(path: str | Path, data: bytes, *, fsync: bool = True) -> 
 
 def _now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-
-
-def camera_info_of(rig) -> CameraInfo:
-    """The :class:`CameraInfo` of any rig (its Rig properties)."""
-    return CameraInfo(frame_shape=tuple(int(v) for v in rig.frame_shape), frame_rate_hz=float(rig.frame_rate_hz),
-                      max_exposure_s=float(rig.max_exposure_s), readout_s=float(rig.readout_s),
-                      name=getattr(getattr(rig, "info", None), "name", "") or type(rig).__name__)
 
 
 def _jsonable(v):
@@ -247,15 +240,11 @@ class Experiment:
 
     @classmethod
     def open(cls, path: str | Path, *, writable: bool = True, verify: bool = True) -> "Experiment":
-        """Open a recording, treated as untrusted input (every field checked, every path kept
-        inside the folder, sizes bounded: :mod:`torchblur.hardware.manifest`).
-
-        Writable (a resume): take the run's lock, then repair: lines that cannot be read or
-        checked, and the groups they leave incomplete or inconsistent, are moved with their
-        frame files to ``quarantine/<stamp>/`` (never deleted; ``repaired`` names every
-        group), unreferenced TIFFs likewise; only temporary files are removed. Read-only: an
-        incomplete group at the end (a crash during an append) is left out; any other
-        problem raises. ``verify`` checks every group's file hash.
+        """Open a recording, treated as untrusted input (:mod:`torchblur.hardware.manifest`).
+        Writable (a resume): take the run's lock, then repair it (docs/protocol.md, "The
+        experiment directory"; ``repaired`` names every group set aside). Read-only: an
+        incomplete group at the end (a crash during an append) is left out; any other problem
+        raises. ``verify`` checks every group's file hash.
 
         Raises:
             RecordingError: no recording there, an unknown schema, a bad experiment.json, the
@@ -608,13 +597,9 @@ def check_distinct_frames(frames, names: list, seen: dict | None = None) -> dict
 
 
 def _repair(exp: "Experiment", scan: ManifestScan) -> None:
-    """Set aside what ``scan`` could not keep and rewrite the manifest with the kept lines.
-
-    Nothing recorded is deleted: the lines not kept (their raw bytes), the frame files of
-    the dropped groups and any TIFF no kept line references go to ``quarantine/<stamp>/``
-    with ``reasons.json``. Only temporary files (``*.tmp``: never renamed, so provably
-    torn) are removed. The manifest is rewritten last (atomically), so a kill during the
-    repair leaves a state the next open repairs again, losing nothing."""
+    """Set aside what ``scan`` could not keep (to ``quarantine/<stamp>/``; only ``*.tmp`` files are
+    removed) and rewrite the manifest with the kept lines, last (docs/protocol.md, "The experiment
+    directory")."""
     path, rep = exp.path, exp.repaired
     referenced = {ln["file"] for ln in scan.lines}
     movable = []

@@ -78,12 +78,10 @@ class SerialRig(CameraProperties, RigChecks):
                  poll_s: float = 0.25, max_wait_s: float = 60.0, log: Callable[[str], None] | None = None):
         if axis not in self.AXES:
             raise ParameterError(f"axis: expected one of {', '.join(repr(a) for a in self.AXES)}, got {axis!r}")
-        if isinstance(retries, bool) or not isinstance(retries, int) or retries < 0:
-            raise ParameterError(f"retries: expected an integer >= 0, got {retries!r}")
         self.controller = controller
         self.frames = frames
         self.axis = axis
-        self.retries = retries
+        self.retries = check_int(retries, "retries", low=0)
         self.reconnects = int(reconnects)
         self.poll_s = check_real_scalar(poll_s, "poll_s", positive=True)
         self.max_wait_s = check_real_scalar(max_wait_s, "max_wait_s", positive=True)
@@ -191,15 +189,21 @@ class SerialRig(CameraProperties, RigChecks):
         c.resync()
         c.stop()
         st = c.status()
-        if st["boot"] != self._boot:
-            self.stats["resets"] += 1
-            self._note(f"controller reset detected (boot {self._boot} -> {st['boot']}, frame counter now {st['frames']})")
-            self._boot = st["boot"]
+        self._boot_change(st, f"controller reset detected (boot {self._boot} -> {st['boot']}, frame counter now {st['frames']})")
         self._next = st["frames"]
         n = self.frames.drain()
         if n:
             self.stats["stale_discarded"] += n
             self._note(f"discarded {n} frame(s) left over from the failed attempt")
+
+    def _boot_change(self, st: dict, message: str) -> bool:
+        """Whether ``STATUS?``'s boot id ``st["boot"]`` is new: then counted, noted (``message``) and kept."""
+        if st["boot"] == self._boot:
+            return False
+        self.stats["resets"] += 1
+        self._note(message)
+        self._boot = st["boot"]
+        return True
 
     def _reconnect(self) -> None:
         self.stats["reconnects"] += 1
@@ -254,11 +258,8 @@ class SerialRig(CameraProperties, RigChecks):
     def _begin(self) -> None:
         """Each transaction starts by checking the controller did not reset since the last one."""
         st = self.controller.status()
-        if st["boot"] != self._boot:
-            self.stats["resets"] += 1
-            self._note(f"controller reset between calls detected (boot {self._boot} -> {st['boot']}); "
-                       f"earlier frames were complete and checked")
-            self._boot = st["boot"]
+        if self._boot_change(st, f"controller reset between calls detected (boot {self._boot} -> {st['boot']}); "
+                                 f"earlier frames were complete and checked"):
             self._next = st["frames"]
         if st["frames"] < self._next:
             raise DeviceReset(f"frame counter went back from {self._next} to {st['frames']}")
