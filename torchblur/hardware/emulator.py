@@ -75,10 +75,7 @@ class EmulatorConfig:
 def load_emulator_config(path: str | None = None, overrides: list[str] | None = None) -> EmulatorConfig:
     """Defaults, the YAML file (its identify-only sections ``sweep``, ``excitation``, ``fit``,
     ``model``, ``rig``, ``dm_plan`` are skipped, so one file serves both commands), then
-    overrides. ``dm.n_across`` > 0 is the DM mode: the ``dm``, ``wfs``, ``camera`` and ``seed``
-    sections build the mirror, the sensor and the
-    :class:`~torchblur.rig.dm.SimulatedDMRig` as ``torchblur identify`` does
-    (:func:`torchblur.rig.factory.build_dm`).
+    overrides; ``dm.n_across`` > 0 is the DM mode (docs/protocol.md, "The emulator").
 
     Raises:
         ConfigError: naming the key.
@@ -219,7 +216,7 @@ class EmulatedDevice:
         self._settling_s = self.rig._settling_time_s()  # the plant's, or the mirror's slowest actuator's
         self.input_limit = float(limit)  # RANGE?: the largest |command| on any actuator (dm.input_limit, else plant.input_limit)
         slew = None if cfg.dm.enabled else cfg.plant.slew_limit
-        self.slew_limit = math.inf if slew is None else float(slew)  # SLEW?: the largest |d command / dt| (plant.slew_limit)
+        self.slew_limit = None if slew is None else float(slew)  # SLEW?: the largest |d command / dt| (plant.slew_limit; None: none)
         self._send = send
         self.firmware, self.name = firmware, name
         self.protocol = PROTOCOL_VERSION if cfg.hold_wave else HOLD_PROTOCOL - 1  # ID?'s (hold_wave=false: the version before HOLD)
@@ -321,7 +318,7 @@ class EmulatedDevice:
             if w == "SLEW?":
                 if not self.cfg.slew_query:
                     raise ProtocolViolation(E_UNKNOWN, "unknown command 'SLEW?'")
-                return format_ok("SLEW", rate=self.slew_limit if math.isfinite(self.slew_limit) else "none")
+                return format_ok("SLEW", rate="none" if self.slew_limit is None else self.slew_limit)
             if w == "RESET":
                 self.epoch += 1
                 self._boot_state()
@@ -359,7 +356,7 @@ class EmulatedDevice:
         whose slew rate ``slew`` (input units/s) exceeds its slew limit."""
         with _range_error():
             check_drive(peak, self.input_limit)
-            check_slew(slew, self.slew_limit if math.isfinite(self.slew_limit) else None)
+            check_slew(slew, self.slew_limit)
 
     def _wave(self, a) -> str:
         axis, mode = a[0], a[1]
