@@ -253,7 +253,8 @@ class AravisCamera(SDKCamera):
         return arr, self._unwrap(raw), ts, self._exposure_s
 
     def read(self, timeout_s: float) -> Frame:
-        """The next frame (:meth:`SDKCamera.read`); with a feed, a frame that is not the feed's next is a :class:`FrameError`."""
+        """The next frame (:meth:`SDKCamera.read`); with a feed, a frame that is not the feed's next
+        is a :class:`FrameError`."""
         if self._feed is None:
             return super().read(timeout_s)
         got = self._grab(timeout_s)
@@ -262,8 +263,10 @@ class AravisCamera(SDKCamera):
         arr, delivered, ts, _ = got  # emulation: the feed frame Aravis delivered
         sent = self._queue.pop(0)
         if delivered is not sent:
-            raise FrameError(f"camera: Aravis delivered feed frame {delivered.counter}, the next sent was {sent.counter}")
-        return sdk_frame(arr, sent.counter, ts, sent.exposure_s, sent.boot, camera_counter=int(self._last_raw), **sent.meta)
+            raise FrameError(f"camera: Aravis delivered feed frame {delivered.counter}, the next sent was "
+                             f"{sent.counter}")
+        return sdk_frame(arr, sent.counter, ts, sent.exposure_s, sent.boot, camera_counter=int(self._last_raw),
+                         **sent.meta)
 
     # --------------------------------------------------------------------- extras
     def software_trigger(self) -> None:

@@ -11,8 +11,8 @@ import secrets
 import time
 
 from torchblur.hardware.errors import ConnectionLost, DeviceError, GarbageReply, ReplyTimeout
-from torchblur.hardware.protocol import (E_UNKNOWN, MAX_LINE, PROTOCOL_VERSIONS, Reply, format_command, format_tones, parse_reply,
-                                         pattern_checksum, pattern_lines)
+from torchblur.hardware.protocol import (E_UNKNOWN, MAX_LINE, PROTOCOL_VERSIONS, Reply, format_command, format_tones,
+                                         parse_reply, pattern_checksum, pattern_lines)
 
 __all__ = ["Controller", "import_serial"]
 

@@ -216,7 +216,7 @@ class EmulatedDevice:
         self._settling_s = self.rig._settling_time_s()  # the plant's, or the mirror's slowest actuator's
         self.input_limit = float(limit)  # RANGE?: the largest |command| on any actuator (dm.input_limit, else plant.input_limit)
         slew = None if cfg.dm.enabled else cfg.plant.slew_limit
-        self.slew_limit = None if slew is None else float(slew)  # SLEW?: the largest |d command / dt| (plant.slew_limit; None: none)
+        self.slew_limit = None if slew is None else float(slew)  # SLEW?: the largest |d command / dt| (None: none)
         self._send = send
         self.firmware, self.name = firmware, name
         self.protocol = PROTOCOL_VERSION if cfg.hold_wave else HOLD_PROTOCOL - 1  # ID?'s (hold_wave=false: the version before HOLD)
@@ -500,10 +500,10 @@ class EmulatedDevice:
             wv = a["wave"]
             cap = r.sine(freq_hz=wv["freq_hz"], amplitude=wv["amplitude"], exposures_s=[te], trigger_offset_s=a["offset"],
                          n_repeats=n, settle_s=a["settle_s"], power=a["power"], input=wv.get("axis", "x"))
-        else:  # MULTI, its tones on the first's grid (WAVE checks): SimulatedRig.multisine's schedule and exact response
+        else:  # MULTI, tones on the first's grid (WAVE checks): SimulatedRig.multisine's schedule and exact response
             f, amp, phase = zip(*a["wave"]["tones"])
-            cap = r.multisine(freq_hz=f, amplitude=amp, phase_rad=phase, exposures_s=[te], trigger_offset_s=a["offset"], n_repeats=n,
-                              base_freq_hz=f[0], settle_s=a["settle_s"], power=a["power"])
+            cap = r.multisine(freq_hz=f, amplitude=amp, phase_rad=phase, exposures_s=[te], trigger_offset_s=a["offset"],
+                              n_repeats=n, base_freq_hz=f[0], settle_s=a["settle_s"], power=a["power"])
         trig = cap.trigger_time_s.reshape(-1).tolist()
         if not np.allclose(trig, job.rel_trig, rtol=0, atol=1e-9):
             _log(f"warning: schedule mismatch for {job.kind}: {trig[:3]} vs {job.rel_trig[:3]}")

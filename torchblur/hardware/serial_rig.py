@@ -189,7 +189,8 @@ class SerialRig(CameraProperties, RigChecks):
         c.resync()
         c.stop()
         st = c.status()
-        self._boot_change(st, f"controller reset detected (boot {self._boot} -> {st['boot']}, frame counter now {st['frames']})")
+        self._boot_change(st, f"controller reset detected (boot {self._boot} -> {st['boot']}, frame counter now "
+                              f"{st['frames']})")
         self._next = st["frames"]
         n = self.frames.drain()
         if n:
@@ -344,7 +345,8 @@ class SerialRig(CameraProperties, RigChecks):
         counts = [min(MAX_COUNT, n - k) for k in range(0, n, MAX_COUNT)]
         return [f for m in counts for f in self._acquire(te, m, lambda m=m: c.arm(0.0, te, m))]
 
-    def _transaction(self, what: str, power: float, body, *, wave: bool = False, settle_s: float | None = None) -> list[Frame]:
+    def _transaction(self, what: str, power: float, body, *, wave: bool = False,
+                     settle_s: float | None = None) -> list[Frame]:
         """One rig call as a transaction redone on faults (:meth:`_call`): the boot checked
         (:meth:`_begin`), ``STOP``, ``POWER power``, with a ``wave`` ``SETTLE settle_s`` (None:
         ``AUTO``), then ``body(controller)`` -> its frames, then with a ``wave`` ``STOP``."""
@@ -454,8 +456,8 @@ class SerialRig(CameraProperties, RigChecks):
         offs_t = torch.as_tensor(trigger_offset_s, dtype=_F64) if not isinstance(trigger_offset_s, torch.Tensor) \
             else trigger_offset_s.detach().to(_F64)
         offs = float_list(offs_t, "trigger_offset_s")
-        frames = self._transaction(f"pulse at {p0 * 1e6:.3g} us", power,
-                                   lambda c: [f for o in offs for f in self._acquire(te, n, lambda o=o: c.pulse(o, p0, width, te, n))])
+        frames = self._transaction(f"pulse at {p0 * 1e6:.3g} us", power, lambda c: [
+            f for o in offs for f in self._acquire(te, n, lambda o=o: c.pulse(o, p0, width, te, n))])
         shape = tuple(offs_t.shape) + (n,)
         return self._capture(frames, shape, [[o] * n for o in offs],
                              {"kind": "pulse", "pulse_time_s": p0, "pulse_width_s": width, "power": power})

@@ -578,7 +578,8 @@ class SimulatedRig(RigChecks):
         check_drive(command_peak(freqs, amps, phases, f0), self._input_limit)
         check_slew(command_slew(freqs, amps, phases, f0), self._slew_limit)
         period = 1.0 / f0
-        te, R, settle, trig_t, exp_t, off_t, window = self._triggers(period, exposures_s, trigger_offset_s, n_repeats, settle_s)
+        te, R, settle, trig_t, exp_t, off_t, window = self._triggers(period, exposures_s, trigger_offset_s, n_repeats,
+                                                                     settle_s)
         E = len(te)
         powers = [self._check_power(v) for v in per_exposure(power, E, "power")]
         omega = [2 * math.pi * f for f in freqs]
