@@ -14,7 +14,7 @@ import numpy as np
 
 from torchblur.config.camera_urls import aravis_url_options
 from torchblur.errors import ParameterError, check_int, check_real_scalar
-from torchblur.hardware.camera_sdk import SDKCamera, sdk_frame
+from torchblur.hardware.camera_sdk import SDKCamera, exposure_us, sdk_frame
 from torchblur.hardware.errors import ConnectionLost, FrameError, FrameTimeout, HardwareError
 from torchblur.hardware.frames import CameraInfo, EmulatorFrames, Frame
 
@@ -194,11 +194,7 @@ class AravisCamera(SDKCamera):
     def _configure(self, exposure_s: float, count: int) -> None:
         cam = self.cam
         cam.stop_acquisition()
-        lo, hi = cam.get_exposure_time_bounds()
-        us = exposure_s * 1e6
-        if not lo <= us <= hi:
-            raise ParameterError(f"exposure_s: the camera takes {lo * 1e-6:g}..{hi * 1e-6:g} s, got {exposure_s:g}")
-        cam.set_exposure_time(us)
+        cam.set_exposure_time(exposure_us(exposure_s, *cam.get_exposure_time_bounds()))
         self._exposure_s = float(cam.get_exposure_time()) * 1e-6  # what the camera will use (its own rounding)
         while (b := self._stream.try_pop_buffer()) is not None:  # frames of an earlier acquisition: not this one's
             self._seen(int(b.get_frame_id()))

@@ -8,6 +8,7 @@ from abc import abstractmethod
 import numpy as np
 import torch
 
+from torchblur.errors import ParameterError
 from torchblur.hardware.errors import FrameTimeout
 from torchblur.hardware.frames import CameraInfo, Frame, FrameSource
 
@@ -75,6 +76,15 @@ class SDKCamera(FrameSource):
 
     def close(self) -> None:
         self._disconnect()
+
+
+def exposure_us(exposure_s: float, low_us: float, high_us: float) -> float:
+    """``exposure_s`` in microseconds (GenICam's ``ExposureTime``), within the camera's bounds
+    ``[low_us, high_us]``, else :class:`~torchblur.errors.ParameterError` naming ``exposure_s``."""
+    us = exposure_s * 1e6
+    if not low_us <= us <= high_us:
+        raise ParameterError(f"exposure_s: the camera takes {low_us * 1e-6:g}..{high_us * 1e-6:g} s, got {exposure_s:g}")
+    return us
 
 
 def sdk_frame(arr, counter: int, timestamp_s: float, exposure_s: float, boot: str | None = None, **meta) -> Frame:

@@ -13,8 +13,8 @@ import os
 import numpy as np
 
 from torchblur.config.camera_urls import pylon_url_options
-from torchblur.errors import ParameterError, check_int, check_real_scalar
-from torchblur.hardware.camera_sdk import SDKCamera
+from torchblur.errors import check_int, check_real_scalar
+from torchblur.hardware.camera_sdk import SDKCamera, exposure_us
 from torchblur.hardware.errors import ConnectionLost, FrameError, HardwareError
 from torchblur.hardware.frames import CameraInfo
 
@@ -177,10 +177,7 @@ class PylonCamera(SDKCamera):
         node = cam.GetNodeMap().GetNode("ExposureTime")
         if node is None:
             node = cam.GetNodeMap().GetNode("ExposureTimeAbs")  # older GigE cameras
-        us = exposure_s * 1e6
-        if not node.GetMin() <= us <= node.GetMax():
-            raise ParameterError(f"exposure_s: the camera takes {node.GetMin() * 1e-6:g}..{node.GetMax() * 1e-6:g} s, got {exposure_s:g}")
-        node.SetValue(us)
+        node.SetValue(exposure_us(exposure_s, node.GetMin(), node.GetMax()))
         self._exposure_s = float(node.GetValue()) * 1e-6  # what the camera will use (its own rounding)
         cam.StartGrabbingMax(int(count), pylon.GrabStrategy_OneByOne)
         if cam.CanWaitForFrameTriggerReady() and not cam.WaitForFrameTriggerReady(2000, pylon.TimeoutHandling_Return):
