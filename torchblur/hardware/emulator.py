@@ -258,11 +258,9 @@ class EmulatedDevice:
             self.reset_flag = True
         _log(f"fault: controller reset ({why}); new boot {self.boot}")
 
-    def fault_clock(self, served: int | None = None) -> float:
+    def fault_clock(self) -> float:
         """Frames served since the fault clock started (-inf before it starts)."""
-        if self._fault_base is None:
-            return -math.inf
-        return (self.served if served is None else served) - self._fault_base
+        return -math.inf if self._fault_base is None else self.served - self._fault_base
 
     @property
     def camera_info(self) -> CameraInfo:
