@@ -119,6 +119,8 @@ def test_multi_tone_waveform_renders_like_the_sine(device):
     assert abs(x_sine - x_still) > 1.0  # the spot moved ...
     assert abs(x_sine - x_multi) < 0.05  # ... to the same place
     assert ask(device, "WAVE x MULTI 100:0.1:0,300:0.05:1.2").fields["tones"] == "2"
+    assert ask(device, "STOP").ok
+    assert ask(device, "WAVE x MULTI 100:0.1:0,150:0.05:0").code == 4  # 150 Hz is off the first tone's grid
 
 
 def decode_one(msg):

@@ -1,6 +1,5 @@
 """The pieces the identification's stages share: the one camera noise model, the sweep's
-window builder, the rig's public renderer (the bench emulator's), the FRF CSV writer with
-the CLI's stamp columns, and the chunked fitter."""
+window builder, the FRF CSV writer with the CLI's stamp columns, and the chunked fitter."""
 import csv
 import math
 
@@ -8,15 +7,11 @@ import numpy as np
 import pytest
 import torch
 
-from torchblur import ExposureWindow, GaussianPSF, RenderSettings, Sinusoid, render_blur
 from torchblur.design.windows import dual_exposure_windows
-from torchblur.errors import ShapeError
 from torchblur.identify.fitting import ChunkFitter
 from torchblur.identify.sweep import point_windows
-from torchblur.render.camera import CameraModel, camera_noise_std
-from torchblur.rig import SimulatedRig
+from torchblur.render.camera import camera_noise_std
 from torchblur.sysid.frequency_response import FrequencyResponse
-from torchblur.systems.lti import Plant
 
 F64 = torch.float64
 
@@ -40,41 +35,6 @@ def test_point_windows_are_the_dual_exposure_design_on_the_rig_clock(freq_hz, ph
     # the same phase of the sine as the design's start (a whole number of periods later)
     k = (win.start - design.start) / period
     torch.testing.assert_close(k, k.round(), rtol=0, atol=1e-9)
-
-
-def _rig(**kw):
-    wn = 2 * math.pi * 300
-    cam = CameraModel(dark_level_adu=100.0, read_noise_e=0.0, shot_noise=False, quantize=False, bit_depth=32, full_well_e=1e12,
-                      gain_e_per_adu=2.0)
-    args = dict(plant=Plant(num=(wn**2,), den=(1.0, 2 * 0.05 * wn, wn**2)), camera=cam, frame_shape=(32, 40), psf_sigma_px=1.6,
-                trigger_delay_s=5e-6, latency_s=12e-6, jitter_s=0.0, peak_e_per_s=2e5, seed=3)
-    args.update(kw)
-    return SimulatedRig(**args)
-
-
-def test_render_frames_is_the_render_on_the_rigs_clock():
-    rig = _rig()
-    traj = Sinusoid(torch.tensor([3.0, -1.0], dtype=F64), torch.tensor([0.2, 1.1], dtype=F64), torch.tensor(2 * math.pi * 150, dtype=F64))
-    trig = torch.tensor([0.0, 1.3e-3, 4.0e-3], dtype=F64)
-    te, power = 2e-3, 0.7
-    frames = rig.render_frames([traj], trig, te, power=power)
-    assert frames.shape == (3, 32, 40)
-    psf = GaussianPSF.isotropic(torch.tensor([19.5, 15.5], dtype=F64), torch.tensor(1.6, dtype=F64),
-                                amplitude=torch.tensor(2e5 * power, dtype=F64))
-    win = ExposureWindow(trig + 5e-6 + 12e-6, torch.full_like(trig, te))
-    ref = render_blur(traj, psf, win, height=32, width=40, settings=RenderSettings(pixel_integration=True))
-    got = (frames - 100.0) * 2.0
-    assert float((got - ref).abs().max()) <= 1e-6 * float(ref.max())
-
-
-def test_render_frames_uses_the_rigs_random_stream_and_checks_its_arguments():
-    a, b = _rig(camera=CameraModel(bit_depth=16), jitter_s=1e-6), _rig(camera=CameraModel(bit_depth=16), jitter_s=1e-6)
-    still = Sinusoid(torch.zeros(2, dtype=F64), torch.zeros(2, dtype=F64), torch.tensor(1.0, dtype=F64))
-    trig = torch.tensor([0.0, 1e-2], dtype=F64)
-    torch.testing.assert_close(a.render_frames([still], trig, 1e-3), b.render_frames([still], trig, 1e-3), rtol=0, atol=0)
-    assert not torch.equal(a.render_frames([still], trig, 1e-3), a.render_frames([still], trig, 1e-3))  # fresh noise per call
-    with pytest.raises(ShapeError, match="trajectories"):
-        a.render_frames([still, still], trig, 1e-3)
 
 
 def test_to_csv_extra_columns_are_the_clis_stamp(tmp_path):

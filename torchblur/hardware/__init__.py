@@ -1,17 +1,8 @@
-"""The hardware adapter: a controller on a serial line, a camera, and the experiment record.
-
-- :class:`Controller`: pyserial client of the line protocol (docs/protocol.md).
-- :class:`FrameSource`: where frames come from (:class:`Frame`: a tensor with its counter,
-  timestamp, exposure); :class:`EmulatorFrames` (the emulator's TCP camera channel),
-  :class:`SDKCamera` (the base a real camera's SDK plugs into).
-- :class:`SerialRig`: the :class:`~torchblur.rig.base.Rig` protocol on a controller and a
-  camera, so ``identify(cfg, rig=SerialRig.open(port, frames))`` runs unchanged;
-  :class:`SerialDMRig` the same for a deformable mirror (protocol 2; its static holds: 3), so
-  ``identify(cfg_dm, rig=SerialDMRig.open(port, frames))`` does.
-- :class:`Experiment`: the experiment directory written as a run goes (TIFF frames,
-  ``manifest.jsonl``, the resolved config), read back to resume or re-fit.
-- ``torchblur emulator``: :mod:`torchblur.hardware.emulator`, a process that behaves like
-  the bench on a pseudo-terminal.
+"""The hardware adapter: a controller on a serial line (:class:`Controller`, docs/protocol.md), a
+camera (:class:`FrameSource`: :class:`EmulatorFrames`, or a real one's SDK through :class:`SDKCamera`),
+the rigs on them (:class:`SerialRig`, :class:`SerialDMRig`: ``identify(cfg, rig=SerialRig.open(port,
+frames))`` runs unchanged), the experiment record (:class:`Experiment`) and ``torchblur emulator``
+(:mod:`torchblur.hardware.emulator`, the bench in a process).
 
 Not imported by ``import torchblur``; import ``torchblur.hardware`` on use.
 """

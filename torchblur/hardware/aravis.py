@@ -1,32 +1,20 @@
-"""A GenICam camera (GigE Vision, USB3 Vision) through Aravis (the ``aravis`` extra).
-
-:class:`AravisCamera` is an :class:`~torchblur.hardware.camera_sdk.SDKCamera`, like the pylon source:
-the camera runs with ``TriggerSelector=FrameStart``, ``TriggerMode=On`` on ``trigger_source`` (the
-controller's wire, ``Line1`` by default), one frame per edge; per acquisition :meth:`~SDKCamera.prepare`
-sets the exposure (``ExposureTime``/``ExposureTimeAbs``, checked against the camera's bounds) and restarts
-the acquisition. Frames arrive in buffers this object allocates (numpy memory handed to Aravis), so a
-frame's pixels are read from memory Aravis wrote, whatever the transport. The frame counter is the
-buffer's frame id (GigE's 16-bit block id, unwrapped): the rig maps it onto the controller's trigger
-count, so a dropped frame is a :class:`~torchblur.hardware.errors.FrameGap`, never a silently wrong frame.
-Aravis does not say which id the next frame will carry before it comes: the first frame after opening
-fixes the mapping (a frame lost before the very first one is not seen); from then on each acquisition
-continues the count.
-
-The config (``rig.frames=aravis://[DEVICE][?trigger=Line1&pixel_format=Mono16&readout_s=1e-3]``),
-the install and the fake cameras it is tested on (``feed=tcp://HOST:PORT``: the emulator's frames
-written into the in-process fake camera's buffers by its fill-pattern hook): README, "GenICam cameras
-through Aravis".
+"""A GenICam camera (GigE Vision, USB3 Vision) through Aravis (the ``aravis`` extra): :class:`AravisCamera`,
+an :class:`~torchblur.hardware.camera_sdk.SDKCamera` (external trigger, one frame per edge; the frame
+counter is the buffer's frame id, GigE's 16-bit block id unwrapped). Aravis does not say which id the
+next frame will carry before it comes: the first frame after opening fixes the mapping onto the
+controller's count (a frame lost before the very first one is not seen); from then on each
+acquisition continues the count. The config (``rig.frames=aravis://...``), the install and the fake
+cameras it is tested on: README, "GenICam cameras through Aravis".
 """
 from __future__ import annotations
 
 import ctypes
 
 import numpy as np
-import torch
 
 from torchblur.config.camera_urls import aravis_url_options
-from torchblur.errors import ParameterError
-from torchblur.hardware.camera_sdk import SDKCamera
+from torchblur.errors import ParameterError, check_int, check_real_scalar
+from torchblur.hardware.camera_sdk import SDKCamera, exposure_us, sdk_frame
 from torchblur.hardware.errors import ConnectionLost, FrameError, FrameTimeout, HardwareError
 from torchblur.hardware.frames import CameraInfo, EmulatorFrames, Frame
 
@@ -81,10 +69,8 @@ class AravisCamera(SDKCamera):
 
     def __init__(self, device: str | None = None, *, trigger_source: str = "Line1", pixel_format: str | None = None,
                  frame_shape: tuple[int, int] | None = None, readout_s: float = 0.0, buffers: int = 16, feed=None):
-        if isinstance(buffers, bool) or not isinstance(buffers, int) or buffers < 1:
-            raise ParameterError(f"buffers: expected an int >= 1, got {buffers!r}")
-        if not isinstance(readout_s, (int, float)) or not readout_s >= 0:
-            raise ParameterError(f"readout_s: expected a number >= 0 seconds, got {readout_s!r}")
+        buffers = check_int(buffers, "buffers", low=1)
+        readout_s = check_real_scalar(readout_s, "readout_s", nonnegative=True)
         if feed is not None and not str(device).startswith("Fake"):
             raise ParameterError(f"device: a feed (emulation) needs Aravis's in-process fake camera ('Fake_1'), got {device!r}")
         if feed is not None and trigger_source != "Software":
@@ -208,11 +194,7 @@ class AravisCamera(SDKCamera):
     def _configure(self, exposure_s: float, count: int) -> None:
         cam = self.cam
         cam.stop_acquisition()
-        lo, hi = cam.get_exposure_time_bounds()
-        us = exposure_s * 1e6
-        if not lo <= us <= hi:
-            raise ParameterError(f"exposure_s: the camera takes {lo * 1e-6:g}..{hi * 1e-6:g} s, got {exposure_s:g}")
-        cam.set_exposure_time(us)
+        cam.set_exposure_time(exposure_us(exposure_s, *cam.get_exposure_time_bounds()))
         self._exposure_s = float(cam.get_exposure_time()) * 1e-6  # what the camera will use (its own rounding)
         while (b := self._stream.try_pop_buffer()) is not None:  # frames of an earlier acquisition: not this one's
             self._seen(int(b.get_frame_id()))
@@ -262,25 +244,25 @@ class AravisCamera(SDKCamera):
         self._seen(raw)
         if sent is not None:  # emulation: the feed frame the hook wrote into this buffer, its counter the controller's
             return arr, sent, ts, self._exposure_s
+        if self._pending_first is not None:  # the mapping waits for the first frame
+            self._offset, self._pending_first = self._pending_first - self._unwrap(raw), None
         return arr, self._unwrap(raw), ts, self._exposure_s
 
     def read(self, timeout_s: float) -> Frame:
-        """The next frame (:meth:`SDKCamera.read`); the first frame after opening fixes the counter mapping;
-        with a feed, a frame whose counter is not the feed's is a :class:`FrameError`."""
+        """The next frame (:meth:`SDKCamera.read`); with a feed, a frame that is not the feed's next
+        is a :class:`FrameError`."""
+        if self._feed is None:
+            return super().read(timeout_s)
         got = self._grab(timeout_s)
         if got is None:
             raise FrameTimeout(f"no frame from {self._info.name} within {timeout_s:g} s")
-        arr, cam_counter, ts, te = got
-        if self._feed is not None:  # emulation: cam_counter is the feed frame Aravis delivered
-            sent = self._queue.pop(0)
-            if cam_counter is not sent:
-                raise FrameError(f"camera: Aravis delivered feed frame {cam_counter.counter}, the next sent was {sent.counter}")
-            return Frame(data=torch.from_numpy(arr.astype(np.float64)), counter=sent.counter, timestamp_s=ts, exposure_s=sent.exposure_s,
-                         dtype=arr.dtype.name, boot=sent.boot, meta={"camera_counter": int(self._last_raw), **sent.meta})
-        if self._pending_first is not None:  # the mapping waits for the first frame
-            self._offset, self._pending_first = self._pending_first - cam_counter, None
-        return Frame(data=torch.from_numpy(arr.astype(np.float64)), counter=int(cam_counter) + self._offset,
-                     timestamp_s=ts, exposure_s=float(te), dtype=arr.dtype.name, boot=None, meta={"camera_counter": int(cam_counter)})
+        arr, delivered, ts, _ = got  # emulation: the feed frame Aravis delivered
+        sent = self._queue.pop(0)
+        if delivered is not sent:
+            raise FrameError(f"camera: Aravis delivered feed frame {delivered.counter}, the next sent was "
+                             f"{sent.counter}")
+        return sdk_frame(arr, sent.counter, ts, sent.exposure_s, sent.boot, camera_counter=int(self._last_raw),
+                         **sent.meta)
 
     # --------------------------------------------------------------------- extras
     def software_trigger(self) -> None:

@@ -1,44 +1,5 @@
-"""Where a real camera plugs in: subclass :class:`SDKCamera` and implement five methods.
-
-The controller fires the camera's trigger line (``ARM``/``PULSE``); the camera delivers the
-frames on its own link (USB3 Vision, GigE, CoaXPress ...) through its vendor SDK (Aravis,
-Spinnaker, pylon, Vimba, ...). This class turns such an SDK into a
-:class:`~torchblur.hardware.frames.FrameSource` the rig can check:
-
-- the camera must run in external-trigger mode with the exposure set per acquisition
-  (:meth:`SDKCamera._configure`), one frame per trigger edge;
-- the rig needs each frame's counter to equal the controller's trigger count. Cameras count
-  their own frames (from their power-up); :class:`SDKCamera` asks the camera, before the
-  triggers fire, which counter its next frame will carry (:meth:`SDKCamera._next_camera_counter`)
-  and maps ``camera counter - that + first trigger count``. The mapping is fixed before any
-  frame arrives, so a dropped frame shows up as a gap
-  (:class:`~torchblur.hardware.errors.FrameGap`) and a repeated buffer as a stale frame, never
-  as a silently wrong frame.
-
-Example (a sketch with a hypothetical ``vendor`` SDK)::
-
-    class MyCamera(SDKCamera):
-        def _connect(self):
-            self.cam = vendor.open(serial="1234")
-            self.cam.trigger_mode = "external-rising"
-        def _disconnect(self):
-            self.cam.close()
-        def _camera_info(self):
-            return CameraInfo(frame_shape=(self.cam.height, self.cam.width), frame_rate_hz=self.cam.max_fps,
-                              max_exposure_s=self.cam.max_exposure_us * 1e-6, readout_s=self.cam.readout_us * 1e-6,
-                              name=self.cam.model)
-        def _configure(self, exposure_s, count):
-            self.cam.exposure_us = exposure_s * 1e6
-            self.cam.start(n_buffers=count)
-        def _next_camera_counter(self):
-            return self.cam.frame_counter + 1          # the id the next exposure will carry
-        def _grab(self, timeout_s):
-            buf = self.cam.wait_buffer(timeout_ms=int(timeout_s * 1e3))   # None on timeout
-            if buf is None:
-                return None
-            return buf.numpy(), buf.frame_id, buf.timestamp_ns * 1e-9, buf.exposure_us * 1e-6
-
-    rig = SerialRig(Controller("/dev/ttyACM0"), MyCamera())
+"""Where a real camera plugs in: subclass :class:`SDKCamera` and implement its six methods (the
+trigger and counter rules, and an example: docs/protocol.md, "A real camera").
 """
 from __future__ import annotations
 
@@ -47,6 +8,7 @@ from abc import abstractmethod
 import numpy as np
 import torch
 
+from torchblur.errors import ParameterError
 from torchblur.hardware.errors import FrameTimeout
 from torchblur.hardware.frames import CameraInfo, Frame, FrameSource
 
@@ -54,7 +16,7 @@ __all__ = ["SDKCamera"]
 
 
 class SDKCamera(FrameSource):
-    """Base class of a real camera driven through its vendor SDK (see the module docstring).
+    """Base class of a real camera driven through its vendor SDK (docs/protocol.md, "A real camera").
 
     Implement:
         ``_connect()``: open the camera, external trigger mode.
@@ -106,9 +68,7 @@ class SDKCamera(FrameSource):
         if got is None:
             raise FrameTimeout(f"no frame from {self._info.name or type(self).__name__} within {timeout_s:g} s")
         arr, cam_counter, ts, te = got
-        arr = np.asarray(arr)
-        return Frame(data=torch.from_numpy(arr.astype(np.float64)), counter=int(cam_counter) + self._offset, timestamp_s=float(ts),
-                     exposure_s=float(te), dtype=arr.dtype.name, boot=None, meta={"camera_counter": int(cam_counter)})
+        return sdk_frame(arr, int(cam_counter) + self._offset, ts, te, camera_counter=int(cam_counter))
 
     def reopen(self) -> None:
         self.close()
@@ -116,3 +76,19 @@ class SDKCamera(FrameSource):
 
     def close(self) -> None:
         self._disconnect()
+
+
+def exposure_us(exposure_s: float, low_us: float, high_us: float) -> float:
+    """``exposure_s`` in microseconds (GenICam's ``ExposureTime``), within the camera's bounds
+    ``[low_us, high_us]``, else :class:`~torchblur.errors.ParameterError` naming ``exposure_s``."""
+    us = exposure_s * 1e6
+    if not low_us <= us <= high_us:
+        raise ParameterError(f"exposure_s: the camera takes {low_us * 1e-6:g}..{high_us * 1e-6:g} s, got {exposure_s:g}")
+    return us
+
+
+def sdk_frame(arr, counter: int, timestamp_s: float, exposure_s: float, boot: str | None = None, **meta) -> Frame:
+    """A :class:`Frame` of an SDK's pixels ``arr`` ``[H, W]`` (float64 ADU, ``dtype`` the delivered type)."""
+    arr = np.asarray(arr)
+    return Frame(data=torch.from_numpy(arr.astype(np.float64)), counter=int(counter), timestamp_s=float(timestamp_s),
+                 exposure_s=float(exposure_s), dtype=arr.dtype.name, boot=boot, meta=meta)

@@ -1,20 +1,8 @@
-"""A pyserial client of the controller's line protocol (docs/protocol.md).
-
-:class:`Controller` sends one command, reads exactly one reply line with a timeout and turns
-every failure into a :mod:`torchblur.hardware.errors` exception:
-
-- no complete line in time: :class:`~torchblur.hardware.errors.ReplyTimeout`;
-- a line that is not ``OK <word> ...``/``ERR ...`` for the command sent (line noise, a stale
-  reply): :class:`~torchblur.hardware.errors.GarbageReply`;
-- ``ERR <code> ...``: :class:`~torchblur.hardware.errors.DeviceError`;
-- the port fails or closes: :class:`~torchblur.hardware.errors.ConnectionLost`.
-
-After a timeout or garbage the link is out of step; :meth:`Controller.resync` drains the
-input and exchanges a ``PING`` with a fresh token, discarding everything before its reply.
-
-``port`` is a device path (``/dev/ttyACM0``, a pseudo-terminal ``/dev/pts/N``) or any
-pyserial URL (``socket://127.0.0.1:5000``, ``spy:///dev/pts/3?file=traffic.log`` to log the
-traffic, ``loop://``).
+"""A pyserial client of the controller's line protocol (docs/protocol.md): :class:`Controller`
+sends one command and reads exactly one reply line, turning every failure into a
+:mod:`torchblur.hardware.errors` exception (:meth:`Controller.command`); :meth:`Controller.resync`
+brings the link back in step after a timeout or garbage. ``port``: a device path or any pyserial
+URL (docs/protocol.md, "Transport").
 """
 from __future__ import annotations
 
@@ -23,8 +11,8 @@ import secrets
 import time
 
 from torchblur.hardware.errors import ConnectionLost, DeviceError, GarbageReply, ReplyTimeout
-from torchblur.hardware.protocol import (E_UNKNOWN, MAX_LINE, PROTOCOL_VERSIONS, Reply, format_command, format_number, parse_reply,
-                                         pattern_checksum, pattern_lines)
+from torchblur.hardware.protocol import (E_UNKNOWN, MAX_LINE, PROTOCOL_VERSIONS, Reply, format_command, format_tones,
+                                         parse_reply, pattern_checksum, pattern_lines)
 
 __all__ = ["Controller", "import_serial"]
 
@@ -214,7 +202,9 @@ class Controller:
         """Send ``word args...`` and return its ``OK`` reply.
 
         Raises:
-            ReplyTimeout, GarbageReply, DeviceError, ConnectionLost.
+            ReplyTimeout: no complete line in time. GarbageReply: a line that is not an ``OK``/``ERR``
+            reply to this command (line noise, a stale reply). DeviceError: ``ERR <code> ...``.
+            ConnectionLost: the port fails or closes.
         """
         line = format_command(word, *args)
         self.write_line(line)
@@ -286,17 +276,13 @@ class Controller:
             raise GarbageReply(f"malformed STATUS reply: {f}") from exc
 
     def input_range(self) -> float | None:
-        """``RANGE?`` -> the device's input range: the largest |command| (input units) its
-        amplifier takes, the peak of any waveform on any axis; None for a controller that
-        does not know the query (``ERR 1 UNKNOWN``: an older firmware). Raises
-        :class:`GarbageReply` for a reply without a finite positive ``amplitude``."""
+        """``RANGE?`` -> the device's input range (input units); None from an older firmware
+        (``ERR 1 UNKNOWN``). Raises :class:`GarbageReply` for a reply without a finite ``amplitude`` > 0."""
         return self._positive_query("RANGE", "amplitude", none_ok=False)
 
     def slew_rate(self) -> float | None:
-        """``SLEW?`` -> the device's slew-rate limit: the largest |d command / dt| (input units per
-        second) its amplifier takes, on any waveform and axis; None for a device without one
-        (``rate=none``) or a controller that does not know the query (``ERR 1 UNKNOWN``: an older
-        firmware). Raises :class:`GarbageReply` for a reply without a ``rate`` > 0."""
+        """``SLEW?`` -> the device's slew-rate limit (input units per second); None for ``rate=none``
+        or an older firmware (``ERR 1 UNKNOWN``). Raises :class:`GarbageReply` for a reply without a ``rate`` > 0."""
         return self._positive_query("SLEW", "rate", none_ok=True)
 
     def _positive_query(self, name: str, key: str, *, none_ok: bool) -> float | None:
@@ -348,8 +334,7 @@ class Controller:
 
     def wave_multi(self, axis: str, tones) -> float:
         """Start ``sum_k a_k sin(2 pi f_k t + p_k)``; ``tones`` = [(f_hz, a, p_rad), ...]."""
-        spec = ",".join(f"{format_number(f)}:{format_number(a)}:{format_number(p)}" for f, a, p in tones)
-        return self.command("WAVE", axis, "MULTI", spec).get_float("start")
+        return self.command("WAVE", axis, "MULTI", format_tones(tones)).get_float("start")
 
     def arm(self, trigger_offset_s: float, exposure_s: float, count: int) -> tuple[int, int]:
         """``ARM``; returns ``(first frame counter, count)``."""

@@ -1,21 +1,9 @@
-"""``torchblur emulator``: a separate process that behaves like the bench.
+"""``torchblur emulator``: a separate process that behaves like the bench (docs/protocol.md, "The emulator").
 
-It speaks the controller protocol (docs/protocol.md) on a pseudo-terminal (or, with
-``transport=socket``, on a loopback TCP port for pyserial's ``socket://``), simulates the
-mirror and the camera with :class:`~torchblur.rig.simulated.SimulatedRig` (the same config
-keys as the simulated rig: ``plant.*``, ``camera.*``, ``seed``), and serves the frames on a
-loopback TCP channel (:mod:`torchblur.hardware.frames` wire format). On start it prints one
-line of JSON, e.g.::
-
-    {"serial": "/dev/pts/4", "frames": "tcp://127.0.0.1:40123", "pid": 812, "protocol": 3, ...}
-
-then serves until killed.
-
-Time is simulated: the controller clock advances by the acquisitions' schedule, not by wall
-time, and every trigger falls where :class:`~torchblur.rig.simulated.SimulatedRig` would put it.
-The commands, the trigger timing, the device's ranges and the fault injection (``fault.*``,
-every fault reported on stderr as ``emulator: fault: ...``) are docs/protocol.md's ("The
-emulator", "Trigger timing").
+It speaks the controller protocol on a pseudo-terminal (``transport=socket``: a loopback TCP port for
+pyserial's ``socket://``), renders the frames with the config's simulated rig
+(:mod:`torchblur.rig.factory`) on a simulated clock, serves them on a loopback TCP channel
+(:mod:`torchblur.hardware.frames`), and prints one JSON start line (``serial``, ``frames``, ``pid``, ...).
 """
 from __future__ import annotations
 
@@ -29,6 +17,7 @@ import socket
 import sys
 import threading
 import time
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -40,11 +29,10 @@ from torchblur.errors import ParameterError
 from torchblur.hardware.frames import CameraInfo, encode_message, frame_message, raw_pixels
 from torchblur.hardware.protocol import (E_ARGS, E_AXIS, E_BUSY, E_INTERNAL, E_LINE, E_RANGE, E_UNKNOWN, HOLD_PROTOCOL, MAX_LINE,
                                          PROTOCOL_VERSION, ProtocolViolation, format_err, format_ok, parse_command, pattern_checksum)
-from torchblur.rig.base import check_drive, check_slew, command_peak, command_slew
+from torchblur.rig.base import check_drive, check_slew, check_tone_grid, command_peak, command_slew
 from torchblur.rig.factory import build_dm, build_simulated_rig
 from torchblur.rig.simulated import periodic_triggers, pulse_references
 from torchblur import __version__
-from torchblur.render.trajectory import Multisine
 
 __all__ = ["FaultConfig", "EmulatorConfig", "load_emulator_config", "EmulatedDevice", "main"]
 
@@ -87,10 +75,7 @@ class EmulatorConfig:
 def load_emulator_config(path: str | None = None, overrides: list[str] | None = None) -> EmulatorConfig:
     """Defaults, the YAML file (its identify-only sections ``sweep``, ``excitation``, ``fit``,
     ``model``, ``rig``, ``dm_plan`` are skipped, so one file serves both commands), then
-    overrides. ``dm.n_across`` > 0 is the DM mode: the ``dm``, ``wfs``, ``camera`` and ``seed``
-    sections build the mirror, the sensor and the
-    :class:`~torchblur.rig.dm.SimulatedDMRig` as ``torchblur identify`` does
-    (:func:`torchblur.rig.factory.build_dm`).
+    overrides; ``dm.n_across`` > 0 is the DM mode (docs/protocol.md, "The emulator").
 
     Raises:
         ConfigError: naming the key.
@@ -153,20 +138,16 @@ class FrameServer:
             with self._lock:
                 old, self._conn = self._conn, conn
             if old is not None:
-                try:
+                with suppress(OSError):
                     old.close()
-                except OSError:
-                    pass
 
     def disconnect(self) -> None:
         """Close the current client's connection (it may connect again)."""
         with self._lock:
             if self._conn is not None:
-                try:
+                with suppress(OSError):
                     self._conn.shutdown(socket.SHUT_RDWR)
                     self._conn.close()
-                except OSError:
-                    pass
                 self._conn = None
 
     def send(self, message: bytes) -> bool:
@@ -186,10 +167,8 @@ class FrameServer:
             with self._lock:
                 if self._conn is conn:
                     self._conn = None
-            try:
+            with suppress(OSError):
                 conn.close()
-            except OSError:
-                pass
             return False
 
 
@@ -198,6 +177,15 @@ SEND_TIMEOUT_S = 2.0
 # amplitude (the peak of the waveform) is the simulated plant's input range, plant.input_limit
 # (the DM mode: dm.input_limit, else plant.input_limit; RANGE? reports it).
 DEVICE_RANGES = {"settle_s": 3600.0, "power": 1e6, "freq_hz": 1e5, "pattern": 1e6}
+
+
+@contextmanager
+def _range_error():
+    """A rig check's :class:`ParameterError` answered as ``ERR 4 RANGE``."""
+    try:
+        yield
+    except ParameterError as exc:
+        raise ProtocolViolation(E_RANGE, str(exc)) from None
 
 
 def _in_range(value: float, name: str) -> float:
@@ -228,7 +216,7 @@ class EmulatedDevice:
         self._settling_s = self.rig._settling_time_s()  # the plant's, or the mirror's slowest actuator's
         self.input_limit = float(limit)  # RANGE?: the largest |command| on any actuator (dm.input_limit, else plant.input_limit)
         slew = None if cfg.dm.enabled else cfg.plant.slew_limit
-        self.slew_limit = math.inf if slew is None else float(slew)  # SLEW?: the largest |d command / dt| (plant.slew_limit)
+        self.slew_limit = None if slew is None else float(slew)  # SLEW?: the largest |d command / dt| (None: none)
         self._send = send
         self.firmware, self.name = firmware, name
         self.protocol = PROTOCOL_VERSION if cfg.hold_wave else HOLD_PROTOCOL - 1  # ID?'s (hold_wave=false: the version before HOLD)
@@ -270,17 +258,13 @@ class EmulatedDevice:
             self.reset_flag = True
         _log(f"fault: controller reset ({why}); new boot {self.boot}")
 
-    def fault_clock(self, served: int | None = None) -> float:
+    def fault_clock(self) -> float:
         """Frames served since the fault clock started (-inf before it starts)."""
-        if self._fault_base is None:
-            return -math.inf
-        return (self.served if served is None else served) - self._fault_base
+        return -math.inf if self._fault_base is None else self.served - self._fault_base
 
     @property
     def camera_info(self) -> CameraInfo:
-        r = self.rig
-        return CameraInfo(frame_shape=tuple(r.frame_shape), frame_rate_hz=r.frame_rate_hz, max_exposure_s=r.max_exposure_s,
-                          readout_s=r.readout_s, name=self.name)
+        return CameraInfo.of(self.rig, self.name)
 
     def _state(self) -> str:
         if self.reset_flag:
@@ -332,7 +316,7 @@ class EmulatedDevice:
             if w == "SLEW?":
                 if not self.cfg.slew_query:
                     raise ProtocolViolation(E_UNKNOWN, "unknown command 'SLEW?'")
-                return format_ok("SLEW", rate=self.slew_limit if math.isfinite(self.slew_limit) else "none")
+                return format_ok("SLEW", rate="none" if self.slew_limit is None else self.slew_limit)
             if w == "RESET":
                 self.epoch += 1
                 self._boot_state()
@@ -368,11 +352,9 @@ class EmulatedDevice:
     def _check_drive(self, peak: float, slew: float = 0.0) -> None:
         """ERR 4 RANGE for a waveform whose peak |command| exceeds the plant's input range, or
         whose slew rate ``slew`` (input units/s) exceeds its slew limit."""
-        try:
+        with _range_error():
             check_drive(peak, self.input_limit)
-            check_slew(slew, self.slew_limit if math.isfinite(self.slew_limit) else None)
-        except ParameterError as exc:
-            raise ProtocolViolation(E_RANGE, str(exc)) from None
+            check_slew(slew, self.slew_limit)
 
     def _wave(self, a) -> str:
         axis, mode = a[0], a[1]
@@ -396,9 +378,11 @@ class EmulatedDevice:
             self._check_drive(abs(a[3]), abs(a[3]) * 2 * math.pi * a[2])
             self.wave = {"mode": "SINE", "freq_hz": a[2], "amplitude": a[3], "start": self.clock, "period": 1.0 / a[2], "axis": axis}
             return format_ok("WAVE", axis=axis, mode=mode, start=float(self.clock))
-        tones = a[2]
-        self._check_drive(command_peak(*zip(*tones), base_freq_hz=tones[0][0]), command_slew(*zip(*tones), base_freq_hz=tones[0][0]))
-        self.wave = {"mode": "MULTI", "tones": tones, "start": self.clock, "period": 1.0 / tones[0][0]}
+        tones, f0 = a[2], a[2][0][0]
+        with _range_error():  # the triggers count the first tone's periods: every tone a whole multiple of it
+            check_tone_grid([t[0] for t in tones], f0)
+        self._check_drive(command_peak(*zip(*tones), base_freq_hz=f0), command_slew(*zip(*tones), base_freq_hz=f0))
+        self.wave = {"mode": "MULTI", "tones": tones, "start": self.clock, "period": 1.0 / f0}
         return format_ok("WAVE", axis=axis, mode=mode, tones=len(tones), start=float(self.clock))
 
     def _pat(self, start: int | None = None, values: tuple = ()) -> str:
@@ -429,13 +413,11 @@ class EmulatedDevice:
             _in_range(args[0], "freq_hz")
         pattern = self.pattern.copy()
         self._check_drive(abs(args[-1]) * float(np.abs(pattern).max(initial=0.0)))
-        try:
+        with _range_error():
             if mode == "SINE":
                 self.rig.check_pattern(pattern, *args)
             else:
                 self.rig.check_ladder(pattern, list(args))
-        except ParameterError as exc:
-            raise ProtocolViolation(E_RANGE, str(exc)) from None
         wave = {"freq_hz": args[0], "amplitude": args[1], "period": 1.0 / args[0]} if mode == "SINE" else {"level": args[0]}
         self.wave = {"mode": mode, **wave, "start": self.clock, "axis": "pat", "pattern": pattern}
         return format_ok("WAVE", axis="pat", mode=mode, start=float(self.clock), crc=pattern_checksum(pattern))
@@ -516,35 +498,14 @@ class EmulatedDevice:
             wv = a["wave"]
             cap = r.sine(freq_hz=wv["freq_hz"], amplitude=wv["amplitude"], exposures_s=[te], trigger_offset_s=a["offset"],
                          n_repeats=n, settle_s=a["settle_s"], power=a["power"], input=wv.get("axis", "x"))
-        else:
-            tones = a["wave"]["tones"]
-            f1 = tones[0][0]
-            ratio = np.array([t[0] for t in tones]) / f1
-            if np.any(np.abs(ratio - np.round(ratio)) > 1e-6 * ratio):
-                return self._render_multi(job), job.rel_trig  # not periodic in the trigger period: steady state only
-            # Tones on the grid of the first: SimulatedRig.multisine's schedule and exact response (transients included).
-            cap = r.multisine(freq_hz=[t[0] for t in tones], amplitude=[t[1] for t in tones], phase_rad=[t[2] for t in tones],
-                              exposures_s=[te], trigger_offset_s=a["offset"], n_repeats=n, base_freq_hz=f1,
-                              settle_s=a["settle_s"], power=a["power"])
+        else:  # MULTI, tones on the first's grid (WAVE checks): SimulatedRig.multisine's schedule and exact response
+            f, amp, phase = zip(*a["wave"]["tones"])
+            cap = r.multisine(freq_hz=f, amplitude=amp, phase_rad=phase, exposures_s=[te], trigger_offset_s=a["offset"],
+                              n_repeats=n, base_freq_hz=f[0], settle_s=a["settle_s"], power=a["power"])
         trig = cap.trigger_time_s.reshape(-1).tolist()
         if not np.allclose(trig, job.rel_trig, rtol=0, atol=1e-9):
             _log(f"warning: schedule mismatch for {job.kind}: {trig[:3]} vs {job.rel_trig[:3]}")
         return cap.frames.reshape((n,) + tuple(r.frame_shape)).numpy(), trig
-
-    def _render_multi(self, job: _Job) -> np.ndarray:
-        """A MULTI waveform in steady state (the settle wait is assumed to cover transients):
-        each tone through the plant's frequency response, rendered by the rig's renderer."""
-        r = self.rig
-        tones = job.args["wave"]["tones"]
-        f = np.array([t[0] for t in tones])
-        # each spot's image motion per tone: G_k H(j w) of input x, [K, 2, F]
-        h = torch.as_tensor(np.asarray(r.spot_truth(f)).reshape(-1, 2, r.spot_truth(f[0]).shape[-1], f.size)[:, :, 0])
-        a = torch.tensor([t[1] for t in tones], dtype=torch.float64)
-        p0 = torch.tensor([t[2] for t in tones], dtype=torch.float64)
-        trig = torch.tensor(job.rel_trig, dtype=torch.float64)
-        trajs = [Multisine((a * h[k].abs()).T, (p0 + h[k].angle()).T, torch.as_tensor(2 * np.pi * f))  # amplitude, phase [F, 2]
-                 for k in range(h.shape[0])]
-        return r.render_frames(trajs, trig, job.exposure_s, power=job.args["power"]).numpy()
 
     def _camera_loop(self) -> None:
         while True:
@@ -725,10 +686,8 @@ def main(argv: list[str] | None = None, *, config_path: str | None = None) -> in
         holder["frames"].disconnect()
         conn = serial_conn.get("conn")
         if conn is not None:
-            try:
+            with suppress(OSError):
                 conn.shutdown(socket.SHUT_RDWR)
-            except OSError:
-                pass
 
     device.on_disconnect = disconnect
     info = {"frames": holder["frames"].url, "pid": os.getpid(), "protocol": device.protocol, "transport": cfg.transport,

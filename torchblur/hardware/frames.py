@@ -1,12 +1,7 @@
-"""Where frames come from: the :class:`FrameSource` interface, its wire format, and the
-emulator's camera channel (:class:`EmulatorFrames`).
-
-A frame source delivers :class:`Frame` objects: a ``[H, W]`` tensor in ADU with the camera's
-metadata (frame counter, timestamp, exposure). The rig (:class:`~torchblur.hardware.
-serial_rig.SerialRig`) checks every frame against what the controller said it triggered.
-
-The wire format of the emulator's camera channel (``TBF1`` messages: a JSON header and the
-pixels) is docs/protocol.md's "The camera channel".
+"""Where frames come from: the :class:`FrameSource` interface (a :class:`Frame`: ``[H, W]`` ADU with
+its counter, timestamp and exposure, which :class:`~torchblur.hardware.serial_rig.SerialRig` checks),
+the emulator's camera channel (:class:`EmulatorFrames`) and its wire format (docs/protocol.md,
+"The camera channel").
 """
 from __future__ import annotations
 
@@ -16,6 +11,7 @@ import socket
 import struct
 import time
 from abc import ABC, abstractmethod
+from contextlib import suppress
 from dataclasses import asdict, dataclass, field
 from urllib.parse import urlparse
 
@@ -53,6 +49,14 @@ class CameraInfo:
     def from_dict(cls, d: dict) -> "CameraInfo":
         return cls(frame_shape=tuple(int(v) for v in d["frame_shape"]), frame_rate_hz=float(d["frame_rate_hz"]),
                    max_exposure_s=float(d["max_exposure_s"]), readout_s=float(d["readout_s"]), name=str(d.get("name", "")))
+
+    @classmethod
+    def of(cls, rig, name: str = "") -> "CameraInfo":
+        """The camera of any rig (its :class:`~torchblur.rig.base.CameraRig` properties), named
+        ``name``, else as the rig's camera is, else by the rig's class."""
+        return cls(frame_shape=tuple(int(v) for v in rig.frame_shape), frame_rate_hz=float(rig.frame_rate_hz),
+                   max_exposure_s=float(rig.max_exposure_s), readout_s=float(rig.readout_s),
+                   name=name or getattr(getattr(rig, "info", None), "name", "") or type(rig).__name__)
 
 
 class CameraProperties:
@@ -341,10 +345,8 @@ class EmulatorFrames(FrameSource):
 
     def close(self) -> None:
         if self._sock is not None:
-            try:
+            with suppress(OSError):
                 self._sock.close()
-            except OSError:
-                pass
         self._sock = None
 
     def __repr__(self) -> str:

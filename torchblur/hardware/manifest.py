@@ -12,7 +12,7 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from torchblur.errors import excerpt
+from torchblur.errors import check_real_scalar, excerpt
 from torchblur.files import read_bounded as _read_bounded, sha256_bounded
 from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.run_folder import inside
@@ -102,11 +102,7 @@ def _int(v, key, low=None, high=None):
 def _float(v, key, *, positive=False, nonnegative=False, optional=False):
     if v is None and optional:
         return None
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise _Bad(f"{key}: expected a finite number, got {excerpt(v)}")
-    if (positive and v <= 0) or (nonnegative and v < 0):
-        raise _Bad(f"{key}: expected a number {'> 0' if positive else '>= 0'}, got {excerpt(v)}")
-    return float(v)
+    return check_real_scalar(v, key, positive=positive, nonnegative=nonnegative, error=_Bad)
 
 
 def _str(v, key, *, optional=False, limit=200):

@@ -1,18 +1,12 @@
-"""Outside recordings: frames a lab took with its own camera and function generator, read
-into one checked object (the folder format: docs/outside_recordings.md).
+"""Outside recordings: frames a lab took with its own camera and function generator
+(``frames.csv``, its TIFF files and ``recording.yaml``: docs/outside_recordings.md), read as untrusted
+input into one checked object; every error is a :class:`~torchblur.hardware.errors.RecordingError`
+naming the file, the line and the column, and nothing is written.
 
-A folder holds ``frames.csv`` (one row per frame), the TIFF files it names and
-``recording.yaml`` (the camera and the timing). Everything in it is untrusted input, and every
-error is a :class:`~torchblur.hardware.errors.RecordingError` that names the file, the line and
-the column. Nothing is written.
-
-:func:`read_outside_recording` gives an :class:`OutsideRecording`: the dark and still frames
-(ADU, ``[N, H, W]``) and the sweep points (:class:`OutsidePoint`, one per frequency, frames
-``[E*R, H, W]`` exposure-major: the ``R`` repeats of an exposure in a row), with the windows
-in seconds after the command's upward zero crossing. Only one-input recordings are read (an
-``axis`` column is refused: two-input rigs are out of scope). A deformable mirror's recording
-(:mod:`torchblur.identify.dm_outside`) is read by the same functions (:func:`read_folder`,
-:func:`read_csv`, :func:`number`) with its extra columns and sections.
+:func:`read_outside_recording` gives an :class:`OutsideRecording` (one-input recordings only: an
+``axis`` column is refused). A deformable mirror's recording (:mod:`torchblur.identify.dm_outside`) is
+read by the same functions (:func:`read_folder`, :func:`read_csv`, :func:`number`) with its extra
+columns and sections.
 """
 from __future__ import annotations
 

@@ -33,6 +33,7 @@ __all__ = [
     "parse_command",
     "format_number",
     "format_command",
+    "format_tones",
     "format_ok",
     "format_err",
     "Reply",
@@ -255,6 +256,11 @@ def format_number(value) -> str:
     if not math.isfinite(v):
         raise ValueError(f"cannot send a non-finite number: {v}")
     return repr(v)
+
+
+def format_tones(tones) -> str:
+    """A ``MULTI`` waveform's tones ``[(freq_hz, amplitude, phase_rad), ...]`` as ``f:a:p,...`` (each exact)."""
+    return ",".join(":".join(format_number(v) for v in tone) for tone in tones)
 
 
 def format_command(word: str, *args) -> str:

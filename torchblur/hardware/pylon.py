@@ -1,17 +1,10 @@
-"""A Basler camera through pypylon (the ``pylon`` extra: ``pip install torchblur[pylon]``).
-
-:class:`PylonCamera` is an :class:`~torchblur.hardware.camera_sdk.SDKCamera`: the camera runs
-with ``TriggerSelector=FrameStart``, ``TriggerMode=On``, ``TriggerActivation=RisingEdge`` and
-``ExposureMode=Timed``, one frame per edge on ``trigger_source`` (``Line1``, the wire from the
-controller, by default). Per acquisition, :meth:`~SDKCamera.prepare` sets ``ExposureTime`` and
-restarts grabbing, then waits until the camera reports itself ready for a frame trigger, so
-the controller's first edge is not lost. The frame counter is pylon's ``BlockID``, which
-restarts at each start of grabbing (at 0 on USB3 and on pylon's camera emulation, at 1 on
-GigE): the rig maps it onto the controller's trigger count, so a dropped frame is a
-:class:`~torchblur.hardware.errors.FrameGap`, never a silently wrong frame.
-
-The config (``rig.frames=pylon://SERIAL?...``) and pylon's camera emulation it is tested on
-(``PYLON_CAMEMU=1``, ``image_files=``, software triggers): README, "Basler cameras through pypylon".
+"""A Basler camera through pypylon (the ``pylon`` extra): :class:`PylonCamera`, an
+:class:`~torchblur.hardware.camera_sdk.SDKCamera` (external trigger on ``trigger_source``, one frame
+per rising edge, timed exposure). Per acquisition :meth:`~SDKCamera.prepare` sets ``ExposureTime``,
+restarts grabbing and waits until the camera is ready for a frame trigger, so the first edge is not
+lost. The frame counter is pylon's ``BlockID``, which restarts with grabbing (at 1 on GigE, else 0).
+The config (``rig.frames=pylon://SERIAL?...``) and the camera emulation it is tested on: README,
+"Basler cameras through pypylon".
 """
 from __future__ import annotations
 
@@ -20,8 +13,8 @@ import os
 import numpy as np
 
 from torchblur.config.camera_urls import pylon_url_options
-from torchblur.errors import ParameterError
-from torchblur.hardware.camera_sdk import SDKCamera
+from torchblur.errors import check_int, check_real_scalar
+from torchblur.hardware.camera_sdk import SDKCamera, exposure_us
 from torchblur.hardware.errors import ConnectionLost, FrameError, HardwareError
 from torchblur.hardware.frames import CameraInfo
 
@@ -98,10 +91,8 @@ class PylonCamera(SDKCamera):
     def __init__(self, serial: str | None = None, *, trigger_source: str = "Line1", pixel_format: str | None = None,
                  frame_shape: tuple[int, int] | None = None, readout_s: float = 0.0, buffers: int = 64,
                  image_files: str | os.PathLike | None = None):
-        if isinstance(buffers, bool) or not isinstance(buffers, int) or buffers < 1:
-            raise ParameterError(f"buffers: expected an int >= 1, got {buffers!r}")
-        if not isinstance(readout_s, (int, float)) or not readout_s >= 0:
-            raise ParameterError(f"readout_s: expected a number >= 0 seconds, got {readout_s!r}")
+        buffers = check_int(buffers, "buffers", low=1)
+        readout_s = check_real_scalar(readout_s, "readout_s", nonnegative=True)
         self._serial = serial
         self._trigger_source = str(trigger_source)
         self._pixel_format = pixel_format
@@ -186,10 +177,7 @@ class PylonCamera(SDKCamera):
         node = cam.GetNodeMap().GetNode("ExposureTime")
         if node is None:
             node = cam.GetNodeMap().GetNode("ExposureTimeAbs")  # older GigE cameras
-        us = exposure_s * 1e6
-        if not node.GetMin() <= us <= node.GetMax():
-            raise ParameterError(f"exposure_s: the camera takes {node.GetMin() * 1e-6:g}..{node.GetMax() * 1e-6:g} s, got {exposure_s:g}")
-        node.SetValue(us)
+        node.SetValue(exposure_us(exposure_s, node.GetMin(), node.GetMax()))
         self._exposure_s = float(node.GetValue()) * 1e-6  # what the camera will use (its own rounding)
         cam.StartGrabbingMax(int(count), pylon.GrabStrategy_OneByOne)
         if cam.CanWaitForFrameTriggerReady() and not cam.WaitForFrameTriggerReady(2000, pylon.TimeoutHandling_Return):

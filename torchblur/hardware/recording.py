@@ -15,6 +15,7 @@ import json
 import math
 import os
 import time
+from contextlib import suppress
 from pathlib import Path
 
 import numpy as np
@@ -24,13 +25,13 @@ from torchblur.errors import excerpt
 from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.frames import CameraInfo, CameraProperties, raw_pixels
 from torchblur.hardware.manifest import (MAX_FRAME_SIDE, MAX_MANIFEST_BYTES, MAX_META_BYTES, INTEGRITY_KEY, METHODS, SCHEMA_VERSION, SETTINGS_KEY, ManifestScan,
-                                         check_meta, load_json, meta_digest, read_bounded, scan_manifest,
+                                         check_meta, expected_file, load_json, meta_digest, read_bounded, scan_manifest,
                                          settings_digest)
 from torchblur.hardware.run_folder import RunLock, inside
 from torchblur import __version__
 from torchblur.rig.base import Capture, Rig
 
-__all__ = ["SCHEMA_VERSION", "Experiment", "ReplayRig", "atomic_write_bytes", "camera_info_of"]
+__all__ = ["SCHEMA_VERSION", "Experiment", "ReplayRig", "atomic_write_bytes"]
 
 _TMP = ".tmp"
 _F64 = torch.float64
@@ -40,16 +41,12 @@ _F64 = torch.float64
 
 
 def _fsync_dir(path: Path) -> None:
-    try:
+    with suppress(OSError):  # best effort: not every platform or file system syncs a folder
         fd = os.open(path, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
 
 
 def atomic_write_bytes(path: str | Path, data: bytes, *, fsync: bool = True) -> None:
@@ -65,10 +62,8 @@ def atomic_write_bytes(path: str | Path, data: bytes, *, fsync: bool = True) -> 
                 os.fsync(fh.fileno())
         os.replace(tmp, path)
     except BaseException:
-        try:
+        with suppress(OSError):
             tmp.unlink()
-        except OSError:
-            pass
         raise
     if fsync:
         _fsync_dir(path.parent)
@@ -76,13 +71,6 @@ def atomic_write_bytes(path: str | Path, data: bytes, *, fsync: bool = True) -> 
 
 def _now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-
-
-def camera_info_of(rig) -> CameraInfo:
-    """The :class:`CameraInfo` of any rig (its Rig properties)."""
-    return CameraInfo(frame_shape=tuple(int(v) for v in rig.frame_shape), frame_rate_hz=float(rig.frame_rate_hz),
-                      max_exposure_s=float(rig.max_exposure_s), readout_s=float(rig.readout_s),
-                      name=getattr(getattr(rig, "info", None), "name", "") or type(rig).__name__)
 
 
 def _jsonable(v):
@@ -252,15 +240,11 @@ class Experiment:
 
     @classmethod
     def open(cls, path: str | Path, *, writable: bool = True, verify: bool = True) -> "Experiment":
-        """Open a recording, treated as untrusted input (every field checked, every path kept
-        inside the folder, sizes bounded: :mod:`torchblur.hardware.manifest`).
-
-        Writable (a resume): take the run's lock, then repair: lines that cannot be read or
-        checked, and the groups they leave incomplete or inconsistent, are moved with their
-        frame files to ``quarantine/<stamp>/`` (never deleted; ``repaired`` names every
-        group), unreferenced TIFFs likewise; only temporary files are removed. Read-only: an
-        incomplete group at the end (a crash during an append) is left out; any other
-        problem raises. ``verify`` checks every group's file hash.
+        """Open a recording, treated as untrusted input (:mod:`torchblur.hardware.manifest`).
+        Writable (a resume): take the run's lock, then repair it (docs/protocol.md, "The
+        experiment directory"; ``repaired`` names every group set aside). Read-only: an
+        incomplete group at the end (a crash during an append) is left out; any other problem
+        raises. ``verify`` checks every group's file hash.
 
         Raises:
             RecordingError: no recording there, an unknown schema, a bad experiment.json, the
@@ -396,7 +380,7 @@ class Experiment:
         labels = dict(labels or {})
         frames, lines = [], []
         n_total = sum(int(np.prod(c[2].shape)) if len(c[2].shape) else 1 for c in calls)
-        fname = "frames/" + key.replace("/", "_") + ".tif"
+        fname = expected_file(key)
         page = 0
         for ci, (method, args, cap) in enumerate(calls):
             shape = tuple(cap.shape)
@@ -613,13 +597,9 @@ def check_distinct_frames(frames, names: list, seen: dict | None = None) -> dict
 
 
 def _repair(exp: "Experiment", scan: ManifestScan) -> None:
-    """Set aside what ``scan`` could not keep and rewrite the manifest with the kept lines.
-
-    Nothing recorded is deleted: the lines not kept (their raw bytes), the frame files of
-    the dropped groups and any TIFF no kept line references go to ``quarantine/<stamp>/``
-    with ``reasons.json``. Only temporary files (``*.tmp``: never renamed, so provably
-    torn) are removed. The manifest is rewritten last (atomically), so a kill during the
-    repair leaves a state the next open repairs again, losing nothing."""
+    """Set aside what ``scan`` could not keep (to ``quarantine/<stamp>/``; only ``*.tmp`` files are
+    removed) and rewrite the manifest with the kept lines, last (docs/protocol.md, "The experiment
+    directory")."""
     path, rep = exp.path, exp.repaired
     referenced = {ln["file"] for ln in scan.lines}
     movable = []

@@ -1,17 +1,7 @@
-"""A run folder is owned: one process writes it, no other run writes into it.
-
-- :class:`RunLock`: an exclusive OS lock on ``<experiment>/run.lock``, held for the run's
-  life: ``fcntl.flock`` on Linux and macOS, ``msvcrt.locking`` of one byte far past the holder's
-  pid on Windows (both imported only where they exist, so every module imports everywhere).
-  The OS drops it when its holder exits (killed included), so a stale lock file from a dead
-  process is harmless by construction: the next run simply takes it. Within one process the
-  lock is re-entrant (a count per folder), so a run and its resume in one Python session
-  share it.
-- :func:`check_out_folder`: an ``--out`` folder that is a file, under a file, not writable,
-  inside another run's record, or (``torchblur fit``) holding a run's results is refused
-  with one line naming the path.
-- :func:`inside`: a path given by a recording resolves inside the run folder (no absolute
-  paths, no ``..``, no symlink out of it).
+"""A run folder is owned (docs/protocol.md, "A run folder is owned"): :class:`RunLock`, an exclusive
+OS lock on ``<experiment>/run.lock`` (``fcntl.flock``; Windows: ``msvcrt.locking`` of one byte far past
+the holder's pid), re-entrant within one process; :func:`check_out_folder`, the ``--out`` checks; and
+:func:`inside`, a recording's path kept inside the run folder.
 """
 from __future__ import annotations
 

@@ -1,14 +1,8 @@
-"""A deformable mirror over the serial link: :class:`SerialDMRig`, the interface
-the DM plan (:class:`torchblur.identify.dm_plan.DMPlan`) uses on :class:`~torchblur.rig.dm.SimulatedDMRig`
-(``pattern_sine``, ``pattern_ladder``, ``dark``, ``still``, ``pulse``, ``input_limit``, the frame
-geometry), on a controller that speaks protocol 2 (docs/protocol.md: ``ACT?``, ``PAT``, ``PAT?`` and
-the axis ``pat``) and a camera; ``pattern_ladder`` (the static holds of ``dm_plan.spot_model``) needs
-protocol 3 (``WAVE pat HOLD``): on a protocol-2 controller the rig has none (the run then says so).
-
-Every waveform drives exactly the pattern asked for: its checksum
-(:func:`~torchblur.hardware.protocol.pattern_checksum`) is checked after the load and in the
-``WAVE`` reply; a mismatch is a :class:`~torchblur.hardware.errors.PatternMismatch`, redone at most
-``retries`` times (the transactions: docs/protocol.md, "A deformable mirror's pattern").
+"""A deformable mirror over the serial link: :class:`SerialDMRig`, the DM plan's rig
+(:class:`~torchblur.rig.dm_contract.DMRig`) on a controller that speaks protocol 2 (``ACT?``,
+``PAT``, ``PAT?``, the axis ``pat``; ``pattern_ladder`` needs protocol 3's ``WAVE pat HOLD``) and a
+camera. Every waveform drives exactly the pattern asked for, its checksum checked after the load and
+in the ``WAVE`` reply (docs/protocol.md, "A deformable mirror's pattern").
 """
 from __future__ import annotations
 
@@ -134,21 +128,14 @@ class SerialDMRig(PatternSines, SerialRig):
         te = self._check_exposure(exposure_s)
         power = self._check_power(power)
         check_drive(max(abs(u) for u in lv) * float(np.abs(p).max(initial=0.0)), self.input_limit, "levels")
-        c = self.controller
-
-        def once():
-            self._begin()
-            c.stop()
-            c.power(power)
-            c.settle(None)
+        def body(c):
             out = []
             for u in lv:
                 self._drive_pattern(p, lambda c, u=u: c.hold_pattern(u))
                 out += self._armed(te, n)
-            c.stop()
             return out
 
-        frames = self._call(f"pattern_ladder {describe_pattern(p)} at {len(lv)} levels", once)
+        frames = self._transaction(f"pattern_ladder {describe_pattern(p)} at {len(lv)} levels", power, body, wave=True)
         return self._capture(frames, (len(lv), n), [0.0] * (len(lv) * n),
                              {"kind": "pattern_ladder", "pattern": p, "levels": lv, "power": power})
 

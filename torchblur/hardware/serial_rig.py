@@ -1,12 +1,7 @@
-"""A :class:`~torchblur.rig.base.Rig` on a real (or emulated) bench: a controller on a serial
-line (:class:`~torchblur.hardware.controller.Controller`) and a camera
-(:class:`~torchblur.hardware.frames.FrameSource`).
-
-Every rig call is one transaction, each frame is checked, and a fault makes the rig
-resynchronise and redo the whole call at most ``retries`` more times (a lost connection is
-reopened at most ``reconnects`` times), then raise
-:class:`~torchblur.hardware.errors.AcquisitionStopped`: nothing half-taken is ever returned
-(docs/protocol.md, "Client rules").
+"""A :class:`~torchblur.rig.base.Rig` on a real (or emulated) bench: a controller on a serial line
+(:class:`~torchblur.hardware.controller.Controller`) and a camera
+(:class:`~torchblur.hardware.frames.FrameSource`); every call one transaction, every frame checked,
+faults retried, then :class:`~torchblur.hardware.errors.AcquisitionStopped` (docs/protocol.md, "Client rules").
 """
 from __future__ import annotations
 
@@ -24,7 +19,7 @@ from torchblur.hardware.errors import (AcquisitionStopped, ConnectionLost, Devic
 from torchblur.hardware.frames import CameraInfo, CameraProperties, EmulatorFrames, Frame, FrameSource
 from torchblur.rig.base import Capture, RigChecks, check_drive, check_slew, command_peak, command_slew, float_list, per_exposure
 from torchblur.hardware.aravis import AravisCamera  # imports its SDK on use
-from torchblur.hardware.protocol import MAX_COUNT, MAX_LINE, MAX_TONES, format_number
+from torchblur.hardware.protocol import MAX_COUNT, MAX_LINE, MAX_TONES, format_tones
 from torchblur.hardware.pylon import PylonCamera  # imports its SDK on use
 
 __all__ = ["SerialRig", "open_frame_source"]
@@ -83,12 +78,10 @@ class SerialRig(CameraProperties, RigChecks):
                  poll_s: float = 0.25, max_wait_s: float = 60.0, log: Callable[[str], None] | None = None):
         if axis not in self.AXES:
             raise ParameterError(f"axis: expected one of {', '.join(repr(a) for a in self.AXES)}, got {axis!r}")
-        if isinstance(retries, bool) or not isinstance(retries, int) or retries < 0:
-            raise ParameterError(f"retries: expected an integer >= 0, got {retries!r}")
         self.controller = controller
         self.frames = frames
         self.axis = axis
-        self.retries = retries
+        self.retries = check_int(retries, "retries", low=0)
         self.reconnects = int(reconnects)
         self.poll_s = check_real_scalar(poll_s, "poll_s", positive=True)
         self.max_wait_s = check_real_scalar(max_wait_s, "max_wait_s", positive=True)
@@ -196,15 +189,22 @@ class SerialRig(CameraProperties, RigChecks):
         c.resync()
         c.stop()
         st = c.status()
-        if st["boot"] != self._boot:
-            self.stats["resets"] += 1
-            self._note(f"controller reset detected (boot {self._boot} -> {st['boot']}, frame counter now {st['frames']})")
-            self._boot = st["boot"]
+        self._boot_change(st, f"controller reset detected (boot {self._boot} -> {st['boot']}, frame counter now "
+                              f"{st['frames']})")
         self._next = st["frames"]
         n = self.frames.drain()
         if n:
             self.stats["stale_discarded"] += n
             self._note(f"discarded {n} frame(s) left over from the failed attempt")
+
+    def _boot_change(self, st: dict, message: str) -> bool:
+        """Whether ``STATUS?``'s boot id ``st["boot"]`` is new: then counted, noted (``message``) and kept."""
+        if st["boot"] == self._boot:
+            return False
+        self.stats["resets"] += 1
+        self._note(message)
+        self._boot = st["boot"]
+        return True
 
     def _reconnect(self) -> None:
         self.stats["reconnects"] += 1
@@ -259,11 +259,8 @@ class SerialRig(CameraProperties, RigChecks):
     def _begin(self) -> None:
         """Each transaction starts by checking the controller did not reset since the last one."""
         st = self.controller.status()
-        if st["boot"] != self._boot:
-            self.stats["resets"] += 1
-            self._note(f"controller reset between calls detected (boot {self._boot} -> {st['boot']}); "
-                       f"earlier frames were complete and checked")
-            self._boot = st["boot"]
+        if self._boot_change(st, f"controller reset between calls detected (boot {self._boot} -> {st['boot']}); "
+                                 f"earlier frames were complete and checked"):
             self._next = st["frames"]
         if st["frames"] < self._next:
             raise DeviceReset(f"frame counter went back from {self._next} to {st['frames']}")
@@ -348,22 +345,31 @@ class SerialRig(CameraProperties, RigChecks):
         counts = [min(MAX_COUNT, n - k) for k in range(0, n, MAX_COUNT)]
         return [f for m in counts for f in self._acquire(te, m, lambda m=m: c.arm(0.0, te, m))]
 
-    def _still_frames(self, n: int, te: float, power: float):
+    def _transaction(self, what: str, power: float, body, *, wave: bool = False,
+                     settle_s: float | None = None) -> list[Frame]:
+        """One rig call as a transaction redone on faults (:meth:`_call`): the boot checked
+        (:meth:`_begin`), ``STOP``, ``POWER power``, with a ``wave`` ``SETTLE settle_s`` (None:
+        ``AUTO``), then ``body(controller)`` -> its frames, then with a ``wave`` ``STOP``."""
         c = self.controller
 
         def once():
             self._begin()
             c.stop()
             c.power(power)
-            return self._armed(te, n)
+            if wave:
+                c.settle(settle_s)
+            frames = body(c)
+            if wave:
+                c.stop()
+            return frames
 
-        return once
+        return self._call(what, once)
 
     def dark(self, n: int, exposure_s: float):
         """``n`` frames with the laser off (``POWER 0``, no waveform), ``[n, H, W]``."""
         n = check_int(n, "n", low=1)
         te = self._check_exposure(exposure_s)
-        frames = self._call(f"dark ({n} x {te:g} s)", self._still_frames(n, te, 0.0))
+        frames = self._transaction(f"dark ({n} x {te:g} s)", 0.0, lambda c: self._armed(te, n))
         return self._capture(frames, (n,), [0.0] * n, {"kind": "dark"})
 
     def still(self, n: int, exposure_s: float, power: float = 1.0):
@@ -371,7 +377,7 @@ class SerialRig(CameraProperties, RigChecks):
         n = check_int(n, "n", low=1)
         te = self._check_exposure(exposure_s)
         power = self._check_power(power)
-        frames = self._call(f"still ({n} x {te:g} s)", self._still_frames(n, te, power))
+        frames = self._transaction(f"still ({n} x {te:g} s)", power, lambda c: self._armed(te, n))
         return self._capture(frames, (n,), [0.0] * n, {"kind": "still", "power": power})
 
     def sine(self, freq_hz: float, amplitude: float, exposures_s: Sequence[float], trigger_offset_s, n_repeats: int,
@@ -408,7 +414,7 @@ class SerialRig(CameraProperties, RigChecks):
         check_drive(command_peak(*zip(*tones), base_freq_hz=tones[0][0]), self.input_limit)
         check_slew(command_slew(*zip(*tones), base_freq_hz=tones[0][0]), self.slew_limit)
 
-        line = f"WAVE {self.axis} MULTI " + ",".join(":".join(format_number(v) for v in t) for t in tones)
+        line = f"WAVE {self.axis} MULTI {format_tones(tones)}"
         if len(tones) > MAX_TONES or len(line) > MAX_LINE:
             raise ParameterError(f"freq_hz: {len(tones)} tones (base included) make a WAVE line of {len(line)} bytes; the "
                                  f"protocol allows {MAX_TONES} tones and {MAX_LINE} bytes: use fewer tones")
@@ -420,40 +426,28 @@ class SerialRig(CameraProperties, RigChecks):
     def _periodic_capture(self, what: str, start_wave, period: float, exposures_s, trigger_offset_s, n_repeats, power, settle_s,
                           meta: dict):
         """What every periodic call shares once its waveform is checked: the repeats, exposures,
-        offsets, laser power (one, or one per exposure) and settling wait checked,
-        :meth:`_periodic`, and the capture ``[E, R, H, W]`` with ``meta``, whose ``period_s``,
-        ``settle_s`` and ``power`` entries are filled in (in the places ``meta`` gives them)."""
+        offsets, laser power (one, or one per exposure) and settling wait checked; one transaction
+        that starts the waveform (``start_wave(controller)``) and fires ``ARM offs[e] te[e] R`` for
+        each exposure (the laser following its power, the waveform running on); and the capture
+        ``[E, R, H, W]`` with ``meta``, whose ``period_s``, ``settle_s`` and ``power`` entries are
+        filled in (in the places ``meta`` gives them)."""
         te, offs, R = self._check_periodic(exposures_s, trigger_offset_s, n_repeats)
         E = len(te)
         powers = [self._check_power(p) for p in per_exposure(power, E, "power")]
         settle = None if settle_s is None else check_real_scalar(settle_s, "settle_s", nonnegative=True)
-        frames, off_mod = self._periodic(what, start_wave, period, te, offs, R, powers, settle)
-        meta.update(period_s=period, settle_s=settle, power=powers if len(set(powers)) > 1 else powers[0])
-        return self._capture(frames, (E, R), off_mod, meta)
 
-    def _periodic(self, what: str, start_wave, period: float, te: list, offs: list, R: int, powers: list, settle):
-        """Stop, set the laser and the settling wait, start the waveform (``start_wave(controller)``),
-        then ``ARM offs[e] te[e] R`` for each exposure (the laser follows ``powers[e]``; the
-        waveform keeps running), and stop. Returns the frames and the offsets within the period
-        ``[E][R]``."""
-        c = self.controller
-
-        def once():
-            self._begin()
-            c.stop()
-            c.power(powers[0])
-            c.settle(settle)
+        def body(c):
             start_wave(c)
             out = []
-            for e in range(len(te)):
+            for e in range(E):
                 if e and powers[e] != powers[e - 1]:
                     c.power(powers[e])
                 out += self._acquire(te[e], R, lambda e=e: c.arm(offs[e], te[e], R))
-            c.stop()
             return out
 
-        frames = self._call(what, once)
-        return frames, [[o - math.floor(o / period) * period] * R for o in offs]
+        frames = self._transaction(what, powers[0], body, wave=True, settle_s=settle)
+        meta.update(period_s=period, settle_s=settle, power=powers if len(set(powers)) > 1 else powers[0])
+        return self._capture(frames, (E, R), [[o - math.floor(o / period) * period] * R for o in offs], meta)
 
     def pulse(self, exposure_s: float, trigger_offset_s, pulse_time_s: float, pulse_width_s: float, n: int, power: float = 1.0):
         """Mirror still; per offset ``PULSE offset pulse_time width Te n``: frames
@@ -462,18 +456,8 @@ class SerialRig(CameraProperties, RigChecks):
         offs_t = torch.as_tensor(trigger_offset_s, dtype=_F64) if not isinstance(trigger_offset_s, torch.Tensor) \
             else trigger_offset_s.detach().to(_F64)
         offs = float_list(offs_t, "trigger_offset_s")
-        c = self.controller
-
-        def once():
-            self._begin()
-            c.stop()
-            c.power(power)
-            out = []
-            for o in offs:
-                out += self._acquire(te, n, lambda o=o: c.pulse(o, p0, width, te, n))
-            return out
-
-        frames = self._call(f"pulse at {p0 * 1e6:.3g} us", once)
+        frames = self._transaction(f"pulse at {p0 * 1e6:.3g} us", power, lambda c: [
+            f for o in offs for f in self._acquire(te, n, lambda o=o: c.pulse(o, p0, width, te, n))])
         shape = tuple(offs_t.shape) + (n,)
         return self._capture(frames, shape, [[o] * n for o in offs],
                              {"kind": "pulse", "pulse_time_s": p0, "pulse_width_s": width, "power": power})

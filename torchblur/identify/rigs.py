@@ -11,7 +11,8 @@ from pathlib import Path
 
 from torchblur.errors import ConfigError
 from torchblur.hardware.errors import HardwareError, RecordingError
-from torchblur.hardware.recording import Experiment, camera_info_of
+from torchblur.hardware.frames import CameraInfo
+from torchblur.hardware.recording import Experiment
 from torchblur.hardware.serial_rig import SerialRig
 from torchblur.config import IdentifyConfig, config_to_yaml, load_dataclass
 from torchblur.identify.drive import SESSION_KEY, SLEW_KEY
@@ -86,7 +87,7 @@ def open_experiment(record, cfg, rig):
         if (path / "experiment.json").is_file():
             exp = Experiment.open(path)
         else:
-            return Experiment.create(path, config_yaml=config_to_yaml(cfg), camera=camera_info_of(rig))
+            return Experiment.create(path, config_yaml=config_to_yaml(cfg), camera=CameraInfo.of(rig))
     recorded = load_dataclass(type(cfg), str(exp.path / "config.yaml"), trusted=False)
     if exp.writable:
         check_resume_config(recorded, cfg)

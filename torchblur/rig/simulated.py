@@ -388,25 +388,6 @@ class SimulatedRig(RigChecks):
     def _expose(self, expected_e: torch.Tensor) -> torch.Tensor:
         return self._camera.expose(expected_e, generator=self._generator)
 
-    def render_frames(self, trajectories: Sequence[Trajectory], trigger_time_s, exposure_s: float, *, power: float = 1.0) -> torch.Tensor:
-        """Frames ``[N, H, W]`` (ADU) of the spots moving along ``trajectories``, triggered at
-        ``trigger_time_s`` ``[N]`` (s, on the rig's clock) for ``exposure_s`` each: the
-        windows get the rig's trigger delay, latency and jitter, the image the camera's noise
-        (the rig's random stream, as every capture). ``trajectories``: one per spot of the
-        rig's layout (spot k's image motion, px), or one for the single spot; ``power`` scales
-        the laser (1 = ``peak_e_per_s``). For a waveform the rig's own commands do not cover
-        (the bench emulator's free multisine)."""
-        trig = as_tensor(trigger_time_s, "trigger_time_s", dtype=_F64).reshape(-1)
-        window = self._actual_starts(trig, torch.full_like(trig, self._check_exposure(exposure_s)))
-        p = self._check_power(power)
-        psf = GaussianPSF(self._psf.center, self._psf.cov, self._psf.amplitude * p)
-        if len(trajectories) != (1 if psf.shape == () else psf.shape[0]):
-            raise ShapeError(f"trajectories: expected one per spot ({1 if psf.shape == () else psf.shape[0]}), got {len(trajectories)}")
-        expected = 0
-        for k, traj in enumerate(trajectories):
-            expected = expected + self._render(traj, psf if psf.shape == () else psf[k], window)
-        return self._expose(expected)
-
     def _settling_time_s(self) -> float:
         """How long the command's transient lasts (s): the plant's settling time (a DM rig: its
         slowest actuator's). The default wait of :meth:`_schedule`."""
@@ -596,12 +577,11 @@ class SimulatedRig(RigChecks):
         freqs, amps, phases, f0 = self._check_tones(freq_hz, amplitude, phase_rad, base_freq_hz)
         check_drive(command_peak(freqs, amps, phases, f0), self._input_limit)
         check_slew(command_slew(freqs, amps, phases, f0), self._slew_limit)
-        te, offsets, R = self._check_periodic(exposures_s, trigger_offset_s, n_repeats)
+        period = 1.0 / f0
+        te, R, settle, trig_t, exp_t, off_t, window = self._triggers(period, exposures_s, trigger_offset_s, n_repeats,
+                                                                     settle_s)
         E = len(te)
         powers = [self._check_power(v) for v in per_exposure(power, E, "power")]
-        period = 1.0 / f0
-        settle, trig_t, exp_t, off_t = self._schedule(period, te, offsets, R, settle_s)
-        window = self._actual_starts(trig_t, exp_t)
         omega = [2 * math.pi * f for f in freqs]
         traj = LTIMultisineTrajectory(self._plant, torch.tensor(amps, dtype=_F64), torch.tensor(omega, dtype=_F64),
                                       torch.tensor(phases, dtype=_F64), direction=self._direction)
