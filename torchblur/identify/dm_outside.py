@@ -12,7 +12,6 @@ live DM run's stages on it (:func:`torchblur.identify.pipeline.identify` with th
 """
 from __future__ import annotations
 
-import contextlib
 import csv
 import math
 import time
@@ -40,9 +39,9 @@ from torchblur.identify.dm_ladder import TEST_KEY, hold_images, pattern_ladder
 from torchblur.identify.dm_plan import (DMPlan, DMResult, _calibrate, _fit_frequency, _fit_options, _spot_psf, check_dm_config,
                                         collect_fits, fit_pool, match_spots)
 from torchblur.identify.dm_record import PLAN_KEY, SWEEP_KIND, plan_support
-from torchblur.identify.outside import check_overrides, recording_levels
+from torchblur.identify.outside import check_no_rig, check_overrides, outside_record, recording_levels
 from torchblur.identify.pipeline import identify
-from torchblur.identify.record import LOGGER, RunRecord
+from torchblur.identify.record import LOGGER
 from torchblur.image.preprocess import subtract_dark
 from torchblur.image.saturation import SaturationCurve
 from torchblur.render.window import ExposureWindow
@@ -379,18 +378,14 @@ class DMOutsidePlan(DMPlan):
     def check(self, cfg, rig) -> None:
         """Refuse a ``cfg`` that is not a DM run's or not ``rec``'s frequencies, and any ``rig``."""
         check_dm_config(cfg)
-        if rig is not None:
-            raise InputTypeError(f"rig: an outside DM recording is fitted without a rig, got {type(rig).__name__}")
+        check_no_rig(rig, "an outside DM recording")
         if cfg.frequencies_hz() != [float(f) for f in self.rec.freq_hz]:
             raise ConfigError(f"sweep.freq_hz: expected the recording's frequencies (dm_recording_config), got {cfg.frequencies_hz()}")
 
-    @contextlib.contextmanager
     def open(self, cfg, rig, *, progress: bool, record, base_dir: str | None = None, executor=None):
-        """The run record: the sensor of ``cfg`` (``dm``, ``wfs``), no rig; ``record`` must be None (nothing is recorded)."""
-        if record is not None:
-            raise InputTypeError(f"record: an outside DM recording is not recorded again, got {type(record).__name__}")
+        """The run record (:func:`~torchblur.identify.outside.outside_record`), the sensor of ``cfg`` (``dm``, ``wfs``)."""
         self.model_mirror, self.wfs = dm_sensor(cfg)
-        yield RunRecord(cfg=cfg, rig=None, progress=progress, executor=executor)
+        return outside_record(cfg, progress=progress, record=record, executor=executor, what="an outside DM recording")
 
     def calibrate(self, run) -> None:
         """``run.cal`` and every valid subaperture's spot PSF, crop offset and size (:func:`recording_calibration`)."""

@@ -1,19 +1,18 @@
 """An outside recording (:mod:`torchblur.hardware.outside`) through the identification's own
-stages: the folder becomes the run record's calibration (:func:`outside_calibration`: the
-dark level and read noise from the dark frames, the PSF from the still frames by the same
-:mod:`~torchblur.identify.calibration` code as ``identify``, the timing)
-and its sweep (:class:`OutsidePlan`: the sine plan whose sweep stage reads the recorded
-points instead of driving a rig, and with ``fit.axis=measure`` fits them on both image axes
-for the motion's direction). The fit, assemble, model and report stages are the sine
-plan's (:func:`~torchblur.identify.stages.run_plan`): no fitting logic here.
+stages (:func:`~torchblur.identify.pipeline.identify` with the plan :class:`OutsidePlan`): the
+folder becomes the run record's calibration (:func:`outside_calibration`: the dark level and
+read noise from the dark frames, the PSF from the still frames by the same
+:mod:`~torchblur.identify.calibration` code as ``identify``, the timing) and its sweep (the sine
+plan whose sweep stage reads the recorded points instead of driving a rig, and with
+``fit.axis=measure`` fits them on both image axes for the motion's direction). The fit,
+assemble, model and report stages are the sine plan's: no fitting logic here.
 
-:func:`identify_outside` runs it; ``torchblur fit FOLDER`` calls it for a folder with a
+:func:`identify_outside` runs it; ``torchblur fit FOLDER`` runs it for a folder with a
 ``frames.csv`` (docs/outside_recordings.md).
 """
 from __future__ import annotations
 
 import contextlib
-import logging
 import math
 import time
 from dataclasses import replace
@@ -28,9 +27,9 @@ from torchblur.hardware.outside import YAML_NAME, OutsideRecording
 from torchblur.identify.calibration import Calibration, _still_psf, measure_gain
 from torchblur.config import IdentifyConfig, load_config
 from torchblur.identify.fitting import ChunkFitter
-from torchblur.identify.record import LOGGER, RunRecord, collect_log, console_logging
+from torchblur.identify.pipeline import identify
+from torchblur.identify.record import LOGGER, RunRecord
 from torchblur.identify.result import IdentificationResult
-from torchblur.identify.stages import run_plan
 from torchblur.identify.sweep import SineAcquisition, SinePlan, fit_points, sweep_layout
 from torchblur.image.preprocess import dark_frame, subtract_dark
 from torchblur.image.saturation import SaturationCurve
@@ -38,7 +37,7 @@ from torchblur.render.window import ExposureWindow
 from torchblur.sysid.frequency_response import FrequencyResponse
 
 __all__ = ["OutsidePlan", "check_overrides", "fitted_direction", "identify_outside", "outside_calibration", "outside_config",
-           "recording_levels"]
+           "outside_record", "recording_levels"]
 
 _F64 = torch.float64
 DARKS_PER_STILL = 4  # fewer dark frames than this many per still frame: the dark's own noise shows in the errors (logged)
@@ -159,14 +158,42 @@ def outside_calibration(rec: OutsideRecording, cfg: IdentifyConfig) -> Calibrati
     return cal
 
 
+def check_no_rig(rig, what: str = "an outside recording") -> None:
+    """Refuse any ``rig``: ``what`` is fitted without one (InputTypeError naming ``rig``)."""
+    if rig is not None:
+        raise InputTypeError(f"rig: {what} is fitted without a rig, got {type(rig).__name__}")
+
+
+@contextlib.contextmanager
+def outside_record(cfg, *, progress: bool, record, executor=None, what: str = "an outside recording"):
+    """The run record of an outside recording's run (either plan's ``open``): no rig, nothing
+    recorded (``record`` must be None)."""
+    if record is not None:
+        raise InputTypeError(f"record: {what} is not recorded again, got {type(record).__name__}")
+    yield RunRecord(cfg=cfg, rig=None, progress=progress, executor=executor)
+
+
 class OutsidePlan(SinePlan):
-    """The sine plan over a recording made elsewhere: its sweep stage reads the points of
-    ``rec`` (dark subtracted, in electrons, with the saturated pixels masked) into the same
+    """The sine plan over a recording made elsewhere: no rig, nothing recorded, the calibration
+    of :func:`outside_calibration`, and a sweep stage that reads the points of ``rec`` (dark
+    subtracted, in electrons, with the saturated pixels masked) into the same
     :class:`~torchblur.identify.sweep.SineAcquisition` a rig's sweep fills; fit, assemble,
     the direct model and the result are the sine plan's."""
 
     def __init__(self, rec: OutsideRecording):
         self.rec = rec
+
+    def check(self, cfg, rig) -> None:
+        """Refuse any ``rig``."""
+        check_no_rig(rig)
+
+    def open(self, cfg, rig, *, progress: bool, record, base_dir: str | None = None, executor=None):
+        """The run record (:func:`outside_record`)."""
+        return outside_record(cfg, progress=progress, record=record, executor=executor)
+
+    def calibrate(self, run) -> None:
+        """``run.cal``: :func:`outside_calibration`."""
+        run.cal = outside_calibration(self.rec, run.cfg)
 
     def sweep(self, run) -> None:
         """The sweep stage: every recorded point into the acquisition (and, with
@@ -231,8 +258,7 @@ class OutsidePlan(SinePlan):
 
 def identify_outside(rec: OutsideRecording, cfg: IdentifyConfig | None = None, *, progress: bool = True) -> IdentificationResult:
     """Identify the response of the outside recording ``rec`` with the identification's
-    stages: :func:`outside_calibration`, then :class:`OutsidePlan`'s sweep, the fit,
-    assemble, model and report (:func:`~torchblur.identify.stages.run_plan`).
+    stages (:func:`~torchblur.identify.pipeline.identify` with :class:`OutsidePlan`).
 
     Args:
         rec: from :func:`~torchblur.hardware.outside.read_outside_recording`.
@@ -244,11 +270,4 @@ def identify_outside(rec: OutsideRecording, cfg: IdentifyConfig | None = None, *
     cfg = outside_config(rec) if cfg is None else cfg
     if not isinstance(cfg, IdentifyConfig):
         raise InputTypeError(f"cfg: expected an IdentifyConfig (outside_config), got {type(cfg).__name__}")
-    shown = progress and not logging.getLogger("torchblur").hasHandlers()
-    with console_logging() if shown else contextlib.nullcontext(), collect_log() as log:
-        run = RunRecord(cfg=cfg, rig=None, progress=progress, t_start=time.perf_counter())
-        run.cal = outside_calibration(rec, cfg)
-        run.plan = OutsidePlan(rec)
-        result = run_plan(run)
-    result.log = log
-    return result
+    return identify(cfg, progress=progress, plan=OutsidePlan(rec))
