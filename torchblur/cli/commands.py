@@ -171,8 +171,9 @@ def _run_dm(cfg, out: Path, args, *, record=None, root: Path | None = None, rig=
     writable Experiment) or re-fitted (``record`` read-only, ``rig`` its ReplayRig), its
     ``dm.actuator_table`` copied into the recording (:func:`_recorded_table`)."""
     cfg, base_dir = _recorded_table(cfg, out if record is None else (out if root is None else root), new=record is None)
-    return _run_identify(cfg, out, out / "experiment" if record is None else record, args.quiet, root=root, as_json=args.json,
-                         rig=rig, base_dir=base_dir, stamp=stamp, source=source)
+    record = out / "experiment" if record is None else record
+    return _run_identify(cfg, out, record, args.quiet, root=root, as_json=args.json, rig=rig, base_dir=base_dir,
+                         stamp=stamp, source=source)
 
 
 TABLE_COPY = "experiment/actuator_table.csv"  # a DM run's own copy of its dm.actuator_table
@@ -233,7 +234,8 @@ def fit_command(args) -> int:
     _write_refit_source(out, args, exp)
     if recorded.dm.enabled:  # a DM recording: the DM plan re-fits it
         return _run_dm(cfg, out, args, record=exp, root=root, rig=ReplayRig(exp), stamp=stamp, source="re-fit")
-    return _run_identify(cfg, out, exp, args.quiet, root=root, as_json=args.json, rig=ReplayRig(exp), stamp=stamp, source="re-fit")
+    return _run_identify(cfg, out, exp, args.quiet, root=root, as_json=args.json, rig=ReplayRig(exp), stamp=stamp,
+                         source="re-fit")
 
 
 def _is_outside(path) -> bool:
@@ -260,12 +262,13 @@ def _fit_outside(args) -> int:
         print(f"torchblur fit: error: --out {out} is inside the recording {args.dir}; it is never written, choose another folder",
               file=sys.stderr)
         return 2
-    dm = is_dm_recording(src)  # a deformable mirror's: patterns.csv beside frames.csv, fitted by the DM run's own stages
+    dm = is_dm_recording(src)  # a deformable mirror's: patterns.csv beside frames.csv, fitted by the DM plan
     rec = (read_dm_recording if dm else read_outside_recording)(src)  # RecordingError naming file, line and column
     cfg = (dm_recording_config if dm else outside_config)(rec, args.overrides)
     out.mkdir(parents=True, exist_ok=True)
     seeded = any(str(o).partition("=")[0] == "seed" for o in args.overrides)  # the recording itself has no seed
     stamp = f"torchblur {tb.__version__}{f', seed {cfg.seed}' if seeded else ''}, fit of the outside recording {src}"
-    _write_source(out, args, outside_recording=str(src), frames=rec.n_frames, points=len(rec.freq_hz if dm else rec.points))
-    return _run_identify(cfg, out, None, args.quiet, as_json=args.json, plan=(DMOutsidePlan if dm else OutsidePlan)(rec), stamp=stamp,
-                         source="outside")
+    points = len(rec.freq_hz if dm else rec.points)
+    _write_source(out, args, outside_recording=str(src), frames=rec.n_frames, points=points)
+    plan = (DMOutsidePlan if dm else OutsidePlan)(rec)
+    return _run_identify(cfg, out, None, args.quiet, as_json=args.json, plan=plan, stamp=stamp, source="outside")

@@ -383,7 +383,7 @@ class DMOutsidePlan(DMPlan):
             raise ConfigError(f"sweep.freq_hz: expected the recording's frequencies (dm_recording_config), got {cfg.frequencies_hz()}")
 
     def open(self, cfg, rig, *, progress: bool, record, base_dir: str | None = None, executor=None):
-        """The run record (:func:`~torchblur.identify.outside.outside_record`), the sensor of ``cfg`` (``dm``, ``wfs``)."""
+        """The run record (:func:`~torchblur.identify.outside.outside_record`), the sensor of ``cfg``."""
         self.model_mirror, self.wfs = dm_sensor(cfg)
         return outside_record(cfg, progress=progress, record=record, executor=executor, what="an outside DM recording")
 

@@ -31,8 +31,8 @@ from torchblur.sysid.flags import flag_names
 from torchblur.sysid.model_check import inflate
 from torchblur.sysid.plots import bode_figure, residual_figure
 
-__all__ = ["exposure_label", "left_out_points", "write_bode", "write_dm_run", "write_figures", "write_models", "write_outputs",
-           "write_ptc_figure", "write_report", "write_residuals"]
+__all__ = ["exposure_label", "left_out_points", "write_bode", "write_dm_run", "write_figures", "write_models",
+           "write_outputs", "write_ptc_figure", "write_report", "write_residuals"]
 
 
 def write_outputs(cfg, res, out: Path, elapsed: float, stamp: str, as_json: bool = False, source: str = "run"):
