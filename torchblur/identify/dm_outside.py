@@ -36,8 +36,8 @@ from torchblur.hardware.outside import CSV_NAME, YAML_NAME, OutsideCamera, Outsi
 from torchblur.hardware.recording import Experiment, ReplayRig
 from torchblur.identify.calibration import Calibration, spots_from_still, still_rate
 from torchblur.identify.dm_ladder import TEST_KEY, hold_images, pattern_ladder
-from torchblur.identify.dm_plan import (DMPlan, DMResult, _calibrate, _fit_frequency, _fit_options, _spot_psf, check_dm_config,
-                                        collect_fits, fit_pool, match_spots)
+from torchblur.identify.dm_plan import (DMPlan, DMResult, _calibrate, _fit_frequency, _fit_options, check_dm_config, collect_fits,
+                                        fit_pool, sensor_config, sensor_spots)
 from torchblur.identify.dm_record import PLAN_KEY, SWEEP_KIND, plan_support
 from torchblur.identify.outside import check_no_rig, check_overrides, outside_record, recording_levels
 from torchblur.identify.pipeline import identify
@@ -312,23 +312,20 @@ def recording_calibration(rec: DMRecording, cfg, wfs: ShackHartmann):
     ``gain_e_per_adu``, ``camera.gain_from``), the read noise, the spots cropped on the sensor's
     declared layout and each spot's PSF (``fit.psf``), both by the live calibration's own
     :func:`~torchblur.identify.calibration.spots_from_still` and
-    :func:`~torchblur.identify.dm_plan._spot_psf`, the latency given by ``recording.yaml``."""
+    :func:`~torchblur.identify.dm_plan.sensor_spots`, the latency given by ``recording.yaml``."""
     c = rec.camera
     dark, sat, ptc, gain, gain_source, read_noise_e = recording_levels(rec, cfg)
     _refuse_saturated(rec, sat, dark)
     level, sat_adu = sat.offset_adu, float(sat.saturation_adu)
     LOGGER.info(f"dark: level {float(level):.2f} ADU, read noise {read_noise_e:.3g} e-; saturation: {rec.saturation_source}")
-    n = int(cfg.wfs.n_across)
-    spots_cfg = replace(cfg, spots=replace(cfg.spots, rows=n, cols=n, pitch_px=float(cfg.wfs.pitch_px), sigma_px=float(cfg.wfs.sigma_px)))
     still_e = subtract_dark(torch.as_tensor(rec.still, dtype=_F64), dark) * gain
-    spots, kernels = spots_from_still(spots_cfg, still_e, float(rec.still_exposure_s), read_noise_e, spot_layout=wfs.rest_px)
+    spots, kernels = spots_from_still(sensor_config(cfg), still_e, float(rec.still_exposure_s), read_noise_e, spot_layout=wfs.rest_px)
     cal = Calibration(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=float(sat_adu - level), psf=spots.psf,
                       peak_rate=float(spots.psf.amplitude.max()), latency_s=float(c.latency_s), latency_std_s=float(c.latency_std_s),
                       gain=gain, spots=spots, latency_source="given", ptc=ptc, gain_source=gain_source, spot_kernels=kernels)
     cal.still_rate, cal.still_rate_var = still_rate(still_e, float(rec.still_exposure_s), read_noise_e)
     LOGGER.info(f"latency: {c.latency_s * 1e6:.3f} +- {c.latency_std_s * 1e6:.3f} us given ({YAML_NAME})")
-    order = torch.as_tensor(match_spots(spots.psf.center.numpy(), wfs.rest_px, wfs.pitch_px))
-    return cal, _spot_psf(cal, order), spots.offset[order], spots.size
+    return (cal, *sensor_spots(cal, wfs)[1:])
 
 
 def _refuse_saturated(rec: DMRecording, sat: SaturationCurve, dark) -> None:
