@@ -1,11 +1,8 @@
-"""The deformable mirror's plan of the identification (:class:`DMPlan`): ``torchblur.identify(cfg,
-rig)`` and ``torchblur identify`` with a config whose ``dm.n_across`` > 0 run the identification's
-stages (:mod:`torchblur.identify.pipeline`) with this plan: 1. the calibration on the sensor's spot
-grid (:func:`torchblur.identify.calibration.calibrate`, the spots matched to the valid
-subapertures: :func:`match_spots`); 2. the plan (:func:`torchblur.dm.plans.choose_plan`); 3. the
-sweep (one amplitude per frequency, :func:`next_amplitude`; each completed frequency fitted on the
-run's executor while the next is acquired); 4. ``Y [P, 2M, F]``, ``D [2M, N, F]``
-(:mod:`torchblur.dm.demux`) and the actuators (:mod:`torchblur.dm.actuator_fit`). Each step:
+"""The deformable mirror's plan of the identification (:class:`DMPlan`, ``dm.n_across`` > 0): the
+calibration on the sensor's spot grid (:func:`sensor_spots`), the plan
+(:func:`torchblur.dm.plans.choose_plan`), the sweep (one amplitude per frequency,
+:func:`next_amplitude`; each frequency's spot fits on the run's executor while the next is
+acquired) and :func:`estimate_mirror` (``Y``, ``D``, the actuators, the registration). Each step:
 docs/deformable_mirrors.md, "The run".
 """
 from __future__ import annotations
