@@ -42,7 +42,6 @@ from torchblur.identify.dm_record import PLAN_KEY, SWEEP_KIND, plan_support
 from torchblur.identify.outside import check_no_rig, check_overrides, outside_record, recording_levels
 from torchblur.identify.pipeline import identify
 from torchblur.identify.record import LOGGER
-from torchblur.image.preprocess import subtract_dark
 from torchblur.image.saturation import SaturationCurve
 from torchblur.render.window import ExposureWindow
 
@@ -314,15 +313,12 @@ def recording_calibration(rec: DMRecording, cfg, wfs: ShackHartmann):
     :func:`~torchblur.identify.calibration.spots_from_still` and
     :func:`~torchblur.identify.dm_plan.sensor_spots`, the latency given by ``recording.yaml``."""
     c = rec.camera
-    dark, sat, ptc, gain, gain_source, read_noise_e = recording_levels(rec, cfg)
-    _refuse_saturated(rec, sat, dark)
-    level, sat_adu = sat.offset_adu, float(sat.saturation_adu)
-    LOGGER.info(f"dark: level {float(level):.2f} ADU, read noise {read_noise_e:.3g} e-; saturation: {rec.saturation_source}")
-    still_e = subtract_dark(torch.as_tensor(rec.still, dtype=_F64), dark) * gain
+    levels, still_e = recording_levels(rec, cfg)
+    sat, read_noise_e = levels["saturation"], levels["read_noise_e"]
+    _refuse_saturated(rec, sat, levels["dark"])
+    LOGGER.info(f"dark: level {float(sat.offset_adu):.2f} ADU, read noise {read_noise_e:.3g} e-; saturation: {rec.saturation_source}")
     spots, kernels = spots_from_still(sensor_config(cfg), still_e, float(rec.still_exposure_s), read_noise_e, spot_layout=wfs.rest_px)
-    cal = Calibration(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=float(sat_adu - level), psf=spots.psf,
-                      peak_rate=float(spots.psf.amplitude.max()), latency_s=float(c.latency_s), latency_std_s=float(c.latency_std_s),
-                      gain=gain, spots=spots, latency_source="given", ptc=ptc, gain_source=gain_source, spot_kernels=kernels)
+    cal = Calibration(psf=spots.psf, peak_rate=float(spots.psf.amplitude.max()), spots=spots, spot_kernels=kernels, **levels)
     cal.still_rate, cal.still_rate_var = still_rate(still_e, float(rec.still_exposure_s), read_noise_e)
     LOGGER.info(f"latency: {c.latency_s * 1e6:.3f} +- {c.latency_std_s * 1e6:.3f} us given ({YAML_NAME})")
     return (cal, *sensor_spots(cal, wfs)[1:])

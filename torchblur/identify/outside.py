@@ -21,10 +21,10 @@ from functools import partial
 import torch
 
 from torchblur.design.windows import check_design
-from torchblur.errors import ConfigError, InputTypeError, as_unit_direction
+from torchblur.errors import ConfigError, InputTypeError
 from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.outside import YAML_NAME, OutsideRecording
-from torchblur.identify.calibration import Calibration, _still_psf, measure_gain
+from torchblur.identify.calibration import Calibration, _still_psf, configured_direction, measure_gain
 from torchblur.config import IdentifyConfig, load_config
 from torchblur.identify.fitting import ChunkFitter
 from torchblur.identify.pipeline import identify
@@ -101,10 +101,13 @@ def fitted_direction(fit):
     return (float(u[0]), float(u[1])), float((1 / s_j ** 2).sum() ** -0.5), float(lam[0].clamp_min(0) / lam[1])
 
 
-def recording_levels(rec, cfg: IdentifyConfig):
-    """``(dark, sat, ptc, gain, gain_source, read_noise_e)`` of an outside recording ``rec`` (one-spot or DM): the dark frame,
-    ``saturation_adu`` over its level, the gain (:func:`~torchblur.identify.calibration.measure_gain` of the still frames
-    against ``gain_e_per_adu``, ``camera.gain_from``) and the read noise (``read_noise_e``, else the dark frames')."""
+def recording_levels(rec, cfg: IdentifyConfig) -> tuple[dict, torch.Tensor]:
+    """``(levels, still_e)`` of an outside recording ``rec`` (one-spot or DM): ``levels`` the
+    :class:`~torchblur.identify.calibration.Calibration` fields it gives (the dark frame,
+    ``saturation_adu`` over its level, the gain: :func:`~torchblur.identify.calibration.measure_gain`
+    of the still frames against ``gain_e_per_adu``, ``camera.gain_from``; the read noise:
+    ``read_noise_e``, else the dark frames'; the latency ``recording.yaml`` gives), ``still_e``
+    ``[N, H, W]`` the still frames dark subtracted, in electrons."""
     c = rec.camera
     dark_raw = torch.as_tensor(rec.dark, dtype=_F64)
     dark = dark_frame(dark_raw)
@@ -115,7 +118,10 @@ def recording_levels(rec, cfg: IdentifyConfig):
     ptc, gain, gain_source = measure_gain([torch.as_tensor(rec.still, dtype=_F64)], dark_raw, dark, sat_adu, float(c.gain_e_per_adu),
                                           cfg.camera.gain_from, name=f"{YAML_NAME} gain_e_per_adu")
     read_noise_e = float(c.read_noise_e) if c.read_noise_e is not None else float(dark.read_noise) * gain
-    return dark, sat, ptc, gain, gain_source, read_noise_e
+    levels = dict(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=float(sat.saturation_adu - sat.offset_adu),
+                  gain=gain, ptc=ptc, gain_source=gain_source, latency_s=float(c.latency_s), latency_std_s=float(c.latency_std_s),
+                  latency_source="given")
+    return levels, subtract_dark(torch.as_tensor(rec.still, dtype=_F64), dark) * gain
 
 
 def outside_calibration(rec: OutsideRecording, cfg: IdentifyConfig) -> Calibration:
@@ -124,9 +130,9 @@ def outside_calibration(rec: OutsideRecording, cfg: IdentifyConfig) -> Calibrati
     (``fit.psf``, as ``identify``), the timing, and the motion's image direction
     (``fit.axis`` given; with ``measure`` it is left None for :class:`OutsidePlan`'s sweep)."""
     c = rec.camera
-    dark, sat, ptc, gain, gain_source, read_noise_e = recording_levels(rec, cfg)
-    level, sat_adu = sat.offset_adu, sat.saturation_adu
-    LOGGER.info(f"dark: level {float(level):.2f} ADU, read noise {read_noise_e:.2f} e- "
+    levels, still_e = recording_levels(rec, cfg)
+    dark, sat, read_noise_e = levels["dark"], levels["saturation"], levels["read_noise_e"]
+    LOGGER.info(f"dark: level {float(sat.offset_adu):.2f} ADU, read noise {read_noise_e:.2f} e- "
                 f"({'recording.yaml' if c.read_noise_e is not None else f'from {dark.n_frames} dark frames'}), "
                 f"{int(dark.hot_pixels.sum())} hot pixels")
     n_still = len(rec.still)
@@ -136,25 +142,18 @@ def outside_calibration(rec: OutsideRecording, cfg: IdentifyConfig) -> Calibrati
                     f"and is in no std, so the stds may understate the errors (docs/outside_recordings.md); take at least "
                     f"{DARKS_PER_STILL * n_still} dark frames")
     LOGGER.info(f"saturation: {rec.saturation_source}")
-    still_raw = torch.as_tensor(rec.still, dtype=_F64)
-    clipped = int((~sat.mask(still_raw) & ~dark.hot_pixels).sum())
+    clipped = int((~sat.mask(torch.as_tensor(rec.still, dtype=_F64)) & ~dark.hot_pixels).sum())
     if clipped:
         raise RecordingError(f"{rec.path}: the still frames have {clipped} saturated pixel(s) (at or within 1% below saturation_adu "
-                             f"{float(sat_adu):.6g}, hot pixels aside); the PSF needs unsaturated still frames: take them with a shorter "
-                             f"exposure_s or less light")
-    still_e = subtract_dark(still_raw, dark) * gain
+                             f"{float(sat.saturation_adu):.6g}, hot pixels aside); the PSF needs unsaturated still frames: take them with "
+                             f"a shorter exposure_s or less light")
     still_psf = _still_psf(cfg, still_e, float(rec.still_exposure_s), read_noise_e)
     psf = still_psf.gaussian.psf
-    cal = Calibration(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=float(sat_adu - level), psf=psf,
-                      peak_rate=float(psf.amplitude), latency_s=float(c.latency_s), latency_std_s=float(c.latency_std_s), gain=gain,
-                      still_psf=still_psf, latency_source="given", ptc=ptc, gain_source=gain_source)
+    cal = Calibration(psf=psf, peak_rate=float(psf.amplitude), still_psf=still_psf, **levels)
     LOGGER.info(f"timing: latency {c.latency_s * 1e6:.3f} +- {c.latency_std_s * 1e6:.3f} us, jitter {c.jitter_s * 1e6:.3f} us "
                 f"(recording.yaml)")
-    mode = cfg.fit.axis
-    if mode != "measure":  # else the sweep stage measures it from the recorded points (fitted_direction)
-        d = as_unit_direction({"x": (1.0, 0.0), "y": (0.0, 1.0)}[mode] if isinstance(mode, str) else mode, "fit.axis",
-                              like=torch.zeros((), dtype=_F64))
-        cal.direction = (float(d[0]), float(d[1]))
+    if cfg.fit.axis != "measure":  # else the sweep stage measures it from the recorded points (fitted_direction)
+        cal.direction = configured_direction(cfg.fit.axis)
     return cal
 
 
