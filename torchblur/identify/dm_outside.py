@@ -36,8 +36,8 @@ from torchblur.hardware.outside import CSV_NAME, YAML_NAME, OutsideCamera, Outsi
 from torchblur.hardware.recording import Experiment, ReplayRig
 from torchblur.identify.calibration import Calibration, spots_from_still, still_rate
 from torchblur.identify.dm_ladder import TEST_KEY, hold_images, pattern_ladder
-from torchblur.identify.dm_plan import (DMPlan, DMResult, _calibrate, _fit_frequency, _fit_options, check_dm_config, collect_fits,
-                                        fit_pool, sensor_config, sensor_spots)
+from torchblur.identify.dm_plan import (DMPlan, DMResult, _calibrate, _fit_frequency, _fit_options, check_dm_config,
+                                        collect_fits, fit_pool, sensor_config, sensor_spots)
 from torchblur.identify.dm_record import PLAN_KEY, SWEEP_KIND, plan_support
 from torchblur.identify.outside import check_no_rig, check_overrides, outside_record, recording_levels
 from torchblur.identify.pipeline import identify
@@ -316,9 +316,12 @@ def recording_calibration(rec: DMRecording, cfg, wfs: ShackHartmann):
     levels, still_e = recording_levels(rec, cfg)
     sat, read_noise_e = levels["saturation"], levels["read_noise_e"]
     _refuse_saturated(rec, sat, levels["dark"])
-    LOGGER.info(f"dark: level {float(sat.offset_adu):.2f} ADU, read noise {read_noise_e:.3g} e-; saturation: {rec.saturation_source}")
-    spots, kernels = spots_from_still(sensor_config(cfg), still_e, float(rec.still_exposure_s), read_noise_e, spot_layout=wfs.rest_px)
-    cal = Calibration(psf=spots.psf, peak_rate=float(spots.psf.amplitude.max()), spots=spots, spot_kernels=kernels, **levels)
+    LOGGER.info(f"dark: level {float(sat.offset_adu):.2f} ADU, read noise {read_noise_e:.3g} e-; "
+                f"saturation: {rec.saturation_source}")
+    spots, kernels = spots_from_still(sensor_config(cfg), still_e, float(rec.still_exposure_s), read_noise_e,
+                                      spot_layout=wfs.rest_px)
+    cal = Calibration(psf=spots.psf, peak_rate=float(spots.psf.amplitude.max()), spots=spots, spot_kernels=kernels,
+                      **levels)
     cal.still_rate, cal.still_rate_var = still_rate(still_e, float(rec.still_exposure_s), read_noise_e)
     LOGGER.info(f"latency: {c.latency_s * 1e6:.3f} +- {c.latency_std_s * 1e6:.3f} us given ({YAML_NAME})")
     return (cal, *sensor_spots(cal, wfs)[1:])

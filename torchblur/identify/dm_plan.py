@@ -158,7 +158,8 @@ def next_amplitude(*, target_px: float, motion_per_unit: float, input_limit: flo
 def sensor_config(cfg):
     """``cfg`` with its ``spots`` section on the sensor's grid (``wfs``): the spots the calibration crops."""
     n = int(cfg.wfs.n_across)
-    return replace(cfg, spots=replace(cfg.spots, rows=n, cols=n, pitch_px=float(cfg.wfs.pitch_px), sigma_px=float(cfg.wfs.sigma_px)))
+    spots = replace(cfg.spots, rows=n, cols=n, pitch_px=float(cfg.wfs.pitch_px), sigma_px=float(cfg.wfs.sigma_px))
+    return replace(cfg, spots=spots)
 
 
 def _calibrate(cfg, rig, wfs, exp=None):

@@ -63,7 +63,8 @@ def write_dm_run(cfg, res: DMResult, out: Path, elapsed: float, stamp: str, as_j
     """A DM run's ``OUT/dm/`` (:func:`~torchblur.identify.dm_outputs.write_dm_outputs`, ``registration.json``) and
     report.txt (:func:`~torchblur.identify.report.dm_lines`, :func:`~torchblur.identify.report.dm_summary`) with
     the verdict of every DM guard (:func:`~torchblur.identify.verdict.final_verdict`) last; returns it."""
-    meta = {"plan": res.plan.kind, "n_patterns": res.plan.n_patterns, "n_repeats": res.n_repeats, "n_frames": res.n_frames}
+    meta = {"plan": res.plan.kind, "n_patterns": res.plan.n_patterns, "n_repeats": res.n_repeats,
+            "n_frames": res.n_frames}
     reg = res.registration
     reference = {"dc_gain_reference": DC_GAIN_REFERENCE} if reg and reg.ok else {}
     unverified = tuple(((reg.edge_test or {}).get("gains_unverified") or ()) if reg is not None else ())
@@ -73,8 +74,8 @@ def write_dm_run(cfg, res: DMResult, out: Path, elapsed: float, stamp: str, as_j
         if reg is not None:
             write_registration_json(out / "dm" / "registration.json", reg, res.support_check)
     v = final_verdict(res, float(cfg.fit.poor_fit_chi2))
-    write_report(out, v, stamp=stamp, log=[*res.log, *written], body=dm_lines(res, elapsed), summary=dm_summary(res, v, elapsed),
-                 as_json=as_json)
+    write_report(out, v, stamp=stamp, log=[*res.log, *written], body=dm_lines(res, elapsed),
+                 summary=dm_summary(res, v, elapsed), as_json=as_json)
     return v
 
 

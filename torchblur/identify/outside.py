@@ -118,9 +118,9 @@ def recording_levels(rec, cfg: IdentifyConfig) -> tuple[dict, torch.Tensor]:
     ptc, gain, gain_source = measure_gain([torch.as_tensor(rec.still, dtype=_F64)], dark_raw, dark, sat_adu, float(c.gain_e_per_adu),
                                           cfg.camera.gain_from, name=f"{YAML_NAME} gain_e_per_adu")
     read_noise_e = float(c.read_noise_e) if c.read_noise_e is not None else float(dark.read_noise) * gain
-    levels = dict(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=float(sat.saturation_adu - sat.offset_adu),
-                  gain=gain, ptc=ptc, gain_source=gain_source, latency_s=float(c.latency_s), latency_std_s=float(c.latency_std_s),
-                  latency_source="given")
+    full_adu = float(sat.saturation_adu - sat.offset_adu)
+    levels = dict(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=full_adu, gain=gain, ptc=ptc,
+                  gain_source=gain_source, latency_s=float(c.latency_s), latency_std_s=float(c.latency_std_s), latency_source="given")
     return levels, subtract_dark(torch.as_tensor(rec.still, dtype=_F64), dark) * gain
 
 
@@ -144,9 +144,9 @@ def outside_calibration(rec: OutsideRecording, cfg: IdentifyConfig) -> Calibrati
     LOGGER.info(f"saturation: {rec.saturation_source}")
     clipped = int((~sat.mask(torch.as_tensor(rec.still, dtype=_F64)) & ~dark.hot_pixels).sum())
     if clipped:
-        raise RecordingError(f"{rec.path}: the still frames have {clipped} saturated pixel(s) (at or within 1% below saturation_adu "
-                             f"{float(sat.saturation_adu):.6g}, hot pixels aside); the PSF needs unsaturated still frames: take them with "
-                             f"a shorter exposure_s or less light")
+        raise RecordingError(f"{rec.path}: the still frames have {clipped} saturated pixel(s) (at or within 1% below "
+                             f"saturation_adu {float(sat.saturation_adu):.6g}, hot pixels aside); the PSF needs "
+                             f"unsaturated still frames: take them with a shorter exposure_s or less light")
     still_psf = _still_psf(cfg, still_e, float(rec.still_exposure_s), read_noise_e)
     psf = still_psf.gaussian.psf
     cal = Calibration(psf=psf, peak_rate=float(psf.amplitude), still_psf=still_psf, **levels)
