@@ -120,7 +120,8 @@ def recording_levels(rec, cfg: IdentifyConfig) -> tuple[dict, torch.Tensor]:
     read_noise_e = float(c.read_noise_e) if c.read_noise_e is not None else float(dark.read_noise) * gain
     full_adu = float(sat.saturation_adu - sat.offset_adu)
     levels = dict(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=full_adu, gain=gain, ptc=ptc,
-                  gain_source=gain_source, latency_s=float(c.latency_s), latency_std_s=float(c.latency_std_s), latency_source="given")
+                  gain_source=gain_source, latency_s=float(c.latency_s), latency_std_s=float(c.latency_std_s),
+                  latency_source="given")
     return levels, subtract_dark(torch.as_tensor(rec.still, dtype=_F64), dark) * gain
 
 
