@@ -12,7 +12,8 @@ benchmarks compare with :meth:`HcipyDMRig.truth`.
 
     gen = hcipy_sh.HcipySH()
     rig = hcipy_sh_rig.hcipy_dm_rig(cfg, gen, hcipy_sh.draw_dynamics(gen.n_actuators, seed=5))
-    torchblur.identify.dm_report.run_cli(cfg, out, rig=rig)
+    res = torchblur.identify(cfg, rig, record=out / "experiment")
+    torchblur.identify.outputs.write_outputs(cfg, res, out, elapsed_s, stamp)
 """
 from __future__ import annotations
 

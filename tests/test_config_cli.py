@@ -107,8 +107,9 @@ def test_every_declared_check_refuses_a_wrong_value_naming_its_key():
     assert len(declared) > 80 and {"camera.frame_rate_hz", "fit.loss", "report.figures", "seed", "dm.registration.shift_x"} <= {k for k, _ in declared}
     for key, rule in declared:
         with pytest.raises(ConfigError) as info:
-            validate(_with(base, key, "abc"))
-        want = "one of" if "choice" in rule else "true or false" if rule.get("flag") else "a number"
+            validate(_with(base, key, "" if rule.get("text") else "abc"))  # a string is a text key's type: an empty one is not
+        want = ("one of" if "choice" in rule else "true or false" if rule.get("flag") else
+                rule.get("what", "a non-empty string") if rule.get("text") else rule["what"] if "items" in rule else "a number")
         assert str(info.value).startswith(f"{key}: expected {want}"), str(info.value)
         if rule.get("integer"):
             with pytest.raises(ConfigError, match=rf"^{key}: expected an integer, got 2\.5$"):

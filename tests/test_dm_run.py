@@ -124,10 +124,10 @@ def test_small_run_against_the_truth(small_run):
 
 
 def test_cli_routes_a_dm_config(tmp_path, capsys, monkeypatch, small_run):
-    from torchblur.identify import dm_report
+    from torchblur.cli import commands
     from torchblur.cli import main
 
-    monkeypatch.setattr(dm_report, "identify", lambda cfg, rig=None, **kw: small_run)
+    monkeypatch.setattr(commands, "identify", lambda cfg, rig=None, **kw: small_run)
     rc = main(["identify", "--out", str(tmp_path / "run"), "--json", *SMALL, "report.figures=false"])  # no figure checked here
     assert rc == 0
     out = capsys.readouterr()

@@ -235,10 +235,10 @@ def small_result():
 
 
 def _run(tmp_path, monkeypatch, res, small, *args):
-    from torchblur.identify import dm_report
+    from torchblur.cli import commands
     from torchblur.cli import main
 
-    monkeypatch.setattr(dm_report, "identify", lambda cfg, rig=None, **kw: res)
+    monkeypatch.setattr(commands, "identify", lambda cfg, rig=None, **kw: res)
     out = tmp_path / "run"
     return main(["identify", "--out", str(out), "--quiet", *args, *small, "report.figures=false"]), out  # no figure checked here
 

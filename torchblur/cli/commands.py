@@ -17,7 +17,6 @@ import torchblur as tb
 from torchblur.cli import _NOTHING_RECORDED, EXIT_INTERRUPTED, EXIT_STOPPED
 from torchblur.dm.mirror import TABLE_MAX_BYTES
 from torchblur.identify.dm_outside import DMOutsidePlan, dm_recording_config, is_dm_recording, read_dm_recording
-from torchblur.identify.dm_report import run_cli as run_dm
 from torchblur.errors import ConfigError
 from torchblur.files import read_bounded, resolve_inside
 from torchblur.hardware.errors import HardwareError, RecordingError
@@ -26,7 +25,7 @@ from torchblur.hardware.recording import Experiment, ReplayRig, atomic_write_byt
 from torchblur.hardware.run_folder import RunLock, check_out_folder
 from torchblur.config import config_to_yaml, load_config, load_dataclass
 from torchblur.identify.outputs import write_outputs
-from torchblur.identify.outside import identify_outside, outside_config
+from torchblur.identify.outside import OutsidePlan, outside_config
 from torchblur.identify.read_outputs import SOURCE_SCHEMA
 from torchblur.identify.rigs import check_refit_config
 from torchblur.identify.run import check_resume_config, identify
@@ -105,21 +104,30 @@ def _resume(args) -> int:
         exp.close()
 
 
-def _run_identify(cfg, out: Path, record, quiet: bool, root: Path | None = None, as_json: bool = False) -> int:
+def _run_identify(cfg, out: Path, record, quiet: bool, root: Path | None = None, as_json: bool = False, *, rig=None,
+                  base_dir: str | None = None, plan=None, stamp: str | None = None, source: str = "run") -> int:
+    """Run ``cfg`` (any plan; ``rig``, ``base_dir``, ``plan``: :func:`~torchblur.identify.pipeline.identify`'s)
+    recorded in ``record`` (None: nowhere), write its outputs into ``out`` headed by ``stamp``; stopped by the
+    rig or interrupted, say where the recording is (:func:`_stopped`). The exit status."""
     root = out if root is None else root
-    stamp = f"torchblur {tb.__version__}, seed {cfg.seed}"
+    stamp = f"torchblur {tb.__version__}, seed {cfg.seed}" if stamp is None else stamp
+    out.mkdir(parents=True, exist_ok=True)
     (out / "config.yaml").write_text(f"# {stamp}\n" + config_to_yaml(cfg))
     torch.manual_seed(cfg.seed)
-    exp_dir = record.path if hasattr(record, "path") else Path(record)
+    exp_dir = record.path if hasattr(record, "path") else Path(record or out / "experiment")
     t0 = time.perf_counter()
     try:
-        res = identify(cfg, progress=not quiet, record=record)
+        res = identify(cfg, rig, progress=not quiet, record=record, base_dir=base_dir, plan=plan)
     except (KeyboardInterrupt, HardwareError) as exc:
+        if source != "run":  # a fit of a recording: nothing to resume (the CLI's own line)
+            raise
         return _stopped(exc, exp_dir, root, cfg)
     elapsed = time.perf_counter() - t0
     try:
-        return write_outputs(cfg, res, out, elapsed, stamp, as_json=as_json).exit_code
+        return write_outputs(cfg, res, out, elapsed, stamp, as_json=as_json, source=source).exit_code
     except KeyboardInterrupt as exc:  # the recording is complete; a resume fits it again and writes every output
+        if source != "run":
+            raise
         return _stopped(exc, exp_dir, root, cfg)
 
 
@@ -157,15 +165,15 @@ def _stopped(exc, exp_dir: Path, root: Path, cfg) -> int:
     return EXIT_STOPPED
 
 
-def _run_dm(cfg, out: Path, args, *, record=None, root: Path | None = None, rig=None) -> int:
-    """A DM run (:func:`torchblur.identify.dm_report.run_cli`): new (recorded in ``OUT/experiment``),
-    resumed (``record``, a writable Experiment) or re-fitted (``record`` read-only, ``rig`` its
-    ReplayRig); stopped by the rig or interrupted, as :func:`_run_identify`."""
+def _run_dm(cfg, out: Path, args, *, record=None, root: Path | None = None, rig=None, stamp: str | None = None,
+            source: str = "run") -> int:
+    """A DM run (:func:`_run_identify`): new (recorded in ``OUT/experiment``), resumed (``record``, a
+    writable Experiment) or re-fitted (``record`` read-only, ``rig`` its ReplayRig), its
+    ``dm.actuator_table`` copied into the recording (:func:`_recorded_table`)."""
     cfg, base_dir = _recorded_table(cfg, out if record is None else (out if root is None else root), new=record is None)
-    try:
-        return run_dm(cfg, out, quiet=args.quiet, as_json=args.json, record=record, rig=rig, base_dir=base_dir)
-    except (KeyboardInterrupt, HardwareError) as exc:
-        return _stopped(exc, out / "experiment" if record is None else record.path, out if root is None else root, cfg)
+    record = out / "experiment" if record is None else record
+    return _run_identify(cfg, out, record, args.quiet, root=root, as_json=args.json, rig=rig, base_dir=base_dir,
+                         stamp=stamp, source=source)
 
 
 TABLE_COPY = "experiment/actuator_table.csv"  # a DM run's own copy of its dm.actuator_table
@@ -221,18 +229,13 @@ def fit_command(args) -> int:
     recorded = load_dataclass(type(load_config()), str(exp.path / "config.yaml"), trusted=False)
     cfg = load_config(str(exp.path / "config.yaml"), args.overrides, trusted=False, force=True)  # the recording is made
     check_refit_config(recorded, cfg)  # fit.*, model.*, report.* (and a DM's dm_plan.support_threshold) may change
-    if recorded.dm.enabled:  # a DM recording: the DM plan re-fits it
-        out.mkdir(parents=True, exist_ok=True)
-        _write_refit_source(out, args, exp)
-        return _run_dm(cfg, out, args, record=exp, root=root, rig=ReplayRig(exp))
     out.mkdir(parents=True, exist_ok=True)
     stamp = f"torchblur {tb.__version__}, seed {cfg.seed}, re-fit of {exp.path}"
-    (out / "config.yaml").write_text(f"# {stamp}\n" + config_to_yaml(cfg))
-    t0 = time.perf_counter()
-    res = identify(cfg, rig=ReplayRig(exp), record=exp, progress=not args.quiet)
-    elapsed = time.perf_counter() - t0
     _write_refit_source(out, args, exp)
-    return write_outputs(cfg, res, out, elapsed, stamp, as_json=args.json, source="re-fit").exit_code
+    if recorded.dm.enabled:  # a DM recording: the DM plan re-fits it
+        return _run_dm(cfg, out, args, record=exp, root=root, rig=ReplayRig(exp), stamp=stamp, source="re-fit")
+    return _run_identify(cfg, out, exp, args.quiet, root=root, as_json=args.json, rig=ReplayRig(exp), stamp=stamp,
+                         source="re-fit")
 
 
 def _is_outside(path) -> bool:
@@ -259,26 +262,13 @@ def _fit_outside(args) -> int:
         print(f"torchblur fit: error: --out {out} is inside the recording {args.dir}; it is never written, choose another folder",
               file=sys.stderr)
         return 2
-    if is_dm_recording(src):  # a deformable mirror's: patterns.csv beside frames.csv
-        return _fit_dm_outside(args, src, out)
-    rec = read_outside_recording(src)  # RecordingError naming file, line and column
-    cfg = outside_config(rec, args.overrides)
+    dm = is_dm_recording(src)  # a deformable mirror's: patterns.csv beside frames.csv, fitted by the DM plan
+    rec = (read_dm_recording if dm else read_outside_recording)(src)  # RecordingError naming file, line and column
+    cfg = (dm_recording_config if dm else outside_config)(rec, args.overrides)
     out.mkdir(parents=True, exist_ok=True)
     seeded = any(str(o).partition("=")[0] == "seed" for o in args.overrides)  # the recording itself has no seed
     stamp = f"torchblur {tb.__version__}{f', seed {cfg.seed}' if seeded else ''}, fit of the outside recording {src}"
-    (out / "config.yaml").write_text(f"# {stamp}\n" + config_to_yaml(cfg))
-    t0 = time.perf_counter()
-    res = identify_outside(rec, cfg, progress=not args.quiet)
-    elapsed = time.perf_counter() - t0
-    _write_source(out, args, outside_recording=str(src), frames=rec.n_frames, points=len(rec.points))
-    return write_outputs(cfg, res, out, elapsed, stamp, as_json=args.json, source="outside").exit_code
-
-
-def _fit_dm_outside(args, src: Path, out: Path) -> int:
-    """``torchblur fit FOLDER`` of an outside DM recording (docs/outside_recordings.md, "Deformable-mirror
-    recordings"): read and check it, fit it with the DM run's own stages, write the DM run's outputs."""
-    rec = read_dm_recording(src)  # RecordingError naming file, line and column
-    cfg = dm_recording_config(rec, args.overrides)
-    out.mkdir(parents=True, exist_ok=True)
-    _write_source(out, args, outside_recording=str(src), frames=rec.n_frames, points=len(rec.freq_hz))
-    return run_dm(cfg, out, quiet=args.quiet, as_json=args.json, plan=DMOutsidePlan(rec))
+    points = len(rec.freq_hz if dm else rec.points)
+    _write_source(out, args, outside_recording=str(src), frames=rec.n_frames, points=points)
+    plan = (DMOutsidePlan if dm else OutsidePlan)(rec)
+    return _run_identify(cfg, out, None, args.quiet, as_json=args.json, plan=plan, stamp=stamp, source="outside")

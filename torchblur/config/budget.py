@@ -232,14 +232,9 @@ STILL_BYTES = 1 << 28  #: the still frames a DM run holds at once (float64), at 
 def dm_still_frames(sweep_frames: int, frame_shape) -> int:
     """The still frames a DM calibration takes: a quarter of the sweep's frames, at least
     :data:`DM_STILL_FRAMES`, and no more than :data:`STILL_BYTES` of float64 frames of
-    ``frame_shape`` ``(H, W)`` hold (but never fewer than the least).
-
-    Why: every fit of a spot holds its PSF fixed, so the PSF's error is common to every pattern
-    and frequency of that spot and no fit's std counts it; an actuator's DC gain, which averages
-    its spots over the whole sweep, then carries it at full size. Measured on
-    configs/identify_dm.yaml (4096 sweep frames): rms(DC gain error / std) over the 51 live
-    actuators 1.77 with 128 still frames, 1.24 with 1024 (a quarter), 1.30 with 2048, and 1.22
-    with 2048 dark frames as well (the dark frames are not the limit: 256 kept)."""
+    ``frame_shape`` ``(H, W)`` hold (but never fewer than the least). Why (each spot's PSF error is
+    common to all its fits) and the measured effect on the DC gains' stds: docs/deformable_mirrors.md,
+    "The DC gain's std"."""
     H, W = (int(v) for v in frame_shape)
     cap = max(DM_STILL_FRAMES, STILL_BYTES // (8 * H * W))
     return int(min(cap, max(DM_STILL_FRAMES, -(-int(sweep_frames) // 4))))

@@ -44,6 +44,15 @@ def check_declared(section, prefix: str) -> None:
         elif rule.get("flag"):
             if not isinstance(value, bool):
                 raise ConfigError(f"{key}: expected true or false, got {excerpt(value)}")
+        elif rule.get("text"):
+            if not isinstance(value, str) or not value.strip():
+                raise ConfigError(f"{key}: expected {rule.get('what', 'a non-empty string')}, got {excerpt(value)}")
+        elif "items" in rule:
+            fewest, most = rule.get("length", (0, None))
+            if not isinstance(value, (list, tuple)) or len(value) < fewest or (most is not None and len(value) > most):
+                raise ConfigError(f"{key}: expected {rule['what']}, got {_short(value)}")
+            for i, v in enumerate(value):
+                check_number(v, f"{key}[{i}]", **rule["items"])
         else:
             check_number(value, key, **{k: v for k, v in rule.items() if k != "optional"})
 
@@ -136,13 +145,6 @@ def validate_spots(sp: SpotsConfig, camera: CameraConfig | None = None) -> None:
     if not sp.enabled:
         return
     check_declared(sp, "spots")
-    if sp.center_px is not None:
-        if not isinstance(sp.center_px, (list, tuple)) or len(sp.center_px) != 2:
-            raise ConfigError(f"spots.center_px: expected null or [x, y] (px), got {excerpt(sp.center_px)}")
-        for i, v in enumerate(sp.center_px):
-            check_number(v, f"spots.center_px[{i}]")
-    if not isinstance(sp.missing, (list, tuple)):
-        raise ConfigError(f"spots.missing: expected a list of grid indices, got {excerpt(sp.missing)}")
     n = int(sp.rows) * int(sp.cols)
     for i, m in enumerate(sp.missing):
         check_number(m, f"spots.missing[{i}]", integer=True, low=0, high=n - 1)
@@ -163,14 +165,6 @@ def validate_dm_model(d: DMConfig, w: WFSConfig) -> None:
     if not d.enabled:
         return
     check_declared(d, "dm")
-    for k in ("dead", "weak"):
-        v = getattr(d, k)
-        if not isinstance(v, (list, tuple)):
-            raise ConfigError(f"dm.{k}: expected a list of actuator indices, got {excerpt(v)}")
-        for i, j in enumerate(v):
-            check_number(j, f"dm.{k}[{i}]", integer=True, low=0)
-    if d.actuator_table is not None and (not isinstance(d.actuator_table, str) or not d.actuator_table.strip()):
-        raise ConfigError(f"dm.actuator_table: expected a path to a CSV file or null, got {excerpt(d.actuator_table)}")
     check_declared(d.registration, "dm.registration")
     check_declared(w, "wfs")
 
@@ -206,10 +200,6 @@ def validate_camera(c: CameraConfig) -> None:
 def validate_rig(r: RigConfig) -> None:
     """Check the ``rig`` section; raise :class:`ConfigError` naming the key."""
     check_declared(r, "rig")
-    for k in ("port", "frames"):
-        v = getattr(r, k)
-        if v is not None and (not isinstance(v, str) or not v.strip()):
-            raise ConfigError(f"rig.{k}: expected a non-empty string, got {excerpt(v)}")
     if r.kind == "serial":
         if r.port is None:
             raise ConfigError("rig.port: required when rig.kind=serial (a device path such as /dev/ttyACM0 or a pyserial "

@@ -35,7 +35,8 @@ def key(default=None, *, factory=None, **check):
     (:func:`torchblur.config.checks.check_declared` applies it): a number with the bounds of
     :func:`~torchblur.errors.check_real_scalar` (``positive``, ``nonnegative``, ``integer``,
     ``low``, ``high``; none: any finite number), ``choice`` (one of), ``flag`` (true or false),
-    and ``optional`` (null allowed)."""
+    ``text`` (a non-empty string), ``items`` (a list of numbers, each with those bounds; ``length``
+    ``(fewest, most)``), and ``optional`` (null allowed); ``what``: the message's expected words."""
     if factory is not None:
         return field(default_factory=factory, metadata={"check": check})
     return field(default=default, metadata={"check": check})
@@ -91,13 +92,15 @@ class SpotsConfig:
     rows: int = 0
     cols: int = key(0, integer=True, low=1)
     pitch_px: float = key(32.0, positive=True)
-    center_px: Optional[list] = None  # grid centre (x, y) px; null: the frame centre
+    # grid centre (x, y) px; null: the frame centre
+    center_px: Optional[list] = key(None, optional=True, items={}, length=(2, 2), what="null or [x, y] (px)")
     sigma_px: Optional[float] = key(None, optional=True, low=MIN_PSF_SIGMA_PX)  # PSF std at the grid centre; null: camera.psf_sigma_px
     sigma_variation: float = key(0.0, nonnegative=True)
     elongation: float = key(0.0, nonnegative=True)
     gain_variation: float = key(0.0, low=-0.99, high=0.99)
     rotation_rad: float = key(0.0)
-    missing: list = field(default_factory=list)  # row-major indices of absent spots (simulation)
+    # row-major indices of absent spots (simulation)
+    missing: list = key(factory=list, items={"integer": True, "low": 0}, what="a list of grid indices")
     crop_px: Optional[int] = key(None, optional=True, integer=True, low=8)  # side of each spot's crop; null: floor(pitch_px)
 
     @property
@@ -235,8 +238,10 @@ class ReportConfig:
 @dataclass(frozen=True)
 class RigConfig:
     kind: str = key("simulated", choice=RIG_KINDS)  # "simulated" (built-in) or "serial" (a controller on rig.port, a camera on rig.frames)
-    port: Optional[str] = None  # serial: device path or pyserial URL (socket://HOST:PORT, spy://PATH?file=LOG)
-    frames: Optional[str] = None  # serial: tcp://HOST:PORT (emulator) or package.module:ClassName (SDKCamera)
+    # serial: device path or pyserial URL (socket://HOST:PORT, spy://PATH?file=LOG)
+    port: Optional[str] = key(None, optional=True, text=True)
+    # serial: tcp://HOST:PORT (emulator) or package.module:ClassName (SDKCamera)
+    frames: Optional[str] = key(None, optional=True, text=True)
     timeout_s: float = key(2.0, positive=True)  # serial: reply timeout
     retries: int = key(2, integer=True, low=0, high=100)  # serial: how many times a failed point is redone
 
@@ -275,10 +280,10 @@ class DMConfig:
     damping_spread: float = key(0.0, nonnegative=True, high=0.33)
     gain_spread: float = key(0.0, nonnegative=True, high=0.33)
     delay_spread_s: float = key(0.0, nonnegative=True)
-    dead: list = field(default_factory=list)
-    weak: list = field(default_factory=list)
+    dead: list = key(factory=list, items={"integer": True, "low": 0}, what="a list of actuator indices")
+    weak: list = key(factory=list, items={"integer": True, "low": 0}, what="a list of actuator indices")
     weak_gain: float = key(0.3, nonnegative=True)
-    actuator_table: Optional[str] = None
+    actuator_table: Optional[str] = key(None, optional=True, text=True, what="a path to a CSV file or null")
     input_limit: Optional[float] = key(None, optional=True, positive=True)
     registration: DMRegistrationConfig = field(default_factory=DMRegistrationConfig)
 

@@ -2,42 +2,12 @@
 
 Actuator ``j``'s column is rank one: ``D[:, j, f] = G[:, j] * H_j(j w_f)`` with
 ``H_j(s) = dc_gain * wn^2 / (s^2 + 2 zeta wn s + wn^2) * exp(-s delay_s)``, ``wn = 2 pi mode_hz``
-(the convention of issue 17; ``dc_gain`` 1 is the nominal actuator, 0 a dead one).
-:func:`fit_actuators` does, per actuator:
-
-1. **Shape**: ``h_j(f)``, the generalised least-squares scalar between the measured column
-   ``D[:, j, f]`` and the nominal geometry ``G[:, j]`` (a matched filter over every slope,
-   :func:`project_columns`), with its ``(Re, Im)`` covariance. ``h_j(0)`` is then the least-squares
-   scalar between the measured static column and ``G[:, j]``: the DC gain relative to nominal.
-2. **Parameters**: ``dc_gain, mode_hz, damping, delay_s`` by weighted nonlinear least squares
-   (``scipy.optimize.least_squares``) of ``H_j`` to ``h_j``, started from the best point of a
-   grid over ``(mode_hz, damping)`` (the delay and gain solved in closed form at each node),
-   stds from the Gauss-Newton covariance. The fit's ``chi2`` over ``2F - 4`` degrees of freedom
-   is tested: when its survival probability is below :data:`POOR_FIT_P` the actuator is
-   flagged ``poor_fit`` and its stds are inflated by ``sqrt(chi2 / dof)`` (the model does not
-   explain the data: the numbers are not to be trusted at their nominal precision).
-3. **Static column**: the measured ``D0[:, j]`` (px per input unit), per slope the real
-   least-squares scalar between ``D[s, j, :]`` and the fitted unit-DC shape ``H_j / dc_gain``
-   (:func:`static_columns`). Its std excludes the shape's own uncertainty, a factor common
-   to the column (reported as ``dc_gain_std``). A dead actuator's column is measured against
-   the median live shape.
-
-Status (documented rules, :func:`actuator_status`), with ``ref`` the median DC gain of the
-actuators that respond and ``k`` = :data:`STATUS_SIGMA`:
-
-- **dead** when no response is detected (the column's chi2 against zero has survival
-  probability above :data:`DEAD_P`), or its DC gain is not significantly above
-  :data:`DEAD_FRACTION` of ``ref``: ``dc_gain - k * dc_gain_std <= DEAD_FRACTION * ref`` (a gain
-  consistent with 0 is a case of it). A dead actuator's column is not exactly zero on real spots:
-  a spot model's error, through the demultiplexing, leaves crosstalk from the others in it (a
-  Gaussian PSF on sinc^2 lenslet spots gave the dead actuator of an HCIPy mirror a column, which
-  the former rule, weak below half of ``ref`` with no lower bound, called weak). Such a column is
-  not shaped like the actuator's dynamics: its model fit is poor and its std inflated (step 2), so
-  ``dc_gain - k * std`` falls below the bound. Its dynamics are NaN: there is nothing to fit; its
-  DC gain is the least-squares scalar against the median live shape.
-- **weak** only when its DC gain is significantly between the bounds: ``dc_gain - k * std >
-  DEAD_FRACTION * ref`` and ``dc_gain + k * std < WEAK_FRACTION * ref``.
-- **ok** otherwise (a gain not significantly below :data:`WEAK_FRACTION` of ``ref`` is ok).
+(``dc_gain`` 1 is the nominal actuator, 0 a dead one). :func:`fit_actuators` projects each
+column on ``G`` (:func:`project_columns`), fits the parameters with their stds (flagged
+``poor_fit`` below :data:`POOR_FIT_P`, stds then inflated), measures the static column
+(:func:`static_columns`) and gives each actuator its status (:func:`actuator_status`: dead,
+weak or ok, :data:`DEAD_FRACTION`, :data:`WEAK_FRACTION`, :data:`STATUS_SIGMA`). The method:
+docs/deformable_mirrors.md, "The actuators' fit"; the statuses: "Dead and weak".
 
 Shapes: S = 2M slopes, N actuators, F frequencies.
 """

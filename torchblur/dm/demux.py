@@ -1,19 +1,9 @@
 """Demultiplexing: the dynamic interaction matrix ``D(jw)`` from the responses measured under
-multiplexed excitation patterns.
+multiplexed excitation patterns, ``Y[p, s, f] = sum_j patterns[p, j] * D[s, j, f] + noise``.
 
-In pattern ``p`` actuator ``j`` is driven by ``amplitude * patterns[p, j] * sin(w t)``, so the
-complex response of slope ``s`` (per input unit, see :mod:`torchblur.dm.spot_fit`) is
-
-    ``Y[p, s, f] = sum_j patterns[p, j] * D[s, j, f] + noise``,
-
-with the noise of ``(Re, Im) Y[p, s, f]`` Gaussian, of covariance ``Y_cov[p, s, f]`` ``[2, 2]``,
-independent across patterns (each pattern is its own frames). :func:`demultiplex` solves this
-per slope row and frequency by weighted (generalised) least squares over the row's support,
-the actuators that row can see: the unknowns are ``(Re, Im) D[s, j, f]`` for ``j`` in the
-support, the weight of pattern ``p`` is ``inv(Y_cov[p, s, f])``, and the covariance of the
-estimate is the inverse of the normal matrix. Outside the support ``D`` is taken as exactly 0
-(``D_cov`` 0 there). For large supports (a big mirror under Hadamard patterns) the ordinary
-least squares ``pinv(patterns) Y`` with its exact covariance is used instead (``method``).
+:func:`demultiplex` solves it per slope row and frequency by generalised least squares over the
+row's support (``D`` exactly 0 off it), or for large supports by ``pinv(patterns) Y`` with its
+exact covariance (``method``): docs/deformable_mirrors.md, "The demultiplexing".
 
 Shapes: P patterns, N actuators, S = 2M slopes (``[x of all M, y of all M]``), F frequencies.
 """

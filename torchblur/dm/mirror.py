@@ -1,30 +1,13 @@
 """A deformable mirror: actuators on a square grid in a circular pupil, Gaussian influence
 functions and one resonance per actuator.
 
-Geometry (lengths in actuator pitches, 0 at the pupil centre, x to the right, y down). The
-``n_across x n_across`` grid has its cell centres at ``c_i = i - (n_across - 1) / 2``; an
-actuator sits at every centre with ``hypot(x, y) <= n_across / 2 + 0.1`` (the pupil radius
-``n_across / 2`` plus a tenth of a pitch, so the ring just outside the beam edge that a real
-mirror keeps is included): 52 actuators for ``n_across = 8``, 12 for 4 (the 3 x 3 square grid
-with ``n_across = 3`` keeps its 9, the corners lie at 1.41 <= 1.6). Actuator ``j`` is the j-th
-kept cell in row-major order.
-
-Influence function of actuator j (surface in input units per unit command):
-
-    phi_j(x, y) = exp(-((x - x_j)^2 + (y - y_j)^2) / (2 w^2)),   w = 1 / sqrt(-2 ln coupling)
-
-so ``phi_j`` is ``coupling`` one pitch away from its actuator (0.15 by default: w = 0.513).
-
-Dynamics of actuator j (command u_j to its surface amplitude y_j):
-
-    H_j(s) = gain_j wn_j^2 / (s^2 + 2 zeta_j wn_j s + wn_j^2) * exp(-s delay_j),  wn_j = 2 pi mode_hz_j
-
-``gain = 1`` is the nominal actuator, ``gain = 0`` a dead one. :meth:`DeformableMirror.build`
-draws a seeded spread around the nominal values (``mode_hz (1 + mode_spread z)``, ``damping (1
-+ damping_spread z)``, ``gain (1 + gain_spread z)``, ``delay_s + delay_spread_s z``, z standard
-normal clipped to +-3, drawn in that order for every actuator whatever the other settings), makes
-the ``weak`` actuators ``weak_gain`` times as strong, the ``dead`` ones gain 0, then sets the
-actuators a table lists (:func:`read_actuator_table`) to the table's values.
+Lengths in actuator pitches, 0 at the pupil centre, x to the right, y down; actuator ``j`` is the
+j-th kept cell of the ``n_across x n_across`` grid in row-major order. Actuator j's influence is
+``phi_j = exp(-r_j^2 / (2 w^2))``, ``w = 1 / sqrt(-2 ln coupling)``, and its dynamics
+``H_j(s) = gain_j wn_j^2 / (s^2 + 2 zeta_j wn_j s + wn_j^2) exp(-s delay_j)``, ``wn_j = 2 pi
+mode_hz_j`` (gain 1 nominal, 0 dead). :meth:`DeformableMirror.build` draws the seeded spread,
+the weak and dead actuators and the table's (:func:`read_actuator_table`): docs/deformable_mirrors.md,
+"The model".
 """
 from __future__ import annotations
 

@@ -1,37 +1,13 @@
 """Excitation plans for a many-actuator mirror: which actuators move together in each pattern.
 
-A plan is a pattern matrix ``patterns [P, N]``: in pattern p actuator j is commanded
-``amplitude * patterns[p, j] * sin(omega t)`` (one frequency, one phase, one amplitude per
-frame), and ``support [2M, N]`` bool: which unknowns ``D[s, j]`` of the dynamic interaction
-matrix it measures (the others are taken as 0). Every spot then moves on one sinusoid per
-axis, ``Y[p, s] = sum_j D[s, j] patterns[p, j]``, and the demultiplexing solves for D row by
-row over its support.
-
-- one at a time: ``patterns = I_N`` (the reference; every unknown measured, P = N).
-- sparse: 0/1 rows. Actuator j is *seen* by subaperture m when ``|G[:, j]|`` at m (the length
-  of the spot's 2-D displacement ``hypot(G[m, j], G[M + m, j])``) exceeds ``threshold`` times
-  the largest such length over the whole matrix (``threshold = 0.01`` by default). Two actuators
-  conflict when one subaperture sees both; a greedy colouring (actuators in order of decreasing
-  conflicts, each given the lowest colour none of its neighbours has) makes one pattern per
-  colour, so no subaperture sees two active actuators. The support is the seen pairs (both
-  slope rows of a subaperture). The unseen ``D[s, j]`` (below ``threshold`` of the largest) are
-  the bias it accepts.
-- Hadamard: ``patterns = H[:, :N]`` with H the Sylvester Hadamard matrix of order ``P``, the
-  next power of two >= N (``scipy.linalg.hadamard``); ``patterns.T @ patterns = P I``, so every
-  unknown is measured P times at once (support all).
-
-Choosing (:func:`choose_plan`). The rule is a predicted std per frame. One spot problem's
-fitted amplitude (px) has a std ``sigma_1`` per frame (about constant over the motions used:
-the amplitude is set so that the largest spot motion is ``target_px`` for every plan); a plan
-drives every pattern at the amplitude ``a`` that makes its largest static spot motion
-``max_p max_m |sum_j patterns[p, j] G[:, j]|_m`` equal ``target_px``, so a response ``Y`` has a
-std ``sigma_1 / (a sqrt(R))`` and, after the least-squares demultiplexing, ``D[s, j]`` has the
-std ``sigma_1 / (a sqrt(R)) sqrt([(P_s^T P_s)^-1]_jj)`` (``P_s`` the patterns restricted to row
-s's support). :func:`plan_cost` returns ``P max_{s,j} [(P_s^T P_s)^-1]_jj / a^2``, the frames per
-frequency and exposure that reach a given worst std (in units of ``sigma_1^2 / std^2``): the
-plan with the smallest cost needs the fewest frames for the same accuracy; one at a time has
-cost ``N / a_1^2``, so ``plan_cost(plan) / plan_cost(one_at_a_time)`` is the ratio of frames at
-equal accuracy that the benchmark prints.
+A plan is ``patterns [P, N]`` (in pattern p actuator j is commanded ``amplitude * patterns[p, j]
+* sin(omega t)``) and ``support [2M, N]`` bool (the unknowns ``D[s, j]`` it measures; the others
+are taken as 0): one at a time (``I_N``), sparse (0/1 rows from a greedy colouring, so that no
+subaperture *sees* two active actuators, seen at ``threshold`` of the largest spot displacement)
+and Hadamard (``H[:, :N]``, Sylvester, ``scipy.linalg.hadamard``). :func:`choose_plan` takes the
+one with the smallest :func:`plan_cost`, ``P max_{s,j} [(P_s^T P_s)^-1]_jj / a^2``: the frames per
+frequency and exposure for a given worst std of ``D``. The rule and its figures:
+docs/deformable_mirrors.md, "The plans".
 """
 from __future__ import annotations
 

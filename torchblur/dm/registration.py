@@ -1,71 +1,16 @@
 """The mirror's registration on the Shack-Hartmann sensor, fitted to the measured static
 interaction matrix D0 (issue 23: the geometry measured, not assumed).
 
-Registration (:class:`Registration`). The nominal model (:mod:`torchblur.dm.shack_hartmann`)
-puts actuator j at ``x_j`` (actuator pitches, 0 at the pupil centre, x right, y down) with a
-Gaussian influence function of width ``w`` (:func:`~torchblur.dm.mirror.influence_width` of
-the mirror's ``coupling``). A real mirror is seen by the sensor shifted, rotated and magnified,
-and its influence functions are not exactly nominal. In the sensor's frame (lengths in nominal
-actuator pitches, the pupil and the subapertures fixed) actuator j sits at
-
-    p_j = magnification * R(rotation) x_j + (shift_x, shift_y),   R(a) = [[cos a, -sin a], [sin a, cos a]]
-
-(a positive rotation turns +x toward +y, i.e. clockwise on an image drawn with y down) and its
-influence function has the width ``magnification * w(coupling)`` there: ``coupling`` is the
-mirror's own (its influence at one of its own pitches), the relay magnifies both.
-
-Sensor weighting. What a spot's fitted shift measures depends on the spot: a centroid, or the
-shift of a Gaussian spot (torchblur's simulator), is the MEAN slope over the subaperture
-(:func:`~torchblur.dm.shack_hartmann.mean_slopes`); the best-fit shift of a real lenslet's
-diffraction spot (a sinc^2 fitted with its own still image as the kernel) weights the slope
-toward the subaperture's centre. For a fully lit square lenslet of side d (continuous focal
-plane, linear in the phase) the x shift is the mean of ``d phi / dx`` under the weight
-
-    K(a) B(b),   K(a) = 5/64 - 3 a^2 / 8 + a^4 / 4,   B(b) = 3/4 - b^2
-
-(a, b the position along and across the slope over d, in [-1/2, 1/2]: the best-fit shift's
-projection of the image change on the spot's derivative is, by Parseval, a pupil integral
-against ``x`` times the lenslet's triple self-convolution). The model's geometry matrix is
-``(1 - beta) G_mean + beta G_diffraction``, ``beta`` (``diffraction_weight``) fitted: 0 for a
-mean-slope sensor, about 1 for diffraction spots (HCIPy's square lenslets: 0.995 to 1.008, and
-with it their Gaussian influence functions' coupling within 0.0006 of the true 0.15, where the mean
-slope alone fitted 0.12 with a reduced chi2 of 23; ``benchmarks/bench_dm_registration.py --hcipy``,
-docs/deformable_mirrors.md).
-On a partly lit subaperture the weight is cut at the pupil's edge, which is not what
-diffraction there does: where the fit on every subaperture fails the model rule
-(:func:`~torchblur.sysid.model_check.model_fails`), the registration is fitted again on the FULLY
-lit subapertures (their square inside the pupil) and that fit is kept when it explains them
-better (``fitted_on``); the fitted model then gives G on every subaperture.
-
-Edge test (a model error the reduced chi2 misses; docs/deformable_mirrors.md). A lenslet's spot
-takes light from its neighbours, one-sidedly at the pupil's edge: on HCIPy's D0 that biases the
-magnification by 15 of its stds at a reduced chi2 of 1.3. So the registration is fitted again on
-the :func:`interior` subapertures (at least :data:`EDGE_TEST_MIN_INTERIOR`) and the two fits'
-difference ``d`` is tested against ``cov_interior - cov`` (Hausman; chi2 over its rank). At ``p <``
-:data:`EDGE_TEST_P` the measured model error ``d d^T`` joins the covariance (every std, the gains'
-and G's, covers it), and each gain whose interior rows carry at least :data:`EDGE_GAIN_SHARE` of
-its information is tested likewise, on the interior rows against every fitted row (the same G,
-two-sided): where they differ, the squared difference joins its variance (``gains_widened``); the
-other gains cannot be checked so and are flagged (``gains_unverified``: their stds do not hold).
-
-Fit (:func:`fit_registration`). Weighted nonlinear least squares of ``D0[s, j] = g_j G[s,
-j](theta)`` over every finite entry with a positive std (of the subapertures above), theta =
-(shift_x, shift_y, rotation, magnification, width, beta), ``G(theta)`` the geometry matrix of
-:meth:`ShackHartmann.geometry_matrix <torchblur.dm.shack_hartmann.ShackHartmann.geometry_matrix>`
-at that registration (beta 0) mixed with the diffraction weighting, and one free
-gain ``g_j`` per actuator solved in closed form inside the residual (variable projection: a
-dead or weak actuator's column only counts as much as its own signal, so it cannot drag the
-registration). ``scipy.optimize.least_squares`` (Levenberg-Marquardt) with the analytic
-Jacobian of the projected residual (Kaufman's: ``J^T J`` is then the information on theta with
-the gains marginalised). The stds are ``sqrt(diag((J^T J)^-1))`` at the optimum, multiplied by
-``sqrt(reduced chi2)`` when that is above 1 (``inflated``: the model does not explain D0 to its
-noise). The gains' std gets the registration's share, ``(dg/dtheta) cov (dg/dtheta)^T``
-(:func:`with_registration_stds`), so that a ``dc_gain`` relative to the fitted geometry keeps
-an honest std.
-
-``dc_gain`` (:data:`DC_GAIN_REFERENCE`): an actuator's static surface per unit command relative to
-the fitted influence function's peak (a Gaussian of the fitted width, peak 1 at the actuator):
-1 is an actuator whose static column is ``G`` at the fitted registration and weighting.
+:class:`Registration` places actuator j at ``p_j = magnification R(rotation) x_j + (shift_x,
+shift_y)`` in the sensor's frame (nominal actuator pitches, x right, y down; a positive rotation
+turns +x toward +y), its influence function ``magnification`` times wider there. The geometry
+matrix mixes the mean slope and the diffraction spot's weighting, ``(1 - beta) G_mean + beta
+G_diffraction`` (``diffraction_weight``); :func:`fit_registration` fits it to D0 by variable
+projection (one gain per actuator in closed form), refits on the fully lit subapertures where the
+model rule fails, and runs the edge test on the :func:`interior` ones. ``dc_gain``
+(:data:`DC_GAIN_REFERENCE`) is relative to the fitted influence function's peak. The model, the
+fit, the weighting, the edge test and their measured figures: docs/deformable_mirrors.md, "The
+mirror's registration".
 
 Shapes: S = 2M slopes (x of all M subapertures, then y), N actuators, Q quadrature points.
 """

@@ -1,38 +1,14 @@
 """A Shack-Hartmann wavefront sensor behind a deformable mirror: its subapertures, their spots on
-the sensor camera and the geometry matrix G.
+the sensor camera and the geometry matrix G (px per input unit).
 
-Geometry. The pupil is a disc of diameter ``pupil_diameter`` (actuator pitches; the mirror's
-``n_across`` by default), centred on 0. An ``n_across x n_across`` grid of square subapertures
-of side ``d = pupil_diameter / n_across`` covers it; subaperture (r, c) has its centre at
-``((c - (n_across - 1) / 2) d, (r - (n_across - 1) / 2) d)``. Its illuminated fraction is the
-share of a ``oversample x oversample`` midpoint grid over the square that lies in the pupil;
-it is valid when that fraction is at least ``min_illumination`` (0.5 by default: 80 valid of 10
-x 10 on an 8-pitch pupil, 12 of 4 x 4). Valid subaperture ``m`` is the m-th valid cell in row-major order.
-
-Spots. Subaperture (r, c) images its spot at rest at camera pixel ``x = (c + 1/2) pitch_px -
-1/2``, ``y = (r + 1/2) pitch_px - 1/2`` on a frame of ``n_across pitch_px`` (rounded up) pixels
-square; the spot is a Gaussian of std ``sigma_px (1 + sigma_variation rho)``, rho the distance
-of the subaperture centre from the pupil centre over the pupil radius.
-
-Geometry matrix (px per input unit). The spot of subaperture m moves by ``slope_px`` times the
-mean wavefront slope over the illuminated part of the subaperture (the slope in influence units
-per actuator pitch; ``slope_px`` is the lenslet's focal length in the units that make that px):
-
-    G[m, j]     = slope_px * mean over S_m of d phi_j / dx
-    G[M + m, j] = slope_px * mean over S_m of d phi_j / dy
-
-with ``phi_j`` the influence function of :mod:`torchblur.dm.mirror`. The mean is computed row by
-row (:func:`lit_rows`): over a row at height y the lit part of the square (square and pupil disc)
-is an interval ``[lo, hi]`` and the integral of ``d phi / dx`` along it is ``phi(hi, y) - phi(lo,
-y)`` exactly; the rows are Gauss-Legendre nodes, ``oversample`` per piece of the side, the side cut
-where the interval's ends change formula (the disc meets a side of the square), so the rule
-converges fast on partly lit subapertures too; the mean divides by the lit area of the same
-rule (y slopes likewise by columns). Against an independent scipy ``quad`` of the same integrals
-(``benchmarks/bench_dm_registration.py``, 52 actuators, 80 subapertures, misregistered): 2.0e-5
-of the largest element at ``oversample = 8``, 2.7e-6 at 16, 3.5e-7 at 32 (the default). (The
-midpoint grid used before had 1.5e-3 at 32 on partly lit subapertures: enough to bias a
-registration fitted to D0 by 4 of its stds.) The illuminated fraction that decides validity is
-still the midpoint grid's.
+The pupil is a disc of diameter ``pupil_diameter`` (actuator pitches) covered by an
+``n_across x n_across`` grid of square subapertures; one is valid when at least
+``min_illumination`` of it is lit (a midpoint grid), and valid subaperture ``m`` is the m-th
+valid cell in row-major order. ``G[m, j]`` and ``G[M + m, j]`` are ``slope_px`` times the mean x
+and y slope of ``phi_j`` (:mod:`torchblur.dm.mirror`) over the lit part of subaperture m,
+integrated row by row (:func:`lit_rows`: exact along a row, Gauss-Legendre across). The spots'
+positions, the rule and its accuracy against scipy ``quad``: docs/deformable_mirrors.md, "The
+model".
 """
 from __future__ import annotations
 

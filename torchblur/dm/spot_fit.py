@@ -1,26 +1,13 @@
 """The batched fitter of a DM sweep's spot problems, and the pattern responses ``Y``.
 
-A DM plan drives pattern ``p`` at frequency ``f`` for ``E*R`` exposures (E exposure lengths,
-R repeats each); every valid subaperture's spot then moves on one sinusoid per axis. One
-*problem* is (pattern, frequency, spot): the spot's crop in those ``E*R`` frames, fitted by
-:func:`~torchblur.fit.sinusoid.fit_sinusoid` with ``axes="xy"``. :func:`fit_spot_problems`
-fits all ``P*F*M`` problems in chunks whose size comes from the free memory
-(:func:`chunk_size`) on the inputs' device and dtype; a problem that fails (a dark spot, a spot
-out of the frame, no usable pixel) is flagged in its own ``status`` and does not change the
-others (each item of a batched fit is independent). :func:`pattern_responses` turns the fits
-into ``Y [P, 2M, F]`` and ``Y_cov [P, 2M, F, 2, 2]`` (see :mod:`torchblur.dm.demux`).
-
-The PSF is each spot's own: a Gaussian (:class:`GaussianPSF` ``[M]``), a measured kernel
-(:class:`KernelPSF` ``[M, h, w]``, the spot's still image in its crop) or, per spot, the one the
-still chose (:class:`PerSpotPSF`: :func:`~torchblur.image.psf_from_still.psf_from_still`'s test
-per subaperture, the kernel where the Gaussian does not explain the still). A problem fitted
-with a kernel has its stds multiplied by the kernel's own noise factor (``kernel_noise``:
-:meth:`~torchblur.image.psf_from_still.StillPSF.kernel_noise_factor` of its exposures' light, as
-the one-spot route does).
-
-Phase convention (as :func:`torchblur.identify.assemble.assemble_mimo`): the command is
-``amplitude * sin(w t + command_phase)`` and the fitted motion ``M sin(w t + phi)``, so
-``Y = M / amplitude * exp(i (phi - command_phase))``: the response at ``exp(i w t)``.
+One problem is (pattern, frequency, spot): the spot's crop in that point's ``E*R`` frames, fitted
+by :func:`~torchblur.fit.sinusoid.fit_sinusoid` with ``axes="xy"``. :func:`fit_spot_problems`
+fits them in chunks sized from the free memory (:func:`chunk_size`), each problem flagged in its
+own ``status``; the PSF is each spot's own (:class:`GaussianPSF`, :class:`KernelPSF` or
+:class:`PerSpotPSF`, a kernel fit's stds times its ``kernel_noise``). :func:`pattern_responses`
+turns the fits into ``Y [P, 2M, F]`` and ``Y_cov [P, 2M, F, 2, 2]`` at ``exp(i w t)``. The
+problems, the phase convention and the PSF per spot: docs/deformable_mirrors.md, "The spot
+problems" and "Each spot's PSF".
 
 Shapes: P patterns, F frequencies, M spots (slopes ``s = m`` for x, ``s = M + m`` for y),
 ``E*R`` exposures, ``h x w`` crop pixels.

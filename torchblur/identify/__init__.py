@@ -1,10 +1,6 @@
-"""The identification pipeline (its settings: :mod:`torchblur.config`): ``pipeline`` (the stages
-over one run record: ``calibration``, ``sweep`` (the sine plan) or ``multisine`` (the
-multisine plan), ``fitting``, ``assemble``, ``model``, the ``result``), ``rigs`` (the rig
-and the recording), ``run`` (the public names, where they have always been imported from),
-``dm_plan`` (a deformable mirror's plan; its outside recordings ``dm_outside``), ``verdict``,
-``outputs`` (the files a run writes) and ``report`` (report.txt and the ``--json`` line). The
-``torchblur`` command is :mod:`torchblur.cli`.
+"""The identification pipeline: the runner, its plans, the verdict, the outputs and the report
+(each module's place: docs/architecture.md; its settings: :mod:`torchblur.config`; the
+``torchblur`` command: :mod:`torchblur.cli`).
 
 The package is itself callable: ``torchblur.identify(cfg, rig)`` is
 ``torchblur.identify.identify(cfg, rig)``. Its names load on first use.

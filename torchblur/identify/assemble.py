@@ -2,16 +2,9 @@
 with covariances from the fits of the sweep's points (:func:`assemble_siso`,
 :func:`assemble_mimo`; the phase std adds the trigger jitter and the latency calibration,
 :func:`phase_std`), the true response where the rig knows it (:func:`truth_of`), and each
-point's adequacy (:func:`adequacy`, the rule; :func:`adequacy_stage`, the stage after assemble
-that applies it to a run).
-
-The adequacy rule (bits in :mod:`torchblur.sysid.flags`; the table of what sets each flag and
-what it does: docs/reliability.md, "Per-point flags and the verdict"): ``FAILED`` a NaN response;
-``POOR_FIT`` a reduced chi2 above ``fit.poor_fit_chi2``, the fit's part of the covariance times
-the reduced chi2 (the timing part not); ``TIMING`` :func:`timing_phase_std` above
-``report.tolerance_deg``; ``LIMITED`` the drive limit cut the motion; ``ALIAS`` a phase branch
-that :func:`resolve_single_exposure` (one exposure) or the fit
-(:data:`~torchblur.fit.status.BRANCH_UNDECIDED`) could not decide.
+point's adequacy (:func:`adequacy`, the rule: ``FAILED``, ``POOR_FIT``, ``TIMING``, ``LIMITED``,
+``ALIAS`` of :mod:`torchblur.sysid.flags`; :func:`adequacy_stage` applies it to a run). What sets
+each flag and what it does: docs/reliability.md, "Per-point flags and the verdict".
 """
 from __future__ import annotations
 

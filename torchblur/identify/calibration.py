@@ -188,9 +188,14 @@ def _axis_stage(cfg, rig, exp, cal: Calibration) -> None:
             LOGGER.info(f"axis: {math.degrees(math.atan2(u[1], u[0])):.3f} +- {math.degrees(axis.angle_std_rad):.3f} deg from "
                         f"+x (tracked at {cfg.frequencies_hz()[0]:.4g} Hz, {axis.px_per_unit:.4g} px per input unit)")
     else:
-        u = as_unit_direction({"x": (1.0, 0.0), "y": (0.0, 1.0)}[mode] if isinstance(mode, str) else mode, "fit.axis",
-                              like=torch.zeros((), dtype=torch.float64))
-        cal.direction = (float(u[0]), float(u[1]))
+        cal.direction = configured_direction(mode)
+
+
+def configured_direction(axis) -> tuple[float, float]:
+    """The unit image direction ``(x, y)`` of ``fit.axis`` given as ``"x"``, ``"y"`` or ``[x, y]``."""
+    u = as_unit_direction({"x": (1.0, 0.0), "y": (0.0, 1.0)}[axis] if isinstance(axis, str) else axis, "fit.axis",
+                          like=torch.zeros((), dtype=torch.float64))
+    return float(u[0]), float(u[1])
 
 
 def _latency_stage(cfg, rig, exp, dark, gain: float, full_adu: float, peak_rate: float):

@@ -1,37 +1,15 @@
-"""A DM identification's outputs in ``OUT/dm/`` (issue 17), written from a :class:`DMEstimate`.
-
-Files (:func:`write_dm_outputs`):
-
-- ``actuators.csv``: ``actuator,x,y,dc_gain,dc_gain_std,mode_hz,mode_hz_std,damping,damping_std,
-  delay_s,delay_s_std,status`` (then ``reduced_chi2,poor_fit,dc_gain_unverified``), one row per actuator
-  (:class:`~torchblur.dm.actuator_fit.ActuatorTable`; x, y in actuator pitches; ``dc_gain_unverified``
-  1 where the registration's edge test could not verify the DC gain: its std does not hold,
-  ``registration.json``'s ``gains_unverified``).
-- ``interaction_matrix.npy`` ``[2M, N]``: the static interaction matrix D0 (px of spot
-  displacement per input unit; rows ``[x of all M, y of all M]``), and
-  ``interaction_matrix_std.npy``; ``interaction_matrix.fits`` the same (astropy, an optional
-  extra: skipped with a log line when astropy is missing).
-- ``command_matrix.npy`` ``[N, 2M]``: the regularised pseudo-inverse of D0
-  (:func:`command_matrix`: truncated SVD, singular values below ``rcond`` times the largest
-  dropped), ``unseen_modes.npy`` ``[K, N]``: the actuator-space modes it cannot see (the right
-  singular vectors dropped, and the null space when N > 2M), and ``command_matrix.json``: the
-  rule, the threshold, the singular values, the modes kept (with ``schema`` and
-  ``schema_version``: :data:`COMMAND_MATRIX_SCHEMA`).
-
-Every file reads back: :func:`read_actuators_csv`, ``numpy.load``, ``FrequencyResponse.from_json``
-(:func:`torchblur.identify.read_outputs.read_outputs` reads them all).
-- ``frf.json``: the dynamic interaction matrix D(jw) as a
-  :class:`~torchblur.sysid.frequency_response.FrequencyResponse` (2M outputs ``s{m}_x`` then
-  ``s{m}_y``: python-control refuses dots in signal names; N inputs ``a{j}``; the (magnitude,
-  phase) covariance of every element, NaN where ``D`` is exactly 0 off a sparse support;
-  ``FrequencyResponse.from_json(...).to_control()`` is a python-control FRD).
-- ``README.txt``: what the files hold and what ``dc_gain`` is relative to (:func:`dm_readme`:
-  the fitted influence function's peak after a run, :mod:`torchblur.dm.registration`,
-  whose ``registration.json`` the run writes beside).
-- ``actuator_maps.png``: DC gain (relative to the nominal actuator), mode frequency (Hz) and
-  damping over the actuator grid, every status and flag marked, y down as in the guide
-  (:func:`actuator_maps_figure`; skipped with a log line when matplotlib is missing, and with
-  ``figures=False``, a run's ``report.figures=false``).
+"""A DM identification's outputs in ``OUT/dm/`` (issue 17), written from a :class:`DMEstimate`
+by :func:`write_dm_outputs`: ``actuators.csv`` (:class:`~torchblur.dm.actuator_fit.ActuatorTable`,
+one row per actuator), ``interaction_matrix.npy`` ``[2M, N]`` (D0, px per input unit) with its
+``_std.npy`` and ``.fits`` (astropy, optional), ``command_matrix.npy`` ``[N, 2M]`` and
+``unseen_modes.npy`` ``[K, N]`` (:func:`command_matrix`, its rule in ``command_matrix.json``:
+:data:`COMMAND_MATRIX_SCHEMA`), ``frf.json`` (D(jw) as a
+:class:`~torchblur.sysid.frequency_response.FrequencyResponse`, 2M outputs ``s{m}_x`` then
+``s{m}_y``, N inputs ``a{j}``), ``README.txt`` (:func:`dm_readme`: what ``dc_gain`` is relative
+to) and ``actuator_maps.png`` (:func:`actuator_maps_figure`; none without matplotlib or with
+``figures=False``). The columns and files: README.md, "Deformable mirrors read by a Shack-Hartmann
+sensor"; every file reads back (:func:`read_actuators_csv`, ``numpy.load``,
+:func:`torchblur.identify.read_outputs.read_outputs`).
 """
 from __future__ import annotations
 

@@ -12,7 +12,6 @@ live DM run's stages on it (:func:`torchblur.identify.pipeline.identify` with th
 """
 from __future__ import annotations
 
-import contextlib
 import csv
 import math
 import time
@@ -37,13 +36,12 @@ from torchblur.hardware.outside import CSV_NAME, YAML_NAME, OutsideCamera, Outsi
 from torchblur.hardware.recording import Experiment, ReplayRig
 from torchblur.identify.calibration import Calibration, spots_from_still, still_rate
 from torchblur.identify.dm_ladder import TEST_KEY, hold_images, pattern_ladder
-from torchblur.identify.dm_plan import (DMPlan, DMResult, _calibrate, _fit_frequency, _fit_options, _spot_psf, check_dm_config,
-                                        collect_fits, fit_pool, match_spots)
+from torchblur.identify.dm_plan import (DMPlan, DMResult, _calibrate, _fit_frequency, _fit_options, check_dm_config,
+                                        collect_fits, fit_pool, sensor_config, sensor_spots)
 from torchblur.identify.dm_record import PLAN_KEY, SWEEP_KIND, plan_support
-from torchblur.identify.outside import check_overrides, recording_levels
+from torchblur.identify.outside import check_no_rig, check_overrides, outside_record, recording_levels
 from torchblur.identify.pipeline import identify
-from torchblur.identify.record import LOGGER, RunRecord
-from torchblur.image.preprocess import subtract_dark
+from torchblur.identify.record import LOGGER
 from torchblur.image.saturation import SaturationCurve
 from torchblur.render.window import ExposureWindow
 
@@ -313,23 +311,20 @@ def recording_calibration(rec: DMRecording, cfg, wfs: ShackHartmann):
     ``gain_e_per_adu``, ``camera.gain_from``), the read noise, the spots cropped on the sensor's
     declared layout and each spot's PSF (``fit.psf``), both by the live calibration's own
     :func:`~torchblur.identify.calibration.spots_from_still` and
-    :func:`~torchblur.identify.dm_plan._spot_psf`, the latency given by ``recording.yaml``."""
+    :func:`~torchblur.identify.dm_plan.sensor_spots`, the latency given by ``recording.yaml``."""
     c = rec.camera
-    dark, sat, ptc, gain, gain_source, read_noise_e = recording_levels(rec, cfg)
-    _refuse_saturated(rec, sat, dark)
-    level, sat_adu = sat.offset_adu, float(sat.saturation_adu)
-    LOGGER.info(f"dark: level {float(level):.2f} ADU, read noise {read_noise_e:.3g} e-; saturation: {rec.saturation_source}")
-    n = int(cfg.wfs.n_across)
-    spots_cfg = replace(cfg, spots=replace(cfg.spots, rows=n, cols=n, pitch_px=float(cfg.wfs.pitch_px), sigma_px=float(cfg.wfs.sigma_px)))
-    still_e = subtract_dark(torch.as_tensor(rec.still, dtype=_F64), dark) * gain
-    spots, kernels = spots_from_still(spots_cfg, still_e, float(rec.still_exposure_s), read_noise_e, spot_layout=wfs.rest_px)
-    cal = Calibration(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=float(sat_adu - level), psf=spots.psf,
-                      peak_rate=float(spots.psf.amplitude.max()), latency_s=float(c.latency_s), latency_std_s=float(c.latency_std_s),
-                      gain=gain, spots=spots, latency_source="given", ptc=ptc, gain_source=gain_source, spot_kernels=kernels)
+    levels, still_e = recording_levels(rec, cfg)
+    sat, read_noise_e = levels["saturation"], levels["read_noise_e"]
+    _refuse_saturated(rec, sat, levels["dark"])
+    LOGGER.info(f"dark: level {float(sat.offset_adu):.2f} ADU, read noise {read_noise_e:.3g} e-; "
+                f"saturation: {rec.saturation_source}")
+    spots, kernels = spots_from_still(sensor_config(cfg), still_e, float(rec.still_exposure_s), read_noise_e,
+                                      spot_layout=wfs.rest_px)
+    cal = Calibration(psf=spots.psf, peak_rate=float(spots.psf.amplitude.max()), spots=spots, spot_kernels=kernels,
+                      **levels)
     cal.still_rate, cal.still_rate_var = still_rate(still_e, float(rec.still_exposure_s), read_noise_e)
     LOGGER.info(f"latency: {c.latency_s * 1e6:.3f} +- {c.latency_std_s * 1e6:.3f} us given ({YAML_NAME})")
-    order = torch.as_tensor(match_spots(spots.psf.center.numpy(), wfs.rest_px, wfs.pitch_px))
-    return cal, _spot_psf(cal, order), spots.offset[order], spots.size
+    return (cal, *sensor_spots(cal, wfs)[1:])
 
 
 def _refuse_saturated(rec: DMRecording, sat: SaturationCurve, dark) -> None:
@@ -379,18 +374,14 @@ class DMOutsidePlan(DMPlan):
     def check(self, cfg, rig) -> None:
         """Refuse a ``cfg`` that is not a DM run's or not ``rec``'s frequencies, and any ``rig``."""
         check_dm_config(cfg)
-        if rig is not None:
-            raise InputTypeError(f"rig: an outside DM recording is fitted without a rig, got {type(rig).__name__}")
+        check_no_rig(rig, "an outside DM recording")
         if cfg.frequencies_hz() != [float(f) for f in self.rec.freq_hz]:
             raise ConfigError(f"sweep.freq_hz: expected the recording's frequencies (dm_recording_config), got {cfg.frequencies_hz()}")
 
-    @contextlib.contextmanager
     def open(self, cfg, rig, *, progress: bool, record, base_dir: str | None = None, executor=None):
-        """The run record: the sensor of ``cfg`` (``dm``, ``wfs``), no rig; ``record`` must be None (nothing is recorded)."""
-        if record is not None:
-            raise InputTypeError(f"record: an outside DM recording is not recorded again, got {type(record).__name__}")
+        """The run record (:func:`~torchblur.identify.outside.outside_record`), the sensor of ``cfg``."""
         self.model_mirror, self.wfs = dm_sensor(cfg)
-        yield RunRecord(cfg=cfg, rig=None, progress=progress, executor=executor)
+        return outside_record(cfg, progress=progress, record=record, executor=executor, what="an outside DM recording")
 
     def calibrate(self, run) -> None:
         """``run.cal`` and every valid subaperture's spot PSF, crop offset and size (:func:`recording_calibration`)."""

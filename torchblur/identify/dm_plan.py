@@ -1,11 +1,8 @@
-"""The deformable mirror's plan of the identification (:class:`DMPlan`): ``torchblur.identify(cfg,
-rig)`` and ``torchblur identify`` with a config whose ``dm.n_across`` > 0 run the identification's
-stages (:mod:`torchblur.identify.pipeline`) with this plan: 1. the calibration on the sensor's spot
-grid (:func:`torchblur.identify.calibration.calibrate`, the spots matched to the valid
-subapertures: :func:`match_spots`); 2. the plan (:func:`torchblur.dm.plans.choose_plan`); 3. the
-sweep (one amplitude per frequency, :func:`next_amplitude`; each completed frequency fitted on the
-run's executor while the next is acquired); 4. ``Y [P, 2M, F]``, ``D [2M, N, F]``
-(:mod:`torchblur.dm.demux`) and the actuators (:mod:`torchblur.dm.actuator_fit`). Each step:
+"""The deformable mirror's plan of the identification (:class:`DMPlan`, ``dm.n_across`` > 0): the
+calibration on the sensor's spot grid (:func:`sensor_spots`), the plan
+(:func:`torchblur.dm.plans.choose_plan`), the sweep (one amplitude per frequency,
+:func:`next_amplitude`; each frequency's spot fits on the run's executor while the next is
+acquired) and :func:`estimate_mirror` (``Y``, ``D``, the actuators, the registration). Each step:
 docs/deformable_mirrors.md, "The run".
 """
 from __future__ import annotations
@@ -50,7 +47,7 @@ from torchblur.rig.dm_contract import check_dm_rig
 from torchblur.rig.factory import build_dm
 
 __all__ = ["DM_DARK_FRAMES", "DM_STILL_FRAMES", "DMPlan", "DMResult", "check_dm_config", "estimate_mirror", "match_spots", "next_amplitude",
-           "nominal_growth", "registration_errors", "truth_errors"]
+           "nominal_growth", "registration_errors", "sensor_config", "sensor_spots", "truth_errors"]
 
 _F64 = torch.float64
 
@@ -158,20 +155,31 @@ def next_amplitude(*, target_px: float, motion_per_unit: float, input_limit: flo
 
 # DM_DARK_FRAMES, dm_still_frames (torchblur.config.budget): the calibration's dark and still frames.
 
+def sensor_config(cfg):
+    """``cfg`` with its ``spots`` section on the sensor's grid (``wfs``): the spots the calibration crops."""
+    n = int(cfg.wfs.n_across)
+    spots = replace(cfg.spots, rows=n, cols=n, pitch_px=float(cfg.wfs.pitch_px), sigma_px=float(cfg.wfs.sigma_px))
+    return replace(cfg, spots=spots)
+
+
 def _calibrate(cfg, rig, wfs, exp=None):
     """Stage 1 (module docstring): the calibration (from the recording ``exp`` where it holds
-    it) and the spots in valid-subaperture order."""
-    n = int(cfg.wfs.n_across)
-    spots_cfg = replace(cfg.spots, rows=n, cols=n, pitch_px=float(cfg.wfs.pitch_px), sigma_px=float(cfg.wfs.sigma_px))
+    it) and the spots in valid-subaperture order (:func:`sensor_spots`)."""
     size = dm_sweep_size(cfg)
     n_still = dm_still_frames(size["frames"], size["frame_shape"])
-    cal = calibrate(replace(cfg, spots=spots_cfg), rig, exp, n_dark=DM_DARK_FRAMES, n_still=n_still,
+    cal = calibrate(sensor_config(cfg), rig, exp, n_dark=DM_DARK_FRAMES, n_still=n_still,
                     spot_layout=wfs.rest_px)  # spots cropped on the sensor's layout; each spot's PSF (fit.psf) (issue 23)
-    order = match_spots(cal.spots.psf.center.numpy(), wfs.rest_px, wfs.pitch_px)
+    n = int(cfg.wfs.n_across)
     LOGGER.info(f"dm spots: {len(cal.spots)} found, matched to the {wfs.n_valid} valid subapertures (the other "
                 f"{n * n - wfs.n_valid} cells of the {n}x{n} grid are outside the pupil)")
-    psf = _spot_psf(cal, torch.as_tensor(order))
-    return cal, psf, cal.spots.offset[torch.as_tensor(order)], cal.spots.size
+    return (cal, *sensor_spots(cal, wfs)[1:])
+
+
+def sensor_spots(cal, wfs):
+    """``(order [M], psf, offset [M, 2], size)``: the calibration's spot matched to each valid subaperture
+    (:func:`match_spots`), their PSFs (:func:`_spot_psf`) and crops in that order."""
+    order = torch.as_tensor(match_spots(cal.spots.psf.center.numpy(), wfs.rest_px, wfs.pitch_px))
+    return order, _spot_psf(cal, order), cal.spots.offset[order], cal.spots.size
 
 
 def _spot_psf(cal, order):
@@ -458,8 +466,8 @@ class DMPlan:
         """Stage 1: ``run.cal`` and every valid subaperture's spot PSF, crop offset and size."""
         t0 = time.perf_counter()
         run.cal, self.psf, self.offset, self.size = _calibrate(run.cfg, run.rig, self.wfs, run.exp)
-        order = match_spots(run.cal.spots.psf.center.numpy(), self.wfs.rest_px, self.wfs.pitch_px)
-        self.inside = (run.cal.spots.inside_fraction >= MIN_INSIDE)[torch.as_tensor(order)]  # [M] the spots mostly in the frame
+        order = sensor_spots(run.cal, self.wfs)[0]
+        self.inside = (run.cal.spots.inside_fraction >= MIN_INSIDE)[order]  # [M] the spots mostly in the frame
         run.timing["calibration"] = time.perf_counter() - t0
 
     def sweep(self, run) -> None:

@@ -1,7 +1,8 @@
-"""The files and figures an identification run writes (the ``torchblur identify`` and ``fit``
-commands call :func:`write_outputs`): frf.csv, frf.mat, frf.json, model.json (and
-model_two_step.json), bode.png, residuals.png, ptc.png; and report.txt, every plan's, by
-:func:`write_report` (its sections from :mod:`torchblur.identify.report`), the verdict line last.
+"""The files and figures an identification run writes, every plan's (the ``torchblur identify`` and
+``fit`` commands call :func:`write_outputs`): frf.csv, frf.mat, frf.json, model.json (and
+model_two_step.json), bode.png, residuals.png, ptc.png, or a DM run's ``OUT/dm/``
+(:mod:`torchblur.identify.dm_outputs`); and report.txt by :func:`write_report` (its sections from
+:mod:`torchblur.identify.report`), the verdict line last.
 Figures are matplotlib ``Figure`` objects (:mod:`torchblur.sysid.plots`): the caller's backend is
 never switched.
 """
@@ -16,25 +17,33 @@ import numpy as np
 import torch
 
 import torchblur as tb
+from torchblur.dm.registration import DC_GAIN_REFERENCE, write_registration_json
 from torchblur.identify.assemble import mark_limited
+from torchblur.identify.dm_outputs import DMEstimate, write_dm_outputs
+from torchblur.identify.dm_plan import DMResult
 from torchblur.identify.model import model_exclusions
-from torchblur.identify.report import response_lines, run_summary, verdict_summary
-from torchblur.identify.verdict import verdict
+from torchblur.identify.record import collect_log
+from torchblur.identify.report import dm_lines, dm_summary, response_lines, run_summary, verdict_summary
+from torchblur.identify.verdict import final_verdict, verdict
 from torchblur.image.photon_transfer import photon_transfer_figure
 from torchblur.rig.factory import plant_of
 from torchblur.sysid.flags import flag_names
 from torchblur.sysid.model_check import inflate
 from torchblur.sysid.plots import bode_figure, residual_figure
 
-__all__ = ["exposure_label", "left_out_points", "write_bode", "write_figures", "write_models", "write_outputs", "write_ptc_figure",
-           "write_report", "write_residuals"]
+__all__ = ["exposure_label", "left_out_points", "write_bode", "write_dm_run", "write_figures", "write_models",
+           "write_outputs", "write_ptc_figure", "write_report", "write_residuals"]
 
 
 def write_outputs(cfg, res, out: Path, elapsed: float, stamp: str, as_json: bool = False, source: str = "run"):
-    """frf.csv, frf.mat, frf.json, model.json, bode.png, residuals.png, then report.txt and the
-    terminal's lines (:func:`write_report`; the JSON summary: :func:`run_summary`). ``source``:
-    "run" (frames acquired now), "re-fit" (of a recording) or "outside" (an outside recording).
-    Returns the :class:`~torchblur.identify.verdict.ResponseVerdict`."""
+    """frf.csv, frf.mat, frf.json, model.json, bode.png, residuals.png (a DM run's
+    :class:`~torchblur.identify.dm_plan.DMResult`: ``OUT/dm/``, :func:`write_dm_run`), then
+    report.txt and the terminal's lines (:func:`write_report`; the JSON summary:
+    :func:`run_summary`). ``source``: "run" (frames acquired now), "re-fit" (of a recording) or
+    "outside" (an outside recording). Returns the :class:`~torchblur.identify.verdict.Verdict`
+    (exit_code: 0 trustworthy, 4 flagged)."""
+    if isinstance(res, DMResult):
+        return write_dm_run(cfg, res, out, elapsed, stamp, as_json=as_json)
     frf = res.frf  # immutable: a copy with the run's stamp and units (the Bode plot's axes) in its meta
     meta = {"output_unit": "px", "input_unit": "input unit", **frf.meta, "torchblur_version": tb.__version__, "seed": int(cfg.seed)}
     frf = res.frf = mark_limited(frf.replace(meta=meta), getattr(res, "limited", None))
@@ -47,6 +56,26 @@ def write_outputs(cfg, res, out: Path, elapsed: float, stamp: str, as_json: bool
     write_figures(cfg, res, out, stamp)
     write_report(out, v, stamp=stamp, log=res.log, body=response_lines(cfg, res, elapsed, source), as_json=as_json,
                  summary={**run_summary(res, out, elapsed, cfg.fit.poor_fit_chi2), **verdict_summary(v)})
+    return v
+
+
+def write_dm_run(cfg, res: DMResult, out: Path, elapsed: float, stamp: str, as_json: bool = False):
+    """A DM run's ``OUT/dm/`` (:func:`~torchblur.identify.dm_outputs.write_dm_outputs`, ``registration.json``) and
+    report.txt (:func:`~torchblur.identify.report.dm_lines`, :func:`~torchblur.identify.report.dm_summary`) with
+    the verdict of every DM guard (:func:`~torchblur.identify.verdict.final_verdict`) last; returns it."""
+    meta = {"plan": res.plan.kind, "n_patterns": res.plan.n_patterns, "n_repeats": res.n_repeats,
+            "n_frames": res.n_frames}
+    reg = res.registration
+    reference = {"dc_gain_reference": DC_GAIN_REFERENCE} if reg and reg.ok else {}
+    unverified = tuple(((reg.edge_test or {}).get("gains_unverified") or ()) if reg is not None else ())
+    with collect_log() as written:  # the outputs' own lines (dm: N files in ...), after the run's
+        write_dm_outputs(out, DMEstimate(freq_hz=res.freq_hz, D=res.D, D_cov=res.D_cov, table=res.actuators, meta=meta,
+                                         gains_unverified=unverified), figures=cfg.report.figures, **reference)
+        if reg is not None:
+            write_registration_json(out / "dm" / "registration.json", reg, res.support_check)
+    v = final_verdict(res, float(cfg.fit.poor_fit_chi2))
+    write_report(out, v, stamp=stamp, log=[*res.log, *written], body=dm_lines(res, elapsed),
+                 summary=dm_summary(res, v, elapsed), as_json=as_json)
     return v
 
 

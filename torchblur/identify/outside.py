@@ -1,19 +1,18 @@
 """An outside recording (:mod:`torchblur.hardware.outside`) through the identification's own
-stages: the folder becomes the run record's calibration (:func:`outside_calibration`: the
-dark level and read noise from the dark frames, the PSF from the still frames by the same
-:mod:`~torchblur.identify.calibration` code as ``identify``, the timing)
-and its sweep (:class:`OutsidePlan`: the sine plan whose sweep stage reads the recorded
-points instead of driving a rig, and with ``fit.axis=measure`` fits them on both image axes
-for the motion's direction). The fit, assemble, model and report stages are the sine
-plan's (:func:`~torchblur.identify.stages.run_plan`): no fitting logic here.
+stages (:func:`~torchblur.identify.pipeline.identify` with the plan :class:`OutsidePlan`): the
+folder becomes the run record's calibration (:func:`outside_calibration`: the dark level and
+read noise from the dark frames, the PSF from the still frames by the same
+:mod:`~torchblur.identify.calibration` code as ``identify``, the timing) and its sweep (the sine
+plan whose sweep stage reads the recorded points instead of driving a rig, and with
+``fit.axis=measure`` fits them on both image axes for the motion's direction). The fit,
+assemble, model and report stages are the sine plan's: no fitting logic here.
 
-:func:`identify_outside` runs it; ``torchblur fit FOLDER`` calls it for a folder with a
+:func:`identify_outside` runs it; ``torchblur fit FOLDER`` runs it for a folder with a
 ``frames.csv`` (docs/outside_recordings.md).
 """
 from __future__ import annotations
 
 import contextlib
-import logging
 import math
 import time
 from dataclasses import replace
@@ -22,15 +21,15 @@ from functools import partial
 import torch
 
 from torchblur.design.windows import check_design
-from torchblur.errors import ConfigError, InputTypeError, as_unit_direction
+from torchblur.errors import ConfigError, InputTypeError
 from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.outside import YAML_NAME, OutsideRecording
-from torchblur.identify.calibration import Calibration, _still_psf, measure_gain
+from torchblur.identify.calibration import Calibration, _still_psf, configured_direction, measure_gain
 from torchblur.config import IdentifyConfig, load_config
 from torchblur.identify.fitting import ChunkFitter
-from torchblur.identify.record import LOGGER, RunRecord, collect_log, console_logging
+from torchblur.identify.pipeline import identify
+from torchblur.identify.record import LOGGER, RunRecord
 from torchblur.identify.result import IdentificationResult
-from torchblur.identify.stages import run_plan
 from torchblur.identify.sweep import SineAcquisition, SinePlan, fit_points, sweep_layout
 from torchblur.image.preprocess import dark_frame, subtract_dark
 from torchblur.image.saturation import SaturationCurve
@@ -38,7 +37,7 @@ from torchblur.render.window import ExposureWindow
 from torchblur.sysid.frequency_response import FrequencyResponse
 
 __all__ = ["OutsidePlan", "check_overrides", "fitted_direction", "identify_outside", "outside_calibration", "outside_config",
-           "recording_levels"]
+           "outside_record", "recording_levels"]
 
 _F64 = torch.float64
 DARKS_PER_STILL = 4  # fewer dark frames than this many per still frame: the dark's own noise shows in the errors (logged)
@@ -102,10 +101,13 @@ def fitted_direction(fit):
     return (float(u[0]), float(u[1])), float((1 / s_j ** 2).sum() ** -0.5), float(lam[0].clamp_min(0) / lam[1])
 
 
-def recording_levels(rec, cfg: IdentifyConfig):
-    """``(dark, sat, ptc, gain, gain_source, read_noise_e)`` of an outside recording ``rec`` (one-spot or DM): the dark frame,
-    ``saturation_adu`` over its level, the gain (:func:`~torchblur.identify.calibration.measure_gain` of the still frames
-    against ``gain_e_per_adu``, ``camera.gain_from``) and the read noise (``read_noise_e``, else the dark frames')."""
+def recording_levels(rec, cfg: IdentifyConfig) -> tuple[dict, torch.Tensor]:
+    """``(levels, still_e)`` of an outside recording ``rec`` (one-spot or DM): ``levels`` the
+    :class:`~torchblur.identify.calibration.Calibration` fields it gives (the dark frame,
+    ``saturation_adu`` over its level, the gain: :func:`~torchblur.identify.calibration.measure_gain`
+    of the still frames against ``gain_e_per_adu``, ``camera.gain_from``; the read noise:
+    ``read_noise_e``, else the dark frames'; the latency ``recording.yaml`` gives), ``still_e``
+    ``[N, H, W]`` the still frames dark subtracted, in electrons."""
     c = rec.camera
     dark_raw = torch.as_tensor(rec.dark, dtype=_F64)
     dark = dark_frame(dark_raw)
@@ -116,7 +118,11 @@ def recording_levels(rec, cfg: IdentifyConfig):
     ptc, gain, gain_source = measure_gain([torch.as_tensor(rec.still, dtype=_F64)], dark_raw, dark, sat_adu, float(c.gain_e_per_adu),
                                           cfg.camera.gain_from, name=f"{YAML_NAME} gain_e_per_adu")
     read_noise_e = float(c.read_noise_e) if c.read_noise_e is not None else float(dark.read_noise) * gain
-    return dark, sat, ptc, gain, gain_source, read_noise_e
+    full_adu = float(sat.saturation_adu - sat.offset_adu)
+    levels = dict(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=full_adu, gain=gain, ptc=ptc,
+                  gain_source=gain_source, latency_s=float(c.latency_s), latency_std_s=float(c.latency_std_s),
+                  latency_source="given")
+    return levels, subtract_dark(torch.as_tensor(rec.still, dtype=_F64), dark) * gain
 
 
 def outside_calibration(rec: OutsideRecording, cfg: IdentifyConfig) -> Calibration:
@@ -125,9 +131,9 @@ def outside_calibration(rec: OutsideRecording, cfg: IdentifyConfig) -> Calibrati
     (``fit.psf``, as ``identify``), the timing, and the motion's image direction
     (``fit.axis`` given; with ``measure`` it is left None for :class:`OutsidePlan`'s sweep)."""
     c = rec.camera
-    dark, sat, ptc, gain, gain_source, read_noise_e = recording_levels(rec, cfg)
-    level, sat_adu = sat.offset_adu, sat.saturation_adu
-    LOGGER.info(f"dark: level {float(level):.2f} ADU, read noise {read_noise_e:.2f} e- "
+    levels, still_e = recording_levels(rec, cfg)
+    dark, sat, read_noise_e = levels["dark"], levels["saturation"], levels["read_noise_e"]
+    LOGGER.info(f"dark: level {float(sat.offset_adu):.2f} ADU, read noise {read_noise_e:.2f} e- "
                 f"({'recording.yaml' if c.read_noise_e is not None else f'from {dark.n_frames} dark frames'}), "
                 f"{int(dark.hot_pixels.sum())} hot pixels")
     n_still = len(rec.still)
@@ -137,36 +143,57 @@ def outside_calibration(rec: OutsideRecording, cfg: IdentifyConfig) -> Calibrati
                     f"and is in no std, so the stds may understate the errors (docs/outside_recordings.md); take at least "
                     f"{DARKS_PER_STILL * n_still} dark frames")
     LOGGER.info(f"saturation: {rec.saturation_source}")
-    still_raw = torch.as_tensor(rec.still, dtype=_F64)
-    clipped = int((~sat.mask(still_raw) & ~dark.hot_pixels).sum())
+    clipped = int((~sat.mask(torch.as_tensor(rec.still, dtype=_F64)) & ~dark.hot_pixels).sum())
     if clipped:
-        raise RecordingError(f"{rec.path}: the still frames have {clipped} saturated pixel(s) (at or within 1% below saturation_adu "
-                             f"{float(sat_adu):.6g}, hot pixels aside); the PSF needs unsaturated still frames: take them with a shorter "
-                             f"exposure_s or less light")
-    still_e = subtract_dark(still_raw, dark) * gain
+        raise RecordingError(f"{rec.path}: the still frames have {clipped} saturated pixel(s) (at or within 1% below "
+                             f"saturation_adu {float(sat.saturation_adu):.6g}, hot pixels aside); the PSF needs "
+                             f"unsaturated still frames: take them with a shorter exposure_s or less light")
     still_psf = _still_psf(cfg, still_e, float(rec.still_exposure_s), read_noise_e)
     psf = still_psf.gaussian.psf
-    cal = Calibration(dark=dark, read_noise_e=read_noise_e, saturation=sat, full_adu=float(sat_adu - level), psf=psf,
-                      peak_rate=float(psf.amplitude), latency_s=float(c.latency_s), latency_std_s=float(c.latency_std_s), gain=gain,
-                      still_psf=still_psf, latency_source="given", ptc=ptc, gain_source=gain_source)
+    cal = Calibration(psf=psf, peak_rate=float(psf.amplitude), still_psf=still_psf, **levels)
     LOGGER.info(f"timing: latency {c.latency_s * 1e6:.3f} +- {c.latency_std_s * 1e6:.3f} us, jitter {c.jitter_s * 1e6:.3f} us "
                 f"(recording.yaml)")
-    mode = cfg.fit.axis
-    if mode != "measure":  # else the sweep stage measures it from the recorded points (fitted_direction)
-        d = as_unit_direction({"x": (1.0, 0.0), "y": (0.0, 1.0)}[mode] if isinstance(mode, str) else mode, "fit.axis",
-                              like=torch.zeros((), dtype=_F64))
-        cal.direction = (float(d[0]), float(d[1]))
+    if cfg.fit.axis != "measure":  # else the sweep stage measures it from the recorded points (fitted_direction)
+        cal.direction = configured_direction(cfg.fit.axis)
     return cal
 
 
+def check_no_rig(rig, what: str = "an outside recording") -> None:
+    """Refuse any ``rig``: ``what`` is fitted without one (InputTypeError naming ``rig``)."""
+    if rig is not None:
+        raise InputTypeError(f"rig: {what} is fitted without a rig, got {type(rig).__name__}")
+
+
+@contextlib.contextmanager
+def outside_record(cfg, *, progress: bool, record, executor=None, what: str = "an outside recording"):
+    """The run record of an outside recording's run (either plan's ``open``): no rig, nothing
+    recorded (``record`` must be None)."""
+    if record is not None:
+        raise InputTypeError(f"record: {what} is not recorded again, got {type(record).__name__}")
+    yield RunRecord(cfg=cfg, rig=None, progress=progress, executor=executor)
+
+
 class OutsidePlan(SinePlan):
-    """The sine plan over a recording made elsewhere: its sweep stage reads the points of
-    ``rec`` (dark subtracted, in electrons, with the saturated pixels masked) into the same
+    """The sine plan over a recording made elsewhere: no rig, nothing recorded, the calibration
+    of :func:`outside_calibration`, and a sweep stage that reads the points of ``rec`` (dark
+    subtracted, in electrons, with the saturated pixels masked) into the same
     :class:`~torchblur.identify.sweep.SineAcquisition` a rig's sweep fills; fit, assemble,
     the direct model and the result are the sine plan's."""
 
     def __init__(self, rec: OutsideRecording):
         self.rec = rec
+
+    def check(self, cfg, rig) -> None:
+        """Refuse any ``rig``."""
+        check_no_rig(rig)
+
+    def open(self, cfg, rig, *, progress: bool, record, base_dir: str | None = None, executor=None):
+        """The run record (:func:`outside_record`)."""
+        return outside_record(cfg, progress=progress, record=record, executor=executor)
+
+    def calibrate(self, run) -> None:
+        """``run.cal``: :func:`outside_calibration`."""
+        run.cal = outside_calibration(self.rec, run.cfg)
 
     def sweep(self, run) -> None:
         """The sweep stage: every recorded point into the acquisition (and, with
@@ -231,8 +258,7 @@ class OutsidePlan(SinePlan):
 
 def identify_outside(rec: OutsideRecording, cfg: IdentifyConfig | None = None, *, progress: bool = True) -> IdentificationResult:
     """Identify the response of the outside recording ``rec`` with the identification's
-    stages: :func:`outside_calibration`, then :class:`OutsidePlan`'s sweep, the fit,
-    assemble, model and report (:func:`~torchblur.identify.stages.run_plan`).
+    stages (:func:`~torchblur.identify.pipeline.identify` with :class:`OutsidePlan`).
 
     Args:
         rec: from :func:`~torchblur.hardware.outside.read_outside_recording`.
@@ -244,11 +270,4 @@ def identify_outside(rec: OutsideRecording, cfg: IdentifyConfig | None = None, *
     cfg = outside_config(rec) if cfg is None else cfg
     if not isinstance(cfg, IdentifyConfig):
         raise InputTypeError(f"cfg: expected an IdentifyConfig (outside_config), got {type(cfg).__name__}")
-    shown = progress and not logging.getLogger("torchblur").hasHandlers()
-    with console_logging() if shown else contextlib.nullcontext(), collect_log() as log:
-        run = RunRecord(cfg=cfg, rig=None, progress=progress, t_start=time.perf_counter())
-        run.cal = outside_calibration(rec, cfg)
-        run.plan = OutsidePlan(rec)
-        result = run_plan(run)
-    result.log = log
-    return result
+    return identify(cfg, progress=progress, plan=OutsidePlan(rec))

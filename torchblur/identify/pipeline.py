@@ -1,20 +1,8 @@
-"""The identification end to end (paper section IV), as stages over one run record
-(:class:`~torchblur.identify.record.RunRecord`):
-
-1. **calibrate** (:mod:`torchblur.identify.calibration`): dark frame, saturation curve and
-   mask, PSF (one spot, or a grid), trigger-to-exposure latency from laser pulses and, for
-   one axis and one spot, the actuator's direction in the image (``fit.axis=measure``);
-2. **sweep**: the plan's acquisition (:data:`PLANS`; ``excitation.kind``: one sine per point,
-   :class:`~torchblur.identify.sweep.SinePlan`, the amplitude following the response; or
-   multisine groups, :class:`~torchblur.identify.multisine.MultisinePlan`; a deformable mirror's
-   patterns, :class:`~torchblur.identify.dm_plan.DMPlan`, which also has its own opening and
-   calibration), fitting what is complete while it runs;
-3. **fit**: the fits of every point;
-4. **assemble**: a FrequencyResponse with covariances (fit, trigger jitter and latency
-   calibration included), and the truth where the rig knows it;
-5. **model**: a transfer-function model fitted to it, weighted by the uncertainties (with
-   ``model.direct``, then fitted to every image at once);
-6. **report**: the :class:`~torchblur.identify.result.IdentificationResult`.
+"""The identification end to end (paper section IV): :func:`identify` runs calibrate -> sweep ->
+fit -> assemble -> model -> report over one run record
+(:class:`~torchblur.identify.record.RunRecord`), the sweep, fit and assemble stages (and a
+DM's opening and calibration) by the run's plan (:data:`PLANS`: sine, multisine, DM; or an
+outside recording's). The stages and where each lives: docs/architecture.md.
 """
 from __future__ import annotations
 

@@ -33,6 +33,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
+
 from torchblur.errors import ParameterError, check_schema_version
 from torchblur.config import IdentifyConfig, load_dataclass, validate
 from torchblur.dm.registration import read_registration_json
@@ -83,7 +85,6 @@ def _model(path: Path):
         return doc
     try:
         if direct:
-
             return DirectModelFit.from_dict(doc)
         return TransferFunctionFit.from_dict(doc)
     except ParameterError as exc:
@@ -94,7 +95,6 @@ def _config(path: Path):
     """config.yaml: the IdentifyConfig, validated as a run's (an outside recording's fit,
     ``rig.kind = "outside"``, is made by :func:`~torchblur.identify.outside.outside_config`, not
     by a rig: its rig section is not checked)."""
-
     cfg = load_dataclass(IdentifyConfig, str(path), trusted=False)
     if cfg.rig.kind != "outside":
         validate(cfg)
@@ -102,9 +102,6 @@ def _config(path: Path):
 
 
 def _dm(d: Path) -> dict:
-    import numpy as np
-
-
     got = {"dm/frf.json": FrequencyResponse.from_json(d / "frf.json"), "dm/actuators.csv": read_actuators_csv(d / "actuators.csv"),
            "dm/command_matrix.json": check_document(_json(d / "command_matrix.json"), COMMAND_MATRIX_SCHEMA,
                                                     str(d / "command_matrix.json"))}
@@ -122,7 +119,6 @@ def read_outputs(out) -> dict:
     Raises:
         ParameterError / ConfigError: a file that does not read back, naming it.
     """
-
     out = Path(out)
     got: dict = {}
     readers = {"frf.json": FrequencyResponse.from_json, "frf.csv": FrequencyResponse.from_csv, "frf.mat": FrequencyResponse.from_mat,

@@ -18,7 +18,7 @@ from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
-from torchblur.dm.actuator_fit import POOR_FIT_P, ActuatorTable
+from torchblur.dm.actuator_fit import PARAMS, POOR_FIT_P, ActuatorTable
 from torchblur.dm.registration import support_line
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, check_int
 from torchblur.identify.assemble import timing_limit_hz
@@ -48,7 +48,7 @@ LOST_FRACTION = 0.1
 POOR_SPOT_FRACTION = 0.01
 
 _LISTED = 6  # items named per kind before "..."
-_LIVE_PARAMS = ("dc_gain", "dc_gain_std", "mode_hz", "mode_hz_std", "damping", "damping_std", "delay_s", "delay_s_std")
+_LIVE_PARAMS = tuple(k for p in PARAMS for k in (p, p + "_std"))  # each parameter then its std (a dead actuator: the first two)
 
 
 @dataclass(frozen=True, kw_only=True)
