@@ -24,11 +24,18 @@ scipy's least squares with four models, and the responses compared with the fitt
 - ``ladder+delta``: the ladder plus a small free motion ``delta(t)`` (x and y sinusoids, to first
   order: ``L(u) + delta . dL/dshift(u)``) for the actuators' differing dynamics; the response is
   the ladder's motion plus delta.
-- ``fast``: ``ladder+delta`` by the run's fitter, :func:`torchblur.dm.ladder_fit.fit_ladder_problems`
-  (batched, analytic Jacobian, torch LM), on the same ladder (noiseless: variance 0) and frames.
+- ``fast``: the run's fitter, :func:`torchblur.dm.ladder_fit.fit_ladder_problems` (batched,
+  analytic Jacobian, torch LM: the ladder and a free motion across ``s`` to fourth order), on a
+  ladder of the same levels times the command of a static motion of the sweep's largest (the
+  run's ``ladder_levels``: the ladder spans the motion; noiseless: variance 0) and the same frames;
+  ``shape``: the candidate of ``benchmarks/dm_ladder_shape.py`` (the spot's shape given its own
+  command, to first order; not the run's model), on the same ladder. Each prints beside the
+  summary the pull toward the pattern's common command (``b`` of ``Y - Yt = b (Yt - Yc)``, ``Yc``
+  every live actuator at their mean response) and rms(|error|/std) with the fit's own stds
+  (those of one set of noisy frames).
 
     python benchmarks/bench_dm_spot_models.py [--patterns 1] [--freq 342] [--same-dynamics]
-        [--models base,linear,ladder,ladder+delta,fast] [--spots 0:80]
+        [--models base,linear,ladder,ladder+delta,fast,shape] [--spots 0:80]
 
 Slow (scipy with finite-difference Jacobians, one spot at a time: minutes per model and
 pattern); ``fast`` is the batched one (the wall times of one run compare them).
@@ -52,7 +59,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import bench_dm_spot_causes as bc  # noqa: E402
 import hcipy_sh as hs  # noqa: E402
 
-import torchblur.dm.ladder_fit as lf  # noqa: E402
+import dm_ladder_shape  # noqa: E402
 from torchblur.config import load_config  # noqa: E402
 from torchblur.config.budget import dm_plan  # noqa: E402
 from torchblur.dm.ladder_fit import PatternLadder, fit_ladder_problems  # noqa: E402
@@ -212,17 +219,17 @@ def fit_ladder(case: Case, p: int, spots, delta: bool):
     return out
 
 
-def fit_fast(case: Case, spots):
+def fit_fast(case: Case, spots, fit=fit_ladder_problems):
     """``fast`` (module docstring): ``(Y [P, 2S] per unit amplitude, chi2 [P, S], std [P, 2S])`` of
     the spots ``spots`` (S of them); ``std`` the fit's own (the camera noise's weights: what one
-    noisy set of frames would give)."""
+    noisy set of frames would give); ``fit``: the run's or the candidate's ``fit_ladder_problems``."""
     sp = list(spots)
     levels, imgs = case.ladder(sp)  # [P, K] input units, [P, K, S, h, w] e-/s at the sweep's power
     ladder = PatternLadder(levels, imgs, torch.zeros_like(imgs), case.kern[sp])
     crops = case.crops[:, :, sp]
     t0 = time.perf_counter()
-    fits = fit_ladder_problems(crops, ladder, case.window, torch.tensor([case.om], dtype=_F64), torch.as_tensor(case.amps)[:, None],
-                               power=1.0, noise_std=camera_noise_std(crops, bc.READ_NOISE_E))
+    fits = fit(crops, ladder, case.window, torch.tensor([case.om], dtype=_F64), torch.as_tensor(case.amps)[:, None],
+               power=1.0, noise_std=camera_noise_std(crops, bc.READ_NOISE_E))
     print(f"  fast: the fit of {crops.shape[0] * crops.shape[2]} problems took {time.perf_counter() - t0:.3f} s (the rest: the static frames)")
     bad = int((fits.status != 0).sum())
     if bad:
@@ -231,7 +238,7 @@ def fit_fast(case: Case, spots):
     return Y[..., 0], fits.reduced_chi2[:, 0].numpy() * 2 * case.pitch ** 2, np.sqrt(np.trace(C[:, :, 0], axis1=-2, axis2=-1) / 2)
 
 
-def fit_noisy(case: Case, spots, draws: int, frames: int, seed: int = 0) -> None:
+def fit_noisy(case: Case, spots, draws: int, frames: int, seed: int = 0, fit_problems=fit_ladder_problems) -> None:
     """``--noisy``: ``fast`` on noisy frames: the sweep's crops with Poisson and read noise, a ladder
     of ``frames`` frames per level (each over the longer exposure: the mean, its variance from the
     expected signal), a still of 256 such frames; ``draws`` noise draws. Prints rms(error/std) of
@@ -250,7 +257,7 @@ def fit_noisy(case: Case, spots, draws: int, frames: int, seed: int = 0) -> None
         return torch.as_tensor(mean), (e + bc.READ_NOISE_E ** 2) / n
 
     def fit(data, ladder):  # weighted by the camera noise of the expected signal
-        f = fit_ladder_problems(data, ladder, case.window, torch.tensor([case.om], dtype=_F64), torch.as_tensor(case.amps)[:, None],
+        f = fit_problems(data, ladder, case.window, torch.tensor([case.om], dtype=_F64), torch.as_tensor(case.amps)[:, None],
                                 power=1.0, noise_std=camera_noise_std(crops, bc.READ_NOISE_E))
         Y, C = pattern_responses(f, case.amps[:, None])
         return Y[..., 0], C[:, :, 0], f
@@ -328,17 +335,13 @@ def main(argv=None) -> None:
             Y, chi2 = case.Y0, case.fits.reduced_chi2[:, 0].numpy() * n_pix
             summary(name, Y[:, cols], case.Yt[:, cols], chi2[:, list(spots)], n_pix, time.perf_counter() - t1)
             continue
-        if name in ("fast", "former"):
-            prior = lf.SHAPE_PRIOR
-            lf.SHAPE_PRIOR = 1e-12 if name == "former" else prior  # former: the shape's command held at the motion's (w = 0)
-            try:
-                Y, chi2, std = fit_fast(case, spots)
-                summary(name, Y, case.Yt[:, cols], chi2, n_pix, time.perf_counter() - t1)
-                pull(name, Y, case.Yt[:, cols], case.Yc[:, cols], std)
-                if a.noisy:
-                    fit_noisy(case, spots, a.noisy, a.ladder_frames)
-            finally:
-                lf.SHAPE_PRIOR = prior
+        if name in ("fast", "shape"):
+            fit = dm_ladder_shape.fit_ladder_problems if name == "shape" else fit_ladder_problems
+            Y, chi2, std = fit_fast(case, spots, fit)
+            summary(name, Y, case.Yt[:, cols], chi2, n_pix, time.perf_counter() - t1)
+            pull(name, Y, case.Yt[:, cols], case.Yc[:, cols], std)
+            if a.noisy:
+                fit_noisy(case, spots, a.noisy, a.ladder_frames, fit_problems=fit)
             continue
         Y = np.full((len(case.pats), 2 * case.M), np.nan + 0j)
         chi2 = []

@@ -6,7 +6,7 @@ changes shape as it moves; a shifted still (:func:`~torchblur.dm.spot_fit.fit_sp
 reads the change as motion. Here the spot's crop at time ``t`` of problem (pattern ``p``,
 frequency ``f``, spot ``m``) is
 
-    power * sum_j d(t)^j / j! Dn^j [L(u(t)) + w(t) (L'(u(t)) - Ds L(u(t)))],   j = 0..ORDER
+    power * sum_j d(t)^j / j! Dn^j L(u(t)),   j = 0..ORDER
 
 - ``L(u)``: the static image (e-/s at laser power 1) of pattern ``p`` held at the scalar command
   ``u`` (every actuator ``j`` at ``u * pattern[j]``): a cubic spline in ``u`` per pixel through
@@ -14,19 +14,6 @@ frequency ``f``, spot ``m``) is
   ``Dn^j L`` its j-th derivatives along a shift of the image by ``n`` (Fourier, of each level's
   image, splined the same way, the spline being linear in the knot values);
 - ``u(t) = gc cos(w t) + gs sin(w t)`` (the pattern's own response: the phasor ``G = gs + i gc``);
-- ``w(t) = w_cos cos(w t) + w_sin sin(w t)``: the shape's own command less ``u``. To first order
-  in ``w`` the bracket is the ladder's image at ``u + w`` moved back by ``s w`` (``L' = dL/du``,
-  ``Ds`` the derivative along a shift by ``s``): the spot sits where ``u`` puts it and has the
-  shape of ``u + w``. Where a pattern's actuators respond differently (above their modes) the
-  curvature under a lenslet, which sets a spot's shape, follows another mix of actuators than
-  its tilt, which sets its position; with the shape tied to ``u`` the fitted ``u`` was a
-  compromise between the two, and the motions came out pulled toward the pattern's common
-  command (``benchmarks/bench_dm_spot_models.py --models former,fast``). Where a spot barely
-  changes shape (Gaussian spots), ``w`` is not seen: a prior ``w_cos, w_sin ~ N(0,``
-  :data:`SHAPE_PRIOR` ``x`` the ladder's largest level ``)`` (two pseudo-data rows) keeps the LM
-  and the covariance regular; the reported motion's covariance is marginal over ``w``. Its terms
-  are carried to :data:`SHAPE_ORDER` in ``d``; the ladder's noise in ``Ds L`` and through ``s`` in
-  ``Ds`` is left out (``w`` is small);
 - ``d(t) = n_cos cos(w t) + n_sin sin(w t)``: a free motion (px) along ``n``, the unit normal of
   ``s`` (below), as the Taylor series of a shift to :data:`ORDER`. The actuators' differing
   dynamics move a spot off the ladder's path (near a resonance of the small simulated mirror by
@@ -37,9 +24,9 @@ frequency ``f``, spot ``m``) is
   free x and y motion gave the spot motions a bias of +0.35 std, the DC gains 1 % high;
 - each exposure integrated by :data:`NODES` Gauss-Legendre nodes.
 
-The model is linear in the ladder's images: an exposure is ``sum_jk c_jk(theta) Dn^j L_k`` (and ``Dn^j Ds L_k``), the coefficients from the spline's basis at the nodes, so the image and its analytic
+The model is linear in the ladder's images: an exposure is ``sum_jk c_jk(theta) Dn^j L_k``, the coefficients from the spline's basis at the nodes, so the image and its analytic
 Jacobian are one batched GEMM per problem; :func:`~torchblur.optim.levenberg_marquardt` fits the
-six parameters. The reported motion per axis is the phasor ``s G + N n`` (``N = n_sin + i n_cos``; ``s = (s_x, s_y)``
+four parameters. The reported motion per axis is the phasor ``s G + N n`` (``N = n_sin + i n_cos``; ``s = (s_x, s_y)``
 the spot's static shift per unit ``u``: the slope at ``u = 0`` of the still's best shifts to the
 levels' images, :func:`static_slope`, the convention of the fitted-shift truth), as amplitude and phase
 with their covariance in :class:`~torchblur.dm.spot_fit.SpotFits`' order, so
@@ -84,14 +71,11 @@ NODES = 96  #: Gauss-Legendre nodes per exposure (benchmarks/bench_dm_spot_model
 PAD = 6  #: px of zero padding around a crop for its Fourier shift derivatives
 DARK_SNR = 5.0  #: a problem whose data correlate with its still below this many noise stds is DARK
 MAX_ITER = 60
-N_PAR = 6  #: (gc, gs, n_cos, n_sin, w_cos, w_sin): the command phasor, the free motion across the static shift, the shape's own command
+N_PAR = 4  #: (gc, gs, n_cos, n_sin): the command phasor and the free motion across the static shift
 STEP_MAX = 6.0  #: std: a longer correction step is not taken
 LEFT_MAX = 0.3  #: std: a fit whose Gauss-Newton step left is shorter has converged (the LM crawls along a curved valley)
 BIAS_ITER = 3  #: Gauss-Newton steps on the bias-corrected cost after the fit (:func:`_bias_step`; 3 converge)
 ORDER = 4  #: the free motion's Taylor order (:func:`_coefficients`)
-SHAPE_ORDER = 2  #: the free motion's Taylor order in the shape's term ``w (L' - Ds L)`` (:func:`_coefficients`)
-PRIOR_ROWS = 2  #: the shape prior's pseudo-data rows after the pixels (:func:`_with_prior`)
-SHAPE_PRIOR = 0.25  #: the prior std of the shape's command ``w`` (each of ``w_cos, w_sin``), of the ladder's largest level
 
 
 @dataclass(frozen=True)
@@ -187,10 +171,10 @@ def _basis_at(u, knots, coef):
     return B.reshape(u.shape + (K,)), dB.reshape(u.shape + (K,))
 
 
-def _integrated_basis(u, weights, knots, coef):
-    """``[n, E, G0 + G1 + G2, K]``: ``sum_s weights[r][..., g, s] d^r B/du^r (u_s)`` for ``r = 0, 1, 2``
-    (the basis and its first two derivatives) at nodes ``u [n, E, S]`` (``weights[r] [n, E, Gr, S]``;
-    ``knots``, ``coef`` as :func:`_basis_at`). Each node's powers of its offset in its interval are placed in that
+def _integrated_basis(u, wb, wd, knots, coef):
+    """``[n, E, A + D, K]``: ``sum_s wb[..., a, s] B(u_s)`` then ``sum_s wd[..., d, s] dB/du(u_s)``
+    at nodes ``u [n, E, S]`` (weights ``wb [n, E, A, S]``, ``wd [n, E, D, S]``; ``knots``, ``coef``
+    as :func:`_basis_at`). Each node's powers of its offset in its interval are placed in that
     interval's slots (``[S, 4 (K - 1)]``, zero elsewhere), the weights summed into the slots by one
     GEMM, then one product with the basis's coefficients: no ``[S, 4, K]`` per node."""
     n, K = knots.shape
@@ -198,13 +182,12 @@ def _integrated_basis(u, weights, knots, coef):
     flat = u.reshape(n, -1)
     i = (torch.searchsorted(knots, flat.contiguous()) - 1).clamp(0, K - 2)
     d = (flat - torch.gather(knots, 1, i)).reshape(n, E, S, 1)
-    one, zero = torch.ones_like(d), torch.zeros_like(d)
+    one = torch.ones_like(d)
     slot = 4 * i.reshape(n, E, S, 1) + torch.arange(4, device=u.device)  # [n, E, S, 4]
-    powers = ((d * d * d, d * d, d, one), (3 * d * d, 2 * d, one, zero), (6 * d, 2 * one, zero, zero))
     acc = []
-    for w, pw in zip(weights, powers):
+    for w, pw in ((wb, (d * d * d, d * d, d, one)), (wd, (3 * d * d, 2 * d, one, torch.zeros_like(d)))):
         Z = torch.zeros(n, E, S, 4 * (K - 1), dtype=u.dtype, device=u.device).scatter_(-1, slot, torch.cat(pw, -1))
-        acc.append(w @ Z)  # [n, E, Gr, 4 (K - 1)]
+        acc.append(w @ Z)  # [n, E, A or D, 4 (K - 1)]
     acc = torch.cat(acc, 2)
     return (acc.reshape(n, -1, 4 * (K - 1)) @ coef.reshape(n, 4 * (K - 1), K)).reshape(acc.shape[:3] + (K,))
 
@@ -294,7 +277,7 @@ class _Chunk:
     pf: torch.Tensor  # [c] flat (pattern, frequency)
     freq: torch.Tensor  # [c] frequency
     inv: torch.Tensor  # [c] -> the chunk's ladder
-    lad: torch.Tensor  # [u, (R + RW) K, hw]: Dn^j L of every level, j < R = ORDER + 1 (Dn: the derivative along the normal n of s), then Dn^j Ds L, j <= SHAPE_ORDER
+    lad: torch.Tensor  # [u, (ORDER + 1) K, hw]: Dn^j L of every level, j = 0..ORDER (Dn: the derivative along the normal n of s)
     var: torch.Tensor  # [u, K, hw]: the variance of L
     noise: torch.Tensor  # [u, 2, K, hw]: the pixel variances of the ladder's L and Dn L (their covariance: 0)
     slope: torch.Tensor  # [c, 2] s: px per unit u
@@ -355,10 +338,7 @@ def _chunk(prob: _Problems, ladder: PatternLadder, rows, like) -> _Chunk:
     blocks = [L]
     for _ in range(ORDER):
         blocks.append(_along(blocks[-1], n[:, None]))
-    blocks.append(_along(L, slope[:, None]))  # Ds L: the derivative along a shift by s
-    for _ in range(SHAPE_ORDER):
-        blocks.append(_along(blocks[-1], n[:, None]))
-    lad = torch.cat(blocks, 1).reshape(len(uniq), len(blocks) * K, h * w)
+    lad = torch.cat(blocks, 1).reshape(len(uniq), (ORDER + 1) * K, h * w)
     var = var.reshape(len(uniq), K, h * w)
     dmat = _derivative_matrix(h, w, like["dtype"], torch.device(like["device"]))  # [q', a, q] = D_a[q, q']
     dd = torch.stack([dmat[:, 0] ** 2, dmat[:, 1] ** 2, 2 * dmat[:, 0] * dmat[:, 1]])  # [3, q', q]
@@ -369,41 +349,24 @@ def _chunk(prob: _Problems, ladder: PatternLadder, rows, like) -> _Chunk:
 
 
 def _coefficients(theta, prob: _Problems, ch: _Chunk, idx):
-    """``(C [n, E, 1 + N_PAR, R + RW, K], u [n, E, S])``: the image (row 0) and its derivatives along
-    the parameters (rows 1-6) of problems ``idx`` (of the chunk) as weights of the ladder's blocks
-    (``Dn^j L``, ``j < R = ORDER + 1``, then ``Dn^j Ds L``, ``j < RW = SHAPE_ORDER + 1``) of every
-    level, already integrated over each exposure's nodes (s). The module docstring's model:
-    ``sum_j d^j / j! Dn^j [L(u) + w (L'(u) - Ds L(u))]`` (the ``w`` terms to ``j <= SHAPE_ORDER``),
-    ``L' = dL/du`` the spline's derivative."""
+    """``(C [n, E, 5, ORDER + 1, K], u [n, E, S])``: the image (row 0) and its derivatives along
+    the four parameters (rows 1-4) of problems ``idx`` (of the chunk) as weights of the ladder's
+    ``Dn^j L`` (``j = 0..ORDER``) of every level, already integrated over each exposure's nodes
+    (s). The free motion ``d(t) n`` (``d = n_cos cos(w t) + n_sin sin(w t)``, ``n`` the unit
+    normal of ``s``, :func:`_normal`) moves the ladder's image along ``n`` by its Taylor series to
+    :data:`ORDER`: ``sum_j d^j / j! Dn^j L(u)``."""
+    pat = ch.pat[idx]
     cw, sw, wq = _nodes(prob, ch.pf[idx])
     u = theta[:, 0, None, None] * cw + theta[:, 1, None, None] * sw
     d = theta[:, 2, None, None] * cw + theta[:, 3, None, None] * sw  # [n, E, S] px along n
-    w = theta[:, 4, None, None] * cw + theta[:, 5, None, None] * sw  # [n, E, S] the shape's command minus u
-    R, RW = ORDER + 1, SHAPE_ORDER + 1
-    T = [wq * d ** j / math.factorial(j) for j in range(R)]  # the Taylor terms' weights d^j / j!
-    terms = ([], [], [])  # per derivative order of the basis: (row, block, weight [n, E, S])
-    for j in range(R):
-        terms[0].append((0, j, T[j]))
-        for r, c in ((1, cw), (2, sw)):
-            terms[1].append((r, j, c * T[j]))
-            if j:
-                terms[0].append((r + 2, j, c * T[j - 1]))
-        if j < RW:  # the shape's terms: on Dn^j L through L', on Dn^j Ds L through L
-            terms[1].append((0, j, w * T[j]))
-            terms[0].append((0, R + j, -w * T[j]))
-            for r, c in ((1, cw), (2, sw)):
-                terms[2].append((r, j, c * w * T[j]))
-                terms[1].append((r, R + j, -c * w * T[j]))
-                terms[1].append((r + 4, j, c * T[j]))
-                terms[0].append((r + 4, R + j, -c * T[j]))
-                if j:
-                    terms[1].append((r + 2, j, c * w * T[j - 1]))
-                    terms[0].append((r + 2, R + j, -c * w * T[j - 1]))
-    out = _integrated_basis(u, [torch.stack([t[2] for t in g], 2) for g in terms], prob.knots[ch.pat[idx]], prob.coef[ch.pat[idx]])
-    n, E, K = out.shape[0], out.shape[1], out.shape[-1]
-    where = torch.tensor([r * (R + RW) + b for g in terms for r, b, _ in g], device=out.device)
-    C = out.new_zeros(n, E, (N_PAR + 1) * (R + RW), K).index_add_(2, where, out)
-    return C.reshape(n, E, N_PAR + 1, R + RW, K), u
+    pw = [wq * d ** j / math.factorial(j) for j in range(ORDER + 1)]  # the Taylor terms' weights d^j / j!
+    out = _integrated_basis(u, torch.stack(pw + [c * p for c in (cw, sw) for p in pw[:-1]], 2),
+                            torch.stack([c * p for c in (cw, sw) for p in pw], 2), prob.knots[pat], prob.coef[pat])
+    R = ORDER + 1
+    img, bdc, bds, dgc, dgs = out[:, :, :R], out[:, :, R:2 * R - 1], out[:, :, 2 * R - 1:3 * R - 2], out[:, :, 3 * R - 2:4 * R - 2], out[:, :, 4 * R - 2:]
+    zero = torch.zeros_like(img[:, :, :1])
+    rows = [img, dgc, dgs, torch.cat([zero, bdc], 2), torch.cat([zero, bds], 2)]  # each [n, E, R, K]: the image and d/d(gc, gs, n_cos, n_sin)
+    return torch.stack(rows, 2), u
 
 
 def _nodes(prob: _Problems, pf):
@@ -418,9 +381,9 @@ def _model_jacobian(theta, prob: _Problems, ch: _Chunk, idx):
     n, E = C.shape[:2]
     sel = ch.inv[idx]
     same = sel.numel() == ch.lad.shape[0] and bool((sel == torch.arange(sel.numel(), device=sel.device)).all())
-    C = (C * prob.power[ch.freq[idx], None, None, None, None]).transpose(1, 2).reshape(n, (N_PAR + 1) * E, -1)  # [n, 7 E, (R + RW) K]
-    out = (C @ (ch.lad if same else ch.lad[sel])).reshape(n, N_PAR + 1, -1)  # [n, 7, E*hw] (no copy of the ladders in order)
-    return out[:, 0], out[:, 1:].transpose(1, 2)  # J: a view of [n, 6, E*hw], the layout the normal equations' GEMMs want
+    C = (C * prob.power[ch.freq[idx], None, None, None, None]).transpose(1, 2).reshape(n, (N_PAR + 1) * E, -1)  # [n, 5 E, (ORDER + 1) K]
+    out = (C @ (ch.lad if same else ch.lad[sel])).reshape(n, N_PAR + 1, -1)  # [n, 5, E*hw] (no copy of the ladders in order)
+    return out[:, 0], out[:, 1:].transpose(1, 2)  # J: a view of [n, 4, E*hw], the layout the normal equations' GEMMs want
 
 
 def _start(prob: _Problems, ch: _Chunk, b0):
@@ -516,12 +479,9 @@ def _ladder_covariance(theta, prob: _Problems, ch: _Chunk, J, W, Cw, H_t, H_s):
     pw = prob.power[ch.freq]
     v = (W[..., None] * J).reshape(c, E, h, w, N_PAR).permute(0, 4, 1, 2, 3)  # [c, 4, E, h, w]
     n = _normal(ch.slope)[:, None, None]  # [c, 1, 1, 2]
-    G, vj, vs = 0, v, -_along(v, ch.slope[:, None, None])
-    for j in range(ORDER + 1):  # (Dn^j)^T = (-Dn)^j, (Dn^j Ds)^T = (-Dn)^j (-Ds)
+    G, vj = 0, v
+    for j in range(ORDER + 1):  # (Dn^j)^T = (-Dn)^j
         G = G + torch.einsum("cek,cpeq->cpkq", C[:, :, 0, j], vj.reshape(c, N_PAR, E, h * w))
-        if j <= SHAPE_ORDER:
-            G = G + torch.einsum("cek,cpeq->cpkq", C[:, :, 0, ORDER + 1 + j], vs.reshape(c, N_PAR, E, h * w))
-            vs = -_along(vs, n)
         if j < ORDER:
             vj = -_along(vj, n)
     G = G * pw[:, None, None, None]
@@ -557,12 +517,11 @@ def _debias(theta, data, W, s2, prob: _Problems, ch: _Chunk, jac):
     ``S - V`` and is shorter than :data:`STEP_MAX` std; a refused step ends that problem's correction."""
     c = theta.shape[0]
     idx = torch.arange(c, device=theta.device)
-    Wp = W[:, :-PRIOR_ROWS]  # the pixels' weights (the prior's rows last)
 
     def state(th):
         model, J = jac(th, idx)
-        var, grad = _model_noise(_coefficients(th, prob, ch, idx)[0], prob, ch, Wp)
-        q = (W * (data - model).square()).sum(-1) - (Wp * var.reshape(c, -1)).sum(-1)
+        var, grad = _model_noise(_coefficients(th, prob, ch, idx)[0], prob, ch, W)
+        q = (W * (data - model).square()).sum(-1) - (W * var.reshape(c, -1)).sum(-1)
         return [th, model, J, q, grad]
     st = state(theta)
     going = torch.ones(c, dtype=torch.bool, device=theta.device)
@@ -579,45 +538,29 @@ def _debias(theta, data, W, s2, prob: _Problems, ch: _Chunk, jac):
     return st[0], st[1], st[2], Cw, info, left
 
 
-def _with_prior(prob: _Problems, ch: _Chunk, sigma):
-    """The model and Jacobian of :func:`_model_jacobian` with the shape prior's :data:`PRIOR_ROWS`
-    rows last: ``w_cos / sigma``, ``w_sin / sigma`` (``sigma [c]``, data 0, weight 1)."""
-    def jac(th, i):
-        model, J = _model_jacobian(th, prob, ch, i)
-        pj = th.new_zeros(th.shape[0], N_PAR, PRIOR_ROWS)
-        pj[:, 4, 0] = pj[:, 5, 1] = 1 / sigma[i]
-        return torch.cat([model, th[:, 4:] / sigma[i, None]], -1), torch.cat([J.transpose(1, 2), pj], -1).transpose(1, 2)
-    return jac
-
-
 def _fit_chunk(prob: _Problems, ch: _Chunk, b0):
     """Fit one chunk: ``dict`` of ``[c]``-batched amplitude, phase, covariance, status, flags, reduced_chi2."""
     c = ch.rows.numel()
     E = prob.shape[3]
     data, W = prob.data[ch.rows].reshape(c, -1), prob.weight[ch.rows].reshape(c, -1)
-    q = data.shape[1]
-    sigma = SHAPE_PRIOR * prob.knots.abs().amax(-1)[ch.pat]  # [c] the prior std of w_cos and w_sin
-    data_x = torch.cat([data, data.new_zeros(c, PRIOR_ROWS)], -1)
-    W_x = torch.cat([W, W.new_ones(c, PRIOR_ROWS)], -1)
-    jac = _with_prior(prob, ch, sigma)
-    res = levenberg_marquardt(lambda th, i: jac(th, i)[0], _start(prob, ch, b0), data_x, weight=W_x, max_iter=MAX_ITER,
+    jac = lambda th, i: _model_jacobian(th, prob, ch, i)  # noqa: E731
+    res = levenberg_marquardt(lambda th, i: jac(th, i)[0], _start(prob, ch, b0), data, weight=W, max_iter=MAX_ITER,
                               jacobian_fn=jac, gn_tol=1e-2)
     theta = res.theta
     all_c = torch.arange(c, device=theta.device)
     used = (W > 0).sum(-1).to(theta.dtype)
-    dof = (used - N_PAR + PRIOR_ROWS).clamp_min(1)
-    s2 = torch.ones(c, dtype=theta.dtype, device=theta.device) if prob.noise_given else ((data - jac(theta, all_c)[0][:, :q]).square() * W).sum(-1) / dof
-    theta, model, J, Cw, info, left = _debias(theta, data_x, W_x, s2, prob, ch, jac)
-    model, Jp = model[:, :q], J[:, :q]
+    dof = (used - N_PAR).clamp_min(1)
+    s2 = torch.ones(c, dtype=theta.dtype, device=theta.device) if prob.noise_given else ((data - jac(theta, all_c)[0]).square() * W).sum(-1) / dof
+    theta, model, J, Cw, info, left = _debias(theta, data, W, s2, prob, ch, jac)
     r2 = (data - model).square()
     converged = res.converged | (left < LEFT_MAX ** 2)  # the LM's own test, or the step left is short (noiseless data too)
     amp, phase, H_t, H_s = _report_jacobians(theta, ch.slope)
-    cov_l, var_model = _ladder_covariance(theta, prob, ch, Jp, W, Cw, H_t, H_s)
+    cov_l, var_model = _ladder_covariance(theta, prob, ch, J, W, Cw, H_t, H_s)
     if prob.noise_given:
         cov_d = Cw
-    else:  # the sandwich with each pixel's own squared residual (the noise differs from pixel to pixel: shot noise), plus the prior's information
-        WJ = (W * W * r2)[..., None] * Jp
-        cov_d = Cw @ (Jp.transpose(1, 2) @ WJ + J[:, q:].transpose(1, 2) @ J[:, q:]) @ Cw
+    else:  # the sandwich with each pixel's own squared residual: the noise differs from pixel to pixel (shot noise)
+        WJ = (W * W * r2)[..., None] * J
+        cov_d = Cw @ (J.transpose(1, 2) @ WJ) @ Cw
     cov = H_t @ cov_d @ H_t.transpose(1, 2) + cov_l
     chi2 = torch.full((c,), float("nan"), dtype=theta.dtype, device=theta.device)
     if prob.noise_given:
@@ -696,7 +639,7 @@ def fit_ladder_problems(crops, ladder: PatternLadder, window, omega, amplitude, 
     n = P * F * M
     b0 = _basis_at(torch.zeros(P, 1, **like), prob.knots, prob.coef)
     b0 = (b0[0][:, 0], b0[1][:, 0])  # [P, K] each: the basis and its derivative at u = 0
-    chunk = chunk_size(2 * E + 4 * K, h, w, device=dev, dtype=like["dtype"]) if chunk is None else check_int(chunk, "chunk", low=1)
+    chunk = chunk_size(E + 3 * K, h, w, device=dev, dtype=like["dtype"]) if chunk is None else check_int(chunk, "chunk", low=1)
     status = _prefit_status(prob, ladder.still)
     nan = torch.full((n,), float("nan"), **like)
     out = dict(amplitude=nan[:, None].repeat(1, 2), phase=nan[:, None].repeat(1, 2), covariance=nan[:, None, None].repeat(1, 4, 4),
