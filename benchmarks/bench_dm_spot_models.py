@@ -29,13 +29,15 @@ scipy's least squares with four models, and the responses compared with the fitt
   ladder of the same levels times the command of a static motion of the sweep's largest (the
   run's ``ladder_levels``: the ladder spans the motion; noiseless: variance 0) and the same frames;
   ``shape``: the candidate of ``benchmarks/dm_ladder_shape.py`` (the spot's shape given its own
-  command, to first order; not the run's model), on the same ladder. Each prints beside the
+  command, to first order; not the run's model), on the same ladder; ``exact``: its second
+  candidate (the ladder's image at the shape's command, moved by the Taylor series of a shift
+  along ``s`` and ``n``: ``fit_exact_problems``). Each prints beside the
   summary the pull toward the pattern's common command (``b`` of ``Y - Yt = b (Yt - Yc)``, ``Yc``
   every live actuator at their mean response) and rms(|error|/std) with the fit's own stds
   (those of one set of noisy frames).
 
     python benchmarks/bench_dm_spot_models.py [--patterns 1] [--freq 342] [--same-dynamics]
-        [--models base,linear,ladder,ladder+delta,fast,shape] [--spots 0:80]
+        [--models base,linear,ladder,ladder+delta,fast,shape,exact] [--spots 0:80]
 
 Slow (scipy with finite-difference Jacobians, one spot at a time: minutes per model and
 pattern); ``fast`` is the batched one (the wall times of one run compare them).
@@ -335,8 +337,8 @@ def main(argv=None) -> None:
             Y, chi2 = case.Y0, case.fits.reduced_chi2[:, 0].numpy() * n_pix
             summary(name, Y[:, cols], case.Yt[:, cols], chi2[:, list(spots)], n_pix, time.perf_counter() - t1)
             continue
-        if name in ("fast", "shape"):
-            fit = dm_ladder_shape.fit_ladder_problems if name == "shape" else fit_ladder_problems
+        if name in ("fast", "shape", "exact"):
+            fit = {"fast": fit_ladder_problems, "shape": dm_ladder_shape.fit_ladder_problems, "exact": dm_ladder_shape.fit_exact_problems}[name]
             Y, chi2, std = fit_fast(case, spots, fit)
             summary(name, Y, case.Yt[:, cols], chi2, n_pix, time.perf_counter() - t1)
             pull(name, Y, case.Yt[:, cols], case.Yc[:, cols], std)

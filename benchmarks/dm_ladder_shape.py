@@ -92,6 +92,8 @@ PRIOR_ROWS = 2  #: the shape prior's pseudo-data rows after the pixels (:func:`_
 SHAPE_HELD = 256  #: flag: the problem refitted with ``w = 0`` (:data:`SHAPE_REACH`)
 SHAPE_REACH = math.inf  #: ``|w| / |G|`` (phasors) beyond which the shape's first-order term is not trusted: refitted with ``w = 0``, :data:`SHAPE_HELD`
 HELD_PRIOR = 1e-12  #: the prior std of ``w`` (of the ladder's largest level) that holds it at 0
+EXACT = False  #: :func:`fit_exact_problems`' model (the module docstring's last paragraph) instead of the first-order one
+SHIFT_ORDER = 2  #: EXACT: the Taylor order of the shift ``s e`` (with ``d``'s, to :data:`ORDER` in all)
 SHAPE_PRIOR = 0.25  #: the prior std of the shape's command ``w`` (each of ``w_cos, w_sin``), of the ladder's largest level
 
 
@@ -132,12 +134,13 @@ def _chunk(prob: _Problems, ladder: PatternLadder, rows, like) -> _Chunk:
     else:
         slope, ds_dl = static_slope(L, ladder.still[um].to(**like), prob.knots[up.to(prob.knots.device)])
     n = _normal(slope)  # [u, 2]
-    blocks = [L]
-    for _ in range(ORDER):
-        blocks.append(_along(blocks[-1], n[:, None]))
-    blocks.append(_along(L, slope[:, None]))  # Ds L: the derivative along a shift by s
-    for _ in range(SHAPE_ORDER):
-        blocks.append(_along(blocks[-1], n[:, None]))
+    blocks, base = [], L
+    for k, top in enumerate(_chains()):  # Dn^j Ds^k L, j <= top, Ds the derivative along a shift by s
+        img = base
+        for j in range(top + 1):
+            blocks.append(img)
+            img = _along(img, n[:, None]) if j < top else img
+        base = _along(base, slope[:, None])
     lad = torch.cat(blocks, 1).reshape(len(uniq), len(blocks) * K, h * w)
     var = var.reshape(len(uniq), K, h * w)
     dmat = _derivative_matrix(h, w, like["dtype"], torch.device(like["device"]))  # [q', a, q] = D_a[q, q']
@@ -148,13 +151,50 @@ def _chunk(prob: _Problems, ladder: PatternLadder, rows, like) -> _Chunk:
                   slope=slope[inv], ds_dl=ds_dl[inv])
 
 
+def _chains():
+    """The ladder's blocks: ``[top_0, top_1, ...]``, ``Dn^j Ds^k L`` for ``j <= top_k`` (in that order)."""
+    return [ORDER] + ([ORDER - k for k in range(1, SHIFT_ORDER + 1)] if EXACT else [SHAPE_ORDER])
+
+
+def _exact_coefficients(theta, prob: _Problems, ch: _Chunk, idx):
+    """EXACT: ``(C [n, E, 7, blocks, K], v [n, E, S])``: the image ``sum_jk d^j e^k / (j! k!) Dn^j Ds^k L(v)``
+    (``v`` the shape's command, ``e`` the shift's command beyond it: the motion ``s (v + e) + n d``)
+    and its derivatives along ``(v_cos, v_sin, n_cos, n_sin, e_cos, e_sin)``."""
+    cw, sw, wq = _nodes(prob, ch.pf[idx])
+    v = theta[:, 0, None, None] * cw + theta[:, 1, None, None] * sw
+    d = theta[:, 2, None, None] * cw + theta[:, 3, None, None] * sw
+    e = theta[:, 4, None, None] * cw + theta[:, 5, None, None] * sw
+    T = [d ** j / math.factorial(j) for j in range(ORDER + 1)]
+    X = [e ** k / math.factorial(k) for k in range(SHIFT_ORDER + 1)]
+    terms, b = ([], [], []), 0
+    for k, top in enumerate(_chains()):
+        for j in range(top + 1):
+            terms[0].append((0, b, wq * T[j] * X[k]))
+            for r, c in ((1, cw), (2, sw)):
+                terms[1].append((r, b, c * wq * T[j] * X[k]))
+                if j:
+                    terms[0].append((r + 2, b, c * wq * T[j - 1] * X[k]))
+                if k:
+                    terms[0].append((r + 4, b, c * wq * T[j] * X[k - 1]))
+            b += 1
+    n, E, S = v.shape
+    out = _integrated_basis(v, [torch.stack([t[2] for t in g], 2) if g else v.new_zeros(n, E, 0, S) for g in terms],
+                            prob.knots[ch.pat[idx]], prob.coef[ch.pat[idx]])
+    K = out.shape[-1]
+    where = torch.tensor([r * b + i for g in terms for r, i, _ in g], device=out.device)
+    C = out.new_zeros(n, E, (N_PAR + 1) * b, K).index_add_(2, where, out)
+    return C.reshape(n, E, N_PAR + 1, b, K), v
+
+
 def _coefficients(theta, prob: _Problems, ch: _Chunk, idx):
     """``(C [n, E, 1 + N_PAR, R + RW, K], u [n, E, S])``: the image (row 0) and its derivatives along
     the parameters (rows 1-6) of problems ``idx`` (of the chunk) as weights of the ladder's blocks
     (``Dn^j L``, ``j < R = ORDER + 1``, then ``Dn^j Ds L``, ``j < RW = SHAPE_ORDER + 1``) of every
     level, already integrated over each exposure's nodes (s). The module docstring's model:
     ``sum_j d^j / j! Dn^j [L(u) + w (L'(u) - Ds L(u))]`` (the ``w`` terms to ``j <= SHAPE_ORDER``),
-    ``L' = dL/du`` the spline's derivative."""
+    ``L' = dL/du`` the spline's derivative. EXACT: :func:`_exact_coefficients`."""
+    if EXACT:
+        return _exact_coefficients(theta, prob, ch, idx)
     cw, sw, wq = _nodes(prob, ch.pf[idx])
     u = theta[:, 0, None, None] * cw + theta[:, 1, None, None] * sw
     d = theta[:, 2, None, None] * cw + theta[:, 3, None, None] * sw  # [n, E, S] px along n
@@ -233,7 +273,7 @@ def _report_jacobians(theta, slope):
     fitted ``G`` takes up a turn of it to first order) as amplitude and phase, and its Jacobians
     along ``theta`` and ``s`` in the order (amplitude_x, phase_x, amplitude_y, phase_y)."""
     c = theta.shape[0]
-    gc, gs = theta[:, 0], theta[:, 1]
+    gc, gs = (theta[:, 0] + theta[:, 4], theta[:, 1] + theta[:, 5]) if EXACT else (theta[:, 0], theta[:, 1])
     nrm = _normal(slope)
     re = slope * gs[:, None] + nrm * theta[:, 3, None]  # [c, 2]: Re of x and y
     im = slope * gc[:, None] + nrm * theta[:, 2, None]
@@ -242,6 +282,8 @@ def _report_jacobians(theta, slope):
     for a in range(2):
         cart_t[:, 2 * a, 1], cart_t[:, 2 * a, 3] = slope[:, a], nrm[:, a]
         cart_t[:, 2 * a + 1, 0], cart_t[:, 2 * a + 1, 2] = slope[:, a], nrm[:, a]
+        if EXACT:
+            cart_t[:, 2 * a, 5], cart_t[:, 2 * a + 1, 4] = slope[:, a], slope[:, a]
         cart_s[:, 2 * a, a], cart_s[:, 2 * a + 1, a] = gs, gc
     amp = torch.hypot(re, im)
     a2 = amp.square().clamp_min(torch.finfo(amp.dtype).tiny)
@@ -262,14 +304,15 @@ def _ladder_covariance(theta, prob: _Problems, ch: _Chunk, J, W, Cw, H_t, H_s):
     pw = prob.power[ch.freq]
     v = (W[..., None] * J).reshape(c, E, h, w, N_PAR).permute(0, 4, 1, 2, 3)  # [c, 4, E, h, w]
     n = _normal(ch.slope)[:, None, None]  # [c, 1, 1, 2]
-    G, vj, vs = 0, v, -_along(v, ch.slope[:, None, None])
-    for j in range(ORDER + 1):  # (Dn^j)^T = (-Dn)^j, (Dn^j Ds)^T = (-Dn)^j (-Ds)
-        G = G + torch.einsum("cek,cpeq->cpkq", C[:, :, 0, j], vj.reshape(c, N_PAR, E, h * w))
-        if j <= SHAPE_ORDER:
-            G = G + torch.einsum("cek,cpeq->cpkq", C[:, :, 0, ORDER + 1 + j], vs.reshape(c, N_PAR, E, h * w))
-            vs = -_along(vs, n)
-        if j < ORDER:
-            vj = -_along(vj, n)
+    G, base, b = 0, v, 0
+    for top in _chains():  # (Dn^j Ds^k)^T = (-Dn)^j (-Ds)^k
+        vj = base
+        for j in range(top + 1):
+            G = G + torch.einsum("cek,cpeq->cpkq", C[:, :, 0, b], vj.reshape(c, N_PAR, E, h * w))
+            b += 1
+            if j < top:
+                vj = -_along(vj, n)
+        base = -_along(base, ch.slope[:, None, None])
     G = G * pw[:, None, None, None]
     A = H_t @ (-Cw @ G.reshape(c, N_PAR, -1)) + H_s @ ch.ds_dl.reshape(c, 2, -1)  # [c, 4, K hw]
     var = ch.var[ch.inv]  # [c, K, hw]
@@ -365,7 +408,7 @@ def _fit_chunk(prob: _Problems, ch: _Chunk, b0, prior: float):
     u = theta[:, 0, None, None] * cw + theta[:, 1, None, None] * sw  # the command at the nodes, as in _coefficients
     flags = OUT_OF_LADDER * ((u.flatten(1).amin(-1) < prob.knots[ch.pat, 0]) | (u.flatten(1).amax(-1) > prob.knots[ch.pat, -1])).long()
     flags = flags | NO_MOTION * ((amp / d[:, ::2].clamp_min(0).sqrt() < 3).any(-1)).long()
-    reach = theta[:, 4:].norm(dim=-1) / theta[:, :2].norm(dim=-1).clamp_min(torch.finfo(theta.dtype).tiny)
+    reach = theta[:, 4:].norm(dim=-1) / theta[:, :2].norm(dim=-1).clamp_min(torch.finfo(theta.dtype).tiny)  # |w| / |G| (EXACT: |e| / |v|)
     return dict(amplitude=amp, phase=phase, covariance=cov, status=status, flags=flag_poor_fit(flags, chi2), reduced_chi2=chi2, reach=reach)
 
 
@@ -437,3 +480,16 @@ def fit_ladder_problems(crops, ladder: PatternLadder, window, omega, amplitude, 
                 _store(out, ch.rows, r)
         n_chunks += 1
     return SpotFits(**{k: v.reshape((P, F, M) + tuple(v.shape[1:])) for k, v in out.items()}, n_chunks=n_chunks)
+
+
+def fit_exact_problems(*args, **kw) -> SpotFits:
+    """:func:`fit_ladder_problems` with :data:`EXACT`: the spot's image is the ladder's at the shape's
+    command ``v(t)`` (the spline, exact), moved by ``s e(t) + n d(t)`` (the Taylor series of a shift,
+    ``e`` to :data:`SHIFT_ORDER`, ``d`` to :data:`ORDER`, together to :data:`ORDER`); the motion
+    reported ``s (v + e) + n d``; the prior (:data:`SHAPE_PRIOR`) on ``e``."""
+    global EXACT
+    EXACT = True
+    try:
+        return fit_ladder_problems(*args, **kw)
+    finally:
+        EXACT = False
