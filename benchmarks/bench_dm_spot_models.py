@@ -25,19 +25,19 @@ scipy's least squares with four models, and the responses compared with the fitt
   order: ``L(u) + delta . dL/dshift(u)``) for the actuators' differing dynamics; the response is
   the ladder's motion plus delta.
 - ``fast``: the run's fitter, :func:`torchblur.dm.ladder_fit.fit_ladder_problems` (batched,
-  analytic Jacobian, torch LM: the ladder and a free motion across ``s`` to fourth order), on a
-  ladder of the same levels times the command of a static motion of the sweep's largest (the
-  run's ``ladder_levels``: the ladder spans the motion; noiseless: variance 0) and the same frames;
-  ``shape``: the candidate of ``benchmarks/dm_ladder_shape.py`` (the spot's shape given its own
-  command, to first order; not the run's model), on the same ladder; ``exact``: its second
-  candidate (the ladder's image at the shape's command, moved by the Taylor series of a shift
-  along ``s`` and ``n``: ``fit_exact_problems``). Each prints beside the
+  analytic Jacobian, torch LM: the ladder at the shape's own command, moved along ``s`` and
+  across it by the Taylor series of a shift), on a ladder of the same levels times the command of
+  a static motion of the sweep's largest (the run's ``ladder_levels``: the ladder spans the
+  motion; noiseless: variance 0) and the same frames; ``former``: the same with the shape tied to
+  the motion (the shift's own command held at 0 by a vanishing prior: the model before issue 23's
+  cause 2 was measured); ``shape``: the first-order candidate of ``benchmarks/dm_ladder_shape.py``
+  (measured, not landed). Each prints beside the
   summary the pull toward the pattern's common command (``b`` of ``Y - Yt = b (Yt - Yc)``, ``Yc``
   every live actuator at their mean response) and rms(|error|/std) with the fit's own stds
   (those of one set of noisy frames).
 
     python benchmarks/bench_dm_spot_models.py [--patterns 1] [--freq 342] [--same-dynamics]
-        [--models base,linear,ladder,ladder+delta,fast,shape,exact] [--spots 0:80]
+        [--models base,linear,ladder,ladder+delta,fast,former,shape] [--spots 0:80]
 
 Slow (scipy with finite-difference Jacobians, one spot at a time: minutes per model and
 pattern); ``fast`` is the batched one (the wall times of one run compare them).
@@ -62,6 +62,8 @@ import bench_dm_spot_causes as bc  # noqa: E402
 import hcipy_sh as hs  # noqa: E402
 
 import dm_ladder_shape  # noqa: E402
+
+import torchblur.dm.ladder_fit as lf  # noqa: E402
 from torchblur.config import load_config  # noqa: E402
 from torchblur.config.budget import dm_plan  # noqa: E402
 from torchblur.dm.ladder_fit import PatternLadder, fit_ladder_problems  # noqa: E402
@@ -337,13 +339,18 @@ def main(argv=None) -> None:
             Y, chi2 = case.Y0, case.fits.reduced_chi2[:, 0].numpy() * n_pix
             summary(name, Y[:, cols], case.Yt[:, cols], chi2[:, list(spots)], n_pix, time.perf_counter() - t1)
             continue
-        if name in ("fast", "shape", "exact"):
-            fit = {"fast": fit_ladder_problems, "shape": dm_ladder_shape.fit_ladder_problems, "exact": dm_ladder_shape.fit_exact_problems}[name]
-            Y, chi2, std = fit_fast(case, spots, fit)
-            summary(name, Y, case.Yt[:, cols], chi2, n_pix, time.perf_counter() - t1)
-            pull(name, Y, case.Yt[:, cols], case.Yc[:, cols], std)
-            if a.noisy:
-                fit_noisy(case, spots, a.noisy, a.ladder_frames, fit_problems=fit)
+        if name in ("fast", "former", "shape"):
+            fit = dm_ladder_shape.fit_ladder_problems if name == "shape" else fit_ladder_problems
+            prior = lf.SHAPE_PRIOR
+            lf.SHAPE_PRIOR = 1e-12 if name == "former" else prior
+            try:
+                Y, chi2, std = fit_fast(case, spots, fit)
+                summary(name, Y, case.Yt[:, cols], chi2, n_pix, time.perf_counter() - t1)
+                pull(name, Y, case.Yt[:, cols], case.Yc[:, cols], std)
+                if a.noisy:
+                    fit_noisy(case, spots, a.noisy, a.ladder_frames, fit_problems=fit)
+            finally:
+                lf.SHAPE_PRIOR = prior
             continue
         Y = np.full((len(case.pats), 2 * case.M), np.nan + 0j)
         chi2 = []

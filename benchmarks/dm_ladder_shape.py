@@ -1,18 +1,17 @@
-"""A CANDIDATE, not the run's model: :mod:`torchblur.dm.ladder_fit` with the spot's shape given its
-own command (issue 23, cause 2 of "Why the ladder's actuator stds fail on HCIPy's frames" in
-docs/deformable_mirrors.md), measured by ``benchmarks/bench_dm_spot_models.py --models fast,shape``
-and not landed: on noiseless HCIPy frames it halves the ladder fit's error at 2 kHz, but on noisy
-ones its stds do not hold on the spots whose shape's command differs most from their motion's
-(the first-order term in ``w`` beyond its reach; the docs give the figures). A full copy of
-ladder_fit.py at the time, changed in ``_integrated_basis`` (second derivatives), ``_chunk`` (the
-``Dn^j Ds L`` blocks), ``_coefficients``, ``_ladder_covariance``, ``_debias``, ``_fit_chunk`` (the
-prior's rows), ``_with_prior``, ``_store`` and the fallback to ``w = 0`` beyond :data:`SHAPE_REACH`
-(off by default; at 0.1 it held 26 of 80 problems at 2 kHz and gave the former error back). The
-next step measured to be needed: the shape's command exact (the ladder at ``u + w`` shifted by
-``-s w`` to higher order), not to first order.
+"""A CANDIDATE measured and NOT landed: the DM ladder fit with the spot's shape given its own
+command to FIRST order in it (issue 23, cause 2 of "Why the ladder's actuator stds fail on HCIPy's
+frames" in docs/deformable_mirrors.md), measured against the run's
+(:mod:`torchblur.dm.ladder_fit`, the shape's command exact) by
+``benchmarks/bench_dm_spot_models.py --models fast,former,shape``: on noiseless HCIPy frames it
+halves the former error at 2 kHz, but on noisy ones its stds do not hold on the spots whose
+shape's command differs most from their motion's (the first order in ``w`` beyond its reach; the
+docs give the figures). The functions that differ from ladder_fit's (the rest imported):
+``_integrated_basis`` (second derivatives), ``_chunk`` (the ``Dn^j Ds L`` blocks),
+``_coefficients``, ``_report_jacobians``, ``_ladder_covariance``, ``_debias``, ``_fit_chunk``,
+``_with_prior``, ``_store``; a fallback to ``w = 0`` beyond :data:`SHAPE_REACH` (off; at 0.1 it
+held 26 of 80 problems at 2 kHz and gave the former error back).
 
-The DM spot fit on a *ladder*: each spot's image under a pattern from static frames of that
-pattern held at a ladder of command levels (issue 23).
+The model (otherwise ladder_fit's):
 
 Under a Hadamard pattern the surface under a lenslet is curved, so a real (diffraction) spot
 changes shape as it moves; a shifted still (:func:`~torchblur.dm.spot_fit.fit_spot_problems`)
@@ -92,8 +91,6 @@ PRIOR_ROWS = 2  #: the shape prior's pseudo-data rows after the pixels (:func:`_
 SHAPE_HELD = 256  #: flag: the problem refitted with ``w = 0`` (:data:`SHAPE_REACH`)
 SHAPE_REACH = math.inf  #: ``|w| / |G|`` (phasors) beyond which the shape's first-order term is not trusted: refitted with ``w = 0``, :data:`SHAPE_HELD`
 HELD_PRIOR = 1e-12  #: the prior std of ``w`` (of the ladder's largest level) that holds it at 0
-EXACT = False  #: :func:`fit_exact_problems`' model (the module docstring's last paragraph) instead of the first-order one
-SHIFT_ORDER = 2  #: EXACT: the Taylor order of the shift ``s e`` (with ``d``'s, to :data:`ORDER` in all)
 SHAPE_PRIOR = 0.25  #: the prior std of the shape's command ``w`` (each of ``w_cos, w_sin``), of the ladder's largest level
 
 
@@ -152,38 +149,8 @@ def _chunk(prob: _Problems, ladder: PatternLadder, rows, like) -> _Chunk:
 
 
 def _chains():
-    """The ladder's blocks: ``[top_0, top_1, ...]``, ``Dn^j Ds^k L`` for ``j <= top_k`` (in that order)."""
-    return [ORDER] + ([ORDER - k for k in range(1, SHIFT_ORDER + 1)] if EXACT else [SHAPE_ORDER])
-
-
-def _exact_coefficients(theta, prob: _Problems, ch: _Chunk, idx):
-    """EXACT: ``(C [n, E, 7, blocks, K], v [n, E, S])``: the image ``sum_jk d^j e^k / (j! k!) Dn^j Ds^k L(v)``
-    (``v`` the shape's command, ``e`` the shift's command beyond it: the motion ``s (v + e) + n d``)
-    and its derivatives along ``(v_cos, v_sin, n_cos, n_sin, e_cos, e_sin)``."""
-    cw, sw, wq = _nodes(prob, ch.pf[idx])
-    v = theta[:, 0, None, None] * cw + theta[:, 1, None, None] * sw
-    d = theta[:, 2, None, None] * cw + theta[:, 3, None, None] * sw
-    e = theta[:, 4, None, None] * cw + theta[:, 5, None, None] * sw
-    T = [d ** j / math.factorial(j) for j in range(ORDER + 1)]
-    X = [e ** k / math.factorial(k) for k in range(SHIFT_ORDER + 1)]
-    terms, b = ([], [], []), 0
-    for k, top in enumerate(_chains()):
-        for j in range(top + 1):
-            terms[0].append((0, b, wq * T[j] * X[k]))
-            for r, c in ((1, cw), (2, sw)):
-                terms[1].append((r, b, c * wq * T[j] * X[k]))
-                if j:
-                    terms[0].append((r + 2, b, c * wq * T[j - 1] * X[k]))
-                if k:
-                    terms[0].append((r + 4, b, c * wq * T[j] * X[k - 1]))
-            b += 1
-    n, E, S = v.shape
-    out = _integrated_basis(v, [torch.stack([t[2] for t in g], 2) if g else v.new_zeros(n, E, 0, S) for g in terms],
-                            prob.knots[ch.pat[idx]], prob.coef[ch.pat[idx]])
-    K = out.shape[-1]
-    where = torch.tensor([r * b + i for g in terms for r, i, _ in g], device=out.device)
-    C = out.new_zeros(n, E, (N_PAR + 1) * b, K).index_add_(2, where, out)
-    return C.reshape(n, E, N_PAR + 1, b, K), v
+    """The ladder's blocks: ``[top_0, top_1]``, ``Dn^j Ds^k L`` for ``j <= top_k`` (in that order)."""
+    return [ORDER, SHAPE_ORDER]
 
 
 def _coefficients(theta, prob: _Problems, ch: _Chunk, idx):
@@ -192,9 +159,7 @@ def _coefficients(theta, prob: _Problems, ch: _Chunk, idx):
     (``Dn^j L``, ``j < R = ORDER + 1``, then ``Dn^j Ds L``, ``j < RW = SHAPE_ORDER + 1``) of every
     level, already integrated over each exposure's nodes (s). The module docstring's model:
     ``sum_j d^j / j! Dn^j [L(u) + w (L'(u) - Ds L(u))]`` (the ``w`` terms to ``j <= SHAPE_ORDER``),
-    ``L' = dL/du`` the spline's derivative. EXACT: :func:`_exact_coefficients`."""
-    if EXACT:
-        return _exact_coefficients(theta, prob, ch, idx)
+    ``L' = dL/du`` the spline's derivative."""
     cw, sw, wq = _nodes(prob, ch.pf[idx])
     u = theta[:, 0, None, None] * cw + theta[:, 1, None, None] * sw
     d = theta[:, 2, None, None] * cw + theta[:, 3, None, None] * sw  # [n, E, S] px along n
@@ -273,7 +238,7 @@ def _report_jacobians(theta, slope):
     fitted ``G`` takes up a turn of it to first order) as amplitude and phase, and its Jacobians
     along ``theta`` and ``s`` in the order (amplitude_x, phase_x, amplitude_y, phase_y)."""
     c = theta.shape[0]
-    gc, gs = (theta[:, 0] + theta[:, 4], theta[:, 1] + theta[:, 5]) if EXACT else (theta[:, 0], theta[:, 1])
+    gc, gs = theta[:, 0], theta[:, 1]
     nrm = _normal(slope)
     re = slope * gs[:, None] + nrm * theta[:, 3, None]  # [c, 2]: Re of x and y
     im = slope * gc[:, None] + nrm * theta[:, 2, None]
@@ -282,8 +247,6 @@ def _report_jacobians(theta, slope):
     for a in range(2):
         cart_t[:, 2 * a, 1], cart_t[:, 2 * a, 3] = slope[:, a], nrm[:, a]
         cart_t[:, 2 * a + 1, 0], cart_t[:, 2 * a + 1, 2] = slope[:, a], nrm[:, a]
-        if EXACT:
-            cart_t[:, 2 * a, 5], cart_t[:, 2 * a + 1, 4] = slope[:, a], slope[:, a]
         cart_s[:, 2 * a, a], cart_s[:, 2 * a + 1, a] = gs, gc
     amp = torch.hypot(re, im)
     a2 = amp.square().clamp_min(torch.finfo(amp.dtype).tiny)
@@ -408,7 +371,7 @@ def _fit_chunk(prob: _Problems, ch: _Chunk, b0, prior: float):
     u = theta[:, 0, None, None] * cw + theta[:, 1, None, None] * sw  # the command at the nodes, as in _coefficients
     flags = OUT_OF_LADDER * ((u.flatten(1).amin(-1) < prob.knots[ch.pat, 0]) | (u.flatten(1).amax(-1) > prob.knots[ch.pat, -1])).long()
     flags = flags | NO_MOTION * ((amp / d[:, ::2].clamp_min(0).sqrt() < 3).any(-1)).long()
-    reach = theta[:, 4:].norm(dim=-1) / theta[:, :2].norm(dim=-1).clamp_min(torch.finfo(theta.dtype).tiny)  # |w| / |G| (EXACT: |e| / |v|)
+    reach = theta[:, 4:].norm(dim=-1) / theta[:, :2].norm(dim=-1).clamp_min(torch.finfo(theta.dtype).tiny)  # |w| / |G|
     return dict(amplitude=amp, phase=phase, covariance=cov, status=status, flags=flag_poor_fit(flags, chi2), reduced_chi2=chi2, reach=reach)
 
 
@@ -481,15 +444,3 @@ def fit_ladder_problems(crops, ladder: PatternLadder, window, omega, amplitude, 
         n_chunks += 1
     return SpotFits(**{k: v.reshape((P, F, M) + tuple(v.shape[1:])) for k, v in out.items()}, n_chunks=n_chunks)
 
-
-def fit_exact_problems(*args, **kw) -> SpotFits:
-    """:func:`fit_ladder_problems` with :data:`EXACT`: the spot's image is the ladder's at the shape's
-    command ``v(t)`` (the spline, exact), moved by ``s e(t) + n d(t)`` (the Taylor series of a shift,
-    ``e`` to :data:`SHIFT_ORDER`, ``d`` to :data:`ORDER`, together to :data:`ORDER`); the motion
-    reported ``s (v + e) + n d``; the prior (:data:`SHAPE_PRIOR`) on ``e``."""
-    global EXACT
-    EXACT = True
-    try:
-        return fit_ladder_problems(*args, **kw)
-    finally:
-        EXACT = False
