@@ -24,11 +24,20 @@ scipy's least squares with four models, and the responses compared with the fitt
 - ``ladder+delta``: the ladder plus a small free motion ``delta(t)`` (x and y sinusoids, to first
   order: ``L(u) + delta . dL/dshift(u)``) for the actuators' differing dynamics; the response is
   the ladder's motion plus delta.
-- ``fast``: ``ladder+delta`` by the run's fitter, :func:`torchblur.dm.ladder_fit.fit_ladder_problems`
-  (batched, analytic Jacobian, torch LM), on the same ladder (noiseless: variance 0) and frames.
+- ``fast``: the run's fitter, :func:`torchblur.dm.ladder_fit.fit_ladder_problems` (batched,
+  analytic Jacobian, torch LM: the ladder at the shape's own command, moved along ``s`` and
+  across it by the Taylor series of a shift), on a ladder of the same levels times the command of
+  a static motion of the sweep's largest (the run's ``ladder_levels``: the ladder spans the
+  motion; noiseless: variance 0) and the same frames; ``former``: the same with the shape tied to
+  the motion (the shift's own command held at 0 by a vanishing prior: the model before issue 23's
+  cause 2 was measured); ``shape``: the first-order candidate of ``benchmarks/dm_ladder_shape.py``
+  (measured, not landed). Each prints beside the
+  summary the pull toward the pattern's common command (``b`` of ``Y - Yt = b (Yt - Yc)``, ``Yc``
+  every live actuator at their mean response) and rms(|error|/std) with the fit's own stds
+  (those of one set of noisy frames).
 
     python benchmarks/bench_dm_spot_models.py [--patterns 1] [--freq 342] [--same-dynamics]
-        [--models base,linear,ladder,ladder+delta,fast] [--spots 0:80]
+        [--models base,linear,ladder,ladder+delta,fast,former,shape] [--spots 0:80]
 
 Slow (scipy with finite-difference Jacobians, one spot at a time: minutes per model and
 pattern); ``fast`` is the batched one (the wall times of one run compare them).
@@ -52,6 +61,9 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import bench_dm_spot_causes as bc  # noqa: E402
 import hcipy_sh as hs  # noqa: E402
 
+import dm_ladder_shape  # noqa: E402
+
+import torchblur.dm.ladder_fit as lf  # noqa: E402
 from torchblur.config import load_config  # noqa: E402
 from torchblur.config.budget import dm_plan  # noqa: E402
 from torchblur.dm.ladder_fit import PatternLadder, fit_ladder_problems  # noqa: E402
@@ -100,8 +112,12 @@ class Case:
         self.f, self.om = f, 2 * math.pi * f
         self.power = bc.PEAK_E / (bc.EXPOSURES[1] / f)
         self.window = bc.windows(f, len(self.pats))
-        frames, self.Yt, self.amps = bc.dm_frames(gen, dyn, S, self.pats, f, self.window, self.power, 1.0)
         self.M = S.shape[0] // 2
+        frames, self.Yt, self.amps = bc.dm_frames(gen, dyn, S, self.pats, f, self.window, self.power, 1.0)
+        H = dyn.response(f)
+        Ys = (S @ self.pats.T).T  # [P, 2M] static motion per unit command
+        self.static_unit = bc.TARGET_PX / np.hypot(np.abs(Ys[:, :self.M]), np.abs(Ys[:, self.M:])).max(1) / self.amps  # [P]
+        self.Yc = (S @ (np.mean(H[~dyn.dead]) * self.pats.T)).T  # [P, 2M]: every live actuator at their mean response
         self.crops, inside = crop_problems(frames[:, None], self.offset, self.size)  # [P, 1, M, E, h, w]
         self.kern = self._crop(torch.as_tensor(gen.still() * self.power))  # [M, h, w]
         self.fits = fit_spot_problems(self.crops, KernelPSF(self.kern), self.window, torch.tensor([self.om], dtype=_F64),
@@ -119,6 +135,15 @@ class Case:
         """Static frames of pattern ``p`` at ``levels`` of its amplitude, cropped: ``[L, M, h, w]`` (rate x power)."""
         imgs = self.gen.intensity(np.asarray(levels)[:, None] * self.amps[p] * self.pats[p][None]) * self.power
         return crop_problems(torch.as_tensor(imgs)[:, None, None], self.offset, self.size)[0][:, 0, :, 0]
+
+    def ladder(self, spots):
+        """``(levels [P, K] input units, images [P, K, S, h, w] e-/s)``: the fast fit's ladder of the
+        spots ``spots``, ``LADDER`` times the command of a static motion of the sweep's largest
+        (the run's ``ladder_levels``: the ladder spans the motion, not the command, which above
+        the modes is several times larger)."""
+        unit = torch.as_tensor(self.static_unit * self.amps)[:, None]
+        imgs = torch.stack([self.static(p, LADDER * self.static_unit[p])[:, list(spots)] for p in range(len(self.pats))])
+        return torch.as_tensor(LADDER)[None] * unit, imgs
 
     def data(self, p, m):
         d = self.crops[p, 0, m]
@@ -198,25 +223,26 @@ def fit_ladder(case: Case, p: int, spots, delta: bool):
     return out
 
 
-def fit_fast(case: Case, spots):
-    """``fast`` (module docstring): ``(Y [P, 2S] per unit amplitude, chi2 [P, S])`` of the spots ``spots`` (S of them)."""
+def fit_fast(case: Case, spots, fit=fit_ladder_problems):
+    """``fast`` (module docstring): ``(Y [P, 2S] per unit amplitude, chi2 [P, S], std [P, 2S])`` of
+    the spots ``spots`` (S of them); ``std`` the fit's own (the camera noise's weights: what one
+    noisy set of frames would give); ``fit``: the run's or the candidate's ``fit_ladder_problems``."""
     sp = list(spots)
-    levels = torch.as_tensor(LADDER)[None] * torch.as_tensor(case.amps)[:, None]  # [P, K] input units
-    imgs = torch.stack([case.static(p, LADDER)[:, sp] for p in range(len(case.pats))])  # [P, K, S, h, w] e-/s at the sweep's power
+    levels, imgs = case.ladder(sp)  # [P, K] input units, [P, K, S, h, w] e-/s at the sweep's power
     ladder = PatternLadder(levels, imgs, torch.zeros_like(imgs), case.kern[sp])
     crops = case.crops[:, :, sp]
     t0 = time.perf_counter()
-    fits = fit_ladder_problems(crops, ladder, case.window, torch.tensor([case.om], dtype=_F64), torch.as_tensor(case.amps)[:, None],
-                               power=1.0, noise_std=camera_noise_std(crops, bc.READ_NOISE_E))
+    fits = fit(crops, ladder, case.window, torch.tensor([case.om], dtype=_F64), torch.as_tensor(case.amps)[:, None],
+               power=1.0, noise_std=camera_noise_std(crops, bc.READ_NOISE_E))
     print(f"  fast: the fit of {crops.shape[0] * crops.shape[2]} problems took {time.perf_counter() - t0:.3f} s (the rest: the static frames)")
     bad = int((fits.status != 0).sum())
     if bad:
         print(f"  fast: {bad} problems failed (status {sorted(set(fits.status.flatten().tolist()))})")
-    Y = pattern_responses(fits, case.amps[:, None])[0][..., 0]
-    return Y, fits.reduced_chi2[:, 0].numpy() * 2 * case.pitch ** 2
+    Y, C = pattern_responses(fits, case.amps[:, None])
+    return Y[..., 0], fits.reduced_chi2[:, 0].numpy() * 2 * case.pitch ** 2, np.sqrt(np.trace(C[:, :, 0], axis1=-2, axis2=-1) / 2)
 
 
-def fit_noisy(case: Case, spots, draws: int, frames: int, seed: int = 0) -> None:
+def fit_noisy(case: Case, spots, draws: int, frames: int, seed: int = 0, fit_problems=fit_ladder_problems) -> None:
     """``--noisy``: ``fast`` on noisy frames: the sweep's crops with Poisson and read noise, a ladder
     of ``frames`` frames per level (each over the longer exposure: the mean, its variance from the
     expected signal), a still of 256 such frames; ``draws`` noise draws. Prints rms(error/std) of
@@ -225,8 +251,8 @@ def fit_noisy(case: Case, spots, draws: int, frames: int, seed: int = 0) -> None
     sp = list(spots)
     rng = np.random.default_rng(seed)
     T = float(case.window.duration[0, 0, 1])  # the ladder's and the still's exposure (s)
-    levels = torch.as_tensor(LADDER)[None] * torch.as_tensor(case.amps)[:, None]
-    clean_l = torch.stack([case.static(p, LADDER)[:, sp] for p in range(len(case.pats))]) * T  # e- per frame
+    levels, clean_l = case.ladder(sp)
+    clean_l = clean_l * T  # e- per frame
     crops = case.crops[:, :, sp]
     Yt = case.Yt[:, np.concatenate([np.asarray(sp), case.M + np.asarray(sp)])]
 
@@ -235,7 +261,7 @@ def fit_noisy(case: Case, spots, draws: int, frames: int, seed: int = 0) -> None
         return torch.as_tensor(mean), (e + bc.READ_NOISE_E ** 2) / n
 
     def fit(data, ladder):  # weighted by the camera noise of the expected signal
-        f = fit_ladder_problems(data, ladder, case.window, torch.tensor([case.om], dtype=_F64), torch.as_tensor(case.amps)[:, None],
+        f = fit_problems(data, ladder, case.window, torch.tensor([case.om], dtype=_F64), torch.as_tensor(case.amps)[:, None],
                                 power=1.0, noise_std=camera_noise_std(crops, bc.READ_NOISE_E))
         Y, C = pattern_responses(f, case.amps[:, None])
         return Y[..., 0], C[:, :, 0], f
@@ -256,6 +282,23 @@ def fit_noisy(case: Case, spots, draws: int, frames: int, seed: int = 0) -> None
           f"rms(error/std) against the fitted-shift truth {np.sqrt(np.nanmean(z_t)):.2f} (slopes > 0.3 max: "
           f"{np.sqrt(np.nanmean(z_t[:, big])):.2f}), against the noiseless fit {np.sqrt(np.nanmean(z_0)):.2f} "
           f"({np.sqrt(np.nanmean(z_0[:, big])):.2f}); {z_t.size} slopes; reduced chi2 median {np.nanmedian(np.concatenate(chi2)):.3f}", flush=True)
+
+
+def pull(name, Y, Yt, Yc, std):
+    """The pull toward the common command: the least-squares complex ``b`` of the responses'
+    errors on their distance from the common command's (``Y - Yt = b (Yt - Yc)``, per pattern,
+    ``Yc`` every live actuator at their mean response), its share of the error's power, and
+    rms(error/std) of the responses with the fit's own stds (per pattern and over all)."""
+    err, dist = Y - Yt, Yt - Yc
+    ok = np.isfinite(err)
+    e, d = np.where(ok, err, 0), np.where(ok, dist, 0)
+    b = np.sum(np.conj(d) * e) / np.sum(np.abs(d) ** 2)
+    share = 1 - np.sum(np.abs(e - b * d) ** 2) / np.sum(np.abs(e) ** 2)
+    z = np.abs(err) / std
+    per = ", ".join(f"{np.sqrt(np.nanmean(zp ** 2)):.2f}" for zp in z)
+    print(f"  {name:13s} pull b {b.real:+.4f}{b.imag:+.4f}j ({share:.2f} of the error power; spread |Yt - Yc| / |Yt| "
+          f"{np.sqrt(np.sum(np.abs(d) ** 2) / np.sum(np.abs(np.where(ok, Yt, 0)) ** 2)) * 100:.2f} % rms); "
+          f"rms(|error|/std) {np.sqrt(np.nanmean(z ** 2)):.2f} (per pattern {per})", flush=True)
 
 
 def summary(name, Y, Yt, chi2, n_pixels, seconds):
@@ -296,11 +339,18 @@ def main(argv=None) -> None:
             Y, chi2 = case.Y0, case.fits.reduced_chi2[:, 0].numpy() * n_pix
             summary(name, Y[:, cols], case.Yt[:, cols], chi2[:, list(spots)], n_pix, time.perf_counter() - t1)
             continue
-        if name == "fast":
-            Y, chi2 = fit_fast(case, spots)
-            summary(name, Y, case.Yt[:, cols], chi2, n_pix, time.perf_counter() - t1)
-            if a.noisy:
-                fit_noisy(case, spots, a.noisy, a.ladder_frames)
+        if name in ("fast", "former", "shape"):
+            fit = dm_ladder_shape.fit_ladder_problems if name == "shape" else fit_ladder_problems
+            prior = lf.SHAPE_PRIOR
+            lf.SHAPE_PRIOR = 1e-12 if name == "former" else prior
+            try:
+                Y, chi2, std = fit_fast(case, spots, fit)
+                summary(name, Y, case.Yt[:, cols], chi2, n_pix, time.perf_counter() - t1)
+                pull(name, Y, case.Yt[:, cols], case.Yc[:, cols], std)
+                if a.noisy:
+                    fit_noisy(case, spots, a.noisy, a.ladder_frames, fit_problems=fit)
+            finally:
+                lf.SHAPE_PRIOR = prior
             continue
         Y = np.full((len(case.pats), 2 * case.M), np.nan + 0j)
         chi2 = []

@@ -238,3 +238,48 @@ def test_hcipy_lenslet_spots_unbiased_where_the_shifted_still_is_biased():
     assert err["still"][0] > 0.05 and err["still"][1] > 0.02, err  # measured 0.19 and 0.080 rad
     # measured 0.0056 and 0.0006 rad (the former six-parameter fit with s from dL/du at 0: 0.0023 and 0.0002 rad)
     assert err["ladder"][0] < 0.01 and err["ladder"][1] < 0.002, err
+
+
+def test_a_shape_driven_by_other_actuators_does_not_pull_the_motion(monkeypatch):
+    """Spots whose width follows another command than their position (a lenslet's curvature and
+    tilt from different mixes of actuators, issue 23): the ladder's images change width with
+    the level, the sweep's spots move by ``s G`` and breathe with ``1.4 G e^{0.5 i}``. The shape's
+    own command (``v``, the position's ``v + e``) gives the motion within its stds (4 at most) with
+    reduced chi2 about 1; with the shape tied to the motion (``e`` held at 0 by a vanishing prior:
+    the former model) the fitted motion is pulled toward the shape's command by more than 5 stds,
+    its reduced chi2 above 2."""
+    import torchblur.dm.ladder_fit as lf
+    g = torch.Generator().manual_seed(11)
+    M, K, freq, POWER = 3, 13, 300.0, 10.0
+    centre = 7.5 + torch.rand(M, 2, generator=g, dtype=F64) - 0.5
+    s = (torch.rand(M, 2, generator=g, dtype=F64) + 0.5) * torch.tensor([1.0, -1.0], dtype=F64)
+
+    def spot(c, u_pos, u_shape):  # [..., M, H, H] e-/s: the width 1.6 px + 0.5 px per unit command
+        y, x = torch.arange(H, dtype=F64)[:, None], torch.arange(H, dtype=F64)[None, :]
+        p = c + s * u_pos[..., None]
+        w2 = (SIGMA + 0.5 * u_shape[..., None, None]) ** 2
+        return RATE * torch.exp(-((x - p[..., 0, None, None]) ** 2 + (y - p[..., 1, None, None]) ** 2) / (2 * w2)) * SIGMA ** 2 / w2
+    levels = torch.linspace(-1.0, 1.0, K, dtype=F64)
+    imgs = spot(centre, levels[:, None], levels[:, None])[None]  # [1, K, M, H, H]
+    var = (imgs * 2e-3 + 9) / 2e-3 ** 2 / 1e4
+    ladder = PatternLadder(levels[None], imgs + var.sqrt() * torch.randn(imgs.shape, generator=g, dtype=F64), var, spot(centre, *torch.zeros(2, 1, dtype=F64)))
+    G, Gs = 0.6 * np.exp(0.7j), 0.6 * 1.4 * np.exp(1.2j)
+    win = _window(torch.tensor([freq], dtype=F64), 1)
+    om = 2 * math.pi * freq
+    t = win.start[0, 0, :, None] + win.duration[0, 0, :, None] * (torch.arange(256, dtype=F64) + 0.5) / 256  # [E, S]
+    u_pos, u_shape = [abs(z) * torch.cos(om * t + float(np.angle(z)) - math.pi / 2) for z in (G, Gs)]  # Re(z e^{i w t}) with z = gs + i gc
+    clean = (spot(centre, u_pos.T[..., None], u_shape.T[..., None]) * (POWER * win.duration[0, 0, :, None, None, None] / 256)).sum(0).permute(1, 0, 2, 3)
+    ns = camera_noise_std(clean, 3.0)[None, None]
+    crops = clean[None, None] + ns * torch.randn(ns.shape, generator=g, dtype=F64)  # [1, 1, M, E, H, H]
+    truth = s * torch.tensor(G)  # [M, 2] px phasors
+
+    def z(fits):
+        Y = torch.polar(fits.amplitude[0, 0], fits.phase[0, 0])
+        sd = torch.diagonal(fits.covariance[0, 0], dim1=-2, dim2=-1)[:, ::2].sqrt()
+        return ((Y - truth).abs() / sd).numpy(), fits
+    args = (crops, ladder, win, torch.tensor([om], dtype=F64), torch.tensor([[0.6]], dtype=F64))
+    z_new, new = z(fit_ladder_problems(*args, power=POWER, noise_std=ns))
+    monkeypatch.setattr(lf, "SHAPE_PRIOR", 1e-12)
+    z_old, old = z(fit_ladder_problems(*args, power=POWER, noise_std=ns))
+    assert bool((new.status == 0).all()) and z_new.max() < 4.0 and 0.7 < float(new.reduced_chi2.median()) < 1.4
+    assert z_old.max() > 5.0 and float(old.reduced_chi2.median()) > 2.0  # the former model: pulled, and its misfit shows

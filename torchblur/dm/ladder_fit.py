@@ -6,28 +6,39 @@ changes shape as it moves; a shifted still (:func:`~torchblur.dm.spot_fit.fit_sp
 reads the change as motion. Here the spot's crop at time ``t`` of problem (pattern ``p``,
 frequency ``f``, spot ``m``) is
 
-    power * sum_j d(t)^j / j! Dn^j L(u(t)),   j = 0..ORDER
+    power * sum_jk d(t)^j e(t)^k / (j! k!) Dn^j Ds^k L(v(t)),   k <= SHIFT_ORDER, j + k <= ORDER
 
-- ``L(u)``: the static image (e-/s at laser power 1) of pattern ``p`` held at the scalar command
-  ``u`` (every actuator ``j`` at ``u * pattern[j]``): a cubic spline in ``u`` per pixel through
+- ``L(v)``: the static image (e-/s at laser power 1) of pattern ``p`` held at the scalar command
+  ``v`` (every actuator ``j`` at ``v * pattern[j]``): a cubic spline in ``v`` per pixel through
   the ladder's levels (scipy's ``CubicSpline``, not-a-knot ends; beyond the ends its end cubics);
-  ``Dn^j L`` its j-th derivatives along a shift of the image by ``n`` (Fourier, of each level's
-  image, splined the same way, the spline being linear in the knot values);
-- ``u(t) = gc cos(w t) + gs sin(w t)`` (the pattern's own response: the phasor ``G = gs + i gc``);
+  ``Dn^j Ds^k L`` its derivatives along a shift of the image by ``n`` and by ``s`` (Fourier, of
+  each level's image, splined the same way, the spline being linear in the knot values);
+- ``v(t) = v_cos cos(w t) + v_sin sin(w t)``: the command the spot's SHAPE follows, and
+  ``e(t) = e_cos cos(w t) + e_sin sin(w t)``: the command its position along ``s`` follows beyond
+  it (the image moved by ``s e``, the Taylor series of a shift to :data:`SHIFT_ORDER`); the
+  pattern's response along the ladder's path is the phasor ``G = V + E`` (``V = v_sin + i v_cos``,
+  ``E`` alike). Where a pattern's actuators respond differently (above their modes) the
+  curvature under a lenslet, which sets a spot's shape, follows another mix of actuators than its
+  tilt, which sets its position: with the shape tied to the motion (``e = 0``, the former model)
+  the fitted command was a compromise between the two and the motions came out pulled toward the
+  pattern's common command (``benchmarks/bench_dm_spot_models.py --models former,fast``). Where a
+  spot barely changes shape (Gaussian spots) ``v`` and ``e`` are one direction to the data: a prior
+  ``e_cos, e_sin ~ N(0,`` :data:`SHAPE_PRIOR` ``x`` the ladder's largest level ``)`` (two
+  pseudo-data rows) keeps the LM and the covariance regular, and the reported motion's
+  covariance is marginal over it; the ladder's noise through ``s`` in ``Ds`` is left out (``e`` is small);
 - ``d(t) = n_cos cos(w t) + n_sin sin(w t)``: a free motion (px) along ``n``, the unit normal of
   ``s`` (below), as the Taylor series of a shift to :data:`ORDER`. The actuators' differing
   dynamics move a spot off the ladder's path (near a resonance of the small simulated mirror by
   up to 1.2 px at 1.5 px of motion: to first order its responses were off by up to 15 stds; to
-  fourth order a 1 px shift of a sigma-1.2 px spot is fitted within 0.06 %). Along the path
-  ``u(t)`` (fitted per spot) carries the motion: a free motion there too would be the same image
-  to first order (on a spot that only moves, exactly), a direction the data hardly see, and a
-  free x and y motion gave the spot motions a bias of +0.35 std, the DC gains 1 % high;
+  fourth order a 1 px shift of a sigma-1.2 px spot is fitted within 0.06 %). (A free x and y
+  motion to first order, without the prior, gave the spot motions a bias of +0.35 std, the DC
+  gains 1 % high: along ``s`` it is the same image as a change of the command.)
 - each exposure integrated by :data:`NODES` Gauss-Legendre nodes.
 
-The model is linear in the ladder's images: an exposure is ``sum_jk c_jk(theta) Dn^j L_k``, the coefficients from the spline's basis at the nodes, so the image and its analytic
-Jacobian are one batched GEMM per problem; :func:`~torchblur.optim.levenberg_marquardt` fits the
-four parameters. The reported motion per axis is the phasor ``s G + N n`` (``N = n_sin + i n_cos``; ``s = (s_x, s_y)``
-the spot's static shift per unit ``u``: the slope at ``u = 0`` of the still's best shifts to the
+The model is linear in the ladder's images: an exposure is ``sum_bl c_bl(theta) (Dn^j Ds^k L_l)``, the coefficients
+from the spline's basis at the nodes, so the image and its analytic Jacobian are one batched GEMM
+per problem; :func:`~torchblur.optim.levenberg_marquardt` fits the six parameters. The reported
+motion per axis is the phasor ``s G + N n`` (``N = n_sin + i n_cos``; ``s = (s_x, s_y)`` the spot's static shift per unit command: the slope at ``u = 0`` of the still's best shifts to the
 levels' images, :func:`static_slope`, the convention of the fitted-shift truth), as amplitude and phase
 with their covariance in :class:`~torchblur.dm.spot_fit.SpotFits`' order, so
 :func:`~torchblur.dm.spot_fit.pattern_responses` turns it into ``Y`` unchanged.
@@ -71,11 +82,14 @@ NODES = 96  #: Gauss-Legendre nodes per exposure (benchmarks/bench_dm_spot_model
 PAD = 6  #: px of zero padding around a crop for its Fourier shift derivatives
 DARK_SNR = 5.0  #: a problem whose data correlate with its still below this many noise stds is DARK
 MAX_ITER = 60
-N_PAR = 4  #: (gc, gs, n_cos, n_sin): the command phasor and the free motion across the static shift
+N_PAR = 6  #: (v_cos, v_sin, n_cos, n_sin, e_cos, e_sin): the shape's command, the free motion across the static shift, the shift's command beyond the shape's
 STEP_MAX = 6.0  #: std: a longer correction step is not taken
 LEFT_MAX = 0.3  #: std: a fit whose Gauss-Newton step left is shorter has converged (the LM crawls along a curved valley)
 BIAS_ITER = 3  #: Gauss-Newton steps on the bias-corrected cost after the fit (:func:`_bias_step`; 3 converge)
 ORDER = 4  #: the free motion's Taylor order (:func:`_coefficients`)
+SHIFT_ORDER = 2  #: the Taylor order of the shift ``s e`` (with ``d``'s: to :data:`ORDER` in all; :func:`_coefficients`)
+PRIOR_ROWS = 2  #: the prior's pseudo-data rows after the pixels (:func:`_with_prior`)
+SHAPE_PRIOR = 0.25  #: the prior std of ``e`` (each of ``e_cos, e_sin``), of the ladder's largest level
 
 
 @dataclass(frozen=True)
@@ -277,7 +291,7 @@ class _Chunk:
     pf: torch.Tensor  # [c] flat (pattern, frequency)
     freq: torch.Tensor  # [c] frequency
     inv: torch.Tensor  # [c] -> the chunk's ladder
-    lad: torch.Tensor  # [u, (ORDER + 1) K, hw]: Dn^j L of every level, j = 0..ORDER (Dn: the derivative along the normal n of s)
+    lad: torch.Tensor  # [u, B K, hw]: Dn^j Ds^k L of every level (:func:`_chains`; Dn, Ds: the derivatives along a shift by n, by s)
     var: torch.Tensor  # [u, K, hw]: the variance of L
     noise: torch.Tensor  # [u, 2, K, hw]: the pixel variances of the ladder's L and Dn L (their covariance: 0)
     slope: torch.Tensor  # [c, 2] s: px per unit u
@@ -335,10 +349,15 @@ def _chunk(prob: _Problems, ladder: PatternLadder, rows, like) -> _Chunk:
     else:
         slope, ds_dl = static_slope(L, ladder.still[um].to(**like), prob.knots[up.to(prob.knots.device)])
     n = _normal(slope)  # [u, 2]
-    blocks = [L]
-    for _ in range(ORDER):
-        blocks.append(_along(blocks[-1], n[:, None]))
-    lad = torch.cat(blocks, 1).reshape(len(uniq), (ORDER + 1) * K, h * w)
+    blocks, base = [], L
+    for top in _chains():  # Dn^j Ds^k L, j <= top_k (Ds: the derivative along a shift by s)
+        img = base
+        for j in range(top + 1):
+            blocks.append(img)
+            if j < top:
+                img = _along(img, n[:, None])
+        base = _along(base, slope[:, None])
+    lad = torch.cat(blocks, 1).reshape(len(uniq), len(blocks) * K, h * w)
     var = var.reshape(len(uniq), K, h * w)
     dmat = _derivative_matrix(h, w, like["dtype"], torch.device(like["device"]))  # [q', a, q] = D_a[q, q']
     dd = torch.stack([dmat[:, 0] ** 2, dmat[:, 1] ** 2, 2 * dmat[:, 0] * dmat[:, 1]])  # [3, q', q]
@@ -348,25 +367,47 @@ def _chunk(prob: _Problems, ladder: PatternLadder, rows, like) -> _Chunk:
                   slope=slope[inv], ds_dl=ds_dl[inv])
 
 
+def _chains():
+    """``[top_0, ..., top_SHIFT_ORDER]``: the ladder's blocks are ``Dn^j Ds^k L``, ``j <= top_k``, in that order."""
+    return [ORDER - k for k in range(SHIFT_ORDER + 1)]
+
+
 def _coefficients(theta, prob: _Problems, ch: _Chunk, idx):
-    """``(C [n, E, 5, ORDER + 1, K], u [n, E, S])``: the image (row 0) and its derivatives along
-    the four parameters (rows 1-4) of problems ``idx`` (of the chunk) as weights of the ladder's
-    ``Dn^j L`` (``j = 0..ORDER``) of every level, already integrated over each exposure's nodes
-    (s). The free motion ``d(t) n`` (``d = n_cos cos(w t) + n_sin sin(w t)``, ``n`` the unit
-    normal of ``s``, :func:`_normal`) moves the ladder's image along ``n`` by its Taylor series to
-    :data:`ORDER`: ``sum_j d^j / j! Dn^j L(u)``."""
-    pat = ch.pat[idx]
+    """``(C [n, E, 1 + N_PAR, B, K], v [n, E, S])``: the image (row 0) and its derivatives along
+    the six parameters (rows 1-6) of problems ``idx`` (of the chunk) as weights of the ladder's
+    blocks ``Dn^j Ds^k L`` (:func:`_chains`) of every level, already integrated over each
+    exposure's nodes (s): ``sum_jk d^j e^k / (j! k!) Dn^j Ds^k L(v)`` (module docstring)."""
     cw, sw, wq = _nodes(prob, ch.pf[idx])
-    u = theta[:, 0, None, None] * cw + theta[:, 1, None, None] * sw
+    v = theta[:, 0, None, None] * cw + theta[:, 1, None, None] * sw
     d = theta[:, 2, None, None] * cw + theta[:, 3, None, None] * sw  # [n, E, S] px along n
-    pw = [wq * d ** j / math.factorial(j) for j in range(ORDER + 1)]  # the Taylor terms' weights d^j / j!
-    out = _integrated_basis(u, torch.stack(pw + [c * p for c in (cw, sw) for p in pw[:-1]], 2),
-                            torch.stack([c * p for c in (cw, sw) for p in pw], 2), prob.knots[pat], prob.coef[pat])
-    R = ORDER + 1
-    img, bdc, bds, dgc, dgs = out[:, :, :R], out[:, :, R:2 * R - 1], out[:, :, 2 * R - 1:3 * R - 2], out[:, :, 3 * R - 2:4 * R - 2], out[:, :, 4 * R - 2:]
-    zero = torch.zeros_like(img[:, :, :1])
-    rows = [img, dgc, dgs, torch.cat([zero, bdc], 2), torch.cat([zero, bds], 2)]  # each [n, E, R, K]: the image and d/d(gc, gs, n_cos, n_sin)
-    return torch.stack(rows, 2), u
+    e = theta[:, 4, None, None] * cw + theta[:, 5, None, None] * sw  # [n, E, S] command units along s
+    T = [wq * d ** j / math.factorial(j) for j in range(ORDER + 1)]  # the Taylor terms' weights
+    X = [e ** k / math.factorial(k) for k in range(SHIFT_ORDER + 1)]
+    wb, wd, rows, b = [], [], [], 0  # the weights of B(v) and dB/dv(v), and their (row, block)
+    for k, top in enumerate(_chains()):
+        for j in range(top + 1):
+            wb.append(T[j] * X[k])
+            rows.append((0, b))
+            for r, c in ((1, cw), (2, sw)):
+                if j:
+                    wb.append(c * T[j - 1] * X[k])
+                    rows.append((r + 2, b))
+                if k:
+                    wb.append(c * T[j] * X[k - 1])
+                    rows.append((r + 4, b))
+            b += 1
+    b2 = 0
+    for k, top in enumerate(_chains()):
+        for j in range(top + 1):
+            for r, c in ((1, cw), (2, sw)):
+                wd.append(c * T[j] * X[k])
+                rows.append((r, b2))
+            b2 += 1
+    out = _integrated_basis(v, torch.stack(wb, 2), torch.stack(wd, 2), prob.knots[ch.pat[idx]], prob.coef[ch.pat[idx]])
+    n, E, K = out.shape[0], out.shape[1], out.shape[-1]
+    where = torch.tensor([r * b + i for r, i in rows], device=out.device)
+    C = out.new_zeros(n, E, (N_PAR + 1) * b, K).index_add_(2, where, out)
+    return C.reshape(n, E, N_PAR + 1, b, K), v
 
 
 def _nodes(prob: _Problems, pf):
@@ -381,9 +422,9 @@ def _model_jacobian(theta, prob: _Problems, ch: _Chunk, idx):
     n, E = C.shape[:2]
     sel = ch.inv[idx]
     same = sel.numel() == ch.lad.shape[0] and bool((sel == torch.arange(sel.numel(), device=sel.device)).all())
-    C = (C * prob.power[ch.freq[idx], None, None, None, None]).transpose(1, 2).reshape(n, (N_PAR + 1) * E, -1)  # [n, 5 E, (ORDER + 1) K]
-    out = (C @ (ch.lad if same else ch.lad[sel])).reshape(n, N_PAR + 1, -1)  # [n, 5, E*hw] (no copy of the ladders in order)
-    return out[:, 0], out[:, 1:].transpose(1, 2)  # J: a view of [n, 4, E*hw], the layout the normal equations' GEMMs want
+    C = (C * prob.power[ch.freq[idx], None, None, None, None]).transpose(1, 2).reshape(n, (N_PAR + 1) * E, -1)  # [n, 7 E, (R + RW) K]
+    out = (C @ (ch.lad if same else ch.lad[sel])).reshape(n, N_PAR + 1, -1)  # [n, 7, E*hw] (no copy of the ladders in order)
+    return out[:, 0], out[:, 1:].transpose(1, 2)  # J: a view of [n, 6, E*hw], the layout the normal equations' GEMMs want
 
 
 def _start(prob: _Problems, ch: _Chunk, b0):
@@ -450,15 +491,15 @@ def _report_jacobians(theta, slope):
     fitted ``G`` takes up a turn of it to first order) as amplitude and phase, and its Jacobians
     along ``theta`` and ``s`` in the order (amplitude_x, phase_x, amplitude_y, phase_y)."""
     c = theta.shape[0]
-    gc, gs = theta[:, 0], theta[:, 1]
+    gc, gs = theta[:, 0] + theta[:, 4], theta[:, 1] + theta[:, 5]  # G = v + e
     nrm = _normal(slope)
     re = slope * gs[:, None] + nrm * theta[:, 3, None]  # [c, 2]: Re of x and y
     im = slope * gc[:, None] + nrm * theta[:, 2, None]
     cart_t = torch.zeros(c, 4, N_PAR, dtype=theta.dtype, device=theta.device)  # rows Re_x, Im_x, Re_y, Im_y
     cart_s = torch.zeros(c, 4, 2, dtype=theta.dtype, device=theta.device)
     for a in range(2):
-        cart_t[:, 2 * a, 1], cart_t[:, 2 * a, 3] = slope[:, a], nrm[:, a]
-        cart_t[:, 2 * a + 1, 0], cart_t[:, 2 * a + 1, 2] = slope[:, a], nrm[:, a]
+        cart_t[:, 2 * a, 1], cart_t[:, 2 * a, 3], cart_t[:, 2 * a, 5] = slope[:, a], nrm[:, a], slope[:, a]
+        cart_t[:, 2 * a + 1, 0], cart_t[:, 2 * a + 1, 2], cart_t[:, 2 * a + 1, 4] = slope[:, a], nrm[:, a], slope[:, a]
         cart_s[:, 2 * a, a], cart_s[:, 2 * a + 1, a] = gs, gc
     amp = torch.hypot(re, im)
     a2 = amp.square().clamp_min(torch.finfo(amp.dtype).tiny)
@@ -479,11 +520,15 @@ def _ladder_covariance(theta, prob: _Problems, ch: _Chunk, J, W, Cw, H_t, H_s):
     pw = prob.power[ch.freq]
     v = (W[..., None] * J).reshape(c, E, h, w, N_PAR).permute(0, 4, 1, 2, 3)  # [c, 4, E, h, w]
     n = _normal(ch.slope)[:, None, None]  # [c, 1, 1, 2]
-    G, vj = 0, v
-    for j in range(ORDER + 1):  # (Dn^j)^T = (-Dn)^j
-        G = G + torch.einsum("cek,cpeq->cpkq", C[:, :, 0, j], vj.reshape(c, N_PAR, E, h * w))
-        if j < ORDER:
-            vj = -_along(vj, n)
+    G, base, b = 0, v, 0
+    for top in _chains():  # (Dn^j Ds^k)^T = (-Dn)^j (-Ds)^k
+        vj = base
+        for j in range(top + 1):
+            G = G + torch.einsum("cek,cpeq->cpkq", C[:, :, 0, b], vj.reshape(c, N_PAR, E, h * w))
+            b += 1
+            if j < top:
+                vj = -_along(vj, n)
+        base = -_along(base, ch.slope[:, None, None])
     G = G * pw[:, None, None, None]
     A = H_t @ (-Cw @ G.reshape(c, N_PAR, -1)) + H_s @ ch.ds_dl.reshape(c, 2, -1)  # [c, 4, K hw]
     var = ch.var[ch.inv]  # [c, K, hw]
@@ -517,11 +562,12 @@ def _debias(theta, data, W, s2, prob: _Problems, ch: _Chunk, jac):
     ``S - V`` and is shorter than :data:`STEP_MAX` std; a refused step ends that problem's correction."""
     c = theta.shape[0]
     idx = torch.arange(c, device=theta.device)
+    Wp = W[:, :-PRIOR_ROWS]  # the pixels' weights (the prior's rows last)
 
     def state(th):
         model, J = jac(th, idx)
-        var, grad = _model_noise(_coefficients(th, prob, ch, idx)[0], prob, ch, W)
-        q = (W * (data - model).square()).sum(-1) - (W * var.reshape(c, -1)).sum(-1)
+        var, grad = _model_noise(_coefficients(th, prob, ch, idx)[0], prob, ch, Wp)
+        q = (W * (data - model).square()).sum(-1) - (Wp * var.reshape(c, -1)).sum(-1)
         return [th, model, J, q, grad]
     st = state(theta)
     going = torch.ones(c, dtype=torch.bool, device=theta.device)
@@ -538,29 +584,45 @@ def _debias(theta, data, W, s2, prob: _Problems, ch: _Chunk, jac):
     return st[0], st[1], st[2], Cw, info, left
 
 
+def _with_prior(prob: _Problems, ch: _Chunk, sigma):
+    """The model and Jacobian of :func:`_model_jacobian` with the prior's :data:`PRIOR_ROWS`
+    rows last: ``e_cos / sigma``, ``e_sin / sigma`` (``sigma [c]``, data 0, weight 1)."""
+    def jac(th, i):
+        model, J = _model_jacobian(th, prob, ch, i)
+        pj = th.new_zeros(th.shape[0], N_PAR, PRIOR_ROWS)
+        pj[:, 4, 0] = pj[:, 5, 1] = 1 / sigma[i]
+        return torch.cat([model, th[:, 4:] / sigma[i, None]], -1), torch.cat([J.transpose(1, 2), pj], -1).transpose(1, 2)
+    return jac
+
+
 def _fit_chunk(prob: _Problems, ch: _Chunk, b0):
     """Fit one chunk: ``dict`` of ``[c]``-batched amplitude, phase, covariance, status, flags, reduced_chi2."""
     c = ch.rows.numel()
     E = prob.shape[3]
     data, W = prob.data[ch.rows].reshape(c, -1), prob.weight[ch.rows].reshape(c, -1)
-    jac = lambda th, i: _model_jacobian(th, prob, ch, i)  # noqa: E731
-    res = levenberg_marquardt(lambda th, i: jac(th, i)[0], _start(prob, ch, b0), data, weight=W, max_iter=MAX_ITER,
+    q = data.shape[1]
+    sigma = SHAPE_PRIOR * prob.knots.abs().amax(-1)[ch.pat]  # [c] the prior std of e_cos and e_sin
+    data_x = torch.cat([data, data.new_zeros(c, PRIOR_ROWS)], -1)
+    W_x = torch.cat([W, W.new_ones(c, PRIOR_ROWS)], -1)
+    jac = _with_prior(prob, ch, sigma)
+    res = levenberg_marquardt(lambda th, i: jac(th, i)[0], _start(prob, ch, b0), data_x, weight=W_x, max_iter=MAX_ITER,
                               jacobian_fn=jac, gn_tol=1e-2)
     theta = res.theta
     all_c = torch.arange(c, device=theta.device)
     used = (W > 0).sum(-1).to(theta.dtype)
-    dof = (used - N_PAR).clamp_min(1)
-    s2 = torch.ones(c, dtype=theta.dtype, device=theta.device) if prob.noise_given else ((data - jac(theta, all_c)[0]).square() * W).sum(-1) / dof
-    theta, model, J, Cw, info, left = _debias(theta, data, W, s2, prob, ch, jac)
+    dof = (used - N_PAR + PRIOR_ROWS).clamp_min(1)
+    s2 = torch.ones(c, dtype=theta.dtype, device=theta.device) if prob.noise_given else ((data - jac(theta, all_c)[0][:, :q]).square() * W).sum(-1) / dof
+    theta, model, J, Cw, info, left = _debias(theta, data_x, W_x, s2, prob, ch, jac)
+    model, Jp = model[:, :q], J[:, :q]
     r2 = (data - model).square()
     converged = res.converged | (left < LEFT_MAX ** 2)  # the LM's own test, or the step left is short (noiseless data too)
     amp, phase, H_t, H_s = _report_jacobians(theta, ch.slope)
-    cov_l, var_model = _ladder_covariance(theta, prob, ch, J, W, Cw, H_t, H_s)
+    cov_l, var_model = _ladder_covariance(theta, prob, ch, Jp, W, Cw, H_t, H_s)
     if prob.noise_given:
         cov_d = Cw
-    else:  # the sandwich with each pixel's own squared residual: the noise differs from pixel to pixel (shot noise)
-        WJ = (W * W * r2)[..., None] * J
-        cov_d = Cw @ (J.transpose(1, 2) @ WJ) @ Cw
+    else:  # the sandwich with each pixel's own squared residual (the noise differs from pixel to pixel: shot noise), plus the prior's information
+        WJ = (W * W * r2)[..., None] * Jp
+        cov_d = Cw @ (Jp.transpose(1, 2) @ WJ + J[:, q:].transpose(1, 2) @ J[:, q:]) @ Cw
     cov = H_t @ cov_d @ H_t.transpose(1, 2) + cov_l
     chi2 = torch.full((c,), float("nan"), dtype=theta.dtype, device=theta.device)
     if prob.noise_given:
@@ -639,7 +701,7 @@ def fit_ladder_problems(crops, ladder: PatternLadder, window, omega, amplitude, 
     n = P * F * M
     b0 = _basis_at(torch.zeros(P, 1, **like), prob.knots, prob.coef)
     b0 = (b0[0][:, 0], b0[1][:, 0])  # [P, K] each: the basis and its derivative at u = 0
-    chunk = chunk_size(E + 3 * K, h, w, device=dev, dtype=like["dtype"]) if chunk is None else check_int(chunk, "chunk", low=1)
+    chunk = chunk_size(2 * E + 4 * K, h, w, device=dev, dtype=like["dtype"]) if chunk is None else check_int(chunk, "chunk", low=1)
     status = _prefit_status(prob, ladder.still)
     nan = torch.full((n,), float("nan"), **like)
     out = dict(amplitude=nan[:, None].repeat(1, 2), phase=nan[:, None].repeat(1, 2), covariance=nan[:, None, None].repeat(1, 4, 4),

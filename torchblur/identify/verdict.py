@@ -628,10 +628,11 @@ def ladder_guard(v, res):
     trustworthy: the ladder's actuator stds hold on torchblur's simulated mirror (DC gain, mode
     and damping rms(error/std) pooled over three seeds 0.81, 0.99, 1.08,
     benchmarks/bench_dm_ladder_frames.py) but not yet on HCIPy's lenslet frames, the spots the
-    ladder is for (``benchmarks/bench_dm_hcipy.py --quick --case aligned``: D(jw) 1.06, damping
-    1.05, delay 1.17, but mode 3.43 and DC gain 3.30; docs/deformable_mirrors.md, "The spot
+    ladder is for (``benchmarks/bench_dm_hcipy.py --quick --case aligned``: D(jw) 1.02, damping
+    1.13, delay 1.02, but mode 1.44 and DC gain 1.64; docs/deformable_mirrors.md, "The spot
     model in the run"; why: "Why the ladder's actuator stds fail on HCIPy's frames": a gain common
-    to each pattern from ``s``, and responses pulled toward their mean above the modes)."""
+    to each pattern from ``s``; the responses' pull toward their mean above the modes is mostly
+    gone with the shape's own command)."""
     if getattr(res, "spot_model", "shifted") != "ladder":
         return v
     n_out = int(getattr(res, "n_out_of_ladder", 0) or 0)
