@@ -1,6 +1,6 @@
 """Issue 23's first two "done when" items measured end to end on HCIPy Shack-Hartmann frames.
 
-The DM route (``torchblur.identify`` with a DM config and its verdict, what ``run_cli`` runs) on
+The DM route (``torchblur.identify`` with a DM config and its verdict, what ``torchblur identify`` runs) on
 a user-written rig (tests/hcipy_sh_rig.py) whose frames HCIPy makes (tests/hcipy_sh.py: circular
 pupil, HCIPy's DM of Gaussian influence functions, 52 actuators, 10 x 10 square lenslets with
 diffraction and crosstalk, 80 valid, 16 px pitch, 160 x 160 px; each actuator's own second-order
