@@ -47,6 +47,7 @@ import numpy as np
 import torch
 
 from torchblur.design.windows import dual_exposure_windows
+from torchblur.render.alias import wrap_phase
 from torchblur.render.blur import render_blur
 from torchblur.render.camera import camera_noise_std
 from torchblur.render.psf import GaussianPSF, KernelPSF
@@ -201,11 +202,6 @@ def _fit_ladder(d: dict, mod, sl=slice(None)):
     return fits, t_slopes
 
 
-def _wrapped(dphi: torch.Tensor) -> torch.Tensor:
-    """Phase differences (rad) wrapped to [-pi, pi): +pi and -pi are the same phase, not 2 pi apart."""
-    return torch.remainder(dphi + math.pi, 2 * math.pi) - math.pi
-
-
 def ladder_child(path: str, baseline: str | None) -> dict:
     """The ladder fit of the problems at ``path`` in this process: problems/s of the fit, the
     slopes' seconds, rms(error/std) of the amplitudes against the truth; with ``baseline`` (a git
@@ -230,7 +226,7 @@ def ladder_child(path: str, baseline: str | None) -> dict:
         out["baseline_s"] = time.perf_counter() - t0
         sd0 = torch.diagonal(ref.covariance, dim1=-2, dim2=-1).sqrt()
         both = ok & (ref.status == 0)
-        dz = torch.cat([((fits.amplitude - ref.amplitude) / sd0[..., ::2])[both], (_wrapped(fits.phase - ref.phase) / sd0[..., 1::2])[both]])
+        dz = torch.cat([((fits.amplitude - ref.amplitude) / sd0[..., ::2])[both], (wrap_phase(fits.phase - ref.phase) / sd0[..., 1::2])[both]])
         out.update(baseline_per_s=n / out["baseline_s"], max_diff_std=float(dz.abs().max()), same_status=bool(torch.equal(fits.status, ref.status)),
                    max_cov_rel=float(((fits.covariance - ref.covariance).abs() / (sd0[..., :, None] * sd0[..., None, :]))[both].max()))
     return out

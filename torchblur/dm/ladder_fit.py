@@ -349,14 +349,7 @@ def _chunk(prob: _Problems, ladder: PatternLadder, rows, like) -> _Chunk:
     else:
         slope, ds_dl = static_slope(L, ladder.still[um].to(**like), prob.knots[up.to(prob.knots.device)])
     n = _normal(slope)  # [u, 2]
-    blocks, base = [], L
-    for top in _chains():  # Dn^j Ds^k L, j <= top_k (Ds: the derivative along a shift by s)
-        img = base
-        for j in range(top + 1):
-            blocks.append(img)
-            if j < top:
-                img = _along(img, n[:, None])
-        base = _along(base, slope[:, None])
+    blocks = list(_chain_images(L, n[:, None], slope[:, None]))  # Dn^j Ds^k L (Ds: the derivative along a shift by s)
     lad = torch.cat(blocks, 1).reshape(len(uniq), len(blocks) * K, h * w)
     var = var.reshape(len(uniq), K, h * w)
     dmat = _derivative_matrix(h, w, like["dtype"], torch.device(like["device"]))  # [q', a, q] = D_a[q, q']
@@ -370,6 +363,21 @@ def _chunk(prob: _Problems, ladder: PatternLadder, rows, like) -> _Chunk:
 def _chains():
     """``[top_0, ..., top_SHIFT_ORDER]``: the ladder's blocks are ``Dn^j Ds^k L``, ``j <= top_k``, in that order."""
     return [ORDER - k for k in range(SHIFT_ORDER + 1)]
+
+
+def _chain_images(img, n, s, sign: int = 1):
+    """``Dn^j Ds^k img`` in :func:`_chains`' order (``n``, ``s`` broadcast as :func:`_along` takes them);
+    ``sign=-1``: the adjoints ``(-Dn)^j (-Ds)^k img``. Each derivative is taken once, none unused."""
+    tops = _chains()
+    base = img
+    for k, top in enumerate(tops):
+        cur = base
+        for j in range(top + 1):
+            yield cur
+            if j < top:
+                cur = sign * _along(cur, n)
+        if k < len(tops) - 1:
+            base = sign * _along(base, s)
 
 
 def _coefficients(theta, prob: _Problems, ch: _Chunk, idx):
@@ -520,15 +528,9 @@ def _ladder_covariance(theta, prob: _Problems, ch: _Chunk, J, W, Cw, H_t, H_s):
     pw = prob.power[ch.freq]
     v = (W[..., None] * J).reshape(c, E, h, w, N_PAR).permute(0, 4, 1, 2, 3)  # [c, 4, E, h, w]
     n = _normal(ch.slope)[:, None, None]  # [c, 1, 1, 2]
-    G, base, b = 0, v, 0
-    for top in _chains():  # (Dn^j Ds^k)^T = (-Dn)^j (-Ds)^k
-        vj = base
-        for j in range(top + 1):
-            G = G + torch.einsum("cek,cpeq->cpkq", C[:, :, 0, b], vj.reshape(c, N_PAR, E, h * w))
-            b += 1
-            if j < top:
-                vj = -_along(vj, n)
-        base = -_along(base, ch.slope[:, None, None])
+    G = 0
+    for b, vj in enumerate(_chain_images(v, n, ch.slope[:, None, None], sign=-1)):  # (Dn^j Ds^k)^T = (-Dn)^j (-Ds)^k
+        G = G + torch.einsum("cek,cpeq->cpkq", C[:, :, 0, b], vj.reshape(c, N_PAR, E, h * w))
     G = G * pw[:, None, None, None]
     A = H_t @ (-Cw @ G.reshape(c, N_PAR, -1)) + H_s @ ch.ds_dl.reshape(c, 2, -1)  # [c, 4, K hw]
     var = ch.var[ch.inv]  # [c, K, hw]
