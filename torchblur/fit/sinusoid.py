@@ -68,25 +68,17 @@ class _FitOptions:
     shift: float = 0.0  # poisson's read-noise shift (electrons^2 = counts), CameraNoise.poisson_shift_e
 
 
-@dataclass
-class _Solution:
-    """The chosen solution of each of ``N`` items, and its alias branch.
-
-    ``theta [N, P]`` (canonical: amplitudes >= 0, phases wrapped), ``cost [N]``, ``converged
-    [N]``, ``n_iter [N]``, ``flipped [N, n_axes]`` (the optimiser ended at ``-M``: the Jacobian's
-    amplitude columns change sign); ``alias [N, P]`` and its cost ``alias_cost [N]``; with the
-    optimiser's final normal equations reused, ``jtj [N, P, P]`` and ``model [N, R]``.
+@dataclass(kw_only=True)
+class _Solution(LMResult):
+    """The chosen solution of each of ``N`` items (the :class:`LMResult` fields, ``theta``
+    canonical: amplitudes >= 0, phases wrapped), and its alias branch: ``flipped [N, n_axes]``
+    (the optimiser ended at ``-M``: the Jacobian's amplitude columns change sign); ``alias [N, P]``
+    and its cost ``alias_cost [N]``.
     """
 
-    theta: torch.Tensor
-    cost: torch.Tensor
-    converged: torch.Tensor
-    n_iter: torch.Tensor
     flipped: torch.Tensor
     alias: torch.Tensor | None = None
     alias_cost: torch.Tensor | None = None
-    jtj: torch.Tensor | None = None
-    model: torch.Tensor | None = None
 
 
 def _fit_core(data, psf, window: ExposureWindow, omega, direction, *, labels, options: _FitOptions, noise_std=None,
