@@ -306,7 +306,7 @@ def _plan(rec: DMRecording, cfg, G: np.ndarray) -> tuple[Plan, float]:
 
 def recording_calibration(rec: DMRecording, cfg, wfs: ShackHartmann):
     """The calibration of ``rec`` and its spots in valid-subaperture order, ``(cal, psf, offset,
-    size)`` as the live run's (:func:`torchblur.identify.dm_plan._calibrate`, the same steps on the
+    size)`` as the live run's (:func:`torchblur.identify.dm_plan._calibrate` then ``sensor_spots``, the same steps on the
     recorded frames): the dark frame, the gain (the still frames' photon transfer checked against
     ``gain_e_per_adu``, ``camera.gain_from``), the read noise, the spots cropped on the sensor's
     declared layout and each spot's PSF (``fit.psf``), both by the live calibration's own
@@ -528,7 +528,7 @@ def export_dm_recording(run, folder) -> Path:
     doc = exp.meta.get(PLAN_KEY)
     if not cfg.dm.enabled or doc is None:
         raise RecordingError(f"{exp.path}: not a DM run's recording with its plan ({PLAN_KEY})")
-    cal = _calibrate(cfg, ReplayRig(exp), dm_sensor(cfg)[1], exp)[0]
+    cal = _calibrate(cfg, ReplayRig(exp), dm_sensor(cfg)[1], exp)
     (_, _, dark), (_, args, still) = exp.load_calls( "dark")[0], exp.load_calls( "psf")[0]
     keys = sorted(k for k in exp.groups if exp.groups[k][0].get("kind") == SWEEP_KIND)
     if not keys:

@@ -163,8 +163,8 @@ def sensor_config(cfg):
 
 
 def _calibrate(cfg, rig, wfs, exp=None):
-    """Stage 1 (module docstring): the calibration (from the recording ``exp`` where it holds
-    it) and the spots in valid-subaperture order (:func:`sensor_spots`)."""
+    """Stage 1 (module docstring): the calibration on the sensor's spot grid (from the recording
+    ``exp`` where it holds it); its spots in valid-subaperture order: :func:`sensor_spots`."""
     size = dm_sweep_size(cfg)
     n_still = dm_still_frames(size["frames"], size["frame_shape"])
     cal = calibrate(sensor_config(cfg), rig, exp, n_dark=DM_DARK_FRAMES, n_still=n_still,
@@ -172,7 +172,7 @@ def _calibrate(cfg, rig, wfs, exp=None):
     n = int(cfg.wfs.n_across)
     LOGGER.info(f"dm spots: {len(cal.spots)} found, matched to the {wfs.n_valid} valid subapertures (the other "
                 f"{n * n - wfs.n_valid} cells of the {n}x{n} grid are outside the pupil)")
-    return (cal, *sensor_spots(cal, wfs)[1:])
+    return cal
 
 
 def sensor_spots(cal, wfs):
@@ -465,8 +465,8 @@ class DMPlan:
     def calibrate(self, run) -> None:
         """Stage 1: ``run.cal`` and every valid subaperture's spot PSF, crop offset and size."""
         t0 = time.perf_counter()
-        run.cal, self.psf, self.offset, self.size = _calibrate(run.cfg, run.rig, self.wfs, run.exp)
-        order = sensor_spots(run.cal, self.wfs)[0]
+        run.cal = _calibrate(run.cfg, run.rig, self.wfs, run.exp)
+        order, self.psf, self.offset, self.size = sensor_spots(run.cal, self.wfs)
         self.inside = (run.cal.spots.inside_fraction >= MIN_INSIDE)[order]  # [M] the spots mostly in the frame
         run.timing["calibration"] = time.perf_counter() - t0
 

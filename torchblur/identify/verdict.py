@@ -626,8 +626,8 @@ def ladder_guard(v, res):
     (``res.n_out_of_ladder``: the end cubics extrapolated, those responses left out of ``D``;
     more than :data:`POOR_SPOT_FRACTION` of the spot fits is a reason of its own), and not
     trustworthy: the ladder's actuator stds hold on torchblur's simulated mirror (DC gain, mode
-    and damping rms(error/std) pooled over three seeds 0.81, 0.99, 1.08,
-    benchmarks/bench_dm_ladder_frames.py) but not yet on HCIPy's lenslet frames, the spots the
+    and damping rms(error/std) pooled over three seeds 0.78, 1.14, 0.99,
+    benchmarks/bench_dm_ladder_frames.py --frames 32 --seeds 0 1 2) but not yet on HCIPy's lenslet frames, the spots the
     ladder is for (``benchmarks/bench_dm_hcipy.py --quick --case aligned``: D(jw) 1.02, damping
     1.13, delay 1.02, but mode 1.44 and DC gain 1.64; docs/deformable_mirrors.md, "The spot
     model in the run"; why: "Why the ladder's actuator stds fail on HCIPy's frames": a gain common
