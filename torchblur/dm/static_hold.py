@@ -19,6 +19,7 @@ import torch
 
 from torchblur.errors import ShapeError
 from torchblur.image.moments import image_moments
+from torchblur.losses import chi2_limit
 from torchblur.render.splat import kernel_shift_with_jacobian
 
 __all__ = ["fit_shifted_still", "chi2_threshold"]
@@ -30,7 +31,7 @@ def chi2_threshold(dof: int, n_tests: int, false_alarm: float = 0.01) -> float:
     the normal quantile of ``1 - false_alarm / n_tests`` (at least 4, ``psf_from_still``'s)."""
     p = torch.tensor(1.0 - false_alarm / max(1, int(n_tests)), dtype=torch.float64)
     z = max(4.0, float(torch.special.ndtri(p)))
-    return 1.0 + z * math.sqrt(2.0 / max(1, int(dof)))
+    return chi2_limit(dof, z)
 
 
 def _shifted(still, dx, dy, pad: int):
