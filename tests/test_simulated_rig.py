@@ -213,3 +213,14 @@ def test_rig_input_errors_name_the_argument():
     with pytest.raises(ParameterError, match="^pulse_width_s"):
         rig.pulse(1e-3, 0.0, 1e-4, 0.0, 1)
     assert rig.frames_taken == 0
+
+
+def test_a_refused_multisine_leaves_the_random_stream_alone():
+    """A multisine refused for its power draws no jitter: the next capture is a fresh rig's."""
+    def capture(rig):
+        return rig.multisine([100.0, 200.0], [0.1, 0.1], [0.0, 0.0], [1e-4], 0.0, 2).frames
+
+    refused = make_rig()
+    with pytest.raises(ParameterError, match="power"):
+        refused.multisine([100.0, 200.0], [0.1, 0.1], [0.0, 0.0], [1e-4], 0.0, 2, power=-1.0)
+    assert torch.equal(capture(refused), capture(make_rig()))

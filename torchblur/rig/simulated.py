@@ -577,11 +577,12 @@ class SimulatedRig(RigChecks):
         freqs, amps, phases, f0 = self._check_tones(freq_hz, amplitude, phase_rad, base_freq_hz)
         check_drive(command_peak(freqs, amps, phases, f0), self._input_limit)
         check_slew(command_slew(freqs, amps, phases, f0), self._slew_limit)
-        period = 1.0 / f0
-        te, R, settle, trig_t, exp_t, off_t, window = self._triggers(period, exposures_s, trigger_offset_s, n_repeats,
-                                                                     settle_s)
+        te, offsets, R = self._check_periodic(exposures_s, trigger_offset_s, n_repeats)
         E = len(te)
-        powers = [self._check_power(v) for v in per_exposure(power, E, "power")]
+        powers = [self._check_power(v) for v in per_exposure(power, E, "power")]  # checked before the jitter draws
+        period = 1.0 / f0
+        settle, trig_t, exp_t, off_t = self._schedule(period, te, offsets, R, settle_s)
+        window = self._actual_starts(trig_t, exp_t)
         omega = [2 * math.pi * f for f in freqs]
         traj = LTIMultisineTrajectory(self._plant, torch.tensor(amps, dtype=_F64), torch.tensor(omega, dtype=_F64),
                                       torch.tensor(phases, dtype=_F64), direction=self._direction)
