@@ -425,8 +425,8 @@ class DMPlan:
         if own:
             rig = open_dm_rig(cfg, log=HARDWARE_LOGGER.info)
         try:
-            if own:
-                self.check(cfg, rig)
+            if own:  # the config was checked before (identify), the rig's contract by open_dm_rig
+                check_latency_source(cfg, rig)
             with self._session(cfg, rig, progress, record, base_dir) as run:
                 run.executor = executor
                 yield run
