@@ -15,11 +15,11 @@ of the image), ``gradcheck`` (the gradients on the device against central differ
 ``kernel`` (``render_blur`` with a ``KernelPSF``),
 ``fit`` (``fit_sinusoid``, the problems of ``bench_fit.py``, float64: 300 on both devices, then
 3000 on the device alone), ``fit_kernel`` (the same problems fitted through a measured kernel
-of the same spot: 40 on both, 1000 on the device) and
-``dm`` (``bench_dm.py --device``). Without CUDA, ``--device cpu`` runs the same code on both
+of the same spot: 40 on both, 1000 on the device), ``ladder`` (the ladder spot fit of
+``bench_dm.py``'s problems, 4 patterns x 80 spots on both) and ``dm`` (``bench_dm.py --device``). Without CUDA, ``--device cpu`` runs the same code on both
 sides (a check of the script itself).
 
-    python benchmarks/bench_cuda.py [--device cuda] [--sections render gradcheck kernel fit fit_kernel dm] [--repeats 3]
+    python benchmarks/bench_cuda.py [--device cuda] [--sections render gradcheck kernel fit fit_kernel ladder dm] [--repeats 3]
 """
 from __future__ import annotations
 
@@ -224,6 +224,34 @@ def section_fit(dev, repeats: int, psf_kind: str, n_cmp: int, n_big: int) -> Non
           f"status 0: {int((fb.status == 0).sum())} of {n_big}", flush=True)
 
 
+def section_ladder(dev, n_spots: int, n_patterns: int) -> None:
+    """The ladder spot fit (``dm_plan.spot_model=ladder``, bench_dm.py's :func:`ladder_problems`) of the
+    same problems on the CPU and on ``dev``: the largest amplitude and phase difference in the CPU
+    fit's stds, statuses that differ, and the time on each (the slopes included)."""
+    from bench_dm import _fit_ladder, ladder_problems
+
+    import torchblur.dm.ladder_fit as lf
+    d = ladder_problems(n_spots, n_patterns, seed=2)
+    out = {}
+    for x in (torch.device("cpu"), dev):
+        dd = {k: v.to(x) if isinstance(v, torch.Tensor) else v for k, v in d.items()}
+        _fit_ladder(dd, lf, slice(0, 1))  # warm-up (one pattern)
+        sync(x)
+        t0 = time.perf_counter()
+        fits = _fit_ladder(dd, lf)[0]
+        sync(x)
+        out[x.type] = (time.perf_counter() - t0, fits)
+    (tc, fc), (td, fd) = out["cpu"], out[dev.type]
+    ok = (fc.status == 0) & (fd.status.cpu() == 0)
+    sd = torch.diagonal(fc.covariance, dim1=-2, dim2=-1).sqrt()
+    dM = float(((fc.amplitude - fd.amplitude.cpu()).abs() / sd[..., ::2])[ok].max())
+    dP = float((tb.wrap_phase(fc.phase - fd.phase.cpu()).abs() / sd[..., 1::2])[ok].max())
+    n = fc.status.numel()
+    print(f"[ladder] {n} problems ({n_patterns} patterns x {n_spots} spots) float64: cpu {tc:.2f} s ({n / tc:.1f}/s), {dev.type} {td:.2f} s "
+          f"({n / td:.1f}/s), cpu/{dev.type} {tc / td:.1f}; max |dM|/std {dM:.1e}, max |dphi|/std {dP:.1e}, statuses differing "
+          f"{int((fc.status != fd.status.cpu()).sum())}, ok {int(ok.sum())} of {n}", flush=True)
+
+
 def section_dm(dev) -> None:
     here = os.path.dirname(os.path.abspath(__file__))
     cmd = [sys.executable, os.path.join(here, "bench_dm.py"), "--device", str(dev), "--cases", "8/10", "18/20", "32/34"]
@@ -234,7 +262,9 @@ def section_dm(dev) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", default="cuda")
-    ap.add_argument("--sections", nargs="+", default=["render", "gradcheck", "kernel", "fit", "fit_kernel", "dm"])
+    ap.add_argument("--sections", nargs="+", default=["render", "gradcheck", "kernel", "fit", "fit_kernel", "ladder", "dm"])
+    ap.add_argument("--ladder-size", type=int, nargs=2, default=[80, 4], metavar=("SPOTS", "PATTERNS"),
+                    help="the ladder section's problems: spots x patterns (on both devices)")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--fit-sizes", type=int, nargs=2, default=[300, 3000], metavar=("N_BOTH", "N_DEVICE"),
                     help="Gaussian fits: problems on both devices, then on the device alone")
@@ -257,6 +287,8 @@ def main() -> None:
                 section_fit(dev, args.repeats, "gaussian", *args.fit_sizes)
             elif s == "fit_kernel":
                 section_fit(dev, args.repeats, "kernel", *args.kernel_fit_sizes)
+            elif s == "ladder":
+                section_ladder(dev, *args.ladder_size)
             elif s == "dm":
                 section_dm(dev)
             else:

@@ -190,27 +190,36 @@ def _ladder_module(rev: str | None):
     return mod
 
 
+def _sync(dev: torch.device) -> None:
+    if dev.type == "cuda":
+        torch.cuda.synchronize(dev)
+
+
 def _fit_ladder(d: dict, mod, sl=slice(None)):
     """``(fits, seconds of with_slopes)``: :func:`~torchblur.dm.ladder_fit.fit_ladder_problems` of the patterns ``sl``
     (the slopes computed once first where ``mod`` has ``with_slopes``, timed apart)."""
     lad = mod.PatternLadder(d["levels"][sl], d["images"][sl], d["variance"][sl], d["still"])
     t0 = time.perf_counter()
     lad = mod.with_slopes(lad) if hasattr(mod, "with_slopes") else lad
+    _sync(lad.levels.device)
     t_slopes = time.perf_counter() - t0
     fits = mod.fit_ladder_problems(d["crops"][sl], lad, ExposureWindow(d["start"][sl], d["duration"][sl]), d["omega"], d["amplitude"][sl],
                                    power=1.0, noise_std=d["noise"][sl])
     return fits, t_slopes
 
 
-def ladder_child(path: str, baseline: str | None) -> dict:
-    """The ladder fit of the problems at ``path`` in this process: problems/s of the fit, the
-    slopes' seconds, rms(error/std) of the amplitudes against the truth; with ``baseline`` (a git
-    revision) also that revision's fit of the same problems, its time and the largest difference in stds."""
-    d = torch.load(path)
+def ladder_child(path: str, baseline: str | None, device: str = "cpu") -> dict:
+    """The ladder fit of the problems at ``path`` in this process, every tensor on ``device``: problems/s
+    of the fit, the slopes' seconds, rms(error/std) of the amplitudes against the truth; with ``baseline`` (a
+    git revision) also that revision's fit of the same problems, its time and the largest difference in stds."""
+    dev = torch.device(device)
+    d = {k: v.to(dev) if isinstance(v, torch.Tensor) else v for k, v in torch.load(path).items()}
     new = _ladder_module(None)
     _fit_ladder(d, new, slice(0, 1))  # warm up (first-call allocations, the derivative matrix), not timed
+    _sync(dev)
     t0 = time.perf_counter()
     fits, t_slopes = _fit_ladder(d, new)
+    _sync(dev)
     dt = time.perf_counter() - t0 - t_slopes
     n = fits.status.numel()
     ok = fits.status == 0
@@ -221,8 +230,10 @@ def ladder_child(path: str, baseline: str | None) -> dict:
     if baseline:
         old = _ladder_module(baseline)
         _fit_ladder(d, old, slice(0, 1))
+        _sync(dev)
         t0 = time.perf_counter()
         ref = _fit_ladder(d, old)[0]
+        _sync(dev)
         out["baseline_s"] = time.perf_counter() - t0
         sd0 = torch.diagonal(ref.covariance, dim1=-2, dim2=-1).sqrt()
         both = ok & (ref.status == 0)
@@ -363,14 +374,14 @@ def kernel_throughput(cases, points: int, device: str) -> None:
               f"{'keeps up' if t_fit <= acq else 'does NOT keep up'}; wait after the last frame about {wait:.0f} s")
 
 
-def ladder_throughput(cases, points: int, baseline: str | None) -> None:
+def ladder_throughput(cases, points: int, baseline: str | None, device: str = "cpu") -> None:
     """The ladder spot fit (:func:`~torchblur.dm.ladder_fit.fit_ladder_problems`, each pattern's
     spots on their own ladders: :func:`ladder_problems`) in problems/s per case, each in its own
     process; with ``baseline`` the ratio to that git revision's fit of the same problems in the same
     process; and whether that keeps up with a 30 Hz camera on ``configs/identify_dm.yaml`` with
     ``dm_plan.spot_model=ladder``."""
     print(f"\nthe ladder spot fit (dm_plan.spot_model=ladder: {LADDER_LEVELS} levels x {LADDER_FRAMES} frames, Gaussian spots that "
-          f"widen as they move plus 0-1 px of free motion), {points} patterns per case at {LADDER_FREQ_HZ:g} Hz, cpu, "
+          f"widen as they move plus 0-1 px of free motion), {points} patterns per case at {LADDER_FREQ_HZ:g} Hz, {device}, "
           f"{torch.get_num_threads()} thread(s)")
     print(f"{'case':>6} {'act':>4} {'subap':>5} {'problems':>8} | {'ladder /s':>9} {'slopes s':>8} {'ok':>5} {'rms z':>6} | "
           f"{'baseline /s':>11} {'speed-up':>8} {'max diff std':>12} {'status same':>11} | {'load':>5}")
@@ -380,7 +391,7 @@ def ladder_throughput(cases, points: int, baseline: str | None) -> None:
             n_act, n_sub = case_sizes(spec)
             path = os.path.join(tmp, f"l_{spec.replace('/', '_')}.pt")
             torch.save(ladder_problems(n_sub, points, seed=2), path)
-            r = run_child(path, "ladder", "cpu", 0, baseline)
+            r = run_child(path, "ladder", device, 0, baseline)
             rates[spec] = r
             base = (f"{r['baseline_per_s']:>11.1f} {r['per_s'] / r['baseline_per_s']:>8.2f} {r['max_diff_std']:>12.2g} {str(r['same_status']):>11}"
                     if baseline else f"{'-':>11} {'-':>8} {'-':>12} {'-':>11}")
@@ -450,7 +461,7 @@ def main():
     elif os.environ.get("BENCH_DM_THREADS"):
         torch.set_num_threads(int(os.environ["BENCH_DM_THREADS"]))
     if args.child:
-        out = ladder_child(args.child, args.ladder_baseline) if args.method == "ladder" else child(args.child, args.method, args.device, args.single)
+        out = ladder_child(args.child, args.ladder_baseline, args.device) if args.method == "ladder" else child(args.child, args.method, args.device, args.single)
         print(json.dumps(out))
         return
     if args.device.startswith("cuda") and not torch.cuda.is_available():
@@ -459,7 +470,7 @@ def main():
     if args.kernel_points > 0:
         kernel_throughput(args.cases, args.kernel_points, args.device)
     if args.ladder_points > 0:
-        ladder_throughput(args.cases, args.ladder_points, args.ladder_baseline or None)
+        ladder_throughput(args.cases, args.ladder_points, args.ladder_baseline or None, args.device)
     if not args.no_plans:
         plan_comparison(sigma1)
 
