@@ -10,6 +10,7 @@ import torch
 from sinc_spots import sinc2_case
 from torchblur.dm.spot_fit import PerSpotPSF, fit_spot_problems
 from torchblur.errors import InputTypeError, ParameterError, ShapeError
+from torchblur.render.alias import wrap_phase
 from torchblur.render.psf import GaussianPSF, KernelPSF
 
 MOTIONS = (0.5, 1.0, 2.0, 3.0)
@@ -93,11 +94,26 @@ def test_per_spot_psf_mixes_kernel_and_gaussian_and_inflates_only_kernel_stds(si
     assert mixed.n_chunks == 2  # one chunk of each kind
 
 
+def _same_to_roundoff(got, ref) -> None:
+    """The same statuses and flags, the estimates within 1e-5 of their own stds (an H200 gave 1.9e-8 px on
+    an amplitude, 1.1e-7 relative: a float64 solve's round-off through the fit's conditioning), the
+    covariance and chi2 within 1e-6 relative."""
+    assert torch.equal(got.status, ref.status) and torch.equal(got.flags, ref.flags)
+    sd = torch.diagonal(ref.covariance, dim1=-2, dim2=-1).sqrt()
+    for name, diff, s in (("amplitude", got.amplitude - ref.amplitude, sd[..., 0::2]),
+                          ("phase", wrap_phase(got.phase - ref.phase), sd[..., 1::2])):
+        d = diff.abs() / s
+        assert torch.equal(diff.isnan(), getattr(ref, name).isnan()), name
+        assert bool((d[~d.isnan()] <= 1e-5).all()), (name, float(d.nan_to_num().max()))
+    for name in ("covariance", "reduced_chi2"):
+        torch.testing.assert_close(getattr(got, name), getattr(ref, name), rtol=1e-6, atol=0, equal_nan=True)
+
+
 @pytest.mark.parametrize("device", ["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
 def test_fit_device_moves_the_spot_fits_and_brings_them_back(mixed, device):
     """``fit.device`` (the DM plan's ``_fit_spots``): the mixed kernel/Gaussian batch fitted on ``device``
     (crops, PerSpotPSF, window, omega, noise and kernel noise moved there), every fit back on the CPU:
-    bit for bit the direct call on the CPU, the same to round-off on a GPU."""
+    bit for bit the direct call on the CPU, the same to round-off on a GPU (:func:`_same_to_roundoff`)."""
     from torchblur.identify.dm_plan import _fit_spots
 
     args, kw, ref = mixed
@@ -108,8 +124,7 @@ def test_fit_device_moves_the_spot_fits_and_brings_them_back(mixed, device):
         assert a.device.type == "cpu" and a.dtype == b.dtype
         if device == "cpu":
             assert torch.equal(a, b), name
-        else:
-            torch.testing.assert_close(a, b, rtol=1e-7, atol=1e-9, equal_nan=True)
+    _same_to_roundoff(got, ref)
 
 
 def test_spot_psf_arguments_are_checked(sinc):
