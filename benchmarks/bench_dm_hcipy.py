@@ -166,6 +166,31 @@ def shrink_lines(res, truth, dyn) -> list[str]:
     return lines
 
 
+def actuator_gain_lines(res, truth, dyn) -> list[str]:
+    """The live actuators' responses ``h_j`` (D's columns projected on the run's G) against the linearised
+    truth's, their errors split along ``h_j`` (gain) and across it (phase), each over its std: the rms per
+    frequency, and how the gain errors of an actuator correlate between frequencies (mean over frequency
+    pairs of the correlation over actuators). A frequency-independent error per actuator (a static slope,
+    a spot's shift convention) shows as a correlation near 1 that no single frequency's stds reveal; the
+    model fit, taking the frequencies as independent, then gives DC gains (and modes) too small a std."""
+    from torchblur.dm.actuator_fit import project_columns
+
+    live = np.flatnonzero(~dyn.dead)
+    f = res.freq_hz
+    h, hc = project_columns(res.D, res.D_cov, res.G)
+    ht = project_columns(truth["shift_slopes"][:, :, None] * dyn.response(f)[None], res.D_cov, res.G)[0]
+    rel = ((h - ht) / ht)[live]
+    sd = np.sqrt((hc[live, :, 0, 0] + hc[live, :, 1, 1]) / 2) / np.abs(ht[live])  # [J, F] relative
+    zg, zp = rel.real / sd, rel.imag / sd
+
+    def corr(z):
+        c = np.corrcoef(z.T)
+        return (np.nansum(c) - len(f)) / (len(f) * (len(f) - 1))
+    rms = lambda z: " ".join(f"{v:.2f}" for v in np.sqrt(np.nanmean(z**2, 0)))  # noqa: E731
+    return [f"gain rms(error/std) per frequency {rms(zg)}", f"phase rms(error/std) per frequency {rms(zp)}",
+            f"mean correlation between frequencies of an actuator's error/std: gain {corr(zg):.2f}, phase {corr(zp):.2f}"]
+
+
 def physics_checks() -> None:
     """The generator's checks at the benchmark's worst exposure, and what thresholding sees."""
     import torch
@@ -248,6 +273,8 @@ def report(res, truth, dyn, poor_fit_chi2: float) -> None:
         print(f"  one scale per pattern, {line}")
     for line in shrink_lines(res, truth, dyn):
         print(f"  pull toward the mean response, {line}")
+    for line in actuator_gain_lines(res, truth, dyn):
+        print(f"  actuators' responses h_j, {line}")
     print(f"  dead actuator status {f['dead_status']} (want dead), weak {f['weak_status']} (want weak), other live actuators not ok: "
           f"{f['other_not_ok']}")
     print(f"  spot fits' reduced chi2 median {f['spot_chi2_median']:.3g} (<= 1.2); poor_fit actuators {f['poor_fit_actuators']}")
