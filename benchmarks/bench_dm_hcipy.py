@@ -140,6 +140,20 @@ def pattern_scale_lines(res, truth, dyn) -> list[str]:
     return lines
 
 
+def dc_gain_lines(res, dyn) -> list[str]:
+    """The live actuators' DC gain errors against the generator's gains, apart for those whose gain
+    rests on the edge subapertures (the registration's edge test: ``gains_unverified``, stds flagged)
+    and the others: the mean relative error and rms(error/std) with its mean (a gain common to every
+    pattern moves the inner ones' mean)."""
+    a, live = res.actuators, np.flatnonzero(~dyn.dead)
+    e = getattr(res.registration, "edge_test", None) or {}
+    edge = np.isin(live, np.asarray(e.get("gains_unverified", []), dtype=int))
+    rel, z = a.dc_gain[live] / dyn.gain[live] - 1, (a.dc_gain[live] - dyn.gain[live]) / a.dc_gain_std[live]
+    return [f"{name} ({int(sel.sum())}): error mean {np.nanmean(rel[sel]) * 100:+.3f} % (sd {np.nanstd(rel[sel]) * 100:.3f} %), rms(error/std) "
+            f"{np.sqrt(np.nanmean(z[sel] ** 2)):.2f} (mean {np.nanmean(z[sel]):+.2f})"
+            for name, sel in (("on the edge subapertures", edge), ("inside", ~edge)) if sel.any()]
+
+
 def shrink_lines(res, truth, dyn) -> list[str]:
     """Per frequency, how the live actuators' responses ``h_j`` (D's columns projected on the run's G) err
     against the linearised truth's, relative to how far each actuator's own ``H_j`` lies from the live
@@ -271,6 +285,8 @@ def report(res, truth, dyn, poor_fit_chi2: float) -> None:
         print(f"  D(jw) error, {line}")
     for line in pattern_scale_lines(res, truth, dyn):
         print(f"  one scale per pattern, {line}")
+    for line in dc_gain_lines(res, dyn):
+        print(f"  DC gain of the live actuators whose gain rests {line}")
     for line in shrink_lines(res, truth, dyn):
         print(f"  pull toward the mean response, {line}")
     for line in actuator_gain_lines(res, truth, dyn):

@@ -233,6 +233,14 @@ CLAIMS = [
           + r" us \(<= 2 us\), DC gain " + NUM + r" %\s+D0 rms error / max\|D0\| against the fitted-shift truth: " + NUM
           + r" %[^\n]*\n\s+rms\(error/std\) \(0\.8\.\.1\.3\): D\(jw\) " + NUM + "; mode " + NUM + ", damping " + NUM
           + ", delay " + NUM + ", DC gain " + NUM, rtol=(0.02,), speed="slow"),
+    Claim("DM: the ladder's static shift against the fitted-shift truth (issue 23's cause 1)", "docs/deformable_mirrors.md",
+          r"its first 16 patterns\) prints \+" + NUM + r" % \(sd " + NUM + r" % over\s+the patterns\) for `static_slope`[\s\S]*?into\s+\+"
+          + NUM + r" % from the truth itself[\s\S]*?\+" + NUM + r" % \(sd [0-9.]+ %\) from the still's Fourier[\s\S]*?and \+" + NUM
+          + r" % \(sd [0-9.]+ %\) from the cubic's",
+          [sys.executable, "benchmarks/bench_dm_ladder_slope.py"],
+          r"static_slope \(the run's cubic\)\s+eps mean \+" + NUM + r" %, sd " + NUM + r" %[\s\S]*?the truth's own \+-0\.05 poke \+" + NUM
+          + r" \(sd [0-9.]+\) \+ the still's Fourier derivatives for the truth's tilts at 0\.01 \+" + NUM + r" \(sd [0-9.]+\) \+ the cubic "
+          r"over the ladder for the slope at 0 \+" + NUM, rtol=(0.02,), speed="slow"),
     Claim("model stds: the delay's profile likelihood", "docs/reliability.md",
           r"interval reaches " + NUM + r" of the linearised std below and " + NUM + r" above, and the likelihood-ratio z at the "
           r"true delay differs from \(estimate - truth\) / std by at most " + NUM,

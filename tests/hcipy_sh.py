@@ -271,20 +271,25 @@ class HcipySH:
 
     # ------------------------------------------------------------------ motion
 
+    def tilted(self, tx: float, ty: float) -> np.ndarray:
+        """``[H, W]`` the still frame under a whole-pupil tilt that moves every spot by ``(tx, ty)``
+        px (wavefront slope ``t px / f``)."""
+        k = 2 * np.pi / _WAVELENGTH
+        X, Y = np.asarray(self.grid.x), np.asarray(self.grid.y)
+        return self._image_of(self._pupil_lens * np.exp(1j * k * (tx * X + ty * Y) * _PIXEL / self.focal).astype(np.complex64))
+
+    def tilt_derivatives(self, h: float = 0.05) -> tuple:
+        """``(dx, dy)`` ``[H, W]`` each: the image's derivatives along a spot shift in x and y, from
+        whole-pupil tilts of ``+-h`` px (:meth:`tilted`)."""
+        return (self.tilted(h, 0) - self.tilted(-h, 0)) / (2 * h), (self.tilted(0, h) - self.tilted(0, -h)) / (2 * h)
+
     def shift_truth(self, poke: float = 0.05) -> np.ndarray:
         """``[2M, N]`` the fitted-shift truth of the static interaction matrix (px per unit
         command): spot m's best-fit shift under a +-``poke`` command of actuator j (least squares
         of the image change in its 16 x 16 cell on the image's derivatives along x and y, these
         from whole-pupil tilts of +-0.05 px), rows x of all M spots then y."""
         N, p = self.n_actuators, self.optics.pitch_px
-        k = 2 * np.pi / _WAVELENGTH
-        h = 0.05
-        X, Y = np.asarray(self.grid.x), np.asarray(self.grid.y)
-        tilts = []
-        for tx, ty in ((h, 0), (-h, 0), (0, h), (0, -h)):  # a spot shift of (tx, ty) px: wavefront slope t px / f
-            tilts.append(np.exp(1j * k * (tx * X + ty * Y) * _PIXEL / self.focal))
-        imgs = [self._image_of(self._pupil_lens * t.astype(np.complex64)) for t in tilts]
-        dx, dy = (imgs[0] - imgs[1]) / (2 * h), (imgs[2] - imgs[3]) / (2 * h)
+        dx, dy = self.tilt_derivatives()
         cmd = np.concatenate([poke * np.eye(N), -poke * np.eye(N)])
         I = self.intensity(cmd)
         dI = (I[:N] - I[N:]) / (2 * poke)  # [N, H, W]

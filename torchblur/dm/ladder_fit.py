@@ -307,14 +307,14 @@ def static_slope(images, still, levels, *, pad: int = PAD):
     """``(s [u, 2], ds_dl [u, 2, K, hw])``: each ladder's static shift per unit ``u`` (px) and its
     derivative along the ladder's images. Each level's image ``images [u, K, h, w]`` is fitted by
     its spot's still ``still [u, h, w]`` shifted by ``(dx, dy)`` (Gauss-Newton to :data:`SHIFT_TOL`,
-    unweighted, the renderer's Fourier shift), and ``s`` is the slope at ``u = 0`` of the least-squares polynomial
-    of degree :data:`SLOPE_DEGREE` through the levels' shifts (``levels [u, K]``): the
-    fitted-shift convention (at ``u -> 0`` the least squares of ``dL/du`` on the still's shift
-    derivatives) from every level. The spline's ``dL/du`` at 0 took it from two or three levels,
-    their noise weighed by ``1 / spacing``: on the small simulated mirror 7 x the std, an error
-    common to every frequency of a spot (8.5 % of a spot fit's variance at 32 frames per level)
-    that the actuator fit takes as independent. ``ds_dl`` from the fits' Jacobians (each level's
-    shift linear in its image to first order)."""
+    unweighted, the renderer's Fourier shift); ``s`` is the slope at ``u = 0`` of the least-squares
+    polynomial of degree :data:`SLOPE_DEGREE` through the levels' shifts (``levels [u, K]``): the
+    small-poke fitted shift where the shift is a cubic in ``u``. A lenslet spot's bends within the
+    first level, which no level resolves: on HCIPy's frames ``s`` is +0.202 % above the truth (+0.033 %
+    of it the truth's own poke; ``benchmarks/bench_dm_ladder_slope.py``: measured, not cured). The
+    spline's ``dL/du`` at 0 took two or three levels, their noise weighed by ``1 / spacing``: 5 x the
+    cubic's there, 7 x on the small simulated mirror, an error common to every frequency of a spot
+    that the actuator fit takes as independent. ``ds_dl`` from the fits' Jacobians."""
     u, K, h, w = images.shape
     eye = torch.eye(2, dtype=images.dtype, device=images.device)
     shift = image_moments(images)[1] - image_moments(still)[1][:, None]  # [u, K, 2] the start: the centroids' difference
