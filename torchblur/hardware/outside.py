@@ -328,13 +328,12 @@ class FrameStore:
 
     Attributes:
         root: the recording's folder; frame_shape: ``(H, W)``; dtype: the files' pixel dtype.
-        where: ``{line: (file, page)}``; digests: ``{line: bytes}``; loads: ``[n]`` the frames of each
-            :meth:`load` call, in order (what a run held at a time: a test counts them).
+        where: ``{line: (file, page)}``; digests: ``{line: bytes}``.
     """
 
     def __init__(self, root: Path, where: dict, digests: dict, frame_shape: tuple, dtype):
         self.root, self.where, self.digests = root, where, digests
-        self.frame_shape, self.dtype, self.loads = tuple(frame_shape), np.dtype(dtype).newbyteorder("="), []
+        self.frame_shape, self.dtype = tuple(frame_shape), np.dtype(dtype).newbyteorder("=")
 
     def load(self, lines) -> np.ndarray:
         """The frames of ``frames.csv``'s ``lines`` (``[n]``), ``[n, H, W]`` in the files' dtype.
@@ -356,7 +355,6 @@ class FrameStore:
                     raise RecordingError(f"{name} page {page} ({CSV_NAME} line {ln}): its pixels changed after the recording was read; "
                                          f"refused")
                 out[i] = frame
-        self.loads.append(len(lines))
         return out
 
 
@@ -381,26 +379,26 @@ def _tiff_series(root: Path, rel: str, where: str):
     with os.fdopen(fd, "rb") as fh:
         try:
             tf = tifffile.TiffFile(fh, name=posixpath.basename(rel))
-        except Exception as exc:  # a third-party decoder on untrusted bytes: any failure is a bad file
-            raise RecordingError(f"{rel}: not a readable TIFF ({type(exc).__name__}: {excerpt(str(exc), 100)})") from None
+            series = tf.series[0]
+            tiff_header_limits(tf, series, size, rel)
+        except RecordingError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - a third-party decoder on untrusted bytes: any failure is a bad file
+            raise _unreadable(rel, exc) from None
         with tf:
-            try:
-                series = tf.series[0]
-                tiff_header_limits(tf, series, size, rel)
-            except RecordingError:
-                raise
-            except Exception as exc:  # noqa: BLE001
-                raise RecordingError(f"{rel}: not a readable TIFF ({type(exc).__name__}: {excerpt(str(exc), 100)})") from None
             yield tf, series, size
+
+
+def _unreadable(name: str, exc: Exception) -> RecordingError:
+    return RecordingError(f"{name}: not a readable TIFF ({type(exc).__name__}: {excerpt(str(exc), 100)})")
 
 
 def _pages(tf, pages: list, name: str, frame_shape: tuple) -> np.ndarray:
     """Pages ``pages`` of the first series of ``tf`` (one frame each) as ``[n, H, W]``; RecordingError naming ``name``."""
     try:
-        arr = tf.asarray(key=list(pages), series=0)
+        return np.asarray(tf.asarray(key=list(pages), series=0)).reshape((len(pages),) + tuple(frame_shape))
     except Exception as exc:  # noqa: BLE001 - a decoder on untrusted bytes
-        raise RecordingError(f"{name}: not a readable TIFF ({type(exc).__name__}: {excerpt(str(exc), 100)})") from None
-    return np.asarray(arr).reshape((len(pages),) + tuple(frame_shape))
+        raise _unreadable(name, exc) from None
 
 
 def _read_frames(root: Path, rows: list) -> FrameStore:
