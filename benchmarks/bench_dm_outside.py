@@ -5,7 +5,7 @@ recordings"), and the memory each step takes.
 Runs ``torchblur identify`` on a DM config (default: a 9-actuator mirror under 4 x 4
 subapertures, the suite's tests/test_dm_run.py size; ``--config configs/identify_dm.yaml`` for the
 shipped 52-actuator one), exports its recording (:func:`torchblur.identify.export_dm_recording`), fits
-the folder with ``torchblur fit`` and prints: the largest relative difference of every actuator
+the folder with ``torchblur fit`` (with the run's ``fit.*`` settings) and prints: the largest relative difference of every actuator
 column (actuators.csv, 9 significant digits), of D0 (interaction_matrix.npy) and of D(jw)
 (frf.json) between the two, the largest over every csv/json/npy file of ``dm/`` (benchmarks/compare_runs.py's
 comparison), the folder's size, and the wall time and peak resident memory of each step (each runs in its own
@@ -13,16 +13,20 @@ process: ``os.wait4``'s ``ru_maxrss``; threads: torch's default; times are for t
 
     python benchmarks/bench_dm_outside.py [--config FILE] [--keep DIR] [--baseline SRC] [overrides ...]
     python benchmarks/bench_dm_outside.py --run RUN [--refit]   # a run recorded on any rig (torchblur.identify(cfg, rig, record=RUN/experiment))
+    python benchmarks/bench_dm_outside.py --read FOLDER [--baseline SRC]   # an outside DM recording read, no fit
 
 With ``--run`` the reference is the run's own outputs (a run on a lab's or a test's rig, an HCIPy Shack-Hartmann
 rig, is compared the same way); with ``--refit`` it is ``torchblur fit RUN`` (a re-fit of the recording, by this
 tree), itself compared with the run's outputs (live against re-fit). ``--baseline SRC``: a source tree of torchblur (e.g. ``mkdir SRC; git archive
 81d9e2f | tar -x -C SRC``) whose ``torchblur fit FOLDER`` also fits the exported folder: its peak memory and its result against
-this tree's (the reader's memory before and after a change).
+this tree's (the reader's memory before and after a change). ``--read FOLDER``: only the peak memory and time of
+what the fit of an outside DM recording does before its spot fits (read and check the folder, the calibration,
+the held patterns' images, every frequency's frames as the fit takes them), by this tree and ``--baseline``'s.
 """
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import shutil
 import subprocess
@@ -43,6 +47,18 @@ SMALL = ["dm.n_across=3", "dm.mode_hz=600.0", "dm.damping=0.1", "dm.mode_spread=
 COLUMNS = ("dc_gain", "dc_gain_std", "mode_hz", "mode_hz_std", "damping", "damping_std", "delay_s", "delay_s_std")
 HERE = Path(__file__).resolve().parents[1]
 EXPORT = "import sys; from torchblur.identify import export_dm_recording; export_dm_recording(sys.argv[1], sys.argv[2])"
+READ = """import sys, torch
+from torchblur.config.budget import dm_sensor
+from torchblur.identify.dm_ladder import hold_images
+from torchblur.identify.dm_outside import dm_recording_config, read_dm_recording, recording_calibration
+rec = read_dm_recording(sys.argv[1])
+cfg = dm_recording_config(rec)
+cal, psf, offset, size = recording_calibration(rec, cfg, dm_sensor(cfg)[1])
+if rec.ladder_levels is not None:
+    hold_images(rec.ladder_frames, rec.ladder_levels, float(rec.ladder_exposure_s), cal, offset, size, float(rec.ladder_power))
+for k in range(len(rec.frames)):
+    torch.as_tensor(rec.frames[k]).to(torch.float64)
+"""
 
 
 def _rel(a, b) -> float:
@@ -57,13 +73,25 @@ def _rel(a, b) -> float:
 
 
 def _step(args: list, src: Path = HERE) -> tuple[int, float, float]:
-    """``(exit status, seconds, peak resident GB)`` of ``python args`` with ``src``'s torchblur first on the path."""
+    """``(exit status, seconds, peak resident GB)`` of ``python args`` run in ``src`` (``-c`` and ``-m`` put the
+    working folder first on the path: its torchblur is the one run; paths in ``args`` absolute)."""
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(src)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]))
     t0 = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, *args], env=env, stdout=subprocess.DEVNULL)
+    proc = subprocess.Popen([sys.executable, *args], env=env, stdout=subprocess.DEVNULL, cwd=src)
     _, status, usage = os.wait4(proc.pid, 0)
     proc.returncode = os.waitstatus_to_exitcode(status)
     return proc.returncode, time.perf_counter() - t0, usage.ru_maxrss * 1024 / 1e9  # ru_maxrss: kB on Linux
+
+
+def _fit_settings(run: Path) -> list:
+    """The ``fit.*`` settings of the run in folder ``run`` (its ``config.yaml``) as overrides: an outside recording
+    does not carry them, and ``torchblur fit FOLDER`` takes them (docs/outside_recordings.md)."""
+    from dataclasses import asdict
+
+    from torchblur import load_config
+
+    cfg = load_config(str(run / "config.yaml"), trusted=False, force=True)
+    return [f"fit.{k}={json.dumps(v)}" for k, v in asdict(cfg.fit).items()]
 
 
 def _worst(a: Path, b: Path) -> float:
@@ -98,8 +126,17 @@ def main(argv=None) -> int:
     ap.add_argument("--run", default=None, help="a recorded DM run (its folder holds experiment/): its outputs are the reference")
     ap.add_argument("--refit", action="store_true", help="with --run: the reference is torchblur fit RUN")
     ap.add_argument("--baseline", default=None, help="a torchblur source tree whose `torchblur fit FOLDER` is measured too")
+    ap.add_argument("--read", default=None, help="an outside DM recording: only what its fit does before the spot fits, measured")
     ap.add_argument("overrides", nargs="*")
     args = ap.parse_args(argv)
+    for name in ("config", "keep", "run", "baseline", "read"):
+        if getattr(args, name):
+            setattr(args, name, str(Path(getattr(args, name)).resolve()))
+    if args.read:
+        for src in [HERE] + ([Path(args.baseline)] if args.baseline else []):
+            rc, t, peak = _step(["-c", READ, args.read], src)
+            print(f"{src}: read {args.read}, calibrated, held images, every frequency's frames: exit status {rc}, {t:.1f} s, peak {peak:.2f} GB")
+        return 0
     root = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="bench_dm_outside_"))
     for sub in ("live", "outside", "fit", "fit_baseline"):
         shutil.rmtree(root / sub, ignore_errors=True)
@@ -112,10 +149,11 @@ def main(argv=None) -> int:
     elif args.refit:
         steps["re-fit of the run"] = _step(cli + ["fit", str(args.run), "--out", str(ref), "--quiet"])
     steps["export"] = _step(["-c", EXPORT, str(root / "live" if args.run is None else args.run), str(root / "outside")])
-    steps["torchblur fit FOLDER"] = _step(cli + ["fit", str(root / "outside"), "--out", str(root / "fit"), "--quiet"])
+    own = _fit_settings(root / "live" if args.run is None else Path(args.run))  # the run's fit.* (psf, loss, ...)
+    steps["torchblur fit FOLDER"] = _step(cli + ["fit", str(root / "outside"), "--out", str(root / "fit"), "--quiet", *own])
     if args.baseline:
         steps[f"torchblur fit FOLDER ({args.baseline})"] = _step(cli + ["fit", str(root / "outside"), "--out", str(root / "fit_baseline"),
-                                                                         "--quiet"], Path(args.baseline))
+                                                                         "--quiet", *own], Path(args.baseline))
     rc = {k: s[0] for k, s in steps.items()}
     if args.refit:
         print(f"live run {args.run} against its re-fit: every value of dm/ within {_worst(Path(args.run), ref):.2e} (relative)")
