@@ -13,7 +13,7 @@ process: ``os.wait4``'s ``ru_maxrss``; threads: torch's default; times are for t
 
     python benchmarks/bench_dm_outside.py [--config FILE] [--keep DIR] [--baseline SRC] [overrides ...]
     python benchmarks/bench_dm_outside.py --run RUN [--refit]   # a run recorded on any rig (torchblur.identify(cfg, rig, record=RUN/experiment))
-    python benchmarks/bench_dm_outside.py --read FOLDER [--baseline SRC]   # an outside DM recording read, no fit
+    python benchmarks/bench_dm_outside.py --read FOLDER [--baseline SRC] [fit.* overrides]   # an outside DM recording read, no fit
 
 With ``--run`` the reference is the run's own outputs (a run on a lab's or a test's rig, an HCIPy Shack-Hartmann
 rig, is compared the same way); with ``--refit`` it is ``torchblur fit RUN`` (a re-fit of the recording, by this
@@ -52,7 +52,7 @@ from torchblur.config.budget import dm_sensor
 from torchblur.identify.dm_ladder import hold_images
 from torchblur.identify.dm_outside import dm_recording_config, read_dm_recording, recording_calibration
 rec = read_dm_recording(sys.argv[1])
-cfg = dm_recording_config(rec)
+cfg = dm_recording_config(rec, sys.argv[2:])
 cal, psf, offset, size = recording_calibration(rec, cfg, dm_sensor(cfg)[1])
 if rec.ladder_levels is not None:
     hold_images(rec.ladder_frames, rec.ladder_levels, float(rec.ladder_exposure_s), cal, offset, size, float(rec.ladder_power))
@@ -134,7 +134,7 @@ def main(argv=None) -> int:
             setattr(args, name, str(Path(getattr(args, name)).resolve()))
     if args.read:
         for src in [HERE] + ([Path(args.baseline)] if args.baseline else []):
-            rc, t, peak = _step(["-c", READ, args.read], src)
+            rc, t, peak = _step(["-c", READ, args.read, *args.overrides], src)
             print(f"{src}: read {args.read}, calibrated, held images, every frequency's frames: exit status {rc}, {t:.1f} s, peak {peak:.2f} GB")
         return 0
     root = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="bench_dm_outside_"))
