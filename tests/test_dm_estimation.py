@@ -212,7 +212,7 @@ import math  # noqa: E402
 import torch  # noqa: E402
 
 from torchblur.design.windows import dual_exposure_windows  # noqa: E402
-from torchblur.dm.spot_fit import chunk_size, crop_problems, fit_spot_problems, pattern_responses  # noqa: E402
+from torchblur.dm.spot_fit import CHUNK_BYTES, chunk_size, crop_problems, fit_spot_problems, pattern_responses  # noqa: E402
 from torchblur.render.blur import render_blur  # noqa: E402
 from torchblur.render.psf import GaussianPSF  # noqa: E402
 from torchblur.render.trajectory import Sinusoid  # noqa: E402
@@ -288,6 +288,8 @@ def test_chunk_size_from_free_memory():
     assert chunk_size(4, 12, 12, free_bytes=10**9, dtype=torch.float32) == int(0.25 * 10**9 // (128 * 4 * 144))
     assert chunk_size(4, 12, 12, free_bytes=1) == 1
     assert chunk_size(4, 12, 12) >= 1
+    # beyond CHUNK_BYTES the chunks do not follow the free memory (a run and its re-fit group the problems alike)
+    assert chunk_size(4, 12, 12, free_bytes=10**12) == chunk_size(4, 12, 12, free_bytes=10**13) == CHUNK_BYTES // (256 * 4 * 144)
 
 
 def test_spot_fit_float32_follows_the_input_dtype():

@@ -6,6 +6,7 @@ input (every error names the file, line and column)."""
 import importlib.util
 import json
 import shutil
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -54,23 +55,50 @@ def test_the_vendor_example_identifies_its_mirror_with_the_latency_given(lab_run
         assert np.all(np.abs(est - true) < 4 * std)  # the stds hold (4 of them: 12 numbers)
 
 
-def test_the_exported_recording_fits_to_the_same_table_through_torchblur_fit(lab_run, tmp_path, capsys):
+class _CountingPool(ThreadPoolExecutor):
+    """One worker thread that records, at each submit, how many submitted fits had not finished (their frames held)."""
+
+    def __init__(self):
+        super().__init__(max_workers=1)
+        self.futures, self.pending = [], []
+
+    def submit(self, *a, **k):
+        self.pending.append(sum(not f.done() for f in self.futures))
+        self.futures.append(super().submit(*a, **k))
+        return self.futures[-1]
+
+
+def test_the_exported_recording_fits_to_the_same_table_through_torchblur_fit(lab_run, tmp_path, capsys, monkeypatch):
+    """The same frames give the live run's D, D0 and table exactly. Reading the folder checks every frame and holds
+    the dark and still ones only; the fit reads one frequency's frames at a time (each read of the store at most
+    one frequency's), at most AMPLITUDE_LAG of them waiting for their fits, as the live sweep (issue 23)."""
+    from torchblur.hardware.outside import FrameStore
+    from torchblur.identify import dm_outside
     from torchblur.identify.dm_outputs import read_actuators_csv
+    from torchblur.identify.dm_plan import AMPLITUDE_LAG
     from torchblur.cli import main
     from torchblur.sysid.frequency_response import FrequencyResponse
 
     res, _, folder = lab_run
+    loads, load = [], FrameStore.load
+    monkeypatch.setattr(FrameStore, "load", lambda self, lines: loads.append(np.size(lines)) or load(self, lines))
+    pool = _CountingPool()
+    monkeypatch.setattr(dm_outside, "fit_pool", lambda executor: pool)
+    rec = dm_outside.read_dm_recording(folder)
+    assert loads == [len(rec.dark), len(rec.still)]
+    loads.clear()
     assert main(["fit", str(folder), "--out", str(tmp_path / "fit"), "--quiet", "--json"]) == 0
+    F, P, ER = rec.start_s.shape
+    assert loads[:2] == [len(rec.dark), len(rec.still)] and loads[2:] == [P * ER] * (2 * F)  # the saturation check, then the fit
+    assert len(pool.pending) == F and max(pool.pending) <= AMPLITUDE_LAG
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["trustworthy"] and summary["frames"] == res.n_frames
     t, back = res.actuators, read_actuators_csv(tmp_path / "fit" / "dm" / "actuators.csv")
     assert list(back["status"]) == list(t.status)
     for col in ("dc_gain", "mode_hz", "damping", "delay_s", "dc_gain_std", "mode_hz_std", "damping_std", "delay_s_std"):
         np.testing.assert_allclose(back[col], getattr(t, col), rtol=1e-8)  # actuators.csv holds 9 significant digits
-    D0 = np.load(tmp_path / "fit" / "dm" / "interaction_matrix.npy")
-    np.testing.assert_allclose(D0, t.static_column, rtol=1e-9, atol=1e-12 * np.abs(t.static_column).max())
-    D = FrequencyResponse.from_json(tmp_path / "fit" / "dm" / "frf.json").response
-    np.testing.assert_allclose(D, res.D, rtol=1e-9, atol=1e-12 * np.abs(res.D).max())
+    assert np.array_equal(np.load(tmp_path / "fit" / "dm" / "interaction_matrix.npy"), t.static_column)
+    assert np.array_equal(FrequencyResponse.from_json(tmp_path / "fit" / "dm" / "frf.json").response, res.D)
 
 
 def test_write_dm_recording_reads_back(lab_run, tmp_path):
@@ -167,6 +195,24 @@ def test_saturated_frames_are_refused_not_fitted(lab_run, tmp_path):
     (folder / "recording.yaml").write_text(text + "\n")
     with pytest.raises(RecordingError, match=r"frames.csv: the sweep frame of pattern 2 at 50 Hz \(its frame 1 there\) has saturated"):
         identify_dm_recording(read_dm_recording(folder))
+
+
+def test_a_frame_changed_after_reading_is_refused_when_read_again(lab_run, tmp_path):
+    """The frames are checked when the folder is read and read again when fitted: a frame whose pixels changed in
+    between (its digest differs) is refused, naming it, not fitted unchecked."""
+    import tifffile
+
+    from torchblur.identify.dm_outside import read_dm_recording
+
+    folder = tmp_path / "changed"
+    shutil.copytree(lab_run[2], folder)
+    rec = read_dm_recording(folder)
+    assert rec.frames[1].shape == rec.frames.item_shape == (4, 2, 32, 32)
+    sweep = tifffile.imread(folder / "sweep.tif")
+    sweep[9, 3, 3] += 1  # the second frequency, pattern 0, its second frame
+    tifffile.imwrite(folder / "sweep.tif", sweep, photometric="minisblack")
+    with pytest.raises(RecordingError, match=r"sweep.tif page 9 \(frames.csv line \d+\): its pixels changed after the recording was read"):
+        rec.frames[1]
 
 
 def test_a_dm_recording_takes_only_fit_overrides(lab_run):

@@ -2,7 +2,7 @@
 
 One problem is (pattern, frequency, spot): the spot's crop in that point's ``E*R`` frames, fitted
 by :func:`~torchblur.fit.sinusoid.fit_sinusoid` with ``axes="xy"``. :func:`fit_spot_problems`
-fits them in chunks sized from the free memory (:func:`chunk_size`), each problem flagged in its
+fits them in chunks of bounded memory (:func:`chunk_size`), each problem flagged in its
 own ``status``; the PSF is each spot's own (:class:`GaussianPSF`, :class:`KernelPSF` or
 :class:`PerSpotPSF`, a kernel fit's stds times its ``kernel_noise``). :func:`pattern_responses`
 turns the fits into ``Y [P, 2M, F]`` and ``Y_cov [P, 2M, F, 2, 2]`` at ``exp(i w t)``. The
@@ -37,6 +37,11 @@ __all__ = ["PerSpotPSF", "SpotFits", "crop_problems", "fit_spot_problems", "patt
 BYTES_PER_PIXEL = 256
 #: the share of the free memory one chunk may take
 MEMORY_FRACTION = 0.25
+#: the most bytes one chunk takes, on any machine: the chunks (and so the fits' round-off, which depends
+#: on how the problems are grouped) do not follow the free memory wherever it holds 1 / MEMORY_FRACTION
+#: times this (a re-fit of the HCIPy ladder run differed from its live run by 1.6e-7 when they did); the
+#: shipped DM config's 5120 problems of a frequency stay one chunk
+CHUNK_BYTES = 2 ** 31
 #: names of the four parameters kept per problem, in ``SpotFits.covariance`` order
 _KEPT = ("amplitude_x", "phase_x", "amplitude_y", "phase_y")
 
@@ -130,12 +135,12 @@ def free_memory_bytes(device) -> int:
 
 def chunk_size(n_exposures: int, h: int, w: int, *, device="cpu", dtype=torch.float64, memory_fraction: float = MEMORY_FRACTION,
                free_bytes: int | None = None) -> int:
-    """Problems per chunk: ``memory_fraction`` of the free memory (``free_bytes``, default
-    :func:`free_memory_bytes` of ``device``) over the measured per-problem bytes
+    """Problems per chunk: :data:`CHUNK_BYTES`, or ``memory_fraction`` of the free memory (``free_bytes``,
+    default :func:`free_memory_bytes` of ``device``) where that is less, over the measured per-problem bytes
     ``BYTES_PER_PIXEL * n_exposures * h * w`` (scaled by the dtype's size against float64); at least 1."""
     per = BYTES_PER_PIXEL * n_exposures * h * w * torch.empty((), dtype=dtype).element_size() / 8
     free = free_memory_bytes(device) if free_bytes is None else int(free_bytes)
-    return max(1, int(memory_fraction * free // per))
+    return max(1, int(min(CHUNK_BYTES, memory_fraction * free) // per))
 
 
 def _spot_psfs(psf, P, F, M, h, w, like):

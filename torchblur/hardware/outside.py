@@ -10,9 +10,12 @@ columns and sections.
 """
 from __future__ import annotations
 
+import contextlib
 import csv
+import hashlib
 import io
 import math
+import os
 import posixpath
 from dataclasses import dataclass, fields, replace
 from functools import partial
@@ -22,10 +25,10 @@ from typing import Optional
 import numpy as np
 
 from torchblur.errors import ConfigError
-from torchblur.files import excerpt
+from torchblur.files import excerpt, open_regular
 from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.manifest import MAX_FRAME_SIDE, MAX_AMPLITUDE, read_bounded
-from torchblur.hardware.recording import check_distinct_frames, decode_tiff
+from torchblur.hardware.recording import check_distinct_frames, tiff_header_limits
 from torchblur.hardware.run_folder import inside
 from torchblur.config import check_declared, key, load_dataclass, whole_periods
 
@@ -70,14 +73,15 @@ class OutsideCamera:
 @dataclass(frozen=True)
 class OutsidePoint:
     """One sweep point: ``freq_hz``, ``amplitude`` (input units), ``power`` (light relative to
-    the still frames), ``frames`` ``[E*R, H, W]`` (ADU, float64, exposure-major),
+    the still frames), ``frames`` ``[E*R, H, W]`` (ADU, float64, exposure-major; None where the
+    reader left them in the files: a DM recording's, read by ``lines``),
     ``start_s`` and ``duration_s`` ``[E*R]`` (the window of each frame, s after the command's
     upward zero crossing), ``R`` (images per exposure) and ``lines`` (their CSV lines)."""
 
     freq_hz: float
     amplitude: float
     power: float
-    frames: np.ndarray
+    frames: np.ndarray | None
     start_s: np.ndarray
     duration_s: np.ndarray
     R: int
@@ -85,7 +89,7 @@ class OutsidePoint:
 
     @property
     def E(self) -> int:
-        return self.frames.shape[0] // self.R
+        return len(self.lines) // self.R
 
 
 @dataclass(frozen=True)
@@ -135,10 +139,12 @@ def read_outside_recording(path) -> OutsideRecording:
 def read_folder(root: Path, sections: tuple = (), extra: tuple = ()) -> tuple[dict, dict, dict]:
     """What both outside formats share, read and checked: ``recording.yaml``'s camera keys (its
     other top-level ``sections`` are the caller's), ``frames.csv``'s rows (``extra``: the columns a
-    DM recording adds) and their frames. Returns ``(the fields of OutsideFrames, rows by kind, frames by line)``."""
+    DM recording adds) and their frames, checked. Returns ``(the fields of OutsideFrames, rows by kind,
+    the FrameStore that reads the frames by line)``."""
     camera = _read_camera(root, sections)
     rows = _read_rows(root, extra)
-    frames, dtype = _read_frames(root, rows)
+    frames = _read_frames(root, rows)
+    dtype = frames.dtype
     given = camera.saturation_adu is not None
     camera = _resolved_saturation(camera, dtype)
     if given:
@@ -157,9 +163,9 @@ def read_folder(root: Path, sections: tuple = (), extra: tuple = ()) -> tuple[di
         line = next(r["line"] for r in by_kind["still"] if r["exposure_s"] is None or r["exposure_s"] != by_kind["still"][0]["exposure_s"])
         raise RecordingError(f"{CSV_NAME} line {line}, column exposure_s: every still frame needs one and the same exposure_s "
                              f"(the PSF's light per second), got {sorted(map(str, te))}")
-    take = lambda kind: np.stack([frames[r["line"]] for r in by_kind[kind]])  # noqa: E731
+    take = lambda kind: frames.load([r["line"] for r in by_kind[kind]]).astype(np.float64)  # noqa: E731
     return (dict(path=root, camera=camera, dark=take("dark"), still=take("still"), still_exposure_s=te.pop(),
-                 frame_shape=tuple(frames[rows[0]["line"]].shape), n_frames=len(rows), saturation_source=source), by_kind, frames)
+                 frame_shape=frames.frame_shape, n_frames=len(rows), saturation_source=source), by_kind, frames)
 
 
 def _read_camera(root: Path, sections: tuple = ()) -> OutsideCamera:
@@ -311,45 +317,138 @@ def _grayscale_frames(name: str, budget: int, series) -> None:
         raise RecordingError(f"{name}: holds an array of shape {s}; expected frames [N, H, W] or [H, W]")
 
 
-def _read_frames(root: Path, rows: list) -> tuple[dict, np.dtype]:
-    """``{line: frame [H, W] float64}`` of every row, from the TIFF files it names (each read
-    once), and the files' dtype. All frames must share one shape and one dtype."""
+#: frames decoded at a time while a recording is checked (the check holds no more than these)
+CHECK_BLOCK = 256
 
-    stacks, out, seen, seen_px = {}, {}, {}, {}
-    shape = dtype = None
+
+class FrameStore:
+    """The frames ``frames.csv`` lists, read from their TIFF files when asked, in the files' dtype:
+    a recording is never held whole (:func:`_read_frames` checked every frame once and kept its
+    digest; :meth:`load` reads them again and refuses one whose pixels changed since).
+
+    Attributes:
+        root: the recording's folder; frame_shape: ``(H, W)``; dtype: the files' pixel dtype.
+        where: ``{line: (file, page)}``; digests: ``{line: bytes}``.
+    """
+
+    def __init__(self, root: Path, where: dict, digests: dict, frame_shape: tuple, dtype):
+        self.root, self.where, self.digests = root, where, digests
+        self.frame_shape, self.dtype = tuple(frame_shape), np.dtype(dtype).newbyteorder("=")
+
+    def load(self, lines) -> np.ndarray:
+        """The frames of ``frames.csv``'s ``lines`` (``[n]``), ``[n, H, W]`` in the files' dtype.
+
+        Raises:
+            RecordingError: a file unreadable now, or a frame whose pixels are not those checked when the recording was read.
+        """
+        lines = [int(v) for v in np.asarray(lines).reshape(-1)]
+        out = np.empty((len(lines),) + self.frame_shape, dtype=self.dtype)
+        by_file: dict = {}
+        for i, ln in enumerate(lines):
+            name, page = self.where[ln]
+            by_file.setdefault(name, []).append((page, i, ln))
+        for name, items in by_file.items():
+            with _tiff_series(self.root, name, name) as (tf, series, _):
+                frames = _pages(tf, [pg for pg, _, _ in items], name, self.frame_shape)
+            for frame, (page, i, ln) in zip(frames, items):
+                if _digest(frame) != self.digests[ln]:
+                    raise RecordingError(f"{name} page {page} ({CSV_NAME} line {ln}): its pixels changed after the recording was read; "
+                                         f"refused")
+                out[i] = frame
+        return out
+
+
+def _digest(frame: np.ndarray) -> bytes:
+    return hashlib.blake2b(np.ascontiguousarray(frame).tobytes(), digest_size=16).digest()
+
+
+@contextlib.contextmanager
+def _tiff_series(root: Path, rel: str, where: str):
+    """``(TiffFile, its first series, the file's size)`` of the TIFF ``rel`` inside ``root``, opened under the
+    one opening rule (:func:`~torchblur.files.open_regular`) and its header checked
+    (:func:`~torchblur.hardware.recording.tiff_header_limits`) before any pixel is decoded."""
+    import tifffile
+
+    path = inside(root, rel, where)
+    if not path.is_file():
+        raise RecordingError(f"{where}: {excerpt(rel)} is not a file in {root}")
+    fd, size = open_regular(path, rel, error=RecordingError)
+    if size > MAX_TIFF_BYTES:
+        os.close(fd)
+        raise RecordingError(f"{rel}: {size} bytes, larger than the {MAX_TIFF_BYTES} bytes it may hold; refused")
+    with os.fdopen(fd, "rb") as fh:
+        try:
+            tf = tifffile.TiffFile(fh, name=posixpath.basename(rel))
+            series = tf.series[0]
+            tiff_header_limits(tf, series, size, rel)
+        except RecordingError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - a third-party decoder on untrusted bytes: any failure is a bad file
+            raise _unreadable(rel, exc) from None
+        with tf:
+            yield tf, series, size
+
+
+def _unreadable(name: str, exc: Exception) -> RecordingError:
+    return RecordingError(f"{name}: not a readable TIFF ({type(exc).__name__}: {excerpt(str(exc), 100)})")
+
+
+def _pages(tf, pages: list, name: str, frame_shape: tuple) -> np.ndarray:
+    """Pages ``pages`` of the first series of ``tf`` (one frame each) as ``[n, H, W]``; RecordingError naming ``name``."""
+    try:
+        return np.asarray(tf.asarray(key=list(pages), series=0)).reshape((len(pages),) + tuple(frame_shape))
+    except Exception as exc:  # noqa: BLE001 - a decoder on untrusted bytes
+        raise _unreadable(name, exc) from None
+
+
+def _read_frames(root: Path, rows: list) -> FrameStore:
+    """Check every row's frame (its file inside the folder, one frame per page, one shape and dtype
+    for all, the page there, finite, no frame a copy of another) and return the :class:`FrameStore`
+    that reads them again when asked. The files are decoded :data:`CHECK_BLOCK` pages at a time."""
+    seen, files, where, shape, dtype, total = {}, {}, {}, None, None, 0
     for r in rows:
-        where = f"{CSV_NAME} line {r['line']}, column file"
+        loc = f"{CSV_NAME} line {r['line']}, column file"
         first = seen.setdefault((posixpath.normpath(r["file"]), r["page"]), r["line"])
         if first != r["line"]:  # one frame counted twice would make its point's stds too small
             raise RecordingError(f"{CSV_NAME} line {r['line']}, columns file / page: {r['file']} page {r['page']} is already line {first}; "
                                  f"each frame may be listed once")
-        if r["file"] not in stacks:
-            path = inside(root, r["file"], where)
-            if not path.is_file():
-                raise RecordingError(f"{where}: {excerpt(r['file'])} is not a file in {root}")
-            data = read_bounded(path, MAX_TIFF_BYTES, r["file"])
-            budget = MAX_PIXELS - sum(a.size for a in stacks.values())
-            arr = decode_tiff(data, r["file"], partial(_grayscale_frames, r["file"], budget))
-            arr = arr.reshape((-1,) + arr.shape[-2:])
-            if arr.dtype.kind not in "uif":
-                raise RecordingError(f"{r['file']}: pixels of dtype {arr.dtype}; expected integers or floats")
-            if shape is not None and (arr.shape[1:] != shape or arr.dtype != dtype):
-                raise RecordingError(f"{where}: {r['file']} holds {arr.shape[1]}x{arr.shape[2]} {arr.dtype} frames, the recording's first "
-                                     f"file {shape[0]}x{shape[1]} {dtype}; every frame must have one shape and dtype")
-            shape, dtype = arr.shape[1:], arr.dtype
-            stacks[r["file"]] = arr
-            if sum(a.size for a in stacks.values()) > MAX_PIXELS:
-                raise RecordingError(f"{r['file']}: the recording holds more than {MAX_PIXELS} pixels; refused")
-        arr = stacks[r["file"]]
-        if r["page"] >= arr.shape[0]:
+        if r["file"] not in files:
+            with _tiff_series(root, r["file"], loc) as (tf, series, _):
+                _grayscale_frames(r["file"], MAX_PIXELS - total, series)
+                s, dt = tuple(int(v) for v in series.shape), np.dtype(series.dtype)
+                if dt.kind not in "uif":
+                    raise RecordingError(f"{r['file']}: pixels of dtype {dt}; expected integers or floats")
+                if math.prod(s) != len(series.pages) * s[-2] * s[-1]:
+                    raise RecordingError(f"{r['file']}: holds {s} pixels in {len(series.pages)} page(s); expected one frame per page")
+                if shape is not None and (s[-2:] != shape or dt != dtype):
+                    raise RecordingError(f"{loc}: {r['file']} holds {s[-2]}x{s[-1]} {dt} frames, the recording's first file "
+                                         f"{shape[0]}x{shape[1]} {dtype}; every frame must have one shape and dtype")
+                shape, dtype, total = s[-2:], dt, total + math.prod(s)
+                files[r["file"]] = [len(series.pages), []]
+        n, mine = files[r["file"]]
+        if r["page"] >= n:
             raise RecordingError(f"{CSV_NAME} line {r['line']}, column page: page {r['page']} of {r['file']}, which holds "
-                                 f"{arr.shape[0]} frame(s) (pages count from 0)")
-        frame = arr[r["page"]].astype(np.float64)
-        if not np.isfinite(frame).all():
-            raise RecordingError(f"{r['file']} page {r['page']} ({CSV_NAME} line {r['line']}): NaN or infinite pixels; refused")
-        out[r["line"]] = frame
-        check_distinct_frames(arr[r["page"]][None], [f"{r['file']} page {r['page']} ({CSV_NAME} line {r['line']})"], seen_px)
-    return out, dtype
+                                 f"{n} frame(s) (pages count from 0)")
+        mine.append(r)
+        where[r["line"]] = (r["file"], r["page"])
+    return FrameStore(root, where, _check_pixels(root, files, shape), shape, dtype)
+
+
+def _check_pixels(root: Path, files: dict, shape: tuple) -> dict:
+    """Decode every listed frame once (:data:`CHECK_BLOCK` at a time): finite, no copy of another; ``{line: digest}``."""
+    digests, seen_px = {}, {}
+    for name, (_, mine) in files.items():
+        with _tiff_series(root, name, name) as (tf, _, _):
+            for b in range(0, len(mine), CHECK_BLOCK):
+                block = mine[b:b + CHECK_BLOCK]
+                frames = _pages(tf, [r["page"] for r in block], name, shape)
+                for frame, r in zip(frames, block):
+                    label = f"{name} page {r['page']} ({CSV_NAME} line {r['line']})"
+                    if frame.dtype.kind == "f" and not np.isfinite(frame).all():
+                        raise RecordingError(f"{label}: NaN or infinite pixels; refused")
+                    check_distinct_frames(frame[None], [label], seen_px)
+                    digests[r["line"]] = _digest(frame)
+    return digests
 
 
 def _resolved_saturation(camera: OutsideCamera, dtype: np.dtype) -> OutsideCamera:
@@ -368,9 +467,10 @@ def _window_start(row: dict, camera: OutsideCamera) -> float:
     return float(row["trigger_phase_rad"]) / (2 * math.pi * row["freq_hz"]) + camera.trigger_delay_s + camera.latency_s
 
 
-def _points(rows: list, frames: dict, camera: OutsideCamera) -> tuple:
+def _points(rows: list, frames: FrameStore | None, camera: OutsideCamera) -> tuple:
     """The sweep rows as :class:`OutsidePoint` (one per frequency): one amplitude and power
-    per point, each window repeated ``R`` times, and one ``E`` and ``R`` for every point."""
+    per point, each window repeated ``R`` times, and one ``E`` and ``R`` for every point; their
+    frames read from ``frames`` as float64 (None: ``frames`` None, the caller reads them by ``lines``)."""
     groups: dict = {}
     for r in rows:
         groups.setdefault(r["freq_hz"], []).append(r)
@@ -399,7 +499,7 @@ def _points(rows: list, frames: dict, camera: OutsideCamera) -> tuple:
         ordered = [r for v in windows.values() for r in v]  # exposure-major
         points.append(OutsidePoint(
             freq_hz=float(f), amplitude=float(g[0]["amplitude"]), power=float(g[0]["power"] if g[0]["power"] is not None else 1.0),
-            frames=np.stack([frames[r["line"]] for r in ordered]),
+            frames=None if frames is None else frames.load([r["line"] for r in ordered]).astype(np.float64),
             start_s=np.array([_window_start(r, camera) for r in ordered]), duration_s=np.array([r["exposure_s"] for r in ordered]),
             R=reps.pop(), lines=tuple(r["line"] for r in ordered)))
     shapes = {(p.E, p.R) for p in points}

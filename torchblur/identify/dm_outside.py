@@ -32,11 +32,11 @@ from torchblur.errors import ConfigError, InputTypeError
 from torchblur.files import excerpt
 from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.frames import whole_adu
-from torchblur.hardware.outside import CSV_NAME, YAML_NAME, OutsideCamera, OutsideFrames, _points, number, read_csv, read_folder
+from torchblur.hardware.outside import CSV_NAME, YAML_NAME, FrameStore, OutsideCamera, OutsideFrames, _points, number, read_csv, read_folder
 from torchblur.hardware.recording import Experiment, ReplayRig
 from torchblur.identify.calibration import Calibration, spots_from_still, still_rate
 from torchblur.identify.dm_ladder import TEST_KEY, hold_images, pattern_ladder
-from torchblur.identify.dm_plan import (DMPlan, DMResult, _calibrate, _fit_frequency, _fit_options, check_dm_config,
+from torchblur.identify.dm_plan import (AMPLITUDE_LAG, DMPlan, DMResult, _calibrate, _fit_frequency, _fit_options, check_dm_config,
                                         collect_fits, fit_pool, sensor_config, sensor_spots)
 from torchblur.identify.dm_record import PLAN_KEY, SWEEP_KIND, plan_support
 from torchblur.identify.outside import check_no_rig, check_overrides, outside_record, recording_levels
@@ -46,7 +46,7 @@ from torchblur.image.saturation import SaturationCurve
 from torchblur.render.window import ExposureWindow
 
 __all__ = ["PATTERNS_NAME", "DMOutsidePlan", "DMRecording", "dm_recording_config", "export_dm_recording", "identify_dm_recording",
-           "is_dm_recording", "read_dm_recording", "recording_calibration", "write_dm_recording"]
+           "is_dm_recording", "read_dm_recording", "recording_calibration", "RecordedFrames", "write_dm_recording"]
 
 PATTERNS_NAME = "patterns.csv"
 MAX_PATTERNS_BYTES = 64 * 1024 * 1024
@@ -91,12 +91,13 @@ class DMRecording(OutsideFrames):
         layout: the sensor layout (``dm``, ``wfs``, ``dm_plan`` sections of ``recording.yaml``).
         patterns: ``[P, N]`` (``patterns.csv``).
         freq_hz, amplitude, power: ``[F]``, increasing frequency.
-        frames: ``[F]`` arrays ``[P, E*R, H, W]`` ADU (exposure-major: the R repeats of an exposure in a row).
+        frames: ``[F]`` arrays ``[P, E*R, H, W]`` ADU (exposure-major: the R repeats of an exposure in a row), a
+            :class:`RecordedFrames`: each frequency's read from the TIFF files when indexed, in the camera's dtype.
         start_s, duration_s: ``[F, P, E*R]``: each frame's window (s after the sine's upward zero crossing).
         R: frames per exposure window.
         ladder_levels: ``[P, K]`` each pattern's held levels (input units, increasing; rows of kind
             ``ladder``), or None (no ladder: the shifted still); ladder_frames: ``[P]`` arrays
-            ``[K, n, H, W]`` ADU; ladder_exposure_s, ladder_power: theirs.
+            ``[K, n, H, W]`` ADU (a :class:`RecordedFrames`: each pattern's read when indexed); ladder_exposure_s, ladder_power: theirs.
     """
 
     layout: _Layout
@@ -104,14 +105,37 @@ class DMRecording(OutsideFrames):
     freq_hz: np.ndarray
     amplitude: np.ndarray
     power: np.ndarray
-    frames: tuple
+    frames: "RecordedFrames"
     start_s: np.ndarray
     duration_s: np.ndarray
     R: int
     ladder_levels: np.ndarray | None = None
-    ladder_frames: tuple | None = None
+    ladder_frames: "RecordedFrames | None" = None
     ladder_exposure_s: float | None = None
     ladder_power: float = 1.0
+
+
+class RecordedFrames(Sequence):
+    """Frames of a checked recording, read group by group as they are used: item ``i`` is
+    ``store.load(lines[i])`` as ``[*lines.shape[1:], H, W]`` in the camera's dtype (``lines``: an int
+    array of ``frames.csv`` lines, the group first), so a run holds one group (a frequency, a held
+    pattern) at a time, never the recording."""
+
+    def __init__(self, store: FrameStore, lines: np.ndarray):
+        self.store, self.lines = store, np.asarray(lines, dtype=np.int64)
+
+    def __len__(self) -> int:
+        return self.lines.shape[0]
+
+    @property
+    def item_shape(self) -> tuple:
+        """One item's shape, without reading it."""
+        return tuple(self.lines.shape[1:]) + tuple(self.store.frame_shape)
+
+    def __getitem__(self, i):
+        if not -len(self) <= i < len(self):
+            raise IndexError(i)
+        return self.store.load(self.lines[i]).reshape(self.item_shape)
 
 
 def is_dm_recording(path) -> bool:
@@ -161,14 +185,14 @@ def _read_patterns(root: Path) -> np.ndarray:
     return out
 
 
-def _sweep(rows: list, frames: dict, camera: OutsideCamera, P: int):
-    """The sweep rows as ``(freq [F], amplitude [F], power [F], frames (F x [P, E*R, H, W]), start [F, P, E*R],
+def _sweep(rows: list, frames: FrameStore, camera: OutsideCamera, P: int):
+    """The sweep rows as ``(freq [F], amplitude [F], power [F], frames (F x [P, E*R, H, W], read when indexed), start [F, P, E*R],
     duration [F, P, E*R], R)``: every pattern at every frequency, one amplitude and power per frequency."""
     for r in rows:
         if r["pattern"] is None or r["pattern"] >= P:
             raise RecordingError(f"{CSV_NAME} line {r['line']}, column pattern: a sweep frame needs the row of {PATTERNS_NAME} it was "
                                  f"driven with (0..{P - 1}), got {r['pattern']}")
-    per = [_points(mine, frames, camera) if (mine := [r for r in rows if r["pattern"] == p]) else () for p in range(P)]
+    per = [_points(mine, None, camera) if (mine := [r for r in rows if r["pattern"] == p]) else () for p in range(P)]
     ref = per[0]
     for p, pts in enumerate(per):
         if len(pts) != len(ref) or not pts:
@@ -181,7 +205,7 @@ def _sweep(rows: list, frames: dict, camera: OutsideCamera, P: int):
                                          f"{getattr(a, col):g}, pattern 0 at {b.freq_hz:g} Hz {getattr(b, col):g}; every pattern needs "
                                          f"the same frequencies, amplitude, power, exposures and repeats")
     F = len(ref)
-    stack = tuple(np.stack([per[p][k].frames for p in range(P)]) for k in range(F))
+    stack = RecordedFrames(frames, [[per[p][k].lines for p in range(P)] for k in range(F)])
     start = np.array([[per[p][k].start_s for p in range(P)] for k in range(F)])
     dur = np.array([[per[p][k].duration_s for p in range(P)] for k in range(F)])
     return (np.array([q.freq_hz for q in ref]), np.array([q.amplitude for q in ref]), np.array([q.power for q in ref]), stack, start,
@@ -209,7 +233,7 @@ def read_dm_recording(path) -> DMRecording:
                        duration_s=dur, R=R, **common, **_ladder(by_kind["ladder"], frames, patterns.shape[0]))
 
 
-def _ladder(rows: list, frames: dict, P: int) -> dict:
+def _ladder(rows: list, frames: FrameStore, P: int) -> dict:
     """The ``ladder`` rows as DMRecording's ``ladder_*`` fields (none: {}); RecordingError naming
     the line and column of a ladder that is not every pattern at the same K >= 4 levels, n frames
     each, one exposure and power."""
@@ -236,12 +260,12 @@ def _ladder(rows: list, frames: dict, P: int) -> dict:
             raise RecordingError(f"{where(r, 'level')}: pattern {p} is held at {len(levels)} levels{first}; every pattern of "
                                  f"{PATTERNS_NAME} needs the same number, at least 4 (a cubic spline)")
         n = {len(b) for b in by_level}
-        if len(n) != 1 or (per and n != {per[0][1].shape[1]}):
+        if len(n) != 1 or (per and n != {len(per[0][1][0])}):
             r = min(by_level, key=len)[0]
             raise RecordingError(f"{where(r, 'level')}: pattern {p} has {sorted(n)} frames per level; every level of every pattern "
                                  f"needs the same number")
-        per.append((levels, np.stack([np.stack([frames[r["line"]] for r in b]) for b in by_level])))
-    return {"ladder_levels": np.array([lv for lv, _ in per]), "ladder_frames": tuple(fr for _, fr in per),
+        per.append((levels, [[r["line"] for r in b] for b in by_level]))
+    return {"ladder_levels": np.array([lv for lv, _ in per]), "ladder_frames": RecordedFrames(frames, [ln for _, ln in per]),
             "ladder_exposure_s": float(rows[0]["exposure_s"]), "ladder_power": float(rows[0]["power"] or 1.0)}
 
 
@@ -260,7 +284,7 @@ def dm_recording_config(rec: DMRecording, overrides=()):
     """
     check_overrides(overrides, "a DM recording", f"mirror, sensor, camera and sweep are in {YAML_NAME}, {PATTERNS_NAME} and {CSV_NAME}")
     lay, c = rec.layout, rec.camera
-    E = rec.frames[0].shape[1] // rec.R
+    E = rec.start_s.shape[2] // rec.R
     own = [f"dm.{f.name}={getattr(lay.dm, f.name)!r}" for f in fields(lay.dm)]
     own += [f"wfs.{k}={v!r}" for k, v in asdict(lay.wfs).items()]
     own += [f"dm_plan.kind={lay.dm_plan.kind}", f"dm_plan.support_threshold={lay.dm_plan.support_threshold!r}",
@@ -275,7 +299,7 @@ def dm_recording_config(rec: DMRecording, overrides=()):
         own.append("dm_plan.spot_model=shifted")  # no held frames: the shifted still
     else:
         own += ["dm_plan.spot_model=ladder", f"dm_plan.ladder_levels={rec.ladder_levels.shape[1]}",
-                f"dm_plan.ladder_frames={rec.ladder_frames[0].shape[1]}"]
+                f"dm_plan.ladder_frames={rec.ladder_frames.item_shape[1]}"]
     try:
         cfg = load_config(None, own + list(overrides), force=True)
     except ConfigError as exc:
@@ -401,19 +425,23 @@ class DMOutsidePlan(DMPlan):
             holds = hold_images(rec.ladder_frames, rec.ladder_levels, float(rec.ladder_exposure_s), cal, self.offset, self.size,
                                 float(rec.ladder_power))
             ladder = pattern_ladder(holds, cal, self.offset, self.size)
-            LOGGER.info(f"dm spot model: ladder ({rec.ladder_levels.shape[1]} levels x {rec.ladder_frames[0].shape[1]} frames per "
+            LOGGER.info(f"dm spot model: ladder ({rec.ladder_levels.shape[1]} levels x {rec.ladder_frames.item_shape[1]} frames per "
                         f"pattern, from {CSV_NAME}'s ladder rows)")
         self.spot_model = "shifted" if ladder is None else "ladder"
         t0 = time.perf_counter()
         with fit_pool(run.executor) as pool:
-            futures = [pool.submit(_fit_frequency, torch.as_tensor(rec.frames[k], dtype=_F64), ExposureWindow(
-                torch.as_tensor(rec.start_s[k], dtype=_F64)[:, None], torch.as_tensor(rec.duration_s[k], dtype=_F64)[:, None]),
-                2 * math.pi * float(f), float(rec.amplitude[k]), float(rec.power[k]), cal, self.psf, self.offset, self.size,
-                float(cfg.camera.jitter_s), _fit_options(cfg), ladder) for k, f in enumerate(rec.freq_hz)]
+            futures = []
+            for k, f in enumerate(rec.freq_hz):
+                if k >= AMPLITUDE_LAG:  # as the live sweep: frequency k's frames are read once the fit of k - AMPLITUDE_LAG is done
+                    futures[k - AMPLITUDE_LAG].exception()  # waits (a task that raised is collect_fits' to report)
+                futures.append(pool.submit(_fit_frequency, torch.as_tensor(rec.frames[k]), ExposureWindow(
+                    torch.as_tensor(rec.start_s[k], dtype=_F64)[:, None], torch.as_tensor(rec.duration_s[k], dtype=_F64)[:, None]),
+                    2 * math.pi * float(f), float(rec.amplitude[k]), float(rec.power[k]), cal, self.psf, self.offset, self.size,
+                    float(cfg.camera.jitter_s), _fit_options(cfg), ladder))
             Y, Y_cov, failed, chi2, out = collect_fits(rec.freq_hz, futures, self.plan.n_patterns, self.G.shape[0])
         LOGGER.info(f"recording: {len(rec.freq_hz)} frequencies x {self.plan.n_patterns} patterns, {rec.n_frames} frames, from {rec.path}")
         run.timing["fit_wait"] = time.perf_counter() - t0
-        n_frames = int(sum(fr.shape[0] * fr.shape[1] for fr in rec.frames))
+        n_frames = int(rec.start_s.size)
         run.acquisition = (np.asarray(rec.amplitude), np.asarray(rec.power), Y, Y_cov, failed, chi2, n_frames, out)
 
 
@@ -440,17 +468,22 @@ def _tiff(path: Path, chunks) -> list[tuple]:
 
 
 class _GroupFrames(Sequence):
-    """The frames of a recording's groups ``keys`` (each group's first call), loaded one group at a
-    time when indexed: ``[K, n, H, W]`` ADU for a held pattern."""
+    """The frames of a recording's groups ``keys``, loaded one group at a time when indexed:
+    ``frames_of(calls)`` of the group's calls (a held pattern ``[K, n, H, W]``, a frequency ``[P, E*R, H, W]``, ADU)."""
 
-    def __init__(self, exp, keys):
-        self.exp, self.keys = exp, list(keys)
+    def __init__(self, exp, keys, frames_of):
+        self.exp, self.keys, self.frames_of = exp, list(keys), frames_of
 
     def __len__(self) -> int:
         return len(self.keys)
 
     def __getitem__(self, i):
-        return self.exp.load_calls(self.keys[i])[0][2].frames.numpy()
+        return self.frames_of(self.exp.load_calls(self.keys[i]))
+
+
+def _sweep_frames(calls) -> np.ndarray:
+    """A swept frequency's calls (one per pattern) as frames ``[P, E*R, H, W]``."""
+    return np.stack([cap.frames.reshape((-1,) + tuple(cap.frames.shape[-2:])).numpy() for _, _, cap in calls])
 
 
 def write_dm_recording(folder, *, dark, still, still_exposure_s: float, patterns, freq_hz, amplitude, frames, start_s, duration_s,
@@ -478,14 +511,14 @@ def write_dm_recording(folder, *, dark, still, still_exposure_s: float, patterns
     power = np.ones(F) if power is None else np.asarray(power, dtype=np.float64)
     _tiff(folder / "dark.tif", dark)
     _tiff(folder / "still.tif", still)
-    _tiff(folder / "sweep.tif", frames)
+    ER = _tiff(folder / "sweep.tif", frames)[0][-3]  # a chunk [P, E*R, H, W] or the whole [F, P, E*R, H, W]
     head = ["file", "page", "kind", "pattern", "freq_hz", "exposure_s", "window_start_s", "amplitude", "power", "repeat"]
     rows = [["dark.tif", i, "dark"] + [""] * 7 for i in range(len(dark))]
     rows += [["still.tif", i, "still", "", "", repr(float(still_exposure_s)), "", "", "", ""] for i in range(len(still))]
     page = 0
     for k in range(F):
         for p in range(P):
-            for j in range(np.shape(frames[k])[1]):
+            for j in range(ER):
                 rows.append(["sweep.tif", page, "sweep", p, repr(float(freq_hz[k])), repr(float(duration_s[k][p][j])),
                              repr(float(start_s[k][p][j])), repr(float(amplitude[k])), repr(float(power[k])), j % R])
                 page += 1
@@ -533,7 +566,7 @@ def export_dm_recording(run, folder) -> Path:
     keys = sorted(k for k in exp.groups if exp.groups[k][0].get("kind") == SWEEP_KIND)
     if not keys:
         raise RecordingError(f"{exp.path}: holds no swept frequency ({SWEEP_KIND} group)")
-    freq, amp, power, frames, start, dur = [], [], [], [], [], []
+    freq, amp, power, start, dur = [], [], [], [], []
     for key in keys:
         lab = exp.groups[key][0]
         calls = exp.load_calls( key)
@@ -541,7 +574,6 @@ def export_dm_recording(run, folder) -> Path:
         freq.append(float(lab["freq_hz"]))
         amp.append(float(lab["amplitude"]))
         power.append(float(lab["power"]))
-        frames.append(np.stack([cap.frames.reshape((-1,) + tuple(cap.frames.shape[-2:])).numpy() for _, _, cap in calls]))
         start.append(np.stack([(cap.trigger_time_s.reshape(-1) + delay + cal.latency_s).numpy() for _, _, cap in calls]))
         dur.append(np.stack([cap.exposure_s.reshape(-1).numpy() for _, _, cap in calls]))
     c = cfg.camera
@@ -549,7 +581,7 @@ def export_dm_recording(run, folder) -> Path:
     ladder = None
     if held:
         holds = [exp.groups[k][0]["args"] for k in held]  # the manifest's: the frames are read one pattern at a time as written
-        ladder = {"levels": np.array([a["levels"] for a in holds]), "frames": _GroupFrames(exp, held),
+        ladder = {"levels": np.array([a["levels"] for a in holds]), "frames": _GroupFrames(exp, held, lambda calls: calls[0][2].frames.numpy()),
                   "exposure_s": float(holds[0]["exposure_s"]), "power": float(holds[0]["power"])}
     camera = {"gain_e_per_adu": float(c.gain), "saturation_adu": float(cal.saturation.saturation_adu),
               "trigger_delay_s": float(c.trigger_delay_s), "latency_s": float(cal.latency_s), "latency_std_s": float(cal.latency_std_s),
@@ -558,5 +590,5 @@ def export_dm_recording(run, folder) -> Path:
               "dm_plan": {"kind": str(doc["kind"]), "support_threshold": float(doc["support_threshold"])}}
     return write_dm_recording(folder, dark=dark.frames.numpy(), still=still.frames.numpy(), still_exposure_s=float(args["exposure_s"]),
                               patterns=np.asarray(doc["patterns"], dtype=np.float64), freq_hz=freq, amplitude=amp, power=power,
-                              frames=frames, start_s=start, duration_s=dur, camera=camera, layout=layout, R=int(doc["n_repeats"]),
+                              frames=_GroupFrames(exp, keys, _sweep_frames), start_s=start, duration_s=dur, camera=camera, layout=layout, R=int(doc["n_repeats"]),
                               ladder=ladder)
