@@ -165,10 +165,8 @@ class PlantMatrix:
         ``pade_order``, or left out)."""
         import control
 
-        tfs = [[p.to_control(pade_order) for p in r] for r in self.channels]
-        num = [[list(np.asarray(t.num[0][0], dtype=float)) for t in r] for r in tfs]
-        den = [[list(np.asarray(t.den[0][0], dtype=float)) for t in r] for r in tfs]
-        return control.tf(num, den, inputs=list(self.input_labels), outputs=list(self.output_labels))
+        return control.combine_tf([[p.to_control(pade_order) for p in r] for r in self.channels],
+                                  inputs=list(self.input_labels), outputs=list(self.output_labels))
 
 
 def plant_from_coefficients(num, den, delay_s=0.0):
