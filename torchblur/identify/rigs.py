@@ -5,7 +5,6 @@ run's session of it (:func:`session`, :func:`session_info`: every plan's)."""
 from __future__ import annotations
 
 import contextlib
-import math
 from dataclasses import asdict, replace
 from pathlib import Path
 
@@ -18,6 +17,7 @@ from torchblur.config import IdentifyConfig, config_to_yaml, load_dataclass
 from torchblur.identify.drive import SESSION_KEY, SLEW_KEY
 from torchblur.identify.record import LOGGER
 from torchblur.rig.factory import build_simulated_rig, plant_of
+from torchblur.sysid.frequency_response_io import json_floats
 
 __all__ = ["build_rig", "build_simulated_rig", "check_refit_config", "check_resume_config", "open_experiment", "plant_of", "session",
            "session_info"]
@@ -68,9 +68,9 @@ def check_refit_config(recorded, cfg, *, allowed=("fit", "model", "report")):
 def session_info(cfg, rig, **extra) -> dict:
     """What a recording's session notes of its rig: ``rig.*`` kind, port, frames, its repr, its input range and slew limit
     (None where it has none: a replay plans within the recorded ones, :mod:`torchblur.identify.drive`), and ``extra``."""
-    finite = lambda v: float(v) if v is not None and math.isfinite(float(v)) else None  # noqa: E731
     return {"kind": cfg.rig.kind, "port": cfg.rig.port, "frames": cfg.rig.frames, "rig": repr(rig),
-            SESSION_KEY: finite(getattr(rig, "input_limit", None)), SLEW_KEY: finite(getattr(rig, "slew_limit", None)), **extra}
+            SESSION_KEY: json_floats(getattr(rig, "input_limit", None)),
+            SLEW_KEY: json_floats(getattr(rig, "slew_limit", None)), **extra}
 
 
 def open_experiment(record, cfg, rig):
