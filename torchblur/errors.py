@@ -305,19 +305,3 @@ def flat_noise_and_mask(noise_std, mask, images: torch.Tensor, frame_dims: int =
         except RuntimeError:
             raise ShapeError(f"mask: expected shape {desc}, got {tuple(mask.shape)}") from None
     return std, keep
-
-
-def pixel_weights(noise_std, mask, images: torch.Tensor, frame_dims: int = 3):
-    """A fitter's per-pixel weights: ``(weight [N, *frame], std)``, ``weight = 1 / std^2`` (ones
-    without ``noise_std``) and 0 where ``mask`` is False; ``std`` None or ``[N, *frame]`` (the
-    checked ``noise_std`` of :func:`flat_noise_and_mask`, one per item expanded to its pixels)."""
-    std, keep = flat_noise_and_mask(noise_std, mask, images, frame_dims)
-    shape = (max(1, math.prod(images.shape[:-frame_dims])),) + tuple(images.shape[-frame_dims:])
-    if std is None:
-        weight = torch.ones(shape, dtype=images.dtype, device=images.device)
-    else:
-        std = std.reshape(std.shape + (1,) * frame_dims).expand(shape) if std.dim() == 1 else std
-        weight = 1 / std**2
-    if keep is not None:
-        weight = weight * keep.to(images.dtype)
-    return weight, std

@@ -24,10 +24,10 @@ import math
 
 import torch
 
-from torchblur.errors import ParameterError
+from torchblur.errors import ParameterError, flat_noise_and_mask
 
 __all__ = ["LOSSES", "LIKELIHOOD_LOSSES", "chi2_limit", "covariance_factor", "fisher_covariance", "gauss_newton_terms",
-           "image_loss", "irls_weights", "loss_weight", "residual_weights", "singular_covariance"]
+           "image_loss", "irls_weights", "loss_weight", "pixel_weights", "residual_weights", "singular_covariance"]
 
 LOSSES = ("l2", "l1", "linf", "poisson")
 # The losses whose estimates come with a covariance that holds (identify accepts these).
@@ -61,6 +61,24 @@ def loss_weight(loss: str, inverse_variance: torch.Tensor) -> torch.Tensor:
         return (inverse_variance > 0).to(inverse_variance.dtype)
     return inverse_variance.clamp_min(0).sqrt()
 
+
+def pixel_weights(noise_std, mask, images: torch.Tensor, frame_dims: int = 3):
+    """A fitter's l2 pixel weights of ``images [..., *frame]`` (``frame``: the last ``frame_dims``
+    dims): ``(weight [N, *frame], std)``, ``weight = 1 / std^2`` (ones without ``noise_std``) and 0
+    where ``mask`` is False; ``std`` None, ``[N]`` or ``[N, *frame]``, the checked ``noise_std`` of
+    :func:`~torchblur.errors.flat_noise_and_mask`. With one weight per item and nothing masked,
+    ``weight`` is a broadcast view of ``N`` values, not a copy."""
+    std, keep = flat_noise_and_mask(noise_std, mask, images, frame_dims)
+    shape = (max(1, math.prod(images.shape[:-frame_dims])),) + tuple(images.shape[-frame_dims:])
+    if std is None:
+        weight = torch.ones(shape[0], dtype=images.dtype, device=images.device)
+    else:
+        weight = 1 / std**2
+    if weight.dim() == 1:
+        weight = weight.reshape(shape[:1] + (1,) * frame_dims).expand(shape)
+    if keep is not None:
+        weight = weight * keep.to(images.dtype)
+    return weight, std
 
 def covariance_factor(loss: str) -> float:
     """The covariance of the loss's estimate in units of the l2 Fisher inverse

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from torchblur.render.alias import MIN_SEPARATION, alias_separation, wrap_phase  # noqa: F401  (design names too)
+from torchblur.render.alias import window_center_phase
 from torchblur.errors import InputTypeError, ParameterError, as_tensor, check_finite, check_positive
 from torchblur.render.window import ExposureWindow
 
@@ -142,10 +143,7 @@ def crossing_phase(omega, window: ExposureWindow) -> torch.Tensor:
     branches also cross at this value plus pi. A point whose phase lies near it cannot be
     told from its alias by any rule; a resonance that carries the phase across it within a
     few points of the sweep makes continuity uncertain there."""
-    if not isinstance(window, ExposureWindow):
-        raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
-    omega = check_positive(as_tensor(omega, "omega", like=window.start), "omega")
-    return wrap_phase((math.pi - 2 * omega * window.center) / 2)
+    return wrap_phase((math.pi - 2 * window_center_phase(omega, window)) / 2)
 
 
 class Continuity(NamedTuple):

@@ -29,6 +29,7 @@ from torchblur.dm.mirror import influence_width
 from torchblur.dm.plans import seen_by
 from torchblur.dm.shack_hartmann import lit_rows
 from torchblur.errors import ConfigError, ParameterError, ShapeError, check_real_scalar
+from torchblur.sysid.frequency_response_io import json_floats
 from torchblur.sysid.model_check import model_chi2_limit, model_fails
 
 __all__ = ["Registration", "RegistrationFit", "fit_registration", "register_and_refit", "registration_model", "support_check",
@@ -507,10 +508,10 @@ def write_registration_json(path, fit: RegistrationFit, support: dict | None = N
     doc = {"schema": REGISTRATION_SCHEMA[0], "schema_version": REGISTRATION_SCHEMA[1][-1], "fitted": bool(fit.ok),
            "message": fit.message, "units": dict(PARAMETERS) | {"influence_width": "actuator pitch"},
            "registration": {k: getattr(r, k) for k, _ in PARAMETERS} | {"influence_width": influence_width(r.coupling)},
-           "sensor": {"diffraction_weight": fit.diffraction_weight if math.isfinite(fit.diffraction_weight) else None,
+           "sensor": {"diffraction_weight": json_floats(fit.diffraction_weight),
                       "units": dict(SENSOR_PARAMETERS), "fitted_on": fit.fitted_on},
-           "std": {k: (v if math.isfinite(v) else None) for k, v in fit.std.items()},
-           "reduced_chi2": fit.reduced_chi2 if math.isfinite(fit.reduced_chi2) else None, "dof": fit.dof,
+           "std": {k: json_floats(v) for k, v in fit.std.items()},
+           "reduced_chi2": json_floats(fit.reduced_chi2), "dof": fit.dof,
            "stds_inflated_by_sqrt_reduced_chi2": bool(fit.inflated), "n_entries": fit.n_entries, "n_columns": fit.n_columns,
            "frame": "sensor: p_j = magnification * R(rotation) x_j + shift, nominal actuator pitches, x right, y down, "
                     "rotation +x toward +y",

@@ -11,10 +11,10 @@ from dataclasses import dataclass
 import torch
 
 from torchblur._compat import median_along
-from torchblur.errors import as_tensor, pixel_weights
+from torchblur.errors import as_tensor
 from torchblur.fit.inputs import check_count, check_data, flat_count, flat_omega, flat_psf, flat_window, psf_moments
 from torchblur.fit.multisine import render_multisine_with_jacobian
-from torchblur.losses import fisher_covariance, image_loss, residual_weights
+from torchblur.losses import fisher_covariance, image_loss, pixel_weights, residual_weights
 from torchblur.optim import levenberg_marquardt
 from torchblur.image.moments import image_moments
 from torchblur.render.alias import canonical_sines, wrap_phase

@@ -12,11 +12,11 @@ import torch
 
 from torchblur._compat import median_along
 from torchblur.render.alias import canonical_sines
-from torchblur.errors import ParameterError, ShapeError, as_tensor, check_finite, check_positive, pixel_weights
+from torchblur.errors import ParameterError, ShapeError, as_tensor, check_finite, check_positive
 from torchblur.fit.inputs import (check_count, check_data, flat_count, flat_direction, flat_omega, flat_psf,
                                   flat_window, psf_moments, unit_direction)
 from torchblur.fit.kernel_noise import kernel_noise_covariance
-from torchblur.losses import fisher_covariance, image_loss, residual_weights, singular_covariance
+from torchblur.losses import fisher_covariance, image_loss, pixel_weights, residual_weights, singular_covariance
 from torchblur.image.moments import image_moments, moments_along
 from torchblur.optim import levenberg_marquardt, model_jacobian
 from torchblur.fit.problem import _nonzero_box, cut_sums

@@ -14,6 +14,7 @@ import torch
 from torchblur._compat import median_along
 from torchblur.fit.sine_model import ParamLayout
 from torchblur.image.moments import image_moments, moments_along, sinusoid_from_moments
+from torchblur.losses import pixel_weights
 from torchblur.render.alias import wrap_phase
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.window import ExposureWindow
@@ -99,7 +100,10 @@ def sine_problem(data, psf, window: ExposureWindow, omega, direction, *, noise_s
         rest, cov_psf = psf.center, psf.cov
     else:
         rest, cov_psf = psf.moments()
-    weight, row_weight, sigma_level = _pixel_weights(data, noise_std, use)
+    weight, std = pixel_weights(noise_std, use, data)
+    # one weight per item, nothing masked: weight is a view of row_weight (see SineProblem)
+    row_weight = weight[:, 0, 0, 0] if use is None and (std is None or std.dim() == 1) else None
+    sigma_level = None if std is None else median_along(std.reshape(N, -1))
     # Background and noise level from ~1024-2048 pixels per item (a strided subsample: the
     # median of 1024 noise samples is within 0.04 std of the level, and a median costs a
     # selection per item).
@@ -202,28 +206,6 @@ def smoothed_for_moments(data, level, noise_level, psf_cov):
     g = g / g.sum((-1, -2), keepdim=True)
     smooth = _correlate(data - level[:, None, None, None], g)
     return smooth, 3 * noise_level * g.square().sum((-1, -2)).sqrt(), cov
-
-
-def _pixel_weights(data, noise_std, use):
-    """``(weight [N, E, H, W], row_weight [N] or None, noise level [N] or None)`` (see
-    :class:`SineProblem`). With one weight per item and nothing masked, ``weight`` is a
-    broadcast view of ``row_weight``, not a copy."""
-    N, E, H, W = data.shape
-    row_weight = torch.ones(N, dtype=data.dtype, device=data.device)
-    weight = row_weight[:, None, None, None].expand(N, E, H, W)
-    sigma_level = None
-    if noise_std is not None:
-        s = noise_std.reshape(N, 1, 1, 1) if noise_std.dim() == 1 else noise_std
-        sigma_level = median_along(s.reshape(N, -1))
-        if s.shape[-3:] == (1, 1, 1):
-            row_weight = 1 / s.reshape(N) ** 2
-            weight = row_weight[:, None, None, None].expand(N, E, H, W)
-        else:
-            row_weight, weight = None, 1 / s.expand(N, E, H, W) ** 2
-    if use is not None:
-        weight = weight * use.to(data.dtype)
-        row_weight = None
-    return weight, row_weight, sigma_level
 
 
 def starting_points(problem: SineProblem, layout: ParamLayout):

@@ -30,6 +30,7 @@ from torchblur.hardware.manifest import (MAX_FRAME_SIDE, MAX_MANIFEST_BYTES, MAX
 from torchblur.hardware.run_folder import RunLock, inside
 from torchblur import __version__
 from torchblur.rig.base import Capture, Rig
+from torchblur.sysid.frequency_response_io import json_floats
 
 __all__ = ["SCHEMA_VERSION", "Experiment", "ReplayRig", "atomic_write_bytes"]
 
@@ -399,7 +400,7 @@ class Experiment:
                       "call_shape": list(shape), "input": labels.get("input"), "freq_hz": labels.get("freq_hz"),
                       "exposure_s": exp_s[i], "exposure_index": e_idx, "repeat": rep, "file": fname, "page": page,
                       "frame_counter": int(cnt[i]), "boot": meta.get("boot"), "session": self._session, "timestamp_s": ts[i],
-                      "trigger_time_s": _finite_or_none(trig_s[i]), "trigger_offset_s": _finite_or_none(off_s[i]),
+                      "trigger_time_s": json_floats(trig_s[i]), "trigger_offset_s": json_floats(off_s[i]),
                       "args": args, "meta": meta}
                 for k, v in labels.items():
                     if k not in ln:
@@ -459,10 +460,6 @@ def _check_config_digest(path: Path, meta: dict) -> None:
     got = hashlib.sha256(read_bounded(path / CONFIG_KEY, MAX_META_BYTES, CONFIG_KEY)).hexdigest()
     if got != want:
         raise RecordingError(f"{path / CONFIG_KEY}: changed after it was recorded (its digest differs from experiment.json's); refused")
-
-
-def _finite_or_none(v):
-    return v if v is not None and math.isfinite(v) else None
 
 
 MAX_TIFF_RATIO = 1000  #: the most a compressed TIFF's pixels may outweigh its bytes (real frames: 1-10)

@@ -30,6 +30,7 @@ from torchblur.image.preprocess import subtract_dark
 from torchblur.render.window import ExposureWindow
 from torchblur.rig.base import command_peak, command_slew
 from torchblur.sysid.frequency_response import FrequencyResponse
+from torchblur.sysid.frequency_response_io import json_floats
 
 __all__ = ["MultisineIdentificationResult", "MultisinePlan", "group_frequencies"]
 
@@ -386,9 +387,8 @@ class MultisinePlan:
             run.say(line)
         run.frf = FrequencyResponse(2 * np.pi * freq, response, cov=np.asarray(acq.cov)[idx], input_labels=[input_label("x")], output_labels=["x"],
                                     meta={"seed": int(run.cfg.seed), "excitation": "multisine", "direction": [float(v) for v in u],
-                                          "input_limit": float(limit) if math.isfinite(limit) else None,
-                                          "slew_limit": None if cal.drive is None or not math.isfinite(cal.drive.slew)
-                                          else float(cal.drive.slew),
+                                          "input_limit": json_floats(limit),
+                                          "slew_limit": None if cal.drive is None else json_floats(cal.drive.slew),
                                           "limited_hz": [float(f) for f in freq[limited]],
                                           "psf": cal.still_psf.kind if cal.still_psf is not None else "gaussian"})
         n_bad = int(np.isnan(response).sum())

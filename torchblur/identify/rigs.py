@@ -5,8 +5,7 @@ run's session of it (:func:`session`, :func:`session_info`: every plan's)."""
 from __future__ import annotations
 
 import contextlib
-import math
-from dataclasses import asdict, replace
+from dataclasses import replace
 from pathlib import Path
 
 from torchblur.errors import ConfigError
@@ -14,10 +13,11 @@ from torchblur.hardware.errors import HardwareError, RecordingError
 from torchblur.hardware.frames import CameraInfo
 from torchblur.hardware.recording import Experiment
 from torchblur.hardware.serial_rig import SerialRig
-from torchblur.config import IdentifyConfig, config_to_yaml, load_dataclass
+from torchblur.config import IdentifyConfig, config_keys, config_to_yaml, load_dataclass
 from torchblur.identify.drive import SESSION_KEY, SLEW_KEY
 from torchblur.identify.record import LOGGER
 from torchblur.rig.factory import build_simulated_rig, plant_of
+from torchblur.sysid.frequency_response_io import json_floats
 
 __all__ = ["build_rig", "build_simulated_rig", "check_refit_config", "check_resume_config", "open_experiment", "plant_of", "session",
            "session_info"]
@@ -44,17 +44,10 @@ _RESUMABLE_SECTIONS = ("rig", "fit", "model", "report")
 def check_resume_config(recorded, cfg, *, allowed=_RESUMABLE_SECTIONS) -> None:
     """Raise :class:`~torchblur.hardware.errors.RecordingError` naming the first key where
     ``cfg`` differs from the ``recorded`` config outside the sections in ``allowed``."""
-    def walk(a, b, prefix=""):
-        for k in a:
-            if not prefix and k in allowed:
-                continue
-            if isinstance(a[k], dict):
-                walk(a[k], b[k], prefix + k + ".")
-            elif a[k] != b[k]:
-                raise RecordingError(f"{prefix}{k}: the recording was made with {a[k]!r}, got {b[k]!r}; only "
-                                     f"{', '.join(s + '.*' for s in allowed)} may change")
-
-    walk(asdict(recorded), asdict(cfg))
+    for (key, was, _), (_, now, _) in zip(config_keys(recorded), config_keys(cfg)):
+        if key.split(".", 1)[0] not in allowed and was != now:
+            raise RecordingError(f"{key}: the recording was made with {was!r}, got {now!r}; only "
+                                 f"{', '.join(s + '.*' for s in allowed)} may change")
 
 
 def check_refit_config(recorded, cfg, *, allowed=("fit", "model", "report")):
@@ -68,9 +61,9 @@ def check_refit_config(recorded, cfg, *, allowed=("fit", "model", "report")):
 def session_info(cfg, rig, **extra) -> dict:
     """What a recording's session notes of its rig: ``rig.*`` kind, port, frames, its repr, its input range and slew limit
     (None where it has none: a replay plans within the recorded ones, :mod:`torchblur.identify.drive`), and ``extra``."""
-    finite = lambda v: float(v) if v is not None and math.isfinite(float(v)) else None  # noqa: E731
     return {"kind": cfg.rig.kind, "port": cfg.rig.port, "frames": cfg.rig.frames, "rig": repr(rig),
-            SESSION_KEY: finite(getattr(rig, "input_limit", None)), SLEW_KEY: finite(getattr(rig, "slew_limit", None)), **extra}
+            SESSION_KEY: json_floats(getattr(rig, "input_limit", None)),
+            SLEW_KEY: json_floats(getattr(rig, "slew_limit", None)), **extra}
 
 
 def open_experiment(record, cfg, rig):

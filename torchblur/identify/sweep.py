@@ -40,6 +40,7 @@ from torchblur.image.spots import crop_spots, crop_valid
 from torchblur.render.camera import CameraNoise
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.window import ExposureWindow
+from torchblur.sysid.frequency_response_io import json_floats
 
 __all__ = ["SinePlan", "SweepLayout", "point_windows", "sweep_layout"]
 
@@ -341,8 +342,7 @@ def _drive_meta(run, lay: SweepLayout) -> dict:
     line = limited_summary(lay.freqs, acq.limited, acq.moved_px, target, limit, tuple(lay.inputs), no_motion, slew=slew)
     if line is not None:
         run.say(line)
-    return {"input_limit": float(limit) if math.isfinite(limit) else None,
-            "slew_limit": float(slew) if math.isfinite(slew) else None,
+    return {"input_limit": json_floats(limit), "slew_limit": json_floats(slew),
             "limited_hz": sorted({float(f) for f, lim in zip(freqs, acq.limited) if lim})}
 
 

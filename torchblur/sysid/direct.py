@@ -19,9 +19,10 @@ import numpy as np
 import torch
 
 from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_frequency_grid, as_tensor, as_unit_direction, check_choice,
-                     check_finite, check_positive, pixel_weights)
+                     check_finite, check_positive)
 from torchblur.fit.problem import _nonzero_box
 from torchblur.fit.status import POOR_FIT_CHI2, flag_poor_fit
+from torchblur.losses import pixel_weights
 from torchblur.render.blur import RenderSettings, choose_node_count, quadrature_nodes
 from torchblur.render.camera import CameraNoise, noise_sets_weights
 from torchblur.render.psf import GaussianPSF, KernelPSF

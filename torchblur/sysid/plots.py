@@ -325,18 +325,14 @@ def _bode_channel(axs, frf, o, i, c, opt):
     x, flags = frf.freq_hz * xs, frf.flags[o, i]
     a_mag, a_ph = (axs[0], axs[2]) if c["ref"] is not None else (axs[0], axs[1])
     mag_c, ph_c = [], []
-    if c["truth"] is not None:
-        tx = c["truth_f"] * xs
-        mag_c.append(_curve_mag(c["truth"][o, i], opt["dB"]))
-        ph_c.append(c["truth_ph"][o, i])
-        a_mag.plot(tx, mag_c[-1], label="truth (simulation)", **_TRUTH_STYLE)
-        a_ph.plot(tx, ph_c[-1], label="truth (simulation)", **_TRUTH_STYLE)
-    if c["model"] is not None:
-        gx = c["grid_f"] * xs
-        mag_c.append(_curve_mag(c["model"][o, i], opt["dB"]))
-        ph_c.append(c["model_ph"][o, i])
-        a_mag.plot(gx, mag_c[-1], label="model (fit)", **_MODEL_STYLE)
-        a_ph.plot(gx, ph_c[-1], label="model (fit)", **_MODEL_STYLE)
+    for key, f_key, label, style in (("truth", "truth_f", "truth (simulation)", _TRUTH_STYLE),
+                                     ("model", "grid_f", "model (fit)", _MODEL_STYLE)):
+        if c[key] is not None:
+            cx = c[f_key] * xs
+            mag_c.append(_curve_mag(c[key][o, i], opt["dB"]))
+            ph_c.append(c[key + "_ph"][o, i])
+            a_mag.plot(cx, mag_c[-1], label=label, **style)
+            a_ph.plot(cx, ph_c[-1], label=label, **style)
     my, merr = _mag_values(frf, o, i, opt["dB"])
     ph, ph_s = _data_phase_deg(frf, o, i, c), np.degrees(frf.phase_std[o, i])
     good = _draw_points(a_mag, x, my, merr, flags, "measured ±1σ")

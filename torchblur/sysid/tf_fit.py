@@ -155,19 +155,13 @@ class TransferFunctionFit:
                 raise ParameterError("omega: delay='frd' needs the frequency grid omega [F] (rad/s)")
             w = as_frequency_grid(omega, "omega")
             return control.frd(self.frequency_response(w), w, **labels)
-        num, den, tau = (self._channels(f) for f in ("num", "den", "delay_s"))
-        nums = [[list(n) for n in row] for row in num]
-        dens = [[list(d) for d in row] for row in den]
-        if delay == "pade":
-            for o, row in enumerate(tau):
-                for i, t in enumerate(row):
-                    if t > 0:
-                        pn, pd = control.pade(float(t), pade_order)
-                        nums[o][i] = list(np.polymul(nums[o][i], pn))
-                        dens[o][i] = list(np.polymul(dens[o][i], pd))
-        if self.is_siso:
-            return control.tf(nums[0][0], dens[0][0], **labels)
-        return control.tf(nums, dens, **labels)
+
+        def channel(n, d, t):
+            g = control.tf(list(n), list(d))
+            return g * control.tf(*control.pade(float(t), pade_order)) if delay == "pade" and t > 0 else g
+
+        rows = zip(*(self._channels(f) for f in ("num", "den", "delay_s")))
+        return control.combine_tf([[channel(*c) for c in zip(*row)] for row in rows], **labels)
 
     def frequency_response(self, omega) -> np.ndarray:
         """Evaluate the fitted model, delay included, at ``s = j omega``.

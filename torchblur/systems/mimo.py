@@ -165,10 +165,8 @@ class PlantMatrix:
         ``pade_order``, or left out)."""
         import control
 
-        tfs = [[p.to_control(pade_order) for p in r] for r in self.channels]
-        num = [[list(np.asarray(t.num[0][0], dtype=float)) for t in r] for r in tfs]
-        den = [[list(np.asarray(t.den[0][0], dtype=float)) for t in r] for r in tfs]
-        return control.tf(num, den, inputs=list(self.input_labels), outputs=list(self.output_labels))
+        return control.combine_tf([[p.to_control(pade_order) for p in r] for r in self.channels],
+                                  inputs=list(self.input_labels), outputs=list(self.output_labels))
 
 
 def plant_from_coefficients(num, den, delay_s=0.0):
@@ -241,17 +239,11 @@ class MIMOSineTrajectory(Trajectory):
 
     def position(self, t: torch.Tensor) -> torch.Tensor:
         """Displacement (px) ``[..., S, 2]`` at absolute command times ``t`` (s) ``[..., S]``."""
-        out = self.parts[0].position(t)
-        for p in self.parts[1:]:
-            out = out + p.position(t)
-        return out
+        return sum((p.position(t) for p in self.parts[1:]), self.parts[0].position(t))
 
     def path_length(self, window: ExposureWindow) -> torch.Tensor:
         """Upper bound of the path (px) during ``window``: the sum of the channels' bounds."""
-        out = self.parts[0].path_length(window)
-        for p in self.parts[1:]:
-            out = out + p.path_length(window)
-        return out
+        return sum((p.path_length(window) for p in self.parts[1:]), self.parts[0].path_length(window))
 
     def phase_span(self, window: ExposureWindow) -> torch.Tensor:
         """``omega * duration`` (every channel oscillates at the command's frequency)."""
