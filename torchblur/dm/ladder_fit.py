@@ -53,6 +53,9 @@ with its ``variance``. The still's noise (averaged over many more frames than a 
 out. The reduced chi2 weighs each pixel by the data's variance plus the model's from the ladder
 (its ``L`` and ``Dn L`` terms: the higher orders' noise, as in the bias correction, is left out).
 
+Starts: each fit from its spot's own centroids and, where they differ, from its pattern's pooled ones
+(:func:`_starts`), the lower cost kept (:func:`_best_start`).
+
 Shapes: P patterns, F frequencies, M spots, K levels, ``E*R`` exposures, ``h x w`` crop pixels;
 positions and motions in px (x = column, y = row), times in s, ``omega`` rad/s.
 """
