@@ -247,6 +247,15 @@ CLAIMS = [
           [sys.executable, "benchmarks/bench_model_stds.py", "--seeds", "10", "--profile"],
           r"half-width / linearised std below " + NUM + r" \([^)]*\), above " + NUM + r" \([^)]*\);[^\n]*largest \|z_lin - "
           r"z_profile\| " + NUM, rtol=(0.01, 0.01, 0.5), speed="slow"),
+    Claim("DM: the ladder spot fits lost on HCIPy's frames, before and after the second start", "docs/deformable_mirrors.md",
+          r"before " + NUM + r" failed and " + NUM + r" of " + NUM + r" left the ladder, " + NUM + r" responses kept with "
+          r"rms\(error/std\) " + NUM + r"\s+against the linearised truth; now " + NUM + r" failed, " + NUM + r" left, " + NUM
+          + r" kept, " + NUM + r"[\s\S]*?command reaches at most " + NUM + r" of its pattern's top level",
+          [sys.executable, "benchmarks/bench_dm_ladder_starts.py"],
+          r"\(before\): failed " + NUM + r", out of the ladder " + NUM + r" of " + NUM + r" fits; second start on 0; kept responses "
+          + NUM + r", rms\(error/std\) " + NUM + r"[\s\S]*?package: failed " + NUM + r", out of the ladder " + NUM
+          + r" of [0-9]+ fits; second start on [0-9]+; kept responses " + NUM + r", rms\(error/std\) " + NUM
+          + r"[\s\S]*?top level: at most " + NUM, rtol=(0.02,), speed="slow"),
     Claim("MIMO: every channel against the truth", "README.md",
           r"every channel within " + NUM + r" % and " + NUM + r" deg of the truth",
           [sys.executable, "benchmarks/bench_mimo.py", "--which", "mimo"],

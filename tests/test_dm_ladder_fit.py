@@ -283,3 +283,50 @@ def test_a_shape_driven_by_other_actuators_does_not_pull_the_motion(monkeypatch)
     z_old, old = z(fit_ladder_problems(*args, power=POWER, noise_std=ns))
     assert bool((new.status == 0).all()) and z_new.max() < 4.0 and 0.7 < float(new.reduced_chi2.median()) < 1.4
     assert z_old.max() > 5.0 and float(old.reduced_chi2.median()) > 2.0  # the former model: pulled, and its misfit shows
+
+
+def test_a_spot_that_barely_moves_is_fitted_from_its_pattern_s_common_command(monkeypatch):
+    """Four spots that barely move under the pattern (0.02 px per unit command, 1/50 of the two
+    others) and whose width swings with the command (a lenslet's rings: the same shape at several
+    commands): their own centroids leave the start to the noise, and from it the fit stopped in a
+    local minimum whose command left the ladder (issue 23, the quick HCIPy run's failed and
+    out-of-ladder spot fits). Started also from the command every spot of the pattern shares (their
+    centroids pooled) and kept at the lower cost, every fit stays on the ladder, its response within
+    4 stds of the truth (Mahalanobis, real and imaginary part); from the own start alone one leaves it."""
+    import torchblur.dm.ladder_fit as lf
+    g = torch.Generator().manual_seed(2)
+    M, K, freq, POWER = 6, 13, 10.0, 1.0
+    centre = 7.5 + torch.rand(M, 2, generator=g, dtype=F64) - 0.5
+    s = (torch.rand(M, 2, generator=g, dtype=F64) + 0.5) * torch.tensor([1.0, -1.0], dtype=F64)
+    s[2:] *= 0.02
+
+    def spot(u):  # [..., M, H, H] e-/s: moved by s u, its width swinging with sin(4 u)
+        y, x = torch.arange(H, dtype=F64)[:, None], torch.arange(H, dtype=F64)[None, :]
+        p = centre + s * u[..., None]
+        w2 = SIGMA ** 2 * (1 + 0.3 * torch.sin(4 * u[..., None, None]))
+        return RATE * torch.exp(-((x - p[..., 0, None, None]) ** 2 + (y - p[..., 1, None, None]) ** 2) / (2 * w2)) * SIGMA ** 2 / w2
+    levels = torch.linspace(-1.3, 1.3, K, dtype=F64)
+    imgs = spot(levels[:, None])[None]  # [1, K, M, H, H]
+    var = (imgs * 2e-3 + 9) / 2e-3 ** 2 / 1e3
+    ladder = PatternLadder(levels[None], imgs + var.sqrt() * torch.randn(imgs.shape, generator=g, dtype=F64), var, spot(torch.zeros(1, dtype=F64)))
+    win = _window(torch.tensor([freq], dtype=F64), 1)
+    om = 2 * math.pi * freq
+    t = win.start[0, 0, :, None] + win.duration[0, 0, :, None] * (torch.arange(256, dtype=F64) + 0.5) / 256  # [E, S]
+    u = torch.sin(om * t)  # the command, G = 1
+    clean = (spot(u[..., None]) * (POWER * win.duration[0, 0, :, None, None, None, None] / 256)).sum(1).permute(1, 0, 2, 3)  # [M, E, H, H]
+    ns = camera_noise_std(clean, 3.0)[None, None]
+    crops = clean[None, None] + ns * torch.randn(ns.shape, generator=g, dtype=F64)  # [1, 1, M, E, H, H]
+    truth = torch.cat([s[:, 0], s[:, 1]]).numpy()  # [2M] px phasors (G = 1)
+
+    def z(fits):
+        Y, Yc = pattern_responses(fits, 1.0)
+        e = Y[0, :, 0] - truth
+        ev = np.stack([e.real, e.imag], -1)[..., None]
+        return np.sqrt((np.swapaxes(ev, -1, -2) @ np.linalg.inv(Yc[0, :, 0]) @ ev)[:, 0, 0]), (fits.flags[0, 0] & OUT_OF_LADDER) != 0
+    args = (crops, ladder, win, torch.tensor([om], dtype=F64), torch.tensor([[1.0]], dtype=F64))
+    fits = fit_ladder_problems(*args, power=POWER, noise_std=ns)
+    z_new, out_new = z(fits)
+    assert bool((fits.status == 0).all()) and not bool(out_new.any()) and z_new.max() < 4.0, (z_new, out_new)
+    monkeypatch.setattr(lf, "SECOND_START", math.inf)  # the own start only: the fit before
+    _, out_old = z(fit_ladder_problems(*args, power=POWER, noise_std=ns))
+    assert bool(out_old[2:].any()) and not bool(out_old[:2].any())

@@ -53,6 +53,9 @@ with its ``variance``. The still's noise (averaged over many more frames than a 
 out. The reduced chi2 weighs each pixel by the data's variance plus the model's from the ladder
 (its ``L`` and ``Dn L`` terms: the higher orders' noise, as in the bias correction, is left out).
 
+Starts: each fit from its spot's own centroids and, where they differ, from its pattern's pooled ones
+(:func:`_starts`), the lower cost kept (:func:`_best_start`).
+
 Shapes: P patterns, F frequencies, M spots, K levels, ``E*R`` exposures, ``h x w`` crop pixels;
 positions and motions in px (x = column, y = row), times in s, ``omega`` rad/s.
 """
@@ -81,7 +84,7 @@ __all__ = ["PatternLadder", "fit_ladder_problems", "spline_basis", "static_slope
 NODES = 96  #: Gauss-Legendre nodes per exposure (benchmarks/bench_dm_spot_models.py's; the spline is C2)
 PAD = 6  #: px of zero padding around a crop for its Fourier shift derivatives
 DARK_SNR = 5.0  #: a problem whose data correlate with its still below this many noise stds is DARK
-MAX_ITER = 60
+MAX_ITER = 150  #: LM iterations at most (a spot that barely moves under its pattern crawled past 60 along v - e, then failed: NOT_CONVERGED)
 N_PAR = 6  #: (v_cos, v_sin, n_cos, n_sin, e_cos, e_sin): the shape's command, the free motion across the static shift, the shift's command beyond the shape's
 STEP_MAX = 6.0  #: std: a longer correction step is not taken
 LEFT_MAX = 0.3  #: std: a fit whose Gauss-Newton step left is shorter has converged (the LM crawls along a curved valley)
@@ -90,6 +93,7 @@ ORDER = 4  #: the free motion's Taylor order (:func:`_coefficients`)
 SHIFT_ORDER = 2  #: the Taylor order of the shift ``s e`` (with ``d``'s: to :data:`ORDER` in all; :func:`_coefficients`)
 PRIOR_ROWS = 2  #: the prior's pseudo-data rows after the pixels (:func:`_with_prior`)
 SHAPE_PRIOR = 0.25  #: the prior std of ``e`` (each of ``e_cos, e_sin``), of the ladder's largest level
+SECOND_START = 0.1  #: of the ladder's largest level: a pooled start farther than this from a spot's own is fitted too (:func:`_best_start`)
 
 
 @dataclass(frozen=True)
@@ -435,34 +439,54 @@ def _model_jacobian(theta, prob: _Problems, ch: _Chunk, idx):
     return out[:, 0], out[:, 1:].transpose(1, 2)  # J: a view of [n, 6, E*hw], the layout the normal equations' GEMMs want
 
 
-def _start(prob: _Problems, ch: _Chunk, b0):
-    """``theta0 [c, 4]``: ``G`` from the centroids of the exposures against the ladder's centroid
-    curve linearised at ``u = 0`` (least squares over both axes and every exposure); where that
-    fails (no centroid slope, no light), ``G = amplitude`` (the command's own phase); ``|G|``
-    kept within the levels; ``d = 0``."""
+def _centroid_system(prob: _Problems, ladder: PatternLadder, rows, b0):
+    """``(A [c, 2, 2], b [c, 2])``: the normal equations of the command phasor ``G = (g_cos, g_sin)``
+    of problems ``rows [c]`` from their exposures' centroids against the ladder's centroid curve
+    linearised at ``u = 0`` (least squares over both axes and every exposure; ``b0``: the spline's
+    basis and its derivative at 0, ``[P, K]`` each)."""
     P, F, M, E, h, w = prob.shape
-    c = ch.rows.numel()
     like = dict(dtype=prob.data.dtype, device=prob.data.device)
-    keep = prob.keep[ch.rows].all(1).to(like["dtype"])  # [c, hw]
+    pat, pf = rows // (F * M), rows // M
+    keep = prob.keep[rows].all(1).to(like["dtype"])  # [c, hw]
     yy, xx = torch.meshgrid(torch.arange(h, **like), torch.arange(w, **like), indexing="ij")
     xy = torch.stack([xx.reshape(-1), yy.reshape(-1)])  # [2, hw]
-    L = ch.lad[ch.inv, :prob.knots.shape[1]] * keep[:, None]  # [c, K, hw]
+    L = ladder.images[pat.cpu(), :, (rows % M).cpu()].to(**like).flatten(2) * keep[:, None]  # [c, K, hw]
     cen_l = (L @ xy.T) / L.sum(-1, keepdim=True)  # [c, K, 2]
-    c0 = (b0[0][ch.pat][:, None, :] @ cen_l)[:, 0]  # [c, 2]
-    slope = (b0[1][ch.pat][:, None, :] @ cen_l)[:, 0]
-    D = prob.data[ch.rows] * keep[:, None]  # [c, E, hw]
+    c0 = (b0[0][pat][:, None, :] @ cen_l)[:, 0]  # [c, 2]
+    slope = (b0[1][pat][:, None, :] @ cen_l)[:, 0]
+    D = prob.data[rows] * keep[:, None]  # [c, E, hw]
     r = (D @ xy.T) / D.sum(-1, keepdim=True) - c0[:, None]  # [c, E, 2]
-    cw, sw, wq = _nodes(prob, ch.pf)
+    cw, sw, wq = (t.reshape(-1, E, t.shape[-1])[pf] for t in (prob.cw, prob.sw, prob.wq))
     v = torch.stack([(wq * cw).sum(-1), (wq * sw).sum(-1)], -1) / wq.sum(-1, keepdim=True)  # [c, E, 2]: the exposures' means of cos, sin
     A = (slope.square().sum(-1))[:, None, None] * (v.transpose(1, 2) @ v)
-    b = ((r * slope[:, None, :]).sum(-1, keepdim=True) * v).sum(1)  # [c, 2]
-    g = (torch.linalg.pinv(A) @ b[..., None])[..., 0]  # (gc, gs)
-    amp = prob.amplitude.reshape(-1)[ch.pf]
-    bad = ~torch.isfinite(g).all(-1) | (g.square().sum(-1) == 0)
-    g = torch.where(bad[:, None], torch.stack([torch.zeros_like(amp), amp], -1), g)
-    top = prob.knots.abs().amax(-1)[ch.pat]
-    g = g * (top / g.norm(dim=-1).clamp_min(torch.finfo(g.dtype).tiny)).clamp(max=1.0)[:, None]
-    return torch.cat([g, torch.zeros(c, N_PAR - 2, **like)], -1)
+    return A, ((r * slope[:, None, :]).sum(-1, keepdim=True) * v).sum(1)
+
+
+def _starts(prob: _Problems, ladder: PatternLadder, rows, b0, chunk: int):
+    """``theta0 [c, 2, N_PAR]``: two starts of each problem ``rows [c]``, ``G`` (``v``; ``d = e = 0``)
+    from its own centroids (:func:`_centroid_system`) and from those of every spot of its (pattern,
+    frequency) pooled (the pattern's common command); where one fails (no centroid slope, no light)
+    ``G = amplitude`` (the command's own phase); ``|G|`` kept within the levels. A spot that barely
+    moves under the pattern leaves its own ``G`` to the centroids' noise, often at the ladder's end:
+    started there the fit stopped in a local minimum (on HCIPy's lenslet spots, the quick run's
+    patterns 0, 4, 6, 32, 38, 48, 52, 54 at 10 Hz: 34 of 640 fits with a chi2 higher by 1-63 than from
+    the command's own phasor, 19 of them with their motion off the ladder, :func:`_fit_chunk`)."""
+    P, F, M = prob.shape[:3]
+    parts = [_centroid_system(prob, ladder, rows[i:i + chunk], b0) for i in range(0, rows.numel(), chunk)]
+    A, b = torch.cat([a for a, _ in parts]), torch.cat([b for _, b in parts])
+    pf = rows // M
+    ok = torch.isfinite(A).flatten(1).all(-1) & torch.isfinite(b).all(-1)
+    pool = (A.new_zeros(P * F, 2, 2).index_add_(0, pf[ok], A[ok]), b.new_zeros(P * F, 2).index_add_(0, pf[ok], b[ok]))
+    amp = prob.amplitude.reshape(-1)[pf]
+    top = prob.knots.abs().amax(-1)[rows // (F * M)]
+    out = []
+    for a, bb in ((A, b), (pool[0][pf], pool[1][pf])):
+        g = (torch.linalg.pinv(a) @ bb[..., None])[..., 0]  # (gc, gs)
+        bad = ~torch.isfinite(g).all(-1) | (g.square().sum(-1) == 0)
+        g = torch.where(bad[:, None], torch.stack([torch.zeros_like(amp), amp], -1), g)
+        g = g * (top / g.norm(dim=-1).clamp_min(torch.finfo(g.dtype).tiny)).clamp(max=1.0)[:, None]
+        out.append(torch.cat([g, g.new_zeros(g.shape[0], N_PAR - 2)], -1))
+    return torch.stack(out, 1)
 
 
 def _along(img, n):
@@ -597,8 +621,26 @@ def _with_prior(prob: _Problems, ch: _Chunk, sigma):
     return jac
 
 
-def _fit_chunk(prob: _Problems, ch: _Chunk, b0):
-    """Fit one chunk: ``dict`` of ``[c]``-batched amplitude, phase, covariance, status, flags, reduced_chi2."""
+def _best_start(jac, theta0, data, W, top):
+    """``(theta [c, N_PAR], converged [c])``: the LM from each problem's own start (``theta0[:, 0]``,
+    :func:`_starts`) and, where the pooled start ``theta0[:, 1]`` lies farther than
+    :data:`SECOND_START` x the ladder's top level ``top [c]`` from it, from that one too: the lower cost."""
+    res = levenberg_marquardt(lambda th, i: jac(th, i)[0], theta0[:, 0], data, weight=W, max_iter=MAX_ITER, jacobian_fn=jac, gn_tol=1e-2)
+    theta, converged = res.theta.clone(), res.converged.clone()
+    far = torch.nonzero((theta0[:, 1, :2] - theta0[:, 0, :2]).norm(dim=-1) > SECOND_START * top).reshape(-1)
+    if far.numel():
+        def sub(th, i):
+            return jac(th, far[i])
+        r2 = levenberg_marquardt(lambda th, i: sub(th, i)[0], theta0[far, 1], data[far], weight=W[far], max_iter=MAX_ITER,
+                                 jacobian_fn=sub, gn_tol=1e-2)
+        better = r2.cost < res.cost[far]
+        theta[far[better]], converged[far[better]] = r2.theta[better], r2.converged[better]
+    return theta, converged
+
+
+def _fit_chunk(prob: _Problems, ch: _Chunk, theta0):
+    """Fit one chunk from its starts ``theta0 [c, 2, N_PAR]`` (:func:`_starts`): ``dict`` of
+    ``[c]``-batched amplitude, phase, covariance, status, flags, reduced_chi2."""
     c = ch.rows.numel()
     E = prob.shape[3]
     data, W = prob.data[ch.rows].reshape(c, -1), prob.weight[ch.rows].reshape(c, -1)
@@ -607,9 +649,7 @@ def _fit_chunk(prob: _Problems, ch: _Chunk, b0):
     data_x = torch.cat([data, data.new_zeros(c, PRIOR_ROWS)], -1)
     W_x = torch.cat([W, W.new_ones(c, PRIOR_ROWS)], -1)
     jac = _with_prior(prob, ch, sigma)
-    res = levenberg_marquardt(lambda th, i: jac(th, i)[0], _start(prob, ch, b0), data_x, weight=W_x, max_iter=MAX_ITER,
-                              jacobian_fn=jac, gn_tol=1e-2)
-    theta = res.theta
+    theta, lm_converged = _best_start(jac, theta0, data_x, W_x, prob.knots.abs().amax(-1)[ch.pat])
     all_c = torch.arange(c, device=theta.device)
     used = (W > 0).sum(-1).to(theta.dtype)
     dof = (used - N_PAR + PRIOR_ROWS).clamp_min(1)
@@ -617,7 +657,7 @@ def _fit_chunk(prob: _Problems, ch: _Chunk, b0):
     theta, model, J, Cw, info, left = _debias(theta, data_x, W_x, s2, prob, ch, jac)
     model, Jp = model[:, :q], J[:, :q]
     r2 = (data - model).square()
-    converged = res.converged | (left < LEFT_MAX ** 2)  # the LM's own test, or the step left is short (noiseless data too)
+    converged = lm_converged | (left < LEFT_MAX ** 2)  # the LM's own test, or the step left is short (noiseless data too)
     amp, phase, H_t, H_s = _report_jacobians(theta, ch.slope)
     cov_l, var_model = _ladder_covariance(theta, prob, ch, Jp, W, Cw, H_t, H_s)
     if prob.noise_given:
@@ -709,11 +749,12 @@ def fit_ladder_problems(crops, ladder: PatternLadder, window, omega, amplitude, 
     out = dict(amplitude=nan[:, None].repeat(1, 2), phase=nan[:, None].repeat(1, 2), covariance=nan[:, None, None].repeat(1, 4, 4),
                status=status, flags=MASKED * (~prob.keep).flatten(1).any(-1).long(), reduced_chi2=nan.clone())
     todo = torch.nonzero(status == 0).reshape(-1)
+    theta0 = _starts(prob, ladder, todo, b0, chunk)
     n_chunks = 0
     for i0 in range(0, todo.numel(), chunk):
         ch = _chunk(prob, ladder, todo[i0:i0 + chunk], like)
         with torch.no_grad():
-            r = _fit_chunk(prob, ch, b0)
+            r = _fit_chunk(prob, ch, theta0[i0:i0 + chunk])
         ok = r["status"] == 0
         for key in ("amplitude", "phase", "covariance"):
             r[key][~ok] = float("nan")
