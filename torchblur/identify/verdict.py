@@ -628,11 +628,10 @@ def ladder_guard(v, res):
     trustworthy: the ladder's actuator stds hold on torchblur's simulated mirror (DC gain, mode
     and damping rms(error/std) pooled over three seeds 0.78, 1.14, 0.99,
     benchmarks/bench_dm_ladder_frames.py --frames 32 --seeds 0 1 2) but not yet on HCIPy's lenslet frames, the spots the
-    ladder is for (``benchmarks/bench_dm_hcipy.py --quick --case aligned``: D(jw) 1.02, damping
-    1.13, delay 1.02, but mode 1.44 and DC gain 1.64; docs/deformable_mirrors.md, "The spot
-    model in the run"; why: "Why the ladder's actuator stds fail on HCIPy's frames": a gain common
-    to each pattern from ``s``; the responses' pull toward their mean above the modes is mostly
-    gone with the shape's own command)."""
+    ladder is for (``benchmarks/bench_dm_hcipy.py``, the whole grid on a GPU: D(jw) 1.04, delay 0.94,
+    but mode 1.87, damping 1.55 and DC gain 2.13; docs/deformable_mirrors.md, "The whole frequency
+    grid"; why: "Why the ladder's actuator stds fail on HCIPy's frames": a static gain per actuator,
+    common to every frequency, from ``s``, whose lenslet shift curve bends within the first level)."""
     if getattr(res, "spot_model", "shifted") != "ladder":
         return v
     n_out = int(getattr(res, "n_out_of_ladder", 0) or 0)
