@@ -98,7 +98,8 @@ def test_the_exported_recording_fits_to_the_same_table_through_torchblur_fit(lab
     for col in ("dc_gain", "mode_hz", "damping", "delay_s", "dc_gain_std", "mode_hz_std", "damping_std", "delay_s_std"):
         np.testing.assert_allclose(back[col], getattr(t, col), rtol=1e-8)  # actuators.csv holds 9 significant digits
     assert np.array_equal(np.load(tmp_path / "fit" / "dm" / "interaction_matrix.npy"), t.static_column)
-    assert np.array_equal(FrequencyResponse.from_json(tmp_path / "fit" / "dm" / "frf.json").response, res.D)
+    frf = FrequencyResponse.from_json(tmp_path / "fit" / "dm" / "frf.json")
+    assert np.array_equal(frf.response, res.D) and frf.meta["n_repeats"] == rec.R == res.n_repeats
 
 
 def test_write_dm_recording_reads_back(lab_run, tmp_path):
@@ -116,6 +117,80 @@ def test_write_dm_recording_reads_back(lab_run, tmp_path):
     for name in ("dark", "still", "patterns", "freq_hz", "amplitude", "power", "start_s", "duration_s"):
         np.testing.assert_array_equal(getattr(back, name), getattr(rec, name))
     assert all(np.array_equal(a, b) for a, b in zip(back.frames, rec.frames)) and back.R == rec.R
+
+
+@pytest.fixture(scope="module")
+def jittered(lab_run, tmp_path_factory):
+    """``(folder, start_s)``: the exported recording rewritten with R = 2 repeats per exposure (the second one's frames
+    1 ADU brighter) and every frame's window start jittered by its own 1 us, as a camera's trigger jitter makes them."""
+    from torchblur.identify.dm_outside import read_dm_recording, write_dm_recording
+
+    rec = read_dm_recording(lab_run[2])
+    twice = lambda a: np.repeat(a, 2, axis=2)  # noqa: E731 - [F, P, E] -> [F, P, E*R], exposure-major
+    start = twice(rec.start_s) + np.random.default_rng(23).normal(0.0, 1e-6, twice(rec.start_s).shape)
+    frames = [np.stack([fr, fr + 1], 2).reshape((fr.shape[0], -1) + fr.shape[2:]) for fr in rec.frames]
+    folder = write_dm_recording(tmp_path_factory.mktemp("jit") / "rec", dark=rec.dark, still=rec.still, R=2,
+                                still_exposure_s=rec.still_exposure_s, patterns=rec.patterns, freq_hz=rec.freq_hz,
+                                amplitude=rec.amplitude, power=rec.power, frames=frames, start_s=start, duration_s=twice(rec.duration_s),
+                                camera={"gain_e_per_adu": rec.camera.gain_e_per_adu, "saturation_adu": rec.camera.saturation_adu,
+                                        "latency_s": rec.camera.latency_s, "latency_std_s": rec.camera.latency_std_s},
+                                layout={"dm": {"n_across": 2}, "wfs": {"n_across": 2, "pitch_px": 16.0, "sigma_px": 1.2},
+                                        "dm_plan": {"kind": "hadamard"}})
+    return folder, start
+
+
+def _set_cells(path: Path, column: str, value: str | None, pick) -> None:
+    """Set ``column`` of the frames.csv rows ``pick(row)`` to ``value`` (None: drop the column)."""
+    import csv
+
+    with open(path, newline="") as fh:
+        head, *rows = list(csv.reader(fh))
+    j = head.index(column)
+    for row in rows:
+        if pick(dict(zip(head, row))):
+            row[j] = value
+    keep = [i for i in range(len(head)) if value is not None or i != j]
+    with open(path, "w", newline="") as fh:
+        csv.writer(fh).writerows([[r[i] for i in keep] for r in [head] + rows])
+
+
+@pytest.mark.parametrize("numbered", [True, False])
+def test_the_repeats_of_jittered_windows_are_counted(jittered, tmp_path, numbered):
+    """Each repeat's window starts at its own time (the trigger jitter): the R a recording holds is its frames per pattern,
+    frequency and exposure (numbered 0..R-1 by the repeat column or not numbered), each frame keeping its own start; the fit
+    takes the config's R and exposures of it (issue 23: it found R = 1 and every frame its own exposure)."""
+    from torchblur.identify.dm_outside import dm_recording_config, read_dm_recording
+
+    folder, start = jittered
+    if not numbered:
+        folder = Path(shutil.copytree(folder, tmp_path / "plain"))
+        _set_cells(folder / "frames.csv", "repeat", None, lambda row: True)
+    rec = read_dm_recording(folder)
+    np.testing.assert_array_equal(rec.start_s, start)
+    cfg = dm_recording_config(rec)
+    assert rec.R == cfg.dm_plan.n_repeats == 2 and rec.start_s.shape[2] == 4
+    np.testing.assert_allclose(cfg.sweep.exposures, [0.3, 0.8])  # the example's (fractions of the period)
+
+
+@pytest.mark.parametrize("value,error", [
+    ("2", r"line (\d+), column repeat: 2, but the 0.006 s exposure at 50 Hz has 2 frame\(s\) here: number its repeats 0..1"),
+    ("0", r"line (\d+), column repeat: repeat 0 is given twice"),
+    ("", r"line (\d+), column repeat: empty, given on line \d+"),
+    ("one", r"line (\d+), column repeat: expected an integer"),
+    ("-1", r"line (\d+), column repeat: expected a value >= 0"),
+])
+def test_a_bad_repeat_column_is_refused_naming_it(jittered, tmp_path, value, error):
+    """The repeat column is untrusted: a gap, a repeat given twice, one left empty or not a count is refused, naming the line and column."""
+    import re
+
+    from torchblur.identify.dm_outside import read_dm_recording
+
+    folder = Path(shutil.copytree(jittered[0], tmp_path / "bad"))
+    _set_cells(folder / "frames.csv", "repeat", value, lambda row: row["kind"] == "sweep" and row["page"] == "1")
+    with pytest.raises(RecordingError, match=error) as err:
+        read_dm_recording(folder)
+    line = 1 + next(i for i, r in enumerate((folder / "frames.csv").read_text().splitlines()) if r.startswith("sweep.tif,1,"))
+    assert re.search(error, str(err.value)).group(1) == str(line)
 
 
 class _NoFrames:

@@ -467,10 +467,13 @@ def _window_start(row: dict, camera: OutsideCamera) -> float:
     return float(row["trigger_phase_rad"]) / (2 * math.pi * row["freq_hz"]) + camera.trigger_delay_s + camera.latency_s
 
 
-def _points(rows: list, frames: FrameStore | None, camera: OutsideCamera) -> tuple:
+def _points(rows: list, frames: FrameStore | None, camera: OutsideCamera, by_exposure: bool = False) -> tuple:
     """The sweep rows as :class:`OutsidePoint` (one per frequency): one amplitude and power
     per point, each window repeated ``R`` times, and one ``E`` and ``R`` for every point; their
-    frames read from ``frames`` as float64 (None: ``frames`` None, the caller reads them by ``lines``)."""
+    frames read from ``frames`` as float64 (None: ``frames`` None, the caller reads them by ``lines``).
+    A window is a (start, exposure_s) pair; ``by_exposure`` (a DM recording's: its exposures start at one
+    trigger) an exposure_s, each frame keeping its own start (a jittered repeat's differs), its repeats
+    numbered 0..R-1 where the ``repeat`` column gives them."""
     groups: dict = {}
     for r in rows:
         groups.setdefault(r["freq_hz"], []).append(r)
@@ -485,7 +488,7 @@ def _points(rows: list, frames: FrameStore | None, camera: OutsideCamera) -> tup
                                      f"{g[0]['line']}) has {g[0][col]}; one {col} per frequency")
         windows: dict = {}
         for r in g:
-            windows.setdefault((round(_window_start(r, camera), 15), r["exposure_s"]), []).append(r)
+            windows.setdefault(r["exposure_s"] if by_exposure else (round(_window_start(r, camera), 15), r["exposure_s"]), []).append(r)
         reps = {len(v) for v in windows.values()}
         if len(reps) != 1:
             raise RecordingError(f"{CSV_NAME} lines {g[0]['line']}..{g[-1]['line']}: the point at {f:g} Hz has "
@@ -496,6 +499,10 @@ def _points(rows: list, frames: FrameStore | None, camera: OutsideCamera) -> tup
             if len(set(tags)) != len(tags):
                 raise RecordingError(f"{CSV_NAME} line {v[-1]['line']}, column repeat: repeat {tags[-1]} is given twice for one window "
                                      f"at {f:g} Hz")
+            if by_exposure and tags and max(tags) >= len(v):
+                bad = max(v, key=lambda r: r["repeat"] or 0)
+                raise RecordingError(f"{CSV_NAME} line {bad['line']}, column repeat: {bad['repeat']}, but the {bad['exposure_s']:g} s "
+                                     f"exposure at {f:g} Hz has {len(v)} frame(s) here: number its repeats 0..{len(v) - 1}")
         ordered = [r for v in windows.values() for r in v]  # exposure-major
         points.append(OutsidePoint(
             freq_hz=float(f), amplitude=float(g[0]["amplitude"]), power=float(g[0]["power"] if g[0]["power"] is not None else 1.0),

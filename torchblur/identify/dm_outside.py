@@ -187,12 +187,18 @@ def _read_patterns(root: Path) -> np.ndarray:
 
 def _sweep(rows: list, frames: FrameStore, camera: OutsideCamera, P: int):
     """The sweep rows as ``(freq [F], amplitude [F], power [F], frames (F x [P, E*R, H, W], read when indexed), start [F, P, E*R],
-    duration [F, P, E*R], R)``: every pattern at every frequency, one amplitude and power per frequency."""
+    duration [F, P, E*R], R)``: every pattern at every frequency, one amplitude and power per frequency; the R repeats of an
+    exposure are its frames of one pattern and frequency (their starts differ by the jitter), numbered 0..R-1 by ``repeat`` if given."""
     for r in rows:
         if r["pattern"] is None or r["pattern"] >= P:
             raise RecordingError(f"{CSV_NAME} line {r['line']}, column pattern: a sweep frame needs the row of {PATTERNS_NAME} it was "
                                  f"driven with (0..{P - 1}), got {r['pattern']}")
-    per = [_points(mine, None, camera) if (mine := [r for r in rows if r["pattern"] == p]) else () for p in range(P)]
+    given = [r for r in rows if r["repeat"] is not None]
+    if given and len(given) != len(rows):
+        bad = next(r for r in rows if r["repeat"] is None)
+        raise RecordingError(f"{CSV_NAME} line {bad['line']}, column repeat: empty, given on line {given[0]['line']}; number the "
+                             f"repeats of every sweep frame (0..R-1 for each pattern, frequency and exposure) or of none")
+    per = [_points(mine, None, camera, by_exposure=True) if (mine := [r for r in rows if r["pattern"] == p]) else () for p in range(P)]
     ref = per[0]
     for p, pts in enumerate(per):
         if len(pts) != len(ref) or not pts:
