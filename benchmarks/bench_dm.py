@@ -266,8 +266,8 @@ def child(path: str, method: str, device: str, n_single: int) -> dict:
 
     dev = torch.device(device)
     d = {k: v.to(dev) if isinstance(v, torch.Tensor) else v for k, v in torch.load(path).items()}
+    _sync(dev)
     if dev.type == "cuda":
-        torch.cuda.synchronize(dev)
         torch.cuda.reset_peak_memory_stats(dev)
     if method in ("batched", "kernel"):  # warm up (first-call imports and allocations) on two problems, not timed
         _fit_batched(d, method, slice(0, 2))
@@ -290,8 +290,7 @@ def child(path: str, method: str, device: str, n_single: int) -> dict:
             err = max(err, (f.amplitude - d["mag"][i]).abs().max().item())
             stds.append(f.amplitude_std[0])
         amp_std, chunks = torch.stack(stds), n
-    if dev.type == "cuda":
-        torch.cuda.synchronize(dev)
+    _sync(dev)
     dt = time.perf_counter() - t0
     peak = _peak(dev)
     return {"problems": n, "seconds": dt, "per_s": n / dt, "peak_mb": max(0.0, peak - base) / 2**20, "process_mb": peak / 2**20, "ok": ok,

@@ -154,19 +154,29 @@ def dc_gain_lines(res, dyn) -> list[str]:
             for name, sel in (("on the edge subapertures", edge), ("inside", ~edge)) if sel.any()]
 
 
-def shrink_lines(res, truth, dyn) -> list[str]:
+def projected_responses(res, truth, dyn):
+    """``(h [N, F], h_cov [N, F, 2, 2], h_true [N, F])``: every actuator's response ``h_j`` (D's column
+    projected on the run's G, :func:`~torchblur.dm.actuator_fit.project_columns`) and the linearised
+    truth's, projected the same way."""
+    from torchblur.dm.actuator_fit import project_columns
+
+    h, h_cov = project_columns(res.D, res.D_cov, res.G)
+    h_true = project_columns(truth["shift_slopes"][:, :, None] * dyn.response(res.freq_hz)[None], res.D_cov, res.G)[0]
+    return h, h_cov, h_true
+
+
+def shrink_lines(res, truth, dyn, proj=None) -> list[str]:
     """Per frequency, how the live actuators' responses ``h_j`` (D's columns projected on the run's G) err
     against the linearised truth's, relative to how far each actuator's own ``H_j`` lies from the live
     mean: the least-squares ``b`` of ``h_j / h_true_j - 1 = b (H_j / mean H - 1)`` (``b = -1``: every
     actuator reported as the mean; 0: no pull) and the share of the errors' variance about their mean it
     explains. A pull toward the common response is a spot model that ties a spot's change of shape to
-    the pattern's common command (the ladder) where the actuators under it move differently."""
-    from torchblur.dm.actuator_fit import project_columns
-
+    the pattern's common command (the ladder) where the actuators under it move differently. ``proj``:
+    :func:`projected_responses`, computed here when not given."""
     live = np.flatnonzero((dyn.gain > 0.7 * np.median(dyn.gain)))
     f = res.freq_hz
-    h = project_columns(res.D, res.D_cov, res.G)[0][live]
-    ht = project_columns(truth["shift_slopes"][:, :, None] * dyn.response(f)[None], res.D_cov, res.G)[0][live]
+    h, _, ht = proj or projected_responses(res, truth, dyn)
+    h, ht = h[live], ht[live]
     lines = []
     for k in range(len(f)):
         H = dyn.response(f[k])[live]
@@ -180,21 +190,20 @@ def shrink_lines(res, truth, dyn) -> list[str]:
     return lines
 
 
-def actuator_gain_lines(res, truth, dyn) -> list[str]:
+def actuator_gain_lines(res, truth, dyn, proj=None) -> list[str]:
     """The live actuators' responses ``h_j`` (D's columns projected on the run's G) against the linearised
     truth's, their errors split along ``h_j`` (gain) and across it (phase), each over its std: the rms per
     frequency, and how the gain errors of an actuator correlate between frequencies (mean over frequency
     pairs of the correlation over actuators). A frequency-independent error per actuator (a static slope,
     a spot's shift convention) shows as a correlation near 1 that no single frequency's stds reveal; the
-    model fit, taking the frequencies as independent, then gives DC gains (and modes) too small a std."""
-    from torchblur.dm.actuator_fit import project_columns
-
+    model fit, taking the frequencies as independent, then gives DC gains (and modes) too small a std.
+    ``proj``: :func:`projected_responses`, computed here when not given."""
     live = np.flatnonzero(~dyn.dead)
     f = res.freq_hz
-    h, hc = project_columns(res.D, res.D_cov, res.G)
-    ht = project_columns(truth["shift_slopes"][:, :, None] * dyn.response(f)[None], res.D_cov, res.G)[0]
-    rel = ((h - ht) / ht)[live]
-    sd = np.sqrt((hc[live, :, 0, 0] + hc[live, :, 1, 1]) / 2) / np.abs(ht[live])  # [J, F] relative
+    h, hc, ht = proj or projected_responses(res, truth, dyn)
+    h, hc, ht = h[live], hc[live], ht[live]  # the dead actuator's truth is 0
+    rel = (h - ht) / ht
+    sd = np.sqrt((hc[..., 0, 0] + hc[..., 1, 1]) / 2) / np.abs(ht)  # [J, F] relative
     zg, zp = rel.real / sd, rel.imag / sd
 
     def corr(z):
@@ -287,9 +296,10 @@ def report(res, truth, dyn, poor_fit_chi2: float) -> None:
         print(f"  one scale per pattern, {line}")
     for line in dc_gain_lines(res, dyn):
         print(f"  DC gain of the live actuators whose gain rests {line}")
-    for line in shrink_lines(res, truth, dyn):
+    proj = projected_responses(res, truth, dyn)
+    for line in shrink_lines(res, truth, dyn, proj):
         print(f"  pull toward the mean response, {line}")
-    for line in actuator_gain_lines(res, truth, dyn):
+    for line in actuator_gain_lines(res, truth, dyn, proj):
         print(f"  actuators' responses h_j, {line}")
     print(f"  dead actuator status {f['dead_status']} (want dead), weak {f['weak_status']} (want weak), other live actuators not ok: "
           f"{f['other_not_ok']}")
