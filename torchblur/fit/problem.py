@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import torch
 
 from torchblur._compat import median_along
+from torchblur.fit.inputs import psf_moments
 from torchblur.fit.sine_model import ParamLayout
 from torchblur.image.moments import image_moments, moments_along, sinusoid_from_moments
 from torchblur.losses import pixel_weights
@@ -97,9 +98,7 @@ def sine_problem(data, psf, window: ExposureWindow, omega, direction, *, noise_s
     win = window.to(dtype).expand((N, E))
     if isinstance(psf, GaussianPSF):
         psf = psf.to(dtype)
-        rest, cov_psf = psf.center, psf.cov
-    else:
-        rest, cov_psf = psf.moments()
+    rest, cov_psf = psf_moments(psf)
     weight, std = pixel_weights(noise_std, use, data)
     # one weight per item, nothing masked: weight is a view of row_weight (see SineProblem)
     row_weight = weight[:, 0, 0, 0] if use is None and (std is None or std.dim() == 1) else None

@@ -14,7 +14,7 @@ from torchblur.losses import (LOSSES, covariance_factor, fisher_covariance, imag
                               residual_weights, singular_covariance)
 from torchblur.optim import LMResult, levenberg_marquardt
 from torchblur.fit.inputs import (check_count, check_data, flat_count, flat_direction, flat_omega, flat_psf,
-                                  flat_window, take_psf)
+                                  flat_window, psf_moments, take_psf)
 from torchblur.fit.problem import SineProblem, crop_to_reach, sine_problem, starting_points
 from torchblur.fit.results import SinusoidFit, put_items
 from torchblur.fit.robust import impulses, inpaint, plane_fit, plane_image, robust_scale
@@ -717,10 +717,7 @@ def _light_in_frame(res: SinusoidFit, inp: _FlatInputs, fit_center: bool, n_t: i
     H, W = inp.data.shape[-2:]
     psf, win, om = inp.psf, inp.window, inp.omega
     amp, ph = _axes_xy(res.amplitude, res.phase, inp.direction)
-    if isinstance(psf, GaussianPSF):
-        centre, cov = psf.center, psf.cov
-    else:
-        centre, cov = psf.moments()
+    centre, cov = psf_moments(psf)
     if fit_center and res.center is not None:
         centre = res.center
     dtype, device = amp.dtype, amp.device
