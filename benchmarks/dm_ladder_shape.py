@@ -7,8 +7,8 @@ halves the former error at 2 kHz, but on noisy ones its stds do not hold on the 
 shape's command differs most from their motion's (the first order in ``w`` beyond its reach; the
 docs give the figures). The functions that differ from ladder_fit's (the rest imported):
 ``_integrated_basis`` (second derivatives), ``_chunk`` (the ``Dn^j Ds L`` blocks),
-``_coefficients``, ``_report_jacobians``, ``_ladder_covariance``, ``_debias``, ``_fit_chunk``,
-``_with_prior``, ``_store``; a fallback to ``w = 0`` beyond :data:`SHAPE_REACH` (off; at 0.1 it
+``_coefficients``, ``_report_jacobians``, ``_ladder_covariance``, ``_fit_chunk``, ``_store``
+(ladder_fit's ``_debias`` and ``_with_prior`` called with this model's); a fallback to ``w = 0`` beyond :data:`SHAPE_REACH` (off; at 0.1 it
 held 26 of 80 problems at 2 kHz and gave the former error back).
 
 The model (otherwise ladder_fit's):
@@ -76,9 +76,9 @@ import math
 
 import torch
 
-from torchblur.dm.ladder_fit import (BIAS_ITER, LEFT_MAX, MAX_ITER, ORDER, STEP_MAX, PatternLadder, _along, _basis_at, _Chunk,
+from torchblur.dm.ladder_fit import (LEFT_MAX, MAX_ITER, ORDER, PRIOR_ROWS, PatternLadder, _along, _basis_at, _Chunk, _debias,
                                      _derivative_matrix, _flat_problems, _model_noise, _nodes, _normal, _prefit_status, _Problems,
-                                     static_slope)
+                                     _with_prior, static_slope)
 from torchblur.dm.spot_fit import SpotFits, chunk_size
 from torchblur.errors import ShapeError, check_int
 from torchblur.fit.status import MASKED, NO_MOTION, NOT_CONVERGED, OUT_OF_LADDER, SINGULAR, flag_poor_fit
@@ -87,7 +87,6 @@ from torchblur.optim import levenberg_marquardt
 
 N_PAR = 6  #: (gc, gs, n_cos, n_sin, w_cos, w_sin): the command phasor, the free motion across the static shift, the shape's own command
 SHAPE_ORDER = 2  #: the free motion's Taylor order in the shape's term ``w (L' - Ds L)`` (:func:`_coefficients`)
-PRIOR_ROWS = 2  #: the shape prior's pseudo-data rows after the pixels (:func:`_with_prior`)
 SHAPE_HELD = 256  #: flag: the problem refitted with ``w = 0`` (:data:`SHAPE_REACH`)
 SHAPE_REACH = math.inf  #: ``|w| / |G|`` (phasors) beyond which the shape's first-order term is not trusted: refitted with ``w = 0``, :data:`SHAPE_HELD`
 HELD_PRIOR = 1e-12  #: the prior std of ``w`` (of the ladder's largest level) that holds it at 0
@@ -283,52 +282,6 @@ def _ladder_covariance(theta, prob: _Problems, ch: _Chunk, J, W, Cw, H_t, H_s):
     return cov, _model_noise(C, prob, ch, W)[0]
 
 
-def _debias(theta, data, W, s2, prob: _Problems, ch: _Chunk, jac):
-    """The fit with the ladder noise's bias removed to first order in its variance:
-    ``(theta, model, J, Cw = (J^T W J)^-1, info, left)``, ``left`` the squared length (std^2) of
-    the step still to go.
-
-    The least-squares cost ``S`` against a noisy ladder has the expectation ``S_true + V(theta)``,
-    ``V = sum W var(model)`` (:func:`_model_noise`), which depends on ``theta`` (a trajectory that
-    dwells near few levels has a noisier model; a larger ``d`` draws more of the shift
-    derivatives' noise), so the plain fit is biased. Up to :data:`BIAS_ITER` Gauss-Newton steps
-    on ``S - V`` (``Cw (J^T W r + grad V / 2)``) from the fit, each kept only where it lowers
-    ``S - V`` and is shorter than :data:`STEP_MAX` std; a refused step ends that problem's correction."""
-    c = theta.shape[0]
-    idx = torch.arange(c, device=theta.device)
-    Wp = W[:, :-PRIOR_ROWS]  # the pixels' weights (the prior's rows last)
-
-    def state(th):
-        model, J = jac(th, idx)
-        var, grad = _model_noise(_coefficients(th, prob, ch, idx)[0], prob, ch, Wp)
-        q = (W * (data - model).square()).sum(-1) - (Wp * var.reshape(c, -1)).sum(-1)
-        return [th, model, J, q, grad]
-    st = state(theta)
-    going = torch.ones(c, dtype=torch.bool, device=theta.device)
-    for i in range(BIAS_ITER + 1):
-        th, model, J, q, grad = st
-        Cw, info = torch.linalg.inv_ex(J.transpose(1, 2) @ (W[..., None] * J))
-        step = (Cw @ (J.transpose(1, 2) @ (W * (data - model))[..., None] + grad[..., None] / 2))[..., 0]
-        left = (step[:, None, :] @ torch.linalg.pinv(Cw) @ step[..., None])[:, 0, 0] / s2
-        if i == BIAS_ITER or not bool(going.any()):
-            break
-        trial = state(th + step)
-        going = going & (trial[3] <= st[3]) & (left < STEP_MAX ** 2)
-        st = [torch.where(going.reshape((c,) + (1,) * (a.dim() - 1)), a, b) for a, b in zip(trial, st)]
-    return st[0], st[1], st[2], Cw, info, left
-
-
-def _with_prior(prob: _Problems, ch: _Chunk, sigma):
-    """The model and Jacobian of :func:`_model_jacobian` with the shape prior's :data:`PRIOR_ROWS`
-    rows last: ``w_cos / sigma``, ``w_sin / sigma`` (``sigma [c]``, data 0, weight 1)."""
-    def jac(th, i):
-        model, J = _model_jacobian(th, prob, ch, i)
-        pj = th.new_zeros(th.shape[0], N_PAR, PRIOR_ROWS)
-        pj[:, 4, 0] = pj[:, 5, 1] = 1 / sigma[i]
-        return torch.cat([model, th[:, 4:] / sigma[i, None]], -1), torch.cat([J.transpose(1, 2), pj], -1).transpose(1, 2)
-    return jac
-
-
 def _fit_chunk(prob: _Problems, ch: _Chunk, b0, prior: float):
     """Fit one chunk with the shape prior ``prior`` (:data:`SHAPE_PRIOR` or :data:`HELD_PRIOR`):
     ``dict`` of ``[c]``-batched amplitude, phase, covariance, status, flags, reduced_chi2, reach (``|w| / |G|``)."""
@@ -339,7 +292,7 @@ def _fit_chunk(prob: _Problems, ch: _Chunk, b0, prior: float):
     sigma = prior * prob.knots.abs().amax(-1)[ch.pat]  # [c] the prior std of w_cos and w_sin
     data_x = torch.cat([data, data.new_zeros(c, PRIOR_ROWS)], -1)
     W_x = torch.cat([W, W.new_ones(c, PRIOR_ROWS)], -1)
-    jac = _with_prior(prob, ch, sigma)
+    jac = _with_prior(prob, ch, sigma, model_jacobian=_model_jacobian)
     res = levenberg_marquardt(lambda th, i: jac(th, i)[0], _start(prob, ch, b0), data_x, weight=W_x, max_iter=MAX_ITER,
                               jacobian_fn=jac, gn_tol=1e-2)
     theta = res.theta
@@ -347,7 +300,7 @@ def _fit_chunk(prob: _Problems, ch: _Chunk, b0, prior: float):
     used = (W > 0).sum(-1).to(theta.dtype)
     dof = (used - N_PAR + PRIOR_ROWS).clamp_min(1)
     s2 = torch.ones(c, dtype=theta.dtype, device=theta.device) if prob.noise_given else ((data - jac(theta, all_c)[0][:, :q]).square() * W).sum(-1) / dof
-    theta, model, J, Cw, info, left = _debias(theta, data_x, W_x, s2, prob, ch, jac)
+    theta, model, J, Cw, info, left = _debias(theta, data_x, W_x, s2, prob, ch, jac, coefficients=_coefficients)
     model, Jp = model[:, :q], J[:, :q]
     r2 = (data - model).square()
     converged = res.converged | (left < LEFT_MAX ** 2)  # the LM's own test, or the step left is short (noiseless data too)

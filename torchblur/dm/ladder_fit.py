@@ -575,7 +575,7 @@ def _model_noise(C, prob: _Problems, ch: _Chunk, W):
     return var, grad
 
 
-def _debias(theta, data, W, s2, prob: _Problems, ch: _Chunk, jac):
+def _debias(theta, data, W, s2, prob: _Problems, ch: _Chunk, jac, coefficients=None):
     """The fit with the ladder noise's bias removed to first order in its variance:
     ``(theta, model, J, Cw = (J^T W J)^-1, info, left)``, ``left`` the squared length (std^2) of
     the step still to go.
@@ -585,14 +585,16 @@ def _debias(theta, data, W, s2, prob: _Problems, ch: _Chunk, jac):
     dwells near few levels has a noisier model; a larger ``d`` draws more of the shift
     derivatives' noise), so the plain fit is biased. Up to :data:`BIAS_ITER` Gauss-Newton steps
     on ``S - V`` (``Cw (J^T W r + grad V / 2)``) from the fit, each kept only where it lowers
-    ``S - V`` and is shorter than :data:`STEP_MAX` std; a refused step ends that problem's correction."""
+    ``S - V`` and is shorter than :data:`STEP_MAX` std; a refused step ends that problem's correction.
+    ``jac``: :func:`_with_prior`'s; ``coefficients``: the model's (None: :func:`_coefficients`)."""
+    coefficients = coefficients or _coefficients
     c = theta.shape[0]
     idx = torch.arange(c, device=theta.device)
     Wp = W[:, :-PRIOR_ROWS]  # the pixels' weights (the prior's rows last)
 
     def state(th):
         model, J = jac(th, idx)
-        var, grad = _model_noise(_coefficients(th, prob, ch, idx)[0], prob, ch, Wp)
+        var, grad = _model_noise(coefficients(th, prob, ch, idx)[0], prob, ch, Wp)
         q = (W * (data - model).square()).sum(-1) - (Wp * var.reshape(c, -1)).sum(-1)
         return [th, model, J, q, grad]
     st = state(theta)
@@ -610,11 +612,13 @@ def _debias(theta, data, W, s2, prob: _Problems, ch: _Chunk, jac):
     return st[0], st[1], st[2], Cw, info, left
 
 
-def _with_prior(prob: _Problems, ch: _Chunk, sigma):
-    """The model and Jacobian of :func:`_model_jacobian` with the prior's :data:`PRIOR_ROWS`
-    rows last: ``e_cos / sigma``, ``e_sin / sigma`` (``sigma [c]``, data 0, weight 1)."""
+def _with_prior(prob: _Problems, ch: _Chunk, sigma, model_jacobian=None):
+    """The model and Jacobian of ``model_jacobian`` (None: :func:`_model_jacobian`) with the prior's
+    :data:`PRIOR_ROWS` rows last: ``theta[4] / sigma``, ``theta[5] / sigma`` (``sigma [c]``, data 0, weight 1)."""
+    model_jacobian = model_jacobian or _model_jacobian
+
     def jac(th, i):
-        model, J = _model_jacobian(th, prob, ch, i)
+        model, J = model_jacobian(th, prob, ch, i)
         pj = th.new_zeros(th.shape[0], N_PAR, PRIOR_ROWS)
         pj[:, 4, 0] = pj[:, 5, 1] = 1 / sigma[i]
         return torch.cat([model, th[:, 4:] / sigma[i, None]], -1), torch.cat([J.transpose(1, 2), pj], -1).transpose(1, 2)
