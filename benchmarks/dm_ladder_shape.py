@@ -6,10 +6,11 @@ frames" in docs/deformable_mirrors.md), measured against the run's
 halves the former error at 2 kHz, but on noisy ones its stds do not hold on the spots whose
 shape's command differs most from their motion's (the first order in ``w`` beyond its reach; the
 docs give the figures). The functions that differ from ladder_fit's (the rest imported):
-``_integrated_basis`` (second derivatives), ``_chunk`` (the ``Dn^j Ds L`` blocks),
-``_coefficients``, ``_report_jacobians``, ``_ladder_covariance``, ``_debias``, ``_fit_chunk``,
-``_with_prior``, ``_store``; a fallback to ``w = 0`` beyond :data:`SHAPE_REACH` (off; at 0.1 it
-held 26 of 80 problems at 2 kHz and gave the former error back).
+``_integrated_basis`` (second derivatives), ``_chains`` (the ``Dn^j Ds L`` blocks),
+``_coefficients``, ``_report_jacobians``, ``_fit_chunk``, ``_store`` (ladder_fit's ``_chunk``,
+``_model_jacobian``, ``_ladder_covariance``, ``_debias`` and ``_with_prior`` called with this
+model's); a fallback to ``w = 0`` beyond :data:`SHAPE_REACH` (off; at 0.1 it held 26 of 80
+problems at 2 kHz and gave the former error back).
 
 The model (otherwise ladder_fit's):
 
@@ -73,12 +74,13 @@ positions and motions in px (x = column, y = row), times in s, ``omega`` rad/s.
 from __future__ import annotations
 
 import math
+from functools import partial
 
 import torch
 
-from torchblur.dm.ladder_fit import (BIAS_ITER, LEFT_MAX, MAX_ITER, ORDER, STEP_MAX, PatternLadder, _along, _basis_at, _Chunk,
-                                     _derivative_matrix, _flat_problems, _model_noise, _nodes, _normal, _prefit_status, _Problems,
-                                     static_slope)
+from torchblur.dm.ladder_fit import (LEFT_MAX, MAX_ITER, ORDER, PRIOR_ROWS, PatternLadder, _basis_at, _Chunk, _chunk, _debias,
+                                     _flat_problems, _ladder_covariance, _model_jacobian, _nodes, _normal, _prefit_status, _Problems,
+                                     _with_prior)
 from torchblur.dm.spot_fit import SpotFits, chunk_size
 from torchblur.errors import ShapeError, check_int
 from torchblur.fit.status import MASKED, NO_MOTION, NOT_CONVERGED, OUT_OF_LADDER, SINGULAR, flag_poor_fit
@@ -87,7 +89,6 @@ from torchblur.optim import levenberg_marquardt
 
 N_PAR = 6  #: (gc, gs, n_cos, n_sin, w_cos, w_sin): the command phasor, the free motion across the static shift, the shape's own command
 SHAPE_ORDER = 2  #: the free motion's Taylor order in the shape's term ``w (L' - Ds L)`` (:func:`_coefficients`)
-PRIOR_ROWS = 2  #: the shape prior's pseudo-data rows after the pixels (:func:`_with_prior`)
 SHAPE_HELD = 256  #: flag: the problem refitted with ``w = 0`` (:data:`SHAPE_REACH`)
 SHAPE_REACH = math.inf  #: ``|w| / |G|`` (phasors) beyond which the shape's first-order term is not trusted: refitted with ``w = 0``, :data:`SHAPE_HELD`
 HELD_PRIOR = 1e-12  #: the prior std of ``w`` (of the ladder's largest level) that holds it at 0
@@ -114,38 +115,6 @@ def _integrated_basis(u, weights, knots, coef):
         acc.append(w @ Z)  # [n, E, Gr, 4 (K - 1)]
     acc = torch.cat(acc, 2)
     return (acc.reshape(n, -1, 4 * (K - 1)) @ coef.reshape(n, 4 * (K - 1), K)).reshape(acc.shape[:3] + (K,))
-
-
-def _chunk(prob: _Problems, ladder: PatternLadder, rows, like) -> _Chunk:
-    """The chunk of problems ``rows``: their ladders on the fit's device, with the shift
-    derivatives and the static shifts ``s`` (:func:`static_slope`)."""
-    P, F, M, E, h, w = prob.shape
-    pat, m = rows // (F * M), rows % M
-    uniq, inv = torch.unique(pat * M + m, return_inverse=True)
-    up, um = (uniq // M).cpu(), (uniq % M).cpu()
-    L = ladder.images[up, :, um].to(**like)  # [u, K, h, w]
-    K = L.shape[1]
-    var = ladder.variance[up, :, um].to(**like)
-    if ladder.slope is not None:  # with_slopes: computed once for every frequency
-        slope, ds_dl = ladder.slope[up, um].to(**like), ladder.ds_dl[up, um].to(**like)
-    else:
-        slope, ds_dl = static_slope(L, ladder.still[um].to(**like), prob.knots[up.to(prob.knots.device)])
-    n = _normal(slope)  # [u, 2]
-    blocks, base = [], L
-    for k, top in enumerate(_chains()):  # Dn^j Ds^k L, j <= top, Ds the derivative along a shift by s
-        img = base
-        for j in range(top + 1):
-            blocks.append(img)
-            img = _along(img, n[:, None]) if j < top else img
-        base = _along(base, slope[:, None])
-    lad = torch.cat(blocks, 1).reshape(len(uniq), len(blocks) * K, h * w)
-    var = var.reshape(len(uniq), K, h * w)
-    dmat = _derivative_matrix(h, w, like["dtype"], torch.device(like["device"]))  # [q', a, q] = D_a[q, q']
-    dd = torch.stack([dmat[:, 0] ** 2, dmat[:, 1] ** 2, 2 * dmat[:, 0] * dmat[:, 1]])  # [3, q', q]
-    nn = torch.stack([n[:, 0] ** 2, n[:, 1] ** 2, n[:, 0] * n[:, 1]], 1)[:, :, None, None]  # [u, 3, 1, 1]: Dn = nx Dx + ny Dy
-    return _Chunk(rows=rows, pat=pat, pf=rows // M, freq=(rows // M) % F, inv=inv, lad=lad, var=var,
-                  noise=torch.stack([var, (nn * (var[:, None] @ dd)).sum(1)], 1),
-                  slope=slope[inv], ds_dl=ds_dl[inv])
 
 
 def _chains():
@@ -189,17 +158,6 @@ def _coefficients(theta, prob: _Problems, ch: _Chunk, idx):
     where = torch.tensor([r * (R + RW) + b for g in terms for r, b, _ in g], device=out.device)
     C = out.new_zeros(n, E, (N_PAR + 1) * (R + RW), K).index_add_(2, where, out)
     return C.reshape(n, E, N_PAR + 1, R + RW, K), u
-
-
-def _model_jacobian(theta, prob: _Problems, ch: _Chunk, idx):
-    """``(model [n, E*hw], J [n, E*hw, 4])`` of problems ``idx`` of the chunk at ``theta [n, 4]`` (electrons)."""
-    C, _ = _coefficients(theta, prob, ch, idx)
-    n, E = C.shape[:2]
-    sel = ch.inv[idx]
-    same = sel.numel() == ch.lad.shape[0] and bool((sel == torch.arange(sel.numel(), device=sel.device)).all())
-    C = (C * prob.power[ch.freq[idx], None, None, None, None]).transpose(1, 2).reshape(n, (N_PAR + 1) * E, -1)  # [n, 7 E, (R + RW) K]
-    out = (C @ (ch.lad if same else ch.lad[sel])).reshape(n, N_PAR + 1, -1)  # [n, 7, E*hw] (no copy of the ladders in order)
-    return out[:, 0], out[:, 1:].transpose(1, 2)  # J: a view of [n, 6, E*hw], the layout the normal equations' GEMMs want
 
 
 def _start(prob: _Problems, ch: _Chunk, b0):
@@ -257,78 +215,6 @@ def _report_jacobians(theta, slope):
     return amp, torch.atan2(im, re), polar @ cart_t, polar @ cart_s
 
 
-def _ladder_covariance(theta, prob: _Problems, ch: _Chunk, J, W, Cw, H_t, H_s):
-    """``(cov [c, 4, 4], model variance [c, E, hw])`` from the ladder's noise: the reported
-    motion's covariance through the fit (``dtheta = -Cw G dL``, ``G_p = J_p^T W dY/dL``, using
-    ``Dx^T = -Dx``) and through ``s``; and each model pixel's variance from its ``L`` term."""
-    C, _ = _coefficients(theta, prob, ch, torch.arange(theta.shape[0], device=theta.device))
-    c, E, K = C.shape[0], C.shape[1], C.shape[-1]
-    h, w = prob.shape[4:]
-    pw = prob.power[ch.freq]
-    v = (W[..., None] * J).reshape(c, E, h, w, N_PAR).permute(0, 4, 1, 2, 3)  # [c, 4, E, h, w]
-    n = _normal(ch.slope)[:, None, None]  # [c, 1, 1, 2]
-    G, base, b = 0, v, 0
-    for top in _chains():  # (Dn^j Ds^k)^T = (-Dn)^j (-Ds)^k
-        vj = base
-        for j in range(top + 1):
-            G = G + torch.einsum("cek,cpeq->cpkq", C[:, :, 0, b], vj.reshape(c, N_PAR, E, h * w))
-            b += 1
-            if j < top:
-                vj = -_along(vj, n)
-        base = -_along(base, ch.slope[:, None, None])
-    G = G * pw[:, None, None, None]
-    A = H_t @ (-Cw @ G.reshape(c, N_PAR, -1)) + H_s @ ch.ds_dl.reshape(c, 2, -1)  # [c, 4, K hw]
-    var = ch.var[ch.inv]  # [c, K, hw]
-    cov = (A * var.reshape(c, 1, -1)) @ A.transpose(1, 2)
-    return cov, _model_noise(C, prob, ch, W)[0]
-
-
-def _debias(theta, data, W, s2, prob: _Problems, ch: _Chunk, jac):
-    """The fit with the ladder noise's bias removed to first order in its variance:
-    ``(theta, model, J, Cw = (J^T W J)^-1, info, left)``, ``left`` the squared length (std^2) of
-    the step still to go.
-
-    The least-squares cost ``S`` against a noisy ladder has the expectation ``S_true + V(theta)``,
-    ``V = sum W var(model)`` (:func:`_model_noise`), which depends on ``theta`` (a trajectory that
-    dwells near few levels has a noisier model; a larger ``d`` draws more of the shift
-    derivatives' noise), so the plain fit is biased. Up to :data:`BIAS_ITER` Gauss-Newton steps
-    on ``S - V`` (``Cw (J^T W r + grad V / 2)``) from the fit, each kept only where it lowers
-    ``S - V`` and is shorter than :data:`STEP_MAX` std; a refused step ends that problem's correction."""
-    c = theta.shape[0]
-    idx = torch.arange(c, device=theta.device)
-    Wp = W[:, :-PRIOR_ROWS]  # the pixels' weights (the prior's rows last)
-
-    def state(th):
-        model, J = jac(th, idx)
-        var, grad = _model_noise(_coefficients(th, prob, ch, idx)[0], prob, ch, Wp)
-        q = (W * (data - model).square()).sum(-1) - (Wp * var.reshape(c, -1)).sum(-1)
-        return [th, model, J, q, grad]
-    st = state(theta)
-    going = torch.ones(c, dtype=torch.bool, device=theta.device)
-    for i in range(BIAS_ITER + 1):
-        th, model, J, q, grad = st
-        Cw, info = torch.linalg.inv_ex(J.transpose(1, 2) @ (W[..., None] * J))
-        step = (Cw @ (J.transpose(1, 2) @ (W * (data - model))[..., None] + grad[..., None] / 2))[..., 0]
-        left = (step[:, None, :] @ torch.linalg.pinv(Cw) @ step[..., None])[:, 0, 0] / s2
-        if i == BIAS_ITER or not bool(going.any()):
-            break
-        trial = state(th + step)
-        going = going & (trial[3] <= st[3]) & (left < STEP_MAX ** 2)
-        st = [torch.where(going.reshape((c,) + (1,) * (a.dim() - 1)), a, b) for a, b in zip(trial, st)]
-    return st[0], st[1], st[2], Cw, info, left
-
-
-def _with_prior(prob: _Problems, ch: _Chunk, sigma):
-    """The model and Jacobian of :func:`_model_jacobian` with the shape prior's :data:`PRIOR_ROWS`
-    rows last: ``w_cos / sigma``, ``w_sin / sigma`` (``sigma [c]``, data 0, weight 1)."""
-    def jac(th, i):
-        model, J = _model_jacobian(th, prob, ch, i)
-        pj = th.new_zeros(th.shape[0], N_PAR, PRIOR_ROWS)
-        pj[:, 4, 0] = pj[:, 5, 1] = 1 / sigma[i]
-        return torch.cat([model, th[:, 4:] / sigma[i, None]], -1), torch.cat([J.transpose(1, 2), pj], -1).transpose(1, 2)
-    return jac
-
-
 def _fit_chunk(prob: _Problems, ch: _Chunk, b0, prior: float):
     """Fit one chunk with the shape prior ``prior`` (:data:`SHAPE_PRIOR` or :data:`HELD_PRIOR`):
     ``dict`` of ``[c]``-batched amplitude, phase, covariance, status, flags, reduced_chi2, reach (``|w| / |G|``)."""
@@ -339,7 +225,7 @@ def _fit_chunk(prob: _Problems, ch: _Chunk, b0, prior: float):
     sigma = prior * prob.knots.abs().amax(-1)[ch.pat]  # [c] the prior std of w_cos and w_sin
     data_x = torch.cat([data, data.new_zeros(c, PRIOR_ROWS)], -1)
     W_x = torch.cat([W, W.new_ones(c, PRIOR_ROWS)], -1)
-    jac = _with_prior(prob, ch, sigma)
+    jac = _with_prior(prob, ch, sigma, model_jacobian=partial(_model_jacobian, coefficients=_coefficients))
     res = levenberg_marquardt(lambda th, i: jac(th, i)[0], _start(prob, ch, b0), data_x, weight=W_x, max_iter=MAX_ITER,
                               jacobian_fn=jac, gn_tol=1e-2)
     theta = res.theta
@@ -347,12 +233,12 @@ def _fit_chunk(prob: _Problems, ch: _Chunk, b0, prior: float):
     used = (W > 0).sum(-1).to(theta.dtype)
     dof = (used - N_PAR + PRIOR_ROWS).clamp_min(1)
     s2 = torch.ones(c, dtype=theta.dtype, device=theta.device) if prob.noise_given else ((data - jac(theta, all_c)[0][:, :q]).square() * W).sum(-1) / dof
-    theta, model, J, Cw, info, left = _debias(theta, data_x, W_x, s2, prob, ch, jac)
+    theta, model, J, Cw, info, left = _debias(theta, data_x, W_x, s2, prob, ch, jac, coefficients=_coefficients)
     model, Jp = model[:, :q], J[:, :q]
     r2 = (data - model).square()
     converged = res.converged | (left < LEFT_MAX ** 2)  # the LM's own test, or the step left is short (noiseless data too)
     amp, phase, H_t, H_s = _report_jacobians(theta, ch.slope)
-    cov_l, var_model = _ladder_covariance(theta, prob, ch, Jp, W, Cw, H_t, H_s)
+    cov_l, var_model = _ladder_covariance(theta, prob, ch, Jp, W, Cw, H_t, H_s, coefficients=_coefficients, tops=_chains())
     if prob.noise_given:
         cov_d = Cw
     else:  # the sandwich with each pixel's own squared residual (the noise differs from pixel to pixel: shot noise), plus the prior's information
@@ -430,13 +316,13 @@ def fit_ladder_problems(crops, ladder: PatternLadder, window, omega, amplitude, 
     todo = torch.nonzero(status == 0).reshape(-1)
     n_chunks = 0
     for i0 in range(0, todo.numel(), chunk):
-        ch = _chunk(prob, ladder, todo[i0:i0 + chunk], like)
+        ch = _chunk(prob, ladder, todo[i0:i0 + chunk], like, tops=_chains())
         with torch.no_grad():
             r = _fit_chunk(prob, ch, b0, SHAPE_PRIOR)
             _store(out, ch.rows, r)
             far = r["reach"] > SHAPE_REACH  # the shape's first-order term out of its reach: refitted with the shape held at u
             if bool(far.any()):
-                ch = _chunk(prob, ladder, ch.rows[far], like)
+                ch = _chunk(prob, ladder, ch.rows[far], like, tops=_chains())
                 r = _fit_chunk(prob, ch, b0, HELD_PRIOR)
                 r["flags"] = r["flags"] | SHAPE_HELD
                 out["flags"][ch.rows] &= MASKED  # the first fit's flags replaced

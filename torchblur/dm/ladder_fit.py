@@ -338,9 +338,9 @@ def static_slope(images, still, levels, *, pad: int = PAD):
     return (c[..., None] * shift).sum(1), c[:, None, :, None] * sens.transpose(1, 2)
 
 
-def _chunk(prob: _Problems, ladder: PatternLadder, rows, like) -> _Chunk:
+def _chunk(prob: _Problems, ladder: PatternLadder, rows, like, tops=None) -> _Chunk:
     """The chunk of problems ``rows``: their ladders on the fit's device, with the shift
-    derivatives and the static shifts ``s`` (:func:`static_slope`)."""
+    derivatives (``tops`` as :func:`_chain_images`) and the static shifts ``s`` (:func:`static_slope`)."""
     P, F, M, E, h, w = prob.shape
     pat, m = rows // (F * M), rows % M
     uniq, inv = torch.unique(pat * M + m, return_inverse=True)
@@ -353,7 +353,7 @@ def _chunk(prob: _Problems, ladder: PatternLadder, rows, like) -> _Chunk:
     else:
         slope, ds_dl = static_slope(L, ladder.still[um].to(**like), prob.knots[up.to(prob.knots.device)])
     n = _normal(slope)  # [u, 2]
-    blocks = list(_chain_images(L, n[:, None], slope[:, None]))  # Dn^j Ds^k L (Ds: the derivative along a shift by s)
+    blocks = list(_chain_images(L, n[:, None], slope[:, None], tops=tops))  # Dn^j Ds^k L (Ds: the derivative along a shift by s)
     lad = torch.cat(blocks, 1).reshape(len(uniq), len(blocks) * K, h * w)
     var = var.reshape(len(uniq), K, h * w)
     dmat = _derivative_matrix(h, w, like["dtype"], torch.device(like["device"]))  # [q', a, q] = D_a[q, q']
@@ -369,10 +369,10 @@ def _chains():
     return [ORDER - k for k in range(SHIFT_ORDER + 1)]
 
 
-def _chain_images(img, n, s, sign: int = 1):
-    """``Dn^j Ds^k img`` in :func:`_chains`' order (``n``, ``s`` broadcast as :func:`_along` takes them);
-    ``sign=-1``: the adjoints ``(-Dn)^j (-Ds)^k img``. Each derivative is taken once, none unused."""
-    tops = _chains()
+def _chain_images(img, n, s, sign: int = 1, tops=None):
+    """``Dn^j Ds^k img``, ``j <= tops[k]`` (None: :func:`_chains`), in that order (``n``, ``s`` broadcast as :func:`_along`
+    takes them); ``sign=-1``: the adjoints ``(-Dn)^j (-Ds)^k img``. Each derivative is taken once, none unused."""
+    tops = _chains() if tops is None else tops
     base = img
     for k, top in enumerate(tops):
         cur = base
@@ -428,9 +428,10 @@ def _nodes(prob: _Problems, pf):
     return tuple(t.reshape(-1, E, t.shape[-1])[pf] for t in (prob.cw, prob.sw, prob.wq))
 
 
-def _model_jacobian(theta, prob: _Problems, ch: _Chunk, idx):
-    """``(model [n, E*hw], J [n, E*hw, 4])`` of problems ``idx`` of the chunk at ``theta [n, 4]`` (electrons)."""
-    C, _ = _coefficients(theta, prob, ch, idx)
+def _model_jacobian(theta, prob: _Problems, ch: _Chunk, idx, coefficients=None):
+    """``(model [n, E*hw], J [n, E*hw, N_PAR])`` of problems ``idx`` of the chunk at ``theta [n, N_PAR]`` (electrons;
+    ``coefficients``: the model's, None: :func:`_coefficients`)."""
+    C, _ = (coefficients or _coefficients)(theta, prob, ch, idx)
     n, E = C.shape[:2]
     sel = ch.inv[idx]
     same = sel.numel() == ch.lad.shape[0] and bool((sel == torch.arange(sel.numel(), device=sel.device)).all())
@@ -542,18 +543,19 @@ def _report_jacobians(theta, slope):
     return amp, torch.atan2(im, re), polar @ cart_t, polar @ cart_s
 
 
-def _ladder_covariance(theta, prob: _Problems, ch: _Chunk, J, W, Cw, H_t, H_s):
+def _ladder_covariance(theta, prob: _Problems, ch: _Chunk, J, W, Cw, H_t, H_s, coefficients=None, tops=None):
     """``(cov [c, 4, 4], model variance [c, E, hw])`` from the ladder's noise: the reported
     motion's covariance through the fit (``dtheta = -Cw G dL``, ``G_p = J_p^T W dY/dL``, using
-    ``Dx^T = -Dx``) and through ``s``; and each model pixel's variance from its ``L`` term."""
-    C, _ = _coefficients(theta, prob, ch, torch.arange(theta.shape[0], device=theta.device))
+    ``Dx^T = -Dx``) and through ``s``; and each model pixel's variance from its ``L`` term
+    (``coefficients``, ``tops``: the model's, as :func:`_model_jacobian`, :func:`_chain_images`)."""
+    C, _ = (coefficients or _coefficients)(theta, prob, ch, torch.arange(theta.shape[0], device=theta.device))
     c, E, K = C.shape[0], C.shape[1], C.shape[-1]
     h, w = prob.shape[4:]
     pw = prob.power[ch.freq]
     v = (W[..., None] * J).reshape(c, E, h, w, N_PAR).permute(0, 4, 1, 2, 3)  # [c, 4, E, h, w]
     n = _normal(ch.slope)[:, None, None]  # [c, 1, 1, 2]
     G = 0
-    for b, vj in enumerate(_chain_images(v, n, ch.slope[:, None, None], sign=-1)):  # (Dn^j Ds^k)^T = (-Dn)^j (-Ds)^k
+    for b, vj in enumerate(_chain_images(v, n, ch.slope[:, None, None], sign=-1, tops=tops)):  # (Dn^j Ds^k)^T = (-Dn)^j (-Ds)^k
         G = G + torch.einsum("cek,cpeq->cpkq", C[:, :, 0, b], vj.reshape(c, N_PAR, E, h * w))
     G = G * pw[:, None, None, None]
     A = H_t @ (-Cw @ G.reshape(c, N_PAR, -1)) + H_s @ ch.ds_dl.reshape(c, 2, -1)  # [c, 4, K hw]
@@ -575,7 +577,7 @@ def _model_noise(C, prob: _Problems, ch: _Chunk, W):
     return var, grad
 
 
-def _debias(theta, data, W, s2, prob: _Problems, ch: _Chunk, jac):
+def _debias(theta, data, W, s2, prob: _Problems, ch: _Chunk, jac, coefficients=None):
     """The fit with the ladder noise's bias removed to first order in its variance:
     ``(theta, model, J, Cw = (J^T W J)^-1, info, left)``, ``left`` the squared length (std^2) of
     the step still to go.
@@ -585,14 +587,16 @@ def _debias(theta, data, W, s2, prob: _Problems, ch: _Chunk, jac):
     dwells near few levels has a noisier model; a larger ``d`` draws more of the shift
     derivatives' noise), so the plain fit is biased. Up to :data:`BIAS_ITER` Gauss-Newton steps
     on ``S - V`` (``Cw (J^T W r + grad V / 2)``) from the fit, each kept only where it lowers
-    ``S - V`` and is shorter than :data:`STEP_MAX` std; a refused step ends that problem's correction."""
+    ``S - V`` and is shorter than :data:`STEP_MAX` std; a refused step ends that problem's correction.
+    ``jac``: :func:`_with_prior`'s; ``coefficients``: the model's (None: :func:`_coefficients`)."""
+    coefficients = coefficients or _coefficients
     c = theta.shape[0]
     idx = torch.arange(c, device=theta.device)
     Wp = W[:, :-PRIOR_ROWS]  # the pixels' weights (the prior's rows last)
 
     def state(th):
         model, J = jac(th, idx)
-        var, grad = _model_noise(_coefficients(th, prob, ch, idx)[0], prob, ch, Wp)
+        var, grad = _model_noise(coefficients(th, prob, ch, idx)[0], prob, ch, Wp)
         q = (W * (data - model).square()).sum(-1) - (Wp * var.reshape(c, -1)).sum(-1)
         return [th, model, J, q, grad]
     st = state(theta)
@@ -610,11 +614,13 @@ def _debias(theta, data, W, s2, prob: _Problems, ch: _Chunk, jac):
     return st[0], st[1], st[2], Cw, info, left
 
 
-def _with_prior(prob: _Problems, ch: _Chunk, sigma):
-    """The model and Jacobian of :func:`_model_jacobian` with the prior's :data:`PRIOR_ROWS`
-    rows last: ``e_cos / sigma``, ``e_sin / sigma`` (``sigma [c]``, data 0, weight 1)."""
+def _with_prior(prob: _Problems, ch: _Chunk, sigma, model_jacobian=None):
+    """The model and Jacobian of ``model_jacobian`` (None: :func:`_model_jacobian`) with the prior's
+    :data:`PRIOR_ROWS` rows last: ``theta[4] / sigma``, ``theta[5] / sigma`` (``sigma [c]``, data 0, weight 1)."""
+    model_jacobian = model_jacobian or _model_jacobian
+
     def jac(th, i):
-        model, J = _model_jacobian(th, prob, ch, i)
+        model, J = model_jacobian(th, prob, ch, i)
         pj = th.new_zeros(th.shape[0], N_PAR, PRIOR_ROWS)
         pj[:, 4, 0] = pj[:, 5, 1] = 1 / sigma[i]
         return torch.cat([model, th[:, 4:] / sigma[i, None]], -1), torch.cat([J.transpose(1, 2), pj], -1).transpose(1, 2)
