@@ -31,9 +31,9 @@ from torchblur.render.trajectory import Multisine, Sinusoid
 __all__ = ["MultisineFit", "render_multisine", "render_multisine_with_jacobian", "fit_multisine"]
 
 # A set whose chi2 per used pixel (with the noise given; not per degree of freedom, the reported
-# reduced chi2: this bound was measured per pixel, and with thousands of pixels per set the two differ
-# by under 1e-3) exceeds this after the first search is searched again from a wider set of starts
-# (_wide_starts). A local minimum was measured at 1.42 (one group of configs/identify_multisine.yaml:
+# reduced chi2: this bound was measured per pixel, and the two differ by P / (n_used - P), 1.4e-4 on
+# configs/identify_multisine.yaml's 12 frames of 64 x 64 px) exceeds this after the first search is
+# searched again from a wider set of starts (_wide_starts). A local minimum was measured at 1.42 (one group of configs/identify_multisine.yaml:
 # |H| 19-41 % off, "converged") where the right fit gives 0.96; the first search's 48 random phase
 # starts land there for some seeds.
 RETRY_CHI2 = 1.15
