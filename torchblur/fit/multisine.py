@@ -30,13 +30,15 @@ from torchblur.render.trajectory import Multisine, Sinusoid
 
 __all__ = ["MultisineFit", "render_multisine", "render_multisine_with_jacobian", "fit_multisine"]
 
-# A set whose reduced chi2 (with the noise given) exceeds this after the first search is searched
-# again from a wider set of starts (_wide_starts). A local minimum was measured at 1.42 (one group of
-# configs/identify_multisine.yaml: |H| 19-41 % off, "converged") where the right fit gives 0.96; the
-# first search's 48 random phase starts land there for some seeds.
+# A set whose chi2 per used pixel (with the noise given; not per degree of freedom, the reported
+# reduced chi2: this bound was measured per pixel, and the two differ by P / (n_used - P), 1.4e-4 on
+# configs/identify_multisine.yaml's 12 frames of 64 x 64 px) exceeds this after the first search is
+# searched again from a wider set of starts (_wide_starts). A local minimum was measured at 1.42 (one group of configs/identify_multisine.yaml:
+# |H| 19-41 % off, "converged") where the right fit gives 0.96; the first search's 48 random phase
+# starts land there for some seeds.
 RETRY_CHI2 = 1.15
 
-from torchblur.fit.status import flag_poor_fit, item_status
+from torchblur.fit.status import POOR_FIT_STATUS_CHI2, above_chi2, flag_poor_fit, item_status
 
 
 def render_multisine(theta, omega, psf: GaussianPSF | KernelPSF, window: ExposureWindow, *, height: int, width: int,
@@ -124,7 +126,9 @@ class MultisineFit(ToneFit):
     ``amplitude_k``, ``phase_k`` (and ``scale``), ``cost`` the weighted sum of squared residuals,
     ``noise_std`` the median pixel noise std used, ``n_iter`` the LM iterations of the best start
     (plus the refit's, weighted by the noise model), ``flags`` :data:`~torchblur.fit.status.POOR_FIT_FLAG`.
-    ``extras``: ``nodes``, ``starts``, ``refined``, ``crop``, ``retried``, ``reduced_chi2``; with
+    ``extras``: ``nodes``, ``starts``, ``refined``, ``crop``, ``retried``, ``reduced_chi2`` (``[...]``,
+    the cost per degree of freedom, pixels used minus P, with the noise given, as
+    :attr:`~torchblur.fit.results.SinusoidFit.reduced_chi2`; NaN without it); with
     ``kernel_var``, ``kernel_covariance [..., P, P]``: the measured kernel's part of ``covariance``.
     """
 
@@ -508,16 +512,18 @@ def _search(prob: _Problem, cands, items_l, n_ref: int, max_iter: int, tol: floa
             res.n_iter.reshape(L, R_)[ar, pick], R_)
 
 
-def _reduced_chi2(prob: _Problem, cost) -> torch.Tensor:
-    """Cost (inside plus outside the crop) per used pixel ``[B]``."""
+def _reduced_chi2(prob: _Problem, cost, n_params: int) -> torch.Tensor:
+    """The cost ``[B]`` (inside the crop; plus the problem's outside it) per degree of freedom:
+    the used pixels (inside and outside the crop) less ``n_params`` (the fitted parameters P;
+    0: per used pixel), at least 1 -> ``[B]``."""
     n_used = (prob.wflat > 0).sum(-1).to(cost.dtype) + prob.outside_n
-    return (cost + prob.outside_cost) / n_used.clamp_min(1)
+    return (cost + prob.outside_cost) / (n_used - n_params).clamp_min(1)
 
 
 def _search_all(prob: _Problem, theta_c, live, M0, *, sigma_given: bool, n_starts: int, n_refine: int, fit_scale: bool,
                 g: torch.Generator, max_iter: int, tol: float):
     """The search for every live set ``live [L]``; with the noise given, sets left far above it
-    (reduced chi2 > :data:`RETRY_CHI2`: a local minimum) are searched again from a wider set of
+    (chi2 per used pixel > :data:`RETRY_CHI2`: a local minimum) are searched again from a wider set of
     starts (:func:`_wide_starts`), the better kept -> ``(theta [B, P], cost [B], converged [B], n_iter [B],
     refined, retried [B])``."""
     B = theta_c.shape[0]
@@ -534,7 +540,7 @@ def _search_all(prob: _Problem, theta_c, live, M0, *, sigma_given: bool, n_start
     th, cst, cv, itr, R_ = _search(prob, theta_c[live], live, n_refine, max_iter, tol)
     theta_best[live], cost_best[live], conv_best[live], iters_best[live] = th, cst, cv, itr
     if sigma_given:
-        poor = live[_reduced_chi2(prob, cost_best)[live] > RETRY_CHI2]
+        poor = live[_reduced_chi2(prob, cost_best, 0)[live] > RETRY_CHI2]  # per used pixel, as RETRY_CHI2 was measured
         if poor.numel():
             c2 = _wide_starts(M0[poor], theta_best[poor], theta_c[poor], N, n_starts, g, fit_scale)
             th, cst, cv, itr, _ = _search(prob, c2, poor, max(4 * n_refine, 24), max_iter, tol)
@@ -720,9 +726,10 @@ def _multisine_result(prob, theta_best, best, live, dark, noise_level, sigma_giv
     P = theta_best.shape[-1]
     cov_out, sigma_used, singular, kcov = _fisher(prob, theta_best, live, noise_level if sigma_given else None)
     std = torch.diagonal(cov_out, dim1=-2, dim2=-1).clamp_min(0).sqrt()
-    red_chi2 = _reduced_chi2(prob, cost_best)
-    # POOR_FIT: still far above the given noise (reduced chi2 > 3) after the wider search
-    status = item_status(conv_best, singular, dark, poor=red_chi2 > 3.0 if sigma_given else None)
+    # per degree of freedom, as fit_sinusoid's; NaN without a given noise (unknown: never flagged, never POOR_FIT)
+    red_chi2 = _reduced_chi2(prob, cost_best, P) if sigma_given else torch.full_like(cost_best, float("nan"))
+    # POOR_FIT: still far above the given noise (reduced chi2 > POOR_FIT_STATUS_CHI2) after the wider search
+    status = item_status(conv_best, singular, dark, poor=above_chi2(red_chi2, POOR_FIT_STATUS_CHI2))
     nan = torch.tensor(float("nan"), dtype=theta_best.dtype, device=theta_best.device)
 
     def out(x, tail=()):
@@ -747,5 +754,5 @@ def _multisine_result(prob, theta_best, best, live, dark, noise_level, sigma_giv
     res.extras.update({"nodes": prob.settings.nodes, "starts": search["starts"], "refined": search["refined"],
                        "crop": search["crop"], "retried": out(search["retried"]), "reduced_chi2": out(red_chi2)}
                       | ({} if kcov is None else {"kernel_covariance": out(kcov, (P, P))}))
-    res.flags = out(flag_poor_fit(None, red_chi2 if sigma_given else torch.full_like(red_chi2, float("nan"))))
+    res.flags = out(flag_poor_fit(None, red_chi2))
     return res

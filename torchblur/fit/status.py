@@ -13,8 +13,8 @@ import torch
 __all__ = [
     "STATUS", "OK", "DARK", "NOT_CONVERGED", "OUT_OF_FRAME", "SINGULAR", "NO_PIXELS", "POOR_FIT",
     "FLAGS", "MASKED", "SATURATED_MASKED", "OUTLIERS_MASKED", "PARTLY_OUT_OF_FRAME", "NO_MOTION", "POOR_FIT_FLAG",
-    "POOR_FIT_CHI2", "item_status", "flag_poor_fit", "BRANCH_UNDECIDED", "BRANCH_CHI2", "flag_branch_undecided",
-    "OUT_OF_LADDER",
+    "POOR_FIT_CHI2", "POOR_FIT_STATUS_CHI2", "item_status", "above_chi2", "flag_poor_fit", "BRANCH_UNDECIDED", "BRANCH_CHI2",
+    "flag_branch_undecided", "OUT_OF_LADDER",
 ]
 
 OK = 0  #: the estimate is usable
@@ -23,7 +23,15 @@ NOT_CONVERGED = 2  #: the optimiser did not converge
 OUT_OF_FRAME = 3  #: the spot is mostly outside the frame
 SINGULAR = 4  #: the parameters are not identifiable (singular Fisher information)
 NO_PIXELS = 5  #: every pixel is masked or saturated
-POOR_FIT = 6  #: the model does not explain the data (reduced chi2 > 3 with the given noise, after a wider search)
+POOR_FIT = 6  #: the model does not explain the data (reduced chi2 > :data:`POOR_FIT_STATUS_CHI2` with the given noise, after a wider search)
+
+#: the bound of the status :data:`POOR_FIT`, in reduced chi2 (the cost per degree of freedom, pixels used
+#: minus fitted parameters, with the noise given): set by a fitter that searches again from wider starts
+#: when its first fit is far above the noise (:func:`~torchblur.fit.multisine.fit_multisine`), where the
+#: fit is still this far above it after that search: its estimate is not reported as usable. Above
+#: :data:`POOR_FIT_CHI2`, the flag's bound (a fit between the two is flagged but usable); a fitter
+#: without a wider search (:func:`~torchblur.fit.sinusoid.fit_sinusoid`) only flags.
+POOR_FIT_STATUS_CHI2 = 3.0
 
 #: status code -> what it means
 STATUS = {
@@ -33,7 +41,7 @@ STATUS = {
     OUT_OF_FRAME: "spot mostly outside the frame",
     SINGULAR: "unidentifiable (singular Fisher information)",
     NO_PIXELS: "no usable pixels (every pixel masked or saturated)",
-    POOR_FIT: "poor fit (reduced chi2 > 3 with the given noise, after a wider search)",
+    POOR_FIT: f"poor fit (reduced chi2 > {POOR_FIT_STATUS_CHI2:g} with the given noise, after a wider search)",
 }
 
 MASKED = 1  #: the caller's ``mask`` excluded pixels of this item
@@ -90,10 +98,18 @@ def item_status(converged, singular, dark, *, poor=None, out_of_frame=None) -> t
     return status
 
 
+def above_chi2(reduced_chi2, threshold: float) -> torch.Tensor:
+    """Bool ``[...]``: where ``reduced_chi2`` (``[...]``, per degree of freedom; NaN where unknown,
+    the noise not given: never above) is above ``threshold``: with :data:`POOR_FIT_CHI2` the
+    items :func:`flag_poor_fit` flags, with :data:`POOR_FIT_STATUS_CHI2` the ``poor`` mask of
+    :func:`item_status`."""
+    return torch.nan_to_num(reduced_chi2, nan=0.0) > threshold
+
+
 def flag_poor_fit(flags, reduced_chi2, threshold: float = POOR_FIT_CHI2):
     """``flags`` (an int tensor ``[...]``, or None for none yet) with :data:`POOR_FIT_FLAG` set
     where ``reduced_chi2`` (``[...]``, NaN where unknown: never flagged) is above ``threshold``."""
-    poor = torch.nan_to_num(reduced_chi2, nan=0.0) > threshold
+    poor = above_chi2(reduced_chi2, threshold)
     if flags is None:
         flags = torch.zeros(poor.shape, dtype=torch.long, device=poor.device)
     return flags | (POOR_FIT_FLAG * poor.long())
