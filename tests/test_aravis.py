@@ -129,9 +129,10 @@ def _fed_camera(n: int) -> AravisCamera:
 
 
 def test_a_feed_frame_taken_late_is_written_into_one_buffer_only(monkeypatch):
-    """The in-process fake camera free-runs (25 Hz): a reader held up (a loaded machine) between taking a buffer and
-    taking the feed frame it holds (here 0.1 s, over two of the camera's frames) reads every feed frame once, in order
-    (the hook wrote a frame not yet read a second time: "Aravis delivered feed frame 0, the next sent was 1")."""
+    """The in-process fake camera free-runs (1000 frames/s, its fastest): a reader held up (a loaded machine) between
+    taking a buffer and taking the feed frame it holds (here 0.1 s, a hundred of the camera's frames; 2 ms was enough)
+    reads every feed frame once, in order (the hook wrote a frame not yet read a second time: "Aravis delivered feed
+    frame 40, the next sent was 41", as CI's loaded run stopped on)."""
     grab = AravisCamera._grab
 
     def held_up(self, timeout_s):
@@ -160,7 +161,7 @@ def test_a_feed_frame_delivered_after_its_read_timed_out_is_the_next_read():
             assert b is not None
             held.append(b)
         with pytest.raises(FrameTimeout):
-            cam.read(timeout_s=0.2)  # five of the camera's frame periods, no buffer to fill
+            cam.read(timeout_s=0.2)  # 200 of the camera's frame periods, no buffer to fill
         for b in held:
             cam._stream.push_buffer(b)
         got = [cam.read(timeout_s=2.0) for _ in range(3)]
