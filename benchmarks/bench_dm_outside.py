@@ -20,8 +20,9 @@ With ``--run`` the reference is the run's own outputs (a run on a lab's or a tes
 rig, is compared the same way); with ``--refit`` it is ``torchblur fit RUN`` (a re-fit of the recording, by this
 tree), itself compared with the run's outputs (live against re-fit). ``--baseline SRC``: a source tree of torchblur (e.g. ``mkdir SRC; git archive
 81d9e2f | tar -x -C SRC``) whose ``torchblur fit FOLDER`` also fits the exported folder: its peak memory and its result against
-this tree's (the reader's memory before and after a change), and exports the recording too: the two exports' times (the
-call alone, in its process, and the process) and whether every file of the two folders is the same byte for byte. ``--read FOLDER``: only the peak memory and time of
+this tree's (the reader's memory before and after a change), and exports the recording too: the two exports' times
+(the call alone, in its process, and the process) and whether every file of the two folders is the same byte for byte.
+``--read FOLDER``: only the peak memory and time of
 what the fit of an outside DM recording does before its spot fits (read and check the folder, the calibration,
 the held patterns' images, every frequency's frames as the fit takes them), by this tree and ``--baseline``'s.
 ``--export RUN``: only the exports of the recorded run ``RUN`` by this tree and ``--baseline``'s (times, bytes).

@@ -170,9 +170,10 @@ def test_write_dm_recording_reads_each_frequency_once_and_stores_a_fraction_exac
     for frac in (False, True):
         frames = _Counted([np.asarray(f) + (0.5 if frac and k == len(rec.frames) - 1 else 0.0) for k, f in enumerate(rec.frames)])
         half = 0.5 if frac else 0.0
-        folder = write_dm_recording(tmp_path / f"frac{frac}", dark=rec.dark + half, still=rec.still + half, still_exposure_s=rec.still_exposure_s,
-                                    patterns=rec.patterns, freq_hz=rec.freq_hz, amplitude=rec.amplitude, power=rec.power, frames=frames,
-                                    start_s=rec.start_s, duration_s=rec.duration_s, R=rec.R, camera={"gain_e_per_adu": rec.camera.gain_e_per_adu},
+        folder = write_dm_recording(tmp_path / f"frac{frac}", dark=rec.dark + half, still=rec.still + half,
+                                    still_exposure_s=rec.still_exposure_s, patterns=rec.patterns, freq_hz=rec.freq_hz,
+                                    amplitude=rec.amplitude, power=rec.power, frames=frames, start_s=rec.start_s,
+                                    duration_s=rec.duration_s, R=rec.R, camera={"gain_e_per_adu": rec.camera.gain_e_per_adu},
                                     layout={"dm": {"n_across": 2}, "wfs": {"n_across": 2, "pitch_px": 16.0, "sigma_px": 1.2},
                                             "dm_plan": {"kind": "hadamard"}})
         assert frames.reads == ([2] * len(frames) if frac else [1] * len(frames))

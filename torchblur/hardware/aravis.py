@@ -132,7 +132,8 @@ class AravisCamera(SDKCamera):
             raise HardwareError(f"camera: cannot set up external triggering ({exc})") from None
         if self._feed is not None:
             self._hook = _FillHook(self)
-            cam.set_frame_rate(float(cam.get_frame_rate_bounds()[1]))  # the in-process fake free-runs (this turns its trigger off): at its fastest, 1000 frames/s
+            # the in-process fake free-runs (setting the rate turns its trigger off): at its fastest, 1000 frames/s
+            cam.set_frame_rate(float(cam.get_frame_rate_bounds()[1]))
         self._stream = cam.create_stream(None, None)
         Aravis = _aravis()
         for _ in range(self._buffers):
