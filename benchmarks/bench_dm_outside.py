@@ -14,14 +14,18 @@ process: ``os.wait4``'s ``ru_maxrss``; threads: torch's default; times are for t
     python benchmarks/bench_dm_outside.py [--config FILE] [--keep DIR] [--baseline SRC] [overrides ...]
     python benchmarks/bench_dm_outside.py --run RUN [--refit]   # a run recorded on any rig (torchblur.identify(cfg, rig, record=RUN/experiment))
     python benchmarks/bench_dm_outside.py --read FOLDER [--baseline SRC] [fit.* overrides]   # an outside DM recording read, no fit
+    python benchmarks/bench_dm_outside.py --export RUN --baseline SRC [--keep DIR]   # a recorded DM run exported by both trees, no fit
 
 With ``--run`` the reference is the run's own outputs (a run on a lab's or a test's rig, an HCIPy Shack-Hartmann
 rig, is compared the same way); with ``--refit`` it is ``torchblur fit RUN`` (a re-fit of the recording, by this
 tree), itself compared with the run's outputs (live against re-fit). ``--baseline SRC``: a source tree of torchblur (e.g. ``mkdir SRC; git archive
 81d9e2f | tar -x -C SRC``) whose ``torchblur fit FOLDER`` also fits the exported folder: its peak memory and its result against
-this tree's (the reader's memory before and after a change). ``--read FOLDER``: only the peak memory and time of
+this tree's (the reader's memory before and after a change), and exports the recording too: the two exports' times
+(the call alone, in its process, and the process) and whether every file of the two folders is the same byte for byte.
+``--read FOLDER``: only the peak memory and time of
 what the fit of an outside DM recording does before its spot fits (read and check the folder, the calibration,
 the held patterns' images, every frequency's frames as the fit takes them), by this tree and ``--baseline``'s.
+``--export RUN``: only the exports of the recorded run ``RUN`` by this tree and ``--baseline``'s (times, bytes).
 """
 from __future__ import annotations
 
@@ -46,7 +50,13 @@ SMALL = ["dm.n_across=3", "dm.mode_hz=600.0", "dm.damping=0.1", "dm.mode_spread=
          "excitation.target_px=3.0"]
 COLUMNS = ("dc_gain", "dc_gain_std", "mode_hz", "mode_hz_std", "damping", "damping_std", "delay_s", "delay_s_std")
 HERE = Path(__file__).resolve().parents[1]
-EXPORT = "import sys; from torchblur.identify import export_dm_recording; export_dm_recording(sys.argv[1], sys.argv[2])"
+EXPORT = """import sys, time
+from pathlib import Path
+from torchblur.identify import export_dm_recording
+t0 = time.perf_counter()
+export_dm_recording(sys.argv[1], sys.argv[2])
+Path(sys.argv[3]).write_text(repr(time.perf_counter() - t0))
+"""
 READ = """import sys, torch
 from torchblur.config.budget import dm_sensor
 from torchblur.identify.dm_ladder import hold_images
@@ -119,6 +129,24 @@ def _compare(ref: Path, fit: Path, rc: tuple) -> None:
     print(f"every value of dm/*.csv, *.json, *.npy: largest relative difference {_worst(ref, fit):.2e}")
 
 
+def _export_against(recorded: str, root: Path, baseline: Path, steps: dict) -> None:
+    """Export ``recorded`` with the ``baseline`` tree too (into ``root/outside_baseline``; its step added to ``steps``) and print
+    both exports' times (each in its own process, one after the other: the call alone and the whole process) and whether
+    every file of the two folders is the same byte for byte."""
+    out = root / "outside_baseline"
+    steps[f"export ({baseline})"] = run = _step(["-c", EXPORT, recorded, str(out), str(root / "export_baseline_s")], baseline)
+    if run[0] != 0:
+        print(f"baseline {baseline}'s export: exit status {run[0]}")
+        return
+    names = sorted(p.name for p in (root / "outside").iterdir())
+    same = names == sorted(p.name for p in out.iterdir()) and all(
+        (root / "outside" / n).read_bytes() == (out / n).read_bytes() for n in names)
+    t, tb = (float((root / n).read_text()) for n in ("export_s", "export_baseline_s"))
+    print(f"export (two processes, one after the other): this tree {t:.2f} s, baseline {baseline} {tb:.2f} s (the call; "
+          f"ratio {t / tb:.2f}; the processes {steps['export'][1]:.1f} s and {run[1]:.1f} s); the {len(names)} files "
+          f"({', '.join(names)}) byte for byte the same: {same}")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--config", default=None)
@@ -127,9 +155,10 @@ def main(argv=None) -> int:
     ap.add_argument("--refit", action="store_true", help="with --run: the reference is torchblur fit RUN")
     ap.add_argument("--baseline", default=None, help="a torchblur source tree whose `torchblur fit FOLDER` is measured too")
     ap.add_argument("--read", default=None, help="an outside DM recording: only what its fit does before the spot fits, measured")
+    ap.add_argument("--export", default=None, help="a recorded DM run: only its export, by this tree and --baseline's")
     ap.add_argument("overrides", nargs="*")
     args = ap.parse_args(argv)
-    for name in ("config", "keep", "run", "baseline", "read"):
+    for name in ("config", "keep", "run", "baseline", "read", "export"):
         if getattr(args, name):
             setattr(args, name, str(Path(getattr(args, name)).resolve()))
     if args.read:
@@ -138,8 +167,18 @@ def main(argv=None) -> int:
             print(f"{src}: read {args.read}, calibrated, held images, every frequency's frames: exit status {rc}, {t:.1f} s, peak {peak:.2f} GB")
         return 0
     root = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="bench_dm_outside_"))
-    for sub in ("live", "outside", "fit", "fit_baseline"):
+    for sub in ("live", "outside", "fit", "fit_baseline", "outside_baseline"):
         shutil.rmtree(root / sub, ignore_errors=True)
+    if args.export:
+        if not args.baseline:
+            ap.error("--export needs --baseline SRC")
+        steps = {"export": _step(["-c", EXPORT, args.export, str(root / "outside"), str(root / "export_s")])}
+        _export_against(args.export, root, Path(args.baseline), steps)
+        print(f"outside recording: {sum(p.stat().st_size for p in (root / 'outside').iterdir()) / 1e6:.2f} MB; peak: "
+              + "; ".join(f"{k}: {m:.2f} GB" for k, (_, _, m) in steps.items()))
+        if not args.keep:
+            shutil.rmtree(root, ignore_errors=True)
+        return max(s[0] for s in steps.values())
     base = (["--config", args.config] if args.config else []) + (list(args.overrides) if args.config else SMALL + list(args.overrides))
     cli = ["-m", "torchblur.cli"]
     steps = {}
@@ -148,19 +187,21 @@ def main(argv=None) -> int:
         steps["live run"] = _step(cli + ["identify", "--out", str(ref), "--quiet", *base])
     elif args.refit:
         steps["re-fit of the run"] = _step(cli + ["fit", str(args.run), "--out", str(ref), "--quiet"])
-    steps["export"] = _step(["-c", EXPORT, str(root / "live" if args.run is None else args.run), str(root / "outside")])
+    recorded = str(root / "live" if args.run is None else args.run)
+    steps["export"] = _step(["-c", EXPORT, recorded, str(root / "outside"), str(root / "export_s")])
     own = _fit_settings(root / "live" if args.run is None else Path(args.run))  # the run's fit.* (psf, loss, ...)
     steps["torchblur fit FOLDER"] = _step(cli + ["fit", str(root / "outside"), "--out", str(root / "fit"), "--quiet", *own])
     if args.baseline:
         steps[f"torchblur fit FOLDER ({args.baseline})"] = _step(cli + ["fit", str(root / "outside"), "--out", str(root / "fit_baseline"),
                                                                          "--quiet", *own], Path(args.baseline))
+        _export_against(recorded, root, Path(args.baseline), steps)
     rc = {k: s[0] for k, s in steps.items()}
     if args.refit:
         print(f"live run {args.run} against its re-fit: every value of dm/ within {_worst(Path(args.run), ref):.2e} (relative)")
     _compare(ref, root / "fit", (rc.get("live run", rc.get("re-fit of the run", "(recorded)")), rc["torchblur fit FOLDER"]))
     if args.baseline:
         print(f"baseline {args.baseline}'s fit of the folder against this tree's: every value of dm/ within "
-              f"{_worst(root / 'fit', root / 'fit_baseline'):.2e} (relative), exit status {list(rc.values())[-1]}")
+              f"{_worst(root / 'fit', root / 'fit_baseline'):.2e} (relative), exit status {rc[f'torchblur fit FOLDER ({args.baseline})']}")
     size = sum(p.stat().st_size for p in (root / "outside").iterdir())
     print(f"outside recording: {size / 1e6:.2f} MB in {root / 'outside'}")
     print("steps (each its own process): " + "; ".join(f"{k}: {t:.1f} s, peak {m:.2f} GB" for k, (_, t, m) in steps.items()))

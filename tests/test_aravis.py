@@ -9,11 +9,13 @@ import subprocess
 import time
 
 import pytest
+import torch
 
 from torchblur.config.camera_urls import aravis_url_options
 from torchblur.errors import ConfigError, ParameterError
 from torchblur.hardware.aravis import AravisCamera
 from torchblur.hardware.errors import FrameTimeout, HardwareError
+from torchblur.hardware.frames import CameraInfo, Frame, FrameSource
 
 try:  # PyGObject and the Aravis 0.8 typelib
     import gi
@@ -97,6 +99,75 @@ def test_gige_fake_camera_frames_counters_and_exposure(gige_camera):
         AravisCamera(gige_camera, trigger_source="Line7")
     with pytest.raises(HardwareError, match="device"):
         AravisCamera("Fake_99")
+
+
+class _Feed(FrameSource):
+    """A feed of ``n`` numbered frames ``[H, W]`` (frame k: every pixel 100 + k ADU, counter ``first`` + k), 1 ms each."""
+
+    def __init__(self, n: int, first: int = 40):
+        self.frames = [Frame(data=torch.full((H, W), 100.0 + k, dtype=torch.float64), counter=first + k, timestamp_s=0.0,
+                             exposure_s=1e-3, dtype="uint16") for k in range(n)]
+
+    @property
+    def info(self) -> CameraInfo:
+        return CameraInfo(frame_shape=(H, W), frame_rate_hz=100.0, max_exposure_s=1.0, readout_s=0.0, name="feed")
+
+    def read(self, timeout_s: float) -> Frame:
+        if not self.frames:
+            raise FrameTimeout("feed: no frame left")
+        return self.frames.pop(0)
+
+    def drain(self, quiet_s: float = 0.05) -> int:
+        return 0
+
+
+def _fed_camera(n: int) -> AravisCamera:
+    cam = AravisCamera("Fake_1", trigger_source="Software", pixel_format="Mono16", feed=_Feed(n))
+    cam.prepare(1e-3, n)
+    cam.bind(40, n)
+    return cam
+
+
+def test_a_feed_frame_taken_late_is_written_into_one_buffer_only(monkeypatch):
+    """The in-process fake camera free-runs (1000 frames/s, its fastest): a reader held up (a loaded machine) between
+    taking a buffer and taking the feed frame it holds (here 0.1 s, a hundred of the camera's frames; 2 ms was enough)
+    reads every feed frame once, in order (the hook wrote a frame not yet read a second time: "Aravis delivered feed
+    frame 40, the next sent was 41", as CI's loaded run stopped on)."""
+    grab = AravisCamera._grab
+
+    def held_up(self, timeout_s):
+        got = grab(self, timeout_s)
+        time.sleep(0.1)
+        return got
+
+    monkeypatch.setattr(AravisCamera, "_grab", held_up)
+    cam = _fed_camera(4)
+    try:
+        got = [cam.read(timeout_s=2.0) for _ in range(4)]
+    finally:
+        cam.close()
+    assert [f.counter for f in got] == [40, 41, 42, 43]
+    assert [float(f.data[0, 0]) for f in got] == [100.0, 101.0, 102.0, 103.0]
+
+
+def test_a_feed_frame_delivered_after_its_read_timed_out_is_the_next_read():
+    """Every input buffer held elsewhere (the stream starved, as a loaded reader starves it): the read times out, the
+    frame sent stays due, and once the buffers are back the next reads return it and the rest, none left behind."""
+    cam = _fed_camera(3)
+    try:
+        held = []
+        while len(held) < cam._buffers:  # the fake camera's own frames, taken as it fills them: no input buffer left
+            b = cam._stream.timeout_pop_buffer(2_000_000)
+            assert b is not None
+            held.append(b)
+        with pytest.raises(FrameTimeout):
+            cam.read(timeout_s=0.2)  # 200 of the camera's frame periods, no buffer to fill
+        for b in held:
+            cam._stream.push_buffer(b)
+        got = [cam.read(timeout_s=2.0) for _ in range(3)]
+    finally:
+        cam.close()
+    assert [f.counter for f in got] == [40, 41, 42] and [float(f.data[0, 0]) for f in got] == [100.0, 101.0, 102.0]
 
 
 def test_identify_over_the_emulator_with_frames_through_aravis(tmp_path, capsys):

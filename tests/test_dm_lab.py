@@ -119,6 +119,70 @@ def test_write_dm_recording_reads_back(lab_run, tmp_path):
     assert all(np.array_equal(a, b) for a, b in zip(back.frames, rec.frames)) and back.R == rec.R
 
 
+def test_the_export_decodes_each_group_once_and_writes_the_same_bytes(lab_run, tmp_path, monkeypatch):
+    """Exported again, each recorded group's TIFF is decoded once (the windows come from the manifest), every swept
+    frequency's among them, and every file is the first export's byte for byte."""
+    from torchblur.hardware.recording import Experiment
+    from torchblur.identify import export_dm_recording
+    from torchblur.identify.dm_record import SWEEP_KIND
+
+    reads, read_group = {}, Experiment.read_group
+
+    def counted(self, key):
+        reads[key] = reads.get(key, 0) + 1
+        return read_group(self, key)
+
+    monkeypatch.setattr(Experiment, "read_group", counted)
+    again = export_dm_recording(lab_run[2].parent / "run", tmp_path / "again")
+    sweeps = [k for k, lines in Experiment.open(lab_run[2].parent / "run", writable=False).groups.items() if lines[0]["kind"] == SWEEP_KIND]
+    assert sweeps and set(sweeps) <= set(reads)
+    assert all(reads[k] == 1 for k in sweeps), reads
+    names = sorted(p.name for p in lab_run[2].iterdir())
+    assert names == sorted(p.name for p in again.iterdir()) and "sweep.tif" in names
+    for name in names:
+        assert (again / name).read_bytes() == (lab_run[2] / name).read_bytes(), name
+
+
+class _Counted(list):
+    """A list whose items count how often they are read (``reads``)."""
+
+    def __init__(self, items):
+        super().__init__(items)
+        self.reads = [0] * len(items)
+
+    def __getitem__(self, i):
+        self.reads[i] += 1
+        return super().__getitem__(i)
+
+    def __iter__(self):
+        return (self[i] for i in range(len(self)))
+
+
+def test_write_dm_recording_reads_each_frequency_once_and_stores_a_fraction_exactly(lab_run, tmp_path):
+    """Whole-ADU frames: each frequency's frames read once, the sweep stored as uint16. The last frequency with a
+    fractional ADU (and the dark and still frames, every file of a recording one dtype): the sweep stored as float64,
+    every frame read back exactly (each frequency read twice: the file is started again at the last one)."""
+    import tifffile
+
+    from torchblur.identify.dm_outside import read_dm_recording, write_dm_recording
+
+    rec = read_dm_recording(lab_run[2])
+    for frac in (False, True):
+        frames = _Counted([np.asarray(f) + (0.5 if frac and k == len(rec.frames) - 1 else 0.0) for k, f in enumerate(rec.frames)])
+        half = 0.5 if frac else 0.0
+        folder = write_dm_recording(tmp_path / f"frac{frac}", dark=rec.dark + half, still=rec.still + half,
+                                    still_exposure_s=rec.still_exposure_s, patterns=rec.patterns, freq_hz=rec.freq_hz,
+                                    amplitude=rec.amplitude, power=rec.power, frames=frames, start_s=rec.start_s,
+                                    duration_s=rec.duration_s, R=rec.R, camera={"gain_e_per_adu": rec.camera.gain_e_per_adu},
+                                    layout={"dm": {"n_across": 2}, "wfs": {"n_across": 2, "pitch_px": 16.0, "sigma_px": 1.2},
+                                            "dm_plan": {"kind": "hadamard"}})
+        assert frames.reads == ([2] * len(frames) if frac else [1] * len(frames))
+        assert tifffile.TiffFile(folder / "sweep.tif").pages[0].dtype == (np.float64 if frac else np.uint16)
+        back = read_dm_recording(folder)
+        assert len(back.frames) == len(frames) and all(np.array_equal(a, b) for a, b in zip(back.frames, list.__iter__(frames)))
+        np.testing.assert_array_equal(back.dark, rec.dark + half)
+
+
 @pytest.fixture(scope="module")
 def jittered(lab_run, tmp_path_factory):
     """``(folder, start_s)``: the exported recording rewritten with R = 2 repeats per exposure (the second one's frames

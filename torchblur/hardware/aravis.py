@@ -9,6 +9,7 @@ cameras it is tested on: README, "GenICam cameras through Aravis".
 from __future__ import annotations
 
 import ctypes
+import threading
 
 import numpy as np
 
@@ -131,7 +132,8 @@ class AravisCamera(SDKCamera):
             raise HardwareError(f"camera: cannot set up external triggering ({exc})") from None
         if self._feed is not None:
             self._hook = _FillHook(self)
-            cam.set_frame_rate(float(cam.get_frame_rate_bounds()[1]))  # the in-process fake free-runs: at its fastest
+            # the in-process fake free-runs (setting the rate turns its trigger off): at its fastest, 1000 frames/s
+            cam.set_frame_rate(float(cam.get_frame_rate_bounds()[1]))
         self._stream = cam.create_stream(None, None)
         Aravis = _aravis()
         for _ in range(self._buffers):
@@ -168,7 +170,7 @@ class AravisCamera(SDKCamera):
             self._stream.push_buffer(b)
             n += 1
         if self._hook is not None:
-            self._hook.filled.clear()
+            self._hook.clear()
         self._queue.clear()
         return n
 
@@ -200,6 +202,8 @@ class AravisCamera(SDKCamera):
             self._seen(int(b.get_frame_id()))
             self._stream.push_buffer(b)
         if self._feed is not None:
+            self._hook.clear()  # nor the feed frames sent for it
+            self._queue.clear()
             self._feed.prepare(exposure_s, count)
         cam.start_acquisition()
 
@@ -218,12 +222,13 @@ class AravisCamera(SDKCamera):
     def _grab(self, timeout_s: float):
         if self.cam is None:
             raise ConnectionLost("camera: closed")
-        if self._feed is not None:
+        if self._feed is not None and not self._queue:  # a new feed frame once the one sent before came (one late: waited for)
             frame = self._feed.read(timeout_s)
             self._queue.append(frame)
+            self._hook.send(frame)
             self.cam.software_trigger()
         buf = self._stream.timeout_pop_buffer(max(1, int(timeout_s * 1e6)))
-        while buf is not None and self._feed is not None and _pointer(buf) not in self._hook.filled:
+        while buf is not None and self._feed is not None and not self._hook.holds(_pointer(buf)):
             # the fake camera also emits frames of its own (one as an acquisition starts): not the feed's, skipped
             self._stream.push_buffer(buf)
             buf = self._stream.timeout_pop_buffer(max(1, int(timeout_s * 1e6)))
@@ -238,7 +243,7 @@ class AravisCamera(SDKCamera):
             arr = self._mem[_pointer(buf)][:h * w * dtype.itemsize].view(dtype).reshape(h, w).copy()
             raw = int(buf.get_frame_id())
             ts = float(buf.get_timestamp()) * 1e-9
-            sent = self._hook.filled.pop(_pointer(buf)) if self._feed is not None else None
+            sent = self._hook.take(_pointer(buf)) if self._feed is not None else None
         finally:
             self._stream.push_buffer(buf)
         self._seen(raw)
@@ -272,8 +277,9 @@ class AravisCamera(SDKCamera):
 
 class _FillHook:
     """Emulation: the fake camera's fill-pattern hook (through ctypes: Aravis calls it from its stream
-    thread) writes the next frame the feed sent into the buffer it is filling (numpy memory of the
-    camera), as 16-bit pixels."""
+    thread, which free-runs) writes the oldest feed frame sent and not yet written into the buffer it is
+    filling (numpy memory of the camera), as 16-bit pixels: each frame sent goes into one buffer only,
+    however late the reader takes it (the frames to write and the buffers written are kept under one lock)."""
 
     _FILL = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint32, ctypes.c_uint32)
 
@@ -283,19 +289,42 @@ class _FillHook:
         self._camera = camera
         self._fake = _pointer(camera.cam.get_device().get_fake_camera())
         self.filled: dict[int, object] = {}  # buffer address -> the feed frame written into it
+        self._sent: list = []  # feed frames sent (triggered) and not yet written into a buffer, oldest first
+        self._lock = threading.Lock()
         self._callback = self._FILL(self._fill)  # kept alive while the fake camera may call it
         self._lib.arv_fake_camera_set_fill_pattern(self._fake, self._callback, None)
 
+    def send(self, frame) -> None:
+        """``frame`` (a feed :class:`~torchblur.hardware.frames.Frame`) was triggered: the next buffer filled holds it."""
+        with self._lock:
+            self._sent.append(frame)
+
+    def holds(self, address: int) -> bool:
+        """Whether the buffer at ``address`` holds a feed frame."""
+        with self._lock:
+            return address in self.filled
+
+    def take(self, address: int):
+        """The feed frame written into the buffer at ``address`` (the reader's now)."""
+        with self._lock:
+            return self.filled.pop(address)
+
+    def clear(self) -> None:
+        """Forget the frames sent and the buffers written (an earlier acquisition's)."""
+        with self._lock:
+            self._sent.clear()
+            self.filled.clear()
+
     def _fill(self, buffer, data, exposure_us, gain, pixel_format) -> None:
-        cam = self._camera
-        pending = [f for f in cam._queue if all(f is not g for g in self.filled.values())]
-        mem = cam._mem.get(int(buffer))
-        if not pending or mem is None:
-            return  # a frame of the fake camera's own (no trigger of ours): left unmarked, skipped by _grab
-        img = np.clip(np.rint(pending[0].data.numpy()), 0, 65535).astype("<u2")
-        if mem.nbytes >= img.nbytes:
-            mem[:img.nbytes] = np.frombuffer(img.tobytes(), dtype=np.uint8)
-            self.filled[int(buffer)] = pending[0]
+        mem = self._camera._mem.get(int(buffer))
+        with self._lock:
+            self.filled.pop(int(buffer), None)  # written again: what it held before is gone
+            if not self._sent or mem is None:
+                return  # a frame of the fake camera's own (no trigger of ours): left unmarked, skipped by _grab
+            img = np.clip(np.rint(self._sent[0].data.numpy()), 0, 65535).astype("<u2")
+            if mem.nbytes >= img.nbytes:
+                mem[:img.nbytes] = np.frombuffer(img.tobytes(), dtype=np.uint8)
+                self.filled[int(buffer)] = self._sent.pop(0)
 
     def detach(self) -> None:
         self._lib.arv_fake_camera_set_fill_pattern(self._fake, ctypes.cast(None, self._FILL), None)

@@ -343,25 +343,33 @@ class Experiment:
     def has(self, key: str) -> bool:
         return key in self.groups
 
+    def _call_lines(self, key: str) -> list[list]:
+        """The manifest lines of group ``key``, one list per rig call (in call order), each in frame order."""
+        by_call: dict[int, list] = {}
+        for ln in self.groups[key]:
+            by_call.setdefault(int(ln["call"]), []).append(ln)
+        return [sorted(by_call[ci], key=lambda ln: ln["index"]) for ci in sorted(by_call)]
+
+    def call_values(self, key: str, name: str) -> list[torch.Tensor]:
+        """The per-frame value ``name`` of the manifest (``"exposure_s"``, ``"trigger_time_s"``,
+        ``"trigger_offset_s"``: s) of each rig call of group ``key``: float64 tensors shaped as the
+        call (``call_shape``), NaN where the manifest holds null; the values :meth:`load_calls` puts
+        in its Captures, read from the manifest alone (no frame decoded)."""
+        return [_line_values(cl, name) for cl in self._call_lines(key)]
+
     def load_calls(self, key: str) -> list:
         """The recorded rig calls of a group: ``[(method, args, Capture), ...]``."""
 
-        gl = self.groups[key]
         H, W = self.camera_info.frame_shape
         stack = self.read_group(key)
         calls = []
-        by_call: dict[int, list] = {}
-        for ln in gl:
-            by_call.setdefault(int(ln["call"]), []).append(ln)
-        for ci in sorted(by_call):
-            cl = sorted(by_call[ci], key=lambda ln: ln["index"])
+        for cl in self._call_lines(key):
             shape = tuple(cl[0]["call_shape"])
             frames = torch.from_numpy(np.stack([stack[ln["page"]] for ln in cl]).astype(np.float64)).reshape(shape + (H, W))
-            t = lambda k: torch.tensor([float(ln[k]) if ln[k] is not None else float("nan") for ln in cl], dtype=_F64).reshape(shape)  # noqa: E731
             meta = dict(cl[0].get("meta", {}))
             meta["recorded"] = True
-            cap = Capture(frames=frames, exposure_s=t("exposure_s"), trigger_offset_s=t("trigger_offset_s"),
-                          trigger_time_s=t("trigger_time_s"),
+            cap = Capture(frames=frames, exposure_s=_line_values(cl, "exposure_s"), trigger_offset_s=_line_values(cl, "trigger_offset_s"),
+                          trigger_time_s=_line_values(cl, "trigger_time_s"),
                           frame_counter=torch.tensor([int(ln["frame_counter"]) for ln in cl], dtype=torch.long).reshape(shape),
                           meta=meta)
             calls.append((cl[0]["method"], cl[0]["args"], cap))
@@ -445,6 +453,13 @@ class Experiment:
 
 
 CONFIG_KEY = "config.yaml"  # experiment.json's integrity entry for the recorded config
+
+
+def _line_values(lines: list, name: str) -> torch.Tensor:
+    """The value ``name`` of one rig call's manifest ``lines`` (in frame order) as float64 shaped as
+    the call (``call_shape``), NaN where null."""
+    return torch.tensor([float(ln[name]) if ln[name] is not None else float("nan") for ln in lines],
+                        dtype=_F64).reshape(tuple(lines[0]["call_shape"]))
 
 
 def _check_config_digest(path: Path, meta: dict) -> None:

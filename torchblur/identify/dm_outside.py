@@ -456,20 +456,29 @@ class DMOutsidePlan(DMPlan):
 
 def _tiff(path: Path, chunks) -> list[tuple]:
     """Write ``chunks`` (one array ``[..., H, W]`` ADU, or a sequence of them: a recording's groups,
-    each read once per pass, so one group at a time is held in memory) as one grayscale TIFF stack,
+    read one at a time, so one group at a time is held in memory) as one grayscale TIFF stack,
     page after page: uint16 where every value is a whole number in its range (a camera's ADU), else
-    float64 (read back exactly either way). Returns each chunk's shape."""
+    float64 (read back exactly either way). Returns each chunk's shape. Each chunk is read once
+    when all are whole ADU; a chunk that is not starts the file again, every chunk float64."""
+    chunks = [chunks] if hasattr(chunks, "shape") else chunks
+    shapes = _tiff_pages(path, chunks, np.uint16)
+    return _tiff_pages(path, chunks, np.float64) if shapes is None else shapes
+
+
+def _tiff_pages(path: Path, chunks, dtype) -> list[tuple] | None:
+    """Write the sequence ``chunks`` (arrays ``[..., H, W]``) as ``dtype`` pages of one TIFF at ``path``
+    (replaced); each chunk's shape, or None (the file left incomplete) where ``dtype`` is uint16 and a
+    chunk is not whole ADU (:func:`~torchblur.hardware.frames.whole_adu`)."""
     import tifffile
 
-    chunks = [chunks] if hasattr(chunks, "shape") else chunks
-    whole = all(whole_adu(np.asarray(c, dtype=np.float64)) for c in chunks)
     shapes = []
     with tifffile.TiffWriter(path) as tw:
         for c in chunks:
             a = np.asarray(c, dtype=np.float64)
+            if dtype == np.uint16 and not whole_adu(a):
+                return None
             shapes.append(a.shape)
-            tw.write(a.reshape((-1,) + a.shape[-2:]).astype(np.uint16 if whole else np.float64), photometric="minisblack",
-                     metadata=None, contiguous=True)
+            tw.write(a.reshape((-1,) + a.shape[-2:]).astype(dtype), photometric="minisblack", metadata=None, contiguous=True)
     return shapes
 
 
@@ -573,15 +582,14 @@ def export_dm_recording(run, folder) -> Path:
     if not keys:
         raise RecordingError(f"{exp.path}: holds no swept frequency ({SWEEP_KIND} group)")
     freq, amp, power, start, dur = [], [], [], [], []
-    for key in keys:
+    for key in keys:  # the windows from the manifest: each group's frames are decoded once, as they are written
         lab = exp.groups[key][0]
-        calls = exp.load_calls( key)
         delay = float(lab["trigger_delay_s"])
         freq.append(float(lab["freq_hz"]))
         amp.append(float(lab["amplitude"]))
         power.append(float(lab["power"]))
-        start.append(np.stack([(cap.trigger_time_s.reshape(-1) + delay + cal.latency_s).numpy() for _, _, cap in calls]))
-        dur.append(np.stack([cap.exposure_s.reshape(-1).numpy() for _, _, cap in calls]))
+        start.append(np.stack([(t.reshape(-1) + delay + cal.latency_s).numpy() for t in exp.call_values(key, "trigger_time_s")]))
+        dur.append(np.stack([t.reshape(-1).numpy() for t in exp.call_values(key, "exposure_s")]))
     c = cfg.camera
     held = sorted(k for k in exp.groups if k.startswith("dm_ladder/") and k != TEST_KEY)  # the ladder the run fitted with, if any
     ladder = None
