@@ -267,7 +267,12 @@ class SerialRig(CameraProperties, RigChecks):
         self._next = st["frames"]
 
     def _read_frames(self, first: int, n: int, exposure_s: float) -> list[Frame]:
-        """Frames ``first .. first + n - 1``, each checked."""
+        """Frames ``first .. first + n - 1``, each checked. Waiting, ``STATUS?`` is polled after
+        every ``poll_s`` of silence; a frame is lost (``FrameTimeout``) when two polls in a row,
+        with no frame between them, find the controller idle (``pending=0``; a frame leaves
+        ``pending`` when it is sent, and may still be on its way at the first). Any frame that
+        arrives, and any poll that finds frames pending, starts the count again; ``max_wait_s``
+        bounds the whole wait."""
         c, src = self.controller, self.frames
         got: list[Frame] = []
         expected = first
@@ -286,12 +291,12 @@ class SerialRig(CameraProperties, RigChecks):
                                       f"(boot {self._boot} -> {st['boot']}, state {st['state']})") from None
                 if st["frames"] < expected:
                     raise DeviceReset(f"frame counter went back from {expected} to {st['frames']}") from None
-                if st["pending"] == 0:
-                    idle_polls += 1
-                    if idle_polls >= 2:
-                        raise FrameTimeout(f"frame {expected} was triggered but never arrived (controller idle, "
-                                           f"counter {st['frames']})") from None
+                idle_polls = idle_polls + 1 if st["pending"] == 0 else 0
+                if idle_polls >= 2:
+                    raise FrameTimeout(f"frame {expected} was triggered but never arrived (controller idle for "
+                                       f"{idle_polls} polls in a row with no frame, counter {st['frames']})") from None
                 continue
+            idle_polls = 0  # a frame arrived: the channel is still delivering, the count starts again
             if fr.boot is not None and self._boot is not None and fr.boot != self._boot:
                 self.stats["stale_discarded"] += 1
                 continue  # from before a reset: never ours
