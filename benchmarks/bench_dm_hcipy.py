@@ -23,6 +23,7 @@ configs/identify_dm.yaml's 16 frequencies x 2 repeats, 4096 frames).
     python benchmarks/bench_dm_hcipy.py --quick [--case aligned|misregistered|both|none] [--psf auto|kernel|gaussian] [--target-px 1.5]
                                         [--device cuda] [--jobs N]
     python benchmarks/bench_dm_hcipy.py --load PREFIX_aligned.pkl   # a run saved with BENCH_DM_HCIPY_SAVE=PREFIX
+    python benchmarks/bench_dm_hcipy.py --load PREFIX_aligned.pkl --reestimate   # its stage 4 again with this tree's code
 
 ``--device cuda``: the spot fits (every (pattern, frequency, spot) problem) run on that device
 (the config's ``fit.device``; refused where there is none), and so does the generator's
@@ -272,7 +273,7 @@ def run_case(name: str, quick: bool, psf: str = "auto", jobs: int = 1, extra=(),
             pickle.dump({"res": res, "truth": truth, "dyn": dyn, "cfg_poor_fit_chi2": float(cfg.fit.poor_fit_chi2)}, fh)
     print(f"== {name}: {gen.optics}; fit.psf={psf}; excitation.target_px={cfg.excitation.target_px:g}")
     for line in res.log:
-        if line.startswith(("spots:", "latency:", "dm plan:")):
+        if line.startswith(("spots:", "latency:", "dm plan:", "dm slope gains:")):
             print("  " + line)
     print(f"  {res.n_frames} sweep frames ({len(res.freq_hz)} frequencies {res.freq_hz[0]:.4g}..{res.freq_hz[-1]:.4g} Hz), generator set-up "
           f"{t_gen:.1f} s, run {t_run:.1f} s = {t_run / res.n_frames * 1e3:.0f} ms a sweep frame ({', '.join(f'{k} {v:.1f} s' for k, v in res.timing_s.items())}); mean Gauss-Legendre "
@@ -311,6 +312,23 @@ def report(res, truth, dyn, poor_fit_chi2: float) -> None:
     sys.stdout.flush()
 
 
+def reestimate(res):
+    """``res`` with stage 4 (``D (jw)``, the actuators, the registration, the slope rows' gains:
+    :func:`~torchblur.identify.dm_plan.estimate_mirror`) run again by this tree's code on its saved
+    pattern responses ``Y``, and the stage's log lines."""
+    from dataclasses import replace
+
+    from torchblur.identify.dm_plan import estimate_mirror
+    from torchblur.identify.record import collect_log
+    from torchblur.rig.factory import build_dm
+
+    cfg = load_config("configs/identify_dm.yaml")  # stage 4 reads dm.coupling and dm_plan.support_threshold: not --quick's keys
+    with collect_log() as log:
+        D, D_cov, table, reg, support = estimate_mirror(cfg, res.freq_hz, res.Y, res.Y_cov, res.plan, res.G_nominal,
+                                                        build_dm(cfg)[1], res.actuator_xy)
+    return replace(res, D=D, D_cov=D_cov, actuators=table, G=reg.G, registration=reg, support_check=support), log
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="4 frequencies, one repeat (512 frames per case)")
@@ -328,17 +346,21 @@ def main(argv=None) -> None:
     p.add_argument("--device", default="cpu", help="where the spot fits run (the config's fit.device) and the generator's propagation")
     p.add_argument("--jobs", type=int, default=1, help="threads of the frames' propagation (scipy.fft, BLAS) and of torch")
     p.add_argument("--load", metavar="PKL", help="print the figures of a run saved with BENCH_DM_HCIPY_SAVE (no run)")
+    p.add_argument("--reestimate", action="store_true",
+                   help="with --load: stage 4 (D, the actuators, the registration, the slope rows' gains) run again by this "
+                        "tree's code on the saved pattern responses, then the figures")
     args = p.parse_args(argv)
     if args.load:
         import pickle
 
         with open(args.load, "rb") as fh:
             d = pickle.load(fh)
-        print(f"== {args.load}")
-        for line in d["res"].log:
-            if line.startswith(("spots:", "dm plan:", "dm spot model:")):
+        print(f"== {args.load}" + (" (stage 4 re-estimated by this tree)" if args.reestimate else ""))
+        res, log = reestimate(d["res"]) if args.reestimate else (d["res"], d["res"].log)
+        for line in (d["res"].log if args.reestimate else []) + log:
+            if line.startswith(("spots:", "dm plan:", "dm spot model:", "dm slope gains:")):
                 print("  " + line)
-        report(d["res"], d["truth"], d["dyn"], d["cfg_poor_fit_chi2"])
+        report(res, d["truth"], d["dyn"], d["cfg_poor_fit_chi2"])
         return
     import torch
     from threadpoolctl import threadpool_limits

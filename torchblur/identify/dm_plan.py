@@ -23,7 +23,8 @@ from torchblur.dm.ladder_fit import PatternLadder, fit_ladder_problems
 from torchblur.fit.status import OUT_OF_LADDER
 from torchblur.dm.mirror import DeformableMirror
 from torchblur.dm.plans import static_motion_px
-from torchblur.dm.registration import Registration, RegistrationFit, register_and_refit
+from torchblur.dm.registration import Registration, RegistrationFit, fully_lit, register_and_refit
+from torchblur.dm.slope_gains import slope_gains, slope_gains_line, with_slope_gain_stds
 from torchblur.dm.spot_fit import PerSpotPSF, crop_problems, fit_spot_problems, pattern_responses
 from torchblur.errors import ConfigError, InputTypeError, ParameterError
 from torchblur.hardware.errors import RecordingError
@@ -529,13 +530,16 @@ def estimate_mirror(cfg, freqs, Y, Y_cov, plan, G, wfs, actuator_xy):
     """Stage 4 (module docstring), one function for a live run and an outside recording: the
     pattern responses ``Y [P, 2M, F]`` demultiplexed into ``D (jw)``, every actuator fitted on the
     nominal ``G``, the mirror's registration fitted to D0 and the actuators fitted again on the
-    fitted G (:func:`~torchblur.dm.registration.register_and_refit`). Returns ``(D, D_cov, table,
+    fitted G (:func:`~torchblur.dm.registration.register_and_refit`), their ``dc_gain`` stds grown by
+    the slope rows' own gain scatter (:mod:`torchblur.dm.slope_gains`). Returns ``(D, D_cov, table,
     registration, support_check)``."""
     D, D_cov = demultiplex(Y, Y_cov, plan.patterns, plan.support)
     table = fit_actuators(freqs, D, D_cov, G, actuator_xy=actuator_xy)
     table, reg, support = register_and_refit(freqs, D, D_cov, table, wfs, actuator_xy, float(cfg.dm.coupling),
                                              support=plan.support, threshold=float(cfg.dm_plan.support_threshold))
-    return D, D_cov, table, reg, support
+    gains = slope_gains(table.static_column, table.static_column_std, reg.G, table.dc_gain, np.tile(fully_lit(wfs), 2))
+    LOGGER.info(slope_gains_line(gains))
+    return D, D_cov, with_slope_gain_stds(table, gains), reg, support
 
 
 def truth_errors(res: DMResult) -> dict | None:
