@@ -14,7 +14,7 @@ from torchblur._compat import median_along
 from torchblur.render.alias import canonical_sines
 from torchblur.errors import ParameterError, ShapeError, as_tensor, check_finite, check_positive
 from torchblur.fit.inputs import (check_count, check_data, flat_count, flat_direction, flat_omega, flat_psf,
-                                  flat_window, psf_moments, unit_direction)
+                                  flat_window, unit_direction)
 from torchblur.fit.kernel_noise import kernel_noise_covariance
 from torchblur.losses import fisher_covariance, image_loss, pixel_weights, residual_weights, singular_covariance
 from torchblur.image.moments import image_moments, moments_along
@@ -64,11 +64,7 @@ def render_multisine(theta, omega, psf: GaussianPSF | KernelPSF, window: Exposur
     amp = theta[..., :N, None] * unit_direction(direction, theta)[..., None, :]  # [..., N, 2]
     ph = theta[..., N:2 * N]
     traj = Multisine(amp[..., None, :, :], torch.stack([ph, ph], -1)[..., None, :, :], omega[..., None, :])
-    if isinstance(psf, KernelPSF):
-        p = KernelPSF(psf.kernel[..., None, :, :])
-    else:
-        p = GaussianPSF(psf.center[..., None, :], psf.cov[..., None, :, :], psf.amplitude[..., None])
-    img = render_blur(traj, p, window, height=height, width=width, settings=settings)
+    img = render_blur(traj, psf[..., None], window, height=height, width=width, settings=settings)
     if theta.shape[-1] == 2 * N + 1:
         img = img * theta[..., 2 * N, None, None, None]
     return img
@@ -172,10 +168,6 @@ class _Flat:
     psf: GaussianPSF | KernelPSF
     kernel: torch.Tensor | None = None
 
-    def total_light(self) -> torch.Tensor:
-        """The PSF's light per second ``[B]``."""
-        return self.kernel.sum((-1, -2)) if self.kernel is not None else self.psf.total_light()
-
 
 def _check_and_flatten(images, psf, window, omega, direction, counts: dict) -> _Flat:
     """The public entry's checks (:mod:`~torchblur.fit.inputs`), and the inputs flattened to ``B`` image sets."""
@@ -186,7 +178,7 @@ def _check_and_flatten(images, psf, window, omega, direction, counts: dict) -> _
     B = flat_count(images)
     data = images.reshape(B, E, H, W)
     win, p = flat_window(window, batch, B, E), flat_psf(psf, batch, B)
-    center, cov = psf_moments(p)
+    center, cov = p.moments()
     kern = isinstance(p, KernelPSF)
     return _Flat(data=data, om=flat_omega(omega, batch, B, data, tones=True), start=win.start, dur=win.duration,
                  center=center, cov=cov,
@@ -304,7 +296,7 @@ def _starts(flat: _Flat, M0, thr, phase_guess, n_starts: int, g: torch.Generator
     theta_c = torch.stack(cands, 1)  # [B, K, 2N]
     if fit_scale:
         K = theta_c.shape[1]
-        expected = (flat.total_light()[:, None] * flat.dur).sum(-1)
+        expected = (flat.psf.total_light()[:, None] * flat.dur).sum(-1)
         sc = (flat.data.sum((-1, -2, -3)) / expected.clamp_min(1e-30)).clamp_min(1e-3)
         theta_c = torch.cat([theta_c, sc[:, None, None].expand(B, K, 1)], -1)
     return theta_c
@@ -366,10 +358,7 @@ class _Problem:
 
     def _items(self, item):
         p = self.psf
-        win = ExposureWindow(self.start[item], self.dur[item])
-        if isinstance(p, KernelPSF):
-            return KernelPSF(p.kernel[item]), win
-        return GaussianPSF(p.center[item], p.cov[item], p.amplitude[item]), win
+        return p[item], ExposureWindow(self.start[item], self.dur[item])
 
     def model(self, theta, item) -> torch.Tensor:
         """Rendered images of the sets ``item [n]`` at ``theta [n, P]`` -> ``[n, R]`` (a kernel:

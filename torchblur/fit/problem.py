@@ -12,7 +12,6 @@ from dataclasses import dataclass
 import torch
 
 from torchblur._compat import median_along
-from torchblur.fit.inputs import psf_moments
 from torchblur.fit.sine_model import ParamLayout
 from torchblur.image.moments import image_moments, moments_along, sinusoid_from_moments
 from torchblur.losses import pixel_weights
@@ -98,7 +97,7 @@ def sine_problem(data, psf, window: ExposureWindow, omega, direction, *, noise_s
     win = window.to(dtype).expand((N, E))
     if isinstance(psf, GaussianPSF):
         psf = psf.to(dtype)
-    rest, cov_psf = psf_moments(psf)
+    rest, cov_psf = psf.moments()
     weight, std = pixel_weights(noise_std, use, data)
     # one weight per item, nothing masked: weight is a view of row_weight (see SineProblem)
     row_weight = weight[:, 0, 0, 0] if use is None and (std is None or std.dim() == 1) else None
@@ -269,10 +268,7 @@ def _nuisance_starts(problem: SineProblem, layout: ParamLayout) -> list:
     p = problem
     extra = []
     if layout.fit_scale:
-        if isinstance(p.psf, GaussianPSF):
-            expected = (p.psf.total_light()[:, None] * p.duration).sum(-1)
-        else:
-            expected = (p.psf.kernel.sum((-1, -2))[:, None] * p.duration).sum(-1)
+        expected = (p.psf.total_light()[:, None] * p.duration).sum(-1)
         extra.append((p.data.sum((-1, -2, -3)) / expected.clamp_min(1e-30)).clamp_min(1e-3))
     if layout.fit_background:
         extra.append(p.level)

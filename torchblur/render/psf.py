@@ -15,6 +15,12 @@ from torchblur.errors import ParameterError, ShapeError, as_tensor, broadcast_ba
 __all__ = ["GaussianPSF", "KernelPSF"]
 
 
+def _batch_index(idx, trailing: int) -> tuple:
+    """An index ``idx`` of a PSF's batch dims ``[...]`` as an index of a tensor ``[..., *trailing
+    dims]`` (``trailing`` whole dims appended, so ``...`` and None stay in the batch)."""
+    return (idx if isinstance(idx, tuple) else (idx,)) + (slice(None),) * trailing
+
+
 class GaussianPSF:
     """A 2-D Gaussian spot with full covariance (tilted ellipses allowed).
 
@@ -93,6 +99,11 @@ class GaussianPSF:
         det = sxx * syy - sxy * sxy
         return syy / det, -sxy / det, sxx / det
 
+    def moments(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The rest position ``[..., 2]`` (x, y px) and covariance ``[..., 2, 2]`` (px^2): the
+        centre and ``cov`` themselves (with their gradient), as :meth:`KernelPSF.moments`."""
+        return self.center, self.cov
+
     def sigma_min(self) -> torch.Tensor:
         """Smallest principal standard deviation (px), ``[...]``."""
         return torch.linalg.eigvalsh(self.cov).clamp_min(0)[..., 0].sqrt()
@@ -110,7 +121,9 @@ class GaussianPSF:
         return self.amplitude * torch.exp(-0.5 * (A * dx * dx + 2 * B * dx * dy + C * dy * dy))
 
     def __getitem__(self, idx) -> "GaussianPSF":
-        return GaussianPSF(self.center[idx], self.cov[idx], self.amplitude[idx])
+        """Items ``idx`` of the batch ``[...]`` (any tensor index of the batch dims, ``...`` and None
+        included: ``psf[..., None]`` adds a trailing batch axis)."""
+        return GaussianPSF(self.center[_batch_index(idx, 1)], self.cov[_batch_index(idx, 2)], self.amplitude[idx])
 
     def to(self, *args, **kwargs) -> "GaussianPSF":
         return GaussianPSF(self.center.to(*args, **kwargs), self.cov.to(*args, **kwargs), self.amplitude.to(*args, **kwargs))
@@ -180,6 +193,14 @@ class KernelPSF:
         """Smallest principal standard deviation of the kernel (px), ``[...]``."""
         _, cov = self.moments()
         return torch.linalg.eigvalsh(cov).clamp_min(1e-6)[..., 0].sqrt()
+
+    def total_light(self) -> torch.Tensor:
+        """Light per second, the kernel's sum over its pixels, ``[...]``."""
+        return self.kernel.sum((-1, -2))
+
+    def __getitem__(self, idx) -> "KernelPSF":
+        """Items ``idx`` of the batch ``[...]``, as :meth:`GaussianPSF.__getitem__`."""
+        return KernelPSF(self.kernel[_batch_index(idx, 2)])
 
     def to(self, *args, **kwargs) -> "KernelPSF":
         return KernelPSF(self.kernel.to(*args, **kwargs))
