@@ -154,6 +154,27 @@ def test_gaussian_and_kernel_psf_share_moments_light_and_items():
         torch.testing.assert_close(ki.moments()[0], gi.center, rtol=0, atol=1e-9)
 
 
+def test_psf_footprint_holds_the_spot():
+    # A Gaussian's box is `sigmas` standard deviations along x and y; a kernel cut to that box has
+    # it (to whole pixels) as its footprint, whatever `sigmas` says; an item's box is the batch's.
+    g = tb.GaussianPSF(torch.tensor([[14.2, 15.7], [16.0, 13.1]], dtype=torch.float64),
+                       torch.tensor([[[2.5, 0.4], [0.4, 3.0]], [[4.0, -0.5], [-0.5, 2.25]]], dtype=torch.float64))
+    lo, hi = g.footprint(3.0)
+    sd = torch.diagonal(g.cov, dim1=-2, dim2=-1).sqrt()
+    torch.testing.assert_close(lo, g.center - 3 * sd, rtol=0, atol=0)
+    torch.testing.assert_close(hi, g.center + 3 * sd, rtol=0, atol=0)
+    x, y = torch.arange(32, dtype=torch.float64), torch.arange(30, dtype=torch.float64)
+    inside = (((x >= lo[:, None, None, 0]) & (x <= hi[:, None, None, 0]))
+              & ((y[:, None] >= lo[:, None, None, 1]) & (y[:, None] <= hi[:, None, None, 1])))
+    k = tb.KernelPSF(g[:, None, None].evaluate(x, y[:, None]) * inside)
+    for s in (None, 1.0, 7.0):
+        klo, khi = k.footprint(s)
+        torch.testing.assert_close(klo, lo.ceil(), rtol=0, atol=0)
+        torch.testing.assert_close(khi, hi.floor(), rtol=0, atol=0)
+    torch.testing.assert_close(k[1].footprint()[0], klo[1], rtol=0, atol=0)
+    torch.testing.assert_close(g[1].footprint(3.0)[1], hi[1], rtol=0, atol=0)
+
+
 def test_pixel_integration_exact_for_narrow_spots():
     # Axis-aligned still spot: the pixel integral is a product of erf differences.
     sx, sy, cx, cy, te = 0.5, 0.7, 7.3, 6.6, 0.01

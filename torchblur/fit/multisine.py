@@ -19,7 +19,7 @@ from torchblur.fit.kernel_noise import kernel_noise_covariance
 from torchblur.losses import fisher_covariance, image_loss, pixel_weights, residual_weights, singular_covariance
 from torchblur.image.moments import image_moments, moments_along
 from torchblur.optim import levenberg_marquardt, model_jacobian
-from torchblur.fit.problem import _nonzero_box, cut_sums
+from torchblur.fit.problem import cut_sums
 from torchblur.fit.results import ToneFit
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.camera import CameraNoise, noise_sets_weights
@@ -306,13 +306,8 @@ def _crop_box(flat: _Flat, theta_c) -> tuple[int, int, int, int]:
     """``(lo_y, hi_y, lo_x, hi_x)``: where the model of any start reaches (the whole frame if that is under 4 px)."""
     H, W = flat.data.shape[-2:]
     N = flat.om.shape[-1]
-    center = flat.center
     reach = (theta_c[..., :N].abs().sum(-1).amax(1) * 1.3 + 0.5)[:, None] * flat.u.abs()  # [B, 2] (x, y) px
-    if flat.kernel is not None:  # wherever the kernel is not zero, its faint wings included
-        lo, hi = _nonzero_box(flat.kernel)
-    else:
-        sd = torch.diagonal(flat.cov, dim1=-2, dim2=-1).sqrt()
-        lo, hi = center - 7 * sd, center + 7 * sd
+    lo, hi = flat.psf.footprint(7.0)
     lo_x = int(max(0, math.floor(float((lo[:, 0] - reach[:, 0]).min()))))
     hi_x = int(min(W, math.ceil(float((hi[:, 0] + reach[:, 0]).max())) + 1))
     lo_y = int(max(0, math.floor(float((lo[:, 1] - reach[:, 1]).min()))))

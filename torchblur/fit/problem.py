@@ -346,24 +346,8 @@ def _reach_bounds(p: SineProblem, amplitude_bound: torch.Tensor, fit_center: boo
     faint wings included) widened by the motion."""
     reach = (p.direction.abs() * (amplitude_bound * 1.25 + 0.5)[..., None]).sum(1)  # [N, 2] px
     margin = 2.0 if fit_center else 0.0
-    if isinstance(p.psf, KernelPSF):
-        lo, hi = _nonzero_box(p.psf.kernel)
-        return lo - reach - margin, hi + reach + margin
-    sdv = torch.diagonal(p.psf_cov, dim1=-2, dim2=-1).clamp_min(0).sqrt()
-    return p.rest - reach - 5.5 * sdv - margin, p.rest + reach + 5.5 * sdv + margin
-
-
-def _nonzero_box(kernel: torch.Tensor):
-    """``(lo [N, 2], hi [N, 2])`` (x, y px): the first and last column and row where each kernel
-    ``[N, H, W]`` is not zero (0 and the last where it is zero everywhere)."""
-    nz = kernel.detach() != 0
-    out = []
-    for lines in (nz.any(-2), nz.any(-1)):  # [N, W] columns, [N, H] rows
-        idx = torch.arange(lines.shape[-1], device=kernel.device, dtype=kernel.dtype)
-        first = torch.where(lines, idx, torch.full_like(idx, math.inf)).amin(-1)
-        last = torch.where(lines, idx, torch.full_like(idx, -math.inf)).amax(-1)
-        out.append((torch.where(lines.any(-1), first, idx[0]), torch.where(lines.any(-1), last, idx[-1])))
-    return torch.stack([out[0][0], out[1][0]], -1), torch.stack([out[0][1], out[1][1]], -1)
+    lo, hi = p.psf.footprint(5.5)
+    return lo - reach - margin, hi + reach + margin
 
 
 def _worth_cropping(w: int, h: int, H: int, W: int) -> bool:

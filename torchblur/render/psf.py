@@ -104,6 +104,13 @@ class GaussianPSF:
         centre and ``cov`` themselves (with their gradient), as :meth:`KernelPSF.moments`."""
         return self.center, self.cov
 
+    def footprint(self, sigmas: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """The box that holds the spot, ``(lo, hi)``, each ``[..., 2]`` (x, y px, no gradient):
+        ``sigmas`` standard deviations about the centre along x and along y."""
+        sd = torch.diagonal(self.cov.detach(), dim1=-2, dim2=-1).clamp_min(0).sqrt()
+        center = self.center.detach()
+        return center - sigmas * sd, center + sigmas * sd
+
     def sigma_min(self) -> torch.Tensor:
         """Smallest principal standard deviation (px), ``[...]``."""
         return torch.linalg.eigvalsh(self.cov).clamp_min(0)[..., 0].sqrt()
@@ -188,6 +195,20 @@ class KernelPSF:
         sxy = (k * dx * dy).sum((-1, -2)) / m0
         cov = torch.stack([torch.stack([sxx, sxy], -1), torch.stack([sxy, syy], -1)], -2)
         return torch.stack([cx, cy], -1), cov
+
+    def footprint(self, sigmas: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The box that holds the spot, ``(lo, hi)``, each ``[..., 2]`` (x, y px, no gradient):
+        the first and last column and row where the kernel is not zero, its faint wings included
+        (``sigmas``, :meth:`GaussianPSF.footprint`'s width, is not used; 0 and the last pixel
+        where a kernel is zero everywhere)."""
+        nz = self.kernel.detach() != 0
+        out = []
+        for lines in (nz.any(-2), nz.any(-1)):  # [..., W] columns, [..., H] rows
+            idx = torch.arange(lines.shape[-1], device=nz.device, dtype=self.kernel.dtype)
+            first = torch.where(lines, idx, torch.full_like(idx, math.inf)).amin(-1)
+            last = torch.where(lines, idx, torch.full_like(idx, -math.inf)).amax(-1)
+            out.append((torch.where(lines.any(-1), first, idx[0]), torch.where(lines.any(-1), last, idx[-1])))
+        return torch.stack([out[0][0], out[1][0]], -1), torch.stack([out[0][1], out[1][1]], -1)
 
     def sigma_min(self) -> torch.Tensor:
         """Smallest principal standard deviation of the kernel (px), ``[...]``."""
