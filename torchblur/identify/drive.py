@@ -16,7 +16,7 @@ import numpy as np
 
 from torchblur.errors import ConfigError
 from torchblur.hardware.errors import RecordingError
-from torchblur.rig.base import DRIVE_RTOL, command_peak, command_slew
+from torchblur.rig.base import DRIVE_RTOL, command_peak, command_slew, within_drive
 
 __all__ = ["DriveLimit", "drive_limit", "range_limit", "at_limit", "is_limited", "check_recorded_drive", "limited_summary", "SESSION_KEY",
            "SLEW_KEY"]
@@ -159,11 +159,11 @@ def check_recorded_drive(exp, limit: float, slew: float = math.inf) -> None:
                 rate = command_slew(a["freq_hz"], a["amplitude"], a["phase_rad"], a.get("base_freq_hz"))
         except (KeyError, TypeError, ValueError) as exc:
             raise RecordingError(f"{ln.get('group')}: the recorded {ln['method']} call has no readable amplitude ({exc})") from None
-        if not peak <= limit * (1 + DRIVE_RTOL):
+        if not within_drive(peak, limit):
             raise RecordingError(f"{ln.get('group')}: recorded with a command of peak {peak:.6g} input units, beyond the input "
                                  f"range +-{limit:.6g} of this run's rig; refused (resume it on the rig it was recorded on, or "
                                  f"record anew)")
-        if not rate <= slew * (1 + DRIVE_RTOL):
+        if not within_drive(rate, slew):
             raise RecordingError(f"{ln.get('group')}: recorded with a command slewing at {rate:.6g} input units/s, beyond the "
                                  f"slew limit {slew:.6g} units/s of this run's rig; refused (resume it on the rig it was "
                                  f"recorded on, or record anew)")
