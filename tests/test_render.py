@@ -152,6 +152,10 @@ def test_gaussian_and_kernel_psf_share_moments_light_and_items():
         torch.testing.assert_close(ki.total_light(), k.total_light()[idx], rtol=0, atol=0)
         torch.testing.assert_close(gi.total_light(), g.total_light()[idx], rtol=0, atol=0)
         torch.testing.assert_close(ki.moments()[0], gi.center, rtol=0, atol=1e-9)
+    # cut to a crop [y0:y1, x0:x1] of the frame, both are the spot in the crop's frame
+    gc, kc = g.cropped(5, 3, 27, 25), k.cropped(5, 3, 27, 25)
+    assert kc.frame_shape == (22, 22) and gc.shape == kc.shape == g.shape
+    torch.testing.assert_close(kc.kernel, gc[:, None, None].evaluate(x[:22], y[:22]), rtol=0, atol=1e-15)
 
 
 def test_psf_footprint_holds_the_spot():

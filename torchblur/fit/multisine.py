@@ -383,8 +383,7 @@ def _problem(flat: _Flat, weight, theta_c, render_settings, kernel_var=None) -> 
     dtype, device = flat.data.dtype, flat.data.device
     data = flat.data
     lo_y, hi_y, lo_x, hi_x = box = _crop_box(flat, theta_c)
-    center_c = flat.center - torch.tensor([lo_x, lo_y], dtype=dtype, device=device)
-    psf_c = GaussianPSF(center_c, flat.cov, flat.amp_psf) if flat.kernel is None else KernelPSF(flat.kernel[:, lo_y:hi_y, lo_x:hi_x])
+    psf_c = flat.psf.cropped(lo_x, lo_y, hi_x, hi_y)
     reach = float((theta_c[..., :N].abs().sum(-1).amax(1) * 1.3 + 0.5).max()) if B else 0.0
     settings = render_settings or RenderSettings(panel_path_sigmas=3.5)
     if settings.nodes is None:

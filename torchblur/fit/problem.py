@@ -309,9 +309,8 @@ def crop_to_reach(problem: SineProblem, amplitude_bound: torch.Tensor, *, fit_ce
     if not _worth_cropping(cx1 - cx0, cy1 - cy0, H, W):
         return p
     cut_cost, cut_sq, cut_n = cut_sums(p.data, p.weight, (cy0, cy1, cx0, cx1), p.row_weight)
-    shift = torch.tensor([cx0, cy0], dtype=p.data.dtype, device=p.data.device)
-    psf = GaussianPSF(p.psf.center - shift, p.psf.cov, p.psf.amplitude)
-    return dataclasses.replace(p, data=p.data[..., cy0:cy1, cx0:cx1], weight=p.weight[..., cy0:cy1, cx0:cx1], psf=psf,
+    return dataclasses.replace(p, data=p.data[..., cy0:cy1, cx0:cx1], weight=p.weight[..., cy0:cy1, cx0:cx1],
+                               psf=p.psf.cropped(cx0, cy0, cx1, cy1),
                                origin=(cx0, cy0), cut_cost=cut_cost, cut_sq=cut_sq, cut_n=cut_n)
 
 

@@ -111,6 +111,12 @@ class GaussianPSF:
         center = self.center.detach()
         return center - sigmas * sd, center + sigmas * sd
 
+    def cropped(self, x0: int, y0: int, x1: int, y1: int) -> "GaussianPSF":
+        """The spot in the frame of the crop ``[y0:y1, x0:x1]`` (px) of its frame: the centre less
+        ``(x0, y0)``, the same covariance and amplitude (as :meth:`KernelPSF.cropped`)."""
+        shift = torch.tensor([x0, y0], dtype=self.center.dtype, device=self.center.device)
+        return GaussianPSF(self.center - shift, self.cov, self.amplitude)
+
     def sigma_min(self) -> torch.Tensor:
         """Smallest principal standard deviation (px), ``[...]``."""
         return torch.linalg.eigvalsh(self.cov).clamp_min(0)[..., 0].sqrt()
@@ -209,6 +215,11 @@ class KernelPSF:
             last = torch.where(lines, idx, torch.full_like(idx, -math.inf)).amax(-1)
             out.append((torch.where(lines.any(-1), first, idx[0]), torch.where(lines.any(-1), last, idx[-1])))
         return torch.stack([out[0][0], out[1][0]], -1), torch.stack([out[0][1], out[1][1]], -1)
+
+    def cropped(self, x0: int, y0: int, x1: int, y1: int) -> "KernelPSF":
+        """The spot in the frame of the crop ``[y0:y1, x0:x1]`` (px) of its frame: the kernel cut
+        with it, ``[..., y1 - y0, x1 - x0]`` (as :meth:`GaussianPSF.cropped`)."""
+        return KernelPSF(self.kernel[..., y0:y1, x0:x1])
 
     def sigma_min(self) -> torch.Tensor:
         """Smallest principal standard deviation of the kernel (px), ``[...]``."""

@@ -435,7 +435,7 @@ def _crop(prob: _Problem, M0: torch.Tensor) -> None:
     if prob.fit_background:
         return
     H, W = prob.data.shape[-2:]
-    dtype, device = prob.data.dtype, prob.data.device
+    device = prob.data.device
     reach = (M0 * 1.5 + 1.0)[:, None] * prob.direction.abs()  # [n, 2] (x, y) px
     lo_k, hi_k = prob.psf.footprint(7.0)
     lo = (lo_k - reach).amin(0)
@@ -451,10 +451,7 @@ def _crop(prob: _Problem, M0: torch.Tensor) -> None:
     prob.out_n = int(((ow > 0)).sum())
     prob.out_sq = ((ow > 0) * prob.data * prob.data).sum()
     prob.data, prob.wts = prob.data[..., cy0:cy1, cx0:cx1], prob.wts[..., cy0:cy1, cx0:cx1]
-    if isinstance(prob.psf, KernelPSF):
-        prob.psf = KernelPSF(prob.psf.kernel[..., cy0:cy1, cx0:cx1])
-    else:
-        prob.psf = GaussianPSF(prob.psf.center - torch.tensor([cx0, cy0], dtype=dtype, device=device), prob.psf.cov, prob.psf.amplitude)
+    prob.psf = prob.psf.cropped(cx0, cy0, cx1, cy1)
     prob.m_limit = M0 * 1.5 + 1.0  # along the axis
 
 
