@@ -151,8 +151,8 @@ class _Flat:
     """The inputs of :func:`fit_multisine` checked and flattened to ``B`` image sets.
 
     ``data [B, E, H, W]``; ``om [B, N]`` rad/s; ``start, dur [B, E]`` s; ``psf`` batch ``[B]``;
-    ``center [B, 2]``, ``cov [B, 2, 2]``, ``amp_psf [B]`` (a measured kernel's centroid and second
-    moments, amplitude 1); ``u [B, 2]`` the unit direction; ``batch`` the images' leading dims;
+    ``center [B, 2]``, ``cov [B, 2, 2]`` its moments (a measured kernel's centroid and second
+    moments); ``u [B, 2]`` the unit direction; ``batch`` the images' leading dims;
     ``kernel [B, H, W]`` a measured kernel's image (intensity per second), None for a Gaussian.
     """
 
@@ -162,7 +162,6 @@ class _Flat:
     dur: torch.Tensor
     center: torch.Tensor
     cov: torch.Tensor
-    amp_psf: torch.Tensor
     u: torch.Tensor
     batch: tuple
     psf: GaussianPSF | KernelPSF
@@ -179,11 +178,9 @@ def _check_and_flatten(images, psf, window, omega, direction, counts: dict) -> _
     data = images.reshape(B, E, H, W)
     win, p = flat_window(window, batch, B, E), flat_psf(psf, batch, B)
     center, cov = p.moments()
-    kern = isinstance(p, KernelPSF)
     return _Flat(data=data, om=flat_omega(omega, batch, B, data, tones=True), start=win.start, dur=win.duration,
-                 center=center, cov=cov,
-                 amp_psf=torch.ones(B, dtype=data.dtype, device=data.device) if kern else p.amplitude,
-                 u=flat_direction(direction, batch, B, data), batch=batch, psf=p, kernel=p.kernel if kern else None)
+                 center=center, cov=cov, u=flat_direction(direction, batch, B, data), batch=batch, psf=p,
+                 kernel=p.kernel if isinstance(p, KernelPSF) else None)
 
 
 def _noise_power(noise, power, noise_std, flat: _Flat) -> torch.Tensor | None:
