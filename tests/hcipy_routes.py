@@ -309,9 +309,7 @@ def fit_spots_problems(problems: list, kind: str) -> dict:
     noise = torch.stack([r.frame_noise_std(x) for r, x in zip(res_all, raw.reshape(n * K, E, h, w))]).reshape(raw.shape)
     fit = fit_sinusoid(raw, psf, win, om, axes="xy", noise_std=noise)
     traj = Sinusoid(fit.amplitude[..., None, :], fit.phase[..., None, :], om[..., None])
-    psf_e = KernelPSF(psf.kernel[..., None, :, :]) if isinstance(psf, KernelPSF) else GaussianPSF(
-        psf.center[..., None, :], psf.cov[..., None, :, :], psf.amplitude[..., None])
-    model = render_blur(traj, psf_e, win, height=h, width=w)
+    model = render_blur(traj, psf[..., None], win, height=h, width=w)
     noise = torch.stack([r.frame_noise_std(m) for r, m in zip(res_all, model.reshape(n * K, E, h, w))]).reshape(raw.shape)
     fit = fit_sinusoid(raw, psf, win, om, axes="xy", noise_std=noise)
     factor = torch.stack([r.kernel_noise_factor(win.duration[i // K, 0]) for i, r in enumerate(res_all)]).reshape(n, K, 1).numpy()

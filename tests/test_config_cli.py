@@ -2,6 +2,7 @@
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from torchblur.config import IdentifyConfig, load_config
@@ -129,3 +130,25 @@ def test_one_scalar_check_for_arguments_and_config_keys():
         with pytest.raises(ConfigError) as config:
             check_real_scalar(value, "x", nonnegative=True, error=ConfigError)
         assert type(plain.value) is exc and str(plain.value) == str(config.value) == message
+
+
+def test_one_integer_check_for_arguments_and_recording_fields():
+    # errors.check_int serves arguments and a recording manifest's integer fields alike (its
+    # error raised there): the same message naming the field, the value quoted and bounded.
+    from torchblur.errors import EXCERPT_CHARS, InputTypeError, ParameterError, check_int
+    from torchblur.hardware.manifest import _Bad
+
+    assert check_int(np.int64(3), "page", low=0, high=3) == 3 and type(check_int(np.int64(3), "page")) is int
+    for value, exc, message in ((1.0, InputTypeError, "page: expected an integer, got float 1.0"),
+                                ("7", InputTypeError, "page: expected an integer, got str '7'"),
+                                (True, InputTypeError, "page: expected an integer, got bool True"),
+                                (4, ParameterError, "page: expected an integer in [0, 3], got 4"),
+                                (-1, ParameterError, "page: expected an integer in [0, 3], got -1")):
+        with pytest.raises(exc) as plain:
+            check_int(value, "page", low=0, high=3)
+        with pytest.raises(_Bad) as manifest:
+            check_int(value, "page", low=0, high=3, error=_Bad)
+        assert type(plain.value) is exc and str(plain.value) == str(manifest.value) == message
+    with pytest.raises(InputTypeError) as info:
+        check_int("\x1b" * 10_000, "page")
+    assert len(str(info.value)) < EXCERPT_CHARS + 60 and "\x1b" not in str(info.value)

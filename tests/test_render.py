@@ -133,6 +133,52 @@ def test_total_light():
     torch.testing.assert_close(img.sum(), expected, rtol=1e-10, atol=0)
 
 
+def test_gaussian_and_kernel_psf_share_moments_light_and_items():
+    # A measured kernel of a still Gaussian spot (sigma >= 1.5 px, 8 sigmas inside the frame) has
+    # the Gaussian's moments and light; both index their batch alike, psf[..., None] included.
+    g = tb.GaussianPSF(torch.tensor([[14.2, 15.7], [16.0, 13.1]], dtype=torch.float64),
+                       torch.tensor([[[2.5, 0.4], [0.4, 3.0]], [[4.0, -0.5], [-0.5, 2.25]]], dtype=torch.float64),
+                       torch.tensor([1.5, 0.7], dtype=torch.float64))
+    x, y = torch.arange(32, dtype=torch.float64), torch.arange(30, dtype=torch.float64)[:, None]
+    k = tb.KernelPSF(g[:, None, None].evaluate(x, y))  # [2, 30, 32]
+    assert k.shape == g.shape == (2,)
+    torch.testing.assert_close(k.total_light(), g.total_light(), rtol=1e-12, atol=0)
+    for got, want in zip(k.moments(), g.moments()):
+        torch.testing.assert_close(got, want, rtol=0, atol=1e-9)
+    assert g.moments()[0] is g.center and g.moments()[1] is g.cov
+    for idx in (1, torch.tensor([1, 0]), torch.tensor([False, True]), (..., None), (None, ...)):
+        gi, ki = g[idx], k[idx]
+        assert gi.shape == ki.shape == g.amplitude[idx].shape
+        torch.testing.assert_close(ki.total_light(), k.total_light()[idx], rtol=0, atol=0)
+        torch.testing.assert_close(gi.total_light(), g.total_light()[idx], rtol=0, atol=0)
+        torch.testing.assert_close(ki.moments()[0], gi.center, rtol=0, atol=1e-9)
+    # cut to a crop [y0:y1, x0:x1] of the frame, both are the spot in the crop's frame
+    gc, kc = g.cropped(5, 3, 27, 25), k.cropped(5, 3, 27, 25)
+    assert kc.frame_shape == (22, 22) and gc.shape == kc.shape == g.shape
+    torch.testing.assert_close(kc.kernel, gc[:, None, None].evaluate(x[:22], y[:22]), rtol=0, atol=1e-15)
+
+
+def test_psf_footprint_holds_the_spot():
+    # A Gaussian's box is `sigmas` standard deviations along x and y; a kernel cut to that box has
+    # it (to whole pixels) as its footprint, whatever `sigmas` says; an item's box is the batch's.
+    g = tb.GaussianPSF(torch.tensor([[14.2, 15.7], [16.0, 13.1]], dtype=torch.float64),
+                       torch.tensor([[[2.5, 0.4], [0.4, 3.0]], [[4.0, -0.5], [-0.5, 2.25]]], dtype=torch.float64))
+    lo, hi = g.footprint(3.0)
+    sd = torch.diagonal(g.cov, dim1=-2, dim2=-1).sqrt()
+    torch.testing.assert_close(lo, g.center - 3 * sd, rtol=0, atol=0)
+    torch.testing.assert_close(hi, g.center + 3 * sd, rtol=0, atol=0)
+    x, y = torch.arange(32, dtype=torch.float64), torch.arange(30, dtype=torch.float64)
+    inside = (((x >= lo[:, None, None, 0]) & (x <= hi[:, None, None, 0]))
+              & ((y[:, None] >= lo[:, None, None, 1]) & (y[:, None] <= hi[:, None, None, 1])))
+    k = tb.KernelPSF(g[:, None, None].evaluate(x, y[:, None]) * inside)
+    for s in (None, 1.0, 7.0):
+        klo, khi = k.footprint(s)
+        torch.testing.assert_close(klo, lo.ceil(), rtol=0, atol=0)
+        torch.testing.assert_close(khi, hi.floor(), rtol=0, atol=0)
+    torch.testing.assert_close(k[1].footprint()[0], klo[1], rtol=0, atol=0)
+    torch.testing.assert_close(g[1].footprint(3.0)[1], hi[1], rtol=0, atol=0)
+
+
 def test_pixel_integration_exact_for_narrow_spots():
     # Axis-aligned still spot: the pixel integral is a product of erf differences.
     sx, sy, cx, cy, te = 0.5, 0.7, 7.3, 6.6, 0.01

@@ -17,7 +17,7 @@ from torchblur.hardware.errors import RecordingError
 from torchblur.config import PlantConfig, load_config
 from torchblur.identify.drive import check_recorded_drive, drive_limit, is_limited
 from torchblur.identify.run import identify
-from torchblur.rig.base import check_drive, command_peak
+from torchblur.rig.base import DRIVE_RTOL, check_drive, check_slew, command_peak, within_drive
 from torchblur.rig.factory import build_simulated_rig
 from torchblur.rig.simulated import DEFAULT_INPUT_LIMIT
 
@@ -78,6 +78,18 @@ def test_check_drive_refuses_beyond_the_range_only():
     check_drive(-2.0, None)
     with pytest.raises(ParameterError, match="amplitude"):
         check_drive(2.001, 2.0)
+
+
+def test_peak_and_slew_share_one_tolerance():
+    # within_drive is the one test: |value| <= limit (1 + DRIVE_RTOL), NaN beyond, None no limit.
+    edge = 2.0 * (1 + DRIVE_RTOL)
+    assert within_drive(edge, 2.0) and within_drive(-edge, 2.0) and within_drive(1e300, None)
+    assert not within_drive(2.0 * (1 + 10 * DRIVE_RTOL), 2.0) and not within_drive(float("nan"), 2.0)
+    for check, words in ((check_drive, "of peak .* beyond the input range"), (check_slew, "slewing at .* beyond the slew limit")):
+        check(-edge, 2.0)
+        check(float("nan"), None)
+        with pytest.raises(ParameterError, match=f"^levels: a command {words}"):
+            check(float("nan"), 2.0, "levels")
 
 
 # ------------------------------------------------------------------ the simulated plant

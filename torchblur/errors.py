@@ -229,18 +229,21 @@ def as_unit_direction(value, name: str, *, like: torch.Tensor) -> torch.Tensor:
     return d / norm
 
 
-def check_int(value, name: str, *, low: int | None = None, high: int | None = None) -> int:
+def check_int(value, name: str, *, low: int | None = None, high: int | None = None,
+              error: type[Exception] | None = None) -> int:
     """A Python or numpy integer (not a bool) in ``[low, high]`` as an ``int``.
 
     Raises :class:`InputTypeError` for anything that is not an integer (``2.5``, ``"3"``,
-    ``True``) and :class:`ParameterError` for an integer out of range; both name ``name``.
+    ``True``) and :class:`ParameterError` for an integer out of range; both name ``name`` and
+    quote the value (:func:`excerpt`: it may be untrusted); ``error`` for both when given (a
+    recording's manifest: its own error).
     """
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise InputTypeError(f"{name}: expected an integer, got {type(value).__name__} {value!r}")
+        raise (error or InputTypeError)(f"{name}: expected an integer, got {type(value).__name__} {excerpt(value)}")
     v = int(value)
     if (low is not None and v < low) or (high is not None and v > high):
         rng = f">= {low}" if high is None else (f"<= {high}" if low is None else f"in [{low}, {high}]")
-        raise ParameterError(f"{name}: expected an integer {rng}, got {v}")
+        raise (error or ParameterError)(f"{name}: expected an integer {rng}, got {excerpt(v)}")
     return v
 
 

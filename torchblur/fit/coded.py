@@ -12,7 +12,7 @@ import torch
 
 from torchblur._compat import median_along
 from torchblur.errors import as_tensor
-from torchblur.fit.inputs import check_count, check_data, flat_count, flat_omega, flat_psf, flat_window, psf_moments
+from torchblur.fit.inputs import check_count, check_data, flat_count, flat_omega, flat_psf, flat_window
 from torchblur.fit.multisine import render_multisine_with_jacobian
 from torchblur.losses import fisher_covariance, image_loss, pixel_weights, residual_weights
 from torchblur.optim import levenberg_marquardt
@@ -124,7 +124,7 @@ def _problem(images, psf: GaussianPSF | KernelPSF, window: ExposureWindow, code,
     batch, (H, W) = images.shape[:-2], images.shape[-2:]
     B = flat_count(images, frame_dims=2)
     win, p = flat_window(window, batch, B), flat_psf(psf, batch, B)
-    center, cov = psf_moments(p)
+    center, cov = p.moments()
     kernel = p.kernel if isinstance(p, KernelPSF) else None
     amp = torch.ones(B, dtype=images.dtype, device=images.device) if kernel is not None else p.amplitude
     return _CodedProblem(center=center, cov=cov, amp=amp, start=win.start, dur=win.duration,

@@ -116,15 +116,6 @@ def _check_settings(renderer, psf, window, loss, reduction, normalize) -> None:
         raise InputTypeError(f"normalize: expected True or False, got {type(normalize).__name__}")
 
 
-def _psf_with_exposure_axis(psf):
-    """A PSF of batch ``[...]`` with a trailing singleton axis, shared by the E exposures."""
-    if isinstance(psf, GaussianPSF):
-        return GaussianPSF(psf.center[..., None, :], psf.cov[..., None, :, :], psf.amplitude[..., None])
-    if isinstance(psf, KernelPSF):
-        return KernelPSF(psf.kernel[..., None, :, :])
-    raise InputTypeError(f"psf: expected GaussianPSF or KernelPSF, got {type(psf).__name__}")
-
-
 def _unit_frobenius(x: torch.Tensor) -> torch.Tensor:
     """``x / ||x||_F`` over the last two axes ``[..., H, W]``; an all-zero image stays 0.
 
@@ -232,7 +223,7 @@ def _model_and_data(renderer: BlurRenderer, traj: Trajectory, psf, window: Expos
             f"batch shapes do not broadcast: pred {tuple(traj.shape)}, psf {tuple(getattr(psf, 'shape', ()))}, "
             f"window {tuple(window.shape)} (as [..., E]), observed {tuple(observed.shape)} (as [..., E, H, W])"
         ) from None
-    model = renderer(_ExposureAxis(traj), _psf_with_exposure_axis(psf), window if window.shape else window.expand((1,)))
+    model = renderer(_ExposureAxis(traj), psf[..., None], window if window.shape else window.expand((1,)))
     model = model.expand(out_batch + (E, H, W))
     return model, observed.to(model.dtype).expand(out_batch + (E, H, W))
 

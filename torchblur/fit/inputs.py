@@ -16,8 +16,8 @@ from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_ten
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.window import ExposureWindow
 
-__all__ = ["fit_dtype", "check_data", "flat_window", "flat_omega", "flat_psf", "psf_moments", "take_psf",
-           "unit_direction", "flat_direction", "check_count", "flat_count"]
+__all__ = ["fit_dtype", "check_data", "flat_window", "flat_omega", "flat_psf", "unit_direction", "flat_direction",
+           "check_count", "flat_count"]
 
 
 def fit_dtype(images: torch.Tensor, psf, window: ExposureWindow) -> torch.dtype:
@@ -102,19 +102,6 @@ def flat_psf(psf, batch: tuple, N: int):
                            psf.cov.expand(batch + (2, 2)).reshape(N, 2, 2), psf.amplitude.expand(batch).reshape(N))
     H, W = psf.frame_shape
     return KernelPSF(psf.kernel.expand(batch + (H, W)).reshape(N, H, W))
-
-
-def psf_moments(psf):
-    """The rest position ``[N, 2]`` (px) and covariance ``[N, 2, 2]`` (px^2) of a flat PSF: a
-    Gaussian's centre and covariance, a measured kernel's centroid and second moments."""
-    if isinstance(psf, GaussianPSF):
-        return psf.center, psf.cov
-    return psf.moments()
-
-
-def take_psf(psf, idx):
-    """Items ``idx`` of a flat PSF."""
-    return psf[idx] if isinstance(psf, GaussianPSF) else KernelPSF(psf.kernel[idx])
 
 
 def unit_direction(value, like: torch.Tensor, name: str = "direction") -> torch.Tensor:

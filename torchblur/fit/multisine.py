@@ -14,12 +14,12 @@ from torchblur._compat import median_along
 from torchblur.render.alias import canonical_sines
 from torchblur.errors import ParameterError, ShapeError, as_tensor, check_finite, check_positive
 from torchblur.fit.inputs import (check_count, check_data, flat_count, flat_direction, flat_omega, flat_psf,
-                                  flat_window, psf_moments, unit_direction)
+                                  flat_window, unit_direction)
 from torchblur.fit.kernel_noise import kernel_noise_covariance
 from torchblur.losses import fisher_covariance, image_loss, pixel_weights, residual_weights, singular_covariance
 from torchblur.image.moments import image_moments, moments_along
 from torchblur.optim import levenberg_marquardt, model_jacobian
-from torchblur.fit.problem import _nonzero_box, cut_sums
+from torchblur.fit.problem import cut_sums
 from torchblur.fit.results import ToneFit
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.camera import CameraNoise, noise_sets_weights
@@ -66,11 +66,7 @@ def render_multisine(theta, omega, psf: GaussianPSF | KernelPSF, window: Exposur
     amp = theta[..., :N, None] * unit_direction(direction, theta)[..., None, :]  # [..., N, 2]
     ph = theta[..., N:2 * N]
     traj = Multisine(amp[..., None, :, :], torch.stack([ph, ph], -1)[..., None, :, :], omega[..., None, :])
-    if isinstance(psf, KernelPSF):
-        p = KernelPSF(psf.kernel[..., None, :, :])
-    else:
-        p = GaussianPSF(psf.center[..., None, :], psf.cov[..., None, :, :], psf.amplitude[..., None])
-    img = render_blur(traj, p, window, height=height, width=width, settings=settings)
+    img = render_blur(traj, psf[..., None], window, height=height, width=width, settings=settings)
     if theta.shape[-1] == 2 * N + 1:
         img = img * theta[..., 2 * N, None, None, None]
     return img
@@ -159,8 +155,8 @@ class _Flat:
     """The inputs of :func:`fit_multisine` checked and flattened to ``B`` image sets.
 
     ``data [B, E, H, W]``; ``om [B, N]`` rad/s; ``start, dur [B, E]`` s; ``psf`` batch ``[B]``;
-    ``center [B, 2]``, ``cov [B, 2, 2]``, ``amp_psf [B]`` (a measured kernel's centroid and second
-    moments, amplitude 1); ``u [B, 2]`` the unit direction; ``batch`` the images' leading dims;
+    ``center [B, 2]``, ``cov [B, 2, 2]`` its moments (a measured kernel's centroid and second
+    moments); ``u [B, 2]`` the unit direction; ``batch`` the images' leading dims;
     ``kernel [B, H, W]`` a measured kernel's image (intensity per second), None for a Gaussian.
     """
 
@@ -170,15 +166,10 @@ class _Flat:
     dur: torch.Tensor
     center: torch.Tensor
     cov: torch.Tensor
-    amp_psf: torch.Tensor
     u: torch.Tensor
     batch: tuple
     psf: GaussianPSF | KernelPSF
     kernel: torch.Tensor | None = None
-
-    def total_light(self) -> torch.Tensor:
-        """The PSF's light per second ``[B]``."""
-        return self.kernel.sum((-1, -2)) if self.kernel is not None else self.psf.total_light()
 
 
 def _check_and_flatten(images, psf, window, omega, direction, counts: dict) -> _Flat:
@@ -190,12 +181,10 @@ def _check_and_flatten(images, psf, window, omega, direction, counts: dict) -> _
     B = flat_count(images)
     data = images.reshape(B, E, H, W)
     win, p = flat_window(window, batch, B, E), flat_psf(psf, batch, B)
-    center, cov = psf_moments(p)
-    kern = isinstance(p, KernelPSF)
+    center, cov = p.moments()
     return _Flat(data=data, om=flat_omega(omega, batch, B, data, tones=True), start=win.start, dur=win.duration,
-                 center=center, cov=cov,
-                 amp_psf=torch.ones(B, dtype=data.dtype, device=data.device) if kern else p.amplitude,
-                 u=flat_direction(direction, batch, B, data), batch=batch, psf=p, kernel=p.kernel if kern else None)
+                 center=center, cov=cov, u=flat_direction(direction, batch, B, data), batch=batch, psf=p,
+                 kernel=p.kernel if isinstance(p, KernelPSF) else None)
 
 
 def _noise_power(noise, power, noise_std, flat: _Flat) -> torch.Tensor | None:
@@ -308,7 +297,7 @@ def _starts(flat: _Flat, M0, thr, phase_guess, n_starts: int, g: torch.Generator
     theta_c = torch.stack(cands, 1)  # [B, K, 2N]
     if fit_scale:
         K = theta_c.shape[1]
-        expected = (flat.total_light()[:, None] * flat.dur).sum(-1)
+        expected = (flat.psf.total_light()[:, None] * flat.dur).sum(-1)
         sc = (flat.data.sum((-1, -2, -3)) / expected.clamp_min(1e-30)).clamp_min(1e-3)
         theta_c = torch.cat([theta_c, sc[:, None, None].expand(B, K, 1)], -1)
     return theta_c
@@ -318,13 +307,8 @@ def _crop_box(flat: _Flat, theta_c) -> tuple[int, int, int, int]:
     """``(lo_y, hi_y, lo_x, hi_x)``: where the model of any start reaches (the whole frame if that is under 4 px)."""
     H, W = flat.data.shape[-2:]
     N = flat.om.shape[-1]
-    center = flat.center
     reach = (theta_c[..., :N].abs().sum(-1).amax(1) * 1.3 + 0.5)[:, None] * flat.u.abs()  # [B, 2] (x, y) px
-    if flat.kernel is not None:  # wherever the kernel is not zero, its faint wings included
-        lo, hi = _nonzero_box(flat.kernel)
-    else:
-        sd = torch.diagonal(flat.cov, dim1=-2, dim2=-1).sqrt()
-        lo, hi = center - 7 * sd, center + 7 * sd
+    lo, hi = flat.psf.footprint(7.0)
     lo_x = int(max(0, math.floor(float((lo[:, 0] - reach[:, 0]).min()))))
     hi_x = int(min(W, math.ceil(float((hi[:, 0] + reach[:, 0]).max())) + 1))
     lo_y = int(max(0, math.floor(float((lo[:, 1] - reach[:, 1]).min()))))
@@ -370,10 +354,7 @@ class _Problem:
 
     def _items(self, item):
         p = self.psf
-        win = ExposureWindow(self.start[item], self.dur[item])
-        if isinstance(p, KernelPSF):
-            return KernelPSF(p.kernel[item]), win
-        return GaussianPSF(p.center[item], p.cov[item], p.amplitude[item]), win
+        return p[item], ExposureWindow(self.start[item], self.dur[item])
 
     def model(self, theta, item) -> torch.Tensor:
         """Rendered images of the sets ``item [n]`` at ``theta [n, P]`` -> ``[n, R]`` (a kernel:
@@ -403,8 +384,7 @@ def _problem(flat: _Flat, weight, theta_c, render_settings, kernel_var=None) -> 
     dtype, device = flat.data.dtype, flat.data.device
     data = flat.data
     lo_y, hi_y, lo_x, hi_x = box = _crop_box(flat, theta_c)
-    center_c = flat.center - torch.tensor([lo_x, lo_y], dtype=dtype, device=device)
-    psf_c = GaussianPSF(center_c, flat.cov, flat.amp_psf) if flat.kernel is None else KernelPSF(flat.kernel[:, lo_y:hi_y, lo_x:hi_x])
+    psf_c = flat.psf.cropped(lo_x, lo_y, hi_x, hi_y)
     reach = float((theta_c[..., :N].abs().sum(-1).amax(1) * 1.3 + 0.5).max()) if B else 0.0
     settings = render_settings or RenderSettings(panel_path_sigmas=3.5)
     if settings.nodes is None:

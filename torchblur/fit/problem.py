@@ -12,7 +12,6 @@ from dataclasses import dataclass
 import torch
 
 from torchblur._compat import median_along
-from torchblur.fit.inputs import psf_moments
 from torchblur.fit.sine_model import ParamLayout
 from torchblur.image.moments import image_moments, moments_along, sinusoid_from_moments
 from torchblur.losses import pixel_weights
@@ -98,7 +97,7 @@ def sine_problem(data, psf, window: ExposureWindow, omega, direction, *, noise_s
     win = window.to(dtype).expand((N, E))
     if isinstance(psf, GaussianPSF):
         psf = psf.to(dtype)
-    rest, cov_psf = psf_moments(psf)
+    rest, cov_psf = psf.moments()
     weight, std = pixel_weights(noise_std, use, data)
     # one weight per item, nothing masked: weight is a view of row_weight (see SineProblem)
     row_weight = weight[:, 0, 0, 0] if use is None and (std is None or std.dim() == 1) else None
@@ -269,10 +268,7 @@ def _nuisance_starts(problem: SineProblem, layout: ParamLayout) -> list:
     p = problem
     extra = []
     if layout.fit_scale:
-        if isinstance(p.psf, GaussianPSF):
-            expected = (p.psf.total_light()[:, None] * p.duration).sum(-1)
-        else:
-            expected = (p.psf.kernel.sum((-1, -2))[:, None] * p.duration).sum(-1)
+        expected = (p.psf.total_light()[:, None] * p.duration).sum(-1)
         extra.append((p.data.sum((-1, -2, -3)) / expected.clamp_min(1e-30)).clamp_min(1e-3))
     if layout.fit_background:
         extra.append(p.level)
@@ -313,9 +309,8 @@ def crop_to_reach(problem: SineProblem, amplitude_bound: torch.Tensor, *, fit_ce
     if not _worth_cropping(cx1 - cx0, cy1 - cy0, H, W):
         return p
     cut_cost, cut_sq, cut_n = cut_sums(p.data, p.weight, (cy0, cy1, cx0, cx1), p.row_weight)
-    shift = torch.tensor([cx0, cy0], dtype=p.data.dtype, device=p.data.device)
-    psf = GaussianPSF(p.psf.center - shift, p.psf.cov, p.psf.amplitude)
-    return dataclasses.replace(p, data=p.data[..., cy0:cy1, cx0:cx1], weight=p.weight[..., cy0:cy1, cx0:cx1], psf=psf,
+    return dataclasses.replace(p, data=p.data[..., cy0:cy1, cx0:cx1], weight=p.weight[..., cy0:cy1, cx0:cx1],
+                               psf=p.psf.cropped(cx0, cy0, cx1, cy1),
                                origin=(cx0, cy0), cut_cost=cut_cost, cut_sq=cut_sq, cut_n=cut_n)
 
 
@@ -350,24 +345,8 @@ def _reach_bounds(p: SineProblem, amplitude_bound: torch.Tensor, fit_center: boo
     faint wings included) widened by the motion."""
     reach = (p.direction.abs() * (amplitude_bound * 1.25 + 0.5)[..., None]).sum(1)  # [N, 2] px
     margin = 2.0 if fit_center else 0.0
-    if isinstance(p.psf, KernelPSF):
-        lo, hi = _nonzero_box(p.psf.kernel)
-        return lo - reach - margin, hi + reach + margin
-    sdv = torch.diagonal(p.psf_cov, dim1=-2, dim2=-1).clamp_min(0).sqrt()
-    return p.rest - reach - 5.5 * sdv - margin, p.rest + reach + 5.5 * sdv + margin
-
-
-def _nonzero_box(kernel: torch.Tensor):
-    """``(lo [N, 2], hi [N, 2])`` (x, y px): the first and last column and row where each kernel
-    ``[N, H, W]`` is not zero (0 and the last where it is zero everywhere)."""
-    nz = kernel.detach() != 0
-    out = []
-    for lines in (nz.any(-2), nz.any(-1)):  # [N, W] columns, [N, H] rows
-        idx = torch.arange(lines.shape[-1], device=kernel.device, dtype=kernel.dtype)
-        first = torch.where(lines, idx, torch.full_like(idx, math.inf)).amin(-1)
-        last = torch.where(lines, idx, torch.full_like(idx, -math.inf)).amax(-1)
-        out.append((torch.where(lines.any(-1), first, idx[0]), torch.where(lines.any(-1), last, idx[-1])))
-    return torch.stack([out[0][0], out[1][0]], -1), torch.stack([out[0][1], out[1][1]], -1)
+    lo, hi = p.psf.footprint(5.5)
+    return lo - reach - margin, hi + reach + margin
 
 
 def _worth_cropping(w: int, h: int, H: int, W: int) -> bool:

@@ -14,7 +14,7 @@ from torchblur.losses import (LOSSES, covariance_factor, fisher_covariance, imag
                               residual_weights, singular_covariance)
 from torchblur.optim import LMResult, levenberg_marquardt
 from torchblur.fit.inputs import (check_count, check_data, flat_count, flat_direction, flat_omega, flat_psf,
-                                  flat_window, psf_moments, take_psf)
+                                  flat_window)
 from torchblur.fit.problem import SineProblem, crop_to_reach, sine_problem, starting_points
 from torchblur.fit.results import SinusoidFit, put_items
 from torchblur.fit.robust import impulses, inpaint, plane_fit, plane_image, robust_scale
@@ -528,7 +528,7 @@ def _fit_items(inp: _FlatInputs, o: _FitOptions, data: torch.Tensor, idx: torch.
         return _fit_core(inpaint(data, use), inp.psf, inp.window, inp.omega, inp.axis_dirs, labels=inp.labels, options=o,
                          noise_std=inp.noise, use=mask)
     noise = None if inp.noise is None else inp.noise[idx]
-    return _fit_core(inpaint(data[idx], use), take_psf(inp.psf, idx), inp.window[idx], inp.omega[idx],
+    return _fit_core(inpaint(data[idx], use), inp.psf[idx], inp.window[idx], inp.omega[idx],
                      inp.axis_dirs[idx], labels=inp.labels, options=o, noise_std=noise, use=mask)
 
 
@@ -703,7 +703,7 @@ def _model_images(res: SinusoidFit, idx, inp: _FlatInputs, o: _FitOptions, *, wi
             n_panels = k // 2 if isinstance(psf, GaussianPSF) else int(panels[sel[0]])
             rule = replace(settings, nodes=int(n_panels) * settings.nodes_per_panel)
             sub = Sinusoid(amp[sel][:, None, :], ph[sel][:, None, :], inp.omega[idx][sel][:, None])
-            out[sel] = render_blur(sub, take_psf(psf, sel), ExposureWindow(win.start[sel], win.duration[sel]),
+            out[sel] = render_blur(sub, psf[sel], ExposureWindow(win.start[sel], win.duration[sel]),
                                    height=H, width=W, settings=rule)
     if with_background:
         out = out + res.background[idx][:, None, None, None]
@@ -717,7 +717,7 @@ def _light_in_frame(res: SinusoidFit, inp: _FlatInputs, fit_center: bool, n_t: i
     H, W = inp.data.shape[-2:]
     psf, win, om = inp.psf, inp.window, inp.omega
     amp, ph = _axes_xy(res.amplitude, res.phase, inp.direction)
-    centre, cov = psf_moments(psf)
+    centre, cov = psf.moments()
     if fit_center and res.center is not None:
         centre = res.center
     dtype, device = amp.dtype, amp.device

@@ -12,7 +12,7 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from torchblur.errors import check_real_scalar, excerpt
+from torchblur.errors import check_int, check_real_scalar, excerpt
 from torchblur.files import read_bounded as _read_bounded, sha256_bounded
 from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.run_folder import inside
@@ -91,14 +91,6 @@ def load_json(data: bytes, what: str):
     return value
 
 
-def _int(v, key, low=None, high=None):
-    if isinstance(v, bool) or not isinstance(v, int):
-        raise _Bad(f"{key}: expected an integer, got {excerpt(v)}")
-    if (low is not None and v < low) or (high is not None and v > high):
-        raise _Bad(f"{key}: expected an integer in [{low}, {high}], got {excerpt(v)}")
-    return v
-
-
 def _float(v, key, *, positive=False, nonnegative=False, optional=False):
     if v is None and optional:
         return None
@@ -129,19 +121,19 @@ def check_line(ln, root: Path) -> str:
     g = ln.get("group")
     if not isinstance(g, str) or not _GROUP.match(g):
         raise _Bad(f"group: expected a group key like 'dark' or 'sweep/x/003', got {excerpt(g)}")
-    n = _int(ln.get("group_frames"), "group_frames", 1, 1_000_000)
+    n = check_int(ln.get("group_frames"), "group_frames", low=1, high=1_000_000, error=_Bad)
     _str(ln.get("kind"), "kind", limit=32)
-    _int(ln.get("call"), "call", 0, n - 1)
+    check_int(ln.get("call"), "call", low=0, high=n - 1, error=_Bad)
     shape = ln.get("call_shape")
     if not isinstance(shape, list) or len(shape) > 4:
         raise _Bad(f"call_shape: expected a list of at most 4 sizes, got {excerpt(shape)}")
-    size = math.prod(_int(s, "call_shape", 1, n) for s in shape)
+    size = math.prod(check_int(s, "call_shape", low=1, high=n, error=_Bad) for s in shape)
     if size > n:
         raise _Bad(f"call_shape: {shape} holds {size} frames, more than the group's {n}")
-    _int(ln.get("index"), "index", 0, size - 1)
+    check_int(ln.get("index"), "index", low=0, high=size - 1, error=_Bad)
     if ln.get("method") not in METHODS:
         raise _Bad(f"method: expected one of {METHODS}, got {excerpt(ln.get('method'))}")
-    _int(ln.get("page"), "page", 0, n - 1)
+    check_int(ln.get("page"), "page", low=0, high=n - 1, error=_Bad)
     if ln.get("file") != expected_file(g):
         raise _Bad(f"file: expected {excerpt(expected_file(g))} (the group's frame file), got {excerpt(ln.get('file'))}")
     inside(root, ln["file"], "file")
@@ -149,14 +141,14 @@ def check_line(ln, root: Path) -> str:
         raise _Bad(f"dtype: expected 'uint16' or 'float64', got {excerpt(ln.get('dtype'))}")
     if not isinstance(ln.get("sha256"), str) or not _SHA.match(ln["sha256"]):
         raise _Bad(f"sha256: expected 64 lowercase hex digits, got {excerpt(ln.get('sha256'))}")
-    _int(ln.get("frame_counter"), "frame_counter", -(2**62), 2**62)
+    check_int(ln.get("frame_counter"), "frame_counter", low=-(2**62), high=2**62, error=_Bad)
     _float(ln.get("exposure_s"), "exposure_s", positive=True)
     for k in ("timestamp_s", "trigger_time_s", "trigger_offset_s"):
         _float(ln.get(k), k, optional=True)
     for k in ("exposure_index", "session"):
         if ln.get(k) is not None:
-            _int(ln[k], k, 0, 1_000_000)
-    _int(ln.get("repeat"), "repeat", 0, n - 1)
+            check_int(ln[k], k, low=0, high=1_000_000, error=_Bad)
+    check_int(ln.get("repeat"), "repeat", low=0, high=n - 1, error=_Bad)
     _str(ln.get("input"), "input", optional=True, limit=16)
     _float(ln.get("freq_hz"), "freq_hz", positive=True, optional=True)
     if not isinstance(ln.get("args"), dict) or not isinstance(ln.get("meta", {}), dict):
@@ -175,9 +167,9 @@ def check_line(ln, root: Path) -> str:
                                         and math.isclose(ln["args"][k], ln[k], rel_tol=1e-12)):
                 raise _Bad(f"{k}: {excerpt(ln[k])} differs from the rig call's args.{k} = {excerpt(ln['args'][k])}")
         if ln.get("point") is not None:
-            _int(ln["point"], "point", 0, 1_000_000)
+            check_int(ln["point"], "point", low=0, high=1_000_000, error=_Bad)
         if ln.get("attempts") is not None:
-            _int(ln["attempts"], "attempts", 1, 1000)
+            check_int(ln["attempts"], "attempts", low=1, high=1000, error=_Bad)
     return g
 
 
@@ -330,7 +322,7 @@ def check_meta(meta, what: str) -> None:
         shape = cam.get("frame_shape")
         if not isinstance(shape, list) or len(shape) != 2:
             raise _Bad(f"frame_shape: expected [H, W], got {excerpt(shape)}")
-        h, w = (_int(v, "frame_shape", 1, MAX_FRAME_SIDE) for v in shape)
+        h, w = (check_int(v, "frame_shape", low=1, high=MAX_FRAME_SIDE, error=_Bad) for v in shape)
         if h * w > 2**28:
             raise _Bad(f"frame_shape: {h}x{w} pixels is more than any camera delivers")
         for k in ("frame_rate_hz", "max_exposure_s"):

@@ -18,7 +18,7 @@ from torchblur.errors import ConfigError
 from torchblur.files import read_bounded
 from torchblur.hardware.errors import RecordingError
 from torchblur.identify.record import LOGGER
-from torchblur.rig.base import DRIVE_RTOL
+from torchblur.rig.base import within_drive
 
 __all__ = ["PLAN_KEY", "SWEEP_KIND", "TABLE_KEY", "check_recorded_commands", "plan_document", "plan_from_document", "plan_support",
            "recorded_labels", "recorded_on_simulation", "recorded_plan", "resume_seed", "same_table", "simulated_frames", "sweep_key",
@@ -144,7 +144,7 @@ def check_recorded_commands(exp, limit: float) -> None:
             continue
         a = ln["args"]
         peak = abs(float(a.get("amplitude", math.nan))) * max(abs(float(v)) for v in a["pattern"])
-        if not peak <= limit * (1 + DRIVE_RTOL):
+        if not within_drive(peak, limit):
             raise RecordingError(f"{ln['group']}: recorded with a command of peak {peak:.6g} input units, beyond dm.input_limit "
                                  f"{limit:.6g}; refused")
 

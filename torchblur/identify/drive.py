@@ -16,7 +16,7 @@ import numpy as np
 
 from torchblur.errors import ConfigError
 from torchblur.hardware.errors import RecordingError
-from torchblur.rig.base import DRIVE_RTOL, command_peak, command_slew
+from torchblur.rig.base import DRIVE_RTOL, command_peak, command_slew, within_drive
 
 __all__ = ["DriveLimit", "drive_limit", "range_limit", "at_limit", "is_limited", "check_recorded_drive", "limited_summary", "SESSION_KEY",
            "SLEW_KEY"]
@@ -75,18 +75,8 @@ def drive_limit(rig, max_amplitude, exp=None, max_slew=None) -> DriveLimit:
             the rig's slew limit (it may only narrow it).
     """
     rng = range_limit(rig, max_amplitude, exp)
-    replay = exp is not None and not hasattr(rig, "input_limit")
-    device = _recorded_range(exp, SLEW_KEY) if replay else getattr(rig, "slew_limit", None)
-    device = None if device is None else float(device)
-    smax = None if max_slew is None else float(max_slew)
-    if smax is not None and device is not None and smax > device * (1 + DRIVE_RTOL):
-        raise ConfigError(f"excitation.max_slew: {smax:g} input units/s is beyond the slew limit {device:g} the rig reports "
-                          f"({rig!r}); it may only narrow the limit, not widen it")
-    if smax is not None:
-        return DriveLimit(rng.limit, rng.device, rng.source, smax, device, "excitation.max_slew")
-    if device is not None:
-        return DriveLimit(rng.limit, rng.device, rng.source, device, device, "recording" if replay else "device")
-    return rng
+    slew, device, source = _narrowed(rig, exp, SLEW_KEY, max_slew, "excitation.max_slew", (" input units/s", "slew limit ", "limit"))
+    return rng if slew is None else DriveLimit(rng.limit, rng.device, rng.source, slew, device, source)
 
 
 def range_limit(rig, max_amplitude, exp=None) -> DriveLimit:
@@ -101,24 +91,35 @@ def range_limit(rig, max_amplitude, exp=None) -> DriveLimit:
             (it may only narrow it), or the rig does not report a range and it is not given
             (an old controller that does not answer ``RANGE?``).
     """
-    device = getattr(rig, "input_limit", None)
-    replay = exp is not None and not hasattr(rig, "input_limit")
-    if replay:
-        device = _recorded_range(exp)
-    device = None if device is None else float(device)
-    amax = None if max_amplitude is None else float(max_amplitude)
-    if amax is not None and device is not None and amax > device * (1 + DRIVE_RTOL):
-        raise ConfigError(f"excitation.max_amplitude: {amax:g} is beyond the input range +-{device:g} the rig reports "
-                          f"({rig!r}); it may only narrow the range, not widen it")
-    if amax is not None:
-        return DriveLimit(amax, device, "excitation.max_amplitude")
-    if device is not None:
-        return DriveLimit(device, device, "recording" if replay else "device")
-    if replay:
-        return DriveLimit(math.inf, None, "recording")
+    limit, device, source = _narrowed(rig, exp, SESSION_KEY, max_amplitude, "excitation.max_amplitude", ("", "input range +-", "range"))
+    if limit is not None or source == "recording":
+        return DriveLimit(math.inf if limit is None else limit, device, source)
     raise ConfigError(f"excitation.max_amplitude: the rig ({rig!r}) does not report its input range (a controller "
                       f"that does not answer RANGE?: an older firmware); give excitation.max_amplitude=..., the largest "
                       f"|command| (input units) the actuator may take, to run on it")
+
+
+def _narrowed(rig, exp, key: str, value, name: str, words: tuple) -> tuple:
+    """One of the rig's limits (its attribute ``key``: ``input_limit`` or ``slew_limit``; a rig
+    without ``input_limit`` replaying a recording ``exp``: what the recording noted under ``key``)
+    narrowed by the config's ``value`` (key ``name``; None: not given) -> ``(limit, device, source)``
+    (``limit`` None where neither says; ``source`` then ``"recording"`` when replaying).
+
+    Raises:
+        ConfigError: naming ``name``, when ``value`` is beyond the rig's limit (``words``: the
+            value's unit, the limit's name and its noun, for the message).
+    """
+    replay = exp is not None and not hasattr(rig, "input_limit")
+    device = _recorded_range(exp, key) if replay else getattr(rig, key, None)
+    device = None if device is None else float(device)
+    want = None if value is None else float(value)
+    unit, what, noun = words
+    if want is not None and device is not None and want > device * (1 + DRIVE_RTOL):
+        raise ConfigError(f"{name}: {want:g}{unit} is beyond the {what}{device:g} the rig reports ({rig!r}); it may only "
+                          f"narrow the {noun}, not widen it")
+    if want is not None:
+        return want, device, name
+    return device, device, "recording" if replay else ("device" if device is not None else "none")
 
 
 def at_limit(amplitude: float, limit: float) -> bool:
@@ -158,11 +159,11 @@ def check_recorded_drive(exp, limit: float, slew: float = math.inf) -> None:
                 rate = command_slew(a["freq_hz"], a["amplitude"], a["phase_rad"], a.get("base_freq_hz"))
         except (KeyError, TypeError, ValueError) as exc:
             raise RecordingError(f"{ln.get('group')}: the recorded {ln['method']} call has no readable amplitude ({exc})") from None
-        if not peak <= limit * (1 + DRIVE_RTOL):
+        if not within_drive(peak, limit):
             raise RecordingError(f"{ln.get('group')}: recorded with a command of peak {peak:.6g} input units, beyond the input "
                                  f"range +-{limit:.6g} of this run's rig; refused (resume it on the rig it was recorded on, or "
                                  f"record anew)")
-        if not rate <= slew * (1 + DRIVE_RTOL):
+        if not within_drive(rate, slew):
             raise RecordingError(f"{ln.get('group')}: recorded with a command slewing at {rate:.6g} input units/s, beyond the "
                                  f"slew limit {slew:.6g} units/s of this run's rig; refused (resume it on the rig it was "
                                  f"recorded on, or record anew)")

@@ -78,10 +78,6 @@ def render_coded(trajectory, psf, window: ExposureWindow, code, *, height: int, 
         traj_b = Sinusoid(trajectory.amplitude[..., None, :], trajectory.phase[..., None, :], trajectory.omega[..., None, :])
     else:
         raise InputTypeError(f"trajectory: expected a Sinusoid, got {type(trajectory).__name__}")
-    if isinstance(psf, GaussianPSF):
-        psf_b = GaussianPSF(psf.center[..., None, :], psf.cov[..., None, :, :], psf.amplitude[..., None])
-    elif isinstance(psf, KernelPSF):
-        psf_b = KernelPSF(psf.kernel[..., None, :, :])
-    else:
+    if not isinstance(psf, (GaussianPSF, KernelPSF)):
         raise InputTypeError(f"psf: expected a GaussianPSF or KernelPSF, got {type(psf).__name__}")
-    return render_blur(traj_b, psf_b, sub, height=height, width=width, settings=settings).sum(-3)
+    return render_blur(traj_b, psf[..., None], sub, height=height, width=width, settings=settings).sum(-3)

@@ -15,6 +15,12 @@ from torchblur.errors import ParameterError, ShapeError, as_tensor, broadcast_ba
 __all__ = ["GaussianPSF", "KernelPSF"]
 
 
+def _batch_index(idx, trailing: int) -> tuple:
+    """An index ``idx`` of a PSF's batch dims ``[...]`` as an index of a tensor ``[..., *trailing
+    dims]`` (``trailing`` whole dims appended, so ``...`` and None stay in the batch)."""
+    return (idx if isinstance(idx, tuple) else (idx,)) + (slice(None),) * trailing
+
+
 class GaussianPSF:
     """A 2-D Gaussian spot with full covariance (tilted ellipses allowed).
 
@@ -93,6 +99,24 @@ class GaussianPSF:
         det = sxx * syy - sxy * sxy
         return syy / det, -sxy / det, sxx / det
 
+    def moments(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The rest position ``[..., 2]`` (x, y px) and covariance ``[..., 2, 2]`` (px^2): the
+        centre and ``cov`` themselves (with their gradient), as :meth:`KernelPSF.moments`."""
+        return self.center, self.cov
+
+    def footprint(self, sigmas: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """The box that holds the spot, ``(lo, hi)``, each ``[..., 2]`` (x, y px, no gradient):
+        ``sigmas`` standard deviations about the centre along x and along y."""
+        sd = torch.diagonal(self.cov.detach(), dim1=-2, dim2=-1).clamp_min(0).sqrt()
+        center = self.center.detach()
+        return center - sigmas * sd, center + sigmas * sd
+
+    def cropped(self, x0: int, y0: int, x1: int, y1: int) -> "GaussianPSF":
+        """The spot in the frame of the crop ``[y0:y1, x0:x1]`` (px) of its frame: the centre less
+        ``(x0, y0)``, the same covariance and amplitude (as :meth:`KernelPSF.cropped`)."""
+        shift = torch.tensor([x0, y0], dtype=self.center.dtype, device=self.center.device)
+        return GaussianPSF(self.center - shift, self.cov, self.amplitude)
+
     def sigma_min(self) -> torch.Tensor:
         """Smallest principal standard deviation (px), ``[...]``."""
         return torch.linalg.eigvalsh(self.cov).clamp_min(0)[..., 0].sqrt()
@@ -110,7 +134,9 @@ class GaussianPSF:
         return self.amplitude * torch.exp(-0.5 * (A * dx * dx + 2 * B * dx * dy + C * dy * dy))
 
     def __getitem__(self, idx) -> "GaussianPSF":
-        return GaussianPSF(self.center[idx], self.cov[idx], self.amplitude[idx])
+        """Items ``idx`` of the batch ``[...]`` (any tensor index of the batch dims, ``...`` and None
+        included: ``psf[..., None]`` adds a trailing batch axis)."""
+        return GaussianPSF(self.center[_batch_index(idx, 1)], self.cov[_batch_index(idx, 2)], self.amplitude[idx])
 
     def to(self, *args, **kwargs) -> "GaussianPSF":
         return GaussianPSF(self.center.to(*args, **kwargs), self.cov.to(*args, **kwargs), self.amplitude.to(*args, **kwargs))
@@ -176,10 +202,37 @@ class KernelPSF:
         cov = torch.stack([torch.stack([sxx, sxy], -1), torch.stack([sxy, syy], -1)], -2)
         return torch.stack([cx, cy], -1), cov
 
+    def footprint(self, sigmas: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The box that holds the spot, ``(lo, hi)``, each ``[..., 2]`` (x, y px, no gradient):
+        the first and last column and row where the kernel is not zero, its faint wings included
+        (``sigmas``, :meth:`GaussianPSF.footprint`'s width, is not used; 0 and the last pixel
+        where a kernel is zero everywhere)."""
+        nz = self.kernel.detach() != 0
+        out = []
+        for lines in (nz.any(-2), nz.any(-1)):  # [..., W] columns, [..., H] rows
+            idx = torch.arange(lines.shape[-1], device=nz.device, dtype=self.kernel.dtype)
+            first = torch.where(lines, idx, torch.full_like(idx, math.inf)).amin(-1)
+            last = torch.where(lines, idx, torch.full_like(idx, -math.inf)).amax(-1)
+            out.append((torch.where(lines.any(-1), first, idx[0]), torch.where(lines.any(-1), last, idx[-1])))
+        return torch.stack([out[0][0], out[1][0]], -1), torch.stack([out[0][1], out[1][1]], -1)
+
+    def cropped(self, x0: int, y0: int, x1: int, y1: int) -> "KernelPSF":
+        """The spot in the frame of the crop ``[y0:y1, x0:x1]`` (px) of its frame: the kernel cut
+        with it, ``[..., y1 - y0, x1 - x0]`` (as :meth:`GaussianPSF.cropped`)."""
+        return KernelPSF(self.kernel[..., y0:y1, x0:x1])
+
     def sigma_min(self) -> torch.Tensor:
         """Smallest principal standard deviation of the kernel (px), ``[...]``."""
         _, cov = self.moments()
         return torch.linalg.eigvalsh(cov).clamp_min(1e-6)[..., 0].sqrt()
+
+    def total_light(self) -> torch.Tensor:
+        """Light per second, the kernel's sum over its pixels, ``[...]``."""
+        return self.kernel.sum((-1, -2))
+
+    def __getitem__(self, idx) -> "KernelPSF":
+        """Items ``idx`` of the batch ``[...]``, as :meth:`GaussianPSF.__getitem__`."""
+        return KernelPSF(self.kernel[_batch_index(idx, 2)])
 
     def to(self, *args, **kwargs) -> "KernelPSF":
         return KernelPSF(self.kernel.to(*args, **kwargs))

@@ -18,7 +18,8 @@ import torch
 
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, check_int, check_real_scalar
 
-__all__ = ["CameraRig", "Capture", "PatternSines", "Rig", "RigChecks", "command_peak", "command_slew", "check_drive", "check_slew", "DRIVE_RTOL"]
+__all__ = ["CameraRig", "Capture", "PatternSines", "Rig", "RigChecks", "command_peak", "command_slew", "check_drive", "check_slew", "within_drive",
+           "DRIVE_RTOL"]
 
 #: relative slack of a drive check: a command rounded on its way to the device (the serial
 #: protocol sends tones to 10 significant digits) still passes at the limit
@@ -347,11 +348,17 @@ def command_peak(freq_hz, amplitude, phase_rad, base_freq_hz: float | None = Non
     return min(total, float(np.abs(x).max()) + between)
 
 
+def within_drive(value: float, limit: float | None) -> bool:
+    """Whether ``|value|`` is within ``limit`` (None: no limit) up to :data:`DRIVE_RTOL` (NaN is
+    not): the one test of a command's peak (input units) or slew rate (input units/s)."""
+    return limit is None or abs(float(value)) <= float(limit) * (1 + DRIVE_RTOL)
+
+
 def check_drive(peak: float, limit: float | None, what: str = "amplitude") -> None:
     """Refuse a command whose peak |command| ``peak`` exceeds ``limit`` (input units; None:
     no range known) by more than :data:`DRIVE_RTOL`: :class:`~torchblur.errors.ParameterError`
     naming ``what``."""
-    if limit is not None and not abs(float(peak)) <= float(limit) * (1 + DRIVE_RTOL):
+    if not within_drive(peak, limit):
         raise ParameterError(f"{what}: a command of peak {float(peak):.6g} input units is beyond the input range "
                              f"+-{float(limit):.6g} of this actuator (its amplifier would clip); refused")
 
@@ -373,6 +380,6 @@ def check_slew(slew: float, limit: float | None, what: str = "amplitude") -> Non
     """Refuse a command whose slew rate ``slew`` (input units per second, :func:`command_slew`)
     exceeds the amplifier's ``limit`` (None: no slew limit known) by more than
     :data:`DRIVE_RTOL`: :class:`~torchblur.errors.ParameterError` naming ``what``."""
-    if limit is not None and not abs(float(slew)) <= float(limit) * (1 + DRIVE_RTOL):
+    if not within_drive(slew, limit):
         raise ParameterError(f"{what}: a command slewing at {float(slew):.6g} input units/s is beyond the slew limit "
                              f"{float(limit):.6g} units/s of this actuator's amplifier (amplitude * omega; it would overheat); refused")

@@ -20,7 +20,6 @@ import torch
 
 from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_frequency_grid, as_tensor, as_unit_direction, check_choice,
                      check_finite, check_positive)
-from torchblur.fit.problem import _nonzero_box
 from torchblur.fit.status import POOR_FIT_CHI2, flag_poor_fit
 from torchblur.losses import pixel_weights
 from torchblur.render.blur import RenderSettings, choose_node_count, quadrature_nodes
@@ -436,15 +435,9 @@ def _crop(prob: _Problem, M0: torch.Tensor) -> None:
     if prob.fit_background:
         return
     H, W = prob.data.shape[-2:]
-    dtype, device = prob.data.dtype, prob.data.device
-    kern = isinstance(prob.psf, KernelPSF)
+    device = prob.data.device
     reach = (M0 * 1.5 + 1.0)[:, None] * prob.direction.abs()  # [n, 2] (x, y) px
-    if kern:  # wherever the kernel is not zero, its faint wings included
-        lo_k, hi_k = _nonzero_box(prob.psf.kernel)
-    else:
-        center = prob.psf.center
-        sd = torch.diagonal(prob.psf.cov, dim1=-2, dim2=-1).sqrt()
-        lo_k, hi_k = center - 7 * sd, center + 7 * sd
+    lo_k, hi_k = prob.psf.footprint(7.0)
     lo = (lo_k - reach).amin(0)
     hi = (hi_k + reach).amax(0)
     cx0, cy0 = max(0, int(math.floor(float(lo[0])))), max(0, int(math.floor(float(lo[1]))))
@@ -458,10 +451,7 @@ def _crop(prob: _Problem, M0: torch.Tensor) -> None:
     prob.out_n = int(((ow > 0)).sum())
     prob.out_sq = ((ow > 0) * prob.data * prob.data).sum()
     prob.data, prob.wts = prob.data[..., cy0:cy1, cx0:cx1], prob.wts[..., cy0:cy1, cx0:cx1]
-    if kern:
-        prob.psf = KernelPSF(prob.psf.kernel[..., cy0:cy1, cx0:cx1])
-    else:
-        prob.psf = GaussianPSF(center - torch.tensor([cx0, cy0], dtype=dtype, device=device), prob.psf.cov, prob.psf.amplitude)
+    prob.psf = prob.psf.cropped(cx0, cy0, cx1, cy1)
     prob.m_limit = M0 * 1.5 + 1.0  # along the axis
 
 
