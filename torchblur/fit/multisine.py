@@ -10,7 +10,7 @@ from dataclasses import dataclass, replace
 
 import torch
 
-from torchblur._compat import median_along
+from torchblur._compat import lstsq_solution, median_along
 from torchblur.render.alias import canonical_sines
 from torchblur.errors import ParameterError, ShapeError, as_tensor, check_finite, check_positive
 from torchblur.fit.inputs import (check_count, check_data, flat_count, flat_direction, flat_omega, flat_psf,
@@ -142,7 +142,7 @@ def _centroid_start(data, rest, u, start, dur, omega, thr):
     re = (torch.sin(w * t1) - torch.sin(w * t0)) / (w * dur[..., None])
     im = -(torch.cos(w * t1) - torch.cos(w * t0)) / (w * dur[..., None])
     Amat = torch.cat([im, re], -1)  # [n, E, 2N]: mu = x Im G + y Re G
-    sol = torch.linalg.lstsq(Amat, mu[..., None]).solution[..., 0]
+    sol = lstsq_solution(Amat, mu[..., None])[..., 0]
     sv = torch.linalg.svdvals(Amat)
     ok = sv[..., -1] > 1e-3 * sv[..., 0]
     N = omega.shape[-1]

@@ -44,6 +44,7 @@ from dataclasses import dataclass, replace
 
 import torch
 
+from torchblur._compat import lstsq_solution
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_choice, check_finite, check_positive, check_real_scalar
 from torchblur.image.detection import threshold_mask
 from torchblur.image.psf_fit import PSFFit, fit_gaussian_psf, point_sampled_equivalent
@@ -187,7 +188,7 @@ def _frame_noise(f: torch.Tensor, mean: torch.Tensor, noise_std):
     # proportional to its mean), iterated; pixels beyond 5 of those stds (hot ones) dropped.
     for _ in range(5):
         sw = (w * keep)[:, None]
-        c = torch.linalg.lstsq(A * sw, var[:, None] * sw).solution[:, 0]
+        c = lstsq_solution(A * sw, var[:, None] * sw)[:, 0]
         model = (c[0] + c[1] * x).clamp_min(float(var.median()) * 1e-3)
         w = 1 / model
         keep = (var - model).abs() <= 5 * model * math.sqrt(2 / (N - 1))
