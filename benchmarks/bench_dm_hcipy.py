@@ -141,6 +141,22 @@ def pattern_scale_lines(res, truth, dyn) -> list[str]:
     return lines
 
 
+def row_scale_line(res, truth) -> str:
+    """The slope rows' scales of the measured D0 against the fitted-shift truth's (:func:`~torchblur.dm.slope_gains.slope_gains`
+    with the truth as the geometry and unit gains): their sd and their scatter beyond their stds (``tau``), fully lit
+    and edge rows apart. The run's own ``dm slope gains`` line measures them against its fitted geometry, where the
+    actuators' own gains absorb part of them."""
+    from torchblur.dm.registration import fully_lit
+    from torchblur.dm.slope_gains import slope_gains
+    from torchblur.rig.factory import build_dm
+
+    a = res.actuators
+    lit = np.tile(fully_lit(build_dm(load_config("configs/identify_dm.yaml"))[1]), 2)
+    g = slope_gains(a.static_column, a.static_column_std, truth["D0"], np.ones(a.static_column.shape[1]), lit)
+    return "; ".join(f"{name} rows sd {np.nanstd(g.gain[sel]) * 100:.3f} %, tau {g.tau[name] * 100:.3f} % (median std "
+                     f"{np.nanmedian(g.gain_std[sel]) * 100:.3f} %)" for name, sel in (("lit", lit), ("edge", ~lit)))
+
+
 def dc_gain_lines(res, dyn) -> list[str]:
     """The live actuators' DC gain errors against the generator's gains, apart for those whose gain
     rests on the edge subapertures (the registration's edge test: ``gains_unverified``, stds flagged)
@@ -297,6 +313,7 @@ def report(res, truth, dyn, poor_fit_chi2: float) -> None:
         print(f"  one scale per pattern, {line}")
     for line in dc_gain_lines(res, dyn):
         print(f"  DC gain of the live actuators whose gain rests {line}")
+    print(f"  the slope rows' scales of D0 against the truth: {row_scale_line(res, truth)}")
     proj = projected_responses(res, truth, dyn)
     for line in shrink_lines(res, truth, dyn, proj):
         print(f"  pull toward the mean response, {line}")
