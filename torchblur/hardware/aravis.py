@@ -85,7 +85,7 @@ class AravisCamera(SDKCamera):
         self._mem: dict[int, np.ndarray] = {}
         self._last_raw = self._pending_first = None
         self._wraps = 0
-        self._queue: list[np.ndarray] = []
+        self._queue: list[Frame] = []  # with a feed: the feed frame triggered and not yet read (at most one)
         super().__init__()
 
     @classmethod
