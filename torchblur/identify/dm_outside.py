@@ -582,7 +582,7 @@ def export_dm_recording(run, folder) -> Path:
     if not cfg.dm.enabled or doc is None:
         raise RecordingError(f"{exp.path}: not a DM run's recording with its plan ({PLAN_KEY})")
     cal = _calibrate(cfg, ReplayRig(exp), dm_sensor(cfg)[1], exp)
-    (_, _, dark), (_, args, still) = exp.load_calls( "dark")[0], exp.load_calls( "psf")[0]
+    (_, _, dark), (_, args, still) = exp.load_calls("dark")[0], exp.load_calls("psf")[0]
     keys = sorted(k for k in exp.groups if exp.groups[k][0].get("kind") == SWEEP_KIND)
     if not keys:
         raise RecordingError(f"{exp.path}: holds no swept frequency ({SWEEP_KIND} group)")
