@@ -135,8 +135,8 @@ def _export_against(recorded: str, root: Path, baseline: Path, steps: dict) -> N
     every file of the two folders is the same byte for byte."""
     out = root / "outside_baseline"
     steps[f"export ({baseline})"] = run = _step(["-c", EXPORT, recorded, str(out), str(root / "export_baseline_s")], baseline)
-    if run[0] != 0:
-        print(f"baseline {baseline}'s export: exit status {run[0]}")
+    if run[0] != 0 or steps["export"][0] != 0:
+        print(f"export: exit status {steps['export'][0]} (this tree), {run[0]} (baseline {baseline}); not compared")
         return
     names = sorted(p.name for p in (root / "outside").iterdir())
     same = names == sorted(p.name for p in out.iterdir()) and all(
@@ -174,7 +174,7 @@ def main(argv=None) -> int:
             ap.error("--export needs --baseline SRC")
         steps = {"export": _step(["-c", EXPORT, args.export, str(root / "outside"), str(root / "export_s")])}
         _export_against(args.export, root, Path(args.baseline), steps)
-        print(f"outside recording: {sum(p.stat().st_size for p in (root / 'outside').iterdir()) / 1e6:.2f} MB; peak: "
+        print(f"outside recording: {sum(p.stat().st_size for p in (root / 'outside').glob('*')) / 1e6:.2f} MB; peak: "
               + "; ".join(f"{k}: {m:.2f} GB" for k, (_, _, m) in steps.items()))
         if not args.keep:
             shutil.rmtree(root, ignore_errors=True)

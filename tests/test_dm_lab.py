@@ -183,6 +183,21 @@ def test_write_dm_recording_reads_each_frequency_once_and_stores_a_fraction_exac
         np.testing.assert_array_equal(back.dark, rec.dark + half)
 
 
+def test_write_dm_recording_refuses_frames_it_could_read_only_once(lab_run, tmp_path):
+    """A generator of the frequencies' frames is refused, naming the argument: the fractional ADU of its last frequency
+    would start the sweep file again with the generator spent, a TIFF short of pages."""
+    from torchblur.identify.dm_outside import read_dm_recording, write_dm_recording
+
+    rec = read_dm_recording(lab_run[2])
+    frames = (np.asarray(f) + 0.5 for f in rec.frames)
+    with pytest.raises(InputTypeError, match=r"^frames: expected an array or a sequence of arrays .* got a one-pass generator"):
+        write_dm_recording(tmp_path / "gen", dark=rec.dark, still=rec.still, still_exposure_s=rec.still_exposure_s, patterns=rec.patterns,
+                           freq_hz=rec.freq_hz, amplitude=rec.amplitude, power=rec.power, frames=frames, start_s=rec.start_s,
+                           duration_s=rec.duration_s, R=rec.R, camera={"gain_e_per_adu": rec.camera.gain_e_per_adu},
+                           layout={"dm": {"n_across": 2}, "wfs": {"n_across": 2, "pitch_px": 16.0, "sigma_px": 1.2},
+                                   "dm_plan": {"kind": "hadamard"}})
+
+
 @pytest.fixture(scope="module")
 def jittered(lab_run, tmp_path_factory):
     """``(folder, start_s)``: the exported recording rewritten with R = 2 repeats per exposure (the second one's frames

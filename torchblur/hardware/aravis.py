@@ -85,7 +85,7 @@ class AravisCamera(SDKCamera):
         self._mem: dict[int, np.ndarray] = {}
         self._last_raw = self._pending_first = None
         self._wraps = 0
-        self._queue: list[np.ndarray] = []
+        self._queue: list[Frame] = []  # with a feed: the feed frame triggered and not yet read (at most one)
         super().__init__()
 
     @classmethod
@@ -288,8 +288,8 @@ class _FillHook:
         self._lib.arv_fake_camera_set_fill_pattern.argtypes = [ctypes.c_void_p, self._FILL, ctypes.c_void_p]
         self._camera = camera
         self._fake = _pointer(camera.cam.get_device().get_fake_camera())
-        self.filled: dict[int, object] = {}  # buffer address -> the feed frame written into it
-        self._sent: list = []  # feed frames sent (triggered) and not yet written into a buffer, oldest first
+        self._filled: dict[int, Frame] = {}  # buffer address -> the feed frame written into it (under _lock)
+        self._sent: list[Frame] = []  # feed frames sent (triggered) and not yet written into a buffer, oldest first
         self._lock = threading.Lock()
         self._callback = self._FILL(self._fill)  # kept alive while the fake camera may call it
         self._lib.arv_fake_camera_set_fill_pattern(self._fake, self._callback, None)
@@ -302,29 +302,29 @@ class _FillHook:
     def holds(self, address: int) -> bool:
         """Whether the buffer at ``address`` holds a feed frame."""
         with self._lock:
-            return address in self.filled
+            return address in self._filled
 
     def take(self, address: int):
         """The feed frame written into the buffer at ``address`` (the reader's now)."""
         with self._lock:
-            return self.filled.pop(address)
+            return self._filled.pop(address)
 
     def clear(self) -> None:
         """Forget the frames sent and the buffers written (an earlier acquisition's)."""
         with self._lock:
             self._sent.clear()
-            self.filled.clear()
+            self._filled.clear()
 
     def _fill(self, buffer, data, exposure_us, gain, pixel_format) -> None:
         mem = self._camera._mem.get(int(buffer))
         with self._lock:
-            self.filled.pop(int(buffer), None)  # written again: what it held before is gone
+            self._filled.pop(int(buffer), None)  # written again: what it held before is gone
             if not self._sent or mem is None:
                 return  # a frame of the fake camera's own (no trigger of ours): left unmarked, skipped by _grab
             img = np.clip(np.rint(self._sent[0].data.numpy()), 0, 65535).astype("<u2")
             if mem.nbytes >= img.nbytes:
                 mem[:img.nbytes] = np.frombuffer(img.tobytes(), dtype=np.uint8)
-                self.filled[int(buffer)] = self._sent.pop(0)
+                self._filled[int(buffer)] = self._sent.pop(0)
 
     def detach(self) -> None:
         self._lib.arv_fake_camera_set_fill_pattern(self._fake, ctypes.cast(None, self._FILL), None)

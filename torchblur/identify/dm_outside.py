@@ -454,13 +454,17 @@ class DMOutsidePlan(DMPlan):
 # ---------------------------------------------------------------------- writing
 
 
-def _tiff(path: Path, chunks) -> list[tuple]:
+def _tiff(path: Path, chunks, what: str) -> list[tuple]:
     """Write ``chunks`` (one array ``[..., H, W]`` ADU, or a sequence of them: a recording's groups,
     read one at a time, so one group at a time is held in memory) as one grayscale TIFF stack,
     page after page: uint16 where every value is a whole number in its range (a camera's ADU), else
     float64 (read back exactly either way). Returns each chunk's shape. Each chunk is read once
-    when all are whole ADU; a chunk that is not starts the file again, every chunk float64."""
+    when all are whole ADU; a chunk that is not starts the file again, every chunk float64. ``what``:
+    the argument ``chunks`` came as, named by the error refusing a one-pass iterator."""
     chunks = [chunks] if hasattr(chunks, "shape") else chunks
+    if iter(chunks) is chunks:  # a second pass would find it spent: a TIFF short of pages
+        raise InputTypeError(f"{what}: expected an array or a sequence of arrays (read again where one is not whole ADU), "
+                             f"got a one-pass {type(chunks).__name__}")
     shapes = _tiff_pages(path, chunks, np.uint16)
     return _tiff_pages(path, chunks, np.float64) if shapes is None else shapes
 
@@ -524,9 +528,9 @@ def write_dm_recording(folder, *, dark, still, still_exposure_s: float, patterns
     patterns = np.asarray(patterns, dtype=np.float64)
     F, P = len(freq_hz), patterns.shape[0]
     power = np.ones(F) if power is None else np.asarray(power, dtype=np.float64)
-    _tiff(folder / "dark.tif", dark)
-    _tiff(folder / "still.tif", still)
-    ER = _tiff(folder / "sweep.tif", frames)[0][-3]  # a chunk [P, E*R, H, W] or the whole [F, P, E*R, H, W]
+    _tiff(folder / "dark.tif", dark, "dark")
+    _tiff(folder / "still.tif", still, "still")
+    ER = _tiff(folder / "sweep.tif", frames, "frames")[0][-3]  # a chunk [P, E*R, H, W] or the whole [F, P, E*R, H, W]
     head = ["file", "page", "kind", "pattern", "freq_hz", "exposure_s", "window_start_s", "amplitude", "power", "repeat"]
     rows = [["dark.tif", i, "dark"] + [""] * 7 for i in range(len(dark))]
     rows += [["still.tif", i, "still", "", "", repr(float(still_exposure_s)), "", "", "", ""] for i in range(len(still))]
@@ -540,7 +544,8 @@ def write_dm_recording(folder, *, dark, still, still_exposure_s: float, patterns
     if ladder is not None:
         lv = np.asarray(ladder["levels"], dtype=np.float64)
         held = ladder["frames"]
-        shapes = _tiff(folder / "ladder.tif", list(held) if hasattr(held, "shape") else held)  # one chunk a pattern
+        shapes = _tiff(folder / "ladder.tif", list(held) if hasattr(held, "shape") else held,  # one chunk a pattern
+                       "ladder['frames']")
         head, rows, page = head + ["level"], [r + [""] for r in rows], 0
         for p in range(lv.shape[0]):
             for k in range(lv.shape[1]):
@@ -577,7 +582,7 @@ def export_dm_recording(run, folder) -> Path:
     if not cfg.dm.enabled or doc is None:
         raise RecordingError(f"{exp.path}: not a DM run's recording with its plan ({PLAN_KEY})")
     cal = _calibrate(cfg, ReplayRig(exp), dm_sensor(cfg)[1], exp)
-    (_, _, dark), (_, args, still) = exp.load_calls( "dark")[0], exp.load_calls( "psf")[0]
+    (_, _, dark), (_, args, still) = exp.load_calls("dark")[0], exp.load_calls("psf")[0]
     keys = sorted(k for k in exp.groups if exp.groups[k][0].get("kind") == SWEEP_KIND)
     if not keys:
         raise RecordingError(f"{exp.path}: holds no swept frequency ({SWEEP_KIND} group)")
