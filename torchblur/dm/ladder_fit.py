@@ -457,7 +457,7 @@ def _centroid_system(prob: _Problems, ladder: PatternLadder, rows, b0):
     slope = (b0[1][pat][:, None, :] @ cen_l)[:, 0]
     D = prob.data[rows] * keep[:, None]  # [c, E, hw]
     r = (D @ xy.T) / D.sum(-1, keepdim=True) - c0[:, None]  # [c, E, 2]
-    cw, sw, wq = (t.reshape(-1, E, t.shape[-1])[pf] for t in (prob.cw, prob.sw, prob.wq))
+    cw, sw, wq = _nodes(prob, pf)
     v = torch.stack([(wq * cw).sum(-1), (wq * sw).sum(-1)], -1) / wq.sum(-1, keepdim=True)  # [c, E, 2]: the exposures' means of cos, sin
     A = (slope.square().sum(-1))[:, None, None] * (v.transpose(1, 2) @ v)
     return A, ((r * slope[:, None, :]).sum(-1, keepdim=True) * v).sum(1)
