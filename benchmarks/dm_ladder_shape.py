@@ -80,7 +80,7 @@ import torch
 
 from torchblur.dm.ladder_fit import (LEFT_MAX, MAX_ITER, ORDER, PRIOR_ROWS, PatternLadder, _basis_at, _Chunk, _chunk, _debias,
                                      _flat_problems, _ladder_covariance, _model_jacobian, _nodes, _normal, _prefit_status, _Problems,
-                                     _with_prior)
+                                     _starts, _with_prior)
 from torchblur.dm.spot_fit import SpotFits, chunk_size
 from torchblur.errors import ShapeError, check_int
 from torchblur.fit.status import MASKED, NO_MOTION, NOT_CONVERGED, OUT_OF_LADDER, SINGULAR, flag_poor_fit
@@ -160,36 +160,6 @@ def _coefficients(theta, prob: _Problems, ch: _Chunk, idx):
     return C.reshape(n, E, N_PAR + 1, R + RW, K), u
 
 
-def _start(prob: _Problems, ch: _Chunk, b0):
-    """``theta0 [c, 4]``: ``G`` from the centroids of the exposures against the ladder's centroid
-    curve linearised at ``u = 0`` (least squares over both axes and every exposure); where that
-    fails (no centroid slope, no light), ``G = amplitude`` (the command's own phase); ``|G|``
-    kept within the levels; ``d = 0``."""
-    P, F, M, E, h, w = prob.shape
-    c = ch.rows.numel()
-    like = dict(dtype=prob.data.dtype, device=prob.data.device)
-    keep = prob.keep[ch.rows].all(1).to(like["dtype"])  # [c, hw]
-    yy, xx = torch.meshgrid(torch.arange(h, **like), torch.arange(w, **like), indexing="ij")
-    xy = torch.stack([xx.reshape(-1), yy.reshape(-1)])  # [2, hw]
-    L = ch.lad[ch.inv, :prob.knots.shape[1]] * keep[:, None]  # [c, K, hw]
-    cen_l = (L @ xy.T) / L.sum(-1, keepdim=True)  # [c, K, 2]
-    c0 = (b0[0][ch.pat][:, None, :] @ cen_l)[:, 0]  # [c, 2]
-    slope = (b0[1][ch.pat][:, None, :] @ cen_l)[:, 0]
-    D = prob.data[ch.rows] * keep[:, None]  # [c, E, hw]
-    r = (D @ xy.T) / D.sum(-1, keepdim=True) - c0[:, None]  # [c, E, 2]
-    cw, sw, wq = _nodes(prob, ch.pf)
-    v = torch.stack([(wq * cw).sum(-1), (wq * sw).sum(-1)], -1) / wq.sum(-1, keepdim=True)  # [c, E, 2]: the exposures' means of cos, sin
-    A = (slope.square().sum(-1))[:, None, None] * (v.transpose(1, 2) @ v)
-    b = ((r * slope[:, None, :]).sum(-1, keepdim=True) * v).sum(1)  # [c, 2]
-    g = (torch.linalg.pinv(A) @ b[..., None])[..., 0]  # (gc, gs)
-    amp = prob.amplitude.reshape(-1)[ch.pf]
-    bad = ~torch.isfinite(g).all(-1) | (g.square().sum(-1) == 0)
-    g = torch.where(bad[:, None], torch.stack([torch.zeros_like(amp), amp], -1), g)
-    top = prob.knots.abs().amax(-1)[ch.pat]
-    g = g * (top / g.norm(dim=-1).clamp_min(torch.finfo(g.dtype).tiny)).clamp(max=1.0)[:, None]
-    return torch.cat([g, torch.zeros(c, N_PAR - 2, **like)], -1)
-
-
 def _report_jacobians(theta, slope):
     """``(amplitude [c, 2], phase [c, 2], H_theta [c, 4, 4], H_s [c, 4, 2])``: the motion per
     axis ``s_a G + n_a N`` (``N = n_sin + i n_cos``, ``n`` :func:`_normal`, held fixed: the
@@ -215,8 +185,8 @@ def _report_jacobians(theta, slope):
     return amp, torch.atan2(im, re), polar @ cart_t, polar @ cart_s
 
 
-def _fit_chunk(prob: _Problems, ch: _Chunk, b0, prior: float):
-    """Fit one chunk with the shape prior ``prior`` (:data:`SHAPE_PRIOR` or :data:`HELD_PRIOR`):
+def _fit_chunk(prob: _Problems, ch: _Chunk, theta0, prior: float):
+    """Fit one chunk from ``theta0 [c, N_PAR]`` (ladder_fit's own start, :func:`~torchblur.dm.ladder_fit._starts`) with the shape prior ``prior`` (:data:`SHAPE_PRIOR` or :data:`HELD_PRIOR`):
     ``dict`` of ``[c]``-batched amplitude, phase, covariance, status, flags, reduced_chi2, reach (``|w| / |G|``)."""
     c = ch.rows.numel()
     E = prob.shape[3]
@@ -226,7 +196,7 @@ def _fit_chunk(prob: _Problems, ch: _Chunk, b0, prior: float):
     data_x = torch.cat([data, data.new_zeros(c, PRIOR_ROWS)], -1)
     W_x = torch.cat([W, W.new_ones(c, PRIOR_ROWS)], -1)
     jac = _with_prior(prob, ch, sigma, model_jacobian=partial(_model_jacobian, coefficients=_coefficients))
-    res = levenberg_marquardt(lambda th, i: jac(th, i)[0], _start(prob, ch, b0), data_x, weight=W_x, max_iter=MAX_ITER,
+    res = levenberg_marquardt(lambda th, i: jac(th, i)[0], theta0, data_x, weight=W_x, max_iter=MAX_ITER,
                               jacobian_fn=jac, gn_tol=1e-2)
     theta = res.theta
     all_c = torch.arange(c, device=theta.device)
@@ -318,12 +288,13 @@ def fit_ladder_problems(crops, ladder: PatternLadder, window, omega, amplitude, 
     for i0 in range(0, todo.numel(), chunk):
         ch = _chunk(prob, ladder, todo[i0:i0 + chunk], like, tops=_chains())
         with torch.no_grad():
-            r = _fit_chunk(prob, ch, b0, SHAPE_PRIOR)
+            theta0 = _starts(prob, ladder, ch.rows, b0, ch.rows.numel())[:, 0]  # each spot's own start (the pooled one not used here)
+            r = _fit_chunk(prob, ch, theta0, SHAPE_PRIOR)
             _store(out, ch.rows, r)
             far = r["reach"] > SHAPE_REACH  # the shape's first-order term out of its reach: refitted with the shape held at u
             if bool(far.any()):
                 ch = _chunk(prob, ladder, ch.rows[far], like, tops=_chains())
-                r = _fit_chunk(prob, ch, b0, HELD_PRIOR)
+                r = _fit_chunk(prob, ch, theta0[far], HELD_PRIOR)
                 r["flags"] = r["flags"] | SHAPE_HELD
                 out["flags"][ch.rows] &= MASKED  # the first fit's flags replaced
                 _store(out, ch.rows, r)

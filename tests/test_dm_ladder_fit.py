@@ -330,3 +330,13 @@ def test_a_spot_that_barely_moves_is_fitted_from_its_pattern_s_common_command(mo
     monkeypatch.setattr(lf, "SECOND_START", math.inf)  # the own start only: the fit before
     _, out_old = z(fit_ladder_problems(*args, power=POWER, noise_std=ns))
     assert bool(out_old[2:].any()) and not bool(out_old[:2].any())
+
+
+def test_every_problem_dark_is_flagged_per_item_not_raised(gauss_case):
+    """Crops with no light at all (a frequency the camera saw nothing of): every problem DARK with
+    NaN estimates, no error (the fit's starts have no problem to start)."""
+    c = gauss_case
+    crops = c["crops"][:, :1].clone()
+    crops.copy_(c["ns"][:, :1].amin() * torch.randn(crops.shape, generator=torch.Generator().manual_seed(3), dtype=F64))
+    out = _fit(c, n_freq=1, crops=crops)
+    assert bool((out.status == DARK).all()) and bool(torch.isnan(out.amplitude).all())

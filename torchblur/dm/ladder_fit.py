@@ -457,7 +457,7 @@ def _centroid_system(prob: _Problems, ladder: PatternLadder, rows, b0):
     slope = (b0[1][pat][:, None, :] @ cen_l)[:, 0]
     D = prob.data[rows] * keep[:, None]  # [c, E, hw]
     r = (D @ xy.T) / D.sum(-1, keepdim=True) - c0[:, None]  # [c, E, 2]
-    cw, sw, wq = (t.reshape(-1, E, t.shape[-1])[pf] for t in (prob.cw, prob.sw, prob.wq))
+    cw, sw, wq = _nodes(prob, pf)
     v = torch.stack([(wq * cw).sum(-1), (wq * sw).sum(-1)], -1) / wq.sum(-1, keepdim=True)  # [c, E, 2]: the exposures' means of cos, sin
     A = (slope.square().sum(-1))[:, None, None] * (v.transpose(1, 2) @ v)
     return A, ((r * slope[:, None, :]).sum(-1, keepdim=True) * v).sum(1)
@@ -473,6 +473,8 @@ def _starts(prob: _Problems, ladder: PatternLadder, rows, b0, chunk: int):
     patterns 0, 4, 6, 32, 38, 48, 52, 54 at 10 Hz: 34 of 640 fits with a chi2 higher by 1-63 than from
     the command's own phasor, 19 of them with their motion off the ladder, :func:`_fit_chunk`)."""
     P, F, M = prob.shape[:3]
+    if rows.numel() == 0:  # every problem dark or masked: none to start (torch.cat of no parts would raise)
+        return prob.data.new_zeros(0, 2, N_PAR)
     parts = [_centroid_system(prob, ladder, rows[i:i + chunk], b0) for i in range(0, rows.numel(), chunk)]
     A, b = torch.cat([a for a, _ in parts]), torch.cat([b for _, b in parts])
     pf = rows // M
