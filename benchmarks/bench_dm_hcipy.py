@@ -374,7 +374,8 @@ def main(argv=None) -> None:
             d = pickle.load(fh)
         print(f"== {args.load}" + (" (stage 4 re-estimated by this tree)" if args.reestimate else ""))
         res, log = reestimate(d["res"]) if args.reestimate else (d["res"], d["res"].log)
-        for line in (d["res"].log if args.reestimate else []) + log:
+        saved = [ln for ln in d["res"].log if not ln.startswith("dm slope gains:")] if args.reestimate else []  # stage 4's: re-estimated
+        for line in saved + log:
             if line.startswith(("spots:", "dm plan:", "dm spot model:", "dm slope gains:")):
                 print("  " + line)
         report(res, d["truth"], d["dyn"], d["cfg_poor_fit_chi2"])

@@ -115,11 +115,15 @@ def with_slope_gain_stds(table, gains: SlopeGains):
 
 
 def slope_gains_line(gains: SlopeGains) -> str:
-    """The report's line on the rows' gains."""
-    parts = [f"{name} {gains.tau[name] * 100:.3f} % (Q/dof {gains.q_over_dof[name]:.2f} over {gains.n_rows[name]} rows)"
+    """The report's line on the rows' gains, and what the grown stds still leave out."""
+    names = {"lit": "fully lit subapertures", "edge": "edge subapertures"}
+    parts = [f"{names[name]} {gains.tau[name] * 100:.3f} % (Q/dof {gains.q_over_dof[name]:.2f} over {gains.n_rows[name]} rows)"
              for name in ("lit", "edge") if gains.n_rows[name] >= 2]
+    if not parts:
+        return "dm slope gains: fewer than 2 slope rows of D0 in each group: not measured, no dc_gain std changed"
     share = gains.dc_gain_share[gains.dc_gain_share > 0]
     tail = (f"every dc_gain std includes its share (median {np.median(share) * 100:.3f} %, largest {share.max() * 100:.3f} %)"
             if share.size else "no dc_gain std changed")
     return ("dm slope gains: the slope rows of D0 scale about the fitted geometry beyond their noise by tau = " + ", ".join(parts)
-            + f" (fully lit subapertures, edge); {tail}")
+            + f"; {tail}; a gain common to every row, and the part of the rows' gains the actuators' own gains absorb, are not in "
+            "the stds")
