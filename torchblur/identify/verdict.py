@@ -633,8 +633,8 @@ def ladder_guard(v, res):
     grid"; why: "Why the ladder's actuator stds fail on HCIPy's frames": a static gain per actuator,
     common to every frequency, from ``s``, whose lenslet shift curve bends within the first level;
     since the slope rows' own gains enter the DC gains' stds, :mod:`torchblur.dm.slope_gains`, the
-    quick grid's DC gain gives 1.29 aligned and 1.23 misregistered, its mode 1.46 and 1.36; the
-    whole grid is not re-measured)."""
+    quick grid's DC gain gives 1.29 aligned and 1.23 misregistered, its mode 1.46 and 1.36,
+    ``benchmarks/bench_dm_hcipy.py --quick``; the whole grid is not re-measured)."""
     if getattr(res, "spot_model", "shifted") != "ladder":
         return v
     n_out = int(getattr(res, "n_out_of_ladder", 0) or 0)
