@@ -157,7 +157,7 @@ class _Flat:
     ``data [B, E, H, W]``; ``om [B, N]`` rad/s; ``start, dur [B, E]`` s; ``psf`` batch ``[B]``;
     ``center [B, 2]``, ``cov [B, 2, 2]`` its moments (a measured kernel's centroid and second
     moments); ``u [B, 2]`` the unit direction; ``batch`` the images' leading dims;
-    ``kernel [B, H, W]`` a measured kernel's image (intensity per second), None for a Gaussian.
+    :attr:`kernel` the psf's (a measured kernel's image ``[B, H, W]``, None for a Gaussian).
     """
 
     data: torch.Tensor
@@ -169,7 +169,11 @@ class _Flat:
     u: torch.Tensor
     batch: tuple
     psf: GaussianPSF | KernelPSF
-    kernel: torch.Tensor | None = None
+
+    @property
+    def kernel(self) -> torch.Tensor | None:
+        """A measured kernel's image ``[B, H, W]`` (intensity per second), None for a Gaussian."""
+        return self.psf.kernel if isinstance(self.psf, KernelPSF) else None
 
 
 def _check_and_flatten(images, psf, window, omega, direction, counts: dict) -> _Flat:
@@ -183,8 +187,7 @@ def _check_and_flatten(images, psf, window, omega, direction, counts: dict) -> _
     win, p = flat_window(window, batch, B, E), flat_psf(psf, batch, B)
     center, cov = p.moments()
     return _Flat(data=data, om=flat_omega(omega, batch, B, data, tones=True), start=win.start, dur=win.duration,
-                 center=center, cov=cov, u=flat_direction(direction, batch, B, data), batch=batch, psf=p,
-                 kernel=p.kernel if isinstance(p, KernelPSF) else None)
+                 center=center, cov=cov, u=flat_direction(direction, batch, B, data), batch=batch, psf=p)
 
 
 def _noise_power(noise, power, noise_std, flat: _Flat) -> torch.Tensor | None:

@@ -20,6 +20,7 @@ import torch
 
 from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_frequency_grid, as_tensor, as_unit_direction, check_choice,
                      check_finite, check_positive)
+from torchblur.fit.inputs import flat_psf
 from torchblur.fit.status import POOR_FIT_CHI2, flag_poor_fit
 from torchblur.losses import pixel_weights
 from torchblur.render.blur import RenderSettings, choose_node_count, quadrature_nodes
@@ -417,11 +418,7 @@ def _used_points(images, weight, window, omega, psf, use, direction, settings, f
     F = images.shape[0]
     dtype = images.dtype
     idx = torch.nonzero(use)[:, 0]
-    if isinstance(psf, KernelPSF):
-        psf_b = KernelPSF(psf.kernel.to(dtype).expand((F,) + tuple(images.shape[-2:]))[idx])
-    else:
-        psf_b = GaussianPSF(psf.center.to(dtype).expand(F, 2)[idx], psf.cov.to(dtype).expand(F, 2, 2)[idx],
-                            psf.amplitude.to(dtype).expand(F)[idx])
+    psf_b = flat_psf(psf.to(dtype), (F,), F)[idx]
     return _Problem(data=images[idx], wts=weight[idx], omega=omega[idx], window=window[idx], psf=psf_b, direction=direction,
                     settings=settings, fit_scale=fit_scale, fit_background=fit_background,
                     out_cost=torch.zeros((), dtype=dtype, device=images.device))
