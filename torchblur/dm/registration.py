@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 from scipy import optimize, stats
 
-from torchblur.dm.actuator_fit import fit_actuators
+from torchblur.dm.actuator_fit import fit_actuators, with_dc_gain_variance
 from torchblur.dm.mirror import influence_width
 from torchblur.dm.plans import seen_by
 from torchblur.dm.shack_hartmann import lit_rows
@@ -476,10 +476,12 @@ def _failed(start, theta0, model, N, why, n_entries, n_columns) -> RegistrationF
 
 def with_registration_stds(table, fit: RegistrationFit):
     """``table`` (an :class:`~torchblur.dm.actuator_fit.ActuatorTable` fitted on ``fit.G``) with
-    each ``dc_gain_std`` grown by the registration's share ``sqrt(std^2 + gain_var_registration)``."""
+    each ``dc_gain_std`` grown by the registration's share ``sqrt(std^2 + gain_var_registration)``
+    and the statuses decided again from the grown stds
+    (:func:`~torchblur.dm.actuator_fit.with_dc_gain_variance`)."""
     if not fit.ok:
         return table
-    return replace(table, dc_gain_std=np.sqrt(np.asarray(table.dc_gain_std) ** 2 + fit.gain_var_registration))
+    return with_dc_gain_variance(table, fit.gain_var_registration)
 
 
 def support_check(support, G, threshold: float, G_std=None) -> dict:

@@ -15,7 +15,8 @@ scatter beyond those stds, ``tau``, is the DerSimonian-Laird random-effects esti
 rows agree within their noise), apart for the fully lit subapertures' rows and the others (the
 pupil's edge, where the scatter is larger). :func:`with_slope_gain_stds` grows every ``dc_gain_std``
 to ``sqrt(std^2 + dc_gain^2 sum_r w_rj^2 tau_r^2)``, ``w_rj = G[r, j]^2 / D0_std[r, j]^2``
-normalised over the rows (the projection's weights at zero frequency); modes, dampings and
+normalised over the rows (the projection's weights at zero frequency), and decides every status
+again from the grown std; modes, dampings and
 delays are left as they are (a gain common to every frequency does not move them). What part of
 the rows' gain errors the actuators' own gains absorb (a smooth pattern of them) is not seen in
 the scatter, and is not in the stds.
@@ -25,10 +26,11 @@ Shapes: S = 2M slopes (x of all M subapertures, then y), N actuators.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
+from torchblur.dm.actuator_fit import with_dc_gain_variance
 from torchblur.errors import ShapeError
 
 __all__ = ["SlopeGains", "slope_gains", "random_effects_scatter", "with_slope_gain_stds", "slope_gains_line"]
@@ -108,10 +110,11 @@ def slope_gains(D0, D0_std, G, dc_gain, lit) -> SlopeGains:
 
 def with_slope_gain_stds(table, gains: SlopeGains):
     """``table`` (an :class:`~torchblur.dm.actuator_fit.ActuatorTable`) with every ``dc_gain_std``
-    grown by the rows' gain scatter: ``sqrt(std^2 + (dc_gain * dc_gain_share)^2)`` (NaN gains kept)."""
-    g, s = np.asarray(table.dc_gain, dtype=np.float64), np.asarray(table.dc_gain_std, dtype=np.float64)
-    add = np.nan_to_num(g) * gains.dc_gain_share
-    return replace(table, dc_gain_std=np.sqrt(s**2 + add**2))
+    grown by the rows' gain scatter: ``sqrt(std^2 + (dc_gain * dc_gain_share)^2)`` (NaN gains kept),
+    and the statuses decided again from the grown stds
+    (:func:`~torchblur.dm.actuator_fit.with_dc_gain_variance`)."""
+    add = np.nan_to_num(np.asarray(table.dc_gain, dtype=np.float64)) * gains.dc_gain_share
+    return with_dc_gain_variance(table, add**2)
 
 
 def slope_gains_line(gains: SlopeGains) -> str:
