@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from torchblur.dm.actuator_fit import with_dc_gain_variance
+from torchblur.dm.registration import whitened
 from torchblur.errors import ShapeError
 
 __all__ = ["SlopeGains", "slope_gains", "random_effects_scatter", "with_slope_gain_stds", "slope_gains_line"]
@@ -88,8 +89,9 @@ def slope_gains(D0, D0_std, G, dc_gain, lit) -> SlopeGains:
     if D0.ndim != 2 or s.shape != D0.shape or G.shape != D0.shape or a.shape != D0.shape[1:] or lit.shape != D0.shape[:1]:
         raise ShapeError(f"D0, D0_std, G: expected [S, N], dc_gain [N], lit [S]; got {D0.shape}, {s.shape}, {G.shape}, "
                          f"{a.shape}, {lit.shape}")
-    good = np.isfinite(D0) & np.isfinite(s) & (s > 0) & np.isfinite(a)[None] & np.isfinite(G)
-    w = np.where(good, 1.0 / np.where(good, s, 1.0) ** 2, 0.0)
+    wt = whitened(D0, s)[1]
+    good = (wt > 0) & np.isfinite(a)[None] & np.isfinite(G)
+    w = np.where(good, wt * wt, 0.0)
     X = np.where(good, G * np.nan_to_num(a)[None], 0.0)
     den = np.sum(X * X * w, 1)
     seen = den > 0
