@@ -368,8 +368,7 @@ class SimulatedRig(RigChecks):
             return torch.zeros((window.shape[0], H, W), dtype=_F64)
         if (x1 - x0) * (y1 - y0) >= 0.8 * H * W:
             return self._render(trajectory, psf, window)
-        shift = torch.tensor([x0, y0], dtype=_F64)
-        part = self._render(trajectory, GaussianPSF(psf.center - shift, psf.cov, psf.amplitude), window, shape=(y1 - y0, x1 - x0))
+        part = self._render(trajectory, psf.cropped(x0, y0, x1, y1), window, shape=(y1 - y0, x1 - x0))
         out = torch.zeros((window.shape[0], H, W), dtype=_F64)
         out[:, y0:y1, x0:x1] = part
         return out
