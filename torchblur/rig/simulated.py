@@ -177,8 +177,7 @@ class SimulatedRig(RigChecks):
         ):
             raise ShapeError(f"frame_shape: expected (H, W), got {frame_shape!r}")
         H, W = (check_int(v, "frame_shape", low=1) for v in frame_shape)
-        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-            raise ParameterError(f"seed: expected an integer >= 0, got {seed!r}")
+        seed = check_int(seed, "seed", low=0)
         self._plant = plant
         self._camera = camera
         self._frame_shape = (H, W)
