@@ -77,6 +77,7 @@ def test_grown_stds_decide_the_statuses_they_are_reported_with():
         assert grown.status == ("ok", "dead", "ok", "dead", "ok", "ok"), grown.status
         assert grown.status == actuator_status(grown.dc_gain, grown.dc_gain_std, [s == "dead" for s in t.status], ref=t.status_reference)
     assert with_dc_gain_variance(t, np.zeros(6)).status == t.status
+    assert with_dc_gain_variance(replace(t, status_reference=float("nan")), np.zeros(6)).status == t.status  # none kept: the live median
     assert with_registration_stds(t, SimpleNamespace(ok=False, gain_var_registration=var)) is t
     # the reference is the fit's (the dead actuator's gain as measured against the median shape does not move it)
     assert with_dc_gain_variance(replace(t, dc_gain=t.dc_gain * [1, 1, 1, 50, 1, 1]), var).status[0] == "ok"

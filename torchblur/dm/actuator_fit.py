@@ -245,7 +245,8 @@ def with_dc_gain_variance(table: ActuatorTable, var) -> ActuatorTable:
         raise ShapeError(f"var: expected [N] = {np.shape(table.dc_gain)}, got shape {var.shape}")
     std = np.sqrt(np.asarray(table.dc_gain_std, dtype=np.float64) ** 2 + var)
     dead = np.array([s == "dead" for s in table.status], dtype=bool)
-    return replace(table, dc_gain_std=std, status=actuator_status(table.dc_gain, std, dead, ref=table.status_reference))
+    ref = table.status_reference if math.isfinite(table.status_reference) else None  # none kept: the live gains' median
+    return replace(table, dc_gain_std=std, status=actuator_status(table.dc_gain, std, dead, ref=ref))
 
 
 def _check(freq_hz, D, D_cov, G):
