@@ -26,6 +26,7 @@ import argparse
 import math
 import os
 import sys
+from unittest import mock
 
 import numpy as np
 import torch
@@ -81,6 +82,28 @@ def fit(cal, plan, ladder, sweep, cfg):
     return Y, Yc, failed, out
 
 
+def one_pass(name, cal, plan, ladder, sweeps, cfg, dyn, S, pats, snorm, n_second) -> None:
+    """One pass of the fits over ``sweeps`` (as the ladder module is set now), printed per frequency and in all."""
+    tot = np.zeros(4)
+    z2 = []
+    for f, amp, power, frames, window in sweeps:
+        n_second.clear()
+        Y, Yc, failed, out = fit(cal, plan, ladder, (f, amp, power, frames, window), cfg)
+        M = Y.shape[1] // 2
+        err = Y - (S @ (dyn.response(f)[:, None] * pats.T)).T
+        ev = np.stack([err.real, err.imag], -1)[..., None]
+        ok = np.isfinite(ev).all((-1, -2)) & np.isfinite(Yc).all((-1, -2))  # NaN: failed or out of the ladder
+        C = np.where(ok[..., None, None], Yc, np.eye(2))
+        z2.append(((np.swapaxes(ev, -1, -2) @ np.linalg.inv(C) @ np.where(ok[..., None, None], ev, 0))[..., 0, 0] / 2)[ok])
+        lost = torch.as_tensor(~(ok[:, :M] & ok[:, M:]))
+        tot += [failed, out, sum(n_second[1:]), int(ok.sum())]
+        print(f"  {name}, {f:7.4g} Hz: failed {failed}, out of the ladder {out} (their |s| "
+              f"{', '.join(f'{v:.2g}' for v in sorted(snorm[lost].tolist())) or '-'}); second start on {sum(n_second[1:])} of {n_second[0]} problems")
+    z2 = np.concatenate(z2)
+    print(f"{name}: failed {int(tot[0])}, out of the ladder {int(tot[1])} of {4 * snorm.numel()} fits; second start on {int(tot[2])}; "
+          f"kept responses {int(tot[3])}, rms(error/std) {np.sqrt(z2.mean()):.3f} against the linearised truth, above 3: {int((z2 > 9).sum())}")
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--patterns", default="48,0,32,54,4,6,38,52")
@@ -94,31 +117,13 @@ def main(argv=None) -> None:
     def counting(model_fn, theta0, data, **kw):
         n_second.append(theta0.shape[0])
         return lm(model_fn, theta0, data, **kw)
-    lf.levenberg_marquardt = counting
     snorm = ladder.slope.norm(dim=-1)  # [P, M] px per unit command
     print(f"patterns {patterns}: {len(pats)} x {snorm.shape[1]} spots; |s| median {float(snorm.median()):.3g} px per unit")
-    for name, second, iters in (("own start only, 60 LM iterations (before)", math.inf, 60), ("package", lf.SECOND_START, lf.MAX_ITER)):
-        keep = (lf.SECOND_START, lf.MAX_ITER)
-        lf.SECOND_START, lf.MAX_ITER = second, iters
-        tot = np.zeros(4)
-        z2 = []
-        for f, amp, power, frames, window in sweeps:
-            n_second.clear()
-            Y, Yc, failed, out = fit(cal, plan, ladder, (f, amp, power, frames, window), cfg)
-            M = Y.shape[1] // 2
-            err = Y - (S @ (dyn.response(f)[:, None] * pats.T)).T
-            ev = np.stack([err.real, err.imag], -1)[..., None]
-            ok = np.isfinite(ev).all((-1, -2)) & np.isfinite(Yc).all((-1, -2))  # NaN: failed or out of the ladder
-            C = np.where(ok[..., None, None], Yc, np.eye(2))
-            z2.append(((np.swapaxes(ev, -1, -2) @ np.linalg.inv(C) @ np.where(ok[..., None, None], ev, 0))[..., 0, 0] / 2)[ok])
-            lost = torch.as_tensor(~(ok[:, :M] & ok[:, M:]))
-            tot += [failed, out, sum(n_second[1:]), int(ok.sum())]
-            print(f"  {name}, {f:7.4g} Hz: failed {failed}, out of the ladder {out} (their |s| "
-                  f"{', '.join(f'{v:.2g}' for v in sorted(snorm[lost].tolist())) or '-'}); second start on {sum(n_second[1:])} of {n_second[0]} problems")
-        z2 = np.concatenate(z2)
-        print(f"{name}: failed {int(tot[0])}, out of the ladder {int(tot[1])} of {4 * snorm.numel()} fits; second start on {int(tot[2])}; "
-              f"kept responses {int(tot[3])}, rms(error/std) {np.sqrt(z2.mean()):.3f} against the linearised truth, above 3: {int((z2 > 9).sum())}")
-        lf.SECOND_START, lf.MAX_ITER = keep
+    passes = (("own start only, 60 LM iterations (before)", math.inf, 60), ("package", lf.SECOND_START, lf.MAX_ITER))
+    with mock.patch.object(lf, "levenberg_marquardt", counting):  # restored on leaving, an exception included
+        for name, second, iters in passes:
+            with mock.patch.multiple(lf, SECOND_START=second, MAX_ITER=iters):
+                one_pass(name, cal, plan, ladder, sweeps, cfg, dyn, S, pats, snorm, n_second)
     for f, amp, *_ in sweeps:
         H = np.abs(dyn.response(f))
         live = H > 0.5 * np.median(H)

@@ -154,7 +154,53 @@ BAD = [
     ("config linf with lm", lambda: load_config(None, ["fit.loss=linf"]), ConfigError, "fit.loss"),
     ("config dark level above the ADC", lambda: load_config(None, ["camera.dark_level=5000"]), ConfigError, "camera.dark_level"),
     ("config more zeros than poles", lambda: load_config(None, ["model.n_poles=2", "model.n_zeros=3"]), ConfigError, "model.n_zeros"),
+    # --- counts (errors.check_int): a non-integer is a wrong type, an integer out of range a wrong value
+    ("candidate_windows float n_offsets", lambda: _fisher().candidate_windows(0.01, max_exposure_s=0.01, n_offsets=4.0), InputTypeError,
+     "n_offsets"),
+    ("candidate_windows zero n_offsets", lambda: _fisher().candidate_windows(0.01, max_exposure_s=0.01, n_offsets=0), ParameterError,
+     "n_offsets"),
+    ("design_acquisition float max_images", lambda: _design(max_images=16.0), InputTypeError, "max_images"),
+    ("design_acquisition string n_images", lambda: _design(n_images="4"), InputTypeError, "n_images"),
+    ("design_acquisition zero n_images", lambda: _design(n_images=0), ParameterError, "n_images"),
+    ("Plant.to_control float pade_order", lambda: _plant().to_control(pade_order=2.5), InputTypeError, "pade_order"),
+    ("Plant.to_control zero pade_order", lambda: _plant().to_control(pade_order=0), ParameterError, "pade_order"),
+    ("splat float height", lambda: _splat(8.0, 8), InputTypeError, "height"),
+    ("splat zero width", lambda: _splat(8, 0), ParameterError, "width"),
+    ("SensorTiming.windows float n_frames", lambda: tb.SensorTiming(0.0, 0.0, 0.01, 0.01, 1 / 30).windows(3.0), InputTypeError, "n_frames"),
+    ("SimulatedRig float seed", lambda: _rig(seed=1.5), InputTypeError, "seed"),
+    ("SimulatedRig negative seed", lambda: _rig(seed=-1), ParameterError, "seed"),
 ]
+
+
+def _fisher():
+    from torchblur.design import fisher
+
+    return fisher
+
+
+def _design(**kw):
+    return _fisher().design_acquisition([3.0], [600.0], PSF, period_s=2 * math.pi / 600, max_exposure_s=0.01, frame_shape=(16, 16),
+                                        read_noise_e=2.0, **kw)
+
+
+def _plant():
+    from torchblur.systems.lti import Plant
+
+    return Plant(num=(1.0,), den=(1e-3, 1.0), delay_s=40e-6)
+
+
+def _splat(height, width):
+    from torchblur.render.splat import gaussian_splat_with_jacobian
+
+    z = torch.zeros(4, dtype=F64)
+    return gaussian_splat_with_jacobian(z, z, torch.zeros(4, 1, dtype=F64), torch.zeros(4, 1, dtype=F64), z + 0.25,
+                                        torch.tensor(0.3, dtype=F64), torch.tensor(0.0, dtype=F64), torch.tensor(0.3, dtype=F64), height, width)
+
+
+def _rig(**kw):
+    from torchblur.rig import SimulatedRig
+
+    return SimulatedRig(plant=_plant(), camera=CameraModel(), **kw)
 
 
 def _raised_in_torchblur(exc: BaseException) -> bool:

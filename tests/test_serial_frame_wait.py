@@ -87,14 +87,14 @@ def emulators(background, request):
     stop_fleet(emus)
 
 
-def _open(emu, holds=None):
+def _open(emu, holds=None, **kw):
     from torchblur.hardware import SerialRig
     from torchblur.hardware.frames import EmulatorFrames
 
     frames = EmulatorFrames(emu.info["frames"])
     if holds is not None:
         frames = LateFrames(frames, holds)
-    return SerialRig.open(emu.info["serial"], frames, timeout_s=2.0, poll_s=POLL_S)
+    return SerialRig.open(emu.info["serial"], frames, timeout_s=2.0, poll_s=POLL_S, **kw)
 
 
 def _never_arrived(rig) -> list[str]:
@@ -124,6 +124,27 @@ def test_a_frame_late_by_two_consecutive_idle_polls_is_declared_lost(emulators):
         lost = _never_arrived(rig)
         assert [f"frame {first + N * k + 2} was triggered but never arrived" in e for k, e in enumerate(lost)] == [True] * 3, rig.events
         assert rig.stats["retries"] == 2
+        assert all("idle for 2 polls in a row" in e for e in lost), lost
+
+
+def test_the_idle_poll_count_is_the_rigs_and_its_message_says_it(emulators):
+    """With ``idle_polls=3`` a frame held back for two idle polls in a row is accepted, one held
+    back for three is lost, and the FrameTimeout says 3 polls (the count it waited, not a fixed 2)."""
+    from torchblur.errors import InputTypeError, ParameterError
+    from torchblur.hardware import AcquisitionStopped
+
+    with _open(emulators["clean"], {2: 2}, idle_polls=3) as rig:
+        rig.dark(n=N, exposure_s=0.01)
+        assert not _never_arrived(rig) and rig.stats["retries"] == 0, rig.events
+    with _open(emulators["clean"], {2: 3}, idle_polls=3, retries=0) as rig:
+        with pytest.raises(AcquisitionStopped, match="never arrived"):
+            rig.dark(n=N, exposure_s=0.01)
+        lost = _never_arrived(rig)
+        assert len(lost) == 1 and "idle for 3 polls in a row" in lost[0], rig.events
+    with pytest.raises(ParameterError, match="idle_polls"):
+        _open(emulators["clean"], idle_polls=0)
+    with pytest.raises(InputTypeError, match="idle_polls"):
+        _open(emulators["clean"], idle_polls=2.5)
 
 
 def test_a_dropped_last_frame_is_still_declared_lost_and_the_call_redone(emulators):

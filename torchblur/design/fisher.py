@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from torchblur.errors import ParameterError, ShapeError, as_tensor, check_finite, check_positive, check_real_scalar
+from torchblur.errors import ParameterError, ShapeError, as_tensor, check_finite, check_int, check_positive, check_real_scalar
 from torchblur.fit.inputs import unit_direction
 from torchblur.fit.multisine import render_multisine_with_jacobian
 from torchblur.render.psf import GaussianPSF
@@ -43,8 +43,7 @@ def candidate_windows(period_s: float, *, max_exposure_s: float, n_offsets: int 
     ``max_exposure_s``, duplicates removed); ``C = n_offsets * n_exposures``, start-major."""
     T0 = check_real_scalar(period_s, "period_s", positive=True)
     tmax = check_real_scalar(max_exposure_s, "max_exposure_s", positive=True)
-    if isinstance(n_offsets, bool) or not isinstance(n_offsets, int) or n_offsets < 1:
-        raise ParameterError(f"n_offsets: expected an integer >= 1, got {n_offsets!r}")
+    n_offsets = check_int(n_offsets, "n_offsets", low=1)
     fr = np.asarray(exposure_fractions, dtype=np.float64).reshape(-1)
     if fr.size == 0 or np.any(fr <= 0) or not np.all(np.isfinite(fr)):
         raise ParameterError(f"exposure_fractions: expected fractions > 0, got {fr.tolist()}")
@@ -192,10 +191,9 @@ def _check_design_inputs(amplitude, omega, period_s, counts: dict, n_images, tar
         raise ShapeError(f"omega: expected {N} values (one per amplitude), got {omega.numel()}")
     T0 = check_real_scalar(period_s, "period_s", positive=True)
     for name, v in counts.items():
-        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-            raise ParameterError(f"{name}: expected an integer >= 1, got {v!r}")
-    if n_images is not None and (isinstance(n_images, bool) or not isinstance(n_images, int) or n_images < 1):
-        raise ParameterError(f"n_images: expected None or an integer >= 1, got {n_images!r}")
+        check_int(v, name, low=1)
+    if n_images is not None:
+        check_int(n_images, "n_images", low=1)
     return amplitude, omega, T0, check_real_scalar(target_std, "target_std", positive=True)
 
 

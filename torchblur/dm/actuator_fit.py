@@ -6,7 +6,9 @@ Actuator ``j``'s column is rank one: ``D[:, j, f] = G[:, j] * H_j(j w_f)`` with
 column on ``G`` (:func:`project_columns`), fits the parameters with their stds (flagged
 ``poor_fit`` below :data:`POOR_FIT_P`, stds then inflated), measures the static column
 (:func:`static_columns`) and gives each actuator its status (:func:`actuator_status`: dead,
-weak or ok, :data:`DEAD_FRACTION`, :data:`WEAK_FRACTION`, :data:`STATUS_SIGMA`). The method:
+weak or ok, :data:`DEAD_FRACTION`, :data:`WEAK_FRACTION`, :data:`STATUS_SIGMA`). A ``dc_gain_std``
+grown afterwards by a share the fit leaves out (the registration's, the slope rows' gains) goes
+through :func:`with_dc_gain_variance`, which decides the statuses again from the grown stds. The method:
 docs/deformable_mirrors.md, "The actuators' fit"; the statuses: "Dead and weak".
 
 Shapes: S = 2M slopes, N actuators, F frequencies.
@@ -14,7 +16,7 @@ Shapes: S = 2M slopes, N actuators, F frequencies.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import optimize, stats
@@ -22,6 +24,7 @@ from scipy import optimize, stats
 from torchblur.errors import ParameterError, ShapeError
 
 __all__ = ["ActuatorTable", "fit_actuators", "second_order", "project_columns", "static_columns", "actuator_status",
+           "status_reference", "with_dc_gain_variance",
            "DEAD_P", "DEAD_SIGMA", "DEAD_FRACTION", "STATUS_SIGMA", "WEAK_FRACTION", "POOR_FIT_P"]
 
 DEAD_P = 1e-3  #: no response detected: the column's chi2 against zero is this likely or more
@@ -48,6 +51,8 @@ class ActuatorTable:
         shape: ``[N, F]`` complex ``h_j(f)`` (step 1), shape_cov ``[N, F, 2, 2]``.
         freq_hz: ``[F]``.
         actuator_xy: ``[N, 2]`` positions (pitches) or None.
+        status_reference: the median DC gain of the responding actuators the statuses are relative
+            to (:func:`status_reference`; NaN: none responds).
     """
 
     dc_gain: np.ndarray
@@ -67,6 +72,7 @@ class ActuatorTable:
     shape_cov: np.ndarray
     freq_hz: np.ndarray
     actuator_xy: np.ndarray | None = None
+    status_reference: float = math.nan
 
     def __len__(self) -> int:
         return len(self.status)
@@ -202,19 +208,45 @@ def _scalar_against(h, h_cov, shape):
     return float(np.einsum("fa,fab,fb->", u, W, d)) / den, 1.0 / math.sqrt(den)
 
 
-def actuator_status(dc_gain, dc_gain_std, no_response) -> tuple:
+def status_reference(dc_gain, no_response) -> float:
+    """The DC gain the statuses are relative to: the median ``dc_gain [N]`` of the actuators that
+    respond (``no_response [N]`` False, finite gain); NaN where none does."""
+    g = np.asarray(dc_gain, dtype=float)
+    live = ~np.asarray(no_response, dtype=bool) & np.isfinite(g)
+    return float(np.median(g[live])) if live.any() else math.nan
+
+
+def actuator_status(dc_gain, dc_gain_std, no_response, ref: float | None = None) -> tuple:
     """Status per actuator (module rules): ``"dead"`` where ``no_response`` or ``dc_gain -
     STATUS_SIGMA * dc_gain_std <= DEAD_FRACTION * ref`` (NaN gain or std: dead), ``"weak"`` where
     significantly between ``DEAD_FRACTION * ref`` and ``WEAK_FRACTION * ref``, else ``"ok"``; ``ref``
-    the median DC gain of the actuators that respond. Arrays ``[N]``."""
+    by default the median DC gain of the actuators that respond (:func:`status_reference`, NaN
+    gains and stds left out). Arrays ``[N]``."""
     g, s = np.asarray(dc_gain, dtype=float), np.asarray(dc_gain_std, dtype=float)
     silent = np.asarray(no_response, dtype=bool) | ~np.isfinite(g) | ~np.isfinite(s)
-    ref = float(np.median(g[~silent])) if (~silent).any() else math.nan
+    ref = status_reference(g, silent) if ref is None else float(ref)
     lo, hi = g - STATUS_SIGMA * s, g + STATUS_SIGMA * s
     with np.errstate(invalid="ignore"):
         dead = silent | ~(lo > DEAD_FRACTION * ref) | ~(np.abs(g) >= DEAD_SIGMA * s)
         weak = ~dead & (hi < WEAK_FRACTION * ref)
     return tuple("dead" if d else "weak" if w else "ok" for d, w in zip(dead, weak))
+
+
+def with_dc_gain_variance(table: ActuatorTable, var) -> ActuatorTable:
+    """``table`` with every ``dc_gain_std`` grown to ``sqrt(std^2 + var)`` (``var [N]``, the
+    variance of a share the fit leaves out, in dc_gain units squared) and every status decided
+    again from the grown std against the same :attr:`~ActuatorTable.status_reference`, so that
+    status and std agree: a grown std can make an ok actuator dead (no longer significantly above
+    :data:`DEAD_FRACTION` of the reference) or a weak one ok (no longer significantly below
+    :data:`WEAK_FRACTION`); a dead actuator stays dead (its gain was measured against a median
+    shape, and a larger std only keeps it dead)."""
+    var = np.asarray(var, dtype=np.float64)
+    if var.shape != np.shape(table.dc_gain):
+        raise ShapeError(f"var: expected [N] = {np.shape(table.dc_gain)}, got shape {var.shape}")
+    std = np.sqrt(np.asarray(table.dc_gain_std, dtype=np.float64) ** 2 + var)
+    dead = np.array([s == "dead" for s in table.status], dtype=bool)
+    ref = table.status_reference if math.isfinite(table.status_reference) else None  # none kept: the live gains' median
+    return replace(table, dc_gain_std=std, status=actuator_status(table.dc_gain, std, dead, ref=ref))
 
 
 def _check(freq_hz, D, D_cov, G):
@@ -259,7 +291,8 @@ def fit_actuators(freq_hz, D, D_cov, G_nominal, *, actuator_xy=None) -> Actuator
         if dof > 0 and stats.chi2.sf(chi2, dof) < POOR_FIT_P:
             poor[j] = True
             std[j] *= math.sqrt(red[j])
-    status = actuator_status(est[:, 0], std[:, 0], silent)
+    gain_ref = status_reference(est[:, 0], silent | ~np.isfinite(std[:, 0]))
+    status = actuator_status(est[:, 0], std[:, 0], silent, ref=gain_ref)
     dead = np.array([s == "dead" for s in status])
     unit = second_order(f, 1.0, est[:, 1], est[:, 2], est[:, 3])  # [N, F], the fitted shapes of unit DC gain
     if dead.any():
@@ -273,4 +306,5 @@ def fit_actuators(freq_hz, D, D_cov, G_nominal, *, actuator_xy=None) -> Actuator
     D0, D0_std = static_columns(D, D_cov, unit)
     xy = None if actuator_xy is None else np.asarray(actuator_xy, dtype=np.float64)
     return ActuatorTable(*(a for k in range(4) for a in (est[:, k], std[:, k])), status=status, poor_fit=poor, reduced_chi2=red,
-                         static_column=D0, static_column_std=D0_std, shape=h, shape_cov=h_cov, freq_hz=f, actuator_xy=xy)
+                         static_column=D0, static_column_std=D0_std, shape=h, shape_cov=h_cov, freq_hz=f, actuator_xy=xy,
+                         status_reference=gain_ref)

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 from scipy import optimize, stats
 
-from torchblur.dm.actuator_fit import fit_actuators
+from torchblur.dm.actuator_fit import fit_actuators, with_dc_gain_variance
 from torchblur.dm.mirror import influence_width
 from torchblur.dm.plans import seen_by
 from torchblur.dm.shack_hartmann import lit_rows
@@ -33,7 +33,7 @@ from torchblur.sysid.frequency_response_io import json_floats
 from torchblur.sysid.model_check import model_chi2_limit, model_fails
 
 __all__ = ["Registration", "RegistrationFit", "fit_registration", "register_and_refit", "registration_model", "support_check",
-           "support_line", "with_registration_stds",
+           "support_line", "with_registration_stds", "whitened",
            "write_registration_json", "read_registration_json", "REGISTRATION_SCHEMA", "PARAMETERS", "SENSOR_PARAMETERS",
            "diffraction_quadrature", "fully_lit", "interior", "EDGE_TEST_P", "EDGE_TEST_MIN_INTERIOR",
            "EDGE_GAIN_SHARE"]
@@ -298,8 +298,10 @@ def fully_lit(wfs) -> np.ndarray:
     return np.hypot(c[:, 0] + h, c[:, 1] + h) <= wfs.pupil_diameter / 2 * (1 + 1e-12)
 
 
-def _whitened(D0, D0_std):
-    """``(B [S, N], weight [S, N], columns [N] bool)``: D0 / std where usable (0 elsewhere)."""
+def whitened(D0, D0_std):
+    """``(B [S, N], weight [S, N], columns [N] bool)``: D0 / std and 1 / std where the entry is
+    usable (finite, std finite and > 0; 0 elsewhere), and the columns with 2 usable entries or more.
+    The weights of every least-squares fit to D0 (the registration's, :mod:`torchblur.dm.slope_gains`')."""
     D0, std = np.asarray(D0, dtype=np.float64), np.asarray(D0_std, dtype=np.float64)
     if D0.ndim != 2 or std.shape != D0.shape:
         raise ShapeError(f"D0, D0_std: expected two [2M, N] arrays, got shapes {D0.shape} and {std.shape}")
@@ -382,7 +384,7 @@ def _edge_test(fit, D0, D0_std, full, coupling, wfs, N) -> RegistrationFit:
     chi2 = float(((U[:, keep].T @ d) ** 2 / lam[keep]).sum())
     p = float(stats.chi2.sf(chi2, int(keep.sum())))
     # each actuator's gain on the interior rows against its gain on every fitted row, at the same G
-    B, wt, _ = _whitened(D0, D0_std)
+    B, wt, _ = whitened(D0, D0_std)
     A = fit.G * wt
     a_all, a_in = (A * A).sum(0), (A * A * rows).sum(0)
     g_in = (A * B * rows).sum(0) / np.where(a_in > 0, a_in, 1.0)
@@ -406,7 +408,7 @@ def _edge_test(fit, D0, D0_std, full, coupling, wfs, N) -> RegistrationFit:
 def _fit_on(D0, D0_std, full, start, coupling, N, beta0: float = 0.0) -> RegistrationFit:
     """:func:`fit_registration` on the entries of ``D0`` with a usable std; ``full``: theta ->
     (G, dG) of every subaperture."""
-    B, wt, cols = _whitened(D0, D0_std)
+    B, wt, cols = whitened(D0, D0_std)
     theta0 = np.append(_theta(start, coupling), beta0)
     sub = np.flatnonzero(cols)
     n_entries = int((wt[:, sub] > 0).sum())
@@ -476,10 +478,12 @@ def _failed(start, theta0, model, N, why, n_entries, n_columns) -> RegistrationF
 
 def with_registration_stds(table, fit: RegistrationFit):
     """``table`` (an :class:`~torchblur.dm.actuator_fit.ActuatorTable` fitted on ``fit.G``) with
-    each ``dc_gain_std`` grown by the registration's share ``sqrt(std^2 + gain_var_registration)``."""
+    each ``dc_gain_std`` grown by the registration's share ``sqrt(std^2 + gain_var_registration)``
+    and the statuses decided again from the grown stds
+    (:func:`~torchblur.dm.actuator_fit.with_dc_gain_variance`)."""
     if not fit.ok:
         return table
-    return replace(table, dc_gain_std=np.sqrt(np.asarray(table.dc_gain_std) ** 2 + fit.gain_var_registration))
+    return with_dc_gain_variance(table, fit.gain_var_registration)
 
 
 def support_check(support, G, threshold: float, G_std=None) -> dict:

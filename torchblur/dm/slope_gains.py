@@ -15,7 +15,8 @@ scatter beyond those stds, ``tau``, is the DerSimonian-Laird random-effects esti
 rows agree within their noise), apart for the fully lit subapertures' rows and the others (the
 pupil's edge, where the scatter is larger). :func:`with_slope_gain_stds` grows every ``dc_gain_std``
 to ``sqrt(std^2 + dc_gain^2 sum_r w_rj^2 tau_r^2)``, ``w_rj = G[r, j]^2 / D0_std[r, j]^2``
-normalised over the rows (the projection's weights at zero frequency); modes, dampings and
+normalised over the rows (the projection's weights at zero frequency), and decides every status
+again from the grown std; modes, dampings and
 delays are left as they are (a gain common to every frequency does not move them). What part of
 the rows' gain errors the actuators' own gains absorb (a smooth pattern of them) is not seen in
 the scatter, and is not in the stds.
@@ -25,10 +26,12 @@ Shapes: S = 2M slopes (x of all M subapertures, then y), N actuators.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
+from torchblur.dm.actuator_fit import with_dc_gain_variance
+from torchblur.dm.registration import whitened
 from torchblur.errors import ShapeError
 
 __all__ = ["SlopeGains", "slope_gains", "random_effects_scatter", "with_slope_gain_stds", "slope_gains_line"]
@@ -86,8 +89,9 @@ def slope_gains(D0, D0_std, G, dc_gain, lit) -> SlopeGains:
     if D0.ndim != 2 or s.shape != D0.shape or G.shape != D0.shape or a.shape != D0.shape[1:] or lit.shape != D0.shape[:1]:
         raise ShapeError(f"D0, D0_std, G: expected [S, N], dc_gain [N], lit [S]; got {D0.shape}, {s.shape}, {G.shape}, "
                          f"{a.shape}, {lit.shape}")
-    good = np.isfinite(D0) & np.isfinite(s) & (s > 0) & np.isfinite(a)[None] & np.isfinite(G)
-    w = np.where(good, 1.0 / np.where(good, s, 1.0) ** 2, 0.0)
+    wt = whitened(D0, s)[1]
+    good = (wt > 0) & np.isfinite(a)[None] & np.isfinite(G)
+    w = np.where(good, wt * wt, 0.0)
     X = np.where(good, G * np.nan_to_num(a)[None], 0.0)
     den = np.sum(X * X * w, 1)
     seen = den > 0
@@ -108,10 +112,11 @@ def slope_gains(D0, D0_std, G, dc_gain, lit) -> SlopeGains:
 
 def with_slope_gain_stds(table, gains: SlopeGains):
     """``table`` (an :class:`~torchblur.dm.actuator_fit.ActuatorTable`) with every ``dc_gain_std``
-    grown by the rows' gain scatter: ``sqrt(std^2 + (dc_gain * dc_gain_share)^2)`` (NaN gains kept)."""
-    g, s = np.asarray(table.dc_gain, dtype=np.float64), np.asarray(table.dc_gain_std, dtype=np.float64)
-    add = np.nan_to_num(g) * gains.dc_gain_share
-    return replace(table, dc_gain_std=np.sqrt(s**2 + add**2))
+    grown by the rows' gain scatter: ``sqrt(std^2 + (dc_gain * dc_gain_share)^2)`` (NaN gains kept),
+    and the statuses decided again from the grown stds
+    (:func:`~torchblur.dm.actuator_fit.with_dc_gain_variance`)."""
+    add = np.nan_to_num(np.asarray(table.dc_gain, dtype=np.float64)) * gains.dc_gain_share
+    return with_dc_gain_variance(table, add**2)
 
 
 def slope_gains_line(gains: SlopeGains) -> str:

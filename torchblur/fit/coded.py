@@ -70,6 +70,13 @@ class _CodedProblem:
     kernel: torch.Tensor | None = None
     pad: int = 0
 
+    def psf(self, it: torch.Tensor | None = None) -> GaussianPSF | KernelPSF:
+        """The PSF of the items ``it [n]`` (every item without): the measured kernel, or the Gaussian."""
+        sel = slice(None) if it is None else it
+        if self.kernel is not None:
+            return KernelPSF(self.kernel[sel])
+        return GaussianPSF(self.center[sel], self.cov[sel], self.amp[sel])
+
     def model(self, theta: torch.Tensor, it: torch.Tensor) -> torch.Tensor:
         """The rendered coded images of the items ``it [n]`` at ``theta [n, P]`` -> ``[n, H W]``
         (a kernel: the splat's image, the model :meth:`model_and_jacobian` differentiates)."""
@@ -78,7 +85,7 @@ class _CodedProblem:
         M, ph = theta[:, 0], theta[:, 1]
         # omega [n, 2] (x, y): a plain [n] with n == 2 would read as one omega per axis
         traj = Sinusoid(torch.stack([M, torch.zeros_like(M)], -1), torch.stack([ph, ph], -1), self.om[it][:, None].expand(-1, 2))
-        img = render_coded(traj, GaussianPSF(self.center[it], self.cov[it], self.amp[it]), ExposureWindow(self.start[it], self.dur[it]),
+        img = render_coded(traj, self.psf(it), ExposureWindow(self.start[it], self.dur[it]),
                            self.code, height=self.height, width=self.width, settings=self.settings)
         if self.fit_scale:
             img = img * theta[:, 2, None, None]
@@ -89,8 +96,7 @@ class _CodedProblem:
         ``jacobian``): the one-tone :func:`~torchblur.fit.multisine.render_multisine_with_jacobian` of
         every open interval (a kernel: its Fourier shift), summed."""
         n = theta.shape[0]
-        kern = self.kernel is not None
-        psf = KernelPSF(self.kernel[it]) if kern else GaussianPSF(self.center[it], self.cov[it], self.amp[it])
+        psf = self.psf(it)
         sub = coded_windows(ExposureWindow(self.start[it], self.dur[it]), self.code)  # [n, K]: the open intervals
         s = self.settings
         img, J = render_multisine_with_jacobian(theta, self.om[it][:, None], psf, sub, height=self.height,
@@ -135,7 +141,7 @@ def _problem(images, psf: GaussianPSF | KernelPSF, window: ExposureWindow, code,
 def _with_nodes(prob: _CodedProblem, M0: torch.Tensor) -> _CodedProblem:
     """``prob`` with the node count fixed for motions up to ``1.5 M0 + 0.5`` px (``M0 [B]``)."""
     bound = Sinusoid(torch.stack([M0 * 1.5 + 0.5, torch.zeros_like(M0)], -1), torch.zeros_like(prob.center), prob.om[:, None].expand(-1, 2))
-    smin = (KernelPSF(prob.kernel) if prob.kernel is not None else GaussianPSF(prob.center, prob.cov, prob.amp)).sigma_min()
+    smin = prob.psf().sigma_min()
     S = choose_node_count(bound.path_length(ExposureWindow(torch.zeros_like(prob.dur), prob.dur)), smin, prob.settings)
     pad = int(math.ceil(float((M0 * 1.5 + 0.5).max()))) + 2
     return dataclasses.replace(prob, settings=RenderSettings(panel_path_sigmas=3.5, nodes=S), pad=pad)

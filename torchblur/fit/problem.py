@@ -19,7 +19,7 @@ from torchblur.render.alias import wrap_phase
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.window import ExposureWindow
 
-__all__ = ["SineProblem", "sine_problem", "starting_points", "crop_to_reach", "cut_sums", "dark_items",
+__all__ = ["SineProblem", "sine_problem", "starting_points", "crop_to_reach", "crop_box", "cut_sums", "dark_items",
            "matched_filter_peak", "DARK_FALSE_ALARM"]
 
 
@@ -304,10 +304,10 @@ def crop_to_reach(problem: SineProblem, amplitude_bound: torch.Tensor, *, fit_ce
     N, E, H, W = p.data.shape
     live = p.live
     lo, hi = lo[live].amin(0), hi[live].amax(0)
-    cx0, cy0 = max(0, int(math.floor(float(lo[0])))), max(0, int(math.floor(float(lo[1]))))
-    cx1, cy1 = min(W, int(math.ceil(float(hi[0]))) + 1), min(H, int(math.ceil(float(hi[1]))) + 1)
-    if not _worth_cropping(cx1 - cx0, cy1 - cy0, H, W):
+    box = crop_box(lo, hi, H, W)
+    if box is None:
         return p
+    cx0, cy0, cx1, cy1 = box
     cut_cost, cut_sq, cut_n = cut_sums(p.data, p.weight, (cy0, cy1, cx0, cx1), p.row_weight)
     return dataclasses.replace(p, data=p.data[..., cy0:cy1, cx0:cx1], weight=p.weight[..., cy0:cy1, cx0:cx1],
                                psf=p.psf.cropped(cx0, cy0, cx1, cy1),
@@ -347,6 +347,15 @@ def _reach_bounds(p: SineProblem, amplitude_bound: torch.Tensor, fit_center: boo
     margin = 2.0 if fit_center else 0.0
     lo, hi = p.psf.footprint(5.5)
     return lo - reach - margin, hi + reach + margin
+
+
+def crop_box(lo, hi, H: int, W: int) -> tuple[int, int, int, int] | None:
+    """The crop ``(x0, y0, x1, y1)`` (px, the frame's ``[y0:y1, x0:x1]``) of an ``H x W`` frame
+    that holds ``[lo, hi]`` (``[2]`` each, (x, y) px at pixel centres), kept inside the frame;
+    None where it is not worth it (:func:`_worth_cropping`)."""
+    x0, y0 = max(0, int(math.floor(float(lo[0])))), max(0, int(math.floor(float(lo[1]))))
+    x1, y1 = min(W, int(math.ceil(float(hi[0]))) + 1), min(H, int(math.ceil(float(hi[1]))) + 1)
+    return (x0, y0, x1, y1) if _worth_cropping(x1 - x0, y1 - y0, H, W) else None
 
 
 def _worth_cropping(w: int, h: int, H: int, W: int) -> bool:

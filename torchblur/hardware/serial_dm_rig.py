@@ -36,7 +36,7 @@ class SerialDMRig(PatternSines, SerialRig):
         trigger_delay_s: Td, the camera's nominal trigger-to-exposure delay (s; the config's
             ``camera.trigger_delay_s``): the run's exposure windows start at trigger + Td +
             the calibrated latency.
-        **kwargs: ``retries``, ``reconnects``, ``poll_s``, ``max_wait_s``, ``log`` as SerialRig.
+        **kwargs: ``retries``, ``reconnects``, ``poll_s``, ``max_wait_s``, ``idle_polls``, ``log`` as SerialRig.
 
     Attributes:
         n_actuators: N, the controller's ``ACT?`` (read on connecting).

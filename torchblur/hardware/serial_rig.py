@@ -65,6 +65,9 @@ class SerialRig(CameraProperties, RigChecks):
         retries: how many times a failed call is redone (faults of the link or the frames).
         reconnects: how many times a lost connection is reopened during the run.
         poll_s: silence on the camera channel after which ``STATUS?`` is polled (s).
+        idle_polls: how many polls in a row, with no frame between them, must find the controller
+            idle (``pending=0``) while frames are missing for the next one to be declared lost
+            (``FrameTimeout``; an int >= 1).
         max_wait_s: the longest wait for one acquisition's frames while the controller says
             they are still pending (s).
         log: callable taking one message string (faults, retries); default: kept in
@@ -75,7 +78,7 @@ class SerialRig(CameraProperties, RigChecks):
     AXES = ("x", "y")
 
     def __init__(self, controller: Controller, frames: FrameSource, *, axis: str = "x", retries: int = 2, reconnects: int = 1,
-                 poll_s: float = 0.25, max_wait_s: float = 60.0, log: Callable[[str], None] | None = None):
+                 poll_s: float = 0.25, max_wait_s: float = 60.0, idle_polls: int = 2, log: Callable[[str], None] | None = None):
         if axis not in self.AXES:
             raise ParameterError(f"axis: expected one of {', '.join(repr(a) for a in self.AXES)}, got {axis!r}")
         self.controller = controller
@@ -85,6 +88,7 @@ class SerialRig(CameraProperties, RigChecks):
         self.reconnects = int(reconnects)
         self.poll_s = check_real_scalar(poll_s, "poll_s", positive=True)
         self.max_wait_s = check_real_scalar(max_wait_s, "max_wait_s", positive=True)
+        self.idle_polls = check_int(idle_polls, "idle_polls", low=1)
         self.events: list[str] = []
         self._log = log
         self._boot: str | None = None
@@ -268,8 +272,8 @@ class SerialRig(CameraProperties, RigChecks):
 
     def _read_frames(self, first: int, n: int, exposure_s: float) -> list[Frame]:
         """Frames ``first .. first + n - 1``, each checked. Waiting, ``STATUS?`` is polled after
-        every ``poll_s`` of silence; a frame is lost (``FrameTimeout``) when two polls in a row,
-        with no frame between them, find the controller idle (``pending=0``; a frame leaves
+        every ``poll_s`` of silence; a frame is lost (``FrameTimeout``) when ``idle_polls`` polls
+        in a row, with no frame between them, find the controller idle (``pending=0``; a frame leaves
         ``pending`` when it is sent, and may still be on its way at the first). Any frame that
         arrives, and any poll that finds frames pending, starts the count again; ``max_wait_s``
         bounds the whole wait."""
@@ -292,7 +296,7 @@ class SerialRig(CameraProperties, RigChecks):
                 if st["frames"] < expected:
                     raise DeviceReset(f"frame counter went back from {expected} to {st['frames']}") from None
                 idle_polls = idle_polls + 1 if st["pending"] == 0 else 0
-                if idle_polls >= 2:
+                if idle_polls >= self.idle_polls:
                     raise FrameTimeout(f"frame {expected} was triggered but never arrived (controller idle for "
                                        f"{idle_polls} polls in a row with no frame, counter {st['frames']})") from None
                 continue

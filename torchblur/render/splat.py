@@ -38,7 +38,7 @@ import math
 
 import torch
 
-from torchblur.errors import InputTypeError, ParameterError, ShapeError
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, check_int
 from torchblur.render.blur import _exp_budget, _exp_floor, _next_odd_fast, _tile_grid
 
 __all__ = ["gaussian_splat_with_jacobian", "kernel_shift_with_jacobian", "sine_blur_with_jacobian", "window_nodes"]
@@ -93,9 +93,7 @@ def gaussian_splat_with_jacobian(px, py, dpx, dpy, w, A, B, C, height, width):
         >>> img.shape, jac.shape
         (torch.Size([24, 32]), torch.Size([2, 24, 32]))
     """
-    for name, val in (("height", height), ("width", width)):
-        if isinstance(val, bool) or not isinstance(val, int) or val < 1:
-            raise ParameterError(f"{name}: expected an integer >= 1, got {val!r}")
+    height, width = check_int(height, "height", low=1), check_int(width, "width", low=1)
     args = (px, py, dpx, dpy, w, A, B, C)
     dtype, wide = _real_dtypes(("px", "py", "dpx", "dpy", "w", "A", "B", "C"), args)
     device = px.device

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import torch
 
-from torchblur.errors import ParameterError, as_tensor, broadcast_batch, check_finite, check_positive, check_real_scalar
+from torchblur.errors import ParameterError, as_tensor, broadcast_batch, check_finite, check_int, check_positive, check_real_scalar
 
 __all__ = ["ExposureWindow", "SensorTiming"]
 
@@ -121,8 +121,7 @@ class SensorTiming:
     def windows(self, n_frames: int, *, dtype=None, device=None) -> ExposureWindow:
         """The exposure windows of ``n_frames`` successive frames, batch shape ``[n_frames]``
         (float64 by default: times need the precision)."""
-        if isinstance(n_frames, bool) or not isinstance(n_frames, int) or n_frames < 1:
-            raise ParameterError(f"n_frames: expected an integer >= 1, got {n_frames!r}")
+        n_frames = check_int(n_frames, "n_frames", low=1)
         dtype = dtype or torch.float64
         k = torch.arange(n_frames, dtype=dtype, device=device)
         start = self.tcam_s + k * self.sample_period_s

@@ -177,8 +177,7 @@ class SimulatedRig(RigChecks):
         ):
             raise ShapeError(f"frame_shape: expected (H, W), got {frame_shape!r}")
         H, W = (check_int(v, "frame_shape", low=1) for v in frame_shape)
-        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-            raise ParameterError(f"seed: expected an integer >= 0, got {seed!r}")
+        seed = check_int(seed, "seed", low=0)
         self._plant = plant
         self._camera = camera
         self._frame_shape = (H, W)
@@ -368,8 +367,7 @@ class SimulatedRig(RigChecks):
             return torch.zeros((window.shape[0], H, W), dtype=_F64)
         if (x1 - x0) * (y1 - y0) >= 0.8 * H * W:
             return self._render(trajectory, psf, window)
-        shift = torch.tensor([x0, y0], dtype=_F64)
-        part = self._render(trajectory, GaussianPSF(psf.center - shift, psf.cov, psf.amplitude), window, shape=(y1 - y0, x1 - x0))
+        part = self._render(trajectory, psf.cropped(x0, y0, x1, y1), window, shape=(y1 - y0, x1 - x0))
         out = torch.zeros((window.shape[0], H, W), dtype=_F64)
         out[:, y0:y1, x0:x1] = part
         return out

@@ -21,6 +21,7 @@ import torch
 from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_frequency_grid, as_tensor, as_unit_direction, check_choice,
                      check_finite, check_positive)
 from torchblur.fit.inputs import flat_psf
+from torchblur.fit.problem import crop_box
 from torchblur.fit.status import POOR_FIT_CHI2, flag_poor_fit
 from torchblur.losses import pixel_weights
 from torchblur.render.blur import RenderSettings, choose_node_count, quadrature_nodes
@@ -428,7 +429,8 @@ def _crop(prob: _Problem, M0: torch.Tensor) -> None:
     """Crop ``prob`` to the region the model can reach (as the sinusoid fitter does): outside it
     the model is below e^-24 of its peak; the constant cost of those pixels is kept in
     ``out_cost``. Steps that would move the spot past the crop are refused (``m_limit``).
-    Nothing is cropped with a fitted background, or when the crop would keep 90% of the frame."""
+    Nothing is cropped with a fitted background, or where :func:`~torchblur.fit.problem.crop_box`
+    finds no crop worth it (under 4x4, or 90% of the frame or more)."""
     if prob.fit_background:
         return
     H, W = prob.data.shape[-2:]
@@ -437,10 +439,10 @@ def _crop(prob: _Problem, M0: torch.Tensor) -> None:
     lo_k, hi_k = prob.psf.footprint(7.0)
     lo = (lo_k - reach).amin(0)
     hi = (hi_k + reach).amax(0)
-    cx0, cy0 = max(0, int(math.floor(float(lo[0])))), max(0, int(math.floor(float(lo[1]))))
-    cx1, cy1 = min(W, int(math.ceil(float(hi[0]))) + 1), min(H, int(math.ceil(float(hi[1]))) + 1)
-    if not (cx1 - cx0 >= 4 and cy1 - cy0 >= 4 and (cx1 - cx0) * (cy1 - cy0) < 0.9 * H * W):
+    box = crop_box(lo, hi, H, W)
+    if box is None:
         return
+    cx0, cy0, cx1, cy1 = box
     inside = torch.zeros(H, W, dtype=torch.bool, device=device)
     inside[cy0:cy1, cx0:cx1] = True
     ow = prob.wts * ~inside

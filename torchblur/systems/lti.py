@@ -28,7 +28,8 @@ import scipy.linalg
 import scipy.signal
 import torch
 
-from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, broadcast_batch, check_finite, check_positive, check_real_scalar
+from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_tensor, broadcast_batch, check_finite, check_int, check_positive,
+                              check_real_scalar)
 from torchblur.render.window import ExposureWindow
 from torchblur.render.trajectory import Trajectory, _sine_path_bound
 
@@ -174,8 +175,7 @@ class Plant:
         tf = control.TransferFunction(list(self.num), list(self.den))
         if pade_order is None or self.delay_s == 0:
             return tf
-        if isinstance(pade_order, bool) or not isinstance(pade_order, int) or pade_order < 1:
-            raise ParameterError(f"pade_order: expected None or an integer >= 1, got {pade_order!r}")
+        pade_order = check_int(pade_order, "pade_order", low=1)
         pn, pd = control.pade(self.delay_s, pade_order)
         return tf * control.TransferFunction(pn, pd)
 
