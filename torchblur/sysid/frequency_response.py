@@ -523,7 +523,7 @@ class FrequencyResponse:
 
         check_type(frd, "frd", control.FrequencyResponseData, "control.FrequencyResponseData")
         data = getattr(frd, "frdata", None)
-        if data is None:  # python-control < 0.10.1
+        if data is None:  # python-control 0.10.1 (the floor) has fresp only; frdata from 0.10.2
             data = frd.fresp
         return cls(
             np.array(frd.omega, dtype=np.float64),
