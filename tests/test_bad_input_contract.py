@@ -330,3 +330,13 @@ def test_robust_fit_config_keys_default_to_todays_behaviour():
         with pytest.raises(ConfigError) as info:
             load_config(None, bad)
         assert str(info.value).startswith(key)
+
+
+def test_check_type_names_the_argument_what_was_expected_and_what_came():
+    from torchblur.errors import check_type
+
+    w = tb.ExposureWindow(torch.tensor([0.0]), torch.tensor([1e-3]))
+    assert check_type(w, "window", tb.ExposureWindow, "an ExposureWindow") is w
+    assert check_type(2.0, "x", (int, float), "a number") == 2.0
+    with pytest.raises(InputTypeError, match=r"^window: expected an ExposureWindow, got list$"):
+        check_type([0.0], "window", tb.ExposureWindow, "an ExposureWindow")

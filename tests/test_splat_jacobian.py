@@ -416,3 +416,20 @@ def test_kernel_forward_model_gradcheck_batch_and_errors():
         assert torch.allclose(jac1, jac[b].detach(), rtol=0, atol=1e-13 * float(jac1.abs().max()))
     with pytest.raises(ShapeError, match="kernel"):
         sine_blur_with_jacobian(t, w, *args[:2], om, d, center, None, H, W + 1, kernel=kern)
+
+
+def test_splat_batches_that_do_not_broadcast_raise_a_shape_error_naming_the_inputs():
+    """Both splats refuse batch shapes that do not broadcast with a ShapeError listing every
+    input's shape (the Gaussian one raised NameError before: its message named an undefined list)."""
+    from torchblur.errors import ShapeError
+    from torchblur.render.splat import gaussian_splat_with_jacobian, kernel_shift_with_jacobian
+
+    S, one = 4, torch.tensor(1.0, dtype=F64)
+    with pytest.raises(ShapeError, match=r"shapes do not broadcast \(px \(3, 4\), py \(2, 4\), dpx \(4, 1\)"):
+        gaussian_splat_with_jacobian(torch.zeros(3, S, dtype=F64), torch.zeros(2, S, dtype=F64), torch.zeros(S, 1, dtype=F64),
+                                     torch.zeros(S, 1, dtype=F64), torch.ones(S, dtype=F64), one, 0 * one, one, 8, 8)
+    with pytest.raises(ShapeError, match=r"shapes do not broadcast \(kernel \(3, 8, 8\), dx \(2, 4\)"):
+        kernel_shift_with_jacobian(torch.ones(3, 8, 8, dtype=F64), torch.zeros(2, S, dtype=F64), torch.zeros(S, dtype=F64),
+                                   torch.zeros(S, 1, dtype=F64), torch.zeros(S, 1, dtype=F64), torch.ones(S, dtype=F64))
+    with pytest.raises(ShapeError, match="dpx: expected at least 2 dimension"):
+        gaussian_splat_with_jacobian(torch.zeros(S), torch.zeros(S), torch.zeros(S), torch.zeros(S, 1), torch.ones(S), one, 0 * one, one, 8, 8)

@@ -29,6 +29,7 @@ __all__ = [
     "check_real_scalar",
     "check_int",
     "check_bool",
+    "check_type",
     "check_schema_version",
     "as_image",
     "as_noise_std",
@@ -252,6 +253,14 @@ def check_bool(value, name: str) -> bool:
     if not isinstance(value, (bool, np.bool_)):
         raise InputTypeError(f"{name}: expected True or False, got {type(value).__name__}")
     return bool(value)
+
+
+def check_type(value, name: str, types, what: str):
+    """``value`` if it is an instance of ``types`` (a class or a tuple of them), else
+    :class:`InputTypeError` ``"{name}: expected {what}, got {type}"``."""
+    if not isinstance(value, types):
+        raise InputTypeError(f"{name}: expected {what}, got {type(value).__name__}")
+    return value
 
 
 def check_schema_version(version, supported, where: str = "", *, error: type[Exception] = ParameterError) -> int:

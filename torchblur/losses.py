@@ -24,7 +24,7 @@ import math
 
 import torch
 
-from torchblur.errors import ParameterError, flat_noise_and_mask
+from torchblur.errors import ParameterError, check_choice, flat_noise_and_mask
 
 __all__ = ["LOSSES", "LIKELIHOOD_LOSSES", "chi2_limit", "covariance_factor", "fisher_covariance", "gauss_newton_terms",
            "image_loss", "irls_weights", "loss_weight", "pixel_weights", "residual_weights", "singular_covariance"]
@@ -40,11 +40,6 @@ def chi2_limit(dof, z: float) -> float:
     return 1.0 + z * math.sqrt(2.0 / max(1, int(dof)))
 
 
-def _check_loss(loss: str) -> None:
-    if loss not in LOSSES:
-        raise ParameterError(f"loss: expected one of {LOSSES}, got {loss!r}")
-
-
 def loss_weight(loss: str, inverse_variance: torch.Tensor) -> torch.Tensor:
     """Each loss's per-pixel weight ``[...]`` from the l2 weights ``inverse_variance = 1 / sigma^2``
     ``[...]`` (0 excludes a pixel): l2 ``1 / sigma^2``; l1 and linf ``1 / sigma`` (the residual
@@ -54,7 +49,7 @@ def loss_weight(loss: str, inverse_variance: torch.Tensor) -> torch.Tensor:
         >>> loss_weight("l1", torch.tensor([0.25, 0.0]))
         tensor([0.5000, 0.0000])
     """
-    _check_loss(loss)
+    check_choice(loss, "loss", LOSSES)
     if loss == "l2":
         return inverse_variance
     if loss == "poisson":
@@ -87,7 +82,7 @@ def covariance_factor(loss: str) -> float:
     with ``sigma^2 = lam``); l1 ``pi / 2`` (least absolute deviations on residuals scaled by
     ``sigma``: ``1 / (4 f(0)^2)`` for the standard normal density ``f``, Koenker & Bassett
     1978; a std ``sqrt(pi / 2) = 1.25`` times l2's); linf NaN (no likelihood)."""
-    _check_loss(loss)
+    check_choice(loss, "loss", LOSSES)
     return {"l2": 1.0, "poisson": 1.0, "l1": math.pi / 2, "linf": float("nan")}[loss]
 
 
@@ -127,7 +122,7 @@ def image_loss(model: torch.Tensor, data: torch.Tensor, *, loss: str = "l2", wei
                shift: float = 0.0) -> torch.Tensor:
     """Per-item loss ``[...]`` between ``model`` and ``data`` ``[..., R]`` (see module doc);
     ``shift`` (>= 0, counts) is poisson's read-noise shift, ignored by the others."""
-    _check_loss(loss)
+    check_choice(loss, "loss", LOSSES)
     r = data - model
     w = torch.ones_like(r) if weight is None else weight
     if loss == "l2":

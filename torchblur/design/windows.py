@@ -18,7 +18,7 @@ import torch
 
 from torchblur.render.alias import MIN_SEPARATION, alias_separation, wrap_phase  # noqa: F401  (design names too)
 from torchblur.render.alias import window_center_phase
-from torchblur.errors import InputTypeError, ParameterError, as_tensor, check_finite, check_positive
+from torchblur.errors import ParameterError, as_tensor, check_finite, check_positive, check_type
 from torchblur.render.window import ExposureWindow
 
 __all__ = ["DesignWarning", "dual_exposure_windows", "alias_separation", "check_design", "trigger_phase_for", "resolve_branches",
@@ -59,8 +59,7 @@ def check_design(omega, window: ExposureWindow, *, min_separation: float = 0.2, 
     :class:`DesignWarning` if ``warn``. Detects exposures of a whole number of periods
     (phase unidentifiable) and exposures whose centres coincide mod half a period (the
     alias is not resolved)."""
-    if not isinstance(window, ExposureWindow):
-        raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
+    check_type(window, "window", ExposureWindow, "an ExposureWindow")
     omega = check_positive(as_tensor(omega, "omega", like=window.start), "omega")
     msgs = []
     p = omega[..., None] * window.duration

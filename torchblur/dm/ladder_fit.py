@@ -70,7 +70,7 @@ import torch
 from scipy.interpolate import CubicSpline
 
 from torchblur.dm.spot_fit import SpotFits, chunk_size
-from torchblur.errors import InputTypeError, ParameterError, ShapeError, check_int
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, check_int, check_type
 from torchblur.fit.status import (DARK, MASKED, NO_MOTION, NO_PIXELS, NOT_CONVERGED, OUT_OF_FRAME, OUT_OF_LADDER, SINGULAR,
                                   flag_poor_fit)
 from torchblur.image.moments import image_moments
@@ -242,10 +242,8 @@ def _flat_problems(crops, ladder: PatternLadder, window, omega, amplitude, power
     """Check and broadcast the inputs of :func:`fit_ladder_problems` (errors name the argument)."""
     if not isinstance(crops, torch.Tensor) or crops.dim() != 6:
         raise ShapeError(f"crops: expected a tensor [P, F, M, E*R, h, w], got {getattr(crops, 'shape', type(crops).__name__)}")
-    if not isinstance(ladder, PatternLadder):
-        raise InputTypeError(f"ladder: expected a PatternLadder, got {type(ladder).__name__}")
-    if not isinstance(window, ExposureWindow):
-        raise InputTypeError(f"window: expected an ExposureWindow of batch [P, F, E*R], got {type(window).__name__}")
+    check_type(ladder, "ladder", PatternLadder, "a PatternLadder")
+    check_type(window, "window", ExposureWindow, "an ExposureWindow of batch [P, F, E*R]")
     P, F, M, E, h, w = crops.shape
     Pl, K, Ml, hl, wl = ladder.images.shape
     if (Pl, Ml, hl, wl) != (P, M, h, w):

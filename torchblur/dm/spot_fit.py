@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from torchblur.errors import InputTypeError, ParameterError, ShapeError, check_int
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, check_int, check_type
 from torchblur.fit.sinusoid import fit_sinusoid
 from torchblur.image.spots import crop_spots, crop_valid
 from torchblur.render.psf import GaussianPSF, KernelPSF
@@ -176,8 +176,7 @@ def _problem_inputs(crops, psf, window, omega, noise_std, mask):
     """Broadcast and flatten: ``[n, E*R, h, w]`` data, the PSFs (:func:`_spot_psfs`), ``[n, E*R]`` window, ``[n]`` omega."""
     if not isinstance(crops, torch.Tensor) or crops.dim() != 6:
         raise ShapeError(f"crops: expected a tensor [P, F, M, E*R, h, w], got {getattr(crops, 'shape', type(crops).__name__)}")
-    if not isinstance(window, ExposureWindow):
-        raise InputTypeError(f"window: expected an ExposureWindow of batch [P, F, E*R], got {type(window).__name__}")
+    check_type(window, "window", ExposureWindow, "an ExposureWindow of batch [P, F, E*R]")
     P, F, M, ER, h, w = crops.shape
     like = dict(dtype=crops.dtype, device=crops.device)
     n = P * F * M

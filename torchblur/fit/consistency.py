@@ -17,7 +17,7 @@ from typing import Mapping
 import torch
 from torch import nn
 
-from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_choice, check_finite
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_choice, check_finite, check_type
 from torchblur.losses import LOSSES, image_loss
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.blur import BlurRenderer
@@ -104,16 +104,12 @@ def _both_axes(omega: torch.Tensor) -> torch.Tensor:
 
 def _check_settings(renderer, psf, window, loss, reduction, normalize) -> None:
     """The settings :func:`blur_consistency` and :class:`BlurConsistencyLoss` share."""
-    if not isinstance(renderer, BlurRenderer):
-        raise InputTypeError(f"renderer: expected a torchblur BlurRenderer, got {type(renderer).__name__}")
-    if not isinstance(psf, (GaussianPSF, KernelPSF)):
-        raise InputTypeError(f"psf: expected GaussianPSF or KernelPSF, got {type(psf).__name__}")
-    if not isinstance(window, ExposureWindow):
-        raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
+    check_type(renderer, "renderer", BlurRenderer, "a torchblur BlurRenderer")
+    check_type(psf, "psf", (GaussianPSF, KernelPSF), "GaussianPSF or KernelPSF")
+    check_type(window, "window", ExposureWindow, "an ExposureWindow")
     check_choice(loss, "loss", LOSSES)
     check_choice(reduction, "reduction", REDUCTIONS)
-    if not isinstance(normalize, bool):
-        raise InputTypeError(f"normalize: expected True or False, got {type(normalize).__name__}")
+    check_type(normalize, "normalize", bool, "True or False")
 
 
 def _unit_frobenius(x: torch.Tensor) -> torch.Tensor:
@@ -230,8 +226,7 @@ def _model_and_data(renderer: BlurRenderer, traj: Trajectory, psf, window: Expos
 def _as_observed(observed, renderer: BlurRenderer, window: ExposureWindow) -> torch.Tensor:
     """``observed`` checked as ``[..., E, H, W]`` floating, finite, of the renderer's frame size,
     with a window of 1 or E exposures."""
-    if not isinstance(observed, torch.Tensor):
-        raise InputTypeError(f"observed: expected a tensor [..., E, H, W], got {type(observed).__name__}")
+    check_type(observed, "observed", torch.Tensor, "a tensor [..., E, H, W]")
     if observed.is_complex() or observed.dtype == torch.bool:
         raise InputTypeError(f"observed: expected a real tensor [..., E, H, W], got dtype {observed.dtype}")
     if not observed.is_floating_point():

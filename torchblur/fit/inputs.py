@@ -12,7 +12,7 @@ import math
 import torch
 
 from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_tensor, as_unit_direction, check_finite,
-                              check_positive)
+                              check_positive, check_type)
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.window import ExposureWindow
 
@@ -54,10 +54,8 @@ def check_data(images, psf, window, *, frame_dims: int = 3):
                              f"subtracted (preprocess.subtract_dark), got dtype {images.dtype}")
     if images.dim() < frame_dims or images.numel() == 0:
         raise ShapeError(f"images: expected a non-empty tensor {desc}, got shape {tuple(images.shape)}")
-    if not isinstance(psf, (GaussianPSF, KernelPSF)):
-        raise InputTypeError(f"psf: expected a GaussianPSF or KernelPSF, got {type(psf).__name__}")
-    if not isinstance(window, ExposureWindow):
-        raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
+    check_type(psf, "psf", (GaussianPSF, KernelPSF), "a GaussianPSF or KernelPSF")
+    check_type(window, "window", ExposureWindow, "an ExposureWindow")
     dtype = fit_dtype(images, psf, window)
     images, psf, window = images.to(dtype), psf.to(dtype), window.to(dtype)
     check_finite(images, "images")

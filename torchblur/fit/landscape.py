@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import torch
 
-from torchblur.errors import InputTypeError, ShapeError, as_tensor, check_choice, check_finite, check_positive
+from torchblur.errors import InputTypeError, ShapeError, as_tensor, check_choice, check_finite, check_positive, check_type
 from torchblur.losses import LOSSES, image_loss
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.blur import RenderSettings, render_blur
@@ -63,20 +63,17 @@ def cost_landscape(images, psf, window: ExposureWindow, omega, amplitude, phase,
 def _checked(images, psf, window, omega, amplitude, phase, axis, losses, weight, chunk):
     """:func:`cost_landscape`'s inputs checked: ``(omega 0-d, amplitude [A], phase [P], the loss
     names, weight [E, H * W] or None)``; errors name the argument."""
-    if not isinstance(images, torch.Tensor):
-        raise InputTypeError(f"images: expected a torch.Tensor [E, H, W], got {type(images).__name__}")
+    check_type(images, "images", torch.Tensor, "a torch.Tensor [E, H, W]")
     if images.dim() != 3:
         raise ShapeError(f"images: expected [E, H, W], got shape {tuple(images.shape)}")
     if not images.dtype.is_floating_point:
         raise InputTypeError(f"images: expected a floating tensor, got {images.dtype}")
     images = check_finite(images, "images")
     E, H, W = images.shape
-    if not isinstance(psf, (GaussianPSF, KernelPSF)):
-        raise InputTypeError(f"psf: expected a GaussianPSF or KernelPSF, got {type(psf).__name__}")
+    check_type(psf, "psf", (GaussianPSF, KernelPSF), "a GaussianPSF or KernelPSF")
     if psf.shape != ():
         raise ShapeError(f"psf: expected one PSF (batch shape []), got batch shape {tuple(psf.shape)}")
-    if not isinstance(window, ExposureWindow):
-        raise InputTypeError(f"window: expected an ExposureWindow [E], got {type(window).__name__}")
+    check_type(window, "window", ExposureWindow, "an ExposureWindow [E]")
     if tuple(window.shape) != (E,):
         raise ShapeError(f"window: expected shape [E] = [{E}] (one window per exposure), got {tuple(window.shape)}")
     om = check_positive(as_tensor(omega, "omega", like=images), "omega")

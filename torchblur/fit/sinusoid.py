@@ -8,8 +8,8 @@ from dataclasses import dataclass, fields, replace
 
 import torch
 
-from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_tensor, check_bool, check_choice,
-                              check_finite, check_real_scalar, flat_noise_and_mask)
+from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_tensor, check_bool, check_choice, check_finite,
+                              check_real_scalar, check_type, flat_noise_and_mask)
 from torchblur.losses import (LOSSES, covariance_factor, fisher_covariance, image_loss, irls_weights, loss_weight,
                               residual_weights, singular_covariance)
 from torchblur.optim import LMResult, levenberg_marquardt
@@ -478,8 +478,7 @@ def noise_terms(images: torch.Tensor, noise_std, noise: CameraNoise | None):
     poisson's read-noise shift ``noise.poisson_shift_e`` (0 without ``noise``: pure counts)."""
     if noise is None:
         return noise_std, 0.0
-    if not isinstance(noise, CameraNoise):
-        raise InputTypeError(f"noise: expected a CameraNoise or None, got {type(noise).__name__}")
+    check_type(noise, "noise", CameraNoise, "a CameraNoise or None")
     return (noise.std(images) if noise_std is None else noise_std), noise.poisson_shift_e
 
 

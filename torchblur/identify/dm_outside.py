@@ -28,7 +28,7 @@ from torchblur.config.schema import key
 from torchblur.config.budget import dm_geometry, dm_sensor
 from torchblur.dm.plans import Plan, one_at_a_time_plan, plan_cost
 from torchblur.dm.shack_hartmann import ShackHartmann
-from torchblur.errors import ConfigError, InputTypeError
+from torchblur.errors import ConfigError, InputTypeError, check_type
 from torchblur.files import excerpt
 from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.frames import whole_adu
@@ -385,8 +385,7 @@ def identify_dm_recording(rec: DMRecording, cfg=None, *, progress: bool = True, 
         rec: from :func:`read_dm_recording`; cfg: from :func:`dm_recording_config` (default: its defaults).
         progress, executor: as :func:`~torchblur.identify.pipeline.identify`'s.
     """
-    if not isinstance(rec, DMRecording):
-        raise InputTypeError(f"rec: expected a DMRecording (read_dm_recording), got {type(rec).__name__}")
+    check_type(rec, "rec", DMRecording, "a DMRecording (read_dm_recording)")
     cfg = dm_recording_config(rec) if cfg is None else cfg
     return identify(cfg, progress=progress, executor=executor, plan=DMOutsidePlan(rec))
 

@@ -21,7 +21,7 @@ from functools import partial
 import torch
 
 from torchblur.design.windows import check_design
-from torchblur.errors import ConfigError, InputTypeError
+from torchblur.errors import ConfigError, InputTypeError, check_type
 from torchblur.hardware.errors import RecordingError
 from torchblur.hardware.outside import YAML_NAME, OutsideRecording
 from torchblur.identify.calibration import Calibration, _still_psf, configured_direction, measure_gain
@@ -265,9 +265,7 @@ def identify_outside(rec: OutsideRecording, cfg: IdentifyConfig | None = None, *
         cfg: from :func:`outside_config` (default: its defaults).
         progress: show the messages (where nothing handles the ``torchblur`` logger) and bars.
     """
-    if not isinstance(rec, OutsideRecording):
-        raise InputTypeError(f"rec: expected an OutsideRecording (read_outside_recording), got {type(rec).__name__}")
+    check_type(rec, "rec", OutsideRecording, "an OutsideRecording (read_outside_recording)")
     cfg = outside_config(rec) if cfg is None else cfg
-    if not isinstance(cfg, IdentifyConfig):
-        raise InputTypeError(f"cfg: expected an IdentifyConfig (outside_config), got {type(cfg).__name__}")
+    check_type(cfg, "cfg", IdentifyConfig, "an IdentifyConfig (outside_config)")
     return identify(cfg, progress=progress, plan=OutsidePlan(rec))

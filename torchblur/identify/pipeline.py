@@ -10,7 +10,7 @@ import contextlib
 import logging
 import time
 
-from torchblur.errors import InputTypeError
+from torchblur.errors import InputTypeError, check_type
 from torchblur.identify.calibration import calibrate
 from torchblur.config import IdentifyConfig
 from torchblur.identify.dm_plan import DMPlan, DMResult, check_dm_config
@@ -63,8 +63,7 @@ def identify(cfg: IdentifyConfig, rig=None, *, progress: bool = True, record=Non
         InputTypeError: ``cfg`` is not an IdentifyConfig, or ``rig`` is not a rig of its plan;
         ConfigError: a DM rig with a config that is not a DM run's (``dm.n_across``), or a DM rig that does not match its config.
     """
-    if not isinstance(cfg, IdentifyConfig):
-        raise InputTypeError(f"cfg: expected an IdentifyConfig (see torchblur.config.load_config), got {type(cfg).__name__}")
+    check_type(cfg, "cfg", IdentifyConfig, "an IdentifyConfig (see torchblur.config.load_config)")
     plan = PLANS[plan_kind(cfg)]() if plan is None else plan
     getattr(plan, "check", _check_rig)(cfg, rig)
     shown = progress and not logging.getLogger("torchblur").hasHandlers()

@@ -20,7 +20,7 @@ import numpy as np
 
 from torchblur.dm.actuator_fit import PARAMS, POOR_FIT_P, ActuatorTable
 from torchblur.dm.registration import support_line
-from torchblur.errors import InputTypeError, ParameterError, ShapeError, check_int
+from torchblur.errors import ParameterError, ShapeError, check_int, check_type
 from torchblur.identify.assemble import timing_limit_hz
 from torchblur.identify.model import model_exclusions
 from torchblur.sysid.flags import ALIAS, FAILED, LIMITED, NO_MOTION, POOR_FIT, TIMING, UNTRUSTED, flag_names
@@ -465,8 +465,7 @@ def failed_actuators(table: ActuatorTable, D) -> dict:
 
 
 def _check(table, D, n_failed_spot_fits, n_spot_problems):
-    if not isinstance(table, ActuatorTable):
-        raise InputTypeError(f"table: expected an ActuatorTable, got {type(table).__name__}")
+    check_type(table, "table", ActuatorTable, "an ActuatorTable")
     D = np.asarray(D)
     want = (np.shape(table.static_column)[0], len(table), len(table.freq_hz))
     if D.shape != want:

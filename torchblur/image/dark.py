@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import torch
 
 from torchblur._compat import median_along
-from torchblur.errors import InputTypeError, ShapeError, as_image, check_finite, check_real_scalar
+from torchblur.errors import ShapeError, as_image, check_finite, check_real_scalar, check_type
 
 __all__ = ["DarkFrame", "dark_frame", "subtract_dark", "robust_std"]
 
@@ -101,8 +101,7 @@ def subtract_dark(frames, dark: DarkFrame, *, clip_negative: bool = False) -> to
         not repaired: exclude them with ``~dark.hot_pixels`` as a fit mask.
     """
     frames = as_image(frames, "frames")
-    if not isinstance(dark, DarkFrame):
-        raise InputTypeError(f"dark: expected a DarkFrame, got {type(dark).__name__}")
+    check_type(dark, "dark", DarkFrame, "a DarkFrame")
     try:
         torch.broadcast_shapes(frames.shape, dark.mean.shape)
     except RuntimeError:

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_image, check_finite
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_image, check_finite, check_type
 
 __all__ = ["PhotonTransfer", "photon_transfer", "photon_transfer_figure"]
 
@@ -239,8 +239,7 @@ def photon_transfer_figure(ptc: PhotonTransfer, *, configured_gain: float | None
     the fitted line ``var_dark + mean / gain``, and the configured gain's line where given."""
     from matplotlib.figure import Figure
 
-    if not isinstance(ptc, PhotonTransfer):
-        raise InputTypeError(f"ptc: expected a PhotonTransfer, got {type(ptc).__name__}")
+    check_type(ptc, "ptc", PhotonTransfer, "a PhotonTransfer")
     fig = Figure(figsize=(6.0, 4.2))
     ax = fig.add_subplot(1, 1, 1)
     on, off = ptc.linear, ~ptc.linear

@@ -9,7 +9,8 @@ from dataclasses import dataclass
 import torch
 
 from torchblur._compat import median_along
-from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_image, as_tensor, broadcast_batch, check_bool, check_int, check_positive
+from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_image, as_tensor, broadcast_batch, check_bool,
+                              check_int, check_positive, check_type)
 from torchblur.optim import levenberg_marquardt
 from torchblur.image.dark import _MAD_TO_STD
 from torchblur.image.moments import image_moments
@@ -63,8 +64,7 @@ def point_sampled_equivalent(psf: GaussianPSF) -> GaussianPSF:
     that holds the width fixed turns that into the motion: amplitudes 0.1 % low, most for
     small motions, the same on every frame of a spot. The moment match leaves only the box's
     fourth moment, 1e-4 of the amplitude."""
-    if not isinstance(psf, GaussianPSF):
-        raise InputTypeError(f"psf: expected a GaussianPSF, got {type(psf).__name__}")
+    check_type(psf, "psf", GaussianPSF, "a GaussianPSF")
     cov = psf.cov + torch.eye(2, dtype=psf.cov.dtype, device=psf.cov.device) / 12.0
     amplitude = psf.amplitude * (torch.linalg.det(psf.cov) / torch.linalg.det(cov)).sqrt()
     return GaussianPSF(psf.center, cov, amplitude)

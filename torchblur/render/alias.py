@@ -10,7 +10,7 @@ import math
 
 import torch
 
-from torchblur.errors import InputTypeError, as_tensor, check_finite, check_positive
+from torchblur.errors import InputTypeError, as_tensor, check_finite, check_positive, check_type
 from torchblur.render.window import ExposureWindow
 
 __all__ = ["MIN_SEPARATION", "alias_phase", "alias_separation", "canonical_sines", "wrap_phase", "window_center_phase"]
@@ -41,8 +41,7 @@ def canonical_sines(theta: torch.Tensor, n: int) -> torch.Tensor:
 
 def window_center_phase(omega, window: ExposureWindow) -> torch.Tensor:
     """``c = omega (tcam + Te / 2)`` (rad), broadcast of ``omega [...]`` and the window's ``[...]``."""
-    if not isinstance(window, ExposureWindow):
-        raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
+    check_type(window, "window", ExposureWindow, "an ExposureWindow")
     omega = check_positive(as_tensor(omega, "omega", like=window.start), "omega")
     return omega * window.center
 
@@ -63,8 +62,7 @@ def alias_phase(phase, omega, window: ExposureWindow) -> torch.Tensor:
         >>> alias_phase(torch.tensor(0.3), 2 * math.pi * 100, w)   # p = pi, b = pi/2: phi2 = -pi - phi
         tensor(2.8416)
     """
-    if not isinstance(window, ExposureWindow):
-        raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
+    check_type(window, "window", ExposureWindow, "an ExposureWindow")
     phase = check_finite(as_tensor(phase, "phase", like=window.start), "phase")
     return wrap_phase(math.pi - 2 * window_center_phase(omega, window) - phase)
 
@@ -77,8 +75,7 @@ def alias_separation(omega, window: ExposureWindow) -> torch.Tensor:
     centres that coincide mod half a period, which resolve nothing). Also 0 where an
     exposure is a whole number of periods (that image carries no phase).
     """
-    if not isinstance(window, ExposureWindow):
-        raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
+    check_type(window, "window", ExposureWindow, "an ExposureWindow")
     omega = check_positive(as_tensor(omega, "omega", like=window.start), "omega")
     c = omega[..., None] * window.center
     p = omega[..., None] * window.duration

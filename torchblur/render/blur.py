@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from torchblur.errors import InputTypeError, ParameterError, ShapeError, broadcast_batch
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, broadcast_batch, check_type
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.window import ExposureWindow
 from torchblur.render.trajectory import Trajectory
@@ -62,8 +62,7 @@ class RenderSettings:
     nodes: int | None = None
 
     def __post_init__(self):
-        if not isinstance(self.pixel_integration, bool):
-            raise InputTypeError(f"pixel_integration: expected bool, got {type(self.pixel_integration).__name__}")
+        check_type(self.pixel_integration, "pixel_integration", bool, "bool")
         if not isinstance(self.nodes_per_panel, int) or not 1 <= self.nodes_per_panel <= 64:
             raise ParameterError(f"nodes_per_panel: expected an integer in [1, 64], got {self.nodes_per_panel!r}")
         if not (isinstance(self.panel_path_sigmas, (int, float)) and self.panel_path_sigmas > 0):
@@ -301,10 +300,8 @@ def _checked_inputs(trajectory, psf, window, height, width, settings):
     for name, val in (("height", height), ("width", width)):
         if isinstance(val, bool) or not isinstance(val, int) or val < 1:
             raise ParameterError(f"{name}: expected an integer >= 1, got {val!r}")
-    if not isinstance(trajectory, Trajectory):
-        raise InputTypeError(f"trajectory: expected a torchblur Trajectory, got {type(trajectory).__name__}")
-    if not isinstance(window, ExposureWindow):
-        raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
+    check_type(trajectory, "trajectory", Trajectory, "a torchblur Trajectory")
+    check_type(window, "window", ExposureWindow, "an ExposureWindow")
     if isinstance(psf, GaussianPSF):
         sigma_min = psf.sigma_min()
         ref = psf.center

@@ -23,7 +23,8 @@ from dataclasses import dataclass
 
 import torch
 
-from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_bool, check_finite, check_int, check_real_scalar
+from torchblur.errors import (ParameterError, ShapeError, as_tensor, check_bool, check_finite, check_int, check_real_scalar,
+                              check_type)
 from torchblur.render.window import ExposureWindow
 
 __all__ = ["CameraModel", "CameraNoise", "camera_noise_std", "noise_sets_weights"]
@@ -111,8 +112,7 @@ def noise_sets_weights(noise, noise_std) -> bool:
     ``read_noise_e`` is 0 (a pixel with no expected light would get infinite weight)."""
     if noise is None:
         return False
-    if not isinstance(noise, CameraNoise):
-        raise InputTypeError(f"noise: expected a CameraNoise or None, got {type(noise).__name__}")
+    check_type(noise, "noise", CameraNoise, "a CameraNoise or None")
     if noise_std is None and noise.read_noise_e == 0:
         raise ParameterError("noise: read_noise_e is 0, so a pixel with no expected light would get zero std (infinite weight); "
                              "pass noise_std")
@@ -123,8 +123,7 @@ def _check_generator(generator, device: torch.device) -> None:
     """Raise unless ``generator`` is ``None`` or a ``torch.Generator`` on ``device``."""
     if generator is None:
         return
-    if not isinstance(generator, torch.Generator):
-        raise InputTypeError(f"generator: expected a torch.Generator or None, got {type(generator).__name__}")
+    check_type(generator, "generator", torch.Generator, "a torch.Generator or None")
     if generator.device.type != device.type:
         raise ParameterError(
             f"generator: expected a generator on the input's device ({device.type}), "
@@ -357,8 +356,7 @@ class CameraModel:
             and the same ``duration``; ``window`` itself when ``jitter_s == 0``.
             Differentiable in ``window.start``.
         """
-        if not isinstance(window, ExposureWindow):
-            raise InputTypeError(f"window: expected an ExposureWindow, got {type(window).__name__}")
+        check_type(window, "window", ExposureWindow, "an ExposureWindow")
         if self.jitter_s == 0:
             return window
         start = window.start

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import torch
 
-from torchblur.errors import InputTypeError, ShapeError, ParameterError, as_tensor, check_finite
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_finite, check_type
 from torchblur.render.blur import RenderSettings, render_blur
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.trajectory import Sinusoid
@@ -78,6 +78,5 @@ def render_coded(trajectory, psf, window: ExposureWindow, code, *, height: int, 
         traj_b = Sinusoid(trajectory.amplitude[..., None, :], trajectory.phase[..., None, :], trajectory.omega[..., None, :])
     else:
         raise InputTypeError(f"trajectory: expected a Sinusoid, got {type(trajectory).__name__}")
-    if not isinstance(psf, (GaussianPSF, KernelPSF)):
-        raise InputTypeError(f"psf: expected a GaussianPSF or KernelPSF, got {type(psf).__name__}")
+    check_type(psf, "psf", (GaussianPSF, KernelPSF), "a GaussianPSF or KernelPSF")
     return render_blur(traj_b, psf[..., None], sub, height=height, width=width, settings=settings).sum(-3)

@@ -48,9 +48,11 @@ __all__ = ["gaussian_splat_with_jacobian", "kernel_shift_with_jacobian", "sine_b
 _CHUNK_BYTES = 32e6
 
 
-def _real_dtypes(names, args):
-    """Check that ``args`` are real tensors (errors name them) -> ``(dtype, wide)``: their promoted
-    floating dtype (the default one for integers), and float64 or wider to compute in."""
+def _broadcast(names, args, core_dims, desc: str):
+    """``args`` (errors name them by ``names``): real tensors with at least ``core_dims`` trailing
+    dims each, whose batch dims (those before) broadcast -> ``(dtype, args)``: their promoted
+    floating dtype (the default one for integers), and the args on the first's device in float64
+    or wider (to compute in), expanded to the common batch. ``desc``: their shapes, for the error."""
     for name, val in zip(names, args):
         if not isinstance(val, torch.Tensor):
             raise InputTypeError(f"{name}: expected a torch.Tensor, got {type(val).__name__}")
@@ -58,7 +60,17 @@ def _real_dtypes(names, args):
             raise InputTypeError(f"{name}: expected a real tensor, got {val.dtype}")
     dtype = functools.reduce(torch.promote_types, (v.dtype for v in args))
     dtype = dtype if dtype.is_floating_point else torch.get_default_dtype()
-    return dtype, torch.float64 if torch.finfo(dtype).bits <= 32 else dtype
+    wide = torch.float64 if torch.finfo(dtype).bits <= 32 else dtype
+    for name, val, nd in zip(names, args, core_dims):
+        if val.dim() < nd:
+            raise ShapeError(f"{name}: expected at least {nd} dimension(s), got shape {tuple(val.shape)}")
+    try:
+        batch = torch.broadcast_shapes(*(v.shape[:v.dim() - nd] for v, nd in zip(args, core_dims)))
+    except RuntimeError as exc:
+        raise ShapeError(f"{desc}: shapes do not broadcast ({', '.join(f'{n} {tuple(v.shape)}' for n, v in zip(names, args))}): "
+                         f"{exc}") from None
+    device = args[0].device
+    return dtype, [v.to(device=device, dtype=wide).expand(batch + v.shape[v.dim() - nd:]) for v, nd in zip(args, core_dims)]
 
 
 def gaussian_splat_with_jacobian(px, py, dpx, dpy, w, A, B, C, height, width):
@@ -94,26 +106,8 @@ def gaussian_splat_with_jacobian(px, py, dpx, dpy, w, A, B, C, height, width):
         (torch.Size([24, 32]), torch.Size([2, 24, 32]))
     """
     height, width = check_int(height, "height", low=1), check_int(width, "width", low=1)
-    args = (px, py, dpx, dpy, w, A, B, C)
-    dtype, wide = _real_dtypes(("px", "py", "dpx", "dpy", "w", "A", "B", "C"), args)
-    device = px.device
-    px, py, dpx, dpy, w, A, B, C = (v.to(device=device, dtype=wide) for v in args)
-    for name, val, nd in (("px", px, 1), ("py", py, 1), ("w", w, 1), ("dpx", dpx, 2), ("dpy", dpy, 2)):
-        if val.dim() < nd:
-            raise ShapeError(f"{name}: expected at least {nd} dimension(s), got shape {tuple(val.shape)}")
-    S, nq = px.shape[-1], dpx.shape[-1]
-    try:
-        batch = torch.broadcast_shapes(
-            px.shape[:-1], py.shape[:-1], w.shape[:-1], dpx.shape[:-2], dpy.shape[:-2], A.shape, B.shape, C.shape
-        )
-        px, py, w = (v.expand(batch + (S,)) for v in (px, py, w))
-        dpx, dpy = (v.expand(batch + (S, nq)) for v in (dpx, dpy))
-        A, B, C = (v.expand(batch) for v in (A, B, C))
-    except RuntimeError as exc:
-        raise ShapeError(
-            f"px, py, w [..., S], dpx, dpy [..., S, Q], A, B, C [...]: shapes do not broadcast "
-            f"({', '.join(f'{n} {tuple(v.shape)}' for n, v in zip(names, args))}): {exc}"
-        ) from None
+    dtype, (px, py, dpx, dpy, w, A, B, C) = _broadcast(("px", "py", "dpx", "dpy", "w", "A", "B", "C"), (px, py, dpx, dpy, w, A, B, C),
+                                                       (1, 1, 2, 2, 1, 0, 0, 0), "px, py, w [..., S], dpx, dpy [..., S, Q], A, B, C [...]")
     image, jac = _splat_jacobian(px, py, dpx, dpy, w, A, B, C, height, width)
     return image.to(dtype), jac.to(dtype)
 
@@ -226,24 +220,10 @@ def kernel_shift_with_jacobian(kernel, dx, dy, dpx, dpy, w, *, pad=None):
         >>> img.shape, jac.shape
         (torch.Size([24, 32]), torch.Size([1, 24, 32]))
     """
-    names = ("kernel", "dx", "dy", "dpx", "dpy", "w")
-    args = (kernel, dx, dy, dpx, dpy, w)
-    dtype, wide = _real_dtypes(names, args)
-    for name, val, nd in zip(names, args, (2, 1, 1, 2, 2, 1)):
-        if val.dim() < nd:
-            raise ShapeError(f"{name}: expected at least {nd} dimension(s), got shape {tuple(val.shape)}")
     if pad is not None and (isinstance(pad, bool) or not isinstance(pad, (int, float)) or not pad >= 0):
         raise ParameterError(f"pad: expected None or a number >= 0 (px), got {pad!r}")
-    kernel, dx, dy, dpx, dpy, w = (v.to(device=kernel.device, dtype=wide) for v in args)
-    (H, W), S, nq = kernel.shape[-2:], dx.shape[-1], dpx.shape[-1]
-    try:
-        batch = torch.broadcast_shapes(kernel.shape[:-2], dx.shape[:-1], dy.shape[:-1], w.shape[:-1], dpx.shape[:-2], dpy.shape[:-2])
-        kernel = kernel.expand(batch + (H, W))
-        dx, dy, w = (v.expand(batch + (S,)) for v in (dx, dy, w))
-        dpx, dpy = (v.expand(batch + (S, nq)) for v in (dpx, dpy))
-    except RuntimeError as exc:
-        raise ShapeError(f"kernel [..., H, W], dx, dy, w [..., S], dpx, dpy [..., S, Q]: shapes do not broadcast "
-                         f"({', '.join(f'{n} {tuple(v.shape)}' for n, v in zip(names, args))}): {exc}") from None
+    dtype, (kernel, dx, dy, dpx, dpy, w) = _broadcast(("kernel", "dx", "dy", "dpx", "dpy", "w"), (kernel, dx, dy, dpx, dpy, w),
+                                                      (2, 1, 1, 2, 2, 1), "kernel [..., H, W], dx, dy, w [..., S], dpx, dpy [..., S, Q]")
     reach = float(torch.maximum(dx.detach().abs().max(), dy.detach().abs().max())) if dx.numel() else 0.0
     pad_px = max(int(math.ceil(reach)) + 2, int(math.ceil(pad or 0)))
     image, jac = _kernel_jacobian(kernel, dx, dy, dpx, dpy, w, pad_px)

@@ -18,7 +18,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from torchblur.errors import InputTypeError, ParameterError, check_real_scalar
+from torchblur.errors import InputTypeError, ParameterError, check_real_scalar, check_type
 from torchblur.image.spots import SpotLayout
 from torchblur.render.blur import render_blur
 from torchblur.render.camera import CameraModel
@@ -67,10 +67,8 @@ class SimulatedDMRig(PatternSines, SimulatedRig):
     def __init__(self, *, mirror: DeformableMirror, wfs: ShackHartmann, camera: CameraModel, frame_rate_hz: float = 30.0,
                  trigger_delay_s: float = 0.0, readout_s: float = 1e-3, max_exposure_s: float = 1.0, latency_s: float = 12e-6,
                  jitter_s: float = 0.2e-6, peak_e_per_s: float = 1e6, seed: int = 0, registration: Registration | None = None):
-        if not isinstance(mirror, DeformableMirror):
-            raise InputTypeError(f"mirror: expected a DeformableMirror, got {type(mirror).__name__}")
-        if not isinstance(wfs, ShackHartmann):
-            raise InputTypeError(f"wfs: expected a ShackHartmann, got {type(wfs).__name__}")
+        check_type(mirror, "mirror", DeformableMirror, "a DeformableMirror")
+        check_type(wfs, "wfs", ShackHartmann, "a ShackHartmann")
         M = wfs.n_valid
         rest = torch.as_tensor(wfs.rest_px, dtype=_F64)
         sigma = torch.as_tensor(wfs.sigma_spots_px, dtype=_F64)

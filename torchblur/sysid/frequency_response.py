@@ -25,7 +25,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from torchblur.errors import InputTypeError, ParameterError, ShapeError, excerpt
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, check_type, excerpt
 import torchblur.sysid.frequency_response_io as frf_io
 
 __all__ = ["FrequencyResponse", "control_names"]
@@ -209,8 +209,7 @@ def _check_meta(meta) -> dict:
     """A strict-JSON copy of ``meta`` (a dict; None gives {})."""
     if meta is None:
         meta = {}
-    if not isinstance(meta, dict):
-        raise InputTypeError(f"meta: expected a dict, got {type(meta).__name__}")
+    check_type(meta, "meta", dict, "a dict")
     try:
         return json.loads(json.dumps(meta, allow_nan=False))
     except (TypeError, ValueError) as exc:
@@ -506,8 +505,7 @@ class FrequencyResponse:
 
         if smooth and not np.all(self.valid):
             raise ParameterError("smooth: cannot interpolate a response that has NaN (failed) points")
-        if not isinstance(name, str):
-            raise InputTypeError(f"name: expected a string, got {type(name).__name__}")
+        check_type(name, "name", str, "a string")
         data = self._response[0, 0] if self.is_siso else self._response
         return control.frd(
             np.array(data),
@@ -523,10 +521,9 @@ class FrequencyResponse:
         """Build from a ``control.FrequencyResponseData`` (labels kept, covariance unknown)."""
         import control
 
-        if not isinstance(frd, control.FrequencyResponseData):
-            raise InputTypeError(f"frd: expected control.FrequencyResponseData, got {type(frd).__name__}")
+        check_type(frd, "frd", control.FrequencyResponseData, "control.FrequencyResponseData")
         data = getattr(frd, "frdata", None)
-        if data is None:  # python-control < 0.10.1
+        if data is None:  # python-control 0.10.1 (the floor) has fresp only; frdata from 0.10.2
             data = frd.fresp
         return cls(
             np.array(frd.omega, dtype=np.float64),

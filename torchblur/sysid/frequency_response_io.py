@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from torchblur.errors import InputTypeError, ParameterError, ShapeError, TorchblurError, check_schema_version, excerpt
+from torchblur.errors import ParameterError, ShapeError, TorchblurError, check_schema_version, check_type, excerpt
 from torchblur.files import read_bounded
 from torchblur.sysid.flags import flag_names, parse_flags
 
@@ -374,8 +374,7 @@ def check_document(doc, schema: str, keys: dict, units: dict, *, why: str = "") 
         ParameterError: naming the key (``schema``, ``schema_version``, ``doc``, ``units``);
             ``why`` is added to a wrong schema's message.
     """
-    if not isinstance(doc, dict):
-        raise InputTypeError(f"doc: expected a JSON object, got {type(doc).__name__}")
+    check_type(doc, "doc", dict, "a JSON object")
     if doc.get("schema") != schema:
         raise ParameterError(f"schema: expected {excerpt(schema)}, got {excerpt(doc.get('schema'))}{why}")
     version = check_schema_version(doc.get("schema_version"), keys)

@@ -18,7 +18,8 @@ import numpy as np
 import scipy.linalg
 import scipy.optimize
 
-from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_frequency_grid, check_bool, check_int, excerpt
+from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_frequency_grid, check_bool, check_int, check_type,
+                              excerpt)
 from torchblur.sysid.frequency_response import FrequencyResponse, control_names
 from torchblur.sysid.frequency_response_io import read_json_doc, write_json_doc
 from torchblur.sysid.model_io import tf_fit_fields_from_dict, tf_fit_to_dict
@@ -146,8 +147,7 @@ class TransferFunctionFit:
 
         if delay not in _DELAY_FORMS:
             raise ParameterError(f"delay: must be one of {set(_DELAY_FORMS)}, got {excerpt(delay)}")
-        if not isinstance(name, str):
-            raise InputTypeError(f"name: expected a string, got {type(name).__name__}")
+        check_type(name, "name", str, "a string")
         pade_order = check_int(pade_order, "pade_order", low=1)
         labels = dict(inputs=control_names(self.input_labels), outputs=control_names(self.output_labels), name=control_names([name])[0])
         if delay == "frd":
@@ -941,8 +941,7 @@ def fit_transfer_function(
         InputTypeError, ParameterError, ShapeError naming the argument; ParameterError when a
         channel has too few valid points for the requested order.
     """
-    if not isinstance(frf, FrequencyResponse):
-        raise InputTypeError(f"frf: expected a FrequencyResponse, got {type(frf).__name__}")
+    check_type(frf, "frf", FrequencyResponse, "a FrequencyResponse")
     orders, delay_s = _candidate_orders(n_poles, n_zeros, max_order, delay_s)
     n_iter = check_int(n_iter, "n_iter", low=1)
     stable = check_bool(stable, "stable")

@@ -28,8 +28,8 @@ import scipy.linalg
 import scipy.signal
 import torch
 
-from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_tensor, broadcast_batch, check_finite, check_int, check_positive,
-                              check_real_scalar)
+from torchblur.errors import (InputTypeError, ParameterError, ShapeError, as_tensor, broadcast_batch, check_finite, check_int,
+                              check_positive, check_real_scalar, check_type)
 from torchblur.render.window import ExposureWindow
 from torchblur.render.trajectory import Trajectory, _sine_path_bound
 
@@ -317,8 +317,7 @@ class LTIMultisineTrajectory(LTIResponse):
                  "_x0", "_cond")
 
     def __init__(self, plant: Plant, amplitude, omega, phase=None, *, direction=(1.0, 0.0), method: str = "auto"):
-        if not isinstance(plant, Plant):
-            raise InputTypeError(f"plant: expected a torchblur.systems.lti.Plant, got {type(plant).__name__}")
+        check_type(plant, "plant", Plant, "a torchblur.systems.lti.Plant")
         if method not in _METHODS:
             raise ParameterError(f"method: must be one of {set(_METHODS)}, got {method!r}")
         f64 = torch.float64

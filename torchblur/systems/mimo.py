@@ -20,7 +20,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_finite
+from torchblur.errors import InputTypeError, ParameterError, ShapeError, as_tensor, check_finite, check_type
 from torchblur.systems.lti import LTISineTrajectory, Plant
 from torchblur.render.window import ExposureWindow
 from torchblur.render.trajectory import Trajectory
@@ -211,8 +211,7 @@ class MIMOSineTrajectory(Trajectory):
     def __init__(self, plant, amplitude, omega, *, input="x", image_matrix=None):
         if isinstance(plant, Plant):
             plant = PlantMatrix(((plant,),), output_labels=("x",), input_labels=("x",))
-        if not isinstance(plant, PlantMatrix):
-            raise InputTypeError(f"plant: expected a PlantMatrix or a Plant, got {type(plant).__name__}")
+        check_type(plant, "plant", PlantMatrix, "a PlantMatrix or a Plant")
         j = plant.input_index(input)
         O = plant.n_outputs
         if image_matrix is None:
