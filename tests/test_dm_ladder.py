@@ -180,6 +180,30 @@ def test_a_sparse_ladder_run_keeps_the_spots_that_barely_move(tmp_path):
     assert list(read_actuators_csv(run / "dm" / "actuators.csv")["status"]).count("dead") == 1
 
 
+def test_auto_takes_a_sparse_plan_for_the_ladder_and_a_refit_replays_it(tmp_path):
+    """``dm_plan.kind=auto`` with the ladder: the plan auto chose (Hadamard: every pattern moves every
+    actuator a spot sees) is replaced by a sparse one, seen at ``SPARSE_MARGIN`` of the support threshold
+    (so a misregistered mirror's pairs are all in it), recorded with that threshold; a re-fit takes the
+    same decision from the recorded test frames and gives the same actuators.csv."""
+    from torchblur import cli
+    from torchblur.identify.dm_plan import SPARSE_MARGIN
+    from torchblur.identify.dm_record import PLAN_KEY
+
+    run = tmp_path / "run"
+    cfg = [*SMALL, "sweep.n=3", "report.figures=false", "dm_plan.spot_model=ladder", "dm_plan.ladder_frames=8", "dm_plan.kind=auto"]
+    assert load_config(None, cfg).dm_plan.kind == "auto"
+    assert cli.main(["identify", "--out", str(run), "--quiet", *cfg]) in (0, 4)
+    report = (run / "report.txt").read_text()
+    assert "dm plan: sparse, not hadamard (auto, and the spots change shape" in report
+    doc = json.loads((run / "experiment" / "experiment.json").read_text())[PLAN_KEY]
+    assert doc["kind"] == "sparse" and doc["support_threshold"] == pytest.approx(0.01 * SPARSE_MARGIN)
+    assert cli.main(["fit", str(run), "--out", str(tmp_path / "refit"), "--quiet"]) in (0, 4)
+    assert (tmp_path / "refit" / "dm" / "actuators.csv").read_text() == (run / "dm" / "actuators.csv").read_text()
+    shifted = tmp_path / "shifted"  # the shifted still keeps auto's own choice
+    assert cli.main(["identify", "--out", str(shifted), "--quiet", *cfg[:-3], "dm_plan.kind=auto", "dm_plan.spot_model=shifted"]) in (0, 4)
+    assert "not hadamard" not in (shifted / "report.txt").read_text()
+
+
 @pytest.mark.parametrize("old,new,error", [
     (",ladder,0,", ",ladder,7,", r"frames.csv line \d+, column pattern: expected a row of patterns.csv \(0..3\), got 7"),
     (",ladder,0,", ",ladder,,", r"frames.csv line \d+, column pattern: required for a ladder frame"),

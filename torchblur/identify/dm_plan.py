@@ -32,7 +32,7 @@ from torchblur.hardware.recording import ReplayRig
 from torchblur.hardware.serial_dm_rig import open_dm_rig
 from torchblur.identify.assemble import timing_phase_std
 from torchblur.identify.calibration import MIN_INSIDE, calibrate, check_latency_source
-from torchblur.identify.dm_ladder import choose_spot_model, pattern_ladder
+from torchblur.identify.dm_ladder import choose_spot_model, ladder_holds, pattern_ladder
 from torchblur.config import IdentifyConfig
 from torchblur.identify.dm_record import (SWEEP_KIND, TABLE_KEY, check_recorded_commands, recorded_labels, recorded_plan, resume_seed,
                                           same_table, simulated_frames, sweep_key, table_digest)
@@ -197,6 +197,11 @@ def _spot_psf(cal, order):
                 f"(each spot's own still decides; the kernels' own noise is in the stds)")
     return PerSpotPSF(gauss, KernelPSF(sk.psf.kernel[order]), use)
 
+
+#: the sparse plan that ``dm_plan.kind=auto`` takes for the ladder's spots (:meth:`DMPlan.sweep`) sees at this
+#: fraction of ``dm_plan.support_threshold``: its colouring and support then hold every pair a mirror misregistered
+#: by 0.25 pitch, 1.5 deg and 3 % needs (HCIPy's quick run: 36 pairs missing at 1 x, 0 at 0.1 x; 20 patterns, not 18)
+SPARSE_MARGIN = 0.1
 
 #: px: a spot whose static motion under its pattern at the ladder's top level is below this barely
 #: changes shape; where its ladder fit left the levels (its shape's command is then the data's noise,
@@ -520,18 +525,30 @@ class DMPlan:
         self.G = dm_geometry(cfg)  # the geometry does not depend on the dynamics (nor on dm.actuator_table)
         freqs = np.asarray(cfg.frequencies_hz())
         plan, R, self.info = dm_plan(cfg)
-        self.plan, self.R = recorded_plan(exp, plan, R, self.G, float(cfg.dm_plan.support_threshold))
+        t0 = time.perf_counter()
+        limit = min(math.inf if cfg.dm.input_limit is None else float(cfg.dm.input_limit), run.cal.input_limit)
+        self.spot_model = choose_spot_model(cfg, run.rig, exp, plan.patterns, self.G, run.cal, self.offset, self.size, self.inside,
+                                            limit)
+        threshold = float(cfg.dm_plan.support_threshold)
+        if self.spot_model == "ladder" and cfg.dm_plan.kind == "auto" and plan.kind == "hadamard":
+            threshold *= SPARSE_MARGIN
+            plan, R, self.info = dm_plan(cfg, kind="sparse", threshold=threshold)
+            LOGGER.info(f"dm plan: sparse, not hadamard (auto, and the spots change shape: on a pattern that moves several of the "
+                        f"actuators a spot sees, the ladder ties the spot's shape to their common command and pulls each "
+                        f"actuator's response toward its neighbours'; on a sparse plan a spot sees one; seen at {threshold:g} of the "
+                        f"largest displacement, {SPARSE_MARGIN:g} x dm_plan.support_threshold, for a misregistered mirror; "
+                        f"docs/deformable_mirrors.md, \"The plans\")")
+        self.plan, self.R = recorded_plan(exp, plan, R, self.G, threshold)
         if exp is not None and exp.writable:
             check_recorded_commands(exp, math.inf if cfg.dm.input_limit is None else float(cfg.dm.input_limit))
         run.say(f"dm plan: {self.plan.kind}, {self.plan.n_patterns} patterns x {len(freqs)} frequencies x {len(cfg.sweep.exposures)} "
                 f"exposures x {self.R} repeats = {self.plan.n_frames(len(freqs), len(cfg.sweep.exposures), self.R)} frames; frames for "
                 f"the same accuracy vs one at a time: {self.info['cost_ratio_to_one_at_a_time']:.3f}")
-        t0 = time.perf_counter()
-        limit = min(math.inf if cfg.dm.input_limit is None else float(cfg.dm.input_limit), run.cal.input_limit)
-        self.spot_model, holds = choose_spot_model(cfg, run.rig, exp, self.plan.patterns, self.G, run.cal, self.offset, self.size,
-                                                   self.inside, limit)
+        ladder = None
+        if self.spot_model == "ladder":
+            holds = ladder_holds(cfg, run.rig, exp, self.plan.patterns, self.G, run.cal, self.offset, self.size, limit)
+            ladder = pattern_ladder(holds, run.cal, self.offset, self.size)
         run.timing["calibration"] += time.perf_counter() - t0
-        ladder = None if holds is None else pattern_ladder(holds, run.cal, self.offset, self.size)
         out = _sweep(cfg, run.rig, self.plan, self.R, self.G, run.cal, self.psf, self.offset, self.size, exp, executor=run.executor,
                      ladder=ladder)
         run.acquisition, (run.timing["acquisition"], run.timing["fit_wait"]) = out[:8], out[8:]
