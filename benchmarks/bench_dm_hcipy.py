@@ -207,6 +207,58 @@ def shrink_lines(res, truth, dyn, proj=None) -> list[str]:
     return lines
 
 
+def spot_pull_lines(res, truth, dyn) -> list[str]:
+    """Per frequency, the pull at the spot level: the least-squares complex ``b`` of the pattern
+    responses' errors ``Y - Yt`` (a common scale removed first) on ``Yt - Yc``, ``Yt`` the linearised
+    truth ``sum_j pattern_j shift_slopes_j H_j`` and ``Yc`` the same with every live actuator at the
+    live mean response; then the actuators' ``b`` of :func:`shrink_lines` left once that pull is taken
+    out of ``Y`` (demultiplexed and projected as the run does). A spot model that ties a spot's shape
+    to its pattern's common command shows here first, on a plan whose patterns move several of the
+    actuators a spot sees (Hadamard); where each spot sees one actuator of a pattern (sparse, one at a
+    time) that command is the actuator's own, and ``b`` has no such cause."""
+    from torchblur.dm.actuator_fit import project_columns
+    from torchblur.dm.demux import demultiplex
+
+    P, S = np.asarray(res.plan.patterns, dtype=float), truth["shift_slopes"]
+    live = np.flatnonzero(dyn.gain > 0.7 * np.median(dyn.gain))
+    lines = []
+    for k, f in enumerate(res.freq_hz):
+        H = dyn.response(f)
+        Hc = H.copy()
+        Hc[live] = H[live].mean()
+        Yt, Yc, Y = (P * H[None]) @ S.T, (P * Hc[None]) @ S.T, res.Y[:, :, k]
+        ok = np.isfinite(Y) & (Yt != Yc)
+        if ok.sum() < 2:
+            lines.append(f"{f:7.4g} Hz: every live actuator has the mean response (Yt = Yc): nothing to pull toward")
+            continue
+        e = Y - Yt
+        a = np.vdot(Yt[ok], e[ok]) / np.vdot(Yt[ok], Yt[ok])
+        x = Yt - Yc
+        b = np.vdot(x[ok], e[ok] - a * Yt[ok]) / np.vdot(x[ok], x[ok])
+        D = demultiplex(np.where(ok, Y - b * x, Y)[..., None], res.Y_cov[:, :, k:k + 1], P, res.plan.support)[0]
+        h, ht = (project_columns(d, res.D_cov[:, :, k:k + 1], res.G)[0][live, 0] for d in (D, (S * H[None])[..., None]))
+        dev = H[live] / H[live].mean() - 1
+        b_act = np.vdot(dev, h / ht - 1) / np.vdot(dev, dev)
+        lines.append(f"{f:7.4g} Hz: b {b.real:+.4f} {b.imag:+.4f}i over {int(ok.sum())} responses (|Yt - Yc| / |Yt| rms "
+                     f"{np.sqrt(np.mean(np.abs(x[ok]) ** 2) / np.mean(np.abs(Yt[ok]) ** 2)) * 100:.2f} %); the actuators' b with it "
+                     f"taken out {b_act.real:+.4f} {b_act.imag:+.4f}i")
+    return lines
+
+
+def mode_pull_line(res, dyn) -> str:
+    """The live actuators' mode errors against how far each actuator's mode lies from the live mean:
+    the least-squares slope of ``mode / true - 1`` on ``true / mean - 1`` (``-1``: every mode reported
+    as the mean) and rms(error/std) before and after that line is taken out. A pull toward the mean
+    response at the frequencies above the modes shows here as a negative slope."""
+    a, live = res.actuators, np.flatnonzero(~dyn.dead)
+    t, est, std = dyn.mode_hz[live], a.mode_hz[live], a.mode_hz_std[live]
+    dev, err = t / t.mean() - 1, est / t - 1
+    slope = float(np.dot(dev, err) / np.dot(dev, dev))
+    z, z_left = (est - t) / std, (err - slope * dev) * t / std
+    return (f"slope {slope:+.4f} over a spread of {np.std(dev) * 100:.2f} %; rms(error/std) {np.sqrt(np.mean(z ** 2)):.2f}, with the "
+            f"slope taken out {np.sqrt(np.mean(z_left ** 2)):.2f}")
+
+
 def actuator_gain_lines(res, truth, dyn, proj=None) -> list[str]:
     """The live actuators' responses ``h_j`` (D's columns projected on the run's G) against the linearised
     truth's, their errors split along ``h_j`` (gain) and across it (phase), each over its std: the rms per
@@ -319,6 +371,9 @@ def report(res, truth, dyn, poor_fit_chi2: float) -> None:
         print(f"  pull toward the mean response, {line}")
     for line in actuator_gain_lines(res, truth, dyn, proj):
         print(f"  actuators' responses h_j, {line}")
+    for line in spot_pull_lines(res, truth, dyn):
+        print(f"  pull of the pattern responses toward their pattern's common response, {line}")
+    print(f"  modes against their deviation from the live mean: {mode_pull_line(res, dyn)}")
     print(f"  dead actuator status {f['dead_status']} (want dead), weak {f['weak_status']} (want weak), other live actuators not ok: "
           f"{f['other_not_ok']}")
     print(f"  spot fits' reduced chi2 median {f['spot_chi2_median']:.3g} (<= 1.2); poor_fit actuators {f['poor_fit_actuators']}")

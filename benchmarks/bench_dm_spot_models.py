@@ -339,10 +339,11 @@ def main(argv=None) -> None:
             Y, chi2 = case.Y0, case.fits.reduced_chi2[:, 0].numpy() * n_pix
             summary(name, Y[:, cols], case.Yt[:, cols], chi2[:, list(spots)], n_pix, time.perf_counter() - t1)
             continue
-        if name in ("fast", "former", "shape"):
-            fit = dm_ladder_shape.fit_ladder_problems if name == "shape" else fit_ladder_problems
+        base_name, _, prior_arg = name.partition("@")
+        if base_name in ("fast", "former", "shape"):
+            fit = dm_ladder_shape.fit_ladder_problems if base_name == "shape" else fit_ladder_problems
             prior = lf.SHAPE_PRIOR
-            lf.SHAPE_PRIOR = 1e-12 if name == "former" else prior
+            lf.SHAPE_PRIOR = 1e-12 if base_name == "former" else float(prior_arg) if prior_arg else prior
             try:
                 Y, chi2, std = fit_fast(case, spots, fit)
                 summary(name, Y, case.Yt[:, cols], chi2, n_pix, time.perf_counter() - t1)

@@ -228,11 +228,21 @@ CLAIMS = [
           r"0\.065\)\. The former model[\s\S]*?\): mode\s+" + NUM + r" %, damping " + NUM + r" %, delay " + NUM + r" us, DC gain "
           + NUM + r" %, D0 " + NUM + r" % rms of max; rms\(error/std\)\s+D\(jw\) " + NUM + ", mode " + NUM + ", damping " + NUM
           + ", delay " + NUM + ", DC gain " + NUM,
-          [sys.executable, "benchmarks/bench_dm_hcipy.py", "--quick", "--case", "aligned", "--no-checks"],
+          [sys.executable, "benchmarks/bench_dm_hcipy.py", "--quick", "--case", "aligned", "--no-checks", "--set", "dm_plan.kind=hadamard"],
           r"largest error: mode " + NUM + r" % \(done when <= 0\.5 %\), damping " + NUM + r" % \(<= 5 %\), delay " + NUM
           + r" us \(<= 2 us\), DC gain " + NUM + r" %\s+D0 rms error / max\|D0\| against the fitted-shift truth: " + NUM
           + r" %[^\n]*\n\s+rms\(error/std\) \(0\.8\.\.1\.3\): D\(jw\) " + NUM + "; mode " + NUM + ", damping " + NUM
           + ", delay " + NUM + ", DC gain " + NUM, rtol=(0.02,), speed="slow"),
+    *[Claim(f"DM: {plan} plan with the ladder on HCIPy's lenslet frames (quick, both cases)", "docs/deformable_mirrors.md",
+            "".join(rf"\| {case} \| {plan} \| " + NUM + " %, " + NUM + " %, " + NUM + " us, " + NUM + r" % \| " + ", ".join([NUM] * 5)
+                    + r" \| [+-]" + NUM + r" \|[\s\S]*?" for case in ("aligned", "misregistered")),
+            [sys.executable, "benchmarks/bench_dm_hcipy.py", "--quick", "--case", "both", "--no-checks", *extra],
+            "".join(r"largest error: mode " + NUM + r" % \(done when <= 0\.5 %\), damping " + NUM + r" % \(<= 5 %\), delay " + NUM
+                    + r" us \(<= 2 us\), DC gain " + NUM + r" %[\s\S]*?rms\(error/std\) \(0\.8\.\.1\.3\): D\(jw\) " + NUM + "; mode "
+                    + NUM + ", damping " + NUM + ", delay " + NUM + ", DC gain " + NUM
+                    + r"[\s\S]*?modes against their deviation from the live mean: slope [+-]" + NUM + r"[\s\S]*?" for _ in range(2)),
+            rtol=(0.02,), speed="slow")
+      for plan, extra in (("Hadamard", ["--set", "dm_plan.kind=hadamard"]), ("sparse", []))],
     Claim("DM: the ladder's static shift against the fitted-shift truth (issue 23's cause 1)", "docs/deformable_mirrors.md",
           r"its first 16 patterns\) prints \+" + NUM + r" % \(sd " + NUM + r" % over\s+the patterns\) for `static_slope`[\s\S]*?into\s+\+"
           + NUM + r" % from the truth itself[\s\S]*?\+" + NUM + r" % \(sd [0-9.]+ %\) from the still's Fourier[\s\S]*?and \+" + NUM

@@ -5,6 +5,7 @@ config keys, and the test of whether a shifted still explains a held spot
 import json
 import math
 import os
+import re
 
 import numpy as np
 import pytest
@@ -155,6 +156,52 @@ def test_a_ladder_run_is_recorded_refitted_and_exported(tmp_path, capsys):
     assert list(a["status"]) == list(b["status"])
     for col in ("dc_gain", "mode_hz", "damping", "delay_s", "dc_gain_std", "mode_hz_std", "damping_std", "delay_s_std"):
         np.testing.assert_allclose(b[col], a[col], rtol=1e-8)  # actuators.csv holds 9 significant digits
+
+
+def test_a_sparse_ladder_run_keeps_the_spots_that_barely_move(tmp_path):
+    """The small mirror on a sparse plan with the ladder: in each pattern most spots see none of its
+    actuators (or the dead one) and barely move, so their ladder fits' shape command is the data's
+    noise and lands beyond the levels. Those are fitted by the spot's shifted still instead, and one
+    lost response costs D only its own entry (it used to cost the whole slope row): no actuator
+    is flagged failed (before: all 9, 35 fits left out), the dead one is reported dead."""
+    from torchblur import cli
+    from torchblur.identify.dm_outputs import read_actuators_csv
+
+    run = tmp_path / "run"
+    assert cli.main(["identify", "--out", str(run), "--quiet", *SMALL, "sweep.n=3", "report.figures=false", "dm_plan.kind=sparse",
+                     "dm_plan.spot_model=ladder", "dm_plan.ladder_frames=8"]) in (0, 4)
+    report = (run / "report.txt").read_text()
+    refit = re.search(r"dm spot model: (\d+) spot fits that left the ladder's levels on spots barely moving", report)
+    left = re.search(r"(\d+) spot fits' motion left the ladder's levels \(flagged", report)
+    assert refit is not None and int(refit.group(1)) >= 20, report
+    assert left is None or int(left.group(1)) <= 2, report
+    verdict = next(ln for ln in report.splitlines() if ln.startswith("verdict:"))
+    assert "all 9 actuators within tolerance" in verdict and "failed (" not in verdict, verdict
+    assert list(read_actuators_csv(run / "dm" / "actuators.csv")["status"]).count("dead") == 1
+
+
+def test_auto_takes_a_sparse_plan_for_the_ladder_and_a_refit_replays_it(tmp_path):
+    """``dm_plan.kind=auto`` with the ladder: the plan auto chose (Hadamard: every pattern moves every
+    actuator a spot sees) is replaced by a sparse one, seen at ``SPARSE_MARGIN`` of the support threshold
+    (so a misregistered mirror's pairs are all in it), recorded with that threshold; a re-fit takes the
+    same decision from the recorded test frames and gives the same actuators.csv."""
+    from torchblur import cli
+    from torchblur.identify.dm_plan import SPARSE_MARGIN
+    from torchblur.identify.dm_record import PLAN_KEY
+
+    run = tmp_path / "run"
+    cfg = [*SMALL, "sweep.n=3", "report.figures=false", "dm_plan.spot_model=ladder", "dm_plan.ladder_frames=8", "dm_plan.kind=auto"]
+    assert load_config(None, cfg).dm_plan.kind == "auto"
+    assert cli.main(["identify", "--out", str(run), "--quiet", *cfg]) in (0, 4)
+    report = (run / "report.txt").read_text()
+    assert "dm plan: sparse, not hadamard (auto, and the spots change shape" in report
+    doc = json.loads((run / "experiment" / "experiment.json").read_text())[PLAN_KEY]
+    assert doc["kind"] == "sparse" and doc["support_threshold"] == pytest.approx(0.01 * SPARSE_MARGIN)
+    assert cli.main(["fit", str(run), "--out", str(tmp_path / "refit"), "--quiet"]) in (0, 4)
+    assert (tmp_path / "refit" / "dm" / "actuators.csv").read_text() == (run / "dm" / "actuators.csv").read_text()
+    shifted = tmp_path / "shifted"  # the shifted still keeps auto's own choice
+    assert cli.main(["identify", "--out", str(shifted), "--quiet", *cfg[:-3], "dm_plan.kind=auto", "dm_plan.spot_model=shifted"]) in (0, 4)
+    assert "not hadamard" not in (shifted / "report.txt").read_text()
 
 
 @pytest.mark.parametrize("old,new,error", [

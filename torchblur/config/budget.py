@@ -275,20 +275,24 @@ def dm_geometry(cfg) -> np.ndarray:
     return _memo(("G", _geometry_key(cfg)), compute).copy()
 
 
-def dm_plan(cfg):
+def dm_plan(cfg, kind: str | None = None, threshold: float | None = None):
     """``(plan, n_repeats, info)`` of a DM config on its geometry :func:`dm_geometry`
-    (:func:`~torchblur.dm.plans.choose_plan` with the ``dm_plan`` and ``sweep`` sections).
+    (:func:`~torchblur.dm.plans.choose_plan` with the ``dm_plan`` and ``sweep`` sections; ``kind``,
+    ``threshold``: that plan and support threshold instead of ``dm_plan.kind``'s and ``dm_plan.support_threshold``'s).
 
     Raises:
         ParameterError: naming ``dm_plan.budget_frames`` when one repeat of the plan needs more.
     """
     n_freq, n_exp = len(cfg.frequencies_hz()), len(cfg.sweep.exposures)
 
-    def compute():
-        return choose_plan(cfg.dm_plan.kind, dm_geometry(cfg), budget_frames=cfg.dm_plan.budget_frames, n_freq=n_freq,
-                           n_exposures=n_exp, threshold=float(cfg.dm_plan.support_threshold), n_repeats=cfg.dm_plan.n_repeats)
+    kind = cfg.dm_plan.kind if kind is None else kind
+    threshold = float(cfg.dm_plan.support_threshold if threshold is None else threshold)
 
-    plan, R, info = _memo(("plan", _geometry_key(cfg), repr(cfg.dm_plan), n_freq, n_exp), compute)
+    def compute():
+        return choose_plan(kind, dm_geometry(cfg), budget_frames=cfg.dm_plan.budget_frames, n_freq=n_freq,
+                           n_exposures=n_exp, threshold=threshold, n_repeats=cfg.dm_plan.n_repeats)
+
+    plan, R, info = _memo(("plan", _geometry_key(cfg), repr(cfg.dm_plan), kind, threshold, n_freq, n_exp), compute)
     return plan, R, copy.deepcopy(info)
 
 

@@ -313,7 +313,9 @@ class WFSConfig:
 @dataclass(frozen=True)
 class DMPlanConfig:
     """The excitation plan of a DM run (:mod:`torchblur.dm.plans`): ``kind`` one of auto,
-    one_at_a_time, sparse, hadamard; ``budget_frames`` the most sweep frames (the repeats per
+    one_at_a_time, sparse, hadamard (auto: the fewest frames at equal accuracy, but sparse, seen
+    at ``SPARSE_MARGIN`` x ``support_threshold``, in place of hadamard where the spots take the
+    ladder: :class:`torchblur.identify.dm_plan.DMPlan`); ``budget_frames`` the most sweep frames (the repeats per
     exposure are the most that fit, unless ``n_repeats`` is set); ``support_threshold``: the
     sparse plan's |G| threshold relative to the largest. The spots' model in the sweep's fits,
     ``spot_model``: ``shifted`` (each spot's still, shifted by its motion), ``ladder`` (each

@@ -110,7 +110,8 @@ def _solve_group(A, W, y):
         A: ``[P, n]`` the patterns on the group's support.
         W: ``[P, B, F, 2, 2]`` weights, y: ``[P, B, F, 2]`` data (B rows of the group).
 
-    Returns ``(x [B, F, n, 2], cov [B, F, n, 2, 2])``, NaN where the data do not determine the item.
+    Returns ``(x [B, F, n, 2], cov [B, F, n, 2, 2])``: NaN for an actuator no pattern with data
+    drives, and for the whole item where the rest of its data do not determine it.
     """
     n = A.shape[1]
     P, B, F = W.shape[:3]
@@ -119,11 +120,18 @@ def _solve_group(A, W, y):
     normal = normal.transpose(2, 3, 0, 4, 1, 5).reshape(B, F, 2 * n, 2 * n)
     Wy = (W @ y[..., None])[..., 0]  # [P, B, F, 2]
     rhs = (A.T @ Wy.reshape(P, B * F * 2)).reshape(n, B, F, 2).transpose(1, 2, 0, 3).reshape(B, F, 2 * n)
+    # an actuator no pattern with data drives (its only pattern's fit failed: a sparse plan) is left
+    # out of its item's system and NaN, the others solved without it
+    none = ~(np.diagonal(normal, axis1=-2, axis2=-1).reshape(B, F, n, 2) > 0).all(-1)  # [B, F, n]
+    drop = np.repeat(none, 2, axis=-1)  # [B, F, 2n]
+    normal = np.where(drop[..., :, None] | drop[..., None, :], 0.0, normal) + drop[..., None, :] * np.eye(2 * n)
     cov = _spd_inverse(normal)
     x = (cov @ rhs[..., None])[..., 0]
+    x[drop] = np.nan
     cov = cov.reshape(B, F, n, 2, n, 2)
-    diag = cov[:, :, np.arange(n), :, np.arange(n), :]  # [n, B, F, 2, 2]
-    return x.reshape(B, F, n, 2), np.moveaxis(diag, 0, 2)
+    diag = np.moveaxis(cov[:, :, np.arange(n), :, np.arange(n), :], 0, 2)  # [B, F, n, 2, 2]
+    diag[none] = np.nan
+    return x.reshape(B, F, n, 2), diag
 
 
 def _ols_group(Ap, Y, C):
@@ -161,7 +169,9 @@ def demultiplex(Y, Y_cov, patterns, support=None, *, method: str = "auto"):
     Returns:
         ``(D, D_cov)``: ``D [2M, N, F]`` complex128, ``D[s, j, f]`` = the response of slope ``s``
         to a unit sine on actuator ``j`` at frequency ``f`` (0 off the support; NaN where the
-        data left out by failed fits no longer determine the row), and ``D_cov
+        data left out by failed fits no longer determine it: only the actuators whose every
+        driving pattern failed, where the rest of the row stays determined, as on a sparse
+        plan; the whole row where it does not), and ``D_cov
         [2M, N, F, 2, 2]`` the covariance of ``(Re, Im) D[s, j, f]`` (the correlations between
         the actuators of one row are dropped).
 

@@ -40,7 +40,7 @@ from torchblur.image.spots import crop_spots, crop_valid
 from torchblur.render.camera import camera_noise_std
 
 __all__ = ["LADDER_KIND", "TEST_KEY", "HoldImages", "hold_exposure", "hold_images", "ladder_key", "ladder_levels", "acquire_holds",
-           "choose_spot_model", "pattern_ladder"]
+           "choose_spot_model", "ladder_holds", "pattern_ladder"]
 
 LADDER_KIND = "dm_ladder"  #: the kind of the static holds' groups
 TEST_KEY = "dm_ladder/test"  #: auto's test: every pattern at its two end levels
@@ -134,22 +134,22 @@ def _shifted_test(holds: HoldImages, cal, offset, size, inside) -> dict:
             "failed": int(fail.sum()), "tests": int(red.numel()), "patterns_failed": int(fail.flatten(1).any(1).sum())}
 
 
-def choose_spot_model(cfg, rig, exp, patterns: np.ndarray, G: np.ndarray, cal, offset, size, inside, limit: float):
-    """The spot model of the sweep's fits (module docstring): ``(model, holds)``, ``model`` one of
-    ``shifted``, ``ladder`` and ``holds`` the ladder's :class:`HoldImages` (None for shifted).
-    ``offset`` ``[M, 2]``, ``size``: the spots' crops; ``inside`` ``[M]`` bool, the spots mostly in
-    the frame (the others are not tested); ``limit`` the largest |command|. The decision and its
-    figures go to the log (report.txt's dm lines)."""
+def choose_spot_model(cfg, rig, exp, patterns: np.ndarray, G: np.ndarray, cal, offset, size, inside, limit: float) -> str:
+    """The spot model of the sweep's fits (module docstring): ``shifted`` or ``ladder``. ``patterns``
+    ``[P, N]``: the plan's whose two end levels ``auto`` holds; ``offset`` ``[M, 2]``, ``size``: the
+    spots' crops; ``inside`` ``[M]`` bool, the spots mostly in the frame (the others are not tested);
+    ``limit`` the largest |command|. The decision and its figures go to the log (report.txt's dm
+    lines); the holds themselves are :func:`ladder_holds`'."""
     choice = cfg.dm_plan.spot_model
     has = callable(getattr(rig, "pattern_ladder", None)) and (not isinstance(rig, ReplayRig) or _recorded(exp))
     if choice == "shifted" or (choice == "auto" and not has):
         why = "dm_plan.spot_model=shifted" if choice == "shifted" else f"auto, and a {type(rig).__name__} holds no pattern_ladder"
         LOGGER.info(f"dm spot model: shifted ({why}): every spot its still, shifted by its motion")
-        return "shifted", None
-    levels = ladder_levels(cfg, patterns, G, limit)
-    n, te = int(cfg.dm_plan.ladder_frames), hold_exposure(cfg, cal)
+        return "shifted"
     if choice == "auto":
-        test = acquire_holds(rig, exp, TEST_KEY, patterns, levels[:, [0, -1]], LADDER_TEST_FRAMES, te, cal, offset, size)
+        levels = ladder_levels(cfg, patterns, G, limit)
+        test = acquire_holds(rig, exp, TEST_KEY, patterns, levels[:, [0, -1]], LADDER_TEST_FRAMES, hold_exposure(cfg, cal), cal, offset,
+                             size)
         t = _shifted_test(test, cal, offset, size, torch.as_tensor(inside, dtype=torch.bool))
         figures = (f"{t['tests']} spot images of {len(patterns)} patterns held at +-their end levels, {LADDER_TEST_FRAMES} frames each: "
                    f"reduced chi2 "
@@ -157,14 +157,22 @@ def choose_spot_model(cfg, rig, exp, patterns: np.ndarray, G: np.ndarray, cal, o
         if t["failed"] <= max(1, int(FAIL_FRACTION * t["tests"])):
             LOGGER.info(f"dm spot model: shifted (auto: a shifted still explains the spots held still, {t['failed']} spot images "
                         f"above the threshold; {figures})")
-            return "shifted", None
+            return "shifted"
         LOGGER.info(f"dm spot model: ladder (auto: {t['failed']} spot images of {t['patterns_failed']} patterns are not a shifted "
                     f"still within their noise; {figures})")
+    return "ladder"
+
+
+def ladder_holds(cfg, rig, exp, patterns: np.ndarray, G: np.ndarray, cal, offset, size, limit: float) -> HoldImages:
+    """Every pattern of ``patterns`` ``[P, N]`` held at its :func:`ladder_levels`
+    (``dm_plan.ladder_frames`` frames each, one recorded group per pattern), cropped at the spots."""
+    levels = ladder_levels(cfg, patterns, G, limit)
+    n, te = int(cfg.dm_plan.ladder_frames), hold_exposure(cfg, cal)
     holds = acquire_holds(rig, exp, [ladder_key(p) for p in range(len(patterns))], patterns, levels, n, te, cal, offset, size)
     LOGGER.info(f"dm spot model: ladder of {len(patterns)} patterns x {levels.shape[1]} levels x {n} frames at {te * 1e3:.3g} ms "
                 f"(levels up to +-{np.abs(levels).max(1).min():.4g}..{np.abs(levels).max():.4g} input units: dm_plan.ladder_reach "
                 f"{cfg.dm_plan.ladder_reach:g} x the largest command the sweep expects)")
-    return "ladder", holds
+    return holds
 
 
 def _recorded(exp) -> bool:

@@ -32,7 +32,7 @@ from torchblur.hardware.recording import ReplayRig
 from torchblur.hardware.serial_dm_rig import open_dm_rig
 from torchblur.identify.assemble import timing_phase_std
 from torchblur.identify.calibration import MIN_INSIDE, calibrate, check_latency_source
-from torchblur.identify.dm_ladder import choose_spot_model, pattern_ladder
+from torchblur.identify.dm_ladder import choose_spot_model, ladder_holds, pattern_ladder
 from torchblur.config import IdentifyConfig
 from torchblur.identify.dm_record import (SWEEP_KIND, TABLE_KEY, check_recorded_commands, recorded_labels, recorded_plan, resume_seed,
                                           same_table, simulated_frames, sweep_key, table_digest)
@@ -198,33 +198,55 @@ def _spot_psf(cal, order):
     return PerSpotPSF(gauss, KernelPSF(sk.psf.kernel[order]), use)
 
 
+#: the sparse plan that ``dm_plan.kind=auto`` takes for the ladder's spots (:meth:`DMPlan.sweep`) sees at this
+#: fraction of ``dm_plan.support_threshold``: its colouring and support then hold every pair a mirror misregistered
+#: by 0.25 pitch, 1.5 deg and 3 % needs (HCIPy's quick run: 36 pairs missing at 1 x, 0 at 0.1 x; 20 patterns, not 18)
+SPARSE_MARGIN = 0.1
+
+#: px: a spot whose static motion under its pattern at the ladder's top level is below this barely
+#: changes shape; where its ladder fit left the levels (its shape's command is then the data's noise,
+#: often beyond the levels) it is fitted by its shifted still instead (:func:`_fit_frequency`)
+STILL_ENOUGH_PX = 0.2
+
+
 def _fit_frequency(frames, window, omega, amplitude, power, cal, psf, offset, size, jitter_s, fit_options, ladder=None):
     """One frequency's pattern responses: frames ``[P, E*R, H, W]`` ADU -> ``(Y [P, 2M],
-    Y_cov [P, 2M, 2, 2], failed, reduced chi2 [P, M] of every spot fit, out of the ladder)``. ``psf``: the spots'
+    Y_cov [P, 2M, 2, 2], failed, reduced chi2 [P, M] of every spot fit, out of the ladder, refitted)``. ``psf``: the spots'
     Gaussians or :class:`~torchblur.dm.spot_fit.PerSpotPSF` (:func:`_spot_psf`, at power 1); ``ladder``: the
     patterns' :class:`~torchblur.dm.ladder_fit.PatternLadder` (``dm_plan.spot_model`` ladder: the spots
     fitted with it, :func:`~torchblur.dm.ladder_fit.fit_ladder_problems`; ``out of the ladder`` counts
-    the spot fits whose motion left its levels, their responses NaN: left out of D), or None (the shifted ``psf``)."""
+    the spot fits whose motion left its levels, their responses NaN: left out of D, except those of a
+    spot that barely moves under the pattern (:data:`STILL_ENOUGH_PX`), ``refitted`` by the shifted
+    ``psf``), or None (the shifted ``psf``; ``refitted`` 0)."""
     e = subtract_dark(frames.to(_F64), cal.dark) * cal.gain
     crops, in_frame = crop_problems(e[:, None], offset, size)  # [P, 1, M, ER, h, w]
-    hot = crop_spots(cal.dark.hot_pixels, offset, size)  # [M, h, w] the hot pixels in every crop
+    mask = (in_frame & ~crop_spots(cal.dark.hot_pixels, offset, size))[:, None]  # the hot pixels of every crop left out
     n = window.shape[-1]
     phase_var = float(timing_phase_std(omega, jitter_s, cal.latency_std_s, n)) ** 2
-    if ladder is not None:
+    refit = 0
+    if ladder is None:
+        fits = _shifted_fits(crops, window, omega, power, cal, psf, mask, fit_options)
+    else:
         amp = torch.full((crops.shape[0], 1), float(amplitude), dtype=_F64)
         # pixel weights from the camera noise of each crop's 3 x 3 local mean (a pixel's own value would bias the amplitudes low)
         local = torch.nn.functional.avg_pool2d(crops.flatten(0, -3), 3, stride=1, padding=1, count_include_pad=False).reshape(crops.shape)
         fits = _fit_spots(crops, ladder, window, torch.tensor([omega], dtype=_F64), amp, fitter=fit_ladder_problems, power=float(power),
-                          noise_std=camera_noise_std(local, cal.read_noise_e), mask=(in_frame & ~hot)[:, None],
-                          device=fit_options["device"])
-        Y, Yc = pattern_responses(fits, amplitude, phase_var=phase_var)
-        chi2 = fits.reduced_chi2.reshape(fits.reduced_chi2.shape[0], -1).numpy()
-        beyond = ((fits.flags & OUT_OF_LADDER) != 0).reshape(fits.flags.shape[0], -1).numpy()  # [P, M]
-        # a motion beyond the ladder's levels is the end cubics extrapolated: no error model holds there, so its
-        # responses are left out of D like a failed fit's (counted, and the verdict's ladder rule sees them)
-        Y[np.concatenate([beyond, beyond], 1)] = np.nan
-        Yc[np.concatenate([beyond, beyond], 1)] = np.nan
-        return Y[..., 0], Yc[:, :, 0], int((fits.status != 0).sum()), chi2, int(beyond.sum())
+                          noise_std=camera_noise_std(local, cal.read_noise_e), mask=mask, device=fit_options["device"])
+        fits, refit = _still_spots_refitted(fits, ladder, crops, window, omega, power, cal, psf, mask, fit_options)
+    Y, Yc = pattern_responses(fits, amplitude, phase_var=phase_var)
+    chi2 = fits.reduced_chi2.reshape(fits.reduced_chi2.shape[0], -1).numpy()  # [P, M] (F = 1)
+    beyond = ((fits.flags & OUT_OF_LADDER) != 0).reshape(fits.flags.shape[0], -1).numpy()  # [P, M]
+    # a motion beyond the ladder's levels is the end cubics extrapolated: no error model holds there, so its
+    # responses are left out of D like a failed fit's (counted, and the verdict's ladder rule sees them)
+    Y[np.concatenate([beyond, beyond], 1)] = np.nan
+    Yc[np.concatenate([beyond, beyond], 1)] = np.nan
+    return Y[..., 0], Yc[:, :, 0], int((fits.status != 0).sum()), chi2, int(beyond.sum()), refit
+
+
+def _shifted_fits(crops, window, omega, power, cal, psf, mask, fit_options):
+    """The shifted still's :class:`~torchblur.dm.spot_fit.SpotFits` of ``crops [P, 1, M, E*R, h, w]`` (electrons),
+    ``window [P, 1, E*R]``: each spot its ``psf`` (Gaussian, or :class:`~torchblur.dm.spot_fit.PerSpotPSF` with the
+    kernels' own noise in the stds) scaled to laser power ``power``, weights from the camera's noise model."""
     kernel_noise = None
     if isinstance(psf, PerSpotPSF):
         p = psf.scaled(power)
@@ -233,11 +255,33 @@ def _fit_frequency(frames, window, omega, amplitude, power, cal, psf, offset, si
     else:
         p = GaussianPSF(psf.center, psf.cov, psf.amplitude * power)
     # weights from the camera's noise model: the fitter refits with the first fit's expected signal
-    fits = _fit_spots(crops, p, window, torch.tensor([omega], dtype=_F64), noise=cal.noise, mask=(in_frame & ~hot)[:, None],
-                      kernel_noise=kernel_noise, **fit_options)
-    Y, Yc = pattern_responses(fits, amplitude, phase_var=phase_var)
-    chi2 = fits.reduced_chi2.reshape(fits.reduced_chi2.shape[0], -1).numpy()  # [P, M] (F = 1)
-    return Y[..., 0], Yc[:, :, 0], int((fits.status != 0).sum()), chi2, 0
+    return _fit_spots(crops, p, window, torch.tensor([omega], dtype=_F64), noise=cal.noise, mask=mask, kernel_noise=kernel_noise,
+                      **fit_options)
+
+
+def _still_spots_refitted(fits, ladder, crops, window, omega, power, cal, psf, mask, fit_options):
+    """``(fits, n)``: the ladder's ``fits`` with every fit that left the ladder on a spot whose static motion at the
+    pattern's top level is below :data:`STILL_ENOUGH_PX` (``ladder.slope``) replaced by its shifted still's
+    (:func:`_shifted_fits`, run on the patterns that have one), and how many. Such a spot barely changes shape, so
+    its still describes it; its ladder fit's shape command is the data's noise (a spot of a dead actuator, or one
+    at the edge of its actuators' reach on a sparse plan) and leaving it out would cost D the entry."""
+    if ladder.slope is None:
+        return fits, 0
+    top = ladder.levels.abs().amax(-1).cpu()  # [P]
+    still = ladder.slope.cpu().norm(dim=-1) * top[:, None] < STILL_ENOUGH_PX  # [P, M]
+    redo = ((fits.flags[:, 0] & OUT_OF_LADDER) != 0) & still  # [P, M]
+    if not bool(redo.any()):
+        return fits, 0
+    pp = torch.nonzero(redo.any(1)).reshape(-1)
+    sh = _shifted_fits(crops[pp], window[pp], omega, power, cal, psf, mask, fit_options)
+    take = redo[pp][:, None]  # [p', 1, M]
+
+    def merged(a, b):
+        out = a.clone()
+        out[pp] = torch.where(take.reshape(take.shape + (1,) * (a.dim() - 3)), b.to(a.dtype), a[pp])
+        return out
+    return replace(fits, **{f.name: merged(getattr(fits, f.name), getattr(sh, f.name)) for f in fields(fits)
+                            if isinstance(getattr(fits, f.name), torch.Tensor)}), int(redo.sum())
 
 
 def _fit_spots(crops, psf, window, omega, *args, device: str = "cpu", fitter=fit_spot_problems, **kw):
@@ -308,7 +352,7 @@ def _fit_outcome(future):
 
 def _failed_frequency(P: int, M2: int):
     """A frequency whose fit task failed: NaN responses and covariances, every one of its ``P * M`` spot fits failed."""
-    return (np.full((P, M2), np.nan + 0j), np.full((P, M2, 2, 2), np.nan), P * (M2 // 2), np.full((P, M2 // 2), np.nan), 0)
+    return (np.full((P, M2), np.nan + 0j), np.full((P, M2, 2, 2), np.nan), P * (M2 // 2), np.full((P, M2 // 2), np.nan), 0, 0)
 
 
 def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, exp=None, executor=None, ladder=None):
@@ -376,7 +420,10 @@ def collect_fits(freqs, futures, P: int, M2: int):
             LOGGER.info(f"dm sweep: the spot fits of {f:.4g} Hz failed on the executor ({why}): its responses are NaN and "
                         f"its {P * (M2 // 2)} spot fits counted failed")
     results = [r if r is not None else _failed_frequency(P, M2) for r, _ in outcomes]
-    out = sum(r[4] for r in results)
+    out, refit = sum(r[4] for r in results), sum(r[5] for r in results)
+    if refit:
+        LOGGER.info(f"dm spot model: {refit} spot fits that left the ladder's levels on spots barely moving under their pattern "
+                    f"(under {STILL_ENOUGH_PX:g} px at its top level) fitted by the spot's shifted still instead")
     if out:
         LOGGER.info(f"dm spot model: {out} spot fits' motion left the ladder's levels (flagged; their responses extrapolate the "
                     f"static images: raise dm_plan.ladder_reach)")
@@ -478,18 +525,30 @@ class DMPlan:
         self.G = dm_geometry(cfg)  # the geometry does not depend on the dynamics (nor on dm.actuator_table)
         freqs = np.asarray(cfg.frequencies_hz())
         plan, R, self.info = dm_plan(cfg)
-        self.plan, self.R = recorded_plan(exp, plan, R, self.G, float(cfg.dm_plan.support_threshold))
+        t0 = time.perf_counter()
+        limit = min(math.inf if cfg.dm.input_limit is None else float(cfg.dm.input_limit), run.cal.input_limit)
+        self.spot_model = choose_spot_model(cfg, run.rig, exp, plan.patterns, self.G, run.cal, self.offset, self.size, self.inside,
+                                            limit)
+        threshold = float(cfg.dm_plan.support_threshold)
+        if self.spot_model == "ladder" and cfg.dm_plan.kind == "auto" and plan.kind == "hadamard":
+            threshold *= SPARSE_MARGIN
+            plan, R, self.info = dm_plan(cfg, kind="sparse", threshold=threshold)
+            LOGGER.info(f"dm plan: sparse, not hadamard (auto, and the spots change shape: on a pattern that moves several of the "
+                        f"actuators a spot sees, the ladder ties the spot's shape to their common command and pulls each "
+                        f"actuator's response toward its neighbours'; on a sparse plan a spot sees one; seen at {threshold:g} of the "
+                        f"largest displacement, {SPARSE_MARGIN:g} x dm_plan.support_threshold, for a misregistered mirror; "
+                        f"docs/deformable_mirrors.md, \"The plans\")")
+        self.plan, self.R = recorded_plan(exp, plan, R, self.G, threshold)
         if exp is not None and exp.writable:
             check_recorded_commands(exp, math.inf if cfg.dm.input_limit is None else float(cfg.dm.input_limit))
         run.say(f"dm plan: {self.plan.kind}, {self.plan.n_patterns} patterns x {len(freqs)} frequencies x {len(cfg.sweep.exposures)} "
                 f"exposures x {self.R} repeats = {self.plan.n_frames(len(freqs), len(cfg.sweep.exposures), self.R)} frames; frames for "
                 f"the same accuracy vs one at a time: {self.info['cost_ratio_to_one_at_a_time']:.3f}")
-        t0 = time.perf_counter()
-        limit = min(math.inf if cfg.dm.input_limit is None else float(cfg.dm.input_limit), run.cal.input_limit)
-        self.spot_model, holds = choose_spot_model(cfg, run.rig, exp, self.plan.patterns, self.G, run.cal, self.offset, self.size,
-                                                   self.inside, limit)
+        ladder = None
+        if self.spot_model == "ladder":
+            holds = ladder_holds(cfg, run.rig, exp, self.plan.patterns, self.G, run.cal, self.offset, self.size, limit)
+            ladder = pattern_ladder(holds, run.cal, self.offset, self.size)
         run.timing["calibration"] += time.perf_counter() - t0
-        ladder = None if holds is None else pattern_ladder(holds, run.cal, self.offset, self.size)
         out = _sweep(cfg, run.rig, self.plan, self.R, self.G, run.cal, self.psf, self.offset, self.size, exp, executor=run.executor,
                      ladder=ladder)
         run.acquisition, (run.timing["acquisition"], run.timing["fit_wait"]) = out[:8], out[8:]

@@ -626,22 +626,21 @@ def ladder_guard(v, res):
     more than :data:`POOR_SPOT_FRACTION` of the spot fits is a reason of its own), and not
     trustworthy: the ladder's actuator stds hold on torchblur's simulated mirror (DC gain, mode
     and damping rms(error/std) pooled over three seeds 0.78, 1.14, 0.99,
-    benchmarks/bench_dm_ladder_frames.py --frames 32 --seeds 0 1 2) but not yet on HCIPy's lenslet frames, the spots the
-    ladder is for (``benchmarks/bench_dm_hcipy.py``, the whole grid on a GPU: D(jw) 1.04, delay 0.94,
-    but mode 1.87, damping 1.55 and DC gain 2.13; docs/deformable_mirrors.md, "The whole frequency
-    grid"; why: "Why the ladder's actuator stds fail on HCIPy's frames": a static gain per actuator,
-    common to every frequency, from ``s``, whose lenslet shift curve bends within the first level;
-    since the slope rows' own gains enter the DC gains' stds, :mod:`torchblur.dm.slope_gains`, the
-    quick grid's DC gain gives 1.29 aligned and 1.23 misregistered, its mode 1.46 and 1.36,
-    ``benchmarks/bench_dm_hcipy.py --quick``; the whole grid is not re-measured)."""
+    benchmarks/bench_dm_ladder_frames.py --frames 32 --seeds 0 1 2) but are not yet shown to hold on
+    the whole grid of HCIPy's lenslet frames, the spots the ladder is for. With the Hadamard plan they
+    did not (the whole grid on a GPU: mode 1.87, damping 1.55, DC gain 2.13; the quick grid's modes
+    1.46 and 1.36, pulled toward their mean: docs/deformable_mirrors.md, "The plans"); with the sparse
+    plan auto now takes for the ladder the quick grids give mode 1.13 and 0.99, damping 1.34 and 1.14,
+    delay 1.15 and 1.21, DC gain 1.15 and 0.89 (aligned, misregistered; ``benchmarks/bench_dm_hcipy.py
+    --quick``); the whole grid is not measured with it."""
     if getattr(res, "spot_model", "shifted") != "ladder":
         return v
     n_out = int(getattr(res, "n_out_of_ladder", 0) or 0)
     if n_out:
         note = f"{n_out} spot fits' motion left the ladder's levels (left out of D; raise dm_plan.ladder_reach)"
         v = v.untrusted(note) if n_out > POOR_SPOT_FRACTION * max(v.spot_problems, 1) else replace(v, line=f"{v.line}; {note}")
-    return v.untrusted("the ladder spot model's mode and DC gain stds do not hold yet on diffraction spots (too small on "
-                       "HCIPy's lenslet frames, benchmarks/bench_dm_hcipy.py): D(jw) and its stds stand, the actuators' "
+    return v.untrusted("the ladder spot model's actuator stds do not hold yet on diffraction spots (not shown on the whole grid "
+                       "of HCIPy's lenslet frames, benchmarks/bench_dm_hcipy.py): D(jw) and its stds stand, the actuators' "
                        "stds do not: not trustworthy")
 
 
