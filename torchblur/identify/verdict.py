@@ -629,7 +629,7 @@ def ladder_guard(v, res):
     benchmarks/bench_dm_ladder_frames.py --frames 32 --seeds 0 1 2) but are not yet shown to hold on
     the whole grid of HCIPy's lenslet frames, the spots the ladder is for. With the Hadamard plan they
     did not (the whole grid on a GPU: mode 1.87, damping 1.55, DC gain 2.13; the quick grid's modes
-    1.46 and 1.36, pulled toward their mean: docs/deformable_mirrors.md, "The plans"); with the sparse
+    1.45 and 1.36, pulled toward their mean: docs/deformable_mirrors.md, "The plans"); with the sparse
     plan auto now takes for the ladder the quick grids give mode 1.13 and 0.99, damping 1.34 and 1.14,
     delay 1.15 and 1.21, DC gain 1.15 and 0.89 (aligned, misregistered; ``benchmarks/bench_dm_hcipy.py
     --quick``); the whole grid is not measured with it."""
