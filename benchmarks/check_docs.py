@@ -243,6 +243,15 @@ CLAIMS = [
                     + r"[\s\S]*?modes against their deviation from the live mean: slope [+-]" + NUM + r"[\s\S]*?" for _ in range(2)),
             rtol=(0.02,), speed="slow")
       for plan, extra in (("Hadamard", ["--set", "dm_plan.kind=hadamard"]), ("sparse", []))],
+    Claim("DM: the sparse plan with the ladder on HCIPy's whole grid (aligned)", "docs/deformable_mirrors.md",
+          r"every live\s+actuator within mode " + NUM + r" %, damping " + NUM + r" %, delay " + NUM + r" us \(largest errors; DC gain "
+          + NUM + r" %\), D0\s+" + NUM + r" % rms of max, rms\(error/std\) D\(jw\) " + NUM + r", mode " + NUM + r", damping " + NUM
+          + r", delay " + NUM + r", DC gain " + NUM,
+          [sys.executable, "benchmarks/bench_dm_hcipy.py", "--case", "aligned", "--no-checks"],
+          r"largest error: mode " + NUM + r" % \(done when <= 0\.5 %\), damping " + NUM + r" % \(<= 5 %\), delay " + NUM
+          + r" us \(<= 2 us\), DC gain " + NUM + r" %\s+D0 rms error / max\|D0\| against the fitted-shift truth: " + NUM
+          + r" %[^\n]*\n\s+rms\(error/std\) \(0\.8\.\.1\.3\): D\(jw\) " + NUM + "; mode " + NUM + ", damping " + NUM
+          + ", delay " + NUM + ", DC gain " + NUM, rtol=(0.02,), speed="slow"),
     Claim("DM: the ladder's static shift against the fitted-shift truth (issue 23's cause 1)", "docs/deformable_mirrors.md",
           r"its first 16 patterns\) prints \+" + NUM + r" % \(sd " + NUM + r" % over\s+the patterns\) for `static_slope`[\s\S]*?into\s+\+"
           + NUM + r" % from the truth itself[\s\S]*?\+" + NUM + r" % \(sd [0-9.]+ %\) from the still's Fourier[\s\S]*?and \+" + NUM
