@@ -252,6 +252,15 @@ CLAIMS = [
           + r" us \(<= 2 us\), DC gain " + NUM + r" %\s+D0 rms error / max\|D0\| against the fitted-shift truth: " + NUM
           + r" %[^\n]*\n\s+rms\(error/std\) \(0\.8\.\.1\.3\): D\(jw\) " + NUM + "; mode " + NUM + ", damping " + NUM
           + ", delay " + NUM + ", DC gain " + NUM, rtol=(0.02,), speed="slow"),
+    Claim("DM: the sparse plan with the ladder on HCIPy's whole grid (misregistered)", "docs/deformable_mirrors.md",
+          r"misregistered`, 2166 s\): every live actuator within mode " + NUM + r" %, damping " + NUM + r" %, delay " + NUM
+          + r" us\s+\(largest errors; DC gain " + NUM + r" %\), D0 " + NUM + r" % rms of max, rms\(error/std\) D\(jw\) " + NUM
+          + r", mode " + NUM + r",\s+damping " + NUM + r", delay " + NUM + r", DC gain " + NUM,
+          [sys.executable, "benchmarks/bench_dm_hcipy.py", "--case", "misregistered", "--no-checks"],
+          r"largest error: mode " + NUM + r" % \(done when <= 0\.5 %\), damping " + NUM + r" % \(<= 5 %\), delay " + NUM
+          + r" us \(<= 2 us\), DC gain " + NUM + r" %\s+D0 rms error / max\|D0\| against the fitted-shift truth: " + NUM
+          + r" %[^\n]*\n\s+rms\(error/std\) \(0\.8\.\.1\.3\): D\(jw\) " + NUM + "; mode " + NUM + ", damping " + NUM
+          + ", delay " + NUM + ", DC gain " + NUM, rtol=(0.02,), speed="slow"),
     Claim("DM: the ladder's static shift against the fitted-shift truth (issue 23's cause 1)", "docs/deformable_mirrors.md",
           r"its first 16 patterns\) prints \+" + NUM + r" % \(sd " + NUM + r" % over\s+the patterns\) for `static_slope`[\s\S]*?into\s+\+"
           + NUM + r" % from the truth itself[\s\S]*?\+" + NUM + r" % \(sd [0-9.]+ %\) from the still's Fourier[\s\S]*?and \+" + NUM

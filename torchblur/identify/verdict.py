@@ -632,8 +632,9 @@ def ladder_guard(v, res):
     1.45 and 1.36, pulled toward their mean: docs/deformable_mirrors.md, "The plans"); with the sparse
     plan auto now takes for the ladder the quick grids give mode 1.13 and 0.99, damping 1.34 and 1.14,
     delay 1.15 and 1.21, DC gain 1.15 and 0.89 (aligned, misregistered; ``benchmarks/bench_dm_hcipy.py
-    --quick``), and the aligned whole grid mode 0.95, damping 1.12, delay 1.26, DC gain 1.20; the
-    misregistered whole grid is not measured with it."""
+    --quick``), and the whole grids mode 0.95 and 0.93, damping 1.12 and 1.14, delay 1.26 and 1.04,
+    DC gain 1.20 and 0.87 (docs/deformable_mirrors.md, "The plans"); kept while the mirror model does
+    not explain lenslet D0 (the registration's model rule fails on both whole grids)."""
     if getattr(res, "spot_model", "shifted") != "ladder":
         return v
     n_out = int(getattr(res, "n_out_of_ladder", 0) or 0)
