@@ -182,6 +182,12 @@ def projected_responses(res, truth, dyn):
     return h, h_cov, h_true
 
 
+def _pull(dev, err) -> complex:
+    """The least-squares complex ``b`` of ``err = b dev`` (``[J]`` each): how far errors follow the
+    actuators' relative distance from their mean response (``b = -1``: every one reported as the mean)."""
+    return np.vdot(dev, err) / np.vdot(dev, dev)
+
+
 def shrink_lines(res, truth, dyn, proj=None) -> list[str]:
     """Per frequency, how the live actuators' responses ``h_j`` (D's columns projected on the run's G) err
     against the linearised truth's, relative to how far each actuator's own ``H_j`` lies from the live
@@ -198,7 +204,7 @@ def shrink_lines(res, truth, dyn, proj=None) -> list[str]:
     for k in range(len(f)):
         H = dyn.response(f[k])[live]
         dev, err = H / H.mean() - 1, h[:, k] / ht[:, k] - 1
-        b = np.vdot(dev, err) / np.vdot(dev, dev)
+        b = _pull(dev, err)
         left = err - b * dev
         share = 1 - np.mean(np.abs(left - left.mean()) ** 2) / np.mean(np.abs(err - err.mean()) ** 2)
         lines.append(f"{f[k]:7.4g} Hz: actuators' |H_j / mean - 1| rms {np.sqrt(np.mean(np.abs(dev) ** 2)) * 100:.2f} %, error "
@@ -238,7 +244,7 @@ def spot_pull_lines(res, truth, dyn) -> list[str]:
         D = demultiplex(np.where(ok, Y - b * x, Y)[..., None], res.Y_cov[:, :, k:k + 1], P, res.plan.support)[0]
         h, ht = (project_columns(d, res.D_cov[:, :, k:k + 1], res.G)[0][live, 0] for d in (D, (S * H[None])[..., None]))
         dev = H[live] / H[live].mean() - 1
-        b_act = np.vdot(dev, h / ht - 1) / np.vdot(dev, dev)
+        b_act = _pull(dev, h / ht - 1)
         lines.append(f"{f:7.4g} Hz: b {b.real:+.4f} {b.imag:+.4f}i over {int(ok.sum())} responses (|Yt - Yc| / |Yt| rms "
                      f"{np.sqrt(np.mean(np.abs(x[ok]) ** 2) / np.mean(np.abs(Yt[ok]) ** 2)) * 100:.2f} %); the actuators' b with it "
                      f"taken out {b_act.real:+.4f} {b_act.imag:+.4f}i")

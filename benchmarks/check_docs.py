@@ -55,6 +55,16 @@ def _tb(*args):
     return [*TB, *args]
 
 
+
+#: benchmarks/bench_dm_hcipy.py's "done when" lines: the live actuators' largest errors (mode, damping, delay,
+#: DC gain), then rms(error/std) of D(jw) and of the four parameters; with D0's line between them
+_HCIPY_ERRORS = (r"largest error: mode " + NUM + r" % \(done when <= 0\.5 %\), damping " + NUM + r" % \(<= 5 %\), delay " + NUM
+                 + r" us \(<= 2 us\), DC gain " + NUM + r" %")
+_HCIPY_STDS = (r"rms\(error/std\) \(0\.8\.\.1\.3\): D\(jw\) " + NUM + "; mode " + NUM + ", damping " + NUM + ", delay " + NUM
+               + ", DC gain " + NUM)
+_HCIPY_FIGURES = (_HCIPY_ERRORS + r"\s+D0 rms error / max\|D0\| against the fitted-shift truth: " + NUM + r" %[^\n]*\n\s+"
+                  + _HCIPY_STDS)
+
 CLAIMS = [
     Claim("quick start: the default run's time", "README.md",
           r"`report\.txt` \(about " + NUM + r" s of acquisition and fitting on 2 cores",
@@ -229,38 +239,21 @@ CLAIMS = [
           + NUM + r" %, D0 " + NUM + r" % rms of max; rms\(error/std\)\s+D\(jw\) " + NUM + ", mode " + NUM + ", damping " + NUM
           + ", delay " + NUM + ", DC gain " + NUM,
           [sys.executable, "benchmarks/bench_dm_hcipy.py", "--quick", "--case", "aligned", "--no-checks", "--set", "dm_plan.kind=hadamard"],
-          r"largest error: mode " + NUM + r" % \(done when <= 0\.5 %\), damping " + NUM + r" % \(<= 5 %\), delay " + NUM
-          + r" us \(<= 2 us\), DC gain " + NUM + r" %\s+D0 rms error / max\|D0\| against the fitted-shift truth: " + NUM
-          + r" %[^\n]*\n\s+rms\(error/std\) \(0\.8\.\.1\.3\): D\(jw\) " + NUM + "; mode " + NUM + ", damping " + NUM
-          + ", delay " + NUM + ", DC gain " + NUM, rtol=(0.02,), speed="slow"),
+          _HCIPY_FIGURES, rtol=(0.02,), speed="slow"),
     *[Claim(f"DM: {plan} plan with the ladder on HCIPy's lenslet frames (quick, both cases)", "docs/deformable_mirrors.md",
             "".join(rf"\| {case} \| {plan} \| " + NUM + " %, " + NUM + " %, " + NUM + " us, " + NUM + r" % \| " + ", ".join([NUM] * 5)
                     + r" \| [+-]" + NUM + r" \|[\s\S]*?" for case in ("aligned", "misregistered")),
             [sys.executable, "benchmarks/bench_dm_hcipy.py", "--quick", "--case", "both", "--no-checks", *extra],
-            "".join(r"largest error: mode " + NUM + r" % \(done when <= 0\.5 %\), damping " + NUM + r" % \(<= 5 %\), delay " + NUM
-                    + r" us \(<= 2 us\), DC gain " + NUM + r" %[\s\S]*?rms\(error/std\) \(0\.8\.\.1\.3\): D\(jw\) " + NUM + "; mode "
-                    + NUM + ", damping " + NUM + ", delay " + NUM + ", DC gain " + NUM
-                    + r"[\s\S]*?modes against their deviation from the live mean: slope [+-]" + NUM + r"[\s\S]*?" for _ in range(2)),
+            "".join(_HCIPY_ERRORS + r"[\s\S]*?" + _HCIPY_STDS + r"[\s\S]*?modes against their deviation from the live mean: slope [+-]"
+                    + NUM + r"[\s\S]*?" for _ in range(2)),
             rtol=(0.02,), speed="slow")
       for plan, extra in (("Hadamard", ["--set", "dm_plan.kind=hadamard"]), ("sparse", []))],
-    Claim("DM: the sparse plan with the ladder on HCIPy's whole grid (aligned)", "docs/deformable_mirrors.md",
-          r"every live\s+actuator within mode " + NUM + r" %, damping " + NUM + r" %, delay " + NUM + r" us \(largest errors; DC gain "
-          + NUM + r" %\), D0\s+" + NUM + r" % rms of max, rms\(error/std\) D\(jw\) " + NUM + r", mode " + NUM + r", damping " + NUM
-          + r", delay " + NUM + r", DC gain " + NUM,
-          [sys.executable, "benchmarks/bench_dm_hcipy.py", "--case", "aligned", "--no-checks"],
-          r"largest error: mode " + NUM + r" % \(done when <= 0\.5 %\), damping " + NUM + r" % \(<= 5 %\), delay " + NUM
-          + r" us \(<= 2 us\), DC gain " + NUM + r" %\s+D0 rms error / max\|D0\| against the fitted-shift truth: " + NUM
-          + r" %[^\n]*\n\s+rms\(error/std\) \(0\.8\.\.1\.3\): D\(jw\) " + NUM + "; mode " + NUM + ", damping " + NUM
-          + ", delay " + NUM + ", DC gain " + NUM, rtol=(0.02,), speed="slow"),
-    Claim("DM: the sparse plan with the ladder on HCIPy's whole grid (misregistered)", "docs/deformable_mirrors.md",
-          r"misregistered`, 2166 s\): every live actuator within mode " + NUM + r" %, damping " + NUM + r" %, delay " + NUM
-          + r" us\s+\(largest errors; DC gain " + NUM + r" %\), D0 " + NUM + r" % rms of max, rms\(error/std\) D\(jw\) " + NUM
-          + r", mode " + NUM + r",\s+damping " + NUM + r", delay " + NUM + r", DC gain " + NUM,
-          [sys.executable, "benchmarks/bench_dm_hcipy.py", "--case", "misregistered", "--no-checks"],
-          r"largest error: mode " + NUM + r" % \(done when <= 0\.5 %\), damping " + NUM + r" % \(<= 5 %\), delay " + NUM
-          + r" us \(<= 2 us\), DC gain " + NUM + r" %\s+D0 rms error / max\|D0\| against the fitted-shift truth: " + NUM
-          + r" %[^\n]*\n\s+rms\(error/std\) \(0\.8\.\.1\.3\): D\(jw\) " + NUM + "; mode " + NUM + ", damping " + NUM
-          + ", delay " + NUM + ", DC gain " + NUM, rtol=(0.02,), speed="slow"),
+    *[Claim(f"DM: the sparse plan with the ladder on HCIPy's whole grid ({case})", "docs/deformable_mirrors.md",
+            prefix + r"every live\s+actuator within mode " + NUM + r" %, damping " + NUM + r" %, delay " + NUM
+            + r" us\s+\(largest errors; DC gain " + NUM + r" %\), D0\s+" + NUM + r" % rms of max, rms\(error/std\) D\(jw\) " + NUM
+            + r", mode " + NUM + r",\s+damping " + NUM + r", delay " + NUM + r", DC gain " + NUM,
+            [sys.executable, "benchmarks/bench_dm_hcipy.py", "--case", case, "--no-checks"], _HCIPY_FIGURES, rtol=(0.02,), speed="slow")
+      for case, prefix in (("aligned", ""), ("misregistered", r"misregistered`, 2166 s\): "))],
     Claim("DM: the ladder's static shift against the fitted-shift truth (issue 23's cause 1)", "docs/deformable_mirrors.md",
           r"its first 16 patterns\) prints \+" + NUM + r" % \(sd " + NUM + r" % over\s+the patterns\) for `static_slope`[\s\S]*?into\s+\+"
           + NUM + r" % from the truth itself[\s\S]*?\+" + NUM + r" % \(sd [0-9.]+ %\) from the still's Fourier[\s\S]*?and \+" + NUM
