@@ -35,7 +35,7 @@ from torchblur.hardware.frames import whole_adu
 from torchblur.hardware.outside import CSV_NAME, YAML_NAME, FrameStore, OutsideCamera, OutsideFrames, _points, number, read_csv, read_folder
 from torchblur.hardware.recording import Experiment, ReplayRig
 from torchblur.identify.calibration import Calibration, spots_from_still, still_rate
-from torchblur.identify.dm_ladder import TEST_KEY, hold_images, pattern_ladder
+from torchblur.identify.dm_ladder import TEST_KEY, hold_images, pattern_ladder, slope_noise
 from torchblur.identify.dm_plan import (AMPLITUDE_LAG, DMPlan, DMResult, _calibrate, _fit_frequency, _fit_options, check_dm_config,
                                         collect_fits, fit_pool, sensor_config, sensor_spots)
 from torchblur.identify.dm_record import PLAN_KEY, SWEEP_KIND, plan_support
@@ -433,6 +433,7 @@ class DMOutsidePlan(DMPlan):
             LOGGER.info(f"dm spot model: ladder ({rec.ladder_levels.shape[1]} levels x {rec.ladder_frames.item_shape[1]} frames per "
                         f"pattern, from {CSV_NAME}'s ladder rows)")
         self.spot_model = "shifted" if ladder is None else "ladder"
+        self.slope_noise = slope_noise(ladder)
         t0 = time.perf_counter()
         with fit_pool(run.executor) as pool:
             futures = []
