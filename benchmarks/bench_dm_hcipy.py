@@ -22,6 +22,7 @@ configs/identify_dm.yaml's 16 frequencies x 2 repeats, 4096 frames).
 
     python benchmarks/bench_dm_hcipy.py --quick [--case aligned|misregistered|both|none] [--psf auto|kernel|gaussian] [--target-px 1.5]
                                         [--device cuda] [--jobs N]
+    python benchmarks/bench_dm_hcipy.py --quick --case misregistered --record DIR   # recorded, outputs in DIR/misregistered
     python benchmarks/bench_dm_hcipy.py --load PREFIX_aligned.pkl   # a run saved with BENCH_DM_HCIPY_SAVE=PREFIX
     python benchmarks/bench_dm_hcipy.py --load PREFIX_aligned.pkl --reestimate   # its stage 4 again with this tree's code
 
@@ -40,6 +41,7 @@ import math
 import os
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -325,7 +327,7 @@ def physics_checks() -> None:
 
 
 def run_case(name: str, quick: bool, psf: str = "auto", jobs: int = 1, extra=(), progress: bool = False, device: str = "cpu",
-             target_px: float | None = None) -> None:
+             target_px: float | None = None, record: str | None = None) -> None:
     over = (["sweep.n=4", "dm_plan.budget_frames=512"] if quick else []) + [f"fit.psf={psf}"] + list(extra)
     over += ([] if target_px is None else [f"excitation.target_px={target_px}"]) + [f"fit.device={device}"]
     cfg = load_config("configs/identify_dm.yaml", over)
@@ -338,8 +340,13 @@ def run_case(name: str, quick: bool, psf: str = "auto", jobs: int = 1, extra=(),
     truth = rig.truth(None)
     t_gen = time.perf_counter() - t0
     t0 = time.perf_counter()
-    res = identify(cfg, rig, progress=progress)
+    out = None if record is None else Path(record) / name
+    res = identify(cfg, rig, progress=progress, record=None if out is None else out / "experiment")
     t_run = time.perf_counter() - t0
+    if out is not None:  # the run's outputs beside its recording: benchmarks/bench_dm_outside.py --run OUT --refit
+        from torchblur.identify.outputs import write_outputs
+
+        write_outputs(cfg, res, out, t_run, time.strftime("%Y-%m-%d %H:%M:%S"))
     if os.environ.get("BENCH_DM_HCIPY_SAVE"):  # keep the run (re-read the figures without re-running)
         import pickle
 
@@ -403,7 +410,7 @@ def reestimate(res):
     cfg = load_config("configs/identify_dm.yaml")  # stage 4 reads dm.coupling and dm_plan.support_threshold: not --quick's keys
     with collect_log() as log:
         D, D_cov, table, reg, support = estimate_mirror(cfg, res.freq_hz, res.Y, res.Y_cov, res.plan, res.G_nominal,
-                                                        build_dm(cfg)[1], res.actuator_xy)
+                                                        build_dm(cfg)[1], res.actuator_xy, slope_noise=getattr(res, "slope_noise", None))
     return replace(res, D=D, D_cov=D_cov, actuators=table, G=reg.G, registration=reg, support_check=support), log
 
 
@@ -423,6 +430,8 @@ def main(argv=None) -> None:
     p.add_argument("--no-checks", action="store_true", help="skip the generator's checks")
     p.add_argument("--device", default="cpu", help="where the spot fits run (the config's fit.device) and the generator's propagation")
     p.add_argument("--jobs", type=int, default=1, help="threads of the frames' propagation (scipy.fft, BLAS) and of torch")
+    p.add_argument("--record", metavar="DIR", help="record each case's run in DIR/CASE/experiment and write its outputs in DIR/CASE "
+                   "(then: benchmarks/bench_dm_outside.py --run DIR/CASE --refit, the outside recording's route)")
     p.add_argument("--load", metavar="PKL", help="print the figures of a run saved with BENCH_DM_HCIPY_SAVE (no run)")
     p.add_argument("--reestimate", action="store_true",
                    help="with --load: stage 4 (D, the actuators, the registration, the slope rows' gains) run again by this "
@@ -455,7 +464,7 @@ def main(argv=None) -> None:
         if not args.no_checks:
             physics_checks()
         for name in {"both": ["aligned", "misregistered"], "none": []}.get(args.case, [args.case]):
-            run_case(name, args.quick, args.psf, args.jobs, args.set, args.progress, args.device, args.target_px)
+            run_case(name, args.quick, args.psf, args.jobs, args.set, args.progress, args.device, args.target_px, args.record)
 
 
 if __name__ == "__main__":

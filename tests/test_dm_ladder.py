@@ -174,6 +174,8 @@ def test_a_sparse_ladder_run_keeps_the_spots_that_barely_move(tmp_path):
     refit = re.search(r"dm spot model: (\d+) spot fits that left the ladder's levels on spots barely moving", report)
     left = re.search(r"(\d+) spot fits' motion left the ladder's levels \(flagged", report)
     assert refit is not None and int(refit.group(1)) >= 20, report
+    grown = re.search(r"dm ladder common error: .* grows the static columns' stds by x([\d.]+) \(median", report)
+    assert grown is not None and float(grown.group(1)) > 1.0, report  # the ladder's s, common to every frequency
     assert left is None or int(left.group(1)) <= 2, report
     verdict = next(ln for ln in report.splitlines() if ln.startswith("verdict:"))
     assert "all 9 actuators within tolerance" in verdict and "failed (" not in verdict, verdict

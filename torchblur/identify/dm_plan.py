@@ -78,7 +78,9 @@ class DMResult:
         timing_s: seconds per stage (``calibration``, ``acquisition``, ``fit_wait``, ``estimation``).
         spot_model: the sweep's spot model (``shifted`` or ``ladder``, :mod:`torchblur.identify.dm_ladder`);
             n_out_of_ladder: spot fits whose motion left the ladder's levels (their responses left out of D, as a
-                failed fit's; the verdict says so).
+                failed fit's; the verdict says so); slope_noise: the ladder's ``(slope [P, M, 2], slope_cov
+                [P, M, 2, 2])`` stage 4 grew the static columns' stds by (:mod:`torchblur.dm.common_noise`), None
+                for the shifted still.
         truth_D: ``[2M, N, F]`` the simulated rig's D (None on a real rig); ``mirror``: the
             simulated mirror (its true dynamics), or None; ``truth_G``, ``truth_registration``: its
             true geometry and registration, or None.
@@ -112,6 +114,7 @@ class DMResult:
     truth_registration: Registration | None = None
     spot_model: str = "shifted"
     n_out_of_ladder: int = 0
+    slope_noise: tuple | None = None
 
 
 def match_spots(found_xy: np.ndarray, rest_px: np.ndarray, pitch_px: float) -> np.ndarray:
@@ -581,7 +584,7 @@ class DMPlan:
         return DMResult(freq_hz=freqs, plan=self.plan, n_repeats=self.R, plan_info=self.info, amplitude=amps, power=powers, Y=Y,
                         Y_cov=Y_cov, D=D, D_cov=D_cov, actuators=table, G=reg.G, actuator_xy=self.model_mirror.actuator_xy,
                         n_frames=n_frames, n_failed=failed, spot_reduced_chi2=chi2, timing_s=run.timing,
-                        spot_model=self.spot_model, n_out_of_ladder=out,
+                        spot_model=self.spot_model, n_out_of_ladder=out, slope_noise=self.slope_noise,
                         truth_D=truth.truth_D(freqs) if truth is not None else None, mirror=truth.mirror if truth is not None else None,
                         G_nominal=self.G, registration=reg, support_check=support,
                         truth_G=truth.geometry if truth is not None else None,
