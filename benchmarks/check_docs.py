@@ -177,10 +177,10 @@ CLAIMS = [
     # the seeded DM run repeats to round-off: its verdict's figures exactly, the models' chi2 bound to its printed digits
     *(Claim(f"the DM run's verdict line ({where})", "docs/deformable_mirrors.md", before + r"verdict: trustworthy: all " + NUM
             + r" actuators within tolerance: " + NUM + r" ok, 1 weak \(" + NUM + r"\), 1 dead \(" + NUM + r"\); model reduced chi2 <= "
-            + NUM + r" \(chi2 test p >= 0\.001\); " + NUM + " of " + NUM + " spot fits failed",
+            + NUM + r" \(chi2 test p >= 0\.001 over the run's actuators\); " + NUM + " of " + NUM + " spot fits failed",
             _tb("identify", "--config", "configs/identify_dm.yaml", "--out", "{out}"),
             r"verdict: trustworthy: all " + NUM + r" actuators within tolerance: " + NUM + r" ok, 1 weak \(" + NUM + r"\), 1 dead \("
-            + NUM + r"\); model reduced chi2 <= " + NUM + r" \(chi2 test p >= 0\.001\); " + NUM + " of " + NUM + " spot fits failed",
+            + NUM + r"\); model reduced chi2 <= " + NUM + r" \(chi2 test p >= 0\.001 over the run's actuators\); " + NUM + " of " + NUM + " spot fits failed",
             rtol=(0.0, 0.0, 0.0, 0.0, 0.005, 0.0, 0.0), speed="slow")
       for where, before in (("the verdict's section", r"the second shows how a flagged run reads: ``` "),
                             ("the config's run", r"its last line `"))),
