@@ -398,9 +398,12 @@ def run_case(name: str, quick: bool, psf: str = "auto", jobs: int = 1, extra=(),
     res = identify(cfg, rig, progress=progress, record=None if out is None else out / "experiment")
     t_run = time.perf_counter() - t0
     if out is not None:  # the run's outputs beside its recording: benchmarks/bench_dm_outside.py --run OUT --refit
+        from torchblur.config import config_to_yaml
         from torchblur.identify.outputs import write_outputs
 
-        write_outputs(cfg, res, out, t_run, time.strftime("%Y-%m-%d %H:%M:%S"))
+        stamp = time.strftime("%Y-%m-%d %H:%M:%S")
+        (out / "config.yaml").write_text(f"# {stamp}\n" + config_to_yaml(cfg))  # as `torchblur identify` writes it
+        write_outputs(cfg, res, out, t_run, stamp)
     if os.environ.get("BENCH_DM_HCIPY_SAVE"):  # keep the run (re-read the figures without re-running)
         import pickle
 
