@@ -22,8 +22,10 @@ configs/identify_dm.yaml's 16 frequencies x 2 repeats, 4096 frames).
 
     python benchmarks/bench_dm_hcipy.py --quick [--case aligned|misregistered|both|none] [--psf auto|kernel|gaussian] [--target-px 1.5]
                                         [--device cuda] [--jobs N]
+    python benchmarks/bench_dm_hcipy.py --quick --case misregistered --record DIR   # recorded, outputs in DIR/misregistered
     python benchmarks/bench_dm_hcipy.py --load PREFIX_aligned.pkl   # a run saved with BENCH_DM_HCIPY_SAVE=PREFIX
     python benchmarks/bench_dm_hcipy.py --load PREFIX_aligned.pkl --reestimate   # its stage 4 again with this tree's code
+    python benchmarks/bench_dm_hcipy.py --load A_aligned.pkl --against B_aligned.pkl   # two noise seeds (--set seed=N): no truth
 
 ``--device cuda``: the spot fits (every (pattern, frequency, spot) problem) run on that device
 (the config's ``fit.device``; refused where there is none), and so does the generator's
@@ -40,6 +42,7 @@ import math
 import os
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -91,6 +94,59 @@ def figures(res, truth, dyn) -> dict:
     out["spot_chi2_median"] = float(np.nanmedian(chi2)) if chi2 is not None else math.nan
     out["poor_fit_actuators"] = int(np.sum(a.poor_fit))
     return out
+
+
+def _lit_rows() -> np.ndarray:
+    """``[2M]`` bool: the slope rows of configs/identify_dm.yaml's fully lit subapertures."""
+    from torchblur.config.budget import dm_sensor
+    from torchblur.dm.registration import fully_lit
+
+    return np.tile(fully_lit(dm_sensor(load_config("configs/identify_dm.yaml"))[1]), 2)
+
+
+def _snr_bands(err, std, D0, rows) -> str:
+    """rms(err/std) over the measured entries of ``rows``, then per band of ``|D0| / std``."""
+    ok = np.isfinite(err) & np.isfinite(std) & (std > 0) & rows[:, None]
+    z, snr = err[ok] / std[ok], np.abs(D0[ok]) / std[ok]
+    bands = [f"{lo:g}-{hi:g} stds {np.sqrt(np.mean(z[(snr >= lo) & (snr < hi)] ** 2)):.2f} ({int(((snr >= lo) & (snr < hi)).sum())})"
+             for lo, hi in ((0, 30), (30, 300), (300, np.inf)) if ((snr >= lo) & (snr < hi)).any()]
+    return f"{np.sqrt(np.mean(z ** 2)):.2f} over {int(ok.sum())} entries; by |D0|/std: " + ", ".join(bands)
+
+
+def d0_z_line(res, truth) -> str:
+    """D0's rms(error/std) against the fitted-shift truth on the fully lit subapertures' rows, by the
+    entries' size in stds. The truth is each spot's unweighted least-squares shift, the run's the
+    ladder's (``s``, a shot-noise-weighted fit, +0.2 % above the truth: docs/deformable_mirrors.md):
+    a bias of their own at the brightest entries, so this tests the stds only where it is small."""
+    a = res.actuators
+    out = _snr_bands(a.static_column - truth["D0"], a.static_column_std, a.static_column, _lit_rows())
+    if getattr(res, "slope_noise", None) is not None:
+        from torchblur.dm.common_noise import static_column_variance
+
+        var = static_column_variance(*res.slope_noise, res.plan.patterns, res.plan.support, a.static_column)
+        s0 = np.sqrt(np.maximum(a.static_column_std ** 2 - var, 0))
+        out += f"; without the ladder's common error {_snr_bands(a.static_column - truth['D0'], s0, a.static_column, _lit_rows())}"
+    return out
+
+
+def seed_difference_lines(a, b) -> list[str]:
+    """Two runs of one mirror under other noise (another ``seed``), compared without a truth: the
+    difference of their D0 and actuator parameters over the two stds combined (about 1 where the
+    stds hold; a bias the runs share cancels)."""
+    ta, tb = a.actuators, b.actuators
+    s = np.hypot(ta.static_column_std, tb.static_column_std)
+    lines = [f"D0 on the fully lit subapertures: rms(difference/std) {_snr_bands(ta.static_column - tb.static_column, s, ta.static_column, _lit_rows())}"]
+    if getattr(a, "slope_noise", None) is not None and getattr(b, "slope_noise", None) is not None:
+        from torchblur.dm.common_noise import static_column_variance
+
+        var = [static_column_variance(*r.slope_noise, r.plan.patterns, r.plan.support, r.actuators.static_column) for r in (a, b)]
+        s0 = np.sqrt(np.maximum(ta.static_column_std ** 2 - var[0], 0) + np.maximum(tb.static_column_std ** 2 - var[1], 0))
+        lines.append(f"D0 on the fully lit subapertures, stds without the ladder's common error: rms(difference/std) "
+                     f"{_snr_bands(ta.static_column - tb.static_column, s0, ta.static_column, _lit_rows())}")
+    for name in ("dc_gain", "mode_hz", "damping", "delay_s"):
+        z = (getattr(ta, name) - getattr(tb, name)) / np.hypot(getattr(ta, f"{name}_std"), getattr(tb, f"{name}_std"))
+        lines.append(f"{name}: rms(difference/std) {np.sqrt(np.nanmean(z ** 2)):.2f} over {int(np.isfinite(z).sum())} actuators")
+    return lines
 
 
 def d_error_lines(res, truth, dyn) -> list[str]:
@@ -325,7 +381,7 @@ def physics_checks() -> None:
 
 
 def run_case(name: str, quick: bool, psf: str = "auto", jobs: int = 1, extra=(), progress: bool = False, device: str = "cpu",
-             target_px: float | None = None) -> None:
+             target_px: float | None = None, record: str | None = None) -> None:
     over = (["sweep.n=4", "dm_plan.budget_frames=512"] if quick else []) + [f"fit.psf={psf}"] + list(extra)
     over += ([] if target_px is None else [f"excitation.target_px={target_px}"]) + [f"fit.device={device}"]
     cfg = load_config("configs/identify_dm.yaml", over)
@@ -338,8 +394,16 @@ def run_case(name: str, quick: bool, psf: str = "auto", jobs: int = 1, extra=(),
     truth = rig.truth(None)
     t_gen = time.perf_counter() - t0
     t0 = time.perf_counter()
-    res = identify(cfg, rig, progress=progress)
+    out = None if record is None else Path(record) / name
+    res = identify(cfg, rig, progress=progress, record=None if out is None else out / "experiment")
     t_run = time.perf_counter() - t0
+    if out is not None:  # the run's outputs beside its recording: benchmarks/bench_dm_outside.py --run OUT --refit
+        from torchblur.config import config_to_yaml
+        from torchblur.identify.outputs import write_outputs
+
+        stamp = time.strftime("%Y-%m-%d %H:%M:%S")
+        (out / "config.yaml").write_text(f"# {stamp}\n" + config_to_yaml(cfg))  # as `torchblur identify` writes it
+        write_outputs(cfg, res, out, t_run, stamp)
     if os.environ.get("BENCH_DM_HCIPY_SAVE"):  # keep the run (re-read the figures without re-running)
         import pickle
 
@@ -347,7 +411,7 @@ def run_case(name: str, quick: bool, psf: str = "auto", jobs: int = 1, extra=(),
             pickle.dump({"res": res, "truth": truth, "dyn": dyn, "cfg_poor_fit_chi2": float(cfg.fit.poor_fit_chi2)}, fh)
     print(f"== {name}: {gen.optics}; fit.psf={psf}; excitation.target_px={cfg.excitation.target_px:g}")
     for line in res.log:
-        if line.startswith(("spots:", "latency:", "dm plan:", "dm slope gains:")):
+        if line.startswith(("spots:", "latency:", "dm plan:", "dm slope gains:", "dm ladder common error:")):
             print("  " + line)
     print(f"  {res.n_frames} sweep frames ({len(res.freq_hz)} frequencies {res.freq_hz[0]:.4g}..{res.freq_hz[-1]:.4g} Hz), generator set-up "
           f"{t_gen:.1f} s, run {t_run:.1f} s = {t_run / res.n_frames * 1e3:.0f} ms a sweep frame ({', '.join(f'{k} {v:.1f} s' for k, v in res.timing_s.items())}); mean Gauss-Legendre "
@@ -363,6 +427,7 @@ def report(res, truth, dyn, poor_fit_chi2: float) -> None:
           f"{f['damping_max_rel_error'] * 100:.2f} % (<= 5 %), delay {f['delay_max_error_us']:.2f} us (<= 2 us), DC gain "
           f"{f['dc_gain_max_rel_error'] * 100:.3f} %")
     print(f"  D0 rms error / max|D0| against the fitted-shift truth: {f['D0_rms_error_over_max'] * 100:.3f} % (<= 1 %)")
+    print(f"  D0 rms(error/std) against the fitted-shift truth, fully lit subapertures: {d0_z_line(res, truth)}")
     print(f"  rms(error/std) (0.8..1.3): D(jw) {f['D_rms_z']:.2f}; mode {f['mode_rms_z']:.2f}, damping {f['damping_rms_z']:.2f}, "
           f"delay {f['delay_rms_z']:.2f}, DC gain {f['dc_gain_rms_z']:.2f}")
     for line in d_error_lines(res, truth, dyn):
@@ -403,7 +468,7 @@ def reestimate(res):
     cfg = load_config("configs/identify_dm.yaml")  # stage 4 reads dm.coupling and dm_plan.support_threshold: not --quick's keys
     with collect_log() as log:
         D, D_cov, table, reg, support = estimate_mirror(cfg, res.freq_hz, res.Y, res.Y_cov, res.plan, res.G_nominal,
-                                                        build_dm(cfg)[1], res.actuator_xy)
+                                                        build_dm(cfg)[1], res.actuator_xy, slope_noise=getattr(res, "slope_noise", None))
     return replace(res, D=D, D_cov=D_cov, actuators=table, G=reg.G, registration=reg, support_check=support), log
 
 
@@ -423,7 +488,11 @@ def main(argv=None) -> None:
     p.add_argument("--no-checks", action="store_true", help="skip the generator's checks")
     p.add_argument("--device", default="cpu", help="where the spot fits run (the config's fit.device) and the generator's propagation")
     p.add_argument("--jobs", type=int, default=1, help="threads of the frames' propagation (scipy.fft, BLAS) and of torch")
+    p.add_argument("--record", metavar="DIR", help="record each case's run in DIR/CASE/experiment and write its outputs in DIR/CASE "
+                   "(then: benchmarks/bench_dm_outside.py --run DIR/CASE --refit, the outside recording's route)")
     p.add_argument("--load", metavar="PKL", help="print the figures of a run saved with BENCH_DM_HCIPY_SAVE (no run)")
+    p.add_argument("--against", metavar="PKL2", help="with --load: another run of the same mirror under other noise "
+                   "(--set seed=N): the two runs' differences over their stds, no truth")
     p.add_argument("--reestimate", action="store_true",
                    help="with --load: stage 4 (D, the actuators, the registration, the slope rows' gains) run again by this "
                         "tree's code on the saved pattern responses, then the figures")
@@ -437,9 +506,15 @@ def main(argv=None) -> None:
         res, log = reestimate(d["res"]) if args.reestimate else (d["res"], d["res"].log)
         saved = [ln for ln in d["res"].log if not ln.startswith("dm slope gains:")] if args.reestimate else []  # stage 4's: re-estimated
         for line in saved + log:
-            if line.startswith(("spots:", "dm plan:", "dm spot model:", "dm slope gains:")):
+            if line.startswith(("spots:", "dm plan:", "dm spot model:", "dm slope gains:", "dm ladder common error:")):
                 print("  " + line)
         report(res, d["truth"], d["dyn"], d["cfg_poor_fit_chi2"])
+        if args.against:
+            with open(args.against, "rb") as fh:
+                other = pickle.load(fh)["res"]
+            print(f"  against {args.against} (the same mirror, other noise):")
+            for line in seed_difference_lines(res, reestimate(other)[0] if args.reestimate else other):
+                print(f"    {line}")
         return
     import torch
     from threadpoolctl import threadpool_limits
@@ -455,7 +530,7 @@ def main(argv=None) -> None:
         if not args.no_checks:
             physics_checks()
         for name in {"both": ["aligned", "misregistered"], "none": []}.get(args.case, [args.case]):
-            run_case(name, args.quick, args.psf, args.jobs, args.set, args.progress, args.device, args.target_px)
+            run_case(name, args.quick, args.psf, args.jobs, args.set, args.progress, args.device, args.target_px, args.record)
 
 
 if __name__ == "__main__":

@@ -234,6 +234,20 @@ def test_wrong_model_is_flagged_poor_fit():
     assert not t.poor_fit[1]
 
 
+def test_poor_fit_level_holds_the_run_s_false_alarm_rate_whatever_its_size():
+    """A run of n actuators whose models all hold flags one poor fit with chance POOR_FIT_P (Sidak), not
+    n times it: 1e-3 at 1, 52 and 800 actuators, from independent chi2 survivals."""
+    from torchblur.dm.actuator_fit import POOR_FIT_P, poor_fit_p
+
+    for n in (1, 52, 800):
+        assert abs(1 - (1 - poor_fit_p(n)) ** n - POOR_FIT_P) < 1e-12
+    rng = np.random.default_rng(4)
+    runs = rng.random((200_000, 52))  # uniform survivals of 52 models that hold
+    rate = (runs < poor_fit_p(52)).any(1).mean()
+    assert abs(rate - POOR_FIT_P) < 4 * np.sqrt(POOR_FIT_P / runs.shape[0]), rate
+    assert (runs < POOR_FIT_P).any(1).mean() > 0.04  # the former per-actuator level: about 5 % of such runs
+
+
 # ---- batched spot fits --------------------------------------------------------------------
 
 import math  # noqa: E402

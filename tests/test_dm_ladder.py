@@ -174,6 +174,8 @@ def test_a_sparse_ladder_run_keeps_the_spots_that_barely_move(tmp_path):
     refit = re.search(r"dm spot model: (\d+) spot fits that left the ladder's levels on spots barely moving", report)
     left = re.search(r"(\d+) spot fits' motion left the ladder's levels \(flagged", report)
     assert refit is not None and int(refit.group(1)) >= 20, report
+    grown = re.search(r"dm ladder common error: .* grows the static columns' stds by x([\d.]+) \(median", report)
+    assert grown is not None and float(grown.group(1)) > 1.0, report  # the ladder's s, common to every frequency
     assert left is None or int(left.group(1)) <= 2, report
     verdict = next(ln for ln in report.splitlines() if ln.startswith("verdict:"))
     assert "all 9 actuators within tolerance" in verdict and "failed (" not in verdict, verdict
@@ -184,21 +186,33 @@ def test_auto_takes_a_sparse_plan_for_the_ladder_and_a_refit_replays_it(tmp_path
     """``dm_plan.kind=auto`` with the ladder: the plan auto chose (Hadamard: every pattern moves every
     actuator a spot sees) is replaced by a sparse one, seen at ``SPARSE_MARGIN`` of the support threshold
     (so a misregistered mirror's pairs are all in it), recorded with that threshold; a re-fit takes the
-    same decision from the recorded test frames and gives the same actuators.csv."""
+    same decision from the recorded test frames and gives the same actuators.csv; exported as an outside
+    recording (the misregistered mirror), its fit checks the fitted geometry's support at the config's
+    threshold, not the plan's (it flagged the pairs between the two), with the re-fit's exit status."""
     from torchblur import cli
     from torchblur.identify.dm_plan import SPARSE_MARGIN
     from torchblur.identify.dm_record import PLAN_KEY
 
     run = tmp_path / "run"
-    cfg = [*SMALL, "sweep.n=3", "report.figures=false", "dm_plan.spot_model=ladder", "dm_plan.ladder_frames=8", "dm_plan.kind=auto"]
+    cfg = [*SMALL, "sweep.n=3", "report.figures=false", "dm_plan.spot_model=ladder", "dm_plan.ladder_frames=8",
+           "dm.registration.shift_x=0.25", "dm.registration.rotation_deg=1.5", "dm.registration.magnification=1.03", "dm_plan.kind=auto"]
     assert load_config(None, cfg).dm_plan.kind == "auto"
     assert cli.main(["identify", "--out", str(run), "--quiet", *cfg]) in (0, 4)
     report = (run / "report.txt").read_text()
     assert "dm plan: sparse, not hadamard (auto, and the spots change shape" in report
     doc = json.loads((run / "experiment" / "experiment.json").read_text())[PLAN_KEY]
     assert doc["kind"] == "sparse" and doc["support_threshold"] == pytest.approx(0.01 * SPARSE_MARGIN)
-    assert cli.main(["fit", str(run), "--out", str(tmp_path / "refit"), "--quiet"]) in (0, 4)
+    live_rc = cli.main(["fit", str(run), "--out", str(tmp_path / "refit"), "--quiet"])
+    assert live_rc in (0, 4)
     assert (tmp_path / "refit" / "dm" / "actuators.csv").read_text() == (run / "dm" / "actuators.csv").read_text()
+    # exported, the plan's support (at the recorded threshold) and the support check (at the config's) stay apart
+    from torchblur.identify import export_dm_recording
+
+    folder = export_dm_recording(run, tmp_path / "outside")
+    rc = cli.main(["fit", str(folder), "--out", str(tmp_path / "fit"), "--quiet"])
+    report = (tmp_path / "fit" / "report.txt").read_text()
+    assert "dm plan support:" not in report and "support lacks" not in report, report  # was: the check at the plan's own threshold
+    assert rc == live_rc
     shifted = tmp_path / "shifted"  # the shifted still keeps auto's own choice
     assert cli.main(["identify", "--out", str(shifted), "--quiet", *cfg[:-3], "dm_plan.kind=auto", "dm_plan.spot_model=shifted"]) in (0, 4)
     assert "not hadamard" not in (shifted / "report.txt").read_text()

@@ -42,7 +42,7 @@ def test_trustworthy_names_dead_and_weak_without_flagging_them():
     v = dm_verdict(table, D=D, n_failed_spot_fits=0, n_spot_problems=PROBLEMS)
     assert isinstance(v, DMVerdict) and v.trustworthy and v.exit_code == 0 and v.flagged == 0
     assert v.line == (f"verdict: trustworthy: all 5 actuators within tolerance: 3 ok, 1 weak (3), 1 dead (4); "
-                      f"model reduced chi2 <= 1.2 (chi2 test p >= 0.001); 0 of {PROBLEMS} spot fits failed")
+                      f"model reduced chi2 <= 1.2 (chi2 test p >= 0.001 over the run's actuators); 0 of {PROBLEMS} spot fits failed")
     assert (v.ok, v.weak, v.dead, v.poor_fit, v.failed) == ((0, 1, 2), (3,), (4,), (), ())
     assert v.details == () and v.max_reduced_chi2 == pytest.approx(1.2)
     d = json.loads(json.dumps(v.to_dict()))
@@ -166,28 +166,35 @@ def test_every_plan_has_one_verdict_type_and_a_dm_guard_is_one_more_function(mon
     assert g.line == v.line + "; a new rule fails" and not g.trustworthy and g.exit_code == EXIT_FLAGGED
     assert g.details == ("  new rule: why",) and json.loads(json.dumps(g.to_dict()))["details"] == ["  new rule: why"]
 
-def test_a_ladder_run_is_not_trustworthy_and_names_the_fits_that_left_the_ladder():
+def test_a_ladder_run_on_a_hadamard_plan_is_not_trustworthy_and_names_the_fits_that_left_the_ladder():
     """The ladder guard: a run fitted with the shifted still keeps its verdict; one fitted with the
-    ladder is not trustworthy (its actuator stds do not hold on HCIPy's diffraction spots:
-    benchmarks/bench_dm_hcipy.py), and its line names the spot fits whose motion left the
-    ladder's levels (left out of D), with a reason of its own above POOR_SPOT_FRACTION."""
+    ladder on a Hadamard plan is not trustworthy (its actuator stds do not hold on HCIPy's diffraction
+    spots: benchmarks/bench_dm_hcipy.py), on a sparse or one-at-a-time plan it keeps its verdict; either
+    line names the spot fits whose motion left the ladder's levels (left out of D), with a reason of its
+    own above POOR_SPOT_FRACTION."""
     from types import SimpleNamespace
 
     from torchblur.identify.verdict import POOR_SPOT_FRACTION, final_verdict
 
     table, D = _table()
-    base = dict(plan=SimpleNamespace(n_patterns=16), freq_hz=FREQ, G=np.zeros((S, N)), actuators=table, D=D, n_failed=0,
+    base = dict(freq_hz=FREQ, G=np.zeros((S, N)), actuators=table, D=D, n_failed=0,
                 spot_reduced_chi2=None, mirror=None, support_check=None, registration=None)
-    v0 = final_verdict(SimpleNamespace(**base), 1.5)
-    assert v0.trustworthy and final_verdict(SimpleNamespace(**base, spot_model="shifted", n_out_of_ladder=0), 1.5) == v0
-    lad = final_verdict(SimpleNamespace(**base, spot_model="ladder", n_out_of_ladder=0), 1.5)
-    assert not lad.trustworthy and lad.exit_code == EXIT_FLAGGED and "stds do not hold yet on diffraction spots" in lad.line
-    few = final_verdict(SimpleNamespace(**base, spot_model="ladder", n_out_of_ladder=1), 1.5)
-    assert few.line.startswith(v0.line + "; 1 spot fits' motion left the ladder's levels (left out of D; raise dm_plan.ladder_reach); ")
-    assert not few.trustworthy and few.exit_code == EXIT_FLAGGED
+    had, sparse = SimpleNamespace(n_patterns=16, kind="hadamard"), SimpleNamespace(n_patterns=16, kind="sparse")
+    v0 = final_verdict(SimpleNamespace(**base, plan=had), 1.5)
+    assert v0.trustworthy and final_verdict(SimpleNamespace(**base, plan=had, spot_model="shifted", n_out_of_ladder=0), 1.5) == v0
+    lad = final_verdict(SimpleNamespace(**base, plan=had, spot_model="ladder", n_out_of_ladder=0), 1.5)
+    assert not lad.trustworthy and lad.exit_code == EXIT_FLAGGED and "on a Hadamard plan pulls each actuator's response" in lad.line
+    for kind in ("sparse", "one_at_a_time"):
+        plan = SimpleNamespace(n_patterns=16, kind=kind)
+        assert final_verdict(SimpleNamespace(**base, plan=plan, spot_model="ladder", n_out_of_ladder=0), 1.5) == v0
+    few = final_verdict(SimpleNamespace(**base, plan=sparse, spot_model="ladder", n_out_of_ladder=1), 1.5)
+    assert few.line == v0.line + "; 1 spot fits' motion left the ladder's levels (left out of D; raise dm_plan.ladder_reach)"
+    assert few.trustworthy and few.exit_code == v0.exit_code
     n_many = int(POOR_SPOT_FRACTION * v0.spot_problems) + 1
-    many = final_verdict(SimpleNamespace(**base, spot_model="ladder", n_out_of_ladder=n_many), 1.5)
-    assert f"{n_many} spot fits' motion left the ladder's levels" in many.line and not many.trustworthy and many.exit_code == EXIT_FLAGGED
+    for plan in (had, sparse):
+        many = final_verdict(SimpleNamespace(**base, plan=plan, spot_model="ladder", n_out_of_ladder=n_many), 1.5)
+        assert f"{n_many} spot fits' motion left the ladder's levels" in many.line and not many.trustworthy
+        assert many.exit_code == EXIT_FLAGGED
 
 
 def test_bad_arguments_are_named():

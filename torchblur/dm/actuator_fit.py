@@ -4,7 +4,7 @@ Actuator ``j``'s column is rank one: ``D[:, j, f] = G[:, j] * H_j(j w_f)`` with
 ``H_j(s) = dc_gain * wn^2 / (s^2 + 2 zeta wn s + wn^2) * exp(-s delay_s)``, ``wn = 2 pi mode_hz``
 (``dc_gain`` 1 is the nominal actuator, 0 a dead one). :func:`fit_actuators` projects each
 column on ``G`` (:func:`project_columns`), fits the parameters with their stds (flagged
-``poor_fit`` below :data:`POOR_FIT_P`, stds then inflated), measures the static column
+``poor_fit`` below :func:`poor_fit_p`, :data:`POOR_FIT_P` over the run's actuators, stds then inflated), measures the static column
 (:func:`static_columns`) and gives each actuator its status (:func:`actuator_status`: dead,
 weak or ok, :data:`DEAD_FRACTION`, :data:`WEAK_FRACTION`, :data:`STATUS_SIGMA`). A ``dc_gain_std``
 grown afterwards by a share the fit leaves out (the registration's, the slope rows' gains) goes
@@ -24,7 +24,7 @@ from scipy import optimize, stats
 from torchblur.errors import ParameterError, ShapeError
 
 __all__ = ["ActuatorTable", "fit_actuators", "second_order", "project_columns", "static_columns", "actuator_status",
-           "status_reference", "with_dc_gain_variance",
+           "status_reference", "with_dc_gain_variance", "poor_fit_p",
            "DEAD_P", "DEAD_SIGMA", "DEAD_FRACTION", "STATUS_SIGMA", "WEAK_FRACTION", "POOR_FIT_P"]
 
 DEAD_P = 1e-3  #: no response detected: the column's chi2 against zero is this likely or more
@@ -32,7 +32,7 @@ DEAD_SIGMA = 3.0  #: dead when |dc_gain| < DEAD_SIGMA * dc_gain_std (kept: impli
 DEAD_FRACTION = 0.1  #: dead unless dc_gain is significantly above this fraction of the median responding dc_gain
 STATUS_SIGMA = 3.0  #: "significantly": by this many dc_gain stds
 WEAK_FRACTION = 0.5  #: weak when dc_gain is significantly below this fraction of the median responding dc_gain
-POOR_FIT_P = 1e-3  #: poor fit when the model's chi2 is this unlikely or less
+POOR_FIT_P = 1e-3  #: the chance that a run whose every actuator model holds flags one of them poor fit (:func:`poor_fit_p`)
 PARAMS = ("dc_gain", "mode_hz", "damping", "delay_s")
 
 
@@ -249,6 +249,14 @@ def with_dc_gain_variance(table: ActuatorTable, var) -> ActuatorTable:
     return replace(table, dc_gain_std=std, status=actuator_status(table.dc_gain, std, dead, ref=ref))
 
 
+def poor_fit_p(n_tested: int) -> float:
+    """The chi2 survival below which one of ``n_tested`` actuator models is a poor fit:
+    ``1 - (1 - POOR_FIT_P)^(1 / n)`` (Sidak), so that a run whose every model holds flags one with
+    chance :data:`POOR_FIT_P` whatever its size (a per-actuator ``POOR_FIT_P`` would flag one in 5 %
+    of 52-actuator runs and in 55 % of 800-actuator runs)."""
+    return -math.expm1(math.log1p(-POOR_FIT_P) / max(int(n_tested), 1))
+
+
 def _check(freq_hz, D, D_cov, G):
     f = np.asarray(freq_hz, dtype=np.float64).reshape(-1)
     D, D_cov, G = np.asarray(D), np.asarray(D_cov, dtype=np.float64), np.asarray(G, dtype=np.float64)
@@ -283,14 +291,14 @@ def fit_actuators(freq_hz, D, D_cov, G_nominal, *, actuator_xy=None) -> Actuator
     est = np.full((N, 4), np.nan)
     std = np.full((N, 4), np.nan)
     red = np.full(N, np.nan)
-    poor = np.zeros(N, dtype=bool)
     silent = np.array([_no_response(h[j], h_cov[j]) for j in range(N)])
+    p = np.full(N, np.nan)
     for j in np.flatnonzero(~silent):
         est[j], std[j], chi2, dof = _fit_one(f, h[j], h_cov[j])
         red[j] = chi2 / dof if dof > 0 else np.nan
-        if dof > 0 and stats.chi2.sf(chi2, dof) < POOR_FIT_P:
-            poor[j] = True
-            std[j] *= math.sqrt(red[j])
+        p[j] = stats.chi2.sf(chi2, dof) if dof > 0 else np.nan
+    poor = p < poor_fit_p(int(np.isfinite(p).sum()))
+    std[poor] *= np.sqrt(red[poor])[:, None]
     gain_ref = status_reference(est[:, 0], silent | ~np.isfinite(std[:, 0]))
     status = actuator_status(est[:, 0], std[:, 0], silent, ref=gain_ref)
     dead = np.array([s == "dead" for s in status])

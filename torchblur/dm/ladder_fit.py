@@ -79,7 +79,7 @@ from torchblur.render.blur import quadrature_nodes
 from torchblur.render.splat import kernel_shift_with_jacobian
 from torchblur.render.window import ExposureWindow
 
-__all__ = ["PatternLadder", "fit_ladder_problems", "spline_basis", "static_slope", "with_slopes", "NODES"]
+__all__ = ["PatternLadder", "fit_ladder_problems", "slope_covariance", "spline_basis", "static_slope", "with_slopes", "NODES"]
 
 NODES = 96  #: Gauss-Legendre nodes per exposure (benchmarks/bench_dm_spot_models.py's; the spline is C2)
 PAD = 6  #: px of zero padding around a crop for its Fourier shift derivatives
@@ -160,6 +160,20 @@ def with_slopes(ladder: PatternLadder, *, batch: int = 256) -> PatternLadder:
              for i in range(0, P * M, batch)]
     return replace(ladder, slope=torch.cat([s for s, _ in parts]).reshape(P, M, 2),
                    ds_dl=torch.cat([d for _, d in parts]).reshape(P, M, 2, K, h * w))
+
+
+def slope_covariance(ladder: PatternLadder) -> torch.Tensor:
+    """``[P, M, 2, 2]`` (px per input unit)^2: the covariance of each (pattern, spot)'s static shift
+    ``s`` (:func:`static_slope`) from the ladder's noise, ``ds_dl diag(variance) ds_dl^T``, every
+    ladder pixel independent (the still's noise left out, as in the fit). One ``s`` serves every
+    frequency of its spot, so this error is common to all of them: the fits' covariances hold it
+    once per frequency, the actuator fit takes the frequencies as independent, and
+    :mod:`torchblur.dm.common_noise` puts it back into the static columns' stds."""
+    lad = ladder if ladder.ds_dl is not None else with_slopes(ladder)
+    P, K, M, h, w = lad.images.shape
+    var = lad.variance.transpose(1, 2).reshape(P, M, 1, K * h * w)
+    d = lad.ds_dl.reshape(P, M, 2, K * h * w)
+    return (d * var) @ d.transpose(-1, -2)
 
 
 def spline_basis(levels: torch.Tensor) -> torch.Tensor:

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from torchblur.config.budget import LADDER_TEST_FRAMES
-from torchblur.dm.ladder_fit import PatternLadder, with_slopes
+from torchblur.dm.ladder_fit import PatternLadder, slope_covariance, with_slopes
 from torchblur.dm.static_hold import chi2_threshold, fit_shifted_still
 from torchblur.hardware.recording import ReplayRig
 from torchblur.identify.record import LOGGER, run_stage
@@ -186,3 +186,12 @@ def pattern_ladder(holds: HoldImages, cal, offset, size):
     (:func:`~torchblur.dm.ladder_fit.with_slopes`)."""
     return with_slopes(PatternLadder(levels=holds.levels, images=holds.images, variance=holds.variance,
                                      still=crop_spots(cal.still_rate, offset, size)))
+
+
+def slope_noise(ladder: PatternLadder | None):
+    """``(slope [P, M, 2], slope_cov [P, M, 2, 2])`` float64 numpy of ``ladder`` (its static shifts
+    and their noise, :func:`~torchblur.dm.ladder_fit.slope_covariance`: stage 4's common error,
+    :mod:`torchblur.dm.common_noise`); None without a ladder (the shifted still)."""
+    if ladder is None:
+        return None
+    return (ladder.slope.detach().cpu().double().numpy(), slope_covariance(ladder).detach().cpu().double().numpy())

@@ -35,7 +35,7 @@ from torchblur.hardware.frames import whole_adu
 from torchblur.hardware.outside import CSV_NAME, YAML_NAME, FrameStore, OutsideCamera, OutsideFrames, _points, number, read_csv, read_folder
 from torchblur.hardware.recording import Experiment, ReplayRig
 from torchblur.identify.calibration import Calibration, spots_from_still, still_rate
-from torchblur.identify.dm_ladder import TEST_KEY, hold_images, pattern_ladder
+from torchblur.identify.dm_ladder import TEST_KEY, hold_images, pattern_ladder, slope_noise
 from torchblur.identify.dm_plan import (AMPLITUDE_LAG, DMPlan, DMResult, _calibrate, _fit_frequency, _fit_options, check_dm_config,
                                         collect_fits, fit_pool, sensor_config, sensor_spots)
 from torchblur.identify.dm_record import PLAN_KEY, SWEEP_KIND, plan_support
@@ -69,6 +69,9 @@ class _PlanInfo:
 
     kind: str = key("hadamard", choice=_PLAN_KINDS)
     support_threshold: float = key(0.01, nonnegative=True, high=1.0)
+    #: the fitted geometry's support check (``dm_plan.support_threshold`` of the fit; None: ``support_threshold``): a
+    #: plan chosen at a smaller threshold than it is checked at (a sparse plan for the ladder, ``SPARSE_MARGIN``) keeps both
+    check_threshold: float | None = key(None, nonnegative=True, high=1.0, optional=True)
 
 
 @dataclass(frozen=True)
@@ -293,7 +296,8 @@ def dm_recording_config(rec: DMRecording, overrides=()):
     E = rec.start_s.shape[2] // rec.R
     own = [f"dm.{f.name}={getattr(lay.dm, f.name)!r}" for f in fields(lay.dm)]
     own += [f"wfs.{k}={v!r}" for k, v in asdict(lay.wfs).items()]
-    own += [f"dm_plan.kind={lay.dm_plan.kind}", f"dm_plan.support_threshold={lay.dm_plan.support_threshold!r}",
+    check = lay.dm_plan.support_threshold if lay.dm_plan.check_threshold is None else lay.dm_plan.check_threshold
+    own += [f"dm_plan.kind={lay.dm_plan.kind}", f"dm_plan.support_threshold={check!r}",
             "dm_plan.budget_frames=null", f"dm_plan.n_repeats={rec.R}",
             f"sweep.freq_hz=[{','.join(repr(float(f)) for f in rec.freq_hz)}]",
             f"sweep.exposures=[{','.join(repr(float(d * rec.freq_hz[0])) for d in rec.duration_s[0, 0, ::rec.R][:E])}]",
@@ -323,10 +327,10 @@ def dm_recording_config(rec: DMRecording, overrides=()):
 
 
 def _plan(rec: DMRecording, cfg, G: np.ndarray) -> tuple[Plan, float]:
-    """The recorded plan (``patterns.csv`` on the support of ``dm_plan``) and its cost relative to
+    """The recorded plan (``patterns.csv`` on the support of ``dm_plan.support_threshold``) and its cost relative to
     one actuator at a time; RecordingError where the patterns cannot be demultiplexed."""
     kind = rec.layout.dm_plan.kind
-    plan = Plan(kind, rec.patterns, plan_support(kind, G, float(cfg.dm_plan.support_threshold)))
+    plan = Plan(kind, rec.patterns, plan_support(kind, G, float(rec.layout.dm_plan.support_threshold)))
     ratio = plan_cost(plan, G) / plan_cost(one_at_a_time_plan(G), G)
     if not math.isfinite(ratio):
         raise RecordingError(f"{PATTERNS_NAME}: the {plan.n_patterns} patterns do not separate the actuators each slope sees (their "
@@ -433,6 +437,7 @@ class DMOutsidePlan(DMPlan):
             LOGGER.info(f"dm spot model: ladder ({rec.ladder_levels.shape[1]} levels x {rec.ladder_frames.item_shape[1]} frames per "
                         f"pattern, from {CSV_NAME}'s ladder rows)")
         self.spot_model = "shifted" if ladder is None else "ladder"
+        self.slope_noise = slope_noise(ladder)
         t0 = time.perf_counter()
         with fit_pool(run.executor) as pool:
             futures = []
@@ -605,7 +610,8 @@ def export_dm_recording(run, folder) -> Path:
               "trigger_delay_s": float(c.trigger_delay_s), "latency_s": float(cal.latency_s), "latency_std_s": float(cal.latency_std_s),
               "jitter_s": float(c.jitter_s)}
     layout = {"dm": {"n_across": int(cfg.dm.n_across), "coupling": float(cfg.dm.coupling)}, "wfs": asdict(cfg.wfs),
-              "dm_plan": {"kind": str(doc["kind"]), "support_threshold": float(doc["support_threshold"])}}
+              "dm_plan": {"kind": str(doc["kind"]), "support_threshold": float(doc["support_threshold"]),
+                          "check_threshold": float(cfg.dm_plan.support_threshold)}}
     return write_dm_recording(folder, dark=dark.frames.numpy(), still=still.frames.numpy(), still_exposure_s=float(args["exposure_s"]),
                               patterns=np.asarray(doc["patterns"], dtype=np.float64), freq_hz=freq, amplitude=amp, power=power,
                               frames=_GroupFrames(exp, keys, _sweep_frames), start_s=start, duration_s=dur, camera=camera, layout=layout, R=int(doc["n_repeats"]),

@@ -17,9 +17,10 @@ import numpy as np
 import torch
 
 from torchblur.dm.actuator_fit import fit_actuators
+from torchblur.dm.common_noise import common_noise_line, static_column_variance, with_common_variance
 from torchblur.config.budget import DM_DARK_FRAMES, DM_STILL_FRAMES, dm_geometry, dm_plan, dm_still_frames, dm_sweep_size
 from torchblur.dm.demux import demultiplex
-from torchblur.dm.ladder_fit import PatternLadder, fit_ladder_problems
+from torchblur.dm.ladder_fit import PatternLadder, fit_ladder_problems, slope_covariance
 from torchblur.fit.status import OUT_OF_LADDER
 from torchblur.dm.mirror import DeformableMirror
 from torchblur.dm.plans import static_motion_px
@@ -32,7 +33,7 @@ from torchblur.hardware.recording import ReplayRig
 from torchblur.hardware.serial_dm_rig import open_dm_rig
 from torchblur.identify.assemble import timing_phase_std
 from torchblur.identify.calibration import MIN_INSIDE, calibrate, check_latency_source
-from torchblur.identify.dm_ladder import choose_spot_model, ladder_holds, pattern_ladder
+from torchblur.identify.dm_ladder import choose_spot_model, ladder_holds, pattern_ladder, slope_noise
 from torchblur.config import IdentifyConfig
 from torchblur.identify.dm_record import (SWEEP_KIND, TABLE_KEY, check_recorded_commands, recorded_labels, recorded_plan, resume_seed,
                                           same_table, simulated_frames, sweep_key, table_digest)
@@ -77,7 +78,9 @@ class DMResult:
         timing_s: seconds per stage (``calibration``, ``acquisition``, ``fit_wait``, ``estimation``).
         spot_model: the sweep's spot model (``shifted`` or ``ladder``, :mod:`torchblur.identify.dm_ladder`);
             n_out_of_ladder: spot fits whose motion left the ladder's levels (their responses left out of D, as a
-                failed fit's; the verdict says so).
+                failed fit's; the verdict says so); slope_noise: the ladder's ``(slope [P, M, 2], slope_cov
+                [P, M, 2, 2])`` stage 4 grew the static columns' stds by (:mod:`torchblur.dm.common_noise`), None
+                for the shifted still.
         truth_D: ``[2M, N, F]`` the simulated rig's D (None on a real rig); ``mirror``: the
             simulated mirror (its true dynamics), or None; ``truth_G``, ``truth_registration``: its
             true geometry and registration, or None.
@@ -111,6 +114,7 @@ class DMResult:
     truth_registration: Registration | None = None
     spot_model: str = "shifted"
     n_out_of_ladder: int = 0
+    slope_noise: tuple | None = None
 
 
 def match_spots(found_xy: np.ndarray, rest_px: np.ndarray, pitch_px: float) -> np.ndarray:
@@ -451,6 +455,7 @@ class DMPlan:
     kind = "dm"
     supports_direct = False
     model_stages = ()  # the actuators' models are fitted in assemble (estimate_mirror)
+    slope_noise = None  # the ladder's (slope, slope_cov) once the sweep built one (stage 4's common error)
 
     @staticmethod
     def check(cfg, rig) -> None:
@@ -548,6 +553,7 @@ class DMPlan:
         if self.spot_model == "ladder":
             holds = ladder_holds(cfg, run.rig, exp, self.plan.patterns, self.G, run.cal, self.offset, self.size, limit)
             ladder = pattern_ladder(holds, run.cal, self.offset, self.size)
+        self.slope_noise = slope_noise(ladder)
         run.timing["calibration"] += time.perf_counter() - t0
         out = _sweep(cfg, run.rig, self.plan, self.R, self.G, run.cal, self.psf, self.offset, self.size, exp, executor=run.executor,
                      ladder=ladder)
@@ -562,7 +568,7 @@ class DMPlan:
         t0 = time.perf_counter()
         Y, Y_cov = run.acquisition[2:4]
         self.estimate = estimate_mirror(run.cfg, np.asarray(run.cfg.frequencies_hz()), Y, Y_cov, self.plan, self.G, self.wfs,
-                                        self.model_mirror.actuator_xy)
+                                        self.model_mirror.actuator_xy, slope_noise=self.slope_noise)
         run.timing["estimation"] = time.perf_counter() - t0
         if run.exp is not None:
             st = run.exp.stats
@@ -578,24 +584,34 @@ class DMPlan:
         return DMResult(freq_hz=freqs, plan=self.plan, n_repeats=self.R, plan_info=self.info, amplitude=amps, power=powers, Y=Y,
                         Y_cov=Y_cov, D=D, D_cov=D_cov, actuators=table, G=reg.G, actuator_xy=self.model_mirror.actuator_xy,
                         n_frames=n_frames, n_failed=failed, spot_reduced_chi2=chi2, timing_s=run.timing,
-                        spot_model=self.spot_model, n_out_of_ladder=out,
+                        spot_model=self.spot_model, n_out_of_ladder=out, slope_noise=self.slope_noise,
                         truth_D=truth.truth_D(freqs) if truth is not None else None, mirror=truth.mirror if truth is not None else None,
                         G_nominal=self.G, registration=reg, support_check=support,
                         truth_G=truth.geometry if truth is not None else None,
                         truth_registration=truth.registration if truth is not None else None)
 
 
-def estimate_mirror(cfg, freqs, Y, Y_cov, plan, G, wfs, actuator_xy):
+def estimate_mirror(cfg, freqs, Y, Y_cov, plan, G, wfs, actuator_xy, slope_noise=None):
     """Stage 4 (module docstring), one function for a live run and an outside recording: the
     pattern responses ``Y [P, 2M, F]`` demultiplexed into ``D (jw)``, every actuator fitted on the
     nominal ``G``, the mirror's registration fitted to D0 and the actuators fitted again on the
     fitted G (:func:`~torchblur.dm.registration.register_and_refit`), their ``dc_gain`` stds grown by
-    the slope rows' own gain scatter (:mod:`torchblur.dm.slope_gains`). Returns ``(D, D_cov, table,
+    the slope rows' own gain scatter (:mod:`torchblur.dm.slope_gains`). ``slope_noise``: the ladder
+    spot model's ``(slope [P, M, 2], slope_cov [P, M, 2, 2])``, whose error common to every frequency
+    grows the static columns' and ``dc_gain``'s stds before the registration sees them
+    (:mod:`torchblur.dm.common_noise`); None for the shifted still. Returns ``(D, D_cov, table,
     registration, support_check)``."""
     D, D_cov = demultiplex(Y, Y_cov, plan.patterns, plan.support)
     table = fit_actuators(freqs, D, D_cov, G, actuator_xy=actuator_xy)
+    common = None
+    if slope_noise is not None:
+        common = static_column_variance(*slope_noise, plan.patterns, plan.support, table.static_column)
+        table = with_common_variance(table, common, G)
+        LOGGER.info(common_noise_line(common, table))
     table, reg, support = register_and_refit(freqs, D, D_cov, table, wfs, actuator_xy, float(cfg.dm.coupling),
                                              support=plan.support, threshold=float(cfg.dm_plan.support_threshold))
+    if common is not None and reg.ok:
+        table = with_common_variance(table, common, reg.G)
     gains = slope_gains(table.static_column, table.static_column_std, reg.G, table.dc_gain, np.tile(fully_lit(wfs), 2))
     LOGGER.info(slope_gains_line(gains))
     return D, D_cov, with_slope_gain_stds(table, gains), reg, support

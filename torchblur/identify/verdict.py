@@ -528,7 +528,7 @@ def dm_verdict(table: ActuatorTable, *, D, n_failed_spot_fits: int, n_spot_probl
     statuses = _status_part(ok, weak, dead)
     poor_spots, spots_fail, spots = _spot_fits(spot_reduced_chi2, poor_fit_chi2, n_problems)
     fits = f"{n_failed} of {n_problems} spot fits failed{spots}"
-    model = (f"model reduced chi2 <= {max_chi2:.3g} (chi2 test p >= {POOR_FIT_P:g})" if max_chi2 is not None
+    model = (f"model reduced chi2 <= {max_chi2:.3g} (chi2 test p >= {POOR_FIT_P:g} over the run's actuators)" if max_chi2 is not None
              else "no actuator model to test")
     kinds = [f"{len(ix)} {word} ({listed(ix)})" for word, ix in (("poor fit", poor), ("failed", failed)) if ix]
     head = (f"verdict: {len(flagged)} of {n} actuators flagged: {', '.join(kinds)}" if flagged
@@ -623,27 +623,26 @@ def ladder_guard(v, res):
     """The DM verdict ``v`` of a run fitted with the ladder spot model (``res.spot_model``;
     ``v`` unchanged for the shifted still): how many spot fits' motion left the ladder's levels
     (``res.n_out_of_ladder``: the end cubics extrapolated, those responses left out of ``D``;
-    more than :data:`POOR_SPOT_FRACTION` of the spot fits is a reason of its own), and not
-    trustworthy: the ladder's actuator stds hold on torchblur's simulated mirror (DC gain, mode
-    and damping rms(error/std) pooled over three seeds 0.78, 1.14, 0.99,
-    benchmarks/bench_dm_ladder_frames.py --frames 32 --seeds 0 1 2) but are not yet shown to hold on
-    the whole grid of HCIPy's lenslet frames, the spots the ladder is for. With the Hadamard plan they
-    did not (the whole grid on a GPU: mode 1.87, damping 1.55, DC gain 2.13; the quick grid's modes
-    1.45 and 1.36, pulled toward their mean: docs/deformable_mirrors.md, "The plans"); with the sparse
-    plan auto now takes for the ladder the quick grids give mode 1.13 and 0.99, damping 1.34 and 1.14,
-    delay 1.15 and 1.21, DC gain 1.15 and 0.89 (aligned, misregistered; ``benchmarks/bench_dm_hcipy.py
-    --quick``), and the whole grids mode 0.95 and 0.93, damping 1.12 and 1.14, delay 1.26 and 1.04,
-    DC gain 1.20 and 0.87 (docs/deformable_mirrors.md, "The plans"); kept while the mirror model does
-    not explain lenslet D0 (the registration's model rule fails on both whole grids)."""
+    more than :data:`POOR_SPOT_FRACTION` of the spot fits is a reason of its own), and, on a plan
+    whose patterns move several of the actuators a spot sees (Hadamard), not trustworthy: there the
+    ladder ties a spot's shape to the pattern's common command and pulls each actuator's response
+    toward its neighbours', and on HCIPy's lenslet frames the actuators' stds did not hold (the whole
+    grid on a GPU: mode 1.87, damping 1.55, DC gain 2.13; the quick grid's modes 1.45 and 1.36:
+    docs/deformable_mirrors.md, "The plans"). On a sparse or one-at-a-time plan (where each spot
+    sees one actuator of a pattern: what ``dm_plan.kind=auto`` takes for the ladder) they hold on
+    both whole grids of HCIPy's lenslet frames (``benchmarks/bench_dm_hcipy.py``, the figures in
+    docs/deformable_mirrors.md, "The plans"), and the run is judged by the other rules."""
     if getattr(res, "spot_model", "shifted") != "ladder":
         return v
     n_out = int(getattr(res, "n_out_of_ladder", 0) or 0)
     if n_out:
         note = f"{n_out} spot fits' motion left the ladder's levels (left out of D; raise dm_plan.ladder_reach)"
         v = v.untrusted(note) if n_out > POOR_SPOT_FRACTION * max(v.spot_problems, 1) else replace(v, line=f"{v.line}; {note}")
-    return v.untrusted("the ladder spot model's actuator stds do not hold yet on diffraction spots (not shown on the whole grid "
-                       "of HCIPy's lenslet frames, benchmarks/bench_dm_hcipy.py): D(jw) and its stds stand, the actuators' "
-                       "stds do not: not trustworthy")
+    if getattr(getattr(res, "plan", None), "kind", "hadamard") != "hadamard":
+        return v
+    return v.untrusted("the ladder spot model on a Hadamard plan pulls each actuator's response toward its neighbours' (their stds "
+                       "do not hold on HCIPy's lenslet frames, benchmarks/bench_dm_hcipy.py; dm_plan.kind=auto takes a sparse plan "
+                       "for the ladder): D(jw) and its stds stand, the actuators' stds do not: not trustworthy")
 
 
 #: the DM's guards, applied in order after :func:`run_verdict` by :func:`final_verdict`: each
