@@ -113,36 +113,46 @@ def _snr_bands(err, std, D0, rows) -> str:
     return f"{np.sqrt(np.mean(z ** 2)):.2f} over {int(ok.sum())} entries; by |D0|/std: " + ", ".join(bands)
 
 
+def _stds_without_common(res):
+    """``[2M, N]`` the run's static-column stds less the ladder's common share
+    (:mod:`torchblur.dm.common_noise`), or None for a run without a ladder."""
+    if getattr(res, "slope_noise", None) is None:
+        return None
+    from torchblur.dm.common_noise import static_column_variance
+
+    a = res.actuators
+    var = static_column_variance(*res.slope_noise, res.plan.patterns, res.plan.support, a.static_column)
+    return np.sqrt(np.maximum(a.static_column_std ** 2 - var, 0))
+
+
 def d0_z_line(res, truth) -> str:
     """D0's rms(error/std) against the fitted-shift truth on the fully lit subapertures' rows, by the
-    entries' size in stds. The truth is each spot's unweighted least-squares shift, the run's the
-    ladder's (``s``, a shot-noise-weighted fit, +0.2 % above the truth: docs/deformable_mirrors.md):
-    a bias of their own at the brightest entries, so this tests the stds only where it is small."""
-    a = res.actuators
-    out = _snr_bands(a.static_column - truth["D0"], a.static_column_std, a.static_column, _lit_rows())
-    if getattr(res, "slope_noise", None) is not None:
-        from torchblur.dm.common_noise import static_column_variance
-
-        var = static_column_variance(*res.slope_noise, res.plan.patterns, res.plan.support, a.static_column)
-        s0 = np.sqrt(np.maximum(a.static_column_std ** 2 - var, 0))
-        out += f"; without the ladder's common error {_snr_bands(a.static_column - truth['D0'], s0, a.static_column, _lit_rows())}"
-    return out
+    entries' size in stds, with and without the ladder's common share. The truth is each spot's
+    unweighted least-squares shift, the run's the ladder's (``s``, a shot-noise-weighted fit, +0.2 %
+    above the truth: docs/deformable_mirrors.md): a bias of their own at the brightest entries (the
+    line says so), so this tests the stds only where it is small; :func:`seed_difference_lines` tests
+    them without a truth."""
+    a, rows = res.actuators, _lit_rows()
+    err = a.static_column - truth["D0"]
+    out = _snr_bands(err, a.static_column_std, a.static_column, rows)
+    s0 = _stds_without_common(res)
+    if s0 is not None:
+        out += f"; without the ladder's common error {_snr_bands(err, s0, a.static_column, rows)}"
+    return out + " (the brightest entries carry the truth's own convention bias, no std covers it)"
 
 
 def seed_difference_lines(a, b) -> list[str]:
     """Two runs of one mirror under other noise (another ``seed``), compared without a truth: the
     difference of their D0 and actuator parameters over the two stds combined (about 1 where the
     stds hold; a bias the runs share cancels)."""
-    ta, tb = a.actuators, b.actuators
-    s = np.hypot(ta.static_column_std, tb.static_column_std)
-    lines = [f"D0 on the fully lit subapertures: rms(difference/std) {_snr_bands(ta.static_column - tb.static_column, s, ta.static_column, _lit_rows())}"]
-    if getattr(a, "slope_noise", None) is not None and getattr(b, "slope_noise", None) is not None:
-        from torchblur.dm.common_noise import static_column_variance
-
-        var = [static_column_variance(*r.slope_noise, r.plan.patterns, r.plan.support, r.actuators.static_column) for r in (a, b)]
-        s0 = np.sqrt(np.maximum(ta.static_column_std ** 2 - var[0], 0) + np.maximum(tb.static_column_std ** 2 - var[1], 0))
+    ta, tb, rows = a.actuators, b.actuators, _lit_rows()
+    diff = ta.static_column - tb.static_column
+    lines = [f"D0 on the fully lit subapertures: rms(difference/std) "
+             f"{_snr_bands(diff, np.hypot(ta.static_column_std, tb.static_column_std), ta.static_column, rows)}"]
+    s0 = [_stds_without_common(r) for r in (a, b)]
+    if s0[0] is not None and s0[1] is not None:
         lines.append(f"D0 on the fully lit subapertures, stds without the ladder's common error: rms(difference/std) "
-                     f"{_snr_bands(ta.static_column - tb.static_column, s0, ta.static_column, _lit_rows())}")
+                     f"{_snr_bands(diff, np.hypot(*s0), ta.static_column, rows)}")
     for name in ("dc_gain", "mode_hz", "damping", "delay_s"):
         z = (getattr(ta, name) - getattr(tb, name)) / np.hypot(getattr(ta, f"{name}_std"), getattr(tb, f"{name}_std"))
         lines.append(f"{name}: rms(difference/std) {np.sqrt(np.nanmean(z ** 2)):.2f} over {int(np.isfinite(z).sum())} actuators")

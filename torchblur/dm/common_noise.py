@@ -92,11 +92,12 @@ def with_common_variance(table, var, G):
     if var.shape != std.shape or G.shape != std.shape:
         raise ShapeError(f"var, G: expected [S, N] = {std.shape}, got {var.shape}, {G.shape}")
     ok = np.isfinite(std) & (std > 0) & np.isfinite(G)
+    v = np.where(ok, var, 0.0)
     w = np.where(ok, G / np.where(ok, std, 1.0) ** 2, 0.0)
     den = (w * G).sum(0)
     with np.errstate(divide="ignore", invalid="ignore"):
-        add = np.where(den > 0, (w * w * np.where(ok, var, 0.0)).sum(0) / np.where(den > 0, den, 1.0) ** 2, 0.0)
-    grown = replace(table, static_column_std=np.where(ok, np.sqrt(std**2 + np.where(ok, var, 0.0)), std))
+        add = np.where(den > 0, (w * w * v).sum(0) / np.where(den > 0, den, 1.0) ** 2, 0.0)
+    grown = replace(table, static_column_std=np.where(ok, np.sqrt(std**2 + v), std))
     return with_dc_gain_variance(grown, add)
 
 
@@ -111,4 +112,5 @@ def common_noise_line(var, table) -> str:
     f = std[on] / np.sqrt(std[on] ** 2 - var[on])
     return (f"dm ladder common error: the ladder's static shifts' noise, common to every frequency of a spot, grows the static "
             f"columns' stds by x{np.median(f):.3f} (median; largest x{f.max():.2f}, over {int(on.sum())} entries) and each "
-            f"dc_gain std by its projection (docs/deformable_mirrors.md, \"The ladder's common error\")")
+            f"dc_gain std by its projection (the held frames' noise from the camera's noise model, to first order; the ladder's "
+            f"noise through the fit itself is not in it: docs/deformable_mirrors.md, \"The ladder's common error\")")

@@ -20,7 +20,7 @@ from torchblur.dm.actuator_fit import fit_actuators
 from torchblur.dm.common_noise import common_noise_line, static_column_variance, with_common_variance
 from torchblur.config.budget import DM_DARK_FRAMES, DM_STILL_FRAMES, dm_geometry, dm_plan, dm_still_frames, dm_sweep_size
 from torchblur.dm.demux import demultiplex
-from torchblur.dm.ladder_fit import PatternLadder, fit_ladder_problems, slope_covariance
+from torchblur.dm.ladder_fit import PatternLadder, fit_ladder_problems
 from torchblur.fit.status import OUT_OF_LADDER
 from torchblur.dm.mirror import DeformableMirror
 from torchblur.dm.plans import static_motion_px
