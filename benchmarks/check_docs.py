@@ -55,15 +55,14 @@ def _tb(*args):
     return [*TB, *args]
 
 
-
 #: benchmarks/bench_dm_hcipy.py's "done when" lines: the live actuators' largest errors (mode, damping, delay,
-#: DC gain), then rms(error/std) of D(jw) and of the four parameters; with D0's line between them
+#: DC gain), then rms(error/std) of D(jw) and of the four parameters; with D0's lines between them
 _HCIPY_ERRORS = (r"largest error: mode " + NUM + r" % \(done when <= 0\.5 %\), damping " + NUM + r" % \(<= 5 %\), delay " + NUM
                  + r" us \(<= 2 us\), DC gain " + NUM + r" %")
 _HCIPY_STDS = (r"rms\(error/std\) \(0\.8\.\.1\.3\): D\(jw\) " + NUM + "; mode " + NUM + ", damping " + NUM + ", delay " + NUM
                + ", DC gain " + NUM)
-_HCIPY_FIGURES = (_HCIPY_ERRORS + r"\s+D0 rms error / max\|D0\| against the fitted-shift truth: " + NUM + r" %[^\n]*\n\s+"
-                  + _HCIPY_STDS)
+_HCIPY_FIGURES = (_HCIPY_ERRORS + r"\s+D0 rms error / max\|D0\| against the fitted-shift truth: " + NUM + r" %[^\n]*\n"
+                  + r"(?:\s+D0 rms\(error/std\) against the fitted-shift truth[^\n]*\n)?\s+" + _HCIPY_STDS)
 
 CLAIMS = [
     Claim("quick start: the default run's time", "README.md",
