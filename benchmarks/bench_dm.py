@@ -336,15 +336,32 @@ def throughput(cases, points: int, n_single: int, device: str) -> float:
 SHIPPED = {"problems": 64 * 80, "frames": 64 * 4, "frequencies": 16, "frame_rate_hz": 30.0}
 
 
-def keep_up(rate: float) -> tuple[float, float, float]:
-    """The shipped config's fitting time per frequency (s) at ``rate`` problems/s, its acquisition
-    time per frequency (s) at 30 Hz, and the wait after the last frame (s): the worker fits
-    frequency k while k + 1 is acquired; the last frame comes at F * acq, the last fit ends at
-    acq + F * t_fit when the fits are the slower (and the sweep waits for frequency k - 2's fit:
-    AMPLITUDE_LAG)."""
-    acq, F = SHIPPED["frames"] / SHIPPED["frame_rate_hz"], SHIPPED["frequencies"]
-    t_fit = SHIPPED["problems"] / rate
-    return t_fit, acq, max(t_fit, acq + F * t_fit - F * acq)
+def ladder_route() -> dict:
+    """The shipped config's sweep with the ladder as ``dm_plan.kind=auto`` runs it: the sparse plan seen at
+    ``SPARSE_MARGIN`` x the support threshold, its repeats from the frame budget, and only the (pattern,
+    spot) problems it drives (:func:`~torchblur.dm.plans.driven_spots`): ``{problems, frames}`` per frequency."""
+    from torchblur.config import load_config
+    from torchblur.config.budget import dm_plan
+    from torchblur.dm.plans import driven_spots
+    from torchblur.identify.dm_plan import SPARSE_MARGIN
+
+    cfg = load_config(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "configs", "identify_dm.yaml"))
+    plan, R, _ = dm_plan(cfg, kind="sparse", threshold=SPARSE_MARGIN * float(cfg.dm_plan.support_threshold))
+    return {"problems": int(driven_spots(plan).sum()), "frames": plan.n_patterns * len(cfg.sweep.exposures) * R,
+            "patterns": plan.n_patterns, "repeats": R}
+
+
+def keep_up(rate: float, problems: int = SHIPPED["problems"], frames: int = SHIPPED["frames"]) -> tuple[float, float, float]:
+    """The shipped config's fitting time per frequency (s) at ``rate`` problems/s (``problems`` and ``frames``
+    per frequency: its Hadamard sweep's by default), its acquisition time per frequency (s) at 30 Hz, and
+    the wait after the last frame (s): :func:`~torchblur.identify.keep_up.sweep_schedule`, the sweep's schedule
+    (one fit worker, frequency k acquired once k - AMPLITUDE_LAG's fit is done)."""
+    from torchblur.identify.dm_plan import AMPLITUDE_LAG
+    from torchblur.identify.keep_up import sweep_schedule
+
+    acq, F = frames / SHIPPED["frame_rate_hz"], SHIPPED["frequencies"]
+    t_fit = problems / rate
+    return t_fit, acq, sweep_schedule(np.full(F, t_fit), acq, AMPLITUDE_LAG)[0]
 
 
 def kernel_throughput(cases, points: int, device: str) -> None:
@@ -400,12 +417,14 @@ def ladder_throughput(cases, points: int, baseline: str | None, device: str = "c
           "rms(error/std) against the truth; speed-up: problems/s over the baseline's (its fit computes the slopes itself); "
           "max diff std: the largest |amplitude or phase difference| / the baseline's std; load: the 1-minute load average")
     r = rates.get("8/10", next(iter(rates.values())))
-    n = SHIPPED["problems"]
-    t_fit, acq, wait = keep_up(r["per_s"])
-    print(f"configs/identify_dm.yaml at {SHIPPED['frame_rate_hz']:g} Hz with dm_plan.spot_model=ladder: {t_fit:.1f} s of fitting per frequency "
-          f"({n} problems at {r['per_s']:.0f}/s) against {acq:.1f} s of acquisition: {'keeps up' if t_fit <= acq else 'does NOT keep up'} "
-          f"(fit/acquisition {t_fit / acq:.2f}); wait after the last frame about {wait:.0f} s; the slopes once before the sweep about "
-          f"{r['slopes_s'] / r['problems'] * n:.0f} s")
+    route = ladder_route()
+    n = route["problems"]
+    t_fit, acq, wait = keep_up(r["per_s"], n, route["frames"])
+    print(f"configs/identify_dm.yaml at {SHIPPED['frame_rate_hz']:g} Hz with dm_plan.spot_model=ladder (auto's sparse plan: "
+          f"{route['patterns']} patterns x {route['frames'] // route['patterns']} frames, the {n} (pattern, spot) problems it drives): "
+          f"{t_fit:.1f} s of fitting per frequency at {r['per_s']:.0f}/s against {acq:.1f} s of acquisition: "
+          f"{'keeps up' if t_fit <= acq else 'does NOT keep up'} (fit/acquisition {t_fit / acq:.2f}); wait after the last frame about "
+          f"{wait:.0f} s; the slopes once before the sweep about {r['slopes_s'] / r['problems'] * n:.0f} s")
 
 
 def plan_comparison(sigma1: float, target_px: float = 3.0, n_freq: int = 16, n_exp: int = 2, budget: int = 4096) -> None:

@@ -58,7 +58,27 @@ def gauss_case():
     ns = camera_noise_std(clean, 3.0)
     crops = clean + ns * torch.randn(clean.shape, generator=g, dtype=F64)
     return dict(crops=crops, ns=ns, ladder=ladder, centre=centre, s=s, window=win, omega=om, amplitude=G.abs(), z=z,
-                psf=GaussianPSF(centre, (SIGMA ** 2 * torch.eye(2, dtype=F64)).expand(M, 2, 2), torch.full((M,), RATE, dtype=F64)))
+                psf=GaussianPSF(centre, (SIGMA ** 2 * torch.eye(2, dtype=F64)).expand(M, 2, 2), torch.full((M,), RATE, dtype=F64)),
+                render_psf=GaussianPSF(centre[:, None], (SIGMA ** 2 * torch.eye(2, dtype=F64)).expand(M, 1, 2, 2), torch.full((M, 1), RATE, dtype=F64)))
+
+
+def _with_repeats(c, R, jitter_s=0.0):
+    """The case's crops with each exposure taken ``R`` times, each repeat a whole period later (a run's
+    repeats: the same phase of the sine; ``jitter_s``: the repeats' starts moved by it, as a recording's own
+    timestamps), fresh noise: ``(crops [P, F, M, 2 R, h, w], noise std, window [P, F, 2 R])``."""
+    P, F = c["crops"].shape[:2]
+    T = 2 * math.pi / c["omega"]  # [F]
+    k = torch.arange(R, dtype=F64)
+    start = (c["window"].start[..., :, None] + T[None, :, None, None] * k + jitter_s * k).reshape(P, F, -1)
+    dur = c["window"].duration[..., :, None].expand(-1, -1, -1, R).reshape(P, F, -1)
+    E = start.shape[-1]
+    z, om = c["z"], c["omega"]
+    traj = Sinusoid(z.abs()[..., None, :].expand(P, F, -1, E, 2), z.angle()[..., None, :].expand(P, F, -1, E, 2),
+                    om[None, :, None, None, None].expand(P, F, z.shape[2], E, 2))
+    clean = render_blur(traj, c["render_psf"], ExposureWindow(start[:, :, None], dur[:, :, None]), height=H, width=H)
+    ns = camera_noise_std(clean, 3.0)
+    g = torch.Generator().manual_seed(17)
+    return clean + ns * torch.randn(clean.shape, generator=g, dtype=F64), ns, ExposureWindow(start, dur)
 
 
 def _fit(c, dtype=F64, n_freq=2, **kw):
@@ -340,3 +360,57 @@ def test_every_problem_dark_is_flagged_per_item_not_raised(gauss_case):
     crops.copy_(c["ns"][:, :1].amin() * torch.randn(crops.shape, generator=torch.Generator().manual_seed(3), dtype=F64))
     out = _fit(c, n_freq=1, crops=crops)
     assert bool((out.status == DARK).all()) and bool(torch.isnan(out.amplitude).all())
+
+
+@pytest.mark.parametrize("noise", ["given", "none"])
+def test_repeats_are_fitted_once_with_the_same_result(gauss_case, monkeypatch, noise):
+    """A run's repeats (the same window phase) are merged into their weighted mean and fitted once:
+    the amplitudes, phases, covariances (with the noise given, and the unweighted sandwich without),
+    reduced chi2, statuses and flags are those of the fit of every repeat (the merge disabled) to
+    round-off; repeats whose starts differ by 1 us (a recording's timestamps) are not merged."""
+    import torchblur.dm.ladder_fit as lf
+    c = gauss_case
+    crops, ns, win = _with_repeats(c, 3)
+    kw = dict(crops=crops, window=win, noise_std=ns if noise == "given" else None)
+    merged = _fit(c, **kw)
+    seen = []
+    orig = lf._merged_repeats
+    monkeypatch.setattr(lf, "_merged_repeats", lambda prob: seen.append(orig(prob).shape[3]) or prob)
+    every = _fit(c, **kw)
+    assert seen == [2]  # 6 exposures merged into 2 (then the fit above was given the 6 unmerged)
+    assert bool((every.status == 0).all())
+    assert torch.equal(merged.status, every.status) and torch.equal(merged.flags, every.flags)
+    sd = torch.diagonal(every.covariance, dim1=-2, dim2=-1).sqrt()
+    assert float(((merged.amplitude - every.amplitude) / sd[..., ::2]).abs().max()) < 1e-6
+    assert float(((merged.phase - every.phase) / sd[..., 1::2]).abs().max()) < 1e-6
+    torch.testing.assert_close(merged.covariance, every.covariance, rtol=1e-6, atol=1e-9 * float(every.covariance.abs().max()))
+    if noise == "given":
+        torch.testing.assert_close(merged.reduced_chi2, every.reduced_chi2, rtol=1e-9, atol=0)
+    jit = _with_repeats(c, 3, jitter_s=1e-6)
+    seen.clear()
+    _fit(c, crops=jit[0], window=jit[2], noise_std=jit[1])
+    assert seen == [6]
+
+
+def test_only_leaves_problems_out_per_item(gauss_case, gauss_fit):
+    """``only`` fits the problems it names; the others are NOT_FITTED with NaN estimates, neither
+    failed nor poisoning the rest: the ladder fit's and the shifted still's fitted problems agree with
+    their fits of every problem (the ladder's pooled start is the named spots' now: within 0.1 std, the
+    fit's own landing; the shifted still's, problem by problem, to round-off)."""
+    from torchblur.fit.status import NOT_FITTED
+    c = gauss_case
+    only = torch.tensor([[True, False, True], [False, True, True]])[:, None]  # [P, 1, M]
+    part = _fit(c, only=only)
+    sel = only.expand(part.status.shape)
+    assert bool((part.status[~sel] == NOT_FITTED).all()) and bool((part.status[sel] == 0).all())
+    assert bool(torch.isnan(part.amplitude[~sel]).all()) and bool(torch.isnan(part.reduced_chi2[~sel]).all())
+    sd = torch.diagonal(gauss_fit.covariance, dim1=-2, dim2=-1).sqrt()
+    assert float(((part.amplitude - gauss_fit.amplitude) / sd[..., ::2])[sel].abs().max()) < 0.1
+    win = c["window"]
+    full = fit_spot_problems(c["crops"], c["psf"], win, c["omega"], noise_std=c["ns"])
+    some = fit_spot_problems(c["crops"], c["psf"], win, c["omega"], noise_std=c["ns"], only=only)
+    assert bool((some.status[~sel] == NOT_FITTED).all()) and bool(torch.isnan(some.phase[~sel]).all())
+    torch.testing.assert_close(some.amplitude[sel], full.amplitude[sel], rtol=1e-9, atol=0)
+    torch.testing.assert_close(some.covariance[sel], full.covariance[sel], rtol=1e-9, atol=0)
+    with pytest.raises(ShapeError, match="only"):
+        _fit(c, only=torch.ones(3, 3, dtype=torch.bool))

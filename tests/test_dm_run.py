@@ -149,6 +149,14 @@ def test_cli_routes_a_dm_config(tmp_path, capsys, monkeypatch, small_run):
     assert "relative to the fitted influence function's peak" in (tmp_path / "run" / "dm" / "README.txt").read_text()
     assert "dm registration (fitted to D0)" in out.err
     assert np.load(tmp_path / "run" / "dm" / "interaction_matrix.npy").shape == (24, 9)
+    # the spot fits' pace against the camera: every frequency's fit seconds, the line and the --json record agree
+    from torchblur.identify.keep_up import sweep_schedule
+
+    pace = summary["fit_pace"]
+    assert small_run.fit_s.shape == (8,) and bool((small_run.fit_s > 0).all())
+    assert pace["acquire_s"] == pytest.approx(small_run.n_frames / 8 / 30.0)
+    assert (pace["wait_s"], pace["idle_s"]) == pytest.approx(sweep_schedule(small_run.fit_s, pace["acquire_s"], 2))
+    assert f"dm fit pace: the spot fits took {pace['fit_median_s']:.1f} s per frequency" in (tmp_path / "run" / "report.txt").read_text()
 
 
 def test_the_amplitude_reference_is_the_fit_two_frequencies_back_whatever_has_finished():

@@ -155,7 +155,7 @@ def test_every_plan_has_one_verdict_type_and_a_dm_guard_is_one_more_function(mon
     from torchblur.identify.verdict import ResponseVerdict, Verdict, final_verdict
 
     table, D = _table()
-    res = SimpleNamespace(plan=SimpleNamespace(n_patterns=16), freq_hz=FREQ, G=np.zeros((S, N)), actuators=table, D=D, n_failed=0,
+    res = SimpleNamespace(plan=_every_pair_plan("hadamard"), freq_hz=FREQ, G=np.zeros((S, N)), actuators=table, D=D, n_failed=0,
                           spot_reduced_chi2=None, mirror=None, support_check=None, registration=None)
     v = final_verdict(res, 1.5)
     assert isinstance(v, DMVerdict) and isinstance(v, Verdict) and not issubclass(ResponseVerdict, DMVerdict)
@@ -165,6 +165,12 @@ def test_every_plan_has_one_verdict_type_and_a_dm_guard_is_one_more_function(mon
     g = final_verdict(res, 1.5)
     assert g.line == v.line + "; a new rule fails" and not g.trustworthy and g.exit_code == EXIT_FLAGGED
     assert g.details == ("  new rule: why",) and json.loads(json.dumps(g.to_dict()))["details"] == ["  new rule: why"]
+
+def _every_pair_plan(kind):
+    """A plan of 16 patterns of ``kind`` in which every pattern drives every spot (PROBLEMS spot problems)."""
+    from torchblur.dm.plans import Plan
+    return Plan(kind, np.ones((16, N)), np.ones((S, N), dtype=bool))
+
 
 def test_a_ladder_run_on_a_hadamard_plan_is_not_trustworthy_and_names_the_fits_that_left_the_ladder():
     """The ladder guard: a run fitted with the shifted still keeps its verdict; one fitted with the
@@ -179,13 +185,13 @@ def test_a_ladder_run_on_a_hadamard_plan_is_not_trustworthy_and_names_the_fits_t
     table, D = _table()
     base = dict(freq_hz=FREQ, G=np.zeros((S, N)), actuators=table, D=D, n_failed=0,
                 spot_reduced_chi2=None, mirror=None, support_check=None, registration=None)
-    had, sparse = SimpleNamespace(n_patterns=16, kind="hadamard"), SimpleNamespace(n_patterns=16, kind="sparse")
+    had, sparse = _every_pair_plan("hadamard"), _every_pair_plan("sparse")
     v0 = final_verdict(SimpleNamespace(**base, plan=had), 1.5)
     assert v0.trustworthy and final_verdict(SimpleNamespace(**base, plan=had, spot_model="shifted", n_out_of_ladder=0), 1.5) == v0
     lad = final_verdict(SimpleNamespace(**base, plan=had, spot_model="ladder", n_out_of_ladder=0), 1.5)
     assert not lad.trustworthy and lad.exit_code == EXIT_FLAGGED and "on a Hadamard plan pulls each actuator's response" in lad.line
     for kind in ("sparse", "one_at_a_time"):
-        plan = SimpleNamespace(n_patterns=16, kind=kind)
+        plan = _every_pair_plan(kind)
         assert final_verdict(SimpleNamespace(**base, plan=plan, spot_model="ladder", n_out_of_ladder=0), 1.5) == v0
     few = final_verdict(SimpleNamespace(**base, plan=sparse, spot_model="ladder", n_out_of_ladder=1), 1.5)
     assert few.line == v0.line + "; 1 spot fits' motion left the ladder's levels (left out of D; raise dm_plan.ladder_reach)"

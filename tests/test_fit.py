@@ -396,3 +396,42 @@ def test_alias_refit_that_improves_nothing_keeps_the_first_solution():
     assert bool(torch.isfinite(res.amplitude).all()) and bool(torch.isfinite(res.alias_cost).all())
     # the refit was tried and kept nothing: an item whose alias still costs less
     assert bool((res.alias_cost < res.cost).any())
+
+
+def test_lm_dof_is_the_data_s_count_when_rows_stand_for_several():
+    """``dof`` sets the degrees of freedom behind gn_tol's std: the same fit of data given as
+    repeats, or as their weighted mean plus one row holding the cost's constant, lands at the same
+    point in the same iterations once ``dof`` counts the repeats; a wrong shape names ``dof``."""
+    from torchblur.errors import ShapeError
+    from torchblur.optim import levenberg_marquardt
+
+    g = torch.Generator().manual_seed(6)
+    t = torch.linspace(0, 3, 40, dtype=F64)
+    N, R, sigma = 16, 10, 0.02  # at 10 repeats the rows' own count (41 - 2 against 400 - 2) changes the iterations
+    a, b = 1 + torch.rand(N, generator=g, dtype=F64), 0.5 + torch.rand(N, generator=g, dtype=F64)
+    clean = a[:, None] * torch.exp(-b[:, None] * t)
+    rep = clean[:, None] + sigma * torch.randn(N, R, t.numel(), generator=g, dtype=F64)  # [N, R, T]
+
+    def model(th, idx):
+        return th[:, :1] * torch.exp(-th[:, 1:2] * t)
+
+    def model_r(th, idx):
+        return model(th, idx).repeat(1, R)
+
+    def model_m(th, idx):
+        return torch.cat([model(th, idx), th.new_zeros(th.shape[0], 1)], -1)
+    theta0 = torch.stack([a * 1.2, b * 0.8], -1)
+    w = 1 / sigma ** 2
+    full = levenberg_marquardt(model_r, theta0, rep.reshape(N, -1), weight=torch.full((N, R * t.numel()), w, dtype=F64), gn_tol=1e-2)
+    mean = rep.mean(1)
+    const = (w * (rep - mean[:, None]).square().sum((1, 2))).sqrt()[:, None]
+    W = torch.cat([torch.full((N, t.numel()), R * w, dtype=F64), torch.ones(N, 1, dtype=F64)], -1)
+    merged = levenberg_marquardt(model_m, theta0, torch.cat([mean, const], -1), weight=W, gn_tol=1e-2,
+                                 dof=torch.full((N,), float(R * t.numel() - 2), dtype=F64))
+    torch.testing.assert_close(merged.theta, full.theta, rtol=1e-9, atol=0)
+    torch.testing.assert_close(merged.cost, full.cost, rtol=1e-9, atol=0)
+    assert torch.equal(merged.n_iter, full.n_iter)
+    rows = levenberg_marquardt(model_m, theta0, torch.cat([mean, const], -1), weight=W, gn_tol=1e-2)  # dof from the rows: another path
+    assert not torch.equal(rows.n_iter, full.n_iter)
+    with pytest.raises(ShapeError, match="dof"):
+        levenberg_marquardt(model_m, theta0, torch.cat([mean, const], -1), weight=W, gn_tol=1e-2, dof=torch.ones(N + 1, dtype=F64))

@@ -13,6 +13,7 @@ from typing import Callable
 import torch
 import torch.autograd.forward_ad as fwAD
 
+from torchblur.errors import ShapeError
 from torchblur.losses import gauss_newton_terms, image_loss
 
 __all__ = ["LMResult", "levenberg_marquardt", "model_jacobian"]
@@ -63,6 +64,7 @@ def levenberg_marquardt(
     jacobian_fn: Callable | None = None,
     gn_tol: float | None = None,
     shift: float = 0.0,
+    dof: torch.Tensor | None = None,
 ) -> LMResult:
     """Minimise ``image_loss(model_fn(theta), data)`` for each of ``N`` problems.
 
@@ -96,12 +98,20 @@ def levenberg_marquardt(
             0.05-5 std range was 0.2x the estimate at the median, at most 3.6x, and the steps
             taken unevaluated with ``gn_tol=1e-2`` landed within 0.026 std.
         shift: poisson's read-noise shift (counts, see :func:`~torchblur.losses.image_loss`).
+        dof: optional ``[N]`` degrees of freedom behind ``gn_tol``'s standard deviation
+            (default: each problem's rows of positive weight less ``P``), for a caller whose
+            rows stand for several data each (repeats of one exposure merged into their
+            weighted mean: their count, not the rows', is the data's).
 
     Returns:
         :class:`LMResult`. ``converged`` is False where ``max_iter`` ran out.
     """
     ne = _NormalEquations(data, weight, loss, shift)
     st = _LMState.start(model_fn, theta0, ne, jacobian_fn, lambda0, gn_tol is not None)
+    if dof is not None and st.dof is not None:
+        if tuple(dof.shape) != (theta0.shape[0],):
+            raise ShapeError(f"dof: expected [N={theta0.shape[0]}] degrees of freedom, got shape {tuple(dof.shape)}")
+        st.dof = dof.to(st.dof).clamp_min(1)
     for _ in range(max_iter):
         active = ~st.converged
         if not bool(active.any()):

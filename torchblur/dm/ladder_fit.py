@@ -69,7 +69,7 @@ import numpy as np
 import torch
 from scipy.interpolate import CubicSpline
 
-from torchblur.dm.spot_fit import SpotFits, chunk_size
+from torchblur.dm.spot_fit import SpotFits, chunk_size, left_out
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, check_int, check_type
 from torchblur.fit.status import (DARK, MASKED, NO_MOTION, NO_PIXELS, NOT_CONVERGED, OUT_OF_FRAME, OUT_OF_LADDER, SINGULAR,
                                   flag_poor_fit)
@@ -250,6 +250,9 @@ class _Problems:
     knots: torch.Tensor  # [P, K]
     coef: torch.Tensor  # [P, K-1, 4, K]
     shape: tuple  # (P, F, M, E, h, w)
+    group: torch.Tensor | None = None  # [E0] long: the merged exposure each exposure of the crops went into (:func:`_merged_repeats`)
+    data_all: torch.Tensor | None = None  # [n, E0, hw]: the crops' exposures before the merge (data, weight: as above)
+    weight_all: torch.Tensor | None = None  # [n, E0, hw]
 
 
 def _flat_problems(crops, ladder: PatternLadder, window, omega, amplitude, power, noise_std, mask, like) -> _Problems:
@@ -296,6 +299,46 @@ def _flat_problems(crops, ladder: PatternLadder, window, omega, amplitude, power
                      keep=keep.reshape(n, E, h * w), noise_given=noise_std is not None, cw=torch.cos(ph), sw=torch.sin(ph),
                      wq=dur[..., None] * wg, power=pw, amplitude=amp, knots=ladder.levels.to(**like),
                      coef=spline_basis(ladder.levels).to(**like), shape=(P, F, M, E, h, w))
+
+
+REPEAT_PHASE_TOL = 1e-7  #: rad: exposures whose nodes' phases agree this closely (and their durations, relatively) are repeats
+
+
+def _merged_repeats(prob: _Problems) -> _Problems:
+    """``prob`` with the repeats of each exposure merged: exposures whose windows have the same
+    duration and start at the same phase of the sine (to :data:`REPEAT_PHASE_TOL`) in every
+    (pattern, frequency) have the same model image, so their weighted mean (weight the sum of
+    theirs) is fitted once. ``sum_r W_r (d_r - m)^2 = W (dbar - m)^2 + sum_r W_r d_r^2 - W dbar^2``:
+    the same cost up to a constant (:func:`_fit_chunk` adds it as a row, so the LM's tests see the
+    cost they saw unmerged), the same Jacobian, normal equations, bias term and covariances; the
+    reduced chi2 and the unweighted sandwich are taken on the repeats themselves (``data_all``,
+    ``weight_all``). A run's repeats share their window, so a whole grid's 2 exposures x 6 repeats
+    cost 2 exposures per model evaluation; windows that differ (a recording's own timestamps)
+    are not merged. ``prob`` itself where nothing merges."""
+    P, F, M, E, h, w = prob.shape
+    ph = torch.atan2(prob.sw, prob.cw)  # [P, F, E, S]
+    group = list(range(E))
+    for e in range(E):
+        for g in range(e):
+            if group[g] != g:
+                continue
+            dphi = torch.remainder(ph[:, :, e] - ph[:, :, g] + math.pi, 2 * math.pi) - math.pi
+            dw = (prob.wq[:, :, e] - prob.wq[:, :, g]).abs() <= REPEAT_PHASE_TOL * prob.wq[:, :, g].abs()
+            if bool((dphi.abs() <= REPEAT_PHASE_TOL).all()) and bool(dw.all()):
+                group[e] = g
+                break
+    firsts = sorted(set(group))
+    if len(firsts) == E:
+        return prob
+    index = torch.tensor([firsts.index(g) for g in group], device=prob.data.device)  # [E]: the merged exposure of each
+    G, n = len(firsts), prob.data.shape[0]
+    W = prob.weight.new_zeros(n, G, h * w).index_add_(1, index, prob.weight)
+    num = prob.data.new_zeros(n, G, h * w).index_add_(1, index, prob.weight * prob.data)
+    data = torch.where(W > 0, num / W.clamp_min(torch.finfo(W.dtype).tiny), torch.zeros_like(num))
+    keep = torch.zeros(n, G, h * w, dtype=torch.int32, device=index.device).index_add_(1, index, prob.keep.to(torch.int32)) > 0
+    pick = torch.tensor(firsts, device=prob.cw.device)
+    return replace(prob, data=data, weight=W, keep=keep, cw=prob.cw[:, :, pick], sw=prob.sw[:, :, pick], wq=prob.wq[:, :, pick],
+                   shape=(P, F, M, G, h, w), group=index, data_all=prob.data, weight_all=prob.weight)
 
 
 @dataclass(frozen=True)
@@ -506,12 +549,22 @@ def _starts(prob: _Problems, ladder: PatternLadder, rows, b0, chunk: int):
 
 def _along(img, n):
     """``Dn img``: the derivative of ``img [..., h, w]`` along a shift by ``n [..., 2]`` (unit,
-    broadcast against ``img``'s leading dims) px, :func:`shift_derivatives` as one GEMM with its
-    matrix (:func:`_derivative_matrix`; the same values, without a Fourier transform per image)."""
+    broadcast against ``img``'s leading dims) px, :func:`shift_derivatives` as two small GEMMs
+    (:func:`_derivative_factors`: the same values, without a Fourier transform per image)."""
     h, w = img.shape[-2:]
-    dmat = _derivative_matrix(h, w, img.dtype, img.device)  # [q', 2, q]
-    d = (img.reshape(-1, h * w) @ dmat.reshape(h * w, 2 * h * w)).reshape(img.shape[:-2] + (2, h, w))
-    return d[..., 0, :, :] * n[..., 0, None, None] + d[..., 1, :, :] * n[..., 1, None, None]
+    mx, my = _derivative_factors(h, w, img.dtype, img.device)
+    dx = img @ mx.T  # [..., h, w]: along each row
+    dy = (img.transpose(-1, -2) @ my.T).transpose(-1, -2)  # along each column
+    return dx * n[..., 0, None, None] + dy * n[..., 1, None, None]
+
+
+@functools.lru_cache(maxsize=8)
+def _derivative_factors(h: int, w: int, dtype: torch.dtype, device: torch.device):
+    """``(mx [w, w], my [h, h])``: :func:`shift_derivatives` is separable (on the padded grid the
+    Fourier multiplier of ``d/dx`` is ``kx``'s alone, of ``d/dy`` ``ky``'s), ``Dx img = img mx^T``
+    and ``Dy img = my img``; read off :func:`_derivative_matrix`'s first row and column. Cached."""
+    dmat = _derivative_matrix(h, w, dtype, device).reshape(h, w, 2, h, w)  # [i', j', a, i, j] = D_a[(i, j), (i', j')]
+    return dmat[0, :, 0, 0, :].T.contiguous(), dmat[:, 0, 1, :, 0].T.contiguous()
 
 
 @functools.lru_cache(maxsize=8)
@@ -606,7 +659,7 @@ def _debias(theta, data, W, s2, prob: _Problems, ch: _Chunk, jac, coefficients=N
     coefficients = coefficients or _coefficients
     c = theta.shape[0]
     idx = torch.arange(c, device=theta.device)
-    Wp = W[:, :-PRIOR_ROWS]  # the pixels' weights (the prior's rows last)
+    Wp = W[:, :math.prod(prob.shape[3:])]  # the pixels' weights (the prior's rows, and any constant row, after them)
 
     def state(th):
         model, J = jac(th, idx)
@@ -628,31 +681,35 @@ def _debias(theta, data, W, s2, prob: _Problems, ch: _Chunk, jac, coefficients=N
     return st[0], st[1], st[2], Cw, info, left
 
 
-def _with_prior(prob: _Problems, ch: _Chunk, sigma, model_jacobian=None):
+def _with_prior(prob: _Problems, ch: _Chunk, sigma, model_jacobian=None, constant_rows: int = 0):
     """The model and Jacobian of ``model_jacobian`` (None: :func:`_model_jacobian`) with the prior's
-    :data:`PRIOR_ROWS` rows last: ``theta[4] / sigma``, ``theta[5] / sigma`` (``sigma [c]``, data 0, weight 1)."""
+    :data:`PRIOR_ROWS` rows next: ``theta[4] / sigma``, ``theta[5] / sigma`` (``sigma [c]``, data 0, weight 1),
+    then ``constant_rows`` rows of model 0 (a cost's constant, :func:`_fit_chunk`)."""
     model_jacobian = model_jacobian or _model_jacobian
 
     def jac(th, i):
         model, J = model_jacobian(th, prob, ch, i)
-        pj = th.new_zeros(th.shape[0], N_PAR, PRIOR_ROWS)
+        pj = th.new_zeros(th.shape[0], N_PAR, PRIOR_ROWS + constant_rows)
         pj[:, 4, 0] = pj[:, 5, 1] = 1 / sigma[i]
-        return torch.cat([model, th[:, 4:] / sigma[i, None]], -1), torch.cat([J.transpose(1, 2), pj], -1).transpose(1, 2)
+        rows = [model, th[:, 4:] / sigma[i, None], th.new_zeros(th.shape[0], constant_rows)]
+        return torch.cat(rows, -1), torch.cat([J.transpose(1, 2), pj], -1).transpose(1, 2)
     return jac
 
 
-def _best_start(jac, theta0, data, W, top):
+def _best_start(jac, theta0, data, W, top, dof=None):
     """``(theta [c, N_PAR], converged [c])``: the LM from each problem's own start (``theta0[:, 0]``,
     :func:`_starts`) and, where the pooled start ``theta0[:, 1]`` lies farther than
-    :data:`SECOND_START` x the ladder's top level ``top [c]`` from it, from that one too: the lower cost."""
-    res = levenberg_marquardt(lambda th, i: jac(th, i)[0], theta0[:, 0], data, weight=W, max_iter=MAX_ITER, jacobian_fn=jac, gn_tol=1e-2)
+    :data:`SECOND_START` x the ladder's top level ``top [c]`` from it, from that one too: the lower cost
+    (``dof [c]``: the LM's degrees of freedom, None: its own count of the rows)."""
+    res = levenberg_marquardt(lambda th, i: jac(th, i)[0], theta0[:, 0], data, weight=W, max_iter=MAX_ITER, jacobian_fn=jac, gn_tol=1e-2,
+                              dof=dof)
     theta, converged = res.theta.clone(), res.converged.clone()
     far = torch.nonzero((theta0[:, 1, :2] - theta0[:, 0, :2]).norm(dim=-1) > SECOND_START * top).reshape(-1)
     if far.numel():
         def sub(th, i):
             return jac(th, far[i])
         r2 = levenberg_marquardt(lambda th, i: sub(th, i)[0], theta0[far, 1], data[far], weight=W[far], max_iter=MAX_ITER,
-                                 jacobian_fn=sub, gn_tol=1e-2)
+                                 jacobian_fn=sub, gn_tol=1e-2, dof=None if dof is None else dof[far])
         better = r2.cost < res.cost[far]
         theta[far[better]], converged[far[better]] = r2.theta[better], r2.converged[better]
     return theta, converged
@@ -660,36 +717,52 @@ def _best_start(jac, theta0, data, W, top):
 
 def _fit_chunk(prob: _Problems, ch: _Chunk, theta0):
     """Fit one chunk from its starts ``theta0 [c, 2, N_PAR]`` (:func:`_starts`): ``dict`` of
-    ``[c]``-batched amplitude, phase, covariance, status, flags, reduced_chi2."""
+    ``[c]``-batched amplitude, phase, covariance, status, flags, reduced_chi2. With ``prob``'s
+    repeats merged (:func:`_merged_repeats`) the cost's constant is one more row after the prior's
+    (data its square root, model 0) and the LM's degrees of freedom are the repeats' pixels."""
     c = ch.rows.numel()
-    E = prob.shape[3]
     data, W = prob.data[ch.rows].reshape(c, -1), prob.weight[ch.rows].reshape(c, -1)
     q = data.shape[1]
+    if prob.group is None:
+        data_a, W_a = data, W
+        extra = data.new_zeros(c, 0)
+    else:  # the repeats themselves, and the merge's constant sum_r W_r d_r^2 - W dbar^2 (>= 0 but for round-off)
+        data_a, W_a = prob.data_all[ch.rows].reshape(c, -1), prob.weight_all[ch.rows].reshape(c, -1)
+        extra = ((W_a * data_a.square()).sum(-1) - (W * data.square()).sum(-1)).clamp_min(0).sqrt()[:, None]
     sigma = SHAPE_PRIOR * prob.knots.abs().amax(-1)[ch.pat]  # [c] the prior std of e_cos and e_sin
-    data_x = torch.cat([data, data.new_zeros(c, PRIOR_ROWS)], -1)
-    W_x = torch.cat([W, W.new_ones(c, PRIOR_ROWS)], -1)
-    jac = _with_prior(prob, ch, sigma)
-    theta, lm_converged = _best_start(jac, theta0, data_x, W_x, prob.knots.abs().amax(-1)[ch.pat])
-    all_c = torch.arange(c, device=theta.device)
-    used = (W > 0).sum(-1).to(theta.dtype)
+    data_x = torch.cat([data, data.new_zeros(c, PRIOR_ROWS), extra], -1)
+    W_x = torch.cat([W, W.new_ones(c, PRIOR_ROWS + extra.shape[1])], -1)
+    jac = _with_prior(prob, ch, sigma, constant_rows=extra.shape[1])
+    used = (W_a > 0).sum(-1).to(data.dtype)
     dof = (used - N_PAR + PRIOR_ROWS).clamp_min(1)
-    s2 = torch.ones(c, dtype=theta.dtype, device=theta.device) if prob.noise_given else ((data - jac(theta, all_c)[0][:, :q]).square() * W).sum(-1) / dof
+    theta, lm_converged = _best_start(jac, theta0, data_x, W_x, prob.knots.abs().amax(-1)[ch.pat], dof)
+    all_c = torch.arange(c, device=theta.device)
+
+    def residual2(model):  # [c, E0 hw]: each repeat's squared residual (the merged model is every repeat's)
+        m = model[:, :q] if prob.group is None else model[:, :q].reshape(c, -1, q // prob.shape[3])[:, prob.group].reshape(c, -1)
+        return (data_a - m).square()
+    s2 = torch.ones(c, dtype=theta.dtype, device=theta.device) if prob.noise_given else (residual2(jac(theta, all_c)[0]) * W_a).sum(-1) / dof
     theta, model, J, Cw, info, left = _debias(theta, data_x, W_x, s2, prob, ch, jac)
-    model, Jp = model[:, :q], J[:, :q]
-    r2 = (data - model).square()
+    r2 = residual2(model)
+    Jp = J[:, :q]
     converged = lm_converged | (left < LEFT_MAX ** 2)  # the LM's own test, or the step left is short (noiseless data too)
     amp, phase, H_t, H_s = _report_jacobians(theta, ch.slope)
     cov_l, var_model = _ladder_covariance(theta, prob, ch, Jp, W, Cw, H_t, H_s)
     if prob.noise_given:
         cov_d = Cw
     else:  # the sandwich with each pixel's own squared residual (the noise differs from pixel to pixel: shot noise), plus the prior's information
-        WJ = (W * W * r2)[..., None] * Jp
-        cov_d = Cw @ (Jp.transpose(1, 2) @ WJ + J[:, q:].transpose(1, 2) @ J[:, q:]) @ Cw
+        S = W_a * W_a * r2
+        if prob.group is not None:  # sum over each merged exposure's repeats (their Jacobian is one)
+            S = S.new_zeros(c, prob.shape[3], q // prob.shape[3]).index_add_(1, prob.group, S.reshape(c, prob.group.numel(), -1))
+        WJ = S.reshape(c, q)[..., None] * Jp
+        P0 = PRIOR_ROWS + q
+        cov_d = Cw @ (Jp.transpose(1, 2) @ WJ + J[:, q:P0].transpose(1, 2) @ J[:, q:P0]) @ Cw
     cov = H_t @ cov_d @ H_t.transpose(1, 2) + cov_l
     chi2 = torch.full((c,), float("nan"), dtype=theta.dtype, device=theta.device)
     if prob.noise_given:
-        sig2 = torch.where(W > 0, 1 / W.clamp_min(torch.finfo(W.dtype).tiny), torch.zeros_like(W)) + var_model.reshape(c, -1)
-        chi2 = torch.where(W > 0, r2 / sig2, torch.zeros_like(r2)).sum(-1) / dof
+        vm = var_model if prob.group is None else var_model[:, prob.group]
+        sig2 = torch.where(W_a > 0, 1 / W_a.clamp_min(torch.finfo(W_a.dtype).tiny), torch.zeros_like(W_a)) + vm.reshape(c, -1)
+        chi2 = torch.where(W_a > 0, r2 / sig2, torch.zeros_like(r2)).sum(-1) / dof
     status = torch.zeros(c, dtype=torch.long, device=theta.device)
     status[~converged] = NOT_CONVERGED
     d = torch.diagonal(cov, dim1=-2, dim2=-1)
@@ -727,7 +800,7 @@ def _prefit_status(prob: _Problems, still):
 
 
 def fit_ladder_problems(crops, ladder: PatternLadder, window, omega, amplitude, *, power, noise_std=None, mask=None, chunk=None,
-                        device=None) -> SpotFits:
+                        device=None, only=None) -> SpotFits:
     """Fit every (pattern, frequency, spot) problem with the ladder's model (module docstring).
 
     Args:
@@ -746,6 +819,9 @@ def fit_ladder_problems(crops, ladder: PatternLadder, window, omega, amplitude, 
         chunk: problems per chunk; None: :func:`~torchblur.dm.spot_fit.chunk_size` with the
             chunk's ``E*R + 3K`` planes per problem (the data and the ladder's three images per level).
         device: where to fit (None: the crops').
+        only: bool broadcastable to ``[P, F, M]``: the problems to fit (None: every one); the
+            others are :data:`~torchblur.fit.status.NOT_FITTED`, NaN (e.g. a spot its pattern
+            does not move, :func:`~torchblur.dm.plans.driven_spots`).
 
     Returns:
         :class:`~torchblur.dm.spot_fit.SpotFits` ``[P, F, M]`` (on ``device``): per axis the
@@ -764,17 +840,18 @@ def fit_ladder_problems(crops, ladder: PatternLadder, window, omega, amplitude, 
     b0 = _basis_at(torch.zeros(P, 1, **like), prob.knots, prob.coef)
     b0 = (b0[0][:, 0], b0[1][:, 0])  # [P, K] each: the basis and its derivative at u = 0
     chunk = chunk_size(2 * E + 4 * K, h, w, device=dev, dtype=like["dtype"]) if chunk is None else check_int(chunk, "chunk", low=1)
-    status = _prefit_status(prob, ladder.still)
+    status = left_out(_prefit_status(prob, ladder.still), only, (P, F, M))
     nan = torch.full((n,), float("nan"), **like)
     out = dict(amplitude=nan[:, None].repeat(1, 2), phase=nan[:, None].repeat(1, 2), covariance=nan[:, None, None].repeat(1, 4, 4),
                status=status, flags=MASKED * (~prob.keep).flatten(1).any(-1).long(), reduced_chi2=nan.clone())
     todo = torch.nonzero(status == 0).reshape(-1)
     theta0 = _starts(prob, ladder, todo, b0, chunk)
+    merged = _merged_repeats(prob)  # each exposure's repeats fitted as one (the same cost but for a constant)
     n_chunks = 0
     for i0 in range(0, todo.numel(), chunk):
-        ch = _chunk(prob, ladder, todo[i0:i0 + chunk], like)
+        ch = _chunk(merged, ladder, todo[i0:i0 + chunk], like)
         with torch.no_grad():
-            r = _fit_chunk(prob, ch, theta0[i0:i0 + chunk])
+            r = _fit_chunk(merged, ch, theta0[i0:i0 + chunk])
         ok = r["status"] == 0
         for key in ("amplitude", "phase", "covariance"):
             r[key][~ok] = float("nan")

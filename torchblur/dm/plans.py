@@ -17,7 +17,7 @@ import numpy as np
 
 from torchblur.errors import ParameterError, ShapeError, check_choice, check_int, check_real_scalar
 
-__all__ = ["Plan", "PLAN_KINDS", "choose_plan", "hadamard_plan", "one_at_a_time_plan", "plan_cost", "seen_by",
+__all__ = ["Plan", "PLAN_KINDS", "choose_plan", "driven_spots", "hadamard_plan", "one_at_a_time_plan", "plan_cost", "seen_by",
            "sparse_plan", "static_motion_px"]
 
 PLAN_KINDS = ("auto", "one_at_a_time", "sparse", "hadamard")
@@ -113,6 +113,17 @@ def sparse_plan(G, threshold: float = 0.01) -> Plan:
     patterns = (colour[None, :] == np.arange(colour.max() + 1)[:, None]).astype(np.float64)
     support = np.concatenate([seen, seen], 0)
     return Plan("sparse", patterns, support)
+
+
+def driven_spots(plan: Plan) -> np.ndarray:
+    """``[P, M]`` bool: pattern ``p`` moves an actuator that spot ``m`` sees (in the support of its
+    x or its y slope). The other (pattern, spot) problems say nothing of ``D``: the demultiplexing
+    leaves out a pattern that drives none of a row's support (:func:`~torchblur.dm.demux.demultiplex`),
+    so a sweep does not fit them. Every pair on a Hadamard plan; on a sparse or one-at-a-time plan
+    the pairs whose spot sees one of the pattern's actuators."""
+    S, N = plan.support.shape
+    seen = plan.support[:S // 2] | plan.support[S // 2:]  # [M, N]
+    return ((plan.patterns != 0).astype(np.int64) @ seen.T.astype(np.int64)) > 0
 
 
 def static_motion_px(plan: Plan, G) -> float:

@@ -22,11 +22,12 @@ import torch
 
 from torchblur.errors import InputTypeError, ParameterError, ShapeError, check_int, check_type
 from torchblur.fit.sinusoid import fit_sinusoid
+from torchblur.fit.status import NOT_FITTED
 from torchblur.image.spots import crop_spots, crop_valid
 from torchblur.render.psf import GaussianPSF, KernelPSF
 from torchblur.render.window import ExposureWindow
 
-__all__ = ["PerSpotPSF", "SpotFits", "crop_problems", "fit_spot_problems", "pattern_responses", "chunk_size", "free_memory_bytes",
+__all__ = ["PerSpotPSF", "SpotFits", "crop_problems", "fit_spot_problems", "left_out", "pattern_responses", "chunk_size", "free_memory_bytes",
            "BYTES_PER_PIXEL"]
 
 #: Peak bytes one problem's fit holds per exposure-pixel (``E*R*h*w``) in float64. Measured on
@@ -216,8 +217,24 @@ def _empty(n, like):
                 flags=torch.zeros(n, dtype=torch.long, device=like["device"]), reduced_chi2=nan.clone())
 
 
+def left_out(status, only, shape):
+    """``status [n]`` (flat over ``shape`` ``(P, F, M)``) with the problems ``only`` leaves out set
+    :data:`~torchblur.fit.status.NOT_FITTED` (``only``: bool broadcastable to ``shape``, None:
+    none left out; a ShapeError naming ``only`` otherwise)."""
+    if only is None:
+        return status
+    t = torch.as_tensor(only, device=status.device)
+    if t.dtype != torch.bool:
+        raise InputTypeError(f"only: expected a bool tensor broadcastable to {list(shape)}, got {t.dtype}")
+    try:
+        keep = t.expand(shape).reshape(-1)
+    except RuntimeError as e:
+        raise ShapeError(f"only: expected a bool tensor broadcastable to {list(shape)}, got {list(t.shape)}") from e
+    return torch.where(keep, status, torch.full_like(status, NOT_FITTED))
+
+
 def fit_spot_problems(crops, psf, window, omega, *, noise_std=None, mask=None, chunk: int | None = None, kernel_noise=None,
-                      **fit_options) -> SpotFits:
+                      only=None, **fit_options) -> SpotFits:
     """Fit every (pattern, frequency, spot) problem, in chunks bounded in memory.
 
     Args:
@@ -240,6 +257,8 @@ def fit_spot_problems(crops, psf, window, omega, *, noise_std=None, mask=None, c
             which the amplitude and phase stds of the problems fitted with a kernel grow
             (``covariance`` times its square): :meth:`~torchblur.identify.calibration.SpotKernels.kernel_noise_factor`
             of each point's exposures times its laser power; None: 1.
+        only: bool broadcastable to ``[P, F, M]``: the problems to fit (None: every one); the
+            others are :data:`~torchblur.fit.status.NOT_FITTED`, NaN.
         **fit_options: passed on to :func:`~torchblur.fit.sinusoid.fit_sinusoid` (``optimizer``,
             ``loss``, ``fit_background``, ``outliers``, ...).
 
@@ -255,9 +274,11 @@ def fit_spot_problems(crops, psf, window, omega, *, noise_std=None, mask=None, c
     if "axes" in fit_options:
         raise ParameterError("fit_options: axes is always 'xy' for DM spot problems")
     out = _empty(data.shape[0], like)
+    out["status"] = left_out(out["status"], only, (P, F, M))
+    fitted = out["status"] != NOT_FITTED
     n_chunks = 0
     for kind in ("gaussian", "kernel"):
-        rows = torch.nonzero(use_k if kind == "kernel" else ~use_k).reshape(-1)
+        rows = torch.nonzero((use_k if kind == "kernel" else ~use_k) & fitted).reshape(-1)
         for i0 in range(0, rows.numel(), chunk):
             s = rows[i0:i0 + chunk]
             p = KernelPSF(kern[s]) if kind == "kernel" else GaussianPSF(gauss.center[s], gauss.cov[s], gauss.amplitude[s])

@@ -11,7 +11,7 @@ import math
 import torch
 
 __all__ = [
-    "STATUS", "OK", "DARK", "NOT_CONVERGED", "OUT_OF_FRAME", "SINGULAR", "NO_PIXELS", "POOR_FIT",
+    "STATUS", "OK", "DARK", "NOT_CONVERGED", "OUT_OF_FRAME", "SINGULAR", "NO_PIXELS", "POOR_FIT", "NOT_FITTED",
     "FLAGS", "MASKED", "SATURATED_MASKED", "OUTLIERS_MASKED", "PARTLY_OUT_OF_FRAME", "NO_MOTION", "POOR_FIT_FLAG",
     "POOR_FIT_CHI2", "POOR_FIT_STATUS_CHI2", "item_status", "above_chi2", "flag_poor_fit", "BRANCH_UNDECIDED", "BRANCH_CHI2",
     "flag_branch_undecided", "OUT_OF_LADDER",
@@ -24,6 +24,7 @@ OUT_OF_FRAME = 3  #: the spot is mostly outside the frame
 SINGULAR = 4  #: the parameters are not identifiable (singular Fisher information)
 NO_PIXELS = 5  #: every pixel is masked or saturated
 POOR_FIT = 6  #: the model does not explain the data (reduced chi2 > :data:`POOR_FIT_STATUS_CHI2` with the given noise, after a wider search)
+NOT_FITTED = 7  #: left out by the caller (``only``): a DM spot that its pattern does not move, whose response no estimate uses
 
 #: the bound of the status :data:`POOR_FIT`, in reduced chi2 (the cost per degree of freedom, pixels used
 #: minus fitted parameters, with the noise given): set by a fitter that searches again from wider starts
@@ -42,6 +43,7 @@ STATUS = {
     SINGULAR: "unidentifiable (singular Fisher information)",
     NO_PIXELS: "no usable pixels (every pixel masked or saturated)",
     POOR_FIT: f"poor fit (reduced chi2 > {POOR_FIT_STATUS_CHI2:g} with the given noise, after a wider search)",
+    NOT_FITTED: "not fitted (left out by the caller)",
 }
 
 MASKED = 1  #: the caller's ``mask`` excluded pixels of this item

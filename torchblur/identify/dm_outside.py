@@ -26,7 +26,7 @@ from torchblur.config import WFSConfig, load_config, load_dataclass
 from torchblur.config.checks import check_declared
 from torchblur.config.schema import key
 from torchblur.config.budget import dm_geometry, dm_sensor
-from torchblur.dm.plans import Plan, one_at_a_time_plan, plan_cost
+from torchblur.dm.plans import Plan, driven_spots, one_at_a_time_plan, plan_cost
 from torchblur.dm.shack_hartmann import ShackHartmann
 from torchblur.errors import ConfigError, InputTypeError, check_type
 from torchblur.files import excerpt
@@ -447,8 +447,8 @@ class DMOutsidePlan(DMPlan):
                 futures.append(pool.submit(_fit_frequency, torch.as_tensor(rec.frames[k]), ExposureWindow(
                     torch.as_tensor(rec.start_s[k], dtype=_F64)[:, None], torch.as_tensor(rec.duration_s[k], dtype=_F64)[:, None]),
                     2 * math.pi * float(f), float(rec.amplitude[k]), float(rec.power[k]), cal, self.psf, self.offset, self.size,
-                    float(cfg.camera.jitter_s), _fit_options(cfg), ladder))
-            Y, Y_cov, failed, chi2, out = collect_fits(rec.freq_hz, futures, self.plan.n_patterns, self.G.shape[0])
+                    float(cfg.camera.jitter_s), _fit_options(cfg), ladder, driven_spots(self.plan)))
+            Y, Y_cov, failed, chi2, out, self.fit_s = collect_fits(rec.freq_hz, futures, self.plan.n_patterns, self.G.shape[0])
         LOGGER.info(f"recording: {len(rec.freq_hz)} frequencies x {self.plan.n_patterns} patterns, {rec.n_frames} frames, from {rec.path}")
         run.timing["fit_wait"] = time.perf_counter() - t0
         n_frames = int(rec.start_s.size)

@@ -12,6 +12,7 @@ import math
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, fields, replace
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -21,9 +22,9 @@ from torchblur.dm.common_noise import common_noise_line, static_column_variance,
 from torchblur.config.budget import DM_DARK_FRAMES, DM_STILL_FRAMES, dm_geometry, dm_plan, dm_still_frames, dm_sweep_size
 from torchblur.dm.demux import demultiplex
 from torchblur.dm.ladder_fit import PatternLadder, fit_ladder_problems
-from torchblur.fit.status import OUT_OF_LADDER
+from torchblur.fit.status import NOT_FITTED, OUT_OF_LADDER
 from torchblur.dm.mirror import DeformableMirror
-from torchblur.dm.plans import static_motion_px
+from torchblur.dm.plans import driven_spots, static_motion_px
 from torchblur.dm.registration import Registration, RegistrationFit, fully_lit, register_and_refit
 from torchblur.dm.slope_gains import slope_gains, slope_gains_line, with_slope_gain_stds
 from torchblur.dm.spot_fit import PerSpotPSF, crop_problems, fit_spot_problems, pattern_responses
@@ -81,6 +82,9 @@ class DMResult:
                 failed fit's; the verdict says so); slope_noise: the ladder's ``(slope [P, M, 2], slope_cov
                 [P, M, 2, 2])`` stage 4 grew the static columns' stds by (:mod:`torchblur.dm.common_noise`), None
                 for the shifted still.
+        fit_s: ``[F]`` each frequency's spot-fit seconds on its worker (NaN where its task failed), or None;
+            frame_rate_hz: the camera's frame rate (``camera.frame_rate_hz``): :mod:`torchblur.identify.keep_up`
+            says from both whether the fitting keeps up with the camera.
         truth_D: ``[2M, N, F]`` the simulated rig's D (None on a real rig); ``mirror``: the
             simulated mirror (its true dynamics), or None; ``truth_G``, ``truth_registration``: its
             true geometry and registration, or None.
@@ -115,6 +119,8 @@ class DMResult:
     spot_model: str = "shifted"
     n_out_of_ladder: int = 0
     slope_noise: tuple | None = None
+    fit_s: np.ndarray | None = None
+    frame_rate_hz: float | None = None
 
 
 def match_spots(found_xy: np.ndarray, rest_px: np.ndarray, pitch_px: float) -> np.ndarray:
@@ -213,29 +219,47 @@ SPARSE_MARGIN = 0.1
 STILL_ENOUGH_PX = 0.2
 
 
-def _fit_frequency(frames, window, omega, amplitude, power, cal, psf, offset, size, jitter_s, fit_options, ladder=None):
-    """One frequency's pattern responses: frames ``[P, E*R, H, W]`` ADU -> ``(Y [P, 2M],
-    Y_cov [P, 2M, 2, 2], failed, reduced chi2 [P, M] of every spot fit, out of the ladder, refitted)``. ``psf``: the spots'
+class FrequencyFit(NamedTuple):
+    """One frequency's spot fits (:func:`_fit_frequency`): ``Y [P, 2M]``, ``Y_cov [P, 2M, 2, 2]``, the
+    failed fits, every fit's reduced chi2 ``[P, M]``, the fits out of the ladder, those refitted by the
+    shifted still, and the fit's wall seconds."""
+
+    Y: np.ndarray
+    Y_cov: np.ndarray
+    failed: int
+    chi2: np.ndarray
+    out_of_ladder: int
+    refitted: int
+    seconds: float
+
+
+def _fit_frequency(frames, window, omega, amplitude, power, cal, psf, offset, size, jitter_s, fit_options, ladder=None, driven=None):
+    """One frequency's pattern responses: frames ``[P, E*R, H, W]`` ADU -> :class:`FrequencyFit` (``Y [P, 2M]``,
+    ``Y_cov [P, 2M, 2, 2]``, failed, reduced chi2 ``[P, M]`` of every spot fit, out of the ladder, refitted, seconds). ``psf``: the spots'
     Gaussians or :class:`~torchblur.dm.spot_fit.PerSpotPSF` (:func:`_spot_psf`, at power 1); ``ladder``: the
     patterns' :class:`~torchblur.dm.ladder_fit.PatternLadder` (``dm_plan.spot_model`` ladder: the spots
     fitted with it, :func:`~torchblur.dm.ladder_fit.fit_ladder_problems`; ``out of the ladder`` counts
     the spot fits whose motion left its levels, their responses NaN: left out of D, except those of a
     spot that barely moves under the pattern (:data:`STILL_ENOUGH_PX`), ``refitted`` by the shifted
-    ``psf``), or None (the shifted ``psf``; ``refitted`` 0)."""
+    ``psf``), or None (the shifted ``psf``; ``refitted`` 0). ``driven``: ``[P, M]`` bool, the (pattern, spot) problems
+    the plan measures (:func:`~torchblur.dm.plans.driven_spots`; the others are not fitted, their responses NaN,
+    neither failed nor in the chi2), or None (every one)."""
+    t0 = time.perf_counter()
     e = subtract_dark(frames.to(_F64), cal.dark) * cal.gain
     crops, in_frame = crop_problems(e[:, None], offset, size)  # [P, 1, M, ER, h, w]
     mask = (in_frame & ~crop_spots(cal.dark.hot_pixels, offset, size))[:, None]  # the hot pixels of every crop left out
     n = window.shape[-1]
     phase_var = float(timing_phase_std(omega, jitter_s, cal.latency_std_s, n)) ** 2
     refit = 0
+    only = None if driven is None else torch.as_tensor(np.asarray(driven, dtype=bool))[:, None, :]  # [P, 1, M]
     if ladder is None:
-        fits = _shifted_fits(crops, window, omega, power, cal, psf, mask, fit_options)
+        fits = _shifted_fits(crops, window, omega, power, cal, psf, mask, fit_options, only)
     else:
         amp = torch.full((crops.shape[0], 1), float(amplitude), dtype=_F64)
         # pixel weights from the camera noise of each crop's 3 x 3 local mean (a pixel's own value would bias the amplitudes low)
         local = torch.nn.functional.avg_pool2d(crops.flatten(0, -3), 3, stride=1, padding=1, count_include_pad=False).reshape(crops.shape)
         fits = _fit_spots(crops, ladder, window, torch.tensor([omega], dtype=_F64), amp, fitter=fit_ladder_problems, power=float(power),
-                          noise_std=camera_noise_std(local, cal.read_noise_e), mask=mask, device=fit_options["device"])
+                          noise_std=camera_noise_std(local, cal.read_noise_e), mask=mask, device=fit_options["device"], only=only)
         fits, refit = _still_spots_refitted(fits, ladder, crops, window, omega, power, cal, psf, mask, fit_options)
     Y, Yc = pattern_responses(fits, amplitude, phase_var=phase_var)
     chi2 = fits.reduced_chi2.reshape(fits.reduced_chi2.shape[0], -1).numpy()  # [P, M] (F = 1)
@@ -244,13 +268,15 @@ def _fit_frequency(frames, window, omega, amplitude, power, cal, psf, offset, si
     # responses are left out of D like a failed fit's (counted, and the verdict's ladder rule sees them)
     Y[np.concatenate([beyond, beyond], 1)] = np.nan
     Yc[np.concatenate([beyond, beyond], 1)] = np.nan
-    return Y[..., 0], Yc[:, :, 0], int((fits.status != 0).sum()), chi2, int(beyond.sum()), refit
+    failed = int(((fits.status != 0) & (fits.status != NOT_FITTED)).sum())
+    return FrequencyFit(Y[..., 0], Yc[:, :, 0], failed, chi2, int(beyond.sum()), refit, time.perf_counter() - t0)
 
 
-def _shifted_fits(crops, window, omega, power, cal, psf, mask, fit_options):
+def _shifted_fits(crops, window, omega, power, cal, psf, mask, fit_options, only=None):
     """The shifted still's :class:`~torchblur.dm.spot_fit.SpotFits` of ``crops [P, 1, M, E*R, h, w]`` (electrons),
     ``window [P, 1, E*R]``: each spot its ``psf`` (Gaussian, or :class:`~torchblur.dm.spot_fit.PerSpotPSF` with the
-    kernels' own noise in the stds) scaled to laser power ``power``, weights from the camera's noise model."""
+    kernels' own noise in the stds) scaled to laser power ``power``, weights from the camera's noise model
+    (``only``: ``[P, 1, M]`` bool, the problems fitted, None: every one)."""
     kernel_noise = None
     if isinstance(psf, PerSpotPSF):
         p = psf.scaled(power)
@@ -260,7 +286,7 @@ def _shifted_fits(crops, window, omega, power, cal, psf, mask, fit_options):
         p = GaussianPSF(psf.center, psf.cov, psf.amplitude * power)
     # weights from the camera's noise model: the fitter refits with the first fit's expected signal
     return _fit_spots(crops, p, window, torch.tensor([omega], dtype=_F64), noise=cal.noise, mask=mask, kernel_noise=kernel_noise,
-                      **fit_options)
+                      only=only, **fit_options)
 
 
 def _still_spots_refitted(fits, ladder, crops, window, omega, power, cal, psf, mask, fit_options):
@@ -277,7 +303,7 @@ def _still_spots_refitted(fits, ladder, crops, window, omega, power, cal, psf, m
     if not bool(redo.any()):
         return fits, 0
     pp = torch.nonzero(redo.any(1)).reshape(-1)
-    sh = _shifted_fits(crops[pp], window[pp], omega, power, cal, psf, mask, fit_options)
+    sh = _shifted_fits(crops[pp], window[pp], omega, power, cal, psf, mask, fit_options, redo[pp][:, None])
     take = redo[pp][:, None]  # [p', 1, M]
 
     def merged(a, b):
@@ -356,12 +382,13 @@ def _fit_outcome(future):
 
 def _failed_frequency(P: int, M2: int):
     """A frequency whose fit task failed: NaN responses and covariances, every one of its ``P * M`` spot fits failed."""
-    return (np.full((P, M2), np.nan + 0j), np.full((P, M2, 2, 2), np.nan), P * (M2 // 2), np.full((P, M2 // 2), np.nan), 0, 0)
+    return FrequencyFit(np.full((P, M2), np.nan + 0j), np.full((P, M2, 2, 2), np.nan), P * (M2 // 2), np.full((P, M2 // 2), np.nan), 0, 0,
+                        math.nan)
 
 
 def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, exp=None, executor=None, ladder=None):
     """Stage 3 (module docstring): ``(amplitude [F], power [F], Y [P, 2M, F], Y_cov, failed, chi2, frames, out of the
-    ladder, t_acq, t_wait)``; ``ladder``: the patterns' PatternLadder (the spot model ladder) or None.
+    ladder, t_acq, t_wait, fit seconds [F])``; ``ladder``: the patterns' PatternLadder (the spot model ladder) or None.
     With a recording ``exp`` each frequency is one group (:mod:`torchblur.identify.dm_record`): taken from
     it, at its recorded amplitude, where it holds it, else acquired and recorded. Each frequency's
     spot fits go to ``executor`` (any :class:`concurrent.futures.Executor`, Dask's
@@ -401,13 +428,13 @@ def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, exp=None, executor=None
                 cal.latency_s, delay), labels)
             t_acq += time.perf_counter() - t0
             futures.append(pool.submit(_fit_frequency, frames, window, 2 * math.pi * f, float(amps[k]), float(powers[k]), cal, psf,
-                                       offset, size, float(c.jitter_s), _fit_options(cfg), ladder))
+                                       offset, size, float(c.jitter_s), _fit_options(cfg), ladder, driven_spots(plan)))
             LOGGER.info(f"dm sweep: {f:.4g} Hz, amplitude {amps[k]:.4g}, power {powers[k]:.3g}, {P} patterns x "
                         f"{len(te)} exposures x {R} repeats ({k + 1}/{F}{', recorded' if rec is not None else ''})")
         t0 = time.perf_counter()
-        Y, Y_cov, failed, chi2, out = collect_fits(freqs, futures, P, M2)
+        Y, Y_cov, failed, chi2, out, fit_s = collect_fits(freqs, futures, P, M2)
         t_wait = time.perf_counter() - t0
-    return amps, powers, Y, Y_cov, failed, chi2, P * F * len(s.exposures) * R, out, t_acq, t_wait
+    return amps, powers, Y, Y_cov, failed, chi2, P * F * len(s.exposures) * R, out, t_acq, t_wait, fit_s
 
 
 def fit_pool(executor=None):
@@ -417,22 +444,23 @@ def fit_pool(executor=None):
 
 def collect_fits(freqs, futures, P: int, M2: int):
     """The :func:`_fit_frequency` of every frequency (``futures``), waited for: ``(Y [P, 2M, F], Y_cov [P, 2M, F, 2, 2], failed,
-    chi2 [P, M, F], out of the ladder)``; a task that raised: NaN responses, its ``P * M`` spot fits counted failed (logged)."""
+    chi2 [P, M, F], out of the ladder, fit seconds [F])``; a task that raised: NaN responses and seconds, its ``P * M`` spot fits
+    counted failed (logged)."""
     outcomes = [_fit_outcome(fu) for fu in futures]
     for f, (_, why) in zip(freqs, outcomes):
         if why is not None:
             LOGGER.info(f"dm sweep: the spot fits of {f:.4g} Hz failed on the executor ({why}): its responses are NaN and "
                         f"its {P * (M2 // 2)} spot fits counted failed")
     results = [r if r is not None else _failed_frequency(P, M2) for r, _ in outcomes]
-    out, refit = sum(r[4] for r in results), sum(r[5] for r in results)
+    out, refit = sum(r.out_of_ladder for r in results), sum(r.refitted for r in results)
     if refit:
         LOGGER.info(f"dm spot model: {refit} spot fits that left the ladder's levels on spots barely moving under their pattern "
                     f"(under {STILL_ENOUGH_PX:g} px at its top level) fitted by the spot's shifted still instead")
     if out:
         LOGGER.info(f"dm spot model: {out} spot fits' motion left the ladder's levels (flagged; their responses extrapolate the "
                     f"static images: raise dm_plan.ladder_reach)")
-    return (np.stack([r[0] for r in results], -1), np.stack([r[1] for r in results], 2), sum(r[2] for r in results),
-            np.stack([r[3] for r in results], -1), out)
+    return (np.stack([r.Y for r in results], -1), np.stack([r.Y_cov for r in results], 2), sum(r.failed for r in results),
+            np.stack([r.chi2 for r in results], -1), out, np.array([r.seconds for r in results]))
 
 
 def check_dm_config(cfg) -> None:
@@ -456,6 +484,7 @@ class DMPlan:
     supports_direct = False
     model_stages = ()  # the actuators' models are fitted in assemble (estimate_mirror)
     slope_noise = None  # the ladder's (slope, slope_cov) once the sweep built one (stage 4's common error)
+    fit_s = None  # each frequency's spot-fit seconds once the sweep is done
 
     @staticmethod
     def check(cfg, rig) -> None:
@@ -557,7 +586,7 @@ class DMPlan:
         run.timing["calibration"] += time.perf_counter() - t0
         out = _sweep(cfg, run.rig, self.plan, self.R, self.G, run.cal, self.psf, self.offset, self.size, exp, executor=run.executor,
                      ladder=ladder)
-        run.acquisition, (run.timing["acquisition"], run.timing["fit_wait"]) = out[:8], out[8:]
+        run.acquisition, (run.timing["acquisition"], run.timing["fit_wait"]), self.fit_s = out[:8], out[8:10], out[10]
 
     def fit(self, run) -> None:
         """Nothing left: every frequency's spot fits ran on the executor during :meth:`sweep`."""
@@ -584,7 +613,8 @@ class DMPlan:
         return DMResult(freq_hz=freqs, plan=self.plan, n_repeats=self.R, plan_info=self.info, amplitude=amps, power=powers, Y=Y,
                         Y_cov=Y_cov, D=D, D_cov=D_cov, actuators=table, G=reg.G, actuator_xy=self.model_mirror.actuator_xy,
                         n_frames=n_frames, n_failed=failed, spot_reduced_chi2=chi2, timing_s=run.timing,
-                        spot_model=self.spot_model, n_out_of_ladder=out, slope_noise=self.slope_noise,
+                        spot_model=self.spot_model, n_out_of_ladder=out, slope_noise=self.slope_noise, fit_s=self.fit_s,
+                        frame_rate_hz=float(run.cfg.camera.frame_rate_hz),
                         truth_D=truth.truth_D(freqs) if truth is not None else None, mirror=truth.mirror if truth is not None else None,
                         G_nominal=self.G, registration=reg, support_check=support,
                         truth_G=truth.geometry if truth is not None else None,

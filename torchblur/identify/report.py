@@ -16,7 +16,8 @@ import numpy as np
 import torchblur as tb
 from torchblur.dm.registration import support_line
 from torchblur.fit.status import FLAGS, POOR_FIT_CHI2, STATUS
-from torchblur.identify.dm_plan import truth_errors
+from torchblur.identify.dm_plan import AMPLITUDE_LAG, truth_errors
+from torchblur.identify.keep_up import pace_line, pace_summary
 from torchblur.identify.model import model_parameter_lines
 from torchblur.identify.read_outputs import SUMMARY_SCHEMA
 from torchblur.identify.verdict import report_lines
@@ -58,6 +59,9 @@ def dm_lines(res, elapsed: float) -> list[str]:
              f"fits {t['fit_wait']:.1f} s, estimation {t['estimation']:.1f} s); failed spot fits: {res.n_failed}",
              "status: " + ", ".join(f"{s} {list(res.actuators.status).count(s)}" for s in ("ok", "weak", "dead"))
              + f"; {int(np.sum(res.actuators.poor_fit))} poor_fit (stds inflated)"]
+    pace = _pace(res)
+    if pace is not None:
+        lines.append(pace_line(pace, res.n_frames // len(res.freq_hz), res.frame_rate_hz))
     if res.registration is not None:
         lines.append(res.registration.line())
         if support_line(res.support_check):
@@ -72,11 +76,19 @@ def dm_lines(res, elapsed: float) -> list[str]:
     return lines
 
 
+def _pace(res) -> dict | None:
+    """:func:`~torchblur.identify.keep_up.pace_summary` of a DM run's spot fits (None without their times)."""
+    fit_s, rate = getattr(res, "fit_s", None), getattr(res, "frame_rate_hz", None)
+    if fit_s is None or rate is None:
+        return None
+    return pace_summary(fit_s, res.n_frames // len(res.freq_hz), rate, AMPLITUDE_LAG)
+
+
 def dm_summary(res, v, elapsed: float) -> dict:
     """A DM run's ``--json`` line: its frames, plan, stage times, errors against the simulated
     truth (null on a real rig) and the verdict ``v`` (a :class:`~torchblur.identify.verdict.DMVerdict`)."""
     return {"schema": SUMMARY_SCHEMA[0], "schema_version": SUMMARY_SCHEMA[1][-1], "elapsed_s": elapsed, "frames": res.n_frames,
-            "plan": res.plan.kind, "timing_s": res.timing_s, "truth_errors": truth_errors(res), "verdict": v.line,
+            "plan": res.plan.kind, "timing_s": res.timing_s, "fit_pace": _pace(res), "truth_errors": truth_errors(res), "verdict": v.line,
             "trustworthy": v.trustworthy, "actuator_flags": {"poor_fit": list(v.poor_fit), "failed": list(v.failed)},
             "failed_spot_fits": v.failed_spot_fits, "spot_problems": v.spot_problems, "poor_spot_fits": v.poor_spot_fits,
             "spot_model_fails": v.spot_model_fails, "beyond_truth": None if v.beyond_truth is None else list(v.beyond_truth)}

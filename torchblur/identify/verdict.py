@@ -19,6 +19,7 @@ from dataclasses import asdict, dataclass, replace
 import numpy as np
 
 from torchblur.dm.actuator_fit import PARAMS, POOR_FIT_P, ActuatorTable
+from torchblur.dm.plans import driven_spots
 from torchblur.dm.registration import support_line
 from torchblur.errors import ParameterError, ShapeError, check_int, check_type
 from torchblur.identify.assemble import timing_limit_hz
@@ -558,9 +559,10 @@ def _spot_fits(chi2, threshold: float, n_problems: int) -> tuple[int, bool, str]
 
 
 def run_verdict(res, *, poor_fit_chi2: float = 1.5) -> DMVerdict:
-    """:func:`dm_verdict` of a :class:`~torchblur.identify.dm_plan.DMResult` (``P * F * M`` spot problems,
-    their reduced chi2 judged against ``poor_fit_chi2``, the run's ``fit.poor_fit_chi2``)."""
-    n_problems = int(res.plan.n_patterns) * len(res.freq_hz) * (int(np.shape(res.G)[0]) // 2)
+    """:func:`dm_verdict` of a :class:`~torchblur.identify.dm_plan.DMResult` (the spot problems its plan measures,
+    :func:`~torchblur.dm.plans.driven_spots` at every frequency, their reduced chi2 judged against
+    ``poor_fit_chi2``, the run's ``fit.poor_fit_chi2``)."""
+    n_problems = int(driven_spots(res.plan).sum()) * len(res.freq_hz)
     return dm_verdict(res.actuators, D=res.D, n_failed_spot_fits=int(res.n_failed), n_spot_problems=n_problems,
                       spot_reduced_chi2=getattr(res, "spot_reduced_chi2", None), poor_fit_chi2=poor_fit_chi2)
 
