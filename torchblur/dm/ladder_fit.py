@@ -206,22 +206,18 @@ def _basis_at(u, knots, coef):
 def _integrated_basis(u, wb, wd, knots, coef):
     """``[n, E, A + D, K]``: ``sum_s wb[..., a, s] B(u_s)`` then ``sum_s wd[..., d, s] dB/du(u_s)``
     at nodes ``u [n, E, S]`` (weights ``wb [n, E, A, S]``, ``wd [n, E, D, S]``; ``knots``, ``coef``
-    as :func:`_basis_at`). Each node's powers of its offset in its interval are placed in that
-    interval's slots (``[S, 4 (K - 1)]``, zero elsewhere), the weights summed into the slots by one
-    GEMM, then one product with the basis's coefficients: no ``[S, 4, K]`` per node."""
+    as :func:`_basis_at`). Each node's basis and derivative come from its interval's coefficients
+    (``[4, K]``) times its offset's powers, then one GEMM per exposure with the weights."""
     n, K = knots.shape
     E, S = u.shape[1:]
     flat = u.reshape(n, -1)
-    i = (torch.searchsorted(knots, flat.contiguous()) - 1).clamp(0, K - 2)
-    d = (flat - torch.gather(knots, 1, i)).reshape(n, E, S, 1)
+    i = (torch.searchsorted(knots, flat.contiguous()) - 1).clamp(0, K - 2)  # [n, Q]
+    d = flat - torch.gather(knots, 1, i)
+    c = coef[torch.arange(n, device=u.device)[:, None], i]  # [n, Q, 4, K]
     one = torch.ones_like(d)
-    slot = 4 * i.reshape(n, E, S, 1) + torch.arange(4, device=u.device)  # [n, E, S, 4]
-    acc = []
-    for w, pw in ((wb, (d * d * d, d * d, d, one)), (wd, (3 * d * d, 2 * d, one, torch.zeros_like(d)))):
-        Z = torch.zeros(n, E, S, 4 * (K - 1), dtype=u.dtype, device=u.device).scatter_(-1, slot, torch.cat(pw, -1))
-        acc.append(w @ Z)  # [n, E, A or D, 4 (K - 1)]
-    acc = torch.cat(acc, 2)
-    return (acc.reshape(n, -1, 4 * (K - 1)) @ coef.reshape(n, 4 * (K - 1), K)).reshape(acc.shape[:3] + (K,))
+    pw = torch.stack([d * d * d, d * d, d, one, 3 * d * d, 2 * d, one, torch.zeros_like(d)], -1).reshape(n, -1, 2, 4)
+    BB = (pw @ c).reshape(n, E, S, 2 * K)  # B(u_s) and dB/du(u_s)
+    return torch.cat([wb @ BB[..., :K], wd @ BB[..., K:]], 2)
 
 
 def shift_derivatives(img: torch.Tensor) -> torch.Tensor:
@@ -410,13 +406,22 @@ def _chunk(prob: _Problems, ladder: PatternLadder, rows, like, tops=None) -> _Ch
     n = _normal(slope)  # [u, 2]
     blocks = list(_chain_images(L, n[:, None], slope[:, None], tops=tops))  # Dn^j Ds^k L (Ds: the derivative along a shift by s)
     lad = torch.cat(blocks, 1).reshape(len(uniq), len(blocks) * K, h * w)
+    dn_var = _derivative_variance(var, n[:, None])  # [u, K, h, w]: the variance of Dn L (every pixel of L independent)
     var = var.reshape(len(uniq), K, h * w)
-    dmat = _derivative_matrix(h, w, like["dtype"], torch.device(like["device"]))  # [q', a, q] = D_a[q, q']
-    dd = torch.stack([dmat[:, 0] ** 2, dmat[:, 1] ** 2, 2 * dmat[:, 0] * dmat[:, 1]])  # [3, q', q]
-    nn = torch.stack([n[:, 0] ** 2, n[:, 1] ** 2, n[:, 0] * n[:, 1]], 1)[:, :, None, None]  # [u, 3, 1, 1]: Dn = nx Dx + ny Dy
     return _Chunk(rows=rows, pat=pat, pf=rows // M, freq=(rows // M) % F, inv=inv, lad=lad, var=var,
-                  noise=torch.stack([var, (nn * (var[:, None] @ dd)).sum(1)], 1),
-                  slope=slope[inv], ds_dl=ds_dl[inv])
+                  noise=torch.stack([var, dn_var.reshape(var.shape)], 1), slope=slope[inv], ds_dl=ds_dl[inv])
+
+
+def _derivative_variance(var, n):
+    """The variance of ``Dn img`` (:func:`_along`) where ``img``'s pixels are independent of variance
+    ``var [..., h, w]``: ``sum_q' Dn[q, q']^2 var[q']``, ``Dn = nx Dx + ny Dy`` with Dx acting along rows and
+    Dy along columns (:func:`_derivative_factors`), so ``Dn^2 = nx^2 Dx^2 + ny^2 Dy^2`` plus the cross term on
+    the diagonal (``Dx Dy`` elementwise is 0 off it)."""
+    h, w = var.shape[-2:]
+    mx, my = _derivative_factors(h, w, var.dtype, var.device)
+    nx, ny = n[..., 0, None, None], n[..., 1, None, None]
+    cross = 2 * torch.diagonal(my)[:, None] * torch.diagonal(mx)[None, :]  # [h, w]
+    return (nx * nx) * (var @ (mx * mx).T) + (ny * ny) * ((var.transpose(-1, -2) @ (my * my).T).transpose(-1, -2)) + nx * ny * cross * var
 
 
 def _chains():
@@ -621,10 +626,11 @@ def _ladder_covariance(theta, prob: _Problems, ch: _Chunk, J, W, Cw, H_t, H_s, c
     pw = prob.power[ch.freq]
     v = (W[..., None] * J).reshape(c, E, h, w, N_PAR).permute(0, 4, 1, 2, 3)  # [c, 4, E, h, w]
     n = _normal(ch.slope)[:, None, None]  # [c, 1, 1, 2]
-    G = 0
+    G = C.new_zeros(c, K, N_PAR * h * w)  # sum_b C_b^T (the block's adjoint of v), accumulated in place: one small GEMM per block
+    Ct = C[:, :, 0].permute(0, 2, 3, 1)  # [c, B, K, E]
     for b, vj in enumerate(_chain_images(v, n, ch.slope[:, None, None], sign=-1, tops=tops)):  # (Dn^j Ds^k)^T = (-Dn)^j (-Ds)^k
-        G = G + torch.einsum("cek,cpeq->cpkq", C[:, :, 0, b], vj.reshape(c, N_PAR, E, h * w))
-    G = G * pw[:, None, None, None]
+        G.baddbmm_(Ct[:, b], vj.reshape(c, N_PAR, E, h * w).transpose(1, 2).reshape(c, E, N_PAR * h * w))
+    G = G.reshape(c, K, N_PAR, h * w).transpose(1, 2) * pw[:, None, None, None]  # [c, 6, K, hw]
     A = H_t @ (-Cw @ G.reshape(c, N_PAR, -1)) + H_s @ ch.ds_dl.reshape(c, 2, -1)  # [c, 4, K hw]
     var = ch.var[ch.inv]  # [c, K, hw]
     cov = (A * var.reshape(c, 1, -1)) @ A.transpose(1, 2)
