@@ -208,6 +208,10 @@ def test_auto_takes_a_sparse_plan_for_the_ladder_and_a_refit_replays_it(tmp_path
     assert "dm plan: sparse, not hadamard (auto, and the spots change shape" in report
     doc = json.loads((run / "experiment" / "experiment.json").read_text())[PLAN_KEY]
     assert doc["kind"] == "sparse" and doc["support_threshold"] == pytest.approx(0.01 * SPARSE_MARGIN)
+    from torchblur.config.budget import estimate_run  # the run-size estimate counts the frames this run took: the sparse sweep, the holds
+    lines = (run / "experiment" / "manifest.jsonl").read_text().splitlines()
+    est = estimate_run(load_config(None, cfg))
+    assert est["frames"] == len(lines) and est["hold_frames"] == sum(json.loads(ln)["kind"] == "dm_ladder" for ln in lines)
     live_rc = cli.main(["fit", str(run), "--out", str(tmp_path / "refit"), "--quiet"])
     assert live_rc in (0, 4)
     assert (tmp_path / "refit" / "dm" / "actuators.csv").read_text() == (run / "dm" / "actuators.csv").read_text()

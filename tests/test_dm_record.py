@@ -82,22 +82,32 @@ def test_recording_layout(live, reference):
 
 
 def test_estimate_counts_the_frames_the_run_takes(live):
+    from torchblur.config.budget import dm_ladder_plan
+
     cfg = load_config(None, SMALL)
     est = estimate_run(cfg)
     lines = _lines(live / "experiment")
-    assert est["frames"] == len(lines)  # the frames the run took: calibration and sweep
-    assert est["sweep_frames"] == 16 * 3 * 2 * 1 == sum(ln["kind"] == "dm_sweep" for ln in lines)
+    took = est["by_spot_model"]["shifted"]  # spot_model auto: the Gaussian spots took the shifted still
+    assert took["frames"] == len(lines)  # the frames the run took: calibration, the test's holds and sweep
+    assert took["sweep_frames"] == 16 * 3 * 2 * 1 == sum(ln["kind"] == "dm_sweep" for ln in lines)
     assert sum(ln["group"] == "dark" for ln in lines) == 256 and sum(ln["group"] == "psf" for ln in lines) == 128
     assert est["frame_px"] == (64, 64)
-    assert est["hold_frames"] == 16 * 2 * 4 == sum(ln["kind"] == "dm_ladder" for ln in lines)  # spot_model auto's test
+    assert took["hold_frames"] == 16 * 2 * 4 == sum(ln["kind"] == "dm_ladder" for ln in lines)  # spot_model auto's test
+    # the estimate is the most the run may take: the ladder auto may choose (its plan's holds besides the test's)
+    lp = dm_ladder_plan(cfg)[0]
+    assert est["frames"] == est["by_spot_model"]["ladder"]["frames"] > took["frames"]
+    assert est["hold_frames"] == 16 * 2 * 4 + lp.n_patterns * 13 * 32
     # the plan's patterns, frequencies, exposures and repeats, each counted (and the holds: patterns x 2 levels x 4 frames)
-    more = estimate_run(load_config(None, SMALL + ["sweep.n=5", "dm_plan.n_repeats=3", "dm_plan.kind=one_at_a_time"]))
-    assert more["sweep_frames"] == 9 * 5 * 2 * 3 and more["hold_frames"] == 9 * 2 * 4
-    assert more["frames"] - more["sweep_frames"] - more["hold_frames"] == est["frames"] - est["sweep_frames"] - est["hold_frames"]
+    more = estimate_run(load_config(None, SMALL + ["sweep.n=5", "dm_plan.n_repeats=3", "dm_plan.kind=one_at_a_time",
+                                                   "dm_plan.spot_model=shifted"]))
+    assert more["sweep_frames"] == 9 * 5 * 2 * 3 and more["hold_frames"] == 0 and "by_spot_model" not in more
     ladder = estimate_run(load_config(None, SMALL + ["dm_plan.spot_model=ladder", "dm_plan.ladder_levels=9", "dm_plan.ladder_frames=3"]))
-    assert ladder["hold_frames"] == 16 * 9 * 3 and ladder["frames"] - ladder["hold_frames"] == est["frames"] - est["hold_frames"]
-    full = estimate_run(load_config("configs/identify_dm.yaml"))
-    assert full["sweep_frames"] == 64 * 16 * 2 * 2 and full["frame_px"] == (160, 160)
+    assert ladder["hold_frames"] == lp.n_patterns * 9 * 3 and "by_spot_model" not in ladder
+    shipped = load_config("configs/identify_dm.yaml")
+    full = estimate_run(shipped)
+    assert full["by_spot_model"]["shifted"]["sweep_frames"] == 64 * 16 * 2 * 2 and full["frame_px"] == (160, 160)
+    sp, R = dm_ladder_plan(shipped)[:2]  # with the ladder: auto's sparse plan, its repeats from the same budget
+    assert sp.kind == "sparse" and full["sweep_frames"] == sp.n_patterns * 16 * 2 * R
 
 
 def test_refit_gives_the_live_outputs_bit_for_bit(live, tmp_path):
@@ -227,7 +237,7 @@ def test_crash_then_resume(live, reference, tmp_path, capsys, monkeypatch):
     by_session = {(ln["group"], ln["session"]) for ln in lines}
     assert {g for g, s in by_session if s == 1} == {"dm_sweep/001", "dm_sweep/002"}  # only the missing groups taken (the holds reused)
     assert {g: _sha(exp_dir / "frames" / (g.replace("/", "_") + ".tif")) for g in kept} == stored  # nothing rewritten
-    assert estimate_run(cfg)["frames"] == len(lines)
+    assert estimate_run(cfg)["by_spot_model"]["shifted"]["frames"] == len(lines)  # auto took the shifted still
 
     exp = Experiment.open(exp_dir, writable=False)
     res = identify(cfg, ReplayRig(exp), record=exp, progress=False)  # the resumed run's result (a re-fit gives it bit for bit)

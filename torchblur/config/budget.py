@@ -18,13 +18,13 @@ import torch
 from torchblur.config.schema import IdentifyConfig
 from torchblur.design.windows import MIN_SEPARATION, alias_separation, dual_exposure_windows
 from torchblur.dm.mirror import DeformableMirror
-from torchblur.dm.plans import choose_plan
+from torchblur.dm.plans import SPARSE_MARGIN, choose_plan
 from torchblur.dm.shack_hartmann import ShackHartmann
 from torchblur.errors import ConfigError, ParameterError
 
 __all__ = ["LADDER_TEST_FRAMES", "LIMITS", "SATURATION_STEPS", "LATENCY_SCAN", "GEOMETRY_EVALUATIONS", "estimate_run", "check_limits",
            "check_dm_bounds", "dm_size_bounds", "calibration_frames", "latency_scan_times",
-           "DM_DARK_FRAMES", "DM_STILL_FRAMES", "STILL_BYTES", "check_dm_exposures", "dm_geometry", "dm_plan", "dm_still_frames",
+           "DM_DARK_FRAMES", "DM_STILL_FRAMES", "STILL_BYTES", "check_dm_exposures", "dm_geometry", "dm_ladder_plan", "dm_plan", "dm_still_frames",
            "dm_sweep_size", "dm_sensor"]
 
 # A run beyond any of these is refused at validation, with the estimate (--force to go on).
@@ -129,23 +129,38 @@ def check_dm_bounds(cfg: IdentifyConfig) -> dict:
 def _estimate_dm(cfg: IdentifyConfig) -> dict:
     """:func:`estimate_run` of a DM run (``dm.n_across`` > 0): the plan's sweep frames
     (:func:`dm_sweep_size`), the DM calibration's and the spot model's static holds
-    (``hold_frames``: with ``dm_plan.spot_model`` auto its test only, ``patterns x 2 x``
-    :data:`LADDER_TEST_FRAMES`; the ladder it may choose adds ``patterns x ladder_levels x
-    ladder_frames``), on the sensor's frame."""
+    (``hold_frames``), on the sensor's frame. With ``dm_plan.spot_model`` auto the run takes one of
+    two: the shifted still (its test's holds only, ``patterns x 2 x`` :data:`LADDER_TEST_FRAMES`) or
+    the ladder (the test's and ``patterns x ladder_levels x ladder_frames`` more, on the ladder's plan,
+    :func:`dm_ladder_plan`: on ``kind=auto`` a sparse one where auto chose Hadamard); the estimate is
+    the larger, the most the run may take, and ``by_spot_model`` holds each (``frames``,
+    ``sweep_frames``, ``hold_frames``)."""
+    p = cfg.dm_plan
     size = dm_sweep_size(cfg)
-    n_still = dm_still_frames(size["frames"], size["frame_shape"])
-    p = cfg.dm_plan  # the static holds of the spot model: auto's test (2 levels), the ladder's levels, none for shifted
-    per_pattern = {"shifted": 0, "auto": 2 * LADDER_TEST_FRAMES, "ladder": int(p.ladder_levels) * int(p.ladder_frames)}
-    holds = size["patterns"] * per_pattern[p.spot_model]
-    frames = size["frames"] + calibration_frames(cfg, n_dark=DM_DARK_FRAMES, n_still=n_still) + holds
-    est = _estimate(cfg, frames, size["frame_shape"], n_drives=size["patterns"], repeats=size["repeats"])
-    est["sweep_frames"], est["hold_frames"] = size["frames"], holds
+    test = size["patterns"] * 2 * LADDER_TEST_FRAMES if p.spot_model == "auto" else 0
+    branches = {}
+    if p.spot_model in ("auto", "shifted"):
+        branches["shifted"] = (size, test)
+    if p.spot_model in ("auto", "ladder"):
+        lad = dm_sweep_size(cfg, ladder=True)
+        branches["ladder"] = (lad, test + lad["patterns"] * int(p.ladder_levels) * int(p.ladder_frames))
+    each = {}
+    for name, (sz, holds) in branches.items():
+        n_still = dm_still_frames(sz["frames"], sz["frame_shape"])
+        frames = sz["frames"] + calibration_frames(cfg, n_dark=DM_DARK_FRAMES, n_still=n_still) + holds
+        each[name] = _estimate(cfg, frames, sz["frame_shape"], n_drives=sz["patterns"], repeats=sz["repeats"], holds=holds)
+        each[name]["sweep_frames"], each[name]["hold_frames"] = sz["frames"], holds
+    est = dict(max(each.values(), key=lambda e: e["frames"]))
+    if len(each) > 1:
+        est["by_spot_model"] = {k: {key: e[key] for key in ("frames", "sweep_frames", "hold_frames")} for k, e in each.items()}
     return est
 
 
-def _estimate(cfg: IdentifyConfig, frames: int, frame_px: tuple, *, n_drives: int, repeats: int) -> dict:
+def _estimate(cfg: IdentifyConfig, frames: int, frame_px: tuple, *, n_drives: int, repeats: int, holds: int = 0) -> dict:
     """:func:`estimate_run`'s dict for ``frames`` of ``frame_px`` ``(H, W)``, the sweep driving
-    ``n_drives`` inputs (or DM patterns) at every frequency, ``repeats`` frames per exposure."""
+    ``n_drives`` inputs (or DM patterns) at every frequency, ``repeats`` frames per exposure;
+    ``holds`` of the frames are a DM spot model's static holds, held raw until each level's mean
+    (8 bytes a pixel, not 24) and a camera cycle each."""
     s, c = cfg.sweep, cfg.camera
     pixels = int(frame_px[0]) * int(frame_px[1])
     bench = float("nan")
@@ -153,8 +168,8 @@ def _estimate(cfg: IdentifyConfig, frames: int, frame_px: tuple, *, n_drives: in
         f = np.asarray(cfg.frequencies_hz(), dtype=float)
         cycle = np.maximum(1.0 / c.frame_rate_hz, 1.0 / f)
         frame_s = sum(np.maximum(cycle, e / f + c.readout_s) for e in s.exposures) * int(repeats)
-        bench = float(n_drives * np.sum(frame_s + (s.settle_s or 0.0) + 2.0 / f))
-    return {"frames": frames, "memory_bytes": 3 * 8 * frames * pixels, "disk_bytes": 2 * frames * pixels,
+        bench = float(n_drives * np.sum(frame_s + (s.settle_s or 0.0) + 2.0 / f)) + holds / float(c.frame_rate_hz)
+    return {"frames": frames, "memory_bytes": 8 * (3 * (frames - holds) + holds) * pixels, "disk_bytes": 2 * frames * pixels,
             "bench_s": bench, "motion_px": 1.33 * float(cfg.excitation.target_px), "frame_px": (int(frame_px[0]), int(frame_px[1]))}
 
 
@@ -296,9 +311,24 @@ def dm_plan(cfg, kind: str | None = None, threshold: float | None = None):
     return plan, R, copy.deepcopy(info)
 
 
-def dm_sweep_size(cfg) -> dict:
+def dm_ladder_plan(cfg):
+    """``(plan, n_repeats, info, threshold)`` of a DM run whose spots take the ladder: with ``dm_plan.kind=auto``
+    where auto chose Hadamard (every pattern moves every actuator a spot sees, so the ladder would tie a spot's
+    shape to their common command), the sparse plan seen at :data:`~torchblur.dm.plans.SPARSE_MARGIN` x
+    ``dm_plan.support_threshold`` (a misregistered mirror's pairs all in it), at that threshold; else
+    :func:`dm_plan`'s at ``dm_plan.support_threshold``."""
+    plan, R, info = dm_plan(cfg)
+    threshold = float(cfg.dm_plan.support_threshold)
+    if cfg.dm_plan.kind == "auto" and plan.kind == "hadamard":
+        threshold *= SPARSE_MARGIN
+        plan, R, info = dm_plan(cfg, kind="sparse", threshold=threshold)
+    return plan, R, info, threshold
+
+
+def dm_sweep_size(cfg, ladder: bool = False) -> dict:
     """A DM config's sweep: ``frames`` (patterns x frequencies x exposures x repeats),
-    ``patterns``, ``repeats`` and the sensor camera's ``frame_shape`` ``(H, W)`` px.
+    ``patterns``, ``repeats`` and the sensor camera's ``frame_shape`` ``(H, W)`` px (``ladder``: the
+    sweep the ladder spot model takes, on :func:`dm_ladder_plan`'s plan).
 
     Raises:
         ConfigError: naming ``dm_plan.budget_frames`` when one repeat of the plan needs more;
@@ -306,7 +336,7 @@ def dm_sweep_size(cfg) -> dict:
     """
     check_dm_exposures(cfg.sweep.exposures)
     try:
-        plan, R, _ = dm_plan(cfg)
+        plan, R = (dm_ladder_plan(cfg) if ladder else dm_plan(cfg))[:2]
     except ParameterError as exc:
         raise ConfigError(str(exc)) from None
     frames = plan.n_frames(len(cfg.frequencies_hz()), len(cfg.sweep.exposures), R)

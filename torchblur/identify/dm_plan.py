@@ -19,12 +19,12 @@ import torch
 
 from torchblur.dm.actuator_fit import fit_actuators
 from torchblur.dm.common_noise import common_noise_line, static_column_variance, with_common_variance
-from torchblur.config.budget import DM_DARK_FRAMES, DM_STILL_FRAMES, dm_geometry, dm_plan, dm_still_frames, dm_sweep_size
+from torchblur.config.budget import DM_DARK_FRAMES, DM_STILL_FRAMES, dm_geometry, dm_ladder_plan, dm_plan, dm_still_frames, dm_sweep_size
 from torchblur.dm.demux import demultiplex
 from torchblur.dm.ladder_fit import PatternLadder, fit_ladder_problems
 from torchblur.fit.status import NOT_FITTED, OUT_OF_LADDER
 from torchblur.dm.mirror import DeformableMirror
-from torchblur.dm.plans import driven_spots, static_motion_px
+from torchblur.dm.plans import SPARSE_MARGIN, driven_spots, static_motion_px  # noqa: F401 (SPARSE_MARGIN: read here too)
 from torchblur.dm.registration import Registration, RegistrationFit, fully_lit, register_and_refit
 from torchblur.dm.slope_gains import slope_gains, slope_gains_line, with_slope_gain_stds
 from torchblur.dm.spot_fit import PerSpotPSF, crop_problems, fit_spot_problems, pattern_responses
@@ -207,11 +207,6 @@ def _spot_psf(cal, order):
                 f"(each spot's own still decides; the kernels' own noise is in the stds)")
     return PerSpotPSF(gauss, KernelPSF(sk.psf.kernel[order]), use)
 
-
-#: the sparse plan that ``dm_plan.kind=auto`` takes for the ladder's spots (:meth:`DMPlan.sweep`) sees at this
-#: fraction of ``dm_plan.support_threshold``: its colouring and support then hold every pair a mirror misregistered
-#: by 0.25 pitch, 1.5 deg and 3 % needs (HCIPy's quick run: 36 pairs missing at 1 x, 0 at 0.1 x; 20 patterns, not 18)
-SPARSE_MARGIN = 0.1
 
 #: px: a spot whose static motion under its pattern at the ladder's top level is below this barely
 #: changes shape; where its ladder fit left the levels (its shape's command is then the data's noise,
@@ -564,9 +559,8 @@ class DMPlan:
         self.spot_model = choose_spot_model(cfg, run.rig, exp, plan.patterns, self.G, run.cal, self.offset, self.size, self.inside,
                                             limit)
         threshold = float(cfg.dm_plan.support_threshold)
-        if self.spot_model == "ladder" and cfg.dm_plan.kind == "auto" and plan.kind == "hadamard":
-            threshold *= SPARSE_MARGIN
-            plan, R, self.info = dm_plan(cfg, kind="sparse", threshold=threshold)
+        if self.spot_model == "ladder" and plan.kind != (ladder := dm_ladder_plan(cfg))[0].kind:
+            plan, R, self.info, threshold = ladder
             LOGGER.info(f"dm plan: sparse, not hadamard (auto, and the spots change shape: on a pattern that moves several of the "
                         f"actuators a spot sees, the ladder ties the spot's shape to their common command and pulls each "
                         f"actuator's response toward its neighbours'; on a sparse plan a spot sees one; seen at {threshold:g} of the "
