@@ -252,7 +252,7 @@ CLAIMS = [
             + r" us\s+\(largest errors; DC gain " + NUM + r" %\), D0\s+" + NUM + r" % rms of max, rms\(error/std\) D\(jw\) " + NUM
             + r", mode " + NUM + r",\s+damping " + NUM + r", delay " + NUM + r", DC gain " + NUM,
             [sys.executable, "benchmarks/bench_dm_hcipy.py", "--case", case, "--no-checks"], _HCIPY_FIGURES, rtol=(0.02,), speed="slow")
-      for case, prefix in (("aligned", ""), ("misregistered", r"misregistered`, 2740 s\): "))],
+      for case, prefix in (("aligned", ""), ("misregistered", r"misregistered`, 439\.9 s\): "))],
     Claim("DM: the ladder's static shift against the fitted-shift truth (issue 23's cause 1)", "docs/deformable_mirrors.md",
           r"its first 16 patterns\) prints \+" + NUM + r" % \(sd " + NUM + r" % over\s+the patterns\) for `static_slope`[\s\S]*?into\s+\+"
           + NUM + r" % from the truth itself[\s\S]*?\+" + NUM + r" % \(sd [0-9.]+ %\) from the still's Fourier[\s\S]*?and \+" + NUM
