@@ -341,12 +341,11 @@ def ladder_route() -> dict:
     ``SPARSE_MARGIN`` x the support threshold, its repeats from the frame budget, and only the (pattern,
     spot) problems it drives (:func:`~torchblur.dm.plans.driven_spots`): ``{problems, frames}`` per frequency."""
     from torchblur.config import load_config
-    from torchblur.config.budget import dm_plan
+    from torchblur.config.budget import dm_ladder_plan
     from torchblur.dm.plans import driven_spots
-    from torchblur.identify.dm_plan import SPARSE_MARGIN
 
     cfg = load_config(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "configs", "identify_dm.yaml"))
-    plan, R, _ = dm_plan(cfg, kind="sparse", threshold=SPARSE_MARGIN * float(cfg.dm_plan.support_threshold))
+    plan, R = dm_ladder_plan(cfg)[:2]
     return {"problems": int(driven_spots(plan).sum()), "frames": plan.n_patterns * len(cfg.sweep.exposures) * R,
             "patterns": plan.n_patterns, "repeats": R}
 

@@ -196,7 +196,7 @@ def test_auto_takes_a_sparse_plan_for_the_ladder_and_a_refit_replays_it(tmp_path
     recording (the misregistered mirror), its fit checks the fitted geometry's support at the config's
     threshold, not the plan's (it flagged the pairs between the two), with the re-fit's exit status."""
     from torchblur import cli
-    from torchblur.identify.dm_plan import SPARSE_MARGIN
+    from torchblur.dm.plans import SPARSE_MARGIN
     from torchblur.identify.dm_record import PLAN_KEY
 
     run = tmp_path / "run"

@@ -29,8 +29,8 @@ def test_pace_summary_and_line():
     p = pace_summary(np.array([4.0, 6.0, 5.0]), 240, 30.0, 2)
     assert p["acquire_s"] == pytest.approx(8.0) and p["fit_median_s"] == 5.0 and p["fit_max_s"] == 6.0 and p["keeps_up"]
     assert (p["wait_s"], p["idle_s"]) == pytest.approx(sweep_schedule([4.0, 6.0, 5.0], 8.0, 2))
-    line = pace_line(p, 240, 30.0)
+    line = pace_line(p)
     assert line.startswith("dm fit pace: the spot fits took 5.0 s per frequency") and "keeps up (fit/acquisition 0.62)" in line
     slow = pace_summary([12.0, 12.0], 240, 30.0, 2)
-    assert not slow["keeps_up"] and "does not keep up" in pace_line(slow, 240, 30.0)
-    assert pace_summary(None, 240, 30.0, 2) is None and pace_line(None, 240, 30.0) is None
+    assert not slow["keeps_up"] and "does not keep up" in pace_line(slow)
+    assert pace_summary(None, 240, 30.0, 2) is None and pace_line(None) is None

@@ -106,11 +106,11 @@ def levenberg_marquardt(
     Returns:
         :class:`LMResult`. ``converged`` is False where ``max_iter`` ran out.
     """
+    if dof is not None and tuple(dof.shape) != (theta0.shape[0],):
+        raise ShapeError(f"dof: expected [N={theta0.shape[0]}] degrees of freedom, got shape {tuple(dof.shape)}")
     ne = _NormalEquations(data, weight, loss, shift)
     st = _LMState.start(model_fn, theta0, ne, jacobian_fn, lambda0, gn_tol is not None)
     if dof is not None and st.dof is not None:
-        if tuple(dof.shape) != (theta0.shape[0],):
-            raise ShapeError(f"dof: expected [N={theta0.shape[0]}] degrees of freedom, got shape {tuple(dof.shape)}")
         st.dof = dof.to(st.dof).clamp_min(1)
     for _ in range(max_iter):
         active = ~st.converged

@@ -567,17 +567,11 @@ def _along(img, n):
 def _derivative_factors(h: int, w: int, dtype: torch.dtype, device: torch.device):
     """``(mx [w, w], my [h, h])``: :func:`shift_derivatives` is separable (on the padded grid the
     Fourier multiplier of ``d/dx`` is ``kx``'s alone, of ``d/dy`` ``ky``'s), ``Dx img = img mx^T``
-    and ``Dy img = my img``; read off :func:`_derivative_matrix`'s first row and column. Cached."""
-    dmat = _derivative_matrix(h, w, dtype, device).reshape(h, w, 2, h, w)  # [i', j', a, i, j] = D_a[(i, j), (i', j')]
-    return dmat[0, :, 0, 0, :].T.contiguous(), dmat[:, 0, 1, :, 0].T.contiguous()
-
-
-@functools.lru_cache(maxsize=8)
-def _derivative_matrix(h: int, w: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-    """``[hw, 2, hw]``: :func:`shift_derivatives` of every pixel's unit image, ``[q', a, q] = D_a[q, q']``
-    (the linear map itself; ``d/dx`` is ``a = 0``). Cached per crop size, dtype and device."""
-    eye = torch.eye(h * w, dtype=dtype, device=device).reshape(h * w, h, w)
-    return shift_derivatives(eye).reshape(h * w, 2, h * w)
+    and ``Dy img = my img``: the derivatives of a row's and a column's unit images (the same values
+    as the 2-D map's rows, to round-off). Cached per crop size, dtype and device."""
+    dx = shift_derivatives(torch.eye(w, dtype=dtype, device=device).reshape(w, 1, w))[:, 0, 0, :]  # [j', j] = Dx[j, j']
+    dy = shift_derivatives(torch.eye(h, dtype=dtype, device=device).reshape(h, h, 1))[:, 1, :, 0]  # [i', i] = Dy[i, i']
+    return dx.T.contiguous(), dy.T.contiguous()
 
 
 def _normal(slope):

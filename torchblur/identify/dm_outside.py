@@ -439,6 +439,7 @@ class DMOutsidePlan(DMPlan):
         self.spot_model = "shifted" if ladder is None else "ladder"
         self.slope_noise = slope_noise(ladder)
         t0 = time.perf_counter()
+        driven = driven_spots(self.plan)  # [P, M]: the spot problems the plan measures
         with fit_pool(run.executor) as pool:
             futures = []
             for k, f in enumerate(rec.freq_hz):
@@ -447,7 +448,7 @@ class DMOutsidePlan(DMPlan):
                 futures.append(pool.submit(_fit_frequency, torch.as_tensor(rec.frames[k]), ExposureWindow(
                     torch.as_tensor(rec.start_s[k], dtype=_F64)[:, None], torch.as_tensor(rec.duration_s[k], dtype=_F64)[:, None]),
                     2 * math.pi * float(f), float(rec.amplitude[k]), float(rec.power[k]), cal, self.psf, self.offset, self.size,
-                    float(cfg.camera.jitter_s), _fit_options(cfg), ladder, driven_spots(self.plan)))
+                    float(cfg.camera.jitter_s), _fit_options(cfg), ladder, driven))
             Y, Y_cov, failed, chi2, out, self.fit_s = collect_fits(rec.freq_hz, futures, self.plan.n_patterns, self.G.shape[0])
         LOGGER.info(f"recording: {len(rec.freq_hz)} frequencies x {self.plan.n_patterns} patterns, {rec.n_frames} frames, from {rec.path}")
         run.timing["fit_wait"] = time.perf_counter() - t0

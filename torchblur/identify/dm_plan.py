@@ -24,7 +24,7 @@ from torchblur.dm.demux import demultiplex
 from torchblur.dm.ladder_fit import PatternLadder, fit_ladder_problems
 from torchblur.fit.status import NOT_FITTED, OUT_OF_LADDER
 from torchblur.dm.mirror import DeformableMirror
-from torchblur.dm.plans import SPARSE_MARGIN, driven_spots, static_motion_px  # noqa: F401 (SPARSE_MARGIN: read here too)
+from torchblur.dm.plans import SPARSE_MARGIN, driven_spots, static_motion_px
 from torchblur.dm.registration import Registration, RegistrationFit, fully_lit, register_and_refit
 from torchblur.dm.slope_gains import slope_gains, slope_gains_line, with_slope_gain_stds
 from torchblur.dm.spot_fit import PerSpotPSF, crop_problems, fit_spot_problems, pattern_responses
@@ -394,6 +394,7 @@ def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, exp=None, executor=None
     motion_static = static_motion_px(plan, G)
     limit = min(math.inf if cfg.dm.input_limit is None else float(cfg.dm.input_limit), cal.input_limit)  # and the rig's RANGE?
     amps, powers, futures = np.zeros(F), np.zeros(F), []
+    driven = driven_spots(plan)  # [P, M]: the spot problems the plan measures, the same at every frequency
     t_acq = 0.0
     with fit_pool(executor) as pool:
         for k, f in enumerate(freqs):
@@ -423,7 +424,7 @@ def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, exp=None, executor=None
                 cal.latency_s, delay), labels)
             t_acq += time.perf_counter() - t0
             futures.append(pool.submit(_fit_frequency, frames, window, 2 * math.pi * f, float(amps[k]), float(powers[k]), cal, psf,
-                                       offset, size, float(c.jitter_s), _fit_options(cfg), ladder, driven_spots(plan)))
+                                       offset, size, float(c.jitter_s), _fit_options(cfg), ladder, driven))
             LOGGER.info(f"dm sweep: {f:.4g} Hz, amplitude {amps[k]:.4g}, power {powers[k]:.3g}, {P} patterns x "
                         f"{len(te)} exposures x {R} repeats ({k + 1}/{F}{', recorded' if rec is not None else ''})")
         t0 = time.perf_counter()
@@ -559,8 +560,9 @@ class DMPlan:
         self.spot_model = choose_spot_model(cfg, run.rig, exp, plan.patterns, self.G, run.cal, self.offset, self.size, self.inside,
                                             limit)
         threshold = float(cfg.dm_plan.support_threshold)
-        if self.spot_model == "ladder" and plan.kind != (ladder := dm_ladder_plan(cfg))[0].kind:
-            plan, R, self.info, threshold = ladder
+        ladder_plan = dm_ladder_plan(cfg) if self.spot_model == "ladder" else None
+        if ladder_plan is not None and ladder_plan[0].kind != plan.kind:  # auto's sparse plan for the ladder
+            plan, R, self.info, threshold = ladder_plan
             LOGGER.info(f"dm plan: sparse, not hadamard (auto, and the spots change shape: on a pattern that moves several of the "
                         f"actuators a spot sees, the ladder ties the spot's shape to their common command and pulls each "
                         f"actuator's response toward its neighbours'; on a sparse plan a spot sees one; seen at {threshold:g} of the "

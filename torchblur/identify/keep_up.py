@@ -46,10 +46,10 @@ def sweep_schedule(fit_s, acquire_s, lag: int) -> tuple[float, float]:
 
 
 def pace_summary(fit_s, frames_per_frequency: int, frame_rate_hz: float, lag: int) -> dict | None:
-    """``{fit_median_s, fit_max_s, acquire_s, ratio, wait_s, idle_s, keeps_up}`` of a sweep's spot fits
-    against ``frames_per_frequency`` frames per frequency at ``frame_rate_hz`` (the camera's, not the
-    simulator's pace; :func:`sweep_schedule`); ``keeps_up``: every fit within its frames' time. None
-    without fit times."""
+    """``{fit_median_s, fit_max_s, frames_per_frequency, frame_rate_hz, acquire_s, ratio, wait_s, idle_s,
+    keeps_up}`` of a sweep's spot fits against ``frames_per_frequency`` frames per frequency at
+    ``frame_rate_hz`` (the camera's, not the simulator's pace; :func:`sweep_schedule`); ``keeps_up``:
+    every fit within its frames' time. None without fit times."""
     fit = np.asarray(fit_s, dtype=np.float64).reshape(-1) if fit_s is not None else np.zeros(0)
     ok = fit[np.isfinite(fit)]
     if not ok.size or not frame_rate_hz > 0:
@@ -57,16 +57,17 @@ def pace_summary(fit_s, frames_per_frequency: int, frame_rate_hz: float, lag: in
     acq = frames_per_frequency / float(frame_rate_hz)
     wait, idle = sweep_schedule(fit, acq, lag)
     med = float(np.median(ok))
-    return {"fit_median_s": med, "fit_max_s": float(ok.max()), "acquire_s": acq, "ratio": med / acq, "wait_s": wait, "idle_s": idle,
+    return {"fit_median_s": med, "fit_max_s": float(ok.max()), "frames_per_frequency": int(frames_per_frequency),
+            "frame_rate_hz": float(frame_rate_hz), "acquire_s": acq, "ratio": med / acq, "wait_s": wait, "idle_s": idle,
             "keeps_up": bool(np.isfinite(wait) and ok.max() <= acq)}
 
 
-def pace_line(pace: dict | None, frames_per_frequency: int, frame_rate_hz: float) -> str | None:
+def pace_line(pace: dict | None) -> str | None:
     """report.txt's line of :func:`pace_summary` (None without it)."""
     if pace is None:
         return None
     verb = "keeps up" if pace["keeps_up"] else "does not keep up"
     return (f"dm fit pace: the spot fits took {pace['fit_median_s']:.1f} s per frequency (median; largest {pace['fit_max_s']:.1f} s) on "
-            f"one worker, against {pace['acquire_s']:.1f} s of frames per frequency at the camera's {frame_rate_hz:g} Hz "
-            f"({frames_per_frequency} frames): the fitting {verb} (fit/acquisition {pace['ratio']:.2f}); a live sweep at this pace "
+            f"one worker, against {pace['acquire_s']:.1f} s of frames per frequency at the camera's {pace['frame_rate_hz']:g} Hz "
+            f"({pace['frames_per_frequency']} frames): the fitting {verb} (fit/acquisition {pace['ratio']:.2f}); a live sweep at this pace "
             f"would wait {pace['wait_s']:.1f} s after its last frame, its camera idle {pace['idle_s']:.1f} s before it waiting for fits")

@@ -61,7 +61,7 @@ def dm_lines(res, elapsed: float) -> list[str]:
              + f"; {int(np.sum(res.actuators.poor_fit))} poor_fit (stds inflated)"]
     pace = _pace(res)
     if pace is not None:
-        lines.append(pace_line(pace, res.n_frames // len(res.freq_hz), res.frame_rate_hz))
+        lines.append(pace_line(pace))
     if res.registration is not None:
         lines.append(res.registration.line())
         if support_line(res.support_check):
