@@ -93,6 +93,10 @@ def test_the_exported_recording_fits_to_the_same_table_through_torchblur_fit(lab
     assert len(pool.pending) == F and max(pool.pending) <= AMPLITUDE_LAG
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["trustworthy"] and summary["frames"] == res.n_frames
+    # the folder does not give its camera's frame rate: the fit times are reported, the keep-up not judged
+    pace = summary["fit_pace"]
+    assert pace["fit_median_s"] > 0 and pace["frame_rate_hz"] is None and pace["keeps_up"] is None
+    assert "so whether a live sweep at this pace keeps up is not judged" in (tmp_path / "fit" / "report.txt").read_text()
     t, back = res.actuators, read_actuators_csv(tmp_path / "fit" / "dm" / "actuators.csv")
     assert list(back["status"]) == list(t.status)
     for col in ("dc_gain", "mode_hz", "damping", "delay_s", "dc_gain_std", "mode_hz_std", "damping_std", "delay_s_std"):

@@ -119,6 +119,8 @@ def test_refit_gives_the_live_outputs_bit_for_bit(live, tmp_path):
     assert not (live / "dm" / "actuator_maps.png").exists() and not (out / "dm" / "actuator_maps.png").exists()  # report.figures=false
     assert json.loads((out / "source.json").read_text())["recording"] == str(live / "experiment")
     assert "against the simulated truth" in (out / "report.txt").read_text()  # recorded on the simulated rig: its truth
+    # the re-fit's pace is judged at the recorded camera's frame rate (the replayed rig's), not a config default
+    assert "per frequency at the camera's 30 Hz" in (out / "report.txt").read_text()
     assert _sha(live / "experiment" / "manifest.jsonl") == before and not (live / "experiment" / "quarantine").exists()
     got = assert_reads_back(live)  # every output of the DM run reads back
     assert got["dm/actuators.csv"]["status"].tolist().count("dead") == 1 and got["dm/frf.json"].input_labels[0] == "a0"

@@ -34,3 +34,7 @@ def test_pace_summary_and_line():
     slow = pace_summary([12.0, 12.0], 240, 30.0, 2)
     assert not slow["keeps_up"] and "does not keep up" in pace_line(slow)
     assert pace_summary(None, 240, 30.0, 2) is None and pace_line(None) is None
+    # no frame rate (an outside recording's camera): the fit times, and the line says the pace is not judged
+    unknown = pace_summary([4.0, 6.0, 5.0], 240, None, 2)
+    assert unknown["fit_median_s"] == 5.0 and unknown["keeps_up"] is None and unknown["wait_s"] is None
+    assert "does not give its camera's frame rate" in pace_line(unknown) and "keeps up (" not in pace_line(unknown)

@@ -83,8 +83,9 @@ class DMResult:
                 [P, M, 2, 2])`` stage 4 grew the static columns' stds by (:mod:`torchblur.dm.common_noise`), None
                 for the shifted still.
         fit_s: ``[F]`` each frequency's spot-fit seconds on its worker (NaN where its task failed), or None;
-            frame_rate_hz: the camera's frame rate (``camera.frame_rate_hz``): :mod:`torchblur.identify.keep_up`
-            says from both whether the fitting keeps up with the camera.
+            frame_rate_hz: the rig's camera frame rate (the recorded camera's on a re-fit; None for an outside
+            recording, which does not give it): :mod:`torchblur.identify.keep_up` says from both whether the
+            fitting keeps up with the camera.
         truth_D: ``[2M, N, F]`` the simulated rig's D (None on a real rig); ``mirror``: the
             simulated mirror (its true dynamics), or None; ``truth_G``, ``truth_registration``: its
             true geometry and registration, or None.
@@ -610,7 +611,7 @@ class DMPlan:
                         Y_cov=Y_cov, D=D, D_cov=D_cov, actuators=table, G=reg.G, actuator_xy=self.model_mirror.actuator_xy,
                         n_frames=n_frames, n_failed=failed, spot_reduced_chi2=chi2, timing_s=run.timing,
                         spot_model=self.spot_model, n_out_of_ladder=out, slope_noise=self.slope_noise, fit_s=self.fit_s,
-                        frame_rate_hz=float(run.cfg.camera.frame_rate_hz),
+                        frame_rate_hz=getattr(run.rig, "frame_rate_hz", None),
                         truth_D=truth.truth_D(freqs) if truth is not None else None, mirror=truth.mirror if truth is not None else None,
                         G_nominal=self.G, registration=reg, support_check=support,
                         truth_G=truth.geometry if truth is not None else None,

@@ -77,11 +77,12 @@ def dm_lines(res, elapsed: float) -> list[str]:
 
 
 def _pace(res) -> dict | None:
-    """:func:`~torchblur.identify.keep_up.pace_summary` of a DM run's spot fits (None without their times)."""
-    fit_s, rate = getattr(res, "fit_s", None), getattr(res, "frame_rate_hz", None)
-    if fit_s is None or rate is None:
+    """:func:`~torchblur.identify.keep_up.pace_summary` of a DM run's spot fits (None without their times; without its
+    camera's frame rate, an outside recording's, the times only)."""
+    fit_s = getattr(res, "fit_s", None)
+    if fit_s is None:
         return None
-    return pace_summary(fit_s, res.n_frames // len(res.freq_hz), rate, AMPLITUDE_LAG)
+    return pace_summary(fit_s, res.n_frames // len(res.freq_hz), getattr(res, "frame_rate_hz", None), AMPLITUDE_LAG)
 
 
 def dm_summary(res, v, elapsed: float) -> dict:
