@@ -8,8 +8,9 @@ shipped 52-actuator one), exports its recording (:func:`torchblur.identify.expor
 the folder with ``torchblur fit`` (with the run's ``fit.*`` settings) and prints: the largest relative difference of every actuator
 column (actuators.csv, 9 significant digits), of D0 (interaction_matrix.npy) and of D(jw)
 (frf.json) between the two, the largest over every csv/json/npy file of ``dm/`` (benchmarks/compare_runs.py's
-comparison), the folder's size, and the wall time and peak resident memory of each step (each runs in its own
-process: ``os.wait4``'s ``ru_maxrss``; threads: torch's default; times are for this machine only).
+comparison), the folder's size, the wall time and peak resident memory of each step (each runs in its own
+process: ``os.wait4``'s ``ru_maxrss``; threads: torch's default; times are for this machine only), and each fit's
+``dm fit pace:`` line (its spot fits' seconds per frequency against the camera's frames).
 
     python benchmarks/bench_dm_outside.py [--config FILE] [--keep DIR] [--baseline SRC] [overrides ...]
     python benchmarks/bench_dm_outside.py --run RUN [--refit]   # a run recorded on any rig (torchblur.identify(cfg, rig, record=RUN/experiment))
@@ -205,6 +206,10 @@ def main(argv=None) -> int:
     size = sum(p.stat().st_size for p in (root / "outside").iterdir())
     print(f"outside recording: {size / 1e6:.2f} MB in {root / 'outside'}")
     print("steps (each its own process): " + "; ".join(f"{k}: {t:.1f} s, peak {m:.2f} GB" for k, (_, t, m) in steps.items()))
+    for name, out in (("the re-fit" if args.refit else "the run", ref), ("the folder's fit", root / "fit")):
+        report = out / "report.txt"
+        pace = [ln for ln in report.read_text().splitlines() if ln.startswith("dm fit pace:")] if report.is_file() else []
+        print(f"{name}: {pace[0] if pace else 'no dm fit pace line'}")  # each frequency's spot-fit seconds against the camera
     if not args.keep:
         shutil.rmtree(root, ignore_errors=True)
     return 0 if rc.get("live run", rc.get("re-fit of the run")) in (None, rc["torchblur fit FOLDER"]) else 1
