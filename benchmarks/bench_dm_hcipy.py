@@ -331,6 +331,49 @@ def mode_pull_line(res, dyn) -> str:
             f"slope taken out {np.sqrt(np.mean(z_left ** 2)):.2f}")
 
 
+def demux_chi2(res) -> np.ndarray:
+    """``[F]``: the demultiplexing's residual chi2 per degree of freedom at each frequency, the pattern
+    responses ``Y`` against ``patterns D`` with their covariances, pooled over the slope rows (the
+    plan's support's actuators fitted per row; a row with an entry the lost fits left undetermined is
+    left out at that frequency): about 1 where ``Y`` agree with one ``D`` within their stds, NaN where
+    the plan has no more patterns than a row's unknowns (one at a time, sparse)."""
+    pat, sup = np.asarray(res.plan.patterns, float), np.asarray(res.plan.support, bool)
+    r = res.Y - np.einsum("pn,snf->psf", pat, np.nan_to_num(res.D))
+    ok = np.isfinite(r) & np.isfinite(res.Y_cov).all((-1, -2)) & ~np.isnan(res.D).any(1)[None]
+    e = np.stack([r.real, r.imag], -1)[ok]
+    d2 = np.zeros(r.shape)
+    d2[ok] = np.einsum("ka,kab,kb->k", e, np.linalg.inv(res.Y_cov[ok]), e)
+    dof = 2 * (ok.sum(0) - sup.sum(1)[:, None])  # [2M, F]
+    dof = np.where(ok.any(0), np.maximum(dof, 0), 0).sum(0)
+    return np.where(dof > 0, d2.sum((0, 1)) / np.maximum(dof, 1), np.nan)
+
+
+def mode_driver_line(res, truth, dyn, proj=None) -> str:
+    """Which frequency the live actuators' mode errors follow: the correlation over the actuators of
+    each mode's error/std with its response's gain error/std at each frequency (each actuator's mean
+    gain error over the frequencies taken out: a static gain does not move a mode), the largest; that
+    frequency's gain errors over their stds; and what the run's own residuals show there (the spot
+    fits' reduced chi2 median, :func:`demux_chi2`) against every frequency's: a spot model's error
+    that leaves them at their noise grows no std."""
+    a, live = res.actuators, np.flatnonzero(~dyn.dead)
+    h, hc, ht = proj or projected_responses(res, truth, dyn)
+    h, hc, ht = h[live], hc[live], ht[live]
+    sd = np.sqrt((hc[..., 0, 0] + hc[..., 1, 1]) / 2) / np.abs(ht)
+    zg = ((h - ht) / ht).real / sd
+    zg = zg - np.nanmean(zg, 1, keepdims=True)
+    zm = (a.mode_hz[live] - dyn.mode_hz[live]) / a.mode_hz_std[live]
+    corr = np.array([np.corrcoef(zm, zg[:, k])[0, 1] for k in range(zg.shape[1])])
+    k = int(np.nanargmax(np.abs(corr)))
+    chi2 = np.nanmedian(np.asarray(res.spot_reduced_chi2), axis=(0, 1))
+    dmx = demux_chi2(res)
+    return (f"mode errors follow the gain errors at {res.freq_hz[k]:.4g} Hz (correlation {corr[k]:+.2f} over {len(live)} live "
+            f"actuators, modes {dyn.mode_hz[live].min():.0f}..{dyn.mode_hz[live].max():.0f} Hz), where the gain errors are "
+            f"{np.sqrt(np.nanmean(zg[:, k] ** 2)):.2f} of their stds (each actuator's mean over frequency taken out); there the "
+            f"spot fits' reduced chi2 median is {chi2[k]:.3f} (every frequency {chi2.min():.3f}..{chi2.max():.3f}) and " + (
+                f"the demultiplexing's chi2/dof {dmx[k]:.3f} ({np.nanmin(dmx):.3f}..{np.nanmax(dmx):.3f})" if np.isfinite(dmx).any()
+                else "the demultiplexing has no pattern beyond a row's unknowns to check"))
+
+
 def actuator_gain_lines(res, truth, dyn, proj=None) -> list[str]:
     """The live actuators' responses ``h_j`` (D's columns projected on the run's G) against the linearised
     truth's, their errors split along ``h_j`` (gain) and across it (phase), each over its std: the rms per
@@ -391,10 +434,10 @@ def physics_checks() -> None:
 
 
 def run_case(name: str, quick: bool, psf: str = "auto", jobs: int = 1, extra=(), progress: bool = False, device: str = "cpu",
-             target_px: float | None = None, record: str | None = None) -> None:
+             target_px: float | None = None, record: str | None = None, force: bool = False) -> None:
     over = (["sweep.n=4", "dm_plan.budget_frames=512"] if quick else []) + [f"fit.psf={psf}"] + list(extra)
     over += ([] if target_px is None else [f"excitation.target_px={target_px}"]) + [f"fit.device={device}"]
-    cfg = load_config("configs/identify_dm.yaml", over)
+    cfg = load_config("configs/identify_dm.yaml", over, force=force)
     t0 = time.perf_counter()
     gen = hs.HcipySH(CASES[name])
     gen.workers = jobs
@@ -455,6 +498,7 @@ def report(res, truth, dyn, poor_fit_chi2: float) -> None:
     for line in spot_pull_lines(res, truth, dyn):
         print(f"  pull of the pattern responses toward their pattern's common response, {line}")
     print(f"  modes against their deviation from the live mean: {mode_pull_line(res, dyn)}")
+    print(f"  {mode_driver_line(res, truth, dyn, proj)}")
     print(f"  dead actuator status {f['dead_status']} (want dead), weak {f['weak_status']} (want weak), other live actuators not ok: "
           f"{f['other_not_ok']}")
     print(f"  spot fits' reduced chi2 median {f['spot_chi2_median']:.3g} (<= 1.2); poor_fit actuators {f['poor_fit_actuators']}")
@@ -500,6 +544,8 @@ def main(argv=None) -> None:
     p.add_argument("--jobs", type=int, default=1, help="threads of the frames' propagation (scipy.fft, BLAS) and of torch")
     p.add_argument("--record", metavar="DIR", help="record each case's run in DIR/CASE/experiment and write its outputs in DIR/CASE "
                    "(then: benchmarks/bench_dm_outside.py --run DIR/CASE --refit, the outside recording's route)")
+    p.add_argument("--force", action="store_true", help="run past the size guard (config.budget.check_limits): the whole "
+                   "grid on a Hadamard plan (--set dm_plan.kind=hadamard) estimates 8.44 GiB against its 8 GiB limit")
     p.add_argument("--load", metavar="PKL", help="print the figures of a run saved with BENCH_DM_HCIPY_SAVE (no run)")
     p.add_argument("--against", metavar="PKL2", help="with --load: another run of the same mirror under other noise "
                    "(--set seed=N): the two runs' differences over their stds, no truth")
@@ -540,7 +586,8 @@ def main(argv=None) -> None:
         if not args.no_checks:
             physics_checks()
         for name in {"both": ["aligned", "misregistered"], "none": []}.get(args.case, [args.case]):
-            run_case(name, args.quick, args.psf, args.jobs, args.set, args.progress, args.device, args.target_px, args.record)
+            run_case(name, args.quick, args.psf, args.jobs, args.set, args.progress, args.device, args.target_px, args.record,
+                     args.force)
 
 
 if __name__ == "__main__":
