@@ -103,6 +103,20 @@ def _spd_inverse(normal):
     return torch.where(good[..., None, None], inv, torch.full_like(inv, float("nan"))).numpy()
 
 
+def _estimable_inverse(normal):
+    """``(ginv [k, m, m], undetermined [k, m])`` of singular normal matrices ``[k, m, m]``: the
+    pseudo-inverse (eigenvalues below :data:`_RCOND` of the largest are the null space) and the
+    unknowns with a share of the null space (above 1e-8 of their unit vector's squared norm). Every
+    other unknown is estimable, and the pseudo-inverse gives its generalised least-squares value and
+    variance exactly (any generalised inverse does for an estimable function)."""
+    lam, V = np.linalg.eigh(normal)
+    null = lam <= _RCOND * lam[:, -1:].clip(min=np.finfo(float).tiny)
+    inv_lam = np.where(null, 0.0, 1.0 / np.where(null, 1.0, lam))
+    ginv = (V * inv_lam[:, None, :]) @ np.swapaxes(V, -1, -2)
+    undetermined = (np.where(null[:, None, :], V, 0.0) ** 2).sum(-1) > 1e-8
+    return ginv, undetermined
+
+
 def _solve_group(A, W, y):
     """Weighted least squares of one support group.
 
@@ -111,7 +125,9 @@ def _solve_group(A, W, y):
         W: ``[P, B, F, 2, 2]`` weights, y: ``[P, B, F, 2]`` data (B rows of the group).
 
     Returns ``(x [B, F, n, 2], cov [B, F, n, 2, 2])``: NaN for an actuator no pattern with data
-    drives, and for the whole item where the rest of its data do not determine it.
+    drives, and for each actuator the rest of the item's data do not determine on its own (its unit
+    vector not in the span of the patterns left: :func:`_estimable_inverse`); the item's other
+    actuators are solved exactly as without it.
     """
     n = A.shape[1]
     P, B, F = W.shape[:3]
@@ -126,6 +142,12 @@ def _solve_group(A, W, y):
     drop = np.repeat(none, 2, axis=-1)  # [B, F, 2n]
     normal = np.where(drop[..., :, None] | drop[..., None, :], 0.0, normal) + drop[..., None, :] * np.eye(2 * n)
     cov = _spd_inverse(normal)
+    singular = np.isnan(cov).any((-1, -2))  # [B, F]: the remaining patterns leave some combination undetermined
+    if singular.any():
+        cov[singular], undetermined = _estimable_inverse(normal[singular])
+        none = none.copy()
+        none[singular] |= undetermined.reshape(-1, n, 2).any(-1)
+        drop = np.repeat(none, 2, axis=-1)
     x = (cov @ rhs[..., None])[..., 0]
     x[drop] = np.nan
     cov = cov.reshape(B, F, n, 2, n, 2)
@@ -169,9 +191,10 @@ def demultiplex(Y, Y_cov, patterns, support=None, *, method: str = "auto"):
     Returns:
         ``(D, D_cov)``: ``D [2M, N, F]`` complex128, ``D[s, j, f]`` = the response of slope ``s``
         to a unit sine on actuator ``j`` at frequency ``f`` (0 off the support; NaN where the
-        data left out by failed fits no longer determine it: only the actuators whose every
-        driving pattern failed, where the rest of the row stays determined, as on a sparse
-        plan; the whole row where it does not), and ``D_cov
+        data left out by failed fits no longer determine it: the actuators whose every driving
+        pattern failed, as on a sparse plan, and those the patterns left determine only in
+        combination with others, as two lost patterns of a Hadamard plan can leave; the row's
+        other actuators keep their values and stds), and ``D_cov
         [2M, N, F, 2, 2]`` the covariance of ``(Re, Im) D[s, j, f]`` (the correlations between
         the actuators of one row are dropped).
 
