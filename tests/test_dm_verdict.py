@@ -163,7 +163,9 @@ def test_every_plan_has_one_verdict_type_and_a_dm_guard_is_one_more_function(mon
     guard = lambda v, res: v.untrusted("a new rule fails", "  new rule: why")  # noqa: E731
     monkeypatch.setattr(verdict_module, "DM_GUARDS", (*verdict_module.DM_GUARDS, guard))
     g = final_verdict(res, 1.5)
-    assert g.line == v.line + "; a new rule fails" and not g.trustworthy and g.exit_code == EXIT_FLAGGED
+    assert v.line.startswith("verdict: trustworthy: ")  # its head now says the guard's decision
+    assert g.line == "verdict: not trustworthy: " + v.line[len("verdict: trustworthy: "):] + "; a new rule fails"
+    assert not g.trustworthy and g.exit_code == EXIT_FLAGGED
     assert g.details == ("  new rule: why",) and json.loads(json.dumps(g.to_dict()))["details"] == ["  new rule: why"]
 
 def _every_pair_plan(kind):
@@ -190,9 +192,17 @@ def test_a_ladder_run_on_a_hadamard_plan_is_not_trustworthy_and_names_the_fits_t
     assert v0.trustworthy and final_verdict(SimpleNamespace(**base, plan=had, spot_model="shifted", n_out_of_ladder=0), 1.5) == v0
     lad = final_verdict(SimpleNamespace(**base, plan=had, spot_model="ladder", n_out_of_ladder=0), 1.5)
     assert not lad.trustworthy and lad.exit_code == EXIT_FLAGGED and "on a Hadamard plan pulls each actuator's response" in lad.line
+    # every earlier rule held, so the line began "verdict: trustworthy"; its first words now say what the guard decided
+    assert v0.line.startswith("verdict: trustworthy: all") and lad.line.startswith("verdict: not trustworthy: all")
     for kind in ("sparse", "one_at_a_time"):
         plan = _every_pair_plan(kind)
         assert final_verdict(SimpleNamespace(**base, plan=plan, spot_model="ladder", n_out_of_ladder=0), 1.5) == v0
+    # the run's early warning (identify.dm_plan, once the plan and the spot model are known) fires exactly where the guard stops it
+    from torchblur.identify.verdict import LADDER_ON_HADAMARD, ladder_on_hadamard
+    for model in ("shifted", "ladder"):
+        for kind in ("hadamard", "sparse", "one_at_a_time"):
+            v = final_verdict(SimpleNamespace(**base, plan=_every_pair_plan(kind), spot_model=model, n_out_of_ladder=0), 1.5)
+            assert ladder_on_hadamard(model, kind) == (LADDER_ON_HADAMARD in v.line) == (not v.trustworthy)
     few = final_verdict(SimpleNamespace(**base, plan=sparse, spot_model="ladder", n_out_of_ladder=1), 1.5)
     assert few.line == v0.line + "; 1 spot fits' motion left the ladder's levels (left out of D; raise dm_plan.ladder_reach)"
     assert few.trustworthy and few.exit_code == v0.exit_code

@@ -39,6 +39,7 @@ from torchblur.config import IdentifyConfig
 from torchblur.identify.dm_record import (SWEEP_KIND, TABLE_KEY, check_recorded_commands, recorded_labels, recorded_plan, resume_seed,
                                           same_table, simulated_frames, sweep_key, table_digest)
 from torchblur.identify.record import HARDWARE_LOGGER, LOGGER, RunRecord, run_stage
+from torchblur.identify.verdict import LADDER_ON_HADAMARD, ladder_on_hadamard
 from torchblur.identify.rigs import open_experiment, session, session_info
 from torchblur.image.dark import subtract_dark
 from torchblur.image.spots import crop_spots
@@ -575,6 +576,9 @@ class DMPlan:
         run.say(f"dm plan: {self.plan.kind}, {self.plan.n_patterns} patterns x {len(freqs)} frequencies x {len(cfg.sweep.exposures)} "
                 f"exposures x {self.R} repeats = {self.plan.n_frames(len(freqs), len(cfg.sweep.exposures), self.R)} frames; frames for "
                 f"the same accuracy vs one at a time: {self.info['cost_ratio_to_one_at_a_time']:.3f}")
+        if ladder_on_hadamard(self.spot_model, self.plan.kind):  # said before the holds and the sweep, not only in the verdict
+            LOGGER.warning(f"dm plan: hadamard with the ladder spot model (dm_plan.kind={cfg.dm_plan.kind}, or the recording's "
+                           f"plan): this run will end exit 4, {LADDER_ON_HADAMARD}")
         ladder = None
         if self.spot_model == "ladder":
             holds = ladder_holds(cfg, run.rig, exp, self.plan.patterns, self.G, run.cal, self.offset, self.size, limit)

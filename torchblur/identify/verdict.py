@@ -30,7 +30,8 @@ from torchblur.sysid.model_check import (DISAGREE_SIGMA, MODEL_CHI2_FLOOR, Model
 
 __all__ = ["DMVerdict", "DM_GUARDS", "EXIT_FLAGGED", "LOST_FRACTION", "MODEL_CHI2_FLOOR", "POOR_SPOT_FRACTION", "ResponseVerdict",
            "TRUTH_BOUND", "Verdict", "dm_verdict", "failed_actuators", "final_verdict", "judge_models", "listed", "lost_fraction",
-           "model_chi2_limit", "registration_guard", "ladder_guard", "report_lines", "run_verdict", "support_guard", "timing_band_hz",
+           "model_chi2_limit", "registration_guard", "ladder_guard", "ladder_on_hadamard", "LADDER_ON_HADAMARD", "report_lines",
+           "run_verdict", "support_guard", "timing_band_hz",
            "truth_disagreement", "truth_disagreement_dm", "truth_guard", "verdict"]
 
 #: exit status of a run that completed, results written, with points flagged poor_fit, timing or failed
@@ -50,6 +51,10 @@ POOR_SPOT_FRACTION = 0.01
 
 _LISTED = 6  # items named per kind before "..."
 _LIVE_PARAMS = tuple(k for p in PARAMS for k in (p, p + "_std"))  # each parameter then its std (a dead actuator: the first two)
+
+
+#: how a verdict line that every rule passed begins, and how it begins once a later rule fails (:meth:`Verdict.untrusted`)
+TRUSTED_HEAD, UNTRUSTED_HEAD = "verdict: trustworthy", "verdict: not trustworthy"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -79,8 +84,13 @@ class Verdict:
 
     def untrusted(self, reason: str, *details: str, **fields):
         """This verdict with one more rule failed: ``"; reason"`` appended to the line, ``details``
-        to the report's lines, not trustworthy (exit :data:`EXIT_FLAGGED`); ``fields`` changed."""
-        return replace(self, line=f"{self.line}; {reason}", trustworthy=False, exit_code=EXIT_FLAGGED,
+        to the report's lines, not trustworthy (exit :data:`EXIT_FLAGGED`); ``fields`` changed. A line
+        that began ``verdict: trustworthy`` (every earlier rule held) begins ``verdict: not trustworthy``:
+        its first words are what a reader takes in."""
+        line = self.line
+        if line.startswith(TRUSTED_HEAD):
+            line = UNTRUSTED_HEAD + line[len(TRUSTED_HEAD):]
+        return replace(self, line=f"{line}; {reason}", trustworthy=False, exit_code=EXIT_FLAGGED,
                        details=(*self.details, *details), **fields)
 
     def to_dict(self) -> dict:
@@ -621,6 +631,19 @@ def registration_guard(v, reg):
                        line)
 
 
+#: why a ladder run on a Hadamard plan is not trustworthy (:func:`ladder_guard`; the run warns with it as soon as
+#: the plan and the spot model are both known, :func:`ladder_on_hadamard`)
+LADDER_ON_HADAMARD = ("the ladder spot model on a Hadamard plan pulls each actuator's response toward its neighbours' (their stds "
+                      "do not hold on HCIPy's lenslet frames, benchmarks/bench_dm_hcipy.py; dm_plan.kind=auto takes a sparse plan "
+                      "for the ladder): D(jw) and its stds stand, the actuators' stds do not: not trustworthy")
+
+
+def ladder_on_hadamard(spot_model: str, plan_kind: str) -> bool:
+    """A DM run whose spots take the ladder (``spot_model``) on a plan of kind ``plan_kind`` whose
+    patterns move several of the actuators a spot sees: what :func:`ladder_guard` makes untrustworthy."""
+    return spot_model == "ladder" and plan_kind == "hadamard"
+
+
 def ladder_guard(v, res):
     """The DM verdict ``v`` of a run fitted with the ladder spot model (``res.spot_model``;
     ``v`` unchanged for the shifted still): how many spot fits' motion left the ladder's levels
@@ -642,11 +665,9 @@ def ladder_guard(v, res):
     if n_out:
         note = f"{n_out} spot fits' motion left the ladder's levels (left out of D; raise dm_plan.ladder_reach)"
         v = v.untrusted(note) if n_out > POOR_SPOT_FRACTION * max(v.spot_problems, 1) else replace(v, line=f"{v.line}; {note}")
-    if getattr(getattr(res, "plan", None), "kind", "hadamard") != "hadamard":
+    if not ladder_on_hadamard("ladder", getattr(getattr(res, "plan", None), "kind", "hadamard")):
         return v
-    return v.untrusted("the ladder spot model on a Hadamard plan pulls each actuator's response toward its neighbours' (their stds "
-                       "do not hold on HCIPy's lenslet frames, benchmarks/bench_dm_hcipy.py; dm_plan.kind=auto takes a sparse plan "
-                       "for the ladder): D(jw) and its stds stand, the actuators' stds do not: not trustworthy")
+    return v.untrusted(LADDER_ON_HADAMARD)
 
 
 #: the DM's guards, applied in order after :func:`run_verdict` by :func:`final_verdict`: each
