@@ -54,6 +54,7 @@ import hcipy_sh_rig as hr  # noqa: E402
 from torchblur.identify.pipeline import identify  # noqa: E402
 from torchblur.identify.verdict import final_verdict  # noqa: E402
 from torchblur.config import load_config  # noqa: E402
+from torchblur.config.budget import estimate_run  # noqa: E402
 
 CASES = {"aligned": hs.SHOptics(),
          "misregistered": hs.SHOptics(shift=(0.25, 0.0), rotation_deg=1.5, magnification=1.03)}
@@ -438,6 +439,9 @@ def run_case(name: str, quick: bool, psf: str = "auto", jobs: int = 1, extra=(),
     over = (["sweep.n=4", "dm_plan.budget_frames=512"] if quick else []) + [f"fit.psf={psf}"] + list(extra)
     over += ([] if target_px is None else [f"excitation.target_px={target_px}"]) + [f"fit.device={device}"]
     cfg = load_config("configs/identify_dm.yaml", over, force=force)
+    est = estimate_run(cfg)
+    print(f"  {name}: the run-size estimate (config.budget.estimate_run): {est['frames']:,} frames, {est['memory_bytes'] / 2**30:.3g} GiB "
+          f"of memory, {est['disk_bytes'] / 2**30:.3g} GiB on disk")
     t0 = time.perf_counter()
     gen = hs.HcipySH(CASES[name])
     gen.workers = jobs
@@ -544,8 +548,8 @@ def main(argv=None) -> None:
     p.add_argument("--jobs", type=int, default=1, help="threads of the frames' propagation (scipy.fft, BLAS) and of torch")
     p.add_argument("--record", metavar="DIR", help="record each case's run in DIR/CASE/experiment and write its outputs in DIR/CASE "
                    "(then: benchmarks/bench_dm_outside.py --run DIR/CASE --refit, the outside recording's route)")
-    p.add_argument("--force", action="store_true", help="run past the size guard (config.budget.check_limits): the whole "
-                   "grid on a Hadamard plan (--set dm_plan.kind=hadamard) estimates 8.44 GiB against its 8 GiB limit")
+    p.add_argument("--force", action="store_true", help="run past the size guard (config.budget.check_limits), for a grid "
+                   "beyond its limits")
     p.add_argument("--load", metavar="PKL", help="print the figures of a run saved with BENCH_DM_HCIPY_SAVE (no run)")
     p.add_argument("--against", metavar="PKL2", help="with --load: another run of the same mirror under other noise "
                    "(--set seed=N): the two runs' differences over their stds, no truth")

@@ -98,6 +98,49 @@ def test_holds_leave_the_sweep_frames_as_they_were():
     assert torch.equal(fa.frames, fb.frames) and torch.equal(fa.trigger_time_s, fb.trigger_time_s)  # the holds draw their own noise
 
 
+
+def test_the_holds_keep_one_pattern_s_raw_frames_at_a_time(small_rig):
+    """``acquire_holds`` with one group per pattern reduces each pattern's frames to their cropped mean and
+    variance before the next pattern is held (the whole ladder of issue 23's Hadamard plan held raw was
+    5.5 GB of its estimated 8.44 GiB): when a pattern is held, no earlier pattern's frames are alive. The
+    images are those of the frames held all at once (:func:`hold_images` of the list)."""
+    import gc
+    import weakref
+    from types import SimpleNamespace
+
+    from torchblur.identify.dm_ladder import acquire_holds, hold_images, ladder_key
+    from torchblur.image.dark import DarkFrame
+
+    cfg, wfs, rig = small_rig
+    c = cfg.camera
+
+    class Tracking:
+        def __init__(self):
+            self.refs, self.alive_before, self.copies = [], [], []
+
+        def pattern_ladder(self, **kw):
+            gc.collect()
+            self.alive_before.append(sum(r() is not None for r in self.refs))
+            cap = rig.pattern_ladder(**kw)
+            self.refs.append(weakref.ref(cap.frames))
+            self.copies.append(cap.frames.clone())
+            return cap
+
+    P, N = 4, rig.n_actuators
+    patterns = np.sign(np.random.default_rng(2).normal(size=(P, N)))
+    levels = np.tile([-1.0, -0.3, 0.3, 1.0], (P, 1))
+    H, W = rig.frame_shape
+    cal = SimpleNamespace(dark=DarkFrame(mean=torch.full((H, W), float(c.dark_level), dtype=_F64), read_noise=torch.tensor(1.0),
+                                         hot_pixels=torch.zeros((H, W), dtype=torch.bool), n_frames=1),
+                          gain=float(c.gain), read_noise_e=float(c.read_noise))
+    offset, size = torch.as_tensor(np.floor(wfs.rest_px - 7.5)).long(), (16, 16)
+    track = Tracking()
+    got = acquire_holds(track, None, [ladder_key(p) for p in range(P)], patterns, levels, 3, 1e-3, cal, offset, size)
+    assert track.alive_before == [0, 0, 0, 0]  # held one pattern at a time
+    want = hold_images(track.copies, levels, 1e-3, cal, offset, size)  # the list form: every pattern's frames at once
+    assert got.images.shape == (P, 4, wfs.n_valid, 16, 16) and bool(got.images.abs().sum() > 0)
+    assert torch.equal(got.images, want.images) and torch.equal(got.variance, want.variance) and torch.equal(got.levels, want.levels)
+
 def _gauss(h, cx, cy, sx, sy, total):
     y, x = torch.meshgrid(torch.arange(h, dtype=_F64), torch.arange(h, dtype=_F64), indexing="ij")
     return total / (2 * math.pi * sx * sy) * torch.exp(-((x - cx) ** 2 / (2 * sx**2) + (y - cy) ** 2 / (2 * sy**2)))

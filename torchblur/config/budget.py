@@ -137,18 +137,20 @@ def _estimate_dm(cfg: IdentifyConfig) -> dict:
     ``sweep_frames``, ``hold_frames``)."""
     p = cfg.dm_plan
     size = dm_sweep_size(cfg)
-    test = size["patterns"] * 2 * LADDER_TEST_FRAMES if p.spot_model == "auto" else 0
+    test = size["patterns"] * 2 * LADDER_TEST_FRAMES if p.spot_model == "auto" else 0  # one recorded group, held at once
     branches = {}
     if p.spot_model in ("auto", "shifted"):
-        branches["shifted"] = (size, test)
+        branches["shifted"] = (size, test, test)
     if p.spot_model in ("auto", "ladder"):
         lad = dm_sweep_size(cfg, ladder=True)
-        branches["ladder"] = (lad, test + lad["patterns"] * int(p.ladder_levels) * int(p.ladder_frames))
+        per_pattern = int(p.ladder_levels) * int(p.ladder_frames)  # one group per pattern, reduced before the next is held
+        branches["ladder"] = (lad, test + lad["patterns"] * per_pattern, max(test, per_pattern))
     each = {}
-    for name, (sz, holds) in branches.items():
+    for name, (sz, holds, held) in branches.items():
         n_still = dm_still_frames(sz["frames"], sz["frame_shape"])
         frames = sz["frames"] + calibration_frames(cfg, n_dark=DM_DARK_FRAMES, n_still=n_still) + holds
-        each[name] = _estimate(cfg, frames, sz["frame_shape"], n_drives=sz["patterns"], repeats=sz["repeats"], holds=holds)
+        each[name] = _estimate(cfg, frames, sz["frame_shape"], n_drives=sz["patterns"], repeats=sz["repeats"], holds=holds,
+                               held=held)
         each[name]["sweep_frames"], each[name]["hold_frames"] = sz["frames"], holds
     est = dict(max(each.values(), key=lambda e: e["frames"]))
     if len(each) > 1:
@@ -156,11 +158,13 @@ def _estimate_dm(cfg: IdentifyConfig) -> dict:
     return est
 
 
-def _estimate(cfg: IdentifyConfig, frames: int, frame_px: tuple, *, n_drives: int, repeats: int, holds: int = 0) -> dict:
+def _estimate(cfg: IdentifyConfig, frames: int, frame_px: tuple, *, n_drives: int, repeats: int, holds: int = 0,
+              held: int | None = None) -> dict:
     """:func:`estimate_run`'s dict for ``frames`` of ``frame_px`` ``(H, W)``, the sweep driving
     ``n_drives`` inputs (or DM patterns) at every frequency, ``repeats`` frames per exposure;
-    ``holds`` of the frames are a DM spot model's static holds, held raw until each level's mean
-    (8 bytes a pixel, not 24) and a camera cycle each."""
+    ``holds`` of the frames are a DM spot model's static holds, a camera cycle each, of which ``held``
+    (default all) are in memory at once, raw until each level's mean (8 bytes a pixel, not 24: the
+    ladder's are reduced one pattern at a time, :func:`~torchblur.identify.dm_ladder.acquire_holds`)."""
     s, c = cfg.sweep, cfg.camera
     pixels = int(frame_px[0]) * int(frame_px[1])
     bench = float("nan")
@@ -169,7 +173,8 @@ def _estimate(cfg: IdentifyConfig, frames: int, frame_px: tuple, *, n_drives: in
         cycle = np.maximum(1.0 / c.frame_rate_hz, 1.0 / f)
         frame_s = sum(np.maximum(cycle, e / f + c.readout_s) for e in s.exposures) * int(repeats)
         bench = float(n_drives * np.sum(frame_s + (s.settle_s or 0.0) + 2.0 / f)) + holds / float(c.frame_rate_hz)
-    return {"frames": frames, "memory_bytes": 8 * (3 * (frames - holds) + holds) * pixels, "disk_bytes": 2 * frames * pixels,
+    held = holds if held is None else held
+    return {"frames": frames, "memory_bytes": 8 * (3 * (frames - holds) + held) * pixels, "disk_bytes": 2 * frames * pixels,
             "bench_s": bench, "motion_px": 1.33 * float(cfg.excitation.target_px), "frame_px": (int(frame_px[0]), int(frame_px[1]))}
 
 

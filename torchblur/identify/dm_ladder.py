@@ -85,7 +85,10 @@ class HoldImages:
 def acquire_holds(rig, exp, keys, patterns, levels, n: int, exposure_s: float, cal, offset, size) -> HoldImages:
     """Every pattern held at its ``levels`` (``[P, K]``), ``n`` frames per level at ``exposure_s``
     and laser power 1, through :func:`~torchblur.identify.record.run_stage` (from the recording
-    where it holds them): one group ``keys`` (a str) for all, or one per pattern (``keys[p]``)."""
+    where it holds them): one group ``keys`` (a str) for all, or one per pattern (``keys[p]``).
+    With one group per pattern, each pattern's frames are reduced to their cropped mean and variance
+    (:func:`hold_images`) before the next pattern is held: the run holds one pattern's raw frames at
+    a time, not the whole ladder's (the recording keeps every frame)."""
 
     def hold(r, p):
         return r.pattern_ladder(pattern=patterns[p].tolist(), levels=levels[p].tolist(), n=int(n), exposure_s=float(exposure_s),
@@ -95,7 +98,7 @@ def acquire_holds(rig, exp, keys, patterns, levels, n: int, exposure_s: float, c
     if isinstance(keys, str):
         frames = run_stage(exp, keys, LADDER_KIND, rig, lambda r: [hold(r, p) for p in range(P)], labels={"n_patterns": P})
     else:
-        frames = [run_stage(exp, keys[p], LADDER_KIND, rig, lambda r, p=p: hold(r, p), labels={"pattern": p}) for p in range(P)]
+        frames = (run_stage(exp, keys[p], LADDER_KIND, rig, lambda r, p=p: hold(r, p), labels={"pattern": p}) for p in range(P))
     return hold_images(frames, levels, exposure_s, cal, offset, size)
 
 
@@ -103,7 +106,9 @@ def hold_images(frames, levels, exposure_s: float, cal, offset, size, power: flo
     """:class:`HoldImages` of held frames (one per pattern ``[K, n, H, W]`` ADU, at ``levels``
     ``[P, K]``, ``exposure_s`` and laser ``power``): dark subtracted, gain applied, the mean per
     level per second at power 1 and its variance from the camera noise model, cropped at the spots
-    (``offset`` ``[M, 2]``, ``size``). One function for a live run and an outside recording."""
+    (``offset`` ``[M, 2]``, ``size``). One function for a live run and an outside recording.
+    ``frames`` may be an iterator: each pattern's frames are reduced and dropped before the next is
+    taken (:func:`acquire_holds`)."""
     imgs, var = [], []
     for fr in frames:
         e = subtract_dark(torch.as_tensor(fr, dtype=_F64), cal.dark) * cal.gain
@@ -111,6 +116,7 @@ def hold_images(frames, levels, exposure_s: float, cal, offset, size, power: flo
         scale = exposure_s * power
         imgs.append(crop_spots(mean / scale, offset, size))
         var.append(crop_spots(camera_noise_std(mean, cal.read_noise_e) ** 2 / (e.shape[1] * scale**2), offset, size))
+        del fr, e, mean  # before the iterator takes the next pattern's frames
     return HoldImages(torch.stack(imgs), torch.stack(var), torch.as_tensor(np.asarray(levels), dtype=_F64))
 
 
