@@ -473,7 +473,20 @@ def run_case(name: str, quick: bool, psf: str = "auto", jobs: int = 1, extra=(),
     print(f"  {res.n_frames} sweep frames ({len(res.freq_hz)} frequencies {res.freq_hz[0]:.4g}..{res.freq_hz[-1]:.4g} Hz), generator set-up "
           f"{t_gen:.1f} s, run {t_run:.1f} s = {t_run / res.n_frames * 1e3:.0f} ms a sweep frame ({', '.join(f'{k} {v:.1f} s' for k, v in res.timing_s.items())}); mean Gauss-Legendre "
           f"nodes per frame {np.mean(rig.nodes_used):.1f}")
+    print(f"  peak resident memory of this process so far: {peak_rss_gb():.2f} GB (the generator's included; against the run-size "
+          f"estimate above)")
     report(res, truth, dyn, float(cfg.fit.poor_fit_chi2))
+
+
+def peak_rss_gb() -> float:
+    """The process's peak resident set size (GB, 1e9 bytes): ``resource.getrusage``'s ``ru_maxrss``
+    (kB on Linux, bytes on macOS); NaN where ``resource`` is missing (Windows)."""
+    try:
+        import resource
+    except ImportError:
+        return math.nan
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return rss / 1e9 if sys.platform == "darwin" else rss * 1024 / 1e9
 
 
 def report(res, truth, dyn, poor_fit_chi2: float) -> None:

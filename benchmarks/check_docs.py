@@ -257,7 +257,7 @@ CLAIMS = [
             prefix + r": every live actuator within mode " + NUM + r" %, damping " + NUM + r" %, delay " + NUM
             + r" us \(largest errors; DC gain " + NUM + r" %\), D0 " + NUM + r" % rms of max, rms\(error/std\) D\(jw\) " + NUM
             + r", mode " + NUM + r", damping " + NUM + r", delay " + NUM + r", DC gain " + NUM,
-            [sys.executable, "benchmarks/bench_dm_hcipy.py", "--case", case, "--no-checks", "--force", "--set", "dm_plan.kind=hadamard"],
+            [sys.executable, "benchmarks/bench_dm_hcipy.py", "--case", case, "--no-checks", "--set", "dm_plan.kind=hadamard"],
             _HCIPY_FIGURES, rtol=(0.02,), speed="slow")
       for case, prefix in (("aligned", "Aligned"), ("misregistered", "Misregistered"))],
     *[Claim(f"DM: what the Hadamard plan's mode errors follow on HCIPy's whole grid ({case})", "docs/deformable_mirrors.md",
@@ -268,7 +268,7 @@ CLAIMS = [
             (r"correlation \+[0-9.]+ and \+" + NUM + r" over the live actuators; there the gain errors, each actuator's mean over "
              r"frequency taken out, are [0-9.]+ and " + NUM + r" of their stds\)[\s\S]*?reduced chi2 median is [0-9.]+ and " + NUM
              + r" \(every frequency [0-9.]+-[0-9.]+\) and the demultiplexing's chi2/dof [0-9.]+ and " + NUM),
-            [sys.executable, "benchmarks/bench_dm_hcipy.py", "--case", case, "--no-checks", "--force", "--set", "dm_plan.kind=hadamard"],
+            [sys.executable, "benchmarks/bench_dm_hcipy.py", "--case", case, "--no-checks", "--set", "dm_plan.kind=hadamard"],
             r"mode errors follow the gain errors at 986\.8 Hz \(correlation \+" + NUM + r"[^)]*\), where the gain errors are " + NUM
             + r" of their stds[^;]*; there the spot fits' reduced chi2 median is " + NUM + r" \([^)]*\) and the demultiplexing's "
             r"chi2/dof " + NUM, rtol=(0.02,), speed="slow")

@@ -20,6 +20,7 @@ from torchblur.design.windows import MIN_SEPARATION, alias_separation, dual_expo
 from torchblur.dm.mirror import DeformableMirror
 from torchblur.dm.plans import SPARSE_MARGIN, choose_plan
 from torchblur.dm.shack_hartmann import ShackHartmann
+from torchblur.dm.spot_fit import CHUNK_BYTES
 from torchblur.errors import ConfigError, ParameterError
 
 __all__ = ["LADDER_TEST_FRAMES", "LIMITS", "SATURATION_STEPS", "LATENCY_SCAN", "GEOMETRY_EVALUATIONS", "estimate_run", "check_limits",
@@ -134,7 +135,9 @@ def _estimate_dm(cfg: IdentifyConfig) -> dict:
     the ladder (the test's and ``patterns x ladder_levels x ladder_frames`` more, on the ladder's plan,
     :func:`dm_ladder_plan`: on ``kind=auto`` a sparse one where auto chose Hadamard); the estimate is
     the larger, the most the run may take, and ``by_spot_model`` holds each (``frames``,
-    ``sweep_frames``, ``hold_frames``)."""
+    ``sweep_frames``, ``hold_frames``). ``memory_bytes`` adds the spot fits' largest chunk
+    (:data:`~torchblur.dm.spot_fit.CHUNK_BYTES`) to the frames'; a rig's own memory (a simulator's) is
+    not in it."""
     p = cfg.dm_plan
     size = dm_sweep_size(cfg)
     test = size["patterns"] * 2 * LADDER_TEST_FRAMES if p.spot_model == "auto" else 0  # one recorded group, held at once
@@ -151,6 +154,7 @@ def _estimate_dm(cfg: IdentifyConfig) -> dict:
         frames = sz["frames"] + calibration_frames(cfg, n_dark=DM_DARK_FRAMES, n_still=n_still) + holds
         each[name] = _estimate(cfg, frames, sz["frame_shape"], n_drives=sz["patterns"], repeats=sz["repeats"], holds=holds,
                                held=held)
+        each[name]["memory_bytes"] += CHUNK_BYTES  # the spot fits' working set: one chunk at a time, on the sweep's one worker
         each[name]["sweep_frames"], each[name]["hold_frames"] = sz["frames"], holds
     est = dict(max(each.values(), key=lambda e: e["frames"]))
     if len(each) > 1:
