@@ -349,6 +349,22 @@ def demux_chi2(res) -> np.ndarray:
     return np.where(dof > 0, d2.sum((0, 1)) / np.maximum(dof, 1), np.nan)
 
 
+def lost_entries_line(res) -> str:
+    """How many entries of ``D`` the failed spot fits left undetermined (NaN, :func:`~torchblur.dm.demux.demultiplex`),
+    on how many (slope row, frequency) items, and the driven patterns whose fits were lost on the item with the most."""
+    lost = np.isnan(res.D)  # [2M, N, F]
+    per_item = lost.sum(1)  # [2M, F]
+    if not per_item.any():
+        return "D entries the failed spot fits left undetermined: none"
+    r, k = np.unravel_index(np.argmax(per_item), per_item.shape)
+    from torchblur.dm.plans import driven_spots
+
+    M = res.Y.shape[1] // 2
+    gone = np.flatnonzero(~np.isfinite(res.Y[:, r, k]) & driven_spots(res.plan)[:, r % M])  # not the pairs left unfitted by design
+    return (f"D entries the failed spot fits left undetermined: {int(lost.sum())} on {int((per_item > 0).sum())} (slope row, "
+            f"frequency) items, at most {int(per_item.max())} of {lost.shape[1]} on one (row {r} at {res.freq_hz[k]:.4g} Hz, "
+            f"patterns {', '.join(str(int(p)) for p in gone)} lost there)")
+
 def mode_driver_line(res, truth, dyn, proj=None) -> str:
     """Which frequency the live actuators' mode errors follow: the correlation over the actuators of
     each mode's error/std with its response's gain error/std at each frequency (each actuator's mean
@@ -516,6 +532,7 @@ def report(res, truth, dyn, poor_fit_chi2: float) -> None:
         print(f"  pull of the pattern responses toward their pattern's common response, {line}")
     print(f"  modes against their deviation from the live mean: {mode_pull_line(res, dyn)}")
     print(f"  {mode_driver_line(res, truth, dyn, proj)}")
+    print(f"  {lost_entries_line(res)}")
     print(f"  dead actuator status {f['dead_status']} (want dead), weak {f['weak_status']} (want weak), other live actuators not ok: "
           f"{f['other_not_ok']}")
     print(f"  spot fits' reduced chi2 median {f['spot_chi2_median']:.3g} (<= 1.2); poor_fit actuators {f['poor_fit_actuators']}")
