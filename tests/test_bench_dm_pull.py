@@ -58,3 +58,33 @@ def test_the_mode_line_reads_a_shrink_toward_the_mean():
     line = bench.mode_pull_line(res, dyn)
     slope = float(re.search(r"slope ([+-][\d.]+)", line).group(1))
     assert abs(slope + 0.05) < 2e-3 and line.endswith("with the slope taken out 0.00"), line
+
+
+def test_the_demultiplexing_chi2_reads_consistent_and_planted_inconsistent_responses():
+    """``demux_chi2``: pattern responses of one ``D`` with noise of their stated covariance give chi2/dof
+    about 1 (Hadamard: 16 patterns, 12 unknowns per row); a gain planted on one pattern raises it at its
+    frequency only; a plan without redundant patterns (one at a time) gives NaN. ``lost_entries_line``
+    counts the NaN entries of ``D`` and names the driven patterns lost on the item with the most."""
+    from torchblur.dm.demux import demultiplex
+
+    rng = np.random.default_rng(4)
+    N, S2, F = 12, 40, 2
+    P = scipy.linalg.hadamard(16)[:, :N].astype(float)
+    D = rng.normal(size=(S2, N, F)) + 1j * rng.normal(size=(S2, N, F))
+    sd = 1e-2
+    Y = np.einsum("pn,snf->psf", P, D) + sd * (rng.normal(size=(16, S2, F)) + 1j * rng.normal(size=(16, S2, F)))
+    Y[3, :, 1] *= 1.05  # one pattern's gain off at the second frequency
+    cov = np.broadcast_to(np.eye(2) * sd ** 2, Y.shape + (2, 2)).copy()
+    plan = SimpleNamespace(patterns=P, support=np.ones((S2, N), dtype=bool))
+    De, Dc = demultiplex(Y, cov, P)
+    chi2 = bench.demux_chi2(SimpleNamespace(plan=plan, Y=Y, Y_cov=cov, D=De))
+    assert abs(chi2[0] - 1) < 0.15 and chi2[1] > 10, chi2
+    eye = SimpleNamespace(patterns=np.eye(N), support=np.ones((S2, N), dtype=bool))
+    Y1 = np.einsum("pn,snf->psf", np.eye(N), D)
+    cov1 = np.broadcast_to(np.eye(2) * sd ** 2, Y1.shape + (2, 2)).copy()
+    assert np.isnan(bench.demux_chi2(SimpleNamespace(plan=eye, Y=Y1, Y_cov=cov1, D=demultiplex(Y1, cov1, np.eye(N))[0]))).all()
+    Y1[5, 7, 0] = np.nan  # one lost fit of a pattern of its own: one entry of D
+    res = SimpleNamespace(plan=SimpleNamespace(patterns=np.eye(N), support=np.ones((S2, N), dtype=bool)), Y=Y1,
+                          D=demultiplex(Y1, cov1, np.eye(N))[0], freq_hz=np.array([10.0, 20.0]))
+    assert bench.lost_entries_line(res) == ("D entries the failed spot fits left undetermined: 1 on 1 (slope row, frequency) items, "
+                                            "at most 1 of 12 on one (row 7 at 10 Hz, patterns 5 lost there)")
