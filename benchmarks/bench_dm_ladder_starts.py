@@ -77,7 +77,7 @@ def acquire(patterns):
 def fit(cal, plan, ladder, sweep, cfg):
     """``(Y [P, 2M], Y_cov, failed, out of the ladder)`` of one frequency: the run's own ``_fit_frequency``."""
     f, amp, power, frames, window = sweep
-    r = _fit_frequency(frames, window, 2 * math.pi * f, amp, power, cal, None, plan.offset, plan.size, float(cfg.camera.jitter_s),
+    r = _fit_frequency(frames, window, 2 * math.pi * f, amp, power, cal, plan.psf, plan.offset, plan.size, float(cfg.camera.jitter_s),
                        _fit_options(cfg), ladder)
     return r.Y, r.Y_cov, r.failed, r.out_of_ladder
 
