@@ -40,6 +40,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import resource
 import sys
 import time
 from pathlib import Path
@@ -55,6 +56,7 @@ from torchblur.identify.pipeline import identify  # noqa: E402
 from torchblur.identify.verdict import final_verdict  # noqa: E402
 from torchblur.config import load_config  # noqa: E402
 from torchblur.config.budget import estimate_run  # noqa: E402
+from torchblur.dm.plans import driven_spots  # noqa: E402
 
 CASES = {"aligned": hs.SHOptics(),
          "misregistered": hs.SHOptics(shift=(0.25, 0.0), rotation_deg=1.5, magnification=1.03)}
@@ -357,8 +359,6 @@ def lost_entries_line(res) -> str:
     if not per_item.any():
         return "D entries the failed spot fits left undetermined: none"
     r, k = np.unravel_index(np.argmax(per_item), per_item.shape)
-    from torchblur.dm.plans import driven_spots
-
     M = res.Y.shape[1] // 2
     gone = np.flatnonzero(~np.isfinite(res.Y[:, r, k]) & driven_spots(res.plan)[:, r % M])  # not the pairs left unfitted by design
     return (f"D entries the failed spot fits left undetermined: {int(lost.sum())} on {int((per_item > 0).sum())} (slope row, "
@@ -495,14 +495,8 @@ def run_case(name: str, quick: bool, psf: str = "auto", jobs: int = 1, extra=(),
 
 
 def peak_rss_gb() -> float:
-    """The process's peak resident set size (GB, 1e9 bytes): ``resource.getrusage``'s ``ru_maxrss``
-    (kB on Linux, bytes on macOS); NaN where ``resource`` is missing (Windows)."""
-    try:
-        import resource
-    except ImportError:
-        return math.nan
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return rss / 1e9 if sys.platform == "darwin" else rss * 1024 / 1e9
+    """The process's peak resident set size (GB, 1e9 bytes): ``ru_maxrss`` (kB on Linux), as the other benchmarks read it."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e9
 
 
 def report(res, truth, dyn, poor_fit_chi2: float) -> None:

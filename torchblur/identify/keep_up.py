@@ -57,14 +57,15 @@ def pace_summary(fit_s, frames_per_frequency: int, frame_rate_hz: float | None, 
     if not ok.size:
         return None
     med = float(np.median(ok))
+    out = {"fit_median_s": med, "fit_max_s": float(ok.max()), "frames_per_frequency": int(frames_per_frequency),
+           "frame_rate_hz": None, "acquire_s": None, "ratio": None, "wait_s": None, "idle_s": None, "keeps_up": None}
     if frame_rate_hz is None or not frame_rate_hz > 0:
-        return {"fit_median_s": med, "fit_max_s": float(ok.max()), "frames_per_frequency": int(frames_per_frequency),
-                "frame_rate_hz": None, "acquire_s": None, "ratio": None, "wait_s": None, "idle_s": None, "keeps_up": None}
+        return out
     acq = frames_per_frequency / float(frame_rate_hz)
     wait, idle = sweep_schedule(fit, acq, lag)
-    return {"fit_median_s": med, "fit_max_s": float(ok.max()), "frames_per_frequency": int(frames_per_frequency),
-            "frame_rate_hz": float(frame_rate_hz), "acquire_s": acq, "ratio": med / acq, "wait_s": wait, "idle_s": idle,
-            "keeps_up": bool(np.isfinite(wait) and ok.max() <= acq)}
+    out.update(frame_rate_hz=float(frame_rate_hz), acquire_s=acq, ratio=med / acq, wait_s=wait, idle_s=idle,
+               keeps_up=bool(np.isfinite(wait) and ok.max() <= acq))
+    return out
 
 
 def pace_line(pace: dict | None) -> str | None:
