@@ -67,3 +67,20 @@ def test_a_failed_fit_task_is_reported_not_lost(threaded):
     assert np.isfinite(res.Y[:, :, kept]).all()
     assert any("spot fits of" in line and "worker lost (test)" in line for line in res.log)
     assert not final_verdict(res, 1.5).trustworthy
+
+
+def test_a_failed_task_counts_only_the_spot_fits_it_was_given():
+    """``collect_fits``: a frequency whose task raised counts failed the spot fits the plan drives (the
+    verdict's denominator, driven problems x frequencies), not every (pattern, spot) pair: on a sparse plan
+    the others are not fitted at all, and counting them made one lost task look like more than its share."""
+    from concurrent.futures import Future
+
+    from torchblur.identify.dm_plan import collect_fits
+
+    P, M = 3, 4
+    driven = np.array([[1, 0, 0, 1], [0, 1, 0, 0], [0, 0, 1, 1]], dtype=bool)  # 5 of 12 pairs
+    lost = Future()
+    lost.set_exception(RuntimeError("worker lost (test)"))
+    Y, Y_cov, failed, chi2, out, fit_s = collect_fits(np.array([100.0]), [lost], P, 2 * M, driven)
+    assert failed == 5 and np.isnan(Y).all() and np.isnan(fit_s).all() and out == 0
+    assert collect_fits(np.array([100.0]), [lost], P, 2 * M)[2] == P * M  # no plan given: every pair

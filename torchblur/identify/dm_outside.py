@@ -449,7 +449,8 @@ class DMOutsidePlan(DMPlan):
                     torch.as_tensor(rec.start_s[k], dtype=_F64)[:, None], torch.as_tensor(rec.duration_s[k], dtype=_F64)[:, None]),
                     2 * math.pi * float(f), float(rec.amplitude[k]), float(rec.power[k]), cal, self.psf, self.offset, self.size,
                     float(cfg.camera.jitter_s), _fit_options(cfg), ladder, driven))
-            Y, Y_cov, failed, chi2, out, self.fit_s = collect_fits(rec.freq_hz, futures, self.plan.n_patterns, self.G.shape[0])
+            Y, Y_cov, failed, chi2, out, self.fit_s = collect_fits(rec.freq_hz, futures, self.plan.n_patterns, self.G.shape[0],
+                                                                   driven)
         LOGGER.info(f"recording: {len(rec.freq_hz)} frequencies x {self.plan.n_patterns} patterns, {rec.n_frames} frames, from {rec.path}")
         run.timing["fit_wait"] = time.perf_counter() - t0
         n_frames = int(rec.start_s.size)

@@ -377,9 +377,9 @@ def _fit_outcome(future):
         return None, f"{type(exc).__name__}: {exc}"
 
 
-def _failed_frequency(P: int, M2: int):
-    """A frequency whose fit task failed: NaN responses and covariances, every one of its ``P * M`` spot fits failed."""
-    return FrequencyFit(np.full((P, M2), np.nan + 0j), np.full((P, M2, 2, 2), np.nan), P * (M2 // 2), np.full((P, M2 // 2), np.nan), 0, 0,
+def _failed_frequency(P: int, M2: int, n_fits: int):
+    """A frequency whose fit task failed: NaN responses and covariances, its ``n_fits`` spot fits (the driven ones) failed."""
+    return FrequencyFit(np.full((P, M2), np.nan + 0j), np.full((P, M2, 2, 2), np.nan), n_fits, np.full((P, M2 // 2), np.nan), 0, 0,
                         math.nan)
 
 
@@ -430,7 +430,7 @@ def _sweep(cfg, rig, plan, R, G, cal, psf, offset, size, exp=None, executor=None
             LOGGER.info(f"dm sweep: {f:.4g} Hz, amplitude {amps[k]:.4g}, power {powers[k]:.3g}, {P} patterns x "
                         f"{len(te)} exposures x {R} repeats ({k + 1}/{F}{', recorded' if rec is not None else ''})")
         t0 = time.perf_counter()
-        Y, Y_cov, failed, chi2, out, fit_s = collect_fits(freqs, futures, P, M2)
+        Y, Y_cov, failed, chi2, out, fit_s = collect_fits(freqs, futures, P, M2, driven)
         t_wait = time.perf_counter() - t0
     return amps, powers, Y, Y_cov, failed, chi2, P * F * len(s.exposures) * R, out, t_acq, t_wait, fit_s
 
@@ -440,16 +440,17 @@ def fit_pool(executor=None):
     return ThreadPoolExecutor(max_workers=1) if executor is None else contextlib.nullcontext(executor)
 
 
-def collect_fits(freqs, futures, P: int, M2: int):
+def collect_fits(freqs, futures, P: int, M2: int, driven=None):
     """The :func:`_fit_frequency` of every frequency (``futures``), waited for: ``(Y [P, 2M, F], Y_cov [P, 2M, F, 2, 2], failed,
-    chi2 [P, M, F], out of the ladder, fit seconds [F])``; a task that raised: NaN responses and seconds, its ``P * M`` spot fits
-    counted failed (logged)."""
+    chi2 [P, M, F], out of the ladder, fit seconds [F])``; a task that raised: NaN responses and seconds, its spot fits counted
+    failed (logged): the ``driven`` ``[P, M]`` ones the task was given (None: all ``P * M``), as the verdict counts them."""
+    n_fits = P * (M2 // 2) if driven is None else int(np.count_nonzero(driven))
     outcomes = [_fit_outcome(fu) for fu in futures]
     for f, (_, why) in zip(freqs, outcomes):
         if why is not None:
             LOGGER.info(f"dm sweep: the spot fits of {f:.4g} Hz failed on the executor ({why}): its responses are NaN and "
-                        f"its {P * (M2 // 2)} spot fits counted failed")
-    results = [r if r is not None else _failed_frequency(P, M2) for r, _ in outcomes]
+                        f"its {n_fits} spot fits counted failed")
+    results = [r if r is not None else _failed_frequency(P, M2, n_fits) for r, _ in outcomes]
     out, refit = sum(r.out_of_ladder for r in results), sum(r.refitted for r in results)
     if refit:
         LOGGER.info(f"dm spot model: {refit} spot fits that left the ladder's levels on spots barely moving under their pattern "
