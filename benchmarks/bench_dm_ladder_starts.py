@@ -82,12 +82,12 @@ def fit(cal, plan, ladder, sweep, cfg):
     return r.Y, r.Y_cov, r.failed, r.out_of_ladder
 
 
-def one_pass(name, cal, plan, ladder, sweeps, cfg, dyn, S, pats, snorm, n_second) -> None:
+def one_pass(name, cal, plan, ladder, sweeps, cfg, dyn, S, pats, snorm, starts) -> None:
     """One pass of the fits over ``sweeps`` (as the ladder module is set now), printed per frequency and in all."""
     tot = np.zeros(4)
     z2 = []
     for f, amp, power, frames, window in sweeps:
-        n_second.clear()
+        starts.update(own=0, second=0)
         Y, Yc, failed, out = fit(cal, plan, ladder, (f, amp, power, frames, window), cfg)
         M = Y.shape[1] // 2
         err = Y - (S @ (dyn.response(f)[:, None] * pats.T)).T
@@ -96,9 +96,9 @@ def one_pass(name, cal, plan, ladder, sweeps, cfg, dyn, S, pats, snorm, n_second
         C = np.where(ok[..., None, None], Yc, np.eye(2))
         z2.append(((np.swapaxes(ev, -1, -2) @ np.linalg.inv(C) @ np.where(ok[..., None, None], ev, 0))[..., 0, 0] / 2)[ok])
         lost = torch.as_tensor(~(ok[:, :M] & ok[:, M:]))
-        tot += [failed, out, sum(n_second[1:]), int(ok.sum())]
+        tot += [failed, out, starts["second"], int(ok.sum())]
         print(f"  {name}, {f:7.4g} Hz: failed {failed}, out of the ladder {out} (their |s| "
-              f"{', '.join(f'{v:.2g}' for v in sorted(snorm[lost].tolist())) or '-'}); second start on {sum(n_second[1:])} of {n_second[0]} problems")
+              f"{', '.join(f'{v:.2g}' for v in sorted(snorm[lost].tolist())) or '-'}); second start on {starts['second']} of {starts['own']} problems")
     z2 = np.concatenate(z2)
     print(f"{name}: failed {int(tot[0])}, out of the ladder {int(tot[1])} of {4 * snorm.numel()} fits; second start on {int(tot[2])}; "
           f"kept responses {int(tot[3])}, rms(error/std) {np.sqrt(z2.mean()):.3f} against the linearised truth, above 3: {int((z2 > 9).sum())}")
@@ -111,19 +111,24 @@ def main(argv=None) -> None:
     torch.set_num_threads(1)
     patterns = [int(x) for x in a.patterns.split(",")]
     cfg, cal, plan, ladder, sweeps, pats, levels, dyn, S = acquire(patterns)
-    n_second = []
-    lm = lf.levenberg_marquardt
+    starts = {"own": 0, "second": 0, "pending": False}  # problems fitted from their own start, from the pooled one
+    lm, best = lf.levenberg_marquardt, lf._best_start
+
+    def first_of_each(*a, **kw):  # _best_start's first LM is every problem's own start, a second one the pooled start
+        starts["pending"] = True
+        return best(*a, **kw)
 
     def counting(model_fn, theta0, data, **kw):
-        n_second.append(theta0.shape[0])
+        starts["own" if starts["pending"] else "second"] += theta0.shape[0]
+        starts["pending"] = False
         return lm(model_fn, theta0, data, **kw)
     snorm = ladder.slope.norm(dim=-1)  # [P, M] px per unit command
     print(f"patterns {patterns}: {len(pats)} x {snorm.shape[1]} spots; |s| median {float(snorm.median()):.3g} px per unit")
     passes = (("own start only, 60 LM iterations (before)", math.inf, 60), ("package", lf.SECOND_START, lf.MAX_ITER))
-    with mock.patch.object(lf, "levenberg_marquardt", counting):  # restored on leaving, an exception included
+    with mock.patch.object(lf, "levenberg_marquardt", counting), mock.patch.object(lf, "_best_start", first_of_each):  # restored on leaving
         for name, second, iters in passes:
             with mock.patch.multiple(lf, SECOND_START=second, MAX_ITER=iters):
-                one_pass(name, cal, plan, ladder, sweeps, cfg, dyn, S, pats, snorm, n_second)
+                one_pass(name, cal, plan, ladder, sweeps, cfg, dyn, S, pats, snorm, starts)
     for f, amp, *_ in sweeps:
         H = np.abs(dyn.response(f))
         live = H > 0.5 * np.median(H)

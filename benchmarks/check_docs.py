@@ -292,7 +292,7 @@ CLAIMS = [
           r"rms\(error/std\) " + NUM + r"\s+against the linearised truth; now " + NUM + r" failed, " + NUM + r" left, " + NUM
           + r" kept, " + NUM + r"[\s\S]*?command reaches at most " + NUM + r" of its pattern's top level",
           [sys.executable, "benchmarks/bench_dm_ladder_starts.py"],
-          r"\(before\): failed " + NUM + r", out of the ladder " + NUM + r" of " + NUM + r" fits; second start on [0-9]+; kept responses "
+          r"\(before\): failed " + NUM + r", out of the ladder " + NUM + r" of " + NUM + r" fits; second start on 0; kept responses "
           + NUM + r", rms\(error/std\) " + NUM + r"[\s\S]*?package: failed " + NUM + r", out of the ladder " + NUM
           + r" of [0-9]+ fits; second start on [0-9]+; kept responses " + NUM + r", rms\(error/std\) " + NUM
           + r"[\s\S]*?top level: at most " + NUM, rtol=(0.02,), speed="slow"),
