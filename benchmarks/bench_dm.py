@@ -46,7 +46,12 @@ import time
 import numpy as np
 import torch
 
+from torchblur.config import load_config
+from torchblur.config.budget import dm_ladder_plan
 from torchblur.design.windows import dual_exposure_windows
+from torchblur.dm.plans import driven_spots
+from torchblur.identify.dm_plan import AMPLITUDE_LAG
+from torchblur.identify.keep_up import sweep_schedule
 from torchblur.render.alias import wrap_phase
 from torchblur.render.blur import render_blur
 from torchblur.render.camera import camera_noise_std
@@ -340,10 +345,6 @@ def ladder_route() -> dict:
     """The shipped config's sweep with the ladder as ``dm_plan.kind=auto`` runs it: the sparse plan seen at
     ``SPARSE_MARGIN`` x the support threshold, its repeats from the frame budget, and only the (pattern,
     spot) problems it drives (:func:`~torchblur.dm.plans.driven_spots`): ``{problems, frames}`` per frequency."""
-    from torchblur.config import load_config
-    from torchblur.config.budget import dm_ladder_plan
-    from torchblur.dm.plans import driven_spots
-
     cfg = load_config(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "configs", "identify_dm.yaml"))
     plan, R = dm_ladder_plan(cfg)[:2]
     return {"problems": int(driven_spots(plan).sum()), "frames": plan.n_patterns * len(cfg.sweep.exposures) * R,
@@ -355,9 +356,6 @@ def keep_up(rate: float, problems: int = SHIPPED["problems"], frames: int = SHIP
     per frequency: its Hadamard sweep's by default), its acquisition time per frequency (s) at 30 Hz, and
     the wait after the last frame (s): :func:`~torchblur.identify.keep_up.sweep_schedule`, the sweep's schedule
     (one fit worker, frequency k acquired once k - AMPLITUDE_LAG's fit is done)."""
-    from torchblur.identify.dm_plan import AMPLITUDE_LAG
-    from torchblur.identify.keep_up import sweep_schedule
-
     acq, F = frames / SHIPPED["frame_rate_hz"], SHIPPED["frequencies"]
     t_fit = problems / rate
     return t_fit, acq, sweep_schedule(np.full(F, t_fit), acq, AMPLITUDE_LAG)[0]
